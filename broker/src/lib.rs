@@ -1,0 +1,2 @@
+//! # leveret-broker
+#![forbid(unsafe_code)]
