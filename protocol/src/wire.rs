@@ -358,6 +358,29 @@ fn put_field_value(buf: &mut BytesMut, value: &FieldValue) {
     }
 }
 
+impl FieldTable {
+    /// Decodes a table with its 32-bit length prefix; `src` must hold
+    /// exactly one table.
+    pub fn decode(src: &Bytes) -> Result<FieldTable, crate::DecodeError> {
+        let error = |field: &'static str, problem| crate::DecodeError::Syntax {
+            location: "field table",
+            field,
+            problem,
+        };
+        match field_table(src, src) {
+            Ok((rest, table)) if rest.is_empty() => Ok(table),
+            Ok((rest, _)) => Err(error("", SyntaxProblem::TrailingBytes(rest.len()))),
+            Err(nom::Err::Error(e) | nom::Err::Failure(e)) => Err(error(e.field, e.problem)),
+            Err(nom::Err::Incomplete(_)) => Err(error("", SyntaxProblem::Truncated)),
+        }
+    }
+
+    /// Encodes the table with its 32-bit length prefix.
+    pub fn encode(&self, buf: &mut BytesMut) {
+        put_field_table(buf, self);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
