@@ -197,9 +197,12 @@ pub fn parse_frame(frame: Bytes) -> Result<Frame, DecodeError> {
     }
 }
 
+/// A frame's type, channel, payload, and its frame-end octet if that is wrong.
+type Envelope<'a> = (u8, u16, &'a [u8], Option<u8>);
+
 /// Splits a frame into type, channel, payload, and the wrong frame-end
 /// octet if there is one.
-fn envelope(input: &[u8]) -> nom::IResult<&[u8], (u8, u16, &[u8], Option<u8>)> {
+fn envelope(input: &[u8]) -> nom::IResult<&[u8], Envelope<'_>> {
     let (input, kind) = be_u8(input)?;
     let (input, channel) = be_u16(input)?;
     let (input, size) = be_u32(input)?;

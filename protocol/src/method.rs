@@ -337,3 +337,7 @@ methods! {
     /// tx.rollback-ok.
     TxRollbackOk = (90, 31) "tx.rollback-ok" {}
 }
+
+#[cfg(test)]
+#[path = "method_tests.rs"]
+mod tests;

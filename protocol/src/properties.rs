@@ -123,7 +123,7 @@ impl BasicProperties {
     /// property list from `src`, which must hold exactly that.
     pub fn decode(src: &Bytes) -> Result<BasicProperties, DecodeError> {
         match parse_properties(src, src) {
-            Ok((rest, props)) if rest.is_empty() => Ok(props),
+            Ok(([], props)) => Ok(props),
             Ok((rest, _)) => Err(header_error("", SyntaxProblem::TrailingBytes(rest.len()))),
             Err(nom::Err::Error(e) | nom::Err::Failure(e)) => Err(header_error(e.field, e.problem)),
             Err(nom::Err::Incomplete(_)) => Err(header_error("", SyntaxProblem::Truncated)),

@@ -368,7 +368,7 @@ impl FieldTable {
             problem,
         };
         match field_table(src, src) {
-            Ok((rest, table)) if rest.is_empty() => Ok(table),
+            Ok(([], table)) => Ok(table),
             Ok((rest, _)) => Err(error("", SyntaxProblem::TrailingBytes(rest.len()))),
             Err(nom::Err::Error(e) | nom::Err::Failure(e)) => Err(error(e.field, e.problem)),
             Err(nom::Err::Incomplete(_)) => Err(error("", SyntaxProblem::Truncated)),
@@ -388,7 +388,7 @@ mod tests {
     fn decode_table(bytes: &'static [u8]) -> Result<FieldTable, WireError> {
         let src = Bytes::from_static(bytes);
         match field_table(&src, &src) {
-            Ok((rest, t)) if rest.is_empty() => Ok(t),
+            Ok(([], t)) => Ok(t),
             Ok(_) => panic!("table left bytes"),
             Err(nom::Err::Error(e)) | Err(nom::Err::Failure(e)) => Err(e),
             Err(nom::Err::Incomplete(_)) => panic!("complete parsers never ask for more"),
