@@ -1,7 +1,8 @@
 //! # leveret-broker
 //!
-//! An embeddable AMQP 0.9.1 broker. Start one inside a process with
-//! [`Broker::builder`], or run the `leveret` binary.
+//! An embeddable AMQP 0.9.1 broker that RabbitMQ clients use unchanged.
+//! Start one inside a process with [`Broker::builder`], or run the
+//! `leveret` binary.
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), leveret_broker::StartError> {
@@ -13,8 +14,37 @@
 //! handle.shutdown().await;
 //! # Ok(()) }
 //! ```
+//!
+//! # Layout
+//! - `embed`: the builder and handle, the public entry point.
+//! - `server`: TCP listeners, the accept loop, the TTL/expiry sweeper.
+//! - `connection`: handshake, the reader loop, heartbeats, closing; `connection::writer` owns the socket's write half.
+//! - `channel`: content assembly and one module per AMQP class (`basic`, `queue`, `exchange`, `tx`).
+//! - `core`: state shared by all connections (vhosts, users, limits, memory gauge, shutdown).
+//! - `vhost`: exchanges and queues of a vhost, declare/delete/bind, routing.
+//! - `exchange`: exchange kinds and bindings (`topic` trie, `headers` match).
+//! - `queue`: FIFO, consumers, round-robin dispatch, TTL, max-length, dead-lettering (`deadletter`).
+//! - `consumer`: consumers, delivery tags, unacked bookkeeping, prefetch credit.
+//! - `outbox`: what the core sends to a connection's writer, with backpressure.
+//! - `message`, `memory`, `auth`, `error`: messages, the memory alarm, users and SASL, reply errors.
 #![forbid(unsafe_code)]
 
+mod auth;
+mod channel;
+mod connection;
+mod consumer;
+mod core;
+mod deadletter;
 mod embed;
+mod error;
+mod exchange;
+mod memory;
+mod message;
+mod outbox;
+mod queue;
+mod server;
+mod vhost;
 
+pub use crate::core::Limits;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
+pub use error::AmqpError;

@@ -1,1 +1,149 @@
-fn main() {}
+//! The `leveret` binary: an edge AMQP 0.9.1 broker. Options come from the
+//! command line, or from a TOML file given with `--config` (every flag has
+//! a key of the same name; the command line wins).
+
+use clap::Parser;
+use leveret_broker::{Broker, Limits};
+use serde::Deserialize;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// An embeddable AMQP 0.9.1 message broker.
+#[derive(Debug, Parser)]
+#[command(name = "leveret", version, about)]
+struct Cli {
+    /// Address to accept AMQP connections on; may be given more than once
+    /// [default: 0.0.0.0:5672].
+    #[arg(long = "listen", value_name = "ADDR:PORT")]
+    listen: Vec<SocketAddr>,
+    /// Directory for durable state; created if missing [default: ./leveret-data].
+    #[arg(long, value_name = "DIR")]
+    data_dir: Option<PathBuf>,
+    /// TOML configuration file with the same keys as these flags, plus
+    /// [[users]] (name, password) and vhosts.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Log level or tracing filter (error, warn, info, debug, trace) [default: info].
+    #[arg(long, value_name = "LEVEL")]
+    log: Option<String>,
+}
+
+/// The configuration file.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct FileConfig {
+    listen: Option<Vec<SocketAddr>>,
+    data_dir: Option<PathBuf>,
+    log: Option<String>,
+    #[serde(default)]
+    users: Vec<UserConfig>,
+    #[serde(default)]
+    vhosts: Vec<String>,
+    heartbeat: Option<u16>,
+    frame_max: Option<u32>,
+    channel_max: Option<u16>,
+    max_message_size: Option<u64>,
+    memory_high_watermark: Option<usize>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct UserConfig {
+    name: String,
+    password: String,
+}
+
+fn load(path: &PathBuf) -> Result<FileConfig, String> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    toml::from_str(&text).map_err(|e| format!("invalid config {}: {e}", path.display()))
+}
+
+#[tokio::main]
+async fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let file = match &cli.config {
+        Some(path) => match load(path) {
+            Ok(config) => config,
+            Err(e) => {
+                eprintln!("leveret: {e}");
+                return ExitCode::from(2);
+            }
+        },
+        None => FileConfig::default(),
+    };
+    let filter = cli.log.or(file.log).unwrap_or_else(|| "info".into());
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
+        .with_writer(std::io::stderr)
+        .init();
+
+    let data_dir = cli
+        .data_dir
+        .or(file.data_dir)
+        .unwrap_or_else(|| PathBuf::from("leveret-data"));
+    if let Err(e) = std::fs::create_dir_all(&data_dir) {
+        tracing::error!(dir = %data_dir.display(), error = %e, "cannot create the data directory");
+        return ExitCode::FAILURE;
+    }
+    let listen = if !cli.listen.is_empty() {
+        cli.listen
+    } else {
+        file.listen
+            .unwrap_or_else(|| vec![SocketAddr::from(([0, 0, 0, 0], 5672))])
+    };
+    let defaults = Limits::default();
+    let limits = Limits {
+        channel_max: file.channel_max.unwrap_or(defaults.channel_max),
+        frame_max: file.frame_max.unwrap_or(defaults.frame_max),
+        heartbeat: file.heartbeat.unwrap_or(defaults.heartbeat),
+        max_message_size: file.max_message_size.unwrap_or(defaults.max_message_size),
+        memory_high_watermark: file
+            .memory_high_watermark
+            .unwrap_or(defaults.memory_high_watermark),
+    };
+    let mut builder = Broker::builder().limits(limits);
+    for addr in listen {
+        builder = builder.listen(addr);
+    }
+    for user in file.users {
+        builder = builder.user(user.name, user.password);
+    }
+    for vhost in file.vhosts {
+        builder = builder.vhost(vhost);
+    }
+    let handle = match builder.start().await {
+        Ok(handle) => handle,
+        Err(e) => {
+            tracing::error!(error = %e, "cannot start");
+            return ExitCode::FAILURE;
+        }
+    };
+    wait_for_signal().await;
+    tracing::info!("shutting down");
+    handle.shutdown().await;
+    ExitCode::SUCCESS
+}
+
+async fn wait_for_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = tokio::signal::ctrl_c() => {}
+                    _ = term.recv() => {}
+                }
+            }
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}

@@ -1,0 +1,134 @@
+//! Users and authentication: salted SHA-256 password hashes (RabbitMQ's
+//! default scheme: a 4-byte salt prepended to the password before
+//! hashing), and the SASL mechanisms PLAIN and AMQPLAIN.
+
+use bytes::{Bytes, BytesMut};
+use leveret_protocol::{FieldTable, FieldValue};
+use sha2::{Digest, Sha256};
+use std::collections::HashMap;
+
+/// A stored password: salt and SHA-256 of salt + password.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PasswordHash {
+    salt: [u8; 4],
+    digest: [u8; 32],
+}
+
+impl PasswordHash {
+    /// Hashes `password` with a fresh salt.
+    pub fn new(password: &str) -> Self {
+        use std::hash::{BuildHasher, Hasher};
+        let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
+        hasher.write(password.as_bytes());
+        let salt = (hasher.finish() as u32).to_be_bytes();
+        Self::with_salt(salt, password)
+    }
+
+    fn with_salt(salt: [u8; 4], password: &str) -> Self {
+        let mut sha = Sha256::new();
+        sha.update(salt);
+        sha.update(password.as_bytes());
+        PasswordHash {
+            salt,
+            digest: sha.finalize().into(),
+        }
+    }
+
+    /// Whether `password` matches.
+    pub fn verify(&self, password: &[u8]) -> bool {
+        let mut sha = Sha256::new();
+        sha.update(self.salt);
+        sha.update(password);
+        let digest: [u8; 32] = sha.finalize().into();
+        // Constant-time comparison.
+        digest
+            .iter()
+            .zip(self.digest.iter())
+            .fold(0u8, |acc, (a, b)| acc | (a ^ b))
+            == 0
+    }
+}
+
+/// The users the broker accepts.
+#[derive(Debug, Clone, Default)]
+pub struct Users {
+    users: HashMap<String, PasswordHash>,
+}
+
+impl Users {
+    /// Adds or replaces a user.
+    pub fn insert(&mut self, name: impl Into<String>, password: &str) {
+        self.users.insert(name.into(), PasswordHash::new(password));
+    }
+
+    /// Checks a SASL response for `mechanism`; the user name if it passes.
+    pub fn authenticate(&self, mechanism: &[u8], response: &Bytes) -> Option<String> {
+        let (user, password) = match mechanism {
+            b"PLAIN" => parse_plain(response)?,
+            b"AMQPLAIN" => parse_amqplain(response)?,
+            _ => return None,
+        };
+        let name = std::str::from_utf8(&user).ok()?;
+        self.users
+            .get(name)
+            .filter(|hash| hash.verify(&password))
+            .map(|_| name.to_owned())
+    }
+}
+
+/// PLAIN: `authzid \0 user \0 password`.
+fn parse_plain(response: &[u8]) -> Option<(Vec<u8>, Vec<u8>)> {
+    let mut parts = response.splitn(3, |&b| b == 0);
+    let _authzid = parts.next()?;
+    let user = parts.next()?;
+    let password = parts.next()?;
+    Some((user.to_vec(), password.to_vec()))
+}
+
+/// AMQPLAIN: a field table without its length prefix, with LOGIN and PASSWORD.
+fn parse_amqplain(response: &Bytes) -> Option<(Vec<u8>, Vec<u8>)> {
+    let mut framed = BytesMut::with_capacity(response.len() + 4);
+    framed.extend_from_slice(&(response.len() as u32).to_be_bytes());
+    framed.extend_from_slice(response);
+    let table = FieldTable::decode(&framed.freeze()).ok()?;
+    let text = |v: &FieldValue| v.as_bytes().map(<[u8]>::to_vec);
+    Some((text(table.get("LOGIN")?)?, text(table.get("PASSWORD")?)?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plain_and_amqplain() {
+        let mut users = Users::default();
+        users.insert("guest", "guest");
+        assert_eq!(
+            users.authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0guest")),
+            Some("guest".into())
+        );
+        assert_eq!(
+            users.authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0nope")),
+            None
+        );
+        let amqplain = Bytes::from_static(
+            b"\x05LOGINS\x00\x00\x00\x05guest\x08PASSWORDS\x00\x00\x00\x05guest",
+        );
+        assert_eq!(
+            users.authenticate(b"AMQPLAIN", &amqplain),
+            Some("guest".into())
+        );
+        assert_eq!(users.authenticate(b"EXTERNAL", &amqplain), None);
+    }
+
+    #[test]
+    fn hashes_are_salted() {
+        let a = PasswordHash::new("secret");
+        assert!(a.verify(b"secret"));
+        assert!(!a.verify(b"Secret"));
+        assert_ne!(
+            PasswordHash::with_salt([1; 4], "x"),
+            PasswordHash::with_salt([2; 4], "x")
+        );
+    }
+}

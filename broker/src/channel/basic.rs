@@ -1,0 +1,315 @@
+//! The basic class on a channel: publishing (routing, mandatory returns,
+//! confirms), consumers (consume, cancel, qos), basic.get, and settling
+//! deliveries (ack, nack, reject, recover).
+
+use super::{Channel, Publish};
+use crate::consumer::{Consumer, Unacked};
+use crate::error::{AmqpError, AmqpResult};
+use crate::message::Message;
+use crate::outbox::Outbound;
+use crate::queue::{Enqueued, Queue};
+use leveret_protocol::{
+    BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
+    BasicPublish, BasicQos, BasicQosOk, ReplyCode, ShortStr,
+};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+/// What a client did with a delivery.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Settle {
+    /// basic.ack.
+    Ack,
+    /// basic.reject or basic.nack.
+    Reject {
+        /// Put it back in the queue.
+        requeue: bool,
+    },
+}
+
+/// A unique suffix for generated names (`amq.ctag-…`, `amq.gen-…`).
+pub(crate) fn unique_name(prefix: &str) -> ShortStr {
+    use std::hash::{BuildHasher, Hasher};
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
+    hasher.write_u64(COUNTER.fetch_add(1, Ordering::Relaxed));
+    let a = hasher.finish();
+    hasher.write_u64(a);
+    let b = hasher.finish();
+    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_";
+    let mut name = String::with_capacity(prefix.len() + 22);
+    name.push_str(prefix);
+    let mut bits = (u128::from(a) << 64) | u128::from(b);
+    for _ in 0..22 {
+        name.push(ALPHABET[(bits & 63) as usize] as char);
+        bits >>= 6;
+    }
+    ShortStr::try_from(name).unwrap_or_default()
+}
+
+/// Requeues settled-by-close deliveries, each queue once, in tag order.
+pub(crate) fn requeue_all(unacked: Vec<Unacked>) {
+    let mut by_queue: Vec<(Arc<Queue>, Vec<crate::queue::QueuedMessage>)> = Vec::new();
+    for u in unacked {
+        if let Some(consumer) = &u.consumer {
+            consumer.settled_one();
+        }
+        match by_queue.iter_mut().find(|(q, _)| Arc::ptr_eq(q, &u.queue)) {
+            Some((_, list)) => list.push(u.message),
+            None => by_queue.push((u.queue, vec![u.message])),
+        }
+    }
+    for (queue, messages) in by_queue {
+        queue.requeue(messages);
+    }
+}
+
+impl Channel {
+    pub(super) fn basic_publish(&mut self, publish: BasicPublish) -> AmqpResult<()> {
+        if publish.immediate {
+            return Err(AmqpError::not_implemented("immediate=true"));
+        }
+        self.published = true;
+        self.assembly = super::Assembly::Header(publish);
+        Ok(())
+    }
+
+    /// A whole message has arrived: route it now, or hold it for tx.commit.
+    pub(super) async fn publish(&mut self, publish: Publish) -> AmqpResult<()> {
+        let exchange = self.vhost.exchange_or_404(&publish.method.exchange)?;
+        if exchange.options.internal {
+            return Err(AmqpError::access_refused(format_args!(
+                "cannot publish to internal exchange '{}' in vhost '{}'",
+                exchange.name, self.vhost.name
+            )));
+        }
+        if let Some(user_id) = &publish.properties.user_id {
+            if user_id.as_bytes() != self.user.as_bytes() {
+                return Err(AmqpError::precondition_failed(format_args!(
+                    "user_id property set to '{}' but authenticated user was '{}'",
+                    user_id, self.user
+                )));
+            }
+        }
+        if let Some(tx) = &mut self.tx {
+            tx.publishes.push(publish);
+            return Ok(());
+        }
+        let confirm = self.confirms.as_mut().map(|c| c.next_tag());
+        let accepted = self.route_and_enqueue(publish).await;
+        if let Some(tag) = confirm {
+            self.confirm(tag, accepted).await;
+        }
+        Ok(())
+    }
+
+    /// Routes a message and offers it to each queue; returns whether every
+    /// queue took it. Sends basic.return for unroutable mandatory messages.
+    pub(super) async fn route_and_enqueue(&mut self, publish: Publish) -> bool {
+        let Some(exchange) = self.vhost.exchange(&publish.method.exchange) else {
+            // Deleted between publish and a tx.commit: RabbitMQ drops it.
+            return true;
+        };
+        let ttl_ms = publish
+            .properties
+            .expiration
+            .as_ref()
+            .and_then(|e| e.as_str())
+            .and_then(|e| e.parse::<u64>().ok());
+        let message = Arc::new(Message {
+            exchange: publish.method.exchange,
+            routing_key: publish.method.routing_key,
+            properties: publish.property_bytes,
+            body: publish.body,
+            persistent: publish.properties.is_persistent(),
+            priority: publish.properties.priority.unwrap_or(0),
+            ttl_ms,
+        });
+        let mut queues = std::mem::take(&mut self.route_buffer);
+        self.vhost.route(
+            &exchange,
+            &message.routing_key,
+            publish.properties.headers.as_ref(),
+            &mut queues,
+        );
+        let mut accepted = true;
+        if queues.is_empty() {
+            if publish.method.mandatory {
+                self.outbox()
+                    .send(Outbound::Return {
+                        channel: self.id,
+                        reply_code: ReplyCode::NoRoute.code(),
+                        reply_text: ShortStr::from_static("NO_ROUTE"),
+                        message,
+                    })
+                    .await;
+            }
+        } else {
+            for queue in queues.drain(..) {
+                accepted &= queue.publish(Arc::clone(&message)) == Enqueued::Accepted;
+            }
+        }
+        self.route_buffer = queues;
+        accepted
+    }
+
+    pub(super) async fn basic_qos(&mut self, qos: BasicQos) -> AmqpResult<()> {
+        if qos.prefetch_size != 0 {
+            return Err(AmqpError::not_implemented(format_args!(
+                "prefetch_size!=0 ({})",
+                qos.prefetch_size
+            )));
+        }
+        let count = u32::from(qos.prefetch_count);
+        if qos.global {
+            self.link.global_prefetch.store(count, Ordering::Relaxed);
+        } else {
+            self.prefetch_count = count;
+        }
+        self.reply(BasicQosOk {}).await;
+        // More credit may let waiting messages go.
+        for (_, queue) in self.consumers.values() {
+            queue.dispatch();
+        }
+        Ok(())
+    }
+
+    pub(super) async fn basic_consume(&mut self, consume: BasicConsume) -> AmqpResult<()> {
+        let queue_name = self.queue_name_or_last(consume.queue)?;
+        let queue = self.vhost.queue_or_404(&queue_name)?;
+        crate::vhost::check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
+        let tag = if consume.consumer_tag.is_empty() {
+            unique_name("amq.ctag-")
+        } else {
+            consume.consumer_tag
+        };
+        if self.consumers.contains_key(&tag) {
+            return Err(AmqpError::not_allowed(format_args!(
+                "attempt to reuse consumer tag '{}'",
+                tag
+            )));
+        }
+        let consumer = Arc::new(Consumer {
+            tag: tag.clone(),
+            channel: Arc::clone(&self.link),
+            no_ack: consume.no_ack,
+            exclusive: consume.exclusive,
+            prefetch: self.prefetch_count,
+            in_flight: Default::default(),
+            active: Default::default(),
+        });
+        queue.add_consumer(Arc::clone(&consumer))?;
+        self.consumers
+            .insert(tag.clone(), (Arc::clone(&consumer), Arc::clone(&queue)));
+        if !consume.no_wait {
+            self.reply(BasicConsumeOk { consumer_tag: tag }).await;
+        }
+        // consume-ok is in the outbox ahead of any delivery: only now may
+        // the queue deliver to this consumer.
+        consumer.activate();
+        queue.dispatch();
+        Ok(())
+    }
+
+    pub(super) async fn basic_cancel(&mut self, cancel: BasicCancel) -> AmqpResult<()> {
+        if let Some((consumer, queue)) = self.consumers.remove(&cancel.consumer_tag) {
+            if queue.remove_consumer(&consumer) {
+                self.vhost.delete_queue(&queue);
+            }
+        }
+        if !cancel.no_wait {
+            self.reply(BasicCancelOk {
+                consumer_tag: cancel.consumer_tag,
+            })
+            .await;
+        }
+        Ok(())
+    }
+
+    pub(super) async fn basic_get(&mut self, get: BasicGet) -> AmqpResult<()> {
+        let queue_name = self.queue_name_or_last(get.queue)?;
+        let queue = self.vhost.queue_or_404(&queue_name)?;
+        crate::vhost::check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
+        match queue.get(&self.link, get.no_ack) {
+            Some((delivery_tag, queued, message_count)) => {
+                self.outbox()
+                    .send(Outbound::GetOk {
+                        channel: self.id,
+                        delivery_tag,
+                        redelivered: queued.redelivered,
+                        message_count,
+                        message: queued.message,
+                    })
+                    .await;
+            }
+            None => {
+                self.reply(BasicGetEmpty {
+                    cluster_id: ShortStr::default(),
+                })
+                .await
+            }
+        }
+        Ok(())
+    }
+
+    /// basic.ack, basic.nack and basic.reject.
+    pub(super) async fn settle(&mut self, tag: u64, multiple: bool, how: Settle) -> AmqpResult<()> {
+        let Some(settled) = self.link.deliveries().take(tag, multiple) else {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "unknown delivery tag {tag}"
+            )));
+        };
+        if let Some(tx) = &mut self.tx {
+            tx.settles.extend(settled.into_iter().map(|u| (u, how)));
+            return Ok(());
+        }
+        apply_settles(settled.into_iter().map(|u| (u, how)));
+        Ok(())
+    }
+
+    pub(super) fn basic_recover(&mut self, requeue: bool) -> AmqpResult<()> {
+        if !requeue {
+            return Err(AmqpError::not_implemented("requeue=false"));
+        }
+        let unacked = self.link.deliveries().take_all();
+        requeue_all(unacked);
+        Ok(())
+    }
+
+    /// An empty queue name means the channel's last declared queue.
+    pub(super) fn queue_name_or_last(&self, name: ShortStr) -> AmqpResult<ShortStr> {
+        if !name.is_empty() {
+            return Ok(name);
+        }
+        self.last_queue
+            .clone()
+            .ok_or_else(|| AmqpError::not_found("no previously declared queue"))
+    }
+}
+
+/// Applies settled deliveries: acks release, rejects requeue or dead-letter,
+/// and the queues involved dispatch again (credit was freed).
+pub(crate) fn apply_settles(settles: impl IntoIterator<Item = (Unacked, Settle)>) {
+    let mut requeue = Vec::new();
+    let mut touched: Vec<Arc<Queue>> = Vec::new();
+    for (u, how) in settles {
+        if how == (Settle::Reject { requeue: true }) {
+            requeue.push(u);
+            continue;
+        }
+        if let Some(consumer) = &u.consumer {
+            consumer.settled_one();
+        }
+        if !touched.iter().any(|q| Arc::ptr_eq(q, &u.queue)) {
+            touched.push(Arc::clone(&u.queue));
+        }
+        match how {
+            Settle::Ack => u.queue.settle(&u.message),
+            Settle::Reject { .. } => u.queue.reject(u.message),
+        }
+    }
+    requeue_all(requeue);
+    for queue in touched {
+        queue.dispatch();
+    }
+}

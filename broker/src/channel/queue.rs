@@ -1,0 +1,121 @@
+//! queue.declare, bind, unbind, purge and delete on a channel.
+
+use super::Channel;
+use crate::error::{AmqpError, AmqpResult};
+use crate::queue::QueueOptions;
+use crate::vhost::{check_exclusive, QueueDeclaration};
+use leveret_protocol::{
+    QueueBind, QueueBindOk, QueueDeclare, QueueDeclareOk, QueueDelete, QueueDeleteOk, QueuePurge,
+    QueuePurgeOk, QueueUnbind, QueueUnbindOk, ShortStr,
+};
+
+impl Channel {
+    pub(super) async fn queue_declare(&mut self, declare: QueueDeclare) -> AmqpResult<()> {
+        let connection_id = self.outbox().connection_id;
+        let server_named = declare.queue.is_empty() && !declare.passive;
+        let name = if server_named {
+            super::basic::unique_name("amq.gen-")
+        } else {
+            self.queue_name_or_last(declare.queue)?
+        };
+        let decl = QueueDeclaration {
+            name,
+            passive: declare.passive,
+            server_named,
+            options: QueueOptions {
+                durable: declare.durable,
+                exclusive_owner: declare.exclusive.then_some(connection_id),
+                auto_delete: declare.auto_delete,
+                arguments: declare.arguments,
+            },
+        };
+        let (queue, _created) = self.vhost.declare_queue(decl, connection_id)?;
+        self.last_queue = Some(queue.name.clone());
+        if !declare.no_wait {
+            self.reply(QueueDeclareOk {
+                queue: queue.name.clone(),
+                message_count: queue.message_count(),
+                consumer_count: queue.consumer_count(),
+            })
+            .await;
+        }
+        Ok(())
+    }
+
+    /// An empty routing key with an empty queue name means the last queue's name.
+    fn bind_names(
+        &self,
+        queue: ShortStr,
+        routing_key: ShortStr,
+    ) -> AmqpResult<(ShortStr, ShortStr)> {
+        let shortcut = queue.is_empty();
+        let queue = self.queue_name_or_last(queue)?;
+        let routing_key = if shortcut && routing_key.is_empty() {
+            queue.clone()
+        } else {
+            routing_key
+        };
+        Ok((queue, routing_key))
+    }
+
+    pub(super) async fn queue_bind(&mut self, bind: QueueBind) -> AmqpResult<()> {
+        let (name, routing_key) = self.bind_names(bind.queue, bind.routing_key)?;
+        let queue = self.vhost.queue_or_404(&name)?;
+        check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
+        self.vhost
+            .bind_queue(&queue, &bind.exchange, routing_key, bind.arguments)?;
+        if !bind.no_wait {
+            self.reply(QueueBindOk {}).await;
+        }
+        Ok(())
+    }
+
+    pub(super) async fn queue_unbind(&mut self, unbind: QueueUnbind) -> AmqpResult<()> {
+        let (name, routing_key) = self.bind_names(unbind.queue, unbind.routing_key)?;
+        let queue = self.vhost.queue_or_404(&name)?;
+        check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
+        self.vhost
+            .unbind_queue(&queue, &unbind.exchange, routing_key, unbind.arguments)?;
+        self.reply(QueueUnbindOk {}).await;
+        Ok(())
+    }
+
+    pub(super) async fn queue_purge(&mut self, purge: QueuePurge) -> AmqpResult<()> {
+        let name = self.queue_name_or_last(purge.queue)?;
+        let queue = self.vhost.queue_or_404(&name)?;
+        check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
+        let message_count = queue.purge();
+        if !purge.no_wait {
+            self.reply(QueuePurgeOk { message_count }).await;
+        }
+        Ok(())
+    }
+
+    pub(super) async fn queue_delete(&mut self, delete: QueueDelete) -> AmqpResult<()> {
+        let name = self.queue_name_or_last(delete.queue)?;
+        let message_count = match self.vhost.queue(&name) {
+            // Deleting a queue that does not exist succeeds, as in RabbitMQ.
+            None => 0,
+            Some(queue) => {
+                check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
+                if delete.if_unused && queue.has_consumers() {
+                    return Err(AmqpError::precondition_failed(format_args!(
+                        "queue '{}' in vhost '{}' in use",
+                        name, self.vhost.name
+                    )));
+                }
+                if delete.if_empty && queue.message_count() > 0 {
+                    return Err(AmqpError::precondition_failed(format_args!(
+                        "queue '{}' in vhost '{}' is not empty",
+                        name, self.vhost.name
+                    )));
+                }
+                self.vhost.delete_queue(&queue)
+            }
+        };
+        if !delete.no_wait {
+            self.reply(QueueDeleteOk { message_count }).await;
+        }
+        Ok(())
+    }
+}

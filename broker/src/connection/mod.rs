@@ -1,0 +1,576 @@
+//! One client connection: the protocol header, the connection.* handshake
+//! (start, start-ok with PLAIN/AMQPLAIN, tune, open), then the reader loop
+//! that decodes frames and hands them to channels, heartbeats, memory-alarm
+//! blocking, and closing in either direction. The socket's write half
+//! belongs to the writer task (`writer`), reached through the outbox.
+
+mod writer;
+
+use crate::channel::Channel;
+use crate::core::Core;
+use crate::error::{AmqpError, AmqpResult};
+use crate::outbox::{Outbound, Outbox};
+use crate::vhost::Vhost;
+use bytes::{Bytes, BytesMut};
+use leveret_protocol::{
+    check_protocol_header, decode_frame, ConnectionClose, ConnectionCloseOk, ConnectionOpenOk,
+    ConnectionStart, ConnectionTune, ConnectionUpdateSecretOk, DecodeError, FieldTable, FieldValue,
+    Frame, Method, ProtocolHeaderCheck, ReplyCode, ShortStr, FRAME_MIN_SIZE, PROTOCOL_HEADER,
+};
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+
+/// How long a client has for the handshake, and to answer a close.
+const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
+const CLOSE_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// Why reading stopped.
+#[derive(Debug, thiserror::Error)]
+enum ReadError {
+    #[error("closed by peer")]
+    Closed,
+    #[error("{0}")]
+    Io(std::io::Error),
+    #[error("{0}")]
+    Decode(DecodeError),
+    #[error("timed out")]
+    TimedOut,
+}
+
+/// Reads whole frames off the socket's read half.
+struct FrameReader<R> {
+    socket: R,
+    buf: BytesMut,
+    frame_max: u32,
+}
+
+impl<R: AsyncRead + Unpin> FrameReader<R> {
+    /// The next frame; `Closed` on a clean end of stream.
+    async fn next(&mut self) -> Result<Frame, ReadError> {
+        loop {
+            if let Some(frame) =
+                decode_frame(&mut self.buf, self.frame_max).map_err(ReadError::Decode)?
+            {
+                return Ok(frame);
+            }
+            self.fill().await?;
+        }
+    }
+
+    /// Whether a whole frame is already buffered.
+    fn has_frame(&self) -> bool {
+        matches!(
+            leveret_protocol::check_frame(&self.buf, self.frame_max),
+            Ok(leveret_protocol::FrameCheck::Complete { .. }) | Err(_)
+        )
+    }
+
+    async fn fill(&mut self) -> Result<(), ReadError> {
+        if self.buf.capacity() - self.buf.len() < 4096 {
+            self.buf.reserve(64 * 1024);
+        }
+        match self.socket.read_buf(&mut self.buf).await {
+            Ok(0) => Err(ReadError::Closed),
+            Ok(_) => Ok(()),
+            Err(e) => Err(ReadError::Io(e)),
+        }
+    }
+}
+
+/// Serves one connection until it closes.
+pub async fn serve<R, W>(core: Arc<Core>, read: R, write: W, peer: String)
+where
+    R: AsyncRead + Unpin + Send + 'static,
+    W: AsyncWrite + Unpin + Send + 'static,
+{
+    let connection_id = core.next_connection_id();
+    let span = tracing::debug_span!("connection", id = connection_id, %peer);
+    let _enter = span.enter();
+    drop(_enter);
+    let mut reader = FrameReader {
+        socket: read,
+        buf: BytesMut::with_capacity(64 * 1024),
+        frame_max: core.limits.frame_max,
+    };
+    let mut write = write;
+    match tokio::time::timeout(HANDSHAKE_TIMEOUT, read_protocol_header(&mut reader)).await {
+        Ok(Ok(true)) => {}
+        Ok(Ok(false)) => {
+            tracing::info!(%peer, "wrong protocol header; answering with ours and closing");
+            let _ = write.write_all(PROTOCOL_HEADER).await;
+            let _ = write.shutdown().await;
+            return;
+        }
+        Ok(Err(_)) | Err(_) => return,
+    }
+    let (outbox, inbox) = Outbox::new(connection_id);
+    let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
+    let writer = tokio::spawn(writer::run(write, inbox, Arc::clone(&outbox), heartbeat_rx));
+    let mut conn = Connection {
+        core,
+        outbox,
+        connection_id,
+        peer,
+        user: String::new(),
+        vhost: None,
+        channels: HashMap::new(),
+        channel_max: 0,
+        heartbeat: Duration::ZERO,
+        blocked_notify: false,
+        blocked: false,
+    };
+    // The heartbeat sender lives until the writer has finished, so the
+    // writer never sees it vanish mid-flush.
+    let outcome = conn.run(&mut reader, &heartbeat_tx).await;
+    conn.cleanup();
+    match outcome {
+        Ok(()) => tracing::debug!(peer = %conn.peer, "connection closed"),
+        Err(e) => tracing::info!(peer = %conn.peer, error = %e, "connection closed with error"),
+    }
+    conn.outbox.send(Outbound::Shutdown).await;
+    let _ = writer.await;
+}
+
+async fn read_protocol_header<R: AsyncRead + Unpin>(
+    reader: &mut FrameReader<R>,
+) -> Result<bool, ReadError> {
+    loop {
+        match check_protocol_header(&reader.buf) {
+            ProtocolHeaderCheck::Valid => {
+                let _ = reader.buf.split_to(PROTOCOL_HEADER.len());
+                return Ok(true);
+            }
+            ProtocolHeaderCheck::Invalid => return Ok(false),
+            ProtocolHeaderCheck::Incomplete => reader.fill().await?,
+        }
+    }
+}
+
+struct Connection {
+    core: Arc<Core>,
+    outbox: Arc<Outbox>,
+    connection_id: u64,
+    peer: String,
+    user: String,
+    vhost: Option<Arc<Vhost>>,
+    channels: HashMap<u16, Channel>,
+    channel_max: u16,
+    heartbeat: Duration,
+    blocked_notify: bool,
+    blocked: bool,
+}
+
+/// How the connection ended, for the log line.
+#[derive(Debug, thiserror::Error)]
+enum Ended {
+    #[error("{0}")]
+    Protocol(AmqpError),
+    #[error("socket: {0}")]
+    Read(ReadError),
+}
+
+impl Connection {
+    async fn run<R: AsyncRead + Unpin>(
+        &mut self,
+        reader: &mut FrameReader<R>,
+        heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
+    ) -> Result<(), Ended> {
+        match tokio::time::timeout(HANDSHAKE_TIMEOUT, self.handshake(reader, heartbeat_tx)).await {
+            Ok(Ok(())) => {}
+            Ok(Err(Ended::Protocol(error))) => return self.close_with(reader, error).await,
+            Ok(Err(e)) => return Err(e),
+            Err(_) => return Err(Ended::Read(ReadError::TimedOut)),
+        }
+        tracing::debug!(user = %self.user, "connection open");
+        let mut shutdown = self.core.shutdown_signal();
+        loop {
+            if self.core.gauge.in_alarm() && self.publishes() {
+                self.block(reader).await;
+            }
+            let frame = tokio::select! {
+                frame = self.next_frame(reader) => Some(frame),
+                _ = shutdown.wait_for(|down| *down) => None,
+            };
+            let Some(frame) = frame else {
+                let error = AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
+                return self.close_with(reader, error).await;
+            };
+            let frame = match frame {
+                Ok(frame) => frame,
+                Err(ReadError::Decode(e)) => {
+                    tracing::warn!(peer = %self.peer, error = %e, "malformed frame");
+                    let (class_id, method_id) = e.method_ids();
+                    let error = AmqpError::new(e.reply_code(), &e).during_ids(class_id, method_id);
+                    return self.close_with(reader, error).await;
+                }
+                Err(e) => return Err(Ended::Read(e)),
+            };
+            match self.handle(frame).await {
+                Ok(Flow::Continue) => {}
+                Ok(Flow::Closed) => return Ok(()),
+                Err(error) => return self.close_with(reader, error).await,
+            }
+            if !reader.has_frame() {
+                self.flush_confirms().await;
+            }
+        }
+    }
+
+    /// The next frame, within two heartbeat intervals.
+    async fn next_frame<R: AsyncRead + Unpin>(
+        &self,
+        reader: &mut FrameReader<R>,
+    ) -> Result<Frame, ReadError> {
+        if self.heartbeat.is_zero() {
+            return reader.next().await;
+        }
+        match tokio::time::timeout(self.heartbeat * 2, reader.next()).await {
+            Ok(result) => result,
+            Err(_) => {
+                tracing::info!(peer = %self.peer, "missed heartbeats from client; closing");
+                Err(ReadError::TimedOut)
+            }
+        }
+    }
+
+    fn publishes(&self) -> bool {
+        self.channels.values().any(Channel::has_published)
+    }
+
+    /// Memory alarm: stop reading until it clears, telling the client if it
+    /// asked to know.
+    async fn block<R>(&mut self, _reader: &mut FrameReader<R>) {
+        if self.blocked_notify && !self.blocked {
+            self.blocked = true;
+            let reason = ShortStr::from_static("low on memory");
+            self.outbox
+                .method(0, leveret_protocol::ConnectionBlocked { reason })
+                .await;
+        }
+        self.core.gauge.wait_clear().await;
+        if self.blocked {
+            self.blocked = false;
+            self.outbox
+                .method(0, leveret_protocol::ConnectionUnblocked {})
+                .await;
+        }
+    }
+
+    async fn flush_confirms(&mut self) {
+        for channel in self.channels.values_mut() {
+            channel.flush_confirms().await;
+        }
+    }
+
+    async fn expect_method<R: AsyncRead + Unpin>(
+        &self,
+        reader: &mut FrameReader<R>,
+    ) -> Result<Method, Ended> {
+        loop {
+            match reader.next().await {
+                Ok(Frame::Method { channel: 0, method }) => return Ok(method),
+                Ok(Frame::Heartbeat) => continue,
+                Ok(other) => {
+                    return Err(Ended::Protocol(AmqpError::new(
+                        ReplyCode::UnexpectedFrame,
+                        format_args!(
+                            "expected a connection method during the handshake, got {other:?}"
+                        ),
+                    )))
+                }
+                Err(ReadError::Decode(e)) => {
+                    return Err(Ended::Protocol(AmqpError::new(e.reply_code(), &e)))
+                }
+                Err(e) => return Err(Ended::Read(e)),
+            }
+        }
+    }
+
+    async fn handshake<R: AsyncRead + Unpin>(
+        &mut self,
+        reader: &mut FrameReader<R>,
+        heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
+    ) -> Result<(), Ended> {
+        let limits = self.core.limits.clone();
+        self.outbox
+            .method(
+                0,
+                ConnectionStart {
+                    version_major: 0,
+                    version_minor: 9,
+                    server_properties: server_properties(),
+                    mechanisms: Bytes::from_static(b"PLAIN AMQPLAIN"),
+                    locales: Bytes::from_static(b"en_US"),
+                },
+            )
+            .await;
+        let Method::ConnectionStartOk(start_ok) = self.expect_method(reader).await? else {
+            return Err(Ended::Protocol(AmqpError::command_invalid(
+                "expected connection.start-ok",
+            )));
+        };
+        let capabilities = match start_ok.client_properties.get("capabilities") {
+            Some(FieldValue::Table(t)) => t.clone(),
+            _ => FieldTable::new(),
+        };
+        let capability =
+            |name: &str| matches!(capabilities.get(name), Some(FieldValue::Bool(true)));
+        self.outbox
+            .set_cancel_notify(capability("consumer_cancel_notify"));
+        self.blocked_notify = capability("connection.blocked");
+        match self
+            .core
+            .users
+            .authenticate(start_ok.mechanism.as_bytes(), &start_ok.response)
+        {
+            Some(user) => self.user = user,
+            None => {
+                tracing::warn!(peer = %self.peer, mechanism = %start_ok.mechanism, "authentication failed");
+                let error = AmqpError::access_refused(format_args!(
+                    "Login was refused using authentication mechanism {}. For details see the broker logfile.",
+                    start_ok.mechanism
+                ));
+                return Err(Ended::Protocol(error));
+            }
+        }
+        self.outbox
+            .method(
+                0,
+                ConnectionTune {
+                    channel_max: limits.channel_max,
+                    frame_max: limits.frame_max,
+                    heartbeat: limits.heartbeat,
+                },
+            )
+            .await;
+        let Method::ConnectionTuneOk(tune_ok) = self.expect_method(reader).await? else {
+            return Err(Ended::Protocol(AmqpError::command_invalid(
+                "expected connection.tune-ok",
+            )));
+        };
+        let frame_max = match tune_ok.frame_max {
+            0 => limits.frame_max,
+            n if n < FRAME_MIN_SIZE || n > limits.frame_max => {
+                return Err(Ended::Protocol(AmqpError::not_allowed(format_args!(
+                    "frame_max={} outside of allowed range [{}, {}]",
+                    n, FRAME_MIN_SIZE, limits.frame_max
+                ))))
+            }
+            n => n,
+        };
+        self.channel_max = match tune_ok.channel_max {
+            0 => limits.channel_max,
+            n => n.min(limits.channel_max),
+        };
+        reader.frame_max = frame_max;
+        self.outbox.set_frame_max(frame_max);
+        self.heartbeat = Duration::from_secs(tune_ok.heartbeat.into());
+        heartbeat_tx.send_replace(self.heartbeat);
+        let Method::ConnectionOpen(open) = self.expect_method(reader).await? else {
+            return Err(Ended::Protocol(AmqpError::command_invalid(
+                "expected connection.open",
+            )));
+        };
+        let Some(vhost) = self.core.vhost(&open.virtual_host) else {
+            return Err(Ended::Protocol(AmqpError::not_allowed(format_args!(
+                "vhost {} not found",
+                open.virtual_host
+            ))));
+        };
+        self.vhost = Some(vhost);
+        self.outbox
+            .method(
+                0,
+                ConnectionOpenOk {
+                    known_hosts: ShortStr::default(),
+                },
+            )
+            .await;
+        Ok(())
+    }
+
+    async fn handle(&mut self, frame: Frame) -> AmqpResult<Flow> {
+        let channel_id = frame.channel();
+        match frame {
+            Frame::Heartbeat => Ok(Flow::Continue),
+            Frame::Method { channel: 0, method } => self.handle_connection_method(method).await,
+            Frame::Header { channel: 0, .. } | Frame::Body { channel: 0, .. } => {
+                Err(AmqpError::command_invalid("content frame on channel 0"))
+            }
+            Frame::Method {
+                method: Method::ChannelOpen(_),
+                ..
+            } => {
+                if channel_id > self.channel_max {
+                    return Err(AmqpError::channel_error(format_args!(
+                        "channel number {} exceeds channel_max {}",
+                        channel_id, self.channel_max
+                    ))
+                    .during_ids(20, 10));
+                }
+                if self.channels.contains_key(&channel_id) {
+                    return Err(AmqpError::channel_error(format_args!(
+                        "second 'channel.open' seen on channel {channel_id}"
+                    ))
+                    .during_ids(20, 10));
+                }
+                let Some(vhost) = self.vhost.clone() else {
+                    return Err(AmqpError::command_invalid("connection not open"));
+                };
+                let channel = Channel::new(
+                    channel_id,
+                    Arc::clone(&self.outbox),
+                    vhost,
+                    Arc::clone(&self.core),
+                    self.user.clone(),
+                );
+                self.channels.insert(channel_id, channel);
+                self.outbox
+                    .method(
+                        channel_id,
+                        leveret_protocol::ChannelOpenOk {
+                            channel_id: Bytes::new(),
+                        },
+                    )
+                    .await;
+                Ok(Flow::Continue)
+            }
+            frame => {
+                let Some(channel) = self.channels.get_mut(&channel_id) else {
+                    let (class_id, method_id) = match &frame {
+                        Frame::Method { method, .. } => (method.class_id(), method.method_id()),
+                        _ => (0, 0),
+                    };
+                    return Err(AmqpError::channel_error(format_args!(
+                        "expected 'channel.open' on channel {channel_id}"
+                    ))
+                    .during_ids(class_id, method_id));
+                };
+                if channel.handle(frame).await? {
+                    if let Some(channel) = self.channels.remove(&channel_id) {
+                        channel.cleanup();
+                    }
+                }
+                Ok(Flow::Continue)
+            }
+        }
+    }
+
+    async fn handle_connection_method(&mut self, method: Method) -> AmqpResult<Flow> {
+        match method {
+            Method::ConnectionClose(close) => {
+                tracing::debug!(code = close.reply_code, text = %close.reply_text, "client closed the connection");
+                self.cleanup();
+                self.outbox.method(0, ConnectionCloseOk {}).await;
+                Ok(Flow::Closed)
+            }
+            Method::ConnectionCloseOk(_) => Ok(Flow::Closed),
+            Method::ConnectionUpdateSecret(_) => {
+                self.outbox.method(0, ConnectionUpdateSecretOk {}).await;
+                Ok(Flow::Continue)
+            }
+            Method::ConnectionBlocked(_) | Method::ConnectionUnblocked(_) => Ok(Flow::Continue),
+            other => Err(AmqpError::command_invalid(format_args!(
+                "unexpected method {} on channel 0",
+                other.name()
+            ))
+            .during(&other)),
+        }
+    }
+
+    /// Sends connection.close for `error`, waits briefly for close-ok
+    /// (discarding anything else, as the spec says), then ends.
+    async fn close_with<R: AsyncRead + Unpin>(
+        &mut self,
+        reader: &mut FrameReader<R>,
+        error: AmqpError,
+    ) -> Result<(), Ended> {
+        self.cleanup();
+        self.outbox
+            .method(
+                0,
+                ConnectionClose {
+                    reply_code: error.code.code(),
+                    reply_text: error.reply_text(),
+                    class_id: error.class_id,
+                    method_id: error.method_id,
+                },
+            )
+            .await;
+        let wait = async {
+            loop {
+                match reader.next().await {
+                    Ok(Frame::Method {
+                        method: Method::ConnectionCloseOk(_) | Method::ConnectionClose(_),
+                        ..
+                    }) => return,
+                    Ok(_) => continue,
+                    Err(_) => return,
+                }
+            }
+        };
+        let _ = tokio::time::timeout(CLOSE_TIMEOUT, wait).await;
+        if error.code == ReplyCode::ConnectionForced {
+            return Ok(());
+        }
+        Err(Ended::Protocol(error))
+    }
+
+    /// Releases everything the connection holds: channels (requeueing
+    /// their unacked messages) and exclusive queues.
+    fn cleanup(&mut self) {
+        for (_, channel) in self.channels.drain() {
+            channel.cleanup();
+        }
+        if let Some(vhost) = &self.vhost {
+            vhost.drop_exclusive(self.connection_id);
+        }
+    }
+}
+
+/// Whether the reader goes on.
+enum Flow {
+    Continue,
+    Closed,
+}
+
+fn server_properties() -> FieldTable {
+    let text = |s: &str| FieldValue::string(s);
+    let capabilities: FieldTable = [
+        "publisher_confirms",
+        "exchange_exchange_bindings",
+        "basic.nack",
+        "consumer_cancel_notify",
+        "connection.blocked",
+        "authentication_failure_close",
+        "per_consumer_qos",
+    ]
+    .into_iter()
+    .map(|c| {
+        (
+            ShortStr::try_from(c).unwrap_or_default(),
+            FieldValue::Bool(true),
+        )
+    })
+    .collect();
+    [
+        (ShortStr::from_static("product"), text("Leveret")),
+        (
+            ShortStr::from_static("version"),
+            text(env!("CARGO_PKG_VERSION")),
+        ),
+        (ShortStr::from_static("platform"), text("Rust")),
+        (
+            ShortStr::from_static("information"),
+            text("An embeddable AMQP 0.9.1 broker"),
+        ),
+        (
+            ShortStr::from_static("capabilities"),
+            FieldValue::Table(capabilities),
+        ),
+    ]
+    .into_iter()
+    .collect()
+}

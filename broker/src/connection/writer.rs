@@ -1,0 +1,160 @@
+//! The writer task of a connection: owns the socket's write half, drains
+//! the outbox, encodes everything waiting into one buffer and writes it
+//! with one syscall (batching under load, no added latency when idle), and
+//! sends heartbeats when nothing else was written for an interval.
+
+use crate::outbox::{Outbound, Outbox};
+use bytes::BytesMut;
+use leveret_protocol::{
+    encode_content, encode_method, BasicDeliver, BasicGetOk, BasicReturn, Frame, Method,
+};
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::io::{AsyncWrite, AsyncWriteExt};
+use tokio::sync::mpsc;
+
+/// Stop adding to a batch once the buffer holds this much.
+const BATCH_BYTES: usize = 128 * 1024;
+
+/// Runs until [`Outbound::Shutdown`], the outbox closing, or a write error.
+pub async fn run<W: AsyncWrite + Unpin>(
+    mut socket: W,
+    mut inbox: mpsc::Receiver<Outbound>,
+    outbox: Arc<Outbox>,
+    mut heartbeat: tokio::sync::watch::Receiver<Duration>,
+) {
+    let mut buf = BytesMut::with_capacity(64 * 1024);
+    loop {
+        let interval = *heartbeat.borrow();
+        let next = if interval.is_zero() {
+            tokio::select! {
+                item = inbox.recv() => item,
+                changed = heartbeat.changed() => {
+                    if changed.is_err() { return; }
+                    continue;
+                }
+            }
+        } else {
+            tokio::select! {
+                item = inbox.recv() => item,
+                changed = heartbeat.changed() => {
+                    if changed.is_err() { return; }
+                    continue;
+                }
+                _ = tokio::time::sleep(interval) => {
+                    Frame::Heartbeat.encode(&mut buf);
+                    if flush(&mut socket, &mut buf).await.is_err() { return; }
+                    continue;
+                }
+            }
+        };
+        let Some(item) = next else {
+            let _ = flush(&mut socket, &mut buf).await;
+            return;
+        };
+        let mut stop = encode(item, &outbox, &mut buf);
+        while !stop && buf.len() < BATCH_BYTES {
+            match inbox.try_recv() {
+                Ok(item) => stop = encode(item, &outbox, &mut buf),
+                Err(_) => break,
+            }
+        }
+        if flush(&mut socket, &mut buf).await.is_err() {
+            return;
+        }
+        outbox.wake_blocked();
+        if stop {
+            let _ = socket.shutdown().await;
+            return;
+        }
+    }
+}
+
+async fn flush<W: AsyncWrite + Unpin>(socket: &mut W, buf: &mut BytesMut) -> std::io::Result<()> {
+    if buf.is_empty() {
+        return Ok(());
+    }
+    let result = socket.write_all(buf).await;
+    buf.clear();
+    result
+}
+
+/// Encodes one item; true if the writer must stop after this batch.
+fn encode(item: Outbound, outbox: &Outbox, buf: &mut BytesMut) -> bool {
+    let frame_max = outbox.frame_max();
+    match item {
+        Outbound::Method { channel, method } => encode_method(channel, &method, buf),
+        Outbound::Deliver {
+            channel,
+            consumer_tag,
+            delivery_tag,
+            redelivered,
+            message,
+        } => {
+            let method = Method::BasicDeliver(BasicDeliver {
+                consumer_tag,
+                delivery_tag,
+                redelivered,
+                exchange: message.exchange.clone(),
+                routing_key: message.routing_key.clone(),
+            });
+            encode_method(channel, &method, buf);
+            encode_content(
+                channel,
+                60,
+                &message.properties,
+                &message.body,
+                frame_max,
+                buf,
+            );
+        }
+        Outbound::GetOk {
+            channel,
+            delivery_tag,
+            redelivered,
+            message_count,
+            message,
+        } => {
+            let method = Method::BasicGetOk(BasicGetOk {
+                delivery_tag,
+                redelivered,
+                exchange: message.exchange.clone(),
+                routing_key: message.routing_key.clone(),
+                message_count,
+            });
+            encode_method(channel, &method, buf);
+            encode_content(
+                channel,
+                60,
+                &message.properties,
+                &message.body,
+                frame_max,
+                buf,
+            );
+        }
+        Outbound::Return {
+            channel,
+            reply_code,
+            reply_text,
+            message,
+        } => {
+            let method = Method::BasicReturn(BasicReturn {
+                reply_code,
+                reply_text,
+                exchange: message.exchange.clone(),
+                routing_key: message.routing_key.clone(),
+            });
+            encode_method(channel, &method, buf);
+            encode_content(
+                channel,
+                60,
+                &message.properties,
+                &message.body,
+                frame_max,
+                buf,
+            );
+        }
+        Outbound::Shutdown => return true,
+    }
+    false
+}

@@ -1,0 +1,108 @@
+//! The broker's shared state, independent of sockets: vhosts, users,
+//! limits, the memory gauge, and the shutdown signal that connections
+//! watch. The server and the embedding API build one `Core` and hand an
+//! `Arc` of it to every connection.
+
+use crate::auth::Users;
+use crate::memory::MemoryGauge;
+use crate::vhost::Vhost;
+use leveret_protocol::ShortStr;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, RwLock};
+use tokio::sync::watch;
+
+/// Limits a broker enforces and offers in connection.tune.
+#[derive(Debug, Clone)]
+pub struct Limits {
+    /// Highest channel number (connection.tune channel-max).
+    pub channel_max: u16,
+    /// Largest frame (connection.tune frame-max).
+    pub frame_max: u32,
+    /// Heartbeat interval offered, seconds (0 = none).
+    pub heartbeat: u16,
+    /// Largest message body accepted (RabbitMQ's default: 128 MiB).
+    pub max_message_size: u64,
+    /// Queued-message bytes above which publishers are blocked.
+    pub memory_high_watermark: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            channel_max: 2047,
+            frame_max: 131_072,
+            heartbeat: 60,
+            max_message_size: 128 * 1024 * 1024,
+            memory_high_watermark: 1 << 30,
+        }
+    }
+}
+
+/// State shared by every connection of one broker.
+#[derive(Debug)]
+pub struct Core {
+    vhosts: RwLock<HashMap<ShortStr, Arc<Vhost>>>,
+    /// Accepted users.
+    pub users: Users,
+    /// Limits.
+    pub limits: Limits,
+    /// Memory held by queued messages.
+    pub gauge: Arc<MemoryGauge>,
+    next_connection: AtomicU64,
+    shutdown: watch::Sender<bool>,
+}
+
+impl Core {
+    /// A core with the given vhosts, users and limits.
+    pub fn new(vhost_names: &[String], users: Users, limits: Limits) -> Arc<Self> {
+        let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
+        let vhosts = vhost_names
+            .iter()
+            .filter_map(|name| ShortStr::try_from(name.as_str()).ok())
+            .map(|name| (name.clone(), Vhost::new(name, Arc::clone(&gauge))))
+            .collect();
+        Arc::new(Core {
+            vhosts: RwLock::new(vhosts),
+            users,
+            limits,
+            gauge,
+            next_connection: AtomicU64::new(1),
+            shutdown: watch::channel(false).0,
+        })
+    }
+
+    /// The vhost with this name.
+    pub fn vhost(&self, name: &ShortStr) -> Option<Arc<Vhost>> {
+        self.vhosts
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(name)
+            .cloned()
+    }
+
+    /// Every vhost.
+    pub fn vhosts(&self) -> Vec<Arc<Vhost>> {
+        self.vhosts
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .values()
+            .cloned()
+            .collect()
+    }
+
+    /// A fresh connection id.
+    pub fn next_connection_id(&self) -> u64 {
+        self.next_connection.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// Tells every connection to close with 320 CONNECTION_FORCED.
+    pub fn begin_shutdown(&self) {
+        self.shutdown.send_replace(true);
+    }
+
+    /// A receiver that turns true when the broker shuts down.
+    pub fn shutdown_signal(&self) -> watch::Receiver<bool> {
+        self.shutdown.subscribe()
+    }
+}

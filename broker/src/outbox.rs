@@ -1,0 +1,162 @@
+//! What a connection's writer task sends, and the per-connection handle the
+//! core uses to reach it: a bounded channel of [`Outbound`] items, plus the
+//! queues waiting for room in it (so a slow socket holds messages in their
+//! queues instead of growing a buffer).
+
+use crate::message::Message;
+use crate::queue::Queue;
+use leveret_protocol::{Method, ShortStr};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+use tokio::sync::mpsc;
+
+/// One item for the writer to encode.
+#[derive(Debug)]
+pub enum Outbound {
+    /// A method without content.
+    Method {
+        /// Channel number.
+        channel: u16,
+        /// The method.
+        method: Method,
+    },
+    /// basic.deliver with its content.
+    Deliver {
+        /// Channel number.
+        channel: u16,
+        /// Consumer tag.
+        consumer_tag: ShortStr,
+        /// Delivery tag on the channel.
+        delivery_tag: u64,
+        /// Whether it was delivered before.
+        redelivered: bool,
+        /// The message.
+        message: Arc<Message>,
+    },
+    /// basic.get-ok with its content.
+    GetOk {
+        /// Channel number.
+        channel: u16,
+        /// Delivery tag on the channel.
+        delivery_tag: u64,
+        /// Whether it was delivered before.
+        redelivered: bool,
+        /// Messages left in the queue.
+        message_count: u32,
+        /// The message.
+        message: Arc<Message>,
+    },
+    /// basic.return with its content.
+    Return {
+        /// Channel number.
+        channel: u16,
+        /// Why it came back.
+        reply_code: u16,
+        /// Text for the reply code.
+        reply_text: ShortStr,
+        /// The message.
+        message: Arc<Message>,
+    },
+    /// Write everything queued so far, then close the socket.
+    Shutdown,
+}
+
+/// How many items may wait for a connection's writer. Small, so a slow
+/// consumer's messages stay in their queue (counted, limited) and not here.
+pub const OUTBOX_CAPACITY: usize = 512;
+
+/// The core's handle on one connection's writer.
+#[derive(Debug)]
+pub struct Outbox {
+    tx: mpsc::Sender<Outbound>,
+    blocked: Mutex<Vec<Weak<Queue>>>,
+    frame_max: AtomicU32,
+    cancel_notify: AtomicBool,
+    /// The connection's id, for exclusive-queue ownership.
+    pub connection_id: u64,
+}
+
+impl Outbox {
+    /// An outbox and the receiver its writer drains.
+    pub fn new(connection_id: u64) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
+        let (tx, rx) = mpsc::channel(OUTBOX_CAPACITY);
+        let outbox = Outbox {
+            tx,
+            blocked: Mutex::new(Vec::new()),
+            frame_max: AtomicU32::new(leveret_protocol::FRAME_MIN_SIZE),
+            cancel_notify: AtomicBool::new(false),
+            connection_id,
+        };
+        (Arc::new(outbox), rx)
+    }
+
+    /// Sends an item, waiting for room (backpressure on the caller).
+    pub async fn send(&self, item: Outbound) {
+        // An error means the writer is gone: the connection is closing and
+        // its cleanup requeues whatever was in flight.
+        let _ = self.tx.send(item).await;
+    }
+
+    /// Sends a method on a channel.
+    pub async fn method(&self, channel: u16, method: impl Into<Method>) {
+        self.send(Outbound::Method {
+            channel,
+            method: method.into(),
+        })
+        .await;
+    }
+
+    /// Reserves room for one item without waiting.
+    pub fn try_reserve(&self) -> Option<mpsc::Permit<'_, Outbound>> {
+        self.tx.try_reserve().ok()
+    }
+
+    /// Sends without waiting; false if there is no room or the writer is gone.
+    pub fn try_send(&self, item: Outbound) -> bool {
+        self.tx.try_send(item).is_ok()
+    }
+
+    /// Remembers a queue that found no room, to be dispatched again once the
+    /// writer has drained.
+    pub fn wait_for_room(&self, queue: &Arc<Queue>) {
+        let mut blocked = self.blocked.lock().unwrap_or_else(|e| e.into_inner());
+        if !blocked.iter().any(|w| w.as_ptr() == Arc::as_ptr(queue)) {
+            blocked.push(Arc::downgrade(queue));
+        }
+    }
+
+    /// Called by the writer after draining: dispatches the queues that were
+    /// waiting for room.
+    pub fn wake_blocked(&self) {
+        let waiting = {
+            let mut blocked = self.blocked.lock().unwrap_or_else(|e| e.into_inner());
+            if blocked.is_empty() {
+                return;
+            }
+            std::mem::take(&mut *blocked)
+        };
+        for queue in waiting.iter().filter_map(Weak::upgrade) {
+            queue.dispatch();
+        }
+    }
+
+    /// The negotiated frame_max, for splitting bodies.
+    pub fn frame_max(&self) -> u32 {
+        self.frame_max.load(Ordering::Relaxed)
+    }
+
+    /// Sets the negotiated frame_max.
+    pub fn set_frame_max(&self, frame_max: u32) {
+        self.frame_max.store(frame_max, Ordering::Relaxed);
+    }
+
+    /// Whether the client announced consumer_cancel_notify.
+    pub fn cancel_notify(&self) -> bool {
+        self.cancel_notify.load(Ordering::Relaxed)
+    }
+
+    /// Records the client's consumer_cancel_notify capability.
+    pub fn set_cancel_notify(&self, on: bool) {
+        self.cancel_notify.store(on, Ordering::Relaxed);
+    }
+}

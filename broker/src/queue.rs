@@ -1,0 +1,692 @@
+//! Queues: ready messages in FIFO order (by priority first when
+//! `x-max-priority` is set), the consumers with their round-robin cursor,
+//! and dispatch. One `std::sync::Mutex` per queue guards its state; it is
+//! held for a few instructions per operation and never across an await, and
+//! no other lock is taken inside it except a channel's delivery bookkeeping
+//! (always in that order: queue, then channel).
+//!
+//! Dead-lettering routes messages into other queues, so it happens after the
+//! lock is released: operations collect [`DeadLetter`]s and hand them to the
+//! vhost afterwards.
+
+use crate::consumer::{ChannelLink, Consumer, Unacked};
+use crate::error::{AmqpError, AmqpResult};
+use crate::memory::MemoryGauge;
+use crate::message::Message;
+use crate::outbox::Outbound;
+use crate::vhost::Vhost;
+use leveret_protocol::{BasicCancel, FieldTable, FieldValue, ShortStr};
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use std::time::{Duration, Instant};
+
+/// A message in a queue, with its place in the queue's order.
+#[derive(Debug, Clone)]
+pub struct QueuedMessage {
+    /// Position in publish order; requeued messages go back by it.
+    pub seq: u64,
+    /// Effective priority (0 unless the queue has x-max-priority).
+    pub priority: u8,
+    /// The message.
+    pub message: Arc<Message>,
+    /// Delivered before.
+    pub redelivered: bool,
+    /// When it expires (queue or per-message TTL).
+    pub expires_at: Option<Instant>,
+}
+
+impl QueuedMessage {
+    fn order_key(&self) -> (std::cmp::Reverse<u8>, u64) {
+        (std::cmp::Reverse(self.priority), self.seq)
+    }
+}
+
+/// What happens when a queue reaches x-max-length or x-max-length-bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Overflow {
+    /// Drop (or dead-letter) the oldest messages.
+    #[default]
+    DropHead,
+    /// Refuse the new message (nack with confirms).
+    RejectPublish,
+    /// As reject-publish, and dead-letter the refused message.
+    RejectPublishDlx,
+}
+
+/// The RabbitMQ queue arguments the broker acts on, validated.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct QueueArgs {
+    /// x-message-ttl, ms.
+    pub message_ttl: Option<u64>,
+    /// x-expires, ms unused before the queue is deleted.
+    pub expires: Option<u64>,
+    /// x-max-length, messages.
+    pub max_length: Option<u64>,
+    /// x-max-length-bytes, body bytes.
+    pub max_length_bytes: Option<u64>,
+    /// x-overflow.
+    pub overflow: Overflow,
+    /// x-dead-letter-exchange.
+    pub dead_letter_exchange: Option<ShortStr>,
+    /// x-dead-letter-routing-key.
+    pub dead_letter_routing_key: Option<ShortStr>,
+    /// x-max-priority.
+    pub max_priority: Option<u8>,
+}
+
+impl QueueArgs {
+    /// Validates and reads the arguments RabbitMQ defines; the error texts
+    /// follow RabbitMQ's (`invalid arg 'x-message-ttl' for queue 'q' ...`).
+    pub fn parse(arguments: &FieldTable, queue: &ShortStr, vhost: &ShortStr) -> AmqpResult<Self> {
+        let invalid = |name: &str, why: String| {
+            AmqpError::precondition_failed(format_args!(
+                "invalid arg '{name}' for queue '{queue}' in vhost '{vhost}': {why}"
+            ))
+        };
+        let non_negative = |name: &str, v: &FieldValue| -> AmqpResult<u64> {
+            match v.as_i64() {
+                Some(n) if n >= 0 => Ok(n as u64),
+                Some(n) => Err(invalid(name, format!("{{value_negative,{n}}}"))),
+                None => Err(invalid(name, format!("{{unacceptable_type,{:?}}}", v))),
+            }
+        };
+        let text = |name: &str, v: &FieldValue| -> AmqpResult<ShortStr> {
+            v.as_bytes()
+                .and_then(|b| ShortStr::try_from(bytes::Bytes::copy_from_slice(b)).ok())
+                .ok_or_else(|| invalid(name, format!("{{unacceptable_type,{:?}}}", v)))
+        };
+        let mut args = QueueArgs::default();
+        for (key, value) in arguments.iter() {
+            match key.as_bytes() {
+                b"x-message-ttl" => args.message_ttl = Some(non_negative("x-message-ttl", value)?),
+                b"x-expires" => match non_negative("x-expires", value)? {
+                    0 => return Err(invalid("x-expires", "{value_zero,0}".into())),
+                    n => args.expires = Some(n),
+                },
+                b"x-max-length" => args.max_length = Some(non_negative("x-max-length", value)?),
+                b"x-max-length-bytes" => {
+                    args.max_length_bytes = Some(non_negative("x-max-length-bytes", value)?)
+                }
+                b"x-overflow" => {
+                    args.overflow = match value.as_bytes() {
+                        Some(b"drop-head") => Overflow::DropHead,
+                        Some(b"reject-publish") => Overflow::RejectPublish,
+                        Some(b"reject-publish-dlx") => Overflow::RejectPublishDlx,
+                        _ => {
+                            return Err(invalid(
+                                "x-overflow",
+                                format!("{{unacceptable_value,{:?}}}", value),
+                            ))
+                        }
+                    }
+                }
+                b"x-dead-letter-exchange" => {
+                    args.dead_letter_exchange = Some(text("x-dead-letter-exchange", value)?)
+                }
+                b"x-dead-letter-routing-key" => {
+                    args.dead_letter_routing_key = Some(text("x-dead-letter-routing-key", value)?)
+                }
+                b"x-max-priority" => match non_negative("x-max-priority", value)? {
+                    n @ 0..=255 => args.max_priority = Some(n as u8),
+                    n => {
+                        return Err(invalid(
+                            "x-max-priority",
+                            format!("{{value_out_of_range,{n}}}"),
+                        ))
+                    }
+                },
+                _ => {}
+            }
+        }
+        Ok(args)
+    }
+}
+
+/// Why a message was dead-lettered (the `reason` in `x-death`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DeadLetterReason {
+    /// basic.reject or basic.nack with requeue false.
+    Rejected,
+    /// Its TTL passed.
+    Expired,
+    /// Dropped by x-max-length or x-max-length-bytes.
+    MaxLen,
+}
+
+impl DeadLetterReason {
+    fn as_str(self) -> &'static str {
+        match self {
+            DeadLetterReason::Rejected => "rejected",
+            DeadLetterReason::Expired => "expired",
+            DeadLetterReason::MaxLen => "maxlen",
+        }
+    }
+}
+
+/// A message leaving a queue for its dead-letter exchange.
+#[derive(Debug)]
+pub struct DeadLetter {
+    message: Arc<Message>,
+    reason: DeadLetterReason,
+}
+
+/// Result of offering a message to a queue.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Enqueued {
+    /// The queue took it.
+    Accepted,
+    /// The queue is full and its overflow mode refuses publishes.
+    Refused,
+}
+
+#[derive(Debug, Default)]
+struct QueueState {
+    ready: VecDeque<QueuedMessage>,
+    ready_bytes: usize,
+    next_seq: u64,
+    consumers: Vec<Arc<Consumer>>,
+    cursor: usize,
+    exclusive_consumer: bool,
+    expiring: usize,
+    last_used: Option<Instant>,
+    deleted: bool,
+}
+
+/// Declared properties of a queue.
+#[derive(Debug, Clone, Default)]
+pub struct QueueOptions {
+    /// Survives a restart.
+    pub durable: bool,
+    /// The connection that owns it, if exclusive.
+    pub exclusive_owner: Option<u64>,
+    /// Deleted when its last consumer goes.
+    pub auto_delete: bool,
+    /// Arguments as declared.
+    pub arguments: FieldTable,
+}
+
+/// One queue.
+#[derive(Debug)]
+pub struct Queue {
+    /// Its name.
+    pub name: ShortStr,
+    /// Declared properties.
+    pub options: QueueOptions,
+    /// Validated arguments.
+    pub args: QueueArgs,
+    vhost: Weak<Vhost>,
+    gauge: Arc<MemoryGauge>,
+    state: Mutex<QueueState>,
+}
+
+impl Queue {
+    /// A new, empty queue.
+    pub fn new(
+        name: ShortStr,
+        options: QueueOptions,
+        args: QueueArgs,
+        vhost: Weak<Vhost>,
+        gauge: Arc<MemoryGauge>,
+    ) -> Self {
+        Queue {
+            name,
+            options,
+            args,
+            vhost,
+            gauge,
+            state: Mutex::new(QueueState {
+                last_used: Some(Instant::now()),
+                ..QueueState::default()
+            }),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, QueueState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Offers a message; dispatches it at once if a consumer has credit.
+    pub fn publish(self: &Arc<Self>, message: Arc<Message>) -> Enqueued {
+        let mut dead = Vec::new();
+        let outcome = {
+            let mut st = self.lock();
+            if st.deleted {
+                return Enqueued::Accepted;
+            }
+            let now = Instant::now();
+            let ttl = match (self.args.message_ttl, message.ttl_ms) {
+                (Some(a), Some(b)) => Some(a.min(b)),
+                (a, b) => a.or(b),
+            };
+            let priority = match self.args.max_priority {
+                Some(max) => message.priority.min(max),
+                None => 0,
+            };
+            if self.is_full_for(&st, &message) {
+                match self.args.overflow {
+                    Overflow::DropHead => {}
+                    Overflow::RejectPublish => return Enqueued::Refused,
+                    Overflow::RejectPublishDlx => {
+                        dead.push(DeadLetter {
+                            message,
+                            reason: DeadLetterReason::MaxLen,
+                        });
+                        drop(st);
+                        self.dead_letter(dead);
+                        return Enqueued::Refused;
+                    }
+                }
+            }
+            st.next_seq += 1;
+            let queued = QueuedMessage {
+                seq: st.next_seq,
+                priority,
+                message,
+                redelivered: false,
+                expires_at: ttl.map(|ms| now + Duration::from_millis(ms)),
+            };
+            self.gauge.add(queued.message.weight());
+            self.insert_ready(&mut st, queued);
+            self.enforce_max_length(&mut st, &mut dead);
+            self.dispatch_locked(&mut st, &mut dead);
+            Enqueued::Accepted
+        };
+        self.dead_letter(dead);
+        outcome
+    }
+
+    fn is_full_for(&self, st: &QueueState, message: &Message) -> bool {
+        let by_count = self
+            .args
+            .max_length
+            .is_some_and(|max| st.ready.len() as u64 >= max);
+        let by_bytes = self
+            .args
+            .max_length_bytes
+            .is_some_and(|max| (st.ready_bytes + message.body.len()) as u64 > max);
+        by_count || by_bytes
+    }
+
+    fn enforce_max_length(&self, st: &mut QueueState, dead: &mut Vec<DeadLetter>) {
+        if self.args.overflow != Overflow::DropHead {
+            return;
+        }
+        loop {
+            let over_count = self
+                .args
+                .max_length
+                .is_some_and(|max| st.ready.len() as u64 > max);
+            let over_bytes = self
+                .args
+                .max_length_bytes
+                .is_some_and(|max| st.ready_bytes as u64 > max);
+            if !(over_count || over_bytes) {
+                return;
+            }
+            match self.pop_ready(st) {
+                Some(head) => self.discard(head, DeadLetterReason::MaxLen, dead),
+                None => return,
+            }
+        }
+    }
+
+    fn insert_ready(&self, st: &mut QueueState, queued: QueuedMessage) {
+        st.ready_bytes += queued.message.body.len();
+        if queued.expires_at.is_some() {
+            st.expiring += 1;
+        }
+        let key = queued.order_key();
+        if st.ready.back().is_none_or(|last| last.order_key() < key) {
+            st.ready.push_back(queued);
+        } else {
+            let at = st.ready.partition_point(|m| m.order_key() < key);
+            st.ready.insert(at, queued);
+        }
+    }
+
+    fn pop_ready(&self, st: &mut QueueState) -> Option<QueuedMessage> {
+        let head = st.ready.pop_front()?;
+        st.ready_bytes -= head.message.body.len();
+        if head.expires_at.is_some() {
+            st.expiring -= 1;
+        }
+        Some(head)
+    }
+
+    /// Takes the head message that has not expired, expiring those that have.
+    fn pop_live(
+        &self,
+        st: &mut QueueState,
+        now: Instant,
+        dead: &mut Vec<DeadLetter>,
+    ) -> Option<QueuedMessage> {
+        loop {
+            let head = self.pop_ready(st)?;
+            if head.expires_at.is_some_and(|at| at <= now) {
+                self.discard(head, DeadLetterReason::Expired, dead);
+            } else {
+                return Some(head);
+            }
+        }
+    }
+
+    /// A message leaves the queue for good: dead-letter it if the queue has a
+    /// dead-letter exchange, and release its memory.
+    fn discard(&self, queued: QueuedMessage, reason: DeadLetterReason, dead: &mut Vec<DeadLetter>) {
+        self.gauge.sub(queued.message.weight());
+        if self.args.dead_letter_exchange.is_some() {
+            dead.push(DeadLetter {
+                message: queued.message,
+                reason,
+            });
+        }
+    }
+
+    /// Delivers ready messages to consumers with credit, round-robin.
+    pub fn dispatch(self: &Arc<Self>) {
+        let mut dead = Vec::new();
+        {
+            let mut st = self.lock();
+            self.dispatch_locked(&mut st, &mut dead);
+        }
+        self.dead_letter(dead);
+    }
+
+    fn dispatch_locked(self: &Arc<Self>, st: &mut QueueState, dead: &mut Vec<DeadLetter>) {
+        let count = st.consumers.len();
+        if count == 0 || st.ready.is_empty() {
+            return;
+        }
+        let now = Instant::now();
+        'messages: while !st.ready.is_empty() {
+            for _ in 0..count {
+                let index = st.cursor % count;
+                st.cursor = (index + 1) % count;
+                if !st.consumers[index].has_credit() {
+                    continue;
+                }
+                let consumer = Arc::clone(&st.consumers[index]);
+                let Some(permit) = consumer.channel.outbox.try_reserve() else {
+                    consumer.channel.outbox.wait_for_room(self);
+                    continue;
+                };
+                let Some(queued) = self.pop_live(st, now, dead) else {
+                    return;
+                };
+                let delivery_tag = {
+                    let mut deliveries = consumer.channel.deliveries();
+                    let tag = deliveries.next_tag();
+                    if !consumer.no_ack {
+                        deliveries.push(Unacked {
+                            tag,
+                            queue: Arc::clone(self),
+                            message: queued.clone(),
+                            consumer: Some(Arc::clone(&consumer)),
+                        });
+                    }
+                    tag
+                };
+                if consumer.no_ack {
+                    self.gauge.sub(queued.message.weight());
+                } else {
+                    consumer.took_one();
+                }
+                permit.send(Outbound::Deliver {
+                    channel: consumer.channel.id,
+                    consumer_tag: consumer.tag.clone(),
+                    delivery_tag,
+                    redelivered: queued.redelivered,
+                    message: queued.message,
+                });
+                continue 'messages;
+            }
+            // No consumer could take a message now; credit or room will
+            // trigger another dispatch.
+            return;
+        }
+    }
+
+    /// basic.get: the head message, recorded as unacked on `link` unless
+    /// `no_ack`. Returns the delivery tag, the message and how many remain.
+    pub fn get(
+        self: &Arc<Self>,
+        link: &ChannelLink,
+        no_ack: bool,
+    ) -> Option<(u64, QueuedMessage, u32)> {
+        let mut dead = Vec::new();
+        let got = {
+            let mut st = self.lock();
+            st.last_used = Some(Instant::now());
+            let queued = self.pop_live(&mut st, Instant::now(), &mut dead);
+            queued.map(|queued| {
+                let mut deliveries = link.deliveries();
+                let tag = deliveries.next_tag();
+                if no_ack {
+                    self.gauge.sub(queued.message.weight());
+                } else {
+                    deliveries.push(Unacked {
+                        tag,
+                        queue: Arc::clone(self),
+                        message: queued.clone(),
+                        consumer: None,
+                    });
+                }
+                (tag, queued, st.ready.len() as u32)
+            })
+        };
+        self.dead_letter(dead);
+        got
+    }
+
+    /// Puts delivered messages back in their original places, marked
+    /// redelivered, and dispatches them again.
+    pub fn requeue(self: &Arc<Self>, messages: impl IntoIterator<Item = QueuedMessage>) {
+        let mut dead = Vec::new();
+        {
+            let mut st = self.lock();
+            for mut queued in messages {
+                if st.deleted {
+                    self.gauge.sub(queued.message.weight());
+                    continue;
+                }
+                queued.redelivered = true;
+                self.insert_ready(&mut st, queued);
+            }
+            self.dispatch_locked(&mut st, &mut dead);
+        }
+        self.dead_letter(dead);
+    }
+
+    /// An unacked message was acked (or rejected without dead-lettering).
+    pub fn settle(&self, queued: &QueuedMessage) {
+        self.gauge.sub(queued.message.weight());
+    }
+
+    /// A message was rejected without requeue: dead-letter it if configured.
+    pub fn reject(&self, queued: QueuedMessage) {
+        let mut dead = Vec::new();
+        self.discard(queued, DeadLetterReason::Rejected, &mut dead);
+        self.dead_letter(dead);
+    }
+
+    /// Adds a consumer; 403 if an exclusive consumer is in the way.
+    pub fn add_consumer(self: &Arc<Self>, consumer: Arc<Consumer>) -> AmqpResult<()> {
+        {
+            let mut st = self.lock();
+            if st.exclusive_consumer || (consumer.exclusive && !st.consumers.is_empty()) {
+                return Err(AmqpError::access_refused(format_args!(
+                    "queue '{}' in vhost '{}' in exclusive use",
+                    self.name,
+                    self.vhost_name()
+                )));
+            }
+            st.exclusive_consumer = consumer.exclusive;
+            st.consumers.push(consumer);
+            st.last_used = None;
+        }
+        self.dispatch();
+        Ok(())
+    }
+
+    /// Removes a consumer; true if the queue should now be auto-deleted.
+    pub fn remove_consumer(&self, consumer: &Arc<Consumer>) -> bool {
+        let mut st = self.lock();
+        let before = st.consumers.len();
+        st.consumers.retain(|c| !Arc::ptr_eq(c, consumer));
+        if st.consumers.len() == before {
+            return false;
+        }
+        if consumer.exclusive {
+            st.exclusive_consumer = false;
+        }
+        if st.consumers.is_empty() {
+            st.last_used = Some(Instant::now());
+        }
+        st.cursor = 0;
+        self.options.auto_delete && st.consumers.is_empty() && !st.deleted
+    }
+
+    /// Ready messages (expired ones at the head are dropped first).
+    pub fn message_count(&self) -> u32 {
+        let mut dead = Vec::new();
+        let count = {
+            let mut st = self.lock();
+            self.expire_head(&mut st, &mut dead);
+            st.ready.len() as u32
+        };
+        self.dead_letter(dead);
+        count
+    }
+
+    /// Number of consumers.
+    pub fn consumer_count(&self) -> u32 {
+        self.lock().consumers.len() as u32
+    }
+
+    /// Marks the queue used (a redeclare), for x-expires.
+    pub fn touch(&self) {
+        let mut st = self.lock();
+        if st.consumers.is_empty() {
+            st.last_used = Some(Instant::now());
+        }
+    }
+
+    /// Drops every ready message; returns how many.
+    pub fn purge(&self) -> u32 {
+        let mut st = self.lock();
+        let count = st.ready.len() as u32;
+        let released: usize = st.ready.iter().map(|m| m.message.weight()).sum();
+        st.ready.clear();
+        st.ready_bytes = 0;
+        st.expiring = 0;
+        self.gauge.sub(released);
+        count
+    }
+
+    /// Marks the queue deleted, drops its messages and cancels its
+    /// consumers (with basic.cancel to clients that asked for it).
+    /// Returns the number of ready messages it held.
+    pub fn delete(&self) -> u32 {
+        let consumers = {
+            let mut st = self.lock();
+            st.deleted = true;
+            std::mem::take(&mut st.consumers)
+        };
+        let count = self.purge();
+        for consumer in consumers {
+            let outbox = &consumer.channel.outbox;
+            if outbox.cancel_notify() {
+                let cancel = BasicCancel {
+                    consumer_tag: consumer.tag.clone(),
+                    no_wait: true,
+                };
+                if !outbox.try_send(Outbound::Method {
+                    channel: consumer.channel.id,
+                    method: cancel.into(),
+                }) {
+                    tracing::warn!(queue = %self.name, "no room to notify a consumer of queue deletion");
+                }
+            }
+        }
+        count
+    }
+
+    /// Whether it has consumers (for if-unused).
+    pub fn has_consumers(&self) -> bool {
+        !self.lock().consumers.is_empty()
+    }
+
+    /// Drops expired messages at the head; called by the vhost's sweeper and
+    /// before counting.
+    pub fn expire(&self) {
+        let mut dead = Vec::new();
+        {
+            let mut st = self.lock();
+            self.expire_head(&mut st, &mut dead);
+        }
+        self.dead_letter(dead);
+    }
+
+    fn expire_head(&self, st: &mut QueueState, dead: &mut Vec<DeadLetter>) {
+        if st.expiring == 0 {
+            return;
+        }
+        let now = Instant::now();
+        while st
+            .ready
+            .front()
+            .is_some_and(|m| m.expires_at.is_some_and(|at| at <= now))
+        {
+            if let Some(head) = self.pop_ready(st) {
+                self.discard(head, DeadLetterReason::Expired, dead);
+            }
+        }
+    }
+
+    /// Whether x-expires has run out: unused (no consumers, no get, no
+    /// redeclare) for longer than it allows.
+    pub fn unused_expired(&self) -> bool {
+        let Some(expires) = self.args.expires else {
+            return false;
+        };
+        let st = self.lock();
+        st.consumers.is_empty()
+            && st
+                .last_used
+                .is_some_and(|at| at.elapsed() >= Duration::from_millis(expires))
+    }
+
+    fn vhost_name(&self) -> ShortStr {
+        self.vhost
+            .upgrade()
+            .map(|v| v.name.clone())
+            .unwrap_or_default()
+    }
+
+    /// Routes dead letters through the dead-letter exchange, with the
+    /// `x-death` header RabbitMQ adds.
+    fn dead_letter(&self, dead: Vec<DeadLetter>) {
+        if dead.is_empty() {
+            return;
+        }
+        let (Some(exchange), Some(vhost)) = (&self.args.dead_letter_exchange, self.vhost.upgrade())
+        else {
+            return;
+        };
+        for letter in dead {
+            let routing_key = self
+                .args
+                .dead_letter_routing_key
+                .clone()
+                .unwrap_or_else(|| letter.message.routing_key.clone());
+            let message = crate::deadletter::with_death(
+                &letter.message,
+                &self.name,
+                letter.reason.as_str(),
+                exchange,
+                &routing_key,
+            );
+            vhost.publish_internal(exchange, message);
+        }
+    }
+}

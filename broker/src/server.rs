@@ -1,0 +1,60 @@
+//! The TCP side: listeners, the accept loop (TCP_NODELAY on every socket,
+//! as RabbitMQ does and as the paper's latency figures call for), and the
+//! vhost sweeper that expires messages and queues.
+
+use crate::core::Core;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::net::TcpListener;
+
+/// Accepts connections until the broker shuts down.
+/// Each connection task holds a clone of `alive`, so whoever holds the
+/// receiver learns when the last connection has ended.
+pub async fn accept_loop(
+    core: Arc<Core>,
+    listener: TcpListener,
+    alive: tokio::sync::mpsc::Sender<()>,
+) {
+    let mut shutdown = core.shutdown_signal();
+    loop {
+        let accepted = tokio::select! {
+            accepted = listener.accept() => accepted,
+            _ = shutdown.wait_for(|down| *down) => return,
+        };
+        let (socket, peer) = match accepted {
+            Ok(pair) => pair,
+            Err(e) => {
+                // Out of file descriptors and the like: back off briefly.
+                tracing::warn!(error = %e, "accept failed");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                continue;
+            }
+        };
+        if let Err(e) = socket.set_nodelay(true) {
+            tracing::debug!(error = %e, "could not set TCP_NODELAY");
+        }
+        let (read, write) = socket.into_split();
+        let core = Arc::clone(&core);
+        let alive = alive.clone();
+        tokio::spawn(async move {
+            crate::connection::serve(core, read, write, peer.to_string()).await;
+            drop(alive);
+        });
+    }
+}
+
+/// Expires messages and unused queues every `period`.
+pub async fn sweeper(core: Arc<Core>, period: Duration) {
+    let mut shutdown = core.shutdown_signal();
+    let mut ticker = tokio::time::interval(period);
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = ticker.tick() => {}
+            _ = shutdown.wait_for(|down| *down) => return,
+        }
+        for vhost in core.vhosts() {
+            vhost.sweep();
+        }
+    }
+}
