@@ -52,7 +52,8 @@ async fn passive_declare_of_a_missing_queue_gets_404() {
 async fn declare_ok_reports_ready_messages_and_consumers() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
-    let (ch, _) = rs::channel(&conn).await;
+    let (ch, mut ev) = rs::channel(&conn).await;
+    rs::confirm_select(&ch).await;
     let q = unique("counts");
     let (name, messages, consumers) = tmo!(ch.queue_declare(rs::QueueDeclareArguments::new(&q)))
         .expect("declare")
@@ -61,6 +62,7 @@ async fn declare_ok_reports_ready_messages_and_consumers() {
     for i in 0..3 {
         rs::publish(&ch, "", &q, format!("{i}").as_bytes()).await;
     }
+    rs::acked(&mut ev, 3).await;
     assert_eq!(rs::counts(&ch, &q).await, (3, 0));
     // A consumer limited to one unacked message takes one: message_count
     // counts only ready messages.
@@ -282,11 +284,13 @@ async fn bind_with_a_missing_exchange_or_queue_gets_404() {
 #[tokio::test]
 async fn purge_returns_the_number_of_ready_messages_removed() {
     let b = broker().await;
-    let (_conn, ch, _ev) = rs::open(&b).await;
+    let (_conn, ch, mut ev) = rs::open(&b).await;
+    rs::confirm_select(&ch).await;
     let q = rs::queue(&ch, "purge").await;
     for i in 0..4 {
         rs::publish(&ch, "", &q, format!("{i}").as_bytes()).await;
     }
+    rs::acked(&mut ev, 4).await;
     // One message is out unacknowledged: purge does not touch it.
     let (tag, _, remaining, body) = rs::get(&ch, &q, false).await.expect("message");
     assert_eq!((remaining, body.as_slice()), (3, &b"0"[..]));
@@ -317,11 +321,13 @@ async fn purge_of_a_missing_queue_gets_404() {
 #[tokio::test]
 async fn delete_returns_the_message_count() {
     let b = broker().await;
-    let (_conn, ch, _ev) = rs::open(&b).await;
+    let (_conn, ch, mut ev) = rs::open(&b).await;
+    rs::confirm_select(&ch).await;
     let q = rs::queue(&ch, "delete-count").await;
     for _ in 0..5 {
         rs::publish(&ch, "", &q, b"x").await;
     }
+    rs::acked(&mut ev, 5).await;
     let n = tmo!(ch.queue_delete(rs::QueueDeleteArguments::new(&q)))
         .expect("delete")
         .expect("delete-ok");
@@ -369,7 +375,9 @@ async fn delete_if_empty_refuses_while_messages_are_ready() {
     let (conn, _) = rs::connect(&b).await;
     let (ch, mut ev) = rs::channel(&conn).await;
     let q = rs::queue(&ch, "if-empty").await;
+    rs::confirm_select(&ch).await;
     rs::publish(&ch, "", &q, b"still here").await;
+    rs::acked(&mut ev, 1).await;
     let mut del = rs::QueueDeleteArguments::new(&q);
     del.if_empty(true);
     assert!(tmo!(ch.queue_delete(del.clone())).is_err());

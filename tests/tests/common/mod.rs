@@ -529,6 +529,41 @@ pub mod rs {
         .expect("basic.publish");
     }
 
+    /// Puts the channel in confirm mode.
+    pub async fn confirm_select(ch: &Channel) {
+        within(
+            "confirm.select",
+            ch.confirm_select(ConfirmSelectArguments::default()),
+        )
+        .await
+        .expect("confirm.select");
+    }
+
+    /// Waits until the broker has acked every publish up to sequence
+    /// number `upto` (the count of publishes on the channel since
+    /// confirm.select), skipping other events; panics on a nack or close.
+    ///
+    /// Counting queues right after a publish needs this: RabbitMQ answers a
+    /// passive queue.declare before it has enqueued publishes still in
+    /// flight, but confirms only once they are enqueued.
+    pub async fn acked(ev: &mut UnboundedReceiver<Event>, upto: u64) {
+        within("publisher confirms", async {
+            loop {
+                match ev.recv().await {
+                    Some(Event::Ack { tag, .. }) if tag >= upto => return,
+                    Some(Event::Ack { .. }) => continue,
+                    Some(Event::Nack { tag, .. }) => panic!("publish {tag} was nacked"),
+                    Some(Event::Close { code, text }) => {
+                        panic!("channel closed while waiting for confirms: {code} {text}")
+                    }
+                    Some(_) => continue,
+                    None => panic!("channel event stream ended"),
+                }
+            }
+        })
+        .await
+    }
+
     /// Starts a consumer (manual ack unless `no_ack`).
     pub async fn consume(
         ch: &Channel,
@@ -637,30 +672,4 @@ pub mod rs {
         }
         t
     }
-}
-
-/// Waits until a queue's passive declare reports `messages` ready messages
-/// (used where RabbitMQ processes something asynchronously, such as
-/// expiry); polls every 20 ms for at most [`TIMEOUT`].
-pub async fn wait_for_count(ch: &lapin::Channel, queue: &str, messages: u32) {
-    within("queue message count", async {
-        loop {
-            let q = ch
-                .queue_declare(
-                    queue,
-                    lapin::options::QueueDeclareOptions {
-                        passive: true,
-                        ..Default::default()
-                    },
-                    lapin::types::FieldTable::default(),
-                )
-                .await
-                .expect("passive declare");
-            if q.message_count() == messages {
-                return;
-            }
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
-    .await
 }
