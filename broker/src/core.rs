@@ -5,6 +5,7 @@
 
 use crate::auth::Users;
 use crate::memory::MemoryGauge;
+use crate::store::Persistence;
 use crate::vhost::Vhost;
 use leveret_protocol::ShortStr;
 use std::collections::HashMap;
@@ -49,24 +50,35 @@ pub struct Core {
     pub limits: Limits,
     /// Memory held by queued messages.
     pub gauge: Arc<MemoryGauge>,
+    /// Durable storage, if the broker has any.
+    pub persistence: Option<Arc<Persistence>>,
     next_connection: AtomicU64,
     shutdown: watch::Sender<bool>,
 }
 
 impl Core {
     /// A core with the given vhosts, users and limits.
-    pub fn new(vhost_names: &[String], users: Users, limits: Limits) -> Arc<Self> {
+    pub fn new(
+        vhost_names: &[String],
+        users: Users,
+        limits: Limits,
+        persistence: Option<Arc<Persistence>>,
+    ) -> Arc<Self> {
         let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
         let vhosts = vhost_names
             .iter()
             .filter_map(|name| ShortStr::try_from(name.as_str()).ok())
-            .map(|name| (name.clone(), Vhost::new(name, Arc::clone(&gauge))))
+            .map(|name| {
+                let vhost = Vhost::new(name.clone(), Arc::clone(&gauge), persistence.clone());
+                (name, vhost)
+            })
             .collect();
         Arc::new(Core {
             vhosts: RwLock::new(vhosts),
             users,
             limits,
             gauge,
+            persistence,
             next_connection: AtomicU64::new(1),
             shutdown: watch::channel(false).0,
         })
@@ -79,6 +91,20 @@ impl Core {
             .unwrap_or_else(|e| e.into_inner())
             .get(name)
             .cloned()
+    }
+
+    /// The vhost with this name, created if missing (stored definitions
+    /// name the vhosts they belong to).
+    pub fn vhost_or_create(&self, name: &ShortStr) -> Arc<Vhost> {
+        let mut vhosts = self.vhosts.write().unwrap_or_else(|e| e.into_inner());
+        let vhost = vhosts.entry(name.clone()).or_insert_with(|| {
+            Vhost::new(
+                name.clone(),
+                Arc::clone(&self.gauge),
+                self.persistence.clone(),
+            )
+        });
+        Arc::clone(vhost)
     }
 
     /// Every vhost.

@@ -95,5 +95,6 @@ pub fn with_death(
         persistent: message.persistent,
         priority: message.priority,
         ttl_ms: None,
+        stored: None,
     })
 }

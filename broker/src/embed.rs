@@ -5,7 +5,9 @@
 
 use crate::auth::Users;
 use crate::core::{Core, Limits};
+use crate::store::{Persistence, Recovered, SledStore, Store, StoreError};
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
@@ -33,6 +35,19 @@ pub struct BrokerBuilder {
     users: Vec<(String, String)>,
     vhosts: Vec<String>,
     limits: Limits,
+    storage: Storage,
+}
+
+/// Where durable state lives.
+#[derive(Debug, Clone, Default)]
+enum Storage {
+    /// Nothing is persisted.
+    #[default]
+    None,
+    /// A sled database in this directory.
+    Dir(PathBuf),
+    /// A store the caller provides (for example a [`crate::store::MemoryStore`]).
+    Custom(Arc<dyn Store>),
 }
 
 impl BrokerBuilder {
@@ -51,6 +66,19 @@ impl BrokerBuilder {
     /// Adds a vhost; without any, the broker has `/`.
     pub fn vhost(mut self, name: impl Into<String>) -> Self {
         self.vhosts.push(name.into());
+        self
+    }
+
+    /// Keeps durable state in `dir` (created if missing): durable
+    /// definitions and persistent messages survive restarts and crashes.
+    pub fn data_dir(mut self, dir: impl Into<PathBuf>) -> Self {
+        self.storage = Storage::Dir(dir.into());
+        self
+    }
+
+    /// Keeps durable state in a store the caller provides.
+    pub fn store(mut self, store: Arc<dyn Store>) -> Self {
+        self.storage = Storage::Custom(store);
         self
     }
 
@@ -74,7 +102,39 @@ impl BrokerBuilder {
         } else {
             self.vhosts
         };
-        let core = Core::new(&vhosts, users, self.limits);
+        let store: Option<Arc<dyn Store>> = match self.storage {
+            Storage::None => None,
+            Storage::Dir(dir) => {
+                std::fs::create_dir_all(&dir).map_err(|e| {
+                    StartError::Storage(StoreError(format!("{}: {e}", dir.display())))
+                })?;
+                Some(Arc::new(
+                    SledStore::open(&dir).map_err(StartError::Storage)?,
+                ))
+            }
+            Storage::Custom(store) => Some(store),
+        };
+        let started = std::time::Instant::now();
+        let (persistence, recovered) = match store {
+            Some(store) => {
+                let recovered = Recovered::from_scan(store.scan().map_err(StartError::Storage)?)
+                    .map_err(StartError::Storage)?;
+                (Some(Persistence::start(store, &recovered)), recovered)
+            }
+            None => (None, Recovered::default()),
+        };
+        let core = Core::new(&vhosts, users, self.limits, persistence);
+        let report = crate::recovery::recover(&core, recovered);
+        if core.persistence.is_some() {
+            tracing::info!(
+                exchanges = report.exchanges,
+                queues = report.queues,
+                bindings = report.bindings,
+                messages = report.messages,
+                elapsed_ms = started.elapsed().as_millis() as u64,
+                "recovered durable state"
+            );
+        }
         let (alive, finished) = mpsc::channel(1);
         let mut local_addrs = Vec::new();
         let mut tasks = Vec::new();
@@ -131,6 +191,11 @@ impl BrokerHandle {
         self.alive = None;
         // Resolves once every connection task has dropped its sender.
         let _ = tokio::time::timeout(SHUTDOWN_GRACE, self.finished.recv()).await;
+        if let Some(persistence) = &self.core.persistence {
+            if !persistence.sync().await {
+                tracing::error!("the last writes to storage failed at shutdown");
+            }
+        }
     }
 }
 
@@ -143,6 +208,9 @@ impl Drop for BrokerHandle {
 /// Why a broker could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum StartError {
+    /// The data directory could not be opened or read.
+    #[error("cannot open storage: {0}")]
+    Storage(StoreError),
     /// A listener could not be bound.
     #[error("cannot listen on {addr}: {source}")]
     Bind {

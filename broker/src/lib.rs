@@ -42,7 +42,9 @@ mod memory;
 mod message;
 mod outbox;
 mod queue;
+mod recovery;
 mod server;
+pub mod store;
 mod vhost;
 
 pub use crate::core::Limits;

@@ -83,10 +83,6 @@ async fn main() -> ExitCode {
         .data_dir
         .or(file.data_dir)
         .unwrap_or_else(|| PathBuf::from("leveret-data"));
-    if let Err(e) = std::fs::create_dir_all(&data_dir) {
-        tracing::error!(dir = %data_dir.display(), error = %e, "cannot create the data directory");
-        return ExitCode::FAILURE;
-    }
     let listen = if !cli.listen.is_empty() {
         cli.listen
     } else {
@@ -103,7 +99,7 @@ async fn main() -> ExitCode {
             .memory_high_watermark
             .unwrap_or(defaults.memory_high_watermark),
     };
-    let mut builder = Broker::builder().limits(limits);
+    let mut builder = Broker::builder().limits(limits).data_dir(data_dir);
     for addr in listen {
         builder = builder.listen(addr);
     }

@@ -5,6 +5,31 @@
 
 use bytes::Bytes;
 use leveret_protocol::ShortStr;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// The stored copy of a persistent message: its id, and how many durable
+/// queues still hold it (the last one deletes it from disk).
+#[derive(Debug)]
+pub struct StoredBody {
+    /// Message id in the store.
+    pub id: u64,
+    refs: AtomicUsize,
+}
+
+impl StoredBody {
+    /// A body held by `refs` durable queues.
+    pub fn new(id: u64, refs: usize) -> Self {
+        StoredBody {
+            id,
+            refs: AtomicUsize::new(refs),
+        }
+    }
+
+    /// One queue let go; true if it was the last.
+    pub fn release(&self) -> bool {
+        self.refs.fetch_sub(1, Ordering::AcqRel) == 1
+    }
+}
 
 /// One message; shared by `Arc` between every queue it was routed to.
 #[derive(Debug)]
@@ -23,6 +48,8 @@ pub struct Message {
     pub priority: u8,
     /// Per-message TTL from the `expiration` property, in milliseconds.
     pub ttl_ms: Option<u64>,
+    /// Set when the message is persistent and routed to durable queues.
+    pub stored: Option<StoredBody>,
 }
 
 impl Message {

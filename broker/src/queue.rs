@@ -14,6 +14,7 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::message::Message;
 use crate::outbox::Outbound;
+use crate::store::{Persistence, StoreOp};
 use crate::vhost::Vhost;
 use leveret_protocol::{BasicCancel, FieldTable, FieldValue, ShortStr};
 use std::collections::VecDeque;
@@ -173,8 +174,12 @@ pub struct DeadLetter {
 /// Result of offering a message to a queue.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Enqueued {
-    /// The queue took it.
-    Accepted,
+    /// The queue took it; on disk once the persister has flushed
+    /// submission `sync` (0 when nothing was written).
+    Accepted {
+        /// Submission number to wait for.
+        sync: u64,
+    },
     /// The queue is full and its overflow mode refuses publishes.
     Refused,
 }
@@ -216,6 +221,8 @@ pub struct Queue {
     pub args: QueueArgs,
     vhost: Weak<Vhost>,
     gauge: Arc<MemoryGauge>,
+    /// The store and this queue's id in it, for durable queues.
+    durable_store: Option<(Arc<Persistence>, u64)>,
     state: Mutex<QueueState>,
 }
 
@@ -227,6 +234,7 @@ impl Queue {
         args: QueueArgs,
         vhost: Weak<Vhost>,
         gauge: Arc<MemoryGauge>,
+        durable_store: Option<(Arc<Persistence>, u64)>,
     ) -> Self {
         Queue {
             name,
@@ -234,6 +242,7 @@ impl Queue {
             args,
             vhost,
             gauge,
+            durable_store,
             state: Mutex::new(QueueState {
                 last_used: Some(Instant::now()),
                 ..QueueState::default()
@@ -251,7 +260,8 @@ impl Queue {
         let outcome = {
             let mut st = self.lock();
             if st.deleted {
-                return Enqueued::Accepted;
+                self.drop_ref(&message);
+                return Enqueued::Accepted { sync: 0 };
             }
             let now = Instant::now();
             let ttl = match (self.args.message_ttl, message.ttl_ms) {
@@ -265,8 +275,12 @@ impl Queue {
             if self.is_full_for(&st, &message) {
                 match self.args.overflow {
                     Overflow::DropHead => {}
-                    Overflow::RejectPublish => return Enqueued::Refused,
+                    Overflow::RejectPublish => {
+                        self.drop_ref(&message);
+                        return Enqueued::Refused;
+                    }
                     Overflow::RejectPublishDlx => {
+                        self.drop_ref(&message);
                         dead.push(DeadLetter {
                             message,
                             reason: DeadLetterReason::MaxLen,
@@ -286,10 +300,13 @@ impl Queue {
                 expires_at: ttl.map(|ms| now + Duration::from_millis(ms)),
             };
             self.gauge.add(queued.message.weight());
+            // Logged under the queue lock, so no dequeue of this message
+            // (which needs it delivered first) can reach the store before it.
+            let sync = self.log(&queued, false);
             self.insert_ready(&mut st, queued);
             self.enforce_max_length(&mut st, &mut dead);
             self.dispatch_locked(&mut st, &mut dead);
-            Enqueued::Accepted
+            Enqueued::Accepted { sync }
         };
         self.dead_letter(dead);
         outcome
@@ -370,10 +387,64 @@ impl Queue {
         }
     }
 
-    /// A message leaves the queue for good: dead-letter it if the queue has a
-    /// dead-letter exchange, and release its memory.
-    fn discard(&self, queued: QueuedMessage, reason: DeadLetterReason, dead: &mut Vec<DeadLetter>) {
+    /// The store entry for `queued` in this queue, if it is persisted here.
+    fn stored(&self, queued: &QueuedMessage) -> Option<(&Persistence, u64, u64)> {
+        let (persistence, queue_id) = self.durable_store.as_ref()?;
+        let body = queued.message.stored.as_ref()?;
+        Some((persistence, *queue_id, body.id))
+    }
+
+    /// Writes (or rewrites, with the delivered flag) the index entry of a
+    /// persisted message; returns the submission number (0 if not persisted).
+    fn log(&self, queued: &QueuedMessage, delivered: bool) -> u64 {
+        match self.stored(queued) {
+            Some((persistence, queue, message)) => persistence.submit(vec![StoreOp::Enqueue {
+                queue,
+                seq: queued.seq,
+                message,
+                delivered,
+            }]),
+            None => 0,
+        }
+    }
+
+    /// Marks a persisted message delivered on disk, so a restart brings it
+    /// back with the redelivered flag.
+    fn log_delivery(&self, queued: &QueuedMessage) {
+        if !queued.redelivered {
+            self.log(queued, true);
+        }
+    }
+
+    /// A message this queue was offered but does not keep.
+    fn drop_ref(&self, message: &Message) {
+        if let (Some((persistence, _)), Some(body)) = (&self.durable_store, &message.stored) {
+            if body.release() {
+                persistence.submit(vec![StoreOp::DeleteMessage { id: body.id }]);
+            }
+        }
+    }
+
+    /// A message leaves this queue for good: release its memory and its
+    /// place on disk (and the body, if no other queue holds it).
+    fn release(&self, queued: &QueuedMessage) {
         self.gauge.sub(queued.message.weight());
+        if let Some((persistence, queue, message)) = self.stored(queued) {
+            let mut ops = vec![StoreOp::Dequeue {
+                queue,
+                seq: queued.seq,
+            }];
+            if queued.message.stored.as_ref().is_some_and(|b| b.release()) {
+                ops.push(StoreOp::DeleteMessage { id: message });
+            }
+            persistence.submit(ops);
+        }
+    }
+
+    /// A message leaves the queue for good: dead-letter it if the queue has a
+    /// dead-letter exchange, and release it.
+    fn discard(&self, queued: QueuedMessage, reason: DeadLetterReason, dead: &mut Vec<DeadLetter>) {
+        self.release(&queued);
         if self.args.dead_letter_exchange.is_some() {
             dead.push(DeadLetter {
                 message: queued.message,
@@ -427,8 +498,9 @@ impl Queue {
                     tag
                 };
                 if consumer.no_ack {
-                    self.gauge.sub(queued.message.weight());
+                    self.release(&queued);
                 } else {
+                    self.log_delivery(&queued);
                     consumer.took_one();
                 }
                 permit.send(Outbound::Deliver {
@@ -462,8 +534,9 @@ impl Queue {
                 let mut deliveries = link.deliveries();
                 let tag = deliveries.next_tag();
                 if no_ack {
-                    self.gauge.sub(queued.message.weight());
+                    self.release(&queued);
                 } else {
+                    self.log_delivery(&queued);
                     deliveries.push(Unacked {
                         tag,
                         queue: Arc::clone(self),
@@ -486,7 +559,7 @@ impl Queue {
             let mut st = self.lock();
             for mut queued in messages {
                 if st.deleted {
-                    self.gauge.sub(queued.message.weight());
+                    self.release(&queued);
                     continue;
                 }
                 queued.redelivered = true;
@@ -499,7 +572,7 @@ impl Queue {
 
     /// An unacked message was acked (or rejected without dead-lettering).
     pub fn settle(&self, queued: &QueuedMessage) {
-        self.gauge.sub(queued.message.weight());
+        self.release(queued);
     }
 
     /// A message was rejected without requeue: dead-letter it if configured.
@@ -507,6 +580,21 @@ impl Queue {
         let mut dead = Vec::new();
         self.discard(queued, DeadLetterReason::Rejected, &mut dead);
         self.dead_letter(dead);
+    }
+
+    /// Puts recovered messages back after a restart, in their order.
+    pub fn restore(&self, messages: Vec<QueuedMessage>) {
+        let mut st = self.lock();
+        for queued in messages {
+            st.next_seq = st.next_seq.max(queued.seq);
+            self.gauge.add(queued.message.weight());
+            self.insert_ready(&mut st, queued);
+        }
+    }
+
+    /// This queue's id in the store, if it is durable and persisted.
+    pub fn store_id(&self) -> Option<u64> {
+        self.durable_store.as_ref().map(|(_, id)| *id)
     }
 
     /// Adds a consumer; 403 if an exclusive consumer is in the way.
@@ -575,11 +663,11 @@ impl Queue {
     pub fn purge(&self) -> u32 {
         let mut st = self.lock();
         let count = st.ready.len() as u32;
-        let released: usize = st.ready.iter().map(|m| m.message.weight()).sum();
-        st.ready.clear();
+        for queued in std::mem::take(&mut st.ready) {
+            self.release(&queued);
+        }
         st.ready_bytes = 0;
         st.expiring = 0;
-        self.gauge.sub(released);
         count
     }
 

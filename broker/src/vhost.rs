@@ -10,6 +10,7 @@ use crate::exchange::{Binding, Destination, Exchange, ExchangeKind, ExchangeOpti
 use crate::memory::MemoryGauge;
 use crate::message::Message;
 use crate::queue::{Queue, QueueArgs, QueueOptions};
+use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
@@ -22,6 +23,7 @@ pub struct Vhost {
     exchanges: RwLock<HashMap<ShortStr, Arc<Exchange>>>,
     queues: RwLock<HashMap<ShortStr, Arc<Queue>>>,
     gauge: Arc<MemoryGauge>,
+    persistence: Option<Arc<Persistence>>,
 }
 
 /// What queue.declare asked for.
@@ -60,12 +62,17 @@ fn write<T>(lock: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
 
 impl Vhost {
     /// A vhost with the default exchange and the predefined `amq.*` ones.
-    pub fn new(name: ShortStr, gauge: Arc<MemoryGauge>) -> Arc<Self> {
+    pub fn new(
+        name: ShortStr,
+        gauge: Arc<MemoryGauge>,
+        persistence: Option<Arc<Persistence>>,
+    ) -> Arc<Self> {
         let vhost = Vhost {
             name,
             exchanges: RwLock::new(HashMap::new()),
             queues: RwLock::new(HashMap::new()),
             gauge,
+            persistence,
         };
         let durable = ExchangeOptions {
             durable: true,
@@ -167,6 +174,17 @@ impl Vhost {
         }
         let exchange = Arc::new(Exchange::new(decl.name.clone(), kind, decl.options));
         exchanges.insert(decl.name, Arc::clone(&exchange));
+        drop(exchanges);
+        if exchange.options.durable {
+            self.persist(vec![StoreOp::PutExchange(ExchangeRecord {
+                vhost: self.name.clone(),
+                name: exchange.name.clone(),
+                kind: ShortStr::from_static(kind.name()),
+                auto_delete: exchange.options.auto_delete,
+                internal: exchange.options.internal,
+                arguments: exchange.options.arguments.clone(),
+            })]);
+        }
         Ok(exchange)
     }
 
@@ -186,10 +204,7 @@ impl Vhost {
             )));
         }
         write(&self.exchanges).remove(name);
-        let as_destination = Destination::Exchange(exchange);
-        for other in read(&self.exchanges).values() {
-            other.unbind_destination(&as_destination);
-        }
+        self.forget_exchange(&exchange);
         Ok(())
     }
 
@@ -250,12 +265,29 @@ impl Vhost {
             // Declared by another channel between our check and the lock.
             return Ok((Arc::clone(existing), false));
         }
+        // Exclusive queues die with their connection, so they are never stored.
+        let durable_store = match &self.persistence {
+            Some(p) if decl.options.durable && decl.options.exclusive_owner.is_none() => {
+                Some((Arc::clone(p), p.next_queue_id()))
+            }
+            _ => None,
+        };
+        if let Some((persistence, id)) = &durable_store {
+            persistence.submit(vec![StoreOp::PutQueue(QueueRecord {
+                vhost: self.name.clone(),
+                name: decl.name.clone(),
+                id: *id,
+                auto_delete: decl.options.auto_delete,
+                arguments: decl.options.arguments.clone(),
+            })]);
+        }
         let queue = Arc::new(Queue::new(
             decl.name.clone(),
             decl.options,
             args,
             Arc::downgrade(self),
             Arc::clone(&self.gauge),
+            durable_store,
         ));
         queues.insert(decl.name, Arc::clone(&queue));
         Ok((queue, true))
@@ -275,25 +307,124 @@ impl Vhost {
         }
         let destination = Destination::Queue(Arc::clone(queue));
         let exchanges: Vec<Arc<Exchange>> = read(&self.exchanges).values().cloned().collect();
+        let mut ops = Vec::new();
         for exchange in exchanges {
+            for binding in exchange
+                .bindings()
+                .iter()
+                .filter(|b| b.destination == destination)
+            {
+                if let Some(record) = self.binding_record(&exchange, binding) {
+                    ops.push(StoreOp::DeleteBinding(record));
+                }
+            }
             if exchange.unbind_destination(&destination) {
                 self.auto_delete_exchange(&exchange);
             }
         }
+        if queue.store_id().is_some() {
+            ops.push(StoreOp::DeleteQueue {
+                vhost: self.name.clone(),
+                name: queue.name.clone(),
+            });
+        }
+        self.persist(ops);
         queue.delete()
     }
 
     /// Deletes an auto-delete exchange that has lost its last binding.
     fn auto_delete_exchange(&self, exchange: &Arc<Exchange>) {
         if exchange.options.auto_delete && !exchange.has_bindings() {
-            let mut exchanges = write(&self.exchanges);
-            if exchanges
-                .get(&exchange.name)
-                .is_some_and(|e| Arc::ptr_eq(e, exchange))
-            {
-                exchanges.remove(&exchange.name);
+            let removed = {
+                let mut exchanges = write(&self.exchanges);
+                let current = exchanges
+                    .get(&exchange.name)
+                    .is_some_and(|e| Arc::ptr_eq(e, exchange));
+                current && exchanges.remove(&exchange.name).is_some()
+            };
+            if removed {
+                self.forget_exchange(exchange);
             }
         }
+    }
+
+    /// Removes a deleted exchange's bindings, in memory and on disk.
+    fn forget_exchange(&self, exchange: &Arc<Exchange>) {
+        let mut ops = Vec::new();
+        for binding in exchange.bindings() {
+            if let Some(record) = self.binding_record(exchange, &binding) {
+                ops.push(StoreOp::DeleteBinding(record));
+            }
+        }
+        let as_destination = Destination::Exchange(Arc::clone(exchange));
+        let exchanges: Vec<Arc<Exchange>> = read(&self.exchanges).values().cloned().collect();
+        for other in exchanges {
+            for binding in other
+                .bindings()
+                .iter()
+                .filter(|b| b.destination == as_destination)
+            {
+                if let Some(record) = self.binding_record(&other, binding) {
+                    ops.push(StoreOp::DeleteBinding(record));
+                }
+            }
+            other.unbind_destination(&as_destination);
+        }
+        if exchange.options.durable {
+            ops.push(StoreOp::DeleteExchange {
+                vhost: self.name.clone(),
+                name: exchange.name.clone(),
+            });
+        }
+        self.persist(ops);
+    }
+
+    fn persist(&self, ops: Vec<StoreOp>) {
+        if let (Some(persistence), false) = (&self.persistence, ops.is_empty()) {
+            persistence.submit(ops);
+        }
+    }
+
+    /// The stored form of a binding, if both its ends are durable.
+    fn binding_record(&self, source: &Exchange, binding: &Binding) -> Option<BindingRecord> {
+        if !source.options.durable {
+            return None;
+        }
+        let (to_queue, destination) = match &binding.destination {
+            Destination::Queue(q) => {
+                q.store_id()?;
+                (true, q.name.clone())
+            }
+            Destination::Exchange(e) if e.options.durable => (false, e.name.clone()),
+            Destination::Exchange(_) => return None,
+        };
+        Some(BindingRecord {
+            vhost: self.name.clone(),
+            source: source.name.clone(),
+            to_queue,
+            destination,
+            routing_key: binding.routing_key.clone(),
+            arguments: binding.arguments.clone(),
+        })
+    }
+
+    /// Adds a binding in memory and, between durable ends, on disk.
+    fn add_binding(&self, source: &Exchange, binding: Binding) {
+        if let Some(record) = self.binding_record(source, &binding) {
+            self.persist(vec![StoreOp::PutBinding(record)]);
+        }
+        source.bind(binding);
+    }
+
+    /// Removes a binding; true if it existed.
+    fn remove_binding(&self, source: &Exchange, binding: &Binding) -> bool {
+        let removed = source.unbind(binding);
+        if removed {
+            if let Some(record) = self.binding_record(source, binding) {
+                self.persist(vec![StoreOp::DeleteBinding(record)]);
+            }
+        }
+        removed
     }
 
     /// queue.bind.
@@ -306,11 +437,12 @@ impl Vhost {
     ) -> AmqpResult<()> {
         let source = self.bindable_source(exchange, "queue", &queue.name)?;
         check_headers_binding(&source, &arguments)?;
-        source.bind(Binding {
+        let binding = Binding {
             destination: Destination::Queue(Arc::clone(queue)),
             routing_key,
             arguments,
-        });
+        };
+        self.add_binding(&source, binding);
         Ok(())
     }
 
@@ -328,7 +460,7 @@ impl Vhost {
             routing_key,
             arguments,
         };
-        if source.unbind(&binding) {
+        if self.remove_binding(&source, &binding) {
             self.auto_delete_exchange(&source);
         }
         Ok(())
@@ -355,8 +487,8 @@ impl Vhost {
         };
         if bind {
             check_headers_binding(&from, &binding.arguments)?;
-            from.bind(binding);
-        } else if from.unbind(&binding) {
+            self.add_binding(&from, binding);
+        } else if self.remove_binding(&from, &binding) {
             self.auto_delete_exchange(&from);
         }
         Ok(())
@@ -459,6 +591,72 @@ impl Vhost {
         for queue in &queues {
             queue.publish(Arc::clone(&message));
         }
+    }
+
+    /// Re-creates a stored exchange at start.
+    pub fn restore_exchange(&self, record: &ExchangeRecord) {
+        let Some(kind) = ExchangeKind::parse(record.kind.as_bytes()) else {
+            tracing::warn!(exchange = %record.name, kind = %record.kind, "stored exchange of unknown kind skipped");
+            return;
+        };
+        let options = ExchangeOptions {
+            durable: true,
+            auto_delete: record.auto_delete,
+            internal: record.internal,
+            arguments: record.arguments.clone(),
+        };
+        let exchange = Exchange::new(record.name.clone(), kind, options);
+        write(&self.exchanges).insert(record.name.clone(), Arc::new(exchange));
+    }
+
+    /// Re-creates a stored queue at start (its messages are restored by the caller).
+    pub fn restore_queue(self: &Arc<Self>, record: &QueueRecord) -> Option<Arc<Queue>> {
+        let options = QueueOptions {
+            durable: true,
+            exclusive_owner: None,
+            auto_delete: record.auto_delete,
+            arguments: record.arguments.clone(),
+        };
+        let args = match QueueArgs::parse(&options.arguments, &record.name, &self.name) {
+            Ok(args) => args,
+            Err(e) => {
+                tracing::warn!(queue = %record.name, error = %e, "stored queue arguments no longer valid; using none");
+                QueueArgs::default()
+            }
+        };
+        let persistence = Arc::clone(self.persistence.as_ref()?);
+        let queue = Arc::new(Queue::new(
+            record.name.clone(),
+            options,
+            args,
+            Arc::downgrade(self),
+            Arc::clone(&self.gauge),
+            Some((persistence, record.id)),
+        ));
+        write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
+        Some(queue)
+    }
+
+    /// Re-creates a stored binding at start; false if an end is missing.
+    pub fn restore_binding(&self, record: &BindingRecord) -> bool {
+        let Some(source) = self.exchange(&record.source) else {
+            return false;
+        };
+        let destination = if record.to_queue {
+            self.queue(&record.destination).map(Destination::Queue)
+        } else {
+            self.exchange(&record.destination)
+                .map(Destination::Exchange)
+        };
+        let Some(destination) = destination else {
+            return false;
+        };
+        source.bind(Binding {
+            destination,
+            routing_key: record.routing_key.clone(),
+            arguments: record.arguments.clone(),
+        });
+        true
     }
 
     /// Deletes the exclusive queues of a closed connection.

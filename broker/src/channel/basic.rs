@@ -5,15 +5,25 @@
 use super::{Channel, Publish};
 use crate::consumer::{Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
-use crate::message::Message;
+use crate::message::{Message, StoredBody};
 use crate::outbox::Outbound;
 use crate::queue::{Enqueued, Queue};
+use crate::store::{MessageRecord, StoreOp};
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
     BasicPublish, BasicQos, BasicQosOk, ReplyCode, ShortStr,
 };
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+
+/// What happened to one publish.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(crate) struct Outcome {
+    /// A queue refused it (overflow reject-publish): nack.
+    pub refused: bool,
+    /// Persister submission to wait for before confirming (0 = none).
+    pub sync: u64,
+}
 
 /// What a client did with a delivery.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -96,19 +106,35 @@ impl Channel {
             return Ok(());
         }
         let confirm = self.confirms.as_mut().map(|c| c.next_tag());
-        let accepted = self.route_and_enqueue(publish).await;
+        let outcome = self.route_and_enqueue(publish).await;
         if let Some(tag) = confirm {
-            self.confirm(tag, accepted).await;
+            self.confirm(tag, outcome).await;
         }
         Ok(())
     }
 
-    /// Routes a message and offers it to each queue; returns whether every
-    /// queue took it. Sends basic.return for unroutable mandatory messages.
-    pub(super) async fn route_and_enqueue(&mut self, publish: Publish) -> bool {
+    /// Routes a message and offers it to each queue. Sends basic.return for
+    /// unroutable mandatory messages. Persistent messages reaching durable
+    /// queues are stored once, with one index entry per queue.
+    pub(super) async fn route_and_enqueue(&mut self, publish: Publish) -> Outcome {
         let Some(exchange) = self.vhost.exchange(&publish.method.exchange) else {
             // Deleted between publish and a tx.commit: RabbitMQ drops it.
-            return true;
+            return Outcome::default();
+        };
+        let mut queues = std::mem::take(&mut self.route_buffer);
+        self.vhost.route(
+            &exchange,
+            &publish.method.routing_key,
+            publish.properties.headers.as_ref(),
+            &mut queues,
+        );
+        let persistent = publish.properties.is_persistent();
+        let stored = match &self.core.persistence {
+            Some(persistence) if persistent => {
+                let durable = queues.iter().filter(|q| q.store_id().is_some()).count();
+                (durable > 0).then(|| StoredBody::new(persistence.next_message_id(), durable))
+            }
+            _ => None,
         };
         let ttl_ms = publish
             .properties
@@ -121,18 +147,23 @@ impl Channel {
             routing_key: publish.method.routing_key,
             properties: publish.property_bytes,
             body: publish.body,
-            persistent: publish.properties.is_persistent(),
+            persistent,
             priority: publish.properties.priority.unwrap_or(0),
             ttl_ms,
+            stored,
         });
-        let mut queues = std::mem::take(&mut self.route_buffer);
-        self.vhost.route(
-            &exchange,
-            &message.routing_key,
-            publish.properties.headers.as_ref(),
-            &mut queues,
-        );
-        let mut accepted = true;
+        if let (Some(persistence), Some(body)) = (&self.core.persistence, &message.stored) {
+            persistence.submit(vec![StoreOp::PutMessage {
+                id: body.id,
+                record: MessageRecord {
+                    exchange: message.exchange.clone(),
+                    routing_key: message.routing_key.clone(),
+                    properties: message.properties.clone(),
+                    body: message.body.clone(),
+                },
+            }]);
+        }
+        let mut outcome = Outcome::default();
         if queues.is_empty() {
             if publish.method.mandatory {
                 self.outbox()
@@ -146,11 +177,14 @@ impl Channel {
             }
         } else {
             for queue in queues.drain(..) {
-                accepted &= queue.publish(Arc::clone(&message)) == Enqueued::Accepted;
+                match queue.publish(Arc::clone(&message)) {
+                    Enqueued::Accepted { sync } => outcome.sync = outcome.sync.max(sync),
+                    Enqueued::Refused => outcome.refused = true,
+                }
             }
         }
         self.route_buffer = queues;
-        accepted
+        outcome
     }
 
     pub(super) async fn basic_qos(&mut self, qos: BasicQos) -> AmqpResult<()> {

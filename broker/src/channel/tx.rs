@@ -3,13 +3,14 @@
 //! are coalesced: consecutive positive confirms are sent as one basic.ack
 //! with `multiple` once the connection has no more input buffered.
 
-use super::basic::{apply_settles, requeue_all, Settle};
+use super::basic::{apply_settles, requeue_all, Outcome, Settle};
 use super::{Channel, Publish};
 use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
 use leveret_protocol::{
     BasicAck, BasicNack, ConfirmSelectOk, TxCommitOk, TxRollbackOk, TxSelectOk,
 };
+use std::collections::VecDeque;
 
 /// Work held by a transactional channel until commit.
 #[derive(Debug, Default)]
@@ -22,8 +23,8 @@ pub(crate) struct Transaction {
 #[derive(Debug, Default)]
 pub(crate) struct Confirms {
     last_tag: u64,
-    /// Highest tag acked but not yet sent, and the lowest in that run.
-    pending: Option<(u64, u64)>,
+    /// Publishes not yet confirmed, in tag order, with what they wait for.
+    waiting: VecDeque<(u64, Outcome)>,
 }
 
 impl Confirms {
@@ -53,10 +54,18 @@ impl Channel {
                 "channel is not transactional",
             ));
         };
+        let mut sync = 0;
         for publish in tx.publishes {
-            self.route_and_enqueue(publish).await;
+            sync = sync.max(self.route_and_enqueue(publish).await.sync);
         }
         apply_settles(tx.settles);
+        if let (Some(persistence), true) = (&self.core.persistence, sync > 0) {
+            if !persistence.wait(sync).await {
+                return Err(AmqpError::resource_error(
+                    "could not write the transaction to disk",
+                ));
+            }
+        }
         self.reply(TxCommitOk {}).await;
         Ok(())
     }
@@ -98,36 +107,70 @@ impl Channel {
         Ok(())
     }
 
-    /// Records the outcome of publish `tag`: acks wait to be coalesced,
-    /// a nack flushes them and goes out at once.
-    pub(super) async fn confirm(&mut self, tag: u64, accepted: bool) {
-        let Some(confirms) = &mut self.confirms else {
-            return;
-        };
-        if accepted {
-            confirms.pending = Some(match confirms.pending {
-                Some((low, _)) => (low, tag),
-                None => (tag, tag),
-            });
-            return;
+    /// Records the outcome of publish `tag`; it is confirmed by the next
+    /// [`Channel::flush_confirms`] that finds it (and all before it) settled.
+    pub(super) async fn confirm(&mut self, tag: u64, outcome: Outcome) {
+        if let Some(confirms) = &mut self.confirms {
+            confirms.waiting.push_back((tag, outcome));
         }
-        self.flush_confirms().await;
-        self.reply(BasicNack {
-            delivery_tag: tag,
-            multiple: false,
-            requeue: false,
-        })
-        .await;
     }
 
-    /// Sends the coalesced acks.
+    /// Whether publishes wait for their confirm.
+    pub fn has_waiting_confirms(&self) -> bool {
+        self.confirms
+            .as_ref()
+            .is_some_and(|c| !c.waiting.is_empty())
+    }
+
+    /// Sends the confirms that are due, in tag order: consecutive acks as
+    /// one basic.ack with `multiple`, nacks one by one. A publish waiting
+    /// for the disk holds back those after it, so a multiple ack never
+    /// covers a message that is not yet safe.
     pub async fn flush_confirms(&mut self) {
-        let Some(confirms) = &mut self.confirms else {
-            return;
-        };
-        let Some((low, high)) = confirms.pending.take() else {
-            return;
-        };
+        let durable = self
+            .core
+            .persistence
+            .as_ref()
+            .map(|p| *p.durable().borrow());
+        let mut acks: Option<(u64, u64)> = None;
+        let mut nacks = Vec::new();
+        if let Some(confirms) = &mut self.confirms {
+            while let Some(&(tag, outcome)) = confirms.waiting.front() {
+                let ack = if outcome.refused {
+                    false
+                } else if outcome.sync == 0 {
+                    true
+                } else {
+                    match durable {
+                        Some(d) if d.flushed >= outcome.sync => !d.failed,
+                        _ => break,
+                    }
+                };
+                confirms.waiting.pop_front();
+                if ack {
+                    acks = Some(acks.map_or((tag, tag), |(low, _)| (low, tag)));
+                } else {
+                    nacks.push((acks.take(), tag));
+                }
+            }
+        }
+        for (before, tag) in nacks {
+            if let Some((low, high)) = before {
+                self.send_ack(low, high).await;
+            }
+            self.reply(BasicNack {
+                delivery_tag: tag,
+                multiple: false,
+                requeue: false,
+            })
+            .await;
+        }
+        if let Some((low, high)) = acks {
+            self.send_ack(low, high).await;
+        }
+    }
+
+    async fn send_ack(&self, low: u64, high: u64) {
         self.reply(BasicAck {
             delivery_tag: high,
             multiple: high > low,

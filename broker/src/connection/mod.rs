@@ -185,17 +185,28 @@ impl Connection {
         }
         tracing::debug!(user = %self.user, "connection open");
         let mut shutdown = self.core.shutdown_signal();
+        let mut durable = self.core.persistence.as_ref().map(|p| p.durable());
         loop {
             if self.core.gauge.in_alarm() && self.publishes() {
                 self.block(reader).await;
             }
-            let frame = tokio::select! {
-                frame = self.next_frame(reader) => Some(frame),
-                _ = shutdown.wait_for(|down| *down) => None,
+            let waiting = self.channels.values().any(Channel::has_waiting_confirms);
+            let event = tokio::select! {
+                frame = self.next_frame(reader) => Event::Frame(frame),
+                _ = shutdown.wait_for(|down| *down) => Event::Shutdown,
+                _ = disk_progress(&mut durable), if waiting => Event::DiskProgress,
             };
-            let Some(frame) = frame else {
-                let error = AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
-                return self.close_with(reader, error).await;
+            let frame = match event {
+                Event::Frame(frame) => frame,
+                Event::DiskProgress => {
+                    self.flush_confirms().await;
+                    continue;
+                }
+                Event::Shutdown => {
+                    let error =
+                        AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
+                    return self.close_with(reader, error).await;
+                }
             };
             let frame = match frame {
                 Ok(frame) => frame,
@@ -527,6 +538,25 @@ impl Connection {
         if let Some(vhost) = &self.vhost {
             vhost.drop_exclusive(self.connection_id);
         }
+    }
+}
+
+/// What woke the reader loop.
+enum Event {
+    Frame(Result<Frame, ReadError>),
+    DiskProgress,
+    Shutdown,
+}
+
+/// Resolves when the persister reports more on disk (never without storage).
+async fn disk_progress(durable: &mut Option<tokio::sync::watch::Receiver<crate::store::Durable>>) {
+    match durable {
+        Some(rx) => {
+            if rx.changed().await.is_err() {
+                std::future::pending::<()>().await;
+            }
+        }
+        None => std::future::pending::<()>().await,
     }
 }
 

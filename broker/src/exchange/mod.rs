@@ -182,6 +182,11 @@ impl Exchange {
         removed
     }
 
+    /// A copy of every binding from this exchange.
+    pub fn bindings(&self) -> Vec<Binding> {
+        self.read().bindings.clone()
+    }
+
     /// Calls `found` for every binding's destination.
     pub fn for_each_destination(&self, found: impl FnMut(&Destination)) {
         self.read()
