@@ -5,7 +5,7 @@
 use crate::error::DecodeError;
 use crate::method::Method;
 use crate::properties::ContentHeader;
-use bytes::{BufMut, Bytes, BytesMut};
+use bytes::{Buf, BufMut, Bytes, BytesMut};
 use nom::bytes::complete::{tag, take};
 use nom::number::complete::{be_u16, be_u32, be_u8};
 
@@ -154,12 +154,26 @@ pub fn check_frame(buf: &[u8], frame_max: u32) -> Result<FrameCheck, DecodeError
 
 /// Takes one frame off the front of `buf` if it holds a whole one.
 /// `Ok(None)` means more bytes are needed; payloads become `Bytes` slices
-/// of the buffer, so bodies are never copied.
+/// of the buffer, so bodies are never copied. A frame that fails to decode
+/// has still been taken off the buffer.
 pub fn decode_frame(buf: &mut BytesMut, frame_max: u32) -> Result<Option<Frame>, DecodeError> {
-    match check_frame(buf, frame_max)? {
-        FrameCheck::Incomplete { .. } => Ok(None),
-        FrameCheck::Complete { len } => parse_frame(buf.split_to(len).freeze()).map(Some),
+    let len = match check_frame(buf, frame_max)? {
+        FrameCheck::Incomplete { .. } => return Ok(None),
+        FrameCheck::Complete { len } => len,
+    };
+    // check_frame saw the 7-byte header and the whole frame is buffered.
+    let kind = buf[0];
+    let channel = u16::from_be_bytes([buf[1], buf[2]]);
+    let end = buf[len - 1];
+    // The frame's handle is narrowed to its payload in place (Bytes'
+    // advance and truncate touch no reference count).
+    let mut payload = buf.split_to(len).freeze();
+    if end != FRAME_END {
+        return Err(DecodeError::BadFrameEnd { found: end });
     }
+    payload.advance(7);
+    payload.truncate(len - FRAME_OVERHEAD);
+    decode_payload(kind, channel, payload).map(Some)
 }
 
 /// Parses exactly one whole frame (as found by [`check_frame`]).
@@ -178,6 +192,11 @@ pub fn parse_frame(frame: Bytes) -> Result<Frame, DecodeError> {
         return Err(DecodeError::BadFrameEnd { found });
     }
     let payload = frame.slice_ref(payload);
+    decode_payload(kind, channel, payload)
+}
+
+/// Decodes a frame's payload by its type.
+fn decode_payload(kind: u8, channel: u16, payload: Bytes) -> Result<Frame, DecodeError> {
     match kind {
         FRAME_METHOD => Ok(Frame::Method {
             channel,
@@ -185,7 +204,7 @@ pub fn parse_frame(frame: Bytes) -> Result<Frame, DecodeError> {
         }),
         FRAME_HEADER => Ok(Frame::Header {
             channel,
-            header: ContentHeader::decode(&payload)?,
+            header: ContentHeader::decode_owned(payload)?,
         }),
         FRAME_BODY => Ok(Frame::Body { channel, payload }),
         FRAME_HEARTBEAT if channel == 0 && payload.is_empty() => Ok(Frame::Heartbeat),

@@ -6,7 +6,7 @@
 use crate::error::{DecodeError, SyntaxProblem};
 use crate::types::{FieldTable, ShortStr};
 use crate::wire::{field_table, in_field, put_field_table, put_short_str, short_str, PResult};
-use bytes::{BufMut, Bytes, BytesMut};
+use bytes::{Buf, BufMut, Bytes, BytesMut};
 use nom::number::complete::{be_u16, be_u64, be_u8};
 
 /// The properties of the basic class, each optional.
@@ -122,9 +122,10 @@ impl BasicProperties {
     /// Decodes a flag word (or several, with continuation) and the
     /// property list from `src`, which must hold exactly that.
     pub fn decode(src: &Bytes) -> Result<BasicProperties, DecodeError> {
-        match parse_properties(src, src) {
-            Ok(([], props)) => Ok(props),
-            Ok((rest, _)) => Err(header_error("", SyntaxProblem::TrailingBytes(rest.len()))),
+        let mut props = BasicProperties::default();
+        match parse_properties(src, src, &mut props) {
+            Ok(([], ())) => Ok(props),
+            Ok((rest, ())) => Err(header_error("", SyntaxProblem::TrailingBytes(rest.len()))),
             Err(nom::Err::Error(e) | nom::Err::Failure(e)) => Err(header_error(e.field, e.problem)),
             Err(nom::Err::Incomplete(_)) => Err(header_error("", SyntaxProblem::Truncated)),
         }
@@ -139,7 +140,16 @@ fn header_error(field: &'static str, problem: SyntaxProblem) -> DecodeError {
     }
 }
 
-fn parse_properties<'a>(src: &Bytes, input: &'a [u8]) -> PResult<'a, BasicProperties> {
+/// Parses the flag words and the properties they announce into `props`
+/// (which starts out empty), returning what follows them. Properties are
+/// written in place rather than returned: `BasicProperties` is a few
+/// hundred bytes, and moving it through nom's result tuples cost more than
+/// parsing a typical header.
+fn parse_properties<'a>(
+    src: &Bytes,
+    input: &'a [u8],
+    props: &mut BasicProperties,
+) -> PResult<'a, ()> {
     let (mut input, flags) = in_field(be_u16(input), "property_flags")?;
     // Further flag words may follow; the basic class has no properties in
     // them, so any bit set there (other than continuation) is unknown.
@@ -155,63 +165,37 @@ fn parse_properties<'a>(src: &Bytes, input: &'a [u8]) -> PResult<'a, BasicProper
     if flags & flag::UNUSED != 0 {
         return unknown_property();
     }
-    let mut props = BasicProperties::default();
-    let short = |input: &'a [u8], bit: u16, name: &'static str| -> PResult<'a, Option<ShortStr>> {
-        if flags & bit == 0 {
-            return Ok((input, None));
-        }
-        let (rest, v) = in_field(short_str(src, input), name)?;
-        Ok((rest, Some(v)))
-    };
-    let (input, v) = short(input, flag::CONTENT_TYPE, "content_type")?;
-    props.content_type = v;
-    let (input, v) = short(input, flag::CONTENT_ENCODING, "content_encoding")?;
-    props.content_encoding = v;
-    let input = if flags & flag::HEADERS != 0 {
-        let (rest, table) = in_field(field_table(src, input), "headers")?;
-        props.headers = Some(table);
-        rest
-    } else {
-        input
-    };
-    let input = if flags & flag::DELIVERY_MODE != 0 {
-        let (rest, v) = in_field(be_u8(input), "delivery_mode")?;
-        props.delivery_mode = Some(v);
-        rest
-    } else {
-        input
-    };
-    let input = if flags & flag::PRIORITY != 0 {
-        let (rest, v) = in_field(be_u8(input), "priority")?;
-        props.priority = Some(v);
-        rest
-    } else {
-        input
-    };
-    let (input, v) = short(input, flag::CORRELATION_ID, "correlation_id")?;
-    props.correlation_id = v;
-    let (input, v) = short(input, flag::REPLY_TO, "reply_to")?;
-    props.reply_to = v;
-    let (input, v) = short(input, flag::EXPIRATION, "expiration")?;
-    props.expiration = v;
-    let (input, v) = short(input, flag::MESSAGE_ID, "message_id")?;
-    props.message_id = v;
-    let input = if flags & flag::TIMESTAMP != 0 {
-        let (rest, v) = in_field(be_u64(input), "timestamp")?;
-        props.timestamp = Some(v);
-        rest
-    } else {
-        input
-    };
-    let (input, v) = short(input, flag::TYPE, "type")?;
-    props.kind = v;
-    let (input, v) = short(input, flag::USER_ID, "user_id")?;
-    props.user_id = v;
-    let (input, v) = short(input, flag::APP_ID, "app_id")?;
-    props.app_id = v;
-    let (input, v) = short(input, flag::CLUSTER_ID, "cluster_id")?;
-    props.cluster_id = v;
-    Ok((input, props))
+    // Each present property, in wire order; absent ones cost one test.
+    macro_rules! read {
+        ($bit:ident, $name:literal, $slot:ident, $parser:expr) => {
+            if flags & flag::$bit != 0 {
+                let (rest, v) = in_field($parser(input), $name)?;
+                props.$slot = Some(v);
+                input = rest;
+            }
+        };
+    }
+    let short = |input| short_str(src, input);
+    read!(CONTENT_TYPE, "content_type", content_type, short);
+    read!(
+        CONTENT_ENCODING,
+        "content_encoding",
+        content_encoding,
+        short
+    );
+    read!(HEADERS, "headers", headers, |i| field_table(src, i));
+    read!(DELIVERY_MODE, "delivery_mode", delivery_mode, be_u8);
+    read!(PRIORITY, "priority", priority, be_u8);
+    read!(CORRELATION_ID, "correlation_id", correlation_id, short);
+    read!(REPLY_TO, "reply_to", reply_to, short);
+    read!(EXPIRATION, "expiration", expiration, short);
+    read!(MESSAGE_ID, "message_id", message_id, short);
+    read!(TIMESTAMP, "timestamp", timestamp, be_u64);
+    read!(TYPE, "type", kind, short);
+    read!(USER_ID, "user_id", user_id, short);
+    read!(APP_ID, "app_id", app_id, short);
+    read!(CLUSTER_ID, "cluster_id", cluster_id, short);
+    Ok((input, ()))
 }
 
 fn unknown_property<T>() -> PResult<'static, T> {
@@ -255,16 +239,23 @@ impl ContentHeader {
     /// Decodes a header frame's payload. Only the class, weight and size
     /// are read here; properties are checked by [`ContentHeader::properties`].
     pub fn decode(payload: &Bytes) -> Result<ContentHeader, DecodeError> {
+        Self::decode_owned(payload.clone())
+    }
+
+    /// [`ContentHeader::decode`] taking the payload by value, so the
+    /// property bytes are the payload itself, advanced past the fixed part.
+    pub(crate) fn decode_owned(mut payload: Bytes) -> Result<ContentHeader, DecodeError> {
         if payload.len() < 14 {
             return Err(header_error("body_size", SyntaxProblem::Truncated));
         }
         let class_id = u16::from_be_bytes([payload[0], payload[1]]);
         let mut size = [0u8; 8];
         size.copy_from_slice(&payload[4..12]);
+        payload.advance(12);
         Ok(ContentHeader {
             class_id,
             body_size: u64::from_be_bytes(size),
-            property_bytes: payload.slice(12..),
+            property_bytes: payload,
         })
     }
 
