@@ -1,8 +1,75 @@
 //! # leveret-client
 //!
-//! A thin async AMQP 0.9.1 client on `leveret-protocol`, and typed robot
-//! data ports over it. Work in progress: the client API lands with issue 5.
+//! A thin async AMQP 0.9.1 client on `leveret-protocol` and tokio, for
+//! Leveret or any AMQP 0.9.1 broker (RabbitMQ's extensions included:
+//! publisher confirms, consumer cancel notification, `connection.blocked`,
+//! `basic.nack`, exchange-to-exchange bindings).
+//!
+//! ```no_run
+//! use bytes::Bytes;
+//! use leveret_client::{
+//!     BasicConsumeOptions, BasicProperties, BasicPublishOptions, Connection, FieldTable,
+//!     QueueDeclareOptions,
+//! };
+//!
+//! # async fn demo() -> leveret_client::Result<()> {
+//! let connection = Connection::connect("amqp://guest:guest@localhost:5672/%2f").await?;
+//! let channel = connection.open_channel().await?;
+//! let queue = channel
+//!     .queue_declare("tasks", QueueDeclareOptions::default(), FieldTable::new())
+//!     .await?;
+//! channel.confirm_select().await?;
+//! let confirm = channel
+//!     .basic_publish("", "tasks", BasicPublishOptions::default(), BasicProperties::default(), Bytes::from_static(b"hi"))
+//!     .await?;
+//! assert!(confirm.await?.is_ack());
+//! let mut consumer = channel
+//!     .basic_consume(&queue.name, "", BasicConsumeOptions::default(), FieldTable::new())
+//!     .await?;
+//! while let Some(delivery) = consumer.next().await {
+//!     delivery.ack().await?;
+//! }
+//! connection.close().await
+//! # }
+//! ```
+//!
+//! # Design
+//! Each connection has two tasks that own the socket. The reader decodes
+//! frames (bodies stay slices of its read buffer) and routes them per
+//! channel: replies to the waiting call, deliveries to their consumer's
+//! bounded buffer, returns, confirms. The writer drains a bounded outbox,
+//! encoding everything waiting into one reused buffer per write. Callers
+//! wait for room in the outbox, so nothing grows without bound.
+//!
+//! # Layout
+//! - [`uri`]: [`ConnectionOptions`] and `amqp://` URI parsing.
+//! - `connection`: [`Connection`], the handshake, the reader and writer tasks.
+//! - `channel`: [`Channel`] and the per-channel state the reader drives.
+//! - `consumer`: [`Consumer`] and [`Returns`] streams.
+//! - `confirm`: publisher confirms ([`PublishConfirm`], [`Confirmation`]).
+//! - `message`: [`Delivery`], [`GetMessage`], [`ReturnedMessage`], [`IntoShortStr`].
+//! - `options`: the `…Options` structs of the channel methods.
+//! - `error`: [`Error`] and [`CloseReason`].
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
 
+mod channel;
+mod confirm;
+mod connection;
+mod consumer;
+mod error;
+mod message;
+mod options;
+pub mod uri;
+
+pub use channel::{Channel, QueueInfo};
+pub use confirm::{Confirmation, PublishConfirm};
+pub use connection::{Connection, Tuning};
+pub use consumer::{Consumer, ConsumerEnd, Returns, DEFAULT_CONSUMER_BUFFER, RETURNS_BUFFER};
+pub use error::{CloseReason, Error, Result};
+pub use message::{Delivery, GetMessage, IntoShortStr, ReturnedMessage};
+pub use options::*;
+pub use uri::ConnectionOptions;
+
 pub use leveret_protocol as protocol;
+pub use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ReplyCode, ShortStr};

@@ -1,0 +1,379 @@
+//! A channel's state, shared by its handles and the connection's reader:
+//! its status, the calls waiting for their `-ok` reply (in order, since a
+//! channel answers synchronous methods in order), its consumers, the
+//! receiver of returned messages and the outstanding publisher confirms.
+//! [`ChannelCore`] sends on behalf of a channel; [`ChannelShared`] is what
+//! the reader drives.
+
+use crate::confirm::{Confirms, PublishConfirm};
+use crate::connection::writer::Outbound;
+use crate::connection::Shared;
+use crate::consumer::{ConsumerEnd, ConsumerShared, ConsumerSlot};
+use crate::error::{Error, Result};
+use crate::message::{Content, Delivery, ReturnedMessage};
+use crate::options::{BasicAckOptions, BasicNackOptions, BasicRejectOptions};
+use bytes::Bytes;
+use leveret_protocol::{
+    BasicAck, BasicNack, BasicProperties, BasicPublish, BasicReject, Method, ShortStr,
+};
+use std::collections::{HashMap, VecDeque};
+use std::sync::{Arc, Mutex, MutexGuard};
+use tokio::sync::{mpsc, oneshot, watch, Notify};
+
+/// A reply to a synchronous method, with content for `basic.get-ok`.
+#[derive(Debug)]
+pub(crate) struct Reply {
+    pub(crate) method: Method,
+    pub(crate) content: Option<Content>,
+}
+
+/// What the reader does besides answering the caller.
+#[derive(Debug)]
+pub(crate) enum PendingKind {
+    Plain,
+    /// On `basic.consume-ok`, register the consumer under the tag, before
+    /// any delivery for it can be read.
+    Consume(ConsumerSlot),
+    /// On `basic.cancel-ok`, end the consumer.
+    Cancel,
+}
+
+/// A call waiting for its reply.
+#[derive(Debug)]
+pub(crate) struct Pending {
+    request: &'static str,
+    expect: fn(&Method) -> bool,
+    kind: PendingKind,
+    tx: oneshot::Sender<Result<Reply>>,
+}
+
+/// Where the channel is in its life.
+#[derive(Debug)]
+pub(crate) enum ChanStatus {
+    Open,
+    /// channel.close sent by this client; waiting for close-ok.
+    Closing,
+    Closed(Error),
+}
+
+impl ChanStatus {
+    pub(crate) fn check(&self) -> Result<()> {
+        match self {
+            ChanStatus::Open => Ok(()),
+            ChanStatus::Closing => Err(Error::Closed),
+            ChanStatus::Closed(error) => Err(error.clone()),
+        }
+    }
+}
+
+#[derive(Debug)]
+pub(crate) struct ChannelState {
+    pub(crate) status: ChanStatus,
+    pending: VecDeque<Pending>,
+    pub(crate) consumers: HashMap<ShortStr, ConsumerSlot>,
+    pub(crate) returns: Option<mpsc::Sender<ReturnedMessage>>,
+    pub(crate) confirms: Option<Confirms>,
+    pub(crate) prefetch_count: u16,
+}
+
+/// The part of a channel the reader drives.
+#[derive(Debug)]
+pub(crate) struct ChannelShared {
+    pub(crate) id: u16,
+    state: Mutex<ChannelState>,
+    /// True once closing has begun (by either side).
+    pub(crate) closing: watch::Sender<bool>,
+    /// Set once, to why the channel ended.
+    pub(crate) ended: watch::Sender<Option<Error>>,
+    /// Woken when no confirm is outstanding any more, or on close.
+    pub(crate) confirms_settled: Notify,
+}
+
+impl ChannelShared {
+    pub(crate) fn new(id: u16) -> Self {
+        ChannelShared {
+            id,
+            state: Mutex::new(ChannelState {
+                status: ChanStatus::Open,
+                pending: VecDeque::new(),
+                consumers: HashMap::new(),
+                returns: None,
+                confirms: None,
+                prefetch_count: 0,
+            }),
+            closing: watch::Sender::new(false),
+            ended: watch::Sender::new(None),
+            confirms_settled: Notify::new(),
+        }
+    }
+
+    pub(crate) fn lock(&self) -> MutexGuard<'_, ChannelState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    pub(crate) fn is_closing(&self) -> bool {
+        matches!(self.lock().status, ChanStatus::Closing)
+    }
+
+    /// Marks the channel closing; true if it was open.
+    pub(crate) fn begin_close(&self, state: &mut ChannelState) -> bool {
+        if !matches!(state.status, ChanStatus::Open) {
+            return false;
+        }
+        state.status = ChanStatus::Closing;
+        self.closing.send_replace(true);
+        true
+    }
+
+    /// Ends the channel: every waiting call, consumer and confirm gets
+    /// `error`, and so does every later call.
+    pub(crate) fn finish(&self, error: Error) {
+        let (pending, consumers) = {
+            let mut state = self.lock();
+            if let ChanStatus::Closed(_) = state.status {
+                return;
+            }
+            state.status = ChanStatus::Closed(error.clone());
+            state.returns = None;
+            if let Some(confirms) = state.confirms.as_mut() {
+                confirms.fail(&error);
+            }
+            (
+                std::mem::take(&mut state.pending),
+                std::mem::take(&mut state.consumers),
+            )
+        };
+        for pending in pending {
+            let _ = pending.tx.send(Err(error.clone()));
+        }
+        for (_, slot) in consumers {
+            slot.end(ConsumerEnd::ChannelClosed(error.clone()));
+        }
+        self.closing.send_replace(true);
+        self.confirms_settled.notify_waiters();
+        self.ended.send_replace(Some(error));
+    }
+
+    /// Hands a reply to the oldest waiting call; an error text if nothing
+    /// was waiting for this method.
+    pub(crate) fn complete(&self, reply: Reply) -> std::result::Result<(), String> {
+        let mut state = self.lock();
+        let Some(pending) = state.pending.pop_front() else {
+            return Err(format!(
+                "unexpected {} on channel {}",
+                reply.method.name(),
+                self.id
+            ));
+        };
+        if !(pending.expect)(&reply.method) {
+            return Err(format!(
+                "{} on channel {} in reply to {}",
+                reply.method.name(),
+                self.id,
+                pending.request
+            ));
+        }
+        match (pending.kind, &reply.method) {
+            (PendingKind::Consume(slot), Method::BasicConsumeOk(ok)) => {
+                state.consumers.insert(ok.consumer_tag.clone(), slot);
+            }
+            (PendingKind::Cancel, Method::BasicCancelOk(ok)) => {
+                if let Some(slot) = state.consumers.remove(&ok.consumer_tag) {
+                    slot.end(ConsumerEnd::Cancelled);
+                }
+            }
+            _ => {}
+        }
+        drop(state);
+        let _ = pending.tx.send(Ok(reply));
+        Ok(())
+    }
+
+    /// A consumer's sender, for a delivery.
+    pub(crate) fn consumer(
+        &self,
+        tag: &ShortStr,
+    ) -> Option<(mpsc::Sender<Delivery>, Arc<ConsumerShared>)> {
+        let state = self.lock();
+        let slot = state.consumers.get(tag)?;
+        Some((slot.tx.clone(), Arc::clone(&slot.shared)))
+    }
+
+    /// The broker cancelled a consumer.
+    pub(crate) fn cancelled_by_broker(&self, tag: &ShortStr) {
+        let slot = self.lock().consumers.remove(tag);
+        if let Some(slot) = slot {
+            slot.end(ConsumerEnd::CancelledByBroker);
+        }
+    }
+
+    /// Applies a publisher confirm.
+    pub(crate) fn confirmed(&self, tag: u64, multiple: bool, ack: bool) {
+        let settled = match self.lock().confirms.as_mut() {
+            Some(confirms) => confirms.settle(tag, multiple, ack),
+            None => {
+                tracing::debug!(
+                    channel = self.id,
+                    "confirm on a channel not in confirm mode"
+                );
+                false
+            }
+        };
+        if settled {
+            self.confirms_settled.notify_waiters();
+        }
+    }
+
+    /// Hands a returned message to the channel's [`crate::Returns`].
+    pub(crate) async fn returned(&self, message: ReturnedMessage, conn: &Shared) {
+        let Some(tx) = self.lock().returns.clone() else {
+            tracing::debug!(
+                channel = self.id,
+                code = message.reply_code,
+                "returned message dropped: nobody asked for returns"
+            );
+            return;
+        };
+        let message = match tx.try_send(message) {
+            Ok(()) | Err(mpsc::error::TrySendError::Closed(_)) => return,
+            Err(mpsc::error::TrySendError::Full(message)) => message,
+        };
+        let mut chan_closing = self.closing.subscribe();
+        let mut conn_closing = conn.closing.subscribe();
+        tokio::select! {
+            _ = tx.send(message) => {}
+            _ = chan_closing.wait_for(|c| *c) => {}
+            _ = conn_closing.wait_for(|c| *c) => {}
+        }
+    }
+}
+
+/// Sends on behalf of a channel; cheap to clone (two `Arc`s), and what a
+/// [`Delivery`] holds to acknowledge itself.
+#[derive(Debug, Clone)]
+pub(crate) struct ChannelCore {
+    pub(crate) conn: Arc<Shared>,
+    pub(crate) chan: Arc<ChannelShared>,
+}
+
+impl ChannelCore {
+    pub(crate) fn new(conn: Arc<Shared>, chan: Arc<ChannelShared>) -> Self {
+        ChannelCore { conn, chan }
+    }
+
+    /// Sends a synchronous method and waits for its reply. `prepare` runs
+    /// under the channel's lock just before the method is queued.
+    pub(crate) async fn call_with(
+        &self,
+        method: impl Into<Method>,
+        expect: fn(&Method) -> bool,
+        kind: PendingKind,
+        prepare: impl FnOnce(&mut ChannelState),
+    ) -> Result<Reply> {
+        let method = method.into();
+        let permit = self.conn.reserve().await?;
+        let rx = {
+            let mut state = self.chan.lock();
+            state.status.check()?;
+            prepare(&mut state);
+            let (tx, rx) = oneshot::channel();
+            state.pending.push_back(Pending {
+                request: method.name(),
+                expect,
+                kind,
+                tx,
+            });
+            permit.send(Outbound::Method {
+                channel: self.chan.id,
+                method,
+            });
+            rx
+        };
+        match rx.await {
+            Ok(result) => result,
+            Err(_) => Err(self.conn.error()),
+        }
+    }
+
+    /// [`ChannelCore::call_with`] with nothing to prepare.
+    pub(crate) async fn call(
+        &self,
+        method: impl Into<Method>,
+        expect: fn(&Method) -> bool,
+    ) -> Result<Reply> {
+        self.call_with(method, expect, PendingKind::Plain, |_| {})
+            .await
+    }
+
+    /// Sends a method that has no reply (or whose reply was waived).
+    pub(crate) async fn send(&self, method: impl Into<Method>) -> Result<()> {
+        let method = method.into();
+        let permit = self.conn.reserve().await?;
+        let state = self.chan.lock();
+        state.status.check()?;
+        permit.send(Outbound::Method {
+            channel: self.chan.id,
+            method,
+        });
+        Ok(())
+    }
+
+    pub(crate) async fn publish(
+        &self,
+        method: BasicPublish,
+        properties: BasicProperties,
+        body: Bytes,
+    ) -> Result<PublishConfirm> {
+        let permit = self.conn.reserve().await?;
+        let mut state = self.chan.lock();
+        state.status.check()?;
+        let confirm = match state.confirms.as_mut() {
+            Some(confirms) => confirms.register(),
+            None => PublishConfirm::not_requested(),
+        };
+        permit.send(Outbound::Publish {
+            channel: self.chan.id,
+            method,
+            properties,
+            body,
+        });
+        Ok(confirm)
+    }
+
+    pub(crate) async fn basic_ack(
+        &self,
+        delivery_tag: u64,
+        options: BasicAckOptions,
+    ) -> Result<()> {
+        self.send(BasicAck {
+            delivery_tag,
+            multiple: options.multiple,
+        })
+        .await
+    }
+
+    pub(crate) async fn basic_nack(
+        &self,
+        delivery_tag: u64,
+        options: BasicNackOptions,
+    ) -> Result<()> {
+        self.send(BasicNack {
+            delivery_tag,
+            multiple: options.multiple,
+            requeue: options.requeue,
+        })
+        .await
+    }
+
+    pub(crate) async fn basic_reject(
+        &self,
+        delivery_tag: u64,
+        options: BasicRejectOptions,
+    ) -> Result<()> {
+        self.send(BasicReject {
+            delivery_tag,
+            requeue: options.requeue,
+        })
+        .await
+    }
+}

@@ -1,0 +1,164 @@
+//! Publisher confirms: after `confirm.select`, every publish on the channel
+//! gets the next sequence number and a [`PublishConfirm`] future that
+//! resolves when the broker's `basic.ack` or `basic.nack` (possibly
+//! `multiple`) covers it. [`Confirms`] is the channel's table of
+//! outstanding numbers, kept in publish order.
+
+use crate::error::{Error, Result};
+use std::collections::VecDeque;
+use std::future::Future;
+use std::pin::Pin;
+use std::task::{Context, Poll};
+use tokio::sync::oneshot;
+
+/// The broker's answer to one publish.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Confirmation {
+    /// The broker took responsibility for the message (`basic.ack`).
+    Ack,
+    /// The broker could not take it (`basic.nack`), e.g. a full queue with
+    /// `x-overflow: reject-publish`.
+    Nack,
+    /// The channel is not in confirm mode: nothing to wait for.
+    NotRequested,
+}
+
+impl Confirmation {
+    /// Whether this is [`Confirmation::Ack`].
+    pub fn is_ack(self) -> bool {
+        self == Confirmation::Ack
+    }
+}
+
+/// Resolves to the broker's [`Confirmation`] of one publish, or to the
+/// error that closed the channel first. Dropping it is fine: the publish
+/// still counts for `Channel::wait_for_confirms`.
+#[derive(Debug)]
+#[must_use = "a PublishConfirm does nothing unless awaited; drop it if the confirmation is not needed"]
+pub struct PublishConfirm {
+    rx: Option<oneshot::Receiver<Result<Confirmation>>>,
+}
+
+impl PublishConfirm {
+    pub(crate) fn not_requested() -> Self {
+        PublishConfirm { rx: None }
+    }
+
+    pub(crate) fn pending(rx: oneshot::Receiver<Result<Confirmation>>) -> Self {
+        PublishConfirm { rx: Some(rx) }
+    }
+}
+
+impl Future for PublishConfirm {
+    type Output = Result<Confirmation>;
+
+    fn poll(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Self::Output> {
+        let this = self.get_mut();
+        match &mut this.rx {
+            None => Poll::Ready(Ok(Confirmation::NotRequested)),
+            Some(rx) => Pin::new(rx)
+                .poll(cx)
+                .map(|result| result.unwrap_or(Err(Error::Closed))),
+        }
+    }
+}
+
+/// A channel's outstanding confirms.
+#[derive(Debug)]
+pub(crate) struct Confirms {
+    next: u64,
+    pending: VecDeque<(u64, oneshot::Sender<Result<Confirmation>>)>,
+    /// False once a nack arrived since the last `wait_for_confirms`.
+    all_acked: bool,
+}
+
+impl Confirms {
+    pub(crate) fn new() -> Self {
+        Confirms {
+            next: 1,
+            pending: VecDeque::new(),
+            all_acked: true,
+        }
+    }
+
+    /// Numbers the next publish.
+    pub(crate) fn register(&mut self) -> PublishConfirm {
+        let (tx, rx) = oneshot::channel();
+        self.pending.push_back((self.next, tx));
+        self.next += 1;
+        PublishConfirm::pending(rx)
+    }
+
+    /// Applies a `basic.ack` or `basic.nack`; true if nothing is
+    /// outstanding afterwards.
+    pub(crate) fn settle(&mut self, tag: u64, multiple: bool, ack: bool) -> bool {
+        let answer = if ack {
+            Confirmation::Ack
+        } else {
+            self.all_acked = false;
+            Confirmation::Nack
+        };
+        if multiple {
+            // Tag 0 with multiple: everything outstanding.
+            while let Some((seq, _)) = self.pending.front() {
+                if tag != 0 && *seq > tag {
+                    break;
+                }
+                if let Some((_, tx)) = self.pending.pop_front() {
+                    let _ = tx.send(Ok(answer));
+                }
+            }
+        } else if let Ok(index) = self.pending.binary_search_by_key(&tag, |(seq, _)| *seq) {
+            if let Some((_, tx)) = self.pending.remove(index) {
+                let _ = tx.send(Ok(answer));
+            }
+        }
+        self.pending.is_empty()
+    }
+
+    /// Fails everything outstanding.
+    pub(crate) fn fail(&mut self, error: &Error) {
+        for (_, tx) in self.pending.drain(..) {
+            let _ = tx.send(Err(error.clone()));
+        }
+    }
+
+    /// `Some(all acked since last time)` if nothing is outstanding.
+    pub(crate) fn take_if_settled(&mut self) -> Option<bool> {
+        if self.pending.is_empty() {
+            Some(std::mem::replace(&mut self.all_acked, true))
+        } else {
+            None
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn single_and_multiple_settle_in_order() {
+        let mut confirms = Confirms::new();
+        let mut futures: Vec<_> = (0..5).map(|_| confirms.register()).collect();
+        assert!(!confirms.settle(2, false, true));
+        assert!(!confirms.settle(3, true, false));
+        assert!(confirms.settle(5, true, true));
+        let answers: Vec<_> = futures
+            .iter_mut()
+            .map(|f| f.rx.as_mut().unwrap().try_recv().unwrap().unwrap())
+            .collect();
+        use Confirmation::*;
+        assert_eq!(answers, [Nack, Ack, Nack, Ack, Ack]);
+        assert_eq!(confirms.take_if_settled(), Some(false));
+        assert_eq!(confirms.take_if_settled(), Some(true));
+    }
+
+    #[test]
+    fn multiple_with_tag_zero_settles_everything() {
+        let mut confirms = Confirms::new();
+        let _a = confirms.register();
+        let _b = confirms.register();
+        assert!(confirms.settle(0, true, true));
+    }
+}

@@ -1,0 +1,125 @@
+//! URI parsing, as RabbitMQ's URI specification describes (with empty
+//! vhost paths meaning `/`).
+
+use leveret_client::{ConnectionOptions, Error};
+use std::time::Duration;
+
+fn parse(uri: &str) -> ConnectionOptions {
+    ConnectionOptions::from_uri(uri).unwrap_or_else(|e| panic!("{uri}: {e}"))
+}
+
+fn rejects(uri: &str) {
+    match ConnectionOptions::from_uri(uri) {
+        Err(Error::InvalidUri(_)) => {}
+        other => panic!("{uri} should be rejected, got {other:?}"),
+    }
+}
+
+#[test]
+fn full_uri() {
+    let o = parse("amqp://user:pass@host.example:10000/vhost");
+    assert_eq!(o.username, "user");
+    assert_eq!(o.password, "pass");
+    assert_eq!(o.host, "host.example");
+    assert_eq!(o.port, 10000);
+    assert_eq!(o.vhost, "vhost");
+}
+
+#[test]
+fn defaults() {
+    let o = parse("amqp://");
+    assert_eq!(
+        (o.username.as_str(), o.password.as_str()),
+        ("guest", "guest")
+    );
+    assert_eq!(o.host, "localhost");
+    assert_eq!(o.port, 5672);
+    assert_eq!(o.vhost, "/");
+    assert_eq!(o, ConnectionOptions::default());
+}
+
+#[test]
+fn empty_path_is_the_default_vhost() {
+    assert_eq!(parse("amqp://host").vhost, "/");
+    assert_eq!(parse("amqp://host/").vhost, "/");
+    assert_eq!(parse("amqp://host:5673").port, 5673);
+}
+
+#[test]
+fn percent_encoded_vhost_and_credentials() {
+    assert_eq!(parse("amqp://host/%2f").vhost, "/");
+    assert_eq!(parse("amqp://host/%2Fprod").vhost, "/prod");
+    assert_eq!(parse("amqp://host/a%20b").vhost, "a b");
+    let o = parse("amqp://us%40er:p%3Aa%2Fss@host");
+    assert_eq!(o.username, "us@er");
+    assert_eq!(o.password, "p:a/ss");
+}
+
+#[test]
+fn user_without_password_and_empty_credentials() {
+    let o = parse("amqp://alice@host");
+    assert_eq!(o.username, "alice");
+    assert_eq!(o.password, "guest");
+    let o = parse("amqp://:@host");
+    assert_eq!(o.username, "");
+    assert_eq!(o.password, "");
+}
+
+#[test]
+fn empty_host_and_port_take_defaults() {
+    let o = parse("amqp://user:pass@:/v");
+    assert_eq!(o.host, "localhost");
+    assert_eq!(o.port, 5672);
+    assert_eq!(o.vhost, "v");
+    assert_eq!(parse("amqp://:7000").port, 7000);
+}
+
+#[test]
+fn ipv6_literal() {
+    let o = parse("amqp://[::1]:5673/%2f");
+    assert_eq!(o.host, "::1");
+    assert_eq!(o.port, 5673);
+    assert_eq!(parse("amqp://[fe80::1]").port, 5672);
+}
+
+#[test]
+fn query_parameters() {
+    let o =
+        parse("amqp://host/v?heartbeat=10&frame_max=8192&channel_max=100&connection_timeout=2500");
+    assert_eq!(o.heartbeat, 10);
+    assert_eq!(o.frame_max, 8192);
+    assert_eq!(o.channel_max, 100);
+    assert_eq!(o.connection_timeout, Duration::from_millis(2500));
+    assert_eq!(o.vhost, "v");
+    let o = parse("amqp://host?heartbeat=0&auth_mechanism=external&connection_name=my%20app");
+    assert_eq!(o.heartbeat, 0);
+    assert_eq!(o.vhost, "/");
+    assert_eq!(o.connection_name.as_deref(), Some("my app"));
+}
+
+#[test]
+fn scheme_is_case_insensitive() {
+    assert_eq!(parse("AMQP://host").host, "host");
+}
+
+#[test]
+fn invalid_uris() {
+    rejects("http://host");
+    rejects("host:5672");
+    rejects("amqps://host");
+    rejects("amqp://host:notaport");
+    rejects("amqp://host:70000");
+    rejects("amqp://host/a/b");
+    rejects("amqp://host/%zz");
+    rejects("amqp://[::1");
+    rejects("amqp://host?heartbeat=x");
+    rejects("amqp://host?heartbeat=65536");
+    rejects("amqp://host?channel_max=-1");
+    rejects("amqp://host?frame_max=4294967296");
+}
+
+#[test]
+fn from_str_works() {
+    let o: ConnectionOptions = "amqp://h:1/x".parse().expect("parse");
+    assert_eq!((o.host.as_str(), o.port, o.vhost.as_str()), ("h", 1, "x"));
+}
