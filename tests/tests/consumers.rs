@@ -126,7 +126,7 @@ async fn reusing_a_consumer_tag_on_a_channel_is_a_530_connection_error() {
     assert!(res.is_err());
     // Note: a connection error, not a channel error: "NOT_ALLOWED - attempt
     // to reuse consumer tag 'same-tag'".
-    let (code, text) = tmo!(conn_ev.recv()).expect("connection.close");
+    let rs::ConnClose { code, text, .. } = tmo!(conn_ev.recv()).expect("connection.close");
     assert_eq!(code, 530, "{text}");
     assert_text_prefix(&text, "NOT_ALLOWED");
 }

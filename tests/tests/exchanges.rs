@@ -386,7 +386,7 @@ async fn unknown_exchange_type_is_a_503_connection_error() {
     let _ = tmo!(ch.exchange_declare(rs::ExchangeDeclareArguments::new(&name, "no-such-type")));
     // Note: the whole connection is closed: RabbitMQ says "COMMAND_INVALID
     // - unknown exchange type 'no-such-type'".
-    let (code, text) = tmo!(conn_ev.recv()).expect("connection.close");
+    let rs::ConnClose { code, text, .. } = tmo!(conn_ev.recv()).expect("connection.close");
     assert_eq!(code, 503, "{text}");
     assert_text_prefix(&text, "COMMAND_INVALID");
 }

@@ -164,7 +164,7 @@ async fn publishing_with_immediate_is_a_540_connection_error() {
     let _ = tmo!(ch.basic_publish(rs::BasicProperties::default(), b"now".to_vec(), args));
     // Note: RabbitMQ 3.x does not implement immediate: "NOT_IMPLEMENTED -
     // immediate=true", closing the whole connection.
-    let (code, text) = tmo!(conn_ev.recv()).expect("connection.close");
+    let rs::ConnClose { code, text, .. } = tmo!(conn_ev.recv()).expect("connection.close");
     assert_eq!(code, 540, "{text}");
     assert_text_prefix(&text, "NOT_IMPLEMENTED");
 }

@@ -107,7 +107,7 @@ async fn message_ttl_expires_messages_to_the_dead_letter_exchange() {
     assert_eq!(text_of(death.inner().get("queue")), q);
     assert_eq!(text_of(death.inner().get("exchange")), "");
     assert_eq!(count_of(death.inner().get("count")), 1);
-    assert_eq!(routing_keys(&death), [q.clone()]);
+    assert_eq!(routing_keys(&death), [q.as_str()]);
     assert!(matches!(
         death.inner().get("time"),
         Some(AMQPValue::Timestamp(_))

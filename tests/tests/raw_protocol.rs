@@ -747,3 +747,52 @@ async fn content_split_across_many_body_frames_is_reassembled() {
         other => panic!("expected channel.close-ok, got {other:?}"),
     }
 }
+
+#[tokio::test]
+async fn channel_error_then_close_ok_frees_the_channel_number() {
+    let b = broker().await;
+    let mut raw = Raw::open(&b).await;
+    raw.send_method(
+        1,
+        QueueDeclare {
+            queue: ShortStr::try_from(unique("missing").as_str()).expect("short"),
+            passive: true,
+            ..Default::default()
+        },
+    )
+    .await;
+    match raw.method().await {
+        (1, Method::ChannelClose(c)) => {
+            assert_eq!(c.reply_code, 404);
+            assert_text_prefix(&c.reply_text.to_string_lossy(), "NOT_FOUND");
+            assert_eq!((c.class_id, c.method_id), (50, 10));
+        }
+        other => panic!("expected channel.close 404, got {other:?}"),
+    }
+    // Until the client's close-ok, anything else on the channel is
+    // discarded (no second error).
+    raw.send_method(
+        1,
+        QueueDeclare {
+            queue: ShortStr::try_from(unique("ignored-while-closing").as_str()).expect("short"),
+            passive: true,
+            ..Default::default()
+        },
+    )
+    .await;
+    raw.send_method(1, leveret_protocol::ChannelCloseOk::default())
+        .await;
+    raw.open_channel(1).await;
+    raw.send_method(
+        1,
+        QueueDeclare {
+            exclusive: true,
+            ..Default::default()
+        },
+    )
+    .await;
+    match raw.method().await {
+        (1, Method::QueueDeclareOk(ok)) => assert_eq!(ok.message_count, 0),
+        other => panic!("expected queue.declare-ok, got {other:?}"),
+    }
+}

@@ -309,7 +309,12 @@ pub mod rs {
     #[derive(Debug)]
     pub enum Event {
         /// channel.close from the broker.
-        Close { code: u16, text: String },
+        Close {
+            code: u16,
+            text: String,
+            class_id: u16,
+            method_id: u16,
+        },
         /// basic.cancel from the broker (consumer cancel notification).
         Cancel { tag: String },
         /// basic.ack publisher confirm.
@@ -339,6 +344,8 @@ pub mod rs {
             let _ = self.0.send(Event::Close {
                 code: close.reply_code(),
                 text: close.reply_text().clone(),
+                class_id: close.class_id(),
+                method_id: close.method_id(),
             });
             Ok(())
         }
@@ -389,7 +396,16 @@ pub mod rs {
         }
     }
 
-    struct ConnectionEvents(UnboundedSender<(u16, String)>);
+    /// A connection.close from the broker.
+    #[derive(Debug, Clone, PartialEq)]
+    pub struct ConnClose {
+        pub code: u16,
+        pub text: String,
+        pub class_id: u16,
+        pub method_id: u16,
+    }
+
+    struct ConnectionEvents(UnboundedSender<ConnClose>);
 
     #[async_trait]
     impl ConnectionCallback for ConnectionEvents {
@@ -398,9 +414,12 @@ pub mod rs {
             _: &Connection,
             close: Close,
         ) -> std::result::Result<(), amqprs::error::Error> {
-            let _ = self
-                .0
-                .send((close.reply_code(), close.reply_text().clone()));
+            let _ = self.0.send(ConnClose {
+                code: close.reply_code(),
+                text: close.reply_text().clone(),
+                class_id: close.class_id(),
+                method_id: close.method_id(),
+            });
             Ok(())
         }
         async fn blocked(&mut self, _: &Connection, _reason: String) {}
@@ -415,7 +434,7 @@ pub mod rs {
 
     /// Opens an amqprs connection; the receiver gets every connection.close
     /// the broker sends (code, text).
-    pub async fn connect(b: &TestBroker) -> (Connection, UnboundedReceiver<(u16, String)>) {
+    pub async fn connect(b: &TestBroker) -> (Connection, UnboundedReceiver<ConnClose>) {
         let conn = within("amqprs connect", Connection::open(&args(b)))
             .await
             .expect("amqprs connects");
@@ -448,10 +467,22 @@ pub mod rs {
     /// Waits for the broker's channel.close and returns (code, text),
     /// skipping other events.
     pub async fn closed(ev: &mut UnboundedReceiver<Event>) -> (u16, String) {
+        let (code, text, _) = closed_ids(ev).await;
+        (code, text)
+    }
+
+    /// Waits for the broker's channel.close and returns (code, text,
+    /// (class id, method id)), skipping other events.
+    pub async fn closed_ids(ev: &mut UnboundedReceiver<Event>) -> (u16, String, (u16, u16)) {
         within("channel.close from the broker", async {
             loop {
                 match ev.recv().await {
-                    Some(Event::Close { code, text }) => return (code, text),
+                    Some(Event::Close {
+                        code,
+                        text,
+                        class_id,
+                        method_id,
+                    }) => return (code, text, (class_id, method_id)),
                     Some(_) => continue,
                     None => panic!("channel event stream ended without a channel.close"),
                 }
@@ -553,7 +584,7 @@ pub mod rs {
                     Some(Event::Ack { tag, .. }) if tag >= upto => return,
                     Some(Event::Ack { .. }) => continue,
                     Some(Event::Nack { tag, .. }) => panic!("publish {tag} was nacked"),
-                    Some(Event::Close { code, text }) => {
+                    Some(Event::Close { code, text, .. }) => {
                         panic!("channel closed while waiting for confirms: {code} {text}")
                     }
                     Some(_) => continue,
