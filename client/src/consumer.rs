@@ -1,11 +1,16 @@
 //! Consumers and returned messages as streams. A [`Consumer`] receives its
 //! deliveries through a bounded buffer sized to the channel's prefetch
-//! count (or [`DEFAULT_CONSUMER_BUFFER`] without one): when it is full the
-//! reader stops reading the socket until there is room, which is
-//! backpressure, never unbounded growth. The stream ends when the consumer
-//! is cancelled, by this client or by the broker, or its channel closes;
-//! [`Consumer::end_reason`] then says which. [`Returns`] is the same for
-//! `basic.return`.
+//! count (or [`DEFAULT_CONSUMER_BUFFER`] without one). When it is full the
+//! reader stops reading the socket until there is room: backpressure on
+//! the broker, never unbounded growth. That pauses the whole connection,
+//! replies and confirms of its other channels included, so either set a
+//! prefetch count before consuming with acks (the buffer then never fills)
+//! or keep slow no-ack consumers and publishers waiting for confirms on
+//! separate connections, as RabbitMQ advises anyway.
+//!
+//! The stream ends when the consumer is cancelled, by this client or by
+//! the broker, or its channel closes; [`Consumer::end_reason`] then says
+//! which. [`Returns`] is the same for `basic.return`.
 
 use crate::channel::Channel;
 use crate::error::{Error, Result};
