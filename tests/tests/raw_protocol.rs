@@ -76,10 +76,14 @@ impl Raw {
         }
     }
 
+    /// The next method frame (heartbeats from the broker are skipped).
     async fn method(&mut self) -> (u16, Method) {
-        match self.frame().await {
-            Some(Frame::Method { channel, method }) => (channel, method),
-            other => panic!("expected a method frame, got {other:?}"),
+        loop {
+            match self.frame().await {
+                Some(Frame::Method { channel, method }) => return (channel, method),
+                Some(Frame::Heartbeat) => continue,
+                other => panic!("expected a method frame, got {other:?}"),
+            }
         }
     }
 
@@ -795,4 +799,193 @@ async fn channel_error_then_close_ok_frees_the_channel_number() {
         (1, Method::QueueDeclareOk(ok)) => assert_eq!(ok.message_count, 0),
         other => panic!("expected queue.declare-ok, got {other:?}"),
     }
+}
+
+/// Logs in and answers tune with the given values, then sends
+/// connection.open "/".
+async fn tuned(b: &TestBroker, channel_max: u16, frame_max: u32, heartbeat: u16) -> Raw {
+    let (mut raw, _) = Raw::login(b, b"\0guest\0guest", true).await;
+    match raw.method().await {
+        (0, Method::ConnectionTune(_)) => {}
+        other => panic!("expected connection.tune, got {other:?}"),
+    }
+    raw.frame_max = frame_max;
+    raw.send_method(
+        0,
+        ConnectionTuneOk {
+            channel_max,
+            frame_max,
+            heartbeat,
+        },
+    )
+    .await;
+    raw.send_method(
+        0,
+        ConnectionOpen {
+            virtual_host: ShortStr::from_static("/"),
+            ..Default::default()
+        },
+    )
+    .await;
+    raw
+}
+
+async fn refused_tune(b: &TestBroker, channel_max: u16, frame_max: u32) {
+    let mut raw = tuned(b, channel_max, frame_max, 0).await;
+    let rest = raw.read_until_closed().await;
+    if !rest.is_empty() {
+        let mut buf = BytesMut::from(&rest[..]);
+        match decode_frame(&mut buf, 0) {
+            Ok(Some(Frame::Method {
+                channel: 0,
+                method: Method::ConnectionClose(c),
+            })) => assert!(c.reply_code >= 500, "{c:?}"),
+            other => {
+                panic!("tune-ok channel_max {channel_max} frame_max {frame_max}: got {other:?}")
+            }
+        }
+    }
+}
+
+#[tokio::test]
+async fn tune_ok_outside_the_servers_limits_is_refused() {
+    let b = broker().await;
+    // frame_max below the 4096 minimum, above the server's 131072, 0
+    // ("unlimited") when the server has a limit, and channel_max above the
+    // server's 2047. Note: RabbitMQ sends no connection.close before
+    // connection.open-ok: it just closes the socket (after ~3 s). A
+    // connection.close with a hard error is accepted too; open-ok is not.
+    tokio::join!(
+        refused_tune(&b, 2047, 1000),
+        refused_tune(&b, 2047, 200_000),
+        refused_tune(&b, 2047, 0),
+        refused_tune(&b, 3000, 131_072),
+    );
+    assert_broker_alive(&b).await;
+}
+
+#[tokio::test]
+async fn the_client_frame_max_is_honoured_both_ways() {
+    let b = broker().await;
+    let mut raw = tuned(&b, 2047, 4096, 0).await;
+    match raw.method().await {
+        (0, Method::ConnectionOpenOk(_)) => {}
+        other => panic!("expected connection.open-ok, got {other:?}"),
+    }
+    raw.open_channel(1).await;
+    raw.send_method(
+        1,
+        QueueDeclare {
+            exclusive: true,
+            ..Default::default()
+        },
+    )
+    .await;
+    let queue = match raw.method().await {
+        (1, Method::QueueDeclareOk(ok)) => ok.queue,
+        other => panic!("expected queue.declare-ok, got {other:?}"),
+    };
+    let body: Vec<u8> = (0..10_000u32).map(|i| (i % 253) as u8).collect();
+    let mut buf = BytesMut::new();
+    encode_method(
+        1,
+        &BasicPublish {
+            routing_key: queue.clone(),
+            ..Default::default()
+        }
+        .into(),
+        &mut buf,
+    );
+    encode_content(1, 60, b"\x00\x00", &body, 4096, &mut buf);
+    raw.send(&buf).await;
+    raw.send_method(
+        1,
+        leveret_protocol::BasicGet {
+            queue,
+            no_ack: true,
+            ..Default::default()
+        },
+    )
+    .await;
+    match raw.method().await {
+        (1, Method::BasicGetOk(_)) => {}
+        other => panic!("expected basic.get-ok, got {other:?}"),
+    }
+    match raw.frame().await {
+        Some(Frame::Header { header, .. }) => assert_eq!(header.body_size, 10_000),
+        other => panic!("expected a content header, got {other:?}"),
+    }
+    // The broker splits the body to fit 4096-byte frames (4088-byte payloads).
+    let mut got = Vec::new();
+    let mut frames = 0;
+    while got.len() < body.len() {
+        match raw.frame().await {
+            Some(Frame::Body { payload, .. }) => {
+                assert!(payload.len() <= 4096 - 8, "body frame of {}", payload.len());
+                frames += 1;
+                got.extend_from_slice(&payload);
+            }
+            other => panic!("expected a body frame, got {other:?}"),
+        }
+    }
+    assert_eq!(got, body);
+    assert!(frames >= 3);
+    // And a client frame over the negotiated 4096 is a frame error.
+    let mut buf = BytesMut::new();
+    buf.put_u8(3);
+    buf.put_u16(1);
+    buf.put_u32(5000);
+    raw.send(&buf).await;
+    raw.expect_close(501, "FRAME_ERROR", (0, 0)).await;
+    assert_broker_alive(&b).await;
+}
+
+#[tokio::test]
+async fn heartbeats_are_sent_and_a_silent_client_is_dropped() {
+    let b = broker().await;
+    let mut raw = tuned(&b, 2047, 131_072, 1).await;
+    match raw.method().await {
+        (0, Method::ConnectionOpenOk(_)) => {}
+        other => panic!("expected connection.open-ok, got {other:?}"),
+    }
+    // RabbitMQ sends a heartbeat every half interval (500 ms here) and,
+    // when the client sends nothing, closes the socket after about 3 s,
+    // without a connection.close.
+    let mut heartbeats = 0;
+    loop {
+        match raw.frame().await {
+            Some(Frame::Heartbeat) => heartbeats += 1,
+            None => break,
+            Some(Frame::Method {
+                channel: 0,
+                method: Method::ConnectionClose(c),
+            }) => {
+                // Accepted too: saying why before closing.
+                assert!(c.reply_code >= 500, "{c:?}");
+            }
+            Some(other) => panic!("unexpected frame {other:?}"),
+        }
+    }
+    assert!(heartbeats >= 1, "at least one heartbeat before the close");
+    assert_broker_alive(&b).await;
+}
+
+#[tokio::test]
+async fn client_heartbeats_keep_a_quiet_connection_alive() {
+    let b = broker().await;
+    let mut raw = tuned(&b, 2047, 131_072, 1).await;
+    match raw.method().await {
+        (0, Method::ConnectionOpenOk(_)) => {}
+        other => panic!("expected connection.open-ok, got {other:?}"),
+    }
+    let mut hb = BytesMut::new();
+    Frame::Heartbeat.encode(&mut hb);
+    // Beat every 250 ms for 4 s: longer than the ~3 s after which a silent
+    // client is dropped (the cadence is the protocol, not a wait).
+    let mut tick = tokio::time::interval(std::time::Duration::from_millis(250));
+    for _ in 0..16 {
+        tick.tick().await;
+        raw.send(&hb).await;
+    }
+    raw.open_channel(1).await;
 }
