@@ -14,6 +14,7 @@ use leveret_protocol::{
 
 const BODY: &[u8; 16] = b"0123456789abcdef";
 const FRAME_MAX: u32 = 131_072;
+const STREAM_TRIPLES: usize = 64;
 
 fn publish() -> Method {
     BasicPublish {
@@ -109,6 +110,25 @@ fn bench_decode(c: &mut Criterion, name: &str, method: Method, props: BasicPrope
             |buf| {
                 let triple = decode_triple(buf);
                 black_box(&triple);
+            },
+            BatchSize::SmallInput,
+        )
+    });
+    // Steady state of a connection's reader: 64 triples arrive in one read
+    // buffer, so its promotion to a shared allocation is paid once for all.
+    let mut stream = BytesMut::new();
+    for _ in 0..STREAM_TRIPLES {
+        stream.extend_from_slice(&bytes);
+    }
+    group.throughput(Throughput::Elements(3 * STREAM_TRIPLES as u64));
+    group.bench_function("decode_stream_of_64", |b| {
+        b.iter_batched_ref(
+            || BytesMut::from(&stream[..]),
+            |buf| {
+                for _ in 0..STREAM_TRIPLES {
+                    let triple = decode_triple(buf);
+                    black_box(&triple);
+                }
             },
             BatchSize::SmallInput,
         )
