@@ -23,7 +23,8 @@ pub fn with_death(
 ) -> Arc<Message> {
     // The properties were validated when the message was published.
     let mut props = BasicProperties::decode(&message.properties).unwrap_or_default();
-    props.expiration = None;
+    // The expiration moves into x-death, so the copy does not expire again.
+    let original_expiration = props.expiration.take();
     let mut headers = props.headers.take().unwrap_or_default();
     let now = SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -51,22 +52,31 @@ pub fn with_death(
             entry.insert(ShortStr::from_static("time"), FieldValue::Timestamp(now));
             entry
         }
-        None => [
-            (ShortStr::from_static("count"), FieldValue::I64(1)),
-            (ShortStr::from_static("reason"), FieldValue::string(reason)),
-            (ShortStr::from_static("queue"), long_str(queue)),
-            (ShortStr::from_static("time"), FieldValue::Timestamp(now)),
-            (
-                ShortStr::from_static("exchange"),
-                long_str(&message.exchange),
-            ),
-            (
-                ShortStr::from_static("routing-keys"),
-                FieldValue::Array(vec![long_str(&message.routing_key)]),
-            ),
-        ]
-        .into_iter()
-        .collect(),
+        None => {
+            let mut entry: FieldTable = [
+                (ShortStr::from_static("count"), FieldValue::I64(1)),
+                (ShortStr::from_static("reason"), FieldValue::string(reason)),
+                (ShortStr::from_static("queue"), long_str(queue)),
+                (ShortStr::from_static("time"), FieldValue::Timestamp(now)),
+                (
+                    ShortStr::from_static("exchange"),
+                    long_str(&message.exchange),
+                ),
+                (
+                    ShortStr::from_static("routing-keys"),
+                    FieldValue::Array(vec![long_str(&message.routing_key)]),
+                ),
+            ]
+            .into_iter()
+            .collect();
+            if let Some(expiration) = &original_expiration {
+                entry.insert(
+                    ShortStr::from_static("original-expiration"),
+                    long_str(expiration),
+                );
+            }
+            entry
+        }
     };
     deaths.insert(0, FieldValue::Table(entry));
     headers.insert(ShortStr::from_static("x-death"), FieldValue::Array(deaths));

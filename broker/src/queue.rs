@@ -139,6 +139,12 @@ impl QueueArgs {
                 _ => {}
             }
         }
+        if args.dead_letter_routing_key.is_some() && args.dead_letter_exchange.is_none() {
+            return Err(invalid(
+                "x-dead-letter-routing-key",
+                "Key 'x-dead-letter-exchange' is mandatory if 'x-dead-letter-routing-key' is defined".into(),
+            ));
+        }
         Ok(args)
     }
 }
@@ -305,7 +311,9 @@ impl Queue {
             let sync = self.log(&queued, false);
             self.insert_ready(&mut st, queued);
             self.enforce_max_length(&mut st, &mut dead);
-            self.dispatch_locked(&mut st, &mut dead);
+            // Dispatched as of the publish instant, so a message with TTL 0
+            // still reaches a consumer that can take it at once (as in RabbitMQ).
+            self.dispatch_locked(&mut st, &mut dead, now);
             Enqueued::Accepted { sync }
         };
         self.dead_letter(dead);
@@ -379,7 +387,7 @@ impl Queue {
     ) -> Option<QueuedMessage> {
         loop {
             let head = self.pop_ready(st)?;
-            if head.expires_at.is_some_and(|at| at <= now) {
+            if head.expires_at.is_some_and(|at| at < now) {
                 self.discard(head, DeadLetterReason::Expired, dead);
             } else {
                 return Some(head);
@@ -458,17 +466,21 @@ impl Queue {
         let mut dead = Vec::new();
         {
             let mut st = self.lock();
-            self.dispatch_locked(&mut st, &mut dead);
+            self.dispatch_locked(&mut st, &mut dead, Instant::now());
         }
         self.dead_letter(dead);
     }
 
-    fn dispatch_locked(self: &Arc<Self>, st: &mut QueueState, dead: &mut Vec<DeadLetter>) {
+    fn dispatch_locked(
+        self: &Arc<Self>,
+        st: &mut QueueState,
+        dead: &mut Vec<DeadLetter>,
+        now: Instant,
+    ) {
         let count = st.consumers.len();
         if count == 0 || st.ready.is_empty() {
             return;
         }
-        let now = Instant::now();
         'messages: while !st.ready.is_empty() {
             for _ in 0..count {
                 let index = st.cursor % count;
@@ -565,7 +577,7 @@ impl Queue {
                 queued.redelivered = true;
                 self.insert_ready(&mut st, queued);
             }
-            self.dispatch_locked(&mut st, &mut dead);
+            self.dispatch_locked(&mut st, &mut dead, Instant::now());
         }
         self.dead_letter(dead);
     }
@@ -723,7 +735,7 @@ impl Queue {
         while st
             .ready
             .front()
-            .is_some_and(|m| m.expires_at.is_some_and(|at| at <= now))
+            .is_some_and(|m| m.expires_at.is_some_and(|at| at < now))
         {
             if let Some(head) = self.pop_ready(st) {
                 self.discard(head, DeadLetterReason::Expired, dead);

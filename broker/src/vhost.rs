@@ -127,6 +127,10 @@ impl Vhost {
 
     /// exchange.declare.
     pub fn declare_exchange(&self, decl: ExchangeDeclaration) -> AmqpResult<Arc<Exchange>> {
+        if decl.name.is_empty() {
+            // Even a passive declare of the default exchange is refused.
+            return Err(default_exchange_refusal(&decl.name, &self.name));
+        }
         if decl.passive {
             return self.exchange_or_404(&decl.name);
         }
@@ -136,9 +140,6 @@ impl Vhost {
                 decl.kind
             )));
         };
-        if decl.name.is_empty() {
-            return Err(default_exchange_refusal(&decl.name, &self.name));
-        }
         if self.exchange(&decl.name).is_none() && decl.name.as_bytes().starts_with(b"amq.") {
             return Err(AmqpError::access_refused(format_args!(
                 "exchange name '{}' contains reserved prefix 'amq.*'",
@@ -435,7 +436,7 @@ impl Vhost {
         routing_key: ShortStr,
         arguments: FieldTable,
     ) -> AmqpResult<()> {
-        let source = self.bindable_source(exchange, "queue", &queue.name)?;
+        let source = self.bindable_source(exchange)?;
         check_headers_binding(&source, &arguments)?;
         let binding = Binding {
             destination: Destination::Queue(Arc::clone(queue)),
@@ -454,7 +455,7 @@ impl Vhost {
         routing_key: ShortStr,
         arguments: FieldTable,
     ) -> AmqpResult<()> {
-        let source = self.bindable_source(exchange, "queue", &queue.name)?;
+        let source = self.bindable_source(exchange)?;
         let binding = Binding {
             destination: Destination::Queue(Arc::clone(queue)),
             routing_key,
@@ -475,11 +476,16 @@ impl Vhost {
         arguments: FieldTable,
         bind: bool,
     ) -> AmqpResult<()> {
+        let missing_end = self.exchange(destination).is_none() || self.exchange(source).is_none();
+        if !bind && missing_end {
+            // Unbinding from or to a missing exchange succeeds, as in RabbitMQ.
+            return Ok(());
+        }
         let target = self.exchange_or_404(destination)?;
         if destination.is_empty() {
             return Err(default_exchange_refusal(destination, &self.name));
         }
-        let from = self.bindable_source(source, "exchange", destination)?;
+        let from = self.bindable_source(source)?;
         let binding = Binding {
             destination: Destination::Exchange(target),
             routing_key,
@@ -494,12 +500,7 @@ impl Vhost {
         Ok(())
     }
 
-    fn bindable_source(
-        &self,
-        exchange: &ShortStr,
-        _what: &str,
-        _name: &ShortStr,
-    ) -> AmqpResult<Arc<Exchange>> {
+    fn bindable_source(&self, exchange: &ShortStr) -> AmqpResult<Arc<Exchange>> {
         if exchange.is_empty() {
             return Err(default_exchange_refusal(exchange, &self.name));
         }

@@ -81,15 +81,21 @@ pub enum DecodeError {
 
 impl DecodeError {
     /// The reply code to close the connection with: every decode error is a
-    /// connection-level error.
+    /// connection-level error. The choices follow RabbitMQ 3.10, observed on
+    /// the wire: anything that cannot be decoded (including malformed
+    /// arguments) is 501 FRAME_ERROR, a heartbeat on a channel other than 0
+    /// is 505 UNEXPECTED_FRAME, an unknown method is 503 COMMAND_INVALID.
     pub fn reply_code(&self) -> ReplyCode {
         match self {
+            DecodeError::BadHeartbeat { channel, .. } if *channel != 0 => {
+                ReplyCode::UnexpectedFrame
+            }
             DecodeError::FrameTooLarge { .. }
             | DecodeError::BadFrameEnd { .. }
             | DecodeError::UnknownFrameType(_)
-            | DecodeError::BadHeartbeat { .. } => ReplyCode::FrameError,
+            | DecodeError::BadHeartbeat { .. }
+            | DecodeError::Syntax { .. } => ReplyCode::FrameError,
             DecodeError::UnknownMethod { .. } => ReplyCode::CommandInvalid,
-            DecodeError::Syntax { .. } => ReplyCode::SyntaxError,
         }
     }
 
@@ -101,6 +107,9 @@ impl DecodeError {
                 class_id,
                 method_id,
             } => (*class_id, *method_id),
+            DecodeError::Syntax { location, .. } => {
+                crate::method::Method::ids_of(location).unwrap_or((0, 0))
+            }
             _ => (0, 0),
         }
     }

@@ -123,6 +123,14 @@ macro_rules! methods {
                 }
             }
 
+            /// The (class, method) ids of the method with this spec name.
+            pub fn ids_of(name: &str) -> Option<(u16, u16)> {
+                match name {
+                    $($wire_name => Some(($class_id, $method_id)),)*
+                    _ => None,
+                }
+            }
+
             /// Decodes a method frame's payload (class id, method id,
             /// arguments). `payload` must hold exactly one method: bytes
             /// left after the last argument are a syntax error.

@@ -651,7 +651,7 @@ fn every_truncated_vector_names_its_method() {
                 }
                 other => panic!("{} cut at {cut}: {other:?}", method.name()),
             }
-            assert_eq!(err.reply_code(), crate::ReplyCode::SyntaxError);
+            assert_eq!(err.reply_code(), crate::ReplyCode::FrameError);
         }
         for cut in 0..4.min(wire.len()) {
             assert!(matches!(

@@ -85,7 +85,14 @@ impl Channel {
     }
 
     /// A whole message has arrived: route it now, or hold it for tx.commit.
+    /// Errors name basic.publish, the method they answer.
     pub(super) async fn publish(&mut self, publish: Publish) -> AmqpResult<()> {
+        self.publish_checked(publish)
+            .await
+            .map_err(|e| e.during_ids(60, 40))
+    }
+
+    async fn publish_checked(&mut self, publish: Publish) -> AmqpResult<()> {
         let exchange = self.vhost.exchange_or_404(&publish.method.exchange)?;
         if exchange.options.internal {
             return Err(AmqpError::access_refused(format_args!(
@@ -301,11 +308,17 @@ impl Channel {
         Ok(())
     }
 
-    pub(super) fn basic_recover(&mut self, requeue: bool) -> AmqpResult<()> {
+    /// basic.recover(-async). As in RabbitMQ, recover-ok goes out before
+    /// the redeliveries (clients such as lapin discard deliveries that
+    /// arrive before it).
+    pub(super) async fn basic_recover(&mut self, requeue: bool, reply: bool) -> AmqpResult<()> {
         if !requeue {
             return Err(AmqpError::not_implemented("requeue=false"));
         }
         let unacked = self.link.deliveries().take_all();
+        if reply {
+            self.reply(leveret_protocol::BasicRecoverOk {}).await;
+        }
         requeue_all(unacked);
         Ok(())
     }

@@ -168,7 +168,7 @@ impl Channel {
                 "expected content header for class 60, got non content header frame instead ({})",
                 method.name()
             ))
-            .during(&method));
+            .during_ids(60, 40));
         }
         let ids = (method.class_id(), method.method_id());
         let result = self.dispatch(method).await;
@@ -253,11 +253,8 @@ impl Channel {
                 )
                 .await?
             }
-            Method::BasicRecover(m) => {
-                self.basic_recover(m.requeue)?;
-                self.reply(leveret_protocol::BasicRecoverOk {}).await;
-            }
-            Method::BasicRecoverAsync(m) => self.basic_recover(m.requeue)?,
+            Method::BasicRecover(m) => self.basic_recover(m.requeue, true).await?,
+            Method::BasicRecoverAsync(m) => self.basic_recover(m.requeue, false).await?,
             Method::TxSelect(_) => self.tx_select().await?,
             Method::TxCommit(_) => self.tx_commit().await?,
             Method::TxRollback(_) => self.tx_rollback().await?,

@@ -70,12 +70,17 @@ impl Channel {
         Ok(())
     }
 
+    /// queue.unbind; as in RabbitMQ, unbinding a missing queue or from a
+    /// missing exchange succeeds.
     pub(super) async fn queue_unbind(&mut self, unbind: QueueUnbind) -> AmqpResult<()> {
         let (name, routing_key) = self.bind_names(unbind.queue, unbind.routing_key)?;
-        let queue = self.vhost.queue_or_404(&name)?;
-        check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
-        self.vhost
-            .unbind_queue(&queue, &unbind.exchange, routing_key, unbind.arguments)?;
+        if let Some(queue) = self.vhost.queue(&name) {
+            check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
+            if self.vhost.exchange(&unbind.exchange).is_some() {
+                self.vhost
+                    .unbind_queue(&queue, &unbind.exchange, routing_key, unbind.arguments)?;
+            }
+        }
         self.reply(QueueUnbindOk {}).await;
         Ok(())
     }

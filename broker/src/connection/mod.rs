@@ -220,7 +220,13 @@ impl Connection {
             };
             match self.handle(frame).await {
                 Ok(Flow::Continue) => {}
-                Ok(Flow::Closed) => return Ok(()),
+                Ok(Flow::Closed) => {
+                    // The client initiated the close, so it closes the
+                    // socket once it has our close-ok: wait for that.
+                    let drain = async { while reader.next().await.is_ok() {} };
+                    let _ = tokio::time::timeout(CLOSE_TIMEOUT, drain).await;
+                    return Ok(());
+                }
                 Err(error) => return self.close_with(reader, error).await,
             }
             if !reader.has_frame() {
@@ -339,6 +345,11 @@ impl Connection {
             Some(user) => self.user = user,
             None => {
                 tracing::warn!(peer = %self.peer, mechanism = %start_ok.mechanism, "authentication failed");
+                if !capability("authentication_failure_close") {
+                    // Clients that did not ask for a close just see the
+                    // socket closed, as with RabbitMQ.
+                    return Err(Ended::Read(ReadError::Closed));
+                }
                 let error = AmqpError::access_refused(format_args!(
                     "Login was refused using authentication mechanism {}. For details see the broker logfile.",
                     start_ok.mechanism
@@ -385,10 +396,10 @@ impl Connection {
             )));
         };
         let Some(vhost) = self.core.vhost(&open.virtual_host) else {
-            return Err(Ended::Protocol(AmqpError::not_allowed(format_args!(
-                "vhost {} not found",
-                open.virtual_host
-            ))));
+            return Err(Ended::Protocol(
+                AmqpError::not_allowed(format_args!("vhost {} not found", open.virtual_host))
+                    .during_ids(10, 40),
+            ));
         };
         self.vhost = Some(vhost);
         self.outbox
@@ -408,7 +419,7 @@ impl Connection {
             Frame::Heartbeat => Ok(Flow::Continue),
             Frame::Method { channel: 0, method } => self.handle_connection_method(method).await,
             Frame::Header { channel: 0, .. } | Frame::Body { channel: 0, .. } => {
-                Err(AmqpError::command_invalid("content frame on channel 0"))
+                Err(AmqpError::unexpected_frame("content frame on channel 0"))
             }
             Frame::Method {
                 method: Method::ChannelOpen(_),
@@ -450,14 +461,15 @@ impl Connection {
             }
             frame => {
                 let Some(channel) = self.channels.get_mut(&channel_id) else {
-                    let (class_id, method_id) = match &frame {
-                        Frame::Method { method, .. } => (method.class_id(), method.method_id()),
-                        _ => (0, 0),
-                    };
-                    return Err(AmqpError::channel_error(format_args!(
-                        "expected 'channel.open' on channel {channel_id}"
-                    ))
-                    .during_ids(class_id, method_id));
+                    return Err(match &frame {
+                        Frame::Method { method, .. } => AmqpError::channel_error(format_args!(
+                            "expected 'channel.open' on channel {channel_id}"
+                        ))
+                        .during(method),
+                        _ => AmqpError::unexpected_frame(format_args!(
+                            "content frame on unopened channel {channel_id}"
+                        )),
+                    });
                 };
                 if channel.handle(frame).await? {
                     if let Some(channel) = self.channels.remove(&channel_id) {
@@ -483,7 +495,7 @@ impl Connection {
                 Ok(Flow::Continue)
             }
             Method::ConnectionBlocked(_) | Method::ConnectionUnblocked(_) => Ok(Flow::Continue),
-            other => Err(AmqpError::command_invalid(format_args!(
+            other => Err(AmqpError::channel_error(format_args!(
                 "unexpected method {} on channel 0",
                 other.name()
             ))
