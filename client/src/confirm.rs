@@ -6,7 +6,7 @@
 
 use crate::error::{Error, Result};
 use std::collections::VecDeque;
-use std::future::Future;
+use std::future::{Future, IntoFuture};
 use std::pin::Pin;
 use std::task::{Context, Poll};
 use tokio::sync::oneshot;
@@ -30,11 +30,11 @@ impl Confirmation {
     }
 }
 
-/// Resolves to the broker's [`Confirmation`] of one publish, or to the
-/// error that closed the channel first. Dropping it is fine: the publish
-/// still counts for `Channel::wait_for_confirms`.
+/// The handle on one publish's confirmation: `.await` it for the
+/// broker's [`Confirmation`], or the error that closed the channel first.
+/// Ignoring or dropping it is fine: the publish still counts for
+/// `Channel::wait_for_confirms`.
 #[derive(Debug)]
-#[must_use = "a PublishConfirm does nothing unless awaited; drop it if the confirmation is not needed"]
 pub struct PublishConfirm {
     rx: Option<oneshot::Receiver<Result<Confirmation>>>,
 }
@@ -47,9 +47,29 @@ impl PublishConfirm {
     pub(crate) fn pending(rx: oneshot::Receiver<Result<Confirmation>>) -> Self {
         PublishConfirm { rx: Some(rx) }
     }
+
+    /// Whether the channel was in confirm mode for this publish.
+    pub fn is_requested(&self) -> bool {
+        self.rx.is_some()
+    }
 }
 
-impl Future for PublishConfirm {
+impl IntoFuture for PublishConfirm {
+    type Output = Result<Confirmation>;
+    type IntoFuture = ConfirmFuture;
+
+    fn into_future(self) -> ConfirmFuture {
+        ConfirmFuture { rx: self.rx }
+    }
+}
+
+/// The future of a [`PublishConfirm`].
+#[derive(Debug)]
+pub struct ConfirmFuture {
+    rx: Option<oneshot::Receiver<Result<Confirmation>>>,
+}
+
+impl Future for ConfirmFuture {
     type Output = Result<Confirmation>;
 
     fn poll(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Self::Output> {

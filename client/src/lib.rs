@@ -63,7 +63,7 @@ mod options;
 pub mod uri;
 
 pub use channel::{Channel, QueueInfo};
-pub use confirm::{Confirmation, PublishConfirm};
+pub use confirm::{ConfirmFuture, Confirmation, PublishConfirm};
 pub use connection::{Connection, Tuning};
 pub use consumer::{Consumer, ConsumerEnd, Returns, DEFAULT_CONSUMER_BUFFER, RETURNS_BUFFER};
 pub use error::{CloseReason, Error, Result};

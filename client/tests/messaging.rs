@@ -682,3 +682,64 @@ async fn operations_on_a_closed_connection_fail() {
     assert!(matches!(err, Error::Closed), "{err:?}");
     assert!(!channel.is_open());
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancel_and_close_do_not_hang_on_a_full_consumer_buffer() {
+    let broker = broker().await;
+    let (publisher, channel) = confirming(&broker).await;
+    let queue = temp_queue(&channel, "undrained").await;
+    let (consumer_connection, consumer_channel) = broker.channel().await;
+    consumer_channel
+        .basic_qos(1, BasicQosOptions::default())
+        .await
+        .expect("qos");
+    let no_ack = BasicConsumeOptions {
+        no_ack: true,
+        ..Default::default()
+    };
+    let mut consumer = consume(&consumer_channel, &queue.name, no_ack).await;
+    for i in 0..20 {
+        publish(&channel, &queue.name, &i.to_string()).await;
+    }
+    // The first delivery is buffered; the reader is now (or soon) waiting
+    // for room for the second. Cancelling must still get its cancel-ok.
+    within("cancel", consumer.cancel()).await.expect("cancel");
+    let mut drained = 0;
+    while within("drain", consumer.next()).await.is_some() {
+        drained += 1;
+    }
+    assert!(drained >= 1);
+    assert!(matches!(
+        consumer.end_reason(),
+        Some(ConsumerEnd::Cancelled)
+    ));
+    // Same for closing the connection under a second undrained consumer.
+    let second = connection_consumer(&consumer_connection, &queue.name, no_ack).await;
+    within("close", consumer_connection.close())
+        .await
+        .expect("close");
+    drop(second);
+    publisher.close().await.expect("close");
+}
+
+async fn connection_consumer(
+    connection: &leveret_client::Connection,
+    queue: &ShortStr,
+    options: BasicConsumeOptions,
+) -> Consumer {
+    let channel = connection.open_channel().await.expect("channel");
+    channel
+        .basic_qos(1, BasicQosOptions::default())
+        .await
+        .expect("qos");
+    let consumer = consume(&channel, queue, options).await;
+    // Wait until it holds a delivery, so its buffer is full.
+    let passive = QueueDeclareOptions {
+        passive: true,
+        ..Default::default()
+    };
+    let _ = channel
+        .queue_declare(queue, passive, FieldTable::new())
+        .await;
+    consumer
+}

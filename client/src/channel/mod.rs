@@ -498,7 +498,11 @@ impl Channel {
     }
 
     /// Cancels a consumer and waits for `basic.cancel-ok`; its stream ends
-    /// with [`ConsumerEnd::Cancelled`].
+    /// with [`ConsumerEnd::Cancelled`] after the deliveries already
+    /// buffered. A delivery that arrives for it while its buffer is full is
+    /// dropped rather than waited for (waiting could never end if nobody
+    /// drains the stream): unacknowledged, it is requeued when the channel
+    /// closes; with `no_ack` it is lost.
     pub async fn basic_cancel(&self, consumer_tag: impl IntoShortStr) -> Result<()> {
         let consumer_tag = consumer_tag.into_short_str()?;
         if let Some(slot) = self.core().chan.lock().consumers.get(&consumer_tag) {

@@ -261,6 +261,15 @@ impl ChannelCore {
         ChannelCore { conn, chan }
     }
 
+    /// Fails once the connection is closing: a frame queued behind
+    /// connection.close would be discarded by the broker, unanswered.
+    fn check_connection(&self) -> Result<()> {
+        if *self.conn.closing.borrow() {
+            return Err(self.conn.error());
+        }
+        Ok(())
+    }
+
     /// Sends a synchronous method and waits for its reply. `prepare` runs
     /// under the channel's lock just before the method is queued.
     pub(crate) async fn call_with(
@@ -275,6 +284,7 @@ impl ChannelCore {
         let rx = {
             let mut state = self.chan.lock();
             state.status.check()?;
+            self.check_connection()?;
             prepare(&mut state);
             let (tx, rx) = oneshot::channel();
             state.pending.push_back(Pending {
@@ -311,6 +321,7 @@ impl ChannelCore {
         let permit = self.conn.reserve().await?;
         let state = self.chan.lock();
         state.status.check()?;
+        self.check_connection()?;
         permit.send(Outbound::Method {
             channel: self.chan.id,
             method,
@@ -327,6 +338,7 @@ impl ChannelCore {
         let permit = self.conn.reserve().await?;
         let mut state = self.chan.lock();
         state.status.check()?;
+        self.check_connection()?;
         let confirm = match state.confirms.as_mut() {
             Some(confirms) => confirms.register(),
             None => PublishConfirm::not_requested(),

@@ -25,6 +25,9 @@ use tokio::net::TcpStream;
 use tokio::sync::{mpsc, oneshot, watch};
 use writer::{Outbound, OUTBOX_CAPACITY};
 
+/// How long [`Connection::close`] waits for room in the outbox.
+const CLOSE_TIMEOUT: Duration = Duration::from_secs(5);
+
 /// Largest frame accepted before tune settles frame_max.
 const HANDSHAKE_FRAME_MAX: u32 = 131_072;
 
@@ -193,8 +196,9 @@ impl Shared {
         self.ended.send_replace(Some(error));
     }
 
-    /// Marks the connection closing after a protocol violation of the
-    /// broker's; true if it was open.
+    /// Marks the connection closing without sending connection.close (a
+    /// protocol violation of the broker's, or an outbox that does not
+    /// drain); true if it was open.
     pub(crate) fn mark_closing(&self) -> bool {
         let mut state = self.lock();
         if !matches!(state.status, ConnStatus::Open) {
@@ -255,8 +259,17 @@ impl Connection {
     /// If the broker had already closed it, that error is returned.
     pub async fn close(&self) -> Result<()> {
         let shared = &self.inner.shared;
-        if let Ok(permit) = shared.reserve().await {
-            shared.begin_close(|close| permit.send(close));
+        match tokio::time::timeout(CLOSE_TIMEOUT, shared.reserve()).await {
+            Ok(Ok(permit)) => {
+                shared.begin_close(|close| permit.send(close));
+            }
+            Ok(Err(_)) => {}
+            // The outbox does not drain (a broker that stopped reading):
+            // give up on a clean close; the reader ends the connection
+            // once its close deadline passes.
+            Err(_) => {
+                shared.mark_closing();
+            }
         }
         match self.closed().await {
             Error::Closed => Ok(()),

@@ -341,7 +341,6 @@ impl Reader {
         };
         match method {
             Method::ChannelClose(close) => {
-                self.send(channel, ChannelCloseOk {}).await;
                 let reason = reason(
                     &close.reply_text,
                     close.reply_code,
@@ -349,8 +348,13 @@ impl Reader {
                     close.method_id,
                 );
                 tracing::debug!(channel, %reason, "the broker closed a channel");
-                self.shared.remove_channel(&chan);
+                // In this order: once closed, no call can queue a frame
+                // behind the close-ok (the broker would take it for a
+                // frame on a channel that is not open, a connection
+                // error); the number is free only once close-ok is queued.
                 chan.finish(Error::ChannelClosed(reason));
+                self.send(channel, ChannelCloseOk {}).await;
+                self.shared.remove_channel(&chan);
             }
             Method::ChannelCloseOk(_) => {
                 if chan.is_closing() {

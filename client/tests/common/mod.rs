@@ -16,7 +16,7 @@ use leveret_client::protocol::{
     PROTOCOL_HEADER,
 };
 use leveret_client::{Channel, Connection, FieldTable, QueueDeclareOptions, QueueInfo};
-use std::future::Future;
+use std::future::IntoFuture;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -26,7 +26,7 @@ use tokio::net::{TcpListener, TcpStream};
 pub const TIMEOUT: Duration = Duration::from_secs(10);
 
 /// Awaits `fut` for at most [`TIMEOUT`].
-pub async fn within<T>(what: &str, fut: impl Future<Output = T>) -> T {
+pub async fn within<T>(what: &str, fut: impl IntoFuture<Output = T>) -> T {
     match tokio::time::timeout(TIMEOUT, fut).await {
         Ok(v) => v,
         Err(_) => panic!("timed out after {TIMEOUT:?} waiting for {what}"),
