@@ -14,8 +14,9 @@ use crate::error::{Error, Result};
 use std::str::FromStr;
 use std::time::Duration;
 
-/// Everything needed to open a connection.
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// Everything needed to open a connection. Its `Debug` output hides the
+/// password.
+#[derive(Clone, PartialEq, Eq)]
 pub struct ConnectionOptions {
     /// Host name or IP address (IPv6 without brackets).
     pub host: String,
@@ -37,6 +38,23 @@ pub struct ConnectionOptions {
     pub connection_timeout: Duration,
     /// Shown by the broker's management tools (client property `connection_name`).
     pub connection_name: Option<String>,
+}
+
+impl std::fmt::Debug for ConnectionOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ConnectionOptions")
+            .field("host", &self.host)
+            .field("port", &self.port)
+            .field("username", &self.username)
+            .field("password", &"<hidden>")
+            .field("vhost", &self.vhost)
+            .field("heartbeat", &self.heartbeat)
+            .field("frame_max", &self.frame_max)
+            .field("channel_max", &self.channel_max)
+            .field("connection_timeout", &self.connection_timeout)
+            .field("connection_name", &self.connection_name)
+            .finish()
+    }
 }
 
 impl Default for ConnectionOptions {
@@ -193,6 +211,14 @@ fn percent_decode(s: &str) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn debug_hides_the_password() {
+        let options = ConnectionOptions::from_uri("amqp://u:s3cret@h").unwrap();
+        let shown = format!("{options:?}");
+        assert!(!shown.contains("s3cret"), "{shown}");
+        assert!(shown.contains("\"u\""), "{shown}");
+    }
 
     #[test]
     fn decodes_escapes() {

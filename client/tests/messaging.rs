@@ -743,3 +743,113 @@ async fn connection_consumer(
         .await;
     consumer
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bodies_around_frame_max_boundaries() {
+    let broker = broker().await;
+    // frame_max 4096: a body frame carries at most 4088 bytes.
+    let connection = leveret_client::Connection::connect(&broker.uri_with("frame_max=4096"))
+        .await
+        .expect("connect");
+    assert_eq!(connection.tuning().frame_max, 4096);
+    let channel = connection.open_channel().await.expect("channel");
+    channel.confirm_select().await.expect("confirm.select");
+    let queue = temp_queue(&channel, "boundaries").await;
+    let mut consumer = consume(
+        &channel,
+        &queue.name,
+        BasicConsumeOptions {
+            no_ack: true,
+            ..Default::default()
+        },
+    )
+    .await;
+    let sizes = [0usize, 1, 4087, 4088, 4089, 8176, 8177, 100_000];
+    for (n, size) in sizes.iter().enumerate() {
+        let body: Bytes = (0..*size).map(|i| (i * 7 + n) as u8).collect();
+        let _ = channel
+            .basic_publish(
+                "",
+                &queue.name,
+                BasicPublishOptions::default(),
+                BasicProperties::default(),
+                body,
+            )
+            .await
+            .expect("publish");
+    }
+    assert!(within("confirms", channel.wait_for_confirms())
+        .await
+        .expect("confirms"));
+    for (n, size) in sizes.iter().enumerate() {
+        let delivery = next(&mut consumer).await;
+        let expected: Bytes = (0..*size).map(|i| (i * 7 + n) as u8).collect();
+        assert_eq!(delivery.body.len(), *size);
+        assert_eq!(delivery.body, expected, "body of {size} bytes");
+    }
+    connection.close().await.expect("close");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ten_thousand_messages_arrive_in_order() {
+    let broker = broker().await;
+    let (publisher, channel) = confirming(&broker).await;
+    let queue = temp_queue(&channel, "bulk").await;
+    let (consumer_connection, consumer_channel) = broker.channel().await;
+    consumer_channel
+        .basic_qos(200, BasicQosOptions::default())
+        .await
+        .expect("qos");
+    let mut consumer = consume(&consumer_channel, &queue.name, Default::default()).await;
+    const N: usize = 10_000;
+    let payload = Bytes::from(vec![0x5a; 1000]);
+    let publishing = tokio::spawn({
+        let channel = channel.clone();
+        let queue = queue.name.clone();
+        async move {
+            for i in 0..N {
+                let properties = BasicProperties {
+                    message_id: Some(ShortStr::try_from(i.to_string()).expect("id")),
+                    ..Default::default()
+                };
+                let _ = channel
+                    .basic_publish(
+                        "",
+                        &queue,
+                        BasicPublishOptions::default(),
+                        properties,
+                        payload.clone(),
+                    )
+                    .await
+                    .expect("publish");
+            }
+            channel.wait_for_confirms().await.expect("confirms")
+        }
+    });
+    let consuming = async {
+        for i in 0..N {
+            let delivery = consumer.next().await.expect("delivery");
+            assert_eq!(
+                delivery
+                    .properties
+                    .message_id
+                    .as_ref()
+                    .and_then(|m| m.as_str()),
+                Some(i.to_string().as_str())
+            );
+            assert_eq!(delivery.body.len(), 1000);
+            if i % 50 == 49 {
+                consumer_channel
+                    .basic_ack(delivery.delivery_tag, BasicAckOptions { multiple: true })
+                    .await
+                    .expect("ack");
+            }
+        }
+    };
+    tokio::time::timeout(std::time::Duration::from_secs(60), consuming)
+        .await
+        .expect("all delivered in time");
+    assert!(within("publisher", publishing).await.expect("join"));
+    consumer_connection.close().await.expect("close");
+    publisher.close().await.expect("close");
+}
