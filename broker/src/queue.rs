@@ -262,11 +262,43 @@ impl Queue {
 
     /// Offers a message; dispatches it at once if a consumer has credit.
     pub fn publish(self: &Arc<Self>, message: Arc<Message>) -> Enqueued {
+        self.offer(message, None)
+    }
+
+    /// Reserves the next place in this queue for a message whose index
+    /// entry the caller writes itself ([`Queue::index_entry`]), so that a
+    /// whole transaction reaches the disk in one batch. Places are taken in
+    /// order by sequence number, whatever order they are filled in.
+    pub fn reserve(&self) -> u64 {
+        let mut st = self.lock();
+        st.next_seq += 1;
+        st.next_seq
+    }
+
+    /// The index entry for `message` at a reserved place, if this queue
+    /// stores it.
+    pub fn index_entry(&self, seq: u64, message: &Message) -> Option<StoreOp> {
+        let (_, queue) = self.durable_store.as_ref()?;
+        Some(StoreOp::Enqueue {
+            queue: *queue,
+            seq,
+            message: message.stored.as_ref()?.id,
+            delivered: false,
+        })
+    }
+
+    /// Offers a message at a place from [`Queue::reserve`], whose index
+    /// entry is already written.
+    pub fn publish_reserved(self: &Arc<Self>, message: Arc<Message>, seq: u64) -> Enqueued {
+        self.offer(message, Some(seq))
+    }
+
+    fn offer(self: &Arc<Self>, message: Arc<Message>, reserved: Option<u64>) -> Enqueued {
         let mut dead = Vec::new();
         let outcome = {
             let mut st = self.lock();
             if st.deleted {
-                self.drop_ref(&message);
+                self.unlog(&message, reserved);
                 return Enqueued::Accepted { sync: 0 };
             }
             let now = Instant::now();
@@ -282,11 +314,11 @@ impl Queue {
                 match self.args.overflow {
                     Overflow::DropHead => {}
                     Overflow::RejectPublish => {
-                        self.drop_ref(&message);
+                        self.unlog(&message, reserved);
                         return Enqueued::Refused;
                     }
                     Overflow::RejectPublishDlx => {
-                        self.drop_ref(&message);
+                        self.unlog(&message, reserved);
                         dead.push(DeadLetter {
                             message,
                             reason: DeadLetterReason::MaxLen,
@@ -297,9 +329,12 @@ impl Queue {
                     }
                 }
             }
-            st.next_seq += 1;
+            let seq = reserved.unwrap_or_else(|| {
+                st.next_seq += 1;
+                st.next_seq
+            });
             let queued = QueuedMessage {
-                seq: st.next_seq,
+                seq,
                 priority,
                 message,
                 redelivered: false,
@@ -308,7 +343,10 @@ impl Queue {
             self.gauge.add(queued.message.weight());
             // Logged under the queue lock, so no dequeue of this message
             // (which needs it delivered first) can reach the store before it.
-            let sync = self.log(&queued, false);
+            let sync = match reserved {
+                Some(_) => 0,
+                None => self.log(&queued, false),
+            };
             self.insert_ready(&mut st, queued);
             self.enforce_max_length(&mut st, &mut dead);
             // Dispatched as of the publish instant, so a message with TTL 0
@@ -424,12 +462,23 @@ impl Queue {
         }
     }
 
-    /// A message this queue was offered but does not keep.
-    fn drop_ref(&self, message: &Message) {
-        if let (Some((persistence, _)), Some(body)) = (&self.durable_store, &message.stored) {
-            if body.release() {
-                persistence.submit(vec![StoreOp::DeleteMessage { id: body.id }]);
-            }
+    /// A message this queue was offered but does not keep: removes its
+    /// index entry if one was written at a reserved place, and the body if
+    /// this was its last queue.
+    fn unlog(&self, message: &Message, reserved: Option<u64>) {
+        let (Some((persistence, queue)), Some(body)) = (&self.durable_store, &message.stored)
+        else {
+            return;
+        };
+        let mut ops = Vec::new();
+        if let Some(seq) = reserved {
+            ops.push(StoreOp::Dequeue { queue: *queue, seq });
+        }
+        if body.release() {
+            ops.push(StoreOp::DeleteMessage { id: body.id });
+        }
+        if !ops.is_empty() {
+            persistence.submit(ops);
         }
     }
 

@@ -25,6 +25,30 @@ pub(crate) struct Outcome {
     pub sync: u64,
 }
 
+impl Outcome {
+    /// Adds one queue's answer.
+    pub fn add(&mut self, enqueued: Enqueued) {
+        match enqueued {
+            Enqueued::Accepted { sync } => self.sync = self.sync.max(sync),
+            Enqueued::Refused => self.refused = true,
+        }
+    }
+}
+
+/// The op storing a message's body, if it is to be stored.
+pub(crate) fn body_op(message: &Message) -> Option<StoreOp> {
+    let body = message.stored.as_ref()?;
+    Some(StoreOp::PutMessage {
+        id: body.id,
+        record: MessageRecord {
+            exchange: message.exchange.clone(),
+            routing_key: message.routing_key.clone(),
+            properties: message.properties.clone(),
+            body: message.body.clone(),
+        },
+    })
+}
+
 /// What a client did with a delivery.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Settle {
@@ -120,20 +144,39 @@ impl Channel {
         Ok(())
     }
 
-    /// Routes a message and offers it to each queue. Sends basic.return for
-    /// unroutable mandatory messages. Persistent messages reaching durable
-    /// queues are stored once, with one index entry per queue.
+    /// Routes a message and offers it to each queue: the non-transactional
+    /// publish path.
     pub(super) async fn route_and_enqueue(&mut self, publish: Publish) -> Outcome {
-        let Some(exchange) = self.vhost.exchange(&publish.method.exchange) else {
-            // Deleted between publish and a tx.commit: RabbitMQ drops it.
-            return Outcome::default();
-        };
         let mut queues = std::mem::take(&mut self.route_buffer);
+        let mut outcome = Outcome::default();
+        if let Some(message) = self.route(publish, &mut queues).await {
+            if let (Some(persistence), Some(op)) = (&self.core.persistence, body_op(&message)) {
+                persistence.submit(vec![op]);
+            }
+            for queue in queues.drain(..) {
+                outcome.add(queue.publish(Arc::clone(&message)));
+            }
+        }
+        queues.clear();
+        self.route_buffer = queues;
+        outcome
+    }
+
+    /// Routes a publish into `queues` and builds the message, marked for
+    /// storage when it is persistent and reaches durable queues. Sends
+    /// basic.return for an unroutable mandatory message. `None` if the
+    /// exchange is gone (deleted before a tx.commit: RabbitMQ drops it).
+    pub(super) async fn route(
+        &mut self,
+        publish: Publish,
+        queues: &mut Vec<Arc<Queue>>,
+    ) -> Option<Arc<Message>> {
+        let exchange = self.vhost.exchange(&publish.method.exchange)?;
         self.vhost.route(
             &exchange,
             &publish.method.routing_key,
             publish.properties.headers.as_ref(),
-            &mut queues,
+            queues,
         );
         let persistent = publish.properties.is_persistent();
         let stored = match &self.core.persistence {
@@ -159,39 +202,17 @@ impl Channel {
             ttl_ms,
             stored,
         });
-        if let (Some(persistence), Some(body)) = (&self.core.persistence, &message.stored) {
-            persistence.submit(vec![StoreOp::PutMessage {
-                id: body.id,
-                record: MessageRecord {
-                    exchange: message.exchange.clone(),
-                    routing_key: message.routing_key.clone(),
-                    properties: message.properties.clone(),
-                    body: message.body.clone(),
-                },
-            }]);
+        if queues.is_empty() && publish.method.mandatory {
+            self.outbox()
+                .send(Outbound::Return {
+                    channel: self.id,
+                    reply_code: ReplyCode::NoRoute.code(),
+                    reply_text: ShortStr::from_static("NO_ROUTE"),
+                    message: Arc::clone(&message),
+                })
+                .await;
         }
-        let mut outcome = Outcome::default();
-        if queues.is_empty() {
-            if publish.method.mandatory {
-                self.outbox()
-                    .send(Outbound::Return {
-                        channel: self.id,
-                        reply_code: ReplyCode::NoRoute.code(),
-                        reply_text: ShortStr::from_static("NO_ROUTE"),
-                        message,
-                    })
-                    .await;
-            }
-        } else {
-            for queue in queues.drain(..) {
-                match queue.publish(Arc::clone(&message)) {
-                    Enqueued::Accepted { sync } => outcome.sync = outcome.sync.max(sync),
-                    Enqueued::Refused => outcome.refused = true,
-                }
-            }
-        }
-        self.route_buffer = queues;
-        outcome
+        Some(message)
     }
 
     pub(super) async fn basic_qos(&mut self, qos: BasicQos) -> AmqpResult<()> {

@@ -3,14 +3,16 @@
 //! are coalesced: consecutive positive confirms are sent as one basic.ack
 //! with `multiple` once the connection has no more input buffered.
 
-use super::basic::{apply_settles, requeue_all, Outcome, Settle};
+use super::basic::{apply_settles, body_op, requeue_all, Outcome, Settle};
 use super::{Channel, Publish};
 use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
+use crate::queue::Queue;
 use leveret_protocol::{
     BasicAck, BasicNack, ConfirmSelectOk, TxCommitOk, TxRollbackOk, TxSelectOk,
 };
 use std::collections::VecDeque;
+use std::sync::Arc;
 
 /// Work held by a transactional channel until commit.
 #[derive(Debug, Default)]
@@ -54,9 +56,42 @@ impl Channel {
                 "channel is not transactional",
             ));
         };
-        let mut sync = 0;
+        // Route everything first and write every stored message of the
+        // commit in one submission, so it reaches the disk in one atomic
+        // batch; only then do the messages become visible to consumers
+        // (whose acks must reach the store after the entries they remove).
+        let mut ops = Vec::new();
+        let mut placed = Vec::with_capacity(tx.publishes.len());
         for publish in tx.publishes {
-            sync = sync.max(self.route_and_enqueue(publish).await.sync);
+            let mut queues = Vec::new();
+            let Some(message) = self.route(publish, &mut queues).await else {
+                continue;
+            };
+            ops.extend(body_op(&message));
+            let targets: Vec<(Arc<Queue>, Option<u64>)> = queues
+                .into_iter()
+                .map(|queue| {
+                    let stored_here = queue.store_id().is_some() && message.stored.is_some();
+                    let seq = stored_here.then(|| queue.reserve());
+                    if let Some(seq) = seq {
+                        ops.extend(queue.index_entry(seq, &message));
+                    }
+                    (queue, seq)
+                })
+                .collect();
+            placed.push((message, targets));
+        }
+        let sync = match (&self.core.persistence, ops.is_empty()) {
+            (Some(persistence), false) => persistence.submit(ops),
+            _ => 0,
+        };
+        for (message, targets) in placed {
+            for (queue, seq) in targets {
+                match seq {
+                    Some(seq) => queue.publish_reserved(Arc::clone(&message), seq),
+                    None => queue.publish(Arc::clone(&message)),
+                };
+            }
         }
         apply_settles(tx.settles);
         if let (Some(persistence), true) = (&self.core.persistence, sync > 0) {
