@@ -391,3 +391,49 @@ async fn dropping_the_last_handles_closes_channel_then_connection() {
     server.send(0, ConnectionCloseOk {}).await;
     assert!(server.frame().await.is_none(), "client closes the socket");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_frame_closes_with_frame_error() {
+    let peer = ScriptedPeer::bind().await;
+    let (connection, mut server) = peer.connect("heartbeat=0", 0).await;
+    // A body frame whose frame-end octet is wrong.
+    server.send_raw(b"\x03\x00\x01\x00\x00\x00\x01a\xcf").await;
+    match server.method().await {
+        Method::ConnectionClose(close) => {
+            assert_eq!(close.reply_code, ReplyCode::FrameError.code());
+        }
+        other => panic!("expected connection.close, got {other:?}"),
+    }
+    let error = within("closed", connection.closed()).await;
+    assert!(matches!(error, Error::Protocol(_)), "{error:?}");
+    assert!(server.frame().await.is_none(), "client closes the socket");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unexpected_reply_closes_with_unexpected_frame() {
+    let peer = ScriptedPeer::bind().await;
+    let (connection, mut server) = peer.connect("heartbeat=0", 0).await;
+    let opening = tokio::spawn({
+        let connection = connection.clone();
+        async move { connection.open_channel().await }
+    });
+    assert!(matches!(server.method().await, Method::ChannelOpen(_)));
+    // Answer channel.open with the wrong reply.
+    server
+        .send(1, leveret_client::protocol::QueueDeclareOk::default())
+        .await;
+    match server.method().await {
+        Method::ConnectionClose(close) => {
+            assert_eq!(close.reply_code, ReplyCode::UnexpectedFrame.code());
+        }
+        other => panic!("expected connection.close, got {other:?}"),
+    }
+    // While closing, the client waits for close-ok.
+    server.send(0, ConnectionCloseOk {}).await;
+    let err = within("open fails", opening)
+        .await
+        .expect("join")
+        .expect_err("protocol error");
+    assert!(matches!(err, Error::Protocol(_)), "{err:?}");
+    assert!(matches!(connection.closed().await, Error::Protocol(_)));
+}

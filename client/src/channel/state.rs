@@ -166,12 +166,16 @@ impl ChannelShared {
             ));
         };
         if !(pending.expect)(&reply.method) {
-            return Err(format!(
+            let text = format!(
                 "{} on channel {} in reply to {}",
                 reply.method.name(),
                 self.id,
                 pending.request
-            ));
+            );
+            // Left waiting: the connection's end fails it with the
+            // protocol error this becomes.
+            state.pending.push_front(pending);
+            return Err(text);
         }
         match (pending.kind, &reply.method) {
             (PendingKind::Consume(slot), Method::BasicConsumeOk(ok)) => {

@@ -173,13 +173,18 @@ impl Reader {
                 Ok(frame) => self.handle(frame).await,
                 Err(ReadError::Ended(error)) => return self.ending_error(error),
                 Err(ReadError::Decode(e)) => {
+                    // No frame boundary can be trusted any more: send
+                    // connection.close (the writer flushes it before it
+                    // stops) and end without waiting for close-ok.
                     let (class_id, method_id) = e.method_ids();
-                    Err(Violation {
+                    self.violate(Violation {
                         code: e.reply_code(),
                         text: e.to_string(),
                         class_id,
                         method_id,
                     })
+                    .await;
+                    return self.ending_error(Error::Protocol(e.to_string()));
                 }
             };
             match result {

@@ -209,6 +209,10 @@ impl PeerConnection {
         self.socket.write_all(&out).await.expect("peer write");
     }
 
+    pub async fn send_raw(&mut self, bytes: &[u8]) {
+        self.socket.write_all(bytes).await.expect("peer write");
+    }
+
     pub async fn send_heartbeat(&mut self) {
         let mut out = BytesMut::new();
         Frame::Heartbeat.encode(&mut out);
