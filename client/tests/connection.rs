@@ -437,3 +437,66 @@ async fn unexpected_reply_closes_with_unexpected_frame() {
     assert!(matches!(err, Error::Protocol(_)), "{err:?}");
     assert!(matches!(connection.closed().await, Error::Protocol(_)));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn leveret_memory_alarm_blocks_and_unblocks_publishers() {
+    // Needs a broker with a tiny memory watermark: the in-process Leveret.
+    let Some(broker) = common::leveret_with(leveret_broker::Limits {
+        memory_high_watermark: 64 * 1024,
+        ..Default::default()
+    })
+    .await
+    else {
+        return;
+    };
+    let (publisher, channel) = broker.channel().await;
+    let queue = common::temp_queue(&channel, "alarm").await;
+    let mut blocked = publisher.blocked();
+    assert_eq!(*blocked.borrow_and_update(), None);
+    // 200 KiB queued crosses the 64 KiB watermark.
+    for _ in 0..10 {
+        let _ = channel
+            .basic_publish(
+                "",
+                &queue.name,
+                Default::default(),
+                Default::default(),
+                bytes::Bytes::from(vec![1u8; 20 * 1024]),
+            )
+            .await
+            .expect("publish");
+    }
+    within("connection.blocked", blocked.wait_for(Option::is_some))
+        .await
+        .expect("blocked");
+    // Another connection drains the queue; the alarm clears.
+    let (other, drain) = broker.channel().await;
+    within("purge", async {
+        let mut purged = 0;
+        while purged < 10 {
+            purged += drain
+                .queue_purge(&queue.name, Default::default())
+                .await
+                .expect("purge");
+        }
+    })
+    .await;
+    within("connection.unblocked", blocked.wait_for(Option::is_none))
+        .await
+        .expect("unblocked");
+    // Publishing works again.
+    channel.confirm_select().await.expect("confirm.select");
+    let confirm = channel
+        .basic_publish(
+            "",
+            &queue.name,
+            Default::default(),
+            Default::default(),
+            bytes::Bytes::from_static(b"after"),
+        )
+        .await
+        .expect("publish");
+    assert!(within("confirm", confirm).await.expect("confirm").is_ack());
+    other.close().await.expect("close");
+    publisher.close().await.expect("close");
+}

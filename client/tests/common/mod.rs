@@ -88,6 +88,25 @@ pub async fn broker() -> TestBroker {
     }
 }
 
+/// An in-process Leveret with `limits`, or `None` when the tests run
+/// against an external broker (whose limits cannot be set from here).
+pub async fn leveret_with(limits: leveret_broker::Limits) -> Option<TestBroker> {
+    if std::env::var("LEVERET_TEST_AMQP_URL").is_ok_and(|uri| !uri.is_empty()) {
+        return None;
+    }
+    let handle = Broker::builder()
+        .listen("127.0.0.1:0".parse().expect("address"))
+        .limits(limits)
+        .start()
+        .await
+        .expect("start an in-process Leveret");
+    let addr = handle.local_addrs()[0];
+    Some(TestBroker {
+        uri: format!("amqp://guest:guest@{addr}/%2f"),
+        handle: Some(handle),
+    })
+}
+
 /// A name no other test (or earlier run against the same broker) uses.
 pub fn unique(prefix: &str) -> String {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
