@@ -31,7 +31,7 @@ impl BrokerProcess {
             .and_then(|l| l.local_addr())
             .expect("free port")
             .port();
-        let child = Command::new(env!("CARGO_BIN_EXE_leveret"))
+        let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
             .arg("--listen")
             .arg(format!("127.0.0.1:{port}"))
             .arg("--data-dir")
@@ -52,6 +52,8 @@ impl BrokerProcess {
             }
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
+        let _ = child.kill();
+        let _ = child.wait();
         panic!("leveret did not start listening on {port}");
     }
 

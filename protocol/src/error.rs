@@ -35,9 +35,9 @@ impl std::fmt::Display for SyntaxProblem {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum DecodeError {
     /// A frame declared a payload larger than the negotiated `frame_max`.
-    #[error("frame of {size} bytes exceeds frame_max of {frame_max} bytes")]
+    #[error("frame payload of {size} bytes exceeds frame_max of {frame_max} bytes")]
     FrameTooLarge {
-        /// The whole frame's size as declared (header + payload + end).
+        /// The payload size the frame declared.
         size: u64,
         /// The limit in force.
         frame_max: u32,

@@ -37,10 +37,16 @@ pub enum ProtocolHeaderCheck {
     Invalid,
 }
 
-/// Checks the protocol header at the start of `buf`.
+/// The header of AMQP 0-9 (class 1, instance 1, version 0-9), which
+/// RabbitMQ answers with the 0-9-1 protocol, as the wire formats agree.
+pub const LEGACY_0_9_HEADER: &[u8; 8] = b"AMQP\x01\x01\x00\x09";
+
+/// Checks the protocol header at the start of `buf`: 0-9-1, or the legacy
+/// 0-9 header that RabbitMQ also serves as 0-9-1.
 pub fn check_protocol_header(buf: &[u8]) -> ProtocolHeaderCheck {
     let n = buf.len().min(PROTOCOL_HEADER.len());
-    if buf[..n] != PROTOCOL_HEADER[..n] {
+    let matches = |header: &[u8; 8]| buf[..n] == header[..n];
+    if !matches(PROTOCOL_HEADER) && !matches(LEGACY_0_9_HEADER) {
         ProtocolHeaderCheck::Invalid
     } else if n < PROTOCOL_HEADER.len() {
         ProtocolHeaderCheck::Incomplete
@@ -125,8 +131,11 @@ fn limit(frame_max: u32) -> u64 {
 }
 
 /// Checks whether `buf` starts with a whole frame, without decoding it.
-/// The declared size is checked against `frame_max` (0 = no limit) as soon
-/// as the 7-byte header is in, before any payload is buffered.
+/// The declared payload size is checked against `frame_max` (0 = no
+/// limit) as soon as the 7-byte header is in, before any payload is
+/// buffered. Like RabbitMQ, the check leaves out the 8 envelope octets, so
+/// a client that counts frame_max as payload size is still served; frames
+/// this crate encodes always fit frame_max whole.
 pub fn check_frame(buf: &[u8], frame_max: u32) -> Result<FrameCheck, DecodeError> {
     if buf.len() < 7 {
         return Ok(FrameCheck::Incomplete {
@@ -134,13 +143,13 @@ pub fn check_frame(buf: &[u8], frame_max: u32) -> Result<FrameCheck, DecodeError
         });
     }
     let size = u32::from_be_bytes([buf[3], buf[4], buf[5], buf[6]]);
-    let total = u64::from(size) + FRAME_OVERHEAD as u64;
-    if total > limit(frame_max) {
+    if u64::from(size) > limit(frame_max) {
         return Err(DecodeError::FrameTooLarge {
-            size: total,
+            size: u64::from(size),
             frame_max,
         });
     }
+    let total = u64::from(size) + FRAME_OVERHEAD as u64;
     // Bounded by frame_max (a u32), so it fits in usize.
     let total = total as usize;
     if buf.len() < total {
@@ -314,6 +323,14 @@ mod tests {
         );
         assert_eq!(
             check_protocol_header(b"AMQP\x01\x01\x00\x09"),
+            ProtocolHeaderCheck::Valid
+        );
+        assert_eq!(
+            check_protocol_header(b"AMQP\x01\x01\x08\x00"),
+            ProtocolHeaderCheck::Invalid
+        );
+        assert_eq!(
+            check_protocol_header(b"AMQP\x00\x00\x09\x02"),
             ProtocolHeaderCheck::Invalid
         );
         assert_eq!(
@@ -371,11 +388,11 @@ mod tests {
 
     #[test]
     fn oversize_frame_refused_from_its_header_alone() {
-        let err = check_frame(b"\x03\x00\x01\x00\x00\x10\x00", 4096).unwrap_err();
+        let err = check_frame(b"\x03\x00\x01\x00\x00\x10\x01", 4096).unwrap_err();
         assert_eq!(
             err,
             DecodeError::FrameTooLarge {
-                size: 4096 + 8,
+                size: 4097,
                 frame_max: 4096
             }
         );

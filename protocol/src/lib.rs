@@ -43,7 +43,7 @@ pub use error::{DecodeError, SyntaxProblem};
 pub use frame::{
     check_frame, check_protocol_header, decode_frame, encode_content, encode_header, encode_method,
     parse_frame, Frame, FrameCheck, ProtocolHeaderCheck, FRAME_END, FRAME_MIN_SIZE, FRAME_OVERHEAD,
-    PROTOCOL_HEADER,
+    LEGACY_0_9_HEADER, PROTOCOL_HEADER,
 };
 pub use method::*;
 pub use properties::{BasicProperties, ContentHeader};

@@ -372,19 +372,24 @@ impl Connection {
                 "expected connection.tune-ok",
             )));
         };
-        let frame_max = match tune_ok.frame_max {
-            0 => limits.frame_max,
-            n if n < FRAME_MIN_SIZE || n > limits.frame_max => {
-                return Err(Ended::Protocol(AmqpError::not_allowed(format_args!(
-                    "frame_max={} outside of allowed range [{}, {}]",
-                    n, FRAME_MIN_SIZE, limits.frame_max
-                ))))
-            }
-            n => n,
-        };
+        // As RabbitMQ: frame_max must lie in [4096, ours] (0, "unlimited",
+        // is refused when we have a limit), channel_max in [0, ours].
+        let frame_max = tune_ok.frame_max;
+        if frame_max < FRAME_MIN_SIZE || frame_max > limits.frame_max {
+            return Err(Ended::Protocol(AmqpError::not_allowed(format_args!(
+                "frame_max={} outside of allowed range [{}, {}]",
+                frame_max, FRAME_MIN_SIZE, limits.frame_max
+            ))));
+        }
+        if tune_ok.channel_max > limits.channel_max {
+            return Err(Ended::Protocol(AmqpError::not_allowed(format_args!(
+                "channel_max={} outside of allowed range [0, {}]",
+                tune_ok.channel_max, limits.channel_max
+            ))));
+        }
         self.channel_max = match tune_ok.channel_max {
             0 => limits.channel_max,
-            n => n.min(limits.channel_max),
+            n => n,
         };
         reader.frame_max = frame_max;
         self.outbox.set_frame_max(frame_max);
