@@ -15,6 +15,8 @@ use tokio::sync::mpsc;
 
 /// How often message TTLs and queue x-expires are checked.
 const SWEEP_PERIOD: Duration = Duration::from_millis(50);
+/// Bytes buffered each way in an in-process connection's pipe.
+const IN_PROCESS_BUFFER: usize = 256 * 1024;
 /// How long shutdown waits for connections to close.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
 
@@ -180,6 +182,22 @@ impl BrokerHandle {
     /// The addresses the listeners are bound to.
     pub fn local_addrs(&self) -> &[SocketAddr] {
         &self.local_addrs
+    }
+
+    /// Opens an in-process connection: the returned stream is the client's
+    /// end of an in-memory pipe whose other end the broker serves exactly
+    /// like a TCP socket (same protocol, no network, no TCP stack). Works
+    /// with or without listeners.
+    pub fn connect_in_process(&self) -> tokio::io::DuplexStream {
+        let (client, server) = tokio::io::duplex(IN_PROCESS_BUFFER);
+        let (read, write) = tokio::io::split(server);
+        let core = Arc::clone(&self.core);
+        let alive = self.alive.clone();
+        tokio::spawn(async move {
+            crate::connection::serve(core, read, write, "in-process".to_owned()).await;
+            drop(alive);
+        });
+        client
     }
 
     /// Closes every connection with 320 CONNECTION_FORCED and stops.

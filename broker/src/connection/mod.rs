@@ -86,24 +86,21 @@ where
     W: AsyncWrite + Unpin + Send + 'static,
 {
     let connection_id = core.next_connection_id();
-    let span = tracing::debug_span!("connection", id = connection_id, %peer);
-    let _enter = span.enter();
-    drop(_enter);
     let mut reader = FrameReader {
         socket: read,
         buf: BytesMut::with_capacity(64 * 1024),
         frame_max: core.limits.frame_max,
     };
     let mut write = write;
-    match tokio::time::timeout(HANDSHAKE_TIMEOUT, read_protocol_header(&mut reader)).await {
-        Ok(Ok(true)) => {}
-        Ok(Ok(false)) => {
+    match handshake_step(&core, read_protocol_header(&mut reader)).await {
+        Some(Ok(true)) => {}
+        Some(Ok(false)) => {
             tracing::info!(%peer, "wrong protocol header; answering with ours and closing");
             let _ = write.write_all(PROTOCOL_HEADER).await;
             let _ = write.shutdown().await;
             return;
         }
-        Ok(Err(_)) | Err(_) => return,
+        Some(Err(_)) | None => return,
     }
     let (outbox, inbox) = Outbox::new(connection_id);
     let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
@@ -131,6 +128,19 @@ where
     }
     conn.outbox.send(Outbound::Shutdown).await;
     let _ = writer.await;
+}
+
+/// Runs a step of the handshake within the handshake timeout; `None` if it
+/// timed out or the broker began shutting down.
+async fn handshake_step<T>(core: &Core, step: impl std::future::Future<Output = T>) -> Option<T> {
+    let mut shutdown = core.shutdown_signal();
+    let stopping = async move {
+        let _ = shutdown.wait_for(|down| *down).await;
+    };
+    tokio::select! {
+        done = tokio::time::timeout(HANDSHAKE_TIMEOUT, step) => done.ok(),
+        _ = stopping => None,
+    }
 }
 
 async fn read_protocol_header<R: AsyncRead + Unpin>(
@@ -177,11 +187,12 @@ impl Connection {
         reader: &mut FrameReader<R>,
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
     ) -> Result<(), Ended> {
-        match tokio::time::timeout(HANDSHAKE_TIMEOUT, self.handshake(reader, heartbeat_tx)).await {
-            Ok(Ok(())) => {}
-            Ok(Err(Ended::Protocol(error))) => return self.close_with(reader, error).await,
-            Ok(Err(e)) => return Err(e),
-            Err(_) => return Err(Ended::Read(ReadError::TimedOut)),
+        let core = Arc::clone(&self.core);
+        match handshake_step(&core, self.handshake(reader, heartbeat_tx)).await {
+            Some(Ok(())) => {}
+            Some(Err(Ended::Protocol(error))) => return self.close_with(reader, error).await,
+            Some(Err(e)) => return Err(e),
+            None => return Err(Ended::Read(ReadError::TimedOut)),
         }
         tracing::debug!(user = %self.user, "connection open");
         let mut shutdown = self.core.shutdown_signal();
