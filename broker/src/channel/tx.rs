@@ -162,11 +162,7 @@ impl Channel {
     /// for the disk holds back those after it, so a multiple ack never
     /// covers a message that is not yet safe.
     pub async fn flush_confirms(&mut self) {
-        let durable = self
-            .core
-            .persistence
-            .as_ref()
-            .map(|p| *p.durable().borrow());
+        let persistence = self.core.persistence.clone();
         let mut acks: Option<(u64, u64)> = None;
         let mut nacks = Vec::new();
         if let Some(confirms) = &mut self.confirms {
@@ -176,8 +172,8 @@ impl Channel {
                 } else if outcome.sync == 0 {
                     true
                 } else {
-                    match durable {
-                        Some(d) if d.flushed >= outcome.sync => !d.failed,
+                    match &persistence {
+                        Some(p) if p.flushed() >= outcome.sync => p.succeeded(outcome.sync),
                         _ => break,
                     }
                 };

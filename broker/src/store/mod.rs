@@ -25,6 +25,7 @@ pub use self::sled::SledStore;
 
 use bytes::{Buf, BufMut, Bytes, BytesMut};
 use leveret_protocol::{FieldTable, ShortStr};
+use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use tokio::sync::{mpsc, watch};
@@ -443,14 +444,19 @@ struct Submission {
     ops: Vec<StoreOp>,
 }
 
-/// The state of the disk as the persister last saw it.
+/// How far the persister has got: every submission numbered up to
+/// `flushed` has been attempted, and is on disk unless its batch failed
+/// (see [`Persistence::succeeded`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Durable {
-    /// Every submission numbered up to this one is on disk.
+    /// Highest submission number attempted.
     pub flushed: u64,
-    /// The last batch failed (disk full, read-only…): waiting publishes must be nacked.
-    pub failed: bool,
 }
+
+/// The most recent failed batches remembered, as submission ranges. A
+/// waiting publish checks its number against them within moments of the
+/// failure, so a short history is enough.
+const FAILED_HISTORY: usize = 4096;
 
 /// The broker's handle on durable storage: submit ops, learn when they are
 /// on disk. Submissions are numbered; [`Persistence::durable`] reports the
@@ -460,6 +466,7 @@ pub struct Persistence {
     submit: mpsc::UnboundedSender<Submission>,
     submitted: AtomicU64,
     durable: watch::Receiver<Durable>,
+    failed: Arc<std::sync::Mutex<VecDeque<(u64, u64)>>>,
     next_message_id: AtomicU64,
     next_queue_id: AtomicU64,
 }
@@ -478,10 +485,9 @@ impl Persistence {
         // wait for confirms and are blocked by the memory alarm), and a
         // bounded channel here would block a queue's lock holder.
         let (submit, mut inbox) = mpsc::unbounded_channel::<Submission>();
-        let (durable_tx, durable) = watch::channel(Durable {
-            flushed: 0,
-            failed: false,
-        });
+        let (durable_tx, durable) = watch::channel(Durable { flushed: 0 });
+        let failed = Arc::new(std::sync::Mutex::new(VecDeque::new()));
+        let failed_log = Arc::clone(&failed);
         std::thread::Builder::new()
             .name("leveret-persister".into())
             .spawn(move || {
@@ -499,15 +505,18 @@ impl Persistence {
                         }
                     }
                     let result = store.apply(std::mem::take(&mut ops));
+                    let first = flushed + 1;
                     flushed += count;
-                    let failed = match result {
-                        Ok(()) => false,
-                        Err(e) => {
-                            tracing::error!(error = %e, "persisting failed; affected publishes are nacked");
-                            true
+                    if let Err(e) = result {
+                        tracing::error!(error = %e, "persisting failed; affected publishes are nacked");
+                        // Held only to push or search, never across an await.
+                        let mut log = failed_log.lock().unwrap_or_else(|e| e.into_inner());
+                        if log.len() == FAILED_HISTORY {
+                            log.pop_front();
                         }
-                    };
-                    durable_tx.send_replace(Durable { flushed, failed });
+                        log.push_back((first, flushed));
+                    }
+                    durable_tx.send_replace(Durable { flushed });
                 }
             })
             .expect("spawning the persister thread");
@@ -515,6 +524,7 @@ impl Persistence {
             submit,
             submitted: AtomicU64::new(0),
             durable,
+            failed,
             next_message_id: AtomicU64::new(recovered.max_message_id() + 1),
             next_queue_id: AtomicU64::new(recovered.max_queue_id() + 1),
         })
@@ -534,14 +544,24 @@ impl Persistence {
         self.durable.clone()
     }
 
+    /// Highest submission number the persister has attempted.
+    pub fn flushed(&self) -> u64 {
+        self.durable.borrow().flushed
+    }
+
+    /// Whether submission `number` (already attempted) reached the disk.
+    pub fn succeeded(&self, number: u64) -> bool {
+        let log = self.failed.lock().unwrap_or_else(|e| e.into_inner());
+        !log.iter().any(|&(from, to)| (from..=to).contains(&number))
+    }
+
     /// Waits until submission `number` is on disk; false if its batch failed.
     pub async fn wait(&self, number: u64) -> bool {
         let mut durable = self.durable.clone();
-        let failed = match durable.wait_for(|d| d.flushed >= number).await {
-            Ok(d) => d.failed,
-            Err(_) => true,
-        };
-        !failed
+        if durable.wait_for(|d| d.flushed >= number).await.is_err() {
+            return false;
+        }
+        self.succeeded(number)
     }
 
     /// Waits until everything submitted so far is on disk.
