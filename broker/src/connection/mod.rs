@@ -59,14 +59,6 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
         }
     }
 
-    /// Whether a whole frame is already buffered.
-    fn has_frame(&self) -> bool {
-        matches!(
-            leveret_protocol::check_frame(&self.buf, self.frame_max),
-            Ok(leveret_protocol::FrameCheck::Complete { .. }) | Err(_)
-        )
-    }
-
     async fn fill(&mut self) -> Result<(), ReadError> {
         if self.buf.capacity() - self.buf.len() < 4096 {
             self.buf.reserve(64 * 1024);
@@ -197,68 +189,67 @@ impl Connection {
         tracing::debug!(user = %self.user, "connection open");
         let mut shutdown = self.core.shutdown_signal();
         let mut durable = self.core.persistence.as_ref().map(|p| p.durable());
+        // One deadline for client silence, pushed back after every read.
+        let silence_limit = self.heartbeat * 2;
+        let silence = tokio::time::sleep(silence_limit);
+        tokio::pin!(silence);
         loop {
+            // Every whole frame already buffered is handled straight away;
+            // the select below runs once per socket read, not per frame.
+            loop {
+                let frame = match decode_frame(&mut reader.buf, reader.frame_max) {
+                    Ok(Some(frame)) => frame,
+                    Ok(None) => break,
+                    Err(e) => {
+                        tracing::warn!(peer = %self.peer, error = %e, "malformed frame");
+                        let (class_id, method_id) = e.method_ids();
+                        let error =
+                            AmqpError::new(e.reply_code(), &e).during_ids(class_id, method_id);
+                        return self.close_with(reader, error).await;
+                    }
+                };
+                match self.handle(frame).await {
+                    Ok(Flow::Continue) => {}
+                    Ok(Flow::Closed) => {
+                        // The client initiated the close, so it closes the
+                        // socket once it has our close-ok: wait for that.
+                        let drain = async { while reader.next().await.is_ok() {} };
+                        let _ = tokio::time::timeout(CLOSE_TIMEOUT, drain).await;
+                        return Ok(());
+                    }
+                    Err(error) => return self.close_with(reader, error).await,
+                }
+            }
+            self.flush_confirms().await;
             if self.core.gauge.in_alarm() && self.publishes() {
-                self.block(reader).await;
+                self.block().await;
             }
             let waiting = self.channels.values().any(Channel::has_waiting_confirms);
             let event = tokio::select! {
-                frame = self.next_frame(reader) => Event::Frame(frame),
+                read = reader.fill() => Event::Read(read),
                 _ = shutdown.wait_for(|down| *down) => Event::Shutdown,
                 _ = disk_progress(&mut durable), if waiting => Event::DiskProgress,
+                _ = &mut silence, if !silence_limit.is_zero() => Event::Silent,
             };
-            let frame = match event {
-                Event::Frame(frame) => frame,
-                Event::DiskProgress => {
-                    self.flush_confirms().await;
-                    continue;
+            match event {
+                Event::Read(Ok(())) => {
+                    if !silence_limit.is_zero() {
+                        silence
+                            .as_mut()
+                            .reset(tokio::time::Instant::now() + silence_limit);
+                    }
+                }
+                Event::Read(Err(e)) => return Err(Ended::Read(e)),
+                Event::DiskProgress => {}
+                Event::Silent => {
+                    tracing::info!(peer = %self.peer, "missed heartbeats from client; closing");
+                    return Err(Ended::Read(ReadError::TimedOut));
                 }
                 Event::Shutdown => {
                     let error =
                         AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
                     return self.close_with(reader, error).await;
                 }
-            };
-            let frame = match frame {
-                Ok(frame) => frame,
-                Err(ReadError::Decode(e)) => {
-                    tracing::warn!(peer = %self.peer, error = %e, "malformed frame");
-                    let (class_id, method_id) = e.method_ids();
-                    let error = AmqpError::new(e.reply_code(), &e).during_ids(class_id, method_id);
-                    return self.close_with(reader, error).await;
-                }
-                Err(e) => return Err(Ended::Read(e)),
-            };
-            match self.handle(frame).await {
-                Ok(Flow::Continue) => {}
-                Ok(Flow::Closed) => {
-                    // The client initiated the close, so it closes the
-                    // socket once it has our close-ok: wait for that.
-                    let drain = async { while reader.next().await.is_ok() {} };
-                    let _ = tokio::time::timeout(CLOSE_TIMEOUT, drain).await;
-                    return Ok(());
-                }
-                Err(error) => return self.close_with(reader, error).await,
-            }
-            if !reader.has_frame() {
-                self.flush_confirms().await;
-            }
-        }
-    }
-
-    /// The next frame, within two heartbeat intervals.
-    async fn next_frame<R: AsyncRead + Unpin>(
-        &self,
-        reader: &mut FrameReader<R>,
-    ) -> Result<Frame, ReadError> {
-        if self.heartbeat.is_zero() {
-            return reader.next().await;
-        }
-        match tokio::time::timeout(self.heartbeat * 2, reader.next()).await {
-            Ok(result) => result,
-            Err(_) => {
-                tracing::info!(peer = %self.peer, "missed heartbeats from client; closing");
-                Err(ReadError::TimedOut)
             }
         }
     }
@@ -269,7 +260,7 @@ impl Connection {
 
     /// Memory alarm: stop reading until it clears, telling the client if it
     /// asked to know.
-    async fn block<R>(&mut self, _reader: &mut FrameReader<R>) {
+    async fn block(&mut self) {
         if self.blocked_notify && !self.blocked {
             self.blocked = true;
             let reason = ShortStr::from_static("low on memory");
@@ -571,8 +562,9 @@ impl Connection {
 
 /// What woke the reader loop.
 enum Event {
-    Frame(Result<Frame, ReadError>),
+    Read(Result<(), ReadError>),
     DiskProgress,
+    Silent,
     Shutdown,
 }
 
