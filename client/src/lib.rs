@@ -33,8 +33,15 @@
 //! # }
 //! ```
 //!
+//! # Transports
+//! [`Connection::connect`] opens TCP. With the `embedded` feature,
+//! [`Connection::in_process`] connects to a Leveret broker running in the
+//! same process (`leveret_broker::BrokerHandle`) over an in-memory pipe the
+//! broker serves exactly like a socket; everything after opening the
+//! stream (handshake, reader, writer, channels) is the same code.
+//!
 //! # Design
-//! Each connection has two tasks that own the socket. The reader decodes
+//! Each connection has two tasks that own the transport. The reader decodes
 //! frames (bodies stay slices of its read buffer) and routes them per
 //! channel: replies to the waiting call, deliveries to their consumer's
 //! bounded buffer, returns, confirms. The writer drains a bounded outbox,
@@ -43,7 +50,8 @@
 //!
 //! # Layout
 //! - [`uri`]: [`ConnectionOptions`] and `amqp://` URI parsing.
-//! - `connection`: [`Connection`], the handshake, the reader and writer tasks.
+//! - `connection`: [`Connection`], its transports (TCP, in-process), the
+//!   handshake, the reader and writer tasks.
 //! - `channel`: [`Channel`] and the per-channel state the reader drives.
 //! - `consumer`: [`Consumer`] and [`Returns`] streams.
 //! - `confirm`: publisher confirms ([`PublishConfirm`], [`Confirmation`]).

@@ -1,11 +1,15 @@
-//! The connection: TCP connect (TCP_NODELAY), the `connection.*` handshake
-//! (PLAIN, tune negotiation, vhost open), then two tasks that own the
-//! socket: the reader (`reader`), which decodes frames and routes them to
-//! channels, and the writer (`writer`), which drains a bounded outbox. The
+//! The connection: a transport (a TCP socket with TCP_NODELAY, or with the
+//! `embedded` feature an in-process pipe to a Leveret broker, see
+//! `transport`), the `connection.*` handshake (PLAIN, tune negotiation,
+//! vhost open), then two tasks that own the transport's halves: the reader
+//! (`reader`), which decodes frames and routes them to channels, and the
+//! writer (`writer`), which drains a bounded outbox. Everything after
+//! opening the transport is one code path, generic over it. The
 //! [`Connection`] handle and every channel share [`Shared`]: the outbox
 //! sender, the channel table and the connection's state.
 
 mod reader;
+mod transport;
 pub(crate) mod writer;
 
 use crate::channel::{Channel, ChannelShared};
@@ -21,8 +25,8 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
 use tokio::sync::{mpsc, oneshot, watch};
+use transport::Transport;
 use writer::{Outbound, OUTBOX_CAPACITY};
 
 /// How long [`Connection::close`] waits for room in the outbox.
@@ -242,7 +246,33 @@ impl Connection {
 
     /// Connects with explicit options.
     pub async fn connect_with(options: ConnectionOptions) -> Result<Connection> {
-        match tokio::time::timeout(options.connection_timeout, establish(&options)).await {
+        let connect = async {
+            let stream = transport::tcp(&options).await?;
+            establish(stream, &options).await
+        };
+        match tokio::time::timeout(options.connection_timeout, connect).await {
+            Ok(result) => result,
+            Err(_) => Err(Error::ConnectTimeout),
+        }
+    }
+
+    /// Connects to a broker embedded in this process (user `guest`,
+    /// password `guest`, vhost `/`), over an in-memory pipe: the same
+    /// protocol, handshake and API as over TCP, without the network.
+    #[cfg(feature = "embedded")]
+    pub async fn in_process(broker: &leveret_broker::BrokerHandle) -> Result<Connection> {
+        Connection::in_process_with(broker, ConnectionOptions::default()).await
+    }
+
+    /// [`Connection::in_process`] with explicit options (`host` and `port`
+    /// are not used; credentials, vhost, tuning and timeout are).
+    #[cfg(feature = "embedded")]
+    pub async fn in_process_with(
+        broker: &leveret_broker::BrokerHandle,
+        options: ConnectionOptions,
+    ) -> Result<Connection> {
+        let stream = broker.connect_in_process();
+        match tokio::time::timeout(options.connection_timeout, establish(stream, &options)).await {
             Ok(result) => result,
             Err(_) => Err(Error::ConnectTimeout),
         }
@@ -363,14 +393,14 @@ fn client_properties(options: &ConnectionOptions) -> FieldTable {
     properties
 }
 
-/// The handshake's view of the socket: whole frames in, methods out.
-struct Handshake {
-    stream: TcpStream,
+/// The handshake's view of the transport: whole frames in, methods out.
+struct Handshake<S> {
+    stream: S,
     buf: BytesMut,
     out: BytesMut,
 }
 
-impl Handshake {
+impl<S: Transport> Handshake<S> {
     async fn next_method(&mut self) -> Result<Method> {
         loop {
             match decode_frame(&mut self.buf, HANDSHAKE_FRAME_MAX) {
@@ -439,9 +469,9 @@ pub(crate) fn reason(text: &ShortStr, code: u16, class_id: u16, method_id: u16) 
     }
 }
 
-async fn establish(options: &ConnectionOptions) -> Result<Connection> {
-    let stream = TcpStream::connect((options.host.as_str(), options.port)).await?;
-    stream.set_nodelay(true)?;
+/// Runs the handshake over an open transport, then starts the reader and
+/// writer on its halves.
+async fn establish<S: Transport>(stream: S, options: &ConnectionOptions) -> Result<Connection> {
     let mut hs = Handshake {
         stream,
         buf: BytesMut::with_capacity(16 * 1024),
@@ -450,7 +480,7 @@ async fn establish(options: &ConnectionOptions) -> Result<Connection> {
     hs.stream.write_all(PROTOCOL_HEADER).await?;
     let start = match hs.next_method().await? {
         Method::ConnectionStart(start) => start,
-        other => return Err(Handshake::unexpected(&other, "connection.start")),
+        other => return Err(Handshake::<S>::unexpected(&other, "connection.start")),
     };
     if !start
         .mechanisms
@@ -477,7 +507,7 @@ async fn establish(options: &ConnectionOptions) -> Result<Connection> {
     let tune = match hs.next_method().await? {
         Method::ConnectionTune(tune) => tune,
         Method::ConnectionClose(close) => return Err(hs.closed_by_broker(close).await),
-        other => return Err(Handshake::unexpected(&other, "connection.tune")),
+        other => return Err(Handshake::<S>::unexpected(&other, "connection.tune")),
     };
     let channel_max = match negotiate(options.channel_max, tune.channel_max) {
         0 => u16::MAX,
@@ -503,7 +533,7 @@ async fn establish(options: &ConnectionOptions) -> Result<Connection> {
     match hs.next_method().await? {
         Method::ConnectionOpenOk(_) => {}
         Method::ConnectionClose(close) => return Err(hs.closed_by_broker(close).await),
-        other => return Err(Handshake::unexpected(&other, "connection.open-ok")),
+        other => return Err(Handshake::<S>::unexpected(&other, "connection.open-ok")),
     }
 
     let tuning = Tuning {
@@ -526,7 +556,7 @@ async fn establish(options: &ConnectionOptions) -> Result<Connection> {
         server_properties,
     });
     let Handshake { stream, buf, .. } = hs;
-    let (read, write) = stream.into_split();
+    let (read, write) = stream.into_halves();
     let interval = Duration::from_secs(heartbeat.into());
     let (failed_tx, failed_rx) = oneshot::channel();
     let writer = tokio::spawn(writer::run(write, rx, frame_max, interval, failed_tx));

@@ -1,4 +1,4 @@
-//! The reader task: owns the socket's read half, decodes frames (bodies
+//! The reader task: owns the transport's read half, decodes frames (bodies
 //! stay `Bytes` slices of the read buffer), answers `connection.*` methods,
 //! assembles content (method, header, body frames) per channel and routes
 //! everything to its channel: replies to the waiting call, deliveries to
@@ -18,8 +18,7 @@ use leveret_protocol::{
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::AsyncReadExt;
-use tokio::net::tcp::OwnedReadHalf;
+use tokio::io::{AsyncRead, AsyncReadExt};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 
@@ -108,9 +107,9 @@ enum ReadError {
     Decode(DecodeError),
 }
 
-struct Reader {
+struct Reader<R> {
     shared: Arc<Shared>,
-    socket: OwnedReadHalf,
+    socket: R,
     buf: BytesMut,
     frame_max: u32,
     heartbeat: Duration,
@@ -121,9 +120,9 @@ struct Reader {
 
 /// Runs the reader until the connection ends, then fails everything still
 /// waiting and stops the writer.
-pub(crate) async fn run(
+pub(crate) async fn run<R: AsyncRead + Unpin + Send + Sync>(
     shared: Arc<Shared>,
-    socket: OwnedReadHalf,
+    socket: R,
     buf: BytesMut,
     heartbeat: Duration,
     writer_failed: oneshot::Receiver<std::io::Error>,
@@ -148,7 +147,7 @@ pub(crate) async fn run(
     }
 }
 
-impl Reader {
+impl<R: AsyncRead + Unpin> Reader<R> {
     async fn run(&mut self, mut writer_failed: oneshot::Receiver<std::io::Error>) -> Error {
         let mut closing = self.shared.closing.subscribe();
         let close_deadline = async move {

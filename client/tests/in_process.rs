@@ -1,0 +1,123 @@
+//! The in-process transport (`embedded` feature): the same client API over
+//! the in-memory pipe of an embedded Leveret as over TCP. These tests need
+//! an embedded broker, so they run against Leveret whatever
+//! LEVERET_TEST_AMQP_URL says.
+
+mod common;
+
+use bytes::Bytes;
+use common::within;
+use leveret_broker::Broker;
+use leveret_client::{
+    BasicConsumeOptions, BasicProperties, BasicPublishOptions, Connection, ConnectionOptions,
+    Error, FieldTable, QueueDeclareOptions, ReplyCode,
+};
+
+#[tokio::test]
+async fn publish_confirm_consume_over_the_pipe() {
+    let broker = Broker::builder().start().await.expect("start");
+    let connection = within("connect", Connection::in_process(&broker))
+        .await
+        .expect("in-process connect");
+    assert!(connection.is_open());
+    let product = connection
+        .server_properties()
+        .get("product")
+        .map(|v| format!("{v:?}"));
+    assert!(
+        product
+            .as_ref()
+            .is_some_and(|p| p.to_lowercase().contains("leveret")),
+        "{product:?}"
+    );
+    let channel = within("channel", connection.open_channel()).await.unwrap();
+    let queue = within(
+        "declare",
+        channel.queue_declare("", QueueDeclareOptions::default(), FieldTable::new()),
+    )
+    .await
+    .unwrap();
+    within("confirm.select", channel.confirm_select())
+        .await
+        .unwrap();
+    let mut consumer = within(
+        "consume",
+        channel.basic_consume(
+            &queue.name,
+            "",
+            BasicConsumeOptions::default(),
+            FieldTable::new(),
+        ),
+    )
+    .await
+    .unwrap();
+    for i in 0..100u32 {
+        let confirm = channel
+            .basic_publish(
+                "",
+                &queue.name,
+                BasicPublishOptions::default(),
+                BasicProperties::default(),
+                Bytes::from(i.to_le_bytes().to_vec()),
+            )
+            .await
+            .unwrap();
+        if i == 99 {
+            assert!(within("confirm", confirm).await.unwrap().is_ack());
+        }
+    }
+    for i in 0..100u32 {
+        let delivery = within("delivery", consumer.next()).await.expect("delivery");
+        assert_eq!(&delivery.body[..], &i.to_le_bytes());
+        delivery.ack().await.unwrap();
+    }
+    within("close", connection.close()).await.unwrap();
+    broker.shutdown().await;
+}
+
+#[tokio::test]
+async fn credentials_and_vhost_are_checked_in_process() {
+    let broker = Broker::builder()
+        .user("robot", "secret")
+        .vhost("/robots")
+        .start()
+        .await
+        .expect("start");
+    let options = ConnectionOptions {
+        username: "robot".into(),
+        password: "secret".into(),
+        vhost: "/robots".into(),
+        ..Default::default()
+    };
+    let connection = within(
+        "connect",
+        Connection::in_process_with(&broker, options.clone()),
+    )
+    .await
+    .expect("good credentials");
+    within("close", connection.close()).await.unwrap();
+    let wrong = ConnectionOptions {
+        password: "wrong".into(),
+        ..options
+    };
+    let refused = within("connect", Connection::in_process_with(&broker, wrong)).await;
+    assert_eq!(
+        refused.expect_err("bad password").reply_code(),
+        Some(ReplyCode::AccessRefused)
+    );
+    broker.shutdown().await;
+}
+
+#[tokio::test]
+async fn broker_shutdown_ends_in_process_connections() {
+    let broker = Broker::builder().start().await.expect("start");
+    let connection = within("connect", Connection::in_process(&broker))
+        .await
+        .unwrap();
+    broker.shutdown().await;
+    let error = within("closed", connection.closed()).await;
+    assert!(
+        matches!(&error, Error::ConnectionClosed(r) if r.reply_code() == Some(ReplyCode::ConnectionForced)),
+        "{error:?}"
+    );
+}
