@@ -306,22 +306,9 @@ impl Vhost {
                 _ => return 0,
             }
         }
-        let destination = Destination::Queue(Arc::clone(queue));
-        let exchanges: Vec<Arc<Exchange>> = read(&self.exchanges).values().cloned().collect();
         let mut ops = Vec::new();
-        for exchange in exchanges {
-            for binding in exchange
-                .bindings()
-                .iter()
-                .filter(|b| b.destination == destination)
-            {
-                if let Some(record) = self.binding_record(&exchange, binding) {
-                    ops.push(StoreOp::DeleteBinding(record));
-                }
-            }
-            if exchange.unbind_destination(&destination) {
-                self.auto_delete_exchange(&exchange);
-            }
+        for exchange in self.unbind_everywhere(&Destination::Queue(Arc::clone(queue)), &mut ops) {
+            self.auto_delete_exchange(&exchange);
         }
         if queue.store_id().is_some() {
             ops.push(StoreOp::DeleteQueue {
@@ -357,19 +344,9 @@ impl Vhost {
                 ops.push(StoreOp::DeleteBinding(record));
             }
         }
-        let as_destination = Destination::Exchange(Arc::clone(exchange));
-        let exchanges: Vec<Arc<Exchange>> = read(&self.exchanges).values().cloned().collect();
-        for other in exchanges {
-            for binding in other
-                .bindings()
-                .iter()
-                .filter(|b| b.destination == as_destination)
-            {
-                if let Some(record) = self.binding_record(&other, binding) {
-                    ops.push(StoreOp::DeleteBinding(record));
-                }
-            }
-            other.unbind_destination(&as_destination);
+        for source in self.unbind_everywhere(&Destination::Exchange(Arc::clone(exchange)), &mut ops)
+        {
+            self.auto_delete_exchange(&source);
         }
         if exchange.options.durable {
             ops.push(StoreOp::DeleteExchange {
@@ -378,6 +355,32 @@ impl Vhost {
             });
         }
         self.persist(ops);
+    }
+
+    /// Removes every binding to `destination` from every exchange, adding
+    /// the store ops for durable ones to `ops`; returns the exchanges that
+    /// lost a binding (candidates for auto-delete).
+    fn unbind_everywhere(
+        &self,
+        destination: &Destination,
+        ops: &mut Vec<StoreOp>,
+    ) -> Vec<Arc<Exchange>> {
+        let exchanges: Vec<Arc<Exchange>> = read(&self.exchanges).values().cloned().collect();
+        let mut touched = Vec::new();
+        for exchange in exchanges {
+            let removed = exchange.unbind_destination(destination);
+            if removed.is_empty() {
+                continue;
+            }
+            ops.extend(
+                removed
+                    .iter()
+                    .filter_map(|b| self.binding_record(&exchange, b))
+                    .map(StoreOp::DeleteBinding),
+            );
+            touched.push(exchange);
+        }
+        touched
     }
 
     fn persist(&self, ops: Vec<StoreOp>) {

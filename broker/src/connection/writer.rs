@@ -6,7 +6,8 @@
 use crate::outbox::{Outbound, Outbox};
 use bytes::BytesMut;
 use leveret_protocol::{
-    encode_content, encode_method, BasicDeliver, BasicGetOk, BasicReturn, Frame, Method,
+    encode_content, encode_method, BasicDeliver, BasicGetOk, BasicReturn, ContentHeader, Frame,
+    Method,
 };
 use std::sync::Arc;
 use std::time::Duration;
@@ -81,9 +82,12 @@ async fn flush<W: AsyncWrite + Unpin>(socket: &mut W, buf: &mut BytesMut) -> std
 
 /// Encodes one item; true if the writer must stop after this batch.
 fn encode(item: Outbound, outbox: &Outbox, buf: &mut BytesMut) -> bool {
-    let frame_max = outbox.frame_max();
-    match item {
-        Outbound::Method { channel, method } => encode_method(channel, &method, buf),
+    let (channel, method, message) = match item {
+        Outbound::Method { channel, method } => {
+            encode_method(channel, &method, buf);
+            return false;
+        }
+        Outbound::Shutdown => return true,
         Outbound::Deliver {
             channel,
             consumer_tag,
@@ -98,15 +102,7 @@ fn encode(item: Outbound, outbox: &Outbox, buf: &mut BytesMut) -> bool {
                 exchange: message.exchange.clone(),
                 routing_key: message.routing_key.clone(),
             });
-            encode_method(channel, &method, buf);
-            encode_content(
-                channel,
-                60,
-                &message.properties,
-                &message.body,
-                frame_max,
-                buf,
-            );
+            (channel, method, message)
         }
         Outbound::GetOk {
             channel,
@@ -122,15 +118,7 @@ fn encode(item: Outbound, outbox: &Outbox, buf: &mut BytesMut) -> bool {
                 routing_key: message.routing_key.clone(),
                 message_count,
             });
-            encode_method(channel, &method, buf);
-            encode_content(
-                channel,
-                60,
-                &message.properties,
-                &message.body,
-                frame_max,
-                buf,
-            );
+            (channel, method, message)
         }
         Outbound::Return {
             channel,
@@ -144,17 +132,18 @@ fn encode(item: Outbound, outbox: &Outbox, buf: &mut BytesMut) -> bool {
                 exchange: message.exchange.clone(),
                 routing_key: message.routing_key.clone(),
             });
-            encode_method(channel, &method, buf);
-            encode_content(
-                channel,
-                60,
-                &message.properties,
-                &message.body,
-                frame_max,
-                buf,
-            );
+            (channel, method, message)
         }
-        Outbound::Shutdown => return true,
-    }
+    };
+    // The publisher's property bytes go out as they came in.
+    encode_method(channel, &method, buf);
+    encode_content(
+        channel,
+        ContentHeader::BASIC_CLASS,
+        &message.properties,
+        &message.body,
+        outbox.frame_max(),
+        buf,
+    );
     false
 }

@@ -170,13 +170,14 @@ impl Exchange {
         removed
     }
 
-    /// Removes every binding to `destination`; true if any was removed.
-    pub fn unbind_destination(&self, destination: &Destination) -> bool {
+    /// Removes every binding to `destination`; returns the removed ones.
+    pub fn unbind_destination(&self, destination: &Destination) -> Vec<Binding> {
         let mut routes = self.write();
-        let before = routes.bindings.len();
-        routes.bindings.retain(|b| b.destination != *destination);
-        let removed = routes.bindings.len() != before;
-        if removed {
+        let (removed, kept): (Vec<Binding>, Vec<Binding>) = std::mem::take(&mut routes.bindings)
+            .into_iter()
+            .partition(|b| b.destination == *destination);
+        routes.bindings = kept;
+        if !removed.is_empty() {
             self.reindex(&mut routes);
         }
         removed
