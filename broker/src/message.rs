@@ -3,31 +3,44 @@
 //! (forwarded to consumers without re-encoding), and the body as `Bytes`
 //! slices of the publisher's read buffer.
 
+use crate::store::MessageRecord;
 use bytes::Bytes;
 use leveret_protocol::ShortStr;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-/// The stored copy of a persistent message: its id, and how many durable
-/// queues still hold it (the last one deletes it from disk).
+/// How a persistent message routed to durable queues is kept on disk.
 #[derive(Debug)]
-pub struct StoredBody {
-    /// Message id in the store.
-    pub id: u64,
-    refs: AtomicUsize,
+pub enum Stored {
+    /// Inside the index entry of its one durable queue (the common case:
+    /// one key per message).
+    Inline,
+    /// As a record of its own, `id`, shared by `refs` durable queues; the
+    /// last queue to let go deletes it.
+    Shared {
+        /// Record id in the store.
+        id: u64,
+        /// Durable queues still holding it.
+        refs: AtomicUsize,
+    },
 }
 
-impl StoredBody {
-    /// A body held by `refs` durable queues.
-    pub fn new(id: u64, refs: usize) -> Self {
-        StoredBody {
+impl Stored {
+    /// A record shared by `refs` durable queues.
+    pub fn shared(id: u64, refs: usize) -> Self {
+        Stored::Shared {
             id,
             refs: AtomicUsize::new(refs),
         }
     }
 
-    /// One queue let go; true if it was the last.
-    pub fn release(&self) -> bool {
-        self.refs.fetch_sub(1, Ordering::AcqRel) == 1
+    /// One queue let go; the shared record's id if it was the last.
+    pub fn release(&self) -> Option<u64> {
+        match self {
+            Stored::Inline => None,
+            Stored::Shared { id, refs } => {
+                (refs.fetch_sub(1, Ordering::AcqRel) == 1).then_some(*id)
+            }
+        }
     }
 }
 
@@ -49,10 +62,20 @@ pub struct Message {
     /// Per-message TTL from the `expiration` property, in milliseconds.
     pub ttl_ms: Option<u64>,
     /// Set when the message is persistent and routed to durable queues.
-    pub stored: Option<StoredBody>,
+    pub stored: Option<Stored>,
 }
 
 impl Message {
+    /// The message as the store keeps it (cheap: `Bytes` handles).
+    pub fn to_record(&self) -> MessageRecord {
+        MessageRecord {
+            exchange: self.exchange.clone(),
+            routing_key: self.routing_key.clone(),
+            properties: self.properties.clone(),
+            body: self.body.clone(),
+        }
+    }
+
     /// Bytes this message accounts for in memory limits.
     pub fn weight(&self) -> usize {
         self.body.len() + self.properties.len() + 64

@@ -12,9 +12,9 @@
 use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
-use crate::message::Message;
+use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
-use crate::store::{Persistence, StoreOp};
+use crate::store::{EntryBody, Persistence, StoreOp};
 use crate::vhost::Vhost;
 use leveret_protocol::{BasicCancel, FieldTable, FieldValue, ShortStr};
 use std::collections::VecDeque;
@@ -199,6 +199,8 @@ struct QueueState {
     cursor: usize,
     exclusive_consumer: bool,
     expiring: usize,
+    /// Highest seq delivered (persisted for durable queues, see `store`).
+    delivered_mark: u64,
     last_used: Option<Instant>,
     deleted: bool,
 }
@@ -275,15 +277,17 @@ impl Queue {
         st.next_seq
     }
 
-    /// The index entry for `message` at a reserved place, if this queue
-    /// stores it.
+    /// The index entry for `message` at place `seq`, if this queue stores it.
     pub fn index_entry(&self, seq: u64, message: &Message) -> Option<StoreOp> {
         let (_, queue) = self.durable_store.as_ref()?;
+        let body = match message.stored.as_ref()? {
+            Stored::Inline => EntryBody::Inline(message.to_record()),
+            Stored::Shared { id, .. } => EntryBody::Shared(*id),
+        };
         Some(StoreOp::Enqueue {
             queue: *queue,
             seq,
-            message: message.stored.as_ref()?.id,
-            delivered: false,
+            body,
         })
     }
 
@@ -345,7 +349,7 @@ impl Queue {
             // (which needs it delivered first) can reach the store before it.
             let sync = match reserved {
                 Some(_) => 0,
-                None => self.log(&queued, false),
+                None => self.log(&queued),
             };
             self.insert_ready(&mut st, queued);
             self.enforce_max_length(&mut st, &mut dead);
@@ -433,40 +437,39 @@ impl Queue {
         }
     }
 
-    /// The store entry for `queued` in this queue, if it is persisted here.
-    fn stored(&self, queued: &QueuedMessage) -> Option<(&Persistence, u64, u64)> {
-        let (persistence, queue_id) = self.durable_store.as_ref()?;
-        let body = queued.message.stored.as_ref()?;
-        Some((persistence, *queue_id, body.id))
-    }
-
-    /// Writes (or rewrites, with the delivered flag) the index entry of a
-    /// persisted message; returns the submission number (0 if not persisted).
-    fn log(&self, queued: &QueuedMessage, delivered: bool) -> u64 {
-        match self.stored(queued) {
-            Some((persistence, queue, message)) => persistence.submit(vec![StoreOp::Enqueue {
-                queue,
-                seq: queued.seq,
-                message,
-                delivered,
-            }]),
-            None => 0,
+    /// Writes the index entry of a stored message; returns the submission
+    /// number (0 if the message is not stored in this queue).
+    fn log(&self, queued: &QueuedMessage) -> u64 {
+        match (
+            &self.durable_store,
+            self.index_entry(queued.seq, &queued.message),
+        ) {
+            (Some((persistence, _)), Some(op)) => persistence.submit(vec![op]),
+            _ => 0,
         }
     }
 
-    /// Marks a persisted message delivered on disk, so a restart brings it
-    /// back with the redelivered flag.
-    fn log_delivery(&self, queued: &QueuedMessage) {
-        if !queued.redelivered {
-            self.log(queued, true);
+    /// Raises the delivery mark, so a restart brings this message back
+    /// flagged redelivered.
+    fn log_delivery(&self, st: &mut QueueState, queued: &QueuedMessage) {
+        if queued.seq <= st.delivered_mark {
+            return;
+        }
+        st.delivered_mark = queued.seq;
+        if let (Some((persistence, queue)), Some(_)) = (&self.durable_store, &queued.message.stored)
+        {
+            persistence.submit(vec![StoreOp::Delivered {
+                queue: *queue,
+                seq: queued.seq,
+            }]);
         }
     }
 
     /// A message this queue was offered but does not keep: removes its
-    /// index entry if one was written at a reserved place, and the body if
-    /// this was its last queue.
+    /// index entry if one was written at a reserved place, and the shared
+    /// record if this was its last queue.
     fn unlog(&self, message: &Message, reserved: Option<u64>) {
-        let (Some((persistence, queue)), Some(body)) = (&self.durable_store, &message.stored)
+        let (Some((persistence, queue)), Some(stored)) = (&self.durable_store, &message.stored)
         else {
             return;
         };
@@ -474,8 +477,8 @@ impl Queue {
         if let Some(seq) = reserved {
             ops.push(StoreOp::Dequeue { queue: *queue, seq });
         }
-        if body.release() {
-            ops.push(StoreOp::DeleteMessage { id: body.id });
+        if let Some(id) = stored.release() {
+            ops.push(StoreOp::DeleteMessage { id });
         }
         if !ops.is_empty() {
             persistence.submit(ops);
@@ -483,19 +486,22 @@ impl Queue {
     }
 
     /// A message leaves this queue for good: release its memory and its
-    /// place on disk (and the body, if no other queue holds it).
+    /// index entry (and the shared record, if no other queue holds it).
     fn release(&self, queued: &QueuedMessage) {
         self.gauge.sub(queued.message.weight());
-        if let Some((persistence, queue, message)) = self.stored(queued) {
-            let mut ops = vec![StoreOp::Dequeue {
-                queue,
-                seq: queued.seq,
-            }];
-            if queued.message.stored.as_ref().is_some_and(|b| b.release()) {
-                ops.push(StoreOp::DeleteMessage { id: message });
-            }
-            persistence.submit(ops);
+        let (Some((persistence, queue)), Some(stored)) =
+            (&self.durable_store, &queued.message.stored)
+        else {
+            return;
+        };
+        let mut ops = vec![StoreOp::Dequeue {
+            queue: *queue,
+            seq: queued.seq,
+        }];
+        if let Some(id) = stored.release() {
+            ops.push(StoreOp::DeleteMessage { id });
         }
+        persistence.submit(ops);
     }
 
     /// A message leaves the queue for good: dead-letter it if the queue has a
@@ -561,7 +567,7 @@ impl Queue {
                 if consumer.no_ack {
                     self.release(&queued);
                 } else {
-                    self.log_delivery(&queued);
+                    self.log_delivery(st, &queued);
                     consumer.took_one();
                 }
                 permit.send(Outbound::Deliver {
@@ -597,7 +603,7 @@ impl Queue {
                 if no_ack {
                     self.release(&queued);
                 } else {
-                    self.log_delivery(&queued);
+                    self.log_delivery(&mut st, &queued);
                     deliveries.push(Unacked {
                         tag,
                         queue: Arc::clone(self),
@@ -643,9 +649,11 @@ impl Queue {
         self.dead_letter(dead);
     }
 
-    /// Puts recovered messages back after a restart, in their order.
-    pub fn restore(&self, messages: Vec<QueuedMessage>) {
+    /// Puts recovered messages back after a restart, in their order, with
+    /// the queue's delivery mark.
+    pub fn restore(&self, messages: Vec<QueuedMessage>, delivered_mark: u64) {
         let mut st = self.lock();
+        st.delivered_mark = delivered_mark;
         for queued in messages {
             st.next_seq = st.next_seq.max(queued.seq);
             self.gauge.add(queued.message.weight());

@@ -4,12 +4,13 @@
 //! left half-deleted (entries of deleted queues, bodies no queue holds).
 
 use crate::core::Core;
-use crate::message::{Message, StoredBody};
+use crate::message::{Message, Stored};
 use crate::queue::QueuedMessage;
-use crate::store::{Recovered, StoreOp};
+use crate::store::{EntryBody, MessageRecord, Recovered, StoreOp};
 use leveret_protocol::BasicProperties;
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 /// Counts of what was recovered, for the log.
 #[derive(Debug, Default, Clone, Copy)]
@@ -24,6 +25,26 @@ pub struct RecoveryReport {
     pub messages: usize,
 }
 
+/// Builds a recovered message.
+fn message(record: &MessageRecord, stored: Stored) -> Arc<Message> {
+    // Properties were validated when the message was first published.
+    let properties = BasicProperties::decode(&record.properties).unwrap_or_default();
+    Arc::new(Message {
+        exchange: record.exchange.clone(),
+        routing_key: record.routing_key.clone(),
+        properties: record.properties.clone(),
+        body: record.body.clone(),
+        persistent: true,
+        priority: properties.priority.unwrap_or(0),
+        ttl_ms: properties
+            .expiration
+            .as_ref()
+            .and_then(|e| e.as_str())
+            .and_then(|e| e.parse().ok()),
+        stored: Some(stored),
+    })
+}
+
 /// Applies `recovered` to `core`.
 pub fn recover(core: &Core, mut recovered: Recovered) -> RecoveryReport {
     let mut report = RecoveryReport::default();
@@ -32,52 +53,47 @@ pub fn recover(core: &Core, mut recovered: Recovered) -> RecoveryReport {
         core.vhost_or_create(&record.vhost).restore_exchange(record);
         report.exchanges += 1;
     }
-    // References per body, from the queues that still exist.
-    let known: std::collections::HashSet<u64> = recovered.queues.iter().map(|q| q.id).collect();
+    // Shared records: how many entries of existing queues refer to each.
+    let known: HashSet<u64> = recovered.queues.iter().map(|q| q.id).collect();
     let mut refs: HashMap<u64, usize> = HashMap::new();
-    for (queue, entries) in &recovered.entries {
-        for entry in entries {
-            if known.contains(queue) && recovered.messages.contains_key(&entry.message) {
-                *refs.entry(entry.message).or_default() += 1;
+    for (queue, entries) in &mut recovered.entries {
+        entries.retain(|entry| {
+            let keep = known.contains(queue)
+                && match &entry.body {
+                    EntryBody::Inline(_) => true,
+                    EntryBody::Shared(id) => recovered.messages.contains_key(id),
+                };
+            if keep {
+                if let EntryBody::Shared(id) = &entry.body {
+                    *refs.entry(*id).or_default() += 1;
+                }
             } else {
                 cleanup.push(StoreOp::Dequeue {
                     queue: *queue,
                     seq: entry.seq,
                 });
             }
-        }
+            keep
+        });
     }
-    let mut bodies: HashMap<u64, Arc<Message>> = HashMap::new();
+    let mut shared: HashMap<u64, Arc<Message>> = HashMap::new();
+    let now = Instant::now();
     for record in &recovered.queues {
         let vhost = core.vhost_or_create(&record.vhost);
         let Some(queue) = vhost.restore_queue(record) else {
             continue;
         };
         report.queues += 1;
+        let mark = recovered.delivered.get(&record.id).copied().unwrap_or(0);
         let entries = recovered.entries.remove(&record.id).unwrap_or_default();
         let mut restored = Vec::with_capacity(entries.len());
         for entry in entries {
-            let Some(count) = refs.get(&entry.message).copied() else {
-                continue;
+            let message = match &entry.body {
+                EntryBody::Inline(stored) => message(stored, Stored::Inline),
+                EntryBody::Shared(id) => Arc::clone(shared.entry(*id).or_insert_with(|| {
+                    message(&recovered.messages[id], Stored::shared(*id, refs[id]))
+                })),
             };
-            let message = bodies.entry(entry.message).or_insert_with(|| {
-                let stored = &recovered.messages[&entry.message];
-                let properties = BasicProperties::decode(&stored.properties).unwrap_or_default();
-                Arc::new(Message {
-                    exchange: stored.exchange.clone(),
-                    routing_key: stored.routing_key.clone(),
-                    properties: stored.properties.clone(),
-                    body: stored.body.clone(),
-                    persistent: true,
-                    priority: properties.priority.unwrap_or(0),
-                    ttl_ms: properties
-                        .expiration
-                        .as_ref()
-                        .and_then(|e| e.as_str())
-                        .and_then(|e| e.parse().ok()),
-                    stored: Some(StoredBody::new(entry.message, count)),
-                })
-            });
             let ttl = match (queue.args.message_ttl, message.ttl_ms) {
                 (Some(a), Some(b)) => Some(a.min(b)),
                 (a, b) => a.or(b),
@@ -88,14 +104,13 @@ pub fn recover(core: &Core, mut recovered: Recovered) -> RecoveryReport {
                     .args
                     .max_priority
                     .map_or(0, |max| message.priority.min(max)),
-                message: Arc::clone(message),
-                redelivered: entry.delivered,
-                expires_at: ttl
-                    .map(|ms| std::time::Instant::now() + std::time::Duration::from_millis(ms)),
+                message,
+                redelivered: entry.seq <= mark,
+                expires_at: ttl.map(|ms| now + Duration::from_millis(ms)),
             });
         }
         report.messages += restored.len();
-        queue.restore(restored);
+        queue.restore(restored, mark);
     }
     for id in recovered.messages.keys() {
         if !refs.contains_key(id) {

@@ -19,11 +19,15 @@ struct FlakyStore {
 }
 
 impl Store for FlakyStore {
-    fn apply(&self, ops: Vec<KvOp>) -> Result<(), StoreError> {
+    fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError> {
         if self.failing.load(Ordering::SeqCst) {
             return Err(StoreError("No space left on device (simulated)".into()));
         }
-        self.inner.apply(ops)
+        self.inner.write(ops, atomic)
+    }
+
+    fn flush(&self) -> Result<(), StoreError> {
+        self.inner.flush()
     }
 
     fn scan(&self) -> Result<Vec<KvPair>, StoreError> {

@@ -5,10 +5,10 @@
 use super::{Channel, Publish};
 use crate::consumer::{Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
-use crate::message::{Message, StoredBody};
+use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
 use crate::queue::{Enqueued, Queue};
-use crate::store::{MessageRecord, StoreOp};
+use crate::store::StoreOp;
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
     BasicPublish, BasicQos, BasicQosOk, ReplyCode, ShortStr,
@@ -35,18 +35,16 @@ impl Outcome {
     }
 }
 
-/// The op storing a message's body, if it is to be stored.
+/// The op storing a message shared by several durable queues (a message
+/// in one durable queue lives inside that queue's index entry instead).
 pub(crate) fn body_op(message: &Message) -> Option<StoreOp> {
-    let body = message.stored.as_ref()?;
-    Some(StoreOp::PutMessage {
-        id: body.id,
-        record: MessageRecord {
-            exchange: message.exchange.clone(),
-            routing_key: message.routing_key.clone(),
-            properties: message.properties.clone(),
-            body: message.body.clone(),
-        },
-    })
+    match message.stored.as_ref()? {
+        Stored::Inline => None,
+        Stored::Shared { id, .. } => Some(StoreOp::PutMessage {
+            id: *id,
+            record: message.to_record(),
+        }),
+    }
 }
 
 /// What a client did with a delivery.
@@ -181,8 +179,11 @@ impl Channel {
         let persistent = publish.properties.is_persistent();
         let stored = match &self.core.persistence {
             Some(persistence) if persistent => {
-                let durable = queues.iter().filter(|q| q.store_id().is_some()).count();
-                (durable > 0).then(|| StoredBody::new(persistence.next_message_id(), durable))
+                match queues.iter().filter(|q| q.store_id().is_some()).count() {
+                    0 => None,
+                    1 => Some(Stored::Inline),
+                    durable => Some(Stored::shared(persistence.next_message_id(), durable)),
+                }
             }
             _ => None,
         };

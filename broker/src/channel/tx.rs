@@ -82,7 +82,7 @@ impl Channel {
             placed.push((message, targets));
         }
         let sync = match (&self.core.persistence, ops.is_empty()) {
-            (Some(persistence), false) => persistence.submit(ops),
+            (Some(persistence), false) => persistence.submit_atomic(ops),
             _ => 0,
         };
         for (message, targets) in placed {

@@ -14,7 +14,7 @@ pub struct MemoryStore {
 }
 
 impl Store for MemoryStore {
-    fn apply(&self, ops: Vec<KvOp>) -> Result<(), StoreError> {
+    fn write(&self, ops: Vec<KvOp>, _atomic: bool) -> Result<(), StoreError> {
         let mut map = self.map.lock().unwrap_or_else(|e| e.into_inner());
         for (key, value) in ops {
             match value {
@@ -22,6 +22,10 @@ impl Store for MemoryStore {
                 None => map.remove(&key),
             };
         }
+        Ok(())
+    }
+
+    fn flush(&self) -> Result<(), StoreError> {
         Ok(())
     }
 

@@ -7,15 +7,26 @@
 //! on disk, `memory.rs` for tests and transient brokers); everything about
 //! keys and values lives here, once.
 //!
-//! Keys, in one keyspace so a batch is atomic:
+//! Keys, in one keyspace so a transaction's batch is atomic:
 //! - `e` vhost 0 name → exchange definition
 //! - `q` vhost 0 name → queue definition (with the queue's numeric id)
 //! - `b` vhost 0 source 0 kind destination 0 key 0 args → binding
-//! - `m` message-id (8 bytes BE) → message (routing, properties, body)
-//! - `i` queue-id (8 BE) seq (8 BE) → message-id (8 BE) + delivered flag
+//! - `i` queue-id (8 bytes BE) seq (8 BE) → the message inline (`0` +
+//!   record), or a reference to a shared record (`1` + message-id)
+//! - `m` message-id (8 BE) → a message held by several durable queues
+//! - `d` queue-id (8 BE) → the highest seq delivered from the queue
 //!
-//! Message bodies are stored once however many durable queues hold them;
-//! the last queue to drop its copy deletes the body.
+//! A message in one durable queue (the usual case) costs one key; one in
+//! several is stored once and referenced, and the last queue to drop it
+//! deletes it. Instead of rewriting an entry on every delivery, each queue
+//! keeps a delivery mark: after a restart, entries at or below it come back
+//! redelivered (they may have been delivered; the flag is a hint, and a
+//! false positive only happens with priorities).
+//!
+//! sled costs a few microseconds per key, and very large atomic batches
+//! make it hold a lot of memory, so the persister writes plain inserts and
+//! removes (sled recovers them in order), uses an atomic batch only for a
+//! transaction's commit, and flushes once per group.
 
 mod memory;
 mod sled;
@@ -41,10 +52,13 @@ pub type KvOp = (Vec<u8>, Option<Vec<u8>>);
 /// One stored key and its value.
 pub type KvPair = (Vec<u8>, Vec<u8>);
 
-/// A key-value engine with atomic, durable batches.
+/// A key-value engine: ordered writes, atomic batches on request, and a
+/// flush that makes everything written so far durable.
 pub trait Store: Send + Sync + std::fmt::Debug + 'static {
-    /// Applies `ops` atomically and makes them durable before returning.
-    fn apply(&self, ops: Vec<KvOp>) -> Result<(), StoreError>;
+    /// Applies `ops` in order; all or nothing when `atomic`. Not yet durable.
+    fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError>;
+    /// Makes every write so far durable.
+    fn flush(&self) -> Result<(), StoreError>;
     /// Every key and value, in key order.
     fn scan(&self) -> Result<Vec<KvPair>, StoreError>;
 }
@@ -111,6 +125,15 @@ pub struct MessageRecord {
     pub body: Bytes,
 }
 
+/// What a queue's index entry holds.
+#[derive(Debug, Clone, PartialEq)]
+pub enum EntryBody {
+    /// The message itself.
+    Inline(MessageRecord),
+    /// The id of a shared message record.
+    Shared(u64),
+}
+
 /// One change to durable state.
 #[derive(Debug, Clone)]
 pub enum StoreOp {
@@ -136,14 +159,14 @@ pub enum StoreOp {
     PutBinding(BindingRecord),
     /// Remove a binding.
     DeleteBinding(BindingRecord),
-    /// Store a message body once.
+    /// Store a message held by several durable queues, once.
     PutMessage {
         /// Message id.
         id: u64,
         /// The message.
         record: MessageRecord,
     },
-    /// Delete a message body (its last queue dropped it).
+    /// Delete a shared message (its last queue dropped it).
     DeleteMessage {
         /// Message id.
         id: u64,
@@ -154,10 +177,15 @@ pub enum StoreOp {
         queue: u64,
         /// Position.
         seq: u64,
-        /// Message id.
-        message: u64,
-        /// Delivered before (a requeue keeps the flag).
-        delivered: bool,
+        /// The message, or its shared record.
+        body: EntryBody,
+    },
+    /// Messages of a queue up to `seq` have been delivered.
+    Delivered {
+        /// Queue id.
+        queue: u64,
+        /// Highest seq delivered.
+        seq: u64,
     },
     /// A queue no longer holds the message at `seq`.
     Dequeue {
@@ -250,6 +278,29 @@ fn binding_key(b: &BindingRecord) -> Vec<u8> {
     buf.to_vec()
 }
 
+fn mark_key(queue: u64) -> Vec<u8> {
+    let mut key = Vec::with_capacity(9);
+    key.push(b'd');
+    key.extend_from_slice(&queue.to_be_bytes());
+    key
+}
+
+fn put_record(v: &mut BytesMut, record: &MessageRecord) {
+    put_short(v, &record.exchange);
+    put_short(v, &record.routing_key);
+    put_long(v, &record.properties);
+    put_long(v, &record.body);
+}
+
+fn take_record(value: &mut Bytes) -> Result<MessageRecord, StoreError> {
+    Ok(MessageRecord {
+        exchange: take_short(value)?,
+        routing_key: take_short(value)?,
+        properties: take_long(value)?,
+        body: take_long(value)?,
+    })
+}
+
 fn message_key(id: u64) -> Vec<u8> {
     let mut key = Vec::with_capacity(9);
     key.push(b'm');
@@ -290,23 +341,31 @@ impl StoreOp {
             StoreOp::PutMessage { id, record } => {
                 let mut v =
                     BytesMut::with_capacity(record.body.len() + record.properties.len() + 64);
-                put_short(&mut v, &record.exchange);
-                put_short(&mut v, &record.routing_key);
-                put_long(&mut v, &record.properties);
-                put_long(&mut v, &record.body);
+                put_record(&mut v, record);
                 (message_key(*id), Some(v.to_vec()))
             }
             StoreOp::DeleteMessage { id } => (message_key(*id), None),
-            StoreOp::Enqueue {
-                queue,
-                seq,
-                message,
-                delivered,
-            } => {
-                let mut v = Vec::with_capacity(9);
-                v.extend_from_slice(&message.to_be_bytes());
-                v.push(u8::from(*delivered));
-                (index_key(*queue, *seq), Some(v))
+            StoreOp::Enqueue { queue, seq, body } => {
+                let value = match body {
+                    EntryBody::Inline(record) => {
+                        let mut v = BytesMut::with_capacity(
+                            record.body.len() + record.properties.len() + 64,
+                        );
+                        v.put_u8(0);
+                        put_record(&mut v, record);
+                        v.to_vec()
+                    }
+                    EntryBody::Shared(id) => {
+                        let mut v = Vec::with_capacity(9);
+                        v.push(1);
+                        v.extend_from_slice(&id.to_be_bytes());
+                        v
+                    }
+                };
+                (index_key(*queue, *seq), Some(value))
+            }
+            StoreOp::Delivered { queue, seq } => {
+                (mark_key(*queue), Some(seq.to_be_bytes().to_vec()))
             }
             StoreOp::Dequeue { queue, seq } => (index_key(*queue, *seq), None),
         }
@@ -318,10 +377,8 @@ impl StoreOp {
 pub struct RecoveredEntry {
     /// Position in the queue.
     pub seq: u64,
-    /// Message id.
-    pub message: u64,
-    /// Delivered before the restart.
-    pub delivered: bool,
+    /// The message, or its shared record.
+    pub body: EntryBody,
 }
 
 /// Everything read back at start.
@@ -333,10 +390,12 @@ pub struct Recovered {
     pub queues: Vec<QueueRecord>,
     /// Bindings.
     pub bindings: Vec<BindingRecord>,
-    /// Message bodies by id.
+    /// Shared message records by id.
     pub messages: std::collections::HashMap<u64, MessageRecord>,
     /// Each queue's entries in order, by queue id.
     pub entries: std::collections::HashMap<u64, Vec<RecoveredEntry>>,
+    /// Each queue's delivery mark, by queue id.
+    pub delivered: std::collections::HashMap<u64, u64>,
 }
 
 impl Recovered {
@@ -397,13 +456,12 @@ impl Recovered {
                 b'm' => {
                     let id =
                         u64::from_be_bytes(rest.try_into().map_err(|_| corrupt("message key"))?);
-                    let record = MessageRecord {
-                        exchange: take_short(&mut value)?,
-                        routing_key: take_short(&mut value)?,
-                        properties: take_long(&mut value)?,
-                        body: take_long(&mut value)?,
-                    };
-                    out.messages.insert(id, record);
+                    out.messages.insert(id, take_record(&mut value)?);
+                }
+                b'd' => {
+                    let queue =
+                        u64::from_be_bytes(rest.try_into().map_err(|_| corrupt("mark key"))?);
+                    out.delivered.insert(queue, take_u64(&mut value)?);
                 }
                 b'i' => {
                     if rest.len() != 16 {
@@ -413,13 +471,15 @@ impl Recovered {
                         u64::from_be_bytes(rest[..8].try_into().map_err(|_| corrupt("index key"))?);
                     let seq =
                         u64::from_be_bytes(rest[8..].try_into().map_err(|_| corrupt("index key"))?);
-                    let message = take_u64(&mut value)?;
-                    let delivered = take_u8(&mut value)? != 0;
-                    out.entries.entry(queue).or_default().push(RecoveredEntry {
-                        seq,
-                        message,
-                        delivered,
-                    });
+                    let body = match take_u8(&mut value)? {
+                        0 => EntryBody::Inline(take_record(&mut value)?),
+                        1 => EntryBody::Shared(take_u64(&mut value)?),
+                        _ => return Err(corrupt("index entry kind")),
+                    };
+                    out.entries
+                        .entry(queue)
+                        .or_default()
+                        .push(RecoveredEntry { seq, body });
                 }
                 _ => return Err(corrupt("unknown key tag")),
             }
@@ -438,10 +498,10 @@ impl Recovered {
     }
 }
 
-/// A request to the persister: ops to write, and the sequence number the
-/// caller can wait on.
+/// A request to the persister: ops to write, all or nothing if `atomic`.
 struct Submission {
     ops: Vec<StoreOp>,
+    atomic: bool,
 }
 
 /// How far the persister has got: every submission numbered up to
@@ -471,6 +531,73 @@ pub struct Persistence {
     next_queue_id: AtomicU64,
 }
 
+/// One group commit being assembled by the persister: plain writes in
+/// order, atomic submissions applied as batches in their place, delivery
+/// marks merged to one write per queue, then one flush.
+#[derive(Default)]
+struct Group {
+    pending: Vec<KvOp>,
+    marks: Vec<(u64, u64)>,
+    submissions: u64,
+    len: usize,
+    error: Option<StoreError>,
+}
+
+impl Group {
+    fn add(&mut self, store: &dyn Store, submission: Submission) {
+        self.submissions += 1;
+        self.len += submission.ops.len();
+        if submission.atomic {
+            self.write_pending(store);
+            let ops = submission.ops.iter().map(StoreOp::to_kv).collect();
+            let result = store.write(ops, true);
+            self.record(result);
+            return;
+        }
+        for op in &submission.ops {
+            match op {
+                StoreOp::Delivered { queue, seq } => {
+                    match self.marks.iter_mut().find(|(q, _)| q == queue) {
+                        Some((_, mark)) => *mark = (*mark).max(*seq),
+                        None => self.marks.push((*queue, *seq)),
+                    }
+                }
+                op => self.pending.push(op.to_kv()),
+            }
+        }
+    }
+
+    fn write_pending(&mut self, store: &dyn Store) {
+        if !self.pending.is_empty() {
+            let ops = std::mem::take(&mut self.pending);
+            let result = store.write(ops, false);
+            self.record(result);
+        }
+    }
+
+    fn record(&mut self, result: Result<(), StoreError>) {
+        if let (Err(e), None) = (result, &self.error) {
+            self.error = Some(e);
+        }
+    }
+
+    fn finish(mut self, store: &dyn Store) -> Result<(), StoreError> {
+        let marks = std::mem::take(&mut self.marks);
+        self.pending.extend(
+            marks
+                .into_iter()
+                .map(|(queue, seq)| StoreOp::Delivered { queue, seq }.to_kv()),
+        );
+        self.write_pending(store);
+        let flushed = store.flush();
+        self.record(flushed);
+        match self.error {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+}
+
 impl std::fmt::Debug for Submission {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "Submission({} ops)", self.ops.len())
@@ -492,29 +619,27 @@ impl Persistence {
             .name("leveret-persister".into())
             .spawn(move || {
                 let mut flushed = 0u64;
-                let mut ops = Vec::new();
                 while let Some(first) = inbox.blocking_recv() {
-                    let mut count = 1u64;
-                    ops.extend(first.ops.iter().map(StoreOp::to_kv));
-                    // Group commit: everything already waiting joins this batch.
-                    while let Ok(next) = inbox.try_recv() {
-                        count += 1;
-                        ops.extend(next.ops.iter().map(StoreOp::to_kv));
-                        if ops.len() >= 65_536 {
-                            break;
+                    let mut group = Group::default();
+                    group.add(&*store, first);
+                    // Group commit: everything already waiting joins this
+                    // group, up to a bound that keeps one flush short.
+                    while group.len < 50_000 {
+                        match inbox.try_recv() {
+                            Ok(next) => group.add(&*store, next),
+                            Err(_) => break,
                         }
                     }
-                    let result = store.apply(std::mem::take(&mut ops));
-                    let first = flushed + 1;
-                    flushed += count;
-                    if let Err(e) = result {
+                    let first_number = flushed + 1;
+                    flushed += group.submissions;
+                    if let Err(e) = group.finish(&*store) {
                         tracing::error!(error = %e, "persisting failed; affected publishes are nacked");
                         // Held only to push or search, never across an await.
                         let mut log = failed_log.lock().unwrap_or_else(|e| e.into_inner());
                         if log.len() == FAILED_HISTORY {
                             log.pop_front();
                         }
-                        log.push_back((first, flushed));
+                        log.push_back((first_number, flushed));
                     }
                     durable_tx.send_replace(Durable { flushed });
                 }
@@ -530,12 +655,22 @@ impl Persistence {
         })
     }
 
-    /// Queues ops for the next batch; returns their submission number.
+    /// Queues ops for the next group; returns their submission number.
     pub fn submit(&self, ops: Vec<StoreOp>) -> u64 {
+        self.send(Submission { ops, atomic: false })
+    }
+
+    /// Queues ops that must reach the disk all together or not at all (a
+    /// transaction's commit).
+    pub fn submit_atomic(&self, ops: Vec<StoreOp>) -> u64 {
+        self.send(Submission { ops, atomic: true })
+    }
+
+    fn send(&self, submission: Submission) -> u64 {
         let number = self.submitted.fetch_add(1, Ordering::AcqRel) + 1;
         // The persister thread lives as long as the process; a send error
         // only happens at exit.
-        let _ = self.submit.send(Submission { ops });
+        let _ = self.submit.send(submission);
         number
     }
 
@@ -630,18 +765,22 @@ mod tests {
             StoreOp::Enqueue {
                 queue: 7,
                 seq: 2,
-                message: 3,
-                delivered: false,
+                body: EntryBody::Shared(3),
             },
             StoreOp::Enqueue {
                 queue: 7,
                 seq: 1,
-                message: 3,
-                delivered: true,
+                body: EntryBody::Inline(MessageRecord {
+                    exchange: s(""),
+                    routing_key: s("q"),
+                    properties: Bytes::from_static(b"\x00\x00"),
+                    body: Bytes::from_static(b"inline"),
+                }),
             },
+            StoreOp::Delivered { queue: 7, seq: 1 },
         ];
         store
-            .apply(ops.iter().map(StoreOp::to_kv).collect())
+            .write(ops.iter().map(StoreOp::to_kv).collect(), true)
             .unwrap();
         let recovered = Recovered::from_scan(store.scan().unwrap()).unwrap();
         assert_eq!(recovered.exchanges.len(), 1);
@@ -654,15 +793,22 @@ mod tests {
             entries.iter().map(|e| e.seq).collect::<Vec<_>>(),
             vec![1, 2]
         );
-        assert!(entries[0].delivered);
+        assert!(
+            matches!(&entries[0].body, EntryBody::Inline(r) if r.body == Bytes::from_static(b"inline"))
+        );
+        assert_eq!(entries[1].body, EntryBody::Shared(3));
+        assert_eq!(recovered.delivered[&7], 1);
         assert_eq!(recovered.max_message_id(), 3);
 
         store
-            .apply(vec![
-                StoreOp::Dequeue { queue: 7, seq: 1 }.to_kv(),
-                StoreOp::Dequeue { queue: 7, seq: 2 }.to_kv(),
-                StoreOp::DeleteMessage { id: 3 }.to_kv(),
-            ])
+            .write(
+                vec![
+                    StoreOp::Dequeue { queue: 7, seq: 1 }.to_kv(),
+                    StoreOp::Dequeue { queue: 7, seq: 2 }.to_kv(),
+                    StoreOp::DeleteMessage { id: 3 }.to_kv(),
+                ],
+                false,
+            )
             .unwrap();
         let recovered = Recovered::from_scan(store.scan().unwrap()).unwrap();
         assert!(recovered.messages.is_empty());

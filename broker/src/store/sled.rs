@@ -1,9 +1,14 @@
-//! The on-disk [`Store`]: one sled tree in the data directory. A batch is
-//! applied with `apply_batch` (atomic) and then `flush` (fsync), so a batch
-//! is either wholly on disk or not at all after a crash.
+//! The on-disk [`Store`]: one sled tree in the data directory. Plain writes
+//! are single inserts and removes (sled recovers them in order); atomic
+//! writes go through `apply_batch`; `flush` fsyncs. The page cache is kept
+//! small: the broker holds queued messages in memory itself.
 
 use super::{KvOp, KvPair, Store, StoreError};
 use std::path::Path;
+
+/// sled's page cache: small, because recovery reads everything once and
+/// the broker keeps what it needs in memory.
+const CACHE_BYTES: u64 = 64 * 1024 * 1024;
 
 /// A store in a sled database.
 #[derive(Debug)]
@@ -21,6 +26,7 @@ impl SledStore {
         let db = sled::Config::new()
             .path(dir.join("store"))
             .mode(sled::Mode::HighThroughput)
+            .cache_capacity(CACHE_BYTES)
             .flush_every_ms(None)
             .open()
             .map_err(err)?;
@@ -29,17 +35,29 @@ impl SledStore {
 }
 
 impl Store for SledStore {
-    fn apply(&self, ops: Vec<KvOp>) -> Result<(), StoreError> {
-        let mut batch = sled::Batch::default();
+    fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError> {
+        if atomic {
+            let mut batch = sled::Batch::default();
+            for (key, value) in ops {
+                match value {
+                    Some(value) => batch.insert(key, value),
+                    None => batch.remove(key),
+                }
+            }
+            return self.db.apply_batch(batch).map_err(err);
+        }
         for (key, value) in ops {
             match value {
-                Some(value) => batch.insert(key, value),
-                None => batch.remove(key),
+                Some(value) => self.db.insert(key, value).map(drop),
+                None => self.db.remove(key).map(drop),
             }
+            .map_err(err)?;
         }
-        self.db.apply_batch(batch).map_err(err)?;
-        self.db.flush().map_err(err)?;
         Ok(())
+    }
+
+    fn flush(&self) -> Result<(), StoreError> {
+        self.db.flush().map(drop).map_err(err)
     }
 
     fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
@@ -61,12 +79,16 @@ mod tests {
         {
             let store = SledStore::open(&dir).unwrap();
             store
-                .apply(vec![
-                    (b"a".to_vec(), Some(b"1".to_vec())),
-                    (b"b".to_vec(), Some(b"2".to_vec())),
-                ])
+                .write(
+                    vec![
+                        (b"a".to_vec(), Some(b"1".to_vec())),
+                        (b"b".to_vec(), Some(b"2".to_vec())),
+                    ],
+                    true,
+                )
                 .unwrap();
-            store.apply(vec![(b"a".to_vec(), None)]).unwrap();
+            store.write(vec![(b"a".to_vec(), None)], false).unwrap();
+            store.flush().unwrap();
         }
         let store = SledStore::open(&dir).unwrap();
         assert_eq!(store.scan().unwrap(), vec![(b"b".to_vec(), b"2".to_vec())]);
