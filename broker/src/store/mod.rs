@@ -25,8 +25,14 @@
 //!
 //! sled costs a few microseconds per key, and very large atomic batches
 //! make it hold a lot of memory, so the persister writes plain inserts and
-//! removes (sled recovers them in order), uses an atomic batch only for a
-//! transaction's commit, and flushes once per group.
+//! removes, uses an atomic batch only for a transaction's commit, and
+//! flushes once per group. Safety rests only on `flush`: everything written
+//! before it is durable when it returns, and nothing is confirmed earlier.
+//! Writes not yet flushed at a crash may survive in any combination, which
+//! is harmless: an insert without its remove brings back a message that was
+//! not confirmed gone (it is redelivered), and an entry whose shared record
+//! was deleted belongs to a queue that had already acked it (recovery
+//! skips it).
 
 mod memory;
 mod sled;

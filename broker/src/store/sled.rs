@@ -1,6 +1,6 @@
 //! The on-disk [`Store`]: one sled tree in the data directory. Plain writes
-//! are single inserts and removes (sled recovers them in order); atomic
-//! writes go through `apply_batch`; `flush` fsyncs. The page cache is kept
+//! are single inserts and removes; atomic writes go through `apply_batch`;
+//! `flush` blocks until everything written is stable on disk. The page cache is kept
 //! small: the broker holds queued messages in memory itself.
 
 use super::{KvOp, KvPair, Store, StoreError};
