@@ -34,6 +34,32 @@ impl PasswordHash {
         }
     }
 
+    /// The stored form: 8 hex digits of salt, then 64 of SHA-256.
+    pub fn to_hex(&self) -> String {
+        self.salt
+            .iter()
+            .chain(self.digest.iter())
+            .map(|b| format!("{b:02x}"))
+            .collect()
+    }
+
+    /// Parses the stored form made by [`PasswordHash::to_hex`].
+    pub fn from_hex(text: &str) -> Option<Self> {
+        let text = text.trim();
+        if text.len() != 72 || !text.is_ascii() {
+            return None;
+        }
+        let mut bytes = [0u8; 36];
+        for (i, byte) in bytes.iter_mut().enumerate() {
+            *byte = u8::from_str_radix(&text[2 * i..2 * i + 2], 16).ok()?;
+        }
+        let mut salt = [0u8; 4];
+        let mut digest = [0u8; 32];
+        salt.copy_from_slice(&bytes[..4]);
+        digest.copy_from_slice(&bytes[4..]);
+        Some(PasswordHash { salt, digest })
+    }
+
     /// Whether `password` matches.
     pub fn verify(&self, password: &[u8]) -> bool {
         let mut sha = Sha256::new();
@@ -59,6 +85,11 @@ impl Users {
     /// Adds or replaces a user.
     pub fn insert(&mut self, name: impl Into<String>, password: &str) {
         self.users.insert(name.into(), PasswordHash::new(password));
+    }
+
+    /// Adds or replaces a user whose password is given already hashed.
+    pub fn insert_hashed(&mut self, name: impl Into<String>, hash: PasswordHash) {
+        self.users.insert(name.into(), hash);
     }
 
     /// Checks a SASL response for `mechanism`; the user name if it passes.
@@ -119,6 +150,17 @@ mod tests {
             Some("guest".into())
         );
         assert_eq!(users.authenticate(b"EXTERNAL", &amqplain), None);
+    }
+
+    #[test]
+    fn stored_form_round_trips() {
+        let hash = PasswordHash::new("robot");
+        let text = hash.to_hex();
+        assert_eq!(text.len(), 72);
+        let back = PasswordHash::from_hex(&text).unwrap();
+        assert!(back.verify(b"robot"));
+        assert!(PasswordHash::from_hex("zz").is_none());
+        assert!(PasswordHash::from_hex(&text.replace(&text[..2], "xy")).is_none());
     }
 
     #[test]

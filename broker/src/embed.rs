@@ -3,7 +3,7 @@
 //! [`BrokerHandle`]; `shutdown` closes every connection with 320
 //! CONNECTION_FORCED and waits for them to finish.
 
-use crate::auth::Users;
+use crate::auth::{PasswordHash, Users};
 use crate::core::{Core, Limits};
 use crate::store::{Persistence, Recovered, SledStore, Store, StoreError};
 use std::net::SocketAddr;
@@ -34,7 +34,7 @@ impl Broker {
 #[derive(Debug, Clone, Default)]
 pub struct BrokerBuilder {
     listen: Vec<SocketAddr>,
-    users: Vec<(String, String)>,
+    users: Vec<(String, PasswordHash)>,
     vhosts: Vec<String>,
     limits: Limits,
     storage: Storage,
@@ -60,8 +60,16 @@ impl BrokerBuilder {
     }
 
     /// Adds a user; without any, the broker has RabbitMQ's `guest`/`guest`.
-    pub fn user(mut self, name: impl Into<String>, password: impl Into<String>) -> Self {
-        self.users.push((name.into(), password.into()));
+    /// The password is kept only as a salted hash.
+    pub fn user(mut self, name: impl Into<String>, password: &str) -> Self {
+        self.users.push((name.into(), PasswordHash::new(password)));
+        self
+    }
+
+    /// Adds a user whose password is given as a stored hash
+    /// (see `leveret --hash-password`).
+    pub fn user_hashed(mut self, name: impl Into<String>, hash: PasswordHash) -> Self {
+        self.users.push((name.into(), hash));
         self
     }
 
@@ -96,8 +104,8 @@ impl BrokerBuilder {
         if self.users.is_empty() {
             users.insert("guest", "guest");
         }
-        for (name, password) in &self.users {
-            users.insert(name.clone(), password);
+        for (name, hash) in self.users {
+            users.insert_hashed(name, hash);
         }
         let vhosts = if self.vhosts.is_empty() {
             vec!["/".to_owned()]

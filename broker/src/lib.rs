@@ -47,6 +47,7 @@ mod server;
 pub mod store;
 mod vhost;
 
+pub use crate::auth::PasswordHash;
 pub use crate::core::Limits;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;

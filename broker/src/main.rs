@@ -3,7 +3,7 @@
 //! a key of the same name; the command line wins).
 
 use clap::Parser;
-use leveret_broker::{Broker, Limits};
+use leveret_broker::{Broker, Limits, PasswordHash};
 use serde::Deserialize;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -20,13 +20,19 @@ struct Cli {
     /// Directory for durable state; created if missing [default: ./leveret-data].
     #[arg(long, value_name = "DIR")]
     data_dir: Option<PathBuf>,
-    /// TOML configuration file with the same keys as these flags, plus
-    /// [[users]] (name, password) and vhosts.
+    /// TOML configuration file: the same keys as these flags, plus
+    /// [[users]] (name, and password or password-hash), vhosts, and the
+    /// limits heartbeat, frame-max, channel-max, max-message-size,
+    /// memory-high-watermark.
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
     /// Log level or tracing filter (error, warn, info, debug, trace) [default: info].
     #[arg(long, value_name = "LEVEL")]
     log: Option<String>,
+    /// Read a password on standard input, print its salted hash for the
+    /// config file's `password-hash`, and exit.
+    #[arg(long)]
+    hash_password: bool,
 }
 
 /// The configuration file.
@@ -48,10 +54,13 @@ struct FileConfig {
 }
 
 #[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
 struct UserConfig {
     name: String,
-    password: String,
+    /// Plain text; prefer `password-hash`.
+    password: Option<String>,
+    /// As printed by `leveret --hash-password`.
+    password_hash: Option<String>,
 }
 
 fn load(path: &PathBuf) -> Result<FileConfig, String> {
@@ -63,6 +72,16 @@ fn load(path: &PathBuf) -> Result<FileConfig, String> {
 #[tokio::main]
 async fn main() -> ExitCode {
     let cli = Cli::parse();
+    if cli.hash_password {
+        let mut password = String::new();
+        if std::io::stdin().read_line(&mut password).is_err() {
+            eprintln!("leveret: cannot read the password from standard input");
+            return ExitCode::from(2);
+        }
+        let password = password.trim_end_matches(['\r', '\n']);
+        println!("{}", PasswordHash::new(password).to_hex());
+        return ExitCode::SUCCESS;
+    }
     let file = match &cli.config {
         Some(path) => match load(path) {
             Ok(config) => config,
@@ -104,7 +123,27 @@ async fn main() -> ExitCode {
         builder = builder.listen(addr);
     }
     for user in file.users {
-        builder = builder.user(user.name, user.password);
+        builder = match (
+            user.password,
+            user.password_hash.as_deref().map(PasswordHash::from_hex),
+        ) {
+            (None, Some(Some(hash))) => builder.user_hashed(user.name, hash),
+            (Some(password), None) => builder.user(user.name, &password),
+            (None, Some(None)) => {
+                eprintln!(
+                    "leveret: user {}: password-hash is not a leveret hash",
+                    user.name
+                );
+                return ExitCode::from(2);
+            }
+            _ => {
+                eprintln!(
+                    "leveret: user {}: give exactly one of password, password-hash",
+                    user.name
+                );
+                return ExitCode::from(2);
+            }
+        };
     }
     for vhost in file.vhosts {
         builder = builder.vhost(vhost);
