@@ -1,10 +1,14 @@
 //! AMQP value types shared by method arguments, field tables and content
 //! properties: short strings, long strings, decimals, field values, tables
-//! and arrays. Strings are `Bytes` handles into the received frame, so
-//! decoding them never copies.
+//! and arrays. Long strings are `Bytes` handles into the received frame, so
+//! decoding them never copies; short strings of up to 23 bytes are copied
+//! into the value itself, which is cheaper than a shared handle's reference
+//! count, and longer ones are handles too.
 
 use bytes::Bytes;
+use std::cmp::Ordering;
 use std::fmt;
+use std::hash::{Hash, Hasher};
 
 /// Long string (`longstr`): up to 2^32-1 bytes, binary safe.
 pub type LongStr = Bytes;
@@ -14,8 +18,22 @@ pub type LongStr = Bytes;
 /// AMQP does not require short strings to be UTF-8, and RabbitMQ accepts any
 /// bytes in names, so the value is kept as raw bytes. Equality and hashing
 /// are byte-wise, which makes `ShortStr` usable directly as a registry key.
-#[derive(Clone, Default, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct ShortStr(Bytes);
+///
+/// Up to 23 bytes are stored inline, so that decoding, cloning and dropping
+/// the typical exchange name or routing key touches no reference count;
+/// longer strings (and static ones) are `Bytes` handles.
+#[derive(Clone)]
+pub struct ShortStr(Repr);
+
+/// Bytes a short string can hold inline while `ShortStr` stays as small as
+/// a `Bytes` handle (the handle's vtable pointer is the enum's niche).
+const INLINE_CAP: usize = 23;
+
+#[derive(Clone)]
+enum Repr {
+    Inline { len: u8, bytes: [u8; INLINE_CAP] },
+    Shared(Bytes),
+}
 
 /// A string given to [`ShortStr`] was longer than 255 bytes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
@@ -33,53 +51,121 @@ impl ShortStr {
             s.len() <= Self::MAX_LEN,
             "short string longer than 255 bytes"
         );
-        ShortStr(Bytes::from_static(s.as_bytes()))
+        ShortStr(Repr::Shared(Bytes::from_static(s.as_bytes())))
+    }
+
+    /// Copies `bytes` (at most 23 long) inline.
+    fn inline(bytes: &[u8]) -> Self {
+        debug_assert!(bytes.len() <= INLINE_CAP);
+        let mut buf = [0u8; INLINE_CAP];
+        buf[..bytes.len()].copy_from_slice(bytes);
+        ShortStr(Repr::Inline {
+            len: bytes.len() as u8,
+            bytes: buf,
+        })
     }
 
     /// Wraps bytes that are known to be at most 255 long.
     pub(crate) fn from_bytes_unchecked(bytes: Bytes) -> Self {
         debug_assert!(bytes.len() <= Self::MAX_LEN);
-        ShortStr(bytes)
+        ShortStr(Repr::Shared(bytes))
+    }
+
+    /// A short string read from a frame: `bytes` (at most 255 long) is a
+    /// slice of `src`. Short ones are copied inline, long ones become a
+    /// handle into `src`.
+    pub(crate) fn from_frame(src: &Bytes, bytes: &[u8]) -> Self {
+        if bytes.len() <= INLINE_CAP {
+            Self::inline(bytes)
+        } else {
+            Self::from_bytes_unchecked(src.slice_ref(bytes))
+        }
     }
 
     /// The raw bytes.
     pub fn as_bytes(&self) -> &[u8] {
-        &self.0
+        match &self.0 {
+            Repr::Inline { len, bytes } => &bytes[..usize::from(*len)],
+            Repr::Shared(b) => b,
+        }
     }
 
     /// The value as UTF-8, if it is valid UTF-8.
     pub fn as_str(&self) -> Option<&str> {
-        std::str::from_utf8(&self.0).ok()
+        std::str::from_utf8(self.as_bytes()).ok()
     }
 
     /// The value as text, with invalid UTF-8 replaced.
     pub fn to_string_lossy(&self) -> std::borrow::Cow<'_, str> {
-        String::from_utf8_lossy(&self.0)
+        String::from_utf8_lossy(self.as_bytes())
     }
 
     /// Length in bytes.
     pub fn len(&self) -> usize {
-        self.0.len()
+        match &self.0 {
+            Repr::Inline { len, .. } => usize::from(*len),
+            Repr::Shared(b) => b.len(),
+        }
     }
 
     /// Whether the string is empty.
     pub fn is_empty(&self) -> bool {
-        self.0.is_empty()
+        self.len() == 0
     }
 
-    /// The underlying `Bytes` handle.
+    /// The value as a `Bytes` handle (a copy for an inline string).
     pub fn into_bytes(self) -> Bytes {
-        self.0
+        match self.0 {
+            Repr::Inline { .. } => Bytes::copy_from_slice(self.as_bytes()),
+            Repr::Shared(b) => b,
+        }
+    }
+}
+
+impl Default for ShortStr {
+    fn default() -> Self {
+        ShortStr(Repr::Inline {
+            len: 0,
+            bytes: [0; INLINE_CAP],
+        })
+    }
+}
+
+impl PartialEq for ShortStr {
+    fn eq(&self, other: &Self) -> bool {
+        self.as_bytes() == other.as_bytes()
+    }
+}
+
+impl Eq for ShortStr {}
+
+/// Hashes exactly as `[u8]` does, as `Borrow<[u8]>` requires.
+impl Hash for ShortStr {
+    fn hash<H: Hasher>(&self, state: &mut H) {
+        self.as_bytes().hash(state);
+    }
+}
+
+impl PartialOrd for ShortStr {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+impl Ord for ShortStr {
+    fn cmp(&self, other: &Self) -> Ordering {
+        self.as_bytes().cmp(other.as_bytes())
     }
 }
 
 impl TryFrom<Bytes> for ShortStr {
     type Error = ShortStrTooLong;
+    /// Keeps the handle, whatever the length.
     fn try_from(bytes: Bytes) -> Result<Self, Self::Error> {
         if bytes.len() > Self::MAX_LEN {
             Err(ShortStrTooLong(bytes.len()))
         } else {
-            Ok(ShortStr(bytes))
+            Ok(ShortStr(Repr::Shared(bytes)))
         }
     }
 }
@@ -87,14 +173,22 @@ impl TryFrom<Bytes> for ShortStr {
 impl TryFrom<&str> for ShortStr {
     type Error = ShortStrTooLong;
     fn try_from(s: &str) -> Result<Self, Self::Error> {
-        Bytes::copy_from_slice(s.as_bytes()).try_into()
+        if s.len() <= INLINE_CAP {
+            Ok(Self::inline(s.as_bytes()))
+        } else {
+            Bytes::copy_from_slice(s.as_bytes()).try_into()
+        }
     }
 }
 
 impl TryFrom<String> for ShortStr {
     type Error = ShortStrTooLong;
     fn try_from(s: String) -> Result<Self, Self::Error> {
-        Bytes::from(s).try_into()
+        if s.len() <= INLINE_CAP {
+            Ok(Self::inline(s.as_bytes()))
+        } else {
+            Bytes::from(s).try_into()
+        }
     }
 }
 
@@ -112,7 +206,7 @@ impl PartialEq<&str> for ShortStr {
 
 impl std::borrow::Borrow<[u8]> for ShortStr {
     fn borrow(&self) -> &[u8] {
-        &self.0
+        self.as_bytes()
     }
 }
 
@@ -297,3 +391,71 @@ impl FromIterator<(ShortStr, FieldValue)> for FieldTable {
 
 /// A field array (`A`): values without names.
 pub type FieldArray = Vec<FieldValue>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::hash_map::DefaultHasher;
+    use std::collections::HashSet;
+
+    fn hash_of<T: Hash + ?Sized>(value: &T) -> u64 {
+        let mut hasher = DefaultHasher::new();
+        value.hash(&mut hasher);
+        hasher.finish()
+    }
+
+    #[test]
+    fn short_str_is_as_small_as_a_bytes_handle() {
+        assert_eq!(
+            std::mem::size_of::<ShortStr>(),
+            std::mem::size_of::<Bytes>()
+        );
+    }
+
+    #[test]
+    fn inline_and_shared_strings_compare_hash_and_order_by_bytes() {
+        let frame = Bytes::from_static(b"xamq.directx");
+        let decoded = ShortStr::from_frame(&frame, &frame[1..11]);
+        let shared = ShortStr::try_from(Bytes::from_static(b"amq.direct")).unwrap();
+        let fixed = ShortStr::from_static("amq.direct");
+        assert!(matches!(decoded.0, Repr::Inline { .. }));
+        assert!(matches!(shared.0, Repr::Shared(_)));
+        assert_eq!(decoded, shared);
+        assert_eq!(decoded, fixed);
+        assert_eq!(decoded, "amq.direct");
+        assert_eq!(hash_of(&decoded), hash_of(&shared));
+        assert_eq!(hash_of(&decoded), hash_of(&b"amq.direct"[..]));
+        assert!(decoded < ShortStr::from_static("amq.e"));
+        assert!(decoded > ShortStr::from_static("amq"));
+        let set: HashSet<ShortStr> = [decoded.clone()].into_iter().collect();
+        assert!(set.contains(&b"amq.direct"[..]));
+        assert_eq!(
+            decoded.clone().into_bytes(),
+            Bytes::from_static(b"amq.direct")
+        );
+        assert_eq!(ShortStr::default(), ShortStr::from_static(""));
+        assert!(ShortStr::default().is_empty());
+    }
+
+    #[test]
+    fn strings_past_the_inline_capacity_are_handles_into_the_frame() {
+        let frame = Bytes::from(vec![b'a'; 300]);
+        let at_cap = ShortStr::from_frame(&frame, &frame[..INLINE_CAP]);
+        let past_cap = ShortStr::from_frame(&frame, &frame[..INLINE_CAP + 1]);
+        let longest = ShortStr::from_frame(&frame, &frame[..255]);
+        assert!(matches!(at_cap.0, Repr::Inline { .. }));
+        assert!(matches!(past_cap.0, Repr::Shared(_)));
+        assert_eq!(past_cap.as_bytes().as_ptr(), frame.as_ptr());
+        assert_eq!(
+            (at_cap.len(), past_cap.len(), longest.len()),
+            (INLINE_CAP, INLINE_CAP + 1, 255)
+        );
+        let owned = ShortStr::try_from("x".repeat(40)).unwrap();
+        assert_eq!(owned.len(), 40);
+        assert_eq!(
+            ShortStr::try_from("y".repeat(256)),
+            Err(ShortStrTooLong(256))
+        );
+        assert_eq!(ShortStr::try_from("short").unwrap(), "short");
+    }
+}

@@ -173,7 +173,7 @@ impl Arg for FieldTable {
 pub(crate) fn short_str<'a>(src: &Bytes, input: &'a [u8]) -> PResult<'a, ShortStr> {
     let (input, len) = be_u8(input)?;
     let (input, bytes) = take(len)(input)?;
-    Ok((input, ShortStr::from_bytes_unchecked(src.slice_ref(bytes))))
+    Ok((input, ShortStr::from_frame(src, bytes)))
 }
 
 /// `longstr`: a 32-bit length and that many bytes.
