@@ -58,6 +58,8 @@
 //! - `message`: [`Delivery`], [`GetMessage`], [`ReturnedMessage`], [`IntoShortStr`].
 //! - `options`: the `…Options` structs of the channel methods.
 //! - `error`: [`Error`] and [`CloseReason`].
+//! - [`ports`]: typed robot data ports (OpenRTM-aist style out-ports and
+//!   in-ports) with reconnection, resend and duplicate suppression.
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
 
@@ -68,6 +70,7 @@ mod consumer;
 mod error;
 mod message;
 mod options;
+pub mod ports;
 pub mod uri;
 
 pub use channel::{Channel, QueueInfo};

@@ -1,0 +1,688 @@
+//! OMG CDR, little-endian, as OpenRTM-aist marshals data port values (a
+//! bare CDR stream, no encapsulation header; OpenRTM's default byte order
+//! for its connectors is little-endian): every primitive is aligned to its
+//! own size counted from the start of the value's stream, a string is a
+//! `u32` length counting the terminating NUL, the bytes, then the NUL, and a
+//! sequence is a `u32` element count followed by the elements.
+//!
+//! The RTC data types of OpenRTM-aist's `BasicDataType.idl` and
+//! `ExtendedDataTypes.idl` implemented here each begin with a
+//! [`Time`]: [`TimedDouble`], [`TimedLong`], [`TimedString`],
+//! [`TimedDoubleSeq`], [`TimedPose2D`], [`TimedVelocity2D`]. Other IDL
+//! structs can be written with [`CdrWriter`] and [`CdrReader`] through the
+//! [`Cdr`] trait and then made port data with [`encode`] and [`decode`].
+
+use super::data::DataError;
+use bytes::{BufMut, Bytes, BytesMut};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+/// A value with a CDR form.
+pub trait Cdr: Sized {
+    /// Writes the value's fields in IDL order.
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError>;
+    /// Reads the value's fields in IDL order.
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError>;
+}
+
+/// Appends `value` to `buf` as a CDR stream starting at `buf`'s end.
+pub fn encode<T: Cdr>(value: &T, buf: &mut BytesMut) -> Result<(), DataError> {
+    value.write_cdr(&mut CdrWriter::new(buf))
+}
+
+/// Reads a `T` that must take the whole of `body`.
+pub fn decode<T: Cdr>(body: Bytes) -> Result<T, DataError> {
+    let mut input = CdrReader::new(body);
+    let value = T::read_cdr(&mut input)?;
+    input.finish()?;
+    Ok(value)
+}
+
+/// Writes little-endian CDR, aligning relative to where it started.
+#[derive(Debug)]
+pub struct CdrWriter<'a> {
+    buf: &'a mut BytesMut,
+    start: usize,
+}
+
+macro_rules! writers {
+    ($($(#[$doc:meta])* $name:ident: $t:ty),*) => {$(
+        $(#[$doc])*
+        pub fn $name(&mut self, value: $t) {
+            self.align(std::mem::size_of::<$t>());
+            self.buf.put_slice(&value.to_le_bytes());
+        }
+    )*};
+}
+
+impl<'a> CdrWriter<'a> {
+    /// A stream starting at the end of `buf`.
+    pub fn new(buf: &'a mut BytesMut) -> Self {
+        let start = buf.len();
+        CdrWriter { buf, start }
+    }
+
+    /// Pads with zeros to a multiple of `size` from the stream's start.
+    pub fn align(&mut self, size: usize) {
+        let offset = self.buf.len() - self.start;
+        let pad = (size - offset % size) % size;
+        self.buf.put_bytes(0, pad);
+    }
+
+    /// An `octet` (or `char`).
+    pub fn octet(&mut self, value: u8) {
+        self.buf.put_u8(value);
+    }
+
+    /// A `boolean`: one octet, 0 or 1.
+    pub fn boolean(&mut self, value: bool) {
+        self.buf.put_u8(u8::from(value));
+    }
+
+    writers!(
+        /// A `short`.
+        short: i16,
+        /// An `unsigned short`.
+        ushort: u16,
+        /// A `long`.
+        long: i32,
+        /// An `unsigned long`.
+        ulong: u32,
+        /// A `long long`.
+        longlong: i64,
+        /// An `unsigned long long`.
+        ulonglong: u64,
+        /// A `float`.
+        float: f32,
+        /// A `double`.
+        double: f64
+    );
+
+    /// A `string`: length with the NUL, bytes, NUL. Text containing NUL
+    /// cannot be a CDR string.
+    pub fn string(&mut self, value: &str) -> Result<(), DataError> {
+        if value.as_bytes().contains(&0) {
+            return Err(DataError::Invalid(
+                "a CDR string cannot contain NUL".to_owned(),
+            ));
+        }
+        let length = u32::try_from(value.len() + 1)
+            .map_err(|_| DataError::Invalid("string longer than 4 GiB".to_owned()))?;
+        self.ulong(length);
+        self.buf.put_slice(value.as_bytes());
+        self.buf.put_u8(0);
+        Ok(())
+    }
+
+    /// A sequence's element count (the elements follow).
+    pub fn sequence_len(&mut self, len: usize) -> Result<(), DataError> {
+        let len = u32::try_from(len)
+            .map_err(|_| DataError::Invalid("sequence longer than u32::MAX".to_owned()))?;
+        self.ulong(len);
+        Ok(())
+    }
+}
+
+/// Reads little-endian CDR, aligning relative to the start of its body.
+#[derive(Debug)]
+pub struct CdrReader {
+    body: Bytes,
+    pos: usize,
+}
+
+macro_rules! readers {
+    ($($(#[$doc:meta])* $name:ident: $t:ty),*) => {$(
+        $(#[$doc])*
+        pub fn $name(&mut self) -> Result<$t, DataError> {
+            self.align(std::mem::size_of::<$t>())?;
+            let bytes = self.take(std::mem::size_of::<$t>())?;
+            let mut array = [0u8; std::mem::size_of::<$t>()];
+            array.copy_from_slice(bytes);
+            Ok(<$t>::from_le_bytes(array))
+        }
+    )*};
+}
+
+impl CdrReader {
+    /// A stream over `body`.
+    pub fn new(body: Bytes) -> Self {
+        CdrReader { body, pos: 0 }
+    }
+
+    fn take(&mut self, n: usize) -> Result<&[u8], DataError> {
+        let available = self.body.len() - self.pos;
+        if available < n {
+            return Err(DataError::Truncated {
+                offset: self.pos,
+                needed: n - available,
+            });
+        }
+        let start = self.pos;
+        self.pos += n;
+        Ok(&self.body[start..self.pos])
+    }
+
+    /// Skips the padding before a field of `size` bytes.
+    pub fn align(&mut self, size: usize) -> Result<(), DataError> {
+        let pad = (size - self.pos % size) % size;
+        self.take(pad).map(drop)
+    }
+
+    /// Bytes not read yet.
+    pub fn remaining(&self) -> usize {
+        self.body.len() - self.pos
+    }
+
+    /// Fails unless everything was read.
+    pub fn finish(&self) -> Result<(), DataError> {
+        match self.remaining() {
+            0 => Ok(()),
+            n => Err(DataError::Trailing(n)),
+        }
+    }
+
+    /// An `octet` (or `char`).
+    pub fn octet(&mut self) -> Result<u8, DataError> {
+        Ok(self.take(1)?[0])
+    }
+
+    /// A `boolean`.
+    pub fn boolean(&mut self) -> Result<bool, DataError> {
+        match self.octet()? {
+            0 => Ok(false),
+            1 => Ok(true),
+            other => Err(DataError::Invalid(format!("{other} is not a CDR boolean"))),
+        }
+    }
+
+    readers!(
+        /// A `short`.
+        short: i16,
+        /// An `unsigned short`.
+        ushort: u16,
+        /// A `long`.
+        long: i32,
+        /// An `unsigned long`.
+        ulong: u32,
+        /// A `long long`.
+        longlong: i64,
+        /// An `unsigned long long`.
+        ulonglong: u64,
+        /// A `float`.
+        float: f32,
+        /// A `double`.
+        double: f64
+    );
+
+    /// A `string` (UTF-8 expected).
+    pub fn string(&mut self) -> Result<String, DataError> {
+        let length = self.ulong()? as usize;
+        if length == 0 {
+            return Err(DataError::Invalid(
+                "CDR string of length 0 (no NUL)".to_owned(),
+            ));
+        }
+        let offset = self.pos;
+        let bytes = self.take(length)?;
+        let (text, nul) = bytes.split_at(length - 1);
+        if nul != [0] || text.contains(&0) {
+            return Err(DataError::Invalid(format!(
+                "CDR string at offset {offset} is not NUL-terminated"
+            )));
+        }
+        String::from_utf8(text.to_vec()).map_err(|_| DataError::Utf8)
+    }
+
+    /// A sequence's element count, checked against the bytes left
+    /// (`min_element` bytes each), so a corrupt count cannot allocate.
+    pub fn sequence_len(&mut self, min_element: usize) -> Result<usize, DataError> {
+        let len = self.ulong()? as usize;
+        if len.saturating_mul(min_element) > self.remaining() {
+            return Err(DataError::Truncated {
+                offset: self.pos,
+                needed: len * min_element - self.remaining(),
+            });
+        }
+        Ok(len)
+    }
+}
+
+/// `RTC::Time`: seconds and nanoseconds (since the Unix epoch, as
+/// OpenRTM-aist stamps data).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub struct Time {
+    /// Seconds.
+    pub sec: u32,
+    /// Nanoseconds, below 1e9.
+    pub nsec: u32,
+}
+
+impl Time {
+    /// The current time.
+    pub fn now() -> Self {
+        Time::from(SystemTime::now())
+    }
+}
+
+impl From<SystemTime> for Time {
+    /// Saturates outside 1970..2106, as a `u32` of seconds must.
+    fn from(time: SystemTime) -> Self {
+        let since = time.duration_since(UNIX_EPOCH).unwrap_or_default();
+        match u32::try_from(since.as_secs()) {
+            Ok(sec) => Time {
+                sec,
+                nsec: since.subsec_nanos(),
+            },
+            Err(_) => Time {
+                sec: u32::MAX,
+                nsec: 999_999_999,
+            },
+        }
+    }
+}
+
+impl From<Time> for SystemTime {
+    fn from(time: Time) -> Self {
+        UNIX_EPOCH + Duration::new(time.sec.into(), time.nsec.min(999_999_999))
+    }
+}
+
+impl Cdr for Time {
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+        out.ulong(self.sec);
+        out.ulong(self.nsec);
+        Ok(())
+    }
+
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+        Ok(Time {
+            sec: input.ulong()?,
+            nsec: input.ulong()?,
+        })
+    }
+}
+
+/// `RTC::TimedDouble`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TimedDouble {
+    /// Time stamp.
+    pub tm: Time,
+    /// The value.
+    pub data: f64,
+}
+
+/// `RTC::TimedLong` (an IDL `long` is 32 bits).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct TimedLong {
+    /// Time stamp.
+    pub tm: Time,
+    /// The value.
+    pub data: i32,
+}
+
+/// `RTC::TimedString`.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct TimedString {
+    /// Time stamp.
+    pub tm: Time,
+    /// The text (no NUL inside).
+    pub data: String,
+}
+
+/// `RTC::TimedDoubleSeq`.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct TimedDoubleSeq {
+    /// Time stamp.
+    pub tm: Time,
+    /// The values.
+    pub data: Vec<f64>,
+}
+
+/// `RTC::Point2D`, metres.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Point2D {
+    /// X coordinate.
+    pub x: f64,
+    /// Y coordinate.
+    pub y: f64,
+}
+
+/// `RTC::Pose2D`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Pose2D {
+    /// Position.
+    pub position: Point2D,
+    /// Heading, radians.
+    pub heading: f64,
+}
+
+/// `RTC::TimedPose2D`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TimedPose2D {
+    /// Time stamp.
+    pub tm: Time,
+    /// The pose.
+    pub data: Pose2D,
+}
+
+/// `RTC::Velocity2D`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Velocity2D {
+    /// Along x, m/s.
+    pub vx: f64,
+    /// Along y, m/s.
+    pub vy: f64,
+    /// Yaw rate, rad/s.
+    pub va: f64,
+}
+
+/// `RTC::TimedVelocity2D`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TimedVelocity2D {
+    /// Time stamp.
+    pub tm: Time,
+    /// The velocities.
+    pub data: Velocity2D,
+}
+
+impl Cdr for TimedDouble {
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+        self.tm.write_cdr(out)?;
+        out.double(self.data);
+        Ok(())
+    }
+
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+        Ok(TimedDouble {
+            tm: Time::read_cdr(input)?,
+            data: input.double()?,
+        })
+    }
+}
+
+impl Cdr for TimedLong {
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+        self.tm.write_cdr(out)?;
+        out.long(self.data);
+        Ok(())
+    }
+
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+        Ok(TimedLong {
+            tm: Time::read_cdr(input)?,
+            data: input.long()?,
+        })
+    }
+}
+
+impl Cdr for TimedString {
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+        self.tm.write_cdr(out)?;
+        out.string(&self.data)
+    }
+
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+        Ok(TimedString {
+            tm: Time::read_cdr(input)?,
+            data: input.string()?,
+        })
+    }
+}
+
+impl Cdr for TimedDoubleSeq {
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+        self.tm.write_cdr(out)?;
+        out.sequence_len(self.data.len())?;
+        for value in &self.data {
+            out.double(*value);
+        }
+        Ok(())
+    }
+
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+        let tm = Time::read_cdr(input)?;
+        let len = input.sequence_len(8)?;
+        let data = (0..len).map(|_| input.double()).collect::<Result<_, _>>()?;
+        Ok(TimedDoubleSeq { tm, data })
+    }
+}
+
+impl Cdr for TimedPose2D {
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+        self.tm.write_cdr(out)?;
+        out.double(self.data.position.x);
+        out.double(self.data.position.y);
+        out.double(self.data.heading);
+        Ok(())
+    }
+
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+        let tm = Time::read_cdr(input)?;
+        let position = Point2D {
+            x: input.double()?,
+            y: input.double()?,
+        };
+        Ok(TimedPose2D {
+            tm,
+            data: Pose2D {
+                position,
+                heading: input.double()?,
+            },
+        })
+    }
+}
+
+impl Cdr for TimedVelocity2D {
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+        self.tm.write_cdr(out)?;
+        out.double(self.data.vx);
+        out.double(self.data.vy);
+        out.double(self.data.va);
+        Ok(())
+    }
+
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+        Ok(TimedVelocity2D {
+            tm: Time::read_cdr(input)?,
+            data: Velocity2D {
+                vx: input.double()?,
+                vy: input.double()?,
+                va: input.double()?,
+            },
+        })
+    }
+}
+
+/// Port data in CDR, named by its CORBA repository id.
+macro_rules! cdr_port_data {
+    ($($t:ident),*) => {$(
+        impl super::data::PortData for $t {
+            const CONTENT_TYPE: &'static str = "application/x-omg-cdr; endian=little";
+            const TYPE_NAME: Option<&'static str> =
+                Some(concat!("IDL:RTC/", stringify!($t), ":1.0"));
+
+            fn encode(&self, buf: &mut BytesMut) -> Result<(), DataError> {
+                encode(self, buf)
+            }
+
+            fn decode(body: Bytes) -> Result<Self, DataError> {
+                decode(body)
+            }
+        }
+    )*};
+}
+
+cdr_port_data!(
+    TimedDouble,
+    TimedLong,
+    TimedString,
+    TimedDoubleSeq,
+    TimedPose2D,
+    TimedVelocity2D
+);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ports::PortData;
+
+    const TM: Time = Time {
+        sec: 0x0102_0304,
+        nsec: 0x0a0b_0c0d,
+    };
+    /// `TM` in little-endian CDR.
+    const TM_CDR: [u8; 8] = [0x04, 0x03, 0x02, 0x01, 0x0d, 0x0c, 0x0b, 0x0a];
+
+    fn bytes(parts: &[&[u8]]) -> Vec<u8> {
+        parts.concat()
+    }
+
+    fn check<T: PortData + PartialEq + std::fmt::Debug>(value: T, expected: &[u8]) {
+        let mut buf = BytesMut::new();
+        value.encode(&mut buf).unwrap();
+        assert_eq!(&buf[..], expected, "encoding of {value:?}");
+        assert_eq!(T::decode(Bytes::copy_from_slice(expected)).unwrap(), value);
+        // One byte short and one byte long are both refused.
+        assert!(T::decode(Bytes::copy_from_slice(&expected[..expected.len() - 1])).is_err());
+        let mut long = expected.to_vec();
+        long.push(0);
+        assert_eq!(
+            T::decode(Bytes::from(long)).unwrap_err(),
+            DataError::Trailing(1)
+        );
+    }
+
+    #[test]
+    fn timed_double() {
+        let value = TimedDouble { tm: TM, data: 1.0 };
+        // The double is aligned to 8: right after the 8-byte Time.
+        check(value, &bytes(&[&TM_CDR, &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f]]));
+        assert_eq!(TimedDouble::TYPE_NAME, Some("IDL:RTC/TimedDouble:1.0"));
+    }
+
+    #[test]
+    fn timed_long() {
+        check(
+            TimedLong { tm: TM, data: -2 },
+            &bytes(&[&TM_CDR, &[0xfe, 0xff, 0xff, 0xff]]),
+        );
+    }
+
+    #[test]
+    fn timed_string() {
+        check(
+            TimedString {
+                tm: TM,
+                data: "go".into(),
+            },
+            // Length 3 counts the NUL.
+            &bytes(&[&TM_CDR, &[3, 0, 0, 0], b"go\0"]),
+        );
+        check(
+            TimedString {
+                tm: TM,
+                data: String::new(),
+            },
+            &bytes(&[&TM_CDR, &[1, 0, 0, 0, 0]]),
+        );
+        let mut buf = BytesMut::new();
+        let nul = TimedString {
+            tm: TM,
+            data: "a\0b".into(),
+        };
+        assert!(nul.encode(&mut buf).is_err());
+        let unterminated = bytes(&[&TM_CDR, &[2, 0, 0, 0], b"ab"]);
+        assert!(TimedString::decode(Bytes::from(unterminated)).is_err());
+    }
+
+    #[test]
+    fn timed_double_seq_pads_before_the_doubles() {
+        check(
+            TimedDoubleSeq {
+                tm: TM,
+                data: vec![1.0, -2.0],
+            },
+            &bytes(&[
+                &TM_CDR,
+                &[2, 0, 0, 0],
+                // Count ends at 12: 4 bytes of padding to reach 16.
+                &[0, 0, 0, 0],
+                &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f],
+                &[0, 0, 0, 0, 0, 0, 0, 0xc0],
+            ]),
+        );
+        // No element, no padding.
+        check(
+            TimedDoubleSeq {
+                tm: TM,
+                data: vec![],
+            },
+            &bytes(&[&TM_CDR, &[0, 0, 0, 0]]),
+        );
+        // A count larger than the body cannot allocate.
+        let lying = bytes(&[&TM_CDR, &[0xff, 0xff, 0xff, 0x0f]]);
+        assert!(matches!(
+            TimedDoubleSeq::decode(Bytes::from(lying)),
+            Err(DataError::Truncated { .. })
+        ));
+    }
+
+    #[test]
+    fn timed_pose_2d() {
+        let value = TimedPose2D {
+            tm: TM,
+            data: Pose2D {
+                position: Point2D { x: 1.0, y: 2.0 },
+                heading: -2.0,
+            },
+        };
+        check(
+            value,
+            &bytes(&[
+                &TM_CDR,
+                &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f],
+                &[0, 0, 0, 0, 0, 0, 0x00, 0x40],
+                &[0, 0, 0, 0, 0, 0, 0x00, 0xc0],
+            ]),
+        );
+    }
+
+    #[test]
+    fn timed_velocity_2d() {
+        let value = TimedVelocity2D {
+            tm: TM,
+            data: Velocity2D {
+                vx: 2.0,
+                vy: 1.0,
+                va: -2.0,
+            },
+        };
+        check(
+            value,
+            &bytes(&[
+                &TM_CDR,
+                &[0, 0, 0, 0, 0, 0, 0x00, 0x40],
+                &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f],
+                &[0, 0, 0, 0, 0, 0, 0x00, 0xc0],
+            ]),
+        );
+    }
+
+    #[test]
+    fn alignment_is_relative_to_the_stream_start() {
+        let mut buf = BytesMut::from(&b"xyz"[..]);
+        let mut out = CdrWriter::new(&mut buf);
+        out.octet(1);
+        out.double(1.0);
+        assert_eq!(&buf[..3], b"xyz");
+        assert_eq!(buf.len(), 3 + 16);
+        assert_eq!(&buf[3..11], &[1, 0, 0, 0, 0, 0, 0, 0]);
+    }
+
+    #[test]
+    fn time_converts_both_ways() {
+        let time = UNIX_EPOCH + Duration::new(5, 7);
+        let tm = Time::from(time);
+        assert_eq!(tm, Time { sec: 5, nsec: 7 });
+        assert_eq!(SystemTime::from(tm), time);
+    }
+}

@@ -1,0 +1,604 @@
+//! [`InPort`]: receives typed values into a bounded buffer.
+//!
+//! One task per port owns its connection: it consumes the profile's queue
+//! with acknowledgements and a prefetch limit, checks each message's
+//! sender and sequence number (dropping duplicates, counting gaps and late
+//! arrivals), decodes it, runs the registered callbacks, puts it in the
+//! buffer according to the [`FullPolicy`], and only then acknowledges it.
+//! When the link drops it reconnects with backoff and declares the
+//! topology again; messages redelivered after the reconnection are
+//! recognised by their sequence number and dropped, so the reader sees
+//! every message once and in order.
+//!
+//! The buffer is read three ways: [`InPort::read`] (the newest value,
+//! skipping older ones, as a control loop wants), [`InPort::recv`] or the
+//! [`futures_core::Stream`] (every value in order), and
+//! [`InPort::on_receive`] callbacks.
+
+use super::data::{DataError, PortData};
+use super::link::{self, Link, LinkStatus, Stamp};
+use super::profile::{Connector, FullPolicy, PortProfile};
+use crate::error::{Error, Result};
+use crate::{
+    BasicConsumeOptions, BasicQosOptions, Connection, Consumer, ConsumerEnd, Delivery, FieldTable,
+    ShortStr,
+};
+use std::collections::{BTreeSet, HashMap, VecDeque};
+use std::pin::Pin;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::task::{Context, Poll, Waker};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use tokio::sync::{watch, Notify};
+use tokio::task::JoinHandle;
+
+/// How long closing a port waits for the broker's close-ok.
+const CLOSE_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// Missing sequence numbers remembered per sender, to recognise late
+/// arrivals; older gaps are only counted.
+const MAX_REMEMBERED_GAPS: usize = 4096;
+
+/// A received value with what its headers said.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sample<T> {
+    /// The value.
+    pub value: T,
+    /// The sender's sequence number (`x-seq`), if it sent one.
+    pub seq: Option<u64>,
+    /// When it was put (`x-sent-ns`), if the sender said.
+    pub sent_at: Option<SystemTime>,
+    /// From put to arrival, by the two hosts' clocks.
+    pub latency: Option<Duration>,
+    /// The broker delivered it before (to this port, before a reconnection).
+    pub redelivered: bool,
+}
+
+/// Latencies from `x-sent-ns` to arrival.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct LatencyStats {
+    /// Samples measured.
+    pub count: u64,
+    /// Smallest.
+    pub min: Duration,
+    /// Largest.
+    pub max: Duration,
+    /// Sum of all, for the mean.
+    pub total: Duration,
+    /// The latest.
+    pub last: Duration,
+}
+
+impl LatencyStats {
+    /// The mean (zero before the first sample).
+    pub fn mean(&self) -> Duration {
+        match u32::try_from(self.count) {
+            Ok(0) => Duration::ZERO,
+            Ok(n) => self.total / n,
+            Err(_) => Duration::from_secs_f64(self.total.as_secs_f64() / self.count as f64),
+        }
+    }
+
+    fn record(&mut self, latency: Duration) {
+        if self.count == 0 || latency < self.min {
+            self.min = latency;
+        }
+        self.max = self.max.max(latency);
+        self.total = self.total.saturating_add(latency);
+        self.last = latency;
+        self.count += 1;
+    }
+}
+
+/// An in-port's counters: the paper's reliability figures and the port's
+/// own drops.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct InPortStats {
+    /// Distinct messages received (duplicates excluded).
+    pub received: u64,
+    /// Messages missing: gaps in a sender's sequence not (yet) filled.
+    pub lost: u64,
+    /// Messages that arrived after a later one of the same sender.
+    pub out_of_order: u64,
+    /// Messages received again (redelivered or resent) and dropped.
+    pub duplicates: u64,
+    /// Values the full policy discarded.
+    pub dropped: u64,
+    /// Values passed over by [`InPort::read`] for a newer one.
+    pub skipped: u64,
+    /// Messages whose body did not decode (acknowledged and dropped).
+    pub decode_errors: u64,
+    /// Latency from put to arrival.
+    pub latency: LatencyStats,
+}
+
+/// One sender's sequence.
+#[derive(Debug, Default)]
+struct Sequence {
+    last: u64,
+    missing: BTreeSet<u64>,
+}
+
+/// Where a sequence number falls.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Verdict {
+    /// Next or later (`gap` numbers skipped).
+    New { gap: u64 },
+    /// Fills an earlier gap.
+    Late,
+    /// Seen before.
+    Duplicate,
+}
+
+impl Sequence {
+    /// A sender's first message sets where its sequence starts: what it
+    /// sent before this port existed was not meant for it.
+    fn starting_at(seq: u64) -> Self {
+        Sequence {
+            last: seq.saturating_sub(1),
+            missing: BTreeSet::new(),
+        }
+    }
+
+    fn observe(&mut self, seq: u64) -> Verdict {
+        if seq > self.last {
+            let gap = seq - self.last - 1;
+            for missing in (self.last + 1)..seq {
+                if self.missing.len() >= MAX_REMEMBERED_GAPS {
+                    break;
+                }
+                self.missing.insert(missing);
+            }
+            self.last = seq;
+            Verdict::New { gap }
+        } else if self.missing.remove(&seq) {
+            Verdict::Late
+        } else {
+            Verdict::Duplicate
+        }
+    }
+}
+
+type Callback<T> = Box<dyn FnMut(&Sample<T>) + Send>;
+
+struct Buffer<T> {
+    queue: VecDeque<Sample<T>>,
+    waker: Option<Waker>,
+    closed: bool,
+}
+
+/// What the port and its task share.
+struct Shared<T> {
+    buffer: Mutex<Buffer<T>>,
+    /// Signalled when the reader makes room.
+    room: Notify,
+    stats: Mutex<InPortStats>,
+    callbacks: Mutex<Vec<Callback<T>>>,
+    link: Link,
+    queue: Mutex<ShortStr>,
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A typed receiver with a bounded buffer, reconnection and duplicate
+/// suppression. Implements [`futures_core::Stream`] of [`Sample`]s.
+pub struct InPort<T> {
+    shared: Arc<Shared<T>>,
+    stop: watch::Sender<bool>,
+    task: Option<JoinHandle<()>>,
+}
+
+impl<T> std::fmt::Debug for InPort<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("InPort")
+            .field("queue", &*lock(&self.shared.queue))
+            .field("stats", &*lock(&self.shared.stats))
+            .finish_non_exhaustive()
+    }
+}
+
+impl<T: PortData> InPort<T> {
+    /// Connects over TCP to the profile's broker, declares its topology
+    /// and starts consuming; fails if this first attempt does.
+    pub async fn connect(profile: PortProfile) -> Result<Self> {
+        InPort::connect_with(Connector::from(&profile), profile).await
+    }
+
+    /// [`InPort::connect`] through `connector`.
+    pub async fn connect_with(connector: Connector, profile: PortProfile) -> Result<Self> {
+        let profile = Arc::new(profile);
+        let first = open(&connector, &profile).await?;
+        let shared = Arc::new(Shared {
+            buffer: Mutex::new(Buffer {
+                queue: VecDeque::new(),
+                waker: None,
+                closed: false,
+            }),
+            room: Notify::new(),
+            stats: Mutex::new(InPortStats::default()),
+            callbacks: Mutex::new(Vec::new()),
+            link: Link::new(),
+            queue: Mutex::new(first.queue.clone()),
+        });
+        shared.link.connected();
+        let (stop, stopped) = watch::channel(false);
+        let task = Task {
+            shared: Arc::clone(&shared),
+            connector,
+            profile,
+            senders: HashMap::new(),
+            stop: stopped,
+        };
+        let task = tokio::spawn(task.run(first));
+        Ok(InPort {
+            shared,
+            stop,
+            task: Some(task),
+        })
+    }
+
+    /// Takes the newest buffered value, discarding older ones (counted as
+    /// `skipped`); `None` if nothing arrived since the last read.
+    pub fn read(&self) -> Option<Sample<T>> {
+        let newest = {
+            let mut buffer = lock(&self.shared.buffer);
+            let newest = buffer.queue.pop_back()?;
+            let skipped = buffer.queue.len() as u64;
+            buffer.queue.clear();
+            lock(&self.shared.stats).skipped += skipped;
+            newest
+        };
+        self.shared.room.notify_one();
+        Some(newest)
+    }
+
+    /// Whether a value is waiting.
+    pub fn is_new(&self) -> bool {
+        !lock(&self.shared.buffer).queue.is_empty()
+    }
+
+    /// Takes the oldest buffered value, if any.
+    pub fn try_recv(&self) -> Option<Sample<T>> {
+        let sample = lock(&self.shared.buffer).queue.pop_front()?;
+        self.shared.room.notify_one();
+        Some(sample)
+    }
+
+    /// The next value in order, waiting for one; `None` once the port is
+    /// closed.
+    pub async fn recv(&mut self) -> Option<Sample<T>> {
+        std::future::poll_fn(|cx| self.poll_recv(cx)).await
+    }
+
+    fn poll_recv(&self, cx: &mut Context<'_>) -> Poll<Option<Sample<T>>> {
+        let mut buffer = lock(&self.shared.buffer);
+        if let Some(sample) = buffer.queue.pop_front() {
+            drop(buffer);
+            self.shared.room.notify_one();
+            return Poll::Ready(Some(sample));
+        }
+        if buffer.closed {
+            return Poll::Ready(None);
+        }
+        buffer.waker = Some(cx.waker().clone());
+        Poll::Pending
+    }
+
+    /// Calls `callback` with every new value, on the port's task, before
+    /// it is buffered (keep it short: the port waits for it).
+    pub fn on_receive(&self, callback: impl FnMut(&Sample<T>) + Send + 'static) {
+        lock(&self.shared.callbacks).push(Box::new(callback));
+    }
+
+    /// The counters so far.
+    pub fn stats(&self) -> InPortStats {
+        *lock(&self.shared.stats)
+    }
+
+    /// The link's state, to watch for losses and reconnections.
+    pub fn link(&self) -> watch::Receiver<LinkStatus> {
+        self.shared.link.subscribe()
+    }
+
+    /// The queue consumed (the broker's name for a server-named one).
+    pub fn queue(&self) -> ShortStr {
+        lock(&self.shared.queue).clone()
+    }
+
+    /// Stops consuming and closes the connection. Values still buffered
+    /// are dropped; unacknowledged deliveries go back to the queue.
+    pub async fn close(mut self) {
+        self.stop.send_replace(true);
+        if let Some(task) = self.task.take() {
+            let _ = task.await;
+        }
+    }
+}
+
+impl<T: PortData> futures_core::Stream for InPort<T> {
+    type Item = Sample<T>;
+
+    fn poll_next(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Sample<T>>> {
+        self.get_mut().poll_recv(cx)
+    }
+}
+
+impl<T> Drop for InPort<T> {
+    fn drop(&mut self) {
+        self.stop.send_replace(true);
+    }
+}
+
+/// A consuming connection.
+struct InLink {
+    connection: Connection,
+    consumer: Consumer,
+    queue: ShortStr,
+}
+
+/// Connects, declares the topology and starts consuming.
+async fn open(connector: &Connector, profile: &PortProfile) -> Result<InLink> {
+    let setup = async {
+        let connection = connector.connect().await?;
+        let channel = connection.open_channel().await?;
+        if profile.prefetch > 0 {
+            channel
+                .basic_qos(profile.prefetch, BasicQosOptions::default())
+                .await?;
+        }
+        link::declare_exchange(&channel, profile).await?;
+        let queue = if profile.declare_queue || profile.queue.is_empty() {
+            link::declare_queue(&channel, profile).await?
+        } else {
+            ShortStr::try_from(profile.queue.as_str())?
+        };
+        let consumer = channel
+            .basic_consume(
+                &queue,
+                "",
+                BasicConsumeOptions::default(),
+                FieldTable::new(),
+            )
+            .await?;
+        Ok(InLink {
+            connection,
+            consumer,
+            queue,
+        })
+    };
+    match tokio::time::timeout(profile.broker.connection_timeout, setup).await {
+        Ok(result) => result,
+        Err(_) => Err(Error::ConnectTimeout),
+    }
+}
+
+struct Task<T> {
+    shared: Arc<Shared<T>>,
+    connector: Connector,
+    profile: Arc<PortProfile>,
+    senders: HashMap<String, Sequence>,
+    stop: watch::Receiver<bool>,
+}
+
+impl<T: PortData> Task<T> {
+    async fn run(mut self, first: InLink) {
+        let mut link = Some(first);
+        let mut failures = 0u32;
+        loop {
+            if let Some(mut current) = link.take() {
+                let error = match self.consume(&mut current).await {
+                    Some(error) => error,
+                    None => {
+                        let close = current.connection.close();
+                        let _ = tokio::time::timeout(CLOSE_TIMEOUT, close).await;
+                        break;
+                    }
+                };
+                self.shared.link.lost(&error);
+                failures = 0;
+                continue;
+            }
+            if failures > 0 {
+                let delay = self.profile.backoff.delay(failures - 1);
+                tokio::select! {
+                    _ = tokio::time::sleep(delay) => {}
+                    _ = self.stop.wait_for(|s| *s) => break,
+                }
+            }
+            let opened = tokio::select! {
+                opened = open(&self.connector, &self.profile) => opened,
+                _ = self.stop.wait_for(|s| *s) => break,
+            };
+            match opened {
+                Ok(opened) => {
+                    *lock(&self.shared.queue) = opened.queue.clone();
+                    self.shared.link.connected();
+                    link = Some(opened);
+                }
+                Err(error) => {
+                    self.shared.link.failed(&error);
+                    failures = failures.saturating_add(1);
+                }
+            }
+        }
+        let mut buffer = lock(&self.shared.buffer);
+        buffer.closed = true;
+        if let Some(waker) = buffer.waker.take() {
+            waker.wake();
+        }
+    }
+
+    /// Handles deliveries until the link fails (`Some(why)`) or the port
+    /// is closed (`None`).
+    async fn consume(&mut self, link: &mut InLink) -> Option<Error> {
+        loop {
+            let delivery = tokio::select! {
+                biased;
+                _ = self.stop.wait_for(|s| *s) => return None,
+                delivery = link.consumer.next() => delivery,
+            };
+            let Some(delivery) = delivery else {
+                return Some(match link.consumer.end_reason() {
+                    Some(ConsumerEnd::ChannelClosed(error)) => error,
+                    Some(ConsumerEnd::CancelledByBroker) => {
+                        Error::Protocol("the broker cancelled the consumer".to_owned())
+                    }
+                    _ => Error::Closed,
+                });
+            };
+            match self.handle(delivery).await {
+                Ok(true) => {}
+                Ok(false) => return None,
+                Err(error) => return Some(error),
+            }
+        }
+    }
+
+    /// One delivery; `Ok(false)` if the port was closed while it waited
+    /// for room.
+    async fn handle(&mut self, delivery: Delivery) -> Result<bool> {
+        let stamp = Stamp::read(delivery.properties.headers.as_ref());
+        let verdict = match (&stamp.port, stamp.seq) {
+            (Some(port), Some(seq)) => Some(
+                self.senders
+                    .entry(port.clone())
+                    .or_insert_with(|| Sequence::starting_at(seq))
+                    .observe(seq),
+            ),
+            _ => None,
+        };
+        if verdict == Some(Verdict::Duplicate) {
+            lock(&self.shared.stats).duplicates += 1;
+            delivery.ack().await?;
+            return Ok(true);
+        }
+        let arrived = link::now_ns();
+        let latency = stamp
+            .sent_ns
+            .and_then(|sent| u64::try_from(arrived.saturating_sub(sent)).ok())
+            .map(Duration::from_nanos);
+        {
+            let mut stats = lock(&self.shared.stats);
+            stats.received += 1;
+            match verdict {
+                Some(Verdict::New { gap }) => stats.lost += gap,
+                Some(Verdict::Late) => {
+                    stats.lost = stats.lost.saturating_sub(1);
+                    stats.out_of_order += 1;
+                }
+                _ => {}
+            }
+            if let Some(latency) = latency {
+                stats.latency.record(latency);
+            }
+        }
+        let value = match decode::<T>(&delivery) {
+            Ok(value) => value,
+            Err(error) => {
+                tracing::warn!(%error, "in-port dropped a message that does not decode");
+                lock(&self.shared.stats).decode_errors += 1;
+                delivery.ack().await?;
+                return Ok(true);
+            }
+        };
+        let sample = Sample {
+            value,
+            seq: stamp.seq,
+            sent_at: stamp
+                .sent_ns
+                .and_then(|ns| u64::try_from(ns).ok())
+                .map(|ns| UNIX_EPOCH + Duration::from_nanos(ns)),
+            latency,
+            redelivered: delivery.redelivered,
+        };
+        for callback in lock(&self.shared.callbacks).iter_mut() {
+            callback(&sample);
+        }
+        if !self.buffer(sample).await {
+            return Ok(false);
+        }
+        delivery.ack().await?;
+        Ok(true)
+    }
+
+    /// Buffers a value by the full policy; false if the port was closed
+    /// while waiting for room.
+    async fn buffer(&mut self, sample: Sample<T>) -> bool {
+        let capacity = self.profile.buffer_size.max(1);
+        let mut sample = Some(sample);
+        loop {
+            let room = self.shared.room.notified();
+            {
+                let mut buffer = lock(&self.shared.buffer);
+                if buffer.queue.len() >= capacity {
+                    match self.profile.full_policy {
+                        FullPolicy::BlockBroker => {}
+                        FullPolicy::DropOldest => {
+                            buffer.queue.pop_front();
+                            lock(&self.shared.stats).dropped += 1;
+                        }
+                        FullPolicy::DropNewest => {
+                            lock(&self.shared.stats).dropped += 1;
+                            return true;
+                        }
+                    }
+                }
+                if buffer.queue.len() < capacity {
+                    buffer.queue.extend(sample.take());
+                    if let Some(waker) = buffer.waker.take() {
+                        waker.wake();
+                    }
+                    return true;
+                }
+            }
+            tokio::select! {
+                _ = room => {}
+                _ = self.stop.wait_for(|s| *s) => return false,
+            }
+        }
+    }
+}
+
+/// Decodes a delivery's body, refusing one whose `type` names another type.
+fn decode<T: PortData>(delivery: &Delivery) -> Result<T, DataError> {
+    if let (Some(expected), Some(found)) = (T::TYPE_NAME, &delivery.properties.kind) {
+        if found.as_bytes() != expected.as_bytes() {
+            return Err(DataError::TypeMismatch {
+                expected,
+                found: found.to_string_lossy().into_owned(),
+            });
+        }
+    }
+    T::decode(delivery.body.clone())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sequence_counts_gaps_late_arrivals_and_duplicates() {
+        let mut seq = Sequence::starting_at(5);
+        assert_eq!(seq.observe(5), Verdict::New { gap: 0 });
+        assert_eq!(seq.observe(6), Verdict::New { gap: 0 });
+        assert_eq!(seq.observe(9), Verdict::New { gap: 2 });
+        assert_eq!(seq.observe(7), Verdict::Late);
+        assert_eq!(seq.observe(7), Verdict::Duplicate);
+        assert_eq!(seq.observe(9), Verdict::Duplicate);
+        assert_eq!(seq.observe(4), Verdict::Duplicate);
+        assert_eq!(seq.observe(8), Verdict::Late);
+        assert_eq!(seq.observe(10), Verdict::New { gap: 0 });
+    }
+
+    #[test]
+    fn latency_mean() {
+        let mut stats = LatencyStats::default();
+        assert_eq!(stats.mean(), Duration::ZERO);
+        stats.record(Duration::from_millis(2));
+        stats.record(Duration::from_millis(4));
+        assert_eq!(stats.mean(), Duration::from_millis(3));
+        assert_eq!(stats.min, Duration::from_millis(2));
+        assert_eq!(stats.max, Duration::from_millis(4));
+    }
+}

@@ -1,0 +1,494 @@
+//! [`PortProfile`]: a port's connector profile. It carries the settings of
+//! OpenRTM-aist's AMQP connector profile (broker host and port, exchange
+//! name and type, queue name, binding key, whether to declare and bind the
+//! queue, routing key; see [`PortProfile::from_properties`] for their
+//! property names) and Leveret's own: durability, publisher confirms,
+//! prefetch, the in-port's buffer and full policy, the put timeout, the
+//! unconfirmed window and the reconnection backoff. [`Connector`] says how
+//! a port (re)opens its connection: TCP, an embedded broker, or a function.
+
+use crate::error::{Error, Result};
+use crate::uri::ConnectionOptions;
+use crate::{Connection, FieldTable};
+use std::fmt;
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// An exchange type.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub enum ExchangeKind {
+    /// Routing key equal to the binding key (OpenRTM's default).
+    #[default]
+    Direct,
+    /// Every bound queue (broadcast).
+    Fanout,
+    /// Routing key matched against binding patterns.
+    Topic,
+    /// Header matching.
+    Headers,
+    /// Another type (a plugin's).
+    Other(String),
+}
+
+impl ExchangeKind {
+    /// The AMQP name of the type.
+    pub fn as_str(&self) -> &str {
+        match self {
+            ExchangeKind::Direct => "direct",
+            ExchangeKind::Fanout => "fanout",
+            ExchangeKind::Topic => "topic",
+            ExchangeKind::Headers => "headers",
+            ExchangeKind::Other(name) => name,
+        }
+    }
+
+    /// Parses a type as OpenRTM-aist's AMQP interface accepts it: the
+    /// name (`direct`, `AMQP::direct`), its initial, or its number
+    /// (0 direct, 1 fanout, 2 topic, 3 headers); anything else is taken as
+    /// a plugin's type name.
+    pub fn parse(text: &str) -> Self {
+        let name = text.strip_prefix("AMQP::").unwrap_or(text);
+        match name {
+            "0" | "d" | "D" | "direct" => ExchangeKind::Direct,
+            "1" | "f" | "F" | "fanout" => ExchangeKind::Fanout,
+            "2" | "t" | "T" | "topic" => ExchangeKind::Topic,
+            "3" | "h" | "H" | "headers" => ExchangeKind::Headers,
+            other => ExchangeKind::Other(other.to_owned()),
+        }
+    }
+}
+
+impl fmt::Display for ExchangeKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// What an in-port does with a new value when its buffer is full.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FullPolicy {
+    /// Take nothing more until there is room: deliveries stay
+    /// unacknowledged, so the broker stops at the prefetch count and keeps
+    /// the rest queued. Nothing is lost; the publisher's queue grows.
+    BlockBroker,
+    /// Drop the oldest buffered value (OpenRTM's `overwrite`): a reader of
+    /// the latest value never waits behind stale ones.
+    #[default]
+    DropOldest,
+    /// Drop the new value (OpenRTM's `do_nothing`).
+    DropNewest,
+}
+
+impl FullPolicy {
+    /// Parses OpenRTM's `buffer.write.full_policy` values (`block`,
+    /// `overwrite`, `do_nothing`) and this crate's names.
+    pub fn parse(text: &str) -> Option<Self> {
+        match text.to_ascii_lowercase().as_str() {
+            "block" | "block_broker" | "blockbroker" => Some(FullPolicy::BlockBroker),
+            "overwrite" | "drop_oldest" | "dropoldest" => Some(FullPolicy::DropOldest),
+            "do_nothing" | "drop_newest" | "dropnewest" => Some(FullPolicy::DropNewest),
+            _ => None,
+        }
+    }
+}
+
+/// Reconnection delays: the first retry after `initial`, doubling up to
+/// `max`; back to `initial` once a link is up again.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Backoff {
+    /// Delay before the first retry.
+    pub initial: Duration,
+    /// Longest delay between retries.
+    pub max: Duration,
+}
+
+impl Default for Backoff {
+    fn default() -> Self {
+        Backoff {
+            initial: Duration::from_millis(50),
+            max: Duration::from_secs(5),
+        }
+    }
+}
+
+impl Backoff {
+    /// The delay after `failures` consecutive failed attempts (0 = the
+    /// first retry).
+    pub fn delay(&self, failures: u32) -> Duration {
+        let factor = 1u32.checked_shl(failures.min(31)).unwrap_or(u32::MAX);
+        self.initial.saturating_mul(factor).min(self.max)
+    }
+}
+
+/// A port's connector profile.
+#[derive(Debug, Clone)]
+pub struct PortProfile {
+    /// The broker (host, port, credentials, vhost, heartbeat…).
+    pub broker: ConnectionOptions,
+    /// Exchange to publish to and bind to; empty for the default exchange
+    /// (then `routing_key` names the queue). Names starting with `amq.`
+    /// are used as they are, never declared.
+    pub exchange: String,
+    /// The exchange's type, when it is declared.
+    pub exchange_kind: ExchangeKind,
+    /// The in-port's queue; empty for a server-named, exclusive queue that
+    /// lasts as long as one connection (messages sent while the in-port is
+    /// reconnecting are then not kept for it).
+    pub queue: String,
+    /// Key binding the queue to the exchange.
+    pub binding_key: String,
+    /// Declare the queue and bind it (OpenRTM's `bind`). The in-port
+    /// always declares a server-named queue; an out-port declares a named
+    /// one, so messages published before the in-port starts are kept.
+    pub declare_queue: bool,
+    /// Key the out-port publishes with.
+    pub routing_key: String,
+    /// Declare the exchange and queue durable (they survive a broker
+    /// restart).
+    pub durable: bool,
+    /// Publish persistent messages (delivery mode 2): in a durable queue
+    /// they survive a broker restart.
+    pub persistent: bool,
+    /// Extra `queue.declare` arguments (`x-expires`, `x-max-length`…).
+    pub queue_arguments: FieldTable,
+    /// Publisher confirms: `put` returns once the broker has the message,
+    /// and unconfirmed messages are resent after a reconnection. Without
+    /// them a message in flight when the link drops may be lost.
+    pub confirms: bool,
+    /// Deliveries the broker sends the in-port before it acknowledges any.
+    pub prefetch: u16,
+    /// Values the in-port buffers for its reader.
+    pub buffer_size: usize,
+    /// What the in-port does when the buffer is full.
+    pub full_policy: FullPolicy,
+    /// Longest time `OutPort::put` may take.
+    pub put_timeout: Duration,
+    /// Messages the out-port keeps until confirmed (and resends after a
+    /// reconnection); `put` reports `SendFull` when it stays full.
+    pub max_unconfirmed: usize,
+    /// Reconnection delays.
+    pub backoff: Backoff,
+}
+
+impl Default for PortProfile {
+    fn default() -> Self {
+        let broker = ConnectionOptions {
+            connection_timeout: Duration::from_secs(10),
+            heartbeat: 10,
+            ..ConnectionOptions::default()
+        };
+        PortProfile {
+            broker,
+            exchange: String::new(),
+            exchange_kind: ExchangeKind::Direct,
+            queue: String::new(),
+            binding_key: String::new(),
+            declare_queue: true,
+            routing_key: String::new(),
+            durable: false,
+            persistent: false,
+            queue_arguments: FieldTable::new(),
+            confirms: true,
+            prefetch: 64,
+            buffer_size: 128,
+            full_policy: FullPolicy::DropOldest,
+            put_timeout: Duration::from_millis(500),
+            max_unconfirmed: 1024,
+            backoff: Backoff::default(),
+        }
+    }
+}
+
+impl PortProfile {
+    /// A profile for the broker at `uri` (`amqp://user:pass@host:port/vhost`)
+    /// with the defaults: default exchange, confirms on, prefetch 64, a
+    /// buffer of 128 dropping the oldest, a 500 ms put timeout.
+    pub fn new(uri: &str) -> Result<Self> {
+        let mut broker = ConnectionOptions::from_uri(uri)?;
+        if !uri.contains("connection_timeout=") {
+            broker.connection_timeout = Duration::from_secs(10);
+        }
+        if !uri.contains("heartbeat=") {
+            broker.heartbeat = 10;
+        }
+        Ok(PortProfile {
+            broker,
+            ..PortProfile::default()
+        })
+    }
+
+    /// Reads OpenRTM-aist AMQP connector properties: `host`, `msport`,
+    /// `exname`, `extype`, `qname`, `bkey`, `bind`, `rkey` (each also
+    /// accepted with a `dataport.` prefix), plus `url` (an `amqp://` URI
+    /// replacing host and port), `durable`, `persistent`, `confirms`,
+    /// `prefetch`, `buffer.length`, `buffer.write.full_policy`,
+    /// `buffer.write.timeout` (seconds, as OpenRTM writes it) and
+    /// `max_unconfirmed`. Unknown keys are ignored.
+    pub fn from_properties<'a>(
+        properties: impl IntoIterator<Item = (&'a str, &'a str)>,
+    ) -> Result<Self> {
+        let mut profile = PortProfile::default();
+        let bad = |key: &str, value: &str| {
+            Error::InvalidArgument(format!("connector property {key}={value:?}"))
+        };
+        let flag = |key: &str, value: &str| match value {
+            "true" | "t" | "True" | "TRUE" | "T" | "1" | "yes" => Ok(true),
+            "false" | "f" | "False" | "FALSE" | "F" | "0" | "no" => Ok(false),
+            _ => Err(bad(key, value)),
+        };
+        for (key, value) in properties {
+            let name = key.strip_prefix("dataport.").unwrap_or(key);
+            match name {
+                "url" => {
+                    let timeout = profile.broker.connection_timeout;
+                    profile.broker = ConnectionOptions::from_uri(value)?;
+                    profile.broker.connection_timeout = timeout;
+                }
+                "host" => profile.broker.host = value.to_owned(),
+                "msport" => profile.broker.port = value.parse().map_err(|_| bad(key, value))?,
+                "exname" => profile.exchange = value.to_owned(),
+                "extype" => profile.exchange_kind = ExchangeKind::parse(value),
+                "qname" => profile.queue = value.to_owned(),
+                "bkey" => profile.binding_key = value.to_owned(),
+                "bind" => profile.declare_queue = flag(key, value)?,
+                "rkey" => profile.routing_key = value.to_owned(),
+                "durable" => profile.durable = flag(key, value)?,
+                "persistent" => profile.persistent = flag(key, value)?,
+                "confirms" => profile.confirms = flag(key, value)?,
+                "prefetch" => profile.prefetch = value.parse().map_err(|_| bad(key, value))?,
+                "buffer.length" => {
+                    profile.buffer_size = value.parse().map_err(|_| bad(key, value))?
+                }
+                "buffer.write.full_policy" => {
+                    profile.full_policy = FullPolicy::parse(value).ok_or_else(|| bad(key, value))?
+                }
+                "buffer.write.timeout" => {
+                    let seconds: f64 = value.parse().map_err(|_| bad(key, value))?;
+                    profile.put_timeout =
+                        Duration::try_from_secs_f64(seconds).map_err(|_| bad(key, value))?;
+                }
+                "max_unconfirmed" => {
+                    profile.max_unconfirmed = value.parse().map_err(|_| bad(key, value))?
+                }
+                _ => {}
+            }
+        }
+        Ok(profile)
+    }
+
+    /// Sets the exchange and its type.
+    pub fn exchange(mut self, name: impl Into<String>, kind: ExchangeKind) -> Self {
+        self.exchange = name.into();
+        self.exchange_kind = kind;
+        self
+    }
+
+    /// Sets the in-port's queue name.
+    pub fn queue(mut self, name: impl Into<String>) -> Self {
+        self.queue = name.into();
+        self
+    }
+
+    /// Sets the binding key.
+    pub fn binding_key(mut self, key: impl Into<String>) -> Self {
+        self.binding_key = key.into();
+        self
+    }
+
+    /// Sets the routing key.
+    pub fn routing_key(mut self, key: impl Into<String>) -> Self {
+        self.routing_key = key.into();
+        self
+    }
+
+    /// Durable exchange and queue, persistent messages.
+    pub fn durable(mut self, durable: bool) -> Self {
+        self.durable = durable;
+        self.persistent = durable;
+        self
+    }
+
+    /// Publisher confirms on or off.
+    pub fn confirms(mut self, confirms: bool) -> Self {
+        self.confirms = confirms;
+        self
+    }
+
+    /// Sets the prefetch count.
+    pub fn prefetch(mut self, prefetch: u16) -> Self {
+        self.prefetch = prefetch;
+        self
+    }
+
+    /// Sets the in-port buffer and its full policy.
+    pub fn buffer(mut self, size: usize, policy: FullPolicy) -> Self {
+        self.buffer_size = size;
+        self.full_policy = policy;
+        self
+    }
+
+    /// Sets the put timeout.
+    pub fn put_timeout(mut self, timeout: Duration) -> Self {
+        self.put_timeout = timeout;
+        self
+    }
+
+    /// Sets the reconnection backoff.
+    pub fn backoff(mut self, initial: Duration, max: Duration) -> Self {
+        self.backoff = Backoff { initial, max };
+        self
+    }
+}
+
+type ConnectFuture = Pin<Box<dyn Future<Output = Result<Connection>> + Send>>;
+
+/// How a port opens (and, after a loss, reopens) its connection. Cheap to
+/// clone.
+#[derive(Clone)]
+pub struct Connector {
+    connect: Arc<dyn Fn() -> ConnectFuture + Send + Sync>,
+    describe: Arc<str>,
+}
+
+impl fmt::Debug for Connector {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_tuple("Connector").field(&self.describe).finish()
+    }
+}
+
+impl Connector {
+    /// TCP to the broker `options` name.
+    pub fn tcp(options: ConnectionOptions) -> Self {
+        let describe = format!("amqp://{}:{}", options.host, options.port);
+        let options = Arc::new(options);
+        Connector {
+            connect: Arc::new(move || {
+                let options = ConnectionOptions::clone(&options);
+                Box::pin(Connection::connect_with(options))
+            }),
+            describe: describe.into(),
+        }
+    }
+
+    /// Connections made by `connect` (for a transport or setup of one's
+    /// own).
+    pub fn from_fn<F, Fut>(connect: F) -> Self
+    where
+        F: Fn() -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = Result<Connection>> + Send + 'static,
+    {
+        Connector {
+            connect: Arc::new(move || Box::pin(connect())),
+            describe: "custom".into(),
+        }
+    }
+
+    /// In-process connections to an embedded Leveret (user `guest`). The
+    /// connector holds the broker weakly: once the last `Arc` is gone (or
+    /// unwrapped to call `shutdown`), reconnecting fails.
+    #[cfg(feature = "embedded")]
+    pub fn in_process(broker: &Arc<leveret_broker::BrokerHandle>) -> Self {
+        Connector::in_process_with(broker, ConnectionOptions::default())
+    }
+
+    /// [`Connector::in_process`] with explicit options (credentials,
+    /// vhost, tuning).
+    #[cfg(feature = "embedded")]
+    pub fn in_process_with(
+        broker: &Arc<leveret_broker::BrokerHandle>,
+        options: ConnectionOptions,
+    ) -> Self {
+        let broker = Arc::downgrade(broker);
+        let options = Arc::new(options);
+        Connector {
+            connect: Arc::new(move || {
+                let broker = broker.clone();
+                let options = ConnectionOptions::clone(&options);
+                Box::pin(async move {
+                    let Some(broker) = broker.upgrade() else {
+                        return Err(Error::io(std::io::Error::new(
+                            std::io::ErrorKind::NotConnected,
+                            "the embedded broker is gone",
+                        )));
+                    };
+                    // The pipe is opened at once; the broker is not kept
+                    // alive by the handshake.
+                    Connection::in_process_with(&broker, options).await
+                })
+            }),
+            describe: "in-process".into(),
+        }
+    }
+
+    /// Opens a connection.
+    pub async fn connect(&self) -> Result<Connection> {
+        (self.connect)().await
+    }
+}
+
+impl From<&PortProfile> for Connector {
+    fn from(profile: &PortProfile) -> Self {
+        Connector::tcp(profile.broker.clone())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn openrtm_properties() {
+        let profile = PortProfile::from_properties([
+            ("dataport.host", "robot.local"),
+            ("msport", "5673"),
+            ("exname", "poses"),
+            ("extype", "1"),
+            ("qname", "pose-in"),
+            ("bkey", "pose"),
+            ("bind", "True"),
+            ("rkey", "pose"),
+            ("buffer.length", "8"),
+            ("buffer.write.full_policy", "block"),
+            ("buffer.write.timeout", "0.25"),
+            ("durable", "1"),
+        ])
+        .unwrap();
+        assert_eq!(profile.broker.host, "robot.local");
+        assert_eq!(profile.broker.port, 5673);
+        assert_eq!(profile.exchange, "poses");
+        assert_eq!(profile.exchange_kind, ExchangeKind::Fanout);
+        assert_eq!(profile.queue, "pose-in");
+        assert_eq!(profile.binding_key, "pose");
+        assert!(profile.declare_queue);
+        assert_eq!(profile.routing_key, "pose");
+        assert_eq!(profile.buffer_size, 8);
+        assert_eq!(profile.full_policy, FullPolicy::BlockBroker);
+        assert_eq!(profile.put_timeout, Duration::from_millis(250));
+        assert!(profile.durable && !profile.persistent);
+        assert!(PortProfile::from_properties([("msport", "x")]).is_err());
+    }
+
+    #[test]
+    fn exchange_kinds_as_openrtm_names_them() {
+        assert_eq!(ExchangeKind::parse("0"), ExchangeKind::Direct);
+        assert_eq!(ExchangeKind::parse("AMQP::topic"), ExchangeKind::Topic);
+        assert_eq!(ExchangeKind::parse("H"), ExchangeKind::Headers);
+        assert_eq!(
+            ExchangeKind::parse("x-consistent-hash"),
+            ExchangeKind::Other("x-consistent-hash".into())
+        );
+    }
+
+    #[test]
+    fn backoff_doubles_up_to_max() {
+        let backoff = Backoff {
+            initial: Duration::from_millis(10),
+            max: Duration::from_millis(50),
+        };
+        let delays: Vec<_> = (0..5).map(|n| backoff.delay(n).as_millis()).collect();
+        assert_eq!(delays, [10, 20, 40, 50, 50]);
+        assert_eq!(backoff.delay(1000), Duration::from_millis(50));
+    }
+}
