@@ -296,21 +296,14 @@ async fn read_takes_the_newest_and_callbacks_see_everything() {
     for i in 1..=10u32 {
         assert_eq!(output.put(&i).await, PortStatus::Ok);
     }
-    // Wait for the tenth through the stream, then put it back by reading
-    // the rest: nine are buffered behind it.
+    // Take the first through the stream, then wait (on the counters) for
+    // the other nine to be buffered behind it.
     let first = within("first", input.recv()).await.unwrap();
     assert_eq!(first.value, 1);
-    let mut link = input.link();
-    assert!(link.borrow_and_update().up);
-    let _ = within("all ten", async {
-        loop {
-            if seen.lock().unwrap().len() == 10 {
-                break;
-            }
-            tokio::task::yield_now().await;
-        }
-    })
-    .await;
+    let mut stats = input.watch_stats();
+    within("all ten", stats.wait_for(|s| s.received == 10))
+        .await
+        .unwrap();
     let newest = input.read().expect("a new value");
     assert_eq!(newest.value, 10);
     assert_eq!(input.stats().skipped, 8);
@@ -335,13 +328,11 @@ async fn full_policies() {
             assert_eq!(output.put(&i).await, PortStatus::Ok);
         }
         within("sixth value", arrived.notified()).await;
-        // The callback runs before buffering: wait for the buffer too.
-        let _ = within("buffered", async {
-            while input.stats().dropped < 3 {
-                tokio::task::yield_now().await;
-            }
-        })
-        .await;
+        // The callback runs before buffering: wait on the counters too.
+        let mut stats = input.watch_stats();
+        within("sixth handled", stats.wait_for(|s| s.received == 6))
+            .await
+            .unwrap();
         let mut kept = Vec::new();
         while let Some(sample) = input.try_recv() {
             kept.push(sample.value);

@@ -171,7 +171,7 @@ struct Shared<T> {
     buffer: Mutex<Buffer<T>>,
     /// Signalled when the reader makes room.
     room: Notify,
-    stats: Mutex<InPortStats>,
+    stats: watch::Sender<InPortStats>,
     callbacks: Mutex<Vec<Callback<T>>>,
     link: Link,
     queue: Mutex<ShortStr>,
@@ -193,7 +193,7 @@ impl<T> std::fmt::Debug for InPort<T> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("InPort")
             .field("queue", &*lock(&self.shared.queue))
-            .field("stats", &*lock(&self.shared.stats))
+            .field("stats", &*self.shared.stats.borrow())
             .finish_non_exhaustive()
     }
 }
@@ -216,7 +216,7 @@ impl<T: PortData> InPort<T> {
                 closed: false,
             }),
             room: Notify::new(),
-            stats: Mutex::new(InPortStats::default()),
+            stats: watch::Sender::new(InPortStats::default()),
             callbacks: Mutex::new(Vec::new()),
             link: Link::new(),
             queue: Mutex::new(first.queue.clone()),
@@ -246,7 +246,7 @@ impl<T: PortData> InPort<T> {
             let newest = buffer.queue.pop_back()?;
             let skipped = buffer.queue.len() as u64;
             buffer.queue.clear();
-            lock(&self.shared.stats).skipped += skipped;
+            self.shared.stats.send_modify(|s| s.skipped += skipped);
             newest
         };
         self.shared.room.notify_one();
@@ -293,7 +293,13 @@ impl<T: PortData> InPort<T> {
 
     /// The counters so far.
     pub fn stats(&self) -> InPortStats {
-        *lock(&self.shared.stats)
+        *self.shared.stats.borrow()
+    }
+
+    /// The counters as they change (after each message is handled), to
+    /// wait for a condition on them.
+    pub fn watch_stats(&self) -> watch::Receiver<InPortStats> {
+        self.shared.stats.subscribe()
     }
 
     /// The link's state, to watch for losses and reconnections.
@@ -469,7 +475,7 @@ impl<T: PortData> Task<T> {
             _ => None,
         };
         if verdict == Some(Verdict::Duplicate) {
-            lock(&self.shared.stats).duplicates += 1;
+            self.shared.stats.send_modify(|s| s.duplicates += 1);
             delivery.ack().await?;
             return Ok(true);
         }
@@ -478,8 +484,7 @@ impl<T: PortData> Task<T> {
             .sent_ns
             .and_then(|sent| u64::try_from(arrived.saturating_sub(sent)).ok())
             .map(Duration::from_nanos);
-        {
-            let mut stats = lock(&self.shared.stats);
+        let count = |stats: &mut InPortStats| {
             stats.received += 1;
             match verdict {
                 Some(Verdict::New { gap }) => stats.lost += gap,
@@ -492,12 +497,15 @@ impl<T: PortData> Task<T> {
             if let Some(latency) = latency {
                 stats.latency.record(latency);
             }
-        }
+        };
         let value = match decode::<T>(&delivery) {
             Ok(value) => value,
             Err(error) => {
                 tracing::warn!(%error, "in-port dropped a message that does not decode");
-                lock(&self.shared.stats).decode_errors += 1;
+                self.shared.stats.send_modify(|s| {
+                    count(s);
+                    s.decode_errors += 1;
+                });
                 delivery.ack().await?;
                 return Ok(true);
             }
@@ -518,6 +526,9 @@ impl<T: PortData> Task<T> {
         if !self.buffer(sample).await {
             return Ok(false);
         }
+        // Counted once buffered (or dropped by the policy), so a watcher
+        // of the counters finds the value in the buffer.
+        self.shared.stats.send_modify(count);
         delivery.ack().await?;
         Ok(true)
     }
@@ -536,10 +547,10 @@ impl<T: PortData> Task<T> {
                         FullPolicy::BlockBroker => {}
                         FullPolicy::DropOldest => {
                             buffer.queue.pop_front();
-                            lock(&self.shared.stats).dropped += 1;
+                            self.shared.stats.send_modify(|s| s.dropped += 1);
                         }
                         FullPolicy::DropNewest => {
-                            lock(&self.shared.stats).dropped += 1;
+                            self.shared.stats.send_modify(|s| s.dropped += 1);
                             return true;
                         }
                     }
