@@ -1,0 +1,182 @@
+//! What `/proc` says about a local broker: its resident memory
+//! (`VmRSS`), its CPU time, and which process listens on a TCP port (the
+//! socket's inode in `/proc/net/tcp*`, then the process holding it among
+//! `/proc/*/fd`; needs the right to read the broker's fds, i.e. the same
+//! user or root). `pgrep`-style lookup by name is the fallback.
+
+use std::fs;
+use std::time::Instant;
+
+/// Clock ticks per second of `/proc/*/stat` times (`USER_HZ`, 100 on
+/// every Linux architecture that matters here).
+const TICKS_PER_SECOND: f64 = 100.0;
+
+/// Resident memory of a process, bytes.
+pub fn rss_bytes(pid: u32) -> Option<u64> {
+    let status = fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+/// User plus system CPU time of a process, seconds.
+pub fn cpu_seconds(pid: u32) -> Option<f64> {
+    let stat = fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // The command name may hold spaces and parentheses: fields are counted
+    // from the last ')'.
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    // After ')': state is field 3, utime field 14, stime field 15.
+    let utime: f64 = fields.get(11)?.parse().ok()?;
+    let stime: f64 = fields.get(12)?.parse().ok()?;
+    Some((utime + stime) / TICKS_PER_SECOND)
+}
+
+/// Measures a process's CPU use over an interval.
+#[derive(Debug, Clone, Copy)]
+pub struct CpuMeter {
+    pid: u32,
+    start_cpu: f64,
+    start: Instant,
+}
+
+impl CpuMeter {
+    /// Starts measuring `pid`, if its stat is readable.
+    pub fn start(pid: u32) -> Option<Self> {
+        Some(CpuMeter {
+            pid,
+            start_cpu: cpu_seconds(pid)?,
+            start: Instant::now(),
+        })
+    }
+
+    /// CPU use since the start, in percent of one core.
+    pub fn percent(&self) -> Option<f64> {
+        let used = cpu_seconds(self.pid)? - self.start_cpu;
+        let elapsed = self.start.elapsed().as_secs_f64();
+        (elapsed > 0.0).then(|| 100.0 * used / elapsed)
+    }
+}
+
+/// The inodes of sockets listening on `port` (IPv4 and IPv6).
+fn listening_inodes(port: u16) -> Vec<u64> {
+    let mut inodes = Vec::new();
+    for table in ["/proc/net/tcp", "/proc/net/tcp6"] {
+        let Ok(text) = fs::read_to_string(table) else {
+            continue;
+        };
+        for line in text.lines().skip(1) {
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            if fields.len() < 10 || fields[3] != "0A" {
+                continue;
+            }
+            let Some(local_port) = fields[1]
+                .rsplit(':')
+                .next()
+                .and_then(|p| u16::from_str_radix(p, 16).ok())
+            else {
+                continue;
+            };
+            if local_port == port {
+                if let Ok(inode) = fields[9].parse() {
+                    inodes.push(inode);
+                }
+            }
+        }
+    }
+    inodes
+}
+
+/// The process listening on a local TCP port.
+pub fn pid_listening_on(port: u16) -> Option<u32> {
+    let inodes = listening_inodes(port);
+    if inodes.is_empty() {
+        return None;
+    }
+    let targets: Vec<String> = inodes.iter().map(|i| format!("socket:[{i}]")).collect();
+    for entry in fs::read_dir("/proc").ok()?.flatten() {
+        let Some(pid) = entry
+            .file_name()
+            .to_str()
+            .and_then(|s| s.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        let Ok(fds) = fs::read_dir(entry.path().join("fd")) else {
+            continue;
+        };
+        for fd in fds.flatten() {
+            if let Ok(link) = fs::read_link(fd.path()) {
+                if targets.iter().any(|t| link.as_os_str() == t.as_str()) {
+                    return Some(pid);
+                }
+            }
+        }
+    }
+    None
+}
+
+/// Processes whose command name is `name` (as `pgrep -x` would).
+pub fn pids_named(name: &str) -> Vec<u32> {
+    let mut pids = Vec::new();
+    let Ok(dir) = fs::read_dir("/proc") else {
+        return pids;
+    };
+    for entry in dir.flatten() {
+        let Some(pid) = entry
+            .file_name()
+            .to_str()
+            .and_then(|s| s.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if let Ok(comm) = fs::read_to_string(entry.path().join("comm")) {
+            if comm.trim_end() == name {
+                pids.push(pid);
+            }
+        }
+    }
+    pids.sort_unstable();
+    pids
+}
+
+/// The broker process behind an AMQP URL: whoever listens on its port if
+/// the host is local, else the only `beam.smp` or `leveret` process.
+pub fn find_broker_pid(url: &str) -> Option<u32> {
+    let options = leveret_client::ConnectionOptions::from_uri(url).ok()?;
+    let local = matches!(
+        options.host.as_str(),
+        "localhost" | "127.0.0.1" | "::1" | "0.0.0.0"
+    );
+    if local {
+        if let Some(pid) = pid_listening_on(options.port) {
+            return Some(pid);
+        }
+    }
+    for name in ["beam.smp", "leveret"] {
+        if let [pid] = pids_named(name)[..] {
+            return Some(pid);
+        }
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reads_our_own_process() {
+        let me = std::process::id();
+        assert!(rss_bytes(me).unwrap() > 0);
+        assert!(cpu_seconds(me).is_some());
+        assert!(CpuMeter::start(me).is_some());
+    }
+
+    #[test]
+    fn finds_the_listener_of_a_port() {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        assert_eq!(pid_listening_on(port), Some(std::process::id()));
+    }
+}

@@ -1,0 +1,218 @@
+//! Smoke tests: each subcommand runs briefly against a Leveret broker
+//! started in-process on port 0 and completes; the broadcast-quality run
+//! loses nothing. No timing is asserted (benchmarks never are).
+
+use clap::Parser;
+use leveret_broker::{Broker, BrokerHandle};
+use leveret_perf::cli::{execute, Cli};
+use leveret_perf::load::ExchangeKind;
+use leveret_perf::{compare, memory, quality, rtt, throughput};
+use std::path::PathBuf;
+
+async fn broker() -> (BrokerHandle, String) {
+    let handle = Broker::builder()
+        .listen("127.0.0.1:0".parse().unwrap())
+        .start()
+        .await
+        .expect("broker starts");
+    let url = format!("amqp://guest:guest@{}/%2f", handle.local_addrs()[0]);
+    (handle, url)
+}
+
+fn scratch_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("leveret-perf-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn throughput_from_the_command_line() {
+    let (handle, url) = broker().await;
+    let cli = Cli::try_parse_from([
+        "leveret-perf",
+        "throughput",
+        "--url",
+        &url,
+        "--duration",
+        "1",
+        "--warmup",
+        "0",
+    ])
+    .unwrap();
+    execute(&cli.command).await.unwrap();
+    handle.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn throughput_with_confirms_acks_and_fanout() {
+    let (handle, url) = broker().await;
+    let dir = scratch_dir("throughput");
+    let args = throughput::ThroughputArgs {
+        url: url.clone(),
+        publishers: 2,
+        consumers: 2,
+        queues: 2,
+        persistent: true,
+        confirm: 64,
+        ack: true,
+        prefetch: 100,
+        multi_ack: 10,
+        duration: 0.5,
+        warmup: 0.2,
+        json: Some(dir.join("t.json")),
+        quiet: true,
+        ..Default::default()
+    };
+    let report = throughput::run(&args).await.unwrap();
+    assert!(report.published > 0);
+    assert!(report.drained);
+    assert_eq!(report.totals.lost, 0);
+    assert_eq!(report.totals.duplicates, 0);
+    assert_eq!(report.acked, report.published);
+    assert!(dir.join("t.json").exists());
+
+    let fanout = throughput::ThroughputArgs {
+        url,
+        exchange: ExchangeKind::Fanout,
+        queues: 4,
+        consumers: 4,
+        size: 64,
+        rate: 2000.0,
+        duration: 0.5,
+        warmup: 0.0,
+        quiet: true,
+        ..Default::default()
+    };
+    let report = throughput::run(&fanout).await.unwrap();
+    assert!(report.drained);
+    assert_eq!(report.totals.lost, 0);
+    assert_eq!(report.totals.gaps + report.totals.out_of_order, 0);
+    assert_eq!(report.totals.received, 4 * report.published);
+    handle.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rtt_one_in_flight_and_at_a_rate() {
+    let (handle, url) = broker().await;
+    let dir = scratch_dir("rtt");
+    for rate in [0.0, 500.0] {
+        let args = rtt::RttArgs {
+            url: url.clone(),
+            sizes: vec![8, 16, 128],
+            count: 30,
+            warmup: 5,
+            rate,
+            svg: Some(dir.join("rtt.svg")),
+            json: Some(dir.join("rtt.json")),
+            quiet: true,
+            ..Default::default()
+        };
+        let report = rtt::run(&args).await.unwrap();
+        assert_eq!(report.sizes.len(), 3);
+        for size in &report.sizes {
+            assert_eq!(size.lost, 0);
+            assert_eq!(size.stats.count, 30);
+            assert!(size.stats.min_us <= size.stats.median_us);
+            assert!(size.stats.median_us <= size.stats.max_us);
+        }
+    }
+    let svg = std::fs::read_to_string(dir.join("rtt.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("128 B"));
+    handle.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn quality_loses_nothing() {
+    let (handle, url) = broker().await;
+    let args = quality::QualityArgs {
+        url,
+        count: 2000,
+        rate: 0.0,
+        repeat: 2,
+        quiet: true,
+        ..Default::default()
+    };
+    let report = quality::run(&args).await.unwrap();
+    assert!(report.drained);
+    assert_eq!(report.delivered, 4 * 2 * 2000);
+    assert_eq!(report.lost, 0);
+    assert_eq!(report.order_errors, 0);
+    assert_eq!(report.duplicates, 0);
+    assert_eq!(report.rows.len(), 8);
+    handle.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn memory_of_an_in_process_broker() {
+    let (handle, url) = broker().await;
+    let args = memory::MemoryArgs {
+        url,
+        pid: Some(std::process::id()),
+        connections: 20,
+        backlog: 5000,
+        settle: 0.0,
+        quiet: true,
+        ..Default::default()
+    };
+    let report = memory::run(&args).await.unwrap();
+    assert!(report.idle_bytes > 0);
+    assert_eq!(report.connections.unwrap().connections, 20);
+    assert_eq!(report.backlog.unwrap().messages, 5000);
+    handle.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn compare_two_brokers() {
+    let (a, url_a) = broker().await;
+    let (b, url_b) = broker().await;
+    let dir = scratch_dir("compare");
+    let me = std::process::id();
+    let args = compare::CompareArgs {
+        urls: vec![url_a, url_b],
+        leveret_pid: Some(me),
+        rabbit_pid: Some(me),
+        duration: 0.3,
+        warmup: 0.0,
+        rtt_count: 20,
+        rtt_warmup: 2,
+        memory_connections: Some(5),
+        memory_backlog: Some(1000),
+        quality: Some(200),
+        quality_rate: 0.0,
+        only: [
+            "noack", "confirm", "fanout", "rtt16", "idle", "conns", "backlog", "quality",
+        ]
+        .map(String::from)
+        .to_vec(),
+        settle: 0.0,
+        json: Some(dir.join("compare.json")),
+        svg: Some(dir.join("compare.svg")),
+        ..Default::default()
+    };
+    let report = compare::run(&args).await.unwrap();
+    for scenario in [
+        "noack", "confirm", "fanout", "rtt16", "idle", "conns", "backlog", "quality",
+    ] {
+        let rows: Vec<_> = report
+            .figures
+            .iter()
+            .filter(|f| f.scenario == scenario)
+            .collect();
+        assert!(!rows.is_empty(), "{scenario}");
+        assert!(
+            rows.iter().all(|f| f.a.is_some() && f.b.is_some()),
+            "{scenario}"
+        );
+    }
+    let lost: Vec<_> = report
+        .figures
+        .iter()
+        .filter(|f| f.figure == "lost")
+        .collect();
+    assert!(lost.iter().all(|f| f.a == Some(0.0) && f.b == Some(0.0)));
+    assert!(dir.join("compare.json").exists());
+    let svg = std::fs::read_to_string(dir.join("compare.svg")).unwrap();
+    assert!(svg.contains("round trip, 16 B"));
+    a.shutdown().await;
+    b.shutdown().await;
+}
