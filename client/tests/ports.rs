@@ -572,12 +572,17 @@ async fn restart(addr: SocketAddr, dir: &std::path::Path) -> BrokerHandle {
 struct Proxy {
     addr: SocketAddr,
     connections: Arc<Mutex<Vec<AbortHandle>>>,
-    accept: AbortHandle,
+    accept: tokio::task::JoinHandle<()>,
 }
 
 impl Proxy {
     async fn start(upstream: SocketAddr) -> Proxy {
-        let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind");
+        Proxy::start_at("127.0.0.1:0".parse().unwrap(), upstream).await
+    }
+
+    /// A proxy listening on `addr` (a port 0 picks one).
+    async fn start_at(addr: SocketAddr, upstream: SocketAddr) -> Proxy {
+        let listener = TcpListener::bind(addr).await.expect("bind");
         let addr = listener.local_addr().unwrap();
         let connections = Arc::new(Mutex::new(Vec::new()));
         let tracked = Arc::clone(&connections);
@@ -591,8 +596,7 @@ impl Proxy {
                 });
                 tracked.lock().unwrap().push(relay.abort_handle());
             }
-        })
-        .abort_handle();
+        });
         Proxy {
             addr,
             connections,
@@ -611,6 +615,17 @@ impl Proxy {
     }
 }
 
+impl Proxy {
+    /// Stops listening (the port is free again on return) and cuts every
+    /// connection: the broker is unreachable until a proxy listens on the
+    /// address again.
+    async fn stop(&mut self) {
+        self.accept.abort();
+        let _ = (&mut self.accept).await;
+        self.cut();
+    }
+}
+
 impl Drop for Proxy {
     fn drop(&mut self) {
         self.accept.abort();
@@ -622,13 +637,8 @@ impl Drop for Proxy {
 async fn port_pair_survives_a_dropped_tcp_link() {
     const COUNT: i32 = 3_000;
     let env = Env::new().await;
-    let options = leveret_client::ConnectionOptions::from_uri(&env.uri).unwrap();
-    let upstream = tokio::net::lookup_host((options.host.as_str(), options.port))
-        .await
-        .unwrap()
-        .next()
-        .expect("broker address");
-    let proxy = Proxy::start(upstream).await;
+    let (options, broker) = upstream(&env).await;
+    let proxy = Proxy::start(broker).await;
     let mut proxied = options.clone();
     proxied.host = "127.0.0.1".into();
     proxied.port = proxy.addr.port();
@@ -686,4 +696,75 @@ async fn within_long<T>(future: impl std::future::Future<Output = T>) -> T {
     tokio::time::timeout(Duration::from_secs(60), future)
         .await
         .expect("phase timed out")
+}
+
+/// The broker's address behind the test URI.
+async fn upstream(env: &Env) -> (leveret_client::ConnectionOptions, SocketAddr) {
+    let options = leveret_client::ConnectionOptions::from_uri(&env.uri).unwrap();
+    let addr = tokio::net::lookup_host((options.host.as_str(), options.port))
+        .await
+        .unwrap()
+        .next()
+        .expect("broker address");
+    (options, addr)
+}
+
+#[tokio::test]
+async fn put_statuses_while_the_broker_is_unreachable() {
+    let env = Env::new().await;
+    let (options, broker) = upstream(&env).await;
+    let mut proxy = Proxy::start(broker).await;
+    let queue = unique("away");
+    let mut profile = env
+        .profile()
+        .queue(&queue)
+        .routing_key(&queue)
+        .put_timeout(Duration::from_millis(100));
+    profile.max_unconfirmed = 2;
+    // The in-port connects directly; only the out-port goes through the
+    // proxy.
+    let mut input = InPort::<TimedLong>::connect(profile.clone())
+        .await
+        .expect("in-port");
+    let mut proxied = profile.clone();
+    proxied.broker = leveret_client::ConnectionOptions {
+        host: "127.0.0.1".into(),
+        port: proxy.addr.port(),
+        ..options
+    };
+    let output = OutPort::<TimedLong>::connect(proxied)
+        .await
+        .expect("out-port");
+    let value = |data| TimedLong {
+        tm: Time::now(),
+        data,
+    };
+    assert_eq!(output.put(&value(1)).await, PortStatus::Ok);
+
+    proxy.stop().await;
+    let mut link = output.link();
+    within("the loss", link.wait_for(|s| !s.up)).await.unwrap();
+    // Kept for later while the window has room, refused once it is full.
+    assert_eq!(output.put(&value(2)).await, PortStatus::ConnectionLost);
+    assert_eq!(output.put(&value(3)).await, PortStatus::ConnectionLost);
+    assert_eq!(output.put(&value(4)).await, PortStatus::SendFull);
+    let stats = output.stats();
+    assert_eq!(
+        (stats.accepted, stats.send_full, stats.unconfirmed),
+        (3, 1, 2)
+    );
+
+    let _back = Proxy::start_at(proxy.addr, broker).await;
+    wait_connected(output.link(), 2).await;
+    within("the window sent", output.flush()).await;
+    assert_eq!(output.put(&value(5)).await, PortStatus::Ok);
+    // 4 was refused, so never numbered: no gap.
+    for (expected_seq, expected) in [(1, 1), (2, 2), (3, 3), (4, 5)] {
+        let sample = within("value", input.recv()).await.unwrap();
+        assert_eq!(
+            (sample.seq, sample.value.data),
+            (Some(expected_seq), expected)
+        );
+    }
+    assert_eq!(input.stats().lost, 0);
 }
