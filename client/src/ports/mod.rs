@@ -14,6 +14,25 @@
 //! resends what the broker had not confirmed, so a control loop sees each
 //! message once and in order across reconnections.
 //!
+//! ```no_run
+//! use leveret_client::ports::{
+//!     ExchangeKind, FullPolicy, InPort, OutPort, PortProfile, PortStatus, Time, TimedPose2D,
+//! };
+//!
+//! # async fn demo() -> leveret_client::Result<()> {
+//! let profile = PortProfile::new("amqp://guest:guest@localhost:5672/%2f")?
+//!     .exchange("poses", ExchangeKind::Fanout)
+//!     .buffer(100, FullPolicy::BlockBroker);
+//! let mut input = InPort::<TimedPose2D>::connect(profile.clone()).await?;
+//! let output = OutPort::<TimedPose2D>::connect(profile).await?;
+//! let pose = TimedPose2D { tm: Time::now(), ..Default::default() };
+//! assert_eq!(output.put(&pose).await, PortStatus::Ok);
+//! let sample = input.recv().await.expect("port open");
+//! println!("{:?} after {:?}; {:?}", sample.value, sample.latency, input.stats());
+//! # Ok(())
+//! # }
+//! ```
+//!
 //! Layout:
 //! - `data`: [`PortData`] (value ⇄ body), its impls and [`DataError`].
 //! - [`cdr`]: OMG CDR (little-endian) and OpenRTM's `RTC::Timed*` types.
