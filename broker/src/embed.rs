@@ -221,6 +221,7 @@ impl BrokerHandle {
             if !persistence.sync().await {
                 tracing::error!("the last writes to storage failed at shutdown");
             }
+            persistence.close().await;
         }
     }
 }

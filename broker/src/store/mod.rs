@@ -504,10 +504,12 @@ impl Recovered {
     }
 }
 
-/// A request to the persister: ops to write, all or nothing if `atomic`.
+/// A request to the persister: ops to write, all or nothing if `atomic`;
+/// or, with `close`, the last request: flush, release the store, answer.
 struct Submission {
     ops: Vec<StoreOp>,
     atomic: bool,
+    close: Option<tokio::sync::oneshot::Sender<()>>,
 }
 
 /// How far the persister has got: every submission numbered up to
@@ -550,7 +552,12 @@ struct Group {
 }
 
 impl Group {
-    fn add(&mut self, store: &dyn Store, submission: Submission) {
+    /// Adds a submission; returns its close request, if it is one.
+    fn add(
+        &mut self,
+        store: &dyn Store,
+        submission: Submission,
+    ) -> Option<tokio::sync::oneshot::Sender<()>> {
         self.submissions += 1;
         self.len += submission.ops.len();
         if submission.atomic {
@@ -558,7 +565,7 @@ impl Group {
             let ops = submission.ops.iter().map(StoreOp::to_kv).collect();
             let result = store.write(ops, true);
             self.record(result);
-            return;
+            return submission.close;
         }
         for op in &submission.ops {
             match op {
@@ -571,6 +578,7 @@ impl Group {
                 op => self.pending.push(op.to_kv()),
             }
         }
+        submission.close
     }
 
     fn write_pending(&mut self, store: &dyn Store) {
@@ -625,14 +633,14 @@ impl Persistence {
             .name("leveret-persister".into())
             .spawn(move || {
                 let mut flushed = 0u64;
-                while let Some(first) = inbox.blocking_recv() {
+                                while let Some(first) = inbox.blocking_recv() {
                     let mut group = Group::default();
-                    group.add(&*store, first);
+                    let mut closing = group.add(&*store, first);
                     // Group commit: everything already waiting joins this
                     // group, up to a bound that keeps one flush short.
-                    while group.len < 50_000 {
+                    while closing.is_none() && group.len < 50_000 {
                         match inbox.try_recv() {
-                            Ok(next) => group.add(&*store, next),
+                            Ok(next) => closing = group.add(&*store, next),
                             Err(_) => break,
                         }
                     }
@@ -647,7 +655,14 @@ impl Persistence {
                         }
                         log.push_back((first_number, flushed));
                     }
-                    durable_tx.send_replace(Durable { flushed });
+                                        durable_tx.send_replace(Durable { flushed });
+                    if let Some(done) = closing {
+                        // Releases the data directory (sled's lock) before
+                        // answering, so a new broker can open it at once.
+                        drop(store);
+                        let _ = done.send(());
+                        return;
+                    }
                 }
             })
             .expect("spawning the persister thread");
@@ -663,13 +678,33 @@ impl Persistence {
 
     /// Queues ops for the next group; returns their submission number.
     pub fn submit(&self, ops: Vec<StoreOp>) -> u64 {
-        self.send(Submission { ops, atomic: false })
+        self.send(Submission {
+            ops,
+            atomic: false,
+            close: None,
+        })
     }
 
     /// Queues ops that must reach the disk all together or not at all (a
     /// transaction's commit).
     pub fn submit_atomic(&self, ops: Vec<StoreOp>) -> u64 {
-        self.send(Submission { ops, atomic: true })
+        self.send(Submission {
+            ops,
+            atomic: true,
+            close: None,
+        })
+    }
+
+    /// Writes and flushes everything submitted so far, then releases the
+    /// store; later submissions are dropped. For shutdown.
+    pub async fn close(&self) {
+        let (done, closed) = tokio::sync::oneshot::channel();
+        self.send(Submission {
+            ops: Vec::new(),
+            atomic: false,
+            close: Some(done),
+        });
+        let _ = closed.await;
     }
 
     fn send(&self, submission: Submission) -> u64 {
