@@ -546,26 +546,15 @@ async fn port_pair_survives_a_broker_restart() {
     second.shutdown().await;
 }
 
-/// Starts Leveret again on `addr` and `dir`. `BrokerHandle::shutdown`
-/// returns before the store's lock is released (see the report of this
-/// change), so a start refused for the lock is retried for a while.
+/// Starts Leveret again on `addr` and `dir`, right after the previous
+/// broker's shutdown (which releases the data directory before returning).
 async fn restart(addr: SocketAddr, dir: &std::path::Path) -> BrokerHandle {
-    let begun = std::time::Instant::now();
-    loop {
-        match Broker::builder().listen(addr).data_dir(dir).start().await {
-            Ok(handle) => {
-                eprintln!("restarted after {:?}", begun.elapsed());
-                return handle;
-            }
-            Err(leveret_broker::StartError::Storage(error))
-                if begun.elapsed() < common::TIMEOUT =>
-            {
-                eprintln!("store still locked: {error}");
-                tokio::time::sleep(Duration::from_millis(20)).await;
-            }
-            Err(error) => panic!("restart on the same port and dir: {error}"),
-        }
-    }
+    Broker::builder()
+        .listen(addr)
+        .data_dir(dir)
+        .start()
+        .await
+        .expect("restart on the same port and data directory")
 }
 
 /// A loopback TCP proxy whose connections can all be cut at once.
