@@ -112,6 +112,8 @@ impl BrokerBuilder {
         } else {
             self.vhosts
         };
+        // Recovery time includes opening the store (sled replays its log).
+        let started = std::time::Instant::now();
         let store: Option<Arc<dyn Store>> = match self.storage {
             Storage::None => None,
             Storage::Dir(dir) => {
@@ -124,7 +126,7 @@ impl BrokerBuilder {
             }
             Storage::Custom(store) => Some(store),
         };
-        let started = std::time::Instant::now();
+
         let (persistence, recovered) = match store {
             Some(store) => {
                 let recovered = Recovered::from_scan(store.scan().map_err(StartError::Storage)?)
