@@ -8,6 +8,9 @@
 //! broker wins each row.
 //!
 //! The scenarios (the table; `--only` picks some by id):
+//! - `idle`: idle resident memory (first, before the load makes the broker grow);
+//! - `conns` (with `--memory-connections`): memory with 1,000 idle connections × 1 channel × 1 queue;
+//! - `backlog` (with `--memory-backlog`): memory with 1,000,000 queued 16 B messages, no consumer;
 //! - `noack`: 1 publisher → 1 queue → 1 consumer, 16 B, transient, no-ack;
 //! - `ack`: the same with manual acks, prefetch 500, multiple-ack every 50;
 //! - `confirm`: durable queue, persistent messages, confirms (window 256), manual acks;
@@ -15,9 +18,6 @@
 //! - `fanout`: 1 publisher → fanout → 4 queues → 4 consumers, 64 B, no-ack, counting lost and out-of-order;
 //! - `rtt16`: round trip, 16 B, one message in flight;
 //! - `rtt128hz`: round trip, 128 B, at 100 Hz;
-//! - `idle`: idle resident memory;
-//! - `conns` (with `--memory-connections`): memory with 1,000 idle connections × 1 channel × 1 queue;
-//! - `backlog` (with `--memory-backlog`): memory with 1,000,000 queued 16 B messages, no consumer;
 //! - `quality` (with `--quality`): the paper's 1-to-4 broadcast, 10,000 messages at 100 Hz.
 
 use crate::histogram::BoxStats;
@@ -301,6 +301,8 @@ fn scenarios(args: &CompareArgs) -> Vec<(&'static str, String, Scenario)> {
         ..Default::default()
     };
     let mut list = vec![
+        // First, while the broker has not yet grown for the load.
+        ("idle", "idle broker".to_owned(), Scenario::Idle),
         (
             "noack",
             "1 pub → 1 queue → 1 cons, 16 B, transient, no-ack".to_owned(),
@@ -356,8 +358,9 @@ fn scenarios(args: &CompareArgs) -> Vec<(&'static str, String, Scenario)> {
                 ..rtt
             }),
         ),
-        ("idle", "idle broker".to_owned(), Scenario::Idle),
     ];
+    // Memory next, before the load scenarios make the brokers' heaps grow.
+    let load = list.split_off(1);
     if let Some(n) = args.memory_connections {
         list.push((
             "conns",
@@ -375,6 +378,7 @@ fn scenarios(args: &CompareArgs) -> Vec<(&'static str, String, Scenario)> {
             Scenario::Backlog(n),
         ));
     }
+    list.extend(load);
     if let Some(n) = args.quality {
         list.push((
             "quality",
@@ -420,7 +424,20 @@ async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> 
             f.push(("consume rate".into(), Unit::MsgsPerSecond, r.consume_rate));
             f.push(("latency p50".into(), Unit::Micros, r.latency.p50_us));
             f.push(("latency p99".into(), Unit::Micros, r.latency.p99_us));
-            f.push(("lost".into(), Unit::Count, r.totals.lost as f64));
+            f.push((
+                "backlog at end of window".into(),
+                Unit::Count,
+                r.backlog_at_end.max(0) as f64,
+            ));
+            if r.drained {
+                f.push(("lost".into(), Unit::Count, r.totals.lost as f64));
+            } else {
+                f.push((
+                    "undelivered when draining gave up".into(),
+                    Unit::Count,
+                    r.totals.lost as f64,
+                ));
+            }
             f.push((
                 "out of order + gaps".into(),
                 Unit::Count,
@@ -431,6 +448,9 @@ async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> 
             }
             if let Some(cpu) = r.generator_cpu_percent {
                 f.push(("leveret-perf CPU".into(), Unit::Percent, cpu));
+            }
+            if let Some(cpu) = r.other_cpu_percent {
+                f.push(("other processes CPU".into(), Unit::Percent, cpu));
             }
             out.report = serde_json::to_value(&r)?;
         }

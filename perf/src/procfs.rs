@@ -58,6 +58,50 @@ impl CpuMeter {
     }
 }
 
+/// CPU time of the whole machine (every core) spent on anything but
+/// idle and iowait, seconds (`/proc/stat`).
+pub fn machine_busy_seconds() -> Option<f64> {
+    let stat = fs::read_to_string("/proc/stat").ok()?;
+    let line = stat.lines().find(|l| l.starts_with("cpu "))?;
+    let ticks: Vec<u64> = line
+        .split_whitespace()
+        .skip(1)
+        .filter_map(|f| f.parse().ok())
+        .collect();
+    // user nice system idle iowait irq softirq steal …
+    let busy: u64 = ticks
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| *i != 3 && *i != 4 && *i < 8)
+        .map(|(_, t)| *t)
+        .sum();
+    Some(busy as f64 / TICKS_PER_SECOND)
+}
+
+/// Measures the machine's CPU use over an interval.
+#[derive(Debug, Clone, Copy)]
+pub struct MachineMeter {
+    start_busy: f64,
+    start: Instant,
+}
+
+impl MachineMeter {
+    /// Starts measuring.
+    pub fn start() -> Option<Self> {
+        Some(MachineMeter {
+            start_busy: machine_busy_seconds()?,
+            start: Instant::now(),
+        })
+    }
+
+    /// CPU use of every process since the start, in percent of one core.
+    pub fn percent(&self) -> Option<f64> {
+        let used = machine_busy_seconds()? - self.start_busy;
+        let elapsed = self.start.elapsed().as_secs_f64();
+        (elapsed > 0.0).then(|| 100.0 * used / elapsed)
+    }
+}
+
 /// The inodes of sockets listening on `port` (IPv4 and IPv6).
 fn listening_inodes(port: u16) -> Vec<u64> {
     let mut inodes = Vec::new();
@@ -171,6 +215,7 @@ mod tests {
         assert!(rss_bytes(me).unwrap() > 0);
         assert!(cpu_seconds(me).is_some());
         assert!(CpuMeter::start(me).is_some());
+        assert!(MachineMeter::start().is_some());
     }
 
     #[test]

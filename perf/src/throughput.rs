@@ -19,7 +19,7 @@ use crate::load::{
     ExchangeKind, PublisherCounters, PublisherOutcome, PublisherSpec, Topology, DEFAULT_URL,
     PHASE_DRAIN, PHASE_MEASURE, PHASE_WARMUP,
 };
-use crate::procfs::{find_broker_pid, CpuMeter};
+use crate::procfs::{find_broker_pid, CpuMeter, MachineMeter};
 use crate::report::{micros, thousands};
 use crate::sequence::{SeqCounts, SeqTracker};
 use crate::{PerfError, Result};
@@ -83,6 +83,9 @@ pub struct ThroughputArgs {
     /// Seconds without a delivery after which draining gives up.
     #[arg(long, default_value_t = 10.0)]
     pub drain_timeout: f64,
+    /// Seconds after which draining gives up even if deliveries still arrive.
+    #[arg(long, default_value_t = 120.0)]
+    pub drain_max: f64,
     /// PID of the broker, for its CPU use (default: found from the URL's port).
     #[arg(long)]
     pub broker_pid: Option<u32>,
@@ -113,6 +116,7 @@ impl Default for ThroughputArgs {
             rate: 0.0,
             count: 0,
             drain_timeout: 10.0,
+            drain_max: 120.0,
             broker_pid: None,
             json: None,
             quiet: false,
@@ -202,7 +206,12 @@ pub struct ThroughputReport {
     pub nacked: u64,
     /// Of which never confirmed.
     pub unconfirmed: u64,
-    /// Whether every queue with a consumer delivered everything.
+    /// Messages published to queues with a consumer but not yet delivered
+    /// when the window closed: growth here means the publishers outran
+    /// the consumers (the broker did not hold them back).
+    pub backlog_at_end: i64,
+    /// Whether every queue with a consumer delivered everything (otherwise
+    /// `lost` also counts messages still queued when draining gave up).
     pub drained: bool,
     /// Totals.
     pub totals: Totals,
@@ -216,11 +225,17 @@ pub struct ThroughputReport {
     pub broker_pid: Option<u32>,
     /// Its CPU use over the window, % of one core.
     pub broker_cpu_percent: Option<f64>,
+    /// CPU use of every other process on the machine over the window, %
+    /// of one core: a sign of how noisy the measurement was.
+    pub other_cpu_percent: Option<f64>,
     /// The progress lines.
     pub progress: Vec<Progress>,
     /// Errors of publishers, if any.
     pub errors: Vec<String>,
 }
+
+/// CPU meters of the generator, the broker and the machine.
+type Meters = (Option<CpuMeter>, Option<CpuMeter>, Option<MachineMeter>);
 
 /// Counters at one instant.
 #[derive(Debug, Clone, Copy)]
@@ -424,18 +439,19 @@ async fn run_declared(args: &ThroughputArgs, topology: &Topology) -> Result<Thro
     let mut last = running.snapshot();
     let mut next_tick = started + Duration::from_secs(1);
     let mut scratch = Histogram::new();
-    let start_window = |meters: &mut Option<(Option<CpuMeter>, Option<CpuMeter>)>| {
+    let start_window = |meters: &mut Option<Meters>| {
         phase.store(PHASE_MEASURE, Ordering::Relaxed);
         *meters = Some((
             CpuMeter::start(std::process::id()),
             broker_pid.and_then(CpuMeter::start),
+            MachineMeter::start(),
         ));
         running.snapshot()
     };
     if warmup.is_zero() {
         window_start = Some(start_window(&mut meters));
     }
-    let mut cpu = (None, None);
+    let mut cpu = (None, None, None);
     loop {
         let publishers_done = publisher_tasks.iter().all(JoinHandle::is_finished);
         if publishers_done {
@@ -479,13 +495,18 @@ async fn run_declared(args: &ThroughputArgs, topology: &Topology) -> Result<Thro
             last = snap;
         }
     }
+    let mut backlog_at_end = 0;
     if window_end.is_none() {
-        window_end = Some(running.snapshot());
-        if let Some((generator, broker)) = &meters {
-            cpu = (
-                generator.and_then(|m| m.percent()),
-                broker.and_then(|m| m.percent()),
-            );
+        let snap = running.snapshot();
+        backlog_at_end = running.expected_deliveries() as i64 - snap.consumed as i64;
+        window_end = Some(snap);
+        if let Some((generator, broker, machine)) = &meters {
+            let generator = generator.and_then(|m| m.percent());
+            let broker = broker.and_then(|m| m.percent());
+            let others = machine
+                .and_then(|m| m.percent())
+                .map(|all| (all - generator.unwrap_or(0.0) - broker.unwrap_or(0.0)).max(0.0));
+            cpu = (generator, broker, others);
         }
     }
     phase.store(PHASE_DRAIN, Ordering::Relaxed);
@@ -531,6 +552,7 @@ async fn run_declared(args: &ThroughputArgs, topology: &Topology) -> Result<Thro
             .sum()
     };
     let drain_timeout = Duration::from_secs_f64(args.drain_timeout.max(0.0));
+    let drain_deadline = Instant::now() + Duration::from_secs_f64(args.drain_max.max(0.0));
     let mut drained = false;
     let mut last_total = u64::MAX;
     let mut last_change = Instant::now();
@@ -547,6 +569,9 @@ async fn run_declared(args: &ThroughputArgs, topology: &Topology) -> Result<Thro
             last_total = total;
             last_change = Instant::now();
         } else if last_change.elapsed() >= drain_timeout {
+            break;
+        }
+        if Instant::now() >= drain_deadline {
             break;
         }
         tokio::time::sleep(Duration::from_millis(10)).await;
@@ -617,6 +642,7 @@ async fn run_declared(args: &ThroughputArgs, topology: &Topology) -> Result<Thro
         acked: sum(|o| o.acked),
         nacked: sum(|o| o.nacked),
         unconfirmed: sum(|o| o.unconfirmed),
+        backlog_at_end,
         drained,
         totals,
         queues,
@@ -624,6 +650,7 @@ async fn run_declared(args: &ThroughputArgs, topology: &Topology) -> Result<Thro
         generator_cpu_percent: cpu.0,
         broker_pid,
         broker_cpu_percent: cpu.1,
+        other_cpu_percent: cpu.2,
         progress,
         errors,
     })
@@ -684,6 +711,12 @@ pub fn print_summary(r: &ThroughputReport) {
         thousands(r.publish_rate),
         thousands(r.consume_rate)
     );
+    if r.backlog_at_end > 0 {
+        println!(
+            "backlog when the window closed: {} messages published but not yet delivered",
+            thousands(r.backlog_at_end as f64)
+        );
+    }
     let l = &r.latency;
     println!(
         "latency ({} samples): min {}  p50 {}  p95 {}  p99 {}  max {}",
@@ -706,15 +739,20 @@ pub fn print_summary(r: &ThroughputReport) {
         t.gaps,
         t.out_of_order,
         t.duplicates,
-        if r.drained { "" } else { " (drain timed out)" }
+        if r.drained {
+            ""
+        } else {
+            " (draining gave up: `lost` includes messages still queued)"
+        }
     );
     let pct = |v: Option<f64>| v.map_or("-".to_owned(), |v| format!("{v:.0}%"));
     println!(
-        "cpu over the window: leveret-perf {} of a core, broker{} {}",
+        "cpu over the window (100% = one core): leveret-perf {}, broker{} {}, other processes {}",
         pct(r.generator_cpu_percent),
         r.broker_pid
             .map_or(String::new(), |p| format!(" (pid {p})")),
-        pct(r.broker_cpu_percent)
+        pct(r.broker_cpu_percent),
+        pct(r.other_cpu_percent)
     );
     for c in &r.consumers {
         println!(
