@@ -126,6 +126,20 @@ class T:
         self._cleanups.clear()
 
 
+async def _run_async(fn, t):
+    try:
+        await asyncio.wait_for(fn(t), 60)
+    finally:
+        for cfn, args, kwargs in reversed(t._cleanups):
+            try:
+                r = cfn(*args, **kwargs)
+                if inspect.isawaitable(r):
+                    await asyncio.wait_for(r, 5)
+            except BaseException:
+                pass
+        t._cleanups.clear()
+
+
 def _loop_running():
     try:
         asyncio.get_running_loop()
@@ -170,7 +184,7 @@ def main(libs):
         ok, error = True, None
         try:
             if inspect.iscoroutinefunction(fn):
-                asyncio.run(asyncio.wait_for(fn(t), 60))
+                asyncio.run(_run_async(fn, t))
             else:
                 fn(t)
         except Exception as e:  # noqa: BLE001 - a scenario failure of any kind
