@@ -5,6 +5,7 @@
 //! probe, changes take the write lock briefly; neither is held across an
 //! await or while a queue's own lock is taken.
 
+use crate::channel::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{Binding, Destination, Exchange, ExchangeKind, ExchangeOptions};
 use crate::memory::MemoryGauge;
@@ -24,6 +25,8 @@ pub struct Vhost {
     queues: RwLock<HashMap<ShortStr, Arc<Queue>>>,
     gauge: Arc<MemoryGauge>,
     persistence: Option<Arc<Persistence>>,
+    /// Direct reply-to consumers by their reply name.
+    reply_targets: RwLock<HashMap<ShortStr, ReplyTarget>>,
 }
 
 /// What queue.declare asked for.
@@ -73,6 +76,7 @@ impl Vhost {
             queues: RwLock::new(HashMap::new()),
             gauge,
             persistence,
+            reply_targets: RwLock::new(HashMap::new()),
         };
         let durable = ExchangeOptions {
             durable: true,
@@ -661,6 +665,21 @@ impl Vhost {
             arguments: record.arguments.clone(),
         });
         true
+    }
+
+    /// Registers a direct reply-to consumer under its reply name.
+    pub(crate) fn register_reply_target(&self, name: ShortStr, target: ReplyTarget) {
+        write(&self.reply_targets).insert(name, target);
+    }
+
+    /// Removes a direct reply-to consumer.
+    pub(crate) fn unregister_reply_target(&self, name: &ShortStr) {
+        write(&self.reply_targets).remove(name);
+    }
+
+    /// The direct reply-to consumer with this reply name.
+    pub(crate) fn reply_target(&self, name: &ShortStr) -> Option<ReplyTarget> {
+        read(&self.reply_targets).get(name).cloned()
     }
 
     /// Deletes the exclusive queues of a closed connection.

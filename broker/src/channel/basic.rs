@@ -130,6 +130,8 @@ impl Channel {
                 )));
             }
         }
+        let mut publish = publish;
+        self.rewrite_reply_to(&mut publish)?;
         if let Some(tx) = &mut self.tx {
             tx.publishes.push(publish);
             return Ok(());
@@ -203,7 +205,10 @@ impl Channel {
             ttl_ms,
             stored,
         });
-        if queues.is_empty() && publish.method.mandatory {
+        let replied = queues.is_empty()
+            && super::reply_to::is_reply_address(&message.exchange, &message.routing_key)
+            && self.deliver_reply(&message).await;
+        if queues.is_empty() && !replied && publish.method.mandatory {
             self.outbox()
                 .send(Outbound::Return {
                     channel: self.id,
@@ -238,6 +243,9 @@ impl Channel {
     }
 
     pub(super) async fn basic_consume(&mut self, consume: BasicConsume) -> AmqpResult<()> {
+        if consume.queue == super::reply_to::PSEUDO_QUEUE {
+            return self.consume_direct_reply(consume).await;
+        }
         let queue_name = self.queue_name_or_last(consume.queue)?;
         let queue = self.vhost.queue_or_404(&queue_name)?;
         crate::vhost::check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
@@ -275,9 +283,11 @@ impl Channel {
     }
 
     pub(super) async fn basic_cancel(&mut self, cancel: BasicCancel) -> AmqpResult<()> {
-        if let Some((consumer, queue)) = self.consumers.remove(&cancel.consumer_tag) {
-            if queue.remove_consumer(&consumer) {
-                self.vhost.delete_queue(&queue);
+        if !self.cancel_direct_reply(&cancel.consumer_tag) {
+            if let Some((consumer, queue)) = self.consumers.remove(&cancel.consumer_tag) {
+                if queue.remove_consumer(&consumer) {
+                    self.vhost.delete_queue(&queue);
+                }
             }
         }
         if !cancel.no_wait {

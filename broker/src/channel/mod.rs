@@ -10,7 +10,10 @@
 mod basic;
 mod exchange;
 mod queue;
+mod reply_to;
 mod tx;
+
+pub(crate) use reply_to::ReplyTarget;
 
 use crate::consumer::{ChannelLink, Consumer};
 use crate::core::Core;
@@ -72,6 +75,7 @@ pub struct Channel {
     route_buffer: Vec<Arc<Queue>>,
     tx: Option<tx::Transaction>,
     confirms: Option<tx::Confirms>,
+    direct_reply: Option<reply_to::DirectReply>,
 }
 
 impl Channel {
@@ -98,6 +102,7 @@ impl Channel {
             route_buffer: Vec::new(),
             tx: None,
             confirms: None,
+            direct_reply: None,
         }
     }
 
@@ -387,6 +392,7 @@ impl Channel {
     }
 
     fn release(&mut self) {
+        self.drop_direct_reply();
         for (_, (consumer, queue)) in self.consumers.drain() {
             if queue.remove_consumer(&consumer) {
                 self.vhost.delete_queue(&queue);

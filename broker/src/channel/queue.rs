@@ -11,6 +11,19 @@ use leveret_protocol::{
 
 impl Channel {
     pub(super) async fn queue_declare(&mut self, declare: QueueDeclare) -> AmqpResult<()> {
+        if declare.passive && declare.queue == super::reply_to::PSEUDO_QUEUE {
+            // The direct reply-to pseudo-queue always "exists"; RabbitMQ
+            // reports it with one consumer.
+            if !declare.no_wait {
+                self.reply(QueueDeclareOk {
+                    queue: declare.queue,
+                    message_count: 0,
+                    consumer_count: 1,
+                })
+                .await;
+            }
+            return Ok(());
+        }
         let connection_id = self.outbox().connection_id;
         let server_named = declare.queue.is_empty() && !declare.passive;
         let name = if server_named {

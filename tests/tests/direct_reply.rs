@@ -1,0 +1,104 @@
+//! RabbitMQ's direct reply-to (`amq.rabbitmq.reply-to`): RPC replies that
+//! go straight to the requester's no-ack consumer, without a reply queue.
+
+#[macro_use]
+mod common;
+
+use common::*;
+use futures_lite::StreamExt;
+
+#[tokio::test]
+async fn an_rpc_reply_reaches_the_requester_without_a_queue() {
+    let b = broker().await;
+    let conn = lp::connect(&b).await;
+    let client = lp::channel(&conn).await;
+    let requests = lp::queue(&client, "rpc-requests").await;
+    let mut replies = tmo!(client.basic_consume(
+        "amq.rabbitmq.reply-to",
+        "",
+        lp::BasicConsumeOptions {
+            no_ack: true,
+            ..Default::default()
+        },
+        lp::FieldTable::default()
+    ))
+    .expect("consume from the reply pseudo-queue");
+    let props = lp::BasicProperties::default()
+        .with_reply_to("amq.rabbitmq.reply-to".into())
+        .with_correlation_id("c-1".into());
+    tmo!(client.basic_publish(
+        "",
+        &requests,
+        lp::BasicPublishOptions::default(),
+        b"ping",
+        props
+    ))
+    .expect("request");
+
+    // The server side sees a unique reply address, and answers to it.
+    let server = lp::channel(&conn).await;
+    let request = tmo!(server.basic_get(&requests, lp::BasicGetOptions { no_ack: true }))
+        .expect("get")
+        .expect("the request");
+    let reply_to = request
+        .delivery
+        .properties
+        .reply_to()
+        .clone()
+        .expect("reply_to")
+        .to_string();
+    assert!(
+        reply_to.starts_with("amq.rabbitmq.reply-to."),
+        "reply_to rewritten: {reply_to}"
+    );
+    let answer = lp::BasicProperties::default().with_correlation_id("c-1".into());
+    tmo!(server.basic_publish(
+        "",
+        &reply_to,
+        lp::BasicPublishOptions::default(),
+        b"pong",
+        answer
+    ))
+    .expect("reply");
+
+    let reply = tmo!(replies.next()).expect("a reply").expect("delivery");
+    assert_eq!(reply.data, b"pong");
+    assert_eq!(
+        reply
+            .properties
+            .correlation_id()
+            .as_ref()
+            .map(|c| c.as_str()),
+        Some("c-1")
+    );
+}
+
+#[tokio::test]
+async fn reply_to_without_a_reply_consumer_or_with_acks_is_406() {
+    let b = broker().await;
+    let conn = lp::connect(&b).await;
+    let ch = lp::channel(&conn).await;
+    let q = lp::queue(&ch, "rpc-no-consumer").await;
+    let props = lp::BasicProperties::default().with_reply_to("amq.rabbitmq.reply-to".into());
+    let _ = tmo!(ch.basic_publish("", &q, lp::BasicPublishOptions::default(), b"x", props));
+    // "PRECONDITION_FAILED - fast reply consumer does not exist"
+    let res = tmo!(ch.queue_declare(&q, passive(), lp::FieldTable::default()));
+    lp::assert_err(res, 406, "PRECONDITION_FAILED");
+
+    let ch = lp::channel(&conn).await;
+    // "PRECONDITION_FAILED - reply consumer cannot acknowledge"
+    let res = tmo!(ch.basic_consume(
+        "amq.rabbitmq.reply-to",
+        "",
+        lp::BasicConsumeOptions::default(),
+        lp::FieldTable::default()
+    ));
+    lp::assert_err(res, 406, "PRECONDITION_FAILED");
+}
+
+fn passive() -> lp::QueueDeclareOptions {
+    lp::QueueDeclareOptions {
+        passive: true,
+        ..Default::default()
+    }
+}
