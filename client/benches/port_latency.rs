@@ -24,8 +24,15 @@
 //! Options (after `--`): `--quick` (or `LEVERET_BENCH_QUICK=1`) cuts the
 //! counts tenfold; `--sizes 8,64` picks payload sizes; `--transports
 //! in-process,leveret-tcp,rabbitmq` and `--modes paced,unthrottled` pick a
-//! subset; `--no-extras` drops the confirm and raw-client rows;
-//! `--worker-threads N` sizes the tokio runtime (default: one per core).
+//! subset; `--no-extras` drops the confirm and raw-client rows, and
+//! `--paced-extras` adds them at 100 Hz too (by default they are
+//! unthrottled only);
+//! `--worker-threads N` sizes the tokio runtime (default: one per core);
+//! `--spin-pace` paces the 100 Hz mode by busy-waiting on the measuring
+//! thread instead of sleeping (a diagnostic: with `--worker-threads 1`
+//! it keeps the CPU from going idle between round trips); `--evict-kib
+//! N` writes N KiB before each round trip, untimed, evicting the caches
+//! (a diagnostic: a cold round trip without any idle time).
 //! `LEVERET_BENCH_RABBIT_URL` names the RabbitMQ broker (default
 //! `amqp://guest:guest@127.0.0.1:5672/%2f`); it is skipped with a message
 //! when unreachable.
@@ -130,6 +137,9 @@ struct Options {
     transports: Vec<Transport>,
     modes: Vec<Mode>,
     extras: bool,
+    paced_extras: bool,
+    spin_pace: bool,
+    evict_kib: usize,
     paced_count: usize,
     paced_warmup: usize,
     unthrottled_count: usize,
@@ -146,6 +156,9 @@ impl Options {
         let mut transports = Transport::ALL.to_vec();
         let mut modes = vec![Mode::Paced, Mode::Unthrottled];
         let mut extras = true;
+        let mut paced_extras = false;
+        let mut spin_pace = false;
+        let mut evict_kib = 0;
         let mut worker_threads = None;
         let mut args = std::env::args().skip(1);
         while let Some(arg) = args.next() {
@@ -153,6 +166,9 @@ impl Options {
             match arg.as_str() {
                 "--quick" => quick = true,
                 "--no-extras" => extras = false,
+                "--paced-extras" => paced_extras = true,
+                "--spin-pace" => spin_pace = true,
+                "--evict-kib" => evict_kib = value("--evict-kib")?.parse()?,
                 "--sizes" => {
                     sizes = value("--sizes")?
                         .split(',')
@@ -192,6 +208,9 @@ impl Options {
             transports,
             modes,
             extras,
+            paced_extras,
+            spin_pace,
+            evict_kib,
             paced_count: 1_000 / scale,
             paced_warmup: if quick { 5 } else { 20 },
             unthrottled_count: 5_000 / scale,
@@ -545,6 +564,7 @@ async fn measure(
     warmup: usize,
     count: usize,
     samples: &mut Vec<u64>,
+    options: &Options,
 ) -> usize {
     samples.clear();
     let mut failed = 0;
@@ -552,8 +572,21 @@ async fn measure(
     // A late echo delays the next put rather than bunching puts up: there
     // is never more than one message in flight.
     ticks.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    let mut next = Instant::now();
+    let mut evict = vec![0u8; options.evict_kib * 1024];
     for i in 0..warmup + count {
-        if mode == Mode::Paced {
+        if !evict.is_empty() {
+            for line in evict.chunks_mut(64) {
+                line[0] = line[0].wrapping_add(1);
+            }
+            std::hint::black_box(&mut evict);
+        }
+        if mode == Mode::Paced && options.spin_pace {
+            next = (next + PACE).max(Instant::now());
+            while Instant::now() < next {
+                std::hint::spin_loop();
+            }
+        } else if mode == Mode::Paced {
             ticks.tick().await;
         }
         let start = Instant::now();
@@ -670,9 +703,10 @@ async fn run(options: Options) -> BenchResult<Vec<Row>> {
     for &mode in &options.modes {
         let (warmup, count) = options.counts(mode);
         for &(path, size) in &plan {
-            // Extras are for the unthrottled mode only (100 Hz adds the
-            // same wake-ups to every path).
-            if path != (Path::Ports { confirms: false }) && mode == Mode::Paced {
+            // Extras are unthrottled only unless asked for: at 100 Hz a
+            // row takes ten seconds.
+            let extra = path != (Path::Ports { confirms: false });
+            if extra && mode == Mode::Paced && !options.paced_extras {
                 continue;
             }
             let payload = Bytes::from(vec![b'x'; size]);
@@ -686,7 +720,8 @@ async fn run(options: Options) -> BenchResult<Vec<Row>> {
                     path.label(),
                     mode.label()
                 );
-                let lost = measure(pair, mode, &payload, warmup, count, &mut samples).await;
+                let lost =
+                    measure(pair, mode, &payload, warmup, count, &mut samples, &options).await;
                 if let Some(summary) = Summary::of(&mut samples) {
                     rows.push(Row {
                         transport: endpoint.transport,
@@ -825,9 +860,10 @@ fn targets(rows: &[Row]) -> String {
     out
 }
 
-/// The 1, 5 and 15 minute load averages (Linux), for the record.
+/// The 1, 5 and 15 minute load averages and the share of the last ten
+/// seconds some task waited for a CPU (Linux), for the record.
 fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg")
+    let load = std::fs::read_to_string("/proc/loadavg")
         .ok()
         .map(|text| {
             text.split_whitespace()
@@ -835,7 +871,17 @@ fn load_average() -> String {
                 .collect::<Vec<_>>()
                 .join(" ")
         })
-        .unwrap_or_else(|| "unknown".to_owned())
+        .unwrap_or_else(|| "unknown".to_owned());
+    // "some avg10=1.23 avg60=… avg300=… total=…"
+    let pressure = std::fs::read_to_string("/proc/pressure/cpu")
+        .ok()
+        .and_then(|text| {
+            let some = text.lines().find(|l| l.starts_with("some"))?;
+            let avg10 = some.split_whitespace().find(|f| f.starts_with("avg10="))?;
+            Some(format!(", CPU pressure {}%", &avg10["avg10=".len()..]))
+        })
+        .unwrap_or_default();
+    format!("{load}{pressure}")
 }
 
 fn main() -> BenchResult<()> {
@@ -854,7 +900,10 @@ fn main() -> BenchResult<()> {
         options.paced_count, options.unthrottled_count, options.paced_warmup, options.unthrottled_warmup
     );
     let before = load_average();
-    let rows = runtime.block_on(run(options))?;
+    // The measuring loop is a task like the echo, on the runtime's
+    // workers, not on this thread (`block_on` would run it here and every
+    // round trip would cross threads twice more).
+    let rows = runtime.block_on(async { tokio::spawn(run(options)).await })??;
     println!("{}", table(&rows));
     println!("{}", targets(&rows));
     println!("Load average before: {before}; after: {}.", load_average());
