@@ -121,6 +121,8 @@ pub struct Consumer {
     pub exclusive: bool,
     /// Per-consumer prefetch count (0 = unlimited).
     pub prefetch: u32,
+    /// `x-priority` (RabbitMQ): higher-priority consumers are served first.
+    pub priority: i64,
     /// Unacked deliveries to this consumer.
     pub in_flight: AtomicU32,
     /// Set once basic.consume-ok is on its way, so no delivery overtakes it.

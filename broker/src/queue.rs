@@ -197,6 +197,8 @@ struct QueueState {
     next_seq: u64,
     consumers: Vec<Arc<Consumer>>,
     cursor: usize,
+    /// Some consumer has a non-zero `x-priority`.
+    prioritised: bool,
     exclusive_consumer: bool,
     expiring: usize,
     /// Highest seq delivered (persisted for durable queues, see `store`).
@@ -536,53 +538,74 @@ impl Queue {
         if count == 0 || st.ready.is_empty() {
             return;
         }
-        'messages: while !st.ready.is_empty() {
-            for _ in 0..count {
-                let index = st.cursor % count;
-                st.cursor = (index + 1) % count;
-                if !st.consumers[index].has_credit() {
-                    continue;
+        // Consumers whose connection had no room during this dispatch.
+        let mut full: Vec<usize> = Vec::new();
+        while !st.ready.is_empty() {
+            let Some(index) = Self::next_consumer(st, &full) else {
+                // No consumer can take a message now; credit or room will
+                // trigger another dispatch.
+                return;
+            };
+            let consumer = Arc::clone(&st.consumers[index]);
+            let Some(permit) = consumer.channel.outbox.try_reserve() else {
+                consumer.channel.outbox.wait_for_room(self);
+                full.push(index);
+                continue;
+            };
+            st.cursor = (index + 1) % count;
+            let Some(queued) = self.pop_live(st, now, dead) else {
+                return;
+            };
+            let delivery_tag = {
+                let mut deliveries = consumer.channel.deliveries();
+                let tag = deliveries.next_tag();
+                if !consumer.no_ack {
+                    deliveries.push(Unacked {
+                        tag,
+                        queue: Arc::clone(self),
+                        message: queued.clone(),
+                        consumer: Some(Arc::clone(&consumer)),
+                    });
                 }
-                let consumer = Arc::clone(&st.consumers[index]);
-                let Some(permit) = consumer.channel.outbox.try_reserve() else {
-                    consumer.channel.outbox.wait_for_room(self);
-                    continue;
-                };
-                let Some(queued) = self.pop_live(st, now, dead) else {
-                    return;
-                };
-                let delivery_tag = {
-                    let mut deliveries = consumer.channel.deliveries();
-                    let tag = deliveries.next_tag();
-                    if !consumer.no_ack {
-                        deliveries.push(Unacked {
-                            tag,
-                            queue: Arc::clone(self),
-                            message: queued.clone(),
-                            consumer: Some(Arc::clone(&consumer)),
-                        });
-                    }
-                    tag
-                };
-                if consumer.no_ack {
-                    self.release(&queued);
-                } else {
-                    self.log_delivery(st, &queued);
-                    consumer.took_one();
-                }
-                permit.send(Outbound::Deliver {
-                    channel: consumer.channel.id,
-                    consumer_tag: consumer.tag.clone(),
-                    delivery_tag,
-                    redelivered: queued.redelivered,
-                    message: queued.message,
-                });
-                continue 'messages;
+                tag
+            };
+            if consumer.no_ack {
+                self.release(&queued);
+            } else {
+                self.log_delivery(st, &queued);
+                consumer.took_one();
             }
-            // No consumer could take a message now; credit or room will
-            // trigger another dispatch.
-            return;
+            permit.send(Outbound::Deliver {
+                channel: consumer.channel.id,
+                consumer_tag: consumer.tag.clone(),
+                delivery_tag,
+                redelivered: queued.redelivered,
+                message: queued.message,
+            });
         }
+    }
+
+    /// The consumer to deliver to next: among those with credit (and not
+    /// known to be out of room), the highest `x-priority`, round-robin from
+    /// the cursor among equals. Without priorities that is simply the first
+    /// consumer with credit after the previous one.
+    fn next_consumer(st: &QueueState, full: &[usize]) -> Option<usize> {
+        let count = st.consumers.len();
+        let mut best: Option<usize> = None;
+        for offset in 0..count {
+            let index = (st.cursor + offset) % count;
+            let consumer = &st.consumers[index];
+            if full.contains(&index) || !consumer.has_credit() {
+                continue;
+            }
+            if !st.prioritised {
+                return Some(index);
+            }
+            if best.is_none_or(|b| consumer.priority > st.consumers[b].priority) {
+                best = Some(index);
+            }
+        }
+        best
     }
 
     /// basic.get: the head message, recorded as unacked on `link` unless
@@ -678,6 +701,7 @@ impl Queue {
                 )));
             }
             st.exclusive_consumer = consumer.exclusive;
+            st.prioritised |= consumer.priority != 0;
             st.consumers.push(consumer);
             st.last_used = None;
         }
@@ -696,6 +720,7 @@ impl Queue {
         if consumer.exclusive {
             st.exclusive_consumer = false;
         }
+        st.prioritised = st.consumers.iter().any(|c| c.priority != 0);
         if st.consumers.is_empty() {
             st.last_used = Some(Instant::now());
         }

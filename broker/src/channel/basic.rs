@@ -79,6 +79,19 @@ pub(crate) fn unique_name(prefix: &str) -> ShortStr {
     ShortStr::try_from(name).unwrap_or_default()
 }
 
+/// The `x-priority` argument of basic.consume (0 without one); RabbitMQ
+/// refuses one that is not an integer.
+fn consumer_priority(arguments: &leveret_protocol::FieldTable) -> AmqpResult<i64> {
+    match arguments.get("x-priority") {
+        None => Ok(0),
+        Some(value) => value.as_i64().ok_or_else(|| {
+            AmqpError::precondition_failed(format_args!(
+                "invalid arg 'x-priority': {value:?} is not an integer"
+            ))
+        }),
+    }
+}
+
 /// Requeues settled-by-close deliveries, each queue once, in tag order.
 pub(crate) fn requeue_all(unacked: Vec<Unacked>) {
     let mut by_queue: Vec<(Arc<Queue>, Vec<crate::queue::QueuedMessage>)> = Vec::new();
@@ -121,6 +134,17 @@ impl Channel {
                 "cannot publish to internal exchange '{}' in vhost '{}'",
                 exchange.name, self.vhost.name
             )));
+        }
+        if let Some(expiration) = &publish.properties.expiration {
+            if expiration
+                .as_str()
+                .and_then(|e| e.parse::<u64>().ok())
+                .is_none()
+            {
+                return Err(AmqpError::precondition_failed(format_args!(
+                    "invalid expiration '{expiration}': not a non-negative integer"
+                )));
+            }
         }
         if let Some(user_id) = &publish.properties.user_id {
             if user_id.as_bytes() != self.user.as_bytes() {
@@ -266,6 +290,7 @@ impl Channel {
             no_ack: consume.no_ack,
             exclusive: consume.exclusive,
             prefetch: self.prefetch_count,
+            priority: consumer_priority(&consume.arguments)?,
             in_flight: Default::default(),
             active: Default::default(),
         });
@@ -337,7 +362,19 @@ impl Channel {
             return Ok(());
         }
         apply_settles(settled.into_iter().map(|u| (u, how)));
+        self.after_settles();
         Ok(())
+    }
+
+    /// With a channel-wide prefetch (basic.qos global), settling frees
+    /// credit for every consumer of the channel, not only for the queues
+    /// whose messages were settled: let them all dispatch again.
+    pub(super) fn after_settles(&self) {
+        if self.link.global_prefetch.load(Ordering::Relaxed) > 0 {
+            for (_, queue) in self.consumers.values() {
+                queue.dispatch();
+            }
+        }
     }
 
     /// basic.recover(-async). As in RabbitMQ, recover-ok goes out before

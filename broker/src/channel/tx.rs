@@ -94,6 +94,7 @@ impl Channel {
             }
         }
         apply_settles(tx.settles);
+        self.after_settles();
         if let (Some(persistence), true) = (&self.core.persistence, sync > 0) {
             if !persistence.wait(sync).await {
                 return Err(AmqpError::resource_error(

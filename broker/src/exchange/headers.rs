@@ -23,12 +23,21 @@ pub fn matches(arguments: &FieldTable, headers: Option<&FieldTable>) -> bool {
         else {
             return false;
         };
-        matches!(expected, FieldValue::Void) || actual == expected
+        matches!(expected, FieldValue::Void) || same_value(expected, actual)
     };
     if any {
         considered.any(matches_one)
     } else {
         considered.all(matches_one)
+    }
+}
+
+/// Values compare as RabbitMQ compares them: integers by value whatever
+/// their width or signedness (an `I` 1 matches an `l` 1), all else exactly.
+fn same_value(expected: &FieldValue, actual: &FieldValue) -> bool {
+    match (expected.as_i64(), actual.as_i64()) {
+        (Some(a), Some(b)) => a == b,
+        _ => expected == actual,
     }
 }
 
