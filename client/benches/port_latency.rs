@@ -21,21 +21,24 @@
 //! cargo bench -p leveret-client --bench port_latency --all-features -- --quick
 //! ```
 //!
-//! Options (after `--`): `--quick` (or `LEVERET_BENCH_QUICK=1`) cuts the
-//! counts tenfold; `--sizes 8,64` picks payload sizes; `--transports
-//! in-process,leveret-tcp,rabbitmq` and `--modes paced,unthrottled` pick a
-//! subset; `--no-extras` drops the confirm and raw-client rows, and
-//! `--paced-extras` adds them at 100 Hz too (by default they are
-//! unthrottled only);
-//! `--worker-threads N` sizes the tokio runtime (default: one per core);
-//! `--spin-pace` paces the 100 Hz mode by busy-waiting on the measuring
-//! thread instead of sleeping (a diagnostic: with `--worker-threads 1`
-//! it keeps the CPU from going idle between round trips); `--evict-kib
-//! N` writes N KiB before each round trip, untimed, evicting the caches
-//! (a diagnostic: a cold round trip without any idle time).
+//! Options (after `--`):
+//! - `--quick` (or `LEVERET_BENCH_QUICK=1`): a tenth of the round trips;
+//! - `--sizes 8,64`, `--transports in-process,leveret-tcp,rabbitmq`,
+//!   `--modes paced,unthrottled`: a subset;
+//! - `--no-extras`: no confirm and raw-client rows; `--paced-extras`: those
+//!   rows at 100 Hz too (by default they are unthrottled only);
+//! - `--worker-threads N`: the tokio runtime's workers (default one per
+//!   core); the broker, the ports and both loops share them;
+//! - diagnostics: `--spin-pace` paces the 100 Hz mode by busy-waiting
+//!   instead of sleeping (with `--worker-threads 1`, the CPU never idles
+//!   between round trips); `--evict-kib N` writes N KiB before each round
+//!   trip, untimed, to run it with cold caches but no idle time;
+//!   `--dump DIR` writes each row's samples (ns, in the order taken) to a
+//!   file in DIR.
+//!
 //! `LEVERET_BENCH_RABBIT_URL` names the RabbitMQ broker (default
-//! `amqp://guest:guest@127.0.0.1:5672/%2f`); it is skipped with a message
-//! when unreachable.
+//! `amqp://guest:guest@127.0.0.1:5672/%2f`); its rows are skipped with a
+//! message when it cannot be reached.
 
 use bytes::Bytes;
 use leveret_broker::{Broker, BrokerHandle};
@@ -140,6 +143,7 @@ struct Options {
     paced_extras: bool,
     spin_pace: bool,
     evict_kib: usize,
+    dump: Option<std::path::PathBuf>,
     paced_count: usize,
     paced_warmup: usize,
     unthrottled_count: usize,
@@ -159,6 +163,7 @@ impl Options {
         let mut paced_extras = false;
         let mut spin_pace = false;
         let mut evict_kib = 0;
+        let mut dump = None;
         let mut worker_threads = None;
         let mut args = std::env::args().skip(1);
         while let Some(arg) = args.next() {
@@ -169,6 +174,7 @@ impl Options {
                 "--paced-extras" => paced_extras = true,
                 "--spin-pace" => spin_pace = true,
                 "--evict-kib" => evict_kib = value("--evict-kib")?.parse()?,
+                "--dump" => dump = Some(value("--dump")?.into()),
                 "--sizes" => {
                     sizes = value("--sizes")?
                         .split(',')
@@ -211,6 +217,7 @@ impl Options {
             paced_extras,
             spin_pace,
             evict_kib,
+            dump,
             paced_count: 1_000 / scale,
             paced_warmup: if quick { 5 } else { 20 },
             unthrottled_count: 5_000 / scale,
@@ -722,6 +729,18 @@ async fn run(options: Options) -> BenchResult<Vec<Row>> {
                 );
                 let lost =
                     measure(pair, mode, &payload, warmup, count, &mut samples, &options).await;
+                if let Some(dir) = &options.dump {
+                    let name = format!(
+                        "{}_{}_{}_{size}_{}.txt",
+                        endpoint.transport.key(),
+                        path.label().replace(" + ", "-").replace(' ', "-"),
+                        mode.label().replace(' ', ""),
+                        rows.len()
+                    );
+                    let text: String = samples.iter().map(|s| format!("{s}\n")).collect();
+                    std::fs::create_dir_all(dir)?;
+                    std::fs::write(dir.join(name), text)?;
+                }
                 if let Some(summary) = Summary::of(&mut samples) {
                     rows.push(Row {
                         transport: endpoint.transport,
