@@ -21,6 +21,15 @@ use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
+/// Ready messages in a queue with consumers above which publishers to it
+/// are slowed down (RabbitMQ's flow control, in spirit): reading from a
+/// publishing connection pauses until the queue is back under
+/// [`FLOW_LOW`], so consumers keep the CPU they need and the backlog (and
+/// latency) stays bounded. Queues without consumers are never crowded.
+pub const FLOW_HIGH: usize = 20_000;
+/// See [`FLOW_HIGH`].
+pub const FLOW_LOW: usize = 10_000;
+
 /// A message in a queue, with its place in the queue's order.
 #[derive(Debug, Clone)]
 pub struct QueuedMessage {
@@ -231,6 +240,10 @@ pub struct Queue {
     pub args: QueueArgs,
     vhost: Weak<Vhost>,
     gauge: Arc<MemoryGauge>,
+    /// Set while the queue is over [`FLOW_HIGH`] with consumers.
+    crowded: std::sync::atomic::AtomicBool,
+    /// Wakes publishers waiting for the queue to drain.
+    drained: tokio::sync::Notify,
     /// The store and this queue's id in it, for durable queues.
     durable_store: Option<(Arc<Persistence>, u64)>,
     state: Mutex<QueueState>,
@@ -252,6 +265,8 @@ impl Queue {
             args,
             vhost,
             gauge,
+            crowded: std::sync::atomic::AtomicBool::new(false),
+            drained: tokio::sync::Notify::new(),
             durable_store,
             state: Mutex::new(QueueState {
                 last_used: Some(Instant::now()),
@@ -400,6 +415,10 @@ impl Queue {
     }
 
     fn insert_ready(&self, st: &mut QueueState, queued: QueuedMessage) {
+        if st.ready.len() >= FLOW_HIGH && !st.consumers.is_empty() {
+            self.crowded
+                .store(true, std::sync::atomic::Ordering::Release);
+        }
         st.ready_bytes += queued.message.body.len();
         if queued.expires_at.is_some() {
             st.expiring += 1;
@@ -413,8 +432,39 @@ impl Queue {
         }
     }
 
+    /// Wakes waiting publishers once the queue has drained enough (or has
+    /// no consumers left to drain it).
+    fn check_drained(&self, st: &QueueState) {
+        if (st.ready.len() <= FLOW_LOW || st.consumers.is_empty())
+            && self
+                .crowded
+                .swap(false, std::sync::atomic::Ordering::AcqRel)
+        {
+            self.drained.notify_waiters();
+        }
+    }
+
+    /// Whether publishers to this queue should slow down.
+    pub fn is_crowded(&self) -> bool {
+        self.crowded.load(std::sync::atomic::Ordering::Acquire)
+    }
+
+    /// Resolves once the queue is no longer crowded.
+    pub async fn uncrowded(&self) {
+        loop {
+            let drained = self.drained.notified();
+            if !self.is_crowded() {
+                return;
+            }
+            drained.await;
+        }
+    }
+
     fn pop_ready(&self, st: &mut QueueState) -> Option<QueuedMessage> {
         let head = st.ready.pop_front()?;
+        if self.crowded.load(std::sync::atomic::Ordering::Relaxed) {
+            self.check_drained(st);
+        }
         st.ready_bytes -= head.message.body.len();
         if head.expires_at.is_some() {
             st.expiring -= 1;
@@ -721,6 +771,7 @@ impl Queue {
             st.exclusive_consumer = false;
         }
         st.prioritised = st.consumers.iter().any(|c| c.priority != 0);
+        self.check_drained(&st);
         if st.consumers.is_empty() {
             st.last_used = Some(Instant::now());
         }
@@ -762,6 +813,7 @@ impl Queue {
         }
         st.ready_bytes = 0;
         st.expiring = 0;
+        self.check_drained(&st);
         count
     }
 

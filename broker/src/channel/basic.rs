@@ -179,6 +179,9 @@ impl Channel {
             }
             for queue in queues.drain(..) {
                 outcome.add(queue.publish(Arc::clone(&message)));
+                if queue.is_crowded() && self.crowded.is_none() {
+                    self.crowded = Some(queue);
+                }
             }
         }
         queues.clear();

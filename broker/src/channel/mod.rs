@@ -76,6 +76,8 @@ pub struct Channel {
     tx: Option<tx::Transaction>,
     confirms: Option<tx::Confirms>,
     direct_reply: Option<reply_to::DirectReply>,
+    /// A queue this channel published to that is over the flow limit.
+    crowded: Option<Arc<Queue>>,
 }
 
 impl Channel {
@@ -103,6 +105,7 @@ impl Channel {
             tx: None,
             confirms: None,
             direct_reply: None,
+            crowded: None,
         }
     }
 
@@ -112,6 +115,12 @@ impl Channel {
 
     async fn reply(&self, method: impl Into<Method>) {
         self.link.outbox.method(self.id, method).await;
+    }
+
+    /// A crowded queue this channel published to since the last call: the
+    /// connection waits for it to drain before reading more.
+    pub fn take_crowded(&mut self) -> Option<Arc<Queue>> {
+        self.crowded.take()
     }
 
     /// Whether this channel has published (memory alarms block it).

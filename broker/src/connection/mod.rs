@@ -22,6 +22,8 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 
+/// The longest a publishing connection waits for one crowded queue.
+const FLOW_WAIT: Duration = Duration::from_millis(100);
 /// How long a client has for the handshake, and to answer a close.
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 const CLOSE_TIMEOUT: Duration = Duration::from_secs(3);
@@ -208,6 +210,11 @@ impl Connection {
                         return self.close_with(reader, error).await;
                     }
                 };
+                // One unit of tokio's cooperative budget per frame: without
+                // it a busy publisher's reader runs ~100 ms per socket read
+                // while the consumer writers it wakes wait in this worker's
+                // LIFO slot (measured: consume rate 7.5k instead of 300k/s).
+                tokio::task::consume_budget().await;
                 match self.handle(frame).await {
                     Ok(Flow::Continue) => {}
                     Ok(Flow::Closed) => {
@@ -224,6 +231,7 @@ impl Connection {
             if self.core.gauge.in_alarm() && self.publishes() {
                 self.block().await;
             }
+            self.wait_for_crowded_queues().await;
             let waiting = self.channels.values().any(Channel::has_waiting_confirms);
             let event = tokio::select! {
                 read = reader.fill() => Event::Read(read),
@@ -251,6 +259,21 @@ impl Connection {
                     return self.close_with(reader, error).await;
                 }
             }
+        }
+    }
+
+    /// Flow control: before reading more, give crowded queues this
+    /// connection published to time to drain. Bounded, so a connection
+    /// that also consumes from such a queue (and must be read to get its
+    /// acks) slows down instead of stalling.
+    async fn wait_for_crowded_queues(&mut self) {
+        let crowded: Vec<Arc<crate::queue::Queue>> = self
+            .channels
+            .values_mut()
+            .filter_map(Channel::take_crowded)
+            .collect();
+        for queue in crowded {
+            let _ = tokio::time::timeout(FLOW_WAIT, queue.uncrowded()).await;
         }
     }
 
