@@ -21,6 +21,10 @@
 //! cargo bench -p leveret-client --bench port_latency --all-features -- --quick
 //! ```
 //!
+//! Run without `--bench` (as `cargo test --benches` does; `cargo bench`
+//! passes it), it only makes a few unthrottled round trips per path and
+//! transport, to check that everything works.
+//!
 //! Options (after `--`):
 //! - `--quick` (or `LEVERET_BENCH_QUICK=1`): a tenth of the round trips;
 //! - `--sizes 8,64`, `--transports in-process,leveret-tcp,rabbitmq`,
@@ -136,6 +140,8 @@ impl Path {
 }
 
 struct Options {
+    /// Run as a test (no `--bench`): a few round trips, to see it works.
+    smoke: bool,
     sizes: Vec<usize>,
     transports: Vec<Transport>,
     modes: Vec<Mode>,
@@ -164,12 +170,17 @@ impl Options {
         let mut spin_pace = false;
         let mut evict_kib = 0;
         let mut dump = None;
+        // `cargo bench` passes `--bench`; `cargo test --benches` does not,
+        // and then one short unthrottled row per path and transport only
+        // checks that everything runs.
+        let mut bench = false;
         let mut worker_threads = None;
         let mut args = std::env::args().skip(1);
         while let Some(arg) = args.next() {
             let mut value = |name: &str| args.next().ok_or_else(|| format!("{name} needs a value"));
             match arg.as_str() {
                 "--quick" => quick = true,
+                "--bench" => bench = true,
                 "--no-extras" => extras = false,
                 "--paced-extras" => paced_extras = true,
                 "--spin-pace" => spin_pace = true,
@@ -203,13 +214,18 @@ impl Options {
                         .collect::<Result<_, _>>()?;
                 }
                 "--worker-threads" => worker_threads = Some(value("--worker-threads")?.parse()?),
-                // `cargo bench` passes `--bench`; ignore it and any other
-                // harness flag.
+                // Other harness flags.
                 _ => {}
             }
         }
         let scale = if quick { 10 } else { 1 };
+        let smoke = !bench;
+        if smoke {
+            sizes.truncate(1);
+            modes = vec![Mode::Unthrottled];
+        }
         Ok(Options {
+            smoke,
             sizes,
             transports,
             modes,
@@ -220,8 +236,8 @@ impl Options {
             dump,
             paced_count: 1_000 / scale,
             paced_warmup: if quick { 5 } else { 20 },
-            unthrottled_count: 5_000 / scale,
-            unthrottled_warmup: 1_000 / scale,
+            unthrottled_count: if smoke { 20 } else { 5_000 / scale },
+            unthrottled_warmup: if smoke { 5 } else { 1_000 / scale },
             worker_threads,
             rabbit_url: std::env::var("LEVERET_BENCH_RABBIT_URL")
                 .unwrap_or_else(|_| DEFAULT_RABBIT_URL.to_owned()),
@@ -918,13 +934,19 @@ fn main() -> BenchResult<()> {
          {} paced (100 Hz) and {} unthrottled round trips per row (after {} and {} warm-up); times in µs.\n",
         options.paced_count, options.unthrottled_count, options.paced_warmup, options.unthrottled_warmup
     );
+    let smoke = options.smoke;
+    if smoke {
+        println!("Smoke run (no --bench: run by `cargo test`); `cargo bench` measures.\n");
+    }
     let before = load_average();
     // The measuring loop is a task like the echo, on the runtime's
     // workers, not on this thread (`block_on` would run it here and every
     // round trip would cross threads twice more).
     let rows = runtime.block_on(async { tokio::spawn(run(options)).await })??;
     println!("{}", table(&rows));
-    println!("{}", targets(&rows));
+    if !smoke {
+        println!("{}", targets(&rows));
+    }
     println!("Load average before: {before}; after: {}.", load_average());
     Ok(())
 }
