@@ -981,6 +981,28 @@ def _(t):
     t.eq("channel still open", ch.is_open, True)
 
 
+@s("consume.tag_reusable_after_server_cancel")
+def _(t):
+    conn = connect(t)
+    ch = conn.channel()
+    other = conn.channel()
+    q = t.n("retag")
+    tidy(t, queues=[q])
+    ch.queue_declare(q)
+    cancelled = []
+    ch.add_on_cancel_callback(lambda frame: cancelled.append(frame.method.consumer_tag))
+    ch.basic_consume(q, lambda *a: None, auto_ack=True, consumer_tag="t1")
+    other.queue_delete(q)
+    wait_until(lambda: (conn.process_data_events(0.02) or True) and cancelled, what="basic.cancel from broker")
+    ch.queue_declare(q)
+    got = []
+    ch.basic_consume(q, lambda c, m, p, b: got.append(b), auto_ack=True, consumer_tag="t1")
+    t.obs("same tag accepted again", True)
+    ch.basic_publish("", q, b"recovered")
+    pump(conn, got, 1)
+    t.eq("delivered to the re-registered consumer", got, [b"recovered"])
+
+
 @s("consume.round_robin")
 def _(t):
     conn = connect(t)

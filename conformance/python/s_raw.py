@@ -98,7 +98,8 @@ class Raw:
         _, _, cls, mth, _ = self.read_method()
         if (cls, mth) != (10, 10):
             raise Failure(f"expected connection.start, got {cls}.{mth}")
-        props = table({"product": "leveret-conformance-raw", "capabilities": {"authentication_failure_close": True}})
+        props = table({"product": "leveret-conformance-raw",
+                       "capabilities": {"authentication_failure_close": True, "consumer_cancel_notify": True}})
         resp = b"\x00" + t.user.encode() + b"\x00" + t.password.encode()
         self.send(method(0, 10, 11, props + shortstr("PLAIN") + longstr(resp) + shortstr("en_US")))
         _, _, cls, mth, args = self.read_method()
@@ -384,3 +385,27 @@ def _(t):
     r.send(method(1, 20, 41))
     r.open_channel(2)
     t.obs("connection still usable", True)
+
+
+@s("order.queue_delete_ok_before_consumer_cancel")
+def _(t):
+    """Deleting a queue on the channel that consumes from it: RabbitMQ
+    answers queue.delete-ok first and sends basic.cancel after it, which
+    py-amqp and kombu rely on (a cancel while waiting for delete-ok raises)."""
+    r = Raw(t)
+    r.handshake(t)
+    q = t.n("raw-delcons")
+    r.send(method(1, 50, 10, struct.pack(">H", 0) + shortstr(q) + b"\x00" + table({})))
+    r.read_method()
+    r.send(method(1, 60, 20, struct.pack(">H", 0) + shortstr(q) + shortstr("ctag-1") + b"\x00" + table({})))
+    r.read_method()
+    r.send(method(1, 50, 40, struct.pack(">H", 0) + shortstr(q) + b"\x00"))
+    seen = []
+    r.sock.settimeout(1)
+    try:
+        while len(seen) < 2:
+            _, ch, cls, mth, args = r.read_method()
+            seen.append({(50, 41): "queue.delete-ok", (60, 30): "basic.cancel"}.get((cls, mth), f"{cls}.{mth}"))
+    except (socket.timeout, EOFError):
+        pass
+    t.eq("frames after queue.delete", seen, ["queue.delete-ok", "basic.cancel"])
