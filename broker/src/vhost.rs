@@ -435,32 +435,15 @@ impl Vhost {
         removed
     }
 
-    /// queue.bind.
+    /// queue.bind, and with `bind` false queue.unbind (unbinding what was
+    /// never bound succeeds, as in RabbitMQ).
     pub fn bind_queue(
         &self,
         queue: &Arc<Queue>,
         exchange: &ShortStr,
         routing_key: ShortStr,
         arguments: FieldTable,
-    ) -> AmqpResult<()> {
-        let source = self.bindable_source(exchange)?;
-        check_headers_binding(&source, &arguments)?;
-        let binding = Binding {
-            destination: Destination::Queue(Arc::clone(queue)),
-            routing_key,
-            arguments,
-        };
-        self.add_binding(&source, binding);
-        Ok(())
-    }
-
-    /// queue.unbind. Unbinding what was never bound succeeds, as in RabbitMQ.
-    pub fn unbind_queue(
-        &self,
-        queue: &Arc<Queue>,
-        exchange: &ShortStr,
-        routing_key: ShortStr,
-        arguments: FieldTable,
+        bind: bool,
     ) -> AmqpResult<()> {
         let source = self.bindable_source(exchange)?;
         let binding = Binding {
@@ -468,7 +451,10 @@ impl Vhost {
             routing_key,
             arguments,
         };
-        if self.remove_binding(&source, &binding) {
+        if bind {
+            check_headers_binding(&source, &binding.arguments)?;
+            self.add_binding(&source, binding);
+        } else if self.remove_binding(&source, &binding) {
             self.auto_delete_exchange(&source);
         }
         Ok(())

@@ -76,7 +76,7 @@ impl Channel {
         let queue = self.vhost.queue_or_404(&name)?;
         check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
         self.vhost
-            .bind_queue(&queue, &bind.exchange, routing_key, bind.arguments)?;
+            .bind_queue(&queue, &bind.exchange, routing_key, bind.arguments, true)?;
         if !bind.no_wait {
             self.reply(QueueBindOk {}).await;
         }
@@ -90,8 +90,13 @@ impl Channel {
         if let Some(queue) = self.vhost.queue(&name) {
             check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
             if self.vhost.exchange(&unbind.exchange).is_some() {
-                self.vhost
-                    .unbind_queue(&queue, &unbind.exchange, routing_key, unbind.arguments)?;
+                self.vhost.bind_queue(
+                    &queue,
+                    &unbind.exchange,
+                    routing_key,
+                    unbind.arguments,
+                    false,
+                )?;
             }
         }
         self.reply(QueueUnbindOk {}).await;
