@@ -186,6 +186,38 @@ pub struct DeadLetter {
     reason: DeadLetterReason,
 }
 
+/// A deleted queue's ready-message count and the consumers it had.
+#[derive(Debug, Default)]
+#[must_use = "the deleted queue's consumers must be notified"]
+pub struct Deleted {
+    /// Ready messages the queue held.
+    pub messages: u32,
+    consumers: Vec<Arc<Consumer>>,
+}
+
+impl Deleted {
+    /// Sends basic.cancel to the consumers whose clients announced
+    /// consumer_cancel_notify; returns the message count.
+    pub fn notify(self) -> u32 {
+        for consumer in self.consumers {
+            let outbox = &consumer.channel.outbox;
+            if outbox.cancel_notify() {
+                let cancel = BasicCancel {
+                    consumer_tag: consumer.tag.clone(),
+                    no_wait: true,
+                };
+                if !outbox.try_send(Outbound::Method {
+                    channel: consumer.channel.id,
+                    method: cancel.into(),
+                }) {
+                    tracing::warn!(consumer = %consumer.tag, "no room to tell a consumer its queue was deleted");
+                }
+            }
+        }
+        self.messages
+    }
+}
+
 /// Result of offering a message to a queue.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Enqueued {
@@ -817,32 +849,25 @@ impl Queue {
         count
     }
 
-    /// Marks the queue deleted, drops its messages and cancels its
-    /// consumers (with basic.cancel to clients that asked for it).
-    /// Returns the number of ready messages it held.
-    pub fn delete(&self) -> u32 {
+    /// Marks the queue deleted and drops its messages. Its consumers are
+    /// handed back to be told with basic.cancel ([`Deleted::notify`]) once
+    /// the caller has answered whoever deleted it: RabbitMQ sends
+    /// queue.delete-ok before the cancels.
+    pub fn delete(&self) -> Deleted {
         let consumers = {
             let mut st = self.lock();
             st.deleted = true;
             std::mem::take(&mut st.consumers)
         };
-        let count = self.purge();
-        for consumer in consumers {
-            let outbox = &consumer.channel.outbox;
-            if outbox.cancel_notify() {
-                let cancel = BasicCancel {
-                    consumer_tag: consumer.tag.clone(),
-                    no_wait: true,
-                };
-                if !outbox.try_send(Outbound::Method {
-                    channel: consumer.channel.id,
-                    method: cancel.into(),
-                }) {
-                    tracing::warn!(queue = %self.name, "no room to notify a consumer of queue deletion");
-                }
-            }
+        Deleted {
+            messages: self.purge(),
+            consumers,
         }
-        count
+    }
+
+    /// Whether the queue has been deleted.
+    pub fn is_deleted(&self) -> bool {
+        self.lock().deleted
     }
 
     /// Whether it has consumers (for if-unused).

@@ -10,7 +10,7 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{Binding, Destination, Exchange, ExchangeKind, ExchangeOptions};
 use crate::memory::MemoryGauge;
 use crate::message::Message;
-use crate::queue::{Queue, QueueArgs, QueueOptions};
+use crate::queue::{Deleted, Queue, QueueArgs, QueueOptions};
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
@@ -298,16 +298,16 @@ impl Vhost {
         Ok((queue, true))
     }
 
-    /// Deletes a queue: its bindings, messages and consumers go with it.
-    /// Returns the number of ready messages it held.
-    pub fn delete_queue(&self, queue: &Arc<Queue>) -> u32 {
+    /// Deletes a queue: its bindings and messages go with it; its consumers
+    /// come back in [`Deleted`], to be notified.
+    pub fn delete_queue(&self, queue: &Arc<Queue>) -> Deleted {
         {
             let mut queues = write(&self.queues);
             match queues.get(&queue.name) {
                 Some(current) if Arc::ptr_eq(current, queue) => {
                     queues.remove(&queue.name);
                 }
-                _ => return 0,
+                _ => return Deleted::default(),
             }
         }
         let mut ops = Vec::new();
@@ -676,7 +676,7 @@ impl Vhost {
             .cloned()
             .collect();
         for queue in owned {
-            self.delete_queue(&queue);
+            self.delete_queue(&queue).notify();
         }
     }
 
@@ -687,7 +687,7 @@ impl Vhost {
             queue.expire();
             if queue.unused_expired() {
                 tracing::debug!(queue = %queue.name, "queue expired (x-expires)");
-                self.delete_queue(&queue);
+                self.delete_queue(&queue).notify();
             }
         }
     }

@@ -281,6 +281,15 @@ impl Channel {
         } else {
             consume.consumer_tag
         };
+        // A consumer whose queue was deleted (the server cancelled it) no
+        // longer holds its tag, as in RabbitMQ.
+        if self
+            .consumers
+            .get(&tag)
+            .is_some_and(|(_, queue)| queue.is_deleted())
+        {
+            self.consumers.remove(&tag);
+        }
         if self.consumers.contains_key(&tag) {
             return Err(AmqpError::not_allowed(format_args!(
                 "attempt to reuse consumer tag '{}'",
@@ -314,7 +323,7 @@ impl Channel {
         if !self.cancel_direct_reply(&cancel.consumer_tag) {
             if let Some((consumer, queue)) = self.consumers.remove(&cancel.consumer_tag) {
                 if queue.remove_consumer(&consumer) {
-                    self.vhost.delete_queue(&queue);
+                    self.vhost.delete_queue(&queue).notify();
                 }
             }
         }

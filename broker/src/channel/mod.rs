@@ -404,7 +404,7 @@ impl Channel {
         self.drop_direct_reply();
         for (_, (consumer, queue)) in self.consumers.drain() {
             if queue.remove_consumer(&consumer) {
-                self.vhost.delete_queue(&queue);
+                self.vhost.delete_queue(&queue).notify();
             }
         }
         self.abandon_tx();

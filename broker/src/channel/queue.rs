@@ -2,7 +2,7 @@
 
 use super::Channel;
 use crate::error::{AmqpError, AmqpResult};
-use crate::queue::QueueOptions;
+use crate::queue::{Deleted, QueueOptions};
 use crate::vhost::{check_exclusive, QueueDeclaration};
 use leveret_protocol::{
     QueueBind, QueueBindOk, QueueDeclare, QueueDeclareOk, QueueDelete, QueueDeleteOk, QueuePurge,
@@ -116,9 +116,9 @@ impl Channel {
 
     pub(super) async fn queue_delete(&mut self, delete: QueueDelete) -> AmqpResult<()> {
         let name = self.queue_name_or_last(delete.queue)?;
-        let message_count = match self.vhost.queue(&name) {
+        let deleted = match self.vhost.queue(&name) {
             // Deleting a queue that does not exist succeeds, as in RabbitMQ.
-            None => 0,
+            None => Deleted::default(),
             Some(queue) => {
                 check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
                 if delete.if_unused && queue.has_consumers() {
@@ -137,8 +137,11 @@ impl Channel {
             }
         };
         if !delete.no_wait {
+            let message_count = deleted.messages;
             self.reply(QueueDeleteOk { message_count }).await;
         }
+        // As RabbitMQ: delete-ok first, then the consumers' basic.cancel.
+        deleted.notify();
         Ok(())
     }
 }
