@@ -176,13 +176,9 @@ impl Channel {
             no_wait: options.no_wait,
             arguments,
         };
-        if options.no_wait {
-            return self.core().send(method).await;
-        }
         self.core()
-            .call(method, expect!(ExchangeDeclareOk))
+            .call_unless_no_wait(method, options.no_wait, expect!(ExchangeDeclareOk))
             .await
-            .map(drop)
     }
 
     /// Deletes an exchange.
@@ -197,13 +193,9 @@ impl Channel {
             if_unused: options.if_unused,
             no_wait: options.no_wait,
         };
-        if options.no_wait {
-            return self.core().send(method).await;
-        }
         self.core()
-            .call(method, expect!(ExchangeDeleteOk))
+            .call_unless_no_wait(method, options.no_wait, expect!(ExchangeDeleteOk))
             .await
-            .map(drop)
     }
 
     /// Binds exchange `destination` to exchange `source` (RabbitMQ's
@@ -224,13 +216,9 @@ impl Channel {
             no_wait: options.no_wait,
             arguments,
         };
-        if options.no_wait {
-            return self.core().send(method).await;
-        }
         self.core()
-            .call(method, expect!(ExchangeBindOk))
+            .call_unless_no_wait(method, options.no_wait, expect!(ExchangeBindOk))
             .await
-            .map(drop)
     }
 
     /// Removes an exchange-to-exchange binding.
@@ -250,13 +238,9 @@ impl Channel {
             no_wait: options.no_wait,
             arguments,
         };
-        if options.no_wait {
-            return self.core().send(method).await;
-        }
         self.core()
-            .call(method, expect!(ExchangeUnbindOk))
+            .call_unless_no_wait(method, options.no_wait, expect!(ExchangeUnbindOk))
             .await
-            .map(drop)
     }
 
     /// Declares a queue (an empty name asks the broker to pick one).
@@ -322,13 +306,9 @@ impl Channel {
             no_wait: options.no_wait,
             arguments,
         };
-        if options.no_wait {
-            return self.core().send(method).await;
-        }
         self.core()
-            .call(method, expect!(QueueBindOk))
+            .call_unless_no_wait(method, options.no_wait, expect!(QueueBindOk))
             .await
-            .map(drop)
     }
 
     /// Removes a queue binding.

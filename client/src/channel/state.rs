@@ -319,6 +319,20 @@ impl ChannelCore {
             .await
     }
 
+    /// Sends `method` and waits for its -ok reply, or with `no_wait` only
+    /// sends it (the reply was waived).
+    pub(crate) async fn call_unless_no_wait(
+        &self,
+        method: impl Into<Method>,
+        no_wait: bool,
+        expect: fn(&Method) -> bool,
+    ) -> Result<()> {
+        if no_wait {
+            return self.send(method).await;
+        }
+        self.call(method, expect).await.map(drop)
+    }
+
     /// Sends a method that has no reply (or whose reply was waived).
     pub(crate) async fn send(&self, method: impl Into<Method>) -> Result<()> {
         let method = method.into();
