@@ -7,7 +7,7 @@ use crate::auth::Users;
 use crate::memory::MemoryGauge;
 use crate::store::Persistence;
 use crate::vhost::Vhost;
-use leveret_protocol::ShortStr;
+use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
@@ -52,17 +52,21 @@ pub struct Core {
     pub gauge: Arc<MemoryGauge>,
     /// Durable storage, if the broker has any.
     pub persistence: Option<Arc<Persistence>>,
+    /// connection.start's server-properties, built once.
+    pub server_properties: FieldTable,
     next_connection: AtomicU64,
     shutdown: watch::Sender<bool>,
 }
 
 impl Core {
-    /// A core with the given vhosts, users and limits.
+    /// A core with the given vhosts, users, limits, storage and the
+    /// `product` name it announces to clients.
     pub fn new(
         vhost_names: &[String],
         users: Users,
         limits: Limits,
         persistence: Option<Arc<Persistence>>,
+        product: &str,
     ) -> Arc<Self> {
         let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
         let vhosts = vhost_names
@@ -79,6 +83,7 @@ impl Core {
             limits,
             gauge,
             persistence,
+            server_properties: crate::connection::server_properties(product),
             next_connection: AtomicU64::new(1),
             shutdown: watch::channel(false).0,
         })

@@ -19,6 +19,8 @@ const SWEEP_PERIOD: Duration = Duration::from_millis(50);
 const IN_PROCESS_BUFFER: usize = 256 * 1024;
 /// How long shutdown waits for connections to close.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
+/// The product name announced in connection.start unless the builder sets one.
+const DEFAULT_PRODUCT: &str = "Leveret";
 
 /// Entry point of the embedding API.
 pub struct Broker;
@@ -38,6 +40,7 @@ pub struct BrokerBuilder {
     vhosts: Vec<String>,
     limits: Limits,
     storage: Storage,
+    product: Option<String>,
 }
 
 /// Where durable state lives.
@@ -98,6 +101,15 @@ impl BrokerBuilder {
         self
     }
 
+    /// The `product` announced in connection.start (default `Leveret`).
+    /// Some clients and test suites switch RabbitMQ-only behaviour on when
+    /// it is exactly `RabbitMQ` (amqp091-go's integration tests, for one);
+    /// a deployment serving such clients can announce that name.
+    pub fn product(mut self, name: impl Into<String>) -> Self {
+        self.product = Some(name.into());
+        self
+    }
+
     /// Binds the listeners and starts serving.
     pub async fn start(self) -> Result<BrokerHandle, StartError> {
         let mut users = Users::default();
@@ -135,7 +147,8 @@ impl BrokerBuilder {
             }
             None => (None, Recovered::default()),
         };
-        let core = Core::new(&vhosts, users, self.limits, persistence);
+        let product = self.product.as_deref().unwrap_or(DEFAULT_PRODUCT);
+        let core = Core::new(&vhosts, users, self.limits, persistence, product);
         let report = crate::recovery::recover(&core, recovered);
         if core.persistence.is_some() {
             tracing::info!(

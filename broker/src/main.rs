@@ -29,6 +29,11 @@ struct Cli {
     /// Log level or tracing filter (error, warn, info, debug, trace) [default: info].
     #[arg(long, value_name = "LEVEL")]
     log: Option<String>,
+    /// The product name announced to clients in connection.start
+    /// [default: Leveret]. Clients that gate RabbitMQ-only behaviour on
+    /// the name may need `RabbitMQ`.
+    #[arg(long, value_name = "NAME")]
+    product: Option<String>,
     /// Read a password on standard input, print its salted hash for the
     /// config file's `password-hash`, and exit.
     #[arg(long)]
@@ -51,6 +56,7 @@ struct FileConfig {
     channel_max: Option<u16>,
     max_message_size: Option<u64>,
     memory_high_watermark: Option<usize>,
+    product: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -119,6 +125,9 @@ async fn main() -> ExitCode {
             .unwrap_or(defaults.memory_high_watermark),
     };
     let mut builder = Broker::builder().limits(limits).data_dir(data_dir);
+    if let Some(product) = cli.product.or(file.product) {
+        builder = builder.product(product);
+    }
     for addr in listen {
         builder = builder.listen(addr);
     }

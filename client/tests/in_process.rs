@@ -10,7 +10,7 @@ use common::within;
 use leveret_broker::Broker;
 use leveret_client::{
     BasicConsumeOptions, BasicProperties, BasicPublishOptions, Connection, ConnectionOptions,
-    Error, FieldTable, QueueDeclareOptions, ReplyCode,
+    Error, FieldTable, FieldValue, QueueDeclareOptions, ReplyCode,
 };
 
 #[tokio::test]
@@ -72,6 +72,22 @@ async fn publish_confirm_consume_over_the_pipe() {
         delivery.ack().await.unwrap();
     }
     within("close", connection.close()).await.unwrap();
+    broker.shutdown().await;
+}
+
+#[tokio::test]
+async fn the_announced_product_is_the_builders() {
+    let broker = Broker::builder()
+        .product("RabbitMQ")
+        .start()
+        .await
+        .expect("start");
+    let connection = within("connect", Connection::in_process(&broker))
+        .await
+        .expect("in-process connect");
+    let product = connection.server_properties().get("product").cloned();
+    assert_eq!(product, Some(FieldValue::string("RabbitMQ")));
+    connection.close().await.expect("close");
     broker.shutdown().await;
 }
 

@@ -342,7 +342,7 @@ impl Connection {
                 ConnectionStart {
                     version_major: 0,
                     version_minor: 9,
-                    server_properties: server_properties(),
+                    server_properties: self.core.server_properties.clone(),
                     mechanisms: Bytes::from_static(b"PLAIN AMQPLAIN"),
                     locales: Bytes::from_static(b"en_US"),
                 },
@@ -609,7 +609,9 @@ enum Flow {
     Closed,
 }
 
-fn server_properties() -> FieldTable {
+/// What connection.start announces: `product` (the builder's, "Leveret"
+/// by default), version, platform and RabbitMQ's capability flags.
+pub(crate) fn server_properties(product: &str) -> FieldTable {
     let text = |s: &str| FieldValue::string(s);
     let capabilities: FieldTable = [
         "publisher_confirms",
@@ -629,7 +631,7 @@ fn server_properties() -> FieldTable {
     })
     .collect();
     [
-        (ShortStr::from_static("product"), text("Leveret")),
+        (ShortStr::from_static("product"), text(product)),
         (
             ShortStr::from_static("version"),
             text(env!("CARGO_PKG_VERSION")),
