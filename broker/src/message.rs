@@ -48,7 +48,7 @@ impl Stored {
 /// (1,000,000 queued 16-byte messages take ~314 bytes each): the `Arc`'d
 /// `Message`, the queue slot, and its share of the read buffer it was
 /// sliced from.
-const MESSAGE_OVERHEAD: usize = 300;
+pub(crate) const MESSAGE_OVERHEAD: usize = 300;
 
 /// One message; shared by `Arc` between every queue it was routed to.
 #[derive(Debug)]

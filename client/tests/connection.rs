@@ -500,3 +500,68 @@ async fn leveret_memory_alarm_blocks_and_unblocks_publishers() {
     other.close().await.expect("close");
     publisher.close().await.expect("close");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn leveret_transaction_is_capped_at_a_quarter_of_the_memory_watermark() {
+    // 64 KiB watermark: one transaction may hold 16 KiB uncommitted.
+    let Some(broker) = common::leveret_with(leveret_broker::Limits {
+        memory_high_watermark: 64 * 1024,
+        ..Default::default()
+    })
+    .await
+    else {
+        return;
+    };
+    let (connection, channel) = broker.channel().await;
+    let queue = common::temp_queue(&channel, "tx-cap").await;
+    let body = bytes::Bytes::from(vec![7u8; 4 * 1024]);
+    let publish = |channel: &leveret_client::Channel| {
+        let channel = channel.clone();
+        let queue = queue.name.clone();
+        let body = body.clone();
+        async move {
+            channel
+                .basic_publish("", &queue, Default::default(), Default::default(), body)
+                .await
+                .map(drop)
+        }
+    };
+    let tx = connection.open_channel().await.expect("channel");
+    tx.tx_select().await.expect("tx.select");
+    for _ in 0..3 {
+        publish(&tx).await.expect("publish");
+    }
+    tx.tx_commit().await.expect("a 12 KiB transaction commits");
+    // A transaction that never commits: the fourth 4 KiB publish (with the
+    // per-message overhead) passes 16 KiB.
+    for _ in 0..4 {
+        publish(&tx).await.expect("publish");
+    }
+    let err = tx.tx_commit().await.expect_err("the channel was closed");
+    match &err {
+        leveret_client::Error::ChannelClosed(reason) => {
+            assert_eq!(
+                reason.reply_code(),
+                Some(leveret_client::ReplyCode::PreconditionFailed),
+                "{reason}"
+            );
+            assert!(reason.text.contains("transaction too large"), "{reason}");
+            assert_eq!((reason.class_id, reason.method_id), (60, 40), "{reason}");
+        }
+        other => panic!("expected a 406 channel close, got {other:?}"),
+    }
+    // Only the committed messages were queued; the connection still serves.
+    let declared = channel
+        .queue_declare(
+            &queue.name,
+            leveret_client::QueueDeclareOptions {
+                passive: true,
+                ..Default::default()
+            },
+            Default::default(),
+        )
+        .await
+        .expect("passive declare");
+    assert_eq!(declared.message_count, 3);
+    connection.close().await.expect("close");
+}

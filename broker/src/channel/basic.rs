@@ -157,8 +157,7 @@ impl Channel {
         let mut publish = publish;
         self.rewrite_reply_to(&mut publish)?;
         if let Some(tx) = &mut self.tx {
-            tx.publishes.push(publish);
-            return Ok(());
+            return tx.hold(publish, self.core.limits.memory_high_watermark / 4);
         }
         let confirm = self.confirms.as_mut().map(|c| c.next_tag());
         let outcome = self.route_and_enqueue(publish).await;

@@ -59,6 +59,14 @@ pub(crate) struct Publish {
     body: Bytes,
 }
 
+impl Publish {
+    /// Bytes it accounts for in the memory gauge while a transaction holds
+    /// it: what the message will weigh once queued.
+    fn weight(&self) -> usize {
+        self.body.len() + self.property_bytes.len() + crate::message::MESSAGE_OVERHEAD
+    }
+}
+
 /// A channel of a connection.
 pub struct Channel {
     id: u16,

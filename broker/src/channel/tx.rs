@@ -7,6 +7,7 @@ use super::basic::{apply_settles, body_op, requeue_all, Outcome, Settle};
 use super::{Channel, Publish};
 use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
+use crate::memory::MemoryGauge;
 use crate::queue::Queue;
 use leveret_protocol::{
     BasicAck, BasicNack, ConfirmSelectOk, TxCommitOk, TxRollbackOk, TxSelectOk,
@@ -14,11 +15,50 @@ use leveret_protocol::{
 use std::collections::VecDeque;
 use std::sync::Arc;
 
-/// Work held by a transactional channel until commit.
-#[derive(Debug, Default)]
+/// Work held by a transactional channel until commit. The publishes it
+/// holds count in the broker's memory gauge, as queued messages do, and
+/// one transaction may hold at most a quarter of the memory watermark: a
+/// client publishing without ever committing gets a channel error instead
+/// of growing the broker without bound, and cannot by itself keep the
+/// memory alarm (which stops reading its connection, commit included) set.
+#[derive(Debug)]
 pub(crate) struct Transaction {
-    pub(super) publishes: Vec<Publish>,
+    publishes: Vec<Publish>,
     pub(super) settles: Vec<(Unacked, Settle)>,
+    gauge: Arc<MemoryGauge>,
+    held_bytes: usize,
+}
+
+impl Transaction {
+    fn new(gauge: &Arc<MemoryGauge>) -> Self {
+        Transaction {
+            publishes: Vec::new(),
+            settles: Vec::new(),
+            gauge: Arc::clone(gauge),
+            held_bytes: 0,
+        }
+    }
+
+    /// Holds a publish until commit, if the transaction stays within
+    /// `limit` bytes.
+    pub(super) fn hold(&mut self, publish: Publish, limit: usize) -> AmqpResult<()> {
+        let weight = publish.weight();
+        if self.held_bytes + weight > limit {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "transaction too large: more than {limit} bytes of uncommitted publishes"
+            )));
+        }
+        self.gauge.add(weight);
+        self.held_bytes += weight;
+        self.publishes.push(publish);
+        Ok(())
+    }
+}
+
+impl Drop for Transaction {
+    fn drop(&mut self) {
+        self.gauge.sub(self.held_bytes);
+    }
 }
 
 /// Publisher-confirm state of a channel.
@@ -44,14 +84,14 @@ impl Channel {
             ));
         }
         if self.tx.is_none() {
-            self.tx = Some(Transaction::default());
+            self.tx = Some(Transaction::new(&self.core.gauge));
         }
         self.reply(TxSelectOk {}).await;
         Ok(())
     }
 
     pub(super) async fn tx_commit(&mut self) -> AmqpResult<()> {
-        let Some(tx) = self.tx.replace(Transaction::default()) else {
+        let Some(mut tx) = self.tx.replace(Transaction::new(&self.core.gauge)) else {
             return Err(AmqpError::precondition_failed(
                 "channel is not transactional",
             ));
@@ -61,8 +101,9 @@ impl Channel {
         // batch; only then do the messages become visible to consumers
         // (whose acks must reach the store after the entries they remove).
         let mut ops = Vec::new();
-        let mut placed = Vec::with_capacity(tx.publishes.len());
-        for publish in tx.publishes {
+        let publishes = std::mem::take(&mut tx.publishes);
+        let mut placed = Vec::with_capacity(publishes.len());
+        for publish in publishes {
             let mut queues = Vec::new();
             let Some(message) = self.route(publish, &mut queues).await else {
                 continue;
@@ -93,7 +134,7 @@ impl Channel {
                 };
             }
         }
-        apply_settles(tx.settles);
+        apply_settles(std::mem::take(&mut tx.settles));
         self.after_settles();
         if let (Some(persistence), true) = (&self.core.persistence, sync > 0) {
             if !persistence.wait(sync).await {
@@ -107,7 +148,7 @@ impl Channel {
     }
 
     pub(super) async fn tx_rollback(&mut self) -> AmqpResult<()> {
-        let Some(tx) = self.tx.replace(Transaction::default()) else {
+        let Some(mut tx) = self.tx.replace(Transaction::new(&self.core.gauge)) else {
             return Err(AmqpError::precondition_failed(
                 "channel is not transactional",
             ));
@@ -115,7 +156,7 @@ impl Channel {
         // Rolled-back acks leave their deliveries unacked on the channel.
         self.link
             .deliveries()
-            .restore(tx.settles.into_iter().map(|(u, _)| u));
+            .restore(std::mem::take(&mut tx.settles).into_iter().map(|(u, _)| u));
         self.reply(TxRollbackOk {}).await;
         Ok(())
     }
@@ -123,8 +164,13 @@ impl Channel {
     /// Drops uncommitted work; held acks go back to their queues with the
     /// channel's other unacked messages.
     pub(super) fn abandon_tx(&mut self) {
-        if let Some(tx) = self.tx.take() {
-            requeue_all(tx.settles.into_iter().map(|(u, _)| u).collect());
+        if let Some(mut tx) = self.tx.take() {
+            requeue_all(
+                std::mem::take(&mut tx.settles)
+                    .into_iter()
+                    .map(|(u, _)| u)
+                    .collect(),
+            );
         }
     }
 
