@@ -444,11 +444,11 @@ def run_amqprs(ctx):
 
 # name -> (description, runner, in the default run)
 SUITES = {
-    "up-amqp091-go": ("amqp091-go integration_test.go (Debian source)", run_amqp091_go, True),
-    "up-amqplib": ("amqplib 0.10 mocha tests (npm)", run_amqplib, True),
-    "up-py-amqp": ("py-amqp t/integration/test_rmq.py (PyPI sdist)", run_py_amqp, True),
-    "up-kombu": ("kombu t/integration/test_py_amqp.py (PyPI sdist)", run_kombu, True),
-    "up-lapin": ("lapin tests/ (crates.io)", run_lapin, True),
-    "up-amqprs": ("amqprs tests/ (crates.io)", run_amqprs, True),
-    "up-aio-pika": ("aio-pika tests/ (PyPI sdist)", run_aio_pika, False),
+    "up-amqp091-go": ("amqp091-go integration_test.go (Debian source)", run_amqp091_go),
+    "up-amqplib": ("amqplib 0.10 mocha tests (npm)", run_amqplib),
+    "up-py-amqp": ("py-amqp t/integration/test_rmq.py (PyPI sdist)", run_py_amqp),
+    "up-kombu": ("kombu t/integration/test_py_amqp.py (PyPI sdist)", run_kombu),
+    "up-lapin": ("lapin tests/ (crates.io)", run_lapin),
+    "up-amqprs": ("amqprs tests/ (crates.io)", run_amqprs),
+    "up-aio-pika": ("aio-pika tests/ (PyPI sdist)", run_aio_pika),
 }
