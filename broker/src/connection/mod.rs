@@ -191,8 +191,10 @@ impl Connection {
         tracing::debug!(user = %self.user, "connection open");
         let mut shutdown = self.core.shutdown_signal();
         let mut durable = self.core.persistence.as_ref().map(|p| p.durable());
-        // One deadline for client silence, pushed back after every read.
+        // One deadline for client silence, re-armed only when it fires (a
+        // timer reset per read would cost a timer-wheel update per batch).
         let silence_limit = self.heartbeat * 2;
+        let mut last_read = tokio::time::Instant::now();
         let silence = tokio::time::sleep(silence_limit);
         tokio::pin!(silence);
         loop {
@@ -240,15 +242,12 @@ impl Connection {
                 _ = &mut silence, if !silence_limit.is_zero() => Event::Silent,
             };
             match event {
-                Event::Read(Ok(())) => {
-                    if !silence_limit.is_zero() {
-                        silence
-                            .as_mut()
-                            .reset(tokio::time::Instant::now() + silence_limit);
-                    }
-                }
+                Event::Read(Ok(())) => last_read = tokio::time::Instant::now(),
                 Event::Read(Err(e)) => return Err(Ended::Read(e)),
                 Event::DiskProgress => {}
+                Event::Silent if last_read.elapsed() < silence_limit => {
+                    silence.as_mut().reset(last_read + silence_limit);
+                }
                 Event::Silent => {
                     tracing::info!(peer = %self.peer, "missed heartbeats from client; closing");
                     return Err(Ended::Read(ReadError::TimedOut));

@@ -13,6 +13,7 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncWrite, AsyncWriteExt};
 use tokio::sync::mpsc;
+use tokio::time::Instant;
 
 /// Stop adding to a batch once the buffer holds this much.
 const BATCH_BYTES: usize = 128 * 1024;
@@ -25,28 +26,29 @@ pub async fn run<W: AsyncWrite + Unpin>(
     mut heartbeat: tokio::sync::watch::Receiver<Duration>,
 ) {
     let mut buf = BytesMut::with_capacity(64 * 1024);
+    let mut interval = *heartbeat.borrow();
+    let mut last_write = Instant::now();
+    // One timer for the connection's life, re-armed only when it fires (not
+    // per batch written): a heartbeat is due `interval` after the last write.
+    let idle = tokio::time::sleep(interval);
+    tokio::pin!(idle);
     loop {
-        let interval = *heartbeat.borrow();
-        let next = if interval.is_zero() {
-            tokio::select! {
-                item = inbox.recv() => item,
-                changed = heartbeat.changed() => {
-                    if changed.is_err() { return; }
-                    continue;
-                }
+        let next = tokio::select! {
+            item = inbox.recv() => item,
+            changed = heartbeat.changed() => {
+                if changed.is_err() { return; }
+                interval = *heartbeat.borrow();
+                idle.as_mut().reset(last_write + interval);
+                continue;
             }
-        } else {
-            tokio::select! {
-                item = inbox.recv() => item,
-                changed = heartbeat.changed() => {
-                    if changed.is_err() { return; }
-                    continue;
-                }
-                _ = tokio::time::sleep(interval) => {
+            _ = &mut idle, if !interval.is_zero() => {
+                if Instant::now() >= last_write + interval {
                     Frame::Heartbeat.encode(&mut buf);
                     if flush(&mut socket, &mut buf).await.is_err() { return; }
-                    continue;
+                    last_write = Instant::now();
                 }
+                idle.as_mut().reset(last_write + interval);
+                continue;
             }
         };
         let Some(item) = next else {
@@ -63,6 +65,7 @@ pub async fn run<W: AsyncWrite + Unpin>(
         if flush(&mut socket, &mut buf).await.is_err() {
             return;
         }
+        last_write = Instant::now();
         outbox.wake_blocked();
         if stop {
             let _ = socket.shutdown().await;
