@@ -15,7 +15,7 @@ use crate::body::{read_seq, BodyWriter};
 use crate::histogram::{BoxStats, Samples};
 use crate::load::{connect, unique_prefix, DEFAULT_URL};
 use crate::report::{micros, Table};
-use crate::Result;
+use crate::{PerfError, Result};
 use leveret_client::{
     BasicConsumeOptions, BasicProperties, BasicPublishOptions, Channel, Consumer, FieldTable,
     QueueDeclareOptions, QueueDeleteOptions, ShortStr,
@@ -239,10 +239,33 @@ fn seq_of(body: &[u8], size: usize) -> u64 {
 }
 
 /// Runs the round trip for every size; prints a table unless `quiet`.
+///
+/// The pinger, the echo client and their connections run on a thread of
+/// their own with a single-threaded runtime, whatever runtime calls this:
+/// with one message in flight there is nothing to parallelise, and every
+/// hand-off between worker threads (a wake-up of a parked thread) would add
+/// the load generator's own jitter to the broker's round trip.
 pub async fn run(args: &RttArgs) -> Result<RttReport> {
     if args.sizes.is_empty() || args.sizes.contains(&0) {
         return Err("--sizes must list positive sizes".into());
     }
+    let args = args.clone();
+    let (done, report) = tokio::sync::oneshot::channel();
+    std::thread::Builder::new()
+        .name("rtt".into())
+        .spawn(move || {
+            let result = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .map_err(|e| PerfError(format!("rtt runtime: {e}")))
+                .and_then(|runtime| runtime.block_on(run_here(&args)));
+            let _ = done.send(result);
+        })
+        .map_err(|e| format!("cannot start the rtt thread: {e}"))?;
+    report.await.map_err(|_| "the rtt thread panicked")?
+}
+
+async fn run_here(args: &RttArgs) -> Result<RttReport> {
     let prefix = unique_prefix("rtt");
     let queue_a = ShortStr::try_from(format!("{prefix}-a")).map_err(|e| e.to_string())?;
     let queue_b = ShortStr::try_from(format!("{prefix}-b")).map_err(|e| e.to_string())?;
@@ -317,7 +340,7 @@ pub async fn run(args: &RttArgs) -> Result<RttReport> {
             });
         }
         echo.abort();
-        Ok::<_, crate::PerfError>(sizes)
+        Ok::<_, PerfError>(sizes)
     }
     .await;
     for queue in [&queue_a, &queue_b] {
