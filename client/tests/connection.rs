@@ -438,15 +438,19 @@ async fn unexpected_reply_closes_with_unexpected_frame() {
     assert!(matches!(connection.closed().await, Error::Protocol(_)));
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn leveret_memory_alarm_blocks_and_unblocks_publishers() {
-    // Needs a broker with a tiny memory watermark: the in-process Leveret.
-    let Some(broker) = common::leveret_with(leveret_broker::Limits {
+/// Needs a broker with a tiny memory watermark: the in-process Leveret
+/// (`None` when the tests run against an external broker).
+async fn leveret_with_64k_watermark() -> Option<common::TestBroker> {
+    common::leveret_with(leveret_broker::Limits {
         memory_high_watermark: 64 * 1024,
         ..Default::default()
     })
     .await
-    else {
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn leveret_memory_alarm_blocks_and_unblocks_publishers() {
+    let Some(broker) = leveret_with_64k_watermark().await else {
         return;
     };
     let (publisher, channel) = broker.channel().await;
@@ -503,13 +507,8 @@ async fn leveret_memory_alarm_blocks_and_unblocks_publishers() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn leveret_transaction_is_capped_at_a_quarter_of_the_memory_watermark() {
-    // 64 KiB watermark: one transaction may hold 16 KiB uncommitted.
-    let Some(broker) = common::leveret_with(leveret_broker::Limits {
-        memory_high_watermark: 64 * 1024,
-        ..Default::default()
-    })
-    .await
-    else {
+    // One transaction may hold a quarter of the watermark: 16 KiB.
+    let Some(broker) = leveret_with_64k_watermark().await else {
         return;
     };
     let (connection, channel) = broker.channel().await;
