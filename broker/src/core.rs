@@ -6,6 +6,7 @@
 use crate::auth::Users;
 use crate::memory::MemoryGauge;
 use crate::store::Persistence;
+use crate::sweep::SweepDemand;
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
@@ -50,6 +51,8 @@ pub struct Core {
     pub limits: Limits,
     /// Memory held by queued messages.
     pub gauge: Arc<MemoryGauge>,
+    /// Queues with something that may expire (the sweeper's work).
+    pub sweep_demand: Arc<SweepDemand>,
     /// Durable storage, if the broker has any.
     pub persistence: Option<Arc<Persistence>>,
     /// connection.start's server-properties, built once.
@@ -69,11 +72,17 @@ impl Core {
         product: &str,
     ) -> Arc<Self> {
         let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
+        let sweep_demand = Arc::new(SweepDemand::default());
         let vhosts = vhost_names
             .iter()
             .filter_map(|name| ShortStr::try_from(name.as_str()).ok())
             .map(|name| {
-                let vhost = Vhost::new(name.clone(), Arc::clone(&gauge), persistence.clone());
+                let vhost = Vhost::new(
+                    name.clone(),
+                    Arc::clone(&gauge),
+                    Arc::clone(&sweep_demand),
+                    persistence.clone(),
+                );
                 (name, vhost)
             })
             .collect();
@@ -82,6 +91,7 @@ impl Core {
             users,
             limits,
             gauge,
+            sweep_demand,
             persistence,
             server_properties: crate::connection::server_properties(product),
             next_connection: AtomicU64::new(1),
@@ -106,6 +116,7 @@ impl Core {
             Vhost::new(
                 name.clone(),
                 Arc::clone(&self.gauge),
+                Arc::clone(&self.sweep_demand),
                 self.persistence.clone(),
             )
         });

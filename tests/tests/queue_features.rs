@@ -154,6 +154,54 @@ async fn per_message_expiration_dead_letters_with_original_expiration() {
 }
 
 #[tokio::test]
+async fn expiry_resumes_after_a_queue_had_nothing_left_to_expire() {
+    // Between the two messages nothing in the broker can expire (the
+    // sweeper may sleep); the second must still be dead-lettered on time.
+    let b = broker().await;
+    let conn = lp::connect(&b).await;
+    let ch = confirm_channel(&conn).await;
+    let (dlx, _dead, mut dead_consumer) = dead_letter_sink(&ch).await;
+    let q = lp::queue_with(
+        &ch,
+        "expiry-resumes",
+        lp::table(vec![("x-dead-letter-exchange", lp::lstr(&dlx))]),
+    )
+    .await;
+    for body in [&b"first"[..], b"second"] {
+        let props = lp::BasicProperties::default().with_expiration("20".into());
+        assert!(lp::publish_confirmed(&ch, "", &q, body, props)
+            .await
+            .is_ack());
+        let d = lp::next(&mut dead_consumer).await;
+        assert_eq!(d.data, body);
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+    }
+}
+
+#[tokio::test]
+async fn an_unused_queue_is_deleted_after_x_expires() {
+    let b = broker().await;
+    let conn = lp::connect(&b).await;
+    let ch = lp::channel(&conn).await;
+    let q = lp::queue_with(
+        &ch,
+        "x-expires",
+        lp::table(vec![("x-expires", AMQPValue::LongInt(100))]),
+    )
+    .await;
+    tokio::time::sleep(std::time::Duration::from_millis(600)).await;
+    let res = tmo!(ch.queue_declare(
+        &q,
+        lp::QueueDeclareOptions {
+            passive: true,
+            ..Default::default()
+        },
+        lp::FieldTable::default()
+    ));
+    lp::assert_err(res, 404, "NOT_FOUND");
+}
+
+#[tokio::test]
 async fn zero_ttl_drops_messages_nobody_can_take_at_once() {
     let b = broker().await;
     let (_conn, ch, mut ev) = rs::open(&b).await;
