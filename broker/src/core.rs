@@ -6,7 +6,6 @@
 use crate::auth::Users;
 use crate::memory::MemoryGauge;
 use crate::store::Persistence;
-use crate::sweep::SweepDemand;
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
@@ -51,8 +50,6 @@ pub struct Core {
     pub limits: Limits,
     /// Memory held by queued messages.
     pub gauge: Arc<MemoryGauge>,
-    /// Queues with something that may expire (the sweeper's work).
-    pub sweep_demand: Arc<SweepDemand>,
     /// Durable storage, if the broker has any.
     pub persistence: Option<Arc<Persistence>>,
     /// connection.start's server-properties, built once.
@@ -72,17 +69,11 @@ impl Core {
         product: &str,
     ) -> Arc<Self> {
         let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
-        let sweep_demand = Arc::new(SweepDemand::default());
         let vhosts = vhost_names
             .iter()
             .filter_map(|name| ShortStr::try_from(name.as_str()).ok())
             .map(|name| {
-                let vhost = Vhost::new(
-                    name.clone(),
-                    Arc::clone(&gauge),
-                    Arc::clone(&sweep_demand),
-                    persistence.clone(),
-                );
+                let vhost = Vhost::new(name.clone(), Arc::clone(&gauge), persistence.clone());
                 (name, vhost)
             })
             .collect();
@@ -91,7 +82,6 @@ impl Core {
             users,
             limits,
             gauge,
-            sweep_demand,
             persistence,
             server_properties: crate::connection::server_properties(product),
             next_connection: AtomicU64::new(1),
@@ -116,7 +106,6 @@ impl Core {
             Vhost::new(
                 name.clone(),
                 Arc::clone(&self.gauge),
-                Arc::clone(&self.sweep_demand),
                 self.persistence.clone(),
             )
         });

@@ -178,7 +178,7 @@ impl BrokerBuilder {
                 alive.clone(),
             )));
         }
-        tasks.push(tokio::spawn(crate::sweep::sweeper(
+        tasks.push(tokio::spawn(crate::server::sweeper(
             Arc::clone(&core),
             SWEEP_PERIOD,
         )));

@@ -17,8 +17,7 @@
 //!
 //! # Layout
 //! - `embed`: the builder and handle, the public entry point.
-//! - `server`: TCP listeners and the accept loop.
-//! - `sweep`: the TTL/x-expires sweeper, which sleeps while nothing can expire.
+//! - `server`: TCP listeners, the accept loop, the TTL/expiry sweeper.
 //! - `connection`: handshake, the reader loop, heartbeats, closing; `connection::writer` owns the socket's write half.
 //! - `channel`: content assembly and one module per AMQP class (`basic`, `queue`, `exchange`, `tx`).
 //! - `core`: state shared by all connections (vhosts, users, limits, memory gauge, shutdown).
@@ -46,7 +45,6 @@ mod queue;
 mod recovery;
 mod server;
 pub mod store;
-mod sweep;
 mod vhost;
 
 pub use crate::auth::PasswordHash;

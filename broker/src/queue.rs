@@ -15,7 +15,6 @@ use crate::memory::MemoryGauge;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
 use crate::store::{EntryBody, Persistence, StoreOp};
-use crate::sweep::SweepDemand;
 use crate::vhost::Vhost;
 use leveret_protocol::{BasicCancel, FieldTable, FieldValue, ShortStr};
 use std::collections::VecDeque;
@@ -273,9 +272,6 @@ pub struct Queue {
     pub args: QueueArgs,
     vhost: Weak<Vhost>,
     gauge: Arc<MemoryGauge>,
-    /// Counts this queue while it has messages with a TTL or an x-expires
-    /// argument (once for each), so the sweeper knows there is work.
-    sweep_demand: Arc<SweepDemand>,
     /// Set while the queue is over [`FLOW_HIGH`] with consumers.
     crowded: std::sync::atomic::AtomicBool,
     /// Wakes publishers waiting for the queue to drain.
@@ -283,18 +279,6 @@ pub struct Queue {
     /// The store and this queue's id in it, for durable queues.
     durable_store: Option<(Arc<Persistence>, u64)>,
     state: Mutex<QueueState>,
-}
-
-impl Drop for Queue {
-    fn drop(&mut self) {
-        let st = self.state.get_mut().unwrap_or_else(|e| e.into_inner());
-        if st.expiring > 0 {
-            self.sweep_demand.sub();
-        }
-        if self.args.expires.is_some() {
-            self.sweep_demand.sub();
-        }
-    }
 }
 
 impl Queue {
@@ -305,19 +289,14 @@ impl Queue {
         args: QueueArgs,
         vhost: Weak<Vhost>,
         gauge: Arc<MemoryGauge>,
-        sweep_demand: Arc<SweepDemand>,
         durable_store: Option<(Arc<Persistence>, u64)>,
     ) -> Self {
-        if args.expires.is_some() {
-            sweep_demand.add();
-        }
         Queue {
             name,
             options,
             args,
             vhost,
             gauge,
-            sweep_demand,
             crowded: std::sync::atomic::AtomicBool::new(false),
             drained: tokio::sync::Notify::new(),
             durable_store,
@@ -475,9 +454,6 @@ impl Queue {
         st.ready_bytes += queued.message.body.len();
         if queued.expires_at.is_some() {
             st.expiring += 1;
-            if st.expiring == 1 {
-                self.sweep_demand.add();
-            }
         }
         let key = queued.order_key();
         if st.ready.back().is_none_or(|last| last.order_key() < key) {
@@ -524,9 +500,6 @@ impl Queue {
         st.ready_bytes -= head.message.body.len();
         if head.expires_at.is_some() {
             st.expiring -= 1;
-            if st.expiring == 0 {
-                self.sweep_demand.sub();
-            }
         }
         Some(head)
     }
@@ -871,9 +844,7 @@ impl Queue {
             self.release(&queued);
         }
         st.ready_bytes = 0;
-        if std::mem::take(&mut st.expiring) > 0 {
-            self.sweep_demand.sub();
-        }
+        st.expiring = 0;
         self.check_drained(&st);
         count
     }

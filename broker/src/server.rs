@@ -1,5 +1,6 @@
-//! The TCP side: listeners and the accept loop (TCP_NODELAY on every
-//! socket, as RabbitMQ does and as the paper's latency figures call for).
+//! The TCP side: listeners, the accept loop (TCP_NODELAY on every socket,
+//! as RabbitMQ does and as the paper's latency figures call for), and the
+//! vhost sweeper that expires messages and queues.
 
 use crate::core::Core;
 use std::sync::Arc;
@@ -39,5 +40,21 @@ pub async fn accept_loop(
             crate::connection::serve(core, read, write, peer.to_string()).await;
             drop(alive);
         });
+    }
+}
+
+/// Expires messages and unused queues every `period`.
+pub async fn sweeper(core: Arc<Core>, period: Duration) {
+    let mut shutdown = core.shutdown_signal();
+    let mut ticker = tokio::time::interval(period);
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = ticker.tick() => {}
+            _ = shutdown.wait_for(|down| *down) => return,
+        }
+        for vhost in core.vhosts() {
+            vhost.sweep();
+        }
     }
 }

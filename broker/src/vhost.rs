@@ -12,7 +12,6 @@ use crate::memory::MemoryGauge;
 use crate::message::Message;
 use crate::queue::{Deleted, Queue, QueueArgs, QueueOptions};
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
-use crate::sweep::SweepDemand;
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
@@ -25,7 +24,6 @@ pub struct Vhost {
     exchanges: RwLock<HashMap<ShortStr, Arc<Exchange>>>,
     queues: RwLock<HashMap<ShortStr, Arc<Queue>>>,
     gauge: Arc<MemoryGauge>,
-    sweep_demand: Arc<SweepDemand>,
     persistence: Option<Arc<Persistence>>,
     /// Direct reply-to consumers by their reply name.
     reply_targets: RwLock<HashMap<ShortStr, ReplyTarget>>,
@@ -70,7 +68,6 @@ impl Vhost {
     pub fn new(
         name: ShortStr,
         gauge: Arc<MemoryGauge>,
-        sweep_demand: Arc<SweepDemand>,
         persistence: Option<Arc<Persistence>>,
     ) -> Arc<Self> {
         let vhost = Vhost {
@@ -78,7 +75,6 @@ impl Vhost {
             exchanges: RwLock::new(HashMap::new()),
             queues: RwLock::new(HashMap::new()),
             gauge,
-            sweep_demand,
             persistence,
             reply_targets: RwLock::new(HashMap::new()),
         };
@@ -296,7 +292,6 @@ impl Vhost {
             args,
             Arc::downgrade(self),
             Arc::clone(&self.gauge),
-            Arc::clone(&self.sweep_demand),
             durable_store,
         ));
         queues.insert(decl.name, Arc::clone(&queue));
@@ -630,7 +625,6 @@ impl Vhost {
             args,
             Arc::downgrade(self),
             Arc::clone(&self.gauge),
-            Arc::clone(&self.sweep_demand),
             Some((persistence, record.id)),
         ));
         write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
