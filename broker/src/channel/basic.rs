@@ -5,6 +5,7 @@
 use super::{Channel, Publish};
 use crate::consumer::{Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
+use crate::exchange::Exchange;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
 use crate::queue::{Enqueued, Queue};
@@ -160,7 +161,7 @@ impl Channel {
             return tx.hold(publish, self.core.limits.memory_high_watermark / 4);
         }
         let confirm = self.confirms.as_mut().map(|c| c.next_tag());
-        let outcome = self.route_and_enqueue(publish).await;
+        let outcome = self.route_and_enqueue(&exchange, publish).await;
         if let Some(tag) = confirm {
             self.confirm(tag, outcome).await;
         }
@@ -169,37 +170,35 @@ impl Channel {
 
     /// Routes a message and offers it to each queue: the non-transactional
     /// publish path.
-    pub(super) async fn route_and_enqueue(&mut self, publish: Publish) -> Outcome {
+    async fn route_and_enqueue(&mut self, exchange: &Arc<Exchange>, publish: Publish) -> Outcome {
         let mut queues = std::mem::take(&mut self.route_buffer);
         let mut outcome = Outcome::default();
-        if let Some(message) = self.route(publish, &mut queues).await {
-            if let (Some(persistence), Some(op)) = (&self.core.persistence, body_op(&message)) {
-                persistence.submit(vec![op]);
-            }
-            for queue in queues.drain(..) {
-                outcome.add(queue.publish(Arc::clone(&message)));
-                if queue.is_crowded() && self.crowded.is_none() {
-                    self.crowded = Some(queue);
-                }
+        let message = self.route(exchange, publish, &mut queues).await;
+        if let (Some(persistence), Some(op)) = (&self.core.persistence, body_op(&message)) {
+            persistence.submit(vec![op]);
+        }
+        for queue in queues.drain(..) {
+            outcome.add(queue.publish(Arc::clone(&message)));
+            if queue.is_crowded() && self.crowded.is_none() {
+                self.crowded = Some(queue);
             }
         }
-        queues.clear();
         self.route_buffer = queues;
         outcome
     }
 
-    /// Routes a publish into `queues` and builds the message, marked for
-    /// storage when it is persistent and reaches durable queues. Sends
-    /// basic.return for an unroutable mandatory message. `None` if the
-    /// exchange is gone (deleted before a tx.commit: RabbitMQ drops it).
+    /// Routes a publish through `exchange` into `queues` and builds the
+    /// message, marked for storage when it is persistent and reaches
+    /// durable queues. Sends basic.return for an unroutable mandatory
+    /// message.
     pub(super) async fn route(
         &mut self,
+        exchange: &Arc<Exchange>,
         publish: Publish,
         queues: &mut Vec<Arc<Queue>>,
-    ) -> Option<Arc<Message>> {
-        let exchange = self.vhost.exchange(&publish.method.exchange)?;
+    ) -> Arc<Message> {
         self.vhost.route(
-            &exchange,
+            exchange,
             &publish.method.routing_key,
             publish.properties.headers.as_ref(),
             queues,
@@ -244,7 +243,7 @@ impl Channel {
                 })
                 .await;
         }
-        Some(message)
+        message
     }
 
     pub(super) async fn basic_qos(&mut self, qos: BasicQos) -> AmqpResult<()> {

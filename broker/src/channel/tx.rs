@@ -105,9 +105,11 @@ impl Channel {
         let mut placed = Vec::with_capacity(publishes.len());
         for publish in publishes {
             let mut queues = Vec::new();
-            let Some(message) = self.route(publish, &mut queues).await else {
+            // An exchange deleted before the commit: RabbitMQ drops the message.
+            let Some(exchange) = self.vhost.exchange(&publish.method.exchange) else {
                 continue;
             };
+            let message = self.route(&exchange, publish, &mut queues).await;
             ops.extend(body_op(&message));
             let targets: Vec<(Arc<Queue>, Option<u64>)> = queues
                 .into_iter()
