@@ -36,6 +36,22 @@ async fn dead_letter_sink(ch: &lp::Channel) -> (String, String, lp::Consumer) {
     (dlx, dead, consumer)
 }
 
+/// A queue dead-lettering to a [`dead_letter_sink`]: the queue's name, the
+/// dead-letter exchange's, and the consumer of what it dead-letters.
+async fn queue_with_dead_letter_sink(
+    ch: &lp::Channel,
+    prefix: &str,
+) -> (String, String, lp::Consumer) {
+    let (dlx, _dead, dead_consumer) = dead_letter_sink(ch).await;
+    let q = lp::queue_with(
+        ch,
+        prefix,
+        lp::table(vec![("x-dead-letter-exchange", lp::lstr(&dlx))]),
+    )
+    .await;
+    (q, dlx, dead_consumer)
+}
+
 fn header<'a>(d: &'a lp::Delivery, key: &str) -> Option<&'a AMQPValue> {
     d.properties
         .headers()
@@ -125,13 +141,7 @@ async fn per_message_expiration_dead_letters_with_original_expiration() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
     let ch = confirm_channel(&conn).await;
-    let (dlx, _dead, mut dead_consumer) = dead_letter_sink(&ch).await;
-    let q = lp::queue_with(
-        &ch,
-        "expiration",
-        lp::table(vec![("x-dead-letter-exchange", lp::lstr(&dlx))]),
-    )
-    .await;
+    let (q, _dlx, mut dead_consumer) = queue_with_dead_letter_sink(&ch, "expiration").await;
     let props = lp::BasicProperties::default().with_expiration("20".into());
     assert!(lp::publish_confirmed(&ch, "", &q, b"expiring", props)
         .await
@@ -155,18 +165,13 @@ async fn per_message_expiration_dead_letters_with_original_expiration() {
 
 #[tokio::test]
 async fn expiry_resumes_after_a_queue_had_nothing_left_to_expire() {
-    // Between the two messages nothing in the broker can expire (the
-    // sweeper may sleep); the second must still be dead-lettered on time.
+    // Between the two messages the queue holds nothing that can expire (a
+    // quiet spell); the second must still be dead-lettered without anyone
+    // touching the queue.
     let b = broker().await;
     let conn = lp::connect(&b).await;
     let ch = confirm_channel(&conn).await;
-    let (dlx, _dead, mut dead_consumer) = dead_letter_sink(&ch).await;
-    let q = lp::queue_with(
-        &ch,
-        "expiry-resumes",
-        lp::table(vec![("x-dead-letter-exchange", lp::lstr(&dlx))]),
-    )
-    .await;
+    let (q, _dlx, mut dead_consumer) = queue_with_dead_letter_sink(&ch, "expiry-resumes").await;
     for body in [&b"first"[..], b"second"] {
         let props = lp::BasicProperties::default().with_expiration("20".into());
         assert!(lp::publish_confirmed(&ch, "", &q, body, props)
@@ -189,16 +194,32 @@ async fn an_unused_queue_is_deleted_after_x_expires() {
         lp::table(vec![("x-expires", AMQPValue::LongInt(100))]),
     )
     .await;
-    tokio::time::sleep(std::time::Duration::from_millis(600)).await;
-    let res = tmo!(ch.queue_declare(
-        &q,
-        lp::QueueDeclareOptions {
-            passive: true,
-            ..Default::default()
-        },
-        lp::FieldTable::default()
-    ));
-    lp::assert_err(res, 404, "NOT_FOUND");
+    // Observed by polling: a passive declare answers 404 once it is gone
+    // (and closes its channel, so each try gets a fresh one). A declare may
+    // count as a use, so the tries are further apart than x-expires.
+    let passive = lp::QueueDeclareOptions {
+        passive: true,
+        ..Default::default()
+    };
+    within("x-expires deletion", async {
+        loop {
+            let probe = lp::channel(&conn).await;
+            match probe
+                .queue_declare(&q, passive, lp::FieldTable::default())
+                .await
+            {
+                Ok(_) => {
+                    let _ = probe.close(200, "still there").await;
+                    tokio::time::sleep(std::time::Duration::from_millis(400)).await;
+                }
+                Err(err) => {
+                    lp::assert_err::<()>(Err(err), 404, "NOT_FOUND");
+                    return;
+                }
+            }
+        }
+    })
+    .await;
 }
 
 #[tokio::test]
