@@ -384,117 +384,122 @@ pub struct TimedVelocity2D {
     pub data: Velocity2D,
 }
 
-impl Cdr for TimedDouble {
+// The IDL members, each encoded as CDR encodes that type; a Timed* struct
+// is its time stamp followed by its `data` member.
+
+impl Cdr for f64 {
     fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        self.tm.write_cdr(out)?;
-        out.double(self.data);
+        out.double(*self);
         Ok(())
     }
 
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        Ok(TimedDouble {
-            tm: Time::read_cdr(input)?,
-            data: input.double()?,
-        })
+        input.double()
     }
 }
 
-impl Cdr for TimedLong {
+impl Cdr for i32 {
     fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        self.tm.write_cdr(out)?;
-        out.long(self.data);
+        out.long(*self);
         Ok(())
     }
 
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        Ok(TimedLong {
-            tm: Time::read_cdr(input)?,
-            data: input.long()?,
-        })
+        input.long()
     }
 }
 
-impl Cdr for TimedString {
+impl Cdr for String {
     fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        self.tm.write_cdr(out)?;
-        out.string(&self.data)
+        out.string(self)
     }
 
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        Ok(TimedString {
-            tm: Time::read_cdr(input)?,
-            data: input.string()?,
-        })
+        input.string()
     }
 }
 
-impl Cdr for TimedDoubleSeq {
+/// `sequence<double>`.
+impl Cdr for Vec<f64> {
     fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        self.tm.write_cdr(out)?;
-        out.sequence_len(self.data.len())?;
-        for value in &self.data {
+        out.sequence_len(self.len())?;
+        for value in self {
             out.double(*value);
         }
         Ok(())
     }
 
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        let tm = Time::read_cdr(input)?;
         let len = input.sequence_len(8)?;
-        let data = (0..len).map(|_| input.double()).collect::<Result<_, _>>()?;
-        Ok(TimedDoubleSeq { tm, data })
+        (0..len).map(|_| input.double()).collect()
     }
 }
 
-impl Cdr for TimedPose2D {
+impl Cdr for Point2D {
     fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        self.tm.write_cdr(out)?;
-        out.double(self.data.position.x);
-        out.double(self.data.position.y);
-        out.double(self.data.heading);
+        out.double(self.x);
+        out.double(self.y);
         Ok(())
     }
 
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        let tm = Time::read_cdr(input)?;
-        let position = Point2D {
+        Ok(Point2D {
             x: input.double()?,
             y: input.double()?,
-        };
-        Ok(TimedPose2D {
-            tm,
-            data: Pose2D {
-                position,
-                heading: input.double()?,
-            },
         })
     }
 }
 
-impl Cdr for TimedVelocity2D {
+impl Cdr for Pose2D {
     fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        self.tm.write_cdr(out)?;
-        out.double(self.data.vx);
-        out.double(self.data.vy);
-        out.double(self.data.va);
+        self.position.write_cdr(out)?;
+        out.double(self.heading);
         Ok(())
     }
 
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        Ok(TimedVelocity2D {
-            tm: Time::read_cdr(input)?,
-            data: Velocity2D {
-                vx: input.double()?,
-                vy: input.double()?,
-                va: input.double()?,
-            },
+        Ok(Pose2D {
+            position: Point2D::read_cdr(input)?,
+            heading: input.double()?,
         })
     }
 }
 
-/// Port data in CDR, named by its CORBA repository id.
-macro_rules! cdr_port_data {
+impl Cdr for Velocity2D {
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+        out.double(self.vx);
+        out.double(self.vy);
+        out.double(self.va);
+        Ok(())
+    }
+
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+        Ok(Velocity2D {
+            vx: input.double()?,
+            vy: input.double()?,
+            va: input.double()?,
+        })
+    }
+}
+
+/// The Timed* types: `tm`, then `data`; as port data, CDR named by its
+/// CORBA repository id.
+macro_rules! timed_port_data {
     ($($t:ident),*) => {$(
+        impl Cdr for $t {
+            fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+                self.tm.write_cdr(out)?;
+                self.data.write_cdr(out)
+            }
+
+            fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+                Ok($t {
+                    tm: Time::read_cdr(input)?,
+                    data: Cdr::read_cdr(input)?,
+                })
+            }
+        }
+
         impl super::data::PortData for $t {
             const CONTENT_TYPE: &'static str = "application/x-omg-cdr; endian=little";
             const TYPE_NAME: Option<&'static str> =
@@ -511,7 +516,7 @@ macro_rules! cdr_port_data {
     )*};
 }
 
-cdr_port_data!(
+timed_port_data!(
     TimedDouble,
     TimedLong,
     TimedString,
