@@ -138,15 +138,8 @@ pub fn pid_listening_on(port: u16) -> Option<u32> {
         return None;
     }
     let targets: Vec<String> = inodes.iter().map(|i| format!("socket:[{i}]")).collect();
-    for entry in fs::read_dir("/proc").ok()?.flatten() {
-        let Some(pid) = entry
-            .file_name()
-            .to_str()
-            .and_then(|s| s.parse::<u32>().ok())
-        else {
-            continue;
-        };
-        let Ok(fds) = fs::read_dir(entry.path().join("fd")) else {
+    for (pid, dir) in processes() {
+        let Ok(fds) = fs::read_dir(dir.join("fd")) else {
             continue;
         };
         for fd in fds.flatten() {
@@ -160,21 +153,22 @@ pub fn pid_listening_on(port: u16) -> Option<u32> {
     None
 }
 
+/// Every process: its pid and its /proc directory.
+fn processes() -> impl Iterator<Item = (u32, std::path::PathBuf)> {
+    fs::read_dir("/proc")
+        .into_iter()
+        .flat_map(|dir| dir.flatten())
+        .filter_map(|entry| {
+            let pid = entry.file_name().to_str()?.parse::<u32>().ok()?;
+            Some((pid, entry.path()))
+        })
+}
+
 /// Processes whose command name is `name` (as `pgrep -x` would).
 pub fn pids_named(name: &str) -> Vec<u32> {
     let mut pids = Vec::new();
-    let Ok(dir) = fs::read_dir("/proc") else {
-        return pids;
-    };
-    for entry in dir.flatten() {
-        let Some(pid) = entry
-            .file_name()
-            .to_str()
-            .and_then(|s| s.parse::<u32>().ok())
-        else {
-            continue;
-        };
-        if let Ok(comm) = fs::read_to_string(entry.path().join("comm")) {
+    for (pid, dir) in processes() {
+        if let Ok(comm) = fs::read_to_string(dir.join("comm")) {
             if comm.trim_end() == name {
                 pids.push(pid);
             }
