@@ -4,6 +4,7 @@
 //! `Arc` of it to every connection.
 
 use crate::auth::Users;
+use crate::busy_poll::BusyPoll;
 use crate::memory::MemoryGauge;
 use crate::store::Persistence;
 use crate::vhost::Vhost;
@@ -54,6 +55,8 @@ pub struct Core {
     pub persistence: Option<Arc<Persistence>>,
     /// connection.start's server-properties, built once.
     pub server_properties: FieldTable,
+    /// The busy-poll window's shared state, if the broker busy-polls.
+    pub busy_poll: Option<Arc<BusyPoll>>,
     next_connection: AtomicU64,
     shutdown: watch::Sender<bool>,
 }
@@ -67,6 +70,7 @@ impl Core {
         limits: Limits,
         persistence: Option<Arc<Persistence>>,
         product: &str,
+        busy_poll: Option<Arc<BusyPoll>>,
     ) -> Arc<Self> {
         let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
         let vhosts = vhost_names
@@ -84,6 +88,7 @@ impl Core {
             gauge,
             persistence,
             server_properties: crate::connection::server_properties(product),
+            busy_poll,
             next_connection: AtomicU64::new(1),
             shutdown: watch::channel(false).0,
         })

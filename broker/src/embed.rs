@@ -4,6 +4,7 @@
 //! CONNECTION_FORCED and waits for them to finish.
 
 use crate::auth::{PasswordHash, Users};
+use crate::busy_poll::BusyPoll;
 use crate::core::{Core, Limits};
 use crate::store::{Persistence, Recovered, SledStore, Store, StoreError};
 use std::net::SocketAddr;
@@ -41,6 +42,7 @@ pub struct BrokerBuilder {
     limits: Limits,
     storage: Storage,
     product: Option<String>,
+    busy_poll: Duration,
 }
 
 /// Where durable state lives.
@@ -110,6 +112,16 @@ impl BrokerBuilder {
         self
     }
 
+    /// Busy-polls for `window` after each socket read (zero, the default,
+    /// never busy-polls): the broker's thread keeps polling for input
+    /// instead of sleeping, trading CPU time for wake-ups. Only useful on
+    /// a current-thread runtime, which is how the `leveret` binary runs;
+    /// see the `busy_poll` module.
+    pub fn busy_poll(mut self, window: Duration) -> Self {
+        self.busy_poll = window;
+        self
+    }
+
     /// Binds the listeners and starts serving.
     pub async fn start(self) -> Result<BrokerHandle, StartError> {
         let mut users = Users::default();
@@ -148,7 +160,16 @@ impl BrokerBuilder {
             None => (None, Recovered::default()),
         };
         let product = self.product.as_deref().unwrap_or(DEFAULT_PRODUCT);
-        let core = Core::new(&vhosts, users, self.limits, persistence, product);
+        let busy_poll =
+            (!self.busy_poll.is_zero()).then(|| Arc::new(BusyPoll::new(self.busy_poll)));
+        let core = Core::new(
+            &vhosts,
+            users,
+            self.limits,
+            persistence,
+            product,
+            busy_poll.clone(),
+        );
         let report = crate::recovery::recover(&core, recovered);
         if core.persistence.is_some() {
             tracing::info!(
@@ -182,6 +203,10 @@ impl BrokerBuilder {
             Arc::clone(&core),
             SWEEP_PERIOD,
         )));
+        if let Some(busy_poll) = busy_poll {
+            let shutdown = core.shutdown_signal();
+            tasks.push(tokio::spawn(async move { busy_poll.run(shutdown).await }));
+        }
         Ok(BrokerHandle {
             core,
             local_addrs,

@@ -30,6 +30,7 @@
 #![forbid(unsafe_code)]
 
 mod auth;
+mod busy_poll;
 mod channel;
 mod connection;
 mod consumer;

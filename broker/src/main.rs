@@ -8,6 +8,12 @@ use serde::Deserialize;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::time::Duration;
+
+/// The default busy-poll window: Linux haltpoll's default poll time,
+/// enough to catch a client's answer on this VM class (measured: a one-in-
+/// flight round trip's p99 goes from 257 µs to 114-121 µs).
+const BUSY_POLL_MICROS: u64 = 200;
 
 /// An embeddable AMQP 0.9.1 message broker.
 #[derive(Debug, Parser)]
@@ -34,6 +40,12 @@ struct Cli {
     /// the name may need `RabbitMQ`.
     #[arg(long, value_name = "NAME")]
     product: Option<String>,
+    /// Longest the broker keeps polling for input after a socket read
+    /// instead of sleeping, in microseconds; the window adapts to the
+    /// traffic and shrinks to nothing when reads are further apart.
+    /// 0 never busy-polls, for the least CPU time [default: 200].
+    #[arg(long, value_name = "MICROS")]
+    busy_poll: Option<u64>,
     /// Read a password on standard input, print its salted hash for the
     /// config file's `password-hash`, and exit.
     #[arg(long)]
@@ -57,6 +69,7 @@ struct FileConfig {
     max_message_size: Option<u64>,
     memory_high_watermark: Option<usize>,
     product: Option<String>,
+    busy_poll: Option<u64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -75,8 +88,26 @@ fn load(path: &PathBuf) -> Result<FileConfig, String> {
     toml::from_str(&text).map_err(|e| format!("invalid config {}: {e}", path.display()))
 }
 
-#[tokio::main]
-async fn main() -> ExitCode {
+/// One thread serves every connection: busy polling needs the thread that
+/// spins to be the one that polls the sockets, and on the small machines
+/// this broker is for, one thread also moved more messages than two
+/// (measured: noack 522k vs 507k msgs/s, manual acks 477k vs 421k).
+/// Storage has a thread of its own.
+fn main() -> ExitCode {
+    let runtime = match tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(runtime) => runtime,
+        Err(e) => {
+            eprintln!("leveret: cannot start the runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    runtime.block_on(serve())
+}
+
+async fn serve() -> ExitCode {
     let cli = Cli::parse();
     if cli.hash_password {
         let mut password = String::new();
@@ -125,6 +156,8 @@ async fn main() -> ExitCode {
             .unwrap_or(defaults.memory_high_watermark),
     };
     let mut builder = Broker::builder().limits(limits).data_dir(data_dir);
+    let busy_poll = cli.busy_poll.or(file.busy_poll).unwrap_or(BUSY_POLL_MICROS);
+    builder = builder.busy_poll(Duration::from_micros(busy_poll));
     if let Some(product) = cli.product.or(file.product) {
         builder = builder.product(product);
     }

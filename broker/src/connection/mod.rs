@@ -6,6 +6,7 @@
 
 mod writer;
 
+use crate::busy_poll::BusyPoll;
 use crate::channel::Channel;
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
@@ -46,6 +47,7 @@ struct FrameReader<R> {
     socket: R,
     buf: BytesMut,
     frame_max: u32,
+    busy_poll: Option<Arc<BusyPoll>>,
 }
 
 impl<R: AsyncRead + Unpin> FrameReader<R> {
@@ -67,7 +69,12 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
         }
         match self.socket.read_buf(&mut self.buf).await {
             Ok(0) => Err(ReadError::Closed),
-            Ok(_) => Ok(()),
+            Ok(_) => {
+                if let Some(busy_poll) = &self.busy_poll {
+                    busy_poll.note_read();
+                }
+                Ok(())
+            }
             Err(e) => Err(ReadError::Io(e)),
         }
     }
@@ -84,6 +91,7 @@ where
         socket: read,
         buf: BytesMut::with_capacity(64 * 1024),
         frame_max: core.limits.frame_max,
+        busy_poll: core.busy_poll.clone(),
     };
     let mut write = write;
     match handshake_step(&core, read_protocol_header(&mut reader)).await {
