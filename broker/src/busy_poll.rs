@@ -31,6 +31,8 @@ const GROW_START: Duration = Duration::from_micros(50);
 pub struct BusyPoll {
     /// The longest the spinner polls after a read.
     max_window: Duration,
+    /// The first window when reads begin to come close together.
+    grow_start: Duration,
     /// Socket reads so far; the spinner watches it move.
     reads: AtomicU64,
     /// The spinner is asleep and wants `wake` on the next read.
@@ -43,6 +45,7 @@ impl BusyPoll {
     pub fn new(max_window: Duration) -> Self {
         BusyPoll {
             max_window,
+            grow_start: GROW_START,
             reads: AtomicU64::new(0),
             asleep: AtomicBool::new(false),
             wake: Notify::new(),
@@ -72,7 +75,7 @@ impl BusyPoll {
                 _ = shutdown.wait_for(|down| *down) => return,
             }
             let woke = Instant::now();
-            window = next_window(window, woke - last_read, self.max_window);
+            window = next_window(window, woke - last_read, self.grow_start, self.max_window);
             last_read = woke;
             let mut seen = self.reads.load(Ordering::Relaxed);
             loop {
@@ -83,6 +86,10 @@ impl BusyPoll {
                     last_read = now;
                 } else if now - last_read >= window {
                     break;
+                }
+                // Clients that keep sending must not hold shutdown up.
+                if *shutdown.borrow() {
+                    return;
                 }
                 // Lets the runtime poll its I/O driver without blocking
                 // and run whatever that made ready.
@@ -97,14 +104,14 @@ impl BusyPoll {
 /// The spin window after a read that woke the sleeping spinner, `quiet`
 /// after the read before it. This is how Linux's haltpoll governor adapts
 /// its poll time: a read within `max` of the one before means a longer
-/// window would have caught it, so the window doubles (from `GROW_START`,
+/// window would have caught it, so the window doubles (from `grow_start`,
 /// up to `max`); a read after a longer quiet spell halves it, down to no
 /// spinning at all. Traffic whose gaps are all longer than `max` (a 1 kHz
 /// sensor, say) therefore costs no spinning.
-fn next_window(window: Duration, quiet: Duration, max: Duration) -> Duration {
+fn next_window(window: Duration, quiet: Duration, grow_start: Duration, max: Duration) -> Duration {
     if quiet <= max {
-        (window * 2).clamp(GROW_START.min(max), max)
-    } else if window / 2 < GROW_START {
+        (window * 2).clamp(grow_start.min(max), max)
+    } else if window / 2 < grow_start {
         Duration::ZERO
     } else {
         window / 2
@@ -126,7 +133,7 @@ mod tests {
         let mut window = Duration::ZERO;
         let mut seen = Vec::new();
         for _ in 0..4 {
-            window = next_window(window, micros(120), MAX);
+            window = next_window(window, micros(120), GROW_START, MAX);
             seen.push(window.as_micros());
         }
         assert_eq!(seen, [50, 100, 200, 200]);
@@ -137,7 +144,7 @@ mod tests {
         let mut window = MAX;
         let mut seen = Vec::new();
         for _ in 0..4 {
-            window = next_window(window, Duration::from_millis(10), MAX);
+            window = next_window(window, Duration::from_millis(10), GROW_START, MAX);
             seen.push(window.as_micros());
         }
         assert_eq!(seen, [100, 50, 0, 0]);
@@ -146,36 +153,32 @@ mod tests {
     #[test]
     fn a_maximum_below_the_start_value_caps_the_first_window() {
         assert_eq!(
-            next_window(Duration::ZERO, micros(10), micros(20)),
+            next_window(Duration::ZERO, micros(10), GROW_START, micros(20)),
             micros(20)
         );
     }
 
     #[tokio::test(flavor = "current_thread")]
-    async fn the_spinner_keeps_the_runtime_serving_and_stops_at_shutdown() {
-        let busy_poll = std::sync::Arc::new(BusyPoll::new(MAX));
+    async fn a_spinning_runtime_still_serves_timers_and_other_threads_and_shuts_down() {
+        // An hour-long window: once woken, the spinner only stops for
+        // shutdown.
+        let hour = Duration::from_secs(3600);
+        let busy_poll = std::sync::Arc::new(BusyPoll {
+            grow_start: hour,
+            ..BusyPoll::new(hour)
+        });
         let (stop, shutdown) = watch::channel(false);
         let spinner = tokio::spawn({
             let busy_poll = std::sync::Arc::clone(&busy_poll);
             async move { busy_poll.run(shutdown).await }
         });
-        // Reads every 20 µs from another thread keep it spinning; timers
-        // and wakes from other threads are still served on the one thread.
-        let reader = std::thread::spawn({
-            let busy_poll = std::sync::Arc::clone(&busy_poll);
-            move || {
-                let until = Instant::now() + Duration::from_millis(30);
-                while Instant::now() < until {
-                    busy_poll.note_read();
-                    std::thread::sleep(Duration::from_micros(20));
-                }
-            }
-        });
+        tokio::task::yield_now().await;
+        busy_poll.note_read();
         tokio::time::sleep(Duration::from_millis(5)).await;
         let (sent, received) = tokio::sync::oneshot::channel();
         std::thread::spawn(move || sent.send(()));
         received.await.expect("a wake from another thread arrives");
-        reader.join().expect("the reader thread finishes");
+        assert!(!spinner.is_finished());
         stop.send_replace(true);
         tokio::time::timeout(Duration::from_secs(5), spinner)
             .await
