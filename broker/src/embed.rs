@@ -112,13 +112,15 @@ impl BrokerBuilder {
         self
     }
 
-    /// Busy-polls for `window` after each socket read (zero, the default,
-    /// never busy-polls): the broker's thread keeps polling for input
-    /// instead of sleeping, trading CPU time for wake-ups. Only useful on
-    /// a current-thread runtime, which is how the `leveret` binary runs;
-    /// see the `busy_poll` module.
-    pub fn busy_poll(mut self, window: Duration) -> Self {
-        self.busy_poll = window;
+    /// Busy-polls for at most `max_window` after a socket read (zero, the
+    /// default, never busy-polls): the broker's thread keeps polling for
+    /// input instead of sleeping, trading CPU time for wake-ups. The
+    /// window adapts to the gaps between reads. It needs a current-thread
+    /// runtime, which is how the `leveret` binary runs: on a multi-thread
+    /// runtime the spinning worker is not the one that polls the sockets,
+    /// so `start` warns and does not busy-poll there.
+    pub fn busy_poll(mut self, max_window: Duration) -> Self {
+        self.busy_poll = max_window;
         self
     }
 
@@ -160,8 +162,7 @@ impl BrokerBuilder {
             None => (None, Recovered::default()),
         };
         let product = self.product.as_deref().unwrap_or(DEFAULT_PRODUCT);
-        let busy_poll =
-            (!self.busy_poll.is_zero()).then(|| Arc::new(BusyPoll::new(self.busy_poll)));
+        let busy_poll = busy_poll_state(self.busy_poll);
         let core = Core::new(
             &vhosts,
             users,
@@ -215,6 +216,22 @@ impl BrokerBuilder {
             finished,
         })
     }
+}
+
+/// The busy-poll state if busy polling is asked for and can work here.
+fn busy_poll_state(max_window: Duration) -> Option<Arc<BusyPoll>> {
+    if max_window.is_zero() {
+        return None;
+    }
+    let flavor = tokio::runtime::Handle::current().runtime_flavor();
+    if flavor != tokio::runtime::RuntimeFlavor::CurrentThread {
+        tracing::warn!(
+            ?flavor,
+            "busy polling needs a current-thread runtime; not busy-polling"
+        );
+        return None;
+    }
+    Some(Arc::new(BusyPoll::new(max_window)))
 }
 
 /// A running broker.

@@ -1,0 +1,161 @@
+//! The broker as the `leveret` binary runs it: every connection on one
+//! current-thread runtime that busy-polls after socket reads, driven by
+//! lapin. Confirms of persistent messages come back from the storage
+//! thread (a wake from outside the runtime), round trips keep the spinner
+//! busy, and shutdown still completes.
+
+use futures_lite::StreamExt;
+use lapin::options::{
+    BasicAckOptions, BasicConsumeOptions, BasicPublishOptions, ConfirmSelectOptions,
+    QueueDeclareOptions,
+};
+use lapin::types::FieldTable;
+use lapin::{BasicProperties, Connection, ConnectionProperties};
+use leveret_broker::Broker;
+use std::time::Duration;
+
+const MESSAGES: u32 = 500;
+const ROUND_TRIPS: u32 = 200;
+
+async fn within<T>(what: &str, future: impl std::future::Future<Output = T>) -> T {
+    tokio::time::timeout(Duration::from_secs(10), future)
+        .await
+        .unwrap_or_else(|_| panic!("{what} timed out"))
+}
+
+#[tokio::test(flavor = "current_thread")]
+async fn a_busy_polling_broker_confirms_delivers_in_order_echoes_and_shuts_down() {
+    let dir = std::env::temp_dir().join(format!("leveret-busy-poll-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let broker = Broker::builder()
+        .listen("127.0.0.1:0".parse().expect("static address"))
+        .data_dir(&dir)
+        .busy_poll(Duration::from_micros(200))
+        .start()
+        .await
+        .expect("start");
+    let addr = broker.local_addrs()[0];
+    let url = format!("amqp://guest:guest@{addr}/%2f");
+
+    let connection = Connection::connect(&url, ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let channel = connection.create_channel().await.expect("channel");
+    let durable = QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    channel
+        .queue_declare("busy-poll", durable, FieldTable::default())
+        .await
+        .expect("declare");
+    channel
+        .confirm_select(ConfirmSelectOptions::default())
+        .await
+        .expect("confirm.select");
+    for seq in 0..MESSAGES {
+        let confirm = channel
+            .basic_publish(
+                "",
+                "busy-poll",
+                BasicPublishOptions::default(),
+                seq.to_string().as_bytes(),
+                BasicProperties::default().with_delivery_mode(2),
+            )
+            .await
+            .expect("publish");
+        let confirmation = within("confirm", confirm).await.expect("confirmation");
+        assert!(confirmation.is_ack(), "message {seq} confirmed");
+    }
+
+    let mut consumer = channel
+        .basic_consume(
+            "busy-poll",
+            "in-order",
+            BasicConsumeOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("consume");
+    for seq in 0..MESSAGES {
+        let delivery = within("delivery", consumer.next())
+            .await
+            .expect("a delivery")
+            .expect("no consumer error");
+        assert_eq!(delivery.data, seq.to_string().as_bytes());
+        delivery.ack(BasicAckOptions::default()).await.expect("ack");
+    }
+
+    // Ping-pong through two queues and a second connection, one in flight.
+    let echo_connection = Connection::connect(&url, ConnectionProperties::default())
+        .await
+        .expect("connect the echo");
+    let echo = echo_connection
+        .create_channel()
+        .await
+        .expect("echo channel");
+    for queue in ["busy-poll-ping", "busy-poll-pong"] {
+        channel
+            .queue_declare(queue, QueueDeclareOptions::default(), FieldTable::default())
+            .await
+            .expect("declare ping-pong queue");
+    }
+    let mut pings = echo
+        .basic_consume(
+            "busy-poll-ping",
+            "echo",
+            BasicConsumeOptions {
+                no_ack: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await
+        .expect("consume pings");
+    let mut pongs = channel
+        .basic_consume(
+            "busy-poll-pong",
+            "pongs",
+            BasicConsumeOptions {
+                no_ack: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await
+        .expect("consume pongs");
+    for seq in 0..ROUND_TRIPS {
+        let body = seq.to_string();
+        channel
+            .basic_publish(
+                "",
+                "busy-poll-ping",
+                BasicPublishOptions::default(),
+                body.as_bytes(),
+                BasicProperties::default(),
+            )
+            .await
+            .expect("ping");
+        let ping = within("ping", pings.next())
+            .await
+            .expect("a ping")
+            .expect("no consumer error");
+        echo.basic_publish(
+            "",
+            "busy-poll-pong",
+            BasicPublishOptions::default(),
+            &ping.data,
+            BasicProperties::default(),
+        )
+        .await
+        .expect("echo");
+        let pong = within("pong", pongs.next())
+            .await
+            .expect("a pong")
+            .expect("no consumer error");
+        assert_eq!(pong.data, body.as_bytes());
+    }
+
+    within("shutdown", broker.shutdown()).await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
