@@ -18,6 +18,7 @@
 //! # Layout
 //! - `embed`: the builder and handle, the public entry point.
 //! - `server`: TCP listeners, the accept loop, the TTL/expiry sweeper.
+//! - `busy_poll`: polling for input for a short, adaptive window after socket reads instead of sleeping.
 //! - `connection`: handshake, the reader loop, heartbeats, closing; `connection::writer` owns the socket's write half.
 //! - `channel`: content assembly and one module per AMQP class (`basic`, `queue`, `exchange`, `tx`).
 //! - `core`: state shared by all connections (vhosts, users, limits, memory gauge, shutdown).
