@@ -5,17 +5,39 @@
 //! busy, and shutdown still completes.
 
 use futures_lite::StreamExt;
+use lapin::message::Delivery;
 use lapin::options::{
     BasicAckOptions, BasicConsumeOptions, BasicPublishOptions, ConfirmSelectOptions,
     QueueDeclareOptions,
 };
 use lapin::types::FieldTable;
-use lapin::{BasicProperties, Connection, ConnectionProperties};
+use lapin::{BasicProperties, Channel, Connection, ConnectionProperties, Consumer};
 use leveret_broker::Broker;
 use std::time::Duration;
 
 const MESSAGES: u32 = 500;
 const ROUND_TRIPS: u32 = 200;
+
+async fn next_delivery(consumer: &mut Consumer, what: &str) -> Delivery {
+    within(what, consumer.next())
+        .await
+        .unwrap_or_else(|| panic!("the {what} consumer ended"))
+        .expect("no consumer error")
+}
+
+/// A transient publish to the default exchange, without confirms.
+async fn publish(channel: &Channel, queue: &str, body: &[u8]) {
+    channel
+        .basic_publish(
+            "",
+            queue,
+            BasicPublishOptions::default(),
+            body,
+            BasicProperties::default(),
+        )
+        .await
+        .expect("publish");
+}
 
 async fn within<T>(what: &str, future: impl std::future::Future<Output = T>) -> T {
     tokio::time::timeout(Duration::from_secs(10), future)
@@ -78,10 +100,7 @@ async fn a_busy_polling_broker_confirms_delivers_in_order_echoes_and_shuts_down(
         .await
         .expect("consume");
     for seq in 0..MESSAGES {
-        let delivery = within("delivery", consumer.next())
-            .await
-            .expect("a delivery")
-            .expect("no consumer error");
+        let delivery = next_delivery(&mut consumer, "delivery").await;
         assert_eq!(delivery.data, seq.to_string().as_bytes());
         delivery.ack(BasicAckOptions::default()).await.expect("ack");
     }
@@ -126,33 +145,10 @@ async fn a_busy_polling_broker_confirms_delivers_in_order_echoes_and_shuts_down(
         .expect("consume pongs");
     for seq in 0..ROUND_TRIPS {
         let body = seq.to_string();
-        channel
-            .basic_publish(
-                "",
-                "busy-poll-ping",
-                BasicPublishOptions::default(),
-                body.as_bytes(),
-                BasicProperties::default(),
-            )
-            .await
-            .expect("ping");
-        let ping = within("ping", pings.next())
-            .await
-            .expect("a ping")
-            .expect("no consumer error");
-        echo.basic_publish(
-            "",
-            "busy-poll-pong",
-            BasicPublishOptions::default(),
-            &ping.data,
-            BasicProperties::default(),
-        )
-        .await
-        .expect("echo");
-        let pong = within("pong", pongs.next())
-            .await
-            .expect("a pong")
-            .expect("no consumer error");
+        publish(&channel, "busy-poll-ping", body.as_bytes()).await;
+        let ping = next_delivery(&mut pings, "ping").await;
+        publish(&echo, "busy-poll-pong", &ping.data).await;
+        let pong = next_delivery(&mut pongs, "pong").await;
         assert_eq!(pong.data, body.as_bytes());
     }
 
