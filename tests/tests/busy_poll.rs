@@ -18,6 +18,7 @@ use std::time::Duration;
 const MESSAGES: u32 = 500;
 const ROUND_TRIPS: u32 = 200;
 
+/// The consumer's next delivery, within the time limit.
 async fn next_delivery(consumer: &mut Consumer, what: &str) -> Delivery {
     within(what, consumer.next())
         .await
@@ -39,6 +40,7 @@ async fn publish(channel: &Channel, queue: &str, body: &[u8]) {
         .expect("publish");
 }
 
+/// `future`'s output, or a panic naming `what` after ten seconds.
 async fn within<T>(what: &str, future: impl std::future::Future<Output = T>) -> T {
     tokio::time::timeout(Duration::from_secs(10), future)
         .await
