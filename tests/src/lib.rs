@@ -15,7 +15,7 @@ use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{SystemTime, UNIX_EPOCH};
 
-use leveret_broker::{Broker, BrokerHandle};
+use leveret_broker::{Broker, BrokerBuilder, BrokerHandle};
 
 /// The environment variable naming an external broker to test against.
 pub const URL_ENV: &str = "LEVERET_TEST_AMQP_URL";
@@ -55,14 +55,20 @@ impl TestBroker {
     }
 
     async fn in_process() -> Self {
+        Self::leveret(Broker::builder()).await
+    }
+
+    /// An in-process Leveret from `builder` (for tests of a Leveret
+    /// setting), listening on `127.0.0.1:0`.
+    ///
+    /// # Panics
+    ///
+    /// When the broker cannot start.
+    pub async fn leveret(builder: BrokerBuilder) -> Self {
         let listen: SocketAddr = "127.0.0.1:0".parse().expect("static address");
-        let handle = Broker::builder()
-            .listen(listen)
-            .start()
-            .await
-            .unwrap_or_else(|e| {
-                panic!("in-process Leveret failed to start: {e} (set {URL_ENV} to test an external broker)")
-            });
+        let handle = builder.listen(listen).start().await.unwrap_or_else(|e| {
+            panic!("in-process Leveret failed to start: {e} (set {URL_ENV} to test an external broker)")
+        });
         let addr = *handle
             .local_addrs()
             .first()
