@@ -2,7 +2,12 @@
 //!
 //! An embeddable AMQP 0.9.1 broker that RabbitMQ clients use unchanged.
 //! Start one inside a process with [`Broker::builder`], or run the
-//! `leveret` binary.
+//! `leveret` binary. The binary is a crate of its own (`server/`, package
+//! `leveret`) that owns the command line, the config file and the logging
+//! set-up, so an embedder compiles none of clap, serde, toml or
+//! tracing-subscriber: this library is configured only through the
+//! builder, and reports through `tracing` events that the embedder's own
+//! subscriber (if any) receives.
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), leveret_broker::StartError> {

@@ -77,18 +77,14 @@ impl Delivery {
             .await
     }
 
-    /// Rejects this delivery (`basic.nack`, not multiple).
-    pub async fn nack(&self, requeue: bool) -> Result<()> {
-        let options = BasicNackOptions {
-            multiple: false,
-            requeue,
-        };
+    /// Rejects this delivery (`basic.nack`; with `multiple`, every
+    /// earlier unacknowledged delivery of the channel too).
+    pub async fn nack(&self, options: BasicNackOptions) -> Result<()> {
         self.acker.basic_nack(self.delivery_tag, options).await
     }
 
     /// Rejects this delivery (`basic.reject`).
-    pub async fn reject(&self, requeue: bool) -> Result<()> {
-        let options = BasicRejectOptions { requeue };
+    pub async fn reject(&self, options: BasicRejectOptions) -> Result<()> {
         self.acker.basic_reject(self.delivery_tag, options).await
     }
 }

@@ -132,3 +132,13 @@ pub struct BasicRejectOptions {
     /// Put the message back in its queue (otherwise drop or dead-letter).
     pub requeue: bool,
 }
+
+/// Flags of `basic.recover`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BasicRecoverOptions {
+    /// Requeue the unacknowledged deliveries, possibly to other consumers
+    /// (otherwise redeliver them to the same consumers). RabbitMQ
+    /// implements only `true`, and closes the channel with 540
+    /// NOT_IMPLEMENTED for `false`.
+    pub requeue: bool,
+}

@@ -1,16 +1,30 @@
 //! Connection settings and their `amqp://` URI form, parsed as RabbitMQ's
 //! URI specification describes: `amqp://user:pass@host:port/vhost?query`,
-//! with percent-decoding of the user, password and vhost (`%2f` is `/`).
+//! with percent-decoding of the user, password, host, vhost and query
+//! values (`%2f` is `/`).
 //!
 //! Defaults: user `guest`, password `guest`, host `localhost`, port 5672,
 //! vhost `/` when the path is empty (`amqp://host` and `amqp://host/` both
 //! mean `/`; RabbitMQ's specification reads the latter as the empty vhost,
 //! which no broker has, so this follows its clients instead). Query
-//! parameters `heartbeat` (seconds), `frame_max` (bytes), `channel_max` and
-//! `connection_timeout` (milliseconds) are understood; others are ignored,
-//! as RabbitMQ's clients ignore the ones they do not implement.
+//! parameters `heartbeat` (seconds), `frame_max` (bytes), `channel_max`,
+//! `connection_timeout` (milliseconds) and `connection_name` are
+//! understood; others are ignored, as RabbitMQ's clients ignore the ones
+//! they do not implement.
+//!
+//! The syntax is RFC 3986's, which the AMQP URI specification builds on,
+//! checked by `fluent-uri`: a URI it refuses (a raw space or non-ASCII
+//! character, a malformed `%` escape, two `@`, a fragment) is refused here.
+//! Not the `url` crate: it follows the WHATWG URL standard, which refuses
+//! the specification's own examples `amqp://user@` and `amqp://:10000`
+//! (an empty host with credentials or a port) and cannot tell
+//! `amqp://:@host` (empty user and password) from `amqp://host`.
 
 use crate::error::{Error, Result};
+use fluent_uri::component::Host;
+use fluent_uri::pct_enc::{EStr, Encoder};
+use fluent_uri::Uri;
+use std::borrow::Cow;
 use std::str::FromStr;
 use std::time::Duration;
 
@@ -78,100 +92,92 @@ impl ConnectionOptions {
     /// Parses an `amqp://` URI.
     pub fn from_uri(uri: &str) -> Result<Self> {
         let bad = |why: &str| Error::InvalidUri(format!("{why}: {uri:?}"));
-        let (scheme, rest) = uri.split_once("://").ok_or_else(|| bad("no scheme"))?;
+        let parsed = Uri::parse(uri).map_err(|e| bad(&e.to_string()))?;
+        let scheme = parsed.scheme().as_str();
         if scheme.eq_ignore_ascii_case("amqps") {
             return Err(bad("amqps (TLS) is not supported"));
         }
         if !scheme.eq_ignore_ascii_case("amqp") {
             return Err(bad("scheme must be amqp"));
         }
+        let authority = parsed
+            .authority()
+            .ok_or_else(|| bad("no authority (amqp://host...)"))?;
+        if parsed.fragment().is_some() {
+            return Err(bad("an AMQP URI has no fragment"));
+        }
+        let decode = |part: &str, value: Option<String>| {
+            value.ok_or_else(|| bad(&format!("the {part} is not UTF-8")))
+        };
         let mut options = ConnectionOptions::default();
-        let (rest, query) = match rest.split_once('?') {
-            Some((rest, query)) => (rest, Some(query)),
-            None => (rest, None),
-        };
-        let (authority, path) = match rest.find('/') {
-            Some(at) => (&rest[..at], Some(&rest[at + 1..])),
-            None => (rest, None),
-        };
-        let host_port = match authority.rsplit_once('@') {
-            Some((userinfo, host_port)) => {
-                let (user, password) = match userinfo.split_once(':') {
-                    Some((user, password)) => (user, Some(password)),
-                    None => (userinfo, None),
-                };
-                options.username = percent_decode(user).ok_or_else(|| bad("bad user name"))?;
-                if let Some(password) = password {
-                    options.password =
-                        percent_decode(password).ok_or_else(|| bad("bad password"))?;
-                }
-                host_port
-            }
-            None => authority,
-        };
-        let (host, port) = if let Some(bracketed) = host_port.strip_prefix('[') {
-            let (host, after) = bracketed
-                .split_once(']')
-                .ok_or_else(|| bad("unclosed IPv6 literal"))?;
-            let port = match after {
-                "" => None,
-                p => Some(p.strip_prefix(':').ok_or_else(|| bad("bad port"))?),
+        if let Some(userinfo) = authority.userinfo() {
+            let (user, password) = match userinfo.split_once(':') {
+                Some((user, password)) => (user, Some(password)),
+                None => (userinfo, None),
             };
-            (host.to_owned(), port)
-        } else {
-            match host_port.rsplit_once(':') {
-                Some((host, port)) => (host.to_owned(), Some(port)),
-                None => (host_port.to_owned(), None),
+            options.username = decode("user name", decoded(user))?;
+            if let Some(password) = password {
+                options.password = decode("password", decoded(password))?;
             }
+        }
+        let host = match authority.host_parsed() {
+            Host::RegName(name) => decode("host", decoded(name))?,
+            Host::IpvFuture { .. } => return Err(bad("IPvFuture hosts are not supported")),
+            // An IPv4 or IPv6 literal; IPv6 without its brackets.
+            _ => authority
+                .host()
+                .trim_start_matches('[')
+                .trim_end_matches(']')
+                .to_owned(),
         };
         if !host.is_empty() {
-            options.host = percent_decode(&host).ok_or_else(|| bad("bad host"))?;
+            options.host = host;
         }
-        if let Some(port) = port.filter(|p| !p.is_empty()) {
-            options.port = port.parse().map_err(|_| bad("bad port"))?;
+        match authority.port_to_u16() {
+            Ok(Some(port)) => options.port = port,
+            Ok(None) => {}
+            Err(_) => return Err(bad("bad port")),
         }
-        if let Some(path) = path {
-            if path.contains('/') {
+        // With an authority the path is empty or starts with '/'; the rest
+        // is the vhost, one segment.
+        if let Some((_, vhost)) = parsed.path().split_once('/') {
+            if vhost.as_str().contains('/') {
                 return Err(bad("the vhost must be one path segment (write / as %2f)"));
             }
-            if !path.is_empty() {
-                options.vhost = percent_decode(path).ok_or_else(|| bad("bad vhost"))?;
+            if !vhost.is_empty() {
+                options.vhost = decode("vhost", decoded(vhost))?;
             }
         }
-        for pair in query.into_iter().flat_map(|q| q.split('&')) {
+        for pair in parsed.query().into_iter().flat_map(|q| q.split('&')) {
             if pair.is_empty() {
                 continue;
             }
-            let (key, value) = pair.split_once('=').unwrap_or((pair, ""));
-            let number = |what: &str| -> Result<u64> {
+            let (key, value) = match pair.split_once('=') {
+                Some((key, value)) => (key.as_str(), decode(key.as_str(), decoded(value))?),
+                None => (pair.as_str(), String::new()),
+            };
+            let number = || -> Result<u64> {
                 value
                     .parse::<u64>()
-                    .map_err(|_| bad(&format!("bad {what} value {value:?}")))
+                    .map_err(|_| bad(&format!("bad {key} value {value:?}")))
             };
-            let fits = |what: &str, n: u64, max: u64| -> Result<u64> {
+            let fits = |n: u64, max: u64| -> Result<u64> {
                 if n > max {
-                    Err(bad(&format!("{what} {n} is larger than {max}")))
+                    Err(bad(&format!("{key} {n} is larger than {max}")))
                 } else {
                     Ok(n)
                 }
             };
             match key {
-                "heartbeat" => {
-                    options.heartbeat = fits(key, number(key)?, u64::from(u16::MAX))? as u16;
-                }
-                "frame_max" => {
-                    options.frame_max = fits(key, number(key)?, u64::from(u32::MAX))? as u32;
-                }
+                "heartbeat" => options.heartbeat = fits(number()?, u64::from(u16::MAX))? as u16,
+                "frame_max" => options.frame_max = fits(number()?, u64::from(u32::MAX))? as u32,
                 "channel_max" => {
-                    options.channel_max = fits(key, number(key)?, u64::from(u16::MAX))? as u16;
+                    options.channel_max = fits(number()?, u64::from(u16::MAX))? as u16;
                 }
                 "connection_timeout" => {
-                    options.connection_timeout = Duration::from_millis(number(key)?);
+                    options.connection_timeout = Duration::from_millis(number()?);
                 }
-                "connection_name" => {
-                    options.connection_name =
-                        Some(percent_decode(value).ok_or_else(|| bad("bad connection_name"))?);
-                }
+                "connection_name" => options.connection_name = Some(value),
                 _ => {}
             }
         }
@@ -179,33 +185,16 @@ impl ConnectionOptions {
     }
 }
 
+/// Percent-decodes a URI component; `None` if the result is not UTF-8.
+fn decoded<E: Encoder>(value: &EStr<E>) -> Option<String> {
+    value.decode().to_string().ok().map(Cow::into_owned)
+}
+
 impl FromStr for ConnectionOptions {
     type Err = Error;
     fn from_str(uri: &str) -> Result<Self> {
         ConnectionOptions::from_uri(uri)
     }
-}
-
-/// Decodes `%XX` escapes; `None` on a malformed escape or invalid UTF-8.
-fn percent_decode(s: &str) -> Option<String> {
-    let bytes = s.as_bytes();
-    let mut out = Vec::with_capacity(bytes.len());
-    let mut i = 0;
-    while i < bytes.len() {
-        if bytes[i] == b'%' {
-            let hex = bytes.get(i + 1..i + 3)?;
-            if !hex.iter().all(u8::is_ascii_hexdigit) {
-                return None;
-            }
-            let hex = std::str::from_utf8(hex).ok()?;
-            out.push(u8::from_str_radix(hex, 16).ok()?);
-            i += 3;
-        } else {
-            out.push(bytes[i]);
-            i += 1;
-        }
-    }
-    String::from_utf8(out).ok()
 }
 
 #[cfg(test)]
@@ -218,14 +207,5 @@ mod tests {
         let shown = format!("{options:?}");
         assert!(!shown.contains("s3cret"), "{shown}");
         assert!(shown.contains("\"u\""), "{shown}");
-    }
-
-    #[test]
-    fn decodes_escapes() {
-        assert_eq!(percent_decode("a%2Fb%2f").as_deref(), Some("a/b/"));
-        assert_eq!(percent_decode("%zz"), None);
-        assert_eq!(percent_decode("%2"), None);
-        assert_eq!(percent_decode("%+1"), None);
-        assert_eq!(percent_decode("%C3%A9").as_deref(), Some("é"));
     }
 }

@@ -8,8 +8,9 @@ use bytes::Bytes;
 use common::{broker, temp_queue, unique, within, TIMEOUT};
 use leveret_client::{
     BasicAckOptions, BasicConsumeOptions, BasicGetOptions, BasicNackOptions, BasicProperties,
-    BasicPublishOptions, BasicQosOptions, BasicRejectOptions, Channel, Confirmation, Consumer,
-    ConsumerEnd, Delivery, Error, FieldTable, FieldValue, QueueDeclareOptions, ReplyCode, ShortStr,
+    BasicPublishOptions, BasicQosOptions, BasicRecoverOptions, BasicRejectOptions, Channel,
+    Confirmation, Consumer, ConsumerEnd, Delivery, Error, FieldTable, FieldValue,
+    QueueDeclareOptions, ReplyCode, ShortStr,
 };
 
 /// Publishes on a channel in confirm mode and waits for the ack, so the
@@ -240,7 +241,10 @@ async fn basic_get_empty_and_full() {
     assert_eq!(first.routing_key, queue.name);
     assert!(!first.redelivered);
     // Rejected with requeue, it comes back redelivered.
-    first.reject(true).await.expect("reject");
+    first
+        .reject(BasicRejectOptions { requeue: true })
+        .await
+        .expect("reject");
     let again = channel
         .basic_get(&queue.name, BasicGetOptions::default())
         .await
@@ -305,7 +309,7 @@ async fn nack_multiple_requeues_and_reject_drops() {
         assert!(m.redelivered);
         back.push(m.body.clone());
         // Nack without requeue drops it.
-        m.nack(false).await.expect("nack");
+        m.nack(BasicNackOptions::default()).await.expect("nack");
     }
     back.sort();
     assert_eq!(back, ["a", "b"]);
@@ -362,9 +366,12 @@ async fn recover_redelivers_unacked() {
     let mut consumer = consume(&consumer_channel, &queue.name, Default::default()).await;
     let first = next(&mut consumer).await;
     assert!(!first.redelivered);
-    within("recover", consumer_channel.basic_recover(true))
-        .await
-        .expect("recover");
+    within(
+        "recover",
+        consumer_channel.basic_recover(BasicRecoverOptions { requeue: true }),
+    )
+    .await
+    .expect("recover");
     let second = next(&mut consumer).await;
     assert_eq!(&second.body[..], b"again");
     assert!(second.redelivered);

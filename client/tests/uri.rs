@@ -97,6 +97,42 @@ fn query_parameters() {
     assert_eq!(o.connection_name.as_deref(), Some("my app"));
 }
 
+/// The examples table of RabbitMQ's URI specification, with this client's
+/// one deliberate difference: an empty vhost means `/`.
+#[test]
+fn the_specifications_examples() {
+    let o = parse("amqp://user%61:%61pass@ho%61st:10000/v%2fhost");
+    assert_eq!(
+        (o.username.as_str(), o.password.as_str(), o.host.as_str()),
+        ("usera", "apass", "hoast")
+    );
+    assert_eq!((o.port, o.vhost.as_str()), (10000, "v/host"));
+    let o = parse("amqp://:@/");
+    assert_eq!((o.username.as_str(), o.password.as_str()), ("", ""));
+    assert_eq!(
+        (o.host.as_str(), o.port, o.vhost.as_str()),
+        ("localhost", 5672, "/")
+    );
+    let o = parse("amqp://user@");
+    assert_eq!(
+        (o.username.as_str(), o.password.as_str()),
+        ("user", "guest")
+    );
+    let o = parse("amqp://user:pass@");
+    assert_eq!((o.username.as_str(), o.password.as_str()), ("user", "pass"));
+    assert_eq!(parse("amqp://:10000").port, 10000);
+    assert_eq!(parse("amqp:///vhost").vhost, "vhost");
+    assert_eq!(parse("amqp:///vhost").host, "localhost");
+    assert_eq!(parse("amqp://[::1]").host, "::1");
+}
+
+#[test]
+fn query_values_are_percent_decoded() {
+    let o = parse("amqp://host?connection_name=a%26b%3Dc&heartbeat=%35");
+    assert_eq!(o.connection_name.as_deref(), Some("a&b=c"));
+    assert_eq!(o.heartbeat, 5);
+}
+
 #[test]
 fn scheme_is_case_insensitive() {
     assert_eq!(parse("AMQP://host").host, "host");
@@ -116,6 +152,14 @@ fn invalid_uris() {
     rejects("amqp://host?heartbeat=65536");
     rejects("amqp://host?channel_max=-1");
     rejects("amqp://host?frame_max=4294967296");
+    // Outside RFC 3986's syntax, which the AMQP URI specification uses.
+    rejects("amqp:host");
+    rejects("amqp://host#fragment");
+    rejects("amqp://a@b@host");
+    rejects("amqp://host/a b");
+    rejects("amqp://host/%C3%28");
+    rejects("amqp://[v1.future]");
+    rejects("amqp://host//vhost");
 }
 
 #[test]

@@ -3,6 +3,7 @@
 
 use crate::compare::{self, CompareArgs};
 use crate::memory::{self, MemoryArgs};
+use crate::ports::{self, PortsArgs};
 use crate::quality::{self, QualityArgs};
 use crate::rtt::{self, RttArgs};
 use crate::throughput::{self, ThroughputArgs};
@@ -34,6 +35,8 @@ pub enum Command {
     Memory(MemoryArgs),
     /// Runs the scenario set against two brokers and tabulates the ratios.
     Compare(CompareArgs),
+    /// Round trip of a pair of robot data ports: in-process, loopback TCP, RabbitMQ.
+    Ports(PortsArgs),
 }
 
 /// Runs a subcommand on the current runtime.
@@ -44,6 +47,7 @@ pub async fn execute(command: &Command) -> Result<()> {
         Command::Quality(args) => quality::run(args).await.map(drop),
         Command::Memory(args) => memory::run(args).await.map(drop),
         Command::Compare(args) => compare::run(args).await.map(drop),
+        Command::Ports(args) => ports::run(args).await.map(drop),
     }
 }
 

@@ -223,6 +223,11 @@ impl Samples {
         self.values.is_empty()
     }
 
+    /// Every sample, nanoseconds, in the order they were added.
+    pub fn values(&self) -> &[u64] {
+        &self.values
+    }
+
     /// Mean, min, quartiles (linear interpolation), p99 and max.
     pub fn box_stats(&self) -> BoxStats {
         if self.values.is_empty() {

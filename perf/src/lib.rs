@@ -1,7 +1,7 @@
 //! # leveret-perf
 //!
 //! A load generator for any AMQP 0.9.1 broker, built on `leveret-client`.
-//! Four subcommands (see `leveret-perf --help`):
+//! Six subcommands (see `leveret-perf --help`):
 //!
 //! - `throughput`: P publishers, C consumers, Q queues; transient or
 //!   persistent, confirms with a window, no-ack or manual acks; a progress
@@ -15,6 +15,10 @@
 //!   printed as a table of figures and ratios.
 //! - `memory`: resident memory of a local broker idle, with many idle
 //!   connections, and with a backlog of queued messages.
+//! - `ports`: the paper's round trip through a pair of robot data ports
+//!   (`leveret_client::ports`), over a Leveret broker this process starts
+//!   (in-process and loopback TCP) and RabbitMQ, paced at 100 Hz and
+//!   unthrottled, with confirmed-port and raw-client rows beside them.
 //!
 //! Every subcommand can write its full result as JSON (`--json FILE`);
 //! `rtt` and `compare` can draw a box plot as SVG (`--svg FILE`).
@@ -33,9 +37,10 @@
 //! - `histogram`: a log-linear latency histogram; exact-sample statistics.
 //! - `sequence`: per-consumer sequence tracking (lost, gaps, out of order, duplicates).
 //! - `load`: publisher and consumer tasks, and the queue topology they share.
-//! - `throughput`, `rtt`, `quality`, `memory`: the scenarios.
+//! - `throughput`, `rtt`, `quality`, `memory`, `ports`: the scenarios.
 //! - `compare`: runs scenarios against two brokers and tabulates ratios.
-//! - `procfs`: resident memory, CPU time and the PID behind a listening port.
+//! - `procfs`: resident memory, CPU time, the PID behind a listening port,
+//!   the machine's busy time, load average and CPU pressure.
 //! - `svg`: the hand-written box plot.
 //! - `report`: number formatting and JSON output.
 #![forbid(unsafe_code)]
@@ -47,6 +52,7 @@ pub mod compare;
 pub mod histogram;
 pub mod load;
 pub mod memory;
+pub mod ports;
 pub mod procfs;
 pub mod quality;
 pub mod report;

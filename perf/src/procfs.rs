@@ -2,8 +2,11 @@
 //! (`VmRSS`), its CPU time, and which process listens on a TCP port (the
 //! socket's inode in `/proc/net/tcp*`, then the process holding it among
 //! `/proc/*/fd`; needs the right to read the broker's fds, i.e. the same
-//! user or root). `pgrep`-style lookup by name is the fallback.
+//! user or root). `pgrep`-style lookup by name is the fallback. And what
+//! it says about the machine: busy CPU time, the load average and CPU
+//! pressure, to record how loaded it was during a run.
 
+use serde::Serialize;
 use std::fs;
 use std::time::Instant;
 
@@ -100,6 +103,56 @@ impl MachineMeter {
         let elapsed = self.start.elapsed().as_secs_f64();
         (elapsed > 0.0).then(|| 100.0 * used / elapsed)
     }
+}
+
+/// How loaded the machine is: the load averages and, where the kernel
+/// reports pressure stall information, the share of time some task waited
+/// for a CPU.
+#[derive(Debug, Clone, Copy, Default, Serialize, PartialEq)]
+pub struct MachineLoad {
+    /// Runnable and uninterruptible tasks, averaged over 1, 5 and 15
+    /// minutes (`/proc/loadavg`).
+    pub load_average: [f64; 3],
+    /// Percent of the last ten seconds in which at least one task waited
+    /// for a CPU (`/proc/pressure/cpu`, `some avg10`).
+    pub cpu_pressure_avg10: Option<f64>,
+}
+
+impl MachineLoad {
+    /// Reads both, if `/proc/loadavg` is there.
+    pub fn now() -> Option<Self> {
+        let text = fs::read_to_string("/proc/loadavg").ok()?;
+        let mut fields = text.split_whitespace().map(str::parse::<f64>);
+        let mut load_average = [0.0; 3];
+        for slot in &mut load_average {
+            *slot = fields.next()?.ok()?;
+        }
+        Some(MachineLoad {
+            load_average,
+            cpu_pressure_avg10: cpu_pressure_avg10(),
+        })
+    }
+}
+
+impl std::fmt::Display for MachineLoad {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let [one, five, fifteen] = self.load_average;
+        write!(f, "load average {one:.2} {five:.2} {fifteen:.2}")?;
+        if let Some(pressure) = self.cpu_pressure_avg10 {
+            write!(f, ", CPU pressure {pressure:.1}%")?;
+        }
+        Ok(())
+    }
+}
+
+/// `some avg10` of `/proc/pressure/cpu`: "some avg10=1.23 avg60=… total=…".
+fn cpu_pressure_avg10() -> Option<f64> {
+    let text = fs::read_to_string("/proc/pressure/cpu").ok()?;
+    let some = text.lines().find(|l| l.starts_with("some"))?;
+    some.split_whitespace()
+        .find_map(|field| field.strip_prefix("avg10="))?
+        .parse()
+        .ok()
 }
 
 /// The inodes of sockets listening on `port` (IPv4 and IPv6).
@@ -210,6 +263,9 @@ mod tests {
         assert!(cpu_seconds(me).is_some());
         assert!(CpuMeter::start(me).is_some());
         assert!(MachineMeter::start().is_some());
+        let load = MachineLoad::now().expect("/proc/loadavg");
+        assert!(load.load_average.iter().all(|l| *l >= 0.0));
+        assert!(load.to_string().starts_with("load average "));
     }
 
     #[test]

@@ -33,8 +33,10 @@ pub fn micros(us: f64) -> String {
         format!("{:.1} ms", us / 1000.0)
     } else if us >= 1000.0 {
         format!("{:.2} ms", us / 1000.0)
-    } else {
+    } else if us >= 100.0 {
         format!("{us:.0} µs")
+    } else {
+        format!("{us:.1} µs")
     }
 }
 
@@ -116,6 +118,7 @@ mod tests {
         assert_eq!(thousands(999.0), "999");
         assert_eq!(thousands(-1000.0), "-1,000");
         assert_eq!(micros(250.4), "250 µs");
+        assert_eq!(micros(12.34), "12.3 µs");
         assert_eq!(micros(1500.0), "1.50 ms");
         assert_eq!(micros(25_000.0), "25.0 ms");
     }

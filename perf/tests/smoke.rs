@@ -4,9 +4,9 @@
 
 use clap::Parser;
 use leveret_broker::{Broker, BrokerHandle};
-use leveret_perf::cli::{execute, Cli};
+use leveret_perf::cli::{execute, Cli, Command};
 use leveret_perf::load::ExchangeKind;
-use leveret_perf::{compare, memory, quality, rtt, throughput};
+use leveret_perf::{compare, memory, ports, quality, rtt, throughput};
 use std::path::PathBuf;
 
 async fn broker() -> (BrokerHandle, String) {
@@ -215,4 +215,58 @@ async fn compare_two_brokers() {
     assert!(svg.contains("round trip, 16 B"));
     a.shutdown().await;
     b.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ports_round_trips_every_carrier_and_skips_an_absent_rabbitmq() {
+    let dir = scratch_dir("ports");
+    let json = dir.join("ports.json");
+    let dump = dir.join("samples");
+    let cli = Cli::try_parse_from([
+        "leveret-perf",
+        "ports",
+        "--transports",
+        "in-process,leveret-tcp,rabbitmq",
+        // Nothing listens on port 1: RabbitMQ's rows are skipped.
+        "--rabbit-url",
+        "amqp://guest:guest@127.0.0.1:1/%2f",
+        "--sizes",
+        "8,128",
+        "--paced-count",
+        "5",
+        "--paced-warmup",
+        "1",
+        "--unthrottled-count",
+        "20",
+        "--unthrottled-warmup",
+        "5",
+        "--paced-extras",
+        "--quiet",
+        "--json",
+        json.to_str().unwrap(),
+        "--dump",
+        dump.to_str().unwrap(),
+    ])
+    .unwrap();
+    let Command::Ports(args) = cli.command else {
+        panic!("the ports subcommand");
+    };
+    let report = ports::run(&args).await.unwrap();
+    assert_eq!(report.skipped, [ports::Transport::RabbitMq]);
+    // 2 modes x (2 sizes + confirmed ports + raw client) x 2 transports.
+    assert_eq!(report.rows.len(), 16);
+    for row in &report.rows {
+        assert_eq!(row.lost, 0, "{row:?}");
+        let expected = match row.mode {
+            ports::Mode::Paced => 5,
+            ports::Mode::Unthrottled => 20,
+        };
+        assert_eq!(row.stats.count, expected, "{row:?}");
+        assert!(row.stats.min_us > 0.0 && row.stats.min_us <= row.stats.max_us);
+    }
+    assert_eq!(report.echo_failures, 0);
+    let text = std::fs::read_to_string(&json).unwrap();
+    assert!(text.contains("\"carrier\": \"raw-client\""), "{text}");
+    assert_eq!(std::fs::read_dir(&dump).unwrap().count(), 16);
+    let _ = std::fs::remove_dir_all(&dir);
 }

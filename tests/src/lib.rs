@@ -11,6 +11,9 @@
 //! Tests share one external broker and run concurrently, so every queue and
 //! exchange a test creates gets a name from [`unique`].
 
+#![deny(missing_docs)]
+#![forbid(unsafe_code)]
+
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{SystemTime, UNIX_EPOCH};

@@ -567,8 +567,9 @@ impl Channel {
     }
 
     /// Redelivers every unacknowledged delivery of the channel
-    /// (`basic.recover`; RabbitMQ supports only `requeue = true`).
-    pub async fn basic_recover(&self, requeue: bool) -> Result<()> {
+    /// (`basic.recover`; RabbitMQ supports only `requeue: true`).
+    pub async fn basic_recover(&self, options: BasicRecoverOptions) -> Result<()> {
+        let BasicRecoverOptions { requeue } = options;
         self.core()
             .call(BasicRecover { requeue }, expect!(BasicRecoverOk))
             .await

@@ -1,0 +1,44 @@
+//! The command line. Every option but `--hash-password` and `--config`
+//! also has a key of the same name in the config file (`config`); the
+//! command line wins.
+
+use clap::Parser;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+/// An embeddable AMQP 0.9.1 message broker.
+#[derive(Debug, Default, Parser)]
+#[command(name = "leveret", version, about)]
+pub struct Cli {
+    /// Address to accept AMQP connections on; may be given more than once
+    /// [default: 0.0.0.0:5672].
+    #[arg(long = "listen", value_name = "ADDR:PORT")]
+    pub listen: Vec<SocketAddr>,
+    /// Directory for durable state; created if missing [default: ./leveret-data].
+    #[arg(long, value_name = "DIR")]
+    pub data_dir: Option<PathBuf>,
+    /// TOML configuration file: the same keys as these flags, plus
+    /// [[users]] (name, and password or password-hash), vhosts, and the
+    /// limits heartbeat, frame-max, channel-max, max-message-size,
+    /// memory-high-watermark.
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Log level or tracing filter (error, warn, info, debug, trace) [default: info].
+    #[arg(long, value_name = "LEVEL")]
+    pub log: Option<String>,
+    /// The product name announced to clients in connection.start
+    /// [default: Leveret]. Clients that gate RabbitMQ-only behaviour on
+    /// the name may need `RabbitMQ`.
+    #[arg(long, value_name = "NAME")]
+    pub product: Option<String>,
+    /// Longest the broker keeps polling for input after a socket read
+    /// instead of sleeping, in microseconds; the window adapts to the
+    /// traffic and shrinks to nothing when reads are further apart.
+    /// 0 never busy-polls, for the least CPU time [default: 200].
+    #[arg(long, value_name = "MICROS")]
+    pub busy_poll: Option<u64>,
+    /// Read a password on standard input, print its salted hash for the
+    /// config file's `password-hash`, and exit.
+    #[arg(long)]
+    pub hash_password: bool,
+}

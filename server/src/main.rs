@@ -1,0 +1,113 @@
+//! # leveret
+//!
+//! The `leveret` binary: an edge AMQP 0.9.1 broker, the `leveret-broker`
+//! library with a command line, a TOML config file and logging around it.
+//! Options come from the command line, or from a TOML file given with
+//! `--config` (every flag has a key of the same name; the command line
+//! wins). An embedder uses the library directly and compiles none of this
+//! crate's dependencies (clap, serde, toml, tracing-subscriber).
+//!
+//! # Layout
+//! - `main`: the runtime, start-up, and shutdown on SIGINT or SIGTERM.
+//! - `cli`: the command line (clap).
+//! - `config`: the config file (serde, toml) and its merge with the
+//!   command line into the library's `BrokerBuilder`.
+//! - `logging`: the tracing subscriber.
+//!
+//! Each uses only the `leveret-broker` public API; `main` uses the others.
+#![forbid(unsafe_code)]
+
+mod cli;
+mod config;
+mod logging;
+
+use clap::Parser;
+use cli::Cli;
+use config::{FileConfig, Settings};
+use leveret_broker::PasswordHash;
+use std::process::ExitCode;
+
+/// Exit status for a command line or config file that cannot be used.
+const USAGE_ERROR: u8 = 2;
+
+/// One thread serves every connection: busy polling needs the thread that
+/// spins to be the one that polls the sockets, and on the small machines
+/// this broker is for, one thread also moved more messages than two
+/// (measured: noack 522k vs 507k msgs/s, manual acks 477k vs 421k).
+/// Storage has a thread of its own.
+fn main() -> ExitCode {
+    let runtime = match tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(runtime) => runtime,
+        Err(e) => {
+            eprintln!("leveret: cannot start the runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    runtime.block_on(serve(Cli::parse()))
+}
+
+async fn serve(cli: Cli) -> ExitCode {
+    if cli.hash_password {
+        return hash_password();
+    }
+    let file = match &cli.config {
+        Some(path) => FileConfig::load(path),
+        None => Ok(FileConfig::default()),
+    };
+    let settings = match file.and_then(|file| Settings::resolve(cli, file)) {
+        Ok(settings) => settings,
+        Err(e) => {
+            eprintln!("leveret: {e}");
+            return ExitCode::from(USAGE_ERROR);
+        }
+    };
+    logging::init(&settings.log);
+    let handle = match settings.builder().start().await {
+        Ok(handle) => handle,
+        Err(e) => {
+            tracing::error!(error = %e, "cannot start");
+            return ExitCode::FAILURE;
+        }
+    };
+    wait_for_signal().await;
+    tracing::info!("shutting down");
+    handle.shutdown().await;
+    ExitCode::SUCCESS
+}
+
+/// `--hash-password`: one line of standard input in, its hash out.
+fn hash_password() -> ExitCode {
+    let mut password = String::new();
+    if std::io::stdin().read_line(&mut password).is_err() {
+        eprintln!("leveret: cannot read the password from standard input");
+        return ExitCode::from(USAGE_ERROR);
+    }
+    let password = password.trim_end_matches(['\r', '\n']);
+    println!("{}", PasswordHash::new(password).to_hex());
+    ExitCode::SUCCESS
+}
+
+async fn wait_for_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = tokio::signal::ctrl_c() => {}
+                    _ = term.recv() => {}
+                }
+            }
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}
