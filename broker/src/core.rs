@@ -8,7 +8,7 @@ use crate::busy_poll::BusyPoll;
 use crate::memory::MemoryGauge;
 use crate::store::Persistence;
 use crate::vhost::Vhost;
-use leveret_protocol::{FieldTable, ShortStr};
+use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
@@ -87,7 +87,7 @@ impl Core {
             limits,
             gauge,
             persistence,
-            server_properties: crate::connection::server_properties(product),
+            server_properties: server_properties(product),
             busy_poll,
             next_connection: AtomicU64::new(1),
             shutdown: watch::channel(false).0,
@@ -141,4 +141,45 @@ impl Core {
     pub fn shutdown_signal(&self) -> watch::Receiver<bool> {
         self.shutdown.subscribe()
     }
+}
+
+/// What connection.start announces: `product` (the builder's, "Leveret"
+/// by default), version, platform and RabbitMQ's capability flags.
+fn server_properties(product: &str) -> FieldTable {
+    let text = |s: &str| FieldValue::string(s);
+    let capabilities: FieldTable = [
+        "publisher_confirms",
+        "exchange_exchange_bindings",
+        "basic.nack",
+        "consumer_cancel_notify",
+        "connection.blocked",
+        "authentication_failure_close",
+        "per_consumer_qos",
+    ]
+    .into_iter()
+    .map(|c| {
+        (
+            ShortStr::try_from(c).unwrap_or_default(),
+            FieldValue::Bool(true),
+        )
+    })
+    .collect();
+    [
+        (ShortStr::from_static("product"), text(product)),
+        (
+            ShortStr::from_static("version"),
+            text(env!("CARGO_PKG_VERSION")),
+        ),
+        (ShortStr::from_static("platform"), text("Rust")),
+        (
+            ShortStr::from_static("information"),
+            text("An embeddable AMQP 0.9.1 broker"),
+        ),
+        (
+            ShortStr::from_static("capabilities"),
+            FieldValue::Table(capabilities),
+        ),
+    ]
+    .into_iter()
+    .collect()
 }

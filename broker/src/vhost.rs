@@ -5,7 +5,7 @@
 //! probe, changes take the write lock briefly; neither is held across an
 //! await or while a queue's own lock is taken.
 
-use crate::channel::ReplyTarget;
+use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{Binding, Destination, Exchange, ExchangeKind, ExchangeOptions};
 use crate::memory::MemoryGauge;

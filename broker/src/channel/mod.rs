@@ -13,8 +13,6 @@ mod queue;
 mod reply_to;
 mod tx;
 
-pub(crate) use reply_to::ReplyTarget;
-
 use crate::consumer::{ChannelLink, Consumer};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
