@@ -136,7 +136,7 @@ impl Outbox {
             std::mem::take(&mut *blocked)
         };
         for queue in waiting.iter().filter_map(Weak::upgrade) {
-            queue.dispatch();
+            queue.dispatch_deferring_dead_letters();
         }
     }
 

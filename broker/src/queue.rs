@@ -5,9 +5,9 @@
 //! no other lock is taken inside it except a channel's delivery bookkeeping
 //! (always in that order: queue, then channel).
 //!
-//! Dead-lettering routes messages into other queues, so it happens after the
-//! lock is released: operations collect [`DeadLetter`]s and hand them to the
-//! vhost afterwards.
+//! A queue knows nothing above it: operations that make messages leave
+//! for a dead-letter exchange return them as [`DeadLetters`], and the
+//! caller (which knows the vhost) routes them.
 
 use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
@@ -15,10 +15,9 @@ use crate::memory::MemoryGauge;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
 use crate::store::{EntryBody, Persistence, StoreOp};
-use crate::vhost::Vhost;
 use leveret_protocol::{BasicCancel, FieldTable, FieldValue, ShortStr};
 use std::collections::VecDeque;
-use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 /// Ready messages in a queue with consumers above which publishers to it
@@ -184,6 +183,59 @@ impl DeadLetterReason {
 pub struct DeadLetter {
     message: Arc<Message>,
     reason: DeadLetterReason,
+    /// The queue it leaves.
+    queue: ShortStr,
+    /// The queue's dead-letter exchange.
+    exchange: ShortStr,
+    /// The routing key it is dead-lettered with.
+    routing_key: ShortStr,
+}
+
+impl DeadLetter {
+    /// The exchange it is to be published to.
+    pub fn exchange(&self) -> &ShortStr {
+        &self.exchange
+    }
+
+    /// The copy to route: the message with RabbitMQ's `x-death` history
+    /// (see [`crate::deadletter::with_death`]), and that copy's headers.
+    pub fn into_copy(self) -> (Arc<Message>, FieldTable) {
+        crate::deadletter::with_death(
+            &self.message,
+            &self.queue,
+            self.reason.as_str(),
+            &self.exchange,
+            &self.routing_key,
+        )
+    }
+}
+
+/// Messages that left a queue for its dead-letter exchange, returned by
+/// the operation that made them leave: the caller routes them
+/// (`Vhost::dead_letter`), since a queue does not know its vhost.
+#[derive(Debug, Default)]
+#[must_use = "dead letters must be routed by the caller (Vhost::dead_letter)"]
+pub struct DeadLetters(Vec<DeadLetter>);
+
+impl DeadLetters {
+    /// Whether there are none (the usual case).
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    /// Adds `other`'s dead letters after these.
+    pub fn append(&mut self, mut other: DeadLetters) {
+        self.0.append(&mut other.0);
+    }
+}
+
+impl IntoIterator for DeadLetters {
+    type Item = DeadLetter;
+    type IntoIter = std::vec::IntoIter<DeadLetter>;
+
+    fn into_iter(self) -> Self::IntoIter {
+        self.0.into_iter()
+    }
 }
 
 /// A deleted queue's ready-message count and the consumers it had.
@@ -246,6 +298,9 @@ struct QueueState {
     delivered_mark: u64,
     last_used: Option<Instant>,
     deleted: bool,
+    /// Dead letters found by a dispatch whose caller cannot route them
+    /// (a connection's writer), waiting for the vhost's next sweep.
+    deferred_dead: Vec<DeadLetter>,
 }
 
 /// Declared properties of a queue.
@@ -270,7 +325,8 @@ pub struct Queue {
     pub options: QueueOptions,
     /// Validated arguments.
     pub args: QueueArgs,
-    vhost: Weak<Vhost>,
+    /// The name of the vhost it belongs to, for error texts.
+    vhost: ShortStr,
     gauge: Arc<MemoryGauge>,
     /// Set while the queue is over [`FLOW_HIGH`] with consumers.
     crowded: std::sync::atomic::AtomicBool,
@@ -285,9 +341,9 @@ impl Queue {
     /// A new, empty queue.
     pub fn new(
         name: ShortStr,
+        vhost: ShortStr,
         options: QueueOptions,
         args: QueueArgs,
-        vhost: Weak<Vhost>,
         gauge: Arc<MemoryGauge>,
         durable_store: Option<(Arc<Persistence>, u64)>,
     ) -> Self {
@@ -312,7 +368,7 @@ impl Queue {
     }
 
     /// Offers a message; dispatches it at once if a consumer has credit.
-    pub fn publish(self: &Arc<Self>, message: Arc<Message>) -> Enqueued {
+    pub fn publish(self: &Arc<Self>, message: Arc<Message>) -> (Enqueued, DeadLetters) {
         self.offer(message, None)
     }
 
@@ -342,17 +398,25 @@ impl Queue {
 
     /// Offers a message at a place from [`Queue::reserve`], whose index
     /// entry is already written.
-    pub fn publish_reserved(self: &Arc<Self>, message: Arc<Message>, seq: u64) -> Enqueued {
+    pub fn publish_reserved(
+        self: &Arc<Self>,
+        message: Arc<Message>,
+        seq: u64,
+    ) -> (Enqueued, DeadLetters) {
         self.offer(message, Some(seq))
     }
 
-    fn offer(self: &Arc<Self>, message: Arc<Message>, reserved: Option<u64>) -> Enqueued {
+    fn offer(
+        self: &Arc<Self>,
+        message: Arc<Message>,
+        reserved: Option<u64>,
+    ) -> (Enqueued, DeadLetters) {
         let mut dead = Vec::new();
         let outcome = {
             let mut st = self.lock();
             if st.deleted {
                 self.unlog(&message, reserved);
-                return Enqueued::Accepted { sync: 0 };
+                return (Enqueued::Accepted { sync: 0 }, DeadLetters::default());
             }
             let now = Instant::now();
             let ttl = match (self.args.message_ttl, message.ttl_ms) {
@@ -368,17 +432,12 @@ impl Queue {
                     Overflow::DropHead => {}
                     Overflow::RejectPublish => {
                         self.unlog(&message, reserved);
-                        return Enqueued::Refused;
+                        return (Enqueued::Refused, DeadLetters::default());
                     }
                     Overflow::RejectPublishDlx => {
                         self.unlog(&message, reserved);
-                        dead.push(DeadLetter {
-                            message,
-                            reason: DeadLetterReason::MaxLen,
-                        });
-                        drop(st);
-                        self.dead_letter(dead);
-                        return Enqueued::Refused;
+                        self.dead_letter(message, DeadLetterReason::MaxLen, &mut dead);
+                        return (Enqueued::Refused, DeadLetters(dead));
                     }
                 }
             }
@@ -407,8 +466,7 @@ impl Queue {
             self.dispatch_locked(&mut st, &mut dead, now);
             Enqueued::Accepted { sync }
         };
-        self.dead_letter(dead);
-        outcome
+        (outcome, DeadLetters(dead))
     }
 
     fn is_full_for(&self, st: &QueueState, message: &Message) -> bool {
@@ -592,22 +650,50 @@ impl Queue {
     /// dead-letter exchange, and release it.
     fn discard(&self, queued: QueuedMessage, reason: DeadLetterReason, dead: &mut Vec<DeadLetter>) {
         self.release(&queued);
-        if self.args.dead_letter_exchange.is_some() {
-            dead.push(DeadLetter {
-                message: queued.message,
-                reason,
-            });
-        }
+        self.dead_letter(queued.message, reason, dead);
+    }
+
+    /// Adds `message` to `dead` if the queue has a dead-letter exchange.
+    fn dead_letter(
+        &self,
+        message: Arc<Message>,
+        reason: DeadLetterReason,
+        dead: &mut Vec<DeadLetter>,
+    ) {
+        let Some(exchange) = &self.args.dead_letter_exchange else {
+            return;
+        };
+        let routing_key = self
+            .args
+            .dead_letter_routing_key
+            .clone()
+            .unwrap_or_else(|| message.routing_key.clone());
+        dead.push(DeadLetter {
+            message,
+            reason,
+            queue: self.name.clone(),
+            exchange: exchange.clone(),
+            routing_key,
+        });
     }
 
     /// Delivers ready messages to consumers with credit, round-robin.
-    pub fn dispatch(self: &Arc<Self>) {
+    pub fn dispatch(self: &Arc<Self>) -> DeadLetters {
         let mut dead = Vec::new();
-        {
-            let mut st = self.lock();
-            self.dispatch_locked(&mut st, &mut dead, Instant::now());
-        }
-        self.dead_letter(dead);
+        let mut st = self.lock();
+        self.dispatch_locked(&mut st, &mut dead, Instant::now());
+        DeadLetters(dead)
+    }
+
+    /// [`Queue::dispatch`] for a connection's writer, which has room again
+    /// but cannot route dead letters: those this dispatch finds (messages
+    /// that expired at the head) wait in the queue for the vhost's next
+    /// sweep ([`Queue::expire`]).
+    pub fn dispatch_deferring_dead_letters(self: &Arc<Self>) {
+        let mut dead = Vec::new();
+        let mut st = self.lock();
+        self.dispatch_locked(&mut st, &mut dead, Instant::now());
+        st.deferred_dead.append(&mut dead);
     }
 
     fn dispatch_locked(
@@ -696,7 +782,7 @@ impl Queue {
         self: &Arc<Self>,
         link: &ChannelLink,
         no_ack: bool,
-    ) -> Option<(u64, QueuedMessage, u32)> {
+    ) -> (Option<(u64, QueuedMessage, u32)>, DeadLetters) {
         let mut dead = Vec::new();
         let got = {
             let mut st = self.lock();
@@ -719,27 +805,27 @@ impl Queue {
                 (tag, queued, st.ready.len() as u32)
             })
         };
-        self.dead_letter(dead);
-        got
+        (got, DeadLetters(dead))
     }
 
     /// Puts delivered messages back in their original places, marked
     /// redelivered, and dispatches them again.
-    pub fn requeue(self: &Arc<Self>, messages: impl IntoIterator<Item = QueuedMessage>) {
+    pub fn requeue(
+        self: &Arc<Self>,
+        messages: impl IntoIterator<Item = QueuedMessage>,
+    ) -> DeadLetters {
         let mut dead = Vec::new();
-        {
-            let mut st = self.lock();
-            for mut queued in messages {
-                if st.deleted {
-                    self.release(&queued);
-                    continue;
-                }
-                queued.redelivered = true;
-                self.insert_ready(&mut st, queued);
+        let mut st = self.lock();
+        for mut queued in messages {
+            if st.deleted {
+                self.release(&queued);
+                continue;
             }
-            self.dispatch_locked(&mut st, &mut dead, Instant::now());
+            queued.redelivered = true;
+            self.insert_ready(&mut st, queued);
         }
-        self.dead_letter(dead);
+        self.dispatch_locked(&mut st, &mut dead, Instant::now());
+        DeadLetters(dead)
     }
 
     /// An unacked message was acked (or rejected without dead-lettering).
@@ -748,10 +834,10 @@ impl Queue {
     }
 
     /// A message was rejected without requeue: dead-letter it if configured.
-    pub fn reject(&self, queued: QueuedMessage) {
+    pub fn reject(&self, queued: QueuedMessage) -> DeadLetters {
         let mut dead = Vec::new();
         self.discard(queued, DeadLetterReason::Rejected, &mut dead);
-        self.dead_letter(dead);
+        DeadLetters(dead)
     }
 
     /// Puts recovered messages back after a restart, in their order, with
@@ -772,14 +858,13 @@ impl Queue {
     }
 
     /// Adds a consumer; 403 if an exclusive consumer is in the way.
-    pub fn add_consumer(self: &Arc<Self>, consumer: Arc<Consumer>) -> AmqpResult<()> {
+    pub fn add_consumer(self: &Arc<Self>, consumer: Arc<Consumer>) -> AmqpResult<DeadLetters> {
         {
             let mut st = self.lock();
             if st.exclusive_consumer || (consumer.exclusive && !st.consumers.is_empty()) {
                 return Err(AmqpError::access_refused(format_args!(
                     "queue '{}' in vhost '{}' in exclusive use",
-                    self.name,
-                    self.vhost_name()
+                    self.name, self.vhost
                 )));
             }
             st.exclusive_consumer = consumer.exclusive;
@@ -787,8 +872,7 @@ impl Queue {
             st.consumers.push(consumer);
             st.last_used = None;
         }
-        self.dispatch();
-        Ok(())
+        Ok(self.dispatch())
     }
 
     /// Removes a consumer; true if the queue should now be auto-deleted.
@@ -811,16 +895,9 @@ impl Queue {
         self.options.auto_delete && st.consumers.is_empty() && !st.deleted
     }
 
-    /// Ready messages (expired ones at the head are dropped first).
+    /// Ready messages, as of the last expiry ([`Queue::expire`]).
     pub fn message_count(&self) -> u32 {
-        let mut dead = Vec::new();
-        let count = {
-            let mut st = self.lock();
-            self.expire_head(&mut st, &mut dead);
-            st.ready.len() as u32
-        };
-        self.dead_letter(dead);
-        count
+        self.lock().ready.len() as u32
     }
 
     /// Number of consumers.
@@ -875,22 +952,25 @@ impl Queue {
         !self.lock().consumers.is_empty()
     }
 
-    /// Drops expired messages at the head; called by the vhost's sweeper and
-    /// before counting.
-    pub fn expire(&self) {
-        let mut dead = Vec::new();
-        {
-            let mut st = self.lock();
-            self.expire_head(&mut st, &mut dead);
-        }
-        self.dead_letter(dead);
+    /// Drops the messages at the head that expired by now; called by the
+    /// vhost's sweeper and before counting. Returns them as dead letters,
+    /// with any a writer's dispatch deferred.
+    pub fn expire(&self) -> DeadLetters {
+        self.expire_at(Instant::now())
     }
 
-    fn expire_head(&self, st: &mut QueueState, dead: &mut Vec<DeadLetter>) {
+    /// [`Queue::expire`] as of `now`.
+    pub fn expire_at(&self, now: Instant) -> DeadLetters {
+        let mut st = self.lock();
+        let mut dead = std::mem::take(&mut st.deferred_dead);
+        self.expire_head(&mut st, &mut dead, now);
+        DeadLetters(dead)
+    }
+
+    fn expire_head(&self, st: &mut QueueState, dead: &mut Vec<DeadLetter>, now: Instant) {
         if st.expiring == 0 {
             return;
         }
-        let now = Instant::now();
         while st
             .ready
             .front()
@@ -913,39 +993,5 @@ impl Queue {
             && st
                 .last_used
                 .is_some_and(|at| at.elapsed() >= Duration::from_millis(expires))
-    }
-
-    fn vhost_name(&self) -> ShortStr {
-        self.vhost
-            .upgrade()
-            .map(|v| v.name.clone())
-            .unwrap_or_default()
-    }
-
-    /// Routes dead letters through the dead-letter exchange, with the
-    /// `x-death` header RabbitMQ adds.
-    fn dead_letter(&self, dead: Vec<DeadLetter>) {
-        if dead.is_empty() {
-            return;
-        }
-        let (Some(exchange), Some(vhost)) = (&self.args.dead_letter_exchange, self.vhost.upgrade())
-        else {
-            return;
-        };
-        for letter in dead {
-            let routing_key = self
-                .args
-                .dead_letter_routing_key
-                .clone()
-                .unwrap_or_else(|| letter.message.routing_key.clone());
-            let message = crate::deadletter::with_death(
-                &letter.message,
-                &self.name,
-                letter.reason.as_str(),
-                exchange,
-                &routing_key,
-            );
-            vhost.publish_internal(exchange, message);
-        }
     }
 }

@@ -9,8 +9,7 @@ use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{Binding, Destination, Exchange, ExchangeKind, ExchangeOptions};
 use crate::memory::MemoryGauge;
-use crate::message::Message;
-use crate::queue::{Deleted, Queue, QueueArgs, QueueOptions};
+use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions};
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
@@ -224,7 +223,7 @@ impl Vhost {
 
     /// queue.declare; returns the queue and whether it was created.
     pub fn declare_queue(
-        self: &Arc<Self>,
+        &self,
         decl: QueueDeclaration,
         connection_id: u64,
     ) -> AmqpResult<(Arc<Queue>, bool)> {
@@ -288,9 +287,9 @@ impl Vhost {
         }
         let queue = Arc::new(Queue::new(
             decl.name.clone(),
+            self.name.clone(),
             decl.options,
             args,
-            Arc::downgrade(self),
             Arc::clone(&self.gauge),
             durable_store,
         ));
@@ -566,25 +565,10 @@ impl Vhost {
         }
     }
 
-    /// Publishes a message the broker made itself (dead letters).
-    pub fn publish_internal(&self, exchange: &ShortStr, message: Arc<Message>) {
-        let Some(exchange) = self.exchange(exchange) else {
-            tracing::debug!(exchange = %exchange, "dead-letter exchange missing; message dropped");
-            return;
-        };
-        let headers = leveret_protocol::BasicProperties::decode(&message.properties)
-            .ok()
-            .and_then(|p| p.headers);
-        let mut queues = Vec::new();
-        self.route(
-            &exchange,
-            &message.routing_key,
-            headers.as_ref(),
-            &mut queues,
-        );
-        for queue in &queues {
-            queue.publish(Arc::clone(&message));
-        }
+    /// Routes dead letters a queue operation returned, iteratively and
+    /// with RabbitMQ's cycle rule (see [`crate::deadletter`]).
+    pub fn dead_letter(&self, letters: DeadLetters) {
+        crate::deadletter::route(self, letters);
     }
 
     /// Re-creates a stored exchange at start.
@@ -604,7 +588,7 @@ impl Vhost {
     }
 
     /// Re-creates a stored queue at start (its messages are restored by the caller).
-    pub fn restore_queue(self: &Arc<Self>, record: &QueueRecord) -> Option<Arc<Queue>> {
+    pub fn restore_queue(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
         let options = QueueOptions {
             durable: true,
             exclusive_owner: None,
@@ -621,9 +605,9 @@ impl Vhost {
         let persistence = Arc::clone(self.persistence.as_ref()?);
         let queue = Arc::new(Queue::new(
             record.name.clone(),
+            self.name.clone(),
             options,
             args,
-            Arc::downgrade(self),
             Arc::clone(&self.gauge),
             Some((persistence, record.id)),
         ));
@@ -684,7 +668,7 @@ impl Vhost {
     /// queues past x-expires.
     pub fn sweep(&self) {
         for queue in self.queues() {
-            queue.expire();
+            self.dead_letter(queue.expire());
             if queue.unused_expired() {
                 tracing::debug!(queue = %queue.name, "queue expired (x-expires)");
                 self.delete_queue(&queue).notify();

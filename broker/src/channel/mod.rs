@@ -415,6 +415,6 @@ impl Channel {
         }
         self.abandon_tx();
         let unacked = self.link.deliveries().take_all();
-        basic::requeue_all(unacked);
+        self.vhost.dead_letter(basic::requeue_all(unacked));
     }
 }

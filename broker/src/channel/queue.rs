@@ -44,6 +44,8 @@ impl Channel {
         };
         let (queue, _created) = self.vhost.declare_queue(decl, connection_id)?;
         self.last_queue = Some(queue.name.clone());
+        // The count leaves out messages that have expired.
+        self.vhost.dead_letter(queue.expire());
         if !declare.no_wait {
             self.reply(QueueDeclareOk {
                 queue: queue.name.clone(),
@@ -127,6 +129,7 @@ impl Channel {
                         name, self.vhost.name
                     )));
                 }
+                self.vhost.dead_letter(queue.expire());
                 if delete.if_empty && queue.message_count() > 0 {
                     return Err(AmqpError::precondition_failed(format_args!(
                         "queue '{}' in vhost '{}' is not empty",
