@@ -143,8 +143,11 @@ impl BrokerBuilder {
         let store: Option<Arc<dyn Store>> = match self.storage {
             Storage::None => None,
             Storage::Dir(dir) => {
-                std::fs::create_dir_all(&dir).map_err(|e| {
-                    StartError::Storage(StoreError(format!("{}: {e}", dir.display())))
+                std::fs::create_dir_all(&dir).map_err(|source| {
+                    StartError::Storage(StoreError::DataDir {
+                        path: dir.clone(),
+                        source,
+                    })
                 })?;
                 Some(Arc::new(
                     SledStore::open(&dir).map_err(StartError::Storage)?,
@@ -157,7 +160,9 @@ impl BrokerBuilder {
             Some(store) => {
                 let recovered = Recovered::from_scan(store.scan().map_err(StartError::Storage)?)
                     .map_err(StartError::Storage)?;
-                (Some(Persistence::start(store, &recovered)), recovered)
+                let persistence =
+                    Persistence::start(store, &recovered).map_err(StartError::Storage)?;
+                (Some(persistence), recovered)
             }
             None => (None, Recovered::default()),
         };

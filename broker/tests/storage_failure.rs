@@ -21,7 +21,9 @@ struct FlakyStore {
 impl Store for FlakyStore {
     fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError> {
         if self.failing.load(Ordering::SeqCst) {
-            return Err(StoreError("No space left on device (simulated)".into()));
+            return Err(StoreError::Engine(
+                "No space left on device (simulated)".into(),
+            ));
         }
         self.inner.write(ops, atomic)
     }

@@ -16,10 +16,6 @@ pub struct SledStore {
     db: sled::Db,
 }
 
-fn err(e: sled::Error) -> StoreError {
-    StoreError(e.to_string())
-}
-
 impl SledStore {
     /// Opens (or creates) the store in `dir`.
     pub fn open(dir: &Path) -> Result<Self, StoreError> {
@@ -29,7 +25,7 @@ impl SledStore {
             .cache_capacity(CACHE_BYTES)
             .flush_every_ms(None)
             .open()
-            .map_err(err)?;
+            .map_err(StoreError::from)?;
         Ok(SledStore { db })
     }
 }
@@ -44,26 +40,30 @@ impl Store for SledStore {
                     None => batch.remove(key),
                 }
             }
-            return self.db.apply_batch(batch).map_err(err);
+            return self.db.apply_batch(batch).map_err(StoreError::from);
         }
         for (key, value) in ops {
             match value {
                 Some(value) => self.db.insert(key, value).map(drop),
                 None => self.db.remove(key).map(drop),
             }
-            .map_err(err)?;
+            .map_err(StoreError::from)?;
         }
         Ok(())
     }
 
     fn flush(&self) -> Result<(), StoreError> {
-        self.db.flush().map(drop).map_err(err)
+        self.db.flush().map(drop).map_err(StoreError::from)
     }
 
     fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
         self.db
             .iter()
-            .map(|entry| entry.map(|(k, v)| (k.to_vec(), v.to_vec())).map_err(err))
+            .map(|entry| {
+                entry
+                    .map(|(k, v)| (k.to_vec(), v.to_vec()))
+                    .map_err(StoreError::from)
+            })
             .collect()
     }
 }
