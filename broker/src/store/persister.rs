@@ -19,6 +19,8 @@ const GROUP_OPS: usize = 50_000;
 /// A request to the persister: ops to write, all or nothing if `atomic`;
 /// or, with `close`, the last request: flush, release the store, answer.
 struct Submission {
+    /// Its number, from [`Persistence::next_number`].
+    number: u64,
     ops: Vec<StoreOp>,
     atomic: bool,
     close: Option<tokio::sync::oneshot::Sender<()>>,
@@ -32,11 +34,41 @@ impl std::fmt::Debug for Submission {
 
 /// How far the persister has got: every submission numbered up to
 /// `flushed` has been attempted, and is on disk unless its batch failed
-/// (see [`Persistence::succeeded`]).
+/// (see [`Persistence::succeeded`]). Submissions reach the persister in
+/// about, not exactly, their number order, so this is the contiguous
+/// watermark, never merely the highest number seen.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Durable {
     /// Highest submission number attempted.
     pub flushed: u64,
+}
+
+/// The contiguous watermark of completed submission numbers: the highest
+/// number at or below which every submission is done. A number completed
+/// ahead of a lower one waits (in a heap, which stays as small as the
+/// reordering is) until the gap closes.
+#[derive(Debug, Default)]
+struct Watermark {
+    contiguous: u64,
+    ahead: std::collections::BinaryHeap<std::cmp::Reverse<u64>>,
+}
+
+impl Watermark {
+    /// Records submission `number` done.
+    fn complete(&mut self, number: u64) {
+        if number != self.contiguous + 1 {
+            self.ahead.push(std::cmp::Reverse(number));
+            return;
+        }
+        self.contiguous = number;
+        while let Some(&std::cmp::Reverse(next)) = self.ahead.peek() {
+            if next != self.contiguous + 1 {
+                break;
+            }
+            self.ahead.pop();
+            self.contiguous = next;
+        }
+    }
 }
 
 /// The most recent failed batches remembered, as submission ranges. A
@@ -64,7 +96,8 @@ pub struct Persistence {
 struct Group {
     pending: Vec<KvOp>,
     marks: Vec<(u64, u64)>,
-    submissions: u64,
+    /// The numbers of the submissions in the group.
+    numbers: Vec<u64>,
     len: usize,
     error: Option<StoreError>,
 }
@@ -76,7 +109,7 @@ impl Group {
         store: &dyn Store,
         submission: Submission,
     ) -> Option<tokio::sync::oneshot::Sender<()>> {
-        self.submissions += 1;
+        self.numbers.push(submission.number);
         self.len += submission.ops.len();
         if submission.atomic {
             self.write_pending(store);
@@ -160,41 +193,51 @@ impl Persistence {
 
     /// Queues ops for the next group; returns their submission number.
     pub fn submit(&self, ops: Vec<StoreOp>) -> u64 {
-        self.send(Submission {
-            ops,
-            atomic: false,
-            close: None,
-        })
+        self.send(ops, false, None)
     }
 
     /// Queues ops that must reach the disk all together or not at all (a
     /// transaction's commit).
     pub fn submit_atomic(&self, ops: Vec<StoreOp>) -> u64 {
-        self.send(Submission {
-            ops,
-            atomic: true,
-            close: None,
-        })
+        self.send(ops, true, None)
     }
 
     /// Writes and flushes everything submitted so far, then releases the
     /// store; later submissions are dropped. For shutdown.
     pub async fn close(&self) {
         let (done, closed) = tokio::sync::oneshot::channel();
-        self.send(Submission {
-            ops: Vec::new(),
-            atomic: false,
-            close: Some(done),
-        });
+        self.send(Vec::new(), false, Some(done));
         let _ = closed.await;
     }
 
-    fn send(&self, submission: Submission) -> u64 {
-        let number = self.submitted.fetch_add(1, Ordering::AcqRel) + 1;
+    fn send(
+        &self,
+        ops: Vec<StoreOp>,
+        atomic: bool,
+        close: Option<tokio::sync::oneshot::Sender<()>>,
+    ) -> u64 {
+        let number = self.next_number();
+        self.send_numbered(Submission {
+            number,
+            ops,
+            atomic,
+            close,
+        });
+        number
+    }
+
+    /// Numbers a submission. Numbering and sending are two steps: on a
+    /// multi-thread runtime another thread may number its submission later
+    /// and still send it first, which is why the persister reports the
+    /// contiguous watermark ([`Watermark`]).
+    fn next_number(&self) -> u64 {
+        self.submitted.fetch_add(1, Ordering::AcqRel) + 1
+    }
+
+    fn send_numbered(&self, submission: Submission) {
         // The persister thread lives as long as the process; a send error
         // only happens at exit.
         let _ = self.submit.send(submission);
-        number
     }
 
     /// Watches what is on disk.
@@ -248,7 +291,7 @@ fn persist(
     durable: watch::Sender<Durable>,
     failed: Arc<Mutex<VecDeque<(u64, u64)>>>,
 ) {
-    let mut flushed = 0u64;
+    let mut watermark = Watermark::default();
     while let Some(first) = inbox.blocking_recv() {
         let mut group = Group::default();
         let mut closing = group.add(&*store, first);
@@ -258,18 +301,25 @@ fn persist(
                 Err(_) => break,
             }
         }
-        let first_number = flushed + 1;
-        flushed += group.submissions;
+        let mut numbers = std::mem::take(&mut group.numbers);
         if let Err(e) = group.finish(&*store) {
             tracing::error!(error = %e, "persisting failed; affected publishes are nacked");
+            numbers.sort_unstable();
             // Held only to push or search, never across an await.
             let mut log = failed.lock().unwrap_or_else(|e| e.into_inner());
-            if log.len() == FAILED_HISTORY {
-                log.pop_front();
+            for range in runs(&numbers) {
+                if log.len() == FAILED_HISTORY {
+                    log.pop_front();
+                }
+                log.push_back(range);
             }
-            log.push_back((first_number, flushed));
         }
-        durable.send_replace(Durable { flushed });
+        for number in numbers {
+            watermark.complete(number);
+        }
+        durable.send_replace(Durable {
+            flushed: watermark.contiguous,
+        });
         if let Some(done) = closing {
             // Releases the data directory (sled's lock) before answering,
             // so a new broker can open it at once.
@@ -278,6 +328,19 @@ fn persist(
             return;
         }
     }
+}
+
+/// Sorted numbers as ranges of consecutive ones (a group's numbers are
+/// one range unless submissions arrived out of order).
+fn runs(sorted: &[u64]) -> Vec<(u64, u64)> {
+    let mut runs: Vec<(u64, u64)> = Vec::new();
+    for &number in sorted {
+        match runs.last_mut() {
+            Some((_, last)) if *last + 1 == number => *last = number,
+            _ => runs.push((number, number)),
+        }
+    }
+    runs
 }
 
 #[cfg(test)]
@@ -296,5 +359,91 @@ mod tests {
         assert_eq!(last, 100);
         assert!(persistence.wait(last).await);
         assert_eq!(persistence.next_queue_id(), 1);
+    }
+
+    /// A store that refuses writes while `failing` is set.
+    #[derive(Debug, Default)]
+    struct Flaky {
+        inner: MemoryStore,
+        failing: std::sync::atomic::AtomicBool,
+    }
+
+    impl Store for Flaky {
+        fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError> {
+            if self.failing.load(Ordering::SeqCst) {
+                return Err(StoreError::Engine("simulated failure".into()));
+            }
+            self.inner.write(ops, atomic)
+        }
+        fn flush(&self) -> Result<(), StoreError> {
+            self.inner.flush()
+        }
+        fn scan(&self) -> Result<Vec<crate::store::KvPair>, StoreError> {
+            self.inner.scan()
+        }
+    }
+
+    fn submission(number: u64, id: u64) -> Submission {
+        Submission {
+            number,
+            ops: vec![StoreOp::DeleteMessage { id }],
+            atomic: false,
+            close: None,
+        }
+    }
+
+    /// On a multi-thread runtime a submission numbered later can reach the
+    /// persister first. Its flush must not report the earlier number on
+    /// disk: a confirm or commit-ok waiting for that number would go out
+    /// before its writes are.
+    #[tokio::test]
+    async fn a_later_number_flushed_first_does_not_cover_an_earlier_one() {
+        let store: Arc<dyn Store> = Arc::new(MemoryStore::default());
+        let persistence = Persistence::start(store, &Recovered::default()).unwrap();
+        let mut durable = persistence.durable();
+        durable.borrow_and_update();
+        let earlier = persistence.next_number();
+        let later = persistence.next_number();
+        persistence.send_numbered(submission(later, 2));
+        // The persister reports after every group, changed or not.
+        durable.changed().await.unwrap();
+        assert_eq!(durable.borrow_and_update().flushed, 0);
+        assert!(persistence.flushed() < earlier);
+        persistence.send_numbered(submission(earlier, 1));
+        assert!(persistence.wait(later).await);
+        assert_eq!(persistence.flushed(), later);
+    }
+
+    #[test]
+    fn the_watermark_is_contiguous() {
+        let mut watermark = Watermark::default();
+        for (number, expected) in [(2, 0), (4, 0), (1, 2), (3, 4), (5, 5)] {
+            watermark.complete(number);
+            assert_eq!(watermark.contiguous, expected, "after {number}");
+        }
+        assert!(watermark.ahead.is_empty());
+    }
+
+    #[tokio::test]
+    async fn a_failed_group_fails_exactly_its_submissions() {
+        let flaky = Arc::new(Flaky::default());
+        let store: Arc<dyn Store> = Arc::clone(&flaky) as Arc<dyn Store>;
+        let persistence = Persistence::start(store, &Recovered::default()).unwrap();
+        let good = persistence.submit(vec![StoreOp::DeleteMessage { id: 1 }]);
+        assert!(persistence.wait(good).await);
+        flaky.failing.store(true, Ordering::SeqCst);
+        let bad = persistence.submit(vec![StoreOp::DeleteMessage { id: 2 }]);
+        assert!(!persistence.wait(bad).await);
+        flaky.failing.store(false, Ordering::SeqCst);
+        let after = persistence.submit(vec![StoreOp::DeleteMessage { id: 3 }]);
+        assert!(persistence.wait(after).await);
+        assert!(persistence.succeeded(good));
+    }
+
+    #[test]
+    fn runs_merge_consecutive_numbers() {
+        assert_eq!(runs(&[]), vec![]);
+        assert_eq!(runs(&[3, 4, 5]), vec![(3, 5)]);
+        assert_eq!(runs(&[1, 3, 4, 7]), vec![(1, 1), (3, 4), (7, 7)]);
     }
 }
