@@ -28,6 +28,15 @@ pub struct Vhost {
     reply_targets: RwLock<HashMap<ShortStr, ReplyTarget>>,
 }
 
+/// Whether a binding operation adds the binding or removes it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BindingChange {
+    /// queue.bind, exchange.bind.
+    Bind,
+    /// queue.unbind, exchange.unbind.
+    Unbind,
+}
+
 /// What queue.declare asked for.
 #[derive(Debug, Clone)]
 pub struct QueueDeclaration {
@@ -434,15 +443,15 @@ impl Vhost {
         removed
     }
 
-    /// queue.bind, and with `bind` false queue.unbind (unbinding what was
-    /// never bound succeeds, as in RabbitMQ).
+    /// queue.bind and queue.unbind (unbinding what was never bound
+    /// succeeds, as in RabbitMQ).
     pub fn bind_queue(
         &self,
         queue: &Arc<Queue>,
         exchange: &ShortStr,
         routing_key: ShortStr,
         arguments: FieldTable,
-        bind: bool,
+        change: BindingChange,
     ) -> AmqpResult<()> {
         let source = self.bindable_source(exchange)?;
         let binding = Binding {
@@ -450,7 +459,7 @@ impl Vhost {
             routing_key,
             arguments,
         };
-        if bind {
+        if change == BindingChange::Bind {
             check_headers_binding(&source, &binding.arguments)?;
             self.add_binding(&source, binding);
         } else if self.remove_binding(&source, &binding) {
@@ -466,10 +475,10 @@ impl Vhost {
         source: &ShortStr,
         routing_key: ShortStr,
         arguments: FieldTable,
-        bind: bool,
+        change: BindingChange,
     ) -> AmqpResult<()> {
         let missing_end = self.exchange(destination).is_none() || self.exchange(source).is_none();
-        if !bind && missing_end {
+        if change == BindingChange::Unbind && missing_end {
             // Unbinding from or to a missing exchange succeeds, as in RabbitMQ.
             return Ok(());
         }
@@ -483,7 +492,7 @@ impl Vhost {
             routing_key,
             arguments,
         };
-        if bind {
+        if change == BindingChange::Bind {
             check_headers_binding(&from, &binding.arguments)?;
             self.add_binding(&from, binding);
         } else if self.remove_binding(&from, &binding) {

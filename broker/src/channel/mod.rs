@@ -221,28 +221,8 @@ impl Channel {
             }
             Method::ExchangeDeclare(m) => self.exchange_declare(m).await?,
             Method::ExchangeDelete(m) => self.exchange_delete(m).await?,
-            Method::ExchangeBind(m) => {
-                self.exchange_bind(
-                    m.destination,
-                    m.source,
-                    m.routing_key,
-                    m.arguments,
-                    m.no_wait,
-                    true,
-                )
-                .await?
-            }
-            Method::ExchangeUnbind(m) => {
-                self.exchange_bind(
-                    m.destination,
-                    m.source,
-                    m.routing_key,
-                    m.arguments,
-                    m.no_wait,
-                    false,
-                )
-                .await?
-            }
+            Method::ExchangeBind(m) => self.exchange_bind(m).await?,
+            Method::ExchangeUnbind(m) => self.exchange_unbind(m).await?,
             Method::QueueDeclare(m) => self.queue_declare(m).await?,
             Method::QueueBind(m) => self.queue_bind(m).await?,
             Method::QueueUnbind(m) => self.queue_unbind(m).await?,

@@ -3,7 +3,7 @@
 use super::Channel;
 use crate::error::{AmqpError, AmqpResult};
 use crate::queue::{Deleted, QueueOptions};
-use crate::vhost::{check_exclusive, QueueDeclaration};
+use crate::vhost::{check_exclusive, BindingChange, QueueDeclaration};
 use leveret_protocol::{
     QueueBind, QueueBindOk, QueueDeclare, QueueDeclareOk, QueueDelete, QueueDeleteOk, QueuePurge,
     QueuePurgeOk, QueueUnbind, QueueUnbindOk, ShortStr,
@@ -77,8 +77,13 @@ impl Channel {
         let (name, routing_key) = self.bind_names(bind.queue, bind.routing_key)?;
         let queue = self.vhost.queue_or_404(&name)?;
         check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
-        self.vhost
-            .bind_queue(&queue, &bind.exchange, routing_key, bind.arguments, true)?;
+        self.vhost.bind_queue(
+            &queue,
+            &bind.exchange,
+            routing_key,
+            bind.arguments,
+            BindingChange::Bind,
+        )?;
         if !bind.no_wait {
             self.reply(QueueBindOk {}).await;
         }
@@ -97,7 +102,7 @@ impl Channel {
                     &unbind.exchange,
                     routing_key,
                     unbind.arguments,
-                    false,
+                    BindingChange::Unbind,
                 )?;
             }
         }
