@@ -47,6 +47,8 @@ mod queue;
 mod recovery;
 mod server;
 pub mod store;
+#[cfg(test)]
+mod testkit;
 mod vhost;
 
 pub use crate::auth::PasswordHash;

@@ -14,6 +14,7 @@ use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, Stor
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
+use std::time::Instant;
 
 /// One virtual host.
 #[derive(Debug)]
@@ -676,9 +677,14 @@ impl Vhost {
     /// Periodic housekeeping: expires messages past their TTL and deletes
     /// queues past x-expires.
     pub fn sweep(&self) {
+        self.sweep_at(Instant::now());
+    }
+
+    /// [`Vhost::sweep`] as of `now`.
+    pub fn sweep_at(&self, now: Instant) {
         for queue in self.queues() {
-            self.dead_letter(queue.expire());
-            if queue.unused_expired() {
+            self.dead_letter(queue.expire_at(now));
+            if queue.unused_expired_at(now) {
                 tracing::debug!(queue = %queue.name, "queue expired (x-expires)");
                 self.delete_queue(&queue).notify();
             }
@@ -730,3 +736,6 @@ fn first_argument_mismatch(current: &FieldTable, requested: &FieldTable) -> Opti
         .into_iter()
         .find(|key| current.get(key) != requested.get(key))
 }
+
+#[cfg(test)]
+mod tests;

@@ -343,26 +343,17 @@ impl Channel {
         let queue_name = self.queue_name_or_last(get.queue)?;
         let queue = self.vhost.queue_or_404(&queue_name)?;
         crate::vhost::check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
-        let (got, dead) = queue.get(&self.link, get.no_ack);
+        let Some(permit) = self.outbox().reserve().await else {
+            // The writer is gone: the connection is closing.
+            return Ok(());
+        };
+        let (delivered, dead) = queue.get(&self.link, get.no_ack, permit);
         self.vhost.dead_letter(dead);
-        match got {
-            Some((delivery_tag, queued, message_count)) => {
-                self.outbox()
-                    .send(Outbound::GetOk {
-                        channel: self.id,
-                        delivery_tag,
-                        redelivered: queued.redelivered,
-                        message_count,
-                        message: queued.message,
-                    })
-                    .await;
-            }
-            None => {
-                self.reply(BasicGetEmpty {
-                    cluster_id: ShortStr::default(),
-                })
-                .await
-            }
+        if !delivered {
+            self.reply(BasicGetEmpty {
+                cluster_id: ShortStr::default(),
+            })
+            .await;
         }
         Ok(())
     }

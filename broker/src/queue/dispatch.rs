@@ -219,24 +219,25 @@ impl Queue {
             let Some(queued) = self.pop_live(st, now, dead) else {
                 return;
             };
-            let delivery_tag = {
-                let mut deliveries = consumer.channel.deliveries();
-                let tag = deliveries.next_tag();
-                if !consumer.no_ack {
-                    deliveries.push(Unacked {
-                        tag,
-                        queue: Arc::clone(self),
-                        message: queued.clone(),
-                        consumer: Some(Arc::clone(&consumer)),
-                    });
-                }
-                tag
-            };
             if consumer.no_ack {
                 self.release(&queued);
             } else {
                 self.log_delivery(st, &queued);
                 consumer.took_one();
+            }
+            // The tag is handed out and the delivery enters the outbox in
+            // one step under the channel's delivery lock: whichever thread
+            // dispatches, tags reach the client in the order they were
+            // handed out.
+            let mut deliveries = consumer.channel.deliveries();
+            let delivery_tag = deliveries.next_tag();
+            if !consumer.no_ack {
+                deliveries.push(Unacked {
+                    tag: delivery_tag,
+                    queue: Arc::clone(self),
+                    message: queued.clone(),
+                    consumer: Some(Arc::clone(&consumer)),
+                });
             }
             permit.send(Outbound::Deliver {
                 channel: consumer.channel.id,

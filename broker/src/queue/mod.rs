@@ -27,11 +27,13 @@ use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::message::Message;
+use crate::outbox::Outbound;
 use crate::store::Persistence;
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
+use tokio::sync::mpsc::Permit;
 
 /// Ready messages in a queue with consumers above which publishers to it
 /// are slowed down (RabbitMQ's flow control, in spirit): reading from a
@@ -195,36 +197,45 @@ impl Queue {
         st.deferred_dead.append(&mut dead);
     }
 
-    /// basic.get: the head message, recorded as unacked on `link` unless
-    /// `no_ack`. Returns the delivery tag, the message and how many remain.
+    /// basic.get: sends the head message with basic.get-ok through
+    /// `permit`, recorded as unacked on `link` unless `no_ack`. False if
+    /// the queue had no message (the permit is given back).
     pub fn get(
         self: &Arc<Self>,
         link: &ChannelLink,
         no_ack: bool,
-    ) -> (Option<(u64, QueuedMessage, u32)>, DeadLetters) {
+        permit: Permit<'_, Outbound>,
+    ) -> (bool, DeadLetters) {
         let mut dead = Vec::new();
-        let got = {
-            let mut st = self.lock();
-            st.last_used = Some(Instant::now());
-            let queued = self.pop_live(&mut st, Instant::now(), &mut dead);
-            queued.map(|queued| {
-                let mut deliveries = link.deliveries();
-                let tag = deliveries.next_tag();
-                if no_ack {
-                    self.release(&queued);
-                } else {
-                    self.log_delivery(&mut st, &queued);
-                    deliveries.push(Unacked {
-                        tag,
-                        queue: Arc::clone(self),
-                        message: queued.clone(),
-                        consumer: None,
-                    });
-                }
-                (tag, queued, st.ready.len() as u32)
-            })
+        let mut st = self.lock();
+        st.last_used = Some(Instant::now());
+        let Some(queued) = self.pop_live(&mut st, Instant::now(), &mut dead) else {
+            return (false, DeadLetters(dead));
         };
-        (got, DeadLetters(dead))
+        if no_ack {
+            self.release(&queued);
+        } else {
+            self.log_delivery(&mut st, &queued);
+        }
+        // As in dispatch: the tag and the send are one step.
+        let mut deliveries = link.deliveries();
+        let delivery_tag = deliveries.next_tag();
+        permit.send(Outbound::GetOk {
+            channel: link.id,
+            delivery_tag,
+            redelivered: queued.redelivered,
+            message_count: st.ready.len() as u32,
+            message: Arc::clone(&queued.message),
+        });
+        if !no_ack {
+            deliveries.push(Unacked {
+                tag: delivery_tag,
+                queue: Arc::clone(self),
+                message: queued,
+                consumer: None,
+            });
+        }
+        (true, DeadLetters(dead))
     }
 
     /// Puts delivered messages back in their original places, marked
@@ -397,16 +408,19 @@ impl Queue {
         DeadLetters(dead)
     }
 
-    /// Whether x-expires has run out: unused (no consumers, no get, no
-    /// redeclare) for longer than it allows.
-    pub fn unused_expired(&self) -> bool {
+    /// Whether x-expires has run out by `now`: unused (no consumers, no
+    /// get, no redeclare) for longer than it allows.
+    pub fn unused_expired_at(&self, now: Instant) -> bool {
         let Some(expires) = self.args.expires else {
             return false;
         };
         let st = self.lock();
         st.consumers.is_empty()
-            && st
-                .last_used
-                .is_some_and(|at| at.elapsed() >= Duration::from_millis(expires))
+            && st.last_used.is_some_and(|at| {
+                now.saturating_duration_since(at) >= Duration::from_millis(expires)
+            })
     }
 }
+
+#[cfg(test)]
+mod tests;
