@@ -41,6 +41,24 @@ impl Default for Limits {
     }
 }
 
+/// What a [`Core`] is built from.
+#[derive(Debug)]
+pub struct CoreOptions {
+    /// The vhosts to create (names that are not valid short strings are
+    /// skipped).
+    pub vhosts: Vec<String>,
+    /// Accepted users.
+    pub users: Users,
+    /// Limits.
+    pub limits: Limits,
+    /// Durable storage, if the broker has any.
+    pub persistence: Option<Arc<Persistence>>,
+    /// The product name announced in connection.start.
+    pub product: String,
+    /// The busy-poll window's shared state, if the broker busy-polls.
+    pub busy_poll: Option<Arc<BusyPoll>>,
+}
+
 /// State shared by every connection of one broker.
 #[derive(Debug)]
 pub struct Core {
@@ -62,18 +80,18 @@ pub struct Core {
 }
 
 impl Core {
-    /// A core with the given vhosts, users, limits, storage and the
-    /// `product` name it announces to clients.
-    pub fn new(
-        vhost_names: &[String],
-        users: Users,
-        limits: Limits,
-        persistence: Option<Arc<Persistence>>,
-        product: &str,
-        busy_poll: Option<Arc<BusyPoll>>,
-    ) -> Arc<Self> {
+    /// A core as `options` say.
+    pub fn new(options: CoreOptions) -> Arc<Self> {
+        let CoreOptions {
+            vhosts,
+            users,
+            limits,
+            persistence,
+            product,
+            busy_poll,
+        } = options;
         let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
-        let vhosts = vhost_names
+        let vhosts = vhosts
             .iter()
             .filter_map(|name| ShortStr::try_from(name.as_str()).ok())
             .map(|name| {
@@ -87,7 +105,7 @@ impl Core {
             limits,
             gauge,
             persistence,
-            server_properties: server_properties(product),
+            server_properties: server_properties(&product),
             busy_poll,
             next_connection: AtomicU64::new(1),
             shutdown: watch::channel(false).0,

@@ -5,7 +5,7 @@
 
 use crate::auth::{PasswordHash, Users};
 use crate::busy_poll::BusyPoll;
-use crate::core::{Core, Limits};
+use crate::core::{Core, CoreOptions, Limits};
 use crate::store::{Persistence, Recovered, SledStore, Store, StoreError};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -166,16 +166,15 @@ impl BrokerBuilder {
             }
             None => (None, Recovered::default()),
         };
-        let product = self.product.as_deref().unwrap_or(DEFAULT_PRODUCT);
         let busy_poll = busy_poll_state(self.busy_poll);
-        let core = Core::new(
-            &vhosts,
+        let core = Core::new(CoreOptions {
+            vhosts,
             users,
-            self.limits,
+            limits: self.limits,
             persistence,
-            product,
-            busy_poll.clone(),
-        );
+            product: self.product.unwrap_or_else(|| DEFAULT_PRODUCT.to_owned()),
+            busy_poll: busy_poll.clone(),
+        });
         let report = crate::recovery::recover(&core, recovered);
         if core.persistence.is_some() {
             tracing::info!(

@@ -29,6 +29,7 @@
 //! - `outbox`: what the core sends to a connection's writer, with backpressure.
 //! - `message`, `memory`, `auth`, `error`: messages, the memory alarm, users and SASL, reply errors.
 #![forbid(unsafe_code)]
+#![deny(missing_docs)]
 
 mod auth;
 mod busy_poll;

@@ -60,6 +60,16 @@ pub(crate) enum Settle {
     },
 }
 
+/// basic.recover, answered with recover-ok, or the deprecated
+/// basic.recover-async, not answered.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Recover {
+    /// basic.recover.
+    Answered,
+    /// basic.recover-async.
+    Unanswered,
+}
+
 /// A unique suffix for generated names (`amq.ctag-…`, `amq.gen-…`).
 pub(crate) fn unique_name(prefix: &str) -> ShortStr {
     use std::hash::{BuildHasher, Hasher};
@@ -394,12 +404,12 @@ impl Channel {
     /// basic.recover(-async). As in RabbitMQ, recover-ok goes out before
     /// the redeliveries (clients such as lapin discard deliveries that
     /// arrive before it).
-    pub(super) async fn basic_recover(&mut self, requeue: bool, reply: bool) -> AmqpResult<()> {
+    pub(super) async fn basic_recover(&mut self, requeue: bool, how: Recover) -> AmqpResult<()> {
         if !requeue {
             return Err(AmqpError::not_implemented("requeue=false"));
         }
         let unacked = self.link.deliveries().take_all();
-        if reply {
+        if how == Recover::Answered {
             self.reply(leveret_protocol::BasicRecoverOk {}).await;
         }
         self.vhost.dead_letter(requeue_all(unacked));

@@ -253,8 +253,14 @@ impl Channel {
                 )
                 .await?
             }
-            Method::BasicRecover(m) => self.basic_recover(m.requeue, true).await?,
-            Method::BasicRecoverAsync(m) => self.basic_recover(m.requeue, false).await?,
+            Method::BasicRecover(m) => {
+                self.basic_recover(m.requeue, basic::Recover::Answered)
+                    .await?
+            }
+            Method::BasicRecoverAsync(m) => {
+                self.basic_recover(m.requeue, basic::Recover::Unanswered)
+                    .await?
+            }
             Method::TxSelect(_) => self.tx_select().await?,
             Method::TxCommit(_) => self.tx_commit().await?,
             Method::TxRollback(_) => self.tx_rollback().await?,

@@ -279,7 +279,7 @@ impl Recovered {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::store::{MemoryStore, Store};
+    use crate::store::{MemoryStore, Store, WriteMode};
     use leveret_protocol::FieldValue;
 
     fn s(v: &'static str) -> ShortStr {
@@ -342,7 +342,7 @@ mod tests {
             StoreOp::Delivered { queue: 7, seq: 1 },
         ];
         store
-            .write(ops.iter().map(StoreOp::to_kv).collect(), true)
+            .write(ops.iter().map(StoreOp::to_kv).collect(), WriteMode::Atomic)
             .unwrap();
         let recovered = Recovered::from_scan(store.scan().unwrap()).unwrap();
         assert_eq!(recovered.exchanges.len(), 1);
@@ -369,7 +369,7 @@ mod tests {
                     StoreOp::Dequeue { queue: 7, seq: 2 }.to_kv(),
                     StoreOp::DeleteMessage { id: 3 }.to_kv(),
                 ],
-                false,
+                WriteMode::Plain,
             )
             .unwrap();
         let recovered = Recovered::from_scan(store.scan().unwrap()).unwrap();

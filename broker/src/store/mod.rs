@@ -83,11 +83,20 @@ pub type KvOp = (Vec<u8>, Option<Vec<u8>>);
 /// One stored key and its value.
 pub type KvPair = (Vec<u8>, Vec<u8>);
 
+/// How [`Store::write`] applies its ops.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WriteMode {
+    /// In order, one by one: a crash may leave any prefix applied.
+    Plain,
+    /// All or nothing (a transaction's commit).
+    Atomic,
+}
+
 /// A key-value engine: ordered writes, atomic batches on request, and a
 /// flush that makes everything written so far durable.
 pub trait Store: Send + Sync + std::fmt::Debug + 'static {
-    /// Applies `ops` in order; all or nothing when `atomic`. Not yet durable.
-    fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError>;
+    /// Applies `ops` in order, as `mode` says. Not yet durable.
+    fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError>;
     /// Makes every write so far durable.
     fn flush(&self) -> Result<(), StoreError>;
     /// Every key and value, in key order.

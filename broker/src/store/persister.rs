@@ -6,7 +6,7 @@
 //! the disk has got, so a confirm or a commit-ok waits for exactly the
 //! flush that covers it.
 
-use super::{KvOp, Recovered, Store, StoreError, StoreOp};
+use super::{KvOp, Recovered, Store, StoreError, StoreOp, WriteMode};
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -16,13 +16,13 @@ use tokio::sync::{mpsc, watch};
 /// the next group), so one flush stays short.
 const GROUP_OPS: usize = 50_000;
 
-/// A request to the persister: ops to write, all or nothing if `atomic`;
+/// A request to the persister: ops to write as `mode` says;
 /// or, with `close`, the last request: flush, release the store, answer.
 struct Submission {
     /// Its number, from [`Persistence::next_number`].
     number: u64,
     ops: Vec<StoreOp>,
-    atomic: bool,
+    mode: WriteMode,
     close: Option<tokio::sync::oneshot::Sender<()>>,
 }
 
@@ -111,10 +111,10 @@ impl Group {
     ) -> Option<tokio::sync::oneshot::Sender<()>> {
         self.numbers.push(submission.number);
         self.len += submission.ops.len();
-        if submission.atomic {
+        if submission.mode == WriteMode::Atomic {
             self.write_pending(store);
             let ops = submission.ops.iter().map(StoreOp::to_kv).collect();
-            let result = store.write(ops, true);
+            let result = store.write(ops, WriteMode::Atomic);
             self.record(result);
             return submission.close;
         }
@@ -135,7 +135,7 @@ impl Group {
     fn write_pending(&mut self, store: &dyn Store) {
         if !self.pending.is_empty() {
             let ops = std::mem::take(&mut self.pending);
-            let result = store.write(ops, false);
+            let result = store.write(ops, WriteMode::Plain);
             self.record(result);
         }
     }
@@ -193,34 +193,34 @@ impl Persistence {
 
     /// Queues ops for the next group; returns their submission number.
     pub fn submit(&self, ops: Vec<StoreOp>) -> u64 {
-        self.send(ops, false, None)
+        self.send(ops, WriteMode::Plain, None)
     }
 
     /// Queues ops that must reach the disk all together or not at all (a
     /// transaction's commit).
     pub fn submit_atomic(&self, ops: Vec<StoreOp>) -> u64 {
-        self.send(ops, true, None)
+        self.send(ops, WriteMode::Atomic, None)
     }
 
     /// Writes and flushes everything submitted so far, then releases the
     /// store; later submissions are dropped. For shutdown.
     pub async fn close(&self) {
         let (done, closed) = tokio::sync::oneshot::channel();
-        self.send(Vec::new(), false, Some(done));
+        self.send(Vec::new(), WriteMode::Plain, Some(done));
         let _ = closed.await;
     }
 
     fn send(
         &self,
         ops: Vec<StoreOp>,
-        atomic: bool,
+        mode: WriteMode,
         close: Option<tokio::sync::oneshot::Sender<()>>,
     ) -> u64 {
         let number = self.next_number();
         self.send_numbered(Submission {
             number,
             ops,
-            atomic,
+            mode,
             close,
         });
         number
@@ -369,11 +369,11 @@ mod tests {
     }
 
     impl Store for Flaky {
-        fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError> {
+        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
             if self.failing.load(Ordering::SeqCst) {
                 return Err(StoreError::Engine("simulated failure".into()));
             }
-            self.inner.write(ops, atomic)
+            self.inner.write(ops, mode)
         }
         fn flush(&self) -> Result<(), StoreError> {
             self.inner.flush()
@@ -387,7 +387,7 @@ mod tests {
         Submission {
             number,
             ops: vec![StoreOp::DeleteMessage { id }],
-            atomic: false,
+            mode: WriteMode::Plain,
             close: None,
         }
     }

@@ -3,7 +3,7 @@
 //! `flush` blocks until everything written is stable on disk. The page cache is kept
 //! small: the broker holds queued messages in memory itself.
 
-use super::{KvOp, KvPair, Store, StoreError};
+use super::{KvOp, KvPair, Store, StoreError, WriteMode};
 use std::path::Path;
 
 /// sled's page cache: small, because recovery reads everything once and
@@ -31,8 +31,8 @@ impl SledStore {
 }
 
 impl Store for SledStore {
-    fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError> {
-        if atomic {
+    fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+        if mode == WriteMode::Atomic {
             let mut batch = sled::Batch::default();
             for (key, value) in ops {
                 match value {
@@ -84,10 +84,12 @@ mod tests {
                         (b"a".to_vec(), Some(b"1".to_vec())),
                         (b"b".to_vec(), Some(b"2".to_vec())),
                     ],
-                    true,
+                    WriteMode::Atomic,
                 )
                 .unwrap();
-            store.write(vec![(b"a".to_vec(), None)], false).unwrap();
+            store
+                .write(vec![(b"a".to_vec(), None)], WriteMode::Plain)
+                .unwrap();
             store.flush().unwrap();
         }
         let store = SledStore::open(&dir).unwrap();
