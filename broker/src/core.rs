@@ -1,7 +1,9 @@
 //! The broker's shared state, independent of sockets: vhosts, users,
-//! limits, the memory gauge, and the shutdown signal that connections
-//! watch. The server and the embedding API build one `Core` and hand an
-//! `Arc` of it to every connection.
+//! limits, the memory gauge, the store handle, the shutdown signal that
+//! connections watch, and the server properties connection.start
+//! announces. The server and the embedding API build one `Core` and hand
+//! an `Arc` of it to every connection and its channels. It uses the vhost
+//! layer and below, never a connection.
 
 use crate::auth::Users;
 use crate::busy_poll::BusyPoll;

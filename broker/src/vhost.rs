@@ -3,7 +3,10 @@
 //! message to the set of queues it reaches. The registries are
 //! `std::sync::RwLock<HashMap>`s: lookups take the read lock for one hash
 //! probe, changes take the write lock briefly; neither is held across an
-//! await or while a queue's own lock is taken.
+//! await or while a queue's own lock is taken. The dead letters queue
+//! operations return are routed here too (`Vhost::dead_letter`, see
+//! `deadletter`). A vhost uses exchanges, queues and the consumer layer's
+//! reply-to targets, never a channel.
 
 use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
