@@ -13,7 +13,7 @@
 //! letters (queues dead-lettering into a fanout exchange they are all
 //! bound to) costs a bounded amount of work per message.
 
-use crate::queue::{DeadLetter, DeadLetters};
+use crate::queue::{DeadLetter, DeadLetters, Queue};
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldValue, ShortStr};
 use std::collections::VecDeque;
@@ -31,39 +31,20 @@ pub fn route(vhost: &Vhost, letters: DeadLetters) {
     if letters.is_empty() {
         return;
     }
-    // Each work item remembers the original letter it descends from.
-    let mut work: VecDeque<(DeadLetter, usize)> = letters
-        .into_iter()
-        .enumerate()
-        .map(|(origin, letter)| (letter, origin))
-        .collect();
-    let mut caused = vec![0usize; work.len()];
-    let mut over_budget = 0usize;
     let mut queues = Vec::new();
-    while let Some((letter, origin)) = work.pop_front() {
-        let Some(exchange) = vhost.exchange(letter.exchange()) else {
-            tracing::debug!(exchange = %letter.exchange(), "dead-letter exchange missing; message dropped");
-            continue;
-        };
-        let (message, headers) = letter.into_copy();
-        vhost.route(&exchange, &message.routing_key, Some(&headers), &mut queues);
-        let deaths = match headers.get("x-death") {
-            Some(FieldValue::Array(deaths)) => deaths.as_slice(),
-            _ => &[],
-        };
-        for queue in queues.drain(..) {
-            if closes_automatic_cycle(deaths, &queue.name) {
-                tracing::warn!(queue = %queue.name, "dead-letter cycle detected; message dropped");
-                continue;
-            }
-            let (_, more) = queue.publish(Arc::clone(&message));
-            for next in more {
-                if caused[origin] == CASCADE_LIMIT {
+    let mut over_budget = 0usize;
+    for letter in letters {
+        // This letter and those it causes, breadth first.
+        let mut work = VecDeque::from([letter]);
+        let mut caused = 0usize;
+        while let Some(letter) = work.pop_front() {
+            for next in deliver(vhost, letter, &mut queues) {
+                if caused == CASCADE_LIMIT {
                     over_budget += 1;
                     continue;
                 }
-                caused[origin] += 1;
-                work.push_back((next, origin));
+                caused += 1;
+                work.push_back(next);
             }
         }
     }
@@ -74,6 +55,32 @@ pub fn route(vhost: &Vhost, letters: DeadLetters) {
             "dead letters causing too many further dead letters; the excess was dropped"
         );
     }
+}
+
+/// Publishes one dead letter's copy to the queues its dead-letter exchange
+/// routes it to, except those the cycle rule rules out; returns the dead
+/// letters that causes in turn. `queues` is a buffer the caller reuses.
+fn deliver(vhost: &Vhost, letter: DeadLetter, queues: &mut Vec<Arc<Queue>>) -> DeadLetters {
+    let mut caused = DeadLetters::default();
+    let Some(exchange) = vhost.exchange(letter.exchange()) else {
+        tracing::debug!(exchange = %letter.exchange(), "dead-letter exchange missing; message dropped");
+        return caused;
+    };
+    let (message, headers) = letter.into_copy();
+    vhost.route(&exchange, &message.routing_key, Some(&headers), queues);
+    let deaths = match headers.get("x-death") {
+        Some(FieldValue::Array(deaths)) => deaths.as_slice(),
+        _ => &[],
+    };
+    for queue in queues.drain(..) {
+        if closes_automatic_cycle(deaths, &queue.name) {
+            tracing::warn!(queue = %queue.name, "dead-letter cycle detected; message dropped");
+            continue;
+        }
+        let (_, more) = queue.publish(Arc::clone(&message));
+        caused.append(more);
+    }
+    caused
 }
 
 /// RabbitMQ's cycle rule. `deaths` is a dead letter's `x-death` history,
