@@ -165,3 +165,13 @@ impl Consumer {
             .fetch_sub(1, Ordering::Relaxed);
     }
 }
+
+/// Where replies to one channel's requests go: the consumer of RabbitMQ's
+/// direct reply-to pseudo-queue, which has no queue of its own.
+#[derive(Debug, Clone)]
+pub(crate) struct ReplyTarget {
+    /// The consuming channel.
+    pub link: Arc<ChannelLink>,
+    /// Its reply consumer's tag.
+    pub consumer_tag: ShortStr,
+}

@@ -1,14 +1,16 @@
 //! The broker's shared state, independent of sockets: vhosts, users,
-//! limits, the memory gauge, and the shutdown signal that connections
-//! watch. The server and the embedding API build one `Core` and hand an
-//! `Arc` of it to every connection.
+//! limits, the memory gauge, the store handle, the shutdown signal that
+//! connections watch, and the server properties connection.start
+//! announces. The server and the embedding API build one `Core` and hand
+//! an `Arc` of it to every connection and its channels. It uses the vhost
+//! layer and below, never a connection.
 
 use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
 use crate::memory::MemoryGauge;
 use crate::store::Persistence;
 use crate::vhost::Vhost;
-use leveret_protocol::{FieldTable, ShortStr};
+use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
@@ -41,6 +43,24 @@ impl Default for Limits {
     }
 }
 
+/// What a [`Core`] is built from.
+#[derive(Debug)]
+pub struct CoreOptions {
+    /// The vhosts to create (names that are not valid short strings are
+    /// skipped).
+    pub vhosts: Vec<String>,
+    /// Accepted users.
+    pub users: Users,
+    /// Limits.
+    pub limits: Limits,
+    /// Durable storage, if the broker has any.
+    pub persistence: Option<Arc<Persistence>>,
+    /// The product name announced in connection.start.
+    pub product: String,
+    /// The busy-poll window's shared state, if the broker busy-polls.
+    pub busy_poll: Option<Arc<BusyPoll>>,
+}
+
 /// State shared by every connection of one broker.
 #[derive(Debug)]
 pub struct Core {
@@ -62,18 +82,18 @@ pub struct Core {
 }
 
 impl Core {
-    /// A core with the given vhosts, users, limits, storage and the
-    /// `product` name it announces to clients.
-    pub fn new(
-        vhost_names: &[String],
-        users: Users,
-        limits: Limits,
-        persistence: Option<Arc<Persistence>>,
-        product: &str,
-        busy_poll: Option<Arc<BusyPoll>>,
-    ) -> Arc<Self> {
+    /// A core as `options` say.
+    pub fn new(options: CoreOptions) -> Arc<Self> {
+        let CoreOptions {
+            vhosts,
+            users,
+            limits,
+            persistence,
+            product,
+            busy_poll,
+        } = options;
         let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
-        let vhosts = vhost_names
+        let vhosts = vhosts
             .iter()
             .filter_map(|name| ShortStr::try_from(name.as_str()).ok())
             .map(|name| {
@@ -87,7 +107,7 @@ impl Core {
             limits,
             gauge,
             persistence,
-            server_properties: crate::connection::server_properties(product),
+            server_properties: server_properties(&product),
             busy_poll,
             next_connection: AtomicU64::new(1),
             shutdown: watch::channel(false).0,
@@ -141,4 +161,45 @@ impl Core {
     pub fn shutdown_signal(&self) -> watch::Receiver<bool> {
         self.shutdown.subscribe()
     }
+}
+
+/// What connection.start announces: `product` (the builder's, "Leveret"
+/// by default), version, platform and RabbitMQ's capability flags.
+fn server_properties(product: &str) -> FieldTable {
+    let text = |s: &str| FieldValue::string(s);
+    let capabilities: FieldTable = [
+        "publisher_confirms",
+        "exchange_exchange_bindings",
+        "basic.nack",
+        "consumer_cancel_notify",
+        "connection.blocked",
+        "authentication_failure_close",
+        "per_consumer_qos",
+    ]
+    .into_iter()
+    .map(|c| {
+        (
+            ShortStr::try_from(c).unwrap_or_default(),
+            FieldValue::Bool(true),
+        )
+    })
+    .collect();
+    [
+        (ShortStr::from_static("product"), text(product)),
+        (
+            ShortStr::from_static("version"),
+            text(env!("CARGO_PKG_VERSION")),
+        ),
+        (ShortStr::from_static("platform"), text("Rust")),
+        (
+            ShortStr::from_static("information"),
+            text("An embeddable AMQP 0.9.1 broker"),
+        ),
+        (
+            ShortStr::from_static("capabilities"),
+            FieldValue::Table(capabilities),
+        ),
+    ]
+    .into_iter()
+    .collect()
 }

@@ -5,7 +5,7 @@
 
 use crate::auth::{PasswordHash, Users};
 use crate::busy_poll::BusyPoll;
-use crate::core::{Core, Limits};
+use crate::core::{Core, CoreOptions, Limits};
 use crate::store::{Persistence, Recovered, SledStore, Store, StoreError};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -143,8 +143,11 @@ impl BrokerBuilder {
         let store: Option<Arc<dyn Store>> = match self.storage {
             Storage::None => None,
             Storage::Dir(dir) => {
-                std::fs::create_dir_all(&dir).map_err(|e| {
-                    StartError::Storage(StoreError(format!("{}: {e}", dir.display())))
+                std::fs::create_dir_all(&dir).map_err(|source| {
+                    StartError::Storage(StoreError::DataDir {
+                        path: dir.clone(),
+                        source,
+                    })
                 })?;
                 Some(Arc::new(
                     SledStore::open(&dir).map_err(StartError::Storage)?,
@@ -157,20 +160,21 @@ impl BrokerBuilder {
             Some(store) => {
                 let recovered = Recovered::from_scan(store.scan().map_err(StartError::Storage)?)
                     .map_err(StartError::Storage)?;
-                (Some(Persistence::start(store, &recovered)), recovered)
+                let persistence =
+                    Persistence::start(store, &recovered).map_err(StartError::Storage)?;
+                (Some(persistence), recovered)
             }
             None => (None, Recovered::default()),
         };
-        let product = self.product.as_deref().unwrap_or(DEFAULT_PRODUCT);
         let busy_poll = busy_poll_state(self.busy_poll);
-        let core = Core::new(
-            &vhosts,
+        let core = Core::new(CoreOptions {
+            vhosts,
             users,
-            self.limits,
+            limits: self.limits,
             persistence,
-            product,
-            busy_poll.clone(),
-        );
+            product: self.product.unwrap_or_else(|| DEFAULT_PRODUCT.to_owned()),
+            busy_poll: busy_poll.clone(),
+        });
         let report = crate::recovery::recover(&core, recovered);
         if core.persistence.is_some() {
             tracing::info!(

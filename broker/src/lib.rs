@@ -21,19 +21,47 @@
 //! ```
 //!
 //! # Layout
-//! - `embed`: the builder and handle, the public entry point.
-//! - `server`: TCP listeners, the accept loop, the TTL/expiry sweeper.
-//! - `busy_poll`: polling for input for a short, adaptive window after socket reads instead of sleeping.
-//! - `connection`: handshake, the reader loop, heartbeats, closing; `connection::writer` owns the socket's write half.
-//! - `channel`: content assembly and one module per AMQP class (`basic`, `queue`, `exchange`, `tx`).
-//! - `core`: state shared by all connections (vhosts, users, limits, memory gauge, shutdown).
-//! - `vhost`: exchanges and queues of a vhost, declare/delete/bind, routing.
-//! - `exchange`: exchange kinds and bindings (`topic` trie, `headers` match).
-//! - `queue`: FIFO, consumers, round-robin dispatch, TTL, max-length, dead-lettering (`deadletter`).
-//! - `consumer`: consumers, delivery tags, unacked bookkeeping, prefetch credit.
-//! - `outbox`: what the core sends to a connection's writer, with backpressure.
-//! - `message`, `memory`, `auth`, `error`: messages, the memory alarm, users and SASL, reply errors.
+//!
+//! The crate is built in layers. Each uses only the layers below it and
+//! the shared pieces beside them, never one above: a lower layer that
+//! needs something done above returns it as a value (a queue's dead
+//! letters) instead of calling up.
+//!
+//! 1. **Server**: `embed` (the builder and handle, the public entry
+//!    point), `server` (TCP listeners, the accept loop, the TTL/expiry
+//!    sweeper), `connection` (handshake, the reader loop, heartbeats,
+//!    closing; `connection::writer` owns the socket's write half),
+//!    `recovery` (durable state rebuilt at start), `busy_poll` (polling
+//!    for input for a short, adaptive window after socket reads instead of
+//!    sleeping). May use every layer below.
+//! 2. **Channel**: `channel`, content assembly and one module per AMQP
+//!    class (`basic`, `queue`, `exchange`, `tx`, `reply_to`). Uses the
+//!    core and below; knows no connection and no socket.
+//! 3. **Core**: `core`, the state every connection shares (vhosts, users,
+//!    limits, the memory gauge, the store handle, the shutdown signal,
+//!    connection.start's server properties). Uses vhosts and below.
+//! 4. **Vhost and exchanges**: `vhost` (declare, delete, bind, route),
+//!    `exchange` (the kinds and their bindings: the `topic` trie,
+//!    `headers` matching), `deadletter` (routing the dead letters queue
+//!    operations return: a work list with RabbitMQ's cycle rule and a
+//!    budget). Use queues and below.
+//! 5. **Queue**: `queue` (the FIFO, dispatch to consumers, TTL,
+//!    max-length, durable index entries; dead letters are returned to the
+//!    caller). Uses consumers, outboxes and the store.
+//! 6. **Consumer and outbox**: `consumer` (delivery tags, unacked
+//!    bookkeeping, prefetch credit, direct reply-to targets), `outbox`
+//!    (what goes to a connection's writer, with backpressure). A queue,
+//!    its consumers and the outboxes they deliver through know each other
+//!    (an unacked delivery names its queue; an outbox wakes the queues
+//!    that waited for room): that small circle is the only one.
+//!
+//! Beside the layers: `store` (the [`store::Store`] trait, the key codec,
+//! the group-commit persister), used from the queue layer up and using
+//! nothing of the broker; and the pieces every layer may use: `message`
+//! (a message as the broker holds it), `memory` (the memory alarm),
+//! `auth` (users and SASL), `error` (reply errors).
 #![forbid(unsafe_code)]
+#![deny(missing_docs)]
 
 mod auth;
 mod busy_poll;
@@ -52,6 +80,8 @@ mod queue;
 mod recovery;
 mod server;
 pub mod store;
+#[cfg(test)]
+mod testkit;
 mod vhost;
 
 pub use crate::auth::PasswordHash;

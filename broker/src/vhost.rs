@@ -3,18 +3,21 @@
 //! message to the set of queues it reaches. The registries are
 //! `std::sync::RwLock<HashMap>`s: lookups take the read lock for one hash
 //! probe, changes take the write lock briefly; neither is held across an
-//! await or while a queue's own lock is taken.
+//! await or while a queue's own lock is taken. The dead letters queue
+//! operations return are routed here too (`Vhost::dead_letter`, see
+//! `deadletter`). A vhost uses exchanges, queues and the consumer layer's
+//! reply-to targets, never a channel.
 
-use crate::channel::ReplyTarget;
+use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{Binding, Destination, Exchange, ExchangeKind, ExchangeOptions};
 use crate::memory::MemoryGauge;
-use crate::message::Message;
-use crate::queue::{Deleted, Queue, QueueArgs, QueueOptions};
+use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions};
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
+use std::time::Instant;
 
 /// One virtual host.
 #[derive(Debug)]
@@ -27,6 +30,15 @@ pub struct Vhost {
     persistence: Option<Arc<Persistence>>,
     /// Direct reply-to consumers by their reply name.
     reply_targets: RwLock<HashMap<ShortStr, ReplyTarget>>,
+}
+
+/// Whether a binding operation adds the binding or removes it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BindingChange {
+    /// queue.bind, exchange.bind.
+    Bind,
+    /// queue.unbind, exchange.unbind.
+    Unbind,
 }
 
 /// What queue.declare asked for.
@@ -224,7 +236,7 @@ impl Vhost {
 
     /// queue.declare; returns the queue and whether it was created.
     pub fn declare_queue(
-        self: &Arc<Self>,
+        &self,
         decl: QueueDeclaration,
         connection_id: u64,
     ) -> AmqpResult<(Arc<Queue>, bool)> {
@@ -288,9 +300,9 @@ impl Vhost {
         }
         let queue = Arc::new(Queue::new(
             decl.name.clone(),
+            self.name.clone(),
             decl.options,
             args,
-            Arc::downgrade(self),
             Arc::clone(&self.gauge),
             durable_store,
         ));
@@ -435,15 +447,15 @@ impl Vhost {
         removed
     }
 
-    /// queue.bind, and with `bind` false queue.unbind (unbinding what was
-    /// never bound succeeds, as in RabbitMQ).
+    /// queue.bind and queue.unbind (unbinding what was never bound
+    /// succeeds, as in RabbitMQ).
     pub fn bind_queue(
         &self,
         queue: &Arc<Queue>,
         exchange: &ShortStr,
         routing_key: ShortStr,
         arguments: FieldTable,
-        bind: bool,
+        change: BindingChange,
     ) -> AmqpResult<()> {
         let source = self.bindable_source(exchange)?;
         let binding = Binding {
@@ -451,7 +463,7 @@ impl Vhost {
             routing_key,
             arguments,
         };
-        if bind {
+        if change == BindingChange::Bind {
             check_headers_binding(&source, &binding.arguments)?;
             self.add_binding(&source, binding);
         } else if self.remove_binding(&source, &binding) {
@@ -467,10 +479,10 @@ impl Vhost {
         source: &ShortStr,
         routing_key: ShortStr,
         arguments: FieldTable,
-        bind: bool,
+        change: BindingChange,
     ) -> AmqpResult<()> {
         let missing_end = self.exchange(destination).is_none() || self.exchange(source).is_none();
-        if !bind && missing_end {
+        if change == BindingChange::Unbind && missing_end {
             // Unbinding from or to a missing exchange succeeds, as in RabbitMQ.
             return Ok(());
         }
@@ -484,7 +496,7 @@ impl Vhost {
             routing_key,
             arguments,
         };
-        if bind {
+        if change == BindingChange::Bind {
             check_headers_binding(&from, &binding.arguments)?;
             self.add_binding(&from, binding);
         } else if self.remove_binding(&from, &binding) {
@@ -566,25 +578,10 @@ impl Vhost {
         }
     }
 
-    /// Publishes a message the broker made itself (dead letters).
-    pub fn publish_internal(&self, exchange: &ShortStr, message: Arc<Message>) {
-        let Some(exchange) = self.exchange(exchange) else {
-            tracing::debug!(exchange = %exchange, "dead-letter exchange missing; message dropped");
-            return;
-        };
-        let headers = leveret_protocol::BasicProperties::decode(&message.properties)
-            .ok()
-            .and_then(|p| p.headers);
-        let mut queues = Vec::new();
-        self.route(
-            &exchange,
-            &message.routing_key,
-            headers.as_ref(),
-            &mut queues,
-        );
-        for queue in &queues {
-            queue.publish(Arc::clone(&message));
-        }
+    /// Routes dead letters a queue operation returned, iteratively and
+    /// with RabbitMQ's cycle rule (see [`crate::deadletter`]).
+    pub fn dead_letter(&self, letters: DeadLetters) {
+        crate::deadletter::route(self, letters);
     }
 
     /// Re-creates a stored exchange at start.
@@ -604,7 +601,7 @@ impl Vhost {
     }
 
     /// Re-creates a stored queue at start (its messages are restored by the caller).
-    pub fn restore_queue(self: &Arc<Self>, record: &QueueRecord) -> Option<Arc<Queue>> {
+    pub fn restore_queue(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
         let options = QueueOptions {
             durable: true,
             exclusive_owner: None,
@@ -621,9 +618,9 @@ impl Vhost {
         let persistence = Arc::clone(self.persistence.as_ref()?);
         let queue = Arc::new(Queue::new(
             record.name.clone(),
+            self.name.clone(),
             options,
             args,
-            Arc::downgrade(self),
             Arc::clone(&self.gauge),
             Some((persistence, record.id)),
         ));
@@ -683,9 +680,14 @@ impl Vhost {
     /// Periodic housekeeping: expires messages past their TTL and deletes
     /// queues past x-expires.
     pub fn sweep(&self) {
+        self.sweep_at(Instant::now());
+    }
+
+    /// [`Vhost::sweep`] as of `now`.
+    pub fn sweep_at(&self, now: Instant) {
         for queue in self.queues() {
-            queue.expire();
-            if queue.unused_expired() {
+            self.dead_letter(queue.expire_at(now));
+            if queue.unused_expired_at(now) {
                 tracing::debug!(queue = %queue.name, "queue expired (x-expires)");
                 self.delete_queue(&queue).notify();
             }
@@ -737,3 +739,6 @@ fn first_argument_mismatch(current: &FieldTable, requested: &FieldTable) -> Opti
         .into_iter()
         .find(|key| current.get(key) != requested.get(key))
 }
+
+#[cfg(test)]
+mod tests;

@@ -6,7 +6,7 @@
 use lapin::options::{BasicPublishOptions, ConfirmSelectOptions, QueueDeclareOptions};
 use lapin::types::FieldTable;
 use lapin::{BasicProperties, Channel, Connection, ConnectionProperties};
-use leveret_broker::store::{KvOp, KvPair, MemoryStore, Store, StoreError};
+use leveret_broker::store::{KvOp, KvPair, MemoryStore, Store, StoreError, WriteMode};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -19,11 +19,13 @@ struct FlakyStore {
 }
 
 impl Store for FlakyStore {
-    fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError> {
+    fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
         if self.failing.load(Ordering::SeqCst) {
-            return Err(StoreError("No space left on device (simulated)".into()));
+            return Err(StoreError::Engine(
+                "No space left on device (simulated)".into(),
+            ));
         }
-        self.inner.write(ops, atomic)
+        self.inner.write(ops, mode)
     }
 
     fn flush(&self) -> Result<(), StoreError> {

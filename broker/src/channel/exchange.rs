@@ -3,10 +3,10 @@
 use super::Channel;
 use crate::error::AmqpResult;
 use crate::exchange::ExchangeOptions;
-use crate::vhost::ExchangeDeclaration;
+use crate::vhost::{BindingChange, ExchangeDeclaration};
 use leveret_protocol::{
-    ExchangeBindOk, ExchangeDeclare, ExchangeDeclareOk, ExchangeDelete, ExchangeDeleteOk,
-    ExchangeUnbindOk, FieldTable, ShortStr,
+    ExchangeBind, ExchangeBindOk, ExchangeDeclare, ExchangeDeclareOk, ExchangeDelete,
+    ExchangeDeleteOk, ExchangeUnbind, ExchangeUnbindOk,
 };
 
 impl Channel {
@@ -37,23 +37,30 @@ impl Channel {
         Ok(())
     }
 
-    pub(super) async fn exchange_bind(
-        &mut self,
-        destination: ShortStr,
-        source: ShortStr,
-        routing_key: ShortStr,
-        arguments: FieldTable,
-        no_wait: bool,
-        bind: bool,
-    ) -> AmqpResult<()> {
-        self.vhost
-            .bind_exchange(&destination, &source, routing_key, arguments, bind)?;
-        if !no_wait {
-            if bind {
-                self.reply(ExchangeBindOk {}).await;
-            } else {
-                self.reply(ExchangeUnbindOk {}).await;
-            }
+    pub(super) async fn exchange_bind(&mut self, bind: ExchangeBind) -> AmqpResult<()> {
+        self.vhost.bind_exchange(
+            &bind.destination,
+            &bind.source,
+            bind.routing_key,
+            bind.arguments,
+            BindingChange::Bind,
+        )?;
+        if !bind.no_wait {
+            self.reply(ExchangeBindOk {}).await;
+        }
+        Ok(())
+    }
+
+    pub(super) async fn exchange_unbind(&mut self, unbind: ExchangeUnbind) -> AmqpResult<()> {
+        self.vhost.bind_exchange(
+            &unbind.destination,
+            &unbind.source,
+            unbind.routing_key,
+            unbind.arguments,
+            BindingChange::Unbind,
+        )?;
+        if !unbind.no_wait {
+            self.reply(ExchangeUnbindOk {}).await;
         }
         Ok(())
     }

@@ -13,8 +13,6 @@ mod queue;
 mod reply_to;
 mod tx;
 
-pub(crate) use reply_to::ReplyTarget;
-
 use crate::consumer::{ChannelLink, Consumer};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
@@ -223,28 +221,8 @@ impl Channel {
             }
             Method::ExchangeDeclare(m) => self.exchange_declare(m).await?,
             Method::ExchangeDelete(m) => self.exchange_delete(m).await?,
-            Method::ExchangeBind(m) => {
-                self.exchange_bind(
-                    m.destination,
-                    m.source,
-                    m.routing_key,
-                    m.arguments,
-                    m.no_wait,
-                    true,
-                )
-                .await?
-            }
-            Method::ExchangeUnbind(m) => {
-                self.exchange_bind(
-                    m.destination,
-                    m.source,
-                    m.routing_key,
-                    m.arguments,
-                    m.no_wait,
-                    false,
-                )
-                .await?
-            }
+            Method::ExchangeBind(m) => self.exchange_bind(m).await?,
+            Method::ExchangeUnbind(m) => self.exchange_unbind(m).await?,
             Method::QueueDeclare(m) => self.queue_declare(m).await?,
             Method::QueueBind(m) => self.queue_bind(m).await?,
             Method::QueueUnbind(m) => self.queue_unbind(m).await?,
@@ -275,8 +253,14 @@ impl Channel {
                 )
                 .await?
             }
-            Method::BasicRecover(m) => self.basic_recover(m.requeue, true).await?,
-            Method::BasicRecoverAsync(m) => self.basic_recover(m.requeue, false).await?,
+            Method::BasicRecover(m) => {
+                self.basic_recover(m.requeue, basic::Recover::Answered)
+                    .await?
+            }
+            Method::BasicRecoverAsync(m) => {
+                self.basic_recover(m.requeue, basic::Recover::Unanswered)
+                    .await?
+            }
             Method::TxSelect(_) => self.tx_select().await?,
             Method::TxCommit(_) => self.tx_commit().await?,
             Method::TxRollback(_) => self.tx_rollback().await?,
@@ -417,6 +401,6 @@ impl Channel {
         }
         self.abandon_tx();
         let unacked = self.link.deliveries().take_all();
-        basic::requeue_all(unacked);
+        self.vhost.dead_letter(basic::requeue_all(unacked));
     }
 }

@@ -3,7 +3,7 @@
 use super::Channel;
 use crate::error::{AmqpError, AmqpResult};
 use crate::queue::{Deleted, QueueOptions};
-use crate::vhost::{check_exclusive, QueueDeclaration};
+use crate::vhost::{check_exclusive, BindingChange, QueueDeclaration};
 use leveret_protocol::{
     QueueBind, QueueBindOk, QueueDeclare, QueueDeclareOk, QueueDelete, QueueDeleteOk, QueuePurge,
     QueuePurgeOk, QueueUnbind, QueueUnbindOk, ShortStr,
@@ -44,6 +44,8 @@ impl Channel {
         };
         let (queue, _created) = self.vhost.declare_queue(decl, connection_id)?;
         self.last_queue = Some(queue.name.clone());
+        // The count leaves out messages that have expired.
+        self.vhost.dead_letter(queue.expire());
         if !declare.no_wait {
             self.reply(QueueDeclareOk {
                 queue: queue.name.clone(),
@@ -75,8 +77,13 @@ impl Channel {
         let (name, routing_key) = self.bind_names(bind.queue, bind.routing_key)?;
         let queue = self.vhost.queue_or_404(&name)?;
         check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
-        self.vhost
-            .bind_queue(&queue, &bind.exchange, routing_key, bind.arguments, true)?;
+        self.vhost.bind_queue(
+            &queue,
+            &bind.exchange,
+            routing_key,
+            bind.arguments,
+            BindingChange::Bind,
+        )?;
         if !bind.no_wait {
             self.reply(QueueBindOk {}).await;
         }
@@ -95,7 +102,7 @@ impl Channel {
                     &unbind.exchange,
                     routing_key,
                     unbind.arguments,
-                    false,
+                    BindingChange::Unbind,
                 )?;
             }
         }
@@ -127,6 +134,7 @@ impl Channel {
                         name, self.vhost.name
                     )));
                 }
+                self.vhost.dead_letter(queue.expire());
                 if delete.if_empty && queue.message_count() > 0 {
                     return Err(AmqpError::precondition_failed(format_args!(
                         "queue '{}' in vhost '{}' is not empty",

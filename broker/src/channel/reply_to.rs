@@ -5,7 +5,7 @@
 //! straight to the consumer, without any queue.
 
 use super::Channel;
-use crate::consumer::ChannelLink;
+use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::message::Message;
 use crate::outbox::Outbound;
@@ -17,15 +17,6 @@ use std::sync::Arc;
 pub(crate) const PSEUDO_QUEUE: &str = "amq.rabbitmq.reply-to";
 /// Prefix of the per-channel names replies are published to.
 const PREFIX: &str = "amq.rabbitmq.reply-to.";
-
-/// Where replies to one channel's requests go.
-#[derive(Debug, Clone)]
-pub(crate) struct ReplyTarget {
-    /// The consuming channel.
-    pub link: Arc<ChannelLink>,
-    /// Its reply consumer's tag.
-    pub consumer_tag: ShortStr,
-}
 
 /// A channel's reply consumer.
 #[derive(Debug)]

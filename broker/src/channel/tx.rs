@@ -8,7 +8,7 @@ use super::{Channel, Publish};
 use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
-use crate::queue::Queue;
+use crate::queue::{DeadLetters, Queue};
 use leveret_protocol::{
     BasicAck, BasicNack, ConfirmSelectOk, TxCommitOk, TxRollbackOk, TxSelectOk,
 };
@@ -128,15 +128,18 @@ impl Channel {
             (Some(persistence), false) => persistence.submit_atomic(ops),
             _ => 0,
         };
+        let mut dead = DeadLetters::default();
         for (message, targets) in placed {
             for (queue, seq) in targets {
-                match seq {
+                let (_, dead_here) = match seq {
                     Some(seq) => queue.publish_reserved(Arc::clone(&message), seq),
                     None => queue.publish(Arc::clone(&message)),
                 };
+                dead.append(dead_here);
             }
         }
-        apply_settles(std::mem::take(&mut tx.settles));
+        dead.append(apply_settles(std::mem::take(&mut tx.settles)));
+        self.vhost.dead_letter(dead);
         self.after_settles();
         if let (Some(persistence), true) = (&self.core.persistence, sync > 0) {
             if !persistence.wait(sync).await {
@@ -167,12 +170,9 @@ impl Channel {
     /// channel's other unacked messages.
     pub(super) fn abandon_tx(&mut self) {
         if let Some(mut tx) = self.tx.take() {
-            requeue_all(
-                std::mem::take(&mut tx.settles)
-                    .into_iter()
-                    .map(|(u, _)| u)
-                    .collect(),
-            );
+            let settles = std::mem::take(&mut tx.settles);
+            let dead = requeue_all(settles.into_iter().map(|(u, _)| u).collect());
+            self.vhost.dead_letter(dead);
         }
     }
 

@@ -3,7 +3,7 @@
 //! `flush` blocks until everything written is stable on disk. The page cache is kept
 //! small: the broker holds queued messages in memory itself.
 
-use super::{KvOp, KvPair, Store, StoreError};
+use super::{KvOp, KvPair, Store, StoreError, WriteMode};
 use std::path::Path;
 
 /// sled's page cache: small, because recovery reads everything once and
@@ -16,10 +16,6 @@ pub struct SledStore {
     db: sled::Db,
 }
 
-fn err(e: sled::Error) -> StoreError {
-    StoreError(e.to_string())
-}
-
 impl SledStore {
     /// Opens (or creates) the store in `dir`.
     pub fn open(dir: &Path) -> Result<Self, StoreError> {
@@ -29,14 +25,14 @@ impl SledStore {
             .cache_capacity(CACHE_BYTES)
             .flush_every_ms(None)
             .open()
-            .map_err(err)?;
+            .map_err(StoreError::from)?;
         Ok(SledStore { db })
     }
 }
 
 impl Store for SledStore {
-    fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError> {
-        if atomic {
+    fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+        if mode == WriteMode::Atomic {
             let mut batch = sled::Batch::default();
             for (key, value) in ops {
                 match value {
@@ -44,26 +40,30 @@ impl Store for SledStore {
                     None => batch.remove(key),
                 }
             }
-            return self.db.apply_batch(batch).map_err(err);
+            return self.db.apply_batch(batch).map_err(StoreError::from);
         }
         for (key, value) in ops {
             match value {
                 Some(value) => self.db.insert(key, value).map(drop),
                 None => self.db.remove(key).map(drop),
             }
-            .map_err(err)?;
+            .map_err(StoreError::from)?;
         }
         Ok(())
     }
 
     fn flush(&self) -> Result<(), StoreError> {
-        self.db.flush().map(drop).map_err(err)
+        self.db.flush().map(drop).map_err(StoreError::from)
     }
 
     fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
         self.db
             .iter()
-            .map(|entry| entry.map(|(k, v)| (k.to_vec(), v.to_vec())).map_err(err))
+            .map(|entry| {
+                entry
+                    .map(|(k, v)| (k.to_vec(), v.to_vec()))
+                    .map_err(StoreError::from)
+            })
             .collect()
     }
 }
@@ -84,10 +84,12 @@ mod tests {
                         (b"a".to_vec(), Some(b"1".to_vec())),
                         (b"b".to_vec(), Some(b"2".to_vec())),
                     ],
-                    true,
+                    WriteMode::Atomic,
                 )
                 .unwrap();
-            store.write(vec![(b"a".to_vec(), None)], false).unwrap();
+            store
+                .write(vec![(b"a".to_vec(), None)], WriteMode::Plain)
+                .unwrap();
             store.flush().unwrap();
         }
         let store = SledStore::open(&dir).unwrap();
