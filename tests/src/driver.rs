@@ -12,8 +12,9 @@
 //!
 //! - crash it: a panic anywhere aborts the fuzzer (libFuzzer's panic hook),
 //!   and in the replay test fails the test;
-//! - freeze it: every connection still open answers a `channel.open`, and a
-//!   fresh connection completes a handshake and a `queue.declare`, each
+//! - freeze it: every connection still open answers a `channel.open`
+//!   (except those that were sent raw bytes, which may have begun a frame
+//!   the broker is rightly waiting to finish), and a fresh connection completes a handshake and a `queue.declare`, each
 //!   within [`ANSWER_WITHIN`];
 //! - exhaust it: scripts are bounded ([`MAX_STEPS`], body sizes), so memory
 //!   growth shows up as libFuzzer's RSS limit.
@@ -481,6 +482,9 @@ struct Seen {
     opened: HashSet<u16>,
     /// Replies to the driver's liveness queue.declare.
     declared: u32,
+    /// Raw bytes were sent: the broker may rightly be waiting for the rest
+    /// of a frame they began, so this connection is not probed.
+    raw: bool,
 }
 
 struct Peer {
@@ -959,6 +963,7 @@ async fn play(script: &Script) {
             Step::Raw { connection, bytes } => {
                 let slot = usize::from(*connection) % CONNECTIONS;
                 if let Some(peer) = &peers[slot] {
+                    peer.seen().raw = true;
                     if !peer.send(&bytes[..bytes.len().min(512)]).await {
                         peers[slot] = None;
                     }
@@ -975,8 +980,11 @@ async fn play(script: &Script) {
     }
     // Every connection the broker kept open still answers.
     for peer in peers.iter().flatten() {
-        if peer.seen().closed || peer.seen().blocked {
-            continue;
+        {
+            let seen = peer.seen();
+            if seen.closed || seen.blocked || seen.raw {
+                continue;
+            }
         }
         if !peer.send(&method_bytes(PROBE_CHANNEL, ChannelOpen::default())).await {
             continue;
