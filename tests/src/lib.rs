@@ -10,6 +10,9 @@
 //!
 //! Tests share one external broker and run concurrently, so every queue and
 //! exchange a test creates gets a name from [`unique`].
+//!
+//! [`driver`] is the scripted adversarial peer behind the broker-level fuzz
+//! target and the corpus replay test.
 
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
@@ -19,6 +22,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use leveret_broker::{Broker, BrokerBuilder, BrokerHandle};
+
+pub mod driver;
 
 /// The environment variable naming an external broker to test against.
 pub const URL_ENV: &str = "LEVERET_TEST_AMQP_URL";
