@@ -634,6 +634,10 @@ impl Queue {
                 full.push(index);
                 continue;
             };
+            let Some(credit) = consumer.try_take_credit() else {
+                full.push(index);
+                continue;
+            };
             st.cursor = (index + 1) % count;
             let Some(queued) = self.pop_live(st, now, dead) else {
                 return;
@@ -655,7 +659,7 @@ impl Queue {
                 self.release(&queued);
             } else {
                 self.log_delivery(st, &queued);
-                consumer.took_one();
+                credit.keep();
             }
             permit.send(Outbound::Deliver {
                 channel: consumer.channel.id,
