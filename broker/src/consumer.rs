@@ -179,16 +179,21 @@ impl Consumer {
             });
         }
         let global = self.channel.global_prefetch.load(Ordering::Relaxed);
-        credit::try_take_both(
+        let taken = credit::try_take_both(
             &self.in_flight,
             self.prefetch,
             &self.channel.global_in_flight,
             global,
-        )
-        .then_some(Credit {
-            consumer: self,
-            counted: true,
-        })
+        );
+        // Built only once taken: a Credit dropped gives back its unit.
+        if taken {
+            Some(Credit {
+                consumer: self,
+                counted: true,
+            })
+        } else {
+            None
+        }
     }
 
     /// Active (consume-ok sent) and the channel's flow is on.
@@ -231,5 +236,73 @@ impl Drop for Credit<'_> {
         if self.counted {
             self.consumer.settled_one();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn consumer(prefetch: u32, global: u32, no_ack: bool) -> Consumer {
+        let (outbox, _writer) = Outbox::new(1);
+        let link = Arc::new(ChannelLink::new(1, outbox));
+        link.global_prefetch.store(global, Ordering::Relaxed);
+        let consumer = Consumer {
+            tag: ShortStr::from_static("c"),
+            channel: link,
+            no_ack,
+            exclusive: false,
+            prefetch,
+            priority: 0,
+            in_flight: AtomicU32::new(0),
+            active: AtomicBool::new(false),
+        };
+        consumer.activate();
+        consumer
+    }
+
+    fn counts(consumer: &Consumer) -> (u32, u32) {
+        (
+            consumer.in_flight.load(Ordering::Relaxed),
+            consumer.channel.global_in_flight.load(Ordering::Relaxed),
+        )
+    }
+
+    #[test]
+    fn kept_credit_stays_taken_until_settled_and_dropped_credit_goes_back() {
+        let c = consumer(2, 0, false);
+        c.try_take_credit().expect("credit").keep();
+        assert_eq!(counts(&c), (1, 1));
+        drop(c.try_take_credit().expect("credit"));
+        assert_eq!(counts(&c), (1, 1));
+        c.settled_one();
+        assert_eq!(counts(&c), (0, 0));
+    }
+
+    /// A refusal changes nothing: no unit is taken, and none is given back
+    /// (a credit built and dropped on refusal would give back a unit that
+    /// another delivery holds, and underflow once that one is settled).
+    #[test]
+    fn refused_credit_leaves_the_counts_alone() {
+        let per_consumer = consumer(1, 0, false);
+        per_consumer.try_take_credit().expect("credit").keep();
+        assert!(per_consumer.try_take_credit().is_none());
+        assert_eq!(counts(&per_consumer), (1, 1));
+
+        let global = consumer(0, 1, false);
+        global.try_take_credit().expect("credit").keep();
+        assert!(global.try_take_credit().is_none());
+        assert_eq!(counts(&global), (1, 1));
+    }
+
+    #[test]
+    fn no_ack_deliveries_take_no_credit_and_flow_stops_all() {
+        let c = consumer(1, 1, true);
+        for _ in 0..3 {
+            c.try_take_credit().expect("no-ack credit").keep();
+        }
+        assert_eq!(counts(&c), (0, 0));
+        c.channel.flow_active.store(false, Ordering::Relaxed);
+        assert!(c.try_take_credit().is_none() && !c.has_credit());
     }
 }
