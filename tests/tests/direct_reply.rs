@@ -7,7 +7,7 @@ mod common;
 use common::*;
 use futures_lite::StreamExt;
 
-#[tokio::test]
+#[both_runtimes]
 async fn an_rpc_reply_reaches_the_requester_without_a_queue() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -73,7 +73,7 @@ async fn an_rpc_reply_reaches_the_requester_without_a_queue() {
     );
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn reply_to_without_a_reply_consumer_or_with_acks_is_406() {
     let b = broker().await;
     let conn = lp::connect(&b).await;

@@ -13,7 +13,7 @@ use async_trait::async_trait;
 use futures_lite::StreamExt;
 use tokio::sync::mpsc::{unbounded_channel, UnboundedReceiver, UnboundedSender};
 
-pub use leveret_tests::{broker, unique, TestBroker};
+pub use leveret_tests::{both_runtimes, broker, unique, TestBroker};
 
 /// How long any single expected event may take.
 pub const TIMEOUT: Duration = Duration::from_secs(10);
