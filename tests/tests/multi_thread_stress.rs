@@ -31,12 +31,12 @@
 mod common;
 
 use bytes::{Buf, Bytes, BytesMut};
+use common::raw::{
+    method_frame, publish_frames, short, BasicProperties, Frame, Method, Raw, ShortStr,
+};
 use common::*;
 use leveret_protocol::{
-    decode_frame, encode_content, encode_method, BasicAck, BasicConsume, BasicPublish, BasicQos,
-    ChannelOpen, ConfirmSelect, ConnectionClose, ConnectionOpen, ConnectionStartOk,
-    ConnectionTuneOk, ContentHeader, FieldTable, Frame, Method, QueueDeclare, ShortStr,
-    PROTOCOL_HEADER,
+    decode_frame, BasicAck, BasicConsume, BasicQos, ConfirmSelect, ConnectionClose, QueueDeclare,
 };
 use std::collections::{BTreeMap, HashSet};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -44,7 +44,6 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
-use tokio::net::TcpStream;
 use tokio::sync::{mpsc, watch, Notify};
 use tokio::task::JoinSet;
 
@@ -66,7 +65,7 @@ async fn many_connections_see_ordered_tags_bounded_prefetch_and_ordered_confirms
     for index in 0..CONNECTIONS {
         connections.push(Connection::open(&b, index).await);
     }
-    let queues: Arc<Vec<ShortStr>> = Arc::new(
+    let queues: Arc<Vec<String>> = Arc::new(
         connections
             .iter()
             .flat_map(|c| c.plan.queues.iter().cloned())
@@ -78,14 +77,14 @@ async fn many_connections_see_ordered_tags_bounded_prefetch_and_ordered_confirms
     let mut publishers = JoinSet::new();
     let mut writers = Vec::with_capacity(CONNECTIONS);
     for connection in connections {
-        let (reader, writer) = connection.socket.into_split();
+        let (reader, writer) = connection.raw.socket.into_split();
         let (frames, outgoing) = mpsc::unbounded_channel::<Bytes>();
         tokio::spawn(write_all(writer, outgoing));
         let (confirmed_tx, confirmed_rx) = watch::channel(0u64);
         let checker = Checker::new(connection.index, connection.plan, confirmed_tx);
         readers.spawn(read_and_check(
             reader,
-            connection.buf,
+            connection.raw.buf,
             checker,
             frames.clone(),
             Arc::clone(&progress),
@@ -168,7 +167,7 @@ struct Plan {
     /// basic.qos with global=true (0 = none): the channel's limit.
     global: u16,
     /// The queues it consumes from, consumer `k` on `queues[k]`.
-    queues: Vec<ShortStr>,
+    queues: Vec<String>,
     /// Which consumers take deliveries without acks.
     no_ack: Vec<bool>,
 }
@@ -188,7 +187,7 @@ impl Plan {
             per_consumer,
             global,
             queues: (0..QUEUES_PER_CHANNEL)
-                .map(|k| short(&unique(&format!("stress-{index}-{k}"))))
+                .map(|k| unique(&format!("stress-{index}-{k}")))
                 .collect(),
             no_ack: (0..QUEUES_PER_CHANNEL)
                 .map(|k| with_no_ack && k == 0)
@@ -200,141 +199,54 @@ impl Plan {
 /// A raw connection, its channels open and its consumers started.
 struct Connection {
     index: usize,
-    socket: TcpStream,
-    buf: BytesMut,
+    raw: Raw,
     plan: Plan,
 }
 
 impl Connection {
     async fn open(b: &TestBroker, index: usize) -> Connection {
-        let socket = within("tcp connect", TcpStream::connect(b.addr()))
-            .await
-            .expect("tcp connect");
-        socket.set_nodelay(true).expect("nodelay");
-        let mut c = Connection {
-            index,
-            socket,
-            buf: BytesMut::new(),
-            plan: Plan::for_connection(index),
-        };
-        c.send_raw(PROTOCOL_HEADER).await;
-        c.expect(0, |m| matches!(m, Method::ConnectionStart(_)))
-            .await;
-        c.send(
-            0,
-            ConnectionStartOk {
-                client_properties: FieldTable::new(),
-                mechanism: short("PLAIN"),
-                response: Bytes::from_static(b"\0guest\0guest"),
-                locale: short("en_US"),
-            },
-        )
-        .await;
-        let Method::ConnectionTune(tune) = c
-            .expect(0, |m| matches!(m, Method::ConnectionTune(_)))
-            .await
-        else {
-            unreachable!("expect matched connection.tune")
-        };
-        c.send(
-            0,
-            ConnectionTuneOk {
-                channel_max: tune.channel_max,
-                frame_max: tune.frame_max,
-                heartbeat: 0,
-            },
-        )
-        .await;
-        c.send(
-            0,
-            ConnectionOpen {
-                virtual_host: short("/"),
+        let mut raw = Raw::open(b).await;
+        let plan = Plan::for_connection(index);
+        raw.open_channel(CONSUMING).await;
+        raw.open_channel(PUBLISHING).await;
+        for queue in &plan.queues {
+            let declare = QueueDeclare {
+                queue: short(queue),
                 ..Default::default()
-            },
-        )
-        .await;
-        c.expect(0, |m| matches!(m, Method::ConnectionOpenOk(_)))
+            };
+            raw.call(CONSUMING, declare, |m| {
+                matches!(m, Method::QueueDeclareOk(_))
+            })
             .await;
-        for channel in [CONSUMING, PUBLISHING] {
-            c.send(channel, ChannelOpen::default()).await;
-            c.expect(channel, |m| matches!(m, Method::ChannelOpenOk(_)))
-                .await;
         }
-        for queue in c.plan.queues.clone() {
-            c.send(
-                CONSUMING,
-                QueueDeclare {
-                    queue,
-                    ..Default::default()
-                },
-            )
-            .await;
-            c.expect(CONSUMING, |m| matches!(m, Method::QueueDeclareOk(_)))
-                .await;
-        }
-        for (prefetch_count, global) in [(c.plan.per_consumer, false), (c.plan.global, true)] {
+        for (prefetch_count, global) in [(plan.per_consumer, false), (plan.global, true)] {
             if prefetch_count > 0 {
-                c.send(
-                    CONSUMING,
-                    BasicQos {
-                        prefetch_size: 0,
-                        prefetch_count,
-                        global,
-                    },
-                )
-                .await;
-                c.expect(CONSUMING, |m| matches!(m, Method::BasicQosOk(_)))
+                let qos = BasicQos {
+                    prefetch_size: 0,
+                    prefetch_count,
+                    global,
+                };
+                raw.call(CONSUMING, qos, |m| matches!(m, Method::BasicQosOk(_)))
                     .await;
             }
         }
-        for k in 0..QUEUES_PER_CHANNEL {
-            c.send(
-                CONSUMING,
-                BasicConsume {
-                    queue: c.plan.queues[k].clone(),
-                    consumer_tag: consumer_tag(k),
-                    no_ack: c.plan.no_ack[k],
-                    ..Default::default()
-                },
-            )
+        for (k, queue) in plan.queues.iter().enumerate() {
+            let consume = BasicConsume {
+                queue: short(queue),
+                consumer_tag: consumer_tag(k),
+                no_ack: plan.no_ack[k],
+                ..Default::default()
+            };
+            raw.call(CONSUMING, consume, |m| {
+                matches!(m, Method::BasicConsumeOk(_))
+            })
             .await;
-            c.expect(CONSUMING, |m| matches!(m, Method::BasicConsumeOk(_)))
-                .await;
         }
-        c.send(PUBLISHING, ConfirmSelect { no_wait: false }).await;
-        c.expect(PUBLISHING, |m| matches!(m, Method::ConfirmSelectOk(_)))
-            .await;
-        c
-    }
-
-    async fn send_raw(&mut self, bytes: &[u8]) {
-        within("write", self.socket.write_all(bytes))
-            .await
-            .expect("write");
-    }
-
-    async fn send(&mut self, channel: u16, method: impl Into<Method>) {
-        let mut buf = BytesMut::new();
-        encode_method(channel, &method.into(), &mut buf);
-        self.send_raw(&buf).await;
-    }
-
-    /// The next method; it must be on `channel` and match `what`.
-    async fn expect(&mut self, channel: u16, what: impl Fn(&Method) -> bool) -> Method {
-        loop {
-            if let Some(frame) = decode_frame(&mut self.buf, 0).expect("valid frame") {
-                match frame {
-                    Frame::Method { channel: c, method } if c == channel && what(&method) => {
-                        return method
-                    }
-                    other => panic!("setup of connection {}: unexpected {other:?}", self.index),
-                }
-            }
-            let read = within("a reply", self.socket.read_buf(&mut self.buf))
-                .await
-                .expect("read");
-            assert!(read > 0, "the broker closed connection {}", self.index);
-        }
+        raw.call(PUBLISHING, ConfirmSelect { no_wait: false }, |m| {
+            matches!(m, Method::ConfirmSelectOk(_))
+        })
+        .await;
+        Connection { index, raw, plan }
     }
 }
 
@@ -351,7 +263,7 @@ async fn write_all(mut socket: OwnedWriteHalf, mut outgoing: mpsc::UnboundedRece
 /// [`CONFIRM_WINDOW`] unconfirmed at a time.
 async fn publish_all(
     publisher: usize,
-    queues: Arc<Vec<ShortStr>>,
+    queues: Arc<Vec<String>>,
     frames: mpsc::UnboundedSender<Bytes>,
     mut confirmed: watch::Receiver<u64>,
 ) {
@@ -361,22 +273,9 @@ async fn publish_all(
             .await
             .expect("the reader is running");
         let queue = &queues[(publisher * 7 + seq as usize) % queues.len()];
-        let mut buf = BytesMut::new();
-        let publish = BasicPublish {
-            routing_key: queue.clone(),
-            ..Default::default()
-        };
-        encode_method(PUBLISHING, &publish.into(), &mut buf);
         let body = message_id(publisher as u64, seq).to_be_bytes();
-        encode_content(
-            PUBLISHING,
-            ContentHeader::BASIC_CLASS,
-            &[0, 0],
-            &body,
-            0,
-            &mut buf,
-        );
-        frames.send(buf.freeze()).expect("the writer is running");
+        let publish = publish_frames(PUBLISHING, "", queue, &BasicProperties::default(), &body, 0);
+        frames.send(publish).expect("the writer is running");
     }
 }
 
@@ -591,7 +490,7 @@ impl Checker {
             // Once the answer is in, one multiple-ack settles everything.
             self.probing = true;
             let probe = QueueDeclare {
-                queue: self.plan.queues[0].clone(),
+                queue: short(&self.plan.queues[0]),
                 passive: true,
                 ..Default::default()
             };
@@ -640,9 +539,9 @@ impl Checker {
 
 /// Queues one method for the connection's writer.
 fn send(frames: &mpsc::UnboundedSender<Bytes>, channel: u16, method: Method) {
-    let mut bytes = BytesMut::new();
-    encode_method(channel, &method, &mut bytes);
-    frames.send(bytes.freeze()).expect("the writer is running");
+    frames
+        .send(method_frame(channel, method))
+        .expect("the writer is running");
 }
 
 /// A message's id: its publisher and its sequence number there.
@@ -652,8 +551,4 @@ fn message_id(publisher: u64, seq: u64) -> u64 {
 
 fn consumer_tag(k: usize) -> ShortStr {
     short(&format!("consumer-{k}"))
-}
-
-fn short(s: &str) -> ShortStr {
-    ShortStr::try_from(s).expect("short string")
 }
