@@ -175,7 +175,7 @@ impl Consumer {
         if self.no_ack {
             return Some(Credit {
                 consumer: self,
-                counted: false,
+                give_back_on_drop: false,
             });
         }
         let global = self.channel.global_prefetch.load(Ordering::Relaxed);
@@ -189,7 +189,7 @@ impl Consumer {
         if taken {
             Some(Credit {
                 consumer: self,
-                counted: true,
+                give_back_on_drop: true,
             })
         } else {
             None
@@ -220,20 +220,21 @@ impl Consumer {
 #[must_use = "credit not kept is given back at once"]
 pub struct Credit<'a> {
     consumer: &'a Consumer,
-    counted: bool,
+    /// A unit is counted and no delivery holds it yet.
+    give_back_on_drop: bool,
 }
 
 impl Credit<'_> {
     /// The delivery went out: the credit stays taken until the delivery is
     /// settled ([`Consumer::settled_one`]).
     pub fn keep(mut self) {
-        self.counted = false;
+        self.give_back_on_drop = false;
     }
 }
 
 impl Drop for Credit<'_> {
     fn drop(&mut self) {
-        if self.counted {
+        if self.give_back_on_drop {
             self.consumer.settled_one();
         }
     }
