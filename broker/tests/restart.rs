@@ -7,6 +7,7 @@ use lapin::options::{
 };
 use lapin::types::FieldTable;
 use lapin::{BasicProperties, Connection, ConnectionProperties};
+use leveret_test_macros::both_runtimes;
 
 async fn start(dir: &std::path::Path) -> leveret_broker::BrokerHandle {
     leveret_broker::Broker::builder()
@@ -17,9 +18,12 @@ async fn start(dir: &std::path::Path) -> leveret_broker::BrokerHandle {
         .expect("start on the data directory")
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn shutdown_releases_the_data_directory_for_an_immediate_restart() {
-    let dir = std::env::temp_dir().join(format!("leveret-restart-{}", std::process::id()));
+    // One directory per runtime flavour: both variants run at once.
+    let flavor = tokio::runtime::Handle::current().runtime_flavor();
+    let dir =
+        std::env::temp_dir().join(format!("leveret-restart-{}-{flavor:?}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let durable = QueueDeclareOptions {
         durable: true,

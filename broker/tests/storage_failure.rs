@@ -7,6 +7,7 @@ use lapin::options::{BasicPublishOptions, ConfirmSelectOptions, QueueDeclareOpti
 use lapin::types::FieldTable;
 use lapin::{BasicProperties, Channel, Connection, ConnectionProperties};
 use leveret_broker::store::{KvOp, KvPair, MemoryStore, Store, StoreError, WriteMode};
+use leveret_test_macros::both_runtimes;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -55,7 +56,7 @@ async fn confirmed(channel: &Channel, body: &[u8], delivery_mode: u8) -> bool {
         .is_ack()
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn a_failing_store_nacks_persistent_publishes_and_recovers() {
     let store = Arc::new(FlakyStore::default());
     let handle = leveret_broker::Broker::builder()

@@ -150,9 +150,8 @@ impl Key {
                     .collect();
                 ShortStr::try_from(words.join(".")).unwrap_or_default()
             }
-            Key::Hashes(n) => {
-                ShortStr::try_from(vec!["#"; usize::from(*n % 64) + 1].join(".")).unwrap_or_default()
-            }
+            Key::Hashes(n) => ShortStr::try_from(vec!["#"; usize::from(*n % 64) + 1].join("."))
+                .unwrap_or_default(),
         }
     }
 }
@@ -232,7 +231,8 @@ fn table(arguments: &[Argument]) -> FieldTable {
             Argument::Overflow(n) => (
                 "x-overflow",
                 FieldValue::string(
-                    ["drop-head", "reject-publish", "reject-publish-dlx", "junk"][usize::from(*n) % 4],
+                    ["drop-head", "reject-publish", "reject-publish-dlx", "junk"]
+                        [usize::from(*n) % 4],
                 ),
             ),
             Argument::DeadLetterExchange(name) => (
@@ -253,7 +253,9 @@ fn table(arguments: &[Argument]) -> FieldTable {
             ),
             Argument::Match(n) => (
                 "x-match",
-                FieldValue::string(["all", "any", "all-with-x", "any-with-x", "junk"][usize::from(*n) % 5]),
+                FieldValue::string(
+                    ["all", "any", "all-with-x", "any-with-x", "junk"][usize::from(*n) % 5],
+                ),
             ),
             Argument::Header(k, value) => {
                 table.insert(short(&format!("h{}", k % 4)), value.field());
@@ -512,7 +514,10 @@ impl Peer {
         let (mut read, mut write) = tokio::io::split(broker.connect_in_process());
         write.write_all(PROTOCOL_HEADER).await.ok()?;
         let mut buf = BytesMut::new();
-        expect(&mut read, &mut buf, |m| matches!(m, Method::ConnectionStart(_))).await?;
+        expect(&mut read, &mut buf, |m| {
+            matches!(m, Method::ConnectionStart(_))
+        })
+        .await?;
         let start_ok = ConnectionStartOk {
             client_properties: FieldTable::new(),
             mechanism: ShortStr::from_static("PLAIN"),
@@ -520,7 +525,10 @@ impl Peer {
             locale: ShortStr::from_static("en_US"),
         };
         write.write_all(&method_bytes(0, start_ok)).await.ok()?;
-        expect(&mut read, &mut buf, |m| matches!(m, Method::ConnectionTune(_))).await?;
+        expect(&mut read, &mut buf, |m| {
+            matches!(m, Method::ConnectionTune(_))
+        })
+        .await?;
         let tune_ok = ConnectionTuneOk {
             channel_max: 16,
             frame_max: FRAME_MAX,
@@ -532,7 +540,10 @@ impl Peer {
             ..Default::default()
         };
         write.write_all(&method_bytes(0, open)).await.ok()?;
-        expect(&mut read, &mut buf, |m| matches!(m, Method::ConnectionOpenOk(_))).await?;
+        expect(&mut read, &mut buf, |m| {
+            matches!(m, Method::ConnectionOpenOk(_))
+        })
+        .await?;
         let writer = Arc::new(tokio::sync::Mutex::new(write));
         let seen = Arc::new(Mutex::new(Seen::default()));
         let changed = Arc::new(Notify::new());
@@ -697,7 +708,9 @@ fn encode_op(channel: u16, op: &Op) -> BytesMut {
             arguments,
         } => ExchangeDeclare {
             exchange: name.short(),
-            kind: ShortStr::from_static(["direct", "fanout", "topic", "headers", "x-junk"][usize::from(*kind) % 5]),
+            kind: ShortStr::from_static(
+                ["direct", "fanout", "topic", "headers", "x-junk"][usize::from(*kind) % 5],
+            ),
             passive: bit(*flags, 0),
             durable: bit(*flags, 1),
             auto_delete: bit(*flags, 2),
@@ -986,7 +999,10 @@ async fn play(script: &Script) {
                 continue;
             }
         }
-        if !peer.send(&method_bytes(PROBE_CHANNEL, ChannelOpen::default())).await {
+        if !peer
+            .send(&method_bytes(PROBE_CHANNEL, ChannelOpen::default()))
+            .await
+        {
             continue;
         }
         peer.wait_for("channel.open", |seen| seen.opened.contains(&PROBE_CHANNEL))
@@ -996,9 +1012,11 @@ async fn play(script: &Script) {
     let newcomer = Peer::connect(&broker)
         .await
         .expect("a new connection completes its handshake after the script");
-    assert!(newcomer
-        .send(&method_bytes(PROBE_CHANNEL, ChannelOpen::default()))
-        .await);
+    assert!(
+        newcomer
+            .send(&method_bytes(PROBE_CHANNEL, ChannelOpen::default()))
+            .await
+    );
     let declare = QueueDeclare {
         exclusive: true,
         ..Default::default()

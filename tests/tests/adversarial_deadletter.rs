@@ -95,7 +95,7 @@ async fn second_connection_is_served(b: &TestBroker) {
     tmo!(conn.close(200, "bye")).expect("connection.close");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn max_length_zero_dead_lettering_to_itself_drops_the_message() {
     let b = broker().await;
     let (conn, ch) = lp::open(&b).await;
@@ -136,7 +136,7 @@ async fn self_cycle_with_witness(
     (q, watch(ch, &witness).await)
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn ttl_zero_dead_lettering_to_itself_drops_the_message() {
     let b = broker().await;
     let (conn, ch) = lp::open(&b).await;
@@ -158,7 +158,7 @@ async fn ttl_zero_dead_lettering_to_itself_drops_the_message() {
     b.stop().await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn max_length_zero_cycle_with_a_witness_dead_letters_once() {
     let b = broker().await;
     let (conn, ch) = lp::open(&b).await;
@@ -178,7 +178,7 @@ async fn max_length_zero_cycle_with_a_witness_dead_letters_once() {
     b.stop().await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn cycle_through_two_queues_and_two_exchanges_is_broken() {
     let b = broker().await;
     let (conn, ch) = lp::open(&b).await;
@@ -238,7 +238,7 @@ async fn cycle_through_two_queues_and_two_exchanges_is_broken() {
     b.stop().await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn cycle_with_a_reject_in_it_continues_and_counts_deaths() {
     let b = broker().await;
     let (conn, ch) = lp::open(&b).await;

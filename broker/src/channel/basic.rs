@@ -248,7 +248,7 @@ impl Channel {
         });
         let replied = queues.is_empty()
             && super::reply_to::is_reply_address(&message.exchange, &message.routing_key)
-            && self.deliver_reply(&message).await;
+            && self.deliver_reply(&message);
         if queues.is_empty() && !replied && publish.method.mandatory {
             self.outbox()
                 .send(Outbound::Return {

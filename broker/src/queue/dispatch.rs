@@ -215,6 +215,10 @@ impl Queue {
                 full.push(index);
                 continue;
             };
+            let Some(credit) = consumer.try_take_credit() else {
+                full.push(index);
+                continue;
+            };
             st.cursor = (index + 1) % count;
             let Some(queued) = self.pop_live(st, now, dead) else {
                 return;
@@ -223,7 +227,7 @@ impl Queue {
                 self.release(&queued);
             } else {
                 self.log_delivery(st, &queued);
-                consumer.took_one();
+                credit.keep();
             }
             // The tag is handed out and the delivery enters the outbox in
             // one step under the channel's delivery lock: whichever thread
