@@ -22,8 +22,9 @@
 //! - `connection`: handshake, the reader loop, heartbeats, closing; `connection::writer` owns the socket's write half.
 //! - `channel`: content assembly and one module per AMQP class (`basic`, `queue`, `exchange`, `tx`).
 //! - `core`: state shared by all connections (vhosts, users, limits, memory gauge, shutdown).
-//! - `vhost`: exchanges and queues of a vhost, declare/delete/bind, routing.
-//! - `exchange`: exchange kinds and bindings (`topic` trie, `headers` match).
+//! - `vhost`: exchanges and queues of a vhost, declare/delete/bind.
+//! - `routing`: a published message's way through exchanges to the queues it reaches.
+//! - `exchange`: exchange kinds and bindings (`topic` trie, `headers` match, the binding registry).
 //! - `queue`: FIFO, consumers, round-robin dispatch, TTL, max-length, dead-lettering (`deadletter`).
 //! - `consumer`: consumers, delivery tags, unacked bookkeeping, prefetch credit.
 //! - `outbox`: what the core sends to a connection's writer, with backpressure.
@@ -45,6 +46,7 @@ mod message;
 mod outbox;
 mod queue;
 mod recovery;
+mod routing;
 mod server;
 pub mod store;
 mod vhost;
