@@ -40,6 +40,10 @@ mod core;
 mod deadletter;
 mod embed;
 mod error;
+#[cfg(feature = "bench-internals")]
+#[doc(hidden)]
+pub mod exchange;
+#[cfg(not(feature = "bench-internals"))]
 mod exchange;
 mod memory;
 mod message;

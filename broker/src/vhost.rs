@@ -23,7 +23,7 @@ use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 
 /// Most bindings removed in one step when a queue or an exchange is
 /// deleted; a deletion with more yields between steps.
-const UNBIND_STEP: usize = 1024;
+const UNBIND_STEP: usize = 256;
 
 /// One virtual host.
 #[derive(Debug)]

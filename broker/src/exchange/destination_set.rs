@@ -1,12 +1,13 @@
 //! A set of destinations with a count per destination: the slot of an
 //! exchange's index (a direct key, a topic trie node, a fanout's bindings)
 //! where several bindings may lead to the same destination. Adding and
-//! removing cost O(1) whatever the size: small sets are a vector scanned
-//! in place, and once a set outgrows [`SCAN_LIMIT`] it keeps a hash index
-//! of positions beside the vector. Routing walks the vector.
+//! removing cost O(log n) at worst: small sets are a vector scanned in
+//! place, and once a set outgrows [`SCAN_LIMIT`] it keeps a B-tree of
+//! positions beside the vector (a B-tree rather than a hash map, which
+//! would rehash everything when it grows). Routing walks the vector.
 
 use super::{Destination, DestinationId};
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 
 /// Entries scanned linearly before a set builds its position index.
 const SCAN_LIMIT: usize = 16;
@@ -23,7 +24,7 @@ struct Entry {
 pub(super) struct DestinationSet {
     entries: Vec<Entry>,
     /// Position in `entries` by destination, once the set is large.
-    positions: Option<HashMap<DestinationId, usize>>,
+    positions: Option<BTreeMap<DestinationId, usize>>,
 }
 
 impl DestinationSet {

@@ -4,11 +4,11 @@
 //!
 //! Every operation costs what its inputs' sizes say: adding or removing a
 //! binding updates the kind's index in place (a direct key's destinations,
-//! a topic trie path, a fanout's destination set) in O(1) or O(pattern
-//! length); routing is a hash probe (direct), one pass over the
-//! destinations (fanout), an automaton walk linear in words × pattern
-//! segments (`topic`), or one lookup per binding argument against headers
-//! indexed once (`headers`).
+//! a topic trie path, the fanout's destination set) in O(log n) at worst;
+//! routing is one lookup (direct), one pass over the destinations
+//! (fanout), an automaton walk linear in words × pattern segments
+//! (`topic`), or one lookup per binding argument against headers indexed
+//! once (`headers`).
 //!
 //! Bindings sit behind a `std::sync::RwLock` per exchange: routing takes
 //! the read lock for one lookup, binding changes the write lock for one
@@ -25,7 +25,7 @@ use bytes::{Bytes, BytesMut};
 use destination_set::DestinationSet;
 use headers::{HeadersPattern, MessageHeaders};
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
-use std::collections::HashMap;
+use std::collections::{btree_map, BTreeMap};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use topic::TopicTrie;
@@ -119,9 +119,9 @@ pub struct Binding {
 }
 
 /// What tells apart two bindings between the same two ends: the binding
-/// key and the arguments (compared in their wire form, so that hashing
+/// key and the arguments (compared in their wire form, so that comparing
 /// them costs their size once).
-#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
 struct BindingKey {
     routing_key: ShortStr,
     arguments: Bytes,
@@ -141,6 +141,39 @@ impl BindingKey {
             arguments,
         }
     }
+
+    /// The key that sorts before every other.
+    fn lowest() -> Self {
+        BindingKey {
+            routing_key: ShortStr::default(),
+            arguments: Bytes::new(),
+        }
+    }
+}
+
+/// A binding's place among its exchange's bindings: by destination first,
+/// so that the bindings to one destination are one range.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
+struct BindingId {
+    destination: DestinationId,
+    key: BindingKey,
+}
+
+impl BindingId {
+    fn of(binding: &Binding) -> Self {
+        BindingId {
+            destination: binding.destination.id(),
+            key: BindingKey::of(binding),
+        }
+    }
+
+    /// Where the bindings to `destination` start.
+    fn first_to(destination: DestinationId) -> Self {
+        BindingId {
+            destination,
+            key: BindingKey::lowest(),
+        }
+    }
 }
 
 /// A binding and, on a headers exchange, its compiled arguments.
@@ -150,175 +183,130 @@ struct Bound {
     pattern: Option<HeadersPattern>,
 }
 
-/// The bindings from one exchange to one destination.
-#[derive(Debug)]
-struct Group {
-    destination: Destination,
-    bindings: HashMap<BindingKey, Bound>,
-}
-
 /// The index a kind routes with.
 #[derive(Debug)]
 enum RouteIndex {
     /// Destinations by binding key.
-    Direct(HashMap<ShortStr, DestinationSet>),
-    /// Fanout routes to every group's destination: nothing more to index.
-    Fanout,
+    Direct(BTreeMap<ShortStr, DestinationSet>),
+    /// Every destination.
+    Fanout(DestinationSet),
     /// Binding keys as a trie.
     Topic(TopicTrie),
     /// Headers bindings are matched one by one with their compiled patterns.
     Headers,
 }
 
+impl RouteIndex {
+    fn add(&mut self, binding: &Binding) {
+        match self {
+            RouteIndex::Direct(keys) => keys
+                .entry(binding.routing_key.clone())
+                .or_default()
+                .add(&binding.destination),
+            RouteIndex::Fanout(all) => all.add(&binding.destination),
+            RouteIndex::Topic(trie) => {
+                trie.add(binding.routing_key.as_bytes(), &binding.destination)
+            }
+            RouteIndex::Headers => {}
+        }
+    }
+
+    fn remove(&mut self, binding: &Binding) {
+        match self {
+            RouteIndex::Direct(keys) => {
+                if let Some(set) = keys.get_mut(&binding.routing_key) {
+                    set.remove(&binding.destination);
+                    if set.is_empty() {
+                        keys.remove(&binding.routing_key);
+                    }
+                }
+            }
+            RouteIndex::Fanout(all) => {
+                all.remove(&binding.destination);
+            }
+            RouteIndex::Topic(trie) => {
+                trie.remove(binding.routing_key.as_bytes(), &binding.destination);
+            }
+            RouteIndex::Headers => {}
+        }
+    }
+}
+
+/// An exchange's bindings and its routing index, kept in step. Both are
+/// B-trees (or a trie of them): every change costs O(log n) at worst, as
+/// no change ever rebuilds a whole table the way a growing hash map does.
 #[derive(Debug)]
 struct Routes {
-    /// Every binding, grouped by destination.
-    groups: HashMap<DestinationId, Group>,
-    /// How many bindings `groups` holds.
-    count: usize,
+    bindings: BTreeMap<BindingId, Bound>,
     index: RouteIndex,
 }
 
 impl Routes {
     fn new(kind: ExchangeKind) -> Self {
         let index = match kind {
-            ExchangeKind::Direct => RouteIndex::Direct(HashMap::new()),
-            ExchangeKind::Fanout => RouteIndex::Fanout,
+            ExchangeKind::Direct => RouteIndex::Direct(BTreeMap::new()),
+            ExchangeKind::Fanout => RouteIndex::Fanout(DestinationSet::default()),
             ExchangeKind::Topic => RouteIndex::Topic(TopicTrie::default()),
             ExchangeKind::Headers => RouteIndex::Headers,
         };
         Routes {
-            groups: HashMap::new(),
-            count: 0,
+            bindings: BTreeMap::new(),
             index,
         }
     }
 
-    fn index(&mut self, binding: &Binding) {
-        match &mut self.index {
-            RouteIndex::Direct(keys) => keys
-                .entry(binding.routing_key.clone())
-                .or_default()
-                .add(&binding.destination),
-            RouteIndex::Topic(trie) => {
-                trie.add(binding.routing_key.as_bytes(), &binding.destination)
-            }
-            RouteIndex::Fanout | RouteIndex::Headers => {}
-        }
-    }
-
-    fn unindex(&mut self, binding: &Binding) {
-        match &mut self.index {
-            RouteIndex::Direct(keys) => {
-                if let Some(set) = keys.get_mut(&binding.routing_key) {
-                    set.remove(&binding.destination);
-                    if set.is_empty() {
-                        keys.remove(&binding.routing_key);
-                        shrink_when_sparse(keys);
-                    }
-                }
-            }
-            RouteIndex::Topic(trie) => {
-                trie.remove(binding.routing_key.as_bytes(), &binding.destination);
-            }
-            RouteIndex::Fanout | RouteIndex::Headers => {}
-        }
-    }
-
     fn insert(&mut self, binding: Binding, headers: bool) -> bool {
-        let key = BindingKey::of(&binding);
-        let group = self
-            .groups
-            .entry(binding.destination.id())
-            .or_insert_with(|| Group {
-                destination: binding.destination.clone(),
-                bindings: HashMap::new(),
-            });
-        if group.bindings.contains_key(&key) {
+        let btree_map::Entry::Vacant(slot) = self.bindings.entry(BindingId::of(&binding)) else {
             return false;
-        }
-        self.index(&binding);
+        };
+        self.index.add(&binding);
         let pattern = headers.then(|| HeadersPattern::new(&binding.arguments));
-        let group = self
-            .groups
-            .get_mut(&binding.destination.id())
-            .expect("group added above");
-        group.bindings.insert(key, Bound { binding, pattern });
-        self.count += 1;
+        slot.insert(Bound { binding, pattern });
         true
     }
 
     fn remove(&mut self, binding: &Binding) -> bool {
-        let id = binding.destination.id();
-        let Some(group) = self.groups.get_mut(&id) else {
-            return false;
-        };
-        let Some(removed) = group.bindings.remove(&BindingKey::of(binding)) else {
-            return false;
-        };
-        if group.bindings.is_empty() {
-            self.groups.remove(&id);
-            shrink_when_sparse(&mut self.groups);
+        match self.bindings.remove(&BindingId::of(binding)) {
+            Some(removed) => {
+                self.index.remove(&removed.binding);
+                true
+            }
+            None => false,
         }
-        self.count -= 1;
-        self.unindex(&removed.binding);
-        true
+    }
+
+    /// The bindings to `destination`, in order.
+    fn to(&self, destination: DestinationId) -> impl Iterator<Item = (&BindingId, &Bound)> {
+        self.bindings
+            .range(BindingId::first_to(destination)..)
+            .take_while(move |(id, _)| id.destination == destination)
     }
 
     /// Removes up to `limit` bindings to `destination`; returns how many.
     fn remove_to(&mut self, destination: &Destination, limit: usize) -> usize {
-        let id = destination.id();
-        let Some(group) = self.groups.get_mut(&id) else {
-            return 0;
-        };
-        let removed: Vec<Bound> = if group.bindings.len() <= limit {
-            let all = std::mem::take(&mut group.bindings);
-            self.groups.remove(&id);
-            shrink_when_sparse(&mut self.groups);
-            all.into_values().collect()
-        } else {
-            let keys: Vec<BindingKey> = group.bindings.keys().take(limit).cloned().collect();
-            keys.iter()
-                .filter_map(|key| group.bindings.remove(key))
-                .collect()
-        };
-        self.count -= removed.len();
-        for bound in &removed {
-            self.unindex(&bound.binding);
-        }
-        removed.len()
+        let ids: Vec<BindingId> = self
+            .to(destination.id())
+            .take(limit)
+            .map(|(id, _)| id.clone())
+            .collect();
+        self.remove_ids(&ids).len()
     }
 
     /// Removes up to `limit` bindings, whatever their destination.
     fn remove_some(&mut self, limit: usize) -> Vec<Binding> {
-        let mut removed = Vec::new();
-        while removed.len() < limit {
-            let Some(destination) = self.groups.values().next().map(|g| g.destination.clone())
-            else {
-                break;
-            };
-            let group = &self.groups[&destination.id()];
-            let take = group.bindings.len().min(limit - removed.len());
-            let bindings: Vec<Binding> = group
-                .bindings
-                .values()
-                .take(take)
-                .map(|b| b.binding.clone())
-                .collect();
-            for binding in bindings {
-                self.remove(&binding);
-                removed.push(binding);
+        let ids: Vec<BindingId> = self.bindings.keys().take(limit).cloned().collect();
+        self.remove_ids(&ids)
+    }
+
+    fn remove_ids(&mut self, ids: &[BindingId]) -> Vec<Binding> {
+        let mut removed = Vec::with_capacity(ids.len());
+        for id in ids {
+            if let Some(bound) = self.bindings.remove(id) {
+                self.index.remove(&bound.binding);
+                removed.push(bound.binding);
             }
         }
         removed
-    }
-}
-
-/// Gives memory back once a map is mostly empty (amortised O(1) per
-/// removal), so that iterating it stays proportional to what it holds.
-fn shrink_when_sparse<K: std::hash::Hash + Eq, V>(map: &mut HashMap<K, V>) {
-    if map.capacity() > 64 && map.len() * 4 < map.capacity() {
-        map.shrink_to(map.len() * 2);
     }
 }
 
@@ -380,7 +368,7 @@ impl Exchange {
 
     /// Whether any binding has this exchange as its source.
     pub fn has_bindings(&self) -> bool {
-        self.read().count > 0
+        !self.read().bindings.is_empty()
     }
 
     /// Marks the exchange deleted: from now on it routes nothing.
@@ -411,16 +399,17 @@ impl Exchange {
 
     /// Calls `found` for each of its bindings to `destination`.
     fn for_each_binding_to(&self, destination: &Destination, mut found: impl FnMut(&Binding)) {
-        if let Some(group) = self.read().groups.get(&destination.id()) {
-            group.bindings.values().for_each(|b| found(&b.binding));
-        }
+        self.read()
+            .to(destination.id())
+            .for_each(|(_, bound)| found(&bound.binding));
     }
 
     /// Calls `found` for each of its bindings.
     pub fn for_each_binding(&self, mut found: impl FnMut(&Binding)) {
-        for group in self.read().groups.values() {
-            group.bindings.values().for_each(|b| found(&b.binding));
-        }
+        self.read()
+            .bindings
+            .values()
+            .for_each(|bound| found(&bound.binding));
     }
 
     /// Calls `found` for each destination a message with this routing key
@@ -441,21 +430,24 @@ impl Exchange {
                     set.iter().for_each(found);
                 }
             }
-            RouteIndex::Fanout => routes.groups.values().for_each(|g| found(&g.destination)),
+            RouteIndex::Fanout(all) => all.iter().for_each(found),
             RouteIndex::Topic(trie) => trie.route(routing_key.as_bytes(), found),
             RouteIndex::Headers => {
-                if routes.groups.is_empty() {
+                if routes.bindings.is_empty() {
                     return;
                 }
                 let headers = MessageHeaders::new(headers);
-                for group in routes.groups.values() {
-                    let matched = group
-                        .bindings
-                        .values()
-                        .filter_map(|b| b.pattern.as_ref())
-                        .any(|pattern| pattern.matches(&headers));
-                    if matched {
-                        found(&group.destination);
+                // Bindings come grouped by destination: once one of a
+                // destination's matches, the rest of its group is skipped.
+                let mut matched: Option<DestinationId> = None;
+                for (id, bound) in &routes.bindings {
+                    if matched == Some(id.destination) {
+                        continue;
+                    }
+                    let pattern = bound.pattern.as_ref();
+                    if pattern.is_some_and(|pattern| pattern.matches(&headers)) {
+                        matched = Some(id.destination);
+                        found(&bound.binding.destination);
                     }
                 }
             }

@@ -5,16 +5,18 @@
 //! visits only its own bindings, never every exchange of the vhost.
 //!
 //! Every binding is added and removed through the registry, which keeps
-//! both sides in step; each change costs O(1) (plus the binding's own size
-//! for hashing its arguments and indexing its key). Removing all the
-//! bindings of a deleted queue or exchange goes in steps of a bounded
-//! number of bindings, so that the caller can yield between steps.
+//! both sides in step; each change costs O(log n) at worst (plus the
+//! binding's own size, to compare its arguments and index its key): the
+//! reverse index is a B-tree, which never rebuilds itself whole as a
+//! growing hash map does. Removing all the bindings of a deleted queue or
+//! exchange goes in steps of a bounded number of bindings, so that the
+//! caller can yield between steps.
 //!
 //! The vhost holds the registry behind a mutex, taken before any
 //! exchange's routing lock; it uses exchanges and destinations only.
 
 use super::{Binding, Destination, DestinationId, Exchange};
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 /// An exchange with bindings to a destination, and how many.
@@ -24,17 +26,15 @@ struct Source {
     bindings: usize,
 }
 
-/// The exchanges with bindings to one destination, by exchange.
-type Sources = HashMap<DestinationId, Source>;
-
 /// Every binding of a vhost, indexed from both ends.
 ///
-/// A destination has an entry only while some exchange holds a binding to
-/// it, and so holds the destination itself: its id cannot be reused by
-/// another object while indexed.
+/// A (destination, source) pair has an entry only while the source holds
+/// a binding to the destination, and so holds the destination itself: its
+/// id cannot be reused by another object while indexed.
 #[derive(Debug, Default)]
 pub struct BindingRegistry {
-    sources: HashMap<DestinationId, Sources>,
+    /// By (destination, source exchange).
+    sources: BTreeMap<(DestinationId, DestinationId), Source>,
 }
 
 impl BindingRegistry {
@@ -45,9 +45,7 @@ impl BindingRegistry {
             return false;
         }
         self.sources
-            .entry(destination)
-            .or_default()
-            .entry(DestinationId::of(source))
+            .entry((destination, DestinationId::of(source)))
             .or_insert_with(|| Source {
                 exchange: Arc::clone(source),
                 bindings: 0,
@@ -61,31 +59,34 @@ impl BindingRegistry {
         if !source.remove(binding) {
             return false;
         }
-        self.forget(&binding.destination, source, 1);
+        self.forget(binding.destination.id(), source, 1);
         true
     }
 
     /// Takes `removed` bindings from `source` off `destination`'s count.
-    fn forget(&mut self, destination: &Destination, source: &Arc<Exchange>, removed: usize) {
-        let id = destination.id();
-        let Some(sources) = self.sources.get_mut(&id) else {
-            return;
-        };
-        let source_id = DestinationId::of(source);
-        if let Some(entry) = sources.get_mut(&source_id) {
+    fn forget(&mut self, destination: DestinationId, source: &Arc<Exchange>, removed: usize) {
+        let key = (destination, DestinationId::of(source));
+        if let Some(entry) = self.sources.get_mut(&key) {
             entry.bindings = entry.bindings.saturating_sub(removed);
             if entry.bindings == 0 {
-                sources.remove(&source_id);
+                self.sources.remove(&key);
             }
         }
-        if sources.is_empty() {
-            self.sources.remove(&id);
-        }
+    }
+
+    /// The sources of bindings to `destination`.
+    fn sources_of(
+        &self,
+        destination: DestinationId,
+    ) -> impl Iterator<Item = (&(DestinationId, DestinationId), &Source)> {
+        self.sources
+            .range((destination, DestinationId(0))..)
+            .take_while(move |((to, _), _)| *to == destination)
     }
 
     /// Whether any binding leads to `destination`.
     pub fn is_destination(&self, destination: &Destination) -> bool {
-        self.sources.contains_key(&destination.id())
+        self.sources_of(destination.id()).next().is_some()
     }
 
     /// Calls `found` with each binding to `destination` and its source.
@@ -94,10 +95,7 @@ impl BindingRegistry {
         destination: &Destination,
         mut found: impl FnMut(&Exchange, &Binding),
     ) {
-        let Some(sources) = self.sources.get(&destination.id()) else {
-            return;
-        };
-        for source in sources.values() {
+        for (_, source) in self.sources_of(destination.id()) {
             let exchange = &source.exchange;
             exchange.for_each_binding_to(destination, |binding| found(exchange, binding));
         }
@@ -112,32 +110,22 @@ impl BindingRegistry {
         budget: &mut usize,
         touched: &mut Vec<Arc<Exchange>>,
     ) -> bool {
-        let id = destination.id();
         while *budget > 0 {
-            let Some(sources) = self.sources.get_mut(&id) else {
+            let Some((&key, source)) = self.sources_of(destination.id()).next() else {
                 return true;
             };
-            let Some((&source_id, source)) = sources.iter_mut().next() else {
-                self.sources.remove(&id);
-                return true;
-            };
-            let removed = source
-                .exchange
-                .remove_bindings_to(destination, *budget)
-                .min(source.bindings);
+            let exchange = Arc::clone(&source.exchange);
+            let removed = exchange.remove_bindings_to(destination, *budget);
             *budget -= removed;
-            source.bindings -= removed;
-            touched.push(Arc::clone(&source.exchange));
+            let entry = self.sources.get_mut(&key).expect("found above");
+            entry.bindings = entry.bindings.saturating_sub(removed);
             // A count ahead of the exchange (nothing removed) is dropped too.
-            if source.bindings == 0 || removed == 0 {
-                sources.remove(&source_id);
+            if entry.bindings == 0 || removed == 0 {
+                self.sources.remove(&key);
             }
-            if sources.is_empty() {
-                self.sources.remove(&id);
-                return true;
-            }
+            touched.push(exchange);
         }
-        !self.sources.contains_key(&id)
+        !self.is_destination(destination)
     }
 
     /// Removes bindings from `source`, at most `budget` of them (the
@@ -147,7 +135,7 @@ impl BindingRegistry {
             let removed = source.remove_some_bindings(*budget);
             *budget -= removed.len();
             for binding in &removed {
-                self.forget(&binding.destination, source, 1);
+                self.forget(binding.destination.id(), source, 1);
             }
         }
         !source.has_bindings()
@@ -255,7 +243,7 @@ mod tests {
         for i in 0..n {
             assert!(registry.bind(&x, binding(&d[0], &i.to_string(), FieldTable::new())));
         }
-        assert_eq!(x.read().count, n);
+        assert_eq!(x.read().bindings.len(), n);
         for i in 0..n {
             assert!(registry.unbind(&x, &binding(&d[0], &i.to_string(), FieldTable::new())));
         }

@@ -5,13 +5,15 @@
 //! pattern is added (`#.#` routes as `#`), and a routing key is matched by
 //! walking the trie as an automaton over a deduplicated set of nodes, one
 //! step per word, never backtracking. A routing key of `w` words costs
-//! O(w × the trie nodes it can be at once), which for one pattern of `s`
-//! segments is O(w × s). Adding or removing a pattern costs O(its length).
-//! Nodes live in an arena and are pruned when their last pattern goes.
+//! O(w × the trie nodes it can be at at once), which for one pattern of
+//! `s` segments is O(w × s). Adding or removing a pattern costs O(its
+//! segments × log of the fan-out); a node's words are a B-tree, so no
+//! change ever rebuilds a whole table. Nodes are pruned when their last
+//! pattern goes.
 
 use super::destination_set::DestinationSet;
 use super::Destination;
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 
 /// Words of a routing or binding key: the empty key has none, otherwise
 /// every dot separates two (possibly empty) words.
@@ -46,15 +48,11 @@ fn segments(pattern: &[u8]) -> impl Iterator<Item = Segment<'_>> {
         })
 }
 
-type NodeId = usize;
-
-const ROOT: NodeId = 0;
-
 #[derive(Debug, Default)]
 struct Node {
-    words: HashMap<Box<[u8]>, NodeId>,
-    star: Option<NodeId>,
-    hash: Option<NodeId>,
+    words: BTreeMap<Box<[u8]>, Box<Node>>,
+    star: Option<Box<Node>>,
+    hash: Option<Box<Node>>,
     /// Reached through a `#` edge: the node stays matched on any word.
     loops: bool,
     destinations: DestinationSet,
@@ -67,156 +65,124 @@ impl Node {
             && self.hash.is_none()
             && self.destinations.is_empty()
     }
+
+    fn child_mut(&mut self, segment: Segment<'_>) -> Option<&mut Node> {
+        match segment {
+            Segment::Word(word) => self.words.get_mut(word),
+            Segment::Star => self.star.as_mut(),
+            Segment::Hash => self.hash.as_mut(),
+        }
+        .map(|child| &mut **child)
+    }
+
+    fn child_or_new(&mut self, segment: Segment<'_>) -> &mut Node {
+        match segment {
+            Segment::Word(word) => self.words.entry(word.into()).or_default(),
+            Segment::Star => self.star.get_or_insert_with(Box::default),
+            Segment::Hash => self.hash.get_or_insert_with(|| {
+                Box::new(Node {
+                    loops: true,
+                    ..Node::default()
+                })
+            }),
+        }
+    }
+
+    fn detach(&mut self, segment: Segment<'_>) {
+        match segment {
+            Segment::Word(word) => {
+                self.words.remove(word);
+            }
+            Segment::Star => self.star = None,
+            Segment::Hash => self.hash = None,
+        }
+    }
+
+    /// Removes one binding to `destination` at the end of `path`, pruning
+    /// the nodes it leaves unused; false if there was none.
+    fn remove(&mut self, path: &[Segment<'_>], destination: &Destination) -> bool {
+        let Some((&first, rest)) = path.split_first() else {
+            return self.destinations.remove(destination);
+        };
+        let Some(child) = self.child_mut(first) else {
+            return false;
+        };
+        let removed = child.remove(rest, destination);
+        if removed && child.is_unused() {
+            self.detach(first);
+        }
+        removed
+    }
 }
 
 /// The bindings of one topic exchange.
-#[derive(Debug)]
+#[derive(Debug, Default)]
 pub(super) struct TopicTrie {
-    nodes: Vec<Node>,
-    /// Arena slots of pruned nodes, reused before the arena grows.
-    free: Vec<NodeId>,
-}
-
-impl Default for TopicTrie {
-    fn default() -> Self {
-        TopicTrie {
-            nodes: vec![Node::default()],
-            free: Vec::new(),
-        }
-    }
+    root: Node,
 }
 
 impl TopicTrie {
-    /// The child of `node` along `segment`, if any.
-    fn child(&self, node: NodeId, segment: Segment<'_>) -> Option<NodeId> {
-        let node = &self.nodes[node];
-        match segment {
-            Segment::Word(word) => node.words.get(word).copied(),
-            Segment::Star => node.star,
-            Segment::Hash => node.hash,
-        }
-    }
-
-    fn new_node(&mut self, loops: bool) -> NodeId {
-        let node = Node {
-            loops,
-            ..Node::default()
-        };
-        match self.free.pop() {
-            Some(id) => {
-                self.nodes[id] = node;
-                id
-            }
-            None => {
-                self.nodes.push(node);
-                self.nodes.len() - 1
-            }
-        }
-    }
-
     /// Counts a binding with key `pattern` to `destination`.
     pub(super) fn add(&mut self, pattern: &[u8], destination: &Destination) {
-        let mut at = ROOT;
+        let mut at = &mut self.root;
         for segment in segments(pattern) {
-            at = match self.child(at, segment) {
-                Some(next) => next,
-                None => {
-                    let next = self.new_node(segment == Segment::Hash);
-                    let node = &mut self.nodes[at];
-                    match segment {
-                        Segment::Word(word) => {
-                            node.words.insert(word.into(), next);
-                        }
-                        Segment::Star => node.star = Some(next),
-                        Segment::Hash => node.hash = Some(next),
-                    }
-                    next
-                }
-            };
+            at = at.child_or_new(segment);
         }
-        self.nodes[at].destinations.add(destination);
+        at.destinations.add(destination);
     }
 
     /// Removes one binding with key `pattern` to `destination`, pruning
     /// the nodes it leaves unused; false if there was none.
     pub(super) fn remove(&mut self, pattern: &[u8], destination: &Destination) -> bool {
-        let mut path: Vec<(NodeId, Segment<'_>)> = Vec::new();
-        let mut at = ROOT;
-        for segment in segments(pattern) {
-            let Some(next) = self.child(at, segment) else {
-                return false;
-            };
-            path.push((at, segment));
-            at = next;
-        }
-        if !self.nodes[at].destinations.remove(destination) {
-            return false;
-        }
-        while let Some((parent, segment)) = path.pop() {
-            if !self.nodes[at].is_unused() {
-                break;
-            }
-            let node = &mut self.nodes[parent];
-            match segment {
-                Segment::Word(word) => {
-                    node.words.remove(word);
-                }
-                Segment::Star => node.star = None,
-                Segment::Hash => node.hash = None,
-            }
-            self.nodes[at] = Node::default();
-            self.free.push(at);
-            at = parent;
-        }
-        true
+        let path: Vec<Segment<'_>> = segments(pattern).collect();
+        self.root.remove(&path, destination)
     }
 
     /// Adds to `states` the nodes reachable from them through `#` edges
     /// (a `#` matching no word), then sorts and deduplicates them.
-    fn close(&self, states: &mut Vec<NodeId>) {
+    fn close(states: &mut Vec<&Node>) {
         let mut i = 0;
         while i < states.len() {
-            if let Some(hash) = self.nodes[states[i]].hash {
+            if let Some(hash) = &states[i].hash {
                 states.push(hash);
             }
             i += 1;
         }
-        states.sort_unstable();
-        states.dedup();
+        states.sort_unstable_by_key(|node| std::ptr::from_ref::<Node>(node) as usize);
+        states.dedup_by(|a, b| std::ptr::eq(*a, *b));
     }
 
     /// Calls `found` for each destination whose binding key matches
     /// `routing_key` (a destination bound by several matching patterns
     /// comes once per pattern).
     pub(super) fn route(&self, routing_key: &[u8], mut found: impl FnMut(&Destination)) {
-        let mut states = vec![ROOT];
-        self.close(&mut states);
+        let mut states = vec![&self.root];
+        Self::close(&mut states);
         let mut next = Vec::new();
         for word in words(routing_key) {
             next.clear();
-            for &id in &states {
-                let node = &self.nodes[id];
-                next.extend(node.words.get(word).copied());
-                next.extend(node.star);
+            for node in &states {
+                next.extend(node.words.get(word).map(|child| &**child));
+                next.extend(node.star.as_deref());
                 if node.loops {
-                    next.push(id);
+                    next.push(*node);
                 }
             }
-            self.close(&mut next);
+            Self::close(&mut next);
             std::mem::swap(&mut states, &mut next);
             if states.is_empty() {
                 return;
             }
         }
-        for id in states {
-            self.nodes[id].destinations.iter().for_each(&mut found);
+        for node in states {
+            node.destinations.iter().for_each(&mut found);
         }
     }
 
     /// Whether the trie holds nothing but its root (every pattern removed).
     #[cfg(test)]
     fn is_pruned(&self) -> bool {
-        self.nodes[ROOT].is_unused() && self.free.len() == self.nodes.len() - 1
+        self.root.is_unused()
     }
 }
 
@@ -332,7 +298,7 @@ mod tests {
     }
 
     #[test]
-    fn removing_patterns_prunes_and_reuses_nodes() {
+    fn removing_patterns_prunes_every_node() {
         let dests = destinations(3);
         let mut trie = TopicTrie::default();
         for round in 0..3 {
@@ -342,13 +308,17 @@ mod tests {
             }
             assert_eq!(matched(&trie, "a.b").len(), 3);
             assert_eq!(matched(&trie, "a.x.1.y.z"), vec![dests[1].id()]);
+            assert!(!trie.remove(b"a.*.9.#", &dests[0]), "no such pattern");
+            assert!(
+                !trie.remove(b"a.b", &destinations(1)[0]),
+                "no such destination"
+            );
             for (i, d) in dests.iter().enumerate() {
                 assert!(trie.remove(format!("a.*.{i}.#").as_bytes(), d));
                 assert!(trie.remove(b"a.b", d));
             }
             assert!(trie.is_pruned(), "round {round}");
         }
-        assert_eq!(trie.nodes.len(), 10, "slots reused, not grown");
     }
 
     /// Patterns and keys from a small alphabet with `*`, `#` and empty
