@@ -41,8 +41,9 @@
 //!    limits, the memory gauge, the store handle, the shutdown signal,
 //!    connection.start's server properties). Uses vhosts and below.
 //! 4. **Vhost and exchanges**: `vhost` (declare, delete, bind, route),
-//!    `exchange` (the kinds and their bindings: the `topic` trie,
-//!    `headers` matching), `deadletter` (routing the dead letters queue
+//!    `routing` (a published message's way through exchanges to the
+//!    queues it reaches), `exchange` (the kinds and their bindings: the
+//!    `topic` trie, `headers` matching, the binding registry), `deadletter` (routing the dead letters queue
 //!    operations return: a work list with RabbitMQ's cycle rule and a
 //!    budget). Use queues and below.
 //! 5. **Queue**: `queue` (the FIFO, dispatch to consumers, TTL,
@@ -72,12 +73,17 @@ mod core;
 mod deadletter;
 mod embed;
 mod error;
+#[cfg(feature = "bench-internals")]
+#[doc(hidden)]
+pub mod exchange;
+#[cfg(not(feature = "bench-internals"))]
 mod exchange;
 mod memory;
 mod message;
 mod outbox;
 mod queue;
 mod recovery;
+mod routing;
 mod server;
 pub mod store;
 #[cfg(test)]
