@@ -44,7 +44,7 @@ impl Channel {
         };
         let (queue, _created) = self.vhost.declare_queue(decl, connection_id)?;
         self.last_queue = Some(queue.name.clone());
-        if queue.options.durable {
+        if queue.store_id().is_some() {
             self.definitions_on_disk().await?;
         }
         // The count leaves out messages that have expired.
@@ -87,7 +87,7 @@ impl Channel {
             bind.arguments,
             BindingChange::Bind,
         )?;
-        if queue.options.durable && self.exchange_is_durable(&bind.exchange) {
+        if queue.store_id().is_some() && self.exchange_is_durable(&bind.exchange) {
             self.definitions_on_disk().await?;
         }
         if !bind.no_wait {
@@ -110,7 +110,7 @@ impl Channel {
                     unbind.arguments,
                     BindingChange::Unbind,
                 )?;
-                if queue.options.durable && self.exchange_is_durable(&unbind.exchange) {
+                if queue.store_id().is_some() && self.exchange_is_durable(&unbind.exchange) {
                     self.definitions_on_disk().await?;
                 }
             }
@@ -151,7 +151,7 @@ impl Channel {
                     )));
                 }
                 let deleted = self.vhost.delete_queue(&queue);
-                if queue.options.durable {
+                if queue.store_id().is_some() {
                     if let Err(e) = self.definitions_on_disk().await {
                         deleted.notify();
                         return Err(e);
