@@ -1,7 +1,9 @@
 //! Routing dead letters through a vhost: the dead letters a queue
 //! operation returned (each already carrying its `x-death` history, see
 //! `queue::leaving`) go to their dead-letter exchanges and on to queues.
-//! This module sits beside the vhost and uses it and the queues.
+//! This module sits beside the vhost and uses it, the queues, and the
+//! persister (a persistent copy reaching durable queues is stored as a
+//! publish is).
 //!
 //! Routing is a work list, never recursion: a dead letter delivered to a
 //! queue can make that queue dead-letter again (it is full, say), and those
@@ -13,6 +15,7 @@
 //! letters (queues dead-lettering into a fanout exchange they are all
 //! bound to) costs a bounded amount of work per message.
 
+use crate::message::{Message, Stored};
 use crate::queue::{DeadLetter, DeadLetters, Queue};
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldValue, ShortStr};
@@ -66,21 +69,43 @@ fn deliver(vhost: &Vhost, letter: DeadLetter, queues: &mut Vec<Arc<Queue>>) -> D
         tracing::debug!(exchange = %letter.exchange(), "dead-letter exchange missing; message dropped");
         return caused;
     };
-    let (message, headers) = letter.into_copy();
-    vhost.route(&exchange, &message.routing_key, Some(&headers), queues);
+    let (copy, headers) = letter.into_copy();
+    vhost.route(&exchange, &copy.routing_key, Some(&headers), queues);
     let deaths = match headers.get("x-death") {
         Some(FieldValue::Array(deaths)) => deaths.as_slice(),
         _ => &[],
     };
-    for queue in queues.drain(..) {
-        if closes_automatic_cycle(deaths, &queue.name) {
+    queues.retain(|queue| {
+        let cycle = closes_automatic_cycle(deaths, &queue.name);
+        if cycle {
             tracing::warn!(queue = %queue.name, "dead-letter cycle detected; message dropped");
-            continue;
         }
+        !cycle
+    });
+    let message = stored_copy(vhost, copy, queues);
+    for queue in queues.drain(..) {
         let (_, more) = queue.publish(Arc::clone(&message));
         caused.append(more);
     }
     caused
+}
+
+/// The copy marked for storage, as a publish is, when it is persistent
+/// and reaches durable queues, with its shared record submitted if it has
+/// one (each queue writes its own index entry as it takes the copy).
+fn stored_copy(vhost: &Vhost, copy: Arc<Message>, queues: &[Arc<Queue>]) -> Arc<Message> {
+    let Some(persistence) = vhost.persistence().filter(|_| copy.persistent) else {
+        return copy;
+    };
+    let durable_queues = queues.iter().filter(|q| q.store_id().is_some()).count();
+    let Some(stored) = Stored::for_queues(persistence, durable_queues) else {
+        return copy;
+    };
+    let message = Arc::new(copy.stored_as(Some(stored)));
+    if let Some(op) = message.record_op() {
+        persistence.submit(vec![op]);
+    }
+    message
 }
 
 /// RabbitMQ's cycle rule. `deaths` is a dead letter's `x-death` history,

@@ -158,8 +158,10 @@ impl BrokerBuilder {
 
         let (persistence, recovered) = match store {
             Some(store) => {
-                let recovered = Recovered::from_scan(store.scan().map_err(StartError::Storage)?)
-                    .map_err(StartError::Storage)?;
+                let recovered = Recovered::from_scan(
+                    crate::store::guarded("scan", || store.scan()).map_err(StartError::Storage)?,
+                )
+                .map_err(StartError::Storage)?;
                 let persistence =
                     Persistence::start(store, &recovered).map_err(StartError::Storage)?;
                 (Some(persistence), recovered)

@@ -617,6 +617,11 @@ impl Vhost {
         crate::deadletter::route(self, letters);
     }
 
+    /// The store this vhost's durable things are written to, if any.
+    pub(crate) fn persistence(&self) -> Option<&Arc<Persistence>> {
+        self.persistence.as_ref()
+    }
+
     /// Re-creates a stored exchange at start.
     pub fn restore_exchange(&self, record: &ExchangeRecord) {
         let Some(kind) = ExchangeKind::parse(record.kind.as_bytes()) else {

@@ -1,7 +1,7 @@
 //! A failing disk (full, read-only…): persistent publishes to durable
 //! queues are nacked and transactions refused with 506 while the store
-//! fails; transient traffic goes on; confirms are acks again once the
-//! store works.
+//! fails, and so are durable declarations; transient traffic goes on;
+//! confirms are acks again once the store works.
 
 use lapin::options::{BasicPublishOptions, ConfirmSelectOptions, QueueDeclareOptions};
 use lapin::types::FieldTable;
@@ -106,6 +106,31 @@ async fn a_failing_store_nacks_persistent_publishes_and_recovers() {
         .await
         .expect("publish in tx");
     let err = tx_channel.tx_commit().await.expect_err("commit refused");
+    assert!(
+        err.to_string().contains("RESOURCE_ERROR"),
+        "506 RESOURCE_ERROR: {err}"
+    );
+
+    // A durable declaration the disk did not take is refused (506 closes
+    // the connection, as for the commit above), never answered declare-ok
+    // and lost; a transient one goes on.
+    let conn = Connection::connect(&url, ConnectionProperties::default())
+        .await
+        .expect("reconnect");
+    let transient_channel = conn.create_channel().await.expect("channel");
+    transient_channel
+        .queue_declare(
+            "in-memory",
+            QueueDeclareOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("a transient declare never touches the disk");
+    let declare_channel = conn.create_channel().await.expect("channel");
+    let err = declare_channel
+        .queue_declare("lost", durable, FieldTable::default())
+        .await
+        .expect_err("durable declare refused");
     assert!(
         err.to_string().contains("RESOURCE_ERROR"),
         "506 RESOURCE_ERROR: {err}"

@@ -9,7 +9,6 @@ use crate::exchange::Exchange;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
 use crate::queue::{DeadLetters, Enqueued, Queue};
-use crate::store::StoreOp;
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
     BasicPublish, BasicQos, BasicQosOk, ReplyCode, ShortStr,
@@ -33,18 +32,6 @@ impl Outcome {
             Enqueued::Accepted { sync } => self.sync = self.sync.max(sync),
             Enqueued::Refused => self.refused = true,
         }
-    }
-}
-
-/// The op storing a message shared by several durable queues (a message
-/// in one durable queue lives inside that queue's index entry instead).
-pub(crate) fn body_op(message: &Message) -> Option<StoreOp> {
-    match message.stored.as_ref()? {
-        Stored::Inline => None,
-        Stored::Shared { id, .. } => Some(StoreOp::PutMessage {
-            id: *id,
-            record: message.to_record(),
-        }),
     }
 }
 
@@ -187,7 +174,7 @@ impl Channel {
         let mut outcome = Outcome::default();
         let mut dead = DeadLetters::default();
         let message = self.route(exchange, publish, &mut queues).await;
-        if let (Some(persistence), Some(op)) = (&self.core.persistence, body_op(&message)) {
+        if let (Some(persistence), Some(op)) = (&self.core.persistence, message.record_op()) {
             persistence.submit(vec![op]);
         }
         for queue in queues.drain(..) {
@@ -221,13 +208,10 @@ impl Channel {
         );
         let persistent = publish.properties.is_persistent();
         let stored = match &self.core.persistence {
-            Some(persistence) if persistent => {
-                match queues.iter().filter(|q| q.store_id().is_some()).count() {
-                    0 => None,
-                    1 => Some(Stored::Inline),
-                    durable => Some(Stored::shared(persistence.next_message_id(), durable)),
-                }
-            }
+            Some(persistence) if persistent => Stored::for_queues(
+                persistence,
+                queues.iter().filter(|q| q.store_id().is_some()).count(),
+            ),
             _ => None,
         };
         let ttl_ms = publish

@@ -6,11 +6,12 @@ use crate::exchange::ExchangeOptions;
 use crate::vhost::{BindingChange, ExchangeDeclaration};
 use leveret_protocol::{
     ExchangeBind, ExchangeBindOk, ExchangeDeclare, ExchangeDeclareOk, ExchangeDelete,
-    ExchangeDeleteOk, ExchangeUnbind, ExchangeUnbindOk,
+    ExchangeDeleteOk, ExchangeUnbind, ExchangeUnbindOk, ShortStr,
 };
 
 impl Channel {
     pub(super) async fn exchange_declare(&mut self, declare: ExchangeDeclare) -> AmqpResult<()> {
+        let durable = declare.durable;
         self.vhost.declare_exchange(ExchangeDeclaration {
             name: declare.exchange,
             kind: declare.kind,
@@ -22,6 +23,9 @@ impl Channel {
                 arguments: declare.arguments,
             },
         })?;
+        if durable {
+            self.definitions_on_disk().await?;
+        }
         if !declare.no_wait {
             self.reply(ExchangeDeclareOk {}).await;
         }
@@ -29,8 +33,12 @@ impl Channel {
     }
 
     pub(super) async fn exchange_delete(&mut self, delete: ExchangeDelete) -> AmqpResult<()> {
+        let durable = self.exchange_is_durable(&delete.exchange);
         self.vhost
             .delete_exchange(&delete.exchange, delete.if_unused)?;
+        if durable {
+            self.definitions_on_disk().await?;
+        }
         if !delete.no_wait {
             self.reply(ExchangeDeleteOk {}).await;
         }
@@ -45,6 +53,9 @@ impl Channel {
             bind.arguments,
             BindingChange::Bind,
         )?;
+        if self.exchange_is_durable(&bind.source) && self.exchange_is_durable(&bind.destination) {
+            self.definitions_on_disk().await?;
+        }
         if !bind.no_wait {
             self.reply(ExchangeBindOk {}).await;
         }
@@ -59,9 +70,21 @@ impl Channel {
             unbind.arguments,
             BindingChange::Unbind,
         )?;
+        if self.exchange_is_durable(&unbind.source) && self.exchange_is_durable(&unbind.destination)
+        {
+            self.definitions_on_disk().await?;
+        }
         if !unbind.no_wait {
             self.reply(ExchangeUnbindOk {}).await;
         }
         Ok(())
+    }
+
+    /// Whether `name` is a durable exchange: only changes to those (and
+    /// to bindings between durable ends) are written to disk.
+    pub(super) fn exchange_is_durable(&self, name: &ShortStr) -> bool {
+        self.vhost
+            .exchange(name)
+            .is_some_and(|exchange| exchange.options.durable)
     }
 }

@@ -123,6 +123,19 @@ impl Channel {
         self.link.outbox.method(self.id, method).await;
     }
 
+    /// Waits until every store write submitted so far (among them the
+    /// definition change this channel just made) is flushed, so a -ok for
+    /// something durable goes out only once it is on disk. It rides the
+    /// persister's group commit: one flush covers every waiter.
+    async fn definitions_on_disk(&self) -> AmqpResult<()> {
+        match &self.core.persistence {
+            Some(persistence) if !persistence.sync().await => Err(AmqpError::resource_error(
+                "could not write the definition to disk",
+            )),
+            _ => Ok(()),
+        }
+    }
+
     /// A crowded queue this channel published to since the last call: the
     /// connection waits for it to drain before reading more.
     pub fn take_crowded(&mut self) -> Option<Arc<Queue>> {

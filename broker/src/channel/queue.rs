@@ -44,6 +44,9 @@ impl Channel {
         };
         let (queue, _created) = self.vhost.declare_queue(decl, connection_id)?;
         self.last_queue = Some(queue.name.clone());
+        if queue.store_id().is_some() {
+            self.definitions_on_disk().await?;
+        }
         // The count leaves out messages that have expired.
         self.vhost.dead_letter(queue.expire());
         if !declare.no_wait {
@@ -84,6 +87,9 @@ impl Channel {
             bind.arguments,
             BindingChange::Bind,
         )?;
+        if queue.store_id().is_some() && self.exchange_is_durable(&bind.exchange) {
+            self.definitions_on_disk().await?;
+        }
         if !bind.no_wait {
             self.reply(QueueBindOk {}).await;
         }
@@ -104,6 +110,9 @@ impl Channel {
                     unbind.arguments,
                     BindingChange::Unbind,
                 )?;
+                if queue.store_id().is_some() && self.exchange_is_durable(&unbind.exchange) {
+                    self.definitions_on_disk().await?;
+                }
             }
         }
         self.reply(QueueUnbindOk {}).await;
@@ -141,7 +150,14 @@ impl Channel {
                         name, self.vhost.name
                     )));
                 }
-                self.vhost.delete_queue(&queue)
+                let deleted = self.vhost.delete_queue(&queue);
+                if queue.store_id().is_some() {
+                    if let Err(e) = self.definitions_on_disk().await {
+                        deleted.notify();
+                        return Err(e);
+                    }
+                }
+                deleted
             }
         };
         if !delete.no_wait {

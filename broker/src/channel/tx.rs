@@ -3,7 +3,7 @@
 //! are coalesced: consecutive positive confirms are sent as one basic.ack
 //! with `multiple` once the connection has no more input buffered.
 
-use super::basic::{apply_settles, body_op, requeue_all, Outcome, Settle};
+use super::basic::{apply_settles, requeue_all, Outcome, Settle};
 use super::{Channel, Publish};
 use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
@@ -110,7 +110,7 @@ impl Channel {
                 continue;
             };
             let message = self.route(&exchange, publish, &mut queues).await;
-            ops.extend(body_op(&message));
+            ops.extend(message.record_op());
             let targets: Vec<(Arc<Queue>, Option<u64>)> = queues
                 .into_iter()
                 .map(|queue| {

@@ -72,9 +72,38 @@ pub enum StoreError {
     /// A stored field table could not be decoded.
     #[error("corrupt record (field table): {0}")]
     CorruptTable(#[from] leveret_protocol::DecodeError),
+    /// The storage engine panicked (a bug in it, or a damaged file it did
+    /// not expect); caught at the boundary by [`guarded`].
+    #[error("the storage engine panicked during {what}: {message}")]
+    Panicked {
+        /// The call that panicked.
+        what: &'static str,
+        /// The panic's message.
+        message: String,
+    },
     /// The persister thread could not be started.
     #[error("cannot start the persister thread: {0}")]
     Persister(std::io::Error),
+}
+
+/// Runs one call into a storage engine, turning a panic inside it into
+/// [`StoreError::Panicked`], so a storage bug or a damaged file becomes an
+/// error the broker reports (a nack, a refused start) instead of killing
+/// the persister thread, after which every later write would fail.
+pub fn guarded<T>(
+    what: &'static str,
+    call: impl FnOnce() -> Result<T, StoreError>,
+) -> Result<T, StoreError> {
+    // The engine's state after a panic is its own business: a later call
+    // that finds it broken panics or fails again, and is reported again.
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(call)).unwrap_or_else(|panic| {
+        let message = panic
+            .downcast_ref::<&str>()
+            .map(|s| (*s).to_owned())
+            .or_else(|| panic.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "(no message)".to_owned());
+        Err(StoreError::Panicked { what, message })
+    })
 }
 
 /// One key-value change.

@@ -6,7 +6,7 @@
 //! the disk has got, so a confirm or a commit-ok waits for exactly the
 //! flush that covers it.
 
-use super::{KvOp, Recovered, Store, StoreError, StoreOp, WriteMode};
+use super::{guarded, KvOp, Recovered, Store, StoreError, StoreOp, WriteMode};
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -114,7 +114,7 @@ impl Group {
         if submission.mode == WriteMode::Atomic {
             self.write_pending(store);
             let ops = submission.ops.iter().map(StoreOp::to_kv).collect();
-            let result = store.write(ops, WriteMode::Atomic);
+            let result = guarded("write", || store.write(ops, WriteMode::Atomic));
             self.record(result);
             return submission.close;
         }
@@ -135,7 +135,7 @@ impl Group {
     fn write_pending(&mut self, store: &dyn Store) {
         if !self.pending.is_empty() {
             let ops = std::mem::take(&mut self.pending);
-            let result = store.write(ops, WriteMode::Plain);
+            let result = guarded("write", || store.write(ops, WriteMode::Plain));
             self.record(result);
         }
     }
@@ -154,7 +154,7 @@ impl Group {
                 .map(|(queue, seq)| StoreOp::Delivered { queue, seq }.to_kv()),
         );
         self.write_pending(store);
-        let flushed = store.flush();
+        let flushed = guarded("flush", || store.flush());
         self.record(flushed);
         match self.error {
             Some(e) => Err(e),
@@ -438,6 +438,56 @@ mod tests {
         let after = persistence.submit(vec![StoreOp::DeleteMessage { id: 3 }]);
         assert!(persistence.wait(after).await);
         assert!(persistence.succeeded(good));
+    }
+
+    /// A store whose writes panic while `panicking` is set.
+    #[derive(Debug, Default)]
+    struct Panicky {
+        inner: MemoryStore,
+        panicking: std::sync::atomic::AtomicBool,
+    }
+
+    impl Store for Panicky {
+        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+            assert!(
+                !self.panicking.load(Ordering::SeqCst),
+                "tried to serialize Uninitialized (simulated)"
+            );
+            self.inner.write(ops, mode)
+        }
+        fn flush(&self) -> Result<(), StoreError> {
+            self.inner.flush()
+        }
+        fn scan(&self) -> Result<Vec<crate::store::KvPair>, StoreError> {
+            self.inner.scan()
+        }
+    }
+
+    /// A panic inside the storage engine fails its group like an error
+    /// does; the persister thread lives on and later groups succeed.
+    #[tokio::test]
+    async fn a_panic_in_the_store_fails_its_group_and_the_persister_goes_on() {
+        let panicky = Arc::new(Panicky::default());
+        let store: Arc<dyn Store> = Arc::clone(&panicky) as Arc<dyn Store>;
+        let persistence = Persistence::start(store, &Recovered::default()).unwrap();
+        panicky.panicking.store(true, Ordering::SeqCst);
+        let bad = persistence.submit_atomic(vec![StoreOp::DeleteMessage { id: 1 }]);
+        assert!(!persistence.wait(bad).await);
+        let bad = persistence.submit(vec![StoreOp::DeleteMessage { id: 2 }]);
+        assert!(!persistence.wait(bad).await);
+        panicky.panicking.store(false, Ordering::SeqCst);
+        let after = persistence.submit(vec![StoreOp::DeleteMessage { id: 3 }]);
+        assert!(persistence.wait(after).await, "the persister survived");
+    }
+
+    #[test]
+    fn guarded_turns_a_panic_into_an_error_naming_the_call() {
+        let err = guarded::<()>("flush", || panic!("boom {}", 7)).unwrap_err();
+        assert!(
+            matches!(&err, StoreError::Panicked { what: "flush", message } if message == "boom 7"),
+            "{err}"
+        );
+        assert!(guarded("scan", || Ok(5)).is_ok_and(|v| v == 5));
     }
 
     #[test]
