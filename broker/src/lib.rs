@@ -19,7 +19,7 @@
 //! - `embed`: the builder and handle, the public entry point.
 //! - `server`: TCP listeners, the accept loop, the TTL/expiry sweeper.
 //! - `busy_poll`: polling for input for a short, adaptive window after socket reads instead of sleeping.
-//! - `connection`: handshake, the reader loop, heartbeats, closing; `connection::writer` owns the socket's write half.
+//! - `connection`: handshake, the reader loop, heartbeats, closing, connection and channel limits; `connection::reader` sizes the read buffer to the traffic, `connection::writer` owns the socket's write half.
 //! - `channel`: content assembly and one module per AMQP class (`basic`, `queue`, `exchange`, `tx`).
 //! - `core`: state shared by all connections (vhosts, users, limits, memory gauge, shutdown).
 //! - `vhost`: exchanges and queues of a vhost, declare/delete/bind, routing.
@@ -28,6 +28,7 @@
 //! - `consumer`: consumers, delivery tags, unacked bookkeeping, prefetch credit.
 //! - `outbox`: what the core sends to a connection's writer, with backpressure.
 //! - `message`, `memory`, `auth`, `error`: messages, the memory alarm, users and SASL, reply errors.
+//! - `resident_memory`: the process's resident memory (from /proc) as a source of the memory alarm.
 #![forbid(unsafe_code)]
 
 mod auth;
@@ -45,11 +46,13 @@ mod message;
 mod outbox;
 mod queue;
 mod recovery;
+mod resident_memory;
 mod server;
 pub mod store;
 mod vhost;
 
 pub use crate::auth::PasswordHash;
-pub use crate::core::Limits;
+pub use crate::core::{Limits, VhostLimits};
+pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;

@@ -154,6 +154,7 @@ async fn serve() -> ExitCode {
         memory_high_watermark: file
             .memory_high_watermark
             .unwrap_or(defaults.memory_high_watermark),
+        ..defaults
     };
     let mut builder = Broker::builder().limits(limits).data_dir(data_dir);
     let busy_poll = cli.busy_poll.or(file.busy_poll).unwrap_or(BUSY_POLL_MICROS);

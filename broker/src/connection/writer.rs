@@ -1,7 +1,11 @@
 //! The writer task of a connection: owns the socket's write half, drains
 //! the outbox, encodes everything waiting into one buffer and writes it
 //! with one syscall (batching under load, no added latency when idle), and
-//! sends heartbeats when nothing else was written for an interval.
+//! sends heartbeats when nothing else was written for an interval. The
+//! buffer is given back whenever the outbox is empty after a write (and
+//! after a batch that grew it past twice the batch size, for a large
+//! message), so an idle connection holds none; a batch starts at the size
+//! of the last one instead of growing step by step.
 
 use crate::outbox::{Outbound, Outbox};
 use bytes::BytesMut;
@@ -17,6 +21,8 @@ use tokio::time::Instant;
 
 /// Stop adding to a batch once the buffer holds this much.
 const BATCH_BYTES: usize = 128 * 1024;
+/// The smallest buffer a batch starts with.
+const BATCH_START: usize = 512;
 
 /// Runs until [`Outbound::Shutdown`], the outbox closing, or a write error.
 pub async fn run<W: AsyncWrite + Unpin>(
@@ -25,7 +31,8 @@ pub async fn run<W: AsyncWrite + Unpin>(
     outbox: Arc<Outbox>,
     mut heartbeat: tokio::sync::watch::Receiver<Duration>,
 ) {
-    let mut buf = BytesMut::with_capacity(64 * 1024);
+    let mut buf = BytesMut::new();
+    let mut last_batch = BATCH_START;
     let mut interval = *heartbeat.borrow();
     let mut last_write = Instant::now();
     // One timer for the connection's life, re-armed only when it fires (not
@@ -55,6 +62,7 @@ pub async fn run<W: AsyncWrite + Unpin>(
             let _ = flush(&mut socket, &mut buf).await;
             return;
         };
+        buf.reserve(last_batch);
         let mut stop = encode(item, &outbox, &mut buf);
         while !stop && buf.len() < BATCH_BYTES {
             match inbox.try_recv() {
@@ -62,8 +70,12 @@ pub async fn run<W: AsyncWrite + Unpin>(
                 Err(_) => break,
             }
         }
+        last_batch = buf.len().clamp(BATCH_START, BATCH_BYTES);
         if flush(&mut socket, &mut buf).await.is_err() {
             return;
+        }
+        if inbox.is_empty() || buf.capacity() > 2 * BATCH_BYTES {
+            buf = BytesMut::new();
         }
         last_write = Instant::now();
         outbox.wake_blocked();
