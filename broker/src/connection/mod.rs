@@ -28,7 +28,7 @@ use leveret_protocol::{
     ConnectionUpdateSecretOk, FieldTable, FieldValue, Frame, Method, ReplyCode, ShortStr,
     FRAME_MIN_SIZE, PROTOCOL_HEADER,
 };
-use reader::{FrameReader, ReadError};
+use reader::{FrameReader, ReadError, IDLE_RELEASE};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
@@ -181,6 +181,9 @@ impl Connection {
         let mut last_read = tokio::time::Instant::now();
         let silence = tokio::time::sleep(silence_limit);
         tokio::pin!(silence);
+        // Likewise for giving back a read buffer grown by a burst.
+        let release = tokio::time::sleep(IDLE_RELEASE);
+        tokio::pin!(release);
         loop {
             // Every whole frame already buffered is handled straight away;
             // the select below runs once per socket read, not per frame.
@@ -237,11 +240,16 @@ impl Connection {
                 _ = shutdown.wait_for(|down| *down) => Event::Shutdown,
                 _ = disk_progress(&mut durable), if waiting => Event::DiskProgress,
                 _ = &mut silence, if !silence_limit.is_zero() => Event::Silent,
+                _ = &mut release, if reader.holds_spare() => Event::Idle,
             };
             match event {
                 Event::Read(Ok(())) => last_read = tokio::time::Instant::now(),
                 Event::Read(Err(e)) => return Err(Ended::Read(e)),
                 Event::DiskProgress => {}
+                Event::Idle if last_read.elapsed() < IDLE_RELEASE => {
+                    release.as_mut().reset(last_read + IDLE_RELEASE);
+                }
+                Event::Idle => reader.release_spare(),
                 Event::Silent if last_read.elapsed() < silence_limit => {
                     silence.as_mut().reset(last_read + silence_limit);
                 }
@@ -624,6 +632,8 @@ enum Unblocked {
 enum Event {
     Read(Result<(), ReadError>),
     DiskProgress,
+    /// The read buffer is larger than needed: release it if idle.
+    Idle,
     Silent,
     Shutdown,
 }

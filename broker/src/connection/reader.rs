@@ -5,9 +5,11 @@
 //!   size is checked from the 7-byte header, before any payload is
 //!   buffered);
 //! - the buffer starts at [`READ_IDLE`] bytes, doubles while reads fill it
-//!   (up to [`READ_MAX`], or one whole frame when a frame is larger),
-//!   halves while they do not, and shrinks back to [`READ_IDLE`] as soon
-//!   as the socket has nothing to read: an idle connection holds 1 KiB;
+//!   (up to one minimum-size frame before tune-ok, [`READ_MAX`] after, or
+//!   one whole frame when a frame is larger) and
+//!   halves while they do not; the connection gives back whatever exceeds
+//!   the frame in progress once no read has come for [`IDLE_RELEASE`], so
+//!   an idle connection holds 1 KiB whatever it received before;
 //! - nothing kept beyond the frame's handling points into the buffer, so
 //!   the buffer is reused in place rather than reallocated: method frames
 //!   whose values may be kept (names, arguments and tags of declare, bind,
@@ -23,9 +25,7 @@ use leveret_protocol::{
     check_frame, check_protocol_header, decode_frame, parse_frame, DecodeError, Frame, FrameCheck,
     ProtocolHeaderCheck, FRAME_MIN_SIZE, FRAME_OVERHEAD, PROTOCOL_HEADER,
 };
-use std::future::Future;
 use std::sync::Arc;
-use std::task::Poll;
 use tokio::io::{AsyncRead, AsyncReadExt};
 
 /// The buffer an idle connection keeps, enough for a typical small
@@ -34,6 +34,12 @@ pub(super) const READ_IDLE: usize = 1024;
 /// The largest buffer reads grow to (a single larger frame gets a buffer
 /// of its own size).
 pub(super) const READ_MAX: usize = 64 * 1024;
+/// How long a connection (reader or writer) keeps a buffer larger than it
+/// needs after its last read or write. Releasing at once, whenever the
+/// socket had nothing more, cost a reallocation per wake-up (measured: 4
+/// KiB messages took 25% more broker CPU, glibc trimming and faulting the
+/// pages back in).
+pub(super) const IDLE_RELEASE: std::time::Duration = std::time::Duration::from_secs(1);
 /// The frame type of method frames.
 const METHOD_FRAME: u8 = 1;
 /// Methods whose decoded values are not kept beyond their handling, or
@@ -66,10 +72,16 @@ pub(crate) fn copy_below(frame_max: u32) -> usize {
 pub(super) struct FrameReader<R> {
     socket: R,
     buf: BytesMut,
+    /// The size of the buffer's allocation (its visible capacity shrinks as
+    /// frames are taken off the front).
+    allocated: usize,
     /// Largest frame payload accepted.
     frame_max: u32,
     /// The buffer size reads get, adapted to the traffic.
     want: usize,
+    /// The most `want` may grow to: one minimum-size frame until tune-ok
+    /// (a client sends a few small frames before it), [`READ_MAX`] after.
+    want_max: usize,
     busy_poll: Option<Arc<BusyPoll>>,
 }
 
@@ -79,8 +91,10 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
         FrameReader {
             socket,
             buf: BytesMut::with_capacity(READ_IDLE),
+            allocated: READ_IDLE,
             frame_max: FRAME_MIN_SIZE,
             want: READ_IDLE,
+            want_max: FRAME_MIN_SIZE as usize + FRAME_OVERHEAD,
             busy_poll,
         }
     }
@@ -88,6 +102,7 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
     /// Accepts frames up to the negotiated `frame_max` from now on.
     pub fn set_frame_max(&mut self, frame_max: u32) {
         self.frame_max = frame_max;
+        self.want_max = READ_MAX;
     }
 
     /// The next frame; `Closed` on a clean end of stream.
@@ -130,24 +145,11 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
         decode_frame(&mut self.buf, self.frame_max)
     }
 
-    /// Reads more bytes. When nothing can be read at once, the buffer
-    /// shrinks to what the frame in progress needs before waiting.
+    /// Reads more bytes.
     pub async fn fill(&mut self) -> Result<(), ReadError> {
-        let needed = self.pending_frame_needs();
-        self.make_room(needed);
+        self.make_room(self.pending_frame_needs());
         let offered = self.buf.capacity() - self.buf.len();
-        let first = {
-            let mut read = std::pin::pin!(self.socket.read_buf(&mut self.buf));
-            poll_once(read.as_mut()).await
-        };
-        let result = match first {
-            Poll::Ready(result) => result,
-            Poll::Pending => {
-                self.shrink_to(needed);
-                self.socket.read_buf(&mut self.buf).await
-            }
-        };
-        match result {
+        match self.socket.read_buf(&mut self.buf).await {
             Ok(0) => Err(ReadError::Closed),
             Ok(n) => {
                 self.adapt(n, offered);
@@ -158,6 +160,25 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
             }
             Err(e) => Err(ReadError::Io(e)),
         }
+    }
+
+    /// Whether the buffer is larger than the frame in progress needs (and
+    /// than [`READ_IDLE`]).
+    pub fn holds_spare(&self) -> bool {
+        self.allocated > self.keep()
+    }
+
+    /// Gives back buffer space beyond what the frame in progress needs
+    /// (the idle size when none is): the connection has been idle.
+    pub fn release_spare(&mut self) {
+        if self.holds_spare() {
+            self.want = READ_IDLE;
+            self.reallocate(self.keep());
+        }
+    }
+
+    fn keep(&self) -> usize {
+        (self.buf.len() + self.pending_frame_needs()).max(READ_IDLE)
     }
 
     /// Bytes still missing from the frame at the front of the buffer (0
@@ -184,26 +205,18 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
         self.reallocate(self.buf.len() + room);
     }
 
-    /// Gives back buffer space beyond what the frame in progress needs
-    /// (the idle size when none is).
-    fn shrink_to(&mut self, needed: usize) {
-        let keep = (self.buf.len() + needed).max(READ_IDLE);
-        if self.buf.capacity() > keep * 2 || (self.buf.is_empty() && self.buf.capacity() > keep) {
-            self.reallocate(keep);
-        }
-    }
-
     fn reallocate(&mut self, capacity: usize) {
         let mut fresh = BytesMut::with_capacity(capacity);
         fresh.extend_from_slice(&self.buf);
         self.buf = fresh;
+        self.allocated = self.buf.capacity();
     }
 
     /// Grows the wanted size while reads fill what they are offered,
     /// halves it while they use less than a quarter of it.
     fn adapt(&mut self, read: usize, offered: usize) {
         if read >= offered {
-            self.want = (self.want * 2).min(READ_MAX);
+            self.want = (self.want * 2).min(self.want_max);
         } else if read < self.want / 4 {
             self.want = (self.want / 2).max(READ_IDLE);
         }
@@ -223,11 +236,6 @@ fn may_be_kept(frame: &[u8]) -> bool {
         }
         None => true,
     }
-}
-
-/// Polls `future` once: its output if it is ready now.
-async fn poll_once<F: Future + Unpin>(mut future: F) -> Poll<F::Output> {
-    std::future::poll_fn(|cx| Poll::Ready(std::pin::Pin::new(&mut future).poll(cx))).await
 }
 
 #[cfg(test)]
@@ -291,7 +299,7 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn the_buffer_grows_for_a_large_frame_and_shrinks_when_idle() {
+    async fn the_buffer_grows_for_a_large_frame_and_is_released_when_idle() {
         let (mut client, server) = tokio::io::duplex(256 * 1024);
         let mut reader = FrameReader::new(server, None);
         reader.set_frame_max(131_072);
@@ -316,18 +324,33 @@ mod tests {
             Frame::Body { payload, .. } => assert_eq!(payload.len(), 120_000),
             other => panic!("expected a body frame, got {other:?}"),
         }
-        // Nothing more to read: waiting gives the buffer back first.
-        let wait = tokio::spawn(async move {
-            let frame = reader.next().await;
-            (frame.is_ok(), reader.buf.capacity())
-        });
-        tokio::task::yield_now().await;
+        assert!(reader.holds_spare());
+        reader.release_spare();
+        assert!(!reader.holds_spare());
+        assert!(
+            reader.buf.capacity() <= READ_IDLE,
+            "idle buffer of {} bytes",
+            reader.buf.capacity()
+        );
         let mut heartbeat = BytesMut::new();
         Frame::Heartbeat.encode(&mut heartbeat);
         client.write_all(&heartbeat).await.expect("write");
-        let (ok, capacity) = wait.await.expect("no panic");
-        assert!(ok);
-        assert!(capacity <= READ_IDLE, "idle buffer of {capacity} bytes");
+        assert!(matches!(reader.next().await, Ok(Frame::Heartbeat)));
+    }
+
+    #[tokio::test]
+    async fn before_tune_ok_reads_stay_within_one_minimum_frame() {
+        let (mut client, server) = tokio::io::duplex(1 << 20);
+        let mut reader = FrameReader::new(server, None);
+        let mut stream = BytesMut::new();
+        for _ in 0..4000 {
+            Frame::Heartbeat.encode(&mut stream);
+        }
+        client.write_all(&stream).await.expect("write");
+        for _ in 0..4000 {
+            reader.next().await.expect("a heartbeat");
+            assert!(reader.allocated <= FRAME_MIN_SIZE as usize + FRAME_OVERHEAD);
+        }
     }
 
     #[tokio::test]

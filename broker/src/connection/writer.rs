@@ -2,11 +2,13 @@
 //! the outbox, encodes everything waiting into one buffer and writes it
 //! with one syscall (batching under load, no added latency when idle), and
 //! sends heartbeats when nothing else was written for an interval. The
-//! buffer is given back whenever the outbox is empty after a write (and
-//! after a batch that grew it past twice the batch size, for a large
-//! message), so an idle connection holds none; a batch starts at the size
-//! of the last one instead of growing step by step.
+//! buffer is given back once nothing was written for `IDLE_RELEASE` (and
+//! at once after a batch that grew it past twice the batch size, for a
+//! large message), so an idle connection holds none; a batch after a
+//! release starts at the size of the last one instead of growing step by
+//! step.
 
+use super::reader::IDLE_RELEASE;
 use crate::outbox::{Outbound, Outbox};
 use bytes::BytesMut;
 use leveret_protocol::{
@@ -36,25 +38,42 @@ pub async fn run<W: AsyncWrite + Unpin>(
     let mut interval = *heartbeat.borrow();
     let mut last_write = Instant::now();
     // One timer for the connection's life, re-armed only when it fires (not
-    // per batch written): a heartbeat is due `interval` after the last write.
-    let idle = tokio::time::sleep(interval);
-    tokio::pin!(idle);
+    // per batch written): a heartbeat is due `interval` after the last
+    // write, and a buffer is released `IDLE_RELEASE` after it.
+    let due = |interval: Duration, last_write: Instant, holding: bool| {
+        let heartbeat = (!interval.is_zero()).then(|| last_write + interval);
+        let release = holding.then(|| last_write + IDLE_RELEASE);
+        heartbeat.into_iter().chain(release).min()
+    };
+    let timer = tokio::time::sleep(interval);
+    tokio::pin!(timer);
+    let mut armed = false;
     loop {
+        if !armed {
+            if let Some(at) = due(interval, last_write, buf.capacity() > 0) {
+                timer.as_mut().reset(at);
+                armed = true;
+            }
+        }
         let next = tokio::select! {
             item = inbox.recv() => item,
             changed = heartbeat.changed() => {
                 if changed.is_err() { return; }
                 interval = *heartbeat.borrow();
-                idle.as_mut().reset(last_write + interval);
+                armed = false;
                 continue;
             }
-            _ = &mut idle, if !interval.is_zero() => {
-                if Instant::now() >= last_write + interval {
+            _ = &mut timer, if armed => {
+                armed = false;
+                let now = Instant::now();
+                if !interval.is_zero() && now >= last_write + interval {
                     Frame::Heartbeat.encode(&mut buf);
                     if flush(&mut socket, &mut buf).await.is_err() { return; }
                     last_write = Instant::now();
                 }
-                idle.as_mut().reset(last_write + interval);
+                if now >= last_write + IDLE_RELEASE {
+                    buf = BytesMut::new();
+                }
                 continue;
             }
         };
@@ -74,7 +93,7 @@ pub async fn run<W: AsyncWrite + Unpin>(
         if flush(&mut socket, &mut buf).await.is_err() {
             return;
         }
-        if inbox.is_empty() || buf.capacity() > 2 * BATCH_BYTES {
+        if buf.capacity() > 2 * BATCH_BYTES {
             buf = BytesMut::new();
         }
         last_write = Instant::now();
