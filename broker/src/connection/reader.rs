@@ -4,12 +4,12 @@
 //!   client's connection.tune-ok, then to the negotiated frame_max (the
 //!   size is checked from the 7-byte header, before any payload is
 //!   buffered);
-//! - the buffer starts at [`READ_IDLE`] bytes, doubles while reads fill it
-//!   (up to one minimum-size frame before tune-ok, [`READ_MAX`] after, or
-//!   one whole frame when a frame is larger) and
-//!   halves while they do not; the connection gives back whatever exceeds
-//!   the frame in progress once no read has come for [`IDLE_RELEASE`], so
-//!   an idle connection holds 1 KiB whatever it received before;
+//! - the buffer starts at [`READ_IDLE`] bytes and doubles while reads fill
+//!   it (up to one minimum-size frame before tune-ok, [`READ_MAX`] after,
+//!   or one whole frame when a frame is larger); the connection gives back
+//!   whatever exceeds the frame in progress once no read has come for
+//!   [`IDLE_RELEASE`], so an idle connection holds 1 KiB whatever it
+//!   received before;
 //! - nothing kept beyond the frame's handling points into the buffer, so
 //!   the buffer is reused in place rather than reallocated: method frames
 //!   whose values may be kept (names, arguments and tags of declare, bind,
@@ -62,8 +62,12 @@ pub(super) enum ReadError {
 
 /// Bodies (and property lists) smaller than this are copied out of the
 /// read buffer rather than kept as slices of it: a quarter of the largest
-/// buffer a connection with `frame_max` can have, so a slice pins at most
-/// four times its own size.
+/// buffer a connection with `frame_max` can have (32 KiB by default), so a
+/// slice pins at most four times its own size, where a 16-byte body kept
+/// as a slice could pin a 64 KiB buffer. Measured (one publisher, one
+/// consumer, broker CPU per message, median of five runs on a shared
+/// two-core machine): copying cost nothing above the noise for 16 B, 1 KiB
+/// and 16 KiB bodies, and about 10% at 4 KiB (4.46 against 3.78-4.10 µs).
 pub(crate) fn copy_below(frame_max: u32) -> usize {
     READ_MAX.max(frame_max as usize + FRAME_OVERHEAD) / 4
 }
@@ -212,13 +216,11 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
         self.allocated = self.buf.capacity();
     }
 
-    /// Grows the wanted size while reads fill what they are offered,
-    /// halves it while they use less than a quarter of it.
+    /// Grows the wanted size while reads fill what they are offered (it
+    /// goes back to [`READ_IDLE`] when the connection has been idle).
     fn adapt(&mut self, read: usize, offered: usize) {
         if read >= offered {
             self.want = (self.want * 2).min(self.want_max);
-        } else if read < self.want / 4 {
-            self.want = (self.want / 2).max(READ_IDLE);
         }
     }
 }
