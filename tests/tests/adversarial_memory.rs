@@ -284,7 +284,11 @@ fn open_fds() -> Option<usize> {
 /// Another client is served: 20 queue.declare round trips on a fresh
 /// connection, the worst under [`WORST_ROUND_TRIP`]. Declares do not
 /// publish, so a memory alarm does not hold them. A raw client on the
-/// test's own thread, so that what is timed is the broker.
+/// test's own thread, so that what is timed is the broker. The probes
+/// leave the broker in a steady state, so a stall they cause shows in
+/// every series; a series is measured again (three at most) when its worst
+/// is over, since a debug build on a shared two-core machine is sometimes
+/// descheduled for longer than that.
 async fn assert_served(b: &TestBroker) {
     let mut raw = Raw::open(b, Hello::default()).await;
     raw.open_channel(1).await;
@@ -295,25 +299,30 @@ async fn assert_served(b: &TestBroker) {
         ..Default::default()
     };
     raw.send_method(1, declare(false)).await;
-    let mut worst = Duration::ZERO;
-    for round in 0..=20 {
-        let started = Instant::now();
-        if round > 0 {
+    expect_declare_ok(&mut raw).await;
+    let mut worsts = Vec::new();
+    for _ in 0..3 {
+        let mut worst = Duration::ZERO;
+        for _ in 0..20 {
+            let started = Instant::now();
             raw.send_method(1, declare(true)).await;
-        }
-        match raw.method_after_flow_control().await {
-            (1, Method::QueueDeclareOk(_)) => {}
-            other => panic!("expected queue.declare-ok, got {other:?}"),
-        }
-        if round > 0 {
+            expect_declare_ok(&mut raw).await;
             worst = worst.max(started.elapsed());
         }
+        worsts.push(worst);
+        if worst < WORST_ROUND_TRIP {
+            raw.close().await;
+            return;
+        }
     }
-    assert!(
-        worst < WORST_ROUND_TRIP,
-        "worst round trip of another client: {worst:?}"
-    );
-    raw.close().await;
+    panic!("worst round trip of another client, in each series: {worsts:?}");
+}
+
+async fn expect_declare_ok(raw: &mut Raw) {
+    match raw.method_after_flow_control().await {
+        (1, Method::QueueDeclareOk(_)) => {}
+        other => panic!("expected queue.declare-ok, got {other:?}"),
+    }
 }
 
 /// Waits for `condition` to hold, polling, for at most [`TIMEOUT`].
@@ -340,8 +349,9 @@ async fn unfinished_bodies_on_many_channels_block_the_publisher_and_stay_bounded
     })
     .await;
     let before = rss();
-    // Heartbeats let the broker find the socket gone while it is not
-    // reading it (as RabbitMQ does).
+    // This publisher fills the socket buffers both ways, so its FIN cannot
+    // reach a broker that is not reading: heartbeats find it gone (as with
+    // RabbitMQ). See the next test for a publisher that hangs up without.
     let mut publisher = Raw::open(
         &b,
         Hello {
@@ -410,8 +420,8 @@ async fn unfinished_bodies_on_many_channels_block_the_publisher_and_stay_bounded
         );
     }
     assert_served(&b).await;
-    // Closing the publisher gives its reservations back once the broker
-    // finds the socket gone: another client's publish is then confirmed.
+    // The publisher going away gives its reservations back: another
+    // client's publish is then confirmed.
     writer.abort();
     drop(read);
     let (_conn, ch) = lp::open(&b).await;
@@ -422,6 +432,39 @@ async fn unfinished_bodies_on_many_channels_block_the_publisher_and_stay_bounded
     let confirmation =
         lp::publish_confirmed(&ch, "", &queue, b"small", lp::BasicProperties::default()).await;
     assert!(confirmation.is_ack());
+}
+
+/// A blocked publisher that hangs up is let go (and what it held with it)
+/// without heartbeats: the broker watches for the hang-up while it does
+/// not read.
+#[tokio::test]
+async fn a_blocked_publisher_that_hangs_up_is_let_go() {
+    let _serial = SERIAL.lock().await;
+    let b = leveret(Limits {
+        memory_high_watermark: 64 * MIB,
+        ..limits()
+    })
+    .await;
+    let mut publisher = Raw::open(&b, Hello::default()).await;
+    publisher.open_channel(1).await;
+    let mut bytes = method_bytes(1, BasicPublish::default());
+    bytes.extend(header_bytes(1, 99_000_000));
+    bytes.extend(body_bytes(1, Bytes::from(vec![b'x'; 100_000])));
+    publisher.send(&bytes).await;
+    match publisher.method().await {
+        (0, Method::ConnectionBlocked(_)) => {}
+        other => panic!("expected connection.blocked, got {other:?}"),
+    }
+    drop(publisher);
+    let (_conn, ch) = lp::open(&b).await;
+    within("confirm.select", ch.confirm_select(Default::default()))
+        .await
+        .expect("confirm.select");
+    let queue = lp::queue(&ch, "after-hangup").await;
+    let confirmation =
+        lp::publish_confirmed(&ch, "", &queue, b"small", lp::BasicProperties::default()).await;
+    assert!(confirmation.is_ack());
+    assert_served(&b).await;
 }
 
 /// A body being received is counted until its connection ends, however it

@@ -28,11 +28,11 @@ use leveret_protocol::{
     ConnectionUpdateSecretOk, FieldTable, FieldValue, Frame, Method, ReplyCode, ShortStr,
     FRAME_MIN_SIZE, PROTOCOL_HEADER,
 };
-use reader::{FrameReader, ReadError, IDLE_RELEASE};
+use reader::{FrameReader, Incoming, ReadError, IDLE_RELEASE};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
+use tokio::io::{AsyncWrite, AsyncWriteExt};
 use tokio::time::Instant;
 
 /// The longest a publishing connection waits for one crowded queue.
@@ -44,7 +44,7 @@ const CLOSE_TIMEOUT: Duration = Duration::from_secs(3);
 /// connection counts, given back when it ends.
 pub async fn serve<R, W>(core: Arc<Core>, read: R, write: W, peer: String, slot: Slot)
 where
-    R: AsyncRead + Unpin + Send + 'static,
+    R: Incoming,
     W: AsyncWrite + Unpin + Send + 'static,
 {
     let connection_id = core.next_connection_id();
@@ -156,7 +156,7 @@ enum Ended {
 }
 
 impl Connection {
-    async fn run<R: AsyncRead + Unpin>(
+    async fn run<R: Incoming>(
         &mut self,
         reader: &mut FrameReader<R>,
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
@@ -223,9 +223,9 @@ impl Connection {
             }
             self.flush_confirms().await;
             if self.must_block() {
-                match self.block(heartbeat_tx).await {
+                match self.block(reader, heartbeat_tx).await {
                     Unblocked::Cleared => continue,
-                    Unblocked::WriterGone => return Err(Ended::Read(ReadError::Closed)),
+                    Unblocked::PeerGone => return Err(Ended::Read(ReadError::Closed)),
                     Unblocked::ShuttingDown => {
                         let error =
                             AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
@@ -289,8 +289,13 @@ impl Connection {
     /// Memory alarm: stop reading until it clears, telling the client if it
     /// asked to know. The client is not heard meanwhile (heartbeats
     /// included, as with RabbitMQ); the wait ends early when the broker
-    /// shuts down or the writer finds the socket gone.
-    async fn block(&mut self, heartbeat_tx: &tokio::sync::watch::Sender<Duration>) -> Unblocked {
+    /// shuts down or the client goes away (its socket hung up, or the
+    /// writer failed on it), so that what it held is released.
+    async fn block<R: Incoming>(
+        &mut self,
+        reader: &FrameReader<R>,
+        heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
+    ) -> Unblocked {
         if self.blocked_notify && !self.blocked {
             self.blocked = true;
             let reason = ShortStr::from_static("low on memory");
@@ -303,8 +308,9 @@ impl Connection {
         let outcome = tokio::select! {
             _ = self.core.gauge.wait_clear() => Unblocked::Cleared,
             _ = shutdown.wait_for(|down| *down) => Unblocked::ShuttingDown,
+            _ = reader.hung_up() => Unblocked::PeerGone,
             // The writer holds the only heartbeat receiver until it ends.
-            _ = heartbeat_tx.closed() => Unblocked::WriterGone,
+            _ = heartbeat_tx.closed() => Unblocked::PeerGone,
         };
         if self.blocked && matches!(outcome, Unblocked::Cleared) {
             self.blocked = false;
@@ -321,7 +327,7 @@ impl Connection {
         }
     }
 
-    async fn expect_method<R: AsyncRead + Unpin>(
+    async fn expect_method<R: Incoming>(
         &self,
         reader: &mut FrameReader<R>,
     ) -> Result<Method, Ended> {
@@ -345,7 +351,7 @@ impl Connection {
         }
     }
 
-    async fn handshake<R: AsyncRead + Unpin>(
+    async fn handshake<R: Incoming>(
         &mut self,
         reader: &mut FrameReader<R>,
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
@@ -573,7 +579,7 @@ impl Connection {
 
     /// Sends connection.close for `error`, waits briefly for close-ok
     /// (discarding anything else, as the spec says), then ends.
-    async fn close_with<R: AsyncRead + Unpin>(
+    async fn close_with<R: Incoming>(
         &mut self,
         reader: &mut FrameReader<R>,
         error: AmqpError,
@@ -625,7 +631,7 @@ impl Connection {
 enum Unblocked {
     Cleared,
     ShuttingDown,
-    WriterGone,
+    PeerGone,
 }
 
 /// What woke the reader loop.

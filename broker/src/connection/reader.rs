@@ -25,8 +25,11 @@ use leveret_protocol::{
     check_frame, check_protocol_header, decode_frame, parse_frame, DecodeError, Frame, FrameCheck,
     ProtocolHeaderCheck, FRAME_MIN_SIZE, FRAME_OVERHEAD, PROTOCOL_HEADER,
 };
+use std::future::Future;
 use std::sync::Arc;
-use tokio::io::{AsyncRead, AsyncReadExt};
+use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncReadExt, DuplexStream, Interest};
+use tokio::net::tcp::OwnedReadHalf;
 
 /// The buffer an idle connection keeps, enough for a typical small
 /// publish in one read.
@@ -46,6 +49,46 @@ const METHOD_FRAME: u8 = 1;
 /// whose kept parts the channel copies itself (basic.publish's exchange
 /// and routing key): these stay slices of the read buffer, the hot path.
 const TRANSIENT_METHODS: [(u16, u16); 4] = [(60, 40), (60, 80), (60, 90), (60, 120)];
+
+/// How often a connection that is not being read checks whether its peer
+/// has hung up, while the peer's unread bytes keep the socket readable.
+const HANGUP_CHECK: Duration = Duration::from_millis(250);
+
+/// The read half of a connection's transport.
+pub trait Incoming: AsyncRead + Unpin + Send + 'static {
+    /// Resolves once the peer has hung up (or the socket failed), without
+    /// reading what it sent before: a connection that is not being read
+    /// (a blocked publisher) still ends when its client goes away. Never
+    /// resolves where the transport cannot tell.
+    fn hung_up(&self) -> impl Future<Output = ()> + Send + '_;
+}
+
+impl Incoming for OwnedReadHalf {
+    fn hung_up(&self) -> impl Future<Output = ()> + Send + '_ {
+        async move {
+            loop {
+                match self.ready(Interest::READABLE).await {
+                    Ok(ready) if !ready.is_read_closed() => tokio::time::sleep(HANGUP_CHECK).await,
+                    _ => return,
+                }
+            }
+        }
+    }
+}
+
+/// In-process connections: the embedding application's own code.
+impl Incoming for tokio::io::ReadHalf<DuplexStream> {
+    fn hung_up(&self) -> impl Future<Output = ()> + Send + '_ {
+        std::future::pending()
+    }
+}
+
+#[cfg(test)]
+impl Incoming for DuplexStream {
+    fn hung_up(&self) -> impl Future<Output = ()> + Send + '_ {
+        std::future::pending()
+    }
+}
 
 /// Why reading stopped.
 #[derive(Debug, thiserror::Error)]
@@ -89,7 +132,7 @@ pub(super) struct FrameReader<R> {
     busy_poll: Option<Arc<BusyPoll>>,
 }
 
-impl<R: AsyncRead + Unpin> FrameReader<R> {
+impl<R: Incoming> FrameReader<R> {
     /// A reader accepting frames up to the protocol's minimum frame size.
     pub fn new(socket: R, busy_poll: Option<Arc<BusyPoll>>) -> Self {
         FrameReader {
@@ -101,6 +144,11 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
             want_max: FRAME_MIN_SIZE as usize + FRAME_OVERHEAD,
             busy_poll,
         }
+    }
+
+    /// Resolves once the peer has hung up (see [`Incoming::hung_up`]).
+    pub async fn hung_up(&self) {
+        self.socket.hung_up().await
     }
 
     /// Accepts frames up to the negotiated `frame_max` from now on.
