@@ -224,7 +224,13 @@ impl Connection {
             self.flush_confirms().await;
             if self.must_block() {
                 match self.block(reader, heartbeat_tx).await {
-                    Unblocked::Cleared => continue,
+                    // The client was not heard while blocked: its silence
+                    // counts from now (RabbitMQ pauses its heartbeat
+                    // monitor likewise).
+                    Unblocked::Cleared => {
+                        last_read = tokio::time::Instant::now();
+                        continue;
+                    }
                     Unblocked::PeerGone => return Err(Ended::Read(ReadError::Closed)),
                     Unblocked::ShuttingDown => {
                         let error =
