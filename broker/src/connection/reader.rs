@@ -64,13 +64,11 @@ pub trait Incoming: AsyncRead + Unpin + Send + 'static {
 }
 
 impl Incoming for OwnedReadHalf {
-    fn hung_up(&self) -> impl Future<Output = ()> + Send + '_ {
-        async move {
-            loop {
-                match self.ready(Interest::READABLE).await {
-                    Ok(ready) if !ready.is_read_closed() => tokio::time::sleep(HANGUP_CHECK).await,
-                    _ => return,
-                }
+    async fn hung_up(&self) {
+        loop {
+            match self.ready(Interest::READABLE).await {
+                Ok(ready) if !ready.is_read_closed() => tokio::time::sleep(HANGUP_CHECK).await,
+                _ => return,
             }
         }
     }
