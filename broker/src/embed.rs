@@ -97,7 +97,29 @@ impl BrokerBuilder {
         self
     }
 
-    /// Replaces the limits.
+    /// Replaces the limits: RabbitMQ's `channel_max`, `frame_max`,
+    /// `heartbeat`, `max_message_size`, the memory watermarks (counted
+    /// bytes and resident memory), `connection_max`, `handshake_timeout`
+    /// and the vhost limits `max-connections` and `max-queues`. See
+    /// [`Limits`] for each one's meaning and default.
+    ///
+    /// ```
+    /// use leveret_broker::{Broker, Limits, VhostLimits};
+    /// use std::time::Duration;
+    ///
+    /// let limits = Limits {
+    ///     max_connections: Some(200),
+    ///     channel_max: 64,
+    ///     handshake_timeout: Duration::from_secs(5),
+    ///     vhost_limits: [(
+    ///         "/".to_owned(),
+    ///         VhostLimits { max_connections: Some(50), max_queues: Some(1000) },
+    ///     )]
+    ///     .into(),
+    ///     ..Limits::default()
+    /// };
+    /// let builder = Broker::builder().limits(limits);
+    /// ```
     pub fn limits(mut self, limits: Limits) -> Self {
         self.limits = limits;
         self
@@ -210,6 +232,11 @@ impl BrokerBuilder {
             Arc::clone(&core),
             SWEEP_PERIOD,
         )));
+        tasks.push(tokio::spawn(crate::resident_memory::watch(
+            Arc::clone(&core.gauge),
+            core.limits.resident_memory_high_watermark,
+            core.shutdown_signal(),
+        )));
         if let Some(busy_poll) = busy_poll {
             let shutdown = core.shutdown_signal();
             tasks.push(tokio::spawn(async move { busy_poll.run(shutdown).await }));
@@ -263,9 +290,10 @@ impl BrokerHandle {
         let (client, server) = tokio::io::duplex(IN_PROCESS_BUFFER);
         let (read, write) = tokio::io::split(server);
         let core = Arc::clone(&self.core);
+        let slot = core.connections.admit_local();
         let alive = self.alive.clone();
         tokio::spawn(async move {
-            crate::connection::serve(core, read, write, "in-process".to_owned()).await;
+            crate::connection::serve(core, read, write, "in-process".to_owned(), slot).await;
             drop(alive);
         });
         client

@@ -59,7 +59,9 @@
 //! Beside the layers: `store` (the [`store::Store`] trait, the key codec,
 //! the group-commit persister), used from the queue layer up and using
 //! nothing of the broker; and the pieces every layer may use: `message`
-//! (a message as the broker holds it), `memory` (the memory alarm),
+//! (a message as the broker holds it), `memory` (the memory alarm) and
+//! `resident_memory` (the process's resident memory from /proc, one of
+//! the alarm's sources),
 //! `auth` (users and SASL), `error` (reply errors).
 #![forbid(unsafe_code)]
 #![deny(missing_docs)]
@@ -83,6 +85,7 @@ mod message;
 mod outbox;
 mod queue;
 mod recovery;
+mod resident_memory;
 mod routing;
 mod server;
 pub mod store;
@@ -91,6 +94,7 @@ mod testkit;
 mod vhost;
 
 pub use crate::auth::PasswordHash;
-pub use crate::core::Limits;
+pub use crate::core::{Limits, VhostLimits};
+pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;

@@ -83,6 +83,7 @@ impl Harness {
             name: s(name),
             passive: false,
             server_named: false,
+            max_queues: None,
             options: QueueOptions {
                 durable,
                 exclusive_owner: None,

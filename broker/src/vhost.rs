@@ -64,6 +64,9 @@ pub struct QueueDeclaration {
     pub server_named: bool,
     /// Properties.
     pub options: QueueOptions,
+    /// Refuse to create the queue when the vhost has this many already
+    /// (RabbitMQ's vhost limit `max-queues`).
+    pub max_queues: Option<usize>,
 }
 
 /// What exchange.declare asked for.
@@ -293,6 +296,12 @@ impl Vhost {
         if let Some(existing) = queues.get(&decl.name) {
             // Declared by another channel between our check and the lock.
             return Ok((Arc::clone(existing), false));
+        }
+        if let Some(max) = decl.max_queues.filter(|max| queues.len() >= *max) {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "cannot declare queue '{}': queue limit in vhost '{}' ({max}) is reached",
+                decl.name, self.name
+            )));
         }
         // Exclusive queues die with their connection, so they are never stored.
         let durable_store = match &self.persistence {

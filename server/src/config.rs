@@ -6,7 +6,9 @@
 //! knows how the broker works.
 
 use crate::cli::Cli;
-use leveret_broker::{Broker, BrokerBuilder, Limits, PasswordHash};
+use leveret_broker::{
+    Broker, BrokerBuilder, Limits, PasswordHash, ResidentMemoryWatermark, VhostLimits,
+};
 use serde::Deserialize;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -67,8 +69,27 @@ pub struct FileConfig {
     channel_max: Option<u16>,
     max_message_size: Option<u64>,
     memory_high_watermark: Option<usize>,
+    /// RabbitMQ's `vm_memory_high_watermark.absolute`, bytes of resident memory.
+    vm_memory_high_watermark_absolute: Option<u64>,
+    /// RabbitMQ's `vm_memory_high_watermark.relative`, a fraction of RAM.
+    vm_memory_high_watermark_relative: Option<f64>,
+    /// RabbitMQ's `connection_max`.
+    max_connections: Option<usize>,
+    /// RabbitMQ's `handshake_timeout`, milliseconds.
+    handshake_timeout: Option<u64>,
+    /// RabbitMQ's vhost limits, by vhost name.
+    #[serde(default)]
+    vhost_limits: std::collections::HashMap<String, VhostLimitsConfig>,
     product: Option<String>,
     busy_poll: Option<u64>,
+}
+
+/// One `[vhost-limits."NAME"]` table (`rabbitmqctl set_vhost_limits`).
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct VhostLimitsConfig {
+    max_connections: Option<usize>,
+    max_queues: Option<usize>,
 }
 
 /// One `[[users]]` table.
@@ -148,6 +169,29 @@ impl Settings {
             memory_high_watermark: file
                 .memory_high_watermark
                 .unwrap_or(defaults.memory_high_watermark),
+            resident_memory_high_watermark: match (
+                file.vm_memory_high_watermark_absolute,
+                file.vm_memory_high_watermark_relative,
+            ) {
+                (Some(bytes), _) => ResidentMemoryWatermark::Absolute(bytes),
+                (None, Some(fraction)) => ResidentMemoryWatermark::Relative(fraction),
+                (None, None) => defaults.resident_memory_high_watermark,
+            },
+            max_connections: file.max_connections.or(defaults.max_connections),
+            handshake_timeout: file
+                .handshake_timeout
+                .map_or(defaults.handshake_timeout, Duration::from_millis),
+            vhost_limits: file
+                .vhost_limits
+                .into_iter()
+                .map(|(vhost, limits)| {
+                    let limits = VhostLimits {
+                        max_connections: limits.max_connections,
+                        max_queues: limits.max_queues,
+                    };
+                    (vhost, limits)
+                })
+                .collect(),
         };
         let users = file
             .users

@@ -41,6 +41,7 @@ impl Channel {
                 auto_delete: declare.auto_delete,
                 arguments: declare.arguments,
             },
+            max_queues: self.core.limits.vhost(&self.vhost.name).max_queues,
         };
         let (queue, _created) = self.vhost.declare_queue(decl, connection_id)?;
         self.last_queue = Some(queue.name.clone());
