@@ -362,7 +362,8 @@ impl Connection {
         reader: &mut FrameReader<R>,
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
     ) -> Result<(), Ended> {
-        let limits = self.core.limits.clone();
+        let core = Arc::clone(&self.core);
+        let limits = &core.limits;
         self.outbox
             .method(
                 0,
