@@ -8,7 +8,10 @@
 //! compared only in the `-with-x` modes. A message's headers are indexed
 //! once per routing into [`MessageHeaders`], a hash map, so each binding
 //! costs one lookup per argument: O(headers + binding arguments) instead of
-//! their product.
+//! their product. Keys are hashed with the exchange's [`HeaderHasher`]: an
+//! argument once, when bound, a header once per routing; a lookup then
+//! compares hashes, then keys. The hash is keyed with a secret, so no peer
+//! can pick keys that collide.
 //!
 //! Values compare as RabbitMQ compares the decoded values (Erlang's `==`):
 //! numbers by value whatever their type (an `I` 1, an `l` 1, a `T` 1 and a
@@ -19,7 +22,43 @@
 //! the n-th header of that key; so does this.
 
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
+use std::collections::hash_map::RandomState;
 use std::collections::HashMap;
+use std::hash::{BuildHasher, BuildHasherDefault, Hasher};
+
+/// The keyed hash of a headers exchange's keys (a secret drawn per
+/// exchange).
+#[derive(Debug, Default)]
+pub(super) struct HeaderHasher(RandomState);
+
+impl HeaderHasher {
+    fn hash(&self, key: &[u8]) -> u64 {
+        self.0.hash_one(key)
+    }
+}
+
+/// A hasher for keys that are already [`HeaderHasher`] hashes.
+#[derive(Debug, Default)]
+struct Prehashed(u64);
+
+impl Hasher for Prehashed {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &byte in bytes {
+            self.0 = self.0.rotate_left(8) ^ u64::from(byte);
+        }
+    }
+
+    fn write_u64(&mut self, hash: u64) {
+        self.0 = hash;
+    }
+}
+
+/// A map keyed by [`HeaderHasher`] hashes.
+type ByHash<V> = HashMap<u64, V, BuildHasherDefault<Prehashed>>;
 
 /// Whether `x-match` holds a value RabbitMQ accepts (a long string `all`,
 /// `any`, `all-with-x` or `any-with-x`; absent means `all`).
@@ -37,6 +76,8 @@ pub fn valid_x_match(arguments: &FieldTable) -> bool {
 #[derive(Debug)]
 struct Wanted {
     key: ShortStr,
+    /// `key` hashed by the exchange's [`HeaderHasher`].
+    hash: u64,
     /// How many earlier arguments have the same key.
     occurrence: usize,
     /// `None` for a void argument: the header need only be present.
@@ -54,7 +95,7 @@ pub(super) struct HeadersPattern {
 impl HeadersPattern {
     /// Compiles a binding's arguments (an unknown `x-match`, which only a
     /// stored binding can carry, means `all`, as in RabbitMQ).
-    pub(super) fn new(arguments: &FieldTable) -> Self {
+    pub(super) fn new(arguments: &FieldTable, hasher: &HeaderHasher) -> Self {
         let mode = match arguments.get("x-match") {
             Some(FieldValue::LongStr(mode)) => &mode[..],
             _ => b"all",
@@ -74,6 +115,7 @@ impl HeadersPattern {
                 *count += 1;
                 Wanted {
                     key: key.clone(),
+                    hash: hasher.hash(key.as_bytes()),
                     occurrence,
                     value: (!matches!(value, FieldValue::Void)).then(|| value.clone()),
                 }
@@ -85,7 +127,7 @@ impl HeadersPattern {
     /// Whether a message with these headers matches.
     pub(super) fn matches(&self, headers: &MessageHeaders<'_>) -> bool {
         let mut hits = self.wanted.iter().map(|wanted| {
-            match headers.get(wanted.key.as_bytes(), wanted.occurrence) {
+            match headers.get(wanted.key.as_bytes(), wanted.hash, wanted.occurrence) {
                 None => false,
                 Some(actual) => wanted
                     .value
@@ -101,44 +143,50 @@ impl HeadersPattern {
     }
 }
 
-/// The values a message has under one header key, in table order.
+/// The headers of a message under one hash (one key, but for a collision
+/// of keyed hashes), in table order.
 #[derive(Debug)]
-struct Occurrences<'a> {
-    first: &'a FieldValue,
-    /// Values of the same key after the first (almost always none).
-    more: Vec<&'a FieldValue>,
+struct Slot<'a> {
+    first: (&'a [u8], &'a FieldValue),
+    /// Headers after the first (a repeated key; almost always none).
+    more: Vec<(&'a [u8], &'a FieldValue)>,
 }
 
 /// A message's headers indexed by key, built once per routing.
 #[derive(Debug, Default)]
 pub(super) struct MessageHeaders<'a> {
-    by_key: HashMap<&'a [u8], Occurrences<'a>>,
+    by_hash: ByHash<Slot<'a>>,
 }
 
 impl<'a> MessageHeaders<'a> {
-    /// Indexes a message's headers (none is an empty table).
-    pub(super) fn new(headers: Option<&'a FieldTable>) -> Self {
-        let mut by_key: HashMap<&'a [u8], Occurrences<'a>> =
-            HashMap::with_capacity(headers.map_or(0, FieldTable::len));
+    /// Indexes a message's headers (none is an empty table) with the
+    /// exchange's hasher.
+    pub(super) fn new(headers: Option<&'a FieldTable>, hasher: &HeaderHasher) -> Self {
+        let mut by_hash: ByHash<Slot<'a>> = ByHash::with_capacity_and_hasher(
+            headers.map_or(0, FieldTable::len),
+            Default::default(),
+        );
         for (key, value) in headers.into_iter().flat_map(FieldTable::iter) {
-            by_key
-                .entry(key.as_bytes())
-                .and_modify(|seen| seen.more.push(value))
-                .or_insert(Occurrences {
-                    first: value,
+            let header = (key.as_bytes(), value);
+            by_hash
+                .entry(hasher.hash(key.as_bytes()))
+                .and_modify(|slot| slot.more.push(header))
+                .or_insert(Slot {
+                    first: header,
                     more: Vec::new(),
                 });
         }
-        MessageHeaders { by_key }
+        MessageHeaders { by_hash }
     }
 
-    /// The `occurrence`-th value (from 0) under `key`.
-    fn get(&self, key: &[u8], occurrence: usize) -> Option<&'a FieldValue> {
-        let values = self.by_key.get(key)?;
-        match occurrence {
-            0 => Some(values.first),
-            n => values.more.get(n - 1).copied(),
-        }
+    /// The `occurrence`-th value (from 0) under `key`, whose hash is `hash`.
+    fn get(&self, key: &[u8], hash: u64, occurrence: usize) -> Option<&'a FieldValue> {
+        let slot = self.by_hash.get(&hash)?;
+        std::iter::once(&slot.first)
+            .chain(&slot.more)
+            .filter(|(header, _)| *header == key)
+            .nth(occurrence)
+            .map(|(_, value)| *value)
     }
 }
 
@@ -219,7 +267,9 @@ mod tests {
     fn matches(arguments: &[(&str, FieldValue)], headers: &[(&str, FieldValue)]) -> bool {
         let arguments = table(arguments);
         let headers = table(headers);
-        HeadersPattern::new(&arguments).matches(&MessageHeaders::new(Some(&headers)))
+        let hasher = HeaderHasher::default();
+        HeadersPattern::new(&arguments, &hasher)
+            .matches(&MessageHeaders::new(Some(&headers), &hasher))
     }
 
     fn text(s: &str) -> FieldValue {
@@ -248,7 +298,9 @@ mod tests {
         );
         assert!(!matches(&[("x-match", text("any"))], &[("a", text("1"))]));
         let none = FieldTable::new();
-        assert!(HeadersPattern::new(&none).matches(&MessageHeaders::new(None)));
+        let hasher = HeaderHasher::default();
+        let pattern = HeadersPattern::new(&none, &hasher);
+        assert!(pattern.matches(&MessageHeaders::new(None, &hasher)));
     }
 
     #[test]
@@ -384,12 +436,14 @@ mod tests {
         let headers = table(&entries);
         let mut with_mode = vec![("x-match", text("all"))];
         with_mode.extend(entries.iter().cloned());
-        let pattern = HeadersPattern::new(&table(&with_mode));
-        assert!(pattern.matches(&MessageHeaders::new(Some(&headers))));
+        let hasher = HeaderHasher::default();
+        let pattern = HeadersPattern::new(&table(&with_mode), &hasher);
+        assert!(pattern.matches(&MessageHeaders::new(Some(&headers), &hasher)));
         let last = entries.len() - 1;
         let mut one_off = entries.clone();
         one_off[last].1 = FieldValue::I32(0);
-        assert!(!pattern.matches(&MessageHeaders::new(Some(&table(&one_off)))));
+        let one_off = table(&one_off);
+        assert!(!pattern.matches(&MessageHeaders::new(Some(&one_off), &hasher)));
     }
 
     /// RabbitMQ's algorithm as plainly as possible: sort both tables by

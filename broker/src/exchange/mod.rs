@@ -23,7 +23,7 @@ mod topic;
 use crate::queue::Queue;
 use bytes::{Bytes, BytesMut};
 use destination_set::DestinationSet;
-use headers::{HeadersPattern, MessageHeaders};
+use headers::{HeaderHasher, HeadersPattern, MessageHeaders};
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 use std::collections::{btree_map, BTreeMap};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -192,8 +192,9 @@ enum RouteIndex {
     Fanout(DestinationSet),
     /// Binding keys as a trie.
     Topic(TopicTrie),
-    /// Headers bindings are matched one by one with their compiled patterns.
-    Headers,
+    /// Headers bindings are matched one by one with their compiled
+    /// patterns, keys hashed with the exchange's hasher.
+    Headers(HeaderHasher),
 }
 
 impl RouteIndex {
@@ -207,7 +208,7 @@ impl RouteIndex {
             RouteIndex::Topic(trie) => {
                 trie.add(binding.routing_key.as_bytes(), &binding.destination)
             }
-            RouteIndex::Headers => {}
+            RouteIndex::Headers(_) => {}
         }
     }
 
@@ -227,7 +228,7 @@ impl RouteIndex {
             RouteIndex::Topic(trie) => {
                 trie.remove(binding.routing_key.as_bytes(), &binding.destination);
             }
-            RouteIndex::Headers => {}
+            RouteIndex::Headers(_) => {}
         }
     }
 }
@@ -247,7 +248,7 @@ impl Routes {
             ExchangeKind::Direct => RouteIndex::Direct(BTreeMap::new()),
             ExchangeKind::Fanout => RouteIndex::Fanout(DestinationSet::default()),
             ExchangeKind::Topic => RouteIndex::Topic(TopicTrie::default()),
-            ExchangeKind::Headers => RouteIndex::Headers,
+            ExchangeKind::Headers => RouteIndex::Headers(HeaderHasher::default()),
         };
         Routes {
             bindings: BTreeMap::new(),
@@ -255,12 +256,15 @@ impl Routes {
         }
     }
 
-    fn insert(&mut self, binding: Binding, headers: bool) -> bool {
+    fn insert(&mut self, binding: Binding) -> bool {
         let btree_map::Entry::Vacant(slot) = self.bindings.entry(BindingId::of(&binding)) else {
             return false;
         };
         self.index.add(&binding);
-        let pattern = headers.then(|| HeadersPattern::new(&binding.arguments));
+        let pattern = match &self.index {
+            RouteIndex::Headers(hasher) => Some(HeadersPattern::new(&binding.arguments, hasher)),
+            _ => None,
+        };
         slot.insert(Bound { binding, pattern });
         true
     }
@@ -378,8 +382,7 @@ impl Exchange {
 
     /// Adds a binding; false if an identical one is there.
     fn insert(&self, binding: Binding) -> bool {
-        let headers = self.kind == ExchangeKind::Headers;
-        self.write().insert(binding, headers)
+        self.write().insert(binding)
     }
 
     /// Removes a binding; false if there was no such binding.
@@ -432,11 +435,11 @@ impl Exchange {
             }
             RouteIndex::Fanout(all) => all.iter().for_each(found),
             RouteIndex::Topic(trie) => trie.route(routing_key.as_bytes(), found),
-            RouteIndex::Headers => {
+            RouteIndex::Headers(hasher) => {
                 if routes.bindings.is_empty() {
                     return;
                 }
-                let headers = MessageHeaders::new(headers);
+                let headers = MessageHeaders::new(headers, hasher);
                 // Bindings come grouped by destination: once one of a
                 // destination's matches, the rest of its group is skipped.
                 let mut matched: Option<DestinationId> = None;
