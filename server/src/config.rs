@@ -364,6 +364,41 @@ mod tests {
     }
 
     #[test]
+    fn rabbitmq_limit_keys_are_read() {
+        let text = r#"
+            max-connections = 100
+            handshake-timeout = 2500
+            vm-memory-high-watermark-absolute = 104857600
+
+            [vhost-limits."/"]
+            max-connections = 10
+            max-queues = 50
+
+            [vhost-limits.robots]
+            max-queues = 5
+        "#;
+        let settings = Settings::resolve(Cli::default(), file(text)).unwrap();
+        let limits = &settings.limits;
+        assert_eq!(limits.max_connections, Some(100));
+        assert_eq!(limits.handshake_timeout, Duration::from_millis(2500));
+        assert_eq!(
+            limits.resident_memory_high_watermark,
+            ResidentMemoryWatermark::Absolute(104_857_600)
+        );
+        assert_eq!(limits.vhost_limits["/"].max_connections, Some(10));
+        assert_eq!(limits.vhost_limits["/"].max_queues, Some(50));
+        assert_eq!(limits.vhost_limits["robots"].max_connections, None);
+        assert_eq!(limits.vhost_limits["robots"].max_queues, Some(5));
+        let relative = file("vm-memory-high-watermark-relative = 0.6");
+        let settings = Settings::resolve(Cli::default(), relative).unwrap();
+        assert_eq!(
+            settings.limits.resident_memory_high_watermark,
+            ResidentMemoryWatermark::Relative(0.6)
+        );
+        assert!(FileConfig::parse("[vhost-limits.x]\nmax-queus = 1").is_err());
+    }
+
+    #[test]
     fn unknown_keys_and_wrong_types_are_refused() {
         assert!(FileConfig::parse("listne = []").is_err());
         assert!(FileConfig::parse("heartbeat = 70000").is_err());
