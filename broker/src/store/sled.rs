@@ -10,6 +10,12 @@ use std::path::Path;
 /// the broker keeps what it needs in memory.
 const CACHE_BYTES: u64 = 64 * 1024 * 1024;
 
+/// How long opening waits for the database's file lock. sled's I/O
+/// threads can hold it for a moment after the previous `Db` of this
+/// process is dropped (a restart in the same process); another process
+/// holding it is still refused, after this wait.
+const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// A store in a sled database.
 #[derive(Debug)]
 pub struct SledStore {
@@ -19,17 +25,30 @@ pub struct SledStore {
 impl SledStore {
     /// Opens (or creates) the store in `dir`.
     pub fn open(dir: &Path) -> Result<Self, StoreError> {
-        let db = super::guarded("open", || {
-            sled::Config::new()
-                .path(dir.join("store"))
-                .mode(sled::Mode::HighThroughput)
-                .cache_capacity(CACHE_BYTES)
-                .flush_every_ms(None)
-                .open()
-                .map_err(StoreError::from)
-        })?;
-        Ok(SledStore { db })
+        let started = std::time::Instant::now();
+        loop {
+            let opened = super::guarded("open", || {
+                sled::Config::new()
+                    .path(dir.join("store"))
+                    .mode(sled::Mode::HighThroughput)
+                    .cache_capacity(CACHE_BYTES)
+                    .flush_every_ms(None)
+                    .open()
+                    .map_err(StoreError::from)
+            });
+            match opened {
+                Err(e) if is_lock_held(&e) && started.elapsed() < LOCK_WAIT => {
+                    std::thread::sleep(std::time::Duration::from_millis(10));
+                }
+                opened => return opened.map(|db| SledStore { db }),
+            }
+        }
     }
+}
+
+/// Whether `error` is sled refusing to open because the file lock is held.
+fn is_lock_held(error: &StoreError) -> bool {
+    error.to_string().contains("could not acquire lock")
 }
 
 impl Store for SledStore {
@@ -73,6 +92,22 @@ impl Store for SledStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn opening_waits_briefly_for_a_lock_being_released() {
+        let dir = std::env::temp_dir().join(format!("leveret-sled-lock-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let first = SledStore::open(&dir).unwrap();
+        let release = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(100));
+            drop(first);
+        });
+        let second = SledStore::open(&dir);
+        release.join().unwrap();
+        assert!(second.is_ok(), "{:?}", second.err());
+        drop(second);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn batches_survive_reopening() {
