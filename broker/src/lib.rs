@@ -88,6 +88,7 @@ mod recovery;
 mod resident_memory;
 mod routing;
 mod server;
+mod slice;
 pub mod store;
 #[cfg(test)]
 mod testkit;

@@ -61,7 +61,7 @@ pub async fn sweeper(core: Arc<Core>, period: Duration) {
             _ = shutdown.wait_for(|down| *down) => return,
         }
         for vhost in core.vhosts() {
-            vhost.sweep();
+            vhost.sweep().await;
         }
     }
 }

@@ -337,7 +337,7 @@ impl FakeChannel {
     pub fn nack(&self, tag: u64, multiple: bool, requeue: bool) {
         self.settle(tag, multiple, |queue, message| {
             if requeue {
-                queue.requeue([message.clone()])
+                queue.requeue(vec![message.clone()])
             } else {
                 queue.reject(message.clone())
             }

@@ -19,6 +19,7 @@ use crate::exchange::{
 };
 use crate::memory::MemoryGauge;
 use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions};
+use crate::slice::{yield_if_spent, Progress, Slice};
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
@@ -42,6 +43,9 @@ pub struct Vhost {
     persistence: Option<Arc<Persistence>>,
     /// Direct reply-to consumers by their reply name.
     reply_targets: RwLock<HashMap<ShortStr, ReplyTarget>>,
+    /// Exclusive queues by owning connection, so that closing one costs
+    /// what it owns, not what the vhost holds.
+    exclusive_queues: Mutex<HashMap<u64, HashMap<ShortStr, Arc<Queue>>>>,
 }
 
 /// Whether a binding operation adds the binding or removes it.
@@ -109,6 +113,7 @@ impl Vhost {
             gauge,
             persistence,
             reply_targets: RwLock::new(HashMap::new()),
+            exclusive_queues: Mutex::new(HashMap::new()),
         };
         let durable = ExchangeOptions {
             durable: true,
@@ -327,6 +332,12 @@ impl Vhost {
             Arc::clone(&self.gauge),
             durable_store,
         ));
+        if let Some(owner) = queue.options.exclusive_owner {
+            lock(&self.exclusive_queues)
+                .entry(owner)
+                .or_default()
+                .insert(decl.name.clone(), Arc::clone(&queue));
+        }
         queues.insert(decl.name, Arc::clone(&queue));
         Ok((queue, true))
     }
@@ -341,6 +352,15 @@ impl Vhost {
                     queues.remove(&queue.name);
                 }
                 _ => return Deleted::default(),
+            }
+        }
+        if let Some(owner) = queue.options.exclusive_owner {
+            let mut exclusive = lock(&self.exclusive_queues);
+            if let Some(owned) = exclusive.get_mut(&owner) {
+                owned.remove(&queue.name);
+                if owned.is_empty() {
+                    exclusive.remove(&owner);
+                }
             }
         }
         let destination = Destination::Queue(Arc::clone(queue));
@@ -423,23 +443,11 @@ impl Vhost {
     /// what was routed just before its deletion). The store was told at
     /// deletion. Exchanges left without bindings are auto-deleted.
     fn unbind_in_steps(self: &Arc<Self>, doomed: Destination) {
-        if self.unbind_step(&doomed) {
-            return;
-        }
-        match tokio::runtime::Handle::try_current() {
-            Ok(runtime) => {
-                let vhost = Arc::clone(self);
-                runtime.spawn(async move {
-                    loop {
-                        tokio::task::yield_now().await;
-                        if vhost.unbind_step(&doomed) {
-                            break;
-                        }
-                    }
-                });
-            }
-            Err(_) => while !self.unbind_step(&doomed) {},
-        }
+        let vhost = Arc::clone(self);
+        crate::slice::finish_in_background(move |_| match vhost.unbind_step(&doomed) {
+            true => Progress::Done,
+            false => Progress::More,
+        });
     }
 
     /// One step of [`Self::unbind_in_steps`]; true once nothing is left.
@@ -715,33 +723,91 @@ impl Vhost {
         read(&self.reply_targets).get(name).cloned()
     }
 
-    /// Deletes the exclusive queues of a closed connection.
+    /// Deletes the exclusive queues of a closed connection, a slice at a
+    /// time, the first slice now.
     pub fn drop_exclusive(self: &Arc<Self>, connection_id: u64) {
-        let owned: Vec<Arc<Queue>> = read(&self.queues)
-            .values()
-            .filter(|q| q.options.exclusive_owner == Some(connection_id))
-            .cloned()
-            .collect();
-        for queue in owned {
-            self.delete_queue(&queue).notify();
+        let Some(owned) = lock(&self.exclusive_queues).remove(&connection_id) else {
+            return;
+        };
+        let mut owned = owned.into_values();
+        let vhost = Arc::clone(self);
+        crate::slice::finish_in_background(move |slice| {
+            for queue in owned.by_ref() {
+                vhost.delete_queue(&queue).notify();
+                if slice.step() {
+                    return Progress::More;
+                }
+            }
+            Progress::Done
+        });
+    }
+
+    /// Expires `queue`'s head messages past their TTL and routes their
+    /// dead letters, a slice at a time, yielding between slices.
+    pub async fn expire(&self, queue: &Queue) {
+        let now = Instant::now();
+        let mut slice = Slice::start();
+        while self.expire_step(queue, now, &mut slice) == Progress::More {
+            tokio::task::yield_now().await;
+            slice = Slice::start();
         }
     }
 
-    /// Periodic housekeeping: expires messages past their TTL and deletes
-    /// queues past x-expires.
-    pub fn sweep(self: &Arc<Self>) {
-        self.sweep_at(Instant::now());
-    }
-
-    /// [`Vhost::sweep`] as of `now`.
-    pub fn sweep_at(self: &Arc<Self>, now: Instant) {
-        for queue in self.queues() {
-            self.dead_letter(queue.expire_at(now));
-            if queue.unused_expired_at(now) {
-                tracing::debug!(queue = %queue.name, "queue expired (x-expires)");
-                self.delete_queue(&queue).notify();
+    /// Expires messages and routes their dead letters until `slice` is
+    /// spent or nothing expired is left.
+    fn expire_step(&self, queue: &Queue, now: Instant, slice: &mut Slice) -> Progress {
+        loop {
+            let (dead, progress) = queue.expire_at(now, slice);
+            self.dead_letter(dead);
+            if progress == Progress::Done {
+                return Progress::Done;
+            }
+            if slice.is_spent() {
+                return Progress::More;
             }
         }
+    }
+
+    /// Periodic housekeeping: expires messages past their TTL (dispatching
+    /// what a consumer waiting behind them can now take) and deletes
+    /// queues past x-expires, yielding whenever a slice is spent.
+    pub async fn sweep(self: &Arc<Self>) {
+        let now = Instant::now();
+        let mut slice = Slice::start();
+        for queue in self.queues() {
+            while self.sweep_queue(&queue, now, &mut slice) == Progress::More {
+                tokio::task::yield_now().await;
+                slice = Slice::start();
+            }
+            yield_if_spent(&mut slice).await;
+        }
+    }
+
+    /// [`Vhost::sweep`] as of `now`, all at once (for tests of the core).
+    #[cfg(test)]
+    pub fn sweep_at(self: &Arc<Self>, now: Instant) {
+        for queue in self.queues() {
+            while self.sweep_queue(&queue, now, &mut Slice::start()) == Progress::More {}
+        }
+    }
+
+    /// One queue's part of a sweep, within `slice`.
+    fn sweep_queue(
+        self: &Arc<Self>,
+        queue: &Arc<Queue>,
+        now: Instant,
+        slice: &mut Slice,
+    ) -> Progress {
+        if self.expire_step(queue, now, slice) == Progress::More {
+            return Progress::More;
+        }
+        self.dead_letter(queue.dispatch());
+        if queue.unused_expired_at(now) {
+            tracing::debug!(queue = %queue.name, "queue expired (x-expires)");
+            self.delete_queue(queue).notify();
+        }
+        slice.step();
+        Progress::Done
     }
 }
 

@@ -21,33 +21,12 @@
 #[macro_use]
 mod common;
 
-use bytes::{Bytes, BytesMut};
 use common::lp::AMQPValue;
+use common::stall::*;
 use common::*;
-use leveret_broker::{Broker, Limits};
-use leveret_protocol::{
-    decode_frame, encode_method, ChannelOpen, ConnectionOpen, ConnectionStartOk, ConnectionTuneOk,
-    FieldTable, Frame, Method, QueueBind, QueueDeclare, ShortStr, PROTOCOL_HEADER,
-};
-use std::future::Future;
-use std::time::{Duration, Instant};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
-use tokio::sync::watch;
-
-/// The worst round trip a bystander may see while an attack runs, beyond
-/// the worst it saw just before (a few hundred microseconds on a quiet
-/// machine, a few milliseconds on a loaded one).
-const WORST_ROUND_TRIP: Duration = Duration::from_millis(10);
-
-/// `release` in a release build, `debug` in a debug one.
-const fn sized(release: usize, debug: usize) -> usize {
-    if cfg!(debug_assertions) {
-        debug
-    } else {
-        release
-    }
-}
+use leveret_broker::Limits;
+use leveret_protocol::{Method, QueueBind, QueueDeclare};
+use std::time::Instant;
 
 /// Words of the long routing key (the issue saw 60-120).
 const KEY_WORDS: usize = 120;
@@ -55,195 +34,6 @@ const KEY_WORDS: usize = 120;
 const HEADERS: usize = sized(8_000, 2_000);
 /// Bindings of the exclusive queue.
 const BINDINGS: usize = sized(40_000, 10_000);
-
-/// Taken by each test for its whole run: the tests measure latency, so
-/// one's attack must not run beside another's probe.
-static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-
-/// The broker under test: an in-process Leveret alone on its own thread
-/// (frame_max raised when the header table needs it), or
-/// the external broker named by `LEVERET_TEST_AMQP_URL`.
-struct Target {
-    url: String,
-    addr: String,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-}
-
-impl Target {
-    async fn start() -> Self {
-        let external = std::env::var(leveret_tests::URL_ENV).is_ok_and(|u| !u.trim().is_empty());
-        if external {
-            let broker = broker().await;
-            return Target {
-                url: broker.url().to_owned(),
-                addr: broker.addr(),
-                stop: None,
-            };
-        }
-        let (started, addresses) = std::sync::mpsc::channel();
-        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        std::thread::spawn(move || {
-            let runtime = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()
-                .expect("runtime");
-            runtime.block_on(async move {
-                // Room for the big header table (an entry `h31999` of type
-                // `I` is 12 bytes); raised only when needed, as clients
-                // size their buffers by it.
-                let limits = Limits {
-                    frame_max: (HEADERS as u32 * 16).max(Limits::default().frame_max),
-                    ..Limits::default()
-                };
-                let broker = TestBroker::leveret(Broker::builder().limits(limits)).await;
-                let addresses = (broker.url().to_owned(), broker.addr());
-                started.send(addresses).expect("the test waits");
-                let _ = stopped.await;
-                broker.stop().await;
-            });
-        });
-        let (url, addr) = addresses.recv().expect("broker starts");
-        Target {
-            url,
-            addr,
-            stop: Some(stop),
-        }
-    }
-
-    async fn connect(&self) -> lp::Connection {
-        within(
-            "lapin connect",
-            lp::Connection::connect(&self.url, lp::ConnectionProperties::default()),
-        )
-        .await
-        .expect("connects")
-    }
-
-    async fn open(&self) -> (lp::Connection, lp::Channel) {
-        let connection = self.connect().await;
-        let channel = lp::channel(&connection).await;
-        (connection, channel)
-    }
-}
-
-impl Drop for Target {
-    /// Asks the broker to stop, without waiting: a broker stuck in an
-    /// attack (the failure this file looks for) must not hang the test.
-    fn drop(&mut self) {
-        if let Some(stop) = self.stop.take() {
-            let _ = stop.send(());
-        }
-    }
-}
-
-/// Round trips of a bystander connection, back to back until stopped.
-struct Probe {
-    /// The worst round trip in the [`QUIET_PERIOD`] before the attack:
-    /// what this machine adds on its own (a loaded machine delays any
-    /// thread).
-    quiet_worst: Duration,
-    stop: watch::Sender<bool>,
-    task: tokio::task::JoinHandle<(Duration, usize)>,
-}
-
-/// How long the probe measures the machine's own noise before an attack.
-const QUIET_PERIOD: Duration = Duration::from_millis(200);
-
-impl Probe {
-    /// Measures the quiet round trip, then probes until stopped.
-    async fn start(target: &Target) -> Probe {
-        let (connection, channel) = target.open().await;
-        let queue = tmo!(channel.queue_declare(
-            "",
-            lp::QueueDeclareOptions {
-                exclusive: true,
-                ..Default::default()
-            },
-            lp::FieldTable::default(),
-        ))
-        .expect("probe queue")
-        .name()
-        .to_string();
-        let no_ack = lp::BasicConsumeOptions {
-            no_ack: true,
-            ..Default::default()
-        };
-        let mut deliveries = lp::consume_opts(&channel, &queue, "probe", no_ack).await;
-        let mut quiet_worst = Duration::ZERO;
-        let quiet_since = Instant::now();
-        while quiet_since.elapsed() < QUIET_PERIOD {
-            let sent = Instant::now();
-            lp::publish(&channel, "", &queue, b"quiet").await;
-            lp::next(&mut deliveries).await;
-            quiet_worst = quiet_worst.max(sent.elapsed());
-        }
-        let (stop, stopped) = watch::channel(false);
-        let task = tokio::spawn(async move {
-            let _connection = connection;
-            let (mut worst, mut count) = (Duration::ZERO, 0);
-            // At least one round trip, however quick the attack.
-            loop {
-                let sent = Instant::now();
-                lp::publish(&channel, "", &queue, b"ping").await;
-                lp::next(&mut deliveries).await;
-                worst = worst.max(sent.elapsed());
-                count += 1;
-                if *stopped.borrow() {
-                    break (worst, count);
-                }
-            }
-        });
-        Probe {
-            quiet_worst,
-            stop,
-            task,
-        }
-    }
-
-    /// Stops probing; an error report unless the worst round trip during
-    /// the attack stayed under [`WORST_ROUND_TRIP`] beyond the quiet worst.
-    async fn finish(self, during: &str) -> Result<(), String> {
-        let _ = self.stop.send(true);
-        let (worst, count) = within("the probe", self.task).await.expect("probe ran");
-        let quiet = self.quiet_worst;
-        let report =
-            format!("{during}: {count} round trips, worst {worst:?} (quiet worst {quiet:?})");
-        eprintln!("{report}");
-        if worst < WORST_ROUND_TRIP + quiet {
-            Ok(())
-        } else {
-            Err(report)
-        }
-    }
-}
-
-/// Attempts at an attack, each on a fresh broker, before a test fails.
-const ATTEMPTS: usize = 5;
-
-/// Runs `attack` on a fresh broker until a bystander's round trips stay
-/// within bounds during it, at most [`ATTEMPTS`] times; fails with every
-/// attempt's report. A broker that stalls on an input stalls on every
-/// attempt (the blow-ups this file reproduces stall for seconds or never
-/// finish), while a loaded machine's scheduling hiccup (a busy thread
-/// preempted for whole 4 ms ticks) does not repeat at will.
-async fn within_bounds<Attack, Done>(attack: Attack)
-where
-    Attack: Fn(Target) -> Done,
-    Done: Future<Output = Result<(), String>>,
-{
-    let _alone = ONE_AT_A_TIME.lock().await;
-    let mut reports = Vec::new();
-    for _ in 0..ATTEMPTS {
-        match attack(Target::start().await).await {
-            Ok(()) => return,
-            Err(report) => reports.push(report),
-        }
-    }
-    panic!(
-        "a bystander's round trip exceeded {WORST_ROUND_TRIP:?} beyond the quiet worst on every attempt:\n{}",
-        reports.join("\n")
-    );
-}
 
 async fn confirm_select(channel: &lp::Channel) {
     tmo!(channel.confirm_select(lp::ConfirmSelectOptions::default())).expect("confirm.select");
@@ -271,7 +61,7 @@ async fn drain_count(channel: &lp::Channel, queue: &str) -> usize {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_binding_of_many_hashes_routes_a_long_key_at_once() {
-    within_bounds(many_hashes_and_a_long_key).await;
+    within_bounds(Limits::default(), many_hashes_and_a_long_key).await;
 }
 
 async fn many_hashes_and_a_long_key(target: Target) -> Result<(), String> {
@@ -314,7 +104,13 @@ fn big_table(n: usize, extra: Option<(&str, AMQPValue)>) -> lp::FieldTable {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_huge_headers_binding_matches_a_huge_header_table_at_once() {
-    within_bounds(huge_headers).await;
+    // Room for the big header table (an entry `h31999` of type `I` is
+    // 12 bytes); raised only here, as clients size their buffers by it.
+    let limits = Limits {
+        frame_max: (HEADERS as u32 * 16).max(Limits::default().frame_max),
+        ..Limits::default()
+    };
+    within_bounds(limits, huge_headers).await;
 }
 
 async fn huge_headers(target: Target) -> Result<(), String> {
@@ -343,96 +139,9 @@ async fn huge_headers(target: Target) -> Result<(), String> {
     probed
 }
 
-/// A connection written by hand, to send thousands of methods in one
-/// write, as a hostile client would, with no client library in between.
-struct Flood {
-    socket: TcpStream,
-    buf: BytesMut,
-}
-
-impl Flood {
-    /// Logs in as guest on `/` and opens channel 1.
-    async fn open(addr: &str) -> Flood {
-        let socket = tmo!(TcpStream::connect(addr)).expect("tcp connect");
-        let mut flood = Flood {
-            socket,
-            buf: BytesMut::new(),
-        };
-        flood.send(PROTOCOL_HEADER).await;
-        flood
-            .expect(|m| matches!(m, Method::ConnectionStart(_)))
-            .await;
-        let start_ok = ConnectionStartOk {
-            client_properties: FieldTable::new(),
-            mechanism: ShortStr::from_static("PLAIN"),
-            response: Bytes::from_static(b"\0guest\0guest"),
-            locale: ShortStr::from_static("en_US"),
-        };
-        flood.send(&frames(0, [start_ok.into()])).await;
-        let Method::ConnectionTune(tune) = flood
-            .expect(|m| matches!(m, Method::ConnectionTune(_)))
-            .await
-        else {
-            unreachable!("matched above")
-        };
-        let tune_ok = ConnectionTuneOk {
-            channel_max: tune.channel_max,
-            frame_max: tune.frame_max,
-            heartbeat: 0,
-        };
-        let open = ConnectionOpen {
-            virtual_host: ShortStr::from_static("/"),
-            ..Default::default()
-        };
-        flood.send(&frames(0, [tune_ok.into(), open.into()])).await;
-        flood
-            .expect(|m| matches!(m, Method::ConnectionOpenOk(_)))
-            .await;
-        flood
-            .send(&frames(1, [ChannelOpen::default().into()]))
-            .await;
-        flood
-            .expect(|m| matches!(m, Method::ChannelOpenOk(_)))
-            .await;
-        flood
-    }
-
-    async fn send(&mut self, bytes: &[u8]) {
-        tmo!(self.socket.write_all(bytes)).expect("write");
-    }
-
-    /// Reads methods until one that `wanted` accepts.
-    async fn expect(&mut self, wanted: impl Fn(&Method) -> bool) -> Method {
-        loop {
-            match decode_frame(&mut self.buf, 0).expect("the broker sends valid frames") {
-                Some(Frame::Method { method, .. }) if wanted(&method) => return method,
-                Some(Frame::Method { method, .. }) => panic!("unexpected {method:?}"),
-                Some(_) => continue,
-                None => {
-                    let read = tmo!(self.socket.read_buf(&mut self.buf)).expect("read");
-                    assert_ne!(read, 0, "the broker closed the connection");
-                }
-            }
-        }
-    }
-}
-
-/// Method frames, encoded one after the other.
-fn frames(channel: u16, methods: impl IntoIterator<Item = Method>) -> BytesMut {
-    let mut buf = BytesMut::new();
-    for method in methods {
-        encode_method(channel, &method, &mut buf);
-    }
-    buf
-}
-
-fn short(text: &str) -> ShortStr {
-    ShortStr::try_from(text).expect("short string")
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn closing_the_owner_of_a_queue_bound_many_times_unbinds_it_in_steps() {
-    within_bounds(many_bindings_then_close).await;
+    within_bounds(Limits::default(), many_bindings_then_close).await;
 }
 
 async fn many_bindings_then_close(target: Target) -> Result<(), String> {

@@ -8,11 +8,13 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::Exchange;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
-use crate::queue::{DeadLetters, Enqueued, Queue};
+use crate::queue::{DeadLetters, Enqueued, Queue, QueuedMessage};
+use crate::slice::{finish_in_background, yield_if_spent, Progress, Slice};
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
     BasicPublish, BasicQos, BasicQosOk, ReplyCode, ShortStr,
 };
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
@@ -90,23 +92,55 @@ fn consumer_priority(arguments: &leveret_protocol::FieldTable) -> AmqpResult<i64
     }
 }
 
-/// Requeues settled-by-close deliveries, each queue once, in tag order.
+/// Most deliveries [`requeue_all`] regroups in one step.
+const REQUEUE_BATCH: usize = 1024;
+
+/// Requeues settled-by-close deliveries, each queue once per batch, in tag
+/// order: the first batch now (its dead letters are returned), the rest a
+/// batch per slice in the background (theirs wait in their queue for the
+/// next sweep), so a channel closed with a million unacked deliveries does
+/// not hold the thread.
 pub(crate) fn requeue_all(unacked: Vec<Unacked>) -> DeadLetters {
-    let mut by_queue: Vec<(Arc<Queue>, Vec<crate::queue::QueuedMessage>)> = Vec::new();
-    for u in unacked {
+    let mut unacked = unacked.into_iter();
+    let mut dead = DeadLetters::default();
+    for (_, dead_here) in requeue_batch(&mut unacked) {
+        dead.append(dead_here);
+    }
+    if unacked.len() > 0 {
+        finish_in_background(move |_| {
+            for (queue, dead_here) in requeue_batch(&mut unacked) {
+                queue.defer(dead_here);
+            }
+            match unacked.len() {
+                0 => Progress::Done,
+                _ => Progress::More,
+            }
+        });
+    }
+    dead
+}
+
+/// Requeues the next [`REQUEUE_BATCH`] deliveries, grouped by queue;
+/// returns each queue's dead letters.
+fn requeue_batch(unacked: &mut impl Iterator<Item = Unacked>) -> Vec<(Arc<Queue>, DeadLetters)> {
+    let mut by_queue: HashMap<*const Queue, (Arc<Queue>, Vec<QueuedMessage>)> = HashMap::new();
+    for u in unacked.take(REQUEUE_BATCH) {
         if let Some(consumer) = &u.consumer {
             consumer.settled_one();
         }
-        match by_queue.iter_mut().find(|(q, _)| Arc::ptr_eq(q, &u.queue)) {
-            Some((_, list)) => list.push(u.message),
-            None => by_queue.push((u.queue, vec![u.message])),
-        }
+        by_queue
+            .entry(Arc::as_ptr(&u.queue))
+            .or_insert_with(|| (Arc::clone(&u.queue), Vec::new()))
+            .1
+            .push(u.message);
     }
-    let mut dead = DeadLetters::default();
-    for (queue, messages) in by_queue {
-        dead.append(queue.requeue(messages));
-    }
-    dead
+    by_queue
+        .into_values()
+        .map(|(queue, messages)| {
+            let dead = queue.requeue(messages);
+            (queue, dead)
+        })
+        .collect()
 }
 
 impl Channel {
@@ -177,6 +211,9 @@ impl Channel {
         if let (Some(persistence), Some(op)) = (&self.core.persistence, message.record_op()) {
             persistence.submit(vec![op]);
         }
+        // A fanout to thousands of queues yields between slices: the
+        // channel's next frame waits, other connections do not.
+        let mut slice = Slice::start();
         for queue in queues.drain(..) {
             let (enqueued, dead_here) = queue.publish(Arc::clone(&message));
             outcome.add(enqueued);
@@ -184,6 +221,7 @@ impl Channel {
             if queue.is_crowded() && self.crowded.is_none() {
                 self.crowded = Some(queue);
             }
+            yield_if_spent(&mut slice).await;
         }
         self.route_buffer = queues;
         self.vhost.dead_letter(dead);

@@ -49,7 +49,7 @@ impl Channel {
             self.definitions_on_disk().await?;
         }
         // The count leaves out messages that have expired.
-        self.vhost.dead_letter(queue.expire());
+        self.vhost.expire(&queue).await;
         if !declare.no_wait {
             self.reply(QueueDeclareOk {
                 queue: queue.name.clone(),
@@ -144,7 +144,7 @@ impl Channel {
                         name, self.vhost.name
                     )));
                 }
-                self.vhost.dead_letter(queue.expire());
+                self.vhost.expire(&queue).await;
                 if delete.if_empty && queue.message_count() > 0 {
                     return Err(AmqpError::precondition_failed(format_args!(
                         "queue '{}' in vhost '{}' is not empty",

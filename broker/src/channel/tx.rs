@@ -9,6 +9,7 @@ use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::queue::{DeadLetters, Queue};
+use crate::slice::{yield_if_spent, Slice};
 use leveret_protocol::{
     BasicAck, BasicNack, ConfirmSelectOk, TxCommitOk, TxRollbackOk, TxSelectOk,
 };
@@ -103,7 +104,9 @@ impl Channel {
         let mut ops = Vec::new();
         let publishes = std::mem::take(&mut tx.publishes);
         let mut placed = Vec::with_capacity(publishes.len());
+        let mut slice = Slice::start();
         for publish in publishes {
+            yield_if_spent(&mut slice).await;
             let mut queues = Vec::new();
             // An exchange deleted before the commit: RabbitMQ drops the message.
             let Some(exchange) = self.vhost.exchange(&publish.method.exchange) else {
@@ -136,6 +139,7 @@ impl Channel {
                     None => queue.publish(Arc::clone(&message)),
                 };
                 dead.append(dead_here);
+                yield_if_spent(&mut slice).await;
             }
         }
         dead.append(apply_settles(std::mem::take(&mut tx.settles)));

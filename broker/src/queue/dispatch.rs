@@ -5,13 +5,17 @@
 
 use super::{
     DeadLetter, DeadLetterReason, DeadLetters, Enqueued, Overflow, Queue, QueueState,
-    QueuedMessage, FLOW_HIGH, FLOW_LOW,
+    QueuedMessage, DEAD_LETTERS_PER_STEP, FLOW_HIGH, FLOW_LOW,
 };
 use crate::consumer::Unacked;
 use crate::message::Message;
 use crate::outbox::Outbound;
+use crate::slice::{Progress, Slice};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+/// Most expired messages one pop skips; see [`Queue::pop_live`].
+const EXPIRED_PER_POP: usize = 256;
 
 impl Queue {
     pub(super) fn offer(
@@ -85,7 +89,7 @@ impl Queue {
         let by_bytes = self
             .args
             .max_length_bytes
-            .is_some_and(|max| (st.ready_bytes + message.body.len()) as u64 > max);
+            .is_some_and(|max| (st.ready.bytes() + message.body.len()) as u64 > max);
         by_count || by_bytes
     }
 
@@ -101,7 +105,7 @@ impl Queue {
             let over_bytes = self
                 .args
                 .max_length_bytes
-                .is_some_and(|max| st.ready_bytes as u64 > max);
+                .is_some_and(|max| st.ready.bytes() as u64 > max);
             if !(over_count || over_bytes) {
                 return;
             }
@@ -117,17 +121,7 @@ impl Queue {
             self.crowded
                 .store(true, std::sync::atomic::Ordering::Release);
         }
-        st.ready_bytes += queued.message.body.len();
-        if queued.expires_at.is_some() {
-            st.expiring += 1;
-        }
-        let key = queued.order_key();
-        if st.ready.back().is_none_or(|last| last.order_key() < key) {
-            st.ready.push_back(queued);
-        } else {
-            let at = st.ready.partition_point(|m| m.order_key() < key);
-            st.ready.insert(at, queued);
-        }
+        st.ready.insert(queued);
     }
 
     /// Wakes waiting publishers once the queue has drained enough (or has
@@ -147,21 +141,19 @@ impl Queue {
         if self.crowded.load(std::sync::atomic::Ordering::Relaxed) {
             self.check_drained(st);
         }
-        st.ready_bytes -= head.message.body.len();
-        if head.expires_at.is_some() {
-            st.expiring -= 1;
-        }
         Some(head)
     }
 
-    /// Takes the head message that has not expired, expiring those that have.
+    /// Takes the head message that has not expired, expiring those that
+    /// have: at most [`EXPIRED_PER_POP`] of them, after which it gives up
+    /// (None) and leaves the rest to the sweeper, which dispatches again.
     pub(super) fn pop_live(
         &self,
         st: &mut QueueState,
         now: Instant,
         dead: &mut Vec<DeadLetter>,
     ) -> Option<QueuedMessage> {
-        loop {
+        for _ in 0..EXPIRED_PER_POP {
             let head = self.pop_ready(st)?;
             if head.expires_at.is_some_and(|at| at < now) {
                 self.discard(head, DeadLetterReason::Expired, dead);
@@ -169,16 +161,20 @@ impl Queue {
                 return Some(head);
             }
         }
+        None
     }
 
+    /// Expires messages at the head, one step of `slice` each; see
+    /// [`Queue::expire_at`].
     pub(super) fn expire_head(
         &self,
         st: &mut QueueState,
         dead: &mut Vec<DeadLetter>,
         now: Instant,
-    ) {
-        if st.expiring == 0 {
-            return;
+        slice: &mut Slice,
+    ) -> Progress {
+        if !st.ready.has_expiring() {
+            return Progress::Done;
         }
         while st
             .ready
@@ -188,7 +184,11 @@ impl Queue {
             if let Some(head) = self.pop_ready(st) {
                 self.discard(head, DeadLetterReason::Expired, dead);
             }
+            if slice.step() || dead.len() >= DEAD_LETTERS_PER_STEP {
+                return Progress::More;
+            }
         }
+        Progress::Done
     }
 
     pub(super) fn dispatch_locked(
@@ -201,8 +201,9 @@ impl Queue {
         if count == 0 || st.ready.is_empty() {
             return;
         }
-        // Consumers whose connection had no room during this dispatch.
-        let mut full: Vec<usize> = Vec::new();
+        // Consumers whose connection had no room during this dispatch, by
+        // index (allocated when the first one is found).
+        let mut full: Vec<bool> = Vec::new();
         while !st.ready.is_empty() {
             let Some(index) = Self::next_consumer(st, &full) else {
                 // No consumer can take a message now; credit or room will
@@ -212,11 +213,11 @@ impl Queue {
             let consumer = Arc::clone(&st.consumers[index]);
             let Some(permit) = consumer.channel.outbox.try_reserve() else {
                 consumer.channel.outbox.wait_for_room(self);
-                full.push(index);
+                mark_full(&mut full, index, count);
                 continue;
             };
             let Some(credit) = consumer.try_take_credit() else {
-                full.push(index);
+                mark_full(&mut full, index, count);
                 continue;
             };
             st.cursor = (index + 1) % count;
@@ -257,13 +258,13 @@ impl Queue {
     /// known to be out of room), the highest `x-priority`, round-robin from
     /// the cursor among equals. Without priorities that is simply the first
     /// consumer with credit after the previous one.
-    pub(super) fn next_consumer(st: &QueueState, full: &[usize]) -> Option<usize> {
+    pub(super) fn next_consumer(st: &QueueState, full: &[bool]) -> Option<usize> {
         let count = st.consumers.len();
         let mut best: Option<usize> = None;
         for offset in 0..count {
             let index = (st.cursor + offset) % count;
             let consumer = &st.consumers[index];
-            if full.contains(&index) || !consumer.has_credit() {
+            if full.get(index).copied().unwrap_or(false) || !consumer.has_credit() {
                 continue;
             }
             if !st.prioritised {
@@ -275,4 +276,12 @@ impl Queue {
         }
         best
     }
+}
+
+/// Marks consumer `index` (of `count`) as out of room for this dispatch.
+fn mark_full(full: &mut Vec<bool>, index: usize, count: usize) {
+    if full.is_empty() {
+        full.resize(count, false);
+    }
+    full[index] = true;
 }

@@ -19,6 +19,7 @@ mod args;
 mod dispatch;
 mod durable;
 mod leaving;
+mod ready;
 
 pub use args::{Overflow, QueueArgs};
 pub use leaving::{DeadLetter, DeadLetterReason, DeadLetters, Deleted};
@@ -28,9 +29,10 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::message::Message;
 use crate::outbox::Outbound;
+use crate::slice::{finish_in_background, Progress, Slice};
 use crate::store::Persistence;
 use leveret_protocol::{FieldTable, ShortStr};
-use std::collections::VecDeque;
+use ready::Ready;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc::Permit;
@@ -44,6 +46,10 @@ pub const FLOW_HIGH: usize = 20_000;
 
 /// See [`FLOW_HIGH`].
 pub const FLOW_LOW: usize = 10_000;
+
+/// Most dead letters one step of expiry makes before its caller routes
+/// them: routing one costs microseconds, so a step stays within a slice.
+pub const DEAD_LETTERS_PER_STEP: usize = 64;
 
 /// A message in a queue, with its place in the queue's order.
 #[derive(Debug, Clone)]
@@ -81,15 +87,13 @@ pub enum Enqueued {
 
 #[derive(Debug, Default)]
 struct QueueState {
-    ready: VecDeque<QueuedMessage>,
-    ready_bytes: usize,
+    ready: Ready,
     next_seq: u64,
     consumers: Vec<Arc<Consumer>>,
     cursor: usize,
     /// Some consumer has a non-zero `x-priority`.
     prioritised: bool,
     exclusive_consumer: bool,
-    expiring: usize,
     /// Highest seq delivered (persisted for durable queues, see `store`).
     delivered_mark: u64,
     last_used: Option<Instant>,
@@ -239,23 +243,56 @@ impl Queue {
     }
 
     /// Puts delivered messages back in their original places, marked
-    /// redelivered, and dispatches them again.
-    pub fn requeue(
+    /// redelivered, and dispatches them again: as many as a slice allows
+    /// now (the dead letters that dispatch finds are returned), the rest
+    /// in the background (theirs wait for the next sweep).
+    pub fn requeue(self: &Arc<Self>, messages: Vec<QueuedMessage>) -> DeadLetters {
+        let mut messages = messages.into_iter();
+        let mut slice = Slice::start();
+        let (dead, progress) = self.requeue_some(&mut messages, &mut slice);
+        if progress == Progress::More {
+            let queue = Arc::clone(self);
+            finish_in_background(move |slice| {
+                let (dead, progress) = queue.requeue_some(&mut messages, slice);
+                queue.defer(dead);
+                progress
+            });
+        }
+        dead
+    }
+
+    /// One slice of [`Queue::requeue`].
+    fn requeue_some(
         self: &Arc<Self>,
-        messages: impl IntoIterator<Item = QueuedMessage>,
-    ) -> DeadLetters {
+        messages: &mut impl Iterator<Item = QueuedMessage>,
+        slice: &mut Slice,
+    ) -> (DeadLetters, Progress) {
         let mut dead = Vec::new();
+        let mut progress = Progress::Done;
         let mut st = self.lock();
-        for mut queued in messages {
+        for mut queued in messages.by_ref() {
             if st.deleted {
                 self.release(&queued);
-                continue;
+            } else {
+                queued.redelivered = true;
+                self.insert_ready(&mut st, queued);
             }
-            queued.redelivered = true;
-            self.insert_ready(&mut st, queued);
+            if slice.step() {
+                progress = Progress::More;
+                break;
+            }
         }
         self.dispatch_locked(&mut st, &mut dead, Instant::now());
-        DeadLetters(dead)
+        (DeadLetters(dead), progress)
+    }
+
+    /// Keeps dead letters found where nobody can route them (a writer's
+    /// dispatch, work finishing in the background) for the vhost's next
+    /// sweep ([`Queue::expire_at`]).
+    pub fn defer(&self, dead: DeadLetters) {
+        if !dead.is_empty() {
+            self.lock().deferred_dead.extend(dead);
+        }
     }
 
     /// An unacked message was acked (or rejected without dead-lettering).
@@ -338,16 +375,26 @@ impl Queue {
         }
     }
 
-    /// Drops every ready message; returns how many.
-    pub fn purge(&self) -> u32 {
-        let mut st = self.lock();
-        let count = st.ready.len() as u32;
-        for queued in std::mem::take(&mut st.ready) {
-            self.release(&queued);
-        }
-        st.ready_bytes = 0;
-        st.expiring = 0;
-        self.check_drained(&st);
+    /// Drops every ready message; returns how many. They are released
+    /// (memory, store) a slice at a time, the first slice now.
+    pub fn purge(self: &Arc<Self>) -> u32 {
+        let mut purged = {
+            let mut st = self.lock();
+            let purged = std::mem::take(&mut st.ready);
+            self.check_drained(&st);
+            purged
+        };
+        let count = purged.len() as u32;
+        let queue = Arc::clone(self);
+        finish_in_background(move |slice| {
+            while let Some(queued) = purged.pop_front() {
+                queue.release(&queued);
+                if slice.step() {
+                    return Progress::More;
+                }
+            }
+            Progress::Done
+        });
         count
     }
 
@@ -355,7 +402,7 @@ impl Queue {
     /// handed back to be told with basic.cancel ([`Deleted::notify`]) once
     /// the caller has answered whoever deleted it: RabbitMQ sends
     /// queue.delete-ok before the cancels.
-    pub fn delete(&self) -> Deleted {
+    pub fn delete(self: &Arc<Self>) -> Deleted {
         let consumers = {
             let mut st = self.lock();
             st.deleted = true;
@@ -393,19 +440,16 @@ impl Queue {
         }
     }
 
-    /// Drops the messages at the head that expired by now; called by the
-    /// vhost's sweeper and before counting. Returns them as dead letters,
-    /// with any a writer's dispatch deferred.
-    pub fn expire(&self) -> DeadLetters {
-        self.expire_at(Instant::now())
-    }
-
-    /// [`Queue::expire`] as of `now`.
-    pub fn expire_at(&self, now: Instant) -> DeadLetters {
+    /// Drops the messages at the head that expired by `now`, as many as
+    /// `slice` allows (and at most [`DEAD_LETTERS_PER_STEP`] dead
+    /// letters, which the caller routes before the next step); called by
+    /// the vhost's sweeper. Returns them as dead letters, with any a
+    /// writer's dispatch deferred, and whether more may have expired.
+    pub fn expire_at(&self, now: Instant, slice: &mut Slice) -> (DeadLetters, Progress) {
         let mut st = self.lock();
         let mut dead = std::mem::take(&mut st.deferred_dead);
-        self.expire_head(&mut st, &mut dead, now);
-        DeadLetters(dead)
+        let progress = self.expire_head(&mut st, &mut dead, now, slice);
+        (DeadLetters(dead), progress)
     }
 
     /// Whether x-expires has run out by `now`: unused (no consumers, no

@@ -872,3 +872,6 @@ pub mod raw {
         }
     }
 }
+
+/// Declared after the macros above, which it uses.
+pub mod stall;

@@ -1,0 +1,303 @@
+//! The stall budget (issue 12): work whose size a client chooses must not
+//! hold the broker's thread. Each test builds a big piece of state, then
+//! runs the heavy operation on it while a bystander connection measures
+//! its round trips ([`Probe`]); the worst must stay under
+//! [`WORST_ROUND_TRIP`] beyond what the machine showed just before. The
+//! probe keeps running for [`AFTERMATH`] after the operation's reply,
+//! since the broker finishes such work in the background, a slice at a
+//! time.
+//!
+//! Sizes: a million messages in a release build (`cargo test --release`),
+//! a hundred thousand in a debug build, whose every step is ten times
+//! slower; 10,000 queues for the fanout and for the closing owner.
+//! The figures of a release run (`cargo test --release -p leveret-tests
+//! --test adversarial_stalls -- --nocapture`) are kept in `perf/results/`.
+
+#[macro_use]
+mod common;
+
+use common::stall::*;
+use common::*;
+use leveret_broker::Limits;
+use leveret_protocol::{BasicProperties, ExchangeDeclare, Method, QueueBind, QueueDeclare};
+use std::time::{Duration, Instant};
+
+/// Messages in the big queue.
+const MESSAGES: usize = sized(1_000_000, 100_000);
+/// Queues the fanout reaches.
+const FANOUT_QUEUES: usize = 10_000;
+/// Exclusive queues of the closing connection.
+const EXCLUSIVE_QUEUES: usize = 10_000;
+/// How long the probe keeps going after the operation's reply.
+const AFTERMATH: Duration = Duration::from_millis(500);
+
+fn table(entries: &[(&str, leveret_protocol::FieldValue)]) -> leveret_protocol::FieldTable {
+    entries
+        .iter()
+        .map(|(key, value)| (short(key), value.clone()))
+        .collect()
+}
+
+/// A queue named `prefix…` with `arguments`, filled with [`MESSAGES`]
+/// messages by a hand-written connection.
+async fn full_queue(
+    target: &Target,
+    prefix: &str,
+    arguments: leveret_protocol::FieldTable,
+) -> (Flood, String) {
+    let mut flood = Flood::open(&target.addr).await;
+    let queue = unique(prefix);
+    let declare = QueueDeclare {
+        queue: short(&queue),
+        arguments,
+        ..Default::default()
+    };
+    flood.send(&frames(1, [declare.into()])).await;
+    flood
+        .expect(|m| matches!(m, Method::QueueDeclareOk(_)))
+        .await;
+    let count = flood
+        .publish_many(
+            ("", &queue),
+            MESSAGES,
+            &BasicProperties::default(),
+            b"0123456789abcdef",
+            &queue,
+        )
+        .await;
+    assert_eq!(count as usize, MESSAGES, "every message queued");
+    (flood, queue)
+}
+
+/// Keeps the probe going for [`AFTERMATH`], then reports it.
+async fn finish_after(probe: Probe, during: &str) -> Result<(), String> {
+    tokio::time::sleep(AFTERMATH).await;
+    probe.finish(during).await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn purging_a_huge_queue_leaves_others_served() {
+    within_bounds(Limits::default(), |target| async move {
+        let (_flood, queue) = full_queue(&target, "stall-purge", table(&[])).await;
+        let (_connection, channel) = target.open().await;
+        let probe = Probe::start(&target).await;
+        let started = Instant::now();
+        let purged = tmo!(channel.queue_purge(&queue, lp::QueuePurgeOptions::default()))
+            .expect("queue.purge");
+        eprintln!("purge-ok after {:?}", started.elapsed());
+        assert_eq!(purged as usize, MESSAGES);
+        finish_after(probe, &format!("purging {MESSAGES} messages")).await
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deleting_a_huge_queue_leaves_others_served() {
+    within_bounds(Limits::default(), |target| async move {
+        let (_flood, queue) = full_queue(&target, "stall-delete", table(&[])).await;
+        let (_connection, channel) = target.open().await;
+        let probe = Probe::start(&target).await;
+        let deleted = tmo!(channel.queue_delete(&queue, lp::QueueDeleteOptions::default()))
+            .expect("queue.delete");
+        assert_eq!(deleted as usize, MESSAGES);
+        finish_after(probe, &format!("deleting a queue of {MESSAGES} messages")).await
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn closing_a_connection_with_a_huge_unacked_window_leaves_others_served() {
+    within_bounds(Limits::default(), |target| async move {
+        let (mut flood, queue) = full_queue(&target, "stall-unacked", table(&[])).await;
+        let (consuming, channel) = target.open().await;
+        let mut deliveries = lp::consume_opts(
+            &channel,
+            &queue,
+            "greedy",
+            lp::BasicConsumeOptions::default(),
+        )
+        .await;
+        for _ in 0..MESSAGES {
+            lp::next(&mut deliveries).await;
+        }
+        let probe = Probe::start(&target).await;
+        tmo!(consuming.close(200, "bye")).expect("connection.close");
+        let requeued = within("the requeue", async {
+            loop {
+                let count = flood.message_count(&queue).await;
+                if count as usize == MESSAGES {
+                    break count;
+                }
+                tokio::task::yield_now().await;
+            }
+        })
+        .await;
+        assert_eq!(requeued as usize, MESSAGES);
+        finish_after(
+            probe,
+            &format!("closing a connection with {MESSAGES} unacked deliveries"),
+        )
+        .await
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn expiring_a_huge_queue_into_a_dead_letter_queue_leaves_others_served() {
+    within_bounds(Limits::default(), |target| async move {
+        let dead = unique("stall-expired");
+        let mut flood = Flood::open(&target.addr).await;
+        let declare = QueueDeclare {
+            queue: short(&dead),
+            ..Default::default()
+        };
+        flood.send(&frames(1, [declare.into()])).await;
+        flood
+            .expect(|m| matches!(m, Method::QueueDeclareOk(_)))
+            .await;
+        let ttl_ms = 2_000;
+        let arguments = table(&[
+            ("x-message-ttl", leveret_protocol::FieldValue::I64(ttl_ms)),
+            (
+                "x-dead-letter-exchange",
+                leveret_protocol::FieldValue::string(""),
+            ),
+            (
+                "x-dead-letter-routing-key",
+                leveret_protocol::FieldValue::string(&dead),
+            ),
+        ]);
+        let started = Instant::now();
+        let (mut flood, queue) = full_queue(&target, "stall-ttl", arguments).await;
+        if started.elapsed() >= Duration::from_millis(ttl_ms as u64) {
+            return Err("the queue took longer to fill than its TTL".to_owned());
+        }
+        let probe = Probe::start(&target).await;
+        let moved = within("the expiry", async {
+            loop {
+                if flood.message_count(&queue).await == 0 {
+                    break flood.message_count(&dead).await;
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+        .await;
+        assert_eq!(moved as usize, MESSAGES, "every message dead-lettered");
+        finish_after(
+            probe,
+            &format!("expiring {MESSAGES} messages into a dead-letter queue"),
+        )
+        .await
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fanout_to_thousands_of_queues_leaves_others_served() {
+    within_bounds(Limits::default(), |target| async move {
+        let mut flood = Flood::open(&target.addr).await;
+        let fanout = unique("stall-fanout");
+        let exchange = ExchangeDeclare {
+            exchange: short(&fanout),
+            kind: short("fanout"),
+            ..Default::default()
+        };
+        let prefix = unique("stall-fq");
+        let setup = (0..FANOUT_QUEUES).flat_map(|i| {
+            let queue = short(&format!("{prefix}-{i}"));
+            let declare: Method = QueueDeclare {
+                queue: queue.clone(),
+                no_wait: true,
+                ..Default::default()
+            }
+            .into();
+            let bind: Method = QueueBind {
+                queue,
+                exchange: short(&fanout),
+                no_wait: true,
+                ..Default::default()
+            }
+            .into();
+            [declare, bind]
+        });
+        flood
+            .send(&frames(1, std::iter::once(exchange.into()).chain(setup)))
+            .await;
+        flood
+            .expect(|m| matches!(m, Method::ExchangeDeclareOk(_)))
+            .await;
+        let last = format!("{prefix}-{}", FANOUT_QUEUES - 1);
+        assert_eq!(flood.message_count(&last).await, 0);
+
+        let (_connection, channel) = target.open().await;
+        tmo!(channel.confirm_select(lp::ConfirmSelectOptions::default())).expect("confirms");
+        let probe = Probe::start(&target).await;
+        const PUBLISHES: usize = 20;
+        for _ in 0..PUBLISHES {
+            let confirmation = lp::publish_confirmed(
+                &channel,
+                &fanout,
+                "",
+                b"to everyone",
+                lp::BasicProperties::default(),
+            )
+            .await;
+            assert!(confirmation.is_ack());
+        }
+        assert_eq!(flood.message_count(&last).await as usize, PUBLISHES);
+        finish_after(
+            probe,
+            &format!("{PUBLISHES} publishes fanned out to {FANOUT_QUEUES} queues"),
+        )
+        .await
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn closing_the_owner_of_thousands_of_exclusive_queues_leaves_others_served() {
+    within_bounds(Limits::default(), |target| async move {
+        let mut owner = Flood::open(&target.addr).await;
+        let prefix = unique("stall-excl");
+        let declares = (0..EXCLUSIVE_QUEUES).map(|i| {
+            QueueDeclare {
+                queue: short(&format!("{prefix}-{i}")),
+                exclusive: true,
+                no_wait: true,
+                ..Default::default()
+            }
+            .into()
+        });
+        owner.send(&frames(1, declares)).await;
+        let last = format!("{prefix}-{}", EXCLUSIVE_QUEUES - 1);
+        assert_eq!(owner.message_count(&last).await, 0);
+
+        let (connection, _channel) = target.open().await;
+        let probe = Probe::start(&target).await;
+        drop(owner);
+        // Gone once a passive declare says 404 rather than 405 (locked).
+        within("the exclusive queues' deletion", async {
+            loop {
+                let channel = lp::channel(&connection).await;
+                let passive = lp::QueueDeclareOptions {
+                    passive: true,
+                    ..Default::default()
+                };
+                match channel
+                    .queue_declare(&last, passive, lp::FieldTable::default())
+                    .await
+                {
+                    Err(e) if lp::code(&e).0 == 404 => break,
+                    _ => tokio::task::yield_now().await,
+                }
+            }
+        })
+        .await;
+        finish_after(
+            probe,
+            &format!("closing the owner of {EXCLUSIVE_QUEUES} exclusive queues"),
+        )
+        .await
+    })
+    .await;
+}

@@ -1,0 +1,358 @@
+//! The stall-budget harness (issue 12): an in-process broker alone on a
+//! current-thread runtime of its own thread, a bystander connection whose
+//! round trips are measured while an attack runs ([`Probe`]), retries on
+//! a fresh broker so a loaded machine's hiccup does not fail a test
+//! ([`within_bounds`]), and a connection written by hand that sends
+//! thousands of methods in one write ([`Flood`]).
+
+use super::*;
+use bytes::{Bytes, BytesMut};
+use leveret_broker::{Broker, Limits};
+use leveret_protocol::{
+    decode_frame, encode_content, encode_method, BasicProperties, BasicPublish, ChannelOpen,
+    ConnectionOpen, ConnectionStartOk, ConnectionTuneOk, FieldTable, Frame, Method, QueueDeclare,
+    ShortStr, PROTOCOL_HEADER,
+};
+use std::future::Future;
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio::sync::watch;
+
+/// The worst round trip a bystander may see while an attack runs, beyond
+/// the worst it saw just before (a few hundred microseconds on a quiet
+/// machine, a few milliseconds on a loaded one).
+pub const WORST_ROUND_TRIP: Duration = Duration::from_millis(10);
+
+/// `release` in a release build, `debug` in a debug one.
+pub const fn sized(release: usize, debug: usize) -> usize {
+    if cfg!(debug_assertions) {
+        debug
+    } else {
+        release
+    }
+}
+
+/// Taken by each test for its whole run: the tests measure latency, so
+/// one's attack must not run beside another's probe.
+static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+/// The broker under test: an in-process Leveret alone on its own thread
+/// with the given limits, or
+/// the external broker named by `LEVERET_TEST_AMQP_URL`.
+pub struct Target {
+    pub url: String,
+    pub addr: String,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+}
+
+impl Target {
+    pub async fn start(limits: Limits) -> Self {
+        let external = std::env::var(leveret_tests::URL_ENV).is_ok_and(|u| !u.trim().is_empty());
+        if external {
+            let broker = broker().await;
+            return Target {
+                url: broker.url().to_owned(),
+                addr: broker.addr(),
+                stop: None,
+            };
+        }
+        let (started, addresses) = std::sync::mpsc::channel();
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        std::thread::spawn(move || {
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .expect("runtime");
+            runtime.block_on(async move {
+                let broker = TestBroker::leveret(Broker::builder().limits(limits)).await;
+                let addresses = (broker.url().to_owned(), broker.addr());
+                started.send(addresses).expect("the test waits");
+                let _ = stopped.await;
+                broker.stop().await;
+            });
+        });
+        let (url, addr) = addresses.recv().expect("broker starts");
+        Target {
+            url,
+            addr,
+            stop: Some(stop),
+        }
+    }
+
+    pub async fn connect(&self) -> lp::Connection {
+        within(
+            "lapin connect",
+            lp::Connection::connect(&self.url, lp::ConnectionProperties::default()),
+        )
+        .await
+        .expect("connects")
+    }
+
+    pub async fn open(&self) -> (lp::Connection, lp::Channel) {
+        let connection = self.connect().await;
+        let channel = lp::channel(&connection).await;
+        (connection, channel)
+    }
+}
+
+impl Drop for Target {
+    /// Asks the broker to stop, without waiting: a broker stuck in an
+    /// attack (the failure this file looks for) must not hang the test.
+    fn drop(&mut self) {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+    }
+}
+
+/// Round trips of a bystander connection, back to back until stopped.
+pub struct Probe {
+    /// The worst round trip in the [`QUIET_PERIOD`] before the attack:
+    /// what this machine adds on its own (a loaded machine delays any
+    /// thread).
+    quiet_worst: Duration,
+    stop: watch::Sender<bool>,
+    task: tokio::task::JoinHandle<(Duration, usize)>,
+}
+
+/// How long the probe measures the machine's own noise before an attack.
+pub const QUIET_PERIOD: Duration = Duration::from_millis(200);
+
+impl Probe {
+    /// Measures the quiet round trip, then probes until stopped.
+    pub async fn start(target: &Target) -> Probe {
+        let (connection, channel) = target.open().await;
+        let queue = tmo!(channel.queue_declare(
+            "",
+            lp::QueueDeclareOptions {
+                exclusive: true,
+                ..Default::default()
+            },
+            lp::FieldTable::default(),
+        ))
+        .expect("probe queue")
+        .name()
+        .to_string();
+        let no_ack = lp::BasicConsumeOptions {
+            no_ack: true,
+            ..Default::default()
+        };
+        let mut deliveries = lp::consume_opts(&channel, &queue, "probe", no_ack).await;
+        let mut quiet_worst = Duration::ZERO;
+        let quiet_since = Instant::now();
+        while quiet_since.elapsed() < QUIET_PERIOD {
+            let sent = Instant::now();
+            lp::publish(&channel, "", &queue, b"quiet").await;
+            lp::next(&mut deliveries).await;
+            quiet_worst = quiet_worst.max(sent.elapsed());
+        }
+        let (stop, stopped) = watch::channel(false);
+        let task = tokio::spawn(async move {
+            let _connection = connection;
+            let (mut worst, mut count) = (Duration::ZERO, 0);
+            // At least one round trip, however quick the attack.
+            loop {
+                let sent = Instant::now();
+                lp::publish(&channel, "", &queue, b"ping").await;
+                lp::next(&mut deliveries).await;
+                worst = worst.max(sent.elapsed());
+                count += 1;
+                if *stopped.borrow() {
+                    break (worst, count);
+                }
+            }
+        });
+        Probe {
+            quiet_worst,
+            stop,
+            task,
+        }
+    }
+
+    /// Stops probing; an error report unless the worst round trip during
+    /// the attack stayed under [`WORST_ROUND_TRIP`] beyond the quiet worst.
+    pub async fn finish(self, during: &str) -> Result<(), String> {
+        let _ = self.stop.send(true);
+        let (worst, count) = within("the probe", self.task).await.expect("probe ran");
+        let quiet = self.quiet_worst;
+        let report =
+            format!("{during}: {count} round trips, worst {worst:?} (quiet worst {quiet:?})");
+        eprintln!("{report}");
+        if worst < WORST_ROUND_TRIP + quiet {
+            Ok(())
+        } else {
+            Err(report)
+        }
+    }
+}
+
+/// Attempts at an attack, each on a fresh broker, before a test fails.
+pub const ATTEMPTS: usize = 5;
+
+/// Runs `attack` on a fresh broker until a bystander's round trips stay
+/// within bounds during it, at most [`ATTEMPTS`] times; fails with every
+/// attempt's report. A broker that stalls on an input stalls on every
+/// attempt (the blow-ups this file reproduces stall for seconds or never
+/// finish), while a loaded machine's scheduling hiccup (a busy thread
+/// preempted for whole 4 ms ticks) does not repeat at will.
+pub async fn within_bounds<Attack, Done>(limits: Limits, attack: Attack)
+where
+    Attack: Fn(Target) -> Done,
+    Done: Future<Output = Result<(), String>>,
+{
+    let _alone = ONE_AT_A_TIME.lock().await;
+    let mut reports = Vec::new();
+    for _ in 0..ATTEMPTS {
+        match attack(Target::start(limits.clone()).await).await {
+            Ok(()) => return,
+            Err(report) => reports.push(report),
+        }
+    }
+    panic!(
+        "a bystander's round trip exceeded {WORST_ROUND_TRIP:?} beyond the quiet worst on every attempt:\n{}",
+        reports.join("\n")
+    );
+}
+
+/// A connection written by hand, to send thousands of methods in one
+/// write, as a hostile client would, with no client library in between.
+pub struct Flood {
+    socket: TcpStream,
+    buf: BytesMut,
+}
+
+impl Flood {
+    /// Logs in as guest on `/` and opens channel 1.
+    pub async fn open(addr: &str) -> Flood {
+        let socket = tmo!(TcpStream::connect(addr)).expect("tcp connect");
+        let mut flood = Flood {
+            socket,
+            buf: BytesMut::new(),
+        };
+        flood.send(PROTOCOL_HEADER).await;
+        flood
+            .expect(|m| matches!(m, Method::ConnectionStart(_)))
+            .await;
+        let start_ok = ConnectionStartOk {
+            client_properties: FieldTable::new(),
+            mechanism: ShortStr::from_static("PLAIN"),
+            response: Bytes::from_static(b"\0guest\0guest"),
+            locale: ShortStr::from_static("en_US"),
+        };
+        flood.send(&frames(0, [start_ok.into()])).await;
+        let Method::ConnectionTune(tune) = flood
+            .expect(|m| matches!(m, Method::ConnectionTune(_)))
+            .await
+        else {
+            unreachable!("matched above")
+        };
+        let tune_ok = ConnectionTuneOk {
+            channel_max: tune.channel_max,
+            frame_max: tune.frame_max,
+            heartbeat: 0,
+        };
+        let open = ConnectionOpen {
+            virtual_host: ShortStr::from_static("/"),
+            ..Default::default()
+        };
+        flood.send(&frames(0, [tune_ok.into(), open.into()])).await;
+        flood
+            .expect(|m| matches!(m, Method::ConnectionOpenOk(_)))
+            .await;
+        flood
+            .send(&frames(1, [ChannelOpen::default().into()]))
+            .await;
+        flood
+            .expect(|m| matches!(m, Method::ChannelOpenOk(_)))
+            .await;
+        flood
+    }
+
+    /// Publishes `count` copies of `body` with `properties` through
+    /// `exchange` with `key` on channel 1, without confirms, a few thousand
+    /// per write; then a round trip on the same channel (queue.declare
+    /// passive of `queue`), so every one has been routed when it returns
+    /// `queue`'s message count.
+    pub async fn publish_many(
+        &mut self,
+        (exchange, key): (&str, &str),
+        count: usize,
+        properties: &BasicProperties,
+        body: &[u8],
+        queue: &str,
+    ) -> u32 {
+        let mut property_bytes = BytesMut::new();
+        properties.encode(&mut property_bytes);
+        let publish: Method = BasicPublish {
+            exchange: short(exchange),
+            routing_key: short(key),
+            ..Default::default()
+        }
+        .into();
+        let mut one = BytesMut::new();
+        encode_method(1, &publish, &mut one);
+        encode_content(1, 60, &property_bytes, body, 0, &mut one);
+        const PER_WRITE: usize = 4096;
+        let mut sent = 0;
+        while sent < count {
+            let batch = PER_WRITE.min(count - sent);
+            let mut buf = BytesMut::with_capacity(one.len() * batch);
+            for _ in 0..batch {
+                buf.extend_from_slice(&one);
+            }
+            self.send(&buf).await;
+            sent += batch;
+        }
+        self.message_count(queue).await
+    }
+
+    /// `queue`'s message count, by queue.declare passive on channel 1.
+    pub async fn message_count(&mut self, queue: &str) -> u32 {
+        let passive = QueueDeclare {
+            queue: short(queue),
+            passive: true,
+            ..Default::default()
+        };
+        self.send(&frames(1, [passive.into()])).await;
+        let Method::QueueDeclareOk(ok) = self
+            .expect(|m| matches!(m, Method::QueueDeclareOk(_)))
+            .await
+        else {
+            unreachable!("matched above")
+        };
+        ok.message_count
+    }
+
+    pub async fn send(&mut self, bytes: &[u8]) {
+        tmo!(self.socket.write_all(bytes)).expect("write");
+    }
+
+    /// Reads methods until one that `wanted` accepts.
+    pub async fn expect(&mut self, wanted: impl Fn(&Method) -> bool) -> Method {
+        loop {
+            match decode_frame(&mut self.buf, 0).expect("the broker sends valid frames") {
+                Some(Frame::Method { method, .. }) if wanted(&method) => return method,
+                Some(Frame::Method { method, .. }) => panic!("unexpected {method:?}"),
+                Some(_) => continue,
+                None => {
+                    let read = tmo!(self.socket.read_buf(&mut self.buf)).expect("read");
+                    assert_ne!(read, 0, "the broker closed the connection");
+                }
+            }
+        }
+    }
+}
+
+/// Method frames, encoded one after the other.
+pub fn frames(channel: u16, methods: impl IntoIterator<Item = Method>) -> BytesMut {
+    let mut buf = BytesMut::new();
+    for method in methods {
+        encode_method(channel, &method, &mut buf);
+    }
+    buf
+}
+
+pub fn short(text: &str) -> ShortStr {
+    ShortStr::try_from(text).expect("short string")
+}
