@@ -13,10 +13,12 @@
 //! And a budget: one original dead letter may give rise to at most
 //! [`CASCADE_LIMIT`] further ones, so a topology that multiplies dead
 //! letters (queues dead-lettering into a fanout exchange they are all
-//! bound to) costs a bounded amount of work per message.
+//! bound to) costs a bounded amount of work per message. That work is done
+//! a queue per step, in slices (see `slice`).
 
 use crate::message::{Message, Stored};
 use crate::queue::{DeadLetter, DeadLetters, Queue};
+use crate::slice::{finish_in_background, Progress, Slice};
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldValue, ShortStr};
 use std::collections::VecDeque;
@@ -29,48 +31,91 @@ use std::sync::Arc;
 pub const CASCADE_LIMIT: usize = 256;
 
 /// Routes `letters` through their dead-letter exchanges in `vhost`, with
-/// the cycle rule and the cascade budget.
-pub fn route(vhost: &Vhost, letters: DeadLetters) {
+/// the cycle rule and the cascade budget, one queue per step: the first
+/// slice now, the rest in the background (a dead letter fanned out to
+/// thousands of queues, or thousands of dead letters, do not hold the
+/// thread).
+pub fn route(vhost: &Arc<Vhost>, letters: DeadLetters) {
     if letters.is_empty() {
         return;
     }
-    let mut queues = Vec::new();
-    let mut over_budget = 0usize;
-    for letter in letters {
-        // This letter and those it causes, breadth first.
-        let mut work = VecDeque::from([letter]);
-        let mut caused = 0usize;
-        while let Some(letter) = work.pop_front() {
-            for next in deliver(vhost, letter, &mut queues) {
-                if caused == CASCADE_LIMIT {
-                    over_budget += 1;
-                    continue;
+    let mut routing = Routing {
+        vhost: Arc::clone(vhost),
+        originals: letters.into_iter(),
+        work: VecDeque::new(),
+        caused: 0,
+        delivery: None,
+        over_budget: 0,
+    };
+    finish_in_background(move |slice| routing.run(slice));
+}
+
+/// The state of [`route`] between slices.
+struct Routing {
+    vhost: Arc<Vhost>,
+    originals: std::vec::IntoIter<DeadLetter>,
+    /// The current original's letters still to route, breadth first.
+    work: VecDeque<DeadLetter>,
+    /// Letters the current original has caused so far.
+    caused: usize,
+    /// The copy being delivered and the queues it still has to reach.
+    delivery: Option<(Arc<Message>, std::vec::IntoIter<Arc<Queue>>)>,
+    over_budget: usize,
+}
+
+impl Routing {
+    fn run(&mut self, slice: &mut Slice) -> Progress {
+        loop {
+            if let Some((message, queues)) = &mut self.delivery {
+                match queues.next() {
+                    Some(queue) => {
+                        let (_, more) = queue.publish(Arc::clone(message));
+                        for next in more {
+                            if self.caused == CASCADE_LIMIT {
+                                self.over_budget += 1;
+                            } else {
+                                self.caused += 1;
+                                self.work.push_back(next);
+                            }
+                        }
+                    }
+                    None => self.delivery = None,
                 }
-                caused += 1;
-                work.push_back(next);
+            } else if let Some(letter) = self.work.pop_front() {
+                self.delivery = start_delivery(&self.vhost, letter);
+            } else if let Some(letter) = self.originals.next() {
+                self.caused = 0;
+                self.work.push_back(letter);
+            } else {
+                if self.over_budget > 0 {
+                    tracing::warn!(
+                        dropped = self.over_budget,
+                        limit = CASCADE_LIMIT,
+                        "dead letters causing too many further dead letters; the excess was dropped"
+                    );
+                }
+                return Progress::Done;
+            }
+            if slice.step() {
+                return Progress::More;
             }
         }
     }
-    if over_budget > 0 {
-        tracing::warn!(
-            dropped = over_budget,
-            limit = CASCADE_LIMIT,
-            "dead letters causing too many further dead letters; the excess was dropped"
-        );
-    }
 }
 
-/// Publishes one dead letter's copy to the queues its dead-letter exchange
-/// routes it to, except those the cycle rule rules out; returns the dead
-/// letters that causes in turn. `queues` is a buffer the caller reuses.
-fn deliver(vhost: &Vhost, letter: DeadLetter, queues: &mut Vec<Arc<Queue>>) -> DeadLetters {
-    let mut caused = DeadLetters::default();
+/// The copy of one dead letter and the queues its dead-letter exchange
+/// routes it to, except those the cycle rule rules out.
+fn start_delivery(
+    vhost: &Vhost,
+    letter: DeadLetter,
+) -> Option<(Arc<Message>, std::vec::IntoIter<Arc<Queue>>)> {
     let Some(exchange) = vhost.exchange(letter.exchange()) else {
         tracing::debug!(exchange = %letter.exchange(), "dead-letter exchange missing; message dropped");
-        return caused;
+        return None;
     };
     let (copy, headers) = letter.into_copy();
-    vhost.route(&exchange, &copy.routing_key, Some(&headers), queues);
+    let mut queues = Vec::new();
+    vhost.route(&exchange, &copy.routing_key, Some(&headers), &mut queues);
     let deaths = match headers.get("x-death") {
         Some(FieldValue::Array(deaths)) => deaths.as_slice(),
         _ => &[],
@@ -82,12 +127,8 @@ fn deliver(vhost: &Vhost, letter: DeadLetter, queues: &mut Vec<Arc<Queue>>) -> D
         }
         !cycle
     });
-    let message = stored_copy(vhost, copy, queues);
-    for queue in queues.drain(..) {
-        let (_, more) = queue.publish(Arc::clone(&message));
-        caused.append(more);
-    }
-    caused
+    let message = stored_copy(vhost, copy, &queues);
+    Some((message, queues.into_iter()))
 }
 
 /// The copy marked for storage, as a publish is, when it is persistent

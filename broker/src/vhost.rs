@@ -630,7 +630,7 @@ impl Vhost {
 
     /// Routes dead letters a queue operation returned, iteratively and
     /// with RabbitMQ's cycle rule (see [`crate::deadletter`]).
-    pub fn dead_letter(&self, letters: DeadLetters) {
+    pub fn dead_letter(self: &Arc<Self>, letters: DeadLetters) {
         crate::deadletter::route(self, letters);
     }
 
@@ -744,7 +744,7 @@ impl Vhost {
 
     /// Expires `queue`'s head messages past their TTL and routes their
     /// dead letters, a slice at a time, yielding between slices.
-    pub async fn expire(&self, queue: &Queue) {
+    pub async fn expire(self: &Arc<Self>, queue: &Queue) {
         let now = Instant::now();
         let mut slice = Slice::start();
         while self.expire_step(queue, now, &mut slice) == Progress::More {
@@ -755,7 +755,7 @@ impl Vhost {
 
     /// Expires messages and routes their dead letters until `slice` is
     /// spent or nothing expired is left.
-    fn expire_step(&self, queue: &Queue, now: Instant, slice: &mut Slice) -> Progress {
+    fn expire_step(self: &Arc<Self>, queue: &Queue, now: Instant, slice: &mut Slice) -> Progress {
         loop {
             let (dead, progress) = queue.expire_at(now, slice);
             self.dead_letter(dead);

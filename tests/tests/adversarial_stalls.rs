@@ -301,3 +301,84 @@ async fn closing_the_owner_of_thousands_of_exclusive_queues_leaves_others_served
     })
     .await;
 }
+
+/// Queues on each side of the dead-letter multiplication.
+const MULTIPLIED: usize = sized(1_000, 300);
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dead_letters_multiplied_by_fanouts_leave_others_served() {
+    within_bounds(Limits::default(), |target| async move {
+        // A publish to `first` reaches MULTIPLIED queues that keep nothing
+        // (x-max-length 0): each dead-letters it to `second`, a fanout to
+        // MULTIPLIED more queues. One publish, MULTIPLIED² deliveries.
+        let mut flood = Flood::open(&target.addr).await;
+        let first = unique("stall-dl-first");
+        let second = unique("stall-dl-second");
+        let fanout = |name: &str| -> Method {
+            ExchangeDeclare {
+                exchange: short(name),
+                kind: short("fanout"),
+                no_wait: true,
+                ..Default::default()
+            }
+            .into()
+        };
+        let mut setup = vec![fanout(&first), fanout(&second)];
+        let prefix = unique("stall-dlq");
+        for i in 0..MULTIPLIED {
+            for (side, exchange, arguments) in [
+                (
+                    "a",
+                    &first,
+                    table(&[
+                        ("x-max-length", leveret_protocol::FieldValue::I64(0)),
+                        (
+                            "x-dead-letter-exchange",
+                            leveret_protocol::FieldValue::string(&second),
+                        ),
+                    ]),
+                ),
+                ("b", &second, table(&[])),
+            ] {
+                let queue = short(&format!("{prefix}-{side}-{i}"));
+                setup.push(
+                    QueueDeclare {
+                        queue: queue.clone(),
+                        arguments,
+                        no_wait: true,
+                        ..Default::default()
+                    }
+                    .into(),
+                );
+                setup.push(
+                    QueueBind {
+                        queue,
+                        exchange: short(exchange),
+                        no_wait: true,
+                        ..Default::default()
+                    }
+                    .into(),
+                );
+            }
+        }
+        flood.send(&frames(1, setup)).await;
+        let last = format!("{prefix}-b-{}", MULTIPLIED - 1);
+        assert_eq!(flood.message_count(&last).await, 0);
+
+        let (_connection, channel) = target.open().await;
+        let probe = Probe::start(&target).await;
+        lp::publish(&channel, &first, "", b"multiply me").await;
+        within("the dead letters", async {
+            while (flood.message_count(&last).await as usize) < MULTIPLIED {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+        .await;
+        finish_after(
+            probe,
+            &format!("one publish dead-lettered {MULTIPLIED} times to {MULTIPLIED} queues each"),
+        )
+        .await
+    })
+    .await;
+}
