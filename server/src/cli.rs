@@ -37,6 +37,12 @@ pub struct Cli {
     /// 0 never busy-polls, for the least CPU time [default: 200].
     #[arg(long, value_name = "MICROS")]
     pub busy_poll: Option<u64>,
+    /// Threads that serve connections. 1 (the default) runs everything on
+    /// one thread, which busy polling works best with and which moved the
+    /// most messages on small machines; more runs tokio's multi-thread
+    /// runtime with that many workers [default: 1].
+    #[arg(long, value_name = "N")]
+    pub worker_threads: Option<usize>,
     /// Read a password on standard input, print its salted hash for the
     /// config file's `password-hash`, and exit.
     #[arg(long)]

@@ -82,6 +82,7 @@ pub struct FileConfig {
     vhost_limits: std::collections::HashMap<String, VhostLimitsConfig>,
     product: Option<String>,
     busy_poll: Option<u64>,
+    worker_threads: Option<usize>,
 }
 
 /// One `[vhost-limits."NAME"]` table (`rabbitmqctl set_vhost_limits`).
@@ -150,6 +151,8 @@ pub struct Settings {
     pub product: Option<String>,
     /// The busy-poll window.
     pub busy_poll: Duration,
+    /// Threads serving connections (1: a current-thread runtime).
+    pub worker_threads: usize,
 }
 
 impl Settings {
@@ -224,6 +227,11 @@ impl Settings {
             limits,
             product: cli.product.or(file.product),
             busy_poll: Duration::from_micros(busy_poll),
+            worker_threads: cli
+                .worker_threads
+                .or(file.worker_threads)
+                .unwrap_or(1)
+                .max(1),
         })
     }
 
@@ -342,6 +350,7 @@ mod tests {
             log = "debug"
             product = "FromFile"
             busy-poll = 50
+            worker-threads = 2
         "#;
         let flags = cli(&[
             "--listen",
@@ -354,6 +363,8 @@ mod tests {
             "FromFlag",
             "--busy-poll",
             "7",
+            "--worker-threads",
+            "4",
         ]);
         let settings = Settings::resolve(flags, file(text)).unwrap();
         assert_eq!(settings.listen, vec!["127.0.0.1:6000".parse().unwrap()]);
@@ -361,6 +372,11 @@ mod tests {
         assert_eq!(settings.log, "warn");
         assert_eq!(settings.product.as_deref(), Some("FromFlag"));
         assert_eq!(settings.busy_poll, Duration::from_micros(7));
+        assert_eq!(settings.worker_threads, 4);
+        let from_file = Settings::resolve(cli(&[]), file("worker-threads = 2")).unwrap();
+        assert_eq!(from_file.worker_threads, 2);
+        let default = Settings::resolve(cli(&[]), file("")).unwrap();
+        assert_eq!(default.worker_threads, 1);
     }
 
     #[test]

@@ -24,8 +24,12 @@ use common::BrokerProcess;
 
 const QUEUE: &str = "crash-test";
 
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("leveret-crash-{}-{name}", std::process::id()));
+/// A fresh directory for a test's broker with `workers` threads.
+fn temp_dir(name: &str, workers: usize) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!(
+        "leveret-crash-{}-{name}-{workers}",
+        std::process::id()
+    ));
     let _ = std::fs::remove_dir_all(&dir);
     dir
 }
@@ -129,14 +133,45 @@ async fn wait_until(what: &str, counter: &AtomicU64, target: u64) {
     .unwrap_or_else(|_| panic!("{what}: did not reach {target} in time"));
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn confirmed_messages_survive_kill_9_once_and_in_order() {
+/// Each crash test runs twice: against a broker on one thread (the
+/// default) and on tokio's multi-thread runtime with four workers.
+macro_rules! on_both_runtimes {
+    ($($name:ident),* $(,)?) => {
+        $(
+            mod $name {
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn broker_on_one_thread() {
+                    super::$name(1).await
+                }
+
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn broker_on_four_worker_threads() {
+                    super::$name(4).await
+                }
+            }
+        )*
+    };
+}
+
+on_both_runtimes!(
+    confirmed_messages_survive_kill_9_once_and_in_order,
+    transactions_are_all_or_nothing_across_kill_9,
+    clean_restart_keeps_definitions_messages_and_order_and_forgets_acked,
+    durable_declarations_survive_kill_9_right_after_their_ok
+);
+
+/// `leveret` with its data in `dir`, serving on `workers` threads.
+async fn start(dir: &std::path::Path, workers: usize) -> BrokerProcess {
+    BrokerProcess::start_with(dir, ["--worker-threads", &workers.to_string()]).await
+}
+
+async fn confirmed_messages_survive_kill_9_once_and_in_order(workers: usize) {
     // Kill points spread over a run; each round kills while confirms
     // are in flight, so a broker confirming before its flush loses
     // messages in (nearly) every round.
     for (round, kill_after) in [150u64, 700, 1_100, 2_300, 3_700].into_iter().enumerate() {
-        let dir = temp_dir(&format!("confirms-{round}"));
-        let broker = BrokerProcess::start(&dir).await;
+        let dir = temp_dir(&format!("confirms-{round}"), workers);
+        let broker = start(&dir, workers).await;
         let conn = connect(&broker).await;
         declare(&conn.create_channel().await.expect("channel")).await;
         let total = Arc::new(AtomicU64::new(0));
@@ -160,7 +195,7 @@ async fn confirmed_messages_survive_kill_9_once_and_in_order() {
         }
         drop(conn);
 
-        let broker = BrokerProcess::start(&dir).await;
+        let broker = start(&dir, workers).await;
         let conn = connect(&broker).await;
         let channel = conn.create_channel().await.expect("channel");
         let bodies = drain(&channel).await;
@@ -196,11 +231,10 @@ async fn confirmed_messages_survive_kill_9_once_and_in_order() {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn transactions_are_all_or_nothing_across_kill_9() {
+async fn transactions_are_all_or_nothing_across_kill_9(workers: usize) {
     const BATCH: usize = 40;
-    let dir = temp_dir("tx");
-    let broker = BrokerProcess::start(&dir).await;
+    let dir = temp_dir("tx", workers);
+    let broker = start(&dir, workers).await;
     let conn = connect(&broker).await;
     let channel = conn.create_channel().await.expect("channel");
     declare(&channel).await;
@@ -237,7 +271,7 @@ async fn transactions_are_all_or_nothing_across_kill_9() {
     let _ = publisher.await;
     let committed = committed.load(Ordering::Acquire);
 
-    let broker = BrokerProcess::start(&dir).await;
+    let broker = start(&dir, workers).await;
     let conn = connect(&broker).await;
     let bodies = drain(&conn.create_channel().await.expect("channel")).await;
     let mut batches: Vec<(u64, usize)> = Vec::new();
@@ -276,10 +310,9 @@ async fn transactions_are_all_or_nothing_across_kill_9() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn clean_restart_keeps_definitions_messages_and_order_and_forgets_acked() {
-    let dir = temp_dir("clean");
-    let broker = BrokerProcess::start(&dir).await;
+async fn clean_restart_keeps_definitions_messages_and_order_and_forgets_acked(workers: usize) {
+    let dir = temp_dir("clean", workers);
+    let broker = start(&dir, workers).await;
     let conn = connect(&broker).await;
     let channel = conn.create_channel().await.expect("channel");
     declare(&channel).await;
@@ -333,7 +366,7 @@ async fn clean_restart_keeps_definitions_messages_and_order_and_forgets_acked() 
     declare(&channel).await;
     broker.terminate();
 
-    let broker = BrokerProcess::start(&dir).await;
+    let broker = start(&dir, workers).await;
     let conn = connect(&broker).await;
     let channel = conn.create_channel().await.expect("channel");
     // The durable exchange and binding came back: publishing through them routes.
@@ -354,12 +387,11 @@ async fn clean_restart_keeps_definitions_messages_and_order_and_forgets_acked() 
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn durable_declarations_survive_kill_9_right_after_their_ok() {
+async fn durable_declarations_survive_kill_9_right_after_their_ok(workers: usize) {
     const COUNT: usize = 20;
     for round in 0..3 {
-        let dir = temp_dir(&format!("declares-{round}"));
-        let broker = BrokerProcess::start(&dir).await;
+        let dir = temp_dir(&format!("declares-{round}"), workers);
+        let broker = start(&dir, workers).await;
         let conn = connect(&broker).await;
         let channel = conn.create_channel().await.expect("channel");
         let durable_queue = QueueDeclareOptions {
@@ -399,7 +431,7 @@ async fn durable_declarations_survive_kill_9_right_after_their_ok() {
         broker.kill9();
         drop(conn);
 
-        let broker = BrokerProcess::start(&dir).await;
+        let broker = start(&dir, workers).await;
         let conn = connect(&broker).await;
         let mut missing = Vec::new();
         for i in 0..COUNT {
