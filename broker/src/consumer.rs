@@ -50,29 +50,49 @@ impl Deliveries {
     /// every one up to it (tag 0 with multiple means all). As in RabbitMQ,
     /// the tag itself must be outstanding, even with `multiple`; `None`
     /// means it is unknown or already settled.
-    pub fn take(&mut self, tag: u64, multiple: bool) -> Option<Vec<Unacked>> {
+    pub fn take(&mut self, tag: u64, multiple: bool) -> Option<VecDeque<Unacked>> {
         if multiple && tag == 0 {
             return Some(self.take_all());
         }
         let index = self.unacked.binary_search_by_key(&tag, |u| u.tag).ok()?;
-        if multiple {
+        if !multiple {
+            return self.unacked.remove(index).map(|u| VecDeque::from([u]));
+        }
+        // Moves the shorter side: the settled head, or the unsettled tail.
+        if index < self.unacked.len() / 2 {
             Some(self.unacked.drain(..=index).collect())
         } else {
-            self.unacked.remove(index).map(|u| vec![u])
+            let rest = self.unacked.split_off(index + 1);
+            Some(std::mem::replace(&mut self.unacked, rest))
         }
     }
 
-    /// Puts taken deliveries back (a rolled-back transaction's acks).
+    /// Puts taken deliveries back (a rolled-back transaction's acks), in
+    /// one merge by tag.
     pub fn restore(&mut self, deliveries: impl IntoIterator<Item = Unacked>) {
-        for unacked in deliveries {
-            let at = self.unacked.partition_point(|u| u.tag < unacked.tag);
-            self.unacked.insert(at, unacked);
+        let mut returned: Vec<Unacked> = deliveries.into_iter().collect();
+        if returned.is_empty() {
+            return;
         }
+        returned.sort_by_key(|u| u.tag);
+        let mut current = std::mem::take(&mut self.unacked).into_iter().peekable();
+        let mut returned = returned.into_iter().peekable();
+        let mut merged = VecDeque::with_capacity(current.len() + returned.len());
+        loop {
+            let next = match (current.peek(), returned.peek()) {
+                (Some(a), Some(b)) if a.tag < b.tag => current.next(),
+                (Some(_), Some(_)) | (None, Some(_)) => returned.next(),
+                (Some(_), None) => current.next(),
+                (None, None) => break,
+            };
+            merged.extend(next);
+        }
+        self.unacked = merged;
     }
 
-    /// Takes every unacked delivery (channel close, recover).
-    pub fn take_all(&mut self) -> Vec<Unacked> {
-        self.unacked.drain(..).collect()
+    /// Takes every unacked delivery (channel close, recover), in O(1).
+    pub fn take_all(&mut self) -> VecDeque<Unacked> {
+        std::mem::take(&mut self.unacked)
     }
 }
 

@@ -143,6 +143,31 @@ async fn closing_a_connection_with_a_huge_unacked_window_leaves_others_served() 
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_multiple_ack_of_a_huge_window_leaves_others_served() {
+    within_bounds(Limits::default(), |target| async move {
+        let (_flood, queue) = full_queue(&target, "stall-ack", table(&[])).await;
+        let (_consuming, channel) = target.open().await;
+        let mut deliveries = lp::consume_opts(
+            &channel,
+            &queue,
+            "greedy",
+            lp::BasicConsumeOptions::default(),
+        )
+        .await;
+        let mut last = 0;
+        for _ in 0..MESSAGES {
+            last = lp::next(&mut deliveries).await.delivery_tag;
+        }
+        let probe = Probe::start(&target).await;
+        tmo!(channel.basic_ack(last, lp::BasicAckOptions { multiple: true })).expect("basic.ack");
+        // The channel is still usable, and nothing came back.
+        tmo!(channel.basic_qos(1, lp::BasicQosOptions::default())).expect("basic.qos");
+        finish_after(probe, &format!("one multiple ack of {MESSAGES} deliveries")).await
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn expiring_a_huge_queue_into_a_dead_letter_queue_leaves_others_served() {
     within_bounds(Limits::default(), |target| async move {
         let dead = unique("stall-expired");

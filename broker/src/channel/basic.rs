@@ -14,7 +14,7 @@ use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
     BasicPublish, BasicQos, BasicQosOk, ReplyCode, ShortStr,
 };
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
@@ -90,57 +90,6 @@ fn consumer_priority(arguments: &leveret_protocol::FieldTable) -> AmqpResult<i64
             ))
         }),
     }
-}
-
-/// Most deliveries [`requeue_all`] regroups in one step.
-const REQUEUE_BATCH: usize = 1024;
-
-/// Requeues settled-by-close deliveries, each queue once per batch, in tag
-/// order: the first batch now (its dead letters are returned), the rest a
-/// batch per slice in the background (theirs wait in their queue for the
-/// next sweep), so a channel closed with a million unacked deliveries does
-/// not hold the thread.
-pub(crate) fn requeue_all(unacked: Vec<Unacked>) -> DeadLetters {
-    let mut unacked = unacked.into_iter();
-    let mut dead = DeadLetters::default();
-    for (_, dead_here) in requeue_batch(&mut unacked) {
-        dead.append(dead_here);
-    }
-    if unacked.len() > 0 {
-        finish_in_background(move |_| {
-            for (queue, dead_here) in requeue_batch(&mut unacked) {
-                queue.defer(dead_here);
-            }
-            match unacked.len() {
-                0 => Progress::Done,
-                _ => Progress::More,
-            }
-        });
-    }
-    dead
-}
-
-/// Requeues the next [`REQUEUE_BATCH`] deliveries, grouped by queue;
-/// returns each queue's dead letters.
-fn requeue_batch(unacked: &mut impl Iterator<Item = Unacked>) -> Vec<(Arc<Queue>, DeadLetters)> {
-    let mut by_queue: HashMap<*const Queue, (Arc<Queue>, Vec<QueuedMessage>)> = HashMap::new();
-    for u in unacked.take(REQUEUE_BATCH) {
-        if let Some(consumer) = &u.consumer {
-            consumer.settled_one();
-        }
-        by_queue
-            .entry(Arc::as_ptr(&u.queue))
-            .or_insert_with(|| (Arc::clone(&u.queue), Vec::new()))
-            .1
-            .push(u.message);
-    }
-    by_queue
-        .into_values()
-        .map(|(queue, messages)| {
-            let dead = queue.requeue(messages);
-            (queue, dead)
-        })
-        .collect()
 }
 
 impl Channel {
@@ -402,7 +351,7 @@ impl Channel {
             return Ok(());
         }
         self.vhost
-            .dead_letter(apply_settles(settled.into_iter().map(|u| (u, how))));
+            .dead_letter(apply_settles(settled.into_iter().map(move |u| (u, how))));
         self.after_settles();
         Ok(())
     }
@@ -449,32 +398,79 @@ impl Channel {
     }
 }
 
-/// Applies settled deliveries: acks release, rejects requeue or dead-letter,
-/// and the queues involved dispatch again (credit was freed). Returns the
-/// dead letters, for the caller to route.
-pub(crate) fn apply_settles(settles: impl IntoIterator<Item = (Unacked, Settle)>) -> DeadLetters {
+/// Most deliveries settled in one step of [`apply_settles`].
+const SETTLE_BATCH: usize = 1024;
+
+/// Applies settled deliveries: acks release, rejects requeue or
+/// dead-letter, and the queues involved dispatch again (credit was freed).
+/// The first [`SETTLE_BATCH`] now, their dead letters returned for the
+/// caller to route; the rest a batch per slice in the background (their
+/// dead letters wait in their queue for the next sweep), so a multiple ack
+/// or a close that settles a million deliveries does not hold the thread.
+pub(crate) fn apply_settles<I>(settles: I) -> DeadLetters
+where
+    I: IntoIterator<Item = (Unacked, Settle)>,
+    I::IntoIter: ExactSizeIterator + Send + 'static,
+{
+    let mut settles = settles.into_iter();
     let mut dead = DeadLetters::default();
-    let mut requeue = Vec::new();
-    let mut touched: Vec<Arc<Queue>> = Vec::new();
-    for (u, how) in settles {
-        if how == (Settle::Reject { requeue: true }) {
-            requeue.push(u);
-            continue;
-        }
+    for (_, dead_here) in settle_batch(&mut settles) {
+        dead.append(dead_here);
+    }
+    if settles.len() > 0 {
+        finish_in_background(move |_| {
+            for (queue, dead_here) in settle_batch(&mut settles) {
+                queue.defer(dead_here);
+            }
+            match settles.len() {
+                0 => Progress::Done,
+                _ => Progress::More,
+            }
+        });
+    }
+    dead
+}
+
+/// Requeues deliveries settled by a close, a recover or an abandoned
+/// transaction, in tag order per queue.
+pub(crate) fn requeue_all(unacked: VecDeque<Unacked>) -> DeadLetters {
+    apply_settles(
+        unacked
+            .into_iter()
+            .map(|u| (u, Settle::Reject { requeue: true })),
+    )
+}
+
+/// Settles the next [`SETTLE_BATCH`] deliveries, grouped by queue (a hash
+/// map: a batch spread over many queues costs one lookup per delivery);
+/// returns each queue's dead letters.
+fn settle_batch(
+    settles: &mut impl Iterator<Item = (Unacked, Settle)>,
+) -> Vec<(Arc<Queue>, DeadLetters)> {
+    let mut by_queue: HashMap<*const Queue, (Arc<Queue>, Vec<QueuedMessage>, DeadLetters)> =
+        HashMap::new();
+    for (u, how) in settles.take(SETTLE_BATCH) {
         if let Some(consumer) = &u.consumer {
             consumer.settled_one();
         }
-        if !touched.iter().any(|q| Arc::ptr_eq(q, &u.queue)) {
-            touched.push(Arc::clone(&u.queue));
-        }
+        let (queue, requeue, dead) = by_queue
+            .entry(Arc::as_ptr(&u.queue))
+            .or_insert_with(|| (Arc::clone(&u.queue), Vec::new(), DeadLetters::default()));
         match how {
-            Settle::Ack => u.queue.settle(&u.message),
-            Settle::Reject { .. } => dead.append(u.queue.reject(u.message)),
+            Settle::Ack => queue.settle(&u.message),
+            Settle::Reject { requeue: false } => dead.append(queue.reject(u.message)),
+            Settle::Reject { requeue: true } => requeue.push(u.message),
         }
     }
-    dead.append(requeue_all(requeue));
-    for queue in touched {
-        dead.append(queue.dispatch());
-    }
-    dead
+    by_queue
+        .into_values()
+        .map(|(queue, requeue, mut dead)| {
+            // A requeue dispatches too.
+            match requeue.is_empty() {
+                true => dead.append(queue.dispatch()),
+                false => dead.append(queue.requeue(requeue)),
+            }
+            (queue, dead)
+        })
+        .collect()
 }
