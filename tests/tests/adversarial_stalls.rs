@@ -38,13 +38,13 @@ fn table(entries: &[(&str, leveret_protocol::FieldValue)]) -> leveret_protocol::
         .collect()
 }
 
-/// A queue named `prefix…` with `arguments`, filled with [`MESSAGES`]
-/// messages by a hand-written connection.
+/// A queue named `prefix…` with `arguments`, sent [`MESSAGES`] messages
+/// by a hand-written connection; returns the count it then holds.
 async fn full_queue(
     target: &Target,
     prefix: &str,
     arguments: leveret_protocol::FieldTable,
-) -> (Flood, String) {
+) -> (Flood, String, u32) {
     let mut flood = Flood::open(&target.addr).await;
     let queue = unique(prefix);
     let declare = QueueDeclare {
@@ -65,8 +65,7 @@ async fn full_queue(
             &queue,
         )
         .await;
-    assert_eq!(count as usize, MESSAGES, "every message queued");
-    (flood, queue)
+    (flood, queue, count)
 }
 
 /// Keeps the probe going for [`AFTERMATH`], then reports it.
@@ -78,7 +77,8 @@ async fn finish_after(probe: Probe, during: &str) -> Result<(), String> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn purging_a_huge_queue_leaves_others_served() {
     within_bounds(Limits::default(), |target| async move {
-        let (_flood, queue) = full_queue(&target, "stall-purge", table(&[])).await;
+        let (_flood, queue, count) = full_queue(&target, "stall-purge", table(&[])).await;
+        assert_eq!(count as usize, MESSAGES, "every message queued");
         let (_connection, channel) = target.open().await;
         let probe = Probe::start(&target).await;
         let started = Instant::now();
@@ -94,7 +94,8 @@ async fn purging_a_huge_queue_leaves_others_served() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn deleting_a_huge_queue_leaves_others_served() {
     within_bounds(Limits::default(), |target| async move {
-        let (_flood, queue) = full_queue(&target, "stall-delete", table(&[])).await;
+        let (_flood, queue, count) = full_queue(&target, "stall-delete", table(&[])).await;
+        assert_eq!(count as usize, MESSAGES, "every message queued");
         let (_connection, channel) = target.open().await;
         let probe = Probe::start(&target).await;
         let deleted = tmo!(channel.queue_delete(&queue, lp::QueueDeleteOptions::default()))
@@ -108,7 +109,8 @@ async fn deleting_a_huge_queue_leaves_others_served() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn closing_a_connection_with_a_huge_unacked_window_leaves_others_served() {
     within_bounds(Limits::default(), |target| async move {
-        let (mut flood, queue) = full_queue(&target, "stall-unacked", table(&[])).await;
+        let (mut flood, queue, count) = full_queue(&target, "stall-unacked", table(&[])).await;
+        assert_eq!(count as usize, MESSAGES, "every message queued");
         let (consuming, channel) = target.open().await;
         let mut deliveries = lp::consume_opts(
             &channel,
@@ -145,7 +147,8 @@ async fn closing_a_connection_with_a_huge_unacked_window_leaves_others_served() 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_multiple_ack_of_a_huge_window_leaves_others_served() {
     within_bounds(Limits::default(), |target| async move {
-        let (_flood, queue) = full_queue(&target, "stall-ack", table(&[])).await;
+        let (_flood, queue, count) = full_queue(&target, "stall-ack", table(&[])).await;
+        assert_eq!(count as usize, MESSAGES, "every message queued");
         let (_consuming, channel) = target.open().await;
         let mut deliveries = lp::consume_opts(
             &channel,
@@ -192,11 +195,9 @@ async fn expiring_a_huge_queue_into_a_dead_letter_queue_leaves_others_served() {
                 leveret_protocol::FieldValue::string(&dead),
             ),
         ]);
-        let started = Instant::now();
-        let (mut flood, queue) = full_queue(&target, "stall-ttl", arguments).await;
-        if started.elapsed() >= Duration::from_millis(ttl_ms as u64) {
-            return Err("the queue took longer to fill than its TTL".to_owned());
-        }
+        // Expiry may begin while the queue fills (on a loaded machine);
+        // every message must reach the dead-letter queue all the same.
+        let (mut flood, queue, _) = full_queue(&target, "stall-ttl", arguments).await;
         let probe = Probe::start(&target).await;
         let moved = within("the expiry", async {
             loop {
