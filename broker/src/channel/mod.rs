@@ -48,7 +48,7 @@ enum Assembly {
     /// Header seen, expecting body frames.
     Body {
         publish: BasicPublish,
-        properties: BasicProperties,
+        properties: Box<BasicProperties>,
         property_bytes: Bytes,
         size: u64,
         /// Set from the first body frame of a body that takes several.
@@ -86,7 +86,9 @@ impl PartialBody {
 #[derive(Debug)]
 pub(crate) struct Publish {
     method: BasicPublish,
-    properties: BasicProperties,
+    /// Boxed: decoded properties are ~450 bytes, and a publish moves
+    /// through several async calls (each move a copy of it).
+    properties: Box<BasicProperties>,
     property_bytes: Bytes,
     body: Bytes,
 }
@@ -344,6 +346,7 @@ impl Channel {
         }
         let property_bytes = self.kept(header.property_bytes);
         let properties = BasicProperties::decode(&property_bytes)
+            .map(Box::new)
             .map_err(|e| AmqpError::new(e.reply_code(), &e).during_ids(60, 40))?;
         let max = self.core.limits.max_message_size;
         if header.body_size > max {
