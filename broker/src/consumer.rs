@@ -65,6 +65,11 @@ impl Deliveries {
         }
     }
 
+    /// How many deliveries are unacked.
+    pub fn unacked_count(&self) -> usize {
+        self.unacked.len()
+    }
+
     /// Takes every unacked delivery (channel close, recover).
     pub fn take_all(&mut self) -> Vec<Unacked> {
         self.unacked.drain(..).collect()

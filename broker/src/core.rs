@@ -6,6 +6,8 @@
 use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
 use crate::memory::MemoryGauge;
+use crate::registry::Registry;
+use crate::stats::BrokerCounters;
 use crate::store::Persistence;
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldTable, ShortStr};
@@ -57,6 +59,14 @@ pub struct Core {
     pub server_properties: FieldTable,
     /// The busy-poll window's shared state, if the broker busy-polls.
     pub busy_poll: Option<Arc<BusyPoll>>,
+    /// Message and churn counters (`stats`).
+    pub stats: Arc<BrokerCounters>,
+    /// Open connections and channels (`registry`).
+    pub registry: Arc<Registry>,
+    /// The product name announced to clients.
+    pub product: String,
+    /// When the broker started.
+    pub started: std::time::Instant,
     next_connection: AtomicU64,
     shutdown: watch::Sender<bool>,
 }
@@ -73,11 +83,17 @@ impl Core {
         busy_poll: Option<Arc<BusyPoll>>,
     ) -> Arc<Self> {
         let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
+        let stats = Arc::new(BrokerCounters::default());
         let vhosts = vhost_names
             .iter()
             .filter_map(|name| ShortStr::try_from(name.as_str()).ok())
             .map(|name| {
-                let vhost = Vhost::new(name.clone(), Arc::clone(&gauge), persistence.clone());
+                let vhost = Vhost::new(
+                    name.clone(),
+                    Arc::clone(&gauge),
+                    persistence.clone(),
+                    Arc::clone(&stats),
+                );
                 (name, vhost)
             })
             .collect();
@@ -89,6 +105,10 @@ impl Core {
             persistence,
             server_properties: crate::connection::server_properties(product),
             busy_poll,
+            registry: Arc::new(Registry::new(Arc::clone(&stats))),
+            stats,
+            product: product.to_owned(),
+            started: std::time::Instant::now(),
             next_connection: AtomicU64::new(1),
             shutdown: watch::channel(false).0,
         })
@@ -112,6 +132,7 @@ impl Core {
                 name.clone(),
                 Arc::clone(&self.gauge),
                 self.persistence.clone(),
+                Arc::clone(&self.stats),
             )
         });
         Arc::clone(vhost)
@@ -135,6 +156,7 @@ impl Core {
     /// Tells every connection to close with 320 CONNECTION_FORCED.
     pub fn begin_shutdown(&self) {
         self.shutdown.send_replace(true);
+        self.registry.close_all();
     }
 
     /// A receiver that turns true when the broker shuts down.

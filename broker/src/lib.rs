@@ -33,8 +33,13 @@
 //! - `consumer`: consumers, delivery tags, unacked bookkeeping, prefetch credit.
 //! - `outbox`: what the core sends to a connection's writer, with backpressure.
 //! - `message`, `memory`, `auth`, `error`: messages, the memory alarm, users and SASL, reply errors.
+//! - `stats`: message and churn counters with RabbitMQ's meanings (relaxed atomic adds on the hot path).
+//! - `registry`: open connections and channels, for listing and for closing one from outside.
+//! - `admin`: [`Admin`], a cloneable handle for tools: closing connections, and (`inspect`) reading
+//!   all of the above into plain structs with RabbitMQ's field meanings (`BrokerHandle::overview`).
 #![forbid(unsafe_code)]
 
+mod admin;
 mod auth;
 mod busy_poll;
 mod channel;
@@ -45,16 +50,25 @@ mod deadletter;
 mod embed;
 mod error;
 mod exchange;
+mod inspect;
 mod memory;
 mod message;
 mod outbox;
 mod queue;
 mod recovery;
+mod registry;
 mod server;
+mod stats;
 pub mod store;
 mod vhost;
 
+pub use crate::admin::Admin;
 pub use crate::auth::PasswordHash;
 pub use crate::core::Limits;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;
+pub use inspect::{
+    BindingInfo, ChannelInfo, ChurnTotals, ConnectionInfo, ConsumerInfo, DestinationKind,
+    ExchangeInfo, GlobalMessageStats, ObjectTotals, Overview, QueueInfo, QueueMessageStats,
+    QueueRef, QueueTotals,
+};

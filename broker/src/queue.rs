@@ -14,6 +14,7 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
+use crate::stats::{BrokerCounters, QueueCounters};
 use crate::store::{EntryBody, Persistence, StoreOp};
 use crate::vhost::Vhost;
 use leveret_protocol::{BasicCancel, FieldTable, FieldValue, ShortStr};
@@ -278,6 +279,8 @@ pub struct Queue {
     drained: tokio::sync::Notify,
     /// The store and this queue's id in it, for durable queues.
     durable_store: Option<(Arc<Persistence>, u64)>,
+    /// Message counters (`stats`).
+    pub(crate) stats: QueueCounters,
     state: Mutex<QueueState>,
 }
 
@@ -290,6 +293,7 @@ impl Queue {
         vhost: Weak<Vhost>,
         gauge: Arc<MemoryGauge>,
         durable_store: Option<(Arc<Persistence>, u64)>,
+        counters: Arc<BrokerCounters>,
     ) -> Self {
         Queue {
             name,
@@ -300,6 +304,7 @@ impl Queue {
             crowded: std::sync::atomic::AtomicBool::new(false),
             drained: tokio::sync::Notify::new(),
             durable_store,
+            stats: QueueCounters::new(counters),
             state: Mutex::new(QueueState {
                 last_used: Some(Instant::now()),
                 ..QueueState::default()
@@ -401,6 +406,7 @@ impl Queue {
                 None => self.log(&queued),
             };
             self.insert_ready(&mut st, queued);
+            self.stats.published();
             self.enforce_max_length(&mut st, &mut dead);
             // Dispatched as of the publish instant, so a message with TTL 0
             // still reaches a consumer that can take it at once (as in RabbitMQ).
@@ -651,6 +657,7 @@ impl Queue {
                 }
                 tag
             };
+            self.stats.delivered(consumer.no_ack, queued.redelivered);
             if consumer.no_ack {
                 self.release(&queued);
             } else {
@@ -705,6 +712,7 @@ impl Queue {
             queued.map(|queued| {
                 let mut deliveries = link.deliveries();
                 let tag = deliveries.next_tag();
+                self.stats.got(no_ack, queued.redelivered);
                 if no_ack {
                     self.release(&queued);
                 } else {
@@ -719,6 +727,9 @@ impl Queue {
                 (tag, queued, st.ready.len() as u32)
             })
         };
+        if got.is_none() {
+            self.stats.got_nothing();
+        }
         self.dead_letter(dead);
         got
     }
@@ -730,6 +741,7 @@ impl Queue {
         {
             let mut st = self.lock();
             for mut queued in messages {
+                self.stats.unacked_returned();
                 if st.deleted {
                     self.release(&queued);
                     continue;
@@ -744,11 +756,13 @@ impl Queue {
 
     /// An unacked message was acked (or rejected without dead-lettering).
     pub fn settle(&self, queued: &QueuedMessage) {
+        self.stats.acked();
         self.release(queued);
     }
 
     /// A message was rejected without requeue: dead-letter it if configured.
     pub fn reject(&self, queued: QueuedMessage) {
+        self.stats.unacked_returned();
         let mut dead = Vec::new();
         self.discard(queued, DeadLetterReason::Rejected, &mut dead);
         self.dead_letter(dead);
@@ -785,6 +799,7 @@ impl Queue {
             st.exclusive_consumer = consumer.exclusive;
             st.prioritised |= consumer.priority != 0;
             st.consumers.push(consumer);
+            self.stats.consumer_added();
             st.last_used = None;
         }
         self.dispatch();
@@ -799,6 +814,7 @@ impl Queue {
         if st.consumers.len() == before {
             return false;
         }
+        self.stats.consumers_removed(1);
         if consumer.exclusive {
             st.exclusive_consumer = false;
         }
@@ -859,6 +875,7 @@ impl Queue {
             st.deleted = true;
             std::mem::take(&mut st.consumers)
         };
+        self.stats.queue_deleted(consumers.len());
         Deleted {
             messages: self.purge(),
             consumers,
@@ -947,5 +964,23 @@ impl Queue {
             );
             vhost.publish_internal(exchange, message);
         }
+    }
+}
+
+/// Reading a queue's state for listings (`inspect`).
+impl Queue {
+    /// Ready messages, their body bytes, and consumers, read under the lock.
+    pub(crate) fn depth(&self) -> crate::inspect::QueueDepth {
+        let st = self.lock();
+        crate::inspect::QueueDepth {
+            ready: st.ready.len() as u64,
+            ready_bytes: st.ready_bytes as u64,
+            consumers: st.consumers.len() as u64,
+        }
+    }
+
+    /// The consumers now.
+    pub(crate) fn consumers_snapshot(&self) -> Vec<Arc<Consumer>> {
+        self.lock().consumers.clone()
     }
 }

@@ -11,6 +11,7 @@ use crate::exchange::{Binding, Destination, Exchange, ExchangeKind, ExchangeOpti
 use crate::memory::MemoryGauge;
 use crate::message::Message;
 use crate::queue::{Deleted, Queue, QueueArgs, QueueOptions};
+use crate::stats::BrokerCounters;
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
@@ -25,6 +26,7 @@ pub struct Vhost {
     queues: RwLock<HashMap<ShortStr, Arc<Queue>>>,
     gauge: Arc<MemoryGauge>,
     persistence: Option<Arc<Persistence>>,
+    counters: Arc<BrokerCounters>,
     /// Direct reply-to consumers by their reply name.
     reply_targets: RwLock<HashMap<ShortStr, ReplyTarget>>,
 }
@@ -69,6 +71,7 @@ impl Vhost {
         name: ShortStr,
         gauge: Arc<MemoryGauge>,
         persistence: Option<Arc<Persistence>>,
+        counters: Arc<BrokerCounters>,
     ) -> Arc<Self> {
         let vhost = Vhost {
             name,
@@ -76,6 +79,7 @@ impl Vhost {
             queues: RwLock::new(HashMap::new()),
             gauge,
             persistence,
+            counters,
             reply_targets: RwLock::new(HashMap::new()),
         };
         let durable = ExchangeOptions {
@@ -110,6 +114,11 @@ impl Vhost {
     /// Every queue (for sweeping and connection cleanup).
     pub fn queues(&self) -> Vec<Arc<Queue>> {
         read(&self.queues).values().cloned().collect()
+    }
+
+    /// Every exchange (for listings).
+    pub fn exchanges(&self) -> Vec<Arc<Exchange>> {
+        read(&self.exchanges).values().cloned().collect()
     }
 
     /// The exchange, or 404 as RabbitMQ words it.
@@ -293,6 +302,7 @@ impl Vhost {
             Arc::downgrade(self),
             Arc::clone(&self.gauge),
             durable_store,
+            Arc::clone(&self.counters),
         ));
         queues.insert(decl.name, Arc::clone(&queue));
         Ok((queue, true))
@@ -626,6 +636,7 @@ impl Vhost {
             Arc::downgrade(self),
             Arc::clone(&self.gauge),
             Some((persistence, record.id)),
+            Arc::clone(&self.counters),
         ));
         write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
         Some(queue)

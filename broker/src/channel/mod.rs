@@ -20,6 +20,7 @@ use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::outbox::Outbox;
 use crate::queue::Queue;
+use crate::registry::ChannelRegistration;
 use crate::vhost::Vhost;
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{
@@ -86,6 +87,8 @@ pub struct Channel {
     direct_reply: Option<reply_to::DirectReply>,
     /// A queue this channel published to that is over the flow limit.
     crowded: Option<Arc<Queue>>,
+    /// Keeps the channel listed (`registry`) until it is dropped.
+    registration: ChannelRegistration,
 }
 
 impl Channel {
@@ -97,9 +100,11 @@ impl Channel {
         core: Arc<Core>,
         user: String,
     ) -> Self {
+        let link = Arc::new(ChannelLink::new(id, outbox));
         Channel {
             id,
-            link: Arc::new(ChannelLink::new(id, outbox)),
+            registration: core.registry.channel(link.outbox.connection_id, id, &link),
+            link,
             vhost,
             core,
             user,

@@ -42,7 +42,13 @@ impl Channel {
                 arguments: declare.arguments,
             },
         };
-        let (queue, _created) = self.vhost.declare_queue(decl, connection_id)?;
+        if !decl.passive {
+            self.core.stats.queues_declared.inc();
+        }
+        let (queue, created) = self.vhost.declare_queue(decl, connection_id)?;
+        if created {
+            self.core.stats.queues_created.inc();
+        }
         self.last_queue = Some(queue.name.clone());
         if !declare.no_wait {
             self.reply(QueueDeclareOk {

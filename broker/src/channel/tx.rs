@@ -9,6 +9,7 @@ use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::queue::Queue;
+use crate::registry::ChannelMode;
 use leveret_protocol::{
     BasicAck, BasicNack, ConfirmSelectOk, TxCommitOk, TxRollbackOk, TxSelectOk,
 };
@@ -85,6 +86,7 @@ impl Channel {
         }
         if self.tx.is_none() {
             self.tx = Some(Transaction::new(&self.core.gauge));
+            self.registration.set_mode(ChannelMode::Transactional);
         }
         self.reply(TxSelectOk {}).await;
         Ok(())
@@ -184,6 +186,7 @@ impl Channel {
         }
         if self.confirms.is_none() {
             self.confirms = Some(Confirms::default());
+            self.registration.set_mode(ChannelMode::Confirm);
         }
         if !no_wait {
             self.reply(ConfirmSelectOk {}).await;
@@ -228,6 +231,7 @@ impl Channel {
                 };
                 confirms.waiting.pop_front();
                 if ack {
+                    self.core.stats.confirmed.inc();
                     acks = Some(acks.map_or((tag, tag), |(low, _)| (low, tag)));
                 } else {
                     nacks.push((acks.take(), tag));

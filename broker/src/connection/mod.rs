@@ -87,6 +87,7 @@ where
     W: AsyncWrite + Unpin + Send + 'static,
 {
     let connection_id = core.next_connection_id();
+    let _registration = core.registry.connection(connection_id, &peer);
     let mut reader = FrameReader {
         socket: read,
         buf: BytesMut::with_capacity(64 * 1024),
@@ -197,7 +198,8 @@ impl Connection {
             None => return Err(Ended::Read(ReadError::TimedOut)),
         }
         tracing::debug!(user = %self.user, "connection open");
-        let mut shutdown = self.core.shutdown_signal();
+        let mut shutdown = (self.core.registry.close_signal(self.connection_id))
+            .unwrap_or_else(|| self.core.shutdown_signal());
         let mut durable = self.core.persistence.as_ref().map(|p| p.durable());
         // One deadline for client silence, re-armed only when it fires (a
         // timer reset per read would cost a timer-wheel update per batch).
@@ -261,8 +263,8 @@ impl Connection {
                     return Err(Ended::Read(ReadError::TimedOut));
                 }
                 Event::Shutdown => {
-                    let error =
-                        AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
+                    let reason = self.core.registry.close_reason(self.connection_id);
+                    let error = AmqpError::new(ReplyCode::ConnectionForced, reason);
                     return self.close_with(reader, error).await;
                 }
             }
@@ -438,6 +440,17 @@ impl Connection {
                     .during_ids(10, 40),
             ));
         };
+        self.core.registry.opened(
+            self.connection_id,
+            crate::registry::Opened {
+                user: self.user.clone(),
+                vhost: vhost.name.to_string_lossy().into_owned(),
+                client_properties: start_ok.client_properties,
+                frame_max,
+                channel_max: self.channel_max,
+                heartbeat_secs: tune_ok.heartbeat,
+            },
+        );
         self.vhost = Some(vhost);
         self.outbox
             .method(
