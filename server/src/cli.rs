@@ -37,6 +37,10 @@ pub struct Cli {
     /// 0 never busy-polls, for the least CPU time [default: 200].
     #[arg(long, value_name = "MICROS")]
     pub busy_poll: Option<u64>,
+    /// Address of the Prometheus endpoint (`/metrics`, `/metrics/per-object`)
+    /// [default: 127.0.0.1:15692].
+    #[arg(long, value_name = "ADDR:PORT")]
+    pub metrics_listen: Option<SocketAddr>,
     /// Read a password on standard input, print its salted hash for the
     /// config file's `password-hash`, and exit.
     #[arg(long)]

@@ -15,6 +15,9 @@ use std::time::Duration;
 /// Where AMQP connections are accepted unless told otherwise.
 const DEFAULT_LISTEN: SocketAddr =
     SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED), 5672);
+/// Where the Prometheus endpoint listens unless told otherwise (RabbitMQ's port).
+const DEFAULT_METRICS_LISTEN: SocketAddr =
+    SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 15692);
 /// Where durable state lives unless told otherwise.
 const DEFAULT_DATA_DIR: &str = "leveret-data";
 /// The log filter unless told otherwise.
@@ -69,6 +72,7 @@ pub struct FileConfig {
     memory_high_watermark: Option<usize>,
     product: Option<String>,
     busy_poll: Option<u64>,
+    metrics_listen: Option<SocketAddr>,
 }
 
 /// One `[[users]]` table.
@@ -129,6 +133,8 @@ pub struct Settings {
     pub product: Option<String>,
     /// The busy-poll window.
     pub busy_poll: Duration,
+    /// The Prometheus endpoint.
+    pub metrics_listen: SocketAddr,
 }
 
 impl Settings {
@@ -180,7 +186,19 @@ impl Settings {
             limits,
             product: cli.product.or(file.product),
             busy_poll: Duration::from_micros(busy_poll),
+            metrics_listen: cli
+                .metrics_listen
+                .or(file.metrics_listen)
+                .unwrap_or(DEFAULT_METRICS_LISTEN),
         })
+    }
+
+    /// The operators' listeners for these settings.
+    pub fn ops(&self) -> crate::ops::OpsSettings {
+        crate::ops::OpsSettings {
+            metrics_listen: self.metrics_listen,
+            data_dir: self.data_dir.clone(),
+        }
     }
 
     /// The library's builder for these settings.
@@ -230,6 +248,7 @@ mod tests {
         assert_eq!(settings.log, "info");
         assert_eq!(settings.busy_poll, Duration::from_micros(200));
         assert_eq!(settings.product, None);
+        assert_eq!(settings.metrics_listen, "127.0.0.1:15692".parse().unwrap());
         assert!(settings.users.is_empty() && settings.vhosts.is_empty());
         let defaults = Limits::default();
         assert_eq!(settings.limits.frame_max, defaults.frame_max);
@@ -252,6 +271,7 @@ mod tests {
             memory-high-watermark = 268435456
             product = "RabbitMQ"
             busy-poll = 0
+            metrics-listen = "127.0.0.1:9999"
 
             [[users]]
             name = "robot"
@@ -281,6 +301,7 @@ mod tests {
         assert_eq!(settings.limits.memory_high_watermark, 268_435_456);
         assert_eq!(settings.product.as_deref(), Some("RabbitMQ"));
         assert_eq!(settings.busy_poll, Duration::ZERO);
+        assert_eq!(settings.metrics_listen, "127.0.0.1:9999".parse().unwrap());
         assert_eq!(
             settings.users,
             vec![
@@ -298,6 +319,7 @@ mod tests {
             log = "debug"
             product = "FromFile"
             busy-poll = 50
+            metrics-listen = "127.0.0.1:9999"
         "#;
         let flags = cli(&[
             "--listen",
@@ -310,6 +332,8 @@ mod tests {
             "FromFlag",
             "--busy-poll",
             "7",
+            "--metrics-listen",
+            "127.0.0.1:0",
         ]);
         let settings = Settings::resolve(flags, file(text)).unwrap();
         assert_eq!(settings.listen, vec!["127.0.0.1:6000".parse().unwrap()]);
@@ -317,6 +341,7 @@ mod tests {
         assert_eq!(settings.log, "warn");
         assert_eq!(settings.product.as_deref(), Some("FromFlag"));
         assert_eq!(settings.busy_poll, Duration::from_micros(7));
+        assert_eq!(settings.metrics_listen, "127.0.0.1:0".parse().unwrap());
     }
 
     #[test]

@@ -13,13 +13,20 @@
 //! - `config`: the config file (serde, toml) and its merge with the
 //!   command line into the library's `BrokerBuilder`.
 //! - `logging`: the tracing subscriber.
+//! - `ops`: the operators' listeners on a thread of their own, served by
+//!   `http` (bounded connections, timeouts); `metrics` is the Prometheus
+//!   endpoint, reading `process` figures beside the broker's.
 //!
 //! Each uses only the `leveret-broker` public API; `main` uses the others.
 #![forbid(unsafe_code)]
 
 mod cli;
 mod config;
+mod http;
 mod logging;
+mod metrics;
+mod ops;
+mod process;
 
 use clap::Parser;
 use cli::Cli;
@@ -65,6 +72,7 @@ async fn serve(cli: Cli) -> ExitCode {
         }
     };
     logging::init(&settings.log);
+    let ops_settings = settings.ops();
     let handle = match settings.builder().start().await {
         Ok(handle) => handle,
         Err(e) => {
@@ -72,8 +80,17 @@ async fn serve(cli: Cli) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
+    let ops = match ops::Ops::start(handle.admin(), ops_settings) {
+        Ok(ops) => ops,
+        Err(e) => {
+            tracing::error!(error = %e, "cannot start");
+            handle.shutdown().await;
+            return ExitCode::FAILURE;
+        }
+    };
     wait_for_signal().await;
     tracing::info!("shutting down");
+    ops.stop();
     handle.shutdown().await;
     ExitCode::SUCCESS
 }
