@@ -258,6 +258,43 @@ pub struct BindingInfo {
     pub arguments: FieldTable,
 }
 
+impl BindingInfo {
+    /// RabbitMQ's `properties_key`, which names a binding among those with
+    /// the same ends: `~` for an empty key without arguments, else the key
+    /// form-encoded as RabbitMQ encodes it (`a.#` is `a.%23`), followed
+    /// with arguments by `~` and a hash of them (RabbitMQ's hash differs;
+    /// clients take the key from a listing, never compute it).
+    pub fn properties_key(&self) -> String {
+        if self.arguments.is_empty() {
+            return if self.routing_key.is_empty() {
+                "~".to_owned()
+            } else {
+                quote_binding(&self.routing_key)
+            };
+        }
+        // FNV-1a over the arguments' rendering: stable for a build.
+        let rendered = format!("{:?}", self.arguments);
+        let hash = rendered.bytes().fold(0xcbf2_9ce4_8422_2325_u64, |h, b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+        });
+        format!("{}~{hash:016x}", quote_binding(&self.routing_key))
+    }
+}
+
+/// Form encoding as RabbitMQ quotes binding keys: letters, digits, `.`,
+/// `-` and `_` stay, a space becomes `+`, every other byte `%XX`.
+fn quote_binding(key: &str) -> String {
+    let mut out = String::with_capacity(key.len());
+    for byte in key.bytes() {
+        match byte {
+            b'a'..=b'z' | b'A'..=b'Z' | b'0'..=b'9' | b'.' | b'-' | b'_' => out.push(byte as char),
+            b' ' => out.push('+'),
+            other => out.push_str(&format!("%{other:02X}")),
+        }
+    }
+    out
+}
+
 /// One client connection (RabbitMQ's `/api/connections` object).
 #[derive(Debug, Clone, PartialEq)]
 pub struct ConnectionInfo {
@@ -685,4 +722,42 @@ fn connection_info(entry: &ConnectionEntry) -> Option<ConnectionInfo> {
         heartbeat_secs: opened.heartbeat_secs,
         channels: entry.channel_count() as u64,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn binding(routing_key: &str, arguments: FieldTable) -> BindingInfo {
+        BindingInfo {
+            vhost: "/".into(),
+            source: "x".into(),
+            destination: "q".into(),
+            destination_kind: DestinationKind::Queue,
+            routing_key: routing_key.into(),
+            arguments,
+        }
+    }
+
+    #[test]
+    fn properties_keys_are_quoted_as_rabbitmq_quotes_them() {
+        assert_eq!(binding("", FieldTable::new()).properties_key(), "~");
+        assert_eq!(binding("a.#", FieldTable::new()).properties_key(), "a.%23");
+        assert_eq!(
+            binding("x y~/z", FieldTable::new()).properties_key(),
+            "x+y%7E%2Fz"
+        );
+        let mut arguments = FieldTable::new();
+        arguments.insert(
+            ShortStr::from_static("x-match"),
+            leveret_protocol::FieldValue::string("all"),
+        );
+        let with_arguments = binding("k", arguments.clone()).properties_key();
+        assert!(with_arguments.starts_with("k~"), "{with_arguments}");
+        assert_eq!(with_arguments, binding("k", arguments).properties_key());
+        assert_ne!(
+            with_arguments,
+            binding("k", FieldTable::new()).properties_key()
+        );
+    }
 }

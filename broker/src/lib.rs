@@ -62,7 +62,7 @@ mod stats;
 pub mod store;
 mod vhost;
 
-pub use crate::admin::Admin;
+pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
 pub use crate::auth::PasswordHash;
 pub use crate::core::Limits;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};

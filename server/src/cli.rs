@@ -41,6 +41,10 @@ pub struct Cli {
     /// [default: 127.0.0.1:15692].
     #[arg(long, value_name = "ADDR:PORT")]
     pub metrics_listen: Option<SocketAddr>,
+    /// Address of the management HTTP API (RabbitMQ's `/api/...` subset)
+    /// [default: 127.0.0.1:15672].
+    #[arg(long, value_name = "ADDR:PORT")]
+    pub http_listen: Option<SocketAddr>,
     /// Read a password on standard input, print its salted hash for the
     /// config file's `password-hash`, and exit.
     #[arg(long)]

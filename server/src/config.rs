@@ -18,6 +18,9 @@ const DEFAULT_LISTEN: SocketAddr =
 /// Where the Prometheus endpoint listens unless told otherwise (RabbitMQ's port).
 const DEFAULT_METRICS_LISTEN: SocketAddr =
     SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 15692);
+/// Where the management API listens unless told otherwise (RabbitMQ's port).
+const DEFAULT_HTTP_LISTEN: SocketAddr =
+    SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 15672);
 /// Where durable state lives unless told otherwise.
 const DEFAULT_DATA_DIR: &str = "leveret-data";
 /// The log filter unless told otherwise.
@@ -73,6 +76,7 @@ pub struct FileConfig {
     product: Option<String>,
     busy_poll: Option<u64>,
     metrics_listen: Option<SocketAddr>,
+    http_listen: Option<SocketAddr>,
 }
 
 /// One `[[users]]` table.
@@ -135,6 +139,8 @@ pub struct Settings {
     pub busy_poll: Duration,
     /// The Prometheus endpoint.
     pub metrics_listen: SocketAddr,
+    /// The management API.
+    pub http_listen: SocketAddr,
 }
 
 impl Settings {
@@ -190,6 +196,10 @@ impl Settings {
                 .metrics_listen
                 .or(file.metrics_listen)
                 .unwrap_or(DEFAULT_METRICS_LISTEN),
+            http_listen: cli
+                .http_listen
+                .or(file.http_listen)
+                .unwrap_or(DEFAULT_HTTP_LISTEN),
         })
     }
 
@@ -197,6 +207,7 @@ impl Settings {
     pub fn ops(&self) -> crate::ops::OpsSettings {
         crate::ops::OpsSettings {
             metrics_listen: self.metrics_listen,
+            http_listen: self.http_listen,
             data_dir: self.data_dir.clone(),
         }
     }
@@ -249,6 +260,7 @@ mod tests {
         assert_eq!(settings.busy_poll, Duration::from_micros(200));
         assert_eq!(settings.product, None);
         assert_eq!(settings.metrics_listen, "127.0.0.1:15692".parse().unwrap());
+        assert_eq!(settings.http_listen, "127.0.0.1:15672".parse().unwrap());
         assert!(settings.users.is_empty() && settings.vhosts.is_empty());
         let defaults = Limits::default();
         assert_eq!(settings.limits.frame_max, defaults.frame_max);
@@ -272,6 +284,7 @@ mod tests {
             product = "RabbitMQ"
             busy-poll = 0
             metrics-listen = "127.0.0.1:9999"
+            http-listen = "127.0.0.1:9998"
 
             [[users]]
             name = "robot"
@@ -302,6 +315,7 @@ mod tests {
         assert_eq!(settings.product.as_deref(), Some("RabbitMQ"));
         assert_eq!(settings.busy_poll, Duration::ZERO);
         assert_eq!(settings.metrics_listen, "127.0.0.1:9999".parse().unwrap());
+        assert_eq!(settings.http_listen, "127.0.0.1:9998".parse().unwrap());
         assert_eq!(
             settings.users,
             vec![

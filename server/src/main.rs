@@ -15,7 +15,8 @@
 //! - `logging`: the tracing subscriber.
 //! - `ops`: the operators' listeners on a thread of their own, served by
 //!   `http` (bounded connections, timeouts); `metrics` is the Prometheus
-//!   endpoint, reading `process` figures beside the broker's.
+//!   endpoint, reading `process` figures beside the broker's; `management`
+//!   is the management HTTP API.
 //!
 //! Each uses only the `leveret-broker` public API; `main` uses the others.
 #![forbid(unsafe_code)]
@@ -24,6 +25,7 @@ mod cli;
 mod config;
 mod http;
 mod logging;
+mod management;
 mod metrics;
 mod ops;
 mod process;
@@ -80,7 +82,7 @@ async fn serve(cli: Cli) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let ops = match ops::Ops::start(handle.admin(), ops_settings) {
+    let ops = match ops::Ops::start(handle.admin(), handle.local_addrs(), ops_settings) {
         Ok(ops) => ops,
         Err(e) => {
             tracing::error!(error = %e, "cannot start");

@@ -6,6 +6,7 @@
 //! instructions at a time. The sockets are bound before the thread starts,
 //! so a busy port stops the binary at start with a clear error.
 
+use crate::management::Rates;
 use crate::metrics::MetricsContext;
 use leveret_broker::Admin;
 use std::net::SocketAddr;
@@ -17,6 +18,8 @@ use tokio::sync::watch;
 pub struct OpsSettings {
     /// The Prometheus endpoint.
     pub metrics_listen: SocketAddr,
+    /// The management API.
+    pub http_listen: SocketAddr,
     /// Where the broker keeps its data (disk space is measured there).
     pub data_dir: PathBuf,
 }
@@ -50,43 +53,75 @@ fn bind(addr: SocketAddr) -> Result<std::net::TcpListener, OpsError> {
     bound.map_err(|source| OpsError::Bind { addr, source })
 }
 
+fn bound_addr(listener: &std::net::TcpListener, asked: SocketAddr) -> Result<SocketAddr, OpsError> {
+    listener.local_addr().map_err(|source| OpsError::Bind {
+        addr: asked,
+        source,
+    })
+}
+
 impl Ops {
-    /// Binds the listeners and serves them on their own thread.
-    pub fn start(admin: Admin, settings: OpsSettings) -> Result<Ops, OpsError> {
+    /// Binds the listeners and serves them on their own thread;
+    /// `amqp_listeners` are reported in `/api/overview`.
+    pub fn start(
+        admin: Admin,
+        amqp_listeners: &[SocketAddr],
+        settings: OpsSettings,
+    ) -> Result<Ops, OpsError> {
         let metrics = bind(settings.metrics_listen)?;
-        let metrics_addr = metrics.local_addr().map_err(|source| OpsError::Bind {
-            addr: settings.metrics_listen,
-            source,
-        })?;
+        let metrics_addr = bound_addr(&metrics, settings.metrics_listen)?;
+        let http = bind(settings.http_listen)?;
+        let http_addr = bound_addr(&http, settings.http_listen)?;
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
             .map_err(OpsError::Thread)?;
-        let context = MetricsContext {
-            admin,
-            node: crate::process::node_name(),
+        let node = crate::process::node_name();
+        let rates = Rates::default();
+        let metrics_context = MetricsContext {
+            admin: admin.clone(),
+            node: node.clone(),
+            data_dir: settings.data_dir.clone(),
+        };
+        let management = crate::management::Context {
+            admin: admin.clone(),
+            node,
             data_dir: settings.data_dir,
+            amqp_listeners: amqp_listeners.to_vec(),
+            rates: rates.clone(),
         };
         let (stop, stopped) = watch::channel(false);
         let thread = std::thread::Builder::new()
             .name("leveret-ops".into())
             .spawn(move || {
                 runtime.block_on(async move {
-                    let metrics = match tokio::net::TcpListener::from_std(metrics) {
-                        Ok(listener) => listener,
-                        Err(e) => {
-                            tracing::error!(error = %e, "cannot serve the metrics listener");
+                    let (metrics, http) = match (
+                        tokio::net::TcpListener::from_std(metrics),
+                        tokio::net::TcpListener::from_std(http),
+                    ) {
+                        (Ok(metrics), Ok(http)) => (metrics, http),
+                        (Err(e), _) | (_, Err(e)) => {
+                            tracing::error!(error = %e, "cannot serve the operators' listeners");
                             return;
                         }
                     };
                     tracing::info!(addr = %metrics_addr, "serving Prometheus metrics");
-                    crate::http::serve(
-                        metrics,
-                        crate::metrics::router(context),
-                        "metrics",
-                        stopped,
-                    )
-                    .await;
+                    tracing::info!(addr = %http_addr, "serving the management API");
+                    tokio::join!(
+                        crate::http::serve(
+                            metrics,
+                            crate::metrics::router(metrics_context),
+                            "metrics",
+                            stopped.clone()
+                        ),
+                        crate::http::serve(
+                            http,
+                            crate::management::router(management),
+                            "management",
+                            stopped.clone()
+                        ),
+                        rates.run(admin, stopped),
+                    );
                 });
             })
             .map_err(OpsError::Thread)?;

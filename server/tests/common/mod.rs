@@ -40,7 +40,12 @@ impl BrokerProcess {
             .arg(dir)
             .arg("--log")
             .arg("warn")
-            .args(["--metrics-listen", "127.0.0.1:0"])
+            .args([
+                "--metrics-listen",
+                "127.0.0.1:0",
+                "--http-listen",
+                "127.0.0.1:0",
+            ])
             .args(extra)
             .stdout(Stdio::null())
             .spawn()

@@ -18,6 +18,8 @@ pub struct OpsBroker {
     pub amqp: SocketAddr,
     /// The Prometheus endpoint.
     pub metrics: SocketAddr,
+    /// The management API.
+    pub http: SocketAddr,
 }
 
 /// Removes ANSI colour sequences from a log line.
@@ -56,6 +58,7 @@ impl OpsBroker {
         let _ = std::fs::remove_dir_all(&dir);
         let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
             .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
+            .args(["--http-listen", "127.0.0.1:0"])
             .arg("--data-dir")
             .arg(&dir)
             .args(["--log", "info"])
@@ -69,18 +72,23 @@ impl OpsBroker {
         std::thread::spawn(move || {
             // Reads the log to its end, so the broker never blocks on a full pipe.
             for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-                for marker in ["accepting AMQP", "serving Prometheus metrics"] {
+                for marker in [
+                    "accepting AMQP",
+                    "serving Prometheus metrics",
+                    "serving the management API",
+                ] {
                     if let Some(addr) = address(&line, marker) {
                         let _ = found.send((marker, addr));
                     }
                 }
             }
         });
-        let (mut amqp, mut metrics) = (None, None);
-        while amqp.is_none() || metrics.is_none() {
+        let (mut amqp, mut metrics, mut http) = (None, None, None);
+        while amqp.is_none() || metrics.is_none() || http.is_none() {
             match addresses.recv_timeout(Duration::from_secs(20)) {
                 Ok(("accepting AMQP", addr)) => amqp = Some(addr),
-                Ok((_, addr)) => metrics = Some(addr),
+                Ok(("serving Prometheus metrics", addr)) => metrics = Some(addr),
+                Ok((_, addr)) => http = Some(addr),
                 Err(_) => {
                     let _ = child.kill();
                     panic!("leveret did not report its listeners");
@@ -92,6 +100,7 @@ impl OpsBroker {
             dir,
             amqp: amqp.expect("seen"),
             metrics: metrics.expect("seen"),
+            http: http.expect("seen"),
         }
     }
 
@@ -257,4 +266,11 @@ pub fn promtool_check(text: &str) -> Option<Result<(), String>> {
             String::from_utf8_lossy(&output.stderr)
         ))
     })
+}
+
+/// The `Authorization` header for `user:password`.
+pub fn basic(user: &str, password: &str) -> String {
+    use base64::Engine;
+    let token = base64::engine::general_purpose::STANDARD.encode(format!("{user}:{password}"));
+    format!("Basic {token}")
 }
