@@ -116,6 +116,19 @@ impl Vhost {
         read(&self.queues).values().cloned().collect()
     }
 
+    /// Up to `limit` queues after the first `skip` in the registry's order
+    /// (which holds while no queue is added or removed): one chunk of a
+    /// listing, so that listing many queues never holds the registry for
+    /// long.
+    pub fn queues_chunk(&self, skip: usize, limit: usize) -> Vec<Arc<Queue>> {
+        read(&self.queues)
+            .values()
+            .skip(skip)
+            .take(limit)
+            .cloned()
+            .collect()
+    }
+
     /// Every exchange (for listings).
     pub fn exchanges(&self) -> Vec<Arc<Exchange>> {
         read(&self.exchanges).values().cloned().collect()
