@@ -127,6 +127,19 @@ impl Admin {
         vhost.queue_or_404(&short(name, "queue name")?)
     }
 
+    /// Adds a vhost (for definitions imported at run time); true if it is
+    /// new. It lasts while the broker runs, or while durable objects stored
+    /// in it exist; vhosts meant to last belong in the configuration.
+    pub fn add_vhost(&self, name: &str) -> AmqpResult<bool> {
+        let name = short(name, "vhost name")?;
+        if name.is_empty() {
+            return Err(AmqpError::precondition_failed("a vhost needs a name"));
+        }
+        let new = self.core.vhost(&name).is_none();
+        self.core.vhost_or_create(&name);
+        Ok(new)
+    }
+
     /// Whether `user` with `password` is one of the broker's users.
     pub fn authenticate(&self, user: &str, password: &str) -> bool {
         let mut plain = Vec::with_capacity(user.len() + password.len() + 2);

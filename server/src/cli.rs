@@ -45,6 +45,11 @@ pub struct Cli {
     /// [default: 127.0.0.1:15672].
     #[arg(long, value_name = "ADDR:PORT")]
     pub http_listen: Option<SocketAddr>,
+    /// RabbitMQ definitions file (definitions.json) to load at start:
+    /// vhosts, users, exchanges, queues, bindings; what Leveret does not
+    /// support is reported in the log.
+    #[arg(long, value_name = "FILE")]
+    pub definitions: Option<PathBuf>,
     /// Read a password on standard input, print its salted hash for the
     /// config file's `password-hash`, and exit.
     #[arg(long)]

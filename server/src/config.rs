@@ -77,6 +77,7 @@ pub struct FileConfig {
     busy_poll: Option<u64>,
     metrics_listen: Option<SocketAddr>,
     http_listen: Option<SocketAddr>,
+    definitions: Option<PathBuf>,
 }
 
 /// One `[[users]]` table.
@@ -141,6 +142,8 @@ pub struct Settings {
     pub metrics_listen: SocketAddr,
     /// The management API.
     pub http_listen: SocketAddr,
+    /// A definitions file to load at start.
+    pub definitions: Option<PathBuf>,
 }
 
 impl Settings {
@@ -200,6 +203,7 @@ impl Settings {
                 .http_listen
                 .or(file.http_listen)
                 .unwrap_or(DEFAULT_HTTP_LISTEN),
+            definitions: cli.definitions.or(file.definitions),
         })
     }
 
@@ -285,6 +289,7 @@ mod tests {
             busy-poll = 0
             metrics-listen = "127.0.0.1:9999"
             http-listen = "127.0.0.1:9998"
+            definitions = "/etc/leveret/definitions.json"
 
             [[users]]
             name = "robot"
@@ -316,6 +321,10 @@ mod tests {
         assert_eq!(settings.busy_poll, Duration::ZERO);
         assert_eq!(settings.metrics_listen, "127.0.0.1:9999".parse().unwrap());
         assert_eq!(settings.http_listen, "127.0.0.1:9998".parse().unwrap());
+        assert_eq!(
+            settings.definitions,
+            Some(PathBuf::from("/etc/leveret/definitions.json"))
+        );
         assert_eq!(
             settings.users,
             vec![

@@ -16,13 +16,15 @@
 //! - `ops`: the operators' listeners on a thread of their own, served by
 //!   `http` (bounded connections, timeouts); `metrics` is the Prometheus
 //!   endpoint, reading `process` figures beside the broker's; `management`
-//!   is the management HTTP API.
+//!   is the management HTTP API; `definitions` reads and writes RabbitMQ's
+//!   definitions.json (`--definitions`, `/api/definitions`).
 //!
 //! Each uses only the `leveret-broker` public API; `main` uses the others.
 #![forbid(unsafe_code)]
 
 mod cli;
 mod config;
+mod definitions;
 mod http;
 mod logging;
 mod management;
@@ -33,6 +35,7 @@ mod process;
 use clap::Parser;
 use cli::Cli;
 use config::{FileConfig, Settings};
+use definitions::Definitions;
 use leveret_broker::PasswordHash;
 use std::process::ExitCode;
 
@@ -75,13 +78,45 @@ async fn serve(cli: Cli) -> ExitCode {
     };
     logging::init(&settings.log);
     let ops_settings = settings.ops();
-    let handle = match settings.builder().start().await {
+    let mut definitions = match &settings.definitions {
+        None => None,
+        Some(path) => {
+            let parsed = std::fs::read(path)
+                .map_err(|e| e.to_string())
+                .and_then(|bytes| Definitions::parse(&bytes));
+            match parsed {
+                Ok(definitions) => Some(definitions),
+                Err(e) => {
+                    eprintln!("leveret: definitions {}: {e}", path.display());
+                    return ExitCode::from(USAGE_ERROR);
+                }
+            }
+        }
+    };
+    let mut builder = settings.builder();
+    if let Some(definitions) = &definitions {
+        builder = definitions.configure(builder);
+    }
+    let handle = match builder.start().await {
         Ok(handle) => handle,
         Err(e) => {
             tracing::error!(error = %e, "cannot start");
             return ExitCode::FAILURE;
         }
     };
+    if let Some(definitions) = &mut definitions {
+        match definitions.apply(&handle.admin()).await {
+            Ok(applied) => tracing::info!(?applied, "definitions loaded"),
+            Err(e) => {
+                tracing::error!(error = %e, "cannot load the definitions");
+                handle.shutdown().await;
+                return ExitCode::FAILURE;
+            }
+        }
+        for warning in &definitions.warnings {
+            tracing::warn!(%warning, "definitions");
+        }
+    }
     let ops = match ops::Ops::start(handle.admin(), handle.local_addrs(), ops_settings) {
         Ok(ops) => ops,
         Err(e) => {

@@ -6,6 +6,7 @@
 
 use super::json;
 use super::{ApiError, Context};
+use crate::definitions::Definitions;
 use crate::process::ProcessFigures;
 use axum::body::{Body, Bytes};
 use axum::extract::{Path, Query, State};
@@ -201,14 +202,6 @@ pub async fn vhost(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<V
     Ok(Json(vhost_json(&c, &vhost)))
 }
 
-/// RabbitMQ's stored form of a SHA-256 password hash: base64 of salt and digest.
-fn rabbitmq_password_hash(hex: &str) -> String {
-    let bytes: Vec<u8> = (0..hex.len() / 2)
-        .filter_map(|i| u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).ok())
-        .collect();
-    base64::engine::general_purpose::STANDARD.encode(bytes)
-}
-
 pub async fn users(State(c): Ctx) -> Json<Value> {
     let users = c.admin.users();
     Json(Value::Array(
@@ -217,7 +210,7 @@ pub async fn users(State(c): Ctx) -> Json<Value> {
             .map(|(name, hash)| {
                 json!({
                     "name": name,
-                    "password_hash": rabbitmq_password_hash(&hash.to_hex()),
+                    "password_hash": crate::definitions::rabbitmq_password_hash(hash),
                     "hashing_algorithm": "rabbit_password_hashing_sha256",
                     "tags": [],
                     "limits": {},
@@ -716,4 +709,30 @@ pub async fn alarms(State(c): Ctx) -> Response {
     } else {
         Json(json!({ "status": "ok" })).into_response()
     }
+}
+
+pub async fn definitions(State(c): Ctx) -> Json<Value> {
+    Json(crate::definitions::export(&c.admin))
+}
+
+/// Imports a definitions document; answers what was applied and what was
+/// not (RabbitMQ answers 204 with no body).
+pub async fn import_definitions(State(c): Ctx, body: Bytes) -> ApiResult<Json<Value>> {
+    let mut definitions = Definitions::parse(&body).map_err(ApiError::bad_request)?;
+    let applied = definitions
+        .apply(&c.admin)
+        .await
+        .map_err(ApiError::bad_request)?;
+    for warning in &definitions.warnings {
+        tracing::warn!(%warning, "definitions import");
+    }
+    Ok(Json(json!({
+        "applied": {
+            "vhosts": applied.vhosts,
+            "exchanges": applied.exchanges,
+            "queues": applied.queues,
+            "bindings": applied.bindings,
+        },
+        "warnings": definitions.warnings,
+    })))
 }

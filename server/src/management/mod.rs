@@ -5,13 +5,15 @@
 //! broker's users (the broker has no user tags, so every user may do
 //! everything); bodies are capped at [`MAX_BODY`].
 //!
+//! Definitions (`/api/definitions`) are `crate::definitions`' job.
+//!
 //! Layout: `mod` (router, auth, errors, the shared context), `handlers`
 //! (one function per route), `json` (objects and body parsing), `rates`
 //! (the sampler behind `*_details`). Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
 mod handlers;
-mod json;
+pub mod json;
 mod rates;
 
 use axum::extract::{DefaultBodyLimit, Request, State};
@@ -187,6 +189,10 @@ pub fn router(context: Context) -> Router {
         .route("/api/channels", get(h::channels))
         .route("/api/consumers", get(h::consumers))
         .route("/api/consumers/{vhost}", get(h::consumers_in))
+        .route(
+            "/api/definitions",
+            get(h::definitions).post(h::import_definitions),
+        )
         .route("/api/aliveness-test/{vhost}", get(h::aliveness_test))
         .route("/api/health/checks/alarms", get(h::alarms))
         .fallback(h::unknown)

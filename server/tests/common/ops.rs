@@ -20,6 +20,7 @@ pub struct OpsBroker {
     pub metrics: SocketAddr,
     /// The management API.
     pub http: SocketAddr,
+    log: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
 }
 
 /// Removes ANSI colour sequences from a log line.
@@ -69,9 +70,12 @@ impl OpsBroker {
             .expect("start leveret");
         let stderr = child.stderr.take().expect("stderr");
         let (found, addresses) = std::sync::mpsc::channel();
+        let log = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let kept = std::sync::Arc::clone(&log);
         std::thread::spawn(move || {
             // Reads the log to its end, so the broker never blocks on a full pipe.
             for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                kept.lock().expect("log").push(plain(&line));
                 for marker in [
                     "accepting AMQP",
                     "serving Prometheus metrics",
@@ -101,7 +105,13 @@ impl OpsBroker {
             amqp: amqp.expect("seen"),
             metrics: metrics.expect("seen"),
             http: http.expect("seen"),
+            log,
         }
+    }
+
+    /// The log lines so far, without colours.
+    pub fn log(&self) -> Vec<String> {
+        self.log.lock().expect("log").clone()
     }
 
     /// The AMQP URL of vhost `/` as guest.
