@@ -736,3 +736,9 @@ pub async fn import_definitions(State(c): Ctx, body: Bytes) -> ApiResult<Json<Va
         "warnings": definitions.warnings,
     })))
 }
+
+/// The status page: queues with depth, rates and a depth sparkline,
+/// connections, alarms; it refreshes itself from the API.
+pub async fn status_page() -> axum::response::Html<&'static str> {
+    axum::response::Html(include_str!("status.html"))
+}

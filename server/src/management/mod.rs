@@ -5,7 +5,9 @@
 //! broker's users (the broker has no user tags, so every user may do
 //! everything); bodies are capped at [`MAX_BODY`].
 //!
-//! Definitions (`/api/definitions`) are `crate::definitions`' job.
+//! Definitions (`/api/definitions`) are `crate::definitions`' job. `/` is a
+//! status page (`status.html`: plain HTML and a little JavaScript, no build
+//! step) that reads the same API with the browser's basic-auth credentials.
 //!
 //! Layout: `mod` (router, auth, errors, the shared context), `handlers`
 //! (one function per route), `json` (objects and body parsing), `rates`
@@ -146,6 +148,7 @@ pub fn router(context: Context) -> Router {
     use handlers as h;
     let context = Arc::new(context);
     let api = Router::new()
+        .route("/", get(h::status_page))
         .route("/api/overview", get(h::overview))
         .route("/api/nodes", get(h::nodes))
         .route("/api/nodes/{node}", get(h::node))
