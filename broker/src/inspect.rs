@@ -45,6 +45,19 @@ pub struct Overview {
     pub memory_high_watermark: usize,
     /// Whether the memory alarm is set now.
     pub memory_alarm: bool,
+    /// Busy polling's figures, if the broker busy-polls.
+    pub busy_poll: Option<BusyPollFigures>,
+}
+
+/// What busy polling has cost (see `BrokerBuilder::busy_poll`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BusyPollFigures {
+    /// Socket reads by all connections.
+    pub socket_reads: u64,
+    /// Windows the broker's thread polled through instead of sleeping.
+    pub windows: u64,
+    /// Time the broker's thread spent polling in those windows.
+    pub polling: Duration,
 }
 
 /// Counts of live objects (RabbitMQ's `object_totals`).
@@ -531,6 +544,14 @@ impl Admin {
             publishers: c.publishers.get(),
             memory_high_watermark: core.limits.memory_high_watermark,
             memory_alarm: core.gauge.in_alarm(),
+            busy_poll: core.busy_poll.as_ref().map(|busy_poll| {
+                let (socket_reads, windows, polling) = busy_poll.figures();
+                BusyPollFigures {
+                    socket_reads,
+                    windows,
+                    polling,
+                }
+            }),
         }
     }
 

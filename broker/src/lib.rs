@@ -68,7 +68,7 @@ pub use crate::core::Limits;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;
 pub use inspect::{
-    BindingInfo, ChannelInfo, ChurnTotals, ConnectionInfo, ConsumerInfo, DestinationKind,
-    ExchangeInfo, GlobalMessageStats, ObjectTotals, Overview, QueueInfo, QueueMessageStats,
-    QueueRef, QueueTotals,
+    BindingInfo, BusyPollFigures, ChannelInfo, ChurnTotals, ConnectionInfo, ConsumerInfo,
+    DestinationKind, ExchangeInfo, GlobalMessageStats, ObjectTotals, Overview, QueueInfo,
+    QueueMessageStats, QueueRef, QueueTotals,
 };

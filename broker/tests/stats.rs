@@ -58,6 +58,7 @@ async fn counters_follow_traffic() {
         "the default and amq.* ones"
     );
     assert_eq!(before.message_stats.received, 0);
+    assert_eq!(before.busy_poll, None, "not asked for");
 
     let conn = tmo(
         "connect",

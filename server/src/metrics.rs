@@ -397,6 +397,32 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
         if overview.memory_alarm { 1.0 } else { 0.0 },
     );
 
+    // Leveret's own.
+    out.gauge(
+        "leveret_queued_message_bytes",
+        "Body bytes of the ready messages in all queues",
+        queues.iter().map(|q| q.message_bytes_ready).sum(),
+    );
+    if let Some(busy) = overview.busy_poll {
+        out.counter(
+            "leveret_socket_reads_total",
+            "Total number of reads from client sockets",
+            busy.socket_reads,
+        );
+        out.counter(
+            "leveret_busy_poll_windows_total",
+            "Total number of windows in which the broker's thread polled for input instead of sleeping",
+            busy.windows,
+        );
+        out.single(
+            "leveret_busy_poll_seconds_total",
+            MetricType::COUNTER,
+            "Total time the broker's thread spent polling for input instead of sleeping",
+            &[],
+            busy.polling.as_secs_f64(),
+        );
+    }
+
     if endpoint == Endpoint::PerObject {
         let family = out.family(
             "rabbitmq_queue_info",

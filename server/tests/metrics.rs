@@ -166,6 +166,10 @@ async fn scrapes_follow_traffic_under_rabbitmq_names() {
     );
     assert_eq!(value(&text, "rabbitmq_queues_created_total"), Some(1.0));
     assert_eq!(value(&text, "rabbitmq_connections_opened_total"), Some(1.0));
+    assert_eq!(value(&text, "leveret_queued_message_bytes"), Some(16.0));
+    assert!(value(&text, "leveret_socket_reads_total").unwrap() > 0.0);
+    assert!(value(&text, "leveret_busy_poll_windows_total").unwrap() > 0.0);
+    assert!(value(&text, "leveret_busy_poll_seconds_total").unwrap() > 0.0);
     check_with_promtool(&text, "/metrics");
 
     let per_object = scrape(broker.metrics, "/metrics/per-object").await;
