@@ -125,6 +125,16 @@ pub fn rabbitmq_password_hash(hash: &PasswordHash) -> String {
 impl Definitions {
     /// Parses a definitions document; an error names what is malformed.
     pub fn parse(bytes: &[u8]) -> Result<Definitions, String> {
+        Definitions::parse_into(bytes, None)
+    }
+
+    /// Parses a document for one vhost (RabbitMQ's per-vhost export, whose
+    /// objects have no `vhost` key): objects without one go to `vhost`.
+    pub fn parse_into(bytes: &[u8], vhost: Option<&str>) -> Result<Definitions, String> {
+        let vhost_of = |item: &Map<String, Value>, what: &str| match (item.get("vhost"), vhost) {
+            (None | Some(Value::Null), Some(vhost)) => Ok(vhost.to_owned()),
+            _ => name(item, "vhost", what),
+        };
         let root: Value =
             serde_json::from_slice(bytes).map_err(|e| format!("malformed JSON: {e}"))?;
         let root = root
@@ -218,7 +228,7 @@ impl Definitions {
         for item in list(root, "exchanges")? {
             let item = object(item, "exchanges")?;
             let exchange = name(item, "name", "an exchange")?;
-            let vhost = name(item, "vhost", "an exchange")?;
+            let vhost = vhost_of(item, "an exchange")?;
             let what = format!("exchange '{exchange}' in vhost '{vhost}'");
             unused_keys(
                 item,
@@ -246,7 +256,7 @@ impl Definitions {
         for item in list(root, "queues")? {
             let item = object(item, "queues")?;
             let queue = name(item, "name", "a queue")?;
-            let vhost = name(item, "vhost", "a queue")?;
+            let vhost = vhost_of(item, "a queue")?;
             let what = format!("queue '{queue}' in vhost '{vhost}'");
             unused_keys(
                 item,
@@ -285,7 +295,7 @@ impl Definitions {
         }
         for item in list(root, "bindings")? {
             let item = object(item, "bindings")?;
-            let vhost = name(item, "vhost", "a binding")?;
+            let vhost = vhost_of(item, "a binding")?;
             let source = name(item, "source", "a binding")?;
             let destination = name(item, "destination", "a binding")?;
             let what = format!("binding from '{source}' to '{destination}' in vhost '{vhost}'");
@@ -384,6 +394,39 @@ impl Definitions {
         }
         Ok(applied)
     }
+}
+
+/// One vhost's definitions, as RabbitMQ exports them: its exchanges,
+/// queues and bindings without their `vhost` key, and the empty policies
+/// and parameters.
+pub fn export_vhost(admin: &Admin, vhost: &str) -> Value {
+    let all = export(admin);
+    let only = |key: &str| -> Vec<Value> {
+        all[key]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter(|item| item["vhost"] == vhost)
+            .map(|item| {
+                let mut item = item.clone();
+                if let Some(map) = item.as_object_mut() {
+                    map.remove("vhost");
+                }
+                item
+            })
+            .collect()
+    };
+    json!({
+        "rabbit_version": all["rabbit_version"],
+        "rabbitmq_version": all["rabbitmq_version"],
+        "product_name": all["product_name"],
+        "product_version": all["product_version"],
+        "parameters": [],
+        "policies": [],
+        "queues": only("queues"),
+        "exchanges": only("exchanges"),
+        "bindings": only("bindings"),
+    })
 }
 
 /// The broker's definitions in RabbitMQ 3.10's form: vhosts, users (tags

@@ -397,3 +397,79 @@ async fn careless_and_hostile_requests_get_the_right_answers() {
     assert_eq!(names.len(), 1202, "aliveness-test, q and 1200 more");
     assert!(names.windows(2).all(|w| w[0] < w[1]), "sorted by name");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn vhosts_per_object_bindings_and_per_vhost_definitions() {
+    let broker = OpsBroker::start("vhost-defs", &[]);
+    let http = broker.http;
+    let guest = basic("guest", "guest");
+    let auth = [
+        ("Authorization", guest.as_str()),
+        ("Content-Type", "application/json"),
+    ];
+    let send = |method: &'static str, path: &'static str, body: &'static [u8]| {
+        let auth = auth;
+        async move { request(http, method, path, &auth, body).await }
+    };
+    assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 201);
+    assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 204);
+    assert_eq!(send("DELETE", "/api/vhosts/robots", b"").await.status, 405);
+    for (path, body) in [
+        (
+            "/api/exchanges/robots/sensors",
+            &br#"{"type": "topic"}"#[..],
+        ),
+        ("/api/exchanges/robots/all", br#"{"type": "fanout"}"#),
+        ("/api/queues/robots/lidar", br#"{"durable": true}"#),
+    ] {
+        let response = request(http, "PUT", path, &auth, body).await;
+        assert_eq!(response.status, 201, "{path}: {}", response.text());
+    }
+    for path in [
+        "/api/bindings/robots/e/sensors/q/lidar",
+        "/api/bindings/robots/e/all/e/sensors",
+    ] {
+        let response = request(http, "POST", path, &auth, br#"{"routing_key": "lidar.#"}"#).await;
+        assert_eq!(response.status, 201, "{path}: {}", response.text());
+        assert_eq!(response.header("location"), Some("lidar.%23"));
+    }
+    let json_of = |response: common::ops::Response| -> Value {
+        assert_eq!(response.status, 200, "{}", response.text());
+        serde_json::from_slice(&response.body).expect("JSON")
+    };
+    let on_queue = json_of(send("GET", "/api/queues/robots/lidar/bindings", b"").await);
+    assert_eq!(
+        on_queue.as_array().unwrap().len(),
+        2,
+        "the default exchange's and ours: {on_queue}"
+    );
+    let source = json_of(send("GET", "/api/exchanges/robots/sensors/bindings/source", b"").await);
+    assert_eq!(source[0]["destination"], "lidar");
+    let destination = json_of(
+        send(
+            "GET",
+            "/api/exchanges/robots/sensors/bindings/destination",
+            b"",
+        )
+        .await,
+    );
+    assert_eq!(destination[0]["source"], "all");
+    let missing = send("GET", "/api/exchanges/robots/nope/bindings/source", b"").await;
+    assert_eq!(missing.status, 404);
+
+    let exported = json_of(send("GET", "/api/definitions/robots", b"").await);
+    assert_eq!(
+        exported["queues"],
+        json!([{"name": "lidar", "durable": true, "auto_delete": false, "arguments": {}}])
+    );
+    assert!(exported.get("users").is_none() && exported.get("vhosts").is_none());
+    let body = exported.to_string();
+    let imported = request(http, "POST", "/api/definitions/%2F", &auth, body.as_bytes()).await;
+    assert_eq!(imported.status, 200, "{}", imported.text());
+    let root = json_of(send("GET", "/api/definitions/%2F", b"").await);
+    for key in ["queues", "exchanges", "bindings"] {
+        assert_eq!(root[key], exported[key], "{key}");
+    }
+    let unknown = send("GET", "/api/definitions/nowhere", b"").await;
+    assert_eq!(unknown.status, 404);
+}

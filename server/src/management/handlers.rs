@@ -718,7 +718,26 @@ pub async fn definitions(State(c): Ctx) -> Json<Value> {
 /// Imports a definitions document; answers what was applied and what was
 /// not (RabbitMQ answers 204 with no body).
 pub async fn import_definitions(State(c): Ctx, body: Bytes) -> ApiResult<Json<Value>> {
-    let mut definitions = Definitions::parse(&body).map_err(ApiError::bad_request)?;
+    import(&c, &body, None).await
+}
+
+pub async fn vhost_definitions(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    Ok(Json(crate::definitions::export_vhost(&c.admin, &vhost)))
+}
+
+/// Imports one vhost's definitions: objects without a `vhost` go to it.
+pub async fn import_vhost_definitions(
+    State(c): Ctx,
+    Path(vhost): Path<String>,
+    body: Bytes,
+) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    import(&c, &body, Some(&vhost)).await
+}
+
+async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json<Value>> {
+    let mut definitions = Definitions::parse_into(body, vhost).map_err(ApiError::bad_request)?;
     let applied = definitions
         .apply(&c.admin)
         .await
@@ -735,6 +754,49 @@ pub async fn import_definitions(State(c): Ctx, body: Bytes) -> ApiResult<Json<Va
         },
         "warnings": definitions.warnings,
     })))
+}
+
+/// Creates a vhost (201), or leaves an existing one be (204). It lasts
+/// while the broker runs; vhosts meant to last belong in the configuration.
+pub async fn put_vhost(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult {
+    Ok(created_or_not(c.admin.add_vhost(&vhost)?))
+}
+
+pub async fn queue_bindings(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    queue_ref(&c, &vhost, &name)?;
+    Ok(binding_list(&c, |b| {
+        b.vhost == vhost && b.destination == name && b.destination_kind == DestinationKind::Queue
+    }))
+}
+
+fn require_exchange(c: &Context, vhost: &str, name: &str) -> ApiResult<String> {
+    require_vhost(c, vhost)?;
+    let name = exchange_name(name);
+    c.admin
+        .exchange(vhost, name)
+        .map(|e| e.name)
+        .ok_or_else(|| ApiError::not_found(format!("no exchange '{name}' in vhost '{vhost}'")))
+}
+
+pub async fn exchange_bindings_source(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    let name = require_exchange(&c, &vhost, &name)?;
+    Ok(binding_list(&c, |b| b.vhost == vhost && b.source == name))
+}
+
+pub async fn exchange_bindings_destination(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    let name = require_exchange(&c, &vhost, &name)?;
+    Ok(binding_list(&c, |b| {
+        b.vhost == vhost && b.destination == name && b.destination_kind == DestinationKind::Exchange
+    }))
 }
 
 /// The status page: queues with depth, rates and a depth sparkline,

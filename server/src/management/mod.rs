@@ -153,7 +153,7 @@ pub fn router(context: Context) -> Router {
         .route("/api/nodes", get(h::nodes))
         .route("/api/nodes/{node}", get(h::node))
         .route("/api/vhosts", get(h::vhosts))
-        .route("/api/vhosts/{vhost}", get(h::vhost))
+        .route("/api/vhosts/{vhost}", get(h::vhost).put(h::put_vhost))
         .route("/api/users", get(h::users))
         .route("/api/whoami", get(h::whoami))
         .route("/api/permissions", get(h::permissions))
@@ -166,6 +166,14 @@ pub fn router(context: Context) -> Router {
                 .delete(h::delete_exchange),
         )
         .route("/api/exchanges/{vhost}/{name}/publish", post(h::publish))
+        .route(
+            "/api/exchanges/{vhost}/{name}/bindings/source",
+            get(h::exchange_bindings_source),
+        )
+        .route(
+            "/api/exchanges/{vhost}/{name}/bindings/destination",
+            get(h::exchange_bindings_destination),
+        )
         .route("/api/queues", get(h::queues))
         .route("/api/queues/{vhost}", get(h::queues_in))
         .route(
@@ -174,6 +182,10 @@ pub fn router(context: Context) -> Router {
         )
         .route("/api/queues/{vhost}/{name}/contents", delete(h::purge))
         .route("/api/queues/{vhost}/{name}/get", post(h::get_messages))
+        .route(
+            "/api/queues/{vhost}/{name}/bindings",
+            get(h::queue_bindings),
+        )
         .route("/api/bindings", get(h::bindings))
         .route("/api/bindings/{vhost}", get(h::bindings_in))
         .route(
@@ -195,6 +207,10 @@ pub fn router(context: Context) -> Router {
         .route(
             "/api/definitions",
             get(h::definitions).post(h::import_definitions),
+        )
+        .route(
+            "/api/definitions/{vhost}",
+            get(h::vhost_definitions).post(h::import_vhost_definitions),
         )
         .route("/api/aliveness-test/{vhost}", get(h::aliveness_test))
         .route("/api/health/checks/alarms", get(h::alarms))
