@@ -11,10 +11,9 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::ExchangeOptions;
 use crate::inspect::DestinationKind;
 use crate::message::{Message, Stored};
-use crate::outbox::Outbox;
-use crate::queue::{Enqueued, Queue, QueueOptions};
-use crate::store::StoreOp;
-use crate::vhost::{check_exclusive, ExchangeDeclaration, QueueDeclaration, Vhost};
+use crate::outbox::{Outbound, Outbox};
+use crate::queue::{DeadLetters, Enqueued, Queue, QueueOptions};
+use crate::vhost::{check_exclusive, BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{BasicProperties, FieldTable, ShortStr};
 use std::sync::Arc;
@@ -127,6 +126,18 @@ impl Admin {
         vhost.queue_or_404(&short(name, "queue name")?)
     }
 
+    /// Waits until every definition change submitted so far is on disk,
+    /// when `durable` says the change touched the store: as over AMQP, the
+    /// caller hears of success only once the disk has it.
+    async fn on_disk(&self, durable: bool) -> AmqpResult<()> {
+        match &self.core.persistence {
+            Some(persistence) if durable && !persistence.sync().await => Err(
+                AmqpError::resource_error("could not write the definition to disk"),
+            ),
+            _ => Ok(()),
+        }
+    }
+
     /// Adds a vhost (for definitions imported at run time); true if it is
     /// new. It lasts while the broker runs, or while durable objects stored
     /// in it exist; vhosts meant to last belong in the configuration.
@@ -166,13 +177,14 @@ impl Admin {
     }
 
     /// exchange.declare, as a client would (same checks, same errors).
-    pub fn declare_exchange(
+    pub async fn declare_exchange(
         &self,
         vhost: &str,
         name: &str,
         settings: ExchangeSettings,
     ) -> AmqpResult<()> {
         let vhost = self.vhost(vhost)?;
+        let durable = settings.durable;
         vhost.declare_exchange(ExchangeDeclaration {
             name: short(name, "exchange name")?,
             kind: short(&settings.kind, "exchange type")?,
@@ -184,20 +196,26 @@ impl Admin {
                 arguments: settings.arguments,
             },
         })?;
-        Ok(())
+        self.on_disk(durable).await
     }
 
     /// exchange.delete; deleting one that does not exist is a 404 here
     /// (the HTTP API's meaning), unlike over AMQP.
-    pub fn delete_exchange(&self, vhost: &str, name: &str, if_unused: bool) -> AmqpResult<()> {
+    pub async fn delete_exchange(
+        &self,
+        vhost: &str,
+        name: &str,
+        if_unused: bool,
+    ) -> AmqpResult<()> {
         let vhost = self.vhost(vhost)?;
         let name = short(name, "exchange name")?;
-        vhost.exchange_or_404(&name)?;
-        vhost.delete_exchange(&name, if_unused)
+        let durable = vhost.exchange_or_404(&name)?.options.durable;
+        vhost.delete_exchange(&name, if_unused)?;
+        self.on_disk(durable).await
     }
 
     /// queue.declare (not exclusive); true if the queue was created.
-    pub fn declare_queue(
+    pub async fn declare_queue(
         &self,
         vhost: &str,
         name: &str,
@@ -209,7 +227,8 @@ impl Admin {
             return Err(AmqpError::precondition_failed("a queue needs a name"));
         }
         self.core.stats.queues_declared.inc();
-        let (_, created) = vhost.declare_queue(
+        let max_queues = self.core.limits.vhost(&vhost.name).max_queues;
+        let (queue, created) = vhost.declare_queue(
             QueueDeclaration {
                 name,
                 passive: false,
@@ -220,18 +239,20 @@ impl Admin {
                     auto_delete: settings.auto_delete,
                     arguments: settings.arguments,
                 },
+                max_queues,
             },
             ADMIN_CONNECTION,
         )?;
         if created {
             self.core.stats.queues_created.inc();
         }
+        self.on_disk(queue.store_id().is_some()).await?;
         Ok(created)
     }
 
     /// queue.delete: 404 if it does not exist, 406 if `if_unused` and it
     /// has consumers or `if_empty` and it has ready messages.
-    pub fn delete_queue(
+    pub async fn delete_queue(
         &self,
         vhost: &str,
         name: &str,
@@ -252,7 +273,9 @@ impl Admin {
                 name, vhost.name
             )));
         }
-        Ok(vhost.delete_queue(&queue).notify())
+        let count = vhost.delete_queue(&queue).notify();
+        self.on_disk(queue.store_id().is_some()).await?;
+        Ok(count)
     }
 
     /// queue.purge: drops the ready messages; returns how many.
@@ -262,13 +285,14 @@ impl Admin {
     }
 
     /// queue.bind or exchange.bind.
-    pub fn bind(&self, vhost: &str, binding: BindingSpec) -> AmqpResult<()> {
-        self.change_binding(vhost, binding, true)
+    pub async fn bind(&self, vhost: &str, binding: BindingSpec) -> AmqpResult<()> {
+        self.change_binding(vhost, binding, BindingChange::Bind)
+            .await
     }
 
     /// Removes the binding whose [`BindingInfo::properties_key`] is `key`;
     /// 404 if there is none.
-    pub fn unbind(
+    pub async fn unbind(
         &self,
         vhost: &str,
         source: &str,
@@ -298,27 +322,42 @@ impl Admin {
                 routing_key: found.routing_key,
                 arguments: found.arguments,
             },
-            false,
+            BindingChange::Unbind,
         )
+        .await
     }
 
-    fn change_binding(&self, vhost: &str, binding: BindingSpec, bind: bool) -> AmqpResult<()> {
+    async fn change_binding(
+        &self,
+        vhost: &str,
+        binding: BindingSpec,
+        change: BindingChange,
+    ) -> AmqpResult<()> {
         let vhost = self.vhost(vhost)?;
         let source = short(&binding.source, "exchange name")?;
         let routing_key = short(&binding.routing_key, "routing key")?;
-        match binding.destination_kind {
+        let source_durable = vhost.exchange(&source).is_some_and(|e| e.options.durable);
+        let durable = match binding.destination_kind {
             DestinationKind::Queue => {
                 let queue = self.queue_in(&vhost, &binding.destination)?;
-                vhost.bind_queue(&queue, &source, routing_key, binding.arguments, bind)
+                vhost.bind_queue(&queue, &source, routing_key, binding.arguments, change)?;
+                queue.store_id().is_some()
             }
-            DestinationKind::Exchange => vhost.bind_exchange(
-                &short(&binding.destination, "exchange name")?,
-                &source,
-                routing_key,
-                binding.arguments,
-                bind,
-            ),
-        }
+            DestinationKind::Exchange => {
+                let destination = short(&binding.destination, "exchange name")?;
+                vhost.bind_exchange(
+                    &destination,
+                    &source,
+                    routing_key,
+                    binding.arguments,
+                    change,
+                )?;
+                vhost
+                    .exchange(&destination)
+                    .is_some_and(|e| e.options.durable)
+            }
+        };
+        self.on_disk(durable && source_durable).await
     }
 
     /// basic.publish of one message, as a client in confirm mode would:
@@ -372,11 +411,7 @@ impl Admin {
         let persistent = properties.is_persistent();
         let persistence = self.core.persistence.as_ref().filter(|_| persistent);
         let stored = persistence.and_then(|p| {
-            match queues.iter().filter(|q| q.store_id().is_some()).count() {
-                0 => None,
-                1 => Some(Stored::Inline),
-                durable => Some(Stored::shared(p.next_message_id(), durable)),
-            }
+            Stored::for_queues(p, queues.iter().filter(|q| q.store_id().is_some()).count())
         });
         let mut encoded = BytesMut::new();
         properties.encode(&mut encoded);
@@ -390,19 +425,19 @@ impl Admin {
             ttl_ms,
             stored,
         });
-        if let (Some(persistence), Some(Stored::Shared { id, .. })) = (persistence, &message.stored)
-        {
-            persistence.submit(vec![StoreOp::PutMessage {
-                id: *id,
-                record: message.to_record(),
-            }]);
+        if let (Some(persistence), Some(op)) = (persistence, message.record_op()) {
+            persistence.submit(vec![op]);
         }
         let mut sync = 0;
+        let mut dead = DeadLetters::default();
         for queue in &queues {
-            if let Enqueued::Accepted { sync: s } = queue.publish(Arc::clone(&message)) {
+            let (enqueued, dead_here) = queue.publish(Arc::clone(&message));
+            if let Enqueued::Accepted { sync: s } = enqueued {
                 sync = sync.max(s);
             }
+            dead.append(dead_here);
         }
+        vhost.dead_letter(dead);
         if let (Some(persistence), true) = (persistence, sync > 0) {
             if !persistence.wait(sync).await {
                 return Err(AmqpError::resource_error(
@@ -425,19 +460,34 @@ impl Admin {
         let vhost = self.vhost(vhost)?;
         let queue = self.queue_in(&vhost, queue)?;
         check_exclusive(&queue, ADMIN_CONNECTION, &vhost.name)?;
-        let (outbox, _unused) = Outbox::new(ADMIN_CONNECTION);
-        let link = ChannelLink::new(0, outbox);
+        let (outbox, mut answers) = Outbox::new(ADMIN_CONNECTION);
+        let link = ChannelLink::new(0, Arc::clone(&outbox));
         let mut got = Vec::new();
+        let mut dead = DeadLetters::default();
         while got.len() < count {
-            let Some((_, queued, remaining)) = queue.get(&link, false) else {
+            let Some(permit) = outbox.try_reserve() else {
                 break;
             };
-            let message = &queued.message;
+            let (found, dead_here) = queue.get(&link, false, permit);
+            dead.append(dead_here);
+            if !found {
+                break;
+            }
+            // The answer basic.get would have sent is in our own outbox.
+            let Ok(Outbound::GetOk {
+                redelivered,
+                message_count,
+                message,
+                ..
+            }) = answers.try_recv()
+            else {
+                break;
+            };
             got.push(GotMessage {
                 exchange: message.exchange.to_string_lossy().into_owned(),
                 routing_key: message.routing_key.to_string_lossy().into_owned(),
-                redelivered: queued.redelivered,
-                remaining,
+                redelivered,
+                remaining: message_count,
                 properties: BasicProperties::decode(&message.properties).unwrap_or_default(),
                 body: message.body.clone(),
             });
@@ -445,9 +495,14 @@ impl Admin {
         let taken = link.deliveries().take_all();
         match mode {
             GetMode::Ack => taken.iter().for_each(|u| queue.settle(&u.message)),
-            GetMode::RejectDrop => taken.into_iter().for_each(|u| queue.reject(u.message)),
-            GetMode::Requeue => queue.requeue(taken.into_iter().map(|u| u.message)),
+            GetMode::RejectDrop => {
+                for unacked in taken {
+                    dead.append(queue.reject(unacked.message));
+                }
+            }
+            GetMode::Requeue => dead.append(queue.requeue(taken.into_iter().map(|u| u.message))),
         }
+        vhost.dead_letter(dead);
         Ok(got)
     }
 
@@ -455,7 +510,8 @@ impl Admin {
     /// publishes to it and gets the message back.
     pub async fn aliveness_test(&self, vhost: &str) -> AmqpResult<()> {
         const QUEUE: &str = "aliveness-test";
-        self.declare_queue(vhost, QUEUE, QueueSettings::default())?;
+        self.declare_queue(vhost, QUEUE, QueueSettings::default())
+            .await?;
         let body = Bytes::from_static(b"test_message");
         self.publish(vhost, "", QUEUE, BasicProperties::default(), body.clone())
             .await?;

@@ -1,12 +1,17 @@
 //! Consumers and the per-channel delivery bookkeeping shared between a
 //! channel (which handles acks) and the queues (which deliver): delivery
 //! tags, the unacked list, prefetch credit and channel.flow.
+//!
+//! It may use the outbox (a channel's way to its connection's writer) and
+//! the queue's message type; [`credit`] holds the lock-free counting.
+
+mod credit;
 
 use crate::outbox::Outbox;
 use crate::queue::{Queue, QueuedMessage};
 use leveret_protocol::ShortStr;
 use std::collections::VecDeque;
-use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 /// A delivery waiting for ack, nack or reject.
@@ -91,6 +96,8 @@ pub struct ChannelLink {
     pub global_in_flight: AtomicU32,
     /// channel.flow state: false stops deliveries.
     pub flow_active: AtomicBool,
+    /// Direct replies dropped because the connection had no room.
+    dropped_replies: AtomicU64,
 }
 
 impl ChannelLink {
@@ -103,7 +110,14 @@ impl ChannelLink {
             global_prefetch: AtomicU32::new(0),
             global_in_flight: AtomicU32::new(0),
             flow_active: AtomicBool::new(true),
+            dropped_replies: AtomicU64::new(0),
         }
+    }
+
+    /// Counts one direct reply dropped for want of room; returns how many
+    /// have been dropped on this channel.
+    pub fn count_dropped_reply(&self) -> u64 {
+        self.dropped_replies.fetch_add(1, Ordering::Relaxed) + 1
     }
 
     /// Locks the delivery bookkeeping. The lock is held for a few
@@ -135,18 +149,61 @@ pub struct Consumer {
 }
 
 impl Consumer {
-    /// Whether prefetch and flow allow one more delivery now.
+    /// Whether prefetch and flow allow one more delivery now. A hint for
+    /// choosing among consumers: another queue of the channel may take the
+    /// last unit of shared credit first, so a delivery needs
+    /// [`Consumer::try_take_credit`].
     pub fn has_credit(&self) -> bool {
-        if !self.active.load(Ordering::Acquire) || !self.channel.flow_active.load(Ordering::Relaxed)
-        {
+        if !self.may_deliver() {
             return false;
         }
         if self.no_ack {
             return true;
         }
-        let own = self.prefetch == 0 || self.in_flight.load(Ordering::Relaxed) < self.prefetch;
         let global = self.channel.global_prefetch.load(Ordering::Relaxed);
-        own && (global == 0 || self.channel.global_in_flight.load(Ordering::Relaxed) < global)
+        let within = |in_flight: &AtomicU32, limit: u32| {
+            limit == 0 || in_flight.load(Ordering::Relaxed) < limit
+        };
+        within(&self.in_flight, self.prefetch) && within(&self.channel.global_in_flight, global)
+    }
+
+    /// Takes the credit for one delivery, checking and counting it against
+    /// both the consumer's prefetch and the channel's `global` prefetch in
+    /// one atomic step each; None if flow or either limit refuses. The
+    /// credit goes back when the [`Credit`] is dropped unless it is kept.
+    /// Deliveries without acks take no credit (RabbitMQ ignores prefetch
+    /// for them).
+    pub fn try_take_credit(&self) -> Option<Credit<'_>> {
+        if !self.may_deliver() {
+            return None;
+        }
+        if self.no_ack {
+            return Some(Credit {
+                consumer: self,
+                give_back_on_drop: false,
+            });
+        }
+        let global = self.channel.global_prefetch.load(Ordering::Relaxed);
+        let taken = credit::try_take_both(
+            &self.in_flight,
+            self.prefetch,
+            &self.channel.global_in_flight,
+            global,
+        );
+        // Built only once taken: a Credit dropped gives back its unit.
+        if taken {
+            Some(Credit {
+                consumer: self,
+                give_back_on_drop: true,
+            })
+        } else {
+            None
+        }
+    }
+
+    /// Active (consume-ok sent) and the channel's flow is on.
+    fn may_deliver(&self) -> bool {
+        self.active.load(Ordering::Acquire) && self.channel.flow_active.load(Ordering::Relaxed)
     }
 
     /// Lets the queue deliver to this consumer.
@@ -154,19 +211,114 @@ impl Consumer {
         self.active.store(true, Ordering::Release);
     }
 
-    /// Counts one more unacked delivery.
-    pub fn took_one(&self) {
-        self.in_flight.fetch_add(1, Ordering::Relaxed);
-        self.channel
-            .global_in_flight
-            .fetch_add(1, Ordering::Relaxed);
-    }
-
     /// Counts one settled delivery.
     pub fn settled_one(&self) {
-        self.in_flight.fetch_sub(1, Ordering::Relaxed);
-        self.channel
-            .global_in_flight
-            .fetch_sub(1, Ordering::Relaxed);
+        credit::give_back(&self.in_flight);
+        credit::give_back(&self.channel.global_in_flight);
     }
+}
+
+/// Prefetch credit for one delivery, taken by [`Consumer::try_take_credit`].
+/// Dropped without [`Credit::keep`] (no message was delivered after all) it
+/// is given back.
+#[derive(Debug)]
+#[must_use = "credit not kept is given back at once"]
+pub struct Credit<'a> {
+    consumer: &'a Consumer,
+    /// A unit is counted and no delivery holds it yet.
+    give_back_on_drop: bool,
+}
+
+impl Credit<'_> {
+    /// The delivery went out: the credit stays taken until the delivery is
+    /// settled ([`Consumer::settled_one`]).
+    pub fn keep(mut self) {
+        self.give_back_on_drop = false;
+    }
+}
+
+impl Drop for Credit<'_> {
+    fn drop(&mut self) {
+        if self.give_back_on_drop {
+            self.consumer.settled_one();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn consumer(prefetch: u32, global: u32, no_ack: bool) -> Consumer {
+        let (outbox, _writer) = Outbox::new(1);
+        let link = Arc::new(ChannelLink::new(1, outbox));
+        link.global_prefetch.store(global, Ordering::Relaxed);
+        let consumer = Consumer {
+            tag: ShortStr::from_static("c"),
+            channel: link,
+            no_ack,
+            exclusive: false,
+            prefetch,
+            priority: 0,
+            in_flight: AtomicU32::new(0),
+            active: AtomicBool::new(false),
+        };
+        consumer.activate();
+        consumer
+    }
+
+    fn counts(consumer: &Consumer) -> (u32, u32) {
+        (
+            consumer.in_flight.load(Ordering::Relaxed),
+            consumer.channel.global_in_flight.load(Ordering::Relaxed),
+        )
+    }
+
+    #[test]
+    fn kept_credit_stays_taken_until_settled_and_dropped_credit_goes_back() {
+        let c = consumer(2, 0, false);
+        c.try_take_credit().expect("credit").keep();
+        assert_eq!(counts(&c), (1, 1));
+        drop(c.try_take_credit().expect("credit"));
+        assert_eq!(counts(&c), (1, 1));
+        c.settled_one();
+        assert_eq!(counts(&c), (0, 0));
+    }
+
+    /// A refusal changes nothing: no unit is taken, and none is given back
+    /// (a credit built and dropped on refusal would give back a unit that
+    /// another delivery holds, and underflow once that one is settled).
+    #[test]
+    fn refused_credit_leaves_the_counts_alone() {
+        let per_consumer = consumer(1, 0, false);
+        per_consumer.try_take_credit().expect("credit").keep();
+        assert!(per_consumer.try_take_credit().is_none());
+        assert_eq!(counts(&per_consumer), (1, 1));
+
+        let global = consumer(0, 1, false);
+        global.try_take_credit().expect("credit").keep();
+        assert!(global.try_take_credit().is_none());
+        assert_eq!(counts(&global), (1, 1));
+    }
+
+    #[test]
+    fn no_ack_deliveries_take_no_credit_and_flow_stops_all() {
+        let c = consumer(1, 1, true);
+        for _ in 0..3 {
+            c.try_take_credit().expect("no-ack credit").keep();
+        }
+        assert_eq!(counts(&c), (0, 0));
+        c.channel.flow_active.store(false, Ordering::Relaxed);
+        assert!(c.try_take_credit().is_none() && !c.has_credit());
+    }
+}
+
+/// Where replies to one channel's requests go: the consumer of RabbitMQ's
+/// direct reply-to pseudo-queue, which has no queue of its own.
+#[derive(Debug, Clone)]
+pub(crate) struct ReplyTarget {
+    /// The consuming channel.
+    pub link: Arc<ChannelLink>,
+    /// Its reply consumer's tag.
+    pub consumer_tag: ShortStr,
 }

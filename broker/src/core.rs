@@ -1,34 +1,89 @@
 //! The broker's shared state, independent of sockets: vhosts, users,
-//! limits, the memory gauge, and the shutdown signal that connections
-//! watch. The server and the embedding API build one `Core` and hand an
-//! `Arc` of it to every connection.
+//! limits, the memory gauge, the store handle, the shutdown signal that
+//! connections watch, and the server properties connection.start
+//! announces. The server and the embedding API build one `Core` and hand
+//! an `Arc` of it to every connection and its channels. It uses the vhost
+//! layer and below, never a connection.
 
 use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
+use crate::connection::Admission;
 use crate::memory::MemoryGauge;
 use crate::registry::Registry;
+use crate::resident_memory::ResidentMemoryWatermark;
 use crate::stats::BrokerCounters;
 use crate::store::Persistence;
 use crate::vhost::Vhost;
-use leveret_protocol::{FieldTable, ShortStr};
+use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
+use std::time::Duration;
 use tokio::sync::watch;
 
-/// Limits a broker enforces and offers in connection.tune.
+/// Limits a broker enforces and offers in connection.tune, with RabbitMQ's
+/// names and meanings. Everything a client can make the broker hold is
+/// counted against one of them or capped by one.
 #[derive(Debug, Clone)]
 pub struct Limits {
-    /// Highest channel number (connection.tune channel-max).
+    /// Most channels open at once on one connection, offered in
+    /// connection.tune (RabbitMQ's `channel_max`, default 2047). Opening
+    /// one more than the negotiated value closes the connection with 530
+    /// NOT_ALLOWED, as RabbitMQ does; channel numbers themselves are not
+    /// limited by it.
     pub channel_max: u16,
-    /// Largest frame (connection.tune frame-max).
+    /// Largest frame (connection.tune frame-max). Until the client's
+    /// connection.tune-ok, frames are limited to the protocol's 4096-byte
+    /// minimum.
     pub frame_max: u32,
     /// Heartbeat interval offered, seconds (0 = none).
     pub heartbeat: u16,
     /// Largest message body accepted (RabbitMQ's default: 128 MiB).
     pub max_message_size: u64,
-    /// Queued-message bytes above which publishers are blocked.
+    /// Bytes the broker holds for messages (queued, held by transactions,
+    /// being received) above which publishers are blocked. A body is
+    /// counted at its announced size from its first body frame, so keep
+    /// this well above `max_message_size`: bodies being received that
+    /// alone exceed it keep their publishers blocked until other memory
+    /// is freed.
     pub memory_high_watermark: usize,
+    /// The process's resident memory above which publishers are blocked
+    /// too (RabbitMQ's `vm_memory_high_watermark`; read from /proc every
+    /// 250 ms where there is one).
+    pub resident_memory_high_watermark: ResidentMemoryWatermark,
+    /// Most TCP connections served at once (RabbitMQ's `connection_max`;
+    /// `None`, the default, is no limit). A connection over it is closed
+    /// as soon as it is accepted, before anything is read from it, and
+    /// logged. In-process connections are not counted.
+    pub max_connections: Option<usize>,
+    /// How long a client has from connecting to connection.open-ok
+    /// (RabbitMQ's `handshake_timeout`, default 10 s); a connection that
+    /// has not finished the handshake by then is logged and closed.
+    pub handshake_timeout: Duration,
+    /// Limits of individual vhosts, by vhost name (RabbitMQ's vhost
+    /// limits); vhosts not named here have none.
+    pub vhost_limits: HashMap<String, VhostLimits>,
+}
+
+/// The limits of one vhost, RabbitMQ's `rabbitmqctl set_vhost_limits`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct VhostLimits {
+    /// Most connections open to the vhost at once (`max-connections`);
+    /// connection.open beyond it is refused with 530 NOT_ALLOWED.
+    pub max_connections: Option<usize>,
+    /// Most queues in the vhost (`max-queues`); queue.declare of a new
+    /// queue beyond it is refused with 406 PRECONDITION_FAILED.
+    pub max_queues: Option<usize>,
+}
+
+impl Limits {
+    /// The limits of the vhost called `name`.
+    pub fn vhost(&self, name: &ShortStr) -> VhostLimits {
+        name.as_str()
+            .and_then(|name| self.vhost_limits.get(name))
+            .copied()
+            .unwrap_or_default()
+    }
 }
 
 impl Default for Limits {
@@ -39,8 +94,30 @@ impl Default for Limits {
             heartbeat: 60,
             max_message_size: 128 * 1024 * 1024,
             memory_high_watermark: 1 << 30,
+            resident_memory_high_watermark: ResidentMemoryWatermark::default(),
+            max_connections: None,
+            handshake_timeout: Duration::from_secs(10),
+            vhost_limits: HashMap::new(),
         }
     }
+}
+
+/// What a [`Core`] is built from.
+#[derive(Debug)]
+pub struct CoreOptions {
+    /// The vhosts to create (names that are not valid short strings are
+    /// skipped).
+    pub vhosts: Vec<String>,
+    /// Accepted users.
+    pub users: Users,
+    /// Limits.
+    pub limits: Limits,
+    /// Durable storage, if the broker has any.
+    pub persistence: Option<Arc<Persistence>>,
+    /// The product name announced in connection.start.
+    pub product: String,
+    /// The busy-poll window's shared state, if the broker busy-polls.
+    pub busy_poll: Option<Arc<BusyPoll>>,
 }
 
 /// State shared by every connection of one broker.
@@ -51,7 +128,7 @@ pub struct Core {
     pub users: Users,
     /// Limits.
     pub limits: Limits,
-    /// Memory held by queued messages.
+    /// The memory alarm and the bytes it counts.
     pub gauge: Arc<MemoryGauge>,
     /// Durable storage, if the broker has any.
     pub persistence: Option<Arc<Persistence>>,
@@ -67,24 +144,27 @@ pub struct Core {
     pub product: String,
     /// When the broker started.
     pub started: std::time::Instant,
+    /// Connections counted against `max_connections` and vhost limits.
+    pub connections: Arc<Admission>,
     next_connection: AtomicU64,
     shutdown: watch::Sender<bool>,
 }
 
 impl Core {
-    /// A core with the given vhosts, users, limits, storage and the
-    /// `product` name it announces to clients.
-    pub fn new(
-        vhost_names: &[String],
-        users: Users,
-        limits: Limits,
-        persistence: Option<Arc<Persistence>>,
-        product: &str,
-        busy_poll: Option<Arc<BusyPoll>>,
-    ) -> Arc<Self> {
+    /// A core as `options` say.
+    pub fn new(options: CoreOptions) -> Arc<Self> {
+        let CoreOptions {
+            vhosts,
+            users,
+            limits,
+            persistence,
+            product,
+            busy_poll,
+        } = options;
         let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
         let stats = Arc::new(BrokerCounters::default());
-        let vhosts = vhost_names
+        let connections = Admission::new(limits.max_connections);
+        let vhosts = vhosts
             .iter()
             .filter_map(|name| ShortStr::try_from(name.as_str()).ok())
             .map(|name| {
@@ -103,12 +183,13 @@ impl Core {
             limits,
             gauge,
             persistence,
-            server_properties: crate::connection::server_properties(product),
+            server_properties: server_properties(&product),
             busy_poll,
             registry: Arc::new(Registry::new(Arc::clone(&stats))),
             stats,
             product: product.to_owned(),
             started: std::time::Instant::now(),
+            connections,
             next_connection: AtomicU64::new(1),
             shutdown: watch::channel(false).0,
         })
@@ -163,4 +244,45 @@ impl Core {
     pub fn shutdown_signal(&self) -> watch::Receiver<bool> {
         self.shutdown.subscribe()
     }
+}
+
+/// What connection.start announces: `product` (the builder's, "Leveret"
+/// by default), version, platform and RabbitMQ's capability flags.
+fn server_properties(product: &str) -> FieldTable {
+    let text = |s: &str| FieldValue::string(s);
+    let capabilities: FieldTable = [
+        "publisher_confirms",
+        "exchange_exchange_bindings",
+        "basic.nack",
+        "consumer_cancel_notify",
+        "connection.blocked",
+        "authentication_failure_close",
+        "per_consumer_qos",
+    ]
+    .into_iter()
+    .map(|c| {
+        (
+            ShortStr::try_from(c).unwrap_or_default(),
+            FieldValue::Bool(true),
+        )
+    })
+    .collect();
+    [
+        (ShortStr::from_static("product"), text(product)),
+        (
+            ShortStr::from_static("version"),
+            text(env!("CARGO_PKG_VERSION")),
+        ),
+        (ShortStr::from_static("platform"), text("Rust")),
+        (
+            ShortStr::from_static("information"),
+            text("An embeddable AMQP 0.9.1 broker"),
+        ),
+        (
+            ShortStr::from_static("capabilities"),
+            FieldValue::Table(capabilities),
+        ),
+    ]
+    .into_iter()
+    .collect()
 }

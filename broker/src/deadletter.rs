@@ -1,110 +1,183 @@
-//! Dead-lettering: the copy of a message that goes to a dead-letter
-//! exchange, with RabbitMQ's `x-death` history and `x-first-death-*`
-//! headers, and without its `expiration` (so it does not expire again).
+//! Routing dead letters through a vhost: the dead letters a queue
+//! operation returned (each already carrying its `x-death` history, see
+//! `queue::leaving`) go to their dead-letter exchanges and on to queues.
+//! This module sits beside the vhost and uses it, the queues, and the
+//! persister (a persistent copy reaching durable queues is stored as a
+//! publish is).
+//!
+//! Routing is a work list, never recursion: a dead letter delivered to a
+//! queue can make that queue dead-letter again (it is full, say), and those
+//! letters join the list. Two rules bound the work. RabbitMQ's cycle rule:
+//! a dead letter is not delivered to a queue it already died in unless a
+//! client rejection is part of that cycle ([`closes_automatic_cycle`]).
+//! And a budget: one original dead letter may give rise to at most
+//! [`CASCADE_LIMIT`] further ones, so a topology that multiplies dead
+//! letters (queues dead-lettering into a fanout exchange they are all
+//! bound to) costs a bounded amount of work per message.
 
-use crate::message::Message;
-use bytes::BytesMut;
-use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
+use crate::message::{Message, Stored};
+use crate::queue::{DeadLetter, DeadLetters, Queue};
+use crate::vhost::Vhost;
+use leveret_protocol::{FieldValue, ShortStr};
+use std::collections::VecDeque;
 use std::sync::Arc;
-use std::time::{SystemTime, UNIX_EPOCH};
 
-fn long_str(s: &ShortStr) -> FieldValue {
-    FieldValue::LongStr(s.clone().into_bytes())
-}
+/// How many dead letters one dead letter may cause in turn while it is
+/// routed. RabbitMQ has no such limit; a real topology dead-letters a
+/// message again at once only when it lands in a full queue, a handful of
+/// times at most.
+pub const CASCADE_LIMIT: usize = 256;
 
-/// The dead-lettered copy of `message`, leaving `queue` for `reason`,
-/// to be routed through `exchange` with `routing_key`.
-pub fn with_death(
-    message: &Message,
-    queue: &ShortStr,
-    reason: &str,
-    exchange: &ShortStr,
-    routing_key: &ShortStr,
-) -> Arc<Message> {
-    // The properties were validated when the message was published.
-    let mut props = BasicProperties::decode(&message.properties).unwrap_or_default();
-    // The expiration moves into x-death, so the copy does not expire again.
-    let original_expiration = props.expiration.take();
-    let mut headers = props.headers.take().unwrap_or_default();
-    let now = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_secs())
-        .unwrap_or(0);
-    let mut deaths = match headers.remove("x-death") {
-        Some(FieldValue::Array(values)) => values,
-        _ => Vec::new(),
-    };
-    let same = |entry: &FieldValue| match entry {
-        FieldValue::Table(t) => {
-            t.get("queue").and_then(FieldValue::as_bytes) == Some(queue.as_bytes())
-                && t.get("reason").and_then(FieldValue::as_bytes) == Some(reason.as_bytes())
-        }
-        _ => false,
-    };
-    let entry = match deaths.iter().position(same) {
-        Some(index) => {
-            let mut entry = match deaths.remove(index) {
-                FieldValue::Table(t) => t,
-                _ => FieldTable::new(),
-            };
-            let count = entry.get("count").and_then(FieldValue::as_i64).unwrap_or(0);
-            entry.insert(ShortStr::from_static("count"), FieldValue::I64(count + 1));
-            entry.insert(ShortStr::from_static("time"), FieldValue::Timestamp(now));
-            entry
-        }
-        None => {
-            let mut entry: FieldTable = [
-                (ShortStr::from_static("count"), FieldValue::I64(1)),
-                (ShortStr::from_static("reason"), FieldValue::string(reason)),
-                (ShortStr::from_static("queue"), long_str(queue)),
-                (ShortStr::from_static("time"), FieldValue::Timestamp(now)),
-                (
-                    ShortStr::from_static("exchange"),
-                    long_str(&message.exchange),
-                ),
-                (
-                    ShortStr::from_static("routing-keys"),
-                    FieldValue::Array(vec![long_str(&message.routing_key)]),
-                ),
-            ]
-            .into_iter()
-            .collect();
-            if let Some(expiration) = &original_expiration {
-                entry.insert(
-                    ShortStr::from_static("original-expiration"),
-                    long_str(expiration),
-                );
+/// Routes `letters` through their dead-letter exchanges in `vhost`, with
+/// the cycle rule and the cascade budget.
+pub fn route(vhost: &Vhost, letters: DeadLetters) {
+    if letters.is_empty() {
+        return;
+    }
+    let mut queues = Vec::new();
+    let mut over_budget = 0usize;
+    for letter in letters {
+        // This letter and those it causes, breadth first.
+        let mut work = VecDeque::from([letter]);
+        let mut caused = 0usize;
+        while let Some(letter) = work.pop_front() {
+            for next in deliver(vhost, letter, &mut queues) {
+                if caused == CASCADE_LIMIT {
+                    over_budget += 1;
+                    continue;
+                }
+                caused += 1;
+                work.push_back(next);
             }
-            entry
         }
-    };
-    deaths.insert(0, FieldValue::Table(entry));
-    headers.insert(ShortStr::from_static("x-death"), FieldValue::Array(deaths));
-    if headers.get("x-first-death-reason").is_none() {
-        headers.insert(
-            ShortStr::from_static("x-first-death-reason"),
-            FieldValue::string(reason),
-        );
-        headers.insert(
-            ShortStr::from_static("x-first-death-queue"),
-            long_str(queue),
-        );
-        headers.insert(
-            ShortStr::from_static("x-first-death-exchange"),
-            long_str(&message.exchange),
+    }
+    if over_budget > 0 {
+        tracing::warn!(
+            dropped = over_budget,
+            limit = CASCADE_LIMIT,
+            "dead letters causing too many further dead letters; the excess was dropped"
         );
     }
-    props.headers = Some(headers);
-    let mut encoded = BytesMut::new();
-    props.encode(&mut encoded);
-    Arc::new(Message {
-        exchange: exchange.clone(),
-        routing_key: routing_key.clone(),
-        properties: encoded.freeze(),
-        body: message.body.clone(),
-        persistent: message.persistent,
-        priority: message.priority,
-        ttl_ms: None,
-        stored: None,
-    })
+}
+
+/// Publishes one dead letter's copy to the queues its dead-letter exchange
+/// routes it to, except those the cycle rule rules out; returns the dead
+/// letters that causes in turn. `queues` is a buffer the caller reuses.
+fn deliver(vhost: &Vhost, letter: DeadLetter, queues: &mut Vec<Arc<Queue>>) -> DeadLetters {
+    let mut caused = DeadLetters::default();
+    let Some(exchange) = vhost.exchange(letter.exchange()) else {
+        tracing::debug!(exchange = %letter.exchange(), "dead-letter exchange missing; message dropped");
+        return caused;
+    };
+    let (copy, headers) = letter.into_copy();
+    vhost.route(&exchange, &copy.routing_key, Some(&headers), queues);
+    let deaths = match headers.get("x-death") {
+        Some(FieldValue::Array(deaths)) => deaths.as_slice(),
+        _ => &[],
+    };
+    queues.retain(|queue| {
+        let cycle = closes_automatic_cycle(deaths, &queue.name);
+        if cycle {
+            tracing::warn!(queue = %queue.name, "dead-letter cycle detected; message dropped");
+        }
+        !cycle
+    });
+    let message = stored_copy(vhost, copy, queues);
+    for queue in queues.drain(..) {
+        let (_, more) = queue.publish(Arc::clone(&message));
+        caused.append(more);
+    }
+    caused
+}
+
+/// The copy marked for storage, as a publish is, when it is persistent
+/// and reaches durable queues, with its shared record submitted if it has
+/// one (each queue writes its own index entry as it takes the copy).
+fn stored_copy(vhost: &Vhost, copy: Arc<Message>, queues: &[Arc<Queue>]) -> Arc<Message> {
+    let Some(persistence) = vhost.persistence().filter(|_| copy.persistent) else {
+        return copy;
+    };
+    let durable_queues = queues.iter().filter(|q| q.store_id().is_some()).count();
+    let Some(stored) = Stored::for_queues(persistence, durable_queues) else {
+        return copy;
+    };
+    let message = Arc::new(copy.stored_as(Some(stored)));
+    if let Some(op) = message.record_op() {
+        persistence.submit(vec![op]);
+    }
+    message
+}
+
+/// RabbitMQ's cycle rule. `deaths` is a dead letter's `x-death` history,
+/// newest first (its latest death included). Delivering it to `queue`
+/// closes a cycle if `queue` is in that history; the cycle is broken (the
+/// delivery dropped) only if every death from the newest back to `queue`'s
+/// is automatic (expired, maxlen): a client's rejection in the cycle, or an
+/// entry the broker did not write, lets it continue.
+pub fn closes_automatic_cycle(deaths: &[FieldValue], queue: &ShortStr) -> bool {
+    let mut automatic = true;
+    for entry in deaths {
+        let FieldValue::Table(death) = entry else {
+            automatic = false;
+            continue;
+        };
+        if death.get("reason").and_then(FieldValue::as_bytes) == Some(b"rejected".as_slice()) {
+            automatic = false;
+        }
+        if death.get("queue").and_then(FieldValue::as_bytes) == Some(queue.as_bytes()) {
+            return automatic;
+        }
+    }
+    false
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn s(v: &'static str) -> ShortStr {
+        ShortStr::from_static(v)
+    }
+
+    fn death(queue: &'static str, reason: &'static str) -> FieldValue {
+        FieldValue::Table(
+            [
+                (s("queue"), FieldValue::LongStr(s(queue).into_bytes())),
+                (s("reason"), FieldValue::string(reason)),
+            ]
+            .into_iter()
+            .collect(),
+        )
+    }
+
+    #[test]
+    fn a_queue_not_in_the_history_closes_no_cycle() {
+        assert!(!closes_automatic_cycle(&[], &s("q")));
+        assert!(!closes_automatic_cycle(&[death("a", "maxlen")], &s("q")));
+    }
+
+    #[test]
+    fn automatic_deaths_back_to_the_queue_close_a_cycle() {
+        assert!(closes_automatic_cycle(&[death("q", "maxlen")], &s("q")));
+        let history = [death("b", "expired"), death("a", "maxlen")];
+        assert!(closes_automatic_cycle(&history, &s("a")));
+        assert!(closes_automatic_cycle(&history, &s("b")));
+    }
+
+    #[test]
+    fn a_rejection_in_the_cycle_lets_it_continue() {
+        assert!(!closes_automatic_cycle(&[death("q", "rejected")], &s("q")));
+        let history = [death("b", "expired"), death("a", "rejected")];
+        assert!(!closes_automatic_cycle(&history, &s("a")));
+        // `b`'s cycle is only its own expiry: the older rejection is not in it.
+        assert!(closes_automatic_cycle(&history, &s("b")));
+        let history = [death("a", "rejected"), death("b", "expired")];
+        assert!(!closes_automatic_cycle(&history, &s("b")));
+    }
+
+    #[test]
+    fn an_entry_the_broker_did_not_write_lets_it_continue() {
+        let history = [FieldValue::I64(7), death("a", "maxlen")];
+        assert!(!closes_automatic_cycle(&history, &s("a")));
+    }
 }

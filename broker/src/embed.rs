@@ -6,7 +6,7 @@
 use crate::admin::Admin;
 use crate::auth::{PasswordHash, Users};
 use crate::busy_poll::BusyPoll;
-use crate::core::{Core, Limits};
+use crate::core::{Core, CoreOptions, Limits};
 use crate::inspect::{Overview, QueueInfo};
 use crate::store::{Persistence, Recovered, SledStore, Store, StoreError};
 use std::net::SocketAddr;
@@ -99,7 +99,29 @@ impl BrokerBuilder {
         self
     }
 
-    /// Replaces the limits.
+    /// Replaces the limits: RabbitMQ's `channel_max`, `frame_max`,
+    /// `heartbeat`, `max_message_size`, the memory watermarks (counted
+    /// bytes and resident memory), `connection_max`, `handshake_timeout`
+    /// and the vhost limits `max-connections` and `max-queues`. See
+    /// [`Limits`] for each one's meaning and default.
+    ///
+    /// ```
+    /// use leveret_broker::{Broker, Limits, VhostLimits};
+    /// use std::time::Duration;
+    ///
+    /// let limits = Limits {
+    ///     max_connections: Some(200),
+    ///     channel_max: 64,
+    ///     handshake_timeout: Duration::from_secs(5),
+    ///     vhost_limits: [(
+    ///         "/".to_owned(),
+    ///         VhostLimits { max_connections: Some(50), max_queues: Some(1000) },
+    ///     )]
+    ///     .into(),
+    ///     ..Limits::default()
+    /// };
+    /// let builder = Broker::builder().limits(limits);
+    /// ```
     pub fn limits(mut self, limits: Limits) -> Self {
         self.limits = limits;
         self
@@ -145,8 +167,11 @@ impl BrokerBuilder {
         let store: Option<Arc<dyn Store>> = match self.storage {
             Storage::None => None,
             Storage::Dir(dir) => {
-                std::fs::create_dir_all(&dir).map_err(|e| {
-                    StartError::Storage(StoreError(format!("{}: {e}", dir.display())))
+                std::fs::create_dir_all(&dir).map_err(|source| {
+                    StartError::Storage(StoreError::DataDir {
+                        path: dir.clone(),
+                        source,
+                    })
                 })?;
                 Some(Arc::new(
                     SledStore::open(&dir).map_err(StartError::Storage)?,
@@ -157,22 +182,25 @@ impl BrokerBuilder {
 
         let (persistence, recovered) = match store {
             Some(store) => {
-                let recovered = Recovered::from_scan(store.scan().map_err(StartError::Storage)?)
-                    .map_err(StartError::Storage)?;
-                (Some(Persistence::start(store, &recovered)), recovered)
+                let recovered = Recovered::from_scan(
+                    crate::store::guarded("scan", || store.scan()).map_err(StartError::Storage)?,
+                )
+                .map_err(StartError::Storage)?;
+                let persistence =
+                    Persistence::start(store, &recovered).map_err(StartError::Storage)?;
+                (Some(persistence), recovered)
             }
             None => (None, Recovered::default()),
         };
-        let product = self.product.as_deref().unwrap_or(DEFAULT_PRODUCT);
         let busy_poll = busy_poll_state(self.busy_poll);
-        let core = Core::new(
-            &vhosts,
+        let core = Core::new(CoreOptions {
+            vhosts,
             users,
-            self.limits,
+            limits: self.limits,
             persistence,
-            product,
-            busy_poll.clone(),
-        );
+            product: self.product.unwrap_or_else(|| DEFAULT_PRODUCT.to_owned()),
+            busy_poll: busy_poll.clone(),
+        });
         let report = crate::recovery::recover(&core, recovered);
         if core.persistence.is_some() {
             tracing::info!(
@@ -205,6 +233,11 @@ impl BrokerBuilder {
         tasks.push(tokio::spawn(crate::server::sweeper(
             Arc::clone(&core),
             SWEEP_PERIOD,
+        )));
+        tasks.push(tokio::spawn(crate::resident_memory::watch(
+            Arc::clone(&core.gauge),
+            core.limits.resident_memory_high_watermark,
+            core.shutdown_signal(),
         )));
         if let Some(busy_poll) = busy_poll {
             let shutdown = core.shutdown_signal();
@@ -259,9 +292,10 @@ impl BrokerHandle {
         let (client, server) = tokio::io::duplex(IN_PROCESS_BUFFER);
         let (read, write) = tokio::io::split(server);
         let core = Arc::clone(&self.core);
+        let slot = core.connections.admit_local();
         let alive = self.alive.clone();
         tokio::spawn(async move {
-            crate::connection::serve(core, read, write, "in-process".to_owned()).await;
+            crate::connection::serve(core, read, write, "in-process".to_owned(), slot).await;
             drop(alive);
         });
         client

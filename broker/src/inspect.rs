@@ -12,7 +12,7 @@
 //! take [`Admin::queue_refs`] and read the queues in chunks.
 
 use crate::admin::Admin;
-use crate::exchange::Destination;
+use crate::exchange::{Binding, Destination, Exchange};
 use crate::queue::Queue;
 use crate::registry::{ChannelMode, ConnectionEntry};
 use crate::vhost::Vhost;
@@ -484,6 +484,20 @@ fn all_queues(vhost: &Vhost) -> Vec<Arc<Queue>> {
     all
 }
 
+/// Every binding of `exchange`, copied out a chunk at a time.
+fn all_bindings(exchange: &Exchange) -> Vec<Binding> {
+    let mut all = Vec::new();
+    let mut after = None;
+    loop {
+        let (chunk, next) = exchange.bindings_chunk(after.as_ref(), REGISTRY_CHUNK);
+        all.extend(chunk);
+        match next {
+            Some(cursor) => after = Some(cursor),
+            None => return all,
+        }
+    }
+}
+
 fn text(s: &ShortStr) -> String {
     s.to_string_lossy().into_owned()
 }
@@ -651,7 +665,7 @@ impl Admin {
                 .flat_map(|exchange| {
                     let source = text(&exchange.name);
                     let vhost_name = vhost_name.clone();
-                    exchange.bindings().into_iter().map(move |b| {
+                    all_bindings(exchange).into_iter().map(move |b| {
                         let (destination, destination_kind) = match &b.destination {
                             Destination::Queue(q) => (text(&q.name), DestinationKind::Queue),
                             Destination::Exchange(e) => (text(&e.name), DestinationKind::Exchange),

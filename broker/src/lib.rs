@@ -21,23 +21,59 @@
 //! ```
 //!
 //! # Layout
-//! - `embed`: the builder and handle, the public entry point.
-//! - `server`: TCP listeners, the accept loop, the TTL/expiry sweeper.
-//! - `busy_poll`: polling for input for a short, adaptive window after socket reads instead of sleeping.
-//! - `connection`: handshake, the reader loop, heartbeats, closing; `connection::writer` owns the socket's write half.
-//! - `channel`: content assembly and one module per AMQP class (`basic`, `queue`, `exchange`, `tx`).
-//! - `core`: state shared by all connections (vhosts, users, limits, memory gauge, shutdown).
-//! - `vhost`: exchanges and queues of a vhost, declare/delete/bind, routing.
-//! - `exchange`: exchange kinds and bindings (`topic` trie, `headers` match).
-//! - `queue`: FIFO, consumers, round-robin dispatch, TTL, max-length, dead-lettering (`deadletter`).
-//! - `consumer`: consumers, delivery tags, unacked bookkeeping, prefetch credit.
-//! - `outbox`: what the core sends to a connection's writer, with backpressure.
-//! - `message`, `memory`, `auth`, `error`: messages, the memory alarm, users and SASL, reply errors.
-//! - `stats`: message and churn counters with RabbitMQ's meanings (relaxed atomic adds on the hot path).
-//! - `registry`: open connections and channels, for listing and for closing one from outside.
-//! - `admin`: [`Admin`], a cloneable handle for tools: closing connections, and (`inspect`) reading
-//!   all of the above into plain structs with RabbitMQ's field meanings (`BrokerHandle::overview`).
+//!
+//! The crate is built in layers. Each uses only the layers below it and
+//! the shared pieces beside them, never one above: a lower layer that
+//! needs something done above returns it as a value (a queue's dead
+//! letters) instead of calling up.
+//!
+//! 1. **Server**: `embed` (the builder and handle, the public entry
+//!    point), `server` (TCP listeners, the accept loop, the TTL/expiry
+//!    sweeper), `connection` (handshake, the reader loop, heartbeats,
+//!    closing; `connection::writer` owns the socket's write half),
+//!    `recovery` (durable state rebuilt at start), `busy_poll` (polling
+//!    for input for a short, adaptive window after socket reads instead of
+//!    sleeping). May use every layer below.
+//! 2. **Channel**: `channel`, content assembly and one module per AMQP
+//!    class (`basic`, `queue`, `exchange`, `tx`, `reply_to`). Uses the
+//!    core and below; knows no connection and no socket.
+//! 3. **Core**: `core`, the state every connection shares (vhosts, users,
+//!    limits, the memory gauge, the store handle, the shutdown signal,
+//!    connection.start's server properties). Uses vhosts and below.
+//! 4. **Vhost and exchanges**: `vhost` (declare, delete, bind, route),
+//!    `routing` (a published message's way through exchanges to the
+//!    queues it reaches), `exchange` (the kinds and their bindings: the
+//!    `topic` trie, `headers` matching, the binding registry), `deadletter` (routing the dead letters queue
+//!    operations return: a work list with RabbitMQ's cycle rule and a
+//!    budget). Use queues and below.
+//! 5. **Queue**: `queue` (the FIFO, dispatch to consumers, TTL,
+//!    max-length, durable index entries; dead letters are returned to the
+//!    caller). Uses consumers, outboxes and the store.
+//! 6. **Consumer and outbox**: `consumer` (delivery tags, unacked
+//!    bookkeeping, prefetch credit, direct reply-to targets), `outbox`
+//!    (what goes to a connection's writer, with backpressure). A queue,
+//!    its consumers and the outboxes they deliver through know each other
+//!    (an unacked delivery names its queue; an outbox wakes the queues
+//!    that waited for room): that small circle is the only one.
+//!
+//! Beside the layers: `store` (the [`store::Store`] trait, the key codec,
+//! the group-commit persister), used from the queue layer up and using
+//! nothing of the broker; and the pieces every layer may use: `message`
+//! (a message as the broker holds it), `memory` (the memory alarm) and
+//! `resident_memory` (the process's resident memory from /proc, one of
+//! the alarm's sources),
+//! `auth` (users and SASL), `error` (reply errors).
+//!
+//! Beside them too, for operators: `stats` (message and churn counters
+//! with RabbitMQ's meanings, relaxed atomic adds on the hot path),
+//! `registry` (open connections and channels, for listing and for
+//! closing one from outside), and `admin` ([`Admin`], a cloneable handle
+//! for tools that closes connections and, through `inspect`, reads all of
+//! the above into plain structs with RabbitMQ's field meanings, as
+//! `BrokerHandle::overview` does). They read the layers; no layer calls
+//! them except to bump a counter or keep a registration.
 #![forbid(unsafe_code)]
+#![deny(missing_docs)]
 
 mod admin;
 mod auth;
@@ -49,6 +85,10 @@ mod core;
 mod deadletter;
 mod embed;
 mod error;
+#[cfg(feature = "bench-internals")]
+#[doc(hidden)]
+pub mod exchange;
+#[cfg(not(feature = "bench-internals"))]
 mod exchange;
 mod inspect;
 mod memory;
@@ -57,14 +97,19 @@ mod outbox;
 mod queue;
 mod recovery;
 mod registry;
+mod resident_memory;
+mod routing;
 mod server;
 mod stats;
 pub mod store;
+#[cfg(test)]
+mod testkit;
 mod vhost;
 
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
 pub use crate::auth::PasswordHash;
-pub use crate::core::Limits;
+pub use crate::core::{Limits, VhostLimits};
+pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;
 pub use inspect::{

@@ -1,26 +1,47 @@
-//! The broker-wide memory gauge: bytes held by queued messages, and the
-//! high watermark above which publishing connections stop being read and
-//! get connection.blocked (RabbitMQ's memory alarm).
+//! The broker-wide memory alarm (RabbitMQ's): while it is set, publishing
+//! connections stop being read and clients that asked for it get
+//! connection.blocked. Two sources set it:
+//! - the bytes the broker counts (queued messages, publishes a transaction
+//!   holds, message bodies being assembled) above the high watermark;
+//! - the process's resident memory above its own watermark, reported by
+//!   the `resident_memory` watcher.
+//!
+//! It clears when every source is below 90% of its watermark (hysteresis,
+//! so the alarm does not flap). This module uses nothing else of the
+//! broker; the queues, transactions, content assembly and the connection
+//! reader use it.
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
 use tokio::sync::Notify;
 
-/// Counts queued message bytes against a limit.
+/// Counts held bytes against a limit and carries the memory alarm.
 #[derive(Debug)]
 pub struct MemoryGauge {
     used: AtomicUsize,
     limit: usize,
-    alarm: AtomicBool,
+    /// Set while the counted bytes are above the limit.
+    counted_alarm: AtomicBool,
+    /// Set while resident memory is above its watermark.
+    resident_alarm: AtomicBool,
     cleared: Notify,
 }
 
+/// Which source of the alarm changed, for the log line.
+#[derive(Debug, Clone, Copy)]
+enum Source {
+    Counted,
+    Resident,
+}
+
 impl MemoryGauge {
-    /// A gauge with a high watermark of `limit` bytes.
+    /// A gauge with a high watermark of `limit` counted bytes.
     pub fn new(limit: usize) -> Self {
         MemoryGauge {
             used: AtomicUsize::new(0),
             limit,
-            alarm: AtomicBool::new(false),
+            counted_alarm: AtomicBool::new(false),
+            resident_alarm: AtomicBool::new(false),
             cleared: Notify::new(),
         }
     }
@@ -28,7 +49,7 @@ impl MemoryGauge {
     /// Records `bytes` more held.
     pub fn add(&self, bytes: usize) {
         let used = self.used.fetch_add(bytes, Ordering::Relaxed) + bytes;
-        if used > self.limit && !self.alarm.swap(true, Ordering::AcqRel) {
+        if used > self.limit && !self.counted_alarm.swap(true, Ordering::AcqRel) {
             tracing::warn!(
                 used,
                 limit = self.limit,
@@ -43,16 +64,54 @@ impl MemoryGauge {
             .used
             .fetch_sub(bytes, Ordering::Relaxed)
             .saturating_sub(bytes);
-        // Clear with hysteresis, at 90% of the limit, so the alarm does not flap.
-        if used < self.limit / 10 * 9 && self.alarm.swap(false, Ordering::AcqRel) {
-            tracing::info!(used, "memory alarm cleared: unblocking publishers");
-            self.cleared.notify_waiters();
+        if (used as u64) < below_hysteresis(self.limit as u64) {
+            self.clear(Source::Counted, used);
         }
+    }
+
+    /// Counts `bytes` until the returned reservation is dropped, whatever
+    /// path drops it (done, refused, channel or connection closed).
+    pub fn reserve(self: &Arc<Self>, bytes: usize) -> Reservation {
+        self.add(bytes);
+        Reservation {
+            gauge: Arc::clone(self),
+            bytes,
+        }
+    }
+
+    /// Sets or clears the resident-memory source of the alarm.
+    pub fn set_resident_alarm(&self, on: bool, resident: u64) {
+        if on {
+            if !self.resident_alarm.swap(true, Ordering::AcqRel) {
+                tracing::warn!(
+                    resident,
+                    "memory alarm set by resident memory: blocking publishers"
+                );
+            }
+        } else {
+            self.clear(Source::Resident, resident as usize);
+        }
+    }
+
+    fn clear(&self, source: Source, now: usize) {
+        let flag = match source {
+            Source::Counted => &self.counted_alarm,
+            Source::Resident => &self.resident_alarm,
+        };
+        if !flag.swap(false, Ordering::AcqRel) {
+            return;
+        }
+        if self.in_alarm() {
+            tracing::info!(?source, now, "memory alarm source cleared; another remains");
+            return;
+        }
+        tracing::info!(?source, now, "memory alarm cleared: unblocking publishers");
+        self.cleared.notify_waiters();
     }
 
     /// Whether publishers must wait.
     pub fn in_alarm(&self) -> bool {
-        self.alarm.load(Ordering::Acquire)
+        self.counted_alarm.load(Ordering::Acquire) || self.resident_alarm.load(Ordering::Acquire)
     }
 
     /// Waits until the alarm clears (returns at once if it is not set).
@@ -64,5 +123,88 @@ impl MemoryGauge {
             }
             notified.await;
         }
+    }
+}
+
+/// The level below which an alarm set at `limit` clears: 90% of it.
+pub(crate) fn below_hysteresis(limit: u64) -> u64 {
+    limit / 10 * 9
+}
+
+/// Bytes counted in a [`MemoryGauge`] for as long as this lives.
+#[derive(Debug)]
+pub struct Reservation {
+    gauge: Arc<MemoryGauge>,
+    bytes: usize,
+}
+
+impl Drop for Reservation {
+    fn drop(&mut self) {
+        self.gauge.sub(self.bytes);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn counted_bytes_set_and_clear_the_alarm_with_hysteresis() {
+        let gauge = MemoryGauge::new(1000);
+        gauge.add(1000);
+        assert!(!gauge.in_alarm(), "at the limit is not above it");
+        gauge.add(1);
+        assert!(gauge.in_alarm());
+        gauge.sub(100);
+        assert!(gauge.in_alarm(), "901 is not below 90% of 1000");
+        gauge.sub(2);
+        assert!(!gauge.in_alarm());
+    }
+
+    #[test]
+    fn a_reservation_counts_until_dropped() {
+        let gauge = Arc::new(MemoryGauge::new(100));
+        let held = gauge.reserve(150);
+        assert_eq!(gauge.used.load(Ordering::Relaxed), 150);
+        assert!(gauge.in_alarm());
+        drop(held);
+        assert_eq!(gauge.used.load(Ordering::Relaxed), 0);
+        assert!(!gauge.in_alarm());
+    }
+
+    #[test]
+    fn the_alarm_clears_only_when_every_source_has() {
+        let gauge = MemoryGauge::new(100);
+        gauge.set_resident_alarm(true, 1 << 30);
+        gauge.add(101);
+        gauge.set_resident_alarm(false, 1 << 20);
+        assert!(gauge.in_alarm(), "counted bytes still above the limit");
+        gauge.sub(101);
+        assert!(!gauge.in_alarm());
+        gauge.set_resident_alarm(true, 1 << 30);
+        assert!(gauge.in_alarm(), "resident memory alone sets it");
+    }
+
+    #[tokio::test]
+    async fn waiters_wake_when_the_last_source_clears() {
+        let gauge = Arc::new(MemoryGauge::new(100));
+        gauge.set_resident_alarm(true, 1 << 30);
+        let held = gauge.reserve(200);
+        let waiter = tokio::spawn({
+            let gauge = Arc::clone(&gauge);
+            async move { gauge.wait_clear().await }
+        });
+        tokio::task::yield_now().await;
+        drop(held);
+        tokio::task::yield_now().await;
+        assert!(
+            !waiter.is_finished(),
+            "resident memory still sets the alarm"
+        );
+        gauge.set_resident_alarm(false, 0);
+        tokio::time::timeout(std::time::Duration::from_secs(5), waiter)
+            .await
+            .expect("woken")
+            .expect("no panic");
     }
 }

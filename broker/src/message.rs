@@ -3,7 +3,7 @@
 //! (forwarded to consumers without re-encoding), and the body as `Bytes`
 //! slices of the publisher's read buffer.
 
-use crate::store::MessageRecord;
+use crate::store::{MessageRecord, Persistence, StoreOp};
 use bytes::Bytes;
 use leveret_protocol::ShortStr;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -25,6 +25,16 @@ pub enum Stored {
 }
 
 impl Stored {
+    /// How a persistent message routed to `durable_queues` durable queues
+    /// is kept: not at all, inline, or as a record of its own.
+    pub fn for_queues(persistence: &Persistence, durable_queues: usize) -> Option<Self> {
+        match durable_queues {
+            0 => None,
+            1 => Some(Stored::Inline),
+            refs => Some(Stored::shared(persistence.next_message_id(), refs)),
+        }
+    }
+
     /// A record shared by `refs` durable queues.
     pub fn shared(id: u64, refs: usize) -> Self {
         Stored::Shared {
@@ -72,6 +82,33 @@ pub struct Message {
 }
 
 impl Message {
+    /// This message kept on disk as `stored` says (cheap: `Bytes` handles).
+    pub fn stored_as(&self, stored: Option<Stored>) -> Message {
+        Message {
+            exchange: self.exchange.clone(),
+            routing_key: self.routing_key.clone(),
+            properties: self.properties.clone(),
+            body: self.body.clone(),
+            persistent: self.persistent,
+            priority: self.priority,
+            ttl_ms: self.ttl_ms,
+            stored,
+        }
+    }
+
+    /// The op storing this message's own record, when it is shared by
+    /// several durable queues (a message in one durable queue lives inside
+    /// that queue's index entry instead).
+    pub fn record_op(&self) -> Option<StoreOp> {
+        match self.stored.as_ref()? {
+            Stored::Inline => None,
+            Stored::Shared { id, .. } => Some(StoreOp::PutMessage {
+                id: *id,
+                record: self.to_record(),
+            }),
+        }
+    }
+
     /// The message as the store keeps it (cheap: `Bytes` handles).
     pub fn to_record(&self) -> MessageRecord {
         MessageRecord {

@@ -106,6 +106,11 @@ impl Outbox {
         .await;
     }
 
+    /// Waits for room for one item; `None` if the writer is gone.
+    pub async fn reserve(&self) -> Option<mpsc::Permit<'_, Outbound>> {
+        self.tx.reserve().await.ok()
+    }
+
     /// Reserves room for one item without waiting.
     pub fn try_reserve(&self) -> Option<mpsc::Permit<'_, Outbound>> {
         self.tx.try_reserve().ok()
@@ -136,7 +141,7 @@ impl Outbox {
             std::mem::take(&mut *blocked)
         };
         for queue in waiting.iter().filter_map(Weak::upgrade) {
-            queue.dispatch();
+            queue.dispatch_deferring_dead_letters();
         }
     }
 

@@ -1,6 +1,7 @@
 //! The TCP side: listeners, the accept loop (TCP_NODELAY on every socket,
-//! as RabbitMQ does and as the paper's latency figures call for), and the
-//! vhost sweeper that expires messages and queues.
+//! as RabbitMQ does and as the paper's latency figures call for; sockets
+//! over `max_connections` closed at once), and the vhost sweeper that
+//! expires messages and queues.
 
 use crate::core::Core;
 use std::sync::Arc;
@@ -30,6 +31,12 @@ pub async fn accept_loop(
                 continue;
             }
         };
+        let peer = peer.to_string();
+        let slot = match core.connections.admit_network(&peer) {
+            Ok(slot) => slot,
+            // Over max_connections: closed before anything is read.
+            Err(_) => continue,
+        };
         if let Err(e) = socket.set_nodelay(true) {
             tracing::debug!(error = %e, "could not set TCP_NODELAY");
         }
@@ -37,7 +44,7 @@ pub async fn accept_loop(
         let core = Arc::clone(&core);
         let alive = alive.clone();
         tokio::spawn(async move {
-            crate::connection::serve(core, read, write, peer.to_string()).await;
+            crate::connection::serve(core, read, write, peer, slot).await;
             drop(alive);
         });
     }

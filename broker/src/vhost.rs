@@ -1,21 +1,34 @@
 //! A virtual host: its exchanges and queues, declaring and deleting them
-//! with RabbitMQ's checks, bindings between them, and routing a published
-//! message to the set of queues it reaches. The registries are
+//! with RabbitMQ's checks, and the bindings between them (routing a
+//! published message is `routing`'s). The registries are
 //! `std::sync::RwLock<HashMap>`s: lookups take the read lock for one hash
 //! probe, changes take the write lock briefly; neither is held across an
-//! await or while a queue's own lock is taken.
+//! await or while a queue's own lock is taken. The dead letters queue
+//! operations return are routed here too (`Vhost::dead_letter`, see
+//! `deadletter`). A vhost uses exchanges, queues and the consumer layer's
+//! reply-to targets, never a channel.
+//! Binding changes go through one [`BindingRegistry`] behind a mutex,
+//! taken before the registries' locks and any exchange's; deleting a queue
+//! or an exchange removes its bindings in steps of [`UNBIND_STEP`] with a
+//! yield between steps.
 
-use crate::channel::ReplyTarget;
+use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
-use crate::exchange::{Binding, Destination, Exchange, ExchangeKind, ExchangeOptions};
+use crate::exchange::{
+    Binding, BindingRegistry, Destination, Exchange, ExchangeKind, ExchangeOptions,
+};
 use crate::memory::MemoryGauge;
-use crate::message::Message;
-use crate::queue::{Deleted, Queue, QueueArgs, QueueOptions};
+use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions};
 use crate::stats::BrokerCounters;
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, Mutex, MutexGuard, RwLock};
+use std::time::Instant;
+
+/// Most bindings removed in one step when a queue or an exchange is
+/// deleted; a deletion with more yields between steps.
+const UNBIND_STEP: usize = 256;
 
 /// One virtual host.
 #[derive(Debug)]
@@ -24,11 +37,22 @@ pub struct Vhost {
     pub name: ShortStr,
     exchanges: RwLock<HashMap<ShortStr, Arc<Exchange>>>,
     queues: RwLock<HashMap<ShortStr, Arc<Queue>>>,
+    /// Every binding; held while a binding changes, never across an await.
+    bindings: Mutex<BindingRegistry>,
     gauge: Arc<MemoryGauge>,
     persistence: Option<Arc<Persistence>>,
     counters: Arc<BrokerCounters>,
     /// Direct reply-to consumers by their reply name.
     reply_targets: RwLock<HashMap<ShortStr, ReplyTarget>>,
+}
+
+/// Whether a binding operation adds the binding or removes it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BindingChange {
+    /// queue.bind, exchange.bind.
+    Bind,
+    /// queue.unbind, exchange.unbind.
+    Unbind,
 }
 
 /// What queue.declare asked for.
@@ -42,6 +66,9 @@ pub struct QueueDeclaration {
     pub server_named: bool,
     /// Properties.
     pub options: QueueOptions,
+    /// Refuse to create the queue when the vhost has this many already
+    /// (RabbitMQ's vhost limit `max-queues`).
+    pub max_queues: Option<usize>,
 }
 
 /// What exchange.declare asked for.
@@ -65,6 +92,10 @@ fn write<T>(lock: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
     lock.write().unwrap_or_else(|e| e.into_inner())
 }
 
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 impl Vhost {
     /// A vhost with the default exchange and the predefined `amq.*` ones.
     pub fn new(
@@ -77,6 +108,7 @@ impl Vhost {
             name,
             exchanges: RwLock::new(HashMap::new()),
             queues: RwLock::new(HashMap::new()),
+            bindings: Mutex::new(BindingRegistry::default()),
             gauge,
             persistence,
             counters,
@@ -216,7 +248,7 @@ impl Vhost {
     }
 
     /// exchange.delete.
-    pub fn delete_exchange(&self, name: &ShortStr, if_unused: bool) -> AmqpResult<()> {
+    pub fn delete_exchange(self: &Arc<Self>, name: &ShortStr, if_unused: bool) -> AmqpResult<()> {
         if name.is_empty() || name.as_bytes().starts_with(b"amq.") {
             return Err(default_exchange_refusal(name, &self.name));
         }
@@ -236,17 +268,12 @@ impl Vhost {
     }
 
     fn is_bound_destination(&self, exchange: &Arc<Exchange>) -> bool {
-        let probe = Destination::Exchange(Arc::clone(exchange));
-        read(&self.exchanges).values().any(|e| {
-            let mut found = false;
-            e.for_each_destination(|d| found |= *d == probe);
-            found
-        })
+        lock(&self.bindings).is_destination(&Destination::Exchange(Arc::clone(exchange)))
     }
 
     /// queue.declare; returns the queue and whether it was created.
     pub fn declare_queue(
-        self: &Arc<Self>,
+        &self,
         decl: QueueDeclaration,
         connection_id: u64,
     ) -> AmqpResult<(Arc<Queue>, bool)> {
@@ -292,6 +319,12 @@ impl Vhost {
             // Declared by another channel between our check and the lock.
             return Ok((Arc::clone(existing), false));
         }
+        if let Some(max) = decl.max_queues.filter(|max| queues.len() >= *max) {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "cannot declare queue '{}': queue limit in vhost '{}' ({max}) is reached",
+                decl.name, self.name
+            )));
+        }
         // Exclusive queues die with their connection, so they are never stored.
         let durable_store = match &self.persistence {
             Some(p) if decl.options.durable && decl.options.exclusive_owner.is_none() => {
@@ -310,9 +343,9 @@ impl Vhost {
         }
         let queue = Arc::new(Queue::new(
             decl.name.clone(),
+            self.name.clone(),
             decl.options,
             args,
-            Arc::downgrade(self),
             Arc::clone(&self.gauge),
             durable_store,
             Arc::clone(&self.counters),
@@ -323,7 +356,7 @@ impl Vhost {
 
     /// Deletes a queue: its bindings and messages go with it; its consumers
     /// come back in [`Deleted`], to be notified.
-    pub fn delete_queue(&self, queue: &Arc<Queue>) -> Deleted {
+    pub fn delete_queue(self: &Arc<Self>, queue: &Arc<Queue>) -> Deleted {
         {
             let mut queues = write(&self.queues);
             match queues.get(&queue.name) {
@@ -333,81 +366,123 @@ impl Vhost {
                 _ => return Deleted::default(),
             }
         }
-        let mut ops = Vec::new();
-        for exchange in self.unbind_everywhere(&Destination::Queue(Arc::clone(queue)), &mut ops) {
-            self.auto_delete_exchange(&exchange);
-        }
+        let destination = Destination::Queue(Arc::clone(queue));
         if queue.store_id().is_some() {
+            // Under the registry lock, so that these deletes reach the store
+            // before a binding of a queue of the same name declared next.
+            let registry = lock(&self.bindings);
+            let mut ops = Vec::new();
+            registry.for_each_binding_to(&destination, |source, binding| {
+                ops.extend(
+                    self.binding_record(source, binding)
+                        .map(StoreOp::DeleteBinding),
+                );
+            });
             ops.push(StoreOp::DeleteQueue {
                 vhost: self.name.clone(),
                 name: queue.name.clone(),
             });
+            self.persist(ops);
         }
-        self.persist(ops);
+        self.unbind_in_steps(destination);
         queue.delete()
     }
 
     /// Deletes an auto-delete exchange that has lost its last binding.
-    fn auto_delete_exchange(&self, exchange: &Arc<Exchange>) {
-        if exchange.options.auto_delete && !exchange.has_bindings() {
-            let removed = {
+    fn auto_delete_exchange(self: &Arc<Self>, exchange: &Arc<Exchange>) {
+        if !exchange.options.auto_delete {
+            return;
+        }
+        let removed = {
+            // No binding can be added between the check and the removal.
+            let _registry = lock(&self.bindings);
+            !exchange.has_bindings() && {
                 let mut exchanges = write(&self.exchanges);
                 let current = exchanges
                     .get(&exchange.name)
                     .is_some_and(|e| Arc::ptr_eq(e, exchange));
                 current && exchanges.remove(&exchange.name).is_some()
-            };
-            if removed {
-                self.forget_exchange(exchange);
             }
+        };
+        if removed {
+            self.forget_exchange(exchange);
         }
     }
 
     /// Removes a deleted exchange's bindings, in memory and on disk.
-    fn forget_exchange(&self, exchange: &Arc<Exchange>) {
-        let mut ops = Vec::new();
-        for binding in exchange.bindings() {
-            if let Some(record) = self.binding_record(exchange, &binding) {
-                ops.push(StoreOp::DeleteBinding(record));
-            }
-        }
-        for source in self.unbind_everywhere(&Destination::Exchange(Arc::clone(exchange)), &mut ops)
-        {
-            self.auto_delete_exchange(&source);
-        }
+    fn forget_exchange(self: &Arc<Self>, exchange: &Arc<Exchange>) {
+        exchange.mark_deleted();
+        let destination = Destination::Exchange(Arc::clone(exchange));
         if exchange.options.durable {
+            // Under the registry lock, as in `delete_queue`.
+            let registry = lock(&self.bindings);
+            let mut ops = Vec::new();
+            exchange.for_each_binding(|binding| {
+                ops.extend(
+                    self.binding_record(exchange, binding)
+                        .map(StoreOp::DeleteBinding),
+                );
+            });
+            registry.for_each_binding_to(&destination, |source, binding| {
+                ops.extend(
+                    self.binding_record(source, binding)
+                        .map(StoreOp::DeleteBinding),
+                );
+            });
             ops.push(StoreOp::DeleteExchange {
                 vhost: self.name.clone(),
                 name: exchange.name.clone(),
             });
+            self.persist(ops);
         }
-        self.persist(ops);
+        self.unbind_in_steps(destination);
     }
 
-    /// Removes every binding to `destination` from every exchange, adding
-    /// the store ops for durable ones to `ops`; returns the exchanges that
-    /// lost a binding (candidates for auto-delete).
-    fn unbind_everywhere(
-        &self,
-        destination: &Destination,
-        ops: &mut Vec<StoreOp>,
-    ) -> Vec<Arc<Exchange>> {
-        let exchanges: Vec<Arc<Exchange>> = read(&self.exchanges).values().cloned().collect();
-        let mut touched = Vec::new();
-        for exchange in exchanges {
-            let removed = exchange.unbind_destination(destination);
-            if removed.is_empty() {
-                continue;
-            }
-            ops.extend(
-                removed
-                    .iter()
-                    .filter_map(|b| self.binding_record(&exchange, b))
-                    .map(StoreOp::DeleteBinding),
-            );
-            touched.push(exchange);
+    /// Removes every binding to a deleted queue or exchange (and from a
+    /// deleted exchange): the first [`UNBIND_STEP`] now, the rest in a task
+    /// that yields between steps, so that no deletion holds the thread for
+    /// long whatever its number of bindings. Meanwhile a deleted exchange
+    /// routes nothing, and a deleted queue drops what still reaches it (as
+    /// what was routed just before its deletion). The store was told at
+    /// deletion. Exchanges left without bindings are auto-deleted.
+    fn unbind_in_steps(self: &Arc<Self>, doomed: Destination) {
+        if self.unbind_step(&doomed) {
+            return;
         }
-        touched
+        match tokio::runtime::Handle::try_current() {
+            Ok(runtime) => {
+                let vhost = Arc::clone(self);
+                runtime.spawn(async move {
+                    loop {
+                        tokio::task::yield_now().await;
+                        if vhost.unbind_step(&doomed) {
+                            break;
+                        }
+                    }
+                });
+            }
+            Err(_) => while !self.unbind_step(&doomed) {},
+        }
+    }
+
+    /// One step of [`Self::unbind_in_steps`]; true once nothing is left.
+    fn unbind_step(self: &Arc<Self>, doomed: &Destination) -> bool {
+        let mut budget = UNBIND_STEP;
+        let mut touched = Vec::new();
+        let done = {
+            let mut registry = lock(&self.bindings);
+            let to_done = registry.unbind_destination(doomed, &mut budget, &mut touched);
+            let from_done = match doomed {
+                Destination::Exchange(exchange) => registry.unbind_source(exchange, &mut budget),
+                Destination::Queue(_) => true,
+            };
+            to_done && from_done
+        };
+        touched.dedup_by(|a, b| Arc::ptr_eq(a, b));
+        for exchange in touched {
+            self.auto_delete_exchange(&exchange);
+        }
+        done
     }
 
     fn persist(&self, ops: Vec<StoreOp>) {
@@ -439,17 +514,62 @@ impl Vhost {
         })
     }
 
-    /// Adds a binding in memory and, between durable ends, on disk.
-    fn add_binding(&self, source: &Exchange, binding: Binding) {
-        if let Some(record) = self.binding_record(source, &binding) {
-            self.persist(vec![StoreOp::PutBinding(record)]);
+    /// Adds a binding in memory and, between durable ends, on disk; 404
+    /// if an end was deleted since the caller looked it up.
+    fn add_binding(&self, source: &Arc<Exchange>, binding: Binding) -> AmqpResult<()> {
+        // Store ops go out under the registry lock, in the order of the
+        // changes they record.
+        let mut registry = lock(&self.bindings);
+        self.check_current(source, &binding.destination)?;
+        let record = self.binding_record(source, &binding);
+        if registry.bind(source, binding) {
+            if let Some(record) = record {
+                self.persist(vec![StoreOp::PutBinding(record)]);
+            }
         }
-        source.bind(binding);
+        Ok(())
+    }
+
+    /// 404 unless both ends of a binding are still declared (not deleted,
+    /// nor replaced by a namesake).
+    fn check_current(&self, source: &Arc<Exchange>, destination: &Destination) -> AmqpResult<()> {
+        self.check_current_exchange(source)?;
+        match destination {
+            Destination::Exchange(exchange) => self.check_current_exchange(exchange),
+            Destination::Queue(queue) => {
+                let current = read(&self.queues)
+                    .get(&queue.name)
+                    .is_some_and(|q| Arc::ptr_eq(q, queue));
+                if current {
+                    Ok(())
+                } else {
+                    Err(AmqpError::not_found(format_args!(
+                        "no queue '{}' in vhost '{}'",
+                        queue.name, self.name
+                    )))
+                }
+            }
+        }
+    }
+
+    fn check_current_exchange(&self, exchange: &Arc<Exchange>) -> AmqpResult<()> {
+        let current = read(&self.exchanges)
+            .get(&exchange.name)
+            .is_some_and(|e| Arc::ptr_eq(e, exchange));
+        if current {
+            Ok(())
+        } else {
+            Err(AmqpError::not_found(format_args!(
+                "no exchange '{}' in vhost '{}'",
+                exchange.name, self.name
+            )))
+        }
     }
 
     /// Removes a binding; true if it existed.
-    fn remove_binding(&self, source: &Exchange, binding: &Binding) -> bool {
-        let removed = source.unbind(binding);
+    fn remove_binding(&self, source: &Arc<Exchange>, binding: &Binding) -> bool {
+        let mut registry = lock(&self.bindings);
+        let removed = registry.unbind(source, binding);
         if removed {
             if let Some(record) = self.binding_record(source, binding) {
                 self.persist(vec![StoreOp::DeleteBinding(record)]);
@@ -458,15 +578,15 @@ impl Vhost {
         removed
     }
 
-    /// queue.bind, and with `bind` false queue.unbind (unbinding what was
-    /// never bound succeeds, as in RabbitMQ).
+    /// queue.bind and queue.unbind (unbinding what was never bound
+    /// succeeds, as in RabbitMQ).
     pub fn bind_queue(
-        &self,
+        self: &Arc<Self>,
         queue: &Arc<Queue>,
         exchange: &ShortStr,
         routing_key: ShortStr,
         arguments: FieldTable,
-        bind: bool,
+        change: BindingChange,
     ) -> AmqpResult<()> {
         let source = self.bindable_source(exchange)?;
         let binding = Binding {
@@ -474,9 +594,9 @@ impl Vhost {
             routing_key,
             arguments,
         };
-        if bind {
+        if change == BindingChange::Bind {
             check_headers_binding(&source, &binding.arguments)?;
-            self.add_binding(&source, binding);
+            self.add_binding(&source, binding)?;
         } else if self.remove_binding(&source, &binding) {
             self.auto_delete_exchange(&source);
         }
@@ -485,15 +605,15 @@ impl Vhost {
 
     /// exchange.bind and exchange.unbind.
     pub fn bind_exchange(
-        &self,
+        self: &Arc<Self>,
         destination: &ShortStr,
         source: &ShortStr,
         routing_key: ShortStr,
         arguments: FieldTable,
-        bind: bool,
+        change: BindingChange,
     ) -> AmqpResult<()> {
         let missing_end = self.exchange(destination).is_none() || self.exchange(source).is_none();
-        if !bind && missing_end {
+        if change == BindingChange::Unbind && missing_end {
             // Unbinding from or to a missing exchange succeeds, as in RabbitMQ.
             return Ok(());
         }
@@ -507,9 +627,9 @@ impl Vhost {
             routing_key,
             arguments,
         };
-        if bind {
+        if change == BindingChange::Bind {
             check_headers_binding(&from, &binding.arguments)?;
-            self.add_binding(&from, binding);
+            self.add_binding(&from, binding)?;
         } else if self.remove_binding(&from, &binding) {
             self.auto_delete_exchange(&from);
         }
@@ -523,91 +643,15 @@ impl Vhost {
         self.exchange_or_404(exchange)
     }
 
-    /// Collects in `queues` every queue a message published to `exchange`
-    /// reaches, following exchange-to-exchange bindings and alternate
-    /// exchanges, each queue once. `queues` is a buffer the caller reuses.
-    pub fn route(
-        &self,
-        exchange: &Arc<Exchange>,
-        routing_key: &ShortStr,
-        headers: Option<&FieldTable>,
-        queues: &mut Vec<Arc<Queue>>,
-    ) {
-        queues.clear();
-        if exchange.name.is_empty() {
-            if let Some(queue) = self.queue(routing_key) {
-                queues.push(queue);
-            }
-            return;
-        }
-        let mut next: Vec<Arc<Exchange>> = Vec::new();
-        let mut collect = |destination: &Destination| match destination {
-            Destination::Queue(q) => queues.push(Arc::clone(q)),
-            Destination::Exchange(e) => next.push(Arc::clone(e)),
-        };
-        exchange.route(routing_key, headers, &mut collect);
-        if !next.is_empty() {
-            // Exchange-to-exchange bindings: walk them once each, so a
-            // cycle of bindings ends.
-            let mut visited: Vec<Arc<Exchange>> = vec![Arc::clone(exchange)];
-            while let Some(following) = next.pop() {
-                if visited.iter().any(|v| Arc::ptr_eq(v, &following)) {
-                    continue;
-                }
-                following.route(routing_key, headers, |destination| match destination {
-                    Destination::Queue(q) => queues.push(Arc::clone(q)),
-                    Destination::Exchange(e) => next.push(Arc::clone(e)),
-                });
-                visited.push(following);
-            }
-        }
-        if queues.is_empty() {
-            // Alternate exchanges, followed until one routes or a cycle.
-            let mut alternate = exchange.alternate();
-            let mut tried = vec![exchange.name.clone()];
-            while let Some(name) = alternate.take() {
-                if tried.contains(&name) {
-                    break;
-                }
-                let Some(ae) = self.exchange(&name) else {
-                    break;
-                };
-                ae.route(routing_key, headers, |destination| {
-                    if let Destination::Queue(q) = destination {
-                        queues.push(Arc::clone(q));
-                    }
-                });
-                if queues.is_empty() {
-                    alternate = ae.alternate();
-                    tried.push(name);
-                }
-            }
-        }
-        if queues.len() > 1 {
-            queues.sort_by_key(|q| Arc::as_ptr(q) as usize);
-            queues.dedup_by(|a, b| Arc::ptr_eq(a, b));
-        }
+    /// Routes dead letters a queue operation returned, iteratively and
+    /// with RabbitMQ's cycle rule (see [`crate::deadletter`]).
+    pub fn dead_letter(&self, letters: DeadLetters) {
+        crate::deadletter::route(self, letters);
     }
 
-    /// Publishes a message the broker made itself (dead letters).
-    pub fn publish_internal(&self, exchange: &ShortStr, message: Arc<Message>) {
-        let Some(exchange) = self.exchange(exchange) else {
-            tracing::debug!(exchange = %exchange, "dead-letter exchange missing; message dropped");
-            return;
-        };
-        let headers = leveret_protocol::BasicProperties::decode(&message.properties)
-            .ok()
-            .and_then(|p| p.headers);
-        let mut queues = Vec::new();
-        self.route(
-            &exchange,
-            &message.routing_key,
-            headers.as_ref(),
-            &mut queues,
-        );
-        for queue in &queues {
-            queue.publish(Arc::clone(&message));
-        }
+    /// The store this vhost's durable things are written to, if any.
+    pub(crate) fn persistence(&self) -> Option<&Arc<Persistence>> {
+        self.persistence.as_ref()
     }
 
     /// Re-creates a stored exchange at start.
@@ -627,7 +671,7 @@ impl Vhost {
     }
 
     /// Re-creates a stored queue at start (its messages are restored by the caller).
-    pub fn restore_queue(self: &Arc<Self>, record: &QueueRecord) -> Option<Arc<Queue>> {
+    pub fn restore_queue(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
         let options = QueueOptions {
             durable: true,
             exclusive_owner: None,
@@ -644,9 +688,9 @@ impl Vhost {
         let persistence = Arc::clone(self.persistence.as_ref()?);
         let queue = Arc::new(Queue::new(
             record.name.clone(),
+            self.name.clone(),
             options,
             args,
-            Arc::downgrade(self),
             Arc::clone(&self.gauge),
             Some((persistence, record.id)),
             Arc::clone(&self.counters),
@@ -669,11 +713,14 @@ impl Vhost {
         let Some(destination) = destination else {
             return false;
         };
-        source.bind(Binding {
-            destination,
-            routing_key: record.routing_key.clone(),
-            arguments: record.arguments.clone(),
-        });
+        lock(&self.bindings).bind(
+            &source,
+            Binding {
+                destination,
+                routing_key: record.routing_key.clone(),
+                arguments: record.arguments.clone(),
+            },
+        );
         true
     }
 
@@ -693,7 +740,7 @@ impl Vhost {
     }
 
     /// Deletes the exclusive queues of a closed connection.
-    pub fn drop_exclusive(&self, connection_id: u64) {
+    pub fn drop_exclusive(self: &Arc<Self>, connection_id: u64) {
         let owned: Vec<Arc<Queue>> = read(&self.queues)
             .values()
             .filter(|q| q.options.exclusive_owner == Some(connection_id))
@@ -706,10 +753,15 @@ impl Vhost {
 
     /// Periodic housekeeping: expires messages past their TTL and deletes
     /// queues past x-expires.
-    pub fn sweep(&self) {
+    pub fn sweep(self: &Arc<Self>) {
+        self.sweep_at(Instant::now());
+    }
+
+    /// [`Vhost::sweep`] as of `now`.
+    pub fn sweep_at(self: &Arc<Self>, now: Instant) {
         for queue in self.queues() {
-            queue.expire();
-            if queue.unused_expired() {
+            self.dead_letter(queue.expire_at(now));
+            if queue.unused_expired_at(now) {
                 tracing::debug!(queue = %queue.name, "queue expired (x-expires)");
                 self.delete_queue(&queue).notify();
             }
@@ -761,3 +813,6 @@ fn first_argument_mismatch(current: &FieldTable, requested: &FieldTable) -> Opti
         .into_iter()
         .find(|key| current.get(key) != requested.get(key))
 }
+
+#[cfg(test)]
+mod tests;

@@ -3,9 +3,10 @@
 
 use bytes::BytesMut;
 use leveret_protocol::{decode_frame, Frame, Method, PROTOCOL_HEADER};
+use leveret_test_macros::both_runtimes;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-#[tokio::test]
+#[both_runtimes]
 async fn a_broker_without_listeners_greets_an_in_process_client() {
     let handle = leveret_broker::Broker::builder()
         .start()

@@ -3,10 +3,12 @@
 //! durable state.
 
 use lapin::options::{
-    BasicGetOptions, BasicPublishOptions, ConfirmSelectOptions, QueueDeclareOptions,
+    BasicGetOptions, BasicPublishOptions, BasicRejectOptions, ConfirmSelectOptions,
+    ExchangeDeclareOptions, QueueBindOptions, QueueDeclareOptions,
 };
-use lapin::types::FieldTable;
-use lapin::{BasicProperties, Connection, ConnectionProperties};
+use lapin::types::{AMQPValue, FieldTable};
+use lapin::{BasicProperties, Connection, ConnectionProperties, ExchangeKind};
+use leveret_test_macros::both_runtimes;
 
 async fn start(dir: &std::path::Path) -> leveret_broker::BrokerHandle {
     leveret_broker::Broker::builder()
@@ -17,9 +19,12 @@ async fn start(dir: &std::path::Path) -> leveret_broker::BrokerHandle {
         .expect("start on the data directory")
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn shutdown_releases_the_data_directory_for_an_immediate_restart() {
-    let dir = std::env::temp_dir().join(format!("leveret-restart-{}", std::process::id()));
+    // One directory per runtime flavour: both variants run at once.
+    let flavor = tokio::runtime::Handle::current().runtime_flavor();
+    let dir =
+        std::env::temp_dir().join(format!("leveret-restart-{}-{flavor:?}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let durable = QueueDeclareOptions {
         durable: true,
@@ -64,5 +69,179 @@ async fn shutdown_releases_the_data_directory_for_an_immediate_restart() {
         // No waiting: the next round opens the directory right away.
         handle.shutdown().await;
     }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A persistent message dead-lettered into durable queues is on disk there
+/// like a published one: after a restart it is in the dead-letter queues
+/// (one target: stored inline; two: one shared record), and gone from the
+/// queue it died in.
+#[both_runtimes]
+async fn dead_lettered_persistent_messages_survive_a_restart() {
+    let flavor = tokio::runtime::Handle::current().runtime_flavor();
+    let dir = std::env::temp_dir().join(format!(
+        "leveret-restart-dlx-{}-{flavor:?}",
+        std::process::id()
+    ));
+    let _ = std::fs::remove_dir_all(&dir);
+    let durable = QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    let text = |s: &str| AMQPValue::LongString(s.into());
+    let sources = [
+        // Through the default exchange into one durable queue.
+        (
+            "to-one",
+            [
+                ("x-dead-letter-exchange", text("")),
+                ("x-dead-letter-routing-key", text("dead-one")),
+            ],
+        ),
+        // Through a fanout into two durable queues and a transient one.
+        (
+            "to-many",
+            [
+                ("x-dead-letter-exchange", text("dlx")),
+                ("x-dead-letter-routing-key", text("any")),
+            ],
+        ),
+    ];
+    let handle = start(&dir).await;
+    let url = format!("amqp://guest:guest@{}/%2f", handle.local_addrs()[0]);
+    let conn = Connection::connect(&url, ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let channel = conn.create_channel().await.expect("channel");
+    channel
+        .exchange_declare(
+            "dlx",
+            ExchangeKind::Fanout,
+            ExchangeDeclareOptions {
+                durable: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await
+        .expect("exchange.declare");
+    for (name, durable) in [
+        ("dead-one", true),
+        ("dead-a", true),
+        ("dead-b", true),
+        ("dead-transient", false),
+    ] {
+        let options = QueueDeclareOptions {
+            durable,
+            ..Default::default()
+        };
+        channel
+            .queue_declare(name, options, FieldTable::default())
+            .await
+            .expect("declare");
+        if name != "dead-one" {
+            channel
+                .queue_bind(
+                    name,
+                    "dlx",
+                    "",
+                    QueueBindOptions::default(),
+                    FieldTable::default(),
+                )
+                .await
+                .expect("bind");
+        }
+    }
+    channel
+        .confirm_select(ConfirmSelectOptions::default())
+        .await
+        .expect("confirms");
+    for (source, arguments) in &sources {
+        let mut table = FieldTable::default();
+        for (key, value) in arguments {
+            table.insert((*key).into(), value.clone());
+        }
+        channel
+            .queue_declare(source, durable, table)
+            .await
+            .expect("declare source");
+        let confirm = channel
+            .basic_publish(
+                "",
+                source,
+                BasicPublishOptions::default(),
+                source.as_bytes(),
+                BasicProperties::default().with_delivery_mode(2),
+            )
+            .await
+            .expect("publish")
+            .await
+            .expect("confirm");
+        assert!(confirm.is_ack());
+        let got = channel
+            .basic_get(source, BasicGetOptions::default())
+            .await
+            .expect("get")
+            .expect("the message");
+        got.reject(BasicRejectOptions { requeue: false })
+            .await
+            .expect("reject");
+    }
+    // Wait for the dead letters to land (routing follows the reject).
+    for queue in ["dead-one", "dead-a", "dead-b", "dead-transient"] {
+        let passive = QueueDeclareOptions {
+            passive: true,
+            ..Default::default()
+        };
+        tokio::time::timeout(std::time::Duration::from_secs(10), async {
+            while channel
+                .queue_declare(queue, passive, FieldTable::default())
+                .await
+                .expect("passive declare")
+                .message_count()
+                == 0
+            {
+                tokio::task::yield_now().await;
+            }
+        })
+        .await
+        .expect("dead letter routed");
+    }
+    drop(conn);
+    handle.shutdown().await;
+
+    let handle = start(&dir).await;
+    let url = format!("amqp://guest:guest@{}/%2f", handle.local_addrs()[0]);
+    let conn = Connection::connect(&url, ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let channel = conn.create_channel().await.expect("channel");
+    for (queue, body) in [
+        ("dead-one", "to-one"),
+        ("dead-a", "to-many"),
+        ("dead-b", "to-many"),
+    ] {
+        let got = channel
+            .basic_get(queue, BasicGetOptions { no_ack: true })
+            .await
+            .expect("get")
+            .unwrap_or_else(|| panic!("the dead letter in {queue} after the restart"));
+        assert_eq!(got.delivery.data, body.as_bytes(), "{queue}");
+        let deaths = got
+            .delivery
+            .properties
+            .headers()
+            .as_ref()
+            .and_then(|h| h.inner().get("x-death").cloned());
+        assert!(deaths.is_some(), "{queue}: x-death kept");
+    }
+    for (source, _) in &sources {
+        let left = channel
+            .basic_get(source, BasicGetOptions { no_ack: true })
+            .await
+            .expect("get");
+        assert!(left.is_none(), "{source}: the dead message is gone");
+    }
+    handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
 }

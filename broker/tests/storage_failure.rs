@@ -1,12 +1,13 @@
 //! A failing disk (full, read-only…): persistent publishes to durable
 //! queues are nacked and transactions refused with 506 while the store
-//! fails; transient traffic goes on; confirms are acks again once the
-//! store works.
+//! fails, and so are durable declarations; transient traffic goes on;
+//! confirms are acks again once the store works.
 
 use lapin::options::{BasicPublishOptions, ConfirmSelectOptions, QueueDeclareOptions};
 use lapin::types::FieldTable;
 use lapin::{BasicProperties, Channel, Connection, ConnectionProperties};
-use leveret_broker::store::{KvOp, KvPair, MemoryStore, Store, StoreError};
+use leveret_broker::store::{KvOp, KvPair, MemoryStore, Store, StoreError, WriteMode};
+use leveret_test_macros::both_runtimes;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -19,11 +20,13 @@ struct FlakyStore {
 }
 
 impl Store for FlakyStore {
-    fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError> {
+    fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
         if self.failing.load(Ordering::SeqCst) {
-            return Err(StoreError("No space left on device (simulated)".into()));
+            return Err(StoreError::Engine(
+                "No space left on device (simulated)".into(),
+            ));
         }
-        self.inner.write(ops, atomic)
+        self.inner.write(ops, mode)
     }
 
     fn flush(&self) -> Result<(), StoreError> {
@@ -53,7 +56,7 @@ async fn confirmed(channel: &Channel, body: &[u8], delivery_mode: u8) -> bool {
         .is_ack()
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn a_failing_store_nacks_persistent_publishes_and_recovers() {
     let store = Arc::new(FlakyStore::default());
     let handle = leveret_broker::Broker::builder()
@@ -103,6 +106,31 @@ async fn a_failing_store_nacks_persistent_publishes_and_recovers() {
         .await
         .expect("publish in tx");
     let err = tx_channel.tx_commit().await.expect_err("commit refused");
+    assert!(
+        err.to_string().contains("RESOURCE_ERROR"),
+        "506 RESOURCE_ERROR: {err}"
+    );
+
+    // A durable declaration the disk did not take is refused (506 closes
+    // the connection, as for the commit above), never answered declare-ok
+    // and lost; a transient one goes on.
+    let conn = Connection::connect(&url, ConnectionProperties::default())
+        .await
+        .expect("reconnect");
+    let transient_channel = conn.create_channel().await.expect("channel");
+    transient_channel
+        .queue_declare(
+            "in-memory",
+            QueueDeclareOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("a transient declare never touches the disk");
+    let declare_channel = conn.create_channel().await.expect("channel");
+    let err = declare_channel
+        .queue_declare("lost", durable, FieldTable::default())
+        .await
+        .expect_err("durable declare refused");
     assert!(
         err.to_string().contains("RESOURCE_ERROR"),
         "506 RESOURCE_ERROR: {err}"

@@ -6,7 +6,9 @@
 //! knows how the broker works.
 
 use crate::cli::Cli;
-use leveret_broker::{Broker, BrokerBuilder, Limits, PasswordHash};
+use leveret_broker::{
+    Broker, BrokerBuilder, Limits, PasswordHash, ResidentMemoryWatermark, VhostLimits,
+};
 use serde::Deserialize;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -73,11 +75,30 @@ pub struct FileConfig {
     channel_max: Option<u16>,
     max_message_size: Option<u64>,
     memory_high_watermark: Option<usize>,
+    /// RabbitMQ's `vm_memory_high_watermark.absolute`, bytes of resident memory.
+    vm_memory_high_watermark_absolute: Option<u64>,
+    /// RabbitMQ's `vm_memory_high_watermark.relative`, a fraction of RAM.
+    vm_memory_high_watermark_relative: Option<f64>,
+    /// RabbitMQ's `connection_max`.
+    max_connections: Option<usize>,
+    /// RabbitMQ's `handshake_timeout`, milliseconds.
+    handshake_timeout: Option<u64>,
+    /// RabbitMQ's vhost limits, by vhost name.
+    #[serde(default)]
+    vhost_limits: std::collections::HashMap<String, VhostLimitsConfig>,
     product: Option<String>,
     busy_poll: Option<u64>,
     metrics_listen: Option<SocketAddr>,
     http_listen: Option<SocketAddr>,
     definitions: Option<PathBuf>,
+}
+
+/// One `[vhost-limits."NAME"]` table (`rabbitmqctl set_vhost_limits`).
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct VhostLimitsConfig {
+    max_connections: Option<usize>,
+    max_queues: Option<usize>,
 }
 
 /// One `[[users]]` table.
@@ -163,6 +184,29 @@ impl Settings {
             memory_high_watermark: file
                 .memory_high_watermark
                 .unwrap_or(defaults.memory_high_watermark),
+            resident_memory_high_watermark: match (
+                file.vm_memory_high_watermark_absolute,
+                file.vm_memory_high_watermark_relative,
+            ) {
+                (Some(bytes), _) => ResidentMemoryWatermark::Absolute(bytes),
+                (None, Some(fraction)) => ResidentMemoryWatermark::Relative(fraction),
+                (None, None) => defaults.resident_memory_high_watermark,
+            },
+            max_connections: file.max_connections.or(defaults.max_connections),
+            handshake_timeout: file
+                .handshake_timeout
+                .map_or(defaults.handshake_timeout, Duration::from_millis),
+            vhost_limits: file
+                .vhost_limits
+                .into_iter()
+                .map(|(vhost, limits)| {
+                    let limits = VhostLimits {
+                        max_connections: limits.max_connections,
+                        max_queues: limits.max_queues,
+                    };
+                    (vhost, limits)
+                })
+                .collect(),
         };
         let users = file
             .users
@@ -365,6 +409,41 @@ mod tests {
         assert_eq!(settings.product.as_deref(), Some("FromFlag"));
         assert_eq!(settings.busy_poll, Duration::from_micros(7));
         assert_eq!(settings.metrics_listen, "127.0.0.1:0".parse().unwrap());
+    }
+
+    #[test]
+    fn rabbitmq_limit_keys_are_read() {
+        let text = r#"
+            max-connections = 100
+            handshake-timeout = 2500
+            vm-memory-high-watermark-absolute = 104857600
+
+            [vhost-limits."/"]
+            max-connections = 10
+            max-queues = 50
+
+            [vhost-limits.robots]
+            max-queues = 5
+        "#;
+        let settings = Settings::resolve(Cli::default(), file(text)).unwrap();
+        let limits = &settings.limits;
+        assert_eq!(limits.max_connections, Some(100));
+        assert_eq!(limits.handshake_timeout, Duration::from_millis(2500));
+        assert_eq!(
+            limits.resident_memory_high_watermark,
+            ResidentMemoryWatermark::Absolute(104_857_600)
+        );
+        assert_eq!(limits.vhost_limits["/"].max_connections, Some(10));
+        assert_eq!(limits.vhost_limits["/"].max_queues, Some(50));
+        assert_eq!(limits.vhost_limits["robots"].max_connections, None);
+        assert_eq!(limits.vhost_limits["robots"].max_queues, Some(5));
+        let relative = file("vm-memory-high-watermark-relative = 0.6");
+        let settings = Settings::resolve(Cli::default(), relative).unwrap();
+        assert_eq!(
+            settings.limits.resident_memory_high_watermark,
+            ResidentMemoryWatermark::Relative(0.6)
+        );
+        assert!(FileConfig::parse("[vhost-limits.x]\nmax-queus = 1").is_err());
     }
 
     #[test]

@@ -371,6 +371,7 @@ impl Definitions {
         for (vhost, name, settings) in &self.exchanges {
             admin
                 .declare_exchange(vhost, name, settings.clone())
+                .await
                 .map_err(|e| format!("exchange '{name}' in vhost '{vhost}': {}", e.text))?;
             applied.exchanges += 1;
             tokio::task::yield_now().await;
@@ -378,12 +379,13 @@ impl Definitions {
         for (vhost, name, settings) in &self.queues {
             admin
                 .declare_queue(vhost, name, settings.clone())
+                .await
                 .map_err(|e| format!("queue '{name}' in vhost '{vhost}': {}", e.text))?;
             applied.queues += 1;
             tokio::task::yield_now().await;
         }
         for (vhost, binding) in &self.bindings {
-            admin.bind(vhost, binding.clone()).map_err(|e| {
+            admin.bind(vhost, binding.clone()).await.map_err(|e| {
                 format!(
                     "binding from '{}' to '{}' in vhost '{vhost}': {}",
                     binding.source, binding.destination, e.text

@@ -2,8 +2,9 @@
 //! clients publish with confirms and while they commit transactions,
 //! restart on the same data directory, and check that every confirmed
 //! message is there once and in order, that transactions are all or
-//! nothing, and that a clean shutdown keeps definitions, messages, order,
-//! and forgets what was acked.
+//! nothing, that every durable declaration and binding answered -ok just
+//! before the kill is there, and that a clean shutdown keeps definitions,
+//! messages, order, and forgets what was acked.
 
 use lapin::options::{
     BasicAckOptions, BasicGetOptions, BasicPublishOptions, ConfirmSelectOptions,
@@ -351,4 +352,116 @@ async fn clean_restart_keeps_definitions_messages_and_order_and_forgets_acked() 
     assert_eq!(bodies, expected);
     broker.terminate();
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn durable_declarations_survive_kill_9_right_after_their_ok() {
+    const COUNT: usize = 20;
+    for round in 0..3 {
+        let dir = temp_dir(&format!("declares-{round}"));
+        let broker = BrokerProcess::start(&dir).await;
+        let conn = connect(&broker).await;
+        let channel = conn.create_channel().await.expect("channel");
+        let durable_queue = QueueDeclareOptions {
+            durable: true,
+            ..Default::default()
+        };
+        let durable_exchange = ExchangeDeclareOptions {
+            durable: true,
+            ..Default::default()
+        };
+        for i in 0..COUNT {
+            channel
+                .exchange_declare(
+                    &format!("x{i}"),
+                    ExchangeKind::Direct,
+                    durable_exchange,
+                    FieldTable::default(),
+                )
+                .await
+                .expect("exchange.declare");
+            channel
+                .queue_declare(&format!("q{i}"), durable_queue, FieldTable::default())
+                .await
+                .expect("queue.declare");
+            channel
+                .queue_bind(
+                    &format!("q{i}"),
+                    &format!("x{i}"),
+                    "k",
+                    QueueBindOptions::default(),
+                    FieldTable::default(),
+                )
+                .await
+                .expect("queue.bind");
+        }
+        // Right after the last -ok.
+        broker.kill9();
+        drop(conn);
+
+        let broker = BrokerProcess::start(&dir).await;
+        let conn = connect(&broker).await;
+        let mut missing = Vec::new();
+        for i in 0..COUNT {
+            let channel = conn.create_channel().await.expect("channel");
+            let passive = QueueDeclareOptions {
+                passive: true,
+                ..Default::default()
+            };
+            if channel
+                .queue_declare(&format!("q{i}"), passive, FieldTable::default())
+                .await
+                .is_err()
+            {
+                missing.push(format!("q{i}"));
+                continue;
+            }
+            let passive = ExchangeDeclareOptions {
+                passive: true,
+                ..Default::default()
+            };
+            if channel
+                .exchange_declare(
+                    &format!("x{i}"),
+                    ExchangeKind::Direct,
+                    passive,
+                    FieldTable::default(),
+                )
+                .await
+                .is_err()
+            {
+                missing.push(format!("x{i}"));
+                continue;
+            }
+            channel
+                .confirm_select(ConfirmSelectOptions::default())
+                .await
+                .expect("confirms");
+            channel
+                .basic_publish(
+                    &format!("x{i}"),
+                    "k",
+                    BasicPublishOptions::default(),
+                    b"routed",
+                    BasicProperties::default(),
+                )
+                .await
+                .expect("publish")
+                .await
+                .expect("confirm");
+            let got = channel
+                .basic_get(&format!("q{i}"), BasicGetOptions { no_ack: true })
+                .await
+                .expect("get");
+            if got.is_none() {
+                missing.push(format!("x{i}->q{i}"));
+            }
+        }
+        assert!(
+            missing.is_empty(),
+            "round {round}: lost after their -ok: {missing:?}"
+        );
+        broker.kill9();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -10,6 +10,15 @@
 //!
 //! Tests share one external broker and run concurrently, so every queue and
 //! exchange a test creates gets a name from [`unique`].
+//!
+//! Every test runs twice, on a current-thread and on a multi-thread runtime:
+//! write it as an `async fn` under [`both_runtimes`] (re-exported from
+//! `leveret-test-macros`) instead of `#[tokio::test]`. The in-process
+//! broker starts on the test's runtime, as it does in an embedding
+//! application.
+//!
+//! [`driver`] is the scripted adversarial peer behind the broker-level fuzz
+//! target and the corpus replay test.
 
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
@@ -19,6 +28,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use leveret_broker::{Broker, BrokerBuilder, BrokerHandle};
+pub use leveret_test_macros::both_runtimes;
+
+pub mod driver;
 
 /// The environment variable naming an external broker to test against.
 pub const URL_ENV: &str = "LEVERET_TEST_AMQP_URL";

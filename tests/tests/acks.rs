@@ -7,7 +7,7 @@ mod common;
 
 use common::*;
 
-#[tokio::test]
+#[both_runtimes]
 async fn prefetch_limits_unacked_deliveries() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -33,7 +33,7 @@ async fn prefetch_limits_unacked_deliveries() {
     assert_eq!((lp::text(&d3), lp::text(&d4)), ("3".into(), "4".into()));
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn prefetch_applies_per_consumer_and_zero_means_unlimited() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -55,7 +55,7 @@ async fn prefetch_applies_per_consumer_and_zero_means_unlimited() {
     rs::nothing(&mut one).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn ack_multiple_acks_everything_up_to_the_tag() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -81,7 +81,7 @@ async fn ack_multiple_acks_everything_up_to_the_tag() {
     assert!(rs::get(&ch, &q, true).await.is_none());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn ack_multiple_with_tag_zero_acks_all_outstanding() {
     let b = broker().await;
     let (conn, ch) = lp::open(&b).await;
@@ -99,7 +99,7 @@ async fn ack_multiple_with_tag_zero_acks_all_outstanding() {
     assert!(lp::get(&ch, &q, true).await.is_none(), "all were acked");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn nack_with_requeue_puts_the_message_back_first_and_redelivered() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -132,7 +132,7 @@ async fn nack_with_requeue_puts_the_message_back_first_and_redelivered() {
     assert!(!next.delivery.redelivered);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn nack_multiple_requeues_in_original_order() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -156,7 +156,7 @@ async fn nack_multiple_requeues_in_original_order() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn nack_without_requeue_discards() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -174,7 +174,7 @@ async fn nack_without_requeue_discards() {
     assert!(lp::get(&ch, &q, true).await.is_none());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn reject_with_and_without_requeue() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -198,7 +198,7 @@ async fn reject_with_and_without_requeue() {
     );
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn recover_with_requeue_redelivers_unacked_messages() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -221,7 +221,7 @@ async fn recover_with_requeue_redelivers_unacked_messages() {
     lp::nothing(&mut c).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn acking_an_unknown_delivery_tag_gets_406() {
     let b = broker().await;
     let (conn, ch) = lp::open(&b).await;
@@ -235,7 +235,7 @@ async fn acking_an_unknown_delivery_tag_gets_406() {
     assert!(conn.status().connected(), "only the channel is closed");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn acking_twice_gets_406() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -249,7 +249,7 @@ async fn acking_twice_gets_406() {
     assert!(conn.is_open());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn nack_and_reject_of_unknown_tags_get_406() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -261,7 +261,7 @@ async fn nack_and_reject_of_unknown_tags_get_406() {
     rs::assert_closed(&mut ev, 406, "PRECONDITION_FAILED").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn delivery_tags_belong_to_their_channel() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -278,7 +278,7 @@ async fn delivery_tags_belong_to_their_channel() {
     assert!(rs::get(&ch1, &q, true).await.is_none());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn acking_a_no_ack_delivery_gets_406() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -291,7 +291,7 @@ async fn acking_a_no_ack_delivery_gets_406() {
     assert_eq!(lp::code(&err).0, 406);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn unacked_messages_are_requeued_in_order_when_the_channel_closes() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -322,7 +322,7 @@ async fn unacked_messages_are_requeued_in_order_when_the_channel_closes() {
     lp::nothing(&mut c2).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn unacked_messages_go_back_ahead_of_newer_ones_when_the_connection_closes() {
     let b = broker().await;
     let (conn, ch, _ev) = rs::open(&b).await;

@@ -14,7 +14,7 @@ use std::time::Duration;
 const MESSAGES: u32 = 500;
 const ROUND_TRIPS: u32 = 200;
 
-#[tokio::test(flavor = "current_thread")]
+#[both_runtimes]
 async fn a_busy_polling_broker_confirms_delivers_in_order_echoes_and_shuts_down() {
     let dir = std::env::temp_dir().join(unique("leveret-busy-poll"));
     let b = TestBroker::leveret(

@@ -7,7 +7,7 @@ mod common;
 
 use common::*;
 
-#[tokio::test]
+#[both_runtimes]
 async fn lapin_opens_and_closes_a_connection() {
     let b = broker().await;
     let (conn, ch) = lp::open(&b).await;
@@ -19,7 +19,7 @@ async fn lapin_opens_and_closes_a_connection() {
     assert!(!conn.status().connected());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn amqprs_opens_and_closes_a_connection() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -41,7 +41,7 @@ async fn amqprs_opens_and_closes_a_connection() {
     tmo!(conn.close()).expect("connection.close");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn lapin_many_channels_on_one_connection() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -67,7 +67,7 @@ async fn lapin_many_channels_on_one_connection() {
     tmo!(conn.close(200, "done")).expect("connection.close");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn amqprs_channels_with_chosen_numbers_can_be_reopened() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -90,7 +90,7 @@ async fn amqprs_channels_with_chosen_numbers_can_be_reopened() {
     tmo!(conn.close()).expect("connection.close");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn closing_one_channel_leaves_the_others_working() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -114,7 +114,7 @@ async fn closing_one_channel_leaves_the_others_working() {
     assert!(conn.status().connected());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn a_channel_error_closes_only_that_channel() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -135,7 +135,7 @@ async fn a_channel_error_closes_only_that_channel() {
     assert_eq!(rs::counts(&again, &q).await, (0, 0));
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn a_connection_error_closes_every_channel() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -164,7 +164,7 @@ async fn a_connection_error_closes_every_channel() {
     .is_err());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn lapin_bad_password_gets_403_access_refused() {
     let b = broker().await;
     let url = b.url_with("guest", "not-the-password", "%2f");
@@ -177,7 +177,7 @@ async fn lapin_bad_password_gets_403_access_refused() {
     lp::assert_err(res, 403, "ACCESS_REFUSED");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn lapin_unknown_user_gets_403_access_refused() {
     let b = broker().await;
     let url = b.url_with(&unique("nobody"), "guest", "%2f");
@@ -188,7 +188,7 @@ async fn lapin_unknown_user_gets_403_access_refused() {
     lp::assert_err(res, 403, "ACCESS_REFUSED");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn amqprs_bad_password_is_refused() {
     let b = broker().await;
     let args = rs::OpenConnectionArguments::new(b.host(), b.port(), "guest", "wrong");
@@ -202,7 +202,7 @@ async fn amqprs_bad_password_is_refused() {
     tmo!(conn.close()).expect("close");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn lapin_unknown_vhost_gets_530_not_allowed() {
     let b = broker().await;
     let url = b.url_with("guest", "guest", &unique("no-such-vhost"));
@@ -215,7 +215,7 @@ async fn lapin_unknown_vhost_gets_530_not_allowed() {
     lp::assert_err(res, 530, "NOT_ALLOWED");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn amqprs_unknown_vhost_is_refused_with_530() {
     let b = broker().await;
     let vhost = unique("no-such-vhost");
@@ -231,7 +231,7 @@ async fn amqprs_unknown_vhost_is_refused_with_530() {
     );
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn closing_a_connection_drops_its_exclusive_queues() {
     let b = broker().await;
     let (owner, och) = lp::open(&b).await;
@@ -258,7 +258,7 @@ async fn closing_a_connection_drops_its_exclusive_queues() {
     lp::assert_err(res, 404, "NOT_FOUND");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn many_connections_at_once() {
     let b = broker().await;
     let mut tasks = Vec::new();

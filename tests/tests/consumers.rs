@@ -7,7 +7,7 @@ mod common;
 use common::*;
 use futures_lite::StreamExt;
 
-#[tokio::test]
+#[both_runtimes]
 async fn two_consumers_get_messages_in_exact_alternation() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -51,7 +51,7 @@ async fn two_consumers_get_messages_in_exact_alternation() {
     lp::nothing(&mut c2).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn three_consumers_on_one_channel_share_round_robin() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -76,7 +76,7 @@ async fn three_consumers_on_one_channel_share_round_robin() {
     assert_eq!(got[2], ["2", "5", "8"]);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn consumer_gets_the_backlog_in_order_then_new_messages() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -101,7 +101,7 @@ async fn consumer_gets_the_backlog_in_order_then_new_messages() {
     assert_eq!(rs::next(&mut rx).await.text(), "late");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn consumer_tag_chosen_by_the_client_is_kept() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -115,7 +115,7 @@ async fn consumer_tag_chosen_by_the_client_is_kept() {
     assert!(!d.redelivered);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn reusing_a_consumer_tag_on_a_channel_is_a_530_connection_error() {
     let b = broker().await;
     let (conn, mut conn_ev) = rs::connect(&b).await;
@@ -131,7 +131,7 @@ async fn reusing_a_consumer_tag_on_a_channel_is_a_530_connection_error() {
     assert_text_prefix(&text, "NOT_ALLOWED");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn consuming_from_a_missing_queue_gets_404() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -144,7 +144,7 @@ async fn consuming_from_a_missing_queue_gets_404() {
     lp::assert_err(res, 404, "NOT_FOUND");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn exclusive_consumer_shuts_out_other_consumers_with_403() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -162,7 +162,7 @@ async fn exclusive_consumer_shuts_out_other_consumers_with_403() {
     assert_eq!(rs::next(&mut rx).await.text(), "all mine");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn exclusive_consume_is_refused_while_another_consumer_exists() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -176,7 +176,7 @@ async fn exclusive_consume_is_refused_while_another_consumer_exists() {
     rs::assert_closed(&mut ev, 403, "ACCESS_REFUSED").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn basic_cancel_stops_deliveries_and_leaves_messages_queued() {
     let b = broker().await;
     let (_conn, ch, mut ev) = rs::open(&b).await;
@@ -193,7 +193,7 @@ async fn basic_cancel_stops_deliveries_and_leaves_messages_queued() {
     assert_eq!(rs::counts(&ch, &q).await, (1, 0));
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn cancelling_an_unknown_consumer_tag_is_not_an_error() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -206,7 +206,7 @@ async fn cancelling_an_unknown_consumer_tag_is_not_an_error() {
     assert_eq!(rs::counts(&ch, &q).await, (0, 0));
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn deleting_the_queue_cancels_its_consumers_lapin() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -228,7 +228,7 @@ async fn deleting_the_queue_cancels_its_consumers_lapin() {
     lp::queue(&consumer_ch, "still-usable").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn deleting_the_queue_cancels_its_consumers_amqprs() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -244,7 +244,7 @@ async fn deleting_the_queue_cancels_its_consumers_amqprs() {
     assert!(consumer_ch.is_open());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn no_ack_consumer_empties_the_queue() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -279,7 +279,7 @@ async fn no_ack_consumer_empties_the_queue() {
     assert_eq!((info.message_count(), info.consumer_count()), (0, 0));
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn consumers_on_two_queues_on_one_channel_are_kept_apart() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;

@@ -200,7 +200,7 @@ async fn check_channel_errors(cases: &[(Op, u16, &str, (u16, u16))]) {
     assert!(conn.is_open(), "channel errors leave the connection open");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn not_found_errors_name_the_method() {
     check_channel_errors(&[
         (Op::PassiveQueueMissing, 404, "NOT_FOUND", (50, 10)),
@@ -216,7 +216,7 @@ async fn not_found_errors_name_the_method() {
     .await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn precondition_failed_errors_name_the_method() {
     check_channel_errors(&[
         (Op::AckUnknown, 406, "PRECONDITION_FAILED", (60, 80)),
@@ -254,7 +254,7 @@ async fn precondition_failed_errors_name_the_method() {
     .await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn access_refused_errors_name_the_method() {
     check_channel_errors(&[
         (Op::DeclareAmqExchange, 403, "ACCESS_REFUSED", (40, 10)),
@@ -267,7 +267,7 @@ async fn access_refused_errors_name_the_method() {
     .await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn resource_locked_names_the_method() {
     let b = broker().await;
     let (owner, _) = rs::connect(&b).await;
@@ -306,7 +306,7 @@ async fn connection_error(
     assert_eq!((close.class_id, close.method_id), ids, "{close:?}");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn unknown_exchange_type_is_503_on_exchange_declare() {
     connection_error(
         |ch| {
@@ -322,7 +322,7 @@ async fn unknown_exchange_type_is_503_on_exchange_declare() {
     .await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn reused_consumer_tag_is_530_on_basic_consume() {
     connection_error(
         |ch| {
@@ -339,7 +339,7 @@ async fn reused_consumer_tag_is_530_on_basic_consume() {
     .await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn immediate_publish_is_540_on_basic_publish() {
     connection_error(
         |ch| {
@@ -356,7 +356,7 @@ async fn immediate_publish_is_540_on_basic_publish() {
     .await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn prefetch_size_is_540_on_basic_qos() {
     connection_error(
         |ch| {
@@ -371,7 +371,7 @@ async fn prefetch_size_is_540_on_basic_qos() {
     .await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn channel_flow_off_is_540() {
     connection_error(
         |ch| {
@@ -386,7 +386,7 @@ async fn channel_flow_off_is_540() {
     .await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn unbinding_with_a_missing_queue_or_exchange_is_not_an_error() {
     let b = broker().await;
     let (_conn, ch, mut ev) = rs::open(&b).await;

@@ -61,7 +61,7 @@ fn passive() -> lp::ExchangeDeclareOptions {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn direct_exchange_routes_on_the_exact_key() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -82,7 +82,7 @@ async fn direct_exchange_routes_on_the_exact_key() {
     assert_eq!(drain(&ch, &both).await, ["a", "b"]);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn a_message_matching_two_bindings_of_one_queue_arrives_once() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -96,7 +96,7 @@ async fn a_message_matching_two_bindings_of_one_queue_arrives_once() {
     assert_eq!(drain(&ch, &q).await, ["once"]);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn fanout_exchange_copies_to_every_bound_queue_whatever_the_key() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -116,7 +116,7 @@ async fn fanout_exchange_copies_to_every_bound_queue_whatever_the_key() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn topic_exchange_wildcards_and_empty_words() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -164,7 +164,7 @@ async fn topic_exchange_wildcards_and_empty_words() {
     );
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn headers_exchange_x_match_all_and_any() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -268,7 +268,7 @@ async fn headers_exchange_x_match_all_and_any() {
     );
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn default_exchange_routes_to_the_queue_named_by_the_key() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -281,7 +281,7 @@ async fn default_exchange_routes_to_the_queue_named_by_the_key() {
     assert_eq!(drain_rs(&ch, &q2).await, ["two"]);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn binding_to_the_default_exchange_is_refused_with_403() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -295,7 +295,7 @@ async fn binding_to_the_default_exchange_is_refused_with_403() {
     rs::assert_closed(&mut ev, 403, "ACCESS_REFUSED").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn deleting_or_declaring_the_default_exchange_is_refused_with_403() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -322,7 +322,7 @@ async fn deleting_or_declaring_the_default_exchange_is_refused_with_403() {
     lp::assert_err(res, 403, "ACCESS_REFUSED");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn predefined_amq_exchanges_exist_with_their_types() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -356,7 +356,7 @@ async fn predefined_amq_exchanges_exist_with_their_types() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn declaring_an_amq_prefixed_exchange_is_refused_with_403() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -377,7 +377,7 @@ async fn declaring_an_amq_prefixed_exchange_is_refused_with_403() {
     rs::assert_closed(&mut ev, 406, "PRECONDITION_FAILED").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn unknown_exchange_type_is_a_503_connection_error() {
     let b = broker().await;
     let (conn, mut conn_ev) = rs::connect(&b).await;
@@ -391,7 +391,7 @@ async fn unknown_exchange_type_is_a_503_connection_error() {
     assert_text_prefix(&text, "COMMAND_INVALID");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn passive_declare_of_a_missing_exchange_gets_404() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -405,7 +405,7 @@ async fn passive_declare_of_a_missing_exchange_gets_404() {
     lp::assert_err(res, 404, "NOT_FOUND");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn redeclaring_an_exchange_differently_gets_406() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -451,7 +451,7 @@ async fn redeclaring_an_exchange_differently_gets_406() {
     tmo!(ch.exchange_delete(&x, lp::ExchangeDeleteOptions::default())).expect("delete");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn durable_exchange_declare_and_delete() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -466,7 +466,7 @@ async fn durable_exchange_declare_and_delete() {
     assert!(tmo!(ch.exchange_declare(args)).is_err(), "deleted");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn auto_delete_exchange_goes_away_with_its_last_binding() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -512,7 +512,7 @@ async fn auto_delete_exchange_goes_away_with_its_last_binding() {
     lp::assert_err(res, 404, "NOT_FOUND");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn internal_exchange_refuses_publishes_but_routes_from_other_exchanges() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -562,7 +562,7 @@ async fn internal_exchange_refuses_publishes_but_routes_from_other_exchanges() {
     assert!(drain(&ch, &q).await.is_empty());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn exchange_delete_if_unused_refuses_while_bound() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -580,7 +580,7 @@ async fn exchange_delete_if_unused_refuses_while_bound() {
     tmo!(ch.exchange_delete(del)).expect("unused now");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn deleting_a_missing_exchange_succeeds() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -598,7 +598,7 @@ async fn deleting_a_missing_exchange_succeeds() {
     .expect("delete-ok with if-unused");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn deleting_an_exchange_removes_its_bindings() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -619,7 +619,7 @@ async fn deleting_an_exchange_removes_its_bindings() {
     assert!(drain(&ch, &q).await.is_empty());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn exchange_to_exchange_bind_and_unbind() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -644,7 +644,7 @@ async fn exchange_to_exchange_bind_and_unbind() {
     assert_eq!(drain_rs(&ch, &direct_q).await, ["4"]);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn exchange_to_exchange_cycles_deliver_once() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -668,7 +668,7 @@ async fn exchange_to_exchange_cycles_deliver_once() {
     assert_eq!(drain(&ch, &q).await, ["loop"]);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn exchange_bind_with_a_missing_side_gets_404() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -683,7 +683,7 @@ async fn exchange_bind_with_a_missing_side_gets_404() {
     rs::assert_closed(&mut ev, 404, "NOT_FOUND").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn alternate_exchange_takes_unroutable_messages() {
     let b = broker().await;
     let conn = lp::connect(&b).await;

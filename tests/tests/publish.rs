@@ -15,7 +15,7 @@ async fn confirm_channel(conn: &lp::Connection) -> lp::Channel {
     ch
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn mandatory_unroutable_message_comes_back_with_312_lapin() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -55,7 +55,7 @@ async fn mandatory_unroutable_message_comes_back_with_312_lapin() {
     assert!(ch.status().connected());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn mandatory_unroutable_message_comes_back_with_312_amqprs() {
     let b = broker().await;
     let (_conn, ch, mut ev) = rs::open(&b).await;
@@ -84,7 +84,7 @@ async fn mandatory_unroutable_message_comes_back_with_312_amqprs() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn unroutable_message_without_mandatory_is_dropped_silently() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -100,7 +100,7 @@ async fn unroutable_message_without_mandatory_is_dropped_silently() {
     assert_eq!(c, lp::Confirmation::Ack(None));
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn mandatory_routed_message_is_not_returned() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -124,7 +124,7 @@ async fn mandatory_routed_message_is_not_returned() {
     );
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn publishing_to_a_missing_exchange_gets_404_lapin() {
     let b = broker().await;
     let (conn, ch) = lp::open(&b).await;
@@ -144,7 +144,7 @@ async fn publishing_to_a_missing_exchange_gets_404_lapin() {
     assert!(conn.status().connected());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn publishing_to_a_missing_exchange_gets_404_amqprs() {
     let b = broker().await;
     let (conn, ch, mut ev) = rs::open(&b).await;
@@ -153,7 +153,7 @@ async fn publishing_to_a_missing_exchange_gets_404_amqprs() {
     assert!(conn.is_open());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn publishing_with_immediate_is_a_540_connection_error() {
     let b = broker().await;
     let (conn, mut conn_ev) = rs::connect(&b).await;
@@ -169,7 +169,7 @@ async fn publishing_with_immediate_is_a_540_connection_error() {
     assert_text_prefix(&text, "NOT_IMPLEMENTED");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn basic_get_reports_remaining_count_and_get_empty() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -195,7 +195,7 @@ async fn basic_get_reports_remaining_count_and_get_empty() {
     assert!(rs::get(&ch, &q, true).await.is_none(), "get-empty again");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn basic_get_from_a_missing_queue_gets_404() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -207,7 +207,7 @@ fn pattern(len: usize) -> Vec<u8> {
     (0..len).map(|i| (i * 31 % 251) as u8).collect()
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn one_mebibyte_message_round_trips_lapin() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -221,7 +221,7 @@ async fn one_mebibyte_message_round_trips_lapin() {
     assert!(d.data == body, "body differs");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn large_message_round_trips_amqprs() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -233,7 +233,7 @@ async fn large_message_round_trips_amqprs() {
     assert!(got == body, "body differs");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn empty_body_round_trips() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -258,7 +258,7 @@ async fn empty_body_round_trips() {
     assert!(body.is_empty());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn every_basic_property_round_trips_unchanged() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -291,7 +291,7 @@ async fn every_basic_property_round_trips_unchanged() {
     assert_eq!(d.properties, lp::BasicProperties::default());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn user_id_must_match_the_authenticated_user() {
     let b = broker().await;
     let (_conn, ch, mut ev) = rs::open(&b).await;
@@ -351,7 +351,7 @@ fn every_header_type() -> lp::FieldTable {
     ])
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn headers_of_every_value_type_round_trip_lapin() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -372,7 +372,7 @@ async fn headers_of_every_value_type_round_trip_lapin() {
     assert_eq!(got_headers, headers);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn headers_of_every_value_type_round_trip_amqprs() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -403,7 +403,7 @@ async fn headers_of_every_value_type_round_trip_amqprs() {
     assert_eq!(m.props.headers(), Some(&headers));
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn messages_keep_their_order() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -428,7 +428,7 @@ async fn messages_keep_their_order() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn publisher_confirms_ack_every_publish_lapin() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -472,7 +472,7 @@ async fn publisher_confirms_ack_every_publish_lapin() {
     assert_eq!(info.message_count(), 200);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn publisher_confirms_cover_every_sequence_number_amqprs() {
     let b = broker().await;
     let (_conn, ch, mut ev) = rs::open(&b).await;
@@ -501,7 +501,7 @@ async fn publisher_confirms_cover_every_sequence_number_amqprs() {
     assert_eq!(rs::counts(&ch, &q).await, (n as u32, 0));
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn confirm_and_tx_modes_exclude_each_other() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -517,7 +517,7 @@ async fn confirm_and_tx_modes_exclude_each_other() {
     rs::assert_closed(&mut ev, 406, "PRECONDITION_FAILED").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn tx_commit_publishes_and_rollback_discards() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -551,7 +551,7 @@ async fn tx_commit_publishes_and_rollback_discards() {
     assert!(rs::get(&ch, &q, true).await.is_some());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn tx_rolled_back_publishes_never_arrive_at_a_consumer() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -571,7 +571,7 @@ async fn tx_rolled_back_publishes_never_arrive_at_a_consumer() {
     lp::nothing(&mut c).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn tx_acks_take_effect_on_commit_only() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -598,7 +598,7 @@ async fn tx_acks_take_effect_on_commit_only() {
     assert!(lp::get(&ch, &q, true).await.is_none());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn tx_commit_without_select_gets_406() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;

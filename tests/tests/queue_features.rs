@@ -91,7 +91,7 @@ fn routing_keys(t: &lp::FieldTable) -> Vec<String> {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn message_ttl_expires_messages_to_the_dead_letter_exchange() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -136,7 +136,7 @@ async fn message_ttl_expires_messages_to_the_dead_letter_exchange() {
     let _ = dead;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn per_message_expiration_dead_letters_with_original_expiration() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -163,7 +163,7 @@ async fn per_message_expiration_dead_letters_with_original_expiration() {
     assert_eq!(kept.delivery.data, b"lasting");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn expiry_resumes_after_a_queue_had_nothing_left_to_expire() {
     // Between the two messages the queue holds nothing that can expire (a
     // quiet spell); the second must still be dead-lettered without anyone
@@ -183,7 +183,7 @@ async fn expiry_resumes_after_a_queue_had_nothing_left_to_expire() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn an_unused_queue_is_deleted_after_x_expires() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -222,7 +222,7 @@ async fn an_unused_queue_is_deleted_after_x_expires() {
     .await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn zero_ttl_drops_messages_nobody_can_take_at_once() {
     let b = broker().await;
     let (_conn, ch, mut ev) = rs::open(&b).await;
@@ -240,7 +240,7 @@ async fn zero_ttl_drops_messages_nobody_can_take_at_once() {
     assert_eq!(rs::next(&mut rx).await.text(), "just in time");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn max_length_drops_from_the_head() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -289,7 +289,7 @@ async fn max_length_drops_from_the_head() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn max_length_with_reject_publish_nacks_the_overflow() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -323,7 +323,7 @@ async fn max_length_with_reject_publish_nacks_the_overflow() {
     assert!(lp::get(&ch, &q, true).await.is_none());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn rejected_messages_are_dead_lettered_with_a_routing_key_override() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -374,7 +374,7 @@ async fn rejected_messages_are_dead_lettered_with_a_routing_key_override() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn requeued_rejects_are_not_dead_lettered() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -399,7 +399,7 @@ async fn requeued_rejects_are_not_dead_lettered() {
     lp::nothing(&mut dead_consumer).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn dead_lettering_twice_through_the_same_queue_counts_up() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -462,7 +462,7 @@ async fn dead_lettering_twice_through_the_same_queue_counts_up() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn max_priority_delivers_higher_priorities_first() {
     let b = broker().await;
     let (_conn, ch, mut ev) = rs::open(&b).await;
@@ -498,7 +498,7 @@ async fn max_priority_delivers_higher_priorities_first() {
     assert_eq!(got, ["p200", "p9", "p5a", "p5b", "p1", "none", "p0"]);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn invalid_queue_arguments_get_406() {
     let b = broker().await;
     let conn = lp::connect(&b).await;

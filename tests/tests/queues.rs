@@ -20,7 +20,7 @@ fn exclusive() -> lp::QueueDeclareOptions {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn server_named_queues_are_amq_gen_and_distinct() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;
@@ -36,7 +36,7 @@ async fn server_named_queues_are_amq_gen_and_distinct() {
     assert!(rs::get(&ch, &c, true).await.is_none());
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn passive_declare_of_a_missing_queue_gets_404() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -48,7 +48,7 @@ async fn passive_declare_of_a_missing_queue_gets_404() {
     rs::assert_closed(&mut ev, 404, "NOT_FOUND").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn declare_ok_reports_ready_messages_and_consumers() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -83,7 +83,7 @@ async fn declare_ok_reports_ready_messages_and_consumers() {
     assert_eq!((messages, consumers), (1, 2));
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn exclusive_queue_is_locked_to_its_connection() {
     let b = broker().await;
     let owner = lp::connect(&b).await;
@@ -182,7 +182,7 @@ async fn exclusive_queue_is_locked_to_its_connection() {
     assert_eq!(m.delivery.data, b"from outside");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn auto_delete_queue_goes_away_after_its_last_consumer_cancels() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -212,7 +212,7 @@ async fn auto_delete_queue_goes_away_after_its_last_consumer_cancels() {
     );
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn auto_delete_queue_goes_away_when_its_consumers_channel_closes() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -237,7 +237,7 @@ async fn auto_delete_queue_goes_away_when_its_consumers_channel_closes() {
     );
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn queue_bind_and_unbind() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -261,7 +261,7 @@ async fn queue_bind_and_unbind() {
         .expect("unbind never bound");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn bind_with_a_missing_exchange_or_queue_gets_404() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -281,7 +281,7 @@ async fn bind_with_a_missing_exchange_or_queue_gets_404() {
     rs::assert_closed(&mut ev, 404, "NOT_FOUND").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn purge_returns_the_number_of_ready_messages_removed() {
     let b = broker().await;
     let (_conn, ch, mut ev) = rs::open(&b).await;
@@ -309,7 +309,7 @@ async fn purge_returns_the_number_of_ready_messages_removed() {
     assert_eq!((remaining, body.as_slice()), (0, &b"0"[..]));
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn purge_of_a_missing_queue_gets_404() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -318,7 +318,7 @@ async fn purge_of_a_missing_queue_gets_404() {
     rs::assert_closed(&mut ev, 404, "NOT_FOUND").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn delete_returns_the_message_count() {
     let b = broker().await;
     let (_conn, ch, mut ev) = rs::open(&b).await;
@@ -337,7 +337,7 @@ async fn delete_returns_the_message_count() {
     assert!(tmo!(ch.queue_declare(args)).is_err(), "deleted");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn deleting_a_missing_queue_succeeds_with_zero() {
     let b = broker().await;
     let (_conn, ch) = lp::open(&b).await;
@@ -348,7 +348,7 @@ async fn deleting_a_missing_queue_succeeds_with_zero() {
     assert_eq!(n, 0);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn delete_if_unused_refuses_while_a_consumer_exists() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -369,7 +369,7 @@ async fn delete_if_unused_refuses_while_a_consumer_exists() {
     assert_eq!(n, 0);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn delete_if_empty_refuses_while_messages_are_ready() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -391,7 +391,7 @@ async fn delete_if_empty_refuses_while_messages_are_ready() {
     assert_eq!(n, 0);
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn redeclaring_a_queue_differently_gets_406() {
     let b = broker().await;
     let conn = lp::connect(&b).await;
@@ -461,7 +461,7 @@ async fn redeclaring_a_queue_differently_gets_406() {
     .expect("identical redeclare");
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn queue_names_starting_with_amq_are_reserved() {
     let b = broker().await;
     let (conn, _) = rs::connect(&b).await;
@@ -471,7 +471,7 @@ async fn queue_names_starting_with_amq_are_reserved() {
     rs::assert_closed(&mut ev, 403, "ACCESS_REFUSED").await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn durable_queue_declare_and_delete() {
     let b = broker().await;
     let (_conn, ch, _ev) = rs::open(&b).await;

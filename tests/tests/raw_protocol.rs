@@ -280,7 +280,7 @@ async fn assert_broker_alive(b: &TestBroker) {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn wrong_protocol_headers_get_the_091_header_back_and_the_socket_closed() {
     let b = broker().await;
     // Note: RabbitMQ still speaks the legacy "AMQP 1 1 0 9" (0-9) and
@@ -300,7 +300,7 @@ async fn wrong_protocol_headers_get_the_091_header_back_and_the_socket_closed() 
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn connection_start_and_tune_match_rabbitmq() {
     let b = broker().await;
     let (mut raw, greeting) = Raw::handshake(&b).await;
@@ -341,7 +341,7 @@ async fn connection_start_and_tune_match_rabbitmq() {
     raw.open_channel(1).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn clean_connection_close_gets_close_ok() {
     let b = broker().await;
     let (mut raw, _) = Raw::handshake(&b).await;
@@ -367,7 +367,7 @@ async fn clean_connection_close_gets_close_ok() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn channel_close_gets_close_ok_and_the_channel_number_can_be_reused() {
     let b = broker().await;
     let (mut raw, _) = Raw::handshake(&b).await;
@@ -388,7 +388,7 @@ async fn channel_close_gets_close_ok_and_the_channel_number_can_be_reused() {
     raw.open_channel(1).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn oversize_frame_gets_501_frame_error() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -407,7 +407,7 @@ async fn oversize_frame_gets_501_frame_error() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn body_frame_without_header_gets_505_unexpected_frame() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -424,7 +424,7 @@ async fn body_frame_without_header_gets_505_unexpected_frame() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn content_header_without_method_gets_505_unexpected_frame() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -435,7 +435,7 @@ async fn content_header_without_method_gets_505_unexpected_frame() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn method_instead_of_content_header_gets_505_with_publish_ids() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -454,7 +454,7 @@ async fn method_instead_of_content_header_gets_505_with_publish_ids() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn method_on_unopened_channel_gets_504_channel_error() {
     let b = broker().await;
     let (mut raw, _) = Raw::handshake(&b).await;
@@ -464,7 +464,7 @@ async fn method_on_unopened_channel_gets_504_channel_error() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn content_frames_on_unopened_channel_get_505() {
     let b = broker().await;
     let (mut raw, _) = Raw::handshake(&b).await;
@@ -476,7 +476,7 @@ async fn content_frames_on_unopened_channel_get_505() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn channel_close_on_unopened_channel_gets_504() {
     let b = broker().await;
     let (mut raw, _) = Raw::handshake(&b).await;
@@ -492,7 +492,7 @@ async fn channel_close_on_unopened_channel_gets_504() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn second_channel_open_gets_504() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -502,7 +502,7 @@ async fn second_channel_open_gets_504() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn channel_method_on_channel_zero_gets_504() {
     let b = broker().await;
     let (mut raw, _) = Raw::handshake(&b).await;
@@ -512,7 +512,7 @@ async fn channel_method_on_channel_zero_gets_504() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn second_connection_open_gets_504() {
     let b = broker().await;
     let (mut raw, _) = Raw::handshake(&b).await;
@@ -528,7 +528,7 @@ async fn second_connection_open_gets_504() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn garbage_gets_501_and_the_socket_closed() {
     let b = broker().await;
     let (mut raw, _) = Raw::handshake(&b).await;
@@ -543,7 +543,7 @@ async fn garbage_gets_501_and_the_socket_closed() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn bad_frame_end_gets_501() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -556,7 +556,7 @@ async fn bad_frame_end_gets_501() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn unknown_frame_type_gets_501() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -566,7 +566,7 @@ async fn unknown_frame_type_gets_501() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn heartbeat_on_a_channel_gets_505() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -577,7 +577,7 @@ async fn heartbeat_on_a_channel_gets_505() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn truncated_method_arguments_get_501_with_method_ids() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -590,7 +590,7 @@ async fn truncated_method_arguments_get_501_with_method_ids() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn trailing_bytes_after_method_arguments_get_501() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -604,7 +604,7 @@ async fn trailing_bytes_after_method_arguments_get_501() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn unknown_method_ends_the_connection() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -627,7 +627,7 @@ async fn unknown_method_ends_the_connection() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn bad_password_gets_403_when_the_client_asks_for_it() {
     let b = broker().await;
     let (mut raw, _) = Raw::login(&b, b"\0guest\0wrong-password", true).await;
@@ -637,7 +637,7 @@ async fn bad_password_gets_403_when_the_client_asks_for_it() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn bad_password_without_the_capability_just_closes_the_socket() {
     let b = broker().await;
     let (mut raw, _) = Raw::login(&b, b"\0guest\0wrong-password", false).await;
@@ -649,7 +649,7 @@ async fn bad_password_without_the_capability_just_closes_the_socket() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn unknown_vhost_gets_530_not_allowed() {
     let b = broker().await;
     let (mut raw, _) = Raw::login(&b, b"\0guest\0guest", true).await;
@@ -680,7 +680,7 @@ async fn unknown_vhost_gets_530_not_allowed() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn content_split_across_many_body_frames_is_reassembled() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -754,7 +754,7 @@ async fn content_split_across_many_body_frames_is_reassembled() {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn channel_error_then_close_ok_frees_the_channel_number() {
     let b = broker().await;
     let mut raw = Raw::open(&b).await;
@@ -849,7 +849,7 @@ async fn refused_tune(b: &TestBroker, channel_max: u16, frame_max: u32) {
     }
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn tune_ok_outside_the_servers_limits_is_refused() {
     let b = broker().await;
     // frame_max below the 4096 minimum, above the server's 131072, 0
@@ -866,7 +866,7 @@ async fn tune_ok_outside_the_servers_limits_is_refused() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn the_client_frame_max_is_honoured_both_ways() {
     let b = broker().await;
     let mut raw = tuned(&b, 2047, 4096, 0).await;
@@ -942,7 +942,7 @@ async fn the_client_frame_max_is_honoured_both_ways() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn heartbeats_are_sent_and_a_silent_client_is_dropped() {
     let b = broker().await;
     let mut raw = tuned(&b, 2047, 131_072, 1).await;
@@ -972,7 +972,7 @@ async fn heartbeats_are_sent_and_a_silent_client_is_dropped() {
     assert_broker_alive(&b).await;
 }
 
-#[tokio::test]
+#[both_runtimes]
 async fn client_heartbeats_keep_a_quiet_connection_alive() {
     let b = broker().await;
     let mut raw = tuned(&b, 2047, 131_072, 1).await;

@@ -8,8 +8,7 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::Exchange;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
-use crate::queue::{Enqueued, Queue};
-use crate::store::StoreOp;
+use crate::queue::{DeadLetters, Enqueued, Queue};
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
     BasicPublish, BasicQos, BasicQosOk, ReplyCode, ShortStr,
@@ -36,18 +35,6 @@ impl Outcome {
     }
 }
 
-/// The op storing a message shared by several durable queues (a message
-/// in one durable queue lives inside that queue's index entry instead).
-pub(crate) fn body_op(message: &Message) -> Option<StoreOp> {
-    match message.stored.as_ref()? {
-        Stored::Inline => None,
-        Stored::Shared { id, .. } => Some(StoreOp::PutMessage {
-            id: *id,
-            record: message.to_record(),
-        }),
-    }
-}
-
 /// What a client did with a delivery.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Settle {
@@ -58,6 +45,16 @@ pub(crate) enum Settle {
         /// Put it back in the queue.
         requeue: bool,
     },
+}
+
+/// basic.recover, answered with recover-ok, or the deprecated
+/// basic.recover-async, not answered.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Recover {
+    /// basic.recover.
+    Answered,
+    /// basic.recover-async.
+    Unanswered,
 }
 
 /// A unique suffix for generated names (`amq.ctag-…`, `amq.gen-…`).
@@ -94,7 +91,7 @@ fn consumer_priority(arguments: &leveret_protocol::FieldTable) -> AmqpResult<i64
 }
 
 /// Requeues settled-by-close deliveries, each queue once, in tag order.
-pub(crate) fn requeue_all(unacked: Vec<Unacked>) {
+pub(crate) fn requeue_all(unacked: Vec<Unacked>) -> DeadLetters {
     let mut by_queue: Vec<(Arc<Queue>, Vec<crate::queue::QueuedMessage>)> = Vec::new();
     for u in unacked {
         if let Some(consumer) = &u.consumer {
@@ -105,9 +102,11 @@ pub(crate) fn requeue_all(unacked: Vec<Unacked>) {
             None => by_queue.push((u.queue, vec![u.message])),
         }
     }
+    let mut dead = DeadLetters::default();
     for (queue, messages) in by_queue {
-        queue.requeue(messages);
+        dead.append(queue.requeue(messages));
     }
+    dead
 }
 
 impl Channel {
@@ -175,17 +174,21 @@ impl Channel {
     async fn route_and_enqueue(&mut self, exchange: &Arc<Exchange>, publish: Publish) -> Outcome {
         let mut queues = std::mem::take(&mut self.route_buffer);
         let mut outcome = Outcome::default();
+        let mut dead = DeadLetters::default();
         let message = self.route(exchange, publish, &mut queues).await;
-        if let (Some(persistence), Some(op)) = (&self.core.persistence, body_op(&message)) {
+        if let (Some(persistence), Some(op)) = (&self.core.persistence, message.record_op()) {
             persistence.submit(vec![op]);
         }
         for queue in queues.drain(..) {
-            outcome.add(queue.publish(Arc::clone(&message)));
+            let (enqueued, dead_here) = queue.publish(Arc::clone(&message));
+            outcome.add(enqueued);
+            dead.append(dead_here);
             if queue.is_crowded() && self.crowded.is_none() {
                 self.crowded = Some(queue);
             }
         }
         self.route_buffer = queues;
+        self.vhost.dead_letter(dead);
         outcome
     }
 
@@ -207,13 +210,10 @@ impl Channel {
         );
         let persistent = publish.properties.is_persistent();
         let stored = match &self.core.persistence {
-            Some(persistence) if persistent => {
-                match queues.iter().filter(|q| q.store_id().is_some()).count() {
-                    0 => None,
-                    1 => Some(Stored::Inline),
-                    durable => Some(Stored::shared(persistence.next_message_id(), durable)),
-                }
-            }
+            Some(persistence) if persistent => Stored::for_queues(
+                persistence,
+                queues.iter().filter(|q| q.store_id().is_some()).count(),
+            ),
             _ => None,
         };
         let ttl_ms = publish
@@ -234,7 +234,7 @@ impl Channel {
         });
         let replied = queues.is_empty()
             && super::reply_to::is_reply_address(&message.exchange, &message.routing_key)
-            && self.deliver_reply(&message).await;
+            && self.deliver_reply(&message);
         let reached = !queues.is_empty() || replied;
         self.core.stats.routed(reached, publish.method.mandatory);
         if !reached && publish.method.mandatory {
@@ -266,9 +266,7 @@ impl Channel {
         }
         self.reply(BasicQosOk {}).await;
         // More credit may let waiting messages go.
-        for (_, queue) in self.consumers.values() {
-            queue.dispatch();
-        }
+        self.dispatch_consumed_queues();
         Ok(())
     }
 
@@ -309,7 +307,8 @@ impl Channel {
             in_flight: Default::default(),
             active: Default::default(),
         });
-        queue.add_consumer(Arc::clone(&consumer))?;
+        self.vhost
+            .dead_letter(queue.add_consumer(Arc::clone(&consumer))?);
         self.consumers
             .insert(tag.clone(), (Arc::clone(&consumer), Arc::clone(&queue)));
         if !consume.no_wait {
@@ -318,7 +317,7 @@ impl Channel {
         // consume-ok is in the outbox ahead of any delivery: only now may
         // the queue deliver to this consumer.
         consumer.activate();
-        queue.dispatch();
+        self.vhost.dead_letter(queue.dispatch());
         Ok(())
     }
 
@@ -343,24 +342,17 @@ impl Channel {
         let queue_name = self.queue_name_or_last(get.queue)?;
         let queue = self.vhost.queue_or_404(&queue_name)?;
         crate::vhost::check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
-        match queue.get(&self.link, get.no_ack) {
-            Some((delivery_tag, queued, message_count)) => {
-                self.outbox()
-                    .send(Outbound::GetOk {
-                        channel: self.id,
-                        delivery_tag,
-                        redelivered: queued.redelivered,
-                        message_count,
-                        message: queued.message,
-                    })
-                    .await;
-            }
-            None => {
-                self.reply(BasicGetEmpty {
-                    cluster_id: ShortStr::default(),
-                })
-                .await
-            }
+        let Some(permit) = self.outbox().reserve().await else {
+            // The writer is gone: the connection is closing.
+            return Ok(());
+        };
+        let (delivered, dead) = queue.get(&self.link, get.no_ack, permit);
+        self.vhost.dead_letter(dead);
+        if !delivered {
+            self.reply(BasicGetEmpty {
+                cluster_id: ShortStr::default(),
+            })
+            .await;
         }
         Ok(())
     }
@@ -376,7 +368,8 @@ impl Channel {
             tx.settles.extend(settled.into_iter().map(|u| (u, how)));
             return Ok(());
         }
-        apply_settles(settled.into_iter().map(|u| (u, how)));
+        self.vhost
+            .dead_letter(apply_settles(settled.into_iter().map(|u| (u, how))));
         self.after_settles();
         Ok(())
     }
@@ -386,24 +379,29 @@ impl Channel {
     /// whose messages were settled: let them all dispatch again.
     pub(super) fn after_settles(&self) {
         if self.link.global_prefetch.load(Ordering::Relaxed) > 0 {
-            for (_, queue) in self.consumers.values() {
-                queue.dispatch();
-            }
+            self.dispatch_consumed_queues();
+        }
+    }
+
+    /// Lets every queue this channel consumes from dispatch again.
+    fn dispatch_consumed_queues(&self) {
+        for (_, queue) in self.consumers.values() {
+            self.vhost.dead_letter(queue.dispatch());
         }
     }
 
     /// basic.recover(-async). As in RabbitMQ, recover-ok goes out before
     /// the redeliveries (clients such as lapin discard deliveries that
     /// arrive before it).
-    pub(super) async fn basic_recover(&mut self, requeue: bool, reply: bool) -> AmqpResult<()> {
+    pub(super) async fn basic_recover(&mut self, requeue: bool, how: Recover) -> AmqpResult<()> {
         if !requeue {
             return Err(AmqpError::not_implemented("requeue=false"));
         }
         let unacked = self.link.deliveries().take_all();
-        if reply {
+        if how == Recover::Answered {
             self.reply(leveret_protocol::BasicRecoverOk {}).await;
         }
-        requeue_all(unacked);
+        self.vhost.dead_letter(requeue_all(unacked));
         Ok(())
     }
 
@@ -419,8 +417,10 @@ impl Channel {
 }
 
 /// Applies settled deliveries: acks release, rejects requeue or dead-letter,
-/// and the queues involved dispatch again (credit was freed).
-pub(crate) fn apply_settles(settles: impl IntoIterator<Item = (Unacked, Settle)>) {
+/// and the queues involved dispatch again (credit was freed). Returns the
+/// dead letters, for the caller to route.
+pub(crate) fn apply_settles(settles: impl IntoIterator<Item = (Unacked, Settle)>) -> DeadLetters {
+    let mut dead = DeadLetters::default();
     let mut requeue = Vec::new();
     let mut touched: Vec<Arc<Queue>> = Vec::new();
     for (u, how) in settles {
@@ -436,11 +436,12 @@ pub(crate) fn apply_settles(settles: impl IntoIterator<Item = (Unacked, Settle)>
         }
         match how {
             Settle::Ack => u.queue.settle(&u.message),
-            Settle::Reject { .. } => u.queue.reject(u.message),
+            Settle::Reject { .. } => dead.append(u.queue.reject(u.message)),
         }
     }
-    requeue_all(requeue);
+    dead.append(requeue_all(requeue));
     for queue in touched {
-        queue.dispatch();
+        dead.append(queue.dispatch());
     }
+    dead
 }

@@ -3,14 +3,15 @@
 use super::Channel;
 use crate::error::AmqpResult;
 use crate::exchange::ExchangeOptions;
-use crate::vhost::ExchangeDeclaration;
+use crate::vhost::{BindingChange, ExchangeDeclaration};
 use leveret_protocol::{
-    ExchangeBindOk, ExchangeDeclare, ExchangeDeclareOk, ExchangeDelete, ExchangeDeleteOk,
-    ExchangeUnbindOk, FieldTable, ShortStr,
+    ExchangeBind, ExchangeBindOk, ExchangeDeclare, ExchangeDeclareOk, ExchangeDelete,
+    ExchangeDeleteOk, ExchangeUnbind, ExchangeUnbindOk, ShortStr,
 };
 
 impl Channel {
     pub(super) async fn exchange_declare(&mut self, declare: ExchangeDeclare) -> AmqpResult<()> {
+        let durable = declare.durable;
         self.vhost.declare_exchange(ExchangeDeclaration {
             name: declare.exchange,
             kind: declare.kind,
@@ -22,6 +23,9 @@ impl Channel {
                 arguments: declare.arguments,
             },
         })?;
+        if durable {
+            self.definitions_on_disk().await?;
+        }
         if !declare.no_wait {
             self.reply(ExchangeDeclareOk {}).await;
         }
@@ -29,32 +33,58 @@ impl Channel {
     }
 
     pub(super) async fn exchange_delete(&mut self, delete: ExchangeDelete) -> AmqpResult<()> {
+        let durable = self.exchange_is_durable(&delete.exchange);
         self.vhost
             .delete_exchange(&delete.exchange, delete.if_unused)?;
+        if durable {
+            self.definitions_on_disk().await?;
+        }
         if !delete.no_wait {
             self.reply(ExchangeDeleteOk {}).await;
         }
         Ok(())
     }
 
-    pub(super) async fn exchange_bind(
-        &mut self,
-        destination: ShortStr,
-        source: ShortStr,
-        routing_key: ShortStr,
-        arguments: FieldTable,
-        no_wait: bool,
-        bind: bool,
-    ) -> AmqpResult<()> {
-        self.vhost
-            .bind_exchange(&destination, &source, routing_key, arguments, bind)?;
-        if !no_wait {
-            if bind {
-                self.reply(ExchangeBindOk {}).await;
-            } else {
-                self.reply(ExchangeUnbindOk {}).await;
-            }
+    pub(super) async fn exchange_bind(&mut self, bind: ExchangeBind) -> AmqpResult<()> {
+        self.vhost.bind_exchange(
+            &bind.destination,
+            &bind.source,
+            bind.routing_key,
+            bind.arguments,
+            BindingChange::Bind,
+        )?;
+        if self.exchange_is_durable(&bind.source) && self.exchange_is_durable(&bind.destination) {
+            self.definitions_on_disk().await?;
+        }
+        if !bind.no_wait {
+            self.reply(ExchangeBindOk {}).await;
         }
         Ok(())
+    }
+
+    pub(super) async fn exchange_unbind(&mut self, unbind: ExchangeUnbind) -> AmqpResult<()> {
+        self.vhost.bind_exchange(
+            &unbind.destination,
+            &unbind.source,
+            unbind.routing_key,
+            unbind.arguments,
+            BindingChange::Unbind,
+        )?;
+        if self.exchange_is_durable(&unbind.source) && self.exchange_is_durable(&unbind.destination)
+        {
+            self.definitions_on_disk().await?;
+        }
+        if !unbind.no_wait {
+            self.reply(ExchangeUnbindOk {}).await;
+        }
+        Ok(())
+    }
+
+    /// Whether `name` is a durable exchange: only changes to those (and
+    /// to bindings between durable ends) are written to disk.
+    pub(super) fn exchange_is_durable(&self, name: &ShortStr) -> bool {
+        self.vhost
+            .exchange(name)
+            .is_some_and(|exchange| exchange.options.durable)
     }
 }

@@ -3,6 +3,14 @@
 //! `basic`, `tx`), soft errors (channel.close and discarding frames until
 //! close-ok), and releasing what a closed channel held.
 //!
+//! Content assembly keeps nothing that points into the connection's read
+//! buffer (which would pin the whole buffer for as long as the message is
+//! queued): a body in one frame is copied when it is smaller than the
+//! connection's `copy_below`, property lists and long exchange names and
+//! routing keys likewise; a body in several frames is copied into one
+//! buffer of its announced size, counted in the memory gauge from its
+//! first body frame until the message is routed or dropped.
+//!
 //! Layout: `basic.rs` publishing, consuming, acks and get; `queue.rs`
 //! queue.*; `exchange.rs` exchange.*; `tx.rs` transactions and publisher
 //! confirms.
@@ -13,16 +21,15 @@ mod queue;
 mod reply_to;
 mod tx;
 
-pub(crate) use reply_to::ReplyTarget;
-
 use crate::consumer::{ChannelLink, Consumer};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
+use crate::memory::{MemoryGauge, Reservation};
 use crate::outbox::Outbox;
 use crate::queue::Queue;
 use crate::registry::ChannelRegistration;
 use crate::vhost::Vhost;
-use bytes::{Bytes, BytesMut};
+use bytes::Bytes;
 use leveret_protocol::{
     BasicProperties, BasicPublish, ChannelClose, ChannelCloseOk, ChannelFlowOk, ContentHeader,
     Frame, Method, ShortStr,
@@ -45,10 +52,35 @@ enum Assembly {
         properties: BasicProperties,
         property_bytes: Bytes,
         size: u64,
-        first: Option<Bytes>,
-        rest: Option<BytesMut>,
-        received: u64,
+        /// Set from the first body frame of a body that takes several.
+        partial: Option<PartialBody>,
     },
+}
+
+/// A body arriving in several frames, copied into a buffer of its
+/// announced size, which the memory gauge counts until it is dropped.
+#[derive(Debug)]
+struct PartialBody {
+    bytes: Vec<u8>,
+    reservation: Reservation,
+}
+
+impl PartialBody {
+    /// The buffer for a body of `size` bytes whose first frame is `first`,
+    /// counted in `gauge` at its full size. A buffer that cannot be
+    /// allocated is 506 RESOURCE_ERROR, never an abort.
+    fn start(gauge: &Arc<MemoryGauge>, size: u64, first: &[u8]) -> AmqpResult<Self> {
+        let capacity = usize::try_from(size).map_err(|_| resource_error(size))?;
+        let mut bytes = Vec::new();
+        bytes
+            .try_reserve_exact(capacity)
+            .map_err(|_| resource_error(size))?;
+        bytes.extend_from_slice(first);
+        Ok(PartialBody {
+            bytes,
+            reservation: gauge.reserve(capacity),
+        })
+    }
 }
 
 /// A fully assembled publish.
@@ -89,16 +121,20 @@ pub struct Channel {
     crowded: Option<Arc<Queue>>,
     /// Keeps the channel listed (`registry`) until it is dropped.
     registration: ChannelRegistration,
+    /// Content smaller than this is copied out of the read buffer.
+    copy_below: usize,
 }
 
 impl Channel {
-    /// A newly opened channel.
+    /// A newly opened channel; content below `copy_below` bytes is copied
+    /// out of the connection's read buffer.
     pub fn new(
         id: u16,
         outbox: Arc<Outbox>,
         vhost: Arc<Vhost>,
         core: Arc<Core>,
         user: String,
+        copy_below: usize,
     ) -> Self {
         let link = Arc::new(ChannelLink::new(id, outbox));
         Channel {
@@ -119,6 +155,7 @@ impl Channel {
             confirms: None,
             direct_reply: None,
             crowded: None,
+            copy_below,
         }
     }
 
@@ -128,6 +165,19 @@ impl Channel {
 
     async fn reply(&self, method: impl Into<Method>) {
         self.link.outbox.method(self.id, method).await;
+    }
+
+    /// Waits until every store write submitted so far (among them the
+    /// definition change this channel just made) is flushed, so a -ok for
+    /// something durable goes out only once it is on disk. It rides the
+    /// persister's group commit: one flush covers every waiter.
+    async fn definitions_on_disk(&self) -> AmqpResult<()> {
+        match &self.core.persistence {
+            Some(persistence) if !persistence.sync().await => Err(AmqpError::resource_error(
+                "could not write the definition to disk",
+            )),
+            _ => Ok(()),
+        }
     }
 
     /// A crowded queue this channel published to since the last call: the
@@ -228,28 +278,8 @@ impl Channel {
             }
             Method::ExchangeDeclare(m) => self.exchange_declare(m).await?,
             Method::ExchangeDelete(m) => self.exchange_delete(m).await?,
-            Method::ExchangeBind(m) => {
-                self.exchange_bind(
-                    m.destination,
-                    m.source,
-                    m.routing_key,
-                    m.arguments,
-                    m.no_wait,
-                    true,
-                )
-                .await?
-            }
-            Method::ExchangeUnbind(m) => {
-                self.exchange_bind(
-                    m.destination,
-                    m.source,
-                    m.routing_key,
-                    m.arguments,
-                    m.no_wait,
-                    false,
-                )
-                .await?
-            }
+            Method::ExchangeBind(m) => self.exchange_bind(m).await?,
+            Method::ExchangeUnbind(m) => self.exchange_unbind(m).await?,
             Method::QueueDeclare(m) => self.queue_declare(m).await?,
             Method::QueueBind(m) => self.queue_bind(m).await?,
             Method::QueueUnbind(m) => self.queue_unbind(m).await?,
@@ -280,8 +310,14 @@ impl Channel {
                 )
                 .await?
             }
-            Method::BasicRecover(m) => self.basic_recover(m.requeue, true).await?,
-            Method::BasicRecoverAsync(m) => self.basic_recover(m.requeue, false).await?,
+            Method::BasicRecover(m) => {
+                self.basic_recover(m.requeue, basic::Recover::Answered)
+                    .await?
+            }
+            Method::BasicRecoverAsync(m) => {
+                self.basic_recover(m.requeue, basic::Recover::Unanswered)
+                    .await?
+            }
             Method::TxSelect(_) => self.tx_select().await?,
             Method::TxCommit(_) => self.tx_commit().await?,
             Method::TxRollback(_) => self.tx_rollback().await?,
@@ -311,8 +347,8 @@ impl Channel {
             ))
             .during_ids(60, 40));
         }
-        let properties = header
-            .properties()
+        let property_bytes = self.kept(header.property_bytes);
+        let properties = BasicProperties::decode(&property_bytes)
             .map_err(|e| AmqpError::new(e.reply_code(), &e).during_ids(60, 40))?;
         let max = self.core.limits.max_message_size;
         if header.body_size > max {
@@ -322,11 +358,16 @@ impl Channel {
             ))
             .during_ids(60, 40));
         }
+        let publish = BasicPublish {
+            exchange: kept_short(publish.exchange),
+            routing_key: kept_short(publish.routing_key),
+            ..publish
+        };
         if header.body_size == 0 {
             self.publish(Publish {
                 method: publish,
                 properties,
-                property_bytes: header.property_bytes,
+                property_bytes,
                 body: Bytes::new(),
             })
             .await?;
@@ -334,67 +375,58 @@ impl Channel {
             self.assembly = Assembly::Body {
                 publish,
                 properties,
-                property_bytes: header.property_bytes,
+                property_bytes,
                 size: header.body_size,
-                first: None,
-                rest: None,
-                received: 0,
+                partial: None,
             };
         }
         Ok(false)
     }
 
     async fn handle_body(&mut self, payload: Bytes) -> AmqpResult<bool> {
-        let Assembly::Body {
-            size,
-            first,
-            rest,
-            received,
-            ..
-        } = &mut self.assembly
-        else {
+        let Assembly::Body { size, partial, .. } = &mut self.assembly else {
             return Err(AmqpError::unexpected_frame(format_args!(
                 "expected method frame, got content body frame on channel {}",
                 self.id
             )));
         };
-        *received += payload.len() as u64;
-        if *received > *size {
+        let size = *size;
+        let before = partial.as_ref().map_or(0, |p| p.bytes.len());
+        let received = before as u64 + payload.len() as u64;
+        if received > size {
             return Err(AmqpError::unexpected_frame(format_args!(
                 "content body of {} bytes exceeds the {} declared in its header",
                 received, size
             ))
             .during_ids(60, 40));
         }
-        // A body in one frame stays a slice of the read buffer; bodies in
-        // several frames are joined once.
-        match (first.as_ref(), rest.as_mut()) {
-            (None, _) => *first = Some(payload),
-            (Some(head), None) => {
-                let mut joined = BytesMut::with_capacity(*size as usize);
-                joined.extend_from_slice(head);
-                joined.extend_from_slice(&payload);
-                *rest = Some(joined);
-            }
-            (Some(_), Some(joined)) => joined.extend_from_slice(&payload),
-        }
         if received < size {
+            match partial {
+                Some(partial) => partial.bytes.extend_from_slice(&payload),
+                None => *partial = Some(PartialBody::start(&self.core.gauge, size, &payload)?),
+            }
             return Ok(false);
         }
         let Assembly::Body {
             publish,
             properties,
             property_bytes,
-            first,
-            rest,
+            partial,
             ..
         } = std::mem::replace(&mut self.assembly, Assembly::Idle)
         else {
             return Ok(false);
         };
-        let body = match rest {
-            Some(joined) => joined.freeze(),
-            None => first.unwrap_or_default(),
+        // The reservation lasts until the message is routed (or refused).
+        let (body, _reservation) = match partial {
+            Some(PartialBody {
+                mut bytes,
+                reservation,
+            }) => {
+                bytes.extend_from_slice(&payload);
+                (Bytes::from(bytes), Some(reservation))
+            }
+            None => (self.kept(payload), None),
         };
         self.publish(Publish {
             method: publish,
@@ -406,6 +438,20 @@ impl Channel {
         Ok(false)
     }
 
+    /// `bytes` as the message will keep them: copied out of the read
+    /// buffer when small (see the module docs).
+    fn kept(&self, bytes: Bytes) -> Bytes {
+        // A message without properties: two flag bytes, shared by all.
+        const NO_PROPERTIES: &[u8] = &[0, 0];
+        if bytes.as_ref() == NO_PROPERTIES {
+            Bytes::from_static(NO_PROPERTIES)
+        } else if bytes.len() < self.copy_below {
+            Bytes::copy_from_slice(&bytes)
+        } else {
+            bytes
+        }
+    }
+
     /// Releases what the channel holds: cancels its consumers and requeues
     /// its unacked messages in their original order. Uncommitted
     /// transactional work is dropped.
@@ -414,6 +460,8 @@ impl Channel {
     }
 
     fn release(&mut self) {
+        // A body being received is dropped with its reservation.
+        self.assembly = Assembly::Idle;
         self.drop_direct_reply();
         for (_, (consumer, queue)) in self.consumers.drain() {
             if queue.remove_consumer(&consumer) {
@@ -422,6 +470,26 @@ impl Channel {
         }
         self.abandon_tx();
         let unacked = self.link.deliveries().take_all();
-        basic::requeue_all(unacked);
+        self.vhost.dead_letter(basic::requeue_all(unacked));
     }
+}
+
+/// The longest short string `leveret_protocol` keeps inline (owned);
+/// longer ones are decoded as slices of the frame.
+const INLINE_SHORT_STR: usize = 23;
+
+/// A short string that owns its bytes.
+fn kept_short(s: ShortStr) -> ShortStr {
+    if s.len() <= INLINE_SHORT_STR {
+        return s;
+    }
+    ShortStr::try_from(Bytes::copy_from_slice(s.as_bytes())).unwrap_or(s)
+}
+
+fn resource_error(size: u64) -> AmqpError {
+    AmqpError::new(
+        leveret_protocol::ReplyCode::ResourceError,
+        format_args!("cannot allocate {size} bytes for a message body"),
+    )
+    .during_ids(60, 40)
 }

@@ -3,7 +3,7 @@
 use super::Channel;
 use crate::error::{AmqpError, AmqpResult};
 use crate::queue::{Deleted, QueueOptions};
-use crate::vhost::{check_exclusive, QueueDeclaration};
+use crate::vhost::{check_exclusive, BindingChange, QueueDeclaration};
 use leveret_protocol::{
     QueueBind, QueueBindOk, QueueDeclare, QueueDeclareOk, QueueDelete, QueueDeleteOk, QueuePurge,
     QueuePurgeOk, QueueUnbind, QueueUnbindOk, ShortStr,
@@ -41,6 +41,7 @@ impl Channel {
                 auto_delete: declare.auto_delete,
                 arguments: declare.arguments,
             },
+            max_queues: self.core.limits.vhost(&self.vhost.name).max_queues,
         };
         if !decl.passive {
             self.core.stats.queues_declared.inc();
@@ -50,6 +51,11 @@ impl Channel {
             self.core.stats.queues_created.inc();
         }
         self.last_queue = Some(queue.name.clone());
+        if queue.store_id().is_some() {
+            self.definitions_on_disk().await?;
+        }
+        // The count leaves out messages that have expired.
+        self.vhost.dead_letter(queue.expire());
         if !declare.no_wait {
             self.reply(QueueDeclareOk {
                 queue: queue.name.clone(),
@@ -81,8 +87,16 @@ impl Channel {
         let (name, routing_key) = self.bind_names(bind.queue, bind.routing_key)?;
         let queue = self.vhost.queue_or_404(&name)?;
         check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
-        self.vhost
-            .bind_queue(&queue, &bind.exchange, routing_key, bind.arguments, true)?;
+        self.vhost.bind_queue(
+            &queue,
+            &bind.exchange,
+            routing_key,
+            bind.arguments,
+            BindingChange::Bind,
+        )?;
+        if queue.store_id().is_some() && self.exchange_is_durable(&bind.exchange) {
+            self.definitions_on_disk().await?;
+        }
         if !bind.no_wait {
             self.reply(QueueBindOk {}).await;
         }
@@ -101,8 +115,11 @@ impl Channel {
                     &unbind.exchange,
                     routing_key,
                     unbind.arguments,
-                    false,
+                    BindingChange::Unbind,
                 )?;
+                if queue.store_id().is_some() && self.exchange_is_durable(&unbind.exchange) {
+                    self.definitions_on_disk().await?;
+                }
             }
         }
         self.reply(QueueUnbindOk {}).await;
@@ -133,13 +150,21 @@ impl Channel {
                         name, self.vhost.name
                     )));
                 }
+                self.vhost.dead_letter(queue.expire());
                 if delete.if_empty && queue.message_count() > 0 {
                     return Err(AmqpError::precondition_failed(format_args!(
                         "queue '{}' in vhost '{}' is not empty",
                         name, self.vhost.name
                     )));
                 }
-                self.vhost.delete_queue(&queue)
+                let deleted = self.vhost.delete_queue(&queue);
+                if queue.store_id().is_some() {
+                    if let Err(e) = self.definitions_on_disk().await {
+                        deleted.notify();
+                        return Err(e);
+                    }
+                }
+                deleted
             }
         };
         if !delete.no_wait {

@@ -5,7 +5,7 @@
 //! straight to the consumer, without any queue.
 
 use super::Channel;
-use crate::consumer::ChannelLink;
+use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::message::Message;
 use crate::outbox::Outbound;
@@ -17,15 +17,6 @@ use std::sync::Arc;
 pub(crate) const PSEUDO_QUEUE: &str = "amq.rabbitmq.reply-to";
 /// Prefix of the per-channel names replies are published to.
 const PREFIX: &str = "amq.rabbitmq.reply-to.";
-
-/// Where replies to one channel's requests go.
-#[derive(Debug, Clone)]
-pub(crate) struct ReplyTarget {
-    /// The consuming channel.
-    pub link: Arc<ChannelLink>,
-    /// Its reply consumer's tag.
-    pub consumer_tag: ShortStr,
-}
 
 /// A channel's reply consumer.
 #[derive(Debug)]
@@ -118,22 +109,44 @@ impl Channel {
 
     /// Delivers a reply to the consumer whose name it was published to;
     /// false if that consumer is gone (the reply is then unroutable).
-    pub(super) async fn deliver_reply(&self, message: &Arc<Message>) -> bool {
+    ///
+    /// Never waits: the responder's channel must not stall behind another
+    /// connection's socket. RabbitMQ hands a reply to the requester's
+    /// channel without flow control, and documents direct reply-to as
+    /// at-most-once; holding replies for a requester that does not read
+    /// would grow without bound, so a reply that finds the requester's
+    /// outbox full is dropped (counted and logged) and still counts as
+    /// routed, as in RabbitMQ, where the responder learns nothing either.
+    pub(super) fn deliver_reply(&self, message: &Arc<Message>) -> bool {
         let Some(target) = self.vhost.reply_target(&message.routing_key) else {
             return false;
         };
-        let delivery_tag = target.link.deliveries().next_tag();
-        target
-            .link
-            .outbox
-            .send(Outbound::Deliver {
-                channel: target.link.id,
-                consumer_tag: target.consumer_tag,
-                delivery_tag,
-                redelivered: false,
-                message: Arc::clone(message),
-            })
-            .await;
+        let link = &target.link;
+        let Some(permit) = link.outbox.try_reserve() else {
+            let dropped = link.count_dropped_reply();
+            // Log the 1st, 2nd, 4th, 8th... drop: visible, but a flood of
+            // replies to a stalled requester cannot flood the log.
+            if dropped.is_power_of_two() {
+                tracing::warn!(
+                    channel = link.id,
+                    connection = link.outbox.connection_id,
+                    dropped,
+                    "direct reply dropped: the requester's connection is not reading"
+                );
+            }
+            return true;
+        };
+        // The tag is taken and the delivery queued under the channel's
+        // delivery lock, so the client sees tags in the order they are
+        // handed out.
+        let mut deliveries = link.deliveries();
+        permit.send(Outbound::Deliver {
+            channel: link.id,
+            consumer_tag: target.consumer_tag,
+            delivery_tag: deliveries.next_tag(),
+            redelivered: false,
+            message: Arc::clone(message),
+        });
         true
     }
 }

@@ -3,12 +3,12 @@
 //! are coalesced: consecutive positive confirms are sent as one basic.ack
 //! with `multiple` once the connection has no more input buffered.
 
-use super::basic::{apply_settles, body_op, requeue_all, Outcome, Settle};
+use super::basic::{apply_settles, requeue_all, Outcome, Settle};
 use super::{Channel, Publish};
 use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
-use crate::queue::Queue;
+use crate::queue::{DeadLetters, Queue};
 use crate::registry::ChannelMode;
 use leveret_protocol::{
     BasicAck, BasicNack, ConfirmSelectOk, TxCommitOk, TxRollbackOk, TxSelectOk,
@@ -112,7 +112,7 @@ impl Channel {
                 continue;
             };
             let message = self.route(&exchange, publish, &mut queues).await;
-            ops.extend(body_op(&message));
+            ops.extend(message.record_op());
             let targets: Vec<(Arc<Queue>, Option<u64>)> = queues
                 .into_iter()
                 .map(|queue| {
@@ -130,15 +130,18 @@ impl Channel {
             (Some(persistence), false) => persistence.submit_atomic(ops),
             _ => 0,
         };
+        let mut dead = DeadLetters::default();
         for (message, targets) in placed {
             for (queue, seq) in targets {
-                match seq {
+                let (_, dead_here) = match seq {
                     Some(seq) => queue.publish_reserved(Arc::clone(&message), seq),
                     None => queue.publish(Arc::clone(&message)),
                 };
+                dead.append(dead_here);
             }
         }
-        apply_settles(std::mem::take(&mut tx.settles));
+        dead.append(apply_settles(std::mem::take(&mut tx.settles)));
+        self.vhost.dead_letter(dead);
         self.after_settles();
         if let (Some(persistence), true) = (&self.core.persistence, sync > 0) {
             if !persistence.wait(sync).await {
@@ -169,12 +172,9 @@ impl Channel {
     /// channel's other unacked messages.
     pub(super) fn abandon_tx(&mut self) {
         if let Some(mut tx) = self.tx.take() {
-            requeue_all(
-                std::mem::take(&mut tx.settles)
-                    .into_iter()
-                    .map(|(u, _)| u)
-                    .collect(),
-            );
+            let settles = std::mem::take(&mut tx.settles);
+            let dead = requeue_all(settles.into_iter().map(|(u, _)| u).collect());
+            self.vhost.dead_letter(dead);
         }
     }
 

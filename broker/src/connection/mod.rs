@@ -1,109 +1,68 @@
 //! One client connection: the protocol header, the connection.* handshake
-//! (start, start-ok with PLAIN/AMQPLAIN, tune, open), then the reader loop
-//! that decodes frames and hands them to channels, heartbeats, memory-alarm
-//! blocking, and closing in either direction. The socket's write half
-//! belongs to the writer task (`writer`), reached through the outbox.
+//! (start, start-ok with PLAIN/AMQPLAIN, tune, open) within the handshake
+//! timeout, then the reader loop that hands frames to channels, heartbeats,
+//! memory-alarm blocking, and closing in either direction. Limits on what
+//! a client may open (connections per vhost, channels per connection) are
+//! enforced here.
+//!
+//! Layout: `reader` reads frames into a buffer sized to the traffic;
+//! `writer` owns the socket's write half, reached through the outbox;
+//! `admission` counts connections against `max_connections` and vhost
+//! limits.
 
+mod admission;
+mod reader;
 mod writer;
 
-use crate::busy_poll::BusyPoll;
+pub use admission::{Admission, Slot};
+pub(crate) use reader::copy_below;
+
 use crate::channel::Channel;
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::outbox::{Outbound, Outbox};
 use crate::vhost::Vhost;
-use bytes::{Bytes, BytesMut};
+use bytes::Bytes;
 use leveret_protocol::{
-    check_protocol_header, decode_frame, ConnectionClose, ConnectionCloseOk, ConnectionOpenOk,
-    ConnectionStart, ConnectionTune, ConnectionUpdateSecretOk, DecodeError, FieldTable, FieldValue,
-    Frame, Method, ProtocolHeaderCheck, ReplyCode, ShortStr, FRAME_MIN_SIZE, PROTOCOL_HEADER,
+    ConnectionClose, ConnectionCloseOk, ConnectionOpenOk, ConnectionStart, ConnectionTune,
+    ConnectionUpdateSecretOk, FieldTable, FieldValue, Frame, Method, ReplyCode, ShortStr,
+    FRAME_MIN_SIZE, PROTOCOL_HEADER,
 };
+use reader::{FrameReader, Incoming, ReadError, IDLE_RELEASE};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::io::{AsyncWrite, AsyncWriteExt};
+use tokio::time::Instant;
 
 /// The longest a publishing connection waits for one crowded queue.
 const FLOW_WAIT: Duration = Duration::from_millis(100);
-/// How long a client has for the handshake, and to answer a close.
-const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long a client has to answer a close.
 const CLOSE_TIMEOUT: Duration = Duration::from_secs(3);
 
-/// Why reading stopped.
-#[derive(Debug, thiserror::Error)]
-enum ReadError {
-    #[error("closed by peer")]
-    Closed,
-    #[error("{0}")]
-    Io(std::io::Error),
-    #[error("{0}")]
-    Decode(DecodeError),
-    #[error("timed out")]
-    TimedOut,
-}
-
-/// Reads whole frames off the socket's read half.
-struct FrameReader<R> {
-    socket: R,
-    buf: BytesMut,
-    frame_max: u32,
-    busy_poll: Option<Arc<BusyPoll>>,
-}
-
-impl<R: AsyncRead + Unpin> FrameReader<R> {
-    /// The next frame; `Closed` on a clean end of stream.
-    async fn next(&mut self) -> Result<Frame, ReadError> {
-        loop {
-            if let Some(frame) =
-                decode_frame(&mut self.buf, self.frame_max).map_err(ReadError::Decode)?
-            {
-                return Ok(frame);
-            }
-            self.fill().await?;
-        }
-    }
-
-    async fn fill(&mut self) -> Result<(), ReadError> {
-        if self.buf.capacity() - self.buf.len() < 4096 {
-            self.buf.reserve(64 * 1024);
-        }
-        match self.socket.read_buf(&mut self.buf).await {
-            Ok(0) => Err(ReadError::Closed),
-            Ok(_) => {
-                if let Some(busy_poll) = &self.busy_poll {
-                    busy_poll.note_read();
-                }
-                Ok(())
-            }
-            Err(e) => Err(ReadError::Io(e)),
-        }
-    }
-}
-
-/// Serves one connection until it closes.
-pub async fn serve<R, W>(core: Arc<Core>, read: R, write: W, peer: String)
+/// Serves one connection until it closes. `slot` is its place in the
+/// connection counts, given back when it ends.
+pub async fn serve<R, W>(core: Arc<Core>, read: R, write: W, peer: String, slot: Slot)
 where
-    R: AsyncRead + Unpin + Send + 'static,
+    R: Incoming,
     W: AsyncWrite + Unpin + Send + 'static,
 {
     let connection_id = core.next_connection_id();
     let _registration = core.registry.connection(connection_id, &peer);
-    let mut reader = FrameReader {
-        socket: read,
-        buf: BytesMut::with_capacity(64 * 1024),
-        frame_max: core.limits.frame_max,
-        busy_poll: core.busy_poll.clone(),
-    };
+    // RabbitMQ's handshake_timeout runs from the connection's start to
+    // connection.open-ok.
+    let handshake_deadline = Instant::now() + core.limits.handshake_timeout;
+    let mut reader = FrameReader::new(read, core.busy_poll.clone());
     let mut write = write;
-    match handshake_step(&core, read_protocol_header(&mut reader)).await {
-        Some(Ok(true)) => {}
-        Some(Ok(false)) => {
+    match handshake_step(&core, handshake_deadline, &peer, reader.protocol_header()).await {
+        Ok(Ok(true)) => {}
+        Ok(Ok(false)) => {
             tracing::info!(%peer, "wrong protocol header; answering with ours and closing");
             let _ = write.write_all(PROTOCOL_HEADER).await;
             let _ = write.shutdown().await;
             return;
         }
-        Some(Err(_)) | None => return,
+        Ok(Err(_)) | Err(_) => return,
     }
     let (outbox, inbox) = Outbox::new(connection_id);
     let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
@@ -113,17 +72,21 @@ where
         outbox,
         connection_id,
         peer,
+        slot,
         user: String::new(),
         vhost: None,
         channels: HashMap::new(),
         channel_max: 0,
+        copy_below: copy_below(FRAME_MIN_SIZE),
         heartbeat: Duration::ZERO,
         blocked_notify: false,
         blocked: false,
     };
     // The heartbeat sender lives until the writer has finished, so the
     // writer never sees it vanish mid-flush.
-    let outcome = conn.run(&mut reader, &heartbeat_tx).await;
+    let outcome = conn
+        .run(&mut reader, &heartbeat_tx, handshake_deadline)
+        .await;
     conn.cleanup();
     match outcome {
         Ok(()) => tracing::debug!(peer = %conn.peer, "connection closed"),
@@ -133,31 +96,35 @@ where
     let _ = writer.await;
 }
 
-/// Runs a step of the handshake within the handshake timeout; `None` if it
-/// timed out or the broker began shutting down.
-async fn handshake_step<T>(core: &Core, step: impl std::future::Future<Output = T>) -> Option<T> {
+/// Why a handshake step did not finish.
+#[derive(Debug, Clone, Copy)]
+enum Interrupted {
+    TimedOut,
+    ShuttingDown,
+}
+
+/// Runs a step of the handshake until the handshake deadline; a client
+/// still in the handshake then is logged and dropped, as RabbitMQ does.
+async fn handshake_step<T>(
+    core: &Core,
+    deadline: Instant,
+    peer: &str,
+    step: impl std::future::Future<Output = T>,
+) -> Result<T, Interrupted> {
     let mut shutdown = core.shutdown_signal();
     let stopping = async move {
         let _ = shutdown.wait_for(|down| *down).await;
     };
     tokio::select! {
-        done = tokio::time::timeout(HANDSHAKE_TIMEOUT, step) => done.ok(),
-        _ = stopping => None,
-    }
-}
-
-async fn read_protocol_header<R: AsyncRead + Unpin>(
-    reader: &mut FrameReader<R>,
-) -> Result<bool, ReadError> {
-    loop {
-        match check_protocol_header(&reader.buf) {
-            ProtocolHeaderCheck::Valid => {
-                let _ = reader.buf.split_to(PROTOCOL_HEADER.len());
-                return Ok(true);
-            }
-            ProtocolHeaderCheck::Invalid => return Ok(false),
-            ProtocolHeaderCheck::Incomplete => reader.fill().await?,
-        }
+        done = tokio::time::timeout_at(deadline, step) => done.map_err(|_| {
+            tracing::warn!(
+                %peer,
+                timeout = ?core.limits.handshake_timeout,
+                "closing connection: handshake not completed within the handshake timeout"
+            );
+            Interrupted::TimedOut
+        }),
+        _ = stopping => Err(Interrupted::ShuttingDown),
     }
 }
 
@@ -166,10 +133,15 @@ struct Connection {
     outbox: Arc<Outbox>,
     connection_id: u64,
     peer: String,
+    slot: Slot,
     user: String,
     vhost: Option<Arc<Vhost>>,
     channels: HashMap<u16, Channel>,
+    /// Most channels open at once (the negotiated channel_max; 0 from the
+    /// client means the broker's).
     channel_max: u16,
+    /// Content below this size is copied out of the read buffer.
+    copy_below: usize,
     heartbeat: Duration,
     blocked_notify: bool,
     blocked: bool,
@@ -185,17 +157,21 @@ enum Ended {
 }
 
 impl Connection {
-    async fn run<R: AsyncRead + Unpin>(
+    async fn run<R: Incoming>(
         &mut self,
         reader: &mut FrameReader<R>,
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
+        handshake_deadline: Instant,
     ) -> Result<(), Ended> {
         let core = Arc::clone(&self.core);
-        match handshake_step(&core, self.handshake(reader, heartbeat_tx)).await {
-            Some(Ok(())) => {}
-            Some(Err(Ended::Protocol(error))) => return self.close_with(reader, error).await,
-            Some(Err(e)) => return Err(e),
-            None => return Err(Ended::Read(ReadError::TimedOut)),
+        let peer = self.peer.clone();
+        let handshake = self.handshake(reader, heartbeat_tx);
+        match handshake_step(&core, handshake_deadline, &peer, handshake).await {
+            Ok(Ok(())) => {}
+            Ok(Err(Ended::Protocol(error))) => return self.close_with(reader, error).await,
+            Ok(Err(e)) => return Err(e),
+            Err(Interrupted::TimedOut) => return Err(Ended::Read(ReadError::TimedOut)),
+            Err(Interrupted::ShuttingDown) => return Ok(()),
         }
         tracing::debug!(user = %self.user, "connection open");
         let mut shutdown = (self.core.registry.close_signal(self.connection_id))
@@ -207,11 +183,16 @@ impl Connection {
         let mut last_read = tokio::time::Instant::now();
         let silence = tokio::time::sleep(silence_limit);
         tokio::pin!(silence);
+        // Likewise for giving back a read buffer grown by a burst.
+        let release = tokio::time::sleep(IDLE_RELEASE);
+        tokio::pin!(release);
         loop {
             // Every whole frame already buffered is handled straight away;
             // the select below runs once per socket read, not per frame.
+            // A memory alarm stops it at the next frame: a publisher is not
+            // read further, even from its buffer, until the alarm clears.
             loop {
-                let frame = match decode_frame(&mut reader.buf, reader.frame_max) {
+                let frame = match reader.buffered_frame() {
                     Ok(Some(frame)) => frame,
                     Ok(None) => break,
                     Err(e) => {
@@ -238,10 +219,27 @@ impl Connection {
                     }
                     Err(error) => return self.close_with(reader, error).await,
                 }
+                if self.must_block() {
+                    break;
+                }
             }
             self.flush_confirms().await;
-            if self.core.gauge.in_alarm() && self.publishes() {
-                self.block().await;
+            if self.must_block() {
+                match self.block(reader, heartbeat_tx).await {
+                    // The client was not heard while blocked: its silence
+                    // counts from now (RabbitMQ pauses its heartbeat
+                    // monitor likewise).
+                    Unblocked::Cleared => {
+                        last_read = tokio::time::Instant::now();
+                        continue;
+                    }
+                    Unblocked::PeerGone => return Err(Ended::Read(ReadError::Closed)),
+                    Unblocked::ShuttingDown => {
+                        let error =
+                            AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
+                        return self.close_with(reader, error).await;
+                    }
+                }
             }
             self.wait_for_crowded_queues().await;
             let waiting = self.channels.values().any(Channel::has_waiting_confirms);
@@ -250,11 +248,16 @@ impl Connection {
                 _ = shutdown.wait_for(|down| *down) => Event::Shutdown,
                 _ = disk_progress(&mut durable), if waiting => Event::DiskProgress,
                 _ = &mut silence, if !silence_limit.is_zero() => Event::Silent,
+                _ = &mut release, if reader.holds_spare() => Event::Idle,
             };
             match event {
                 Event::Read(Ok(())) => last_read = tokio::time::Instant::now(),
                 Event::Read(Err(e)) => return Err(Ended::Read(e)),
                 Event::DiskProgress => {}
+                Event::Idle if last_read.elapsed() < IDLE_RELEASE => {
+                    release.as_mut().reset(last_read + IDLE_RELEASE);
+                }
+                Event::Idle => reader.release_spare(),
                 Event::Silent if last_read.elapsed() < silence_limit => {
                     silence.as_mut().reset(last_read + silence_limit);
                 }
@@ -286,13 +289,21 @@ impl Connection {
         }
     }
 
-    fn publishes(&self) -> bool {
-        self.channels.values().any(Channel::has_published)
+    /// Whether the memory alarm is set and this connection publishes.
+    fn must_block(&self) -> bool {
+        self.core.gauge.in_alarm() && self.channels.values().any(Channel::has_published)
     }
 
     /// Memory alarm: stop reading until it clears, telling the client if it
-    /// asked to know.
-    async fn block(&mut self) {
+    /// asked to know. The client is not heard meanwhile (heartbeats
+    /// included, as with RabbitMQ); the wait ends early when the broker
+    /// shuts down or the client goes away (its socket hung up, or the
+    /// writer failed on it), so that what it held is released.
+    async fn block<R: Incoming>(
+        &mut self,
+        reader: &FrameReader<R>,
+        heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
+    ) -> Unblocked {
         if self.blocked_notify && !self.blocked {
             self.blocked = true;
             let reason = ShortStr::from_static("low on memory");
@@ -300,13 +311,22 @@ impl Connection {
                 .method(0, leveret_protocol::ConnectionBlocked { reason })
                 .await;
         }
-        self.core.gauge.wait_clear().await;
-        if self.blocked {
+        tracing::debug!(peer = %self.peer, "memory alarm: not reading from this publisher");
+        let mut shutdown = self.core.shutdown_signal();
+        let outcome = tokio::select! {
+            _ = self.core.gauge.wait_clear() => Unblocked::Cleared,
+            _ = shutdown.wait_for(|down| *down) => Unblocked::ShuttingDown,
+            _ = reader.hung_up() => Unblocked::PeerGone,
+            // The writer holds the only heartbeat receiver until it ends.
+            _ = heartbeat_tx.closed() => Unblocked::PeerGone,
+        };
+        if self.blocked && matches!(outcome, Unblocked::Cleared) {
             self.blocked = false;
             self.outbox
                 .method(0, leveret_protocol::ConnectionUnblocked {})
                 .await;
         }
+        outcome
     }
 
     async fn flush_confirms(&mut self) {
@@ -315,7 +335,7 @@ impl Connection {
         }
     }
 
-    async fn expect_method<R: AsyncRead + Unpin>(
+    async fn expect_method<R: Incoming>(
         &self,
         reader: &mut FrameReader<R>,
     ) -> Result<Method, Ended> {
@@ -339,12 +359,13 @@ impl Connection {
         }
     }
 
-    async fn handshake<R: AsyncRead + Unpin>(
+    async fn handshake<R: Incoming>(
         &mut self,
         reader: &mut FrameReader<R>,
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
     ) -> Result<(), Ended> {
-        let limits = self.core.limits.clone();
+        let core = Arc::clone(&self.core);
+        let limits = &core.limits;
         self.outbox
             .method(
                 0,
@@ -415,17 +436,21 @@ impl Connection {
                 frame_max, FRAME_MIN_SIZE, limits.frame_max
             ))));
         }
-        if tune_ok.channel_max > limits.channel_max {
+        if limits.channel_max != 0 && tune_ok.channel_max > limits.channel_max {
             return Err(Ended::Protocol(AmqpError::not_allowed(format_args!(
                 "channel_max={} outside of allowed range [0, {}]",
                 tune_ok.channel_max, limits.channel_max
             ))));
         }
-        self.channel_max = match tune_ok.channel_max {
-            0 => limits.channel_max,
-            n => n,
+        // 0 is "no limit" in connection.tune: the other side's value, or
+        // every channel number when both say 0.
+        self.channel_max = match (tune_ok.channel_max, limits.channel_max) {
+            (0, 0) => u16::MAX,
+            (0, ours) => ours,
+            (theirs, _) => theirs,
         };
-        reader.frame_max = frame_max;
+        reader.set_frame_max(frame_max);
+        self.copy_below = copy_below(frame_max);
         self.outbox.set_frame_max(frame_max);
         self.heartbeat = Duration::from_secs(tune_ok.heartbeat.into());
         heartbeat_tx.send_replace(self.heartbeat);
@@ -440,6 +465,20 @@ impl Connection {
                     .during_ids(10, 40),
             ));
         };
+        let vhost_limits = limits.vhost(&vhost.name);
+        if let Err(limit) = self
+            .slot
+            .enter_vhost(&vhost.name, vhost_limits.max_connections)
+        {
+            tracing::warn!(peer = %self.peer, vhost = %vhost.name, user = %self.user, limit, "vhost connection limit reached");
+            return Err(Ended::Protocol(
+                AmqpError::not_allowed(format_args!(
+                    "access to vhost '{}' refused for user '{}': connection limit ({}) is reached",
+                    vhost.name, self.user, limit
+                ))
+                .during_ids(10, 40),
+            ));
+        }
         self.core.registry.opened(
             self.connection_id,
             crate::registry::Opened {
@@ -475,16 +514,20 @@ impl Connection {
                 method: Method::ChannelOpen(_),
                 ..
             } => {
-                if channel_id > self.channel_max {
-                    return Err(AmqpError::channel_error(format_args!(
-                        "channel number {} exceeds channel_max {}",
-                        channel_id, self.channel_max
-                    ))
-                    .during_ids(20, 10));
-                }
                 if self.channels.contains_key(&channel_id) {
                     return Err(AmqpError::channel_error(format_args!(
                         "second 'channel.open' seen on channel {channel_id}"
+                    ))
+                    .during_ids(20, 10));
+                }
+                // RabbitMQ's channel_max counts open channels (closing ones
+                // included), whatever their numbers.
+                if self.channels.len() >= usize::from(self.channel_max) {
+                    tracing::warn!(peer = %self.peer, channel_max = self.channel_max, "channel limit reached");
+                    return Err(AmqpError::not_allowed(format_args!(
+                        "number of channels opened ({}) has reached the negotiated channel_max ({})",
+                        self.channels.len(),
+                        self.channel_max
                     ))
                     .during_ids(20, 10));
                 }
@@ -497,6 +540,7 @@ impl Connection {
                     vhost,
                     Arc::clone(&self.core),
                     self.user.clone(),
+                    self.copy_below,
                 );
                 self.channels.insert(channel_id, channel);
                 self.outbox
@@ -555,7 +599,7 @@ impl Connection {
 
     /// Sends connection.close for `error`, waits briefly for close-ok
     /// (discarding anything else, as the spec says), then ends.
-    async fn close_with<R: AsyncRead + Unpin>(
+    async fn close_with<R: Incoming>(
         &mut self,
         reader: &mut FrameReader<R>,
         error: AmqpError,
@@ -603,10 +647,19 @@ impl Connection {
     }
 }
 
+/// How a memory-alarm wait ended.
+enum Unblocked {
+    Cleared,
+    ShuttingDown,
+    PeerGone,
+}
+
 /// What woke the reader loop.
 enum Event {
     Read(Result<(), ReadError>),
     DiskProgress,
+    /// The read buffer is larger than needed: release it if idle.
+    Idle,
     Silent,
     Shutdown,
 }
@@ -627,45 +680,4 @@ async fn disk_progress(durable: &mut Option<tokio::sync::watch::Receiver<crate::
 enum Flow {
     Continue,
     Closed,
-}
-
-/// What connection.start announces: `product` (the builder's, "Leveret"
-/// by default), version, platform and RabbitMQ's capability flags.
-pub(crate) fn server_properties(product: &str) -> FieldTable {
-    let text = |s: &str| FieldValue::string(s);
-    let capabilities: FieldTable = [
-        "publisher_confirms",
-        "exchange_exchange_bindings",
-        "basic.nack",
-        "consumer_cancel_notify",
-        "connection.blocked",
-        "authentication_failure_close",
-        "per_consumer_qos",
-    ]
-    .into_iter()
-    .map(|c| {
-        (
-            ShortStr::try_from(c).unwrap_or_default(),
-            FieldValue::Bool(true),
-        )
-    })
-    .collect();
-    [
-        (ShortStr::from_static("product"), text(product)),
-        (
-            ShortStr::from_static("version"),
-            text(env!("CARGO_PKG_VERSION")),
-        ),
-        (ShortStr::from_static("platform"), text("Rust")),
-        (
-            ShortStr::from_static("information"),
-            text("An embeddable AMQP 0.9.1 broker"),
-        ),
-        (
-            ShortStr::from_static("capabilities"),
-            FieldValue::Table(capabilities),
-        ),
-    ]
-    .into_iter()
-    .collect()
 }

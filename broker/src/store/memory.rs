@@ -2,7 +2,7 @@
 //! `BTreeMap`. For tests, and for an embedded broker that restarts within
 //! one process.
 
-use super::{KvOp, KvPair, Store, StoreError};
+use super::{KvOp, KvPair, Store, StoreError, WriteMode};
 use std::collections::BTreeMap;
 use std::sync::Mutex;
 
@@ -14,7 +14,8 @@ pub struct MemoryStore {
 }
 
 impl Store for MemoryStore {
-    fn write(&self, ops: Vec<KvOp>, _atomic: bool) -> Result<(), StoreError> {
+    fn write(&self, ops: Vec<KvOp>, _mode: WriteMode) -> Result<(), StoreError> {
+        // One lock for the whole batch: plain writes are atomic too.
         let mut map = self.map.lock().unwrap_or_else(|e| e.into_inner());
         for (key, value) in ops {
             match value {

@@ -3,12 +3,18 @@
 //! `flush` blocks until everything written is stable on disk. The page cache is kept
 //! small: the broker holds queued messages in memory itself.
 
-use super::{KvOp, KvPair, Store, StoreError};
+use super::{KvOp, KvPair, Store, StoreError, WriteMode};
 use std::path::Path;
 
 /// sled's page cache: small, because recovery reads everything once and
 /// the broker keeps what it needs in memory.
 const CACHE_BYTES: u64 = 64 * 1024 * 1024;
+
+/// How long opening waits for the database's file lock. sled's I/O
+/// threads can hold it for a moment after the previous `Db` of this
+/// process is dropped (a restart in the same process); another process
+/// holding it is still refused, after this wait.
+const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// A store in a sled database.
 #[derive(Debug)]
@@ -16,27 +22,38 @@ pub struct SledStore {
     db: sled::Db,
 }
 
-fn err(e: sled::Error) -> StoreError {
-    StoreError(e.to_string())
-}
-
 impl SledStore {
     /// Opens (or creates) the store in `dir`.
     pub fn open(dir: &Path) -> Result<Self, StoreError> {
-        let db = sled::Config::new()
-            .path(dir.join("store"))
-            .mode(sled::Mode::HighThroughput)
-            .cache_capacity(CACHE_BYTES)
-            .flush_every_ms(None)
-            .open()
-            .map_err(err)?;
-        Ok(SledStore { db })
+        let started = std::time::Instant::now();
+        loop {
+            let opened = super::guarded("open", || {
+                sled::Config::new()
+                    .path(dir.join("store"))
+                    .mode(sled::Mode::HighThroughput)
+                    .cache_capacity(CACHE_BYTES)
+                    .flush_every_ms(None)
+                    .open()
+                    .map_err(StoreError::from)
+            });
+            match opened {
+                Err(e) if is_lock_held(&e) && started.elapsed() < LOCK_WAIT => {
+                    std::thread::sleep(std::time::Duration::from_millis(10));
+                }
+                opened => return opened.map(|db| SledStore { db }),
+            }
+        }
     }
 }
 
+/// Whether `error` is sled refusing to open because the file lock is held.
+fn is_lock_held(error: &StoreError) -> bool {
+    error.to_string().contains("could not acquire lock")
+}
+
 impl Store for SledStore {
-    fn write(&self, ops: Vec<KvOp>, atomic: bool) -> Result<(), StoreError> {
-        if atomic {
+    fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+        if mode == WriteMode::Atomic {
             let mut batch = sled::Batch::default();
             for (key, value) in ops {
                 match value {
@@ -44,26 +61,30 @@ impl Store for SledStore {
                     None => batch.remove(key),
                 }
             }
-            return self.db.apply_batch(batch).map_err(err);
+            return self.db.apply_batch(batch).map_err(StoreError::from);
         }
         for (key, value) in ops {
             match value {
                 Some(value) => self.db.insert(key, value).map(drop),
                 None => self.db.remove(key).map(drop),
             }
-            .map_err(err)?;
+            .map_err(StoreError::from)?;
         }
         Ok(())
     }
 
     fn flush(&self) -> Result<(), StoreError> {
-        self.db.flush().map(drop).map_err(err)
+        self.db.flush().map(drop).map_err(StoreError::from)
     }
 
     fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
         self.db
             .iter()
-            .map(|entry| entry.map(|(k, v)| (k.to_vec(), v.to_vec())).map_err(err))
+            .map(|entry| {
+                entry
+                    .map(|(k, v)| (k.to_vec(), v.to_vec()))
+                    .map_err(StoreError::from)
+            })
             .collect()
     }
 }
@@ -71,6 +92,22 @@ impl Store for SledStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn opening_waits_briefly_for_a_lock_being_released() {
+        let dir = std::env::temp_dir().join(format!("leveret-sled-lock-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let first = SledStore::open(&dir).unwrap();
+        let release = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(100));
+            drop(first);
+        });
+        let second = SledStore::open(&dir);
+        release.join().unwrap();
+        assert!(second.is_ok(), "{:?}", second.err());
+        drop(second);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn batches_survive_reopening() {
@@ -84,10 +121,12 @@ mod tests {
                         (b"a".to_vec(), Some(b"1".to_vec())),
                         (b"b".to_vec(), Some(b"2".to_vec())),
                     ],
-                    true,
+                    WriteMode::Atomic,
                 )
                 .unwrap();
-            store.write(vec![(b"a".to_vec(), None)], false).unwrap();
+            store
+                .write(vec![(b"a".to_vec(), None)], WriteMode::Plain)
+                .unwrap();
             store.flush().unwrap();
         }
         let store = SledStore::open(&dir).unwrap();

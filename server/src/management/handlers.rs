@@ -292,7 +292,7 @@ pub async fn put_exchange(
         return Err(ApiError::bad_request("an exchange needs a type"));
     }
     let existed = c.admin.exchange(&vhost, &name).is_some();
-    c.admin.declare_exchange(&vhost, &name, settings)?;
+    c.admin.declare_exchange(&vhost, &name, settings).await?;
     Ok(created_or_not(!existed))
 }
 
@@ -302,7 +302,8 @@ pub async fn delete_exchange(
     Query(query): Query<HashMap<String, String>>,
 ) -> ApiResult {
     c.admin
-        .delete_exchange(&vhost, &name, query_flag(&query, "if-unused"))?;
+        .delete_exchange(&vhost, &name, query_flag(&query, "if-unused"))
+        .await?;
     Ok(no_content())
 }
 
@@ -431,7 +432,7 @@ pub async fn put_queue(
         arguments: json::to_table(body.get("arguments").unwrap_or(&Value::Null))
             .map_err(ApiError::bad_request)?,
     };
-    let created = c.admin.declare_queue(&vhost, &name, settings)?;
+    let created = c.admin.declare_queue(&vhost, &name, settings).await?;
     Ok(created_or_not(created))
 }
 
@@ -440,12 +441,14 @@ pub async fn delete_queue(
     Path((vhost, name)): Path<(String, String)>,
     Query(query): Query<HashMap<String, String>>,
 ) -> ApiResult {
-    c.admin.delete_queue(
-        &vhost,
-        &name,
-        query_flag(&query, "if-unused"),
-        query_flag(&query, "if-empty"),
-    )?;
+    c.admin
+        .delete_queue(
+            &vhost,
+            &name,
+            query_flag(&query, "if-unused"),
+            query_flag(&query, "if-empty"),
+        )
+        .await?;
     Ok(no_content())
 }
 
@@ -573,7 +576,7 @@ pub async fn post_binding(
         routing_key: spec.routing_key.clone(),
         arguments: spec.arguments.clone(),
     };
-    c.admin.bind(&vhost, spec)?;
+    c.admin.bind(&vhost, spec).await?;
     Ok((
         StatusCode::CREATED,
         [(header::LOCATION, info.properties_key())],
@@ -608,7 +611,8 @@ pub async fn delete_binding(
 ) -> ApiResult {
     let kind = destination_kind(&kind)?;
     c.admin
-        .unbind(&vhost, &source, &destination, kind, &props)?;
+        .unbind(&vhost, &source, &destination, kind, &props)
+        .await?;
     Ok(no_content())
 }
 

@@ -13,7 +13,7 @@ use async_trait::async_trait;
 use futures_lite::StreamExt;
 use tokio::sync::mpsc::{unbounded_channel, UnboundedReceiver, UnboundedSender};
 
-pub use leveret_tests::{broker, unique, TestBroker};
+pub use leveret_tests::{both_runtimes, broker, unique, TestBroker};
 
 /// How long any single expected event may take.
 pub const TIMEOUT: Duration = Duration::from_secs(10);
@@ -702,5 +702,173 @@ pub mod rs {
             t.insert(k.try_into().expect("field name"), v);
         }
         t
+    }
+}
+
+// ---------------------------------------------------------------------------
+// raw frames
+
+/// A raw AMQP connection for what a client library hides or will not do:
+/// reading frames in wire order, or not reading at all (a stalled peer).
+pub mod raw {
+    use super::*;
+    use bytes::{Bytes, BytesMut};
+    use leveret_protocol::{
+        decode_frame, encode_content, encode_method, BasicPublish, ChannelOpen, ConnectionOpen,
+        ConnectionStartOk, ConnectionTuneOk, ContentHeader,
+    };
+    pub use leveret_protocol::{
+        BasicProperties, FieldTable, Frame, Method, ShortStr, PROTOCOL_HEADER,
+    };
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    use tokio::net::TcpStream;
+
+    /// A short string (panics past 255 bytes).
+    pub fn short(s: &str) -> ShortStr {
+        ShortStr::try_from(s).expect("short string")
+    }
+
+    /// The frames of a method.
+    pub fn method_frame(channel: u16, method: impl Into<Method>) -> Bytes {
+        let mut buf = BytesMut::new();
+        encode_method(channel, &method.into(), &mut buf);
+        buf.freeze()
+    }
+
+    /// The frames of a basic.publish with its content (one body frame per
+    /// `frame_max`; 0 for no limit).
+    pub fn publish_frames(
+        channel: u16,
+        exchange: &str,
+        routing_key: &str,
+        properties: &BasicProperties,
+        body: &[u8],
+        frame_max: u32,
+    ) -> Bytes {
+        let mut buf = BytesMut::new();
+        let publish = BasicPublish {
+            exchange: short(exchange),
+            routing_key: short(routing_key),
+            ..Default::default()
+        };
+        encode_method(channel, &publish.into(), &mut buf);
+        let mut property_bytes = BytesMut::new();
+        properties.encode(&mut property_bytes);
+        encode_content(
+            channel,
+            ContentHeader::BASIC_CLASS,
+            &property_bytes,
+            body,
+            frame_max,
+            &mut buf,
+        );
+        buf.freeze()
+    }
+
+    /// One connection: the socket and what was read but not yet decoded.
+    pub struct Raw {
+        /// The socket.
+        pub socket: TcpStream,
+        /// Bytes read and not yet decoded.
+        pub buf: BytesMut,
+        /// The negotiated frame_max.
+        pub frame_max: u32,
+    }
+
+    impl Raw {
+        /// Connects and logs in as guest/guest on vhost `/`, heartbeats off.
+        pub async fn open(b: &TestBroker) -> Raw {
+            let socket = within("tcp connect", TcpStream::connect(b.addr()))
+                .await
+                .expect("tcp connect");
+            socket.set_nodelay(true).expect("nodelay");
+            let mut raw = Raw {
+                socket,
+                buf: BytesMut::new(),
+                frame_max: 0,
+            };
+            raw.send_bytes(PROTOCOL_HEADER).await;
+            raw.expect(0, |m| matches!(m, Method::ConnectionStart(_)))
+                .await;
+            let start_ok = ConnectionStartOk {
+                client_properties: FieldTable::new(),
+                mechanism: short("PLAIN"),
+                response: Bytes::from_static(b"\0guest\0guest"),
+                locale: short("en_US"),
+            };
+            let tune = raw.call(0, start_ok, |m| matches!(m, Method::ConnectionTune(_)));
+            let Method::ConnectionTune(tune) = tune.await else {
+                unreachable!("call matched connection.tune")
+            };
+            raw.frame_max = tune.frame_max;
+            let tune_ok = ConnectionTuneOk {
+                channel_max: tune.channel_max,
+                frame_max: tune.frame_max,
+                heartbeat: 0,
+            };
+            raw.send(0, tune_ok).await;
+            let open = ConnectionOpen {
+                virtual_host: short("/"),
+                ..Default::default()
+            };
+            raw.call(0, open, |m| matches!(m, Method::ConnectionOpenOk(_)))
+                .await;
+            raw
+        }
+
+        /// Opens `channel`.
+        pub async fn open_channel(&mut self, channel: u16) {
+            self.call(channel, ChannelOpen::default(), |m| {
+                matches!(m, Method::ChannelOpenOk(_))
+            })
+            .await;
+        }
+
+        /// Writes bytes as they are.
+        pub async fn send_bytes(&mut self, bytes: &[u8]) {
+            within("a write", self.socket.write_all(bytes))
+                .await
+                .expect("write");
+        }
+
+        /// Sends a method.
+        pub async fn send(&mut self, channel: u16, method: impl Into<Method>) {
+            self.send_bytes(&method_frame(channel, method)).await;
+        }
+
+        /// Sends a method and returns the reply `what` accepts.
+        pub async fn call(
+            &mut self,
+            channel: u16,
+            method: impl Into<Method>,
+            what: impl Fn(&Method) -> bool,
+        ) -> Method {
+            self.send(channel, method).await;
+            self.expect(channel, what).await
+        }
+
+        /// The next frame, heartbeats skipped; panics if the broker closes
+        /// the socket.
+        pub async fn frame(&mut self) -> Frame {
+            loop {
+                match decode_frame(&mut self.buf, 0).expect("the broker sends valid frames") {
+                    Some(Frame::Heartbeat) => continue,
+                    Some(frame) => return frame,
+                    None => {}
+                }
+                let read = within("a frame", self.socket.read_buf(&mut self.buf))
+                    .await
+                    .expect("read");
+                assert!(read > 0, "the broker closed the connection");
+            }
+        }
+
+        /// The next frame must be a method on `channel` that `what` accepts.
+        pub async fn expect(&mut self, channel: u16, what: impl Fn(&Method) -> bool) -> Method {
+            match self.frame().await {
+                Frame::Method { channel: c, method } if c == channel && what(&method) => method,
+                other => panic!("unexpected frame on channel {channel}: {other:?}"),
+            }
+        }
     }
 }

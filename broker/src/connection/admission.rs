@@ -1,0 +1,176 @@
+//! Which connections the broker serves: RabbitMQ's `connection_max` (TCP
+//! connections at once) and the vhost limit `max-connections`. Each served
+//! connection holds a [`Slot`] whose drop gives its places back, whatever
+//! way the connection ends. Uses nothing else of the broker.
+
+use leveret_protocol::ShortStr;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+
+/// Connection counts, broker-wide and per vhost.
+#[derive(Debug)]
+pub struct Admission {
+    network: AtomicUsize,
+    max_network: Option<usize>,
+    /// Connections per vhost name. The lock is held for one hash-map
+    /// update, never across an await.
+    per_vhost: Mutex<HashMap<ShortStr, usize>>,
+    /// Set while connections are being refused, so that a flood of them
+    /// logs one warning rather than one per connection.
+    refusing: AtomicBool,
+}
+
+/// A served connection's places in the counts.
+#[derive(Debug)]
+pub struct Slot {
+    admission: Arc<Admission>,
+    network: bool,
+    vhost: Option<ShortStr>,
+}
+
+impl Admission {
+    /// Counts with at most `max_network` TCP connections (`None`: no limit).
+    pub fn new(max_network: Option<usize>) -> Arc<Self> {
+        Arc::new(Admission {
+            network: AtomicUsize::new(0),
+            max_network,
+            per_vhost: Mutex::new(HashMap::new()),
+            refusing: AtomicBool::new(false),
+        })
+    }
+
+    /// A slot for a TCP connection, or `Err(limit)` when `max_connections`
+    /// connections are already served (logged: a warning when refusing
+    /// starts, then one debug line per refused connection).
+    pub fn admit_network(self: &Arc<Self>, peer: &str) -> Result<Slot, usize> {
+        let admitted =
+            self.network
+                .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                    match self.max_network {
+                        Some(max) if n >= max => None,
+                        _ => Some(n + 1),
+                    }
+                });
+        match (admitted, self.max_network) {
+            (Ok(_), _) | (Err(_), None) => {
+                self.refusing.store(false, Ordering::Relaxed);
+                Ok(Slot {
+                    admission: Arc::clone(self),
+                    network: true,
+                    vhost: None,
+                })
+            }
+            (Err(_), Some(limit)) => {
+                if !self.refusing.swap(true, Ordering::Relaxed) {
+                    tracing::warn!(
+                        %peer,
+                        limit,
+                        "connection refused: node connection limit ({limit}) is reached; refusing connections until one closes"
+                    );
+                } else {
+                    tracing::debug!(%peer, limit, "connection refused: node connection limit is reached");
+                }
+                Err(limit)
+            }
+        }
+    }
+
+    /// A slot for an in-process connection (not counted against
+    /// `max_connections`).
+    pub fn admit_local(self: &Arc<Self>) -> Slot {
+        Slot {
+            admission: Arc::clone(self),
+            network: false,
+            vhost: None,
+        }
+    }
+
+    fn per_vhost(&self) -> std::sync::MutexGuard<'_, HashMap<ShortStr, usize>> {
+        self.per_vhost.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+impl Slot {
+    /// Counts the connection in `vhost`, unless `limit` connections are
+    /// already open there (`Err(limit)`).
+    pub fn enter_vhost(&mut self, vhost: &ShortStr, limit: Option<usize>) -> Result<(), usize> {
+        debug_assert!(self.vhost.is_none(), "a connection opens one vhost");
+        let mut counts = self.admission.per_vhost();
+        let count = counts.entry(vhost.clone()).or_insert(0);
+        if let Some(limit) = limit {
+            if *count >= limit {
+                if *count == 0 {
+                    counts.remove(vhost);
+                }
+                return Err(limit);
+            }
+        }
+        *count += 1;
+        self.vhost = Some(vhost.clone());
+        Ok(())
+    }
+}
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        if self.network {
+            self.admission.network.fetch_sub(1, Ordering::AcqRel);
+        }
+        if let Some(vhost) = self.vhost.take() {
+            let mut counts = self.admission.per_vhost();
+            if let Some(count) = counts.get_mut(&vhost) {
+                *count -= 1;
+                if *count == 0 {
+                    counts.remove(&vhost);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn network_connections_are_limited_and_slots_give_their_place_back() {
+        let admission = Admission::new(Some(2));
+        let a = admission.admit_network("a").expect("first");
+        let b = admission.admit_network("b").expect("second");
+        assert_eq!(admission.admit_network("c").unwrap_err(), 2);
+        let local = admission.admit_local();
+        assert_eq!(
+            admission.network.load(Ordering::Acquire),
+            2,
+            "in-process ones are not counted"
+        );
+        drop(a);
+        let _c = admission.admit_network("c").expect("a place was freed");
+        drop((b, local));
+        assert_eq!(admission.network.load(Ordering::Acquire), 1);
+    }
+
+    #[test]
+    fn vhost_connections_are_limited_per_vhost() {
+        let admission = Admission::new(None);
+        let (slash, other) = (ShortStr::from_static("/"), ShortStr::from_static("other"));
+        let mut a = admission.admit_local();
+        a.enter_vhost(&slash, Some(1)).expect("first in /");
+        let mut b = admission.admit_local();
+        assert_eq!(b.enter_vhost(&slash, Some(1)), Err(1));
+        b.enter_vhost(&other, Some(1))
+            .expect("another vhost has its own count");
+        let mut zero = admission.admit_local();
+        assert_eq!(
+            zero.enter_vhost(&ShortStr::from_static("closed"), Some(0)),
+            Err(0)
+        );
+        drop(a);
+        let mut c = admission.admit_local();
+        c.enter_vhost(&slash, Some(1))
+            .expect("the place was given back");
+        drop((b, c, zero));
+        assert!(admission.per_vhost().is_empty(), "no counts left behind");
+    }
+}

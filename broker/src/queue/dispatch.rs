@@ -1,0 +1,280 @@
+//! A queue's FIFO and dispatch: taking a message in (TTL, priority,
+//! max-length with its overflow modes), the ready list in order, expiry at
+//! the head, and round-robin delivery to consumers with credit (by
+//! `x-priority` first), under the queue's lock.
+
+use super::{
+    DeadLetter, DeadLetterReason, DeadLetters, Enqueued, Overflow, Queue, QueueState,
+    QueuedMessage, FLOW_HIGH, FLOW_LOW,
+};
+use crate::consumer::Unacked;
+use crate::message::Message;
+use crate::outbox::Outbound;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+impl Queue {
+    pub(super) fn offer(
+        self: &Arc<Self>,
+        message: Arc<Message>,
+        reserved: Option<u64>,
+    ) -> (Enqueued, DeadLetters) {
+        let mut dead = Vec::new();
+        let outcome = {
+            let mut st = self.lock();
+            if st.deleted {
+                self.unlog(&message, reserved);
+                return (Enqueued::Accepted { sync: 0 }, DeadLetters::default());
+            }
+            let now = Instant::now();
+            let ttl = match (self.args.message_ttl, message.ttl_ms) {
+                (Some(a), Some(b)) => Some(a.min(b)),
+                (a, b) => a.or(b),
+            };
+            let priority = match self.args.max_priority {
+                Some(max) => message.priority.min(max),
+                None => 0,
+            };
+            if self.is_full_for(&st, &message) {
+                match self.args.overflow {
+                    Overflow::DropHead => {}
+                    Overflow::RejectPublish => {
+                        self.unlog(&message, reserved);
+                        return (Enqueued::Refused, DeadLetters::default());
+                    }
+                    Overflow::RejectPublishDlx => {
+                        self.unlog(&message, reserved);
+                        self.dead_letter(message, DeadLetterReason::MaxLen, &mut dead);
+                        return (Enqueued::Refused, DeadLetters(dead));
+                    }
+                }
+            }
+            let seq = reserved.unwrap_or_else(|| {
+                st.next_seq += 1;
+                st.next_seq
+            });
+            let queued = QueuedMessage {
+                seq,
+                priority,
+                message,
+                redelivered: false,
+                expires_at: ttl.map(|ms| now + Duration::from_millis(ms)),
+            };
+            self.gauge.add(queued.message.weight());
+            // Logged under the queue lock, so no dequeue of this message
+            // (which needs it delivered first) can reach the store before it.
+            let sync = match reserved {
+                Some(_) => 0,
+                None => self.log(&queued),
+            };
+            self.insert_ready(&mut st, queued);
+            self.stats.published();
+            self.enforce_max_length(&mut st, &mut dead);
+            // Dispatched as of the publish instant, so a message with TTL 0
+            // still reaches a consumer that can take it at once (as in RabbitMQ).
+            self.dispatch_locked(&mut st, &mut dead, now);
+            Enqueued::Accepted { sync }
+        };
+        (outcome, DeadLetters(dead))
+    }
+
+    pub(super) fn is_full_for(&self, st: &QueueState, message: &Message) -> bool {
+        let by_count = self
+            .args
+            .max_length
+            .is_some_and(|max| st.ready.len() as u64 >= max);
+        let by_bytes = self
+            .args
+            .max_length_bytes
+            .is_some_and(|max| (st.ready_bytes + message.body.len()) as u64 > max);
+        by_count || by_bytes
+    }
+
+    pub(super) fn enforce_max_length(&self, st: &mut QueueState, dead: &mut Vec<DeadLetter>) {
+        if self.args.overflow != Overflow::DropHead {
+            return;
+        }
+        loop {
+            let over_count = self
+                .args
+                .max_length
+                .is_some_and(|max| st.ready.len() as u64 > max);
+            let over_bytes = self
+                .args
+                .max_length_bytes
+                .is_some_and(|max| st.ready_bytes as u64 > max);
+            if !(over_count || over_bytes) {
+                return;
+            }
+            match self.pop_ready(st) {
+                Some(head) => self.discard(head, DeadLetterReason::MaxLen, dead),
+                None => return,
+            }
+        }
+    }
+
+    pub(super) fn insert_ready(&self, st: &mut QueueState, queued: QueuedMessage) {
+        if st.ready.len() >= FLOW_HIGH && !st.consumers.is_empty() {
+            self.crowded
+                .store(true, std::sync::atomic::Ordering::Release);
+        }
+        st.ready_bytes += queued.message.body.len();
+        if queued.expires_at.is_some() {
+            st.expiring += 1;
+        }
+        let key = queued.order_key();
+        if st.ready.back().is_none_or(|last| last.order_key() < key) {
+            st.ready.push_back(queued);
+        } else {
+            let at = st.ready.partition_point(|m| m.order_key() < key);
+            st.ready.insert(at, queued);
+        }
+    }
+
+    /// Wakes waiting publishers once the queue has drained enough (or has
+    /// no consumers left to drain it).
+    pub(super) fn check_drained(&self, st: &QueueState) {
+        if (st.ready.len() <= FLOW_LOW || st.consumers.is_empty())
+            && self
+                .crowded
+                .swap(false, std::sync::atomic::Ordering::AcqRel)
+        {
+            self.drained.notify_waiters();
+        }
+    }
+
+    pub(super) fn pop_ready(&self, st: &mut QueueState) -> Option<QueuedMessage> {
+        let head = st.ready.pop_front()?;
+        if self.crowded.load(std::sync::atomic::Ordering::Relaxed) {
+            self.check_drained(st);
+        }
+        st.ready_bytes -= head.message.body.len();
+        if head.expires_at.is_some() {
+            st.expiring -= 1;
+        }
+        Some(head)
+    }
+
+    /// Takes the head message that has not expired, expiring those that have.
+    pub(super) fn pop_live(
+        &self,
+        st: &mut QueueState,
+        now: Instant,
+        dead: &mut Vec<DeadLetter>,
+    ) -> Option<QueuedMessage> {
+        loop {
+            let head = self.pop_ready(st)?;
+            if head.expires_at.is_some_and(|at| at < now) {
+                self.discard(head, DeadLetterReason::Expired, dead);
+            } else {
+                return Some(head);
+            }
+        }
+    }
+
+    pub(super) fn expire_head(
+        &self,
+        st: &mut QueueState,
+        dead: &mut Vec<DeadLetter>,
+        now: Instant,
+    ) {
+        if st.expiring == 0 {
+            return;
+        }
+        while st
+            .ready
+            .front()
+            .is_some_and(|m| m.expires_at.is_some_and(|at| at < now))
+        {
+            if let Some(head) = self.pop_ready(st) {
+                self.discard(head, DeadLetterReason::Expired, dead);
+            }
+        }
+    }
+
+    pub(super) fn dispatch_locked(
+        self: &Arc<Self>,
+        st: &mut QueueState,
+        dead: &mut Vec<DeadLetter>,
+        now: Instant,
+    ) {
+        let count = st.consumers.len();
+        if count == 0 || st.ready.is_empty() {
+            return;
+        }
+        // Consumers whose connection had no room during this dispatch.
+        let mut full: Vec<usize> = Vec::new();
+        while !st.ready.is_empty() {
+            let Some(index) = Self::next_consumer(st, &full) else {
+                // No consumer can take a message now; credit or room will
+                // trigger another dispatch.
+                return;
+            };
+            let consumer = Arc::clone(&st.consumers[index]);
+            let Some(permit) = consumer.channel.outbox.try_reserve() else {
+                consumer.channel.outbox.wait_for_room(self);
+                full.push(index);
+                continue;
+            };
+            let Some(credit) = consumer.try_take_credit() else {
+                full.push(index);
+                continue;
+            };
+            st.cursor = (index + 1) % count;
+            let Some(queued) = self.pop_live(st, now, dead) else {
+                return;
+            };
+            self.stats.delivered(consumer.no_ack, queued.redelivered);
+            if consumer.no_ack {
+                self.release(&queued);
+            } else {
+                self.log_delivery(st, &queued);
+                credit.keep();
+            }
+            // The tag is handed out and the delivery enters the outbox in
+            // one step under the channel's delivery lock: whichever thread
+            // dispatches, tags reach the client in the order they were
+            // handed out.
+            let mut deliveries = consumer.channel.deliveries();
+            let delivery_tag = deliveries.next_tag();
+            if !consumer.no_ack {
+                deliveries.push(Unacked {
+                    tag: delivery_tag,
+                    queue: Arc::clone(self),
+                    message: queued.clone(),
+                    consumer: Some(Arc::clone(&consumer)),
+                });
+            }
+            permit.send(Outbound::Deliver {
+                channel: consumer.channel.id,
+                consumer_tag: consumer.tag.clone(),
+                delivery_tag,
+                redelivered: queued.redelivered,
+                message: queued.message,
+            });
+        }
+    }
+
+    /// The consumer to deliver to next: among those with credit (and not
+    /// known to be out of room), the highest `x-priority`, round-robin from
+    /// the cursor among equals. Without priorities that is simply the first
+    /// consumer with credit after the previous one.
+    pub(super) fn next_consumer(st: &QueueState, full: &[usize]) -> Option<usize> {
+        let count = st.consumers.len();
+        let mut best: Option<usize> = None;
+        for offset in 0..count {
+            let index = (st.cursor + offset) % count;
+            let consumer = &st.consumers[index];
+            if full.contains(&index) || !consumer.has_credit() {
+                continue;
+            }
+            if !st.prioritised {
+                return Some(index);
+            }
+            if best.is_none_or(|b| consumer.priority > st.consumers[b].priority) {
+                best = Some(index);
+            }
+        }
+        best
+    }
+}

@@ -1,0 +1,106 @@
+//! A durable queue's side of persistence: the index entries of the
+//! messages it holds, its delivery mark, and releasing what leaves it (see
+//! `store` for the keys). Every write goes through the persister, whose
+//! submission number says when it is on disk.
+
+use super::{Queue, QueueState, QueuedMessage};
+use crate::message::{Message, Stored};
+use crate::store::{EntryBody, StoreOp};
+
+impl Queue {
+    /// Reserves the next place in this queue for a message whose index
+    /// entry the caller writes itself ([`Queue::index_entry`]), so that a
+    /// whole transaction reaches the disk in one batch. Places are taken in
+    /// order by sequence number, whatever order they are filled in.
+    pub fn reserve(&self) -> u64 {
+        let mut st = self.lock();
+        st.next_seq += 1;
+        st.next_seq
+    }
+
+    /// The index entry for `message` at place `seq`, if this queue stores it.
+    pub fn index_entry(&self, seq: u64, message: &Message) -> Option<StoreOp> {
+        let (_, queue) = self.durable_store.as_ref()?;
+        let body = match message.stored.as_ref()? {
+            Stored::Inline => EntryBody::Inline(message.to_record()),
+            Stored::Shared { id, .. } => EntryBody::Shared(*id),
+        };
+        Some(StoreOp::Enqueue {
+            queue: *queue,
+            seq,
+            body,
+        })
+    }
+
+    /// This queue's id in the store, if it is durable and persisted.
+    pub fn store_id(&self) -> Option<u64> {
+        self.durable_store.as_ref().map(|(_, id)| *id)
+    }
+
+    /// Writes the index entry of a stored message; returns the submission
+    /// number (0 if the message is not stored in this queue).
+    pub(super) fn log(&self, queued: &QueuedMessage) -> u64 {
+        match (
+            &self.durable_store,
+            self.index_entry(queued.seq, &queued.message),
+        ) {
+            (Some((persistence, _)), Some(op)) => persistence.submit(vec![op]),
+            _ => 0,
+        }
+    }
+
+    /// Raises the delivery mark, so a restart brings this message back
+    /// flagged redelivered.
+    pub(super) fn log_delivery(&self, st: &mut QueueState, queued: &QueuedMessage) {
+        if queued.seq <= st.delivered_mark {
+            return;
+        }
+        st.delivered_mark = queued.seq;
+        if let (Some((persistence, queue)), Some(_)) = (&self.durable_store, &queued.message.stored)
+        {
+            persistence.submit(vec![StoreOp::Delivered {
+                queue: *queue,
+                seq: queued.seq,
+            }]);
+        }
+    }
+
+    /// A message this queue was offered but does not keep: removes its
+    /// index entry if one was written at a reserved place, and the shared
+    /// record if this was its last queue.
+    pub(super) fn unlog(&self, message: &Message, reserved: Option<u64>) {
+        let (Some((persistence, queue)), Some(stored)) = (&self.durable_store, &message.stored)
+        else {
+            return;
+        };
+        let mut ops = Vec::new();
+        if let Some(seq) = reserved {
+            ops.push(StoreOp::Dequeue { queue: *queue, seq });
+        }
+        if let Some(id) = stored.release() {
+            ops.push(StoreOp::DeleteMessage { id });
+        }
+        if !ops.is_empty() {
+            persistence.submit(ops);
+        }
+    }
+
+    /// A message leaves this queue for good: release its memory and its
+    /// index entry (and the shared record, if no other queue holds it).
+    pub(super) fn release(&self, queued: &QueuedMessage) {
+        self.gauge.sub(queued.message.weight());
+        let (Some((persistence, queue)), Some(stored)) =
+            (&self.durable_store, &queued.message.stored)
+        else {
+            return;
+        };
+        let mut ops = vec![StoreOp::Dequeue {
+            queue: *queue,
+            seq: queued.seq,
+        }];
+        if let Some(id) = stored.release() {
+            ops.push(StoreOp::DeleteMessage { id });
+        }
+        persistence.submit(ops);
+    }
+}

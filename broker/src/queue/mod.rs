@@ -1,0 +1,457 @@
+//! Queues: ready messages in FIFO order (by priority first when
+//! `x-max-priority` is set), the consumers with their round-robin cursor,
+//! and dispatch. One `std::sync::Mutex` per queue guards its state; it is
+//! held for a few instructions per operation and never across an await, and
+//! no other lock is taken inside it except a channel's delivery bookkeeping
+//! (always in that order: queue, then channel).
+//!
+//! A queue knows nothing above it: operations that make messages leave
+//! for a dead-letter exchange return them as [`DeadLetters`], and the
+//! caller (which knows the vhost) routes them.
+//!
+//! Layout: `args` validates the queue arguments; `dispatch` is the FIFO
+//! (taking messages in, max-length, expiry) and delivery to consumers;
+//! `durable` writes a durable queue's index entries and delivery mark;
+//! `leaving` makes the dead letters and the cancels of a deleted queue.
+//! This file holds the state and the operations the layers above call.
+
+mod args;
+mod dispatch;
+mod durable;
+mod leaving;
+
+pub use args::{Overflow, QueueArgs};
+pub use leaving::{DeadLetter, DeadLetterReason, DeadLetters, Deleted};
+
+use crate::consumer::{ChannelLink, Consumer, Unacked};
+use crate::error::{AmqpError, AmqpResult};
+use crate::memory::MemoryGauge;
+use crate::message::Message;
+use crate::outbox::Outbound;
+use crate::stats::{BrokerCounters, QueueCounters};
+use crate::store::Persistence;
+use leveret_protocol::{FieldTable, ShortStr};
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+use tokio::sync::mpsc::Permit;
+
+/// Ready messages in a queue with consumers above which publishers to it
+/// are slowed down (RabbitMQ's flow control, in spirit): reading from a
+/// publishing connection pauses until the queue is back under
+/// [`FLOW_LOW`], so consumers keep the CPU they need and the backlog (and
+/// latency) stays bounded. Queues without consumers are never crowded.
+pub const FLOW_HIGH: usize = 20_000;
+
+/// See [`FLOW_HIGH`].
+pub const FLOW_LOW: usize = 10_000;
+
+/// A message in a queue, with its place in the queue's order.
+#[derive(Debug, Clone)]
+pub struct QueuedMessage {
+    /// Position in publish order; requeued messages go back by it.
+    pub seq: u64,
+    /// Effective priority (0 unless the queue has x-max-priority).
+    pub priority: u8,
+    /// The message.
+    pub message: Arc<Message>,
+    /// Delivered before.
+    pub redelivered: bool,
+    /// When it expires (queue or per-message TTL).
+    pub expires_at: Option<Instant>,
+}
+
+impl QueuedMessage {
+    fn order_key(&self) -> (std::cmp::Reverse<u8>, u64) {
+        (std::cmp::Reverse(self.priority), self.seq)
+    }
+}
+
+/// Result of offering a message to a queue.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Enqueued {
+    /// The queue took it; on disk once the persister has flushed
+    /// submission `sync` (0 when nothing was written).
+    Accepted {
+        /// Submission number to wait for.
+        sync: u64,
+    },
+    /// The queue is full and its overflow mode refuses publishes.
+    Refused,
+}
+
+#[derive(Debug, Default)]
+struct QueueState {
+    ready: VecDeque<QueuedMessage>,
+    ready_bytes: usize,
+    next_seq: u64,
+    consumers: Vec<Arc<Consumer>>,
+    cursor: usize,
+    /// Some consumer has a non-zero `x-priority`.
+    prioritised: bool,
+    exclusive_consumer: bool,
+    expiring: usize,
+    /// Highest seq delivered (persisted for durable queues, see `store`).
+    delivered_mark: u64,
+    last_used: Option<Instant>,
+    deleted: bool,
+    /// Dead letters found by a dispatch whose caller cannot route them
+    /// (a connection's writer), waiting for the vhost's next sweep.
+    deferred_dead: Vec<DeadLetter>,
+}
+
+/// Declared properties of a queue.
+#[derive(Debug, Clone, Default)]
+pub struct QueueOptions {
+    /// Survives a restart.
+    pub durable: bool,
+    /// The connection that owns it, if exclusive.
+    pub exclusive_owner: Option<u64>,
+    /// Deleted when its last consumer goes.
+    pub auto_delete: bool,
+    /// Arguments as declared.
+    pub arguments: FieldTable,
+}
+
+/// One queue.
+#[derive(Debug)]
+pub struct Queue {
+    /// Its name.
+    pub name: ShortStr,
+    /// Declared properties.
+    pub options: QueueOptions,
+    /// Validated arguments.
+    pub args: QueueArgs,
+    /// The name of the vhost it belongs to, for error texts.
+    vhost: ShortStr,
+    gauge: Arc<MemoryGauge>,
+    /// Set while the queue is over [`FLOW_HIGH`] with consumers.
+    crowded: std::sync::atomic::AtomicBool,
+    /// Wakes publishers waiting for the queue to drain.
+    drained: tokio::sync::Notify,
+    /// The store and this queue's id in it, for durable queues.
+    durable_store: Option<(Arc<Persistence>, u64)>,
+    /// Message counters (`stats`).
+    pub(crate) stats: QueueCounters,
+    state: Mutex<QueueState>,
+}
+
+impl Queue {
+    /// A new, empty queue.
+    pub fn new(
+        name: ShortStr,
+        vhost: ShortStr,
+        options: QueueOptions,
+        args: QueueArgs,
+        gauge: Arc<MemoryGauge>,
+        durable_store: Option<(Arc<Persistence>, u64)>,
+        counters: Arc<BrokerCounters>,
+    ) -> Self {
+        Queue {
+            name,
+            options,
+            args,
+            vhost,
+            gauge,
+            crowded: std::sync::atomic::AtomicBool::new(false),
+            drained: tokio::sync::Notify::new(),
+            durable_store,
+            stats: QueueCounters::new(counters),
+            state: Mutex::new(QueueState {
+                last_used: Some(Instant::now()),
+                ..QueueState::default()
+            }),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, QueueState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Offers a message; dispatches it at once if a consumer has credit.
+    pub fn publish(self: &Arc<Self>, message: Arc<Message>) -> (Enqueued, DeadLetters) {
+        self.offer(message, None)
+    }
+
+    /// Offers a message at a place from [`Queue::reserve`], whose index
+    /// entry is already written.
+    pub fn publish_reserved(
+        self: &Arc<Self>,
+        message: Arc<Message>,
+        seq: u64,
+    ) -> (Enqueued, DeadLetters) {
+        self.offer(message, Some(seq))
+    }
+
+    /// Delivers ready messages to consumers with credit, round-robin.
+    pub fn dispatch(self: &Arc<Self>) -> DeadLetters {
+        let mut dead = Vec::new();
+        let mut st = self.lock();
+        self.dispatch_locked(&mut st, &mut dead, Instant::now());
+        DeadLetters(dead)
+    }
+
+    /// [`Queue::dispatch`] for a connection's writer, which has room again
+    /// but cannot route dead letters: those this dispatch finds (messages
+    /// that expired at the head) wait in the queue for the vhost's next
+    /// sweep ([`Queue::expire`]).
+    pub fn dispatch_deferring_dead_letters(self: &Arc<Self>) {
+        let mut dead = Vec::new();
+        let mut st = self.lock();
+        self.dispatch_locked(&mut st, &mut dead, Instant::now());
+        st.deferred_dead.append(&mut dead);
+    }
+
+    /// basic.get: sends the head message with basic.get-ok through
+    /// `permit`, recorded as unacked on `link` unless `no_ack`. False if
+    /// the queue had no message (the permit is given back).
+    pub fn get(
+        self: &Arc<Self>,
+        link: &ChannelLink,
+        no_ack: bool,
+        permit: Permit<'_, Outbound>,
+    ) -> (bool, DeadLetters) {
+        let mut dead = Vec::new();
+        let mut st = self.lock();
+        st.last_used = Some(Instant::now());
+        let Some(queued) = self.pop_live(&mut st, Instant::now(), &mut dead) else {
+            self.stats.got_nothing();
+            return (false, DeadLetters(dead));
+        };
+        self.stats.got(no_ack, queued.redelivered);
+        if no_ack {
+            self.release(&queued);
+        } else {
+            self.log_delivery(&mut st, &queued);
+        }
+        // As in dispatch: the tag and the send are one step.
+        let mut deliveries = link.deliveries();
+        let delivery_tag = deliveries.next_tag();
+        permit.send(Outbound::GetOk {
+            channel: link.id,
+            delivery_tag,
+            redelivered: queued.redelivered,
+            message_count: st.ready.len() as u32,
+            message: Arc::clone(&queued.message),
+        });
+        if !no_ack {
+            deliveries.push(Unacked {
+                tag: delivery_tag,
+                queue: Arc::clone(self),
+                message: queued,
+                consumer: None,
+            });
+        }
+        (true, DeadLetters(dead))
+    }
+
+    /// Puts delivered messages back in their original places, marked
+    /// redelivered, and dispatches them again.
+    pub fn requeue(
+        self: &Arc<Self>,
+        messages: impl IntoIterator<Item = QueuedMessage>,
+    ) -> DeadLetters {
+        let mut dead = Vec::new();
+        let mut st = self.lock();
+        for mut queued in messages {
+            self.stats.unacked_returned();
+            if st.deleted {
+                self.release(&queued);
+                continue;
+            }
+            queued.redelivered = true;
+            self.insert_ready(&mut st, queued);
+        }
+        self.dispatch_locked(&mut st, &mut dead, Instant::now());
+        DeadLetters(dead)
+    }
+
+    /// An unacked message was acked (or rejected without dead-lettering).
+    pub fn settle(&self, queued: &QueuedMessage) {
+        self.stats.acked();
+        self.release(queued);
+    }
+
+    /// A message was rejected without requeue: dead-letter it if configured.
+    pub fn reject(&self, queued: QueuedMessage) -> DeadLetters {
+        self.stats.unacked_returned();
+        let mut dead = Vec::new();
+        self.discard(queued, DeadLetterReason::Rejected, &mut dead);
+        DeadLetters(dead)
+    }
+
+    /// Puts recovered messages back after a restart, in their order, with
+    /// the queue's delivery mark.
+    pub fn restore(&self, messages: Vec<QueuedMessage>, delivered_mark: u64) {
+        let mut st = self.lock();
+        st.delivered_mark = delivered_mark;
+        for queued in messages {
+            st.next_seq = st.next_seq.max(queued.seq);
+            self.gauge.add(queued.message.weight());
+            self.insert_ready(&mut st, queued);
+        }
+    }
+
+    /// Adds a consumer; 403 if an exclusive consumer is in the way.
+    pub fn add_consumer(self: &Arc<Self>, consumer: Arc<Consumer>) -> AmqpResult<DeadLetters> {
+        {
+            let mut st = self.lock();
+            if st.exclusive_consumer || (consumer.exclusive && !st.consumers.is_empty()) {
+                return Err(AmqpError::access_refused(format_args!(
+                    "queue '{}' in vhost '{}' in exclusive use",
+                    self.name, self.vhost
+                )));
+            }
+            st.exclusive_consumer = consumer.exclusive;
+            st.prioritised |= consumer.priority != 0;
+            st.consumers.push(consumer);
+            self.stats.consumer_added();
+            st.last_used = None;
+        }
+        Ok(self.dispatch())
+    }
+
+    /// Removes a consumer; true if the queue should now be auto-deleted.
+    pub fn remove_consumer(&self, consumer: &Arc<Consumer>) -> bool {
+        let mut st = self.lock();
+        let before = st.consumers.len();
+        st.consumers.retain(|c| !Arc::ptr_eq(c, consumer));
+        if st.consumers.len() == before {
+            return false;
+        }
+        self.stats.consumers_removed(1);
+        if consumer.exclusive {
+            st.exclusive_consumer = false;
+        }
+        st.prioritised = st.consumers.iter().any(|c| c.priority != 0);
+        self.check_drained(&st);
+        if st.consumers.is_empty() {
+            st.last_used = Some(Instant::now());
+        }
+        st.cursor = 0;
+        self.options.auto_delete && st.consumers.is_empty() && !st.deleted
+    }
+
+    /// Ready messages, as of the last expiry ([`Queue::expire`]).
+    pub fn message_count(&self) -> u32 {
+        self.lock().ready.len() as u32
+    }
+
+    /// Number of consumers.
+    pub fn consumer_count(&self) -> u32 {
+        self.lock().consumers.len() as u32
+    }
+
+    /// Marks the queue used (a redeclare), for x-expires.
+    pub fn touch(&self) {
+        let mut st = self.lock();
+        if st.consumers.is_empty() {
+            st.last_used = Some(Instant::now());
+        }
+    }
+
+    /// Drops every ready message; returns how many.
+    pub fn purge(&self) -> u32 {
+        let mut st = self.lock();
+        let count = st.ready.len() as u32;
+        for queued in std::mem::take(&mut st.ready) {
+            self.release(&queued);
+        }
+        st.ready_bytes = 0;
+        st.expiring = 0;
+        self.check_drained(&st);
+        count
+    }
+
+    /// Marks the queue deleted and drops its messages. Its consumers are
+    /// handed back to be told with basic.cancel ([`Deleted::notify`]) once
+    /// the caller has answered whoever deleted it: RabbitMQ sends
+    /// queue.delete-ok before the cancels.
+    pub fn delete(&self) -> Deleted {
+        let consumers = {
+            let mut st = self.lock();
+            st.deleted = true;
+            std::mem::take(&mut st.consumers)
+        };
+        self.stats.queue_deleted(consumers.len());
+        Deleted {
+            messages: self.purge(),
+            consumers,
+        }
+    }
+
+    /// Whether the queue has been deleted.
+    pub fn is_deleted(&self) -> bool {
+        self.lock().deleted
+    }
+
+    /// Whether it has consumers (for if-unused).
+    pub fn has_consumers(&self) -> bool {
+        !self.lock().consumers.is_empty()
+    }
+
+    /// Whether publishers to this queue should slow down.
+    pub fn is_crowded(&self) -> bool {
+        self.crowded.load(std::sync::atomic::Ordering::Acquire)
+    }
+
+    /// Resolves once the queue is no longer crowded.
+    pub async fn uncrowded(&self) {
+        loop {
+            let drained = self.drained.notified();
+            if !self.is_crowded() {
+                return;
+            }
+            drained.await;
+        }
+    }
+
+    /// Drops the messages at the head that expired by now; called by the
+    /// vhost's sweeper and before counting. Returns them as dead letters,
+    /// with any a writer's dispatch deferred.
+    pub fn expire(&self) -> DeadLetters {
+        self.expire_at(Instant::now())
+    }
+
+    /// [`Queue::expire`] as of `now`.
+    pub fn expire_at(&self, now: Instant) -> DeadLetters {
+        let mut st = self.lock();
+        let mut dead = std::mem::take(&mut st.deferred_dead);
+        self.expire_head(&mut st, &mut dead, now);
+        DeadLetters(dead)
+    }
+
+    /// Whether x-expires has run out by `now`: unused (no consumers, no
+    /// get, no redeclare) for longer than it allows.
+    pub fn unused_expired_at(&self, now: Instant) -> bool {
+        let Some(expires) = self.args.expires else {
+            return false;
+        };
+        let st = self.lock();
+        st.consumers.is_empty()
+            && st.last_used.is_some_and(|at| {
+                now.saturating_duration_since(at) >= Duration::from_millis(expires)
+            })
+    }
+}
+
+/// Reading a queue's state for listings (`inspect`).
+impl Queue {
+    /// Ready messages, their body bytes, and consumers, read under the lock.
+    pub(crate) fn depth(&self) -> crate::inspect::QueueDepth {
+        let st = self.lock();
+        crate::inspect::QueueDepth {
+            ready: st.ready.len() as u64,
+            ready_bytes: st.ready_bytes as u64,
+            consumers: st.consumers.len() as u64,
+        }
+    }
+
+    /// The consumers now.
+    pub(crate) fn consumers_snapshot(&self) -> Vec<Arc<Consumer>> {
+        self.lock().consumers.clone()
+    }
+}
+
+#[cfg(test)]
+mod tests;

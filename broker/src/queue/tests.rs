@@ -1,0 +1,206 @@
+//! Unit tests of queues through the core harness (`crate::testkit`).
+
+use super::{Overflow, QueueArgs};
+use crate::consumer::Consumer;
+use crate::exchange::ExchangeKind;
+use crate::outbox::OUTBOX_CAPACITY;
+use crate::testkit::{message, s, table, Consume, Harness};
+use leveret_protocol::{BasicProperties, FieldValue, ReplyCode};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// On a multi-thread runtime several queues deliver to one channel at
+/// once. Each delivery's tag must reach the outbox in tag order: a client
+/// that acks `multiple` up to a tag it has seen would otherwise settle a
+/// delivery it has not seen yet, and its later ack of that one gets a 406.
+#[test]
+fn delivery_tags_reach_the_outbox_in_order_from_several_threads() {
+    const THREADS: usize = 6;
+    const EACH: usize = 150_000;
+    let harness = Harness::new();
+    let mut channel = harness.channel();
+    let queues: Vec<_> = (0..THREADS)
+        .map(|i| harness.queue(&format!("q{i}"), &[]))
+        .collect();
+    for (i, queue) in queues.iter().enumerate() {
+        let no_ack = Consume {
+            no_ack: true,
+            prefetch: 0,
+        };
+        channel.consume(queue, &format!("c{i}"), no_ack);
+    }
+    let body = message(&s(""), "k", "m", &BasicProperties::default());
+    std::thread::scope(|scope| {
+        for queue in &queues {
+            let body = Arc::clone(&body);
+            scope.spawn(move || {
+                for _ in 0..EACH {
+                    let (_, dead) = queue.publish(Arc::clone(&body));
+                    assert!(dead.is_empty());
+                }
+            });
+        }
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let mut last = 0;
+        while last < (THREADS * EACH) as u64 {
+            let delivered = channel.drain();
+            if delivered.is_empty() {
+                assert!(Instant::now() < deadline, "stalled after tag {last}");
+                std::thread::yield_now();
+            }
+            for delivery in delivered {
+                assert_eq!(delivery.tag, last + 1, "tags out of order");
+                last = delivery.tag;
+            }
+        }
+    });
+}
+
+fn invalid(arguments: &[(&str, FieldValue)]) -> String {
+    let error = QueueArgs::parse(&table(arguments), &s("q"), &s("/")).expect_err("refused");
+    assert_eq!(error.code, ReplyCode::PreconditionFailed);
+    error.text
+}
+
+#[test]
+fn queue_arguments_are_checked_with_rabbitmq_texts() {
+    assert_eq!(
+        invalid(&[("x-message-ttl", FieldValue::I64(-1))]),
+        "PRECONDITION_FAILED - invalid arg 'x-message-ttl' for queue 'q' in vhost '/': {value_negative,-1}"
+    );
+    assert!(invalid(&[("x-expires", FieldValue::I64(0))]).contains("{value_zero,0}"));
+    assert!(invalid(&[("x-max-priority", FieldValue::I64(256))]).contains("value_out_of_range"));
+    assert!(invalid(&[("x-overflow", FieldValue::string("drop-tail"))]).contains("x-overflow"));
+    assert!(
+        invalid(&[("x-dead-letter-routing-key", FieldValue::string("k"))])
+            .contains("Key 'x-dead-letter-exchange' is mandatory")
+    );
+    let args = QueueArgs::parse(
+        &table(&[
+            ("x-max-length", FieldValue::I64(3)),
+            ("x-overflow", FieldValue::string("reject-publish-dlx")),
+            ("x-unknown", FieldValue::Bool(true)),
+        ]),
+        &s("q"),
+        &s("/"),
+    )
+    .expect("valid");
+    assert_eq!(args.max_length, Some(3));
+    assert_eq!(args.overflow, Overflow::RejectPublishDlx);
+}
+
+#[test]
+fn purge_drops_ready_messages_and_leaves_unacked_ones() {
+    let h = Harness::new();
+    let q = h.queue("q", &[]);
+    for body in ["a", "b", "c"] {
+        h.publish("", "q", body);
+    }
+    let mut ch = h.channel();
+    assert!(ch.get(&q, false));
+    assert_eq!(q.purge(), 2);
+    assert_eq!(q.message_count(), 0);
+    let got = ch.drain();
+    // The unacked one comes back when rejected with requeue.
+    ch.nack(got[0].tag, false, true);
+    assert_eq!(q.message_count(), 1);
+}
+
+#[test]
+fn a_deleted_queue_hands_back_its_consumers_and_takes_nothing_more() {
+    let h = Harness::new();
+    let q = h.queue("q", &[]);
+    h.publish("", "q", "a");
+    let ch = h.channel();
+    let one_at_a_time = Consume {
+        no_ack: false,
+        prefetch: 1,
+    };
+    ch.consume(&q, "c", one_at_a_time);
+    h.publish("", "q", "b");
+    h.publish("", "q", "c");
+    let deleted = h.vhost.delete_queue(&q);
+    assert!(q.is_deleted());
+    // One delivered (unacked), two ready.
+    assert_eq!(deleted.notify(), 2);
+    assert!(h.vhost.queue(&s("q")).is_none());
+    let (_, dead) = q.publish(message(&s(""), "q", "late", &BasicProperties::default()));
+    assert!(dead.is_empty());
+    assert_eq!(q.message_count(), 0);
+    assert_eq!(q.consumer_count(), 0);
+}
+
+#[test]
+fn an_exclusive_consumer_keeps_others_out() {
+    let h = Harness::new();
+    let q = h.queue("q", &[]);
+    let ch = h.channel();
+    let exclusive = Arc::new(Consumer {
+        tag: s("only"),
+        channel: Arc::clone(&ch.link),
+        no_ack: true,
+        exclusive: true,
+        prefetch: 0,
+        priority: 0,
+        in_flight: Default::default(),
+        active: Default::default(),
+    });
+    let dead = q
+        .add_consumer(Arc::clone(&exclusive))
+        .expect("first consumer");
+    assert!(dead.is_empty());
+    let second = Arc::new(Consumer {
+        tag: s("second"),
+        exclusive: false,
+        channel: Arc::clone(&ch.link),
+        no_ack: true,
+        prefetch: 0,
+        priority: 0,
+        in_flight: Default::default(),
+        active: Default::default(),
+    });
+    let refused = q.add_consumer(second).expect_err("in exclusive use");
+    assert_eq!(refused.code, ReplyCode::AccessRefused);
+    assert!(refused.text.contains("in exclusive use"));
+    assert!(!q.remove_consumer(&exclusive), "not auto-delete");
+}
+
+/// A writer that finds room again dispatches, and may find expired
+/// messages at the head; it cannot route them, so they wait in the queue
+/// for the next sweep instead of being lost.
+#[test]
+fn dead_letters_found_by_a_writer_wait_for_the_sweep() {
+    let h = Harness::new();
+    h.exchange("dlx", ExchangeKind::Fanout);
+    let q = h.queue(
+        "q",
+        &[("x-dead-letter-exchange", FieldValue::string("dlx"))],
+    );
+    let dead = h.queue("dead", &[]);
+    h.bind(&dead, "dlx", "");
+    let mut ch = h.channel();
+    ch.consume(
+        &q,
+        "c",
+        Consume {
+            no_ack: true,
+            prefetch: 0,
+        },
+    );
+    for _ in 0..OUTBOX_CAPACITY {
+        h.publish("", "q", "fill");
+    }
+    // The outbox is full: this one stays in the queue, and expires there.
+    let expiring = BasicProperties {
+        expiration: Some(s("0")),
+        ..Default::default()
+    };
+    h.publish_with("", "q", "expired", expiring);
+    assert_eq!(q.message_count(), 1);
+    // Draining wakes the queue; its dispatch finds the message expired.
+    assert_eq!(ch.drain().len(), OUTBOX_CAPACITY);
+    assert_eq!(q.message_count(), 0);
+    assert_eq!(dead.message_count(), 0, "not routed by the writer");
+    h.sweep_at(Instant::now());
+    assert_eq!(dead.message_count(), 1);
+}

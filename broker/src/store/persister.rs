@@ -1,0 +1,499 @@
+//! The persister: one thread that takes submissions of [`StoreOp`]s from
+//! every connection, writes them in groups (plain writes in order, a
+//! transaction's commit as one atomic batch, delivery marks merged to one
+//! write per queue) and flushes once per group; and [`Persistence`], the
+//! broker's handle on it, which numbers submissions and reports how far
+//! the disk has got, so a confirm or a commit-ok waits for exactly the
+//! flush that covers it.
+
+use super::{guarded, KvOp, Recovered, Store, StoreError, StoreOp, WriteMode};
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use tokio::sync::{mpsc, watch};
+
+/// The most ops one group commit writes before its flush (more wait for
+/// the next group), so one flush stays short.
+const GROUP_OPS: usize = 50_000;
+
+/// A request to the persister: ops to write as `mode` says;
+/// or, with `close`, the last request: flush, release the store, answer.
+struct Submission {
+    /// Its number, from [`Persistence::next_number`].
+    number: u64,
+    ops: Vec<StoreOp>,
+    mode: WriteMode,
+    close: Option<tokio::sync::oneshot::Sender<()>>,
+}
+
+impl std::fmt::Debug for Submission {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Submission({} ops)", self.ops.len())
+    }
+}
+
+/// How far the persister has got: every submission numbered up to
+/// `flushed` has been attempted, and is on disk unless its batch failed
+/// (see [`Persistence::succeeded`]). Submissions reach the persister in
+/// about, not exactly, their number order, so this is the contiguous
+/// watermark, never merely the highest number seen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Durable {
+    /// Highest submission number attempted.
+    pub flushed: u64,
+}
+
+/// The contiguous watermark of completed submission numbers: the highest
+/// number at or below which every submission is done. A number completed
+/// ahead of a lower one waits (in a heap, which stays as small as the
+/// reordering is) until the gap closes.
+#[derive(Debug, Default)]
+struct Watermark {
+    contiguous: u64,
+    ahead: std::collections::BinaryHeap<std::cmp::Reverse<u64>>,
+}
+
+impl Watermark {
+    /// Records submission `number` done.
+    fn complete(&mut self, number: u64) {
+        if number != self.contiguous + 1 {
+            self.ahead.push(std::cmp::Reverse(number));
+            return;
+        }
+        self.contiguous = number;
+        while let Some(&std::cmp::Reverse(next)) = self.ahead.peek() {
+            if next != self.contiguous + 1 {
+                break;
+            }
+            self.ahead.pop();
+            self.contiguous = next;
+        }
+    }
+}
+
+/// The most recent failed batches remembered, as submission ranges. A
+/// waiting publish checks its number against them within moments of the
+/// failure, so a short history is enough.
+const FAILED_HISTORY: usize = 4096;
+
+/// The broker's handle on durable storage: submit ops, learn when they are
+/// on disk. Submissions are numbered; [`Persistence::durable`] reports the
+/// highest number flushed.
+#[derive(Debug)]
+pub struct Persistence {
+    submit: mpsc::UnboundedSender<Submission>,
+    submitted: AtomicU64,
+    durable: watch::Receiver<Durable>,
+    failed: Arc<Mutex<VecDeque<(u64, u64)>>>,
+    next_message_id: AtomicU64,
+    next_queue_id: AtomicU64,
+}
+
+/// One group commit being assembled by the persister: plain writes in
+/// order, atomic submissions applied as batches in their place, delivery
+/// marks merged to one write per queue, then one flush.
+#[derive(Default)]
+struct Group {
+    pending: Vec<KvOp>,
+    marks: Vec<(u64, u64)>,
+    /// The numbers of the submissions in the group.
+    numbers: Vec<u64>,
+    len: usize,
+    error: Option<StoreError>,
+}
+
+impl Group {
+    /// Adds a submission; returns its close request, if it is one.
+    fn add(
+        &mut self,
+        store: &dyn Store,
+        submission: Submission,
+    ) -> Option<tokio::sync::oneshot::Sender<()>> {
+        self.numbers.push(submission.number);
+        self.len += submission.ops.len();
+        if submission.mode == WriteMode::Atomic {
+            self.write_pending(store);
+            let ops = submission.ops.iter().map(StoreOp::to_kv).collect();
+            let result = guarded("write", || store.write(ops, WriteMode::Atomic));
+            self.record(result);
+            return submission.close;
+        }
+        for op in &submission.ops {
+            match op {
+                StoreOp::Delivered { queue, seq } => {
+                    match self.marks.iter_mut().find(|(q, _)| q == queue) {
+                        Some((_, mark)) => *mark = (*mark).max(*seq),
+                        None => self.marks.push((*queue, *seq)),
+                    }
+                }
+                op => self.pending.push(op.to_kv()),
+            }
+        }
+        submission.close
+    }
+
+    fn write_pending(&mut self, store: &dyn Store) {
+        if !self.pending.is_empty() {
+            let ops = std::mem::take(&mut self.pending);
+            let result = guarded("write", || store.write(ops, WriteMode::Plain));
+            self.record(result);
+        }
+    }
+
+    fn record(&mut self, result: Result<(), StoreError>) {
+        if let (Err(e), None) = (result, &self.error) {
+            self.error = Some(e);
+        }
+    }
+
+    fn finish(mut self, store: &dyn Store) -> Result<(), StoreError> {
+        let marks = std::mem::take(&mut self.marks);
+        self.pending.extend(
+            marks
+                .into_iter()
+                .map(|(queue, seq)| StoreOp::Delivered { queue, seq }.to_kv()),
+        );
+        self.write_pending(store);
+        let flushed = guarded("flush", || store.flush());
+        self.record(flushed);
+        match self.error {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Persistence {
+    /// Starts the persister thread for `store`, after `recovered` told the
+    /// ids in use.
+    pub fn start(
+        store: Arc<dyn Store>,
+        recovered: &Recovered,
+    ) -> Result<Arc<Persistence>, StoreError> {
+        // Unbounded on purpose: submissions are bounded upstream (publishers
+        // wait for confirms and are blocked by the memory alarm), and a
+        // bounded channel here would block a queue's lock holder.
+        let (submit, inbox) = mpsc::unbounded_channel::<Submission>();
+        let (durable_tx, durable) = watch::channel(Durable { flushed: 0 });
+        let failed = Arc::new(Mutex::new(VecDeque::new()));
+        let failed_log = Arc::clone(&failed);
+        std::thread::Builder::new()
+            .name("leveret-persister".into())
+            .spawn(move || persist(store, inbox, durable_tx, failed_log))
+            .map_err(StoreError::Persister)?;
+        Ok(Arc::new(Persistence {
+            submit,
+            submitted: AtomicU64::new(0),
+            durable,
+            failed,
+            next_message_id: AtomicU64::new(recovered.max_message_id() + 1),
+            next_queue_id: AtomicU64::new(recovered.max_queue_id() + 1),
+        }))
+    }
+
+    /// Queues ops for the next group; returns their submission number.
+    pub fn submit(&self, ops: Vec<StoreOp>) -> u64 {
+        self.send(ops, WriteMode::Plain, None)
+    }
+
+    /// Queues ops that must reach the disk all together or not at all (a
+    /// transaction's commit).
+    pub fn submit_atomic(&self, ops: Vec<StoreOp>) -> u64 {
+        self.send(ops, WriteMode::Atomic, None)
+    }
+
+    /// Writes and flushes everything submitted so far, then releases the
+    /// store; later submissions are dropped. For shutdown.
+    pub async fn close(&self) {
+        let (done, closed) = tokio::sync::oneshot::channel();
+        self.send(Vec::new(), WriteMode::Plain, Some(done));
+        let _ = closed.await;
+    }
+
+    fn send(
+        &self,
+        ops: Vec<StoreOp>,
+        mode: WriteMode,
+        close: Option<tokio::sync::oneshot::Sender<()>>,
+    ) -> u64 {
+        let number = self.next_number();
+        self.send_numbered(Submission {
+            number,
+            ops,
+            mode,
+            close,
+        });
+        number
+    }
+
+    /// Numbers a submission. Numbering and sending are two steps: on a
+    /// multi-thread runtime another thread may number its submission later
+    /// and still send it first, which is why the persister reports the
+    /// contiguous watermark ([`Watermark`]).
+    fn next_number(&self) -> u64 {
+        self.submitted.fetch_add(1, Ordering::AcqRel) + 1
+    }
+
+    fn send_numbered(&self, submission: Submission) {
+        // The persister thread lives as long as the process; a send error
+        // only happens at exit.
+        let _ = self.submit.send(submission);
+    }
+
+    /// Watches what is on disk.
+    pub fn durable(&self) -> watch::Receiver<Durable> {
+        self.durable.clone()
+    }
+
+    /// Highest submission number the persister has attempted.
+    pub fn flushed(&self) -> u64 {
+        self.durable.borrow().flushed
+    }
+
+    /// Whether submission `number` (already attempted) reached the disk.
+    pub fn succeeded(&self, number: u64) -> bool {
+        let log = self.failed.lock().unwrap_or_else(|e| e.into_inner());
+        !log.iter().any(|&(from, to)| (from..=to).contains(&number))
+    }
+
+    /// Waits until submission `number` is on disk; false if its batch failed.
+    pub async fn wait(&self, number: u64) -> bool {
+        let mut durable = self.durable.clone();
+        if durable.wait_for(|d| d.flushed >= number).await.is_err() {
+            return false;
+        }
+        self.succeeded(number)
+    }
+
+    /// Waits until everything submitted so far is on disk.
+    pub async fn sync(&self) -> bool {
+        self.wait(self.submitted.load(Ordering::Acquire)).await
+    }
+
+    /// A fresh message id.
+    pub fn next_message_id(&self) -> u64 {
+        self.next_message_id.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// A fresh queue id.
+    pub fn next_queue_id(&self) -> u64 {
+        self.next_queue_id.fetch_add(1, Ordering::Relaxed)
+    }
+}
+
+/// The persister thread: takes every submission already waiting into one
+/// group (up to [`GROUP_OPS`] ops), writes and flushes it, then reports
+/// the group's submissions done (and records them as failed if the store
+/// refused them), until a close request or until every handle is gone.
+fn persist(
+    store: Arc<dyn Store>,
+    mut inbox: mpsc::UnboundedReceiver<Submission>,
+    durable: watch::Sender<Durable>,
+    failed: Arc<Mutex<VecDeque<(u64, u64)>>>,
+) {
+    let mut watermark = Watermark::default();
+    while let Some(first) = inbox.blocking_recv() {
+        let mut group = Group::default();
+        let mut closing = group.add(&*store, first);
+        while closing.is_none() && group.len < GROUP_OPS {
+            match inbox.try_recv() {
+                Ok(next) => closing = group.add(&*store, next),
+                Err(_) => break,
+            }
+        }
+        let mut numbers = std::mem::take(&mut group.numbers);
+        if let Err(e) = group.finish(&*store) {
+            tracing::error!(error = %e, "persisting failed; affected publishes are nacked");
+            numbers.sort_unstable();
+            // Held only to push or search, never across an await.
+            let mut log = failed.lock().unwrap_or_else(|e| e.into_inner());
+            for range in runs(&numbers) {
+                if log.len() == FAILED_HISTORY {
+                    log.pop_front();
+                }
+                log.push_back(range);
+            }
+        }
+        for number in numbers {
+            watermark.complete(number);
+        }
+        durable.send_replace(Durable {
+            flushed: watermark.contiguous,
+        });
+        if let Some(done) = closing {
+            // Releases the data directory (sled's lock) before answering,
+            // so a new broker can open it at once.
+            drop(store);
+            let _ = done.send(());
+            return;
+        }
+    }
+}
+
+/// Sorted numbers as ranges of consecutive ones (a group's numbers are
+/// one range unless submissions arrived out of order).
+fn runs(sorted: &[u64]) -> Vec<(u64, u64)> {
+    let mut runs: Vec<(u64, u64)> = Vec::new();
+    for &number in sorted {
+        match runs.last_mut() {
+            Some((_, last)) if *last + 1 == number => *last = number,
+            _ => runs.push((number, number)),
+        }
+    }
+    runs
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::MemoryStore;
+
+    #[tokio::test]
+    async fn persister_numbers_submissions_and_reports_them_flushed() {
+        let store: Arc<dyn Store> = Arc::new(MemoryStore::default());
+        let persistence = Persistence::start(Arc::clone(&store), &Recovered::default()).unwrap();
+        let mut last = 0;
+        for i in 0..100 {
+            last = persistence.submit(vec![StoreOp::DeleteMessage { id: i }]);
+        }
+        assert_eq!(last, 100);
+        assert!(persistence.wait(last).await);
+        assert_eq!(persistence.next_queue_id(), 1);
+    }
+
+    /// A store that refuses writes while `failing` is set.
+    #[derive(Debug, Default)]
+    struct Flaky {
+        inner: MemoryStore,
+        failing: std::sync::atomic::AtomicBool,
+    }
+
+    impl Store for Flaky {
+        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+            if self.failing.load(Ordering::SeqCst) {
+                return Err(StoreError::Engine("simulated failure".into()));
+            }
+            self.inner.write(ops, mode)
+        }
+        fn flush(&self) -> Result<(), StoreError> {
+            self.inner.flush()
+        }
+        fn scan(&self) -> Result<Vec<crate::store::KvPair>, StoreError> {
+            self.inner.scan()
+        }
+    }
+
+    fn submission(number: u64, id: u64) -> Submission {
+        Submission {
+            number,
+            ops: vec![StoreOp::DeleteMessage { id }],
+            mode: WriteMode::Plain,
+            close: None,
+        }
+    }
+
+    /// On a multi-thread runtime a submission numbered later can reach the
+    /// persister first. Its flush must not report the earlier number on
+    /// disk: a confirm or commit-ok waiting for that number would go out
+    /// before its writes are.
+    #[tokio::test]
+    async fn a_later_number_flushed_first_does_not_cover_an_earlier_one() {
+        let store: Arc<dyn Store> = Arc::new(MemoryStore::default());
+        let persistence = Persistence::start(store, &Recovered::default()).unwrap();
+        let mut durable = persistence.durable();
+        durable.borrow_and_update();
+        let earlier = persistence.next_number();
+        let later = persistence.next_number();
+        persistence.send_numbered(submission(later, 2));
+        // The persister reports after every group, changed or not.
+        durable.changed().await.unwrap();
+        assert_eq!(durable.borrow_and_update().flushed, 0);
+        assert!(persistence.flushed() < earlier);
+        persistence.send_numbered(submission(earlier, 1));
+        assert!(persistence.wait(later).await);
+        assert_eq!(persistence.flushed(), later);
+    }
+
+    #[test]
+    fn the_watermark_is_contiguous() {
+        let mut watermark = Watermark::default();
+        for (number, expected) in [(2, 0), (4, 0), (1, 2), (3, 4), (5, 5)] {
+            watermark.complete(number);
+            assert_eq!(watermark.contiguous, expected, "after {number}");
+        }
+        assert!(watermark.ahead.is_empty());
+    }
+
+    #[tokio::test]
+    async fn a_failed_group_fails_exactly_its_submissions() {
+        let flaky = Arc::new(Flaky::default());
+        let store: Arc<dyn Store> = Arc::clone(&flaky) as Arc<dyn Store>;
+        let persistence = Persistence::start(store, &Recovered::default()).unwrap();
+        let good = persistence.submit(vec![StoreOp::DeleteMessage { id: 1 }]);
+        assert!(persistence.wait(good).await);
+        flaky.failing.store(true, Ordering::SeqCst);
+        let bad = persistence.submit(vec![StoreOp::DeleteMessage { id: 2 }]);
+        assert!(!persistence.wait(bad).await);
+        flaky.failing.store(false, Ordering::SeqCst);
+        let after = persistence.submit(vec![StoreOp::DeleteMessage { id: 3 }]);
+        assert!(persistence.wait(after).await);
+        assert!(persistence.succeeded(good));
+    }
+
+    /// A store whose writes panic while `panicking` is set.
+    #[derive(Debug, Default)]
+    struct Panicky {
+        inner: MemoryStore,
+        panicking: std::sync::atomic::AtomicBool,
+    }
+
+    impl Store for Panicky {
+        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+            assert!(
+                !self.panicking.load(Ordering::SeqCst),
+                "tried to serialize Uninitialized (simulated)"
+            );
+            self.inner.write(ops, mode)
+        }
+        fn flush(&self) -> Result<(), StoreError> {
+            self.inner.flush()
+        }
+        fn scan(&self) -> Result<Vec<crate::store::KvPair>, StoreError> {
+            self.inner.scan()
+        }
+    }
+
+    /// A panic inside the storage engine fails its group like an error
+    /// does; the persister thread lives on and later groups succeed.
+    #[tokio::test]
+    async fn a_panic_in_the_store_fails_its_group_and_the_persister_goes_on() {
+        let panicky = Arc::new(Panicky::default());
+        let store: Arc<dyn Store> = Arc::clone(&panicky) as Arc<dyn Store>;
+        let persistence = Persistence::start(store, &Recovered::default()).unwrap();
+        panicky.panicking.store(true, Ordering::SeqCst);
+        let bad = persistence.submit_atomic(vec![StoreOp::DeleteMessage { id: 1 }]);
+        assert!(!persistence.wait(bad).await);
+        let bad = persistence.submit(vec![StoreOp::DeleteMessage { id: 2 }]);
+        assert!(!persistence.wait(bad).await);
+        panicky.panicking.store(false, Ordering::SeqCst);
+        let after = persistence.submit(vec![StoreOp::DeleteMessage { id: 3 }]);
+        assert!(persistence.wait(after).await, "the persister survived");
+    }
+
+    #[test]
+    fn guarded_turns_a_panic_into_an_error_naming_the_call() {
+        let err = guarded::<()>("flush", || panic!("boom {}", 7)).unwrap_err();
+        assert!(
+            matches!(&err, StoreError::Panicked { what: "flush", message } if message == "boom 7"),
+            "{err}"
+        );
+        assert!(guarded("scan", || Ok(5)).is_ok_and(|v| v == 5));
+    }
+
+    #[test]
+    fn runs_merge_consecutive_numbers() {
+        assert_eq!(runs(&[]), vec![]);
+        assert_eq!(runs(&[3, 4, 5]), vec![(3, 5)]);
+        assert_eq!(runs(&[1, 3, 4, 7]), vec![(1, 1), (3, 4), (7, 7)]);
+    }
+}

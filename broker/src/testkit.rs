@@ -1,0 +1,379 @@
+//! A harness for unit tests of the core without sockets, in the spirit of
+//! raft-rs's: a [`Harness`] is a vhost (optionally with a persister over a
+//! [`MemoryStore`]) driven by direct calls, and a [`FakeChannel`] stands
+//! where a client's channel would be: it consumes, gets, acks and rejects
+//! through the same `Queue` operations the real channel uses, and its
+//! outbox is read back as a list of [`Delivered`] items instead of frames
+//! on a socket. Time is passed in (`expire_at`, `sweep_at`) rather than
+//! waited for.
+
+use crate::consumer::{ChannelLink, Consumer};
+use crate::exchange::{ExchangeKind, ExchangeOptions};
+use crate::memory::MemoryGauge;
+use crate::message::Message;
+use crate::outbox::{Outbound, Outbox};
+use crate::queue::{DeadLetters, Enqueued, Queue, QueueOptions};
+use crate::store::{MemoryStore, Persistence, Recovered, Store};
+use crate::vhost::{BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
+use bytes::{Bytes, BytesMut};
+use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+use tokio::sync::mpsc;
+
+/// A short string from a literal.
+pub fn s(text: &str) -> ShortStr {
+    ShortStr::try_from(text).expect("a short string")
+}
+
+/// A field table from pairs.
+pub fn table(pairs: &[(&str, FieldValue)]) -> FieldTable {
+    pairs
+        .iter()
+        .map(|(key, value)| (s(key), value.clone()))
+        .collect()
+}
+
+/// A vhost driven directly.
+pub struct Harness {
+    /// The vhost under test.
+    pub vhost: Arc<Vhost>,
+    /// Its persister, if it has a store.
+    pub persistence: Option<Arc<Persistence>>,
+    next_connection: AtomicU64,
+}
+
+impl Harness {
+    /// A vhost `/` without storage.
+    pub fn new() -> Self {
+        Self::build(None)
+    }
+
+    /// A vhost `/` whose durable queues persist into a [`MemoryStore`].
+    pub fn durable() -> Self {
+        let store: Arc<dyn Store> = Arc::new(MemoryStore::default());
+        let persistence =
+            Persistence::start(store, &Recovered::default()).expect("the persister starts");
+        Self::build(Some(persistence))
+    }
+
+    fn build(persistence: Option<Arc<Persistence>>) -> Self {
+        let gauge = Arc::new(MemoryGauge::new(usize::MAX));
+        Harness {
+            vhost: Vhost::new(s("/"), gauge, persistence.clone(), Default::default()),
+            persistence,
+            next_connection: AtomicU64::new(1),
+        }
+    }
+
+    /// Declares a non-durable queue with `arguments`.
+    pub fn queue(&self, name: &str, arguments: &[(&str, FieldValue)]) -> Arc<Queue> {
+        self.declare_queue(name, false, arguments)
+    }
+
+    /// Declares a queue.
+    pub fn declare_queue(
+        &self,
+        name: &str,
+        durable: bool,
+        arguments: &[(&str, FieldValue)],
+    ) -> Arc<Queue> {
+        let declaration = QueueDeclaration {
+            name: s(name),
+            passive: false,
+            server_named: false,
+            max_queues: None,
+            options: QueueOptions {
+                durable,
+                exclusive_owner: None,
+                auto_delete: false,
+                arguments: table(arguments),
+            },
+        };
+        let (queue, _) = self
+            .vhost
+            .declare_queue(declaration, 0)
+            .expect("queue.declare");
+        queue
+    }
+
+    /// Declares a non-durable exchange.
+    pub fn exchange(&self, name: &str, kind: ExchangeKind) {
+        self.vhost
+            .declare_exchange(ExchangeDeclaration {
+                name: s(name),
+                kind: s(kind.name()),
+                passive: false,
+                options: ExchangeOptions::default(),
+            })
+            .expect("exchange.declare");
+    }
+
+    /// Binds `queue` to `exchange` with `key`.
+    pub fn bind(&self, queue: &Arc<Queue>, exchange: &str, key: &str) {
+        self.vhost
+            .bind_queue(
+                queue,
+                &s(exchange),
+                s(key),
+                FieldTable::new(),
+                BindingChange::Bind,
+            )
+            .expect("queue.bind");
+    }
+
+    /// Publishes a transient message with no properties.
+    pub fn publish(&self, exchange: &str, key: &str, body: &str) -> Vec<Enqueued> {
+        self.publish_with(exchange, key, body, BasicProperties::default())
+    }
+
+    /// Publishes a message as a channel would: routes it, offers it to
+    /// every queue it reaches, routes the dead letters that causes.
+    /// Returns each queue's answer.
+    pub fn publish_with(
+        &self,
+        exchange: &str,
+        key: &str,
+        body: &str,
+        properties: BasicProperties,
+    ) -> Vec<Enqueued> {
+        let exchange = self.vhost.exchange_or_404(&s(exchange)).expect("exchange");
+        let mut queues = Vec::new();
+        self.vhost
+            .route(&exchange, &s(key), properties.headers.as_ref(), &mut queues);
+        let message = message(&exchange.name, key, body, &properties);
+        let mut dead = DeadLetters::default();
+        let mut answers = Vec::new();
+        for queue in queues {
+            let (enqueued, dead_here) = queue.publish(Arc::clone(&message));
+            answers.push(enqueued);
+            dead.append(dead_here);
+        }
+        self.vhost.dead_letter(dead);
+        answers
+    }
+
+    /// The vhost's sweep as of `now` (message TTLs, x-expires).
+    pub fn sweep_at(&self, now: Instant) {
+        self.vhost.sweep_at(now);
+    }
+
+    /// A channel on a new connection.
+    pub fn channel(&self) -> FakeChannel {
+        let connection = self.next_connection.fetch_add(1, Ordering::Relaxed);
+        let (outbox, inbox) = Outbox::new(connection);
+        FakeChannel {
+            link: Arc::new(ChannelLink::new(1, outbox)),
+            inbox,
+            vhost: Arc::clone(&self.vhost),
+        }
+    }
+}
+
+/// A message as a publisher would send it.
+pub fn message(
+    exchange: &ShortStr,
+    key: &str,
+    body: &str,
+    properties: &BasicProperties,
+) -> Arc<Message> {
+    let mut encoded = BytesMut::new();
+    properties.encode(&mut encoded);
+    Arc::new(Message {
+        exchange: exchange.clone(),
+        routing_key: s(key),
+        properties: encoded.freeze(),
+        body: Bytes::copy_from_slice(body.as_bytes()),
+        persistent: properties.is_persistent(),
+        priority: properties.priority.unwrap_or(0),
+        ttl_ms: properties
+            .expiration
+            .as_ref()
+            .and_then(|e| e.as_str())
+            .and_then(|e| e.parse().ok()),
+        stored: None,
+    })
+}
+
+/// What a [`FakeChannel`]'s outbox received, decoded.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Delivered {
+    /// The delivery tag.
+    pub tag: u64,
+    /// The consumer tag (empty for basic.get).
+    pub consumer: String,
+    /// The body.
+    pub body: String,
+    /// Delivered before.
+    pub redelivered: bool,
+    /// The properties' headers.
+    pub headers: Option<FieldTable>,
+}
+
+impl Delivered {
+    /// Its `x-death` entries as (queue, reason, count), newest first.
+    pub fn deaths(&self) -> Vec<(String, String, i64)> {
+        let Some(FieldValue::Array(entries)) = self.headers.as_ref().and_then(|h| h.get("x-death"))
+        else {
+            return Vec::new();
+        };
+        entries
+            .iter()
+            .map(|entry| {
+                let FieldValue::Table(death) = entry else {
+                    panic!("x-death entries are tables, got {entry:?}");
+                };
+                let text = |key: &str| {
+                    let bytes = death.get(key).and_then(FieldValue::as_bytes);
+                    String::from_utf8_lossy(bytes.unwrap_or_default()).into_owned()
+                };
+                let count = death.get("count").and_then(FieldValue::as_i64);
+                (text("queue"), text("reason"), count.unwrap_or(0))
+            })
+            .collect()
+    }
+
+    /// A header's text value.
+    pub fn header_text(&self, key: &str) -> Option<String> {
+        let value = self.headers.as_ref()?.get(key)?.as_bytes()?;
+        Some(String::from_utf8_lossy(value).into_owned())
+    }
+}
+
+/// An `x-death` entry as [`Delivered::deaths`] lists it.
+pub fn death(queue: &str, reason: &str, count: i64) -> (String, String, i64) {
+    (queue.to_owned(), reason.to_owned(), count)
+}
+
+/// Options of [`FakeChannel::consume`].
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Consume {
+    /// No acks.
+    pub no_ack: bool,
+    /// Per-consumer prefetch (0 = none).
+    pub prefetch: u32,
+}
+
+/// A client's channel, without a client: consumers and acks on a
+/// [`ChannelLink`] whose outbox the test reads.
+pub struct FakeChannel {
+    /// The link queues deliver through.
+    pub link: Arc<ChannelLink>,
+    inbox: mpsc::Receiver<Outbound>,
+    vhost: Arc<Vhost>,
+}
+
+impl FakeChannel {
+    /// basic.consume with `tag` on `queue`, active at once.
+    pub fn consume(&self, queue: &Arc<Queue>, tag: &str, options: Consume) -> Arc<Consumer> {
+        let consumer = Arc::new(Consumer {
+            tag: s(tag),
+            channel: Arc::clone(&self.link),
+            no_ack: options.no_ack,
+            exclusive: false,
+            prefetch: options.prefetch,
+            priority: 0,
+            in_flight: Default::default(),
+            active: Default::default(),
+        });
+        let dead = queue
+            .add_consumer(Arc::clone(&consumer))
+            .expect("basic.consume");
+        self.vhost.dead_letter(dead);
+        consumer.activate();
+        self.vhost.dead_letter(queue.dispatch());
+        consumer
+    }
+
+    /// basic.get; the get-ok is in the outbox ([`FakeChannel::drain`]).
+    pub fn get(&self, queue: &Arc<Queue>, no_ack: bool) -> bool {
+        let permit = self.link.outbox.try_reserve().expect("room in the outbox");
+        let (delivered, dead) = queue.get(&self.link, no_ack, permit);
+        self.vhost.dead_letter(dead);
+        delivered
+    }
+
+    /// Everything the outbox holds, in order (then lets queues that were
+    /// waiting for room dispatch again, as a writer does after draining).
+    pub fn drain(&mut self) -> Vec<Delivered> {
+        let mut out = Vec::new();
+        while let Ok(item) = self.inbox.try_recv() {
+            match item {
+                Outbound::Deliver {
+                    consumer_tag,
+                    delivery_tag,
+                    redelivered,
+                    message,
+                    ..
+                } => out.push(decode(
+                    delivery_tag,
+                    consumer_tag.as_str().unwrap_or_default(),
+                    redelivered,
+                    &message,
+                )),
+                Outbound::GetOk {
+                    delivery_tag,
+                    redelivered,
+                    message,
+                    ..
+                } => out.push(decode(delivery_tag, "", redelivered, &message)),
+                other => panic!("expected deliveries only, got {other:?}"),
+            }
+        }
+        self.link.outbox.wake_blocked();
+        out
+    }
+
+    /// basic.ack.
+    pub fn ack(&self, tag: u64, multiple: bool) {
+        self.settle(tag, multiple, |queue, message| {
+            queue.settle(message);
+            DeadLetters::default()
+        });
+    }
+
+    /// basic.nack with `requeue`.
+    pub fn nack(&self, tag: u64, multiple: bool, requeue: bool) {
+        self.settle(tag, multiple, |queue, message| {
+            if requeue {
+                queue.requeue([message.clone()])
+            } else {
+                queue.reject(message.clone())
+            }
+        });
+    }
+
+    fn settle(
+        &self,
+        tag: u64,
+        multiple: bool,
+        how: impl Fn(&Arc<Queue>, &crate::queue::QueuedMessage) -> DeadLetters,
+    ) {
+        let settled = self
+            .link
+            .deliveries()
+            .take(tag, multiple)
+            .expect("a known delivery tag");
+        let mut dead = DeadLetters::default();
+        for unacked in settled {
+            if let Some(consumer) = &unacked.consumer {
+                consumer.settled_one();
+            }
+            dead.append(how(&unacked.queue, &unacked.message));
+            dead.append(unacked.queue.dispatch());
+        }
+        self.vhost.dead_letter(dead);
+    }
+}
+
+fn decode(tag: u64, consumer: &str, redelivered: bool, message: &Message) -> Delivered {
+    let properties = BasicProperties::decode(&message.properties).expect("properties");
+    Delivered {
+        tag,
+        consumer: consumer.to_owned(),
+        body: String::from_utf8(message.body.to_vec()).expect("utf-8 body"),
+        redelivered,
+        headers: properties.headers,
+    }
+}
