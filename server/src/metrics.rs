@@ -452,6 +452,9 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
             ("rabbitmq_version", version),
             ("prometheus_plugin_version", version),
             ("prometheus_client_version", PROMETHEUS_CLIENT_VERSION),
+            // The dashboard's nodes table has an Erlang/OTP column; Leveret
+            // runs no Erlang, and says so rather than leave the cell blank.
+            ("erlang_version", "none"),
         ],
         1.0,
     );

@@ -6,7 +6,7 @@
 
 mod common;
 
-use common::ops::{basic, request, OpsBroker};
+use common::ops::{basic, request, tool_available, OpsBroker};
 use futures_lite::StreamExt;
 use lapin::options::{BasicConsumeOptions, QueueDeclareOptions};
 use lapin::types::FieldTable;
@@ -53,11 +53,11 @@ fn named<'a>(list: &'a Value, name: &str) -> &'a Value {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rabbitmqadmin_drives_leveret() {
-    let broker = OpsBroker::start("rabbitmqadmin", &[]);
-    let Some(overview) = rabbitmqadmin(&broker, &["show", "overview"]) else {
-        eprintln!("SKIPPED: rabbitmqadmin is not installed (apt-get install rabbitmq-server)");
+    if !tool_available("rabbitmqadmin", "rabbitmq-server") {
         return;
-    };
+    }
+    let broker = OpsBroker::start("rabbitmqadmin", &[]);
+    let overview = rabbitmqadmin(&broker, &["show", "overview"]).expect("installed");
     assert!(overview.contains("leveret@"), "{overview}");
     for args in [
         &[

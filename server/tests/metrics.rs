@@ -6,7 +6,7 @@
 
 mod common;
 
-use common::ops::{promtool_check, request, try_request, OpsBroker};
+use common::ops::{promtool_check, request, tool_available, try_request, OpsBroker};
 use futures_lite::StreamExt;
 use lapin::options::{
     BasicAckOptions, BasicConsumeOptions, BasicPublishOptions, BasicQosOptions,
@@ -52,10 +52,11 @@ async fn scrape_until(addr: SocketAddr, path: &str, series: &str, expected: f64)
 }
 
 fn check_with_promtool(text: &str, what: &str) {
+    if !tool_available("promtool", "prometheus") {
+        return;
+    }
     match promtool_check(text) {
-        None => eprintln!(
-            "SKIPPED promtool check of {what}: promtool is not installed (apt-get install prometheus)"
-        ),
+        None => panic!("promtool vanished"),
         Some(Ok(())) => {}
         Some(Err(problems)) => panic!("promtool check metrics on {what}:\n{problems}\n{text}"),
     }

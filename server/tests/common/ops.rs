@@ -284,3 +284,28 @@ pub fn basic(user: &str, password: &str) -> String {
     let token = base64::engine::general_purpose::STANDARD.encode(format!("{user}:{password}"));
     format!("Basic {token}")
 }
+
+/// Whether the operators' tool `program` (run as `program version_arg`)
+/// is installed. Outside CI a missing tool skips the test that needs it
+/// with a loud message naming the package; under CI (`CI` set, as
+/// `.ci/run` does) it is a failure, since `.ci/run` installs every tool.
+pub fn tool_available(program: &str, package: &str) -> bool {
+    let found = Command::new("sh")
+        .args(["-c", &format!("command -v {program}")])
+        .stdout(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if found {
+        return true;
+    }
+    let in_ci = std::env::var_os("CI").is_some_and(|v| !v.is_empty() && v != "0" && v != "false");
+    assert!(
+        !in_ci,
+        "{program} is not installed, and CI needs it (.ci/run installs Debian's {package})"
+    );
+    eprintln!(
+        "\n*** SKIPPED: {program} is not installed (apt-get install {package}); \
+         this test ran nothing. Under CI (CI=1) this is a failure. ***\n"
+    );
+    false
+}
