@@ -5,12 +5,15 @@
 //! What Leveret acts on: vhosts, users (with RabbitMQ's SHA-256 password
 //! hashes, which are Leveret's own scheme; at start only, as users are
 //! fixed once the broker runs), exchanges, queues (with arguments) and
-//! bindings. Everything else is reported, never dropped silently:
-//! permissions and topic permissions (Leveret has none: every user may use
-//! every vhost), policies, parameters, global parameters, unknown keys,
-//! other password hashing algorithms, and queue types Leveret does not
-//! have (an `x-queue-type` other than classic gives a classic queue).
+//! bindings. Users' tags, permissions and topic permissions are parsed
+//! into plain data (`access`), kept and exported as imported, but not
+//! enforced (every user may use every vhost): each import says so.
+//! Everything else is reported, never dropped silently: policies,
+//! parameters, global parameters, unknown keys, other password hashing
+//! algorithms, and queue types Leveret does not have (an `x-queue-type`
+//! other than classic gives a classic queue).
 
+use crate::access::{Access, AccessRecords, Permission, TopicPermission};
 use crate::management::json::{flag, table, text, to_table};
 use base64::Engine;
 use leveret_broker::{
@@ -42,6 +45,8 @@ pub struct Definitions {
     exchanges: Vec<(String, String, ExchangeSettings)>,
     queues: Vec<(String, String, QueueSettings)>,
     bindings: Vec<(String, BindingSpec)>,
+    /// Users' tags and permissions, recorded but not enforced.
+    pub access: AccessRecords,
     /// Everything not applied, one line each.
     pub warnings: Vec<String>,
 }
@@ -100,6 +105,24 @@ fn name(item: &Map<String, Value>, key: &str, what: &str) -> Result<String, Stri
     }
 }
 
+/// A user's `tags`: RabbitMQ exports a list; older files a comma-separated string.
+fn user_tags(tags: Option<&Value>) -> Vec<String> {
+    match tags {
+        Some(Value::Array(list)) => list
+            .iter()
+            .filter_map(Value::as_str)
+            .map(str::to_owned)
+            .collect(),
+        Some(Value::String(text)) => text
+            .split(',')
+            .map(str::trim)
+            .filter(|t| !t.is_empty())
+            .map(str::to_owned)
+            .collect(),
+        _ => Vec::new(),
+    }
+}
+
 /// RabbitMQ's stored hash (base64 of a 4-byte salt and the SHA-256) as
 /// Leveret's.
 fn password_hash(base64_hash: &str) -> Option<PasswordHash> {
@@ -147,13 +170,16 @@ impl Definitions {
             "product_name",
             "product_version",
         ];
-        const APPLIED: [&str; 5] = ["vhosts", "users", "exchanges", "queues", "bindings"];
-        const NOT_SUPPORTED: [(&str, &str); 6] = [
-            (
-                "permissions",
-                "Leveret has no permissions: every user may use every vhost",
-            ),
-            ("topic_permissions", "Leveret has no topic permissions"),
+        const APPLIED: [&str; 7] = [
+            "vhosts",
+            "users",
+            "exchanges",
+            "queues",
+            "bindings",
+            "permissions",
+            "topic_permissions",
+        ];
+        const NOT_SUPPORTED: [(&str, &str); 4] = [
             ("policies", "Leveret has no policies"),
             ("operator_policies", "Leveret has no policies"),
             ("parameters", "Leveret has no runtime parameters"),
@@ -207,11 +233,12 @@ impl Definitions {
                 &what,
                 &mut d.warnings,
             );
-            if item.get("tags").is_some_and(|t| !is_empty(t)) {
+            let tags = user_tags(item.get("tags"));
+            if !tags.is_empty() {
                 d.warnings.push(format!(
-                    "{what}: tags {} ignored: Leveret has no user tags",
-                    item["tags"]
+                    "{what}: tags {tags:?} recorded but not enforced: every user may do everything"
                 ));
+                d.access.tags.insert(user.clone(), tags);
             }
             let algorithm = text(item, "hashing_algorithm", SHA256)?;
             if algorithm != SHA256 {
@@ -223,6 +250,54 @@ impl Definitions {
                 None => d
                     .warnings
                     .push(format!("{what} not imported: no usable password_hash")),
+            }
+        }
+        for item in list(root, "permissions")? {
+            let item = object(item, "permissions")?;
+            let user = name(item, "user", "a permission")?;
+            let vhost = vhost_of(item, "a permission")?;
+            let what = format!("permission of '{user}' on vhost '{vhost}'");
+            unused_keys(
+                item,
+                &["user", "vhost", "configure", "write", "read"],
+                &what,
+                &mut d.warnings,
+            );
+            d.access.permissions.push(Permission {
+                configure: text(item, "configure", "")?.to_owned(),
+                write: text(item, "write", "")?.to_owned(),
+                read: text(item, "read", "")?.to_owned(),
+                user,
+                vhost,
+            });
+        }
+        for item in list(root, "topic_permissions")? {
+            let item = object(item, "topic_permissions")?;
+            let user = name(item, "user", "a topic permission")?;
+            let vhost = vhost_of(item, "a topic permission")?;
+            let exchange = name(item, "exchange", "a topic permission")?;
+            unused_keys(
+                item,
+                &["user", "vhost", "exchange", "write", "read"],
+                &format!("topic permission of '{user}' on '{exchange}' in vhost '{vhost}'"),
+                &mut d.warnings,
+            );
+            d.access.topic_permissions.push(TopicPermission {
+                write: text(item, "write", "")?.to_owned(),
+                read: text(item, "read", "")?.to_owned(),
+                user,
+                vhost,
+                exchange,
+            });
+        }
+        for (count, what) in [
+            (d.access.permissions.len(), "permissions"),
+            (d.access.topic_permissions.len(), "topic permissions"),
+        ] {
+            if count > 0 {
+                d.warnings.push(format!(
+                    "{count} {what} recorded (and exported as imported) but not enforced: every user may use every vhost"
+                ));
             }
         }
         for item in list(root, "exchanges")? {
@@ -346,8 +421,9 @@ impl Definitions {
     /// Applies vhosts, exchanges, queues and bindings to a running broker,
     /// in that order; stops at the first that fails, naming it. Users are
     /// reported unless the broker already has them with the same hash.
-    pub async fn apply(&mut self, admin: &Admin) -> Result<Applied, String> {
+    pub async fn apply(&mut self, admin: &Admin, access: &Access) -> Result<Applied, String> {
         let mut applied = Applied::default();
+        access.record(&self.access);
         let existing = admin.users();
         for user in &self.users {
             if !existing
@@ -401,8 +477,8 @@ impl Definitions {
 /// One vhost's definitions, as RabbitMQ exports them: its exchanges,
 /// queues and bindings without their `vhost` key, and the empty policies
 /// and parameters.
-pub fn export_vhost(admin: &Admin, vhost: &str) -> Value {
-    let all = export(admin);
+pub fn export_vhost(admin: &Admin, access: &Access, vhost: &str) -> Value {
+    let all = export(admin, access);
     let only = |key: &str| -> Vec<Value> {
         all[key]
             .as_array()
@@ -431,12 +507,12 @@ pub fn export_vhost(admin: &Admin, vhost: &str) -> Value {
     })
 }
 
-/// The broker's definitions in RabbitMQ 3.10's form: vhosts, users (tags
-/// empty), permissions granting what Leveret grants (everything), and the
-/// exchanges, queues and bindings a client declared (not the predefined
-/// exchanges, exclusive queues or the default exchange's implicit
-/// bindings).
-pub fn export(admin: &Admin) -> Value {
+/// The broker's definitions in RabbitMQ 3.10's form: vhosts, users with
+/// their recorded tags, the recorded permissions (or, for a user with
+/// none recorded, what Leveret grants: everything), and the exchanges,
+/// queues and bindings a client declared (not the predefined exchanges,
+/// exclusive queues or the default exchange's implicit bindings).
+pub fn export(admin: &Admin, access: &Access) -> Value {
     let vhosts = admin.vhosts();
     let users = admin.users();
     let exclusive: Vec<(String, String)> = admin
@@ -450,7 +526,7 @@ pub fn export(admin: &Admin) -> Value {
         .iter()
         .filter(|q| q.exclusive_owner.is_none())
         .map(|q| {
-            json!({"name": q.name, "vhost": q.vhost, "durable": q.durable,
+            json!({"name": q.name, "vhost": q.vhost, "type": "classic", "durable": q.durable,
                    "auto_delete": q.auto_delete, "arguments": table(&q.arguments)})
         })
         .collect();
@@ -478,13 +554,8 @@ pub fn export(admin: &Admin) -> Value {
                    "routing_key": b.routing_key, "arguments": table(&b.arguments)})
         })
         .collect();
-    let mut permissions = Vec::new();
-    for (user, _) in &users {
-        for vhost in &vhosts {
-            permissions.push(json!({"user": user, "vhost": vhost,
-                                    "configure": ".*", "write": ".*", "read": ".*"}));
-        }
-    }
+    let user_names: Vec<String> = users.iter().map(|(name, _)| name.clone()).collect();
+    let permissions = access.permissions_json(&user_names, &vhosts);
     let overview = admin.overview();
     json!({
         "rabbit_version": "3.10.0",
@@ -493,10 +564,10 @@ pub fn export(admin: &Admin) -> Value {
         "product_version": overview.version,
         "users": users.iter().map(|(name, hash)| json!({
             "name": name, "password_hash": rabbitmq_password_hash(hash),
-            "hashing_algorithm": SHA256, "tags": [], "limits": {}})).collect::<Vec<_>>(),
+            "hashing_algorithm": SHA256, "tags": access.tags(name), "limits": {}})).collect::<Vec<_>>(),
         "vhosts": vhosts.iter().map(|name| json!({"name": name})).collect::<Vec<_>>(),
         "permissions": permissions,
-        "topic_permissions": [],
+        "topic_permissions": access.topic_permissions_json(&user_names),
         "parameters": [],
         "global_parameters": [],
         "policies": [],
@@ -535,9 +606,9 @@ mod tests {
         let all = d.warnings.join("\n");
         for expected in [
             "unknown key 'shovels'",
-            "1 permissions not imported",
+            "1 permissions recorded (and exported as imported) but not enforced",
             "hashing algorithm rabbit_password_hashing_sha512",
-            "tags [\"administrator\"] ignored",
+            "tags [\"administrator\"] recorded but not enforced",
             "key 'limits'",
             "queue type 'quorum'",
         ] {

@@ -22,6 +22,7 @@
 //! Each uses only the `leveret-broker` public API; `main` uses the others.
 #![forbid(unsafe_code)]
 
+mod access;
 mod cli;
 mod config;
 mod definitions;
@@ -104,8 +105,9 @@ async fn serve(cli: Cli) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
+    let access = access::Access::default();
     if let Some(definitions) = &mut definitions {
-        match definitions.apply(&handle.admin()).await {
+        match definitions.apply(&handle.admin(), &access).await {
             Ok(applied) => tracing::info!(?applied, "definitions loaded"),
             Err(e) => {
                 tracing::error!(error = %e, "cannot load the definitions");
@@ -117,7 +119,7 @@ async fn serve(cli: Cli) -> ExitCode {
             tracing::warn!(%warning, "definitions");
         }
     }
-    let ops = match ops::Ops::start(handle.admin(), handle.local_addrs(), ops_settings) {
+    let ops = match ops::Ops::start(handle.admin(), access, handle.local_addrs(), ops_settings) {
         Ok(ops) => ops,
         Err(e) => {
             tracing::error!(error = %e, "cannot start");

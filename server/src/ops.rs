@@ -6,6 +6,7 @@
 //! instructions at a time. The sockets are bound before the thread starts,
 //! so a busy port stops the binary at start with a clear error.
 
+use crate::access::Access;
 use crate::management::Rates;
 use crate::metrics::MetricsContext;
 use leveret_broker::Admin;
@@ -65,6 +66,7 @@ impl Ops {
     /// `amqp_listeners` are reported in `/api/overview`.
     pub fn start(
         admin: Admin,
+        access: Access,
         amqp_listeners: &[SocketAddr],
         settings: OpsSettings,
     ) -> Result<Ops, OpsError> {
@@ -85,6 +87,7 @@ impl Ops {
         };
         let management = crate::management::Context {
             admin: admin.clone(),
+            access,
             node,
             data_dir: settings.data_dir,
             amqp_listeners: amqp_listeners.to_vec(),

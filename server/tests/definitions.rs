@@ -98,9 +98,9 @@ async fn a_rabbitmq_export_loads_at_start_and_what_cannot_apply_is_logged() {
 
     let log = broker.log().join("\n");
     for expected in [
-        "1 permissions not imported",
+        "1 permissions recorded (and exported as imported) but not enforced",
         "1 global_parameters not imported",
-        "tags [\"monitoring\"] ignored",
+        "tags [\"monitoring\"] recorded but not enforced",
         "queue type 'quorum' is not supported",
     ] {
         assert!(log.contains(expected), "log says {expected}:\n{log}");
@@ -173,7 +173,7 @@ async fn export_then_import_into_a_fresh_broker_keeps_the_topology() {
     let exported = get_json(first.http, "guest", "guest", "/api/definitions").await;
     assert_eq!(
         exported["queues"],
-        json!([{"name": "audit", "vhost": "/", "durable": true, "auto_delete": false, "arguments": {"x-message-ttl": 60000}}])
+        json!([{"name": "audit", "vhost": "/", "type": "classic", "durable": true, "auto_delete": false, "arguments": {"x-message-ttl": 60000}}])
     );
     assert_eq!(
         exported["exchanges"].as_array().unwrap().len(),
@@ -210,7 +210,7 @@ async fn export_then_import_into_a_fresh_broker_keeps_the_topology() {
         .as_array()
         .unwrap()
         .iter()
-        .any(|w| w.as_str().unwrap().contains("permissions not imported")));
+        .any(|w| w.as_str().unwrap().contains("permissions recorded")));
     let again = get_json(second.http, "guest", "guest", "/api/definitions").await;
     for key in ["queues", "exchanges", "bindings", "vhosts"] {
         assert_eq!(again[key], exported[key], "{key}");

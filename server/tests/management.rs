@@ -407,9 +407,8 @@ async fn vhosts_per_object_bindings_and_per_vhost_definitions() {
         ("Authorization", guest.as_str()),
         ("Content-Type", "application/json"),
     ];
-    let send = |method: &'static str, path: &'static str, body: &'static [u8]| {
-        let auth = auth;
-        async move { request(http, method, path, &auth, body).await }
+    let send = |method: &'static str, path: &'static str, body: &'static [u8]| async move {
+        request(http, method, path, &auth, body).await
     };
     assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 201);
     assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 204);

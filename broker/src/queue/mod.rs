@@ -138,7 +138,7 @@ pub struct Queue {
 
 impl Queue {
     /// A new, empty queue.
-    pub fn new(
+    pub(crate) fn new(
         name: ShortStr,
         vhost: ShortStr,
         options: QueueOptions,

@@ -716,7 +716,7 @@ pub async fn alarms(State(c): Ctx) -> Response {
 }
 
 pub async fn definitions(State(c): Ctx) -> Json<Value> {
-    Json(crate::definitions::export(&c.admin))
+    Json(crate::definitions::export(&c.admin, &c.access))
 }
 
 /// Imports a definitions document; answers what was applied and what was
@@ -727,7 +727,9 @@ pub async fn import_definitions(State(c): Ctx, body: Bytes) -> ApiResult<Json<Va
 
 pub async fn vhost_definitions(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
-    Ok(Json(crate::definitions::export_vhost(&c.admin, &vhost)))
+    Ok(Json(crate::definitions::export_vhost(
+        &c.admin, &c.access, &vhost,
+    )))
 }
 
 /// Imports one vhost's definitions: objects without a `vhost` go to it.
@@ -743,7 +745,7 @@ pub async fn import_vhost_definitions(
 async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json<Value>> {
     let mut definitions = Definitions::parse_into(body, vhost).map_err(ApiError::bad_request)?;
     let applied = definitions
-        .apply(&c.admin)
+        .apply(&c.admin, &c.access)
         .await
         .map_err(ApiError::bad_request)?;
     for warning in &definitions.warnings {

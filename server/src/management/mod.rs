@@ -18,6 +18,7 @@ mod handlers;
 pub mod json;
 mod rates;
 
+use crate::access::Access;
 use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::middleware::Next;
@@ -40,6 +41,8 @@ pub const MAX_BODY: usize = 1024 * 1024;
 pub struct Context {
     /// The broker.
     pub admin: Admin,
+    /// Users' tags and permissions from imported definitions.
+    pub access: Access,
     /// `leveret@HOST`.
     pub node: String,
     /// Where durable state lives (disk figures).

@@ -95,7 +95,10 @@ impl OpsBroker {
                 Ok((_, addr)) => http = Some(addr),
                 Err(_) => {
                     let _ = child.kill();
-                    panic!("leveret did not report its listeners");
+                    let _ = child.wait();
+                    std::thread::sleep(Duration::from_millis(100));
+                    let lines = log.lock().expect("log").join("\n");
+                    panic!("leveret did not report its listeners; its log:\n{lines}");
                 }
             }
         }
