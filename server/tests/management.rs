@@ -459,7 +459,7 @@ async fn vhosts_per_object_bindings_and_per_vhost_definitions() {
     let exported = json_of(send("GET", "/api/definitions/robots", b"").await);
     assert_eq!(
         exported["queues"],
-        json!([{"name": "lidar", "durable": true, "auto_delete": false, "arguments": {}}])
+        json!([{"name": "lidar", "type": "classic", "durable": true, "auto_delete": false, "arguments": {}}])
     );
     assert!(exported.get("users").is_none() && exported.get("vhosts").is_none());
     let body = exported.to_string();
