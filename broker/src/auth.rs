@@ -92,6 +92,11 @@ impl Users {
         self.users.insert(name.into(), hash);
     }
 
+    /// Every user and their stored hash (for listings).
+    pub fn iter(&self) -> impl Iterator<Item = (&str, &PasswordHash)> {
+        self.users.iter().map(|(name, hash)| (name.as_str(), hash))
+    }
+
     /// Checks a SASL response for `mechanism`; the user name if it passes.
     pub fn authenticate(&self, mechanism: &[u8], response: &Bytes) -> Option<String> {
         let (user, password) = match mechanism {

@@ -37,6 +37,10 @@ pub struct BusyPoll {
     reads: AtomicU64,
     /// The spinner is asleep and wants `wake` on the next read.
     asleep: AtomicBool,
+    /// Windows the spinner has polled through, and their total length in
+    /// nanoseconds (read by `inspect`).
+    windows: AtomicU64,
+    spun_nanos: AtomicU64,
     wake: Notify,
 }
 
@@ -48,6 +52,8 @@ impl BusyPoll {
             grow_start: GROW_START,
             reads: AtomicU64::new(0),
             asleep: AtomicBool::new(false),
+            windows: AtomicU64::new(0),
+            spun_nanos: AtomicU64::new(0),
             wake: Notify::new(),
         }
     }
@@ -97,7 +103,20 @@ impl BusyPoll {
                 // Lets a client process woken onto this CPU run at once.
                 std::thread::yield_now();
             }
+            self.windows.fetch_add(1, Ordering::Relaxed);
+            let spun = woke.elapsed().as_nanos() as u64;
+            self.spun_nanos.fetch_add(spun, Ordering::Relaxed);
         }
+    }
+
+    /// Socket reads noted, windows polled through, and the time spent
+    /// polling.
+    pub fn figures(&self) -> (u64, u64, Duration) {
+        (
+            self.reads.load(Ordering::Relaxed),
+            self.windows.load(Ordering::Relaxed),
+            Duration::from_nanos(self.spun_nanos.load(Ordering::Relaxed)),
+        )
     }
 }
 

@@ -90,6 +90,11 @@ impl Deliveries {
         self.unacked = merged;
     }
 
+    /// How many deliveries are unacked.
+    pub fn unacked_count(&self) -> usize {
+        self.unacked.len()
+    }
+
     /// Takes every unacked delivery (channel close, recover), in O(1).
     pub fn take_all(&mut self) -> VecDeque<Unacked> {
         std::mem::take(&mut self.unacked)

@@ -9,7 +9,9 @@ use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
 use crate::connection::Admission;
 use crate::memory::MemoryGauge;
+use crate::registry::Registry;
 use crate::resident_memory::ResidentMemoryWatermark;
+use crate::stats::BrokerCounters;
 use crate::store::Persistence;
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
@@ -134,6 +136,14 @@ pub struct Core {
     pub server_properties: FieldTable,
     /// The busy-poll window's shared state, if the broker busy-polls.
     pub busy_poll: Option<Arc<BusyPoll>>,
+    /// Message and churn counters (`stats`).
+    pub stats: Arc<BrokerCounters>,
+    /// Open connections and channels (`registry`).
+    pub registry: Arc<Registry>,
+    /// The product name announced to clients.
+    pub product: String,
+    /// When the broker started.
+    pub started: std::time::Instant,
     /// Connections counted against `max_connections` and vhost limits.
     pub connections: Arc<Admission>,
     next_connection: AtomicU64,
@@ -152,12 +162,18 @@ impl Core {
             busy_poll,
         } = options;
         let gauge = Arc::new(MemoryGauge::new(limits.memory_high_watermark));
+        let stats = Arc::new(BrokerCounters::default());
         let connections = Admission::new(limits.max_connections);
         let vhosts = vhosts
             .iter()
             .filter_map(|name| ShortStr::try_from(name.as_str()).ok())
             .map(|name| {
-                let vhost = Vhost::new(name.clone(), Arc::clone(&gauge), persistence.clone());
+                let vhost = Vhost::new(
+                    name.clone(),
+                    Arc::clone(&gauge),
+                    persistence.clone(),
+                    Arc::clone(&stats),
+                );
                 (name, vhost)
             })
             .collect();
@@ -169,6 +185,10 @@ impl Core {
             persistence,
             server_properties: server_properties(&product),
             busy_poll,
+            registry: Arc::new(Registry::new(Arc::clone(&stats))),
+            stats,
+            product: product.to_owned(),
+            started: std::time::Instant::now(),
             connections,
             next_connection: AtomicU64::new(1),
             shutdown: watch::channel(false).0,
@@ -193,6 +213,7 @@ impl Core {
                 name.clone(),
                 Arc::clone(&self.gauge),
                 self.persistence.clone(),
+                Arc::clone(&self.stats),
             )
         });
         Arc::clone(vhost)
@@ -216,6 +237,7 @@ impl Core {
     /// Tells every connection to close with 320 CONNECTION_FORCED.
     pub fn begin_shutdown(&self) {
         self.shutdown.send_replace(true);
+        self.registry.close_all();
     }
 
     /// A receiver that turns true when the broker shuts down.

@@ -3,9 +3,11 @@
 //! [`BrokerHandle`]; `shutdown` closes every connection with 320
 //! CONNECTION_FORCED and waits for them to finish.
 
+use crate::admin::Admin;
 use crate::auth::{PasswordHash, Users};
 use crate::busy_poll::BusyPoll;
 use crate::core::{Core, CoreOptions, Limits};
+use crate::inspect::{Overview, QueueInfo};
 use crate::store::{Persistence, Recovered, SledStore, Store, StoreError};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -297,6 +299,26 @@ impl BrokerHandle {
             drop(alive);
         });
         client
+    }
+
+    /// A cloneable view of this broker's state, for readers that outlive
+    /// a borrow of the handle (the `leveret` binary's HTTP listeners).
+    pub fn admin(&self) -> Admin {
+        Admin {
+            core: Arc::clone(&self.core),
+        }
+    }
+
+    /// Broker-wide figures with RabbitMQ's meanings: object and message
+    /// totals, message counters, churn. Reads every queue once.
+    pub fn overview(&self) -> Overview {
+        self.admin().overview()
+    }
+
+    /// Every queue's depth, consumers and counters, sorted by vhost and
+    /// name: a robot application reads queue depth here without HTTP.
+    pub fn queues(&self) -> Vec<QueueInfo> {
+        self.admin().queues()
     }
 
     /// Closes every connection with 320 CONNECTION_FORCED and stops.

@@ -63,9 +63,19 @@
 //! `resident_memory` (the process's resident memory from /proc, one of
 //! the alarm's sources),
 //! `auth` (users and SASL), `error` (reply errors).
+//!
+//! Beside them too, for operators: `stats` (message and churn counters
+//! with RabbitMQ's meanings, relaxed atomic adds on the hot path),
+//! `registry` (open connections and channels, for listing and for
+//! closing one from outside), and `admin` ([`Admin`], a cloneable handle
+//! for tools that closes connections and, through `inspect`, reads all of
+//! the above into plain structs with RabbitMQ's field meanings, as
+//! `BrokerHandle::overview` does). They read the layers; no layer calls
+//! them except to bump a counter or keep a registration.
 #![forbid(unsafe_code)]
 #![deny(missing_docs)]
 
+mod admin;
 mod auth;
 mod busy_poll;
 mod channel;
@@ -80,22 +90,31 @@ mod error;
 pub mod exchange;
 #[cfg(not(feature = "bench-internals"))]
 mod exchange;
+mod inspect;
 mod memory;
 mod message;
 mod outbox;
 mod queue;
 mod recovery;
+mod registry;
 mod resident_memory;
 mod routing;
 mod server;
 mod slice;
+mod stats;
 pub mod store;
 #[cfg(test)]
 mod testkit;
 mod vhost;
 
+pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
 pub use crate::auth::PasswordHash;
 pub use crate::core::{Limits, VhostLimits};
 pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;
+pub use inspect::{
+    BindingInfo, BusyPollFigures, ChannelInfo, ChurnTotals, ConnectionInfo, ConsumerInfo,
+    DestinationKind, ExchangeInfo, GlobalMessageStats, ObjectTotals, Overview, QueueInfo,
+    QueueMessageStats, QueueRef, QueueTotals,
+};

@@ -61,7 +61,7 @@ impl Harness {
     fn build(persistence: Option<Arc<Persistence>>) -> Self {
         let gauge = Arc::new(MemoryGauge::new(usize::MAX));
         Harness {
-            vhost: Vhost::new(s("/"), gauge, persistence.clone()),
+            vhost: Vhost::new(s("/"), gauge, persistence.clone(), Default::default()),
             persistence,
             next_connection: AtomicU64::new(1),
         }

@@ -20,6 +20,7 @@ use crate::exchange::{
 use crate::memory::MemoryGauge;
 use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions};
 use crate::slice::{yield_if_spent, Progress, Slice};
+use crate::stats::BrokerCounters;
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
@@ -41,6 +42,7 @@ pub struct Vhost {
     bindings: Mutex<BindingRegistry>,
     gauge: Arc<MemoryGauge>,
     persistence: Option<Arc<Persistence>>,
+    counters: Arc<BrokerCounters>,
     /// Direct reply-to consumers by their reply name.
     reply_targets: RwLock<HashMap<ShortStr, ReplyTarget>>,
     /// Exclusive queues by owning connection, so that closing one costs
@@ -104,6 +106,7 @@ impl Vhost {
         name: ShortStr,
         gauge: Arc<MemoryGauge>,
         persistence: Option<Arc<Persistence>>,
+        counters: Arc<BrokerCounters>,
     ) -> Arc<Self> {
         let vhost = Vhost {
             name,
@@ -112,6 +115,7 @@ impl Vhost {
             bindings: Mutex::new(BindingRegistry::default()),
             gauge,
             persistence,
+            counters,
             reply_targets: RwLock::new(HashMap::new()),
             exclusive_queues: Mutex::new(HashMap::new()),
         };
@@ -147,6 +151,24 @@ impl Vhost {
     /// Every queue (for sweeping and connection cleanup).
     pub fn queues(&self) -> Vec<Arc<Queue>> {
         read(&self.queues).values().cloned().collect()
+    }
+
+    /// Up to `limit` queues after the first `skip` in the registry's order
+    /// (which holds while no queue is added or removed): one chunk of a
+    /// listing, so that listing many queues never holds the registry for
+    /// long.
+    pub fn queues_chunk(&self, skip: usize, limit: usize) -> Vec<Arc<Queue>> {
+        read(&self.queues)
+            .values()
+            .skip(skip)
+            .take(limit)
+            .cloned()
+            .collect()
+    }
+
+    /// Every exchange (for listings).
+    pub fn exchanges(&self) -> Vec<Arc<Exchange>> {
+        read(&self.exchanges).values().cloned().collect()
     }
 
     /// The exchange, or 404 as RabbitMQ words it.
@@ -331,6 +353,7 @@ impl Vhost {
             args,
             Arc::clone(&self.gauge),
             durable_store,
+            Arc::clone(&self.counters),
         ));
         if let Some(owner) = queue.options.exclusive_owner {
             lock(&self.exclusive_queues)
@@ -678,6 +701,7 @@ impl Vhost {
             args,
             Arc::clone(&self.gauge),
             Some((persistence, record.id)),
+            Arc::clone(&self.counters),
         ));
         write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
         Some(queue)

@@ -43,6 +43,19 @@ pub struct Cli {
     /// runtime with that many workers [default: 1].
     #[arg(long, value_name = "N")]
     pub worker_threads: Option<usize>,
+    /// Address of the Prometheus endpoint (`/metrics`, `/metrics/per-object`)
+    /// [default: 127.0.0.1:15692].
+    #[arg(long, value_name = "ADDR:PORT")]
+    pub metrics_listen: Option<SocketAddr>,
+    /// Address of the management HTTP API (RabbitMQ's `/api/...` subset)
+    /// [default: 127.0.0.1:15672].
+    #[arg(long, value_name = "ADDR:PORT")]
+    pub http_listen: Option<SocketAddr>,
+    /// RabbitMQ definitions file (definitions.json) to load at start:
+    /// vhosts, users, exchanges, queues, bindings; what Leveret does not
+    /// support is reported in the log.
+    #[arg(long, value_name = "FILE")]
+    pub definitions: Option<PathBuf>,
     /// Read a password on standard input, print its salted hash for the
     /// config file's `password-hash`, and exit.
     #[arg(long)]

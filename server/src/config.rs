@@ -17,6 +17,12 @@ use std::time::Duration;
 /// Where AMQP connections are accepted unless told otherwise.
 const DEFAULT_LISTEN: SocketAddr =
     SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED), 5672);
+/// Where the Prometheus endpoint listens unless told otherwise (RabbitMQ's port).
+const DEFAULT_METRICS_LISTEN: SocketAddr =
+    SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 15692);
+/// Where the management API listens unless told otherwise (RabbitMQ's port).
+const DEFAULT_HTTP_LISTEN: SocketAddr =
+    SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 15672);
 /// Where durable state lives unless told otherwise.
 const DEFAULT_DATA_DIR: &str = "leveret-data";
 /// The log filter unless told otherwise.
@@ -83,6 +89,9 @@ pub struct FileConfig {
     product: Option<String>,
     busy_poll: Option<u64>,
     worker_threads: Option<usize>,
+    metrics_listen: Option<SocketAddr>,
+    http_listen: Option<SocketAddr>,
+    definitions: Option<PathBuf>,
 }
 
 /// One `[vhost-limits."NAME"]` table (`rabbitmqctl set_vhost_limits`).
@@ -153,6 +162,12 @@ pub struct Settings {
     pub busy_poll: Duration,
     /// Threads serving connections (1: a current-thread runtime).
     pub worker_threads: usize,
+    /// The Prometheus endpoint.
+    pub metrics_listen: SocketAddr,
+    /// The management API.
+    pub http_listen: SocketAddr,
+    /// A definitions file to load at start.
+    pub definitions: Option<PathBuf>,
 }
 
 impl Settings {
@@ -232,7 +247,25 @@ impl Settings {
                 .or(file.worker_threads)
                 .unwrap_or(1)
                 .max(1),
+            metrics_listen: cli
+                .metrics_listen
+                .or(file.metrics_listen)
+                .unwrap_or(DEFAULT_METRICS_LISTEN),
+            http_listen: cli
+                .http_listen
+                .or(file.http_listen)
+                .unwrap_or(DEFAULT_HTTP_LISTEN),
+            definitions: cli.definitions.or(file.definitions),
         })
+    }
+
+    /// The operators' listeners for these settings.
+    pub fn ops(&self) -> crate::ops::OpsSettings {
+        crate::ops::OpsSettings {
+            metrics_listen: self.metrics_listen,
+            http_listen: self.http_listen,
+            data_dir: self.data_dir.clone(),
+        }
     }
 
     /// The library's builder for these settings.
@@ -282,6 +315,8 @@ mod tests {
         assert_eq!(settings.log, "info");
         assert_eq!(settings.busy_poll, Duration::from_micros(200));
         assert_eq!(settings.product, None);
+        assert_eq!(settings.metrics_listen, "127.0.0.1:15692".parse().unwrap());
+        assert_eq!(settings.http_listen, "127.0.0.1:15672".parse().unwrap());
         assert!(settings.users.is_empty() && settings.vhosts.is_empty());
         let defaults = Limits::default();
         assert_eq!(settings.limits.frame_max, defaults.frame_max);
@@ -304,6 +339,9 @@ mod tests {
             memory-high-watermark = 268435456
             product = "RabbitMQ"
             busy-poll = 0
+            metrics-listen = "127.0.0.1:9999"
+            http-listen = "127.0.0.1:9998"
+            definitions = "/etc/leveret/definitions.json"
 
             [[users]]
             name = "robot"
@@ -333,6 +371,12 @@ mod tests {
         assert_eq!(settings.limits.memory_high_watermark, 268_435_456);
         assert_eq!(settings.product.as_deref(), Some("RabbitMQ"));
         assert_eq!(settings.busy_poll, Duration::ZERO);
+        assert_eq!(settings.metrics_listen, "127.0.0.1:9999".parse().unwrap());
+        assert_eq!(settings.http_listen, "127.0.0.1:9998".parse().unwrap());
+        assert_eq!(
+            settings.definitions,
+            Some(PathBuf::from("/etc/leveret/definitions.json"))
+        );
         assert_eq!(
             settings.users,
             vec![
@@ -351,6 +395,7 @@ mod tests {
             product = "FromFile"
             busy-poll = 50
             worker-threads = 2
+            metrics-listen = "127.0.0.1:9999"
         "#;
         let flags = cli(&[
             "--listen",
@@ -365,6 +410,8 @@ mod tests {
             "7",
             "--worker-threads",
             "4",
+            "--metrics-listen",
+            "127.0.0.1:0",
         ]);
         let settings = Settings::resolve(flags, file(text)).unwrap();
         assert_eq!(settings.listen, vec!["127.0.0.1:6000".parse().unwrap()]);
@@ -377,6 +424,7 @@ mod tests {
         assert_eq!(from_file.worker_threads, 2);
         let default = Settings::resolve(cli(&[]), file("")).unwrap();
         assert_eq!(default.worker_threads, 1);
+        assert_eq!(settings.metrics_listen, "127.0.0.1:0".parse().unwrap());
     }
 
     #[test]

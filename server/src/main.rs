@@ -13,17 +13,30 @@
 //! - `config`: the config file (serde, toml) and its merge with the
 //!   command line into the library's `BrokerBuilder`.
 //! - `logging`: the tracing subscriber.
+//! - `ops`: the operators' listeners on a thread of their own, served by
+//!   `http` (bounded connections, timeouts); `metrics` is the Prometheus
+//!   endpoint, reading `process` figures beside the broker's; `management`
+//!   is the management HTTP API; `definitions` reads and writes RabbitMQ's
+//!   definitions.json (`--definitions`, `/api/definitions`).
 //!
 //! Each uses only the `leveret-broker` public API; `main` uses the others.
 #![forbid(unsafe_code)]
 
+mod access;
 mod cli;
 mod config;
+mod definitions;
+mod http;
 mod logging;
+mod management;
+mod metrics;
+mod ops;
+mod process;
 
 use clap::Parser;
 use cli::Cli;
 use config::{FileConfig, Settings};
+use definitions::Definitions;
 use leveret_broker::PasswordHash;
 use std::process::ExitCode;
 
@@ -76,15 +89,58 @@ fn runtime(worker_threads: usize) -> std::io::Result<tokio::runtime::Runtime> {
 
 async fn serve(settings: Settings) -> ExitCode {
     logging::init(&settings.log);
-    let handle = match settings.builder().start().await {
+    let ops_settings = settings.ops();
+    let mut definitions = match &settings.definitions {
+        None => None,
+        Some(path) => {
+            let parsed = std::fs::read(path)
+                .map_err(|e| e.to_string())
+                .and_then(|bytes| Definitions::parse(&bytes));
+            match parsed {
+                Ok(definitions) => Some(definitions),
+                Err(e) => {
+                    eprintln!("leveret: definitions {}: {e}", path.display());
+                    return ExitCode::from(USAGE_ERROR);
+                }
+            }
+        }
+    };
+    let mut builder = settings.builder();
+    if let Some(definitions) = &definitions {
+        builder = definitions.configure(builder);
+    }
+    let handle = match builder.start().await {
         Ok(handle) => handle,
         Err(e) => {
             tracing::error!(error = %e, "cannot start");
             return ExitCode::FAILURE;
         }
     };
+    let access = access::Access::default();
+    if let Some(definitions) = &mut definitions {
+        match definitions.apply(&handle.admin(), &access).await {
+            Ok(applied) => tracing::info!(?applied, "definitions loaded"),
+            Err(e) => {
+                tracing::error!(error = %e, "cannot load the definitions");
+                handle.shutdown().await;
+                return ExitCode::FAILURE;
+            }
+        }
+        for warning in &definitions.warnings {
+            tracing::warn!(%warning, "definitions");
+        }
+    }
+    let ops = match ops::Ops::start(handle.admin(), access, handle.local_addrs(), ops_settings) {
+        Ok(ops) => ops,
+        Err(e) => {
+            tracing::error!(error = %e, "cannot start");
+            handle.shutdown().await;
+            return ExitCode::FAILURE;
+        }
+    };
     wait_for_signal().await;
     tracing::info!("shutting down");
+    ops.stop();
     handle.shutdown().await;
     ExitCode::SUCCESS
 }

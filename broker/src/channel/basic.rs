@@ -98,6 +98,7 @@ impl Channel {
             return Err(AmqpError::not_implemented("immediate=true"));
         }
         self.published = true;
+        self.registration.publishing();
         self.assembly = super::Assembly::Header(publish);
         Ok(())
     }
@@ -137,6 +138,7 @@ impl Channel {
                 )));
             }
         }
+        self.core.stats.received(self.confirms.is_some());
         let mut publish = publish;
         self.rewrite_reply_to(&mut publish)?;
         if let Some(tx) = &mut self.tx {
@@ -220,7 +222,9 @@ impl Channel {
         let replied = queues.is_empty()
             && super::reply_to::is_reply_address(&message.exchange, &message.routing_key)
             && self.deliver_reply(&message);
-        if queues.is_empty() && !replied && publish.method.mandatory {
+        let reached = !queues.is_empty() || replied;
+        self.core.stats.routed(reached, publish.method.mandatory);
+        if !reached && publish.method.mandatory {
             self.outbox()
                 .send(Outbound::Return {
                     channel: self.id,
@@ -245,6 +249,7 @@ impl Channel {
             self.link.global_prefetch.store(count, Ordering::Relaxed);
         } else {
             self.prefetch_count = count;
+            self.registration.set_prefetch(count);
         }
         self.reply(BasicQosOk {}).await;
         // More credit may let waiting messages go.

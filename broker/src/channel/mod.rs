@@ -27,7 +27,9 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::memory::{MemoryGauge, Reservation};
 use crate::outbox::Outbox;
 use crate::queue::Queue;
+use crate::registry::ChannelRegistration;
 use crate::vhost::Vhost;
+pub(crate) use basic::{apply_settles, Settle};
 use bytes::Bytes;
 use leveret_protocol::{
     BasicProperties, BasicPublish, ChannelClose, ChannelCloseOk, ChannelFlowOk, ContentHeader,
@@ -120,6 +122,8 @@ pub struct Channel {
     direct_reply: Option<reply_to::DirectReply>,
     /// A queue this channel published to that is over the flow limit.
     crowded: Option<Arc<Queue>>,
+    /// Keeps the channel listed (`registry`) until it is dropped.
+    registration: ChannelRegistration,
     /// Content smaller than this is copied out of the read buffer.
     copy_below: usize,
 }
@@ -135,9 +139,11 @@ impl Channel {
         user: String,
         copy_below: usize,
     ) -> Self {
+        let link = Arc::new(ChannelLink::new(id, outbox));
         Channel {
             id,
-            link: Arc::new(ChannelLink::new(id, outbox)),
+            registration: core.registry.channel(link.outbox.connection_id, id, &link),
+            link,
             vhost,
             core,
             user,

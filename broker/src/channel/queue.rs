@@ -43,7 +43,13 @@ impl Channel {
             },
             max_queues: self.core.limits.vhost(&self.vhost.name).max_queues,
         };
-        let (queue, _created) = self.vhost.declare_queue(decl, connection_id)?;
+        if !decl.passive {
+            self.core.stats.queues_declared.inc();
+        }
+        let (queue, created) = self.vhost.declare_queue(decl, connection_id)?;
+        if created {
+            self.core.stats.queues_created.inc();
+        }
         self.last_queue = Some(queue.name.clone());
         if queue.store_id().is_some() {
             self.definitions_on_disk().await?;

@@ -9,6 +9,7 @@ use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::queue::{DeadLetters, Queue};
+use crate::registry::ChannelMode;
 use crate::slice::{yield_if_spent, Slice};
 use leveret_protocol::{
     BasicAck, BasicNack, ConfirmSelectOk, TxCommitOk, TxRollbackOk, TxSelectOk,
@@ -86,6 +87,7 @@ impl Channel {
         }
         if self.tx.is_none() {
             self.tx = Some(Transaction::new(&self.core.gauge));
+            self.registration.set_mode(ChannelMode::Transactional);
         }
         self.reply(TxSelectOk {}).await;
         Ok(())
@@ -188,6 +190,7 @@ impl Channel {
         }
         if self.confirms.is_none() {
             self.confirms = Some(Confirms::default());
+            self.registration.set_mode(ChannelMode::Confirm);
         }
         if !no_wait {
             self.reply(ConfirmSelectOk {}).await;
@@ -232,6 +235,7 @@ impl Channel {
                 };
                 confirms.waiting.pop_front();
                 if ack {
+                    self.core.stats.confirmed.inc();
                     acks = Some(acks.map_or((tag, tag), |(low, _)| (low, tag)));
                 } else {
                     nacks.push((acks.take(), tag));

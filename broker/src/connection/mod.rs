@@ -48,6 +48,7 @@ where
     W: AsyncWrite + Unpin + Send + 'static,
 {
     let connection_id = core.next_connection_id();
+    let _registration = core.registry.connection(connection_id, &peer);
     // RabbitMQ's handshake_timeout runs from the connection's start to
     // connection.open-ok.
     let handshake_deadline = Instant::now() + core.limits.handshake_timeout;
@@ -173,7 +174,8 @@ impl Connection {
             Err(Interrupted::ShuttingDown) => return Ok(()),
         }
         tracing::debug!(user = %self.user, "connection open");
-        let mut shutdown = self.core.shutdown_signal();
+        let mut shutdown = (self.core.registry.close_signal(self.connection_id))
+            .unwrap_or_else(|| self.core.shutdown_signal());
         let mut durable = self.core.persistence.as_ref().map(|p| p.durable());
         // One deadline for client silence, re-armed only when it fires (a
         // timer reset per read would cost a timer-wheel update per batch).
@@ -264,8 +266,8 @@ impl Connection {
                     return Err(Ended::Read(ReadError::TimedOut));
                 }
                 Event::Shutdown => {
-                    let error =
-                        AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
+                    let reason = self.core.registry.close_reason(self.connection_id);
+                    let error = AmqpError::new(ReplyCode::ConnectionForced, reason);
                     return self.close_with(reader, error).await;
                 }
             }
@@ -477,6 +479,17 @@ impl Connection {
                 .during_ids(10, 40),
             ));
         }
+        self.core.registry.opened(
+            self.connection_id,
+            crate::registry::Opened {
+                user: self.user.clone(),
+                vhost: vhost.name.to_string_lossy().into_owned(),
+                client_properties: start_ok.client_properties,
+                frame_max,
+                channel_max: self.channel_max,
+                heartbeat_secs: tune_ok.heartbeat,
+            },
+        );
         self.vhost = Some(vhost);
         self.outbox
             .method(

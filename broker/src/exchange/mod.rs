@@ -151,6 +151,11 @@ impl BindingKey {
     }
 }
 
+/// Where a chunked listing of an exchange's bindings goes on from
+/// ([`Exchange::bindings_chunk`]).
+#[derive(Debug, Clone)]
+pub struct BindingCursor(BindingId);
+
 /// A binding's place among its exchange's bindings: by destination first,
 /// so that the bindings to one destination are one range.
 #[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
@@ -405,6 +410,34 @@ impl Exchange {
         self.read()
             .to(destination.id())
             .for_each(|(_, bound)| found(&bound.binding));
+    }
+
+    /// Up to `limit` of its bindings after `after` (from the first when
+    /// `None`), in its order, and where the next chunk starts (`None` once
+    /// there are no more): a listing copies the bindings out a chunk at a
+    /// time, so it never holds the exchange for long. Bindings added or
+    /// removed between chunks may be missed; none is listed twice.
+    pub fn bindings_chunk(
+        &self,
+        after: Option<&BindingCursor>,
+        limit: usize,
+    ) -> (Vec<Binding>, Option<BindingCursor>) {
+        use std::ops::Bound;
+        let routes = self.read();
+        let start = match after {
+            Some(cursor) => Bound::Excluded(&cursor.0),
+            None => Bound::Unbounded,
+        };
+        let mut chunk = Vec::with_capacity(limit.min(routes.bindings.len()));
+        let mut last = None;
+        for (id, bound) in routes.bindings.range((start, Bound::Unbounded)).take(limit) {
+            chunk.push(bound.binding.clone());
+            last = Some(id);
+        }
+        let next = (chunk.len() == limit)
+            .then(|| last.cloned().map(BindingCursor))
+            .flatten();
+        (chunk, next)
     }
 
     /// Calls `found` for each of its bindings.

@@ -72,6 +72,7 @@ impl Queue {
                 None => self.log(&queued),
             };
             self.insert_ready(&mut st, queued);
+            self.stats.published();
             self.enforce_max_length(&mut st, &mut dead);
             // Dispatched as of the publish instant, so a message with TTL 0
             // still reaches a consumer that can take it at once (as in RabbitMQ).
@@ -224,6 +225,7 @@ impl Queue {
             let Some(queued) = self.pop_live(st, now, dead) else {
                 return;
             };
+            self.stats.delivered(consumer.no_ack, queued.redelivered);
             if consumer.no_ack {
                 self.release(&queued);
             } else {

@@ -30,6 +30,7 @@ use crate::memory::MemoryGauge;
 use crate::message::Message;
 use crate::outbox::Outbound;
 use crate::slice::{finish_in_background, Progress, Slice};
+use crate::stats::{BrokerCounters, QueueCounters};
 use crate::store::Persistence;
 use leveret_protocol::{FieldTable, ShortStr};
 use ready::Ready;
@@ -134,18 +135,21 @@ pub struct Queue {
     drained: tokio::sync::Notify,
     /// The store and this queue's id in it, for durable queues.
     durable_store: Option<(Arc<Persistence>, u64)>,
+    /// Message counters (`stats`).
+    pub(crate) stats: QueueCounters,
     state: Mutex<QueueState>,
 }
 
 impl Queue {
     /// A new, empty queue.
-    pub fn new(
+    pub(crate) fn new(
         name: ShortStr,
         vhost: ShortStr,
         options: QueueOptions,
         args: QueueArgs,
         gauge: Arc<MemoryGauge>,
         durable_store: Option<(Arc<Persistence>, u64)>,
+        counters: Arc<BrokerCounters>,
     ) -> Self {
         Queue {
             name,
@@ -156,6 +160,7 @@ impl Queue {
             crowded: std::sync::atomic::AtomicBool::new(false),
             drained: tokio::sync::Notify::new(),
             durable_store,
+            stats: QueueCounters::new(counters),
             state: Mutex::new(QueueState {
                 last_used: Some(Instant::now()),
                 ..QueueState::default()
@@ -214,8 +219,10 @@ impl Queue {
         let mut st = self.lock();
         st.last_used = Some(Instant::now());
         let Some(queued) = self.pop_live(&mut st, Instant::now(), &mut dead) else {
+            self.stats.got_nothing();
             return (false, DeadLetters(dead));
         };
+        self.stats.got(no_ack, queued.redelivered);
         if no_ack {
             self.release(&queued);
         } else {
@@ -271,6 +278,7 @@ impl Queue {
         let mut progress = Progress::Done;
         let mut st = self.lock();
         for mut queued in messages.by_ref() {
+            self.stats.unacked_returned();
             if st.deleted {
                 self.release(&queued);
             } else {
@@ -297,11 +305,13 @@ impl Queue {
 
     /// An unacked message was acked (or rejected without dead-lettering).
     pub fn settle(&self, queued: &QueuedMessage) {
+        self.stats.acked();
         self.release(queued);
     }
 
     /// A message was rejected without requeue: dead-letter it if configured.
     pub fn reject(&self, queued: QueuedMessage) -> DeadLetters {
+        self.stats.unacked_returned();
         let mut dead = Vec::new();
         self.discard(queued, DeadLetterReason::Rejected, &mut dead);
         DeadLetters(dead)
@@ -332,6 +342,7 @@ impl Queue {
             st.exclusive_consumer = consumer.exclusive;
             st.prioritised |= consumer.priority != 0;
             st.consumers.push(consumer);
+            self.stats.consumer_added();
             st.last_used = None;
         }
         Ok(self.dispatch())
@@ -345,6 +356,7 @@ impl Queue {
         if st.consumers.len() == before {
             return false;
         }
+        self.stats.consumers_removed(1);
         if consumer.exclusive {
             st.exclusive_consumer = false;
         }
@@ -408,6 +420,7 @@ impl Queue {
             st.deleted = true;
             std::mem::take(&mut st.consumers)
         };
+        self.stats.queue_deleted(consumers.len());
         Deleted {
             messages: self.purge(),
             consumers,
@@ -463,6 +476,24 @@ impl Queue {
             && st.last_used.is_some_and(|at| {
                 now.saturating_duration_since(at) >= Duration::from_millis(expires)
             })
+    }
+}
+
+/// Reading a queue's state for listings (`inspect`).
+impl Queue {
+    /// Ready messages, their body bytes, and consumers, read under the lock.
+    pub(crate) fn depth(&self) -> crate::inspect::QueueDepth {
+        let st = self.lock();
+        crate::inspect::QueueDepth {
+            ready: st.ready.len() as u64,
+            ready_bytes: st.ready.bytes() as u64,
+            consumers: st.consumers.len() as u64,
+        }
+    }
+
+    /// The consumers now.
+    pub(crate) fn consumers_snapshot(&self) -> Vec<Arc<Consumer>> {
+        self.lock().consumers.clone()
     }
 }
 

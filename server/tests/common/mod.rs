@@ -3,6 +3,8 @@
 
 #![allow(dead_code)] // Each test file uses its own share of these helpers.
 
+pub mod ops;
+
 use std::ffi::OsStr;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -38,6 +40,12 @@ impl BrokerProcess {
             .arg(dir)
             .arg("--log")
             .arg("warn")
+            .args([
+                "--metrics-listen",
+                "127.0.0.1:0",
+                "--http-listen",
+                "127.0.0.1:0",
+            ])
             .args(extra)
             .stdout(Stdio::null())
             .spawn()

@@ -1,0 +1,525 @@
+//! [`Admin`]: a cloneable handle on a running broker for tools beside the
+//! AMQP listeners (the `leveret` binary's HTTP API, an embedder's own
+//! dashboard). Reading state is `inspect`'s part of it; this module holds
+//! the handle and the operations that change things, each doing what the
+//! AMQP method of the same meaning does, with the same checks.
+
+use crate::auth::PasswordHash;
+use crate::channel::{apply_settles, Settle};
+use crate::consumer::ChannelLink;
+use crate::core::Core;
+use crate::error::{AmqpError, AmqpResult};
+use crate::exchange::ExchangeOptions;
+use crate::inspect::DestinationKind;
+use crate::message::{Message, Stored};
+use crate::outbox::{Outbound, Outbox};
+use crate::queue::{DeadLetters, Enqueued, Queue, QueueOptions};
+use crate::vhost::{check_exclusive, BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
+use bytes::{Bytes, BytesMut};
+use leveret_protocol::{BasicProperties, FieldTable, ShortStr};
+use std::sync::Arc;
+
+/// A cheap, cloneable handle for inspecting and administering a running
+/// broker. It stays usable after the broker shuts down, showing what was
+/// left.
+#[derive(Debug, Clone)]
+pub struct Admin {
+    pub(crate) core: Arc<Core>,
+}
+
+impl Admin {
+    /// Closes connection `id` with 320 CONNECTION_FORCED and `reason` as
+    /// the text; false if no such connection is open.
+    pub fn close_connection(&self, id: u64, reason: &str) -> bool {
+        self.core.registry.close(id, reason)
+    }
+}
+
+/// The connection id the management operations act as: connection ids
+/// start at 1, so no client's exclusive queue belongs to it.
+const ADMIN_CONNECTION: u64 = 0;
+
+/// How `Admin::get` leaves the messages it fetched (RabbitMQ's `ackmode`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GetMode {
+    /// Acknowledge: the messages leave the queue.
+    Ack,
+    /// Reject without requeue: the messages leave the queue, to its
+    /// dead-letter exchange if it has one.
+    RejectDrop,
+    /// Put them back, flagged redelivered (`ack_requeue_true` and
+    /// `reject_requeue_true` alike).
+    Requeue,
+}
+
+/// A message fetched by [`Admin::get`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct GotMessage {
+    /// The exchange it was published to.
+    pub exchange: String,
+    /// Its routing key.
+    pub routing_key: String,
+    /// Delivered before.
+    pub redelivered: bool,
+    /// Ready messages left in the queue after this one was taken.
+    pub remaining: u32,
+    /// Its properties.
+    pub properties: BasicProperties,
+    /// Its body.
+    pub body: Bytes,
+}
+
+/// What an exchange is declared as.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ExchangeSettings {
+    /// `direct`, `fanout`, `topic` or `headers`.
+    pub kind: String,
+    /// Survives restarts.
+    pub durable: bool,
+    /// Deleted when its last binding goes.
+    pub auto_delete: bool,
+    /// Only reachable through exchange-to-exchange bindings.
+    pub internal: bool,
+    /// Arguments.
+    pub arguments: FieldTable,
+}
+
+/// What a queue is declared as (queues declared through [`Admin`] are
+/// never exclusive: no connection would own them).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct QueueSettings {
+    /// Survives restarts.
+    pub durable: bool,
+    /// Deleted when its last consumer goes.
+    pub auto_delete: bool,
+    /// Arguments.
+    pub arguments: FieldTable,
+}
+
+/// A binding to add or remove.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BindingSpec {
+    /// The source exchange.
+    pub source: String,
+    /// The destination's name.
+    pub destination: String,
+    /// Queue or exchange.
+    pub destination_kind: DestinationKind,
+    /// The binding key.
+    pub routing_key: String,
+    /// Binding arguments.
+    pub arguments: FieldTable,
+}
+
+fn short(text: &str, what: &str) -> AmqpResult<ShortStr> {
+    ShortStr::try_from(text)
+        .map_err(|_| AmqpError::precondition_failed(format_args!("{what} longer than 255 bytes")))
+}
+
+impl Admin {
+    fn vhost(&self, name: &str) -> AmqpResult<Arc<Vhost>> {
+        let missing = || AmqpError::not_found(format_args!("no vhost '{name}'"));
+        let name = ShortStr::try_from(name).map_err(|_| missing())?;
+        self.core.vhost(&name).ok_or_else(missing)
+    }
+
+    fn queue_in(&self, vhost: &Vhost, name: &str) -> AmqpResult<Arc<Queue>> {
+        vhost.queue_or_404(&short(name, "queue name")?)
+    }
+
+    /// Waits until every definition change submitted so far is on disk,
+    /// when `durable` says the change touched the store: as over AMQP, the
+    /// caller hears of success only once the disk has it.
+    async fn on_disk(&self, durable: bool) -> AmqpResult<()> {
+        match &self.core.persistence {
+            Some(persistence) if durable && !persistence.sync().await => Err(
+                AmqpError::resource_error("could not write the definition to disk"),
+            ),
+            _ => Ok(()),
+        }
+    }
+
+    /// Adds a vhost (for definitions imported at run time); true if it is
+    /// new. It lasts while the broker runs, or while durable objects stored
+    /// in it exist; vhosts meant to last belong in the configuration.
+    pub fn add_vhost(&self, name: &str) -> AmqpResult<bool> {
+        let name = short(name, "vhost name")?;
+        if name.is_empty() {
+            return Err(AmqpError::precondition_failed("a vhost needs a name"));
+        }
+        let new = self.core.vhost(&name).is_none();
+        self.core.vhost_or_create(&name);
+        Ok(new)
+    }
+
+    /// Whether `user` with `password` is one of the broker's users.
+    pub fn authenticate(&self, user: &str, password: &str) -> bool {
+        let mut plain = Vec::with_capacity(user.len() + password.len() + 2);
+        plain.push(0);
+        plain.extend_from_slice(user.as_bytes());
+        plain.push(0);
+        plain.extend_from_slice(password.as_bytes());
+        self.core
+            .users
+            .authenticate(b"PLAIN", &Bytes::from(plain))
+            .is_some()
+    }
+
+    /// The broker's users and their password hashes, sorted by name.
+    pub fn users(&self) -> Vec<(String, PasswordHash)> {
+        let mut users: Vec<(String, PasswordHash)> = self
+            .core
+            .users
+            .iter()
+            .map(|(name, hash)| (name.to_owned(), hash.clone()))
+            .collect();
+        users.sort_by(|a, b| a.0.cmp(&b.0));
+        users
+    }
+
+    /// exchange.declare, as a client would (same checks, same errors).
+    pub async fn declare_exchange(
+        &self,
+        vhost: &str,
+        name: &str,
+        settings: ExchangeSettings,
+    ) -> AmqpResult<()> {
+        let vhost = self.vhost(vhost)?;
+        let durable = settings.durable;
+        vhost.declare_exchange(ExchangeDeclaration {
+            name: short(name, "exchange name")?,
+            kind: short(&settings.kind, "exchange type")?,
+            passive: false,
+            options: ExchangeOptions {
+                durable: settings.durable,
+                auto_delete: settings.auto_delete,
+                internal: settings.internal,
+                arguments: settings.arguments,
+            },
+        })?;
+        self.on_disk(durable).await
+    }
+
+    /// exchange.delete; deleting one that does not exist is a 404 here
+    /// (the HTTP API's meaning), unlike over AMQP.
+    pub async fn delete_exchange(
+        &self,
+        vhost: &str,
+        name: &str,
+        if_unused: bool,
+    ) -> AmqpResult<()> {
+        let vhost = self.vhost(vhost)?;
+        let name = short(name, "exchange name")?;
+        let durable = vhost.exchange_or_404(&name)?.options.durable;
+        vhost.delete_exchange(&name, if_unused)?;
+        self.on_disk(durable).await
+    }
+
+    /// queue.declare (not exclusive); true if the queue was created.
+    pub async fn declare_queue(
+        &self,
+        vhost: &str,
+        name: &str,
+        settings: QueueSettings,
+    ) -> AmqpResult<bool> {
+        let vhost = self.vhost(vhost)?;
+        let name = short(name, "queue name")?;
+        if name.is_empty() {
+            return Err(AmqpError::precondition_failed("a queue needs a name"));
+        }
+        self.core.stats.queues_declared.inc();
+        let max_queues = self.core.limits.vhost(&vhost.name).max_queues;
+        let (queue, created) = vhost.declare_queue(
+            QueueDeclaration {
+                name,
+                passive: false,
+                server_named: false,
+                options: QueueOptions {
+                    durable: settings.durable,
+                    exclusive_owner: None,
+                    auto_delete: settings.auto_delete,
+                    arguments: settings.arguments,
+                },
+                max_queues,
+            },
+            ADMIN_CONNECTION,
+        )?;
+        if created {
+            self.core.stats.queues_created.inc();
+        }
+        self.on_disk(queue.store_id().is_some()).await?;
+        Ok(created)
+    }
+
+    /// queue.delete: 404 if it does not exist, 406 if `if_unused` and it
+    /// has consumers or `if_empty` and it has ready messages.
+    pub async fn delete_queue(
+        &self,
+        vhost: &str,
+        name: &str,
+        if_unused: bool,
+        if_empty: bool,
+    ) -> AmqpResult<u32> {
+        let vhost = self.vhost(vhost)?;
+        let queue = self.queue_in(&vhost, name)?;
+        if if_unused && queue.has_consumers() {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "queue '{}' in vhost '{}' in use",
+                name, vhost.name
+            )));
+        }
+        if if_empty && queue.depth().ready > 0 {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "queue '{}' in vhost '{}' is not empty",
+                name, vhost.name
+            )));
+        }
+        let count = vhost.delete_queue(&queue).notify();
+        self.on_disk(queue.store_id().is_some()).await?;
+        Ok(count)
+    }
+
+    /// queue.purge: drops the ready messages; returns how many.
+    pub fn purge_queue(&self, vhost: &str, name: &str) -> AmqpResult<u32> {
+        let vhost = self.vhost(vhost)?;
+        Ok(self.queue_in(&vhost, name)?.purge())
+    }
+
+    /// queue.bind or exchange.bind.
+    pub async fn bind(&self, vhost: &str, binding: BindingSpec) -> AmqpResult<()> {
+        self.change_binding(vhost, binding, BindingChange::Bind)
+            .await
+    }
+
+    /// Removes the binding whose [`BindingInfo::properties_key`] is `key`;
+    /// 404 if there is none.
+    pub async fn unbind(
+        &self,
+        vhost: &str,
+        source: &str,
+        destination: &str,
+        destination_kind: DestinationKind,
+        key: &str,
+    ) -> AmqpResult<()> {
+        let found = self.bindings().into_iter().find(|b| {
+            b.vhost == vhost
+                && b.source == source
+                && !b.source.is_empty()
+                && b.destination == destination
+                && b.destination_kind == destination_kind
+                && b.properties_key() == key
+        });
+        let Some(found) = found else {
+            return Err(AmqpError::not_found(format_args!(
+                "no binding '{key}' from '{source}' to '{destination}' in vhost '{vhost}'"
+            )));
+        };
+        self.change_binding(
+            vhost,
+            BindingSpec {
+                source: found.source,
+                destination: found.destination,
+                destination_kind,
+                routing_key: found.routing_key,
+                arguments: found.arguments,
+            },
+            BindingChange::Unbind,
+        )
+        .await
+    }
+
+    async fn change_binding(
+        &self,
+        vhost: &str,
+        binding: BindingSpec,
+        change: BindingChange,
+    ) -> AmqpResult<()> {
+        let vhost = self.vhost(vhost)?;
+        let source = short(&binding.source, "exchange name")?;
+        let routing_key = short(&binding.routing_key, "routing key")?;
+        let source_durable = vhost.exchange(&source).is_some_and(|e| e.options.durable);
+        let durable = match binding.destination_kind {
+            DestinationKind::Queue => {
+                let queue = self.queue_in(&vhost, &binding.destination)?;
+                vhost.bind_queue(&queue, &source, routing_key, binding.arguments, change)?;
+                queue.store_id().is_some()
+            }
+            DestinationKind::Exchange => {
+                let destination = short(&binding.destination, "exchange name")?;
+                vhost.bind_exchange(
+                    &destination,
+                    &source,
+                    routing_key,
+                    binding.arguments,
+                    change,
+                )?;
+                vhost
+                    .exchange(&destination)
+                    .is_some_and(|e| e.options.durable)
+            }
+        };
+        self.on_disk(durable && source_durable).await
+    }
+
+    /// basic.publish of one message, as a client in confirm mode would:
+    /// returns once any durable queue's copy is on disk, with whether any
+    /// queue took it. Exchange `""` is the default exchange.
+    pub async fn publish(
+        &self,
+        vhost: &str,
+        exchange: &str,
+        routing_key: &str,
+        properties: BasicProperties,
+        body: Bytes,
+    ) -> AmqpResult<bool> {
+        let vhost = self.vhost(vhost)?;
+        let exchange = vhost.exchange_or_404(&short(exchange, "exchange name")?)?;
+        if exchange.options.internal {
+            return Err(AmqpError::access_refused(format_args!(
+                "cannot publish to internal exchange '{}' in vhost '{}'",
+                exchange.name, vhost.name
+            )));
+        }
+        if body.len() as u64 > self.core.limits.max_message_size {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "message size {} is larger than configured max size {}",
+                body.len(),
+                self.core.limits.max_message_size
+            )));
+        }
+        let ttl_ms = match &properties.expiration {
+            None => None,
+            Some(text) => Some(
+                text.as_str()
+                    .and_then(|e| e.parse::<u64>().ok())
+                    .ok_or_else(|| {
+                        AmqpError::precondition_failed(format_args!(
+                            "invalid expiration '{text}': not a non-negative integer"
+                        ))
+                    })?,
+            ),
+        };
+        let routing_key = short(routing_key, "routing key")?;
+        self.core.stats.received(false);
+        let mut queues = Vec::new();
+        vhost.route(
+            &exchange,
+            &routing_key,
+            properties.headers.as_ref(),
+            &mut queues,
+        );
+        self.core.stats.routed(!queues.is_empty(), false);
+        let persistent = properties.is_persistent();
+        let persistence = self.core.persistence.as_ref().filter(|_| persistent);
+        let stored = persistence.and_then(|p| {
+            Stored::for_queues(p, queues.iter().filter(|q| q.store_id().is_some()).count())
+        });
+        let mut encoded = BytesMut::new();
+        properties.encode(&mut encoded);
+        let message = Arc::new(Message {
+            exchange: exchange.name.clone(),
+            routing_key,
+            properties: encoded.freeze(),
+            body,
+            persistent,
+            priority: properties.priority.unwrap_or(0),
+            ttl_ms,
+            stored,
+        });
+        if let (Some(persistence), Some(op)) = (persistence, message.record_op()) {
+            persistence.submit(vec![op]);
+        }
+        let mut sync = 0;
+        let mut dead = DeadLetters::default();
+        for queue in &queues {
+            let (enqueued, dead_here) = queue.publish(Arc::clone(&message));
+            if let Enqueued::Accepted { sync: s } = enqueued {
+                sync = sync.max(s);
+            }
+            dead.append(dead_here);
+        }
+        vhost.dead_letter(dead);
+        if let (Some(persistence), true) = (persistence, sync > 0) {
+            if !persistence.wait(sync).await {
+                return Err(AmqpError::resource_error(
+                    "could not write the message to disk",
+                ));
+            }
+        }
+        Ok(!queues.is_empty())
+    }
+
+    /// basic.get up to `count` times, then settles what it got as `mode`
+    /// says.
+    pub fn get(
+        &self,
+        vhost: &str,
+        queue: &str,
+        count: usize,
+        mode: GetMode,
+    ) -> AmqpResult<Vec<GotMessage>> {
+        let vhost = self.vhost(vhost)?;
+        let queue = self.queue_in(&vhost, queue)?;
+        check_exclusive(&queue, ADMIN_CONNECTION, &vhost.name)?;
+        let (outbox, mut answers) = Outbox::new(ADMIN_CONNECTION);
+        let link = ChannelLink::new(0, Arc::clone(&outbox));
+        let mut got = Vec::new();
+        let mut dead = DeadLetters::default();
+        while got.len() < count {
+            let Some(permit) = outbox.try_reserve() else {
+                break;
+            };
+            let (found, dead_here) = queue.get(&link, false, permit);
+            dead.append(dead_here);
+            if !found {
+                break;
+            }
+            // The answer basic.get would have sent is in our own outbox.
+            let Ok(Outbound::GetOk {
+                redelivered,
+                message_count,
+                message,
+                ..
+            }) = answers.try_recv()
+            else {
+                break;
+            };
+            got.push(GotMessage {
+                exchange: message.exchange.to_string_lossy().into_owned(),
+                routing_key: message.routing_key.to_string_lossy().into_owned(),
+                redelivered,
+                remaining: message_count,
+                properties: BasicProperties::decode(&message.properties).unwrap_or_default(),
+                body: message.body.clone(),
+            });
+        }
+        let how = match mode {
+            GetMode::Ack => Settle::Ack,
+            GetMode::RejectDrop => Settle::Reject { requeue: false },
+            GetMode::Requeue => Settle::Reject { requeue: true },
+        };
+        let taken = link.deliveries().take_all();
+        dead.append(apply_settles(taken.into_iter().map(move |u| (u, how))));
+        vhost.dead_letter(dead);
+        Ok(got)
+    }
+
+    /// RabbitMQ's aliveness test: declares `aliveness-test` in the vhost,
+    /// publishes to it and gets the message back.
+    pub async fn aliveness_test(&self, vhost: &str) -> AmqpResult<()> {
+        const QUEUE: &str = "aliveness-test";
+        self.declare_queue(vhost, QUEUE, QueueSettings::default())
+            .await?;
+        let body = Bytes::from_static(b"test_message");
+        self.publish(vhost, "", QUEUE, BasicProperties::default(), body.clone())
+            .await?;
+        let got = self.get(vhost, QUEUE, 1, GetMode::Ack)?;
+        if got.first().is_some_and(|m| m.body == body) {
+            Ok(())
+        } else {
+            Err(AmqpError::internal_error(
+                "the aliveness test message did not come back",
+            ))
+        }
+    }
+}

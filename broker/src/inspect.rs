@@ -1,0 +1,822 @@
+//! Reading the broker's state into plain structs with RabbitMQ's field
+//! meanings (its management API's `messages`, `messages_ready`,
+//! `messages_unacknowledged`, `consumers`, `message_stats`, ...), for the
+//! embedding API ([`crate::BrokerHandle::overview`],
+//! [`crate::BrokerHandle::queues`]) and for the `leveret` binary's HTTP
+//! listeners, which hold an [`Admin`].
+//!
+//! Cost: every call takes each registry lock it reads (a vhost's queue or
+//! exchange map, the connection registry) once, for as long as copying out
+//! `Arc`s takes, then reads each object under its own lock, briefly. A
+//! listing is O(objects); callers that must not stall (the HTTP listeners)
+//! take [`Admin::queue_refs`] and read the queues in chunks.
+
+use crate::admin::Admin;
+use crate::exchange::{Binding, Destination, Exchange};
+use crate::queue::Queue;
+use crate::registry::{ChannelMode, ConnectionEntry};
+use crate::vhost::Vhost;
+use leveret_protocol::{FieldTable, ShortStr};
+use std::sync::Arc;
+use std::time::{Duration, SystemTime};
+
+/// Broker-wide figures: RabbitMQ's `/api/overview` and
+/// `rabbitmq_global_*` metrics.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Overview {
+    /// The product name announced to clients.
+    pub product: String,
+    /// Leveret's version.
+    pub version: &'static str,
+    /// Time since the broker started.
+    pub uptime: Duration,
+    /// How many of each kind of object exist now.
+    pub object_totals: ObjectTotals,
+    /// Messages in all queues.
+    pub queue_totals: QueueTotals,
+    /// Message counters since start.
+    pub message_stats: GlobalMessageStats,
+    /// Connection, channel and queue churn since start.
+    pub churn: ChurnTotals,
+    /// Channels that have published and are still open.
+    pub publishers: u64,
+    /// The memory high watermark: queued-message bytes above which
+    /// publishers are blocked.
+    pub memory_high_watermark: usize,
+    /// Whether the memory alarm is set now.
+    pub memory_alarm: bool,
+    /// Busy polling's figures, if the broker busy-polls.
+    pub busy_poll: Option<BusyPollFigures>,
+}
+
+/// What busy polling has cost (see `BrokerBuilder::busy_poll`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BusyPollFigures {
+    /// Socket reads by all connections.
+    pub socket_reads: u64,
+    /// Windows the broker's thread polled through instead of sleeping.
+    pub windows: u64,
+    /// Time the broker's thread spent polling in those windows.
+    pub polling: Duration,
+}
+
+/// Counts of live objects (RabbitMQ's `object_totals`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ObjectTotals {
+    /// Open connections (handshake done).
+    pub connections: u64,
+    /// Open channels.
+    pub channels: u64,
+    /// Exchanges, the predefined ones included.
+    pub exchanges: u64,
+    /// Queues.
+    pub queues: u64,
+    /// Consumers.
+    pub consumers: u64,
+}
+
+/// Message counts over queues (RabbitMQ's `queue_totals`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct QueueTotals {
+    /// Ready to be delivered.
+    pub messages_ready: u64,
+    /// Delivered and not yet acknowledged.
+    pub messages_unacknowledged: u64,
+}
+
+impl QueueTotals {
+    /// Ready plus unacknowledged.
+    pub fn messages(&self) -> u64 {
+        self.messages_ready + self.messages_unacknowledged
+    }
+}
+
+/// Broker-wide message counters since start, with RabbitMQ's
+/// `rabbitmq_global_messages_*_total` meanings.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct GlobalMessageStats {
+    /// Messages received from publishers.
+    pub received: u64,
+    /// Messages received on channels in confirm mode.
+    pub received_confirm: u64,
+    /// Messages routed to at least one queue.
+    pub routed: u64,
+    /// Non-mandatory messages dropped as unroutable.
+    pub unroutable_dropped: u64,
+    /// Mandatory messages returned as unroutable.
+    pub unroutable_returned: u64,
+    /// Publisher confirms sent.
+    pub confirmed: u64,
+    /// Deliveries to consumers that must ack.
+    pub delivered_consume_manual_ack: u64,
+    /// Deliveries to no-ack consumers.
+    pub delivered_consume_auto_ack: u64,
+    /// basic.get answers that must be acked.
+    pub delivered_get_manual_ack: u64,
+    /// basic.get answers with no-ack.
+    pub delivered_get_auto_ack: u64,
+    /// basic.get calls that found nothing.
+    pub get_empty: u64,
+    /// Deliveries of messages delivered before.
+    pub redelivered: u64,
+    /// Acknowledgements.
+    pub acknowledged: u64,
+}
+
+impl GlobalMessageStats {
+    /// Every delivery, by consume or get, with or without ack
+    /// (`rabbitmq_global_messages_delivered_total`).
+    pub fn delivered(&self) -> u64 {
+        self.delivered_consume_manual_ack
+            + self.delivered_consume_auto_ack
+            + self.delivered_get_manual_ack
+            + self.delivered_get_auto_ack
+    }
+}
+
+/// Churn since start (`rabbitmq_*_opened_total` and so on).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ChurnTotals {
+    /// Connections whose handshake completed.
+    pub connections_opened: u64,
+    /// Of those, closed.
+    pub connections_closed: u64,
+    /// Channels opened.
+    pub channels_opened: u64,
+    /// Channels closed.
+    pub channels_closed: u64,
+    /// queue.declare calls (not passive).
+    pub queues_declared: u64,
+    /// Queues created.
+    pub queues_created: u64,
+    /// Queues deleted.
+    pub queues_deleted: u64,
+}
+
+/// One queue (RabbitMQ's `/api/queues` object).
+#[derive(Debug, Clone, PartialEq)]
+pub struct QueueInfo {
+    /// Its vhost.
+    pub vhost: String,
+    /// Its name.
+    pub name: String,
+    /// Survives restarts.
+    pub durable: bool,
+    /// Deleted when its last consumer goes.
+    pub auto_delete: bool,
+    /// The connection that owns it, if exclusive.
+    pub exclusive_owner: Option<u64>,
+    /// Arguments as declared.
+    pub arguments: FieldTable,
+    /// Messages ready to be delivered.
+    pub messages_ready: u64,
+    /// Messages delivered and not yet acknowledged.
+    pub messages_unacknowledged: u64,
+    /// Body bytes of the ready messages.
+    pub message_bytes_ready: u64,
+    /// Consumers.
+    pub consumers: u64,
+    /// Counters since the queue was created.
+    pub message_stats: QueueMessageStats,
+}
+
+impl QueueInfo {
+    /// Ready plus unacknowledged (RabbitMQ's `messages`).
+    pub fn messages(&self) -> u64 {
+        self.messages_ready + self.messages_unacknowledged
+    }
+}
+
+/// A queue's counters, named as in RabbitMQ's `message_stats`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct QueueMessageStats {
+    /// Messages that entered the queue.
+    pub publish: u64,
+    /// Deliveries to consumers that must ack.
+    pub deliver: u64,
+    /// Deliveries to no-ack consumers.
+    pub deliver_no_ack: u64,
+    /// basic.get answers that must be acked.
+    pub get: u64,
+    /// basic.get answers with no-ack.
+    pub get_no_ack: u64,
+    /// basic.get calls that found nothing.
+    pub get_empty: u64,
+    /// Redeliveries.
+    pub redeliver: u64,
+    /// Acknowledgements.
+    pub ack: u64,
+}
+
+impl QueueMessageStats {
+    /// Every delivery and get (RabbitMQ's `deliver_get`).
+    pub fn deliver_get(&self) -> u64 {
+        self.deliver + self.deliver_no_ack + self.get + self.get_no_ack
+    }
+}
+
+/// One exchange (RabbitMQ's `/api/exchanges` object).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExchangeInfo {
+    /// Its vhost.
+    pub vhost: String,
+    /// Its name (empty for the default exchange).
+    pub name: String,
+    /// `direct`, `fanout`, `topic` or `headers`.
+    pub kind: &'static str,
+    /// Survives restarts.
+    pub durable: bool,
+    /// Deleted when its last binding goes.
+    pub auto_delete: bool,
+    /// Only reachable through exchange-to-exchange bindings.
+    pub internal: bool,
+    /// Arguments as declared.
+    pub arguments: FieldTable,
+}
+
+/// What a binding leads to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DestinationKind {
+    /// A queue.
+    Queue,
+    /// An exchange.
+    Exchange,
+}
+
+impl DestinationKind {
+    /// RabbitMQ's `destination_type`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DestinationKind::Queue => "queue",
+            DestinationKind::Exchange => "exchange",
+        }
+    }
+}
+
+/// One binding (RabbitMQ's `/api/bindings` object). The default
+/// exchange's implicit binding to every queue is listed too, as RabbitMQ
+/// lists it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BindingInfo {
+    /// Its vhost.
+    pub vhost: String,
+    /// The source exchange (empty for the default exchange).
+    pub source: String,
+    /// The destination's name.
+    pub destination: String,
+    /// Queue or exchange.
+    pub destination_kind: DestinationKind,
+    /// The binding key.
+    pub routing_key: String,
+    /// Binding arguments.
+    pub arguments: FieldTable,
+}
+
+impl BindingInfo {
+    /// RabbitMQ's `properties_key`, which names a binding among those with
+    /// the same ends: `~` for an empty key without arguments, else the key
+    /// form-encoded as RabbitMQ encodes it (`a.#` is `a.%23`), followed
+    /// with arguments by `~` and a hash of them (RabbitMQ's hash differs;
+    /// clients take the key from a listing, never compute it).
+    pub fn properties_key(&self) -> String {
+        if self.arguments.is_empty() {
+            return if self.routing_key.is_empty() {
+                "~".to_owned()
+            } else {
+                quote_binding(&self.routing_key)
+            };
+        }
+        // FNV-1a over the arguments' rendering: stable for a build.
+        let rendered = format!("{:?}", self.arguments);
+        let hash = rendered.bytes().fold(0xcbf2_9ce4_8422_2325_u64, |h, b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+        });
+        format!("{}~{hash:016x}", quote_binding(&self.routing_key))
+    }
+}
+
+/// Form encoding as RabbitMQ quotes binding keys: letters, digits, `.`,
+/// `-` and `_` stay, a space becomes `+`, every other byte `%XX`.
+fn quote_binding(key: &str) -> String {
+    let mut out = String::with_capacity(key.len());
+    for byte in key.bytes() {
+        match byte {
+            b'a'..=b'z' | b'A'..=b'Z' | b'0'..=b'9' | b'.' | b'-' | b'_' => out.push(byte as char),
+            b' ' => out.push('+'),
+            other => out.push_str(&format!("%{other:02X}")),
+        }
+    }
+    out
+}
+
+/// One client connection (RabbitMQ's `/api/connections` object).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConnectionInfo {
+    /// Its id, unique for the broker's life.
+    pub id: u64,
+    /// The client's address (`host:port`), or `in-process`.
+    pub peer: String,
+    /// When it was accepted.
+    pub connected_at: SystemTime,
+    /// The authenticated user.
+    pub user: String,
+    /// The vhost it opened.
+    pub vhost: String,
+    /// What the client announced in connection.start-ok.
+    pub client_properties: FieldTable,
+    /// Negotiated frame-max.
+    pub frame_max: u32,
+    /// Negotiated channel-max.
+    pub channel_max: u16,
+    /// Negotiated heartbeat, seconds (0 = none).
+    pub heartbeat_secs: u16,
+    /// Open channels.
+    pub channels: u64,
+}
+
+/// One channel (RabbitMQ's `/api/channels` object).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChannelInfo {
+    /// The connection's id.
+    pub connection_id: u64,
+    /// The connection's peer address.
+    pub connection_peer: String,
+    /// Channel number.
+    pub number: u16,
+    /// The connection's user.
+    pub user: String,
+    /// The connection's vhost.
+    pub vhost: String,
+    /// Consumers on this channel.
+    pub consumers: u64,
+    /// Deliveries (consume and get) not yet acknowledged.
+    pub messages_unacknowledged: u64,
+    /// basic.qos per-consumer prefetch count.
+    pub prefetch_count: u32,
+    /// basic.qos global (channel-wide) prefetch count.
+    pub global_prefetch_count: u32,
+    /// In confirm mode.
+    pub confirm: bool,
+    /// In transactional mode.
+    pub transactional: bool,
+}
+
+/// One consumer (RabbitMQ's `/api/consumers` object).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConsumerInfo {
+    /// The queue's vhost.
+    pub vhost: String,
+    /// The queue it consumes from.
+    pub queue: String,
+    /// Consumer tag.
+    pub tag: String,
+    /// Its connection's id.
+    pub connection_id: u64,
+    /// Its channel number.
+    pub channel: u16,
+    /// Deliveries must be acknowledged.
+    pub ack_required: bool,
+    /// Exclusive consumer.
+    pub exclusive: bool,
+    /// Per-consumer prefetch count (0 = none).
+    pub prefetch_count: u32,
+    /// `x-priority`.
+    pub priority: i64,
+}
+
+/// A handle on one queue for reading its figures later, one at a time
+/// (see [`Admin::queue_refs`]).
+#[derive(Debug, Clone)]
+pub struct QueueRef {
+    vhost: ShortStr,
+    queue: Arc<Queue>,
+}
+
+impl QueueRef {
+    /// The queue's vhost.
+    pub fn vhost(&self) -> &str {
+        self.vhost.as_str().unwrap_or_default()
+    }
+
+    /// The queue's name.
+    pub fn name(&self) -> &str {
+        self.queue.name.as_str().unwrap_or_default()
+    }
+
+    /// Its figures now; the queue's lock is held for a few loads.
+    pub fn info(&self) -> QueueInfo {
+        let queue = &self.queue;
+        let depth = queue.depth();
+        let c = &queue.stats;
+        QueueInfo {
+            vhost: self.vhost.to_string_lossy().into_owned(),
+            name: queue.name.to_string_lossy().into_owned(),
+            durable: queue.options.durable,
+            auto_delete: queue.options.auto_delete,
+            exclusive_owner: queue.options.exclusive_owner,
+            arguments: queue.options.arguments.clone(),
+            messages_ready: depth.ready,
+            messages_unacknowledged: c.unacked.get(),
+            message_bytes_ready: depth.ready_bytes,
+            consumers: depth.consumers,
+            message_stats: QueueMessageStats {
+                publish: c.published.get(),
+                deliver: c.delivered_manual_ack.get(),
+                deliver_no_ack: c.delivered_auto_ack.get(),
+                get: c.got_manual_ack.get(),
+                get_no_ack: c.got_auto_ack.get(),
+                get_empty: c.get_empty.get(),
+                redeliver: c.redelivered.get(),
+                ack: c.acknowledged.get(),
+            },
+        }
+    }
+
+    /// Its consumers now.
+    pub fn consumers(&self) -> Vec<ConsumerInfo> {
+        self.queue
+            .consumers_snapshot()
+            .into_iter()
+            .map(|consumer| ConsumerInfo {
+                vhost: self.vhost.to_string_lossy().into_owned(),
+                queue: self.queue.name.to_string_lossy().into_owned(),
+                tag: consumer.tag.to_string_lossy().into_owned(),
+                connection_id: consumer.channel.outbox.connection_id,
+                channel: consumer.channel.id,
+                ack_required: !consumer.no_ack,
+                exclusive: consumer.exclusive,
+                prefetch_count: consumer.prefetch,
+                priority: consumer.priority,
+            })
+            .collect()
+    }
+}
+
+/// The ready part of a queue, read under its lock.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct QueueDepth {
+    pub ready: u64,
+    pub ready_bytes: u64,
+    pub consumers: u64,
+}
+
+/// Queues copied out of a vhost's registry per hold of its lock:
+/// measured, copying 100k at once held it 4-12 ms; a chunk of this size
+/// holds it well under a millisecond, and a declare waiting for the
+/// registry gets in between chunks.
+const REGISTRY_CHUNK: usize = 1024;
+
+/// Every queue of `vhost`, read a chunk at a time. Queues added or removed
+/// meanwhile may be missed (as a listing taken a moment earlier or later
+/// would); none is listed twice.
+fn all_queues(vhost: &Vhost) -> Vec<Arc<Queue>> {
+    let mut all = Vec::new();
+    loop {
+        let chunk = vhost.queues_chunk(all.len(), REGISTRY_CHUNK);
+        let last = chunk.len() < REGISTRY_CHUNK;
+        all.extend(chunk);
+        if last {
+            break;
+        }
+    }
+    all.sort_unstable_by_key(|q| Arc::as_ptr(q) as usize);
+    all.dedup_by(|a, b| Arc::ptr_eq(a, b));
+    all
+}
+
+/// Every binding of `exchange`, copied out a chunk at a time.
+fn all_bindings(exchange: &Exchange) -> Vec<Binding> {
+    let mut all = Vec::new();
+    let mut after = None;
+    loop {
+        let (chunk, next) = exchange.bindings_chunk(after.as_ref(), REGISTRY_CHUNK);
+        all.extend(chunk);
+        match next {
+            Some(cursor) => after = Some(cursor),
+            None => return all,
+        }
+    }
+}
+
+fn text(s: &ShortStr) -> String {
+    s.to_string_lossy().into_owned()
+}
+
+impl Admin {
+    /// Broker-wide figures. Reads every queue once (for `queue_totals`).
+    pub fn overview(&self) -> Overview {
+        let core = &self.core;
+        let c = &core.stats;
+        let (connections, channels) = core.registry.counts();
+        let mut queues = 0;
+        let mut exchanges = 0;
+        let mut totals = QueueTotals::default();
+        for vhost in core.vhosts() {
+            exchanges += vhost.exchanges().len() as u64;
+            for queue in all_queues(&vhost) {
+                queues += 1;
+                totals.messages_ready += queue.depth().ready;
+                totals.messages_unacknowledged += queue.stats.unacked.get();
+            }
+        }
+        Overview {
+            product: core.product.clone(),
+            version: env!("CARGO_PKG_VERSION"),
+            uptime: core.started.elapsed(),
+            object_totals: ObjectTotals {
+                connections: connections as u64,
+                channels: channels as u64,
+                exchanges,
+                queues,
+                consumers: c.consumers.get(),
+            },
+            queue_totals: totals,
+            message_stats: GlobalMessageStats {
+                received: c.received.get(),
+                received_confirm: c.received_confirm.get(),
+                routed: c.routed.get(),
+                unroutable_dropped: c.unroutable_dropped.get(),
+                unroutable_returned: c.unroutable_returned.get(),
+                confirmed: c.confirmed.get(),
+                delivered_consume_manual_ack: c.delivered_consume_manual_ack.get(),
+                delivered_consume_auto_ack: c.delivered_consume_auto_ack.get(),
+                delivered_get_manual_ack: c.delivered_get_manual_ack.get(),
+                delivered_get_auto_ack: c.delivered_get_auto_ack.get(),
+                get_empty: c.get_empty.get(),
+                redelivered: c.redelivered.get(),
+                acknowledged: c.acknowledged.get(),
+            },
+            churn: ChurnTotals {
+                connections_opened: c.connections_opened.get(),
+                connections_closed: c.connections_closed.get(),
+                channels_opened: c.channels_opened.get(),
+                channels_closed: c.channels_closed.get(),
+                queues_declared: c.queues_declared.get(),
+                queues_created: c.queues_created.get(),
+                queues_deleted: c.queues_deleted.get(),
+            },
+            publishers: c.publishers.get(),
+            memory_high_watermark: core.limits.memory_high_watermark,
+            memory_alarm: core.gauge.in_alarm(),
+            busy_poll: core.busy_poll.as_ref().map(|busy_poll| {
+                let (socket_reads, windows, polling) = busy_poll.figures();
+                BusyPollFigures {
+                    socket_reads,
+                    windows,
+                    polling,
+                }
+            }),
+        }
+    }
+
+    /// The vhosts' names, sorted.
+    pub fn vhosts(&self) -> Vec<String> {
+        let mut names: Vec<String> = self.core.vhosts().iter().map(|v| text(&v.name)).collect();
+        names.sort();
+        names
+    }
+
+    /// A handle on every queue, sorted by vhost and name: taking them
+    /// holds each vhost's queue map for as long as copying its `Arc`s
+    /// takes; reading their figures ([`QueueRef::info`]) is left to the
+    /// caller, one queue at a time.
+    pub fn queue_refs(&self) -> Vec<QueueRef> {
+        let mut refs: Vec<QueueRef> = self
+            .core
+            .vhosts()
+            .into_iter()
+            .flat_map(|vhost| {
+                all_queues(&vhost).into_iter().map(move |queue| QueueRef {
+                    vhost: vhost.name.clone(),
+                    queue,
+                })
+            })
+            .collect();
+        refs.sort_by(|a, b| {
+            (a.vhost.as_bytes(), a.queue.name.as_bytes())
+                .cmp(&(b.vhost.as_bytes(), b.queue.name.as_bytes()))
+        });
+        refs
+    }
+
+    /// Every queue's figures, sorted by vhost and name.
+    pub fn queues(&self) -> Vec<QueueInfo> {
+        self.queue_refs().iter().map(QueueRef::info).collect()
+    }
+
+    /// One queue.
+    pub fn queue(&self, vhost: &str, name: &str) -> Option<QueueRef> {
+        let vhost = self.core.vhost(&ShortStr::try_from(vhost).ok()?)?;
+        let queue = vhost.queue(&ShortStr::try_from(name).ok()?)?;
+        Some(QueueRef {
+            vhost: vhost.name.clone(),
+            queue,
+        })
+    }
+
+    /// Every exchange, sorted by vhost and name.
+    pub fn exchanges(&self) -> Vec<ExchangeInfo> {
+        let mut list: Vec<ExchangeInfo> = self
+            .core
+            .vhosts()
+            .iter()
+            .flat_map(|vhost| {
+                vhost
+                    .exchanges()
+                    .into_iter()
+                    .map(|e| exchange_info(&vhost.name, &e))
+            })
+            .collect();
+        list.sort_by(|a, b| (&a.vhost, &a.name).cmp(&(&b.vhost, &b.name)));
+        list
+    }
+
+    /// One exchange.
+    pub fn exchange(&self, vhost: &str, name: &str) -> Option<ExchangeInfo> {
+        let vhost = self.core.vhost(&ShortStr::try_from(vhost).ok()?)?;
+        let exchange = vhost.exchange(&ShortStr::try_from(name).ok()?)?;
+        Some(exchange_info(&vhost.name, &exchange))
+    }
+
+    /// Every binding, sorted by vhost, source, destination and key; the
+    /// default exchange's implicit ones first in each vhost.
+    pub fn bindings(&self) -> Vec<BindingInfo> {
+        let mut list = Vec::new();
+        let mut vhosts = self.core.vhosts();
+        vhosts.sort_by(|a, b| a.name.as_bytes().cmp(b.name.as_bytes()));
+        for vhost in vhosts {
+            let vhost_name = text(&vhost.name);
+            let mut implicit: Vec<BindingInfo> = all_queues(&vhost)
+                .iter()
+                .map(|queue| BindingInfo {
+                    vhost: vhost_name.clone(),
+                    source: String::new(),
+                    destination: text(&queue.name),
+                    destination_kind: DestinationKind::Queue,
+                    routing_key: text(&queue.name),
+                    arguments: FieldTable::new(),
+                })
+                .collect();
+            implicit.sort_by(|a, b| a.destination.cmp(&b.destination));
+            list.extend(implicit);
+            let mut explicit: Vec<BindingInfo> = vhost
+                .exchanges()
+                .iter()
+                .flat_map(|exchange| {
+                    let source = text(&exchange.name);
+                    let vhost_name = vhost_name.clone();
+                    all_bindings(exchange).into_iter().map(move |b| {
+                        let (destination, destination_kind) = match &b.destination {
+                            Destination::Queue(q) => (text(&q.name), DestinationKind::Queue),
+                            Destination::Exchange(e) => (text(&e.name), DestinationKind::Exchange),
+                        };
+                        BindingInfo {
+                            vhost: vhost_name.clone(),
+                            source: source.clone(),
+                            destination,
+                            destination_kind,
+                            routing_key: text(&b.routing_key),
+                            arguments: b.arguments,
+                        }
+                    })
+                })
+                .collect();
+            explicit.sort_by(|a, b| {
+                (&a.source, &a.destination, &a.routing_key).cmp(&(
+                    &b.source,
+                    &b.destination,
+                    &b.routing_key,
+                ))
+            });
+            list.extend(explicit);
+        }
+        list
+    }
+
+    /// Every open connection, by id.
+    pub fn connections(&self) -> Vec<ConnectionInfo> {
+        self.core
+            .registry
+            .connections()
+            .iter()
+            .filter_map(|entry| connection_info(entry))
+            .collect()
+    }
+
+    /// One open connection.
+    pub fn connection(&self, id: u64) -> Option<ConnectionInfo> {
+        connection_info(self.core.registry.connection_entry(id)?.as_ref())
+    }
+
+    /// Every consumer, sorted by vhost, queue and tag.
+    pub fn consumers(&self) -> Vec<ConsumerInfo> {
+        self.queue_refs()
+            .iter()
+            .flat_map(|queue| {
+                let mut consumers = queue.consumers();
+                consumers.sort_by(|a, b| a.tag.cmp(&b.tag));
+                consumers
+            })
+            .collect()
+    }
+
+    /// Every open channel, by connection and number.
+    pub fn channels(&self) -> Vec<ChannelInfo> {
+        let consumers = self.consumers();
+        let mut list = Vec::new();
+        for entry in self.core.registry.connections() {
+            let Some(opened) = entry.opened.get() else {
+                continue;
+            };
+            for channel in entry.channels() {
+                let link = &channel.link;
+                let mode = channel.mode();
+                list.push(ChannelInfo {
+                    connection_id: entry.id,
+                    connection_peer: entry.peer.clone(),
+                    number: channel.number,
+                    user: opened.user.clone(),
+                    vhost: opened.vhost.clone(),
+                    consumers: consumers
+                        .iter()
+                        .filter(|c| c.connection_id == entry.id && c.channel == channel.number)
+                        .count() as u64,
+                    messages_unacknowledged: link.deliveries().unacked_count() as u64,
+                    prefetch_count: channel.prefetch(),
+                    global_prefetch_count: link
+                        .global_prefetch
+                        .load(std::sync::atomic::Ordering::Relaxed),
+                    confirm: mode == ChannelMode::Confirm,
+                    transactional: mode == ChannelMode::Transactional,
+                });
+            }
+        }
+        list
+    }
+}
+
+fn exchange_info(vhost: &ShortStr, exchange: &crate::exchange::Exchange) -> ExchangeInfo {
+    ExchangeInfo {
+        vhost: text(vhost),
+        name: text(&exchange.name),
+        kind: exchange.kind.name(),
+        durable: exchange.options.durable,
+        auto_delete: exchange.options.auto_delete,
+        internal: exchange.options.internal,
+        arguments: exchange.options.arguments.clone(),
+    }
+}
+
+fn connection_info(entry: &ConnectionEntry) -> Option<ConnectionInfo> {
+    let opened = entry.opened.get()?;
+    Some(ConnectionInfo {
+        id: entry.id,
+        peer: entry.peer.clone(),
+        connected_at: entry.connected_at,
+        user: opened.user.clone(),
+        vhost: opened.vhost.clone(),
+        client_properties: opened.client_properties.clone(),
+        frame_max: opened.frame_max,
+        channel_max: opened.channel_max,
+        heartbeat_secs: opened.heartbeat_secs,
+        channels: entry.channel_count() as u64,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn binding(routing_key: &str, arguments: FieldTable) -> BindingInfo {
+        BindingInfo {
+            vhost: "/".into(),
+            source: "x".into(),
+            destination: "q".into(),
+            destination_kind: DestinationKind::Queue,
+            routing_key: routing_key.into(),
+            arguments,
+        }
+    }
+
+    #[test]
+    fn properties_keys_are_quoted_as_rabbitmq_quotes_them() {
+        assert_eq!(binding("", FieldTable::new()).properties_key(), "~");
+        assert_eq!(binding("a.#", FieldTable::new()).properties_key(), "a.%23");
+        assert_eq!(
+            binding("x y~/z", FieldTable::new()).properties_key(),
+            "x+y%7E%2Fz"
+        );
+        let mut arguments = FieldTable::new();
+        arguments.insert(
+            ShortStr::from_static("x-match"),
+            leveret_protocol::FieldValue::string("all"),
+        );
+        let with_arguments = binding("k", arguments.clone()).properties_key();
+        assert!(with_arguments.starts_with("k~"), "{with_arguments}");
+        assert_eq!(with_arguments, binding("k", arguments).properties_key());
+        assert_ne!(
+            with_arguments,
+            binding("k", FieldTable::new()).properties_key()
+        );
+    }
+}

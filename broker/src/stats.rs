@@ -1,0 +1,294 @@
+//! The broker's counters, with RabbitMQ's meanings (its
+//! `rabbit_global_counters` and per-queue `message_stats`): what they
+//! count, and the one-line hooks the hot path calls. Every hook is a
+//! relaxed atomic add on a counter that nothing else writes in the same
+//! instruction sequence; nothing here takes a lock. Reading them into
+//! plain structs for the embedding API and the HTTP listeners is
+//! `inspect`'s job.
+
+use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
+use std::sync::Arc;
+
+/// A monotonic counter.
+#[derive(Debug, Default)]
+pub(crate) struct Counter(AtomicU64);
+
+impl Counter {
+    /// Adds one.
+    #[inline]
+    pub fn inc(&self) {
+        self.0.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// The current value.
+    pub fn get(&self) -> u64 {
+        self.0.load(Ordering::Relaxed)
+    }
+}
+
+/// A value that goes up and down (consumers, publishers, unacked).
+#[derive(Debug, Default)]
+pub(crate) struct Level(AtomicI64);
+
+impl Level {
+    #[inline]
+    fn add(&self, n: i64) {
+        self.0.fetch_add(n, Ordering::Relaxed);
+    }
+
+    /// The current value (never below zero, even if a decrement raced ahead).
+    pub fn get(&self) -> u64 {
+        self.0.load(Ordering::Relaxed).max(0) as u64
+    }
+}
+
+/// Broker-wide counters: `rabbitmq_global_*` and the churn totals
+/// (`rabbitmq_*_opened_total` and so on).
+#[derive(Debug, Default)]
+pub(crate) struct BrokerCounters {
+    /// Messages received from publishers (complete, valid publishes).
+    pub received: Counter,
+    /// Of those, received on channels in confirm mode.
+    pub received_confirm: Counter,
+    /// Messages routed to at least one queue (or a direct reply-to consumer).
+    pub routed: Counter,
+    /// Non-mandatory messages no queue took.
+    pub unroutable_dropped: Counter,
+    /// Mandatory messages returned as unroutable.
+    pub unroutable_returned: Counter,
+    /// Publisher confirms (acks) sent.
+    pub confirmed: Counter,
+    /// Deliveries to basic.consume consumers that must ack.
+    pub delivered_consume_manual_ack: Counter,
+    /// Deliveries to basic.consume consumers with no-ack.
+    pub delivered_consume_auto_ack: Counter,
+    /// basic.get answers that must be acked.
+    pub delivered_get_manual_ack: Counter,
+    /// basic.get answers with no-ack.
+    pub delivered_get_auto_ack: Counter,
+    /// basic.get that found the queue empty.
+    pub get_empty: Counter,
+    /// Deliveries (consume or get) of messages delivered before.
+    pub redelivered: Counter,
+    /// Messages acknowledged by consumers.
+    pub acknowledged: Counter,
+    /// Connections that completed the handshake.
+    pub connections_opened: Counter,
+    /// Of those, closed since.
+    pub connections_closed: Counter,
+    /// Channels opened.
+    pub channels_opened: Counter,
+    /// Channels closed.
+    pub channels_closed: Counter,
+    /// queue.declare calls (not passive), successful or not, as RabbitMQ counts.
+    pub queues_declared: Counter,
+    /// Queues created.
+    pub queues_created: Counter,
+    /// Queues deleted (by a client, auto-delete, exclusive owner gone, x-expires).
+    pub queues_deleted: Counter,
+    /// Consumers now subscribed.
+    pub consumers: Level,
+    /// Channels that have published (RabbitMQ's "publishers").
+    pub publishers: Level,
+}
+
+impl BrokerCounters {
+    /// A complete, valid publish arrived on a channel.
+    #[inline]
+    pub fn received(&self, confirm_mode: bool) {
+        self.received.inc();
+        if confirm_mode {
+            self.received_confirm.inc();
+        }
+    }
+
+    /// Where a routed publish went.
+    #[inline]
+    pub fn routed(&self, reached: bool, mandatory: bool) {
+        match (reached, mandatory) {
+            (true, _) => self.routed.inc(),
+            (false, true) => self.unroutable_returned.inc(),
+            (false, false) => self.unroutable_dropped.inc(),
+        }
+    }
+
+    /// The channel started publishing: one more publisher.
+    pub fn publisher_added(&self) {
+        self.publishers.add(1);
+    }
+
+    /// A publishing channel closed.
+    pub fn publisher_removed(&self) {
+        self.publishers.add(-1);
+    }
+}
+
+/// One queue's counters (its `message_stats` in RabbitMQ's management
+/// API), each also counted in the broker-wide totals.
+#[derive(Debug)]
+pub(crate) struct QueueCounters {
+    global: Arc<BrokerCounters>,
+    /// Messages that entered the queue.
+    pub published: Counter,
+    /// Deliveries to consumers that must ack.
+    pub delivered_manual_ack: Counter,
+    /// Deliveries to no-ack consumers.
+    pub delivered_auto_ack: Counter,
+    /// basic.get answers that must be acked.
+    pub got_manual_ack: Counter,
+    /// basic.get answers with no-ack.
+    pub got_auto_ack: Counter,
+    /// basic.get that found nothing.
+    pub get_empty: Counter,
+    /// Redeliveries.
+    pub redelivered: Counter,
+    /// Acks.
+    pub acknowledged: Counter,
+    /// Delivered and not yet acked, rejected or requeued.
+    pub unacked: Level,
+}
+
+impl QueueCounters {
+    /// Counters for a new queue, adding into `global`.
+    pub fn new(global: Arc<BrokerCounters>) -> Self {
+        QueueCounters {
+            global,
+            published: Counter::default(),
+            delivered_manual_ack: Counter::default(),
+            delivered_auto_ack: Counter::default(),
+            got_manual_ack: Counter::default(),
+            got_auto_ack: Counter::default(),
+            get_empty: Counter::default(),
+            redelivered: Counter::default(),
+            acknowledged: Counter::default(),
+            unacked: Level::default(),
+        }
+    }
+
+    /// A message entered the queue.
+    #[inline]
+    pub fn published(&self) {
+        self.published.inc();
+    }
+
+    /// A delivery to a consumer.
+    #[inline]
+    pub fn delivered(&self, no_ack: bool, redelivered: bool) {
+        if no_ack {
+            self.delivered_auto_ack.inc();
+            self.global.delivered_consume_auto_ack.inc();
+        } else {
+            self.delivered_manual_ack.inc();
+            self.global.delivered_consume_manual_ack.inc();
+            self.unacked.add(1);
+        }
+        if redelivered {
+            self.redelivered();
+        }
+    }
+
+    /// A basic.get answered with a message.
+    pub fn got(&self, no_ack: bool, redelivered: bool) {
+        if no_ack {
+            self.got_auto_ack.inc();
+            self.global.delivered_get_auto_ack.inc();
+        } else {
+            self.got_manual_ack.inc();
+            self.global.delivered_get_manual_ack.inc();
+            self.unacked.add(1);
+        }
+        if redelivered {
+            self.redelivered();
+        }
+    }
+
+    fn redelivered(&self) {
+        self.redelivered.inc();
+        self.global.redelivered.inc();
+    }
+
+    /// A basic.get found the queue empty.
+    pub fn got_nothing(&self) {
+        self.get_empty.inc();
+        self.global.get_empty.inc();
+    }
+
+    /// An unacked delivery was acked.
+    #[inline]
+    pub fn acked(&self) {
+        self.acknowledged.inc();
+        self.global.acknowledged.inc();
+        self.unacked.add(-1);
+    }
+
+    /// An unacked delivery was rejected, or came back to be requeued.
+    #[inline]
+    pub fn unacked_returned(&self) {
+        self.unacked.add(-1);
+    }
+
+    /// A consumer subscribed.
+    pub fn consumer_added(&self) {
+        self.global.consumers.add(1);
+    }
+
+    /// `count` consumers left.
+    pub fn consumers_removed(&self, count: usize) {
+        self.global.consumers.add(-(count as i64));
+    }
+
+    /// The queue was deleted with `consumers` still subscribed.
+    pub fn queue_deleted(&self, consumers: usize) {
+        self.global.queues_deleted.inc();
+        self.consumers_removed(consumers);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn queue_counters_add_into_the_global_ones() {
+        let global = Arc::new(BrokerCounters::default());
+        let a = QueueCounters::new(Arc::clone(&global));
+        let b = QueueCounters::new(Arc::clone(&global));
+        a.delivered(false, false);
+        a.delivered(true, true);
+        b.got(false, true);
+        b.got(true, false);
+        b.got_nothing();
+        a.acked();
+        b.unacked_returned();
+        assert_eq!(a.unacked.get(), 0);
+        assert_eq!(b.unacked.get(), 0);
+        assert_eq!(global.delivered_consume_manual_ack.get(), 1);
+        assert_eq!(global.delivered_consume_auto_ack.get(), 1);
+        assert_eq!(global.delivered_get_manual_ack.get(), 1);
+        assert_eq!(global.delivered_get_auto_ack.get(), 1);
+        assert_eq!(global.get_empty.get(), 1);
+        assert_eq!(global.redelivered.get(), 2);
+        assert_eq!(global.acknowledged.get(), 1);
+        assert_eq!(a.redelivered.get(), 1);
+        a.consumer_added();
+        a.consumer_added();
+        a.queue_deleted(2);
+        assert_eq!(global.consumers.get(), 0);
+        assert_eq!(global.queues_deleted.get(), 1);
+    }
+
+    #[test]
+    fn routing_outcomes_are_counted_apart() {
+        let global = BrokerCounters::default();
+        global.received(true);
+        global.received(false);
+        global.routed(true, true);
+        global.routed(false, true);
+        global.routed(false, false);
+        assert_eq!(global.received.get(), 2);
+        assert_eq!(global.received_confirm.get(), 1);
+        assert_eq!(global.routed.get(), 1);
+        assert_eq!(global.unroutable_returned.get(), 1);
+        assert_eq!(global.unroutable_dropped.get(), 1);
+    }
+}

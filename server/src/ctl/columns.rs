@@ -1,0 +1,171 @@
+//! rabbitmqctl's column names for each `list_*` command, mapped onto the
+//! management API's JSON fields (most are the same name; a few are paths,
+//! like consumers' `queue_name`), and how a value prints: text as is,
+//! numbers and booleans as JSON writes them, tables and lists as JSON
+//! (`[]` for an empty arguments table, as rabbitmqctl prints it).
+
+use serde_json::Value;
+
+/// One listing's columns: (rabbitmqctl name, path in the API object).
+pub struct Table {
+    columns: &'static [(&'static str, &'static [&'static str])],
+    /// The columns shown when none are asked for.
+    pub default: &'static [&'static str],
+}
+
+impl Table {
+    fn path(&self, name: &str) -> Option<&'static [&'static str]> {
+        self.columns
+            .iter()
+            .find(|(column, _)| *column == name)
+            .map(|(_, path)| *path)
+    }
+
+    /// Whether `name` is a column of this listing.
+    pub fn knows(&self, name: &str) -> bool {
+        self.path(name).is_some()
+    }
+
+    /// Every column name.
+    pub fn known(&self) -> Vec<&'static str> {
+        self.columns.iter().map(|(name, _)| *name).collect()
+    }
+
+    /// The cell of column `name` for `item`.
+    pub fn cell(&self, name: &str, item: &Value) -> String {
+        let Some(path) = self.path(name) else {
+            return String::new();
+        };
+        if name == "source_kind" {
+            // A binding's source is always an exchange; the API has no field for it.
+            return "exchange".to_owned();
+        }
+        let value = path.iter().fold(item, |value, key| &value[*key]);
+        if name == "arguments" && value.as_object().is_some_and(|o| o.is_empty()) {
+            return "[]".to_owned();
+        }
+        render(value)
+    }
+}
+
+/// A value as rabbitmqctl would print it.
+pub fn render(value: &Value) -> String {
+    match value {
+        Value::String(s) => s.clone(),
+        Value::Null => String::new(),
+        other => other.to_string(),
+    }
+}
+
+pub const QUEUES: Table = Table {
+    columns: &[
+        ("name", &["name"]),
+        ("durable", &["durable"]),
+        ("auto_delete", &["auto_delete"]),
+        ("arguments", &["arguments"]),
+        ("policy", &["policy"]),
+        ("exclusive", &["exclusive"]),
+        ("messages_ready", &["messages_ready"]),
+        ("messages_unacknowledged", &["messages_unacknowledged"]),
+        ("messages", &["messages"]),
+        ("message_bytes_ready", &["message_bytes_ready"]),
+        ("consumers", &["consumers"]),
+        ("state", &["state"]),
+        ("type", &["type"]),
+    ],
+    default: &["name", "messages"],
+};
+
+pub const EXCHANGES: Table = Table {
+    columns: &[
+        ("name", &["name"]),
+        ("type", &["type"]),
+        ("durable", &["durable"]),
+        ("auto_delete", &["auto_delete"]),
+        ("internal", &["internal"]),
+        ("arguments", &["arguments"]),
+        ("policy", &["policy"]),
+    ],
+    default: &["name", "type"],
+};
+
+pub const BINDINGS: Table = Table {
+    columns: &[
+        ("source_name", &["source"]),
+        ("source_kind", &[]),
+        ("destination_name", &["destination"]),
+        ("destination_kind", &["destination_type"]),
+        ("routing_key", &["routing_key"]),
+        ("arguments", &["arguments"]),
+    ],
+    default: &[
+        "source_name",
+        "source_kind",
+        "destination_name",
+        "destination_kind",
+        "routing_key",
+        "arguments",
+    ],
+};
+
+pub const CONNECTIONS: Table = Table {
+    columns: &[
+        ("name", &["name"]),
+        ("user", &["user"]),
+        ("vhost", &["vhost"]),
+        ("peer_host", &["peer_host"]),
+        ("peer_port", &["peer_port"]),
+        ("state", &["state"]),
+        ("channels", &["channels"]),
+        ("protocol", &["protocol"]),
+        ("frame_max", &["frame_max"]),
+        ("channel_max", &["channel_max"]),
+        ("timeout", &["timeout"]),
+        ("connected_at", &["connected_at"]),
+        ("client_properties", &["client_properties"]),
+    ],
+    default: &["user", "peer_host", "peer_port", "state"],
+};
+
+pub const CONSUMERS: Table = Table {
+    columns: &[
+        ("queue_name", &["queue", "name"]),
+        ("channel_pid", &["channel_details", "name"]),
+        ("consumer_tag", &["consumer_tag"]),
+        ("ack_required", &["ack_required"]),
+        ("prefetch_count", &["prefetch_count"]),
+        ("active", &["active"]),
+        ("activity_status", &["activity_status"]),
+        ("exclusive", &["exclusive"]),
+        ("arguments", &["arguments"]),
+    ],
+    default: &[
+        "queue_name",
+        "channel_pid",
+        "consumer_tag",
+        "ack_required",
+        "prefetch_count",
+        "active",
+        "arguments",
+    ],
+};
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn cells_follow_paths_and_rabbitmqctl_rendering() {
+        let consumer = json!({"queue": {"name": "q"}, "channel_details": {"name": "c (1)"},
+                              "ack_required": true, "arguments": {}});
+        assert_eq!(CONSUMERS.cell("queue_name", &consumer), "q");
+        assert_eq!(CONSUMERS.cell("channel_pid", &consumer), "c (1)");
+        assert_eq!(CONSUMERS.cell("ack_required", &consumer), "true");
+        assert_eq!(CONSUMERS.cell("arguments", &consumer), "[]");
+        assert!(!QUEUES.knows("pid"));
+        let binding = json!({"source": "x", "destination_type": "queue"});
+        assert_eq!(BINDINGS.cell("destination_kind", &binding), "queue");
+        assert_eq!(BINDINGS.cell("source_kind", &binding), "exchange");
+    }
+}

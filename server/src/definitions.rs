@@ -1,0 +1,636 @@
+//! RabbitMQ's `definitions.json`: reading one (`--definitions FILE` at
+//! start, `POST /api/definitions` at run time) and writing the broker's
+//! (`GET /api/definitions`) in the form RabbitMQ 3.10 imports.
+//!
+//! What Leveret acts on: vhosts, users (with RabbitMQ's SHA-256 password
+//! hashes, which are Leveret's own scheme; at start only, as users are
+//! fixed once the broker runs), exchanges, queues (with arguments) and
+//! bindings. Users' tags, permissions and topic permissions are parsed
+//! into plain data (`access`), kept and exported as imported, but not
+//! enforced (every user may use every vhost): each import says so.
+//! Everything else is reported, never dropped silently: policies,
+//! parameters, global parameters, unknown keys, other password hashing
+//! algorithms, and queue types Leveret does not have (an `x-queue-type`
+//! other than classic gives a classic queue).
+
+use crate::access::{Access, AccessRecords, Permission, TopicPermission};
+use crate::management::json::{flag, table, text, to_table};
+use base64::Engine;
+use leveret_broker::{
+    Admin, BindingSpec, BrokerBuilder, DestinationKind, ExchangeSettings, PasswordHash,
+    QueueSettings,
+};
+use serde_json::{json, Map, Value};
+
+/// RabbitMQ's name for the hashing scheme Leveret uses.
+const SHA256: &str = "rabbit_password_hashing_sha256";
+
+/// A user from the file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct UserDefinition {
+    /// Name.
+    pub name: String,
+    /// Its password hash.
+    pub hash: PasswordHash,
+}
+
+/// A parsed definitions file: what Leveret will apply, and what it
+/// reports instead of applying.
+#[derive(Debug, Clone, Default)]
+pub struct Definitions {
+    /// Vhost names.
+    pub vhosts: Vec<String>,
+    /// Users.
+    pub users: Vec<UserDefinition>,
+    exchanges: Vec<(String, String, ExchangeSettings)>,
+    queues: Vec<(String, String, QueueSettings)>,
+    bindings: Vec<(String, BindingSpec)>,
+    /// Users' tags and permissions, recorded but not enforced.
+    pub access: AccessRecords,
+    /// Everything not applied, one line each.
+    pub warnings: Vec<String>,
+}
+
+/// How much an import applied.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Applied {
+    /// Vhosts created.
+    pub vhosts: usize,
+    /// Exchanges declared.
+    pub exchanges: usize,
+    /// Queues declared.
+    pub queues: usize,
+    /// Bindings added.
+    pub bindings: usize,
+}
+
+fn is_empty(value: &Value) -> bool {
+    match value {
+        Value::Null => true,
+        Value::String(s) => s.is_empty(),
+        Value::Array(a) => a.is_empty(),
+        Value::Object(o) => o.is_empty(),
+        _ => false,
+    }
+}
+
+/// Reports the keys of `object` that are not `used` and say something.
+fn unused_keys(object: &Map<String, Value>, used: &[&str], what: &str, warnings: &mut Vec<String>) {
+    for (key, value) in object {
+        if !used.contains(&key.as_str()) && !is_empty(value) {
+            warnings.push(format!(
+                "{what}: key '{key}' ({value}) is not supported; ignored"
+            ));
+        }
+    }
+}
+
+fn list<'a>(root: &'a Map<String, Value>, key: &str) -> Result<&'a [Value], String> {
+    match root.get(key) {
+        None | Some(Value::Null) => Ok(&[]),
+        Some(Value::Array(items)) => Ok(items),
+        Some(other) => Err(format!("'{key}' must be a list, not {other}")),
+    }
+}
+
+fn object<'a>(item: &'a Value, what: &str) -> Result<&'a Map<String, Value>, String> {
+    item.as_object()
+        .ok_or_else(|| format!("each of {what} must be an object, not {item}"))
+}
+
+fn name(item: &Map<String, Value>, key: &str, what: &str) -> Result<String, String> {
+    match item.get(key) {
+        Some(Value::String(s)) => Ok(s.clone()),
+        _ => Err(format!("{what} without a '{key}'")),
+    }
+}
+
+/// A user's `tags`: RabbitMQ exports a list; older files a comma-separated string.
+fn user_tags(tags: Option<&Value>) -> Vec<String> {
+    match tags {
+        Some(Value::Array(list)) => list
+            .iter()
+            .filter_map(Value::as_str)
+            .map(str::to_owned)
+            .collect(),
+        Some(Value::String(text)) => text
+            .split(',')
+            .map(str::trim)
+            .filter(|t| !t.is_empty())
+            .map(str::to_owned)
+            .collect(),
+        _ => Vec::new(),
+    }
+}
+
+/// RabbitMQ's stored hash (base64 of a 4-byte salt and the SHA-256) as
+/// Leveret's.
+fn password_hash(base64_hash: &str) -> Option<PasswordHash> {
+    let bytes = base64::engine::general_purpose::STANDARD
+        .decode(base64_hash.trim())
+        .ok()?;
+    if bytes.len() != 36 {
+        return None;
+    }
+    let hex: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+    PasswordHash::from_hex(&hex)
+}
+
+/// Leveret's hash in RabbitMQ's stored form.
+pub fn rabbitmq_password_hash(hash: &PasswordHash) -> String {
+    let hex = hash.to_hex();
+    let bytes: Vec<u8> = (0..hex.len() / 2)
+        .filter_map(|i| u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).ok())
+        .collect();
+    base64::engine::general_purpose::STANDARD.encode(bytes)
+}
+
+impl Definitions {
+    /// Parses a definitions document; an error names what is malformed.
+    pub fn parse(bytes: &[u8]) -> Result<Definitions, String> {
+        Definitions::parse_into(bytes, None)
+    }
+
+    /// Parses a document for one vhost (RabbitMQ's per-vhost export, whose
+    /// objects have no `vhost` key): objects without one go to `vhost`.
+    pub fn parse_into(bytes: &[u8], vhost: Option<&str>) -> Result<Definitions, String> {
+        let vhost_of = |item: &Map<String, Value>, what: &str| match (item.get("vhost"), vhost) {
+            (None | Some(Value::Null), Some(vhost)) => Ok(vhost.to_owned()),
+            _ => name(item, "vhost", what),
+        };
+        let root: Value =
+            serde_json::from_slice(bytes).map_err(|e| format!("malformed JSON: {e}"))?;
+        let root = root
+            .as_object()
+            .ok_or("definitions must be a JSON object")?;
+        let mut d = Definitions::default();
+        const METADATA: [&str; 4] = [
+            "rabbit_version",
+            "rabbitmq_version",
+            "product_name",
+            "product_version",
+        ];
+        const APPLIED: [&str; 7] = [
+            "vhosts",
+            "users",
+            "exchanges",
+            "queues",
+            "bindings",
+            "permissions",
+            "topic_permissions",
+        ];
+        const NOT_SUPPORTED: [(&str, &str); 4] = [
+            ("policies", "Leveret has no policies"),
+            ("operator_policies", "Leveret has no policies"),
+            ("parameters", "Leveret has no runtime parameters"),
+            ("global_parameters", "Leveret has no global parameters"),
+        ];
+        for (key, value) in root {
+            if METADATA.contains(&key.as_str()) || APPLIED.contains(&key.as_str()) {
+                continue;
+            }
+            match NOT_SUPPORTED.iter().find(|(k, _)| k == key) {
+                Some((_, why)) if !is_empty(value) => {
+                    let count = value.as_array().map_or(1, Vec::len);
+                    d.warnings
+                        .push(format!("{count} {key} not imported: {why}"));
+                }
+                Some(_) => {}
+                None => d.warnings.push(format!("unknown key '{key}' ignored")),
+            }
+        }
+        for item in list(root, "vhosts")? {
+            let item = object(item, "vhosts")?;
+            let vhost = name(item, "name", "a vhost")?;
+            unused_keys(
+                item,
+                &[
+                    "name",
+                    "description",
+                    "tags",
+                    "metadata",
+                    "default_queue_type",
+                    "tracing",
+                ],
+                &format!("vhost '{vhost}'"),
+                &mut d.warnings,
+            );
+            d.vhosts.push(vhost);
+        }
+        for item in list(root, "users")? {
+            let item = object(item, "users")?;
+            let user = name(item, "name", "a user")?;
+            let what = format!("user '{user}'");
+            unused_keys(
+                item,
+                &[
+                    "name",
+                    "password_hash",
+                    "hashing_algorithm",
+                    "tags",
+                    "limits",
+                ],
+                &what,
+                &mut d.warnings,
+            );
+            let tags = user_tags(item.get("tags"));
+            if !tags.is_empty() {
+                d.warnings.push(format!(
+                    "{what}: tags {tags:?} recorded but not enforced: every user may do everything"
+                ));
+                d.access.tags.insert(user.clone(), tags);
+            }
+            let algorithm = text(item, "hashing_algorithm", SHA256)?;
+            if algorithm != SHA256 {
+                d.warnings.push(format!("{what} not imported: hashing algorithm {algorithm} is not supported (only {SHA256})"));
+                continue;
+            }
+            match password_hash(text(item, "password_hash", "")?) {
+                Some(hash) => d.users.push(UserDefinition { name: user, hash }),
+                None => d
+                    .warnings
+                    .push(format!("{what} not imported: no usable password_hash")),
+            }
+        }
+        for item in list(root, "permissions")? {
+            let item = object(item, "permissions")?;
+            let user = name(item, "user", "a permission")?;
+            let vhost = vhost_of(item, "a permission")?;
+            let what = format!("permission of '{user}' on vhost '{vhost}'");
+            unused_keys(
+                item,
+                &["user", "vhost", "configure", "write", "read"],
+                &what,
+                &mut d.warnings,
+            );
+            d.access.permissions.push(Permission {
+                configure: text(item, "configure", "")?.to_owned(),
+                write: text(item, "write", "")?.to_owned(),
+                read: text(item, "read", "")?.to_owned(),
+                user,
+                vhost,
+            });
+        }
+        for item in list(root, "topic_permissions")? {
+            let item = object(item, "topic_permissions")?;
+            let user = name(item, "user", "a topic permission")?;
+            let vhost = vhost_of(item, "a topic permission")?;
+            let exchange = name(item, "exchange", "a topic permission")?;
+            unused_keys(
+                item,
+                &["user", "vhost", "exchange", "write", "read"],
+                &format!("topic permission of '{user}' on '{exchange}' in vhost '{vhost}'"),
+                &mut d.warnings,
+            );
+            d.access.topic_permissions.push(TopicPermission {
+                write: text(item, "write", "")?.to_owned(),
+                read: text(item, "read", "")?.to_owned(),
+                user,
+                vhost,
+                exchange,
+            });
+        }
+        for (count, what) in [
+            (d.access.permissions.len(), "permissions"),
+            (d.access.topic_permissions.len(), "topic permissions"),
+        ] {
+            if count > 0 {
+                d.warnings.push(format!(
+                    "{count} {what} recorded (and exported as imported) but not enforced: every user may use every vhost"
+                ));
+            }
+        }
+        for item in list(root, "exchanges")? {
+            let item = object(item, "exchanges")?;
+            let exchange = name(item, "name", "an exchange")?;
+            let vhost = vhost_of(item, "an exchange")?;
+            let what = format!("exchange '{exchange}' in vhost '{vhost}'");
+            unused_keys(
+                item,
+                &[
+                    "name",
+                    "vhost",
+                    "type",
+                    "durable",
+                    "auto_delete",
+                    "internal",
+                    "arguments",
+                ],
+                &what,
+                &mut d.warnings,
+            );
+            let settings = ExchangeSettings {
+                kind: name(item, "type", &what)?,
+                durable: flag(item, "durable", true)?,
+                auto_delete: flag(item, "auto_delete", false)?,
+                internal: flag(item, "internal", false)?,
+                arguments: to_table(item.get("arguments").unwrap_or(&Value::Null))?,
+            };
+            d.exchanges.push((vhost, exchange, settings));
+        }
+        for item in list(root, "queues")? {
+            let item = object(item, "queues")?;
+            let queue = name(item, "name", "a queue")?;
+            let vhost = vhost_of(item, "a queue")?;
+            let what = format!("queue '{queue}' in vhost '{vhost}'");
+            unused_keys(
+                item,
+                &[
+                    "name",
+                    "vhost",
+                    "durable",
+                    "auto_delete",
+                    "arguments",
+                    "type",
+                ],
+                &what,
+                &mut d.warnings,
+            );
+            let arguments = item.get("arguments").unwrap_or(&Value::Null);
+            let kind = arguments
+                .get("x-queue-type")
+                .or_else(|| item.get("type"))
+                .and_then(Value::as_str)
+                .unwrap_or("classic");
+            if kind != "classic" {
+                d.warnings.push(format!(
+                    "{what}: queue type '{kind}' is not supported; declared as a classic queue"
+                ));
+            }
+            let mut arguments = arguments.clone();
+            if let Some(map) = arguments.as_object_mut() {
+                map.remove("x-queue-type");
+            }
+            let settings = QueueSettings {
+                durable: flag(item, "durable", true)?,
+                auto_delete: flag(item, "auto_delete", false)?,
+                arguments: to_table(&arguments)?,
+            };
+            d.queues.push((vhost, queue, settings));
+        }
+        for item in list(root, "bindings")? {
+            let item = object(item, "bindings")?;
+            let vhost = vhost_of(item, "a binding")?;
+            let source = name(item, "source", "a binding")?;
+            let destination = name(item, "destination", "a binding")?;
+            let what = format!("binding from '{source}' to '{destination}' in vhost '{vhost}'");
+            unused_keys(
+                item,
+                &[
+                    "vhost",
+                    "source",
+                    "destination",
+                    "destination_type",
+                    "routing_key",
+                    "arguments",
+                    "properties_key",
+                ],
+                &what,
+                &mut d.warnings,
+            );
+            let destination_kind = match text(item, "destination_type", "queue")? {
+                "queue" => DestinationKind::Queue,
+                "exchange" => DestinationKind::Exchange,
+                other => return Err(format!("{what}: unknown destination_type '{other}'")),
+            };
+            d.bindings.push((
+                vhost,
+                BindingSpec {
+                    source,
+                    destination,
+                    destination_kind,
+                    routing_key: text(item, "routing_key", "")?.to_owned(),
+                    arguments: to_table(item.get("arguments").unwrap_or(&Value::Null))?,
+                },
+            ));
+        }
+        Ok(d)
+    }
+
+    /// The users and vhosts, which a broker takes at start.
+    pub fn configure(&self, mut builder: BrokerBuilder) -> BrokerBuilder {
+        for vhost in &self.vhosts {
+            builder = builder.vhost(vhost.clone());
+        }
+        for user in &self.users {
+            builder = builder.user_hashed(user.name.clone(), user.hash.clone());
+        }
+        builder
+    }
+
+    /// Applies vhosts, exchanges, queues and bindings to a running broker,
+    /// in that order; stops at the first that fails, naming it. Users are
+    /// reported unless the broker already has them with the same hash.
+    pub async fn apply(&mut self, admin: &Admin, access: &Access) -> Result<Applied, String> {
+        let mut applied = Applied::default();
+        access.record(&self.access);
+        let existing = admin.users();
+        for user in &self.users {
+            if !existing
+                .iter()
+                .any(|(name, hash)| *name == user.name && *hash == user.hash)
+            {
+                self.warnings.push(format!(
+                    "user '{}' not imported: users are fixed once the broker runs (give the file with --definitions, or use the config file)",
+                    user.name
+                ));
+            }
+        }
+        for vhost in &self.vhosts {
+            if admin
+                .add_vhost(vhost)
+                .map_err(|e| format!("vhost '{vhost}': {}", e.text))?
+            {
+                applied.vhosts += 1;
+            }
+        }
+        for (vhost, name, settings) in &self.exchanges {
+            admin
+                .declare_exchange(vhost, name, settings.clone())
+                .await
+                .map_err(|e| format!("exchange '{name}' in vhost '{vhost}': {}", e.text))?;
+            applied.exchanges += 1;
+            tokio::task::yield_now().await;
+        }
+        for (vhost, name, settings) in &self.queues {
+            admin
+                .declare_queue(vhost, name, settings.clone())
+                .await
+                .map_err(|e| format!("queue '{name}' in vhost '{vhost}': {}", e.text))?;
+            applied.queues += 1;
+            tokio::task::yield_now().await;
+        }
+        for (vhost, binding) in &self.bindings {
+            admin.bind(vhost, binding.clone()).await.map_err(|e| {
+                format!(
+                    "binding from '{}' to '{}' in vhost '{vhost}': {}",
+                    binding.source, binding.destination, e.text
+                )
+            })?;
+            applied.bindings += 1;
+            tokio::task::yield_now().await;
+        }
+        Ok(applied)
+    }
+}
+
+/// One vhost's definitions, as RabbitMQ exports them: its exchanges,
+/// queues and bindings without their `vhost` key, and the empty policies
+/// and parameters.
+pub fn export_vhost(admin: &Admin, access: &Access, vhost: &str) -> Value {
+    let all = export(admin, access);
+    let only = |key: &str| -> Vec<Value> {
+        all[key]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter(|item| item["vhost"] == vhost)
+            .map(|item| {
+                let mut item = item.clone();
+                if let Some(map) = item.as_object_mut() {
+                    map.remove("vhost");
+                }
+                item
+            })
+            .collect()
+    };
+    json!({
+        "rabbit_version": all["rabbit_version"],
+        "rabbitmq_version": all["rabbitmq_version"],
+        "product_name": all["product_name"],
+        "product_version": all["product_version"],
+        "parameters": [],
+        "policies": [],
+        "queues": only("queues"),
+        "exchanges": only("exchanges"),
+        "bindings": only("bindings"),
+    })
+}
+
+/// The broker's definitions in RabbitMQ 3.10's form: vhosts, users with
+/// their recorded tags, the recorded permissions (or, for a user with
+/// none recorded, what Leveret grants: everything), and the exchanges,
+/// queues and bindings a client declared (not the predefined exchanges,
+/// exclusive queues or the default exchange's implicit bindings).
+pub fn export(admin: &Admin, access: &Access) -> Value {
+    let vhosts = admin.vhosts();
+    let users = admin.users();
+    let exclusive: Vec<(String, String)> = admin
+        .queues()
+        .into_iter()
+        .filter(|q| q.exclusive_owner.is_some())
+        .map(|q| (q.vhost, q.name))
+        .collect();
+    let queues: Vec<Value> = admin
+        .queues()
+        .iter()
+        .filter(|q| q.exclusive_owner.is_none())
+        .map(|q| {
+            json!({"name": q.name, "vhost": q.vhost, "type": "classic", "durable": q.durable,
+                   "auto_delete": q.auto_delete, "arguments": table(&q.arguments)})
+        })
+        .collect();
+    let exchanges: Vec<Value> = admin
+        .exchanges()
+        .iter()
+        .filter(|e| !e.name.is_empty() && !e.name.starts_with("amq."))
+        .map(|e| {
+            json!({"name": e.name, "vhost": e.vhost, "type": e.kind, "durable": e.durable,
+                   "auto_delete": e.auto_delete, "internal": e.internal,
+                   "arguments": table(&e.arguments)})
+        })
+        .collect();
+    let bindings: Vec<Value> = admin
+        .bindings()
+        .iter()
+        .filter(|b| !b.source.is_empty())
+        .filter(|b| {
+            b.destination_kind != DestinationKind::Queue
+                || !exclusive.contains(&(b.vhost.clone(), b.destination.clone()))
+        })
+        .map(|b| {
+            json!({"source": b.source, "vhost": b.vhost, "destination": b.destination,
+                   "destination_type": b.destination_kind.as_str(),
+                   "routing_key": b.routing_key, "arguments": table(&b.arguments)})
+        })
+        .collect();
+    let user_names: Vec<String> = users.iter().map(|(name, _)| name.clone()).collect();
+    let permissions = access.permissions_json(&user_names, &vhosts);
+    let overview = admin.overview();
+    json!({
+        "rabbit_version": "3.10.0",
+        "rabbitmq_version": "3.10.0",
+        "product_name": overview.product,
+        "product_version": overview.version,
+        "users": users.iter().map(|(name, hash)| json!({
+            "name": name, "password_hash": rabbitmq_password_hash(hash),
+            "hashing_algorithm": SHA256, "tags": access.tags(name), "limits": {}})).collect::<Vec<_>>(),
+        "vhosts": vhosts.iter().map(|name| json!({"name": name})).collect::<Vec<_>>(),
+        "permissions": permissions,
+        "topic_permissions": access.topic_permissions_json(&user_names),
+        "parameters": [],
+        "global_parameters": [],
+        "policies": [],
+        "queues": queues,
+        "exchanges": exchanges,
+        "bindings": bindings,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rabbitmq_password_hashes_are_leverets() {
+        let hash = PasswordHash::new("s3cret");
+        let back = password_hash(&rabbitmq_password_hash(&hash)).unwrap();
+        assert!(back.verify(b"s3cret"));
+        assert!(password_hash("c2hvcnQ=").is_none());
+    }
+
+    #[test]
+    fn what_is_not_applied_is_reported() {
+        let text = br#"{
+            "rabbit_version": "3.10.8",
+            "users": [{"name": "a", "password_hash": "x", "hashing_algorithm": "rabbit_password_hashing_sha512", "tags": ["administrator"]}],
+            "vhosts": [{"name": "/", "limits": {"max-queues": 5}}],
+            "permissions": [{"user": "a", "vhost": "/", "configure": ".*", "write": ".*", "read": ".*"}],
+            "policies": [],
+            "queues": [{"name": "q", "vhost": "/", "durable": true, "auto_delete": false, "arguments": {"x-queue-type": "quorum"}}],
+            "exchanges": [{"name": "x", "vhost": "/", "type": "topic", "durable": true, "auto_delete": false, "internal": false, "arguments": {}}],
+            "bindings": [{"source": "x", "vhost": "/", "destination": "q", "destination_type": "queue", "routing_key": "k", "arguments": {}}],
+            "shovels": [1]
+        }"#;
+        let d = Definitions::parse(text).unwrap();
+        let all = d.warnings.join("\n");
+        for expected in [
+            "unknown key 'shovels'",
+            "1 permissions recorded (and exported as imported) but not enforced",
+            "hashing algorithm rabbit_password_hashing_sha512",
+            "tags [\"administrator\"] recorded but not enforced",
+            "key 'limits'",
+            "queue type 'quorum'",
+        ] {
+            assert!(all.contains(expected), "{expected} in:\n{all}");
+        }
+        assert!(!all.contains("policies"), "empty lists say nothing: {all}");
+        assert_eq!(d.queues.len(), 1);
+        assert!(d.queues[0].2.arguments.get("x-queue-type").is_none());
+        assert_eq!((d.exchanges.len(), d.bindings.len()), (1, 1));
+    }
+
+    #[test]
+    fn malformed_documents_are_refused_with_a_reason() {
+        for (text, reason) in [
+            (&b"{"[..], "malformed JSON"),
+            (b"[]", "must be a JSON object"),
+            (b"{\"queues\": 5}", "'queues' must be a list"),
+            (b"{\"queues\": [{\"vhost\": \"/\"}]}", "without a 'name'"),
+            (b"{\"bindings\": [{\"vhost\": \"/\", \"source\": \"a\", \"destination\": \"b\", \"destination_type\": \"topic\"}]}", "unknown destination_type"),
+        ] {
+            let error = Definitions::parse(text).unwrap_err();
+            assert!(error.contains(reason), "{error}");
+        }
+    }
+}

@@ -1,0 +1,812 @@
+//! One function per route of the management API. Listings of queues are
+//! streamed: the body is a JSON array written [`CHUNK`] queues at a time as
+//! the client reads it, each queue read under its own lock when its turn
+//! comes, so a listing of 100k queues neither builds the whole answer in
+//! memory nor holds the listeners' thread between chunks.
+
+use super::json;
+use super::{ApiError, Context};
+use crate::definitions::Definitions;
+use crate::process::ProcessFigures;
+use axum::body::{Body, Bytes};
+use axum::extract::{Path, Query, State};
+use axum::http::{header, HeaderMap, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use base64::Engine;
+use leveret_broker::{
+    BindingSpec, DestinationKind, ExchangeSettings, GetMode, QueueRef, QueueSettings,
+};
+use serde_json::{json, Value};
+use std::collections::HashMap;
+use std::sync::Arc;
+
+type Ctx = State<Arc<Context>>;
+type ApiResult<T = Response> = Result<T, ApiError>;
+
+/// Queues written per chunk of a streamed listing.
+const CHUNK: usize = 500;
+/// The most messages one `get` may fetch.
+const MAX_GET: u64 = 1000;
+/// The close reason when the client gives none (RabbitMQ's).
+const CLOSE_REASON: &str = "Closed via management plugin";
+
+/// `amq.default` in a path means the default exchange, as in RabbitMQ.
+fn exchange_name(name: &str) -> &str {
+    if name == "amq.default" {
+        ""
+    } else {
+        name
+    }
+}
+
+fn require_vhost(context: &Context, vhost: &str) -> ApiResult<()> {
+    if context.admin.vhosts().iter().any(|v| v == vhost) {
+        Ok(())
+    } else {
+        Err(ApiError::not_found(format!("no vhost '{vhost}'")))
+    }
+}
+
+fn no_content() -> Response {
+    StatusCode::NO_CONTENT.into_response()
+}
+
+fn created_or_not(created: bool) -> Response {
+    if created {
+        StatusCode::CREATED.into_response()
+    } else {
+        no_content()
+    }
+}
+
+fn body_object(body: &Bytes) -> ApiResult<serde_json::Map<String, Value>> {
+    json::object(body).map_err(ApiError::bad_request)
+}
+
+fn query_flag(query: &HashMap<String, String>, key: &str) -> bool {
+    query.get(key).is_some_and(|v| v == "true")
+}
+
+pub async fn unknown() -> ApiError {
+    ApiError::not_found("Not Found")
+}
+
+pub async fn overview(State(c): Ctx) -> Json<Value> {
+    let o = c.admin.overview();
+    let r = c.rates.overview();
+    let m = &o.message_stats;
+    let q = &o.queue_totals;
+    let t = &o.object_totals;
+    let listeners: Vec<Value> = c
+        .amqp_listeners
+        .iter()
+        .map(|addr| {
+            json!({"node": c.node, "protocol": "amqp", "ip_address": addr.ip().to_string(), "port": addr.port()})
+        })
+        .collect();
+    let d = |rate: f64| json!({ "rate": rate });
+    let exchange_types: Vec<Value> = ["direct", "fanout", "topic", "headers"]
+        .iter()
+        .map(|name| json!({"name": name, "enabled": true}))
+        .collect();
+    Json(json!({
+        "management_version": o.version,
+        "rates_mode": "basic",
+        "exchange_types": exchange_types,
+        "product_name": o.product,
+        "product_version": o.version,
+        "rabbitmq_version": o.version,
+        "cluster_name": c.node,
+        "node": c.node,
+        "disable_stats": false,
+        "enable_queue_totals": true,
+        "message_stats": {
+            "publish": m.received, "publish_details": d(r.publish),
+            "confirm": m.confirmed, "confirm_details": d(r.confirm),
+            "return_unroutable": m.unroutable_returned, "return_unroutable_details": d(r.return_unroutable),
+            "drop_unroutable": m.unroutable_dropped, "drop_unroutable_details": d(r.drop_unroutable),
+            "deliver": m.delivered_consume_manual_ack, "deliver_details": d(r.deliver),
+            "deliver_no_ack": m.delivered_consume_auto_ack, "deliver_no_ack_details": d(r.deliver_no_ack),
+            "get": m.delivered_get_manual_ack, "get_details": d(r.get),
+            "get_no_ack": m.delivered_get_auto_ack, "get_no_ack_details": d(r.get_no_ack),
+            "get_empty": m.get_empty, "get_empty_details": d(r.get_empty),
+            "deliver_get": m.delivered(), "deliver_get_details": d(r.deliver_get),
+            "redeliver": m.redelivered, "redeliver_details": d(r.redeliver),
+            "ack": m.acknowledged, "ack_details": d(r.ack),
+        },
+        "churn_rates": {
+            "connection_created": o.churn.connections_opened,
+            "connection_closed": o.churn.connections_closed,
+            "channel_created": o.churn.channels_opened,
+            "channel_closed": o.churn.channels_closed,
+            "queue_declared": o.churn.queues_declared,
+            "queue_created": o.churn.queues_created,
+            "queue_deleted": o.churn.queues_deleted,
+        },
+        "queue_totals": {
+            "messages": q.messages(), "messages_details": d(r.messages),
+            "messages_ready": q.messages_ready, "messages_ready_details": d(r.messages_ready),
+            "messages_unacknowledged": q.messages_unacknowledged, "messages_unacknowledged_details": d(r.messages_unacknowledged),
+        },
+        "object_totals": {
+            "connections": t.connections, "channels": t.channels, "exchanges": t.exchanges,
+            "queues": t.queues, "consumers": t.consumers,
+        },
+        "listeners": listeners,
+    }))
+}
+
+fn node_json(c: &Context) -> Value {
+    let o = c.admin.overview();
+    let p = ProcessFigures::read(&c.data_dir);
+    json!({
+        "name": c.node,
+        "type": "disc",
+        "running": true,
+        "os_pid": std::process::id().to_string(),
+        "mem_used": p.resident_memory_bytes,
+        "mem_limit": o.memory_high_watermark,
+        "mem_alarm": o.memory_alarm,
+        "disk_free": p.disk_free_bytes,
+        "disk_free_limit": 0,
+        "disk_free_alarm": false,
+        "fd_used": p.open_fds,
+        "fd_total": p.max_fds,
+        "uptime": o.uptime.as_millis() as u64,
+        "rates_mode": "basic",
+    })
+}
+
+pub async fn nodes(State(c): Ctx) -> Json<Value> {
+    Json(json!([node_json(&c)]))
+}
+
+pub async fn node(State(c): Ctx, Path(node): Path<String>) -> ApiResult<Json<Value>> {
+    if node != c.node {
+        return Err(ApiError::not_found(format!("no node '{node}'")));
+    }
+    Ok(Json(node_json(&c)))
+}
+
+fn vhost_json(c: &Context, name: &str) -> Value {
+    let (mut ready, mut unacked) = (0, 0);
+    for q in c.admin.queue_refs().iter().filter(|q| q.vhost() == name) {
+        let info = q.info();
+        ready += info.messages_ready;
+        unacked += info.messages_unacknowledged;
+    }
+    json!({
+        "name": name,
+        "description": "",
+        "tags": [],
+        "metadata": {"description": "", "tags": []},
+        "default_queue_type": "classic",
+        "tracing": false,
+        "messages": ready + unacked,
+        "messages_ready": ready,
+        "messages_unacknowledged": unacked,
+        "cluster_state": { c.node.as_str(): "running" },
+    })
+}
+
+pub async fn vhosts(State(c): Ctx) -> Json<Value> {
+    let names = c.admin.vhosts();
+    Json(Value::Array(
+        names.iter().map(|n| vhost_json(&c, n)).collect(),
+    ))
+}
+
+pub async fn vhost(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    Ok(Json(vhost_json(&c, &vhost)))
+}
+
+pub async fn users(State(c): Ctx) -> Json<Value> {
+    let users = c.admin.users();
+    Json(Value::Array(
+        users
+            .iter()
+            .map(|(name, hash)| {
+                json!({
+                    "name": name,
+                    "password_hash": crate::definitions::rabbitmq_password_hash(hash),
+                    "hashing_algorithm": "rabbit_password_hashing_sha256",
+                    "tags": [],
+                    "limits": {},
+                })
+            })
+            .collect(),
+    ))
+}
+
+pub async fn whoami(headers: HeaderMap) -> Json<Value> {
+    let user = super::basic_credentials(&headers)
+        .map(|(user, _)| user)
+        .unwrap_or_default();
+    Json(json!({ "name": user, "tags": [] }))
+}
+
+/// Leveret has no permissions: every user may configure, write and read
+/// everything in every vhost, which is what this reports.
+pub async fn permissions(State(c): Ctx) -> Json<Value> {
+    let vhosts = c.admin.vhosts();
+    let mut list = Vec::new();
+    for (user, _) in c.admin.users() {
+        for vhost in &vhosts {
+            list.push(json!({"user": user, "vhost": vhost, "configure": ".*", "write": ".*", "read": ".*"}));
+        }
+    }
+    Json(Value::Array(list))
+}
+
+fn exchange_list(c: &Context, vhost: Option<&str>) -> Json<Value> {
+    Json(Value::Array(
+        c.admin
+            .exchanges()
+            .iter()
+            .filter(|e| vhost.is_none_or(|v| e.vhost == v))
+            .map(json::exchange)
+            .collect(),
+    ))
+}
+
+pub async fn exchanges(State(c): Ctx) -> Json<Value> {
+    exchange_list(&c, None)
+}
+
+pub async fn exchanges_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    Ok(exchange_list(&c, Some(&vhost)))
+}
+
+pub async fn exchange(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    let exchange = c
+        .admin
+        .exchange(&vhost, exchange_name(&name))
+        .ok_or_else(|| ApiError::not_found(format!("no exchange '{name}' in vhost '{vhost}'")))?;
+    Ok(Json(json::exchange(&exchange)))
+}
+
+pub async fn put_exchange(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+    body: Bytes,
+) -> ApiResult {
+    let body = body_object(&body)?;
+    let settings = ExchangeSettings {
+        kind: json::text(&body, "type", "")
+            .map_err(ApiError::bad_request)?
+            .to_owned(),
+        durable: json::flag(&body, "durable", true).map_err(ApiError::bad_request)?,
+        auto_delete: json::flag(&body, "auto_delete", false).map_err(ApiError::bad_request)?,
+        internal: json::flag(&body, "internal", false).map_err(ApiError::bad_request)?,
+        arguments: json::to_table(body.get("arguments").unwrap_or(&Value::Null))
+            .map_err(ApiError::bad_request)?,
+    };
+    if settings.kind.is_empty() {
+        return Err(ApiError::bad_request("an exchange needs a type"));
+    }
+    let existed = c.admin.exchange(&vhost, &name).is_some();
+    c.admin.declare_exchange(&vhost, &name, settings).await?;
+    Ok(created_or_not(!existed))
+}
+
+pub async fn delete_exchange(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+    Query(query): Query<HashMap<String, String>>,
+) -> ApiResult {
+    c.admin
+        .delete_exchange(&vhost, &name, query_flag(&query, "if-unused"))
+        .await?;
+    Ok(no_content())
+}
+
+pub async fn publish(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+    body: Bytes,
+) -> ApiResult<Json<Value>> {
+    let body = body_object(&body)?;
+    let bad = ApiError::bad_request;
+    let routing_key = json::text(&body, "routing_key", "").map_err(bad)?;
+    let properties = json::properties(body.get("properties")).map_err(ApiError::bad_request)?;
+    let payload = json::text(&body, "payload", "").map_err(ApiError::bad_request)?;
+    let payload =
+        match json::text(&body, "payload_encoding", "string").map_err(ApiError::bad_request)? {
+            "string" => Bytes::copy_from_slice(payload.as_bytes()),
+            "base64" => Bytes::from(
+                base64::engine::general_purpose::STANDARD
+                    .decode(payload.trim())
+                    .map_err(|e| ApiError::bad_request(format!("payload is not base64: {e}")))?,
+            ),
+            other => {
+                return Err(ApiError::bad_request(format!(
+                    "unknown payload_encoding {other}"
+                )))
+            }
+        };
+    let routed = c
+        .admin
+        .publish(
+            &vhost,
+            exchange_name(&name),
+            routing_key,
+            properties,
+            payload,
+        )
+        .await?;
+    Ok(Json(json!({ "routed": routed })))
+}
+
+/// A JSON array of queues, written a chunk at a time as the client reads.
+fn queue_stream(c: Arc<Context>, queues: Vec<QueueRef>) -> Response {
+    let state = (c, queues, 0usize);
+    let stream = futures_util::stream::unfold(state, |(c, queues, at)| async move {
+        if at > queues.len() {
+            return None;
+        }
+        let mut chunk = Vec::new();
+        if at == 0 {
+            chunk.push(b'[');
+        }
+        let end = (at + CHUNK).min(queues.len());
+        for (i, queue) in queues[at..end].iter().enumerate() {
+            if at + i > 0 {
+                chunk.push(b',');
+            }
+            let info = queue.info();
+            let rates = c.rates.queue(&info.vhost, &info.name);
+            let object = json::queue(&info, &c.node, &rates);
+            if serde_json::to_writer(&mut chunk, &object).is_err() {
+                return None;
+            }
+        }
+        if end == queues.len() {
+            chunk.push(b']');
+        }
+        tokio::task::yield_now().await;
+        let next = if end == queues.len() {
+            queues.len() + 1
+        } else {
+            end
+        };
+        Some((
+            Ok::<_, std::io::Error>(Bytes::from(chunk)),
+            (c, queues, next),
+        ))
+    });
+    (
+        [(header::CONTENT_TYPE, "application/json")],
+        Body::from_stream(stream),
+    )
+        .into_response()
+}
+
+pub async fn queues(State(c): Ctx) -> Response {
+    let refs = c.admin.queue_refs();
+    queue_stream(c, refs)
+}
+
+pub async fn queues_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult {
+    require_vhost(&c, &vhost)?;
+    let refs: Vec<QueueRef> = c
+        .admin
+        .queue_refs()
+        .into_iter()
+        .filter(|q| q.vhost() == vhost)
+        .collect();
+    Ok(queue_stream(c, refs))
+}
+
+fn queue_ref(c: &Context, vhost: &str, name: &str) -> ApiResult<QueueRef> {
+    require_vhost(c, vhost)?;
+    c.admin
+        .queue(vhost, name)
+        .ok_or_else(|| ApiError::not_found(format!("no queue '{name}' in vhost '{vhost}'")))
+}
+
+pub async fn queue(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    let info = queue_ref(&c, &vhost, &name)?.info();
+    let rates = c.rates.queue(&vhost, &name);
+    Ok(Json(json::queue(&info, &c.node, &rates)))
+}
+
+pub async fn put_queue(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+    body: Bytes,
+) -> ApiResult {
+    let body = body_object(&body)?;
+    let settings = QueueSettings {
+        durable: json::flag(&body, "durable", true).map_err(ApiError::bad_request)?,
+        auto_delete: json::flag(&body, "auto_delete", false).map_err(ApiError::bad_request)?,
+        arguments: json::to_table(body.get("arguments").unwrap_or(&Value::Null))
+            .map_err(ApiError::bad_request)?,
+    };
+    let created = c.admin.declare_queue(&vhost, &name, settings).await?;
+    Ok(created_or_not(created))
+}
+
+pub async fn delete_queue(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+    Query(query): Query<HashMap<String, String>>,
+) -> ApiResult {
+    c.admin
+        .delete_queue(
+            &vhost,
+            &name,
+            query_flag(&query, "if-unused"),
+            query_flag(&query, "if-empty"),
+        )
+        .await?;
+    Ok(no_content())
+}
+
+pub async fn purge(State(c): Ctx, Path((vhost, name)): Path<(String, String)>) -> ApiResult {
+    c.admin.purge_queue(&vhost, &name)?;
+    Ok(no_content())
+}
+
+pub async fn get_messages(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+    body: Bytes,
+) -> ApiResult<Json<Value>> {
+    let body = body_object(&body)?;
+    let count = json::count(&body, "count", 1).map_err(ApiError::bad_request)?;
+    if count == 0 || count > MAX_GET {
+        return Err(ApiError::bad_request(format!(
+            "count must be from 1 to {MAX_GET}"
+        )));
+    }
+    let mode =
+        match json::text(&body, "ackmode", "ack_requeue_true").map_err(ApiError::bad_request)? {
+            "ack_requeue_true" | "reject_requeue_true" => GetMode::Requeue,
+            "ack_requeue_false" => GetMode::Ack,
+            "reject_requeue_false" => GetMode::RejectDrop,
+            other => return Err(ApiError::bad_request(format!("unknown ackmode {other}"))),
+        };
+    let force_base64 = match json::text(&body, "encoding", "auto").map_err(ApiError::bad_request)? {
+        "auto" => false,
+        "base64" => true,
+        other => return Err(ApiError::bad_request(format!("unknown encoding {other}"))),
+    };
+    let truncate = match body.get("truncate") {
+        None | Some(Value::Null) => None,
+        Some(_) => Some(json::count(&body, "truncate", 0).map_err(ApiError::bad_request)? as usize),
+    };
+    let got = c.admin.get(&vhost, &name, count as usize, mode)?;
+    let list = got
+        .iter()
+        .map(|m| {
+            let shown = truncate.map_or(&m.body[..], |n| &m.body[..n.min(m.body.len())]);
+            let (payload, encoding) = json::payload(shown, force_base64);
+            json!({
+                "payload_bytes": m.body.len(),
+                "redelivered": m.redelivered,
+                "exchange": m.exchange,
+                "routing_key": m.routing_key,
+                "message_count": m.remaining,
+                "properties": json::properties_json(&m.properties),
+                "payload": payload,
+                "payload_encoding": encoding,
+            })
+        })
+        .collect();
+    Ok(Json(Value::Array(list)))
+}
+
+fn binding_list(c: &Context, keep: impl Fn(&leveret_broker::BindingInfo) -> bool) -> Json<Value> {
+    Json(Value::Array(
+        c.admin
+            .bindings()
+            .iter()
+            .filter(|b| keep(b))
+            .map(json::binding)
+            .collect(),
+    ))
+}
+
+pub async fn bindings(State(c): Ctx) -> Json<Value> {
+    binding_list(&c, |_| true)
+}
+
+pub async fn bindings_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    Ok(binding_list(&c, |b| b.vhost == vhost))
+}
+
+fn destination_kind(kind: &str) -> ApiResult<DestinationKind> {
+    match kind {
+        "q" => Ok(DestinationKind::Queue),
+        "e" => Ok(DestinationKind::Exchange),
+        other => Err(ApiError::not_found(format!(
+            "destination kind must be q or e, not {other}"
+        ))),
+    }
+}
+
+pub async fn bindings_between(
+    State(c): Ctx,
+    Path((vhost, source, kind, destination)): Path<(String, String, String, String)>,
+) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    let kind = destination_kind(&kind)?;
+    let source = exchange_name(&source).to_owned();
+    Ok(binding_list(&c, |b| {
+        b.vhost == vhost
+            && b.source == source
+            && b.destination == destination
+            && b.destination_kind == kind
+    }))
+}
+
+pub async fn post_binding(
+    State(c): Ctx,
+    Path((vhost, source, kind, destination)): Path<(String, String, String, String)>,
+    body: Bytes,
+) -> ApiResult {
+    let kind = destination_kind(&kind)?;
+    let body = body_object(&body)?;
+    let spec = BindingSpec {
+        source,
+        destination,
+        destination_kind: kind,
+        routing_key: json::text(&body, "routing_key", "")
+            .map_err(ApiError::bad_request)?
+            .to_owned(),
+        arguments: json::to_table(body.get("arguments").unwrap_or(&Value::Null))
+            .map_err(ApiError::bad_request)?,
+    };
+    let info = leveret_broker::BindingInfo {
+        vhost: vhost.clone(),
+        source: spec.source.clone(),
+        destination: spec.destination.clone(),
+        destination_kind: kind,
+        routing_key: spec.routing_key.clone(),
+        arguments: spec.arguments.clone(),
+    };
+    c.admin.bind(&vhost, spec).await?;
+    Ok((
+        StatusCode::CREATED,
+        [(header::LOCATION, info.properties_key())],
+    )
+        .into_response())
+}
+
+pub async fn binding(
+    State(c): Ctx,
+    Path((vhost, source, kind, destination, props)): Path<(String, String, String, String, String)>,
+) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    let kind = destination_kind(&kind)?;
+    let source = exchange_name(&source).to_owned();
+    c.admin
+        .bindings()
+        .iter()
+        .find(|b| {
+            b.vhost == vhost
+                && b.source == source
+                && b.destination == destination
+                && b.destination_kind == kind
+                && b.properties_key() == props
+        })
+        .map(|b| Json(json::binding(b)))
+        .ok_or_else(|| ApiError::not_found(format!("no binding '{props}'")))
+}
+
+pub async fn delete_binding(
+    State(c): Ctx,
+    Path((vhost, source, kind, destination, props)): Path<(String, String, String, String, String)>,
+) -> ApiResult {
+    let kind = destination_kind(&kind)?;
+    c.admin
+        .unbind(&vhost, &source, &destination, kind, &props)
+        .await?;
+    Ok(no_content())
+}
+
+pub async fn connections(State(c): Ctx) -> Json<Value> {
+    Json(Value::Array(
+        c.admin
+            .connections()
+            .iter()
+            .map(|conn| json::connection(conn, &c.node))
+            .collect(),
+    ))
+}
+
+fn connection_named(c: &Context, name: &str) -> ApiResult<leveret_broker::ConnectionInfo> {
+    c.admin
+        .connections()
+        .into_iter()
+        .find(|conn| json::connection_name(conn.id, &conn.peer) == name)
+        .ok_or_else(|| ApiError::not_found(format!("no connection '{name}'")))
+}
+
+pub async fn connection(State(c): Ctx, Path(name): Path<String>) -> ApiResult<Json<Value>> {
+    let conn = connection_named(&c, &name)?;
+    Ok(Json(json::connection(&conn, &c.node)))
+}
+
+pub async fn close_connection(
+    State(c): Ctx,
+    Path(name): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult {
+    let conn = connection_named(&c, &name)?;
+    let reason = headers
+        .get("x-reason")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or(CLOSE_REASON);
+    if !c.admin.close_connection(conn.id, reason) {
+        return Err(ApiError::not_found(format!("no connection '{name}'")));
+    }
+    Ok(no_content())
+}
+
+pub async fn channels(State(c): Ctx) -> Json<Value> {
+    Json(Value::Array(
+        c.admin
+            .channels()
+            .iter()
+            .map(|ch| json::channel(ch, &c.node))
+            .collect(),
+    ))
+}
+
+fn consumer_list(c: &Context, vhost: Option<&str>) -> Json<Value> {
+    let peers: HashMap<u64, String> = c
+        .admin
+        .connections()
+        .into_iter()
+        .map(|conn| (conn.id, conn.peer))
+        .collect();
+    Json(Value::Array(
+        c.admin
+            .consumers()
+            .iter()
+            .filter(|consumer| vhost.is_none_or(|v| consumer.vhost == v))
+            .map(|consumer| {
+                let peer = peers
+                    .get(&consumer.connection_id)
+                    .map_or("", String::as_str);
+                json::consumer(consumer, peer, &c.node)
+            })
+            .collect(),
+    ))
+}
+
+pub async fn consumers(State(c): Ctx) -> Json<Value> {
+    consumer_list(&c, None)
+}
+
+pub async fn consumers_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    Ok(consumer_list(&c, Some(&vhost)))
+}
+
+pub async fn aliveness_test(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    c.admin.aliveness_test(&vhost).await?;
+    Ok(Json(json!({ "status": "ok" })))
+}
+
+pub async fn alarms(State(c): Ctx) -> Response {
+    if c.admin.overview().memory_alarm {
+        let body = json!({
+            "status": "failed",
+            "reason": "resource alarm(s) in effect in the cluster",
+            "alarms": [{"node": c.node, "resource": "memory"}],
+        });
+        (StatusCode::SERVICE_UNAVAILABLE, Json(body)).into_response()
+    } else {
+        Json(json!({ "status": "ok" })).into_response()
+    }
+}
+
+pub async fn definitions(State(c): Ctx) -> Json<Value> {
+    Json(crate::definitions::export(&c.admin, &c.access))
+}
+
+/// Imports a definitions document; answers what was applied and what was
+/// not (RabbitMQ answers 204 with no body).
+pub async fn import_definitions(State(c): Ctx, body: Bytes) -> ApiResult<Json<Value>> {
+    import(&c, &body, None).await
+}
+
+pub async fn vhost_definitions(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    Ok(Json(crate::definitions::export_vhost(
+        &c.admin, &c.access, &vhost,
+    )))
+}
+
+/// Imports one vhost's definitions: objects without a `vhost` go to it.
+pub async fn import_vhost_definitions(
+    State(c): Ctx,
+    Path(vhost): Path<String>,
+    body: Bytes,
+) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    import(&c, &body, Some(&vhost)).await
+}
+
+async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json<Value>> {
+    let mut definitions = Definitions::parse_into(body, vhost).map_err(ApiError::bad_request)?;
+    let applied = definitions
+        .apply(&c.admin, &c.access)
+        .await
+        .map_err(ApiError::bad_request)?;
+    for warning in &definitions.warnings {
+        tracing::warn!(%warning, "definitions import");
+    }
+    Ok(Json(json!({
+        "applied": {
+            "vhosts": applied.vhosts,
+            "exchanges": applied.exchanges,
+            "queues": applied.queues,
+            "bindings": applied.bindings,
+        },
+        "warnings": definitions.warnings,
+    })))
+}
+
+/// Creates a vhost (201), or leaves an existing one be (204). It lasts
+/// while the broker runs; vhosts meant to last belong in the configuration.
+pub async fn put_vhost(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult {
+    Ok(created_or_not(c.admin.add_vhost(&vhost)?))
+}
+
+pub async fn queue_bindings(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    queue_ref(&c, &vhost, &name)?;
+    Ok(binding_list(&c, |b| {
+        b.vhost == vhost && b.destination == name && b.destination_kind == DestinationKind::Queue
+    }))
+}
+
+fn require_exchange(c: &Context, vhost: &str, name: &str) -> ApiResult<String> {
+    require_vhost(c, vhost)?;
+    let name = exchange_name(name);
+    c.admin
+        .exchange(vhost, name)
+        .map(|e| e.name)
+        .ok_or_else(|| ApiError::not_found(format!("no exchange '{name}' in vhost '{vhost}'")))
+}
+
+pub async fn exchange_bindings_source(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    let name = require_exchange(&c, &vhost, &name)?;
+    Ok(binding_list(&c, |b| b.vhost == vhost && b.source == name))
+}
+
+pub async fn exchange_bindings_destination(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    let name = require_exchange(&c, &vhost, &name)?;
+    Ok(binding_list(&c, |b| {
+        b.vhost == vhost && b.destination == name && b.destination_kind == DestinationKind::Exchange
+    }))
+}
+
+/// The status page: queues with depth, rates and a depth sparkline,
+/// connections, alarms; it refreshes itself from the API.
+pub async fn status_page() -> axum::response::Html<&'static str> {
+    axum::response::Html(include_str!("status.html"))
+}

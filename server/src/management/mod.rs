@@ -1,0 +1,227 @@
+//! The management HTTP API: a compatible subset of RabbitMQ's (`/api/...`,
+//! JSON with RabbitMQ's field names), enough for `rabbitmqadmin` and
+//! scripts written against RabbitMQ to list, declare, delete, publish,
+//! get and purge. Every request needs HTTP basic auth with one of the
+//! broker's users (the broker has no user tags, so every user may do
+//! everything); bodies are capped at [`MAX_BODY`].
+//!
+//! Definitions (`/api/definitions`) are `crate::definitions`' job. `/` is a
+//! status page (`status.html`: plain HTML and a little JavaScript, no build
+//! step) that reads the same API with the browser's basic-auth credentials.
+//!
+//! Layout: `mod` (router, auth, errors, the shared context), `handlers`
+//! (one function per route), `json` (objects and body parsing), `rates`
+//! (the sampler behind `*_details`). Handlers reach the broker only
+//! through [`Admin`]; they run on the listeners' thread.
+
+mod handlers;
+pub mod json;
+mod rates;
+
+use crate::access::Access;
+use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::http::{header, HeaderMap, StatusCode};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+use axum::routing::{delete, get, post};
+use axum::{Json, Router};
+use base64::Engine;
+use leveret_broker::{Admin, AmqpError};
+use leveret_protocol::ReplyCode;
+pub use rates::Rates;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// The largest request body read (a publish's payload, a definitions file).
+pub const MAX_BODY: usize = 1024 * 1024;
+
+/// What the handlers share.
+#[derive(Debug, Clone)]
+pub struct Context {
+    /// The broker.
+    pub admin: Admin,
+    /// Users' tags and permissions from imported definitions.
+    pub access: Access,
+    /// `leveret@HOST`.
+    pub node: String,
+    /// Where durable state lives (disk figures).
+    pub data_dir: PathBuf,
+    /// The AMQP listeners.
+    pub amqp_listeners: Vec<SocketAddr>,
+    /// Message rates.
+    pub rates: Rates,
+}
+
+/// An API error as RabbitMQ words them: `{"error": ..., "reason": ...}`.
+#[derive(Debug)]
+pub struct ApiError {
+    status: StatusCode,
+    error: &'static str,
+    reason: String,
+}
+
+impl ApiError {
+    /// 400 with `reason`.
+    pub fn bad_request(reason: impl Into<String>) -> Self {
+        ApiError {
+            status: StatusCode::BAD_REQUEST,
+            error: "bad_request",
+            reason: reason.into(),
+        }
+    }
+
+    /// 404.
+    pub fn not_found(reason: impl Into<String>) -> Self {
+        ApiError {
+            status: StatusCode::NOT_FOUND,
+            error: "Object Not Found",
+            reason: reason.into(),
+        }
+    }
+
+    fn unauthorized() -> Self {
+        ApiError {
+            status: StatusCode::UNAUTHORIZED,
+            error: "not_authorized",
+            reason: "Login failed".into(),
+        }
+    }
+}
+
+impl From<AmqpError> for ApiError {
+    fn from(e: AmqpError) -> Self {
+        match e.code {
+            ReplyCode::NotFound => ApiError::not_found(e.text),
+            ReplyCode::AccessRefused => ApiError {
+                status: StatusCode::FORBIDDEN,
+                error: "access_refused",
+                reason: e.text,
+            },
+            _ => ApiError::bad_request(e.text),
+        }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let body = Json(serde_json::json!({ "error": self.error, "reason": self.reason }));
+        let mut response = (self.status, body).into_response();
+        if self.status == StatusCode::UNAUTHORIZED {
+            response.headers_mut().insert(
+                header::WWW_AUTHENTICATE,
+                header::HeaderValue::from_static("Basic realm=\"RabbitMQ Management\""),
+            );
+        }
+        response
+    }
+}
+
+/// The user and password of a basic `Authorization` header.
+pub(super) fn basic_credentials(headers: &HeaderMap) -> Option<(String, String)> {
+    let value = headers.get(header::AUTHORIZATION)?.to_str().ok()?;
+    let encoded = value.strip_prefix("Basic ")?.trim();
+    let decoded = base64::engine::general_purpose::STANDARD
+        .decode(encoded)
+        .ok()?;
+    let text = String::from_utf8(decoded).ok()?;
+    let (user, password) = text.split_once(':')?;
+    Some((user.to_owned(), password.to_owned()))
+}
+
+async fn authenticate(
+    State(context): State<Arc<Context>>,
+    request: Request,
+    next: Next,
+) -> Response {
+    match basic_credentials(request.headers()) {
+        Some((user, password)) if context.admin.authenticate(&user, &password) => {
+            next.run(request).await
+        }
+        credentials => {
+            let user = credentials.map(|(user, _)| user);
+            tracing::info!(user = ?user, "management API login refused");
+            ApiError::unauthorized().into_response()
+        }
+    }
+}
+
+/// The router of the management listener.
+pub fn router(context: Context) -> Router {
+    use handlers as h;
+    let context = Arc::new(context);
+    let api = Router::new()
+        .route("/", get(h::status_page))
+        .route("/api/overview", get(h::overview))
+        .route("/api/nodes", get(h::nodes))
+        .route("/api/nodes/{node}", get(h::node))
+        .route("/api/vhosts", get(h::vhosts))
+        .route("/api/vhosts/{vhost}", get(h::vhost).put(h::put_vhost))
+        .route("/api/users", get(h::users))
+        .route("/api/whoami", get(h::whoami))
+        .route("/api/permissions", get(h::permissions))
+        .route("/api/exchanges", get(h::exchanges))
+        .route("/api/exchanges/{vhost}", get(h::exchanges_in))
+        .route(
+            "/api/exchanges/{vhost}/{name}",
+            get(h::exchange)
+                .put(h::put_exchange)
+                .delete(h::delete_exchange),
+        )
+        .route("/api/exchanges/{vhost}/{name}/publish", post(h::publish))
+        .route(
+            "/api/exchanges/{vhost}/{name}/bindings/source",
+            get(h::exchange_bindings_source),
+        )
+        .route(
+            "/api/exchanges/{vhost}/{name}/bindings/destination",
+            get(h::exchange_bindings_destination),
+        )
+        .route("/api/queues", get(h::queues))
+        .route("/api/queues/{vhost}", get(h::queues_in))
+        .route(
+            "/api/queues/{vhost}/{name}",
+            get(h::queue).put(h::put_queue).delete(h::delete_queue),
+        )
+        .route("/api/queues/{vhost}/{name}/contents", delete(h::purge))
+        .route("/api/queues/{vhost}/{name}/get", post(h::get_messages))
+        .route(
+            "/api/queues/{vhost}/{name}/bindings",
+            get(h::queue_bindings),
+        )
+        .route("/api/bindings", get(h::bindings))
+        .route("/api/bindings/{vhost}", get(h::bindings_in))
+        .route(
+            "/api/bindings/{vhost}/e/{source}/{kind}/{destination}",
+            get(h::bindings_between).post(h::post_binding),
+        )
+        .route(
+            "/api/bindings/{vhost}/e/{source}/{kind}/{destination}/{props}",
+            get(h::binding).delete(h::delete_binding),
+        )
+        .route("/api/connections", get(h::connections))
+        .route(
+            "/api/connections/{name}",
+            get(h::connection).delete(h::close_connection),
+        )
+        .route("/api/channels", get(h::channels))
+        .route("/api/consumers", get(h::consumers))
+        .route("/api/consumers/{vhost}", get(h::consumers_in))
+        .route(
+            "/api/definitions",
+            get(h::definitions).post(h::import_definitions),
+        )
+        .route(
+            "/api/definitions/{vhost}",
+            get(h::vhost_definitions).post(h::import_vhost_definitions),
+        )
+        .route("/api/aliveness-test/{vhost}", get(h::aliveness_test))
+        .route("/api/health/checks/alarms", get(h::alarms))
+        .fallback(h::unknown)
+        .route_layer(axum::middleware::from_fn_with_state(
+            Arc::clone(&context),
+            authenticate,
+        ));
+    api.layer(DefaultBodyLimit::max(MAX_BODY))
+        .with_state(context)
+}

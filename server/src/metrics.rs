@@ -1,0 +1,476 @@
+//! The Prometheus endpoint: `/metrics` (aggregated) and
+//! `/metrics/per-object` (one series per queue), with the metric names,
+//! types, HELP texts and labels of RabbitMQ's `rabbitmq_prometheus`
+//! plugin, so its Grafana dashboards work unchanged. The exposition is
+//! Prometheus text format 0.0.4, as that plugin serves it, written by the
+//! `prometheus` crate's encoder: in 0.0.4 a counter's family name keeps
+//! its `_total`, as RabbitMQ's do; OpenMetrics (what `prometheus-client`
+//! writes) moves `_total` to the samples, and `promtool check metrics`
+//! (2.42) then reads every counter as an untyped family without help. The `untyped` families of RabbitMQ's (`rabbitmq_build_info`,
+//! `rabbitmq_identity_info`, `rabbitmq_alarms_*`) are gauges here: that
+//! encoder cannot write untyped samples; dashboards read them the same.
+//!
+//! A scrape reads the broker through [`Admin`] on the listeners' thread:
+//! queues are read a chunk at a time with a yield between chunks, so one
+//! scrape of many queues never holds that thread for long either.
+
+use crate::process::ProcessFigures;
+use axum::extract::{DefaultBodyLimit, State};
+use axum::http::header::CONTENT_TYPE;
+use axum::response::IntoResponse;
+use axum::routing::get;
+use axum::Router;
+use leveret_broker::{Admin, QueueInfo};
+use prometheus::proto::{Counter, Gauge, LabelPair, Metric, MetricFamily, MetricType};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// Queues read between two yields.
+const CHUNK: usize = 1000;
+/// The one protocol Leveret speaks, as RabbitMQ labels it.
+const PROTOCOL: (&str, &str) = ("protocol", "amqp091");
+/// Leveret's queues are all of the classic kind.
+const QUEUE_TYPE: (&str, &str) = ("queue_type", "rabbit_classic_queue");
+
+/// Which endpoint is being scraped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Endpoint {
+    /// `/metrics`: sums over queues, no per-object labels.
+    Aggregated,
+    /// `/metrics/per-object`: queue metrics labelled by vhost and queue.
+    PerObject,
+}
+
+impl Endpoint {
+    fn label(self) -> &'static str {
+        match self {
+            Endpoint::Aggregated => "aggregated",
+            Endpoint::PerObject => "per-object",
+        }
+    }
+}
+
+/// What a scrape needs besides the broker.
+#[derive(Debug, Clone)]
+pub struct MetricsContext {
+    /// The broker.
+    pub admin: Admin,
+    /// `leveret@HOST`.
+    pub node: String,
+    /// Where disk space is measured.
+    pub data_dir: PathBuf,
+}
+
+/// Families in the order they are added.
+struct Exposition {
+    families: Vec<MetricFamily>,
+}
+
+impl Exposition {
+    fn family(&mut self, name: &str, kind: MetricType, help: &str) -> &mut MetricFamily {
+        let mut family = MetricFamily::default();
+        family.set_name(name.to_owned());
+        family.set_help(help.to_owned());
+        family.set_field_type(kind);
+        self.families.push(family);
+        self.families.last_mut().expect("just pushed")
+    }
+
+    /// A family with one sample.
+    fn single(
+        &mut self,
+        name: &str,
+        kind: MetricType,
+        help: &str,
+        labels: &[(&str, &str)],
+        value: f64,
+    ) {
+        let family = self.family(name, kind, help);
+        family.mut_metric().push(sample(kind, labels, value));
+    }
+
+    fn counter(&mut self, name: &str, help: &str, value: u64) {
+        self.single(name, MetricType::COUNTER, help, &[], value as f64);
+    }
+
+    fn gauge(&mut self, name: &str, help: &str, value: u64) {
+        self.single(name, MetricType::GAUGE, help, &[], value as f64);
+    }
+
+    /// The text; per-object families with no objects are left out, as the
+    /// format has no empty families.
+    fn encode(mut self) -> String {
+        self.families
+            .retain(|family| !family.get_metric().is_empty());
+        let mut text = String::new();
+        if let Err(e) = prometheus::TextEncoder::new().encode_utf8(&self.families, &mut text) {
+            tracing::error!(error = %e, "cannot encode metrics");
+        }
+        text
+    }
+}
+
+fn sample(kind: MetricType, labels: &[(&str, &str)], value: f64) -> Metric {
+    let mut metric = Metric::default();
+    let pairs = labels
+        .iter()
+        .map(|(name, value)| {
+            let mut pair = LabelPair::default();
+            pair.set_name((*name).to_owned());
+            pair.set_value((*value).to_owned());
+            pair
+        })
+        .collect();
+    metric.set_label(pairs);
+    if kind == MetricType::COUNTER {
+        let mut counter = Counter::default();
+        counter.set_value(value);
+        metric.set_counter(counter);
+    } else {
+        let mut gauge = Gauge::default();
+        gauge.set_value(value);
+        metric.set_gauge(gauge);
+    }
+    metric
+}
+
+/// The per-queue metrics, each read from a [`QueueInfo`].
+type QueueFigure = fn(&QueueInfo) -> u64;
+const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 11] = [
+    ("rabbitmq_queue_messages_ready", MetricType::GAUGE, "Messages ready to be delivered to consumers", |q| q.messages_ready),
+    ("rabbitmq_queue_messages_unacked", MetricType::GAUGE, "Messages delivered to consumers but not yet acknowledged", |q| q.messages_unacknowledged),
+    ("rabbitmq_queue_messages", MetricType::GAUGE, "Sum of ready and unacknowledged messages - total queue depth", |q| q.messages()),
+    ("rabbitmq_queue_consumers", MetricType::GAUGE, "Consumers on a queue", |q| q.consumers),
+    ("rabbitmq_queue_messages_ready_bytes", MetricType::GAUGE, "Size in bytes of ready messages", |q| q.message_bytes_ready),
+    ("rabbitmq_queue_get_ack_total", MetricType::COUNTER, "Total number of messages fetched from a queue with basic.get in manual acknowledgement mode", |q| q.message_stats.get),
+    ("rabbitmq_queue_get_total", MetricType::COUNTER, "Total number of messages fetched from a queue with basic.get in automatic acknowledgement mode", |q| q.message_stats.get_no_ack),
+    ("rabbitmq_queue_messages_delivered_ack_total", MetricType::COUNTER, "Total number of messages delivered from a queue to consumers in manual acknowledgement mode", |q| q.message_stats.deliver),
+    ("rabbitmq_queue_messages_delivered_total", MetricType::COUNTER, "Total number of messages delivered from a queue to consumers in automatic acknowledgement mode", |q| q.message_stats.deliver_no_ack),
+    ("rabbitmq_queue_messages_redelivered_total", MetricType::COUNTER, "Total number of messages redelivered from a queue to consumers", |q| q.message_stats.redeliver),
+    ("rabbitmq_queue_messages_acked_total", MetricType::COUNTER, "Total number of messages acknowledged by consumers on a queue", |q| q.message_stats.ack),
+];
+const QUEUE_GET_EMPTY: (&str, &str) = (
+    "rabbitmq_queue_get_empty_total",
+    "Total number of times basic.get operations fetched no message on a queue",
+);
+
+/// Reads every queue, a chunk at a time, yielding between chunks.
+async fn read_queues(admin: &Admin) -> Vec<QueueInfo> {
+    let refs = admin.queue_refs();
+    let mut infos = Vec::with_capacity(refs.len());
+    for chunk in refs.chunks(CHUNK) {
+        infos.extend(chunk.iter().map(|q| q.info()));
+        tokio::task::yield_now().await;
+    }
+    infos
+}
+
+/// The router of the metrics listener: `/metrics` and `/metrics/per-object`
+/// (GET only; no request body is read).
+pub fn router(context: MetricsContext) -> Router {
+    Router::new()
+        .route("/metrics", get(aggregated))
+        .route("/metrics/per-object", get(per_object))
+        .layer(DefaultBodyLimit::max(0))
+        .with_state(Arc::new(context))
+}
+
+async fn aggregated(State(context): State<Arc<MetricsContext>>) -> impl IntoResponse {
+    text_response(scrape(&context, Endpoint::Aggregated).await)
+}
+
+async fn per_object(State(context): State<Arc<MetricsContext>>) -> impl IntoResponse {
+    text_response(scrape(&context, Endpoint::PerObject).await)
+}
+
+fn text_response(body: String) -> impl IntoResponse {
+    ([(CONTENT_TYPE, prometheus::TEXT_FORMAT)], body)
+}
+
+/// One scrape of `endpoint`, as Prometheus text format 0.0.4.
+pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
+    let queues = read_queues(&context.admin).await;
+    let overview = context.admin.overview();
+    let process = ProcessFigures::read(&context.data_dir);
+    let mut out = Exposition {
+        families: Vec::new(),
+    };
+    let churn = &overview.churn;
+    out.counter(
+        "rabbitmq_connections_opened_total",
+        "Total number of connections opened",
+        churn.connections_opened,
+    );
+    out.counter(
+        "rabbitmq_connections_closed_total",
+        "Total number of connections closed or terminated",
+        churn.connections_closed,
+    );
+    out.counter(
+        "rabbitmq_channels_opened_total",
+        "Total number of channels opened",
+        churn.channels_opened,
+    );
+    out.counter(
+        "rabbitmq_channels_closed_total",
+        "Total number of channels closed",
+        churn.channels_closed,
+    );
+    out.counter(
+        "rabbitmq_queues_declared_total",
+        "Total number of queues declared",
+        churn.queues_declared,
+    );
+    out.counter(
+        "rabbitmq_queues_created_total",
+        "Total number of queues created",
+        churn.queues_created,
+    );
+    out.counter(
+        "rabbitmq_queues_deleted_total",
+        "Total number of queues deleted",
+        churn.queues_deleted,
+    );
+
+    let optional = [
+        (
+            "rabbitmq_process_open_fds",
+            "Open file descriptors",
+            process.open_fds,
+        ),
+        (
+            "rabbitmq_process_resident_memory_bytes",
+            "Memory used in bytes",
+            process.resident_memory_bytes,
+        ),
+        (
+            "rabbitmq_disk_space_available_bytes",
+            "Disk space available in bytes",
+            process.disk_free_bytes,
+        ),
+        (
+            "rabbitmq_process_max_fds",
+            "Open file descriptors limit",
+            process.max_fds,
+        ),
+    ];
+    for (name, help, value) in optional {
+        if let Some(value) = value {
+            out.gauge(name, help, value);
+        }
+    }
+    out.gauge(
+        "rabbitmq_resident_memory_limit_bytes",
+        "Memory high watermark in bytes",
+        overview.memory_high_watermark as u64,
+    );
+    // Leveret has no free-disk alarm: its low watermark is zero.
+    out.gauge(
+        "rabbitmq_disk_space_available_limit_bytes",
+        "Free disk space low watermark in bytes",
+        0,
+    );
+    out.single(
+        "rabbitmq_erlang_uptime_seconds",
+        MetricType::GAUGE,
+        "Node uptime",
+        &[],
+        overview.uptime.as_secs_f64(),
+    );
+
+    for (name, kind, help, figure) in QUEUE_METRICS {
+        let family = out.family(name, kind, help);
+        match endpoint {
+            Endpoint::Aggregated => {
+                let sum: u64 = queues.iter().map(figure).sum();
+                family.mut_metric().push(sample(kind, &[], sum as f64));
+            }
+            Endpoint::PerObject => {
+                for q in &queues {
+                    let labels = [("vhost", q.vhost.as_str()), ("queue", q.name.as_str())];
+                    family
+                        .mut_metric()
+                        .push(sample(kind, &labels, figure(q) as f64));
+                }
+            }
+        }
+    }
+    let (name, help) = QUEUE_GET_EMPTY;
+    let family = out.family(name, MetricType::COUNTER, help);
+    match endpoint {
+        Endpoint::Aggregated => {
+            let sum: u64 = queues.iter().map(|q| q.message_stats.get_empty).sum();
+            family
+                .mut_metric()
+                .push(sample(MetricType::COUNTER, &[], sum as f64));
+        }
+        Endpoint::PerObject => {
+            for q in &queues {
+                let labels = [("vhost", q.vhost.as_str()), ("queue", q.name.as_str())];
+                family.mut_metric().push(sample(
+                    MetricType::COUNTER,
+                    &labels,
+                    q.message_stats.get_empty as f64,
+                ));
+            }
+        }
+    }
+
+    let totals = &overview.object_totals;
+    out.gauge(
+        "rabbitmq_connections",
+        "Connections currently open",
+        totals.connections,
+    );
+    out.gauge(
+        "rabbitmq_channels",
+        "Channels currently open",
+        totals.channels,
+    );
+    out.gauge(
+        "rabbitmq_consumers",
+        "Consumers currently connected",
+        totals.consumers,
+    );
+    out.gauge("rabbitmq_queues", "Queues available", totals.queues);
+
+    let m = &overview.message_stats;
+    let protocol = [PROTOCOL];
+    let global = [
+        ("rabbitmq_global_messages_received_total", "Total number of messages received from publishers", m.received),
+        ("rabbitmq_global_messages_received_confirm_total", "Total number of messages received from publishers expecting confirmations", m.received_confirm),
+        ("rabbitmq_global_messages_routed_total", "Total number of messages routed to queues or streams", m.routed),
+        ("rabbitmq_global_messages_unroutable_dropped_total", "Total number of messages published as non-mandatory into an exchange and dropped as unroutable", m.unroutable_dropped),
+        ("rabbitmq_global_messages_unroutable_returned_total", "Total number of messages published as mandatory into an exchange and returned to the publisher as unroutable", m.unroutable_returned),
+        ("rabbitmq_global_messages_confirmed_total", "Total number of messages confirmed to publishers", m.confirmed),
+    ];
+    for (name, help, value) in global {
+        out.single(name, MetricType::COUNTER, help, &protocol, value as f64);
+    }
+    out.single(
+        "rabbitmq_global_publishers",
+        MetricType::GAUGE,
+        "Current number of publishers",
+        &protocol,
+        overview.publishers as f64,
+    );
+    out.single(
+        "rabbitmq_global_consumers",
+        MetricType::GAUGE,
+        "Current number of consumers",
+        &protocol,
+        totals.consumers as f64,
+    );
+    let by_queue_type = [PROTOCOL, QUEUE_TYPE];
+    let deliveries = [
+        ("rabbitmq_global_messages_delivered_total", "Total number of messages delivered to consumers", m.delivered()),
+        ("rabbitmq_global_messages_delivered_consume_manual_ack_total", "Total number of messages delivered to consumers using basic.consume with manual acknowledgment", m.delivered_consume_manual_ack),
+        ("rabbitmq_global_messages_delivered_consume_auto_ack_total", "Total number of messages delivered to consumers using basic.consume with automatic acknowledgment", m.delivered_consume_auto_ack),
+        ("rabbitmq_global_messages_delivered_get_manual_ack_total", "Total number of messages delivered to consumers using basic.get with manual acknowledgment", m.delivered_get_manual_ack),
+        ("rabbitmq_global_messages_delivered_get_auto_ack_total", "Total number of messages delivered to consumers using basic.get with automatic acknowledgment", m.delivered_get_auto_ack),
+        ("rabbitmq_global_messages_get_empty_total", "Total number of times basic.get operations fetched no message", m.get_empty),
+        ("rabbitmq_global_messages_redelivered_total", "Total number of messages redelivered to consumers", m.redelivered),
+        ("rabbitmq_global_messages_acknowledged_total", "Total number of messages acknowledged by consumers", m.acknowledged),
+    ];
+    for (name, help, value) in deliveries {
+        out.single(
+            name,
+            MetricType::COUNTER,
+            help,
+            &by_queue_type,
+            value as f64,
+        );
+    }
+
+    out.single(
+        "rabbitmq_alarms_free_disk_space_watermark",
+        MetricType::GAUGE,
+        "is 1 if free disk space watermark alarm is in effect",
+        &[],
+        0.0,
+    );
+    out.single(
+        "rabbitmq_alarms_memory_used_watermark",
+        MetricType::GAUGE,
+        "is 1 if VM memory watermark alarm is in effect",
+        &[],
+        if overview.memory_alarm { 1.0 } else { 0.0 },
+    );
+
+    // Leveret's own.
+    out.gauge(
+        "leveret_queued_message_bytes",
+        "Body bytes of the ready messages in all queues",
+        queues.iter().map(|q| q.message_bytes_ready).sum(),
+    );
+    if let Some(busy) = overview.busy_poll {
+        out.counter(
+            "leveret_socket_reads_total",
+            "Total number of reads from client sockets",
+            busy.socket_reads,
+        );
+        out.counter(
+            "leveret_busy_poll_windows_total",
+            "Total number of windows in which the broker's thread polled for input instead of sleeping",
+            busy.windows,
+        );
+        out.single(
+            "leveret_busy_poll_seconds_total",
+            MetricType::COUNTER,
+            "Total time the broker's thread spent polling for input instead of sleeping",
+            &[],
+            busy.polling.as_secs_f64(),
+        );
+    }
+
+    if endpoint == Endpoint::PerObject {
+        let family = out.family(
+            "rabbitmq_queue_info",
+            MetricType::GAUGE,
+            "A metric with a constant '1' value and labels that provide some queue details",
+        );
+        for q in &queues {
+            let labels = [
+                ("vhost", q.vhost.as_str()),
+                ("queue", q.name.as_str()),
+                ("queue_type", "rabbit_classic_queue"),
+                ("membership", "leader"),
+            ];
+            family
+                .mut_metric()
+                .push(sample(MetricType::GAUGE, &labels, 1.0));
+        }
+    }
+    let version = overview.version;
+    out.single(
+        "rabbitmq_build_info",
+        MetricType::GAUGE,
+        "RabbitMQ & Erlang/OTP version info",
+        &[
+            ("product_name", overview.product.as_str()),
+            ("product_version", version),
+            ("rabbitmq_version", version),
+            ("prometheus_plugin_version", version),
+            ("prometheus_client_version", PROMETHEUS_CLIENT_VERSION),
+            // The dashboard's nodes table has an Erlang/OTP column; Leveret
+            // runs no Erlang, and says so rather than leave the cell blank.
+            ("erlang_version", "none"),
+        ],
+        1.0,
+    );
+    out.single(
+        "rabbitmq_identity_info",
+        MetricType::GAUGE,
+        "RabbitMQ node & cluster identity info",
+        &[
+            ("rabbitmq_node", context.node.as_str()),
+            ("rabbitmq_cluster", context.node.as_str()),
+            ("rabbitmq_endpoint", endpoint.label()),
+        ],
+        1.0,
+    );
+    out.encode()
+}
+
+/// The `prometheus` crate's version, for `rabbitmq_build_info`.
+const PROMETHEUS_CLIENT_VERSION: &str = "0.14";

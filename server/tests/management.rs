@@ -1,0 +1,474 @@
+//! The management HTTP API of the `leveret` binary, end to end: Debian's
+//! real `rabbitmqadmin` (3.10) lists, declares, publishes, gets, purges,
+//! closes and deletes against it; raw requests check the answers a
+//! careless or hostile client gets (401, 404, 400, 413) and that a long
+//! queue listing streams whole.
+
+mod common;
+
+use common::ops::{basic, request, tool_available, OpsBroker};
+use futures_lite::StreamExt;
+use lapin::options::{BasicConsumeOptions, QueueDeclareOptions};
+use lapin::types::FieldTable;
+use lapin::{Connection, ConnectionProperties};
+use serde_json::{json, Value};
+use std::process::Command;
+use std::time::Duration;
+
+/// Runs `rabbitmqadmin` against `broker`; `None` if it is not installed.
+fn rabbitmqadmin(broker: &OpsBroker, args: &[&str]) -> Option<String> {
+    let port = broker.http.port().to_string();
+    let output = match Command::new("rabbitmqadmin")
+        .args(["-H", "127.0.0.1", "-P", &port, "-u", "guest", "-p", "guest"])
+        .args(args)
+        .output()
+    {
+        Ok(output) => output,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return None,
+        Err(e) => panic!("cannot run rabbitmqadmin: {e}"),
+    };
+    assert!(
+        output.status.success(),
+        "rabbitmqadmin {args:?}: {}{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    Some(String::from_utf8_lossy(&output.stdout).into_owned())
+}
+
+fn admin_json(broker: &OpsBroker, args: &[&str]) -> Value {
+    let mut all = vec!["-f", "raw_json"];
+    all.extend_from_slice(args);
+    let text = rabbitmqadmin(broker, &all).expect("installed");
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{args:?}: {e}: {text}"))
+}
+
+fn named<'a>(list: &'a Value, name: &str) -> &'a Value {
+    list.as_array()
+        .expect("a list")
+        .iter()
+        .find(|item| item["name"] == name)
+        .unwrap_or_else(|| panic!("no {name} in {list}"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rabbitmqadmin_drives_leveret() {
+    if !tool_available("rabbitmqadmin", "rabbitmq-server") {
+        return;
+    }
+    let broker = OpsBroker::start("rabbitmqadmin", &[]);
+    let overview = rabbitmqadmin(&broker, &["show", "overview"]).expect("installed");
+    assert!(overview.contains("leveret@"), "{overview}");
+    for args in [
+        &[
+            "declare",
+            "exchange",
+            "name=orders",
+            "type=direct",
+            "durable=false",
+        ][..],
+        &[
+            "declare",
+            "queue",
+            "name=pick",
+            "durable=false",
+            "arguments={\"x-max-length\": 10}",
+        ],
+        &[
+            "declare",
+            "binding",
+            "source=orders",
+            "destination=pick",
+            "routing_key=left.#",
+        ],
+        &[
+            "publish",
+            "exchange=orders",
+            "routing_key=left.#",
+            "payload=one",
+        ],
+        &[
+            "publish",
+            "exchange=orders",
+            "routing_key=left.#",
+            "payload=two",
+        ],
+        &[
+            "publish",
+            "exchange=orders",
+            "routing_key=left.#",
+            "payload=three",
+        ],
+        &["publish", "routing_key=pick", "payload=four"],
+    ] {
+        rabbitmqadmin(&broker, args).expect("installed");
+    }
+    let unrouted = rabbitmqadmin(
+        &broker,
+        &[
+            "publish",
+            "exchange=orders",
+            "routing_key=nowhere",
+            "payload=x",
+        ],
+    )
+    .expect("installed");
+    assert!(unrouted.contains("NOT routed"), "{unrouted}");
+
+    let queues = admin_json(&broker, &["list", "queues"]);
+    let pick = named(&queues, "pick");
+    assert_eq!(pick["messages"], 4);
+    assert_eq!(pick["arguments"], json!({"x-max-length": 10}));
+    assert_eq!(pick["durable"], false);
+    let exchanges = admin_json(&broker, &["list", "exchanges"]);
+    assert_eq!(named(&exchanges, "orders")["type"], "direct");
+    let bindings = admin_json(&broker, &["list", "bindings"]);
+    let binding = bindings
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|b| b["source"] == "orders")
+        .expect("the binding");
+    assert_eq!(binding["routing_key"], "left.#");
+    assert_eq!(binding["properties_key"], "left.%23");
+
+    let got = admin_json(
+        &broker,
+        &["get", "queue=pick", "count=2", "ackmode=ack_requeue_false"],
+    );
+    let payloads: Vec<&str> = got
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m["payload"].as_str().unwrap())
+        .collect();
+    assert_eq!(payloads, ["one", "two"]);
+    let peeked = admin_json(&broker, &["get", "queue=pick"]);
+    assert_eq!(peeked[0]["payload"], "three");
+    assert_eq!(peeked[0]["message_count"], 1);
+    let queues = admin_json(&broker, &["list", "queues"]);
+    assert_eq!(named(&queues, "pick")["messages"], 2);
+
+    // A client: listed as a connection, channel and consumer, then closed
+    // from rabbitmqadmin.
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = conn.create_channel().await.expect("channel");
+    ch.queue_declare(
+        "watch",
+        QueueDeclareOptions::default(),
+        FieldTable::default(),
+    )
+    .await
+    .expect("declare");
+    let mut consumer = ch
+        .basic_consume(
+            "watch",
+            "watcher",
+            BasicConsumeOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("consume");
+    let connections = admin_json(&broker, &["list", "connections"]);
+    let connection = &connections[0];
+    assert_eq!(connection["user"], "guest");
+    assert_eq!(connection["channels"], 1);
+    let channels = admin_json(&broker, &["list", "channels"]);
+    assert_eq!(channels[0]["consumer_count"], 1);
+    let consumers = admin_json(&broker, &["list", "consumers"]);
+    assert_eq!(consumers[0]["consumer_tag"], "watcher");
+    assert_eq!(consumers[0]["queue"]["name"], "watch");
+    let name = connection["name"].as_str().unwrap().to_owned();
+    rabbitmqadmin(&broker, &["close", "connection", &format!("name={name}")]).expect("installed");
+    let closed = tokio::time::timeout(Duration::from_secs(10), consumer.next()).await;
+    assert!(
+        matches!(closed, Ok(None) | Ok(Some(Err(_)))),
+        "the consumer's connection was closed: {closed:?}"
+    );
+    assert_eq!(admin_json(&broker, &["list", "connections"]), json!([]));
+
+    for args in [
+        &["purge", "queue", "name=pick"][..],
+        &[
+            "delete",
+            "binding",
+            "source=orders",
+            "destination_type=queue",
+            "destination=pick",
+            "properties_key=left.%23",
+        ],
+        &["delete", "queue", "name=pick"],
+        &["delete", "queue", "name=watch"],
+        &["delete", "exchange", "name=orders"],
+    ] {
+        rabbitmqadmin(&broker, args).expect("installed");
+    }
+    assert_eq!(admin_json(&broker, &["list", "queues"]), json!([]));
+    let bindings = admin_json(&broker, &["list", "bindings"]);
+    assert_eq!(bindings, json!([]));
+    let vhosts = admin_json(&broker, &["list", "vhosts"]);
+    assert_eq!(named(&vhosts, "/")["messages"], 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn careless_and_hostile_requests_get_the_right_answers() {
+    let broker = OpsBroker::start("adversarial", &[]);
+    let http = broker.http;
+    let guest = basic("guest", "guest");
+    let auth = [("Authorization", guest.as_str())];
+    let json_auth = [
+        ("Authorization", guest.as_str()),
+        ("Content-Type", "application/json"),
+    ];
+
+    // Authentication.
+    let none = request(http, "GET", "/api/overview", &[], b"").await;
+    assert_eq!(none.status, 401);
+    assert!(none.header("www-authenticate").is_some());
+    let wrong = basic("guest", "nope");
+    let wrong = request(
+        http,
+        "GET",
+        "/api/queues",
+        &[("Authorization", &wrong)],
+        b"",
+    )
+    .await;
+    assert_eq!(wrong.status, 401);
+    let garbage = request(
+        http,
+        "GET",
+        "/api/queues",
+        &[("Authorization", "Basic !!!")],
+        b"",
+    )
+    .await;
+    assert_eq!(garbage.status, 401);
+    let nobody = basic("nobody", "guest");
+    let nobody = request(
+        http,
+        "DELETE",
+        "/api/queues/%2F/x",
+        &[("Authorization", &nobody)],
+        b"",
+    )
+    .await;
+    assert_eq!(nobody.status, 401);
+
+    // Unknown vhosts and objects.
+    for (method, path) in [
+        ("GET", "/api/queues/nope"),
+        ("GET", "/api/exchanges/nope"),
+        ("GET", "/api/queues/%2F/missing"),
+        ("GET", "/api/exchanges/%2F/missing"),
+        ("DELETE", "/api/queues/%2F/missing"),
+        ("DELETE", "/api/queues/nope/missing/contents"),
+        ("GET", "/api/aliveness-test/nope"),
+        ("GET", "/api/connections/nobody"),
+        ("GET", "/api/no-such-thing"),
+    ] {
+        let response = request(http, method, path, &auth, b"").await;
+        assert_eq!(response.status, 404, "{method} {path}: {}", response.text());
+    }
+    let put = request(http, "PUT", "/api/queues/nope/q", &json_auth, b"{}").await;
+    assert_eq!(put.status, 404, "{}", put.text());
+
+    // Malformed and ill-typed bodies.
+    for body in [
+        &b"{\"durable\": tru"[..],
+        b"[1, 2, 3]",
+        b"{\"durable\": 5}",
+        b"{\"arguments\": [1]}",
+        b"{\"arguments\": {\"x-max-length\": \"ten\"}}",
+    ] {
+        let response = request(http, "PUT", "/api/queues/%2F/typed", &json_auth, body).await;
+        assert_eq!(
+            response.status,
+            400,
+            "{}: {}",
+            String::from_utf8_lossy(body),
+            response.text()
+        );
+        let reason: Value = serde_json::from_slice(&response.body).expect("a JSON error");
+        assert!(reason["reason"].as_str().is_some_and(|r| !r.is_empty()));
+    }
+    let bad_props = request(
+        http,
+        "POST",
+        "/api/exchanges/%2F/amq.default/publish",
+        &json_auth,
+        br#"{"routing_key": "q", "payload": "x", "properties": {"delivery_mode": 9}}"#,
+    )
+    .await;
+    assert_eq!(bad_props.status, 400);
+
+    // RabbitMQ's checks, through the API.
+    let created = request(
+        http,
+        "PUT",
+        "/api/queues/%2F/q",
+        &json_auth,
+        br#"{"durable": false}"#,
+    )
+    .await;
+    assert_eq!(created.status, 201);
+    let again = request(
+        http,
+        "PUT",
+        "/api/queues/%2F/q",
+        &json_auth,
+        br#"{"durable": false}"#,
+    )
+    .await;
+    assert_eq!(again.status, 204);
+    let inequivalent = request(
+        http,
+        "PUT",
+        "/api/queues/%2F/q",
+        &json_auth,
+        br#"{"durable": true}"#,
+    )
+    .await;
+    assert_eq!(inequivalent.status, 400);
+    assert!(
+        inequivalent.text().contains("inequivalent arg 'durable'"),
+        "{}",
+        inequivalent.text()
+    );
+    let reserved = request(http, "DELETE", "/api/exchanges/%2F/amq.direct", &auth, b"").await;
+    assert_eq!(reserved.status, 403, "{}", reserved.text());
+    let too_many = request(
+        http,
+        "POST",
+        "/api/queues/%2F/q/get",
+        &json_auth,
+        br#"{"count": 100000}"#,
+    )
+    .await;
+    assert_eq!(too_many.status, 400);
+
+    // Oversized bodies are refused before they are read whole.
+    let huge = vec![b' '; 2 * 1024 * 1024];
+    let oversized = request(
+        http,
+        "POST",
+        "/api/exchanges/%2F/amq.default/publish",
+        &json_auth,
+        &huge,
+    )
+    .await;
+    assert_eq!(oversized.status, 413);
+
+    // Health checks.
+    let alive = request(http, "GET", "/api/aliveness-test/%2F", &auth, b"").await;
+    assert_eq!(alive.status, 200);
+    assert_eq!(
+        serde_json::from_slice::<Value>(&alive.body).unwrap()["status"],
+        "ok"
+    );
+    let alarms = request(http, "GET", "/api/health/checks/alarms", &auth, b"").await;
+    assert_eq!(alarms.status, 200);
+
+    // A listing longer than one chunk streams whole and in order.
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = conn.create_channel().await.expect("channel");
+    for i in 0..1200 {
+        ch.queue_declare(
+            &format!("many-{i:04}"),
+            QueueDeclareOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("declare");
+    }
+    let listing = request(http, "GET", "/api/queues/%2F", &auth, b"").await;
+    assert_eq!(listing.status, 200);
+    let queues: Value = serde_json::from_slice(&listing.body).expect("one JSON array");
+    let names: Vec<&str> = queues
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|q| q["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names.len(), 1202, "aliveness-test, q and 1200 more");
+    assert!(names.windows(2).all(|w| w[0] < w[1]), "sorted by name");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn vhosts_per_object_bindings_and_per_vhost_definitions() {
+    let broker = OpsBroker::start("vhost-defs", &[]);
+    let http = broker.http;
+    let guest = basic("guest", "guest");
+    let auth = [
+        ("Authorization", guest.as_str()),
+        ("Content-Type", "application/json"),
+    ];
+    let send = |method: &'static str, path: &'static str, body: &'static [u8]| async move {
+        request(http, method, path, &auth, body).await
+    };
+    assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 201);
+    assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 204);
+    assert_eq!(send("DELETE", "/api/vhosts/robots", b"").await.status, 405);
+    for (path, body) in [
+        (
+            "/api/exchanges/robots/sensors",
+            &br#"{"type": "topic"}"#[..],
+        ),
+        ("/api/exchanges/robots/all", br#"{"type": "fanout"}"#),
+        ("/api/queues/robots/lidar", br#"{"durable": true}"#),
+    ] {
+        let response = request(http, "PUT", path, &auth, body).await;
+        assert_eq!(response.status, 201, "{path}: {}", response.text());
+    }
+    for path in [
+        "/api/bindings/robots/e/sensors/q/lidar",
+        "/api/bindings/robots/e/all/e/sensors",
+    ] {
+        let response = request(http, "POST", path, &auth, br#"{"routing_key": "lidar.#"}"#).await;
+        assert_eq!(response.status, 201, "{path}: {}", response.text());
+        assert_eq!(response.header("location"), Some("lidar.%23"));
+    }
+    let json_of = |response: common::ops::Response| -> Value {
+        assert_eq!(response.status, 200, "{}", response.text());
+        serde_json::from_slice(&response.body).expect("JSON")
+    };
+    let on_queue = json_of(send("GET", "/api/queues/robots/lidar/bindings", b"").await);
+    assert_eq!(
+        on_queue.as_array().unwrap().len(),
+        2,
+        "the default exchange's and ours: {on_queue}"
+    );
+    let source = json_of(send("GET", "/api/exchanges/robots/sensors/bindings/source", b"").await);
+    assert_eq!(source[0]["destination"], "lidar");
+    let destination = json_of(
+        send(
+            "GET",
+            "/api/exchanges/robots/sensors/bindings/destination",
+            b"",
+        )
+        .await,
+    );
+    assert_eq!(destination[0]["source"], "all");
+    let missing = send("GET", "/api/exchanges/robots/nope/bindings/source", b"").await;
+    assert_eq!(missing.status, 404);
+
+    let exported = json_of(send("GET", "/api/definitions/robots", b"").await);
+    assert_eq!(
+        exported["queues"],
+        json!([{"name": "lidar", "type": "classic", "durable": true, "auto_delete": false, "arguments": {}}])
+    );
+    assert!(exported.get("users").is_none() && exported.get("vhosts").is_none());
+    let body = exported.to_string();
+    let imported = request(http, "POST", "/api/definitions/%2F", &auth, body.as_bytes()).await;
+    assert_eq!(imported.status, 200, "{}", imported.text());
+    let root = json_of(send("GET", "/api/definitions/%2F", b"").await);
+    for key in ["queues", "exchanges", "bindings"] {
+        assert_eq!(root[key], exported[key], "{key}");
+    }
+    let unknown = send("GET", "/api/definitions/nowhere", b"").await;
+    assert_eq!(unknown.status, 404);
+}

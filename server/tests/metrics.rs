@@ -1,0 +1,258 @@
+//! The Prometheus endpoint of the `leveret` binary, end to end: every
+//! listener on port 0, traffic from lapin, scrapes whose values move with
+//! it under RabbitMQ's metric names and labels, `promtool check metrics`
+//! on both endpoints, and the listener's bounds (methods, unknown paths,
+//! the connection cap).
+
+mod common;
+
+use common::ops::{promtool_check, request, tool_available, try_request, OpsBroker};
+use futures_lite::StreamExt;
+use lapin::options::{
+    BasicAckOptions, BasicConsumeOptions, BasicPublishOptions, BasicQosOptions,
+    ConfirmSelectOptions, QueueDeclareOptions,
+};
+use lapin::types::FieldTable;
+use lapin::{BasicProperties, Connection, ConnectionProperties};
+use std::net::SocketAddr;
+use std::time::Duration;
+
+/// The value of the sample written exactly as `series` (name and labels).
+fn value(text: &str, series: &str) -> Option<f64> {
+    text.lines()
+        .find_map(|line| line.strip_prefix(series)?.strip_prefix(' '))
+        .and_then(|v| v.trim().parse().ok())
+}
+
+async fn scrape(addr: SocketAddr, path: &str) -> String {
+    let response = request(addr, "GET", path, &[], b"").await;
+    assert_eq!(response.status, 200, "{}", response.text());
+    assert_eq!(
+        response.header("content-type"),
+        Some("text/plain; version=0.0.4")
+    );
+    response.text()
+}
+
+/// Scrapes until `series` has `expected` (counters reach the broker's
+/// thread asynchronously), or fails with the last scrape.
+async fn scrape_until(addr: SocketAddr, path: &str, series: &str, expected: f64) -> String {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        let text = scrape(addr, path).await;
+        if value(&text, series) == Some(expected) {
+            return text;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{series} never reached {expected}:\n{text}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+fn check_with_promtool(text: &str, what: &str) {
+    if !tool_available("promtool", "prometheus") {
+        return;
+    }
+    match promtool_check(text) {
+        None => panic!("promtool vanished"),
+        Some(Ok(())) => {}
+        Some(Err(problems)) => panic!("promtool check metrics on {what}:\n{problems}\n{text}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn scrapes_follow_traffic_under_rabbitmq_names() {
+    let broker = OpsBroker::start("scrape", &[]);
+    let idle = scrape(broker.metrics, "/metrics").await;
+    let received = "rabbitmq_global_messages_received_total{protocol=\"amqp091\"}";
+    assert_eq!(value(&idle, received), Some(0.0));
+    assert_eq!(value(&idle, "rabbitmq_connections"), Some(0.0));
+    assert!(
+        idle.contains("# TYPE rabbitmq_global_messages_received_total counter"),
+        "{idle}"
+    );
+    assert!(idle.contains("rabbitmq_identity_info{rabbitmq_node=\"leveret@"));
+    assert!(idle.contains("rabbitmq_endpoint=\"aggregated\"} 1"));
+    assert!(value(&idle, "rabbitmq_process_resident_memory_bytes").unwrap() > 0.0);
+
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = conn.create_channel().await.expect("channel");
+    ch.confirm_select(ConfirmSelectOptions::default())
+        .await
+        .expect("confirms");
+    ch.queue_declare(
+        "telemetry",
+        QueueDeclareOptions::default(),
+        FieldTable::default(),
+    )
+    .await
+    .expect("declare");
+    for i in 0..10u8 {
+        ch.basic_publish(
+            "",
+            "telemetry",
+            BasicPublishOptions::default(),
+            &[i; 8],
+            BasicProperties::default(),
+        )
+        .await
+        .expect("publish")
+        .await
+        .expect("confirm");
+    }
+    let consumer_channel = conn.create_channel().await.expect("channel");
+    consumer_channel
+        .basic_qos(4, BasicQosOptions::default())
+        .await
+        .expect("qos");
+    let mut consumer = consumer_channel
+        .basic_consume(
+            "telemetry",
+            "",
+            BasicConsumeOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("consume");
+    for _ in 0..4 {
+        let delivery = consumer.next().await.expect("delivery").expect("ok");
+        delivery
+            .acker
+            .ack(BasicAckOptions::default())
+            .await
+            .expect("ack");
+    }
+    // Four acked; prefetch lets four more out unacked.
+    let acked = "rabbitmq_global_messages_acknowledged_total{protocol=\"amqp091\",queue_type=\"rabbit_classic_queue\"}";
+    let text = scrape_until(broker.metrics, "/metrics", acked, 4.0).await;
+    let text = if value(&text, "rabbitmq_queue_messages_unacked") == Some(4.0) {
+        text
+    } else {
+        scrape_until(
+            broker.metrics,
+            "/metrics",
+            "rabbitmq_queue_messages_unacked",
+            4.0,
+        )
+        .await
+    };
+    assert_eq!(value(&text, received), Some(10.0));
+    assert_eq!(
+        value(
+            &text,
+            "rabbitmq_global_messages_confirmed_total{protocol=\"amqp091\"}"
+        ),
+        Some(10.0)
+    );
+    assert_eq!(
+        value(
+            &text,
+            "rabbitmq_global_messages_routed_total{protocol=\"amqp091\"}"
+        ),
+        Some(10.0)
+    );
+    assert_eq!(value(&text, "rabbitmq_queue_messages_ready"), Some(2.0));
+    assert_eq!(value(&text, "rabbitmq_queue_messages"), Some(6.0));
+    assert_eq!(value(&text, "rabbitmq_connections"), Some(1.0));
+    assert_eq!(value(&text, "rabbitmq_channels"), Some(2.0));
+    assert_eq!(value(&text, "rabbitmq_queues"), Some(1.0));
+    assert_eq!(value(&text, "rabbitmq_consumers"), Some(1.0));
+    assert_eq!(
+        value(&text, "rabbitmq_global_publishers{protocol=\"amqp091\"}"),
+        Some(1.0)
+    );
+    assert_eq!(value(&text, "rabbitmq_queues_created_total"), Some(1.0));
+    assert_eq!(value(&text, "rabbitmq_connections_opened_total"), Some(1.0));
+    assert_eq!(value(&text, "leveret_queued_message_bytes"), Some(16.0));
+    assert!(value(&text, "leveret_socket_reads_total").unwrap() > 0.0);
+    assert!(value(&text, "leveret_busy_poll_windows_total").unwrap() > 0.0);
+    assert!(value(&text, "leveret_busy_poll_seconds_total").unwrap() > 0.0);
+    check_with_promtool(&text, "/metrics");
+
+    let per_object = scrape(broker.metrics, "/metrics/per-object").await;
+    assert_eq!(
+        value(
+            &per_object,
+            "rabbitmq_queue_messages_ready{vhost=\"/\",queue=\"telemetry\"}"
+        ),
+        Some(2.0)
+    );
+    assert_eq!(
+        value(
+            &per_object,
+            "rabbitmq_queue_messages_acked_total{vhost=\"/\",queue=\"telemetry\"}"
+        ),
+        Some(4.0)
+    );
+    assert!(per_object.contains("rabbitmq_queue_info{vhost=\"/\",queue=\"telemetry\",queue_type=\"rabbit_classic_queue\",membership=\"leader\"} 1"));
+    assert!(per_object.contains("rabbitmq_endpoint=\"per-object\"} 1"));
+    check_with_promtool(&per_object, "/metrics/per-object");
+
+    conn.close(200, "bye").await.expect("close");
+    let text = scrape_until(
+        broker.metrics,
+        "/metrics",
+        "rabbitmq_connections_closed_total",
+        1.0,
+    )
+    .await;
+    assert_eq!(value(&text, "rabbitmq_connections"), Some(0.0));
+    assert_eq!(value(&text, "rabbitmq_queue_messages_ready"), Some(6.0));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_metrics_listener_is_bounded() {
+    let broker = OpsBroker::start("bounds", &[]);
+    let post = request(broker.metrics, "POST", "/metrics", &[], &[b'x'; 4096]).await;
+    assert_eq!(post.status, 405);
+    let unknown = request(broker.metrics, "GET", "/api/overview", &[], b"").await;
+    assert_eq!(unknown.status, 404);
+
+    // The connection cap: idle connections fill every slot; the next is
+    // closed at once without an answer; once they go, scrapes work again.
+    let mut idle = Vec::new();
+    for _ in 0..64 {
+        idle.push(
+            tokio::net::TcpStream::connect(broker.metrics)
+                .await
+                .expect("connect"),
+        );
+    }
+    // Each accepted connection is one slot; wait until the 65th is refused.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let mut extra = tokio::net::TcpStream::connect(broker.metrics)
+            .await
+            .expect("connect");
+        let _ = extra
+            .write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+            .await;
+        let mut answer = Vec::new();
+        let read = tokio::time::timeout(Duration::from_secs(5), extra.read_to_end(&mut answer))
+            .await
+            .expect("the extra connection is answered or closed at once");
+        if read.is_err() || answer.is_empty() {
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "a connection over the cap was served"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    drop(idle);
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        if let Some(response) = try_request(broker.metrics, "GET", "/metrics", &[], b"").await {
+            assert_eq!(response.status, 200);
+            break;
+        }
+        assert!(tokio::time::Instant::now() < deadline, "slots never freed");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
