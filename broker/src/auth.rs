@@ -76,12 +76,56 @@ impl PasswordHash {
 }
 
 /// The users the broker accepts.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 pub struct Users {
     users: HashMap<String, PasswordHash>,
+    /// RabbitMQ's `loopback_users`: users who may connect only from the
+    /// host itself (`guest` by default, as in RabbitMQ).
+    loopback_only: Vec<String>,
 }
 
+impl Default for Users {
+    fn default() -> Self {
+        Users {
+            users: HashMap::new(),
+            loopback_only: vec![GUEST.to_owned()],
+        }
+    }
+}
+
+/// RabbitMQ's default user.
+pub const GUEST: &str = "guest";
+
 impl Users {
+    /// Replaces the users who may connect only from the host itself.
+    pub fn set_loopback_only(&mut self, names: Vec<String>) {
+        self.loopback_only = names;
+    }
+
+    /// Whether `user` may connect from `peer` (an `ip:port`, or
+    /// `in-process` for a connection inside the broker's own process).
+    pub fn may_connect_from(&self, user: &str, peer: &str) -> bool {
+        if !self.is_loopback_only(user) {
+            return true;
+        }
+        match peer.parse::<std::net::SocketAddr>() {
+            Ok(addr) => addr.ip().to_canonical().is_loopback(),
+            // Not a socket address: an in-process connection.
+            Err(_) => true,
+        }
+    }
+
+    /// Whether `user` may connect only from the host itself.
+    pub fn is_loopback_only(&self, user: &str) -> bool {
+        self.loopback_only.iter().any(|name| name == user)
+    }
+
+    /// Whether `guest` is the only user (for the warning when a listener
+    /// beyond this host is open).
+    pub fn only_guest(&self) -> bool {
+        self.users.len() == 1 && self.users.contains_key(GUEST)
+    }
+
     /// Adds or replaces a user.
     pub fn insert(&mut self, name: impl Into<String>, password: &str) {
         self.users.insert(name.into(), PasswordHash::new(password));
@@ -155,6 +199,22 @@ mod tests {
             Some("guest".into())
         );
         assert_eq!(users.authenticate(b"EXTERNAL", &amqplain), None);
+    }
+
+    #[test]
+    fn loopback_users_connect_only_from_the_host() {
+        let mut users = Users::default();
+        users.insert("guest", "guest");
+        users.insert("robot", "pw");
+        assert!(users.may_connect_from("guest", "127.0.0.1:5000"));
+        assert!(users.may_connect_from("guest", "[::1]:5000"));
+        assert!(users.may_connect_from("guest", "[::ffff:127.0.0.1]:5000"));
+        assert!(users.may_connect_from("guest", "in-process"));
+        assert!(!users.may_connect_from("guest", "192.168.1.20:5000"));
+        assert!(!users.may_connect_from("guest", "[2001:db8::1]:5000"));
+        assert!(users.may_connect_from("robot", "192.168.1.20:5000"));
+        users.set_loopback_only(Vec::new());
+        assert!(users.may_connect_from("guest", "192.168.1.20:5000"));
     }
 
     #[test]

@@ -40,6 +40,8 @@ impl Broker {
 pub struct BrokerBuilder {
     listen: Vec<SocketAddr>,
     users: Vec<(String, PasswordHash)>,
+    /// `None`: RabbitMQ's default, `guest` only.
+    loopback_users: Option<Vec<String>>,
     vhosts: Vec<String>,
     limits: Limits,
     storage: Storage,
@@ -77,6 +79,19 @@ impl BrokerBuilder {
     /// (see `leveret --hash-password`).
     pub fn user_hashed(mut self, name: impl Into<String>, hash: PasswordHash) -> Self {
         self.users.push((name.into(), hash));
+        self
+    }
+
+    /// RabbitMQ's `loopback_users`: the users who may connect only from
+    /// this host (loopback addresses and in-process clients). By default
+    /// `guest`, as in RabbitMQ; an empty list lets every user connect
+    /// from anywhere.
+    pub fn loopback_users<I, S>(mut self, names: I) -> Self
+    where
+        I: IntoIterator<Item = S>,
+        S: Into<String>,
+    {
+        self.loopback_users = Some(names.into_iter().map(Into::into).collect());
         self
     }
 
@@ -157,6 +172,9 @@ impl BrokerBuilder {
         for (name, hash) in self.users {
             users.insert_hashed(name, hash);
         }
+        if let Some(names) = self.loopback_users {
+            users.set_loopback_only(names);
+        }
         let vhosts = if self.vhosts.is_empty() {
             vec!["/".to_owned()]
         } else {
@@ -223,6 +241,7 @@ impl BrokerBuilder {
                 .local_addr()
                 .map_err(|source| StartError::Bind { addr, source })?;
             tracing::info!(addr = %bound, "accepting AMQP 0.9.1 connections");
+            warn_if_only_guest(&core.users, bound);
             local_addrs.push(bound);
             tasks.push(tokio::spawn(crate::server::accept_loop(
                 Arc::clone(&core),
@@ -359,4 +378,17 @@ pub enum StartError {
         /// The error.
         source: std::io::Error,
     },
+}
+
+/// The start-up warning of a listener beyond this host when `guest` is the
+/// only user: either nobody can log in from the network, or anyone can.
+fn warn_if_only_guest(users: &crate::auth::Users, bound: SocketAddr) {
+    if bound.ip().to_canonical().is_loopback() || !users.only_guest() {
+        return;
+    }
+    if users.is_loopback_only(crate::auth::GUEST) {
+        tracing::warn!(addr = %bound, "listening beyond this host, but the only user is guest, who may connect only via localhost: add a user for remote clients");
+    } else {
+        tracing::warn!(addr = %bound, "listening beyond this host with guest/guest as the only user and loopback_users empty: anyone on the network can log in");
+    }
 }

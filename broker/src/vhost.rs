@@ -835,6 +835,19 @@ impl Vhost {
     }
 }
 
+/// Exchange-to-exchange bindings may form a cycle (`a` bound to `b`, `b`
+/// to `a`) in which each exchange holds the other: a vhost that goes away
+/// (its broker stopped) breaks them, so an embedder that starts and stops
+/// brokers in one process leaks nothing.
+impl Drop for Vhost {
+    fn drop(&mut self) {
+        let exchanges = self.exchanges.get_mut().unwrap_or_else(|e| e.into_inner());
+        for exchange in exchanges.values() {
+            exchange.forget_routes();
+        }
+    }
+}
+
 fn default_exchange_refusal(name: &ShortStr, vhost: &ShortStr) -> AmqpError {
     AmqpError::access_refused(format_args!(
         "operation not permitted on the default exchange '{}' in vhost '{}'",

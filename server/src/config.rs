@@ -70,6 +70,9 @@ pub struct FileConfig {
     users: Vec<UserConfig>,
     #[serde(default)]
     vhosts: Vec<String>,
+    /// RabbitMQ's `loopback_users`: who may log in only from this host
+    /// (`["guest"]` when absent; `[]` lets guest in from anywhere).
+    loopback_users: Option<Vec<String>>,
     heartbeat: Option<u16>,
     frame_max: Option<u32>,
     channel_max: Option<u16>,
@@ -154,6 +157,9 @@ pub struct Settings {
     pub users: Vec<(String, Credential)>,
     /// Vhosts; empty means the library's `/`.
     pub vhosts: Vec<String>,
+    /// Users who may log in only from this host; `None` is the library's
+    /// default (`guest`).
+    pub loopback_users: Option<Vec<String>>,
     /// Limits, each from the file or the library's default.
     pub limits: Limits,
     /// The product name, if not the library's default.
@@ -239,6 +245,7 @@ impl Settings {
             log: cli.log.or(file.log).unwrap_or_else(|| DEFAULT_LOG.into()),
             users,
             vhosts: file.vhosts,
+            loopback_users: file.loopback_users,
             limits,
             product: cli.product.or(file.product),
             busy_poll: Duration::from_micros(busy_poll),
@@ -285,6 +292,9 @@ impl Settings {
                 Credential::Password(password) => builder.user(name, &password),
                 Credential::Hash(hash) => builder.user_hashed(name, hash),
             };
+        }
+        if let Some(names) = self.loopback_users {
+            builder = builder.loopback_users(names);
         }
         for vhost in self.vhosts {
             builder = builder.vhost(vhost);
@@ -364,6 +374,9 @@ mod tests {
         assert_eq!(settings.data_dir, PathBuf::from("/var/lib/leveret"));
         assert_eq!(settings.log, "debug");
         assert_eq!(settings.vhosts, ["/", "robots"]);
+        assert_eq!(settings.loopback_users, None);
+        let open = Settings::resolve(cli(&[]), file("loopback-users = []")).unwrap();
+        assert_eq!(open.loopback_users, Some(Vec::new()));
         assert_eq!(settings.limits.heartbeat, 30);
         assert_eq!(settings.limits.frame_max, 8192);
         assert_eq!(settings.limits.channel_max, 16);

@@ -397,6 +397,16 @@ impl Connection {
             .users
             .authenticate(start_ok.mechanism.as_bytes(), &start_ok.response)
         {
+            Some(user) if !self.core.users.may_connect_from(&user, &self.peer) => {
+                tracing::warn!(peer = %self.peer, %user, "user may connect only via localhost (loopback_users)");
+                if !capability("authentication_failure_close") {
+                    return Err(Ended::Read(ReadError::Closed));
+                }
+                let error = AmqpError::access_refused(format_args!(
+                    "user '{user}' can only connect via localhost"
+                ));
+                return Err(Ended::Protocol(error));
+            }
             Some(user) => self.user = user,
             None => {
                 tracing::warn!(peer = %self.peer, mechanism = %start_ok.mechanism, "authentication failed");

@@ -385,6 +385,13 @@ impl Exchange {
         self.deleted.store(true, Ordering::Release);
     }
 
+    /// Drops every binding at once (the vhost is going away: bindings
+    /// between exchanges may form cycles of `Arc`s that nothing else
+    /// would break).
+    pub(crate) fn forget_routes(&self) {
+        *self.write() = Routes::new(self.kind);
+    }
+
     /// Adds a binding; false if an identical one is there.
     fn insert(&self, binding: Binding) -> bool {
         self.write().insert(binding)

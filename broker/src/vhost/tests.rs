@@ -452,3 +452,28 @@ async fn durable_queues_get_a_store_id_and_reach_the_disk() {
     let persistence = h.persistence.as_ref().expect("a persister");
     assert!(persistence.sync().await);
 }
+
+/// Found by the broker fuzzer (LeakSanitizer): two exchanges bound to each
+/// other kept each other alive after their vhost was gone.
+#[test]
+fn a_cycle_of_exchange_bindings_is_freed_with_its_vhost() {
+    let h = Harness::new();
+    h.exchange("a", ExchangeKind::Fanout);
+    h.exchange("b", ExchangeKind::Fanout);
+    for (destination, source) in [("a", "b"), ("b", "a"), ("a", "a")] {
+        h.vhost
+            .bind_exchange(
+                &s(destination),
+                &s(source),
+                s(""),
+                leveret_protocol::FieldTable::new(),
+                crate::vhost::BindingChange::Bind,
+            )
+            .expect("exchange.bind");
+    }
+    let a = std::sync::Arc::downgrade(&h.vhost.exchange(&s("a")).expect("a"));
+    let b = std::sync::Arc::downgrade(&h.vhost.exchange(&s("b")).expect("b"));
+    drop(h);
+    assert!(a.upgrade().is_none(), "exchange a leaked");
+    assert!(b.upgrade().is_none(), "exchange b leaked");
+}
