@@ -25,7 +25,7 @@ use crate::{
 };
 use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::pin::Pin;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::task::{Context, Poll, Waker};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tokio::sync::{watch, Notify};
@@ -107,6 +107,9 @@ pub struct InPortStats {
     pub skipped: u64,
     /// Messages whose body did not decode (acknowledged and dropped).
     pub decode_errors: u64,
+    /// Values older than the profile's lifespan on arrival (by their
+    /// `x-sent-ns`), dropped.
+    pub stale: u64,
     /// Latency from put to arrival.
     pub latency: LatencyStats,
 }
@@ -169,6 +172,9 @@ struct Buffer<T> {
 /// What the port and its task share.
 struct Shared<T> {
     buffer: Mutex<Buffer<T>>,
+    /// Signalled with the buffer's lock when a value arrives or the port
+    /// closes, for [`InPort::recv_blocking`].
+    arrived: Condvar,
     /// Signalled when the reader makes room.
     room: Notify,
     stats: watch::Sender<InPortStats>,
@@ -207,9 +213,37 @@ impl<T: PortData> InPort<T> {
 
     /// [`InPort::connect`] through `connector`.
     pub async fn connect_with(connector: Connector, profile: PortProfile) -> Result<Self> {
+        let queue = QueueName::of(&profile);
+        let first = open(&connector, &profile, &queue).await?;
+        Ok(InPort::spawn(connector, profile, queue, Some(first)))
+    }
+
+    /// Starts the port at once, whether or not the broker is reachable:
+    /// it connects in the background, retrying with backoff (watch
+    /// [`InPort::link`]). Must be called within a tokio runtime.
+    pub fn start(profile: PortProfile) -> Self {
+        InPort::start_with(Connector::from(&profile), profile)
+    }
+
+    /// [`InPort::start`] through `connector`.
+    pub fn start_with(connector: Connector, profile: PortProfile) -> Self {
+        let queue = QueueName::of(&profile);
+        InPort::spawn(connector, profile, queue, None)
+    }
+
+    fn spawn(
+        connector: Connector,
+        profile: PortProfile,
+        queue: QueueName,
+        first: Option<InLink>,
+    ) -> Self {
         let profile = Arc::new(profile);
-        let first = open(&connector, &profile).await?;
+        let consumed = match &first {
+            Some(first) => first.queue.clone(),
+            None => ShortStr::try_from(queue.name.as_str()).unwrap_or_default(),
+        };
         let shared = Arc::new(Shared {
+            arrived: Condvar::new(),
             buffer: Mutex::new(Buffer {
                 queue: VecDeque::new(),
                 waker: None,
@@ -219,23 +253,26 @@ impl<T: PortData> InPort<T> {
             stats: watch::Sender::new(InPortStats::default()),
             callbacks: Mutex::new(Vec::new()),
             link: Link::new(),
-            queue: Mutex::new(first.queue.clone()),
+            queue: Mutex::new(consumed),
         });
-        shared.link.connected();
+        if first.is_some() {
+            shared.link.connected();
+        }
         let (stop, stopped) = watch::channel(false);
         let task = Task {
             shared: Arc::clone(&shared),
             connector,
             profile,
+            queue,
             senders: HashMap::new(),
             stop: stopped,
         };
         let task = tokio::spawn(task.run(first));
-        Ok(InPort {
+        InPort {
             shared,
             stop,
             task: Some(task),
-        })
+        }
     }
 
     /// Takes the newest buffered value, discarding older ones (counted as
@@ -263,6 +300,31 @@ impl<T: PortData> InPort<T> {
         let sample = lock(&self.shared.buffer).queue.pop_front()?;
         self.shared.room.notify_one();
         Some(sample)
+    }
+
+    /// The next value in order for a thread outside the async runtime:
+    /// blocks the thread up to `timeout`; `None` if none came or the port
+    /// is closed. Never call it on a runtime thread.
+    pub fn recv_blocking(&self, timeout: Duration) -> Option<Sample<T>> {
+        let deadline = std::time::Instant::now() + timeout;
+        let mut buffer = lock(&self.shared.buffer);
+        loop {
+            if let Some(sample) = buffer.queue.pop_front() {
+                drop(buffer);
+                self.shared.room.notify_one();
+                return Some(sample);
+            }
+            let now = std::time::Instant::now();
+            if buffer.closed || now >= deadline {
+                return None;
+            }
+            buffer = self
+                .shared
+                .arrived
+                .wait_timeout(buffer, deadline - now)
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
     }
 
     /// The next value in order, waiting for one; `None` once the port is
@@ -343,8 +405,33 @@ struct InLink {
     queue: ShortStr,
 }
 
+/// The queue an in-port consumes.
+#[derive(Debug, Clone)]
+struct QueueName {
+    name: String,
+    /// The port's own queue (the profile names none): declared whatever
+    /// `declare_queue` says, and expiring once unused.
+    own: bool,
+}
+
+impl QueueName {
+    fn of(profile: &PortProfile) -> Self {
+        if profile.queue.is_empty() {
+            QueueName {
+                name: format!("leveret.port.{}", link::port_id()),
+                own: true,
+            }
+        } else {
+            QueueName {
+                name: profile.queue.clone(),
+                own: false,
+            }
+        }
+    }
+}
+
 /// Connects, declares the topology and starts consuming.
-async fn open(connector: &Connector, profile: &PortProfile) -> Result<InLink> {
+async fn open(connector: &Connector, profile: &PortProfile, queue: &QueueName) -> Result<InLink> {
     let setup = async {
         let connection = connector.connect().await?;
         let channel = connection.open_channel().await?;
@@ -354,10 +441,10 @@ async fn open(connector: &Connector, profile: &PortProfile) -> Result<InLink> {
                 .await?;
         }
         link::declare_exchange(&channel, profile).await?;
-        let queue = if profile.declare_queue || profile.queue.is_empty() {
-            link::declare_queue(&channel, profile).await?
+        let queue = if profile.declare_queue || queue.own {
+            link::declare_queue(&channel, profile, &queue.name, queue.own).await?
         } else {
-            ShortStr::try_from(profile.queue.as_str())?
+            ShortStr::try_from(queue.name.as_str())?
         };
         let consumer = channel
             .basic_consume(
@@ -383,13 +470,14 @@ struct Task<T> {
     shared: Arc<Shared<T>>,
     connector: Connector,
     profile: Arc<PortProfile>,
+    queue: QueueName,
     senders: HashMap<String, Sequence>,
     stop: watch::Receiver<bool>,
 }
 
 impl<T: PortData> Task<T> {
-    async fn run(mut self, first: InLink) {
-        let mut link = Some(first);
+    async fn run(mut self, first: Option<InLink>) {
+        let mut link = first;
         let mut failures = 0u32;
         loop {
             if let Some(mut current) = link.take() {
@@ -413,7 +501,7 @@ impl<T: PortData> Task<T> {
                 }
             }
             let opened = tokio::select! {
-                opened = open(&self.connector, &self.profile) => opened,
+                opened = open(&self.connector, &self.profile, &self.queue) => opened,
                 _ = self.stop.wait_for(|s| *s) => break,
             };
             match opened {
@@ -433,6 +521,7 @@ impl<T: PortData> Task<T> {
         if let Some(waker) = buffer.waker.take() {
             waker.wake();
         }
+        self.shared.arrived.notify_all();
     }
 
     /// Handles deliveries until the link fails (`Some(why)`) or the port
@@ -484,6 +573,7 @@ impl<T: PortData> Task<T> {
             .sent_ns
             .and_then(|sent| u64::try_from(arrived.saturating_sub(sent)).ok())
             .map(Duration::from_nanos);
+
         let count = |stats: &mut InPortStats| {
             stats.received += 1;
             match verdict {
@@ -498,6 +588,16 @@ impl<T: PortData> Task<T> {
                 stats.latency.record(latency);
             }
         };
+        if let (Some(lifespan), Some(age)) = (self.profile.lifespan, latency) {
+            if age > lifespan {
+                self.shared.stats.send_modify(|s| {
+                    count(s);
+                    s.stale += 1;
+                });
+                delivery.ack().await?;
+                return Ok(true);
+            }
+        }
         let value = match decode::<T>(&delivery) {
             Ok(value) => value,
             Err(error) => {
@@ -560,6 +660,7 @@ impl<T: PortData> Task<T> {
                     if let Some(waker) = buffer.waker.take() {
                         waker.wake();
                     }
+                    self.shared.arrived.notify_one();
                     return true;
                 }
             }

@@ -58,5 +58,7 @@ pub use data::Postcard;
 pub use data::{DataError, PortData};
 pub use in_port::{InPort, InPortStats, LatencyStats, Sample};
 pub use link::{LinkStatus, PORT_HEADER, SENT_HEADER, SEQ_HEADER};
-pub use out_port::{OutPort, OutPortStats, PortStatus};
-pub use profile::{Backoff, Connector, ExchangeKind, FullPolicy, PortProfile};
+pub use out_port::{Fate, OutPort, OutPortStats, Outcome, PortStatus};
+pub use profile::{
+    Backoff, Backpressure, Connector, ExchangeKind, FullPolicy, PortProfile, Qos, Replay,
+};

@@ -94,6 +94,59 @@ impl FullPolicy {
     }
 }
 
+/// What an out-port does with a new value when its window (values waiting
+/// to be sent or confirmed) is full. Whatever it is, `put` never waits on
+/// the network unless told to ([`Backpressure::Block`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Backpressure {
+    /// Drop the oldest value of the window (keep the last N): a stream of
+    /// states, where the newest value matters most.
+    #[default]
+    DropOldest,
+    /// Refuse the new value ([`super::PortStatus::SendFull`]).
+    DropNewest,
+    /// Wait for room, at most the put timeout, then refuse the value.
+    Block,
+}
+
+/// What an out-port sends after a reconnection, of the values the broker
+/// had not confirmed when the link dropped and those put while it was
+/// down. The lifespan applies whatever the policy: a value older than it
+/// is never sent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Replay {
+    /// Every value still in the window (and within its lifespan).
+    #[default]
+    All,
+    /// The newest value only (a setpoint: the older ones are superseded).
+    Latest,
+    /// None of what was unconfirmed when the link dropped (values put
+    /// while it is down are still sent).
+    Nothing,
+}
+
+/// A QoS preset, named after what robot developers know from ROS 2: each
+/// sets the profile's reliability and freshness settings together (see
+/// [`PortProfile::qos`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum Qos {
+    /// Sensor streams: best effort (no confirms), only the latest value
+    /// kept and replayed, 100 ms lifespan, an in-port buffer of one.
+    SensorData,
+    /// Commands (`cmd_vel`): confirmed, 200 ms lifespan, no stale replay
+    /// (only the latest within its lifespan), a window of 16 dropping the
+    /// oldest.
+    Command,
+    /// Nothing lost: confirmed, durable and persistent, no lifespan,
+    /// replay everything, `put` waits for room (blocking backpressure)
+    /// and the in-port holds the broker back rather than drop.
+    Reliable,
+    /// Telemetry and logs: best effort, a 10 s lifespan, the last 1000
+    /// values kept and replayed.
+    Telemetry,
+}
+
 /// Reconnection delays: the first retry after `initial`, doubling up to
 /// `max`; back to `initial` once a link is up again.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -163,13 +216,34 @@ pub struct PortProfile {
     pub buffer_size: usize,
     /// What the in-port does when the buffer is full.
     pub full_policy: FullPolicy,
-    /// Longest time `OutPort::put` may take.
+    /// Longest time `OutPort::put` waits for room with
+    /// [`Backpressure::Block`] (never for the network).
     pub put_timeout: Duration,
-    /// Messages the out-port keeps until confirmed (and resends after a
-    /// reconnection); `put` reports `SendFull` when it stays full.
+    /// The out-port's window: values it keeps until sent and confirmed
+    /// (and resends after a reconnection); when full, the
+    /// [`Backpressure`] policy applies.
     pub max_unconfirmed: usize,
     /// Reconnection delays.
     pub backoff: Backoff,
+    /// How long a value stays useful: the out-port never sends a value
+    /// older than this (it is reported expired), and what it sends carries
+    /// the rest as its AMQP `expiration`, so the broker drops it once
+    /// stale; the in-port drops (and counts as `stale`) a value older than
+    /// this by its `x-sent-ns`. `None`: values never go stale.
+    pub lifespan: Option<Duration>,
+    /// What the out-port does when its window is full.
+    pub backpressure: Backpressure,
+    /// What the out-port sends again after a reconnection.
+    pub replay: Replay,
+    /// Publish with `mandatory`: the broker returns a message no queue
+    /// receives, and the out-port counts it `unroutable` rather than
+    /// confirmed.
+    pub mandatory: bool,
+    /// An in-port with no queue name makes one of its own (named after
+    /// the port, not exclusive) that outlives its reconnections, so nothing
+    /// sent while it reconnects is lost; the broker deletes it once unused
+    /// for this long (`x-expires`).
+    pub queue_expires: Duration,
 }
 
 impl Default for PortProfile {
@@ -197,6 +271,11 @@ impl Default for PortProfile {
             put_timeout: Duration::from_millis(500),
             max_unconfirmed: 1024,
             backoff: Backoff::default(),
+            lifespan: None,
+            backpressure: Backpressure::DropOldest,
+            replay: Replay::All,
+            mandatory: true,
+            queue_expires: Duration::from_secs(60),
         }
     }
 }
@@ -332,6 +411,73 @@ impl PortProfile {
     /// Sets the put timeout.
     pub fn put_timeout(mut self, timeout: Duration) -> Self {
         self.put_timeout = timeout;
+        self
+    }
+
+    /// Applies a QoS preset (settings it does not name are kept).
+    pub fn qos(mut self, qos: Qos) -> Self {
+        match qos {
+            Qos::SensorData => {
+                self.confirms = false;
+                self.lifespan = Some(Duration::from_millis(100));
+                self.max_unconfirmed = 1;
+                self.backpressure = Backpressure::DropOldest;
+                self.replay = Replay::Latest;
+                self.buffer_size = 1;
+                self.full_policy = FullPolicy::DropOldest;
+            }
+            Qos::Command => {
+                self.confirms = true;
+                self.lifespan = Some(Duration::from_millis(200));
+                self.max_unconfirmed = 16;
+                self.backpressure = Backpressure::DropOldest;
+                self.replay = Replay::Latest;
+                self.full_policy = FullPolicy::DropOldest;
+            }
+            Qos::Reliable => {
+                self.confirms = true;
+                self.durable = true;
+                self.persistent = true;
+                self.lifespan = None;
+                self.backpressure = Backpressure::Block;
+                self.replay = Replay::All;
+                self.full_policy = FullPolicy::BlockBroker;
+            }
+            Qos::Telemetry => {
+                self.confirms = false;
+                self.lifespan = Some(Duration::from_secs(10));
+                self.max_unconfirmed = 1000;
+                self.backpressure = Backpressure::DropOldest;
+                self.replay = Replay::All;
+                self.full_policy = FullPolicy::DropOldest;
+            }
+        }
+        self
+    }
+
+    /// Sets the lifespan of values.
+    pub fn lifespan(mut self, lifespan: Duration) -> Self {
+        self.lifespan = Some(lifespan);
+        self
+    }
+
+    /// Keeps at most `n` values in the out-port's window, dropping the
+    /// oldest (1: latest only).
+    pub fn keep_last(mut self, n: usize) -> Self {
+        self.max_unconfirmed = n.max(1);
+        self.backpressure = Backpressure::DropOldest;
+        self
+    }
+
+    /// Sets the out-port's backpressure policy.
+    pub fn backpressure(mut self, backpressure: Backpressure) -> Self {
+        self.backpressure = backpressure;
+        self
+    }
+
+    /// Sets the out-port's replay policy.
+    pub fn replay(mut self, replay: Replay) -> Self {
+        self.replay = replay;
         self
     }
 
