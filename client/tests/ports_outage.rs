@@ -415,6 +415,17 @@ async fn an_in_port_starts_before_its_broker() {
 /// replayed in one burst, values up to 1 s old).
 #[tokio::test]
 async fn no_stale_command_after_an_outage() {
+    stale_commands_through_an_outage(None).await;
+}
+
+/// The lifespan alone (replaying everything still within it) keeps stale
+/// values out too.
+#[tokio::test]
+async fn no_stale_command_after_an_outage_with_replay_all() {
+    stale_commands_through_an_outage(Some(Replay::All)).await;
+}
+
+async fn stale_commands_through_an_outage(replay: Option<Replay>) {
     let (_broker, addr) = leveret().await;
     let mut proxy = Proxy::start(addr).await;
     let queue = unique("cmd_vel");
@@ -426,6 +437,9 @@ async fn no_stale_command_after_an_outage() {
         .await
         .expect("in-port");
     let mut command = base.qos(Qos::Command).lifespan(lifespan);
+    if let Some(replay) = replay {
+        command = command.replay(replay);
+    }
     command.broker.port = proxy.addr.port();
     let output = OutPort::<TimedLong>::connect(command)
         .await
