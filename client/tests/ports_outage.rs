@@ -438,7 +438,9 @@ async fn stale_commands_through_an_outage(replay: Option<Replay>) {
         .expect("in-port");
     let mut command = base.qos(Qos::Command).lifespan(lifespan);
     if let Some(replay) = replay {
-        command = command.replay(replay);
+        // Everything put during the outage is kept: only the lifespan
+        // stands between it and the robot.
+        command = command.replay(replay).keep_last(1000);
     }
     command.broker.port = proxy.addr.port();
     let output = OutPort::<TimedLong>::connect(command)
@@ -471,23 +473,25 @@ async fn stale_commands_through_an_outage(replay: Option<Replay>) {
         }
     }
     within("all settled", output.flush()).await;
-    let stats = output.stats();
-    assert!(
-        stats.expired + stats.dropped >= put_during_outage - 20,
-        "{stats:?}"
-    );
     let mut received = Vec::new();
     while received.last() != Some(&data) {
         let sample = within("the last command", input.recv()).await.unwrap();
         let latency = sample.latency.expect("stamped");
         assert!(
-            latency <= lifespan + Duration::from_millis(50),
+            // A margin for a loaded machine's scheduling; values replayed
+            // from the outage would be up to 1 s old.
+            latency <= lifespan + Duration::from_millis(200),
             "command {} delivered {latency:?} after it was put",
             sample.value.data
         );
         received.push(sample.value.data);
     }
+    let stats = output.stats();
     eprintln!("received {} of {data}; out-port {stats:?}", received.len());
+    assert!(
+        stats.expired + stats.dropped >= put_during_outage - 20,
+        "{stats:?}"
+    );
     assert!(received.windows(2).all(|w| w[0] < w[1]), "in order");
 }
 

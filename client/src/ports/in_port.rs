@@ -15,6 +15,7 @@
 //! [`futures_core::Stream`] (every value in order), and
 //! [`InPort::on_receive`] callbacks.
 
+use super::cdr::CdrOptions;
 use super::data::{DataError, PortData};
 use super::link::{self, Link, LinkStatus, Stamp};
 use super::profile::{Connector, FullPolicy, PortProfile};
@@ -409,8 +410,8 @@ struct InLink {
 #[derive(Debug, Clone)]
 struct QueueName {
     name: String,
-    /// The port's own queue (the profile names none): declared whatever
-    /// `declare_queue` says, and expiring once unused.
+    /// The port's own queue (the profile names none): not exclusive, and
+    /// expiring once unused.
     own: bool,
 }
 
@@ -440,12 +441,13 @@ async fn open(connector: &Connector, profile: &PortProfile, queue: &QueueName) -
                 .basic_qos(profile.prefetch, BasicQosOptions::default())
                 .await?;
         }
-        link::declare_exchange(&channel, profile).await?;
-        let queue = if profile.declare_queue || queue.own {
-            link::declare_queue(&channel, profile, &queue.name, queue.own).await?
-        } else {
-            ShortStr::try_from(queue.name.as_str())?
-        };
+        // As OpenRTM's module: the queue is always declared; `bind`
+        // declares the exchange and binds the queue to it.
+        let bind = profile.declare_queue;
+        if bind {
+            link::declare_exchange(&channel, profile).await?;
+        }
+        let queue = link::declare_queue(&channel, profile, &queue.name, queue.own, bind).await?;
         let consumer = channel
             .basic_consume(
                 &queue,
@@ -598,7 +600,7 @@ impl<T: PortData> Task<T> {
                 return Ok(true);
             }
         }
-        let value = match decode::<T>(&delivery) {
+        let value = match decode::<T>(&delivery, self.profile.cdr) {
             Ok(value) => value,
             Err(error) => {
                 tracing::warn!(%error, "in-port dropped a message that does not decode");
@@ -673,7 +675,7 @@ impl<T: PortData> Task<T> {
 }
 
 /// Decodes a delivery's body, refusing one whose `type` names another type.
-fn decode<T: PortData>(delivery: &Delivery) -> Result<T, DataError> {
+fn decode<T: PortData>(delivery: &Delivery, options: CdrOptions) -> Result<T, DataError> {
     if let (Some(expected), Some(found)) = (T::TYPE_NAME, &delivery.properties.kind) {
         if found.as_bytes() != expected.as_bytes() {
             return Err(DataError::TypeMismatch {
@@ -682,7 +684,7 @@ fn decode<T: PortData>(delivery: &Delivery) -> Result<T, DataError> {
             });
         }
     }
-    T::decode(delivery.body.clone())
+    T::decode_with(delivery.body.clone(), options)
 }
 
 #[cfg(test)]

@@ -113,8 +113,8 @@ pub(crate) async fn declare_exchange(channel: &Channel, profile: &PortProfile) -
         .await
 }
 
-/// Declares the queue `name` (the profile's, or an in-port's own) and
-/// binds it to the profile's exchange. A port's own queue (`own`) is not
+/// Declares the queue `name` (the profile's, or an in-port's own) and,
+/// with `bind`, binds it to the profile's exchange. A port's own queue (`own`) is not
 /// exclusive, so it outlives the port's reconnections, and expires once
 /// unused for the profile's `queue_expires` (unless the profile's queue
 /// arguments say otherwise).
@@ -123,6 +123,7 @@ pub(crate) async fn declare_queue(
     profile: &PortProfile,
     name: &str,
     own: bool,
+    bind: bool,
 ) -> Result<ShortStr> {
     let options = QueueDeclareOptions {
         durable: profile.durable && !own,
@@ -134,7 +135,7 @@ pub(crate) async fn declare_queue(
         arguments.insert(ShortStr::from_static("x-expires"), FieldValue::I64(expires));
     }
     let queue = channel.queue_declare(name, options, arguments).await?;
-    if !profile.exchange.is_empty() {
+    if bind && !profile.exchange.is_empty() {
         channel
             .queue_bind(
                 &queue.name,

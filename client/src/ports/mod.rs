@@ -38,6 +38,8 @@
 //! - [`cdr`]: OMG CDR (little-endian) and OpenRTM's `RTC::Timed*` types.
 //! - `profile`: [`PortProfile`], [`ExchangeKind`], [`FullPolicy`],
 //!   [`Backoff`], [`Connector`].
+//! - `openrtm`: [`PortProfile::from_properties`] (OpenRTM-aist connector
+//!   properties), [`PortRole`], [`ConnectorProfile`].
 //! - `link`: [`LinkStatus`], topology declaration, the headers.
 //! - `out_port`: [`OutPort`], [`PortStatus`], [`OutPortStats`].
 //! - `in_port`: [`InPort`], [`Sample`], [`InPortStats`].
@@ -46,18 +48,20 @@ pub mod cdr;
 mod data;
 mod in_port;
 mod link;
+mod openrtm;
 mod out_port;
 mod profile;
 
 pub use cdr::{
-    Point2D, Pose2D, Time, TimedDouble, TimedDoubleSeq, TimedLong, TimedPose2D, TimedString,
-    TimedVelocity2D, Velocity2D,
+    CdrOptions, Charset, Endian, Point2D, Pose2D, Time, TimedDouble, TimedDoubleSeq, TimedLong,
+    TimedPose2D, TimedString, TimedVelocity2D, Velocity2D,
 };
 #[cfg(feature = "serde")]
 pub use data::Postcard;
 pub use data::{DataError, PortData};
 pub use in_port::{InPort, InPortStats, LatencyStats, Sample};
 pub use link::{LinkStatus, PORT_HEADER, SENT_HEADER, SEQ_HEADER};
+pub use openrtm::{ConnectorProfile, PortRole};
 pub use out_port::{Fate, OutPort, OutPortStats, Outcome, PortStatus};
 pub use profile::{
     Backoff, Backpressure, Connector, ExchangeKind, FullPolicy, PortProfile, Qos, Replay,

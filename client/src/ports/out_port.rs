@@ -23,6 +23,7 @@
 //! [`OutPort::watch_stats`]), a stream of [`Outcome`]s
 //! ([`OutPort::outcomes`]) and callbacks ([`OutPort::on_outcome`]).
 
+use super::cdr::CdrOptions;
 use super::data::PortData;
 use super::link::{self, Link, LinkStatus};
 use super::profile::{Backpressure, Connector, PortProfile, Replay};
@@ -243,6 +244,7 @@ pub struct OutPort<T> {
     shared: Arc<Shared>,
     capacity: usize,
     backpressure: Backpressure,
+    cdr: CdrOptions,
     timeout: Duration,
     id: Arc<str>,
     task: Option<JoinHandle<()>>,
@@ -327,6 +329,7 @@ impl<T: PortData> OutPort<T> {
             shared,
             capacity: profile.max_unconfirmed.max(1),
             backpressure: profile.backpressure,
+            cdr: profile.cdr,
             timeout: profile.put_timeout,
             id,
             task: Some(task),
@@ -338,7 +341,7 @@ impl<T: PortData> OutPort<T> {
     /// network; with [`Backpressure::Block`] and a full window it waits for
     /// room, at most the profile's put timeout.
     pub async fn put(&self, value: &T) -> PortStatus {
-        let body = match encode(value) {
+        let body = match encode(value, self.cdr) {
             Ok(body) => body,
             Err(status) => return status,
         };
@@ -363,7 +366,7 @@ impl<T: PortData> OutPort<T> {
     /// [`Backpressure::Block`] refuses the value ([`PortStatus::SendFull`]).
     /// Callable from any thread.
     pub fn try_put(&self, value: &T) -> PortStatus {
-        let body = match encode(value) {
+        let body = match encode(value, self.cdr) {
             Ok(body) => body,
             Err(status) => return status,
         };
@@ -376,7 +379,7 @@ impl<T: PortData> OutPort<T> {
     /// [`Backpressure::Block`] waits for room. Never call it on a runtime
     /// thread.
     pub fn put_blocking(&self, value: &T) -> PortStatus {
-        let body = match encode(value) {
+        let body = match encode(value, self.cdr) {
             Ok(body) => body,
             Err(status) => return status,
         };
@@ -529,9 +532,9 @@ impl<T> Drop for OutPort<T> {
     }
 }
 
-fn encode<T: PortData>(value: &T) -> std::result::Result<Bytes, PortStatus> {
+fn encode<T: PortData>(value: &T, options: CdrOptions) -> std::result::Result<Bytes, PortStatus> {
     let mut body = BytesMut::new();
-    match value.encode(&mut body) {
+    match value.encode_with(&mut body, options) {
         Ok(()) => Ok(body.freeze()),
         Err(error) => {
             tracing::warn!(%error, "out-port value could not be encoded");
@@ -574,7 +577,7 @@ async fn open(connector: Connector, profile: Arc<PortProfile>) -> Result<OutLink
         let channel = connection.open_channel().await?;
         link::declare_exchange(&channel, &profile).await?;
         if profile.declare_queue && !profile.queue.is_empty() {
-            link::declare_queue(&channel, &profile, &profile.queue, false).await?;
+            link::declare_queue(&channel, &profile, &profile.queue, false, true).await?;
         }
         if profile.confirms {
             channel.confirm_select().await?;

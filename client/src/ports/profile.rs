@@ -7,7 +7,8 @@
 //! unconfirmed window and the reconnection backoff. [`Connector`] says how
 //! a port (re)opens its connection: TCP, an embedded broker, or a function.
 
-use crate::error::{Error, Result};
+use super::cdr::CdrOptions;
+use crate::error::Result;
 use crate::uri::ConnectionOptions;
 use crate::{Connection, FieldTable};
 use std::fmt;
@@ -44,21 +45,28 @@ impl ExchangeKind {
         }
     }
 
-    /// Parses a type as OpenRTM-aist's AMQP interface accepts it: the
-    /// name (`direct`, `AMQP::direct`), its initial, or its number
-    /// (0 direct, 1 fanout, 2 topic, 3 headers); anything else is taken as
-    /// a plugin's type name.
+    /// Parses a type as OpenRTM-aist's AMQP interface accepts it, in any
+    /// case: the name (`direct`, `AMQP::direct`), its initial, or its
+    /// number (0 direct, 1 fanout, 2 topic, 3 headers). A plugin's type
+    /// (`x-…`) is taken as named; anything else is, as in OpenRTM's
+    /// module, a consistent-hash exchange.
     pub fn parse(text: &str) -> Self {
-        let name = text.strip_prefix("AMQP::").unwrap_or(text);
+        let lower = text.trim().to_ascii_lowercase();
+        let name = lower.strip_prefix("amqp::").unwrap_or(&lower);
         match name {
-            "0" | "d" | "D" | "direct" => ExchangeKind::Direct,
-            "1" | "f" | "F" | "fanout" => ExchangeKind::Fanout,
-            "2" | "t" | "T" | "topic" => ExchangeKind::Topic,
-            "3" | "h" | "H" | "headers" => ExchangeKind::Headers,
-            other => ExchangeKind::Other(other.to_owned()),
+            "0" | "d" | "direct" => ExchangeKind::Direct,
+            "1" | "f" | "fanout" => ExchangeKind::Fanout,
+            "2" | "t" | "topic" => ExchangeKind::Topic,
+            "3" | "h" | "headers" => ExchangeKind::Headers,
+            plugin if plugin.starts_with("x-") => ExchangeKind::Other(text.trim().to_owned()),
+            _ => ExchangeKind::Other(CONSISTENT_HASH.to_owned()),
         }
     }
 }
+
+/// The type of RabbitMQ's consistent-hash exchange plugin, OpenRTM's
+/// fallback for a type it does not know.
+pub const CONSISTENT_HASH: &str = "x-consistent-hash";
 
 impl fmt::Display for ExchangeKind {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -192,9 +200,11 @@ pub struct PortProfile {
     pub queue: String,
     /// Key binding the queue to the exchange.
     pub binding_key: String,
-    /// Declare the queue and bind it (OpenRTM's `bind`). The in-port
-    /// always declares a server-named queue; an out-port declares a named
-    /// one, so messages published before the in-port starts are kept.
+    /// OpenRTM's `bind`. An in-port always declares its queue; with
+    /// `bind` it also declares the exchange and binds the queue to it. An
+    /// out-port always declares the exchange; with `bind` (and a queue
+    /// name) it also declares the queue and binds it, so messages
+    /// published before the in-port starts are kept.
     pub declare_queue: bool,
     /// Key the out-port publishes with.
     pub routing_key: String,
@@ -225,6 +235,8 @@ pub struct PortProfile {
     pub max_unconfirmed: usize,
     /// Reconnection delays.
     pub backoff: Backoff,
+    /// The byte order and string charset of CDR bodies.
+    pub cdr: CdrOptions,
     /// How long a value stays useful: the out-port never sends a value
     /// older than this (it is reported expired), and what it sends carries
     /// the rest as its AMQP `expiration`, so the broker drops it once
@@ -271,6 +283,7 @@ impl Default for PortProfile {
             put_timeout: Duration::from_millis(500),
             max_unconfirmed: 1024,
             backoff: Backoff::default(),
+            cdr: CdrOptions::default(),
             lifespan: None,
             backpressure: Backpressure::DropOldest,
             replay: Replay::All,
@@ -296,65 +309,6 @@ impl PortProfile {
             broker,
             ..PortProfile::default()
         })
-    }
-
-    /// Reads OpenRTM-aist AMQP connector properties: `host`, `msport`,
-    /// `exname`, `extype`, `qname`, `bkey`, `bind`, `rkey` (each also
-    /// accepted with a `dataport.` prefix), plus `url` (an `amqp://` URI
-    /// replacing host and port), `durable`, `persistent`, `confirms`,
-    /// `prefetch`, `buffer.length`, `buffer.write.full_policy`,
-    /// `buffer.write.timeout` (seconds, as OpenRTM writes it) and
-    /// `max_unconfirmed`. Unknown keys are ignored.
-    pub fn from_properties<'a>(
-        properties: impl IntoIterator<Item = (&'a str, &'a str)>,
-    ) -> Result<Self> {
-        let mut profile = PortProfile::default();
-        let bad = |key: &str, value: &str| {
-            Error::InvalidArgument(format!("connector property {key}={value:?}"))
-        };
-        let flag = |key: &str, value: &str| match value {
-            "true" | "t" | "True" | "TRUE" | "T" | "1" | "yes" => Ok(true),
-            "false" | "f" | "False" | "FALSE" | "F" | "0" | "no" => Ok(false),
-            _ => Err(bad(key, value)),
-        };
-        for (key, value) in properties {
-            let name = key.strip_prefix("dataport.").unwrap_or(key);
-            match name {
-                "url" => {
-                    let timeout = profile.broker.connection_timeout;
-                    profile.broker = ConnectionOptions::from_uri(value)?;
-                    profile.broker.connection_timeout = timeout;
-                }
-                "host" => profile.broker.host = value.to_owned(),
-                "msport" => profile.broker.port = value.parse().map_err(|_| bad(key, value))?,
-                "exname" => profile.exchange = value.to_owned(),
-                "extype" => profile.exchange_kind = ExchangeKind::parse(value),
-                "qname" => profile.queue = value.to_owned(),
-                "bkey" => profile.binding_key = value.to_owned(),
-                "bind" => profile.declare_queue = flag(key, value)?,
-                "rkey" => profile.routing_key = value.to_owned(),
-                "durable" => profile.durable = flag(key, value)?,
-                "persistent" => profile.persistent = flag(key, value)?,
-                "confirms" => profile.confirms = flag(key, value)?,
-                "prefetch" => profile.prefetch = value.parse().map_err(|_| bad(key, value))?,
-                "buffer.length" => {
-                    profile.buffer_size = value.parse().map_err(|_| bad(key, value))?
-                }
-                "buffer.write.full_policy" => {
-                    profile.full_policy = FullPolicy::parse(value).ok_or_else(|| bad(key, value))?
-                }
-                "buffer.write.timeout" => {
-                    let seconds: f64 = value.parse().map_err(|_| bad(key, value))?;
-                    profile.put_timeout =
-                        Duration::try_from_secs_f64(seconds).map_err(|_| bad(key, value))?;
-                }
-                "max_unconfirmed" => {
-                    profile.max_unconfirmed = value.parse().map_err(|_| bad(key, value))?
-                }
-                _ => {}
-            }
-        }
-        Ok(profile)
     }
 
     /// Sets the exchange and its type.
@@ -554,7 +508,7 @@ impl Connector {
                 let options = ConnectionOptions::clone(&options);
                 Box::pin(async move {
                     let Some(broker) = broker.upgrade() else {
-                        return Err(Error::io(std::io::Error::new(
+                        return Err(crate::Error::io(std::io::Error::new(
                             std::io::ErrorKind::NotConnected,
                             "the embedded broker is gone",
                         )));
@@ -585,45 +539,19 @@ mod tests {
     use super::*;
 
     #[test]
-    fn openrtm_properties() {
-        let profile = PortProfile::from_properties([
-            ("dataport.host", "robot.local"),
-            ("msport", "5673"),
-            ("exname", "poses"),
-            ("extype", "1"),
-            ("qname", "pose-in"),
-            ("bkey", "pose"),
-            ("bind", "True"),
-            ("rkey", "pose"),
-            ("buffer.length", "8"),
-            ("buffer.write.full_policy", "block"),
-            ("buffer.write.timeout", "0.25"),
-            ("durable", "1"),
-        ])
-        .unwrap();
-        assert_eq!(profile.broker.host, "robot.local");
-        assert_eq!(profile.broker.port, 5673);
-        assert_eq!(profile.exchange, "poses");
-        assert_eq!(profile.exchange_kind, ExchangeKind::Fanout);
-        assert_eq!(profile.queue, "pose-in");
-        assert_eq!(profile.binding_key, "pose");
-        assert!(profile.declare_queue);
-        assert_eq!(profile.routing_key, "pose");
-        assert_eq!(profile.buffer_size, 8);
-        assert_eq!(profile.full_policy, FullPolicy::BlockBroker);
-        assert_eq!(profile.put_timeout, Duration::from_millis(250));
-        assert!(profile.durable && !profile.persistent);
-        assert!(PortProfile::from_properties([("msport", "x")]).is_err());
-    }
-
-    #[test]
-    fn exchange_kinds_as_openrtm_names_them() {
+    fn exchange_kinds_as_openrtm_names_them_in_any_case() {
         assert_eq!(ExchangeKind::parse("0"), ExchangeKind::Direct);
         assert_eq!(ExchangeKind::parse("AMQP::topic"), ExchangeKind::Topic);
         assert_eq!(ExchangeKind::parse("H"), ExchangeKind::Headers);
+        assert_eq!(ExchangeKind::parse("Fanout"), ExchangeKind::Fanout);
+        assert_eq!(ExchangeKind::parse("DIRECT"), ExchangeKind::Direct);
+        assert_eq!(ExchangeKind::parse("amqp::Headers"), ExchangeKind::Headers);
+        let hash = ExchangeKind::Other(CONSISTENT_HASH.into());
+        assert_eq!(ExchangeKind::parse("x-consistent-hash"), hash);
+        assert_eq!(ExchangeKind::parse("fan-out"), hash);
         assert_eq!(
-            ExchangeKind::parse("x-consistent-hash"),
-            ExchangeKind::Other("x-consistent-hash".into())
+            ExchangeKind::parse("x-delayed-message"),
+            ExchangeKind::Other("x-delayed-message".into())
         );
     }
 
