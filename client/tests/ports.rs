@@ -123,6 +123,11 @@ where
         (0, 0, 0)
     );
     assert_eq!(stats.decode_errors, 0);
+    let latency = stats.latency;
+    assert!(latency.percentile(0.5) > Duration::ZERO, "{latency:?}");
+    assert!(latency.min <= latency.percentile(0.5));
+    assert!(latency.percentile(0.5) <= latency.percentile(0.99));
+    assert!(latency.percentile(0.99) <= latency.max);
     let out = output.stats();
     assert_eq!(out.accepted, values.len() as u64);
     assert_eq!(out.confirmed, values.len() as u64);

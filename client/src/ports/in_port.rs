@@ -17,6 +17,7 @@
 
 use super::cdr::CdrOptions;
 use super::data::{DataError, PortData};
+use super::latency::LatencyStats;
 use super::link::{self, Link, LinkStatus, Stamp};
 use super::profile::{Connector, FullPolicy, PortProfile};
 use crate::error::{Error, Result};
@@ -52,42 +53,6 @@ pub struct Sample<T> {
     pub latency: Option<Duration>,
     /// The broker delivered it before (to this port, before a reconnection).
     pub redelivered: bool,
-}
-
-/// Latencies from `x-sent-ns` to arrival.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct LatencyStats {
-    /// Samples measured.
-    pub count: u64,
-    /// Smallest.
-    pub min: Duration,
-    /// Largest.
-    pub max: Duration,
-    /// Sum of all, for the mean.
-    pub total: Duration,
-    /// The latest.
-    pub last: Duration,
-}
-
-impl LatencyStats {
-    /// The mean (zero before the first sample).
-    pub fn mean(&self) -> Duration {
-        match u32::try_from(self.count) {
-            Ok(0) => Duration::ZERO,
-            Ok(n) => self.total / n,
-            Err(_) => Duration::from_secs_f64(self.total.as_secs_f64() / self.count as f64),
-        }
-    }
-
-    fn record(&mut self, latency: Duration) {
-        if self.count == 0 || latency < self.min {
-            self.min = latency;
-        }
-        self.max = self.max.max(latency);
-        self.total = self.total.saturating_add(latency);
-        self.last = latency;
-        self.count += 1;
-    }
 }
 
 /// An in-port's counters: the paper's reliability figures and the port's
@@ -703,16 +668,5 @@ mod tests {
         assert_eq!(seq.observe(4), Verdict::Duplicate);
         assert_eq!(seq.observe(8), Verdict::Late);
         assert_eq!(seq.observe(10), Verdict::New { gap: 0 });
-    }
-
-    #[test]
-    fn latency_mean() {
-        let mut stats = LatencyStats::default();
-        assert_eq!(stats.mean(), Duration::ZERO);
-        stats.record(Duration::from_millis(2));
-        stats.record(Duration::from_millis(4));
-        assert_eq!(stats.mean(), Duration::from_millis(3));
-        assert_eq!(stats.min, Duration::from_millis(2));
-        assert_eq!(stats.max, Duration::from_millis(4));
     }
 }

@@ -43,10 +43,12 @@
 //! - `link`: [`LinkStatus`], topology declaration, the headers.
 //! - `out_port`: [`OutPort`], [`PortStatus`], [`OutPortStats`].
 //! - `in_port`: [`InPort`], [`Sample`], [`InPortStats`].
+//! - `latency`: [`LatencyStats`] (min, max, mean and percentiles).
 
 pub mod cdr;
 mod data;
 mod in_port;
+mod latency;
 mod link;
 mod openrtm;
 mod out_port;
@@ -59,7 +61,8 @@ pub use cdr::{
 #[cfg(feature = "serde")]
 pub use data::Postcard;
 pub use data::{DataError, PortData};
-pub use in_port::{InPort, InPortStats, LatencyStats, Sample};
+pub use in_port::{InPort, InPortStats, Sample};
+pub use latency::LatencyStats;
 pub use link::{LinkStatus, PORT_HEADER, SENT_HEADER, SEQ_HEADER};
 pub use openrtm::{ConnectorProfile, PortRole};
 pub use out_port::{Fate, OutPort, OutPortStats, Outcome, PortStatus};
