@@ -196,3 +196,54 @@ async fn latin1_strings_with_serializer_cdr_charset() {
         .await
         .unwrap();
 }
+
+/// An `extype` the module does not know means `x-consistent-hash` (as in
+/// the module), which Leveret implements: binding keys are weights, and
+/// each value reaches exactly one of the bound in-ports.
+#[tokio::test]
+async fn an_unknown_extype_is_a_consistent_hash_exchange() {
+    let (_broker, addr) = leveret().await;
+    let exchange = unique("ring");
+    let mut inputs = Vec::new();
+    for _ in 0..2 {
+        let queue = unique("ring-q");
+        let properties = [
+            ("exname", exchange.as_str()),
+            ("extype", "ring"),
+            ("qname", queue.as_str()),
+            ("bkey", "3"),
+        ];
+        let input = InPort::<TimedLong>::connect(read(PortRole::InPort, addr, &properties))
+            .await
+            .expect("in-port: the weight is a valid binding key");
+        inputs.push(input);
+    }
+    let mut total = 0;
+    for robot in 0..20 {
+        let key = format!("robot-{robot}");
+        let properties = [
+            ("exname", exchange.as_str()),
+            ("extype", "ring"),
+            ("rkey", key.as_str()),
+        ];
+        let output = OutPort::<TimedLong>::connect(read(PortRole::OutPort, addr, &properties))
+            .await
+            .expect("out-port");
+        assert_eq!(output.put(&long(robot)).await, PortStatus::Ok);
+        within("confirmed", output.flush()).await;
+        assert_eq!(output.stats().confirmed, 1, "routed");
+        total += 1;
+    }
+    let mut counts = Vec::new();
+    within("every value once", async {
+        loop {
+            counts = inputs.iter().map(|i| i.stats().received).collect();
+            if counts.iter().sum::<u64>() >= total {
+                break;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+    assert_eq!(counts.iter().sum::<u64>(), total, "exactly one copy each");
+}
