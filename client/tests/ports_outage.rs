@@ -653,3 +653,47 @@ async fn unroutable_values_are_counted_apart() {
         }
     );
 }
+
+/// Without confirms, what the broker returns as unroutable is still
+/// counted (and the port keeps nothing per returned message).
+#[tokio::test]
+async fn unroutable_values_are_counted_without_confirms_too() {
+    let (_broker, addr) = leveret().await;
+    let exchange = unique("nobody");
+    let base = profile(addr)
+        .exchange(&exchange, leveret_client::ports::ExchangeKind::Direct)
+        .routing_key("nowhere")
+        .confirms(false);
+    let output = OutPort::<TimedLong>::connect(base).await.expect("out-port");
+    for data in 1..=3 {
+        assert_eq!(output.put(&long(data)).await, PortStatus::Ok);
+    }
+    let mut stats = output.watch_stats();
+    within("three returns", stats.wait_for(|s| s.unroutable == 3))
+        .await
+        .unwrap();
+}
+
+/// Values past their lifespan leave a full window while the broker is
+/// away, making room for fresh ones.
+#[tokio::test]
+async fn expired_values_make_room_while_the_link_is_down() {
+    let mut profile = profile(free_addr().await)
+        .exchange("amq.fanout", leveret_client::ports::ExchangeKind::Fanout)
+        .backpressure(Backpressure::Block)
+        .lifespan(Duration::from_millis(50));
+    profile.max_unconfirmed = 2;
+    let output = OutPort::<TimedLong>::start(profile).expect("starts");
+    assert_eq!(output.try_put(&long(1)), PortStatus::ConnectionLost);
+    assert_eq!(output.try_put(&long(2)), PortStatus::ConnectionLost);
+    assert_eq!(output.try_put(&long(3)), PortStatus::SendFull);
+    // The lifespan passing is the event waited for.
+    tokio::time::sleep(Duration::from_millis(80)).await;
+    assert_eq!(output.try_put(&long(4)), PortStatus::ConnectionLost);
+    let stats = output.stats();
+    assert_eq!(
+        (stats.expired, stats.unconfirmed, stats.send_full),
+        (2, 1, 1),
+        "{stats:?}"
+    );
+}

@@ -30,9 +30,11 @@ use super::profile::{Backpressure, Connector, PortProfile, Replay};
 use crate::confirm::ConfirmFuture;
 use crate::error::{Error, Result};
 use crate::{
-    BasicProperties, BasicPublishOptions, Channel, Confirmation, Connection, Returns, ShortStr,
+    BasicProperties, BasicPublishOptions, Channel, Confirmation, Connection, ReturnedMessage,
+    Returns, ShortStr,
 };
 use bytes::{Bytes, BytesMut};
+use futures_core::Stream;
 use std::collections::{HashSet, VecDeque};
 use std::future::{Future, IntoFuture};
 use std::marker::PhantomData;
@@ -224,6 +226,26 @@ fn settle(stats: &mut OutPortStats, outcomes: &mut Vec<Outcome>, seq: u64, fate:
     outcomes.push(Outcome { seq, fate });
 }
 
+/// Takes the messages past their lifespan off the front of the window
+/// (the oldest first, so they are all there), unless published on the
+/// current link: the broker has those, with their expiration.
+fn expire_oldest(window: &mut Window, lifespan: Option<Duration>, outcomes: &mut Vec<Outcome>) {
+    let Some(lifespan) = lifespan else {
+        return;
+    };
+    let unpublished = window.publish_from;
+    while window
+        .entries
+        .front()
+        .is_some_and(|entry| entry.seq >= unpublished && entry.put_at.elapsed() >= lifespan)
+    {
+        if let Some(entry) = window.entries.pop_front() {
+            settle(&mut window.stats, outcomes, entry.seq, Fate::Expired);
+        }
+    }
+    window.stats.unconfirmed = window.entries.len() as u64;
+}
+
 /// Drops all but the newest `keep` messages of the window (a replay
 /// policy).
 fn keep_newest(window: &mut Window, keep: usize, outcomes: &mut Vec<Outcome>) {
@@ -244,6 +266,7 @@ pub struct OutPort<T> {
     shared: Arc<Shared>,
     capacity: usize,
     backpressure: Backpressure,
+    lifespan: Option<Duration>,
     cdr: CdrOptions,
     timeout: Duration,
     id: Arc<str>,
@@ -329,6 +352,7 @@ impl<T: PortData> OutPort<T> {
             shared,
             capacity: profile.max_unconfirmed.max(1),
             backpressure: profile.backpressure,
+            lifespan: profile.lifespan,
             cdr: profile.cdr,
             timeout: profile.put_timeout,
             id,
@@ -423,6 +447,9 @@ impl<T: PortData> OutPort<T> {
             return Some(PortStatus::Closed);
         }
         let mut outcomes = Vec::new();
+        if window.entries.len() >= self.capacity {
+            expire_oldest(&mut window, self.lifespan, &mut outcomes);
+        }
         if window.entries.len() >= self.capacity {
             match self.backpressure {
                 Backpressure::DropOldest => {
@@ -597,6 +624,7 @@ async fn open(connector: Connector, profile: Arc<PortProfile>) -> Result<OutLink
 /// What woke the task.
 enum Event {
     Confirm(Result<Confirmation>),
+    Returned(ReturnedMessage),
     Work,
     Opened(Result<OutLink>),
     Lost(Error),
@@ -637,8 +665,10 @@ impl Task {
                 self.connecting = Some(Box::pin(opening));
             }
             match self.next_event().await {
+                Event::Returned(message) => self.returned(&message),
                 Event::Confirm(result) => self.confirmed(result),
-                Event::Work | Event::Retry => {}
+                Event::Work => {}
+                Event::Retry => self.expire_while_down(),
                 Event::Opened(result) => self.opened(result),
                 Event::Lost(error) => self.lost(error),
             }
@@ -667,8 +697,19 @@ impl Task {
                 None => std::future::pending().await,
             }
         };
+        let mut returns = self.link.as_mut().and_then(|link| link.returns.as_mut());
+        let returned = std::future::poll_fn(|cx| match returns.as_mut() {
+            Some(returns) => match Pin::new(&mut **returns).poll_next(cx) {
+                Poll::Ready(Some(message)) => Poll::Ready(message),
+                // The channel's end shows as `closed`.
+                Poll::Ready(None) | Poll::Pending => Poll::Pending,
+            },
+            None => Poll::Pending,
+        });
         tokio::select! {
             biased;
+            // A message's return comes before its confirm.
+            message = returned => Event::Returned(message),
             result = confirm => Event::Confirm(result),
             () = self.shared.work.notified() => Event::Work,
             result = opened => Event::Opened(result),
@@ -794,11 +835,44 @@ impl Task {
         let Some(returns) = self.link.as_mut().and_then(|link| link.returns.as_mut()) else {
             return;
         };
-        while let Some(returned) = returns.try_next() {
-            let stamp = link::Stamp::read(returned.properties.headers.as_ref());
-            if let Some(seq) = stamp.seq {
-                self.returned.insert(seq);
-            }
+        let mut pending = Vec::new();
+        while let Some(message) = returns.try_next() {
+            pending.push(message);
+        }
+        for message in &pending {
+            self.returned(message);
+        }
+    }
+
+    /// The broker returned a message no queue took. With confirms its
+    /// fate waits for its confirm (which follows); without, it was
+    /// already counted as written and is counted unroutable too.
+    fn returned(&mut self, message: &ReturnedMessage) {
+        let Some(seq) = link::Stamp::read(message.properties.headers.as_ref()).seq else {
+            return;
+        };
+        if self.profile.confirms {
+            self.returned.insert(seq);
+            return;
+        }
+        let mut outcomes = Vec::new();
+        let mut window = self.shared.window();
+        settle(&mut window.stats, &mut outcomes, seq, Fate::Unroutable);
+        let stats = window.stats;
+        drop(window);
+        self.shared.report(stats, &outcomes, false);
+    }
+
+    /// While the link is down, the values past their lifespan leave the
+    /// window (and make room) without waiting for the next link.
+    fn expire_while_down(&mut self) {
+        let mut outcomes = Vec::new();
+        let mut window = self.shared.window();
+        expire_oldest(&mut window, self.profile.lifespan, &mut outcomes);
+        let stats = window.stats;
+        drop(window);
+        if !outcomes.is_empty() {
+            self.shared.report(stats, &outcomes, true);
         }
     }
 
