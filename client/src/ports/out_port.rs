@@ -624,7 +624,7 @@ async fn open(connector: Connector, profile: Arc<PortProfile>) -> Result<OutLink
 /// What woke the task.
 enum Event {
     Confirm(Result<Confirmation>),
-    Returned(ReturnedMessage),
+    Returned(Box<ReturnedMessage>),
     Work,
     Opened(Result<OutLink>),
     Lost(Error),
@@ -700,7 +700,7 @@ impl Task {
         let mut returns = self.link.as_mut().and_then(|link| link.returns.as_mut());
         let returned = std::future::poll_fn(|cx| match returns.as_mut() {
             Some(returns) => match Pin::new(&mut **returns).poll_next(cx) {
-                Poll::Ready(Some(message)) => Poll::Ready(message),
+                Poll::Ready(Some(message)) => Poll::Ready(Box::new(message)),
                 // The channel's end shows as `closed`.
                 Poll::Ready(None) | Poll::Pending => Poll::Pending,
             },
