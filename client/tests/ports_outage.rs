@@ -697,3 +697,31 @@ async fn expired_values_make_room_while_the_link_is_down() {
         "{stats:?}"
     );
 }
+
+/// A control loop on a thread of its own: `put_blocking` and
+/// `recv_blocking`, the ports' tasks on the runtime.
+#[test]
+fn a_control_loop_on_its_own_thread() {
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let (broker, addr) = runtime.block_on(leveret());
+    let queue = unique("thread");
+    let profile = profile(addr).queue(&queue).routing_key(&queue);
+    let input = runtime
+        .block_on(InPort::<TimedLong>::connect(profile.clone()))
+        .expect("in-port");
+    let output = runtime
+        .block_on(OutPort::<TimedLong>::connect(profile))
+        .expect("out-port");
+    let control = std::thread::spawn(move || {
+        assert!(input.recv_blocking(Duration::from_millis(20)).is_none());
+        for data in 1..=20 {
+            assert_eq!(output.put_blocking(&long(data)), PortStatus::Ok);
+            let sample = input
+                .recv_blocking(Duration::from_secs(10))
+                .expect("the value back");
+            assert_eq!(sample.value.data, data);
+        }
+    });
+    control.join().expect("control loop");
+    runtime.block_on(broker.shutdown());
+}

@@ -14,6 +14,13 @@
 //! resends what the broker had not confirmed, so a control loop sees each
 //! message once and in order across reconnections.
 //!
+//! A control loop's `put` never waits on the network: it enqueues into a
+//! bounded window and returns; what becomes of each value is reported
+//! ([`Outcome`], [`OutPortStats`]). Freshness and reliability are set per
+//! port: a lifespan, a [`Backpressure`] and a [`Replay`] policy, or a
+//! [`Qos`] preset naming them together. An in-port without a queue name
+//! gets a named queue of its own that outlives its reconnections.
+//!
 //! ```no_run
 //! use leveret_client::ports::{
 //!     ExchangeKind, FullPolicy, InPort, OutPort, PortProfile, PortStatus, Time, TimedPose2D,

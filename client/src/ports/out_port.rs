@@ -402,6 +402,30 @@ impl<T: PortData> OutPort<T> {
     /// loop of its own): it blocks the thread, not a task, when
     /// [`Backpressure::Block`] waits for room. Never call it on a runtime
     /// thread.
+    ///
+    /// ```no_run
+    /// use leveret_client::ports::{InPort, OutPort, PortProfile, Qos, Time, TimedVelocity2D};
+    /// use std::time::Duration;
+    ///
+    /// # fn main() -> leveret_client::Result<()> {
+    /// // The ports' tasks run on a runtime; the control loop on its own thread.
+    /// let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    /// let profile = PortProfile::new("amqp://guest:guest@localhost:5672/%2f")?
+    ///     .queue("cmd_vel")
+    ///     .routing_key("cmd_vel")
+    ///     .qos(Qos::Command);
+    /// let output = runtime.block_on(OutPort::<TimedVelocity2D>::connect(profile.clone()))?;
+    /// let input = runtime.block_on(InPort::<TimedVelocity2D>::connect(profile))?;
+    /// std::thread::spawn(move || loop {
+    ///     let command = TimedVelocity2D { tm: Time::now(), ..Default::default() };
+    ///     output.put_blocking(&command);
+    ///     if let Some(sample) = input.recv_blocking(Duration::from_millis(10)) {
+    ///         println!("{:?}", sample.value);
+    ///     }
+    /// });
+    /// # Ok(())
+    /// # }
+    /// ```
     pub fn put_blocking(&self, value: &T) -> PortStatus {
         let body = match encode(value, self.cdr) {
             Ok(body) => body,

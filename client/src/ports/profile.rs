@@ -3,9 +3,12 @@
 //! name and type, queue name, binding key, whether to declare and bind the
 //! queue, routing key; see [`PortProfile::from_properties`] for their
 //! property names) and Leveret's own: durability, publisher confirms,
-//! prefetch, the in-port's buffer and full policy, the put timeout, the
-//! unconfirmed window and the reconnection backoff. [`Connector`] says how
-//! a port (re)opens its connection: TCP, an embedded broker, or a function.
+//! prefetch, the in-port's buffer and full policy, the out-port's window
+//! and its [`Backpressure`], the put timeout (for `Block` only), the
+//! lifespan, the [`Replay`] policy, mandatory publishing, the CDR options,
+//! the in-port's own queue expiry, the reconnection backoff, and the
+//! [`Qos`] presets that set several at once. [`Connector`] says how a port
+//! (re)opens its connection: TCP, an embedded broker, or a function.
 
 use super::cdr::CdrOptions;
 use crate::error::Result;
