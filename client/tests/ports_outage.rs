@@ -725,3 +725,31 @@ fn a_control_loop_on_its_own_thread() {
     control.join().expect("control loop");
     runtime.block_on(broker.shutdown());
 }
+
+/// An in-port's own queue outlives its reconnections but not its close.
+#[tokio::test]
+async fn an_in_ports_own_queue_goes_when_it_closes() {
+    let (_broker, addr) = leveret().await;
+    let exchange = unique("own");
+    let base = profile(addr).exchange(&exchange, leveret_client::ports::ExchangeKind::Fanout);
+    let input = InPort::<TimedLong>::connect(base).await.expect("in-port");
+    let queue = input.queue();
+    assert!(queue.as_bytes().starts_with(b"leveret.port."), "{queue:?}");
+    let connection = leveret_client::Connection::connect(&format!("amqp://guest:guest@{addr}/%2f"))
+        .await
+        .unwrap();
+    let passive = leveret_client::QueueDeclareOptions {
+        passive: true,
+        ..Default::default()
+    };
+    let channel = connection.open_channel().await.unwrap();
+    let declared = channel
+        .queue_declare(&queue, passive, leveret_client::FieldTable::new())
+        .await;
+    assert!(declared.is_ok(), "a named queue, not exclusive");
+    input.close().await;
+    let gone = channel
+        .queue_declare(&queue, passive, leveret_client::FieldTable::new())
+        .await;
+    assert!(gone.is_err(), "deleted on close");
+}

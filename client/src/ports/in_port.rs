@@ -23,7 +23,7 @@ use super::profile::{Connector, FullPolicy, PortProfile};
 use crate::error::{Error, Result};
 use crate::{
     BasicConsumeOptions, BasicQosOptions, Connection, Consumer, ConsumerEnd, Delivery, FieldTable,
-    ShortStr,
+    QueueDeleteOptions, ShortStr,
 };
 use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::pin::Pin;
@@ -341,7 +341,9 @@ impl<T: PortData> InPort<T> {
     }
 
     /// Stops consuming and closes the connection. Values still buffered
-    /// are dropped; unacknowledged deliveries go back to the queue.
+    /// are dropped; unacknowledged deliveries go back to the queue, or,
+    /// for the port's own queue (the profile named none), the queue is
+    /// deleted. Dropping the port does the same without waiting.
     pub async fn close(mut self) {
         self.stop.send_replace(true);
         if let Some(task) = self.task.take() {
@@ -451,8 +453,18 @@ impl<T: PortData> Task<T> {
                 let error = match self.consume(&mut current).await {
                     Some(error) => error,
                     None => {
-                        let close = current.connection.close();
-                        let _ = tokio::time::timeout(CLOSE_TIMEOUT, close).await;
+                        // Closed on purpose: the port's own queue goes
+                        // too (x-expires is for a port that vanished).
+                        let own = self.queue.own;
+                        let finish = async {
+                            if own {
+                                let channel = current.consumer.channel();
+                                let options = QueueDeleteOptions::default();
+                                let _ = channel.queue_delete(&current.queue, options).await;
+                            }
+                            current.connection.close().await
+                        };
+                        let _ = tokio::time::timeout(CLOSE_TIMEOUT, finish).await;
                         break;
                     }
                 };
