@@ -7,8 +7,11 @@
 
 use bytes::{Bytes, BytesMut};
 use leveret_client::ports::{
-    CdrOptions, Charset, Endian, Point2D, PortData, Pose2D, Time, TimedDouble, TimedDoubleSeq,
-    TimedLong, TimedPose2D, TimedString, TimedVelocity2D, Velocity2D,
+    CdrOptions, Charset, Endian, Point2D, PortData, Pose2D, Time, TimedBoolean, TimedBooleanSeq,
+    TimedChar, TimedCharSeq, TimedDouble, TimedDoubleSeq, TimedFloat, TimedFloatSeq, TimedLong,
+    TimedLongSeq, TimedOctet, TimedOctetSeq, TimedPose2D, TimedShort, TimedShortSeq, TimedState,
+    TimedString, TimedStringSeq, TimedULong, TimedULongSeq, TimedUShort, TimedUShortSeq,
+    TimedVelocity2D, Velocity2D,
 };
 use std::fmt::Debug;
 
@@ -122,6 +125,132 @@ fn timed_2d_geometry() {
                 vy: 0.2,
                 va: 0.3,
             },
+        },
+        Charset::Utf8,
+    );
+}
+
+#[test]
+fn basic_timed_scalars() {
+    check(
+        "timed_state",
+        TimedState { tm: TM, data: -3 },
+        Charset::Utf8,
+    );
+    check(
+        "timed_short",
+        TimedShort { tm: TM, data: -300 },
+        Charset::Utf8,
+    );
+    check(
+        "timed_ushort",
+        TimedUShort {
+            tm: TM,
+            data: 65000,
+        },
+        Charset::Utf8,
+    );
+    check(
+        "timed_ulong",
+        TimedULong {
+            tm: TM,
+            data: 4_000_000_000,
+        },
+        Charset::Utf8,
+    );
+    check(
+        "timed_float",
+        TimedFloat { tm: TM, data: 1.5 },
+        Charset::Utf8,
+    );
+    check(
+        "timed_char",
+        TimedChar { tm: TM, data: b'A' },
+        Charset::Utf8,
+    );
+    check(
+        "timed_boolean",
+        TimedBoolean { tm: TM, data: true },
+        Charset::Utf8,
+    );
+    check(
+        "timed_octet",
+        TimedOctet { tm: TM, data: 0xfe },
+        Charset::Utf8,
+    );
+}
+
+#[test]
+fn basic_timed_sequences() {
+    check(
+        "timed_short_seq",
+        TimedShortSeq {
+            tm: TM,
+            data: vec![1, -2, 3],
+        },
+        Charset::Utf8,
+    );
+    check(
+        "timed_long_seq",
+        TimedLongSeq {
+            tm: TM,
+            data: vec![7, -8],
+        },
+        Charset::Utf8,
+    );
+    check(
+        "timed_ushort_seq",
+        TimedUShortSeq {
+            tm: TM,
+            data: vec![1, 65535],
+        },
+        Charset::Utf8,
+    );
+    check(
+        "timed_ulong_seq",
+        TimedULongSeq {
+            tm: TM,
+            data: vec![1, u32::MAX],
+        },
+        Charset::Utf8,
+    );
+    check(
+        "timed_float_seq",
+        TimedFloatSeq {
+            tm: TM,
+            data: vec![0.5, -0.25],
+        },
+        Charset::Utf8,
+    );
+    check(
+        "timed_char_seq",
+        TimedCharSeq {
+            tm: TM,
+            data: b"hi".to_vec(),
+        },
+        Charset::Utf8,
+    );
+    check(
+        "timed_boolean_seq",
+        TimedBooleanSeq {
+            tm: TM,
+            data: vec![true, false, true],
+        },
+        Charset::Utf8,
+    );
+    check(
+        "timed_octet_seq",
+        TimedOctetSeq {
+            tm: TM,
+            data: vec![0, 1, 0xff],
+        },
+        Charset::Utf8,
+    );
+    check(
+        "timed_string_seq",
+        TimedStringSeq {
+            tm: TM,
+            data: vec!["a".into(), String::new(), "bcd".into()],
         },
         Charset::Utf8,
     );

@@ -1,14 +1,15 @@
-//! OMG CDR, little-endian, as OpenRTM-aist marshals data port values (a
+//! OMG CDR, little- or big-endian, as OpenRTM-aist marshals data port values (a
 //! bare CDR stream, no encapsulation header; OpenRTM's default byte order
 //! for its connectors is little-endian): every primitive is aligned to its
 //! own size counted from the start of the value's stream, a string is a
 //! `u32` length counting the terminating NUL, the bytes, then the NUL, and a
 //! sequence is a `u32` element count followed by the elements.
 //!
-//! The RTC data types of OpenRTM-aist's `BasicDataType.idl` and
-//! `ExtendedDataTypes.idl` implemented here each begin with a
-//! [`Time`]: [`TimedDouble`], [`TimedLong`], [`TimedString`],
-//! [`TimedDoubleSeq`], [`TimedPose2D`], [`TimedVelocity2D`]. Other IDL
+//! The RTC data types implemented here each begin with a [`Time`]: every
+//! type of OpenRTM-aist's `BasicDataType.idl` but the wide-character ones
+//! (`TimedWChar`, `TimedWString` and their sequences, whose encoding
+//! depends on GIOP code set negotiation), and [`TimedPose2D`] and
+//! [`TimedVelocity2D`] of `ExtendedDataTypes.idl`. Other IDL
 //! structs can be written with [`CdrWriter`] and [`CdrReader`] through the
 //! [`Cdr`] trait and then made port data with [`encode`] and [`decode`].
 
@@ -392,6 +393,58 @@ impl Cdr for Time {
     }
 }
 
+/// The Timed* structs of OpenRTM's `BasicDataType.idl` beyond those
+/// written out below: a time stamp and a `data` member.
+macro_rules! timed_structs {
+    ($($(#[$doc:meta])* $name:ident($t:ty) $(: $($derive:ident),*)?;)*) => {$(
+        $(#[$doc])*
+        #[derive(Debug, Clone, PartialEq, Default $($(, $derive)*)?)]
+        pub struct $name {
+            /// Time stamp.
+            pub tm: Time,
+            /// The value.
+            pub data: $t,
+        }
+    )*};
+}
+
+timed_structs!(
+    /// `RTC::TimedState` (a `short`).
+    TimedState(i16): Copy, Eq;
+    /// `RTC::TimedShort`.
+    TimedShort(i16): Copy, Eq;
+    /// `RTC::TimedUShort`.
+    TimedUShort(u16): Copy, Eq;
+    /// `RTC::TimedULong`.
+    TimedULong(u32): Copy, Eq;
+    /// `RTC::TimedFloat`.
+    TimedFloat(f32): Copy;
+    /// `RTC::TimedChar` (an IDL `char`: one byte, Latin-1).
+    TimedChar(u8): Copy, Eq;
+    /// `RTC::TimedBoolean`.
+    TimedBoolean(bool): Copy, Eq;
+    /// `RTC::TimedOctet`.
+    TimedOctet(u8): Copy, Eq;
+    /// `RTC::TimedShortSeq`.
+    TimedShortSeq(Vec<i16>): Eq;
+    /// `RTC::TimedLongSeq`.
+    TimedLongSeq(Vec<i32>): Eq;
+    /// `RTC::TimedUShortSeq`.
+    TimedUShortSeq(Vec<u16>): Eq;
+    /// `RTC::TimedULongSeq`.
+    TimedULongSeq(Vec<u32>): Eq;
+    /// `RTC::TimedFloatSeq`.
+    TimedFloatSeq(Vec<f32>);
+    /// `RTC::TimedCharSeq`.
+    TimedCharSeq(Vec<u8>): Eq;
+    /// `RTC::TimedBooleanSeq`.
+    TimedBooleanSeq(Vec<bool>): Eq;
+    /// `RTC::TimedOctetSeq`.
+    TimedOctetSeq(Vec<u8>): Eq;
+    /// `RTC::TimedStringSeq` (each string in the port's charset).
+    TimedStringSeq(Vec<String>): Eq;
+);
+
 /// `RTC::TimedDouble`.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct TimedDouble {
@@ -478,25 +531,63 @@ pub struct TimedVelocity2D {
 // The IDL members, each encoded as CDR encodes that type; a Timed* struct
 // is its time stamp followed by its `data` member.
 
-impl Cdr for f64 {
-    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        out.double(*self);
-        Ok(())
-    }
-
-    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        input.double()
-    }
+/// An IDL type that can be a sequence's element: the least bytes one
+/// takes, so a corrupt sequence count cannot make a reader allocate more
+/// than the body could hold.
+pub trait CdrElement: Cdr {
+    /// The fewest bytes one element takes.
+    const MIN_SIZE: usize;
 }
 
-impl Cdr for i32 {
+/// The IDL primitives, by the writer and reader of each.
+macro_rules! cdr_primitives {
+    ($($t:ty: $write:ident / $read:ident, $size:expr;)*) => {$(
+        impl Cdr for $t {
+            fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+                out.$write(*self);
+                Ok(())
+            }
+
+            fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+                input.$read()
+            }
+        }
+
+        impl CdrElement for $t {
+            const MIN_SIZE: usize = $size;
+        }
+    )*};
+}
+
+cdr_primitives!(
+    f64: double / double, 8;
+    f32: float / float, 4;
+    i32: long / long, 4;
+    u32: ulong / ulong, 4;
+    i16: short / short, 2;
+    u16: ushort / ushort, 2;
+    u8: octet / octet, 1;
+    bool: boolean / boolean, 1;
+);
+
+/// A `string` element: its length and NUL at least.
+impl CdrElement for String {
+    const MIN_SIZE: usize = 5;
+}
+
+/// `sequence<T>`: the element count, then the elements.
+impl<T: CdrElement> Cdr for Vec<T> {
     fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        out.long(*self);
+        out.sequence_len(self.len())?;
+        for value in self {
+            value.write_cdr(out)?;
+        }
         Ok(())
     }
 
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        input.long()
+        let len = input.sequence_len(T::MIN_SIZE)?;
+        (0..len).map(|_| T::read_cdr(input)).collect()
     }
 }
 
@@ -507,22 +598,6 @@ impl Cdr for String {
 
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
         input.string()
-    }
-}
-
-/// `sequence<double>`.
-impl Cdr for Vec<f64> {
-    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        out.sequence_len(self.len())?;
-        for value in self {
-            out.double(*value);
-        }
-        Ok(())
-    }
-
-    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        let len = input.sequence_len(8)?;
-        (0..len).map(|_| input.double()).collect()
     }
 }
 
@@ -621,7 +696,24 @@ timed_port_data!(
     TimedString,
     TimedDoubleSeq,
     TimedPose2D,
-    TimedVelocity2D
+    TimedVelocity2D,
+    TimedState,
+    TimedShort,
+    TimedUShort,
+    TimedULong,
+    TimedFloat,
+    TimedChar,
+    TimedBoolean,
+    TimedOctet,
+    TimedShortSeq,
+    TimedLongSeq,
+    TimedUShortSeq,
+    TimedULongSeq,
+    TimedFloatSeq,
+    TimedCharSeq,
+    TimedBooleanSeq,
+    TimedOctetSeq,
+    TimedStringSeq
 );
 
 #[cfg(test)]
@@ -712,6 +804,18 @@ mod tests {
             data: "€".into(),
         };
         assert!(beyond.encode_with(&mut BytesMut::new(), latin1).is_err());
+    }
+
+    #[test]
+    fn a_corrupt_sequence_count_allocates_nothing() {
+        // Four billion booleans (one byte each) claimed, two bytes there.
+        let body = bytes(&[&TM_CDR, &[0xff, 0xff, 0xff, 0xff, 1, 0]]);
+        assert!(matches!(
+            TimedBooleanSeq::decode(Bytes::from(body)),
+            Err(DataError::Truncated { .. })
+        ));
+        let body = bytes(&[&TM_CDR, &[0xff, 0xff, 0xff, 0x0f], &[0; 16]]);
+        assert!(TimedStringSeq::decode(Bytes::from(body)).is_err());
     }
 
     #[test]

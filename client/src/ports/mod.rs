@@ -62,8 +62,11 @@ mod out_port;
 mod profile;
 
 pub use cdr::{
-    CdrOptions, Charset, Endian, Point2D, Pose2D, Time, TimedDouble, TimedDoubleSeq, TimedLong,
-    TimedPose2D, TimedString, TimedVelocity2D, Velocity2D,
+    CdrOptions, Charset, Endian, Point2D, Pose2D, Time, TimedBoolean, TimedBooleanSeq, TimedChar,
+    TimedCharSeq, TimedDouble, TimedDoubleSeq, TimedFloat, TimedFloatSeq, TimedLong, TimedLongSeq,
+    TimedOctet, TimedOctetSeq, TimedPose2D, TimedShort, TimedShortSeq, TimedState, TimedString,
+    TimedStringSeq, TimedULong, TimedULongSeq, TimedUShort, TimedUShortSeq, TimedVelocity2D,
+    Velocity2D,
 };
 #[cfg(feature = "serde")]
 pub use data::Postcard;

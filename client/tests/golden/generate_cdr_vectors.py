@@ -30,6 +30,23 @@ module RTC {
   struct TimedPose2D { Time tm; Pose2D data; };
   struct Velocity2D { double vx; double vy; double va; };
   struct TimedVelocity2D { Time tm; Velocity2D data; };
+  struct TimedState { Time tm; short data; };
+  struct TimedShort { Time tm; short data; };
+  struct TimedUShort { Time tm; unsigned short data; };
+  struct TimedULong { Time tm; unsigned long data; };
+  struct TimedFloat { Time tm; float data; };
+  struct TimedChar { Time tm; char data; };
+  struct TimedBoolean { Time tm; boolean data; };
+  struct TimedOctet { Time tm; octet data; };
+  struct TimedShortSeq { Time tm; sequence<short> data; };
+  struct TimedLongSeq { Time tm; sequence<long> data; };
+  struct TimedUShortSeq { Time tm; sequence<unsigned short> data; };
+  struct TimedULongSeq { Time tm; sequence<unsigned long> data; };
+  struct TimedFloatSeq { Time tm; sequence<float> data; };
+  struct TimedCharSeq { Time tm; sequence<char> data; };
+  struct TimedBooleanSeq { Time tm; sequence<boolean> data; };
+  struct TimedOctetSeq { Time tm; sequence<octet> data; };
+  struct TimedStringSeq { Time tm; sequence<string> data; };
 };
 """
 
@@ -58,6 +75,23 @@ def main():
         ("timed_double_seq_empty", RTC.TimedDoubleSeq(tm, [])),
         ("timed_pose2d", RTC.TimedPose2D(tm, RTC.Pose2D(RTC.Point2D(1.0, 2.0), 0.5))),
         ("timed_velocity2d", RTC.TimedVelocity2D(tm, RTC.Velocity2D(0.1, 0.2, 0.3))),
+        ("timed_state", RTC.TimedState(tm, -3)),
+        ("timed_short", RTC.TimedShort(tm, -300)),
+        ("timed_ushort", RTC.TimedUShort(tm, 65000)),
+        ("timed_ulong", RTC.TimedULong(tm, 4000000000)),
+        ("timed_float", RTC.TimedFloat(tm, 1.5)),
+        ("timed_char", RTC.TimedChar(tm, "A")),
+        ("timed_boolean", RTC.TimedBoolean(tm, True)),
+        ("timed_octet", RTC.TimedOctet(tm, 0xFE)),
+        ("timed_short_seq", RTC.TimedShortSeq(tm, [1, -2, 3])),
+        ("timed_long_seq", RTC.TimedLongSeq(tm, [7, -8])),
+        ("timed_ushort_seq", RTC.TimedUShortSeq(tm, [1, 65535])),
+        ("timed_ulong_seq", RTC.TimedULongSeq(tm, [1, 4294967295])),
+        ("timed_float_seq", RTC.TimedFloatSeq(tm, [0.5, -0.25])),
+        ("timed_char_seq", RTC.TimedCharSeq(tm, "hi")),
+        ("timed_boolean_seq", RTC.TimedBooleanSeq(tm, [True, False, True])),
+        ("timed_octet_seq", RTC.TimedOctetSeq(tm, b"\x00\x01\xff")),
+        ("timed_string_seq", RTC.TimedStringSeq(tm, ["a", "", "bcd"])),
     ]
     lines = []
     for name, value in cases:
