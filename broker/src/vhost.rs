@@ -15,7 +15,7 @@
 use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{
-    Binding, BindingRegistry, Destination, Exchange, ExchangeKind, ExchangeOptions,
+    consistent_hash, Binding, BindingRegistry, Destination, Exchange, ExchangeKind, ExchangeOptions,
 };
 use crate::memory::MemoryGauge;
 use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions};
@@ -603,7 +603,7 @@ impl Vhost {
             arguments,
         };
         if change == BindingChange::Bind {
-            check_headers_binding(&source, &binding.arguments)?;
+            check_binding(&source, &binding)?;
             self.add_binding(&source, binding)?;
         } else if self.remove_binding(&source, &binding) {
             self.auto_delete_exchange(&source);
@@ -636,7 +636,7 @@ impl Vhost {
             arguments,
         };
         if change == BindingChange::Bind {
-            check_headers_binding(&from, &binding.arguments)?;
+            check_binding(&from, &binding)?;
             self.add_binding(&from, binding)?;
         } else if self.remove_binding(&from, &binding) {
             self.auto_delete_exchange(&from);
@@ -855,13 +855,26 @@ fn default_exchange_refusal(name: &ShortStr, vhost: &ShortStr) -> AmqpError {
     ))
 }
 
-fn check_headers_binding(exchange: &Exchange, arguments: &FieldTable) -> AmqpResult<()> {
-    if exchange.kind == ExchangeKind::Headers && !crate::exchange::valid_x_match(arguments) {
-        return Err(AmqpError::precondition_failed(
-            "invalid x-match field value; expected all, any, all-with-x, or any-with-x",
-        ));
+/// What a binding's kind of exchange asks of its key and arguments: a
+/// valid `x-match` (headers), a weight (x-consistent-hash).
+fn check_binding(exchange: &Exchange, binding: &Binding) -> AmqpResult<()> {
+    match exchange.kind {
+        ExchangeKind::Headers if !crate::exchange::valid_x_match(&binding.arguments) => {
+            Err(AmqpError::precondition_failed(
+                "invalid x-match field value; expected all, any, all-with-x, or any-with-x",
+            ))
+        }
+        ExchangeKind::ConsistentHash
+            if consistent_hash::weight(&binding.routing_key).is_none() =>
+        {
+            Err(AmqpError::precondition_failed(format_args!(
+                "the binding key of an x-consistent-hash exchange is a weight, an integer from 1 to {}; got '{}'",
+                consistent_hash::MAX_WEIGHT,
+                binding.routing_key
+            )))
+        }
+        _ => Ok(()),
     }
-    Ok(())
 }
 
 /// Exclusive queues belong to one connection: 405 for any other.

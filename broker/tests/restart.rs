@@ -245,3 +245,98 @@ async fn dead_lettered_persistent_messages_survive_a_restart() {
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A durable x-consistent-hash exchange and its weighted bindings come
+/// back after a restart, and a routing key goes to the same queue as
+/// before.
+#[both_runtimes]
+async fn a_consistent_hash_exchange_survives_a_restart() {
+    let flavor = tokio::runtime::Handle::current().runtime_flavor();
+    let dir = std::env::temp_dir().join(format!("leveret-ring-{}-{flavor:?}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let durable_queue = QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    let kind = ExchangeKind::Custom("x-consistent-hash".to_owned());
+    let mut owners = Vec::new();
+    for round in 0..2 {
+        let handle = start(&dir).await;
+        let url = format!("amqp://guest:guest@{}/%2f", handle.local_addrs()[0]);
+        let conn = Connection::connect(&url, ConnectionProperties::default())
+            .await
+            .expect("connect");
+        let channel = conn.create_channel().await.expect("channel");
+        if round == 0 {
+            let options = ExchangeDeclareOptions {
+                durable: true,
+                ..Default::default()
+            };
+            channel
+                .exchange_declare("ring", kind.clone(), options, FieldTable::default())
+                .await
+                .expect("declare x-consistent-hash");
+            for (queue, weight) in [("ring-a", "1"), ("ring-b", "3")] {
+                channel
+                    .queue_declare(queue, durable_queue, FieldTable::default())
+                    .await
+                    .expect("queue");
+                channel
+                    .queue_bind(
+                        queue,
+                        "ring",
+                        weight,
+                        QueueBindOptions::default(),
+                        FieldTable::default(),
+                    )
+                    .await
+                    .expect("bind with a weight");
+            }
+        } else {
+            let passive = ExchangeDeclareOptions {
+                passive: true,
+                durable: true,
+                ..Default::default()
+            };
+            channel
+                .exchange_declare("ring", kind.clone(), passive, FieldTable::default())
+                .await
+                .expect("recovered");
+        }
+        channel
+            .confirm_select(ConfirmSelectOptions::default())
+            .await
+            .expect("confirms");
+        let mut owner = Vec::new();
+        for key in 0..40u8 {
+            let confirm = channel
+                .basic_publish(
+                    "ring",
+                    &format!("robot-{key}"),
+                    BasicPublishOptions::default(),
+                    &[key],
+                    BasicProperties::default(),
+                )
+                .await
+                .expect("publish")
+                .await
+                .expect("confirm");
+            assert!(confirm.is_ack());
+        }
+        for queue in ["ring-a", "ring-b"] {
+            while let Some(got) = channel
+                .basic_get(queue, BasicGetOptions { no_ack: true })
+                .await
+                .expect("get")
+            {
+                owner.push((got.delivery.data[0], queue));
+            }
+        }
+        owner.sort();
+        assert_eq!(owner.len(), 40, "each message to one queue");
+        owners.push(owner);
+        handle.shutdown().await;
+    }
+    assert_eq!(owners[0], owners[1], "the same keys to the same queues");
+    let _ = std::fs::remove_dir_all(&dir);
+}

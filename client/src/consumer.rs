@@ -178,6 +178,11 @@ impl Returns {
     pub async fn next(&mut self) -> Option<ReturnedMessage> {
         self.rx.recv().await
     }
+
+    /// The next returned message if one is waiting, without waiting.
+    pub fn try_next(&mut self) -> Option<ReturnedMessage> {
+        self.rx.try_recv().ok()
+    }
 }
 
 impl futures_core::Stream for Returns {

@@ -83,4 +83,10 @@ pub use options::*;
 pub use uri::ConnectionOptions;
 
 pub use leveret_protocol as protocol;
+
+/// The repository README's Rust examples, compiled as doc tests so they
+/// stay as shown.
+#[cfg(doctest)]
+#[doc = include_str!("../../README.md")]
+pub struct ReadmeDoctests;
 pub use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ReplyCode, ShortStr};

@@ -14,9 +14,9 @@ use bytes::Bytes;
 use common::{unique, within};
 use leveret_broker::{Broker, BrokerHandle};
 use leveret_client::ports::{
-    Connector, ExchangeKind, FullPolicy, InPort, OutPort, Point2D, PortData, PortProfile,
-    PortStatus, Pose2D, Postcard, Sample, Time, TimedDouble, TimedDoubleSeq, TimedLong,
-    TimedPose2D, TimedString, TimedVelocity2D, Velocity2D,
+    Backpressure, Connector, ExchangeKind, FullPolicy, InPort, OutPort, Point2D, PortData,
+    PortProfile, PortStatus, Pose2D, Postcard, Sample, Time, TimedDouble, TimedDoubleSeq,
+    TimedLong, TimedPose2D, TimedString, TimedVelocity2D, Velocity2D,
 };
 use leveret_client::{FieldValue, ShortStr};
 use std::fmt::Debug;
@@ -71,7 +71,9 @@ fn profile(uri: &str) -> PortProfile {
     let mut profile = PortProfile::new(uri)
         .expect("broker URI")
         .backoff(Duration::from_millis(10), Duration::from_millis(200))
-        .put_timeout(Duration::from_secs(2));
+        .put_timeout(Duration::from_secs(2))
+        // These tests count every value: a full window waits for room.
+        .backpressure(Backpressure::Block);
     // Named queues expire once unused, so failed runs leave nothing behind
     // on an external broker.
     profile
@@ -121,6 +123,11 @@ where
         (0, 0, 0)
     );
     assert_eq!(stats.decode_errors, 0);
+    let latency = stats.latency;
+    assert!(latency.percentile(0.5) > Duration::ZERO, "{latency:?}");
+    assert!(latency.min <= latency.percentile(0.5));
+    assert!(latency.percentile(0.5) <= latency.percentile(0.99));
+    assert!(latency.percentile(0.99) <= latency.max);
     let out = output.stats();
     assert_eq!(out.accepted, values.len() as u64);
     assert_eq!(out.confirmed, values.len() as u64);
@@ -729,6 +736,7 @@ async fn put_statuses_while_the_broker_is_unreachable() {
         data,
     };
     assert_eq!(output.put(&value(1)).await, PortStatus::Ok);
+    within("1 confirmed", output.flush()).await;
 
     proxy.stop().await;
     let mut link = output.link();

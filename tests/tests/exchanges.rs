@@ -720,3 +720,55 @@ async fn alternate_exchange_takes_unroutable_messages() {
     assert_eq!(drain(&ch, &routed).await, ["routed"]);
     assert_eq!(drain(&ch, &unrouted).await, ["to-ae"]);
 }
+
+/// RabbitMQ's x-consistent-hash plugin: binding keys are weights, each
+/// message goes to exactly one bound queue, the same routing key always
+/// to the same one; a key that is not a weight is refused with 406.
+#[both_runtimes]
+async fn consistent_hash_exchange_routes_each_key_to_one_queue() {
+    let b = broker().await;
+    let (conn, _) = rs::connect(&b).await;
+    let (ch, _ev) = rs::channel(&conn).await;
+    let x = unique("hash");
+    tmo!(ch.exchange_declare(rs::ExchangeDeclareArguments::new(&x, "x-consistent-hash")))
+        .expect("x-consistent-hash is a known type");
+    let mut queues = Vec::new();
+    for weight in ["1", "1", "2"] {
+        let q = rs::queue(&ch, "ring").await;
+        rs::bind(&ch, &q, &x, weight).await;
+        queues.push(q);
+    }
+    for round in 0..2 {
+        for i in 0..200 {
+            rs::publish(
+                &ch,
+                &x,
+                &format!("robot-{i}"),
+                format!("{round}:{i}").as_bytes(),
+            )
+            .await;
+        }
+    }
+    let mut owner = std::collections::BTreeMap::new();
+    let mut total = 0;
+    for (index, q) in queues.iter().enumerate() {
+        let bodies = drain_rs(&ch, q).await;
+        assert!(bodies.len() > 20, "queue {index} got {}", bodies.len());
+        for body in bodies {
+            let (_, key) = body.split_once(':').unwrap();
+            let previous = owner.insert(key.to_owned(), index);
+            assert!(
+                previous.is_none() || previous == Some(index),
+                "key {key} went to two queues"
+            );
+            total += 1;
+        }
+    }
+    assert_eq!(total, 400, "each message to exactly one queue");
+    assert_eq!(owner.len(), 200);
+
+    let (ch, mut ev) = rs::channel(&conn).await;
+    let q = rs::queue(&ch, "ring").await;
+    assert!(tmo!(ch.queue_bind(rs::QueueBindArguments::new(&q, &x, "heavy"))).is_err());
+    rs::assert_closed(&mut ev, 406, "PRECONDITION_FAILED").await;
+}

@@ -1,5 +1,5 @@
-//! Exchanges and their bindings: the four kinds (direct, fanout, topic,
-//! headers), each exchange's bindings and routing index, and the
+//! Exchanges and their bindings: the five kinds (direct, fanout, topic,
+//! headers, and RabbitMQ's plugin type x-consistent-hash), each exchange's bindings and routing index, and the
 //! [`BindingRegistry`] through which every binding is added or removed.
 //!
 //! Every operation costs what its inputs' sizes say: adding or removing a
@@ -15,6 +15,7 @@
 //! update; neither awaits. This module uses the queue type only as a
 //! destination handle.
 
+pub mod consistent_hash;
 mod destination_set;
 mod headers;
 mod registry;
@@ -22,6 +23,7 @@ mod topic;
 
 use crate::queue::Queue;
 use bytes::{Bytes, BytesMut};
+use consistent_hash::HashRing;
 use destination_set::DestinationSet;
 use headers::{HeaderHasher, HeadersPattern, MessageHeaders};
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
@@ -82,6 +84,9 @@ pub enum ExchangeKind {
     Topic,
     /// Header values, x-match all or any.
     Headers,
+    /// One destination per message by a hash of its routing key, binding
+    /// keys being weights (RabbitMQ's `x-consistent-hash` plugin).
+    ConsistentHash,
 }
 
 impl ExchangeKind {
@@ -92,6 +97,7 @@ impl ExchangeKind {
             b"fanout" => Some(ExchangeKind::Fanout),
             b"topic" => Some(ExchangeKind::Topic),
             b"headers" => Some(ExchangeKind::Headers),
+            b"x-consistent-hash" => Some(ExchangeKind::ConsistentHash),
             _ => None,
         }
     }
@@ -103,6 +109,7 @@ impl ExchangeKind {
             ExchangeKind::Fanout => "fanout",
             ExchangeKind::Topic => "topic",
             ExchangeKind::Headers => "headers",
+            ExchangeKind::ConsistentHash => consistent_hash::TYPE_NAME,
         }
     }
 }
@@ -200,6 +207,8 @@ enum RouteIndex {
     /// Headers bindings are matched one by one with their compiled
     /// patterns, keys hashed with the exchange's hasher.
     Headers(HeaderHasher),
+    /// Weighted points on a hash ring.
+    ConsistentHash(HashRing),
 }
 
 impl RouteIndex {
@@ -214,6 +223,9 @@ impl RouteIndex {
                 trie.add(binding.routing_key.as_bytes(), &binding.destination)
             }
             RouteIndex::Headers(_) => {}
+            RouteIndex::ConsistentHash(ring) => {
+                ring.add(&binding.destination, &binding.routing_key)
+            }
         }
     }
 
@@ -234,6 +246,9 @@ impl RouteIndex {
                 trie.remove(binding.routing_key.as_bytes(), &binding.destination);
             }
             RouteIndex::Headers(_) => {}
+            RouteIndex::ConsistentHash(ring) => {
+                ring.remove(&binding.destination, &binding.routing_key)
+            }
         }
     }
 }
@@ -248,12 +263,13 @@ struct Routes {
 }
 
 impl Routes {
-    fn new(kind: ExchangeKind) -> Self {
+    fn new(kind: ExchangeKind, arguments: &FieldTable) -> Self {
         let index = match kind {
             ExchangeKind::Direct => RouteIndex::Direct(BTreeMap::new()),
             ExchangeKind::Fanout => RouteIndex::Fanout(DestinationSet::default()),
             ExchangeKind::Topic => RouteIndex::Topic(TopicTrie::default()),
             ExchangeKind::Headers => RouteIndex::Headers(HeaderHasher::default()),
+            ExchangeKind::ConsistentHash => RouteIndex::ConsistentHash(HashRing::new(arguments)),
         };
         Routes {
             bindings: BTreeMap::new(),
@@ -350,12 +366,13 @@ pub struct Exchange {
 impl Exchange {
     /// A new exchange with no bindings.
     pub fn new(name: ShortStr, kind: ExchangeKind, options: ExchangeOptions) -> Self {
+        let routes = RwLock::new(Routes::new(kind, &options.arguments));
         Exchange {
             name,
             kind,
             options,
             deleted: AtomicBool::new(false),
-            routes: RwLock::new(Routes::new(kind)),
+            routes,
         }
     }
 
@@ -475,6 +492,11 @@ impl Exchange {
             }
             RouteIndex::Fanout(all) => all.iter().for_each(found),
             RouteIndex::Topic(trie) => trie.route(routing_key.as_bytes(), found),
+            RouteIndex::ConsistentHash(ring) => {
+                if let Some(destination) = ring.route(routing_key, headers) {
+                    found(destination);
+                }
+            }
             RouteIndex::Headers(hasher) => {
                 if routes.bindings.is_empty() {
                     return;

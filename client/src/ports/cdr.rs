@@ -1,20 +1,53 @@
-//! OMG CDR, little-endian, as OpenRTM-aist marshals data port values (a
+//! OMG CDR, little- or big-endian, as OpenRTM-aist marshals data port values (a
 //! bare CDR stream, no encapsulation header; OpenRTM's default byte order
 //! for its connectors is little-endian): every primitive is aligned to its
 //! own size counted from the start of the value's stream, a string is a
 //! `u32` length counting the terminating NUL, the bytes, then the NUL, and a
 //! sequence is a `u32` element count followed by the elements.
 //!
-//! The RTC data types of OpenRTM-aist's `BasicDataType.idl` and
-//! `ExtendedDataTypes.idl` implemented here each begin with a
-//! [`Time`]: [`TimedDouble`], [`TimedLong`], [`TimedString`],
-//! [`TimedDoubleSeq`], [`TimedPose2D`], [`TimedVelocity2D`]. Other IDL
+//! The RTC data types implemented here each begin with a [`Time`]: every
+//! type of OpenRTM-aist's `BasicDataType.idl` but the wide-character ones
+//! (`TimedWChar`, `TimedWString` and their sequences, whose encoding
+//! depends on GIOP code set negotiation), and [`TimedPose2D`] and
+//! [`TimedVelocity2D`] of `ExtendedDataTypes.idl`. Other IDL
 //! structs can be written with [`CdrWriter`] and [`CdrReader`] through the
 //! [`Cdr`] trait and then made port data with [`encode`] and [`decode`].
 
 use super::data::DataError;
 use bytes::{BufMut, Bytes, BytesMut};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+/// CDR's byte order (OpenRTM's connector property `serializer.cdr.endian`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Endian {
+    /// Little-endian (OpenRTM's default).
+    #[default]
+    Little,
+    /// Big-endian (network order).
+    Big,
+}
+
+/// How CDR `string`s are turned into text and back.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Charset {
+    /// UTF-8; a string that is not UTF-8 does not decode.
+    #[default]
+    Utf8,
+    /// ISO 8859-1, omniORB's default native charset: each byte is one
+    /// character U+0000..=U+00FF, so every string decodes (raw bytes come
+    /// through losslessly as those characters); text with a character
+    /// beyond U+00FF does not encode.
+    Latin1,
+}
+
+/// The byte order and string charset of a CDR stream.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct CdrOptions {
+    /// Byte order.
+    pub endian: Endian,
+    /// String charset.
+    pub charset: Charset,
+}
 
 /// A value with a CDR form.
 pub trait Cdr: Sized {
@@ -24,24 +57,40 @@ pub trait Cdr: Sized {
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError>;
 }
 
-/// Appends `value` to `buf` as a CDR stream starting at `buf`'s end.
+/// Appends `value` to `buf` as a little-endian, UTF-8 CDR stream starting
+/// at `buf`'s end.
 pub fn encode<T: Cdr>(value: &T, buf: &mut BytesMut) -> Result<(), DataError> {
-    value.write_cdr(&mut CdrWriter::new(buf))
+    encode_with(value, buf, CdrOptions::default())
 }
 
-/// Reads a `T` that must take the whole of `body`.
+/// [`encode`] in the given byte order and charset.
+pub fn encode_with<T: Cdr>(
+    value: &T,
+    buf: &mut BytesMut,
+    options: CdrOptions,
+) -> Result<(), DataError> {
+    value.write_cdr(&mut CdrWriter::with_options(buf, options))
+}
+
+/// Reads a `T` that must take the whole of `body` (little-endian, UTF-8).
 pub fn decode<T: Cdr>(body: Bytes) -> Result<T, DataError> {
-    let mut input = CdrReader::new(body);
+    decode_with(body, CdrOptions::default())
+}
+
+/// [`decode`] in the given byte order and charset.
+pub fn decode_with<T: Cdr>(body: Bytes, options: CdrOptions) -> Result<T, DataError> {
+    let mut input = CdrReader::with_options(body, options);
     let value = T::read_cdr(&mut input)?;
     input.finish()?;
     Ok(value)
 }
 
-/// Writes little-endian CDR, aligning relative to where it started.
+/// Writes CDR, aligning relative to where it started.
 #[derive(Debug)]
 pub struct CdrWriter<'a> {
     buf: &'a mut BytesMut,
     start: usize,
+    options: CdrOptions,
 }
 
 macro_rules! writers {
@@ -49,16 +98,28 @@ macro_rules! writers {
         $(#[$doc])*
         pub fn $name(&mut self, value: $t) {
             self.align(std::mem::size_of::<$t>());
-            self.buf.put_slice(&value.to_le_bytes());
+            match self.options.endian {
+                Endian::Little => self.buf.put_slice(&value.to_le_bytes()),
+                Endian::Big => self.buf.put_slice(&value.to_be_bytes()),
+            }
         }
     )*};
 }
 
 impl<'a> CdrWriter<'a> {
-    /// A stream starting at the end of `buf`.
+    /// A little-endian, UTF-8 stream starting at the end of `buf`.
     pub fn new(buf: &'a mut BytesMut) -> Self {
+        CdrWriter::with_options(buf, CdrOptions::default())
+    }
+
+    /// A stream in the given byte order and charset.
+    pub fn with_options(buf: &'a mut BytesMut, options: CdrOptions) -> Self {
         let start = buf.len();
-        CdrWriter { buf, start }
+        CdrWriter {
+            buf,
+            start,
+            options,
+        }
     }
 
     /// Pads with zeros to a multiple of `size` from the stream's start.
@@ -97,18 +158,32 @@ impl<'a> CdrWriter<'a> {
         double: f64
     );
 
-    /// A `string`: length with the NUL, bytes, NUL. Text containing NUL
-    /// cannot be a CDR string.
+    /// A `string` in the stream's charset: length with the NUL, bytes,
+    /// NUL. Text containing NUL cannot be a CDR string.
     pub fn string(&mut self, value: &str) -> Result<(), DataError> {
-        if value.as_bytes().contains(&0) {
+        if value.contains('\0') {
             return Err(DataError::Invalid(
                 "a CDR string cannot contain NUL".to_owned(),
             ));
         }
-        let length = u32::try_from(value.len() + 1)
+        let latin1;
+        let bytes = match self.options.charset {
+            Charset::Utf8 => value.as_bytes(),
+            Charset::Latin1 => {
+                latin1 = value
+                    .chars()
+                    .map(|c| u8::try_from(u32::from(c)))
+                    .collect::<Result<Vec<u8>, _>>()
+                    .map_err(|_| {
+                        DataError::Invalid("text beyond Latin-1 in a Latin-1 string".to_owned())
+                    })?;
+                &latin1
+            }
+        };
+        let length = u32::try_from(bytes.len() + 1)
             .map_err(|_| DataError::Invalid("string longer than 4 GiB".to_owned()))?;
         self.ulong(length);
-        self.buf.put_slice(value.as_bytes());
+        self.buf.put_slice(bytes);
         self.buf.put_u8(0);
         Ok(())
     }
@@ -122,11 +197,12 @@ impl<'a> CdrWriter<'a> {
     }
 }
 
-/// Reads little-endian CDR, aligning relative to the start of its body.
+/// Reads CDR, aligning relative to the start of its body.
 #[derive(Debug)]
 pub struct CdrReader {
     body: Bytes,
     pos: usize,
+    options: CdrOptions,
 }
 
 macro_rules! readers {
@@ -137,15 +213,27 @@ macro_rules! readers {
             let bytes = self.take(std::mem::size_of::<$t>())?;
             let mut array = [0u8; std::mem::size_of::<$t>()];
             array.copy_from_slice(bytes);
-            Ok(<$t>::from_le_bytes(array))
+            Ok(match self.options.endian {
+                Endian::Little => <$t>::from_le_bytes(array),
+                Endian::Big => <$t>::from_be_bytes(array),
+            })
         }
     )*};
 }
 
 impl CdrReader {
-    /// A stream over `body`.
+    /// A little-endian, UTF-8 stream over `body`.
     pub fn new(body: Bytes) -> Self {
-        CdrReader { body, pos: 0 }
+        CdrReader::with_options(body, CdrOptions::default())
+    }
+
+    /// A stream over `body` in the given byte order and charset.
+    pub fn with_options(body: Bytes, options: CdrOptions) -> Self {
+        CdrReader {
+            body,
+            pos: 0,
+            options,
+        }
     }
 
     fn take(&mut self, n: usize) -> Result<&[u8], DataError> {
@@ -213,8 +301,9 @@ impl CdrReader {
         double: f64
     );
 
-    /// A `string` (UTF-8 expected).
+    /// A `string`, in the stream's charset.
     pub fn string(&mut self) -> Result<String, DataError> {
+        let charset = self.options.charset;
         let length = self.ulong()? as usize;
         if length == 0 {
             return Err(DataError::Invalid(
@@ -229,7 +318,10 @@ impl CdrReader {
                 "CDR string at offset {offset} is not NUL-terminated"
             )));
         }
-        String::from_utf8(text.to_vec()).map_err(|_| DataError::Utf8)
+        match charset {
+            Charset::Utf8 => String::from_utf8(text.to_vec()).map_err(|_| DataError::Utf8),
+            Charset::Latin1 => Ok(text.iter().map(|&b| char::from(b)).collect()),
+        }
     }
 
     /// A sequence's element count, checked against the bytes left
@@ -300,6 +392,58 @@ impl Cdr for Time {
         })
     }
 }
+
+/// The Timed* structs of OpenRTM's `BasicDataType.idl` beyond those
+/// written out below: a time stamp and a `data` member.
+macro_rules! timed_structs {
+    ($($(#[$doc:meta])* $name:ident($t:ty) $(: $($derive:ident),*)?;)*) => {$(
+        $(#[$doc])*
+        #[derive(Debug, Clone, PartialEq, Default $($(, $derive)*)?)]
+        pub struct $name {
+            /// Time stamp.
+            pub tm: Time,
+            /// The value.
+            pub data: $t,
+        }
+    )*};
+}
+
+timed_structs!(
+    /// `RTC::TimedState` (a `short`).
+    TimedState(i16): Copy, Eq;
+    /// `RTC::TimedShort`.
+    TimedShort(i16): Copy, Eq;
+    /// `RTC::TimedUShort`.
+    TimedUShort(u16): Copy, Eq;
+    /// `RTC::TimedULong`.
+    TimedULong(u32): Copy, Eq;
+    /// `RTC::TimedFloat`.
+    TimedFloat(f32): Copy;
+    /// `RTC::TimedChar` (an IDL `char`: one byte, Latin-1).
+    TimedChar(u8): Copy, Eq;
+    /// `RTC::TimedBoolean`.
+    TimedBoolean(bool): Copy, Eq;
+    /// `RTC::TimedOctet`.
+    TimedOctet(u8): Copy, Eq;
+    /// `RTC::TimedShortSeq`.
+    TimedShortSeq(Vec<i16>): Eq;
+    /// `RTC::TimedLongSeq`.
+    TimedLongSeq(Vec<i32>): Eq;
+    /// `RTC::TimedUShortSeq`.
+    TimedUShortSeq(Vec<u16>): Eq;
+    /// `RTC::TimedULongSeq`.
+    TimedULongSeq(Vec<u32>): Eq;
+    /// `RTC::TimedFloatSeq`.
+    TimedFloatSeq(Vec<f32>);
+    /// `RTC::TimedCharSeq`.
+    TimedCharSeq(Vec<u8>): Eq;
+    /// `RTC::TimedBooleanSeq`.
+    TimedBooleanSeq(Vec<bool>): Eq;
+    /// `RTC::TimedOctetSeq`.
+    TimedOctetSeq(Vec<u8>): Eq;
+    /// `RTC::TimedStringSeq` (each string in the port's charset).
+    TimedStringSeq(Vec<String>): Eq;
+);
 
 /// `RTC::TimedDouble`.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -387,25 +531,63 @@ pub struct TimedVelocity2D {
 // The IDL members, each encoded as CDR encodes that type; a Timed* struct
 // is its time stamp followed by its `data` member.
 
-impl Cdr for f64 {
-    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        out.double(*self);
-        Ok(())
-    }
-
-    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        input.double()
-    }
+/// An IDL type that can be a sequence's element: the least bytes one
+/// takes, so a corrupt sequence count cannot make a reader allocate more
+/// than the body could hold.
+pub trait CdrElement: Cdr {
+    /// The fewest bytes one element takes.
+    const MIN_SIZE: usize;
 }
 
-impl Cdr for i32 {
+/// The IDL primitives, by the writer and reader of each.
+macro_rules! cdr_primitives {
+    ($($t:ty: $write:ident / $read:ident, $size:expr;)*) => {$(
+        impl Cdr for $t {
+            fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+                out.$write(*self);
+                Ok(())
+            }
+
+            fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+                input.$read()
+            }
+        }
+
+        impl CdrElement for $t {
+            const MIN_SIZE: usize = $size;
+        }
+    )*};
+}
+
+cdr_primitives!(
+    f64: double / double, 8;
+    f32: float / float, 4;
+    i32: long / long, 4;
+    u32: ulong / ulong, 4;
+    i16: short / short, 2;
+    u16: ushort / ushort, 2;
+    u8: octet / octet, 1;
+    bool: boolean / boolean, 1;
+);
+
+/// A `string` element: its length and NUL at least.
+impl CdrElement for String {
+    const MIN_SIZE: usize = 5;
+}
+
+/// `sequence<T>`: the element count, then the elements.
+impl<T: CdrElement> Cdr for Vec<T> {
     fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        out.long(*self);
+        out.sequence_len(self.len())?;
+        for value in self {
+            value.write_cdr(out)?;
+        }
         Ok(())
     }
 
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        input.long()
+        let len = input.sequence_len(T::MIN_SIZE)?;
+        (0..len).map(|_| T::read_cdr(input)).collect()
     }
 }
 
@@ -416,22 +598,6 @@ impl Cdr for String {
 
     fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
         input.string()
-    }
-}
-
-/// `sequence<double>`.
-impl Cdr for Vec<f64> {
-    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        out.sequence_len(self.len())?;
-        for value in self {
-            out.double(*value);
-        }
-        Ok(())
-    }
-
-    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        let len = input.sequence_len(8)?;
-        (0..len).map(|_| input.double()).collect()
     }
 }
 
@@ -512,6 +678,14 @@ macro_rules! timed_port_data {
             fn decode(body: Bytes) -> Result<Self, DataError> {
                 decode(body)
             }
+
+            fn encode_with(&self, buf: &mut BytesMut, options: CdrOptions) -> Result<(), DataError> {
+                encode_with(self, buf, options)
+            }
+
+            fn decode_with(body: Bytes, options: CdrOptions) -> Result<Self, DataError> {
+                decode_with(body, options)
+            }
         }
     )*};
 }
@@ -522,7 +696,24 @@ timed_port_data!(
     TimedString,
     TimedDoubleSeq,
     TimedPose2D,
-    TimedVelocity2D
+    TimedVelocity2D,
+    TimedState,
+    TimedShort,
+    TimedUShort,
+    TimedULong,
+    TimedFloat,
+    TimedChar,
+    TimedBoolean,
+    TimedOctet,
+    TimedShortSeq,
+    TimedLongSeq,
+    TimedUShortSeq,
+    TimedULongSeq,
+    TimedFloatSeq,
+    TimedCharSeq,
+    TimedBooleanSeq,
+    TimedOctetSeq,
+    TimedStringSeq
 );
 
 #[cfg(test)]
@@ -562,6 +753,69 @@ mod tests {
         // The double is aligned to 8: right after the 8-byte Time.
         check(value, &bytes(&[&TM_CDR, &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f]]));
         assert_eq!(TimedDouble::TYPE_NAME, Some("IDL:RTC/TimedDouble:1.0"));
+    }
+
+    #[test]
+    fn big_endian_as_serializer_cdr_endian_big() {
+        let options = CdrOptions {
+            endian: Endian::Big,
+            ..CdrOptions::default()
+        };
+        let value = TimedDouble { tm: TM, data: 1.0 };
+        let expected = [
+            0x01, 0x02, 0x03, 0x04, 0x0a, 0x0b, 0x0c, 0x0d, 0x3f, 0xf0, 0, 0, 0, 0, 0, 0,
+        ];
+        let mut buf = BytesMut::new();
+        value.encode_with(&mut buf, options).unwrap();
+        assert_eq!(&buf[..], expected);
+        let decoded = TimedDouble::decode_with(Bytes::copy_from_slice(&expected), options);
+        assert_eq!(decoded.unwrap(), value);
+        // The same bytes read little-endian are another value.
+        assert_ne!(
+            TimedDouble::decode(Bytes::copy_from_slice(&expected)).unwrap(),
+            value
+        );
+    }
+
+    #[test]
+    fn latin1_strings_as_omniorb_marshals_them() {
+        let latin1 = CdrOptions {
+            charset: Charset::Latin1,
+            ..CdrOptions::default()
+        };
+        // "café" in ISO 8859-1: é is the single byte 0xe9.
+        let body = bytes(&[&TM_CDR, &[5, 0, 0, 0], b"caf\xe9\0"]);
+        let value = TimedString {
+            tm: TM,
+            data: "café".into(),
+        };
+        assert_eq!(
+            TimedString::decode(Bytes::copy_from_slice(&body)).unwrap_err(),
+            DataError::Utf8,
+            "not UTF-8"
+        );
+        let decoded = TimedString::decode_with(Bytes::copy_from_slice(&body), latin1).unwrap();
+        assert_eq!(decoded, value);
+        let mut buf = BytesMut::new();
+        value.encode_with(&mut buf, latin1).unwrap();
+        assert_eq!(&buf[..], body);
+        let beyond = TimedString {
+            tm: TM,
+            data: "€".into(),
+        };
+        assert!(beyond.encode_with(&mut BytesMut::new(), latin1).is_err());
+    }
+
+    #[test]
+    fn a_corrupt_sequence_count_allocates_nothing() {
+        // Four billion booleans (one byte each) claimed, two bytes there.
+        let body = bytes(&[&TM_CDR, &[0xff, 0xff, 0xff, 0xff, 1, 0]]);
+        assert!(matches!(
+            TimedBooleanSeq::decode(Bytes::from(body)),
+            Err(DataError::Truncated { .. })
+        ));
+        let body = bytes(&[&TM_CDR, &[0xff, 0xff, 0xff, 0x0f], &[0; 16]]);
+        assert!(TimedStringSeq::decode(Bytes::from(body)).is_err());
     }
 
     #[test]

@@ -4,6 +4,7 @@
 //! their size), OpenRTM-aist's CDR data types (see `cdr`), and, with the
 //! `serde` feature, any serde type wrapped in [`Postcard`].
 
+use super::cdr::CdrOptions;
 use bytes::{BufMut, Bytes, BytesMut};
 
 /// Why a value could not be encoded or a body decoded.
@@ -60,6 +61,19 @@ pub trait PortData: Sized + Send + 'static {
 
     /// Decodes a whole body.
     fn decode(body: Bytes) -> Result<Self, DataError>;
+
+    /// [`PortData::encode`] for a port whose profile sets the CDR byte
+    /// order and charset; only CDR types differ from `encode`.
+    fn encode_with(&self, buf: &mut BytesMut, options: CdrOptions) -> Result<(), DataError> {
+        let _ = options;
+        self.encode(buf)
+    }
+
+    /// [`PortData::decode`] with the profile's CDR byte order and charset.
+    fn decode_with(body: Bytes, options: CdrOptions) -> Result<Self, DataError> {
+        let _ = options;
+        Self::decode(body)
+    }
 }
 
 impl PortData for Bytes {

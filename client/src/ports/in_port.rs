@@ -15,17 +15,19 @@
 //! [`futures_core::Stream`] (every value in order), and
 //! [`InPort::on_receive`] callbacks.
 
+use super::cdr::CdrOptions;
 use super::data::{DataError, PortData};
+use super::latency::LatencyStats;
 use super::link::{self, Link, LinkStatus, Stamp};
 use super::profile::{Connector, FullPolicy, PortProfile};
 use crate::error::{Error, Result};
 use crate::{
     BasicConsumeOptions, BasicQosOptions, Connection, Consumer, ConsumerEnd, Delivery, FieldTable,
-    ShortStr,
+    QueueDeleteOptions, ShortStr,
 };
 use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::pin::Pin;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::task::{Context, Poll, Waker};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tokio::sync::{watch, Notify};
@@ -53,42 +55,6 @@ pub struct Sample<T> {
     pub redelivered: bool,
 }
 
-/// Latencies from `x-sent-ns` to arrival.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct LatencyStats {
-    /// Samples measured.
-    pub count: u64,
-    /// Smallest.
-    pub min: Duration,
-    /// Largest.
-    pub max: Duration,
-    /// Sum of all, for the mean.
-    pub total: Duration,
-    /// The latest.
-    pub last: Duration,
-}
-
-impl LatencyStats {
-    /// The mean (zero before the first sample).
-    pub fn mean(&self) -> Duration {
-        match u32::try_from(self.count) {
-            Ok(0) => Duration::ZERO,
-            Ok(n) => self.total / n,
-            Err(_) => Duration::from_secs_f64(self.total.as_secs_f64() / self.count as f64),
-        }
-    }
-
-    fn record(&mut self, latency: Duration) {
-        if self.count == 0 || latency < self.min {
-            self.min = latency;
-        }
-        self.max = self.max.max(latency);
-        self.total = self.total.saturating_add(latency);
-        self.last = latency;
-        self.count += 1;
-    }
-}
-
 /// An in-port's counters: the paper's reliability figures and the port's
 /// own drops.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -107,6 +73,9 @@ pub struct InPortStats {
     pub skipped: u64,
     /// Messages whose body did not decode (acknowledged and dropped).
     pub decode_errors: u64,
+    /// Values older than the profile's lifespan on arrival (by their
+    /// `x-sent-ns`), dropped.
+    pub stale: u64,
     /// Latency from put to arrival.
     pub latency: LatencyStats,
 }
@@ -169,6 +138,9 @@ struct Buffer<T> {
 /// What the port and its task share.
 struct Shared<T> {
     buffer: Mutex<Buffer<T>>,
+    /// Signalled with the buffer's lock when a value arrives or the port
+    /// closes, for [`InPort::recv_blocking`].
+    arrived: Condvar,
     /// Signalled when the reader makes room.
     room: Notify,
     stats: watch::Sender<InPortStats>,
@@ -207,9 +179,37 @@ impl<T: PortData> InPort<T> {
 
     /// [`InPort::connect`] through `connector`.
     pub async fn connect_with(connector: Connector, profile: PortProfile) -> Result<Self> {
+        let queue = QueueName::of(&profile);
+        let first = open(&connector, &profile, &queue).await?;
+        Ok(InPort::spawn(connector, profile, queue, Some(first)))
+    }
+
+    /// Starts the port at once, whether or not the broker is reachable:
+    /// it connects in the background, retrying with backoff (watch
+    /// [`InPort::link`]). Must be called within a tokio runtime.
+    pub fn start(profile: PortProfile) -> Self {
+        InPort::start_with(Connector::from(&profile), profile)
+    }
+
+    /// [`InPort::start`] through `connector`.
+    pub fn start_with(connector: Connector, profile: PortProfile) -> Self {
+        let queue = QueueName::of(&profile);
+        InPort::spawn(connector, profile, queue, None)
+    }
+
+    fn spawn(
+        connector: Connector,
+        profile: PortProfile,
+        queue: QueueName,
+        first: Option<InLink>,
+    ) -> Self {
         let profile = Arc::new(profile);
-        let first = open(&connector, &profile).await?;
+        let consumed = match &first {
+            Some(first) => first.queue.clone(),
+            None => ShortStr::try_from(queue.name.as_str()).unwrap_or_default(),
+        };
         let shared = Arc::new(Shared {
+            arrived: Condvar::new(),
             buffer: Mutex::new(Buffer {
                 queue: VecDeque::new(),
                 waker: None,
@@ -219,23 +219,26 @@ impl<T: PortData> InPort<T> {
             stats: watch::Sender::new(InPortStats::default()),
             callbacks: Mutex::new(Vec::new()),
             link: Link::new(),
-            queue: Mutex::new(first.queue.clone()),
+            queue: Mutex::new(consumed),
         });
-        shared.link.connected();
+        if first.is_some() {
+            shared.link.connected();
+        }
         let (stop, stopped) = watch::channel(false);
         let task = Task {
             shared: Arc::clone(&shared),
             connector,
             profile,
+            queue,
             senders: HashMap::new(),
             stop: stopped,
         };
         let task = tokio::spawn(task.run(first));
-        Ok(InPort {
+        InPort {
             shared,
             stop,
             task: Some(task),
-        })
+        }
     }
 
     /// Takes the newest buffered value, discarding older ones (counted as
@@ -263,6 +266,31 @@ impl<T: PortData> InPort<T> {
         let sample = lock(&self.shared.buffer).queue.pop_front()?;
         self.shared.room.notify_one();
         Some(sample)
+    }
+
+    /// The next value in order for a thread outside the async runtime:
+    /// blocks the thread up to `timeout`; `None` if none came or the port
+    /// is closed. Never call it on a runtime thread.
+    pub fn recv_blocking(&self, timeout: Duration) -> Option<Sample<T>> {
+        let deadline = std::time::Instant::now() + timeout;
+        let mut buffer = lock(&self.shared.buffer);
+        loop {
+            if let Some(sample) = buffer.queue.pop_front() {
+                drop(buffer);
+                self.shared.room.notify_one();
+                return Some(sample);
+            }
+            let now = std::time::Instant::now();
+            if buffer.closed || now >= deadline {
+                return None;
+            }
+            buffer = self
+                .shared
+                .arrived
+                .wait_timeout(buffer, deadline - now)
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
     }
 
     /// The next value in order, waiting for one; `None` once the port is
@@ -313,7 +341,9 @@ impl<T: PortData> InPort<T> {
     }
 
     /// Stops consuming and closes the connection. Values still buffered
-    /// are dropped; unacknowledged deliveries go back to the queue.
+    /// are dropped; unacknowledged deliveries go back to the queue, or,
+    /// for the port's own queue (the profile named none), the queue is
+    /// deleted. Dropping the port does the same without waiting.
     pub async fn close(mut self) {
         self.stop.send_replace(true);
         if let Some(task) = self.task.take() {
@@ -343,8 +373,33 @@ struct InLink {
     queue: ShortStr,
 }
 
+/// The queue an in-port consumes.
+#[derive(Debug, Clone)]
+struct QueueName {
+    name: String,
+    /// The port's own queue (the profile names none): not exclusive, and
+    /// expiring once unused.
+    own: bool,
+}
+
+impl QueueName {
+    fn of(profile: &PortProfile) -> Self {
+        if profile.queue.is_empty() {
+            QueueName {
+                name: format!("leveret.port.{}", link::port_id()),
+                own: true,
+            }
+        } else {
+            QueueName {
+                name: profile.queue.clone(),
+                own: false,
+            }
+        }
+    }
+}
+
 /// Connects, declares the topology and starts consuming.
-async fn open(connector: &Connector, profile: &PortProfile) -> Result<InLink> {
+async fn open(connector: &Connector, profile: &PortProfile, queue: &QueueName) -> Result<InLink> {
     let setup = async {
         let connection = connector.connect().await?;
         let channel = connection.open_channel().await?;
@@ -353,12 +408,13 @@ async fn open(connector: &Connector, profile: &PortProfile) -> Result<InLink> {
                 .basic_qos(profile.prefetch, BasicQosOptions::default())
                 .await?;
         }
-        link::declare_exchange(&channel, profile).await?;
-        let queue = if profile.declare_queue || profile.queue.is_empty() {
-            link::declare_queue(&channel, profile).await?
-        } else {
-            ShortStr::try_from(profile.queue.as_str())?
-        };
+        // As OpenRTM's module: the queue is always declared; `bind`
+        // declares the exchange and binds the queue to it.
+        let bind = profile.declare_queue;
+        if bind {
+            link::declare_exchange(&channel, profile).await?;
+        }
+        let queue = link::declare_queue(&channel, profile, &queue.name, queue.own, bind).await?;
         let consumer = channel
             .basic_consume(
                 &queue,
@@ -383,21 +439,32 @@ struct Task<T> {
     shared: Arc<Shared<T>>,
     connector: Connector,
     profile: Arc<PortProfile>,
+    queue: QueueName,
     senders: HashMap<String, Sequence>,
     stop: watch::Receiver<bool>,
 }
 
 impl<T: PortData> Task<T> {
-    async fn run(mut self, first: InLink) {
-        let mut link = Some(first);
+    async fn run(mut self, first: Option<InLink>) {
+        let mut link = first;
         let mut failures = 0u32;
         loop {
             if let Some(mut current) = link.take() {
                 let error = match self.consume(&mut current).await {
                     Some(error) => error,
                     None => {
-                        let close = current.connection.close();
-                        let _ = tokio::time::timeout(CLOSE_TIMEOUT, close).await;
+                        // Closed on purpose: the port's own queue goes
+                        // too (x-expires is for a port that vanished).
+                        let own = self.queue.own;
+                        let finish = async {
+                            if own {
+                                let channel = current.consumer.channel();
+                                let options = QueueDeleteOptions::default();
+                                let _ = channel.queue_delete(&current.queue, options).await;
+                            }
+                            current.connection.close().await
+                        };
+                        let _ = tokio::time::timeout(CLOSE_TIMEOUT, finish).await;
                         break;
                     }
                 };
@@ -413,7 +480,7 @@ impl<T: PortData> Task<T> {
                 }
             }
             let opened = tokio::select! {
-                opened = open(&self.connector, &self.profile) => opened,
+                opened = open(&self.connector, &self.profile, &self.queue) => opened,
                 _ = self.stop.wait_for(|s| *s) => break,
             };
             match opened {
@@ -433,6 +500,7 @@ impl<T: PortData> Task<T> {
         if let Some(waker) = buffer.waker.take() {
             waker.wake();
         }
+        self.shared.arrived.notify_all();
     }
 
     /// Handles deliveries until the link fails (`Some(why)`) or the port
@@ -484,6 +552,7 @@ impl<T: PortData> Task<T> {
             .sent_ns
             .and_then(|sent| u64::try_from(arrived.saturating_sub(sent)).ok())
             .map(Duration::from_nanos);
+
         let count = |stats: &mut InPortStats| {
             stats.received += 1;
             match verdict {
@@ -498,7 +567,17 @@ impl<T: PortData> Task<T> {
                 stats.latency.record(latency);
             }
         };
-        let value = match decode::<T>(&delivery) {
+        if let (Some(lifespan), Some(age)) = (self.profile.lifespan, latency) {
+            if age > lifespan {
+                self.shared.stats.send_modify(|s| {
+                    count(s);
+                    s.stale += 1;
+                });
+                delivery.ack().await?;
+                return Ok(true);
+            }
+        }
+        let value = match decode::<T>(&delivery, self.profile.cdr) {
             Ok(value) => value,
             Err(error) => {
                 tracing::warn!(%error, "in-port dropped a message that does not decode");
@@ -560,6 +639,7 @@ impl<T: PortData> Task<T> {
                     if let Some(waker) = buffer.waker.take() {
                         waker.wake();
                     }
+                    self.shared.arrived.notify_one();
                     return true;
                 }
             }
@@ -572,7 +652,7 @@ impl<T: PortData> Task<T> {
 }
 
 /// Decodes a delivery's body, refusing one whose `type` names another type.
-fn decode<T: PortData>(delivery: &Delivery) -> Result<T, DataError> {
+fn decode<T: PortData>(delivery: &Delivery, options: CdrOptions) -> Result<T, DataError> {
     if let (Some(expected), Some(found)) = (T::TYPE_NAME, &delivery.properties.kind) {
         if found.as_bytes() != expected.as_bytes() {
             return Err(DataError::TypeMismatch {
@@ -581,7 +661,7 @@ fn decode<T: PortData>(delivery: &Delivery) -> Result<T, DataError> {
             });
         }
     }
-    T::decode(delivery.body.clone())
+    T::decode_with(delivery.body.clone(), options)
 }
 
 #[cfg(test)]
@@ -600,16 +680,5 @@ mod tests {
         assert_eq!(seq.observe(4), Verdict::Duplicate);
         assert_eq!(seq.observe(8), Verdict::Late);
         assert_eq!(seq.observe(10), Verdict::New { gap: 0 });
-    }
-
-    #[test]
-    fn latency_mean() {
-        let mut stats = LatencyStats::default();
-        assert_eq!(stats.mean(), Duration::ZERO);
-        stats.record(Duration::from_millis(2));
-        stats.record(Duration::from_millis(4));
-        assert_eq!(stats.mean(), Duration::from_millis(3));
-        assert_eq!(stats.min, Duration::from_millis(2));
-        assert_eq!(stats.max, Duration::from_millis(4));
     }
 }

@@ -113,23 +113,29 @@ pub(crate) async fn declare_exchange(channel: &Channel, profile: &PortProfile) -
         .await
 }
 
-/// Declares the profile's queue (server-named and exclusive when it has no
-/// name) and binds it to the exchange; returns its name.
-pub(crate) async fn declare_queue(channel: &Channel, profile: &PortProfile) -> Result<ShortStr> {
-    let server_named = profile.queue.is_empty();
+/// Declares the queue `name` (the profile's, or an in-port's own) and,
+/// with `bind`, binds it to the profile's exchange. A port's own queue (`own`) is not
+/// exclusive, so it outlives the port's reconnections, and expires once
+/// unused for the profile's `queue_expires` (unless the profile's queue
+/// arguments say otherwise).
+pub(crate) async fn declare_queue(
+    channel: &Channel,
+    profile: &PortProfile,
+    name: &str,
+    own: bool,
+    bind: bool,
+) -> Result<ShortStr> {
     let options = QueueDeclareOptions {
-        durable: profile.durable && !server_named,
-        exclusive: server_named,
+        durable: profile.durable && !own,
         ..Default::default()
     };
-    let queue = channel
-        .queue_declare(
-            profile.queue.as_str(),
-            options,
-            profile.queue_arguments.clone(),
-        )
-        .await?;
-    if !profile.exchange.is_empty() {
+    let mut arguments = profile.queue_arguments.clone();
+    if own && arguments.get("x-expires").is_none() {
+        let expires = i64::try_from(profile.queue_expires.as_millis().max(1)).unwrap_or(i64::MAX);
+        arguments.insert(ShortStr::from_static("x-expires"), FieldValue::I64(expires));
+    }
+    let queue = channel.queue_declare(name, options, arguments).await?;
+    if bind && !profile.exchange.is_empty() {
         channel
             .queue_bind(
                 &queue.name,

@@ -14,6 +14,13 @@
 //! resends what the broker had not confirmed, so a control loop sees each
 //! message once and in order across reconnections.
 //!
+//! A control loop's `put` never waits on the network: it enqueues into a
+//! bounded window and returns; what becomes of each value is reported
+//! ([`Outcome`], [`OutPortStats`]). Freshness and reliability are set per
+//! port: a lifespan, a [`Backpressure`] and a [`Replay`] policy, or a
+//! [`Qos`] preset naming them together. An in-port without a queue name
+//! gets a named queue of its own that outlives its reconnections.
+//!
 //! ```no_run
 //! use leveret_client::ports::{
 //!     ExchangeKind, FullPolicy, InPort, OutPort, PortProfile, PortStatus, Time, TimedPose2D,
@@ -38,25 +45,37 @@
 //! - [`cdr`]: OMG CDR (little-endian) and OpenRTM's `RTC::Timed*` types.
 //! - `profile`: [`PortProfile`], [`ExchangeKind`], [`FullPolicy`],
 //!   [`Backoff`], [`Connector`].
+//! - `openrtm`: [`PortProfile::from_properties`] (OpenRTM-aist connector
+//!   properties), [`PortRole`], [`ConnectorProfile`].
 //! - `link`: [`LinkStatus`], topology declaration, the headers.
 //! - `out_port`: [`OutPort`], [`PortStatus`], [`OutPortStats`].
 //! - `in_port`: [`InPort`], [`Sample`], [`InPortStats`].
+//! - `latency`: [`LatencyStats`] (min, max, mean and percentiles).
 
 pub mod cdr;
 mod data;
 mod in_port;
+mod latency;
 mod link;
+mod openrtm;
 mod out_port;
 mod profile;
 
 pub use cdr::{
-    Point2D, Pose2D, Time, TimedDouble, TimedDoubleSeq, TimedLong, TimedPose2D, TimedString,
-    TimedVelocity2D, Velocity2D,
+    CdrOptions, Charset, Endian, Point2D, Pose2D, Time, TimedBoolean, TimedBooleanSeq, TimedChar,
+    TimedCharSeq, TimedDouble, TimedDoubleSeq, TimedFloat, TimedFloatSeq, TimedLong, TimedLongSeq,
+    TimedOctet, TimedOctetSeq, TimedPose2D, TimedShort, TimedShortSeq, TimedState, TimedString,
+    TimedStringSeq, TimedULong, TimedULongSeq, TimedUShort, TimedUShortSeq, TimedVelocity2D,
+    Velocity2D,
 };
 #[cfg(feature = "serde")]
 pub use data::Postcard;
 pub use data::{DataError, PortData};
-pub use in_port::{InPort, InPortStats, LatencyStats, Sample};
+pub use in_port::{InPort, InPortStats, Sample};
+pub use latency::LatencyStats;
 pub use link::{LinkStatus, PORT_HEADER, SENT_HEADER, SEQ_HEADER};
-pub use out_port::{OutPort, OutPortStats, PortStatus};
-pub use profile::{Backoff, Connector, ExchangeKind, FullPolicy, PortProfile};
+pub use openrtm::{ConnectorProfile, PortRole};
+pub use out_port::{Fate, OutPort, OutPortStats, Outcome, PortStatus};
+pub use profile::{
+    Backoff, Backpressure, Connector, ExchangeKind, FullPolicy, PortProfile, Qos, Replay,
+};

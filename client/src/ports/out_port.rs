@@ -1,58 +1,72 @@
-//! [`OutPort`]: publishes typed values, each with the port's sequence
-//! number and the time of `put` in its headers.
+//! [`OutPort`]: publishes typed values without ever making the caller wait
+//! on the network.
 //!
-//! One task per port owns the port's connection. `put` encodes the value,
-//! takes a slot in the window of unconfirmed messages and hands the message
-//! to the task, which numbers it and publishes it in order. With publisher
-//! confirms a message stays in the window until the broker confirms it;
-//! when the link drops the task reconnects with backoff, declares the
-//! topology again and republishes the whole window in order before
-//! anything newer (the in-port drops the duplicates this can make). `put`
-//! never takes longer than the profile's `put_timeout`, and says what
-//! became of the value with a [`PortStatus`].
+//! `put` encodes the value, numbers it and appends it to the port's window
+//! (a bounded queue shared with the port's task) and returns: it never
+//! waits for the broker, whatever the broker does. When the window is
+//! full the profile's [`Backpressure`] decides: drop the oldest value,
+//! refuse the new one, or wait for room up to the put timeout (the only
+//! `put` that waits, and only by the caller's choice).
+//!
+//! One task per port owns the connection. It publishes the window in
+//! order (mandatory, so an unroutable message comes back and is counted
+//! apart from confirmed ones) and, with publisher confirms, keeps each
+//! message until the broker confirms it. When the link drops it
+//! reconnects with backoff, declares the topology again and replays the
+//! window as the profile's [`Replay`] policy says. A message older than
+//! the profile's lifespan is never published: it is reported expired, and
+//! what is published carries the rest of its lifespan as its AMQP
+//! `expiration`, so the broker drops it too once it is stale.
+//!
+//! What became of each message (confirmed, rejected, unroutable, expired,
+//! dropped) is reported in three ways: the counters ([`OutPort::stats`],
+//! [`OutPort::watch_stats`]), a stream of [`Outcome`]s
+//! ([`OutPort::outcomes`]) and callbacks ([`OutPort::on_outcome`]).
 
+use super::cdr::CdrOptions;
 use super::data::PortData;
 use super::link::{self, Link, LinkStatus};
-use super::profile::{Connector, PortProfile};
+use super::profile::{Backpressure, Connector, PortProfile, Replay};
 use crate::confirm::ConfirmFuture;
 use crate::error::{Error, Result};
-use crate::{BasicProperties, BasicPublishOptions, Channel, Confirmation, Connection, ShortStr};
+use crate::{
+    BasicProperties, BasicPublishOptions, Channel, Confirmation, Connection, ReturnedMessage,
+    Returns, ShortStr,
+};
 use bytes::{Bytes, BytesMut};
-use std::collections::VecDeque;
+use futures_core::Stream;
+use std::collections::{HashSet, VecDeque};
 use std::future::{Future, IntoFuture};
 use std::marker::PhantomData;
 use std::pin::Pin;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::task::Poll;
 use std::time::Duration;
-use tokio::sync::{mpsc, oneshot, watch, OwnedSemaphorePermit, Semaphore};
+use tokio::sync::{broadcast, watch, Notify};
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
 
 /// How long closing a port waits for the broker's close-ok.
 const CLOSE_TIMEOUT: Duration = Duration::from_secs(5);
 
-/// What became of a `put`, after RT-Middleware's data port return codes.
-/// "Accepted" values are in the port's window: they reach the broker
-/// unless it rejects them or the port is dropped first.
+/// Outcomes the [`OutPort::outcomes`] stream buffers for a slow reader
+/// (a reader further behind skips ahead: see `broadcast::Receiver`).
+const OUTCOME_BUFFER: usize = 1024;
+
+/// What `put` did with a value, after RT-Middleware's data port return
+/// codes. It says nothing of the broker: what becomes of an accepted value
+/// later is an [`Outcome`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[non_exhaustive]
 pub enum PortStatus {
-    /// The broker has the message (with confirms), or it was handed to the
-    /// connection (without).
+    /// Accepted; the link is up, so it is on its way.
     Ok,
-    /// Not accepted: the window of unconfirmed messages stayed full for
-    /// the whole timeout (a slow or unreachable broker).
-    SendFull,
-    /// Accepted, but not confirmed within the timeout; it stays in the
-    /// window and is resent after a reconnection if need be.
-    SendTimeout,
-    /// Accepted while the link to the broker is down: it is sent once the
-    /// port has reconnected.
+    /// Accepted while the link is down: it is sent once the port has
+    /// (re)connected, if still within its lifespan.
     ConnectionLost,
-    /// The broker refused the message (`basic.nack`, e.g. a full queue
-    /// with `x-overflow: reject-publish`); it is not resent.
-    Rejected,
+    /// Not accepted: the window was full ([`Backpressure::DropNewest`], or
+    /// [`Backpressure::Block`] past its deadline).
+    SendFull,
     /// Not accepted: the value could not be encoded.
     InvalidArgs,
     /// Not accepted: the port is closed.
@@ -65,13 +79,38 @@ impl PortStatus {
         self == PortStatus::Ok
     }
 
-    /// Whether the value is on its way (now or after a reconnection).
+    /// Whether the value was accepted (now or for after a reconnection).
     pub fn is_accepted(self) -> bool {
-        matches!(
-            self,
-            PortStatus::Ok | PortStatus::SendTimeout | PortStatus::ConnectionLost
-        )
+        matches!(self, PortStatus::Ok | PortStatus::ConnectionLost)
     }
+}
+
+/// What finally became of an accepted message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum Fate {
+    /// The broker confirmed it (or, without confirms, it was written to
+    /// the connection).
+    Confirmed,
+    /// The broker refused it (`basic.nack`, e.g. a full queue with
+    /// `x-overflow: reject-publish`).
+    Rejected,
+    /// No queue was bound to receive it (`basic.return`, NO_ROUTE).
+    Unroutable,
+    /// Its lifespan ran out before it could be published.
+    Expired,
+    /// The window was full and [`Backpressure::DropOldest`] dropped it, or
+    /// the [`Replay`] policy did not send it after a reconnection.
+    Dropped,
+}
+
+/// One message's [`Fate`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Outcome {
+    /// The message's sequence number (its `x-seq` header).
+    pub seq: u64,
+    /// What became of it.
+    pub fate: Fate,
 }
 
 /// An out-port's counters.
@@ -83,47 +122,152 @@ pub struct OutPortStats {
     pub confirmed: u64,
     /// Refused by the broker.
     pub rejected: u64,
+    /// Returned by the broker as unroutable (not counted as confirmed).
+    pub unroutable: u64,
+    /// Past their lifespan before they could be published.
+    pub expired: u64,
+    /// Dropped from a full window or not replayed after a reconnection.
+    pub dropped: u64,
     /// Publishes repeated after a reconnection.
     pub resent: u64,
     /// Puts refused with [`PortStatus::SendFull`].
     pub send_full: u64,
-    /// Puts that returned [`PortStatus::SendTimeout`].
-    pub send_timeouts: u64,
-    /// Messages waiting for their confirm now.
+    /// Messages in the window now (waiting to be sent or confirmed).
     pub unconfirmed: u64,
 }
 
-/// A message on its way to the task.
-struct Request {
-    body: Bytes,
+/// A message in the window.
+#[derive(Debug)]
+struct Entry {
+    seq: u64,
     sent_ns: i64,
-    slot: OwnedSemaphorePermit,
-    reply: oneshot::Sender<PortStatus>,
+    /// When it was put, for its lifespan.
+    put_at: Instant,
+    body: Bytes,
+    /// Publishes so far.
+    attempts: u32,
 }
 
-/// What the port and its task share.
+/// The window: accepted messages not yet settled, in sequence order.
 #[derive(Debug)]
+struct Window {
+    entries: VecDeque<Entry>,
+    next_seq: u64,
+    /// The first sequence number not yet published on the current link.
+    publish_from: u64,
+    up: bool,
+    closed: bool,
+    stats: OutPortStats,
+}
+
+type OutcomeCallback = Box<dyn FnMut(&Outcome) + Send>;
+
+/// What the port and its task share.
 struct Shared {
-    stats: Mutex<OutPortStats>,
+    window: Mutex<Window>,
+    /// Signals the task: a new message, or the port closed.
+    work: Notify,
+    /// Signals async `put`s waiting for room.
+    room: Notify,
+    /// Signals blocking `put`s waiting for room.
+    room_blocking: Condvar,
+    stats: watch::Sender<OutPortStats>,
+    outcomes: broadcast::Sender<Outcome>,
+    callbacks: Mutex<Vec<OutcomeCallback>>,
     link: Link,
-    /// Messages in the window (accepted, not yet confirmed).
-    window: watch::Sender<usize>,
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 impl Shared {
-    fn stats(&self) -> std::sync::MutexGuard<'_, OutPortStats> {
-        self.stats.lock().unwrap_or_else(|e| e.into_inner())
+    fn window(&self) -> MutexGuard<'_, Window> {
+        lock(&self.window)
+    }
+
+    /// Publishes the counters and the outcomes, after the window's lock is
+    /// released; wakes whoever waits for room if messages left it.
+    fn report(&self, stats: OutPortStats, outcomes: &[Outcome], room: bool) {
+        self.stats.send_replace(stats);
+        if !outcomes.is_empty() {
+            let mut callbacks = lock(&self.callbacks);
+            for outcome in outcomes {
+                let _ = self.outcomes.send(*outcome);
+                for callback in callbacks.iter_mut() {
+                    callback(outcome);
+                }
+            }
+        }
+        if room {
+            self.room.notify_waiters();
+            self.room_blocking.notify_all();
+        }
     }
 }
 
-/// A typed publisher with reconnection and an unconfirmed window. Dropping
-/// it closes its connection; unconfirmed messages are then abandoned (see
-/// [`OutPort::flush`]).
+impl std::fmt::Debug for Shared {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Shared")
+            .field("window", &self.window().stats)
+            .finish_non_exhaustive()
+    }
+}
+
+/// The fate of one message, counted.
+fn settle(stats: &mut OutPortStats, outcomes: &mut Vec<Outcome>, seq: u64, fate: Fate) {
+    match fate {
+        Fate::Confirmed => stats.confirmed += 1,
+        Fate::Rejected => stats.rejected += 1,
+        Fate::Unroutable => stats.unroutable += 1,
+        Fate::Expired => stats.expired += 1,
+        Fate::Dropped => stats.dropped += 1,
+    }
+    outcomes.push(Outcome { seq, fate });
+}
+
+/// Takes the messages past their lifespan off the front of the window
+/// (the oldest first, so they are all there), unless published on the
+/// current link: the broker has those, with their expiration.
+fn expire_oldest(window: &mut Window, lifespan: Option<Duration>, outcomes: &mut Vec<Outcome>) {
+    let Some(lifespan) = lifespan else {
+        return;
+    };
+    let unpublished = window.publish_from;
+    while window
+        .entries
+        .front()
+        .is_some_and(|entry| entry.seq >= unpublished && entry.put_at.elapsed() >= lifespan)
+    {
+        if let Some(entry) = window.entries.pop_front() {
+            settle(&mut window.stats, outcomes, entry.seq, Fate::Expired);
+        }
+    }
+    window.stats.unconfirmed = window.entries.len() as u64;
+}
+
+/// Drops all but the newest `keep` messages of the window (a replay
+/// policy).
+fn keep_newest(window: &mut Window, keep: usize, outcomes: &mut Vec<Outcome>) {
+    let superseded = window.entries.len().saturating_sub(keep);
+    for _ in 0..superseded {
+        if let Some(entry) = window.entries.pop_front() {
+            settle(&mut window.stats, outcomes, entry.seq, Fate::Dropped);
+        }
+    }
+    window.stats.unconfirmed = window.entries.len() as u64;
+}
+
+/// A typed publisher with reconnection and a bounded window. Dropping it
+/// closes its connection; messages not yet confirmed are then abandoned
+/// (see [`OutPort::flush`]).
 #[derive(Debug)]
 pub struct OutPort<T> {
-    requests: mpsc::UnboundedSender<Request>,
-    slots: Arc<Semaphore>,
     shared: Arc<Shared>,
+    capacity: usize,
+    backpressure: Backpressure,
+    lifespan: Option<Duration>,
+    cdr: CdrOptions,
     timeout: Duration,
     id: Arc<str>,
     task: Option<JoinHandle<()>>,
@@ -140,19 +284,54 @@ impl<T: PortData> OutPort<T> {
     /// [`OutPort::connect`] through `connector` (an embedded broker, or a
     /// setup of one's own).
     pub async fn connect_with(connector: Connector, profile: PortProfile) -> Result<Self> {
+        check_routes(&profile)?;
         let profile = Arc::new(profile);
         let first = open(connector.clone(), Arc::clone(&profile)).await?;
+        OutPort::spawn(connector, profile, Some(first))
+    }
+
+    /// Starts the port at once, whether or not the broker is reachable:
+    /// it connects in the background (retrying with backoff), and values
+    /// put meanwhile wait in the window ([`PortStatus::ConnectionLost`]).
+    /// Fails only on a profile that cannot work (one that routes nowhere).
+    /// Must be called within a tokio runtime.
+    pub fn start(profile: PortProfile) -> Result<Self> {
+        OutPort::start_with(Connector::from(&profile), profile)
+    }
+
+    /// [`OutPort::start`] through `connector`.
+    pub fn start_with(connector: Connector, profile: PortProfile) -> Result<Self> {
+        check_routes(&profile)?;
+        OutPort::spawn(connector, Arc::new(profile), None)
+    }
+
+    fn spawn(
+        connector: Connector,
+        profile: Arc<PortProfile>,
+        first: Option<OutLink>,
+    ) -> Result<Self> {
         let shared = Arc::new(Shared {
-            stats: Mutex::new(OutPortStats::default()),
+            window: Mutex::new(Window {
+                entries: VecDeque::new(),
+                next_seq: 1,
+                publish_from: 1,
+                up: first.is_some(),
+                closed: false,
+                stats: OutPortStats::default(),
+            }),
+            work: Notify::new(),
+            room: Notify::new(),
+            room_blocking: Condvar::new(),
+            stats: watch::Sender::new(OutPortStats::default()),
+            outcomes: broadcast::Sender::new(OUTCOME_BUFFER),
+            callbacks: Mutex::new(Vec::new()),
             link: Link::new(),
-            window: watch::Sender::new(0),
         });
-        shared.link.connected();
+        if first.is_some() {
+            shared.link.connected();
+        }
         let id: Arc<str> = link::port_id().into();
-        let (requests, rx) = mpsc::unbounded_channel();
-        let slots = Arc::new(Semaphore::new(profile.max_unconfirmed.max(1)));
         let task = Task {
-            requests: rx,
             shared: Arc::clone(&shared),
             connector,
             exchange: ShortStr::try_from(profile.exchange.as_str())?,
@@ -160,79 +339,218 @@ impl<T: PortData> OutPort<T> {
             content_type: ShortStr::try_from(T::CONTENT_TYPE)?,
             type_name: T::TYPE_NAME.map(ShortStr::try_from).transpose()?,
             port: Arc::clone(&id),
-            timeout: profile.put_timeout,
-            profile,
-            next_seq: 1,
-            window: VecDeque::new(),
-            published: 0,
             inflight: VecDeque::new(),
-            link: Some(first),
+            returned: HashSet::new(),
             connecting: None,
             failures: 0,
             retry_at: Instant::now(),
+            link: first.map(OutLink::watch_returns),
+            profile: Arc::clone(&profile),
         };
-        let timeout = task.timeout;
         let task = tokio::spawn(task.run());
         Ok(OutPort {
-            requests,
-            slots,
             shared,
-            timeout,
+            capacity: profile.max_unconfirmed.max(1),
+            backpressure: profile.backpressure,
+            lifespan: profile.lifespan,
+            cdr: profile.cdr,
+            timeout: profile.put_timeout,
             id,
             task: Some(task),
             _data: PhantomData,
         })
     }
 
-    /// Publishes `value`, waiting at most the profile's `put_timeout`.
+    /// Puts `value` in the window and returns. It never waits on the
+    /// network; with [`Backpressure::Block`] and a full window it waits for
+    /// room, at most the profile's put timeout.
     pub async fn put(&self, value: &T) -> PortStatus {
+        let body = match encode(value, self.cdr) {
+            Ok(body) => body,
+            Err(status) => return status,
+        };
         let deadline = Instant::now() + self.timeout;
-        let mut body = BytesMut::new();
-        if let Err(error) = value.encode(&mut body) {
-            tracing::warn!(%error, "out-port value could not be encoded");
-            return PortStatus::InvalidArgs;
-        }
-        let sent_ns = link::now_ns();
-        let slot = match tokio::time::timeout_at(deadline, Arc::clone(&self.slots).acquire_owned())
-            .await
-        {
-            Ok(Ok(slot)) => slot,
-            Ok(Err(_)) => return PortStatus::Closed,
-            Err(_) => {
-                self.shared.stats().send_full += 1;
-                return PortStatus::SendFull;
-            }
-        };
-        let (reply, answer) = oneshot::channel();
-        let request = Request {
-            body: body.freeze(),
-            sent_ns,
-            slot,
-            reply,
-        };
-        if self.requests.send(request).is_err() {
-            return PortStatus::Closed;
-        }
-        match tokio::time::timeout_at(deadline, answer).await {
-            Ok(Ok(status)) => status,
-            Ok(Err(_)) => PortStatus::Closed,
-            Err(_) => {
-                self.shared.stats().send_timeouts += 1;
-                PortStatus::SendTimeout
+        let mut body = Some(body);
+        loop {
+            let room = self.shared.room.notified();
+            match self.enqueue(&mut body) {
+                Some(status) => return status,
+                None if Instant::now() >= deadline => return self.refuse(),
+                None => {
+                    if tokio::time::timeout_at(deadline, room).await.is_err() {
+                        // One more look: room made just at the deadline.
+                        return self.enqueue(&mut body).unwrap_or_else(|| self.refuse());
+                    }
+                }
             }
         }
     }
 
-    /// Waits until every accepted message has been confirmed (or
-    /// rejected); wrap it in a timeout.
+    /// [`OutPort::put`] without ever waiting: with a full window,
+    /// [`Backpressure::Block`] refuses the value ([`PortStatus::SendFull`]).
+    /// Callable from any thread.
+    pub fn try_put(&self, value: &T) -> PortStatus {
+        let body = match encode(value, self.cdr) {
+            Ok(body) => body,
+            Err(status) => return status,
+        };
+        self.enqueue(&mut Some(body))
+            .unwrap_or_else(|| self.refuse())
+    }
+
+    /// [`OutPort::put`] for a thread outside the async runtime (a control
+    /// loop of its own): it blocks the thread, not a task, when
+    /// [`Backpressure::Block`] waits for room. Never call it on a runtime
+    /// thread.
+    ///
+    /// ```no_run
+    /// use leveret_client::ports::{InPort, OutPort, PortProfile, Qos, Time, TimedVelocity2D};
+    /// use std::time::Duration;
+    ///
+    /// # fn main() -> leveret_client::Result<()> {
+    /// // The ports' tasks run on a runtime; the control loop on its own thread.
+    /// let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    /// let profile = PortProfile::new("amqp://guest:guest@localhost:5672/%2f")?
+    ///     .queue("cmd_vel")
+    ///     .routing_key("cmd_vel")
+    ///     .qos(Qos::Command);
+    /// let output = runtime.block_on(OutPort::<TimedVelocity2D>::connect(profile.clone()))?;
+    /// let input = runtime.block_on(InPort::<TimedVelocity2D>::connect(profile))?;
+    /// std::thread::spawn(move || loop {
+    ///     let command = TimedVelocity2D { tm: Time::now(), ..Default::default() };
+    ///     output.put_blocking(&command);
+    ///     if let Some(sample) = input.recv_blocking(Duration::from_millis(10)) {
+    ///         println!("{:?}", sample.value);
+    ///     }
+    /// });
+    /// # Ok(())
+    /// # }
+    /// ```
+    pub fn put_blocking(&self, value: &T) -> PortStatus {
+        let body = match encode(value, self.cdr) {
+            Ok(body) => body,
+            Err(status) => return status,
+        };
+        let deadline = std::time::Instant::now() + self.timeout;
+        let mut body = Some(body);
+        let mut window = self.shared.window();
+        loop {
+            if let Some(status) = self.enqueue_locked(window, &mut body) {
+                return status;
+            }
+            window = self.shared.window();
+            let now = std::time::Instant::now();
+            if now >= deadline || window.closed {
+                drop(window);
+                return self.refuse();
+            }
+            if window.entries.len() < self.capacity {
+                continue;
+            }
+            window = self
+                .shared
+                .room_blocking
+                .wait_timeout(window, deadline - now)
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
+    }
+
+    /// Appends the body if the policy lets it in now: `Some(status)` once
+    /// decided, `None` if it must wait for room.
+    fn enqueue(&self, body: &mut Option<Bytes>) -> Option<PortStatus> {
+        self.enqueue_locked(self.shared.window(), body)
+    }
+
+    fn enqueue_locked(
+        &self,
+        mut window: MutexGuard<'_, Window>,
+        body: &mut Option<Bytes>,
+    ) -> Option<PortStatus> {
+        if window.closed {
+            return Some(PortStatus::Closed);
+        }
+        let mut outcomes = Vec::new();
+        if window.entries.len() >= self.capacity {
+            expire_oldest(&mut window, self.lifespan, &mut outcomes);
+        }
+        if window.entries.len() >= self.capacity {
+            match self.backpressure {
+                Backpressure::DropOldest => {
+                    let oldest = window.entries.pop_front()?;
+                    settle(&mut window.stats, &mut outcomes, oldest.seq, Fate::Dropped);
+                }
+                Backpressure::DropNewest => {
+                    drop(window);
+                    return Some(self.refuse());
+                }
+                Backpressure::Block => return None,
+            }
+        }
+        let seq = window.next_seq;
+        window.next_seq += 1;
+        window.entries.push_back(Entry {
+            seq,
+            sent_ns: link::now_ns(),
+            put_at: Instant::now(),
+            body: body.take()?,
+            attempts: 0,
+        });
+        window.stats.accepted += 1;
+        window.stats.unconfirmed = window.entries.len() as u64;
+        let status = if window.up {
+            PortStatus::Ok
+        } else {
+            PortStatus::ConnectionLost
+        };
+        let stats = window.stats;
+        drop(window);
+        self.shared.work.notify_one();
+        self.shared.report(stats, &outcomes, false);
+        Some(status)
+    }
+
+    /// Counts a value refused for want of room.
+    fn refuse(&self) -> PortStatus {
+        let mut window = self.shared.window();
+        if window.closed {
+            return PortStatus::Closed;
+        }
+        window.stats.send_full += 1;
+        let stats = window.stats;
+        drop(window);
+        self.shared.stats.send_replace(stats);
+        PortStatus::SendFull
+    }
+
+    /// Waits until every accepted message is settled (confirmed, refused,
+    /// expired or dropped); wrap it in a timeout.
     pub async fn flush(&self) {
-        let mut window = self.shared.window.subscribe();
-        let _ = window.wait_for(|n| *n == 0).await;
+        let mut stats = self.shared.stats.subscribe();
+        let _ = stats.wait_for(|s| s.unconfirmed == 0).await;
     }
 
     /// The counters so far.
     pub fn stats(&self) -> OutPortStats {
-        *self.shared.stats()
+        self.shared.window().stats
+    }
+
+    /// The counters as they change, to wait for a condition on them.
+    pub fn watch_stats(&self) -> watch::Receiver<OutPortStats> {
+        self.shared.stats.subscribe()
+    }
+
+    /// The stream of [`Outcome`]s from now on. It buffers
+    /// 1024 outcomes for a slow reader; one further behind is told how
+    /// many it missed (`RecvError::Lagged`) and the counters stay exact.
+    pub fn outcomes(&self) -> broadcast::Receiver<Outcome> {
+        self.shared.outcomes.subscribe()
+    }
+
+    /// Calls `callback` with every [`Outcome`] from now on (keep it short:
+    /// it runs on the port's task, or in `put` for a value it drops).
+    pub fn on_outcome(&self, callback: impl FnMut(&Outcome) + Send + 'static) {
+        lock(&self.shared.callbacks).push(Box::new(callback));
     }
 
     /// The link's state, to watch for losses and reconnections.
@@ -256,19 +574,49 @@ impl<T: PortData> OutPort<T> {
     }
 }
 
-/// A message in the window.
-struct Entry {
-    properties: BasicProperties,
-    body: Bytes,
-    reply: Option<oneshot::Sender<PortStatus>>,
-    attempts: u32,
-    _slot: OwnedSemaphorePermit,
+impl<T> Drop for OutPort<T> {
+    fn drop(&mut self) {
+        lock(&self.shared.window).closed = true;
+        self.shared.work.notify_one();
+        self.shared.room.notify_waiters();
+        self.shared.room_blocking.notify_all();
+    }
+}
+
+fn encode<T: PortData>(value: &T, options: CdrOptions) -> std::result::Result<Bytes, PortStatus> {
+    let mut body = BytesMut::new();
+    match value.encode_with(&mut body, options) {
+        Ok(()) => Ok(body.freeze()),
+        Err(error) => {
+            tracing::warn!(%error, "out-port value could not be encoded");
+            Err(PortStatus::InvalidArgs)
+        }
+    }
+}
+
+/// Refuses a profile whose messages could reach no queue: the default
+/// exchange with no routing key.
+fn check_routes(profile: &PortProfile) -> Result<()> {
+    if profile.exchange.is_empty() && profile.routing_key.is_empty() {
+        return Err(Error::InvalidArgument(
+            "the out-port's profile routes nowhere: no exchange and no routing key".to_owned(),
+        ));
+    }
+    Ok(())
 }
 
 /// A connection with its channel, topology declared.
 struct OutLink {
     connection: Connection,
     channel: Channel,
+    returns: Option<Returns>,
+}
+
+impl OutLink {
+    fn watch_returns(mut self) -> Self {
+        self.returns = Some(self.channel.returns());
+        self
+    }
 }
 
 type Opening = Pin<Box<dyn Future<Output = Result<OutLink>> + Send>>;
@@ -280,7 +628,7 @@ async fn open(connector: Connector, profile: Arc<PortProfile>) -> Result<OutLink
         let channel = connection.open_channel().await?;
         link::declare_exchange(&channel, &profile).await?;
         if profile.declare_queue && !profile.queue.is_empty() {
-            link::declare_queue(&channel, &profile).await?;
+            link::declare_queue(&channel, &profile, &profile.queue, false, true).await?;
         }
         if profile.confirms {
             channel.confirm_select().await?;
@@ -288,6 +636,7 @@ async fn open(connector: Connector, profile: Arc<PortProfile>) -> Result<OutLink
         Ok(OutLink {
             connection,
             channel,
+            returns: None,
         })
     };
     match tokio::time::timeout(profile.broker.connection_timeout, setup).await {
@@ -299,15 +648,14 @@ async fn open(connector: Connector, profile: Arc<PortProfile>) -> Result<OutLink
 /// What woke the task.
 enum Event {
     Confirm(Result<Confirmation>),
-    Request(Request),
-    Dropped,
+    Returned(Box<ReturnedMessage>),
+    Work,
     Opened(Result<OutLink>),
     Lost(Error),
     Retry,
 }
 
 struct Task {
-    requests: mpsc::UnboundedReceiver<Request>,
     shared: Arc<Shared>,
     connector: Connector,
     profile: Arc<PortProfile>,
@@ -316,14 +664,11 @@ struct Task {
     content_type: ShortStr,
     type_name: Option<ShortStr>,
     port: Arc<str>,
-    timeout: Duration,
-    next_seq: u64,
-    /// Accepted, unconfirmed messages in sequence order; the first
-    /// `published` of them were published on the current link.
-    window: VecDeque<Entry>,
-    published: usize,
-    /// Confirms of the published messages, in the same order.
-    inflight: VecDeque<ConfirmFuture>,
+    /// Confirms of the messages published on this link, in order.
+    inflight: VecDeque<(u64, ConfirmFuture)>,
+    /// Sequence numbers the broker returned as unroutable, until their
+    /// confirm arrives.
+    returned: HashSet<u64>,
     link: Option<OutLink>,
     connecting: Option<Opening>,
     failures: u32,
@@ -333,8 +678,10 @@ struct Task {
 impl Task {
     async fn run(mut self) {
         loop {
-            if self.link.is_some() && self.published < self.window.len() {
-                self.publish_pending().await;
+            if self.shared.window().closed {
+                break;
+            }
+            if self.link.is_some() && self.publish_next().await {
                 continue;
             }
             if self.link.is_none() && self.connecting.is_none() && Instant::now() >= self.retry_at {
@@ -342,12 +689,12 @@ impl Task {
                 self.connecting = Some(Box::pin(opening));
             }
             match self.next_event().await {
-                Event::Confirm(result) => self.settle(result),
-                Event::Request(request) => self.accept(request),
-                Event::Dropped => break,
+                Event::Returned(message) => self.returned(&message),
+                Event::Confirm(result) => self.confirmed(result),
+                Event::Work => {}
+                Event::Retry => self.expire_while_down(),
                 Event::Opened(result) => self.opened(result),
                 Event::Lost(error) => self.lost(error),
-                Event::Retry => {}
             }
         }
         if let Some(link) = self.link.take() {
@@ -361,7 +708,7 @@ impl Task {
         let channel = self.link.as_ref().map(|link| link.channel.clone());
         let idle = self.link.is_none() && connecting.is_none();
         let confirm = std::future::poll_fn(|cx| match inflight.front_mut() {
-            Some(confirm) => Pin::new(confirm).poll(cx),
+            Some((_, confirm)) => Pin::new(confirm).poll(cx),
             None => Poll::Pending,
         });
         let opened = std::future::poll_fn(|cx| match connecting.as_mut() {
@@ -374,127 +721,204 @@ impl Task {
                 None => std::future::pending().await,
             }
         };
+        let mut returns = self.link.as_mut().and_then(|link| link.returns.as_mut());
+        let returned = std::future::poll_fn(|cx| match returns.as_mut() {
+            Some(returns) => match Pin::new(&mut **returns).poll_next(cx) {
+                Poll::Ready(Some(message)) => Poll::Ready(Box::new(message)),
+                // The channel's end shows as `closed`.
+                Poll::Ready(None) | Poll::Pending => Poll::Pending,
+            },
+            None => Poll::Pending,
+        });
         tokio::select! {
             biased;
+            // A message's return comes before its confirm.
+            message = returned => Event::Returned(message),
             result = confirm => Event::Confirm(result),
-            request = self.requests.recv() => match request {
-                Some(request) => Event::Request(request),
-                None => Event::Dropped,
-            },
+            () = self.shared.work.notified() => Event::Work,
             result = opened => Event::Opened(result),
             error = closed => Event::Lost(error),
             _ = tokio::time::sleep_until(self.retry_at), if idle => Event::Retry,
         }
     }
 
-    fn accept(&mut self, request: Request) {
-        let seq = self.next_seq;
-        self.next_seq += 1;
+    /// Publishes the next message of the window not yet published on this
+    /// link, expiring what is past its lifespan; false if there is none.
+    async fn publish_next(&mut self) -> bool {
+        let lifespan = self.profile.lifespan;
+        let mut outcomes = Vec::new();
+        let next = {
+            let mut window = self.shared.window();
+            let window = &mut *window;
+            let index = window
+                .entries
+                .partition_point(|entry| entry.seq < window.publish_from);
+            let mut next = None;
+            while let Some(entry) = window.entries.get_mut(index) {
+                let age = entry.put_at.elapsed();
+                let remaining = match lifespan {
+                    Some(lifespan) if age >= lifespan => {
+                        let seq = entry.seq;
+                        window.entries.remove(index);
+                        settle(&mut window.stats, &mut outcomes, seq, Fate::Expired);
+                        continue;
+                    }
+                    Some(lifespan) => Some(lifespan - age),
+                    None => None,
+                };
+                if entry.attempts > 0 {
+                    window.stats.resent += 1;
+                }
+                entry.attempts += 1;
+                window.publish_from = entry.seq + 1;
+                next = Some((entry.seq, entry.sent_ns, entry.body.clone(), remaining));
+                break;
+            }
+            window.stats.unconfirmed = window.entries.len() as u64;
+            (next, window.stats)
+        };
+        let (next, stats) = next;
+        if !outcomes.is_empty() {
+            self.shared.report(stats, &outcomes, true);
+        }
+        let Some((seq, sent_ns, body, remaining)) = next else {
+            return !outcomes.is_empty();
+        };
         let properties = BasicProperties {
             content_type: Some(self.content_type.clone()),
             kind: self.type_name.clone(),
             delivery_mode: Some(if self.profile.persistent { 2 } else { 1 }),
-            timestamp: u64::try_from(request.sent_ns / 1_000_000_000).ok(),
-            headers: Some(link::headers(&self.port, seq, request.sent_ns)),
+            timestamp: u64::try_from(sent_ns / 1_000_000_000).ok(),
+            // At least 1 ms: an expiration of 0 would mean "deliver now or
+            // never", stricter than what is left.
+            expiration: remaining
+                .and_then(|left| ShortStr::try_from(left.as_millis().max(1).to_string()).ok()),
+            headers: Some(link::headers(&self.port, seq, sent_ns)),
             ..Default::default()
         };
-        let mut reply = Some(request.reply);
-        if self.link.is_none() {
-            if let Some(reply) = reply.take() {
-                let _ = reply.send(PortStatus::ConnectionLost);
-            }
-        }
-        self.window.push_back(Entry {
-            properties,
-            body: request.body,
-            reply,
-            attempts: 0,
-            _slot: request.slot,
-        });
-        self.shared.stats().accepted += 1;
-        self.window_changed();
-    }
-
-    /// Publishes, in order, every message of the window not yet published
-    /// on the current link.
-    async fn publish_pending(&mut self) {
-        while self.published < self.window.len() {
-            let Some(link) = &self.link else {
-                return;
-            };
-            let entry = &mut self.window[self.published];
-            let result = link
-                .channel
-                .basic_publish(
-                    &self.exchange,
-                    &self.routing_key,
-                    BasicPublishOptions::default(),
-                    entry.properties.clone(),
-                    entry.body.clone(),
-                )
-                .await;
-            let confirm = match result {
-                Ok(confirm) => confirm,
-                Err(error) => {
-                    self.lost(error);
-                    return;
-                }
-            };
-            if entry.attempts > 0 {
-                self.shared.stats().resent += 1;
-            }
-            entry.attempts += 1;
-            if self.profile.confirms {
-                self.inflight.push_back(confirm.into_future());
-                self.published += 1;
-            } else if let Some(mut entry) = self.window.pop_front() {
-                if let Some(reply) = entry.reply.take() {
-                    let _ = reply.send(PortStatus::Ok);
-                }
-                self.shared.stats().confirmed += 1;
-                self.window_changed();
-            }
-        }
-    }
-
-    /// The oldest published message was confirmed (or its link failed).
-    fn settle(&mut self, result: Result<Confirmation>) {
-        let status = match result {
-            Ok(Confirmation::Ack | Confirmation::NotRequested) => PortStatus::Ok,
-            Ok(Confirmation::Nack) => PortStatus::Rejected,
-            Err(error) => return self.lost(error),
+        let Some(link) = &self.link else {
+            return false;
         };
-        self.inflight.pop_front();
-        self.published -= 1;
-        if let Some(mut entry) = self.window.pop_front() {
-            if let Some(reply) = entry.reply.take() {
-                let _ = reply.send(status);
+        let options = BasicPublishOptions {
+            mandatory: self.profile.mandatory,
+        };
+        let result = link
+            .channel
+            .basic_publish(&self.exchange, &self.routing_key, options, properties, body)
+            .await;
+        match result {
+            Ok(confirm) if self.profile.confirms => {
+                self.inflight.push_back((seq, confirm.into_future()));
             }
+            Ok(_) => self.settle_published(seq, Confirmation::NotRequested),
+            Err(error) => self.lost(error),
         }
-        {
-            let mut stats = self.shared.stats();
-            if status.is_ok() {
-                stats.confirmed += 1;
-            } else {
-                stats.rejected += 1;
-            }
-        }
-        self.window_changed();
+        true
     }
 
-    /// The link failed: keep the window for the next one.
+    /// The oldest published message's confirm arrived (or its link
+    /// failed).
+    fn confirmed(&mut self, result: Result<Confirmation>) {
+        match result {
+            Ok(confirmation) => {
+                if let Some((seq, _)) = self.inflight.pop_front() {
+                    self.settle_published(seq, confirmation);
+                }
+            }
+            Err(error) => self.lost(error),
+        }
+    }
+
+    /// Settles message `seq` (if still in the window: a full window may
+    /// have dropped it since).
+    fn settle_published(&mut self, seq: u64, confirmation: Confirmation) {
+        self.drain_returns();
+        let fate = match confirmation {
+            _ if self.returned.remove(&seq) => Fate::Unroutable,
+            Confirmation::Ack | Confirmation::NotRequested => Fate::Confirmed,
+            Confirmation::Nack => Fate::Rejected,
+        };
+        let mut outcomes = Vec::new();
+        let mut window = self.shared.window();
+        if let Ok(index) = window.entries.binary_search_by_key(&seq, |entry| entry.seq) {
+            window.entries.remove(index);
+            settle(&mut window.stats, &mut outcomes, seq, fate);
+            window.stats.unconfirmed = window.entries.len() as u64;
+        }
+        let stats = window.stats;
+        drop(window);
+        self.shared.report(stats, &outcomes, true);
+    }
+
+    /// Notes every message the broker has returned so far. The broker
+    /// sends a message's `basic.return` before its confirm, and the reader
+    /// hands them over in that order, so its return is here by the time
+    /// its confirm is. Without confirms, a return that comes later than the
+    /// write is not matched (the message is already counted confirmed).
+    fn drain_returns(&mut self) {
+        let Some(returns) = self.link.as_mut().and_then(|link| link.returns.as_mut()) else {
+            return;
+        };
+        let mut pending = Vec::new();
+        while let Some(message) = returns.try_next() {
+            pending.push(message);
+        }
+        for message in &pending {
+            self.returned(message);
+        }
+    }
+
+    /// The broker returned a message no queue took. With confirms its
+    /// fate waits for its confirm (which follows); without, it was
+    /// already counted as written and is counted unroutable too.
+    fn returned(&mut self, message: &ReturnedMessage) {
+        let Some(seq) = link::Stamp::read(message.properties.headers.as_ref()).seq else {
+            return;
+        };
+        if self.profile.confirms {
+            self.returned.insert(seq);
+            return;
+        }
+        let mut outcomes = Vec::new();
+        let mut window = self.shared.window();
+        settle(&mut window.stats, &mut outcomes, seq, Fate::Unroutable);
+        let stats = window.stats;
+        drop(window);
+        self.shared.report(stats, &outcomes, false);
+    }
+
+    /// While the link is down, the values past their lifespan leave the
+    /// window (and make room) without waiting for the next link.
+    fn expire_while_down(&mut self) {
+        let mut outcomes = Vec::new();
+        let mut window = self.shared.window();
+        expire_oldest(&mut window, self.profile.lifespan, &mut outcomes);
+        let stats = window.stats;
+        drop(window);
+        if !outcomes.is_empty() {
+            self.shared.report(stats, &outcomes, true);
+        }
+    }
+
+    /// The link failed: replay the window on the next one, as the replay
+    /// policy says.
     fn lost(&mut self, error: Error) {
         if let Some(link) = self.link.take() {
             drop(link.channel);
             drop(link.connection);
         }
         self.inflight.clear();
-        self.published = 0;
-        for entry in &mut self.window {
-            if let Some(reply) = entry.reply.take() {
-                let _ = reply.send(PortStatus::ConnectionLost);
-            }
+        self.returned.clear();
+        let mut outcomes = Vec::new();
+        let mut window = self.shared.window();
+        window.up = false;
+        window.publish_from = 0;
+        if self.profile.replay == Replay::Nothing {
+            keep_newest(&mut window, 0, &mut outcomes);
         }
+        let stats = window.stats;
+        drop(window);
+        self.shared.report(stats, &outcomes, !outcomes.is_empty());
         self.shared.link.lost(&error);
         self.failures = 0;
         self.retry_at = Instant::now();
@@ -504,8 +928,17 @@ impl Task {
         self.connecting = None;
         match result {
             Ok(link) => {
-                self.link = Some(link);
+                self.link = Some(link.watch_returns());
                 self.failures = 0;
+                let mut outcomes = Vec::new();
+                let mut window = self.shared.window();
+                window.up = true;
+                if self.profile.replay == Replay::Latest {
+                    keep_newest(&mut window, 1, &mut outcomes);
+                }
+                let stats = window.stats;
+                drop(window);
+                self.shared.report(stats, &outcomes, !outcomes.is_empty());
                 self.shared.link.connected();
             }
             Err(error) => {
@@ -514,11 +947,5 @@ impl Task {
                 self.failures = self.failures.saturating_add(1);
             }
         }
-    }
-
-    fn window_changed(&self) {
-        let len = self.window.len();
-        self.shared.stats().unconfirmed = len as u64;
-        self.shared.window.send_replace(len);
     }
 }

@@ -3,11 +3,15 @@
 //! name and type, queue name, binding key, whether to declare and bind the
 //! queue, routing key; see [`PortProfile::from_properties`] for their
 //! property names) and Leveret's own: durability, publisher confirms,
-//! prefetch, the in-port's buffer and full policy, the put timeout, the
-//! unconfirmed window and the reconnection backoff. [`Connector`] says how
-//! a port (re)opens its connection: TCP, an embedded broker, or a function.
+//! prefetch, the in-port's buffer and full policy, the out-port's window
+//! and its [`Backpressure`], the put timeout (for `Block` only), the
+//! lifespan, the [`Replay`] policy, mandatory publishing, the CDR options,
+//! the in-port's own queue expiry, the reconnection backoff, and the
+//! [`Qos`] presets that set several at once. [`Connector`] says how a port
+//! (re)opens its connection: TCP, an embedded broker, or a function.
 
-use crate::error::{Error, Result};
+use super::cdr::CdrOptions;
+use crate::error::Result;
 use crate::uri::ConnectionOptions;
 use crate::{Connection, FieldTable};
 use std::fmt;
@@ -44,21 +48,28 @@ impl ExchangeKind {
         }
     }
 
-    /// Parses a type as OpenRTM-aist's AMQP interface accepts it: the
-    /// name (`direct`, `AMQP::direct`), its initial, or its number
-    /// (0 direct, 1 fanout, 2 topic, 3 headers); anything else is taken as
-    /// a plugin's type name.
+    /// Parses a type as OpenRTM-aist's AMQP interface accepts it, in any
+    /// case: the name (`direct`, `AMQP::direct`), its initial, or its
+    /// number (0 direct, 1 fanout, 2 topic, 3 headers). A plugin's type
+    /// (`x-…`) is taken as named; anything else is, as in OpenRTM's
+    /// module, a consistent-hash exchange.
     pub fn parse(text: &str) -> Self {
-        let name = text.strip_prefix("AMQP::").unwrap_or(text);
+        let lower = text.trim().to_ascii_lowercase();
+        let name = lower.strip_prefix("amqp::").unwrap_or(&lower);
         match name {
-            "0" | "d" | "D" | "direct" => ExchangeKind::Direct,
-            "1" | "f" | "F" | "fanout" => ExchangeKind::Fanout,
-            "2" | "t" | "T" | "topic" => ExchangeKind::Topic,
-            "3" | "h" | "H" | "headers" => ExchangeKind::Headers,
-            other => ExchangeKind::Other(other.to_owned()),
+            "0" | "d" | "direct" => ExchangeKind::Direct,
+            "1" | "f" | "fanout" => ExchangeKind::Fanout,
+            "2" | "t" | "topic" => ExchangeKind::Topic,
+            "3" | "h" | "headers" => ExchangeKind::Headers,
+            plugin if plugin.starts_with("x-") => ExchangeKind::Other(text.trim().to_owned()),
+            _ => ExchangeKind::Other(CONSISTENT_HASH.to_owned()),
         }
     }
 }
+
+/// The type of RabbitMQ's consistent-hash exchange plugin, OpenRTM's
+/// fallback for a type it does not know.
+pub const CONSISTENT_HASH: &str = "x-consistent-hash";
 
 impl fmt::Display for ExchangeKind {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -92,6 +103,59 @@ impl FullPolicy {
             _ => None,
         }
     }
+}
+
+/// What an out-port does with a new value when its window (values waiting
+/// to be sent or confirmed) is full. Whatever it is, `put` never waits on
+/// the network unless told to ([`Backpressure::Block`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Backpressure {
+    /// Drop the oldest value of the window (keep the last N): a stream of
+    /// states, where the newest value matters most.
+    #[default]
+    DropOldest,
+    /// Refuse the new value ([`super::PortStatus::SendFull`]).
+    DropNewest,
+    /// Wait for room, at most the put timeout, then refuse the value.
+    Block,
+}
+
+/// What an out-port sends after a reconnection, of the values the broker
+/// had not confirmed when the link dropped and those put while it was
+/// down. The lifespan applies whatever the policy: a value older than it
+/// is never sent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Replay {
+    /// Every value still in the window (and within its lifespan).
+    #[default]
+    All,
+    /// The newest value only (a setpoint: the older ones are superseded).
+    Latest,
+    /// None of what was unconfirmed when the link dropped (values put
+    /// while it is down are still sent).
+    Nothing,
+}
+
+/// A QoS preset, named after what robot developers know from ROS 2: each
+/// sets the profile's reliability and freshness settings together (see
+/// [`PortProfile::qos`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum Qos {
+    /// Sensor streams: best effort (no confirms), only the latest value
+    /// kept and replayed, 100 ms lifespan, an in-port buffer of one.
+    SensorData,
+    /// Commands (`cmd_vel`): confirmed, 200 ms lifespan, no stale replay
+    /// (only the latest within its lifespan), a window of 16 dropping the
+    /// oldest.
+    Command,
+    /// Nothing lost: confirmed, durable and persistent, no lifespan,
+    /// replay everything, `put` waits for room (blocking backpressure)
+    /// and the in-port holds the broker back rather than drop.
+    Reliable,
+    /// Telemetry and logs: best effort, a 10 s lifespan, the last 1000
+    /// values kept and replayed.
+    Telemetry,
 }
 
 /// Reconnection delays: the first retry after `initial`, doubling up to
@@ -139,9 +203,11 @@ pub struct PortProfile {
     pub queue: String,
     /// Key binding the queue to the exchange.
     pub binding_key: String,
-    /// Declare the queue and bind it (OpenRTM's `bind`). The in-port
-    /// always declares a server-named queue; an out-port declares a named
-    /// one, so messages published before the in-port starts are kept.
+    /// OpenRTM's `bind`. An in-port always declares its queue; with
+    /// `bind` it also declares the exchange and binds the queue to it. An
+    /// out-port always declares the exchange; with `bind` (and a queue
+    /// name) it also declares the queue and binds it, so messages
+    /// published before the in-port starts are kept.
     pub declare_queue: bool,
     /// Key the out-port publishes with.
     pub routing_key: String,
@@ -163,13 +229,36 @@ pub struct PortProfile {
     pub buffer_size: usize,
     /// What the in-port does when the buffer is full.
     pub full_policy: FullPolicy,
-    /// Longest time `OutPort::put` may take.
+    /// Longest time `OutPort::put` waits for room with
+    /// [`Backpressure::Block`] (never for the network).
     pub put_timeout: Duration,
-    /// Messages the out-port keeps until confirmed (and resends after a
-    /// reconnection); `put` reports `SendFull` when it stays full.
+    /// The out-port's window: values it keeps until sent and confirmed
+    /// (and resends after a reconnection); when full, the
+    /// [`Backpressure`] policy applies.
     pub max_unconfirmed: usize,
     /// Reconnection delays.
     pub backoff: Backoff,
+    /// The byte order and string charset of CDR bodies.
+    pub cdr: CdrOptions,
+    /// How long a value stays useful: the out-port never sends a value
+    /// older than this (it is reported expired), and what it sends carries
+    /// the rest as its AMQP `expiration`, so the broker drops it once
+    /// stale; the in-port drops (and counts as `stale`) a value older than
+    /// this by its `x-sent-ns`. `None`: values never go stale.
+    pub lifespan: Option<Duration>,
+    /// What the out-port does when its window is full.
+    pub backpressure: Backpressure,
+    /// What the out-port sends again after a reconnection.
+    pub replay: Replay,
+    /// Publish with `mandatory`: the broker returns a message no queue
+    /// receives, and the out-port counts it `unroutable` rather than
+    /// confirmed.
+    pub mandatory: bool,
+    /// An in-port with no queue name makes one of its own (named after
+    /// the port, not exclusive) that outlives its reconnections, so nothing
+    /// sent while it reconnects is lost; the broker deletes it once unused
+    /// for this long (`x-expires`).
+    pub queue_expires: Duration,
 }
 
 impl Default for PortProfile {
@@ -197,6 +286,12 @@ impl Default for PortProfile {
             put_timeout: Duration::from_millis(500),
             max_unconfirmed: 1024,
             backoff: Backoff::default(),
+            cdr: CdrOptions::default(),
+            lifespan: None,
+            backpressure: Backpressure::DropOldest,
+            replay: Replay::All,
+            mandatory: true,
+            queue_expires: Duration::from_secs(60),
         }
     }
 }
@@ -217,65 +312,6 @@ impl PortProfile {
             broker,
             ..PortProfile::default()
         })
-    }
-
-    /// Reads OpenRTM-aist AMQP connector properties: `host`, `msport`,
-    /// `exname`, `extype`, `qname`, `bkey`, `bind`, `rkey` (each also
-    /// accepted with a `dataport.` prefix), plus `url` (an `amqp://` URI
-    /// replacing host and port), `durable`, `persistent`, `confirms`,
-    /// `prefetch`, `buffer.length`, `buffer.write.full_policy`,
-    /// `buffer.write.timeout` (seconds, as OpenRTM writes it) and
-    /// `max_unconfirmed`. Unknown keys are ignored.
-    pub fn from_properties<'a>(
-        properties: impl IntoIterator<Item = (&'a str, &'a str)>,
-    ) -> Result<Self> {
-        let mut profile = PortProfile::default();
-        let bad = |key: &str, value: &str| {
-            Error::InvalidArgument(format!("connector property {key}={value:?}"))
-        };
-        let flag = |key: &str, value: &str| match value {
-            "true" | "t" | "True" | "TRUE" | "T" | "1" | "yes" => Ok(true),
-            "false" | "f" | "False" | "FALSE" | "F" | "0" | "no" => Ok(false),
-            _ => Err(bad(key, value)),
-        };
-        for (key, value) in properties {
-            let name = key.strip_prefix("dataport.").unwrap_or(key);
-            match name {
-                "url" => {
-                    let timeout = profile.broker.connection_timeout;
-                    profile.broker = ConnectionOptions::from_uri(value)?;
-                    profile.broker.connection_timeout = timeout;
-                }
-                "host" => profile.broker.host = value.to_owned(),
-                "msport" => profile.broker.port = value.parse().map_err(|_| bad(key, value))?,
-                "exname" => profile.exchange = value.to_owned(),
-                "extype" => profile.exchange_kind = ExchangeKind::parse(value),
-                "qname" => profile.queue = value.to_owned(),
-                "bkey" => profile.binding_key = value.to_owned(),
-                "bind" => profile.declare_queue = flag(key, value)?,
-                "rkey" => profile.routing_key = value.to_owned(),
-                "durable" => profile.durable = flag(key, value)?,
-                "persistent" => profile.persistent = flag(key, value)?,
-                "confirms" => profile.confirms = flag(key, value)?,
-                "prefetch" => profile.prefetch = value.parse().map_err(|_| bad(key, value))?,
-                "buffer.length" => {
-                    profile.buffer_size = value.parse().map_err(|_| bad(key, value))?
-                }
-                "buffer.write.full_policy" => {
-                    profile.full_policy = FullPolicy::parse(value).ok_or_else(|| bad(key, value))?
-                }
-                "buffer.write.timeout" => {
-                    let seconds: f64 = value.parse().map_err(|_| bad(key, value))?;
-                    profile.put_timeout =
-                        Duration::try_from_secs_f64(seconds).map_err(|_| bad(key, value))?;
-                }
-                "max_unconfirmed" => {
-                    profile.max_unconfirmed = value.parse().map_err(|_| bad(key, value))?
-                }
-                _ => {}
-            }
-        }
-        Ok(profile)
     }
 
     /// Sets the exchange and its type.
@@ -332,6 +368,73 @@ impl PortProfile {
     /// Sets the put timeout.
     pub fn put_timeout(mut self, timeout: Duration) -> Self {
         self.put_timeout = timeout;
+        self
+    }
+
+    /// Applies a QoS preset (settings it does not name are kept).
+    pub fn qos(mut self, qos: Qos) -> Self {
+        match qos {
+            Qos::SensorData => {
+                self.confirms = false;
+                self.lifespan = Some(Duration::from_millis(100));
+                self.max_unconfirmed = 1;
+                self.backpressure = Backpressure::DropOldest;
+                self.replay = Replay::Latest;
+                self.buffer_size = 1;
+                self.full_policy = FullPolicy::DropOldest;
+            }
+            Qos::Command => {
+                self.confirms = true;
+                self.lifespan = Some(Duration::from_millis(200));
+                self.max_unconfirmed = 16;
+                self.backpressure = Backpressure::DropOldest;
+                self.replay = Replay::Latest;
+                self.full_policy = FullPolicy::DropOldest;
+            }
+            Qos::Reliable => {
+                self.confirms = true;
+                self.durable = true;
+                self.persistent = true;
+                self.lifespan = None;
+                self.backpressure = Backpressure::Block;
+                self.replay = Replay::All;
+                self.full_policy = FullPolicy::BlockBroker;
+            }
+            Qos::Telemetry => {
+                self.confirms = false;
+                self.lifespan = Some(Duration::from_secs(10));
+                self.max_unconfirmed = 1000;
+                self.backpressure = Backpressure::DropOldest;
+                self.replay = Replay::All;
+                self.full_policy = FullPolicy::DropOldest;
+            }
+        }
+        self
+    }
+
+    /// Sets the lifespan of values.
+    pub fn lifespan(mut self, lifespan: Duration) -> Self {
+        self.lifespan = Some(lifespan);
+        self
+    }
+
+    /// Keeps at most `n` values in the out-port's window, dropping the
+    /// oldest (1: latest only).
+    pub fn keep_last(mut self, n: usize) -> Self {
+        self.max_unconfirmed = n.max(1);
+        self.backpressure = Backpressure::DropOldest;
+        self
+    }
+
+    /// Sets the out-port's backpressure policy.
+    pub fn backpressure(mut self, backpressure: Backpressure) -> Self {
+        self.backpressure = backpressure;
+        self
+    }
+
+    /// Sets the out-port's replay policy.
+    pub fn replay(mut self, replay: Replay) -> Self {
+        self.replay = replay;
         self
     }
 
@@ -408,7 +511,7 @@ impl Connector {
                 let options = ConnectionOptions::clone(&options);
                 Box::pin(async move {
                     let Some(broker) = broker.upgrade() else {
-                        return Err(Error::io(std::io::Error::new(
+                        return Err(crate::Error::io(std::io::Error::new(
                             std::io::ErrorKind::NotConnected,
                             "the embedded broker is gone",
                         )));
@@ -439,45 +542,19 @@ mod tests {
     use super::*;
 
     #[test]
-    fn openrtm_properties() {
-        let profile = PortProfile::from_properties([
-            ("dataport.host", "robot.local"),
-            ("msport", "5673"),
-            ("exname", "poses"),
-            ("extype", "1"),
-            ("qname", "pose-in"),
-            ("bkey", "pose"),
-            ("bind", "True"),
-            ("rkey", "pose"),
-            ("buffer.length", "8"),
-            ("buffer.write.full_policy", "block"),
-            ("buffer.write.timeout", "0.25"),
-            ("durable", "1"),
-        ])
-        .unwrap();
-        assert_eq!(profile.broker.host, "robot.local");
-        assert_eq!(profile.broker.port, 5673);
-        assert_eq!(profile.exchange, "poses");
-        assert_eq!(profile.exchange_kind, ExchangeKind::Fanout);
-        assert_eq!(profile.queue, "pose-in");
-        assert_eq!(profile.binding_key, "pose");
-        assert!(profile.declare_queue);
-        assert_eq!(profile.routing_key, "pose");
-        assert_eq!(profile.buffer_size, 8);
-        assert_eq!(profile.full_policy, FullPolicy::BlockBroker);
-        assert_eq!(profile.put_timeout, Duration::from_millis(250));
-        assert!(profile.durable && !profile.persistent);
-        assert!(PortProfile::from_properties([("msport", "x")]).is_err());
-    }
-
-    #[test]
-    fn exchange_kinds_as_openrtm_names_them() {
+    fn exchange_kinds_as_openrtm_names_them_in_any_case() {
         assert_eq!(ExchangeKind::parse("0"), ExchangeKind::Direct);
         assert_eq!(ExchangeKind::parse("AMQP::topic"), ExchangeKind::Topic);
         assert_eq!(ExchangeKind::parse("H"), ExchangeKind::Headers);
+        assert_eq!(ExchangeKind::parse("Fanout"), ExchangeKind::Fanout);
+        assert_eq!(ExchangeKind::parse("DIRECT"), ExchangeKind::Direct);
+        assert_eq!(ExchangeKind::parse("amqp::Headers"), ExchangeKind::Headers);
+        let hash = ExchangeKind::Other(CONSISTENT_HASH.into());
+        assert_eq!(ExchangeKind::parse("x-consistent-hash"), hash);
+        assert_eq!(ExchangeKind::parse("fan-out"), hash);
         assert_eq!(
-            ExchangeKind::parse("x-consistent-hash"),
-            ExchangeKind::Other("x-consistent-hash".into())
+            ExchangeKind::parse("x-delayed-message"),
+            ExchangeKind::Other("x-delayed-message".into())
         );
     }
 
