@@ -406,7 +406,7 @@ impl Exchange {
     /// between exchanges may form cycles of `Arc`s that nothing else
     /// would break).
     pub(crate) fn forget_routes(&self) {
-        *self.write() = Routes::new(self.kind);
+        *self.write() = Routes::new(self.kind, &self.options.arguments);
     }
 
     /// Adds a binding; false if an identical one is there.
