@@ -608,7 +608,8 @@ impl Connection {
     }
 
     /// Sends connection.close for `error`, waits briefly for close-ok
-    /// (discarding anything else, as the spec says), then ends.
+    /// (discarding anything else, as the spec says; raw bytes once the
+    /// stream cannot be parsed), then ends.
     async fn close_with<R: Incoming>(
         &mut self,
         reader: &mut FrameReader<R>,
@@ -634,6 +635,7 @@ impl Connection {
                         ..
                     }) => return,
                     Ok(_) => continue,
+                    Err(ReadError::Decode(_)) => return reader.discard_input().await,
                     Err(_) => return,
                 }
             }

@@ -212,6 +212,21 @@ impl<R: Incoming> FrameReader<R> {
         }
     }
 
+    /// Reads and drops whatever the peer still sends until it hangs up.
+    /// After a framing error the stream can no longer be parsed, but
+    /// closing the socket with input unread would reset the connection,
+    /// and the peer could lose the `connection.close` that explains why.
+    /// The buffer is reused, so discarding holds no more memory.
+    pub async fn discard_input(&mut self) {
+        loop {
+            self.buf.clear();
+            match self.socket.read_buf(&mut self.buf).await {
+                Ok(0) | Err(_) => return,
+                Ok(_) => {}
+            }
+        }
+    }
+
     /// Whether the buffer is larger than the frame in progress needs (and
     /// than [`READ_IDLE`]).
     pub fn holds_spare(&self) -> bool {
