@@ -17,7 +17,19 @@
 //! the spinner runs on: a current-thread runtime, as the `leveret` binary
 //! uses. When no connection has read anything for a whole window the
 //! spinner sleeps until the next read, so an idle broker does not spin.
+//!
+//! Spinning is only cheap while CPUs are spare. When other threads wait
+//! for a CPU (the client itself, on a small robot computer, or any other
+//! busy process), every microsecond spent spinning is taken from them, and
+//! a client that waits for a CPU answers later than a broker that sleeps
+//! would. So the spinner reads the kernel's CPU pressure (see
+//! [`crate::cpu_pressure`]) every [`PRESSURE_SAMPLE`] while it spins, and
+//! when threads waited for more than [`PRESSURE_LIMIT`] of that time it
+//! stops and does not spin again for a back-off that doubles while the
+//! pressure persists. Where the kernel reports no pressure it spins as
+//! configured.
 
+use crate::cpu_pressure::CpuPressure;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use tokio::sync::{watch, Notify};
@@ -25,6 +37,18 @@ use tokio::sync::{watch, Notify};
 /// The window the spinner starts from when input begins to arrive in
 /// quick succession, as Linux's haltpoll governor grows its poll time.
 const GROW_START: Duration = Duration::from_micros(50);
+
+/// How often a spinning spinner reads the CPU pressure.
+const PRESSURE_SAMPLE: Duration = Duration::from_millis(10);
+
+/// The share of time with threads waiting for a CPU above which spinning
+/// stops.
+const PRESSURE_LIMIT: f64 = 0.10;
+
+/// The first pause in spinning after pressure was seen, and the longest
+/// the doubling may reach.
+const BACKOFF_START: Duration = Duration::from_millis(50);
+const BACKOFF_MAX: Duration = Duration::from_secs(5);
 
 /// The shared state between the connections' readers and the spinner.
 #[derive(Debug)]
@@ -41,6 +65,8 @@ pub struct BusyPoll {
     /// nanoseconds (read by `inspect`).
     windows: AtomicU64,
     spun_nanos: AtomicU64,
+    /// Times spinning stopped because threads were waiting for a CPU.
+    yielded: AtomicU64,
     wake: Notify,
 }
 
@@ -54,6 +80,7 @@ impl BusyPoll {
             asleep: AtomicBool::new(false),
             windows: AtomicU64::new(0),
             spun_nanos: AtomicU64::new(0),
+            yielded: AtomicU64::new(0),
             wake: Notify::new(),
         }
     }
@@ -74,6 +101,12 @@ impl BusyPoll {
     pub async fn run(&self, mut shutdown: watch::Receiver<bool>) {
         let mut window = Duration::ZERO;
         let mut last_read = Instant::now();
+        let mut pressure = CpuPressure::open();
+        if pressure.is_none() {
+            tracing::debug!("no CPU pressure figures here: busy polling will not yield to them");
+        }
+        let mut backoff = Backoff::default();
+        let mut sampled_at = last_read;
         loop {
             self.asleep.store(true, Ordering::Relaxed);
             tokio::select! {
@@ -83,6 +116,17 @@ impl BusyPoll {
             let woke = Instant::now();
             window = next_window(window, woke - last_read, self.grow_start, self.max_window);
             last_read = woke;
+            if !backoff.may_spin(woke) {
+                continue;
+            }
+            if backoff.resuming(woke) {
+                // The pause itself must not count as time spun without
+                // pressure.
+                if let Some(pressure) = &mut pressure {
+                    pressure.rebase(woke);
+                }
+                sampled_at = woke;
+            }
             let mut seen = self.reads.load(Ordering::Relaxed);
             loop {
                 let now = Instant::now();
@@ -92,6 +136,14 @@ impl BusyPoll {
                     last_read = now;
                 } else if now - last_read >= window {
                     break;
+                }
+                if now - sampled_at >= PRESSURE_SAMPLE {
+                    sampled_at = now;
+                    let share = pressure.as_mut().and_then(|p| p.share_since_last(now));
+                    if backoff.note(share, now) {
+                        self.yielded.fetch_add(1, Ordering::Relaxed);
+                        break;
+                    }
                 }
                 // Clients that keep sending must not hold shutdown up.
                 if *shutdown.borrow() {
@@ -109,14 +161,62 @@ impl BusyPoll {
         }
     }
 
-    /// Socket reads noted, windows polled through, and the time spent
-    /// polling.
-    pub fn figures(&self) -> (u64, u64, Duration) {
+    /// Socket reads noted, windows polled through, the time spent
+    /// polling, and the times polling stopped for CPU pressure.
+    pub fn figures(&self) -> (u64, u64, Duration, u64) {
         (
             self.reads.load(Ordering::Relaxed),
             self.windows.load(Ordering::Relaxed),
             Duration::from_nanos(self.spun_nanos.load(Ordering::Relaxed)),
+            self.yielded.load(Ordering::Relaxed),
         )
+    }
+}
+
+/// When spinning may resume after CPU pressure stopped it.
+#[derive(Debug, Default)]
+struct Backoff {
+    /// The pause the next sign of pressure gets (zero: [`BACKOFF_START`]).
+    next_pause: Duration,
+    /// Spinning is paused until then.
+    paused_until: Option<Instant>,
+}
+
+impl Backoff {
+    /// Whether the spinner may spin at `now`.
+    fn may_spin(&self, now: Instant) -> bool {
+        self.paused_until.is_none_or(|until| now >= until)
+    }
+
+    /// Whether a pause has just ended (and is forgotten).
+    fn resuming(&mut self, now: Instant) -> bool {
+        match self.paused_until {
+            Some(until) if now >= until => {
+                self.paused_until = None;
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Takes one pressure reading (`None`: nothing known) taken while
+    /// spinning; whether spinning must stop. Pressure pauses spinning for
+    /// a pause that doubles each time it is seen again; a reading without
+    /// pressure starts the doubling over.
+    fn note(&mut self, share: Option<f64>, now: Instant) -> bool {
+        match share {
+            Some(share) if share > PRESSURE_LIMIT => {
+                let pause = self.next_pause.max(BACKOFF_START);
+                self.paused_until = Some(now + pause);
+                self.next_pause = (pause * 2).min(BACKOFF_MAX);
+                true
+            }
+            Some(_) => {
+                self.next_pause = Duration::ZERO;
+                false
+            }
+            None => false,
+        }
     }
 }
 
@@ -175,6 +275,31 @@ mod tests {
             next_window(Duration::ZERO, micros(10), GROW_START, micros(20)),
             micros(20)
         );
+    }
+
+    #[test]
+    fn pressure_pauses_spinning_for_a_doubling_pause_that_calm_resets() {
+        let start = Instant::now();
+        let mut backoff = Backoff::default();
+        assert!(backoff.may_spin(start));
+        assert!(!backoff.note(None, start), "nothing known: keep spinning");
+        assert!(!backoff.note(Some(PRESSURE_LIMIT), start));
+        let mut pauses = Vec::new();
+        let mut now = start;
+        for _ in 0..9 {
+            assert!(backoff.note(Some(0.5), now));
+            let until = backoff.paused_until.expect("paused");
+            pauses.push((until - now).as_millis());
+            assert!(!backoff.may_spin(until - Duration::from_micros(1)));
+            assert!(backoff.may_spin(until));
+            assert!(backoff.resuming(until));
+            assert!(!backoff.resuming(until), "a pause ends once");
+            now = until;
+        }
+        assert_eq!(pauses, [50, 100, 200, 400, 800, 1600, 3200, 5000, 5000]);
+        assert!(!backoff.note(Some(0.0), now));
+        assert!(backoff.note(Some(1.0), now));
+        assert_eq!(backoff.paused_until, Some(now + BACKOFF_START));
     }
 
     #[tokio::test(flavor = "current_thread")]

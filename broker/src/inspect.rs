@@ -58,6 +58,9 @@ pub struct BusyPollFigures {
     pub windows: u64,
     /// Time the broker's thread spent polling in those windows.
     pub polling: Duration,
+    /// Times polling stopped early because other threads were waiting for
+    /// a CPU.
+    pub yielded_to_cpu_pressure: u64,
 }
 
 /// Counts of live objects (RabbitMQ's `object_totals`).
@@ -559,11 +562,12 @@ impl Admin {
             memory_high_watermark: core.limits.memory_high_watermark,
             memory_alarm: core.gauge.in_alarm(),
             busy_poll: core.busy_poll.as_ref().map(|busy_poll| {
-                let (socket_reads, windows, polling) = busy_poll.figures();
+                let (socket_reads, windows, polling, yielded_to_cpu_pressure) = busy_poll.figures();
                 BusyPollFigures {
                     socket_reads,
                     windows,
                     polling,
+                    yielded_to_cpu_pressure,
                 }
             }),
         }

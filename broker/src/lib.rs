@@ -82,6 +82,7 @@ mod channel;
 mod connection;
 mod consumer;
 mod core;
+mod cpu_pressure;
 mod deadletter;
 mod embed;
 mod error;
