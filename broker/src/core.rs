@@ -51,6 +51,11 @@ pub struct Limits {
     /// too (RabbitMQ's `vm_memory_high_watermark`; read from /proc every
     /// 250 ms where there is one).
     pub resident_memory_high_watermark: ResidentMemoryWatermark,
+    /// Free bytes on the data directory's disk below which publishers are
+    /// blocked (RabbitMQ's `disk_free_limit`, default 50 MB). Probed every
+    /// 10 s, every second near the limit, and at once after a failed
+    /// store write; the alarm clears by itself when space returns.
+    pub disk_free_limit: u64,
     /// Most TCP connections served at once (RabbitMQ's `connection_max`;
     /// `None`, the default, is no limit). A connection over it is closed
     /// as soon as it is accepted, before anything is read from it, and
@@ -95,6 +100,7 @@ impl Default for Limits {
             max_message_size: 128 * 1024 * 1024,
             memory_high_watermark: 1 << 30,
             resident_memory_high_watermark: ResidentMemoryWatermark::default(),
+            disk_free_limit: 50_000_000,
             max_connections: None,
             handshake_timeout: Duration::from_secs(10),
             vhost_limits: HashMap::new(),

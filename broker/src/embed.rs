@@ -7,6 +7,7 @@ use crate::admin::Admin;
 use crate::auth::{PasswordHash, Users};
 use crate::busy_poll::BusyPoll;
 use crate::core::{Core, CoreOptions, Limits};
+use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 use crate::inspect::{Overview, QueueInfo};
 use crate::store::{Persistence, Recovered, SledStore, Store, StoreError};
 use std::net::SocketAddr;
@@ -47,6 +48,7 @@ pub struct BrokerBuilder {
     storage: Storage,
     product: Option<String>,
     busy_poll: Duration,
+    free_space: Option<Arc<dyn FreeSpace>>,
 }
 
 /// Where durable state lives.
@@ -111,6 +113,15 @@ impl BrokerBuilder {
     /// Keeps durable state in a store the caller provides.
     pub fn store(mut self, store: Arc<dyn Store>) -> Self {
         self.storage = Storage::Custom(store);
+        self
+    }
+
+    /// Where the disk alarm reads free space (by default the file system
+    /// of [`BrokerBuilder::data_dir`]; without a data directory and
+    /// without this, there is no disk alarm). For embedders whose store
+    /// lives elsewhere, and for tests that simulate a full disk.
+    pub fn free_space(mut self, probe: Arc<dyn FreeSpace>) -> Self {
+        self.free_space = Some(probe);
         self
     }
 
@@ -182,6 +193,13 @@ impl BrokerBuilder {
         };
         // Recovery time includes opening the store (sled replays its log).
         let started = std::time::Instant::now();
+        let free_space = match (self.free_space, &self.storage) {
+            (Some(probe), _) => Some(probe),
+            (None, Storage::Dir(dir)) => {
+                Some(Arc::new(DirFreeSpace::new(dir.clone())) as Arc<dyn FreeSpace>)
+            }
+            (None, _) => None,
+        };
         let store: Option<Arc<dyn Store>> = match self.storage {
             Storage::None => None,
             Storage::Dir(dir) => {
@@ -258,6 +276,15 @@ impl BrokerBuilder {
             core.limits.resident_memory_high_watermark,
             core.shutdown_signal(),
         )));
+        if let Some(probe) = free_space {
+            tasks.push(tokio::spawn(crate::disk_alarm::watch(
+                Arc::clone(&core.gauge),
+                probe,
+                core.limits.disk_free_limit,
+                core.persistence.as_ref().map(|p| p.write_failures()),
+                core.shutdown_signal(),
+            )));
+        }
         if let Some(busy_poll) = busy_poll {
             let shutdown = core.shutdown_signal();
             tasks.push(tokio::spawn(async move { busy_poll.run(shutdown).await }));

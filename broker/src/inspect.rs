@@ -45,6 +45,10 @@ pub struct Overview {
     pub memory_high_watermark: usize,
     /// Whether the memory alarm is set now.
     pub memory_alarm: bool,
+    /// Free disk bytes below which publishers are blocked.
+    pub disk_free_limit: u64,
+    /// Whether the disk alarm is set now.
+    pub disk_alarm: bool,
     /// Busy polling's figures, if the broker busy-polls.
     pub busy_poll: Option<BusyPollFigures>,
 }
@@ -560,7 +564,9 @@ impl Admin {
             },
             publishers: c.publishers.get(),
             memory_high_watermark: core.limits.memory_high_watermark,
-            memory_alarm: core.gauge.in_alarm(),
+            memory_alarm: core.gauge.memory_alarm(),
+            disk_free_limit: core.limits.disk_free_limit,
+            disk_alarm: core.gauge.disk_alarm(),
             busy_poll: core.busy_poll.as_ref().map(|busy_poll| {
                 let (socket_reads, windows, polling, yielded_to_cpu_pressure) = busy_poll.figures();
                 BusyPollFigures {

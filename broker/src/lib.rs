@@ -61,7 +61,8 @@
 //! nothing of the broker; and the pieces every layer may use: `message`
 //! (a message as the broker holds it), `memory` (the memory alarm) and
 //! `resident_memory` (the process's resident memory from /proc, one of
-//! the alarm's sources),
+//! the alarm's sources), `disk_alarm` (free disk space, the disk alarm's
+//! source),
 //! `auth` (users and SASL), `error` (reply errors).
 //!
 //! Beside them too, for operators: `stats` (message and churn counters
@@ -84,6 +85,7 @@ mod consumer;
 mod core;
 mod cpu_pressure;
 mod deadletter;
+mod disk_alarm;
 mod embed;
 mod error;
 #[cfg(feature = "bench-internals")]
@@ -111,6 +113,7 @@ mod vhost;
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
 pub use crate::auth::PasswordHash;
 pub use crate::core::{Limits, VhostLimits};
+pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;

@@ -1,21 +1,24 @@
-//! The broker-wide memory alarm (RabbitMQ's): while it is set, publishing
-//! connections stop being read and clients that asked for it get
-//! connection.blocked. Two sources set it:
+//! The broker-wide resource alarms (RabbitMQ's memory and disk alarms):
+//! while either is set, publishing connections stop being read and clients
+//! that asked for it get connection.blocked. Three sources set them:
 //! - the bytes the broker counts (queued messages, publishes a transaction
 //!   holds, message bodies being assembled) above the high watermark;
 //! - the process's resident memory above its own watermark, reported by
-//!   the `resident_memory` watcher.
+//!   the `resident_memory` watcher;
+//! - free disk space below `disk_free_limit`, reported by the
+//!   `disk_alarm` watcher.
 //!
-//! It clears when every source is below 90% of its watermark (hysteresis,
-//! so the alarm does not flap). This module uses nothing else of the
-//! broker; the queues, transactions, content assembly and the connection
-//! reader use it.
+//! Publishers are unblocked only once every source has cleared; the
+//! memory sources clear below 90% of their watermark (hysteresis, so the
+//! alarm does not flap). This module uses nothing else of the broker; the
+//! queues, transactions, content assembly and the connection reader use
+//! it.
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
-use tokio::sync::Notify;
+use tokio::sync::{watch, Notify};
 
-/// Counts held bytes against a limit and carries the memory alarm.
+/// Counts held bytes against a limit and carries the memory and disk alarms.
 #[derive(Debug)]
 pub struct MemoryGauge {
     used: AtomicUsize,
@@ -24,7 +27,12 @@ pub struct MemoryGauge {
     counted_alarm: AtomicBool,
     /// Set while resident memory is above its watermark.
     resident_alarm: AtomicBool,
+    /// Set while free disk space is below its limit.
+    disk_alarm: AtomicBool,
     cleared: Notify,
+    /// Counts the times a source turned on; idle publishers watch it, so
+    /// they are blocked (and told) at once rather than at their next read.
+    raised: watch::Sender<u64>,
 }
 
 /// Which source of the alarm changed, for the log line.
@@ -32,6 +40,7 @@ pub struct MemoryGauge {
 enum Source {
     Counted,
     Resident,
+    Disk,
 }
 
 impl MemoryGauge {
@@ -42,7 +51,9 @@ impl MemoryGauge {
             limit,
             counted_alarm: AtomicBool::new(false),
             resident_alarm: AtomicBool::new(false),
+            disk_alarm: AtomicBool::new(false),
             cleared: Notify::new(),
+            raised: watch::Sender::new(0),
         }
     }
 
@@ -55,6 +66,7 @@ impl MemoryGauge {
                 limit = self.limit,
                 "memory alarm set: blocking publishers"
             );
+            self.raised.send_modify(|count| *count += 1);
         }
     }
 
@@ -87,9 +99,22 @@ impl MemoryGauge {
                     resident,
                     "memory alarm set by resident memory: blocking publishers"
                 );
+                self.raised.send_modify(|count| *count += 1);
             }
         } else {
             self.clear(Source::Resident, resident as usize);
+        }
+    }
+
+    /// Sets or clears the disk alarm (`free` bytes left on the disk).
+    pub fn set_disk_alarm(&self, on: bool, free: u64) {
+        if on {
+            if !self.disk_alarm.swap(true, Ordering::AcqRel) {
+                tracing::warn!(free, "disk alarm set: blocking publishers");
+                self.raised.send_modify(|count| *count += 1);
+            }
+        } else {
+            self.clear(Source::Disk, free as usize);
         }
     }
 
@@ -97,21 +122,49 @@ impl MemoryGauge {
         let flag = match source {
             Source::Counted => &self.counted_alarm,
             Source::Resident => &self.resident_alarm,
+            Source::Disk => &self.disk_alarm,
         };
         if !flag.swap(false, Ordering::AcqRel) {
             return;
         }
         if self.in_alarm() {
-            tracing::info!(?source, now, "memory alarm source cleared; another remains");
+            tracing::info!(?source, now, "alarm source cleared; another remains");
             return;
         }
-        tracing::info!(?source, now, "memory alarm cleared: unblocking publishers");
+        tracing::info!(?source, now, "alarms cleared: unblocking publishers");
         self.cleared.notify_waiters();
     }
 
     /// Whether publishers must wait.
     pub fn in_alarm(&self) -> bool {
+        self.counted_alarm.load(Ordering::Acquire)
+            || self.resident_alarm.load(Ordering::Acquire)
+            || self.disk_alarm.load(Ordering::Acquire)
+    }
+
+    /// Whether a memory source (counted bytes or resident memory) is set.
+    pub fn memory_alarm(&self) -> bool {
         self.counted_alarm.load(Ordering::Acquire) || self.resident_alarm.load(Ordering::Acquire)
+    }
+
+    /// Whether the disk alarm is set.
+    pub fn disk_alarm(&self) -> bool {
+        self.disk_alarm.load(Ordering::Acquire)
+    }
+
+    /// Why publishers wait, as connection.blocked's reason (RabbitMQ's
+    /// wording).
+    pub fn alarm_reason(&self) -> &'static str {
+        if self.disk_alarm.load(Ordering::Acquire) {
+            "low on disk"
+        } else {
+            "low on memory"
+        }
+    }
+
+    /// Changes each time a source of the alarm is set.
+    pub fn raised(&self) -> watch::Receiver<u64> {
+        self.raised.subscribe()
     }
 
     /// Waits until the alarm clears (returns at once if it is not set).
@@ -183,6 +236,23 @@ mod tests {
         assert!(!gauge.in_alarm());
         gauge.set_resident_alarm(true, 1 << 30);
         assert!(gauge.in_alarm(), "resident memory alone sets it");
+    }
+
+    #[test]
+    fn the_disk_alarm_blocks_alone_and_both_alarms_must_clear() {
+        let gauge = MemoryGauge::new(100);
+        gauge.set_disk_alarm(true, 10);
+        assert!(gauge.in_alarm());
+        assert_eq!(gauge.alarm_reason(), "low on disk");
+        gauge.add(101);
+        gauge.set_disk_alarm(false, 1 << 30);
+        assert!(gauge.in_alarm(), "the memory alarm remains");
+        assert_eq!(gauge.alarm_reason(), "low on memory");
+        gauge.set_disk_alarm(true, 10);
+        gauge.sub(101);
+        assert!(gauge.in_alarm(), "the disk alarm remains");
+        gauge.set_disk_alarm(false, 1 << 30);
+        assert!(!gauge.in_alarm());
     }
 
     #[tokio::test]

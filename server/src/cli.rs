@@ -17,6 +17,11 @@ pub struct Cli {
     /// Directory for durable state; created if missing [default: ./leveret-data].
     #[arg(long, value_name = "DIR")]
     pub data_dir: Option<PathBuf>,
+    /// Free bytes on the data directory's disk below which publishers are
+    /// blocked until space returns (RabbitMQ's `disk_free_limit`)
+    /// [default: 50000000].
+    #[arg(long, value_name = "BYTES")]
+    pub disk_free_limit: Option<u64>,
     /// TOML configuration file: the same keys as these flags, plus
     /// [[users]] (name, and password or password-hash), vhosts, and the
     /// limits heartbeat, frame-max, channel-max, max-message-size,

@@ -82,6 +82,10 @@ pub struct FileConfig {
     vm_memory_high_watermark_absolute: Option<u64>,
     /// RabbitMQ's `vm_memory_high_watermark.relative`, a fraction of RAM.
     vm_memory_high_watermark_relative: Option<f64>,
+    /// RabbitMQ's `disk_free_limit` (also spelt `disk-free-limit-absolute`,
+    /// after `disk_free_limit.absolute`), bytes.
+    #[serde(alias = "disk-free-limit-absolute")]
+    disk_free_limit: Option<u64>,
     /// RabbitMQ's `connection_max`.
     max_connections: Option<usize>,
     /// RabbitMQ's `handshake_timeout`, milliseconds.
@@ -201,6 +205,10 @@ impl Settings {
                 (None, Some(fraction)) => ResidentMemoryWatermark::Relative(fraction),
                 (None, None) => defaults.resident_memory_high_watermark,
             },
+            disk_free_limit: cli
+                .disk_free_limit
+                .or(file.disk_free_limit)
+                .unwrap_or(defaults.disk_free_limit),
             max_connections: file.max_connections.or(defaults.max_connections),
             handshake_timeout: file
                 .handshake_timeout
@@ -473,6 +481,22 @@ mod tests {
             ResidentMemoryWatermark::Relative(0.6)
         );
         assert!(FileConfig::parse("[vhost-limits.x]\nmax-queus = 1").is_err());
+    }
+
+    #[test]
+    fn the_disk_free_limit_comes_from_the_flag_the_file_or_the_default() {
+        let settings = Settings::resolve(Cli::default(), FileConfig::default()).unwrap();
+        assert_eq!(settings.limits.disk_free_limit, 50_000_000);
+        let settings =
+            Settings::resolve(Cli::default(), file("disk-free-limit = 1000000000")).unwrap();
+        assert_eq!(settings.limits.disk_free_limit, 1_000_000_000);
+        let rabbitmq_style = file("disk-free-limit-absolute = 2000000000");
+        let settings = Settings::resolve(Cli::default(), rabbitmq_style).unwrap();
+        assert_eq!(settings.limits.disk_free_limit, 2_000_000_000);
+        let flag = cli(&["--disk-free-limit", "123"]);
+        let settings = Settings::resolve(flag, file("disk-free-limit = 5")).unwrap();
+        assert_eq!(settings.limits.disk_free_limit, 123);
+        assert!(FileConfig::parse("disk-free-limit = -1").is_err());
     }
 
     #[test]

@@ -264,11 +264,10 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
         "Memory high watermark in bytes",
         overview.memory_high_watermark as u64,
     );
-    // Leveret has no free-disk alarm: its low watermark is zero.
     out.gauge(
         "rabbitmq_disk_space_available_limit_bytes",
         "Free disk space low watermark in bytes",
-        0,
+        overview.disk_free_limit,
     );
     out.single(
         "rabbitmq_erlang_uptime_seconds",
@@ -387,7 +386,7 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
         MetricType::GAUGE,
         "is 1 if free disk space watermark alarm is in effect",
         &[],
-        0.0,
+        if overview.disk_alarm { 1.0 } else { 0.0 },
     );
     out.single(
         "rabbitmq_alarms_memory_used_watermark",

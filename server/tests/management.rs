@@ -472,3 +472,37 @@ async fn vhosts_per_object_bindings_and_per_vhost_definitions() {
     let unknown = send("GET", "/api/definitions/nowhere", b"").await;
     assert_eq!(unknown.status, 404);
 }
+
+/// A disk alarm (a `--disk-free-limit` above the disk's free space) shows
+/// where operators look: the alarms health check fails with resource
+/// `disk`, `/api/nodes` reports it with the limit, the Prometheus gauge is
+/// 1 and the limit is exported.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_disk_alarm_shows_in_the_health_check_nodes_and_metrics() {
+    let limit = "1000000000000000000";
+    let broker = OpsBroker::start("disk-alarm", &["--disk-free-limit", limit]);
+    let guest = basic("guest", "guest");
+    let auth = [("Authorization", guest.as_str())];
+    let alarms = request(broker.http, "GET", "/api/health/checks/alarms", &auth, b"").await;
+    assert_eq!(alarms.status, 503, "{}", alarms.text());
+    let body: Value = serde_json::from_slice(&alarms.body).expect("json");
+    assert_eq!(body["alarms"][0]["resource"], "disk", "{body}");
+    let nodes = request(broker.http, "GET", "/api/nodes", &auth, b"").await;
+    let nodes: Value = serde_json::from_slice(&nodes.body).expect("json");
+    assert_eq!(nodes[0]["disk_free_alarm"], true, "{nodes}");
+    assert_eq!(nodes[0]["disk_free_limit"], 1_000_000_000_000_000_000u64);
+    assert_eq!(nodes[0]["mem_alarm"], false);
+    let metrics = request(broker.metrics, "GET", "/metrics", &[], b"")
+        .await
+        .text();
+    assert!(
+        metrics.contains("\nrabbitmq_alarms_free_disk_space_watermark 1\n"),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains(&format!(
+            "\nrabbitmq_disk_space_available_limit_bytes {limit}\n"
+        )),
+        "{metrics}"
+    );
+}

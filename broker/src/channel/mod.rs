@@ -194,6 +194,11 @@ impl Channel {
         self.published
     }
 
+    /// Whether a message's header or body frames are still to come.
+    pub fn is_receiving_content(&self) -> bool {
+        !matches!(self.assembly, Assembly::Idle)
+    }
+
     /// Handles a frame for this channel. `Ok(true)` means the channel is
     /// finished and must be removed; `Err` is a connection-level error.
     pub async fn handle(&mut self, frame: Frame) -> AmqpResult<bool> {

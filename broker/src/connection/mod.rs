@@ -177,6 +177,7 @@ impl Connection {
         let mut shutdown = (self.core.registry.close_signal(self.connection_id))
             .unwrap_or_else(|| self.core.shutdown_signal());
         let mut durable = self.core.persistence.as_ref().map(|p| p.durable());
+        let mut alarms = self.core.gauge.raised();
         // One deadline for client silence, re-armed only when it fires (a
         // timer reset per read would cost a timer-wheel update per batch).
         let silence_limit = self.heartbeat * 2;
@@ -189,8 +190,8 @@ impl Connection {
         loop {
             // Every whole frame already buffered is handled straight away;
             // the select below runs once per socket read, not per frame.
-            // A memory alarm stops it at the next frame: a publisher is not
-            // read further, even from its buffer, until the alarm clears.
+            // A resource alarm stops it at the next message: a publisher is
+            // not read further, even from its buffer, until it clears.
             loop {
                 let frame = match reader.buffered_frame() {
                     Ok(Some(frame)) => frame,
@@ -219,7 +220,10 @@ impl Connection {
                     }
                     Err(error) => return self.close_with(reader, error).await,
                 }
-                if self.must_block() {
+                // Frames already read finish the message they belong to
+                // (its bytes are held either way); the block starts
+                // between messages, or when the buffer runs out.
+                if self.must_block() && !self.channels.values().any(Channel::is_receiving_content) {
                     break;
                 }
             }
@@ -243,8 +247,12 @@ impl Connection {
             }
             self.wait_for_crowded_queues().await;
             let waiting = self.channels.values().any(Channel::has_waiting_confirms);
+            // Not blocked, so no alarm was set when checked: a publisher
+            // waits for one too, to be blocked (and told) at once.
+            let publisher = self.channels.values().any(Channel::has_published);
             let event = tokio::select! {
                 read = reader.fill() => Event::Read(read),
+                _ = alarms.changed(), if publisher => Event::Alarm,
                 _ = shutdown.wait_for(|down| *down) => Event::Shutdown,
                 _ = disk_progress(&mut durable), if waiting => Event::DiskProgress,
                 _ = &mut silence, if !silence_limit.is_zero() => Event::Silent,
@@ -253,7 +261,7 @@ impl Connection {
             match event {
                 Event::Read(Ok(())) => last_read = tokio::time::Instant::now(),
                 Event::Read(Err(e)) => return Err(Ended::Read(e)),
-                Event::DiskProgress => {}
+                Event::DiskProgress | Event::Alarm => {}
                 Event::Idle if last_read.elapsed() < IDLE_RELEASE => {
                     release.as_mut().reset(last_read + IDLE_RELEASE);
                 }
@@ -289,12 +297,13 @@ impl Connection {
         }
     }
 
-    /// Whether the memory alarm is set and this connection publishes.
+    /// Whether a resource alarm (memory or disk) is set and this
+    /// connection publishes.
     fn must_block(&self) -> bool {
         self.core.gauge.in_alarm() && self.channels.values().any(Channel::has_published)
     }
 
-    /// Memory alarm: stop reading until it clears, telling the client if it
+    /// Resource alarm: stop reading until it clears, telling the client if it
     /// asked to know. The client is not heard meanwhile (heartbeats
     /// included, as with RabbitMQ); the wait ends early when the broker
     /// shuts down or the client goes away (its socket hung up, or the
@@ -306,19 +315,27 @@ impl Connection {
     ) -> Unblocked {
         if self.blocked_notify && !self.blocked {
             self.blocked = true;
-            let reason = ShortStr::from_static("low on memory");
+            let reason = ShortStr::from_static(self.core.gauge.alarm_reason());
             self.outbox
                 .method(0, leveret_protocol::ConnectionBlocked { reason })
                 .await;
         }
-        tracing::debug!(peer = %self.peer, "memory alarm: not reading from this publisher");
+        tracing::debug!(peer = %self.peer, "resource alarm: not reading from this publisher");
         let mut shutdown = self.core.shutdown_signal();
-        let outcome = tokio::select! {
-            _ = self.core.gauge.wait_clear() => Unblocked::Cleared,
-            _ = shutdown.wait_for(|down| *down) => Unblocked::ShuttingDown,
-            _ = reader.hung_up() => Unblocked::PeerGone,
-            // The writer holds the only heartbeat receiver until it ends.
-            _ = heartbeat_tx.closed() => Unblocked::PeerGone,
+        // Publishes read before the block are still confirmed as they
+        // reach the disk: only reading stops.
+        let mut durable = self.core.persistence.as_ref().map(|p| p.durable());
+        let outcome = loop {
+            let waiting = self.channels.values().any(Channel::has_waiting_confirms);
+            tokio::select! {
+                _ = self.core.gauge.wait_clear() => break Unblocked::Cleared,
+                _ = shutdown.wait_for(|down| *down) => break Unblocked::ShuttingDown,
+                _ = reader.hung_up() => break Unblocked::PeerGone,
+                // The writer holds the only heartbeat receiver until it ends.
+                _ = heartbeat_tx.closed() => break Unblocked::PeerGone,
+                _ = disk_progress(&mut durable), if waiting => {}
+            }
+            self.flush_confirms().await;
         };
         if self.blocked && matches!(outcome, Unblocked::Cleared) {
             self.blocked = false;
@@ -670,6 +687,8 @@ enum Unblocked {
 enum Event {
     Read(Result<(), ReadError>),
     DiskProgress,
+    /// A resource alarm was set: block now if this connection publishes.
+    Alarm,
     /// The read buffer is larger than needed: release it if idle.
     Idle,
     Silent,

@@ -130,6 +130,13 @@ pub trait Store: Send + Sync + std::fmt::Debug + 'static {
     fn flush(&self) -> Result<(), StoreError>;
     /// Every key and value, in key order.
     fn scan(&self) -> Result<Vec<KvPair>, StoreError>;
+    /// Starts again from what is durable, after a failed write or flush
+    /// (writes not flushed may be lost): an engine that refuses all work
+    /// after an I/O error reopens its files here. The default does
+    /// nothing, for engines that recover by themselves.
+    fn reopen(&self) -> Result<(), StoreError> {
+        Ok(())
+    }
 }
 
 /// A durable exchange's definition.

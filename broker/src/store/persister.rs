@@ -85,6 +85,9 @@ pub struct Persistence {
     submitted: AtomicU64,
     durable: watch::Receiver<Durable>,
     failed: Arc<Mutex<VecDeque<(u64, u64)>>>,
+    /// How many groups have failed so far (the disk alarm probes free
+    /// space when it changes).
+    failures: watch::Receiver<u64>,
     next_message_id: AtomicU64,
     next_queue_id: AtomicU64,
 }
@@ -177,15 +180,27 @@ impl Persistence {
         let (durable_tx, durable) = watch::channel(Durable { flushed: 0 });
         let failed = Arc::new(Mutex::new(VecDeque::new()));
         let failed_log = Arc::clone(&failed);
+        let (failures_tx, failures) = watch::channel(0);
         std::thread::Builder::new()
             .name("leveret-persister".into())
-            .spawn(move || persist(store, inbox, durable_tx, failed_log))
+            .spawn(move || {
+                persist(
+                    store,
+                    inbox,
+                    Reports {
+                        durable: durable_tx,
+                        failed: failed_log,
+                        failures: failures_tx,
+                    },
+                )
+            })
             .map_err(StoreError::Persister)?;
         Ok(Arc::new(Persistence {
             submit,
             submitted: AtomicU64::new(0),
             durable,
             failed,
+            failures,
             next_message_id: AtomicU64::new(recovered.max_message_id() + 1),
             next_queue_id: AtomicU64::new(recovered.max_queue_id() + 1),
         }))
@@ -245,6 +260,11 @@ impl Persistence {
         self.durable.clone()
     }
 
+    /// Counts failed groups: changes each time a write or flush fails.
+    pub fn write_failures(&self) -> watch::Receiver<u64> {
+        self.failures.clone()
+    }
+
     /// Highest submission number the persister has attempted.
     pub fn flushed(&self) -> u64 {
         self.durable.borrow().flushed
@@ -281,19 +301,49 @@ impl Persistence {
     }
 }
 
+/// What the persister thread reports to [`Persistence`].
+struct Reports {
+    /// The contiguous watermark of attempted submissions.
+    durable: watch::Sender<Durable>,
+    /// Submission ranges whose group failed.
+    failed: Arc<Mutex<VecDeque<(u64, u64)>>>,
+    /// How many groups failed.
+    failures: watch::Sender<u64>,
+}
+
 /// The persister thread: takes every submission already waiting into one
 /// group (up to [`GROUP_OPS`] ops), writes and flushes it, then reports
 /// the group's submissions done (and records them as failed if the store
 /// refused them), until a close request or until every handle is gone.
+///
+/// After a failed group the store is reopened ([`Store::reopen`]) before
+/// the next one: an engine that poisons itself on an I/O error (sled does,
+/// on a full disk) would otherwise refuse every later write. The failed
+/// group's submissions were reported failed, so whatever of them the
+/// reopened store lacks was never promised.
 fn persist(
     store: Arc<dyn Store>,
     mut inbox: mpsc::UnboundedReceiver<Submission>,
-    durable: watch::Sender<Durable>,
-    failed: Arc<Mutex<VecDeque<(u64, u64)>>>,
+    reports: Reports,
 ) {
+    let Reports {
+        durable,
+        failed,
+        failures,
+    } = reports;
     let mut watermark = Watermark::default();
+    let mut must_reopen = false;
     while let Some(first) = inbox.blocking_recv() {
         let mut group = Group::default();
+        if must_reopen {
+            match guarded("reopen", || store.reopen()) {
+                Ok(()) => {
+                    tracing::info!("storage reopened after a failure; writing again");
+                    must_reopen = false;
+                }
+                Err(e) => group.record(Err(e)),
+            }
+        }
         let mut closing = group.add(&*store, first);
         while closing.is_none() && group.len < GROUP_OPS {
             match inbox.try_recv() {
@@ -304,6 +354,8 @@ fn persist(
         let mut numbers = std::mem::take(&mut group.numbers);
         if let Err(e) = group.finish(&*store) {
             tracing::error!(error = %e, "persisting failed; affected publishes are nacked");
+            must_reopen = true;
+            failures.send_modify(|count| *count += 1);
             numbers.sort_unstable();
             // Held only to push or search, never across an await.
             let mut log = failed.lock().unwrap_or_else(|e| e.into_inner());

@@ -1,10 +1,13 @@
 //! The on-disk [`Store`]: one sled tree in the data directory. Plain writes
 //! are single inserts and removes; atomic writes go through `apply_batch`;
 //! `flush` blocks until everything written is stable on disk. The page cache is kept
-//! small: the broker holds queued messages in memory itself.
+//! small: the broker holds queued messages in memory itself. sled refuses
+//! all work after one I/O error (a full disk), so `reopen` drops the
+//! database and opens it again from what is on disk.
 
 use super::{KvOp, KvPair, Store, StoreError, WriteMode};
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::RwLock;
 
 /// sled's page cache: small, because recovery reads everything once and
 /// the broker keeps what it needs in memory.
@@ -19,29 +22,59 @@ const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
 /// A store in a sled database.
 #[derive(Debug)]
 pub struct SledStore {
-    db: sled::Db,
+    dir: PathBuf,
+    /// `None` between dropping a failed database and opening it again
+    /// (and after a reopen that failed: the next one tries again). Read
+    /// for every call, written only by `reopen`.
+    db: RwLock<Option<sled::Db>>,
 }
 
 impl SledStore {
     /// Opens (or creates) the store in `dir`.
     pub fn open(dir: &Path) -> Result<Self, StoreError> {
-        let started = std::time::Instant::now();
-        loop {
-            let opened = super::guarded("open", || {
-                sled::Config::new()
-                    .path(dir.join("store"))
-                    .mode(sled::Mode::HighThroughput)
-                    .cache_capacity(CACHE_BYTES)
-                    .flush_every_ms(None)
-                    .open()
-                    .map_err(StoreError::from)
-            });
-            match opened {
-                Err(e) if is_lock_held(&e) && started.elapsed() < LOCK_WAIT => {
-                    std::thread::sleep(std::time::Duration::from_millis(10));
-                }
-                opened => return opened.map(|db| SledStore { db }),
+        Ok(SledStore {
+            dir: dir.to_owned(),
+            db: RwLock::new(Some(open_db(dir)?)),
+        })
+    }
+
+    /// Runs `call` on the open database.
+    fn with_db<T>(
+        &self,
+        call: impl FnOnce(&sled::Db) -> Result<T, StoreError>,
+    ) -> Result<T, StoreError> {
+        let db = self.db.read().unwrap_or_else(|e| e.into_inner());
+        match &*db {
+            Some(db) => call(db),
+            None => Err(StoreError::Engine(
+                format!(
+                    "the store in {} is closed after a failure and could not be reopened yet",
+                    self.dir.display()
+                )
+                .into(),
+            )),
+        }
+    }
+}
+
+/// Opens (or creates) the sled database in `dir`.
+fn open_db(dir: &Path) -> Result<sled::Db, StoreError> {
+    let started = std::time::Instant::now();
+    loop {
+        let opened = super::guarded("open", || {
+            sled::Config::new()
+                .path(dir.join("store"))
+                .mode(sled::Mode::HighThroughput)
+                .cache_capacity(CACHE_BYTES)
+                .flush_every_ms(None)
+                .open()
+                .map_err(StoreError::from)
+        });
+        match opened {
+            Err(e) if is_lock_held(&e) && started.elapsed() < LOCK_WAIT => {
+                std::thread::sleep(std::time::Duration::from_millis(10));
             }
+            opened => return opened,
         }
     }
 }
@@ -53,40 +86,54 @@ fn is_lock_held(error: &StoreError) -> bool {
 
 impl Store for SledStore {
     fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
-        if mode == WriteMode::Atomic {
-            let mut batch = sled::Batch::default();
-            for (key, value) in ops {
-                match value {
-                    Some(value) => batch.insert(key, value),
-                    None => batch.remove(key),
-                }
-            }
-            return self.db.apply_batch(batch).map_err(StoreError::from);
-        }
-        for (key, value) in ops {
-            match value {
-                Some(value) => self.db.insert(key, value).map(drop),
-                None => self.db.remove(key).map(drop),
-            }
-            .map_err(StoreError::from)?;
-        }
-        Ok(())
+        self.with_db(|db| write(db, ops, mode))
     }
 
     fn flush(&self) -> Result<(), StoreError> {
-        self.db.flush().map(drop).map_err(StoreError::from)
+        self.with_db(|db| db.flush().map(drop).map_err(StoreError::from))
     }
 
     fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
-        self.db
-            .iter()
-            .map(|entry| {
-                entry
-                    .map(|(k, v)| (k.to_vec(), v.to_vec()))
-                    .map_err(StoreError::from)
-            })
-            .collect()
+        self.with_db(|db| {
+            db.iter()
+                .map(|entry| {
+                    entry
+                        .map(|(k, v)| (k.to_vec(), v.to_vec()))
+                        .map_err(StoreError::from)
+                })
+                .collect()
+        })
     }
+
+    fn reopen(&self) -> Result<(), StoreError> {
+        let mut db = self.db.write().unwrap_or_else(|e| e.into_inner());
+        // The old database must be gone (its file lock released) first.
+        drop(db.take());
+        *db = Some(open_db(&self.dir)?);
+        Ok(())
+    }
+}
+
+/// Applies `ops` to `db` as `mode` says.
+fn write(db: &sled::Db, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+    if mode == WriteMode::Atomic {
+        let mut batch = sled::Batch::default();
+        for (key, value) in ops {
+            match value {
+                Some(value) => batch.insert(key, value),
+                None => batch.remove(key),
+            }
+        }
+        return db.apply_batch(batch).map_err(StoreError::from);
+    }
+    for (key, value) in ops {
+        match value {
+            Some(value) => db.insert(key, value).map(drop),
+            None => db.remove(key).map(drop),
+        }
+        .map_err(StoreError::from)?;
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -149,8 +149,8 @@ fn node_json(c: &Context) -> Value {
         "mem_limit": o.memory_high_watermark,
         "mem_alarm": o.memory_alarm,
         "disk_free": p.disk_free_bytes,
-        "disk_free_limit": 0,
-        "disk_free_alarm": false,
+        "disk_free_limit": o.disk_free_limit,
+        "disk_free_alarm": o.disk_alarm,
         "fd_used": p.open_fds,
         "fd_total": p.max_fds,
         "uptime": o.uptime.as_millis() as u64,
@@ -703,11 +703,17 @@ pub async fn aliveness_test(State(c): Ctx, Path(vhost): Path<String>) -> ApiResu
 }
 
 pub async fn alarms(State(c): Ctx) -> Response {
-    if c.admin.overview().memory_alarm {
+    let o = c.admin.overview();
+    let alarms: Vec<Value> = [("memory", o.memory_alarm), ("disk", o.disk_alarm)]
+        .into_iter()
+        .filter(|(_, on)| *on)
+        .map(|(resource, _)| json!({"node": c.node, "resource": resource}))
+        .collect();
+    if !alarms.is_empty() {
         let body = json!({
             "status": "failed",
             "reason": "resource alarm(s) in effect in the cluster",
-            "alarms": [{"node": c.node, "resource": "memory"}],
+            "alarms": alarms,
         });
         (StatusCode::SERVICE_UNAVAILABLE, Json(body)).into_response()
     } else {
