@@ -9,7 +9,7 @@ use crate::busy_poll::BusyPoll;
 use crate::core::{Core, CoreOptions, Limits};
 use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 use crate::inspect::{Overview, QueueInfo};
-use crate::store::{Persistence, Recovered, SledStore, Store, StoreError};
+use crate::store::{mark_clean, open_checked, Persistence, Recovered, Store, StoreError, StoreOp};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -49,6 +49,7 @@ pub struct BrokerBuilder {
     product: Option<String>,
     busy_poll: Duration,
     free_space: Option<Arc<dyn FreeSpace>>,
+    recover: bool,
 }
 
 /// Where durable state lives.
@@ -113,6 +114,15 @@ impl BrokerBuilder {
     /// Keeps durable state in a store the caller provides.
     pub fn store(mut self, store: Arc<dyn Store>) -> Self {
         self.storage = Storage::Custom(store);
+        self
+    }
+
+    /// Starts even on a damaged store in [`BrokerBuilder::data_dir`]:
+    /// copies the damaged files aside, keeps every readable record and
+    /// logs each one dropped (the server's `--recover`). Without it a
+    /// damaged store refuses the start with [`StoreError::Damaged`].
+    pub fn recover(mut self, recover: bool) -> Self {
+        self.recover = recover;
         self
     }
 
@@ -200,28 +210,31 @@ impl BrokerBuilder {
             }
             (None, _) => None,
         };
-        let store: Option<Arc<dyn Store>> = match self.storage {
+        // A data directory's store is checked for damage; a custom one is
+        // its provider's business (a record that cannot be decoded still
+        // refuses the start).
+        let mut clean_shutdown = None;
+        let opened = match self.storage {
             Storage::None => None,
             Storage::Dir(dir) => {
-                std::fs::create_dir_all(&dir).map_err(|source| {
-                    StartError::Storage(StoreError::DataDir {
-                        path: dir.clone(),
-                        source,
-                    })
-                })?;
-                Some(Arc::new(
-                    SledStore::open(&dir).map_err(StartError::Storage)?,
-                ))
+                let opened = open_checked(&dir, self.recover).map_err(StartError::Storage)?;
+                clean_shutdown = Some(CleanShutdown {
+                    dir,
+                    generation: opened.next_generation,
+                });
+                Some((opened.store, opened.recovered))
             }
-            Storage::Custom(store) => Some(store),
+            Storage::Custom(store) => {
+                let pairs =
+                    crate::store::guarded("scan", || store.scan()).map_err(StartError::Storage)?;
+                let recovered = Recovered::from_scan(pairs).map_err(|bad| {
+                    StartError::Storage(StoreError::Engine(bad.to_string().into()))
+                })?;
+                Some((store, recovered))
+            }
         };
-
-        let (persistence, recovered) = match store {
-            Some(store) => {
-                let recovered = Recovered::from_scan(
-                    crate::store::guarded("scan", || store.scan()).map_err(StartError::Storage)?,
-                )
-                .map_err(StartError::Storage)?;
+        let (persistence, recovered) = match opened {
+            Some((store, recovered)) => {
                 let persistence =
                     Persistence::start(store, &recovered).map_err(StartError::Storage)?;
                 (Some(persistence), recovered)
@@ -295,6 +308,7 @@ impl BrokerBuilder {
             tasks,
             alive: Some(alive),
             finished,
+            clean_shutdown,
         })
     }
 }
@@ -322,6 +336,15 @@ pub struct BrokerHandle {
     tasks: Vec<tokio::task::JoinHandle<()>>,
     alive: Option<mpsc::Sender<()>>,
     finished: mpsc::Receiver<()>,
+    /// For a store in a data directory: what a clean shutdown records.
+    clean_shutdown: Option<CleanShutdown>,
+}
+
+/// Where and with which generation a clean shutdown is recorded.
+#[derive(Debug)]
+struct CleanShutdown {
+    dir: PathBuf,
+    generation: u64,
 }
 
 impl BrokerHandle {
@@ -380,7 +403,25 @@ impl BrokerHandle {
             if !persistence.sync().await {
                 tracing::error!("the last writes to storage failed at shutdown");
             }
-            persistence.close().await;
+            // The marker is the store's last write; the manifest says
+            // `clean` only once it is on disk.
+            let marker = self
+                .clean_shutdown
+                .as_ref()
+                .map(|clean| StoreOp::CleanShutdown {
+                    generation: clean.generation,
+                });
+            let marked = persistence.close(marker.into_iter().collect()).await;
+            if let Some(clean) = &self.clean_shutdown {
+                let recorded = if marked {
+                    mark_clean(&clean.dir, clean.generation)
+                } else {
+                    Err(StoreError::Engine("the marker could not be written".into()))
+                };
+                if let Err(e) = recorded {
+                    tracing::error!(error = %e, "could not record a clean shutdown");
+                }
+            }
         }
     }
 }

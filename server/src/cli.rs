@@ -1,5 +1,5 @@
-//! The command line. Every option but `--hash-password` and `--config`
-//! also has a key of the same name in the config file (`config`); the
+//! The command line. Every option but `--hash-password`, `--recover` and
+//! `--config` also has a key of the same name in the config file (`config`); the
 //! command line wins.
 
 use clap::Parser;
@@ -17,6 +17,12 @@ pub struct Cli {
     /// Directory for durable state; created if missing [default: ./leveret-data].
     #[arg(long, value_name = "DIR")]
     pub data_dir: Option<PathBuf>,
+    /// Start even if the store in the data directory is damaged: copy the
+    /// damaged files aside (`store.damaged-<time>`), keep every readable
+    /// record and log each one dropped. Without it, a damaged store
+    /// refuses the start with an error saying what is wrong.
+    #[arg(long)]
+    pub recover: bool,
     /// Free bytes on the data directory's disk below which publishers are
     /// blocked until space returns (RabbitMQ's `disk_free_limit`)
     /// [default: 50000000].

@@ -178,6 +178,8 @@ pub struct Settings {
     pub http_listen: SocketAddr,
     /// A definitions file to load at start.
     pub definitions: Option<PathBuf>,
+    /// Start on a damaged store, keeping what is readable.
+    pub recover: bool,
 }
 
 impl Settings {
@@ -271,6 +273,7 @@ impl Settings {
                 .or(file.http_listen)
                 .unwrap_or(DEFAULT_HTTP_LISTEN),
             definitions: cli.definitions.or(file.definitions),
+            recover: cli.recover,
         })
     }
 
@@ -288,6 +291,7 @@ impl Settings {
         let mut builder = Broker::builder()
             .limits(self.limits)
             .data_dir(self.data_dir)
+            .recover(self.recover)
             .busy_poll(self.busy_poll);
         if let Some(product) = self.product {
             builder = builder.product(product);

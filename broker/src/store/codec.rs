@@ -182,97 +182,153 @@ impl StoreOp {
                 (mark_key(*queue), Some(seq.to_be_bytes().to_vec()))
             }
             StoreOp::Dequeue { queue, seq } => (index_key(*queue, *seq), None),
+            StoreOp::CleanShutdown { generation } => (
+                CLEAN_MARKER_KEY.to_vec(),
+                Some(generation.to_be_bytes().to_vec()),
+            ),
         }
     }
 }
 
+/// The clean-shutdown marker's key (`!` sorts before every other tag).
+const CLEAN_MARKER_KEY: &[u8] = b"!clean";
+
+/// A record that could not be decoded: its key (escaped) and why.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BadRecord {
+    /// The key, printable.
+    pub key: String,
+    /// What is wrong with it.
+    pub error: String,
+}
+
+impl std::fmt::Display for BadRecord {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "record {}: {}", self.key, self.error)
+    }
+}
+
 impl Recovered {
-    /// Decodes a full scan of a store.
-    pub fn from_scan(pairs: Vec<KvPair>) -> Result<Recovered, StoreError> {
+    /// Decodes a full scan of a store; the first record that cannot be
+    /// decoded is the error.
+    pub fn from_scan(pairs: Vec<KvPair>) -> Result<Recovered, BadRecord> {
         let mut out = Recovered::default();
         for (key, value) in pairs {
-            let Some((&tag, rest)) = key.split_first() else {
-                continue;
-            };
-            let mut value = Bytes::from(value);
-            match tag {
-                b'e' | b'q' => {
-                    let split = rest
-                        .iter()
-                        .position(|&b| b == 0)
-                        .ok_or_else(|| corrupt("name key"))?;
-                    let vhost = ShortStr::try_from(Bytes::copy_from_slice(&rest[..split]))
-                        .map_err(|_| corrupt("vhost"))?;
-                    let name = ShortStr::try_from(Bytes::copy_from_slice(&rest[split + 1..]))
-                        .map_err(|_| corrupt("name"))?;
-                    if tag == b'e' {
-                        let kind = take_short(&mut value)?;
-                        let flags = take_u8(&mut value)?;
-                        let arguments = take_table(&mut value)?;
-                        out.exchanges.push(ExchangeRecord {
-                            vhost,
-                            name,
-                            kind,
-                            auto_delete: flags & 1 != 0,
-                            internal: flags & 2 != 0,
-                            arguments,
-                        });
-                    } else {
-                        let id = take_u64(&mut value)?;
-                        let auto_delete = take_u8(&mut value)? != 0;
-                        let arguments = take_table(&mut value)?;
-                        out.queues.push(QueueRecord {
-                            vhost,
-                            name,
-                            id,
-                            auto_delete,
-                            arguments,
-                        });
-                    }
-                }
-                b'b' => {
-                    let mut k = Bytes::copy_from_slice(rest);
-                    out.bindings.push(BindingRecord {
-                        vhost: take_short(&mut k)?,
-                        source: take_short(&mut k)?,
-                        to_queue: take_u8(&mut k)? != 0,
-                        destination: take_short(&mut k)?,
-                        routing_key: take_short(&mut k)?,
-                        arguments: take_table(&mut k)?,
-                    });
-                }
-                b'm' => {
-                    let id =
-                        u64::from_be_bytes(rest.try_into().map_err(|_| corrupt("message key"))?);
-                    out.messages.insert(id, take_record(&mut value)?);
-                }
-                b'd' => {
-                    let queue =
-                        u64::from_be_bytes(rest.try_into().map_err(|_| corrupt("mark key"))?);
-                    out.delivered.insert(queue, take_u64(&mut value)?);
-                }
-                b'i' => {
-                    if rest.len() != 16 {
-                        return Err(corrupt("index key"));
-                    }
-                    let queue =
-                        u64::from_be_bytes(rest[..8].try_into().map_err(|_| corrupt("index key"))?);
-                    let seq =
-                        u64::from_be_bytes(rest[8..].try_into().map_err(|_| corrupt("index key"))?);
-                    let body = match take_u8(&mut value)? {
-                        0 => EntryBody::Inline(take_record(&mut value)?),
-                        1 => EntryBody::Shared(take_u64(&mut value)?),
-                        _ => return Err(corrupt("index entry kind")),
-                    };
-                    out.entries
-                        .entry(queue)
-                        .or_default()
-                        .push(RecoveredEntry { seq, body });
-                }
-                _ => return Err(corrupt("unknown key tag")),
+            if let Err(e) = out.decode(&key, value) {
+                return Err(bad_record(&key, &e));
             }
         }
         Ok(out)
+    }
+
+    /// Decodes what can be decoded of a full scan, and lists the records
+    /// that cannot (for `--recover`).
+    pub fn salvage(pairs: Vec<KvPair>) -> (Recovered, Vec<BadRecord>) {
+        let mut out = Recovered::default();
+        let mut dropped = Vec::new();
+        for (key, value) in pairs {
+            if let Err(e) = out.decode(&key, value) {
+                dropped.push(bad_record(&key, &e));
+            }
+        }
+        (out, dropped)
+    }
+
+    /// Adds one stored record.
+    fn decode(&mut self, key: &[u8], value: Vec<u8>) -> Result<(), StoreError> {
+        let out = self;
+        let Some((&tag, rest)) = key.split_first() else {
+            return Err(corrupt("empty key"));
+        };
+        let mut value = Bytes::from(value);
+        match tag {
+            b'!' if key == CLEAN_MARKER_KEY => {
+                let bytes: [u8; 8] = value[..]
+                    .try_into()
+                    .map_err(|_| corrupt("clean-shutdown marker"))?;
+                out.clean_generation = Some(u64::from_be_bytes(bytes));
+            }
+            b'e' | b'q' => {
+                let split = rest
+                    .iter()
+                    .position(|&b| b == 0)
+                    .ok_or_else(|| corrupt("name key"))?;
+                let vhost = ShortStr::try_from(Bytes::copy_from_slice(&rest[..split]))
+                    .map_err(|_| corrupt("vhost"))?;
+                let name = ShortStr::try_from(Bytes::copy_from_slice(&rest[split + 1..]))
+                    .map_err(|_| corrupt("name"))?;
+                if tag == b'e' {
+                    let kind = take_short(&mut value)?;
+                    let flags = take_u8(&mut value)?;
+                    let arguments = take_table(&mut value)?;
+                    out.exchanges.push(ExchangeRecord {
+                        vhost,
+                        name,
+                        kind,
+                        auto_delete: flags & 1 != 0,
+                        internal: flags & 2 != 0,
+                        arguments,
+                    });
+                } else {
+                    let id = take_u64(&mut value)?;
+                    let auto_delete = take_u8(&mut value)? != 0;
+                    let arguments = take_table(&mut value)?;
+                    out.queues.push(QueueRecord {
+                        vhost,
+                        name,
+                        id,
+                        auto_delete,
+                        arguments,
+                    });
+                }
+            }
+            b'b' => {
+                let mut k = Bytes::copy_from_slice(rest);
+                out.bindings.push(BindingRecord {
+                    vhost: take_short(&mut k)?,
+                    source: take_short(&mut k)?,
+                    to_queue: take_u8(&mut k)? != 0,
+                    destination: take_short(&mut k)?,
+                    routing_key: take_short(&mut k)?,
+                    arguments: take_table(&mut k)?,
+                });
+            }
+            b'm' => {
+                let id = u64::from_be_bytes(rest.try_into().map_err(|_| corrupt("message key"))?);
+                out.messages.insert(id, take_record(&mut value)?);
+            }
+            b'd' => {
+                let queue = u64::from_be_bytes(rest.try_into().map_err(|_| corrupt("mark key"))?);
+                out.delivered.insert(queue, take_u64(&mut value)?);
+            }
+            b'i' => {
+                if rest.len() != 16 {
+                    return Err(corrupt("index key"));
+                }
+                let queue =
+                    u64::from_be_bytes(rest[..8].try_into().map_err(|_| corrupt("index key"))?);
+                let seq =
+                    u64::from_be_bytes(rest[8..].try_into().map_err(|_| corrupt("index key"))?);
+                let body = match take_u8(&mut value)? {
+                    0 => EntryBody::Inline(take_record(&mut value)?),
+                    1 => EntryBody::Shared(take_u64(&mut value)?),
+                    _ => return Err(corrupt("index entry kind")),
+                };
+                out.entries
+                    .entry(queue)
+                    .or_default()
+                    .push(RecoveredEntry { seq, body });
+            }
+            _ => return Err(corrupt("unknown key tag")),
+        }
+        Ok(())
+    }
+}
+
+fn bad_record(key: &[u8], error: &StoreError) -> BadRecord {
+    BadRecord {
+        key: key.escape_ascii().to_string(),
+        error: error.to_string(),
     }
 }
 
@@ -375,6 +431,38 @@ mod tests {
         let recovered = Recovered::from_scan(store.scan().unwrap()).unwrap();
         assert!(recovered.messages.is_empty());
         assert!(recovered.entries.is_empty());
+    }
+
+    /// `--recover` keeps every readable record and names each bad one;
+    /// the strict decoding names the first.
+    #[test]
+    fn salvage_keeps_readable_records_and_names_the_bad_ones() {
+        let good = StoreOp::DeleteExchange {
+            vhost: s("/"),
+            name: s("x"),
+        };
+        let mut exchange = good.to_kv();
+        exchange.1 = Some({
+            let mut v = BytesMut::new();
+            put_short(&mut v, &s("direct"));
+            v.put_u8(0);
+            FieldTable::new().encode(&mut v);
+            v.to_vec()
+        });
+        let marker = StoreOp::CleanShutdown { generation: 9 }.to_kv();
+        let pairs = vec![
+            (marker.0, marker.1.unwrap()),
+            (b"m\0\0\0\0\0\0\0\x01".to_vec(), vec![200, 1, 2]),
+            (exchange.0, exchange.1.unwrap()),
+            (b"zzz".to_vec(), vec![]),
+        ];
+        let strict = Recovered::from_scan(pairs.clone()).unwrap_err();
+        assert!(strict.key.starts_with('m'), "{strict}");
+        let (recovered, dropped) = Recovered::salvage(pairs);
+        assert_eq!(recovered.exchanges.len(), 1);
+        assert_eq!(recovered.clean_generation, Some(9));
+        assert_eq!(dropped.len(), 2, "{dropped:?}");
+        assert_eq!(dropped[1].key, "zzz");
     }
 
     #[test]

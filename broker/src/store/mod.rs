@@ -15,6 +15,8 @@
 //!   record), or a reference to a shared record (`1` + message-id)
 //! - `m` message-id (8 BE) → a message held by several durable queues
 //! - `d` queue-id (8 BE) → the highest seq delivered from the queue
+//! - `!clean` → the generation of the last clean shutdown (its last
+//!   write; `integrity` checks it against the manifest beside the store)
 //!
 //! A message in one durable queue (the usual case) costs one key; one in
 //! several is stored once and referenced, and the last queue to drop it
@@ -35,10 +37,13 @@
 //! skips it).
 
 mod codec;
+mod integrity;
 mod memory;
 mod persister;
 mod sled;
 
+pub use self::codec::BadRecord;
+pub use self::integrity::{mark_clean, open_checked, OpenedStore};
 pub use self::memory::MemoryStore;
 pub use self::persister::{Durable, Persistence};
 pub use self::sled::SledStore;
@@ -80,6 +85,18 @@ pub enum StoreError {
         what: &'static str,
         /// The panic's message.
         message: String,
+    },
+    /// The store in a data directory is damaged (see `integrity`).
+    #[error(
+        "the store in {path} is damaged: {problem}; the broker does not start on it. \
+         Start with --recover to keep every readable record (the damaged files are \
+         copied aside first)"
+    )]
+    Damaged {
+        /// The data directory.
+        path: std::path::PathBuf,
+        /// What is wrong.
+        problem: String,
     },
     /// The persister thread could not be started.
     #[error("cannot start the persister thread: {0}")]
@@ -270,6 +287,12 @@ pub enum StoreOp {
         /// Position.
         seq: u64,
     },
+    /// The last write of a clean shutdown: the store's generation, which
+    /// the manifest beside it must match at the next start.
+    CleanShutdown {
+        /// The generation (one more each clean shutdown).
+        generation: u64,
+    },
 }
 
 /// A queue's message as recovered.
@@ -296,6 +319,8 @@ pub struct Recovered {
     pub entries: std::collections::HashMap<u64, Vec<RecoveredEntry>>,
     /// Each queue's delivery mark, by queue id.
     pub delivered: std::collections::HashMap<u64, u64>,
+    /// The generation of the last clean shutdown's marker, if any.
+    pub clean_generation: Option<u64>,
 }
 
 impl Recovered {

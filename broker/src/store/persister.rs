@@ -217,12 +217,13 @@ impl Persistence {
         self.send(ops, WriteMode::Atomic, None)
     }
 
-    /// Writes and flushes everything submitted so far, then releases the
-    /// store; later submissions are dropped. For shutdown.
-    pub async fn close(&self) {
+    /// Writes and flushes everything submitted so far, then `last` (the
+    /// clean-shutdown marker), then releases the store; later submissions
+    /// are dropped. For shutdown. Whether `last` reached the disk.
+    pub async fn close(&self, last: Vec<StoreOp>) -> bool {
         let (done, closed) = tokio::sync::oneshot::channel();
-        self.send(Vec::new(), WriteMode::Plain, Some(done));
-        let _ = closed.await;
+        let number = self.send(last, WriteMode::Plain, Some(done));
+        closed.await.is_ok() && self.succeeded(number)
     }
 
     fn send(
