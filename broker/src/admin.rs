@@ -4,7 +4,6 @@
 //! the handle and the operations that change things, each doing what the
 //! AMQP method of the same meaning does, with the same checks.
 
-use crate::auth::PasswordHash;
 use crate::channel::{apply_settles, Settle};
 use crate::consumer::ChannelLink;
 use crate::core::Core;
@@ -13,6 +12,7 @@ use crate::exchange::ExchangeOptions;
 use crate::inspect::DestinationKind;
 use crate::message::{Message, Stored};
 use crate::outbox::{Outbound, Outbox};
+use crate::password::PasswordHash;
 use crate::queue::{DeadLetters, Enqueued, Queue, QueueOptions};
 use crate::vhost::{check_exclusive, BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
 use bytes::{Bytes, BytesMut};
@@ -153,16 +153,11 @@ impl Admin {
     }
 
     /// Whether `user` with `password` is one of the broker's users.
-    pub fn authenticate(&self, user: &str, password: &str) -> bool {
-        let mut plain = Vec::with_capacity(user.len() + password.len() + 2);
-        plain.push(0);
-        plain.extend_from_slice(user.as_bytes());
-        plain.push(0);
-        plain.extend_from_slice(password.as_bytes());
+    pub async fn authenticate(&self, user: &str, password: &str) -> bool {
         self.core
             .users
-            .authenticate(b"PLAIN", &Bytes::from(plain))
-            .is_some()
+            .check_password(user, password.as_bytes())
+            .await
     }
 
     /// The broker's users and their password hashes, sorted by name.

@@ -1,77 +1,71 @@
-//! Users and authentication: salted SHA-256 password hashes (RabbitMQ's
-//! default scheme: a 4-byte salt prepended to the password before
-//! hashing), and the SASL mechanisms PLAIN and AMQPLAIN.
+//! Users and authentication: the users and their password hashes
+//! (`password`), RabbitMQ's `loopback_users`, and the SASL mechanisms
+//! PLAIN and AMQPLAIN. An argon2id check runs on tokio's blocking pool, at
+//! most [`SLOW_CHECKS`] at once, so neither the broker's threads nor a
+//! flood of logins is held by it; a login that passed is remembered (a
+//! keyed SHA-256 of user, hash and password under a per-process secret), so
+//! reconnecting with the same password costs microseconds. Failed logins
+//! are never remembered. Uses `password` and nothing else of the broker.
 
+use crate::password::PasswordHash;
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{FieldTable, FieldValue};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
 
-/// A stored password: salt and SHA-256 of salt + password.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct PasswordHash {
-    salt: [u8; 4],
-    digest: [u8; 32],
+/// argon2id checks running at once, broker-wide (each holds ~19 MiB).
+pub const SLOW_CHECKS: usize = 2;
+
+/// Logins that passed an argon2id check, one per user.
+struct VerifiedLogins {
+    secret: [u8; 32],
+    // Held for one lookup or insert, never across an await.
+    passed: Mutex<HashMap<String, [u8; 32]>>,
+    slow_checks: tokio::sync::Semaphore,
 }
 
-impl PasswordHash {
-    /// Hashes `password` with a fresh salt.
-    pub fn new(password: &str) -> Self {
-        use std::hash::{BuildHasher, Hasher};
-        let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
-        hasher.write(password.as_bytes());
-        let salt = (hasher.finish() as u32).to_be_bytes();
-        Self::with_salt(salt, password)
+impl std::fmt::Debug for VerifiedLogins {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("VerifiedLogins")
     }
+}
 
-    fn with_salt(salt: [u8; 4], password: &str) -> Self {
-        let mut sha = Sha256::new();
-        sha.update(salt);
-        sha.update(password.as_bytes());
-        PasswordHash {
-            salt,
-            digest: sha.finalize().into(),
+impl VerifiedLogins {
+    fn new() -> Self {
+        use argon2::password_hash::rand_core::{OsRng, RngCore};
+        let mut secret = [0u8; 32];
+        OsRng.fill_bytes(&mut secret);
+        VerifiedLogins {
+            secret,
+            passed: Mutex::new(HashMap::new()),
+            slow_checks: tokio::sync::Semaphore::new(SLOW_CHECKS),
         }
     }
 
-    /// The stored form: 8 hex digits of salt, then 64 of SHA-256.
-    pub fn to_hex(&self) -> String {
-        self.salt
-            .iter()
-            .chain(self.digest.iter())
-            .map(|b| format!("{b:02x}"))
-            .collect()
+    fn key(&self, user: &str, hash: &PasswordHash, password: &[u8]) -> [u8; 32] {
+        let (stored, _) = hash.to_rabbitmq();
+        Sha256::new()
+            .chain_update(self.secret)
+            .chain_update((user.len() as u64).to_be_bytes())
+            .chain_update(user)
+            .chain_update((stored.len() as u64).to_be_bytes())
+            .chain_update(stored)
+            .chain_update(password)
+            .finalize()
+            .into()
     }
 
-    /// Parses the stored form made by [`PasswordHash::to_hex`].
-    pub fn from_hex(text: &str) -> Option<Self> {
-        let text = text.trim();
-        if text.len() != 72 || !text.is_ascii() {
-            return None;
-        }
-        let mut bytes = [0u8; 36];
-        for (i, byte) in bytes.iter_mut().enumerate() {
-            *byte = u8::from_str_radix(&text[2 * i..2 * i + 2], 16).ok()?;
-        }
-        let mut salt = [0u8; 4];
-        let mut digest = [0u8; 32];
-        salt.copy_from_slice(&bytes[..4]);
-        digest.copy_from_slice(&bytes[4..]);
-        Some(PasswordHash { salt, digest })
+    fn passed(&self, user: &str, key: &[u8; 32]) -> bool {
+        let passed = self.passed.lock().unwrap_or_else(|e| e.into_inner());
+        passed
+            .get(user)
+            .is_some_and(|known| known.iter().zip(key).fold(0u8, |acc, (a, b)| acc | (a ^ b)) == 0)
     }
 
-    /// Whether `password` matches.
-    pub fn verify(&self, password: &[u8]) -> bool {
-        let mut sha = Sha256::new();
-        sha.update(self.salt);
-        sha.update(password);
-        let digest: [u8; 32] = sha.finalize().into();
-        // Constant-time comparison.
-        digest
-            .iter()
-            .zip(self.digest.iter())
-            .fold(0u8, |acc, (a, b)| acc | (a ^ b))
-            == 0
+    fn remember(&self, user: &str, key: [u8; 32]) {
+        let mut passed = self.passed.lock().unwrap_or_else(|e| e.into_inner());
+        passed.insert(user.to_owned(), key);
     }
 }
 
@@ -79,6 +73,7 @@ impl PasswordHash {
 #[derive(Debug, Clone)]
 pub struct Users {
     users: HashMap<String, PasswordHash>,
+    verified: Arc<VerifiedLogins>,
     /// RabbitMQ's `loopback_users`: users who may connect only from the
     /// host itself (`guest` by default, as in RabbitMQ).
     loopback_only: Vec<String>,
@@ -88,6 +83,7 @@ impl Default for Users {
     fn default() -> Self {
         Users {
             users: HashMap::new(),
+            verified: Arc::new(VerifiedLogins::new()),
             loopback_only: vec![GUEST.to_owned()],
         }
     }
@@ -142,17 +138,41 @@ impl Users {
     }
 
     /// Checks a SASL response for `mechanism`; the user name if it passes.
-    pub fn authenticate(&self, mechanism: &[u8], response: &Bytes) -> Option<String> {
+    pub async fn authenticate(&self, mechanism: &[u8], response: &Bytes) -> Option<String> {
         let (user, password) = match mechanism {
             b"PLAIN" => parse_plain(response)?,
             b"AMQPLAIN" => parse_amqplain(response)?,
             _ => return None,
         };
         let name = std::str::from_utf8(&user).ok()?;
-        self.users
-            .get(name)
-            .filter(|hash| hash.verify(&password))
-            .map(|_| name.to_owned())
+        self.check_password(name, &password)
+            .await
+            .then(|| name.to_owned())
+    }
+
+    /// Whether `password` is `user`'s.
+    pub async fn check_password(&self, user: &str, password: &[u8]) -> bool {
+        let Some(hash) = self.users.get(user) else {
+            return false;
+        };
+        if !hash.is_slow() {
+            return hash.verify(password);
+        }
+        let key = self.verified.key(user, hash, password);
+        if self.verified.passed(user, &key) {
+            return true;
+        }
+        let Ok(_slot) = self.verified.slow_checks.acquire().await else {
+            return false;
+        };
+        let (hash, candidate) = (hash.clone(), password.to_vec());
+        let verified = tokio::task::spawn_blocking(move || hash.verify(&candidate))
+            .await
+            .unwrap_or(false);
+        if verified {
+            self.verified.remember(user, key);
+        }
+        verified
     }
 }
 
@@ -179,26 +199,67 @@ fn parse_amqplain(response: &Bytes) -> Option<(Vec<u8>, Vec<u8>)> {
 mod tests {
     use super::*;
 
-    #[test]
-    fn plain_and_amqplain() {
+    #[tokio::test]
+    async fn plain_and_amqplain() {
         let mut users = Users::default();
         users.insert("guest", "guest");
         assert_eq!(
-            users.authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0guest")),
+            users
+                .authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0guest"))
+                .await,
             Some("guest".into())
         );
         assert_eq!(
-            users.authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0nope")),
+            users
+                .authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0nope"))
+                .await,
             None
         );
         let amqplain = Bytes::from_static(
             b"\x05LOGINS\x00\x00\x00\x05guest\x08PASSWORDS\x00\x00\x00\x05guest",
         );
         assert_eq!(
-            users.authenticate(b"AMQPLAIN", &amqplain),
+            users.authenticate(b"AMQPLAIN", &amqplain).await,
             Some("guest".into())
         );
-        assert_eq!(users.authenticate(b"EXTERNAL", &amqplain), None);
+        assert_eq!(users.authenticate(b"EXTERNAL", &amqplain).await, None);
+    }
+
+    /// A login that passed argon2id is remembered (keyed by the password:
+    /// another password is checked in full); failures never are, and the
+    /// blocking checks give their slots back.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn argon2id_logins_are_checked_off_thread_and_remembered_only_when_right() {
+        let mut users = Users::default();
+        users.insert("robot", "pw");
+        let wrong: Vec<_> = (0..8)
+            .map(|i| {
+                let users = users.clone();
+                tokio::spawn(async move {
+                    users
+                        .check_password("robot", format!("no{i}").as_bytes())
+                        .await
+                })
+            })
+            .collect();
+        for attempt in wrong {
+            assert!(!attempt.await.unwrap());
+        }
+        assert!(
+            users.verified.passed.lock().unwrap().is_empty(),
+            "failures are not remembered"
+        );
+        assert_eq!(users.verified.slow_checks.available_permits(), SLOW_CHECKS);
+        assert!(users.check_password("robot", b"pw").await);
+        let hash = users.users.get("robot").unwrap().clone();
+        let key = users.verified.key("robot", &hash, b"pw");
+        assert!(users.verified.passed("robot", &key));
+        assert!(!users
+            .verified
+            .passed("robot", &users.verified.key("robot", &hash, b"pw2")));
+        assert!(users.check_password("robot", b"pw").await);
+        assert!(!users.check_password("robot", b"pw2").await);
+        assert!(!users.check_password("nobody", b"pw").await);
     }
 
     #[test]
@@ -215,27 +276,5 @@ mod tests {
         assert!(users.may_connect_from("robot", "192.168.1.20:5000"));
         users.set_loopback_only(Vec::new());
         assert!(users.may_connect_from("guest", "192.168.1.20:5000"));
-    }
-
-    #[test]
-    fn stored_form_round_trips() {
-        let hash = PasswordHash::new("robot");
-        let text = hash.to_hex();
-        assert_eq!(text.len(), 72);
-        let back = PasswordHash::from_hex(&text).unwrap();
-        assert!(back.verify(b"robot"));
-        assert!(PasswordHash::from_hex("zz").is_none());
-        assert!(PasswordHash::from_hex(&text.replace(&text[..2], "xy")).is_none());
-    }
-
-    #[test]
-    fn hashes_are_salted() {
-        let a = PasswordHash::new("secret");
-        assert!(a.verify(b"secret"));
-        assert!(!a.verify(b"Secret"));
-        assert_ne!(
-            PasswordHash::with_salt([1; 4], "x"),
-            PasswordHash::with_salt([2; 4], "x")
-        );
     }
 }

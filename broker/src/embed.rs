@@ -4,11 +4,12 @@
 //! CONNECTION_FORCED and waits for them to finish.
 
 use crate::admin::Admin;
-use crate::auth::{PasswordHash, Users};
+use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
 use crate::core::{Core, CoreOptions, Limits};
 use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 use crate::inspect::{Overview, QueueInfo};
+use crate::password::PasswordHash;
 use crate::store::{mark_clean, open_checked, Persistence, Recovered, Store, StoreError, StoreOp};
 use std::net::SocketAddr;
 use std::path::PathBuf;

@@ -63,7 +63,8 @@
 //! `resident_memory` (the process's resident memory from /proc, one of
 //! the alarm's sources), `disk_alarm` (free disk space, the disk alarm's
 //! source),
-//! `auth` (users and SASL), `error` (reply errors).
+//! `auth` (users and SASL), `password` (password hashes), `error` (reply
+//! errors).
 //!
 //! Beside them too, for operators: `stats` (message and churn counters
 //! with RabbitMQ's meanings, relaxed atomic adds on the hot path),
@@ -97,6 +98,7 @@ mod inspect;
 mod memory;
 mod message;
 mod outbox;
+mod password;
 mod queue;
 mod recovery;
 mod registry;
@@ -111,9 +113,9 @@ mod testkit;
 mod vhost;
 
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
-pub use crate::auth::PasswordHash;
 pub use crate::core::{Limits, VhostLimits};
 pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
+pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
 pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;

@@ -116,8 +116,12 @@ struct UserConfig {
     name: String,
     /// Plain text; prefer `password-hash`.
     password: Option<String>,
-    /// As printed by `leveret --hash-password`.
+    /// As printed by `leveret --hash-password` (argon2id), or as RabbitMQ
+    /// exports it with `hashing-algorithm`.
     password_hash: Option<String>,
+    /// RabbitMQ's `hashing_algorithm` for a `password-hash` exported from
+    /// it (`rabbit_password_hashing_sha256` or `_sha512`).
+    hashing_algorithm: Option<String>,
 }
 
 impl FileConfig {
@@ -233,10 +237,16 @@ impl Settings {
             .map(|user| {
                 let credential = match (user.password, user.password_hash) {
                     (Some(password), None) => Credential::Password(password),
-                    (None, Some(hex)) => match PasswordHash::from_hex(&hex) {
-                        Some(hash) => Credential::Hash(hash),
-                        None => return Err(ConfigError::BadHash(user.name)),
-                    },
+                    (None, Some(stored)) => {
+                        let hash = match user.hashing_algorithm.as_deref() {
+                            Some(algorithm) => PasswordHash::from_rabbitmq(&stored, algorithm),
+                            None => PasswordHash::parse(&stored),
+                        };
+                        match hash {
+                            Some(hash) => Credential::Hash(hash),
+                            None => return Err(ConfigError::BadHash(user.name)),
+                        }
+                    }
                     _ => return Err(ConfigError::Credentials(user.name)),
                 };
                 Ok((user.name, credential))
@@ -372,8 +382,13 @@ mod tests {
             [[users]]
             name = "tool"
             password = "plain"
+
+            [[users]]
+            name = "from-rabbitmq"
+            password-hash = "XrbDVjlDKoAec+dZ1vISo+jt5TVEqQvMa8euInsOyfsIm1Ys"
+            hashing-algorithm = "rabbit_password_hashing_sha256"
             "#,
-            hash.to_hex()
+            hash.to_phc().unwrap()
         );
         let settings = Settings::resolve(Cli::default(), file(&text)).unwrap();
         assert_eq!(
@@ -407,6 +422,16 @@ mod tests {
             vec![
                 ("robot".to_owned(), Credential::Hash(hash)),
                 ("tool".to_owned(), Credential::Password("plain".into())),
+                (
+                    "from-rabbitmq".to_owned(),
+                    Credential::Hash(
+                        PasswordHash::from_rabbitmq(
+                            "XrbDVjlDKoAec+dZ1vISo+jt5TVEqQvMa8euInsOyfsIm1Ys",
+                            leveret_broker::RABBIT_SHA256
+                        )
+                        .unwrap()
+                    )
+                ),
             ]
         );
     }

@@ -15,15 +15,11 @@
 
 use crate::access::{Access, AccessRecords, Permission, TopicPermission};
 use crate::management::json::{flag, table, text, to_table};
-use base64::Engine;
 use leveret_broker::{
     Admin, BindingSpec, BrokerBuilder, DestinationKind, ExchangeSettings, PasswordHash,
-    QueueSettings,
+    QueueSettings, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512,
 };
 use serde_json::{json, Map, Value};
-
-/// RabbitMQ's name for the hashing scheme Leveret uses.
-const SHA256: &str = "rabbit_password_hashing_sha256";
 
 /// A user from the file.
 #[derive(Debug, Clone, PartialEq)]
@@ -123,28 +119,6 @@ fn user_tags(tags: Option<&Value>) -> Vec<String> {
     }
 }
 
-/// RabbitMQ's stored hash (base64 of a 4-byte salt and the SHA-256) as
-/// Leveret's.
-fn password_hash(base64_hash: &str) -> Option<PasswordHash> {
-    let bytes = base64::engine::general_purpose::STANDARD
-        .decode(base64_hash.trim())
-        .ok()?;
-    if bytes.len() != 36 {
-        return None;
-    }
-    let hex: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
-    PasswordHash::from_hex(&hex)
-}
-
-/// Leveret's hash in RabbitMQ's stored form.
-pub fn rabbitmq_password_hash(hash: &PasswordHash) -> String {
-    let hex = hash.to_hex();
-    let bytes: Vec<u8> = (0..hex.len() / 2)
-        .filter_map(|i| u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).ok())
-        .collect();
-    base64::engine::general_purpose::STANDARD.encode(bytes)
-}
-
 impl Definitions {
     /// Parses a definitions document; an error names what is malformed.
     pub fn parse(bytes: &[u8]) -> Result<Definitions, String> {
@@ -240,12 +214,12 @@ impl Definitions {
                 ));
                 d.access.tags.insert(user.clone(), tags);
             }
-            let algorithm = text(item, "hashing_algorithm", SHA256)?;
-            if algorithm != SHA256 {
-                d.warnings.push(format!("{what} not imported: hashing algorithm {algorithm} is not supported (only {SHA256})"));
+            let algorithm = text(item, "hashing_algorithm", RABBIT_SHA256)?;
+            if ![RABBIT_SHA256, RABBIT_SHA512, LEVERET_ARGON2ID].contains(&algorithm) {
+                d.warnings.push(format!("{what} not imported: hashing algorithm {algorithm} is not supported (only {RABBIT_SHA256}, {RABBIT_SHA512} and {LEVERET_ARGON2ID})"));
                 continue;
             }
-            match password_hash(text(item, "password_hash", "")?) {
+            match PasswordHash::from_rabbitmq(text(item, "password_hash", "")?, algorithm) {
                 Some(hash) => d.users.push(UserDefinition { name: user, hash }),
                 None => d
                     .warnings
@@ -562,9 +536,12 @@ pub fn export(admin: &Admin, access: &Access) -> Value {
         "rabbitmq_version": "3.10.0",
         "product_name": overview.product,
         "product_version": overview.version,
-        "users": users.iter().map(|(name, hash)| json!({
-            "name": name, "password_hash": rabbitmq_password_hash(hash),
-            "hashing_algorithm": SHA256, "tags": access.tags(name), "limits": {}})).collect::<Vec<_>>(),
+        "users": users.iter().map(|(name, hash)| {
+            let (password_hash, hashing_algorithm) = hash.to_rabbitmq();
+            json!({
+                "name": name, "password_hash": password_hash,
+                "hashing_algorithm": hashing_algorithm, "tags": access.tags(name), "limits": {}})
+        }).collect::<Vec<_>>(),
         "vhosts": vhosts.iter().map(|name| json!({"name": name})).collect::<Vec<_>>(),
         "permissions": permissions,
         "topic_permissions": access.topic_permissions_json(&user_names),
@@ -582,18 +559,10 @@ mod tests {
     use super::*;
 
     #[test]
-    fn rabbitmq_password_hashes_are_leverets() {
-        let hash = PasswordHash::new("s3cret");
-        let back = password_hash(&rabbitmq_password_hash(&hash)).unwrap();
-        assert!(back.verify(b"s3cret"));
-        assert!(password_hash("c2hvcnQ=").is_none());
-    }
-
-    #[test]
     fn what_is_not_applied_is_reported() {
         let text = br#"{
             "rabbit_version": "3.10.8",
-            "users": [{"name": "a", "password_hash": "x", "hashing_algorithm": "rabbit_password_hashing_sha512", "tags": ["administrator"]}],
+            "users": [{"name": "a", "password_hash": "x", "hashing_algorithm": "rabbit_password_hashing_md5", "tags": ["administrator"]}],
             "vhosts": [{"name": "/", "limits": {"max-queues": 5}}],
             "permissions": [{"user": "a", "vhost": "/", "configure": ".*", "write": ".*", "read": ".*"}],
             "policies": [],
@@ -607,7 +576,7 @@ mod tests {
         for expected in [
             "unknown key 'shovels'",
             "1 permissions recorded (and exported as imported) but not enforced",
-            "hashing algorithm rabbit_password_hashing_sha512",
+            "hashing algorithm rabbit_password_hashing_md5",
             "tags [\"administrator\"] recorded but not enforced",
             "key 'limits'",
             "queue type 'quorum'",

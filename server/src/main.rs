@@ -153,7 +153,8 @@ fn hash_password() -> ExitCode {
         return ExitCode::from(USAGE_ERROR);
     }
     let password = password.trim_end_matches(['\r', '\n']);
-    println!("{}", PasswordHash::new(password).to_hex());
+    let hash = PasswordHash::new(password);
+    println!("{}", hash.to_phc().unwrap_or_default());
     ExitCode::SUCCESS
 }
 

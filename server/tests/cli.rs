@@ -49,10 +49,17 @@ async fn connects(url: &str) -> bool {
     }
 }
 
+/// `rabbitmqctl add_user robot512 robot-pw` on RabbitMQ 3.10 with
+/// `password_hashing_module` set to `rabbit_password_hashing_sha512`, as
+/// `export_definitions` gave it (the hash does not depend on the name).
+const RABBITMQ_SHA512: &str =
+    "QAJWCkh0XzlKuSwlxX7hzyjZmn6as792tFARsbbDNmV8vzgtI31i5J24yPZQLbAvHYllEK9xcKzusoOUeakD4AfG74E=";
+
 #[test]
 fn hash_password_prints_a_hash_of_standard_input() {
     let printed = hash_password("s3cret");
-    let hash = PasswordHash::from_hex(&printed).expect("a leveret hash");
+    assert!(printed.starts_with("$argon2id$v=19$"), "{printed}");
+    let hash = PasswordHash::parse(&printed).expect("a leveret hash");
     assert!(hash.verify(b"s3cret"));
     assert!(!hash.verify(b"s3cret\n"), "the newline is not part of it");
 }
@@ -64,7 +71,9 @@ async fn a_config_files_users_and_vhosts_are_served() {
     std::fs::write(
         &config,
         format!(
-            "vhosts = [\"robots\"]\n\n[[users]]\nname = \"robot\"\npassword-hash = \"{}\"\n",
+            "vhosts = [\"robots\"]\n\n[[users]]\nname = \"robot\"\npassword-hash = \"{}\"\n\n\
+             [[users]]\nname = \"moved\"\npassword-hash = \"{RABBITMQ_SHA512}\"\n\
+             hashing-algorithm = \"rabbit_password_hashing_sha512\"\n",
             hash_password("s3cret")
         ),
     )
@@ -84,6 +93,15 @@ async fn a_config_files_users_and_vhosts_are_served() {
         !connects(&robots("robot", "wrong")).await,
         "a wrong password is refused"
     );
+    assert!(
+        connects(&robots("robot", "s3cret")).await,
+        "again (the argon2id check passed once and is remembered)"
+    );
+    assert!(
+        connects(&robots("moved", "robot-pw")).await,
+        "a user exported from RabbitMQ logs in with its password"
+    );
+    assert!(!connects(&robots("moved", "robot-pW")).await);
     assert!(
         !connects(&robots("guest", "guest")).await,
         "guest exists only when the config names no users"

@@ -413,6 +413,7 @@ impl Connection {
             .core
             .users
             .authenticate(start_ok.mechanism.as_bytes(), &start_ok.response)
+            .await
         {
             Some(user) if !self.core.users.may_connect_from(&user, &self.peer) => {
                 tracing::warn!(peer = %self.peer, %user, "user may connect only via localhost (loopback_users)");

@@ -208,10 +208,11 @@ pub async fn users(State(c): Ctx) -> Json<Value> {
         users
             .iter()
             .map(|(name, hash)| {
+                let (password_hash, hashing_algorithm) = hash.to_rabbitmq();
                 json!({
                     "name": name,
-                    "password_hash": crate::definitions::rabbitmq_password_hash(hash),
-                    "hashing_algorithm": "rabbit_password_hashing_sha256",
+                    "password_hash": password_hash,
+                    "hashing_algorithm": hashing_algorithm,
                     "tags": [],
                     "limits": {},
                 })

@@ -134,16 +134,17 @@ async fn authenticate(
     request: Request,
     next: Next,
 ) -> Response {
-    match basic_credentials(request.headers()) {
-        Some((user, password)) if context.admin.authenticate(&user, &password) => {
-            next.run(request).await
-        }
-        credentials => {
-            let user = credentials.map(|(user, _)| user);
-            tracing::info!(user = ?user, "management API login refused");
-            ApiError::unauthorized().into_response()
-        }
+    let credentials = basic_credentials(request.headers());
+    let passed = match &credentials {
+        Some((user, password)) => context.admin.authenticate(user, password).await,
+        None => false,
+    };
+    if passed {
+        return next.run(request).await;
     }
+    let user = credentials.map(|(user, _)| user);
+    tracing::info!(user = ?user, "management API login refused");
+    ApiError::unauthorized().into_response()
 }
 
 /// The router of the management listener.

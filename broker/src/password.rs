@@ -1,0 +1,290 @@
+//! Password hashes. New ones are argon2id (RustCrypto's `argon2` with its
+//! default parameters, a salt from the OS random source), in the PHC
+//! string form (`$argon2id$v=19$m=…`). RabbitMQ's salted SHA-256 and
+//! SHA-512 hashes (`rabbit_password_hashing_sha256` / `_sha512`: base64 of
+//! a 4-byte salt and the digest of salt + password) are accepted as
+//! RabbitMQ exports them, so users moved from RabbitMQ log in unchanged;
+//! Leveret's earlier form (72 hex digits: salt and SHA-256) is still read.
+//!
+//! argon2id costs tens of milliseconds and megabytes per check by design:
+//! `auth` runs it off the broker's threads and remembers successful
+//! logins. Uses nothing else of the broker.
+
+use argon2::password_hash::rand_core::OsRng;
+use argon2::password_hash::{PasswordHasher, PasswordVerifier, SaltString};
+use argon2::Argon2;
+use base64::Engine;
+use sha2::{Digest, Sha256, Sha512};
+
+/// RabbitMQ's name for its salted SHA-256 scheme (its default).
+pub const RABBIT_SHA256: &str = "rabbit_password_hashing_sha256";
+/// RabbitMQ's name for its salted SHA-512 scheme.
+pub const RABBIT_SHA512: &str = "rabbit_password_hashing_sha512";
+/// The `hashing_algorithm` Leveret exports argon2id hashes under (RabbitMQ
+/// has no such module: it cannot import these users).
+pub const LEVERET_ARGON2ID: &str = "leveret_password_hashing_argon2id";
+
+/// The most memory an argon2id hash may ask each check for (64 MiB;
+/// the default is 19 MiB): a hash from a file or an import cannot make a
+/// login cost gigabytes.
+const MAX_MEMORY_KIB: u32 = 64 * 1024;
+/// The most passes it may ask for (the default is 2).
+const MAX_PASSES: u32 = 8;
+/// The most lanes it may ask for (the default is 1).
+const MAX_LANES: u32 = 4;
+
+/// A stored password.
+#[derive(Clone, PartialEq, Eq)]
+pub struct PasswordHash(Scheme);
+
+#[derive(Clone, PartialEq, Eq)]
+enum Scheme {
+    /// The PHC string.
+    Argon2id(String),
+    /// RabbitMQ's scheme: a 4-byte salt and SHA-256 or SHA-512 of salt +
+    /// password.
+    Salted {
+        algorithm: Salted,
+        salt: [u8; 4],
+        digest: Vec<u8>,
+    },
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Salted {
+    Sha256,
+    Sha512,
+}
+
+impl Salted {
+    fn digest(self, salt: &[u8], password: &[u8]) -> Vec<u8> {
+        match self {
+            Salted::Sha256 => Sha256::new()
+                .chain_update(salt)
+                .chain_update(password)
+                .finalize()
+                .to_vec(),
+            Salted::Sha512 => Sha512::new()
+                .chain_update(salt)
+                .chain_update(password)
+                .finalize()
+                .to_vec(),
+        }
+    }
+
+    fn len(self) -> usize {
+        match self {
+            Salted::Sha256 => 32,
+            Salted::Sha512 => 64,
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Salted::Sha256 => RABBIT_SHA256,
+            Salted::Sha512 => RABBIT_SHA512,
+        }
+    }
+}
+
+impl std::fmt::Debug for PasswordHash {
+    // Never prints the hash itself.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let scheme = match &self.0 {
+            Scheme::Argon2id(_) => "argon2id",
+            Scheme::Salted { algorithm, .. } => algorithm.name(),
+        };
+        write!(f, "PasswordHash({scheme})")
+    }
+}
+
+impl PasswordHash {
+    /// Hashes `password` with argon2id and a fresh salt from the OS.
+    pub fn new(password: &str) -> Self {
+        let salt = SaltString::generate(&mut OsRng);
+        let phc = Argon2::default()
+            .hash_password(password.as_bytes(), &salt)
+            .map(|hash| hash.to_string())
+            // Only a parameter or output-size error can occur, and the
+            // defaults have none.
+            .unwrap_or_else(|e| unreachable!("argon2 with default parameters: {e}"));
+        PasswordHash(Scheme::Argon2id(phc))
+    }
+
+    /// Reads a stored hash: an argon2id PHC string, or Leveret's earlier
+    /// 72-hex-digit SHA-256 form.
+    pub fn parse(stored: &str) -> Option<Self> {
+        let stored = stored.trim();
+        if stored.starts_with("$argon2id$") {
+            let parsed = argon2::password_hash::PasswordHash::new(stored).ok()?;
+            let params = argon2::Params::try_from(&parsed).ok()?;
+            let affordable = params.m_cost() <= MAX_MEMORY_KIB
+                && params.t_cost() <= MAX_PASSES
+                && params.p_cost() <= MAX_LANES;
+            return (parsed.salt.is_some() && parsed.hash.is_some() && affordable)
+                .then(|| PasswordHash(Scheme::Argon2id(stored.to_owned())));
+        }
+        if stored.len() != 72 || !stored.is_ascii() {
+            return None;
+        }
+        let bytes = (0..36)
+            .map(|i| u8::from_str_radix(&stored[2 * i..2 * i + 2], 16).ok())
+            .collect::<Option<Vec<u8>>>()?;
+        Self::salted(Salted::Sha256, &bytes)
+    }
+
+    /// Reads RabbitMQ's exported form: `password_hash` (base64) and its
+    /// `hashing_algorithm`; argon2id hashes Leveret exported come back too.
+    pub fn from_rabbitmq(password_hash: &str, hashing_algorithm: &str) -> Option<Self> {
+        let algorithm = match hashing_algorithm {
+            RABBIT_SHA256 => Salted::Sha256,
+            RABBIT_SHA512 => Salted::Sha512,
+            LEVERET_ARGON2ID => return Self::parse(password_hash).filter(Self::is_slow),
+            _ => return None,
+        };
+        let bytes = base64::engine::general_purpose::STANDARD
+            .decode(password_hash.trim())
+            .ok()?;
+        Self::salted(algorithm, &bytes)
+    }
+
+    fn salted(algorithm: Salted, bytes: &[u8]) -> Option<Self> {
+        if bytes.len() != 4 + algorithm.len() {
+            return None;
+        }
+        let (salt, digest) = bytes.split_at(4);
+        Some(PasswordHash(Scheme::Salted {
+            algorithm,
+            salt: salt.try_into().ok()?,
+            digest: digest.to_vec(),
+        }))
+    }
+
+    /// The form RabbitMQ's definitions use: `(password_hash,
+    /// hashing_algorithm)`.
+    pub fn to_rabbitmq(&self) -> (String, &'static str) {
+        match &self.0 {
+            Scheme::Argon2id(phc) => (phc.clone(), LEVERET_ARGON2ID),
+            Scheme::Salted {
+                algorithm,
+                salt,
+                digest,
+            } => {
+                let mut bytes = salt.to_vec();
+                bytes.extend_from_slice(digest);
+                (
+                    base64::engine::general_purpose::STANDARD.encode(bytes),
+                    algorithm.name(),
+                )
+            }
+        }
+    }
+
+    /// The form the config file's `password-hash` takes for an argon2id
+    /// hash (its PHC string); `None` for RabbitMQ's schemes, which go there
+    /// as `to_rabbitmq` gives them, with `hashing-algorithm`.
+    pub fn to_phc(&self) -> Option<&str> {
+        match &self.0 {
+            Scheme::Argon2id(phc) => Some(phc),
+            Scheme::Salted { .. } => None,
+        }
+    }
+
+    /// Whether checking a password costs argon2id's time and memory.
+    pub fn is_slow(&self) -> bool {
+        matches!(self.0, Scheme::Argon2id(_))
+    }
+
+    /// Whether `password` matches (in constant time).
+    pub fn verify(&self, password: &[u8]) -> bool {
+        match &self.0 {
+            Scheme::Argon2id(phc) => argon2::password_hash::PasswordHash::new(phc)
+                .is_ok_and(|parsed| Argon2::default().verify_password(password, &parsed).is_ok()),
+            Scheme::Salted {
+                algorithm,
+                salt,
+                digest,
+            } => {
+                let actual = algorithm.digest(salt, password);
+                actual.len() == digest.len()
+                    && actual
+                        .iter()
+                        .zip(digest)
+                        .fold(0u8, |acc, (a, b)| acc | (a ^ b))
+                        == 0
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn new_hashes_are_argon2id_salted_from_the_os_and_round_trip() {
+        let a = PasswordHash::new("secret");
+        let b = PasswordHash::new("secret");
+        assert_ne!(a, b, "fresh salts");
+        let phc = a.to_phc().expect("argon2id");
+        assert!(phc.starts_with("$argon2id$v=19$"), "{phc}");
+        assert!(a.verify(b"secret"));
+        assert!(!a.verify(b"Secret"));
+        let back = PasswordHash::parse(phc).expect("parses");
+        assert!(back.verify(b"secret"));
+        let (exported, algorithm) = a.to_rabbitmq();
+        assert_eq!(algorithm, LEVERET_ARGON2ID);
+        assert!(PasswordHash::from_rabbitmq(&exported, algorithm)
+            .expect("imports")
+            .verify(b"secret"));
+        assert_eq!(format!("{a:?}"), "PasswordHash(argon2id)");
+    }
+
+    /// Hashes made by RabbitMQ 3.10 itself (`rabbitmqctl add_user robot256
+    /// robot-pw`, the same for robot512 with `password_hashing_module` set
+    /// to `rabbit_password_hashing_sha512`, then `export_definitions`).
+    #[test]
+    fn rabbitmq_exported_hashes_log_in_unchanged() {
+        for (exported, algorithm) in [
+            ("XrbDVjlDKoAec+dZ1vISo+jt5TVEqQvMa8euInsOyfsIm1Ys", RABBIT_SHA256),
+            (
+                "QAJWCkh0XzlKuSwlxX7hzyjZmn6as792tFARsbbDNmV8vzgtI31i5J24yPZQLbAvHYllEK9xcKzusoOUeakD4AfG74E=",
+                RABBIT_SHA512,
+            ),
+        ] {
+            let hash = PasswordHash::from_rabbitmq(exported, algorithm).expect("imports");
+            assert!(hash.verify(b"robot-pw"), "{algorithm}");
+            assert!(!hash.verify(b"robot-pW"), "{algorithm}");
+            assert!(!hash.is_slow());
+            assert_eq!(hash.to_rabbitmq(), (exported.to_owned(), algorithm));
+        }
+        // RabbitMQ's guest/guest.
+        let guest = "ryEPfAes34E9ktgNmN0qbYVWyPeURRbjxMcQf9tVwj2qap6R";
+        assert!(PasswordHash::from_rabbitmq(guest, RABBIT_SHA256)
+            .expect("imports")
+            .verify(b"guest"));
+        assert!(PasswordHash::from_rabbitmq("c2hvcnQ=", RABBIT_SHA256).is_none());
+        assert!(PasswordHash::from_rabbitmq("x", "rabbit_password_hashing_md5").is_none());
+    }
+
+    #[test]
+    fn the_earlier_hex_form_is_still_read() {
+        let salt = [1, 2, 3, 4];
+        let digest = Salted::Sha256.digest(&salt, b"old");
+        let hex: String = salt
+            .iter()
+            .chain(digest.iter())
+            .map(|b| format!("{b:02x}"))
+            .collect();
+        assert!(PasswordHash::parse(&hex).expect("hex").verify(b"old"));
+        assert!(PasswordHash::parse("zz").is_none());
+        assert!(PasswordHash::parse("$argon2id$garbage").is_none());
+        // Costlier than a login may be: refused.
+        let phc = PasswordHash::new("x").to_phc().unwrap().to_owned();
+        let greedy = phc.replace("m=19456", "m=4194304");
+        assert_ne!(greedy, phc);
+        assert!(PasswordHash::parse(&greedy).is_none());
+        let slow = phc.replace("t=2", "t=1000");
+        assert!(PasswordHash::parse(&slow).is_none());
+    }
+}
