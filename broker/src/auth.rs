@@ -14,8 +14,10 @@ use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
-/// argon2id checks running at once, broker-wide (each holds ~19 MiB).
-pub const SLOW_CHECKS: usize = 2;
+/// argon2id checks running at once, broker-wide (each holds ~19 MiB and
+/// a core for tens of milliseconds): one, so a flood of wrong passwords
+/// takes one core at most.
+pub const SLOW_CHECKS: usize = 1;
 
 /// Logins that passed an argon2id check, one per user.
 struct VerifiedLogins {
@@ -165,6 +167,11 @@ impl Users {
         let Ok(_slot) = self.verified.slow_checks.acquire().await else {
             return false;
         };
+        // Many connections of one user arriving together wait here; the
+        // first one's check serves the rest.
+        if self.verified.passed(user, &key) {
+            return true;
+        }
         let (hash, candidate) = (hash.clone(), password.to_vec());
         let verified = tokio::task::spawn_blocking(move || hash.verify(&candidate))
             .await
