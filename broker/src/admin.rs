@@ -160,6 +160,11 @@ impl Admin {
             .await
     }
 
+    /// A user's limits, if they have any.
+    pub fn user_limits(&self, user: &str) -> Option<crate::UserLimits> {
+        self.core.limits.user(user)
+    }
+
     /// The broker's users and their password hashes, sorted by name.
     pub fn users(&self) -> Vec<(String, PasswordHash)> {
         let mut users: Vec<(String, PasswordHash)> = self

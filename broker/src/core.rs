@@ -68,6 +68,22 @@ pub struct Limits {
     /// Limits of individual vhosts, by vhost name (RabbitMQ's vhost
     /// limits); vhosts not named here have none.
     pub vhost_limits: HashMap<String, VhostLimits>,
+    /// Limits of individual users, by user name (RabbitMQ's user limits);
+    /// users not named here have none.
+    pub user_limits: HashMap<String, UserLimits>,
+}
+
+/// The limits of one user, RabbitMQ's `rabbitmqctl set_user_limits`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct UserLimits {
+    /// Most connections the user has open at once, in any vhost
+    /// (`max-connections`); connection.open beyond it is refused with 530
+    /// NOT_ALLOWED.
+    pub max_connections: Option<usize>,
+    /// Most channels the user has open at once across all their
+    /// connections (`max-channels`); channel.open beyond it closes the
+    /// connection with 530 NOT_ALLOWED, as RabbitMQ does.
+    pub max_channels: Option<usize>,
 }
 
 /// The limits of one vhost, RabbitMQ's `rabbitmqctl set_vhost_limits`.
@@ -82,6 +98,11 @@ pub struct VhostLimits {
 }
 
 impl Limits {
+    /// The limits of the user called `name`, if they have any.
+    pub fn user(&self, name: &str) -> Option<UserLimits> {
+        self.user_limits.get(name).copied()
+    }
+
     /// The limits of the vhost called `name`.
     pub fn vhost(&self, name: &ShortStr) -> VhostLimits {
         name.as_str()
@@ -104,6 +125,7 @@ impl Default for Limits {
             max_connections: None,
             handshake_timeout: Duration::from_secs(10),
             vhost_limits: HashMap::new(),
+            user_limits: HashMap::new(),
         }
     }
 }

@@ -164,6 +164,13 @@ impl BrokerBuilder {
         self
     }
 
+    /// Sets one user's limits (RabbitMQ's `max-connections` and
+    /// `max-channels`); a later [`BrokerBuilder::limits`] replaces them.
+    pub fn user_limits(mut self, user: impl Into<String>, limits: crate::UserLimits) -> Self {
+        self.limits.user_limits.insert(user.into(), limits);
+        self
+    }
+
     /// The `product` announced in connection.start (default `Leveret`).
     /// Some clients and test suites switch RabbitMQ-only behaviour on when
     /// it is exactly `RabbitMQ` (amqp091-go's integration tests, for one);

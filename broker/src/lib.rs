@@ -113,7 +113,7 @@ mod testkit;
 mod vhost;
 
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
-pub use crate::core::{Limits, VhostLimits};
+pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
 pub use crate::resident_memory::ResidentMemoryWatermark;

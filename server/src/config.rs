@@ -7,7 +7,7 @@
 
 use crate::cli::Cli;
 use leveret_broker::{
-    Broker, BrokerBuilder, Limits, PasswordHash, ResidentMemoryWatermark, VhostLimits,
+    Broker, BrokerBuilder, Limits, PasswordHash, ResidentMemoryWatermark, UserLimits, VhostLimits,
 };
 use serde::Deserialize;
 use std::net::SocketAddr;
@@ -122,6 +122,10 @@ struct UserConfig {
     /// RabbitMQ's `hashing_algorithm` for a `password-hash` exported from
     /// it (`rabbit_password_hashing_sha256` or `_sha512`).
     hashing_algorithm: Option<String>,
+    /// The user limit `max-connections`.
+    max_connections: Option<usize>,
+    /// The user limit `max-channels` (across all their connections).
+    max_channels: Option<usize>,
 }
 
 impl FileConfig {
@@ -228,6 +232,18 @@ impl Settings {
                         max_queues: limits.max_queues,
                     };
                     (vhost, limits)
+                })
+                .collect(),
+            user_limits: file
+                .users
+                .iter()
+                .filter(|user| user.max_connections.is_some() || user.max_channels.is_some())
+                .map(|user| {
+                    let limits = UserLimits {
+                        max_connections: user.max_connections,
+                        max_channels: user.max_channels,
+                    };
+                    (user.name.clone(), limits)
                 })
                 .collect(),
         };
@@ -382,6 +398,8 @@ mod tests {
             [[users]]
             name = "tool"
             password = "plain"
+            max-connections = 3
+            max-channels = 10
 
             [[users]]
             name = "from-rabbitmq"
@@ -409,6 +427,17 @@ mod tests {
         assert_eq!(settings.limits.channel_max, 16);
         assert_eq!(settings.limits.max_message_size, 1000);
         assert_eq!(settings.limits.memory_high_watermark, 268_435_456);
+        assert_eq!(
+            settings.limits.user_limits,
+            [(
+                "tool".to_owned(),
+                UserLimits {
+                    max_connections: Some(3),
+                    max_channels: Some(10)
+                }
+            )]
+            .into()
+        );
         assert_eq!(settings.product.as_deref(), Some("RabbitMQ"));
         assert_eq!(settings.busy_poll, Duration::ZERO);
         assert_eq!(settings.metrics_listen, "127.0.0.1:9999".parse().unwrap());

@@ -17,7 +17,7 @@ use crate::access::{Access, AccessRecords, Permission, TopicPermission};
 use crate::management::json::{flag, table, text, to_table};
 use leveret_broker::{
     Admin, BindingSpec, BrokerBuilder, DestinationKind, ExchangeSettings, PasswordHash,
-    QueueSettings, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512,
+    QueueSettings, UserLimits, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512,
 };
 use serde_json::{json, Map, Value};
 
@@ -28,6 +28,8 @@ pub struct UserDefinition {
     pub name: String,
     /// Its password hash.
     pub hash: PasswordHash,
+    /// Its limits (`max-connections`, `max-channels`), if any.
+    pub limits: Option<UserLimits>,
 }
 
 /// A parsed definitions file: what Leveret will apply, and what it
@@ -79,6 +81,44 @@ fn unused_keys(object: &Map<String, Value>, used: &[&str], what: &str, warnings:
             ));
         }
     }
+}
+
+/// A user's `limits` object (RabbitMQ's user limits; a negative value,
+/// as RabbitMQ takes it, is no limit).
+fn user_limits(limits: Option<&Value>, what: &str) -> Result<Option<UserLimits>, String> {
+    let Some(limits) = limits.filter(|v| !is_empty(v)) else {
+        return Ok(None);
+    };
+    let limits = limits
+        .as_object()
+        .ok_or_else(|| format!("{what}: limits must be an object, not {limits}"))?;
+    let mut out = UserLimits::default();
+    for (key, value) in limits {
+        let number = value
+            .as_i64()
+            .ok_or_else(|| format!("{what}: limit {key} must be an integer, not {value}"))?;
+        let limit = usize::try_from(number).ok();
+        match key.as_str() {
+            "max-connections" => out.max_connections = limit,
+            "max-channels" => out.max_channels = limit,
+            _ => return Err(format!("{what}: unknown limit {key}")),
+        }
+    }
+    Ok(Some(out))
+}
+
+/// A user's limits as RabbitMQ exports them.
+fn user_limits_json(limits: Option<UserLimits>) -> Value {
+    let mut out = Map::new();
+    if let Some(limits) = limits {
+        if let Some(n) = limits.max_connections {
+            out.insert("max-connections".into(), json!(n));
+        }
+        if let Some(n) = limits.max_channels {
+            out.insert("max-channels".into(), json!(n));
+        }
+    }
+    Value::Object(out)
 }
 
 fn list<'a>(root: &'a Map<String, Value>, key: &str) -> Result<&'a [Value], String> {
@@ -219,8 +259,13 @@ impl Definitions {
                 d.warnings.push(format!("{what} not imported: hashing algorithm {algorithm} is not supported (only {RABBIT_SHA256}, {RABBIT_SHA512} and {LEVERET_ARGON2ID})"));
                 continue;
             }
+            let limits = user_limits(item.get("limits"), &what)?;
             match PasswordHash::from_rabbitmq(text(item, "password_hash", "")?, algorithm) {
-                Some(hash) => d.users.push(UserDefinition { name: user, hash }),
+                Some(hash) => d.users.push(UserDefinition {
+                    name: user,
+                    hash,
+                    limits,
+                }),
                 None => d
                     .warnings
                     .push(format!("{what} not imported: no usable password_hash")),
@@ -388,6 +433,9 @@ impl Definitions {
         }
         for user in &self.users {
             builder = builder.user_hashed(user.name.clone(), user.hash.clone());
+            if let Some(limits) = user.limits {
+                builder = builder.user_limits(user.name.clone(), limits);
+            }
         }
         builder
     }
@@ -540,7 +588,8 @@ pub fn export(admin: &Admin, access: &Access) -> Value {
             let (password_hash, hashing_algorithm) = hash.to_rabbitmq();
             json!({
                 "name": name, "password_hash": password_hash,
-                "hashing_algorithm": hashing_algorithm, "tags": access.tags(name), "limits": {}})
+                "hashing_algorithm": hashing_algorithm, "tags": access.tags(name),
+                "limits": user_limits_json(admin.user_limits(name))})
         }).collect::<Vec<_>>(),
         "vhosts": vhosts.iter().map(|name| json!({"name": name})).collect::<Vec<_>>(),
         "permissions": permissions,
@@ -557,6 +606,29 @@ pub fn export(admin: &Admin, access: &Access) -> Value {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// RabbitMQ's user limits in `users[].limits` (-1: none) are taken
+    /// and exported back.
+    #[test]
+    fn user_limits_are_read_and_written_as_rabbitmq_does() {
+        let text = br#"{"users": [{"name": "lim", "password_hash": "XrbDVjlDKoAec+dZ1vISo+jt5TVEqQvMa8euInsOyfsIm1Ys",
+            "hashing_algorithm": "rabbit_password_hashing_sha256", "tags": [],
+            "limits": {"max-connections": 5, "max-channels": -1}}]}"#;
+        let d = Definitions::parse(text).unwrap();
+        let limits = d.users[0].limits.expect("limits");
+        assert_eq!(limits.max_connections, Some(5));
+        assert_eq!(limits.max_channels, None);
+        assert_eq!(
+            user_limits_json(Some(limits)),
+            json!({"max-connections": 5})
+        );
+        assert_eq!(user_limits_json(None), json!({}));
+        let bad =
+            br#"{"users": [{"name": "x", "password_hash": "", "limits": {"max-queues": 1}}]}"#;
+        assert!(Definitions::parse(bad)
+            .unwrap_err()
+            .contains("unknown limit max-queues"));
+    }
 
     #[test]
     fn what_is_not_applied_is_reported() {

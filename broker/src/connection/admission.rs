@@ -1,7 +1,10 @@
-//! Which connections the broker serves: RabbitMQ's `connection_max` (TCP
-//! connections at once) and the vhost limit `max-connections`. Each served
-//! connection holds a [`Slot`] whose drop gives its places back, whatever
-//! way the connection ends. Uses nothing else of the broker.
+//! Which connections and channels the broker serves: RabbitMQ's
+//! `connection_max` (TCP connections at once), the vhost limit
+//! `max-connections`, and the user limits `max-connections` and
+//! `max-channels` (counted only for users that have limits, so the
+//! others' channel churn takes no lock). Each served connection holds a
+//! [`Slot`] whose drop gives its places back, whatever way the connection
+//! ends. Uses nothing else of the broker.
 
 use leveret_protocol::ShortStr;
 use std::collections::HashMap;
@@ -16,9 +19,19 @@ pub struct Admission {
     /// Connections per vhost name. The lock is held for one hash-map
     /// update, never across an await.
     per_vhost: Mutex<HashMap<ShortStr, usize>>,
+    /// Connections and channels per user with limits. The lock is held for
+    /// one hash-map update, never across an await.
+    per_user: Mutex<HashMap<String, UserCount>>,
     /// Set while connections are being refused, so that a flood of them
     /// logs one warning rather than one per connection.
     refusing: AtomicBool,
+}
+
+/// What a user with limits has open.
+#[derive(Debug, Default)]
+struct UserCount {
+    connections: usize,
+    channels: usize,
 }
 
 /// A served connection's places in the counts.
@@ -27,6 +40,10 @@ pub struct Slot {
     admission: Arc<Admission>,
     network: bool,
     vhost: Option<ShortStr>,
+    /// The user and their channel limit, if they have limits.
+    user: Option<(String, Option<usize>)>,
+    /// Channels this connection counts for its user.
+    channels: usize,
 }
 
 impl Admission {
@@ -36,6 +53,7 @@ impl Admission {
             network: AtomicUsize::new(0),
             max_network,
             per_vhost: Mutex::new(HashMap::new()),
+            per_user: Mutex::new(HashMap::new()),
             refusing: AtomicBool::new(false),
         })
     }
@@ -59,6 +77,8 @@ impl Admission {
                     admission: Arc::clone(self),
                     network: true,
                     vhost: None,
+                    user: None,
+                    channels: 0,
                 })
             }
             (Err(_), Some(limit)) => {
@@ -83,11 +103,17 @@ impl Admission {
             admission: Arc::clone(self),
             network: false,
             vhost: None,
+            user: None,
+            channels: 0,
         }
     }
 
     fn per_vhost(&self) -> std::sync::MutexGuard<'_, HashMap<ShortStr, usize>> {
         self.per_vhost.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn per_user(&self) -> std::sync::MutexGuard<'_, HashMap<String, UserCount>> {
+        self.per_user.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
@@ -112,8 +138,79 @@ impl Slot {
     }
 }
 
+/// Which user limit refused.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OverLimit(pub usize);
+
+impl Slot {
+    /// Counts the connection for `user`, who has limits, unless they have
+    /// `max_connections` open already.
+    pub fn enter_user(
+        &mut self,
+        user: &str,
+        max_connections: Option<usize>,
+        max_channels: Option<usize>,
+    ) -> Result<(), OverLimit> {
+        debug_assert!(self.user.is_none(), "a connection has one user");
+        let mut counts = self.admission.per_user();
+        let count = counts.entry(user.to_owned()).or_default();
+        if let Some(limit) = max_connections {
+            if count.connections >= limit {
+                if count.connections == 0 && count.channels == 0 {
+                    counts.remove(user);
+                }
+                return Err(OverLimit(limit));
+            }
+        }
+        count.connections += 1;
+        self.user = Some((user.to_owned(), max_channels));
+        Ok(())
+    }
+
+    /// Counts one more channel for the user, unless they have their
+    /// `max-channels` open already.
+    pub fn open_channel(&mut self) -> Result<(), OverLimit> {
+        let Some((user, limit)) = &self.user else {
+            return Ok(());
+        };
+        let mut counts = self.admission.per_user();
+        let count = counts.entry(user.clone()).or_default();
+        if let Some(limit) = *limit {
+            if count.channels >= limit {
+                return Err(OverLimit(limit));
+            }
+        }
+        count.channels += 1;
+        drop(counts);
+        self.channels += 1;
+        Ok(())
+    }
+
+    /// Gives back `closed` channels.
+    pub fn close_channels(&mut self, closed: usize) {
+        let Some((user, _)) = &self.user else {
+            return;
+        };
+        let closed = closed.min(self.channels);
+        self.channels -= closed;
+        if let Some(count) = self.admission.per_user().get_mut(user) {
+            count.channels = count.channels.saturating_sub(closed);
+        }
+    }
+}
+
 impl Drop for Slot {
     fn drop(&mut self) {
+        if let Some((user, _)) = self.user.take() {
+            let mut counts = self.admission.per_user();
+            if let Some(count) = counts.get_mut(&user) {
+                count.connections = count.connections.saturating_sub(1);
+                count.channels = count.channels.saturating_sub(self.channels);
+                if count.connections == 0 && count.channels == 0 {
+                    counts.remove(&user);
+                }
+            }
+        }
         if self.network {
             self.admission.network.fetch_sub(1, Ordering::AcqRel);
         }
@@ -132,6 +229,36 @@ impl Drop for Slot {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn user_limits_count_connections_and_channels_across_connections() {
+        let admission = Admission::new(None);
+        let mut a = admission.admit_network("a").expect("a");
+        let mut b = admission.admit_network("b").expect("b");
+        let mut c = admission.admit_network("c").expect("c");
+        a.enter_user("robot", Some(2), Some(3)).expect("first");
+        b.enter_user("robot", Some(2), Some(3)).expect("second");
+        assert_eq!(c.enter_user("robot", Some(2), Some(3)), Err(OverLimit(2)));
+        a.open_channel().expect("1");
+        a.open_channel().expect("2");
+        b.open_channel().expect("3");
+        assert_eq!(b.open_channel(), Err(OverLimit(3)), "across connections");
+        a.close_channels(1);
+        b.open_channel().expect("a place was given back");
+        drop(a);
+        c.enter_user("robot", Some(2), Some(3))
+            .expect("a connection closed");
+        c.open_channel().expect("its channel went with it");
+        assert_eq!(c.open_channel(), Err(OverLimit(3)));
+        drop((b, c));
+        assert!(admission.per_user().is_empty(), "nothing left behind");
+        // Users without limits are not counted at all.
+        let mut free = admission.admit_network("d").expect("d");
+        for _ in 0..10 {
+            free.open_channel().expect("no limit");
+        }
+        assert!(admission.per_user().is_empty());
+    }
 
     #[test]
     fn network_connections_are_limited_and_slots_give_their_place_back() {

@@ -7,7 +7,7 @@
 //!
 //! Layout: `reader` reads frames into a buffer sized to the traffic;
 //! `writer` owns the socket's write half, reached through the outbox;
-//! `admission` counts connections against `max_connections` and vhost
+//! `admission` counts connections against `max_connections`, user and vhost
 //! limits.
 
 mod admission;
@@ -507,6 +507,22 @@ impl Connection {
                 .during_ids(10, 40),
             ));
         }
+        if let Some(user_limits) = limits.user(&self.user) {
+            if let Err(admission::OverLimit(limit)) = self.slot.enter_user(
+                &self.user,
+                user_limits.max_connections,
+                user_limits.max_channels,
+            ) {
+                tracing::warn!(peer = %self.peer, user = %self.user, limit, "user connection limit reached");
+                return Err(Ended::Protocol(
+                    AmqpError::not_allowed(format_args!(
+                        "connection refused for user '{}': user connection limit ({}) is reached",
+                        self.user, limit
+                    ))
+                    .during_ids(10, 40),
+                ));
+            }
+        }
         self.core.registry.opened(
             self.connection_id,
             crate::registry::Opened {
@@ -562,6 +578,14 @@ impl Connection {
                 let Some(vhost) = self.vhost.clone() else {
                     return Err(AmqpError::command_invalid("connection not open"));
                 };
+                if let Err(admission::OverLimit(limit)) = self.slot.open_channel() {
+                    tracing::warn!(peer = %self.peer, user = %self.user, limit, "user channel limit reached");
+                    return Err(AmqpError::not_allowed(format_args!(
+                        "number of channels opened for user '{}' has reached the maximum allowed user limit of ({})",
+                        self.user, limit
+                    ))
+                    .during_ids(20, 10));
+                }
                 let channel = Channel::new(
                     channel_id,
                     Arc::clone(&self.outbox),
@@ -596,6 +620,7 @@ impl Connection {
                 if channel.handle(frame).await? {
                     if let Some(channel) = self.channels.remove(&channel_id) {
                         channel.cleanup();
+                        self.slot.close_channels(1);
                     }
                 }
                 Ok(Flow::Continue)
@@ -668,9 +693,11 @@ impl Connection {
     /// Releases everything the connection holds: channels (requeueing
     /// their unacked messages) and exclusive queues.
     fn cleanup(&mut self) {
+        let open = self.channels.len();
         for (_, channel) in self.channels.drain() {
             channel.cleanup();
         }
+        self.slot.close_channels(open);
         if let Some(vhost) = &self.vhost {
             vhost.drop_exclusive(self.connection_id);
         }
