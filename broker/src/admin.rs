@@ -13,6 +13,7 @@ use crate::inspect::DestinationKind;
 use crate::message::{Message, Stored};
 use crate::outbox::{Outbound, Outbox};
 use crate::password::PasswordHash;
+use crate::permissions::{PatternError, Permission, TopicPermission};
 use crate::queue::{DeadLetters, Enqueued, Queue, QueueOptions};
 use crate::vhost::{check_exclusive, BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
 use bytes::{Bytes, BytesMut};
@@ -158,6 +159,55 @@ impl Admin {
             .users
             .check_password(user, password.as_bytes())
             .await
+    }
+
+    /// Sets `user`'s permission on `vhost` (RabbitMQ's `set_permissions`);
+    /// every open channel of theirs checks against it from its next
+    /// operation. Like vhosts added here, it lasts while the broker runs;
+    /// lasting ones belong in the configuration.
+    pub fn set_permission(
+        &self,
+        user: &str,
+        vhost: &str,
+        permission: Permission,
+    ) -> Result<(), PatternError> {
+        self.core.permissions.set(user, vhost, permission)
+    }
+
+    /// Removes `user`'s permission on `vhost` (`clear_permissions`): their
+    /// open channels there are refused from their next operation.
+    pub fn clear_permission(&self, user: &str, vhost: &str) {
+        self.core.permissions.clear(user, vhost);
+    }
+
+    /// Sets `user`'s topic permission on `exchange` in `vhost`
+    /// (`set_topic_permissions`).
+    pub fn set_topic_permission(
+        &self,
+        user: &str,
+        vhost: &str,
+        exchange: &str,
+        permission: TopicPermission,
+    ) -> Result<(), PatternError> {
+        self.core
+            .permissions
+            .set_topic(user, vhost, exchange, permission)
+    }
+
+    /// Removes `user`'s topic permission on `exchange` in `vhost`
+    /// (`clear_topic_permissions`).
+    pub fn clear_topic_permission(&self, user: &str, vhost: &str, exchange: &str) {
+        self.core.permissions.clear_topic(user, vhost, exchange);
+    }
+
+    /// Every (user, vhost, permission), ordered by user then vhost.
+    pub fn permissions(&self) -> Vec<(String, String, Permission)> {
+        self.core.permissions.list()
+    }
+
+    /// Every (user, vhost, exchange, topic permission).
+    pub fn topic_permissions(&self) -> Vec<(String, String, String, TopicPermission)> {
+        self.core.permissions.list_topics()
     }
 
     /// A user's limits, if they have any.

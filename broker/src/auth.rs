@@ -124,6 +124,11 @@ impl Users {
         self.users.len() == 1 && self.users.contains_key(GUEST)
     }
 
+    /// Whether `name` is a user.
+    pub fn contains(&self, name: &str) -> bool {
+        self.users.contains_key(name)
+    }
+
     /// Adds or replaces a user.
     pub fn insert(&mut self, name: impl Into<String>, password: &str) {
         self.users.insert(name.into(), PasswordHash::new(password));

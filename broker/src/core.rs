@@ -1,5 +1,5 @@
 //! The broker's shared state, independent of sockets: vhosts, users,
-//! limits, the memory gauge, the store handle, the shutdown signal that
+//! permissions, limits, the memory gauge, the store handle, the shutdown signal that
 //! connections watch, and the server properties connection.start
 //! announces. The server and the embedding API build one `Core` and hand
 //! an `Arc` of it to every connection and its channels. It uses the vhost
@@ -9,6 +9,7 @@ use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
 use crate::connection::Admission;
 use crate::memory::MemoryGauge;
+use crate::permissions::Permissions;
 use crate::registry::Registry;
 use crate::resident_memory::ResidentMemoryWatermark;
 use crate::stats::BrokerCounters;
@@ -138,6 +139,8 @@ pub struct CoreOptions {
     pub vhosts: Vec<String>,
     /// Accepted users.
     pub users: Users,
+    /// What each user may do in each vhost.
+    pub permissions: Permissions,
     /// Limits.
     pub limits: Limits,
     /// Durable storage, if the broker has any.
@@ -154,6 +157,8 @@ pub struct Core {
     vhosts: RwLock<HashMap<ShortStr, Arc<Vhost>>>,
     /// Accepted users.
     pub users: Users,
+    /// What each user may do in each vhost.
+    pub permissions: Arc<Permissions>,
     /// Limits.
     pub limits: Limits,
     /// The memory alarm and the bytes it counts.
@@ -184,6 +189,7 @@ impl Core {
         let CoreOptions {
             vhosts,
             users,
+            permissions,
             limits,
             persistence,
             product,
@@ -208,6 +214,7 @@ impl Core {
         Arc::new(Core {
             vhosts: RwLock::new(vhosts),
             users,
+            permissions: Arc::new(permissions),
             limits,
             gauge,
             persistence,

@@ -10,7 +10,9 @@ use crate::core::{Core, CoreOptions, Limits};
 use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 use crate::inspect::{Overview, QueueInfo};
 use crate::password::PasswordHash;
+use crate::permissions::{PatternError, Permission, Permissions, TopicPermission};
 use crate::store::{mark_clean, open_checked, Persistence, Recovered, Store, StoreError, StoreOp};
+use crate::tls::{TlsContext, TlsError, TlsOptions};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -41,10 +43,14 @@ impl Broker {
 #[derive(Debug, Clone, Default)]
 pub struct BrokerBuilder {
     listen: Vec<SocketAddr>,
+    tls_listen: Vec<SocketAddr>,
+    tls: Option<TlsOptions>,
     users: Vec<(String, PasswordHash)>,
     /// `None`: RabbitMQ's default, `guest` only.
     loopback_users: Option<Vec<String>>,
     vhosts: Vec<String>,
+    permissions: Vec<(String, String, Permission)>,
+    topic_permissions: Vec<(String, String, String, TopicPermission)>,
     limits: Limits,
     storage: Storage,
     product: Option<String>,
@@ -69,6 +75,23 @@ impl BrokerBuilder {
     /// Adds a TCP listener (port 0 picks a free port).
     pub fn listen(mut self, addr: SocketAddr) -> Self {
         self.listen.push(addr);
+        self
+    }
+
+    /// Adds a TLS listener (RabbitMQ's `listeners.ssl`; 5671 by
+    /// convention, port 0 picks a free port), served with
+    /// [`BrokerBuilder::tls`].
+    pub fn tls_listen(mut self, addr: SocketAddr) -> Self {
+        self.tls_listen.push(addr);
+        self
+    }
+
+    /// The TLS listeners' certificate, key and client verification
+    /// (RabbitMQ's `ssl_options`); [`BrokerHandle::reload_tls`] re-reads
+    /// the files. A client whose verified certificate's common name is a
+    /// user may log in with SASL EXTERNAL.
+    pub fn tls(mut self, options: TlsOptions) -> Self {
+        self.tls = Some(options);
         self
     }
 
@@ -102,6 +125,51 @@ impl BrokerBuilder {
     /// Adds a vhost; without any, the broker has `/`.
     pub fn vhost(mut self, name: impl Into<String>) -> Self {
         self.vhosts.push(name.into());
+        self
+    }
+
+    /// Grants `user` a permission on `vhost` (RabbitMQ's
+    /// `set_permissions`). A user added with [`BrokerBuilder::user`] has
+    /// none until given one, as in RabbitMQ: they can log in but open no
+    /// vhost. The default `guest` (when no user is added) has `.*` for all
+    /// three on every vhost. [`BrokerBuilder::start`] refuses a pattern
+    /// the regex engine cannot run ([`StartError::Permission`]).
+    ///
+    /// ```
+    /// use leveret_broker::{Broker, Permission};
+    ///
+    /// let builder = Broker::builder()
+    ///     .user("robot-7", "secret")
+    ///     .permission("robot-7", "/", Permission {
+    ///         configure: "^robot-7\\.".into(),
+    ///         write: "^(robot-7\\.|amq\\.topic$)".into(),
+    ///         read: "^robot-7\\.".into(),
+    ///     });
+    /// ```
+    pub fn permission(
+        mut self,
+        user: impl Into<String>,
+        vhost: impl Into<String>,
+        permission: Permission,
+    ) -> Self {
+        self.permissions
+            .push((user.into(), vhost.into(), permission));
+        self
+    }
+
+    /// Grants `user` a topic permission on `exchange` in `vhost`
+    /// (RabbitMQ's `set_topic_permissions`): the routing keys they may
+    /// publish with (`write`) and bind with (`read`) on that topic
+    /// exchange; `{username}` and `{vhost}` stand for theirs.
+    pub fn topic_permission(
+        mut self,
+        user: impl Into<String>,
+        vhost: impl Into<String>,
+        exchange: impl Into<String>,
+        permission: TopicPermission,
+    ) -> Self {
+        self.topic_permissions
+            .push((user.into(), vhost.into(), exchange.into(), permission));
         self
     }
 
@@ -194,21 +262,52 @@ impl BrokerBuilder {
 
     /// Binds the listeners and starts serving.
     pub async fn start(self) -> Result<BrokerHandle, StartError> {
-        let mut users = Users::default();
-        if self.users.is_empty() {
-            users.insert("guest", "guest");
-        }
-        for (name, hash) in self.users {
-            users.insert_hashed(name, hash);
-        }
-        if let Some(names) = self.loopback_users {
-            users.set_loopback_only(names);
-        }
+        let tls = match (self.tls, self.tls_listen.is_empty()) {
+            (None, false) => return Err(StartError::Tls(TlsError::NoOptions)),
+            (Some(options), _) => Some(Arc::new(
+                TlsContext::load(options).map_err(StartError::Tls)?,
+            )),
+            (None, true) => None,
+        };
         let vhosts = if self.vhosts.is_empty() {
             vec!["/".to_owned()]
         } else {
             self.vhosts
         };
+        let mut users = Users::default();
+        let permissions = Permissions::default();
+        if self.users.is_empty() {
+            users.insert(crate::auth::GUEST, "guest");
+            for vhost in &vhosts {
+                permissions
+                    .set(crate::auth::GUEST, vhost, Permission::full())
+                    .map_err(StartError::Permission)?;
+            }
+        }
+        for (user, vhost, permission) in self.permissions {
+            permissions
+                .set(&user, &vhost, permission)
+                .map_err(StartError::Permission)?;
+        }
+        for (user, vhost, exchange, permission) in self.topic_permissions {
+            permissions
+                .set_topic(&user, &vhost, &exchange, permission)
+                .map_err(StartError::Permission)?;
+        }
+        let granted: std::collections::HashSet<String> = permissions
+            .list()
+            .into_iter()
+            .map(|(user, ..)| user)
+            .collect();
+        for (name, hash) in self.users {
+            if !granted.contains(&name) {
+                tracing::warn!(user = %name, "user has no permissions: it can log in but open no vhost (RabbitMQ's rule); grant some");
+            }
+            users.insert_hashed(name, hash);
+        }
+        if let Some(names) = self.loopback_users {
+            users.set_loopback_only(names);
+        }
         // Recovery time includes opening the store (sled replays its log).
         let started = std::time::Instant::now();
         let free_space = match (self.free_space, &self.storage) {
@@ -253,6 +352,7 @@ impl BrokerBuilder {
         let core = Core::new(CoreOptions {
             vhosts,
             users,
+            permissions,
             limits: self.limits,
             persistence,
             product: self.product.unwrap_or_else(|| DEFAULT_PRODUCT.to_owned()),
@@ -271,20 +371,29 @@ impl BrokerBuilder {
         }
         let (alive, finished) = mpsc::channel(1);
         let mut local_addrs = Vec::new();
+        let mut tls_addrs = Vec::new();
         let mut tasks = Vec::new();
-        for addr in self.listen {
+        let listeners = (self.listen.into_iter().map(|addr| (addr, None)))
+            .chain(self.tls_listen.into_iter().map(|addr| (addr, tls.clone())));
+        for (addr, tls) in listeners {
             let listener = TcpListener::bind(addr)
                 .await
                 .map_err(|source| StartError::Bind { addr, source })?;
             let bound = listener
                 .local_addr()
                 .map_err(|source| StartError::Bind { addr, source })?;
-            tracing::info!(addr = %bound, "accepting AMQP 0.9.1 connections");
             warn_if_only_guest(&core.users, bound);
-            local_addrs.push(bound);
+            if tls.is_some() {
+                tracing::info!(addr = %bound, "accepting AMQP 0.9.1 connections over TLS");
+                tls_addrs.push(bound);
+            } else {
+                tracing::info!(addr = %bound, "accepting AMQP 0.9.1 connections");
+                local_addrs.push(bound);
+            }
             tasks.push(tokio::spawn(crate::server::accept_loop(
                 Arc::clone(&core),
                 listener,
+                tls,
                 alive.clone(),
             )));
         }
@@ -313,6 +422,8 @@ impl BrokerBuilder {
         Ok(BrokerHandle {
             core,
             local_addrs,
+            tls_addrs,
+            tls,
             tasks,
             alive: Some(alive),
             finished,
@@ -341,6 +452,8 @@ fn busy_poll_state(max_window: Duration) -> Option<Arc<BusyPoll>> {
 pub struct BrokerHandle {
     core: Arc<Core>,
     local_addrs: Vec<SocketAddr>,
+    tls_addrs: Vec<SocketAddr>,
+    tls: Option<Arc<TlsContext>>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
     alive: Option<mpsc::Sender<()>>,
     finished: mpsc::Receiver<()>,
@@ -356,9 +469,24 @@ struct CleanShutdown {
 }
 
 impl BrokerHandle {
-    /// The addresses the listeners are bound to.
+    /// The addresses the plaintext listeners are bound to.
     pub fn local_addrs(&self) -> &[SocketAddr] {
         &self.local_addrs
+    }
+
+    /// The addresses the TLS listeners are bound to.
+    pub fn tls_addrs(&self) -> &[SocketAddr] {
+        &self.tls_addrs
+    }
+
+    /// Re-reads the TLS certificate, key and CA bundle: connections
+    /// accepted from now on use them, open ones keep theirs. On an error
+    /// the files in use before stay in use.
+    pub fn reload_tls(&self) -> Result<(), TlsError> {
+        match &self.tls {
+            Some(tls) => tls.reload(),
+            None => Err(TlsError::NoOptions),
+        }
     }
 
     /// Opens an in-process connection: the returned stream is the client's
@@ -372,7 +500,9 @@ impl BrokerHandle {
         let slot = core.connections.admit_local();
         let alive = self.alive.clone();
         tokio::spawn(async move {
-            crate::connection::serve(core, read, write, "in-process".to_owned(), slot).await;
+            let identity = crate::connection::Identity::None;
+            crate::connection::serve(core, read, write, "in-process".to_owned(), slot, identity)
+                .await;
             drop(alive);
         });
         client
@@ -446,6 +576,12 @@ pub enum StartError {
     /// The data directory could not be opened or read.
     #[error("cannot open storage: {0}")]
     Storage(StoreError),
+    /// A permission's pattern cannot be used.
+    #[error(transparent)]
+    Permission(PatternError),
+    /// The TLS certificates, key or CA bundle cannot be used.
+    #[error("TLS: {0}")]
+    Tls(TlsError),
     /// A listener could not be bound.
     #[error("cannot listen on {addr}: {source}")]
     Bind {

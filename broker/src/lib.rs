@@ -99,6 +99,7 @@ mod memory;
 mod message;
 mod outbox;
 mod password;
+mod permissions;
 mod queue;
 mod recovery;
 mod registry;
@@ -110,13 +111,18 @@ mod stats;
 pub mod store;
 #[cfg(test)]
 mod testkit;
+mod tls;
 mod vhost;
 
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
 pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
+pub use crate::permissions::{
+    check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,
+};
 pub use crate::resident_memory::ResidentMemoryWatermark;
+pub use crate::tls::{PeerVerification, TlsError, TlsOptions};
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;
 pub use inspect::{

@@ -1,9 +1,12 @@
 //! The TCP side: listeners, the accept loop (TCP_NODELAY on every socket,
 //! as RabbitMQ does and as the paper's latency figures call for; sockets
-//! over `max_connections` closed at once), and the vhost sweeper that
-//! expires messages and queues.
+//! over `max_connections` closed at once; on a TLS listener the TLS
+//! handshake, under the handshake timeout, on the connection's own task),
+//! and the vhost sweeper that expires messages and queues.
 
+use crate::connection::Identity;
 use crate::core::Core;
+use crate::tls::TlsContext;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
@@ -14,6 +17,7 @@ use tokio::net::TcpListener;
 pub async fn accept_loop(
     core: Arc<Core>,
     listener: TcpListener,
+    tls: Option<Arc<TlsContext>>,
     alive: tokio::sync::mpsc::Sender<()>,
 ) {
     let mut shutdown = core.shutdown_signal();
@@ -40,13 +44,50 @@ pub async fn accept_loop(
         if let Err(e) = socket.set_nodelay(true) {
             tracing::debug!(error = %e, "could not set TCP_NODELAY");
         }
-        let (read, write) = socket.into_split();
         let core = Arc::clone(&core);
         let alive = alive.clone();
-        tokio::spawn(async move {
-            crate::connection::serve(core, read, write, peer, slot).await;
-            drop(alive);
-        });
+        match &tls {
+            None => {
+                let (read, write) = socket.into_split();
+                tokio::spawn(async move {
+                    crate::connection::serve(core, read, write, peer, slot, Identity::None).await;
+                    drop(alive);
+                });
+            }
+            Some(tls) => {
+                let acceptor = tls.acceptor();
+                tokio::spawn(async move {
+                    let handshake = acceptor.accept(socket);
+                    let stream = match tokio::time::timeout(
+                        core.limits.handshake_timeout,
+                        handshake,
+                    )
+                    .await
+                    {
+                        Ok(Ok(stream)) => stream,
+                        Ok(Err(e)) => {
+                            tracing::info!(%peer, error = %e, "TLS handshake failed");
+                            return;
+                        }
+                        Err(_) => {
+                            tracing::warn!(%peer, "TLS handshake not completed within the handshake timeout");
+                            return;
+                        }
+                    };
+                    let identity = stream
+                        .get_ref()
+                        .1
+                        .peer_certificates()
+                        .and_then(|chain| chain.first())
+                        .map_or(Identity::Tls(None), |cert| {
+                            Identity::Tls(crate::tls::common_name(cert))
+                        });
+                    let (read, write) = tokio::io::split(stream);
+                    crate::connection::serve(core, read, write, peer, slot, identity).await;
+                    drop(alive);
+                });
+            }
+        }
     }
 }
 

@@ -7,7 +7,7 @@ mod common;
 
 use bytes::Bytes;
 use common::within;
-use leveret_broker::Broker;
+use leveret_broker::{Broker, Permission};
 use leveret_client::{
     BasicConsumeOptions, BasicProperties, BasicPublishOptions, Connection, ConnectionOptions,
     Error, FieldTable, FieldValue, QueueDeclareOptions, ReplyCode,
@@ -96,6 +96,7 @@ async fn credentials_and_vhost_are_checked_in_process() {
     let broker = Broker::builder()
         .user("robot", "secret")
         .vhost("/robots")
+        .permission("robot", "/robots", Permission::full())
         .start()
         .await
         .expect("start");

@@ -14,6 +14,24 @@ pub struct Cli {
     /// [default: 0.0.0.0:5672].
     #[arg(long = "listen", value_name = "ADDR:PORT")]
     pub listen: Vec<SocketAddr>,
+    /// Address to accept AMQP connections over TLS on (RabbitMQ's
+    /// `listeners.ssl`, 5671 by convention); may be given more than once.
+    /// Needs --tls-certfile and --tls-keyfile. SIGHUP re-reads the
+    /// certificate files.
+    #[arg(long = "tls-listen", value_name = "ADDR:PORT")]
+    pub tls_listen: Vec<SocketAddr>,
+    /// The TLS certificate chain, PEM, leaf first (`ssl_options.certfile`).
+    #[arg(long, value_name = "FILE")]
+    pub tls_certfile: Option<PathBuf>,
+    /// The TLS private key, PEM (`ssl_options.keyfile`).
+    #[arg(long, value_name = "FILE")]
+    pub tls_keyfile: Option<PathBuf>,
+    /// CA certificates that client certificates are verified against, PEM
+    /// (`ssl_options.cacertfile`); with it, clients are asked for a
+    /// certificate (`verify_peer`) and one whose common name is a user may
+    /// log in with SASL EXTERNAL.
+    #[arg(long, value_name = "FILE")]
+    pub tls_cacertfile: Option<PathBuf>,
     /// Directory for durable state; created if missing [default: ./leveret-data].
     #[arg(long, value_name = "DIR")]
     pub data_dir: Option<PathBuf>,

@@ -7,7 +7,8 @@
 
 use crate::cli::Cli;
 use leveret_broker::{
-    Broker, BrokerBuilder, Limits, PasswordHash, ResidentMemoryWatermark, UserLimits, VhostLimits,
+    check_pattern, Broker, BrokerBuilder, Limits, PasswordHash, PatternError, PeerVerification,
+    Permission, ResidentMemoryWatermark, TlsOptions, TopicPermission, UserLimits, VhostLimits,
 };
 use serde::Deserialize;
 use std::net::SocketAddr;
@@ -57,6 +58,17 @@ pub enum ConfigError {
     /// A user's `password-hash` is not one `leveret --hash-password` prints.
     #[error("user {0}: password-hash is not a leveret hash")]
     BadHash(String),
+    /// The TLS settings do not fit together.
+    #[error("TLS: {0}")]
+    Tls(String),
+    /// A permission's pattern cannot be used.
+    #[error("user {user}: {source}")]
+    Pattern {
+        /// The user.
+        user: String,
+        /// What is wrong with the pattern.
+        source: PatternError,
+    },
 }
 
 /// The config file, as written: every key optional, unknown keys refused.
@@ -64,6 +76,19 @@ pub enum ConfigError {
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 pub struct FileConfig {
     listen: Option<Vec<SocketAddr>>,
+    /// RabbitMQ's `listeners.ssl`.
+    tls_listen: Option<Vec<SocketAddr>>,
+    /// `ssl_options.certfile`.
+    tls_certfile: Option<PathBuf>,
+    /// `ssl_options.keyfile`.
+    tls_keyfile: Option<PathBuf>,
+    /// `ssl_options.cacertfile`.
+    tls_cacertfile: Option<PathBuf>,
+    /// `ssl_options.verify`: `verify_peer` (the default with a
+    /// `tls-cacertfile`) or `verify_none`.
+    tls_verify: Option<String>,
+    /// `ssl_options.fail_if_no_peer_cert` (default false).
+    tls_fail_if_no_peer_cert: Option<bool>,
     data_dir: Option<PathBuf>,
     log: Option<String>,
     #[serde(default)]
@@ -126,6 +151,32 @@ struct UserConfig {
     max_connections: Option<usize>,
     /// The user limit `max-channels` (across all their connections).
     max_channels: Option<usize>,
+    /// `[[users.permissions]]`: RabbitMQ's `set_permissions`, one per vhost.
+    #[serde(default)]
+    permissions: Vec<PermissionConfig>,
+    /// `[[users.topic-permissions]]`: RabbitMQ's `set_topic_permissions`.
+    #[serde(default)]
+    topic_permissions: Vec<TopicPermissionConfig>,
+}
+
+/// One `[[users.permissions]]` table.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct PermissionConfig {
+    vhost: String,
+    configure: String,
+    write: String,
+    read: String,
+}
+
+/// One `[[users.topic-permissions]]` table.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+struct TopicPermissionConfig {
+    vhost: String,
+    exchange: String,
+    write: String,
+    read: String,
 }
 
 impl FileConfig {
@@ -161,12 +212,20 @@ pub enum Credential {
 pub struct Settings {
     /// AMQP listeners.
     pub listen: Vec<SocketAddr>,
+    /// AMQP-over-TLS listeners.
+    pub tls_listen: Vec<SocketAddr>,
+    /// Their certificates and client verification.
+    pub tls: Option<TlsOptions>,
     /// The directory for durable state.
     pub data_dir: PathBuf,
     /// The tracing filter.
     pub log: String,
     /// Users; empty means the library's `guest`/`guest`.
     pub users: Vec<(String, Credential)>,
+    /// (user, vhost, permission) for the users above.
+    pub permissions: Vec<(String, String, Permission)>,
+    /// (user, vhost, exchange, topic permission) for the users above.
+    pub topic_permissions: Vec<(String, String, String, TopicPermission)>,
     /// Vhosts; empty means the library's `/`.
     pub vhosts: Vec<String>,
     /// Users who may log in only from this host; `None` is the library's
@@ -190,6 +249,50 @@ pub struct Settings {
     pub recover: bool,
 }
 
+/// RabbitMQ's `ssl_options` from their parts: `verify` defaults to
+/// `verify_peer` when there is a CA bundle.
+fn resolve_tls(
+    certfile: Option<PathBuf>,
+    keyfile: Option<PathBuf>,
+    cacertfile: Option<PathBuf>,
+    verify: Option<&str>,
+    fail_if_no_peer_cert: bool,
+) -> Result<Option<TlsOptions>, ConfigError> {
+    let (certfile, keyfile) = match (certfile, keyfile) {
+        (Some(cert), Some(key)) => (cert, key),
+        (None, None) if cacertfile.is_none() && verify.is_none() => return Ok(None),
+        _ => {
+            return Err(ConfigError::Tls(
+                "give both tls-certfile and tls-keyfile".into(),
+            ))
+        }
+    };
+    let verify_peer = match verify {
+        None => cacertfile.is_some(),
+        Some("verify_peer") => true,
+        Some("verify_none") => false,
+        Some(other) => {
+            return Err(ConfigError::Tls(format!(
+                "tls-verify is verify_peer or verify_none, not {other}"
+            )))
+        }
+    };
+    let verify = match (verify_peer, fail_if_no_peer_cert) {
+        (false, _) => PeerVerification::None,
+        (true, false) => PeerVerification::Optional,
+        (true, true) => PeerVerification::Required,
+    };
+    if verify != PeerVerification::None && cacertfile.is_none() {
+        return Err(ConfigError::Tls("verify_peer needs tls-cacertfile".into()));
+    }
+    Ok(Some(TlsOptions {
+        certfile,
+        keyfile,
+        cacertfile,
+        verify,
+    }))
+}
+
 impl Settings {
     /// Takes each value from the command line, else the file, else the default.
     pub fn resolve(cli: Cli, file: FileConfig) -> Result<Settings, ConfigError> {
@@ -198,6 +301,23 @@ impl Settings {
         } else {
             cli.listen
         };
+        let tls_listen = if cli.tls_listen.is_empty() {
+            file.tls_listen.unwrap_or_default()
+        } else {
+            cli.tls_listen
+        };
+        let tls = resolve_tls(
+            cli.tls_certfile.or(file.tls_certfile),
+            cli.tls_keyfile.or(file.tls_keyfile),
+            cli.tls_cacertfile.or(file.tls_cacertfile),
+            file.tls_verify.as_deref(),
+            file.tls_fail_if_no_peer_cert.unwrap_or(false),
+        )?;
+        if !tls_listen.is_empty() && tls.is_none() {
+            return Err(ConfigError::Tls(
+                "tls-listen needs tls-certfile and tls-keyfile".into(),
+            ));
+        }
         let defaults = Limits::default();
         let limits = Limits {
             channel_max: file.channel_max.unwrap_or(defaults.channel_max),
@@ -247,6 +367,39 @@ impl Settings {
                 })
                 .collect(),
         };
+        let mut permissions = Vec::new();
+        let mut topic_permissions = Vec::new();
+        for user in &file.users {
+            let bad = |source| ConfigError::Pattern {
+                user: user.name.clone(),
+                source,
+            };
+            for p in &user.permissions {
+                for pattern in [&p.configure, &p.write, &p.read] {
+                    check_pattern(pattern).map_err(bad)?;
+                }
+                let permission = Permission {
+                    configure: p.configure.clone(),
+                    write: p.write.clone(),
+                    read: p.read.clone(),
+                };
+                permissions.push((user.name.clone(), p.vhost.clone(), permission));
+            }
+            for t in &user.topic_permissions {
+                check_pattern(&t.write).map_err(bad)?;
+                check_pattern(&t.read).map_err(bad)?;
+                let permission = TopicPermission {
+                    write: t.write.clone(),
+                    read: t.read.clone(),
+                };
+                topic_permissions.push((
+                    user.name.clone(),
+                    t.vhost.clone(),
+                    t.exchange.clone(),
+                    permission,
+                ));
+            }
+        }
         let users = file
             .users
             .into_iter()
@@ -274,12 +427,16 @@ impl Settings {
             .unwrap_or(DEFAULT_BUSY_POLL_MICROS);
         Ok(Settings {
             listen,
+            tls_listen,
+            tls,
             data_dir: cli
                 .data_dir
                 .or(file.data_dir)
                 .unwrap_or_else(|| PathBuf::from(DEFAULT_DATA_DIR)),
             log: cli.log.or(file.log).unwrap_or_else(|| DEFAULT_LOG.into()),
             users,
+            permissions,
+            topic_permissions,
             vhosts: file.vhosts,
             loopback_users: file.loopback_users,
             limits,
@@ -325,11 +482,23 @@ impl Settings {
         for addr in self.listen {
             builder = builder.listen(addr);
         }
+        for addr in self.tls_listen {
+            builder = builder.tls_listen(addr);
+        }
+        if let Some(tls) = self.tls {
+            builder = builder.tls(tls);
+        }
         for (name, credential) in self.users {
             builder = match credential {
                 Credential::Password(password) => builder.user(name, &password),
                 Credential::Hash(hash) => builder.user_hashed(name, hash),
             };
+        }
+        for (user, vhost, permission) in self.permissions {
+            builder = builder.permission(user, vhost, permission);
+        }
+        for (user, vhost, exchange, permission) in self.topic_permissions {
+            builder = builder.topic_permission(user, vhost, exchange, permission);
         }
         if let Some(names) = self.loopback_users {
             builder = builder.loopback_users(names);
@@ -353,6 +522,63 @@ mod tests {
     fn cli(args: &[&str]) -> Cli {
         Cli::try_parse_from(std::iter::once("leveret").chain(args.iter().copied()))
             .expect("valid command line")
+    }
+
+    #[test]
+    fn tls_settings_follow_rabbitmqs_ssl_options() {
+        let tls = |cli_args: &[&str], text: &str| Settings::resolve(cli(cli_args), file(text));
+        let plain = tls(&[], "").unwrap();
+        assert!(plain.tls.is_none() && plain.tls_listen.is_empty());
+        let settings = tls(
+            &["--tls-listen", "127.0.0.1:5671"],
+            "tls-certfile = \"c.pem\"\ntls-keyfile = \"k.pem\"\ntls-cacertfile = \"ca.pem\"\n\
+             tls-fail-if-no-peer-cert = true",
+        )
+        .unwrap();
+        assert_eq!(settings.tls_listen, ["127.0.0.1:5671".parse().unwrap()]);
+        assert_eq!(
+            settings.tls,
+            Some(TlsOptions {
+                certfile: "c.pem".into(),
+                keyfile: "k.pem".into(),
+                cacertfile: Some("ca.pem".into()),
+                verify: PeerVerification::Required,
+            })
+        );
+        let optional = tls(
+            &[
+                "--tls-certfile",
+                "c",
+                "--tls-keyfile",
+                "k",
+                "--tls-cacertfile",
+                "ca",
+            ],
+            "",
+        )
+        .unwrap();
+        assert_eq!(optional.tls.unwrap().verify, PeerVerification::Optional);
+        for (args, text, why) in [
+            (
+                &["--tls-listen", "127.0.0.1:5671"][..],
+                "",
+                "needs tls-certfile",
+            ),
+            (&["--tls-certfile", "c"][..], "", "both"),
+            (
+                &["--tls-certfile", "c", "--tls-keyfile", "k"][..],
+                "tls-verify = \"verify_peer\"",
+                "needs tls-cacertfile",
+            ),
+            (
+                &["--tls-certfile", "c", "--tls-keyfile", "k"][..],
+                "tls-verify = \"sometimes\"",
+                "not sometimes",
+            ),
+        ] {
+            let error = tls(args, text).unwrap_err().to_string();
+            assert!(error.contains(why), "{error}");
+        }
     }
 
     #[test]

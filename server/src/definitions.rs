@@ -5,21 +5,24 @@
 //! What Leveret acts on: vhosts, users (with RabbitMQ's SHA-256 password
 //! hashes, which are Leveret's own scheme; at start only, as users are
 //! fixed once the broker runs), exchanges, queues (with arguments) and
-//! bindings. Users' tags, permissions and topic permissions are parsed
-//! into plain data (`access`), kept and exported as imported, but not
-//! enforced (every user may use every vhost): each import says so.
+//! bindings, permissions and topic permissions (enforced by the broker;
+//! a pattern its regex engine cannot run refuses the file). Users' tags
+//! are kept (`tags`) and exported as imported, but not acted on: each
+//! import says so.
 //! Everything else is reported, never dropped silently: policies,
 //! parameters, global parameters, unknown keys, other password hashing
 //! algorithms, and queue types Leveret does not have (an `x-queue-type`
 //! other than classic gives a classic queue).
 
-use crate::access::{Access, AccessRecords, Permission, TopicPermission};
 use crate::management::json::{flag, table, text, to_table};
+use crate::tags::Tags;
 use leveret_broker::{
-    Admin, BindingSpec, BrokerBuilder, DestinationKind, ExchangeSettings, PasswordHash,
-    QueueSettings, UserLimits, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512,
+    check_pattern, Admin, BindingSpec, BrokerBuilder, DestinationKind, ExchangeSettings,
+    PasswordHash, Permission, QueueSettings, TopicPermission, UserLimits, LEVERET_ARGON2ID,
+    RABBIT_SHA256, RABBIT_SHA512,
 };
 use serde_json::{json, Map, Value};
+use std::collections::BTreeMap;
 
 /// A user from the file.
 #[derive(Debug, Clone, PartialEq)]
@@ -43,8 +46,12 @@ pub struct Definitions {
     exchanges: Vec<(String, String, ExchangeSettings)>,
     queues: Vec<(String, String, QueueSettings)>,
     bindings: Vec<(String, BindingSpec)>,
-    /// Users' tags and permissions, recorded but not enforced.
-    pub access: AccessRecords,
+    /// (user, vhost, permission).
+    pub permissions: Vec<(String, String, Permission)>,
+    /// (user, vhost, exchange, topic permission).
+    pub topic_permissions: Vec<(String, String, String, TopicPermission)>,
+    /// Users' tags, recorded but not acted on.
+    pub tags: BTreeMap<String, Vec<String>>,
     /// Everything not applied, one line each.
     pub warnings: Vec<String>,
 }
@@ -250,9 +257,9 @@ impl Definitions {
             let tags = user_tags(item.get("tags"));
             if !tags.is_empty() {
                 d.warnings.push(format!(
-                    "{what}: tags {tags:?} recorded but not enforced: every user may do everything"
+                    "{what}: tags {tags:?} recorded but not acted on: the management API lets every user do everything"
                 ));
-                d.access.tags.insert(user.clone(), tags);
+                d.tags.insert(user.clone(), tags);
             }
             let algorithm = text(item, "hashing_algorithm", RABBIT_SHA256)?;
             if ![RABBIT_SHA256, RABBIT_SHA512, LEVERET_ARGON2ID].contains(&algorithm) {
@@ -282,42 +289,31 @@ impl Definitions {
                 &what,
                 &mut d.warnings,
             );
-            d.access.permissions.push(Permission {
-                configure: text(item, "configure", "")?.to_owned(),
-                write: text(item, "write", "")?.to_owned(),
-                read: text(item, "read", "")?.to_owned(),
-                user,
-                vhost,
-            });
+            let permission = Permission {
+                configure: pattern(item, "configure", &what)?,
+                write: pattern(item, "write", &what)?,
+                read: pattern(item, "read", &what)?,
+            };
+            d.permissions.push((user, vhost, permission));
         }
         for item in list(root, "topic_permissions")? {
             let item = object(item, "topic_permissions")?;
             let user = name(item, "user", "a topic permission")?;
             let vhost = vhost_of(item, "a topic permission")?;
             let exchange = name(item, "exchange", "a topic permission")?;
+            let what = format!("topic permission of '{user}' on '{exchange}' in vhost '{vhost}'");
             unused_keys(
                 item,
                 &["user", "vhost", "exchange", "write", "read"],
-                &format!("topic permission of '{user}' on '{exchange}' in vhost '{vhost}'"),
+                &what,
                 &mut d.warnings,
             );
-            d.access.topic_permissions.push(TopicPermission {
-                write: text(item, "write", "")?.to_owned(),
-                read: text(item, "read", "")?.to_owned(),
-                user,
-                vhost,
-                exchange,
-            });
-        }
-        for (count, what) in [
-            (d.access.permissions.len(), "permissions"),
-            (d.access.topic_permissions.len(), "topic permissions"),
-        ] {
-            if count > 0 {
-                d.warnings.push(format!(
-                    "{count} {what} recorded (and exported as imported) but not enforced: every user may use every vhost"
-                ));
-            }
+            let permission = TopicPermission {
+                write: pattern(item, "write", &what)?,
+                read: pattern(item, "read", &what)?,
+            };
+            d.topic_permissions
+                .push((user, vhost, exchange, permission));
         }
         for item in list(root, "exchanges")? {
             let item = object(item, "exchanges")?;
@@ -437,15 +433,26 @@ impl Definitions {
                 builder = builder.user_limits(user.name.clone(), limits);
             }
         }
+        for (user, vhost, permission) in &self.permissions {
+            builder = builder.permission(user.clone(), vhost.clone(), permission.clone());
+        }
+        for (user, vhost, exchange, permission) in &self.topic_permissions {
+            builder = builder.topic_permission(
+                user.clone(),
+                vhost.clone(),
+                exchange.clone(),
+                permission.clone(),
+            );
+        }
         builder
     }
 
     /// Applies vhosts, exchanges, queues and bindings to a running broker,
     /// in that order; stops at the first that fails, naming it. Users are
     /// reported unless the broker already has them with the same hash.
-    pub async fn apply(&mut self, admin: &Admin, access: &Access) -> Result<Applied, String> {
+    pub async fn apply(&mut self, admin: &Admin, tags: &Tags) -> Result<Applied, String> {
         let mut applied = Applied::default();
-        access.record(&self.access);
+        tags.record(&self.tags);
         let existing = admin.users();
         for user in &self.users {
             if !existing
@@ -465,6 +472,16 @@ impl Definitions {
             {
                 applied.vhosts += 1;
             }
+        }
+        for (user, vhost, permission) in &self.permissions {
+            admin
+                .set_permission(user, vhost, permission.clone())
+                .map_err(|e| format!("permission of '{user}' on vhost '{vhost}': {e}"))?;
+        }
+        for (user, vhost, exchange, permission) in &self.topic_permissions {
+            admin
+                .set_topic_permission(user, vhost, exchange, permission.clone())
+                .map_err(|e| format!("topic permission of '{user}' on '{exchange}': {e}"))?;
         }
         for (vhost, name, settings) in &self.exchanges {
             admin
@@ -499,8 +516,8 @@ impl Definitions {
 /// One vhost's definitions, as RabbitMQ exports them: its exchanges,
 /// queues and bindings without their `vhost` key, and the empty policies
 /// and parameters.
-pub fn export_vhost(admin: &Admin, access: &Access, vhost: &str) -> Value {
-    let all = export(admin, access);
+pub fn export_vhost(admin: &Admin, tags: &Tags, vhost: &str) -> Value {
+    let all = export(admin, tags);
     let only = |key: &str| -> Vec<Value> {
         all[key]
             .as_array()
@@ -530,11 +547,10 @@ pub fn export_vhost(admin: &Admin, access: &Access, vhost: &str) -> Value {
 }
 
 /// The broker's definitions in RabbitMQ 3.10's form: vhosts, users with
-/// their recorded tags, the recorded permissions (or, for a user with
-/// none recorded, what Leveret grants: everything), and the exchanges,
+/// their recorded tags, permissions, topic permissions, and the exchanges,
 /// queues and bindings a client declared (not the predefined exchanges,
 /// exclusive queues or the default exchange's implicit bindings).
-pub fn export(admin: &Admin, access: &Access) -> Value {
+pub fn export(admin: &Admin, tags: &Tags) -> Value {
     let vhosts = admin.vhosts();
     let users = admin.users();
     let exclusive: Vec<(String, String)> = admin
@@ -576,8 +592,6 @@ pub fn export(admin: &Admin, access: &Access) -> Value {
                    "routing_key": b.routing_key, "arguments": table(&b.arguments)})
         })
         .collect();
-    let user_names: Vec<String> = users.iter().map(|(name, _)| name.clone()).collect();
-    let permissions = access.permissions_json(&user_names, &vhosts);
     let overview = admin.overview();
     json!({
         "rabbit_version": "3.10.0",
@@ -588,12 +602,12 @@ pub fn export(admin: &Admin, access: &Access) -> Value {
             let (password_hash, hashing_algorithm) = hash.to_rabbitmq();
             json!({
                 "name": name, "password_hash": password_hash,
-                "hashing_algorithm": hashing_algorithm, "tags": access.tags(name),
+                "hashing_algorithm": hashing_algorithm, "tags": tags.of(name),
                 "limits": user_limits_json(admin.user_limits(name))})
         }).collect::<Vec<_>>(),
         "vhosts": vhosts.iter().map(|name| json!({"name": name})).collect::<Vec<_>>(),
-        "permissions": permissions,
-        "topic_permissions": access.topic_permissions_json(&user_names),
+        "permissions": permissions_json(admin),
+        "topic_permissions": topic_permissions_json(admin),
         "parameters": [],
         "global_parameters": [],
         "policies": [],
@@ -601,6 +615,38 @@ pub fn export(admin: &Admin, access: &Access) -> Value {
         "exchanges": exchanges,
         "bindings": bindings,
     })
+}
+
+/// RabbitMQ's `permissions` list (definitions, `GET /api/permissions`).
+pub fn permissions_json(admin: &Admin) -> Vec<Value> {
+    admin
+        .permissions()
+        .into_iter()
+        .map(|(user, vhost, p)| {
+            json!({"user": user, "vhost": vhost,
+                   "configure": p.configure, "write": p.write, "read": p.read})
+        })
+        .collect()
+}
+
+/// RabbitMQ's `topic_permissions` list.
+pub fn topic_permissions_json(admin: &Admin) -> Vec<Value> {
+    admin
+        .topic_permissions()
+        .into_iter()
+        .map(|(user, vhost, exchange, t)| {
+            json!({"user": user, "vhost": vhost, "exchange": exchange,
+                   "write": t.write, "read": t.read})
+        })
+        .collect()
+}
+
+/// A permission pattern the broker can run (`""` when absent, which
+/// RabbitMQ reads as `^$`).
+fn pattern(item: &Map<String, Value>, key: &str, what: &str) -> Result<String, String> {
+    let pattern = text(item, key, "")?;
+    check_pattern(pattern).map_err(|e| format!("{what}: {e}"))?;
+    Ok(pattern.to_owned())
 }
 
 #[cfg(test)]
@@ -647,9 +693,8 @@ mod tests {
         let all = d.warnings.join("\n");
         for expected in [
             "unknown key 'shovels'",
-            "1 permissions recorded (and exported as imported) but not enforced",
             "hashing algorithm rabbit_password_hashing_md5",
-            "tags [\"administrator\"] recorded but not enforced",
+            "tags [\"administrator\"] recorded but not acted on",
             "key 'limits'",
             "queue type 'quorum'",
         ] {

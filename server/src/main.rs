@@ -22,7 +22,6 @@
 //! Each uses only the `leveret-broker` public API; `main` uses the others.
 #![forbid(unsafe_code)]
 
-mod access;
 mod cli;
 mod config;
 mod definitions;
@@ -32,6 +31,7 @@ mod management;
 mod metrics;
 mod ops;
 mod process;
+mod tags;
 
 use clap::Parser;
 use cli::Cli;
@@ -116,9 +116,9 @@ async fn serve(settings: Settings) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let access = access::Access::default();
+    let tags = tags::Tags::default();
     if let Some(definitions) = &mut definitions {
-        match definitions.apply(&handle.admin(), &access).await {
+        match definitions.apply(&handle.admin(), &tags).await {
             Ok(applied) => tracing::info!(?applied, "definitions loaded"),
             Err(e) => {
                 tracing::error!(error = %e, "cannot load the definitions");
@@ -130,7 +130,7 @@ async fn serve(settings: Settings) -> ExitCode {
             tracing::warn!(%warning, "definitions");
         }
     }
-    let ops = match ops::Ops::start(handle.admin(), access, handle.local_addrs(), ops_settings) {
+    let ops = match ops::Ops::start(handle.admin(), tags, handle.local_addrs(), ops_settings) {
         Ok(ops) => ops,
         Err(e) => {
             tracing::error!(error = %e, "cannot start");
@@ -138,7 +138,7 @@ async fn serve(settings: Settings) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    wait_for_signal().await;
+    wait_for_signal(&handle).await;
     tracing::info!("shutting down");
     ops.stop();
     handle.shutdown().await;
@@ -158,24 +158,38 @@ fn hash_password() -> ExitCode {
     ExitCode::SUCCESS
 }
 
-async fn wait_for_signal() {
+/// Waits for SIGINT or SIGTERM; SIGHUP meanwhile re-reads the TLS
+/// certificate files.
+async fn wait_for_signal(handle: &leveret_broker::BrokerHandle) {
     #[cfg(unix)]
     {
         use tokio::signal::unix::{signal, SignalKind};
-        match signal(SignalKind::terminate()) {
-            Ok(mut term) => {
-                tokio::select! {
-                    _ = tokio::signal::ctrl_c() => {}
-                    _ = term.recv() => {}
+        let (Ok(mut term), Ok(mut hangup)) = (
+            signal(SignalKind::terminate()),
+            signal(SignalKind::hangup()),
+        ) else {
+            let _ = tokio::signal::ctrl_c().await;
+            return;
+        };
+        loop {
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => return,
+                _ = term.recv() => return,
+                _ = hangup.recv() => {
+                    if handle.tls_addrs().is_empty() {
+                        continue;
+                    }
+                    match handle.reload_tls() {
+                        Ok(()) => tracing::info!("TLS certificates reloaded"),
+                        Err(e) => tracing::error!(error = %e, "TLS certificates not reloaded; the previous ones stay in use"),
+                    }
                 }
-            }
-            Err(_) => {
-                let _ = tokio::signal::ctrl_c().await;
             }
         }
     }
     #[cfg(not(unix))]
     {
+        let _ = handle;
         let _ = tokio::signal::ctrl_c().await;
     }
 }

@@ -6,9 +6,9 @@
 //! instructions at a time. The sockets are bound before the thread starts,
 //! so a busy port stops the binary at start with a clear error.
 
-use crate::access::Access;
 use crate::management::Rates;
 use crate::metrics::MetricsContext;
+use crate::tags::Tags;
 use leveret_broker::Admin;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -66,7 +66,7 @@ impl Ops {
     /// `amqp_listeners` are reported in `/api/overview`.
     pub fn start(
         admin: Admin,
-        access: Access,
+        tags: Tags,
         amqp_listeners: &[SocketAddr],
         settings: OpsSettings,
     ) -> Result<Ops, OpsError> {
@@ -87,7 +87,7 @@ impl Ops {
         };
         let management = crate::management::Context {
             admin: admin.clone(),
-            access,
+            tags,
             node,
             data_dir: settings.data_dir,
             amqp_listeners: amqp_listeners.to_vec(),

@@ -71,9 +71,11 @@ async fn a_config_files_users_and_vhosts_are_served() {
     std::fs::write(
         &config,
         format!(
-            "vhosts = [\"robots\"]\n\n[[users]]\nname = \"robot\"\npassword-hash = \"{}\"\n\n\
+            "vhosts = [\"robots\"]\n\n[[users]]\nname = \"robot\"\npassword-hash = \"{}\"\n\
+             [[users.permissions]]\nvhost = \"robots\"\nconfigure = \".*\"\nwrite = \".*\"\nread = \".*\"\n\n\
              [[users]]\nname = \"moved\"\npassword-hash = \"{RABBITMQ_SHA512}\"\n\
-             hashing-algorithm = \"rabbit_password_hashing_sha512\"\n",
+             hashing-algorithm = \"rabbit_password_hashing_sha512\"\n\
+             [[users.permissions]]\nvhost = \"robots\"\nconfigure = \".*\"\nwrite = \".*\"\nread = \".*\"\n",
             hash_password("s3cret")
         ),
     )

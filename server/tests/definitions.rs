@@ -79,6 +79,18 @@ async fn a_rabbitmq_export_loads_at_start_and_what_cannot_apply_is_logged() {
     let conn = Connection::connect(&url, ConnectionProperties::default())
         .await
         .expect("robot reaches vhost fleet");
+    // Its permission (configure nothing, write `telemetry`) is enforced.
+    let channel = conn.create_channel().await.expect("channel");
+    let refused = channel
+        .queue_declare("mine", Default::default(), Default::default())
+        .await
+        .expect_err("robot may configure nothing");
+    assert!(
+        refused.to_string().contains(
+            "ACCESS_REFUSED - access to queue 'mine' in vhost 'fleet' refused for user 'robot'"
+        ),
+        "{refused}"
+    );
     conn.close(200, "bye").await.expect("close");
     let queues = get_json(broker.http, "robot", "beep", "/api/queues/fleet").await;
     let names: Vec<&str> = queues
@@ -98,9 +110,8 @@ async fn a_rabbitmq_export_loads_at_start_and_what_cannot_apply_is_logged() {
 
     let log = broker.log().join("\n");
     for expected in [
-        "1 permissions recorded (and exported as imported) but not enforced",
         "1 global_parameters not imported",
-        "tags [\"monitoring\"] recorded but not enforced",
+        "tags [\"monitoring\"] recorded but not acted on",
         "queue type 'quorum' is not supported",
     ] {
         assert!(log.contains(expected), "log says {expected}:\n{log}");
@@ -207,13 +218,8 @@ async fn export_then_import_into_a_fresh_broker_keeps_the_topology() {
         report["applied"],
         json!({"vhosts": 0, "exchanges": 2, "queues": 1, "bindings": 2})
     );
-    assert!(report["warnings"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .any(|w| w.as_str().unwrap().contains("permissions recorded")));
     let again = get_json(second.http, "guest", "guest", "/api/definitions").await;
-    for key in ["queues", "exchanges", "bindings", "vhosts"] {
+    for key in ["queues", "exchanges", "bindings", "vhosts", "permissions"] {
         assert_eq!(again[key], exported[key], "{key}");
     }
 

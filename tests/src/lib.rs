@@ -134,6 +134,12 @@ impl TestBroker {
         self.port
     }
 
+    /// The in-process broker's administration handle (`None` for an
+    /// external broker).
+    pub fn admin(&self) -> Option<leveret_broker::Admin> {
+        self.handle.as_ref().map(BrokerHandle::admin)
+    }
+
     /// Whether this is an external broker (`LEVERET_TEST_AMQP_URL`).
     pub fn is_external(&self) -> bool {
         self.handle.is_none()

@@ -8,7 +8,7 @@
 mod common;
 
 use common::*;
-use leveret_broker::Broker;
+use leveret_broker::{Broker, Permission};
 use std::net::{IpAddr, SocketAddr, UdpSocket};
 
 /// An address of this host that is not loopback: the source address the
@@ -41,7 +41,11 @@ async fn guest_is_refused_beyond_this_host_with_rabbitmqs_403() {
     let Some(remote) = non_loopback_address() else {
         panic!("this host has no non-loopback address to connect from");
     };
-    let builder = Broker::builder().user("guest", "guest").user("robot", "pw");
+    let builder = Broker::builder()
+        .user("guest", "guest")
+        .user("robot", "pw")
+        .permission("guest", "/", Permission::full())
+        .permission("robot", "/", Permission::full());
     let (handle, port) = on_every_interface(builder).await;
     let local = IpAddr::from([127, 0, 0, 1]);
     let ok = tmo!(lp::Connection::connect(

@@ -9,7 +9,7 @@
 mod common;
 
 use common::*;
-use leveret_broker::{Broker, UserLimits};
+use leveret_broker::{Broker, Permission, UserLimits};
 
 fn url(handle: &leveret_broker::BrokerHandle, user: &str, password: &str) -> String {
     format!("amqp://{user}:{password}@{}/%2f", handle.local_addrs()[0])
@@ -28,6 +28,8 @@ async fn a_users_connections_and_channels_are_limited_across_connections() {
         .listen("127.0.0.1:0".parse().expect("addr"))
         .user("lim", "pw")
         .user("free", "pw")
+        .permission("lim", "/", Permission::full())
+        .permission("free", "/", Permission::full())
         .user_limits(
             "lim",
             UserLimits {

@@ -8,6 +8,7 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::Exchange;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
+use crate::permissions::Right;
 use crate::queue::{DeadLetters, Enqueued, Queue, QueuedMessage};
 use crate::slice::{finish_in_background, yield_if_spent, Progress, Slice};
 use leveret_protocol::{
@@ -112,6 +113,7 @@ impl Channel {
     }
 
     async fn publish_checked(&mut self, publish: Publish) -> AmqpResult<()> {
+        self.allow_exchange(Right::Write, publish.method.exchange.as_bytes())?;
         let exchange = self.vhost.exchange_or_404(&publish.method.exchange)?;
         if exchange.options.internal {
             return Err(AmqpError::access_refused(format_args!(
@@ -119,6 +121,11 @@ impl Channel {
                 exchange.name, self.vhost.name
             )));
         }
+        self.allow_topic(
+            Right::Write,
+            &publish.method.exchange,
+            &publish.method.routing_key,
+        )?;
         if let Some(expiration) = &publish.properties.expiration {
             if expiration
                 .as_str()
@@ -262,6 +269,7 @@ impl Channel {
             return self.consume_direct_reply(consume).await;
         }
         let queue_name = self.queue_name_or_last(consume.queue)?;
+        self.allow_queue(Right::Read, queue_name.as_bytes())?;
         let queue = self.vhost.queue_or_404(&queue_name)?;
         crate::vhost::check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
         let tag = if consume.consumer_tag.is_empty() {
@@ -327,6 +335,7 @@ impl Channel {
 
     pub(super) async fn basic_get(&mut self, get: BasicGet) -> AmqpResult<()> {
         let queue_name = self.queue_name_or_last(get.queue)?;
+        self.allow_queue(Right::Read, queue_name.as_bytes())?;
         let queue = self.vhost.queue_or_404(&queue_name)?;
         crate::vhost::check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
         let Some(permit) = self.outbox().reserve().await else {

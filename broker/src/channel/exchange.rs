@@ -3,6 +3,7 @@
 use super::Channel;
 use crate::error::AmqpResult;
 use crate::exchange::ExchangeOptions;
+use crate::permissions::Right;
 use crate::vhost::{BindingChange, ExchangeDeclaration};
 use leveret_protocol::{
     ExchangeBind, ExchangeBindOk, ExchangeDeclare, ExchangeDeclareOk, ExchangeDelete,
@@ -12,6 +13,23 @@ use leveret_protocol::{
 impl Channel {
     pub(super) async fn exchange_declare(&mut self, declare: ExchangeDeclare) -> AmqpResult<()> {
         let durable = declare.durable;
+        // RabbitMQ's checks: configure on the exchange (the default
+        // exchange is refused by the vhost with its own text), and when it
+        // is created with an alternate exchange, read on it and write on
+        // the alternate.
+        if !declare.passive && !declare.exchange.is_empty() {
+            self.allow_exchange(Right::Configure, declare.exchange.as_bytes())?;
+            if self.vhost.exchange(&declare.exchange).is_none() {
+                if let Some(alternate) = declare
+                    .arguments
+                    .get("alternate-exchange")
+                    .and_then(|v| v.as_bytes())
+                {
+                    self.allow_exchange(Right::Read, declare.exchange.as_bytes())?;
+                    self.allow_exchange(Right::Write, alternate)?;
+                }
+            }
+        }
         self.vhost.declare_exchange(ExchangeDeclaration {
             name: declare.exchange,
             kind: declare.kind,
@@ -33,6 +51,9 @@ impl Channel {
     }
 
     pub(super) async fn exchange_delete(&mut self, delete: ExchangeDelete) -> AmqpResult<()> {
+        if !delete.exchange.is_empty() {
+            self.allow_exchange(Right::Configure, delete.exchange.as_bytes())?;
+        }
         let durable = self.exchange_is_durable(&delete.exchange);
         self.vhost
             .delete_exchange(&delete.exchange, delete.if_unused)?;
@@ -46,6 +67,7 @@ impl Channel {
     }
 
     pub(super) async fn exchange_bind(&mut self, bind: ExchangeBind) -> AmqpResult<()> {
+        self.allow_binding(&bind.destination, &bind.source, &bind.routing_key)?;
         self.vhost.bind_exchange(
             &bind.destination,
             &bind.source,
@@ -63,6 +85,7 @@ impl Channel {
     }
 
     pub(super) async fn exchange_unbind(&mut self, unbind: ExchangeUnbind) -> AmqpResult<()> {
+        self.allow_binding(&unbind.destination, &unbind.source, &unbind.routing_key)?;
         self.vhost.bind_exchange(
             &unbind.destination,
             &unbind.source,
@@ -78,6 +101,20 @@ impl Channel {
             self.reply(ExchangeUnbindOk {}).await;
         }
         Ok(())
+    }
+
+    /// RabbitMQ's checks for a binding change between exchanges: write on
+    /// the destination, read on the source, and the routing key against
+    /// a topic source's topic permission.
+    fn allow_binding(
+        &mut self,
+        destination: &ShortStr,
+        source: &ShortStr,
+        routing_key: &ShortStr,
+    ) -> AmqpResult<()> {
+        self.allow_exchange(Right::Write, destination.as_bytes())?;
+        self.allow_exchange(Right::Read, source.as_bytes())?;
+        self.allow_topic(Right::Read, source, routing_key)
     }
 
     /// Whether `name` is a durable exchange: only changes to those (and

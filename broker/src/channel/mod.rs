@@ -24,8 +24,10 @@ mod tx;
 use crate::consumer::{ChannelLink, Consumer};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
+use crate::exchange::ExchangeKind;
 use crate::memory::{MemoryGauge, Reservation};
 use crate::outbox::Outbox;
+use crate::permissions::{AccessView, Resource, Right};
 use crate::queue::Queue;
 use crate::registry::ChannelRegistration;
 use crate::vhost::Vhost;
@@ -126,6 +128,8 @@ pub struct Channel {
     registration: ChannelRegistration,
     /// Content smaller than this is copied out of the read buffer.
     copy_below: usize,
+    /// What the user may do in the vhost.
+    access: AccessView,
 }
 
 impl Channel {
@@ -140,6 +144,11 @@ impl Channel {
         copy_below: usize,
     ) -> Self {
         let link = Arc::new(ChannelLink::new(id, outbox));
+        let access = AccessView::new(
+            Arc::clone(&core.permissions),
+            &user,
+            &vhost.name.to_string_lossy(),
+        );
         Channel {
             id,
             registration: core.registry.channel(link.outbox.connection_id, id, &link),
@@ -159,7 +168,45 @@ impl Channel {
             direct_reply: None,
             crowded: None,
             copy_below,
+            access,
         }
+    }
+
+    /// Checks the user's `right` on the queue `name`.
+    fn allow_queue(&mut self, right: Right, name: &[u8]) -> AmqpResult<()> {
+        self.access
+            .check(right, Resource::Queue(&String::from_utf8_lossy(name)))
+    }
+
+    /// Checks the user's `right` on the exchange `name`.
+    fn allow_exchange(&mut self, right: Right, name: &[u8]) -> AmqpResult<()> {
+        self.access
+            .check(right, Resource::Exchange(&String::from_utf8_lossy(name)))
+    }
+
+    /// Checks a routing key against the user's topic permission when
+    /// `exchange` is a topic exchange (`Write` for publishing, `Read` for
+    /// binding).
+    fn allow_topic(
+        &mut self,
+        right: Right,
+        exchange: &ShortStr,
+        routing_key: &ShortStr,
+    ) -> AmqpResult<()> {
+        let access = self.access.current()?;
+        if !access.has_topic_permissions()
+            || !self
+                .vhost
+                .exchange(exchange)
+                .is_some_and(|e| e.kind == ExchangeKind::Topic)
+        {
+            return Ok(());
+        }
+        access.check_topic(
+            right,
+            &exchange.to_string_lossy(),
+            &routing_key.to_string_lossy(),
+        )
     }
 
     fn outbox(&self) -> &Outbox {

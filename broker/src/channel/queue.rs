@@ -2,6 +2,7 @@
 
 use super::Channel;
 use crate::error::{AmqpError, AmqpResult};
+use crate::permissions::Right;
 use crate::queue::{Deleted, QueueOptions};
 use crate::vhost::{check_exclusive, BindingChange, QueueDeclaration};
 use leveret_protocol::{
@@ -31,6 +32,22 @@ impl Channel {
         } else {
             self.queue_name_or_last(declare.queue)?
         };
+        if !declare.passive {
+            // RabbitMQ's checks: configure on the queue, and when it is
+            // created with a dead-letter exchange, read on the queue and
+            // write on that exchange.
+            self.allow_queue(Right::Configure, name.as_bytes())?;
+            if self.vhost.queue(&name).is_none() {
+                if let Some(dlx) = declare
+                    .arguments
+                    .get("x-dead-letter-exchange")
+                    .and_then(|v| v.as_bytes())
+                {
+                    self.allow_queue(Right::Read, name.as_bytes())?;
+                    self.allow_exchange(Right::Write, dlx)?;
+                }
+            }
+        }
         let decl = QueueDeclaration {
             name,
             passive: declare.passive,
@@ -83,8 +100,23 @@ impl Channel {
         Ok((queue, routing_key))
     }
 
+    /// RabbitMQ's checks for a binding change: write on the queue, read
+    /// on the exchange, and the routing key against a topic exchange's
+    /// topic permission.
+    fn allow_queue_binding(
+        &mut self,
+        queue: &ShortStr,
+        exchange: &ShortStr,
+        routing_key: &ShortStr,
+    ) -> AmqpResult<()> {
+        self.allow_queue(Right::Write, queue.as_bytes())?;
+        self.allow_exchange(Right::Read, exchange.as_bytes())?;
+        self.allow_topic(Right::Read, exchange, routing_key)
+    }
+
     pub(super) async fn queue_bind(&mut self, bind: QueueBind) -> AmqpResult<()> {
         let (name, routing_key) = self.bind_names(bind.queue, bind.routing_key)?;
+        self.allow_queue_binding(&name, &bind.exchange, &routing_key)?;
         let queue = self.vhost.queue_or_404(&name)?;
         check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
         self.vhost.bind_queue(
@@ -107,6 +139,7 @@ impl Channel {
     /// missing exchange succeeds.
     pub(super) async fn queue_unbind(&mut self, unbind: QueueUnbind) -> AmqpResult<()> {
         let (name, routing_key) = self.bind_names(unbind.queue, unbind.routing_key)?;
+        self.allow_queue_binding(&name, &unbind.exchange, &routing_key)?;
         if let Some(queue) = self.vhost.queue(&name) {
             check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
             if self.vhost.exchange(&unbind.exchange).is_some() {
@@ -128,6 +161,7 @@ impl Channel {
 
     pub(super) async fn queue_purge(&mut self, purge: QueuePurge) -> AmqpResult<()> {
         let name = self.queue_name_or_last(purge.queue)?;
+        self.allow_queue(Right::Read, name.as_bytes())?;
         let queue = self.vhost.queue_or_404(&name)?;
         check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
         let message_count = queue.purge();
@@ -139,6 +173,7 @@ impl Channel {
 
     pub(super) async fn queue_delete(&mut self, delete: QueueDelete) -> AmqpResult<()> {
         let name = self.queue_name_or_last(delete.queue)?;
+        self.allow_queue(Right::Configure, name.as_bytes())?;
         let deleted = match self.vhost.queue(&name) {
             // Deleting a queue that does not exist succeeds, as in RabbitMQ.
             None => Deleted::default(),

@@ -40,10 +40,26 @@ const FLOW_WAIT: Duration = Duration::from_millis(100);
 /// How long a client has to answer a close.
 const CLOSE_TIMEOUT: Duration = Duration::from_secs(3);
 
+/// What the transport tells about the client.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Identity {
+    /// Plain TCP, or in-process.
+    None,
+    /// TLS, with the common name of the verified client certificate if the
+    /// client gave one: SASL EXTERNAL is offered and logs in as it.
+    Tls(Option<String>),
+}
+
 /// Serves one connection until it closes. `slot` is its place in the
 /// connection counts, given back when it ends.
-pub async fn serve<R, W>(core: Arc<Core>, read: R, write: W, peer: String, slot: Slot)
-where
+pub async fn serve<R, W>(
+    core: Arc<Core>,
+    read: R,
+    write: W,
+    peer: String,
+    slot: Slot,
+    identity: Identity,
+) where
     R: Incoming,
     W: AsyncWrite + Unpin + Send + 'static,
 {
@@ -73,6 +89,7 @@ where
         connection_id,
         peer,
         slot,
+        identity,
         user: String::new(),
         vhost: None,
         channels: HashMap::new(),
@@ -134,6 +151,7 @@ struct Connection {
     connection_id: u64,
     peer: String,
     slot: Slot,
+    identity: Identity,
     user: String,
     vhost: Option<Arc<Vhost>>,
     channels: HashMap<u16, Channel>,
@@ -390,7 +408,10 @@ impl Connection {
                     version_major: 0,
                     version_minor: 9,
                     server_properties: self.core.server_properties.clone(),
-                    mechanisms: Bytes::from_static(b"PLAIN AMQPLAIN"),
+                    mechanisms: Bytes::from_static(match self.identity {
+                        Identity::Tls(Some(_)) => b"PLAIN AMQPLAIN EXTERNAL",
+                        _ => b"PLAIN AMQPLAIN",
+                    }),
                     locales: Bytes::from_static(b"en_US"),
                 },
             )
@@ -409,12 +430,20 @@ impl Connection {
         self.outbox
             .set_cancel_notify(capability("consumer_cancel_notify"));
         self.blocked_notify = capability("connection.blocked");
-        match self
-            .core
-            .users
-            .authenticate(start_ok.mechanism.as_bytes(), &start_ok.response)
-            .await
-        {
+        let authenticated = match (&self.identity, start_ok.mechanism.as_bytes()) {
+            // SASL EXTERNAL: the verified certificate's common name, which
+            // must be a user (RabbitMQ's rabbitmq_auth_mechanism_ssl).
+            (Identity::Tls(Some(name)), b"EXTERNAL") => {
+                self.core.users.contains(name).then(|| name.clone())
+            }
+            (_, mechanism) => {
+                self.core
+                    .users
+                    .authenticate(mechanism, &start_ok.response)
+                    .await
+            }
+        };
+        match authenticated {
             Some(user) if !self.core.users.may_connect_from(&user, &self.peer) => {
                 tracing::warn!(peer = %self.peer, %user, "user may connect only via localhost (loopback_users)");
                 if !capability("authentication_failure_close") {
@@ -493,6 +522,20 @@ impl Connection {
                     .during_ids(10, 40),
             ));
         };
+        let permitted = vhost
+            .name
+            .as_str()
+            .is_some_and(|name| self.core.permissions.may_open(&self.user, name));
+        if !permitted {
+            tracing::warn!(peer = %self.peer, vhost = %vhost.name, user = %self.user, "no permission on the vhost");
+            return Err(Ended::Protocol(
+                AmqpError::not_allowed(format_args!(
+                    "access to vhost '{}' refused for user '{}'",
+                    vhost.name, self.user
+                ))
+                .during_ids(10, 40),
+            ));
+        }
         let vhost_limits = limits.vhost(&vhost.name);
         if let Err(limit) = self
             .slot

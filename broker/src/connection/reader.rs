@@ -74,6 +74,16 @@ impl Incoming for OwnedReadHalf {
     }
 }
 
+/// TLS connections. The read half of a split TLS stream cannot reach its
+/// socket to look for a hang-up without reading, so a TLS client that
+/// goes away while its connection is not being read (a blocked publisher)
+/// is found by the heartbeat instead.
+impl Incoming for tokio::io::ReadHalf<tokio_rustls::server::TlsStream<tokio::net::TcpStream>> {
+    fn hung_up(&self) -> impl Future<Output = ()> + Send + '_ {
+        std::future::pending()
+    }
+}
+
 /// In-process connections: the embedding application's own code.
 impl Incoming for tokio::io::ReadHalf<DuplexStream> {
     fn hung_up(&self) -> impl Future<Output = ()> + Send + '_ {

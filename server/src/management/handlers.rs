@@ -15,7 +15,8 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 use base64::Engine;
 use leveret_broker::{
-    BindingSpec, DestinationKind, ExchangeSettings, GetMode, QueueRef, QueueSettings,
+    BindingSpec, DestinationKind, ExchangeSettings, GetMode, Permission, QueueRef, QueueSettings,
+    TopicPermission,
 };
 use serde_json::{json, Value};
 use std::collections::HashMap;
@@ -228,17 +229,109 @@ pub async fn whoami(headers: HeaderMap) -> Json<Value> {
     Json(json!({ "name": user, "tags": [] }))
 }
 
-/// Leveret has no permissions: every user may configure, write and read
-/// everything in every vhost, which is what this reports.
+/// Every user's permissions.
 pub async fn permissions(State(c): Ctx) -> Json<Value> {
-    let vhosts = c.admin.vhosts();
-    let mut list = Vec::new();
-    for (user, _) in c.admin.users() {
-        for vhost in &vhosts {
-            list.push(json!({"user": user, "vhost": vhost, "configure": ".*", "write": ".*", "read": ".*"}));
+    Json(Value::Array(crate::definitions::permissions_json(&c.admin)))
+}
+
+fn require_user(c: &Context, user: &str) -> ApiResult<()> {
+    if c.admin.users().iter().any(|(name, _)| name == user) {
+        Ok(())
+    } else {
+        Err(ApiError::not_found(format!("no user '{user}'")))
+    }
+}
+
+/// One user's permission on one vhost.
+pub async fn permission(
+    State(c): Ctx,
+    Path((vhost, user)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    crate::definitions::permissions_json(&c.admin)
+        .into_iter()
+        .find(|p| p["vhost"] == vhost.as_str() && p["user"] == user.as_str())
+        .map(Json)
+        .ok_or_else(|| ApiError::not_found(format!("no permission of '{user}' on vhost '{vhost}'")))
+}
+
+/// RabbitMQ's `PUT /api/permissions/{vhost}/{user}` with `configure`,
+/// `write` and `read`; applies to the user's open channels from their
+/// next operation.
+pub async fn put_permission(
+    State(c): Ctx,
+    Path((vhost, user)): Path<(String, String)>,
+    body: Bytes,
+) -> ApiResult {
+    require_vhost(&c, &vhost)?;
+    require_user(&c, &user)?;
+    let body = body_object(&body)?;
+    let field = |key| json::text(&body, key, "").map(str::to_owned);
+    let permission = Permission {
+        configure: field("configure").map_err(ApiError::bad_request)?,
+        write: field("write").map_err(ApiError::bad_request)?,
+        read: field("read").map_err(ApiError::bad_request)?,
+    };
+    let existed = c
+        .admin
+        .permissions()
+        .iter()
+        .any(|(u, v, _)| *u == user && *v == vhost);
+    c.admin
+        .set_permission(&user, &vhost, permission)
+        .map_err(|e| ApiError::bad_request(e.to_string()))?;
+    Ok(created_or_not(!existed))
+}
+
+pub async fn delete_permission(
+    State(c): Ctx,
+    Path((vhost, user)): Path<(String, String)>,
+) -> ApiResult {
+    c.admin.clear_permission(&user, &vhost);
+    Ok(no_content())
+}
+
+/// RabbitMQ's `PUT /api/topic-permissions/{vhost}/{user}` with
+/// `exchange`, `write` and `read`.
+pub async fn put_topic_permission(
+    State(c): Ctx,
+    Path((vhost, user)): Path<(String, String)>,
+    body: Bytes,
+) -> ApiResult {
+    require_vhost(&c, &vhost)?;
+    require_user(&c, &user)?;
+    let body = body_object(&body)?;
+    let field = |key| json::text(&body, key, "").map(str::to_owned);
+    let exchange = field("exchange").map_err(ApiError::bad_request)?;
+    let permission = TopicPermission {
+        write: field("write").map_err(ApiError::bad_request)?,
+        read: field("read").map_err(ApiError::bad_request)?,
+    };
+    c.admin
+        .set_topic_permission(&user, &vhost, &exchange, permission)
+        .map_err(|e| ApiError::bad_request(e.to_string()))?;
+    Ok(no_content())
+}
+
+/// Removes the user's topic permissions on the vhost (on one exchange
+/// with `?exchange=`).
+pub async fn delete_topic_permission(
+    State(c): Ctx,
+    Path((vhost, user)): Path<(String, String)>,
+    Query(query): Query<HashMap<String, String>>,
+) -> ApiResult {
+    for (u, v, exchange, _) in c.admin.topic_permissions() {
+        if u == user && v == vhost && query.get("exchange").is_none_or(|e| *e == exchange) {
+            c.admin.clear_topic_permission(&user, &vhost, &exchange);
         }
     }
-    Json(Value::Array(list))
+    Ok(no_content())
+}
+
+/// Every user's topic permissions.
+pub async fn topic_permissions(State(c): Ctx) -> Json<Value> {
+    Json(Value::Array(crate::definitions::topic_permissions_json(
+        &c.admin,
+    )))
 }
 
 fn exchange_list(c: &Context, vhost: Option<&str>) -> Json<Value> {
@@ -723,7 +816,7 @@ pub async fn alarms(State(c): Ctx) -> Response {
 }
 
 pub async fn definitions(State(c): Ctx) -> Json<Value> {
-    Json(crate::definitions::export(&c.admin, &c.access))
+    Json(crate::definitions::export(&c.admin, &c.tags))
 }
 
 /// Imports a definitions document; answers what was applied and what was
@@ -735,7 +828,7 @@ pub async fn import_definitions(State(c): Ctx, body: Bytes) -> ApiResult<Json<Va
 pub async fn vhost_definitions(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
     Ok(Json(crate::definitions::export_vhost(
-        &c.admin, &c.access, &vhost,
+        &c.admin, &c.tags, &vhost,
     )))
 }
 
@@ -752,7 +845,7 @@ pub async fn import_vhost_definitions(
 async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json<Value>> {
     let mut definitions = Definitions::parse_into(body, vhost).map_err(ApiError::bad_request)?;
     let applied = definitions
-        .apply(&c.admin, &c.access)
+        .apply(&c.admin, &c.tags)
         .await
         .map_err(ApiError::bad_request)?;
     for warning in &definitions.warnings {

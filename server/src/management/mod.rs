@@ -18,12 +18,12 @@ mod handlers;
 pub mod json;
 mod rates;
 
-use crate::access::Access;
+use crate::tags::Tags;
 use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
-use axum::routing::{delete, get, post};
+use axum::routing::{delete, get, post, put};
 use axum::{Json, Router};
 use base64::Engine;
 use leveret_broker::{Admin, AmqpError};
@@ -41,8 +41,8 @@ pub const MAX_BODY: usize = 1024 * 1024;
 pub struct Context {
     /// The broker.
     pub admin: Admin,
-    /// Users' tags and permissions from imported definitions.
-    pub access: Access,
+    /// Users' tags from imported definitions.
+    pub tags: Tags,
     /// `leveret@HOST`.
     pub node: String,
     /// Where durable state lives (disk figures).
@@ -161,6 +161,17 @@ pub fn router(context: Context) -> Router {
         .route("/api/users", get(h::users))
         .route("/api/whoami", get(h::whoami))
         .route("/api/permissions", get(h::permissions))
+        .route(
+            "/api/permissions/{vhost}/{user}",
+            get(h::permission)
+                .put(h::put_permission)
+                .delete(h::delete_permission),
+        )
+        .route("/api/topic-permissions", get(h::topic_permissions))
+        .route(
+            "/api/topic-permissions/{vhost}/{user}",
+            put(h::put_topic_permission).delete(h::delete_topic_permission),
+        )
         .route("/api/exchanges", get(h::exchanges))
         .route("/api/exchanges/{vhost}", get(h::exchanges_in))
         .route(

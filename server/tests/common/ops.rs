@@ -16,6 +16,8 @@ pub struct OpsBroker {
     dir: PathBuf,
     /// The AMQP listener.
     pub amqp: SocketAddr,
+    /// The AMQP-over-TLS listener, when `--tls-listen` was given.
+    pub tls: Option<SocketAddr>,
     /// The Prometheus endpoint.
     pub metrics: SocketAddr,
     /// The management API.
@@ -76,6 +78,12 @@ impl OpsBroker {
             // Reads the log to its end, so the broker never blocks on a full pipe.
             for line in BufReader::new(stderr).lines().map_while(Result::ok) {
                 kept.lock().expect("log").push(plain(&line));
+                if plain(&line).contains("over TLS") {
+                    if let Some(addr) = address(&line, "accepting AMQP") {
+                        let _ = found.send(("TLS", addr));
+                    }
+                    continue;
+                }
                 for marker in [
                     "accepting AMQP",
                     "serving Prometheus metrics",
@@ -87,10 +95,13 @@ impl OpsBroker {
                 }
             }
         });
-        let (mut amqp, mut metrics, mut http) = (None, None, None);
-        while amqp.is_none() || metrics.is_none() || http.is_none() {
+        let (mut amqp, mut metrics, mut http, mut tls) = (None, None, None, None);
+        let wants_tls = extra.contains(&"--tls-listen");
+        while amqp.is_none() || metrics.is_none() || http.is_none() || (wants_tls && tls.is_none())
+        {
             match addresses.recv_timeout(Duration::from_secs(20)) {
                 Ok(("accepting AMQP", addr)) => amqp = Some(addr),
+                Ok(("TLS", addr)) => tls = Some(addr),
                 Ok(("serving Prometheus metrics", addr)) => metrics = Some(addr),
                 Ok((_, addr)) => http = Some(addr),
                 Err(_) => {
@@ -106,6 +117,7 @@ impl OpsBroker {
             child,
             dir,
             amqp: amqp.expect("seen"),
+            tls,
             metrics: metrics.expect("seen"),
             http: http.expect("seen"),
             log,
@@ -115,6 +127,28 @@ impl OpsBroker {
     /// The log lines so far, without colours.
     pub fn log(&self) -> Vec<String> {
         self.log.lock().expect("log").clone()
+    }
+
+    /// Sends a signal (`HUP`, `TERM`...) to the broker.
+    pub fn signal(&self, name: &str) {
+        let status = Command::new("kill")
+            .args(["-s", name, &self.child.id().to_string()])
+            .status()
+            .expect("kill");
+        assert!(status.success(), "kill -s {name}");
+    }
+
+    /// Waits (up to 10 s) for a log line containing `text`.
+    pub fn wait_for_log(&self, text: &str) {
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        while !self.log().iter().any(|line| line.contains(text)) {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "no log line with {text:?}:\n{}",
+                self.log().join("\n")
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
     }
 
     /// The AMQP URL of vhost `/` as guest.

@@ -1,0 +1,510 @@
+//! Who may do what: RabbitMQ's permissions. Each (user, vhost) pair may
+//! have a [`Permission`] (configure, write and read patterns over resource
+//! names) and, per topic exchange, a [`TopicPermission`] (write and read
+//! patterns over routing keys). A user without a permission on a vhost
+//! cannot open it.
+//!
+//! Matching is RabbitMQ's: a pattern matches when it matches anywhere in
+//! the name (anchor it with `^` and `$`), the empty pattern means `^$`,
+//! the default exchange is checked under the name `amq.default`, and a
+//! topic permission's `{username}` and `{vhost}` are replaced by the
+//! connection's (escaped, so a name's dots match only dots). A topic
+//! exchange without a topic permission for the user is open to them.
+//!
+//! Patterns are compiled with the `regex` crate, whose matching takes time
+//! linear in the name whatever the pattern (no backtracking), each
+//! compiled program capped at [`PATTERN_SIZE_LIMIT`] bytes. PCRE features
+//! it lacks (look-around, back-references) are refused when the pattern is
+//! set, never at a check.
+//!
+//! Channels hold a [`VhostAccess`] and re-read it only when
+//! [`Permissions::generation`] moves, so a check costs one atomic load and
+//! one match (none for `.*`), and a change applies to the next operation
+//! of every open channel. Uses `error` and nothing else of the broker.
+
+use crate::error::{AmqpError, AmqpResult};
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, RwLock};
+
+/// The largest compiled program a pattern may take, in bytes.
+pub const PATTERN_SIZE_LIMIT: usize = 1 << 20;
+
+/// A user's patterns on a vhost, as RabbitMQ's `set_permissions` takes
+/// them.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Permission {
+    /// Resources the user may declare and delete.
+    pub configure: String,
+    /// Resources the user may publish to and bind to.
+    pub write: String,
+    /// Resources the user may consume from, get from, purge and bind from.
+    pub read: String,
+}
+
+impl Permission {
+    /// `.*` for all three: everything in the vhost.
+    pub fn full() -> Self {
+        Permission {
+            configure: ".*".into(),
+            write: ".*".into(),
+            read: ".*".into(),
+        }
+    }
+}
+
+/// A user's routing-key patterns on one topic exchange of a vhost, as
+/// RabbitMQ's `set_topic_permissions` takes them.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TopicPermission {
+    /// Routing keys the user may publish with.
+    pub write: String,
+    /// Routing keys the user may bind with.
+    pub read: String,
+}
+
+/// A pattern that cannot be used.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("permission pattern '{pattern}': {reason}")]
+pub struct PatternError {
+    /// The pattern as given.
+    pub pattern: String,
+    /// Why it was refused.
+    pub reason: String,
+}
+
+/// The three rights of RabbitMQ's model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Right {
+    /// Declare, delete.
+    Configure,
+    /// Publish to, be bound to.
+    Write,
+    /// Consume, get, purge, be bound from.
+    Read,
+}
+
+/// What a right is checked on.
+#[derive(Debug, Clone, Copy)]
+pub enum Resource<'a> {
+    /// A queue, by name.
+    Queue(&'a str),
+    /// An exchange, by name (`""` is the default exchange).
+    Exchange(&'a str),
+}
+
+/// A compiled pattern.
+#[derive(Debug, Clone)]
+enum Matcher {
+    /// `.*`: every name.
+    Everything,
+    Regex(regex::Regex),
+}
+
+impl Matcher {
+    /// Compiles `pattern` with `{username}` and `{vhost}` replaced when
+    /// `variables` is given (topic permissions).
+    fn compile(pattern: &str, variables: Option<(&str, &str)>) -> Result<Matcher, PatternError> {
+        if pattern == ".*" {
+            return Ok(Matcher::Everything);
+        }
+        let source = match (pattern, variables) {
+            ("", _) => "^$".to_owned(),
+            (p, Some((user, vhost))) => p
+                .replace("{username}", &regex::escape(user))
+                .replace("{vhost}", &regex::escape(vhost)),
+            (p, None) => p.to_owned(),
+        };
+        regex::RegexBuilder::new(&source)
+            .size_limit(PATTERN_SIZE_LIMIT)
+            .build()
+            .map(Matcher::Regex)
+            .map_err(|e| PatternError {
+                pattern: pattern.to_owned(),
+                reason: e.to_string(),
+            })
+    }
+
+    fn matches(&self, name: &str) -> bool {
+        match self {
+            Matcher::Everything => true,
+            Matcher::Regex(regex) => regex.is_match(name),
+        }
+    }
+}
+
+/// Checks that `pattern` can be used as a permission pattern.
+pub fn check_pattern(pattern: &str) -> Result<(), PatternError> {
+    Matcher::compile(pattern, Some(("user", "vhost"))).map(drop)
+}
+
+#[derive(Debug, Clone)]
+struct CompiledTopic {
+    write: Matcher,
+    read: Matcher,
+}
+
+/// One user's rights in one vhost, compiled: what a channel checks.
+#[derive(Debug)]
+pub struct VhostAccess {
+    user: String,
+    vhost: String,
+    configure: Matcher,
+    write: Matcher,
+    read: Matcher,
+    topics: HashMap<String, CompiledTopic>,
+}
+
+impl VhostAccess {
+    /// Checks `right` on `resource`: 403 ACCESS_REFUSED with RabbitMQ's
+    /// text when refused.
+    pub fn check(&self, right: Right, resource: Resource<'_>) -> AmqpResult<()> {
+        let matcher = match right {
+            Right::Configure => &self.configure,
+            Right::Write => &self.write,
+            Right::Read => &self.read,
+        };
+        let (kind, name) = match resource {
+            Resource::Queue(name) => ("queue", name),
+            Resource::Exchange("") => ("exchange", "amq.default"),
+            Resource::Exchange(name) => ("exchange", name),
+        };
+        if matcher.matches(name) {
+            return Ok(());
+        }
+        Err(AmqpError::access_refused(format_args!(
+            "access to {kind} '{name}' in vhost '{}' refused for user '{}'",
+            self.vhost, self.user
+        )))
+    }
+
+    /// Checks a routing key against the user's topic permission on a topic
+    /// `exchange` (`Write` for publishing, `Read` for binding); an exchange
+    /// without one is open.
+    pub fn check_topic(&self, right: Right, exchange: &str, routing_key: &str) -> AmqpResult<()> {
+        let Some(topic) = self.topics.get(exchange) else {
+            return Ok(());
+        };
+        let allowed = match right {
+            Right::Write => topic.write.matches(routing_key),
+            Right::Read => topic.read.matches(routing_key),
+            Right::Configure => true,
+        };
+        if allowed {
+            return Ok(());
+        }
+        Err(AmqpError::access_refused(format_args!(
+            "access to topic '{routing_key}' in exchange '{exchange}' in vhost '{}' refused for user '{}'",
+            self.vhost, self.user
+        )))
+    }
+
+    /// Whether the user has a topic permission on any exchange (so
+    /// publishing must look at the exchange's type).
+    pub fn has_topic_permissions(&self) -> bool {
+        !self.topics.is_empty()
+    }
+}
+
+/// What is set for one (user, vhost).
+#[derive(Debug, Clone, Default)]
+struct Granted {
+    permission: Option<Permission>,
+    topics: BTreeMap<String, TopicPermission>,
+}
+
+#[derive(Debug, Default)]
+struct Table {
+    granted: BTreeMap<(String, String), Granted>,
+    compiled: HashMap<(String, String), Arc<VhostAccess>>,
+}
+
+impl Table {
+    /// Recompiles one (user, vhost) after a change; patterns were checked
+    /// when set, so this cannot fail.
+    fn recompile(&mut self, key: &(String, String)) {
+        let compiled = self.granted.get(key).and_then(|granted| {
+            let permission = granted.permission.as_ref()?;
+            let (user, vhost) = key;
+            let plain = |p: &str| Matcher::compile(p, None).ok();
+            let topical = |p: &str| Matcher::compile(p, Some((user, vhost))).ok();
+            let topics = granted
+                .topics
+                .iter()
+                .filter_map(|(exchange, t)| {
+                    Some((
+                        exchange.clone(),
+                        CompiledTopic {
+                            write: topical(&t.write)?,
+                            read: topical(&t.read)?,
+                        },
+                    ))
+                })
+                .collect();
+            Some(Arc::new(VhostAccess {
+                user: user.clone(),
+                vhost: vhost.clone(),
+                configure: plain(&permission.configure)?,
+                write: plain(&permission.write)?,
+                read: plain(&permission.read)?,
+                topics,
+            }))
+        });
+        match compiled {
+            Some(access) => self.compiled.insert(key.clone(), access),
+            None => self.compiled.remove(key),
+        };
+        if self
+            .granted
+            .get(key)
+            .is_some_and(|g| g.permission.is_none() && g.topics.is_empty())
+        {
+            self.granted.remove(key);
+        }
+    }
+}
+
+/// Every user's permissions, shared by the broker's channels and its
+/// administration.
+#[derive(Debug, Default)]
+pub struct Permissions {
+    table: RwLock<Table>,
+    generation: AtomicU64,
+}
+
+fn key(user: &str, vhost: &str) -> (String, String) {
+    (user.to_owned(), vhost.to_owned())
+}
+
+impl Permissions {
+    fn read(&self) -> std::sync::RwLockReadGuard<'_, Table> {
+        self.table.read().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn change(&self, key: (String, String), edit: impl FnOnce(&mut Granted)) {
+        let mut table = self.table.write().unwrap_or_else(|e| e.into_inner());
+        edit(table.granted.entry(key.clone()).or_default());
+        table.recompile(&key);
+        self.generation.fetch_add(1, Ordering::Release);
+    }
+
+    /// Sets `user`'s permission on `vhost` (RabbitMQ's `set_permissions`).
+    pub fn set(&self, user: &str, vhost: &str, permission: Permission) -> Result<(), PatternError> {
+        for pattern in [&permission.configure, &permission.write, &permission.read] {
+            Matcher::compile(pattern, None)?;
+        }
+        self.change(key(user, vhost), |g| g.permission = Some(permission));
+        Ok(())
+    }
+
+    /// Removes `user`'s permission on `vhost` (`clear_permissions`).
+    pub fn clear(&self, user: &str, vhost: &str) {
+        self.change(key(user, vhost), |g| g.permission = None);
+    }
+
+    /// Sets `user`'s topic permission on `exchange` in `vhost`
+    /// (`set_topic_permissions`).
+    pub fn set_topic(
+        &self,
+        user: &str,
+        vhost: &str,
+        exchange: &str,
+        permission: TopicPermission,
+    ) -> Result<(), PatternError> {
+        check_pattern(&permission.write)?;
+        check_pattern(&permission.read)?;
+        self.change(key(user, vhost), |g| {
+            g.topics.insert(exchange.to_owned(), permission);
+        });
+        Ok(())
+    }
+
+    /// Removes `user`'s topic permission on `exchange` in `vhost`
+    /// (`clear_topic_permissions`).
+    pub fn clear_topic(&self, user: &str, vhost: &str, exchange: &str) {
+        self.change(key(user, vhost), |g| {
+            g.topics.remove(exchange);
+        });
+    }
+
+    /// What `user` may do in `vhost`; `None` when they may not open it.
+    pub fn of(&self, user: &str, vhost: &str) -> Option<Arc<VhostAccess>> {
+        self.read().compiled.get(&key(user, vhost)).cloned()
+    }
+
+    /// Whether `user` may open `vhost` (has a permission there).
+    pub fn may_open(&self, user: &str, vhost: &str) -> bool {
+        self.read().compiled.contains_key(&key(user, vhost))
+    }
+
+    /// Moves on every change.
+    pub fn generation(&self) -> u64 {
+        self.generation.load(Ordering::Acquire)
+    }
+
+    /// Every (user, vhost, permission), ordered by user then vhost.
+    pub fn list(&self) -> Vec<(String, String, Permission)> {
+        self.read()
+            .granted
+            .iter()
+            .filter_map(|((user, vhost), g)| {
+                Some((user.clone(), vhost.clone(), g.permission.clone()?))
+            })
+            .collect()
+    }
+
+    /// Every (user, vhost, exchange, topic permission).
+    pub fn list_topics(&self) -> Vec<(String, String, String, TopicPermission)> {
+        self.read()
+            .granted
+            .iter()
+            .flat_map(|((user, vhost), g)| {
+                g.topics.iter().map(move |(exchange, t)| {
+                    (user.clone(), vhost.clone(), exchange.clone(), t.clone())
+                })
+            })
+            .collect()
+    }
+}
+
+/// A channel's view of its user's rights in its vhost, refreshed when the
+/// permissions change.
+#[derive(Debug)]
+pub struct AccessView {
+    permissions: Arc<Permissions>,
+    user: String,
+    vhost: String,
+    seen: u64,
+    current: Option<Arc<VhostAccess>>,
+}
+
+impl AccessView {
+    /// The view of `user` in `vhost`.
+    pub fn new(permissions: Arc<Permissions>, user: &str, vhost: &str) -> Self {
+        let seen = permissions.generation();
+        let current = permissions.of(user, vhost);
+        AccessView {
+            permissions,
+            user: user.to_owned(),
+            vhost: vhost.to_owned(),
+            seen,
+            current,
+        }
+    }
+
+    /// The user's current rights; a user whose permission was cleared
+    /// while connected is refused everything.
+    pub fn current(&mut self) -> AmqpResult<&VhostAccess> {
+        let now = self.permissions.generation();
+        if now != self.seen {
+            self.seen = now;
+            self.current = self.permissions.of(&self.user, &self.vhost);
+        }
+        self.current.as_deref().ok_or_else(|| {
+            AmqpError::access_refused(format_args!(
+                "access to vhost '{}' refused for user '{}'",
+                self.vhost, self.user
+            ))
+        })
+    }
+
+    /// Checks `right` on `resource` (see [`VhostAccess::check`]).
+    pub fn check(&mut self, right: Right, resource: Resource<'_>) -> AmqpResult<()> {
+        self.current()?.check(right, resource)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use leveret_protocol::ReplyCode;
+
+    fn permission(configure: &str, write: &str, read: &str) -> Permission {
+        Permission {
+            configure: configure.into(),
+            write: write.into(),
+            read: read.into(),
+        }
+    }
+
+    fn refused(result: AmqpResult<()>) -> String {
+        let error = result.expect_err("refused");
+        assert_eq!(error.code, ReplyCode::AccessRefused);
+        error.text
+    }
+
+    #[test]
+    fn patterns_match_anywhere_and_the_empty_one_matches_nothing() {
+        let all = Permissions::default();
+        all.set("u", "/", permission("pu", "", "^r\\.")).unwrap();
+        let access = all.of("u", "/").unwrap();
+        assert!(access
+            .check(Right::Configure, Resource::Queue("a.pu.b"))
+            .is_ok());
+        assert!(access.check(Right::Read, Resource::Queue("r.x")).is_ok());
+        assert!(access.check(Right::Read, Resource::Queue("x.r.x")).is_err());
+        assert!(access.check(Right::Write, Resource::Queue("x")).is_err());
+        assert_eq!(
+            refused(access.check(Right::Write, Resource::Exchange(""))),
+            "ACCESS_REFUSED - access to exchange 'amq.default' in vhost '/' refused for user 'u'"
+        );
+        assert!(all.of("u", "other").is_none());
+        assert!(all.of("v", "/").is_none());
+    }
+
+    #[test]
+    fn topic_permissions_expand_user_and_vhost_and_leave_other_exchanges_open() {
+        let all = Permissions::default();
+        all.set("r.1", "cell", Permission::full()).unwrap();
+        all.set_topic(
+            "r.1",
+            "cell",
+            "amq.topic",
+            TopicPermission {
+                write: "^{username}\\.{vhost}\\.".into(),
+                read: "".into(),
+            },
+        )
+        .unwrap();
+        let access = all.of("r.1", "cell").unwrap();
+        assert!(access
+            .check_topic(Right::Write, "amq.topic", "r.1.cell.x")
+            .is_ok());
+        // The user name's dot is a dot, not any character.
+        assert_eq!(
+            refused(access.check_topic(Right::Write, "amq.topic", "rx1.cell.x")),
+            "ACCESS_REFUSED - access to topic 'rx1.cell.x' in exchange 'amq.topic' in vhost 'cell' refused for user 'r.1'"
+        );
+        assert!(access.check_topic(Right::Read, "amq.topic", "a").is_err());
+        assert!(access.check_topic(Right::Read, "amq.topic", "").is_ok());
+        assert!(access.check_topic(Right::Write, "other", "any").is_ok());
+    }
+
+    #[test]
+    fn patterns_the_regex_engine_cannot_run_in_linear_time_are_refused_when_set() {
+        let all = Permissions::default();
+        for bad in ["(?=a)", "(a)\\1", "[", &format!("a{{{}}}", 1_000_000)] {
+            assert!(
+                all.set("u", "/", permission(bad, ".*", ".*")).is_err(),
+                "{bad}"
+            );
+        }
+        assert!(all.of("u", "/").is_none(), "nothing half set");
+    }
+
+    #[test]
+    fn a_view_follows_changes_and_a_cleared_user_is_refused() {
+        let all = Arc::new(Permissions::default());
+        all.set("u", "/", permission("", "", "")).unwrap();
+        let mut view = AccessView::new(Arc::clone(&all), "u", "/");
+        assert!(view.check(Right::Read, Resource::Queue("q")).is_err());
+        all.set("u", "/", Permission::full()).unwrap();
+        assert!(view.check(Right::Read, Resource::Queue("q")).is_ok());
+        all.clear("u", "/");
+        assert_eq!(
+            refused(view.check(Right::Read, Resource::Queue("q"))),
+            "ACCESS_REFUSED - access to vhost '/' refused for user 'u'"
+        );
+        assert!(all.list().is_empty());
+    }
+}
