@@ -16,113 +16,9 @@ given --url, and the suite is then skipped) and returns
 import json
 import os
 import re
-import shutil
-import socket
 import subprocess
-import tempfile
-import time
 
-RABBIT_BIN = "/usr/lib/rabbitmq/bin"
-
-
-class SetupError(Exception):
-    pass
-
-
-def free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_port(port, timeout):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=1).close()
-            return True
-        except OSError:
-            time.sleep(0.2)
-    return False
-
-
-class RabbitNode:
-    """A RabbitMQ node with its own directories, ports and Erlang cookie."""
-
-    def __init__(self):
-        self.dir = tempfile.mkdtemp(prefix="leveret-perm-rabbitmq-")
-        self.port = free_port()
-        self.node = f"leveret-perm-{os.getpid()}@localhost"
-        self.env = dict(os.environ, HOME=self.dir, RABBITMQ_NODENAME=self.node,
-                        RABBITMQ_MNESIA_BASE=os.path.join(self.dir, "mnesia"),
-                        RABBITMQ_LOG_BASE=os.path.join(self.dir, "log"),
-                        RABBITMQ_ENABLED_PLUGINS_FILE=os.path.join(self.dir, "enabled_plugins"),
-                        RABBITMQ_CONFIG_FILE=os.path.join(self.dir, "rabbitmq"),
-                        RABBITMQ_PID_FILE=os.path.join(self.dir, "pid"),
-                        RABBITMQ_DIST_PORT=str(free_port()))
-        with open(os.path.join(self.dir, "enabled_plugins"), "w") as f:
-            f.write("[].\n")
-        with open(os.path.join(self.dir, "rabbitmq.conf"), "w") as f:
-            f.write(f"listeners.tcp.1 = 127.0.0.1:{self.port}\nloopback_users = none\n")
-        self.proc = subprocess.Popen([os.path.join(RABBIT_BIN, "rabbitmq-server")], env=self.env,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                     start_new_session=True)
-
-    def ctl(self, *args, timeout=120):
-        return subprocess.run([os.path.join(RABBIT_BIN, "rabbitmqctl"), "-n", self.node, *args],
-                              env=self.env, text=True, capture_output=True, timeout=timeout)
-
-    def await_startup(self):
-        deadline = time.monotonic() + 120
-        while True:
-            r = self.ctl("await_startup", "--timeout", "30")
-            if r.returncode == 0:
-                return
-            if time.monotonic() > deadline or self.proc.poll() is not None:
-                raise SetupError(f"the RabbitMQ node did not start: {r.stdout}{r.stderr}")
-            time.sleep(0.5)
-
-    def load(self, definitions):
-        r = self.ctl("import_definitions", definitions)
-        if r.returncode != 0:
-            raise SetupError(f"rabbitmqctl import_definitions: {r.stdout}{r.stderr}")
-        # The import runs asynchronously: wait for its last item.
-        deadline = time.monotonic() + 60
-        while "amq.topic" not in self.ctl("list_topic_permissions", "-p", "/").stdout:
-            if time.monotonic() > deadline:
-                raise SetupError("RabbitMQ never finished importing the definitions")
-            time.sleep(0.2)
-
-    def stop(self):
-        self.ctl("stop", timeout=60)
-        try:
-            self.proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            os.killpg(self.proc.pid, 9)
-        shutil.rmtree(self.dir, ignore_errors=True)
-
-
-class LeveretNode:
-    def __init__(self, binary, definitions):
-        self.dir = tempfile.mkdtemp(prefix="leveret-perm-")
-        self.port = free_port()
-        self.log = open(os.path.join(self.dir, "leveret.log"), "w")
-        self.proc = subprocess.Popen(
-            [binary, "--listen", f"127.0.0.1:{self.port}", "--data-dir", os.path.join(self.dir, "data"),
-             "--metrics-listen", "127.0.0.1:0", "--http-listen", "127.0.0.1:0", "--definitions", definitions],
-            stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
-        if not wait_port(self.port, 30):
-            self.stop()
-            raise SetupError("leveret did not start with the permissions definitions")
-
-    def stop(self):
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-        shutil.rmtree(self.dir, ignore_errors=True)
+from nodes import LeveretNode, RabbitNode, SetupError
 
 
 def outcomes(cmd, url, table):
@@ -140,8 +36,6 @@ def outcomes(cmd, url, table):
 def run(ctx):
     if not ctx.leveret:
         return [("permissions", "skip", "needs a leveret of its own with the suite's definitions (not --url)")]
-    if not os.path.exists(os.path.join(RABBIT_BIN, "rabbitmq-server")):
-        raise SetupError("Debian's rabbitmq-server is not installed (apt-get install rabbitmq-server; .ci/run does)")
     ctx.ensure_python()
     ctx.ensure_node()
     here = os.path.join(ctx.here, "permissions")
@@ -154,9 +48,9 @@ def run(ctx):
     rabbit = RabbitNode()
     leveret = None
     try:
-        rabbit.await_startup()
-        rabbit.load(definitions)
-        leveret = LeveretNode(ctx.leveret, definitions)
+        # The import is asynchronous: its last item is the topic permission.
+        rabbit.load(definitions, lambda node: "amq.topic" in node.ctl("list_topic_permissions", "-p", "/").stdout)
+        leveret = LeveretNode(ctx.leveret, ["--definitions", definitions])
         results = []
         for lib, cmd in drivers.items():
             reference = outcomes(cmd, f"amqp://127.0.0.1:{rabbit.port}", table)

@@ -46,7 +46,8 @@ pub enum Identity {
     /// Plain TCP, or in-process.
     None,
     /// TLS, with the common name of the verified client certificate if the
-    /// client gave one: SASL EXTERNAL is offered and logs in as it.
+    /// client gave one: SASL EXTERNAL logs in as it (and is refused
+    /// without one).
     Tls(Option<String>),
 }
 
@@ -408,9 +409,12 @@ impl Connection {
                     version_major: 0,
                     version_minor: 9,
                     server_properties: self.core.server_properties.clone(),
+                    // EXTERNAL on every TLS connection, as RabbitMQ with
+                    // rabbitmq_auth_mechanism_ssl: without a certificate
+                    // the login is refused, not the mechanism.
                     mechanisms: Bytes::from_static(match self.identity {
-                        Identity::Tls(Some(_)) => b"PLAIN AMQPLAIN EXTERNAL",
-                        _ => b"PLAIN AMQPLAIN",
+                        Identity::Tls(_) => b"PLAIN AMQPLAIN EXTERNAL",
+                        Identity::None => b"PLAIN AMQPLAIN",
                     }),
                     locales: Bytes::from_static(b"en_US"),
                 },
