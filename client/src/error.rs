@@ -79,6 +79,10 @@ pub enum Error {
     /// This client closed the channel or connection.
     #[error("closed by the client")]
     Closed,
+    /// TLS could not be set up: a certificate or key file that cannot be
+    /// read, or a server name that is not one.
+    #[error("TLS: {0}")]
+    Tls(String),
     /// Every channel number up to `channel_max` is in use.
     #[error("no free channel number (channel_max {0})")]
     ChannelsExhausted(u16),

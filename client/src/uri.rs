@@ -1,7 +1,15 @@
-//! Connection settings and their `amqp://` URI form, parsed as RabbitMQ's
-//! URI specification describes: `amqp://user:pass@host:port/vhost?query`,
-//! with percent-decoding of the user, password, host, vhost and query
-//! values (`%2f` is `/`).
+//! Connection settings and their `amqp://` and `amqps://` URI forms,
+//! parsed as RabbitMQ's URI specification describes:
+//! `amqp://user:pass@host:port/vhost?query`, with percent-decoding of the
+//! user, password, host, vhost and query values (`%2f` is `/`).
+//!
+//! `amqps://` is TLS (port 5671 by default), with RabbitMQ's TLS query
+//! parameters `cacertfile` (PEM; the system's CA certificates without it),
+//! `certfile` and `keyfile` (a client certificate, PEM) and
+//! `server_name_indication`; `auth_mechanism=external` logs in with SASL
+//! EXTERNAL (the client certificate's identity) instead of PLAIN.
+//! `verify=verify_none` is refused: this client always checks the
+//! broker's certificate.
 //!
 //! Defaults: user `guest`, password `guest`, host `localhost`, port 5672,
 //! vhost `/` when the path is empty (`amqp://host` and `amqp://host/` both
@@ -25,8 +33,34 @@ use fluent_uri::component::Host;
 use fluent_uri::pct_enc::{EStr, Encoder};
 use fluent_uri::Uri;
 use std::borrow::Cow;
+use std::path::PathBuf;
 use std::str::FromStr;
 use std::time::Duration;
+
+/// How the client proves who it is.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum AuthMechanism {
+    /// SASL PLAIN with `username` and `password`.
+    #[default]
+    Plain,
+    /// SASL EXTERNAL: the identity the transport established (a TLS client
+    /// certificate's common name, for RabbitMQ and Leveret).
+    External,
+}
+
+/// TLS settings of an `amqps://` connection.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct TlsSettings {
+    /// CA certificates (PEM) the broker's certificate must chain to;
+    /// `None` trusts the operating system's.
+    pub cacertfile: Option<PathBuf>,
+    /// A client certificate chain (PEM, leaf first), for mutual TLS.
+    pub certfile: Option<PathBuf>,
+    /// Its private key (PEM).
+    pub keyfile: Option<PathBuf>,
+    /// The name the broker's certificate must be for; the host by default.
+    pub server_name: Option<String>,
+}
 
 /// Everything needed to open a connection. Its `Debug` output hides the
 /// password.
@@ -52,6 +86,10 @@ pub struct ConnectionOptions {
     pub connection_timeout: Duration,
     /// Shown by the broker's management tools (client property `connection_name`).
     pub connection_name: Option<String>,
+    /// TLS (`amqps://`); `None` is plain TCP.
+    pub tls: Option<TlsSettings>,
+    /// PLAIN or EXTERNAL.
+    pub auth_mechanism: AuthMechanism,
 }
 
 impl std::fmt::Debug for ConnectionOptions {
@@ -67,6 +105,8 @@ impl std::fmt::Debug for ConnectionOptions {
             .field("channel_max", &self.channel_max)
             .field("connection_timeout", &self.connection_timeout)
             .field("connection_name", &self.connection_name)
+            .field("tls", &self.tls)
+            .field("auth_mechanism", &self.auth_mechanism)
             .finish()
     }
 }
@@ -84,21 +124,24 @@ impl Default for ConnectionOptions {
             channel_max: 2047,
             connection_timeout: Duration::from_secs(60),
             connection_name: None,
+            tls: None,
+            auth_mechanism: AuthMechanism::Plain,
         }
     }
 }
 
 impl ConnectionOptions {
-    /// Parses an `amqp://` URI.
+    /// Parses an `amqp://` or `amqps://` URI.
     pub fn from_uri(uri: &str) -> Result<Self> {
         let bad = |why: &str| Error::InvalidUri(format!("{why}: {uri:?}"));
         let parsed = Uri::parse(uri).map_err(|e| bad(&e.to_string()))?;
         let scheme = parsed.scheme().as_str();
-        if scheme.eq_ignore_ascii_case("amqps") {
-            return Err(bad("amqps (TLS) is not supported"));
+        let tls = scheme.eq_ignore_ascii_case("amqps");
+        if !tls && !scheme.eq_ignore_ascii_case("amqp") {
+            return Err(bad("scheme must be amqp or amqps"));
         }
-        if !scheme.eq_ignore_ascii_case("amqp") {
-            return Err(bad("scheme must be amqp"));
+        if tls && !cfg!(feature = "tls") {
+            return Err(bad("amqps needs leveret-client's `tls` feature"));
         }
         let authority = parsed
             .authority()
@@ -110,6 +153,10 @@ impl ConnectionOptions {
             value.ok_or_else(|| bad(&format!("the {part} is not UTF-8")))
         };
         let mut options = ConnectionOptions::default();
+        if tls {
+            options.port = 5671;
+            options.tls = Some(TlsSettings::default());
+        }
         if let Some(userinfo) = authority.userinfo() {
             let (user, password) = match userinfo.split_once(':') {
                 Some((user, password)) => (user, Some(password)),
@@ -178,6 +225,26 @@ impl ConnectionOptions {
                     options.connection_timeout = Duration::from_millis(number()?);
                 }
                 "connection_name" => options.connection_name = Some(value),
+                "auth_mechanism" => {
+                    options.auth_mechanism = match value.to_ascii_lowercase().as_str() {
+                        "plain" => AuthMechanism::Plain,
+                        "external" => AuthMechanism::External,
+                        _ => return Err(bad(&format!("unknown auth_mechanism {value:?}"))),
+                    }
+                }
+                "cacertfile" | "certfile" | "keyfile" | "server_name_indication" | "verify" => {
+                    let Some(settings) = options.tls.as_mut() else {
+                        return Err(bad(&format!("{key} needs an amqps:// URI")));
+                    };
+                    match key {
+                        "cacertfile" => settings.cacertfile = Some(value.into()),
+                        "certfile" => settings.certfile = Some(value.into()),
+                        "keyfile" => settings.keyfile = Some(value.into()),
+                        "server_name_indication" => settings.server_name = Some(value),
+                        _ if value == "verify_peer" => {}
+                        _ => return Err(bad("the broker's certificate is always verified")),
+                    }
+                }
                 _ => {}
             }
         }

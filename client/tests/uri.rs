@@ -1,6 +1,7 @@
 //! URI parsing, as RabbitMQ's URI specification describes (with empty
 //! vhost paths meaning `/`).
 
+use leveret_client::uri::{AuthMechanism, TlsSettings};
 use leveret_client::{ConnectionOptions, Error};
 use std::time::Duration;
 
@@ -134,6 +135,28 @@ fn query_values_are_percent_decoded() {
 }
 
 #[test]
+fn amqps_takes_rabbitmqs_tls_parameters() {
+    let o = parse("amqps://robot@cell-3.local/%2f?cacertfile=%2Fetc%2Fca.pem&certfile=/c.pem&keyfile=/k.pem&server_name_indication=broker&auth_mechanism=external&verify=verify_peer");
+    assert_eq!(o.port, 5671);
+    assert_eq!(o.auth_mechanism, AuthMechanism::External);
+    assert_eq!(
+        o.tls,
+        Some(TlsSettings {
+            cacertfile: Some("/etc/ca.pem".into()),
+            certfile: Some("/c.pem".into()),
+            keyfile: Some("/k.pem".into()),
+            server_name: Some("broker".into()),
+        })
+    );
+    let system = parse("AMQPS://host:7000");
+    assert_eq!(
+        (system.port, system.tls),
+        (7000, Some(TlsSettings::default()))
+    );
+    assert_eq!(parse("amqp://host").tls, None);
+}
+
+#[test]
 fn scheme_is_case_insensitive() {
     assert_eq!(parse("AMQP://host").host, "host");
 }
@@ -142,7 +165,9 @@ fn scheme_is_case_insensitive() {
 fn invalid_uris() {
     rejects("http://host");
     rejects("host:5672");
-    rejects("amqps://host");
+    rejects("amqp://host?cacertfile=/ca.pem");
+    rejects("amqps://host?verify=verify_none");
+    rejects("amqps://host?auth_mechanism=kerberos");
     rejects("amqp://host:notaport");
     rejects("amqp://host:70000");
     rejects("amqp://host/a/b");

@@ -14,7 +14,7 @@ pub(crate) mod writer;
 
 use crate::channel::{Channel, ChannelShared};
 use crate::error::{CloseReason, Error, Result};
-use crate::uri::ConnectionOptions;
+use crate::uri::{AuthMechanism, ConnectionOptions};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{
     decode_frame, encode_method, ConnectionClose, ConnectionCloseOk, ConnectionOpen,
@@ -248,7 +248,16 @@ impl Connection {
     pub async fn connect_with(options: ConnectionOptions) -> Result<Connection> {
         let connect = async {
             let stream = transport::tcp(&options).await?;
-            establish(stream, &options).await
+            match &options.tls {
+                #[cfg(feature = "tls")]
+                Some(settings) => {
+                    let stream = transport::tls(stream, &options.host, settings).await?;
+                    establish(stream, &options).await
+                }
+                #[cfg(not(feature = "tls"))]
+                Some(_) => Err(Error::Tls("built without the `tls` feature".into())),
+                None => establish(stream, &options).await,
+            }
         };
         match tokio::time::timeout(options.connection_timeout, connect).await {
             Ok(result) => result,
@@ -482,24 +491,31 @@ async fn establish<S: Transport>(stream: S, options: &ConnectionOptions) -> Resu
         Method::ConnectionStart(start) => start,
         other => return Err(Handshake::<S>::unexpected(&other, "connection.start")),
     };
+    let mechanism = match options.auth_mechanism {
+        AuthMechanism::Plain => "PLAIN",
+        AuthMechanism::External => "EXTERNAL",
+    };
     if !start
         .mechanisms
         .split(|b| *b == b' ')
-        .any(|m| m == b"PLAIN")
+        .any(|m| m == mechanism.as_bytes())
     {
         return Err(Error::Protocol(format!(
-            "the broker offers no PLAIN authentication (mechanisms: {})",
+            "the broker does not offer {mechanism} authentication (mechanisms: {})",
             String::from_utf8_lossy(&start.mechanisms)
         )));
     }
-    let mut response = Vec::with_capacity(options.username.len() + options.password.len() + 2);
-    response.push(0);
-    response.extend_from_slice(options.username.as_bytes());
-    response.push(0);
-    response.extend_from_slice(options.password.as_bytes());
+    // EXTERNAL's response is empty: the identity is the transport's.
+    let mut response = Vec::new();
+    if options.auth_mechanism == AuthMechanism::Plain {
+        response.push(0);
+        response.extend_from_slice(options.username.as_bytes());
+        response.push(0);
+        response.extend_from_slice(options.password.as_bytes());
+    }
     hs.queue(ConnectionStartOk {
         client_properties: client_properties(options),
-        mechanism: ShortStr::from_static("PLAIN"),
+        mechanism: ShortStr::from_static(mechanism),
         response: Bytes::from(response),
         locale: ShortStr::from_static("en_US"),
     });
