@@ -506,3 +506,131 @@ async fn a_disk_alarm_shows_in_the_health_check_nodes_and_metrics() {
         "{metrics}"
     );
 }
+
+/// Permissions through the management API with rabbitmqadmin 3.10:
+/// `declare permission` grants, the broker enforces it on the user's AMQP
+/// operations, `list permissions` shows it and `delete permission` takes
+/// it back; topic permissions through RabbitMQ's HTTP API.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rabbitmqadmin_sets_permissions_the_broker_enforces() {
+    if !tool_available("rabbitmqadmin", "rabbitmq-server") {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("leveret-perm-config-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let config = dir.join("leveret.toml");
+    std::fs::write(
+        &config,
+        "[[users]]\nname = \"guest\"\npassword = \"guest\"\n\
+         [[users.permissions]]\nvhost = \"/\"\nconfigure = \".*\"\nwrite = \".*\"\nread = \".*\"\n\n\
+         [[users]]\nname = \"robot\"\npassword = \"pw\"\n",
+    )
+    .expect("config");
+    let broker = OpsBroker::start("permissions", &["--config", config.to_str().unwrap()]);
+    let robot_url = format!("amqp://robot:pw@{}/%2f", broker.amqp);
+    let connect = || Connection::connect(&robot_url, ConnectionProperties::default());
+    assert!(connect().await.is_err(), "no permission on / yet");
+
+    rabbitmqadmin(
+        &broker,
+        &[
+            "declare",
+            "permission",
+            "vhost=/",
+            "user=robot",
+            "configure=^robot\\.",
+            "write=.*",
+            "read=.*",
+        ],
+    )
+    .expect("installed");
+    let listed = admin_json(&broker, &["list", "permissions"]);
+    assert!(
+        listed
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|p| p["user"] == "robot" && p["configure"] == "^robot\\."),
+        "{listed}"
+    );
+    let conn = connect().await.expect("granted");
+    let channel = conn.create_channel().await.expect("channel");
+    channel
+        .queue_declare(
+            "robot.q",
+            QueueDeclareOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("inside configure");
+    let refused = channel
+        .queue_declare(
+            "other",
+            QueueDeclareOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect_err("outside configure");
+    assert!(
+        refused.to_string().contains(
+            "ACCESS_REFUSED - access to queue 'other' in vhost '/' refused for user 'robot'"
+        ),
+        "{refused}"
+    );
+    // rabbitmqadmin 3.10 has no topic permissions: RabbitMQ's HTTP API.
+    let guest = basic("guest", "guest");
+    let put = request(
+        broker.http,
+        "PUT",
+        "/api/topic-permissions/%2F/robot",
+        &[
+            ("Authorization", &guest),
+            ("Content-Type", "application/json"),
+        ],
+        br#"{"exchange": "amq.topic", "write": "^robot\\.", "read": ".*"}"#,
+    )
+    .await;
+    assert_eq!(put.status, 204, "{}", put.text());
+    let topics = request(
+        broker.http,
+        "GET",
+        "/api/topic-permissions",
+        &[("Authorization", &guest)],
+        b"",
+    )
+    .await;
+    let topics: Value = serde_json::from_slice(&topics.body).expect("JSON");
+    assert_eq!(topics[0]["exchange"], "amq.topic", "{topics}");
+    assert_eq!(topics[0]["write"], "^robot\\.", "{topics}");
+    // A topic exchange's routing keys are now checked.
+    let topic = conn.create_channel().await.expect("channel");
+    topic
+        .basic_publish(
+            "amq.topic",
+            "other.key",
+            Default::default(),
+            b"x",
+            Default::default(),
+        )
+        .await
+        .expect("sent");
+    let closed = topic
+        .queue_declare(
+            "robot.q",
+            QueueDeclareOptions {
+                passive: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await
+        .expect_err("the publish closed the channel");
+    assert!(
+        closed.to_string().contains("access to topic 'other.key'"),
+        "{closed}"
+    );
+
+    rabbitmqadmin(&broker, &["delete", "permission", "vhost=/", "user=robot"]).expect("installed");
+    assert!(connect().await.is_err(), "cleared");
+    let _ = std::fs::remove_dir_all(&dir);
+}
