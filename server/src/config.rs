@@ -151,6 +151,10 @@ struct UserConfig {
     max_connections: Option<usize>,
     /// The user limit `max-channels` (across all their connections).
     max_channels: Option<usize>,
+    /// RabbitMQ's user tags (`administrator`, `monitoring`, `management`,
+    /// `policymaker`): what the user may do in the management API.
+    #[serde(default)]
+    tags: Vec<String>,
     /// `[[users.permissions]]`: RabbitMQ's `set_permissions`, one per vhost.
     #[serde(default)]
     permissions: Vec<PermissionConfig>,
@@ -222,6 +226,8 @@ pub struct Settings {
     pub log: String,
     /// Users; empty means the library's `guest`/`guest`.
     pub users: Vec<(String, Credential)>,
+    /// Each configured user's tags.
+    pub tags: std::collections::BTreeMap<String, Vec<String>>,
     /// (user, vhost, permission) for the users above.
     pub permissions: Vec<(String, String, Permission)>,
     /// (user, vhost, exchange, topic permission) for the users above.
@@ -367,6 +373,11 @@ impl Settings {
                 })
                 .collect(),
         };
+        let tags = file
+            .users
+            .iter()
+            .map(|user| (user.name.clone(), user.tags.clone()))
+            .collect();
         let mut permissions = Vec::new();
         let mut topic_permissions = Vec::new();
         for user in &file.users {
@@ -435,6 +446,7 @@ impl Settings {
                 .unwrap_or_else(|| PathBuf::from(DEFAULT_DATA_DIR)),
             log: cli.log.or(file.log).unwrap_or_else(|| DEFAULT_LOG.into()),
             users,
+            tags,
             permissions,
             topic_permissions,
             vhosts: file.vhosts,

@@ -6,9 +6,8 @@
 //! hashes, which are Leveret's own scheme; at start only, as users are
 //! fixed once the broker runs), exchanges, queues (with arguments) and
 //! bindings, permissions and topic permissions (enforced by the broker;
-//! a pattern its regex engine cannot run refuses the file). Users' tags
-//! are kept (`tags`) and exported as imported, but not acted on: each
-//! import says so.
+//! a pattern its regex engine cannot run refuses the file), and users'
+//! tags (`tags`: what they may do in the management API).
 //! Everything else is reported, never dropped silently: policies,
 //! parameters, global parameters, unknown keys, other password hashing
 //! algorithms, and queue types Leveret does not have (an `x-queue-type`
@@ -50,7 +49,7 @@ pub struct Definitions {
     pub permissions: Vec<(String, String, Permission)>,
     /// (user, vhost, exchange, topic permission).
     pub topic_permissions: Vec<(String, String, String, TopicPermission)>,
-    /// Users' tags, recorded but not acted on.
+    /// Users' tags (what they may do in the management API).
     pub tags: BTreeMap<String, Vec<String>>,
     /// Everything not applied, one line each.
     pub warnings: Vec<String>,
@@ -256,9 +255,6 @@ impl Definitions {
             );
             let tags = user_tags(item.get("tags"));
             if !tags.is_empty() {
-                d.warnings.push(format!(
-                    "{what}: tags {tags:?} recorded but not acted on: the management API lets every user do everything"
-                ));
                 d.tags.insert(user.clone(), tags);
             }
             let algorithm = text(item, "hashing_algorithm", RABBIT_SHA256)?;
@@ -694,7 +690,6 @@ mod tests {
         for expected in [
             "unknown key 'shovels'",
             "hashing algorithm rabbit_password_hashing_md5",
-            "tags [\"administrator\"] recorded but not acted on",
             "key 'limits'",
             "queue type 'quorum'",
         ] {

@@ -90,6 +90,8 @@ fn runtime(worker_threads: usize) -> std::io::Result<tokio::runtime::Runtime> {
 async fn serve(settings: Settings) -> ExitCode {
     logging::init(&settings.log);
     let ops_settings = settings.ops();
+    let tags = tags::Tags::default();
+    tags.record(&settings.tags);
     let mut definitions = match &settings.definitions {
         None => None,
         Some(path) => {
@@ -105,6 +107,12 @@ async fn serve(settings: Settings) -> ExitCode {
             }
         }
     };
+    // RabbitMQ's default user, guest, is an administrator.
+    let default_guest =
+        settings.users.is_empty() && definitions.as_ref().is_none_or(|d| d.users.is_empty());
+    if default_guest {
+        tags.record(&[("guest".to_owned(), vec!["administrator".to_owned()])].into());
+    }
     let mut builder = settings.builder();
     if let Some(definitions) = &definitions {
         builder = definitions.configure(builder);
@@ -116,7 +124,6 @@ async fn serve(settings: Settings) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let tags = tags::Tags::default();
     if let Some(definitions) = &mut definitions {
         match definitions.apply(&handle.admin(), &tags).await {
             Ok(applied) => tracing::info!(?applied, "definitions loaded"),

@@ -1,11 +1,10 @@
-//! Users' tags (`administrator`, `monitoring`, ...) as RabbitMQ's
-//! definitions state them: kept so that an export gives back what was
-//! imported. Leveret does not act on tags yet (the management listener
-//! lets every user who logs in do everything; permissions, which the
-//! broker enforces, govern AMQP only); an import says so in its warnings.
+//! Users' tags (`administrator`, `monitoring`, `management`,
+//! `policymaker`) as RabbitMQ has them: from the config file, definitions
+//! and the default guest (`administrator`). The management API decides
+//! from them what a caller may see and do (`management::caller`); an
+//! export writes them back.
 //!
-//! Uses nothing of the broker; the management listener and the
-//! definitions export read it.
+//! Uses nothing of the broker.
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};

@@ -111,7 +111,6 @@ async fn a_rabbitmq_export_loads_at_start_and_what_cannot_apply_is_logged() {
     let log = broker.log().join("\n");
     for expected in [
         "1 global_parameters not imported",
-        "tags [\"monitoring\"] recorded but not acted on",
         "queue type 'quorum' is not supported",
     ] {
         assert!(log.contains(expected), "log says {expected}:\n{log}");

@@ -197,3 +197,38 @@ fn exit_statuses_say_what_went_wrong() {
         .expect("run leveretctl");
     assert_eq!(unreachable.status.code(), Some(69));
 }
+
+/// list_users, set_permissions, list_permissions and clear_permissions,
+/// in rabbitmqctl's words, and the broker enforcing what they set.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn permissions_are_set_listed_and_cleared() {
+    let broker = OpsBroker::start("ctl-permissions", &[]);
+    assert_eq!(
+        lines(&broker, &["-q", "list_users"]),
+        ["user\ttags", "guest\t[\"administrator\"]"]
+    );
+    lines(
+        &broker,
+        &["set_permissions", "guest", "^guest\\.", ".*", ".*"],
+    );
+    assert_eq!(
+        lines(&broker, &["-q", "--no-table-headers", "list_permissions"]),
+        ["guest\t^guest\\.\t.*\t.*"]
+    );
+    let conn = lapin::Connection::connect(&broker.amqp_url(), Default::default())
+        .await
+        .expect("guest still opens /");
+    let channel = conn.create_channel().await.expect("channel");
+    let refused = channel
+        .queue_declare("other", Default::default(), Default::default())
+        .await
+        .expect_err("outside ^guest\\.");
+    assert!(refused.to_string().contains("ACCESS_REFUSED"), "{refused}");
+    lines(&broker, &["clear_permissions", "guest"]);
+    assert!(lines(&broker, &["-q", "--no-table-headers", "list_permissions"]).is_empty());
+    assert!(
+        lapin::Connection::connect(&broker.amqp_url(), Default::default())
+            .await
+            .is_err()
+    );
+}

@@ -521,7 +521,7 @@ async fn rabbitmqadmin_sets_permissions_the_broker_enforces() {
     let config = dir.join("leveret.toml");
     std::fs::write(
         &config,
-        "[[users]]\nname = \"guest\"\npassword = \"guest\"\n\
+        "[[users]]\nname = \"guest\"\npassword = \"guest\"\ntags = [\"administrator\"]\n\
          [[users.permissions]]\nvhost = \"/\"\nconfigure = \".*\"\nwrite = \".*\"\nread = \".*\"\n\n\
          [[users]]\nname = \"robot\"\npassword = \"pw\"\n",
     )
@@ -604,6 +604,10 @@ async fn rabbitmqadmin_sets_permissions_the_broker_enforces() {
     assert_eq!(topics[0]["write"], "^robot\\.", "{topics}");
     // A topic exchange's routing keys are now checked.
     let topic = conn.create_channel().await.expect("channel");
+    let (closed_tx, closed_rx) = std::sync::mpsc::channel();
+    topic.on_error(move |error| {
+        let _ = closed_tx.send(error.to_string());
+    });
     topic
         .basic_publish(
             "amq.topic",
@@ -614,23 +618,137 @@ async fn rabbitmqadmin_sets_permissions_the_broker_enforces() {
         )
         .await
         .expect("sent");
-    let closed = topic
-        .queue_declare(
-            "robot.q",
-            QueueDeclareOptions {
-                passive: true,
-                ..Default::default()
-            },
-            FieldTable::default(),
-        )
-        .await
-        .expect_err("the publish closed the channel");
-    assert!(
-        closed.to_string().contains("access to topic 'other.key'"),
-        "{closed}"
-    );
+    let closed =
+        tokio::task::spawn_blocking(move || closed_rx.recv_timeout(Duration::from_secs(10)))
+            .await
+            .unwrap()
+            .expect("the publish closed the channel");
+    assert!(closed.contains("access to topic 'other.key'"), "{closed}");
 
     rabbitmqadmin(&broker, &["delete", "permission", "vhost=/", "user=robot"]).expect("installed");
     assert!(connect().await.is_err(), "cleared");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// RabbitMQ's user tags decide what a caller of the management API may see
+/// and do: no management tag, no login; `management` sees only the vhosts
+/// it has a permission on and cannot reach the administrator's paths;
+/// `monitoring` reads everything but changes only where it has a
+/// permission; `administrator` does everything and sees the tags.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn user_tags_decide_what_the_management_api_shows_and_allows() {
+    let dir = std::env::temp_dir().join(format!("leveret-tags-config-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let config = dir.join("leveret.toml");
+    let full = "configure = \".*\"\nwrite = \".*\"\nread = \".*\"\n";
+    std::fs::write(
+        &config,
+        format!(
+            "vhosts = [\"/\", \"robots\"]\n\
+             [[users]]\nname = \"admin\"\npassword = \"a\"\ntags = [\"administrator\"]\n\
+             [[users.permissions]]\nvhost = \"/\"\n{full}\
+             [[users]]\nname = \"watcher\"\npassword = \"w\"\ntags = [\"monitoring\"]\n\
+             [[users]]\nname = \"robot\"\npassword = \"r\"\ntags = [\"management\"]\n\
+             [[users.permissions]]\nvhost = \"robots\"\n{full}\
+             [[users]]\nname = \"plain\"\npassword = \"p\"\n"
+        ),
+    )
+    .expect("config");
+    let broker = OpsBroker::start("tags", &["--config", config.to_str().unwrap()]);
+    let call =
+        |user: &'static str, password: &'static str, method: &'static str, path: &'static str| {
+            let auth = basic(user, password);
+            let http = broker.http;
+            async move {
+                request(
+                    http,
+                    method,
+                    path,
+                    &[
+                        ("Authorization", &auth),
+                        ("Content-Type", "application/json"),
+                    ],
+                    if method == "PUT" { b"{}" } else { b"" },
+                )
+                .await
+            }
+        };
+    let refused = call("plain", "p", "GET", "/api/overview").await;
+    assert_eq!(refused.status, 401, "{}", refused.text());
+    assert!(refused.text().contains("Not management user"));
+
+    assert_eq!(
+        call("admin", "a", "PUT", "/api/queues/%2F/root-q")
+            .await
+            .status,
+        201
+    );
+    assert_eq!(
+        call("robot", "r", "PUT", "/api/queues/robots/robot-q")
+            .await
+            .status,
+        201
+    );
+    let names = |response: common::ops::Response| -> Vec<String> {
+        let list: Value = serde_json::from_slice(&response.body).expect("JSON");
+        list.as_array()
+            .unwrap()
+            .iter()
+            .map(|q| q["name"].as_str().unwrap().to_owned())
+            .collect()
+    };
+    assert_eq!(
+        names(call("robot", "r", "GET", "/api/queues").await),
+        ["robot-q"]
+    );
+    let mut all = names(call("watcher", "w", "GET", "/api/queues").await);
+    all.sort();
+    assert_eq!(all, ["robot-q", "root-q"]);
+    for (user, password, method, path, reason) in [
+        (
+            "robot",
+            "r",
+            "GET",
+            "/api/queues/%2F",
+            "Not authorised to access virtual host",
+        ),
+        ("robot", "r", "GET", "/api/users", "Not administrator user"),
+        (
+            "watcher",
+            "w",
+            "PUT",
+            "/api/queues/%2F/x",
+            "Not authorised to access virtual host",
+        ),
+        (
+            "watcher",
+            "w",
+            "GET",
+            "/api/definitions",
+            "Not administrator user",
+        ),
+    ] {
+        let answer = call(user, password, method, path).await;
+        assert_eq!(
+            answer.status,
+            401,
+            "{user} {method} {path}: {}",
+            answer.text()
+        );
+        assert!(answer.text().contains(reason), "{}", answer.text());
+    }
+    let users: Value =
+        serde_json::from_slice(&call("admin", "a", "GET", "/api/users").await.body).expect("JSON");
+    let robot = users
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|u| u["name"] == "robot")
+        .expect("robot");
+    assert_eq!(robot["tags"], json!(["management"]));
+    let whoami: Value =
+        serde_json::from_slice(&call("watcher", "w", "GET", "/api/whoami").await.body)
+            .expect("JSON");
+    assert_eq!(whoami, json!({"name": "watcher", "tags": ["monitoring"]}));
     let _ = std::fs::remove_dir_all(&dir);
 }

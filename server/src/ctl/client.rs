@@ -111,6 +111,16 @@ impl Client {
         self.finish(request.call())
     }
 
+    /// PUT `body` (JSON) to `path`.
+    pub fn put(&self, path: &str, body: &[u8]) -> Result<Value, ClientError> {
+        let request = self
+            .agent
+            .put(format!("{}{path}", self.base))
+            .header("Authorization", &self.authorization)
+            .header("Content-Type", "application/json");
+        self.finish(request.send(body))
+    }
+
     /// POST `body` (JSON) to `path`.
     pub fn post(&self, path: &str, body: &[u8]) -> Result<Value, ClientError> {
         let request = self

@@ -127,6 +127,21 @@ pub const CONNECTIONS: Table = Table {
     default: &["user", "peer_host", "peer_port", "state"],
 };
 
+pub const USERS: Table = Table {
+    columns: &[("user", &["name"]), ("tags", &["tags"])],
+    default: &["user", "tags"],
+};
+
+pub const PERMISSIONS: Table = Table {
+    columns: &[
+        ("user", &["user"]),
+        ("configure", &["configure"]),
+        ("write", &["write"]),
+        ("read", &["read"]),
+    ],
+    default: &["user", "configure", "write", "read"],
+};
+
 pub const CONSUMERS: Table = Table {
     columns: &[
         ("queue_name", &["queue", "name"]),

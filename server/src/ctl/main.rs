@@ -71,6 +71,19 @@ enum Command {
     /// Lists consumers: queue_name, channel_pid, consumer_tag,
     /// ack_required, prefetch_count, active, arguments by default.
     ListConsumers { columns: Vec<String> },
+    /// Lists users and their tags.
+    ListUsers { columns: Vec<String> },
+    /// Lists the permissions on the vhost: user, configure, write, read.
+    ListPermissions { columns: Vec<String> },
+    /// Sets a user's permissions on the vhost (regular expressions).
+    SetPermissions {
+        user: String,
+        configure: String,
+        write: String,
+        read: String,
+    },
+    /// Removes a user's permissions on the vhost.
+    ClearPermissions { user: String },
     /// Drops a queue's ready messages.
     PurgeQueue { queue: String },
     /// Deletes a queue.
@@ -182,6 +195,57 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             )?;
             let list = client.get(&format!("/api/consumers/{vhost}"))?;
             print_table(cli, &columns::CONSUMERS, columns, &list)
+        }
+        Command::ListUsers { columns } => {
+            info(cli, "Listing users ...")?;
+            let list = client.get("/api/users")?;
+            print_table(cli, &columns::USERS, columns, &list)
+        }
+        Command::ListPermissions { columns } => {
+            info(
+                cli,
+                &format!("Listing permissions for vhost \"{}\" ...", cli.vhost),
+            )?;
+            let list = client.get("/api/permissions")?;
+            let here: Vec<Value> = list
+                .as_array()
+                .into_iter()
+                .flatten()
+                .filter(|p| p["vhost"] == cli.vhost.as_str())
+                .cloned()
+                .collect();
+            print_table(cli, &columns::PERMISSIONS, columns, &Value::Array(here))
+        }
+        Command::SetPermissions {
+            user,
+            configure,
+            write,
+            read,
+        } => {
+            info(
+                cli,
+                &format!(
+                    "Setting permissions for user \"{user}\" in vhost \"{}\" ...",
+                    cli.vhost
+                ),
+            )?;
+            let body = serde_json::json!({"configure": configure, "write": write, "read": read});
+            client.put(
+                &format!("/api/permissions/{vhost}/{}", segment(user)),
+                body.to_string().as_bytes(),
+            )?;
+            Ok(())
+        }
+        Command::ClearPermissions { user } => {
+            info(
+                cli,
+                &format!(
+                    "Clearing permissions for user \"{user}\" in vhost \"{}\" ...",
+                    cli.vhost
+                ),
+            )?;
+            client.delete(&format!("/api/permissions/{vhost}/{}", segment(user)), &[])?;
+            Ok(())
         }
         Command::PurgeQueue { queue } => {
             info(

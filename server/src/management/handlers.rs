@@ -4,6 +4,7 @@
 //! comes, so a listing of 100k queues neither builds the whole answer in
 //! memory nor holds the listeners' thread between chunks.
 
+use super::caller::Caller;
 use super::json;
 use super::{ApiError, Context};
 use crate::definitions::Definitions;
@@ -12,7 +13,7 @@ use axum::body::{Body, Bytes};
 use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
-use axum::Json;
+use axum::{Extension, Json};
 use base64::Engine;
 use leveret_broker::{
     BindingSpec, DestinationKind, ExchangeSettings, GetMode, Permission, QueueRef, QueueSettings,
@@ -191,10 +192,14 @@ fn vhost_json(c: &Context, name: &str) -> Value {
     })
 }
 
-pub async fn vhosts(State(c): Ctx) -> Json<Value> {
+pub async fn vhosts(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
     let names = c.admin.vhosts();
     Json(Value::Array(
-        names.iter().map(|n| vhost_json(&c, n)).collect(),
+        names
+            .iter()
+            .filter(|n| caller.sees_vhost(n))
+            .map(|n| vhost_json(&c, n))
+            .collect(),
     ))
 }
 
@@ -214,7 +219,7 @@ pub async fn users(State(c): Ctx) -> Json<Value> {
                     "name": name,
                     "password_hash": password_hash,
                     "hashing_algorithm": hashing_algorithm,
-                    "tags": [],
+                    "tags": c.tags.of(name),
                     "limits": {},
                 })
             })
@@ -222,11 +227,8 @@ pub async fn users(State(c): Ctx) -> Json<Value> {
     ))
 }
 
-pub async fn whoami(headers: HeaderMap) -> Json<Value> {
-    let user = super::basic_credentials(&headers)
-        .map(|(user, _)| user)
-        .unwrap_or_default();
-    Json(json!({ "name": user, "tags": [] }))
+pub async fn whoami(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
+    Json(json!({ "name": caller.user, "tags": c.tags.of(&caller.user) }))
 }
 
 /// Every user's permissions.
@@ -334,24 +336,28 @@ pub async fn topic_permissions(State(c): Ctx) -> Json<Value> {
     )))
 }
 
-fn exchange_list(c: &Context, vhost: Option<&str>) -> Json<Value> {
+fn exchange_list(c: &Context, caller: &Caller, vhost: Option<&str>) -> Json<Value> {
     Json(Value::Array(
         c.admin
             .exchanges()
             .iter()
-            .filter(|e| vhost.is_none_or(|v| e.vhost == v))
+            .filter(|e| vhost.is_none_or(|v| e.vhost == v) && caller.sees_vhost(&e.vhost))
             .map(json::exchange)
             .collect(),
     ))
 }
 
-pub async fn exchanges(State(c): Ctx) -> Json<Value> {
-    exchange_list(&c, None)
+pub async fn exchanges(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
+    exchange_list(&c, &caller, None)
 }
 
-pub async fn exchanges_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+pub async fn exchanges_in(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Path(vhost): Path<String>,
+) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
-    Ok(exchange_list(&c, Some(&vhost)))
+    Ok(exchange_list(&c, &caller, Some(&vhost)))
 }
 
 pub async fn exchange(
@@ -482,8 +488,13 @@ fn queue_stream(c: Arc<Context>, queues: Vec<QueueRef>) -> Response {
         .into_response()
 }
 
-pub async fn queues(State(c): Ctx) -> Response {
-    let refs = c.admin.queue_refs();
+pub async fn queues(State(c): Ctx, Extension(caller): Extension<Caller>) -> Response {
+    let refs = c
+        .admin
+        .queue_refs()
+        .into_iter()
+        .filter(|q| caller.sees_vhost(q.vhost()))
+        .collect();
     queue_stream(c, refs)
 }
 
@@ -611,8 +622,8 @@ fn binding_list(c: &Context, keep: impl Fn(&leveret_broker::BindingInfo) -> bool
     ))
 }
 
-pub async fn bindings(State(c): Ctx) -> Json<Value> {
-    binding_list(&c, |_| true)
+pub async fn bindings(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
+    binding_list(&c, |b| caller.sees_vhost(&b.vhost))
 }
 
 pub async fn bindings_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
@@ -710,11 +721,12 @@ pub async fn delete_binding(
     Ok(no_content())
 }
 
-pub async fn connections(State(c): Ctx) -> Json<Value> {
+pub async fn connections(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
     Json(Value::Array(
         c.admin
             .connections()
             .iter()
+            .filter(|conn| caller.sees_user(&conn.user))
             .map(|conn| json::connection(conn, &c.node))
             .collect(),
     ))
@@ -749,17 +761,18 @@ pub async fn close_connection(
     Ok(no_content())
 }
 
-pub async fn channels(State(c): Ctx) -> Json<Value> {
+pub async fn channels(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
     Json(Value::Array(
         c.admin
             .channels()
             .iter()
+            .filter(|ch| caller.sees_user(&ch.user))
             .map(|ch| json::channel(ch, &c.node))
             .collect(),
     ))
 }
 
-fn consumer_list(c: &Context, vhost: Option<&str>) -> Json<Value> {
+fn consumer_list(c: &Context, caller: &Caller, vhost: Option<&str>) -> Json<Value> {
     let peers: HashMap<u64, String> = c
         .admin
         .connections()
@@ -771,6 +784,7 @@ fn consumer_list(c: &Context, vhost: Option<&str>) -> Json<Value> {
             .consumers()
             .iter()
             .filter(|consumer| vhost.is_none_or(|v| consumer.vhost == v))
+            .filter(|consumer| caller.sees_vhost(&consumer.vhost))
             .map(|consumer| {
                 let peer = peers
                     .get(&consumer.connection_id)
@@ -781,13 +795,17 @@ fn consumer_list(c: &Context, vhost: Option<&str>) -> Json<Value> {
     ))
 }
 
-pub async fn consumers(State(c): Ctx) -> Json<Value> {
-    consumer_list(&c, None)
+pub async fn consumers(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
+    consumer_list(&c, &caller, None)
 }
 
-pub async fn consumers_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+pub async fn consumers_in(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Path(vhost): Path<String>,
+) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
-    Ok(consumer_list(&c, Some(&vhost)))
+    Ok(consumer_list(&c, &caller, Some(&vhost)))
 }
 
 pub async fn aliveness_test(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {

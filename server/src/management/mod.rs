@@ -14,6 +14,7 @@
 //! (the sampler behind `*_details`). Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
+mod caller;
 mod handlers;
 pub mod json;
 mod rates;
@@ -26,6 +27,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post, put};
 use axum::{Json, Router};
 use base64::Engine;
+use caller::Caller;
 use leveret_broker::{Admin, AmqpError};
 use leveret_protocol::ReplyCode;
 pub use rates::Rates;
@@ -134,12 +136,27 @@ async fn authenticate(
     request: Request,
     next: Next,
 ) -> Response {
+    let mut request = request;
     let credentials = basic_credentials(request.headers());
     let passed = match &credentials {
         Some((user, password)) => context.admin.authenticate(user, password).await,
         None => false,
     };
-    if passed {
+    if let (true, Some((user, _))) = (passed, &credentials) {
+        let caller = match Caller::new(user, &context.tags.of(user), &context.admin) {
+            Ok(caller) => caller,
+            Err(refused) => {
+                tracing::info!(%user, "management API refused: no management tag");
+                return refused.into_response();
+            }
+        };
+        if let Some(segments) = caller::api_segments(request.uri().path()) {
+            if let Err(refused) = caller.authorize(request.method(), &segments) {
+                tracing::info!(%user, path = %request.uri().path(), "management API refused by the user's tags");
+                return refused.into_response();
+            }
+        }
+        request.extensions_mut().insert(caller);
         return next.run(request).await;
     }
     let user = credentials.map(|(user, _)| user);
