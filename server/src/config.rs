@@ -10,6 +10,7 @@ use leveret_broker::{
     check_pattern, Broker, BrokerBuilder, Limits, PasswordHash, PatternError, PeerVerification,
     Permission, ResidentMemoryWatermark, TlsOptions, TopicPermission, UserLimits, VhostLimits,
 };
+use leveret_uplink::ShovelConfig;
 use serde::Deserialize;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -58,6 +59,14 @@ pub enum ConfigError {
     /// A user's `password-hash` is not one `leveret --hash-password` prints.
     #[error("user {0}: password-hash is not a leveret hash")]
     BadHash(String),
+    /// A shovel's parameters cannot be used.
+    #[error("shovel {name}: {reason}")]
+    Shovel {
+        /// The shovel.
+        name: String,
+        /// What is wrong.
+        reason: String,
+    },
     /// The TLS settings do not fit together.
     #[error("TLS: {0}")]
     Tls(String),
@@ -124,6 +133,9 @@ pub struct FileConfig {
     metrics_listen: Option<SocketAddr>,
     http_listen: Option<SocketAddr>,
     definitions: Option<PathBuf>,
+    /// `[shovels.NAME]`: RabbitMQ's dynamic-shovel parameters, by name.
+    #[serde(default)]
+    shovels: std::collections::BTreeMap<String, toml::Table>,
 }
 
 /// One `[vhost-limits."NAME"]` table (`rabbitmqctl set_vhost_limits`).
@@ -253,6 +265,8 @@ pub struct Settings {
     pub definitions: Option<PathBuf>,
     /// Start on a damaged store, keeping what is readable.
     pub recover: bool,
+    /// Shovels, by name.
+    pub shovels: Vec<(String, ShovelConfig)>,
 }
 
 /// RabbitMQ's `ssl_options` from their parts: `verify` defaults to
@@ -373,6 +387,20 @@ impl Settings {
                 })
                 .collect(),
         };
+        let shovels = file
+            .shovels
+            .iter()
+            .map(|(name, table)| {
+                let value = serde_json::to_value(table).map_err(|e| e.to_string());
+                value
+                    .and_then(|value| ShovelConfig::from_json(&value))
+                    .map(|config| (name.clone(), config))
+                    .map_err(|reason| ConfigError::Shovel {
+                        name: name.clone(),
+                        reason,
+                    })
+            })
+            .collect::<Result<_, _>>()?;
         let tags = file
             .users
             .iter()
@@ -469,6 +497,7 @@ impl Settings {
                 .unwrap_or(DEFAULT_HTTP_LISTEN),
             definitions: cli.definitions.or(file.definitions),
             recover: cli.recover,
+            shovels,
         })
     }
 
@@ -534,6 +563,28 @@ mod tests {
     fn cli(args: &[&str]) -> Cli {
         Cli::try_parse_from(std::iter::once("leveret").chain(args.iter().copied()))
             .expect("valid command line")
+    }
+
+    #[test]
+    fn shovels_take_rabbitmqs_parameter_names() {
+        let settings = Settings::resolve(
+            cli(&[]),
+            file("[shovels.up]\nsrc-uri = \"amqp://\"\nsrc-queue = \"t\"\ndest-uri = [\"amqp://a\", \"amqp://b\"]\ndest-queue = \"f\"\n"),
+        )
+        .unwrap();
+        assert_eq!(settings.shovels.len(), 1);
+        assert_eq!(settings.shovels[0].0, "up");
+        assert_eq!(settings.shovels[0].1.dest_uris, ["amqp://a", "amqp://b"]);
+        let error = Settings::resolve(
+            cli(&[]),
+            file("[shovels.bad]\nsrc-uri = \"amqp://\"\ndest-uri = \"amqp://a\"\ndest-queue = \"f\"\n"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            error.contains("shovel bad") && error.contains("src-queue"),
+            "{error}"
+        );
     }
 
     #[test]

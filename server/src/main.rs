@@ -38,7 +38,9 @@ use cli::Cli;
 use config::{FileConfig, Settings};
 use definitions::Definitions;
 use leveret_broker::PasswordHash;
+use leveret_uplink::Shovel;
 use std::process::ExitCode;
+use std::sync::Arc;
 
 /// Exit status for a command line or config file that cannot be used.
 const USAGE_ERROR: u8 = 2;
@@ -90,6 +92,7 @@ fn runtime(worker_threads: usize) -> std::io::Result<tokio::runtime::Runtime> {
 async fn serve(settings: Settings) -> ExitCode {
     logging::init(&settings.log);
     let ops_settings = settings.ops();
+    let shovel_configs = settings.shovels.clone();
     let tags = tags::Tags::default();
     tags.record(&settings.tags);
     let mut definitions = match &settings.definitions {
@@ -145,10 +148,21 @@ async fn serve(settings: Settings) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
+    let handle = Arc::new(handle);
+    let shovels: Vec<Shovel> = shovel_configs
+        .into_iter()
+        .map(|(name, config)| Shovel::start(&name, config, Some(&handle)))
+        .collect();
     wait_for_signal(&handle).await;
     tracing::info!("shutting down");
     ops.stop();
-    handle.shutdown().await;
+    for shovel in shovels {
+        shovel.stop().await;
+    }
+    match Arc::try_unwrap(handle) {
+        Ok(handle) => handle.shutdown().await,
+        Err(_) => tracing::error!("the broker is still in use; stopping without a clean shutdown"),
+    }
     ExitCode::SUCCESS
 }
 

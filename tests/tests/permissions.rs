@@ -70,10 +70,9 @@ async fn publish_outcome(ch: &lp::Channel, exchange: &str, key: &str) -> Option<
     ));
     match tmo!(ch.basic_qos(1, lp::BasicQosOptions::default())) {
         Ok(()) => None,
-        Err(e) => Some(match errors.try_recv() {
-            Ok(closed) => lp::code(&closed),
-            Err(_) => lp::code(&e),
-        }),
+        // lapin may fail the call before it reports the broker's close:
+        // the close is the outcome.
+        Err(_) => Some(lp::code(&tmo!(errors.recv()).expect("the broker's close"))),
     }
 }
 

@@ -1,0 +1,272 @@
+//! A shovel's definition with RabbitMQ's dynamic-shovel parameter names
+//! and meanings (`rabbitmqctl set_parameter shovel NAME '{...}'`, the
+//! `parameters` of `definitions.json` with component `shovel`), read from
+//! the JSON object RabbitMQ takes. What Leveret does not implement yet is
+//! refused with a reason, never ignored.
+//!
+//! Uses nothing of the broker.
+
+use serde_json::{Map, Value};
+use std::time::Duration;
+
+/// When the source's message is acknowledged (`ack-mode`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum AckMode {
+    /// After the destination confirmed it (`on-confirm`, the default):
+    /// nothing is lost.
+    #[default]
+    OnConfirm,
+    /// As soon as it is published to the destination (`on-publish`).
+    OnPublish,
+    /// The source does not wait for acknowledgements at all (`no-ack`).
+    NoAck,
+}
+
+/// Where a shovel takes messages from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Source {
+    /// `src-queue`.
+    Queue(String),
+    /// `src-exchange` with `src-exchange-key`: a durable queue of the
+    /// shovel's own (`shovel.NAME`) is bound to it, so what is published
+    /// while the link is down waits there.
+    Exchange {
+        /// The exchange.
+        exchange: String,
+        /// The binding key.
+        key: String,
+    },
+}
+
+/// Where a shovel publishes to.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Destination {
+    /// `dest-queue`: through the default exchange.
+    Queue(String),
+    /// `dest-exchange`, with `dest-exchange-key` or else each message's
+    /// own routing key.
+    Exchange {
+        /// The exchange.
+        exchange: String,
+        /// The routing key, if not the message's own.
+        key: Option<String>,
+    },
+}
+
+/// One shovel.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ShovelConfig {
+    /// The source broker (`src-uri`; `amqp://` with no host is the local
+    /// broker, in process).
+    pub src_uri: String,
+    /// The source queue or exchange.
+    pub source: Source,
+    /// Unacknowledged messages the shovel holds at once
+    /// (`src-prefetch-count`, default 1000).
+    pub prefetch: u16,
+    /// The destination brokers (`dest-uri`, one or a list: a cluster's
+    /// nodes, tried in turn).
+    pub dest_uris: Vec<String>,
+    /// The destination queue or exchange.
+    pub destination: Destination,
+    /// Adds RabbitMQ's `x-shovelled` header (`dest-add-forward-headers`).
+    pub add_forward_headers: bool,
+    /// `ack-mode`.
+    pub ack_mode: AckMode,
+    /// Wait before reconnecting, and after the destination refused a
+    /// message (`reconnect-delay`, default 5 s).
+    pub reconnect_delay: Duration,
+}
+
+fn text<'a>(object: &'a Map<String, Value>, key: &str) -> Result<Option<&'a str>, String> {
+    match object.get(key) {
+        None | Some(Value::Null) => Ok(None),
+        Some(Value::String(s)) => Ok(Some(s)),
+        Some(other) => Err(format!("{key} must be a string, not {other}")),
+    }
+}
+
+fn uris(object: &Map<String, Value>, key: &str) -> Result<Vec<String>, String> {
+    let list = match object.get(key) {
+        Some(Value::String(s)) => vec![s.clone()],
+        Some(Value::Array(items)) => items
+            .iter()
+            .map(|item| {
+                item.as_str()
+                    .map(str::to_owned)
+                    .ok_or_else(|| format!("{key} must list strings"))
+            })
+            .collect::<Result<_, _>>()?,
+        _ => return Err(format!("{key} is required (a URI or a list of URIs)")),
+    };
+    if list.is_empty() {
+        return Err(format!("{key} is empty"));
+    }
+    Ok(list)
+}
+
+impl ShovelConfig {
+    /// Reads RabbitMQ's JSON form of a shovel's parameters.
+    pub fn from_json(value: &Value) -> Result<ShovelConfig, String> {
+        let object = value
+            .as_object()
+            .ok_or("a shovel's parameters must be a JSON object")?;
+        for key in object.keys() {
+            let known = [
+                "src-uri",
+                "src-queue",
+                "src-exchange",
+                "src-exchange-key",
+                "src-prefetch-count",
+                "src-protocol",
+                "src-delete-after",
+                "dest-uri",
+                "dest-queue",
+                "dest-exchange",
+                "dest-exchange-key",
+                "dest-protocol",
+                "dest-add-forward-headers",
+                "ack-mode",
+                "reconnect-delay",
+            ];
+            if !known.contains(&key.as_str()) {
+                return Err(format!("{key} is not supported"));
+            }
+        }
+        for key in ["src-protocol", "dest-protocol"] {
+            if let Some(protocol) = text(object, key)? {
+                if protocol != "amqp091" {
+                    return Err(format!("{key} {protocol}: only amqp091"));
+                }
+            }
+        }
+        if let Some(after) = object.get("src-delete-after") {
+            if after != "never" {
+                return Err(format!("src-delete-after {after}: only \"never\""));
+            }
+        }
+        let source = match (text(object, "src-queue")?, text(object, "src-exchange")?) {
+            (Some(queue), None) => Source::Queue(queue.to_owned()),
+            (None, Some(exchange)) => Source::Exchange {
+                exchange: exchange.to_owned(),
+                key: text(object, "src-exchange-key")?.unwrap_or("#").to_owned(),
+            },
+            _ => return Err("give exactly one of src-queue and src-exchange".into()),
+        };
+        let destination = match (text(object, "dest-queue")?, text(object, "dest-exchange")?) {
+            (Some(queue), None) => Destination::Queue(queue.to_owned()),
+            (None, Some(exchange)) => Destination::Exchange {
+                exchange: exchange.to_owned(),
+                key: text(object, "dest-exchange-key")?.map(str::to_owned),
+            },
+            _ => return Err("give exactly one of dest-queue and dest-exchange".into()),
+        };
+        let prefetch = match object.get("src-prefetch-count") {
+            None => 1000,
+            Some(n) => n
+                .as_u64()
+                .and_then(|n| u16::try_from(n).ok())
+                .filter(|n| *n > 0)
+                .ok_or("src-prefetch-count must be an integer from 1 to 65535")?,
+        };
+        let ack_mode = match text(object, "ack-mode")? {
+            None | Some("on-confirm") => AckMode::OnConfirm,
+            Some("on-publish") => AckMode::OnPublish,
+            Some("no-ack") => AckMode::NoAck,
+            Some(other) => return Err(format!("unknown ack-mode {other}")),
+        };
+        let reconnect_delay = match object.get("reconnect-delay") {
+            None => Duration::from_secs(5),
+            Some(n) => Duration::from_secs_f64(
+                n.as_f64()
+                    .filter(|s| s.is_finite() && *s >= 0.0 && *s <= 86_400.0)
+                    .ok_or("reconnect-delay must be seconds, from 0 to 86400")?,
+            ),
+        };
+        let add_forward_headers = match object.get("dest-add-forward-headers") {
+            None => false,
+            Some(Value::Bool(b)) => *b,
+            Some(_) => return Err("dest-add-forward-headers must be true or false".into()),
+        };
+        Ok(ShovelConfig {
+            src_uri: uris(object, "src-uri")?.remove(0),
+            source,
+            prefetch,
+            dest_uris: uris(object, "dest-uri")?,
+            destination,
+            add_forward_headers,
+            ack_mode,
+            reconnect_delay,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn rabbitmqs_parameters_and_defaults() {
+        let config = ShovelConfig::from_json(&json!({
+            "src-uri": "amqp://", "src-queue": "telemetry",
+            "dest-uri": ["amqp://fleet-1", "amqp://fleet-2"], "dest-exchange": "robots",
+            "dest-add-forward-headers": true, "reconnect-delay": 0.5,
+        }))
+        .unwrap();
+        assert_eq!(config.source, Source::Queue("telemetry".into()));
+        assert_eq!(config.dest_uris.len(), 2);
+        assert_eq!(
+            config.destination,
+            Destination::Exchange {
+                exchange: "robots".into(),
+                key: None
+            }
+        );
+        assert_eq!(config.ack_mode, AckMode::OnConfirm);
+        assert_eq!(config.prefetch, 1000);
+        assert_eq!(config.reconnect_delay, Duration::from_millis(500));
+        let exchange = ShovelConfig::from_json(&json!({
+            "src-uri": "amqp://", "src-exchange": "amq.topic",
+            "dest-uri": "amqp://fleet", "dest-queue": "in", "ack-mode": "on-publish",
+        }))
+        .unwrap();
+        assert_eq!(
+            exchange.source,
+            Source::Exchange {
+                exchange: "amq.topic".into(),
+                key: "#".into()
+            }
+        );
+        assert_eq!(exchange.ack_mode, AckMode::OnPublish);
+    }
+
+    #[test]
+    fn what_is_not_implemented_is_refused_with_a_reason() {
+        for (value, reason) in [
+            (
+                json!({"src-uri": "amqp://", "dest-uri": "amqp://x", "dest-queue": "q"}),
+                "src-queue",
+            ),
+            (
+                json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "dest-publish-properties": {}}),
+                "not supported",
+            ),
+            (
+                json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": [], "dest-queue": "q"}),
+                "empty",
+            ),
+            (
+                json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "src-delete-after": 5}),
+                "never",
+            ),
+            (
+                json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "dest-protocol": "amqp10"}),
+                "amqp091",
+            ),
+        ] {
+            let error = ShovelConfig::from_json(&value).unwrap_err();
+            assert!(error.contains(reason), "{error}");
+        }
+    }
+}

@@ -1,0 +1,517 @@
+//! A running shovel: consumes from its source and publishes to its
+//! destination until stopped, reconnecting after any failure.
+//!
+//! Each link (a source and a destination connection) runs one loop:
+//! deliveries are published in order with `mandatory` set and, under
+//! `on-confirm`, acknowledged at the source only after the destination's
+//! confirm. A destination `basic.nack` or a `basic.return` (no queue took
+//! it) stops publishing: the messages in flight are settled (those the
+//! destination took are acknowledged), the refused ones go back to the
+//! source (`basic.nack` with requeue) and are counted, and the shovel is
+//! `blocked` for `reconnect-delay` before it tries again: a destination
+//! that refuses never drains the source. A retried message arrives after
+//! later ones the destination took. Every
+//! forwarded message carries `x-leveret-seq` (the shovel's name, the link
+//! and a counter), which is how returns are matched to publishes.
+//!
+//! After a failure the shovel waits `reconnect-delay`, doubling per failed
+//! attempt up to 30 times it and at most a minute, with up to 25% jitter,
+//! and tries the destination URIs in turn starting after the last one that
+//! failed. Uses the client crate for both ends (the local broker in
+//! process), nothing else of the broker.
+
+use crate::config::{AckMode, Destination, ShovelConfig, Source};
+use leveret_broker::BrokerHandle;
+use leveret_client::{
+    BasicAckOptions, BasicConsumeOptions, BasicNackOptions, BasicProperties, BasicPublishOptions,
+    BasicQosOptions, Channel, ConfirmFuture, Confirmation, Connection, ConnectionOptions,
+    FieldTable, FieldValue, QueueBindOptions, QueueDeclareOptions, ShortStr,
+};
+use std::collections::{HashSet, VecDeque};
+use std::future::IntoFuture;
+use std::sync::{Arc, Weak};
+use std::time::Duration;
+use tokio::sync::watch;
+
+/// The header each forwarded message carries.
+pub const SEQ_HEADER: &str = "x-leveret-seq";
+
+/// RabbitMQ's shovel states.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum ShovelState {
+    /// Opening its connections.
+    #[default]
+    Connecting,
+    /// Forwarding.
+    Running,
+    /// The destination refused a message: waiting before it tries again.
+    Blocked,
+    /// Stopped.
+    Terminated,
+}
+
+/// What a shovel is doing and has done.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct ShovelStatus {
+    /// Its state.
+    pub state: ShovelState,
+    /// The destination URI it is connected to (without credentials).
+    pub destination: Option<String>,
+    /// The last failure, if any.
+    pub last_error: Option<String>,
+    /// Messages the destination took (confirmed, or published under
+    /// `on-publish` and `no-ack`).
+    pub forwarded: u64,
+    /// Messages the destination refused (nacked or returned unroutable),
+    /// left at the source.
+    pub refused: u64,
+    /// Links that ended (failures and refusals).
+    pub restarts: u64,
+}
+
+/// A shovel running on the current tokio runtime.
+#[derive(Debug)]
+pub struct Shovel {
+    name: String,
+    status: watch::Receiver<ShovelStatus>,
+    stop: watch::Sender<bool>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Shovel {
+    /// Starts the shovel `name`; `local` is the broker an `amqp://` URI
+    /// without a host means.
+    pub fn start(name: &str, config: ShovelConfig, local: Option<&Arc<BrokerHandle>>) -> Shovel {
+        let (status_tx, status) = watch::channel(ShovelStatus::default());
+        let (stop, stopped) = watch::channel(false);
+        let link = Link {
+            name: name.to_owned(),
+            config,
+            local: local.map(Arc::downgrade),
+            status: status_tx,
+            next_destination: 0,
+            epoch: 0,
+        };
+        let task = tokio::spawn(link.run(stopped));
+        Shovel {
+            name: name.to_owned(),
+            status,
+            stop,
+            task,
+        }
+    }
+
+    /// Its name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// What it is doing now.
+    pub fn status(&self) -> ShovelStatus {
+        self.status.borrow().clone()
+    }
+
+    /// Its status as it changes.
+    pub fn watch(&self) -> watch::Receiver<ShovelStatus> {
+        self.status.clone()
+    }
+
+    /// Stops it: unacknowledged messages go back to the source.
+    pub async fn stop(self) {
+        let _ = self.stop.send(true);
+        let _ = self.task.await;
+    }
+}
+
+/// A URI with its credentials removed, for logs and status.
+fn shown(uri: &str) -> String {
+    match (uri.split_once("://"), uri.rfind('@')) {
+        (Some((scheme, rest)), Some(at)) => {
+            let after = &uri[at + 1..];
+            if rest.contains('@') {
+                format!("{scheme}://{after}")
+            } else {
+                uri.to_owned()
+            }
+        }
+        _ => uri.to_owned(),
+    }
+}
+
+/// Whether `uri` names the local broker (`amqp://` with no host).
+fn is_local(uri: &str) -> bool {
+    let Some(rest) = uri.strip_prefix("amqp://") else {
+        return false;
+    };
+    let authority = rest.split(['/', '?']).next().unwrap_or("");
+    let host = authority.rsplit_once('@').map_or(authority, |(_, h)| h);
+    host.is_empty()
+}
+
+/// Why a link ended.
+enum Ended {
+    /// A connection or channel failed.
+    Failed(String),
+    /// The destination refused a message (left at the source).
+    Refused(String),
+    /// The shovel was told to stop.
+    Stopped,
+}
+
+impl From<leveret_client::Error> for Ended {
+    fn from(e: leveret_client::Error) -> Self {
+        Ended::Failed(e.to_string())
+    }
+}
+
+/// A published message waiting for its confirm.
+struct InFlight {
+    source_tag: u64,
+    seq: String,
+    confirm: ConfirmFuture,
+}
+
+struct Link {
+    name: String,
+    config: ShovelConfig,
+    local: Option<Weak<BrokerHandle>>,
+    status: watch::Sender<ShovelStatus>,
+    next_destination: usize,
+    epoch: u64,
+}
+
+impl Link {
+    fn update(&self, change: impl FnOnce(&mut ShovelStatus)) {
+        self.status.send_modify(change);
+    }
+
+    async fn run(mut self, mut stop: watch::Receiver<bool>) {
+        let mut failures: u32 = 0;
+        loop {
+            self.update(|s| s.state = ShovelState::Connecting);
+            let forwarded_before = self.status.borrow().forwarded;
+            let ended = tokio::select! {
+                ended = self.link() => ended,
+                _ = stop.wait_for(|stopped| *stopped) => Ended::Stopped,
+            };
+            let (delay, reason) = match ended {
+                Ended::Stopped => break,
+                Ended::Refused(reason) => {
+                    self.update(|s| s.state = ShovelState::Blocked);
+                    (self.config.reconnect_delay, reason)
+                }
+                Ended::Failed(reason) => {
+                    if self.status.borrow().forwarded > forwarded_before {
+                        failures = 0;
+                    }
+                    failures = failures.saturating_add(1);
+                    (backoff(self.config.reconnect_delay, failures), reason)
+                }
+            };
+            tracing::warn!(shovel = %self.name, error = %reason, retry_in = ?delay, "shovel link ended");
+            self.update(|s| {
+                s.last_error = Some(reason);
+                s.restarts += 1;
+                s.destination = None;
+            });
+            tokio::select! {
+                _ = tokio::time::sleep(delay) => {}
+                _ = stop.wait_for(|stopped| *stopped) => break,
+            }
+        }
+        self.update(|s| s.state = ShovelState::Terminated);
+    }
+
+    async fn connect(&self, uri: &str) -> Result<Connection, Ended> {
+        if is_local(uri) {
+            let options = ConnectionOptions::from_uri(uri)?;
+            let broker = self
+                .local
+                .as_ref()
+                .and_then(Weak::upgrade)
+                .ok_or_else(|| Ended::Failed("no local broker".into()))?;
+            return Ok(Connection::in_process_with(&broker, options).await?);
+        }
+        Ok(Connection::connect(uri).await?)
+    }
+
+    /// The first destination that answers, starting after the last one
+    /// that failed.
+    async fn connect_destination(&mut self) -> Result<(Connection, String), Ended> {
+        let uris = self.config.dest_uris.clone();
+        let mut last = String::new();
+        for attempt in 0..uris.len() {
+            let index = (self.next_destination + attempt) % uris.len();
+            match self.connect(&uris[index]).await {
+                Ok(connection) => {
+                    self.next_destination = index;
+                    return Ok((connection, shown(&uris[index])));
+                }
+                Err(Ended::Failed(e)) => last = format!("{}: {e}", shown(&uris[index])),
+                Err(other) => return Err(other),
+            }
+        }
+        self.next_destination = (self.next_destination + 1) % uris.len();
+        Err(Ended::Failed(last))
+    }
+
+    /// The source queue, declared and bound for an exchange source.
+    async fn source_queue(&self, channel: &Channel) -> Result<String, Ended> {
+        match &self.config.source {
+            Source::Queue(queue) => Ok(queue.clone()),
+            Source::Exchange { exchange, key } => {
+                let queue = format!("shovel.{}", self.name);
+                let durable = QueueDeclareOptions {
+                    durable: true,
+                    ..Default::default()
+                };
+                channel
+                    .queue_declare(queue.as_str(), durable, FieldTable::new())
+                    .await?;
+                channel
+                    .queue_bind(
+                        queue.as_str(),
+                        exchange.as_str(),
+                        key.as_str(),
+                        QueueBindOptions::default(),
+                        FieldTable::new(),
+                    )
+                    .await?;
+                Ok(queue)
+            }
+        }
+    }
+
+    /// Runs one link until it ends.
+    async fn link(&mut self) -> Ended {
+        match self.forward().await {
+            Ok(never) => match never {},
+            Err(ended) => ended,
+        }
+    }
+
+    async fn forward(&mut self) -> Result<std::convert::Infallible, Ended> {
+        let src_uri = self.config.src_uri.clone();
+        let source_connection = self.connect(&src_uri).await?;
+        let (destination_connection, destination) = self.connect_destination().await?;
+        let source = source_connection.open_channel().await?;
+        source
+            .basic_qos(self.config.prefetch, BasicQosOptions::default())
+            .await?;
+        let queue = self.source_queue(&source).await?;
+        let publisher = destination_connection.open_channel().await?;
+        let confirms = self.config.ack_mode == AckMode::OnConfirm;
+        if confirms {
+            publisher.confirm_select().await?;
+        }
+        let mut returns = publisher.returns();
+        let no_ack = self.config.ack_mode == AckMode::NoAck;
+        let mut consumer = source
+            .basic_consume(
+                queue.as_str(),
+                "",
+                BasicConsumeOptions {
+                    no_ack,
+                    ..Default::default()
+                },
+                FieldTable::new(),
+            )
+            .await?;
+        self.epoch += 1;
+        tracing::info!(shovel = %self.name, source = %queue, %destination, "shovel running");
+        self.update(|s| {
+            s.state = ShovelState::Running;
+            s.destination = Some(destination);
+        });
+        let mut inflight: VecDeque<InFlight> = VecDeque::new();
+        let mut returned: HashSet<String> = HashSet::new();
+        let mut counter: u64 = 0;
+        let window = usize::from(self.config.prefetch);
+        loop {
+            tokio::select! {
+                biased;
+                confirmation = async { (&mut inflight.front_mut().expect("guarded").confirm).await },
+                    if !inflight.is_empty() =>
+                {
+                    let done = inflight.pop_front().expect("guarded");
+                    match settle(&mut returns, &mut returned, &done.seq, confirmation?) {
+                        None => {
+                            source.basic_ack(done.source_tag, BasicAckOptions::default()).await?;
+                            self.update(|s| s.forwarded += 1);
+                        }
+                        Some(why) => {
+                            // Publish nothing more; settle what is in flight
+                            // (the destination may take later ones), and put
+                            // back what it refused.
+                            let mut refused = vec![done.source_tag];
+                            for later in inflight.drain(..) {
+                                let confirmation = later.confirm.await?;
+                                match settle(&mut returns, &mut returned, &later.seq, confirmation) {
+                                    None => {
+                                        source.basic_ack(later.source_tag, BasicAckOptions::default()).await?;
+                                        self.update(|s| s.forwarded += 1);
+                                    }
+                                    Some(_) => refused.push(later.source_tag),
+                                }
+                            }
+                            let requeue = BasicNackOptions { multiple: false, requeue: true };
+                            for tag in &refused {
+                                source.basic_nack(*tag, requeue).await?;
+                            }
+                            let count = refused.len() as u64;
+                            self.update(|s| s.refused += count);
+                            return Err(Ended::Refused(format!(
+                                "the destination {why} {count} message(s), left at the source"
+                            )));
+                        }
+                    }
+                }
+                delivery = consumer.next(), if inflight.len() < window => {
+                    let Some(delivery) = delivery else {
+                        return Err(Ended::Failed(format!("the source stopped delivering from {queue}")));
+                    };
+                    counter += 1;
+                    let seq = format!("{}:{}:{}", self.name, self.epoch, counter);
+                    let (exchange, key) = match &self.config.destination {
+                        Destination::Queue(queue) => (String::new(), queue.clone()),
+                        Destination::Exchange { exchange, key } => (
+                            exchange.clone(),
+                            key.clone().unwrap_or_else(|| delivery.routing_key.to_string()),
+                        ),
+                    };
+                    let properties = self.forwarded_properties(delivery.properties, &seq);
+                    let confirm = publisher
+                        .basic_publish(
+                            exchange.as_str(),
+                            key.as_str(),
+                            BasicPublishOptions { mandatory: true },
+                            properties,
+                            delivery.body,
+                        )
+                        .await?;
+                    match self.config.ack_mode {
+                        AckMode::OnConfirm => inflight.push_back(InFlight {
+                            source_tag: delivery.delivery_tag,
+                            seq,
+                            confirm: confirm.into_future(),
+                        }),
+                        AckMode::OnPublish => {
+                            source.basic_ack(delivery.delivery_tag, BasicAckOptions::default()).await?;
+                            self.update(|s| s.forwarded += 1);
+                        }
+                        AckMode::NoAck => self.update(|s| s.forwarded += 1),
+                    }
+                }
+                error = publisher.closed() => return Err(Ended::Failed(format!("destination: {error}"))),
+                error = source.closed() => return Err(Ended::Failed(format!("source: {error}"))),
+            }
+        }
+    }
+
+    /// The message's properties with the shovel's headers added.
+    fn forwarded_properties(&self, mut properties: BasicProperties, seq: &str) -> BasicProperties {
+        let mut headers = properties.headers.take().unwrap_or_default();
+        headers.insert(ShortStr::from_static(SEQ_HEADER), FieldValue::string(seq));
+        if self.config.add_forward_headers {
+            let mut shovelled = FieldTable::new();
+            for (key, value) in [
+                ("shovel-type", "dynamic"),
+                ("shovel-name", self.name.as_str()),
+                ("shovel-vhost", "/"),
+            ] {
+                shovelled.insert(ShortStr::from_static(key), FieldValue::string(value));
+            }
+            shovelled.insert(
+                ShortStr::from_static("src-uri"),
+                FieldValue::string(&shown(&self.config.src_uri)),
+            );
+            let destination = &self.config.dest_uris[self.next_destination];
+            shovelled.insert(
+                ShortStr::from_static("dest-uri"),
+                FieldValue::string(&shown(destination)),
+            );
+            headers.insert(
+                ShortStr::from_static("x-shovelled"),
+                FieldValue::Array(vec![FieldValue::Table(shovelled)]),
+            );
+        }
+        properties.headers = Some(headers);
+        properties
+    }
+}
+
+/// Whether the destination took a message: `None` if it did, else why
+/// not. The broker sends a message's `basic.return` before its confirm,
+/// so every return for it has arrived by the time the confirm has.
+fn settle(
+    returns: &mut leveret_client::Returns,
+    returned: &mut HashSet<String>,
+    seq: &str,
+    confirmation: Confirmation,
+) -> Option<&'static str> {
+    while let Some(message) = returns.try_next() {
+        if let Some(seq) = seq_of(&message.properties) {
+            returned.insert(seq);
+        }
+    }
+    match confirmation {
+        _ if returned.remove(seq) => Some("returned unroutable"),
+        Confirmation::Nack => Some("nacked"),
+        Confirmation::Ack | Confirmation::NotRequested => None,
+    }
+}
+
+/// The `x-leveret-seq` of a message, if it has one.
+fn seq_of(properties: &BasicProperties) -> Option<String> {
+    let value = properties.headers.as_ref()?.get(SEQ_HEADER)?;
+    std::str::from_utf8(value.as_bytes()?)
+        .ok()
+        .map(str::to_owned)
+}
+
+/// `base` doubled per failure (at most 30 times `base` and a minute),
+/// plus up to 25% jitter.
+fn backoff(base: Duration, failures: u32) -> Duration {
+    let doubled = base.saturating_mul(1 << failures.saturating_sub(1).min(5));
+    let capped = doubled
+        .min(base.saturating_mul(30))
+        .min(Duration::from_secs(60));
+    let jitter = {
+        use std::hash::{BuildHasher, Hasher};
+        let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
+        hasher.write_u32(failures);
+        (hasher.finish() % 1000) as u32
+    };
+    capped + capped / 4 * jitter / 1000
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn local_uris_and_credentials() {
+        assert!(is_local("amqp://"));
+        assert!(is_local("amqp:///%2f"));
+        assert!(is_local("amqp://robot:pw@/%2f"));
+        assert!(!is_local("amqp://fleet"));
+        assert!(!is_local("amqps://"));
+        assert_eq!(shown("amqp://u:secret@fleet:5672/v"), "amqp://fleet:5672/v");
+        assert_eq!(shown("amqp://fleet"), "amqp://fleet");
+    }
+
+    #[test]
+    fn backoff_doubles_jitters_and_is_capped() {
+        let base = Duration::from_millis(100);
+        for failures in 1..40 {
+            let delay = backoff(base, failures);
+            let plain = base * (1u32 << (failures - 1).min(5));
+            let plain = plain.min(base * 30);
+            assert!(
+                delay >= plain && delay <= plain + plain / 4,
+                "{failures}: {delay:?}"
+            );
+        }
+        assert!(backoff(Duration::from_secs(10), 10) <= Duration::from_secs(75));
+    }
+}

@@ -1,0 +1,334 @@
+//! Shovels between two Leveret brokers (the robot's, in process, and a
+//! "fleet" broker over TCP), on both runtimes: everything confirmed to
+//! the local publisher arrives, in order, across the destination going
+//! away and coming back; a destination that refuses (a full
+//! reject-publish queue, an exchange that routes nowhere) never drains the
+//! source and the shovel resumes when it takes messages again; a dead
+//! first URI fails over to the next.
+
+use leveret_broker::{Broker, BrokerHandle};
+use leveret_client::{
+    BasicGetOptions, BasicProperties, BasicPublishOptions, Channel, Connection, FieldTable,
+    FieldValue, QueueDeclareOptions, ShortStr,
+};
+use leveret_test_macros::both_runtimes;
+use leveret_uplink::{Shovel, ShovelConfig, ShovelState, ShovelStatus};
+use serde_json::json;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+const WAIT: Duration = Duration::from_secs(30);
+
+async fn fleet(addr: SocketAddr, dir: &std::path::Path) -> BrokerHandle {
+    Broker::builder()
+        .listen(addr)
+        .data_dir(dir)
+        .start()
+        .await
+        .expect("fleet broker")
+}
+
+fn scratch(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!(
+        "leveret-uplink-{name}-{}-{:?}",
+        std::process::id(),
+        std::thread::current().id()
+    ));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+async fn free_addr() -> SocketAddr {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    listener.local_addr().unwrap()
+}
+
+async fn channel_to(uri: &str) -> (Connection, Channel) {
+    let connection = Connection::connect(uri).await.expect("connect");
+    let channel = connection.open_channel().await.expect("channel");
+    (connection, channel)
+}
+
+async fn local_channel(robot: &BrokerHandle) -> (Connection, Channel) {
+    let connection = Connection::in_process(robot).await.expect("in process");
+    let channel = connection.open_channel().await.expect("channel");
+    (connection, channel)
+}
+
+async fn declare(channel: &Channel, queue: &str, arguments: FieldTable) {
+    let durable = QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    channel
+        .queue_declare(queue, durable, arguments)
+        .await
+        .expect("declare");
+}
+
+/// Publishes `from..to` as persistent messages, each confirmed.
+async fn publish_confirmed(channel: &Channel, queue: &str, from: u32, to: u32) {
+    for n in from..to {
+        let properties = BasicProperties {
+            delivery_mode: Some(2),
+            ..Default::default()
+        };
+        let confirm = channel
+            .basic_publish(
+                "",
+                queue,
+                BasicPublishOptions::default(),
+                properties,
+                n.to_string().into_bytes().into(),
+            )
+            .await
+            .expect("publish");
+        assert!(confirm.await.expect("confirm").is_ack());
+    }
+}
+
+/// Takes every message from `queue` now there.
+async fn drain(channel: &Channel, queue: &str) -> Vec<u32> {
+    let mut got = Vec::new();
+    while let Some(message) = channel
+        .basic_get(queue, BasicGetOptions { no_ack: true })
+        .await
+        .expect("get")
+    {
+        got.push(
+            String::from_utf8_lossy(&message.body)
+                .parse()
+                .expect("a number"),
+        );
+    }
+    got
+}
+
+async fn wait_status(shovel: &Shovel, what: &str, done: impl Fn(&ShovelStatus) -> bool) {
+    let mut watch = shovel.watch();
+    tokio::time::timeout(WAIT, watch.wait_for(|s| done(s)))
+        .await
+        .unwrap_or_else(|_| panic!("waited for {what}: {:?}", shovel.status()))
+        .expect("shovel alive");
+}
+
+/// Collects `count` messages from `queue` on the fleet broker, in order of
+/// arrival (duplicates kept).
+async fn collect(channel: &Channel, queue: &str, count: usize) -> Vec<u32> {
+    let mut got = Vec::new();
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while got.iter().collect::<std::collections::BTreeSet<_>>().len() < count {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{} distinct of {count}",
+            got.len()
+        );
+        let more = drain(channel, queue).await;
+        if more.is_empty() {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        got.extend(more);
+    }
+    got
+}
+
+fn shovel_config(dest_uris: &[String], destination: serde_json::Value) -> ShovelConfig {
+    let mut value = json!({
+        "src-uri": "amqp://", "src-queue": "telemetry", "src-prefetch-count": 50,
+        "dest-uri": dest_uris, "reconnect-delay": 0.1,
+    });
+    value
+        .as_object_mut()
+        .unwrap()
+        .extend(destination.as_object().unwrap().clone());
+    ShovelConfig::from_json(&value).expect("valid parameters")
+}
+
+#[both_runtimes]
+async fn nothing_confirmed_is_lost_across_a_destination_outage() {
+    let robot = Arc::new(Broker::builder().start().await.expect("robot broker"));
+    let (_local, publisher) = local_channel(&robot).await;
+    publisher.confirm_select().await.expect("confirms");
+    declare(&publisher, "telemetry", FieldTable::new()).await;
+    let addr = free_addr().await;
+    let dir = scratch("outage");
+    let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
+    let first = fleet(addr, &dir).await;
+    {
+        let (_c, ch) = channel_to(&fleet_uri).await;
+        declare(&ch, "fleet.telemetry", FieldTable::new()).await;
+    }
+    let shovel = Shovel::start(
+        "up",
+        shovel_config(
+            std::slice::from_ref(&fleet_uri),
+            json!({"dest-queue": "fleet.telemetry"}),
+        ),
+        Some(&robot),
+    );
+    publish_confirmed(&publisher, "telemetry", 0, 300).await;
+    wait_status(&shovel, "300 forwarded", |s| s.forwarded >= 300).await;
+
+    // The fleet broker goes away; the robot keeps publishing.
+    first.shutdown().await;
+    publish_confirmed(&publisher, "telemetry", 300, 600).await;
+    wait_status(&shovel, "the loss noticed", |s| {
+        s.state != ShovelState::Running
+    })
+    .await;
+    let second = fleet(addr, &dir).await;
+    wait_status(&shovel, "all forwarded", |s| s.forwarded >= 600).await;
+
+    let (_c, ch) = channel_to(&fleet_uri).await;
+    let got = collect(&ch, "fleet.telemetry", 600).await;
+    let distinct: std::collections::BTreeSet<u32> = got.iter().copied().collect();
+    assert_eq!(
+        distinct,
+        (0..600).collect(),
+        "every confirmed message arrived"
+    );
+    let mut last = None;
+    for n in got.iter().copied() {
+        assert!(last.is_none_or(|l| n > l || distinct.contains(&n)), "order");
+        last = Some(n);
+    }
+    let first_seen: Vec<u32> = {
+        let mut seen = std::collections::HashSet::new();
+        got.iter().copied().filter(|n| seen.insert(*n)).collect()
+    };
+    assert!(
+        first_seen.windows(2).all(|w| w[0] < w[1]),
+        "in order per source"
+    );
+    assert!(shovel.status().restarts >= 1);
+    shovel.stop().await;
+    second.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[both_runtimes]
+async fn a_refusing_destination_never_drains_the_source() {
+    let robot = Arc::new(Broker::builder().start().await.expect("robot broker"));
+    let (_local, publisher) = local_channel(&robot).await;
+    publisher.confirm_select().await.expect("confirms");
+    declare(&publisher, "telemetry", FieldTable::new()).await;
+    let addr = free_addr().await;
+    let dir = scratch("refusing");
+    let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
+    let _fleet = fleet(addr, &dir).await;
+    let (_c, fleet_channel) = channel_to(&fleet_uri).await;
+    let mut bounded = FieldTable::new();
+    bounded.insert(ShortStr::from_static("x-max-length"), FieldValue::I32(10));
+    bounded.insert(
+        ShortStr::from_static("x-overflow"),
+        FieldValue::string("reject-publish"),
+    );
+    declare(&fleet_channel, "bounded", bounded).await;
+    publish_confirmed(&publisher, "telemetry", 0, 50).await;
+    let shovel = Shovel::start(
+        "bounded",
+        shovel_config(
+            std::slice::from_ref(&fleet_uri),
+            json!({"dest-queue": "bounded"}),
+        ),
+        Some(&robot),
+    );
+    wait_status(&shovel, "a refusal", |s| s.refused >= 1).await;
+    assert_eq!(shovel.status().forwarded, 10);
+    // What the destination did not take stays on the robot (the first
+    // ten's acks may still be on their way to the robot's broker).
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while held_at_source(&robot) != 40 {
+        assert!(held_at_source(&robot) > 40, "the source was drained");
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{}",
+            held_at_source(&robot)
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(held_at_source(&robot), 40, "and stays there while refused");
+    assert!(
+        shovel.status().refused >= 2,
+        "tried again after reconnect-delay"
+    );
+    // Consuming at the destination makes room: the rest follows, each
+    // once. A refused message that is retried arrives after later ones
+    // the destination took meanwhile.
+    let mut got = collect(&fleet_channel, "bounded", 50).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    got.extend(drain(&fleet_channel, "bounded").await);
+    let mut sorted = got.clone();
+    sorted.sort_unstable();
+    assert_eq!(
+        sorted,
+        (0..50).collect::<Vec<_>>(),
+        "nothing lost, nothing twice"
+    );
+    assert_eq!(&got[..10], &(0..10).collect::<Vec<_>>()[..]);
+    shovel.stop().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Messages in the robot's `telemetry` queue, ready or held by the shovel.
+fn held_at_source(robot: &BrokerHandle) -> u64 {
+    robot
+        .queues()
+        .iter()
+        .find(|q| q.name == "telemetry")
+        .map_or(0, |q| q.messages_ready + q.messages_unacknowledged)
+}
+
+#[both_runtimes]
+async fn unroutable_messages_stay_and_a_dead_node_fails_over() {
+    let robot = Arc::new(Broker::builder().start().await.expect("robot broker"));
+    let (_local, publisher) = local_channel(&robot).await;
+    publisher.confirm_select().await.expect("confirms");
+    declare(&publisher, "telemetry", FieldTable::new()).await;
+    let addr = free_addr().await;
+    let dir = scratch("unroutable");
+    let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
+    let _fleet = fleet(addr, &dir).await;
+    let dead = format!("amqp://guest:guest@{}/%2f", free_addr().await);
+    publish_confirmed(&publisher, "telemetry", 0, 20).await;
+    let shovel = Shovel::start(
+        "routes",
+        shovel_config(
+            &[dead, fleet_uri.clone()],
+            json!({"dest-exchange": "amq.direct", "dest-exchange-key": "robots"}),
+        ),
+        Some(&robot),
+    );
+    wait_status(&shovel, "a return", |s| s.refused >= 1).await;
+    assert_eq!(
+        shovel.status().forwarded,
+        0,
+        "nothing routed, nothing acked"
+    );
+    let (_c, fleet_channel) = channel_to(&fleet_uri).await;
+    declare(&fleet_channel, "robots", FieldTable::new()).await;
+    fleet_channel
+        .queue_bind(
+            "robots",
+            "amq.direct",
+            "robots",
+            Default::default(),
+            FieldTable::new(),
+        )
+        .await
+        .expect("bind");
+    wait_status(&shovel, "all forwarded", |s| s.forwarded >= 20).await;
+    assert_eq!(
+        collect(&fleet_channel, "robots", 20).await,
+        (0..20).collect::<Vec<_>>()
+    );
+    assert!(shovel
+        .status()
+        .destination
+        .is_some_and(|d| d.contains(&addr.to_string())));
+    shovel.stop().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
