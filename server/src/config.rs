@@ -265,8 +265,8 @@ pub struct Settings {
     pub definitions: Option<PathBuf>,
     /// Start on a damaged store, keeping what is readable.
     pub recover: bool,
-    /// Shovels, by name.
-    pub shovels: Vec<(String, ShovelConfig)>,
+    /// Shovels, by name: RabbitMQ's JSON parameters, checked.
+    pub shovels: Vec<(String, serde_json::Value)>,
 }
 
 /// RabbitMQ's `ssl_options` from their parts: `verify` defaults to
@@ -393,8 +393,8 @@ impl Settings {
             .map(|(name, table)| {
                 let value = serde_json::to_value(table).map_err(|e| e.to_string());
                 value
-                    .and_then(|value| ShovelConfig::from_json(&value))
-                    .map(|config| (name.clone(), config))
+                    .and_then(|value| ShovelConfig::from_json(&value).map(|_| value))
+                    .map(|value| (name.clone(), value))
                     .map_err(|reason| ConfigError::Shovel {
                         name: name.clone(),
                         reason,
@@ -574,7 +574,10 @@ mod tests {
         .unwrap();
         assert_eq!(settings.shovels.len(), 1);
         assert_eq!(settings.shovels[0].0, "up");
-        assert_eq!(settings.shovels[0].1.dest_uris, ["amqp://a", "amqp://b"]);
+        assert_eq!(
+            settings.shovels[0].1["dest-uri"],
+            serde_json::json!(["amqp://a", "amqp://b"])
+        );
         let error = Settings::resolve(
             cli(&[]),
             file("[shovels.bad]\nsrc-uri = \"amqp://\"\ndest-uri = \"amqp://a\"\ndest-queue = \"f\"\n"),

@@ -6,15 +6,17 @@
 //! hashes, which are Leveret's own scheme; at start only, as users are
 //! fixed once the broker runs), exchanges, queues (with arguments) and
 //! bindings, permissions and topic permissions (enforced by the broker;
-//! a pattern its regex engine cannot run refuses the file), and users'
-//! tags (`tags`: what they may do in the management API).
+//! a pattern its regex engine cannot run refuses the file), users' tags
+//! (`tags`: what they may do in the management API), and shovels
+//! (`parameters` with component `shovel`, started by `uplink`).
 //! Everything else is reported, never dropped silently: policies,
-//! parameters, global parameters, unknown keys, other password hashing
+//! other parameters, global parameters, unknown keys, other password hashing
 //! algorithms, and queue types Leveret does not have (an `x-queue-type`
 //! other than classic gives a classic queue).
 
 use crate::management::json::{flag, table, text, to_table};
 use crate::tags::Tags;
+use crate::uplink::Shovels;
 use leveret_broker::{
     check_pattern, Admin, BindingSpec, BrokerBuilder, DestinationKind, ExchangeSettings,
     PasswordHash, Permission, QueueSettings, TopicPermission, UserLimits, LEVERET_ARGON2ID,
@@ -49,6 +51,9 @@ pub struct Definitions {
     pub permissions: Vec<(String, String, Permission)>,
     /// (user, vhost, exchange, topic permission).
     pub topic_permissions: Vec<(String, String, String, TopicPermission)>,
+    /// Shovels (`parameters` with component `shovel`): vhost, name and
+    /// RabbitMQ's JSON parameters, checked.
+    pub shovels: Vec<(String, String, Value)>,
     /// Users' tags (what they may do in the management API).
     pub tags: BTreeMap<String, Vec<String>>,
     /// Everything not applied, one line each.
@@ -66,6 +71,8 @@ pub struct Applied {
     pub queues: usize,
     /// Bindings added.
     pub bindings: usize,
+    /// Shovels started.
+    pub shovels: usize,
 }
 
 fn is_empty(value: &Value) -> bool {
@@ -190,7 +197,8 @@ impl Definitions {
             "product_name",
             "product_version",
         ];
-        const APPLIED: [&str; 7] = [
+        const APPLIED: [&str; 8] = [
+            "parameters",
             "vhosts",
             "users",
             "exchanges",
@@ -199,10 +207,9 @@ impl Definitions {
             "permissions",
             "topic_permissions",
         ];
-        const NOT_SUPPORTED: [(&str, &str); 4] = [
+        const NOT_SUPPORTED: [(&str, &str); 3] = [
             ("policies", "Leveret has no policies"),
             ("operator_policies", "Leveret has no policies"),
-            ("parameters", "Leveret has no runtime parameters"),
             ("global_parameters", "Leveret has no global parameters"),
         ];
         for (key, value) in root {
@@ -218,6 +225,22 @@ impl Definitions {
                 Some(_) => {}
                 None => d.warnings.push(format!("unknown key '{key}' ignored")),
             }
+        }
+        for item in list(root, "parameters")? {
+            let item = object(item, "parameters")?;
+            let component = name(item, "component", "a parameter")?;
+            let parameter = name(item, "name", "a parameter")?;
+            let vhost = vhost_of(item, "a parameter")?;
+            if component != "shovel" {
+                d.warnings.push(format!(
+                    "parameter {component} '{parameter}' in vhost '{vhost}' not imported: Leveret has shovel parameters only"
+                ));
+                continue;
+            }
+            let value = item.get("value").cloned().unwrap_or(Value::Null);
+            leveret_uplink::ShovelConfig::from_json(&value)
+                .map_err(|e| format!("shovel '{parameter}' in vhost '{vhost}': {e}"))?;
+            d.shovels.push((vhost, parameter, value));
         }
         for item in list(root, "vhosts")? {
             let item = object(item, "vhosts")?;
@@ -446,7 +469,12 @@ impl Definitions {
     /// Applies vhosts, exchanges, queues and bindings to a running broker,
     /// in that order; stops at the first that fails, naming it. Users are
     /// reported unless the broker already has them with the same hash.
-    pub async fn apply(&mut self, admin: &Admin, tags: &Tags) -> Result<Applied, String> {
+    pub async fn apply(
+        &mut self,
+        admin: &Admin,
+        tags: &Tags,
+        shovels: &Shovels,
+    ) -> Result<Applied, String> {
         let mut applied = Applied::default();
         tags.record(&self.tags);
         let existing = admin.users();
@@ -495,6 +523,13 @@ impl Definitions {
             applied.queues += 1;
             tokio::task::yield_now().await;
         }
+        for (vhost, name, parameters) in &self.shovels {
+            shovels
+                .start(vhost, name, parameters.clone())
+                .await
+                .map_err(|e| format!("shovel '{name}': {e}"))?;
+            applied.shovels += 1;
+        }
         for (vhost, binding) in &self.bindings {
             admin.bind(vhost, binding.clone()).await.map_err(|e| {
                 format!(
@@ -512,8 +547,8 @@ impl Definitions {
 /// One vhost's definitions, as RabbitMQ exports them: its exchanges,
 /// queues and bindings without their `vhost` key, and the empty policies
 /// and parameters.
-pub fn export_vhost(admin: &Admin, tags: &Tags, vhost: &str) -> Value {
-    let all = export(admin, tags);
+pub fn export_vhost(admin: &Admin, tags: &Tags, shovels: &Shovels, vhost: &str) -> Value {
+    let all = export(admin, tags, shovels);
     let only = |key: &str| -> Vec<Value> {
         all[key]
             .as_array()
@@ -534,7 +569,7 @@ pub fn export_vhost(admin: &Admin, tags: &Tags, vhost: &str) -> Value {
         "rabbitmq_version": all["rabbitmq_version"],
         "product_name": all["product_name"],
         "product_version": all["product_version"],
-        "parameters": [],
+        "parameters": only("parameters"),
         "policies": [],
         "queues": only("queues"),
         "exchanges": only("exchanges"),
@@ -546,7 +581,7 @@ pub fn export_vhost(admin: &Admin, tags: &Tags, vhost: &str) -> Value {
 /// their recorded tags, permissions, topic permissions, and the exchanges,
 /// queues and bindings a client declared (not the predefined exchanges,
 /// exclusive queues or the default exchange's implicit bindings).
-pub fn export(admin: &Admin, tags: &Tags) -> Value {
+pub fn export(admin: &Admin, tags: &Tags, shovels: &Shovels) -> Value {
     let vhosts = admin.vhosts();
     let users = admin.users();
     let exclusive: Vec<(String, String)> = admin
@@ -604,7 +639,9 @@ pub fn export(admin: &Admin, tags: &Tags) -> Value {
         "vhosts": vhosts.iter().map(|name| json!({"name": name})).collect::<Vec<_>>(),
         "permissions": permissions_json(admin),
         "topic_permissions": topic_permissions_json(admin),
-        "parameters": [],
+        "parameters": shovels.list().into_iter().map(|s| json!({
+            "value": s.parameters, "vhost": s.vhost, "component": "shovel", "name": s.name,
+        })).collect::<Vec<_>>(),
         "global_parameters": [],
         "policies": [],
         "queues": queues,

@@ -32,13 +32,13 @@ mod metrics;
 mod ops;
 mod process;
 mod tags;
+mod uplink;
 
 use clap::Parser;
 use cli::Cli;
 use config::{FileConfig, Settings};
 use definitions::Definitions;
 use leveret_broker::PasswordHash;
-use leveret_uplink::Shovel;
 use std::process::ExitCode;
 use std::sync::Arc;
 
@@ -95,7 +95,7 @@ async fn serve(settings: Settings) -> ExitCode {
     let shovel_configs = settings.shovels.clone();
     let tags = tags::Tags::default();
     tags.record(&settings.tags);
-    let mut definitions = match &settings.definitions {
+    let definitions = match &settings.definitions {
         None => None,
         Some(path) => {
             let parsed = std::fs::read(path)
@@ -121,18 +121,51 @@ async fn serve(settings: Settings) -> ExitCode {
         builder = definitions.configure(builder);
     }
     let handle = match builder.start().await {
-        Ok(handle) => handle,
+        Ok(handle) => Arc::new(handle),
         Err(e) => {
             tracing::error!(error = %e, "cannot start");
             return ExitCode::FAILURE;
         }
     };
-    if let Some(definitions) = &mut definitions {
-        match definitions.apply(&handle.admin(), &tags).await {
+    let shovels = uplink::Shovels::new(&handle);
+    let outcome = run(
+        &handle,
+        &shovels,
+        tags,
+        definitions,
+        shovel_configs,
+        ops_settings,
+    )
+    .await;
+    shovels.stop_all().await;
+    match Arc::try_unwrap(handle) {
+        Ok(handle) => handle.shutdown().await,
+        Err(_) => tracing::error!("the broker is still in use; stopping without a clean shutdown"),
+    }
+    outcome
+}
+
+/// Loads the definitions, starts the shovels and the operators' listeners,
+/// and serves until a signal says stop.
+async fn run(
+    handle: &Arc<leveret_broker::BrokerHandle>,
+    shovels: &uplink::Shovels,
+    tags: tags::Tags,
+    definitions: Option<Definitions>,
+    shovel_configs: Vec<(String, serde_json::Value)>,
+    ops_settings: ops::OpsSettings,
+) -> ExitCode {
+    for (name, parameters) in shovel_configs {
+        if let Err(e) = shovels.start("/", &name, parameters).await {
+            tracing::error!(shovel = %name, error = %e, "cannot start the shovel");
+            return ExitCode::FAILURE;
+        }
+    }
+    if let Some(mut definitions) = definitions {
+        match definitions.apply(&handle.admin(), &tags, shovels).await {
             Ok(applied) => tracing::info!(?applied, "definitions loaded"),
             Err(e) => {
                 tracing::error!(error = %e, "cannot load the definitions");
-                handle.shutdown().await;
                 return ExitCode::FAILURE;
             }
         }
@@ -140,29 +173,22 @@ async fn serve(settings: Settings) -> ExitCode {
             tracing::warn!(%warning, "definitions");
         }
     }
-    let ops = match ops::Ops::start(handle.admin(), tags, handle.local_addrs(), ops_settings) {
+    let ops = match ops::Ops::start(
+        handle.admin(),
+        tags,
+        shovels.clone(),
+        handle.local_addrs(),
+        ops_settings,
+    ) {
         Ok(ops) => ops,
         Err(e) => {
             tracing::error!(error = %e, "cannot start");
-            handle.shutdown().await;
             return ExitCode::FAILURE;
         }
     };
-    let handle = Arc::new(handle);
-    let shovels: Vec<Shovel> = shovel_configs
-        .into_iter()
-        .map(|(name, config)| Shovel::start(&name, config, Some(&handle)))
-        .collect();
-    wait_for_signal(&handle).await;
+    wait_for_signal(handle).await;
     tracing::info!("shutting down");
     ops.stop();
-    for shovel in shovels {
-        shovel.stop().await;
-    }
-    match Arc::try_unwrap(handle) {
-        Ok(handle) => handle.shutdown().await,
-        Err(_) => tracing::error!("the broker is still in use; stopping without a clean shutdown"),
-    }
     ExitCode::SUCCESS
 }
 

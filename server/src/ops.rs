@@ -9,6 +9,7 @@
 use crate::management::Rates;
 use crate::metrics::MetricsContext;
 use crate::tags::Tags;
+use crate::uplink::Shovels;
 use leveret_broker::Admin;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -67,6 +68,7 @@ impl Ops {
     pub fn start(
         admin: Admin,
         tags: Tags,
+        shovels: Shovels,
         amqp_listeners: &[SocketAddr],
         settings: OpsSettings,
     ) -> Result<Ops, OpsError> {
@@ -88,6 +90,7 @@ impl Ops {
         let management = crate::management::Context {
             admin: admin.clone(),
             tags,
+            shovels,
             node,
             data_dir: settings.data_dir,
             amqp_listeners: amqp_listeners.to_vec(),

@@ -215,7 +215,7 @@ async fn export_then_import_into_a_fresh_broker_keeps_the_topology() {
     let report: Value = serde_json::from_slice(&imported.body).unwrap();
     assert_eq!(
         report["applied"],
-        json!({"vhosts": 0, "exchanges": 2, "queues": 1, "bindings": 2})
+        json!({"vhosts": 0, "exchanges": 2, "queues": 1, "bindings": 2, "shovels": 0})
     );
     let again = get_json(second.http, "guest", "guest", "/api/definitions").await;
     for key in ["queues", "exchanges", "bindings", "vhosts", "permissions"] {

@@ -139,3 +139,119 @@ async fn a_configured_shovel_forwards_everything_confirmed_across_kill_9() {
     second.shutdown().await;
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// Shovels through the management API, as RabbitMQ's dynamic shovels:
+/// `PUT /api/parameters/shovel/VHOST/NAME` starts one, `/api/shovels`
+/// lists it running, the definitions export carries it as a parameter
+/// that another broker's import starts, and DELETE stops it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
+    use common::ops::{basic, request, OpsBroker};
+    use serde_json::{json, Value};
+    let root = std::env::temp_dir().join(format!("leveret-uplink-api-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let addr = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("free port");
+    let fleet_url = format!("amqp://guest:guest@{addr}/%2f");
+    let fleet_broker = fleet(addr, &root.join("fleet")).await;
+    let robot = OpsBroker::start("uplink-api", &[]);
+    let auth = basic("guest", "guest");
+    let headers = [
+        ("Authorization", auth.as_str()),
+        ("Content-Type", "application/json"),
+    ];
+    let parameters = json!({"value": {
+        "src-uri": "amqp://", "src-exchange": "amq.topic", "src-exchange-key": "pose.#",
+        "dest-uri": fleet_url, "dest-queue": "poses", "reconnect-delay": 0.1,
+    }});
+    let put = request(
+        robot.http,
+        "PUT",
+        "/api/parameters/shovel/%2F/poses",
+        &headers,
+        parameters.to_string().as_bytes(),
+    )
+    .await;
+    assert_eq!(put.status, 201, "{}", put.text());
+    let bad = request(
+        robot.http,
+        "PUT",
+        "/api/parameters/shovel/%2F/bad",
+        &headers,
+        br#"{"value": {"src-uri": "amqp://"}}"#,
+    )
+    .await;
+    assert_eq!(bad.status, 400, "{}", bad.text());
+
+    // The shovel's own queue on the robot takes amq.topic's pose.# messages.
+    let fleet_conn = Connection::connect(&fleet_url, ConnectionProperties::default())
+        .await
+        .expect("fleet");
+    let fleet_ch = fleet_conn.create_channel().await.expect("channel");
+    fleet_ch
+        .queue_declare("poses", durable(), FieldTable::default())
+        .await
+        .expect("declare");
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    loop {
+        let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
+        let listed: Value = serde_json::from_slice(&listed.body).expect("JSON");
+        if listed[0]["state"] == "running" {
+            assert_eq!(listed[0]["name"], "poses");
+            assert_eq!(listed[0]["src_exchange"], "amq.topic");
+            break;
+        }
+        assert!(std::time::Instant::now() < deadline, "{listed}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let robot_conn = Connection::connect(&robot.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("robot");
+    let robot_ch = robot_conn.create_channel().await.expect("channel");
+    robot_ch
+        .basic_publish(
+            "amq.topic",
+            "pose.arm",
+            BasicPublishOptions::default(),
+            b"p1",
+            BasicProperties::default(),
+        )
+        .await
+        .expect("publish");
+    let mut consumer = fleet_ch
+        .basic_consume(
+            "poses",
+            "c",
+            BasicConsumeOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("consume");
+    let delivery = tokio::time::timeout(Duration::from_secs(20), consumer.next())
+        .await
+        .expect("forwarded")
+        .expect("open")
+        .expect("delivery");
+    assert_eq!(delivery.data, b"p1");
+
+    let exported = request(robot.http, "GET", "/api/definitions", &headers, b"").await;
+    let exported: Value = serde_json::from_slice(&exported.body).expect("JSON");
+    assert_eq!(exported["parameters"][0]["component"], "shovel");
+    assert_eq!(exported["parameters"][0]["value"]["dest-queue"], "poses");
+
+    let deleted = request(
+        robot.http,
+        "DELETE",
+        "/api/parameters/shovel/%2F/poses",
+        &headers,
+        b"",
+    )
+    .await;
+    assert_eq!(deleted.status, 204, "{}", deleted.text());
+    let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
+    assert_eq!(listed.text(), "[]");
+    drop(robot);
+    fleet_broker.shutdown().await;
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -76,6 +76,13 @@ pub struct ShovelConfig {
     /// Wait before reconnecting, and after the destination refused a
     /// message (`reconnect-delay`, default 5 s).
     pub reconnect_delay: Duration,
+    /// Body bytes forwarded per second at most (Leveret's
+    /// `bandwidth-limit`; none by default): a link that comes back after an
+    /// outage does not flood the collector or a cellular link.
+    pub bandwidth_limit: Option<u64>,
+    /// Messages forwarded per second at most (Leveret's
+    /// `message-rate-limit`; none by default).
+    pub message_rate_limit: Option<u64>,
 }
 
 fn text<'a>(object: &'a Map<String, Value>, key: &str) -> Result<Option<&'a str>, String> {
@@ -128,6 +135,8 @@ impl ShovelConfig {
                 "dest-add-forward-headers",
                 "ack-mode",
                 "reconnect-delay",
+                "bandwidth-limit",
+                "message-rate-limit",
             ];
             if !known.contains(&key.as_str()) {
                 return Err(format!("{key} is not supported"));
@@ -188,7 +197,19 @@ impl ShovelConfig {
             Some(Value::Bool(b)) => *b,
             Some(_) => return Err("dest-add-forward-headers must be true or false".into()),
         };
+        let limit = |key: &str| -> Result<Option<u64>, String> {
+            match object.get(key) {
+                None | Some(Value::Null) => Ok(None),
+                Some(n) => n
+                    .as_u64()
+                    .filter(|n| *n > 0)
+                    .map(Some)
+                    .ok_or_else(|| format!("{key} must be a positive integer")),
+            }
+        };
         Ok(ShovelConfig {
+            bandwidth_limit: limit("bandwidth-limit")?,
+            message_rate_limit: limit("message-rate-limit")?,
             src_uri: uris(object, "src-uri")?.remove(0),
             source,
             prefetch,
@@ -239,6 +260,19 @@ mod tests {
             }
         );
         assert_eq!(exchange.ack_mode, AckMode::OnPublish);
+        assert_eq!(
+            (exchange.bandwidth_limit, exchange.message_rate_limit),
+            (None, None)
+        );
+        let limited = ShovelConfig::from_json(&json!({
+            "src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q",
+            "bandwidth-limit": 32000, "message-rate-limit": 100,
+        }))
+        .unwrap();
+        assert_eq!(
+            (limited.bandwidth_limit, limited.message_rate_limit),
+            (Some(32000), Some(100))
+        );
     }
 
     #[test]
@@ -263,6 +297,10 @@ mod tests {
             (
                 json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "dest-protocol": "amqp10"}),
                 "amqp091",
+            ),
+            (
+                json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "bandwidth-limit": 0}),
+                "positive",
             ),
         ] {
             let error = ShovelConfig::from_json(&value).unwrap_err();

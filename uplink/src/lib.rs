@@ -6,12 +6,14 @@
 //! fail over between the cluster's nodes, and never let a refusing
 //! destination drain the source.
 //!
-//! Layout: `config.rs` the parameters, `shovel.rs` the running shovel.
+//! Layout: `config.rs` the parameters, `shovel.rs` the running shovel,
+//! `pace.rs` its rate limits.
 //! Uses the broker's embedding API (for in-process local connections) and
 //! the client crate.
 #![deny(missing_docs)]
 
 mod config;
+mod pace;
 mod shovel;
 
 pub use config::{AckMode, Destination, ShovelConfig, Source};

@@ -15,12 +15,13 @@
 //! and a counter), which is how returns are matched to publishes.
 //!
 //! After a failure the shovel waits `reconnect-delay`, doubling per failed
-//! attempt up to 30 times it and at most a minute, with up to 25% jitter,
+//! attempt up to 4 s (or `reconnect-delay` if longer), with up to 25% jitter,
 //! and tries the destination URIs in turn starting after the last one that
 //! failed. Uses the client crate for both ends (the local broker in
 //! process), nothing else of the broker.
 
 use crate::config::{AckMode, Destination, ShovelConfig, Source};
+use crate::pace::Pace;
 use leveret_broker::BrokerHandle;
 use leveret_client::{
     BasicAckOptions, BasicConsumeOptions, BasicNackOptions, BasicProperties, BasicPublishOptions,
@@ -323,6 +324,8 @@ impl Link {
             s.state = ShovelState::Running;
             s.destination = Some(destination);
         });
+        let mut bandwidth = self.config.bandwidth_limit.map(Pace::new);
+        let mut message_rate = self.config.message_rate_limit.map(Pace::new);
         let mut inflight: VecDeque<InFlight> = VecDeque::new();
         let mut returned: HashSet<String> = HashSet::new();
         let mut counter: u64 = 0;
@@ -370,6 +373,12 @@ impl Link {
                     let Some(delivery) = delivery else {
                         return Err(Ended::Failed(format!("the source stopped delivering from {queue}")));
                     };
+                    if let Some(pace) = &mut message_rate {
+                        pace.take(1).await;
+                    }
+                    if let Some(pace) = &mut bandwidth {
+                        pace.take(delivery.body.len() as u64).await;
+                    }
                     counter += 1;
                     let seq = format!("{}:{}:{}", self.name, self.epoch, counter);
                     let (exchange, key) = match &self.config.destination {
@@ -469,13 +478,16 @@ fn seq_of(properties: &BasicProperties) -> Option<String> {
         .map(str::to_owned)
 }
 
-/// `base` doubled per failure (at most 30 times `base` and a minute),
-/// plus up to 25% jitter.
+/// The longest wait between attempts when `reconnect-delay` is shorter:
+/// a link that comes back is used within about this long.
+const BACKOFF_CEILING: Duration = Duration::from_secs(4);
+
+/// `base` doubled per failure up to [`BACKOFF_CEILING`] (or `base` when
+/// longer), plus up to 25% jitter: a drain starts within 5 s of the link
+/// coming back unless `reconnect-delay` asks for longer.
 fn backoff(base: Duration, failures: u32) -> Duration {
-    let doubled = base.saturating_mul(1 << failures.saturating_sub(1).min(5));
-    let capped = doubled
-        .min(base.saturating_mul(30))
-        .min(Duration::from_secs(60));
+    let doubled = base.saturating_mul(1 << failures.saturating_sub(1).min(16));
+    let capped = doubled.min(base.max(BACKOFF_CEILING));
     let jitter = {
         use std::hash::{BuildHasher, Hasher};
         let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
@@ -505,13 +517,15 @@ mod tests {
         let base = Duration::from_millis(100);
         for failures in 1..40 {
             let delay = backoff(base, failures);
-            let plain = base * (1u32 << (failures - 1).min(5));
-            let plain = plain.min(base * 30);
+            let plain = base * (1u32 << (failures - 1).min(16));
+            let plain = plain.min(BACKOFF_CEILING);
             assert!(
                 delay >= plain && delay <= plain + plain / 4,
                 "{failures}: {delay:?}"
             );
         }
-        assert!(backoff(Duration::from_secs(10), 10) <= Duration::from_secs(75));
+        assert!(backoff(Duration::from_secs(1), 30) <= Duration::from_secs(5));
+        let long = Duration::from_secs(10);
+        assert!(backoff(long, 10) >= long && backoff(long, 10) <= long + long / 4);
     }
 }

@@ -332,3 +332,49 @@ async fn unroutable_messages_stay_and_a_dead_node_fails_over() {
     shovel.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `bandwidth-limit` holds: 200 kB of bodies at 100 kB/s take at least
+/// 1.9 s less 10% (the first tenth of a second is a burst), however fast
+/// the link.
+#[both_runtimes]
+async fn the_bandwidth_cap_holds() {
+    let robot = Arc::new(Broker::builder().start().await.expect("robot broker"));
+    let (_local, publisher) = local_channel(&robot).await;
+    publisher.confirm_select().await.expect("confirms");
+    declare(&publisher, "telemetry", FieldTable::new()).await;
+    for _ in 0..100 {
+        publisher
+            .basic_publish(
+                "",
+                "telemetry",
+                BasicPublishOptions::default(),
+                BasicProperties::default(),
+                vec![7u8; 2000].into(),
+            )
+            .await
+            .expect("publish")
+            .await
+            .expect("confirm");
+    }
+    let addr = free_addr().await;
+    let dir = scratch("bandwidth");
+    let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
+    let _fleet = fleet(addr, &dir).await;
+    let (_c, fleet_channel) = channel_to(&fleet_uri).await;
+    declare(&fleet_channel, "paced", FieldTable::new()).await;
+    let mut config = shovel_config(
+        std::slice::from_ref(&fleet_uri),
+        json!({"dest-queue": "paced"}),
+    );
+    config.bandwidth_limit = Some(100_000);
+    let started = tokio::time::Instant::now();
+    let shovel = Shovel::start("paced", config, Some(&robot));
+    wait_status(&shovel, "all forwarded", |s| s.forwarded >= 100).await;
+    let elapsed = started.elapsed();
+    assert!(
+        elapsed >= Duration::from_millis(1710),
+        "200 kB at 100 kB/s took {elapsed:?}"
+    );
+    shovel.stop().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}

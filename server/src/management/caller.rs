@@ -4,8 +4,8 @@
 //! `policymaker` see and change only the vhosts they have a permission on,
 //! and only their own connections. A user without any of these tags cannot
 //! log in to the API (401 `Not management user`); users, permissions,
-//! definitions, vhost changes and closing connections are the
-//! administrator's (401 `Not administrator user`). Uses the broker's
+//! definitions, vhost changes, closing connections and shovels
+//! (parameters) are the administrator's (401 `Not administrator user`). Uses the broker's
 //! permissions through `Admin` and the recorded tags (`tags`).
 
 use super::ApiError;
@@ -128,8 +128,7 @@ impl Caller {
         let admin_only = matches!(
             first,
             "users" | "permissions" | "topic-permissions" | "definitions"
-        ) || (first == "vhosts" && !reads)
-            || (first == "connections" && !reads);
+        ) || (matches!(first, "vhosts" | "connections" | "parameters") && !reads);
         if admin_only {
             return Err(not_authorised("Not administrator user"));
         }

@@ -834,7 +834,7 @@ pub async fn alarms(State(c): Ctx) -> Response {
 }
 
 pub async fn definitions(State(c): Ctx) -> Json<Value> {
-    Json(crate::definitions::export(&c.admin, &c.tags))
+    Json(crate::definitions::export(&c.admin, &c.tags, &c.shovels))
 }
 
 /// Imports a definitions document; answers what was applied and what was
@@ -846,7 +846,7 @@ pub async fn import_definitions(State(c): Ctx, body: Bytes) -> ApiResult<Json<Va
 pub async fn vhost_definitions(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
     Ok(Json(crate::definitions::export_vhost(
-        &c.admin, &c.tags, &vhost,
+        &c.admin, &c.tags, &c.shovels, &vhost,
     )))
 }
 
@@ -863,7 +863,7 @@ pub async fn import_vhost_definitions(
 async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json<Value>> {
     let mut definitions = Definitions::parse_into(body, vhost).map_err(ApiError::bad_request)?;
     let applied = definitions
-        .apply(&c.admin, &c.tags)
+        .apply(&c.admin, &c.tags, &c.shovels)
         .await
         .map_err(ApiError::bad_request)?;
     for warning in &definitions.warnings {
@@ -875,6 +875,7 @@ async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json
             "exchanges": applied.exchanges,
             "queues": applied.queues,
             "bindings": applied.bindings,
+            "shovels": applied.shovels,
         },
         "warnings": definitions.warnings,
     })))
@@ -927,4 +928,66 @@ pub async fn exchange_bindings_destination(
 /// connections, alarms; it refreshes itself from the API.
 pub async fn status_page() -> axum::response::Html<&'static str> {
     axum::response::Html(include_str!("status.html"))
+}
+
+/// RabbitMQ's shovel-management listing: each shovel's name, vhost,
+/// state and ends (URIs without credentials), and Leveret's counts.
+pub async fn shovels(State(c): Ctx) -> Json<Value> {
+    Json(Value::Array(
+        c.shovels
+            .list()
+            .into_iter()
+            .map(|s| json::shovel(&s, &c.node))
+            .collect(),
+    ))
+}
+
+fn shovel_named(c: &Context, vhost: &str, name: &str) -> ApiResult<crate::uplink::Listed> {
+    c.shovels
+        .list()
+        .into_iter()
+        .find(|s| s.name == name && s.vhost == vhost)
+        .ok_or_else(|| ApiError::not_found(format!("no shovel '{name}' in vhost '{vhost}'")))
+}
+
+/// A shovel's parameters, as RabbitMQ's `GET /api/parameters/shovel/VHOST/NAME`.
+pub async fn shovel_parameter(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    let shovel = shovel_named(&c, &vhost, &name)?;
+    Ok(Json(
+        json!({"value": shovel.parameters, "vhost": vhost, "component": "shovel", "name": name}),
+    ))
+}
+
+/// Starts (or replaces) a shovel: RabbitMQ's
+/// `PUT /api/parameters/shovel/VHOST/NAME` with `{"value": {...}}`.
+pub async fn put_shovel(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+    body: Bytes,
+) -> ApiResult {
+    require_vhost(&c, &vhost)?;
+    let body = body_object(&body)?;
+    let value = body
+        .get("value")
+        .cloned()
+        .ok_or_else(|| ApiError::bad_request("a shovel parameter needs a 'value'"))?;
+    let existed = shovel_named(&c, &vhost, &name).is_ok();
+    c.shovels
+        .start(&vhost, &name, value)
+        .await
+        .map_err(ApiError::bad_request)?;
+    Ok(created_or_not(!existed))
+}
+
+/// Stops and removes a shovel.
+pub async fn delete_shovel(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult {
+    shovel_named(&c, &vhost, &name)?;
+    c.shovels.remove(&name).await;
+    Ok(no_content())
 }

@@ -386,6 +386,53 @@ pub fn consumer(c: &ConsumerInfo, peer: &str, node: &str) -> Value {
     })
 }
 
+/// A shovel as RabbitMQ's shovel-management plugin lists it (`type`
+/// dynamic, `state` starting, running, blocked or terminated, the ends),
+/// with Leveret's counts and last error.
+pub fn shovel(s: &crate::uplink::Listed, node: &str) -> Value {
+    use leveret_uplink::ShovelState;
+    let state = match s.status.state {
+        ShovelState::Connecting => "starting",
+        ShovelState::Running => "running",
+        ShovelState::Blocked => "blocked",
+        ShovelState::Terminated => "terminated",
+    };
+    let p = &s.parameters;
+    let mut out = json!({
+        "node": node,
+        "name": s.name,
+        "vhost": s.vhost,
+        "type": "dynamic",
+        "state": state,
+        "src_protocol": "amqp091",
+        "dest_protocol": "amqp091",
+        "src_uri": hide_password(p["src-uri"].as_str().unwrap_or("")),
+        "dest_uri": s.status.destination,
+        "forwarded": s.status.forwarded,
+        "refused": s.status.refused,
+        "restarts": s.status.restarts,
+        "reason": s.status.last_error,
+    });
+    for key in ["src-queue", "src-exchange", "dest-queue", "dest-exchange"] {
+        if let Some(value) = p.get(key) {
+            out[key.replace('-', "_")] = value.clone();
+        }
+    }
+    out
+}
+
+/// A URI without its password.
+fn hide_password(uri: &str) -> String {
+    match (uri.split_once("://"), uri.rfind('@')) {
+        (Some((scheme, rest)), Some(at)) if rest.contains('@') => {
+            let userinfo = &uri[scheme.len() + 3..at];
+            let user = userinfo.split(':').next().unwrap_or("");
+            format!("{scheme}://{user}@{}", &uri[at + 1..])
+        }
+        _ => uri.to_owned(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -20,6 +20,7 @@ pub mod json;
 mod rates;
 
 use crate::tags::Tags;
+use crate::uplink::Shovels;
 use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::middleware::Next;
@@ -45,6 +46,8 @@ pub struct Context {
     pub admin: Admin,
     /// Users' tags from imported definitions.
     pub tags: Tags,
+    /// The running shovels.
+    pub shovels: Shovels,
     /// `leveret@HOST`.
     pub node: String,
     /// Where durable state lives (disk figures).
@@ -245,6 +248,13 @@ pub fn router(context: Context) -> Router {
             get(h::vhost_definitions).post(h::import_vhost_definitions),
         )
         .route("/api/aliveness-test/{vhost}", get(h::aliveness_test))
+        .route("/api/shovels", get(h::shovels))
+        .route(
+            "/api/parameters/shovel/{vhost}/{name}",
+            get(h::shovel_parameter)
+                .put(h::put_shovel)
+                .delete(h::delete_shovel),
+        )
         .route("/api/health/checks/alarms", get(h::alarms))
         .fallback(h::unknown)
         .route_layer(axum::middleware::from_fn_with_state(
