@@ -58,6 +58,8 @@
 //! - `message`: [`Delivery`], [`GetMessage`], [`ReturnedMessage`], [`IntoShortStr`].
 //! - `options`: the `…Options` structs of the channel methods.
 //! - `error`: [`Error`] and [`CloseReason`].
+//! - `dedupe`: [`Dedupe`], dropping the duplicates at-least-once
+//!   forwarding (the uplink's shovels) can produce.
 //! - [`ports`]: typed robot data ports (OpenRTM-aist style out-ports and
 //!   in-ports) with reconnection, resend and duplicate suppression.
 #![deny(missing_docs)]
@@ -67,6 +69,7 @@ mod channel;
 mod confirm;
 mod connection;
 mod consumer;
+mod dedupe;
 mod error;
 mod message;
 mod options;
@@ -77,6 +80,7 @@ pub use channel::{Channel, QueueInfo};
 pub use confirm::{ConfirmFuture, Confirmation, PublishConfirm};
 pub use connection::{Connection, Tuning};
 pub use consumer::{Consumer, ConsumerEnd, Returns, DEFAULT_CONSUMER_BUFFER, RETURNS_BUFFER};
+pub use dedupe::{identity, Dedupe};
 pub use error::{CloseReason, Error, Result};
 pub use message::{Delivery, GetMessage, IntoShortStr, ReturnedMessage};
 pub use options::*;

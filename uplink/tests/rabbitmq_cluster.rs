@@ -12,7 +12,7 @@
 
 use leveret_broker::Broker;
 use leveret_client::{
-    BasicGetOptions, BasicProperties, BasicPublishOptions, Channel, Connection, FieldTable,
+    BasicGetOptions, BasicProperties, BasicPublishOptions, Channel, Connection, Dedupe, FieldTable,
     FieldValue, QueueDeclareOptions, ShortStr,
 };
 use leveret_uplink::{Shovel, ShovelConfig};
@@ -141,20 +141,25 @@ fn rabbitmq_installed() -> bool {
     false
 }
 
-async fn get_all(channel: &Channel) -> Vec<u32> {
+/// Every message in the quorum queue, and how many the client's
+/// `Dedupe` (keyed by the publisher's message ids) let through.
+async fn get_all(channel: &Channel) -> (Vec<u32>, usize) {
     let mut got = Vec::new();
+    let mut dedupe = Dedupe::new(10_000);
+    let mut unique = 0;
     while let Some(message) = channel
         .basic_get("telemetry", BasicGetOptions { no_ack: true })
         .await
         .expect("get")
     {
+        unique += usize::from(dedupe.first_time(&message.delivery.properties));
         got.push(
             String::from_utf8_lossy(&message.body)
                 .parse()
                 .expect("number"),
         );
     }
-    got
+    (got, unique)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -224,6 +229,7 @@ async fn into_a_quorum_queue_of_a_three_node_cluster_across_a_node_loss() {
             for n in from..to {
                 let properties = BasicProperties {
                     delivery_mode: Some(2),
+                    message_id: ShortStr::try_from(format!("m-{n}")).ok(),
                     ..Default::default()
                 };
                 let confirm = publisher
@@ -278,7 +284,8 @@ async fn into_a_quorum_queue_of_a_three_node_cluster_across_a_node_loss() {
         .await
         .expect("another node");
     let channel = conn.open_channel().await.expect("channel");
-    let got = get_all(&channel).await;
+    let (got, unique) = get_all(&channel).await;
+    assert_eq!(unique, 2000, "after the client's Dedupe, each message once");
     let distinct: BTreeSet<u32> = got.iter().copied().collect();
     assert_eq!(distinct, (0..2000).collect(), "nothing lost");
     let mut seen = BTreeSet::new();
