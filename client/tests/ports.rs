@@ -19,12 +19,11 @@ use leveret_client::ports::{
     TimedLong, TimedPose2D, TimedString, TimedVelocity2D, Velocity2D,
 };
 use leveret_client::{FieldValue, ShortStr};
+use leveret_tests::fault_proxy::FaultProxy as Proxy;
 use std::fmt::Debug;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-use tokio::net::{TcpListener, TcpStream};
-use tokio::task::AbortHandle;
 
 /// The broker the port tests use.
 struct Env {
@@ -562,71 +561,6 @@ async fn restart(addr: SocketAddr, dir: &std::path::Path) -> BrokerHandle {
         .start()
         .await
         .expect("restart on the same port and data directory")
-}
-
-/// A loopback TCP proxy whose connections can all be cut at once.
-struct Proxy {
-    addr: SocketAddr,
-    connections: Arc<Mutex<Vec<AbortHandle>>>,
-    accept: tokio::task::JoinHandle<()>,
-}
-
-impl Proxy {
-    async fn start(upstream: SocketAddr) -> Proxy {
-        Proxy::start_at("127.0.0.1:0".parse().unwrap(), upstream).await
-    }
-
-    /// A proxy listening on `addr` (a port 0 picks one).
-    async fn start_at(addr: SocketAddr, upstream: SocketAddr) -> Proxy {
-        let listener = TcpListener::bind(addr).await.expect("bind");
-        let addr = listener.local_addr().unwrap();
-        let connections = Arc::new(Mutex::new(Vec::new()));
-        let tracked = Arc::clone(&connections);
-        let accept = tokio::spawn(async move {
-            while let Ok((mut inbound, _)) = listener.accept().await {
-                let relay = tokio::spawn(async move {
-                    let Ok(mut outbound) = TcpStream::connect(upstream).await else {
-                        return;
-                    };
-                    let _ = tokio::io::copy_bidirectional(&mut inbound, &mut outbound).await;
-                });
-                tracked.lock().unwrap().push(relay.abort_handle());
-            }
-        });
-        Proxy {
-            addr,
-            connections,
-            accept,
-        }
-    }
-
-    /// Drops every relayed connection (both sockets close); new ones are
-    /// still accepted.
-    fn cut(&self) -> usize {
-        let connections = std::mem::take(&mut *self.connections.lock().unwrap());
-        for connection in &connections {
-            connection.abort();
-        }
-        connections.len()
-    }
-}
-
-impl Proxy {
-    /// Stops listening (the port is free again on return) and cuts every
-    /// connection: the broker is unreachable until a proxy listens on the
-    /// address again.
-    async fn stop(&mut self) {
-        self.accept.abort();
-        let _ = (&mut self.accept).await;
-        self.cut();
-    }
-}
-
-impl Drop for Proxy {
-    fn drop(&mut self) {
-        self.accept.abort();
-        self.cut();
-    }
 }
 
 #[tokio::test]

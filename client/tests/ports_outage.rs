@@ -12,13 +12,11 @@ use leveret_client::ports::{
     Time, TimedLong,
 };
 use leveret_client::{FieldValue, ShortStr};
+use leveret_tests::fault_proxy::FaultProxy as Proxy;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::{TcpListener, TcpStream};
-use tokio::sync::watch;
-use tokio::task::AbortHandle;
+use tokio::net::TcpListener;
 
 /// An embedded Leveret on a loopback port.
 async fn leveret() -> (BrokerHandle, SocketAddr) {
@@ -29,112 +27,6 @@ async fn leveret() -> (BrokerHandle, SocketAddr) {
         .expect("start an embedded Leveret");
     let addr = handle.local_addrs()[0];
     (handle, addr)
-}
-
-/// A loopback TCP proxy that can freeze (stop forwarding in both
-/// directions while keeping every socket open, as a stopped broker
-/// process does) and cut its connections.
-struct Proxy {
-    addr: SocketAddr,
-    frozen: watch::Sender<bool>,
-    connections: Arc<Mutex<Vec<AbortHandle>>>,
-    accept: tokio::task::JoinHandle<()>,
-}
-
-impl Proxy {
-    async fn start(upstream: SocketAddr) -> Proxy {
-        Proxy::start_at("127.0.0.1:0".parse().unwrap(), upstream).await
-    }
-
-    /// A proxy listening on `addr` (port 0 picks one).
-    async fn start_at(addr: SocketAddr, upstream: SocketAddr) -> Proxy {
-        let listener = TcpListener::bind(addr).await.expect("bind");
-        let addr = listener.local_addr().unwrap();
-        let (frozen, _) = watch::channel(false);
-        let connections = Arc::new(Mutex::new(Vec::new()));
-        let tracked = Arc::clone(&connections);
-        let gate = frozen.clone();
-        let accept = tokio::spawn(async move {
-            while let Ok((inbound, _)) = listener.accept().await {
-                let gate = gate.subscribe();
-                let relay = tokio::spawn(async move {
-                    let Ok(outbound) = TcpStream::connect(upstream).await else {
-                        return;
-                    };
-                    let (in_read, in_write) = inbound.into_split();
-                    let (out_read, out_write) = outbound.into_split();
-                    tokio::join!(
-                        forward(in_read, out_write, gate.clone()),
-                        forward(out_read, in_write, gate)
-                    );
-                });
-                tracked.lock().unwrap().push(relay.abort_handle());
-            }
-        });
-        Proxy {
-            addr,
-            frozen,
-            connections,
-            accept,
-        }
-    }
-
-    fn freeze(&self, frozen: bool) {
-        self.frozen.send_replace(frozen);
-    }
-
-    /// Drops every relayed connection (both sockets close).
-    fn cut(&self) -> usize {
-        let connections = std::mem::take(&mut *self.connections.lock().unwrap());
-        for connection in &connections {
-            connection.abort();
-        }
-        connections.len()
-    }
-}
-
-impl Proxy {
-    /// Stops listening (the port is free again on return) and cuts every
-    /// connection: the broker is unreachable until a proxy listens on the
-    /// address again.
-    async fn stop(&mut self) {
-        self.accept.abort();
-        let _ = (&mut self.accept).await;
-        self.cut();
-    }
-}
-
-impl Drop for Proxy {
-    fn drop(&mut self) {
-        self.accept.abort();
-        self.cut();
-    }
-}
-
-/// Copies `from` to `to`, reading nothing while the gate is frozen.
-async fn forward(
-    mut from: tokio::net::tcp::OwnedReadHalf,
-    mut to: tokio::net::tcp::OwnedWriteHalf,
-    mut gate: watch::Receiver<bool>,
-) {
-    let mut buf = vec![0u8; 16 * 1024];
-    loop {
-        if gate.wait_for(|frozen| !frozen).await.is_err() {
-            return;
-        }
-        let n = tokio::select! {
-            read = from.read(&mut buf) => match read {
-                Ok(0) | Err(_) => return,
-                Ok(n) => n,
-            },
-            _ = gate.wait_for(|frozen| *frozen) => continue,
-        };
-        // Bytes read before a freeze are still delivered (as the kernel
-        // would have them in the stopped process's socket buffer).
-        if to.write_all(&buf[..n]).await.is_err() {
-            return;
-        }
-    }
 }
 
 fn profile(addr: SocketAddr) -> PortProfile {

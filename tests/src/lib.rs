@@ -18,7 +18,9 @@
 //! application.
 //!
 //! [`driver`] is the scripted adversarial peer behind the broker-level fuzz
-//! target and the corpus replay test.
+//! target and the corpus replay test; [`fault_proxy`] injects a link's
+//! faults (freeze, cut, latency, a bandwidth cap, a cut mid-frame) for the
+//! client's and the uplink's tests.
 
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
@@ -31,6 +33,7 @@ use leveret_broker::{Broker, BrokerBuilder, BrokerHandle};
 pub use leveret_test_macros::both_runtimes;
 
 pub mod driver;
+pub mod fault_proxy;
 
 /// The environment variable naming an external broker to test against.
 pub const URL_ENV: &str = "LEVERET_TEST_AMQP_URL";
