@@ -94,6 +94,11 @@ impl FaultProxy {
         self.faults.send_modify(change);
     }
 
+    /// The faults in force (a spent `cut_after` reads `Some(0)`).
+    pub fn faults(&self) -> Faults {
+        self.faults.borrow().clone()
+    }
+
     /// Freezes or thaws the link.
     pub fn freeze(&self, frozen: bool) {
         self.set(|f| f.frozen = frozen);

@@ -186,10 +186,21 @@ impl Shared {
         lock(&self.window)
     }
 
-    /// Publishes the counters and the outcomes, after the window's lock is
-    /// released; wakes whoever waits for room if messages left it.
-    fn report(&self, stats: OutPortStats, outcomes: &[Outcome], room: bool) {
-        self.stats.send_replace(stats);
+    /// Sends the current counters to their watchers, under the window's
+    /// lock.
+    fn publish_stats(&self) {
+        let window = self.window();
+        self.stats.send_replace(window.stats);
+    }
+
+    /// Publishes the counters and the outcomes (call it after releasing
+    /// the window's lock); wakes whoever waits for room if messages left
+    /// it. The counters are read and sent under the window's lock, so a
+    /// `put` on another thread can never overwrite newer counters with the
+    /// ones it saw (which left `flush` waiting for an `unconfirmed` of 0
+    /// already reached).
+    fn report(&self, outcomes: &[Outcome], room: bool) {
+        self.publish_stats();
         if !outcomes.is_empty() {
             let mut callbacks = lock(&self.callbacks);
             for outcome in outcomes {
@@ -503,10 +514,9 @@ impl<T: PortData> OutPort<T> {
         } else {
             PortStatus::ConnectionLost
         };
-        let stats = window.stats;
         drop(window);
         self.shared.work.notify_one();
-        self.shared.report(stats, &outcomes, false);
+        self.shared.report(&outcomes, false);
         Some(status)
     }
 
@@ -517,9 +527,8 @@ impl<T: PortData> OutPort<T> {
             return PortStatus::Closed;
         }
         window.stats.send_full += 1;
-        let stats = window.stats;
         drop(window);
-        self.shared.stats.send_replace(stats);
+        self.shared.publish_stats();
         PortStatus::SendFull
     }
 
@@ -775,11 +784,10 @@ impl Task {
                 break;
             }
             window.stats.unconfirmed = window.entries.len() as u64;
-            (next, window.stats)
+            next
         };
-        let (next, stats) = next;
         if !outcomes.is_empty() {
-            self.shared.report(stats, &outcomes, true);
+            self.shared.report(&outcomes, true);
         }
         let Some((seq, sent_ns, body, remaining)) = next else {
             return !outcomes.is_empty();
@@ -845,9 +853,8 @@ impl Task {
             settle(&mut window.stats, &mut outcomes, seq, fate);
             window.stats.unconfirmed = window.entries.len() as u64;
         }
-        let stats = window.stats;
         drop(window);
-        self.shared.report(stats, &outcomes, true);
+        self.shared.report(&outcomes, true);
     }
 
     /// Notes every message the broker has returned so far. The broker
@@ -882,9 +889,8 @@ impl Task {
         let mut outcomes = Vec::new();
         let mut window = self.shared.window();
         settle(&mut window.stats, &mut outcomes, seq, Fate::Unroutable);
-        let stats = window.stats;
         drop(window);
-        self.shared.report(stats, &outcomes, false);
+        self.shared.report(&outcomes, false);
     }
 
     /// While the link is down, the values past their lifespan leave the
@@ -893,10 +899,9 @@ impl Task {
         let mut outcomes = Vec::new();
         let mut window = self.shared.window();
         expire_oldest(&mut window, self.profile.lifespan, &mut outcomes);
-        let stats = window.stats;
         drop(window);
         if !outcomes.is_empty() {
-            self.shared.report(stats, &outcomes, true);
+            self.shared.report(&outcomes, true);
         }
     }
 
@@ -916,9 +921,8 @@ impl Task {
         if self.profile.replay == Replay::Nothing {
             keep_newest(&mut window, 0, &mut outcomes);
         }
-        let stats = window.stats;
         drop(window);
-        self.shared.report(stats, &outcomes, !outcomes.is_empty());
+        self.shared.report(&outcomes, !outcomes.is_empty());
         self.shared.link.lost(&error);
         self.failures = 0;
         self.retry_at = Instant::now();
@@ -936,9 +940,8 @@ impl Task {
                 if self.profile.replay == Replay::Latest {
                     keep_newest(&mut window, 1, &mut outcomes);
                 }
-                let stats = window.stats;
                 drop(window);
-                self.shared.report(stats, &outcomes, !outcomes.is_empty());
+                self.shared.report(&outcomes, !outcomes.is_empty());
                 self.shared.link.connected();
             }
             Err(error) => {
