@@ -15,6 +15,7 @@
 //! scrape of many queues never holds that thread for long either.
 
 use crate::process::ProcessFigures;
+use crate::uplink::Shovels;
 use axum::extract::{DefaultBodyLimit, State};
 use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
@@ -59,6 +60,8 @@ pub struct MetricsContext {
     pub node: String,
     /// Where disk space is measured.
     pub data_dir: PathBuf,
+    /// The uplink's shovels.
+    pub shovels: Shovels,
 }
 
 /// Families in the order they are added.
@@ -153,6 +156,63 @@ const QUEUE_GET_EMPTY: (&str, &str) = (
     "rabbitmq_queue_get_empty_total",
     "Total number of times basic.get operations fetched no message on a queue",
 );
+
+/// Each shovel's state (a `1` labelled with it) and counts, labelled
+/// with the shovel's name and vhost.
+fn shovel_metrics(out: &mut Exposition, shovels: &Shovels) {
+    use leveret_uplink::ShovelState;
+    let shovels = shovels.list();
+    let state = out.family(
+        "leveret_shovel_state",
+        MetricType::GAUGE,
+        "1 for each shovel, labelled with its state: starting, running, blocked or terminated",
+    );
+    for s in &shovels {
+        let name = match s.status.state {
+            ShovelState::Connecting => "starting",
+            ShovelState::Running => "running",
+            ShovelState::Blocked => "blocked",
+            ShovelState::Terminated => "terminated",
+        };
+        let labels = [
+            ("shovel", s.name.as_str()),
+            ("vhost", s.vhost.as_str()),
+            ("state", name),
+        ];
+        state
+            .mut_metric()
+            .push(sample(MetricType::GAUGE, &labels, 1.0));
+    }
+    type Count = fn(&leveret_uplink::ShovelStatus) -> u64;
+    let counts: [(&str, &str, Count); 3] = [
+        (
+            "leveret_shovel_forwarded_total",
+            "Messages the shovel's destination took",
+            |s| s.forwarded,
+        ),
+        (
+            "leveret_shovel_refused_total",
+            "Messages the shovel's destination refused (nacked or returned), left at the source",
+            |s| s.refused,
+        ),
+        (
+            "leveret_shovel_restarts_total",
+            "Times the shovel's link ended and started again",
+            |s| s.restarts,
+        ),
+    ];
+    for (metric, help, count) in counts {
+        let family = out.family(metric, MetricType::COUNTER, help);
+        for s in &shovels {
+            let labels = [("shovel", s.name.as_str()), ("vhost", s.vhost.as_str())];
+            family.mut_metric().push(sample(
+                MetricType::COUNTER,
+                &labels,
+                count(&s.status) as f64,
+            ));
+        }
+    }
+}
 
 /// Reads every queue, a chunk at a time, yielding between chunks.
 async fn read_queues(admin: &Admin) -> Vec<QueueInfo> {
@@ -421,6 +481,8 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
             busy.polling.as_secs_f64(),
         );
     }
+
+    shovel_metrics(&mut out, &context.shovels);
 
     if endpoint == Endpoint::PerObject {
         let family = out.family(

@@ -86,6 +86,7 @@ impl Ops {
             admin: admin.clone(),
             node: node.clone(),
             data_dir: settings.data_dir.clone(),
+            shovels: shovels.clone(),
         };
         let management = crate::management::Context {
             admin: admin.clone(),

@@ -142,8 +142,8 @@ async fn a_configured_shovel_forwards_everything_confirmed_across_kill_9() {
 
 /// Shovels through the management API, as RabbitMQ's dynamic shovels:
 /// `PUT /api/parameters/shovel/VHOST/NAME` starts one, `/api/shovels`
-/// lists it running, the definitions export carries it as a parameter
-/// that another broker's import starts, and DELETE stops it.
+/// lists it running, the Prometheus scrape shows its state and counts, the
+/// definitions export carries it as a parameter, and DELETE stops it.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     use common::ops::{basic, request, OpsBroker};
@@ -235,6 +235,25 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
         .expect("delivery");
     assert_eq!(delivery.data, b"p1");
 
+    // The shovel in the Prometheus scrape (promtool-clean where installed).
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    let scrape = loop {
+        let scrape = request(robot.metrics, "GET", "/metrics", &[], b"")
+            .await
+            .text();
+        if scrape.contains("leveret_shovel_forwarded_total{shovel=\"poses\",vhost=\"/\"} 1") {
+            break scrape;
+        }
+        assert!(std::time::Instant::now() < deadline, "{scrape}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert!(
+        scrape.contains("leveret_shovel_state{shovel=\"poses\",vhost=\"/\",state=\"running\"} 1"),
+        "{scrape}"
+    );
+    if let Some(checked) = common::ops::promtool_check(&scrape) {
+        checked.expect("promtool check metrics");
+    }
     let exported = request(robot.http, "GET", "/api/definitions", &headers, b"").await;
     let exported: Value = serde_json::from_slice(&exported.body).expect("JSON");
     assert_eq!(exported["parameters"][0]["component"], "shovel");
