@@ -41,14 +41,15 @@ def require_rabbitmq():
 
 class RabbitNode:
     """A RabbitMQ node; `conf` holds rabbitmq.conf lines besides its plain
-    listener on `self.port`, `plugins` the plugins to enable."""
+    listener on `self.port`, `plugins` the plugins to enable; nodes given
+    the same `home` share its Erlang cookie (to form a cluster)."""
 
-    def __init__(self, conf=(), plugins=()):
+    def __init__(self, conf=(), plugins=(), home=None):
         require_rabbitmq()
         self.dir = tempfile.mkdtemp(prefix="leveret-conformance-rabbitmq-")
         self.port = free_port()
         self.node = f"leveret-conf-{os.getpid()}-{self.port}@localhost"
-        self.env = dict(os.environ, HOME=self.dir, RABBITMQ_NODENAME=self.node,
+        self.env = dict(os.environ, HOME=home or self.dir, RABBITMQ_NODENAME=self.node,
                         RABBITMQ_MNESIA_BASE=os.path.join(self.dir, "mnesia"),
                         RABBITMQ_LOG_BASE=os.path.join(self.dir, "log"),
                         RABBITMQ_ENABLED_PLUGINS_FILE=os.path.join(self.dir, "enabled_plugins"),
