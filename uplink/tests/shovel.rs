@@ -378,3 +378,58 @@ async fn the_bandwidth_cap_holds() {
     shovel.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Commands come down the same way: a shovel whose source is the fleet's
+/// queue and whose destination is the robot's own exchange (`amqp://`),
+/// so the robot's consumers get the fleet's commands through its broker.
+#[both_runtimes]
+async fn commands_come_down_from_the_fleet_to_a_local_exchange() {
+    let robot = Arc::new(Broker::builder().start().await.expect("robot broker"));
+    let (_local, robot_channel) = local_channel(&robot).await;
+    declare(&robot_channel, "arm.commands", FieldTable::new()).await;
+    // Without dest-exchange-key each message keeps its routing key: here
+    // the fleet's queue name, which the robot binds.
+    robot_channel
+        .queue_bind(
+            "arm.commands",
+            "amq.topic",
+            "robot-7.commands",
+            Default::default(),
+            FieldTable::new(),
+        )
+        .await
+        .expect("bind");
+    let addr = free_addr().await;
+    let dir = scratch("down");
+    let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
+    let _fleet = fleet(addr, &dir).await;
+    let (_c, fleet_channel) = channel_to(&fleet_uri).await;
+    fleet_channel.confirm_select().await.expect("confirms");
+    declare(&fleet_channel, "robot-7.commands", FieldTable::new()).await;
+    let config = ShovelConfig::from_json(&json!({
+        "src-uri": fleet_uri, "src-queue": "robot-7.commands",
+        "dest-uri": "amqp://", "dest-exchange": "amq.topic", "reconnect-delay": 0.1,
+    }))
+    .expect("parameters");
+    let shovel = Shovel::start("down", config, Some(&robot));
+    for n in 0..20u32 {
+        let confirm = fleet_channel
+            .basic_publish(
+                "",
+                "robot-7.commands",
+                BasicPublishOptions::default(),
+                BasicProperties::default(),
+                n.to_string().into_bytes().into(),
+            )
+            .await
+            .expect("publish");
+        assert!(confirm.await.expect("confirm").is_ack());
+    }
+    wait_status(&shovel, "20 forwarded", |s| s.forwarded >= 20).await;
+    assert_eq!(
+        collect(&robot_channel, "arm.commands", 20).await,
+        (0..20).collect::<Vec<_>>()
+    );
+    shovel.stop().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
