@@ -11,26 +11,16 @@ use common::within;
 use leveret_broker::{Broker, BrokerHandle, PeerVerification, Permission, TlsOptions};
 use leveret_client::ports::{InPort, OutPort, PortProfile, PortStatus, Time, TimedLong};
 use leveret_client::{BasicGetOptions, Connection, QueueDeclareOptions};
-use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, KeyPair};
+use leveret_tests::certs::Authority;
 use std::path::{Path, PathBuf};
 
 /// Writes a CA, a server certificate for localhost and a client
 /// certificate for `robot-7` (each with its key) into `dir`.
 fn certificates(dir: &Path) {
-    let ca_key = KeyPair::generate().unwrap();
-    let mut ca = CertificateParams::new(Vec::new()).unwrap();
-    ca.distinguished_name.push(DnType::CommonName, "test-ca");
-    ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-    let ca = ca.self_signed(&ca_key).unwrap();
+    let ca = Authority::new("test-ca");
     std::fs::write(dir.join("ca.pem"), ca.pem()).unwrap();
-    for (stem, name, dns) in [
-        ("server", "leveret", vec!["localhost".to_owned()]),
-        ("client", "robot-7", vec![]),
-    ] {
-        let key = KeyPair::generate().unwrap();
-        let mut params = CertificateParams::new(dns).unwrap();
-        params.distinguished_name.push(DnType::CommonName, name);
-        let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
+    for (stem, name) in [("server", "leveret"), ("client", "robot-7")] {
+        let (cert, key) = ca.sign(name, false);
         std::fs::write(dir.join(format!("{stem}.pem")), cert.pem()).unwrap();
         std::fs::write(dir.join(format!("{stem}.key")), key.serialize_pem()).unwrap();
     }

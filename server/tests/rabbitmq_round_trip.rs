@@ -15,111 +15,34 @@
 mod common;
 
 use common::ops::{request, tool_available, OpsBroker};
+use leveret_tests::rabbit_node::{RabbitNode, BIN};
 use serde_json::{json, Value};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-const BIN: &str = "/usr/lib/rabbitmq/bin";
-
-/// A RabbitMQ node of the test's own; stopped and removed when dropped.
-struct RabbitNode {
-    child: Child,
-    dir: PathBuf,
-    node: String,
+/// Starts the test's node, with its directory as its `HOME`.
+fn start_node() -> RabbitNode {
+    let dir = std::env::temp_dir().join(format!("leveret-rabbitmq-{}", std::process::id()));
+    RabbitNode::start("leveret-test", &dir, &dir)
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("free port")
-        .port()
+/// The round trip's own uses of the node.
+trait RoundTrip {
+    fn import_then_export(&self, definitions: &Value, name: &str) -> Value;
+    fn reset(&self);
 }
 
-impl RabbitNode {
-    fn env(command: &mut Command, dir: &Path, node: &str) {
-        command
-            .env("HOME", dir)
-            .env("RABBITMQ_NODENAME", node)
-            .env("RABBITMQ_MNESIA_BASE", dir.join("mnesia"))
-            .env("RABBITMQ_LOG_BASE", dir.join("log"))
-            .env("RABBITMQ_ENABLED_PLUGINS_FILE", dir.join("enabled_plugins"))
-            .env("RABBITMQ_CONFIG_FILE", dir.join("rabbitmq"))
-            .env("RABBITMQ_PID_FILE", dir.join("pid"));
-    }
-
-    fn start() -> RabbitNode {
-        let dir = std::env::temp_dir().join(format!("leveret-rabbitmq-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).expect("node dir");
-        std::fs::write(dir.join("enabled_plugins"), "[].\n").expect("plugins");
-        let (amqp, dist) = (free_port(), free_port());
-        std::fs::write(
-            dir.join("rabbitmq.conf"),
-            format!("listeners.tcp.1 = 127.0.0.1:{amqp}\nloopback_users = none\n"),
-        )
-        .expect("config");
-        let node = format!("leveret-test-{}@localhost", std::process::id());
-        let mut command = Command::new(format!("{BIN}/rabbitmq-server"));
-        Self::env(&mut command, &dir, &node);
-        let child = command
-            .env("RABBITMQ_DIST_PORT", dist.to_string())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start rabbitmq-server");
-        let rabbit = RabbitNode { child, dir, node };
-        rabbit.await_startup();
-        rabbit
-    }
-
-    fn await_startup(&self) {
-        let deadline = Instant::now() + Duration::from_secs(120);
-        loop {
-            let out = self.try_ctl(&["await_startup", "--timeout", "30"]);
-            if out.status.success() {
-                return;
-            }
-            assert!(
-                Instant::now() < deadline,
-                "the RabbitMQ node did not start: {out:?}"
-            );
-            std::thread::sleep(Duration::from_millis(500));
-        }
-    }
-
-    fn try_ctl(&self, args: &[&str]) -> Output {
-        let mut command = Command::new(format!("{BIN}/rabbitmqctl"));
-        Self::env(&mut command, &self.dir, &self.node);
-        command
-            .arg("-n")
-            .arg(&self.node)
-            .args(args)
-            .output()
-            .expect("rabbitmqctl")
-    }
-
-    fn ctl(&self, args: &[&str]) -> String {
-        let out = self.try_ctl(args);
-        assert!(out.status.success(), "rabbitmqctl {args:?}: {out:?}");
-        String::from_utf8_lossy(&out.stdout).into_owned()
-    }
-
-    fn file(&self, name: &str) -> PathBuf {
-        self.dir.join(name)
-    }
-
+impl RoundTrip for RabbitNode {
     /// Imports `definitions` and waits until an export shows all of its
     /// bindings (the import runs asynchronously); returns that export.
     fn import_then_export(&self, definitions: &Value, name: &str) -> Value {
         let input = self.file(&format!("{name}-in.json"));
         std::fs::write(&input, definitions.to_string()).expect("write definitions");
-        self.ctl(&["import_definitions", input.to_str().expect("utf-8")]);
+        self.must(&["import_definitions", input.to_str().expect("utf-8")]);
         let wanted = definitions["bindings"].as_array().map_or(0, Vec::len);
         let output = self.file(&format!("{name}-out.json"));
         let deadline = Instant::now() + Duration::from_secs(60);
         loop {
-            self.ctl(&["export_definitions", output.to_str().expect("utf-8")]);
+            self.must(&["export_definitions", output.to_str().expect("utf-8")]);
             let exported: Value =
                 serde_json::from_slice(&std::fs::read(&output).expect("read export"))
                     .expect("RabbitMQ's export is JSON");
@@ -133,19 +56,10 @@ impl RabbitNode {
 
     /// A fresh node: everything it held is gone.
     fn reset(&self) {
-        self.ctl(&["stop_app"]);
-        self.ctl(&["reset"]);
-        self.ctl(&["start_app"]);
+        self.must(&["stop_app"]);
+        self.must(&["reset"]);
+        self.must(&["start_app"]);
         self.await_startup();
-    }
-}
-
-impl Drop for RabbitNode {
-    fn drop(&mut self) {
-        let _ = self.try_ctl(&["stop"]);
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-        let _ = std::fs::remove_dir_all(&self.dir);
     }
 }
 
@@ -247,7 +161,7 @@ async fn definitions_go_from_rabbitmq_through_leveret_to_a_fresh_rabbitmq() {
     if !tool_available(&format!("{BIN}/rabbitmq-server"), "rabbitmq-server") {
         return;
     }
-    let rabbit = tokio::task::block_in_place(RabbitNode::start);
+    let rabbit = tokio::task::block_in_place(start_node);
     let from_rabbitmq =
         tokio::task::block_in_place(|| rabbit.import_then_export(&fleet(), "first"));
     assert_eq!(

@@ -9,21 +9,13 @@ mod common;
 use common::ops::OpsBroker;
 use lapin::tcp::OwnedTLSConfig;
 use lapin::{Connection, ConnectionProperties};
-use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, KeyPair};
+use leveret_tests::certs::Authority;
 use std::path::Path;
 
 /// A CA's PEM, and a certificate for localhost it signed, with its key.
 fn issue(name: &str) -> (String, String, String) {
-    let ca_key = KeyPair::generate().expect("key");
-    let mut ca = CertificateParams::new(Vec::new()).expect("params");
-    ca.distinguished_name.push(DnType::CommonName, name);
-    ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-    let ca = ca.self_signed(&ca_key).expect("CA");
-    let key = KeyPair::generate().expect("key");
-    let leaf = CertificateParams::new(vec!["localhost".to_owned()])
-        .expect("params")
-        .signed_by(&key, &ca, &ca_key)
-        .expect("leaf");
+    let ca = Authority::new(name);
+    let (leaf, key) = ca.sign("leveret", false);
     (ca.pem(), leaf.pem(), key.serialize_pem())
 }
 

@@ -20,7 +20,8 @@
 //! [`driver`] is the scripted adversarial peer behind the broker-level fuzz
 //! target and the corpus replay test; [`fault_proxy`] injects a link's
 //! faults (freeze, cut, latency, a bandwidth cap, a cut mid-frame) for the
-//! client's and the uplink's tests.
+//! client's and the uplink's tests; [`rabbit_node`] starts RabbitMQ nodes
+//! of a test's own; [`certs`] makes the TLS tests' certificates.
 
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
@@ -32,8 +33,10 @@ use std::time::{SystemTime, UNIX_EPOCH};
 use leveret_broker::{Broker, BrokerBuilder, BrokerHandle};
 pub use leveret_test_macros::both_runtimes;
 
+pub mod certs;
 pub mod driver;
 pub mod fault_proxy;
+pub mod rabbit_node;
 
 /// The environment variable naming an external broker to test against.
 pub const URL_ENV: &str = "LEVERET_TEST_AMQP_URL";

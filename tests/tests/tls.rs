@@ -14,64 +14,14 @@ mod common;
 use common::*;
 use lapin::tcp::{OwnedIdentity, OwnedTLSConfig};
 use leveret_broker::{Broker, BrokerHandle, PeerVerification, Permission, TlsOptions};
-use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, KeyPair, KeyUsagePurpose};
+use leveret_tests::certs::Authority;
 use std::path::PathBuf;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-/// A certificate authority that signs the others.
-struct Authority {
-    cert: rcgen::Certificate,
-    key: KeyPair,
-}
-
-impl Authority {
-    fn new(name: &str) -> Authority {
-        let key = KeyPair::generate().expect("key");
-        let mut params = CertificateParams::new(Vec::new()).expect("params");
-        params.distinguished_name.push(DnType::CommonName, name);
-        params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-        params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
-        let cert = params.self_signed(&key).expect("CA");
-        Authority { cert, key }
-    }
-
-    fn pem(&self) -> String {
-        self.cert.pem()
-    }
-
-    /// A certificate for `common_name` (and `localhost` as its DNS name),
-    /// valid from `days_from_now` days for a year, or already expired.
-    fn sign(&self, common_name: &str, expired: bool) -> (rcgen::Certificate, KeyPair) {
-        let key = KeyPair::generate().expect("key");
-        let mut params = CertificateParams::new(vec!["localhost".to_owned()]).expect("params");
-        params
-            .distinguished_name
-            .push(DnType::CommonName, common_name);
-        if expired {
-            params.not_before = rcgen::date_time_ymd(2020, 1, 1);
-            params.not_after = rcgen::date_time_ymd(2021, 1, 1);
-        }
-        let cert = params.signed_by(&key, &self.cert, &self.key).expect("sign");
-        (cert, key)
-    }
-
-    /// A PKCS#12 identity (lapin's form for client certificates).
-    fn identity(&self, common_name: &str, expired: bool) -> OwnedIdentity {
-        let (cert, key) = self.sign(common_name, expired);
-        let chain = [
-            p12_keystore::Certificate::from_der(cert.der()).expect("cert"),
-            p12_keystore::Certificate::from_der(self.cert.der()).expect("CA cert"),
-        ];
-        let entry = p12_keystore::PrivateKeyChain::new(key.serialize_der(), [1u8; 20], chain);
-        let mut store = p12_keystore::KeyStore::new();
-        store.add_entry(
-            common_name,
-            p12_keystore::KeyStoreEntry::PrivateKeyChain(entry),
-        );
-        OwnedIdentity {
-            der: store.writer("pw").write().expect("PKCS#12"),
-            password: "pw".to_owned(),
-        }
+fn identity(ca: &Authority, common_name: &str, expired: bool) -> OwnedIdentity {
+    OwnedIdentity {
+        der: ca.pkcs12(common_name, expired, "pw"),
+        password: "pw".to_owned(),
     }
 }
 
@@ -185,7 +135,7 @@ async fn mutual_tls_logs_in_with_external_as_the_certificates_common_name() {
     files.write(&ca, &ca);
     let handle = start(&files, PeerVerification::Required).await;
     let url = amqps(&handle, "", "?auth_mechanism=external");
-    let conn = connect(&url, &ca, Some(ca.identity("robot-7", false)))
+    let conn = connect(&url, &ca, Some(identity(&ca, "robot-7", false)))
         .await
         .expect("EXTERNAL with a certificate for robot-7");
     round_trip(&conn).await;
@@ -197,7 +147,7 @@ async fn mutual_tls_logs_in_with_external_as_the_certificates_common_name() {
         .collect();
     assert_eq!(users, ["robot-7"]);
     // A certificate for a name that is no user is refused.
-    assert!(connect(&url, &ca, Some(ca.identity("stranger", false)))
+    assert!(connect(&url, &ca, Some(identity(&ca, "stranger", false)))
         .await
         .is_err());
     handle.shutdown().await;
@@ -213,9 +163,9 @@ async fn wrongly_signed_expired_and_missing_client_certificates_are_refused() {
     for (what, identity) in [
         (
             "signed by another CA",
-            Some(rogue.identity("robot-7", false)),
+            Some(identity(&rogue, "robot-7", false)),
         ),
-        ("expired", Some(ca.identity("robot-7", true))),
+        ("expired", Some(identity(&ca, "robot-7", true))),
         ("none where one is required", None),
     ] {
         assert!(
@@ -223,7 +173,7 @@ async fn wrongly_signed_expired_and_missing_client_certificates_are_refused() {
             "a client certificate {what} is refused"
         );
     }
-    let good = connect(&url, &ca, Some(ca.identity("robot-7", false)))
+    let good = connect(&url, &ca, Some(identity(&ca, "robot-7", false)))
         .await
         .expect("a valid certificate, with PLAIN");
     round_trip(&good).await;

@@ -15,131 +15,13 @@ use leveret_client::{
     BasicGetOptions, BasicProperties, BasicPublishOptions, Channel, Connection, Dedupe, FieldTable,
     FieldValue, QueueDeclareOptions, ShortStr,
 };
+use leveret_tests::rabbit_node::{self, RabbitNode};
 use leveret_uplink::{Shovel, ShovelConfig};
 use serde_json::json;
 use std::collections::BTreeSet;
 use std::os::unix::fs::PermissionsExt;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
-
-const BIN: &str = "/usr/lib/rabbitmq/bin";
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("free port")
-        .port()
-}
-
-struct Node {
-    name: String,
-    port: u16,
-    dir: PathBuf,
-    home: PathBuf,
-    child: Child,
-}
-
-impl Node {
-    fn env(command: &mut Command, home: &Path, dir: &Path, name: &str) {
-        command
-            .env("HOME", home)
-            .env("RABBITMQ_NODENAME", name)
-            .env("RABBITMQ_MNESIA_BASE", dir.join("mnesia"))
-            .env("RABBITMQ_LOG_BASE", dir.join("log"))
-            .env("RABBITMQ_ENABLED_PLUGINS_FILE", dir.join("enabled_plugins"))
-            .env("RABBITMQ_CONFIG_FILE", dir.join("rabbitmq"))
-            .env("RABBITMQ_PID_FILE", dir.join("pid"));
-    }
-
-    fn start(root: &Path, index: usize) -> Node {
-        let dir = root.join(format!("node{index}"));
-        std::fs::create_dir_all(&dir).expect("node dir");
-        std::fs::write(dir.join("enabled_plugins"), "[].\n").expect("plugins");
-        let port = free_port();
-        std::fs::write(
-            dir.join("rabbitmq.conf"),
-            format!("listeners.tcp.1 = 127.0.0.1:{port}\nloopback_users = none\n"),
-        )
-        .expect("config");
-        let name = format!("uplink{index}-{}@localhost", std::process::id());
-        let home = root.to_owned();
-        let mut command = Command::new(format!("{BIN}/rabbitmq-server"));
-        Node::env(&mut command, &home, &dir, &name);
-        let child = command
-            .env("RABBITMQ_DIST_PORT", free_port().to_string())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start rabbitmq-server");
-        let node = Node {
-            name,
-            port,
-            dir,
-            home,
-            child,
-        };
-        node.await_startup();
-        node
-    }
-
-    fn ctl(&self, args: &[&str]) -> Output {
-        let mut command = Command::new(format!("{BIN}/rabbitmqctl"));
-        Node::env(&mut command, &self.home, &self.dir, &self.name);
-        command
-            .arg("-n")
-            .arg(&self.name)
-            .args(args)
-            .output()
-            .expect("rabbitmqctl")
-    }
-
-    fn must(&self, args: &[&str]) {
-        let out = self.ctl(args);
-        assert!(out.status.success(), "rabbitmqctl {args:?}: {out:?}");
-    }
-
-    fn await_startup(&self) {
-        let deadline = Instant::now() + Duration::from_secs(120);
-        while !self
-            .ctl(&["await_startup", "--timeout", "30"])
-            .status
-            .success()
-        {
-            assert!(
-                Instant::now() < deadline,
-                "node {} did not start",
-                self.name
-            );
-            std::thread::sleep(Duration::from_millis(500));
-        }
-    }
-
-    fn uri(&self) -> String {
-        format!("amqp://guest:guest@127.0.0.1:{}/%2f", self.port)
-    }
-}
-
-impl Drop for Node {
-    fn drop(&mut self) {
-        let _ = self.ctl(&["stop"]);
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn rabbitmq_installed() -> bool {
-    if Path::new(BIN).join("rabbitmq-server").exists() {
-        return true;
-    }
-    let in_ci = std::env::var_os("CI").is_some_and(|v| !v.is_empty() && v != "0" && v != "false");
-    assert!(!in_ci, "rabbitmq-server is not installed, and CI needs it");
-    eprintln!(
-        "\n*** SKIPPED: rabbitmq-server is not installed (apt-get install rabbitmq-server)\n"
-    );
-    false
-}
+use std::time::Duration;
 
 /// Every message in the quorum queue, and how many the client's
 /// `Dedupe` (keyed by the publisher's message ids) let through.
@@ -164,7 +46,7 @@ async fn get_all(channel: &Channel) -> (Vec<u32>, usize) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn into_a_quorum_queue_of_a_three_node_cluster_across_a_node_loss() {
-    if !rabbitmq_installed() {
+    if !rabbit_node::installed() {
         return;
     }
     let root = std::env::temp_dir().join(format!("leveret-uplink-cluster-{}", std::process::id()));
@@ -173,11 +55,12 @@ async fn into_a_quorum_queue_of_a_three_node_cluster_across_a_node_loss() {
     let cookie = root.join(".erlang.cookie");
     std::fs::write(&cookie, "LEVERETUPLINKTESTCOOKIE").expect("cookie");
     std::fs::set_permissions(&cookie, std::fs::Permissions::from_mode(0o400)).expect("mode");
-    let (root_for_nodes, nodes) = (root.clone(), (0..3usize).collect::<Vec<_>>());
-    let nodes: Vec<Node> = tokio::task::spawn_blocking(move || {
-        nodes
-            .into_iter()
-            .map(|i| Node::start(&root_for_nodes, i))
+    let home = root.clone();
+    let nodes: Vec<RabbitNode> = tokio::task::spawn_blocking(move || {
+        (0..3)
+            .map(|i| {
+                RabbitNode::start(&format!("uplink{i}"), &home.join(format!("node{i}")), &home)
+            })
             .collect()
     })
     .await
@@ -216,7 +99,7 @@ async fn into_a_quorum_queue_of_a_three_node_cluster_across_a_node_loss() {
         .queue_declare("telemetry", durable, FieldTable::new())
         .await
         .expect("robot queue");
-    let uris: Vec<String> = nodes.iter().map(Node::uri).collect();
+    let uris: Vec<String> = nodes.iter().map(RabbitNode::uri).collect();
     let config = ShovelConfig::from_json(&json!({
         "src-uri": "amqp://", "src-queue": "telemetry", "src-prefetch-count": 100,
         "dest-uri": uris, "dest-queue": "telemetry", "reconnect-delay": 0.2,
