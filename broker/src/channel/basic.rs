@@ -121,11 +121,7 @@ impl Channel {
                 exchange.name, self.vhost.name
             )));
         }
-        self.allow_topic(
-            Right::Write,
-            &publish.method.exchange,
-            &publish.method.routing_key,
-        )?;
+        self.allow_topic(Right::Write, &exchange, &publish.method.routing_key)?;
         if let Some(expiration) = &publish.properties.expiration {
             if expiration
                 .as_str()

@@ -114,7 +114,7 @@ impl Channel {
     ) -> AmqpResult<()> {
         self.allow_exchange(Right::Write, destination.as_bytes())?;
         self.allow_exchange(Right::Read, source.as_bytes())?;
-        self.allow_topic(Right::Read, source, routing_key)
+        self.allow_topic_binding(source, routing_key)
     }
 
     /// Whether `name` is a durable exchange: only changes to those (and

@@ -24,7 +24,7 @@ mod tx;
 use crate::consumer::{ChannelLink, Consumer};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
-use crate::exchange::ExchangeKind;
+use crate::exchange::{Exchange, ExchangeKind};
 use crate::memory::{MemoryGauge, Reservation};
 use crate::outbox::Outbox;
 use crate::permissions::{AccessView, Resource, Right};
@@ -186,27 +186,31 @@ impl Channel {
 
     /// Checks a routing key against the user's topic permission when
     /// `exchange` is a topic exchange (`Write` for publishing, `Read` for
-    /// binding).
+    /// binding). Takes the exchange the caller has already looked up.
     fn allow_topic(
         &mut self,
         right: Right,
-        exchange: &ShortStr,
+        exchange: &Exchange,
         routing_key: &ShortStr,
     ) -> AmqpResult<()> {
         let access = self.access.current()?;
-        if !access.has_topic_permissions()
-            || !self
-                .vhost
-                .exchange(exchange)
-                .is_some_and(|e| e.kind == ExchangeKind::Topic)
-        {
+        if !access.has_topic_permissions() || exchange.kind != ExchangeKind::Topic {
             return Ok(());
         }
         access.check_topic(
             right,
-            &exchange.to_string_lossy(),
+            &exchange.name.to_string_lossy(),
             &routing_key.to_string_lossy(),
         )
+    }
+
+    /// [`Channel::allow_topic`] for a binding change from the exchange
+    /// `name`, if it exists (a missing one is the binding's 404).
+    fn allow_topic_binding(&mut self, name: &ShortStr, routing_key: &ShortStr) -> AmqpResult<()> {
+        match self.vhost.exchange(name) {
+            Some(exchange) => self.allow_topic(Right::Read, &exchange, routing_key),
+            None => Ok(()),
+        }
     }
 
     fn outbox(&self) -> &Outbox {

@@ -111,7 +111,7 @@ impl Channel {
     ) -> AmqpResult<()> {
         self.allow_queue(Right::Write, queue.as_bytes())?;
         self.allow_exchange(Right::Read, exchange.as_bytes())?;
-        self.allow_topic(Right::Read, exchange, routing_key)
+        self.allow_topic_binding(exchange, routing_key)
     }
 
     pub(super) async fn queue_bind(&mut self, bind: QueueBind) -> AmqpResult<()> {
