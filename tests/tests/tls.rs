@@ -240,3 +240,53 @@ async fn certificates_reload_while_a_connection_stays_open() {
         .expect("still the second certificate");
     handle.shutdown().await;
 }
+
+/// Clients that open the TLS port and never finish the handshake (no
+/// bytes, or a ClientHello cut short) are dropped at the handshake
+/// timeout, each holding only its connection slot meanwhile, and the
+/// listener keeps serving.
+#[both_runtimes]
+async fn handshakes_that_never_finish_are_dropped_at_the_timeout() {
+    let ca = Authority::new("ca");
+    let files = ServerFiles::new("slow");
+    files.write(&ca, &ca);
+    let limits = leveret_broker::Limits {
+        handshake_timeout: std::time::Duration::from_millis(300),
+        ..Default::default()
+    };
+    let handle = Broker::builder()
+        .limits(limits)
+        .tls_listen("127.0.0.1:0".parse().expect("addr"))
+        .tls(files.options(PeerVerification::Optional))
+        .start()
+        .await
+        .expect("broker starts with TLS");
+    let mut stalled = Vec::new();
+    for n in 0..50 {
+        let mut socket = tokio::net::TcpStream::connect(handle.tls_addrs()[0])
+            .await
+            .expect("tcp");
+        if n % 2 == 1 {
+            // The first bytes of a TLS record carrying a ClientHello.
+            socket
+                .write_all(&[0x16, 0x03, 0x01, 0x02, 0x00, 0x01])
+                .await
+                .expect("write");
+        }
+        stalled.push(socket);
+    }
+    for mut socket in stalled {
+        let mut rest = Vec::new();
+        let closed = tokio::time::timeout(
+            std::time::Duration::from_secs(10),
+            socket.read_to_end(&mut rest),
+        )
+        .await;
+        assert!(closed.is_ok(), "a stalled handshake was never dropped");
+    }
+    let conn = connect(&amqps(&handle, "guest:guest@", ""), &ca, None)
+        .await
+        .expect("still serving TLS");
+    round_trip(&conn).await;
+    handle.shutdown().await;
+}
