@@ -244,6 +244,24 @@ fn require_user(c: &Context, user: &str) -> ApiResult<()> {
     }
 }
 
+/// A permission request's text fields (RabbitMQ's: missing is `""`),
+/// once the vhost and the user are known to exist.
+fn permission_body(
+    c: &Context,
+    vhost: &str,
+    user: &str,
+    body: &Bytes,
+) -> ApiResult<impl Fn(&str) -> ApiResult<String>> {
+    require_vhost(c, vhost)?;
+    require_user(c, user)?;
+    let body = body_object(body)?;
+    Ok(move |key: &str| {
+        json::text(&body, key, "")
+            .map(str::to_owned)
+            .map_err(ApiError::bad_request)
+    })
+}
+
 /// One user's permission on one vhost.
 pub async fn permission(
     State(c): Ctx,
@@ -264,14 +282,11 @@ pub async fn put_permission(
     Path((vhost, user)): Path<(String, String)>,
     body: Bytes,
 ) -> ApiResult {
-    require_vhost(&c, &vhost)?;
-    require_user(&c, &user)?;
-    let body = body_object(&body)?;
-    let field = |key| json::text(&body, key, "").map(str::to_owned);
+    let field = permission_body(&c, &vhost, &user, &body)?;
     let permission = Permission {
-        configure: field("configure").map_err(ApiError::bad_request)?,
-        write: field("write").map_err(ApiError::bad_request)?,
-        read: field("read").map_err(ApiError::bad_request)?,
+        configure: field("configure")?,
+        write: field("write")?,
+        read: field("read")?,
     };
     let existed = c
         .admin
@@ -299,14 +314,11 @@ pub async fn put_topic_permission(
     Path((vhost, user)): Path<(String, String)>,
     body: Bytes,
 ) -> ApiResult {
-    require_vhost(&c, &vhost)?;
-    require_user(&c, &user)?;
-    let body = body_object(&body)?;
-    let field = |key| json::text(&body, key, "").map(str::to_owned);
-    let exchange = field("exchange").map_err(ApiError::bad_request)?;
+    let field = permission_body(&c, &vhost, &user, &body)?;
+    let exchange = field("exchange")?;
     let permission = TopicPermission {
-        write: field("write").map_err(ApiError::bad_request)?,
-        read: field("read").map_err(ApiError::bad_request)?,
+        write: field("write")?,
+        read: field("read")?,
     };
     c.admin
         .set_topic_permission(&user, &vhost, &exchange, permission)
