@@ -12,8 +12,6 @@ use crate::exchange::ExchangeOptions;
 use crate::inspect::DestinationKind;
 use crate::message::{Message, Stored};
 use crate::outbox::{Outbound, Outbox};
-use crate::password::PasswordHash;
-use crate::permissions::{PatternError, Permission, TopicPermission};
 use crate::queue::{DeadLetters, Enqueued, Queue, QueueOptions};
 use crate::vhost::{check_exclusive, BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
 use bytes::{Bytes, BytesMut};
@@ -138,93 +136,6 @@ impl Admin {
             ),
             _ => Ok(()),
         }
-    }
-
-    /// Adds a vhost (for definitions imported at run time); true if it is
-    /// new. It lasts while the broker runs, or while durable objects stored
-    /// in it exist; vhosts meant to last belong in the configuration.
-    pub fn add_vhost(&self, name: &str) -> AmqpResult<bool> {
-        let name = short(name, "vhost name")?;
-        if name.is_empty() {
-            return Err(AmqpError::precondition_failed("a vhost needs a name"));
-        }
-        let new = self.core.vhost(&name).is_none();
-        self.core.vhost_or_create(&name);
-        Ok(new)
-    }
-
-    /// Whether `user` with `password` is one of the broker's users.
-    pub async fn authenticate(&self, user: &str, password: &str) -> bool {
-        self.core
-            .users
-            .check_password(user, password.as_bytes())
-            .await
-    }
-
-    /// Sets `user`'s permission on `vhost` (RabbitMQ's `set_permissions`);
-    /// every open channel of theirs checks against it from its next
-    /// operation. Like vhosts added here, it lasts while the broker runs;
-    /// lasting ones belong in the configuration.
-    pub fn set_permission(
-        &self,
-        user: &str,
-        vhost: &str,
-        permission: Permission,
-    ) -> Result<(), PatternError> {
-        self.core.permissions.set(user, vhost, permission)
-    }
-
-    /// Removes `user`'s permission on `vhost` (`clear_permissions`): their
-    /// open channels there are refused from their next operation.
-    pub fn clear_permission(&self, user: &str, vhost: &str) {
-        self.core.permissions.clear(user, vhost);
-    }
-
-    /// Sets `user`'s topic permission on `exchange` in `vhost`
-    /// (`set_topic_permissions`).
-    pub fn set_topic_permission(
-        &self,
-        user: &str,
-        vhost: &str,
-        exchange: &str,
-        permission: TopicPermission,
-    ) -> Result<(), PatternError> {
-        self.core
-            .permissions
-            .set_topic(user, vhost, exchange, permission)
-    }
-
-    /// Removes `user`'s topic permission on `exchange` in `vhost`
-    /// (`clear_topic_permissions`).
-    pub fn clear_topic_permission(&self, user: &str, vhost: &str, exchange: &str) {
-        self.core.permissions.clear_topic(user, vhost, exchange);
-    }
-
-    /// Every (user, vhost, permission), ordered by user then vhost.
-    pub fn permissions(&self) -> Vec<(String, String, Permission)> {
-        self.core.permissions.list()
-    }
-
-    /// Every (user, vhost, exchange, topic permission).
-    pub fn topic_permissions(&self) -> Vec<(String, String, String, TopicPermission)> {
-        self.core.permissions.list_topics()
-    }
-
-    /// A user's limits, if they have any.
-    pub fn user_limits(&self, user: &str) -> Option<crate::UserLimits> {
-        self.core.limits.user(user)
-    }
-
-    /// The broker's users and their password hashes, sorted by name.
-    pub fn users(&self) -> Vec<(String, PasswordHash)> {
-        let mut users: Vec<(String, PasswordHash)> = self
-            .core
-            .users
-            .iter()
-            .map(|(name, hash)| (name.to_owned(), hash.clone()))
-            .collect();
-        users.sort_by(|a, b| a.0.cmp(&b.0));
-        users
     }
 
     /// exchange.declare, as a client would (same checks, same errors).

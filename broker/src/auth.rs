@@ -1,5 +1,5 @@
-//! Users and authentication: the users and their password hashes
-//! (`password`), RabbitMQ's `loopback_users`, and the SASL mechanisms
+//! Users and authentication: the users, their password hashes
+//! (`password`) and tags, RabbitMQ's `loopback_users`, and the SASL mechanisms
 //! PLAIN and AMQPLAIN. An argon2id check runs on tokio's blocking pool, at
 //! most [`SLOW_CHECKS`] at once, so neither the broker's threads nor a
 //! flood of logins is held by it; a login that passed is remembered (a
@@ -12,7 +12,7 @@ use bytes::{Bytes, BytesMut};
 use leveret_protocol::{FieldTable, FieldValue};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, RwLock};
 
 /// argon2id checks running at once, broker-wide (each holds ~19 MiB and
 /// a core for tens of milliseconds): one, so a flood of wrong passwords
@@ -71,10 +71,33 @@ impl VerifiedLogins {
     }
 }
 
-/// The users the broker accepts.
+/// One user: how their password is checked, and their tags.
+#[derive(Debug, Clone, PartialEq)]
+pub struct User {
+    /// The stored password hash.
+    pub password_hash: PasswordHash,
+    /// RabbitMQ's user tags (`administrator`, `monitoring`, `management`,
+    /// `policymaker`…): the broker keeps them; the management API decides
+    /// from them what the user may see and do there.
+    pub tags: Vec<String>,
+}
+
+impl User {
+    /// A user with `password_hash` and no tags.
+    pub fn new(password_hash: PasswordHash) -> Self {
+        User {
+            password_hash,
+            tags: Vec::new(),
+        }
+    }
+}
+
+/// The users the broker accepts. Clones share the users: a change through
+/// one is seen by all (the lock is held for one lookup or change, never
+/// across an await).
 #[derive(Debug, Clone)]
 pub struct Users {
-    users: HashMap<String, PasswordHash>,
+    users: Arc<RwLock<HashMap<String, User>>>,
     verified: Arc<VerifiedLogins>,
     /// RabbitMQ's `loopback_users`: users who may connect only from the
     /// host itself (`guest` by default, as in RabbitMQ).
@@ -84,7 +107,7 @@ pub struct Users {
 impl Default for Users {
     fn default() -> Self {
         Users {
-            users: HashMap::new(),
+            users: Arc::new(RwLock::new(HashMap::new())),
             verified: Arc::new(VerifiedLogins::new()),
             loopback_only: vec![GUEST.to_owned()],
         }
@@ -118,30 +141,50 @@ impl Users {
         self.loopback_only.iter().any(|name| name == user)
     }
 
+    fn read(&self) -> std::sync::RwLockReadGuard<'_, HashMap<String, User>> {
+        self.users.read().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn write(&self) -> std::sync::RwLockWriteGuard<'_, HashMap<String, User>> {
+        self.users.write().unwrap_or_else(|e| e.into_inner())
+    }
+
     /// Whether `guest` is the only user (for the warning when a listener
     /// beyond this host is open).
     pub fn only_guest(&self) -> bool {
-        self.users.len() == 1 && self.users.contains_key(GUEST)
+        let users = self.read();
+        users.len() == 1 && users.contains_key(GUEST)
     }
 
     /// Whether `name` is a user.
     pub fn contains(&self, name: &str) -> bool {
-        self.users.contains_key(name)
+        self.read().contains_key(name)
     }
 
-    /// Adds or replaces a user.
-    pub fn insert(&mut self, name: impl Into<String>, password: &str) {
-        self.users.insert(name.into(), PasswordHash::new(password));
+    /// A user, if there is one by that name.
+    pub fn get(&self, name: &str) -> Option<User> {
+        self.read().get(name).cloned()
     }
 
-    /// Adds or replaces a user whose password is given already hashed.
-    pub fn insert_hashed(&mut self, name: impl Into<String>, hash: PasswordHash) {
-        self.users.insert(name.into(), hash);
+    /// Adds or replaces a user; true if they are new.
+    pub fn put(&self, name: impl Into<String>, user: User) -> bool {
+        self.write().insert(name.into(), user).is_none()
     }
 
-    /// Every user and their stored hash (for listings).
-    pub fn iter(&self) -> impl Iterator<Item = (&str, &PasswordHash)> {
-        self.users.iter().map(|(name, hash)| (name.as_str(), hash))
+    /// Removes a user; true if there was one.
+    pub fn remove(&self, name: &str) -> bool {
+        self.write().remove(name).is_some()
+    }
+
+    /// Every user, sorted by name.
+    pub fn list(&self) -> Vec<(String, User)> {
+        let mut users: Vec<(String, User)> = self
+            .read()
+            .iter()
+            .map(|(name, user)| (name.clone(), user.clone()))
+            .collect();
+        users.sort_by(|a, b| a.0.cmp(&b.0));
+        users
     }
 
     /// Checks a SASL response for `mechanism`; the user name if it passes.
@@ -159,13 +202,17 @@ impl Users {
 
     /// Whether `password` is `user`'s.
     pub async fn check_password(&self, user: &str, password: &[u8]) -> bool {
-        let Some(hash) = self.users.get(user) else {
+        let Some(User {
+            password_hash: hash,
+            ..
+        }) = self.get(user)
+        else {
             return false;
         };
         if !hash.is_slow() {
             return hash.verify(password);
         }
-        let key = self.verified.key(user, hash, password);
+        let key = self.verified.key(user, &hash, password);
         if self.verified.passed(user, &key) {
             return true;
         }
@@ -177,7 +224,7 @@ impl Users {
         if self.verified.passed(user, &key) {
             return true;
         }
-        let (hash, candidate) = (hash.clone(), password.to_vec());
+        let candidate = password.to_vec();
         let verified = tokio::task::spawn_blocking(move || hash.verify(&candidate))
             .await
             .unwrap_or(false);
@@ -213,8 +260,8 @@ mod tests {
 
     #[tokio::test]
     async fn plain_and_amqplain() {
-        let mut users = Users::default();
-        users.insert("guest", "guest");
+        let users = Users::default();
+        users.put("guest", User::new(PasswordHash::new("guest")));
         assert_eq!(
             users
                 .authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0guest"))
@@ -242,8 +289,8 @@ mod tests {
     /// blocking checks give their slots back.
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn argon2id_logins_are_checked_off_thread_and_remembered_only_when_right() {
-        let mut users = Users::default();
-        users.insert("robot", "pw");
+        let users = Users::default();
+        users.put("robot", User::new(PasswordHash::new("pw")));
         let wrong: Vec<_> = (0..8)
             .map(|i| {
                 let users = users.clone();
@@ -263,7 +310,7 @@ mod tests {
         );
         assert_eq!(users.verified.slow_checks.available_permits(), SLOW_CHECKS);
         assert!(users.check_password("robot", b"pw").await);
-        let hash = users.users.get("robot").unwrap().clone();
+        let hash = users.get("robot").unwrap().password_hash;
         let key = users.verified.key("robot", &hash, b"pw");
         assert!(users.verified.passed("robot", &key));
         assert!(!users
@@ -277,8 +324,8 @@ mod tests {
     #[test]
     fn loopback_users_connect_only_from_the_host() {
         let mut users = Users::default();
-        users.insert("guest", "guest");
-        users.insert("robot", "pw");
+        users.put("guest", User::new(PasswordHash::new("guest")));
+        users.put("robot", User::new(PasswordHash::new("pw")));
         assert!(users.may_connect_from("guest", "127.0.0.1:5000"));
         assert!(users.may_connect_from("guest", "[::1]:5000"));
         assert!(users.may_connect_from("guest", "[::ffff:127.0.0.1]:5000"));

@@ -179,6 +179,10 @@ pub struct Core {
     pub started: std::time::Instant,
     /// Connections counted against `max_connections` and vhost limits.
     pub connections: Arc<Admission>,
+    /// Taken by each run-time change to users, vhosts and permissions
+    /// from its check through its write to disk to its taking effect
+    /// (`access`), so the store and memory see them in one order.
+    pub access_changes: tokio::sync::Mutex<()>,
     next_connection: AtomicU64,
     shutdown: watch::Sender<bool>,
 }
@@ -225,6 +229,7 @@ impl Core {
             product: product.to_owned(),
             started: std::time::Instant::now(),
             connections,
+            access_changes: tokio::sync::Mutex::new(()),
             next_connection: AtomicU64::new(1),
             shutdown: watch::channel(false).0,
         })

@@ -3,14 +3,15 @@
 //! [`BrokerHandle`]; `shutdown` closes every connection with 320
 //! CONNECTION_FORCED and waits for them to finish.
 
+use crate::access::Configured;
 use crate::admin::Admin;
-use crate::auth::Users;
+use crate::auth::User;
 use crate::busy_poll::BusyPoll;
 use crate::core::{Core, CoreOptions, Limits};
 use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 use crate::inspect::{Overview, QueueInfo};
 use crate::password::PasswordHash;
-use crate::permissions::{PatternError, Permission, Permissions, TopicPermission};
+use crate::permissions::{PatternError, Permission, TopicPermission};
 use crate::store::{mark_clean, open_checked, Persistence, Recovered, Store, StoreError, StoreOp};
 use crate::tls::{TlsContext, TlsError, TlsOptions};
 use std::net::SocketAddr;
@@ -45,7 +46,8 @@ pub struct BrokerBuilder {
     listen: Vec<SocketAddr>,
     tls_listen: Vec<SocketAddr>,
     tls: Option<TlsOptions>,
-    users: Vec<(String, PasswordHash)>,
+    users: Vec<(String, User)>,
+    user_tags: std::collections::HashMap<String, Vec<String>>,
     /// `None`: RabbitMQ's default, `guest` only.
     loopback_users: Option<Vec<String>>,
     vhosts: Vec<String>,
@@ -98,14 +100,29 @@ impl BrokerBuilder {
     /// Adds a user; without any, the broker has RabbitMQ's `guest`/`guest`.
     /// The password is kept only as a salted hash.
     pub fn user(mut self, name: impl Into<String>, password: &str) -> Self {
-        self.users.push((name.into(), PasswordHash::new(password)));
+        self.users
+            .push((name.into(), User::new(PasswordHash::new(password))));
         self
     }
 
     /// Adds a user whose password is given as a stored hash
     /// (see `leveret --hash-password`).
     pub fn user_hashed(mut self, name: impl Into<String>, hash: PasswordHash) -> Self {
-        self.users.push((name.into(), hash));
+        self.users.push((name.into(), User::new(hash)));
+        self
+    }
+
+    /// Gives a user RabbitMQ's user tags (`administrator`, `monitoring`,
+    /// `management`, `policymaker`): the broker keeps them for the
+    /// management API, which decides from them what the user may see and
+    /// do there. The default `guest` is an `administrator`.
+    pub fn user_tags<I, S>(mut self, name: impl Into<String>, tags: I) -> Self
+    where
+        I: IntoIterator<Item = S>,
+        S: Into<String>,
+    {
+        self.user_tags
+            .insert(name.into(), tags.into_iter().map(Into::into).collect());
         self
     }
 
@@ -269,45 +286,6 @@ impl BrokerBuilder {
             )),
             (None, true) => None,
         };
-        let vhosts = if self.vhosts.is_empty() {
-            vec!["/".to_owned()]
-        } else {
-            self.vhosts
-        };
-        let mut users = Users::default();
-        let permissions = Permissions::default();
-        if self.users.is_empty() {
-            users.insert(crate::auth::GUEST, "guest");
-            for vhost in &vhosts {
-                permissions
-                    .set(crate::auth::GUEST, vhost, Permission::full())
-                    .map_err(StartError::Permission)?;
-            }
-        }
-        for (user, vhost, permission) in self.permissions {
-            permissions
-                .set(&user, &vhost, permission)
-                .map_err(StartError::Permission)?;
-        }
-        for (user, vhost, exchange, permission) in self.topic_permissions {
-            permissions
-                .set_topic(&user, &vhost, &exchange, permission)
-                .map_err(StartError::Permission)?;
-        }
-        let granted: std::collections::HashSet<String> = permissions
-            .list()
-            .into_iter()
-            .map(|(user, ..)| user)
-            .collect();
-        for (name, hash) in self.users {
-            if !granted.contains(&name) {
-                tracing::warn!(user = %name, "user has no permissions: it can log in but open no vhost (RabbitMQ's rule); grant some");
-            }
-            users.insert_hashed(name, hash);
-        }
-        if let Some(names) = self.loopback_users {
-            users.set_loopback_only(names);
-        }
         // Recovery time includes opening the store (sled replays its log).
         let started = std::time::Instant::now();
         let free_space = match (self.free_space, &self.storage) {
@@ -348,11 +326,40 @@ impl BrokerBuilder {
             }
             None => (None, Recovered::default()),
         };
+        let mut configured_users = self.users;
+        for (name, user) in &mut configured_users {
+            if let Some(tags) = self.user_tags.get(name) {
+                user.tags.clone_from(tags);
+            }
+        }
+        let access = crate::access::at_start(
+            Configured {
+                vhosts: self.vhosts,
+                users: configured_users,
+                permissions: self.permissions,
+                topic_permissions: self.topic_permissions,
+            },
+            &recovered,
+            persistence.is_some(),
+        )
+        .map_err(StartError::Permission)?;
+        if let (Some(persistence), false) = (&persistence, access.seed.is_empty()) {
+            let number = persistence.submit_atomic(access.seed);
+            if !persistence.wait(number).await {
+                return Err(StartError::Storage(StoreError::Engine(
+                    "the default user could not be written".into(),
+                )));
+            }
+        }
+        let mut users = access.users;
+        if let Some(names) = self.loopback_users {
+            users.set_loopback_only(names);
+        }
         let busy_poll = busy_poll_state(self.busy_poll);
         let core = Core::new(CoreOptions {
-            vhosts,
+            vhosts: access.vhosts,
             users,
-            permissions,
+            permissions: access.permissions,
             limits: self.limits,
             persistence,
             product: self.product.unwrap_or_else(|| DEFAULT_PRODUCT.to_owned()),

@@ -77,6 +77,7 @@
 #![forbid(unsafe_code)]
 #![deny(missing_docs)]
 
+mod access;
 mod admin;
 mod auth;
 mod busy_poll;
@@ -114,7 +115,9 @@ mod testkit;
 mod tls;
 mod vhost;
 
+pub use crate::access::AccessError;
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
+pub use crate::auth::User;
 pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};

@@ -43,6 +43,14 @@ pub struct Permission {
 }
 
 impl Permission {
+    /// Whether the regex engine can run all three patterns.
+    pub fn check(&self) -> Result<(), PatternError> {
+        for pattern in [&self.configure, &self.write, &self.read] {
+            Matcher::compile(pattern, None)?;
+        }
+        Ok(())
+    }
+
     /// `.*` for all three: everything in the vhost.
     pub fn full() -> Self {
         Permission {
@@ -61,6 +69,19 @@ pub struct TopicPermission {
     pub write: String,
     /// Routing keys the user may bind with.
     pub read: String,
+}
+
+impl TopicPermission {
+    /// Whether the regex engine can run both patterns for `user` in
+    /// `vhost`: checked as they will run, with the names put in (a long
+    /// name repeated in a pattern can pass with placeholders and still
+    /// exceed the size limit).
+    pub fn check(&self, user: &str, vhost: &str) -> Result<(), PatternError> {
+        for pattern in [&self.write, &self.read] {
+            Matcher::compile(pattern, Some((user, vhost)))?;
+        }
+        Ok(())
+    }
 }
 
 /// A pattern that cannot be used.
@@ -300,9 +321,7 @@ impl Permissions {
 
     /// Sets `user`'s permission on `vhost` (RabbitMQ's `set_permissions`).
     pub fn set(&self, user: &str, vhost: &str, permission: Permission) -> Result<(), PatternError> {
-        for pattern in [&permission.configure, &permission.write, &permission.read] {
-            Matcher::compile(pattern, None)?;
-        }
+        permission.check()?;
         self.change(key(user, vhost), |g| g.permission = Some(permission));
         Ok(())
     }
@@ -321,12 +340,7 @@ impl Permissions {
         exchange: &str,
         permission: TopicPermission,
     ) -> Result<(), PatternError> {
-        // Checked as it will run: with this user's and vhost's names put in
-        // (a long name repeated in a pattern can pass with placeholders and
-        // still exceed the size limit).
-        for pattern in [&permission.write, &permission.read] {
-            Matcher::compile(pattern, Some((user, vhost)))?;
-        }
+        permission.check(user, vhost)?;
         self.change(key(user, vhost), |g| {
             g.topics.insert(exchange.to_owned(), permission);
         });

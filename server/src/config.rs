@@ -535,6 +535,9 @@ impl Settings {
                 Credential::Hash(hash) => builder.user_hashed(name, hash),
             };
         }
+        for (name, tags) in self.tags {
+            builder = builder.user_tags(name, tags);
+        }
         for (user, vhost, permission) in self.permissions {
             builder = builder.permission(user, vhost, permission);
         }

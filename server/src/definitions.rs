@@ -2,28 +2,26 @@
 //! start, `POST /api/definitions` at run time) and writing the broker's
 //! (`GET /api/definitions`) in the form RabbitMQ 3.10 imports.
 //!
-//! What Leveret acts on: vhosts, users (with RabbitMQ's SHA-256 password
-//! hashes, which are Leveret's own scheme; at start only, as users are
-//! fixed once the broker runs), exchanges, queues (with arguments) and
-//! bindings, permissions and topic permissions (enforced by the broker;
-//! a pattern its regex engine cannot run refuses the file), users' tags
-//! (`tags`: what they may do in the management API), and shovels
+//! What Leveret acts on: vhosts, users (with RabbitMQ's SHA-256 and
+//! SHA-512 password hashes and Leveret's argon2id, and their tags: what
+//! they may do in the management API), exchanges, queues (with arguments)
+//! and bindings, permissions and topic permissions (enforced by the
+//! broker; a pattern its regex engine cannot run refuses the file), users'
+//! limits (at start; a run-time import reports them), and shovels
 //! (`parameters` with component `shovel`, started by `uplink`).
 //! Everything else is reported, never dropped silently: policies,
 //! other parameters, global parameters, unknown keys, other password hashing
 //! algorithms, and queue types Leveret does not have (an `x-queue-type`
 //! other than classic gives a classic queue).
 
-use crate::management::json::{flag, table, text, to_table};
-use crate::tags::Tags;
+use crate::management::json::{flag, table, text, to_table, user_tags};
 use crate::uplink::Shovels;
 use leveret_broker::{
     check_pattern, Admin, BindingSpec, BrokerBuilder, DestinationKind, ExchangeSettings,
-    PasswordHash, Permission, QueueSettings, TopicPermission, UserLimits, LEVERET_ARGON2ID,
+    PasswordHash, Permission, QueueSettings, TopicPermission, User, UserLimits, LEVERET_ARGON2ID,
     RABBIT_SHA256, RABBIT_SHA512,
 };
 use serde_json::{json, Map, Value};
-use std::collections::BTreeMap;
 
 /// A user from the file.
 #[derive(Debug, Clone, PartialEq)]
@@ -32,6 +30,8 @@ pub struct UserDefinition {
     pub name: String,
     /// Its password hash.
     pub hash: PasswordHash,
+    /// Its tags.
+    pub tags: Vec<String>,
     /// Its limits (`max-connections`, `max-channels`), if any.
     pub limits: Option<UserLimits>,
 }
@@ -54,8 +54,6 @@ pub struct Definitions {
     /// Shovels (`parameters` with component `shovel`): vhost, name and
     /// RabbitMQ's JSON parameters, checked.
     pub shovels: Vec<(String, String, Value)>,
-    /// Users' tags (what they may do in the management API).
-    pub tags: BTreeMap<String, Vec<String>>,
     /// Everything not applied, one line each.
     pub warnings: Vec<String>,
 }
@@ -65,6 +63,8 @@ pub struct Definitions {
 pub struct Applied {
     /// Vhosts created.
     pub vhosts: usize,
+    /// Users added or changed.
+    pub users: usize,
     /// Exchanges declared.
     pub exchanges: usize,
     /// Queues declared.
@@ -151,24 +151,6 @@ fn name(item: &Map<String, Value>, key: &str, what: &str) -> Result<String, Stri
     match item.get(key) {
         Some(Value::String(s)) => Ok(s.clone()),
         _ => Err(format!("{what} without a '{key}'")),
-    }
-}
-
-/// A user's `tags`: RabbitMQ exports a list; older files a comma-separated string.
-fn user_tags(tags: Option<&Value>) -> Vec<String> {
-    match tags {
-        Some(Value::Array(list)) => list
-            .iter()
-            .filter_map(Value::as_str)
-            .map(str::to_owned)
-            .collect(),
-        Some(Value::String(text)) => text
-            .split(',')
-            .map(str::trim)
-            .filter(|t| !t.is_empty())
-            .map(str::to_owned)
-            .collect(),
-        _ => Vec::new(),
     }
 }
 
@@ -277,9 +259,6 @@ impl Definitions {
                 &mut d.warnings,
             );
             let tags = user_tags(item.get("tags"));
-            if !tags.is_empty() {
-                d.tags.insert(user.clone(), tags);
-            }
             let algorithm = text(item, "hashing_algorithm", RABBIT_SHA256)?;
             if ![RABBIT_SHA256, RABBIT_SHA512, LEVERET_ARGON2ID].contains(&algorithm) {
                 d.warnings.push(format!("{what} not imported: hashing algorithm {algorithm} is not supported (only {RABBIT_SHA256}, {RABBIT_SHA512} and {LEVERET_ARGON2ID})"));
@@ -290,6 +269,7 @@ impl Definitions {
                 Some(hash) => d.users.push(UserDefinition {
                     name: user,
                     hash,
+                    tags,
                     limits,
                 }),
                 None => d
@@ -447,7 +427,9 @@ impl Definitions {
             builder = builder.vhost(vhost.clone());
         }
         for user in &self.users {
-            builder = builder.user_hashed(user.name.clone(), user.hash.clone());
+            builder = builder
+                .user_hashed(user.name.clone(), user.hash.clone())
+                .user_tags(user.name.clone(), user.tags.clone());
             if let Some(limits) = user.limits {
                 builder = builder.user_limits(user.name.clone(), limits);
             }
@@ -466,45 +448,55 @@ impl Definitions {
         builder
     }
 
-    /// Applies vhosts, exchanges, queues and bindings to a running broker,
-    /// in that order; stops at the first that fails, naming it. Users are
-    /// reported unless the broker already has them with the same hash.
-    pub async fn apply(
-        &mut self,
-        admin: &Admin,
-        tags: &Tags,
-        shovels: &Shovels,
-    ) -> Result<Applied, String> {
+    /// Applies vhosts, users, permissions, exchanges, queues, shovels and
+    /// bindings to a running broker, in that order; stops at the first that
+    /// fails, naming it. Users and permissions last as those changed by
+    /// the API do (in the store). Users' limits are reported: they are
+    /// taken at start.
+    pub async fn apply(&mut self, admin: &Admin, shovels: &Shovels) -> Result<Applied, String> {
         let mut applied = Applied::default();
-        tags.record(&self.tags);
-        let existing = admin.users();
-        for user in &self.users {
-            if !existing
-                .iter()
-                .any(|(name, hash)| *name == user.name && *hash == user.hash)
-            {
-                self.warnings.push(format!(
-                    "user '{}' not imported: users are fixed once the broker runs (give the file with --definitions, or use the config file)",
-                    user.name
-                ));
-            }
-        }
         for vhost in &self.vhosts {
             if admin
                 .add_vhost(vhost)
-                .map_err(|e| format!("vhost '{vhost}': {}", e.text))?
+                .await
+                .map_err(|e| format!("vhost '{vhost}': {e}"))?
             {
                 applied.vhosts += 1;
+            }
+        }
+        for user in &self.users {
+            let same = admin.user(&user.name).is_some_and(|existing| {
+                existing.password_hash == user.hash && existing.tags == user.tags
+            });
+            if !same {
+                let mut entry = User::new(user.hash.clone());
+                entry.tags.clone_from(&user.tags);
+                admin
+                    .put_user(&user.name, entry)
+                    .await
+                    .map_err(|e| format!("user '{}': {e}", user.name))?;
+                applied.users += 1;
+            }
+            if user
+                .limits
+                .is_some_and(|limits| Some(limits) != admin.user_limits(&user.name))
+            {
+                self.warnings.push(format!(
+                    "limits of user '{}' not applied: users' limits are taken at start (give the file with --definitions, or use the config file)",
+                    user.name
+                ));
             }
         }
         for (user, vhost, permission) in &self.permissions {
             admin
                 .set_permission(user, vhost, permission.clone())
+                .await
                 .map_err(|e| format!("permission of '{user}' on vhost '{vhost}': {e}"))?;
         }
         for (user, vhost, exchange, permission) in &self.topic_permissions {
             admin
                 .set_topic_permission(user, vhost, exchange, permission.clone())
+                .await
                 .map_err(|e| format!("topic permission of '{user}' on '{exchange}': {e}"))?;
         }
         for (vhost, name, settings) in &self.exchanges {
@@ -547,8 +539,8 @@ impl Definitions {
 /// One vhost's definitions, as RabbitMQ exports them: its exchanges,
 /// queues and bindings without their `vhost` key, and the empty policies
 /// and parameters.
-pub fn export_vhost(admin: &Admin, tags: &Tags, shovels: &Shovels, vhost: &str) -> Value {
-    let all = export(admin, tags, shovels);
+pub fn export_vhost(admin: &Admin, shovels: &Shovels, vhost: &str) -> Value {
+    let all = export(admin, shovels);
     let only = |key: &str| -> Vec<Value> {
         all[key]
             .as_array()
@@ -578,10 +570,10 @@ pub fn export_vhost(admin: &Admin, tags: &Tags, shovels: &Shovels, vhost: &str) 
 }
 
 /// The broker's definitions in RabbitMQ 3.10's form: vhosts, users with
-/// their recorded tags, permissions, topic permissions, and the exchanges,
+/// their tags, permissions, topic permissions, and the exchanges,
 /// queues and bindings a client declared (not the predefined exchanges,
 /// exclusive queues or the default exchange's implicit bindings).
-pub fn export(admin: &Admin, tags: &Tags, shovels: &Shovels) -> Value {
+pub fn export(admin: &Admin, shovels: &Shovels) -> Value {
     let vhosts = admin.vhosts();
     let users = admin.users();
     let exclusive: Vec<(String, String)> = admin
@@ -629,11 +621,11 @@ pub fn export(admin: &Admin, tags: &Tags, shovels: &Shovels) -> Value {
         "rabbitmq_version": "3.10.0",
         "product_name": overview.product,
         "product_version": overview.version,
-        "users": users.iter().map(|(name, hash)| {
-            let (password_hash, hashing_algorithm) = hash.to_rabbitmq();
+        "users": users.iter().map(|(name, user)| {
+            let (password_hash, hashing_algorithm) = user.password_hash.to_rabbitmq();
             json!({
                 "name": name, "password_hash": password_hash,
-                "hashing_algorithm": hashing_algorithm, "tags": tags.of(name),
+                "hashing_algorithm": hashing_algorithm, "tags": user.tags,
                 "limits": user_limits_json(admin.user_limits(name))})
         }).collect::<Vec<_>>(),
         "vhosts": vhosts.iter().map(|name| json!({"name": name})).collect::<Vec<_>>(),

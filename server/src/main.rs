@@ -31,7 +31,6 @@ mod management;
 mod metrics;
 mod ops;
 mod process;
-mod tags;
 mod uplink;
 
 use clap::Parser;
@@ -93,8 +92,6 @@ async fn serve(settings: Settings) -> ExitCode {
     logging::init(&settings.log);
     let ops_settings = settings.ops();
     let shovel_configs = settings.shovels.clone();
-    let tags = tags::Tags::default();
-    tags.record(&settings.tags);
     let definitions = match &settings.definitions {
         None => None,
         Some(path) => {
@@ -110,12 +107,6 @@ async fn serve(settings: Settings) -> ExitCode {
             }
         }
     };
-    // RabbitMQ's default user, guest, is an administrator.
-    let default_guest =
-        settings.users.is_empty() && definitions.as_ref().is_none_or(|d| d.users.is_empty());
-    if default_guest {
-        tags.record(&[("guest".to_owned(), vec!["administrator".to_owned()])].into());
-    }
     let mut builder = settings.builder();
     if let Some(definitions) = &definitions {
         builder = definitions.configure(builder);
@@ -128,15 +119,7 @@ async fn serve(settings: Settings) -> ExitCode {
         }
     };
     let shovels = uplink::Shovels::new(&handle);
-    let outcome = run(
-        &handle,
-        &shovels,
-        tags,
-        definitions,
-        shovel_configs,
-        ops_settings,
-    )
-    .await;
+    let outcome = run(&handle, &shovels, definitions, shovel_configs, ops_settings).await;
     shovels.stop_all().await;
     match Arc::try_unwrap(handle) {
         Ok(handle) => handle.shutdown().await,
@@ -150,7 +133,6 @@ async fn serve(settings: Settings) -> ExitCode {
 async fn run(
     handle: &Arc<leveret_broker::BrokerHandle>,
     shovels: &uplink::Shovels,
-    tags: tags::Tags,
     definitions: Option<Definitions>,
     shovel_configs: Vec<(String, serde_json::Value)>,
     ops_settings: ops::OpsSettings,
@@ -162,7 +144,7 @@ async fn run(
         }
     }
     if let Some(mut definitions) = definitions {
-        match definitions.apply(&handle.admin(), &tags, shovels).await {
+        match definitions.apply(&handle.admin(), shovels).await {
             Ok(applied) => tracing::info!(?applied, "definitions loaded"),
             Err(e) => {
                 tracing::error!(error = %e, "cannot load the definitions");
@@ -175,7 +157,6 @@ async fn run(
     }
     let ops = match ops::Ops::start(
         handle.admin(),
-        tags,
         shovels.clone(),
         handle.local_addrs(),
         ops_settings,

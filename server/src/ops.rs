@@ -8,7 +8,6 @@
 
 use crate::management::Rates;
 use crate::metrics::MetricsContext;
-use crate::tags::Tags;
 use crate::uplink::Shovels;
 use leveret_broker::Admin;
 use std::net::SocketAddr;
@@ -67,7 +66,6 @@ impl Ops {
     /// `amqp_listeners` are reported in `/api/overview`.
     pub fn start(
         admin: Admin,
-        tags: Tags,
         shovels: Shovels,
         amqp_listeners: &[SocketAddr],
         settings: OpsSettings,
@@ -90,7 +88,6 @@ impl Ops {
         };
         let management = crate::management::Context {
             admin: admin.clone(),
-            tags,
             shovels,
             node,
             data_dir: settings.data_dir,

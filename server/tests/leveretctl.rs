@@ -232,3 +232,45 @@ async fn permissions_are_set_listed_and_cleared() {
             .is_err()
     );
 }
+
+/// add_user, set_user_tags, change_password and delete_user in
+/// rabbitmqctl's words: the user logs in with the password set, loses the
+/// old one when it changes, and is refused once deleted; adding a user
+/// twice is refused with status 1.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn users_are_added_changed_and_deleted() {
+    let broker = OpsBroker::start("ctl-users", &[]);
+    let login = |password: &str| {
+        let url = format!("amqp://robot:{password}@{}/%2f", broker.amqp);
+        async move { Connection::connect(&url, ConnectionProperties::default()).await }
+    };
+    lines(&broker, &["add_user", "robot", "pw1"]);
+    let again = ctl(&broker, &["add_user", "robot", "other"]);
+    assert_eq!(again.status.code(), Some(1), "{again:?}");
+    assert!(String::from_utf8_lossy(&again.stderr).contains("already exists"));
+    lines(
+        &broker,
+        &["set_user_tags", "robot", "monitoring", "management"],
+    );
+    lines(&broker, &["set_permissions", "robot", ".*", ".*", ".*"]);
+    assert_eq!(
+        lines(&broker, &["-q", "--no-table-headers", "list_users"]),
+        [
+            "guest\t[\"administrator\"]",
+            "robot\t[\"monitoring\",\"management\"]"
+        ]
+    );
+    login("pw1").await.expect("the password add_user set");
+    lines(&broker, &["change_password", "robot", "pw2"]);
+    assert!(login("pw1").await.is_err(), "the old password is gone");
+    login("pw2").await.expect("the new password");
+    assert_eq!(
+        lines(&broker, &["-q", "--no-table-headers", "list_users"])[1],
+        "robot\t[\"monitoring\",\"management\"]",
+        "change_password keeps the tags"
+    );
+    lines(&broker, &["delete_user", "robot"]);
+    assert!(login("pw2").await.is_err(), "deleted");
+    let gone = ctl(&broker, &["delete_user", "robot"]);
+    assert_eq!(gone.status.code(), Some(1), "{gone:?}");
+}

@@ -630,6 +630,111 @@ async fn rabbitmqadmin_sets_permissions_the_broker_enforces() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Users through the management API with rabbitmqadmin 3.10, as
+/// RabbitMQ keeps them: `declare user` adds one with its tags, who logs in
+/// over AMQP once granted a permission; the user, tags and permission
+/// outlast a SIGKILL right after the answers (they were on disk before
+/// them); `delete user` takes the user and their permissions away, for good.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rabbitmqadmin_adds_users_that_outlast_a_crash() {
+    if !tool_available("rabbitmqadmin", "rabbitmq-server") {
+        return;
+    }
+    let broker = OpsBroker::start("users", &[]);
+    for args in [
+        &[
+            "declare",
+            "user",
+            "name=robot",
+            "password=pw",
+            "tags=monitoring",
+        ][..],
+        &[
+            "declare",
+            "permission",
+            "vhost=/",
+            "user=robot",
+            "configure=.*",
+            "write=.*",
+            "read=.*",
+        ],
+        &["declare", "vhost", "name=cell-7"],
+    ] {
+        rabbitmqadmin(&broker, args).expect("installed");
+    }
+    let robot_url = |broker: &OpsBroker| format!("amqp://robot:pw@{}/%2f", broker.amqp);
+    Connection::connect(&robot_url(&broker), ConnectionProperties::default())
+        .await
+        .expect("the new user logs in");
+    let whoami = request(
+        broker.http,
+        "GET",
+        "/api/whoami",
+        &[("Authorization", &basic("robot", "pw"))],
+        b"",
+    )
+    .await;
+    assert_eq!(whoami.status, 200, "{}", whoami.text());
+    assert!(whoami.text().contains("monitoring"), "{}", whoami.text());
+
+    let broker = broker.kill_and_restart(&[]);
+    let users = admin_json(&broker, &["list", "users"]);
+    assert_eq!(
+        named(&users, "robot")["tags"],
+        json!(["monitoring"]),
+        "{users}"
+    );
+    let vhosts = admin_json(&broker, &["list", "vhosts"]);
+    named(&vhosts, "cell-7");
+    Connection::connect(&robot_url(&broker), ConnectionProperties::default())
+        .await
+        .expect("the user and permission outlast the crash");
+
+    rabbitmqadmin(&broker, &["delete", "user", "name=robot"]).expect("installed");
+    let broker = broker.kill_and_restart(&[]);
+    let users = admin_json(&broker, &["list", "users"]);
+    assert!(
+        users
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|u| u["name"] != "robot"),
+        "{users}"
+    );
+    let permissions = admin_json(&broker, &["list", "permissions"]);
+    assert!(
+        permissions
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|p| p["user"] != "robot"),
+        "{permissions}"
+    );
+    assert!(
+        Connection::connect(&robot_url(&broker), ConnectionProperties::default())
+            .await
+            .is_err(),
+        "deleted for good"
+    );
+    // A new user needs a password; a bad hash is refused; neither changes anything.
+    let guest = basic("guest", "guest");
+    let headers = [
+        ("Authorization", guest.as_str()),
+        ("Content-Type", "application/json"),
+    ];
+    for body in [
+        &br#"{"tags": "administrator"}"#[..],
+        br#"{"password_hash": "not base64", "tags": ""}"#,
+    ] {
+        let refused = request(broker.http, "PUT", "/api/users/intruder", &headers, body).await;
+        assert_eq!(refused.status, 400, "{}", refused.text());
+    }
+    let missing = request(broker.http, "DELETE", "/api/users/intruder", &headers, b"").await;
+    assert_eq!(missing.status, 404, "{}", missing.text());
+    let users = admin_json(&broker, &["list", "users"]);
+    assert_eq!(users.as_array().unwrap().len(), 1, "{users}");
+}
+
 /// RabbitMQ's user tags decide what a caller of the management API may see
 /// and do: no management tag, no login; `management` sees only the vhosts
 /// it has a permission on and cannot reach the administrator's paths;

@@ -357,6 +357,7 @@ async fn a_change_applies_to_open_channels_from_their_next_operation() {
     );
     admin
         .set_permission(USER, "/", Permission::full())
+        .await
         .expect("valid patterns");
     let ch = channel(&conn).await;
     tmo!(ch.queue_declare(
@@ -365,7 +366,7 @@ async fn a_change_applies_to_open_channels_from_their_next_operation() {
         lp::FieldTable::default()
     ))
     .expect("granted while connected");
-    admin.clear_permission(USER, "/");
+    admin.clear_permission(USER, "/").await.expect("cleared");
     lp::assert_err(
         tmo!(ch.queue_declare(
             "wider",
@@ -389,6 +390,7 @@ async fn a_change_applies_to_open_channels_from_their_next_operation() {
                 ..Permission::full()
             }
         )
+        .await
         .is_err());
     b.stop().await;
 }

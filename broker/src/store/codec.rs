@@ -4,8 +4,8 @@
 //! length and tag, so a damaged value is an error, never a panic.
 
 use super::{
-    BindingRecord, EntryBody, ExchangeRecord, KvOp, KvPair, MessageRecord, QueueRecord, Recovered,
-    RecoveredEntry, StoreError, StoreOp,
+    AccessKey, AccessRecord, BindingRecord, EntryBody, ExchangeRecord, KvOp, KvPair, MessageRecord,
+    QueueRecord, Recovered, RecoveredEntry, StoreError, StoreOp,
 };
 use bytes::{Buf, BufMut, Bytes, BytesMut};
 use leveret_protocol::{FieldTable, ShortStr};
@@ -58,6 +58,13 @@ fn take_u8(buf: &mut Bytes) -> Result<u8, StoreError> {
         return Err(corrupt("octet"));
     }
     Ok(buf.get_u8())
+}
+
+fn take_u32(buf: &mut Bytes) -> Result<u32, StoreError> {
+    if buf.len() < 4 {
+        return Err(corrupt("u32"));
+    }
+    Ok(buf.get_u32())
 }
 
 fn take_u64(buf: &mut Bytes) -> Result<u64, StoreError> {
@@ -130,6 +137,131 @@ fn index_key(queue: u64, seq: u64) -> Vec<u8> {
     key
 }
 
+/// An access record's key: `a`, its kind, then each name as a long
+/// string (names may hold any byte, so none is a separator).
+fn access_key(key: &AccessKey) -> Vec<u8> {
+    let mut buf = BytesMut::new();
+    buf.put_u8(b'a');
+    match key {
+        AccessKey::User(name) => {
+            buf.put_u8(b'u');
+            put_long(&mut buf, name.as_bytes());
+        }
+        AccessKey::Vhost(name) => {
+            buf.put_u8(b'v');
+            put_long(&mut buf, name.as_bytes());
+        }
+        AccessKey::Permission { user, vhost } => {
+            buf.put_u8(b'p');
+            put_long(&mut buf, user.as_bytes());
+            put_long(&mut buf, vhost.as_bytes());
+        }
+        AccessKey::TopicPermission {
+            user,
+            vhost,
+            exchange,
+        } => {
+            buf.put_u8(b't');
+            put_long(&mut buf, user.as_bytes());
+            put_long(&mut buf, vhost.as_bytes());
+            put_long(&mut buf, exchange.as_bytes());
+        }
+    }
+    buf.to_vec()
+}
+
+/// An access record's value: the fields its key does not hold.
+fn access_value(record: &AccessRecord) -> Vec<u8> {
+    let mut buf = BytesMut::new();
+    match record {
+        AccessRecord::User {
+            password_hash,
+            hashing_algorithm,
+            tags,
+            ..
+        } => {
+            put_long(&mut buf, password_hash.as_bytes());
+            put_long(&mut buf, hashing_algorithm.as_bytes());
+            buf.put_u32(tags.len() as u32);
+            for tag in tags {
+                put_long(&mut buf, tag.as_bytes());
+            }
+        }
+        AccessRecord::Vhost { .. } => {}
+        AccessRecord::Permission {
+            configure,
+            write,
+            read,
+            ..
+        } => {
+            put_long(&mut buf, configure.as_bytes());
+            put_long(&mut buf, write.as_bytes());
+            put_long(&mut buf, read.as_bytes());
+        }
+        AccessRecord::TopicPermission { write, read, .. } => {
+            put_long(&mut buf, write.as_bytes());
+            put_long(&mut buf, read.as_bytes());
+        }
+    }
+    buf.to_vec()
+}
+
+fn take_text(buf: &mut Bytes, what: &'static str) -> Result<String, StoreError> {
+    String::from_utf8(take_long(buf)?.to_vec()).map_err(|_| corrupt(what))
+}
+
+/// Decodes an access record from its key (after the `a`) and value.
+fn decode_access(key: &[u8], value: &mut Bytes) -> Result<AccessRecord, StoreError> {
+    let Some((&kind, names)) = key.split_first() else {
+        return Err(corrupt("access key"));
+    };
+    let mut names = Bytes::copy_from_slice(names);
+    let record = match kind {
+        b'u' => {
+            let name = take_text(&mut names, "user name")?;
+            let password_hash = take_text(value, "password hash")?;
+            let hashing_algorithm = take_text(value, "hashing algorithm")?;
+            let count = take_u32(value)?;
+            // Each tag takes at least its 4-byte length: a count the value
+            // cannot hold is damage, not an allocation.
+            if value.len() < count as usize * 4 {
+                return Err(corrupt("user tags"));
+            }
+            let tags = (0..count)
+                .map(|_| take_text(value, "user tag"))
+                .collect::<Result<_, _>>()?;
+            AccessRecord::User {
+                name,
+                password_hash,
+                hashing_algorithm,
+                tags,
+            }
+        }
+        b'v' => AccessRecord::Vhost {
+            name: take_text(&mut names, "vhost name")?,
+        },
+        b'p' => AccessRecord::Permission {
+            user: take_text(&mut names, "user name")?,
+            vhost: take_text(&mut names, "vhost name")?,
+            configure: take_text(value, "configure pattern")?,
+            write: take_text(value, "write pattern")?,
+            read: take_text(value, "read pattern")?,
+        },
+        b't' => AccessRecord::TopicPermission {
+            user: take_text(&mut names, "user name")?,
+            vhost: take_text(&mut names, "vhost name")?,
+            exchange: take_text(&mut names, "exchange name")?,
+            write: take_text(value, "write pattern")?,
+            read: take_text(value, "read pattern")?,
+        },
+        _ => return Err(corrupt("access kind")),
+    };
+    if !names.is_empty() || !value.is_empty() {
+        return Err(corrupt("access record length"));
+    }
+    Ok(record)
+}
+
 impl StoreOp {
     /// The key-value change this op makes.
     pub fn to_kv(&self) -> KvOp {
@@ -182,6 +314,9 @@ impl StoreOp {
                 (mark_key(*queue), Some(seq.to_be_bytes().to_vec()))
             }
             StoreOp::Dequeue { queue, seq } => (index_key(*queue, *seq), None),
+            StoreOp::PutAccess(record) => (access_key(&record.key()), Some(access_value(record))),
+            StoreOp::DeleteAccess(key) => (access_key(key), None),
+            StoreOp::Seeded => (SEEDED_MARKER_KEY.to_vec(), Some(Vec::new())),
             StoreOp::CleanShutdown { generation } => (
                 CLEAN_MARKER_KEY.to_vec(),
                 Some(generation.to_be_bytes().to_vec()),
@@ -192,6 +327,9 @@ impl StoreOp {
 
 /// The clean-shutdown marker's key (`!` sorts before every other tag).
 const CLEAN_MARKER_KEY: &[u8] = b"!clean";
+
+/// The key marking that the default user has been considered.
+const SEEDED_MARKER_KEY: &[u8] = b"!seeded";
 
 /// A record that could not be decoded: its key (escaped) and why.
 #[derive(Debug, Clone, PartialEq)]
@@ -248,6 +386,8 @@ impl Recovered {
                     .map_err(|_| corrupt("clean-shutdown marker"))?;
                 out.clean_generation = Some(u64::from_be_bytes(bytes));
             }
+            b'!' if key == SEEDED_MARKER_KEY => out.seeded = true,
+            b'a' => out.access.push(decode_access(rest, &mut value)?),
             b'e' | b'q' => {
                 let split = rest
                     .iter()
@@ -471,5 +611,76 @@ mod tests {
         assert!(Recovered::from_scan(pairs).is_err());
         let pairs = vec![(b"i\0\0".to_vec(), vec![])];
         assert!(Recovered::from_scan(pairs).is_err());
+    }
+
+    /// Users, vhosts and permissions round trip with names holding any
+    /// byte (a NUL in a name cannot shift one into the next); a delete
+    /// removes exactly its record; damaged values are errors.
+    #[test]
+    fn access_records_round_trip_and_delete_by_key() {
+        let store = MemoryStore::default();
+        let records = [
+            AccessRecord::User {
+                name: "ro\0bot".into(),
+                password_hash: "$argon2id$v=19$...".into(),
+                hashing_algorithm: "leveret_argon2id".into(),
+                tags: vec!["monitoring".into(), "management".into()],
+            },
+            AccessRecord::Vhost {
+                name: "cell-1".into(),
+            },
+            AccessRecord::Permission {
+                user: "a\0".into(),
+                vhost: "b".into(),
+                configure: ".*".into(),
+                write: "^x".into(),
+                read: String::new(),
+            },
+            AccessRecord::Permission {
+                user: "a".into(),
+                vhost: "\0b".into(),
+                configure: "c".into(),
+                write: "w".into(),
+                read: "r".into(),
+            },
+            AccessRecord::TopicPermission {
+                user: "a".into(),
+                vhost: "/".into(),
+                exchange: "amq.topic".into(),
+                write: "^a\\.".into(),
+                read: ".*".into(),
+            },
+        ];
+        let mut ops: Vec<_> = records
+            .iter()
+            .map(|r| StoreOp::PutAccess(r.clone()).to_kv())
+            .collect();
+        ops.push(StoreOp::Seeded.to_kv());
+        store.write(ops, WriteMode::Plain).unwrap();
+        let recovered = Recovered::from_scan(store.scan().unwrap()).unwrap();
+        assert!(recovered.seeded);
+        assert_eq!(recovered.access.len(), records.len());
+        for record in &records {
+            assert!(recovered.access.contains(record), "{record:?}");
+        }
+        store
+            .write(
+                vec![StoreOp::DeleteAccess(records[2].key()).to_kv()],
+                WriteMode::Plain,
+            )
+            .unwrap();
+        let recovered = Recovered::from_scan(store.scan().unwrap()).unwrap();
+        assert_eq!(recovered.access.len(), records.len() - 1);
+        assert!(!recovered.access.contains(&records[2]));
+        assert!(recovered.access.contains(&records[3]));
+
+        let (key, value) = StoreOp::PutAccess(records[0].clone()).to_kv();
+        let mut value = value.unwrap();
+        // A tag count the value cannot hold.
+        let count_at = value.len() - (4 + 10) - (4 + 10) - 4;
+        value[count_at..count_at + 4].copy_from_slice(&u32::MAX.to_be_bytes());
+        assert!(Recovered::from_scan(vec![(key.clone(), value)]).is_err());
+        assert!(Recovered::from_scan(vec![(key, vec![0, 0])]).is_err());
+        assert!(Recovered::from_scan(vec![(b"az".to_vec(), vec![])]).is_err());
     }
 }

@@ -17,6 +17,10 @@
 //! - `d` queue-id (8 BE) → the highest seq delivered from the queue
 //! - `!clean` → the generation of the last clean shutdown (its last
 //!   write; `integrity` checks it against the manifest beside the store)
+//! - `!seeded` → present once the default user has been considered (it is
+//!   created on a store's first start only, as RabbitMQ creates `guest`)
+//! - `a` kind (1 byte) then each name as a long string → a user, vhost,
+//!   permission or topic permission changed at run time ([`AccessRecord`])
 //!
 //! A message in one durable queue (the usual case) costs one key; one in
 //! several is stored once and referenced, and the last queue to drop it
@@ -205,6 +209,105 @@ pub struct BindingRecord {
     pub arguments: FieldTable,
 }
 
+/// Users, vhosts and permissions added or changed while the broker runs
+/// (the management API, `leveretctl`, a definitions import), kept so they
+/// last like RabbitMQ's. Plain text: the store knows nothing of hashes or
+/// patterns; `access` turns them back into users and permissions.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum AccessRecord {
+    /// A user.
+    User {
+        /// Name.
+        name: String,
+        /// The password hash as RabbitMQ writes it in definitions.
+        password_hash: String,
+        /// Its `hashing_algorithm`.
+        hashing_algorithm: String,
+        /// Tags (`administrator`, `monitoring`…).
+        tags: Vec<String>,
+    },
+    /// A vhost.
+    Vhost {
+        /// Name.
+        name: String,
+    },
+    /// A user's permission on a vhost.
+    Permission {
+        /// User.
+        user: String,
+        /// Vhost.
+        vhost: String,
+        /// Configure pattern.
+        configure: String,
+        /// Write pattern.
+        write: String,
+        /// Read pattern.
+        read: String,
+    },
+    /// A user's topic permission on an exchange of a vhost.
+    TopicPermission {
+        /// User.
+        user: String,
+        /// Vhost.
+        vhost: String,
+        /// Exchange.
+        exchange: String,
+        /// Write pattern (routing keys).
+        write: String,
+        /// Read pattern (binding keys).
+        read: String,
+    },
+}
+
+/// What identifies an [`AccessRecord`] (for deleting one).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum AccessKey {
+    /// A user by name.
+    User(String),
+    /// A vhost by name.
+    Vhost(String),
+    /// A (user, vhost) permission.
+    Permission {
+        /// User.
+        user: String,
+        /// Vhost.
+        vhost: String,
+    },
+    /// A (user, vhost, exchange) topic permission.
+    TopicPermission {
+        /// User.
+        user: String,
+        /// Vhost.
+        vhost: String,
+        /// Exchange.
+        exchange: String,
+    },
+}
+
+impl AccessRecord {
+    /// What identifies it.
+    pub fn key(&self) -> AccessKey {
+        match self {
+            AccessRecord::User { name, .. } => AccessKey::User(name.clone()),
+            AccessRecord::Vhost { name } => AccessKey::Vhost(name.clone()),
+            AccessRecord::Permission { user, vhost, .. } => AccessKey::Permission {
+                user: user.clone(),
+                vhost: vhost.clone(),
+            },
+            AccessRecord::TopicPermission {
+                user,
+                vhost,
+                exchange,
+                ..
+            } => AccessKey::TopicPermission {
+                user: user.clone(),
+                vhost: vhost.clone(),
+                exchange: exchange.clone(),
+            },
+        }
+    }
+}
+
 /// A persistent message as stored.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MessageRecord {
@@ -287,6 +390,13 @@ pub enum StoreOp {
         /// Position.
         seq: u64,
     },
+    /// Add or replace a user, vhost or permission.
+    PutAccess(AccessRecord),
+    /// Remove one.
+    DeleteAccess(AccessKey),
+    /// The default user has been considered (written once, at a store's
+    /// first start).
+    Seeded,
     /// The last write of a clean shutdown: the store's generation, which
     /// the manifest beside it must match at the next start.
     CleanShutdown {
@@ -321,6 +431,10 @@ pub struct Recovered {
     pub delivered: std::collections::HashMap<u64, u64>,
     /// The generation of the last clean shutdown's marker, if any.
     pub clean_generation: Option<u64>,
+    /// Users, vhosts and permissions changed at run time.
+    pub access: Vec<AccessRecord>,
+    /// Whether the default user has been considered already.
+    pub seeded: bool,
 }
 
 impl Recovered {

@@ -73,6 +73,24 @@ enum Command {
     ListConsumers { columns: Vec<String> },
     /// Lists users and their tags.
     ListUsers { columns: Vec<String> },
+    /// Adds a user (no tags, no permissions: grant some with
+    /// set_permissions); refused if the user exists.
+    AddUser {
+        user: String,
+        /// (Not `password`, which is the API's own, global option.)
+        #[arg(value_name = "PASSWORD")]
+        new_password: String,
+    },
+    /// Deletes a user and their permissions.
+    DeleteUser { user: String },
+    /// Changes a user's password, keeping their tags.
+    ChangePassword {
+        user: String,
+        #[arg(value_name = "PASSWORD")]
+        new_password: String,
+    },
+    /// Replaces a user's tags (none clears them).
+    SetUserTags { user: String, tags: Vec<String> },
     /// Lists the permissions on the vhost: user, configure, write, read.
     ListPermissions { columns: Vec<String> },
     /// Sets a user's permissions on the vhost (regular expressions).
@@ -116,6 +134,8 @@ enum Failure {
     #[error("{0}")]
     Usage(String),
     #[error("{0}")]
+    Refused(String),
+    #[error("{0}")]
     Io(#[from] std::io::Error),
 }
 
@@ -139,7 +159,9 @@ fn main() -> ExitCode {
             ExitCode::from(match e {
                 Failure::Usage(_) => USAGE,
                 Failure::Client(ClientError::Unreachable { .. }) => UNAVAILABLE,
-                Failure::Client(ClientError::Api { .. }) | Failure::Io(_) => 1,
+                Failure::Client(ClientError::Api { .. }) | Failure::Refused(_) | Failure::Io(_) => {
+                    1
+                }
             })
         }
     }
@@ -200,6 +222,45 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             info(cli, "Listing users ...")?;
             let list = client.get("/api/users")?;
             print_table(cli, &columns::USERS, columns, &list)
+        }
+        Command::AddUser { user, new_password } => {
+            info(cli, &format!("Adding user \"{user}\" ..."))?;
+            let path = format!("/api/users/{}", segment(user));
+            match client.get(&path) {
+                Ok(_) => return Err(Failure::Refused(format!("user \"{user}\" already exists"))),
+                Err(ClientError::Api { status: 404, .. }) => {}
+                Err(e) => return Err(e.into()),
+            }
+            let body = serde_json::json!({"password": new_password, "tags": []});
+            client.put(&path, body.to_string().as_bytes())?;
+            Ok(())
+        }
+        Command::DeleteUser { user } => {
+            info(cli, &format!("Deleting user \"{user}\" ..."))?;
+            client.delete(&format!("/api/users/{}", segment(user)), &[])?;
+            Ok(())
+        }
+        Command::ChangePassword { user, new_password } => {
+            info(cli, &format!("Changing password for user \"{user}\" ..."))?;
+            let path = format!("/api/users/{}", segment(user));
+            let existing = client.get(&path)?;
+            let body = serde_json::json!({"password": new_password, "tags": existing["tags"]});
+            client.put(&path, body.to_string().as_bytes())?;
+            Ok(())
+        }
+        Command::SetUserTags { user, tags } => {
+            info(
+                cli,
+                &format!(
+                    "Setting tags for user \"{user}\" to [{}] ...",
+                    tags.join(", ")
+                ),
+            )?;
+            let path = format!("/api/users/{}", segment(user));
+            client.get(&path)?;
+            let body = serde_json::json!({"tags": tags});
+            client.put(&path, body.to_string().as_bytes())?;
+            Ok(())
         }
         Command::ListPermissions { columns } => {
             info(

@@ -6,7 +6,7 @@
 //! log in to the API (401 `Not management user`); users, permissions,
 //! definitions, vhost changes, closing connections and shovels
 //! (parameters) are the administrator's (401 `Not administrator user`). Uses the broker's
-//! permissions through `Admin` and the recorded tags (`tags`).
+//! users and permissions through `Admin`.
 
 use super::ApiError;
 use axum::http::{Method, StatusCode};
@@ -91,9 +91,10 @@ fn not_authorised(reason: &str) -> ApiError {
 }
 
 impl Caller {
-    /// The caller `user` with `tags`; 401 when no tag lets them in.
-    pub fn new(user: &str, tags: &[String], admin: &Admin) -> Result<Caller, ApiError> {
-        let role = Role::of(tags).ok_or_else(|| not_authorised("Not management user"))?;
+    /// The caller `user`, by their tags; 401 when no tag lets them in.
+    pub fn new(user: &str, admin: &Admin) -> Result<Caller, ApiError> {
+        let tags = admin.user(user).map(|user| user.tags).unwrap_or_default();
+        let role = Role::of(&tags).ok_or_else(|| not_authorised("Not management user"))?;
         let vhosts = admin
             .permissions()
             .into_iter()

@@ -16,8 +16,8 @@ use axum::response::{IntoResponse, Response};
 use axum::{Extension, Json};
 use base64::Engine;
 use leveret_broker::{
-    BindingSpec, DestinationKind, ExchangeSettings, GetMode, Permission, QueueRef, QueueSettings,
-    TopicPermission,
+    BindingSpec, DestinationKind, ExchangeSettings, GetMode, PasswordHash, Permission, QueueRef,
+    QueueSettings, TopicPermission, User, RABBIT_SHA256,
 };
 use serde_json::{json, Value};
 use std::collections::HashMap;
@@ -213,22 +213,89 @@ pub async fn users(State(c): Ctx) -> Json<Value> {
     Json(Value::Array(
         users
             .iter()
-            .map(|(name, hash)| {
-                let (password_hash, hashing_algorithm) = hash.to_rabbitmq();
-                json!({
-                    "name": name,
-                    "password_hash": password_hash,
-                    "hashing_algorithm": hashing_algorithm,
-                    "tags": c.tags.of(name),
-                    "limits": {},
-                })
-            })
+            .map(|(name, user)| user_json(name, user))
             .collect(),
     ))
 }
 
+/// A user as RabbitMQ's `/api/users` shows one.
+fn user_json(name: &str, user: &User) -> Value {
+    let (password_hash, hashing_algorithm) = user.password_hash.to_rabbitmq();
+    json!({
+        "name": name,
+        "password_hash": password_hash,
+        "hashing_algorithm": hashing_algorithm,
+        "tags": user.tags,
+        "limits": {},
+    })
+}
+
+pub async fn user(State(c): Ctx, Path(name): Path<String>) -> ApiResult<Json<Value>> {
+    let user = c
+        .admin
+        .user(&name)
+        .ok_or_else(|| ApiError::not_found(format!("no user '{name}'")))?;
+    Ok(Json(user_json(&name, &user)))
+}
+
+/// RabbitMQ's `PUT /api/users/{name}`: `password` (hashed here) or
+/// `password_hash` with `hashing_algorithm`, and `tags` (a list or a
+/// comma-separated string). A new user needs a password; an existing one
+/// without either keeps theirs. 201 for a new user, 204 for a change.
+pub async fn put_user(State(c): Ctx, Path(name): Path<String>, body: Bytes) -> ApiResult {
+    let body = body_object(&body)?;
+    let field = |key: &str| json::text(&body, key, "").map_err(ApiError::bad_request);
+    let existing = c.admin.user(&name);
+    let password = field("password")?;
+    let password_hash = field("password_hash")?;
+    let hash = if !password.is_empty() {
+        // argon2id takes tens of milliseconds: off the listeners' thread.
+        let password = password.to_owned();
+        tokio::task::spawn_blocking(move || PasswordHash::new(&password))
+            .await
+            .map_err(|_| ApiError::bad_request("the password could not be hashed"))?
+    } else if body.contains_key("password_hash") {
+        let algorithm =
+            json::text(&body, "hashing_algorithm", RABBIT_SHA256).map_err(ApiError::bad_request)?;
+        PasswordHash::from_rabbitmq(password_hash, algorithm).ok_or_else(|| {
+            ApiError::bad_request(format!(
+                "password_hash is not a {algorithm} hash Leveret can check"
+            ))
+        })?
+    } else {
+        existing
+            .as_ref()
+            .map(|user| user.password_hash.clone())
+            .ok_or_else(|| {
+                ApiError::bad_request("a new user needs a password or a password_hash")
+            })?
+    };
+    let tags = json::user_tags(body.get("tags"));
+    let created = c
+        .admin
+        .put_user(
+            &name,
+            User {
+                password_hash: hash,
+                tags,
+            },
+        )
+        .await?;
+    Ok(created_or_not(created))
+}
+
+/// RabbitMQ's `DELETE /api/users/{name}`: the user and their permissions.
+pub async fn delete_user(State(c): Ctx, Path(name): Path<String>) -> ApiResult {
+    if c.admin.delete_user(&name).await? {
+        Ok(no_content())
+    } else {
+        Err(ApiError::not_found(format!("no user '{name}'")))
+    }
+}
+
 pub async fn whoami(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
-    Json(json!({ "name": caller.user, "tags": c.tags.of(&caller.user) }))
+    let tags = c.admin.user(&caller.user).map(|user| user.tags);
+    Json(json!({ "name": caller.user, "tags": tags.unwrap_or_default() }))
 }
 
 /// Every user's permissions.
@@ -293,9 +360,7 @@ pub async fn put_permission(
         .permissions()
         .iter()
         .any(|(u, v, _)| *u == user && *v == vhost);
-    c.admin
-        .set_permission(&user, &vhost, permission)
-        .map_err(|e| ApiError::bad_request(e.to_string()))?;
+    c.admin.set_permission(&user, &vhost, permission).await?;
     Ok(created_or_not(!existed))
 }
 
@@ -303,7 +368,7 @@ pub async fn delete_permission(
     State(c): Ctx,
     Path((vhost, user)): Path<(String, String)>,
 ) -> ApiResult {
-    c.admin.clear_permission(&user, &vhost);
+    c.admin.clear_permission(&user, &vhost).await?;
     Ok(no_content())
 }
 
@@ -322,7 +387,7 @@ pub async fn put_topic_permission(
     };
     c.admin
         .set_topic_permission(&user, &vhost, &exchange, permission)
-        .map_err(|e| ApiError::bad_request(e.to_string()))?;
+        .await?;
     Ok(no_content())
 }
 
@@ -335,7 +400,9 @@ pub async fn delete_topic_permission(
 ) -> ApiResult {
     for (u, v, exchange, _) in c.admin.topic_permissions() {
         if u == user && v == vhost && query.get("exchange").is_none_or(|e| *e == exchange) {
-            c.admin.clear_topic_permission(&user, &vhost, &exchange);
+            c.admin
+                .clear_topic_permission(&user, &vhost, &exchange)
+                .await?;
         }
     }
     Ok(no_content())
@@ -846,7 +913,7 @@ pub async fn alarms(State(c): Ctx) -> Response {
 }
 
 pub async fn definitions(State(c): Ctx) -> Json<Value> {
-    Json(crate::definitions::export(&c.admin, &c.tags, &c.shovels))
+    Json(crate::definitions::export(&c.admin, &c.shovels))
 }
 
 /// Imports a definitions document; answers what was applied and what was
@@ -858,7 +925,7 @@ pub async fn import_definitions(State(c): Ctx, body: Bytes) -> ApiResult<Json<Va
 pub async fn vhost_definitions(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
     Ok(Json(crate::definitions::export_vhost(
-        &c.admin, &c.tags, &c.shovels, &vhost,
+        &c.admin, &c.shovels, &vhost,
     )))
 }
 
@@ -875,7 +942,7 @@ pub async fn import_vhost_definitions(
 async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json<Value>> {
     let mut definitions = Definitions::parse_into(body, vhost).map_err(ApiError::bad_request)?;
     let applied = definitions
-        .apply(&c.admin, &c.tags, &c.shovels)
+        .apply(&c.admin, &c.shovels)
         .await
         .map_err(ApiError::bad_request)?;
     for warning in &definitions.warnings {
@@ -884,6 +951,7 @@ async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json
     Ok(Json(json!({
         "applied": {
             "vhosts": applied.vhosts,
+            "users": applied.users,
             "exchanges": applied.exchanges,
             "queues": applied.queues,
             "bindings": applied.bindings,
@@ -893,10 +961,10 @@ async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json
     })))
 }
 
-/// Creates a vhost (201), or leaves an existing one be (204). It lasts
-/// while the broker runs; vhosts meant to last belong in the configuration.
+/// Creates a vhost (201), or leaves an existing one be (204); it lasts
+/// across restarts.
 pub async fn put_vhost(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult {
-    Ok(created_or_not(c.admin.add_vhost(&vhost)?))
+    Ok(created_or_not(c.admin.add_vhost(&vhost).await?))
 }
 
 pub async fn queue_bindings(

@@ -433,6 +433,24 @@ fn hide_password(uri: &str) -> String {
     }
 }
 
+/// A user's `tags`: RabbitMQ exports a list; older files a comma-separated string.
+pub fn user_tags(tags: Option<&Value>) -> Vec<String> {
+    match tags {
+        Some(Value::Array(list)) => list
+            .iter()
+            .filter_map(Value::as_str)
+            .map(str::to_owned)
+            .collect(),
+        Some(Value::String(text)) => text
+            .split(',')
+            .map(str::trim)
+            .filter(|t| !t.is_empty())
+            .map(str::to_owned)
+            .collect(),
+        _ => Vec::new(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

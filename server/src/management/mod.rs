@@ -1,9 +1,10 @@
 //! The management HTTP API: a compatible subset of RabbitMQ's (`/api/...`,
 //! JSON with RabbitMQ's field names), enough for `rabbitmqadmin` and
 //! scripts written against RabbitMQ to list, declare, delete, publish,
-//! get and purge. Every request needs HTTP basic auth with one of the
-//! broker's users (the broker has no user tags, so every user may do
-//! everything); bodies are capped at [`MAX_BODY`].
+//! get and purge, and to add users and grant permissions. Every request
+//! needs HTTP basic auth with one of the broker's users, whose RabbitMQ
+//! user tags decide what they may see and do (`caller`); bodies are capped
+//! at [`MAX_BODY`].
 //!
 //! Definitions (`/api/definitions`) are `crate::definitions`' job. `/` is a
 //! status page (`status.html`: plain HTML and a little JavaScript, no build
@@ -19,7 +20,6 @@ mod handlers;
 pub mod json;
 mod rates;
 
-use crate::tags::Tags;
 use crate::uplink::Shovels;
 use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
@@ -29,7 +29,7 @@ use axum::routing::{delete, get, post, put};
 use axum::{Json, Router};
 use base64::Engine;
 use caller::Caller;
-use leveret_broker::{Admin, AmqpError};
+use leveret_broker::{AccessError, Admin, AmqpError};
 use leveret_protocol::ReplyCode;
 pub use rates::Rates;
 use std::net::SocketAddr;
@@ -44,8 +44,6 @@ pub const MAX_BODY: usize = 1024 * 1024;
 pub struct Context {
     /// The broker.
     pub admin: Admin,
-    /// Users' tags from imported definitions.
-    pub tags: Tags,
     /// The running shovels.
     pub shovels: Shovels,
     /// `leveret@HOST`.
@@ -108,6 +106,22 @@ impl From<AmqpError> for ApiError {
     }
 }
 
+impl From<AccessError> for ApiError {
+    fn from(e: AccessError) -> Self {
+        match e {
+            AccessError::NoSuchUser(_) => ApiError::not_found(e.to_string()),
+            AccessError::Storage => ApiError {
+                status: StatusCode::INTERNAL_SERVER_ERROR,
+                error: "internal_server_error",
+                reason: e.to_string(),
+            },
+            AccessError::Pattern(_) | AccessError::BadName(_) => {
+                ApiError::bad_request(e.to_string())
+            }
+        }
+    }
+}
+
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let body = Json(serde_json::json!({ "error": self.error, "reason": self.reason }));
@@ -146,7 +160,7 @@ async fn authenticate(
         None => false,
     };
     if let (true, Some((user, _))) = (passed, &credentials) {
-        let caller = match Caller::new(user, &context.tags.of(user), &context.admin) {
+        let caller = match Caller::new(user, &context.admin) {
             Ok(caller) => caller,
             Err(refused) => {
                 tracing::info!(%user, "management API refused: no management tag");
@@ -179,6 +193,10 @@ pub fn router(context: Context) -> Router {
         .route("/api/vhosts", get(h::vhosts))
         .route("/api/vhosts/{vhost}", get(h::vhost).put(h::put_vhost))
         .route("/api/users", get(h::users))
+        .route(
+            "/api/users/{name}",
+            get(h::user).put(h::put_user).delete(h::delete_user),
+        )
         .route("/api/whoami", get(h::whoami))
         .route("/api/permissions", get(h::permissions))
         .route(

@@ -14,6 +14,8 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 pub struct OpsBroker {
     child: Child,
     dir: PathBuf,
+    /// Whether dropping it removes its data directory.
+    owns_dir: bool,
     /// The AMQP listener.
     pub amqp: SocketAddr,
     /// The AMQP-over-TLS listener, when `--tls-listen` was given.
@@ -59,6 +61,20 @@ impl OpsBroker {
     pub fn start(name: &str, extra: &[&str]) -> OpsBroker {
         let dir = std::env::temp_dir().join(format!("leveret-ops-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
+        Self::launch(dir, extra)
+    }
+
+    /// Kills the broker with SIGKILL (no clean shutdown: what it answered
+    /// was already on disk, or is lost) and starts it again on the same
+    /// data directory with `extra` arguments.
+    pub fn kill_and_restart(mut self, extra: &[&str]) -> OpsBroker {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        self.owns_dir = false;
+        Self::launch(self.dir.clone(), extra)
+    }
+
+    fn launch(dir: PathBuf, extra: &[&str]) -> OpsBroker {
         let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
             .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
             .args(["--http-listen", "127.0.0.1:0"])
@@ -116,6 +132,7 @@ impl OpsBroker {
         OpsBroker {
             child,
             dir,
+            owns_dir: true,
             amqp: amqp.expect("seen"),
             tls,
             metrics: metrics.expect("seen"),
@@ -161,7 +178,9 @@ impl Drop for OpsBroker {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
-        let _ = std::fs::remove_dir_all(&self.dir);
+        if self.owns_dir {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
     }
 }
 
@@ -335,14 +354,20 @@ pub fn tool_available(program: &str, package: &str) -> bool {
     if found {
         return true;
     }
+    missing(program, &format!("Debian's {package}"));
+    false
+}
+
+/// Reports a tool a test needs and cannot find: a failure under CI (`CI`
+/// set), a skip message otherwise. `install` says where `.ci/run` gets it.
+pub fn missing(program: &str, install: &str) {
     let in_ci = std::env::var_os("CI").is_some_and(|v| !v.is_empty() && v != "0" && v != "false");
     assert!(
         !in_ci,
-        "{program} is not installed, and CI needs it (.ci/run installs Debian's {package})"
+        "{program} is not installed, and CI needs it (.ci/run installs {install})"
     );
     eprintln!(
-        "\n*** SKIPPED: {program} is not installed (apt-get install {package}); \
+        "\n*** SKIPPED: {program} is not installed ({install}); \
          this test ran nothing. Under CI (CI=1) this is a failure. ***\n"
     );
-    false
 }
