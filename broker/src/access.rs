@@ -1,7 +1,7 @@
 //! Users, vhosts and permissions that last, as RabbitMQ's do.
 //!
 //! At start ([`at_start`]): first what was changed at run time and kept in
-//! the store ([`AccessRecord`]s), then what the embedder configured, over
+//! the store ([`MetaRecord`]s), then what the embedder configured, over
 //! it (a configuration names its users afresh at each start, as RabbitMQ's
 //! definitions file does at boot). The default `guest` is created only
 //! when nothing names a user and the store has never been started before,
@@ -19,7 +19,7 @@ use crate::admin::Admin;
 use crate::auth::{User, Users, GUEST};
 use crate::password::PasswordHash;
 use crate::permissions::{PatternError, Permission, Permissions, TopicPermission};
-use crate::store::{AccessKey, AccessRecord, Recovered, StoreOp};
+use crate::store::{MetaKey, MetaRecord, Recovered, StoreOp};
 use leveret_protocol::ShortStr;
 
 /// What the embedder configured (the builder, the server's config file,
@@ -66,7 +66,7 @@ pub fn at_start(
     if vhosts.is_empty() {
         vhosts.push("/".to_owned());
     }
-    for record in &recovered.access {
+    for record in &recovered.meta {
         restore(record, &users, &permissions, &mut vhosts);
     }
     let mut seed = Vec::new();
@@ -78,11 +78,11 @@ pub fn at_start(
                 password_hash: PasswordHash::new("guest"),
                 tags: vec!["administrator".to_owned()],
             };
-            seed.push(StoreOp::PutAccess(user_record(GUEST, &guest)));
+            seed.push(StoreOp::PutMeta(user_record(GUEST, &guest)));
             users.put(GUEST, guest);
             for vhost in &vhosts {
                 permissions.set(GUEST, vhost, Permission::full())?;
-                seed.push(StoreOp::PutAccess(permission_record(
+                seed.push(StoreOp::PutMeta(permission_record(
                     GUEST,
                     vhost,
                     &Permission::full(),
@@ -126,13 +126,13 @@ pub fn at_start(
 
 /// Applies one stored record; one that no longer applies is logged.
 fn restore(
-    record: &AccessRecord,
+    record: &MetaRecord,
     users: &Users,
     permissions: &Permissions,
     vhosts: &mut Vec<String>,
 ) {
     let outcome = match record {
-        AccessRecord::User {
+        MetaRecord::User {
             name,
             password_hash,
             hashing_algorithm,
@@ -152,13 +152,13 @@ fn restore(
                 "its password hash ({hashing_algorithm}) cannot be read"
             )),
         },
-        AccessRecord::Vhost { name } => {
+        MetaRecord::Vhost { name } => {
             if !vhosts.contains(name) {
                 vhosts.push(name.clone());
             }
             Ok(())
         }
-        AccessRecord::Permission {
+        MetaRecord::Permission {
             user,
             vhost,
             configure,
@@ -175,7 +175,7 @@ fn restore(
                 },
             )
             .map_err(|e| e.to_string()),
-        AccessRecord::TopicPermission {
+        MetaRecord::TopicPermission {
             user,
             vhost,
             exchange,
@@ -192,15 +192,17 @@ fn restore(
                 },
             )
             .map_err(|e| e.to_string()),
+        // The `parameters` module's.
+        MetaRecord::Parameter { .. } => Ok(()),
     };
     if let Err(problem) = outcome {
         tracing::error!(record = ?record.key(), %problem, "a stored user, vhost or permission is not restored");
     }
 }
 
-fn user_record(name: &str, user: &User) -> AccessRecord {
+fn user_record(name: &str, user: &User) -> MetaRecord {
     let (password_hash, hashing_algorithm) = user.password_hash.to_rabbitmq();
-    AccessRecord::User {
+    MetaRecord::User {
         name: name.to_owned(),
         password_hash,
         hashing_algorithm: hashing_algorithm.to_owned(),
@@ -208,8 +210,8 @@ fn user_record(name: &str, user: &User) -> AccessRecord {
     }
 }
 
-fn permission_record(user: &str, vhost: &str, permission: &Permission) -> AccessRecord {
-    AccessRecord::Permission {
+fn permission_record(user: &str, vhost: &str, permission: &Permission) -> MetaRecord {
+    MetaRecord::Permission {
         user: user.to_owned(),
         vhost: vhost.to_owned(),
         configure: permission.configure.clone(),
@@ -218,7 +220,8 @@ fn permission_record(user: &str, vhost: &str, permission: &Permission) -> Access
     }
 }
 
-/// Why a run-time change to users, vhosts or permissions was refused.
+/// Why a run-time change to users, vhosts, permissions or parameters was
+/// refused.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum AccessError {
     /// A pattern the regex engine cannot run.
@@ -239,8 +242,9 @@ pub enum AccessError {
 
 impl Admin {
     /// Writes `ops` as one atomic batch and waits for the flush; a broker
-    /// without a store has nothing to wait for.
-    async fn write_access(&self, ops: Vec<StoreOp>) -> Result<(), AccessError> {
+    /// without a store has nothing to wait for. Callers hold
+    /// `Core::access_changes`.
+    pub(crate) async fn write_meta(&self, ops: Vec<StoreOp>) -> Result<(), AccessError> {
         let Some(persistence) = &self.core.persistence else {
             return Ok(());
         };
@@ -271,7 +275,7 @@ impl Admin {
             return Err(AccessError::BadName("a user needs a name".to_owned()));
         }
         let _turn = self.core.access_changes.lock().await;
-        self.write_access(vec![StoreOp::PutAccess(user_record(name, &user))])
+        self.write_meta(vec![StoreOp::PutMeta(user_record(name, &user))])
             .await?;
         Ok(self.core.users.put(name, user))
     }
@@ -298,21 +302,21 @@ impl Admin {
             .filter(|(user, ..)| user == name)
             .map(|(_, vhost, exchange, _)| (vhost, exchange))
             .collect();
-        let mut ops = vec![StoreOp::DeleteAccess(AccessKey::User(name.to_owned()))];
+        let mut ops = vec![StoreOp::DeleteMeta(MetaKey::User(name.to_owned()))];
         ops.extend(vhosts.iter().map(|vhost| {
-            StoreOp::DeleteAccess(AccessKey::Permission {
+            StoreOp::DeleteMeta(MetaKey::Permission {
                 user: name.to_owned(),
                 vhost: vhost.clone(),
             })
         }));
         ops.extend(topics.iter().map(|(vhost, exchange)| {
-            StoreOp::DeleteAccess(AccessKey::TopicPermission {
+            StoreOp::DeleteMeta(MetaKey::TopicPermission {
                 user: name.to_owned(),
                 vhost: vhost.clone(),
                 exchange: exchange.clone(),
             })
         }));
-        self.write_access(ops).await?;
+        self.write_meta(ops).await?;
         self.core.users.remove(name);
         for vhost in &vhosts {
             permissions.clear(name, vhost);
@@ -334,7 +338,7 @@ impl Admin {
         if self.core.vhost(&vhost).is_some() {
             return Ok(false);
         }
-        self.write_access(vec![StoreOp::PutAccess(AccessRecord::Vhost {
+        self.write_meta(vec![StoreOp::PutMeta(MetaRecord::Vhost {
             name: name.to_owned(),
         })])
         .await?;
@@ -354,7 +358,7 @@ impl Admin {
         permission.check()?;
         let _turn = self.core.access_changes.lock().await;
         self.require_user(user)?;
-        self.write_access(vec![StoreOp::PutAccess(permission_record(
+        self.write_meta(vec![StoreOp::PutMeta(permission_record(
             user,
             vhost,
             &permission,
@@ -367,7 +371,7 @@ impl Admin {
     /// open channels there are refused from their next operation.
     pub async fn clear_permission(&self, user: &str, vhost: &str) -> Result<(), AccessError> {
         let _turn = self.core.access_changes.lock().await;
-        self.write_access(vec![StoreOp::DeleteAccess(AccessKey::Permission {
+        self.write_meta(vec![StoreOp::DeleteMeta(MetaKey::Permission {
             user: user.to_owned(),
             vhost: vhost.to_owned(),
         })])
@@ -388,7 +392,7 @@ impl Admin {
         permission.check(user, vhost)?;
         let _turn = self.core.access_changes.lock().await;
         self.require_user(user)?;
-        self.write_access(vec![StoreOp::PutAccess(AccessRecord::TopicPermission {
+        self.write_meta(vec![StoreOp::PutMeta(MetaRecord::TopicPermission {
             user: user.to_owned(),
             vhost: vhost.to_owned(),
             exchange: exchange.to_owned(),
@@ -411,7 +415,7 @@ impl Admin {
         exchange: &str,
     ) -> Result<(), AccessError> {
         let _turn = self.core.access_changes.lock().await;
-        self.write_access(vec![StoreOp::DeleteAccess(AccessKey::TopicPermission {
+        self.write_meta(vec![StoreOp::DeleteMeta(MetaKey::TopicPermission {
             user: user.to_owned(),
             vhost: vhost.to_owned(),
             exchange: exchange.to_owned(),
@@ -522,14 +526,14 @@ mod tests {
     fn the_configuration_replaces_what_was_changed_at_run_time() {
         let stored = Recovered {
             seeded: true,
-            access: vec![
+            meta: vec![
                 user_record("robot", &User::new(PasswordHash::new("old"))),
                 user_record("tool", &User::new(PasswordHash::new("t"))),
-                AccessRecord::Vhost {
+                MetaRecord::Vhost {
                     name: "cell".into(),
                 },
                 permission_record("tool", "cell", &Permission::full()),
-                AccessRecord::User {
+                MetaRecord::User {
                     name: "broken".into(),
                     password_hash: "x".into(),
                     hashing_algorithm: "rabbit_password_hashing_md5".into(),
@@ -629,11 +633,11 @@ mod tests {
         let stored = recovered(store.as_ref());
         assert!(
             stored
-                .access
+                .meta
                 .iter()
-                .all(|r| matches!(r, AccessRecord::Vhost { .. })),
+                .all(|r| matches!(r, MetaRecord::Vhost { .. })),
             "{:?}",
-            stored.access
+            stored.meta
         );
     }
 

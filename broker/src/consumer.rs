@@ -162,6 +162,9 @@ pub struct Consumer {
     pub prefetch: u32,
     /// `x-priority` (RabbitMQ): higher-priority consumers are served first.
     pub priority: i64,
+    /// `x-leveret-position`: each delivery carries the queue's
+    /// [`POSITION_HEADER`](crate::queue::POSITION_HEADER).
+    pub wants_position: bool,
     /// Unacked deliveries to this consumer.
     pub in_flight: AtomicU32,
     /// Set once basic.consume-ok is on its way, so no delivery overtakes it.
@@ -280,6 +283,7 @@ mod tests {
             exclusive: false,
             prefetch,
             priority: 0,
+            wants_position: false,
             in_flight: AtomicU32::new(0),
             active: AtomicBool::new(false),
         };

@@ -9,6 +9,7 @@ use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
 use crate::connection::Admission;
 use crate::memory::MemoryGauge;
+use crate::parameters::Parameters;
 use crate::permissions::Permissions;
 use crate::registry::Registry;
 use crate::resident_memory::ResidentMemoryWatermark;
@@ -141,6 +142,8 @@ pub struct CoreOptions {
     pub users: Users,
     /// What each user may do in each vhost.
     pub permissions: Permissions,
+    /// Runtime parameters.
+    pub parameters: Parameters,
     /// Limits.
     pub limits: Limits,
     /// Durable storage, if the broker has any.
@@ -159,6 +162,8 @@ pub struct Core {
     pub users: Users,
     /// What each user may do in each vhost.
     pub permissions: Arc<Permissions>,
+    /// Runtime parameters (`parameters`).
+    pub parameters: Parameters,
     /// Limits.
     pub limits: Limits,
     /// The memory alarm and the bytes it counts.
@@ -194,6 +199,7 @@ impl Core {
             vhosts,
             users,
             permissions,
+            parameters,
             limits,
             persistence,
             product,
@@ -219,6 +225,7 @@ impl Core {
             vhosts: RwLock::new(vhosts),
             users,
             permissions: Arc::new(permissions),
+            parameters,
             limits,
             gauge,
             persistence,

@@ -343,11 +343,15 @@ impl BrokerBuilder {
             persistence.is_some(),
         )
         .map_err(StartError::Permission)?;
-        if let (Some(persistence), false) = (&persistence, access.seed.is_empty()) {
-            let number = persistence.submit_atomic(access.seed);
+        if let Some(persistence) = &persistence {
+            // This start's number, and the default user on a first start,
+            // on disk before anything is served.
+            let mut ops = access.seed;
+            ops.push(persistence.start_record());
+            let number = persistence.submit_atomic(ops);
             if !persistence.wait(number).await {
                 return Err(StartError::Storage(StoreError::Engine(
-                    "the default user could not be written".into(),
+                    "the start could not be recorded".into(),
                 )));
             }
         }
@@ -360,6 +364,7 @@ impl BrokerBuilder {
             vhosts: access.vhosts,
             users,
             permissions: access.permissions,
+            parameters: crate::parameters::Parameters::recovered(&recovered),
             limits: self.limits,
             persistence,
             product: self.product.unwrap_or_else(|| DEFAULT_PRODUCT.to_owned()),

@@ -648,6 +648,37 @@ impl Admin {
         Some(exchange_info(&vhost.name, &exchange))
     }
 
+    /// The group commits' batch sizes and write-and-flush times, if the
+    /// broker has a store.
+    pub fn persister(&self) -> Option<crate::store::PersisterFigures> {
+        self.core.persistence.as_ref().map(|p| p.figures())
+    }
+
+    /// The names of `vhost`'s exchanges (empty if there is no such vhost).
+    pub fn exchange_names(&self, vhost: &str) -> Vec<String> {
+        let Some(vhost) = ShortStr::try_from(vhost)
+            .ok()
+            .and_then(|name| self.core.vhost(&name))
+        else {
+            return Vec::new();
+        };
+        vhost.exchanges().iter().map(|e| text(&e.name)).collect()
+    }
+
+    /// The (binding key, arguments) of every binding from exchange `name`
+    /// of `vhost`, whatever their destinations; `None` if there is no such
+    /// exchange. (A federation link replays them on its upstream.)
+    pub fn binding_keys_from(&self, vhost: &str, name: &str) -> Option<Vec<(String, FieldTable)>> {
+        let vhost = self.core.vhost(&ShortStr::try_from(vhost).ok()?)?;
+        let exchange = vhost.exchange(&ShortStr::try_from(name).ok()?)?;
+        Some(
+            all_bindings(&exchange)
+                .into_iter()
+                .map(|b| (text(&b.routing_key), b.arguments))
+                .collect(),
+        )
+    }
+
     /// Every binding, sorted by vhost, source, destination and key; the
     /// default exchange's implicit ones first in each vhost.
     pub fn bindings(&self) -> Vec<BindingInfo> {

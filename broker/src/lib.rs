@@ -99,6 +99,7 @@ mod inspect;
 mod memory;
 mod message;
 mod outbox;
+mod parameters;
 mod password;
 mod permissions;
 mod queue;
@@ -124,7 +125,9 @@ pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_
 pub use crate::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,
 };
+pub use crate::queue::POSITION_HEADER;
 pub use crate::resident_memory::ResidentMemoryWatermark;
+pub use crate::stats::HistogramFigures;
 pub use crate::tls::{PeerVerification, TlsError, TlsOptions};
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;

@@ -26,6 +26,75 @@ impl Counter {
     }
 }
 
+/// A histogram with fixed bucket bounds, as Prometheus has them: each
+/// observation is one relaxed add to its bucket, the count and the sum.
+#[derive(Debug)]
+pub(crate) struct Histogram {
+    bounds: &'static [f64],
+    /// Observations in each bucket (not cumulative); the last is `+Inf`.
+    buckets: Vec<AtomicU64>,
+    /// The sum, in units of `1 / scale`.
+    sum: AtomicU64,
+    scale: f64,
+}
+
+/// A histogram read at one moment, cumulative as Prometheus writes it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HistogramFigures {
+    /// (upper bound, observations at or below it), `+Inf` last.
+    pub buckets: Vec<(f64, u64)>,
+    /// The sum of the observations.
+    pub sum: f64,
+    /// How many there were.
+    pub count: u64,
+}
+
+impl Histogram {
+    /// A histogram over `bounds` (ascending) whose sum is kept to
+    /// `1 / scale` (1e9 for seconds kept to nanoseconds).
+    pub fn new(bounds: &'static [f64], scale: f64) -> Self {
+        Histogram {
+            bounds,
+            buckets: (0..=bounds.len()).map(|_| AtomicU64::new(0)).collect(),
+            sum: AtomicU64::new(0),
+            scale,
+        }
+    }
+
+    /// Records one observation.
+    pub fn observe(&self, value: f64) {
+        let bucket = self
+            .bounds
+            .iter()
+            .position(|bound| value <= *bound)
+            .unwrap_or(self.bounds.len());
+        self.buckets[bucket].fetch_add(1, Ordering::Relaxed);
+        self.sum
+            .fetch_add((value * self.scale) as u64, Ordering::Relaxed);
+    }
+
+    /// Its figures now.
+    pub fn figures(&self) -> HistogramFigures {
+        let mut running = 0;
+        let buckets: Vec<(f64, u64)> = self
+            .bounds
+            .iter()
+            .copied()
+            .chain(std::iter::once(f64::INFINITY))
+            .zip(&self.buckets)
+            .map(|(bound, count)| {
+                running += count.load(Ordering::Relaxed);
+                (bound, running)
+            })
+            .collect();
+        HistogramFigures {
+            count: running,
+            buckets,
+            sum: self.sum.load(Ordering::Relaxed) as f64 / self.scale,
+        }
+    }
+}
+
 /// A value that goes up and down (consumers, publishers, unacked).
 #[derive(Debug, Default)]
 pub(crate) struct Level(AtomicI64);
@@ -247,6 +316,22 @@ impl QueueCounters {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_histogram_is_cumulative_with_inf_last() {
+        static BOUNDS: [f64; 3] = [1.0, 10.0, 100.0];
+        let h = Histogram::new(&BOUNDS, 1000.0);
+        for value in [0.5, 1.0, 3.0, 50.0, 5000.0] {
+            h.observe(value);
+        }
+        let f = h.figures();
+        assert_eq!(
+            f.buckets,
+            [(1.0, 2), (10.0, 3), (100.0, 4), (f64::INFINITY, 5)]
+        );
+        assert_eq!(f.count, 5);
+        assert!((f.sum - 5054.5).abs() < 1e-9);
+    }
 
     #[test]
     fn queue_counters_add_into_the_global_ones() {

@@ -274,6 +274,7 @@ impl FakeChannel {
             exclusive: false,
             prefetch: options.prefetch,
             priority: 0,
+            wants_position: false,
             in_flight: Default::default(),
             active: Default::default(),
         });

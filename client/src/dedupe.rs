@@ -7,9 +7,11 @@
 //! property (set by the publisher, stable across any number of
 //! forwards); a data port's `x-port` and `x-seq` headers (stamped once by
 //! the out-port, kept by resends and shovels); a shovel's `x-leveret-seq`
-//! (unique per forward: it catches a message forwarded twice by the same
-//! shovel link, not one retried on a new link). A message with none of
-//! these is always new. Uses only the protocol's property types.
+//! (from a Leveret source, the shovel's name and the message's position in
+//! the source queue: the same however often and on whatever link the
+//! message is forwarded, across restarts of either end; from another
+//! broker, unique per forward only). A message with none of these is
+//! always new. Uses only the protocol's property types.
 
 use crate::{BasicProperties, FieldValue};
 use std::collections::{HashSet, VecDeque};

@@ -33,6 +33,8 @@
 
 pub mod error;
 pub mod frame;
+#[cfg(feature = "json")]
+pub mod json;
 pub mod method;
 pub mod properties;
 pub mod reply;

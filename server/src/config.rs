@@ -59,10 +59,13 @@ pub enum ConfigError {
     /// A user's `password-hash` is not one `leveret --hash-password` prints.
     #[error("user {0}: password-hash is not a leveret hash")]
     BadHash(String),
-    /// A shovel's parameters cannot be used.
-    #[error("shovel {name}: {reason}")]
-    Shovel {
-        /// The shovel.
+    /// A shovel's or federation upstream's parameters, or a policy, cannot
+    /// be used.
+    #[error("{what} {name}: {reason}")]
+    Parameter {
+        /// `shovel`, `federation upstream` or `policy`.
+        what: &'static str,
+        /// Its name.
         name: String,
         /// What is wrong.
         reason: String,
@@ -136,6 +139,14 @@ pub struct FileConfig {
     /// `[shovels.NAME]`: RabbitMQ's dynamic-shovel parameters, by name.
     #[serde(default)]
     shovels: std::collections::BTreeMap<String, toml::Table>,
+    /// `[federation-upstreams.NAME]`: RabbitMQ's `federation-upstream`
+    /// parameters, by name (vhost `/`).
+    #[serde(default)]
+    federation_upstreams: std::collections::BTreeMap<String, toml::Table>,
+    /// `[policies.NAME]`: RabbitMQ's policies (vhost `/`), federation keys
+    /// only.
+    #[serde(default)]
+    policies: std::collections::BTreeMap<String, toml::Table>,
 }
 
 /// One `[vhost-limits."NAME"]` table (`rabbitmqctl set_vhost_limits`).
@@ -267,6 +278,32 @@ pub struct Settings {
     pub recover: bool,
     /// Shovels, by name: RabbitMQ's JSON parameters, checked.
     pub shovels: Vec<(String, serde_json::Value)>,
+    /// Federation upstreams, by name: RabbitMQ's JSON parameters, checked.
+    pub federation_upstreams: Vec<(String, serde_json::Value)>,
+    /// Policies, by name: RabbitMQ's JSON form, checked.
+    pub policies: Vec<(String, serde_json::Value)>,
+}
+
+/// Tables of the file as RabbitMQ's JSON, each checked by `check`.
+fn checked_json(
+    tables: &std::collections::BTreeMap<String, toml::Table>,
+    what: &'static str,
+    check: impl Fn(&serde_json::Value) -> Result<(), String>,
+) -> Result<Vec<(String, serde_json::Value)>, ConfigError> {
+    tables
+        .iter()
+        .map(|(name, table)| {
+            serde_json::to_value(table)
+                .map_err(|e| e.to_string())
+                .and_then(|value| check(&value).map(|()| value))
+                .map(|value| (name.clone(), value))
+                .map_err(|reason| ConfigError::Parameter {
+                    what,
+                    name: name.clone(),
+                    reason,
+                })
+        })
+        .collect()
 }
 
 /// RabbitMQ's `ssl_options` from their parts: `verify` defaults to
@@ -387,20 +424,16 @@ impl Settings {
                 })
                 .collect(),
         };
-        let shovels = file
-            .shovels
-            .iter()
-            .map(|(name, table)| {
-                let value = serde_json::to_value(table).map_err(|e| e.to_string());
-                value
-                    .and_then(|value| ShovelConfig::from_json(&value).map(|_| value))
-                    .map(|value| (name.clone(), value))
-                    .map_err(|reason| ConfigError::Shovel {
-                        name: name.clone(),
-                        reason,
-                    })
-            })
-            .collect::<Result<_, _>>()?;
+        let shovels = checked_json(&file.shovels, "shovel", |value| {
+            ShovelConfig::from_json(value).map(|_| ())
+        })?;
+        let federation_upstreams =
+            checked_json(&file.federation_upstreams, "federation upstream", |value| {
+                leveret_uplink::UpstreamConfig::from_json(value).map(|_| ())
+            })?;
+        let policies = checked_json(&file.policies, "policy", |value| {
+            crate::federation::Policy::from_json(value).map(|_| ())
+        })?;
         let tags = file
             .users
             .iter()
@@ -498,6 +531,8 @@ impl Settings {
             definitions: cli.definitions.or(file.definitions),
             recover: cli.recover,
             shovels,
+            federation_upstreams,
+            policies,
         })
     }
 

@@ -7,20 +7,23 @@
 //! they may do in the management API), exchanges, queues (with arguments)
 //! and bindings, permissions and topic permissions (enforced by the
 //! broker; a pattern its regex engine cannot run refuses the file), users'
-//! limits (at start; a run-time import reports them), and shovels
-//! (`parameters` with component `shovel`, started by `uplink`).
-//! Everything else is reported, never dropped silently: policies,
+//! limits (at start; a run-time import reports them), shovels
+//! (`parameters` with component `shovel`, started by `uplink`), and
+//! federation (`parameters` with component `federation-upstream`, and
+//! policies with federation keys: `federation`). Everything else is
+//! reported, never dropped silently: other policies, operator policies,
 //! other parameters, global parameters, unknown keys, other password hashing
 //! algorithms, and queue types Leveret does not have (an `x-queue-type`
 //! other than classic gives a classic queue).
 
-use crate::management::json::{flag, table, text, to_table, user_tags};
-use crate::uplink::Shovels;
+use crate::management::json::{flag, text, user_tags};
+use crate::uplink::Links;
 use leveret_broker::{
     check_pattern, Admin, BindingSpec, BrokerBuilder, DestinationKind, ExchangeSettings,
     PasswordHash, Permission, QueueSettings, TopicPermission, User, UserLimits, LEVERET_ARGON2ID,
     RABBIT_SHA256, RABBIT_SHA512,
 };
+use leveret_protocol::json::{table, to_table};
 use serde_json::{json, Map, Value};
 
 /// A user from the file.
@@ -54,6 +57,11 @@ pub struct Definitions {
     /// Shovels (`parameters` with component `shovel`): vhost, name and
     /// RabbitMQ's JSON parameters, checked.
     pub shovels: Vec<(String, String, Value)>,
+    /// Federation upstreams (`parameters` with component
+    /// `federation-upstream`): vhost, name and parameters, checked.
+    pub upstreams: Vec<(String, String, Value)>,
+    /// Policies with federation keys: vhost, name and the policy, checked.
+    pub policies: Vec<(String, String, Value)>,
     /// Everything not applied, one line each.
     pub warnings: Vec<String>,
 }
@@ -73,6 +81,10 @@ pub struct Applied {
     pub bindings: usize,
     /// Shovels started.
     pub shovels: usize,
+    /// Federation upstreams set.
+    pub upstreams: usize,
+    /// Policies set.
+    pub policies: usize,
 }
 
 fn is_empty(value: &Value) -> bool {
@@ -179,7 +191,7 @@ impl Definitions {
             "product_name",
             "product_version",
         ];
-        const APPLIED: [&str; 8] = [
+        const APPLIED: [&str; 9] = [
             "parameters",
             "vhosts",
             "users",
@@ -188,10 +200,10 @@ impl Definitions {
             "bindings",
             "permissions",
             "topic_permissions",
+            "policies",
         ];
-        const NOT_SUPPORTED: [(&str, &str); 3] = [
-            ("policies", "Leveret has no policies"),
-            ("operator_policies", "Leveret has no policies"),
+        const NOT_SUPPORTED: [(&str, &str); 2] = [
+            ("operator_policies", "Leveret has no operator policies"),
             ("global_parameters", "Leveret has no global parameters"),
         ];
         for (key, value) in root {
@@ -213,16 +225,39 @@ impl Definitions {
             let component = name(item, "component", "a parameter")?;
             let parameter = name(item, "name", "a parameter")?;
             let vhost = vhost_of(item, "a parameter")?;
-            if component != "shovel" {
-                d.warnings.push(format!(
-                    "parameter {component} '{parameter}' in vhost '{vhost}' not imported: Leveret has shovel parameters only"
-                ));
-                continue;
-            }
             let value = item.get("value").cloned().unwrap_or(Value::Null);
-            leveret_uplink::ShovelConfig::from_json(&value)
-                .map_err(|e| format!("shovel '{parameter}' in vhost '{vhost}': {e}"))?;
-            d.shovels.push((vhost, parameter, value));
+            match component.as_str() {
+                "shovel" => {
+                    leveret_uplink::ShovelConfig::from_json(&value)
+                        .map_err(|e| format!("shovel '{parameter}' in vhost '{vhost}': {e}"))?;
+                    d.shovels.push((vhost, parameter, value));
+                }
+                crate::federation::UPSTREAM_COMPONENT => {
+                    leveret_uplink::UpstreamConfig::from_json(&value).map_err(|e| {
+                        format!("federation upstream '{parameter}' in vhost '{vhost}': {e}")
+                    })?;
+                    d.upstreams.push((vhost, parameter, value));
+                }
+                _ => d.warnings.push(format!(
+                    "parameter {component} '{parameter}' in vhost '{vhost}' not imported: Leveret has shovel and federation-upstream parameters only"
+                )),
+            }
+        }
+        for item in list(root, "policies")? {
+            let item = object(item, "policies")?;
+            let policy = name(item, "name", "a policy")?;
+            let vhost = vhost_of(item, "a policy")?;
+            let mut value = Value::Object(item.clone());
+            if let Some(map) = value.as_object_mut() {
+                map.remove("name");
+                map.remove("vhost");
+            }
+            match crate::federation::Policy::from_json(&value) {
+                Ok(_) => d.policies.push((vhost, policy, value)),
+                Err(e) => d.warnings.push(format!(
+                    "policy '{policy}' in vhost '{vhost}' not imported: {e}"
+                )),
+            }
         }
         for item in list(root, "vhosts")? {
             let item = object(item, "vhosts")?;
@@ -453,7 +488,7 @@ impl Definitions {
     /// fails, naming it. Users and permissions last as those changed by
     /// the API do (in the store). Users' limits are reported: they are
     /// taken at start.
-    pub async fn apply(&mut self, admin: &Admin, shovels: &Shovels) -> Result<Applied, String> {
+    pub async fn apply(&mut self, admin: &Admin, links: &Links) -> Result<Applied, String> {
         let mut applied = Applied::default();
         for vhost in &self.vhosts {
             if admin
@@ -516,8 +551,9 @@ impl Definitions {
             tokio::task::yield_now().await;
         }
         for (vhost, name, parameters) in &self.shovels {
-            shovels
-                .start(vhost, name, parameters.clone())
+            links
+                .shovels
+                .declare(vhost, name, parameters.clone())
                 .await
                 .map_err(|e| format!("shovel '{name}': {e}"))?;
             applied.shovels += 1;
@@ -532,6 +568,22 @@ impl Definitions {
             applied.bindings += 1;
             tokio::task::yield_now().await;
         }
+        for (vhost, name, value) in &self.upstreams {
+            links
+                .federation
+                .set_upstream(vhost, name, value.clone(), true)
+                .await
+                .map_err(|e| format!("federation upstream '{name}': {e}"))?;
+            applied.upstreams += 1;
+        }
+        for (vhost, name, value) in &self.policies {
+            links
+                .federation
+                .set_policy(vhost, name, value.clone(), true)
+                .await
+                .map_err(|e| format!("policy '{name}': {e}"))?;
+            applied.policies += 1;
+        }
         Ok(applied)
     }
 }
@@ -539,8 +591,8 @@ impl Definitions {
 /// One vhost's definitions, as RabbitMQ exports them: its exchanges,
 /// queues and bindings without their `vhost` key, and the empty policies
 /// and parameters.
-pub fn export_vhost(admin: &Admin, shovels: &Shovels, vhost: &str) -> Value {
-    let all = export(admin, shovels);
+pub fn export_vhost(admin: &Admin, links: &Links, vhost: &str) -> Value {
+    let all = export(admin, links);
     let only = |key: &str| -> Vec<Value> {
         all[key]
             .as_array()
@@ -573,7 +625,7 @@ pub fn export_vhost(admin: &Admin, shovels: &Shovels, vhost: &str) -> Value {
 /// their tags, permissions, topic permissions, and the exchanges,
 /// queues and bindings a client declared (not the predefined exchanges,
 /// exclusive queues or the default exchange's implicit bindings).
-pub fn export(admin: &Admin, shovels: &Shovels) -> Value {
+pub fn export(admin: &Admin, links: &Links) -> Value {
     let vhosts = admin.vhosts();
     let users = admin.users();
     let exclusive: Vec<(String, String)> = admin
@@ -631,11 +683,20 @@ pub fn export(admin: &Admin, shovels: &Shovels) -> Value {
         "vhosts": vhosts.iter().map(|name| json!({"name": name})).collect::<Vec<_>>(),
         "permissions": permissions_json(admin),
         "topic_permissions": topic_permissions_json(admin),
-        "parameters": shovels.list().into_iter().map(|s| json!({
+        "parameters": links.shovels.list().into_iter().map(|s| json!({
             "value": s.parameters, "vhost": s.vhost, "component": "shovel", "name": s.name,
-        })).collect::<Vec<_>>(),
+        })).chain(links.federation.upstreams().into_iter().map(|(vhost, name, value)| json!({
+            "value": value, "vhost": vhost, "component": crate::federation::UPSTREAM_COMPONENT,
+            "name": name,
+        }))).collect::<Vec<_>>(),
         "global_parameters": [],
-        "policies": [],
+        "policies": links.federation.policies().into_iter().map(|(vhost, name, value)| {
+            let mut policy = json!({"vhost": vhost, "name": name, "apply-to": "all", "priority": 0});
+            if let (Some(policy), Some(given)) = (policy.as_object_mut(), value.as_object()) {
+                policy.extend(given.clone());
+            }
+            policy
+        }).collect::<Vec<_>>(),
         "queues": queues,
         "exchanges": exchanges,
         "bindings": bindings,

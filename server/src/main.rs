@@ -25,6 +25,7 @@
 mod cli;
 mod config;
 mod definitions;
+mod federation;
 mod http;
 mod logging;
 mod management;
@@ -91,7 +92,11 @@ fn runtime(worker_threads: usize) -> std::io::Result<tokio::runtime::Runtime> {
 async fn serve(settings: Settings) -> ExitCode {
     logging::init(&settings.log);
     let ops_settings = settings.ops();
-    let shovel_configs = settings.shovels.clone();
+    let configured = Configured {
+        shovels: settings.shovels.clone(),
+        federation_upstreams: settings.federation_upstreams.clone(),
+        policies: settings.policies.clone(),
+    };
     let definitions = match &settings.definitions {
         None => None,
         Some(path) => {
@@ -118,9 +123,12 @@ async fn serve(settings: Settings) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let shovels = uplink::Shovels::new(&handle);
-    let outcome = run(&handle, &shovels, definitions, shovel_configs, ops_settings).await;
-    shovels.stop_all().await;
+    let links = uplink::Links {
+        shovels: uplink::Shovels::new(&handle),
+        federation: federation::Federation::new(&handle, process::node_name()),
+    };
+    let outcome = run(&handle, &links, definitions, configured, ops_settings).await;
+    links.stop_all().await;
     match Arc::try_unwrap(handle) {
         Ok(handle) => handle.shutdown().await,
         Err(_) => tracing::error!("the broker is still in use; stopping without a clean shutdown"),
@@ -128,23 +136,49 @@ async fn serve(settings: Settings) -> ExitCode {
     outcome
 }
 
-/// Loads the definitions, starts the shovels and the operators' listeners,
-/// and serves until a signal says stop.
+/// The config file's shovels, federation upstreams and policies.
+struct Configured {
+    shovels: Vec<(String, serde_json::Value)>,
+    federation_upstreams: Vec<(String, serde_json::Value)>,
+    policies: Vec<(String, serde_json::Value)>,
+}
+
+/// Loads the definitions, starts the shovels, federation and the
+/// operators' listeners, and serves until a signal says stop.
 async fn run(
     handle: &Arc<leveret_broker::BrokerHandle>,
-    shovels: &uplink::Shovels,
+    links: &uplink::Links,
     definitions: Option<Definitions>,
-    shovel_configs: Vec<(String, serde_json::Value)>,
+    configured: Configured,
     ops_settings: ops::OpsSettings,
 ) -> ExitCode {
-    for (name, parameters) in shovel_configs {
-        if let Err(e) = shovels.start("/", &name, parameters).await {
+    links.shovels.start_stored().await;
+    links.federation.start_stored().await;
+    for (name, parameters) in configured.shovels {
+        if let Err(e) = links.shovels.start("/", &name, parameters).await {
             tracing::error!(shovel = %name, error = %e, "cannot start the shovel");
             return ExitCode::FAILURE;
         }
     }
+    for (name, value) in configured.federation_upstreams {
+        if let Err(e) = links
+            .federation
+            .set_upstream("/", &name, value, false)
+            .await
+        {
+            tracing::error!(upstream = %name, error = %e, "cannot use the federation upstream");
+            return ExitCode::FAILURE;
+        }
+    }
+    for (name, value) in configured.policies {
+        if let Err(e) = links.federation.set_policy("/", &name, value, false).await {
+            tracing::error!(policy = %name, error = %e, "cannot use the policy");
+            return ExitCode::FAILURE;
+        }
+    }
+    links.federation.keep_in_step();
     if let Some(mut definitions) = definitions {
-        match definitions.apply(&handle.admin(), shovels).await {
+        match definitions.apply(&handle.admin(), links).await {
             Ok(applied) => tracing::info!(?applied, "definitions loaded"),
             Err(e) => {
                 tracing::error!(error = %e, "cannot load the definitions");
@@ -157,7 +191,7 @@ async fn run(
     }
     let ops = match ops::Ops::start(
         handle.admin(),
-        shovels.clone(),
+        links.clone(),
         handle.local_addrs(),
         ops_settings,
     ) {

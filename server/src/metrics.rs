@@ -21,8 +21,10 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use axum::routing::get;
 use axum::Router;
-use leveret_broker::{Admin, QueueInfo};
-use prometheus::proto::{Counter, Gauge, LabelPair, Metric, MetricFamily, MetricType};
+use leveret_broker::{Admin, HistogramFigures, QueueInfo};
+use prometheus::proto::{
+    Bucket, Counter, Gauge, Histogram, LabelPair, Metric, MetricFamily, MetricType,
+};
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -98,6 +100,31 @@ impl Exposition {
 
     fn gauge(&mut self, name: &str, help: &str, value: u64) {
         self.single(name, MetricType::GAUGE, help, &[], value as f64);
+    }
+
+    fn histogram(&mut self, name: &str, help: &str, figures: &HistogramFigures) {
+        let mut histogram = Histogram::default();
+        histogram.set_sample_count(figures.count);
+        histogram.set_sample_sum(figures.sum);
+        histogram.set_bucket(
+            figures
+                .buckets
+                .iter()
+                // The encoder writes `+Inf` itself, from the count.
+                .filter(|(bound, _)| bound.is_finite())
+                .map(|(bound, count)| {
+                    let mut bucket = Bucket::default();
+                    bucket.set_upper_bound(*bound);
+                    bucket.set_cumulative_count(*count);
+                    bucket
+                })
+                .collect(),
+        );
+        let mut metric = Metric::default();
+        metric.set_histogram(histogram);
+        self.family(name, MetricType::HISTOGRAM, help)
+            .mut_metric()
+            .push(metric);
     }
 
     /// The text; per-object families with no objects are left out, as the
@@ -479,6 +506,19 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
             "Total time the broker's thread spent polling for input instead of sleeping",
             &[],
             busy.polling.as_secs_f64(),
+        );
+    }
+
+    if let Some(persister) = context.admin.persister() {
+        out.histogram(
+            "leveret_persister_batch_ops",
+            "Store operations written per group commit",
+            &persister.batch_ops,
+        );
+        out.histogram(
+            "leveret_persister_flush_seconds",
+            "Time each group commit took to write and flush its operations",
+            &persister.flush_seconds,
         );
     }
 

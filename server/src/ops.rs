@@ -8,7 +8,7 @@
 
 use crate::management::Rates;
 use crate::metrics::MetricsContext;
-use crate::uplink::Shovels;
+use crate::uplink::Links;
 use leveret_broker::Admin;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -66,7 +66,7 @@ impl Ops {
     /// `amqp_listeners` are reported in `/api/overview`.
     pub fn start(
         admin: Admin,
-        shovels: Shovels,
+        links: Links,
         amqp_listeners: &[SocketAddr],
         settings: OpsSettings,
     ) -> Result<Ops, OpsError> {
@@ -84,11 +84,11 @@ impl Ops {
             admin: admin.clone(),
             node: node.clone(),
             data_dir: settings.data_dir.clone(),
-            shovels: shovels.clone(),
+            shovels: links.shovels.clone(),
         };
         let management = crate::management::Context {
             admin: admin.clone(),
-            shovels,
+            links,
             node,
             data_dir: settings.data_dir,
             amqp_listeners: amqp_listeners.to_vec(),

@@ -171,6 +171,15 @@ async fn scrapes_follow_traffic_under_rabbitmq_names() {
     assert!(value(&text, "leveret_socket_reads_total").unwrap() > 0.0);
     assert!(value(&text, "leveret_busy_poll_windows_total").unwrap() > 0.0);
     assert!(value(&text, "leveret_busy_poll_seconds_total").unwrap() > 0.0);
+    // The store's group commits (at least the one recording the start).
+    let groups = value(&text, "leveret_persister_batch_ops_count").expect("batch histogram");
+    assert!(groups >= 1.0, "{text}");
+    assert_eq!(
+        value(&text, "leveret_persister_flush_seconds_bucket{le=\"+Inf\"}"),
+        Some(groups),
+        "{text}"
+    );
+    assert!(text.contains("# TYPE leveret_persister_flush_seconds histogram"));
     check_with_promtool(&text, "/metrics");
 
     let per_object = scrape(broker.metrics, "/metrics/per-object").await;

@@ -143,7 +143,9 @@ async fn a_configured_shovel_forwards_everything_confirmed_across_kill_9() {
 /// Shovels through the management API, as RabbitMQ's dynamic shovels:
 /// `PUT /api/parameters/shovel/VHOST/NAME` starts one, `/api/shovels`
 /// lists it running, the Prometheus scrape shows its state and counts, the
-/// definitions export carries it as a parameter, and DELETE stops it.
+/// definitions export carries it as a parameter; shovels are keyed by
+/// vhost and name, outlast a SIGKILL (runtime parameters in the store),
+/// and DELETE stops one for good.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     use common::ops::{basic, request, OpsBroker};
@@ -259,6 +261,79 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     assert_eq!(exported["parameters"][0]["component"], "shovel");
     assert_eq!(exported["parameters"][0]["value"]["dest-queue"], "poses");
 
+    // A shovel of the same name in another vhost is another shovel.
+    let vhost = request(robot.http, "PUT", "/api/vhosts/cell", &headers, b"").await;
+    assert_eq!(vhost.status, 201, "{}", vhost.text());
+    let cell = json!({"value": {
+        "src-uri": "amqp:///cell", "src-exchange": "amq.direct", "src-exchange-key": "out",
+        "dest-uri": fleet_url, "dest-queue": "poses", "reconnect-delay": 0.1,
+    }});
+    let put = request(
+        robot.http,
+        "PUT",
+        "/api/parameters/shovel/cell/poses",
+        &headers,
+        cell.to_string().as_bytes(),
+    )
+    .await;
+    assert_eq!(put.status, 201, "{}", put.text());
+
+    // Declared shovels are runtime parameters: they outlast a SIGKILL and
+    // forward again after it.
+    drop(robot_ch);
+    drop(robot_conn);
+    let robot = robot.kill_and_restart(&[]);
+    let running = |listed: &Value| -> Vec<(String, String)> {
+        let mut running: Vec<_> = listed
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|s| s["state"] == "running")
+            .map(|s| {
+                (
+                    s["vhost"].as_str().unwrap().to_owned(),
+                    s["name"].as_str().unwrap().to_owned(),
+                )
+            })
+            .collect();
+        running.sort();
+        running
+    };
+    let both = [
+        ("/".to_owned(), "poses".to_owned()),
+        ("cell".to_owned(), "poses".to_owned()),
+    ];
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    loop {
+        let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
+        let listed: Value = serde_json::from_slice(&listed.body).expect("JSON");
+        if running(&listed) == both {
+            break;
+        }
+        assert!(std::time::Instant::now() < deadline, "{listed}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let robot_conn = Connection::connect(&robot.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("robot");
+    let robot_ch = robot_conn.create_channel().await.expect("channel");
+    robot_ch
+        .basic_publish(
+            "amq.topic",
+            "pose.arm",
+            BasicPublishOptions::default(),
+            b"p2",
+            BasicProperties::default(),
+        )
+        .await
+        .expect("publish");
+    let delivery = tokio::time::timeout(Duration::from_secs(20), consumer.next())
+        .await
+        .expect("forwarded after the restart")
+        .expect("open")
+        .expect("delivery");
+    assert_eq!(delivery.data, b"p2");
+
     let deleted = request(
         robot.http,
         "DELETE",
@@ -269,7 +344,288 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     .await;
     assert_eq!(deleted.status, 204, "{}", deleted.text());
     let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
-    assert_eq!(listed.text(), "[]");
+    let listed: Value = serde_json::from_slice(&listed.body).expect("JSON");
+    assert_eq!(listed.as_array().unwrap().len(), 1, "{listed}");
+    assert_eq!(listed[0]["vhost"], "cell", "{listed}");
+    let again = request(
+        robot.http,
+        "DELETE",
+        "/api/parameters/shovel/%2F/poses",
+        &headers,
+        b"",
+    )
+    .await;
+    assert_eq!(again.status, 404, "{}", again.text());
+    drop(robot_ch);
+    drop(robot_conn);
+    let robot = robot.kill_and_restart(&[]);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
+    let listed: Value = serde_json::from_slice(&listed.body).expect("JSON");
+    assert_eq!(
+        listed.as_array().unwrap().len(),
+        1,
+        "the deletion lasts: {listed}"
+    );
+
+    // A shovel that has forwarded all src-delete-after asked for deletes
+    // itself, parameter and all (here: a source that was empty).
+    let queue = request(robot.http, "PUT", "/api/queues/%2F/empty", &headers, b"{}").await;
+    assert_eq!(queue.status, 201, "{}", queue.text());
+    let once = json!({"value": {
+        "src-uri": "amqp://", "src-queue": "empty", "src-delete-after": "queue-length",
+        "dest-uri": fleet_url, "dest-queue": "poses",
+    }});
+    let put = request(
+        robot.http,
+        "PUT",
+        "/api/parameters/shovel/%2F/once",
+        &headers,
+        once.to_string().as_bytes(),
+    )
+    .await;
+    assert_eq!(put.status, 201, "{}", put.text());
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    loop {
+        let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
+        let listed: Value = serde_json::from_slice(&listed.body).expect("JSON");
+        if listed
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|s| s["name"] != "once")
+        {
+            break;
+        }
+        assert!(std::time::Instant::now() < deadline, "{listed}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let gone = request(
+        robot.http,
+        "GET",
+        "/api/parameters/shovel/%2F/once",
+        &headers,
+        b"",
+    )
+    .await;
+    assert_eq!(gone.status, 404, "{}", gone.text());
+    drop(robot);
+    fleet_broker.shutdown().await;
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Federation in the binary, declared with Debian's `rabbitmqadmin` as on
+/// RabbitMQ: a `federation-upstream` parameter and a policy with
+/// `federation-upstream-set` federate the fleet's `fleet.commands` to the
+/// robot's `commands` exchange, declared after the policy (a policy also
+/// covers exchanges declared later); `/api/federation-links` shows the
+/// link running; a command the robot binds for arrives; the upstream and
+/// the policy are runtime parameters that outlast a SIGKILL, are exported
+/// in the definitions, and deleting the policy stops the link.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn federation_is_declared_like_rabbitmqs_and_outlasts_a_crash() {
+    use common::ops::{basic, request, tool_available, OpsBroker};
+    use lapin::options::{ExchangeDeclareOptions, QueueBindOptions};
+    use serde_json::{json, Value};
+    use std::process::Command;
+    if !tool_available("rabbitmqadmin", "rabbitmq-server") {
+        return;
+    }
+    let root = std::env::temp_dir().join(format!("leveret-federation-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let addr = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("free port");
+    let fleet_url = format!("amqp://guest:guest@{addr}/%2f");
+    let fleet_broker = fleet(addr, &root.join("fleet")).await;
+    let fleet_conn = Connection::connect(&fleet_url, ConnectionProperties::default())
+        .await
+        .expect("fleet");
+    let fleet_ch = fleet_conn.create_channel().await.expect("channel");
+    fleet_ch
+        .exchange_declare(
+            "fleet.commands",
+            lapin::ExchangeKind::Topic,
+            ExchangeDeclareOptions {
+                durable: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await
+        .expect("upstream exchange");
+
+    let robot = OpsBroker::start("federation", &[]);
+    let admin = |broker: &OpsBroker, args: &[&str]| {
+        let port = broker.http.port().to_string();
+        let output = Command::new("rabbitmqadmin")
+            .args(["-H", "127.0.0.1", "-P", &port, "-u", "guest", "-p", "guest"])
+            .args(args)
+            .output()
+            .expect("rabbitmqadmin");
+        assert!(
+            output.status.success(),
+            "rabbitmqadmin {args:?}: {}{}",
+            String::from_utf8_lossy(&output.stdout),
+            String::from_utf8_lossy(&output.stderr)
+        );
+    };
+    let upstream = json!({"uri": fleet_url, "exchange": "fleet.commands", "reconnect-delay": 0.2});
+    admin(
+        &robot,
+        &[
+            "declare",
+            "parameter",
+            "component=federation-upstream",
+            "name=fleet",
+            &format!("value={upstream}"),
+        ],
+    );
+    admin(
+        &robot,
+        &[
+            "declare",
+            "policy",
+            "name=federate-commands",
+            "pattern=^commands$",
+            "definition={\"federation-upstream-set\": \"all\"}",
+            "apply-to=exchanges",
+        ],
+    );
+    let robot_conn = Connection::connect(&robot.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("robot");
+    let robot_ch = robot_conn.create_channel().await.expect("channel");
+    robot_ch
+        .exchange_declare(
+            "commands",
+            lapin::ExchangeKind::Topic,
+            ExchangeDeclareOptions {
+                durable: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await
+        .expect("local exchange");
+    robot_ch
+        .queue_declare("robot-7.commands", durable(), FieldTable::default())
+        .await
+        .expect("queue");
+    robot_ch
+        .queue_bind(
+            "robot-7.commands",
+            "commands",
+            "robot-7.#",
+            QueueBindOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("bind");
+    let auth = basic("guest", "guest");
+    let headers = [("Authorization", auth.as_str())];
+    let running = |broker_http: SocketAddr| async move {
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        loop {
+            let links = request(broker_http, "GET", "/api/federation-links", &headers, b"").await;
+            let links: Value = serde_json::from_slice(&links.body).expect("JSON");
+            if links[0]["status"] == "running" && links[0]["bindings"] == 1 {
+                assert_eq!(links[0]["exchange"], "commands", "{links}");
+                assert_eq!(links[0]["upstream_exchange"], "fleet.commands", "{links}");
+                assert_eq!(links[0]["upstream"], "fleet", "{links}");
+                return;
+            }
+            assert!(std::time::Instant::now() < deadline, "{links}");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    };
+    running(robot.http).await;
+    let command = |body: &'static [u8]| {
+        let fleet_ch = fleet_ch.clone();
+        async move {
+            fleet_ch
+                .basic_publish(
+                    "fleet.commands",
+                    "robot-7.move",
+                    BasicPublishOptions::default(),
+                    body,
+                    BasicProperties::default(),
+                )
+                .await
+                .expect("publish")
+                .await
+                .expect("sent");
+        }
+    };
+    let arrives = |channel: lapin::Channel, body: &'static [u8]| async move {
+        let mut consumer = channel
+            .basic_consume(
+                "robot-7.commands",
+                "",
+                BasicConsumeOptions {
+                    no_ack: true,
+                    ..Default::default()
+                },
+                FieldTable::default(),
+            )
+            .await
+            .expect("consume");
+        let delivery = tokio::time::timeout(Duration::from_secs(20), consumer.next())
+            .await
+            .expect("a command")
+            .expect("open")
+            .expect("delivery");
+        assert_eq!(delivery.data, body);
+    };
+    command(b"forward").await;
+    arrives(robot_ch.clone(), b"forward").await;
+
+    drop(robot_ch);
+    drop(robot_conn);
+    let robot = robot.kill_and_restart(&[]);
+    running(robot.http).await;
+    command(b"after the crash").await;
+    let robot_conn = Connection::connect(&robot.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("robot");
+    let robot_ch = robot_conn.create_channel().await.expect("channel");
+    arrives(robot_ch.clone(), b"after the crash").await;
+
+    let exported = request(robot.http, "GET", "/api/definitions", &headers, b"").await;
+    let exported: Value = serde_json::from_slice(&exported.body).expect("JSON");
+    let parameters = exported["parameters"].as_array().expect("parameters");
+    assert!(
+        parameters
+            .iter()
+            .any(|p| p["component"] == "federation-upstream" && p["name"] == "fleet"),
+        "{exported}"
+    );
+    assert_eq!(
+        exported["policies"][0]["name"], "federate-commands",
+        "{exported}"
+    );
+    assert_eq!(
+        exported["policies"][0]["definition"]["federation-upstream-set"], "all",
+        "{exported}"
+    );
+    // A policy key Leveret does not act on is refused, not ignored.
+    let refused = request(
+        robot.http,
+        "PUT",
+        "/api/policies/%2F/mirror",
+        &[
+            ("Authorization", auth.as_str()),
+            ("Content-Type", "application/json"),
+        ],
+        br#"{"pattern": ".*", "definition": {"ha-mode": "all"}}"#,
+    )
+    .await;
+    assert_eq!(refused.status, 400, "{}", refused.text());
+    admin(&robot, &["delete", "policy", "name=federate-commands"]);
+    let links = request(robot.http, "GET", "/api/federation-links", &headers, b"").await;
+    assert_eq!(links.text(), "[]");
+    drop(robot_ch);
+    drop(robot_conn);
     drop(robot);
     fleet_broker.shutdown().await;
     let _ = std::fs::remove_dir_all(&root);

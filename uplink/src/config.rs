@@ -4,8 +4,10 @@
 //! the JSON object RabbitMQ takes. What Leveret does not implement yet is
 //! refused with a reason, never ignored.
 //!
-//! Uses nothing of the broker.
+//! Uses the protocol crate's JSON form of message properties, nothing of
+//! the broker.
 
+use leveret_protocol::BasicProperties;
 use serde_json::{Map, Value};
 use std::time::Duration;
 
@@ -20,6 +22,19 @@ pub enum AckMode {
     OnPublish,
     /// The source does not wait for acknowledgements at all (`no-ack`).
     NoAck,
+}
+
+/// When a shovel deletes itself (`src-delete-after`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum DeleteAfter {
+    /// Never (the default).
+    #[default]
+    Never,
+    /// After forwarding as many messages as the source queue held when the
+    /// shovel first started (`queue-length`).
+    QueueLength,
+    /// After forwarding this many messages.
+    Count(u64),
 }
 
 /// Where a shovel takes messages from.
@@ -54,7 +69,7 @@ pub enum Destination {
 }
 
 /// One shovel.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ShovelConfig {
     /// The source broker (`src-uri`; `amqp://` with no host is the local
     /// broker, in process).
@@ -71,6 +86,12 @@ pub struct ShovelConfig {
     pub destination: Destination,
     /// Adds RabbitMQ's `x-shovelled` header (`dest-add-forward-headers`).
     pub add_forward_headers: bool,
+    /// Properties set on every forwarded message, over its own
+    /// (`dest-publish-properties`, RabbitMQ's property names: for example
+    /// `{"delivery_mode": 2}`); `headers` replaces the message's headers.
+    pub publish_properties: BasicProperties,
+    /// When the shovel is done and deletes itself (`src-delete-after`).
+    pub delete_after: DeleteAfter,
     /// `ack-mode`.
     pub ack_mode: AckMode,
     /// Wait before reconnecting, and after the destination refused a
@@ -133,6 +154,7 @@ impl ShovelConfig {
                 "dest-exchange-key",
                 "dest-protocol",
                 "dest-add-forward-headers",
+                "dest-publish-properties",
                 "ack-mode",
                 "reconnect-delay",
                 "bandwidth-limit",
@@ -149,11 +171,28 @@ impl ShovelConfig {
                 }
             }
         }
-        if let Some(after) = object.get("src-delete-after") {
-            if after != "never" {
-                return Err(format!("src-delete-after {after}: only \"never\""));
-            }
+        let delete_after = match object.get("src-delete-after") {
+            None | Some(Value::Null) => DeleteAfter::Never,
+            Some(Value::String(s)) if s == "never" => DeleteAfter::Never,
+            Some(Value::String(s)) if s == "queue-length" => DeleteAfter::QueueLength,
+            Some(n) => n
+                .as_u64()
+                .filter(|n| *n > 0)
+                .map(DeleteAfter::Count)
+                .ok_or_else(|| {
+                    format!(
+                        "src-delete-after {n}: \"never\", \"queue-length\" or a positive integer"
+                    )
+                })?,
+        };
+        if delete_after == DeleteAfter::QueueLength && object.get("src-queue").is_none() {
+            return Err("src-delete-after \"queue-length\" needs a src-queue".into());
         }
+        let publish_properties = match object.get("dest-publish-properties") {
+            None | Some(Value::Null) => BasicProperties::default(),
+            Some(value) => leveret_protocol::json::properties(Some(value))
+                .map_err(|e| format!("dest-publish-properties: {e}"))?,
+        };
         let source = match (text(object, "src-queue")?, text(object, "src-exchange")?) {
             (Some(queue), None) => Source::Queue(queue.to_owned()),
             (None, Some(exchange)) => Source::Exchange {
@@ -216,6 +255,8 @@ impl ShovelConfig {
             dest_uris: uris(object, "dest-uri")?,
             destination,
             add_forward_headers,
+            publish_properties,
+            delete_after,
             ack_mode,
             reconnect_delay,
         })
@@ -273,6 +314,26 @@ mod tests {
             (limited.bandwidth_limit, limited.message_rate_limit),
             (Some(32000), Some(100))
         );
+        let once = ShovelConfig::from_json(&json!({
+            "src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q",
+            "src-delete-after": 20, "dest-publish-properties": {"delivery_mode": 2, "app_id": "robot-7"},
+        }))
+        .unwrap();
+        assert_eq!(once.delete_after, DeleteAfter::Count(20));
+        assert_eq!(once.publish_properties.delivery_mode, Some(2));
+        assert_eq!(
+            once.publish_properties
+                .app_id
+                .as_ref()
+                .map(|s| s.as_bytes()),
+            Some(&b"robot-7"[..])
+        );
+        let drain = ShovelConfig::from_json(&json!({
+            "src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q",
+            "src-delete-after": "queue-length",
+        }))
+        .unwrap();
+        assert_eq!(drain.delete_after, DeleteAfter::QueueLength);
     }
 
     #[test]
@@ -283,16 +344,24 @@ mod tests {
                 "src-queue",
             ),
             (
-                json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "dest-publish-properties": {}}),
+                json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "dest-publish-properties": {"colour": "red"}}),
+                "unknown message property",
+            ),
+            (
+                json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "src-federate": true}),
                 "not supported",
+            ),
+            (
+                json!({"src-uri": "amqp://", "src-exchange": "x", "dest-uri": "amqp://x", "dest-queue": "q", "src-delete-after": "queue-length"}),
+                "needs a src-queue",
             ),
             (
                 json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": [], "dest-queue": "q"}),
                 "empty",
             ),
             (
-                json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "src-delete-after": 5}),
-                "never",
+                json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "src-delete-after": -5}),
+                "positive integer",
             ),
             (
                 json!({"src-uri": "amqp://", "src-queue": "q", "dest-uri": "amqp://x", "dest-queue": "q", "dest-protocol": "amqp10"}),

@@ -6,15 +6,24 @@
 //! fail over between the cluster's nodes, and never let a refusing
 //! destination drain the source.
 //!
-//! Layout: `config.rs` the parameters, `shovel.rs` the running shovel,
-//! `pace.rs` its rate limits.
+//! Federation ([`FederationLink`]) brings an upstream exchange's messages
+//! down to a local exchange, with RabbitMQ's upstream parameters
+//! ([`UpstreamConfig`]), binding propagation and hop counting.
+//!
+//! Layout: `config.rs` the shovel parameters, `shovel.rs` the running
+//! shovel, `pace.rs` its rate limits, `federation.rs` the federation
+//! links.
 //! Uses the broker's embedding API (for in-process local connections) and
 //! the client crate.
 #![deny(missing_docs)]
 
 mod config;
+mod federation;
 mod pace;
 mod shovel;
 
-pub use config::{AckMode, Destination, ShovelConfig, Source};
+pub use config::{AckMode, DeleteAfter, Destination, ShovelConfig, Source};
+pub use federation::{
+    FederationLink, LinkState, LinkStatus, LocalExchange, UpstreamConfig, RECEIVED_FROM,
+};
 pub use shovel::{Shovel, ShovelState, ShovelStatus, SEQ_HEADER};

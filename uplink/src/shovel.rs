@@ -11,8 +11,19 @@
 //! `blocked` for `reconnect-delay` before it tries again: a destination
 //! that refuses never drains the source. A retried message arrives after
 //! later ones the destination took. Every
-//! forwarded message carries `x-leveret-seq` (the shovel's name, the link
-//! and a counter), which is how returns are matched to publishes.
+//! forwarded message carries `x-leveret-seq`, which is how returns are
+//! matched to publishes and how a consumer at the destination drops the
+//! duplicates at-least-once forwarding makes after a crash: from a Leveret
+//! source it is the shovel's name and the message's position in the source
+//! queue (`x-leveret-position`, asked for at basic.consume), the same each
+//! time that message is forwarded and never another's; from another
+//! broker, the shovel's name, a number unique to this process and a count
+//! (unique, but new at each forward).
+//!
+//! With `src-delete-after`, the shovel takes no more deliveries than it
+//! has left to forward (counted across reconnects; under `no-ack` it
+//! still acknowledges each one as it publishes it, so none beyond the count
+//! leaves the source), and ends `completed` once that many were forwarded.
 //!
 //! After a failure the shovel waits `reconnect-delay`, doubling per failed
 //! attempt up to 4 s (or `reconnect-delay` if longer), with up to 25% jitter,
@@ -20,9 +31,9 @@
 //! failed. Uses the client crate for both ends (the local broker in
 //! process), nothing else of the broker.
 
-use crate::config::{AckMode, Destination, ShovelConfig, Source};
+use crate::config::{AckMode, DeleteAfter, Destination, ShovelConfig, Source};
 use crate::pace::Pace;
-use leveret_broker::BrokerHandle;
+use leveret_broker::{BrokerHandle, POSITION_HEADER};
 use leveret_client::{
     BasicAckOptions, BasicConsumeOptions, BasicNackOptions, BasicProperties, BasicPublishOptions,
     BasicQosOptions, Channel, ConfirmFuture, Confirmation, Connection, ConnectionOptions,
@@ -68,6 +79,9 @@ pub struct ShovelStatus {
     pub refused: u64,
     /// Links that ended (failures and refusals).
     pub restarts: u64,
+    /// Whether it forwarded all `src-delete-after` asked for and stopped
+    /// (its owner deletes it, as RabbitMQ deletes such a shovel).
+    pub completed: bool,
 }
 
 /// A shovel running on the current tokio runtime.
@@ -84,6 +98,7 @@ impl Shovel {
     /// without a host means.
     pub fn start(name: &str, config: ShovelConfig, local: Option<&Arc<BrokerHandle>>) -> Shovel {
         let (status_tx, status) = watch::channel(ShovelStatus::default());
+        let config_delete_after = config.delete_after;
         let (stop, stopped) = watch::channel(false);
         let link = Link {
             name: name.to_owned(),
@@ -92,6 +107,10 @@ impl Shovel {
             status: status_tx,
             next_destination: 0,
             epoch: 0,
+            remaining: match config_delete_after {
+                DeleteAfter::Count(n) => Some(n),
+                DeleteAfter::Never | DeleteAfter::QueueLength => None,
+            },
         };
         let task = tokio::spawn(link.run(stopped));
         Shovel {
@@ -125,7 +144,7 @@ impl Shovel {
 }
 
 /// A URI with its credentials removed, for logs and status.
-fn shown(uri: &str) -> String {
+pub(crate) fn shown(uri: &str) -> String {
     match (uri.split_once("://"), uri.rfind('@')) {
         (Some((scheme, rest)), Some(at)) => {
             let after = &uri[at + 1..];
@@ -157,6 +176,8 @@ enum Ended {
     Refused(String),
     /// The shovel was told to stop.
     Stopped,
+    /// It forwarded everything `src-delete-after` asked for.
+    Completed,
 }
 
 impl From<leveret_client::Error> for Ended {
@@ -179,6 +200,9 @@ struct Link {
     status: watch::Sender<ShovelStatus>,
     next_destination: usize,
     epoch: u64,
+    /// Messages left to forward under `src-delete-after` (`None`: no
+    /// limit, or `queue-length` not yet measured).
+    remaining: Option<u64>,
 }
 
 impl Link {
@@ -197,6 +221,14 @@ impl Link {
             };
             let (delay, reason) = match ended {
                 Ended::Stopped => break,
+                Ended::Completed => {
+                    tracing::info!(shovel = %self.name, "shovel forwarded all src-delete-after asked for");
+                    self.update(|s| {
+                        s.completed = true;
+                        s.state = ShovelState::Terminated;
+                    });
+                    break;
+                }
                 Ended::Refused(reason) => {
                     self.update(|s| s.state = ShovelState::Blocked);
                     (self.config.reconnect_delay, reason)
@@ -300,13 +332,35 @@ impl Link {
             .basic_qos(self.config.prefetch, BasicQosOptions::default())
             .await?;
         let queue = self.source_queue(&source).await?;
+        if self.config.delete_after == DeleteAfter::QueueLength && self.remaining.is_none() {
+            let passive = QueueDeclareOptions {
+                passive: true,
+                ..Default::default()
+            };
+            let info = source
+                .queue_declare(queue.as_str(), passive, FieldTable::new())
+                .await?;
+            self.remaining = Some(u64::from(info.message_count));
+        }
+        if self.remaining == Some(0) {
+            return Err(Ended::Completed);
+        }
         let publisher = destination_connection.open_channel().await?;
         let confirms = self.config.ack_mode == AckMode::OnConfirm;
         if confirms {
             publisher.confirm_select().await?;
         }
         let mut returns = publisher.returns();
-        let no_ack = self.config.ack_mode == AckMode::NoAck;
+        // A limited shovel acknowledges even under no-ack, so that the
+        // broker delivers no more than the prefetch window it can refuse.
+        let no_ack = self.config.ack_mode == AckMode::NoAck && self.remaining.is_none();
+        // A Leveret source adds each message's position; other brokers
+        // ignore the argument.
+        let mut wants_position = FieldTable::new();
+        wants_position.insert(
+            ShortStr::from_static(POSITION_HEADER),
+            FieldValue::Bool(true),
+        );
         let mut consumer = source
             .basic_consume(
                 queue.as_str(),
@@ -315,7 +369,7 @@ impl Link {
                     no_ack,
                     ..Default::default()
                 },
-                FieldTable::new(),
+                wants_position,
             )
             .await?;
         self.epoch += 1;
@@ -340,7 +394,7 @@ impl Link {
                     match settle(&mut returns, &mut returned, &done.seq, confirmation?) {
                         None => {
                             source.basic_ack(done.source_tag, BasicAckOptions::default()).await?;
-                            self.update(|s| s.forwarded += 1);
+                            self.forwarded_one()?;
                         }
                         Some(why) => {
                             // Publish nothing more; settle what is in flight
@@ -352,7 +406,7 @@ impl Link {
                                 match settle(&mut returns, &mut returned, &later.seq, confirmation) {
                                     None => {
                                         source.basic_ack(later.source_tag, BasicAckOptions::default()).await?;
-                                        self.update(|s| s.forwarded += 1);
+                                        self.forwarded_one()?;
                                     }
                                     Some(_) => refused.push(later.source_tag),
                                 }
@@ -369,7 +423,10 @@ impl Link {
                         }
                     }
                 }
-                delivery = consumer.next(), if inflight.len() < window => {
+                delivery = consumer.next(),
+                    if inflight.len() < window
+                        && self.remaining.is_none_or(|left| (inflight.len() as u64) < left) =>
+                {
                     let Some(delivery) = delivery else {
                         return Err(Ended::Failed(format!("the source stopped delivering from {queue}")));
                     };
@@ -380,7 +437,10 @@ impl Link {
                         pace.take(delivery.body.len() as u64).await;
                     }
                     counter += 1;
-                    let seq = format!("{}:{}:{}", self.name, self.epoch, counter);
+                    let seq = match position_of(&delivery.properties) {
+                        Some(position) => format!("{}:{position}", self.name),
+                        None => format!("{}:{}:{}:{counter}", self.name, process_nonce(), self.epoch),
+                    };
                     let (exchange, key) = match &self.config.destination {
                         Destination::Queue(queue) => (String::new(), queue.clone()),
                         Destination::Exchange { exchange, key } => (
@@ -406,9 +466,14 @@ impl Link {
                         }),
                         AckMode::OnPublish => {
                             source.basic_ack(delivery.delivery_tag, BasicAckOptions::default()).await?;
-                            self.update(|s| s.forwarded += 1);
+                            self.forwarded_one()?;
                         }
-                        AckMode::NoAck => self.update(|s| s.forwarded += 1),
+                        AckMode::NoAck => {
+                            if !no_ack {
+                                source.basic_ack(delivery.delivery_tag, BasicAckOptions::default()).await?;
+                            }
+                            self.forwarded_one()?;
+                        }
                     }
                 }
                 error = publisher.closed() => return Err(Ended::Failed(format!("destination: {error}"))),
@@ -417,9 +482,30 @@ impl Link {
         }
     }
 
-    /// The message's properties with the shovel's headers added.
-    fn forwarded_properties(&self, mut properties: BasicProperties, seq: &str) -> BasicProperties {
+    /// Counts one message the destination took; ends the link once
+    /// `src-delete-after` is reached. Called with the message settled at
+    /// the source, and with nothing later in flight beyond the count.
+    fn forwarded_one(&mut self) -> Result<(), Ended> {
+        self.update(|s| s.forwarded += 1);
+        match &mut self.remaining {
+            Some(left) => {
+                *left = left.saturating_sub(1);
+                if *left == 0 {
+                    Err(Ended::Completed)
+                } else {
+                    Ok(())
+                }
+            }
+            None => Ok(()),
+        }
+    }
+
+    /// The message's properties with `dest-publish-properties` set over
+    /// them and the shovel's headers added.
+    fn forwarded_properties(&self, properties: BasicProperties, seq: &str) -> BasicProperties {
+        let mut properties = overlay(properties, &self.config.publish_properties);
         let mut headers = properties.headers.take().unwrap_or_default();
+        headers.remove(POSITION_HEADER);
         headers.insert(ShortStr::from_static(SEQ_HEADER), FieldValue::string(seq));
         if self.config.add_forward_headers {
             let mut shovelled = FieldTable::new();
@@ -449,6 +535,30 @@ impl Link {
     }
 }
 
+/// `message` with every property `set` has replaced.
+fn overlay(mut message: BasicProperties, set: &BasicProperties) -> BasicProperties {
+    fn take<T: Clone>(field: &mut Option<T>, set: &Option<T>) {
+        if set.is_some() {
+            field.clone_from(set);
+        }
+    }
+    take(&mut message.content_type, &set.content_type);
+    take(&mut message.content_encoding, &set.content_encoding);
+    take(&mut message.headers, &set.headers);
+    take(&mut message.delivery_mode, &set.delivery_mode);
+    take(&mut message.priority, &set.priority);
+    take(&mut message.correlation_id, &set.correlation_id);
+    take(&mut message.reply_to, &set.reply_to);
+    take(&mut message.expiration, &set.expiration);
+    take(&mut message.message_id, &set.message_id);
+    take(&mut message.timestamp, &set.timestamp);
+    take(&mut message.kind, &set.kind);
+    take(&mut message.user_id, &set.user_id);
+    take(&mut message.app_id, &set.app_id);
+    take(&mut message.cluster_id, &set.cluster_id);
+    message
+}
+
 /// Whether the destination took a message: `None` if it did, else why
 /// not. The broker sends a message's `basic.return` before its confirm,
 /// so every return for it has arrived by the time the confirm has.
@@ -470,6 +580,30 @@ fn settle(
     }
 }
 
+/// The source's `x-leveret-position` of a delivery, if it has one.
+fn position_of(properties: &BasicProperties) -> Option<String> {
+    let value = properties.headers.as_ref()?.get(POSITION_HEADER)?;
+    std::str::from_utf8(value.as_bytes()?)
+        .ok()
+        .map(str::to_owned)
+}
+
+/// A number unique to this process (random), so that ids made without a
+/// source position never repeat another run's.
+fn process_nonce() -> u64 {
+    use std::hash::{BuildHasher, Hasher};
+    static NONCE: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *NONCE.get_or_init(|| {
+        let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
+        hasher.write_u128(
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos()),
+        );
+        hasher.finish()
+    })
+}
+
 /// The `x-leveret-seq` of a message, if it has one.
 fn seq_of(properties: &BasicProperties) -> Option<String> {
     let value = properties.headers.as_ref()?.get(SEQ_HEADER)?;
@@ -485,7 +619,7 @@ const BACKOFF_CEILING: Duration = Duration::from_secs(4);
 /// `base` doubled per failure up to [`BACKOFF_CEILING`] (or `base` when
 /// longer), plus up to 25% jitter: a drain starts within 5 s of the link
 /// coming back unless `reconnect-delay` asks for longer.
-fn backoff(base: Duration, failures: u32) -> Duration {
+pub(crate) fn backoff(base: Duration, failures: u32) -> Duration {
     let doubled = base.saturating_mul(1 << failures.saturating_sub(1).min(16));
     let capped = doubled.min(base.max(BACKOFF_CEILING));
     let jitter = {

@@ -433,3 +433,255 @@ async fn commands_come_down_from_the_fleet_to_a_local_exchange() {
     shovel.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `src-delete-after`: a shovel forwards exactly the count it was given
+/// (or the source's length when it started) under each ack mode, leaves
+/// the rest at the source (none taken beyond the count, even under
+/// no-ack), and ends `completed`; `dest-publish-properties` are set over
+/// each forwarded message's own.
+#[both_runtimes]
+async fn a_shovel_forwards_its_count_and_completes() {
+    let robot = Arc::new(Broker::builder().start().await.expect("robot broker"));
+    let (_local, publisher) = local_channel(&robot).await;
+    publisher.confirm_select().await.expect("confirms");
+    declare(&publisher, "telemetry", FieldTable::new()).await;
+    let addr = free_addr().await;
+    let dir = scratch("delete-after");
+    let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
+    let _fleet = fleet(addr, &dir).await;
+    let (_c, fleet_channel) = channel_to(&fleet_uri).await;
+    declare(&fleet_channel, "archive", FieldTable::new()).await;
+    let mut next = 0;
+    for (ack_mode, delete_after, expected) in [
+        ("on-confirm", json!(7), 7),
+        ("on-publish", json!(5), 5),
+        ("no-ack", json!(3), 3),
+        ("on-confirm", json!("queue-length"), 30 - 7 - 5 - 3),
+    ] {
+        if next == 0 {
+            publish_confirmed(&publisher, "telemetry", 0, 30).await;
+        }
+        let config = shovel_config(
+            std::slice::from_ref(&fleet_uri),
+            json!({
+                "dest-queue": "archive", "ack-mode": ack_mode, "src-delete-after": delete_after,
+                "dest-publish-properties": {"app_id": "robot-7", "delivery_mode": 2},
+            }),
+        );
+        let shovel = Shovel::start("once", config, Some(&robot));
+        wait_status(&shovel, "completed", |s| s.completed).await;
+        let status = shovel.status();
+        assert_eq!(status.forwarded, expected, "{ack_mode}: {status:?}");
+        assert_eq!(status.state, ShovelState::Terminated);
+        let got = collect(&fleet_channel, "archive", expected as usize).await;
+        assert_eq!(
+            got,
+            (next..next + expected as u32).collect::<Vec<_>>(),
+            "{ack_mode}"
+        );
+        next += expected as u32;
+        assert_eq!(held_at_source(&robot), u64::from(30 - next), "{ack_mode}");
+        shovel.stop().await;
+    }
+    // The properties were set on each message (checked on one more).
+    publish_confirmed(&publisher, "telemetry", 100, 101).await;
+    let config = shovel_config(
+        std::slice::from_ref(&fleet_uri),
+        json!({
+            "dest-queue": "archive", "src-delete-after": 1,
+            "dest-publish-properties": {"app_id": "robot-7", "priority": 3},
+        }),
+    );
+    let shovel = Shovel::start("props", config, Some(&robot));
+    wait_status(&shovel, "completed", |s| s.completed).await;
+    let message = loop {
+        if let Some(message) = fleet_channel
+            .basic_get("archive", BasicGetOptions { no_ack: true })
+            .await
+            .expect("get")
+        {
+            break message;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    assert_eq!(message.body.as_ref(), b"100");
+    let properties = &message.properties;
+    assert_eq!(
+        properties.app_id.as_ref().map(|s| s.as_bytes()),
+        Some(&b"robot-7"[..])
+    );
+    assert_eq!(properties.priority, Some(3));
+    assert_eq!(properties.delivery_mode, Some(2), "the message's own, kept");
+    assert!(
+        properties
+            .headers
+            .as_ref()
+            .is_some_and(|h| h.get(leveret_uplink::SEQ_HEADER).is_some()),
+        "the shovel's id header is still added"
+    );
+    shovel.stop().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The header of `name` on a message, as text.
+fn header(properties: &BasicProperties, name: &str) -> Option<String> {
+    let value = properties.headers.as_ref()?.get(name)?;
+    Some(String::from_utf8_lossy(value.as_bytes()?).into_owned())
+}
+
+/// Consumes `count` messages from `queue` asking for positions; acks
+/// those after the first `keep` (the others stay unacknowledged); their
+/// positions in order.
+async fn positions(channel: &Channel, queue: &str, count: usize, keep: usize) -> Vec<String> {
+    let mut wants = FieldTable::new();
+    wants.insert(
+        ShortStr::from_static(leveret_broker::POSITION_HEADER),
+        FieldValue::Bool(true),
+    );
+    let mut consumer = channel
+        .basic_consume(queue, "positions", Default::default(), wants)
+        .await
+        .expect("consume");
+    let mut got = Vec::new();
+    while got.len() < count {
+        let delivery = tokio::time::timeout(WAIT, consumer.next())
+            .await
+            .expect("a delivery")
+            .expect("open");
+        got.push(
+            header(&delivery.properties, leveret_broker::POSITION_HEADER).expect("a position"),
+        );
+        if got.len() > keep {
+            delivery.ack().await.expect("ack");
+        }
+    }
+    got
+}
+
+/// A queue position names one message for the store's whole life: the
+/// same message keeps it when delivered again, after a requeue and after a
+/// restart, and no later message, in this run or the next, gets one used
+/// before (so a shovel's downstream can deduplicate by it). A consumer
+/// that does not ask sees no header; a bad argument is refused.
+#[both_runtimes]
+async fn positions_name_one_message_across_restarts() {
+    let dir = scratch("positions");
+    let start = || Broker::builder().data_dir(&dir).start();
+    let robot = start().await.expect("robot broker");
+    let (connection, publisher) = local_channel(&robot).await;
+    publisher.confirm_select().await.expect("confirms");
+    declare(&publisher, "telemetry", FieldTable::new()).await;
+    // Four messages: the last two acknowledged (gone), the first two held.
+    publish_confirmed(&publisher, "telemetry", 0, 4).await;
+    let first = positions(&publisher, "telemetry", 4, 2).await;
+    let distinct: std::collections::HashSet<_> = first.iter().collect();
+    assert_eq!(distinct.len(), 4, "{first:?}");
+    drop(publisher);
+    drop(connection);
+    robot.shutdown().await;
+
+    let robot = start().await.expect("robot broker again");
+    let (_connection, channel) = local_channel(&robot).await;
+    channel.confirm_select().await.expect("confirms");
+    assert_eq!(
+        positions(&channel, "telemetry", 2, 2).await,
+        first[..2],
+        "the same messages, the same positions"
+    );
+    let plain = channel
+        .basic_get("telemetry", BasicGetOptions { no_ack: false })
+        .await
+        .expect("get");
+    assert!(plain.is_none(), "both are held by the consumer");
+    let (_c2, other) = local_channel(&robot).await;
+    other.confirm_select().await.expect("confirms");
+    publish_confirmed(&other, "telemetry", 4, 6).await;
+    let later = positions(&other, "telemetry", 2, 2).await;
+    for position in &later {
+        assert!(!first.contains(position), "{position} was used before");
+    }
+    let mut bad = FieldTable::new();
+    bad.insert(
+        ShortStr::from_static(leveret_broker::POSITION_HEADER),
+        FieldValue::string("yes"),
+    );
+    let refused = other
+        .basic_consume("telemetry", "bad", Default::default(), bad)
+        .await
+        .expect_err("not a boolean");
+    assert!(refused.to_string().contains("406"), "{refused}");
+    drop(channel);
+    robot.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A message whose confirm a cut link lost is forwarded again on the next
+/// link, with the same `x-leveret-seq` (its source position), so the
+/// client's `Dedupe` keeps one copy, although it has no message-id.
+#[both_runtimes]
+async fn a_message_forwarded_twice_carries_one_id() {
+    let robot = Arc::new(Broker::builder().start().await.expect("robot broker"));
+    let (_local, publisher) = local_channel(&robot).await;
+    publisher.confirm_select().await.expect("confirms");
+    declare(&publisher, "telemetry", FieldTable::new()).await;
+    let addr = free_addr().await;
+    let dir = scratch("twice");
+    let fleet_broker = fleet(addr, &dir).await;
+    let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
+    let (_c, fleet_channel) = channel_to(&fleet_uri).await;
+    declare(&fleet_channel, "archive", FieldTable::new()).await;
+    let proxy = leveret_tests::fault_proxy::FaultProxy::start(addr).await;
+    proxy.set(|f| f.latency = Duration::from_secs(1));
+    let shovel = Shovel::start(
+        "twice",
+        shovel_config(
+            &[format!("amqp://guest:guest@{}/%2f", proxy.addr)],
+            json!({"dest-queue": "archive"}),
+        ),
+        Some(&robot),
+    );
+    wait_status(&shovel, "running", |s| s.state == ShovelState::Running).await;
+    publish_confirmed(&publisher, "telemetry", 0, 1).await;
+    // The fleet has it; its confirm is a second away: cut the link now.
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while fleet_broker
+        .queues()
+        .iter()
+        .find(|q| q.name == "archive")
+        .is_none_or(|q| q.messages_ready == 0)
+    {
+        assert!(tokio::time::Instant::now() < deadline, "never arrived");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    proxy.set(|f| f.latency = Duration::ZERO);
+    assert!(proxy.cut() > 0);
+    wait_status(&shovel, "forwarded again", |s| s.forwarded >= 1).await;
+    assert!(shovel.status().restarts >= 1);
+    let mut copies = Vec::new();
+    while copies.len() < 2 {
+        if let Some(message) = fleet_channel
+            .basic_get("archive", BasicGetOptions { no_ack: true })
+            .await
+            .expect("get")
+        {
+            copies.push(message);
+        } else {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+    let ids: Vec<_> = copies
+        .iter()
+        .map(|m| header(&m.properties, leveret_uplink::SEQ_HEADER).expect("an id"))
+        .collect();
+    assert_eq!(ids[0], ids[1], "one message, one id");
+    assert!(copies[0].properties.message_id.is_none());
+    let mut dedupe = leveret_client::Dedupe::new(16);
+    assert!(dedupe.first_time(&copies[0].properties));
+    assert!(
+        !dedupe.first_time(&copies[1].properties),
+        "the second copy is dropped"
+    );
+    shovel.stop().await;
+    fleet_broker.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}

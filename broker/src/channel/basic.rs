@@ -93,6 +93,19 @@ fn consumer_priority(arguments: &leveret_protocol::FieldTable) -> AmqpResult<i64
     }
 }
 
+/// The `x-leveret-position` argument of basic.consume (false without
+/// one); a value that is not a boolean is refused.
+fn wants_position(arguments: &leveret_protocol::FieldTable) -> AmqpResult<bool> {
+    match arguments.get(crate::queue::POSITION_HEADER) {
+        None => Ok(false),
+        Some(leveret_protocol::FieldValue::Bool(wanted)) => Ok(*wanted),
+        Some(value) => Err(AmqpError::precondition_failed(format_args!(
+            "invalid arg '{}': {value:?} is not a boolean",
+            crate::queue::POSITION_HEADER
+        ))),
+    }
+}
+
 impl Channel {
     pub(super) fn basic_publish(&mut self, publish: BasicPublish) -> AmqpResult<()> {
         if publish.immediate {
@@ -295,6 +308,7 @@ impl Channel {
             exclusive: consume.exclusive,
             prefetch: self.prefetch_count,
             priority: consumer_priority(&consume.arguments)?,
+            wants_position: wants_position(&consume.arguments)?,
             in_flight: Default::default(),
             active: Default::default(),
         });

@@ -5,12 +5,14 @@
 
 use super::{
     DeadLetter, DeadLetterReason, DeadLetters, Enqueued, Overflow, Queue, QueueState,
-    QueuedMessage, DEAD_LETTERS_PER_STEP, FLOW_HIGH, FLOW_LOW,
+    QueuedMessage, DEAD_LETTERS_PER_STEP, FLOW_HIGH, FLOW_LOW, POSITION_HEADER,
 };
 use crate::consumer::Unacked;
 use crate::message::Message;
 use crate::outbox::Outbound;
 use crate::slice::{Progress, Slice};
+use bytes::BytesMut;
+use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -246,14 +248,45 @@ impl Queue {
                     consumer: Some(Arc::clone(&consumer)),
                 });
             }
+            let message = if consumer.wants_position {
+                self.with_position(&queued)
+            } else {
+                queued.message
+            };
             permit.send(Outbound::Deliver {
                 channel: consumer.channel.id,
                 consumer_tag: consumer.tag.clone(),
                 delivery_tag,
                 redelivered: queued.redelivered,
-                message: queued.message,
+                message,
             });
         }
+    }
+
+    /// The message as a consumer that asked for positions gets it: its
+    /// properties with [`POSITION_HEADER`] added (decoded and encoded
+    /// again, for that consumer only; the queue keeps the message as
+    /// published).
+    fn with_position(&self, queued: &QueuedMessage) -> Arc<Message> {
+        let mut properties = match BasicProperties::decode(&queued.message.properties) {
+            Ok(properties) => properties,
+            // Checked when published: cannot happen; deliver it as it is.
+            Err(_) => return Arc::clone(&queued.message),
+        };
+        let position = format!("{}.{}", self.position_name, queued.seq);
+        properties
+            .headers
+            .get_or_insert_with(FieldTable::new)
+            .insert(
+                ShortStr::from_static(POSITION_HEADER),
+                FieldValue::string(&position),
+            );
+        let mut encoded = BytesMut::with_capacity(queued.message.properties.len() + 64);
+        properties.encode(&mut encoded);
+        Arc::new(Message {
+            properties: encoded.freeze(),
+            ..queued.message.stored_as(None)
+        })
     }
 
     /// The consumer to deliver to next: among those with credit (and not

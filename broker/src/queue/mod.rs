@@ -52,6 +52,33 @@ pub const FLOW_LOW: usize = 10_000;
 /// them: routing one costs microseconds, so a step stays within a slice.
 pub const DEAD_LETTERS_PER_STEP: usize = 64;
 
+/// The header a consumer that asks for it (basic.consume argument
+/// `x-leveret-position: true`) finds on each delivery: the queue's name for
+/// positions and the message's position in it, `NAME.SEQ`. The same message
+/// delivered again (after a requeue, a reconnect, a restart) carries the
+/// same value and no other message ever does, so a forwarder (the uplink's
+/// shovels) can give its destination a stable id to drop duplicates by.
+pub const POSITION_HEADER: &str = "x-leveret-position";
+
+/// A position name unique to one non-durable queue in this process: a
+/// random process prefix (another run's queues get another) and a count.
+fn transient_position_name() -> String {
+    use std::hash::{BuildHasher, Hasher};
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static PROCESS: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    static COUNT: AtomicU64 = AtomicU64::new(0);
+    let process = *PROCESS.get_or_init(|| {
+        let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
+        hasher.write_u128(
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos()),
+        );
+        hasher.finish()
+    });
+    format!("t{process:x}-{}", COUNT.fetch_add(1, Ordering::Relaxed))
+}
+
 /// A message in a queue, with its place in the queue's order.
 #[derive(Debug, Clone)]
 pub struct QueuedMessage {
@@ -135,6 +162,10 @@ pub struct Queue {
     drained: tokio::sync::Notify,
     /// The store and this queue's id in it, for durable queues.
     durable_store: Option<(Arc<Persistence>, u64)>,
+    /// What names this queue in [`POSITION_HEADER`] (`d` and its store id
+    /// for a durable queue, whose positions are unique for the store's
+    /// life; otherwise unique to this queue in this process).
+    position_name: String,
     /// Message counters (`stats`).
     pub(crate) stats: QueueCounters,
     state: Mutex<QueueState>,
@@ -151,6 +182,10 @@ impl Queue {
         durable_store: Option<(Arc<Persistence>, u64)>,
         counters: Arc<BrokerCounters>,
     ) -> Self {
+        let (position_name, next_seq) = match &durable_store {
+            Some((persistence, id)) => (format!("d{id}"), persistence.seq_floor()),
+            None => (transient_position_name(), 0),
+        };
         Queue {
             name,
             options,
@@ -160,9 +195,11 @@ impl Queue {
             crowded: std::sync::atomic::AtomicBool::new(false),
             drained: tokio::sync::Notify::new(),
             durable_store,
+            position_name,
             stats: QueueCounters::new(counters),
             state: Mutex::new(QueueState {
                 last_used: Some(Instant::now()),
+                next_seq,
                 ..QueueState::default()
             }),
         }

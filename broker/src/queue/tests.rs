@@ -142,6 +142,7 @@ fn an_exclusive_consumer_keeps_others_out() {
         exclusive: true,
         prefetch: 0,
         priority: 0,
+        wants_position: false,
         in_flight: Default::default(),
         active: Default::default(),
     });
@@ -156,6 +157,7 @@ fn an_exclusive_consumer_keeps_others_out() {
         no_ack: true,
         prefetch: 0,
         priority: 0,
+        wants_position: false,
         in_flight: Default::default(),
         active: Default::default(),
     });

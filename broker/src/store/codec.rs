@@ -4,7 +4,7 @@
 //! length and tag, so a damaged value is an error, never a panic.
 
 use super::{
-    AccessKey, AccessRecord, BindingRecord, EntryBody, ExchangeRecord, KvOp, KvPair, MessageRecord,
+    BindingRecord, EntryBody, ExchangeRecord, KvOp, KvPair, MessageRecord, MetaKey, MetaRecord,
     QueueRecord, Recovered, RecoveredEntry, StoreError, StoreOp,
 };
 use bytes::{Buf, BufMut, Bytes, BytesMut};
@@ -137,26 +137,26 @@ fn index_key(queue: u64, seq: u64) -> Vec<u8> {
     key
 }
 
-/// An access record's key: `a`, its kind, then each name as a long
+/// A metadata record's key: `a`, its kind, then each name as a long
 /// string (names may hold any byte, so none is a separator).
-fn access_key(key: &AccessKey) -> Vec<u8> {
+fn meta_key(key: &MetaKey) -> Vec<u8> {
     let mut buf = BytesMut::new();
     buf.put_u8(b'a');
     match key {
-        AccessKey::User(name) => {
+        MetaKey::User(name) => {
             buf.put_u8(b'u');
             put_long(&mut buf, name.as_bytes());
         }
-        AccessKey::Vhost(name) => {
+        MetaKey::Vhost(name) => {
             buf.put_u8(b'v');
             put_long(&mut buf, name.as_bytes());
         }
-        AccessKey::Permission { user, vhost } => {
+        MetaKey::Permission { user, vhost } => {
             buf.put_u8(b'p');
             put_long(&mut buf, user.as_bytes());
             put_long(&mut buf, vhost.as_bytes());
         }
-        AccessKey::TopicPermission {
+        MetaKey::TopicPermission {
             user,
             vhost,
             exchange,
@@ -166,15 +166,25 @@ fn access_key(key: &AccessKey) -> Vec<u8> {
             put_long(&mut buf, vhost.as_bytes());
             put_long(&mut buf, exchange.as_bytes());
         }
+        MetaKey::Parameter {
+            component,
+            vhost,
+            name,
+        } => {
+            buf.put_u8(b'r');
+            put_long(&mut buf, component.as_bytes());
+            put_long(&mut buf, vhost.as_bytes());
+            put_long(&mut buf, name.as_bytes());
+        }
     }
     buf.to_vec()
 }
 
-/// An access record's value: the fields its key does not hold.
-fn access_value(record: &AccessRecord) -> Vec<u8> {
+/// A metadata record's value: the fields its key does not hold.
+fn meta_value(record: &MetaRecord) -> Vec<u8> {
     let mut buf = BytesMut::new();
     match record {
-        AccessRecord::User {
+        MetaRecord::User {
             password_hash,
             hashing_algorithm,
             tags,
@@ -187,8 +197,8 @@ fn access_value(record: &AccessRecord) -> Vec<u8> {
                 put_long(&mut buf, tag.as_bytes());
             }
         }
-        AccessRecord::Vhost { .. } => {}
-        AccessRecord::Permission {
+        MetaRecord::Vhost { .. } => {}
+        MetaRecord::Permission {
             configure,
             write,
             read,
@@ -198,10 +208,11 @@ fn access_value(record: &AccessRecord) -> Vec<u8> {
             put_long(&mut buf, write.as_bytes());
             put_long(&mut buf, read.as_bytes());
         }
-        AccessRecord::TopicPermission { write, read, .. } => {
+        MetaRecord::TopicPermission { write, read, .. } => {
             put_long(&mut buf, write.as_bytes());
             put_long(&mut buf, read.as_bytes());
         }
+        MetaRecord::Parameter { value, .. } => put_long(&mut buf, value.as_bytes()),
     }
     buf.to_vec()
 }
@@ -210,10 +221,10 @@ fn take_text(buf: &mut Bytes, what: &'static str) -> Result<String, StoreError> 
     String::from_utf8(take_long(buf)?.to_vec()).map_err(|_| corrupt(what))
 }
 
-/// Decodes an access record from its key (after the `a`) and value.
-fn decode_access(key: &[u8], value: &mut Bytes) -> Result<AccessRecord, StoreError> {
+/// Decodes a metadata record from its key (after the `a`) and value.
+fn decode_meta(key: &[u8], value: &mut Bytes) -> Result<MetaRecord, StoreError> {
     let Some((&kind, names)) = key.split_first() else {
-        return Err(corrupt("access key"));
+        return Err(corrupt("metadata key"));
     };
     let mut names = Bytes::copy_from_slice(names);
     let record = match kind {
@@ -230,34 +241,40 @@ fn decode_access(key: &[u8], value: &mut Bytes) -> Result<AccessRecord, StoreErr
             let tags = (0..count)
                 .map(|_| take_text(value, "user tag"))
                 .collect::<Result<_, _>>()?;
-            AccessRecord::User {
+            MetaRecord::User {
                 name,
                 password_hash,
                 hashing_algorithm,
                 tags,
             }
         }
-        b'v' => AccessRecord::Vhost {
+        b'v' => MetaRecord::Vhost {
             name: take_text(&mut names, "vhost name")?,
         },
-        b'p' => AccessRecord::Permission {
+        b'p' => MetaRecord::Permission {
             user: take_text(&mut names, "user name")?,
             vhost: take_text(&mut names, "vhost name")?,
             configure: take_text(value, "configure pattern")?,
             write: take_text(value, "write pattern")?,
             read: take_text(value, "read pattern")?,
         },
-        b't' => AccessRecord::TopicPermission {
+        b't' => MetaRecord::TopicPermission {
             user: take_text(&mut names, "user name")?,
             vhost: take_text(&mut names, "vhost name")?,
             exchange: take_text(&mut names, "exchange name")?,
             write: take_text(value, "write pattern")?,
             read: take_text(value, "read pattern")?,
         },
-        _ => return Err(corrupt("access kind")),
+        b'r' => MetaRecord::Parameter {
+            component: take_text(&mut names, "parameter component")?,
+            vhost: take_text(&mut names, "vhost name")?,
+            name: take_text(&mut names, "parameter name")?,
+            value: take_text(value, "parameter value")?,
+        },
+        _ => return Err(corrupt("metadata kind")),
     };
     if !names.is_empty() || !value.is_empty() {
-        return Err(corrupt("access record length"));
+        return Err(corrupt("metadata record length"));
     }
     Ok(record)
 }
@@ -314,9 +331,10 @@ impl StoreOp {
                 (mark_key(*queue), Some(seq.to_be_bytes().to_vec()))
             }
             StoreOp::Dequeue { queue, seq } => (index_key(*queue, *seq), None),
-            StoreOp::PutAccess(record) => (access_key(&record.key()), Some(access_value(record))),
-            StoreOp::DeleteAccess(key) => (access_key(key), None),
+            StoreOp::PutMeta(record) => (meta_key(&record.key()), Some(meta_value(record))),
+            StoreOp::DeleteMeta(key) => (meta_key(key), None),
             StoreOp::Seeded => (SEEDED_MARKER_KEY.to_vec(), Some(Vec::new())),
+            StoreOp::Starts { count } => (STARTS_KEY.to_vec(), Some(count.to_be_bytes().to_vec())),
             StoreOp::CleanShutdown { generation } => (
                 CLEAN_MARKER_KEY.to_vec(),
                 Some(generation.to_be_bytes().to_vec()),
@@ -330,6 +348,9 @@ const CLEAN_MARKER_KEY: &[u8] = b"!clean";
 
 /// The key marking that the default user has been considered.
 const SEEDED_MARKER_KEY: &[u8] = b"!seeded";
+
+/// The key counting the broker's starts on the store.
+const STARTS_KEY: &[u8] = b"!starts";
 
 /// A record that could not be decoded: its key (escaped) and why.
 #[derive(Debug, Clone, PartialEq)]
@@ -387,7 +408,11 @@ impl Recovered {
                 out.clean_generation = Some(u64::from_be_bytes(bytes));
             }
             b'!' if key == SEEDED_MARKER_KEY => out.seeded = true,
-            b'a' => out.access.push(decode_access(rest, &mut value)?),
+            b'!' if key == STARTS_KEY => {
+                let bytes: [u8; 8] = value[..].try_into().map_err(|_| corrupt("start count"))?;
+                out.starts = u64::from_be_bytes(bytes);
+            }
+            b'a' => out.meta.push(decode_meta(rest, &mut value)?),
             b'e' | b'q' => {
                 let split = rest
                     .iter()
@@ -617,64 +642,72 @@ mod tests {
     /// byte (a NUL in a name cannot shift one into the next); a delete
     /// removes exactly its record; damaged values are errors.
     #[test]
-    fn access_records_round_trip_and_delete_by_key() {
+    fn metadata_records_round_trip_and_delete_by_key() {
         let store = MemoryStore::default();
         let records = [
-            AccessRecord::User {
+            MetaRecord::User {
                 name: "ro\0bot".into(),
                 password_hash: "$argon2id$v=19$...".into(),
                 hashing_algorithm: "leveret_argon2id".into(),
                 tags: vec!["monitoring".into(), "management".into()],
             },
-            AccessRecord::Vhost {
+            MetaRecord::Vhost {
                 name: "cell-1".into(),
             },
-            AccessRecord::Permission {
+            MetaRecord::Permission {
                 user: "a\0".into(),
                 vhost: "b".into(),
                 configure: ".*".into(),
                 write: "^x".into(),
                 read: String::new(),
             },
-            AccessRecord::Permission {
+            MetaRecord::Permission {
                 user: "a".into(),
                 vhost: "\0b".into(),
                 configure: "c".into(),
                 write: "w".into(),
                 read: "r".into(),
             },
-            AccessRecord::TopicPermission {
+            MetaRecord::TopicPermission {
                 user: "a".into(),
                 vhost: "/".into(),
                 exchange: "amq.topic".into(),
                 write: "^a\\.".into(),
                 read: ".*".into(),
             },
+            MetaRecord::Parameter {
+                component: "shovel".into(),
+                vhost: "/".into(),
+                name: "up".into(),
+                value: r#"{"src-queue": "q"}"#.into(),
+            },
         ];
         let mut ops: Vec<_> = records
             .iter()
-            .map(|r| StoreOp::PutAccess(r.clone()).to_kv())
+            .map(|r| StoreOp::PutMeta(r.clone()).to_kv())
             .collect();
         ops.push(StoreOp::Seeded.to_kv());
+        ops.push(StoreOp::Starts { count: 3 }.to_kv());
         store.write(ops, WriteMode::Plain).unwrap();
         let recovered = Recovered::from_scan(store.scan().unwrap()).unwrap();
         assert!(recovered.seeded);
-        assert_eq!(recovered.access.len(), records.len());
+        assert_eq!(recovered.starts, 3);
+        assert_eq!(recovered.meta.len(), records.len());
         for record in &records {
-            assert!(recovered.access.contains(record), "{record:?}");
+            assert!(recovered.meta.contains(record), "{record:?}");
         }
         store
             .write(
-                vec![StoreOp::DeleteAccess(records[2].key()).to_kv()],
+                vec![StoreOp::DeleteMeta(records[2].key()).to_kv()],
                 WriteMode::Plain,
             )
             .unwrap();
         let recovered = Recovered::from_scan(store.scan().unwrap()).unwrap();
-        assert_eq!(recovered.access.len(), records.len() - 1);
-        assert!(!recovered.access.contains(&records[2]));
-        assert!(recovered.access.contains(&records[3]));
+        assert_eq!(recovered.meta.len(), records.len() - 1);
+        assert!(!recovered.meta.contains(&records[2]));
+        assert!(recovered.meta.contains(&records[3]));
 
-        let (key, value) = StoreOp::PutAccess(records[0].clone()).to_kv();
+        let (key, value) = StoreOp::PutMeta(records[0].clone()).to_kv();
         let mut value = value.unwrap();
         // A tag count the value cannot hold.
         let count_at = value.len() - (4 + 10) - (4 + 10) - 4;

@@ -17,10 +17,15 @@
 //! - `d` queue-id (8 BE) → the highest seq delivered from the queue
 //! - `!clean` → the generation of the last clean shutdown (its last
 //!   write; `integrity` checks it against the manifest beside the store)
+//! - `!starts` → how many times the broker has started on this store
+//!   (written and flushed at each start, before serving): each start's new
+//!   queue positions begin above every earlier start's
+//!   ([`Persistence::seq_floor`])
 //! - `!seeded` → present once the default user has been considered (it is
 //!   created on a store's first start only, as RabbitMQ creates `guest`)
 //! - `a` kind (1 byte) then each name as a long string → a user, vhost,
-//!   permission or topic permission changed at run time ([`AccessRecord`])
+//!   permission, topic permission or runtime parameter changed at run time
+//!   ([`MetaRecord`])
 //!
 //! A message in one durable queue (the usual case) costs one key; one in
 //! several is stored once and referenced, and the last queue to drop it
@@ -49,7 +54,7 @@ mod sled;
 pub use self::codec::BadRecord;
 pub use self::integrity::{mark_clean, open_checked, OpenedStore};
 pub use self::memory::MemoryStore;
-pub use self::persister::{Durable, Persistence};
+pub use self::persister::{Durable, Persistence, PersisterFigures};
 pub use self::sled::SledStore;
 
 use bytes::Bytes;
@@ -209,12 +214,13 @@ pub struct BindingRecord {
     pub arguments: FieldTable,
 }
 
-/// Users, vhosts and permissions added or changed while the broker runs
-/// (the management API, `leveretctl`, a definitions import), kept so they
-/// last like RabbitMQ's. Plain text: the store knows nothing of hashes or
-/// patterns; `access` turns them back into users and permissions.
+/// Users, vhosts, permissions and runtime parameters added or changed
+/// while the broker runs (the management API, `leveretctl`, a definitions
+/// import), kept so they last like those in RabbitMQ's metadata store.
+/// Plain text: the store knows nothing of hashes, patterns or parameter
+/// values; `access` and `parameters` turn them back into what they mean.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum AccessRecord {
+pub enum MetaRecord {
     /// A user.
     User {
         /// Name.
@@ -257,11 +263,23 @@ pub enum AccessRecord {
         /// Read pattern (binding keys).
         read: String,
     },
+    /// A runtime parameter (RabbitMQ's `set_parameter`: a shovel's, for
+    /// one).
+    Parameter {
+        /// Component (`shovel`).
+        component: String,
+        /// Vhost.
+        vhost: String,
+        /// Name.
+        name: String,
+        /// Its value, as JSON text.
+        value: String,
+    },
 }
 
-/// What identifies an [`AccessRecord`] (for deleting one).
+/// What identifies an [`MetaRecord`] (for deleting one).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum AccessKey {
+pub enum MetaKey {
     /// A user by name.
     User(String),
     /// A vhost by name.
@@ -282,27 +300,46 @@ pub enum AccessKey {
         /// Exchange.
         exchange: String,
     },
+    /// A (component, vhost, name) runtime parameter.
+    Parameter {
+        /// Component.
+        component: String,
+        /// Vhost.
+        vhost: String,
+        /// Name.
+        name: String,
+    },
 }
 
-impl AccessRecord {
+impl MetaRecord {
     /// What identifies it.
-    pub fn key(&self) -> AccessKey {
+    pub fn key(&self) -> MetaKey {
         match self {
-            AccessRecord::User { name, .. } => AccessKey::User(name.clone()),
-            AccessRecord::Vhost { name } => AccessKey::Vhost(name.clone()),
-            AccessRecord::Permission { user, vhost, .. } => AccessKey::Permission {
+            MetaRecord::User { name, .. } => MetaKey::User(name.clone()),
+            MetaRecord::Vhost { name } => MetaKey::Vhost(name.clone()),
+            MetaRecord::Permission { user, vhost, .. } => MetaKey::Permission {
                 user: user.clone(),
                 vhost: vhost.clone(),
             },
-            AccessRecord::TopicPermission {
+            MetaRecord::TopicPermission {
                 user,
                 vhost,
                 exchange,
                 ..
-            } => AccessKey::TopicPermission {
+            } => MetaKey::TopicPermission {
                 user: user.clone(),
                 vhost: vhost.clone(),
                 exchange: exchange.clone(),
+            },
+            MetaRecord::Parameter {
+                component,
+                vhost,
+                name,
+                ..
+            } => MetaKey::Parameter {
+                component: component.clone(),
+                vhost: vhost.clone(),
+                name: name.clone(),
             },
         }
     }
@@ -390,13 +427,18 @@ pub enum StoreOp {
         /// Position.
         seq: u64,
     },
-    /// Add or replace a user, vhost or permission.
-    PutAccess(AccessRecord),
+    /// Add or replace a user, vhost, permission or parameter.
+    PutMeta(MetaRecord),
     /// Remove one.
-    DeleteAccess(AccessKey),
+    DeleteMeta(MetaKey),
     /// The default user has been considered (written once, at a store's
     /// first start).
     Seeded,
+    /// The broker has started this many times on the store.
+    Starts {
+        /// The count, this start included.
+        count: u64,
+    },
     /// The last write of a clean shutdown: the store's generation, which
     /// the manifest beside it must match at the next start.
     CleanShutdown {
@@ -431,10 +473,12 @@ pub struct Recovered {
     pub delivered: std::collections::HashMap<u64, u64>,
     /// The generation of the last clean shutdown's marker, if any.
     pub clean_generation: Option<u64>,
-    /// Users, vhosts and permissions changed at run time.
-    pub access: Vec<AccessRecord>,
+    /// Users, vhosts, permissions and parameters changed at run time.
+    pub meta: Vec<MetaRecord>,
     /// Whether the default user has been considered already.
     pub seeded: bool,
+    /// How many times the broker has started on the store before.
+    pub starts: u64,
 }
 
 impl Recovered {

@@ -7,6 +7,7 @@
 //! flush that covers it.
 
 use super::{guarded, KvOp, Recovered, Store, StoreError, StoreOp, WriteMode};
+use crate::stats::{Histogram, HistogramFigures};
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -90,14 +91,62 @@ pub struct Persistence {
     failures: watch::Receiver<u64>,
     next_message_id: AtomicU64,
     next_queue_id: AtomicU64,
+    /// This start's number on the store (one more than the last).
+    start: u64,
+    figures: Arc<GroupFigures>,
 }
+
+/// Ops per group commit: Prometheus-style bucket bounds.
+static BATCH_BOUNDS: [f64; 12] = [
+    1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0, 1000.0, 5000.0, 50000.0,
+];
+/// Seconds per group's writes and flush.
+static FLUSH_BOUNDS: [f64; 13] = [
+    0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0,
+];
+
+/// What the persister thread records of each group commit.
+#[derive(Debug)]
+struct GroupFigures {
+    batch_ops: Histogram,
+    flush_seconds: Histogram,
+}
+
+/// The persister's histograms, read at one moment.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PersisterFigures {
+    /// Ops written per group commit.
+    pub batch_ops: HistogramFigures,
+    /// Seconds each group took to write and flush.
+    pub flush_seconds: HistogramFigures,
+}
+
+/// Bits of a queue position below the start number: each start's
+/// positions begin at its number shifted by this, above every earlier
+/// start's (2^40 positions per queue per start; 2^24 starts).
+pub const START_SHIFT: u32 = 40;
 
 /// One group commit being assembled by the persister: plain writes in
 /// order, atomic submissions applied as batches in their place, delivery
 /// marks merged to one write per queue, then one flush.
+///
+/// A message whose index entry (or shared record) is removed in the same
+/// group that inserts it (a consumer acknowledged it while its enqueue was
+/// waiting for the disk, the usual case when consumers keep up) is written
+/// not at all: insert and remove are both dropped. The publisher's confirm
+/// still waits for the group's flush; the message is by then fully handled,
+/// which is when RabbitMQ confirms such a message too. Only keys that are
+/// never rewritten qualify (index entries and shared records, whose
+/// positions and ids are fresh), so no older stored value can show
+/// through.
 #[derive(Default)]
 struct Group {
-    pending: Vec<KvOp>,
+    /// Plain writes not yet applied; `None` where an insert was dropped.
+    pending: Vec<Option<KvOp>>,
+    /// Where in `pending` each fresh key's insert waits.
+    fresh: std::collections::HashMap<Vec<u8>, usize>,
+    /// Inserts dropped with their removes.
+    elided: usize,
     marks: Vec<(u64, u64)>,
     /// The numbers of the submissions in the group.
     numbers: Vec<u64>,
@@ -129,15 +178,40 @@ impl Group {
                         None => self.marks.push((*queue, *seq)),
                     }
                 }
-                op => self.pending.push(op.to_kv()),
+                op => self.push_plain(op.to_kv()),
             }
         }
         submission.close
     }
 
+    /// Queues a plain write, dropping an insert of a fresh key together
+    /// with its remove.
+    fn push_plain(&mut self, (key, value): KvOp) {
+        let fresh = matches!(key.first(), Some(b'i' | b'm'));
+        match value {
+            Some(value) => {
+                if fresh {
+                    self.fresh.insert(key.clone(), self.pending.len());
+                }
+                self.pending.push(Some((key, Some(value))));
+            }
+            None => match self.fresh.remove(&key) {
+                Some(at) => {
+                    self.pending[at] = None;
+                    self.elided += 1;
+                }
+                None => self.pending.push(Some((key, None))),
+            },
+        }
+    }
+
     fn write_pending(&mut self, store: &dyn Store) {
-        if !self.pending.is_empty() {
-            let ops = std::mem::take(&mut self.pending);
+        self.fresh.clear();
+        let ops: Vec<KvOp> = std::mem::take(&mut self.pending)
+            .into_iter()
+            .flatten()
+            .collect();
+        if !ops.is_empty() {
             let result = guarded("write", || store.write(ops, WriteMode::Plain));
             self.record(result);
         }
@@ -154,7 +228,7 @@ impl Group {
         self.pending.extend(
             marks
                 .into_iter()
-                .map(|(queue, seq)| StoreOp::Delivered { queue, seq }.to_kv()),
+                .map(|(queue, seq)| Some(StoreOp::Delivered { queue, seq }.to_kv())),
         );
         self.write_pending(store);
         let flushed = guarded("flush", || store.flush());
@@ -181,6 +255,11 @@ impl Persistence {
         let failed = Arc::new(Mutex::new(VecDeque::new()));
         let failed_log = Arc::clone(&failed);
         let (failures_tx, failures) = watch::channel(0);
+        let figures = Arc::new(GroupFigures {
+            batch_ops: Histogram::new(&BATCH_BOUNDS, 1.0),
+            flush_seconds: Histogram::new(&FLUSH_BOUNDS, 1e9),
+        });
+        let recorded = Arc::clone(&figures);
         std::thread::Builder::new()
             .name("leveret-persister".into())
             .spawn(move || {
@@ -191,6 +270,7 @@ impl Persistence {
                         durable: durable_tx,
                         failed: failed_log,
                         failures: failures_tx,
+                        figures: recorded,
                     },
                 )
             })
@@ -203,7 +283,32 @@ impl Persistence {
             failures,
             next_message_id: AtomicU64::new(recovered.max_message_id() + 1),
             next_queue_id: AtomicU64::new(recovered.max_queue_id() + 1),
+            start: recovered.starts + 1,
+            figures,
         }))
+    }
+
+    /// The group commits' batch sizes and write-and-flush times.
+    pub fn figures(&self) -> PersisterFigures {
+        PersisterFigures {
+            batch_ops: self.figures.batch_ops.figures(),
+            flush_seconds: self.figures.flush_seconds.figures(),
+        }
+    }
+
+    /// The op recording this start; the broker writes it, flushed, before
+    /// it serves, so [`Persistence::seq_floor`] is never used twice.
+    pub fn start_record(&self) -> StoreOp {
+        StoreOp::Starts { count: self.start }
+    }
+
+    /// Where durable queues' positions start in this run: above every
+    /// position any earlier run handed out (messages recovered from disk
+    /// keep theirs, which are lower), so a position names one message for
+    /// the store's whole life, as a consumer that deduplicates by it
+    /// (a shovel's downstream) needs.
+    pub fn seq_floor(&self) -> u64 {
+        self.start << START_SHIFT
     }
 
     /// Queues ops for the next group; returns their submission number.
@@ -310,6 +415,8 @@ struct Reports {
     failed: Arc<Mutex<VecDeque<(u64, u64)>>>,
     /// How many groups failed.
     failures: watch::Sender<u64>,
+    /// Each group's size and time.
+    figures: Arc<GroupFigures>,
 }
 
 /// The persister thread: takes every submission already waiting into one
@@ -331,6 +438,7 @@ fn persist(
         durable,
         failed,
         failures,
+        figures,
     } = reports;
     let mut watermark = Watermark::default();
     let mut must_reopen = false;
@@ -353,7 +461,15 @@ fn persist(
             }
         }
         let mut numbers = std::mem::take(&mut group.numbers);
-        if let Err(e) = group.finish(&*store) {
+        // Ops written: the submitted ones less the dropped pairs.
+        let ops = group.len.saturating_sub(2 * group.elided);
+        let started = std::time::Instant::now();
+        let finished = group.finish(&*store);
+        figures.batch_ops.observe(ops as f64);
+        figures
+            .flush_seconds
+            .observe(started.elapsed().as_secs_f64());
+        if let Err(e) = finished {
             tracing::error!(error = %e, "persisting failed; affected publishes are nacked");
             must_reopen = true;
             failures.send_modify(|count| *count += 1);
@@ -465,6 +581,127 @@ mod tests {
         persistence.send_numbered(submission(earlier, 1));
         assert!(persistence.wait(later).await);
         assert_eq!(persistence.flushed(), later);
+    }
+
+    /// A store that keeps every op written to it, in order.
+    #[derive(Debug, Default)]
+    struct Recording(Mutex<Vec<KvOp>>);
+
+    impl Store for Recording {
+        fn write(&self, ops: Vec<KvOp>, _mode: WriteMode) -> Result<(), StoreError> {
+            self.0.lock().unwrap().extend(ops);
+            Ok(())
+        }
+        fn flush(&self) -> Result<(), StoreError> {
+            Ok(())
+        }
+        fn scan(&self) -> Result<Vec<crate::store::KvPair>, StoreError> {
+            Ok(Vec::new())
+        }
+    }
+
+    /// A message enqueued and acknowledged within one group is never
+    /// written; an exchange declared and deleted in one group is (its
+    /// delete must remove an older stored definition); an insert already
+    /// written before an atomic batch is removed normally.
+    #[test]
+    fn an_insert_removed_in_its_own_group_is_not_written() {
+        use crate::store::{EntryBody, ExchangeRecord, MessageRecord};
+        use leveret_protocol::{FieldTable, ShortStr};
+        let store = Recording::default();
+        let record = MessageRecord {
+            exchange: ShortStr::from_static(""),
+            routing_key: ShortStr::from_static("q"),
+            properties: bytes::Bytes::new(),
+            body: bytes::Bytes::from_static(b"m"),
+        };
+        let plain = |number, ops| Submission {
+            number,
+            ops,
+            mode: WriteMode::Plain,
+            close: None,
+        };
+        let exchange = ExchangeRecord {
+            vhost: ShortStr::from_static("/"),
+            name: ShortStr::from_static("x"),
+            kind: ShortStr::from_static("direct"),
+            auto_delete: false,
+            internal: false,
+            arguments: FieldTable::new(),
+        };
+        let mut group = Group::default();
+        group.add(
+            &store,
+            plain(
+                1,
+                vec![
+                    StoreOp::Enqueue {
+                        queue: 1,
+                        seq: 7,
+                        body: EntryBody::Inline(record.clone()),
+                    },
+                    StoreOp::Enqueue {
+                        queue: 1,
+                        seq: 8,
+                        body: EntryBody::Inline(record.clone()),
+                    },
+                    StoreOp::PutExchange(exchange.clone()),
+                ],
+            ),
+        );
+        group.add(
+            &store,
+            plain(
+                2,
+                vec![
+                    StoreOp::Dequeue { queue: 1, seq: 7 },
+                    StoreOp::DeleteExchange {
+                        vhost: exchange.vhost.clone(),
+                        name: exchange.name.clone(),
+                    },
+                ],
+            ),
+        );
+        group.add(
+            &store,
+            Submission {
+                number: 3,
+                ops: vec![StoreOp::PutMessage {
+                    id: 5,
+                    record: record.clone(),
+                }],
+                mode: WriteMode::Atomic,
+                close: None,
+            },
+        );
+        group.add(
+            &store,
+            plain(4, vec![StoreOp::Dequeue { queue: 1, seq: 8 }]),
+        );
+        assert_eq!(group.elided, 1);
+        group.finish(&store).unwrap();
+        let written = store.0.lock().unwrap();
+        let index = |seq: u64| StoreOp::Dequeue { queue: 1, seq }.to_kv().0;
+        assert!(
+            !written.iter().any(|(key, _)| *key == index(7)),
+            "seq 7 was inserted and removed in one group: never written"
+        );
+        let eight: Vec<_> = written.iter().filter(|(key, _)| *key == index(8)).collect();
+        assert_eq!(
+            eight.len(),
+            2,
+            "written before the atomic batch, then removed"
+        );
+        assert!(eight[1].1.is_none());
+        let exchange_key = StoreOp::PutExchange(exchange).to_kv().0;
+        assert_eq!(
+            written
+                .iter()
+                .filter(|(key, _)| *key == exchange_key)
+                .count(),
+            2,
+            "a definition's delete is always written"
+        );
     }
 
     #[test]

@@ -126,16 +126,25 @@ impl Caller {
         }
         let reads = method == Method::GET || method == Method::HEAD;
         let first = segments.first().map(String::as_str).unwrap_or("");
-        let admin_only = matches!(
-            first,
-            "users" | "permissions" | "topic-permissions" | "definitions"
-        ) || (matches!(first, "vhosts" | "connections" | "parameters") && !reads);
+        let admin_only =
+            matches!(
+                first,
+                "users" | "permissions" | "topic-permissions" | "definitions"
+            ) || (matches!(first, "vhosts" | "connections" | "parameters" | "policies") && !reads);
         if admin_only {
             return Err(not_authorised("Not administrator user"));
         }
         let scoped = matches!(
             first,
-            "exchanges" | "queues" | "bindings" | "consumers" | "aliveness-test" | "vhosts"
+            "exchanges"
+                | "queues"
+                | "bindings"
+                | "consumers"
+                | "aliveness-test"
+                | "vhosts"
+                | "shovels"
+                | "policies"
+                | "federation-links"
         );
         match segments.get(1) {
             Some(vhost) if scoped => {

@@ -19,12 +19,13 @@ use leveret_broker::{
     BindingSpec, DestinationKind, ExchangeSettings, GetMode, PasswordHash, Permission, QueueRef,
     QueueSettings, TopicPermission, User, RABBIT_SHA256,
 };
+use leveret_protocol::json::{properties, properties_json, to_table};
 use serde_json::{json, Value};
 use std::collections::HashMap;
 use std::sync::Arc;
 
-type Ctx = State<Arc<Context>>;
-type ApiResult<T = Response> = Result<T, ApiError>;
+pub(super) type Ctx = State<Arc<Context>>;
+pub(super) type ApiResult<T = Response> = Result<T, ApiError>;
 
 /// Queues written per chunk of a streamed listing.
 const CHUNK: usize = 500;
@@ -42,7 +43,7 @@ fn exchange_name(name: &str) -> &str {
     }
 }
 
-fn require_vhost(context: &Context, vhost: &str) -> ApiResult<()> {
+pub(super) fn require_vhost(context: &Context, vhost: &str) -> ApiResult<()> {
     if context.admin.vhosts().iter().any(|v| v == vhost) {
         Ok(())
     } else {
@@ -50,11 +51,11 @@ fn require_vhost(context: &Context, vhost: &str) -> ApiResult<()> {
     }
 }
 
-fn no_content() -> Response {
+pub(super) fn no_content() -> Response {
     StatusCode::NO_CONTENT.into_response()
 }
 
-fn created_or_not(created: bool) -> Response {
+pub(super) fn created_or_not(created: bool) -> Response {
     if created {
         StatusCode::CREATED.into_response()
     } else {
@@ -62,7 +63,7 @@ fn created_or_not(created: bool) -> Response {
     }
 }
 
-fn body_object(body: &Bytes) -> ApiResult<serde_json::Map<String, Value>> {
+pub(super) fn body_object(body: &Bytes) -> ApiResult<serde_json::Map<String, Value>> {
     json::object(body).map_err(ApiError::bad_request)
 }
 
@@ -464,7 +465,7 @@ pub async fn put_exchange(
         durable: json::flag(&body, "durable", true).map_err(ApiError::bad_request)?,
         auto_delete: json::flag(&body, "auto_delete", false).map_err(ApiError::bad_request)?,
         internal: json::flag(&body, "internal", false).map_err(ApiError::bad_request)?,
-        arguments: json::to_table(body.get("arguments").unwrap_or(&Value::Null))
+        arguments: to_table(body.get("arguments").unwrap_or(&Value::Null))
             .map_err(ApiError::bad_request)?,
     };
     if settings.kind.is_empty() {
@@ -494,7 +495,7 @@ pub async fn publish(
     let body = body_object(&body)?;
     let bad = ApiError::bad_request;
     let routing_key = json::text(&body, "routing_key", "").map_err(bad)?;
-    let properties = json::properties(body.get("properties")).map_err(ApiError::bad_request)?;
+    let properties = properties(body.get("properties")).map_err(ApiError::bad_request)?;
     let payload = json::text(&body, "payload", "").map_err(ApiError::bad_request)?;
     let payload =
         match json::text(&body, "payload_encoding", "string").map_err(ApiError::bad_request)? {
@@ -613,7 +614,7 @@ pub async fn put_queue(
     let settings = QueueSettings {
         durable: json::flag(&body, "durable", true).map_err(ApiError::bad_request)?,
         auto_delete: json::flag(&body, "auto_delete", false).map_err(ApiError::bad_request)?,
-        arguments: json::to_table(body.get("arguments").unwrap_or(&Value::Null))
+        arguments: to_table(body.get("arguments").unwrap_or(&Value::Null))
             .map_err(ApiError::bad_request)?,
     };
     let created = c.admin.declare_queue(&vhost, &name, settings).await?;
@@ -681,7 +682,7 @@ pub async fn get_messages(
                 "exchange": m.exchange,
                 "routing_key": m.routing_key,
                 "message_count": m.remaining,
-                "properties": json::properties_json(&m.properties),
+                "properties": properties_json(&m.properties),
                 "payload": payload,
                 "payload_encoding": encoding,
             })
@@ -749,7 +750,7 @@ pub async fn post_binding(
         routing_key: json::text(&body, "routing_key", "")
             .map_err(ApiError::bad_request)?
             .to_owned(),
-        arguments: json::to_table(body.get("arguments").unwrap_or(&Value::Null))
+        arguments: to_table(body.get("arguments").unwrap_or(&Value::Null))
             .map_err(ApiError::bad_request)?,
     };
     let info = leveret_broker::BindingInfo {
@@ -913,7 +914,7 @@ pub async fn alarms(State(c): Ctx) -> Response {
 }
 
 pub async fn definitions(State(c): Ctx) -> Json<Value> {
-    Json(crate::definitions::export(&c.admin, &c.shovels))
+    Json(crate::definitions::export(&c.admin, &c.links))
 }
 
 /// Imports a definitions document; answers what was applied and what was
@@ -925,7 +926,7 @@ pub async fn import_definitions(State(c): Ctx, body: Bytes) -> ApiResult<Json<Va
 pub async fn vhost_definitions(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
     Ok(Json(crate::definitions::export_vhost(
-        &c.admin, &c.shovels, &vhost,
+        &c.admin, &c.links, &vhost,
     )))
 }
 
@@ -942,7 +943,7 @@ pub async fn import_vhost_definitions(
 async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json<Value>> {
     let mut definitions = Definitions::parse_into(body, vhost).map_err(ApiError::bad_request)?;
     let applied = definitions
-        .apply(&c.admin, &c.shovels)
+        .apply(&c.admin, &c.links)
         .await
         .map_err(ApiError::bad_request)?;
     for warning in &definitions.warnings {
@@ -956,15 +957,28 @@ async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json
             "queues": applied.queues,
             "bindings": applied.bindings,
             "shovels": applied.shovels,
+            "federation_upstreams": applied.upstreams,
+            "policies": applied.policies,
         },
         "warnings": definitions.warnings,
     })))
 }
 
 /// Creates a vhost (201), or leaves an existing one be (204); it lasts
-/// across restarts.
-pub async fn put_vhost(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult {
-    Ok(created_or_not(c.admin.add_vhost(&vhost).await?))
+/// across restarts. As in RabbitMQ (since 3.7), the user who creates it
+/// is granted everything on it.
+pub async fn put_vhost(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Path(vhost): Path<String>,
+) -> ApiResult {
+    let created = c.admin.add_vhost(&vhost).await?;
+    if created {
+        c.admin
+            .set_permission(&caller.user, &vhost, Permission::full())
+            .await?;
+    }
+    Ok(created_or_not(created))
 }
 
 pub async fn queue_bindings(
@@ -1012,18 +1026,35 @@ pub async fn status_page() -> axum::response::Html<&'static str> {
 
 /// RabbitMQ's shovel-management listing: each shovel's name, vhost,
 /// state and ends (URIs without credentials), and Leveret's counts.
-pub async fn shovels(State(c): Ctx) -> Json<Value> {
+pub async fn shovels(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
     Json(Value::Array(
-        c.shovels
+        c.links
+            .shovels
             .list()
             .into_iter()
+            .filter(|s| caller.sees_vhost(&s.vhost))
             .map(|s| json::shovel(&s, &c.node))
             .collect(),
     ))
 }
 
+/// One vhost's shovels (`GET /api/shovels/VHOST`).
+pub async fn shovels_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    Ok(Json(Value::Array(
+        c.links
+            .shovels
+            .list()
+            .into_iter()
+            .filter(|s| s.vhost == vhost)
+            .map(|s| json::shovel(&s, &c.node))
+            .collect(),
+    )))
+}
+
 fn shovel_named(c: &Context, vhost: &str, name: &str) -> ApiResult<crate::uplink::Listed> {
-    c.shovels
+    c.links
+        .shovels
         .list()
         .into_iter()
         .find(|s| s.name == name && s.vhost == vhost)
@@ -1055,19 +1086,20 @@ pub async fn put_shovel(
         .cloned()
         .ok_or_else(|| ApiError::bad_request("a shovel parameter needs a 'value'"))?;
     let existed = shovel_named(&c, &vhost, &name).is_ok();
-    c.shovels
-        .start(&vhost, &name, value)
-        .await
-        .map_err(ApiError::bad_request)?;
+    c.links.shovels.declare(&vhost, &name, value).await?;
     Ok(created_or_not(!existed))
 }
 
-/// Stops and removes a shovel.
+/// Stops and removes a shovel, and its stored parameter.
 pub async fn delete_shovel(
     State(c): Ctx,
     Path((vhost, name)): Path<(String, String)>,
 ) -> ApiResult {
-    shovel_named(&c, &vhost, &name)?;
-    c.shovels.remove(&name).await;
-    Ok(no_content())
+    if c.links.shovels.delete(&vhost, &name).await? {
+        Ok(no_content())
+    } else {
+        Err(ApiError::not_found(format!(
+            "no shovel '{name}' in vhost '{vhost}'"
+        )))
+    }
 }

@@ -16,11 +16,12 @@
 //! through [`Admin`]; they run on the listeners' thread.
 
 mod caller;
+mod federation;
 mod handlers;
 pub mod json;
 mod rates;
 
-use crate::uplink::Shovels;
+use crate::uplink::{DeclareError, Links};
 use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::middleware::Next;
@@ -44,8 +45,8 @@ pub const MAX_BODY: usize = 1024 * 1024;
 pub struct Context {
     /// The broker.
     pub admin: Admin,
-    /// The running shovels.
-    pub shovels: Shovels,
+    /// The shovels and federation.
+    pub links: Links,
     /// `leveret@HOST`.
     pub node: String,
     /// Where durable state lives (disk figures).
@@ -118,6 +119,15 @@ impl From<AccessError> for ApiError {
             AccessError::Pattern(_) | AccessError::BadName(_) => {
                 ApiError::bad_request(e.to_string())
             }
+        }
+    }
+}
+
+impl From<DeclareError> for ApiError {
+    fn from(e: DeclareError) -> Self {
+        match e {
+            DeclareError::Invalid(reason) => ApiError::bad_request(reason),
+            DeclareError::Storage(e) => e.into(),
         }
     }
 }
@@ -267,12 +277,37 @@ pub fn router(context: Context) -> Router {
         )
         .route("/api/aliveness-test/{vhost}", get(h::aliveness_test))
         .route("/api/shovels", get(h::shovels))
+        .route("/api/shovels/{vhost}", get(h::shovels_in))
         .route(
             "/api/parameters/shovel/{vhost}/{name}",
             get(h::shovel_parameter)
                 .put(h::put_shovel)
                 .delete(h::delete_shovel),
         )
+        .route(
+            "/api/parameters/federation-upstream",
+            get(federation::upstreams),
+        )
+        .route(
+            "/api/parameters/federation-upstream/{vhost}",
+            get(federation::upstreams_in),
+        )
+        .route(
+            "/api/parameters/federation-upstream/{vhost}/{name}",
+            get(federation::upstream)
+                .put(federation::put_upstream)
+                .delete(federation::delete_upstream),
+        )
+        .route("/api/policies", get(federation::policies))
+        .route("/api/policies/{vhost}", get(federation::policies_in))
+        .route(
+            "/api/policies/{vhost}/{name}",
+            get(federation::policy)
+                .put(federation::put_policy)
+                .delete(federation::delete_policy),
+        )
+        .route("/api/federation-links", get(federation::links))
+        .route("/api/federation-links/{vhost}", get(federation::links_in))
         .route("/api/health/checks/alarms", get(h::alarms))
         .fallback(h::unknown)
         .route_layer(axum::middleware::from_fn_with_state(

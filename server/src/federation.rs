@@ -1,0 +1,489 @@
+//! The binary's federation: upstreams (RabbitMQ's `federation-upstream`
+//! parameters) and the policies that federate local exchanges to them
+//! (RabbitMQ's policies with a `federation-upstream` or
+//! `federation-upstream-set` key), from the config file, definitions and
+//! the management API; and the links they call for, one per (local
+//! exchange, upstream), kept in step with them and with the local
+//! exchanges (a policy also covers exchanges declared later) once a
+//! second and after every change.
+//!
+//! Upstreams and policies declared by a definitions import or the API are
+//! runtime parameters in the broker's store (components
+//! `federation-upstream` and `policy`, as RabbitMQ keeps them), so they
+//! outlast restarts; the config file's are the config file's. Policies
+//! here carry federation keys only: Leveret acts on no other policy key,
+//! and refuses one rather than ignore it.
+//!
+//! Links run on the broker's runtime, wherever a change comes from. Uses
+//! the uplink crate and the broker's `Admin`.
+
+use crate::uplink::DeclareError;
+use leveret_broker::{AccessError, Admin, BrokerHandle};
+use leveret_uplink::{FederationLink, LinkStatus, LocalExchange, UpstreamConfig};
+use serde_json::Value;
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex, Weak};
+use std::time::Duration;
+
+/// The runtime parameters' component for upstreams.
+pub const UPSTREAM_COMPONENT: &str = "federation-upstream";
+/// The runtime parameters' component for policies (RabbitMQ's too).
+pub const POLICY_COMPONENT: &str = "policy";
+
+/// How often links are compared with the policies and exchanges.
+const RECONCILE: Duration = Duration::from_secs(1);
+
+/// Which upstreams a policy federates its exchanges to.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum UpstreamChoice {
+    /// `federation-upstream`: one, by name.
+    One(String),
+    /// `federation-upstream-set: "all"`: every upstream of the vhost.
+    All,
+}
+
+/// A policy with federation keys.
+#[derive(Debug, Clone)]
+pub struct Policy {
+    matcher: regex::Regex,
+    priority: i64,
+    upstreams: UpstreamChoice,
+}
+
+impl Policy {
+    /// Reads RabbitMQ's JSON form of a policy (`pattern`, `definition`,
+    /// `priority`, `apply-to`).
+    pub fn from_json(value: &Value) -> Result<Policy, String> {
+        let object = value.as_object().ok_or("a policy must be a JSON object")?;
+        for key in object.keys() {
+            if !["pattern", "definition", "priority", "apply-to"].contains(&key.as_str()) {
+                return Err(format!("{key} is not a policy key"));
+            }
+        }
+        let pattern = object
+            .get("pattern")
+            .and_then(Value::as_str)
+            .ok_or("a policy needs a pattern")?;
+        let matcher = regex::RegexBuilder::new(pattern)
+            .size_limit(leveret_broker::PATTERN_SIZE_LIMIT)
+            .build()
+            .map_err(|e| format!("pattern {pattern}: {e}"))?;
+        match object.get("apply-to").and_then(Value::as_str) {
+            None | Some("all") | Some("exchanges") => {}
+            Some(other) => {
+                return Err(format!(
+                    "apply-to {other}: Leveret's policies federate exchanges only"
+                ))
+            }
+        }
+        let priority = match object.get("priority") {
+            None => 0,
+            Some(n) => n.as_i64().ok_or("priority must be an integer")?,
+        };
+        let definition = object
+            .get("definition")
+            .and_then(Value::as_object)
+            .ok_or("a policy needs a definition object")?;
+        let mut upstreams = None;
+        for (key, value) in definition {
+            let choice = match (key.as_str(), value.as_str()) {
+                ("federation-upstream", Some(name)) => UpstreamChoice::One(name.to_owned()),
+                ("federation-upstream-set", Some("all")) => UpstreamChoice::All,
+                ("federation-upstream-set", _) => {
+                    return Err("federation-upstream-set: only \"all\" (Leveret has no named upstream sets)".into())
+                }
+                (key, _) => {
+                    return Err(format!(
+                        "{key}: Leveret acts on a policy's federation-upstream and federation-upstream-set keys only"
+                    ))
+                }
+            };
+            if upstreams.replace(choice).is_some() {
+                return Err("give one of federation-upstream and federation-upstream-set".into());
+            }
+        }
+        Ok(Policy {
+            matcher,
+            priority,
+            upstreams: upstreams.ok_or("the definition has no federation key")?,
+        })
+    }
+}
+
+/// A declaration as given, and read.
+struct Declared<T> {
+    value: Value,
+    parsed: T,
+}
+
+/// A running link and the upstream parameters it runs with.
+struct Running {
+    config: UpstreamConfig,
+    link: FederationLink,
+}
+
+/// (vhost, local exchange, upstream).
+type LinkKey = (String, String, String);
+
+#[derive(Default)]
+struct State {
+    upstreams: BTreeMap<(String, String), Declared<UpstreamConfig>>,
+    policies: BTreeMap<(String, String), Declared<Policy>>,
+    links: BTreeMap<LinkKey, Running>,
+}
+
+/// One link as listed (RabbitMQ's `/api/federation-links`).
+#[derive(Debug, Clone)]
+pub struct LinkListed {
+    /// Vhost.
+    pub vhost: String,
+    /// The local exchange.
+    pub exchange: String,
+    /// The upstream's name.
+    pub upstream: String,
+    /// The upstream exchange.
+    pub upstream_exchange: String,
+    /// What it is doing.
+    pub status: LinkStatus,
+}
+
+/// The upstreams, policies and links; cloning shares them.
+#[derive(Clone)]
+pub struct Federation {
+    broker: Weak<BrokerHandle>,
+    admin: Admin,
+    runtime: tokio::runtime::Handle,
+    node: String,
+    state: Arc<Mutex<State>>,
+    /// Held by one reconcile at a time.
+    reconciling: Arc<tokio::sync::Mutex<()>>,
+}
+
+impl std::fmt::Debug for Federation {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Federation").finish_non_exhaustive()
+    }
+}
+
+impl Federation {
+    /// Federation on `broker` (links run on the current runtime), this
+    /// node named `node`.
+    pub fn new(broker: &Arc<BrokerHandle>, node: String) -> Federation {
+        Federation {
+            broker: Arc::downgrade(broker),
+            admin: broker.admin(),
+            runtime: tokio::runtime::Handle::current(),
+            node,
+            state: Arc::default(),
+            reconciling: Arc::default(),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Sets the upstream `name` of `vhost`; `store` keeps it as a runtime
+    /// parameter (the API's and imports'), else it lasts while the broker
+    /// runs (the config file's).
+    pub async fn set_upstream(
+        &self,
+        vhost: &str,
+        name: &str,
+        value: Value,
+        store: bool,
+    ) -> Result<(), DeclareError> {
+        let parsed = UpstreamConfig::from_json(&value).map_err(DeclareError::Invalid)?;
+        if store {
+            self.admin
+                .set_parameter(UPSTREAM_COMPONENT, vhost, name, value.to_string())
+                .await?;
+        }
+        self.lock().upstreams.insert(
+            (vhost.to_owned(), name.to_owned()),
+            Declared { value, parsed },
+        );
+        self.reconcile().await;
+        Ok(())
+    }
+
+    /// Sets the policy `name` of `vhost`, as [`Federation::set_upstream`].
+    pub async fn set_policy(
+        &self,
+        vhost: &str,
+        name: &str,
+        value: Value,
+        store: bool,
+    ) -> Result<(), DeclareError> {
+        let parsed = Policy::from_json(&value).map_err(DeclareError::Invalid)?;
+        if store {
+            self.admin
+                .set_parameter(POLICY_COMPONENT, vhost, name, value.to_string())
+                .await?;
+        }
+        self.lock().policies.insert(
+            (vhost.to_owned(), name.to_owned()),
+            Declared { value, parsed },
+        );
+        self.reconcile().await;
+        Ok(())
+    }
+
+    /// Removes an upstream (its links stop; their upstream queues stay,
+    /// as RabbitMQ leaves them); false if there was none.
+    pub async fn delete_upstream(&self, vhost: &str, name: &str) -> Result<bool, AccessError> {
+        let stored = self
+            .admin
+            .clear_parameter(UPSTREAM_COMPONENT, vhost, name)
+            .await?;
+        let removed = self
+            .lock()
+            .upstreams
+            .remove(&(vhost.to_owned(), name.to_owned()))
+            .is_some();
+        self.reconcile().await;
+        Ok(stored || removed)
+    }
+
+    /// Removes a policy; false if there was none.
+    pub async fn delete_policy(&self, vhost: &str, name: &str) -> Result<bool, AccessError> {
+        let stored = self
+            .admin
+            .clear_parameter(POLICY_COMPONENT, vhost, name)
+            .await?;
+        let removed = self
+            .lock()
+            .policies
+            .remove(&(vhost.to_owned(), name.to_owned()))
+            .is_some();
+        self.reconcile().await;
+        Ok(stored || removed)
+    }
+
+    /// Loads the upstreams and policies the broker's store kept; one that
+    /// no longer reads is logged and left out.
+    pub async fn start_stored(&self) {
+        for (component, declare) in [(UPSTREAM_COMPONENT, true), (POLICY_COMPONENT, false)] {
+            for (vhost, name, text) in self.admin.parameters(component) {
+                let value: Value = match serde_json::from_str(&text) {
+                    Ok(value) => value,
+                    Err(e) => {
+                        tracing::error!(%component, %name, %vhost, error = %e, "a stored parameter cannot be read");
+                        continue;
+                    }
+                };
+                let result = if declare {
+                    self.set_upstream(&vhost, &name, value, false).await
+                } else {
+                    self.set_policy(&vhost, &name, value, false).await
+                };
+                if let Err(e) = result {
+                    tracing::error!(%component, %name, %vhost, error = %e, "a stored parameter is not applied");
+                }
+            }
+        }
+    }
+
+    /// Keeps the links in step once a second (exchanges a policy matches
+    /// come and go), on the broker's runtime, until the broker is gone.
+    pub fn keep_in_step(&self) {
+        let federation = self.clone();
+        self.runtime.spawn(async move {
+            let mut tick = tokio::time::interval(RECONCILE);
+            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                tick.tick().await;
+                if federation.broker.strong_count() == 0 {
+                    return;
+                }
+                federation.reconcile().await;
+            }
+        });
+    }
+
+    /// The links the policies call for: each local exchange a policy
+    /// matches (the highest-priority one, as in RabbitMQ) with each of
+    /// its upstreams.
+    fn wanted(&self) -> BTreeMap<LinkKey, UpstreamConfig> {
+        let (policies, upstreams): (Vec<_>, Vec<_>) = {
+            let state = self.lock();
+            (
+                state
+                    .policies
+                    .iter()
+                    .map(|((vhost, name), p)| (vhost.clone(), name.clone(), p.parsed.clone()))
+                    .collect(),
+                state
+                    .upstreams
+                    .iter()
+                    .map(|((vhost, name), u)| (vhost.clone(), name.clone(), u.parsed.clone()))
+                    .collect(),
+            )
+        };
+        let mut wanted = BTreeMap::new();
+        let mut vhosts: Vec<&String> = policies.iter().map(|(vhost, ..)| vhost).collect();
+        vhosts.dedup();
+        for vhost in vhosts {
+            for exchange in self.admin.exchange_names(vhost) {
+                if exchange.is_empty() || exchange.starts_with("amq.") {
+                    continue;
+                }
+                let policy = policies
+                    .iter()
+                    .filter(|(v, _, p)| v == vhost && p.matcher.is_match(&exchange))
+                    .max_by_key(|(_, _, p)| p.priority);
+                let Some((_, _, policy)) = policy else {
+                    continue;
+                };
+                for (v, name, config) in &upstreams {
+                    let chosen = match &policy.upstreams {
+                        UpstreamChoice::One(one) => one == name,
+                        UpstreamChoice::All => true,
+                    };
+                    if v == vhost && chosen {
+                        wanted.insert(
+                            (vhost.clone(), exchange.clone(), name.clone()),
+                            config.clone(),
+                        );
+                    }
+                }
+            }
+        }
+        wanted
+    }
+
+    /// Starts the links wanted and not running, restarts those whose
+    /// upstream changed, and stops those no longer wanted.
+    pub async fn reconcile(&self) {
+        let _one_at_a_time = self.reconciling.lock().await;
+        let wanted = self.wanted();
+        let stale: Vec<Running> = {
+            let mut state = self.lock();
+            let keys: Vec<LinkKey> = state
+                .links
+                .iter()
+                .filter(|(key, running)| wanted.get(*key) != Some(&running.config))
+                .map(|(key, _)| key.clone())
+                .collect();
+            keys.iter()
+                .filter_map(|key| state.links.remove(key))
+                .collect()
+        };
+        for running in stale {
+            running.link.stop().await;
+        }
+        let Some(broker) = self.broker.upgrade() else {
+            return;
+        };
+        let mut state = self.lock();
+        for ((vhost, exchange, upstream), config) in wanted {
+            let key = (vhost.clone(), exchange.clone(), upstream.clone());
+            if state.links.contains_key(&key) {
+                continue;
+            }
+            let local = LocalExchange {
+                vhost,
+                exchange,
+                node: self.node.clone(),
+            };
+            let link = {
+                let _on_the_broker_runtime = self.runtime.enter();
+                FederationLink::start(&upstream, config.clone(), local, &broker)
+            };
+            tracing::info!(upstream = %key.2, exchange = %key.1, vhost = %key.0, "federation link started");
+            state.links.insert(key, Running { config, link });
+        }
+    }
+
+    /// Every link.
+    pub fn links(&self) -> Vec<LinkListed> {
+        self.lock()
+            .links
+            .iter()
+            .map(|((vhost, exchange, upstream), running)| LinkListed {
+                vhost: vhost.clone(),
+                exchange: exchange.clone(),
+                upstream: upstream.clone(),
+                upstream_exchange: running
+                    .config
+                    .exchange
+                    .clone()
+                    .unwrap_or_else(|| exchange.clone()),
+                status: running.link.status(),
+            })
+            .collect()
+    }
+
+    /// Every upstream as (vhost, name, value given).
+    pub fn upstreams(&self) -> Vec<(String, String, Value)> {
+        self.lock()
+            .upstreams
+            .iter()
+            .map(|((vhost, name), d)| (vhost.clone(), name.clone(), d.value.clone()))
+            .collect()
+    }
+
+    /// Every policy as (vhost, name, value given).
+    pub fn policies(&self) -> Vec<(String, String, Value)> {
+        self.lock()
+            .policies
+            .iter()
+            .map(|((vhost, name), d)| (vhost.clone(), name.clone(), d.value.clone()))
+            .collect()
+    }
+
+    /// Stops every link.
+    pub async fn stop_all(&self) {
+        let links = std::mem::take(&mut self.lock().links);
+        for running in links.into_values() {
+            running.link.stop().await;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn policies_with_federation_keys_only() {
+        let policy = Policy::from_json(&json!({
+            "pattern": "^commands$", "apply-to": "exchanges", "priority": 2,
+            "definition": {"federation-upstream-set": "all"},
+        }))
+        .unwrap();
+        assert_eq!(policy.upstreams, UpstreamChoice::All);
+        assert!(policy.matcher.is_match("commands") && !policy.matcher.is_match("commands2"));
+        let one = Policy::from_json(&json!({
+            "pattern": "^maps\\.", "definition": {"federation-upstream": "fleet"},
+        }))
+        .unwrap();
+        assert_eq!(one.upstreams, UpstreamChoice::One("fleet".into()));
+        for (value, reason) in [
+            (
+                json!({"pattern": ".*", "definition": {"ha-mode": "all"}}),
+                "federation-upstream and",
+            ),
+            (
+                json!({"pattern": ".*", "definition": {"federation-upstream-set": "fleet"}}),
+                "named upstream sets",
+            ),
+            (
+                json!({"pattern": ".*", "apply-to": "queues", "definition": {"federation-upstream": "f"}}),
+                "exchanges only",
+            ),
+            (
+                json!({"pattern": "(?=x)", "definition": {"federation-upstream": "f"}}),
+                "pattern",
+            ),
+            (
+                json!({"pattern": ".*", "definition": {}}),
+                "no federation key",
+            ),
+        ] {
+            let error = Policy::from_json(&value).unwrap_err();
+            assert!(error.contains(reason), "{error}");
+        }
+    }
+}
