@@ -390,38 +390,63 @@ impl Link {
                 confirmation = async { (&mut inflight.front_mut().expect("guarded").confirm).await },
                     if !inflight.is_empty() =>
                 {
-                    let done = inflight.pop_front().expect("guarded");
-                    match settle(&mut returns, &mut returned, &done.seq, confirmation?) {
-                        None => {
-                            source.basic_ack(done.source_tag, BasicAckOptions::default()).await?;
-                            self.forwarded_one()?;
-                        }
-                        Some(why) => {
-                            // Publish nothing more; settle what is in flight
-                            // (the destination may take later ones), and put
-                            // back what it refused.
-                            let mut refused = vec![done.source_tag];
-                            for later in inflight.drain(..) {
-                                let confirmation = later.confirm.await?;
-                                match settle(&mut returns, &mut returned, &later.seq, confirmation) {
-                                    None => {
-                                        source.basic_ack(later.source_tag, BasicAckOptions::default()).await?;
-                                        self.forwarded_one()?;
-                                    }
-                                    Some(_) => refused.push(later.source_tag),
-                                }
+                    // The confirms already in, taken together: the ones the
+                    // destination took are acknowledged at the source with
+                    // one `multiple` ack (everything before them is settled).
+                    let first = inflight.pop_front().expect("guarded");
+                    let mut settled = vec![(first.source_tag, first.seq, confirmation?)];
+                    while let Some(confirmation) =
+                        inflight.front_mut().and_then(|f| confirmed_now(&mut f.confirm))
+                    {
+                        let next = inflight.pop_front().expect("just seen");
+                        settled.push((next.source_tag, next.seq, confirmation?));
+                    }
+                    let mut settled = settled.into_iter();
+                    let (mut taken, mut last) = (0, None);
+                    let mut refusal = None;
+                    for (tag, seq, confirmation) in settled.by_ref() {
+                        match settle(&mut returns, &mut returned, &seq, confirmation) {
+                            None => (taken, last) = (taken + 1, Some(tag)),
+                            Some(why) => {
+                                refusal = Some((why, tag));
+                                break;
                             }
-                            let requeue = BasicNackOptions { multiple: false, requeue: true };
-                            for tag in &refused {
-                                source.basic_nack(*tag, requeue).await?;
-                            }
-                            let count = refused.len() as u64;
-                            self.update(|s| s.refused += count);
-                            return Err(Ended::Refused(format!(
-                                "the destination {why} {count} message(s), left at the source"
-                            )));
                         }
                     }
+                    if let Some(tag) = last {
+                        source.basic_ack(tag, BasicAckOptions { multiple: taken > 1 }).await?;
+                    }
+                    let Some((why, tag)) = refusal else {
+                        self.forwarded(taken)?;
+                        continue;
+                    };
+                    self.forwarded(taken)?;
+                    // Publish nothing more; settle what is in flight (the
+                    // destination may take later ones), and put back what
+                    // it refused.
+                    let mut refused = vec![tag];
+                    let mut rest: Vec<(u64, String, Confirmation)> = settled.collect();
+                    for later in inflight.drain(..) {
+                        rest.push((later.source_tag, later.seq, later.confirm.await?));
+                    }
+                    for (tag, seq, confirmation) in rest {
+                        match settle(&mut returns, &mut returned, &seq, confirmation) {
+                            None => {
+                                source.basic_ack(tag, BasicAckOptions::default()).await?;
+                                self.forwarded(1)?;
+                            }
+                            Some(_) => refused.push(tag),
+                        }
+                    }
+                    let requeue = BasicNackOptions { multiple: false, requeue: true };
+                    for tag in &refused {
+                        source.basic_nack(*tag, requeue).await?;
+                    }
+                    let count = refused.len() as u64;
+                    self.update(|s| s.refused += count);
+                    return Err(Ended::Refused(format!(
+                        "the destination {why} {count} message(s), left at the source"
+                    )));
                 }
                 delivery = consumer.next(),
                     if inflight.len() < window
@@ -466,13 +491,13 @@ impl Link {
                         }),
                         AckMode::OnPublish => {
                             source.basic_ack(delivery.delivery_tag, BasicAckOptions::default()).await?;
-                            self.forwarded_one()?;
+                            self.forwarded(1)?;
                         }
                         AckMode::NoAck => {
                             if !no_ack {
                                 source.basic_ack(delivery.delivery_tag, BasicAckOptions::default()).await?;
                             }
-                            self.forwarded_one()?;
+                            self.forwarded(1)?;
                         }
                     }
                 }
@@ -482,14 +507,17 @@ impl Link {
         }
     }
 
-    /// Counts one message the destination took; ends the link once
-    /// `src-delete-after` is reached. Called with the message settled at
+    /// Counts `count` messages the destination took; ends the link once
+    /// `src-delete-after` is reached. Called with the messages settled at
     /// the source, and with nothing later in flight beyond the count.
-    fn forwarded_one(&mut self) -> Result<(), Ended> {
-        self.update(|s| s.forwarded += 1);
+    fn forwarded(&mut self, count: u64) -> Result<(), Ended> {
+        if count == 0 {
+            return Ok(());
+        }
+        self.update(|s| s.forwarded += count);
         match &mut self.remaining {
             Some(left) => {
-                *left = left.saturating_sub(1);
+                *left = left.saturating_sub(count);
                 if *left == 0 {
                     Err(Ended::Completed)
                 } else {
@@ -577,6 +605,16 @@ fn settle(
         _ if returned.remove(seq) => Some("returned unroutable"),
         Confirmation::Nack => Some("nacked"),
         Confirmation::Ack | Confirmation::NotRequested => None,
+    }
+}
+
+/// A confirm that has already arrived, without waiting for one that has
+/// not.
+fn confirmed_now(confirm: &mut ConfirmFuture) -> Option<leveret_client::Result<Confirmation>> {
+    let mut context = std::task::Context::from_waker(std::task::Waker::noop());
+    match std::future::Future::poll(std::pin::Pin::new(confirm), &mut context) {
+        std::task::Poll::Ready(confirmation) => Some(confirmation),
+        std::task::Poll::Pending => None,
     }
 }
 

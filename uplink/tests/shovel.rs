@@ -685,3 +685,70 @@ async fn a_message_forwarded_twice_carries_one_id() {
     fleet_broker.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The robot's own bound while the link is down: a source queue with
+/// `x-max-length` and `overflow: reject-publish` takes what fits, nacks
+/// the rest to the publisher (who knows exactly what will not be
+/// forwarded), and everything it confirmed is forwarded, in order, when
+/// the link returns; with `drop-head` the newest messages are kept and
+/// forwarded instead.
+#[both_runtimes]
+async fn the_local_bound_and_its_overflow_policy_hold_across_an_outage() {
+    for (overflow, kept) in [("reject-publish", 0..100u32), ("drop-head", 50..150u32)] {
+        let robot = Arc::new(Broker::builder().start().await.expect("robot broker"));
+        let (_local, publisher) = local_channel(&robot).await;
+        publisher.confirm_select().await.expect("confirms");
+        let mut bound = FieldTable::new();
+        bound.insert(ShortStr::from_static("x-max-length"), FieldValue::I64(100));
+        bound.insert(
+            ShortStr::from_static("x-overflow"),
+            FieldValue::string(overflow),
+        );
+        declare(&publisher, "telemetry", bound).await;
+        // The link is down: the fleet broker is not there yet.
+        let addr = free_addr().await;
+        let dir = scratch(&format!("bound-{overflow}"));
+        let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
+        let shovel = Shovel::start(
+            "up",
+            shovel_config(
+                std::slice::from_ref(&fleet_uri),
+                json!({"dest-queue": "fleet.telemetry"}),
+            ),
+            Some(&robot),
+        );
+        let mut nacked = Vec::new();
+        for n in 0..150u32 {
+            let confirm = publisher
+                .basic_publish(
+                    "",
+                    "telemetry",
+                    BasicPublishOptions::default(),
+                    BasicProperties {
+                        delivery_mode: Some(2),
+                        ..Default::default()
+                    },
+                    n.to_string().into_bytes().into(),
+                )
+                .await
+                .expect("publish");
+            if !confirm.await.expect("confirm").is_ack() {
+                nacked.push(n);
+            }
+        }
+        match overflow {
+            "reject-publish" => assert_eq!(nacked, (100..150).collect::<Vec<_>>()),
+            _ => assert!(nacked.is_empty(), "drop-head takes every publish"),
+        }
+        assert_eq!(held_at_source(&robot), 100, "{overflow}: the bound holds");
+        let fleet_broker = fleet(addr, &dir).await;
+        let (_c, ch) = channel_to(&fleet_uri).await;
+        declare(&ch, "fleet.telemetry", FieldTable::new()).await;
+        wait_status(&shovel, "the backlog forwarded", |s| s.forwarded >= 100).await;
+        let got = collect(&ch, "fleet.telemetry", 100).await;
+        assert_eq!(got, kept.collect::<Vec<_>>(), "{overflow}");
+        shovel.stop().await;
+        fleet_broker.shutdown().await;
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

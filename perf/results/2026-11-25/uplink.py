@@ -2,9 +2,10 @@
 """Forwarding rate into a three-node RabbitMQ 3.10 cluster, Leveret's
 shovel beside RabbitMQ's own (rabbitmq_shovel on a fourth RabbitMQ node as
 the source), in one run (issue 16), for each destination queue type in
-DEST_TYPES (default "quorum,classic": a quorum queue, which bounds both
-shovels at what three replicating nodes take, and a durable classic queue
-on one node, which takes more). Both shovels: on-confirm, prefetch 1000,
+DEST_TYPES (default "quorum,classic,leveret": a quorum queue, which bounds
+both shovels at what three replicating nodes take; a durable classic queue
+on one node, which takes more; and, to see past the cluster, a durable
+queue on a separate Leveret broker, which takes more still). Both shovels: on-confirm, prefetch 1000,
 the same 100,000 persistent 64-byte messages waiting in a durable source
 queue before the shovel starts; the rate is messages over the time from
 the shovel's start to the last one in the destination queue. Usage:
@@ -24,7 +25,7 @@ from nodes import LeveretNode, RabbitNode, free_port  # noqa: E402
 
 VPY = os.path.join(REPO, "conformance", ".venv", "bin", "python")
 COUNT = int(os.environ.get("COUNT", "100000"))
-DEST_TYPES = os.environ.get("DEST_TYPES", "quorum,classic").split(",")
+DEST_TYPES = os.environ.get("DEST_TYPES", "quorum,classic,leveret").split(",")
 
 FILL = """
 import pika, sys
@@ -124,15 +125,23 @@ def main():
     try:
         for kind in DEST_TYPES:
             queues = {who: f"{kind}-from-{who}" for who in ("leveret", "rabbitmq")}
+            sink = None
+            uris = dest_uris
+            if kind == "leveret":
+                sink = LeveretNode(os.path.join(REPO, "target", "release", "leveret"), ["--log", "warn"])
+                uris = [f"amqp://guest:guest@127.0.0.1:{sink.port}/%2f"]
+            queue_type = "classic" if kind == "leveret" else kind
             for queue in queues.values():
                 subprocess.run([VPY, "-c", "import pika,sys; c=pika.BlockingConnection(pika.URLParameters(sys.argv[1])); "
                                 "c.channel().queue_declare(sys.argv[2], durable=True, arguments={'x-queue-type':sys.argv[3]}); c.close()",
-                                dest_uris[0], queue, kind], check=True)
-            elapsed = leveret_shovel(dest_uris, queues["leveret"])
+                                uris[0], queue, queue_type], check=True)
+            elapsed = leveret_shovel(uris, queues["leveret"])
             print(f"{kind} queue, Leveret shovel:  {COUNT} in {elapsed:.1f} s = {COUNT / elapsed:,.0f} msgs/s (including the broker's start)", flush=True)
-            elapsed_r = rabbitmq_shovel(dest_uris, queues["rabbitmq"], url)
+            elapsed_r = rabbitmq_shovel(uris, queues["rabbitmq"], url)
             print(f"{kind} queue, RabbitMQ shovel: {COUNT} in {elapsed_r:.1f} s = {COUNT / elapsed_r:,.0f} msgs/s", flush=True)
             print(f"{kind} queue, Leveret / RabbitMQ: {elapsed_r / elapsed:.2f}x", flush=True)
+            if sink:
+                sink.proc.terminate(); sink.proc.wait()
     finally:
         for node in nodes:
             node.stop()
