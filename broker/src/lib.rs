@@ -125,7 +125,7 @@ pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_
 pub use crate::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,
 };
-pub use crate::queue::POSITION_HEADER;
+pub use crate::queue::{process_nonce, POSITION_HEADER};
 pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use crate::stats::HistogramFigures;
 pub use crate::tls::{PeerVerification, TlsError, TlsOptions};

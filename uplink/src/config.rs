@@ -114,7 +114,43 @@ fn text<'a>(object: &'a Map<String, Value>, key: &str) -> Result<Option<&'a str>
     }
 }
 
-fn uris(object: &Map<String, Value>, key: &str) -> Result<Vec<String>, String> {
+/// A prefetch count (`src-prefetch-count`, `prefetch-count`): 1000 by
+/// default, as RabbitMQ's.
+pub(crate) fn prefetch(object: &Map<String, Value>, key: &str) -> Result<u16, String> {
+    match object.get(key) {
+        None => Ok(1000),
+        Some(n) => n
+            .as_u64()
+            .and_then(|n| u16::try_from(n).ok())
+            .filter(|n| *n > 0)
+            .ok_or_else(|| format!("{key} must be an integer from 1 to 65535")),
+    }
+}
+
+/// `ack-mode`: `on-confirm` by default.
+pub(crate) fn ack_mode(object: &Map<String, Value>) -> Result<AckMode, String> {
+    match text(object, "ack-mode")? {
+        None | Some("on-confirm") => Ok(AckMode::OnConfirm),
+        Some("on-publish") => Ok(AckMode::OnPublish),
+        Some("no-ack") => Ok(AckMode::NoAck),
+        Some(other) => Err(format!("unknown ack-mode {other}")),
+    }
+}
+
+/// `reconnect-delay` in seconds: 5 by default.
+pub(crate) fn reconnect_delay(object: &Map<String, Value>) -> Result<Duration, String> {
+    match object.get("reconnect-delay") {
+        None => Ok(Duration::from_secs(5)),
+        Some(n) => n
+            .as_f64()
+            .filter(|s| s.is_finite() && *s >= 0.0 && *s <= 86_400.0)
+            .map(Duration::from_secs_f64)
+            .ok_or_else(|| "reconnect-delay must be seconds, from 0 to 86400".to_owned()),
+    }
+}
+
+/// One URI or a list of them (`src-uri`, `dest-uri`, `uri`).
+pub(crate) fn uris(object: &Map<String, Value>, key: &str) -> Result<Vec<String>, String> {
     let list = match object.get(key) {
         Some(Value::String(s)) => vec![s.clone()],
         Some(Value::Array(items)) => items
@@ -209,28 +245,9 @@ impl ShovelConfig {
             },
             _ => return Err("give exactly one of dest-queue and dest-exchange".into()),
         };
-        let prefetch = match object.get("src-prefetch-count") {
-            None => 1000,
-            Some(n) => n
-                .as_u64()
-                .and_then(|n| u16::try_from(n).ok())
-                .filter(|n| *n > 0)
-                .ok_or("src-prefetch-count must be an integer from 1 to 65535")?,
-        };
-        let ack_mode = match text(object, "ack-mode")? {
-            None | Some("on-confirm") => AckMode::OnConfirm,
-            Some("on-publish") => AckMode::OnPublish,
-            Some("no-ack") => AckMode::NoAck,
-            Some(other) => return Err(format!("unknown ack-mode {other}")),
-        };
-        let reconnect_delay = match object.get("reconnect-delay") {
-            None => Duration::from_secs(5),
-            Some(n) => Duration::from_secs_f64(
-                n.as_f64()
-                    .filter(|s| s.is_finite() && *s >= 0.0 && *s <= 86_400.0)
-                    .ok_or("reconnect-delay must be seconds, from 0 to 86400")?,
-            ),
-        };
+        let prefetch = prefetch(object, "src-prefetch-count")?;
+        let ack_mode = ack_mode(object)?;
+        let reconnect_delay = reconnect_delay(object)?;
         let add_forward_headers = match object.get("dest-add-forward-headers") {
             None => false,
             Some(Value::Bool(b)) => *b,

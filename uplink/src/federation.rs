@@ -23,7 +23,7 @@
 //! client crate for both ends (the local broker in process) and the
 //! broker's `Admin` for the local bindings.
 
-use crate::config::AckMode;
+use crate::config::{ack_mode, prefetch, reconnect_delay, uris, AckMode};
 use crate::shovel::{backoff, shown};
 use leveret_broker::BrokerHandle;
 use leveret_client::{
@@ -106,21 +106,7 @@ impl UpstreamConfig {
                 other => return Err(format!("{other} is not supported")),
             }
         }
-        let uris = match object.get("uri") {
-            Some(Value::String(s)) => vec![s.clone()],
-            Some(Value::Array(items)) => items
-                .iter()
-                .map(|item| {
-                    item.as_str()
-                        .map(str::to_owned)
-                        .ok_or("uri must list strings")
-                })
-                .collect::<Result<_, _>>()?,
-            _ => return Err("uri is required (a URI or a list of URIs)".into()),
-        };
-        if uris.is_empty() {
-            return Err("uri is empty".into());
-        }
+        let uris = uris(object, "uri")?;
         let exchange = match object.get("exchange") {
             None | Some(Value::Null) => None,
             Some(Value::String(s)) => Some(s.clone()),
@@ -134,28 +120,9 @@ impl UpstreamConfig {
                 .filter(|n| *n > 0)
                 .ok_or("max-hops must be a positive integer")?,
         };
-        let prefetch = match object.get("prefetch-count") {
-            None => 1000,
-            Some(n) => n
-                .as_u64()
-                .and_then(|n| u16::try_from(n).ok())
-                .filter(|n| *n > 0)
-                .ok_or("prefetch-count must be an integer from 1 to 65535")?,
-        };
-        let reconnect_delay = match object.get("reconnect-delay") {
-            None => Duration::from_secs(5),
-            Some(n) => Duration::from_secs_f64(
-                n.as_f64()
-                    .filter(|s| s.is_finite() && *s >= 0.0 && *s <= 86_400.0)
-                    .ok_or("reconnect-delay must be seconds, from 0 to 86400")?,
-            ),
-        };
-        let ack_mode = match object.get("ack-mode").and_then(Value::as_str) {
-            None | Some("on-confirm") => AckMode::OnConfirm,
-            Some("on-publish") => AckMode::OnPublish,
-            Some("no-ack") => AckMode::NoAck,
-            Some(other) => return Err(format!("unknown ack-mode {other}")),
-        };
+        let prefetch = prefetch(object, "prefetch-count")?;
+        let reconnect_delay = reconnect_delay(object)?;
+        let ack_mode = ack_mode(object)?;
         let trust_user_id = match object.get("trust-user-id") {
             None => false,
             Some(Value::Bool(b)) => *b,

@@ -33,7 +33,7 @@
 
 use crate::config::{AckMode, DeleteAfter, Destination, ShovelConfig, Source};
 use crate::pace::Pace;
-use leveret_broker::{BrokerHandle, POSITION_HEADER};
+use leveret_broker::{process_nonce, BrokerHandle, POSITION_HEADER};
 use leveret_client::{
     BasicAckOptions, BasicConsumeOptions, BasicNackOptions, BasicProperties, BasicPublishOptions,
     BasicQosOptions, Channel, ConfirmFuture, Confirmation, Connection, ConnectionOptions,
@@ -624,22 +624,6 @@ fn position_of(properties: &BasicProperties) -> Option<String> {
     std::str::from_utf8(value.as_bytes()?)
         .ok()
         .map(str::to_owned)
-}
-
-/// A number unique to this process (random), so that ids made without a
-/// source position never repeat another run's.
-fn process_nonce() -> u64 {
-    use std::hash::{BuildHasher, Hasher};
-    static NONCE: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
-    *NONCE.get_or_init(|| {
-        let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
-        hasher.write_u128(
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_nanos()),
-        );
-        hasher.finish()
-    })
 }
 
 /// The `x-leveret-seq` of a message, if it has one.

@@ -60,14 +60,12 @@ pub const DEAD_LETTERS_PER_STEP: usize = 64;
 /// shovels) can give its destination a stable id to drop duplicates by.
 pub const POSITION_HEADER: &str = "x-leveret-position";
 
-/// A position name unique to one non-durable queue in this process: a
-/// random process prefix (another run's queues get another) and a count.
-fn transient_position_name() -> String {
+/// A random number fixed for this run of the process (another run gets
+/// another): names made with it never repeat an earlier run's.
+pub fn process_nonce() -> u64 {
     use std::hash::{BuildHasher, Hasher};
-    use std::sync::atomic::{AtomicU64, Ordering};
-    static PROCESS: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
-    static COUNT: AtomicU64 = AtomicU64::new(0);
-    let process = *PROCESS.get_or_init(|| {
+    static NONCE: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *NONCE.get_or_init(|| {
         let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
         hasher.write_u128(
             std::time::SystemTime::now()
@@ -75,8 +73,19 @@ fn transient_position_name() -> String {
                 .map_or(0, |d| d.as_nanos()),
         );
         hasher.finish()
-    });
-    format!("t{process:x}-{}", COUNT.fetch_add(1, Ordering::Relaxed))
+    })
+}
+
+/// A position name unique to one non-durable queue in this process: the
+/// process's nonce and a count.
+fn transient_position_name() -> String {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static COUNT: AtomicU64 = AtomicU64::new(0);
+    format!(
+        "t{:x}-{}",
+        process_nonce(),
+        COUNT.fetch_add(1, Ordering::Relaxed)
+    )
 }
 
 /// A message in a queue, with its place in the queue's order.
