@@ -356,7 +356,12 @@ impl Federation {
     /// upstream changed, and stops those no longer wanted.
     pub async fn reconcile(&self) {
         let _one_at_a_time = self.reconciling.lock().await;
-        let wanted = self.wanted();
+        // Listing every exchange of a vhost and matching it is work that
+        // grows with the exchanges: off the broker's thread.
+        let federation = self.clone();
+        let Ok(wanted) = tokio::task::spawn_blocking(move || federation.wanted()).await else {
+            return;
+        };
         let stale: Vec<Running> = {
             let mut state = self.lock();
             let keys: Vec<LinkKey> = state
