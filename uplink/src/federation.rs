@@ -500,35 +500,41 @@ impl Link {
         exchange: &str,
         bound: &mut BTreeMap<BindingKey, (String, FieldTable)>,
     ) -> Result<(), String> {
-        let local = admin
-            .binding_keys_from(&self.local.vhost, &self.local.exchange)
-            .ok_or_else(|| {
-                format!(
-                    "no local exchange '{}' in vhost '{}'",
-                    self.local.exchange, self.local.vhost
-                )
-            })?;
-        let wanted: BTreeMap<BindingKey, (String, FieldTable)> = local
-            .into_iter()
-            .map(|(key, arguments)| (binding_key(&key, &arguments), (key, arguments)))
-            .collect();
-        let gone: Vec<BindingKey> = bound
-            .keys()
-            .filter(|k| !wanted.contains_key(*k))
-            .cloned()
-            .collect();
-        for key in gone {
-            if let Some((routing_key, arguments)) = bound.remove(&key) {
-                upstream
-                    .queue_unbind(queue, exchange, routing_key.as_str(), arguments)
-                    .await
-                    .map_err(|e| e.to_string())?;
-            }
+        // Reading the local bindings and comparing them grows with their
+        // number: on the blocking pool, not the broker's thread.
+        let admin = admin.clone();
+        let (vhost, name) = (self.local.vhost.clone(), self.local.exchange.clone());
+        let mut kept = std::mem::take(bound);
+        let (kept, gone, wanted) = tokio::task::spawn_blocking(move || {
+            let local = admin
+                .binding_keys_from(&vhost, &name)
+                .ok_or_else(|| format!("no local exchange '{name}' in vhost '{vhost}'"))?;
+            let mut wanted: BTreeMap<BindingKey, (String, FieldTable)> = local
+                .into_iter()
+                .map(|(key, arguments)| (binding_key(&key, &arguments), (key, arguments)))
+                .collect();
+            let gone_keys: Vec<BindingKey> = kept
+                .keys()
+                .filter(|k| !wanted.contains_key(*k))
+                .cloned()
+                .collect();
+            let gone: Vec<(String, FieldTable)> = gone_keys
+                .iter()
+                .filter_map(|key| kept.remove(key))
+                .collect();
+            wanted.retain(|key, _| !kept.contains_key(key));
+            Ok::<_, String>((kept, gone, wanted))
+        })
+        .await
+        .map_err(|e| e.to_string())??;
+        *bound = kept;
+        for (routing_key, arguments) in gone {
+            upstream
+                .queue_unbind(queue, exchange, routing_key.as_str(), arguments)
+                .await
+                .map_err(|e| e.to_string())?;
         }
         for (key, (routing_key, arguments)) in wanted {
-            if bound.contains_key(&key) {
-                continue;
-            }
             upstream
                 .queue_bind(
                     queue,
