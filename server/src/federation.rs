@@ -183,9 +183,42 @@ impl Federation {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
+    /// Keeps `value` as the runtime parameter `component` `name` of
+    /// `vhost` when `store` says so (the API's and imports'; the config
+    /// file's last while the broker runs).
+    async fn keep(
+        &self,
+        component: &str,
+        vhost: &str,
+        name: &str,
+        value: &Value,
+        store: bool,
+    ) -> Result<(), DeclareError> {
+        if store {
+            self.admin
+                .set_parameter(component, vhost, name, value.to_string())
+                .await?;
+        }
+        Ok(())
+    }
+
+    /// Clears the stored parameter and takes the declaration out of
+    /// `state` with `remove`; whether either existed.
+    async fn forget(
+        &self,
+        component: &str,
+        vhost: &str,
+        name: &str,
+        remove: impl FnOnce(&mut State, &(String, String)) -> bool,
+    ) -> Result<bool, AccessError> {
+        let stored = self.admin.clear_parameter(component, vhost, name).await?;
+        let removed = remove(&mut self.lock(), &(vhost.to_owned(), name.to_owned()));
+        self.reconcile().await;
+        Ok(stored || removed)
+    }
+
     /// Sets the upstream `name` of `vhost`; `store` keeps it as a runtime
-    /// parameter (the API's and imports'), else it lasts while the broker
-    /// runs (the config file's).
+    /// parameter.
     pub async fn set_upstream(
         &self,
         vhost: &str,
@@ -194,11 +227,8 @@ impl Federation {
         store: bool,
     ) -> Result<(), DeclareError> {
         let parsed = UpstreamConfig::from_json(&value).map_err(DeclareError::Invalid)?;
-        if store {
-            self.admin
-                .set_parameter(UPSTREAM_COMPONENT, vhost, name, value.to_string())
-                .await?;
-        }
+        self.keep(UPSTREAM_COMPONENT, vhost, name, &value, store)
+            .await?;
         self.lock().upstreams.insert(
             (vhost.to_owned(), name.to_owned()),
             Declared { value, parsed },
@@ -216,11 +246,8 @@ impl Federation {
         store: bool,
     ) -> Result<(), DeclareError> {
         let parsed = Policy::from_json(&value).map_err(DeclareError::Invalid)?;
-        if store {
-            self.admin
-                .set_parameter(POLICY_COMPONENT, vhost, name, value.to_string())
-                .await?;
-        }
+        self.keep(POLICY_COMPONENT, vhost, name, &value, store)
+            .await?;
         self.lock().policies.insert(
             (vhost.to_owned(), name.to_owned()),
             Declared { value, parsed },
@@ -232,32 +259,18 @@ impl Federation {
     /// Removes an upstream (its links stop; their upstream queues stay,
     /// as RabbitMQ leaves them); false if there was none.
     pub async fn delete_upstream(&self, vhost: &str, name: &str) -> Result<bool, AccessError> {
-        let stored = self
-            .admin
-            .clear_parameter(UPSTREAM_COMPONENT, vhost, name)
-            .await?;
-        let removed = self
-            .lock()
-            .upstreams
-            .remove(&(vhost.to_owned(), name.to_owned()))
-            .is_some();
-        self.reconcile().await;
-        Ok(stored || removed)
+        self.forget(UPSTREAM_COMPONENT, vhost, name, |state, key| {
+            state.upstreams.remove(key).is_some()
+        })
+        .await
     }
 
     /// Removes a policy; false if there was none.
     pub async fn delete_policy(&self, vhost: &str, name: &str) -> Result<bool, AccessError> {
-        let stored = self
-            .admin
-            .clear_parameter(POLICY_COMPONENT, vhost, name)
-            .await?;
-        let removed = self
-            .lock()
-            .policies
-            .remove(&(vhost.to_owned(), name.to_owned()))
-            .is_some();
-        self.reconcile().await;
-        Ok(stored || removed)
+        self.forget(POLICY_COMPONENT, vhost, name, |state, key| {
+            state.policies.remove(key).is_some()
+        })
+        .await
     }
 
     /// Loads the upstreams and policies the broker's store kept; one that
