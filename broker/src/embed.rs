@@ -520,6 +520,19 @@ impl BrokerHandle {
         client
     }
 
+    /// Opens an in-process connection that exchanges AMQP frames as values
+    /// (the fast path `leveret-client` takes with its `embedded` feature):
+    /// no bytes are encoded or parsed and no writer task runs, while the
+    /// handshake, permissions, routing, queues, acks, limits and
+    /// statistics are those of every other connection. For a client with a
+    /// codec of its own, [`BrokerHandle::connect_in_process`] is the byte
+    /// pipe. Works with or without listeners.
+    pub fn connect_direct(&self) -> crate::connection::DirectLink {
+        let core = Arc::clone(&self.core);
+        let slot = core.connections.admit_local();
+        crate::connection::serve_direct(core, slot, self.alive.clone())
+    }
+
     /// A cloneable view of this broker's state, for readers that outlive
     /// a borrow of the handle (the `leveret` binary's HTTP listeners).
     pub fn admin(&self) -> Admin {

@@ -5,7 +5,7 @@
 
 use crate::message::Message;
 use crate::queue::Queue;
-use leveret_protocol::{Method, ShortStr};
+use leveret_protocol::{BasicDeliver, BasicGetOk, BasicReturn, Method, ShortStr};
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use tokio::sync::mpsc;
@@ -59,6 +59,91 @@ pub enum Outbound {
     },
     /// Write everything queued so far, then close the socket.
     Shutdown,
+}
+
+/// An [`Outbound`] item as AMQP frames it: a method alone, a method
+/// followed by a message's content, or the end of the connection. The
+/// socket writer encodes this; an in-process client receives it as frame
+/// values.
+#[derive(Debug)]
+pub enum Framed {
+    /// A method without content.
+    Method {
+        /// Channel number.
+        channel: u16,
+        /// The method.
+        method: Method,
+    },
+    /// A content-carrying method (deliver, get-ok, return) and its message.
+    Content {
+        /// Channel number.
+        channel: u16,
+        /// The method.
+        method: Method,
+        /// The message whose properties and body follow it.
+        message: Arc<Message>,
+    },
+    /// Everything before this is sent; then the connection ends.
+    Shutdown,
+}
+
+impl Outbound {
+    /// The item as AMQP frames it.
+    pub fn framed(self) -> Framed {
+        match self {
+            Outbound::Method { channel, method } => Framed::Method { channel, method },
+            Outbound::Shutdown => Framed::Shutdown,
+            Outbound::Deliver {
+                channel,
+                consumer_tag,
+                delivery_tag,
+                redelivered,
+                message,
+            } => Framed::Content {
+                channel,
+                method: Method::BasicDeliver(BasicDeliver {
+                    consumer_tag,
+                    delivery_tag,
+                    redelivered,
+                    exchange: message.exchange.clone(),
+                    routing_key: message.routing_key.clone(),
+                }),
+                message,
+            },
+            Outbound::GetOk {
+                channel,
+                delivery_tag,
+                redelivered,
+                message_count,
+                message,
+            } => Framed::Content {
+                channel,
+                method: Method::BasicGetOk(BasicGetOk {
+                    delivery_tag,
+                    redelivered,
+                    exchange: message.exchange.clone(),
+                    routing_key: message.routing_key.clone(),
+                    message_count,
+                }),
+                message,
+            },
+            Outbound::Return {
+                channel,
+                reply_code,
+                reply_text,
+                message,
+            } => Framed::Content {
+                channel,
+                method: Method::BasicReturn(BasicReturn {
+                    reply_code,
+                    reply_text,
+                    exchange: message.exchange.clone(),
+                    routing_key: message.routing_key.clone(),
+                }),
+                message,
+            },
+        }
+    }
 }
 
 /// How many items may wait for a connection's writer. Small, so a slow

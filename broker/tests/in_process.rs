@@ -1,9 +1,17 @@
-//! The in-process transport: a broker with no listener serves a
-//! connection over an in-memory pipe exactly as over TCP.
+//! The in-process transports: a broker with no listener serves a
+//! connection over an in-memory byte pipe exactly as over TCP, and one
+//! over a value link (`connect_direct`) with the same connection code:
+//! frame_max for what it sends, max_message_size for what it receives.
 
-use bytes::BytesMut;
-use leveret_protocol::{decode_frame, Frame, Method, PROTOCOL_HEADER};
+use bytes::{Bytes, BytesMut};
+use leveret_broker::Limits;
+use leveret_protocol::{
+    decode_frame, BasicConsume, BasicProperties, BasicPublish, ChannelCloseOk, ChannelOpen,
+    ConnectionOpen, ConnectionStartOk, ConnectionTuneOk, FieldTable, Frame, Method, Outgoing,
+    QueueDeclare, ShortStr, PROTOCOL_HEADER,
+};
 use leveret_test_macros::both_runtimes;
+use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 #[both_runtimes]
@@ -33,5 +41,198 @@ async fn a_broker_without_listeners_greets_an_in_process_client() {
         } => assert_eq!((start.version_major, start.version_minor), (0, 9)),
         other => panic!("expected connection.start, got {other:?}"),
     }
+    handle.shutdown().await;
+}
+
+/// The client's side of a value link, driven item by item.
+struct DirectClient {
+    link: leveret_broker::DirectLink,
+}
+
+impl DirectClient {
+    async fn send(&self, channel: u16, method: impl Into<Method>) {
+        let item = Outgoing::Method {
+            channel,
+            method: method.into(),
+        };
+        self.link.to_broker.send(item).await.expect("broker there");
+    }
+
+    async fn publish(&self, routing_key: &'static str, properties: BasicProperties, body: Bytes) {
+        let item = Outgoing::Publish {
+            channel: 1,
+            method: BasicPublish {
+                routing_key: ShortStr::from_static(routing_key),
+                ..Default::default()
+            },
+            properties,
+            body,
+        };
+        self.link.to_broker.send(item).await.expect("broker there");
+    }
+
+    async fn next(&mut self) -> Option<Frame> {
+        tokio::time::timeout(Duration::from_secs(5), self.link.from_broker.recv())
+            .await
+            .expect("a frame in time")
+    }
+
+    async fn method(&mut self) -> Method {
+        match self.next().await {
+            Some(Frame::Method { method, .. }) => method,
+            other => panic!("expected a method, got {other:?}"),
+        }
+    }
+
+    /// The handshake as guest, then channel 1 open.
+    async fn open(handle: &leveret_broker::BrokerHandle) -> DirectClient {
+        let mut client = DirectClient {
+            link: handle.connect_direct(),
+        };
+        assert!(matches!(client.method().await, Method::ConnectionStart(_)));
+        client
+            .send(
+                0,
+                ConnectionStartOk {
+                    client_properties: FieldTable::new(),
+                    mechanism: ShortStr::from_static("PLAIN"),
+                    response: Bytes::from_static(b"\0guest\0guest"),
+                    locale: ShortStr::from_static("en_US"),
+                },
+            )
+            .await;
+        assert!(matches!(client.method().await, Method::ConnectionTune(_)));
+        client
+            .send(
+                0,
+                ConnectionTuneOk {
+                    channel_max: 16,
+                    frame_max: 4096,
+                    heartbeat: 0,
+                },
+            )
+            .await;
+        client
+            .send(
+                0,
+                ConnectionOpen {
+                    virtual_host: ShortStr::from_static("/"),
+                    ..Default::default()
+                },
+            )
+            .await;
+        assert!(matches!(client.method().await, Method::ConnectionOpenOk(_)));
+        client.send(1, ChannelOpen::default()).await;
+        assert!(matches!(client.method().await, Method::ChannelOpenOk(_)));
+        client
+    }
+}
+
+async fn wait_for_connections(handle: &leveret_broker::BrokerHandle, count: u64) {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+    while handle.overview().object_totals.connections != count {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{} connections, expected {count}",
+            handle.overview().object_totals.connections
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+#[both_runtimes]
+async fn a_value_link_routes_queues_and_delivers_like_a_socket() {
+    let handle = leveret_broker::Broker::builder()
+        .start()
+        .await
+        .expect("start");
+    let mut client = DirectClient::open(&handle).await;
+    client
+        .send(
+            1,
+            QueueDeclare {
+                queue: ShortStr::from_static("direct-q"),
+                ..Default::default()
+            },
+        )
+        .await;
+    assert!(matches!(client.method().await, Method::QueueDeclareOk(_)));
+    let properties = BasicProperties {
+        message_id: Some(ShortStr::from_static("m-1")),
+        ..Default::default()
+    };
+    let body = Bytes::from(vec![7u8; 10_000]);
+    client
+        .publish("direct-q", properties.clone(), body.clone())
+        .await;
+    client
+        .send(
+            1,
+            BasicConsume {
+                queue: ShortStr::from_static("direct-q"),
+                no_ack: true,
+                ..Default::default()
+            },
+        )
+        .await;
+    assert!(matches!(client.method().await, Method::BasicConsumeOk(_)));
+    assert!(matches!(client.method().await, Method::BasicDeliver(_)));
+    match client.next().await {
+        Some(Frame::Header { header: got, .. }) => {
+            assert_eq!(got.body_size, 10_000);
+            assert_eq!(got.properties().expect("properties"), properties);
+        }
+        other => panic!("expected the content header, got {other:?}"),
+    }
+    // Back in pieces within the negotiated frame_max, as on a socket.
+    let mut received = Vec::new();
+    while received.len() < body.len() {
+        match client.next().await {
+            Some(Frame::Body { payload, .. }) => {
+                assert!(payload.len() <= 4096 - 8, "within frame_max");
+                received.extend_from_slice(&payload);
+            }
+            other => panic!("expected a body frame, got {other:?}"),
+        }
+    }
+    assert_eq!(received, body);
+    assert_eq!(handle.overview().object_totals.connections, 1);
+    // Dropping the link is the client going away.
+    drop(client);
+    wait_for_connections(&handle, 0).await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_value_link_is_held_to_max_message_size() {
+    let handle = leveret_broker::Broker::builder()
+        .limits(Limits {
+            max_message_size: 1000,
+            ..Limits::default()
+        })
+        .start()
+        .await
+        .expect("start");
+    let mut client = DirectClient::open(&handle).await;
+    let body = Bytes::from(vec![0u8; 100_000]);
+    client
+        .publish("nowhere", BasicProperties::default(), body)
+        .await;
+    match client.method().await {
+        Method::ChannelClose(close) => assert_eq!(close.reply_code, 406, "{close:?}"),
+        other => panic!("expected channel.close, got {other:?}"),
+    }
+    // The connection goes on: the channel opens again.
+    client.send(1, ChannelCloseOk {}).await;
+    client.send(1, ChannelOpen::default()).await;
+    assert!(matches!(client.method().await, Method::ChannelOpenOk(_)));
+    // A client that sends its end is gone, and cleaned up.
+    client
+        .link
+        .to_broker
+        .send(Outgoing::Shutdown)
+        .await
+        .expect("sent");
+    wait_for_connections(&handle, 0).await;
     handle.shutdown().await;
 }

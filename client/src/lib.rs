@@ -36,9 +36,11 @@
 //! # Transports
 //! [`Connection::connect`] opens TCP. With the `embedded` feature,
 //! [`Connection::in_process`] connects to a Leveret broker running in the
-//! same process (`leveret_broker::BrokerHandle`) over an in-memory pipe the
-//! broker serves exactly like a socket; everything after opening the
-//! stream (handshake, reader, writer, channels) is the same code.
+//! same process (`leveret_broker::BrokerHandle`): frames cross as values
+//! (`BrokerHandle::connect_direct`), so neither side encodes or parses
+//! them, and the broker serves the link with the same connection code as
+//! a socket; on this side too everything after opening the link
+//! (handshake, reader, writer, channels) is the same code.
 //!
 //! # Design
 //! Each connection has two tasks that own the transport. The reader decodes

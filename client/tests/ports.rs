@@ -699,3 +699,100 @@ async fn put_statuses_while_the_broker_is_unreachable() {
     }
     assert_eq!(input.stats().lost, 0);
 }
+
+/// Busy polling: a value that comes while `recv` polls is taken without
+/// the runtime parking; one that comes after the window is still taken
+/// (by the wake-up); `recv_blocking` polls likewise on a thread of its
+/// own; a closed port ends either. On both runtime flavours, in process
+/// (where the broker's tasks share the polling runtime).
+async fn busy_polling_in_port() {
+    let env = Env::new().await;
+    let leveret = env.leveret.clone().expect("an embedded Leveret");
+    let connector = Connector::in_process(&leveret);
+    let profile = env.profile().busy_poll(Duration::from_millis(200));
+    let (output, mut input) = pair::<TimedLong>(&connector, profile).await;
+    let value = |data: i32| TimedLong { tm: tm(1), data };
+
+    // Within the window: recv polls while the broker's tasks run.
+    let (got, status) = tokio::join!(within("recv", input.recv()), async {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        output.put(&value(1)).await
+    });
+    assert_eq!(status, PortStatus::Ok);
+    assert_eq!(got.expect("a sample").value, value(1));
+
+    // After the window: the waker takes over.
+    let (got, status) = tokio::join!(within("recv", input.recv()), async {
+        tokio::time::sleep(Duration::from_millis(400)).await;
+        output.put(&value(2)).await
+    });
+    assert_eq!(status, PortStatus::Ok);
+    assert_eq!(got.expect("a sample").value, value(2));
+
+    // recv_blocking polls on a thread of its own.
+    let input = Arc::new(input);
+    let reader = {
+        let input = Arc::clone(&input);
+        std::thread::spawn(move || input.recv_blocking(Duration::from_secs(10)))
+    };
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    assert_eq!(output.put(&value(3)).await, PortStatus::Ok);
+    let got = tokio::task::spawn_blocking(move || reader.join().expect("reader thread"))
+        .await
+        .expect("joined");
+    assert_eq!(got.expect("a sample").value, value(3));
+
+    let Ok(input) = Arc::try_unwrap(input) else {
+        panic!("the reader thread still holds the port");
+    };
+    within("close", input.close()).await;
+    drop(output);
+}
+
+#[tokio::test(flavor = "current_thread")]
+async fn busy_polling_in_port_on_a_current_thread_runtime() {
+    busy_polling_in_port().await;
+}
+
+/// User and system CPU time of the calling thread, in clock ticks.
+fn thread_cpu_ticks() -> u64 {
+    let stat = std::fs::read_to_string("/proc/thread-self/stat").expect("/proc/thread-self/stat");
+    // Fields after the command's closing parenthesis: utime and stime are
+    // the 12th and 13th.
+    let rest = &stat[stat.rfind(')').expect("comm") + 2..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    fields[11].parse::<u64>().expect("utime") + fields[12].parse::<u64>().expect("stime")
+}
+
+/// The poll really spins: on a current-thread runtime, a `recv` whose
+/// value comes 300 ms into a 1 s window keeps the thread busy meanwhile
+/// (without polling it would sleep, using next to no CPU).
+#[tokio::test(flavor = "current_thread")]
+async fn a_busy_polling_in_port_spends_its_window_on_the_cpu() {
+    let env = Env::new().await;
+    let leveret = env.leveret.clone().expect("an embedded Leveret");
+    let connector = Connector::in_process(&leveret);
+    for (window, busy) in [(None, false), (Some(Duration::from_secs(1)), true)] {
+        let mut profile = env.profile();
+        profile.busy_poll = window;
+        let (output, mut input) = pair::<TimedLong>(&connector, profile).await;
+        let before = thread_cpu_ticks();
+        let (got, _) = tokio::join!(within("recv", input.recv()), async {
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            output.put(&TimedLong::default()).await
+        });
+        let spent = thread_cpu_ticks() - before;
+        assert!(got.is_some());
+        // 300 ms is 30 ticks at the usual 100 Hz clock.
+        match busy {
+            true => assert!(spent >= 15, "polled for 300 ms, spent {spent} ticks"),
+            false => assert!(spent < 10, "slept for 300 ms, spent {spent} ticks"),
+        }
+        within("close", input.close()).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn busy_polling_in_port_on_a_multi_thread_runtime() {
+    busy_polling_in_port().await;
+}

@@ -24,6 +24,7 @@
 //! - [`frame`]: protocol header, frame envelope, streaming decode, encode and body splitting.
 //! - [`method`]: the one table of every class and method, generating [`Method`] and a struct per method.
 //! - [`properties`]: content headers and the fourteen basic properties.
+//! - `outgoing`: [`Outgoing`], a client's items in sending order (methods, publishes with their content).
 //! - [`types`]: short strings, field values, tables and arrays.
 //! - [`reply`]: reply codes and whether they close a channel or the connection.
 //! - [`error`]: [`DecodeError`], with the reply code each error calls for.
@@ -36,6 +37,7 @@ pub mod frame;
 #[cfg(feature = "json")]
 pub mod json;
 pub mod method;
+mod outgoing;
 pub mod properties;
 pub mod reply;
 pub mod types;
@@ -48,6 +50,7 @@ pub use frame::{
     LEGACY_0_9_HEADER, PROTOCOL_HEADER,
 };
 pub use method::*;
+pub use outgoing::Outgoing;
 pub use properties::{BasicProperties, ContentHeader};
 pub use reply::{ErrorScope, ReplyCode};
 pub use types::{Decimal, FieldArray, FieldTable, FieldValue, LongStr, ShortStr, ShortStrTooLong};

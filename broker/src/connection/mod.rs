@@ -11,10 +11,13 @@
 //! limits.
 
 mod admission;
+mod direct;
 mod reader;
+mod source;
 mod writer;
 
 pub use admission::{Admission, Slot};
+pub use direct::{DirectLink, DirectReplies, DIRECT_CAPACITY};
 pub(crate) use reader::copy_below;
 
 use crate::channel::Channel;
@@ -29,6 +32,7 @@ use leveret_protocol::{
     FRAME_MIN_SIZE, PROTOCOL_HEADER,
 };
 use reader::{FrameReader, Incoming, ReadError, IDLE_RELEASE};
+use source::FrameSource;
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
@@ -51,8 +55,8 @@ pub enum Identity {
     Tls(Option<String>),
 }
 
-/// Serves one connection until it closes. `slot` is its place in the
-/// connection counts, given back when it ends.
+/// Serves one connection over a byte stream until it closes. `slot` is
+/// its place in the connection counts, given back when it ends.
 pub async fn serve<R, W>(
     core: Arc<Core>,
     read: R,
@@ -64,26 +68,105 @@ pub async fn serve<R, W>(
     R: Incoming,
     W: AsyncWrite + Unpin + Send + 'static,
 {
+    let reader = FrameReader::new(read, core.busy_poll.clone());
+    serve_frames(core, reader, SocketSink(write), peer, slot, identity).await;
+}
+
+/// Starts serving an in-process client that exchanges frame values with
+/// the broker (see `direct`), on the current runtime; the client holds
+/// the returned link.
+pub fn serve_direct(core: Arc<Core>, slot: Slot, done: impl Send + 'static) -> DirectLink {
+    let (link, frames, start) = direct::link();
+    tokio::spawn(async move {
+        let peer = "in-process".to_owned();
+        serve_frames(core, frames, DirectSink(start), peer, slot, Identity::None).await;
+        drop(done);
+    });
+    link
+}
+
+/// Where a connection's outgoing items go: a writer task on a socket, or
+/// an in-process client that takes them itself.
+trait Sink: Send + 'static {
+    /// Answers a wrong protocol header with ours, and ends.
+    fn refuse(self) -> impl std::future::Future<Output = ()> + Send;
+
+    /// Hands the outbox's receiving end over; the task it returns ends
+    /// once everything before [`Outbound::Shutdown`] is out.
+    fn start(
+        self,
+        inbox: tokio::sync::mpsc::Receiver<Outbound>,
+        outbox: Arc<Outbox>,
+        heartbeat: tokio::sync::watch::Receiver<Duration>,
+    ) -> tokio::task::JoinHandle<()>;
+}
+
+struct SocketSink<W>(W);
+
+impl<W: AsyncWrite + Unpin + Send + 'static> Sink for SocketSink<W> {
+    async fn refuse(mut self) {
+        let _ = self.0.write_all(PROTOCOL_HEADER).await;
+        let _ = self.0.shutdown().await;
+    }
+
+    fn start(
+        self,
+        inbox: tokio::sync::mpsc::Receiver<Outbound>,
+        outbox: Arc<Outbox>,
+        heartbeat: tokio::sync::watch::Receiver<Duration>,
+    ) -> tokio::task::JoinHandle<()> {
+        tokio::spawn(writer::run(self.0, inbox, outbox, heartbeat))
+    }
+}
+
+struct DirectSink(tokio::sync::oneshot::Sender<direct::WriterEnd>);
+
+impl Sink for DirectSink {
+    async fn refuse(self) {}
+
+    fn start(
+        self,
+        inbox: tokio::sync::mpsc::Receiver<Outbound>,
+        outbox: Arc<Outbox>,
+        heartbeat: tokio::sync::watch::Receiver<Duration>,
+    ) -> tokio::task::JoinHandle<()> {
+        // The client drains the outbox itself; a client already gone
+        // drops the end, which the connection sees as a closed writer.
+        let _ = self.0.send(direct::WriterEnd {
+            inbox,
+            outbox,
+            _heartbeat: heartbeat,
+        });
+        tokio::spawn(async {})
+    }
+}
+
+/// Serves one connection, whatever carries its frames, until it closes.
+async fn serve_frames<S: FrameSource, K: Sink>(
+    core: Arc<Core>,
+    mut reader: S,
+    sink: K,
+    peer: String,
+    slot: Slot,
+    identity: Identity,
+) {
     let connection_id = core.next_connection_id();
     let _registration = core.registry.connection(connection_id, &peer);
     // RabbitMQ's handshake_timeout runs from the connection's start to
     // connection.open-ok.
     let handshake_deadline = Instant::now() + core.limits.handshake_timeout;
-    let mut reader = FrameReader::new(read, core.busy_poll.clone());
-    let mut write = write;
     match handshake_step(&core, handshake_deadline, &peer, reader.protocol_header()).await {
         Ok(Ok(true)) => {}
         Ok(Ok(false)) => {
             tracing::info!(%peer, "wrong protocol header; answering with ours and closing");
-            let _ = write.write_all(PROTOCOL_HEADER).await;
-            let _ = write.shutdown().await;
+            sink.refuse().await;
             return;
         }
         Ok(Err(_)) | Err(_) => return,
     }
     let (outbox, inbox) = Outbox::new(connection_id);
     let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
-    let writer = tokio::spawn(writer::run(write, inbox, Arc::clone(&outbox), heartbeat_rx));
+    let writer = sink.start(inbox, Arc::clone(&outbox), heartbeat_rx);
     let mut conn = Connection {
         core,
         outbox,
@@ -176,9 +259,9 @@ enum Ended {
 }
 
 impl Connection {
-    async fn run<R: Incoming>(
+    async fn run<R: FrameSource>(
         &mut self,
-        reader: &mut FrameReader<R>,
+        reader: &mut R,
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
         handshake_deadline: Instant,
     ) -> Result<(), Ended> {
@@ -327,9 +410,9 @@ impl Connection {
     /// included, as with RabbitMQ); the wait ends early when the broker
     /// shuts down or the client goes away (its socket hung up, or the
     /// writer failed on it), so that what it held is released.
-    async fn block<R: Incoming>(
+    async fn block<R: FrameSource>(
         &mut self,
-        reader: &FrameReader<R>,
+        reader: &R,
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
     ) -> Unblocked {
         if self.blocked_notify && !self.blocked {
@@ -371,10 +454,7 @@ impl Connection {
         }
     }
 
-    async fn expect_method<R: Incoming>(
-        &self,
-        reader: &mut FrameReader<R>,
-    ) -> Result<Method, Ended> {
+    async fn expect_method<R: FrameSource>(&self, reader: &mut R) -> Result<Method, Ended> {
         loop {
             match reader.next().await {
                 Ok(Frame::Method { channel: 0, method }) => return Ok(method),
@@ -395,9 +475,9 @@ impl Connection {
         }
     }
 
-    async fn handshake<R: Incoming>(
+    async fn handshake<R: FrameSource>(
         &mut self,
-        reader: &mut FrameReader<R>,
+        reader: &mut R,
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
     ) -> Result<(), Ended> {
         let core = Arc::clone(&self.core);
@@ -700,9 +780,9 @@ impl Connection {
     /// Sends connection.close for `error`, waits briefly for close-ok
     /// (discarding anything else, as the spec says; raw bytes once the
     /// stream cannot be parsed), then ends.
-    async fn close_with<R: Incoming>(
+    async fn close_with<R: FrameSource>(
         &mut self,
-        reader: &mut FrameReader<R>,
+        reader: &mut R,
         error: AmqpError,
     ) -> Result<(), Ended> {
         self.cleanup();

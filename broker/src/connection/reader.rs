@@ -19,6 +19,7 @@
 //!
 //! Uses the codec and the busy-poll state; the connection module drives it.
 
+use super::source::FrameSource;
 use crate::busy_poll::BusyPoll;
 use bytes::{Buf, Bytes, BytesMut};
 use leveret_protocol::{
@@ -153,31 +154,23 @@ impl<R: Incoming> FrameReader<R> {
             busy_poll,
         }
     }
+}
 
+impl<R: Incoming> FrameSource for FrameReader<R> {
     /// Resolves once the peer has hung up (see [`Incoming::hung_up`]).
-    pub async fn hung_up(&self) {
-        self.socket.hung_up().await
+    fn hung_up(&self) -> impl Future<Output = ()> + Send + '_ {
+        self.socket.hung_up()
     }
 
     /// Accepts frames up to the negotiated `frame_max` from now on.
-    pub fn set_frame_max(&mut self, frame_max: u32) {
+    fn set_frame_max(&mut self, frame_max: u32) {
         self.frame_max = frame_max;
         self.want_max = READ_MAX;
     }
 
-    /// The next frame; `Closed` on a clean end of stream.
-    pub async fn next(&mut self) -> Result<Frame, ReadError> {
-        loop {
-            if let Some(frame) = self.buffered_frame().map_err(ReadError::Decode)? {
-                return Ok(frame);
-            }
-            self.fill().await?;
-        }
-    }
-
     /// Whether the protocol header has arrived and is ours; it is taken off
     /// the buffer if so.
-    pub async fn protocol_header(&mut self) -> Result<bool, ReadError> {
+    async fn protocol_header(&mut self) -> Result<bool, ReadError> {
         loop {
             match check_protocol_header(&self.buf) {
                 ProtocolHeaderCheck::Valid => {
@@ -192,7 +185,7 @@ impl<R: Incoming> FrameReader<R> {
 
     /// The next whole frame already buffered, if any. A frame that fails
     /// to decode has been taken off the buffer.
-    pub fn buffered_frame(&mut self) -> Result<Option<Frame>, DecodeError> {
+    fn buffered_frame(&mut self) -> Result<Option<Frame>, DecodeError> {
         let len = match check_frame(&self.buf, self.frame_max)? {
             FrameCheck::Incomplete { .. } => return Ok(None),
             FrameCheck::Complete { len } => len,
@@ -206,7 +199,7 @@ impl<R: Incoming> FrameReader<R> {
     }
 
     /// Reads more bytes.
-    pub async fn fill(&mut self) -> Result<(), ReadError> {
+    async fn fill(&mut self) -> Result<(), ReadError> {
         self.make_room(self.pending_frame_needs());
         let offered = self.buf.capacity() - self.buf.len();
         match self.socket.read_buf(&mut self.buf).await {
@@ -227,7 +220,7 @@ impl<R: Incoming> FrameReader<R> {
     /// closing the socket with input unread would reset the connection,
     /// and the peer could lose the `connection.close` that explains why.
     /// The buffer is reused, so discarding holds no more memory.
-    pub async fn discard_input(&mut self) {
+    async fn discard_input(&mut self) {
         loop {
             self.buf.clear();
             match self.socket.read_buf(&mut self.buf).await {
@@ -239,19 +232,21 @@ impl<R: Incoming> FrameReader<R> {
 
     /// Whether the buffer is larger than the frame in progress needs (and
     /// than [`READ_IDLE`]).
-    pub fn holds_spare(&self) -> bool {
+    fn holds_spare(&self) -> bool {
         self.allocated > self.keep()
     }
 
     /// Gives back buffer space beyond what the frame in progress needs
     /// (the idle size when none is): the connection has been idle.
-    pub fn release_spare(&mut self) {
+    fn release_spare(&mut self) {
         if self.holds_spare() {
             self.want = READ_IDLE;
             self.reallocate(self.keep());
         }
     }
+}
 
+impl<R: Incoming> FrameReader<R> {
     fn keep(&self) -> usize {
         (self.buf.len() + self.pending_frame_needs()).max(READ_IDLE)
     }

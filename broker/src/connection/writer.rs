@@ -13,11 +13,10 @@
 //! the last one instead of growing step by step.
 
 use super::reader::IDLE_RELEASE;
-use crate::outbox::{Outbound, Outbox};
+use crate::outbox::{Framed, Outbound, Outbox};
 use bytes::{Buf, BufMut, Bytes, BytesMut};
 use leveret_protocol::{
-    encode_content, encode_header, encode_method, BasicDeliver, BasicGetOk, BasicReturn,
-    ContentHeader, Frame, Method, FRAME_END, FRAME_OVERHEAD,
+    encode_content, encode_header, encode_method, ContentHeader, Frame, FRAME_END, FRAME_OVERHEAD,
 };
 use std::collections::VecDeque;
 use std::io::IoSlice;
@@ -141,60 +140,18 @@ impl Output {
 
     /// Encodes one item; true if the writer must stop after this batch.
     fn encode(&mut self, item: Outbound, outbox: &Outbox) -> bool {
-        let (channel, method, message) = match item {
-            Outbound::Method { channel, method } => {
+        let (channel, method, message) = match item.framed() {
+            Framed::Method { channel, method } => {
                 encode_method(channel, &method, &mut self.buf);
                 return false;
             }
-            Outbound::Shutdown => return true,
-            Outbound::Deliver {
+            Framed::Shutdown => return true,
+            Framed::Content {
                 channel,
-                consumer_tag,
-                delivery_tag,
-                redelivered,
+                method,
                 message,
-            } => {
-                let method = Method::BasicDeliver(BasicDeliver {
-                    consumer_tag,
-                    delivery_tag,
-                    redelivered,
-                    exchange: message.exchange.clone(),
-                    routing_key: message.routing_key.clone(),
-                });
-                (channel, method, message)
-            }
-            Outbound::GetOk {
-                channel,
-                delivery_tag,
-                redelivered,
-                message_count,
-                message,
-            } => {
-                let method = Method::BasicGetOk(BasicGetOk {
-                    delivery_tag,
-                    redelivered,
-                    exchange: message.exchange.clone(),
-                    routing_key: message.routing_key.clone(),
-                    message_count,
-                });
-                (channel, method, message)
-            }
-            Outbound::Return {
-                channel,
-                reply_code,
-                reply_text,
-                message,
-            } => {
-                let method = Method::BasicReturn(BasicReturn {
-                    reply_code,
-                    reply_text,
-                    exchange: message.exchange.clone(),
-                    routing_key: message.routing_key.clone(),
-                });
-                (channel, method, message)
-            }
+            } => (channel, method, message),
         };
-        // The publisher's property bytes go out as they came in.
         encode_method(channel, &method, &mut self.buf);
         if message.body.len() < BODY_BY_REFERENCE {
             encode_content(

@@ -9,7 +9,6 @@ mod state;
 pub(crate) use self::state::{ChannelCore, ChannelShared, ChannelState, PendingKind, Reply};
 
 use crate::confirm::{Confirms, PublishConfirm};
-use crate::connection::writer::Outbound;
 use crate::connection::ConnectionInner;
 use crate::consumer::{
     Consumer, ConsumerEnd, ConsumerSlot, Returns, DEFAULT_CONSUMER_BUFFER, RETURNS_BUFFER,
@@ -18,6 +17,7 @@ use crate::error::{Error, Result};
 use crate::message::{Delivery, GetMessage, IntoShortStr};
 use crate::options::*;
 use bytes::Bytes;
+use leveret_protocol::Outgoing;
 use leveret_protocol::{
     BasicCancel, BasicConsume, BasicGet, BasicProperties, BasicPublish, BasicQos, BasicRecover,
     ChannelClose, ChannelOpen, ConfirmSelect, ExchangeBind, ExchangeDeclare, ExchangeDelete,
@@ -52,7 +52,7 @@ impl Drop for ChannelInner {
         let chan = &self.core.chan;
         let mut state = chan.lock();
         if chan.begin_close(&mut state) {
-            self.core.conn.send_from_drop(Outbound::Method {
+            self.core.conn.send_from_drop(Outgoing::Method {
                 channel: chan.id,
                 method: goodbye().into(),
             });
@@ -132,7 +132,7 @@ impl Channel {
         if let Ok(permit) = core.conn.reserve().await {
             let mut state = core.chan.lock();
             if core.chan.begin_close(&mut state) {
-                permit.send(Outbound::Method {
+                permit.send(Outgoing::Method {
                     channel: core.chan.id,
                     method: goodbye().into(),
                 });
@@ -506,7 +506,7 @@ impl Channel {
             slot.end(ConsumerEnd::Cancelled);
         }
         if state.status.check().is_ok() {
-            core.conn.send_from_drop(Outbound::Method {
+            core.conn.send_from_drop(Outgoing::Method {
                 channel: core.chan.id,
                 method: BasicCancel {
                     consumer_tag: consumer_tag.clone(),

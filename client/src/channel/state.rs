@@ -6,13 +6,13 @@
 //! the reader drives.
 
 use crate::confirm::{Confirms, PublishConfirm};
-use crate::connection::writer::Outbound;
 use crate::connection::Shared;
 use crate::consumer::{ConsumerEnd, ConsumerShared, ConsumerSlot};
 use crate::error::{Error, Result};
 use crate::message::{Content, Delivery, ReturnedMessage};
 use crate::options::{BasicAckOptions, BasicNackOptions, BasicRejectOptions};
 use bytes::Bytes;
+use leveret_protocol::Outgoing;
 use leveret_protocol::{
     BasicAck, BasicNack, BasicProperties, BasicPublish, BasicReject, Method, ShortStr,
 };
@@ -297,7 +297,7 @@ impl ChannelCore {
                 kind,
                 tx,
             });
-            permit.send(Outbound::Method {
+            permit.send(Outgoing::Method {
                 channel: self.chan.id,
                 method,
             });
@@ -340,7 +340,7 @@ impl ChannelCore {
         let state = self.chan.lock();
         state.status.check()?;
         self.check_connection()?;
-        permit.send(Outbound::Method {
+        permit.send(Outgoing::Method {
             channel: self.chan.id,
             method,
         });
@@ -361,7 +361,7 @@ impl ChannelCore {
             Some(confirms) => confirms.register(),
             None => PublishConfirm::not_requested(),
         };
-        permit.send(Outbound::Publish {
+        permit.send(Outgoing::Publish {
             channel: self.chan.id,
             method,
             properties,

@@ -1,13 +1,16 @@
-//! The connection: a transport (a TCP socket with TCP_NODELAY, or with the
-//! `embedded` feature an in-process pipe to a Leveret broker, see
-//! `transport`), the `connection.*` handshake (PLAIN, tune negotiation,
-//! vhost open), then two tasks that own the transport's halves: the reader
-//! (`reader`), which decodes frames and routes them to channels, and the
-//! writer (`writer`), which drains a bounded outbox. Everything after
-//! opening the transport is one code path, generic over it. The
+//! The connection: a transport (a TCP socket with TCP_NODELAY, optionally
+//! TLS, see `transport`; or with the `embedded` feature a frame-value link
+//! to a Leveret broker in this process, which nothing encodes or parses),
+//! the `connection.*` handshake (PLAIN, tune negotiation, vhost open), then
+//! two tasks that own the link's halves: the reader (`reader`), which
+//! takes frames (`frames::FrameInput`) and routes them to channels, and the
+//! writer (`writer`), which drains a bounded outbox into a
+//! `frames::FrameOutput`. Everything after opening the transport is one
+//! code path, generic over it. The
 //! [`Connection`] handle and every channel share [`Shared`]: the outbox
 //! sender, the channel table and the connection's state.
 
+mod frames;
 mod reader;
 mod transport;
 pub(crate) mod writer;
@@ -15,19 +18,18 @@ pub(crate) mod writer;
 use crate::channel::{Channel, ChannelShared};
 use crate::error::{CloseReason, Error, Result};
 use crate::uri::{AuthMechanism, ConnectionOptions};
-use bytes::{Bytes, BytesMut};
+use bytes::Bytes;
+use frames::{ByteInput, ByteOutput, FrameInput, FrameOutput};
+use leveret_protocol::Outgoing;
 use leveret_protocol::{
-    decode_frame, encode_method, ConnectionClose, ConnectionCloseOk, ConnectionOpen,
-    ConnectionStartOk, ConnectionTuneOk, FieldTable, FieldValue, Frame, Method, ShortStr,
-    FRAME_MIN_SIZE, PROTOCOL_HEADER,
+    ConnectionClose, ConnectionCloseOk, ConnectionOpen, ConnectionStartOk, ConnectionTuneOk,
+    FieldTable, FieldValue, Frame, Method, ShortStr, FRAME_MIN_SIZE,
 };
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::sync::{mpsc, oneshot, watch};
+use tokio::sync::{mpsc, watch};
 use transport::Transport;
-use writer::{Outbound, OUTBOX_CAPACITY};
 
 /// How long [`Connection::close`] waits for room in the outbox.
 const CLOSE_TIMEOUT: Duration = Duration::from_secs(5);
@@ -68,7 +70,7 @@ pub(crate) struct ConnState {
 #[derive(Debug)]
 pub(crate) struct Shared {
     /// The writer's bounded outbox.
-    pub(crate) tx: mpsc::Sender<Outbound>,
+    pub(crate) tx: mpsc::Sender<Outgoing>,
     state: Mutex<ConnState>,
     /// True once a close has begun: the reader stops waiting on full
     /// consumer buffers and drops channel traffic.
@@ -99,13 +101,13 @@ impl Shared {
     }
 
     /// Waits for room in the outbox.
-    pub(crate) async fn reserve(&self) -> Result<mpsc::Permit<'_, Outbound>> {
+    pub(crate) async fn reserve(&self) -> Result<mpsc::Permit<'_, Outgoing>> {
         self.tx.reserve().await.map_err(|_| self.error())
     }
 
     /// Sends an item from a `Drop`: without waiting if there is room,
     /// otherwise from a task, if there is a runtime.
-    pub(crate) fn send_from_drop(self: &Arc<Self>, item: Outbound) {
+    pub(crate) fn send_from_drop(self: &Arc<Self>, item: Outgoing) {
         match self.tx.try_send(item) {
             Ok(()) | Err(mpsc::error::TrySendError::Closed(_)) => {}
             Err(mpsc::error::TrySendError::Full(item)) => {
@@ -162,13 +164,13 @@ impl Shared {
     /// Starts closing the connection with `close` unless it is already
     /// closing; `send` puts the method in the outbox (under the lock, so
     /// nothing a channel sends afterwards can overtake it).
-    pub(crate) fn begin_close(&self, send: impl FnOnce(Outbound)) -> bool {
+    pub(crate) fn begin_close(&self, send: impl FnOnce(Outgoing)) -> bool {
         let mut state = self.lock();
         if !matches!(state.status, ConnStatus::Open) {
             return false;
         }
         state.status = ConnStatus::Closing;
-        send(Outbound::Method {
+        send(Outgoing::Method {
             channel: 0,
             method: ConnectionClose {
                 reply_code: 200,
@@ -266,8 +268,9 @@ impl Connection {
     }
 
     /// Connects to a broker embedded in this process (user `guest`,
-    /// password `guest`, vhost `/`), over an in-memory pipe: the same
-    /// protocol, handshake and API as over TCP, without the network.
+    /// password `guest`, vhost `/`): the same protocol, handshake and API
+    /// as over TCP, with frames handed over as values (no network, nothing
+    /// encoded or parsed, no heartbeats).
     #[cfg(feature = "embedded")]
     pub async fn in_process(broker: &leveret_broker::BrokerHandle) -> Result<Connection> {
         Connection::in_process_with(broker, ConnectionOptions::default()).await
@@ -280,8 +283,11 @@ impl Connection {
         broker: &leveret_broker::BrokerHandle,
         options: ConnectionOptions,
     ) -> Result<Connection> {
-        let stream = broker.connect_in_process();
-        match tokio::time::timeout(options.connection_timeout, establish(stream, &options)).await {
+        let link = broker.connect_direct();
+        let input = frames::DirectInput::new(link.from_broker);
+        let output = frames::DirectOutput::new(link.to_broker);
+        let establish = establish_frames(input, output, &options);
+        match tokio::time::timeout(options.connection_timeout, establish).await {
             Ok(result) => result,
             Err(_) => Err(Error::ConnectTimeout),
         }
@@ -402,17 +408,16 @@ fn client_properties(options: &ConnectionOptions) -> FieldTable {
     properties
 }
 
-/// The handshake's view of the transport: whole frames in, methods out.
-struct Handshake<S> {
-    stream: S,
-    buf: BytesMut,
-    out: BytesMut,
+/// The handshake's view of the connection: whole frames in, methods out.
+struct Handshake<I, O> {
+    input: I,
+    output: O,
 }
 
-impl<S: Transport> Handshake<S> {
+impl<I: FrameInput, O: FrameOutput> Handshake<I, O> {
     async fn next_method(&mut self) -> Result<Method> {
         loop {
-            match decode_frame(&mut self.buf, HANDSHAKE_FRAME_MAX) {
+            match self.input.buffered(HANDSHAKE_FRAME_MAX) {
                 Ok(Some(Frame::Method { channel: 0, method })) => return Ok(method),
                 Ok(Some(Frame::Heartbeat)) => continue,
                 Ok(Some(other)) => {
@@ -422,7 +427,7 @@ impl<S: Transport> Handshake<S> {
                 }
                 Ok(None) => {}
                 Err(e) => {
-                    if self.buf.starts_with(b"AMQP") {
+                    if self.input.other_protocol() {
                         return Err(Error::Protocol(
                             "the broker does not speak AMQP 0.9.1".to_owned(),
                         ));
@@ -430,23 +435,21 @@ impl<S: Transport> Handshake<S> {
                     return Err(Error::Protocol(e.to_string()));
                 }
             }
-            if self.stream.read_buf(&mut self.buf).await? == 0 {
+            if !self.input.receive().await? {
                 return Err(Error::io(std::io::Error::new(
                     std::io::ErrorKind::UnexpectedEof,
-                    "the broker closed the socket during the handshake",
+                    "the broker closed the connection during the handshake",
                 )));
             }
         }
     }
 
     fn queue(&mut self, method: impl Into<Method>) {
-        encode_method(0, &method.into(), &mut self.out);
+        self.output.queue(method.into());
     }
 
     async fn flush(&mut self) -> Result<()> {
-        self.stream.write_all(&self.out).await?;
-        self.out.clear();
-        Ok(())
+        Ok(self.output.flush().await?)
     }
 
     /// Answers a `connection.close` received during the handshake.
@@ -460,13 +463,13 @@ impl<S: Transport> Handshake<S> {
             close.method_id,
         ))
     }
+}
 
-    fn unexpected(method: &Method, expected: &str) -> Error {
-        Error::Protocol(format!(
-            "expected {expected} during the handshake, got {}",
-            method.name()
-        ))
-    }
+fn unexpected(method: &Method, expected: &str) -> Error {
+    Error::Protocol(format!(
+        "expected {expected} during the handshake, got {}",
+        method.name()
+    ))
 }
 
 pub(crate) fn reason(text: &ShortStr, code: u16, class_id: u16, method_id: u16) -> CloseReason {
@@ -478,18 +481,24 @@ pub(crate) fn reason(text: &ShortStr, code: u16, class_id: u16, method_id: u16) 
     }
 }
 
-/// Runs the handshake over an open transport, then starts the reader and
+/// Runs the handshake over an open byte stream, then starts the reader and
 /// writer on its halves.
 async fn establish<S: Transport>(stream: S, options: &ConnectionOptions) -> Result<Connection> {
-    let mut hs = Handshake {
-        stream,
-        buf: BytesMut::with_capacity(16 * 1024),
-        out: BytesMut::with_capacity(1024),
-    };
-    hs.stream.write_all(PROTOCOL_HEADER).await?;
+    let (read, write) = stream.into_halves();
+    establish_frames(ByteInput::new(read), ByteOutput::new(write), options).await
+}
+
+/// Runs the handshake, then starts the reader and the writer.
+async fn establish_frames<I: FrameInput, O: FrameOutput>(
+    input: I,
+    output: O,
+    options: &ConnectionOptions,
+) -> Result<Connection> {
+    let mut hs = Handshake { input, output };
+    hs.output.begin().await?;
     let start = match hs.next_method().await? {
         Method::ConnectionStart(start) => start,
-        other => return Err(Handshake::<S>::unexpected(&other, "connection.start")),
+        other => return Err(unexpected(&other, "connection.start")),
     };
     let mechanism = match options.auth_mechanism {
         AuthMechanism::Plain => "PLAIN",
@@ -523,7 +532,7 @@ async fn establish<S: Transport>(stream: S, options: &ConnectionOptions) -> Resu
     let tune = match hs.next_method().await? {
         Method::ConnectionTune(tune) => tune,
         Method::ConnectionClose(close) => return Err(hs.closed_by_broker(close).await),
-        other => return Err(Handshake::<S>::unexpected(&other, "connection.tune")),
+        other => return Err(unexpected(&other, "connection.tune")),
     };
     let channel_max = match negotiate(options.channel_max, tune.channel_max) {
         0 => u16::MAX,
@@ -533,7 +542,11 @@ async fn establish<S: Transport>(stream: S, options: &ConnectionOptions) -> Resu
         0 => 0,
         n => n.max(FRAME_MIN_SIZE),
     };
-    let heartbeat = negotiate(options.heartbeat, tune.heartbeat);
+    // An in-process link ends when either side drops it: no heartbeats.
+    let heartbeat = match hs.output.needs_heartbeats() {
+        true => negotiate(options.heartbeat, tune.heartbeat),
+        false => 0,
+    };
     hs.queue(ConnectionTuneOk {
         channel_max,
         frame_max,
@@ -549,7 +562,7 @@ async fn establish<S: Transport>(stream: S, options: &ConnectionOptions) -> Resu
     match hs.next_method().await? {
         Method::ConnectionOpenOk(_) => {}
         Method::ConnectionClose(close) => return Err(hs.closed_by_broker(close).await),
-        other => return Err(Handshake::<S>::unexpected(&other, "connection.open-ok")),
+        other => return Err(unexpected(&other, "connection.open-ok")),
     }
 
     let tuning = Tuning {
@@ -557,9 +570,11 @@ async fn establish<S: Transport>(stream: S, options: &ConnectionOptions) -> Resu
         frame_max,
         heartbeat,
     };
-    let (tx, rx) = mpsc::channel(OUTBOX_CAPACITY);
+    let Handshake { input, output } = hs;
+    let interval = Duration::from_secs(heartbeat.into());
+    let outbox = output.into_outbox(frame_max, interval);
     let shared = Arc::new(Shared {
-        tx,
+        tx: outbox.tx,
         state: Mutex::new(ConnState {
             status: ConnStatus::Open,
             channels: HashMap::new(),
@@ -571,18 +586,11 @@ async fn establish<S: Transport>(stream: S, options: &ConnectionOptions) -> Resu
         tuning,
         server_properties,
     });
-    let Handshake { stream, buf, .. } = hs;
-    let (read, write) = stream.into_halves();
-    let interval = Duration::from_secs(heartbeat.into());
-    let (failed_tx, failed_rx) = oneshot::channel();
-    let writer = tokio::spawn(writer::run(write, rx, frame_max, interval, failed_tx));
     tokio::spawn(reader::run(
         Arc::clone(&shared),
-        read,
-        buf,
+        input,
         interval,
-        failed_rx,
-        writer,
+        outbox.writer,
     ));
     Ok(Connection {
         inner: Arc::new(ConnectionInner { shared }),

@@ -5,22 +5,21 @@
 //! their consumer, returns, confirms. Two heartbeat intervals without a
 //! byte from the broker end the connection.
 
-use super::writer::Outbound;
+use super::frames::{FrameInput, Writer};
 use super::{reason, Shared};
 use crate::channel::{ChannelShared, Reply};
 use crate::error::Error;
 use crate::message::{Content, Delivery, ReturnedMessage};
 use bytes::{Bytes, BytesMut};
+use leveret_protocol::Outgoing;
 use leveret_protocol::{
-    decode_frame, BasicCancelOk, BasicProperties, ChannelCloseOk, ChannelFlowOk, ConnectionClose,
+    BasicCancelOk, BasicProperties, ChannelCloseOk, ChannelFlowOk, ConnectionClose,
     ConnectionCloseOk, ContentHeader, DecodeError, Frame, Method, ReplyCode, ShortStr,
 };
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncRead, AsyncReadExt};
 use tokio::sync::oneshot;
-use tokio::task::JoinHandle;
 
 /// How long a close may wait for the broker's close-ok, and for the
 /// writer to flush before it is stopped.
@@ -107,10 +106,9 @@ enum ReadError {
     Decode(DecodeError),
 }
 
-struct Reader<R> {
+struct Reader<I> {
     shared: Arc<Shared>,
-    socket: R,
-    buf: BytesMut,
+    input: I,
     frame_max: u32,
     heartbeat: Duration,
     incoming: HashMap<u16, Incoming>,
@@ -120,35 +118,47 @@ struct Reader<R> {
 
 /// Runs the reader until the connection ends, then fails everything still
 /// waiting and stops the writer.
-pub(crate) async fn run<R: AsyncRead + Unpin + Send + Sync>(
+pub(crate) async fn run<I: FrameInput>(
     shared: Arc<Shared>,
-    socket: R,
-    buf: BytesMut,
+    input: I,
     heartbeat: Duration,
-    writer_failed: oneshot::Receiver<std::io::Error>,
-    writer: JoinHandle<()>,
+    writer: Option<Writer>,
 ) {
     let frame_max = shared.tuning.frame_max;
     let mut reader = Reader {
         shared: Arc::clone(&shared),
-        socket,
-        buf,
+        input,
         frame_max,
         heartbeat,
         incoming: HashMap::new(),
         violation: None,
     };
-    let error = reader.run(writer_failed).await;
+    let (task, failed) = match writer {
+        Some(Writer { task, failed }) => (Some(task), Some(failed)),
+        None => (None, None),
+    };
+    let error = reader.run(failed).await;
     tracing::debug!(%error, "AMQP connection ended");
     shared.finish(error);
-    let stop = shared.tx.send(Outbound::Shutdown);
+    let stop = shared.tx.send(Outgoing::Shutdown);
     if tokio::time::timeout(CLOSE_TIMEOUT, stop).await.is_err() {
-        writer.abort();
+        if let Some(task) = task {
+            task.abort();
+        }
     }
 }
 
-impl<R: AsyncRead + Unpin> Reader<R> {
-    async fn run(&mut self, mut writer_failed: oneshot::Receiver<std::io::Error>) -> Error {
+impl<I: FrameInput> Reader<I> {
+    /// Reads until the connection ends; `writer_failed` reports a writer
+    /// task's failure where one drains the outbox.
+    async fn run(&mut self, writer_failed: Option<oneshot::Receiver<std::io::Error>>) -> Error {
+        let writer_failed = async move {
+            match writer_failed {
+                Some(failed) => failed.await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::pin!(writer_failed);
         let mut closing = self.shared.closing.subscribe();
         let close_deadline = async move {
             let _ = closing.wait_for(|c| *c).await;
@@ -201,15 +211,12 @@ impl<R: AsyncRead + Unpin> Reader<R> {
 
     async fn next_frame(&mut self) -> Result<Frame, ReadError> {
         loop {
-            match decode_frame(&mut self.buf, self.frame_max) {
+            match self.input.buffered(self.frame_max) {
                 Ok(Some(frame)) => return Ok(frame),
                 Ok(None) => {}
                 Err(e) => return Err(ReadError::Decode(e)),
             }
-            if self.buf.capacity() - self.buf.len() < 4096 {
-                self.buf.reserve(64 * 1024);
-            }
-            let read = self.socket.read_buf(&mut self.buf);
+            let read = self.input.receive();
             let read = if self.heartbeat.is_zero() {
                 read.await
             } else {
@@ -219,13 +226,13 @@ impl<R: AsyncRead + Unpin> Reader<R> {
                 }
             };
             match read {
-                Ok(0) => {
+                Ok(true) => {}
+                Ok(false) => {
                     return Err(ReadError::Ended(Error::io(std::io::Error::new(
                         std::io::ErrorKind::UnexpectedEof,
-                        "the broker closed the socket",
+                        "the broker closed the connection",
                     ))))
                 }
-                Ok(_) => {}
                 Err(e) => return Err(ReadError::Ended(Error::io(e))),
             }
         }
@@ -233,7 +240,7 @@ impl<R: AsyncRead + Unpin> Reader<R> {
 
     /// Sends a method from the reader (close-ok and the like).
     async fn send(&self, channel: u16, method: impl Into<Method>) {
-        let item = Outbound::Method {
+        let item = Outgoing::Method {
             channel,
             method: method.into(),
         };

@@ -1,13 +1,12 @@
-//! What a connection runs over: any byte stream that can be split into a
-//! read half for the reader task and a write half for the writer task.
-//! TCP splits without a lock; TLS (rustls over TCP, feature `tls`) and the
-//! in-process pipe of an embedded Leveret (`tokio::io::DuplexStream`)
-//! through `tokio::io::split`. The handshake, reader and writer are
-//! generic over [`Transport`], so all three share them.
+//! The byte streams a connection runs over: any stream that can be split
+//! into a read half for the reader task and a write half for the writer
+//! task. TCP splits without a lock; TLS (rustls over TCP, feature `tls`)
+//! through `tokio::io::split`. Their frames are decoded and encoded by
+//! `frames`, which also carries an embedded Leveret's frame values.
 
 use crate::error::Result;
 use crate::uri::ConnectionOptions;
-use tokio::io::{AsyncRead, AsyncWrite, DuplexStream, ReadHalf, WriteHalf};
+use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::net::TcpStream;
 
@@ -31,19 +30,10 @@ impl Transport for TcpStream {
     }
 }
 
-impl Transport for DuplexStream {
-    type Read = ReadHalf<DuplexStream>;
-    type Write = WriteHalf<DuplexStream>;
-
-    fn into_halves(self) -> (Self::Read, Self::Write) {
-        tokio::io::split(self)
-    }
-}
-
 #[cfg(feature = "tls")]
 impl Transport for tokio_rustls::client::TlsStream<TcpStream> {
-    type Read = ReadHalf<Self>;
-    type Write = WriteHalf<Self>;
+    type Read = tokio::io::ReadHalf<Self>;
+    type Write = tokio::io::WriteHalf<Self>;
 
     fn into_halves(self) -> (Self::Read, Self::Write) {
         tokio::io::split(self)

@@ -153,10 +153,19 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// What a look at the buffer found.
+enum Taken<T> {
+    Sample(Sample<T>),
+    Closed,
+    Empty,
+}
+
 /// A typed receiver with a bounded buffer, reconnection and duplicate
 /// suppression. Implements [`futures_core::Stream`] of [`Sample`]s.
 pub struct InPort<T> {
     shared: Arc<Shared<T>>,
+    /// The profile's busy-poll window.
+    busy_poll: Option<Duration>,
     stop: watch::Sender<bool>,
     task: Option<JoinHandle<()>>,
 }
@@ -203,6 +212,7 @@ impl<T: PortData> InPort<T> {
         queue: QueueName,
         first: Option<InLink>,
     ) -> Self {
+        let busy_poll = profile.busy_poll.filter(|window| !window.is_zero());
         let profile = Arc::new(profile);
         let consumed = match &first {
             Some(first) => first.queue.clone(),
@@ -236,6 +246,7 @@ impl<T: PortData> InPort<T> {
         let task = tokio::spawn(task.run(first));
         InPort {
             shared,
+            busy_poll,
             stop,
             task: Some(task),
         }
@@ -263,16 +274,29 @@ impl<T: PortData> InPort<T> {
 
     /// Takes the oldest buffered value, if any.
     pub fn try_recv(&self) -> Option<Sample<T>> {
-        let sample = lock(&self.shared.buffer).queue.pop_front()?;
-        self.shared.room.notify_one();
-        Some(sample)
+        match self.take() {
+            Taken::Sample(sample) => Some(sample),
+            Taken::Closed | Taken::Empty => None,
+        }
     }
 
     /// The next value in order for a thread outside the async runtime:
-    /// blocks the thread up to `timeout`; `None` if none came or the port
-    /// is closed. Never call it on a runtime thread.
+    /// blocks the thread up to `timeout` (spinning first for the profile's
+    /// busy-poll window, if any); `None` if none came or the port is
+    /// closed. Never call it on a runtime thread.
     pub fn recv_blocking(&self, timeout: Duration) -> Option<Sample<T>> {
-        let deadline = std::time::Instant::now() + timeout;
+        let start = std::time::Instant::now();
+        let deadline = start + timeout;
+        if let Some(window) = self.busy_poll {
+            let spin_until = start + window.min(timeout);
+            while std::time::Instant::now() < spin_until {
+                match self.take() {
+                    Taken::Sample(sample) => return Some(sample),
+                    Taken::Closed => return None,
+                    Taken::Empty => std::hint::spin_loop(),
+                }
+            }
+        }
         let mut buffer = lock(&self.shared.buffer);
         loop {
             if let Some(sample) = buffer.queue.pop_front() {
@@ -293,10 +317,35 @@ impl<T: PortData> InPort<T> {
         }
     }
 
-    /// The next value in order, waiting for one; `None` once the port is
-    /// closed.
+    /// The next value in order, waiting for one (polling first for the
+    /// profile's busy-poll window, if any, yielding to the runtime's other
+    /// tasks between looks); `None` once the port is closed.
     pub async fn recv(&mut self) -> Option<Sample<T>> {
+        if let Some(window) = self.busy_poll {
+            let spin_until = tokio::time::Instant::now() + window;
+            while tokio::time::Instant::now() < spin_until {
+                match self.take() {
+                    Taken::Sample(sample) => return Some(sample),
+                    Taken::Closed => return None,
+                    Taken::Empty => tokio::task::yield_now().await,
+                }
+            }
+        }
         std::future::poll_fn(|cx| self.poll_recv(cx)).await
+    }
+
+    /// The oldest buffered value, without waiting.
+    fn take(&self) -> Taken<T> {
+        let mut buffer = lock(&self.shared.buffer);
+        match buffer.queue.pop_front() {
+            Some(sample) => {
+                drop(buffer);
+                self.shared.room.notify_one();
+                Taken::Sample(sample)
+            }
+            None if buffer.closed => Taken::Closed,
+            None => Taken::Empty,
+        }
     }
 
     fn poll_recv(&self, cx: &mut Context<'_>) -> Poll<Option<Sample<T>>> {

@@ -229,6 +229,15 @@ pub struct PortProfile {
     pub buffer_size: usize,
     /// What the in-port does when the buffer is full.
     pub full_policy: FullPolicy,
+    /// Opt-in busy polling for the in-port: `recv` and `recv_blocking`
+    /// look for a value without sleeping for up to this long before they
+    /// wait. It spends the CPU the wait would have saved; in return a value
+    /// arriving within the window is picked up without waking an idle CPU
+    /// and thread (tens to hundreds of microseconds). For a control loop
+    /// that reads a value every period, a window of at least the period
+    /// keeps its thread from ever going idle. `None` (the default): no
+    /// polling.
+    pub busy_poll: Option<Duration>,
     /// Longest time `OutPort::put` waits for room with
     /// [`Backpressure::Block`] (never for the network).
     pub put_timeout: Duration,
@@ -283,6 +292,7 @@ impl Default for PortProfile {
             prefetch: 64,
             buffer_size: 128,
             full_policy: FullPolicy::DropOldest,
+            busy_poll: None,
             put_timeout: Duration::from_millis(500),
             max_unconfirmed: 1024,
             backoff: Backoff::default(),
@@ -362,6 +372,12 @@ impl PortProfile {
     pub fn buffer(mut self, size: usize, policy: FullPolicy) -> Self {
         self.buffer_size = size;
         self.full_policy = policy;
+        self
+    }
+
+    /// Sets the in-port's busy-poll window (see [`PortProfile::busy_poll`]).
+    pub fn busy_poll(mut self, window: Duration) -> Self {
+        self.busy_poll = Some(window);
         self
     }
 

@@ -34,12 +34,14 @@ impl Endpoint {
     /// An endpoint whose ports are transient, with prefetch and buffer
     /// large enough never to matter with one message in flight, and
     /// nothing dropped.
-    pub fn new(connector: Connector, base: PortProfile) -> Endpoint {
-        let profile = base
+    /// `busy_poll` is the in-ports' busy-poll window, if any.
+    pub fn new(connector: Connector, base: PortProfile, busy_poll: Option<Duration>) -> Endpoint {
+        let mut profile = base
             .buffer(16, FullPolicy::BlockBroker)
             .prefetch(16)
             .put_timeout(Duration::from_secs(2))
             .durable(false);
+        profile.busy_poll = busy_poll;
         Endpoint { connector, profile }
     }
 }
@@ -136,8 +138,10 @@ impl Pair {
         })
     }
 
-    /// One round trip: sends `payload` and waits for its echo.
-    pub async fn round_trip(&mut self, payload: &Bytes) -> Result<()> {
+    /// One round trip: sends `payload` and waits for its echo. Returns
+    /// the echo's one-way latency where the carrier measures it (the
+    /// ports: from the echo's put to the measuring in-port's arrival).
+    pub async fn round_trip(&mut self, payload: &Bytes) -> Result<Option<Duration>> {
         match self {
             Pair::Ports { output, input, .. } => {
                 let status = output.put(payload).await;
@@ -145,7 +149,7 @@ impl Pair {
                     return Err(format!("put: {status:?}").into());
                 }
                 match tokio::time::timeout(ECHO_TIMEOUT, input.recv()).await {
-                    Ok(Some(_)) => Ok(()),
+                    Ok(Some(sample)) => Ok(sample.latency),
                     Ok(None) => Err("the in-port closed".into()),
                     Err(_) => Err("no echo within the timeout".into()),
                 }
@@ -170,7 +174,7 @@ impl Pair {
                         // Inside the timed section, but it only queues a
                         // frame on the connection's outbox.
                         delivery.ack().await?;
-                        Ok(())
+                        Ok(None)
                     }
                     Ok(None) => Err("the consumer ended".into()),
                     Err(_) => Err("no echo within the timeout".into()),

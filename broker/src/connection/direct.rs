@@ -1,0 +1,288 @@
+//! In-process connections that carry values instead of bytes (the fast
+//! path of an embedding application's own client): the client hands the
+//! broker each [`Outgoing`] item as it built it (a method, or a
+//! basic.publish with its properties and body), and takes the broker's
+//! frames as values, so nothing is encoded or parsed on either side and no
+//! writer task stands between the client and the broker in either
+//! direction. The handshake, channels, permissions, routing, queues, acks,
+//! limits (`max_message_size` included) and statistics are the
+//! connection's one code path, the same as for a socket.
+//!
+//! What a client can make the broker hold is bounded as on a socket: the
+//! items waiting for the connection loop ([`DIRECT_CAPACITY`]; a client
+//! with more waits for room), whose bodies the client allocated and the
+//! channel counts as it does any content, and the outbox's items on the way
+//! back.
+//!
+//! Uses the connection loop, which it feeds through [`FrameSource`], and
+//! the outbox, which it drains in place of the socket writer.
+
+use super::reader::ReadError;
+use super::source::FrameSource;
+use crate::outbox::{Framed, Outbound, Outbox};
+use leveret_protocol::{ContentHeader, DecodeError, Frame, Method, Outgoing, FRAME_OVERHEAD};
+use std::collections::VecDeque;
+use std::future::Future;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::sync::{mpsc, oneshot, watch};
+
+/// Items a client may have waiting for the connection loop.
+pub const DIRECT_CAPACITY: usize = 256;
+
+/// How many outbox items the client takes between wake-ups of the queues
+/// that found the outbox full (the socket writer wakes them after each
+/// write; here there is no write).
+const WAKE_EVERY: u32 = 64;
+
+/// Both ends of an in-process connection, for its client: items go to the
+/// broker through `to_broker` (waiting for room when the broker is behind),
+/// and frames come back from [`DirectReplies`]. Dropping both ends is the
+/// client going away: the broker then cleans up as for a closed socket.
+#[derive(Debug)]
+pub struct DirectLink {
+    /// The client's items, starting with `connection.start-ok` (no
+    /// protocol header: the link speaks AMQP 0.9.1 by construction).
+    pub to_broker: mpsc::Sender<Outgoing>,
+    /// The broker's frames, starting with `connection.start`.
+    pub from_broker: DirectReplies,
+}
+
+/// The connection loop's source of an in-process client's frames: each
+/// item becomes its frames here, a publish's body as one body frame (it
+/// is not parsed from a buffer, so frame_max has nothing to protect).
+pub(super) struct DirectFrames {
+    rx: mpsc::Receiver<Outgoing>,
+    frames: VecDeque<Frame>,
+    ended: bool,
+}
+
+impl DirectFrames {
+    pub(super) fn new(rx: mpsc::Receiver<Outgoing>) -> Self {
+        DirectFrames {
+            rx,
+            frames: VecDeque::with_capacity(4),
+            ended: false,
+        }
+    }
+
+    /// Appends an item's frames; false for the client's end.
+    fn push(&mut self, item: Outgoing) -> bool {
+        match item {
+            Outgoing::Method { channel, method } => {
+                self.frames.push_back(Frame::Method { channel, method });
+            }
+            Outgoing::Publish {
+                channel,
+                method,
+                properties,
+                body,
+            } => {
+                self.frames.push_back(Frame::Method {
+                    channel,
+                    method: Method::BasicPublish(method),
+                });
+                self.frames.push_back(Frame::Header {
+                    channel,
+                    header: ContentHeader::new(body.len() as u64, &properties),
+                });
+                if !body.is_empty() {
+                    self.frames.push_back(Frame::Body {
+                        channel,
+                        payload: body,
+                    });
+                }
+            }
+            Outgoing::Shutdown => return false,
+        }
+        true
+    }
+}
+
+impl FrameSource for DirectFrames {
+    fn buffered_frame(&mut self) -> Result<Option<Frame>, DecodeError> {
+        if self.frames.is_empty() && !self.ended {
+            if let Ok(item) = self.rx.try_recv() {
+                self.ended = !self.push(item);
+            }
+        }
+        Ok(self.frames.pop_front())
+    }
+
+    async fn fill(&mut self) -> Result<(), ReadError> {
+        if !self.frames.is_empty() {
+            return Ok(());
+        }
+        if self.ended {
+            return Err(ReadError::Closed);
+        }
+        let more = match self.rx.recv().await {
+            Some(item) => self.push(item),
+            None => false,
+        };
+        if more {
+            return Ok(());
+        }
+        self.ended = true;
+        Err(ReadError::Closed)
+    }
+
+    async fn protocol_header(&mut self) -> Result<bool, ReadError> {
+        Ok(true)
+    }
+
+    fn hung_up(&self) -> impl Future<Output = ()> + Send + '_ {
+        // A client that drops its sender ends the loop at its next read;
+        // while blocked, the loop learns it from the replies' end instead.
+        std::future::pending()
+    }
+
+    fn set_frame_max(&mut self, _frame_max: u32) {}
+
+    fn holds_spare(&self) -> bool {
+        false
+    }
+
+    fn release_spare(&mut self) {}
+
+    async fn discard_input(&mut self) {
+        while self.rx.recv().await.is_some() {}
+    }
+}
+
+/// What the connection hands its in-process client in place of starting a
+/// socket writer.
+pub(super) struct WriterEnd {
+    pub inbox: mpsc::Receiver<Outbound>,
+    pub outbox: Arc<Outbox>,
+    /// Held so the connection sees the client gone when this is dropped
+    /// (the socket writer holds it likewise).
+    pub _heartbeat: watch::Receiver<Duration>,
+}
+
+/// The broker's frames for an in-process client, taken straight from the
+/// connection's outbox.
+#[derive(Debug)]
+pub struct DirectReplies {
+    state: Replies,
+    pending: VecDeque<Frame>,
+    taken: u32,
+}
+
+enum Replies {
+    Starting(oneshot::Receiver<WriterEnd>),
+    Open(WriterEnd),
+    Ended,
+}
+
+impl std::fmt::Debug for Replies {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Replies::Starting(_) => "Starting",
+            Replies::Open(_) => "Open",
+            Replies::Ended => "Ended",
+        })
+    }
+}
+
+impl DirectReplies {
+    pub(super) fn new(start: oneshot::Receiver<WriterEnd>) -> Self {
+        DirectReplies {
+            state: Replies::Starting(start),
+            pending: VecDeque::new(),
+            taken: 0,
+        }
+    }
+
+    /// The broker's next frame, waiting for it; `None` once the broker
+    /// has ended the connection (after everything it sent before).
+    pub async fn recv(&mut self) -> Option<Frame> {
+        loop {
+            if let Some(frame) = self.pending.pop_front() {
+                return Some(frame);
+            }
+            let end = match &mut self.state {
+                Replies::Open(end) => end,
+                Replies::Ended => return None,
+                Replies::Starting(start) => {
+                    self.state = match start.await {
+                        Ok(end) => Replies::Open(end),
+                        Err(_) => Replies::Ended,
+                    };
+                    continue;
+                }
+            };
+            let item = match end.inbox.try_recv() {
+                Ok(item) => item,
+                Err(_) => {
+                    // Everything sent so far is taken: the queues that
+                    // found the outbox full may deliver again.
+                    end.outbox.wake_blocked();
+                    match end.inbox.recv().await {
+                        Some(item) => item,
+                        None => {
+                            self.state = Replies::Ended;
+                            return None;
+                        }
+                    }
+                }
+            };
+            self.taken += 1;
+            if self.taken % WAKE_EVERY == 0 {
+                end.outbox.wake_blocked();
+            }
+            let frame_max = end.outbox.frame_max();
+            if !push_frames(item, frame_max, &mut self.pending) {
+                self.state = Replies::Ended;
+            }
+        }
+    }
+}
+
+/// Appends an outbox item's frames; false at the connection's end.
+fn push_frames(item: Outbound, frame_max: u32, out: &mut VecDeque<Frame>) -> bool {
+    let (channel, method, message) = match item.framed() {
+        Framed::Method { channel, method } => {
+            out.push_back(Frame::Method { channel, method });
+            return true;
+        }
+        Framed::Shutdown => return false,
+        Framed::Content {
+            channel,
+            method,
+            message,
+        } => (channel, method, message),
+    };
+    out.push_back(Frame::Method { channel, method });
+    out.push_back(Frame::Header {
+        channel,
+        header: ContentHeader {
+            class_id: ContentHeader::BASIC_CLASS,
+            body_size: message.body.len() as u64,
+            property_bytes: message.properties.clone(),
+        },
+    });
+    let chunk = (frame_max as usize).saturating_sub(FRAME_OVERHEAD).max(1);
+    let mut start = 0;
+    while start < message.body.len() {
+        let end = (start + chunk).min(message.body.len());
+        out.push_back(Frame::Body {
+            channel,
+            payload: message.body.slice(start..end),
+        });
+        start = end;
+    }
+    true
+}
+
+/// Starts the connection side of an in-process link: the frames the client
+/// sends, and where the connection puts its writer's end.
+pub(super) fn link() -> (DirectLink, DirectFrames, oneshot::Sender<WriterEnd>) {
+    let (to_broker, rx) = mpsc::channel(DIRECT_CAPACITY);
+    let (start_tx, start_rx) = oneshot::channel();
+    let link = DirectLink {
+        to_broker,
+        from_broker: DirectReplies::new(start_rx),
+    };
+    (link, DirectFrames::new(rx), start_tx)
+}
