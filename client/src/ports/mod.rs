@@ -44,7 +44,7 @@
 //! - `data`: [`PortData`] (value ⇄ body), its impls and [`DataError`].
 //! - [`cdr`]: OMG CDR (either byte order) and the types of OpenRTM-aist's
 //!   `BasicDataType.idl` and `ExtendedDataTypes.idl` (`RTC::Time`,
-//!   `RTC::Timed*`, 2D poses and velocities), all re-exported here too.
+//!   `RTC::Timed*`, the 2D and 3D geometry), all re-exported here too.
 //! - `profile`: [`PortProfile`], [`ExchangeKind`], [`FullPolicy`],
 //!   [`Backoff`], [`Connector`].
 //! - `openrtm`: [`PortProfile::from_properties`] (OpenRTM-aist connector

@@ -17,8 +17,9 @@
 //! - `basic`: [`Time`] and every type of `BasicDataType.idl` but the
 //!   wide-character ones (`TimedWChar`, `TimedWString` and their
 //!   sequences, whose encoding depends on GIOP code set negotiation);
-//! - `extended`: the types of `ExtendedDataTypes.idl` implemented so far
-//!   ([`Pose2D`], [`Velocity2D`] and their parts and `Timed*` wrappers).
+//! - `extended`: every type of `ExtendedDataTypes.idl` ([`RGBColour`],
+//!   the 2D and 3D geometry from [`Point2D`] to [`OAP`], [`Quaternion`],
+//!   and their `Timed*` wrappers).
 //!
 //! Other IDL structs can be written with [`CdrWriter`] and [`CdrReader`]
 //! through the [`Cdr`] trait and then made port data with [`encode`] and
