@@ -339,10 +339,13 @@ impl CdrReader {
     /// (`min_element` bytes each), so a corrupt count cannot allocate.
     pub fn sequence_len(&mut self, min_element: usize) -> Result<usize, DataError> {
         let len = self.ulong()? as usize;
-        if len.saturating_mul(min_element) > self.remaining() {
+        // Saturating: on a 32-bit target the product of a corrupt count
+        // could overflow.
+        let least = len.saturating_mul(min_element);
+        if least > self.remaining() {
             return Err(DataError::Truncated {
                 offset: self.pos,
-                needed: len * min_element - self.remaining(),
+                needed: least - self.remaining(),
             });
         }
         Ok(len)
