@@ -464,24 +464,24 @@ macro_rules! idl_structs {
             const TYPE_NAME: Option<&'static str> =
                 Some(concat!("IDL:RTC/", stringify!($name), ":1.0"));
 
-            fn encode(&self, buf: &mut bytes::BytesMut) -> Result<(), $crate::ports::DataError> {
+            fn encode(&self, buf: &mut ::bytes::BytesMut) -> Result<(), $crate::ports::DataError> {
                 $crate::ports::cdr::encode(self, buf)
             }
 
-            fn decode(body: bytes::Bytes) -> Result<Self, $crate::ports::DataError> {
+            fn decode(body: ::bytes::Bytes) -> Result<Self, $crate::ports::DataError> {
                 $crate::ports::cdr::decode(body)
             }
 
             fn encode_with(
                 &self,
-                buf: &mut bytes::BytesMut,
+                buf: &mut ::bytes::BytesMut,
                 options: $crate::ports::cdr::CdrOptions,
             ) -> Result<(), $crate::ports::DataError> {
                 $crate::ports::cdr::encode_with(self, buf, options)
             }
 
             fn decode_with(
-                body: bytes::Bytes,
+                body: ::bytes::Bytes,
                 options: $crate::ports::cdr::CdrOptions,
             ) -> Result<Self, $crate::ports::DataError> {
                 $crate::ports::cdr::decode_with(body, options)
