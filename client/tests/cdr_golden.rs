@@ -255,3 +255,298 @@ fn basic_timed_sequences() {
         Charset::Utf8,
     );
 }
+
+/// Every type of `ExtendedDataTypes.idl`, bare and time-stamped, as
+/// `generate_cdr_vectors.py`'s `extended_cases` built them: within a value
+/// every double differs.
+mod extended {
+    use super::{check, TM};
+    use leveret_client::ports::{
+        Acceleration2D, Acceleration3D, AngularAcceleration3D, AngularVelocity3D, Carlike, Charset,
+        Covariance2D, Covariance3D, Geometry2D, Geometry3D, Orientation3D, Point2D, Point3D,
+        PointCovariance2D, PortData, Pose2D, Pose3D, PoseVel2D, PoseVel3D, Quaternion, RGBColour,
+        Size2D, Size3D, SpeedHeading2D, SpeedHeading3D, TimedAcceleration2D, TimedAcceleration3D,
+        TimedAngularAcceleration3D, TimedAngularVelocity3D, TimedCarlike, TimedCovariance2D,
+        TimedCovariance3D, TimedGeometry2D, TimedGeometry3D, TimedOAP, TimedOrientation3D,
+        TimedPoint2D, TimedPoint3D, TimedPointCovariance2D, TimedPose2D, TimedPose3D,
+        TimedPoseVel2D, TimedPoseVel3D, TimedQuaternion, TimedRGBColour, TimedSize2D, TimedSize3D,
+        TimedSpeedHeading2D, TimedSpeedHeading3D, TimedVector2D, TimedVector3D, TimedVelocity2D,
+        TimedVelocity3D, Vector2D, Vector3D, Velocity2D, Velocity3D, OAP,
+    };
+    use std::fmt::Debug;
+
+    /// The case named as the type, and the one named as its `Timed*` form
+    /// (the same value stamped with `TM`).
+    fn both<T, U>(value: T, timed: impl FnOnce(T) -> U)
+    where
+        T: PortData + PartialEq + Debug + Clone,
+        U: PortData + PartialEq + Debug,
+    {
+        let name = |t: &str| t.rsplit(['/', ':']).nth(1).unwrap().to_owned();
+        let bare = name(T::TYPE_NAME.unwrap());
+        let stamped = name(U::TYPE_NAME.unwrap());
+        assert_eq!(stamped, format!("Timed{bare}"));
+        check(&bare, value.clone(), Charset::Utf8);
+        check(&stamped, timed(value), Charset::Utf8);
+    }
+
+    fn point2d() -> Point2D {
+        Point2D { x: 1.1, y: -1.2 }
+    }
+
+    fn pose2d() -> Pose2D {
+        Pose2D {
+            position: point2d(),
+            heading: 1.3,
+        }
+    }
+
+    fn velocity2d() -> Velocity2D {
+        Velocity2D {
+            vx: 3.1,
+            vy: -3.2,
+            va: 3.3,
+        }
+    }
+
+    fn size2d() -> Size2D {
+        Size2D { l: 5.1, w: 5.2 }
+    }
+
+    fn point3d() -> Point3D {
+        Point3D {
+            x: 11.1,
+            y: -11.2,
+            z: 11.3,
+        }
+    }
+
+    fn vector3d() -> Vector3D {
+        Vector3D {
+            x: 12.1,
+            y: -12.2,
+            z: 12.3,
+        }
+    }
+
+    fn orientation3d() -> Orientation3D {
+        Orientation3D {
+            r: 13.1,
+            p: -13.2,
+            y: 13.3,
+        }
+    }
+
+    fn pose3d() -> Pose3D {
+        Pose3D {
+            position: point3d(),
+            orientation: orientation3d(),
+        }
+    }
+
+    fn velocity3d() -> Velocity3D {
+        Velocity3D {
+            vx: 14.1,
+            vy: -14.2,
+            vz: 14.3,
+            vr: -14.4,
+            vp: 14.5,
+            va: -14.6,
+        }
+    }
+
+    fn size3d() -> Size3D {
+        Size3D {
+            l: 18.1,
+            w: 18.2,
+            h: 18.3,
+        }
+    }
+
+    #[test]
+    fn colour_and_2d() {
+        both(
+            RGBColour {
+                r: 0.1,
+                g: 0.6,
+                b: 0.9,
+            },
+            |data| TimedRGBColour { tm: TM, data },
+        );
+        both(point2d(), |data| TimedPoint2D { tm: TM, data });
+        both(Vector2D { x: 2.1, y: -2.2 }, |data| TimedVector2D {
+            tm: TM,
+            data,
+        });
+        both(pose2d(), |data| TimedPose2D { tm: TM, data });
+        both(velocity2d(), |data| TimedVelocity2D { tm: TM, data });
+        both(Acceleration2D { ax: 4.1, ay: -4.2 }, |data| {
+            TimedAcceleration2D { tm: TM, data }
+        });
+        both(
+            PoseVel2D {
+                pose: pose2d(),
+                velocities: velocity2d(),
+            },
+            |data| TimedPoseVel2D { tm: TM, data },
+        );
+        both(size2d(), |data| TimedSize2D { tm: TM, data });
+        both(
+            Geometry2D {
+                pose: pose2d(),
+                size: size2d(),
+            },
+            |data| TimedGeometry2D { tm: TM, data },
+        );
+        both(
+            Covariance2D {
+                xx: 6.1,
+                xy: -6.2,
+                xt: 6.3,
+                yy: -6.4,
+                yt: 6.5,
+                tt: -6.6,
+            },
+            |data| TimedCovariance2D { tm: TM, data },
+        );
+        both(
+            PointCovariance2D {
+                xx: 7.1,
+                xy: -7.2,
+                yy: 7.3,
+            },
+            |data| TimedPointCovariance2D { tm: TM, data },
+        );
+        both(
+            Carlike {
+                speed: 8.1,
+                steering_angle: -8.2,
+            },
+            |data| TimedCarlike { tm: TM, data },
+        );
+        both(
+            SpeedHeading2D {
+                speed: 9.1,
+                heading: -9.2,
+            },
+            |data| TimedSpeedHeading2D { tm: TM, data },
+        );
+    }
+
+    #[test]
+    fn three_d() {
+        both(point3d(), |data| TimedPoint3D { tm: TM, data });
+        both(vector3d(), |data| TimedVector3D { tm: TM, data });
+        both(orientation3d(), |data| TimedOrientation3D { tm: TM, data });
+        both(pose3d(), |data| TimedPose3D { tm: TM, data });
+        both(velocity3d(), |data| TimedVelocity3D { tm: TM, data });
+        both(
+            AngularVelocity3D {
+                avx: 15.1,
+                avy: -15.2,
+                avz: 15.3,
+            },
+            |data| TimedAngularVelocity3D { tm: TM, data },
+        );
+        both(
+            Acceleration3D {
+                ax: 16.1,
+                ay: -16.2,
+                az: 16.3,
+            },
+            |data| TimedAcceleration3D { tm: TM, data },
+        );
+        both(
+            AngularAcceleration3D {
+                aax: 17.1,
+                aay: -17.2,
+                aaz: 17.3,
+            },
+            |data| TimedAngularAcceleration3D { tm: TM, data },
+        );
+        both(
+            PoseVel3D {
+                pose: pose3d(),
+                velocities: velocity3d(),
+            },
+            |data| TimedPoseVel3D { tm: TM, data },
+        );
+        both(size3d(), |data| TimedSize3D { tm: TM, data });
+        both(
+            Geometry3D {
+                pose: pose3d(),
+                size: size3d(),
+            },
+            |data| TimedGeometry3D { tm: TM, data },
+        );
+        both(
+            Covariance3D {
+                xx: 19.01,
+                xy: -19.02,
+                xz: 19.03,
+                xr: -19.04,
+                xp: 19.05,
+                xa: -19.06,
+                yy: 19.07,
+                yz: -19.08,
+                yr: 19.09,
+                yp: -19.10,
+                ya: 19.11,
+                zz: -19.12,
+                zr: 19.13,
+                zp: -19.14,
+                za: 19.15,
+                rr: -19.16,
+                rp: 19.17,
+                ra: -19.18,
+                pp: 19.19,
+                pa: -19.20,
+                aa: 19.21,
+            },
+            |data| TimedCovariance3D { tm: TM, data },
+        );
+        both(
+            SpeedHeading3D {
+                speed: 20.1,
+                direction: orientation3d(),
+            },
+            |data| TimedSpeedHeading3D { tm: TM, data },
+        );
+        both(
+            OAP {
+                orientation: vector3d(),
+                approach: Vector3D {
+                    x: 21.1,
+                    y: -21.2,
+                    z: 21.3,
+                },
+                position: Vector3D {
+                    x: 22.1,
+                    y: -22.2,
+                    z: 22.3,
+                },
+            },
+            |data| TimedOAP { tm: TM, data },
+        );
+        both(
+            Quaternion {
+                x: 23.1,
+                y: -23.2,
+                z: 23.3,
+                w: -23.4,
+            },
+            |data| TimedQuaternion { tm: TM, data },
+        );
+    }
+
+    #[test]
+    fn the_vectors_hold_the_56_types_in_both_byte_orders() {
+        // Their cases are named as the types (capitalised), the basic
+        // ones in snake case.
+        let extended = super::VECTORS
+            .lines()
+            .filter(|line| line.starts_with(|c: char| c.is_ascii_uppercase()))
+            .count();
+        assert_eq!(extended, 56 * 2);
+    }
+}

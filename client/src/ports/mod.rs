@@ -42,7 +42,9 @@
 //!
 //! Layout:
 //! - `data`: [`PortData`] (value ⇄ body), its impls and [`DataError`].
-//! - [`cdr`]: OMG CDR (little-endian) and OpenRTM's `RTC::Timed*` types.
+//! - [`cdr`]: OMG CDR (either byte order) and the types of OpenRTM-aist's
+//!   `BasicDataType.idl` and `ExtendedDataTypes.idl` (`RTC::Time`,
+//!   `RTC::Timed*`, the 2D and 3D geometry), all re-exported here too.
 //! - `profile`: [`PortProfile`], [`ExchangeKind`], [`FullPolicy`],
 //!   [`Backoff`], [`Connector`].
 //! - `openrtm`: [`PortProfile::from_properties`] (OpenRTM-aist connector
@@ -61,13 +63,12 @@ mod openrtm;
 mod out_port;
 mod profile;
 
-pub use cdr::{
-    CdrOptions, Charset, Endian, Point2D, Pose2D, Time, TimedBoolean, TimedBooleanSeq, TimedChar,
-    TimedCharSeq, TimedDouble, TimedDoubleSeq, TimedFloat, TimedFloatSeq, TimedLong, TimedLongSeq,
-    TimedOctet, TimedOctetSeq, TimedPose2D, TimedShort, TimedShortSeq, TimedState, TimedString,
-    TimedStringSeq, TimedULong, TimedULongSeq, TimedUShort, TimedUShortSeq, TimedVelocity2D,
-    Velocity2D,
-};
+// Every RTC data type is here as well as in `cdr` (a glob of the two
+// type modules, one per OpenRTM-aist IDL file, so the list cannot go
+// stale); the codec itself stays in `cdr`.
+pub use cdr::basic::*;
+pub use cdr::extended::*;
+pub use cdr::{CdrOptions, Charset, Endian};
 #[cfg(feature = "serde")]
 pub use data::Postcard;
 pub use data::{DataError, PortData};

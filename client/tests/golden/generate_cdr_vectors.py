@@ -11,6 +11,8 @@ The IDL below states the layout of the RTC data types this crate
 implements (members in OpenRTM's BasicDataType.idl / ExtendedDataTypes.idl
 order); each line of the output is `case endian hex`, endian 0 for big,
 1 for little. Strings use omniORB's default native charset, ISO 8859-1.
+omniORB leaves alignment padding uninitialised, so padding bytes change
+from run to run (the test treats them as don't-care).
 """
 
 import os
@@ -47,6 +49,67 @@ module RTC {
   struct TimedBooleanSeq { Time tm; sequence<boolean> data; };
   struct TimedOctetSeq { Time tm; sequence<octet> data; };
   struct TimedStringSeq { Time tm; sequence<string> data; };
+
+  // ExtendedDataTypes.idl, all of it, in its order (Point2D, Pose2D,
+  // Velocity2D and their Timed* forms are above).
+  struct RGBColour { double r; double g; double b; };
+  struct Vector2D { double x; double y; };
+  struct Acceleration2D { double ax; double ay; };
+  struct PoseVel2D { Pose2D pose; Velocity2D velocities; };
+  struct Size2D { double l; double w; };
+  struct Geometry2D { Pose2D pose; Size2D size; };
+  struct Covariance2D { double xx; double xy; double xt; double yy; double yt; double tt; };
+  struct PointCovariance2D { double xx; double xy; double yy; };
+  struct Carlike { double speed; double steeringAngle; };
+  struct SpeedHeading2D { double speed; double heading; };
+  struct Point3D { double x; double y; double z; };
+  struct Vector3D { double x; double y; double z; };
+  struct Orientation3D { double r; double p; double y; };
+  struct Pose3D { Point3D position; Orientation3D orientation; };
+  struct Velocity3D { double vx; double vy; double vz; double vr; double vp; double va; };
+  struct AngularVelocity3D { double avx; double avy; double avz; };
+  struct Acceleration3D { double ax; double ay; double az; };
+  struct AngularAcceleration3D { double aax; double aay; double aaz; };
+  struct PoseVel3D { Pose3D pose; Velocity3D velocities; };
+  struct Size3D { double l; double w; double h; };
+  struct Geometry3D { Pose3D pose; Size3D size; };
+  struct Covariance3D {
+    double xx; double xy; double xz; double xr; double xp; double xa;
+    double yy; double yz; double yr; double yp; double ya;
+    double zz; double zr; double zp; double za;
+    double rr; double rp; double ra;
+    double pp; double pa;
+    double aa;
+  };
+  struct SpeedHeading3D { double speed; Orientation3D direction; };
+  struct OAP { Vector3D orientation; Vector3D approach; Vector3D position; };
+  struct TimedRGBColour { Time tm; RGBColour data; };
+  struct TimedPoint2D { Time tm; Point2D data; };
+  struct TimedVector2D { Time tm; Vector2D data; };
+  struct TimedAcceleration2D { Time tm; Acceleration2D data; };
+  struct TimedPoseVel2D { Time tm; PoseVel2D data; };
+  struct TimedSize2D { Time tm; Size2D data; };
+  struct TimedGeometry2D { Time tm; Geometry2D data; };
+  struct TimedCovariance2D { Time tm; Covariance2D data; };
+  struct TimedPointCovariance2D { Time tm; PointCovariance2D data; };
+  struct TimedCarlike { Time tm; Carlike data; };
+  struct TimedSpeedHeading2D { Time tm; SpeedHeading2D data; };
+  struct TimedPoint3D { Time tm; Point3D data; };
+  struct TimedVector3D { Time tm; Vector3D data; };
+  struct TimedOrientation3D { Time tm; Orientation3D data; };
+  struct TimedPose3D { Time tm; Pose3D data; };
+  struct TimedVelocity3D { Time tm; Velocity3D data; };
+  struct TimedAngularVelocity3D { Time tm; AngularVelocity3D data; };
+  struct TimedAcceleration3D { Time tm; Acceleration3D data; };
+  struct TimedAngularAcceleration3D { Time tm; AngularAcceleration3D data; };
+  struct TimedPoseVel3D { Time tm; PoseVel3D data; };
+  struct TimedSize3D { Time tm; Size3D data; };
+  struct TimedGeometry3D { Time tm; Geometry3D data; };
+  struct TimedCovariance3D { Time tm; Covariance3D data; };
+  struct TimedSpeedHeading3D { Time tm; SpeedHeading3D data; };
+  struct TimedOAP { Time tm; OAP data; };
+  struct Quaternion { double x; double y; double z; double w; };
+  struct TimedQuaternion { Time tm; Quaternion data; };
 };
 """
 
@@ -93,6 +156,7 @@ def main():
         ("timed_octet_seq", RTC.TimedOctetSeq(tm, b"\x00\x01\xff")),
         ("timed_string_seq", RTC.TimedStringSeq(tm, ["a", "", "bcd"])),
     ]
+    cases += extended_cases(RTC, tm)
     lines = []
     for name, value in cases:
         tc = omniORB.tcInternal.typeCodeFromClassOrRepoId(type(value))
@@ -101,6 +165,66 @@ def main():
     path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "cdr_vectors.txt")
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
+
+
+def extended_cases(RTC, tm):
+    """One case per ExtendedDataTypes.idl type, named as the type: within
+    a value every double differs (a member read in the wrong place cannot
+    go unseen); cdr_golden.rs builds the same values."""
+    point2d = RTC.Point2D(x=1.1, y=-1.2)
+    pose2d = RTC.Pose2D(position=point2d, heading=1.3)
+    velocity2d = RTC.Velocity2D(vx=3.1, vy=-3.2, va=3.3)
+    size2d = RTC.Size2D(l=5.1, w=5.2)
+    point3d = RTC.Point3D(x=11.1, y=-11.2, z=11.3)
+    vector3d = RTC.Vector3D(x=12.1, y=-12.2, z=12.3)
+    orientation3d = RTC.Orientation3D(r=13.1, p=-13.2, y=13.3)
+    pose3d = RTC.Pose3D(position=point3d, orientation=orientation3d)
+    velocity3d = RTC.Velocity3D(vx=14.1, vy=-14.2, vz=14.3, vr=-14.4, vp=14.5, va=-14.6)
+    size3d = RTC.Size3D(l=18.1, w=18.2, h=18.3)
+    members = "xx xy xz xr xp xa yy yz yr yp ya zz zr zp za rr rp ra pp pa aa".split()
+    covariance3d = RTC.Covariance3D(
+        **{m: float(f"{'-' if i % 2 else ''}19.{i + 1:02}") for i, m in enumerate(members)}
+    )
+    values = [
+        RTC.RGBColour(r=0.1, g=0.6, b=0.9),
+        point2d,
+        RTC.Vector2D(x=2.1, y=-2.2),
+        pose2d,
+        velocity2d,
+        RTC.Acceleration2D(ax=4.1, ay=-4.2),
+        RTC.PoseVel2D(pose=pose2d, velocities=velocity2d),
+        size2d,
+        RTC.Geometry2D(pose=pose2d, size=size2d),
+        RTC.Covariance2D(xx=6.1, xy=-6.2, xt=6.3, yy=-6.4, yt=6.5, tt=-6.6),
+        RTC.PointCovariance2D(xx=7.1, xy=-7.2, yy=7.3),
+        RTC.Carlike(speed=8.1, steeringAngle=-8.2),
+        RTC.SpeedHeading2D(speed=9.1, heading=-9.2),
+        point3d,
+        vector3d,
+        orientation3d,
+        pose3d,
+        velocity3d,
+        RTC.AngularVelocity3D(avx=15.1, avy=-15.2, avz=15.3),
+        RTC.Acceleration3D(ax=16.1, ay=-16.2, az=16.3),
+        RTC.AngularAcceleration3D(aax=17.1, aay=-17.2, aaz=17.3),
+        RTC.PoseVel3D(pose=pose3d, velocities=velocity3d),
+        size3d,
+        RTC.Geometry3D(pose=pose3d, size=size3d),
+        covariance3d,
+        RTC.SpeedHeading3D(speed=20.1, direction=orientation3d),
+        RTC.OAP(
+            orientation=vector3d,
+            approach=RTC.Vector3D(x=21.1, y=-21.2, z=21.3),
+            position=RTC.Vector3D(x=22.1, y=-22.2, z=22.3),
+        ),
+        RTC.Quaternion(x=23.1, y=-23.2, z=23.3, w=-23.4),
+    ]
+    cases = []
+    for value in values:
+        name = type(value).__name__
+        cases.append((name, value))
+        cases.append(("Timed" + name, getattr(RTC, "Timed" + name)(tm, value)))
+    return cases
 
 
 if __name__ == "__main__":

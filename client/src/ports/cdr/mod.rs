@@ -5,17 +5,28 @@
 //! `u32` length counting the terminating NUL, the bytes, then the NUL, and a
 //! sequence is a `u32` element count followed by the elements.
 //!
-//! The RTC data types implemented here each begin with a [`Time`]: every
-//! type of OpenRTM-aist's `BasicDataType.idl` but the wide-character ones
-//! (`TimedWChar`, `TimedWString` and their sequences, whose encoding
-//! depends on GIOP code set negotiation), and [`TimedPose2D`] and
-//! [`TimedVelocity2D`] of `ExtendedDataTypes.idl`. Other IDL
-//! structs can be written with [`CdrWriter`] and [`CdrReader`] through the
-//! [`Cdr`] trait and then made port data with [`encode`] and [`decode`].
+//! This module owns the codec: [`CdrWriter`] and [`CdrReader`], the [`Cdr`]
+//! trait and its impls for the IDL primitives, `string` and `sequence<T>`
+//! (whose reader bounds a count by the bytes left before allocating), and
+//! `idl_structs!`, the one way an IDL struct is declared here: its Rust
+//! struct, its CDR form (the members one after another in IDL order) and,
+//! as port data, that CDR named by its CORBA repository id
+//! (`IDL:RTC/<name>:1.0`). The RTC types are declared in one file per
+//! OpenRTM-aist IDL file, and re-exported both here and at
+//! [`ports`](super):
+//! - `basic`: [`Time`] and every type of `BasicDataType.idl` but the
+//!   wide-character ones (`TimedWChar`, `TimedWString` and their
+//!   sequences, whose encoding depends on GIOP code set negotiation);
+//! - `extended`: every type of `ExtendedDataTypes.idl` ([`RGBColour`],
+//!   the 2D and 3D geometry from [`Point2D`] to [`OAP`], [`Quaternion`],
+//!   and their `Timed*` wrappers).
+//!
+//! Other IDL structs can be written with [`CdrWriter`] and [`CdrReader`]
+//! through the [`Cdr`] trait and then made port data with [`encode`] and
+//! [`decode`].
 
 use super::data::DataError;
 use bytes::{BufMut, Bytes, BytesMut};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 /// CDR's byte order (OpenRTM's connector property `serializer.cdr.endian`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -328,208 +339,18 @@ impl CdrReader {
     /// (`min_element` bytes each), so a corrupt count cannot allocate.
     pub fn sequence_len(&mut self, min_element: usize) -> Result<usize, DataError> {
         let len = self.ulong()? as usize;
-        if len.saturating_mul(min_element) > self.remaining() {
+        // Saturating: on a 32-bit target the product of a corrupt count
+        // could overflow.
+        let least = len.saturating_mul(min_element);
+        if least > self.remaining() {
             return Err(DataError::Truncated {
                 offset: self.pos,
-                needed: len * min_element - self.remaining(),
+                needed: least - self.remaining(),
             });
         }
         Ok(len)
     }
 }
-
-/// `RTC::Time`: seconds and nanoseconds (since the Unix epoch, as
-/// OpenRTM-aist stamps data).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
-pub struct Time {
-    /// Seconds.
-    pub sec: u32,
-    /// Nanoseconds, below 1e9.
-    pub nsec: u32,
-}
-
-impl Time {
-    /// The current time.
-    pub fn now() -> Self {
-        Time::from(SystemTime::now())
-    }
-}
-
-impl From<SystemTime> for Time {
-    /// Saturates outside 1970..2106, as a `u32` of seconds must.
-    fn from(time: SystemTime) -> Self {
-        let since = time.duration_since(UNIX_EPOCH).unwrap_or_default();
-        match u32::try_from(since.as_secs()) {
-            Ok(sec) => Time {
-                sec,
-                nsec: since.subsec_nanos(),
-            },
-            Err(_) => Time {
-                sec: u32::MAX,
-                nsec: 999_999_999,
-            },
-        }
-    }
-}
-
-impl From<Time> for SystemTime {
-    fn from(time: Time) -> Self {
-        UNIX_EPOCH + Duration::new(time.sec.into(), time.nsec.min(999_999_999))
-    }
-}
-
-impl Cdr for Time {
-    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        out.ulong(self.sec);
-        out.ulong(self.nsec);
-        Ok(())
-    }
-
-    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        Ok(Time {
-            sec: input.ulong()?,
-            nsec: input.ulong()?,
-        })
-    }
-}
-
-/// The Timed* structs of OpenRTM's `BasicDataType.idl` beyond those
-/// written out below: a time stamp and a `data` member.
-macro_rules! timed_structs {
-    ($($(#[$doc:meta])* $name:ident($t:ty) $(: $($derive:ident),*)?;)*) => {$(
-        $(#[$doc])*
-        #[derive(Debug, Clone, PartialEq, Default $($(, $derive)*)?)]
-        pub struct $name {
-            /// Time stamp.
-            pub tm: Time,
-            /// The value.
-            pub data: $t,
-        }
-    )*};
-}
-
-timed_structs!(
-    /// `RTC::TimedState` (a `short`).
-    TimedState(i16): Copy, Eq;
-    /// `RTC::TimedShort`.
-    TimedShort(i16): Copy, Eq;
-    /// `RTC::TimedUShort`.
-    TimedUShort(u16): Copy, Eq;
-    /// `RTC::TimedULong`.
-    TimedULong(u32): Copy, Eq;
-    /// `RTC::TimedFloat`.
-    TimedFloat(f32): Copy;
-    /// `RTC::TimedChar` (an IDL `char`: one byte, Latin-1).
-    TimedChar(u8): Copy, Eq;
-    /// `RTC::TimedBoolean`.
-    TimedBoolean(bool): Copy, Eq;
-    /// `RTC::TimedOctet`.
-    TimedOctet(u8): Copy, Eq;
-    /// `RTC::TimedShortSeq`.
-    TimedShortSeq(Vec<i16>): Eq;
-    /// `RTC::TimedLongSeq`.
-    TimedLongSeq(Vec<i32>): Eq;
-    /// `RTC::TimedUShortSeq`.
-    TimedUShortSeq(Vec<u16>): Eq;
-    /// `RTC::TimedULongSeq`.
-    TimedULongSeq(Vec<u32>): Eq;
-    /// `RTC::TimedFloatSeq`.
-    TimedFloatSeq(Vec<f32>);
-    /// `RTC::TimedCharSeq`.
-    TimedCharSeq(Vec<u8>): Eq;
-    /// `RTC::TimedBooleanSeq`.
-    TimedBooleanSeq(Vec<bool>): Eq;
-    /// `RTC::TimedOctetSeq`.
-    TimedOctetSeq(Vec<u8>): Eq;
-    /// `RTC::TimedStringSeq` (each string in the port's charset).
-    TimedStringSeq(Vec<String>): Eq;
-);
-
-/// `RTC::TimedDouble`.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct TimedDouble {
-    /// Time stamp.
-    pub tm: Time,
-    /// The value.
-    pub data: f64,
-}
-
-/// `RTC::TimedLong` (an IDL `long` is 32 bits).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct TimedLong {
-    /// Time stamp.
-    pub tm: Time,
-    /// The value.
-    pub data: i32,
-}
-
-/// `RTC::TimedString`.
-#[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct TimedString {
-    /// Time stamp.
-    pub tm: Time,
-    /// The text (no NUL inside).
-    pub data: String,
-}
-
-/// `RTC::TimedDoubleSeq`.
-#[derive(Debug, Clone, PartialEq, Default)]
-pub struct TimedDoubleSeq {
-    /// Time stamp.
-    pub tm: Time,
-    /// The values.
-    pub data: Vec<f64>,
-}
-
-/// `RTC::Point2D`, metres.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct Point2D {
-    /// X coordinate.
-    pub x: f64,
-    /// Y coordinate.
-    pub y: f64,
-}
-
-/// `RTC::Pose2D`.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct Pose2D {
-    /// Position.
-    pub position: Point2D,
-    /// Heading, radians.
-    pub heading: f64,
-}
-
-/// `RTC::TimedPose2D`.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct TimedPose2D {
-    /// Time stamp.
-    pub tm: Time,
-    /// The pose.
-    pub data: Pose2D,
-}
-
-/// `RTC::Velocity2D`.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct Velocity2D {
-    /// Along x, m/s.
-    pub vx: f64,
-    /// Along y, m/s.
-    pub vy: f64,
-    /// Yaw rate, rad/s.
-    pub va: f64,
-}
-
-/// `RTC::TimedVelocity2D`.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct TimedVelocity2D {
-    /// Time stamp.
-    pub tm: Time,
-    /// The velocities.
-    pub data: Velocity2D,
-}
-
-// The IDL members, each encoded as CDR encodes that type; a Timed* struct
-// is its time stamp followed by its `data` member.
 
 /// An IDL type that can be a sequence's element: the least bytes one
 /// takes, so a corrupt sequence count cannot make a reader allocate more
@@ -601,159 +422,103 @@ impl Cdr for String {
     }
 }
 
-impl Cdr for Point2D {
-    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        out.double(self.x);
-        out.double(self.y);
-        Ok(())
-    }
+/// Declares IDL structs of the `RTC` module, members in IDL order: each
+/// a `pub` Rust struct deriving `Debug, Clone, PartialEq, Default` (and the
+/// derives in brackets), its [`Cdr`] form (each member's, in order) and its
+/// [`PortData`](super::PortData) impl: CDR named `IDL:RTC/<name>:1.0`.
+macro_rules! idl_structs {
+    ($(
+        $(#[$doc:meta])*
+        $name:ident $([$($derive:ident),+])? {
+            $($(#[$member_doc:meta])* $member:ident: $t:ty),+ $(,)?
+        }
+    )*) => {$(
+        $(#[$doc])*
+        #[derive(Debug, Clone, PartialEq, Default $($(, $derive)+)?)]
+        pub struct $name {
+            $($(#[$member_doc])* pub $member: $t,)+
+        }
 
-    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        Ok(Point2D {
-            x: input.double()?,
-            y: input.double()?,
-        })
-    }
-}
-
-impl Cdr for Pose2D {
-    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        self.position.write_cdr(out)?;
-        out.double(self.heading);
-        Ok(())
-    }
-
-    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        Ok(Pose2D {
-            position: Point2D::read_cdr(input)?,
-            heading: input.double()?,
-        })
-    }
-}
-
-impl Cdr for Velocity2D {
-    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-        out.double(self.vx);
-        out.double(self.vy);
-        out.double(self.va);
-        Ok(())
-    }
-
-    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-        Ok(Velocity2D {
-            vx: input.double()?,
-            vy: input.double()?,
-            va: input.double()?,
-        })
-    }
-}
-
-/// The Timed* types: `tm`, then `data`; as port data, CDR named by its
-/// CORBA repository id.
-macro_rules! timed_port_data {
-    ($($t:ident),*) => {$(
-        impl Cdr for $t {
-            fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
-                self.tm.write_cdr(out)?;
-                self.data.write_cdr(out)
+        impl $crate::ports::cdr::Cdr for $name {
+            fn write_cdr(
+                &self,
+                out: &mut $crate::ports::cdr::CdrWriter<'_>,
+            ) -> Result<(), $crate::ports::DataError> {
+                $($crate::ports::cdr::Cdr::write_cdr(&self.$member, out)?;)+
+                Ok(())
             }
 
-            fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
-                Ok($t {
-                    tm: Time::read_cdr(input)?,
-                    data: Cdr::read_cdr(input)?,
+            fn read_cdr(
+                input: &mut $crate::ports::cdr::CdrReader,
+            ) -> Result<Self, $crate::ports::DataError> {
+                // A struct expression evaluates its fields in the order
+                // written: IDL order.
+                Ok($name {
+                    $($member: $crate::ports::cdr::Cdr::read_cdr(input)?,)+
                 })
             }
         }
 
-        impl super::data::PortData for $t {
+        impl $crate::ports::PortData for $name {
             const CONTENT_TYPE: &'static str = "application/x-omg-cdr; endian=little";
             const TYPE_NAME: Option<&'static str> =
-                Some(concat!("IDL:RTC/", stringify!($t), ":1.0"));
+                Some(concat!("IDL:RTC/", stringify!($name), ":1.0"));
 
-            fn encode(&self, buf: &mut BytesMut) -> Result<(), DataError> {
-                encode(self, buf)
+            fn encode(&self, buf: &mut ::bytes::BytesMut) -> Result<(), $crate::ports::DataError> {
+                $crate::ports::cdr::encode(self, buf)
             }
 
-            fn decode(body: Bytes) -> Result<Self, DataError> {
-                decode(body)
+            fn decode(body: ::bytes::Bytes) -> Result<Self, $crate::ports::DataError> {
+                $crate::ports::cdr::decode(body)
             }
 
-            fn encode_with(&self, buf: &mut BytesMut, options: CdrOptions) -> Result<(), DataError> {
-                encode_with(self, buf, options)
+            fn encode_with(
+                &self,
+                buf: &mut ::bytes::BytesMut,
+                options: $crate::ports::cdr::CdrOptions,
+            ) -> Result<(), $crate::ports::DataError> {
+                $crate::ports::cdr::encode_with(self, buf, options)
             }
 
-            fn decode_with(body: Bytes, options: CdrOptions) -> Result<Self, DataError> {
-                decode_with(body, options)
+            fn decode_with(
+                body: ::bytes::Bytes,
+                options: $crate::ports::cdr::CdrOptions,
+            ) -> Result<Self, $crate::ports::DataError> {
+                $crate::ports::cdr::decode_with(body, options)
             }
         }
     )*};
 }
 
-timed_port_data!(
-    TimedDouble,
-    TimedLong,
-    TimedString,
-    TimedDoubleSeq,
-    TimedPose2D,
-    TimedVelocity2D,
-    TimedState,
-    TimedShort,
-    TimedUShort,
-    TimedULong,
-    TimedFloat,
-    TimedChar,
-    TimedBoolean,
-    TimedOctet,
-    TimedShortSeq,
-    TimedLongSeq,
-    TimedUShortSeq,
-    TimedULongSeq,
-    TimedFloatSeq,
-    TimedCharSeq,
-    TimedBooleanSeq,
-    TimedOctetSeq,
-    TimedStringSeq
-);
+/// Declares `RTC::Timed*` structs through `idl_structs!`: a time stamp
+/// `tm`, then the `data` member of the given type.
+macro_rules! timed_structs {
+    ($($(#[$doc:meta])* $name:ident($t:ty) $([$($derive:ident),+])?;)*) => {
+        idl_structs!($(
+            $(#[$doc])*
+            $name $([$($derive),+])? {
+                /// Time stamp.
+                tm: $crate::ports::cdr::Time,
+                /// The value.
+                data: $t,
+            }
+        )*);
+    };
+}
+
+pub(super) mod basic;
+pub(super) mod extended;
+#[cfg(test)]
+mod testing;
+
+pub use basic::*;
+pub use extended::*;
 
 #[cfg(test)]
 mod tests {
+    use super::testing::{bytes, TM, TM_CDR};
     use super::*;
     use crate::ports::PortData;
-
-    const TM: Time = Time {
-        sec: 0x0102_0304,
-        nsec: 0x0a0b_0c0d,
-    };
-    /// `TM` in little-endian CDR.
-    const TM_CDR: [u8; 8] = [0x04, 0x03, 0x02, 0x01, 0x0d, 0x0c, 0x0b, 0x0a];
-
-    fn bytes(parts: &[&[u8]]) -> Vec<u8> {
-        parts.concat()
-    }
-
-    fn check<T: PortData + PartialEq + std::fmt::Debug>(value: T, expected: &[u8]) {
-        let mut buf = BytesMut::new();
-        value.encode(&mut buf).unwrap();
-        assert_eq!(&buf[..], expected, "encoding of {value:?}");
-        assert_eq!(T::decode(Bytes::copy_from_slice(expected)).unwrap(), value);
-        // One byte short and one byte long are both refused.
-        assert!(T::decode(Bytes::copy_from_slice(&expected[..expected.len() - 1])).is_err());
-        let mut long = expected.to_vec();
-        long.push(0);
-        assert_eq!(
-            T::decode(Bytes::from(long)).unwrap_err(),
-            DataError::Trailing(1)
-        );
-    }
-
-    #[test]
-    fn timed_double() {
-        let value = TimedDouble { tm: TM, data: 1.0 };
-        // The double is aligned to 8: right after the 8-byte Time.
-        check(value, &bytes(&[&TM_CDR, &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f]]));
-        assert_eq!(TimedDouble::TYPE_NAME, Some("IDL:RTC/TimedDouble:1.0"));
-    }
 
     #[test]
     fn big_endian_as_serializer_cdr_endian_big() {
@@ -819,114 +584,6 @@ mod tests {
     }
 
     #[test]
-    fn timed_long() {
-        check(
-            TimedLong { tm: TM, data: -2 },
-            &bytes(&[&TM_CDR, &[0xfe, 0xff, 0xff, 0xff]]),
-        );
-    }
-
-    #[test]
-    fn timed_string() {
-        check(
-            TimedString {
-                tm: TM,
-                data: "go".into(),
-            },
-            // Length 3 counts the NUL.
-            &bytes(&[&TM_CDR, &[3, 0, 0, 0], b"go\0"]),
-        );
-        check(
-            TimedString {
-                tm: TM,
-                data: String::new(),
-            },
-            &bytes(&[&TM_CDR, &[1, 0, 0, 0, 0]]),
-        );
-        let mut buf = BytesMut::new();
-        let nul = TimedString {
-            tm: TM,
-            data: "a\0b".into(),
-        };
-        assert!(nul.encode(&mut buf).is_err());
-        let unterminated = bytes(&[&TM_CDR, &[2, 0, 0, 0], b"ab"]);
-        assert!(TimedString::decode(Bytes::from(unterminated)).is_err());
-    }
-
-    #[test]
-    fn timed_double_seq_pads_before_the_doubles() {
-        check(
-            TimedDoubleSeq {
-                tm: TM,
-                data: vec![1.0, -2.0],
-            },
-            &bytes(&[
-                &TM_CDR,
-                &[2, 0, 0, 0],
-                // Count ends at 12: 4 bytes of padding to reach 16.
-                &[0, 0, 0, 0],
-                &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f],
-                &[0, 0, 0, 0, 0, 0, 0, 0xc0],
-            ]),
-        );
-        // No element, no padding.
-        check(
-            TimedDoubleSeq {
-                tm: TM,
-                data: vec![],
-            },
-            &bytes(&[&TM_CDR, &[0, 0, 0, 0]]),
-        );
-        // A count larger than the body cannot allocate.
-        let lying = bytes(&[&TM_CDR, &[0xff, 0xff, 0xff, 0x0f]]);
-        assert!(matches!(
-            TimedDoubleSeq::decode(Bytes::from(lying)),
-            Err(DataError::Truncated { .. })
-        ));
-    }
-
-    #[test]
-    fn timed_pose_2d() {
-        let value = TimedPose2D {
-            tm: TM,
-            data: Pose2D {
-                position: Point2D { x: 1.0, y: 2.0 },
-                heading: -2.0,
-            },
-        };
-        check(
-            value,
-            &bytes(&[
-                &TM_CDR,
-                &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f],
-                &[0, 0, 0, 0, 0, 0, 0x00, 0x40],
-                &[0, 0, 0, 0, 0, 0, 0x00, 0xc0],
-            ]),
-        );
-    }
-
-    #[test]
-    fn timed_velocity_2d() {
-        let value = TimedVelocity2D {
-            tm: TM,
-            data: Velocity2D {
-                vx: 2.0,
-                vy: 1.0,
-                va: -2.0,
-            },
-        };
-        check(
-            value,
-            &bytes(&[
-                &TM_CDR,
-                &[0, 0, 0, 0, 0, 0, 0x00, 0x40],
-                &[0, 0, 0, 0, 0, 0, 0xf0, 0x3f],
-                &[0, 0, 0, 0, 0, 0, 0x00, 0xc0],
-            ]),
-        );
-    }
-
-    #[test]
     fn alignment_is_relative_to_the_stream_start() {
         let mut buf = BytesMut::from(&b"xyz"[..]);
         let mut out = CdrWriter::new(&mut buf);
@@ -938,10 +595,13 @@ mod tests {
     }
 
     #[test]
-    fn time_converts_both_ways() {
-        let time = UNIX_EPOCH + Duration::new(5, 7);
-        let tm = Time::from(time);
-        assert_eq!(tm, Time { sec: 5, nsec: 7 });
-        assert_eq!(SystemTime::from(tm), time);
+    fn every_idl_struct_is_port_data_named_by_its_repository_id() {
+        assert_eq!(Time::TYPE_NAME, Some("IDL:RTC/Time:1.0"));
+        assert_eq!(TimedLong::TYPE_NAME, Some("IDL:RTC/TimedLong:1.0"));
+        assert_eq!(Pose2D::TYPE_NAME, Some("IDL:RTC/Pose2D:1.0"));
+        assert_eq!(
+            TimedPose2D::CONTENT_TYPE,
+            "application/x-omg-cdr; endian=little"
+        );
     }
 }
