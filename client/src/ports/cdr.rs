@@ -17,6 +17,9 @@ use super::data::DataError;
 use bytes::{BufMut, Bytes, BytesMut};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
+mod render;
+pub use render::render;
+
 /// CDR's byte order (OpenRTM's connector property `serializer.cdr.endian`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Endian {

@@ -42,7 +42,8 @@
 //!
 //! Layout:
 //! - `data`: [`PortData`] (value ⇄ body), its impls and [`DataError`].
-//! - [`cdr`]: OMG CDR (little-endian) and OpenRTM's `RTC::Timed*` types.
+//! - [`cdr`]: OMG CDR (little-endian) and OpenRTM's `RTC::Timed*` types;
+//!   [`cdr::render`] shows a body by its type's name.
 //! - `profile`: [`PortProfile`], [`ExchangeKind`], [`FullPolicy`],
 //!   [`Backoff`], [`Connector`].
 //! - `openrtm`: [`PortProfile::from_properties`] (OpenRTM-aist connector

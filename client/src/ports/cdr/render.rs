@@ -1,0 +1,104 @@
+//! [`render`]: a CDR body shown as the `{:?}` of the value it holds,
+//! picked by the name of its type (its `PortData::TYPE_NAME`, as a port's
+//! announcement and its messages' `type` property carry it), for tools
+//! that learn a port's type at run time (`leveretctl port echo`). It uses
+//! only the CDR port data types of `cdr` and their `PortData` impls.
+
+use super::*;
+use crate::ports::PortData;
+
+/// The CDR port data types [`render`] knows, one line each.
+macro_rules! renderable {
+    ($($t:ty),* $(,)?) => {
+        /// The `{:?}` of the value `body` holds, for the CDR port data
+        /// type named `type_name` (`IDL:RTC/TimedPose2D:1.0`…) in the byte
+        /// order and charset of `options`; `None` for a type this crate
+        /// does not implement, or a body that does not decode as it.
+        pub fn render(type_name: &str, body: Bytes, options: CdrOptions) -> Option<String> {
+            $(
+                if <$t as PortData>::TYPE_NAME == Some(type_name) {
+                    return <$t as PortData>::decode_with(body, options)
+                        .ok()
+                        .map(|value| format!("{value:?}"));
+                }
+            )*
+            None
+        }
+
+        #[cfg(test)]
+        #[test]
+        fn every_listed_type_renders_as_its_debug_form() {
+            $(
+                let value = <$t>::default();
+                let mut body = BytesMut::new();
+                value.encode(&mut body).expect("encode");
+                let name = <$t as PortData>::TYPE_NAME.expect("a CDR type has a name");
+                assert_eq!(
+                    render(name, body.freeze(), CdrOptions::default()),
+                    Some(format!("{value:?}")),
+                    "{name}"
+                );
+            )*
+        }
+    };
+}
+
+renderable!(
+    TimedDouble,
+    TimedLong,
+    TimedString,
+    TimedDoubleSeq,
+    TimedPose2D,
+    TimedVelocity2D,
+    TimedState,
+    TimedShort,
+    TimedUShort,
+    TimedULong,
+    TimedFloat,
+    TimedChar,
+    TimedBoolean,
+    TimedOctet,
+    TimedShortSeq,
+    TimedLongSeq,
+    TimedUShortSeq,
+    TimedULongSeq,
+    TimedFloatSeq,
+    TimedCharSeq,
+    TimedBooleanSeq,
+    TimedOctetSeq,
+    TimedStringSeq,
+);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn values_render_in_their_byte_order_and_unknown_types_not_at_all() {
+        let pose = TimedPose2D {
+            tm: Time { sec: 1, nsec: 2 },
+            data: Pose2D {
+                position: Point2D { x: 1.5, y: -2.0 },
+                heading: 0.25,
+            },
+        };
+        let big = CdrOptions {
+            endian: Endian::Big,
+            ..CdrOptions::default()
+        };
+        let mut body = BytesMut::new();
+        encode_with(&pose, &mut body, big).expect("encode");
+        let body = body.freeze();
+        let name = "IDL:RTC/TimedPose2D:1.0";
+        assert_eq!(render(name, body.clone(), big), Some(format!("{pose:?}")));
+        assert!(format!("{pose:?}").contains("heading: 0.25"));
+        // Read in the wrong byte order it is not a pose (or not this one).
+        assert_ne!(
+            render(name, body.clone(), CdrOptions::default()),
+            Some(format!("{pose:?}"))
+        );
+        assert_eq!(render("IDL:RTC/TimedPose3D:1.0", body.clone(), big), None);
+        assert_eq!(render("", body.clone(), big), None);
+        assert_eq!(render(name, body.slice(..10), big), None);
+    }
+}
