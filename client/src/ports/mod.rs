@@ -19,7 +19,10 @@
 //! ([`Outcome`], [`OutPortStats`]). Freshness and reliability are set per
 //! port: a lifespan, a [`Backpressure`] and a [`Replay`] policy, or a
 //! [`Qos`] preset naming them together. An in-port without a queue name
-//! gets a named queue of its own that outlives its reconnections.
+//! gets a named queue of its own that outlives its reconnections. Every
+//! port announces itself (name, type, profile, link, counters) on the
+//! [`PORTS_EXCHANGE`], where a [`PortDirectory`] lists the ports of a
+//! broker.
 //!
 //! ```no_run
 //! use leveret_client::ports::{
@@ -52,7 +55,11 @@
 //! - `out_port`: [`OutPort`], [`PortStatus`], [`OutPortStats`].
 //! - `in_port`: [`InPort`], [`Sample`], [`InPortStats`].
 //! - `latency`: [`LatencyStats`] (min, max, mean and percentiles).
+//! - `announce`: ports announcing themselves on [`PORTS_EXCHANGE`] (the
+//!   wire contract), and [`PortDirectory`], which reads the
+//!   announcements ([`PortAnnouncement`]).
 
+mod announce;
 pub mod cdr;
 mod data;
 mod in_port;
@@ -62,6 +69,10 @@ mod openrtm;
 mod out_port;
 mod profile;
 
+pub use announce::{
+    LatencySummary, PortAnnouncement, PortDirectory, PortState, ANNOUNCEMENT_VERSION,
+    PORTS_EXCHANGE,
+};
 pub use cdr::{
     CdrOptions, Charset, Endian, Point2D, Pose2D, Time, TimedBoolean, TimedBooleanSeq, TimedChar,
     TimedCharSeq, TimedDouble, TimedDoubleSeq, TimedFloat, TimedFloatSeq, TimedLong, TimedLongSeq,
