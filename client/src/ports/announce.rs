@@ -1000,6 +1000,10 @@ impl Heard {
 /// at most [`PortDirectory::CAPACITY`] ports; a new one beyond that
 /// replaces the one heard from longest ago.
 ///
+/// Call [`PortDirectory::next`] steadily, or [`PortDirectory::close`] it:
+/// like any consumer of this client, once its buffer is full the client
+/// stops reading its connection, which stalls everything else on it.
+///
 /// ```no_run
 /// use leveret_client::ports::PortDirectory;
 /// use leveret_client::Connection;
