@@ -274,3 +274,237 @@ async fn users_are_added_changed_and_deleted() {
     let gone = ctl(&broker, &["delete_user", "robot"]);
     assert_eq!(gone.status.code(), Some(1), "{gone:?}");
 }
+
+/// `leveretctl port ...` against the AMQP listener of `broker`.
+fn port_ctl(broker: &OpsBroker, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_leveretctl"))
+        .arg("--amqp-url")
+        .arg(broker.amqp_url())
+        .args(["-q", "port"])
+        .args(args)
+        .output()
+        .expect("run leveretctl")
+}
+
+/// Runs `port_ctl` off the runtime's threads (the ports keep running);
+/// it must succeed; its standard output's lines.
+async fn port_lines(broker: &std::sync::Arc<OpsBroker>, args: &[&str]) -> Vec<String> {
+    let broker = std::sync::Arc::clone(broker);
+    let args: Vec<String> = args.iter().map(|arg| (*arg).to_owned()).collect();
+    tokio::task::spawn_blocking(move || {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let output = port_ctl(&broker, &args);
+        assert!(output.status.success(), "port {args:?}: {output:?}");
+        String::from_utf8_lossy(&output.stdout)
+            .lines()
+            .map(str::to_owned)
+            .collect()
+    })
+    .await
+    .expect("leveretctl")
+}
+
+/// The value of `key=` in a `port stats` or `port echo` line.
+fn field<'a>(line: &'a str, key: &str) -> Option<&'a str> {
+    line.split(' ')
+        .find_map(|part| part.strip_prefix(key)?.strip_prefix('='))
+}
+
+/// `port list`, `port stats` and `port echo` on ports running in this
+/// process against the binary's AMQP listener: the listing's columns, the
+/// counters and rates of two announcements, three values decoded as they
+/// flow (the in-port still gets every one), and the exit statuses.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn port_commands_list_follow_and_echo_robot_ports() {
+    use leveret_client::ports::{
+        ExchangeKind, InPort, OutPort, PortProfile, Pose2D, Time, TimedPose2D,
+    };
+    let broker = std::sync::Arc::new(OpsBroker::start("ctl-ports", &[]));
+    let profile = PortProfile::new(&broker.amqp_url())
+        .expect("URI")
+        .exchange("poses", ExchangeKind::Fanout)
+        .announce_interval(Some(Duration::from_millis(200)));
+    let input = InPort::<TimedPose2D>::connect(profile.clone().name("pose-in"))
+        .await
+        .expect("in-port");
+    let output = std::sync::Arc::new(
+        OutPort::<TimedPose2D>::connect(profile.name("pose-out"))
+            .await
+            .expect("out-port"),
+    );
+    // Value n has heading n / 2: its sequence number says which it is.
+    let publisher = {
+        let output = std::sync::Arc::clone(&output);
+        tokio::spawn(async move {
+            for n in 1..=u32::MAX {
+                let pose = TimedPose2D {
+                    tm: Time::now(),
+                    data: Pose2D {
+                        heading: f64::from(n) / 2.0,
+                        ..Default::default()
+                    },
+                };
+                output.put(&pose).await;
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+    };
+
+    let list = port_lines(&broker, &["list"]).await;
+    assert_eq!(
+        list[0],
+        "name\tdirection\ttype\texchange\tkey\tqueue\tstate\taccepted\tconfirmed\treceived\tlost"
+    );
+    assert_eq!(list.len(), 3, "{list:?}");
+    let row = |line: &str| line.split('\t').map(str::to_owned).collect::<Vec<_>>();
+    let (pose_in, pose_out) = (row(&list[1]), row(&list[2]));
+    let pose_type = "IDL:RTC/TimedPose2D:1.0";
+    assert_eq!(
+        pose_in[..7],
+        [
+            "pose-in",
+            "in",
+            pose_type,
+            "poses",
+            "",
+            &input.queue().to_string_lossy(),
+            "up"
+        ]
+    );
+    assert_eq!((pose_in[7].as_str(), pose_in[8].as_str()), ("", ""));
+    assert!(
+        pose_in[9].parse::<u64>().is_ok() && pose_in[10] == "0",
+        "{pose_in:?}"
+    );
+    assert_eq!(
+        pose_out[..7],
+        ["pose-out", "out", pose_type, "poses", "", "", "up"]
+    );
+    assert!(
+        pose_out[7].parse::<u64>().expect("accepted") > 0,
+        "{pose_out:?}"
+    );
+    assert_eq!((pose_out[9].as_str(), pose_out[10].as_str()), ("", ""));
+    let chosen = port_lines(
+        &broker,
+        &[
+            "list",
+            "--no-table-headers",
+            "name",
+            "resent",
+            "interval_ms",
+        ],
+    )
+    .await;
+    assert_eq!(chosen, ["pose-in\t\t200", "pose-out\t0\t200"]);
+
+    let stats = port_lines(&broker, &["stats", "pose-out", "--count", "2"]).await;
+    assert_eq!(stats.len(), 2, "{stats:?}");
+    assert!(
+        stats
+            .iter()
+            .all(|l| l.starts_with("pose-out out up accepted=")),
+        "{stats:?}"
+    );
+    assert_eq!(
+        field(&stats[0], "accepted/s"),
+        None,
+        "no rate before a second announcement"
+    );
+    let rate: f64 = field(&stats[1], "accepted/s")
+        .expect("a rate between announcements")
+        .parse()
+        .expect("a number");
+    assert!(rate > 5.0 && rate < 200.0, "about 50 a second: {stats:?}");
+    assert!(
+        field(&stats[1], "accepted")
+            .expect("counter")
+            .parse::<u64>()
+            .expect("number")
+            > field(&stats[0], "accepted")
+                .expect("counter")
+                .parse::<u64>()
+                .expect("number")
+    );
+    let in_stats = port_lines(&broker, &["stats", "pose-in", "--count", "2"]).await;
+    assert!(field(&in_stats[1], "received/s").is_some(), "{in_stats:?}");
+    let p99: f64 = field(&in_stats[1], "latency_p99_ms")
+        .expect("latencies")
+        .parse()
+        .expect("a number");
+    assert!(p99 > 0.0, "{in_stats:?}");
+
+    let echoed = port_lines(&broker, &["echo", "pose-out", "--count", "3"]).await;
+    assert_eq!(echoed.len(), 3, "{echoed:?}");
+    let mut seqs = Vec::new();
+    for line in &echoed {
+        let seq: u32 = field(line, "seq").expect("seq").parse().expect("number");
+        let age: f64 = field(line, "age_ms").expect("age").parse().expect("number");
+        assert!((0.0..10_000.0).contains(&age), "{line}");
+        let heading = f64::from(seq) / 2.0;
+        assert!(
+            line.contains("TimedPose2D { tm: Time { sec: ")
+                && line.contains(&format!("heading: {heading:?} }}")),
+            "value {seq} decoded: {line}"
+        );
+        seqs.push(seq);
+    }
+    assert_eq!(
+        seqs,
+        [seqs[0], seqs[0] + 1, seqs[0] + 2],
+        "in order, none missed"
+    );
+    // An in-port is echoed through its exchange and binding key.
+    let through_in = port_lines(&broker, &["echo", "pose-in", "--count", "1"]).await;
+    assert!(through_in[0].contains("TimedPose2D {"), "{through_in:?}");
+
+    publisher.abort();
+    let _ = publisher.await;
+    tokio::time::timeout(Duration::from_secs(10), output.flush())
+        .await
+        .expect("flushed");
+    let mut watched = input.watch_stats();
+    let accepted = output.stats().accepted;
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        watched.wait_for(|stats| stats.received == accepted),
+    )
+    .await
+    .expect("the in-port got every value: echo took none")
+    .expect("open");
+
+    let connections = lines(
+        &broker,
+        &[
+            "-q",
+            "--no-table-headers",
+            "list_connections",
+            "client_properties",
+        ],
+    )
+    .join("\n");
+    assert!(
+        connections.contains("leveret port out pose-out")
+            && connections.contains("leveret port in pose-in"),
+        "{connections}"
+    );
+
+    let missing = tokio::task::spawn_blocking({
+        let broker = std::sync::Arc::clone(&broker);
+        move || port_ctl(&broker, &["stats", "nosuch", "--wait", "0.5"])
+    })
+    .await
+    .expect("leveretctl");
+    assert_eq!(missing.status.code(), Some(1), "{missing:?}");
+    assert!(String::from_utf8_lossy(&missing.stderr).contains("nosuch"));
+    let unreachable = Command::new(env!("CARGO_BIN_EXE_leveretctl"))
+        .args([
+            "--amqp-url",
+            "amqp://guest:guest@127.0.0.1:1/%2f",
+            "port",
+            "list",
+        ])
+        .output()
+        .expect("run leveretctl");
+    assert_eq!(unreachable.status.code(), Some(69), "{unreachable:?}");
+}

@@ -15,10 +15,12 @@
 //! [`futures_core::Stream`] (every value in order), and
 //! [`InPort::on_receive`] callbacks.
 
+use super::announce::{self, Announcer};
 use super::cdr::CdrOptions;
 use super::data::{DataError, PortData};
 use super::latency::LatencyStats;
 use super::link::{self, Link, LinkStatus, Stamp};
+use super::openrtm::PortRole;
 use super::profile::{Connector, FullPolicy, PortProfile};
 use crate::error::{Error, Result};
 use crate::{
@@ -188,6 +190,7 @@ impl<T: PortData> InPort<T> {
 
     /// [`InPort::connect`] through `connector`.
     pub async fn connect_with(connector: Connector, profile: PortProfile) -> Result<Self> {
+        let connector = connector.naming(announce::connection_name(PortRole::InPort, &profile));
         let queue = QueueName::of(&profile);
         let first = open(&connector, &profile, &queue).await?;
         Ok(InPort::spawn(connector, profile, queue, Some(first)))
@@ -202,6 +205,7 @@ impl<T: PortData> InPort<T> {
 
     /// [`InPort::start`] through `connector`.
     pub fn start_with(connector: Connector, profile: PortProfile) -> Self {
+        let connector = connector.naming(announce::connection_name(PortRole::InPort, &profile));
         let queue = QueueName::of(&profile);
         InPort::spawn(connector, profile, queue, None)
     }
@@ -234,6 +238,14 @@ impl<T: PortData> InPort<T> {
         if first.is_some() {
             shared.link.connected();
         }
+        let announcer = Announcer::start::<T, _>(
+            PortRole::InPort,
+            &profile,
+            &link::port_id(),
+            Some(&queue.name),
+            shared.stats.subscribe(),
+            shared.link.subscribe(),
+        );
         let (stop, stopped) = watch::channel(false);
         let task = Task {
             shared: Arc::clone(&shared),
@@ -242,6 +254,7 @@ impl<T: PortData> InPort<T> {
             queue,
             senders: HashMap::new(),
             stop: stopped,
+            announcer,
         };
         let task = tokio::spawn(task.run(first));
         InPort {
@@ -491,6 +504,7 @@ struct Task<T> {
     queue: QueueName,
     senders: HashMap<String, Sequence>,
     stop: watch::Receiver<bool>,
+    announcer: Announcer,
 }
 
 impl<T: PortData> Task<T> {
@@ -499,9 +513,11 @@ impl<T: PortData> Task<T> {
         let mut failures = 0u32;
         loop {
             if let Some(mut current) = link.take() {
+                self.announcer.link_up(&current.connection);
                 let error = match self.consume(&mut current).await {
                     Some(error) => error,
                     None => {
+                        self.announcer.close().await;
                         // Closed on purpose: the port's own queue goes
                         // too (x-expires is for a port that vanished).
                         let own = self.queue.own;

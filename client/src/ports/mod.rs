@@ -19,7 +19,10 @@
 //! ([`Outcome`], [`OutPortStats`]). Freshness and reliability are set per
 //! port: a lifespan, a [`Backpressure`] and a [`Replay`] policy, or a
 //! [`Qos`] preset naming them together. An in-port without a queue name
-//! gets a named queue of its own that outlives its reconnections.
+//! gets a named queue of its own that outlives its reconnections. Every
+//! port announces itself (name, type, profile, link, counters) on the
+//! [`PORTS_EXCHANGE`], where a [`PortDirectory`] lists the ports of a
+//! broker.
 //!
 //! ```no_run
 //! use leveret_client::ports::{
@@ -44,7 +47,8 @@
 //! - `data`: [`PortData`] (value ⇄ body), its impls and [`DataError`].
 //! - [`cdr`]: OMG CDR (either byte order) and the types of OpenRTM-aist's
 //!   `BasicDataType.idl` and `ExtendedDataTypes.idl` (`RTC::Time`,
-//!   `RTC::Timed*`, the 2D and 3D geometry), all re-exported here too.
+//!   `RTC::Timed*`, the 2D and 3D geometry), all re-exported here too;
+//!   [`cdr::render`] shows a body by its type's name.
 //! - `profile`: [`PortProfile`], [`ExchangeKind`], [`FullPolicy`],
 //!   [`Backoff`], [`Connector`].
 //! - `openrtm`: [`PortProfile::from_properties`] (OpenRTM-aist connector
@@ -53,7 +57,11 @@
 //! - `out_port`: [`OutPort`], [`PortStatus`], [`OutPortStats`].
 //! - `in_port`: [`InPort`], [`Sample`], [`InPortStats`].
 //! - `latency`: [`LatencyStats`] (min, max, mean and percentiles).
+//! - `announce`: ports announcing themselves on [`PORTS_EXCHANGE`] (the
+//!   wire contract), and [`PortDirectory`], which reads the
+//!   announcements ([`PortAnnouncement`]).
 
+mod announce;
 pub mod cdr;
 mod data;
 mod in_port;
@@ -63,6 +71,10 @@ mod openrtm;
 mod out_port;
 mod profile;
 
+pub use announce::{
+    LatencySummary, PortAnnouncement, PortDirectory, PortState, ANNOUNCEMENT_VERSION,
+    PORTS_EXCHANGE,
+};
 // Every RTC data type is here as well as in `cdr` (a glob of the two
 // type modules, one per OpenRTM-aist IDL file, so the list cannot go
 // stale); the codec itself stays in `cdr`.

@@ -23,9 +23,11 @@
 //! [`OutPort::watch_stats`]), a stream of [`Outcome`]s
 //! ([`OutPort::outcomes`]) and callbacks ([`OutPort::on_outcome`]).
 
+use super::announce::{self, Announcer};
 use super::cdr::CdrOptions;
 use super::data::PortData;
 use super::link::{self, Link, LinkStatus};
+use super::openrtm::PortRole;
 use super::profile::{Backpressure, Connector, PortProfile, Replay};
 use crate::confirm::ConfirmFuture;
 use crate::error::{Error, Result};
@@ -296,6 +298,7 @@ impl<T: PortData> OutPort<T> {
     /// setup of one's own).
     pub async fn connect_with(connector: Connector, profile: PortProfile) -> Result<Self> {
         check_routes(&profile)?;
+        let connector = connector.naming(announce::connection_name(PortRole::OutPort, &profile));
         let profile = Arc::new(profile);
         let first = open(connector.clone(), Arc::clone(&profile)).await?;
         OutPort::spawn(connector, profile, Some(first))
@@ -313,6 +316,7 @@ impl<T: PortData> OutPort<T> {
     /// [`OutPort::start`] through `connector`.
     pub fn start_with(connector: Connector, profile: PortProfile) -> Result<Self> {
         check_routes(&profile)?;
+        let connector = connector.naming(announce::connection_name(PortRole::OutPort, &profile));
         OutPort::spawn(connector, Arc::new(profile), None)
     }
 
@@ -342,6 +346,17 @@ impl<T: PortData> OutPort<T> {
             shared.link.connected();
         }
         let id: Arc<str> = link::port_id().into();
+        let announcer = Announcer::start::<T, _>(
+            PortRole::OutPort,
+            &profile,
+            &id,
+            None,
+            shared.stats.subscribe(),
+            shared.link.subscribe(),
+        );
+        if let Some(first) = &first {
+            announcer.link_up(&first.connection);
+        }
         let task = Task {
             shared: Arc::clone(&shared),
             connector,
@@ -357,6 +372,7 @@ impl<T: PortData> OutPort<T> {
             retry_at: Instant::now(),
             link: first.map(OutLink::watch_returns),
             profile: Arc::clone(&profile),
+            announcer,
         };
         let task = tokio::spawn(task.run());
         Ok(OutPort {
@@ -682,6 +698,7 @@ struct Task {
     connecting: Option<Opening>,
     failures: u32,
     retry_at: Instant,
+    announcer: Announcer,
 }
 
 impl Task {
@@ -707,6 +724,7 @@ impl Task {
             }
         }
         if let Some(link) = self.link.take() {
+            self.announcer.close().await;
             let _ = tokio::time::timeout(CLOSE_TIMEOUT, link.connection.close()).await;
         }
     }
@@ -943,6 +961,9 @@ impl Task {
                 drop(window);
                 self.shared.report(&outcomes, !outcomes.is_empty());
                 self.shared.link.connected();
+                if let Some(link) = &self.link {
+                    self.announcer.link_up(&link.connection);
+                }
             }
             Err(error) => {
                 self.shared.link.failed(&error);

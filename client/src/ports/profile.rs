@@ -6,11 +6,13 @@
 //! prefetch, the in-port's buffer and full policy, the out-port's window
 //! and its [`Backpressure`], the put timeout (for `Block` only), the
 //! lifespan, the [`Replay`] policy, mandatory publishing, the CDR options,
-//! the in-port's own queue expiry, the reconnection backoff, and the
+//! the in-port's own queue expiry, the reconnection backoff, the port's
+//! name and how often it announces itself (see `announce`), and the
 //! [`Qos`] presets that set several at once. [`Connector`] says how a port
 //! (re)opens its connection: TCP, an embedded broker, or a function.
 
 use super::cdr::CdrOptions;
+use super::openrtm::PortRole;
 use crate::error::Result;
 use crate::uri::ConnectionOptions;
 use crate::{Connection, FieldTable};
@@ -268,6 +270,14 @@ pub struct PortProfile {
     /// sent while it reconnects is lost; the broker deletes it once unused
     /// for this long (`x-expires`).
     pub queue_expires: Duration,
+    /// The port's name in its announcements and in its connection's name
+    /// (`leveret port out NAME`); `None`: one made of the profile (see
+    /// [`PortProfile::port_name`]).
+    pub name: Option<String>,
+    /// How often the port announces itself on the `leveret.ports`
+    /// exchange (see [`super::PORTS_EXCHANGE`]): once when its link comes
+    /// up, then at this interval. `None` or zero: never.
+    pub announce_interval: Option<Duration>,
 }
 
 impl Default for PortProfile {
@@ -302,6 +312,8 @@ impl Default for PortProfile {
             replay: Replay::All,
             mandatory: true,
             queue_expires: Duration::from_secs(60),
+            name: None,
+            announce_interval: Some(Duration::from_secs(1)),
         }
     }
 }
@@ -459,16 +471,63 @@ impl PortProfile {
         self.backoff = Backoff { initial, max };
         self
     }
+
+    /// Names the port (its announcements, its connection).
+    pub fn name(mut self, name: impl Into<String>) -> Self {
+        self.name = Some(name.into());
+        self
+    }
+
+    /// Sets how often the port announces itself; `None` or zero: never.
+    pub fn announce_interval(mut self, interval: Option<Duration>) -> Self {
+        self.announce_interval = interval;
+        self
+    }
+
+    /// The name of a port with this profile in `role`: the one set with
+    /// [`PortProfile::name`], else one made of where its messages go. An
+    /// out-port: `EXCHANGE/ROUTING_KEY` (`EXCHANGE` alone without a
+    /// routing key, `ROUTING_KEY` alone on the default exchange). An
+    /// in-port: its queue if the profile names one, else
+    /// `EXCHANGE/BINDING_KEY` (`EXCHANGE` alone without a binding key).
+    /// `unnamed` if that leaves nothing.
+    pub fn port_name(&self, role: PortRole) -> String {
+        if let Some(name) = &self.name {
+            return name.clone();
+        }
+        let joined = |exchange: &str, key: &str| match (exchange.is_empty(), key.is_empty()) {
+            (true, _) => key.to_owned(),
+            (false, true) => exchange.to_owned(),
+            (false, false) => format!("{exchange}/{key}"),
+        };
+        let name = match role {
+            PortRole::OutPort => joined(&self.exchange, &self.routing_key),
+            PortRole::InPort if !self.queue.is_empty() => self.queue.clone(),
+            PortRole::InPort => joined(&self.exchange, &self.binding_key),
+        };
+        if name.is_empty() {
+            "unnamed".to_owned()
+        } else {
+            name
+        }
+    }
 }
 
 type ConnectFuture = Pin<Box<dyn Future<Output = Result<Connection>> + Send>>;
+
+/// Opens a connection, naming it (`connection_name`) unless its options
+/// already do.
+type Connect = dyn Fn(Option<Arc<str>>) -> ConnectFuture + Send + Sync;
 
 /// How a port opens (and, after a loss, reopens) its connection. Cheap to
 /// clone.
 #[derive(Clone)]
 pub struct Connector {
-    connect: Arc<dyn Fn() -> ConnectFuture + Send + Sync>,
+    connect: Arc<Connect>,
     describe: Arc<str>,
+    /// The `connection_name` client property of its connections (the port
+    /// sets it), unless the connection options name one.
+    connection_name: Option<Arc<str>>,
 }
 
 impl fmt::Debug for Connector {
@@ -477,30 +536,41 @@ impl fmt::Debug for Connector {
     }
 }
 
+/// `options` with `name` as the connection's name, unless they have one.
+fn named(options: &ConnectionOptions, name: Option<Arc<str>>) -> ConnectionOptions {
+    let mut options = options.clone();
+    if options.connection_name.is_none() {
+        options.connection_name = name.map(|name| name.to_string());
+    }
+    options
+}
+
 impl Connector {
     /// TCP to the broker `options` name.
     pub fn tcp(options: ConnectionOptions) -> Self {
         let describe = format!("amqp://{}:{}", options.host, options.port);
         let options = Arc::new(options);
         Connector {
-            connect: Arc::new(move || {
-                let options = ConnectionOptions::clone(&options);
+            connect: Arc::new(move |name| {
+                let options = named(&options, name);
                 Box::pin(Connection::connect_with(options))
             }),
             describe: describe.into(),
+            connection_name: None,
         }
     }
 
     /// Connections made by `connect` (for a transport or setup of one's
-    /// own).
+    /// own; their names are its business).
     pub fn from_fn<F, Fut>(connect: F) -> Self
     where
         F: Fn() -> Fut + Send + Sync + 'static,
         Fut: Future<Output = Result<Connection>> + Send + 'static,
     {
         Connector {
-            connect: Arc::new(move || Box::pin(connect())),
+            connect: Arc::new(move |_| Box::pin(connect())),
             describe: "custom".into(),
+            connection_name: None,
         }
     }
 
@@ -522,9 +592,9 @@ impl Connector {
         let broker = Arc::downgrade(broker);
         let options = Arc::new(options);
         Connector {
-            connect: Arc::new(move || {
+            connect: Arc::new(move |name| {
                 let broker = broker.clone();
-                let options = ConnectionOptions::clone(&options);
+                let options = named(&options, name);
                 Box::pin(async move {
                     let Some(broker) = broker.upgrade() else {
                         return Err(crate::Error::io(std::io::Error::new(
@@ -538,12 +608,21 @@ impl Connector {
                 })
             }),
             describe: "in-process".into(),
+            connection_name: None,
         }
+    }
+
+    /// This connector, naming its connections `name` (the
+    /// `connection_name` client property management tools show) where
+    /// their options do not.
+    pub(crate) fn naming(mut self, name: String) -> Self {
+        self.connection_name = Some(name.into());
+        self
     }
 
     /// Opens a connection.
     pub async fn connect(&self) -> Result<Connection> {
-        (self.connect)().await
+        (self.connect)(self.connection_name.clone()).await
     }
 }
 

@@ -5,18 +5,26 @@
 //! commands rabbitmqctl's column names and tab-separated output (a header
 //! line unless `--no-table-headers`; the "Listing ..." line unless `-q`).
 //! `--url` names the API (default `http://127.0.0.1:15672`, guest/guest).
+//! The `port` commands (`port list`, `port stats NAME`, `port echo NAME`)
+//! speak AMQP instead, to `--amqp-url` (default
+//! `amqp://guest:guest@127.0.0.1:5672/%2f`, its vhost the URL's), and
+//! show the robot data ports that announce themselves there.
 //!
 //! Exit status: 0 on success, 64 for a command line it cannot use, 69 when
-//! the API cannot be reached, 1 when the broker refuses the request.
+//! the API (or, for `port`, the broker) cannot be reached, 1 when the
+//! broker refuses the request (or the port named does not announce
+//! itself).
 //!
 //! # Layout
 //! - `main`: the command line and the commands.
 //! - `client`: the HTTP client (ureq).
 //! - `columns`: rabbitmqctl's column names mapped onto the API's fields.
+//! - `ports`: the `port` commands, over AMQP with leveret-client.
 #![forbid(unsafe_code)]
 
 mod client;
 mod columns;
+mod ports;
 
 use clap::{Parser, Subcommand};
 use client::{segment, Client, ClientError};
@@ -37,6 +45,13 @@ struct Cli {
     /// The management API.
     #[arg(long, default_value = "http://127.0.0.1:15672", global = true)]
     url: String,
+    /// The broker's AMQP listener, for the `port` commands.
+    #[arg(
+        long,
+        default_value = "amqp://guest:guest@127.0.0.1:5672/%2f",
+        global = true
+    )]
+    amqp_url: String,
     /// User for the API.
     #[arg(long, default_value = "guest", global = true)]
     username: String,
@@ -124,6 +139,12 @@ enum Command {
     /// The node's status: versions, memory, file descriptors, listeners,
     /// totals.
     Status,
+    /// The robot data ports that announce themselves (over AMQP, see
+    /// --amqp-url).
+    Port {
+        #[command(subcommand)]
+        command: ports::PortCommand,
+    },
 }
 
 /// Why a command failed.
@@ -135,6 +156,9 @@ enum Failure {
     Usage(String),
     #[error("{0}")]
     Refused(String),
+    /// The broker's AMQP listener cannot be reached (or was lost).
+    #[error("{0}")]
+    Unavailable(String),
     #[error("{0}")]
     Io(#[from] std::io::Error),
 }
@@ -158,7 +182,9 @@ fn main() -> ExitCode {
             eprintln!("Error: {e}");
             ExitCode::from(match e {
                 Failure::Usage(_) => USAGE,
-                Failure::Client(ClientError::Unreachable { .. }) => UNAVAILABLE,
+                Failure::Client(ClientError::Unreachable { .. }) | Failure::Unavailable(_) => {
+                    UNAVAILABLE
+                }
                 Failure::Client(ClientError::Api { .. }) | Failure::Refused(_) | Failure::Io(_) => {
                     1
                 }
@@ -376,6 +402,7 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             Ok(())
         }
         Command::Status => status(cli, &client),
+        Command::Port { command } => ports::run(cli, command),
     }
 }
 

@@ -28,6 +28,9 @@
 use super::data::DataError;
 use bytes::{BufMut, Bytes, BytesMut};
 
+mod render;
+pub use render::render;
+
 /// CDR's byte order (OpenRTM's connector property `serializer.cdr.endian`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Endian {

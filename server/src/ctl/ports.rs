@@ -1,0 +1,579 @@
+//! `leveretctl port list`, `port stats NAME` and `port echo NAME`: the
+//! robot data ports connected to a broker, from the announcements they
+//! publish on `leveret.ports` (leveret-client's `ports::PortDirectory`;
+//! the wire contract is in leveret-client's `ports::announce`). These
+//! speak AMQP to `--amqp-url`, not the management API, so they work the
+//! same against RabbitMQ. This module owns the commands and their output;
+//! it uses leveret-client (connection, port directory, `cdr::render`) on a
+//! current-thread tokio runtime of its own, and the ctl's `Failure`s.
+
+use crate::{emit, info, Cli, Failure};
+use clap::Subcommand;
+use leveret_client::ports::{
+    cdr, CdrOptions, PortAnnouncement, PortDirectory, PortRole, PortState, SENT_HEADER, SEQ_HEADER,
+};
+use leveret_client::{
+    BasicConsumeOptions, Connection, ConnectionOptions, Error, FieldTable, FieldValue,
+    QueueBindOptions, QueueDeclareOptions,
+};
+use std::collections::HashMap;
+use std::fmt::Write as _;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use tokio::time::Instant;
+
+/// The port commands.
+#[derive(Debug, Subcommand)]
+pub enum PortCommand {
+    /// Lists the ports that announce themselves, listening a little more
+    /// than one of their intervals: name, direction, type, exchange, key,
+    /// queue, state, accepted, confirmed, received, lost by default; any
+    /// of id, exchange_type, content_type, interval_ms, confirms, durable,
+    /// lifespan_ms, link, connects, losses, last_error, latency_count,
+    /// latency_min_ns, latency_mean_ns, latency_p50_ns, latency_p99_ns,
+    /// latency_max_ns, or a counter's name, as columns.
+    List {
+        columns: Vec<String>,
+        /// Seconds to listen at least (longer if a port announces less often).
+        #[arg(long, default_value = "1.5", value_name = "SECONDS")]
+        wait: f64,
+    },
+    /// Prints a port's counters each time it announces itself, with the
+    /// message rates since its previous announcement and, for an in-port,
+    /// its latencies; until --count announcements, the port's close, or
+    /// (exit status 1) three of its intervals without a word.
+    Stats {
+        name: String,
+        /// Stop after this many announcements.
+        #[arg(long, value_name = "N")]
+        count: Option<u64>,
+        /// Seconds to wait for the port to announce itself (exit status 1
+        /// if it does not).
+        #[arg(long, default_value = "3", value_name = "SECONDS")]
+        wait: f64,
+    },
+    /// Prints the messages on a port's exchange and key as they arrive
+    /// (decoded by its type, else as text, else in hex), through a queue
+    /// of its own: the port keeps all of its messages.
+    Echo {
+        name: String,
+        /// Stop after this many messages.
+        #[arg(long, value_name = "N")]
+        count: Option<u64>,
+        /// Seconds to wait for the port to announce itself (exit status 1
+        /// if it does not).
+        #[arg(long, default_value = "3", value_name = "SECONDS")]
+        wait: f64,
+    },
+}
+
+/// The longest `port list` listens, whatever the ports' intervals.
+const MAX_LISTEN: Duration = Duration::from_secs(60);
+
+/// The bytes of a body shown in hex, at most.
+const HEX_BYTES: usize = 64;
+
+/// The columns `port list` shows when none are asked for.
+const DEFAULT_COLUMNS: &[&str] = &[
+    "name",
+    "direction",
+    "type",
+    "exchange",
+    "key",
+    "queue",
+    "state",
+    "accepted",
+    "confirmed",
+    "received",
+    "lost",
+];
+
+/// The counters `port stats` shows a rate for (messages per second).
+const RATED: &[&str] = &["accepted", "confirmed", "received"];
+
+/// Runs a port command.
+pub fn run(cli: &Cli, command: &PortCommand) -> Result<(), Failure> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        match command {
+            PortCommand::List { columns, wait } => list(cli, columns, seconds(*wait)?).await,
+            PortCommand::Stats { name, count, wait } => {
+                stats(cli, name, *count, seconds(*wait)?).await
+            }
+            PortCommand::Echo { name, count, wait } => {
+                echo(cli, name, *count, seconds(*wait)?).await
+            }
+        }
+    })
+}
+
+fn seconds(value: f64) -> Result<Duration, Failure> {
+    Duration::try_from_secs_f64(value)
+        .ok()
+        .filter(|wait| !wait.is_zero())
+        .ok_or_else(|| Failure::Usage(format!("--wait {value}: not a number of seconds")))
+}
+
+/// A connection to `--amqp-url`: unreachable is status 69, refused 1.
+async fn connect(cli: &Cli) -> Result<Connection, Failure> {
+    let mut options = ConnectionOptions::from_uri(&cli.amqp_url)
+        .map_err(|e| Failure::Usage(format!("--amqp-url: {e}")))?;
+    options.connection_name = Some("leveretctl".to_owned());
+    if !cli.amqp_url.contains("connection_timeout=") {
+        options.connection_timeout = Duration::from_secs(10);
+    }
+    let place = format!("{}:{}", options.host, options.port);
+    Connection::connect_with(options)
+        .await
+        .map_err(|error| match error {
+            Error::ConnectionClosed(reason) => {
+                Failure::Refused(format!("the broker at {place} refused: {reason}"))
+            }
+            error => Failure::Unavailable(format!("cannot reach the broker at {place}: {error}")),
+        })
+}
+
+/// What an AMQP error on an open connection means for the exit status:
+/// the broker refused (1), or it is gone (69).
+fn broker_failure(error: Error) -> Failure {
+    match error {
+        Error::ChannelClosed(reason) | Error::ConnectionClosed(reason) => {
+            Failure::Refused(format!("the broker refused: {reason}"))
+        }
+        error => Failure::Unavailable(format!("lost the broker: {error}")),
+    }
+}
+
+/// The next announcement, or a failure once the connection has ended.
+async fn next(directory: &mut PortDirectory) -> Result<PortAnnouncement, Failure> {
+    directory
+        .next()
+        .await
+        .ok_or_else(|| Failure::Unavailable("the broker closed the connection".to_owned()))
+}
+
+async fn list(cli: &Cli, columns: &[String], wait: Duration) -> Result<(), Failure> {
+    let connection = connect(cli).await?;
+    let mut directory = PortDirectory::watch(&connection)
+        .await
+        .map_err(broker_failure)?;
+    info(cli, "Listing ports ...")?;
+    let started = Instant::now();
+    let mut deadline = started + wait;
+    loop {
+        tokio::select! {
+            announcement = next(&mut directory) => {
+                // A bit more than the longest interval heard, so every
+                // port has announced once.
+                let interval = announcement?.interval.mul_f64(1.2).min(MAX_LISTEN);
+                deadline = deadline.max(started + interval);
+            }
+            () = tokio::time::sleep_until(deadline) => break,
+        }
+    }
+    let ports = directory.ports();
+    let names: Vec<&str> = if columns.is_empty() {
+        DEFAULT_COLUMNS.to_vec()
+    } else {
+        columns.iter().map(String::as_str).collect()
+    };
+    let unknown: Vec<&str> = names
+        .iter()
+        .copied()
+        .filter(|name| {
+            !FIELD_COLUMNS.contains(name)
+                && !COUNTERS.contains(name)
+                && !ports.iter().any(|port| port.counter(name).is_some())
+        })
+        .collect();
+    if !unknown.is_empty() {
+        return Err(Failure::Usage(format!(
+            "unknown columns {}; known: {}, or a counter's name",
+            unknown.join(", "),
+            FIELD_COLUMNS.join(", ")
+        )));
+    }
+    let mut out = String::new();
+    if !cli.no_table_headers {
+        let _ = writeln!(out, "{}", names.join("\t"));
+    }
+    for port in &ports {
+        let row: Vec<String> = names.iter().map(|name| cell(port, name)).collect();
+        let _ = writeln!(out, "{}", row.join("\t"));
+    }
+    emit(&out)
+}
+
+/// The columns of `port list` that are fields of an announcement.
+const FIELD_COLUMNS: &[&str] = &[
+    "name",
+    "id",
+    "direction",
+    "type",
+    "content_type",
+    "exchange",
+    "exchange_type",
+    "key",
+    "queue",
+    "state",
+    "interval_ms",
+    "confirms",
+    "durable",
+    "lifespan_ms",
+    "link",
+    "connects",
+    "losses",
+    "last_error",
+    "latency_count",
+    "latency_min_ns",
+    "latency_mean_ns",
+    "latency_p50_ns",
+    "latency_p99_ns",
+    "latency_max_ns",
+];
+
+/// The counters of out-ports and in-ports as this ctl knows them, so they
+/// are columns even when no port listed has them (a port's newer counters
+/// are columns too once it is heard).
+const COUNTERS: &[&str] = &[
+    "accepted",
+    "confirmed",
+    "rejected",
+    "unroutable",
+    "expired",
+    "dropped",
+    "resent",
+    "send_full",
+    "unconfirmed",
+    "received",
+    "lost",
+    "out_of_order",
+    "duplicates",
+    "skipped",
+    "decode_errors",
+    "stale",
+];
+
+/// Column `name` of `port`'s row: a field, or a counter (empty if the
+/// port has no such counter).
+fn cell(port: &PortAnnouncement, name: &str) -> String {
+    let nanos = |value: Duration| value.as_nanos().to_string();
+    let latency = port.latency;
+    match name {
+        "name" => port.name.clone(),
+        "id" => port.id.clone(),
+        "direction" => port.role.direction().to_owned(),
+        "type" => port.data_type.clone(),
+        "content_type" => port.content_type.clone(),
+        "exchange" => port.exchange.clone(),
+        "exchange_type" => port.exchange_kind.to_string(),
+        "key" => port.key.clone(),
+        "queue" => port.queue.clone(),
+        "state" => port.state.as_str().to_owned(),
+        "interval_ms" => port.interval.as_millis().to_string(),
+        "confirms" => port.confirms.to_string(),
+        "durable" => port.durable.to_string(),
+        "lifespan_ms" => port
+            .lifespan
+            .map(|lifespan| lifespan.as_millis().to_string())
+            .unwrap_or_default(),
+        "link" => if port.link.up { "up" } else { "down" }.to_owned(),
+        "connects" => port.link.connects.to_string(),
+        "losses" => port.link.losses.to_string(),
+        "last_error" => port.link.last_error.clone().unwrap_or_default(),
+        "latency_count" => latency.map(|l| l.count.to_string()).unwrap_or_default(),
+        "latency_min_ns" => latency.map(|l| nanos(l.min)).unwrap_or_default(),
+        "latency_mean_ns" => latency.map(|l| nanos(l.mean)).unwrap_or_default(),
+        "latency_p50_ns" => latency.map(|l| nanos(l.p50)).unwrap_or_default(),
+        "latency_p99_ns" => latency.map(|l| nanos(l.p99)).unwrap_or_default(),
+        "latency_max_ns" => latency.map(|l| nanos(l.max)).unwrap_or_default(),
+        counter => port
+            .counter(counter)
+            .map(|value| value.to_string())
+            .unwrap_or_default(),
+    }
+}
+
+/// Waits up to `wait` for a port named `name`; exit status 1 if none
+/// announces itself.
+async fn find(
+    directory: &mut PortDirectory,
+    name: &str,
+    wait: Duration,
+) -> Result<PortAnnouncement, Failure> {
+    let not_found = || Failure::Refused(format!("no port named {name:?} announced itself"));
+    tokio::time::timeout(wait, async {
+        loop {
+            let announcement = next(directory).await?;
+            if announcement.name == name && announcement.state == PortState::Up {
+                return Ok(announcement);
+            }
+        }
+    })
+    .await
+    .map_err(|_| not_found())?
+}
+
+async fn stats(cli: &Cli, name: &str, count: Option<u64>, wait: Duration) -> Result<(), Failure> {
+    let connection = connect(cli).await?;
+    let mut directory = PortDirectory::watch(&connection)
+        .await
+        .map_err(broker_failure)?;
+    let first = find(&mut directory, name, wait).await?;
+    info(cli, &format!("Statistics of port {name} ..."))?;
+    let mut previous: HashMap<String, PortAnnouncement> = HashMap::new();
+    let mut printed = 0;
+    let mut announcement = first;
+    loop {
+        emit(&stats_line(&announcement, previous.get(&announcement.id)))?;
+        printed += 1;
+        if count.is_some_and(|count| printed >= count) {
+            return Ok(());
+        }
+        if announcement.state == PortState::Closed && directory.named(name).is_empty() {
+            return Ok(());
+        }
+        // Silent for three of its intervals: gone without a word.
+        let silence = wait.max(announcement.interval.saturating_mul(3));
+        previous.insert(announcement.id.clone(), announcement);
+        announcement = tokio::time::timeout(silence, async {
+            loop {
+                let next = next(&mut directory).await?;
+                if next.name == name {
+                    return Ok::<_, Failure>(next);
+                }
+            }
+        })
+        .await
+        .map_err(|_| Failure::Refused(format!("port {name:?} went silent")))??;
+    }
+}
+
+/// One `port stats` line: `NAME DIRECTION STATE counter=value …`, with
+/// `counter/s=rate` since `previous` for the message counters, the
+/// latencies in ms, the link, and the instance's id.
+fn stats_line(port: &PortAnnouncement, previous: Option<&PortAnnouncement>) -> String {
+    let mut line = format!(
+        "{} {} {}",
+        port.name,
+        port.role.direction(),
+        port.state.as_str()
+    );
+    let elapsed = previous
+        .map(|previous| port.sent_ns.saturating_sub(previous.sent_ns) as f64 / 1e9)
+        .filter(|seconds| *seconds > 0.0);
+    for (counter, value) in &port.stats {
+        let _ = write!(line, " {counter}={value}");
+        let before = previous.and_then(|previous| previous.counter(counter));
+        if let (true, Some(before), Some(seconds)) =
+            (RATED.contains(&counter.as_str()), before, elapsed)
+        {
+            let rate = value.saturating_sub(before) as f64 / seconds;
+            let _ = write!(line, " {counter}/s={rate:.1}");
+        }
+    }
+    if let Some(latency) = port.latency {
+        let ms = |value: Duration| value.as_secs_f64() * 1e3;
+        let _ = write!(
+            line,
+            " latency_min_ms={:.3} latency_mean_ms={:.3} latency_p50_ms={:.3} \
+             latency_p99_ms={:.3} latency_max_ms={:.3}",
+            ms(latency.min),
+            ms(latency.mean),
+            ms(latency.p50),
+            ms(latency.p99),
+            ms(latency.max)
+        );
+    }
+    let _ = writeln!(
+        line,
+        " link={} connects={} losses={} port={}",
+        if port.link.up { "up" } else { "down" },
+        port.link.connects,
+        port.link.losses,
+        port.id
+    );
+    line
+}
+
+async fn echo(cli: &Cli, name: &str, count: Option<u64>, wait: Duration) -> Result<(), Failure> {
+    let connection = connect(cli).await?;
+    let mut directory = PortDirectory::watch(&connection)
+        .await
+        .map_err(broker_failure)?;
+    let mut port = find(&mut directory, name, wait).await?;
+    if port.role == PortRole::InPort {
+        // An out-port of the same name is the one to echo, if there is
+        // one: listen one of its intervals more for it.
+        let more = port.interval.mul_f64(1.2).min(wait);
+        let _ = tokio::time::timeout(more, async {
+            loop {
+                match next(&mut directory).await {
+                    Ok(other) if other.name == name && other.role == PortRole::OutPort => {
+                        port = other;
+                        return;
+                    }
+                    Ok(_) => {}
+                    Err(_) => return,
+                }
+            }
+        })
+        .await;
+    }
+    // Its consumer, no longer drained, would pause the connection.
+    directory.close().await;
+    if port.exchange.is_empty() {
+        return Err(Failure::Refused(format!(
+            "port {name:?} uses the default exchange (straight to queue {:?}): \
+             a copy of its messages cannot be had without taking them from it",
+            if port.key.is_empty() {
+                &port.queue
+            } else {
+                &port.key
+            }
+        )));
+    }
+    let channel = connection.open_channel().await.map_err(broker_failure)?;
+    let queue = channel
+        .queue_declare(
+            "",
+            QueueDeclareOptions {
+                exclusive: true,
+                auto_delete: true,
+                ..Default::default()
+            },
+            FieldTable::new(),
+        )
+        .await
+        .map_err(broker_failure)?;
+    channel
+        .queue_bind(
+            &queue.name,
+            port.exchange.as_str(),
+            port.key.as_str(),
+            QueueBindOptions::default(),
+            FieldTable::new(),
+        )
+        .await
+        .map_err(|error| match broker_failure(error) {
+            Failure::Refused(why) => {
+                Failure::Refused(format!("binding to exchange {:?}: {why}", port.exchange))
+            }
+            other => other,
+        })?;
+    let mut consumer = channel
+        .basic_consume(
+            &queue.name,
+            "",
+            BasicConsumeOptions {
+                no_ack: true,
+                exclusive: true,
+                ..Default::default()
+            },
+            FieldTable::new(),
+        )
+        .await
+        .map_err(broker_failure)?;
+    info(
+        cli,
+        &format!(
+            "Echoing port {name} ({} {}, exchange {:?}, key {:?}) ...",
+            port.role.direction(),
+            port.data_type,
+            port.exchange,
+            port.key
+        ),
+    )?;
+    let options = port.cdr.unwrap_or_default();
+    let mut printed = 0;
+    while count.is_none_or(|count| printed < count) {
+        let Some(delivery) = consumer.next().await else {
+            return Err(Failure::Unavailable(
+                "the broker ended the echo's consumer".to_owned(),
+            ));
+        };
+        let headers = delivery.properties.headers.as_ref();
+        let header = |key: &str| {
+            headers
+                .and_then(|h| h.get(key))
+                .and_then(FieldValue::as_i64)
+        };
+        let type_name = delivery
+            .properties
+            .kind
+            .as_ref()
+            .map(|kind| kind.to_string_lossy().into_owned())
+            .unwrap_or_else(|| port.data_type.clone());
+        let seq = header(SEQ_HEADER).map_or_else(|| "-".to_owned(), |seq| seq.to_string());
+        let age = header(SENT_HEADER).map_or_else(
+            || "-".to_owned(),
+            |sent| format!("{:.3}", (now_ns().saturating_sub(sent)) as f64 / 1e6),
+        );
+        emit(&format!(
+            "seq={seq} age_ms={age} {}\n",
+            show(&type_name, delivery.body.clone(), options)
+        ))?;
+        printed += 1;
+    }
+    Ok(())
+}
+
+/// A body as its value (a CDR type the client implements), else as text,
+/// else in hex (the first [`HEX_BYTES`] bytes).
+fn show(type_name: &str, body: bytes::Bytes, options: CdrOptions) -> String {
+    if let Some(value) = cdr::render(type_name, body.clone(), options) {
+        return value;
+    }
+    if let Ok(text) = std::str::from_utf8(&body) {
+        return format!("{text:?}");
+    }
+    let mut hex = String::from("0x");
+    for byte in body.iter().take(HEX_BYTES) {
+        let _ = write!(hex, "{byte:02x}");
+    }
+    if body.len() > HEX_BYTES {
+        let _ = write!(hex, "… ({} bytes)", body.len());
+    }
+    hex
+}
+
+/// Nanoseconds since the Unix epoch.
+fn now_ns() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|since| i64::try_from(since.as_nanos()).unwrap_or(i64::MAX))
+        .unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use leveret_client::ports::{PortData, Time, TimedLong};
+
+    #[test]
+    fn bodies_show_as_values_text_or_hex() {
+        let value = TimedLong {
+            tm: Time { sec: 1, nsec: 2 },
+            data: -5,
+        };
+        let mut body = bytes::BytesMut::new();
+        value.encode(&mut body).expect("encode");
+        let name = TimedLong::TYPE_NAME.expect("named");
+        assert_eq!(
+            show(name, body.freeze(), CdrOptions::default()),
+            format!("{value:?}")
+        );
+        let text = bytes::Bytes::from_static(b"go \"home\"");
+        assert_eq!(
+            show("unknown", text, CdrOptions::default()),
+            "\"go \\\"home\\\"\""
+        );
+        let binary = bytes::Bytes::from(vec![0xffu8; 70]);
+        let shown = show(name, binary, CdrOptions::default());
+        assert!(
+            shown.starts_with("0xffff") && shown.ends_with("… (70 bytes)"),
+            "{shown}"
+        );
+    }
+}
