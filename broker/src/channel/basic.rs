@@ -163,7 +163,7 @@ impl Channel {
         let confirm = self.confirms.as_mut().map(|c| c.next_tag());
         let outcome = self.route_and_enqueue(&exchange, publish).await;
         if let Some(tag) = confirm {
-            self.confirm(tag, outcome).await;
+            self.confirm(tag, outcome);
         }
         Ok(())
     }
@@ -241,14 +241,15 @@ impl Channel {
         let reached = !queues.is_empty() || replied;
         self.core.stats.routed(reached, publish.method.mandatory);
         if !reached && publish.method.mandatory {
-            self.outbox()
-                .send(Outbound::Return {
-                    channel: self.id,
-                    reply_code: ReplyCode::NoRoute.code(),
-                    reply_text: ShortStr::from_static("NO_ROUTE"),
-                    message: Arc::clone(&message),
-                })
-                .await;
+            let returned = Outbound::Return {
+                channel: self.id,
+                reply_code: ReplyCode::NoRoute.code(),
+                reply_text: ShortStr::from_static("NO_ROUTE"),
+                message: Arc::clone(&message),
+            };
+            // On the heap: waiting for room in the outbox takes a large
+            // future, which would otherwise be part of every publish's.
+            Box::pin(self.outbox().send(returned)).await;
         }
         message
     }

@@ -264,7 +264,7 @@ impl Channel {
                     method: Method::ChannelClose(_),
                     ..
                 } => {
-                    self.reply(ChannelCloseOk {}).await;
+                    Box::pin(self.reply(ChannelCloseOk {})).await;
                     Ok(false)
                 }
                 _ => Ok(false),
@@ -279,7 +279,8 @@ impl Channel {
         match result {
             Err(error) if !error.is_connection_error() => {
                 tracing::debug!(channel = self.id, %error, "closing channel");
-                self.close_with(error).await;
+                // On the heap, as the rare methods: see handle_method.
+                Box::pin(self.close_with(error)).await;
                 Ok(false)
             }
             other => other,
@@ -307,7 +308,17 @@ impl Channel {
             .during_ids(60, 40));
         }
         let ids = (method.class_id(), method.method_id());
-        let result = self.dispatch(method).await;
+        let result = match method {
+            // The messaging methods inline; every other one in a future of
+            // its own on the heap, so the future of every frame (created
+            // and moved per frame) stays the size these need.
+            Method::BasicPublish(m) => self.basic_publish(m).map(|()| false),
+            Method::BasicAck(m) => self
+                .settle(m.delivery_tag, m.multiple, basic::Settle::Ack)
+                .await
+                .map(|()| false),
+            method => Box::pin(self.dispatch(method)).await,
+        };
         result.map_err(|e| e.during_ids(ids.0, ids.1))
     }
 
@@ -347,12 +358,7 @@ impl Channel {
             Method::BasicQos(m) => self.basic_qos(m).await?,
             Method::BasicConsume(m) => self.basic_consume(m).await?,
             Method::BasicCancel(m) => self.basic_cancel(m).await?,
-            Method::BasicPublish(m) => self.basic_publish(m)?,
             Method::BasicGet(m) => self.basic_get(m).await?,
-            Method::BasicAck(m) => {
-                self.settle(m.delivery_tag, m.multiple, basic::Settle::Ack)
-                    .await?
-            }
             Method::BasicReject(m) => {
                 self.settle(
                     m.delivery_tag,
@@ -381,6 +387,7 @@ impl Channel {
             Method::TxCommit(_) => self.tx_commit().await?,
             Method::TxRollback(_) => self.tx_rollback().await?,
             Method::ConfirmSelect(m) => self.confirm_select(m.no_wait).await?,
+            // basic.publish and basic.ack are handled before dispatch.
             other => {
                 return Err(AmqpError::command_invalid(format_args!(
                     "method {} is not valid from a client on a channel",

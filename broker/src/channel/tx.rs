@@ -200,7 +200,7 @@ impl Channel {
 
     /// Records the outcome of publish `tag`; it is confirmed by the next
     /// [`Channel::flush_confirms`] that finds it (and all before it) settled.
-    pub(super) async fn confirm(&mut self, tag: u64, outcome: Outcome) {
+    pub(super) fn confirm(&mut self, tag: u64, outcome: Outcome) {
         if let Some(confirms) = &mut self.confirms {
             confirms.waiting.push_back((tag, outcome));
         }

@@ -677,7 +677,12 @@ impl Connection {
         let channel_id = frame.channel();
         match frame {
             Frame::Heartbeat => Ok(Flow::Continue),
-            Frame::Method { channel: 0, method } => self.handle_connection_method(method).await,
+            // Rare methods run in futures of their own on the heap, so the
+            // future of every frame (created and moved per frame) stays the
+            // size the common ones need.
+            Frame::Method { channel: 0, method } => {
+                Box::pin(self.handle_connection_method(method)).await
+            }
             Frame::Header { channel: 0, .. } | Frame::Body { channel: 0, .. } => {
                 Err(AmqpError::unexpected_frame("content frame on channel 0"))
             }
@@ -722,14 +727,10 @@ impl Connection {
                     self.copy_below,
                 );
                 self.channels.insert(channel_id, channel);
-                self.outbox
-                    .method(
-                        channel_id,
-                        leveret_protocol::ChannelOpenOk {
-                            channel_id: Bytes::new(),
-                        },
-                    )
-                    .await;
+                let open_ok = leveret_protocol::ChannelOpenOk {
+                    channel_id: Bytes::new(),
+                };
+                Box::pin(self.outbox.method(channel_id, open_ok)).await;
                 Ok(Flow::Continue)
             }
             frame => {

@@ -134,6 +134,10 @@ type Callback<T> = Box<dyn FnMut(&Sample<T>) + Send>;
 struct Buffer<T> {
     queue: VecDeque<Sample<T>>,
     waker: Option<Waker>,
+    /// Threads waiting in `recv_blocking`: the condition variable is
+    /// signalled only for them (a signal costs a system call even when
+    /// nobody waits).
+    blocked_readers: usize,
     closed: bool,
 }
 
@@ -227,6 +231,7 @@ impl<T: PortData> InPort<T> {
             buffer: Mutex::new(Buffer {
                 queue: VecDeque::new(),
                 waker: None,
+                blocked_readers: 0,
                 closed: false,
             }),
             room: Notify::new(),
@@ -321,12 +326,14 @@ impl<T: PortData> InPort<T> {
             if buffer.closed || now >= deadline {
                 return None;
             }
+            buffer.blocked_readers += 1;
             buffer = self
                 .shared
                 .arrived
                 .wait_timeout(buffer, deadline - now)
                 .unwrap_or_else(|e| e.into_inner())
                 .0;
+            buffer.blocked_readers -= 1;
         }
     }
 
@@ -704,7 +711,9 @@ impl<T: PortData> Task<T> {
                     if let Some(waker) = buffer.waker.take() {
                         waker.wake();
                     }
-                    self.shared.arrived.notify_one();
+                    if buffer.blocked_readers > 0 {
+                        self.shared.arrived.notify_one();
+                    }
                     return true;
                 }
             }
