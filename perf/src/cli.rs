@@ -6,6 +6,7 @@ use crate::memory::{self, MemoryArgs};
 use crate::ports::{self, PortsArgs};
 use crate::quality::{self, QualityArgs};
 use crate::rtt::{self, RttArgs};
+use crate::sink::{self, SinkArgs};
 use crate::throughput::{self, ThroughputArgs};
 use crate::Result;
 use clap::{Parser, Subcommand};
@@ -37,6 +38,8 @@ pub enum Command {
     Compare(CompareArgs),
     /// Round trip of a pair of robot data ports: in-process, loopback TCP, RabbitMQ.
     Ports(PortsArgs),
+    /// A null broker that confirms and drops everything: a generator's own ceiling.
+    Sink(SinkArgs),
 }
 
 /// Runs a subcommand on the current runtime.
@@ -48,6 +51,7 @@ pub async fn execute(command: &Command) -> Result<()> {
         Command::Memory(args) => memory::run(args).await.map(drop),
         Command::Compare(args) => compare::run(args).await.map(drop),
         Command::Ports(args) => ports::run(args).await.map(drop),
+        Command::Sink(args) => sink::run(args).await,
     }
 }
 

@@ -1,7 +1,7 @@
 //! # leveret-perf
 //!
 //! A load generator for any AMQP 0.9.1 broker, built on `leveret-client`.
-//! Six subcommands (see `leveret-perf --help`):
+//! Seven subcommands (see `leveret-perf --help`):
 //!
 //! - `throughput`: P publishers, C consumers, Q queues; transient or
 //!   persistent, confirms with a window, no-ack or manual acks; a progress
@@ -19,6 +19,8 @@
 //!   (`leveret_client::ports`), over a Leveret broker this process starts
 //!   (in-process and loopback TCP) and RabbitMQ, paced at 100 Hz and
 //!   unthrottled, with confirmed-port and raw-client rows beside them.
+//! - `sink`: a null broker that confirms and drops every publish, to
+//!   measure a generator's own ceiling (ours or another's).
 //!
 //! Every subcommand can write its full result as JSON (`--json FILE`);
 //! `rtt` and `compare` can draw a box plot as SVG (`--svg FILE`).
@@ -38,6 +40,7 @@
 //! - `sequence`: per-consumer sequence tracking (lost, gaps, out of order, duplicates).
 //! - `load`: publisher and consumer tasks, and the queue topology they share.
 //! - `throughput`, `rtt`, `quality`, `memory`, `ports`: the scenarios.
+//! - `sink`: the null broker.
 //! - `compare`: runs scenarios against two brokers and tabulates ratios.
 //! - `procfs`: resident memory, CPU time, the PID behind a listening port,
 //!   the machine's busy time, load average and CPU pressure.
@@ -58,6 +61,7 @@ pub mod quality;
 pub mod report;
 pub mod rtt;
 pub mod sequence;
+pub mod sink;
 pub mod svg;
 pub mod throughput;
 
