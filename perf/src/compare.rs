@@ -1,11 +1,21 @@
-//! The `compare` subcommand: one scenario set run against two brokers, A
-//! then B for each scenario (never both under load at once: on a small
-//! machine the idle broker must not steal the other's cores), printed as
-//! one table with each figure for A and B and the ratio A/B. With
-//! `--leveret-url` and `--rabbit-url`, A is Leveret and B RabbitMQ, so
-//! ratios read as leveret/rabbit for throughput (higher is better) and for
-//! latency and memory (lower is better); the `better` column says which
-//! broker wins each row.
+//! The `compare` subcommand: one scenario set run against two or more
+//! brokers, one after the other for each scenario (never two under load at
+//! once: on a small machine an idle broker must not steal the other's
+//! cores), printed as one table with each figure for every broker and the
+//! first broker's ratio to each other one. With `--leveret-url` and
+//! `--rabbit-url`, the first is Leveret and the second RabbitMQ; with
+//! `--url` (given two or more times, named with `--name`), any brokers,
+//! LavinMQ or a `leveret-perf sink` among them. Ratios read as first/other
+//! for throughput (higher is better) and for latency and memory (lower is
+//! better); the `best` column names the broker that wins each row.
+//!
+//! Other people's load generators run beside ours: `--external
+//! ID='COMMAND'` runs COMMAND through `sh -c` against each broker (`{url}`
+//! in it is replaced by the broker's URL), and reads the last line of its
+//! output that is a JSON object with `avg_pub_rate` and `avg_consume_rate`
+//! (`lavinmqperf throughput -j`, `leveret-perf-go -j`). For these and for
+//! our throughput scenarios the broker's CPU time per consumed message is
+//! reported beside the rates.
 //!
 //! The scenarios (the issue's table; `--only` picks some by id):
 //! - `idle`: idle resident memory (first, before the load makes the broker grow);
@@ -18,12 +28,13 @@
 //! - `fanout`: 1 publisher → fanout → 4 queues → 4 consumers, 64 B, no-ack, counting lost and out-of-order;
 //! - `rtt16`: round trip, 16 B, one message in flight;
 //! - `rtt128hz`: round trip, 128 B, at 100 Hz;
-//! - `quality` (with `--quality`): the paper's 1-to-4 broadcast, 10,000 messages at 100 Hz.
+//! - `quality` (with `--quality`): the paper's 1-to-4 broadcast, 10,000 messages at 100 Hz;
+//! - each `--external` command, under its ID.
 
 use crate::histogram::BoxStats;
 use crate::load::ExchangeKind;
 use crate::memory;
-use crate::procfs::find_broker_pid;
+use crate::procfs::{cpu_seconds, find_broker_pid};
 use crate::quality::{self, QualityArgs};
 use crate::report::{mib, micros, thousands, Table};
 use crate::rtt::{self, RttArgs};
@@ -37,7 +48,7 @@ use std::time::Duration;
 /// Options of the `compare` subcommand.
 #[derive(Debug, Clone, clap::Args, Serialize)]
 pub struct CompareArgs {
-    /// Broker URLs: give exactly two, A then B.
+    /// Broker URLs: give two or more; the first is compared with each other.
     #[arg(long = "url")]
     pub urls: Vec<String>,
     /// Leveret's URL (broker A).
@@ -46,16 +57,19 @@ pub struct CompareArgs {
     /// RabbitMQ's URL (broker B).
     #[arg(long)]
     pub rabbit_url: Option<String>,
-    /// Names of A and B in the table (default: leveret and rabbitmq with
-    /// --leveret-url/--rabbit-url, else A and B).
+    /// Names of the brokers in the table, in order (default: leveret and
+    /// rabbitmq with --leveret-url/--rabbit-url, else A, B, C...).
     #[arg(long = "name")]
     pub names: Vec<String>,
-    /// PID of broker A (default: the process listening on its port).
-    #[arg(long)]
-    pub leveret_pid: Option<u32>,
-    /// PID of broker B (default: the process listening on its port).
-    #[arg(long)]
-    pub rabbit_pid: Option<u32>,
+    /// PIDs of the brokers, in order (default: the process listening on
+    /// each one's port).
+    #[arg(long = "pid")]
+    pub pids: Vec<u32>,
+    /// An external load generator's command, as ID=COMMAND; `{url}` in it
+    /// becomes each broker's URL. Its last output line that is a JSON
+    /// object with avg_pub_rate and avg_consume_rate gives the rates.
+    #[arg(long = "external", value_name = "ID=COMMAND")]
+    pub externals: Vec<String>,
     /// Seconds measured per throughput run.
     #[arg(long, default_value_t = 10.0)]
     pub duration: f64,
@@ -111,8 +125,8 @@ impl Default for CompareArgs {
             leveret_url: None,
             rabbit_url: None,
             names: Vec::new(),
-            leveret_pid: None,
-            rabbit_pid: None,
+            pids: Vec::new(),
+            externals: Vec::new(),
             duration: 10.0,
             warmup: 3.0,
             rtt_count: 1000,
@@ -151,6 +165,8 @@ pub enum Unit {
     MsgsPerSecond,
     /// Microseconds (lower is better).
     Micros,
+    /// Nanoseconds (lower is better).
+    Nanos,
     /// Bytes (lower is better).
     Bytes,
     /// A count of bad events (lower is better).
@@ -168,6 +184,7 @@ impl Unit {
         match self {
             Unit::MsgsPerSecond => format!("{}/s", thousands(v)),
             Unit::Micros => micros(v),
+            Unit::Nanos => format!("{} ns", thousands(v)),
             Unit::Bytes => {
                 if v.abs() >= 1024.0 * 1024.0 {
                     mib(v)
@@ -190,14 +207,14 @@ pub struct Figure {
     pub figure: String,
     /// Its unit.
     pub unit: Unit,
-    /// A's value.
-    pub a: Option<f64>,
-    /// B's value.
-    pub b: Option<f64>,
-    /// A/B, where both are known and B is not zero.
-    pub ratio: Option<f64>,
-    /// Which broker did better ("A", "B", "=" or "").
-    pub better: String,
+    /// Each broker's value, in the brokers' order.
+    pub values: Vec<Option<f64>>,
+    /// The first broker's value over each other broker's (in order, from
+    /// the second), where both are known and the other is not zero.
+    pub ratios: Vec<Option<f64>>,
+    /// The broker that did best ("=" for a tie, empty when it does not
+    /// apply).
+    pub best: String,
 }
 
 /// One run of one scenario against one broker.
@@ -214,7 +231,7 @@ pub struct Run {
 /// The result of a comparison.
 #[derive(Debug, Clone, Serialize)]
 pub struct CompareReport {
-    /// A and B.
+    /// The brokers, the first compared with each other.
     pub brokers: Vec<BrokerUnderTest>,
     /// The table.
     pub figures: Vec<Figure>,
@@ -238,45 +255,62 @@ enum Scenario {
     Idle,
     Connections(usize),
     Backlog(u64),
+    /// Another load generator's command line, `{url}` to be replaced.
+    External(String),
 }
 
-fn brokers(args: &CompareArgs) -> Result<[BrokerUnderTest; 2]> {
-    let (urls, default_names) = match (&args.leveret_url, &args.rabbit_url) {
-        (Some(l), Some(r)) if args.urls.is_empty() => {
-            ([l.clone(), r.clone()], ["leveret", "rabbitmq"])
-        }
-        (None, None) if args.urls.len() == 2 => {
-            ([args.urls[0].clone(), args.urls[1].clone()], ["A", "B"])
-        }
-        _ => {
-            return Err(
-                "give two brokers: --url A --url B, or --leveret-url and --rabbit-url".into(),
-            )
-        }
-    };
-    let name = |i: usize| {
-        args.names
-            .get(i)
-            .cloned()
-            .unwrap_or_else(|| default_names[i].to_owned())
-    };
-    let pids = [args.leveret_pid, args.rabbit_pid];
-    let [a, b] = urls;
-    Ok([
-        BrokerUnderTest {
-            name: name(0),
-            pid: pids[0].or_else(|| find_broker_pid(&a)),
-            url: a,
-        },
-        BrokerUnderTest {
-            name: name(1),
-            pid: pids[1].or_else(|| find_broker_pid(&b)),
-            url: b,
-        },
-    ])
+fn brokers(args: &CompareArgs) -> Result<Vec<BrokerUnderTest>> {
+    let (urls, default_names): (Vec<String>, Vec<String>) =
+        match (&args.leveret_url, &args.rabbit_url) {
+            (Some(l), Some(r)) if args.urls.is_empty() => (
+                vec![l.clone(), r.clone()],
+                vec!["leveret".into(), "rabbitmq".into()],
+            ),
+            (None, None) if args.urls.len() >= 2 => {
+                let names = (0..args.urls.len())
+                    .map(|i| char::from(b'A' + (i % 26) as u8).to_string())
+                    .collect();
+                (args.urls.clone(), names)
+            }
+            _ => {
+                return Err("give two brokers or more: --url A --url B [--url C...], \
+                            or --leveret-url and --rabbit-url"
+                    .into())
+            }
+        };
+    Ok(urls
+        .into_iter()
+        .enumerate()
+        .map(|(i, url)| BrokerUnderTest {
+            name: args
+                .names
+                .get(i)
+                .cloned()
+                .unwrap_or_else(|| default_names[i].clone()),
+            pid: args.pids.get(i).copied().or_else(|| find_broker_pid(&url)),
+            url,
+        })
+        .collect())
 }
 
-fn scenarios(args: &CompareArgs) -> Vec<(&'static str, String, Scenario)> {
+/// `ID=COMMAND` split in two.
+fn external(spec: &str) -> Result<(String, String)> {
+    let id_char = |c: char| c.is_ascii_alphanumeric() || c == '-' || c == '_';
+    match spec.split_once('=') {
+        Some((id, command))
+            if !id.is_empty() && id.chars().all(id_char) && command.contains("{url}") =>
+        {
+            Ok((id.to_owned(), command.to_owned()))
+        }
+        _ => Err(format!(
+            "--external wants ID=COMMAND (ID of letters, digits, - and _) with {{url}} in \
+             the command, got '{spec}'"
+        )
+        .into()),
+    }
+}
+
+fn scenarios(args: &CompareArgs) -> Result<Vec<(String, String, Scenario)>> {
     let base = ThroughputArgs {
         duration: args.duration,
         warmup: args.warmup,
@@ -395,10 +429,22 @@ fn scenarios(args: &CompareArgs) -> Vec<(&'static str, String, Scenario)> {
             }),
         ));
     }
+    let mut list: Vec<(String, String, Scenario)> = list
+        .into_iter()
+        .map(|(id, description, scenario)| (id.to_owned(), description, scenario))
+        .collect();
+    for spec in &args.externals {
+        let (id, command) = external(spec)?;
+        list.push((
+            id,
+            format!("external: {command}"),
+            Scenario::External(command),
+        ));
+    }
     if !args.only.is_empty() {
         list.retain(|(id, _, _)| args.only.iter().any(|o| o == id));
     }
-    list
+    Ok(list)
 }
 
 async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> Result<Outcome> {
@@ -406,7 +452,7 @@ async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> 
     let need_pid = || {
         broker.pid.ok_or_else(|| {
             PerfError(format!(
-                "no PID for {}: give --leveret-pid/--rabbit-pid",
+                "no PID for {}: give --pid for each broker, in order",
                 broker.name
             ))
         })
@@ -445,6 +491,10 @@ async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> 
             ));
             if let Some(cpu) = r.broker_cpu_percent {
                 f.push(("broker CPU".into(), Unit::Percent, cpu));
+                if r.consume_rate > 0.0 {
+                    let per_message = cpu / 100.0 * 1e9 / r.consume_rate;
+                    f.push(("broker CPU per message".into(), Unit::Nanos, per_message));
+                }
             }
             if let Some(cpu) = r.generator_cpu_percent {
                 f.push(("leveret-perf CPU".into(), Unit::Percent, cpu));
@@ -512,41 +562,130 @@ async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> 
             f.push(("queued".into(), Unit::Count, b.messages as f64));
             out.report = serde_json::to_value(b)?;
         }
+        Scenario::External(command) => {
+            let command = command.replace("{url}", &broker.url);
+            let cpu_before = broker.pid.and_then(cpu_seconds);
+            let started = std::time::Instant::now();
+            let run = {
+                let command = command.clone();
+                tokio::task::spawn_blocking(move || {
+                    std::process::Command::new("sh")
+                        .arg("-c")
+                        .arg(command)
+                        .stdin(std::process::Stdio::null())
+                        .stderr(std::process::Stdio::inherit())
+                        .output()
+                })
+            };
+            let output = run
+                .await
+                .map_err(|e| format!("'{command}' did not finish: {e}"))?
+                .map_err(|e| format!("cannot run '{command}': {e}"))?;
+            let elapsed = started.elapsed().as_secs_f64();
+            let stdout = String::from_utf8_lossy(&output.stdout);
+            if !output.status.success() {
+                return Err(format!("'{command}' failed ({}): {stdout}", output.status).into());
+            }
+            let rates = generator_rates(&stdout)
+                .ok_or_else(|| format!("no JSON rates in the output of '{command}': {stdout}"))?;
+            let f = &mut out.figures;
+            f.push(("publish rate".into(), Unit::MsgsPerSecond, rates.publish));
+            f.push(("consume rate".into(), Unit::MsgsPerSecond, rates.consume));
+            let cpu = cpu_before.zip(broker.pid.and_then(cpu_seconds));
+            if let Some((before, after)) = cpu {
+                let used = after - before;
+                f.push(("broker CPU".into(), Unit::Percent, used / elapsed * 100.0));
+                let consumed = rates.consume * rates.elapsed;
+                if consumed > 0.0 {
+                    f.push((
+                        "broker CPU per message".into(),
+                        Unit::Nanos,
+                        used * 1e9 / consumed,
+                    ));
+                }
+            }
+            out.report = serde_json::json!({
+                "command": command,
+                "output": stdout,
+                "elapsed_seconds": elapsed,
+            });
+        }
     }
     Ok(out)
 }
 
-fn better(unit: Unit, a: f64, b: f64) -> String {
+/// An external generator's rates, from its JSON line.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct GeneratorRates {
+    publish: f64,
+    consume: f64,
+    /// The generator's own measuring time, seconds.
+    elapsed: f64,
+}
+
+/// The last line of `output` that is a JSON object with `avg_pub_rate` and
+/// `avg_consume_rate` (lavinmqperf's `-j` line).
+fn generator_rates(output: &str) -> Option<GeneratorRates> {
+    output.lines().rev().find_map(|line| {
+        let value: serde_json::Value = serde_json::from_str(line.trim()).ok()?;
+        Some(GeneratorRates {
+            publish: value.get("avg_pub_rate")?.as_f64()?,
+            consume: value.get("avg_consume_rate")?.as_f64()?,
+            elapsed: value
+                .get("elapsed_seconds")
+                .and_then(serde_json::Value::as_f64)
+                .unwrap_or(0.0),
+        })
+    })
+}
+
+/// The name of the broker with the best value ("=" when the best is
+/// shared; empty for informational units or fewer than two values).
+fn best(unit: Unit, values: &[Option<f64>], brokers: &[BrokerUnderTest]) -> String {
     if unit == Unit::Percent {
         return String::new();
     }
-    if a == b {
+    let known: Vec<(usize, f64)> = values
+        .iter()
+        .enumerate()
+        .filter_map(|(i, v)| v.map(|v| (i, v)))
+        .collect();
+    if known.len() < 2 {
+        return String::new();
+    }
+    let wins = |a: f64, b: f64| {
+        if unit.higher_is_better() {
+            a > b
+        } else {
+            a < b
+        }
+    };
+    let (top, top_value) =
+        known.iter().copied().fold(
+            known[0],
+            |best, next| if wins(next.1, best.1) { next } else { best },
+        );
+    if known.iter().filter(|(_, v)| *v == top_value).count() > 1 {
         return "=".into();
     }
-    let a_wins = if unit.higher_is_better() {
-        a > b
-    } else {
-        a < b
-    };
-    if a_wins { "A" } else { "B" }.into()
+    brokers[top].name.clone()
 }
 
-/// Runs every scenario against A then B; prints the table.
+/// Runs every scenario against each broker in turn; prints the table.
 pub async fn run(args: &CompareArgs) -> Result<CompareReport> {
     let brokers = brokers(args)?;
-    let list = scenarios(args);
+    let list = scenarios(args)?;
     if list.is_empty() {
         return Err("no scenario selected".into());
     }
-    println!(
-        "comparing A = {} ({}, pid {}) with B = {} ({}, pid {})",
-        brokers[0].name,
-        brokers[0].url,
-        brokers[0].pid.map_or("?".into(), |p| p.to_string()),
-        brokers[1].name,
-        brokers[1].url,
-        brokers[1].pid.map_or("?".into(), |p| p.to_string()),
-    );
+    let described: Vec<String> = brokers
+        .iter()
+        .map(|b| {
+            let pid = b.pid.map_or("?".into(), |p| p.to_string());
+            format!("{} ({}, pid {pid})", b.name, b.url)
+        })
+        .collect();
+    println!("comparing {}", described.join(" with "));
     let mut figures = Vec::new();
     let mut runs = Vec::new();
     let mut boxes: Vec<Group> = Vec::new();
@@ -574,7 +713,7 @@ pub async fn run(args: &CompareArgs) -> Result<CompareReport> {
                 }
             };
             runs.push(Run {
-                scenario: (*id).to_owned(),
+                scenario: id.clone(),
                 broker: broker.name.clone(),
                 report: outcome.report.clone(),
             });
@@ -597,34 +736,37 @@ pub async fn run(args: &CompareArgs) -> Result<CompareReport> {
                     .find(|(n, _, _)| *n == name)
                     .map(|(_, _, v)| *v)
             };
-            let (a, b) = (value(&outcomes[0]), value(&outcomes[1]));
-            let ratio = match (a, b) {
-                (Some(a), Some(b)) if b != 0.0 => Some(a / b),
-                _ => None,
-            };
-            let better = match (a, b) {
-                (Some(a), Some(b)) => better(unit, a, b),
-                _ => String::new(),
-            };
+            let values: Vec<Option<f64>> = outcomes.iter().map(value).collect();
+            let ratios = values[1..]
+                .iter()
+                .map(|other| match (values[0], *other) {
+                    (Some(a), Some(b)) if b != 0.0 => Some(a / b),
+                    _ => None,
+                })
+                .collect();
             figures.push(Figure {
-                scenario: (*id).to_owned(),
+                scenario: id.clone(),
                 figure: name,
                 unit,
-                a,
-                b,
-                ratio,
-                better,
+                best: best(unit, &values, &brokers),
+                values,
+                ratios,
             });
         }
-        if let (Some(a), Some(b)) = (&outcomes[0].rtt_box, &outcomes[1].rtt_box) {
+        let rtt_boxes: Vec<(String, BoxStats)> = brokers
+            .iter()
+            .zip(&outcomes)
+            .filter_map(|(b, o)| Some((b.name.clone(), o.rtt_box?)))
+            .collect();
+        if rtt_boxes.len() == brokers.len() {
             boxes.push(Group {
                 label: description.clone(),
-                boxes: vec![(brokers[0].name.clone(), *a), (brokers[1].name.clone(), *b)],
+                boxes: rtt_boxes,
             });
         }
     }
     let report = CompareReport {
-        brokers: brokers.to_vec(),
+        brokers: brokers.clone(),
         figures,
         runs,
     };
@@ -633,9 +775,9 @@ pub async fn run(args: &CompareArgs) -> Result<CompareReport> {
         crate::report::write_json(path, &report)?;
     }
     if let Some(path) = &args.svg {
-        let names = [brokers[0].name.clone(), brokers[1].name.clone()];
+        let names: Vec<String> = brokers.iter().map(|b| b.name.clone()).collect();
         let svg = box_plot(
-            &format!("Round trip: {} vs {}", names[0], names[1]),
+            &format!("Round trip: {}", names.join(" vs ")),
             &boxes,
             &names,
         );
@@ -644,11 +786,17 @@ pub async fn run(args: &CompareArgs) -> Result<CompareReport> {
     Ok(report)
 }
 
-fn print_table(report: &CompareReport, list: &[(&'static str, String, Scenario)]) {
-    let a = &report.brokers[0].name;
-    let b = &report.brokers[1].name;
-    let ratio_header = format!("{a}/{b}");
-    let mut table = Table::new(&["scenario", "figure", a, b, &ratio_header, "better"]);
+fn print_table(report: &CompareReport, list: &[(String, String, Scenario)]) {
+    let names: Vec<&str> = report.brokers.iter().map(|b| b.name.as_str()).collect();
+    let ratio_headers: Vec<String> = names[1..]
+        .iter()
+        .map(|other| format!("{}/{other}", names[0]))
+        .collect();
+    let mut headers: Vec<&str> = vec!["scenario", "figure"];
+    headers.extend(names.iter().copied());
+    headers.extend(ratio_headers.iter().map(String::as_str));
+    headers.push("best");
+    let mut table = Table::new(&headers);
     let mut last = "";
     for f in &report.figures {
         let label = if f.scenario != last {
@@ -659,20 +807,72 @@ fn print_table(report: &CompareReport, list: &[(&'static str, String, Scenario)]
             String::new()
         };
         last = &f.scenario;
-        let show = |v: Option<f64>| v.map_or("-".to_owned(), |v| f.unit.format(v));
-        table.row(vec![
-            label,
-            f.figure.clone(),
-            show(f.a),
-            show(f.b),
-            f.ratio.map_or("-".to_owned(), |r| format!("{r:.2}")),
-            match f.better.as_str() {
-                "A" => a.clone(),
-                "B" => b.clone(),
-                other => other.to_owned(),
-            },
-        ]);
+        let show = |v: &Option<f64>| v.map_or("-".to_owned(), |v| f.unit.format(v));
+        let mut row = vec![label, f.figure.clone()];
+        row.extend(f.values.iter().map(show));
+        row.extend(
+            f.ratios
+                .iter()
+                .map(|r| r.map_or("-".to_owned(), |r| format!("{r:.2}"))),
+        );
+        row.push(f.best.clone());
+        table.row(row);
     }
     println!();
     print!("{}", table.render());
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn broker(name: &str) -> BrokerUnderTest {
+        BrokerUnderTest {
+            name: name.to_owned(),
+            url: String::new(),
+            pid: None,
+        }
+    }
+
+    #[test]
+    fn a_generators_rates_come_from_its_last_json_line() {
+        let output = "Publish rate: 1 msgs/s Consume rate: 1 msgs/s\n\
+                      {\"elapsed_seconds\":10.0,\"avg_pub_rate\":5,\"avg_consume_rate\":4}\n\
+                      {\"elapsed_seconds\":10.0,\"avg_pub_rate\":132570,\"avg_consume_rate\":132556}\n\
+                      trailing words\n";
+        assert_eq!(
+            generator_rates(output),
+            Some(GeneratorRates {
+                publish: 132_570.0,
+                consume: 132_556.0,
+                elapsed: 10.0,
+            })
+        );
+        assert_eq!(generator_rates("no json here\n{\"other\":1}\n"), None);
+    }
+
+    #[test]
+    fn an_external_needs_an_id_and_a_url_placeholder() {
+        assert_eq!(
+            external("lavinmqperf=lavinmqperf throughput --uri={url} -z 10").unwrap(),
+            (
+                "lavinmqperf".to_owned(),
+                "lavinmqperf throughput --uri={url} -z 10".to_owned()
+            )
+        );
+        assert!(external("lavinmqperf throughput --uri={url}").is_err());
+        assert!(external("x=no placeholder").is_err());
+        assert!(external("=cmd {url}").is_err());
+    }
+
+    #[test]
+    fn the_best_broker_depends_on_the_unit() {
+        let brokers = [broker("leveret"), broker("lavinmq"), broker("rabbitmq")];
+        let values = [Some(3.0), Some(5.0), None];
+        assert_eq!(best(Unit::MsgsPerSecond, &values, &brokers), "lavinmq");
+        assert_eq!(best(Unit::Micros, &values, &brokers), "leveret");
+        assert_eq!(best(Unit::Percent, &values, &brokers), "");
+        assert_eq!(best(Unit::Count, &[Some(0.0), Some(0.0)], &brokers), "=");
+        assert_eq!(best(Unit::Count, &[Some(0.0), None], &brokers), "");
+    }
 }

@@ -162,15 +162,25 @@ async fn memory_of_an_in_process_broker() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn compare_two_brokers() {
+async fn compare_three_brokers_with_an_external_generator() {
     let (a, url_a) = broker().await;
     let (b, url_b) = broker().await;
+    let (c, url_c) = broker().await;
     let dir = scratch_dir("compare");
     let me = std::process::id();
+    // An "external generator" that reports fixed rates, and proves it was
+    // given each broker's URL by echoing it to a file.
+    let seen = dir.join("seen-urls");
+    let external = format!(
+        "fake=echo {{url}} >> {} && echo 'progress line' && \
+         echo '{{\"elapsed_seconds\":2,\"avg_pub_rate\":1000,\"avg_consume_rate\":900}}'",
+        seen.display()
+    );
     let args = compare::CompareArgs {
-        urls: vec![url_a, url_b],
-        leveret_pid: Some(me),
-        rabbit_pid: Some(me),
+        urls: vec![url_a.clone(), url_b.clone(), url_c.clone()],
+        names: ["a", "b", "c"].map(String::from).to_vec(),
+        pids: vec![me, me, me],
+        externals: vec![external],
         duration: 0.3,
         warmup: 0.0,
         rtt_count: 20,
@@ -180,7 +190,7 @@ async fn compare_two_brokers() {
         quality: Some(200),
         quality_rate: 0.0,
         only: [
-            "noack", "confirm", "fanout", "rtt16", "idle", "conns", "backlog", "quality",
+            "noack", "confirm", "fanout", "rtt16", "idle", "conns", "backlog", "quality", "fake",
         ]
         .map(String::from)
         .to_vec(),
@@ -191,7 +201,7 @@ async fn compare_two_brokers() {
     };
     let report = compare::run(&args).await.unwrap();
     for scenario in [
-        "noack", "confirm", "fanout", "rtt16", "idle", "conns", "backlog", "quality",
+        "noack", "confirm", "fanout", "rtt16", "idle", "conns", "backlog", "quality", "fake",
     ] {
         let rows: Vec<_> = report
             .figures
@@ -200,21 +210,47 @@ async fn compare_two_brokers() {
             .collect();
         assert!(!rows.is_empty(), "{scenario}");
         assert!(
-            rows.iter().all(|f| f.a.is_some() && f.b.is_some()),
+            rows.iter()
+                .all(|f| f.values.len() == 3 && f.values.iter().all(Option::is_some)),
             "{scenario}"
         );
+        assert!(rows.iter().all(|f| f.ratios.len() == 2), "{scenario}");
     }
     let lost: Vec<_> = report
         .figures
         .iter()
         .filter(|f| f.figure == "lost")
         .collect();
-    assert!(lost.iter().all(|f| f.a == Some(0.0) && f.b == Some(0.0)));
+    assert!(lost
+        .iter()
+        .all(|f| f.values.iter().all(|v| *v == Some(0.0))));
+    // The external generator ran once per broker, with its URL, and its
+    // JSON line gave the rates; the broker's CPU per message is beside them.
+    let fake = |figure: &str| {
+        report
+            .figures
+            .iter()
+            .find(|f| f.scenario == "fake" && f.figure == figure)
+            .unwrap_or_else(|| panic!("no {figure} row"))
+    };
+    assert_eq!(fake("consume rate").values, vec![Some(900.0); 3]);
+    assert_eq!(fake("publish rate").ratios, vec![Some(1.0); 2]);
+    assert!(fake("broker CPU per message")
+        .values
+        .iter()
+        .all(Option::is_some));
+    let seen = std::fs::read_to_string(&seen).unwrap();
+    assert_eq!(seen.lines().collect::<Vec<_>>(), [&url_a, &url_b, &url_c]);
+    assert!(report
+        .figures
+        .iter()
+        .any(|f| f.scenario == "noack" && f.figure == "broker CPU per message"));
     assert!(dir.join("compare.json").exists());
     let svg = std::fs::read_to_string(dir.join("compare.svg")).unwrap();
     assert!(svg.contains("round trip, 16 B"));
     a.shutdown().await;
     b.shutdown().await;
+    c.shutdown().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
