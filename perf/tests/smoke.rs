@@ -289,8 +289,23 @@ async fn ports_round_trips_every_carrier_and_skips_an_absent_rabbitmq() {
     };
     let report = ports::run(&args).await.unwrap();
     assert_eq!(report.skipped, [ports::Transport::RabbitMq]);
-    // 2 modes x (2 sizes + confirmed ports + raw client) x 2 transports.
-    assert_eq!(report.rows.len(), 16);
+    // 2 modes x (2 sizes + confirmed ports + raw client) x 2 transports
+    // round trips, and a one-way row for each of the 12 carried by ports.
+    let round_trips = report
+        .rows
+        .iter()
+        .filter(|r| r.leg == ports::Leg::RoundTrip)
+        .count();
+    assert_eq!(round_trips, 16);
+    let one_way: Vec<_> = report
+        .rows
+        .iter()
+        .filter(|r| r.leg == ports::Leg::OneWay)
+        .collect();
+    assert_eq!(one_way.len(), 12);
+    assert!(one_way
+        .iter()
+        .all(|r| r.carrier != ports::Carrier::RawClient));
     for row in &report.rows {
         assert_eq!(row.lost, 0, "{row:?}");
         let expected = match row.mode {
@@ -303,6 +318,7 @@ async fn ports_round_trips_every_carrier_and_skips_an_absent_rabbitmq() {
     assert_eq!(report.echo_failures, 0);
     let text = std::fs::read_to_string(&json).unwrap();
     assert!(text.contains("\"carrier\": \"raw-client\""), "{text}");
+    // Samples are dumped per round-trip row.
     assert_eq!(std::fs::read_dir(&dump).unwrap().count(), 16);
     let _ = std::fs::remove_dir_all(&dir);
 }
