@@ -11,7 +11,9 @@
 //!
 //! Other people's load generators run beside ours: `--external
 //! ID='COMMAND'` runs COMMAND through `sh -c` against each broker (`{url}`
-//! in it is replaced by the broker's URL), and reads the last line of its
+//! in it is replaced by the broker's URL, and `{queue}`, if there, by a
+//! queue name of the run's own, which is deleted after it so that no
+//! backlog carries over into the next run), and reads the last line of its
 //! output that is a JSON object with `avg_pub_rate` and `avg_consume_rate`
 //! (`lavinmqperf throughput -j`, `leveret-perf-go -j`). For these and for
 //! our throughput scenarios the broker's CPU time per consumed message is
@@ -66,8 +68,9 @@ pub struct CompareArgs {
     #[arg(long = "pid")]
     pub pids: Vec<u32>,
     /// An external load generator's command, as ID=COMMAND; `{url}` in it
-    /// becomes each broker's URL. Its last output line that is a JSON
-    /// object with avg_pub_rate and avg_consume_rate gives the rates.
+    /// becomes each broker's URL, `{queue}` a queue name of the run's own
+    /// (deleted after the run). Its last output line that is a JSON object
+    /// with avg_pub_rate and avg_consume_rate gives the rates.
     #[arg(long = "external", value_name = "ID=COMMAND")]
     pub externals: Vec<String>,
     /// Seconds measured per throughput run.
@@ -562,8 +565,15 @@ async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> 
             f.push(("queued".into(), Unit::Count, b.messages as f64));
             out.report = serde_json::to_value(b)?;
         }
-        Scenario::External(command) => {
-            let command = command.replace("{url}", &broker.url);
+        Scenario::External(template) => {
+            let queue = format!(
+                "perf-{}-{}",
+                std::process::id(),
+                EXTERNAL_RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+            );
+            let command = template
+                .replace("{url}", &broker.url)
+                .replace("{queue}", &queue);
             let cpu_before = broker.pid.and_then(cpu_seconds);
             let started = std::time::Instant::now();
             let run = {
@@ -582,6 +592,9 @@ async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> 
                 .map_err(|e| format!("'{command}' did not finish: {e}"))?
                 .map_err(|e| format!("cannot run '{command}': {e}"))?;
             let elapsed = started.elapsed().as_secs_f64();
+            if template.contains("{queue}") {
+                delete_queue(&broker.url, &queue).await;
+            }
             let stdout = String::from_utf8_lossy(&output.stdout);
             if !output.status.success() {
                 return Err(format!("'{command}' failed ({}): {stdout}", output.status).into());
@@ -612,6 +625,28 @@ async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> 
         }
     }
     Ok(out)
+}
+
+/// External runs so far, for their queues' names.
+static EXTERNAL_RUNS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Deletes an external run's queue, with whatever it still holds; a
+/// failure is reported, not fatal (the figures stand).
+async fn delete_queue(url: &str, queue: &str) {
+    let deleted = async {
+        let connection = leveret_client::Connection::connect(url).await?;
+        let channel = connection.open_channel().await?;
+        let deleted = channel
+            .queue_delete(queue, leveret_client::QueueDeleteOptions::default())
+            .await;
+        let _ = connection.close().await;
+        deleted
+    };
+    match tokio::time::timeout(Duration::from_secs(60), deleted).await {
+        Ok(Ok(_)) => {}
+        Ok(Err(error)) => eprintln!("    could not delete queue {queue}: {error}"),
+        Err(_) => eprintln!("    deleting queue {queue} took over a minute"),
+    }
 }
 
 /// An external generator's rates, from its JSON line.

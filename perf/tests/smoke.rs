@@ -172,7 +172,7 @@ async fn compare_three_brokers_with_an_external_generator() {
     // given each broker's URL by echoing it to a file.
     let seen = dir.join("seen-urls");
     let external = format!(
-        "fake=echo {{url}} >> {} && echo 'progress line' && \
+        "fake=echo {{url}} {{queue}} >> {} && echo 'progress line' && \
          echo '{{\"elapsed_seconds\":2,\"avg_pub_rate\":1000,\"avg_consume_rate\":900}}'",
         seen.display()
     );
@@ -239,8 +239,13 @@ async fn compare_three_brokers_with_an_external_generator() {
         .values
         .iter()
         .all(Option::is_some));
+    // Each run had a queue name of its own.
     let seen = std::fs::read_to_string(&seen).unwrap();
-    assert_eq!(seen.lines().collect::<Vec<_>>(), [&url_a, &url_b, &url_c]);
+    let seen: Vec<(&str, &str)> = seen.lines().filter_map(|l| l.split_once(' ')).collect();
+    let urls: Vec<&str> = seen.iter().map(|(url, _)| *url).collect();
+    assert_eq!(urls, [&url_a, &url_b, &url_c]);
+    let queues: std::collections::HashSet<&str> = seen.iter().map(|(_, q)| *q).collect();
+    assert_eq!(queues.len(), 3, "{seen:?}");
     assert!(report
         .figures
         .iter()
