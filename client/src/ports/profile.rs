@@ -199,9 +199,13 @@ pub struct PortProfile {
     pub exchange: String,
     /// The exchange's type, when it is declared.
     pub exchange_kind: ExchangeKind,
-    /// The in-port's queue; empty for a server-named, exclusive queue that
-    /// lasts as long as one connection (messages sent while the in-port is
-    /// reconnecting are then not kept for it).
+    /// The in-port's queue; empty for a queue of the port's own
+    /// (`leveret.port.<id>`, not exclusive) that outlives its
+    /// reconnections, so nothing sent while it reconnects is lost, and
+    /// that the broker deletes once unused for [`queue_expires`]
+    /// (the port deletes it itself when closed).
+    ///
+    /// [`queue_expires`]: PortProfile::queue_expires
     pub queue: String,
     /// Key binding the queue to the exchange.
     pub binding_key: String,
