@@ -247,3 +247,58 @@ async fn an_unknown_extype_is_a_consistent_hash_exchange() {
     .await;
     assert_eq!(counts.iter().sum::<u64>(), total, "exactly one copy each");
 }
+
+/// A big-endian port says so in its messages' `content-type` (it said
+/// `endian=little` whatever the port's byte order).
+#[tokio::test]
+async fn a_big_endian_port_labels_its_messages_big_endian() {
+    let (_broker, addr) = leveret().await;
+    let queue = unique("big-endian");
+    let properties = [
+        ("exname", ""),
+        ("qname", queue.as_str()),
+        ("rkey", queue.as_str()),
+        ("bind", "true"),
+        ("serializer.cdr.endian", "big"),
+    ];
+    let output = OutPort::<TimedLong>::connect(read(PortRole::OutPort, addr, &properties))
+        .await
+        .expect("out-port");
+    let connection = Connection::connect(&format!("amqp://guest:guest@{addr}/%2f"))
+        .await
+        .expect("connect");
+    let channel = connection.open_channel().await.expect("channel");
+    channel
+        .queue_declare(&queue, QueueDeclareOptions::default(), FieldTable::new())
+        .await
+        .expect("declare");
+    let value = TimedLong {
+        tm: Time::now(),
+        data: 258,
+    };
+    assert_eq!(output.put(&value).await, PortStatus::Ok);
+    let message = within("the message", async {
+        loop {
+            let got = channel
+                .basic_get(&queue, leveret_client::BasicGetOptions { no_ack: true })
+                .await
+                .expect("get");
+            if let Some(message) = got {
+                return message;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    let content_type = message
+        .properties
+        .content_type
+        .clone()
+        .expect("content-type");
+    assert_eq!(
+        content_type.as_str(),
+        Some("application/x-omg-cdr; endian=big")
+    );
+    // And the body is big-endian: the long's bytes after the time.
+    assert_eq!(&message.body[8..12], &[0, 0, 1, 2]);
+}

@@ -370,7 +370,7 @@ impl PortAnnouncement {
         queue: Option<&str>,
     ) -> Self {
         let out = role == PortRole::OutPort;
-        let content_type = T::CONTENT_TYPE;
+        let content_type = super::cdr::content_type(T::CONTENT_TYPE, &profile.cdr);
         let queue = match queue {
             Some(queue) => queue,
             None if profile.declare_queue => profile.queue.as_str(),

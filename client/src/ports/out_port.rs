@@ -362,7 +362,10 @@ impl<T: PortData> OutPort<T> {
             connector,
             exchange: ShortStr::try_from(profile.exchange.as_str())?,
             routing_key: ShortStr::try_from(profile.routing_key.as_str())?,
-            content_type: ShortStr::try_from(T::CONTENT_TYPE)?,
+            content_type: ShortStr::try_from(super::cdr::content_type(
+                T::CONTENT_TYPE,
+                &profile.cdr,
+            ))?,
             type_name: T::TYPE_NAME.map(ShortStr::try_from).transpose()?,
             port: Arc::clone(&id),
             inflight: VecDeque::new(),

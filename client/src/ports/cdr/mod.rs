@@ -54,6 +54,21 @@ pub enum Charset {
     Latin1,
 }
 
+/// The `content-type` of CDR bodies in little-endian order (the CDR
+/// types' `PortData::CONTENT_TYPE`, OpenRTM's default order).
+pub const CONTENT_TYPE_LITTLE: &str = "application/x-omg-cdr; endian=little";
+/// The `content-type` of CDR bodies in big-endian order.
+pub const CONTENT_TYPE_BIG: &str = "application/x-omg-cdr; endian=big";
+
+/// The `content-type` a port's messages carry: its type's, with a CDR
+/// type's byte order as the port's options set it.
+pub(crate) fn content_type(type_content_type: &'static str, options: &CdrOptions) -> &'static str {
+    match (type_content_type, options.endian) {
+        (CONTENT_TYPE_LITTLE, Endian::Big) => CONTENT_TYPE_BIG,
+        _ => type_content_type,
+    }
+}
+
 /// The byte order and string charset of a CDR stream.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct CdrOptions {
@@ -463,7 +478,7 @@ macro_rules! idl_structs {
         }
 
         impl $crate::ports::PortData for $name {
-            const CONTENT_TYPE: &'static str = "application/x-omg-cdr; endian=little";
+            const CONTENT_TYPE: &'static str = $crate::ports::cdr::CONTENT_TYPE_LITTLE;
             const TYPE_NAME: Option<&'static str> =
                 Some(concat!("IDL:RTC/", stringify!($name), ":1.0"));
 
@@ -605,6 +620,26 @@ mod tests {
         assert_eq!(
             TimedPose2D::CONTENT_TYPE,
             "application/x-omg-cdr; endian=little"
+        );
+    }
+
+    #[test]
+    fn a_ports_content_type_says_its_byte_order() {
+        let big = CdrOptions {
+            endian: Endian::Big,
+            ..CdrOptions::default()
+        };
+        assert_eq!(
+            content_type(TimedPose2D::CONTENT_TYPE, &big),
+            "application/x-omg-cdr; endian=big"
+        );
+        assert_eq!(
+            content_type(TimedPose2D::CONTENT_TYPE, &CdrOptions::default()),
+            TimedPose2D::CONTENT_TYPE
+        );
+        assert_eq!(
+            content_type("text/plain; charset=utf-8", &big),
+            "text/plain; charset=utf-8"
         );
     }
 }
