@@ -674,6 +674,23 @@ impl AnnouncedStats for InPortStats {
     }
 }
 
+/// The name of every counter a port of this version announces (out-ports'
+/// then in-ports', each once), for tools that list them as columns before
+/// any port is heard.
+pub fn announced_counters() -> Vec<&'static str> {
+    let mut names: Vec<&'static str> = Vec::new();
+    let all = OutPortStats::default()
+        .counters()
+        .into_iter()
+        .chain(InPortStats::default().counters());
+    for (name, _) in all {
+        if !names.contains(&name) {
+            names.push(name);
+        }
+    }
+    names
+}
+
 /// The `connection_name` of a port's connection: `leveret port out NAME`.
 pub(crate) fn connection_name(role: PortRole, profile: &PortProfile) -> String {
     format!(
@@ -1156,6 +1173,18 @@ impl PortDirectory {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_counter_of_either_kind_of_port_is_listed_once() {
+        let names = announced_counters();
+        for (name, _) in OutPortStats::default()
+            .counters()
+            .into_iter()
+            .chain(InPortStats::default().counters())
+        {
+            assert_eq!(names.iter().filter(|n| **n == name).count(), 1, "{name}");
+        }
+    }
     use crate::ports::TimedPose2D;
 
     fn sample(role: PortRole) -> PortAnnouncement {

@@ -72,8 +72,8 @@ mod out_port;
 mod profile;
 
 pub use announce::{
-    LatencySummary, PortAnnouncement, PortDirectory, PortState, ANNOUNCEMENT_VERSION,
-    PORTS_EXCHANGE,
+    announced_counters, LatencySummary, PortAnnouncement, PortDirectory, PortState,
+    ANNOUNCEMENT_VERSION, PORTS_EXCHANGE,
 };
 // Every RTC data type is here as well as in `cdr` (a glob of the two
 // type modules, one per OpenRTM-aist IDL file, so the list cannot go

@@ -10,7 +10,8 @@
 use crate::{emit, info, Cli, Failure};
 use clap::Subcommand;
 use leveret_client::ports::{
-    cdr, CdrOptions, PortAnnouncement, PortDirectory, PortRole, PortState, SENT_HEADER, SEQ_HEADER,
+    announced_counters, cdr, CdrOptions, PortAnnouncement, PortDirectory, PortRole, PortState,
+    SENT_HEADER, SEQ_HEADER,
 };
 use leveret_client::{
     BasicConsumeOptions, Connection, ConnectionOptions, Error, FieldTable, FieldValue,
@@ -178,12 +179,15 @@ async fn list(cli: &Cli, columns: &[String], wait: Duration) -> Result<(), Failu
     } else {
         columns.iter().map(String::as_str).collect()
     };
+    // Counters are columns even when no port listed has them (and a
+    // newer port's counters are columns too once it is heard).
+    let counters = announced_counters();
     let unknown: Vec<&str> = names
         .iter()
         .copied()
         .filter(|name| {
             !FIELD_COLUMNS.contains(name)
-                && !COUNTERS.contains(name)
+                && !counters.contains(name)
                 && !ports.iter().any(|port| port.counter(name).is_some())
         })
         .collect();
@@ -231,28 +235,6 @@ const FIELD_COLUMNS: &[&str] = &[
     "latency_p50_ns",
     "latency_p99_ns",
     "latency_max_ns",
-];
-
-/// The counters of out-ports and in-ports as this ctl knows them, so they
-/// are columns even when no port listed has them (a port's newer counters
-/// are columns too once it is heard).
-const COUNTERS: &[&str] = &[
-    "accepted",
-    "confirmed",
-    "rejected",
-    "unroutable",
-    "expired",
-    "dropped",
-    "resent",
-    "send_full",
-    "unconfirmed",
-    "received",
-    "lost",
-    "out_of_order",
-    "duplicates",
-    "skipped",
-    "decode_errors",
-    "stale",
 ];
 
 /// Column `name` of `port`'s row: a field, or a counter (empty if the
