@@ -67,7 +67,7 @@ enum Storage {
     /// Nothing is persisted.
     #[default]
     None,
-    /// A sled database in this directory.
+    /// A [`crate::store::DiskStore`] in this directory.
     Dir(PathBuf),
     /// A store the caller provides (for example a [`crate::store::MemoryStore`]).
     Custom(Arc<dyn Store>),
@@ -286,7 +286,8 @@ impl BrokerBuilder {
             )),
             (None, true) => None,
         };
-        // Recovery time includes opening the store (sled replays its log).
+        // Recovery time includes opening the store (sled replays its log, the
+        // message log is read).
         let started = std::time::Instant::now();
         let free_space = match (self.free_space, &self.storage) {
             (Some(probe), _) => Some(probe),

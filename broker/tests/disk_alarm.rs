@@ -379,14 +379,14 @@ async fn start_in(dir: &std::path::Path, disk_free_limit: u64) -> BrokerHandle {
         .expect("start")
 }
 
-/// sled on a real, full tmpfs: with the alarm off (limit 0) writes fail
+/// The store (the message log and sled) on a real, full tmpfs: with the alarm off (limit 0) writes fail
 /// with ENOSPC and are nacked, a durable declare is refused; once space is
 /// freed the store is reopened and takes writes again, and after a restart
 /// every confirmed message is there. Then with a limit above the free
 /// space the alarm blocks before the disk fills, and freeing space
 /// unblocks.
 #[both_runtimes]
-async fn sled_on_a_full_tmpfs_nacks_then_resumes_and_the_alarm_blocks_before_it_fills() {
+async fn the_store_on_a_full_tmpfs_nacks_then_resumes_and_the_alarm_blocks_before_it_fills() {
     let Some(disk) = SmallDisk::mount(24 << 20) else {
         return;
     };

@@ -1,7 +1,8 @@
 //! A damaged store is reported, never silently forgotten: after a clean
-//! shutdown of the `leveret` binary its database is damaged as an operator
-//! or a failing disk would (files deleted, truncated to 0, 4 KB or half,
-//! one byte flipped mid-file or near the end, an older copy put back).
+//! shutdown of the `leveret` binary its database (sled) or its message log
+//! is damaged as an operator or a failing disk would (files deleted,
+//! truncated to 0, 4 KB or half, one byte flipped mid-file or near the
+//! end, an older copy put back).
 //! Each time, the next start either refuses with an error naming the data
 //! directory and what is wrong, or starts with every confirmed message
 //! and every declared queue; the definite losses must refuse. With
@@ -141,6 +142,18 @@ fn database_file(dir: &Path) -> PathBuf {
     dir.join("store").join("db")
 }
 
+/// The message log's newest segment file.
+fn newest_segment(dir: &Path) -> PathBuf {
+    let mut segments: Vec<PathBuf> = std::fs::read_dir(dir.join("messages"))
+        .expect("read the message log")
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "seg"))
+        .collect();
+    segments.sort();
+    segments.pop().expect("a segment")
+}
+
 fn copy_dir(from: &Path, to: &Path) {
     std::fs::create_dir_all(to).expect("mkdir");
     for entry in std::fs::read_dir(from).expect("read dir") {
@@ -210,6 +223,32 @@ async fn damage_refuses_the_start_or_loses_nothing_and_recover_salvages() {
                 move |d| {
                     std::fs::remove_dir_all(d.join("store")).expect("rm");
                     copy_dir(&older.join("store"), &d.join("store"));
+                }
+            }),
+        ),
+        (
+            "message log deleted",
+            Box::new(|d| std::fs::remove_dir_all(d.join("messages")).expect("rm")),
+        ),
+        (
+            "message log segment truncated to 0",
+            Box::new(|d| truncate(&newest_segment(d), |_| 0)),
+        ),
+        (
+            "message log segment truncated to half",
+            Box::new(|d| truncate(&newest_segment(d), |len| len / 2)),
+        ),
+        (
+            "a byte flipped mid message log segment",
+            Box::new(|d| flip(&newest_segment(d), |len| len / 2)),
+        ),
+        (
+            "an older message log put back",
+            Box::new({
+                let older = older.clone();
+                move |d| {
+                    std::fs::remove_dir_all(d.join("messages")).expect("rm");
+                    copy_dir(&older.join("messages"), &d.join("messages"));
                 }
             }),
         ),

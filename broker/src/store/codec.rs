@@ -343,8 +343,35 @@ impl StoreOp {
     }
 }
 
+/// Which engine of the [`DiskStore`](super::DiskStore) keeps a key.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Home {
+    /// The message log: the keys written per message (index entries,
+    /// shared records, delivery marks).
+    Log,
+    /// sled: definitions, users, parameters, the start count.
+    Definitions,
+    /// Both: the clean-shutdown marker, so each engine's files are checked
+    /// against the manifest.
+    Both,
+}
+
+/// Where `key` is kept.
+pub fn home(key: &[u8]) -> Home {
+    if LOG_PREFIXES.iter().any(|prefix| key.starts_with(prefix)) {
+        Home::Log
+    } else if key == CLEAN_MARKER_KEY {
+        Home::Both
+    } else {
+        Home::Definitions
+    }
+}
+
+/// The first bytes of every key kept in the message log.
+pub const LOG_PREFIXES: [&[u8]; 3] = [b"i", b"m", b"d"];
+
 /// The clean-shutdown marker's key (`!` sorts before every other tag).
-const CLEAN_MARKER_KEY: &[u8] = b"!clean";
+pub const CLEAN_MARKER_KEY: &[u8] = b"!clean";
 
 /// The key marking that the default user has been considered.
 const SEEDED_MARKER_KEY: &[u8] = b"!seeded";

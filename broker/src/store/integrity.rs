@@ -1,14 +1,16 @@
 //! Damage detection for a store kept in a data directory, and salvage.
 //!
-//! Beside the sled database lies a manifest (`leveret-store.manifest`):
+//! Beside the store (sled's `store/` and the message log's `messages/`)
+//! lies a manifest (`leveret-store.manifest`):
 //! the format version, whether the broker is running or shut down cleanly,
 //! and the generation of the last clean shutdown. A clean shutdown's last
 //! write to the store is a marker holding that generation (written and
 //! flushed after everything else), and only then is the manifest set to
 //! `clean` with it. At start, a manifest that says `clean` must find its
-//! marker: a store deleted, truncated, replaced by an older copy or cut
-//! short by a damaged log (sled drops everything after a bad checksum)
-//! lacks it. A store that cannot be opened or read (sled's errors, and its
+//! marker (in both engines: see `disk`): a store deleted, truncated,
+//! replaced by an older copy or cut short by a damaged log (sled drops
+//! everything after a bad checksum) lacks it. The message log checks its
+//! own batches and segments (see `log`). A store that cannot be opened or read (sled's errors, and its
 //! panics, caught at the boundary by `guarded`), or holds a record that
 //! cannot be decoded, is damaged too. Damage refuses the start with an
 //! error naming the directory and what is wrong, unless told to recover:
@@ -19,10 +21,11 @@
 //! expect: sled's own per-entry checksums and the flush-before-confirm
 //! rule are what hold then.
 //!
-//! Uses the store's engine (`SledStore`), its codec (`Recovered`) and
+//! Uses the store's engine (`DiskStore`), its codec (`Recovered`) and
 //! nothing else of the broker.
 
-use super::{guarded, Recovered, SledStore, Store, StoreError};
+use super::disk::log_dir;
+use super::{guarded, DiskStore, OnDamage, Recovered, Store, StoreError};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
@@ -30,8 +33,9 @@ use std::path::{Path, PathBuf};
 pub const MANIFEST: &str = "leveret-store.manifest";
 
 /// The store's format; a manifest with a higher one was written by a newer
-/// Leveret.
-const FORMAT: u32 = 1;
+/// Leveret. 2: messages in the message log (1 kept them in sled; such a
+/// store is moved over when opened).
+const FORMAT: u32 = 2;
 
 /// At most this many dropped records are logged one by one when salvaging.
 const LOGGED_DROPS: usize = 100;
@@ -185,7 +189,7 @@ fn write_manifest(dir: &Path, manifest: Manifest) -> Result<(), StoreError> {
 
 /// Opens and reads the store, and checks it against `manifest`; the
 /// problem, if it is damaged.
-fn check(dir: &Path, manifest: Option<Manifest>) -> Result<(SledStore, Recovered), String> {
+fn check(dir: &Path, manifest: Option<Manifest>) -> Result<(DiskStore, Recovered), String> {
     if let Some(manifest) = manifest {
         if manifest.format > FORMAT {
             return Err(format!(
@@ -199,8 +203,14 @@ fn check(dir: &Path, manifest: Option<Manifest>) -> Result<(SledStore, Recovered
                 store_dir(dir).display()
             ));
         }
+        if manifest.format >= 2 && !log_dir(dir).exists() {
+            return Err(format!(
+                "its message log directory {} is missing",
+                log_dir(dir).display()
+            ));
+        }
     }
-    let (store, pairs) = open_and_scan(dir)?;
+    let (store, pairs) = open_and_scan(dir, OnDamage::Refuse)?;
     let recovered = Recovered::from_scan(pairs).map_err(|bad| format!("{bad}"))?;
     if let Some(Manifest {
         state: State::Clean,
@@ -222,31 +232,45 @@ fn check(dir: &Path, manifest: Option<Manifest>) -> Result<(SledStore, Recovered
     Ok((store, recovered))
 }
 
-fn open_and_scan(dir: &Path) -> Result<(SledStore, Vec<super::KvPair>), String> {
-    let store = SledStore::open(dir).map_err(|e| format!("the database cannot be opened: {e}"))?;
+fn open_and_scan(
+    dir: &Path,
+    on_damage: OnDamage,
+) -> Result<(DiskStore, Vec<super::KvPair>), String> {
+    let store = DiskStore::open(dir, on_damage).map_err(|e| match e {
+        StoreError::Damaged { problem, .. } => problem,
+        e => format!("the database cannot be opened: {e}"),
+    })?;
     let pairs = guarded("scan", || store.scan())
         .map_err(|e| format!("the database cannot be read: {e}"))?;
     Ok((store, pairs))
 }
 
-/// `--recover`: copies the damaged database aside, then keeps every record
-/// that can be read; if the database cannot be opened at all, starts from
-/// an empty one (everything is in the copy).
-fn salvage(dir: &Path, problem: &str) -> Result<(SledStore, Recovered), StoreError> {
+/// `--recover`: copies the damaged database and message log aside (the
+/// log inside the copy, as `messages/`), then keeps every record that can
+/// be read; if the store cannot be opened at all, starts from an empty one
+/// (everything is in the copy).
+fn salvage(dir: &Path, problem: &str) -> Result<(DiskStore, Recovered), StoreError> {
     tracing::error!(dir = %dir.display(), problem, "the store is damaged; recovering as asked");
     let database = store_dir(dir);
-    if database.exists() {
+    let log = log_dir(dir);
+    if database.exists() || log.exists() {
         let stamp = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_secs());
         let copy = dir.join(format!("store.damaged-{stamp}"));
-        copy_dir(&database, &copy).map_err(|source| StoreError::DataDir {
+        let copied = |source| StoreError::DataDir {
             path: copy.clone(),
             source,
-        })?;
-        tracing::warn!(copy = %copy.display(), "kept a copy of the damaged database");
+        };
+        if database.exists() {
+            copy_dir(&database, &copy).map_err(copied)?;
+        }
+        if log.exists() {
+            copy_dir(&log, &copy.join("messages")).map_err(copied)?;
+        }
+        tracing::warn!(copy = %copy.display(), "kept a copy of the damaged store");
     }
-    let (store, pairs) = match open_and_scan(dir) {
+    let (store, pairs) = match open_and_scan(dir, OnDamage::Salvage) {
         Ok(opened) => opened,
         Err(unreadable) => {
             tracing::error!(
@@ -254,13 +278,15 @@ fn salvage(dir: &Path, problem: &str) -> Result<(SledStore, Recovered), StoreErr
                 "nothing can be salvaged from the database; starting with an empty one \
                  (the copy holds what there was)"
             );
-            if database.exists() {
-                std::fs::remove_dir_all(&database).map_err(|source| StoreError::DataDir {
-                    path: database.clone(),
-                    source,
-                })?;
+            for part in [&database, &log] {
+                if part.exists() {
+                    std::fs::remove_dir_all(part).map_err(|source| StoreError::DataDir {
+                        path: part.to_path_buf(),
+                        source,
+                    })?;
+                }
             }
-            let store = SledStore::open(dir)?;
+            let store = DiskStore::open(dir, OnDamage::Refuse)?;
             return Ok((store, Recovered::default()));
         }
     };

@@ -3,9 +3,12 @@
 //! persister that batches writes from every connection into one atomic,
 //! flushed batch, and recovery.
 //!
-//! Storage engines implement the small key-value [`Store`] trait (`sled.rs`
-//! on disk, `memory.rs` for tests and transient brokers); everything about
-//! keys and values lives here, once.
+//! Storage engines implement the small key-value [`Store`] trait: on disk
+//! [`DiskStore`] (`disk.rs`), which keeps definitions in sled (`sled.rs`)
+//! and the keys written for every message in the message log (`log.rs`,
+//! append-only segments, one sync per group); `memory.rs` for tests and
+//! transient brokers. Everything about keys and values lives here, once
+//! (`codec.rs`, which also says which engine keeps a key).
 //!
 //! Keys, in one keyspace so a transaction's batch is atomic:
 //! - `e` vhost 0 name → exchange definition
@@ -34,10 +37,9 @@
 //! redelivered (they may have been delivered; the flag is a hint, and a
 //! false positive only happens with priorities).
 //!
-//! sled costs a few microseconds per key, and very large atomic batches
-//! make it hold a lot of memory, so the persister writes plain inserts and
-//! removes, uses an atomic batch only for a transaction's commit, and
-//! flushes once per group. Safety rests only on `flush`: everything written
+//! The persister writes plain inserts and removes, uses an atomic batch
+//! only for a transaction's commit (or a set of definitions), and flushes
+//! once per group. Safety rests only on `flush`: everything written
 //! before it is durable when it returns, and nothing is confirmed earlier.
 //! Writes not yet flushed at a crash may survive in any combination, which
 //! is harmless: an insert without its remove brings back a message that was
@@ -46,13 +48,17 @@
 //! skips it).
 
 mod codec;
+mod disk;
 mod integrity;
+mod log;
 mod memory;
 mod persister;
 mod sled;
 
 pub use self::codec::BadRecord;
+pub use self::disk::DiskStore;
 pub use self::integrity::{mark_clean, open_checked, OpenedStore};
+pub use self::log::OnDamage;
 pub use self::memory::MemoryStore;
 pub use self::persister::{Durable, Persistence, PersisterFigures};
 pub use self::sled::SledStore;

@@ -1,4 +1,5 @@
-//! The on-disk [`Store`]: one sled tree in the data directory. Plain writes
+//! sled as a [`Store`]: one tree in the data directory's `store/`, holding
+//! definitions (see [`DiskStore`](super::DiskStore)). Plain writes
 //! are single inserts and removes; atomic writes go through `apply_batch`;
 //! `flush` blocks until everything written is stable on disk. The page cache is kept
 //! small: the broker holds queued messages in memory itself. sled refuses
@@ -82,6 +83,21 @@ fn open_db(dir: &Path) -> Result<sled::Db, StoreError> {
 /// Whether `error` is sled refusing to open because the file lock is held.
 fn is_lock_held(error: &StoreError) -> bool {
     error.to_string().contains("could not acquire lock")
+}
+
+impl SledStore {
+    /// Every key starting with `prefix` and its value, in key order.
+    pub fn scan_prefix(&self, prefix: &[u8]) -> Result<Vec<KvPair>, StoreError> {
+        self.with_db(|db| {
+            db.scan_prefix(prefix)
+                .map(|entry| {
+                    entry
+                        .map(|(k, v)| (k.to_vec(), v.to_vec()))
+                        .map_err(StoreError::from)
+                })
+                .collect()
+        })
+    }
 }
 
 impl Store for SledStore {

@@ -1,0 +1,993 @@
+//! The message log: an append-only key-value log in numbered segment files,
+//! for the keys written once or twice per message (which keys those are is
+//! the codec's business; [`DiskStore`](super::DiskStore) routes them here).
+//! A key-value engine built for that pattern: every write is an append,
+//! a flush is one `fdatasync`, and nothing is rewritten in place.
+//!
+//! On disk: `<dir>/<number as 16 hex digits>.seg`. A segment starts with
+//! a header (`MAGIC`, then its number, big-endian) and holds batches: the
+//! payload's length and its CRC-32 (both `u32` little-endian), then the
+//! payload, a run of records: `PUT` key-length (`u16` LE) key
+//! value-length (`u32` LE) value, or `REMOVE` key-length key. One
+//! [`MessageLog::write`] is one batch, so each write is atomic: a batch is
+//! applied whole or, when its checksum fails, not at all.
+//!
+//! In memory: where each live key's current value lies (segment, offset,
+//! length), and per segment how many bytes are still live. Values are read
+//! back only by [`MessageLog::scan`] and by compaction.
+//!
+//! Space: once every record of the oldest segments is dead (removed or
+//! overwritten later) they are deleted, oldest first, so a removal always
+//! lies in the same or a later segment than what it removes. A segment at
+//! most half live that is the oldest is compacted: its live records are
+//! appended again at the head, a bounded amount per flush, and the segment
+//! is deleted after a later flush has made the copies durable. A message
+//! held for a long time therefore pins at most its own bytes, never the
+//! log behind it.
+//!
+//! Crashes and damage: a new segment is started only after the previous
+//! one is synced, so only the newest segment can end in a batch that was
+//! cut short (written but not flushed when the power went); opening
+//! truncates it there, which loses nothing that was promised, and says so.
+//! Any other bad batch, a damaged header or a missing segment between two
+//! present ones is damage: opening fails naming the file and the offset,
+//! unless salvaging, which keeps every batch before the bad one and
+//! truncates the rest of that segment (after the caller copied it aside).
+//!
+//! Uses only the standard library and `crc32fast`; called from the
+//! persister thread (every call takes the log's one lock).
+
+use super::{KvOp, KvPair, StoreError};
+use std::collections::{BTreeMap, HashMap};
+use std::fs::{File, OpenOptions};
+use std::io::Write;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+/// A segment file's first bytes.
+const MAGIC: &[u8; 8] = b"LVRTLOG1";
+/// A segment's header: the magic and its number.
+const HEADER: u64 = 16;
+/// A batch's header: payload length and checksum.
+const BATCH_HEADER: usize = 8;
+/// Record tags.
+const PUT: u8 = 1;
+const REMOVE: u8 = 2;
+/// A new segment is started before a batch once the current one holds
+/// this much (a segment is larger only by its last batch).
+pub const SEGMENT_BYTES: u64 = 16 * 1024 * 1024;
+/// Plain writes are cut into batches of about this many payload bytes, so
+/// a batch's length always fits its `u32`.
+const BATCH_BYTES: usize = 64 * 1024 * 1024;
+/// Live bytes compaction copies per flush at most (the persister thread
+/// stays responsive: a flush's extra work is bounded).
+const COMPACT_BYTES: u64 = 1024 * 1024;
+
+/// Where a live key's current value lies.
+#[derive(Debug, Clone, Copy)]
+struct Location {
+    segment: u64,
+    /// The value's offset in the segment file.
+    offset: u64,
+    len: u32,
+}
+
+/// What the log knows of one segment.
+#[derive(Debug, Clone, Copy, Default)]
+struct Segment {
+    /// File size (the end of its last good batch).
+    size: u64,
+    /// Bytes of live values and keys in it.
+    live_bytes: u64,
+    /// Live records in it.
+    live: u64,
+}
+
+/// Where every live key's value lies, and what is live in each segment.
+#[derive(Debug, Default)]
+struct Index {
+    segments: BTreeMap<u64, Segment>,
+    keys: HashMap<Vec<u8>, Location>,
+}
+
+/// The log's state: the index and the head open for appending.
+#[derive(Debug)]
+struct State {
+    index: Index,
+    /// The newest segment, open for appending.
+    head: File,
+    head_number: u64,
+    /// Where compaction of the oldest segment has got (segment, offset).
+    compacting: Option<(u64, u64)>,
+    /// Whether the head has writes not yet synced.
+    dirty: bool,
+}
+
+/// How [`MessageLog::open`] treats damage.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OnDamage {
+    /// Fail, naming the file and what is wrong.
+    Refuse,
+    /// Keep what is readable: truncate a damaged segment at its first bad
+    /// batch and log what was dropped.
+    Salvage,
+}
+
+/// An append-only key-value log in segment files (see the module docs).
+#[derive(Debug)]
+pub struct MessageLog {
+    dir: PathBuf,
+    segment_bytes: u64,
+    state: Mutex<State>,
+}
+
+fn io_error(path: &Path, e: std::io::Error) -> StoreError {
+    StoreError::Engine(format!("message log {}: {e}", path.display()).into())
+}
+
+fn segment_path(dir: &Path, number: u64) -> PathBuf {
+    dir.join(format!("{number:016x}.seg"))
+}
+
+/// The segment numbers in `dir`, ascending; other files are ignored.
+fn segment_numbers(dir: &Path) -> Result<Vec<u64>, StoreError> {
+    let mut numbers = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(|e| io_error(dir, e))? {
+        let name = entry.map_err(|e| io_error(dir, e))?.file_name();
+        let name = name.to_string_lossy();
+        if let Some(hex) = name.strip_suffix(".seg") {
+            if let Ok(number) = u64::from_str_radix(hex, 16) {
+                numbers.push(number);
+            }
+        }
+    }
+    numbers.sort_unstable();
+    Ok(numbers)
+}
+
+fn sync_dir(dir: &Path) -> Result<(), StoreError> {
+    File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(|e| io_error(dir, e))
+}
+
+/// One record of a batch, borrowed from the payload.
+enum Record<'a> {
+    Put {
+        key: &'a [u8],
+        value: &'a [u8],
+        at: usize,
+    },
+    Remove {
+        key: &'a [u8],
+    },
+}
+
+/// Parses a batch payload's records; `None` if it is malformed.
+fn parse_records(payload: &[u8]) -> Option<Vec<Record<'_>>> {
+    let mut records = Vec::new();
+    let mut at = 0;
+    let take = |at: &mut usize, n: usize| -> Option<&[u8]> {
+        let slice = payload.get(*at..at.checked_add(n)?)?;
+        *at += n;
+        Some(slice)
+    };
+    while at < payload.len() {
+        let tag = take(&mut at, 1)?[0];
+        let key_len = u16::from_le_bytes(take(&mut at, 2)?.try_into().ok()?);
+        let key = take(&mut at, usize::from(key_len))?;
+        match tag {
+            PUT => {
+                let len = u32::from_le_bytes(take(&mut at, 4)?.try_into().ok()?);
+                let value_at = at;
+                let value = take(&mut at, len as usize)?;
+                records.push(Record::Put {
+                    key,
+                    value,
+                    at: value_at,
+                });
+            }
+            REMOVE => records.push(Record::Remove { key }),
+            _ => return None,
+        }
+    }
+    Some(records)
+}
+
+/// Appends `ops` to `payload` as records; what doesn't fit a `u16` key is
+/// refused.
+fn encode_records(payload: &mut Vec<u8>, ops: &[KvOp]) -> Result<(), StoreError> {
+    for (key, value) in ops {
+        let key_len = u16::try_from(key.len())
+            .map_err(|_| StoreError::Engine("a message log key over 64 KB".into()))?;
+        match value {
+            Some(value) => {
+                let len = u32::try_from(value.len())
+                    .map_err(|_| StoreError::Engine("a message log value over 4 GB".into()))?;
+                payload.push(PUT);
+                payload.extend_from_slice(&key_len.to_le_bytes());
+                payload.extend_from_slice(key);
+                payload.extend_from_slice(&len.to_le_bytes());
+                payload.extend_from_slice(value);
+            }
+            None => {
+                payload.push(REMOVE);
+                payload.extend_from_slice(&key_len.to_le_bytes());
+                payload.extend_from_slice(key);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Frames a payload as a batch.
+fn frame(payload: &[u8]) -> Result<Vec<u8>, StoreError> {
+    let len = u32::try_from(payload.len())
+        .map_err(|_| StoreError::Engine("a message log batch over 4 GB".into()))?;
+    let mut batch = Vec::with_capacity(BATCH_HEADER + payload.len());
+    batch.extend_from_slice(&len.to_le_bytes());
+    batch.extend_from_slice(&crc32fast::hash(payload).to_le_bytes());
+    batch.extend_from_slice(payload);
+    Ok(batch)
+}
+
+/// What reading a segment found.
+struct Read {
+    /// End of the last good batch.
+    good_end: u64,
+    /// What is wrong after it, if anything.
+    problem: Option<String>,
+}
+
+impl Index {
+    /// Records a put of `key` at `location`, retiring its older value.
+    fn put(&mut self, key: &[u8], location: Location) {
+        let weight = location.len as u64 + key.len() as u64;
+        if let Some(old) = self.keys.insert(key.to_vec(), location) {
+            self.retire(key, old);
+        }
+        let segment = self.segments.entry(location.segment).or_default();
+        segment.live += 1;
+        segment.live_bytes += weight;
+    }
+
+    fn remove(&mut self, key: &[u8]) {
+        if let Some(old) = self.keys.remove(key) {
+            self.retire(key, old);
+        }
+    }
+
+    fn retire(&mut self, key: &[u8], old: Location) {
+        if let Some(segment) = self.segments.get_mut(&old.segment) {
+            segment.live -= 1;
+            segment.live_bytes -= old.len as u64 + key.len() as u64;
+        }
+    }
+
+    /// Applies a batch payload that starts at `offset` of `segment`.
+    fn apply(&mut self, segment: u64, payload_offset: u64, records: Vec<Record<'_>>) {
+        for record in records {
+            match record {
+                Record::Put { key, value, at } => self.put(
+                    key,
+                    Location {
+                        segment,
+                        offset: payload_offset + at as u64,
+                        len: value.len() as u32,
+                    },
+                ),
+                Record::Remove { key } => self.remove(key),
+            }
+        }
+    }
+
+    /// Reads segment `number`'s batches into the index.
+    fn read_segment(&mut self, dir: &Path, number: u64) -> Result<Read, StoreError> {
+        let path = segment_path(dir, number);
+        let bytes = std::fs::read(&path).map_err(|e| io_error(&path, e))?;
+        self.segments.entry(number).or_default();
+        if bytes.len() < HEADER as usize
+            || &bytes[..8] != MAGIC
+            || bytes[8..16] != number.to_be_bytes()
+        {
+            return Ok(Read {
+                good_end: 0,
+                problem: Some("its header is missing or wrong".into()),
+            });
+        }
+        let mut at = HEADER as usize;
+        while at < bytes.len() {
+            let rest = &bytes[at..];
+            let problem = if rest.len() < BATCH_HEADER {
+                Some(format!("{} bytes of a batch header", rest.len()))
+            } else {
+                let len = u32::from_le_bytes(rest[..4].try_into().expect("4 bytes")) as usize;
+                let crc = u32::from_le_bytes(rest[4..8].try_into().expect("4 bytes"));
+                match rest.get(BATCH_HEADER..BATCH_HEADER + len) {
+                    None => Some(format!(
+                        "a batch of {len} bytes with only {} present",
+                        rest.len() - BATCH_HEADER
+                    )),
+                    Some(payload) if crc32fast::hash(payload) != crc => {
+                        Some("a batch whose checksum fails".into())
+                    }
+                    Some(payload) => match parse_records(payload) {
+                        None => Some("a batch whose records are malformed".into()),
+                        Some(records) => {
+                            self.apply(number, (at + BATCH_HEADER) as u64, records);
+                            at += BATCH_HEADER + len;
+                            None
+                        }
+                    },
+                }
+            };
+            if let Some(problem) = problem {
+                return Ok(Read {
+                    good_end: at as u64,
+                    problem: Some(format!("at offset {at}: {problem}")),
+                });
+            }
+        }
+        Ok(Read {
+            good_end: at as u64,
+            problem: None,
+        })
+    }
+}
+
+/// Creates segment `number` with its header, synced, and syncs the
+/// directory so the file is there after a power cut.
+fn create_segment(dir: &Path, number: u64) -> Result<File, StoreError> {
+    let path = segment_path(dir, number);
+    let mut file = OpenOptions::new()
+        .create(true)
+        .truncate(true)
+        .write(true)
+        .read(true)
+        .open(&path)
+        .map_err(|e| io_error(&path, e))?;
+    let mut header = MAGIC.to_vec();
+    header.extend_from_slice(&number.to_be_bytes());
+    file.write_all(&header)
+        .and_then(|()| file.sync_data())
+        .map_err(|e| io_error(&path, e))?;
+    sync_dir(dir)?;
+    Ok(file)
+}
+
+/// Truncates segment `number` to `len` bytes, durably.
+fn truncate_segment(dir: &Path, number: u64, len: u64) -> Result<(), StoreError> {
+    let path = segment_path(dir, number);
+    OpenOptions::new()
+        .write(true)
+        .open(&path)
+        .and_then(|f| f.set_len(len).and_then(|()| f.sync_all()))
+        .map_err(|e| io_error(&path, e))
+}
+
+impl MessageLog {
+    /// Opens the log in `dir` (created if missing), reading every
+    /// segment; see the module docs for what counts as damage.
+    pub fn open(dir: &Path, on_damage: OnDamage) -> Result<MessageLog, StoreError> {
+        MessageLog::open_sized(dir, on_damage, SEGMENT_BYTES)
+    }
+
+    /// [`MessageLog::open`] with segments of `segment_bytes` (small ones
+    /// exercise rotation and compaction in tests).
+    pub fn open_sized(
+        dir: &Path,
+        on_damage: OnDamage,
+        segment_bytes: u64,
+    ) -> Result<MessageLog, StoreError> {
+        std::fs::create_dir_all(dir).map_err(|e| io_error(dir, e))?;
+        let state = load(dir, on_damage)?;
+        Ok(MessageLog {
+            dir: dir.to_owned(),
+            segment_bytes,
+            state: Mutex::new(state),
+        })
+    }
+
+    fn state(&self) -> std::sync::MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Appends `ops` (as one batch when `atomic`; plain writes may be cut
+    /// into several). Not durable until [`MessageLog::flush`].
+    pub fn write(&self, ops: &[KvOp], atomic: bool) -> Result<(), StoreError> {
+        let mut state = self.state();
+        let mut start = 0;
+        while start < ops.len() {
+            let mut payload = Vec::new();
+            let mut end = start;
+            while end < ops.len() && (atomic || payload.len() < BATCH_BYTES) {
+                encode_records(&mut payload, &ops[end..=end])?;
+                end += 1;
+            }
+            self.append(&mut state, &payload)?;
+            start = end;
+        }
+        Ok(())
+    }
+
+    /// Appends one batch to the head (starting a new segment first if the
+    /// head is full), then indexes its records. A failed append is cut off
+    /// again, so the next one follows good data.
+    fn append(&self, state: &mut State, payload: &[u8]) -> Result<(), StoreError> {
+        let size = state
+            .index
+            .segments
+            .get(&state.head_number)
+            .map_or(0, |s| s.size);
+        if size >= self.segment_bytes {
+            self.rotate(state)?;
+        }
+        let batch = frame(payload)?;
+        let number = state.head_number;
+        let offset = state.index.segments.get(&number).map_or(HEADER, |s| s.size);
+        if let Err(e) = state.head.write_all_at(&batch, offset) {
+            let _ = state.head.set_len(offset);
+            return Err(io_error(&segment_path(&self.dir, number), e));
+        }
+        state.dirty = true;
+        let records = parse_records(payload)
+            .ok_or_else(|| StoreError::Engine("the message log encoded a bad batch".into()))?;
+        state
+            .index
+            .apply(number, offset + BATCH_HEADER as u64, records);
+        state.index.segments.entry(number).or_default().size = offset + batch.len() as u64;
+        Ok(())
+    }
+
+    /// Syncs the full head and starts the next segment.
+    fn rotate(&self, state: &mut State) -> Result<(), StoreError> {
+        let number = state.head_number;
+        state
+            .head
+            .sync_data()
+            .map_err(|e| io_error(&segment_path(&self.dir, number), e))?;
+        state.dirty = false;
+        let next = number + 1;
+        state.head = create_segment(&self.dir, next)?;
+        state.head_number = next;
+        state.index.segments.insert(
+            next,
+            Segment {
+                size: HEADER,
+                ..Segment::default()
+            },
+        );
+        Ok(())
+    }
+
+    /// Makes every write so far durable; then deletes the oldest segments
+    /// with nothing live, and compacts a little.
+    pub fn flush(&self) -> Result<(), StoreError> {
+        let mut state = self.state();
+        if state.dirty {
+            let number = state.head_number;
+            state
+                .head
+                .sync_data()
+                .map_err(|e| io_error(&segment_path(&self.dir, number), e))?;
+            state.dirty = false;
+        }
+        self.delete_dead(&mut state)?;
+        self.compact(&mut state)
+    }
+
+    /// Deletes the oldest segments while they hold nothing live (never the
+    /// head), oldest first, each deletion synced to the directory.
+    fn delete_dead(&self, state: &mut State) -> Result<(), StoreError> {
+        while let Some((&oldest, segment)) = state.index.segments.first_key_value() {
+            if oldest == state.head_number || segment.live > 0 {
+                return Ok(());
+            }
+            let path = segment_path(&self.dir, oldest);
+            std::fs::remove_file(&path).map_err(|e| io_error(&path, e))?;
+            sync_dir(&self.dir)?;
+            state.index.segments.remove(&oldest);
+            if state.compacting.is_some_and(|(s, _)| s == oldest) {
+                state.compacting = None;
+            }
+        }
+        Ok(())
+    }
+
+    /// Copies up to [`COMPACT_BYTES`] of the oldest segment's live records
+    /// to the head, if it is at most half live (and not the head).
+    fn compact(&self, state: &mut State) -> Result<(), StoreError> {
+        let Some((&oldest, segment)) = state.index.segments.first_key_value() else {
+            return Ok(());
+        };
+        if oldest == state.head_number || segment.live_bytes * 2 > segment.size {
+            return Ok(());
+        }
+        let end = segment.size;
+        let mut at = match state.compacting {
+            Some((s, at)) if s == oldest => at,
+            _ => HEADER,
+        };
+        let path = segment_path(&self.dir, oldest);
+        let file = File::open(&path).map_err(|e| io_error(&path, e))?;
+        let mut moved: Vec<KvOp> = Vec::new();
+        let mut moved_bytes = 0;
+        while at < end && moved_bytes < COMPACT_BYTES {
+            let mut header = [0; BATCH_HEADER];
+            file.read_exact_at(&mut header, at)
+                .map_err(|e| io_error(&path, e))?;
+            let len = u32::from_le_bytes(header[..4].try_into().expect("4 bytes")) as usize;
+            let mut payload = vec![0; len];
+            let payload_at = at + BATCH_HEADER as u64;
+            file.read_exact_at(&mut payload, payload_at)
+                .map_err(|e| io_error(&path, e))?;
+            // It was checked when read at open or written since.
+            let records = parse_records(&payload).ok_or_else(|| {
+                StoreError::Engine(
+                    format!("message log {}: a batch changed", path.display()).into(),
+                )
+            })?;
+            for record in records {
+                if let Record::Put { key, value, at } = record {
+                    let live =
+                        state.index.keys.get(key).is_some_and(|l| {
+                            l.segment == oldest && l.offset == payload_at + at as u64
+                        });
+                    if live {
+                        moved_bytes += value.len() as u64;
+                        moved.push((key.to_vec(), Some(value.to_vec())));
+                    }
+                }
+            }
+            at = payload_at + len as u64;
+        }
+        state.compacting = Some((oldest, at));
+        if !moved.is_empty() {
+            let mut payload = Vec::new();
+            encode_records(&mut payload, &moved)?;
+            self.append(state, &payload)?;
+        }
+        Ok(())
+    }
+
+    /// Every live key and value, in key order.
+    pub fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
+        let state = self.state();
+        let mut by_segment: BTreeMap<u64, Vec<(&Vec<u8>, Location)>> = BTreeMap::new();
+        for (key, location) in &state.index.keys {
+            by_segment
+                .entry(location.segment)
+                .or_default()
+                .push((key, *location));
+        }
+        let mut pairs = Vec::with_capacity(state.index.keys.len());
+        for (number, entries) in by_segment {
+            let path = segment_path(&self.dir, number);
+            let bytes = std::fs::read(&path).map_err(|e| io_error(&path, e))?;
+            for (key, location) in entries {
+                let value = bytes
+                    .get(location.offset as usize..location.offset as usize + location.len as usize)
+                    .ok_or_else(|| {
+                        StoreError::Engine(
+                            format!("message log {}: shorter than indexed", path.display()).into(),
+                        )
+                    })?;
+                pairs.push((key.clone(), value.to_vec()));
+            }
+        }
+        pairs.sort_unstable_by(|a, b| a.0.cmp(&b.0));
+        Ok(pairs)
+    }
+
+    /// Reads the log again from disk (after a failed write or flush):
+    /// what is durable, and a cut-short last batch truncated.
+    pub fn reopen(&self) -> Result<(), StoreError> {
+        let mut state = self.state();
+        *state = load(&self.dir, OnDamage::Refuse)?;
+        Ok(())
+    }
+}
+
+/// Reads every segment in `dir` into a fresh state (see the module docs
+/// for damage), with the newest open for appending.
+fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
+    let numbers = segment_numbers(dir)?;
+    let damaged = |problem: String| StoreError::Damaged {
+        path: dir.to_owned(),
+        problem,
+    };
+    if on_damage == OnDamage::Refuse {
+        if let Some(pair) = numbers.windows(2).find(|pair| pair[1] != pair[0] + 1) {
+            return Err(damaged(format!(
+                "message log segment {} is missing",
+                segment_path(dir, pair[0] + 1).display()
+            )));
+        }
+    }
+    let newest = numbers.last().copied();
+    let mut index = Index::default();
+    for &number in &numbers {
+        let read = index.read_segment(dir, number)?;
+        let path = segment_path(dir, number);
+        if let Some(problem) = read.problem {
+            match on_damage {
+                OnDamage::Refuse if Some(number) != newest => {
+                    return Err(damaged(format!(
+                        "message log segment {}: {problem}",
+                        path.display()
+                    )))
+                }
+                OnDamage::Refuse => tracing::warn!(
+                    segment = %path.display(),
+                    problem,
+                    "the message log ends in a batch that was never flushed (a crash or power \
+                     cut while writing); it is dropped, nothing it held was confirmed"
+                ),
+                OnDamage::Salvage => tracing::warn!(
+                    segment = %path.display(),
+                    problem,
+                    "dropped the rest of a damaged message log segment"
+                ),
+            }
+            if read.good_end < HEADER {
+                // No usable header: the segment holds nothing readable.
+                std::fs::remove_file(&path).map_err(|e| io_error(&path, e))?;
+                index.segments.remove(&number);
+                continue;
+            }
+            truncate_segment(dir, number, read.good_end)?;
+        }
+        index.segments.entry(number).or_default().size = read.good_end;
+    }
+    let (head_number, head) = match index.segments.last_key_value() {
+        Some((&number, _)) => {
+            let path = segment_path(dir, number);
+            let head = OpenOptions::new()
+                .read(true)
+                .write(true)
+                .open(&path)
+                .map_err(|e| io_error(&path, e))?;
+            (number, head)
+        }
+        None => {
+            let number = newest.map_or(1, |n| n + 1);
+            index.segments.insert(
+                number,
+                Segment {
+                    size: HEADER,
+                    ..Segment::default()
+                },
+            );
+            (number, create_segment(dir, number)?)
+        }
+    };
+    Ok(State {
+        index,
+        head,
+        head_number,
+        compacting: None,
+        dirty: false,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn temp_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("leveret-log-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        dir
+    }
+
+    fn put(key: &str, value: &str) -> KvOp {
+        (key.as_bytes().to_vec(), Some(value.as_bytes().to_vec()))
+    }
+
+    fn remove(key: &str) -> KvOp {
+        (key.as_bytes().to_vec(), None)
+    }
+
+    fn pairs(log: &MessageLog) -> Vec<(String, String)> {
+        log.scan()
+            .unwrap()
+            .into_iter()
+            .map(|(k, v)| (String::from_utf8(k).unwrap(), String::from_utf8(v).unwrap()))
+            .collect()
+    }
+
+    fn files(dir: &Path) -> Vec<u64> {
+        segment_numbers(dir).unwrap()
+    }
+
+    #[test]
+    fn writes_survive_reopening_with_overwrites_and_removes_applied() {
+        let dir = temp_dir("reopen");
+        {
+            let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+            log.write(&[put("a", "1"), put("b", "2"), put("c", "3")], false)
+                .unwrap();
+            log.write(&[remove("a"), put("b", "22"), remove("zz")], true)
+                .unwrap();
+            log.flush().unwrap();
+        }
+        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        assert_eq!(
+            pairs(&log),
+            vec![("b".into(), "22".into()), ("c".into(), "3".into())]
+        );
+        drop(log);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn dead_segments_are_deleted_oldest_first() {
+        let dir = temp_dir("delete");
+        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 256).unwrap();
+        for round in 0..20 {
+            let key = format!("k{round}");
+            log.write(&[put(&key, &"x".repeat(100))], false).unwrap();
+            log.flush().unwrap();
+            log.write(&[remove(&key)], false).unwrap();
+            log.flush().unwrap();
+        }
+        // Everything is dead: only the head (and perhaps the segment it
+        // followed) remain.
+        assert!(files(&dir).len() <= 2, "{:?}", files(&dir));
+        assert!(pairs(&log).is_empty());
+        drop(log);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_long_held_record_is_moved_forward_instead_of_pinning_the_log() {
+        let dir = temp_dir("compact");
+        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 512).unwrap();
+        log.write(&[put("pinned", "held for a long time")], false)
+            .unwrap();
+        for round in 0..200 {
+            let key = format!("k{round}");
+            log.write(&[put(&key, &"x".repeat(100))], false).unwrap();
+            log.write(&[remove(&key)], false).unwrap();
+            log.flush().unwrap();
+        }
+        assert!(files(&dir).len() <= 3, "{:?}", files(&dir));
+        assert_eq!(
+            pairs(&log),
+            vec![("pinned".into(), "held for a long time".into())]
+        );
+        drop(log);
+        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 512).unwrap();
+        assert_eq!(
+            pairs(&log),
+            vec![("pinned".into(), "held for a long time".into())]
+        );
+        drop(log);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_batch_cut_short_at_the_end_is_dropped_and_writing_goes_on_after_the_good_data() {
+        let dir = temp_dir("torn");
+        {
+            let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+            log.write(&[put("a", "1")], false).unwrap();
+            log.flush().unwrap();
+            log.write(&[put("b", "2")], false).unwrap();
+        }
+        let head = segment_path(&dir, *files(&dir).last().unwrap());
+        let len = std::fs::metadata(&head).unwrap().len();
+        for cut in 1..=8 {
+            truncate_segment(&dir, 1, len - cut).unwrap();
+            let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+            assert_eq!(pairs(&log), vec![("a".into(), "1".into())], "cut {cut}");
+            log.write(&[put("c", "3")], false).unwrap();
+            log.flush().unwrap();
+            drop(log);
+            let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+            assert_eq!(
+                pairs(&log),
+                vec![("a".into(), "1".into()), ("c".into(), "3".into())]
+            );
+            log.write(&[remove("c"), put("b", "2")], false).unwrap();
+            drop(log);
+        }
+        drop(std::fs::remove_dir_all(&dir));
+    }
+
+    #[test]
+    fn damage_before_the_last_segment_refuses_and_salvage_keeps_what_precedes_it() {
+        let dir = temp_dir("damage");
+        {
+            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 64).unwrap();
+            for i in 0..6 {
+                log.write(&[put(&format!("k{i}"), &"v".repeat(40))], false)
+                    .unwrap();
+            }
+            log.flush().unwrap();
+        }
+        let numbers = files(&dir);
+        assert!(numbers.len() >= 3, "{numbers:?}");
+        let second = segment_path(&dir, numbers[1]);
+        let mut bytes = std::fs::read(&second).unwrap();
+        let last = bytes.len() - 1;
+        bytes[last] ^= 0xff;
+        std::fs::write(&second, bytes).unwrap();
+        let refused = MessageLog::open(&dir, OnDamage::Refuse).unwrap_err();
+        let message = refused.to_string();
+        assert!(message.contains(&second.display().to_string()), "{message}");
+        assert!(message.contains("checksum"), "{message}");
+        let log = MessageLog::open(&dir, OnDamage::Salvage).unwrap();
+        let kept = pairs(&log);
+        assert_eq!(kept.len(), 5, "only the damaged batch is lost: {kept:?}");
+        drop(log);
+        // Salvaged, it opens normally again.
+        MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_missing_segment_is_damage() {
+        let dir = temp_dir("missing");
+        {
+            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 64).unwrap();
+            for i in 0..6 {
+                log.write(&[put(&format!("k{i}"), &"v".repeat(40))], false)
+                    .unwrap();
+            }
+            log.flush().unwrap();
+        }
+        let numbers = files(&dir);
+        std::fs::remove_file(segment_path(&dir, numbers[1])).unwrap();
+        let message = MessageLog::open(&dir, OnDamage::Refuse)
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("missing"), "{message}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[derive(Debug, Clone)]
+    enum Step {
+        Put(u8, usize),
+        Remove(u8),
+        Flush,
+        Reopen,
+    }
+
+    fn step() -> impl Strategy<Value = Step> {
+        prop_oneof![
+            4 => (0u8..24, 0usize..200).prop_map(|(k, n)| Step::Put(k, n)),
+            3 => (0u8..24).prop_map(Step::Remove),
+            2 => Just(Step::Flush),
+            1 => Just(Step::Reopen),
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        /// With tiny segments (rotation, deletion and compaction all the
+        /// time), the log always holds exactly what a map would, across
+        /// reopenings.
+        #[test]
+        fn the_log_behaves_like_a_map(steps in proptest::collection::vec(step(), 1..120)) {
+            let dir = temp_dir("model");
+            let mut model: BTreeMap<Vec<u8>, Vec<u8>> = BTreeMap::new();
+            let mut log = MessageLog::open_sized(&dir, OnDamage::Refuse, 300).unwrap();
+            for (n, step) in steps.into_iter().enumerate() {
+                match step {
+                    Step::Put(k, len) => {
+                        let value = vec![n as u8; len];
+                        log.write(&[(vec![k], Some(value.clone()))], false).unwrap();
+                        model.insert(vec![k], value);
+                    }
+                    Step::Remove(k) => {
+                        log.write(&[(vec![k], None)], false).unwrap();
+                        model.remove(&vec![k]);
+                    }
+                    Step::Flush => log.flush().unwrap(),
+                    Step::Reopen => {
+                        log.flush().unwrap();
+                        drop(log);
+                        log = MessageLog::open_sized(&dir, OnDamage::Refuse, 300).unwrap();
+                    }
+                }
+                let expected: Vec<KvPair> = model.clone().into_iter().collect();
+                prop_assert_eq!(log.scan().unwrap(), expected);
+            }
+            drop(log);
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+
+        /// A power cut: the newest segment keeps what was synced plus any
+        /// prefix of what was written after (as a page cache might), its
+        /// last byte possibly garbage. The log opens on exactly the state
+        /// after the last flush or after some later batch: nothing flushed
+        /// is lost, and no batch is applied in part or out of order.
+        #[test]
+        fn a_power_cut_keeps_every_flushed_batch_and_a_prefix_of_the_rest(
+            batches in proptest::collection::vec(
+                (proptest::collection::vec((0u8..12, proptest::option::of(0usize..120)), 1..4), any::<bool>()),
+                1..40,
+            ),
+            kept in any::<proptest::sample::Index>(),
+            garbage in any::<bool>(),
+        ) {
+            let dir = temp_dir("power-cut");
+            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 400).unwrap();
+            let mut model: BTreeMap<Vec<u8>, Vec<u8>> = BTreeMap::new();
+            let mut states = vec![Vec::new()];
+            let mut flushed_states = 0;
+            let mut synced = (1, HEADER);
+            for (n, (ops, flush)) in batches.iter().enumerate() {
+                let ops: Vec<KvOp> = ops
+                    .iter()
+                    .map(|(k, len)| (vec![*k], len.map(|len| vec![n as u8; len])))
+                    .collect();
+                log.write(&ops, false).unwrap();
+                for (key, value) in ops {
+                    match value {
+                        Some(value) => model.insert(key, value),
+                        None => model.remove(&key),
+                    };
+                }
+                states.push(model.clone().into_iter().collect::<Vec<KvPair>>());
+                if *flush {
+                    log.flush().unwrap();
+                    flushed_states = states.len() - 1;
+                    let newest = *files(&dir).last().unwrap();
+                    synced = (newest, std::fs::metadata(segment_path(&dir, newest)).unwrap().len());
+                }
+            }
+            drop(log);
+            let newest = *files(&dir).last().unwrap();
+            let path = segment_path(&dir, newest);
+            let written = std::fs::metadata(&path).unwrap().len();
+            let synced_len = if newest == synced.0 { synced.1 } else { HEADER };
+            let cut = synced_len + kept.index((written - synced_len + 1) as usize) as u64;
+            truncate_segment(&dir, newest, cut).unwrap();
+            if garbage && cut > synced_len {
+                let mut bytes = std::fs::read(&path).unwrap();
+                let last = bytes.len() - 1;
+                bytes[last] ^= 0x5a;
+                std::fs::write(&path, bytes).unwrap();
+            }
+            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 400).unwrap();
+            let found = log.scan().unwrap();
+            prop_assert!(
+                states[flushed_states..].contains(&found),
+                "found {:?}, flushed {:?}", found, states[flushed_states]
+            );
+            drop(log);
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+
+        /// Whatever bytes a segment holds, opening never panics: it
+        /// refuses or salvages.
+        #[test]
+        fn any_segment_bytes_open_without_panicking(
+            tail in proptest::collection::vec(any::<u8>(), 0..200),
+            older in any::<bool>(),
+        ) {
+            let dir = temp_dir("garbage");
+            std::fs::create_dir_all(&dir).unwrap();
+            let mut bytes = MAGIC.to_vec();
+            bytes.extend_from_slice(&1u64.to_be_bytes());
+            bytes.extend_from_slice(&tail);
+            std::fs::write(segment_path(&dir, 1), &bytes).unwrap();
+            if older {
+                let mut next = MAGIC.to_vec();
+                next.extend_from_slice(&2u64.to_be_bytes());
+                std::fs::write(segment_path(&dir, 2), &next).unwrap();
+            }
+            let _ = MessageLog::open(&dir, OnDamage::Refuse);
+            let log = MessageLog::open(&dir, OnDamage::Salvage).unwrap();
+            log.write(&[(b"k".to_vec(), Some(b"v".to_vec()))], false).unwrap();
+            log.flush().unwrap();
+            drop(log);
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+}
