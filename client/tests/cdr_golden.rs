@@ -11,7 +11,7 @@ use leveret_client::ports::{
     TimedChar, TimedCharSeq, TimedDouble, TimedDoubleSeq, TimedFloat, TimedFloatSeq, TimedLong,
     TimedLongSeq, TimedOctet, TimedOctetSeq, TimedPose2D, TimedShort, TimedShortSeq, TimedState,
     TimedString, TimedStringSeq, TimedULong, TimedULongSeq, TimedUShort, TimedUShortSeq,
-    TimedVelocity2D, Velocity2D,
+    TimedVelocity2D, TimedWChar, TimedWCharSeq, TimedWString, TimedWStringSeq, Velocity2D, WString,
 };
 use std::fmt::Debug;
 
@@ -254,6 +254,46 @@ fn basic_timed_sequences() {
         },
         Charset::Utf8,
     );
+}
+
+/// The wide-character types: UTF-16, the same bytes in either charset
+/// (the charset is for `string`s); omniORB writes a `wstring`'s units
+/// little-endian after the mark `FF FE` in both byte orders, a `wchar`
+/// big-endian without a mark. The C++ way OpenRTM-aist marshals them gave
+/// the same bytes (`golden/openrtm_cxx_wide.cc`).
+#[test]
+fn basic_wide_characters() {
+    for charset in [Charset::Utf8, Charset::Latin1] {
+        let wchar = |data: char| TimedWChar { tm: TM, data };
+        check("timed_wchar", wchar('\u{3a9}'), charset);
+        check("timed_wchar_ascii", wchar('A'), charset);
+        let wstring = |data: &str| TimedWString {
+            tm: TM,
+            data: data.into(),
+        };
+        check("timed_wstring", wstring("A\u{e9}\u{20ac}"), charset);
+        check("timed_wstring_empty", wstring(""), charset);
+        check("timed_wstring_surrogates", wstring("x\u{1f600}"), charset);
+        // U+FEFF as the first character, after the mark.
+        check("timed_wstring_feff", wstring("\u{feff}A"), charset);
+        let chars = |data: Vec<char>| TimedWCharSeq { tm: TM, data };
+        check(
+            "timed_wchar_seq",
+            chars(vec!['a', '\u{3a9}', '\u{20ac}']),
+            charset,
+        );
+        check("timed_wchar_seq_empty", chars(vec![]), charset);
+        check(
+            "timed_wstring_seq",
+            TimedWStringSeq {
+                tm: TM,
+                data: ["a", "", "\u{3a9}\u{3bc}", "x\u{1f600}"]
+                    .map(WString::from)
+                    .to_vec(),
+            },
+            charset,
+        );
+    }
 }
 
 /// Every type of `ExtendedDataTypes.idl`, bare and time-stamped, as

@@ -80,7 +80,7 @@ pub use announce::{
 // stale); the codec itself stays in `cdr`.
 pub use cdr::basic::*;
 pub use cdr::extended::*;
-pub use cdr::{CdrOptions, Charset, Endian};
+pub use cdr::{CdrOptions, Charset, Endian, WString};
 #[cfg(feature = "serde")]
 pub use data::Postcard;
 pub use data::{DataError, PortData};

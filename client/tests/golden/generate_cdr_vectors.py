@@ -13,9 +13,25 @@ order); each line of the output is `case endian hex`, endian 0 for big,
 1 for little. Strings use omniORB's default native charset, ISO 8859-1.
 omniORB leaves alignment padding uninitialised, so padding bytes change
 from run to run (the test treats them as don't-care).
+
+Wide characters: a cdrMemoryStream takes omniORB's "any" code sets, which
+ORB_init sets from the native ones (ISO 8859-1 and UTF-16, GIOP 1.2);
+before ORB_init there is no wide code set (cdrMarshal raises
+BAD_INV_ORDER). OpenRTM-aist marshals data port values that way after
+its manager's ORB_init, in C++ (CORBA_CdrMemoryStream: a plain
+cdrMemoryStream, setByteSwapFlag, `data >>= cdr`) and in Python
+(CORBA_CdrMemoryStream.py: cdrMarshal), so the wide cases below are
+cdrMarshal's too. omniORB writes a wchar as 2 then the code unit
+big-endian, and a wstring's code units in the host's byte order after a
+byte order mark saying so: on this (little-endian) host FF FE and
+little-endian units in both stream byte orders. The script also marshals
+the wide cases the C++ way, with openrtm_cxx_wide.cc built against the
+same omniORB (needs g++; the prefix is found from omniidl's path), and
+stops unless both give the same bytes, padding aside.
 """
 
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -49,6 +65,10 @@ module RTC {
   struct TimedBooleanSeq { Time tm; sequence<boolean> data; };
   struct TimedOctetSeq { Time tm; sequence<octet> data; };
   struct TimedStringSeq { Time tm; sequence<string> data; };
+  struct TimedWChar { Time tm; wchar data; };
+  struct TimedWString { Time tm; wstring data; };
+  struct TimedWCharSeq { Time tm; sequence<wchar> data; };
+  struct TimedWStringSeq { Time tm; sequence<wstring> data; };
 
   // ExtendedDataTypes.idl, all of it, in its order (Point2D, Pose2D,
   // Velocity2D and their Timed* forms are above).
@@ -156,15 +176,72 @@ def main():
         ("timed_octet_seq", RTC.TimedOctetSeq(tm, b"\x00\x01\xff")),
         ("timed_string_seq", RTC.TimedStringSeq(tm, ["a", "", "bcd"])),
     ]
+    wide = wide_cases(RTC, tm)
+    cases += wide
     cases += extended_cases(RTC, tm)
     lines = []
     for name, value in cases:
         tc = omniORB.tcInternal.typeCodeFromClassOrRepoId(type(value))
         for endian in (0, 1):
             lines.append(f"{name} {endian} {omniORB.cdrMarshal(tc, value, endian).hex()}")
+    check_wide_against_cxx(out_dir, idl, lines, [name for name, _ in wide])
     path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "cdr_vectors.txt")
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
+
+
+def wide_cases(RTC, tm):
+    """The wide-character types of BasicDataType.idl: characters whose
+    UTF-16 bytes differ (so a byte order cannot go unseen), one beyond
+    U+FFFF (a surrogate pair), a string starting with U+FEFF (a character,
+    not a byte order mark), and padding between the strings of a
+    sequence. openrtm_cxx_wide.cc marshals the same values; cdr_golden.rs
+    builds them too."""
+    return [
+        ("timed_wchar", RTC.TimedWChar(tm, "\u03a9")),
+        ("timed_wchar_ascii", RTC.TimedWChar(tm, "A")),
+        ("timed_wstring", RTC.TimedWString(tm, "A\u00e9\u20ac")),
+        ("timed_wstring_empty", RTC.TimedWString(tm, "")),
+        ("timed_wstring_surrogates", RTC.TimedWString(tm, "x\U0001f600")),
+        ("timed_wstring_feff", RTC.TimedWString(tm, "\ufeffA")),
+        ("timed_wchar_seq", RTC.TimedWCharSeq(tm, ["a", "\u03a9", "\u20ac"])),
+        ("timed_wchar_seq_empty", RTC.TimedWCharSeq(tm, [])),
+        (
+            "timed_wstring_seq",
+            RTC.TimedWStringSeq(tm, ["a", "", "\u03a9\u03bc", "x\U0001f600"]),
+        ),
+    ]
+
+
+def check_wide_against_cxx(out_dir, idl, lines, names):
+    """Marshals the wide cases as OpenRTM-aist's C++ does and stops unless
+    every byte is cdrMarshal's, but where the C++ stream's is zero (its
+    buffer is cleared, so its padding is zero; cdrMarshal's padding is
+    whatever was in memory)."""
+    prefix = os.path.dirname(os.path.dirname(os.path.realpath(shutil.which("omniidl"))))
+    subprocess.run(["omniidl", "-bcxx", "-C" + out_dir, idl], check=True)
+    binary = os.path.join(out_dir, "openrtm_cxx_wide")
+    source = os.path.join(os.path.dirname(os.path.abspath(__file__)), "openrtm_cxx_wide.cc")
+    subprocess.run(
+        ["g++", "-O1", "-I" + os.path.join(prefix, "include"), "-I" + out_dir,
+         source, os.path.join(out_dir, "rtc_typesSK.cc"),
+         "-L" + os.path.join(prefix, "lib"), "-Wl,-rpath," + os.path.join(prefix, "lib"),
+         "-lomniORB4", "-lomnithread", "-o", binary],
+        check=True,
+    )
+    cxx = subprocess.run([binary], check=True, capture_output=True, text=True).stdout
+    ours = {tuple(line.split()[:2]): bytes.fromhex(line.split()[2]) for line in lines}
+    checked = set()
+    for line in cxx.splitlines():
+        name, endian, data = line.split()
+        theirs = bytes.fromhex(data)
+        py = ours[(name, endian)]
+        if len(py) != len(theirs) or any(a != b and b != 0 for a, b in zip(py, theirs)):
+            sys.exit(f"{name} {endian}: C++ {data}, cdrMarshal {py.hex()}")
+        checked.add((name, endian))
+    if checked != {(name, endian) for name in names for endian in "01"}:
+        sys.exit(f"the C++ program marshalled {sorted(checked)}, not every wide case")
+    print(f"{len(checked)} wide vectors: C++ cdrMemoryStream and cdrMarshal agree")
 
 
 def extended_cases(RTC, tm):

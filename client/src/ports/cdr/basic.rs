@@ -1,7 +1,9 @@
 //! The types of OpenRTM-aist's `BasicDataType.idl` (module `RTC`): [`Time`]
-//! and the `Timed*` values and sequences, but the wide-character ones
-//! (`TimedWChar`, `TimedWString` and their sequences, whose encoding
-//! depends on GIOP code set negotiation).
+//! and the `Timed*` values and sequences, the wide-character ones
+//! included (a `wchar` is a `char` up to U+FFFF, a `wstring` a
+//! [`WString`]; both UTF-16 in CDR, see the `cdr` module).
+
+use super::WString;
 
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -63,12 +65,18 @@ timed_structs!(
     TimedDouble(f64) [Copy];
     /// `RTC::TimedChar` (an IDL `char`: one byte, Latin-1).
     TimedChar(u8) [Copy, Eq];
+    /// `RTC::TimedWChar` (an IDL `wchar`: one UTF-16 code unit, so a
+    /// character up to U+FFFF).
+    TimedWChar(char) [Copy, Eq];
     /// `RTC::TimedBoolean`.
     TimedBoolean(bool) [Copy, Eq];
     /// `RTC::TimedOctet`.
     TimedOctet(u8) [Copy, Eq];
     /// `RTC::TimedString` (in the port's charset; no NUL inside).
     TimedString(String) [Eq];
+    /// `RTC::TimedWString` (UTF-16 in CDR whatever the port's charset; no
+    /// NUL inside).
+    TimedWString(WString) [Eq];
     /// `RTC::TimedShortSeq`.
     TimedShortSeq(Vec<i16>) [Eq];
     /// `RTC::TimedLongSeq`.
@@ -83,19 +91,23 @@ timed_structs!(
     TimedDoubleSeq(Vec<f64>);
     /// `RTC::TimedCharSeq`.
     TimedCharSeq(Vec<u8>) [Eq];
+    /// `RTC::TimedWCharSeq` (each a character up to U+FFFF).
+    TimedWCharSeq(Vec<char>) [Eq];
     /// `RTC::TimedBooleanSeq`.
     TimedBooleanSeq(Vec<bool>) [Eq];
     /// `RTC::TimedOctetSeq`.
     TimedOctetSeq(Vec<u8>) [Eq];
     /// `RTC::TimedStringSeq` (each string in the port's charset).
     TimedStringSeq(Vec<String>) [Eq];
+    /// `RTC::TimedWStringSeq`.
+    TimedWStringSeq(Vec<WString>) [Eq];
 );
 
 #[cfg(test)]
 mod tests {
     use super::super::testing::{bytes, check, TM, TM_CDR};
     use super::*;
-    use crate::ports::PortData;
+    use crate::ports::{CdrOptions, Endian, PortData};
     use bytes::{Bytes, BytesMut};
 
     #[test]
@@ -171,6 +183,125 @@ mod tests {
             TimedDoubleSeq::decode(Bytes::from(lying)),
             Err(crate::ports::DataError::Truncated { .. })
         ));
+    }
+
+    #[test]
+    fn timed_wchar_is_two_octets_big_endian_in_either_byte_order() {
+        let omega = TimedWChar {
+            tm: TM,
+            data: '\u{3a9}',
+        };
+        // The octet count 2, then U+03A9 big-endian.
+        let expected = bytes(&[&TM_CDR, &[2, 0x03, 0xa9]]);
+        check(omega, &expected);
+        let big = CdrOptions {
+            endian: Endian::Big,
+            ..CdrOptions::default()
+        };
+        let mut buf = BytesMut::new();
+        omega.encode_with(&mut buf, big).unwrap();
+        assert_eq!(&buf[8..], [2, 0x03, 0xa9]);
+        // With a byte order mark, either way round.
+        for unit in [[4, 0xfe, 0xff, 0x03, 0xa9], [4, 0xff, 0xfe, 0xa9, 0x03]] {
+            let body = Bytes::from(bytes(&[&TM_CDR, &unit]));
+            assert_eq!(TimedWChar::decode(body).unwrap(), omega);
+        }
+        // Beyond U+FFFF is two code units: not a wchar.
+        let emoji = TimedWChar {
+            tm: TM,
+            data: '\u{1f600}',
+        };
+        assert!(emoji.encode(&mut BytesMut::new()).is_err());
+    }
+
+    #[test]
+    fn timed_wstring_is_utf16_after_a_little_endian_byte_order_mark() {
+        check(
+            TimedWString {
+                tm: TM,
+                data: "A\u{e9}\u{20ac}".into(),
+            },
+            // 8 octets: the mark FF FE and three code units, no terminator.
+            &bytes(&[
+                &TM_CDR,
+                &[8, 0, 0, 0],
+                &[0xff, 0xfe, 0x41, 0, 0xe9, 0, 0xac, 0x20],
+            ]),
+        );
+        // Beyond U+FFFF: a surrogate pair.
+        check(
+            TimedWString {
+                tm: TM,
+                data: "\u{1f600}".into(),
+            },
+            &bytes(&[&TM_CDR, &[6, 0, 0, 0], &[0xff, 0xfe, 0x3d, 0xd8, 0, 0xde]]),
+        );
+        // The empty string is its length alone.
+        check(
+            TimedWString {
+                tm: TM,
+                data: WString::default(),
+            },
+            &bytes(&[&TM_CDR, &[0, 0, 0, 0]]),
+        );
+        let nul = TimedWString {
+            tm: TM,
+            data: "a\0b".into(),
+        };
+        assert!(nul.encode(&mut BytesMut::new()).is_err());
+    }
+
+    #[test]
+    fn a_wstring_is_big_endian_unless_its_mark_says_otherwise() {
+        let value = |text: &str| TimedWString {
+            tm: TM,
+            data: text.into(),
+        };
+        let decode = |units: &[u8]| {
+            let length = u32::try_from(units.len()).unwrap().to_le_bytes();
+            TimedWString::decode(Bytes::from(bytes(&[&TM_CDR, &length, units])))
+        };
+        // No mark: big-endian, whatever the stream's byte order.
+        assert_eq!(decode(&[0, 0x41, 0, 0xe9]).unwrap(), value("A\u{e9}"));
+        assert_eq!(
+            decode(&[0xfe, 0xff, 0, 0x41, 0, 0xe9]).unwrap(),
+            value("A\u{e9}")
+        );
+        assert_eq!(
+            decode(&[0xff, 0xfe, 0x41, 0, 0xe9, 0]).unwrap(),
+            value("A\u{e9}")
+        );
+        // The mark alone is the empty string; only a leading mark is one.
+        assert_eq!(decode(&[0xff, 0xfe]).unwrap(), value(""));
+        assert_eq!(
+            decode(&[0xfe, 0xff, 0, 0x41, 0xfe, 0xff]).unwrap(),
+            value("A\u{feff}")
+        );
+    }
+
+    #[test]
+    fn timed_wchar_seq_and_wstring_seq() {
+        check(
+            TimedWCharSeq {
+                tm: TM,
+                data: vec!['a', '\u{3a9}'],
+            },
+            &bytes(&[&TM_CDR, &[2, 0, 0, 0], &[2, 0, 0x61], &[2, 0x03, 0xa9]]),
+        );
+        check(
+            TimedWStringSeq {
+                tm: TM,
+                data: vec!["\u{3a9}\u{3bc}".into(), "a".into()],
+            },
+            &bytes(&[
+                &TM_CDR,
+                &[2, 0, 0, 0],
+                &[6, 0, 0, 0, 0xff, 0xfe, 0xa9, 0x03, 0xbc, 0x03],
+                // The first string ends at 22: padding to 24.
+                &[0, 0],
+                &[4, 0, 0, 0, 0xff, 0xfe, 0x61, 0],
+            ]),
+        );
     }
 
     #[test]

@@ -5,8 +5,16 @@
 //! `u32` length counting the terminating NUL, the bytes, then the NUL, and a
 //! sequence is a `u32` element count followed by the elements.
 //!
+//! A `wchar` and a `wstring` are UTF-16, as omniORB marshals them once
+//! its ORB is initialised (OpenRTM-aist always initialises it first): a
+//! `wchar` is the octet count 2 and the code unit big-endian, a `wstring`
+//! its length in octets, a byte order mark and the code units, no
+//! terminator (see [`CdrWriter::wstring`] for the bytes written and
+//! [`CdrReader::wstring`] for what is read).
+//!
 //! This module owns the codec: [`CdrWriter`] and [`CdrReader`], the [`Cdr`]
-//! trait and its impls for the IDL primitives, `string` and `sequence<T>`
+//! trait and its impls for the IDL primitives, `string`, `wchar` (a
+//! `char` up to U+FFFF), `wstring` ([`WString`]) and `sequence<T>`
 //! (whose reader bounds a count by the bytes left before allocating), and
 //! `idl_structs!`, the one way an IDL struct is declared here: its Rust
 //! struct, its CDR form (the members one after another in IDL order) and,
@@ -14,9 +22,9 @@
 //! (`IDL:RTC/<name>:1.0`). The RTC types are declared in one file per
 //! OpenRTM-aist IDL file, and re-exported both here and at
 //! [`ports`](super):
-//! - `basic`: [`Time`] and every type of `BasicDataType.idl` but the
-//!   wide-character ones (`TimedWChar`, `TimedWString` and their
-//!   sequences, whose encoding depends on GIOP code set negotiation);
+//! - `basic`: [`Time`] and every type of `BasicDataType.idl`, the
+//!   wide-character ones ([`TimedWChar`], [`TimedWString`] and their
+//!   sequences) included;
 //! - `extended`: every type of `ExtendedDataTypes.idl` ([`RGBColour`],
 //!   the 2D and 3D geometry from [`Point2D`] to [`OAP`], [`Quaternion`],
 //!   and their `Timed*` wrappers).
@@ -217,6 +225,52 @@ impl<'a> CdrWriter<'a> {
         Ok(())
     }
 
+    /// A `wchar` as omniORB writes it with UTF-16 as the wide code set
+    /// (GIOP 1.2): the octet count 2, then the code unit big-endian in
+    /// either byte order. A character beyond U+FFFF is two code units and
+    /// cannot be one `wchar`.
+    pub fn wchar(&mut self, value: char) -> Result<(), DataError> {
+        let unit = u16::try_from(u32::from(value)).map_err(|_| {
+            DataError::Invalid(format!(
+                "{value:?} is beyond U+FFFF: not one UTF-16 code unit, so not a wchar"
+            ))
+        })?;
+        self.buf.put_u8(2);
+        self.buf.put_u16(unit);
+        Ok(())
+    }
+
+    /// A `wstring` as omniORB on a little-endian host writes it (GIOP 1.2,
+    /// UTF-16): the length in octets (in the stream's byte order), then
+    /// the little-endian byte order mark `FF FE` and the UTF-16 code units
+    /// little-endian, in either stream byte order; no terminator. The
+    /// empty string is the length 0 alone. Text containing NUL cannot be a
+    /// `wstring` (omniORB refuses it too).
+    pub fn wstring(&mut self, value: &str) -> Result<(), DataError> {
+        if value.contains('\0') {
+            return Err(DataError::Invalid(
+                "a CDR wstring cannot contain NUL".to_owned(),
+            ));
+        }
+        if value.is_empty() {
+            self.ulong(0);
+            return Ok(());
+        }
+        let length = value
+            .encode_utf16()
+            .count()
+            .checked_add(1)
+            .and_then(|units| units.checked_mul(2))
+            .and_then(|octets| u32::try_from(octets).ok())
+            .ok_or_else(|| DataError::Invalid("wstring longer than 4 GiB".to_owned()))?;
+        self.ulong(length);
+        self.buf.put_slice(&[0xff, 0xfe]);
+        for unit in value.encode_utf16() {
+            self.buf.put_u16_le(unit);
+        }
+        Ok(())
+    }
+
     /// A sequence's element count (the elements follow).
     pub fn sequence_len(&mut self, len: usize) -> Result<(), DataError> {
         let len = u32::try_from(len)
@@ -353,6 +407,81 @@ impl CdrReader {
         }
     }
 
+    /// A `wchar` (GIOP 1.2, UTF-16): the octet count 2 and a big-endian
+    /// code unit, or 4 and a byte order mark (`FE FF` big-endian, `FF FE`
+    /// little-endian) then the unit, as omniORB reads it, in either stream
+    /// byte order. Any other count does not decode, nor (unlike omniORB,
+    /// which passes it on) a surrogate: half a character beyond U+FFFF,
+    /// which a `char` cannot hold.
+    pub fn wchar(&mut self) -> Result<char, DataError> {
+        let offset = self.pos;
+        let invalid =
+            |what: String| DataError::Invalid(format!("CDR wchar at offset {offset} {what}"));
+        let unit = match self.octet()? {
+            2 => {
+                let bytes = self.take(2)?;
+                u16::from_be_bytes([bytes[0], bytes[1]])
+            }
+            4 => match *self.take(4)? {
+                [0xfe, 0xff, high, low] => u16::from_be_bytes([high, low]),
+                [0xff, 0xfe, low, high] => u16::from_le_bytes([low, high]),
+                _ => return Err(invalid("has 4 octets but no byte order mark".to_owned())),
+            },
+            n => {
+                return Err(invalid(format!(
+                    "has {n} octets (2, or 4 with a byte order mark)"
+                )))
+            }
+        };
+        char::from_u32(unit.into()).ok_or_else(|| invalid(format!("is the surrogate {unit:#06x}")))
+    }
+
+    /// A `wstring` (GIOP 1.2, UTF-16), as omniORB reads it: the length in
+    /// octets (even; no terminator), then the code units, big-endian
+    /// unless a leading byte order mark says otherwise (`FE FF`
+    /// big-endian, `FF FE` little-endian; the mark is dropped, a later
+    /// U+FEFF is a character), in either stream byte order. An odd length
+    /// does not decode, nor (stricter than omniORB, whose C++ mapping
+    /// passes them on or cuts the text at the NUL) unpaired surrogates and
+    /// NUL. Nothing is allocated before the length is checked against the
+    /// bytes left.
+    pub fn wstring(&mut self) -> Result<String, DataError> {
+        let length = self.ulong()? as usize;
+        let offset = self.pos;
+        let invalid =
+            |what: &str| DataError::Invalid(format!("CDR wstring at offset {offset} {what}"));
+        if length % 2 != 0 {
+            return Err(invalid("has an odd number of octets"));
+        }
+        let (big_endian, units) = match self.take(length)? {
+            [0xfe, 0xff, units @ ..] => (true, units),
+            [0xff, 0xfe, units @ ..] => (false, units),
+            units => (true, units),
+        };
+        let units = units.chunks_exact(2).map(|pair| {
+            let pair = [pair[0], pair[1]];
+            if big_endian {
+                u16::from_be_bytes(pair)
+            } else {
+                u16::from_le_bytes(pair)
+            }
+        });
+        let mut text = String::with_capacity(length / 2);
+        for c in char::decode_utf16(units) {
+            match c {
+                Ok('\0') => return Err(invalid("contains NUL")),
+                Ok(c) => text.push(c),
+                Err(e) => {
+                    return Err(invalid(&format!(
+                        "has the unpaired surrogate {:#06x}",
+                        e.unpaired_surrogate()
+                    )))
+                }
+            }
+        }
+        Ok(text)
+    }
+
     /// A sequence's element count, checked against the bytes left
     /// (`min_element` bytes each), so a corrupt count cannot allocate.
     pub fn sequence_len(&mut self, min_element: usize) -> Result<usize, DataError> {
@@ -412,6 +541,70 @@ cdr_primitives!(
 /// A `string` element: its length and NUL at least.
 impl CdrElement for String {
     const MIN_SIZE: usize = 5;
+}
+
+/// A `wchar`: one UTF-16 code unit, so a character up to U+FFFF (see
+/// [`CdrWriter::wchar`]).
+impl Cdr for char {
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+        out.wchar(*self)
+    }
+
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+        input.wchar()
+    }
+}
+
+/// A `wchar` element: its octet count and one code unit at least.
+impl CdrElement for char {
+    const MIN_SIZE: usize = 3;
+}
+
+/// An IDL `wstring`: text whose CDR form is UTF-16 (see
+/// [`CdrWriter::wstring`] and [`CdrReader::wstring`]) whatever the
+/// stream's [`Charset`], which is for `string`s only.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub struct WString(pub String);
+
+impl From<String> for WString {
+    fn from(text: String) -> Self {
+        WString(text)
+    }
+}
+
+impl From<&str> for WString {
+    fn from(text: &str) -> Self {
+        WString(text.to_owned())
+    }
+}
+
+impl std::ops::Deref for WString {
+    type Target = str;
+
+    fn deref(&self) -> &str {
+        &self.0
+    }
+}
+
+impl std::fmt::Display for WString {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl Cdr for WString {
+    fn write_cdr(&self, out: &mut CdrWriter<'_>) -> Result<(), DataError> {
+        out.wstring(&self.0)
+    }
+
+    fn read_cdr(input: &mut CdrReader) -> Result<Self, DataError> {
+        input.wstring().map(WString)
+    }
+}
+
+/// A `wstring` element: its length at least (the empty string).
+impl CdrElement for WString {
+    const MIN_SIZE: usize = 4;
 }
 
 /// `sequence<T>`: the element count, then the elements.
@@ -599,6 +792,88 @@ mod tests {
         ));
         let body = bytes(&[&TM_CDR, &[0xff, 0xff, 0xff, 0x0f], &[0; 16]]);
         assert!(TimedStringSeq::decode(Bytes::from(body)).is_err());
+    }
+
+    #[test]
+    fn hostile_wide_characters_are_errors_not_panics_or_allocations() {
+        let invalid = |body: Vec<u8>, decode: fn(Bytes) -> Result<(), DataError>| {
+            let error = decode(Bytes::from(body.clone())).unwrap_err();
+            assert!(
+                matches!(error, DataError::Invalid(_) | DataError::Truncated { .. }),
+                "{body:02x?}: {error}"
+            );
+        };
+        let wchar = |body: Bytes| TimedWChar::decode(body).map(drop);
+        let wstring = |body: Bytes| TimedWString::decode(body).map(drop);
+        // A wchar of 0, 1, 3, 5 or 255 octets; of 4 without a mark; a
+        // surrogate, bare or after a mark.
+        for unit in [
+            &[0][..],
+            &[1, 0x41],
+            &[3, 0, 0x41, 0],
+            &[5, 0xfe, 0xff, 0, 0x41, 0],
+            &[255, 0, 0x41],
+            &[4, 0, 0x41, 0, 0x42],
+            &[2, 0xd8, 0x3d],
+            &[2, 0xdc, 0],
+            &[4, 0xff, 0xfe, 0x3d, 0xd8],
+        ] {
+            invalid(bytes(&[&TM_CDR, unit]), wchar);
+        }
+        // A wstring of an odd number of octets; unpaired surrogates, with
+        // either mark and without; NUL; a length beyond the body.
+        for (length, units) in [
+            (3, &[0xff, 0xfe, 0x41][..]),
+            (1, &[0x41]),
+            (4, &[0xff, 0xfe, 0x3d, 0xd8]),
+            (4, &[0xfe, 0xff, 0xdc, 0]),
+            (6, &[0xff, 0xfe, 0x3d, 0xd8, 0x41, 0]),
+            (6, &[0xff, 0xfe, 0, 0xde, 0x3d, 0xd8]),
+            (2, &[0xd8, 0x3d]),
+            (4, &[0, 0x41, 0, 0]),
+            (u32::MAX - 1, &[0xff, 0xfe, 0x41, 0]),
+            (u32::MAX, &[0xff, 0xfe, 0x41, 0]),
+        ] {
+            invalid(bytes(&[&TM_CDR, &length.to_le_bytes(), units]), wstring);
+        }
+        // Four billion elements claimed, a few bytes there: refused before
+        // any allocation.
+        let huge = bytes(&[&TM_CDR, &[0xff, 0xff, 0xff, 0xff], &[2, 0, 0x41]]);
+        invalid(huge.clone(), |body| TimedWCharSeq::decode(body).map(drop));
+        invalid(huge, |body| TimedWStringSeq::decode(body).map(drop));
+        let huge = bytes(&[&TM_CDR, &[0xff, 0xff, 0xff, 0x3f], &[0; 64]]);
+        invalid(huge, |body| TimedWStringSeq::decode(body).map(drop));
+
+        // Arbitrary bytes after a time stamp, as each wide type: an error
+        // or a value, never a panic.
+        let mut state = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for _ in 0..20_000 {
+            let len = (next() % 24) as usize;
+            let mut tail: Vec<u8> = (0..len)
+                .map(|_| {
+                    let random = next();
+                    let byte = (random >> 8) as u8;
+                    // Mostly small numbers, marks and surrogate halves.
+                    [byte % 8, 0xfe, 0xff, 0xd8, 0xdc, byte][(random % 6) as usize]
+                })
+                .collect();
+            if tail.len() >= 4 && next() % 2 == 0 {
+                // Often a count or length the body could hold.
+                let small = (next() % 20) as u32;
+                tail[..4].copy_from_slice(&small.to_le_bytes());
+            }
+            let body = Bytes::from(bytes(&[&TM_CDR, &tail]));
+            let _ = TimedWChar::decode(body.clone());
+            let _ = TimedWString::decode(body.clone());
+            let _ = TimedWCharSeq::decode(body.clone());
+            let _ = TimedWStringSeq::decode(body);
+        }
     }
 
     #[test]
