@@ -134,38 +134,47 @@ impl Store for DiskStore {
 
     fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
         let mut logged = self.log.scan()?;
-        let mut pairs: Vec<KvPair> = Vec::new();
-        let mut log_marker = None;
-        logged.retain(|(key, value)| {
-            if key == CLEAN_MARKER_KEY {
-                log_marker = Some(value.clone());
-                false
-            } else {
-                true
-            }
-        });
+        let log_marker = logged
+            .iter()
+            .position(|(key, _)| key == CLEAN_MARKER_KEY)
+            .map(|at| logged.remove(at).1);
+        let mut definitions = Vec::new();
         for (key, value) in self.definitions.scan()? {
             match home(&key) {
                 // Left by a move cut short; the log's copy is the one.
                 Home::Log => {}
-                Home::Definitions => pairs.push((key, value)),
+                Home::Definitions => definitions.push((key, value)),
                 Home::Both => {
                     // Big-endian generations: the smaller bytes are the older.
                     if let Some(log_marker) = &log_marker {
-                        let older = value.clone().min(log_marker.clone());
-                        pairs.push((key, older));
+                        let older = value.min(log_marker.clone());
+                        definitions.push((key, older));
                     }
                 }
             }
         }
-        pairs.extend(logged);
-        pairs.sort_unstable_by(|a, b| a.0.cmp(&b.0));
-        Ok(pairs)
+        Ok(merge_sorted(definitions, logged))
     }
 
     fn reopen(&self) -> Result<(), StoreError> {
         self.log.reopen()?;
         self.definitions.reopen()
+    }
+}
+
+/// Two key-ordered lists with no key in common, as one.
+fn merge_sorted(left: Vec<KvPair>, right: Vec<KvPair>) -> Vec<KvPair> {
+    let mut merged = Vec::with_capacity(left.len() + right.len());
+    let mut left = left.into_iter().peekable();
+    let mut right = right.into_iter().peekable();
+    loop {
+        let take_left = match (left.peek(), right.peek()) {
+            (Some(l), Some(r)) => l.0 <= r.0,
+            (Some(_), None) => true,
+            (None, Some(_)) => false,
+            (None, None) => return merged,
+        };
+        merged.extend(if take_left { left.next() } else { right.next() });
     }
 }
 

@@ -84,11 +84,12 @@ struct Segment {
     live: u64,
 }
 
-/// Where every live key's value lies, and what is live in each segment.
+/// Where every live key's value lies (in key order, so a scan needs no
+/// sort), and what is live in each segment.
 #[derive(Debug, Default)]
 struct Index {
     segments: BTreeMap<u64, Segment>,
-    keys: HashMap<Vec<u8>, Location>,
+    keys: BTreeMap<Vec<u8>, Location>,
 }
 
 /// The log's state: the index and the head open for appending.
@@ -554,29 +555,26 @@ impl MessageLog {
     /// Every live key and value, in key order.
     pub fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
         let state = self.state();
-        let mut by_segment: BTreeMap<u64, Vec<(&Vec<u8>, Location)>> = BTreeMap::new();
-        for (key, location) in &state.index.keys {
-            by_segment
-                .entry(location.segment)
-                .or_default()
-                .push((key, *location));
-        }
+        let mut files: HashMap<u64, Vec<u8>> = HashMap::new();
         let mut pairs = Vec::with_capacity(state.index.keys.len());
-        for (number, entries) in by_segment {
-            let path = segment_path(&self.dir, number);
-            let bytes = std::fs::read(&path).map_err(|e| io_error(&path, e))?;
-            for (key, location) in entries {
-                let value = bytes
-                    .get(location.offset as usize..location.offset as usize + location.len as usize)
-                    .ok_or_else(|| {
-                        StoreError::Engine(
-                            format!("message log {}: shorter than indexed", path.display()).into(),
-                        )
-                    })?;
-                pairs.push((key.clone(), value.to_vec()));
-            }
+        for (key, location) in &state.index.keys {
+            let path = segment_path(&self.dir, location.segment);
+            let bytes = match files.entry(location.segment) {
+                std::collections::hash_map::Entry::Occupied(file) => file.into_mut(),
+                std::collections::hash_map::Entry::Vacant(slot) => {
+                    slot.insert(std::fs::read(&path).map_err(|e| io_error(&path, e))?)
+                }
+            };
+            let start = location.offset as usize;
+            let value = bytes
+                .get(start..start + location.len as usize)
+                .ok_or_else(|| {
+                    StoreError::Engine(
+                        format!("message log {}: shorter than indexed", path.display()).into(),
+                    )
+                })?;
+            pairs.push((key.clone(), value.to_vec()));
         }
-        pairs.sort_unstable_by(|a, b| a.0.cmp(&b.0));
         Ok(pairs)
     }
 
