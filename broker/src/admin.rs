@@ -252,7 +252,7 @@ impl Admin {
             .await
     }
 
-    /// Removes the binding whose [`BindingInfo::properties_key`] is `key`;
+    /// Removes the binding whose [`crate::inspect::BindingInfo::properties_key`] is `key`;
     /// 404 if there is none.
     pub async fn unbind(
         &self,

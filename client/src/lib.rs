@@ -35,7 +35,7 @@
 //!
 //! # Transports
 //! [`Connection::connect`] opens TCP. With the `embedded` feature,
-//! [`Connection::in_process`] connects to a Leveret broker running in the
+//! `Connection::in_process` connects to a Leveret broker running in the
 //! same process (`leveret_broker::BrokerHandle`): frames cross as values
 //! (`BrokerHandle::connect_direct`), so neither side encodes or parses
 //! them, and the broker serves the link with the same connection code as

@@ -47,7 +47,7 @@ pub struct Cli {
     #[arg(long, value_name = "BYTES")]
     pub disk_free_limit: Option<u64>,
     /// TOML configuration file: the same keys as these flags, plus
-    /// [[users]] (name, and password or password-hash), vhosts, and the
+    /// `[[users]]` (name, and password or password-hash), vhosts, and the
     /// limits heartbeat, frame-max, channel-max, max-message-size,
     /// memory-high-watermark.
     #[arg(long, value_name = "FILE")]

@@ -244,7 +244,7 @@ impl Queue {
     /// [`Queue::dispatch`] for a connection's writer, which has room again
     /// but cannot route dead letters: those this dispatch finds (messages
     /// that expired at the head) wait in the queue for the vhost's next
-    /// sweep ([`Queue::expire`]).
+    /// sweep ([`Queue::expire_at`]).
     pub fn dispatch_deferring_dead_letters(self: &Arc<Self>) {
         let mut dead = Vec::new();
         let mut st = self.lock();
@@ -415,7 +415,7 @@ impl Queue {
         self.options.auto_delete && st.consumers.is_empty() && !st.deleted
     }
 
-    /// Ready messages, as of the last expiry ([`Queue::expire`]).
+    /// Ready messages, as of the last expiry ([`Queue::expire_at`]).
     pub fn message_count(&self) -> u32 {
         self.lock().ready.len() as u32
     }

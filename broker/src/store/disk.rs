@@ -39,7 +39,7 @@ pub struct DiskStore {
 }
 
 impl DiskStore {
-    /// Opens (or creates) the store in `data_dir`; see [`MessageLog`] for
+    /// Opens (or creates) the store in `data_dir`; see `MessageLog` for
     /// what `on_damage` does with a damaged log.
     pub fn open(data_dir: &Path, on_damage: OnDamage) -> Result<DiskStore, StoreError> {
         let definitions = SledStore::open(data_dir)?;

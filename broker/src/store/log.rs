@@ -105,7 +105,7 @@ struct State {
     dirty: bool,
 }
 
-/// How [`MessageLog::open`] treats damage.
+/// How the message log treats damage when it is opened.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum OnDamage {
     /// Fail, naming the file and what is wrong.

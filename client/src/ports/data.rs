@@ -2,7 +2,7 @@
 //! Implemented here for raw bytes (`Bytes`, `Vec<u8>`), UTF-8 text
 //! (`String`), the numeric primitives and `bool` (little-endian, exactly
 //! their size), OpenRTM-aist's CDR data types (see `cdr`), and, with the
-//! `serde` feature, any serde type wrapped in [`Postcard`].
+//! `serde` feature, any serde type wrapped in `Postcard`.
 
 use super::cdr::CdrOptions;
 use bytes::{BufMut, Bytes, BytesMut};

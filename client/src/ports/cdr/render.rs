@@ -1,4 +1,4 @@
-//! [`render`]: a CDR body shown as the `{:?}` of the value it holds,
+//! [`render()`]: a CDR body shown as the `{:?}` of the value it holds,
 //! picked by the name of its type (its `PortData::TYPE_NAME`, as a port's
 //! announcement and its messages' `type` property carry it), for tools
 //! that learn a port's type at run time (`leveretctl port echo`). It uses
@@ -7,7 +7,7 @@
 use super::*;
 use crate::ports::PortData;
 
-/// The CDR port data types [`render`] knows, one line each.
+/// The CDR port data types [`render()`] knows, one line each.
 macro_rules! renderable {
     ($($t:ty),* $(,)?) => {
         /// The `{:?}` of the value `body` holds, for the CDR port data
