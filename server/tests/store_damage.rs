@@ -142,6 +142,16 @@ fn database_file(dir: &Path) -> PathBuf {
     dir.join("store").join("db")
 }
 
+/// How much of a segment file is data: up to its last non-zero byte (the
+/// log keeps zeros ahead of its data).
+fn data_len(segment: &Path) -> u64 {
+    let bytes = std::fs::read(segment).expect("read the segment");
+    bytes
+        .iter()
+        .rposition(|&b| b != 0)
+        .map_or(0, |at| at as u64 + 1)
+}
+
 /// The message log's newest segment file.
 fn newest_segment(dir: &Path) -> PathBuf {
     let mut segments: Vec<PathBuf> = std::fs::read_dir(dir.join("messages"))
@@ -235,12 +245,20 @@ async fn damage_refuses_the_start_or_loses_nothing_and_recover_salvages() {
             Box::new(|d| truncate(&newest_segment(d), |_| 0)),
         ),
         (
-            "message log segment truncated to half",
-            Box::new(|d| truncate(&newest_segment(d), |len| len / 2)),
+            "message log segment truncated to half its data",
+            Box::new(|d| {
+                let segment = newest_segment(d);
+                let data = data_len(&segment);
+                truncate(&segment, |_| data / 2)
+            }),
         ),
         (
-            "a byte flipped mid message log segment",
-            Box::new(|d| flip(&newest_segment(d), |len| len / 2)),
+            "a byte flipped mid message log data",
+            Box::new(|d| {
+                let segment = newest_segment(d);
+                let data = data_len(&segment);
+                flip(&segment, |_| data / 2)
+            }),
         ),
         (
             "an older message log put back",

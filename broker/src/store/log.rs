@@ -54,12 +54,18 @@ const BATCH_HEADER: usize = 8;
 /// Record tags.
 const PUT: u8 = 1;
 const REMOVE: u8 = 2;
+/// The last record of a segment that is complete (see `rotate`).
+const SEAL: u8 = 3;
 /// A new segment is started before a batch once the current one holds
 /// this much (a segment is larger only by its last batch).
 pub const SEGMENT_BYTES: u64 = 16 * 1024 * 1024;
 /// Plain writes are cut into batches of about this many payload bytes, so
 /// a batch's length always fits its `u32`.
 const BATCH_BYTES: usize = 64 * 1024 * 1024;
+/// The head is extended with zeros this far ahead of its data (at most a
+/// segment), so most syncs change no file size and cost one device flush
+/// instead of a journal commit as well.
+const PREFILL_BYTES: u64 = 2 * 1024 * 1024;
 /// Live bytes compaction copies per flush at most (the persister thread
 /// stays responsive: a flush's extra work is bounded).
 const COMPACT_BYTES: u64 = 1024 * 1024;
@@ -99,6 +105,8 @@ struct State {
     /// The newest segment, open for appending.
     head: File,
     head_number: u64,
+    /// The head file's length: its data, then zeros.
+    head_len: u64,
     /// Where compaction of the oldest segment has got (segment, offset).
     compacting: Option<(u64, u64)>,
     /// Whether the head has writes not yet synced.
@@ -163,6 +171,7 @@ enum Record<'a> {
     Remove {
         key: &'a [u8],
     },
+    Seal,
 }
 
 /// Parses a batch payload's records; `None` if it is malformed.
@@ -176,6 +185,10 @@ fn parse_records(payload: &[u8]) -> Option<Vec<Record<'_>>> {
     };
     while at < payload.len() {
         let tag = take(&mut at, 1)?[0];
+        if tag == SEAL {
+            records.push(Record::Seal);
+            continue;
+        }
         let key_len = u16::from_le_bytes(take(&mut at, 2)?.try_into().ok()?);
         let key = take(&mut at, usize::from(key_len))?;
         match tag {
@@ -237,6 +250,8 @@ fn frame(payload: &[u8]) -> Result<Vec<u8>, StoreError> {
 struct Read {
     /// End of the last good batch.
     good_end: u64,
+    /// Whether that batch is a seal.
+    sealed: bool,
     /// What is wrong after it, if anything.
     problem: Option<String>,
 }
@@ -279,6 +294,7 @@ impl Index {
                     },
                 ),
                 Record::Remove { key } => self.remove(key),
+                Record::Seal => {}
             }
         }
     }
@@ -294,18 +310,26 @@ impl Index {
         {
             return Ok(Read {
                 good_end: 0,
+                sealed: false,
                 problem: Some("its header is missing or wrong".into()),
             });
         }
         let mut at = HEADER as usize;
+        let mut sealed = false;
         while at < bytes.len() {
             let rest = &bytes[at..];
+            if rest.iter().all(|&b| b == 0) {
+                // The zeros the head was extended with: the end.
+                break;
+            }
             let problem = if rest.len() < BATCH_HEADER {
                 Some(format!("{} bytes of a batch header", rest.len()))
             } else {
                 let len = u32::from_le_bytes(rest[..4].try_into().expect("4 bytes")) as usize;
                 let crc = u32::from_le_bytes(rest[4..8].try_into().expect("4 bytes"));
                 match rest.get(BATCH_HEADER..BATCH_HEADER + len) {
+                    // Never written: zeros before later data are a hole.
+                    Some([]) => Some("an empty batch".into()),
                     None => Some(format!(
                         "a batch of {len} bytes with only {} present",
                         rest.len() - BATCH_HEADER
@@ -316,6 +340,7 @@ impl Index {
                     Some(payload) => match parse_records(payload) {
                         None => Some("a batch whose records are malformed".into()),
                         Some(records) => {
+                            sealed = matches!(records[..], [Record::Seal]);
                             self.apply(number, (at + BATCH_HEADER) as u64, records);
                             at += BATCH_HEADER + len;
                             None
@@ -326,12 +351,14 @@ impl Index {
             if let Some(problem) = problem {
                 return Ok(Read {
                     good_end: at as u64,
+                    sealed,
                     problem: Some(format!("at offset {at}: {problem}")),
                 });
             }
         }
         Ok(Read {
             good_end: at as u64,
+            sealed,
             problem: None,
         })
     }
@@ -355,6 +382,19 @@ fn create_segment(dir: &Path, number: u64) -> Result<File, StoreError> {
         .map_err(|e| io_error(&path, e))?;
     sync_dir(dir)?;
     Ok(file)
+}
+
+/// Appends a seal batch to segment `number` at `at`, durably; returns its
+/// length.
+fn seal_segment(dir: &Path, number: u64, at: u64) -> Result<u64, StoreError> {
+    let path = segment_path(dir, number);
+    let seal = frame(&[SEAL])?;
+    OpenOptions::new()
+        .write(true)
+        .open(&path)
+        .and_then(|f| f.write_all_at(&seal, at).and_then(|()| f.sync_data()))
+        .map_err(|e| io_error(&path, e))?;
+    Ok(seal.len() as u64)
 }
 
 /// Truncates segment `number` to `len` bytes, durably.
@@ -426,24 +466,47 @@ impl MessageLog {
         }
         let batch = frame(payload)?;
         let number = state.head_number;
-        let offset = state.index.segments.get(&number).map_or(HEADER, |s| s.size);
-        if let Err(e) = state.head.write_all_at(&batch, offset) {
-            let _ = state.head.set_len(offset);
-            return Err(io_error(&segment_path(&self.dir, number), e));
-        }
-        state.dirty = true;
+        let offset = self.write_batch(state, &batch)?;
         let records = parse_records(payload)
             .ok_or_else(|| StoreError::Engine("the message log encoded a bad batch".into()))?;
         state
             .index
             .apply(number, offset + BATCH_HEADER as u64, records);
-        state.index.segments.entry(number).or_default().size = offset + batch.len() as u64;
         Ok(())
     }
 
-    /// Syncs the full head and starts the next segment.
+    /// Writes a framed batch at the end of the head's data, extending the
+    /// zeros after it when the batch reaches them; returns its offset. A
+    /// failed write is cut off again (with the zeros), so the next one
+    /// follows good data.
+    fn write_batch(&self, state: &mut State, batch: &[u8]) -> Result<u64, StoreError> {
+        let number = state.head_number;
+        let offset = state.index.segments.get(&number).map_or(HEADER, |s| s.size);
+        let end = offset + batch.len() as u64;
+        let mut written = state.head.write_all_at(batch, offset);
+        if written.is_ok() && end > state.head_len {
+            let zeros_to = end + PREFILL_BYTES.min(self.segment_bytes);
+            let zeros = vec![0; (zeros_to - end) as usize];
+            written = state.head.write_all_at(&zeros, end);
+            if written.is_ok() {
+                state.head_len = zeros_to;
+            }
+        }
+        if let Err(e) = written {
+            let _ = state.head.set_len(offset);
+            state.head_len = offset;
+            return Err(io_error(&segment_path(&self.dir, number), e));
+        }
+        state.dirty = true;
+        state.index.segments.entry(number).or_default().size = end;
+        Ok(offset)
+    }
+
+    /// Seals the full head, syncs it and starts the next segment. Only the
+    /// newest segment may lack its seal.
     fn rotate(&self, state: &mut State) -> Result<(), StoreError> {
         let number = state.head_number;
+        self.write_batch(state, &frame(&[SEAL])?)?;
         state
             .head
             .sync_data()
@@ -452,6 +515,7 @@ impl MessageLog {
         let next = number + 1;
         state.head = create_segment(&self.dir, next)?;
         state.head_number = next;
+        state.head_len = HEADER;
         state.index.segments.insert(
             next,
             Segment {
@@ -606,8 +670,14 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
     let newest = numbers.last().copied();
     let mut index = Index::default();
     for &number in &numbers {
-        let read = index.read_segment(dir, number)?;
+        let mut read = index.read_segment(dir, number)?;
         let path = segment_path(dir, number);
+        if read.problem.is_none() && !read.sealed && Some(number) != newest {
+            read.problem = Some(format!(
+                "it ends at offset {} without its seal (truncated)",
+                read.good_end
+            ));
+        }
         if let Some(problem) = read.problem {
             match on_damage {
                 OnDamage::Refuse if Some(number) != newest => {
@@ -635,10 +705,14 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
                 continue;
             }
             truncate_segment(dir, number, read.good_end)?;
+            if Some(number) != newest {
+                // Salvaged: sealed again, so the next start finds it whole.
+                read.good_end += seal_segment(dir, number, read.good_end)?;
+            }
         }
         index.segments.entry(number).or_default().size = read.good_end;
     }
-    let (head_number, head) = match index.segments.last_key_value() {
+    let (head_number, head, head_len) = match index.segments.last_key_value() {
         Some((&number, _)) => {
             let path = segment_path(dir, number);
             let head = OpenOptions::new()
@@ -646,7 +720,8 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
                 .write(true)
                 .open(&path)
                 .map_err(|e| io_error(&path, e))?;
-            (number, head)
+            let len = head.metadata().map_err(|e| io_error(&path, e))?.len();
+            (number, head, len)
         }
         None => {
             let number = newest.map_or(1, |n| n + 1);
@@ -657,13 +732,14 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
                     ..Segment::default()
                 },
             );
-            (number, create_segment(dir, number)?)
+            (number, create_segment(dir, number)?, HEADER)
         }
     };
     Ok(State {
         index,
         head,
         head_number,
+        head_len,
         compacting: None,
         dirty: false,
     })
@@ -698,6 +774,27 @@ mod tests {
 
     fn files(dir: &Path) -> Vec<u64> {
         segment_numbers(dir).unwrap()
+    }
+
+    /// Where the head's data ends.
+    fn data_end(log: &MessageLog) -> u64 {
+        let state = log.state();
+        state.index.segments[&state.head_number].size
+    }
+
+    /// The newest segment loses its bytes from `from` to `to`, as a page
+    /// cache that never wrote them back would: cut off, or zeros (the
+    /// zeros the head was extended with).
+    fn lose_tail(dir: &Path, from: u64, to: u64, zeroed: bool) {
+        let newest = *files(dir).last().unwrap();
+        let path = segment_path(dir, newest);
+        if zeroed {
+            let file = OpenOptions::new().write(true).open(&path).unwrap();
+            file.write_all_at(&vec![0; (to - from) as usize], from)
+                .unwrap();
+        } else {
+            truncate_segment(dir, newest, from).unwrap();
+        }
     }
 
     #[test]
@@ -769,49 +866,55 @@ mod tests {
     #[test]
     fn a_batch_cut_short_at_the_end_is_dropped_and_writing_goes_on_after_the_good_data() {
         let dir = temp_dir("torn");
-        {
-            let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
-            log.write(&[put("a", "1")], false).unwrap();
-            log.flush().unwrap();
-            log.write(&[put("b", "2")], false).unwrap();
-        }
-        let head = segment_path(&dir, *files(&dir).last().unwrap());
-        let len = std::fs::metadata(&head).unwrap().len();
+        let mut log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        log.write(&[put("a", "1")], false).unwrap();
+        log.flush().unwrap();
+        // Each time the last batch (not flushed) loses its last `cut`
+        // bytes, cut off or left as the zeros after the data.
         for cut in 1..=8 {
-            truncate_segment(&dir, 1, len - cut).unwrap();
-            let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
-            assert_eq!(pairs(&log), vec![("a".into(), "1".into())], "cut {cut}");
-            log.write(&[put("c", "3")], false).unwrap();
-            log.flush().unwrap();
-            drop(log);
-            let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
-            assert_eq!(
-                pairs(&log),
-                vec![("a".into(), "1".into()), ("c".into(), "3".into())]
-            );
-            log.write(&[remove("c"), put("b", "2")], false).unwrap();
-            drop(log);
+            for zeroed in [false, true] {
+                log.write(&[put("b", "2")], false).unwrap();
+                let end = data_end(&log);
+                drop(log);
+                lose_tail(&dir, end - cut, end, zeroed);
+                log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+                assert_eq!(pairs(&log), vec![("a".into(), "1".into())], "cut {cut}");
+                log.write(&[put("c", "3")], false).unwrap();
+                log.flush().unwrap();
+                drop(log);
+                log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+                assert_eq!(
+                    pairs(&log),
+                    vec![("a".into(), "1".into()), ("c".into(), "3".into())]
+                );
+                log.write(&[remove("c")], false).unwrap();
+                log.flush().unwrap();
+            }
         }
-        drop(std::fs::remove_dir_all(&dir));
+        drop(log);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
     fn damage_before_the_last_segment_refuses_and_salvage_keeps_what_precedes_it() {
         let dir = temp_dir("damage");
-        {
+        let sizes: Vec<u64> = {
             let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 64).unwrap();
             for i in 0..6 {
                 log.write(&[put(&format!("k{i}"), &"v".repeat(40))], false)
                     .unwrap();
             }
             log.flush().unwrap();
-        }
+            let state = log.state();
+            state.index.segments.values().map(|s| s.size).collect()
+        };
         let numbers = files(&dir);
         assert!(numbers.len() >= 3, "{numbers:?}");
         let second = segment_path(&dir, numbers[1]);
         let mut bytes = std::fs::read(&second).unwrap();
-        let last = bytes.len() - 1;
-        bytes[last] ^= 0xff;
+        // The last byte of its value, before its seal batch.
+        let in_value = (sizes[1] - BATCH_HEADER as u64 - 2) as usize;
+        bytes[in_value] ^= 0xff;
         std::fs::write(&second, bytes).unwrap();
         let refused = MessageLog::open(&dir, OnDamage::Refuse).unwrap_err();
         let message = refused.to_string();
@@ -912,6 +1015,7 @@ mod tests {
             ),
             kept in any::<proptest::sample::Index>(),
             garbage in any::<bool>(),
+            zeroed in any::<bool>(),
         ) {
             let dir = temp_dir("power-cut");
             let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 400).unwrap();
@@ -935,22 +1039,22 @@ mod tests {
                 if *flush {
                     log.flush().unwrap();
                     flushed_states = states.len() - 1;
-                    let newest = *files(&dir).last().unwrap();
-                    synced = (newest, std::fs::metadata(segment_path(&dir, newest)).unwrap().len());
+                    let head = log.state().head_number;
+                    synced = (head, data_end(&log));
                 }
             }
+            let newest = log.state().head_number;
+            let written = data_end(&log);
             drop(log);
-            let newest = *files(&dir).last().unwrap();
             let path = segment_path(&dir, newest);
-            let written = std::fs::metadata(&path).unwrap().len();
             let synced_len = if newest == synced.0 { synced.1 } else { HEADER };
             let cut = synced_len + kept.index((written - synced_len + 1) as usize) as u64;
-            truncate_segment(&dir, newest, cut).unwrap();
+            lose_tail(&dir, cut, written, zeroed);
             if garbage && cut > synced_len {
-                let mut bytes = std::fs::read(&path).unwrap();
-                let last = bytes.len() - 1;
-                bytes[last] ^= 0x5a;
-                std::fs::write(&path, bytes).unwrap();
+                let file = OpenOptions::new().read(true).write(true).open(&path).unwrap();
+                let mut byte = [0];
+                file.read_exact_at(&mut byte, cut - 1).unwrap();
+                file.write_all_at(&[byte[0] ^ 0x5a], cut - 1).unwrap();
             }
             let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 400).unwrap();
             let found = log.scan().unwrap();
