@@ -473,6 +473,10 @@ async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> 
             f.push(("consume rate".into(), Unit::MsgsPerSecond, r.consume_rate));
             f.push(("latency p50".into(), Unit::Micros, r.latency.p50_us));
             f.push(("latency p99".into(), Unit::Micros, r.latency.p99_us));
+            if let Some(confirms) = &r.confirm_latency {
+                f.push(("confirm latency p50".into(), Unit::Micros, confirms.p50_us));
+                f.push(("confirm latency p99".into(), Unit::Micros, confirms.p99_us));
+            }
             f.push((
                 "backlog at end of window".into(),
                 Unit::Count,

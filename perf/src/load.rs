@@ -216,6 +216,20 @@ pub struct PublisherCounters {
     pub acked: AtomicU64,
     /// Refused with `basic.nack`.
     pub nacked: AtomicU64,
+    /// Nanoseconds from each publish to its confirm, as seen by a
+    /// publisher that waits for its oldest confirm when its window is
+    /// full (the usual state under load); cleared when the measurement
+    /// window starts.
+    pub confirm_latency: std::sync::Mutex<Histogram>,
+}
+
+impl PublisherCounters {
+    /// The confirm latency histogram (held briefly, never across an await).
+    pub fn confirm_latency(&self) -> std::sync::MutexGuard<'_, Histogram> {
+        self.confirm_latency
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+    }
 }
 
 /// How a publisher run ended.
@@ -257,21 +271,28 @@ pub async fn publish(
     };
     let options = BasicPublishOptions::default();
     let mut writer = BodyWriter::new(spec.size);
-    let mut window: VecDeque<ConfirmFuture> = VecDeque::with_capacity(spec.confirm_window);
+    let mut window: VecDeque<(tokio::time::Instant, ConfirmFuture)> =
+        VecDeque::with_capacity(spec.confirm_window);
     let mut outcome = PublisherOutcome {
         next: spec.first,
         ..Default::default()
     };
     let start = tokio::time::Instant::now();
     let period = (spec.rate > 0.0).then(|| Duration::from_secs_f64(1.0 / spec.rate));
-    let settle = |answer: Confirmation, outcome: &mut PublisherOutcome| match answer {
-        Confirmation::Nack => {
-            outcome.nacked += 1;
-            counters.nacked.fetch_add(1, Ordering::Relaxed);
-        }
-        _ => {
-            outcome.acked += 1;
-            counters.acked.fetch_add(1, Ordering::Relaxed);
+    let settle = |answer: Confirmation,
+                  published_at: tokio::time::Instant,
+                  outcome: &mut PublisherOutcome| {
+        let waited = published_at.elapsed().as_nanos() as u64;
+        counters.confirm_latency().record(waited);
+        match answer {
+            Confirmation::Nack => {
+                outcome.nacked += 1;
+                counters.nacked.fetch_add(1, Ordering::Relaxed);
+            }
+            _ => {
+                outcome.acked += 1;
+                counters.acked.fetch_add(1, Ordering::Relaxed);
+            }
         }
     };
     while !stop.load(Ordering::Relaxed) && (spec.count == 0 || outcome.published < spec.count) {
@@ -282,6 +303,7 @@ pub async fn publish(
             }
         }
         let body = writer.body(make_seq(spec.id, outcome.next));
+        let published_at = tokio::time::Instant::now();
         let confirm = channel
             .basic_publish(
                 &spec.exchange,
@@ -295,18 +317,18 @@ pub async fn publish(
         outcome.published += 1;
         counters.published.fetch_add(1, Ordering::Relaxed);
         if spec.confirm_window > 0 {
-            window.push_back(confirm.into_future());
+            window.push_back((published_at, confirm.into_future()));
             while window.len() >= spec.confirm_window {
-                if let Some(oldest) = window.pop_front() {
-                    settle(oldest.await?, &mut outcome);
+                if let Some((at, oldest)) = window.pop_front() {
+                    settle(oldest.await?, at, &mut outcome);
                 }
             }
         }
     }
     let deadline = tokio::time::Instant::now() + CONFIRM_GRACE;
-    while let Some(oldest) = window.pop_front() {
+    while let Some((at, oldest)) = window.pop_front() {
         match tokio::time::timeout_at(deadline, oldest).await {
-            Ok(answer) => settle(answer?, &mut outcome),
+            Ok(answer) => settle(answer?, at, &mut outcome),
             Err(_) => {
                 outcome.unconfirmed = window.len() as u64 + 1;
                 break;

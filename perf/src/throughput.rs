@@ -198,6 +198,8 @@ pub struct ThroughputReport {
     pub consume_rate: f64,
     /// Latency of the deliveries received in the window.
     pub latency: LatencySummary,
+    /// Publish-to-confirm latency in the window (with confirms).
+    pub confirm_latency: Option<LatencySummary>,
     /// Messages published over the whole run.
     pub published: u64,
     /// Of which confirmed.
@@ -285,6 +287,14 @@ impl Running {
             scratch.merge(&state.interval);
             state.interval.clear();
         }
+    }
+
+    fn confirm_latency(&self) -> Histogram {
+        let mut all = Histogram::new();
+        for p in &self.publishers {
+            all.merge(&p.confirm_latency());
+        }
+        all
     }
 
     fn window_latency(&self) -> Histogram {
@@ -441,6 +451,9 @@ async fn run_declared(args: &ThroughputArgs, topology: &Topology) -> Result<Thro
     let mut scratch = Histogram::new();
     let start_window = |meters: &mut Option<Meters>| {
         phase.store(PHASE_MEASURE, Ordering::Relaxed);
+        for publisher in &running.publishers {
+            publisher.confirm_latency().clear();
+        }
         *meters = Some((
             CpuMeter::start(std::process::id()),
             broker_pid.and_then(CpuMeter::start),
@@ -496,7 +509,9 @@ async fn run_declared(args: &ThroughputArgs, topology: &Topology) -> Result<Thro
         }
     }
     let mut backlog_at_end = 0;
+    let mut confirm_window = Histogram::new();
     if window_end.is_none() {
+        confirm_window = running.confirm_latency();
         let snap = running.snapshot();
         backlog_at_end = running.expected_deliveries() as i64 - snap.consumed as i64;
         window_end = Some(snap);
@@ -638,6 +653,7 @@ async fn run_declared(args: &ThroughputArgs, topology: &Topology) -> Result<Thro
         publish_rate: (window_end.published - window_start.published) as f64 / window_s,
         consume_rate: (window_end.consumed - window_start.consumed) as f64 / window_s,
         latency,
+        confirm_latency: (args.confirm > 0).then(|| confirm_window.summary()),
         published: published.iter().sum(),
         acked: sum(|o| o.acked),
         nacked: sum(|o| o.nacked),
@@ -727,6 +743,17 @@ pub fn print_summary(r: &ThroughputReport) {
         micros(l.p99_us),
         micros(l.max_us)
     );
+    if let Some(l) = &r.confirm_latency {
+        println!(
+            "confirm latency ({} samples): min {}  p50 {}  p95 {}  p99 {}  max {}",
+            thousands(l.count as f64),
+            micros(l.min_us),
+            micros(l.p50_us),
+            micros(l.p95_us),
+            micros(l.p99_us),
+            micros(l.max_us)
+        );
+    }
     let t = &r.totals;
     println!(
         "published {} (acked {}, nacked {}, unconfirmed {}), delivered {}, lost {}, gaps {}, out of order {}, duplicates {}{}",

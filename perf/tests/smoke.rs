@@ -69,6 +69,10 @@ async fn throughput_with_confirms_acks_and_fanout() {
     assert_eq!(report.totals.lost, 0);
     assert_eq!(report.totals.duplicates, 0);
     assert_eq!(report.acked, report.published);
+    let confirms = report
+        .confirm_latency
+        .expect("confirm latency with confirms");
+    assert!(confirms.count > 0 && confirms.p50_us > 0.0 && confirms.p99_us >= confirms.p50_us);
     assert!(dir.join("t.json").exists());
 
     let fanout = throughput::ThroughputArgs {
@@ -84,6 +88,10 @@ async fn throughput_with_confirms_acks_and_fanout() {
         ..Default::default()
     };
     let report = throughput::run(&fanout).await.unwrap();
+    assert!(
+        report.confirm_latency.is_none(),
+        "no confirms, no confirm latency"
+    );
     assert!(report.drained);
     assert_eq!(report.totals.lost, 0);
     assert_eq!(report.totals.gaps + report.totals.out_of_order, 0);
