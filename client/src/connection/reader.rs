@@ -2,8 +2,8 @@
 //! stay `Bytes` slices of the read buffer), answers `connection.*` methods,
 //! assembles content (method, header, body frames) per channel and routes
 //! everything to its channel: replies to the waiting call, deliveries to
-//! their consumer, returns, confirms. Two heartbeat intervals without a
-//! byte from the broker end the connection.
+//! their consumer (its sink first, if it has one), returns, confirms. Two
+//! heartbeat intervals without a byte from the broker end the connection.
 
 use super::frames::{FrameInput, Writer};
 use super::{reason, Shared};
@@ -499,15 +499,23 @@ impl<I: FrameInput> Reader<I> {
         deliver: leveret_protocol::BasicDeliver,
         content: Content,
     ) {
-        let Some((tx, consumer)) = chan.consumer(&deliver.consumer_tag) else {
+        let Some(route) = chan.consumer(&deliver.consumer_tag) else {
             tracing::debug!(tag = %deliver.consumer_tag, "delivery for a consumer that is gone; dropped");
             return;
         };
+        let (tx, consumer) = (route.tx, route.shared);
         let delivery = Delivery::new(
             deliver,
             content,
             crate::channel::ChannelCore::new(Arc::clone(&self.shared), Arc::clone(chan)),
         );
+        let delivery = match route.sink {
+            Some(sink) => match sink.deliver(delivery) {
+                Some(delivery) => delivery,
+                None => return,
+            },
+            None => delivery,
+        };
         let delivery = match tx.try_send(delivery) {
             Ok(()) => return,
             Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => return,
