@@ -69,11 +69,11 @@ impl ConsumerShared {
 /// read, ahead of the consumer's buffer: one task fewer between the broker
 /// and the application (the data ports' in-process fast path).
 pub(crate) trait DeliverySink: Send + Sync {
-    /// Takes `delivery` now, or gives it back to go through the
-    /// consumer's buffer. Deliveries come in order; a sink that gives one
-    /// back must give back every later one until the consumer's side has
-    /// handled it, so that none overtakes another.
-    fn deliver(&self, delivery: Delivery) -> Option<Delivery>;
+    /// Whether it took `delivery` (handled it, or dropped it); if not, it
+    /// goes through the consumer's buffer. Deliveries come in order; a
+    /// sink that leaves one must leave every later one until the
+    /// consumer's side has handled it, so that none overtakes another.
+    fn take(&self, delivery: &Delivery) -> bool;
 }
 
 /// The reader's side of a consumer, kept in the channel's table.

@@ -443,7 +443,7 @@ impl Slot<'_> {
         self.permit.send(Outgoing::Publish {
             channel: core.chan.id,
             method,
-            properties,
+            properties: Box::new(properties),
             body,
         });
         Ok(confirm)

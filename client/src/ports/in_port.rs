@@ -350,19 +350,19 @@ struct Intake<T> {
 }
 
 impl<T: PortData> DeliverySink for Intake<T> {
-    fn deliver(&self, delivery: Delivery) -> Option<Delivery> {
+    fn take(&self, delivery: &Delivery) -> bool {
         let shared = &self.shared;
         let mut receiving = lock(&shared.receiving);
         if receiving.generation != self.generation || *shared.stop.borrow() {
             // A link the port has left, or a port closing: unacknowledged,
             // the delivery goes back to its queue when its channel closes.
-            return None;
+            return true;
         }
-        if receiving.deferred == 0 && self.take(&mut receiving, &delivery) {
-            return None;
+        if receiving.deferred == 0 && self.take_now(&mut receiving, delivery) {
+            return true;
         }
         receiving.deferred += 1;
-        Some(delivery)
+        false
     }
 }
 
@@ -370,7 +370,7 @@ impl<T: PortData> Intake<T> {
     /// Takes a delivery if there is room for its value (where the policy
     /// is to wait for it) and for its ack; false if the task must wait for
     /// them.
-    fn take(&self, receiving: &mut Receiving, delivery: &Delivery) -> bool {
+    fn take_now(&self, receiving: &mut Receiving, delivery: &Delivery) -> bool {
         let shared = &self.shared;
         if shared.profile.full_policy == FullPolicy::BlockBroker && !shared.has_room() {
             return false;
