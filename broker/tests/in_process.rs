@@ -1,10 +1,11 @@
 //! The in-process transports: a broker with no listener serves a
 //! connection over an in-memory byte pipe exactly as over TCP, and one
 //! over a value link (`connect_direct`) with the same connection code:
-//! frame_max for what it sends, max_message_size for what it receives.
+//! publishes taken whole and deliveries handed over whole, and
+//! max_message_size for what it receives.
 
 use bytes::{Bytes, BytesMut};
-use leveret_broker::Limits;
+use leveret_broker::{DirectReply, Limits};
 use leveret_protocol::{
     decode_frame, BasicConsume, BasicProperties, BasicPublish, ChannelCloseOk, ChannelOpen,
     ConnectionOpen, ConnectionStartOk, ConnectionTuneOk, FieldTable, Frame, Method, Outgoing,
@@ -59,27 +60,37 @@ impl DirectClient {
     }
 
     async fn publish(&self, routing_key: &'static str, properties: BasicProperties, body: Bytes) {
+        self.publish_on(1, routing_key, properties, body).await;
+    }
+
+    async fn publish_on(
+        &self,
+        channel: u16,
+        routing_key: &'static str,
+        properties: BasicProperties,
+        body: Bytes,
+    ) {
         let item = Outgoing::Publish {
-            channel: 1,
+            channel,
             method: BasicPublish {
                 routing_key: ShortStr::from_static(routing_key),
                 ..Default::default()
             },
-            properties,
+            properties: Box::new(properties),
             body,
         };
         self.link.to_broker.send(item).await.expect("broker there");
     }
 
-    async fn next(&mut self) -> Option<Frame> {
+    async fn next(&mut self) -> Option<DirectReply> {
         tokio::time::timeout(Duration::from_secs(5), self.link.from_broker.recv())
             .await
-            .expect("a frame in time")
+            .expect("a reply in time")
     }
 
     async fn method(&mut self) -> Method {
         match self.next().await {
-            Some(Frame::Method { method, .. }) => method,
+            Some(DirectReply::Frame(Frame::Method { method, .. })) => method,
             other => panic!("expected a method, got {other:?}"),
         }
     }
@@ -176,26 +187,23 @@ async fn a_value_link_routes_queues_and_delivers_like_a_socket() {
         )
         .await;
     assert!(matches!(client.method().await, Method::BasicConsumeOk(_)));
-    assert!(matches!(client.method().await, Method::BasicDeliver(_)));
+    // The delivery comes whole, its body in one piece whatever frame_max:
+    // nothing is parsed, so there is nothing for frame_max to protect.
     match client.next().await {
-        Some(Frame::Header { header: got, .. }) => {
-            assert_eq!(got.body_size, 10_000);
-            assert_eq!(got.properties().expect("properties"), properties);
+        Some(DirectReply::Content {
+            channel: 1,
+            method: Method::BasicDeliver(_),
+            properties: got,
+            body: received,
+        }) => {
+            assert_eq!(
+                BasicProperties::decode(&got).expect("properties"),
+                properties
+            );
+            assert_eq!(received, body);
         }
-        other => panic!("expected the content header, got {other:?}"),
+        other => panic!("expected the delivery, whole, got {other:?}"),
     }
-    // Back in pieces within the negotiated frame_max, as on a socket.
-    let mut received = Vec::new();
-    while received.len() < body.len() {
-        match client.next().await {
-            Some(Frame::Body { payload, .. }) => {
-                assert!(payload.len() <= 4096 - 8, "within frame_max");
-                received.extend_from_slice(&payload);
-            }
-            other => panic!("expected a body frame, got {other:?}"),
-        }
-    }
-    assert_eq!(received, body);
     assert_eq!(handle.overview().object_totals.connections, 1);
     // Dropping the link is the client going away.
     drop(client);
@@ -234,5 +242,35 @@ async fn a_value_link_is_held_to_max_message_size() {
         .await
         .expect("sent");
     wait_for_connections(&handle, 0).await;
+    handle.shutdown().await;
+}
+
+/// A publish on a channel that is not open is the connection error a
+/// socket's would be, though it reaches the connection whole.
+#[both_runtimes]
+async fn a_whole_publish_on_an_unopened_channel_closes_the_connection() {
+    let handle = leveret_broker::Broker::builder()
+        .start()
+        .await
+        .expect("start");
+    let mut client = DirectClient::open(&handle).await;
+    client
+        .publish_on(
+            2,
+            "nowhere",
+            BasicProperties::default(),
+            Bytes::from_static(b"x"),
+        )
+        .await;
+    match client.method().await {
+        Method::ConnectionClose(close) => {
+            assert_eq!(
+                (close.reply_code, close.class_id, close.method_id),
+                (504, 60, 40),
+                "{close:?}"
+            );
+        }
+        other => panic!("expected connection.close, got {other:?}"),
+    }
     handle.shutdown().await;
 }

@@ -8,6 +8,10 @@
 //! or keep slow no-ack consumers and publishers waiting for confirms on
 //! separate connections, as RabbitMQ advises anyway.
 //!
+//! Within the crate a consumer may also have a sink (`DeliverySink`, the
+//! data ports' in-port intake) that takes its deliveries on the reader as
+//! they are read; only those it gives back go through the buffer.
+//!
 //! The stream ends when the consumer is cancelled, by this client or by
 //! the broker, or its channel closes; [`Consumer::end_reason`] then says
 //! which. [`Returns`] is the same for `basic.return`.
@@ -61,21 +65,46 @@ impl ConsumerShared {
     }
 }
 
+/// Takes a consumer's deliveries on the connection's reader, as they are
+/// read, ahead of the consumer's buffer: one task fewer between the broker
+/// and the application (the data ports' in-process fast path).
+pub(crate) trait DeliverySink: Send + Sync {
+    /// Whether it took `delivery` (handled it, or dropped it); if not, it
+    /// goes through the consumer's buffer. Deliveries come in order; a
+    /// sink that leaves one must leave every later one until the
+    /// consumer's side has handled it, so that none overtakes another.
+    fn take(&self, delivery: &Delivery) -> bool;
+}
+
 /// The reader's side of a consumer, kept in the channel's table.
-#[derive(Debug)]
 pub(crate) struct ConsumerSlot {
     pub(crate) tx: mpsc::Sender<Delivery>,
     pub(crate) shared: Arc<ConsumerShared>,
+    pub(crate) sink: Option<Arc<dyn DeliverySink>>,
+}
+
+impl std::fmt::Debug for ConsumerSlot {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ConsumerSlot")
+            .field("shared", &self.shared)
+            .field("sink", &self.sink.is_some())
+            .finish_non_exhaustive()
+    }
 }
 
 impl ConsumerSlot {
-    /// A slot and the receiving end for a consumer.
-    pub(crate) fn new(capacity: usize) -> (Self, mpsc::Receiver<Delivery>, Arc<ConsumerShared>) {
+    /// A slot and the receiving end for a consumer, with the sink that
+    /// takes its deliveries first, if any.
+    pub(crate) fn new(
+        capacity: usize,
+        sink: Option<Arc<dyn DeliverySink>>,
+    ) -> (Self, mpsc::Receiver<Delivery>, Arc<ConsumerShared>) {
         let (tx, rx) = mpsc::channel(capacity.max(1));
         let shared = Arc::new(ConsumerShared::new());
         let slot = ConsumerSlot {
             tx,
             shared: Arc::clone(&shared),
+            sink,
         };
         (slot, rx, shared)
     }

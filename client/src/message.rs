@@ -3,11 +3,11 @@
 //! and [`ReturnedMessage`] (a mandatory message no queue took). Bodies are
 //! `Bytes` slices of the connection's read buffer.
 
-use crate::channel::ChannelCore;
+use crate::channel::{ChannelCore, Slot};
 use crate::error::Result;
-use crate::options::{BasicAckOptions, BasicNackOptions, BasicRejectOptions};
+use crate::options::{BasicNackOptions, BasicRejectOptions};
 use bytes::Bytes;
-use leveret_protocol::{BasicDeliver, BasicProperties, ReplyCode, ShortStr};
+use leveret_protocol::{BasicAck, BasicDeliver, BasicProperties, ReplyCode, ShortStr};
 
 /// Properties and body of a message as received.
 #[derive(Debug, Clone, Default)]
@@ -72,9 +72,22 @@ impl Delivery {
 
     /// Acknowledges this delivery (`basic.ack`, not multiple).
     pub async fn ack(&self) -> Result<()> {
-        self.acker
-            .basic_ack(self.delivery_tag, BasicAckOptions::default())
-            .await
+        self.ack_in(self.acker.reserve().await?)
+    }
+
+    /// Room for this delivery's ack in the connection's outbox if there is
+    /// some now (`None` if it is full), for [`Delivery::ack_in`].
+    pub(crate) fn try_reserve_ack(&self) -> Result<Option<Slot<'_>>> {
+        self.acker.try_reserve()
+    }
+
+    /// Acknowledges this delivery through room reserved for it, without
+    /// waiting.
+    pub(crate) fn ack_in(&self, slot: Slot<'_>) -> Result<()> {
+        slot.send(BasicAck {
+            delivery_tag: self.delivery_tag,
+            multiple: false,
+        })
     }
 
     /// Rejects this delivery (`basic.nack`; with `multiple`, every

@@ -9,8 +9,8 @@ use bytes::Bytes;
 use common::within;
 use leveret_broker::{Broker, Permission};
 use leveret_client::{
-    BasicConsumeOptions, BasicProperties, BasicPublishOptions, Connection, ConnectionOptions,
-    Error, FieldTable, FieldValue, QueueDeclareOptions, ReplyCode,
+    BasicConsumeOptions, BasicGetOptions, BasicProperties, BasicPublishOptions, Connection,
+    ConnectionOptions, Error, FieldTable, FieldValue, QueueDeclareOptions, ReplyCode, ShortStr,
 };
 
 #[tokio::test]
@@ -71,6 +71,88 @@ async fn publish_confirm_consume_over_the_pipe() {
         assert_eq!(&delivery.body[..], &i.to_le_bytes());
         delivery.ack().await.unwrap();
     }
+    within("close", connection.close()).await.unwrap();
+    broker.shutdown().await;
+}
+
+/// Content comes from the embedded broker whole (method, properties and
+/// body in one value): a return, a get-ok and a delivery carry their
+/// properties and body as over a socket, a large body in one piece.
+#[tokio::test]
+async fn returns_gets_and_deliveries_come_whole_over_the_value_link() {
+    let broker = Broker::builder().start().await.expect("start");
+    let connection = within("connect", Connection::in_process(&broker))
+        .await
+        .expect("in-process connect");
+    let channel = within("channel", connection.open_channel()).await.unwrap();
+    let mut returns = channel.returns();
+    let properties = BasicProperties {
+        message_id: Some(ShortStr::from_static("m-1")),
+        ..Default::default()
+    };
+    let publish = |key: ShortStr, mandatory: bool, body: Bytes| {
+        channel.basic_publish(
+            "",
+            key,
+            BasicPublishOptions { mandatory },
+            properties.clone(),
+            body,
+        )
+    };
+    within(
+        "publish",
+        publish(
+            ShortStr::from_static("nowhere"),
+            true,
+            Bytes::from_static(b"lost"),
+        ),
+    )
+    .await
+    .unwrap();
+    let returned = within("return", returns.next()).await.expect("returned");
+    assert_eq!(returned.reply_code, 312);
+    assert_eq!(returned.properties, properties);
+    assert_eq!(&returned.body[..], b"lost");
+
+    let queue = within(
+        "declare",
+        channel.queue_declare("", QueueDeclareOptions::default(), FieldTable::new()),
+    )
+    .await
+    .unwrap();
+    let large = Bytes::from(vec![7u8; 300_000]);
+    within("publish", publish(queue.name.clone(), false, large.clone()))
+        .await
+        .unwrap();
+    within("publish", publish(queue.name.clone(), false, Bytes::new()))
+        .await
+        .unwrap();
+    let got = within(
+        "get",
+        channel.basic_get(&queue.name, BasicGetOptions { no_ack: true }),
+    )
+    .await
+    .unwrap()
+    .expect("a message");
+    assert_eq!(got.properties, properties);
+    assert_eq!(got.body, large);
+    let mut consumer = within(
+        "consume",
+        channel.basic_consume(
+            &queue.name,
+            "",
+            BasicConsumeOptions {
+                no_ack: true,
+                ..Default::default()
+            },
+            FieldTable::new(),
+        ),
+    )
+    .await
+    .unwrap();
+    let delivery = within("delivery", consumer.next()).await.expect("delivery");
+    assert_eq!(delivery.properties, properties);
+    assert!(delivery.body.is_empty());
     within("close", connection.close()).await.unwrap();
     broker.shutdown().await;
 }

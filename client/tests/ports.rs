@@ -365,6 +365,70 @@ async fn full_policies() {
     assert_eq!(input.stats().dropped, 0);
 }
 
+/// An in-port takes messages on its connection's reader while its buffer
+/// has room, and hands them to its task while a full buffer holds the
+/// broker back (`FullPolicy::BlockBroker`); the two ways take turns as a
+/// reader that pauses now and then lets the buffer fill and then drains
+/// it. Neither may reorder, lose or repeat a message, nor skip a
+/// callback, on either runtime and either transport.
+async fn a_reader_that_pauses_behind_a_full_buffer(flavor: &str) {
+    const COUNT: u32 = 600;
+    let env = Env::new().await;
+    for (transport, connector) in env.transports() {
+        let profile = env
+            .profile()
+            .buffer(4, FullPolicy::BlockBroker)
+            .prefetch(32);
+        let (output, mut input) = pair::<u32>(&connector, profile).await;
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let log = Arc::clone(&seen);
+        input.on_receive(move |sample: &Sample<u32>| log.lock().unwrap().push(sample.value));
+        for i in 1..=COUNT {
+            assert_eq!(output.put(&i).await, PortStatus::Ok);
+        }
+        for i in 1..=COUNT {
+            if i % 50 == 0 {
+                tokio::time::sleep(Duration::from_millis(2)).await;
+            }
+            let sample = within("value", input.recv()).await.expect("in-port open");
+            assert_eq!(
+                sample.value, i,
+                "{flavor}, {transport}: in order, exactly once"
+            );
+        }
+        let stats = input.stats();
+        assert_eq!(stats.received, u64::from(COUNT), "{flavor}, {transport}");
+        assert_eq!(
+            (
+                stats.lost,
+                stats.out_of_order,
+                stats.duplicates,
+                stats.dropped
+            ),
+            (0, 0, 0, 0),
+            "{flavor}, {transport}: {stats:?}"
+        );
+        assert_eq!(*seen.lock().unwrap(), (1..=COUNT).collect::<Vec<_>>());
+        output.close().await;
+        input.close().await;
+    }
+}
+
+#[test]
+fn a_full_buffer_hands_over_in_order_on_either_runtime() {
+    let current = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    current.block_on(a_reader_that_pauses_behind_a_full_buffer("current-thread"));
+    let multi = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    multi.block_on(a_reader_that_pauses_behind_a_full_buffer("multi-thread"));
+}
+
 /// Puts `range` as `TimedLong`s, retrying any value the port did not
 /// accept (a full window during an outage), so the sequence has no gap.
 async fn put_all(

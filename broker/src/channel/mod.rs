@@ -21,6 +21,7 @@ mod queue;
 mod reply_to;
 mod tx;
 
+use crate::connection::WholePublish;
 use crate::consumer::{ChannelLink, Consumer};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
@@ -32,7 +33,7 @@ use crate::queue::Queue;
 use crate::registry::ChannelRegistration;
 use crate::vhost::Vhost;
 pub(crate) use basic::{apply_settles, Settle};
-use bytes::Bytes;
+use bytes::{Bytes, BytesMut};
 use leveret_protocol::{
     BasicProperties, BasicPublish, ChannelClose, ChannelCloseOk, ChannelFlowOk, ContentHeader,
     Frame, Method, ShortStr,
@@ -287,6 +288,50 @@ impl Channel {
         }
     }
 
+    /// Handles a publish received whole, as its method, content header
+    /// and body frame would be handled one after the other (a closing
+    /// channel drops it, an error closes the channel at the frame it
+    /// belongs to); only the properties are encoded here, for the message,
+    /// instead of decoded from a header. `Err` is a connection-level
+    /// error.
+    pub(crate) async fn handle_publish(&mut self, whole: WholePublish) -> AmqpResult<()> {
+        if self.closing {
+            return Ok(());
+        }
+        match self.publish_whole(whole).await {
+            Err(error) if !error.is_connection_error() => {
+                tracing::debug!(channel = self.id, %error, "closing channel");
+                Box::pin(self.close_with(error)).await;
+                Ok(())
+            }
+            other => other,
+        }
+    }
+
+    async fn publish_whole(&mut self, whole: WholePublish) -> AmqpResult<()> {
+        let WholePublish {
+            method,
+            properties,
+            body,
+            ..
+        } = whole;
+        self.handle_method(Method::BasicPublish(method)).await?;
+        let Assembly::Header(publish) = std::mem::replace(&mut self.assembly, Assembly::Idle)
+        else {
+            return Ok(());
+        };
+        let mut encoded = BytesMut::new();
+        properties.encode(&mut encoded);
+        let property_bytes = self.kept(encoded.freeze());
+        let size = body.len() as u64;
+        self.content_header(publish, properties, property_bytes, size)
+            .await?;
+        if size > 0 {
+            self.handle_body(body).await?;
+        }
+        Ok(())
+    }
+
     async fn close_with(&mut self, error: AmqpError) {
         self.release();
         self.closing = true;
@@ -417,11 +462,24 @@ impl Channel {
         let properties = BasicProperties::decode(&property_bytes)
             .map(Box::new)
             .map_err(|e| AmqpError::new(e.reply_code(), &e).during_ids(60, 40))?;
+        self.content_header(publish, properties, property_bytes, header.body_size)
+            .await
+    }
+
+    /// A publish's content header, its properties decoded: checks its
+    /// size, then publishes a message without body or waits for the body.
+    async fn content_header(
+        &mut self,
+        publish: BasicPublish,
+        properties: Box<BasicProperties>,
+        property_bytes: Bytes,
+        body_size: u64,
+    ) -> AmqpResult<bool> {
         let max = self.core.limits.max_message_size;
-        if header.body_size > max {
+        if body_size > max {
             return Err(AmqpError::precondition_failed(format_args!(
                 "message size {} is larger than configured max size {}",
-                header.body_size, max
+                body_size, max
             ))
             .during_ids(60, 40));
         }
@@ -430,7 +488,7 @@ impl Channel {
             routing_key: kept_short(publish.routing_key),
             ..publish
         };
-        if header.body_size == 0 {
+        if body_size == 0 {
             self.publish(Publish {
                 method: publish,
                 properties,
@@ -443,7 +501,7 @@ impl Channel {
                 publish,
                 properties,
                 property_bytes,
-                size: header.body_size,
+                size: body_size,
                 partial: None,
             };
         }

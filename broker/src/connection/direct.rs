@@ -1,10 +1,13 @@
 //! In-process connections that carry values instead of bytes (the fast
 //! path of an embedding application's own client): the client hands the
 //! broker each [`Outgoing`] item as it built it (a method, or a
-//! basic.publish with its properties and body), and takes the broker's
-//! frames as values, so nothing is encoded or parsed on either side and no
-//! writer task stands between the client and the broker in either
-//! direction. The handshake, channels, permissions, routing, queues, acks,
+//! basic.publish with its properties and body, which reaches its channel
+//! whole), and takes the broker's frames as values ([`DirectReply`]: a
+//! delivery, get-ok or return comes whole, with its message's content), so
+//! no frame is encoded or parsed on either side (only a publish's
+//! properties are encoded once, for the message, and decoded once by the
+//! client) and no writer task stands between the client and the broker in
+//! either direction. The handshake, channels, permissions, routing, queues, acks,
 //! limits (`max_message_size` included) and statistics are the
 //! connection's one code path, the same as for a socket.
 //!
@@ -18,8 +21,9 @@
 //! the outbox, which it drains in place of the socket writer.
 
 use super::reader::ReadError;
-use super::source::FrameSource;
+use super::source::{FrameSource, WholePublish};
 use crate::outbox::{Framed, Outbound, Outbox};
+use bytes::Bytes;
 use leveret_protocol::{ContentHeader, DecodeError, Frame, Method, Outgoing, FRAME_OVERHEAD};
 use std::collections::VecDeque;
 use std::future::Future;
@@ -48,11 +52,16 @@ pub struct DirectLink {
     pub from_broker: DirectReplies,
 }
 
-/// The connection loop's source of an in-process client's frames: each
-/// item becomes its frames here, a publish's body as one body frame (it
-/// is not parsed from a buffer, so frame_max has nothing to protect).
+/// The connection loop's source of an in-process client's frames: a
+/// publish on a channel is handed over whole ([`WholePublish`]: its
+/// properties are neither encoded into a header frame nor decoded from
+/// one); every other item becomes its frames here (a publish's body as one
+/// body frame: it is not parsed from a buffer, so frame_max has nothing to
+/// protect).
 pub(super) struct DirectFrames {
     rx: mpsc::Receiver<Outgoing>,
+    /// An item received and not yet taken, whole or as frames.
+    held: Option<Outgoing>,
     frames: VecDeque<Frame>,
     ended: bool,
 }
@@ -61,9 +70,18 @@ impl DirectFrames {
     pub(super) fn new(rx: mpsc::Receiver<Outgoing>) -> Self {
         DirectFrames {
             rx,
+            held: None,
             frames: VecDeque::with_capacity(4),
             ended: false,
         }
+    }
+
+    /// The next item, if one has been received.
+    fn next_item(&mut self) -> Option<Outgoing> {
+        if self.ended {
+            return None;
+        }
+        self.held.take().or_else(|| self.rx.try_recv().ok())
     }
 
     /// Appends an item's frames; false for the client's end.
@@ -100,9 +118,32 @@ impl DirectFrames {
 }
 
 impl FrameSource for DirectFrames {
+    fn buffered_publish(&mut self) -> Option<WholePublish> {
+        if !self.frames.is_empty() {
+            return None;
+        }
+        match self.next_item()? {
+            Outgoing::Publish {
+                channel,
+                method,
+                properties,
+                body,
+            } if channel != 0 => Some(WholePublish {
+                channel,
+                method,
+                properties,
+                body,
+            }),
+            other => {
+                self.held = Some(other);
+                None
+            }
+        }
+    }
+
     fn buffered_frame(&mut self) -> Result<Option<Frame>, DecodeError> {
-        if self.frames.is_empty() && !self.ended {
-            if let Ok(item) = self.rx.try_recv() {
+        if self.frames.is_empty() {
+            if let Some(item) = self.next_item() {
                 self.ended = !self.push(item);
             }
         }
@@ -110,21 +151,22 @@ impl FrameSource for DirectFrames {
     }
 
     async fn fill(&mut self) -> Result<(), ReadError> {
-        if !self.frames.is_empty() {
+        if !self.frames.is_empty() || self.held.is_some() {
             return Ok(());
         }
         if self.ended {
             return Err(ReadError::Closed);
         }
-        let more = match self.rx.recv().await {
-            Some(item) => self.push(item),
-            None => false,
-        };
-        if more {
-            return Ok(());
+        match self.rx.recv().await {
+            Some(item) => {
+                self.held = Some(item);
+                Ok(())
+            }
+            None => {
+                self.ended = true;
+                Err(ReadError::Closed)
+            }
         }
-        self.ended = true;
-        Err(ReadError::Closed)
     }
 
     async fn protocol_header(&mut self) -> Result<bool, ReadError> {
@@ -160,7 +202,27 @@ pub(super) struct WriterEnd {
     pub _heartbeat: watch::Receiver<Duration>,
 }
 
-/// The broker's frames for an in-process client, taken straight from the
+/// What an in-process client receives from the broker.
+#[derive(Debug)]
+pub enum DirectReply {
+    /// A frame.
+    Frame(Frame),
+    /// A content-carrying method (deliver, get-ok, return) with its
+    /// message's content, whole: what its method, content header and body
+    /// frames would carry.
+    Content {
+        /// Channel number (never 0).
+        channel: u16,
+        /// The method.
+        method: Method,
+        /// The message's encoded property flags and list.
+        properties: Bytes,
+        /// The message's body.
+        body: Bytes,
+    },
+}
+
+/// The broker's replies for an in-process client, taken straight from the
 /// connection's outbox.
 #[derive(Debug)]
 pub struct DirectReplies {
@@ -194,12 +256,12 @@ impl DirectReplies {
         }
     }
 
-    /// The broker's next frame, waiting for it; `None` once the broker
+    /// The broker's next reply, waiting for it; `None` once the broker
     /// has ended the connection (after everything it sent before).
-    pub async fn recv(&mut self) -> Option<Frame> {
+    pub async fn recv(&mut self) -> Option<DirectReply> {
         loop {
             if let Some(frame) = self.pending.pop_front() {
-                return Some(frame);
+                return Some(DirectReply::Frame(frame));
             }
             let end = match &mut self.state {
                 Replies::Open(end) => end,
@@ -231,17 +293,33 @@ impl DirectReplies {
             if self.taken % WAKE_EVERY == 0 {
                 end.outbox.wake_blocked();
             }
-            let frame_max = end.outbox.frame_max();
-            if !push_frames(item, frame_max, &mut self.pending) {
-                self.state = Replies::Ended;
+            match item.framed() {
+                Framed::Content {
+                    channel,
+                    method,
+                    message,
+                } if channel != 0 => {
+                    return Some(DirectReply::Content {
+                        channel,
+                        method,
+                        properties: message.properties.clone(),
+                        body: message.body.clone(),
+                    });
+                }
+                framed => {
+                    let frame_max = end.outbox.frame_max();
+                    if !push_frames(framed, frame_max, &mut self.pending) {
+                        self.state = Replies::Ended;
+                    }
+                }
             }
         }
     }
 }
 
 /// Appends an outbox item's frames; false at the connection's end.
-fn push_frames(item: Outbound, frame_max: u32, out: &mut VecDeque<Frame>) -> bool {
-    let (channel, method, message) = match item.framed() {
+fn push_frames(item: Framed, frame_max: u32, out: &mut VecDeque<Frame>) -> bool {
+    let (channel, method, message) = match item {
         Framed::Method { channel, method } => {
             out.push_back(Frame::Method { channel, method });
             return true;

@@ -2,16 +2,36 @@
 //! come from. Two kinds implement it: [`FrameReader`](super::reader::FrameReader),
 //! which parses a byte stream (TCP, TLS, the in-process byte pipe), and
 //! [`DirectFrames`](super::direct::DirectFrames), which receives the frame
-//! values of an in-process client as they are, with nothing to parse.
+//! values of an in-process client as they are, with nothing to parse, and
+//! its publishes whole ([`WholePublish`]).
 //!
 //! Uses the reader's error type; the connection module drives it.
 
 use super::reader::ReadError;
-use leveret_protocol::{DecodeError, Frame};
+use bytes::Bytes;
+use leveret_protocol::{BasicProperties, BasicPublish, DecodeError, Frame};
 use std::future::Future;
+
+/// A basic.publish with its content, received as one value: what its
+/// three frames would carry, with the properties not encoded.
+#[derive(Debug)]
+pub(crate) struct WholePublish {
+    pub channel: u16,
+    pub method: BasicPublish,
+    pub properties: Box<BasicProperties>,
+    pub body: Bytes,
+}
 
 /// Where a connection's frames come from.
 pub(super) trait FrameSource: Send {
+    /// The next input if it is a whole publish already received as one
+    /// value (nothing to parse or assemble); taken off the input. Only a
+    /// source of values has them, and only on an open channel's number
+    /// (never 0): otherwise the input comes as frames.
+    fn buffered_publish(&mut self) -> Option<WholePublish> {
+        None
+    }
+
     /// The next whole frame already received, if any. A frame that is not
     /// acceptable (too large, undecodable) is an error and has been taken.
     fn buffered_frame(&mut self) -> Result<Option<Frame>, DecodeError>;

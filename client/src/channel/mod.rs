@@ -6,12 +6,13 @@
 
 mod state;
 
-pub(crate) use self::state::{ChannelCore, ChannelShared, ChannelState, PendingKind, Reply};
+pub(crate) use self::state::{ChannelCore, ChannelShared, ChannelState, PendingKind, Reply, Slot};
 
 use crate::confirm::{Confirms, PublishConfirm};
 use crate::connection::ConnectionInner;
 use crate::consumer::{
-    Consumer, ConsumerEnd, ConsumerSlot, Returns, DEFAULT_CONSUMER_BUFFER, RETURNS_BUFFER,
+    Consumer, ConsumerEnd, ConsumerSlot, DeliverySink, Returns, DEFAULT_CONSUMER_BUFFER,
+    RETURNS_BUFFER,
 };
 use crate::error::{Error, Result};
 use crate::message::{Delivery, GetMessage, IntoShortStr};
@@ -417,7 +418,21 @@ impl Channel {
             mandatory: options.mandatory,
             immediate: false,
         };
-        self.core().publish(method, properties, body).await
+        self.core()
+            .reserve()
+            .await?
+            .publish(method, properties, body)
+    }
+
+    /// Room for one publish in the connection's outbox, waiting for it.
+    pub(crate) async fn reserve(&self) -> Result<Slot<'_>> {
+        self.core().reserve().await
+    }
+
+    /// Room for one publish in the connection's outbox if there is some
+    /// now (`None` if it is full).
+    pub(crate) fn try_reserve(&self) -> Result<Option<Slot<'_>>> {
+        self.core().try_reserve()
     }
 
     /// The stream of messages the broker returns on this channel
@@ -445,6 +460,32 @@ impl Channel {
         options: BasicConsumeOptions,
         arguments: FieldTable,
     ) -> Result<Consumer> {
+        self.consume(queue, consumer_tag, options, arguments, None)
+            .await
+    }
+
+    /// [`Channel::basic_consume`] whose deliveries `sink` takes on the
+    /// connection's reader, as they are read; those it gives back go
+    /// through the consumer's buffer.
+    pub(crate) async fn basic_consume_into(
+        &self,
+        queue: impl IntoShortStr,
+        options: BasicConsumeOptions,
+        arguments: FieldTable,
+        sink: Arc<dyn DeliverySink>,
+    ) -> Result<Consumer> {
+        self.consume(queue, "", options, arguments, Some(sink))
+            .await
+    }
+
+    async fn consume(
+        &self,
+        queue: impl IntoShortStr,
+        consumer_tag: impl IntoShortStr,
+        options: BasicConsumeOptions,
+        arguments: FieldTable,
+        sink: Option<Arc<dyn DeliverySink>>,
+    ) -> Result<Consumer> {
         let method = BasicConsume {
             ticket: 0,
             queue: queue.into_short_str()?,
@@ -459,7 +500,7 @@ impl Channel {
             0 => DEFAULT_CONSUMER_BUFFER,
             n => usize::from(n),
         };
-        let (slot, rx, shared) = ConsumerSlot::new(capacity);
+        let (slot, rx, shared) = ConsumerSlot::new(capacity, sink);
         let reply = self
             .core()
             .call_with(

@@ -2,12 +2,14 @@
 //! its status, the calls waiting for their `-ok` reply (in order, since a
 //! channel answers synchronous methods in order), its consumers, the
 //! receiver of returned messages and the outstanding publisher confirms.
-//! [`ChannelCore`] sends on behalf of a channel; [`ChannelShared`] is what
-//! the reader drives.
+//! [`ChannelCore`] sends on behalf of a channel, each item through a
+//! [`Slot`] of room reserved in the connection's outbox (waited for, or
+//! taken only if there is room now); [`ChannelShared`] is what the reader
+//! drives.
 
 use crate::confirm::{Confirms, PublishConfirm};
 use crate::connection::Shared;
-use crate::consumer::{ConsumerEnd, ConsumerShared, ConsumerSlot};
+use crate::consumer::{ConsumerEnd, ConsumerShared, ConsumerSlot, DeliverySink};
 use crate::error::{Error, Result};
 use crate::message::{Content, Delivery, ReturnedMessage};
 use crate::options::{BasicAckOptions, BasicNackOptions, BasicRejectOptions};
@@ -74,6 +76,14 @@ pub(crate) struct ChannelState {
     pub(crate) returns: Option<mpsc::Sender<ReturnedMessage>>,
     pub(crate) confirms: Option<Confirms>,
     pub(crate) prefetch_count: u16,
+}
+
+/// Where the reader hands a consumer's delivery: its sink first, if it
+/// has one, then its buffer.
+pub(crate) struct ConsumerRoute {
+    pub(crate) tx: mpsc::Sender<Delivery>,
+    pub(crate) shared: Arc<ConsumerShared>,
+    pub(crate) sink: Option<Arc<dyn DeliverySink>>,
 }
 
 /// The part of a channel the reader drives.
@@ -193,14 +203,15 @@ impl ChannelShared {
         Ok(())
     }
 
-    /// A consumer's sender, for a delivery.
-    pub(crate) fn consumer(
-        &self,
-        tag: &ShortStr,
-    ) -> Option<(mpsc::Sender<Delivery>, Arc<ConsumerShared>)> {
+    /// A consumer's sender and sink, for a delivery.
+    pub(crate) fn consumer(&self, tag: &ShortStr) -> Option<ConsumerRoute> {
         let state = self.lock();
         let slot = state.consumers.get(tag)?;
-        Some((slot.tx.clone(), Arc::clone(&slot.shared)))
+        Some(ConsumerRoute {
+            tx: slot.tx.clone(),
+            shared: Arc::clone(&slot.shared),
+            sink: slot.sink.clone(),
+        })
     }
 
     /// The broker cancelled a consumer.
@@ -335,39 +346,24 @@ impl ChannelCore {
 
     /// Sends a method that has no reply (or whose reply was waived).
     pub(crate) async fn send(&self, method: impl Into<Method>) -> Result<()> {
-        let method = method.into();
-        let permit = self.conn.reserve().await?;
-        let state = self.chan.lock();
-        state.status.check()?;
-        self.check_connection()?;
-        permit.send(Outgoing::Method {
-            channel: self.chan.id,
-            method,
-        });
-        Ok(())
+        self.reserve().await?.send(method)
     }
 
-    pub(crate) async fn publish(
-        &self,
-        method: BasicPublish,
-        properties: BasicProperties,
-        body: Bytes,
-    ) -> Result<PublishConfirm> {
+    /// Waits for room for one item in the connection's outbox.
+    pub(crate) async fn reserve(&self) -> Result<Slot<'_>> {
         let permit = self.conn.reserve().await?;
-        let mut state = self.chan.lock();
-        state.status.check()?;
-        self.check_connection()?;
-        let confirm = match state.confirms.as_mut() {
-            Some(confirms) => confirms.register(),
-            None => PublishConfirm::not_requested(),
-        };
-        permit.send(Outgoing::Publish {
-            channel: self.chan.id,
-            method,
-            properties,
-            body,
-        });
-        Ok(confirm)
+        Ok(Slot { core: self, permit })
+    }
+
+    /// Room for one item in the connection's outbox if there is some now
+    /// (`None` if it is full), without waiting: for callers that must not
+    /// wait and have somewhere else to turn when it is full.
+    pub(crate) fn try_reserve(&self) -> Result<Option<Slot<'_>>> {
+        match self.conn.tx.try_reserve() {
+            Ok(permit) => Ok(Some(Slot { core: self, permit })),
+            Err(mpsc::error::TrySendError::Full(())) => Ok(None),
+            Err(mpsc::error::TrySendError::Closed(())) => Err(self.conn.error()),
+        }
     }
 
     pub(crate) async fn basic_ack(
@@ -405,5 +401,51 @@ impl ChannelCore {
             requeue: options.requeue,
         })
         .await
+    }
+}
+
+/// Room reserved for one item of a channel in its connection's outbox:
+/// sending through it never waits.
+pub(crate) struct Slot<'a> {
+    core: &'a ChannelCore,
+    permit: mpsc::Permit<'a, Outgoing>,
+}
+
+impl Slot<'_> {
+    /// Sends a method that has no reply (or whose reply was waived).
+    pub(crate) fn send(self, method: impl Into<Method>) -> Result<()> {
+        let core = self.core;
+        let state = core.chan.lock();
+        state.status.check()?;
+        core.check_connection()?;
+        self.permit.send(Outgoing::Method {
+            channel: core.chan.id,
+            method: method.into(),
+        });
+        Ok(())
+    }
+
+    /// Publishes a message, numbered for its confirm in confirm mode.
+    pub(crate) fn publish(
+        self,
+        method: BasicPublish,
+        properties: BasicProperties,
+        body: Bytes,
+    ) -> Result<PublishConfirm> {
+        let core = self.core;
+        let mut state = core.chan.lock();
+        state.status.check()?;
+        core.check_connection()?;
+        let confirm = match state.confirms.as_mut() {
+            Some(confirms) => confirms.register(),
+            None => PublishConfirm::not_requested(),
+        };
+        self.permit.send(Outgoing::Publish {
+            channel: core.chan.id,
+            method,
+            properties: Box::new(properties),
+            body,
+        });
+        Ok(confirm)
     }
 }

@@ -3,14 +3,15 @@
 //! (frames decoded from and encoded into buffers here, a writer task
 //! draining the outbox) and, with the `embedded` feature, over the link of
 //! an in-process Leveret (`BrokerHandle::connect_direct`), where frames
-//! and [`Outgoing`] items cross as values: nothing is encoded or parsed,
-//! and the outbox's receiving end is the broker's connection itself. The
+//! and [`Outgoing`] items cross as values and a delivery's content comes
+//! whole ([`WholeContent`]): no frame is encoded or parsed, and the
+//! outbox's receiving end is the broker's connection itself. The
 //! handshake and the reader are written once against these two traits.
 //!
 //! Uses the codec and the byte writer task.
 
 use super::writer::{self, OUTBOX_CAPACITY};
-use bytes::BytesMut;
+use bytes::{Bytes, BytesMut};
 use leveret_protocol::{
     decode_frame, encode_content, encode_method, ContentHeader, DecodeError, Frame, Method,
     Outgoing, PROTOCOL_HEADER,
@@ -21,8 +22,25 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinHandle;
 
+/// A content-carrying method (deliver, get-ok, return) received whole,
+/// with its message's content: what its method, content header and body
+/// frames would carry.
+pub(crate) struct WholeContent {
+    pub(crate) channel: u16,
+    pub(crate) method: Method,
+    /// The encoded property flags and list.
+    pub(crate) properties: Bytes,
+    pub(crate) body: Bytes,
+}
+
 /// Where a connection's incoming frames come from.
 pub(crate) trait FrameInput: Send + Sync + 'static {
+    /// The next input if it is content received whole (only an in-process
+    /// link has it, and never on channel 0); taken off the input.
+    fn buffered_content(&mut self) -> Option<WholeContent> {
+        None
+    }
+
     /// A whole frame already received, if any (taken off the input).
     fn buffered(&mut self, frame_max: u32) -> Result<Option<Frame>, DecodeError>;
 
@@ -207,16 +225,16 @@ pub(crate) use direct::{DirectInput, DirectOutput};
 
 #[cfg(feature = "embedded")]
 mod direct {
-    use super::{FrameInput, FrameOutput, Outbox, Outgoing};
-    use leveret_broker::DirectReplies;
+    use super::{FrameInput, FrameOutput, Outbox, Outgoing, WholeContent};
+    use leveret_broker::{DirectReplies, DirectReply};
     use leveret_protocol::{DecodeError, Frame, Method};
     use std::time::Duration;
     use tokio::sync::mpsc;
 
-    /// The broker's frames as values.
+    /// The broker's frames as values, its contents whole.
     pub(crate) struct DirectInput {
         replies: DirectReplies,
-        received: Option<Frame>,
+        received: Option<DirectReply>,
     }
 
     impl DirectInput {
@@ -229,8 +247,35 @@ mod direct {
     }
 
     impl FrameInput for DirectInput {
+        fn buffered_content(&mut self) -> Option<WholeContent> {
+            match self.received.take()? {
+                DirectReply::Content {
+                    channel,
+                    method,
+                    properties,
+                    body,
+                } => Some(WholeContent {
+                    channel,
+                    method,
+                    properties,
+                    body,
+                }),
+                frame => {
+                    self.received = Some(frame);
+                    None
+                }
+            }
+        }
+
         fn buffered(&mut self, _frame_max: u32) -> Result<Option<Frame>, DecodeError> {
-            Ok(self.received.take())
+            Ok(match self.received.take() {
+                Some(DirectReply::Frame(frame)) => Some(frame),
+                Some(content) => {
+                    self.received = Some(content);
+                    None
+                }
+                None => None,
+            })
         }
 
         async fn receive(&mut self) -> std::io::Result<bool> {

@@ -2,10 +2,10 @@
 //! stay `Bytes` slices of the read buffer), answers `connection.*` methods,
 //! assembles content (method, header, body frames) per channel and routes
 //! everything to its channel: replies to the waiting call, deliveries to
-//! their consumer, returns, confirms. Two heartbeat intervals without a
-//! byte from the broker end the connection.
+//! their consumer (its sink first, if it has one), returns, confirms. Two
+//! heartbeat intervals without a byte from the broker end the connection.
 
-use super::frames::{FrameInput, Writer};
+use super::frames::{FrameInput, WholeContent, Writer};
 use super::{reason, Shared};
 use crate::channel::{ChannelShared, Reply};
 use crate::error::Error;
@@ -100,6 +100,12 @@ enum Flow {
     End(Error),
 }
 
+/// What the reader takes next from its input.
+enum Input {
+    Frame(Frame),
+    Content(WholeContent),
+}
+
 /// Why reading a frame failed.
 enum ReadError {
     Ended(Error),
@@ -166,8 +172,8 @@ impl<I: FrameInput> Reader<I> {
         };
         tokio::pin!(close_deadline);
         loop {
-            let frame = tokio::select! {
-                frame = self.next_frame() => frame,
+            let input = tokio::select! {
+                input = self.next_input() => input,
                 failed = &mut writer_failed => match failed {
                     Ok(error) => return Error::io(error),
                     // The writer stopped without error: only after Shutdown.
@@ -178,8 +184,9 @@ impl<I: FrameInput> Reader<I> {
                     return self.ending_error(Error::Closed);
                 }
             };
-            let result = match frame {
-                Ok(frame) => self.handle(frame).await,
+            let result = match input {
+                Ok(Input::Frame(frame)) => self.handle(frame).await,
+                Ok(Input::Content(content)) => self.whole_content(content).await,
                 Err(ReadError::Ended(error)) => return self.ending_error(error),
                 Err(ReadError::Decode(e)) => {
                     // No frame boundary can be trusted any more: send
@@ -209,10 +216,13 @@ impl<I: FrameInput> Reader<I> {
         self.violation.take().unwrap_or(error)
     }
 
-    async fn next_frame(&mut self) -> Result<Frame, ReadError> {
+    async fn next_input(&mut self) -> Result<Input, ReadError> {
         loop {
+            if let Some(content) = self.input.buffered_content() {
+                return Ok(Input::Content(content));
+            }
             match self.input.buffered(self.frame_max) {
-                Ok(Some(frame)) => return Ok(frame),
+                Ok(Some(frame)) => return Ok(Input::Frame(frame)),
                 Ok(None) => {}
                 Err(e) => return Err(ReadError::Decode(e)),
             }
@@ -458,19 +468,56 @@ impl<I: FrameInput> Reader<I> {
         Ok(Flow::Continue)
     }
 
+    /// Content received whole: handled as its method, content header and
+    /// body frames would be, one after the other.
+    async fn whole_content(&mut self, whole: WholeContent) -> Result<Flow, Violation> {
+        if *self.shared.closing.borrow() {
+            return Ok(Flow::Continue);
+        }
+        let WholeContent {
+            channel,
+            method,
+            properties,
+            body,
+        } = whole;
+        if self.incoming.contains_key(&channel) {
+            return Err(Violation::new(
+                ReplyCode::UnexpectedFrame,
+                format!(
+                    "{} on channel {channel} while content was expected",
+                    method.name()
+                ),
+            ));
+        }
+        let properties = BasicProperties::decode(&properties)
+            .map_err(|e| Violation::new(e.reply_code(), e.to_string()))?;
+        self.hand_over(channel, method, Content { properties, body })
+            .await
+    }
+
     /// Hands a complete message to its channel.
     async fn complete(&mut self, channel: u16) -> Result<Flow, Violation> {
         let Some(incoming) = self.incoming.remove(&channel) else {
-            return Ok(Flow::Continue);
-        };
-        let Some(chan) = self.shared.channel(channel) else {
             return Ok(Flow::Continue);
         };
         let content = Content {
             properties: incoming.properties.unwrap_or_default(),
             body: incoming.body.freeze(),
         };
-        match incoming.method {
+        self.hand_over(channel, incoming.method, content).await
+    }
+
+    /// Hands a message's method and content to its channel.
+    async fn hand_over(
+        &mut self,
+        channel: u16,
+        method: Method,
+        content: Content,
+    ) -> Result<Flow, Violation> {
+        let Some(chan) = self.shared.channel(channel) else {
+            return Ok(Flow::Continue);
+        };
+        match method {
             Method::BasicDeliver(deliver) => self.deliver(&chan, deliver, content).await,
             Method::BasicReturn(ret) => {
                 let message = ReturnedMessage {
@@ -499,15 +546,19 @@ impl<I: FrameInput> Reader<I> {
         deliver: leveret_protocol::BasicDeliver,
         content: Content,
     ) {
-        let Some((tx, consumer)) = chan.consumer(&deliver.consumer_tag) else {
+        let Some(route) = chan.consumer(&deliver.consumer_tag) else {
             tracing::debug!(tag = %deliver.consumer_tag, "delivery for a consumer that is gone; dropped");
             return;
         };
+        let (tx, consumer) = (route.tx, route.shared);
         let delivery = Delivery::new(
             deliver,
             content,
             crate::channel::ChannelCore::new(Arc::clone(&self.shared), Arc::clone(chan)),
         );
+        if route.sink.is_some_and(|sink| sink.take(&delivery)) {
+            return;
+        }
         let delivery = match tx.try_send(delivery) {
             Ok(()) => return,
             Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => return,

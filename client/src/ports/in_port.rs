@@ -1,19 +1,30 @@
 //! [`InPort`]: receives typed values into a bounded buffer.
 //!
-//! One task per port owns its connection: it consumes the profile's queue
-//! with acknowledgements and a prefetch limit, checks each message's
-//! sender and sequence number (dropping duplicates, counting gaps and late
-//! arrivals), decodes it, runs the registered callbacks, puts it in the
-//! buffer according to the [`FullPolicy`], and only then acknowledges it.
-//! When the link drops it reconnects with backoff and declares the
-//! topology again; messages redelivered after the reconnection are
-//! recognised by their sequence number and dropped, so the reader sees
-//! every message once and in order.
+//! The port consumes the profile's queue with acknowledgements and a
+//! prefetch limit. Each message's sender and sequence number are checked
+//! (dropping duplicates, counting gaps and late arrivals), it is decoded,
+//! the registered callbacks run, it goes into the buffer according to the
+//! [`FullPolicy`], and only then is it acknowledged. That intake runs on
+//! the connection's reader, as each message is read (the consumer's sink):
+//! no task stands between the connection and the buffer. A message the
+//! reader cannot take at once (the buffer is full and the policy is to
+//! wait, or there is no room for its ack in the connection's outbox) goes
+//! through the consumer's buffer to the port's task, which waits for room;
+//! until the task has taken it, the messages after it follow the same way,
+//! so none overtakes another.
+//!
+//! The port's task owns the connection: when the link drops it reconnects
+//! with backoff, declares the topology again and consumes anew; messages
+//! redelivered after the reconnection are recognised by their sequence
+//! number and dropped, so the reader sees every message once and in order.
 //!
 //! The buffer is read three ways: [`InPort::read`] (the newest value,
 //! skipping older ones, as a control loop wants), [`InPort::recv`] or the
 //! [`futures_core::Stream`] (every value in order), and
 //! [`InPort::on_receive`] callbacks.
+//!
+//! Uses the client's consumers (with a `DeliverySink`), the link and
+//! announcement helpers of this module's siblings, and the profile.
 
 use super::announce::{self, Announcer};
 use super::cdr::CdrOptions;
@@ -22,10 +33,11 @@ use super::latency::LatencyStats;
 use super::link::{self, Link, LinkStatus, Stamp};
 use super::openrtm::PortRole;
 use super::profile::{Connector, FullPolicy, PortProfile};
+use crate::consumer::DeliverySink;
 use crate::error::{Error, Result};
 use crate::{
-    BasicConsumeOptions, BasicQosOptions, Connection, Consumer, ConsumerEnd, Delivery, FieldTable,
-    QueueDeleteOptions, ShortStr,
+    BasicConsumeOptions, BasicQosOptions, Channel, Connection, Consumer, ConsumerEnd, Delivery,
+    FieldTable, QueueDeleteOptions, ShortStr,
 };
 use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::pin::Pin;
@@ -141,8 +153,56 @@ struct Buffer<T> {
     closed: bool,
 }
 
-/// What the port and its task share.
+/// The intake's state: what it knows of the senders, and the deliveries
+/// handed to the port's task.
+#[derive(Default)]
+struct Receiving {
+    senders: HashMap<String, Sequence>,
+    /// Deliveries of the current link given back to go through the port's
+    /// task and not yet taken by it: while any is, the intake gives back
+    /// every later one too.
+    deferred: usize,
+    /// Counts the links consumed: deliveries of an earlier one are left
+    /// unacknowledged (its channel is gone; the broker redelivers them).
+    generation: u64,
+}
+
+/// What a delivery's checks made of it.
+enum Checked<T> {
+    /// Counted and done with (a duplicate, stale, undecodable).
+    Settled,
+    /// A value for the buffer; the counters take it once it is there.
+    Value(Sample<T>, Count),
+}
+
+/// What a value adds to the counters once buffered.
+#[derive(Clone, Copy)]
+struct Count {
+    verdict: Option<Verdict>,
+    latency: Option<Duration>,
+}
+
+impl Count {
+    fn apply(self, stats: &mut InPortStats) {
+        stats.received += 1;
+        match self.verdict {
+            Some(Verdict::New { gap }) => stats.lost += gap,
+            Some(Verdict::Late) => {
+                stats.lost = stats.lost.saturating_sub(1);
+                stats.out_of_order += 1;
+            }
+            _ => {}
+        }
+        if let Some(latency) = self.latency {
+            stats.latency.record(latency);
+        }
+    }
+}
+
+/// What the port, its task and the intake share.
 struct Shared<T> {
+    profile: Arc<PortProfile>,
+    receiving: Mutex<Receiving>,
     buffer: Mutex<Buffer<T>>,
     /// Signalled with the buffer's lock when a value arrives or the port
     /// closes, for [`InPort::recv_blocking`].
@@ -153,6 +213,182 @@ struct Shared<T> {
     callbacks: Mutex<Vec<Callback<T>>>,
     link: Link,
     queue: Mutex<ShortStr>,
+    /// Set when the port closes: the task stops, the intake takes no more.
+    stop: watch::Sender<bool>,
+}
+
+impl<T: PortData> Shared<T> {
+    fn new(profile: PortProfile, queue: &QueueName) -> Arc<Self> {
+        Arc::new(Shared {
+            profile: Arc::new(profile),
+            receiving: Mutex::new(Receiving::default()),
+            arrived: Condvar::new(),
+            buffer: Mutex::new(Buffer {
+                queue: VecDeque::new(),
+                waker: None,
+                blocked_readers: 0,
+                closed: false,
+            }),
+            room: Notify::new(),
+            stats: watch::Sender::new(InPortStats::default()),
+            callbacks: Mutex::new(Vec::new()),
+            link: Link::new(),
+            queue: Mutex::new(ShortStr::try_from(queue.name.as_str()).unwrap_or_default()),
+            stop: watch::Sender::new(false),
+        })
+    }
+
+    /// Checks a delivery's sender and sequence number, age and body, and
+    /// runs the callbacks for a value. Called with the intake's state, so
+    /// deliveries are checked one at a time, in order.
+    fn check(&self, senders: &mut HashMap<String, Sequence>, delivery: &Delivery) -> Checked<T> {
+        let stamp = Stamp::read(delivery.properties.headers.as_ref());
+        let verdict = match (&stamp.port, stamp.seq) {
+            (Some(port), Some(seq)) => Some(match senders.get_mut(port.as_str()) {
+                Some(sequence) => sequence.observe(seq),
+                None => senders
+                    .entry(port.clone())
+                    .or_insert_with(|| Sequence::starting_at(seq))
+                    .observe(seq),
+            }),
+            _ => None,
+        };
+        if verdict == Some(Verdict::Duplicate) {
+            self.stats.send_modify(|s| s.duplicates += 1);
+            return Checked::Settled;
+        }
+        let arrived = link::now_ns();
+        let latency = stamp
+            .sent_ns
+            .and_then(|sent| u64::try_from(arrived.saturating_sub(sent)).ok())
+            .map(Duration::from_nanos);
+        let count = Count { verdict, latency };
+        if let (Some(lifespan), Some(age)) = (self.profile.lifespan, latency) {
+            if age > lifespan {
+                self.stats.send_modify(|s| {
+                    count.apply(s);
+                    s.stale += 1;
+                });
+                return Checked::Settled;
+            }
+        }
+        let value = match decode::<T>(delivery, self.profile.cdr) {
+            Ok(value) => value,
+            Err(error) => {
+                tracing::warn!(%error, "in-port dropped a message that does not decode");
+                self.stats.send_modify(|s| {
+                    count.apply(s);
+                    s.decode_errors += 1;
+                });
+                return Checked::Settled;
+            }
+        };
+        let sample = Sample {
+            value,
+            seq: stamp.seq,
+            sent_at: stamp
+                .sent_ns
+                .and_then(|ns| u64::try_from(ns).ok())
+                .map(|ns| UNIX_EPOCH + Duration::from_nanos(ns)),
+            latency,
+            redelivered: delivery.redelivered,
+        };
+        for callback in lock(&self.callbacks).iter_mut() {
+            callback(&sample);
+        }
+        Checked::Value(sample, count)
+    }
+
+    /// Whether the buffer has room for another value.
+    fn has_room(&self) -> bool {
+        lock(&self.buffer).queue.len() < self.profile.buffer_size.max(1)
+    }
+
+    /// Puts a value in the buffer and counts it. A full buffer drops one
+    /// by the full policy; with [`FullPolicy::BlockBroker`] the caller has
+    /// made sure there is room (only the intake, one delivery at a time,
+    /// adds values).
+    fn store(&self, sample: Sample<T>, count: Count) {
+        let capacity = self.profile.buffer_size.max(1);
+        let mut buffer = lock(&self.buffer);
+        if buffer.queue.len() >= capacity {
+            match self.profile.full_policy {
+                FullPolicy::BlockBroker => {}
+                FullPolicy::DropOldest => {
+                    buffer.queue.pop_front();
+                    self.stats.send_modify(|s| s.dropped += 1);
+                }
+                FullPolicy::DropNewest => {
+                    drop(buffer);
+                    self.stats.send_modify(|s| {
+                        count.apply(s);
+                        s.dropped += 1;
+                    });
+                    return;
+                }
+            }
+        }
+        buffer.queue.push_back(sample);
+        if let Some(waker) = buffer.waker.take() {
+            waker.wake();
+        }
+        if buffer.blocked_readers > 0 {
+            self.arrived.notify_one();
+        }
+        drop(buffer);
+        // Counted once buffered, so a watcher of the counters finds the
+        // value in the buffer.
+        self.stats.send_modify(|s| count.apply(s));
+    }
+}
+
+/// The intake on the connection's reader: takes one link's deliveries as
+/// they are read (see the module's docs).
+struct Intake<T> {
+    shared: Arc<Shared<T>>,
+    generation: u64,
+}
+
+impl<T: PortData> DeliverySink for Intake<T> {
+    fn take(&self, delivery: &Delivery) -> bool {
+        let shared = &self.shared;
+        let mut receiving = lock(&shared.receiving);
+        if receiving.generation != self.generation || *shared.stop.borrow() {
+            // A link the port has left, or a port closing: unacknowledged,
+            // the delivery goes back to its queue when its channel closes.
+            return true;
+        }
+        if receiving.deferred == 0 && self.take_now(&mut receiving, delivery) {
+            return true;
+        }
+        receiving.deferred += 1;
+        false
+    }
+}
+
+impl<T: PortData> Intake<T> {
+    /// Takes a delivery if there is room for its value (where the policy
+    /// is to wait for it) and for its ack; false if the task must wait for
+    /// them.
+    fn take_now(&self, receiving: &mut Receiving, delivery: &Delivery) -> bool {
+        let shared = &self.shared;
+        if shared.profile.full_policy == FullPolicy::BlockBroker && !shared.has_room() {
+            return false;
+        }
+        let slot = match delivery.try_reserve_ack() {
+            Ok(Some(slot)) => slot,
+            Ok(None) => return false,
+            // The connection is closing: the consumer ends with it.
+            Err(_) => return true,
+        };
+        if let Checked::Value(sample, count) = shared.check(&mut receiving.senders, delivery) {
+            shared.store(sample, count);
+        }
+        // A failed ack means a closing channel: the task sees the consumer
+        // end.
+        let _ = delivery.ack_in(slot);
+        true
+    }
 }
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -172,7 +408,6 @@ pub struct InPort<T> {
     shared: Arc<Shared<T>>,
     /// The profile's busy-poll window.
     busy_poll: Option<Duration>,
-    stop: watch::Sender<bool>,
     task: Option<JoinHandle<()>>,
 }
 
@@ -196,8 +431,11 @@ impl<T: PortData> InPort<T> {
     pub async fn connect_with(connector: Connector, profile: PortProfile) -> Result<Self> {
         let connector = connector.naming(announce::connection_name(PortRole::InPort, &profile));
         let queue = QueueName::of(&profile);
-        let first = open(&connector, &profile, &queue).await?;
-        Ok(InPort::spawn(connector, profile, queue, Some(first)))
+        let shared = Shared::new(profile, &queue);
+        let first = open(&connector, &shared, &queue).await?;
+        *lock(&shared.queue) = first.queue.clone();
+        shared.link.connected();
+        Ok(InPort::spawn(connector, shared, queue, Some(first)))
     }
 
     /// Starts the port at once, whether or not the broker is reachable:
@@ -211,61 +449,36 @@ impl<T: PortData> InPort<T> {
     pub fn start_with(connector: Connector, profile: PortProfile) -> Self {
         let connector = connector.naming(announce::connection_name(PortRole::InPort, &profile));
         let queue = QueueName::of(&profile);
-        InPort::spawn(connector, profile, queue, None)
+        let shared = Shared::new(profile, &queue);
+        InPort::spawn(connector, shared, queue, None)
     }
 
     fn spawn(
         connector: Connector,
-        profile: PortProfile,
+        shared: Arc<Shared<T>>,
         queue: QueueName,
         first: Option<InLink>,
     ) -> Self {
-        let busy_poll = profile.busy_poll.filter(|window| !window.is_zero());
-        let profile = Arc::new(profile);
-        let consumed = match &first {
-            Some(first) => first.queue.clone(),
-            None => ShortStr::try_from(queue.name.as_str()).unwrap_or_default(),
-        };
-        let shared = Arc::new(Shared {
-            arrived: Condvar::new(),
-            buffer: Mutex::new(Buffer {
-                queue: VecDeque::new(),
-                waker: None,
-                blocked_readers: 0,
-                closed: false,
-            }),
-            room: Notify::new(),
-            stats: watch::Sender::new(InPortStats::default()),
-            callbacks: Mutex::new(Vec::new()),
-            link: Link::new(),
-            queue: Mutex::new(consumed),
-        });
-        if first.is_some() {
-            shared.link.connected();
-        }
+        let busy_poll = shared.profile.busy_poll.filter(|window| !window.is_zero());
         let announcer = Announcer::start::<T, _>(
             PortRole::InPort,
-            &profile,
+            &shared.profile,
             &link::port_id(),
             Some(&queue.name),
             shared.stats.subscribe(),
             shared.link.subscribe(),
         );
-        let (stop, stopped) = watch::channel(false);
         let task = Task {
             shared: Arc::clone(&shared),
             connector,
-            profile,
             queue,
-            senders: HashMap::new(),
-            stop: stopped,
+            stop: shared.stop.subscribe(),
             announcer,
         };
         let task = tokio::spawn(task.run(first));
         InPort {
             shared,
             busy_poll,
-            stop,
             task: Some(task),
         }
     }
@@ -382,8 +595,9 @@ impl<T: PortData> InPort<T> {
         Poll::Pending
     }
 
-    /// Calls `callback` with every new value, on the port's task, before
-    /// it is buffered (keep it short: the port waits for it).
+    /// Calls `callback` with every new value before it is buffered, on the
+    /// connection's reader (or the port's task, for a value that waited
+    /// for room); keep it short: the port waits for it.
     pub fn on_receive(&self, callback: impl FnMut(&Sample<T>) + Send + 'static) {
         lock(&self.shared.callbacks).push(Box::new(callback));
     }
@@ -414,7 +628,7 @@ impl<T: PortData> InPort<T> {
     /// for the port's own queue (the profile named none), the queue is
     /// deleted. Dropping the port does the same without waiting.
     pub async fn close(mut self) {
-        self.stop.send_replace(true);
+        self.shared.stop.send_replace(true);
         if let Some(task) = self.task.take() {
             let _ = task.await;
         }
@@ -431,7 +645,7 @@ impl<T: PortData> futures_core::Stream for InPort<T> {
 
 impl<T> Drop for InPort<T> {
     fn drop(&mut self) {
-        self.stop.send_replace(true);
+        self.shared.stop.send_replace(true);
     }
 }
 
@@ -467,8 +681,14 @@ impl QueueName {
     }
 }
 
-/// Connects, declares the topology and starts consuming.
-async fn open(connector: &Connector, profile: &PortProfile, queue: &QueueName) -> Result<InLink> {
+/// Connects, declares the topology and starts consuming into a new
+/// intake.
+async fn open<T: PortData>(
+    connector: &Connector,
+    shared: &Arc<Shared<T>>,
+    queue: &QueueName,
+) -> Result<InLink> {
+    let profile = &*shared.profile;
     let setup = async {
         let connection = connector.connect().await?;
         let channel = connection.open_channel().await?;
@@ -484,12 +704,22 @@ async fn open(connector: &Connector, profile: &PortProfile, queue: &QueueName) -
             link::declare_exchange(&channel, profile).await?;
         }
         let queue = link::declare_queue(&channel, profile, &queue.name, queue.own, bind).await?;
+        let generation = {
+            let mut receiving = lock(&shared.receiving);
+            receiving.generation += 1;
+            receiving.deferred = 0;
+            receiving.generation
+        };
+        let intake = Arc::new(Intake {
+            shared: Arc::clone(shared),
+            generation,
+        });
         let consumer = channel
-            .basic_consume(
+            .basic_consume_into(
                 &queue,
-                "",
                 BasicConsumeOptions::default(),
                 FieldTable::new(),
+                intake,
             )
             .await?;
         Ok(InLink {
@@ -507,9 +737,7 @@ async fn open(connector: &Connector, profile: &PortProfile, queue: &QueueName) -
 struct Task<T> {
     shared: Arc<Shared<T>>,
     connector: Connector,
-    profile: Arc<PortProfile>,
     queue: QueueName,
-    senders: HashMap<String, Sequence>,
     stop: watch::Receiver<bool>,
     announcer: Announcer,
 }
@@ -545,14 +773,14 @@ impl<T: PortData> Task<T> {
                 continue;
             }
             if failures > 0 {
-                let delay = self.profile.backoff.delay(failures - 1);
+                let delay = self.shared.profile.backoff.delay(failures - 1);
                 tokio::select! {
                     _ = tokio::time::sleep(delay) => {}
                     _ = self.stop.wait_for(|s| *s) => break,
                 }
             }
             let opened = tokio::select! {
-                opened = open(&self.connector, &self.profile, &self.queue) => opened,
+                opened = open(&self.connector, &self.shared, &self.queue) => opened,
                 _ = self.stop.wait_for(|s| *s) => break,
             };
             match opened {
@@ -593,7 +821,7 @@ impl<T: PortData> Task<T> {
                     _ => Error::Closed,
                 });
             };
-            match self.handle(delivery).await {
+            match self.handle(delivery, link.consumer.channel()).await {
                 Ok(true) => {}
                 Ok(false) => return None,
                 Err(error) => return Some(error),
@@ -601,125 +829,43 @@ impl<T: PortData> Task<T> {
         }
     }
 
-    /// One delivery; `Ok(false)` if the port was closed while it waited
-    /// for room.
-    async fn handle(&mut self, delivery: Delivery) -> Result<bool> {
-        let stamp = Stamp::read(delivery.properties.headers.as_ref());
-        let verdict = match (&stamp.port, stamp.seq) {
-            (Some(port), Some(seq)) => Some(
-                self.senders
-                    .entry(port.clone())
-                    .or_insert_with(|| Sequence::starting_at(seq))
-                    .observe(seq),
-            ),
-            _ => None,
-        };
-        if verdict == Some(Verdict::Duplicate) {
-            self.shared.stats.send_modify(|s| s.duplicates += 1);
-            delivery.ack().await?;
-            return Ok(true);
-        }
-        let arrived = link::now_ns();
-        let latency = stamp
-            .sent_ns
-            .and_then(|sent| u64::try_from(arrived.saturating_sub(sent)).ok())
-            .map(Duration::from_nanos);
-
-        let count = |stats: &mut InPortStats| {
-            stats.received += 1;
-            match verdict {
-                Some(Verdict::New { gap }) => stats.lost += gap,
-                Some(Verdict::Late) => {
-                    stats.lost = stats.lost.saturating_sub(1);
-                    stats.out_of_order += 1;
-                }
-                _ => {}
-            }
-            if let Some(latency) = latency {
-                stats.latency.record(latency);
-            }
-        };
-        if let (Some(lifespan), Some(age)) = (self.profile.lifespan, latency) {
-            if age > lifespan {
-                self.shared.stats.send_modify(|s| {
-                    count(s);
-                    s.stale += 1;
-                });
-                delivery.ack().await?;
-                return Ok(true);
-            }
-        }
-        let value = match decode::<T>(&delivery, self.profile.cdr) {
-            Ok(value) => value,
-            Err(error) => {
-                tracing::warn!(%error, "in-port dropped a message that does not decode");
-                self.shared.stats.send_modify(|s| {
-                    count(s);
-                    s.decode_errors += 1;
-                });
-                delivery.ack().await?;
-                return Ok(true);
-            }
-        };
-        let sample = Sample {
-            value,
-            seq: stamp.seq,
-            sent_at: stamp
-                .sent_ns
-                .and_then(|ns| u64::try_from(ns).ok())
-                .map(|ns| UNIX_EPOCH + Duration::from_nanos(ns)),
-            latency,
-            redelivered: delivery.redelivered,
-        };
-        for callback in lock(&self.shared.callbacks).iter_mut() {
-            callback(&sample);
-        }
-        if !self.buffer(sample).await {
+    /// One delivery the intake gave back; `Ok(false)` if the port was
+    /// closed while it waited for room.
+    async fn handle(&mut self, delivery: Delivery, channel: &Channel) -> Result<bool> {
+        // Room first, as the intake does: a delivery whose link fails
+        // meanwhile has not been counted, and its redelivery is new.
+        if self.shared.profile.full_policy == FullPolicy::BlockBroker
+            && !self.wait_for_room(channel).await?
+        {
             return Ok(false);
         }
-        // Counted once buffered (or dropped by the policy), so a watcher
-        // of the counters finds the value in the buffer.
-        self.shared.stats.send_modify(count);
+        let checked = {
+            let mut receiving = lock(&self.shared.receiving);
+            self.shared.check(&mut receiving.senders, &delivery)
+        };
+        if let Checked::Value(sample, count) = checked {
+            self.shared.store(sample, count);
+        }
+        {
+            let mut receiving = lock(&self.shared.receiving);
+            receiving.deferred = receiving.deferred.saturating_sub(1);
+        }
         delivery.ack().await?;
         Ok(true)
     }
 
-    /// Buffers a value by the full policy; false if the port was closed
-    /// while waiting for room.
-    async fn buffer(&mut self, sample: Sample<T>) -> bool {
-        let capacity = self.profile.buffer_size.max(1);
-        let mut sample = Some(sample);
+    /// Waits until the buffer has room; false if the port was closed
+    /// meanwhile, an error if the link failed.
+    async fn wait_for_room(&mut self, channel: &Channel) -> Result<bool> {
         loop {
             let room = self.shared.room.notified();
-            {
-                let mut buffer = lock(&self.shared.buffer);
-                if buffer.queue.len() >= capacity {
-                    match self.profile.full_policy {
-                        FullPolicy::BlockBroker => {}
-                        FullPolicy::DropOldest => {
-                            buffer.queue.pop_front();
-                            self.shared.stats.send_modify(|s| s.dropped += 1);
-                        }
-                        FullPolicy::DropNewest => {
-                            self.shared.stats.send_modify(|s| s.dropped += 1);
-                            return true;
-                        }
-                    }
-                }
-                if buffer.queue.len() < capacity {
-                    buffer.queue.extend(sample.take());
-                    if let Some(waker) = buffer.waker.take() {
-                        waker.wake();
-                    }
-                    if buffer.blocked_readers > 0 {
-                        self.shared.arrived.notify_one();
-                    }
-                    return true;
-                }
+            if self.shared.has_room() {
+                return Ok(true);
             }
             tokio::select! {
                 _ = room => {}
-                _ = self.stop.wait_for(|s| *s) => return false,
+                _ = self.stop.wait_for(|s| *s) => return Ok(false),
+                error = channel.closed() => return Err(error),
             }
         }
     }

@@ -8,20 +8,30 @@
 //! refuse the new one, or wait for room up to the put timeout (the only
 //! `put` that waits, and only by the caller's choice).
 //!
-//! One task per port owns the connection. It publishes the window in
-//! order (mandatory, so an unroutable message comes back and is counted
-//! apart from confirmed ones) and, with publisher confirms, keeps each
-//! message until the broker confirms it. When the link drops it
-//! reconnects with backoff, declares the topology again and replays the
-//! window as the profile's [`Replay`] policy says. A message older than
-//! the profile's lifespan is never published: it is reported expired, and
-//! what is published carries the rest of its lifespan as its AMQP
-//! `expiration`, so the broker drops it too once it is stale.
+//! The window's messages are published in order (mandatory, so an
+//! unroutable message comes back and is counted apart from confirmed
+//! ones), always under the window's lock and only into room the
+//! connection's outbox has (a publish never waits there). When the link
+//! is up and everything before it is published, `put` publishes its value
+//! itself: no task stands between the caller and the connection, which
+//! for an embedded broker means the broker's connection has the message
+//! at once. Everything else is the port's task's: publishing what `put`
+//! left (link down, outbox full, a replay), keeping each message until the
+//! broker confirms it (with publisher confirms), and, when the link drops,
+//! reconnecting with backoff, declaring the topology again and replaying
+//! the window as the profile's [`Replay`] policy says. A message older
+//! than the profile's lifespan is never published: it is reported
+//! expired, and what is published carries the rest of its lifespan as its
+//! AMQP `expiration`, so the broker drops it too once it is stale.
 //!
 //! What became of each message (confirmed, rejected, unroutable, expired,
 //! dropped) is reported in three ways: the counters ([`OutPort::stats`],
 //! [`OutPort::watch_stats`]), a stream of [`Outcome`]s
 //! ([`OutPort::outcomes`]) and callbacks ([`OutPort::on_outcome`]).
+//!
+//! Uses the client's channels (publishing through a reserved outbox slot,
+//! `channel::Slot`), the link and announcement helpers of this module's
+//! siblings, and the profile.
 
 use super::announce::{self, Announcer};
 use super::cdr::CdrOptions;
@@ -29,14 +39,16 @@ use super::data::PortData;
 use super::link::{self, Link, LinkStatus};
 use super::openrtm::PortRole;
 use super::profile::{Backpressure, Connector, PortProfile, Replay};
+use crate::channel::Slot;
 use crate::confirm::ConfirmFuture;
 use crate::error::{Error, Result};
 use crate::{
-    BasicProperties, BasicPublishOptions, Channel, Confirmation, Connection, ReturnedMessage,
-    Returns, ShortStr,
+    BasicProperties, Channel, Confirmation, Connection, PublishConfirm, ReturnedMessage, Returns,
+    ShortStr,
 };
 use bytes::{Bytes, BytesMut};
 use futures_core::Stream;
+use leveret_protocol::BasicPublish;
 use std::collections::{HashSet, VecDeque};
 use std::future::{Future, IntoFuture};
 use std::marker::PhantomData;
@@ -157,9 +169,74 @@ struct Window {
     next_seq: u64,
     /// The first sequence number not yet published on the current link.
     publish_from: u64,
-    up: bool,
+    /// The current link's channel, while the link is up.
+    channel: Option<Channel>,
+    /// Confirms of the messages published on this link, in order.
+    inflight: VecDeque<(u64, ConfirmFuture)>,
+    /// Threads waiting in `put_blocking` for room: the condition variable
+    /// is signalled only for them (a signal costs a system call even when
+    /// nobody waits).
+    blocked_putters: usize,
     closed: bool,
     stats: OutPortStats,
+}
+
+/// What publishing the window's next message did.
+enum Next {
+    /// Published one.
+    Published,
+    /// Nothing to publish, or no link to publish on.
+    Idle,
+    /// The connection's outbox is full: wait for room.
+    Full,
+    /// The link failed.
+    Failed(Error),
+}
+
+/// How the port's messages are published, fixed when it starts.
+#[derive(Debug)]
+struct Publishing {
+    exchange: ShortStr,
+    routing_key: ShortStr,
+    content_type: ShortStr,
+    type_name: Option<ShortStr>,
+    port: Arc<str>,
+    persistent: bool,
+    mandatory: bool,
+    confirms: bool,
+    lifespan: Option<Duration>,
+}
+
+impl Publishing {
+    /// Publishes a message through room reserved for it, with what is left
+    /// of its lifespan as its expiration.
+    fn publish(
+        &self,
+        slot: Slot<'_>,
+        entry: &Entry,
+        remaining: Option<Duration>,
+    ) -> Result<PublishConfirm> {
+        let properties = BasicProperties {
+            content_type: Some(self.content_type.clone()),
+            kind: self.type_name.clone(),
+            delivery_mode: Some(if self.persistent { 2 } else { 1 }),
+            timestamp: u64::try_from(entry.sent_ns / 1_000_000_000).ok(),
+            // At least 1 ms: an expiration of 0 would mean "deliver now or
+            // never", stricter than what is left.
+            expiration: remaining
+                .and_then(|left| ShortStr::try_from(left.as_millis().max(1).to_string()).ok()),
+            headers: Some(link::headers(&self.port, entry.seq, entry.sent_ns)),
+            ..Default::default()
+        };
+        let method = BasicPublish {
+            ticket: 0,
+            exchange: self.exchange.clone(),
+            routing_key: self.routing_key.clone(),
+            mandatory: self.mandatory,
+            immediate: false,
+        };
+        slot.publish(method, properties, entry.body.clone())
+    }
 }
 
 type OutcomeCallback = Box<dyn FnMut(&Outcome) + Send>;
@@ -177,6 +254,7 @@ struct Shared {
     outcomes: broadcast::Sender<Outcome>,
     callbacks: Mutex<Vec<OutcomeCallback>>,
     link: Link,
+    publishing: Publishing,
 }
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -189,10 +267,11 @@ impl Shared {
     }
 
     /// Sends the current counters to their watchers, under the window's
-    /// lock.
-    fn publish_stats(&self) {
+    /// lock; whether a thread waits for room.
+    fn publish_stats(&self) -> bool {
         let window = self.window();
         self.stats.send_replace(window.stats);
+        window.blocked_putters > 0
     }
 
     /// Publishes the counters and the outcomes (call it after releasing
@@ -202,7 +281,7 @@ impl Shared {
     /// ones it saw (which left `flush` waiting for an `unconfirmed` of 0
     /// already reached).
     fn report(&self, outcomes: &[Outcome], room: bool) {
-        self.publish_stats();
+        let blocked = self.publish_stats();
         if !outcomes.is_empty() {
             let mut callbacks = lock(&self.callbacks);
             for outcome in outcomes {
@@ -214,8 +293,81 @@ impl Shared {
         }
         if room {
             self.room.notify_waiters();
-            self.room_blocking.notify_all();
+            if blocked {
+                self.room_blocking.notify_all();
+            }
         }
+    }
+
+    /// Publishes the window's oldest message not yet published on the
+    /// current link, through `reserved` or else room the outbox has now,
+    /// expiring on the way what is past its lifespan. Runs under the
+    /// window's lock, so messages go out in order whoever publishes them.
+    /// Without confirms a published message is settled at once.
+    fn publish_next(
+        &self,
+        window: &mut Window,
+        reserved: Option<Slot<'_>>,
+        outcomes: &mut Vec<Outcome>,
+    ) -> Next {
+        let lifespan = self.publishing.lifespan;
+        let Window {
+            entries,
+            publish_from,
+            channel,
+            inflight,
+            stats,
+            ..
+        } = window;
+        let Some(channel) = channel.as_ref() else {
+            return Next::Idle;
+        };
+        let index = entries.partition_point(|entry| entry.seq < *publish_from);
+        let (entry, remaining) = loop {
+            let Some(entry) = entries.get_mut(index) else {
+                stats.unconfirmed = entries.len() as u64;
+                return Next::Idle;
+            };
+            let age = entry.put_at.elapsed();
+            match lifespan {
+                Some(lifespan) if age >= lifespan => {
+                    let seq = entry.seq;
+                    entries.remove(index);
+                    settle(stats, outcomes, seq, Fate::Expired);
+                }
+                Some(lifespan) => break (entry, Some(lifespan - age)),
+                None => break (entry, None),
+            }
+        };
+        let slot = match reserved {
+            Some(slot) => slot,
+            None => match channel.try_reserve() {
+                Ok(Some(slot)) => slot,
+                Ok(None) => {
+                    stats.unconfirmed = entries.len() as u64;
+                    return Next::Full;
+                }
+                Err(error) => return Next::Failed(error),
+            },
+        };
+        let confirm = match self.publishing.publish(slot, entry, remaining) {
+            Ok(confirm) => confirm,
+            Err(error) => return Next::Failed(error),
+        };
+        if entry.attempts > 0 {
+            stats.resent += 1;
+        }
+        entry.attempts += 1;
+        let seq = entry.seq;
+        *publish_from = seq + 1;
+        if self.publishing.confirms {
+            inflight.push_back((seq, confirm.into_future()));
+        } else {
+            entries.remove(index);
+            settle(stats, outcomes, seq, Fate::Confirmed);
+        }
+        stats.unconfirmed = entries.len() as u64;
+        Next::Published
     }
 }
 
@@ -325,12 +477,29 @@ impl<T: PortData> OutPort<T> {
         profile: Arc<PortProfile>,
         first: Option<OutLink>,
     ) -> Result<Self> {
+        let id: Arc<str> = link::port_id().into();
+        let publishing = Publishing {
+            exchange: ShortStr::try_from(profile.exchange.as_str())?,
+            routing_key: ShortStr::try_from(profile.routing_key.as_str())?,
+            content_type: ShortStr::try_from(super::cdr::content_type(
+                T::CONTENT_TYPE,
+                &profile.cdr,
+            ))?,
+            type_name: T::TYPE_NAME.map(ShortStr::try_from).transpose()?,
+            port: Arc::clone(&id),
+            persistent: profile.persistent,
+            mandatory: profile.mandatory,
+            confirms: profile.confirms,
+            lifespan: profile.lifespan,
+        };
         let shared = Arc::new(Shared {
             window: Mutex::new(Window {
                 entries: VecDeque::new(),
                 next_seq: 1,
                 publish_from: 1,
-                up: first.is_some(),
+                channel: first.as_ref().map(|link| link.channel.clone()),
+                inflight: VecDeque::new(),
+                blocked_putters: 0,
                 closed: false,
                 stats: OutPortStats::default(),
             }),
@@ -341,11 +510,11 @@ impl<T: PortData> OutPort<T> {
             outcomes: broadcast::Sender::new(OUTCOME_BUFFER),
             callbacks: Mutex::new(Vec::new()),
             link: Link::new(),
+            publishing,
         });
         if first.is_some() {
             shared.link.connected();
         }
-        let id: Arc<str> = link::port_id().into();
         let announcer = Announcer::start::<T, _>(
             PortRole::OutPort,
             &profile,
@@ -360,15 +529,6 @@ impl<T: PortData> OutPort<T> {
         let task = Task {
             shared: Arc::clone(&shared),
             connector,
-            exchange: ShortStr::try_from(profile.exchange.as_str())?,
-            routing_key: ShortStr::try_from(profile.routing_key.as_str())?,
-            content_type: ShortStr::try_from(super::cdr::content_type(
-                T::CONTENT_TYPE,
-                &profile.cdr,
-            ))?,
-            type_name: T::TYPE_NAME.map(ShortStr::try_from).transpose()?,
-            port: Arc::clone(&id),
-            inflight: VecDeque::new(),
             returned: HashSet::new(),
             connecting: None,
             failures: 0,
@@ -477,12 +637,14 @@ impl<T: PortData> OutPort<T> {
             if window.entries.len() < self.capacity {
                 continue;
             }
+            window.blocked_putters += 1;
             window = self
                 .shared
                 .room_blocking
                 .wait_timeout(window, deadline - now)
                 .unwrap_or_else(|e| e.into_inner())
                 .0;
+            window.blocked_putters -= 1;
         }
     }
 
@@ -528,15 +690,32 @@ impl<T: PortData> OutPort<T> {
         });
         window.stats.accepted += 1;
         window.stats.unconfirmed = window.entries.len() as u64;
-        let status = if window.up {
-            PortStatus::Ok
+        if window.channel.is_none() {
+            drop(window);
+            self.shared.work.notify_one();
+            self.shared.report(&outcomes, false);
+            return Some(PortStatus::ConnectionLost);
+        }
+        // Everything before it published: publish it here rather than
+        // wake the task for it. The task takes over whatever this leaves
+        // (no room in the outbox, a link that just failed) and polls the
+        // confirm of a first message in flight.
+        let before = outcomes.len();
+        let wake = if window.publish_from == seq {
+            let idle = window.inflight.is_empty();
+            match self.shared.publish_next(&mut window, None, &mut outcomes) {
+                Next::Published => idle && !window.inflight.is_empty(),
+                Next::Idle | Next::Full | Next::Failed(_) => true,
+            }
         } else {
-            PortStatus::ConnectionLost
+            true
         };
         drop(window);
-        self.shared.work.notify_one();
-        self.shared.report(&outcomes, false);
-        Some(status)
+        if wake {
+            self.shared.work.notify_one();
+        }
+        self.shared.report(&outcomes, outcomes.len() > before);
+        Some(PortStatus::Ok)
     }
 
     /// Counts a value refused for want of room.
@@ -576,7 +755,8 @@ impl<T: PortData> OutPort<T> {
     }
 
     /// Calls `callback` with every [`Outcome`] from now on (keep it short:
-    /// it runs on the port's task, or in `put` for a value it drops).
+    /// it runs on the port's task, or in `put` for a value it publishes
+    /// without confirms or drops).
     pub fn on_outcome(&self, callback: impl FnMut(&Outcome) + Send + 'static) {
         lock(&self.shared.callbacks).push(Box::new(callback));
     }
@@ -687,13 +867,6 @@ struct Task {
     shared: Arc<Shared>,
     connector: Connector,
     profile: Arc<PortProfile>,
-    exchange: ShortStr,
-    routing_key: ShortStr,
-    content_type: ShortStr,
-    type_name: Option<ShortStr>,
-    port: Arc<str>,
-    /// Confirms of the messages published on this link, in order.
-    inflight: VecDeque<(u64, ConfirmFuture)>,
     /// Sequence numbers the broker returned as unroutable, until their
     /// confirm arrives.
     returned: HashSet<u64>,
@@ -726,6 +899,7 @@ impl Task {
                 Event::Lost(error) => self.lost(error),
             }
         }
+        self.shared.window().channel = None;
         if let Some(link) = self.link.take() {
             self.announcer.close().await;
             let _ = tokio::time::timeout(CLOSE_TIMEOUT, link.connection.close()).await;
@@ -733,11 +907,11 @@ impl Task {
     }
 
     async fn next_event(&mut self) -> Event {
-        let inflight = &mut self.inflight;
+        let shared = &self.shared;
         let connecting = &mut self.connecting;
         let channel = self.link.as_ref().map(|link| link.channel.clone());
         let idle = self.link.is_none() && connecting.is_none();
-        let confirm = std::future::poll_fn(|cx| match inflight.front_mut() {
+        let confirm = std::future::poll_fn(|cx| match shared.window().inflight.front_mut() {
             Some((_, confirm)) => Pin::new(confirm).poll(cx),
             None => Poll::Pending,
         });
@@ -773,76 +947,36 @@ impl Task {
     }
 
     /// Publishes the next message of the window not yet published on this
-    /// link, expiring what is past its lifespan; false if there is none.
+    /// link (waiting for room in the outbox if need be), expiring what is
+    /// past its lifespan; false if there is none.
     async fn publish_next(&mut self) -> bool {
-        let lifespan = self.profile.lifespan;
         let mut outcomes = Vec::new();
-        let next = {
+        let mut next = {
             let mut window = self.shared.window();
-            let window = &mut *window;
-            let index = window
-                .entries
-                .partition_point(|entry| entry.seq < window.publish_from);
-            let mut next = None;
-            while let Some(entry) = window.entries.get_mut(index) {
-                let age = entry.put_at.elapsed();
-                let remaining = match lifespan {
-                    Some(lifespan) if age >= lifespan => {
-                        let seq = entry.seq;
-                        window.entries.remove(index);
-                        settle(&mut window.stats, &mut outcomes, seq, Fate::Expired);
-                        continue;
-                    }
-                    Some(lifespan) => Some(lifespan - age),
-                    None => None,
-                };
-                if entry.attempts > 0 {
-                    window.stats.resent += 1;
-                }
-                entry.attempts += 1;
-                window.publish_from = entry.seq + 1;
-                next = Some((entry.seq, entry.sent_ns, entry.body.clone(), remaining));
-                break;
-            }
-            window.stats.unconfirmed = window.entries.len() as u64;
-            next
+            self.shared.publish_next(&mut window, None, &mut outcomes)
         };
+        if let (Next::Full, Some(link)) = (&next, &self.link) {
+            let channel = link.channel.clone();
+            next = match channel.reserve().await {
+                Ok(slot) => {
+                    let mut window = self.shared.window();
+                    self.shared
+                        .publish_next(&mut window, Some(slot), &mut outcomes)
+                }
+                Err(error) => Next::Failed(error),
+            };
+        }
         if !outcomes.is_empty() {
             self.shared.report(&outcomes, true);
         }
-        let Some((seq, sent_ns, body, remaining)) = next else {
-            return !outcomes.is_empty();
-        };
-        let properties = BasicProperties {
-            content_type: Some(self.content_type.clone()),
-            kind: self.type_name.clone(),
-            delivery_mode: Some(if self.profile.persistent { 2 } else { 1 }),
-            timestamp: u64::try_from(sent_ns / 1_000_000_000).ok(),
-            // At least 1 ms: an expiration of 0 would mean "deliver now or
-            // never", stricter than what is left.
-            expiration: remaining
-                .and_then(|left| ShortStr::try_from(left.as_millis().max(1).to_string()).ok()),
-            headers: Some(link::headers(&self.port, seq, sent_ns)),
-            ..Default::default()
-        };
-        let Some(link) = &self.link else {
-            return false;
-        };
-        let options = BasicPublishOptions {
-            mandatory: self.profile.mandatory,
-        };
-        let result = link
-            .channel
-            .basic_publish(&self.exchange, &self.routing_key, options, properties, body)
-            .await;
-        match result {
-            Ok(confirm) if self.profile.confirms => {
-                self.inflight.push_back((seq, confirm.into_future()));
+        match next {
+            Next::Published | Next::Full => true,
+            Next::Idle => !outcomes.is_empty(),
+            Next::Failed(error) => {
+                self.lost(error);
+                true
             }
-            Ok(_) => self.settle_published(seq, Confirmation::NotRequested),
-            Err(error) => self.lost(error),
         }
-        true
     }
 
     /// The oldest published message's confirm arrived (or its link
@@ -850,7 +984,8 @@ impl Task {
     fn confirmed(&mut self, result: Result<Confirmation>) {
         match result {
             Ok(confirmation) => {
-                if let Some((seq, _)) = self.inflight.pop_front() {
+                let settled = self.shared.window().inflight.pop_front();
+                if let Some((seq, _)) = settled {
                     self.settle_published(seq, confirmation);
                 }
             }
@@ -933,11 +1068,11 @@ impl Task {
             drop(link.channel);
             drop(link.connection);
         }
-        self.inflight.clear();
         self.returned.clear();
         let mut outcomes = Vec::new();
         let mut window = self.shared.window();
-        window.up = false;
+        window.channel = None;
+        window.inflight.clear();
         window.publish_from = 0;
         if self.profile.replay == Replay::Nothing {
             keep_newest(&mut window, 0, &mut outcomes);
@@ -957,7 +1092,7 @@ impl Task {
                 self.failures = 0;
                 let mut outcomes = Vec::new();
                 let mut window = self.shared.window();
-                window.up = true;
+                window.channel = self.link.as_ref().map(|link| link.channel.clone());
                 if self.profile.replay == Replay::Latest {
                     keep_newest(&mut window, 1, &mut outcomes);
                 }
