@@ -423,7 +423,7 @@ impl QueueRef {
             exclusive_owner: queue.options.exclusive_owner,
             arguments: queue.options.arguments.clone(),
             messages_ready: depth.ready,
-            messages_unacknowledged: c.unacked.get(),
+            messages_unacknowledged: depth.unacked,
             message_bytes_ready: depth.ready_bytes,
             consumers: depth.consumers,
             message_stats: QueueMessageStats {
@@ -463,6 +463,10 @@ impl QueueRef {
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct QueueDepth {
     pub ready: u64,
+    /// Read under the same hold of the queue's lock as `ready`: a requeue
+    /// moves a message from one to the other under it, so their sum never
+    /// dips while messages come back.
+    pub unacked: u64,
     pub ready_bytes: u64,
     pub consumers: u64,
 }
@@ -522,8 +526,9 @@ impl Admin {
             exchanges += vhost.exchanges().len() as u64;
             for queue in all_queues(&vhost) {
                 queues += 1;
-                totals.messages_ready += queue.depth().ready;
-                totals.messages_unacknowledged += queue.stats.unacked.get();
+                let depth = queue.depth();
+                totals.messages_ready += depth.ready;
+                totals.messages_unacknowledged += depth.unacked;
             }
         }
         Overview {

@@ -532,6 +532,7 @@ impl Queue {
         let st = self.lock();
         crate::inspect::QueueDepth {
             ready: st.ready.len() as u64,
+            unacked: self.stats.unacked.get(),
             ready_bytes: st.ready.bytes() as u64,
             consumers: st.consumers.len() as u64,
         }
