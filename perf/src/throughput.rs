@@ -733,26 +733,9 @@ pub fn print_summary(r: &ThroughputReport) {
             thousands(r.backlog_at_end as f64)
         );
     }
-    let l = &r.latency;
-    println!(
-        "latency ({} samples): min {}  p50 {}  p95 {}  p99 {}  max {}",
-        thousands(l.count as f64),
-        micros(l.min_us),
-        micros(l.p50_us),
-        micros(l.p95_us),
-        micros(l.p99_us),
-        micros(l.max_us)
-    );
-    if let Some(l) = &r.confirm_latency {
-        println!(
-            "confirm latency ({} samples): min {}  p50 {}  p95 {}  p99 {}  max {}",
-            thousands(l.count as f64),
-            micros(l.min_us),
-            micros(l.p50_us),
-            micros(l.p95_us),
-            micros(l.p99_us),
-            micros(l.max_us)
-        );
+    print_latency("latency", &r.latency);
+    if let Some(confirms) = &r.confirm_latency {
+        print_latency("confirm latency", confirms);
     }
     let t = &r.totals;
     println!(
@@ -796,4 +779,17 @@ pub fn print_summary(r: &ThroughputReport) {
     for e in &r.errors {
         println!("  error: {e}");
     }
+}
+
+/// One line of a latency summary.
+fn print_latency(label: &str, l: &LatencySummary) {
+    println!(
+        "{label} ({} samples): min {}  p50 {}  p95 {}  p99 {}  max {}",
+        thousands(l.count as f64),
+        micros(l.min_us),
+        micros(l.p50_us),
+        micros(l.p95_us),
+        micros(l.p99_us),
+        micros(l.max_us)
+    );
 }

@@ -209,9 +209,17 @@ fn parse_records(payload: &[u8]) -> Option<Vec<Record<'_>>> {
     Some(records)
 }
 
-/// Appends `ops` to `payload` as records; what doesn't fit a `u16` key is
-/// refused.
-fn encode_records(payload: &mut Vec<u8>, ops: &[KvOp]) -> Result<(), StoreError> {
+/// `ops` as one framed batch, built in place (the records after room for
+/// the header, then the header filled in), and where each put's value lies
+/// from the batch's start (`None` for a remove).
+fn encode_batch(ops: &[KvOp]) -> Result<(Vec<u8>, Vec<Option<u64>>), StoreError> {
+    let size: usize = ops
+        .iter()
+        .map(|(key, value)| 7 + key.len() + value.as_ref().map_or(0, Vec::len))
+        .sum();
+    let mut batch = Vec::with_capacity(BATCH_HEADER + size);
+    batch.resize(BATCH_HEADER, 0);
+    let mut values = Vec::with_capacity(ops.len());
     for (key, value) in ops {
         let key_len = u16::try_from(key.len())
             .map_err(|_| StoreError::Engine("a message log key over 64 KB".into()))?;
@@ -219,20 +227,27 @@ fn encode_records(payload: &mut Vec<u8>, ops: &[KvOp]) -> Result<(), StoreError>
             Some(value) => {
                 let len = u32::try_from(value.len())
                     .map_err(|_| StoreError::Engine("a message log value over 4 GB".into()))?;
-                payload.push(PUT);
-                payload.extend_from_slice(&key_len.to_le_bytes());
-                payload.extend_from_slice(key);
-                payload.extend_from_slice(&len.to_le_bytes());
-                payload.extend_from_slice(value);
+                batch.push(PUT);
+                batch.extend_from_slice(&key_len.to_le_bytes());
+                batch.extend_from_slice(key);
+                batch.extend_from_slice(&len.to_le_bytes());
+                values.push(Some(batch.len() as u64));
+                batch.extend_from_slice(value);
             }
             None => {
-                payload.push(REMOVE);
-                payload.extend_from_slice(&key_len.to_le_bytes());
-                payload.extend_from_slice(key);
+                batch.push(REMOVE);
+                batch.extend_from_slice(&key_len.to_le_bytes());
+                batch.extend_from_slice(key);
+                values.push(None);
             }
         }
     }
-    Ok(())
+    let payload_len = u32::try_from(batch.len() - BATCH_HEADER)
+        .map_err(|_| StoreError::Engine("a message log batch over 4 GB".into()))?;
+    let crc = crc32fast::hash(&batch[BATCH_HEADER..]);
+    batch[..4].copy_from_slice(&payload_len.to_le_bytes());
+    batch[4..8].copy_from_slice(&crc.to_le_bytes());
+    Ok((batch, values))
 }
 
 /// Frames a payload as a batch.
@@ -440,22 +455,23 @@ impl MessageLog {
         let mut state = self.state();
         let mut start = 0;
         while start < ops.len() {
-            let mut payload = Vec::new();
             let mut end = start;
-            while end < ops.len() && (atomic || payload.len() < BATCH_BYTES) {
-                encode_records(&mut payload, &ops[end..=end])?;
+            let mut bytes = 0;
+            while end < ops.len() && (atomic || bytes < BATCH_BYTES) {
+                let (key, value) = &ops[end];
+                bytes += 7 + key.len() + value.as_ref().map_or(0, Vec::len);
                 end += 1;
             }
-            self.append(&mut state, &payload)?;
+            self.append(&mut state, &ops[start..end])?;
             start = end;
         }
         Ok(())
     }
 
-    /// Appends one batch to the head (starting a new segment first if the
-    /// head is full), then indexes its records. A failed append is cut off
+    /// Appends `ops` as one batch to the head (starting a new segment first
+    /// if the head is full), then indexes them. A failed append is cut off
     /// again, so the next one follows good data.
-    fn append(&self, state: &mut State, payload: &[u8]) -> Result<(), StoreError> {
+    fn append(&self, state: &mut State, ops: &[KvOp]) -> Result<(), StoreError> {
         let size = state
             .index
             .segments
@@ -464,14 +480,22 @@ impl MessageLog {
         if size >= self.segment_bytes {
             self.rotate(state)?;
         }
-        let batch = frame(payload)?;
+        let (batch, values) = encode_batch(ops)?;
         let number = state.head_number;
         let offset = self.write_batch(state, &batch)?;
-        let records = parse_records(payload)
-            .ok_or_else(|| StoreError::Engine("the message log encoded a bad batch".into()))?;
-        state
-            .index
-            .apply(number, offset + BATCH_HEADER as u64, records);
+        for ((key, value), at) in ops.iter().zip(values) {
+            match (value, at) {
+                (Some(value), Some(at)) => state.index.put(
+                    key,
+                    Location {
+                        segment: number,
+                        offset: offset + at,
+                        len: value.len() as u32,
+                    },
+                ),
+                _ => state.index.remove(key),
+            }
+        }
         Ok(())
     }
 
@@ -609,9 +633,7 @@ impl MessageLog {
         }
         state.compacting = Some((oldest, at));
         if !moved.is_empty() {
-            let mut payload = Vec::new();
-            encode_records(&mut payload, &moved)?;
-            self.append(state, &payload)?;
+            self.append(state, &moved)?;
         }
         Ok(())
     }
