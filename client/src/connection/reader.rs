@@ -330,7 +330,9 @@ impl<I: FrameInput> Reader<I> {
         }
     }
 
-    async fn channel_method(&mut self, channel: u16, method: Method) -> Result<Flow, Violation> {
+    /// A method (other than content) on a channel that is in the middle
+    /// of receiving content is a framing error.
+    fn no_content_pending(&self, channel: u16, method: &Method) -> Result<(), Violation> {
         if self.incoming.contains_key(&channel) {
             return Err(Violation::new(
                 ReplyCode::UnexpectedFrame,
@@ -340,6 +342,11 @@ impl<I: FrameInput> Reader<I> {
                 ),
             ));
         }
+        Ok(())
+    }
+
+    async fn channel_method(&mut self, channel: u16, method: Method) -> Result<Flow, Violation> {
+        self.no_content_pending(channel, &method)?;
         if method.has_content() {
             // Assembled even for a channel already gone, to keep the frame
             // sequence checked; dropped when complete.
@@ -480,15 +487,7 @@ impl<I: FrameInput> Reader<I> {
             properties,
             body,
         } = whole;
-        if self.incoming.contains_key(&channel) {
-            return Err(Violation::new(
-                ReplyCode::UnexpectedFrame,
-                format!(
-                    "{} on channel {channel} while content was expected",
-                    method.name()
-                ),
-            ));
-        }
+        self.no_content_pending(channel, &method)?;
         let properties = BasicProperties::decode(&properties)
             .map_err(|e| Violation::new(e.reply_code(), e.to_string()))?;
         self.hand_over(channel, method, Content { properties, body })
