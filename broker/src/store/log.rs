@@ -607,8 +607,15 @@ impl MessageLog {
             file.read_exact_at(&mut header, at)
                 .map_err(|e| io_error(&path, e))?;
             let len = u32::from_le_bytes(header[..4].try_into().expect("4 bytes")) as usize;
-            let mut payload = vec![0; len];
             let payload_at = at + BATCH_HEADER as u64;
+            if payload_at + len as u64 > end {
+                // Read whole at open or written since: a file changed
+                // under the log. Never allocate what it claims.
+                return Err(StoreError::Engine(
+                    format!("message log {}: a batch changed", path.display()).into(),
+                ));
+            }
+            let mut payload = vec![0; len];
             file.read_exact_at(&mut payload, payload_at)
                 .map_err(|e| io_error(&path, e))?;
             // It was checked when read at open or written since.
