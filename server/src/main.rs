@@ -20,6 +20,11 @@
 //!   definitions.json (`--definitions`, `/api/definitions`).
 //!
 //! Each uses only the `leveret-broker` public API; `main` uses the others.
+//!
+//! The binary allocates with jemalloc (an embedder keeps its own
+//! allocator): the persister thread frees what connections allocated, and
+//! glibc's malloc serialises such frees on the allocating thread's arena
+//! lock.
 #![forbid(unsafe_code)]
 
 mod cli;
@@ -41,6 +46,10 @@ use definitions::Definitions;
 use leveret_broker::PasswordHash;
 use std::process::ExitCode;
 use std::sync::Arc;
+
+#[cfg(not(target_env = "msvc"))]
+#[global_allocator]
+static ALLOCATOR: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
 
 /// Exit status for a command line or config file that cannot be used.
 const USAGE_ERROR: u8 = 2;
