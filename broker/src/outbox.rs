@@ -176,10 +176,19 @@ impl Outbox {
     }
 
     /// Sends an item, waiting for room (backpressure on the caller).
+    ///
+    /// Room is usually there: only then is the send made at once. Waiting
+    /// for room takes tokio's send future (~440 bytes), kept on the heap so
+    /// that every future awaiting a reply stays small (a future is copied
+    /// each time it is created and awaited).
     pub async fn send(&self, item: Outbound) {
         // An error means the writer is gone: the connection is closing and
         // its cleanup requeues whatever was in flight.
-        let _ = self.tx.send(item).await;
+        let item = match self.tx.try_send(item) {
+            Ok(()) | Err(mpsc::error::TrySendError::Closed(_)) => return,
+            Err(mpsc::error::TrySendError::Full(item)) => item,
+        };
+        let _ = Box::pin(self.tx.send(item)).await;
     }
 
     /// Sends a method on a channel.

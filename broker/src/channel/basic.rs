@@ -10,7 +10,7 @@ use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
 use crate::permissions::Right;
 use crate::queue::{DeadLetters, Enqueued, Queue, QueuedMessage};
-use crate::slice::{finish_in_background, yield_if_spent, Progress, Slice};
+use crate::slice::{finish_in_background, Progress, Slice};
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
     BasicPublish, BasicQos, BasicQosOk, ReplyCode, ShortStr,
@@ -36,6 +36,21 @@ impl Outcome {
             Enqueued::Refused => self.refused = true,
         }
     }
+}
+
+/// A publish routed but not yet offered to all its queues, or owed a
+/// basic.return: what [`Channel::finish_publish`] has left to do.
+pub(super) struct Unfinished {
+    message: Arc<Message>,
+    /// The queues it was routed to (the channel's reused buffer).
+    queues: Vec<Arc<Queue>>,
+    /// How many of `queues` have been offered it.
+    next: usize,
+    outcome: Outcome,
+    dead: DeadLetters,
+    /// Its confirm tag, in confirm mode.
+    confirm: Option<u64>,
+    returned: Option<Outbound>,
 }
 
 /// What a client did with a delivery.
@@ -119,13 +134,22 @@ impl Channel {
 
     /// A whole message has arrived: route it now, or hold it for tx.commit.
     /// Errors name basic.publish, the method they answer.
-    pub(super) async fn publish(&mut self, publish: Publish) -> AmqpResult<()> {
-        self.publish_checked(publish)
-            .await
+    ///
+    /// All but the waiting is done here, at once; what has to wait (room
+    /// for its basic.return, a yield between the slices of a large fanout)
+    /// is returned, for [`Channel::finish_publish`] in a future of its own
+    /// on the heap. A future is copied each time it is created and awaited,
+    /// once per level of calls, for every frame: so the content frames'
+    /// path is synchronous and the common publish copies no large future.
+    pub(super) fn publish(&mut self, publish: Publish) -> AmqpResult<Option<Box<Unfinished>>> {
+        self.publish_at_once(publish)
             .map_err(|e| e.during_ids(60, 40))
     }
 
-    async fn publish_checked(&mut self, publish: Publish) -> AmqpResult<()> {
+    /// Checks a publish, then holds it for tx.commit, or routes it, stores
+    /// its record and offers it to its queues; what is left when it has to
+    /// wait is returned.
+    fn publish_at_once(&mut self, mut publish: Publish) -> AmqpResult<Option<Box<Unfinished>>> {
         self.allow_exchange(Right::Write, publish.method.exchange.as_bytes())?;
         let exchange = self.vhost.exchange_or_404(&publish.method.exchange)?;
         if exchange.options.internal {
@@ -155,56 +179,105 @@ impl Channel {
             }
         }
         self.core.stats.received(self.confirms.is_some());
-        let mut publish = publish;
         self.rewrite_reply_to(&mut publish)?;
         if let Some(tx) = &mut self.tx {
-            return tx.hold(publish, self.core.limits.memory_high_watermark / 4);
+            tx.hold(publish, self.core.limits.memory_high_watermark / 4)?;
+            return Ok(None);
         }
         let confirm = self.confirms.as_mut().map(|c| c.next_tag());
-        let outcome = self.route_and_enqueue(&exchange, publish).await;
-        if let Some(tag) = confirm {
-            self.confirm(tag, outcome);
+        let mut queues = std::mem::take(&mut self.route_buffer);
+        let (message, returned) = self.route(&exchange, publish, &mut queues);
+        let mut rest = Unfinished {
+            message,
+            queues,
+            next: 0,
+            outcome: Outcome::default(),
+            dead: DeadLetters::default(),
+            confirm,
+            returned,
+        };
+        // A basic.return goes out before anything else of its publish.
+        if rest.returned.is_some() {
+            return Ok(Some(Box::new(rest)));
         }
-        Ok(())
+        self.store_record(&rest.message);
+        if self.enqueue_slice(&mut rest) == Progress::More {
+            return Ok(Some(Box::new(rest)));
+        }
+        self.settle_publish(rest);
+        Ok(None)
     }
 
-    /// Routes a message and offers it to each queue: the non-transactional
-    /// publish path.
-    async fn route_and_enqueue(&mut self, exchange: &Arc<Exchange>, publish: Publish) -> Outcome {
-        let mut queues = std::mem::take(&mut self.route_buffer);
-        let mut outcome = Outcome::default();
-        let mut dead = DeadLetters::default();
-        let message = self.route(exchange, publish, &mut queues).await;
+    /// The part of a publish that waits: its basic.return, then the rest
+    /// of its queues a slice at a time (a fanout to thousands of queues
+    /// yields between slices: the channel's next frame waits, other
+    /// connections do not).
+    pub(super) async fn finish_publish(&mut self, mut rest: Box<Unfinished>) {
+        if let Some(returned) = rest.returned.take() {
+            self.send_return(returned).await;
+            self.store_record(&rest.message);
+        }
+        while self.enqueue_slice(&mut rest) == Progress::More {
+            tokio::task::yield_now().await;
+        }
+        self.settle_publish(*rest);
+    }
+
+    /// Submits a routed message's shared record, if it is stored.
+    fn store_record(&self, message: &Message) {
         if let (Some(persistence), Some(op)) = (&self.core.persistence, message.record_op()) {
             persistence.submit(vec![op]);
         }
-        // A fanout to thousands of queues yields between slices: the
-        // channel's next frame waits, other connections do not.
+    }
+
+    /// Offers the message to its next queues until they are all done or
+    /// the slice is spent.
+    fn enqueue_slice(&mut self, rest: &mut Unfinished) -> Progress {
         let mut slice = Slice::start();
-        for queue in queues.drain(..) {
-            let (enqueued, dead_here) = queue.publish(Arc::clone(&message));
-            outcome.add(enqueued);
-            dead.append(dead_here);
+        while let Some(queue) = rest.queues.get(rest.next) {
+            rest.next += 1;
+            let (enqueued, dead_here) = queue.publish(Arc::clone(&rest.message));
+            rest.outcome.add(enqueued);
+            rest.dead.append(dead_here);
             if queue.is_crowded() && self.crowded.is_none() {
-                self.crowded = Some(queue);
+                self.crowded = Some(Arc::clone(queue));
             }
-            yield_if_spent(&mut slice).await;
+            if slice.step() && rest.next < rest.queues.len() {
+                return Progress::More;
+            }
         }
+        Progress::Done
+    }
+
+    /// A publish offered to all its queues: its dead letters go on, its
+    /// outcome waits for its confirm.
+    fn settle_publish(&mut self, rest: Unfinished) {
+        let Unfinished {
+            mut queues,
+            dead,
+            outcome,
+            confirm,
+            ..
+        } = rest;
+        queues.clear();
         self.route_buffer = queues;
         self.vhost.dead_letter(dead);
-        outcome
+        if let Some(tag) = confirm {
+            self.confirm(tag, outcome);
+        }
     }
 
     /// Routes a publish through `exchange` into `queues` and builds the
     /// message, marked for storage when it is persistent and reaches
-    /// durable queues. Sends basic.return for an unroutable mandatory
-    /// message.
-    pub(super) async fn route(
+    /// durable queues; with it, the basic.return an unroutable mandatory
+    /// message is owed, for the caller to send ([`Channel::send_return`])
+    /// before anything else of this publish.
+    pub(super) fn route(
         &mut self,
         exchange: &Arc<Exchange>,
         publish: Publish,
         queues: &mut Vec<Arc<Queue>>,
-    ) -> Arc<Message> {
+    ) -> (Arc<Message>, Option<Outbound>) {
         self.vhost.route(
             exchange,
             &publish.method.routing_key,
@@ -240,18 +313,18 @@ impl Channel {
             && self.deliver_reply(&message);
         let reached = !queues.is_empty() || replied;
         self.core.stats.routed(reached, publish.method.mandatory);
-        if !reached && publish.method.mandatory {
-            let returned = Outbound::Return {
-                channel: self.id,
-                reply_code: ReplyCode::NoRoute.code(),
-                reply_text: ShortStr::from_static("NO_ROUTE"),
-                message: Arc::clone(&message),
-            };
-            // On the heap: waiting for room in the outbox takes a large
-            // future, which would otherwise be part of every publish's.
-            Box::pin(self.outbox().send(returned)).await;
-        }
-        message
+        let returned = (!reached && publish.method.mandatory).then(|| Outbound::Return {
+            channel: self.id,
+            reply_code: ReplyCode::NoRoute.code(),
+            reply_text: ShortStr::from_static("NO_ROUTE"),
+            message: Arc::clone(&message),
+        });
+        (message, returned)
+    }
+
+    /// Sends a basic.return, waiting for room in the outbox.
+    pub(super) async fn send_return(&self, returned: Outbound) {
+        self.outbox().send(returned).await;
     }
 
     pub(super) async fn basic_qos(&mut self, qos: BasicQos) -> AmqpResult<()> {

@@ -32,6 +32,7 @@ use crate::permissions::{AccessView, Resource, Right};
 use crate::queue::Queue;
 use crate::registry::ChannelRegistration;
 use crate::vhost::Vhost;
+use basic::Unfinished;
 pub(crate) use basic::{apply_settles, Settle};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{
@@ -273,8 +274,14 @@ impl Channel {
         }
         let result = match frame {
             Frame::Method { method, .. } => self.handle_method(method).await,
-            Frame::Header { header, .. } => self.handle_header(header).await,
-            Frame::Body { payload, .. } => self.handle_body(payload).await,
+            Frame::Header { header, .. } => {
+                let handled = self.handle_header(header);
+                self.after_content(handled).await
+            }
+            Frame::Body { payload, .. } => {
+                let handled = self.handle_body(payload);
+                self.after_content(handled).await
+            }
             Frame::Heartbeat => Ok(false),
         };
         match result {
@@ -298,7 +305,8 @@ impl Channel {
         if self.closing {
             return Ok(());
         }
-        match self.publish_whole(whole).await {
+        let handled = self.publish_whole(whole);
+        match self.after_content(handled).await.map(drop) {
             Err(error) if !error.is_connection_error() => {
                 tracing::debug!(channel = self.id, %error, "closing channel");
                 Box::pin(self.close_with(error)).await;
@@ -308,28 +316,41 @@ impl Channel {
         }
     }
 
-    async fn publish_whole(&mut self, whole: WholePublish) -> AmqpResult<()> {
+    fn publish_whole(&mut self, whole: WholePublish) -> AmqpResult<Option<Box<Unfinished>>> {
         let WholePublish {
             method,
             properties,
             body,
             ..
         } = whole;
-        self.handle_method(Method::BasicPublish(method)).await?;
+        self.expect_no_content("basic.publish")
+            .and_then(|()| self.basic_publish(method))
+            .map_err(|e| e.during_ids(60, 40))?;
         let Assembly::Header(publish) = std::mem::replace(&mut self.assembly, Assembly::Idle)
         else {
-            return Ok(());
+            return Ok(None);
         };
         let mut encoded = BytesMut::new();
         properties.encode(&mut encoded);
         let property_bytes = self.kept(encoded.freeze());
         let size = body.len() as u64;
-        self.content_header(publish, properties, property_bytes, size)
-            .await?;
+        let unfinished = self.content_header(publish, properties, property_bytes, size)?;
         if size > 0 {
-            self.handle_body(body).await?;
+            return self.handle_body(body);
         }
-        Ok(())
+        Ok(unfinished)
+    }
+
+    /// After a content frame: a publish it completed that has to wait
+    /// finishes in a future of its own (see [`Channel::publish`]).
+    async fn after_content(
+        &mut self,
+        handled: AmqpResult<Option<Box<Unfinished>>>,
+    ) -> AmqpResult<bool> {
+        if let Some(rest) = handled? {
+            Box::pin(self.finish_publish(rest)).await;
+        }
+        Ok(false)
     }
 
     async fn close_with(&mut self, error: AmqpError) {
@@ -344,14 +365,19 @@ impl Channel {
         .await;
     }
 
-    async fn handle_method(&mut self, method: Method) -> AmqpResult<bool> {
-        if !matches!(self.assembly, Assembly::Idle) {
-            return Err(AmqpError::unexpected_frame(format_args!(
-                "expected content header for class 60, got non content header frame instead ({})",
-                method.name()
-            ))
-            .during_ids(60, 40));
+    /// A method frame may come only between messages.
+    fn expect_no_content(&self, method_name: &str) -> AmqpResult<()> {
+        if matches!(self.assembly, Assembly::Idle) {
+            return Ok(());
         }
+        Err(AmqpError::unexpected_frame(format_args!(
+            "expected content header for class 60, got non content header frame instead ({method_name})"
+        ))
+        .during_ids(60, 40))
+    }
+
+    async fn handle_method(&mut self, method: Method) -> AmqpResult<bool> {
+        self.expect_no_content(method.name())?;
         let ids = (method.class_id(), method.method_id());
         let result = match method {
             // The messaging methods inline; every other one in a future of
@@ -443,7 +469,7 @@ impl Channel {
         Ok(false)
     }
 
-    async fn handle_header(&mut self, header: ContentHeader) -> AmqpResult<bool> {
+    fn handle_header(&mut self, header: ContentHeader) -> AmqpResult<Option<Box<Unfinished>>> {
         let Assembly::Header(publish) = std::mem::replace(&mut self.assembly, Assembly::Idle)
         else {
             return Err(AmqpError::unexpected_frame(format_args!(
@@ -463,18 +489,17 @@ impl Channel {
             .map(Box::new)
             .map_err(|e| AmqpError::new(e.reply_code(), &e).during_ids(60, 40))?;
         self.content_header(publish, properties, property_bytes, header.body_size)
-            .await
     }
 
     /// A publish's content header, its properties decoded: checks its
     /// size, then publishes a message without body or waits for the body.
-    async fn content_header(
+    fn content_header(
         &mut self,
         publish: BasicPublish,
         properties: Box<BasicProperties>,
         property_bytes: Bytes,
         body_size: u64,
-    ) -> AmqpResult<bool> {
+    ) -> AmqpResult<Option<Box<Unfinished>>> {
         let max = self.core.limits.max_message_size;
         if body_size > max {
             return Err(AmqpError::precondition_failed(format_args!(
@@ -489,26 +514,24 @@ impl Channel {
             ..publish
         };
         if body_size == 0 {
-            self.publish(Publish {
+            return self.publish(Publish {
                 method: publish,
                 properties,
                 property_bytes,
                 body: Bytes::new(),
-            })
-            .await?;
-        } else {
-            self.assembly = Assembly::Body {
-                publish,
-                properties,
-                property_bytes,
-                size: body_size,
-                partial: None,
-            };
+            });
         }
-        Ok(false)
+        self.assembly = Assembly::Body {
+            publish,
+            properties,
+            property_bytes,
+            size: body_size,
+            partial: None,
+        };
+        Ok(None)
     }
 
-    async fn handle_body(&mut self, payload: Bytes) -> AmqpResult<bool> {
+    fn handle_body(&mut self, payload: Bytes) -> AmqpResult<Option<Box<Unfinished>>> {
         let Assembly::Body { size, partial, .. } = &mut self.assembly else {
             return Err(AmqpError::unexpected_frame(format_args!(
                 "expected method frame, got content body frame on channel {}",
@@ -530,7 +553,7 @@ impl Channel {
                 Some(partial) => partial.bytes.extend_from_slice(&payload),
                 None => *partial = Some(PartialBody::start(&self.core.gauge, size, &payload)?),
             }
-            return Ok(false);
+            return Ok(None);
         }
         let Assembly::Body {
             publish,
@@ -540,7 +563,7 @@ impl Channel {
             ..
         } = std::mem::replace(&mut self.assembly, Assembly::Idle)
         else {
-            return Ok(false);
+            return Ok(None);
         };
         // The reservation lasts until the message is routed (or refused).
         let (body, _reservation) = match partial {
@@ -559,8 +582,6 @@ impl Channel {
             property_bytes,
             body,
         })
-        .await?;
-        Ok(false)
     }
 
     /// `bytes` as the message will keep them: copied out of the read

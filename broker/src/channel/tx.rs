@@ -114,7 +114,10 @@ impl Channel {
             let Some(exchange) = self.vhost.exchange(&publish.method.exchange) else {
                 continue;
             };
-            let message = self.route(&exchange, publish, &mut queues).await;
+            let (message, returned) = self.route(&exchange, publish, &mut queues);
+            if let Some(returned) = returned {
+                self.send_return(returned).await;
+            }
             ops.extend(message.record_op());
             let targets: Vec<(Arc<Queue>, Option<u64>)> = queues
                 .into_iter()
