@@ -10,7 +10,7 @@ use super::{
 use bytes::{Buf, BufMut, Bytes, BytesMut};
 use leveret_protocol::{FieldTable, ShortStr};
 
-fn put_short(buf: &mut BytesMut, s: &ShortStr) {
+fn put_short(buf: &mut impl BufMut, s: &ShortStr) {
     buf.put_u8(s.len() as u8);
     buf.put_slice(s.as_bytes());
 }
@@ -26,7 +26,7 @@ fn take_short(buf: &mut Bytes) -> Result<ShortStr, StoreError> {
     ShortStr::try_from(buf.split_to(len)).map_err(|_| corrupt("short string"))
 }
 
-fn put_long(buf: &mut BytesMut, b: &[u8]) {
+fn put_long(buf: &mut impl BufMut, b: &[u8]) {
     buf.put_u32(b.len() as u32);
     buf.put_slice(b);
 }
@@ -106,11 +106,20 @@ fn mark_key(queue: u64) -> Vec<u8> {
     key
 }
 
-fn put_record(v: &mut BytesMut, record: &MessageRecord) {
+fn put_record(v: &mut impl BufMut, record: &MessageRecord) {
     put_short(v, &record.exchange);
     put_short(v, &record.routing_key);
     put_long(v, &record.properties);
     put_long(v, &record.body);
+}
+
+/// The bytes [`put_record`] writes.
+fn record_len(record: &MessageRecord) -> usize {
+    2 + record.exchange.len()
+        + record.routing_key.len()
+        + 8
+        + record.properties.len()
+        + record.body.len()
 }
 
 fn take_record(value: &mut Bytes) -> Result<MessageRecord, StoreError> {
@@ -302,21 +311,18 @@ impl StoreOp {
             StoreOp::PutBinding(b) => (binding_key(b), Some(Vec::new())),
             StoreOp::DeleteBinding(b) => (binding_key(b), None),
             StoreOp::PutMessage { id, record } => {
-                let mut v =
-                    BytesMut::with_capacity(record.body.len() + record.properties.len() + 64);
+                let mut v = Vec::with_capacity(record_len(record));
                 put_record(&mut v, record);
-                (message_key(*id), Some(v.to_vec()))
+                (message_key(*id), Some(v))
             }
             StoreOp::DeleteMessage { id } => (message_key(*id), None),
             StoreOp::Enqueue { queue, seq, body } => {
                 let value = match body {
                     EntryBody::Inline(record) => {
-                        let mut v = BytesMut::with_capacity(
-                            record.body.len() + record.properties.len() + 64,
-                        );
+                        let mut v = Vec::with_capacity(1 + record_len(record));
                         v.put_u8(0);
                         put_record(&mut v, record);
-                        v.to_vec()
+                        v
                     }
                     EntryBody::Shared(id) => {
                         let mut v = Vec::with_capacity(9);
@@ -532,6 +538,32 @@ mod tests {
 
     fn s(v: &'static str) -> ShortStr {
         ShortStr::from_static(v)
+    }
+
+    /// A record's value is allocated at its exact size: no copy to fit.
+    #[test]
+    fn a_record_value_is_sized_exactly() {
+        let record = MessageRecord {
+            exchange: s("ex"),
+            routing_key: s("a.b"),
+            properties: Bytes::from_static(b"\x10\x00\x02"),
+            body: Bytes::from(vec![7u8; 1000]),
+        };
+        let (_, shared) = StoreOp::PutMessage {
+            id: 1,
+            record: record.clone(),
+        }
+        .to_kv();
+        let shared = shared.unwrap();
+        assert_eq!(shared.len(), record_len(&record));
+        assert_eq!(shared.capacity(), shared.len());
+        let (_, inline) = StoreOp::Enqueue {
+            queue: 1,
+            seq: 1,
+            body: EntryBody::Inline(record.clone()),
+        }
+        .to_kv();
+        assert_eq!(inline.unwrap().len(), 1 + record_len(&record));
     }
 
     #[test]
