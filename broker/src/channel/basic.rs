@@ -40,7 +40,8 @@ impl Outcome {
 
 /// A publish routed but not yet offered to all its queues, or owed a
 /// basic.return: what [`Channel::finish_publish`] has left to do.
-pub(super) struct Unfinished {
+#[derive(Debug)]
+pub(crate) struct Unfinished {
     message: Arc<Message>,
     /// The queues it was routed to (the channel's reused buffer).
     queues: Vec<Arc<Queue>>,
@@ -142,14 +143,14 @@ impl Channel {
     /// once per level of calls, for every frame: so the content frames'
     /// path is synchronous and the common publish copies no large future.
     pub(super) fn publish(&mut self, publish: Publish) -> AmqpResult<Option<Box<Unfinished>>> {
-        self.publish_at_once(publish)
+        self.publish_checked(publish)
             .map_err(|e| e.during_ids(60, 40))
     }
 
     /// Checks a publish, then holds it for tx.commit, or routes it, stores
     /// its record and offers it to its queues; what is left when it has to
     /// wait is returned.
-    fn publish_at_once(&mut self, mut publish: Publish) -> AmqpResult<Option<Box<Unfinished>>> {
+    fn publish_checked(&mut self, mut publish: Publish) -> AmqpResult<Option<Box<Unfinished>>> {
         self.allow_exchange(Right::Write, publish.method.exchange.as_bytes())?;
         let exchange = self.vhost.exchange_or_404(&publish.method.exchange)?;
         if exchange.options.internal {
@@ -438,7 +439,7 @@ impl Channel {
     }
 
     /// basic.ack, basic.nack and basic.reject.
-    pub(super) async fn settle(&mut self, tag: u64, multiple: bool, how: Settle) -> AmqpResult<()> {
+    pub(super) fn settle(&mut self, tag: u64, multiple: bool, how: Settle) -> AmqpResult<()> {
         let Some(settled) = self.link.deliveries().take(tag, multiple) else {
             return Err(AmqpError::precondition_failed(format_args!(
                 "unknown delivery tag {tag}"

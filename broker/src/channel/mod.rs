@@ -33,6 +33,7 @@ use crate::queue::Queue;
 use crate::registry::ChannelRegistration;
 use crate::vhost::Vhost;
 use basic::Unfinished;
+
 pub(crate) use basic::{apply_settles, Settle};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{
@@ -104,6 +105,34 @@ impl Publish {
     /// it: what the message will weigh once queued.
     fn weight(&self) -> usize {
         self.body.len() + self.property_bytes.len() + crate::message::MESSAGE_OVERHEAD
+    }
+}
+
+/// What handling a frame at once left to do, for [`Channel::finish`].
+#[derive(Debug)]
+pub enum Leftover {
+    /// A publish that waits (see [`Channel::publish`]).
+    Publish(Box<Unfinished>),
+    /// An error: a channel error closes the channel, a connection error
+    /// the connection.
+    Failed(AmqpError),
+}
+
+/// How a frame fared in [`Channel::handle_at_once`].
+#[derive(Debug)]
+pub enum AtOnce {
+    /// Handled, but for what it left, if anything.
+    Handled(Option<Leftover>),
+    /// Not a frame handled at once: given back.
+    Declined(Frame),
+}
+
+impl Leftover {
+    fn of(handled: AmqpResult<Option<Box<Unfinished>>>) -> Option<Leftover> {
+        match handled {
+            Ok(rest) => rest.map(Leftover::Publish),
+            Err(error) => Some(Leftover::Failed(error)),
+        }
     }
 }
 
@@ -272,48 +301,82 @@ impl Channel {
                 _ => Ok(false),
             };
         }
-        let result = match frame {
-            Frame::Method { method, .. } => self.handle_method(method).await,
-            Frame::Header { header, .. } => {
-                let handled = self.handle_header(header);
-                self.after_content(handled).await
-            }
-            Frame::Body { payload, .. } => {
-                let handled = self.handle_body(payload);
-                self.after_content(handled).await
-            }
-            Frame::Heartbeat => Ok(false),
+        let method = match self.handle_at_once(frame) {
+            AtOnce::Handled(None) => return Ok(false),
+            AtOnce::Handled(Some(leftover)) => return self.finish(leftover).await.map(|()| false),
+            AtOnce::Declined(Frame::Method { method, .. }) => method,
+            // Content frames are handled at once; a heartbeat is not a
+            // channel's.
+            AtOnce::Declined(_) => return Ok(false),
         };
-        match result {
-            Err(error) if !error.is_connection_error() => {
-                tracing::debug!(channel = self.id, %error, "closing channel");
-                // On the heap, as the rare methods: see handle_method.
-                Box::pin(self.close_with(error)).await;
-                Ok(false)
-            }
-            other => other,
+        match self.handle_method(method).await {
+            Err(error) => self.fail(error).await.map(|()| false),
+            done => done,
         }
+    }
+
+    /// Handles at once the frames that never wait: content frames,
+    /// basic.publish and basic.ack, the messaging path, so that theirs
+    /// take no future (see [`Channel::publish`]). What is left, if
+    /// anything, is for [`Channel::finish`]; any other frame, and every
+    /// frame while the channel closes, is given back.
+    pub fn handle_at_once(&mut self, frame: Frame) -> AtOnce {
+        if self.closing {
+            return AtOnce::Declined(frame);
+        }
+        let handled = match frame {
+            Frame::Header { header, .. } => self.handle_header(header),
+            Frame::Body { payload, .. } => self.handle_body(payload),
+            Frame::Method {
+                method: Method::BasicPublish(publish),
+                ..
+            } => self.publish_method(publish).map(|()| None),
+            Frame::Method {
+                method: Method::BasicAck(ack),
+                ..
+            } => self
+                .expect_no_content("basic.ack")
+                .and_then(|()| self.settle(ack.delivery_tag, ack.multiple, basic::Settle::Ack))
+                .map_err(|e| e.during_ids(60, 80))
+                .map(|()| None),
+            frame => return AtOnce::Declined(frame),
+        };
+        AtOnce::Handled(Leftover::of(handled))
     }
 
     /// Handles a publish received whole, as its method, content header
     /// and body frame would be handled one after the other (a closing
-    /// channel drops it, an error closes the channel at the frame it
-    /// belongs to); only the properties are encoded here, for the message,
-    /// instead of decoded from a header. `Err` is a connection-level
-    /// error.
-    pub(crate) async fn handle_publish(&mut self, whole: WholePublish) -> AmqpResult<()> {
+    /// channel drops it); only the properties are encoded here, for the
+    /// message, instead of decoded from a header. What is left, if
+    /// anything, is for [`Channel::finish`].
+    pub(crate) fn publish_at_once(&mut self, whole: WholePublish) -> Option<Leftover> {
         if self.closing {
-            return Ok(());
+            return None;
         }
-        let handled = self.publish_whole(whole);
-        match self.after_content(handled).await.map(drop) {
-            Err(error) if !error.is_connection_error() => {
-                tracing::debug!(channel = self.id, %error, "closing channel");
-                Box::pin(self.close_with(error)).await;
+        Leftover::of(self.publish_whole(whole))
+    }
+
+    /// Does what handling at once left. `Err` is a connection-level error.
+    pub async fn finish(&mut self, leftover: Leftover) -> AmqpResult<()> {
+        match leftover {
+            Leftover::Publish(rest) => {
+                Box::pin(self.finish_publish(rest)).await;
                 Ok(())
             }
-            other => other,
+            Leftover::Failed(error) => self.fail(error).await,
         }
+    }
+
+    /// A channel error closes the channel; a connection error is returned,
+    /// for the connection to close.
+    async fn fail(&mut self, error: AmqpError) -> AmqpResult<()> {
+        if error.is_connection_error() {
+            return Err(error);
+        }
+        tracing::debug!(channel = self.id, %error, "closing channel");
+        // On the heap, as the rare methods: see handle_method.
+        Box::pin(self.close_with(error)).await;
+        Ok(())
     }
 
     fn publish_whole(&mut self, whole: WholePublish) -> AmqpResult<Option<Box<Unfinished>>> {
@@ -323,9 +386,7 @@ impl Channel {
             body,
             ..
         } = whole;
-        self.expect_no_content("basic.publish")
-            .and_then(|()| self.basic_publish(method))
-            .map_err(|e| e.during_ids(60, 40))?;
+        self.publish_method(method)?;
         let Assembly::Header(publish) = std::mem::replace(&mut self.assembly, Assembly::Idle)
         else {
             return Ok(None);
@@ -341,16 +402,11 @@ impl Channel {
         Ok(unfinished)
     }
 
-    /// After a content frame: a publish it completed that has to wait
-    /// finishes in a future of its own (see [`Channel::publish`]).
-    async fn after_content(
-        &mut self,
-        handled: AmqpResult<Option<Box<Unfinished>>>,
-    ) -> AmqpResult<bool> {
-        if let Some(rest) = handled? {
-            Box::pin(self.finish_publish(rest)).await;
-        }
-        Ok(false)
+    /// basic.publish: its content follows.
+    fn publish_method(&mut self, method: BasicPublish) -> AmqpResult<()> {
+        self.expect_no_content("basic.publish")
+            .and_then(|()| self.basic_publish(method))
+            .map_err(|e| e.during_ids(60, 40))
     }
 
     async fn close_with(&mut self, error: AmqpError) {
@@ -379,17 +435,9 @@ impl Channel {
     async fn handle_method(&mut self, method: Method) -> AmqpResult<bool> {
         self.expect_no_content(method.name())?;
         let ids = (method.class_id(), method.method_id());
-        let result = match method {
-            // The messaging methods inline; every other one in a future of
-            // its own on the heap, so the future of every frame (created
-            // and moved per frame) stays the size these need.
-            Method::BasicPublish(m) => self.basic_publish(m).map(|()| false),
-            Method::BasicAck(m) => self
-                .settle(m.delivery_tag, m.multiple, basic::Settle::Ack)
-                .await
-                .map(|()| false),
-            method => Box::pin(self.dispatch(method)).await,
-        };
+        // In a future of its own on the heap, so the future of every frame
+        // (created and moved per frame) stays small.
+        let result = Box::pin(self.dispatch(method)).await;
         result.map_err(|e| e.during_ids(ids.0, ids.1))
     }
 
@@ -430,22 +478,16 @@ impl Channel {
             Method::BasicConsume(m) => self.basic_consume(m).await?,
             Method::BasicCancel(m) => self.basic_cancel(m).await?,
             Method::BasicGet(m) => self.basic_get(m).await?,
-            Method::BasicReject(m) => {
-                self.settle(
-                    m.delivery_tag,
-                    false,
-                    basic::Settle::Reject { requeue: m.requeue },
-                )
-                .await?
-            }
-            Method::BasicNack(m) => {
-                self.settle(
-                    m.delivery_tag,
-                    m.multiple,
-                    basic::Settle::Reject { requeue: m.requeue },
-                )
-                .await?
-            }
+            Method::BasicReject(m) => self.settle(
+                m.delivery_tag,
+                false,
+                basic::Settle::Reject { requeue: m.requeue },
+            )?,
+            Method::BasicNack(m) => self.settle(
+                m.delivery_tag,
+                m.multiple,
+                basic::Settle::Reject { requeue: m.requeue },
+            )?,
             Method::BasicRecover(m) => {
                 self.basic_recover(m.requeue, basic::Recover::Answered)
                     .await?
