@@ -329,7 +329,7 @@ impl FakeChannel {
     /// basic.ack.
     pub fn ack(&self, tag: u64, multiple: bool) {
         self.settle(tag, multiple, |queue, message| {
-            queue.settle(message);
+            queue.settle(std::slice::from_ref(message));
             DeadLetters::default()
         });
     }

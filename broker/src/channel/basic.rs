@@ -541,35 +541,42 @@ pub(crate) fn requeue_all(unacked: VecDeque<Unacked>) -> DeadLetters {
 }
 
 /// Settles the next [`SETTLE_BATCH`] deliveries, grouped by queue (a hash
-/// map: a batch spread over many queues costs one lookup per delivery);
-/// returns each queue's dead letters.
+/// map: a batch spread over many queues costs one lookup per delivery; a
+/// queue's acks leave its store in one submission); returns each queue's
+/// dead letters.
 fn settle_batch(
     settles: &mut impl Iterator<Item = (Unacked, Settle)>,
 ) -> Vec<(Arc<Queue>, DeadLetters)> {
-    let mut by_queue: HashMap<*const Queue, (Arc<Queue>, Vec<QueuedMessage>, DeadLetters)> =
-        HashMap::new();
+    #[derive(Default)]
+    struct QueueSettles {
+        acked: Vec<QueuedMessage>,
+        requeue: Vec<QueuedMessage>,
+        dead: DeadLetters,
+    }
+    let mut by_queue: HashMap<*const Queue, (Arc<Queue>, QueueSettles)> = HashMap::new();
     for (u, how) in settles.take(SETTLE_BATCH) {
         if let Some(consumer) = &u.consumer {
             consumer.settled_one();
         }
-        let (queue, requeue, dead) = by_queue
+        let (queue, settled) = by_queue
             .entry(Arc::as_ptr(&u.queue))
-            .or_insert_with(|| (Arc::clone(&u.queue), Vec::new(), DeadLetters::default()));
+            .or_insert_with(|| (Arc::clone(&u.queue), QueueSettles::default()));
         match how {
-            Settle::Ack => queue.settle(&u.message),
-            Settle::Reject { requeue: false } => dead.append(queue.reject(u.message)),
-            Settle::Reject { requeue: true } => requeue.push(u.message),
+            Settle::Ack => settled.acked.push(u.message),
+            Settle::Reject { requeue: false } => settled.dead.append(queue.reject(u.message)),
+            Settle::Reject { requeue: true } => settled.requeue.push(u.message),
         }
     }
     by_queue
         .into_values()
-        .map(|(queue, requeue, mut dead)| {
+        .map(|(queue, mut settled)| {
+            queue.settle(&settled.acked);
             // A requeue dispatches too.
-            match requeue.is_empty() {
-                true => dead.append(queue.dispatch()),
-                false => dead.append(queue.requeue(requeue)),
+            match settled.requeue.is_empty() {
+                true => settled.dead.append(queue.dispatch()),
+                false => settled.dead.append(queue.requeue(settled.requeue)),
             }
-            (queue, dead)
+            (queue, settled.dead)
         })
         .collect()
 }

@@ -194,11 +194,28 @@ impl Queue {
         Progress::Done
     }
 
+    /// Delivers ready messages to consumers with credit and room; the
+    /// highest stored position it delivered raises the store's delivery
+    /// mark once, not once per message.
     pub(super) fn dispatch_locked(
         self: &Arc<Self>,
         st: &mut QueueState,
         dead: &mut Vec<DeadLetter>,
         now: Instant,
+    ) {
+        let mut mark = None;
+        self.deliver_ready(st, dead, now, &mut mark);
+        if let Some(seq) = mark {
+            self.log_delivery_mark(seq);
+        }
+    }
+
+    fn deliver_ready(
+        self: &Arc<Self>,
+        st: &mut QueueState,
+        dead: &mut Vec<DeadLetter>,
+        now: Instant,
+        mark: &mut Option<u64>,
     ) {
         let count = st.consumers.len();
         if count == 0 || st.ready.is_empty() {
@@ -231,7 +248,9 @@ impl Queue {
             if consumer.no_ack {
                 self.release(&queued);
             } else {
-                self.log_delivery(st, &queued);
+                if let Some(seq) = self.raise_delivery_mark(st, &queued) {
+                    *mark = Some(seq);
+                }
                 credit.keep();
             }
             // The tag is handed out and the delivery enters the outbox in

@@ -52,16 +52,30 @@ impl Queue {
     /// Raises the delivery mark, so a restart brings this message back
     /// flagged redelivered.
     pub(super) fn log_delivery(&self, st: &mut QueueState, queued: &QueuedMessage) {
+        if let Some(seq) = self.raise_delivery_mark(st, queued) {
+            self.log_delivery_mark(seq);
+        }
+    }
+
+    /// Raises the delivery mark in memory; the position to record in the
+    /// store, if the mark rose over a stored message. A dispatch records
+    /// only the highest of its deliveries ([`Queue::log_delivery_mark`]).
+    pub(super) fn raise_delivery_mark(
+        &self,
+        st: &mut QueueState,
+        queued: &QueuedMessage,
+    ) -> Option<u64> {
         if queued.seq <= st.delivered_mark {
-            return;
+            return None;
         }
         st.delivered_mark = queued.seq;
-        if let (Some((persistence, queue)), Some(_)) = (&self.durable_store, &queued.message.stored)
-        {
-            persistence.submit(vec![StoreOp::Delivered {
-                queue: *queue,
-                seq: queued.seq,
-            }]);
+        (self.durable_store.is_some() && queued.message.stored.is_some()).then_some(queued.seq)
+    }
+
+    /// Records the delivery mark at `seq` in the store.
+    pub(super) fn log_delivery_mark(&self, seq: u64) {
+        if let Some((persistence, queue)) = &self.durable_store {
+            persistence.submit(vec![StoreOp::Delivered { queue: *queue, seq }]);
         }
     }
 
@@ -88,19 +102,29 @@ impl Queue {
     /// A message leaves this queue for good: release its memory and its
     /// index entry (and the shared record, if no other queue holds it).
     pub(super) fn release(&self, queued: &QueuedMessage) {
-        self.gauge.sub(queued.message.weight());
-        let (Some((persistence, queue)), Some(stored)) =
-            (&self.durable_store, &queued.message.stored)
-        else {
-            return;
-        };
-        let mut ops = vec![StoreOp::Dequeue {
-            queue: *queue,
-            seq: queued.seq,
-        }];
-        if let Some(id) = stored.release() {
-            ops.push(StoreOp::DeleteMessage { id });
+        self.release_all(std::slice::from_ref(queued));
+    }
+
+    /// Messages leave this queue for good (an ack of several): each as
+    /// [`Queue::release`] says, in one submission.
+    pub(super) fn release_all(&self, leaving: &[QueuedMessage]) {
+        let mut ops = Vec::new();
+        for queued in leaving {
+            self.gauge.sub(queued.message.weight());
+            let (Some((_, queue)), Some(stored)) = (&self.durable_store, &queued.message.stored)
+            else {
+                continue;
+            };
+            ops.push(StoreOp::Dequeue {
+                queue: *queue,
+                seq: queued.seq,
+            });
+            if let Some(id) = stored.release() {
+                ops.push(StoreOp::DeleteMessage { id });
+            }
         }
-        persistence.submit(ops);
+        if let (Some((persistence, _)), false) = (&self.durable_store, ops.is_empty()) {
+            persistence.submit(ops);
+        }
     }
 }

@@ -349,10 +349,12 @@ impl Queue {
         }
     }
 
-    /// An unacked message was acked (or rejected without dead-lettering).
-    pub fn settle(&self, queued: &QueuedMessage) {
-        self.stats.acked();
-        self.release(queued);
+    /// Unacked messages were acked (or rejected without dead-lettering).
+    pub fn settle(&self, settled: &[QueuedMessage]) {
+        for _ in settled {
+            self.stats.acked();
+        }
+        self.release_all(settled);
     }
 
     /// A message was rejected without requeue: dead-letter it if configured.
