@@ -1,6 +1,6 @@
 //! `#[both_runtimes]`: an async test that runs twice, once on a
 //! current-thread tokio runtime and once on a multi-thread one with
-//! [`WORKERS`] workers, so a race that one thread's scheduling hides shows
+//! `WORKERS` workers, so a race that one thread's scheduling hides shows
 //! up in the same `cargo test` run.
 //!
 //! ```ignore
