@@ -26,6 +26,10 @@ pub(crate) struct Outcome {
     pub refused: bool,
     /// Persister submission to wait for before confirming (0 = none).
     pub sync: u64,
+    /// The submission of its shared record (0 = none), which must have
+    /// succeeded too: it is numbered before `sync` but may have been
+    /// written in an earlier group, one that failed.
+    pub record: u64,
 }
 
 impl Outcome {
@@ -201,7 +205,7 @@ impl Channel {
         if rest.returned.is_some() {
             return Ok(Some(Box::new(rest)));
         }
-        self.store_record(&rest.message);
+        rest.outcome.record = self.store_record(&rest.message);
         if self.enqueue_slice(&mut rest) == Progress::More {
             return Ok(Some(Box::new(rest)));
         }
@@ -216,7 +220,7 @@ impl Channel {
     pub(super) async fn finish_publish(&mut self, mut rest: Box<Unfinished>) {
         if let Some(returned) = rest.returned.take() {
             self.send_return(returned).await;
-            self.store_record(&rest.message);
+            rest.outcome.record = self.store_record(&rest.message);
         }
         while self.enqueue_slice(&mut rest) == Progress::More {
             tokio::task::yield_now().await;
@@ -224,10 +228,12 @@ impl Channel {
         self.settle_publish(*rest);
     }
 
-    /// Submits a routed message's shared record, if it is stored.
-    fn store_record(&self, message: &Message) {
-        if let (Some(persistence), Some(op)) = (&self.core.persistence, message.record_op()) {
-            persistence.submit(vec![op]);
+    /// Submits a routed message's shared record, if it is stored; its
+    /// submission number (0 if none).
+    fn store_record(&self, message: &Message) -> u64 {
+        match (&self.core.persistence, message.record_op()) {
+            (Some(persistence), Some(op)) => persistence.submit(vec![op]),
+            _ => 0,
         }
     }
 

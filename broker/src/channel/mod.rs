@@ -281,8 +281,10 @@ impl Channel {
         !matches!(self.assembly, Assembly::Idle)
     }
 
-    /// Handles a frame for this channel. `Ok(true)` means the channel is
-    /// finished and must be removed; `Err` is a connection-level error.
+    /// Handles a frame [`Channel::handle_at_once`] gave back: a method
+    /// other than the messaging ones, or any frame while the channel
+    /// closes. `Ok(true)` means the channel is finished and must be
+    /// removed; `Err` is a connection-level error.
     pub async fn handle(&mut self, frame: Frame) -> AmqpResult<bool> {
         if self.closing {
             // After channel.close, only close and close-ok count.
@@ -301,13 +303,10 @@ impl Channel {
                 _ => Ok(false),
             };
         }
-        let method = match self.handle_at_once(frame) {
-            AtOnce::Handled(None) => return Ok(false),
-            AtOnce::Handled(Some(leftover)) => return self.finish(leftover).await.map(|()| false),
-            AtOnce::Declined(Frame::Method { method, .. }) => method,
+        let Frame::Method { method, .. } = frame else {
             // Content frames are handled at once; a heartbeat is not a
             // channel's.
-            AtOnce::Declined(_) => return Ok(false),
+            return Ok(false);
         };
         match self.handle_method(method).await {
             Err(error) => self.fail(error).await.map(|()| false),

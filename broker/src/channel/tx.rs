@@ -228,11 +228,15 @@ impl Channel {
             while let Some(&(tag, outcome)) = confirms.waiting.front() {
                 let ack = if outcome.refused {
                     false
-                } else if outcome.sync == 0 {
+                } else if outcome.sync == 0 && outcome.record == 0 {
                     true
                 } else {
                     match &persistence {
-                        Some(p) if p.flushed() >= outcome.sync => p.succeeded(outcome.sync),
+                        Some(p) if p.flushed() >= outcome.sync.max(outcome.record) => {
+                            [outcome.sync, outcome.record]
+                                .into_iter()
+                                .all(|number| number == 0 || p.succeeded(number))
+                        }
                         _ => break,
                     }
                 };

@@ -59,7 +59,11 @@ impl Queue {
 
     /// Raises the delivery mark in memory; the position to record in the
     /// store, if the mark rose over a stored message. A dispatch records
-    /// only the highest of its deliveries ([`Queue::log_delivery_mark`]).
+    /// only the highest of its deliveries ([`Queue::log_delivery_mark`]),
+    /// after it has sent them: an ack of one of them taken by another
+    /// thread meanwhile may reach the disk first, so a crash between the
+    /// two can bring back an earlier message of that pass not flagged
+    /// redelivered (the flag is a hint; no message is lost).
     pub(super) fn raise_delivery_mark(
         &self,
         st: &mut QueueState,
@@ -108,18 +112,18 @@ impl Queue {
     /// Messages leave this queue for good (an ack of several): each as
     /// [`Queue::release`] says, in one submission.
     pub(super) fn release_all(&self, leaving: &[QueuedMessage]) {
-        // Sized for the usual one op per message (growing it was 0.5% of
-        // the broker's CPU under persistent load).
-        let mut ops = match self.durable_store {
-            Some(_) => Vec::with_capacity(leaving.len()),
-            None => Vec::new(),
-        };
-        for queued in leaving {
+        let mut ops = Vec::new();
+        for (at, queued) in leaving.iter().enumerate() {
             self.gauge.sub(queued.message.weight());
             let (Some((_, queue)), Some(stored)) = (&self.durable_store, &queued.message.stored)
             else {
                 continue;
             };
+            if ops.is_empty() {
+                // Sized for the usual one op per message (growing it was
+                // 0.5% of the broker's CPU under persistent load).
+                ops.reserve(leaving.len() - at);
+            }
             ops.push(StoreOp::Dequeue {
                 queue: *queue,
                 seq: queued.seq,

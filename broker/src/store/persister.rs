@@ -10,7 +10,7 @@
 //! numbered and queued in one step, so the persister always takes a
 //! contiguous run of numbers, and the only cross-thread signal is a wake
 //! when the persister sleeps (a channel cost ~140 ns per send in atomics
-//! shared with the draining thread, three sends per durable message).
+//! shared with the draining thread).
 
 use super::{guarded, KvOp, Recovered, Store, StoreError, StoreOp, WriteMode};
 use crate::stats::{Histogram, HistogramFigures};
@@ -57,8 +57,9 @@ struct Inbox {
     numbered: u64,
     /// The persister sleeps until a submission wakes it.
     sleeping: bool,
-    /// The broker's handle is gone: the persister writes what waits, then
-    /// stops.
+    /// The broker's handle is gone (the persister writes what waits, then
+    /// stops), or the persister has stopped (later submissions are
+    /// dropped, never answered).
     closed: bool,
 }
 
@@ -93,10 +94,10 @@ impl Mailbox {
         let fit = inbox
             .waiting
             .iter()
-            .take_while(|submission| {
-                let first = ops == 0;
+            .enumerate()
+            .take_while(|(at, submission)| {
                 ops += submission.ops.len();
-                first || ops <= GROUP_OPS
+                *at == 0 || ops <= GROUP_OPS
             })
             .count();
         if fit == inbox.waiting.len() {
@@ -428,6 +429,11 @@ impl Persistence {
         let mut inbox = self.mailbox.lock();
         inbox.numbered += 1;
         let number = inbox.numbered;
+        if inbox.closed {
+            // The persister has stopped: nothing will answer this one (a
+            // close request's sender is dropped, so its waiter learns).
+            return number;
+        }
         inbox.waiting.push(Submission {
             number,
             ops,
@@ -497,6 +503,18 @@ impl Drop for Persistence {
     }
 }
 
+/// Closes the inbox when the persister thread ends, however it ends:
+/// what still waits is dropped, and so is whatever comes later.
+struct Stopped<'a>(&'a Mailbox);
+
+impl Drop for Stopped<'_> {
+    fn drop(&mut self) {
+        let mut inbox = self.0.lock();
+        inbox.closed = true;
+        inbox.waiting.clear();
+    }
+}
+
 /// What the persister thread reports to [`Persistence`].
 struct Reports {
     /// The highest attempted submission number.
@@ -526,6 +544,7 @@ fn persist(store: Arc<dyn Store>, mailbox: Arc<Mailbox>, reports: Reports) {
         failures,
         figures,
     } = reports;
+    let _stopped = Stopped(&mailbox);
     let mut must_reopen = false;
     let mut taken = Vec::new();
     while mailbox.take(&mut taken) {
@@ -596,6 +615,18 @@ mod tests {
         assert_eq!(last, 100);
         assert!(persistence.wait(last).await);
         assert_eq!(persistence.next_queue_id(), 1);
+    }
+
+    /// Once the persister has stopped, a submission is dropped and a second
+    /// close answers at once (false) instead of waiting forever.
+    #[tokio::test]
+    async fn after_a_close_submissions_are_dropped_and_close_answers() {
+        let store: Arc<dyn Store> = Arc::new(MemoryStore::default());
+        let persistence = Persistence::start(store, &Recovered::default()).unwrap();
+        assert!(persistence.close(Vec::new()).await);
+        let late = persistence.submit(vec![StoreOp::DeleteMessage { id: 1 }]);
+        assert!(!persistence.wait(late).await);
+        assert!(!persistence.close(Vec::new()).await);
     }
 
     /// A store that refuses writes while `failing` is set.
