@@ -3,9 +3,10 @@
 //! client for exact requests (bad auth, oversized or malformed bodies);
 //! and `promtool check metrics` when Prometheus' tools are installed.
 
+use std::ffi::OsStr;
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -74,7 +75,16 @@ impl OpsBroker {
         Self::launch(self.dir.clone(), extra)
     }
 
-    fn launch(dir: PathBuf, extra: &[&str]) -> OpsBroker {
+    /// Starts `leveret` with its data in `dir`, which it leaves in place
+    /// when dropped, and `extra` arguments; waits (up to 20 s) for its
+    /// listeners.
+    pub fn on_data_dir<S: AsRef<OsStr>>(dir: &Path, extra: &[S]) -> OpsBroker {
+        let mut broker = Self::launch(dir.to_path_buf(), extra);
+        broker.owns_dir = false;
+        broker
+    }
+
+    fn launch<S: AsRef<OsStr>>(dir: PathBuf, extra: &[S]) -> OpsBroker {
         let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
             .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
             .args(["--http-listen", "127.0.0.1:0"])
@@ -112,7 +122,7 @@ impl OpsBroker {
             }
         });
         let (mut amqp, mut metrics, mut http, mut tls) = (None, None, None, None);
-        let wants_tls = extra.contains(&"--tls-listen");
+        let wants_tls = extra.iter().any(|arg| arg.as_ref() == "--tls-listen");
         while amqp.is_none() || metrics.is_none() || http.is_none() || (wants_tls && tls.is_none())
         {
             match addresses.recv_timeout(Duration::from_secs(20)) {
@@ -144,6 +154,19 @@ impl OpsBroker {
     /// The log lines so far, without colours.
     pub fn log(&self) -> Vec<String> {
         self.log.lock().expect("log").clone()
+    }
+
+    /// SIGKILL: no chance to flush anything.
+    pub fn kill9(mut self) {
+        self.child.kill().expect("kill -9");
+        self.child.wait().expect("reap");
+    }
+
+    /// SIGTERM: a clean shutdown, which must exit 0.
+    pub fn terminate(mut self) {
+        self.signal("TERM");
+        let exit = self.child.wait().expect("reap");
+        assert!(exit.success(), "clean shutdown exits 0, got {exit}");
     }
 
     /// Sends a signal (`HUP`, `TERM`...) to the broker.
