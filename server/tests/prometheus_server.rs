@@ -38,9 +38,7 @@ impl Prometheus {
             ),
         )
         .expect("config");
-        let addr = std::net::TcpListener::bind("127.0.0.1:0")
-            .and_then(|l| l.local_addr())
-            .expect("free port");
+        let addr = leveret_tests::reserved_port::reserved_addr();
         let child = Command::new("prometheus")
             .arg(format!("--config.file={}", config.display()))
             .arg(format!(
@@ -127,14 +125,14 @@ async fn prometheus_answers_the_overview_dashboards_queries() {
     // The dashboard's variables: the cluster from rabbitmq_identity_info
     // (its `rabbitmq_cluster` variable is `label_values(rabbitmq_identity_info, rabbitmq_cluster)`),
     // no namespace (set only by Kubernetes scrape configs), the endpoint.
-    let identity = loop {
-        if let Some(found) = prometheus.query("rabbitmq_identity_info").await {
-            if let Some(first) = found.first() {
-                break first["metric"].clone();
-            }
-        }
-        tokio::time::sleep(Duration::from_millis(250)).await;
-    };
+    prometheus
+        .until("count(rabbitmq_identity_info)", |v| v == 1.0)
+        .await;
+    let identity = prometheus
+        .query("rabbitmq_identity_info")
+        .await
+        .and_then(|found| found.first().map(|first| first["metric"].clone()))
+        .expect("rabbitmq_identity_info");
     let cluster = identity["rabbitmq_cluster"]
         .as_str()
         .expect("a cluster label");
@@ -234,7 +232,7 @@ async fn prometheus_answers_the_overview_dashboards_queries() {
         "rabbitmq_queues_declared_total",
         "rabbitmq_queues_created_total",
     ] {
-        let promql = format!("sum(rate({counter}[10s]) * {node_join}) by(rabbitmq_node)");
+        let promql = format!("sum(rate({counter}[60s]) * {node_join}) by(rabbitmq_node)");
         prometheus.until(&promql, |v| v > 0.0).await;
     }
     for counter in [
@@ -250,7 +248,7 @@ async fn prometheus_answers_the_overview_dashboards_queries() {
         "rabbitmq_channels_closed_total",
         "rabbitmq_queues_deleted_total",
     ] {
-        let promql = format!("sum(rate({counter}[10s]) * {node_join}) by(rabbitmq_node)");
+        let promql = format!("sum(rate({counter}[60s]) * {node_join}) by(rabbitmq_node)");
         prometheus.until(&promql, |v| v == 0.0).await;
     }
     conn.close(200, "bye").await.expect("close");

@@ -42,9 +42,7 @@ async fn a_configured_shovel_forwards_everything_confirmed_across_kill_9() {
     let root = std::env::temp_dir().join(format!("leveret-uplink-bin-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&root);
     std::fs::create_dir_all(&root).expect("dir");
-    let addr = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("free port");
+    let addr = leveret_tests::reserved_port::reserved_addr();
     let fleet_url = format!("amqp://guest:guest@{addr}/%2f");
     let first = fleet(addr, &root.join("fleet")).await;
     {
@@ -152,9 +150,7 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     use serde_json::{json, Value};
     let root = std::env::temp_dir().join(format!("leveret-uplink-api-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&root);
-    let addr = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("free port");
+    let addr = leveret_tests::reserved_port::reserved_addr();
     let fleet_url = format!("amqp://guest:guest@{addr}/%2f");
     let fleet_broker = fleet(addr, &root.join("fleet")).await;
     let robot = OpsBroker::start("uplink-api", &[]);
@@ -433,9 +429,7 @@ async fn federation_is_declared_like_rabbitmqs_and_outlasts_a_crash() {
     }
     let root = std::env::temp_dir().join(format!("leveret-federation-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&root);
-    let addr = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("free port");
+    let addr = leveret_tests::reserved_port::reserved_addr();
     let fleet_url = format!("amqp://guest:guest@{addr}/%2f");
     let fleet_broker = fleet(addr, &root.join("fleet")).await;
     let fleet_conn = Connection::connect(&fleet_url, ConnectionProperties::default())

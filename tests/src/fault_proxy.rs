@@ -39,13 +39,14 @@ pub struct FaultProxy {
 }
 
 impl FaultProxy {
-    /// A proxy to `upstream` on a free loopback port.
+    /// A proxy to `upstream` on a free loopback port that no other
+    /// listener takes while the proxy is stopped, so [`Self::start_at`] can
+    /// bring it back on the same address.
     pub async fn start(upstream: SocketAddr) -> FaultProxy {
-        let any: SocketAddr = "127.0.0.1:0".parse().expect("static address");
-        FaultProxy::start_at(any, upstream).await
+        FaultProxy::start_at(crate::reserved_port::reserved_addr(), upstream).await
     }
 
-    /// A proxy to `upstream` listening on `addr` (port 0 picks one).
+    /// A proxy to `upstream` listening on `addr`.
     pub async fn start_at(addr: SocketAddr, upstream: SocketAddr) -> FaultProxy {
         let listener = TcpListener::bind(addr).await.expect("bind the proxy");
         let addr = listener.local_addr().expect("bound address");

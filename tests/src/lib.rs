@@ -21,7 +21,8 @@
 //! target and the corpus replay test; [`fault_proxy`] injects a link's
 //! faults (freeze, cut, latency, a bandwidth cap, a cut mid-frame) for the
 //! client's and the uplink's tests; [`rabbit_node`] starts RabbitMQ nodes
-//! of a test's own; [`certs`] makes the TLS tests' certificates.
+//! of a test's own; [`certs`] makes the TLS tests' certificates;
+//! [`reserved_port`] gives addresses a test binds again after an outage.
 
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
@@ -37,6 +38,7 @@ pub mod certs;
 pub mod driver;
 pub mod fault_proxy;
 pub mod rabbit_node;
+pub mod reserved_port;
 
 /// The environment variable naming an external broker to test against.
 pub const URL_ENV: &str = "LEVERET_TEST_AMQP_URL";

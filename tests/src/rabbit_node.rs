@@ -11,10 +11,7 @@ use std::time::{Duration, Instant};
 pub const BIN: &str = "/usr/lib/rabbitmq/bin";
 
 fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("free port")
-        .port()
+    crate::reserved_port::reserved_addr().port()
 }
 
 /// Whether RabbitMQ is installed; under CI (`CI` set) a missing one fails

@@ -12,6 +12,7 @@ use leveret_client::{
     FieldValue, QueueDeclareOptions, ShortStr,
 };
 use leveret_test_macros::both_runtimes;
+use leveret_tests::reserved_port::reserved_addr;
 use leveret_uplink::{Shovel, ShovelConfig, ShovelState, ShovelStatus};
 use serde_json::json;
 use std::net::SocketAddr;
@@ -38,11 +39,6 @@ fn scratch(name: &str) -> std::path::PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
-}
-
-async fn free_addr() -> SocketAddr {
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    listener.local_addr().unwrap()
 }
 
 async fn channel_to(uri: &str) -> (Connection, Channel) {
@@ -152,7 +148,7 @@ async fn nothing_confirmed_is_lost_across_a_destination_outage() {
     let (_local, publisher) = local_channel(&robot).await;
     publisher.confirm_select().await.expect("confirms");
     declare(&publisher, "telemetry", FieldTable::new()).await;
-    let addr = free_addr().await;
+    let addr = reserved_addr();
     let dir = scratch("outage");
     let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
     let first = fleet(addr, &dir).await;
@@ -214,7 +210,7 @@ async fn a_refusing_destination_never_drains_the_source() {
     let (_local, publisher) = local_channel(&robot).await;
     publisher.confirm_select().await.expect("confirms");
     declare(&publisher, "telemetry", FieldTable::new()).await;
-    let addr = free_addr().await;
+    let addr = reserved_addr();
     let dir = scratch("refusing");
     let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
     let _fleet = fleet(addr, &dir).await;
@@ -249,12 +245,11 @@ async fn a_refusing_destination_never_drains_the_source() {
         );
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    wait_status(&shovel, "tried again after reconnect-delay", |s| {
+        s.refused >= 2
+    })
+    .await;
     assert_eq!(held_at_source(&robot), 40, "and stays there while refused");
-    assert!(
-        shovel.status().refused >= 2,
-        "tried again after reconnect-delay"
-    );
     // Consuming at the destination makes room: the rest follows, each
     // once. A refused message that is retried arrives after later ones
     // the destination took meanwhile.
@@ -288,11 +283,11 @@ async fn unroutable_messages_stay_and_a_dead_node_fails_over() {
     let (_local, publisher) = local_channel(&robot).await;
     publisher.confirm_select().await.expect("confirms");
     declare(&publisher, "telemetry", FieldTable::new()).await;
-    let addr = free_addr().await;
+    let addr = reserved_addr();
     let dir = scratch("unroutable");
     let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
     let _fleet = fleet(addr, &dir).await;
-    let dead = format!("amqp://guest:guest@{}/%2f", free_addr().await);
+    let dead = format!("amqp://guest:guest@{}/%2f", reserved_addr());
     publish_confirmed(&publisher, "telemetry", 0, 20).await;
     let shovel = Shovel::start(
         "routes",
@@ -356,7 +351,7 @@ async fn the_bandwidth_cap_holds() {
             .await
             .expect("confirm");
     }
-    let addr = free_addr().await;
+    let addr = reserved_addr();
     let dir = scratch("bandwidth");
     let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
     let _fleet = fleet(addr, &dir).await;
@@ -399,7 +394,7 @@ async fn commands_come_down_from_the_fleet_to_a_local_exchange() {
         )
         .await
         .expect("bind");
-    let addr = free_addr().await;
+    let addr = reserved_addr();
     let dir = scratch("down");
     let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
     let _fleet = fleet(addr, &dir).await;
@@ -445,7 +440,7 @@ async fn a_shovel_forwards_its_count_and_completes() {
     let (_local, publisher) = local_channel(&robot).await;
     publisher.confirm_select().await.expect("confirms");
     declare(&publisher, "telemetry", FieldTable::new()).await;
-    let addr = free_addr().await;
+    let addr = reserved_addr();
     let dir = scratch("delete-after");
     let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
     let _fleet = fleet(addr, &dir).await;
@@ -624,7 +619,7 @@ async fn a_message_forwarded_twice_carries_one_id() {
     let (_local, publisher) = local_channel(&robot).await;
     publisher.confirm_select().await.expect("confirms");
     declare(&publisher, "telemetry", FieldTable::new()).await;
-    let addr = free_addr().await;
+    let addr = reserved_addr();
     let dir = scratch("twice");
     let fleet_broker = fleet(addr, &dir).await;
     let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
@@ -705,10 +700,19 @@ async fn the_local_bound_and_its_overflow_policy_hold_across_an_outage() {
             FieldValue::string(overflow),
         );
         declare(&publisher, "telemetry", bound).await;
-        // The link is down: the fleet broker is not there yet.
-        let addr = free_addr().await;
+        // The fleet's queue exists before the outage (declared after it,
+        // the shovel could forward part of the backlog before the queue
+        // is there, and those returned messages would come after the
+        // rest); then the link is down: the fleet broker is away.
+        let addr = reserved_addr();
         let dir = scratch(&format!("bound-{overflow}"));
         let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
+        {
+            let fleet_broker = fleet(addr, &dir).await;
+            let (_c, ch) = channel_to(&fleet_uri).await;
+            declare(&ch, "fleet.telemetry", FieldTable::new()).await;
+            fleet_broker.shutdown().await;
+        }
         let shovel = Shovel::start(
             "up",
             shovel_config(
@@ -743,7 +747,6 @@ async fn the_local_bound_and_its_overflow_policy_hold_across_an_outage() {
         assert_eq!(held_at_source(&robot), 100, "{overflow}: the bound holds");
         let fleet_broker = fleet(addr, &dir).await;
         let (_c, ch) = channel_to(&fleet_uri).await;
-        declare(&ch, "fleet.telemetry", FieldTable::new()).await;
         wait_status(&shovel, "the backlog forwarded", |s| s.forwarded >= 100).await;
         let got = collect(&ch, "fleet.telemetry", 100).await;
         assert_eq!(got, kept.collect::<Vec<_>>(), "{overflow}");
