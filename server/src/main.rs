@@ -121,6 +121,13 @@ async fn serve(settings: Settings) -> ExitCode {
             }
         }
     };
+    let mut signals = match Signals::register() {
+        Ok(signals) => signals,
+        Err(e) => {
+            tracing::error!(error = %e, "cannot watch for signals");
+            return ExitCode::FAILURE;
+        }
+    };
     let mut builder = settings.builder();
     if let Some(definitions) = &definitions {
         builder = definitions.configure(builder);
@@ -136,7 +143,15 @@ async fn serve(settings: Settings) -> ExitCode {
         shovels: uplink::Shovels::new(&handle),
         federation: federation::Federation::new(&handle, process::node_name()),
     };
-    let outcome = run(&handle, &links, definitions, configured, ops_settings).await;
+    let outcome = run(
+        &handle,
+        &links,
+        definitions,
+        configured,
+        ops_settings,
+        &mut signals,
+    )
+    .await;
     links.stop_all().await;
     match Arc::try_unwrap(handle) {
         Ok(handle) => handle.shutdown().await,
@@ -160,6 +175,7 @@ async fn run(
     definitions: Option<Definitions>,
     configured: Configured,
     ops_settings: ops::OpsSettings,
+    signals: &mut Signals,
 ) -> ExitCode {
     links.shovels.start_stored().await;
     links.federation.start_stored().await;
@@ -210,7 +226,7 @@ async fn run(
             return ExitCode::FAILURE;
         }
     };
-    wait_for_signal(handle).await;
+    signals.wait_for_stop(handle).await;
     tracing::info!("shutting down");
     ops.stop();
     ExitCode::SUCCESS
@@ -229,24 +245,35 @@ fn hash_password() -> ExitCode {
     ExitCode::SUCCESS
 }
 
-/// Waits for SIGINT or SIGTERM; SIGHUP meanwhile re-reads the TLS
-/// certificate files.
-async fn wait_for_signal(handle: &leveret_broker::BrokerHandle) {
-    #[cfg(unix)]
-    {
+/// SIGINT, SIGTERM and SIGHUP, watched from before the broker starts: a
+/// signal sent as soon as a listener answers is acted on, where without a
+/// handler SIGTERM would end the process with no clean shutdown.
+#[cfg(unix)]
+struct Signals {
+    interrupt: tokio::signal::unix::Signal,
+    terminate: tokio::signal::unix::Signal,
+    hangup: tokio::signal::unix::Signal,
+}
+
+#[cfg(unix)]
+impl Signals {
+    fn register() -> std::io::Result<Signals> {
         use tokio::signal::unix::{signal, SignalKind};
-        let (Ok(mut term), Ok(mut hangup)) = (
-            signal(SignalKind::terminate()),
-            signal(SignalKind::hangup()),
-        ) else {
-            let _ = tokio::signal::ctrl_c().await;
-            return;
-        };
+        Ok(Signals {
+            interrupt: signal(SignalKind::interrupt())?,
+            terminate: signal(SignalKind::terminate())?,
+            hangup: signal(SignalKind::hangup())?,
+        })
+    }
+
+    /// Waits for SIGINT or SIGTERM; SIGHUP meanwhile re-reads the TLS
+    /// certificate files.
+    async fn wait_for_stop(&mut self, handle: &leveret_broker::BrokerHandle) {
         loop {
             tokio::select! {
-                _ = tokio::signal::ctrl_c() => return,
-                _ = term.recv() => return,
-                _ = hangup.recv() => {
+                _ = self.interrupt.recv() => return,
+                _ = self.terminate.recv() => return,
+                _ = self.hangup.recv() => {
                     if handle.tls_addrs().is_empty() {
                         continue;
                     }
@@ -258,9 +285,19 @@ async fn wait_for_signal(handle: &leveret_broker::BrokerHandle) {
             }
         }
     }
-    #[cfg(not(unix))]
-    {
-        let _ = handle;
+}
+
+/// Ctrl-C, where there are no Unix signals.
+#[cfg(not(unix))]
+struct Signals;
+
+#[cfg(not(unix))]
+impl Signals {
+    fn register() -> std::io::Result<Signals> {
+        Ok(Signals)
+    }
+
+    async fn wait_for_stop(&mut self, _handle: &leveret_broker::BrokerHandle) {
         let _ = tokio::signal::ctrl_c().await;
     }
 }
