@@ -393,12 +393,16 @@ async fn closing_a_port_announces_closed() {
     assert!(directory.ports().is_empty());
 }
 
+/// Taken by the tests whose timing another test's load would upset: the
+/// 100 Hz loop below, and RabbitMQ's boot.
+static ALONE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
 /// A 100 Hz loop putting through a frozen link while its port tries to
-/// announce itself every 5 ms: `put` stays fast, and the announcements,
+/// announce itself every 50 ms: `put` stays fast, and the announcements,
 /// which stop while the link is frozen (the port drops out of the table
 /// after three intervals), come back after it on the same link.
 async fn puts_while_announcements_are_stuck(flavor: &str) {
-    let announce_every = Duration::from_millis(5);
+    let announce_every = Duration::from_millis(50);
     let (_broker, addr) = leveret().await;
     let proxy = Proxy::start(addr).await;
     let (_connection, mut directory) = directory(&uri(addr)).await;
@@ -488,6 +492,7 @@ async fn puts_while_announcements_are_stuck(flavor: &str) {
 /// preempt each other's loops).
 #[test]
 fn announcements_never_delay_put() {
+    let _alone = ALONE.blocking_lock();
     let current = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -671,6 +676,7 @@ async fn garbage_on_the_ports_exchange_does_not_break_the_reader() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn announcements_and_the_reader_work_against_rabbitmq() {
+    let _alone = ALONE.lock().await;
     if !rabbit_node::installed() {
         return;
     }

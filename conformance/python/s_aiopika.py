@@ -10,6 +10,18 @@ from aio_pika.patterns import RPC, Master
 
 from harness import Failure, scenario
 
+
+async def settled(pred, timeout=10.0):
+    """Waits until pred() holds, then a little longer, so that what would
+    break it (one delivery too many) has had time to arrive."""
+    deadline = asyncio.get_running_loop().time() + timeout
+    while not pred():
+        if asyncio.get_running_loop().time() > deadline:
+            raise Failure(f"timed out after {timeout}s")
+        await asyncio.sleep(0.02)
+    await asyncio.sleep(0.2)
+
+
 LIB = "aio-pika"
 
 
@@ -256,10 +268,11 @@ async def _(t):
         await ch.default_exchange.publish(aio_pika.Message(body=str(i).encode()), routing_key=q.name)
     got = []
     tag = await q.consume(lambda m: got.append(m))
-    await asyncio.sleep(0.4)
+    # Two arrive, then no more while they are unacknowledged.
+    await settled(lambda: len(got) >= 2)
     t.eq("prefetch 2", len(got), 2)
     await got[1].ack(multiple=True)
-    await asyncio.sleep(0.4)
+    await settled(lambda: len(got) >= 4)
     t.eq("two more", len(got), 4)
     await q.cancel(tag)
     await asyncio.sleep(0.1)

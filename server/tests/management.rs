@@ -187,7 +187,13 @@ async fn rabbitmqadmin_drives_leveret() {
         matches!(closed, Ok(None) | Ok(Some(Err(_)))),
         "the consumer's connection was closed: {closed:?}"
     );
-    assert_eq!(admin_json(&broker, &["list", "connections"]), json!([]));
+    // The client saw the close; the broker forgets the connection when its
+    // task ends, right after.
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while admin_json(&broker, &["list", "connections"]) != json!([]) {
+        assert!(std::time::Instant::now() < deadline, "the connection is gone");
+        std::thread::sleep(Duration::from_millis(50));
+    }
 
     for args in [
         &["purge", "queue", "name=pick"][..],

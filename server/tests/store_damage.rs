@@ -12,6 +12,7 @@
 use lapin::options::{BasicPublishOptions, ConfirmSelectOptions, QueueDeclareOptions};
 use lapin::types::FieldTable;
 use lapin::{BasicProperties, Connection, ConnectionProperties};
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
@@ -315,16 +316,7 @@ async fn damage_refuses_the_start_or_loses_nothing_and_recover_salvages() {
         let dir = temp_dir(&format!("either-{index}"));
         copy_dir(&origin, &dir);
         damage(&dir);
-        let probe = Command::new(env!("CARGO_BIN_EXE_leveret"))
-            .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
-            .args(["--http-listen", "127.0.0.1:0", "--log", "warn"])
-            .arg("--data-dir")
-            .arg(&dir)
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start leveret");
-        let started = wait_running(probe);
+        let started = starts(&dir);
         if started {
             let broker = BrokerProcess::start(&dir).await;
             assert!(
@@ -341,18 +333,31 @@ async fn damage_refuses_the_start_or_loses_nothing_and_recover_salvages() {
     let _ = std::fs::remove_dir_all(&older);
 }
 
-/// Whether the child is still running after a second (then stops it), or
-/// exited (refused to start).
-fn wait_running(mut child: std::process::Child) -> bool {
-    for _ in 0..100 {
-        if child.try_wait().expect("wait").is_some() {
-            return false;
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    }
+/// Whether `leveret` starts on `dir` (then stops it) or refuses: its log
+/// says it accepts AMQP connections, or it exits first.
+fn starts(dir: &Path) -> bool {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
+        .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
+        .args(["--http-listen", "127.0.0.1:0", "--log", "info"])
+        .arg("--data-dir")
+        .arg(dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start leveret");
+    let stderr = child.stderr.take().expect("stderr");
+    let (outcome, seen) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let accepting = BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+            .any(|line| line.contains("accepting AMQP"));
+        let _ = outcome.send(accepting);
+    });
+    let started = seen.recv_timeout(Duration::from_secs(20));
     let _ = child.kill();
     let _ = child.wait();
-    true
+    started.expect("leveret neither started nor refused within 20 s")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

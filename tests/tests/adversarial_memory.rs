@@ -474,6 +474,7 @@ async fn a_blocked_publisher_that_hangs_up_is_let_go() {
 /// stayed counted, the fourth would have set the alarm and been blocked.
 #[tokio::test]
 async fn a_body_being_received_is_released_however_its_connection_ends() {
+    let _serial = SERIAL.lock().await;
     let b = leveret(Limits {
         memory_high_watermark: 64 * MIB,
         ..limits()
@@ -553,6 +554,7 @@ async fn a_large_frame_before_tune_ok_ends_the_connection() {
 /// (and are refused).
 #[tokio::test]
 async fn unauthenticated_connections_hold_little() {
+    let _serial = SERIAL.lock().await;
     let b = leveret(limits()).await;
     const CONNECTIONS: usize = 1000;
     let before = rss();

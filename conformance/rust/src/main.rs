@@ -101,7 +101,11 @@ impl T {
             port: port.parse().unwrap_or(5672),
             user: pct_decode(user),
             password: pct_decode(password),
-            vhost: if vhost.is_empty() { "/".into() } else { pct_decode(vhost) },
+            vhost: if vhost.is_empty() {
+                "/".into()
+            } else {
+                pct_decode(vhost)
+            },
             obs: Mutex::new(Vec::new()),
         }
     }
@@ -110,7 +114,12 @@ impl T {
         format!("{}{}", self.prefix, name)
     }
 
-    pub fn url_with(&self, user: Option<&str>, password: Option<&str>, vhost: Option<&str>) -> String {
+    pub fn url_with(
+        &self,
+        user: Option<&str>,
+        password: Option<&str>,
+        vhost: Option<&str>,
+    ) -> String {
         format!(
             "amqp://{}:{}@{}:{}/{}",
             pct_encode(user.unwrap_or(&self.user)),
@@ -156,7 +165,12 @@ pub fn reply_name(text: &str) -> String {
 #[tokio::main]
 async fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let arg = |k: &str| args.iter().position(|a| a == k).and_then(|i| args.get(i + 1)).cloned();
+    let arg = |k: &str| {
+        args.iter()
+            .position(|a| a == k)
+            .and_then(|i| args.get(i + 1))
+            .cloned()
+    };
     let lib = arg("--lib").unwrap_or_default();
     let mut all = Vec::new();
     if lib.is_empty() || lib == "lapin" {
@@ -173,7 +187,12 @@ async fn main() {
     }
     let url = arg("--url").expect("--url");
     let prefix = arg("--prefix").unwrap_or_else(|| "cf-".into());
-    let only: Vec<String> = arg("--only").unwrap_or_default().split(',').filter(|s| !s.is_empty()).map(String::from).collect();
+    let only: Vec<String> = arg("--only")
+        .unwrap_or_default()
+        .split(',')
+        .filter(|s| !s.is_empty())
+        .map(String::from)
+        .collect();
     for s in all {
         if !only.is_empty() && !only.iter().any(|o| o == s.name) {
             continue;

@@ -42,25 +42,79 @@ struct Recorder(Events);
 #[async_trait]
 impl ChannelCallback for Recorder {
     async fn close(&mut self, _ch: &Channel, close: CloseChannel) -> CbResult<()> {
-        self.0.closes.lock().unwrap().push((close.reply_code(), close.reply_text().clone()));
+        self.0
+            .closes
+            .lock()
+            .unwrap()
+            .push((close.reply_code(), close.reply_text().clone()));
         Ok(())
     }
     async fn cancel(&mut self, _ch: &Channel, cancel: Cancel) -> CbResult<()> {
-        self.0.cancels.lock().unwrap().push(cancel.consumer_tag().to_string());
+        self.0
+            .cancels
+            .lock()
+            .unwrap()
+            .push(cancel.consumer_tag().to_string());
         Ok(())
     }
     async fn flow(&mut self, _ch: &Channel, active: bool) -> CbResult<bool> {
         Ok(active)
     }
     async fn publish_ack(&mut self, _ch: &Channel, ack: Ack) {
-        self.0.acks.lock().unwrap().push((ack.delivery_tag(), ack.mutiple()));
+        self.0
+            .acks
+            .lock()
+            .unwrap()
+            .push((ack.delivery_tag(), ack.mutiple()));
     }
     async fn publish_nack(&mut self, _ch: &Channel, nack: Nack) {
-        self.0.nacks.lock().unwrap().push((nack.delivery_tag(), nack.multiple()));
+        self.0
+            .nacks
+            .lock()
+            .unwrap()
+            .push((nack.delivery_tag(), nack.multiple()));
     }
-    async fn publish_return(&mut self, _ch: &Channel, ret: Return, _props: BasicProperties, content: Vec<u8>) {
-        self.0.returns.lock().unwrap().push((ret.reply_code(), ret.reply_text().clone(), ret.routing_key().clone(), content));
+    async fn publish_return(
+        &mut self,
+        _ch: &Channel,
+        ret: Return,
+        _props: BasicProperties,
+        content: Vec<u8>,
+    ) {
+        self.0.returns.lock().unwrap().push((
+            ret.reply_code(),
+            ret.reply_text().clone(),
+            ret.routing_key().clone(),
+            content,
+        ));
     }
+}
+
+/// Drains the consumers' channels until `at_least` deliveries came (10 s
+/// at most), then a little longer, so that one too many has had time to
+/// arrive: how many came, and the highest delivery tag.
+async fn settled(
+    receivers: &mut [&mut tokio::sync::mpsc::UnboundedReceiver<ConsumerMessage>],
+    at_least: usize,
+) -> (usize, u64) {
+    let (mut count, mut last) = (0, 0);
+    let mut drain =
+        |receivers: &mut [&mut tokio::sync::mpsc::UnboundedReceiver<ConsumerMessage>]| {
+            for rx in receivers.iter_mut() {
+                while let Ok(m) = rx.try_recv() {
+                    count += 1;
+                    last = last.max(m.deliver.map_or(0, |d| d.delivery_tag()));
+                }
+            }
+            count
+        };
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while drain(receivers) < at_least && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    drain(receivers);
+    (count, last)
 }
 
 fn args(t: &T) -> OpenConnectionArguments {
@@ -71,28 +125,50 @@ fn args(t: &T) -> OpenConnectionArguments {
 
 async fn connect(t: &T) -> Result<Connection, String> {
     let c = e(Connection::open(&args(t)).await, "connect")?;
-    e(c.register_callback(DefaultConnectionCallback).await, "callback")?;
+    e(
+        c.register_callback(DefaultConnectionCallback).await,
+        "callback",
+    )?;
     Ok(c)
 }
 
 async fn chan(c: &Connection) -> Result<(Channel, Events), String> {
     let ch = e(c.open_channel(None).await, "channel.open")?;
     let ev = Events::default();
-    e(ch.register_callback(Recorder(ev.clone())).await, "channel callback")?;
+    e(
+        ch.register_callback(Recorder(ev.clone())).await,
+        "channel callback",
+    )?;
     Ok((ch, ev))
 }
 
 async fn temp_queue(ch: &Channel) -> Result<String, String> {
-    let (q, _, _) = e(ch.queue_declare(QueueDeclareArguments::exclusive_server_named()).await, "queue.declare")?.ok_or("no declare-ok")?;
+    let (q, _, _) = e(
+        ch.queue_declare(QueueDeclareArguments::exclusive_server_named())
+            .await,
+        "queue.declare",
+    )?
+    .ok_or("no declare-ok")?;
     Ok(q)
 }
 
 async fn publish(ch: &Channel, ex: &str, key: &str, body: &[u8]) -> R {
-    e(ch.basic_publish(BasicProperties::default(), body.to_vec(), BasicPublishArguments::new(ex, key)).await, "publish")
+    e(
+        ch.basic_publish(
+            BasicProperties::default(),
+            body.to_vec(),
+            BasicPublishArguments::new(ex, key),
+        )
+        .await,
+        "publish",
+    )
 }
 
 async fn count(ch: &Channel, q: &str) -> u32 {
-    match ch.queue_declare(QueueDeclareArguments::new(q).passive(true).finish()).await {
+    match ch
+        .queue_declare(QueueDeclareArguments::new(q).passive(true).finish())
+        .await
+    {
         Ok(Some((_, n, _))) => n,
         _ => u32::MAX,
     }
@@ -100,7 +176,11 @@ async fn count(ch: &Channel, q: &str) -> u32 {
 
 async fn get_all(ch: &Channel, q: &str) -> Result<Vec<String>, String> {
     let mut out = vec![];
-    while let Some((_, _, body)) = e(ch.basic_get(BasicGetArguments::new(q).no_ack(true).finish()).await, "get")? {
+    while let Some((_, _, body)) = e(
+        ch.basic_get(BasicGetArguments::new(q).no_ack(true).finish())
+            .await,
+        "get",
+    )? {
         out.push(String::from_utf8_lossy(&body).into_owned());
     }
     Ok(out)
@@ -111,13 +191,24 @@ async fn open_caps(t: Arc<T>) -> R {
     let caps = c.server_properties().capabilities();
     t.eq(
         "capabilities",
-        json!([caps.publisher_confirms(), caps.basic_nack(), caps.consumer_cancel_notify(), caps.exchange_exchange_bindings(), caps.per_consumer_qos(), caps.authentication_failure_close()]),
+        json!([
+            caps.publisher_confirms(),
+            caps.basic_nack(),
+            caps.consumer_cancel_notify(),
+            caps.exchange_exchange_bindings(),
+            caps.per_consumer_qos(),
+            caps.authentication_failure_close()
+        ]),
         json!([true, true, true, true, true, true]),
     )?;
     check!(c.frame_max() >= 4096, "frame_max {}", c.frame_max());
     let (ch, _) = chan(&c).await?;
     let q = temp_queue(&ch).await?;
-    t.eq("server-named", json!(q.starts_with("amq.gen-")), json!(true))?;
+    t.eq(
+        "server-named",
+        json!(q.starts_with("amq.gen-")),
+        json!(true),
+    )?;
     e(c.close().await, "close")
 }
 
@@ -154,27 +245,77 @@ async fn fanout_get(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let (ch, _) = chan(&c).await?;
     let ex = t.n("amqprs-fan");
-    e(ch.exchange_declare(ExchangeDeclareArguments::new(&ex, "fanout").auto_delete(true).finish()).await, "declare")?;
+    e(
+        ch.exchange_declare(
+            ExchangeDeclareArguments::new(&ex, "fanout")
+                .auto_delete(true)
+                .finish(),
+        )
+        .await,
+        "declare",
+    )?;
     let q1 = temp_queue(&ch).await?;
     let q2 = temp_queue(&ch).await?;
-    e(ch.queue_bind(QueueBindArguments::new(&q1, &ex, "")).await, "bind")?;
-    e(ch.queue_bind(QueueBindArguments::new(&q2, &ex, "x")).await, "bind")?;
+    e(
+        ch.queue_bind(QueueBindArguments::new(&q1, &ex, "")).await,
+        "bind",
+    )?;
+    e(
+        ch.queue_bind(QueueBindArguments::new(&q2, &ex, "x")).await,
+        "bind",
+    )?;
     publish(&ch, &ex, "k", b"to both").await?;
-    wait_until(Duration::from_secs(5), "fanout", || async { count(&ch, &q2).await == 1 }).await?;
-    let m = e(ch.basic_get(BasicGetArguments::new(&q1).no_ack(true).finish()).await, "get")?.ok_or("no message")?;
-    t.eq("get-ok", json!([m.0.delivery_tag(), m.0.redelivered(), m.0.exchange(), m.0.routing_key(), m.0.message_count(), String::from_utf8_lossy(&m.2)]), json!([1, false, ex, "k", 0, "to both"]))?;
-    t.eq("second queue", json!(get_all(&ch, &q2).await?), json!(["to both"]))?;
+    wait_until(Duration::from_secs(5), "fanout", || async {
+        count(&ch, &q2).await == 1
+    })
+    .await?;
+    let m = e(
+        ch.basic_get(BasicGetArguments::new(&q1).no_ack(true).finish())
+            .await,
+        "get",
+    )?
+    .ok_or("no message")?;
+    t.eq(
+        "get-ok",
+        json!([
+            m.0.delivery_tag(),
+            m.0.redelivered(),
+            m.0.exchange(),
+            m.0.routing_key(),
+            m.0.message_count(),
+            String::from_utf8_lossy(&m.2)
+        ]),
+        json!([1, false, ex, "k", 0, "to both"]),
+    )?;
+    t.eq(
+        "second queue",
+        json!(get_all(&ch, &q2).await?),
+        json!(["to both"]),
+    )?;
     e(c.close().await, "close")
 }
 
 async fn passive_missing(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let (ch, ev) = chan(&c).await?;
-    let r = ch.queue_declare(QueueDeclareArguments::new(&t.n("amqprs-missing")).passive(true).finish()).await;
+    let r = ch
+        .queue_declare(
+            QueueDeclareArguments::new(&t.n("amqprs-missing"))
+                .passive(true)
+                .finish(),
+        )
+        .await;
     t.eq("declare failed", json!(r.is_err()), json!(true))?;
-    wait_until(Duration::from_secs(5), "channel.close", || async { !ev.closes.lock().unwrap().is_empty() }).await?;
+    wait_until(Duration::from_secs(5), "channel.close", || async {
+        !ev.closes.lock().unwrap().is_empty()
+    })
+    .await?;
     let (code, text) = ev.closes.lock().unwrap()[0].clone();
-    t.eq("close", json!([code, reply_name(&text)]), json!([404, "NOT_FOUND"]))?;
+    t.eq(
+        "close",
+        json!([code, reply_name(&text)]),
+        json!([404, "NOT_FOUND"]),
+    )?;
     let (ch2, _) = chan(&c).await?;
     temp_queue(&ch2).await?;
     e(c.close().await, "close")
@@ -184,22 +325,52 @@ async fn consume_rx(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let (ch, _) = chan(&c).await?;
     let q = temp_queue(&ch).await?;
-    let (tag, mut rx) = e(ch.basic_consume_rx(BasicConsumeArguments::new(&q, "amqprs-c").manual_ack(true).finish()).await, "consume")?;
+    let (tag, mut rx) = e(
+        ch.basic_consume_rx(
+            BasicConsumeArguments::new(&q, "amqprs-c")
+                .manual_ack(true)
+                .finish(),
+        )
+        .await,
+        "consume",
+    )?;
     t.eq("tag", json!(tag), json!("amqprs-c"))?;
     publish(&ch, "", &q, b"m").await?;
     let mut seen = vec![];
     for i in 0..2 {
-        let m = tokio::time::timeout(Duration::from_secs(5), rx.recv()).await.map_err(|_| "no delivery")?.ok_or("consumer ended")?;
+        let m = tokio::time::timeout(Duration::from_secs(5), rx.recv())
+            .await
+            .map_err(|_| "no delivery")?
+            .ok_or("consumer ended")?;
         let d = m.deliver.ok_or("no deliver")?;
-        seen.push(json!([d.delivery_tag(), d.redelivered(), String::from_utf8_lossy(&m.content.unwrap_or_default())]));
+        seen.push(json!([
+            d.delivery_tag(),
+            d.redelivered(),
+            String::from_utf8_lossy(&m.content.unwrap_or_default())
+        ]));
         if i == 0 {
-            e(ch.basic_nack(BasicNackArguments::new(d.delivery_tag(), false, true)).await, "nack")?;
+            e(
+                ch.basic_nack(BasicNackArguments::new(d.delivery_tag(), false, true))
+                    .await,
+                "nack",
+            )?;
         } else {
-            e(ch.basic_ack(BasicAckArguments::new(d.delivery_tag(), false)).await, "ack")?;
+            e(
+                ch.basic_ack(BasicAckArguments::new(d.delivery_tag(), false))
+                    .await,
+                "ack",
+            )?;
         }
     }
-    t.eq("delivered then redelivered", json!(seen), json!([[1, false, "m"], [2, true, "m"]]))?;
-    e(ch.basic_cancel(BasicCancelArguments::new("amqprs-c")).await, "cancel")?;
+    t.eq(
+        "delivered then redelivered",
+        json!(seen),
+        json!([[1, false, "m"], [2, true, "m"]]),
+    )?;
+    e(
+        ch.basic_cancel(BasicCancelArguments::new("amqprs-c")).await,
+        "cancel",
+    )?;
     t.eq("acked", json!(count(&ch, &q).await), json!(0))?;
     e(c.close().await, "close")
 }
@@ -208,12 +379,29 @@ async fn server_cancel(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let (ch, ev) = chan(&c).await?;
     let q = t.n("amqprs-cancel");
-    e(ch.queue_declare(QueueDeclareArguments::new(&q)).await, "declare")?;
-    let (_tag, _rx) = e(ch.basic_consume_rx(BasicConsumeArguments::new(&q, "watched")).await, "consume")?;
+    e(
+        ch.queue_declare(QueueDeclareArguments::new(&q)).await,
+        "declare",
+    )?;
+    let (_tag, _rx) = e(
+        ch.basic_consume_rx(BasicConsumeArguments::new(&q, "watched"))
+            .await,
+        "consume",
+    )?;
     let (other, _) = chan(&c).await?;
-    e(other.queue_delete(QueueDeleteArguments::new(&q)).await, "delete")?;
-    wait_until(Duration::from_secs(5), "basic.cancel", || async { !ev.cancels.lock().unwrap().is_empty() }).await?;
-    t.eq("cancelled", json!(ev.cancels.lock().unwrap().clone()), json!(["watched"]))?;
+    e(
+        other.queue_delete(QueueDeleteArguments::new(&q)).await,
+        "delete",
+    )?;
+    wait_until(Duration::from_secs(5), "basic.cancel", || async {
+        !ev.cancels.lock().unwrap().is_empty()
+    })
+    .await?;
+    t.eq(
+        "cancelled",
+        json!(ev.cancels.lock().unwrap().clone()),
+        json!(["watched"]),
+    )?;
     e(c.close().await, "close")
 }
 
@@ -221,33 +409,38 @@ async fn global_qos(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let (ch, _) = chan(&c).await?;
     let q = temp_queue(&ch).await?;
-    e(ch.basic_qos(BasicQosArguments::new(0, 2, true)).await, "qos")?;
+    e(
+        ch.basic_qos(BasicQosArguments::new(0, 2, true)).await,
+        "qos",
+    )?;
     for i in 0..5 {
         publish(&ch, "", &q, format!("{i}").as_bytes()).await?;
     }
-    let (_t1, mut rx1) = e(ch.basic_consume_rx(BasicConsumeArguments::new(&q, "a").manual_ack(true).finish()).await, "consume")?;
-    let (_t2, mut rx2) = e(ch.basic_consume_rx(BasicConsumeArguments::new(&q, "b").manual_ack(true).finish()).await, "consume")?;
-    tokio::time::sleep(Duration::from_millis(400)).await;
-    let mut n = 0;
-    let mut last = 0;
-    while let Ok(m) = rx1.try_recv() {
-        n += 1;
-        last = last.max(m.deliver.unwrap().delivery_tag());
-    }
-    while let Ok(m) = rx2.try_recv() {
-        n += 1;
-        last = last.max(m.deliver.unwrap().delivery_tag());
-    }
+    let (_t1, mut rx1) = e(
+        ch.basic_consume_rx(
+            BasicConsumeArguments::new(&q, "a")
+                .manual_ack(true)
+                .finish(),
+        )
+        .await,
+        "consume",
+    )?;
+    let (_t2, mut rx2) = e(
+        ch.basic_consume_rx(
+            BasicConsumeArguments::new(&q, "b")
+                .manual_ack(true)
+                .finish(),
+        )
+        .await,
+        "consume",
+    )?;
+    let (n, last) = settled(&mut [&mut rx1, &mut rx2], 2).await;
     t.eq("two in flight across both consumers", json!(n), json!(2))?;
-    e(ch.basic_ack(BasicAckArguments::new(last, true)).await, "ack")?;
-    tokio::time::sleep(Duration::from_millis(400)).await;
-    let mut more = 0;
-    while rx1.try_recv().is_ok() {
-        more += 1;
-    }
-    while rx2.try_recv().is_ok() {
-        more += 1;
-    }
+    e(
+        ch.basic_ack(BasicAckArguments::new(last, true)).await,
+        "ack",
+    )?;
+    let (more, _) = settled(&mut [&mut rx1, &mut rx2], 2).await;
     t.eq("two more after ack", json!(more), json!(2))?;
     e(c.close().await, "close")
 }
@@ -256,11 +449,17 @@ async fn confirms(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let (ch, ev) = chan(&c).await?;
     let q = temp_queue(&ch).await?;
-    e(ch.confirm_select(ConfirmSelectArguments::default()).await, "confirm.select")?;
+    e(
+        ch.confirm_select(ConfirmSelectArguments::default()).await,
+        "confirm.select",
+    )?;
     for i in 0..100 {
         publish(&ch, "", &q, format!("{i}").as_bytes()).await?;
     }
-    wait_until(Duration::from_secs(10), "acks", || async { ev.acks.lock().unwrap().last().map(|a| a.0) == Some(100) }).await?;
+    wait_until(Duration::from_secs(10), "acks", || async {
+        ev.acks.lock().unwrap().last().map(|a| a.0) == Some(100)
+    })
+    .await?;
     let acks = ev.acks.lock().unwrap().clone();
     let mut prev = 0;
     for (tag, _) in &acks {
@@ -276,10 +475,27 @@ async fn returns(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let (ch, ev) = chan(&c).await?;
     let key = t.n("amqprs-nowhere");
-    e(ch.basic_publish(BasicProperties::default(), b"ret".to_vec(), BasicPublishArguments::new("amq.direct", &key).mandatory(true).finish()).await, "publish")?;
-    wait_until(Duration::from_secs(5), "basic.return", || async { !ev.returns.lock().unwrap().is_empty() }).await?;
+    e(
+        ch.basic_publish(
+            BasicProperties::default(),
+            b"ret".to_vec(),
+            BasicPublishArguments::new("amq.direct", &key)
+                .mandatory(true)
+                .finish(),
+        )
+        .await,
+        "publish",
+    )?;
+    wait_until(Duration::from_secs(5), "basic.return", || async {
+        !ev.returns.lock().unwrap().is_empty()
+    })
+    .await?;
     let r = ev.returns.lock().unwrap()[0].clone();
-    t.eq("return", json!([r.0, r.1, r.2, String::from_utf8_lossy(&r.3)]), json!([312, "NO_ROUTE", key, "ret"]))?;
+    t.eq(
+        "return",
+        json!([r.0, r.1, r.2, String::from_utf8_lossy(&r.3)]),
+        json!([312, "NO_ROUTE", key, "ret"]),
+    )?;
     e(c.close().await, "close")
 }
 
@@ -293,7 +509,11 @@ async fn tx(t: Arc<T>) -> R {
     e(ch.tx_rollback().await, "rollback")?;
     publish(&ch, "", &q, b"3").await?;
     e(ch.tx_commit().await, "commit")?;
-    t.eq("committed only", json!(get_all(&ch, &q).await?), json!(["3"]))?;
+    t.eq(
+        "committed only",
+        json!(get_all(&ch, &q).await?),
+        json!(["3"]),
+    )?;
     e(c.close().await, "close")
 }
 
@@ -308,7 +528,10 @@ async fn props(t: Arc<T>) -> R {
     h.insert("l".try_into().unwrap(), FieldValue::l(1 << 40));
     h.insert("d".try_into().unwrap(), FieldValue::d(0.5));
     h.insert("T".try_into().unwrap(), FieldValue::T(1_700_000_000));
-    h.insert("x".try_into().unwrap(), FieldValue::x(vec![1u8, 2, 3].try_into().unwrap()));
+    h.insert(
+        "x".try_into().unwrap(),
+        FieldValue::x(vec![1u8, 2, 3].try_into().unwrap()),
+    );
     let props = BasicProperties::default()
         .with_content_type("application/octet-stream")
         .with_correlation_id("corr")
@@ -319,18 +542,59 @@ async fn props(t: Arc<T>) -> R {
         .with_headers(h)
         .with_app_id("amqprs")
         .finish();
-    e(ch.basic_publish(props, b"p".to_vec(), BasicPublishArguments::new("", &q)).await, "publish")?;
-    wait_until(Duration::from_secs(5), "message", || async { count(&ch, &q).await == 1 }).await?;
-    let (_, p, _) = e(ch.basic_get(BasicGetArguments::new(&q).no_ack(true).finish()).await, "get")?.ok_or("no message")?;
-    let hv = |k: &str| -> Value { json!(format!("{:?}", p.headers().and_then(|h| h.get(&k.try_into().unwrap())))) };
+    e(
+        ch.basic_publish(props, b"p".to_vec(), BasicPublishArguments::new("", &q))
+            .await,
+        "publish",
+    )?;
+    wait_until(Duration::from_secs(5), "message", || async {
+        count(&ch, &q).await == 1
+    })
+    .await?;
+    let (_, p, _) = e(
+        ch.basic_get(BasicGetArguments::new(&q).no_ack(true).finish())
+            .await,
+        "get",
+    )?
+    .ok_or("no message")?;
+    let hv = |k: &str| -> Value {
+        json!(format!(
+            "{:?}",
+            p.headers().and_then(|h| h.get(&k.try_into().unwrap()))
+        ))
+    };
     t.eq(
         "properties",
-        json!([p.content_type(), p.correlation_id(), p.message_id(), p.reply_to(), p.priority(), p.delivery_mode(), p.app_id()]),
-        json!(["application/octet-stream", "corr", "mid", "rq", 4, 2, "amqprs"]),
+        json!([
+            p.content_type(),
+            p.correlation_id(),
+            p.message_id(),
+            p.reply_to(),
+            p.priority(),
+            p.delivery_mode(),
+            p.app_id()
+        ]),
+        json!([
+            "application/octet-stream",
+            "corr",
+            "mid",
+            "rq",
+            4,
+            2,
+            "amqprs"
+        ]),
     )?;
     t.eq(
         "headers",
-        json!([hv("s"), hv("b"), hv("i"), hv("l"), hv("d"), hv("T"), hv("x")]),
+        json!([
+            hv("s"),
+            hv("b"),
+            hv("i"),
+            hv("l"),
+            hv("d"),
+            hv("T"),
+            hv("x")
+        ]),
         json!([
             format!("{:?}", Some(&FieldValue::from("text"))),
             format!("{:?}", Some(&FieldValue::from(true))),
@@ -338,7 +602,10 @@ async fn props(t: Arc<T>) -> R {
             format!("{:?}", Some(&FieldValue::l(1 << 40))),
             format!("{:?}", Some(&FieldValue::d(0.5))),
             format!("{:?}", Some(&FieldValue::T(1_700_000_000))),
-            format!("{:?}", Some(&FieldValue::x(vec![1u8, 2, 3].try_into().unwrap()))),
+            format!(
+                "{:?}",
+                Some(&FieldValue::x(vec![1u8, 2, 3].try_into().unwrap()))
+            ),
         ]),
     )?;
     e(c.close().await, "close")

@@ -31,7 +31,10 @@ scenarios!("lapin":
 );
 
 async fn connect(t: &T) -> Result<Connection, String> {
-    e(Connection::connect(&t.url, ConnectionProperties::default()).await, "connect")
+    e(
+        Connection::connect(&t.url, ConnectionProperties::default()).await,
+        "connect",
+    )
 }
 
 async fn chan(c: &Connection) -> Result<Channel, String> {
@@ -40,7 +43,15 @@ async fn chan(c: &Connection) -> Result<Channel, String> {
 
 async fn temp_queue(ch: &Channel, args: FieldTable) -> Result<String, String> {
     let q = e(
-        ch.queue_declare("", QueueDeclareOptions { exclusive: true, ..Default::default() }, args).await,
+        ch.queue_declare(
+            "",
+            QueueDeclareOptions {
+                exclusive: true,
+                ..Default::default()
+            },
+            args,
+        )
+        .await,
         "queue.declare",
     )?;
     Ok(q.name().as_str().to_string())
@@ -65,14 +76,27 @@ fn expect_code<V>(t: &T, label: &str, r: Result<V, lapin::Error>, code: u16) -> 
     }
 }
 
-async fn publish(ch: &Channel, ex: &str, key: &str, body: &[u8], props: BasicProperties) -> Result<Confirmation, String> {
-    let pc = e(ch.basic_publish(ex, key, BasicPublishOptions::default(), body, props).await, "publish")?;
+async fn publish(
+    ch: &Channel,
+    ex: &str,
+    key: &str,
+    body: &[u8],
+    props: BasicProperties,
+) -> Result<Confirmation, String> {
+    let pc = e(
+        ch.basic_publish(ex, key, BasicPublishOptions::default(), body, props)
+            .await,
+        "publish",
+    )?;
     e(pc.await, "confirm")
 }
 
 async fn get_all(ch: &Channel, q: &str) -> Result<Vec<String>, String> {
     let mut out = vec![];
-    while let Some(m) = e(ch.basic_get(q, BasicGetOptions { no_ack: true }).await, "get")? {
+    while let Some(m) = e(
+        ch.basic_get(q, BasicGetOptions { no_ack: true }).await,
+        "get",
+    )? {
         out.push(String::from_utf8_lossy(&m.delivery.data).into_owned());
     }
     Ok(out)
@@ -88,28 +112,49 @@ async fn next(consumer: &mut Consumer) -> Result<Delivery, String> {
 }
 
 async fn count(ch: &Channel, q: &str) -> u32 {
-    ch.queue_declare(q, QueueDeclareOptions { passive: true, ..Default::default() }, FieldTable::default())
-        .await
-        .map(|q| q.message_count())
-        .unwrap_or(u32::MAX)
+    ch.queue_declare(
+        q,
+        QueueDeclareOptions {
+            passive: true,
+            ..Default::default()
+        },
+        FieldTable::default(),
+    )
+    .await
+    .map(|q| q.message_count())
+    .unwrap_or(u32::MAX)
 }
 
 async fn connection_tune(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let cfg = c.configuration();
-    t.obs("negotiated", json!([cfg.channel_max() > 0, cfg.frame_max() >= 4096]));
+    t.obs(
+        "negotiated",
+        json!([cfg.channel_max() > 0, cfg.frame_max() >= 4096]),
+    );
     check!(cfg.frame_max() >= 4096, "frame_max {}", cfg.frame_max());
     let ch = chan(&c).await?;
     let q = temp_queue(&ch, FieldTable::default()).await?;
-    t.eq("queue named by broker", json!(q.starts_with("amq.gen-")), json!(true))?;
+    t.eq(
+        "queue named by broker",
+        json!(q.starts_with("amq.gen-")),
+        json!(true),
+    )?;
     e(c.close(200, "bye").await, "close")?;
-    wait_until(Duration::from_secs(5), "closed state", || async { c.status().closed() }).await?;
+    wait_until(Duration::from_secs(5), "closed state", || async {
+        c.status().closed()
+    })
+    .await?;
     t.obs("closed", json!(true));
     Ok(())
 }
 
 async fn bad_password(t: Arc<T>) -> R {
-    let r = Connection::connect(&t.url_with(None, Some("wrong"), None), ConnectionProperties::default()).await;
+    let r = Connection::connect(
+        &t.url_with(None, Some("wrong"), None),
+        ConnectionProperties::default(),
+    )
+    .await;
     match r {
         Ok(_) => Err("connected with a wrong password".into()),
         Err(err) => t.eq("refused", code_of(&err), json!([403, "ACCESS_REFUSED"])),
@@ -117,7 +162,11 @@ async fn bad_password(t: Arc<T>) -> R {
 }
 
 async fn unknown_vhost(t: Arc<T>) -> R {
-    let r = Connection::connect(&t.url_with(None, None, Some("no-such-vhost")), ConnectionProperties::default()).await;
+    let r = Connection::connect(
+        &t.url_with(None, None, Some("no-such-vhost")),
+        ConnectionProperties::default(),
+    )
+    .await;
     match r {
         Ok(_) => Err("connected to an unknown vhost".into()),
         Err(err) => t.eq("refused", code_of(&err), json!([530, "NOT_ALLOWED"])),
@@ -128,21 +177,58 @@ async fn topic_bind_unbind(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let ch = chan(&c).await?;
     let ex = t.n("lapin-topic");
-    e(ch.exchange_declare(&ex, ExchangeKind::Topic, ExchangeDeclareOptions { auto_delete: true, ..Default::default() }, FieldTable::default()).await, "declare")?;
+    e(
+        ch.exchange_declare(
+            &ex,
+            ExchangeKind::Topic,
+            ExchangeDeclareOptions {
+                auto_delete: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await,
+        "declare",
+    )?;
     let q = temp_queue(&ch, FieldTable::default()).await?;
     for k in ["log.*.error", "log.#"] {
-        e(ch.queue_bind(&q, &ex, k, QueueBindOptions::default(), FieldTable::default()).await, "bind")?;
+        e(
+            ch.queue_bind(
+                &q,
+                &ex,
+                k,
+                QueueBindOptions::default(),
+                FieldTable::default(),
+            )
+            .await,
+            "bind",
+        )?;
     }
-    e(ch.confirm_select(ConfirmSelectOptions::default()).await, "confirm.select")?;
+    e(
+        ch.confirm_select(ConfirmSelectOptions::default()).await,
+        "confirm.select",
+    )?;
     for k in ["log.app.error", "log.app.info", "other"] {
         publish(&ch, &ex, k, k.as_bytes(), BasicProperties::default()).await?;
     }
-    t.eq("two bindings, one copy each", json!(get_all(&ch, &q).await?), json!(["log.app.error", "log.app.info"]))?;
-    e(ch.queue_unbind(&q, &ex, "log.#", FieldTable::default()).await, "unbind")?;
+    t.eq(
+        "two bindings, one copy each",
+        json!(get_all(&ch, &q).await?),
+        json!(["log.app.error", "log.app.info"]),
+    )?;
+    e(
+        ch.queue_unbind(&q, &ex, "log.#", FieldTable::default())
+            .await,
+        "unbind",
+    )?;
     for k in ["log.app.error", "log.app.info"] {
         publish(&ch, &ex, k, k.as_bytes(), BasicProperties::default()).await?;
     }
-    t.eq("after unbind", json!(get_all(&ch, &q).await?), json!(["log.app.error"]))
+    t.eq(
+        "after unbind",
+        json!(get_all(&ch, &q).await?),
+        json!(["log.app.error"]),
+    )
 }
 
 async fn e2e_alternate(t: Arc<T>) -> R {
@@ -150,38 +236,156 @@ async fn e2e_alternate(t: Arc<T>) -> R {
     let ch = chan(&c).await?;
     let (src, dst, ae) = (t.n("lapin-src"), t.n("lapin-dst"), t.n("lapin-ae"));
     let mut args = FieldTable::default();
-    args.insert("alternate-exchange".into(), AMQPValue::LongString(ae.clone().into()));
-    e(ch.exchange_declare(&ae, ExchangeKind::Fanout, ExchangeDeclareOptions { auto_delete: true, ..Default::default() }, FieldTable::default()).await, "ae")?;
-    e(ch.exchange_declare(&src, ExchangeKind::Direct, ExchangeDeclareOptions { auto_delete: true, ..Default::default() }, args).await, "src")?;
-    e(ch.exchange_declare(&dst, ExchangeKind::Fanout, ExchangeDeclareOptions { auto_delete: true, ..Default::default() }, FieldTable::default()).await, "dst")?;
-    e(ch.exchange_bind(&dst, &src, "to-dst", ExchangeBindOptions::default(), FieldTable::default()).await, "exchange.bind")?;
+    args.insert(
+        "alternate-exchange".into(),
+        AMQPValue::LongString(ae.clone().into()),
+    );
+    e(
+        ch.exchange_declare(
+            &ae,
+            ExchangeKind::Fanout,
+            ExchangeDeclareOptions {
+                auto_delete: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await,
+        "ae",
+    )?;
+    e(
+        ch.exchange_declare(
+            &src,
+            ExchangeKind::Direct,
+            ExchangeDeclareOptions {
+                auto_delete: true,
+                ..Default::default()
+            },
+            args,
+        )
+        .await,
+        "src",
+    )?;
+    e(
+        ch.exchange_declare(
+            &dst,
+            ExchangeKind::Fanout,
+            ExchangeDeclareOptions {
+                auto_delete: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await,
+        "dst",
+    )?;
+    e(
+        ch.exchange_bind(
+            &dst,
+            &src,
+            "to-dst",
+            ExchangeBindOptions::default(),
+            FieldTable::default(),
+        )
+        .await,
+        "exchange.bind",
+    )?;
     let qd = temp_queue(&ch, FieldTable::default()).await?;
     let qa = temp_queue(&ch, FieldTable::default()).await?;
-    e(ch.queue_bind(&qd, &dst, "", QueueBindOptions::default(), FieldTable::default()).await, "bind")?;
-    e(ch.queue_bind(&qa, &ae, "", QueueBindOptions::default(), FieldTable::default()).await, "bind")?;
-    e(ch.confirm_select(ConfirmSelectOptions::default()).await, "confirm.select")?;
+    e(
+        ch.queue_bind(
+            &qd,
+            &dst,
+            "",
+            QueueBindOptions::default(),
+            FieldTable::default(),
+        )
+        .await,
+        "bind",
+    )?;
+    e(
+        ch.queue_bind(
+            &qa,
+            &ae,
+            "",
+            QueueBindOptions::default(),
+            FieldTable::default(),
+        )
+        .await,
+        "bind",
+    )?;
+    e(
+        ch.confirm_select(ConfirmSelectOptions::default()).await,
+        "confirm.select",
+    )?;
     publish(&ch, &src, "to-dst", b"via e2e", BasicProperties::default()).await?;
-    publish(&ch, &src, "elsewhere", b"via ae", BasicProperties::default()).await?;
-    t.eq("destination", json!(get_all(&ch, &qd).await?), json!(["via e2e"]))?;
-    t.eq("alternate", json!(get_all(&ch, &qa).await?), json!(["via ae"]))
+    publish(
+        &ch,
+        &src,
+        "elsewhere",
+        b"via ae",
+        BasicProperties::default(),
+    )
+    .await?;
+    t.eq(
+        "destination",
+        json!(get_all(&ch, &qd).await?),
+        json!(["via e2e"]),
+    )?;
+    t.eq(
+        "alternate",
+        json!(get_all(&ch, &qa).await?),
+        json!(["via ae"]),
+    )
 }
 
 async fn queue_errors(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let ch = chan(&c).await?;
-    let r = ch.queue_declare(&t.n("lapin-missing"), QueueDeclareOptions { passive: true, ..Default::default() }, FieldTable::default()).await;
+    let r = ch
+        .queue_declare(
+            &t.n("lapin-missing"),
+            QueueDeclareOptions {
+                passive: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await;
     expect_code(&t, "passive missing", r, 404)?;
     let ch = chan(&c).await?;
     let q = t.n("lapin-excl");
-    e(ch.queue_declare(&q, QueueDeclareOptions { exclusive: true, ..Default::default() }, FieldTable::default()).await, "declare")?;
+    e(
+        ch.queue_declare(
+            &q,
+            QueueDeclareOptions {
+                exclusive: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await,
+        "declare",
+    )?;
     let c2 = connect(&t).await?;
     let ch2 = chan(&c2).await?;
-    let r = ch2.queue_declare(&q, QueueDeclareOptions::default(), FieldTable::default()).await;
+    let r = ch2
+        .queue_declare(&q, QueueDeclareOptions::default(), FieldTable::default())
+        .await;
     expect_code(&t, "exclusive from other connection", r, 405)?;
     let ch3 = chan(&c).await?;
     let mut args = FieldTable::default();
     args.insert("x-max-length".into(), AMQPValue::LongInt(5));
-    let r = ch3.queue_declare(&q, QueueDeclareOptions { exclusive: true, ..Default::default() }, args).await;
+    let r = ch3
+        .queue_declare(
+            &q,
+            QueueDeclareOptions {
+                exclusive: true,
+                ..Default::default()
+            },
+            args,
+        )
+        .await;
     expect_code(&t, "inequivalent arg", r, 406)
 }
 
@@ -190,14 +394,30 @@ async fn dead_letter(t: Arc<T>) -> R {
     let ch = chan(&c).await?;
     let dlq = temp_queue(&ch, FieldTable::default()).await?;
     let mut args = FieldTable::default();
-    args.insert("x-dead-letter-exchange".into(), AMQPValue::LongString("".into()));
-    args.insert("x-dead-letter-routing-key".into(), AMQPValue::LongString(dlq.clone().into()));
+    args.insert(
+        "x-dead-letter-exchange".into(),
+        AMQPValue::LongString("".into()),
+    );
+    args.insert(
+        "x-dead-letter-routing-key".into(),
+        AMQPValue::LongString(dlq.clone().into()),
+    );
     args.insert("x-message-ttl".into(), AMQPValue::LongInt(30));
     let q = temp_queue(&ch, args).await?;
-    e(ch.confirm_select(ConfirmSelectOptions::default()).await, "confirm.select")?;
+    e(
+        ch.confirm_select(ConfirmSelectOptions::default()).await,
+        "confirm.select",
+    )?;
     publish(&ch, "", &q, b"ttl", BasicProperties::default()).await?;
-    wait_until(Duration::from_secs(5), "dead letter", || async { count(&ch, &dlq).await == 1 }).await?;
-    let m = e(ch.basic_get(&dlq, BasicGetOptions { no_ack: true }).await, "get")?.ok_or("no message")?;
+    wait_until(Duration::from_secs(5), "dead letter", || async {
+        count(&ch, &dlq).await == 1
+    })
+    .await?;
+    let m = e(
+        ch.basic_get(&dlq, BasicGetOptions { no_ack: true }).await,
+        "get",
+    )?
+    .ok_or("no message")?;
     let headers = m.delivery.properties.headers().clone().unwrap_or_default();
     let xd = match headers.inner().get("x-death") {
         Some(AMQPValue::FieldArray(a)) => a.as_slice().to_vec(),
@@ -213,34 +433,89 @@ async fn dead_letter(t: Arc<T>) -> R {
         Some(other) => json!(format!("{other:?}")),
         None => Value::Null,
     };
-    t.eq("x-death", json!([s("reason"), s("queue"), s("count"), s("exchange")]), json!(["expired", q, 1, ""]))?;
-    t.eq("routing", json!([m.delivery.exchange.as_str(), m.delivery.routing_key.as_str()]), json!(["", dlq]))
+    t.eq(
+        "x-death",
+        json!([s("reason"), s("queue"), s("count"), s("exchange")]),
+        json!(["expired", q, 1, ""]),
+    )?;
+    t.eq(
+        "routing",
+        json!([
+            m.delivery.exchange.as_str(),
+            m.delivery.routing_key.as_str()
+        ]),
+        json!(["", dlq]),
+    )
 }
 
 async fn consume_ack_nack(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let ch = chan(&c).await?;
     let q = temp_queue(&ch, FieldTable::default()).await?;
-    let mut consumer = e(ch.basic_consume(&q, "lapin-c", BasicConsumeOptions::default(), FieldTable::default()).await, "consume")?;
+    let mut consumer = e(
+        ch.basic_consume(
+            &q,
+            "lapin-c",
+            BasicConsumeOptions::default(),
+            FieldTable::default(),
+        )
+        .await,
+        "consume",
+    )?;
     t.eq("tag", json!(consumer.tag().as_str()), json!("lapin-c"))?;
     for i in 0..3 {
-        publish(&ch, "", &q, format!("{i}").as_bytes(), BasicProperties::default()).await?;
+        publish(
+            &ch,
+            "",
+            &q,
+            format!("{i}").as_bytes(),
+            BasicProperties::default(),
+        )
+        .await?;
     }
     let mut seen = vec![];
     for _ in 0..3 {
         let d = next(&mut consumer).await?;
-        seen.push(json!([String::from_utf8_lossy(&d.data), d.delivery_tag, d.redelivered]));
+        seen.push(json!([
+            String::from_utf8_lossy(&d.data),
+            d.delivery_tag,
+            d.redelivered
+        ]));
         if d.delivery_tag == 2 {
-            e(d.nack(BasicNackOptions { requeue: true, multiple: false }).await, "nack")?;
+            e(
+                d.nack(BasicNackOptions {
+                    requeue: true,
+                    multiple: false,
+                })
+                .await,
+                "nack",
+            )?;
         } else {
             e(d.ack(BasicAckOptions::default()).await, "ack")?;
         }
     }
     let d = next(&mut consumer).await?;
-    seen.push(json!([String::from_utf8_lossy(&d.data), d.delivery_tag, d.redelivered]));
+    seen.push(json!([
+        String::from_utf8_lossy(&d.data),
+        d.delivery_tag,
+        d.redelivered
+    ]));
     e(d.ack(BasicAckOptions::default()).await, "ack")?;
-    t.eq("deliveries", json!(seen), json!([["0", 1, false], ["1", 2, false], ["2", 3, false], ["1", 4, true]]))?;
-    e(ch.basic_cancel("lapin-c", BasicCancelOptions::default()).await, "cancel")?;
+    t.eq(
+        "deliveries",
+        json!(seen),
+        json!([
+            ["0", 1, false],
+            ["1", 2, false],
+            ["2", 3, false],
+            ["1", 4, true]
+        ]),
+    )?;
+    e(
+        ch.basic_cancel("lapin-c", BasicCancelOptions::default())
+            .await,
+        "cancel",
+    )?;
     t.eq("empty", json!(count(&ch, &q).await), json!(0))
 }
 
@@ -250,32 +525,81 @@ async fn prefetch(t: Arc<T>) -> R {
     let q = temp_queue(&ch, FieldTable::default()).await?;
     e(ch.basic_qos(2, BasicQosOptions::default()).await, "qos")?;
     for i in 0..5 {
-        publish(&ch, "", &q, format!("{i}").as_bytes(), BasicProperties::default()).await?;
+        publish(
+            &ch,
+            "",
+            &q,
+            format!("{i}").as_bytes(),
+            BasicProperties::default(),
+        )
+        .await?;
     }
-    let mut consumer = e(ch.basic_consume(&q, "", BasicConsumeOptions::default(), FieldTable::default()).await, "consume")?;
+    let mut consumer = e(
+        ch.basic_consume(
+            &q,
+            "",
+            BasicConsumeOptions::default(),
+            FieldTable::default(),
+        )
+        .await,
+        "consume",
+    )?;
     let a = next(&mut consumer).await?;
     let b = next(&mut consumer).await?;
-    let extra = tokio::time::timeout(Duration::from_millis(300), consumer.next()).await.is_ok();
+    let extra = tokio::time::timeout(Duration::from_millis(300), consumer.next())
+        .await
+        .is_ok();
     t.eq("no third before ack", json!(extra), json!(false))?;
     e(b.ack(BasicAckOptions { multiple: true }).await, "ack")?;
     let _ = a;
     let c3 = next(&mut consumer).await?;
     let c4 = next(&mut consumer).await?;
-    t.eq("next two", json!([String::from_utf8_lossy(&c3.data), String::from_utf8_lossy(&c4.data)]), json!(["2", "3"]))
+    t.eq(
+        "next two",
+        json!([
+            String::from_utf8_lossy(&c3.data),
+            String::from_utf8_lossy(&c4.data)
+        ]),
+        json!(["2", "3"]),
+    )
 }
 
 async fn confirm_return(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let ch = chan(&c).await?;
     let q = temp_queue(&ch, FieldTable::default()).await?;
-    e(ch.confirm_select(ConfirmSelectOptions::default()).await, "confirm.select")?;
+    e(
+        ch.confirm_select(ConfirmSelectOptions::default()).await,
+        "confirm.select",
+    )?;
     let conf = publish(&ch, "", &q, b"ok", BasicProperties::default()).await?;
-    t.eq("routed ack", json!(matches!(conf, Confirmation::Ack(None))), json!(true))?;
-    let pc = e(ch.basic_publish("", &t.n("nowhere"), BasicPublishOptions { mandatory: true, ..Default::default() }, b"back", BasicProperties::default()).await, "publish")?;
+    t.eq(
+        "routed ack",
+        json!(matches!(conf, Confirmation::Ack(None))),
+        json!(true),
+    )?;
+    let pc = e(
+        ch.basic_publish(
+            "",
+            &t.n("nowhere"),
+            BasicPublishOptions {
+                mandatory: true,
+                ..Default::default()
+            },
+            b"back",
+            BasicProperties::default(),
+        )
+        .await,
+        "publish",
+    )?;
     match e(pc.await, "confirm")? {
         Confirmation::Ack(Some(ret)) => t.eq(
             "return then ack",
-            json!([ret.reply_code, ret.reply_text.as_str(), String::from_utf8_lossy(&ret.delivery.data)]),
+            json!([
+                ret.reply_code,
+                ret.reply_text.as_str(),
+                String::from_utf8_lossy(&ret.delivery.data)
+            ]),
             json!([312, "NO_ROUTE", "back"]),
         ),
         other => Err(format!("expected ack with a return, got {other:?}")),
@@ -287,12 +611,22 @@ async fn confirm_nack(t: Arc<T>) -> R {
     let ch = chan(&c).await?;
     let mut args = FieldTable::default();
     args.insert("x-max-length".into(), AMQPValue::LongInt(1));
-    args.insert("x-overflow".into(), AMQPValue::LongString("reject-publish".into()));
+    args.insert(
+        "x-overflow".into(),
+        AMQPValue::LongString("reject-publish".into()),
+    );
     let q = temp_queue(&ch, args).await?;
-    e(ch.confirm_select(ConfirmSelectOptions::default()).await, "confirm.select")?;
+    e(
+        ch.confirm_select(ConfirmSelectOptions::default()).await,
+        "confirm.select",
+    )?;
     let a = publish(&ch, "", &q, b"1", BasicProperties::default()).await?;
     let b = publish(&ch, "", &q, b"2", BasicProperties::default()).await?;
-    t.eq("ack then nack", json!([a.is_ack(), b.is_nack()]), json!([true, true]))
+    t.eq(
+        "ack then nack",
+        json!([a.is_ack(), b.is_nack()]),
+        json!([true, true]),
+    )
 }
 
 async fn tx(t: Arc<T>) -> R {
@@ -303,9 +637,17 @@ async fn tx(t: Arc<T>) -> R {
     publish(&ch, "", &q, b"rolled back", BasicProperties::default()).await?;
     e(ch.tx_rollback().await, "rollback")?;
     publish(&ch, "", &q, b"committed", BasicProperties::default()).await?;
-    t.eq("nothing before commit", json!(count(&ch, &q).await), json!(0))?;
+    t.eq(
+        "nothing before commit",
+        json!(count(&ch, &q).await),
+        json!(0),
+    )?;
     e(ch.tx_commit().await, "commit")?;
-    t.eq("after commit", json!(get_all(&ch, &q).await?), json!(["committed"]))
+    t.eq(
+        "after commit",
+        json!(get_all(&ch, &q).await?),
+        json!(["committed"]),
+    )
 }
 
 fn fv(v: &AMQPValue) -> Value {
@@ -323,9 +665,13 @@ fn fv(v: &AMQPValue) -> Value {
         AMQPValue::DecimalValue(d) => json!({"decimal": [d.scale, d.value]}),
         AMQPValue::ShortString(s) => json!({"shortstr": s.as_str()}),
         AMQPValue::LongString(s) => json!({"str": s.to_string()}),
-        AMQPValue::FieldArray(a) => json!({"array": a.as_slice().iter().map(fv).collect::<Vec<_>>()}),
+        AMQPValue::FieldArray(a) => {
+            json!({"array": a.as_slice().iter().map(fv).collect::<Vec<_>>()})
+        }
         AMQPValue::Timestamp(x) => json!({"timestamp": x}),
-        AMQPValue::FieldTable(t) => json!({"table": t.inner().iter().map(|(k, v)| (k.to_string(), fv(v))).collect::<serde_json::Map<_, _>>()}),
+        AMQPValue::FieldTable(t) => {
+            json!({"table": t.inner().iter().map(|(k, v)| (k.to_string(), fv(v))).collect::<serde_json::Map<_, _>>()})
+        }
         AMQPValue::ByteArray(b) => json!({"bytes": format!("{b:?}")}),
         AMQPValue::Void => json!("void"),
     }
@@ -347,16 +693,49 @@ async fn field_types(t: Arc<T>) -> R {
     h.insert("i64".into(), AMQPValue::LongLongInt(-9_000_000_000));
     h.insert("f32".into(), AMQPValue::Float(0.25));
     h.insert("f64".into(), AMQPValue::Double(1e100));
-    h.insert("dec".into(), AMQPValue::DecimalValue(DecimalValue { scale: 2, value: 12345 }));
-    h.insert("str".into(), AMQPValue::LongString(LongString::from("long string")));
-    h.insert("arr".into(), AMQPValue::FieldArray(FieldArray::from(vec![AMQPValue::LongInt(1), AMQPValue::Boolean(false)])));
+    h.insert(
+        "dec".into(),
+        AMQPValue::DecimalValue(DecimalValue {
+            scale: 2,
+            value: 12345,
+        }),
+    );
+    h.insert(
+        "str".into(),
+        AMQPValue::LongString(LongString::from("long string")),
+    );
+    h.insert(
+        "arr".into(),
+        AMQPValue::FieldArray(FieldArray::from(vec![
+            AMQPValue::LongInt(1),
+            AMQPValue::Boolean(false),
+        ])),
+    );
     h.insert("ts".into(), AMQPValue::Timestamp(1_700_000_000));
     h.insert("tbl".into(), AMQPValue::FieldTable(inner));
     h.insert("void".into(), AMQPValue::Void);
-    let sent: serde_json::Map<String, Value> = h.inner().iter().map(|(k, v)| (k.to_string(), fv(v))).collect();
-    e(ch.confirm_select(ConfirmSelectOptions::default()).await, "confirm.select")?;
-    publish(&ch, "", &q, b"h", BasicProperties::default().with_headers(h)).await?;
-    let m = e(ch.basic_get(&q, BasicGetOptions { no_ack: true }).await, "get")?.ok_or("no message")?;
+    let sent: serde_json::Map<String, Value> = h
+        .inner()
+        .iter()
+        .map(|(k, v)| (k.to_string(), fv(v)))
+        .collect();
+    e(
+        ch.confirm_select(ConfirmSelectOptions::default()).await,
+        "confirm.select",
+    )?;
+    publish(
+        &ch,
+        "",
+        &q,
+        b"h",
+        BasicProperties::default().with_headers(h),
+    )
+    .await?;
+    let m = e(
+        ch.basic_get(&q, BasicGetOptions { no_ack: true }).await,
+        "get",
+    )?
+    .ok_or("no message")?;
     let got: serde_json::Map<String, Value> = m
         .delivery
         .properties
@@ -367,22 +746,62 @@ async fn field_types(t: Arc<T>) -> R {
         .iter()
         .map(|(k, v)| (k.to_string(), fv(v)))
         .collect();
-    t.eq("headers with types", Value::Object(got), Value::Object(sent))
+    t.eq(
+        "headers with types",
+        Value::Object(got),
+        Value::Object(sent),
+    )
 }
 
 async fn bodies(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let ch = chan(&c).await?;
     let q = temp_queue(&ch, FieldTable::default()).await?;
-    e(ch.confirm_select(ConfirmSelectOptions::default()).await, "confirm.select")?;
+    e(
+        ch.confirm_select(ConfirmSelectOptions::default()).await,
+        "confirm.select",
+    )?;
     let big: Vec<u8> = (0..5 * 1024 * 1024).map(|i| (i % 241) as u8).collect();
     publish(&ch, "", &q, &big, BasicProperties::default()).await?;
-    publish(&ch, "", &q, b"", BasicProperties::default().with_content_type(ShortString::from("empty"))).await?;
-    let mut consumer = e(ch.basic_consume(&q, "", BasicConsumeOptions { no_ack: true, ..Default::default() }, FieldTable::default()).await, "consume")?;
+    publish(
+        &ch,
+        "",
+        &q,
+        b"",
+        BasicProperties::default().with_content_type(ShortString::from("empty")),
+    )
+    .await?;
+    let mut consumer = e(
+        ch.basic_consume(
+            &q,
+            "",
+            BasicConsumeOptions {
+                no_ack: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await,
+        "consume",
+    )?;
     let a = next(&mut consumer).await?;
     let b = next(&mut consumer).await?;
-    t.eq("large", json!([a.data.len(), a.data == big]), json!([big.len(), true]))?;
-    t.eq("empty", json!([b.data.len(), b.properties.content_type().as_ref().map(|s| s.as_str().to_string())]), json!([0, "empty"]))
+    t.eq(
+        "large",
+        json!([a.data.len(), a.data == big]),
+        json!([big.len(), true]),
+    )?;
+    t.eq(
+        "empty",
+        json!([
+            b.data.len(),
+            b.properties
+                .content_type()
+                .as_ref()
+                .map(|s| s.as_str().to_string())
+        ]),
+        json!([0, "empty"]),
+    )
 }
 
 async fn get_counts(t: Arc<T>) -> R {
@@ -391,25 +810,73 @@ async fn get_counts(t: Arc<T>) -> R {
     let q = temp_queue(&ch, FieldTable::default()).await?;
     let none = e(ch.basic_get(&q, BasicGetOptions::default()).await, "get")?;
     t.eq("empty get", json!(none.is_none()), json!(true))?;
-    e(ch.confirm_select(ConfirmSelectOptions::default()).await, "confirm.select")?;
+    e(
+        ch.confirm_select(ConfirmSelectOptions::default()).await,
+        "confirm.select",
+    )?;
     for i in 0..4 {
-        publish(&ch, "", &q, format!("{i}").as_bytes(), BasicProperties::default()).await?;
+        publish(
+            &ch,
+            "",
+            &q,
+            format!("{i}").as_bytes(),
+            BasicProperties::default(),
+        )
+        .await?;
     }
     let m = e(ch.basic_get(&q, BasicGetOptions::default()).await, "get")?.ok_or("no message")?;
-    t.eq("get-ok", json!([m.message_count, m.delivery.delivery_tag, m.delivery.redelivered]), json!([3, 1, false]))?;
-    e(m.delivery.reject(BasicRejectOptions { requeue: true }).await, "reject")?;
-    let m = e(ch.basic_get(&q, BasicGetOptions { no_ack: true }).await, "get")?.ok_or("no message")?;
-    t.eq("requeued first", json!([String::from_utf8_lossy(&m.delivery.data), m.delivery.redelivered, m.message_count]), json!(["0", true, 3]))
+    t.eq(
+        "get-ok",
+        json!([
+            m.message_count,
+            m.delivery.delivery_tag,
+            m.delivery.redelivered
+        ]),
+        json!([3, 1, false]),
+    )?;
+    e(
+        m.delivery
+            .reject(BasicRejectOptions { requeue: true })
+            .await,
+        "reject",
+    )?;
+    let m = e(
+        ch.basic_get(&q, BasicGetOptions { no_ack: true }).await,
+        "get",
+    )?
+    .ok_or("no message")?;
+    t.eq(
+        "requeued first",
+        json!([
+            String::from_utf8_lossy(&m.delivery.data),
+            m.delivery.redelivered,
+            m.message_count
+        ]),
+        json!(["0", true, 3]),
+    )
 }
 
 async fn channel_after_close(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let ch = chan(&c).await?;
-    let r = ch.exchange_declare("amq.lapin-not-allowed", ExchangeKind::Direct, ExchangeDeclareOptions::default(), FieldTable::default()).await;
+    let r = ch
+        .exchange_declare(
+            "amq.lapin-not-allowed",
+            ExchangeKind::Direct,
+            ExchangeDeclareOptions::default(),
+            FieldTable::default(),
+        )
+        .await;
     expect_code(&t, "declare amq.*", r, 403)?;
-    let r = ch.queue_declare("", QueueDeclareOptions::default(), FieldTable::default()).await;
+    let r = ch
+        .queue_declare("", QueueDeclareOptions::default(), FieldTable::default())
+        .await;
     t.eq("closed channel refuses use", json!(r.is_err()), json!(true))?;
     let ch2 = chan(&c).await?;
     let q = temp_queue(&ch2, FieldTable::default()).await?;
-    t.eq("connection still fine", json!(q.starts_with("amq.gen-")), json!(true))
+    t.eq(
+        "connection still fine",
+        json!(q.starts_with("amq.gen-")),
+        json!(true),
+    )
 }

@@ -6,7 +6,9 @@
 //!
 //!     tls-certs DIR
 
-use rcgen::{BasicConstraints, Certificate, CertificateParams, DnType, IsCa, KeyPair, KeyUsagePurpose};
+use rcgen::{
+    BasicConstraints, Certificate, CertificateParams, DnType, IsCa, KeyPair, KeyUsagePurpose,
+};
 use std::path::Path;
 
 struct Authority {
@@ -26,9 +28,11 @@ fn authority(name: &str) -> Authority {
 
 fn leaf(ca: &Authority, common_name: &str, dns: &[&str]) -> (Certificate, KeyPair) {
     let key = KeyPair::generate().expect("key");
-    let mut params =
-        CertificateParams::new(dns.iter().map(|d| d.to_string()).collect::<Vec<_>>()).expect("params");
-    params.distinguished_name.push(DnType::CommonName, common_name);
+    let mut params = CertificateParams::new(dns.iter().map(|d| d.to_string()).collect::<Vec<_>>())
+        .expect("params");
+    params
+        .distinguished_name
+        .push(DnType::CommonName, common_name);
     let cert = params.signed_by(&key, &ca.cert, &ca.key).expect("sign");
     (cert, key)
 }
@@ -47,8 +51,15 @@ fn client(dir: &Path, ca: &Authority, stem: &str) {
     ];
     let entry = p12_keystore::PrivateKeyChain::new(key.serialize_der(), [1u8; 20], chain);
     let mut store = p12_keystore::KeyStore::new();
-    store.add_entry("robot-7", p12_keystore::KeyStoreEntry::PrivateKeyChain(entry));
-    write(dir, &format!("{stem}.p12"), store.writer("pw").write().expect("PKCS#12"));
+    store.add_entry(
+        "robot-7",
+        p12_keystore::KeyStoreEntry::PrivateKeyChain(entry),
+    );
+    write(
+        dir,
+        &format!("{stem}.p12"),
+        store.writer("pw").write().expect("PKCS#12"),
+    );
 }
 
 fn main() {

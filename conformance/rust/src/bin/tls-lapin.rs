@@ -12,7 +12,10 @@ use std::time::Duration;
 
 fn arg(name: &str) -> String {
     let args: Vec<String> = std::env::args().collect();
-    let at = args.iter().position(|a| a == name).unwrap_or_else(|| panic!("missing {name}"));
+    let at = args
+        .iter()
+        .position(|a| a == name)
+        .unwrap_or_else(|| panic!("missing {name}"));
     args[at + 1].clone()
 }
 
@@ -28,14 +31,27 @@ async fn check(url: String, config: OwnedTLSConfig) -> Result<(), String> {
         .map_err(|e| e.to_string())?;
     let ch = conn.create_channel().await.map_err(|e| e.to_string())?;
     let queue = ch
-        .queue_declare("", QueueDeclareOptions { exclusive: true, ..Default::default() }, FieldTable::default())
+        .queue_declare(
+            "",
+            QueueDeclareOptions {
+                exclusive: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
         .await
         .map_err(|e| e.to_string())?;
-    ch.basic_publish("", queue.name().as_str(), BasicPublishOptions::default(), b"tls", BasicProperties::default())
-        .await
-        .map_err(|e| e.to_string())?
-        .await
-        .map_err(|e| e.to_string())?;
+    ch.basic_publish(
+        "",
+        queue.name().as_str(),
+        BasicPublishOptions::default(),
+        b"tls",
+        BasicProperties::default(),
+    )
+    .await
+    .map_err(|e| e.to_string())?
+    .await
+    .map_err(|e| e.to_string())?;
     let got = ch
         .basic_get(queue.name().as_str(), BasicGetOptions { no_ack: true })
         .await
@@ -57,13 +73,36 @@ async fn main() {
     let plain_url = format!("amqps://guest:guest@localhost:{port}/%2f");
     let external_url = format!("amqps://localhost:{port}/%2f?auth_mechanism=external");
     let checks = [
-        ("handshake, PLAIN, round trip", plain_url.clone(), read(&dir, "ca.pem"), None),
-        ("mutual TLS, EXTERNAL as robot-7", external_url.clone(), read(&dir, "ca.pem"), Some(identity("client"))),
-        ("server not trusted (rogue CA)", plain_url, read(&dir, "rogue-ca.pem"), None),
-        ("client certificate from a rogue CA", external_url, read(&dir, "ca.pem"), Some(identity("rogue"))),
+        (
+            "handshake, PLAIN, round trip",
+            plain_url.clone(),
+            read(&dir, "ca.pem"),
+            None,
+        ),
+        (
+            "mutual TLS, EXTERNAL as robot-7",
+            external_url.clone(),
+            read(&dir, "ca.pem"),
+            Some(identity("client")),
+        ),
+        (
+            "server not trusted (rogue CA)",
+            plain_url,
+            read(&dir, "rogue-ca.pem"),
+            None,
+        ),
+        (
+            "client certificate from a rogue CA",
+            external_url,
+            read(&dir, "ca.pem"),
+            Some(identity("rogue")),
+        ),
     ];
     for (name, url, ca, identity) in checks {
-        let config = OwnedTLSConfig { identity, cert_chain: Some(ca) };
+        let config = OwnedTLSConfig {
+            identity,
+            cert_chain: Some(ca),
+        };
         let outcome = match check(url, config).await {
             Ok(()) => "ok".to_owned(),
             Err(e) => format!("refused: {e}"),
