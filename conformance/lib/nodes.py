@@ -4,6 +4,7 @@ with its own directories, ports and Erlang cookie) and a leveret process,
 each on free loopback ports and removed when stopped."""
 
 import os
+import random
 import shutil
 import socket
 import subprocess
@@ -17,10 +18,29 @@ class SetupError(Exception):
     pass
 
 
+def _ephemeral_floor():
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+            return int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 49152
+
+
 def free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A free loopback port below the kernel's ephemeral range: a port-0
+    bind (every broker's metrics and HTTP listeners, every client's
+    connection) never lands there, so nothing takes it between this pick
+    and the bind of the broker it is for."""
+    floor, ceiling = 10000, _ephemeral_floor()
+    for _ in range(1000):
+        port = random.randrange(floor, ceiling)
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise SetupError(f"no free port between {floor} and {ceiling}")
 
 
 def wait_port(port, timeout):
