@@ -58,13 +58,11 @@ impl Deliveries {
         if !multiple {
             return self.unacked.remove(index).map(|u| VecDeque::from([u]));
         }
-        // Moves the shorter side: the settled head, or the unsettled tail.
-        if index < self.unacked.len() / 2 {
-            Some(self.unacked.drain(..=index).collect())
-        } else {
-            let rest = self.unacked.split_off(index + 1);
-            Some(std::mem::replace(&mut self.unacked, rest))
-        }
+        // Moves only the settled head (the caller visits each of them
+        // anyway); the unsettled tail stays where it is, in a buffer that
+        // keeps its capacity for the deliveries to come (splitting the
+        // tail off instead made every later push regrow a fresh one).
+        Some(self.unacked.drain(..=index).collect())
     }
 
     /// Puts taken deliveries back (a rolled-back transaction's acks), in

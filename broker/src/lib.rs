@@ -64,7 +64,7 @@
 //! the alarm's sources), `disk_alarm` (free disk space, the disk alarm's
 //! source),
 //! `auth` (users and SASL), `password` (password hashes), `error` (reply
-//! errors).
+//! errors), `word_hash` (a cheap hasher for small integer keys).
 //!
 //! Beside them too, for operators: `stats` (message and churn counters
 //! with RabbitMQ's meanings, relaxed atomic adds on the hot path),
@@ -115,6 +115,7 @@ pub mod store;
 mod testkit;
 mod tls;
 mod vhost;
+mod word_hash;
 
 pub use crate::access::AccessError;
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};

@@ -191,7 +191,10 @@ async fn rabbitmqadmin_drives_leveret() {
     // task ends, right after.
     let deadline = std::time::Instant::now() + Duration::from_secs(10);
     while admin_json(&broker, &["list", "connections"]) != json!([]) {
-        assert!(std::time::Instant::now() < deadline, "the connection is gone");
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the connection is gone"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
 

@@ -772,3 +772,46 @@ async fn consistent_hash_exchange_routes_each_key_to_one_queue() {
     assert!(tmo!(ch.queue_bind(rs::QueueBindArguments::new(&q, &x, "heavy"))).is_err());
     rs::assert_closed(&mut ev, 406, "PRECONDITION_FAILED").await;
 }
+
+/// A channel publishing to one exchange keeps reaching whatever that name
+/// means now: after the exchange is deleted and declared again with other
+/// bindings its messages follow the new bindings, and once it is gone
+/// for good a publish is refused with 404 (the channel must not keep
+/// routing through the exchange it used before).
+#[both_runtimes]
+async fn publishing_follows_an_exchange_deleted_and_declared_again() {
+    let b = broker().await;
+    let conn = lp::connect(&b).await;
+    let admin = lp::channel(&conn).await;
+    let publisher = confirm_channel(&conn).await;
+    let x = lp::exchange(&admin, "redeclared", lp::ExchangeKind::Fanout).await;
+    let before = lp::queue(&admin, "redeclared-before").await;
+    let after = lp::queue(&admin, "redeclared-after").await;
+    lp::bind(&admin, &before, &x, "").await;
+    publish_acked(&publisher, &x, "", b"one").await;
+    tmo!(admin.exchange_delete(&x, lp::ExchangeDeleteOptions::default())).expect("delete");
+    tmo!(admin.exchange_declare(
+        &x,
+        lp::ExchangeKind::Fanout,
+        lp::ExchangeDeclareOptions::default(),
+        lp::FieldTable::default()
+    ))
+    .expect("declare again");
+    lp::bind(&admin, &after, &x, "").await;
+    publish_acked(&publisher, &x, "", b"two").await;
+    assert_eq!(drain(&admin, &before).await, ["one"]);
+    assert_eq!(drain(&admin, &after).await, ["two"]);
+    tmo!(admin.exchange_delete(&x, lp::ExchangeDeleteOptions::default())).expect("delete");
+    let refused = tmo!(publisher.basic_publish(
+        &x,
+        "",
+        lp::BasicPublishOptions::default(),
+        b"three",
+        lp::BasicProperties::default()
+    ));
+    let confirmed = match refused {
+        Ok(confirm) => tmo!(confirm).map(|_| ()),
+        Err(e) => Err(e),
+    };
+    lp::assert_err(confirmed, 404, "NOT_FOUND");
+}

@@ -156,7 +156,7 @@ impl Channel {
     /// wait is returned.
     fn publish_checked(&mut self, mut publish: Publish) -> AmqpResult<Option<Box<Unfinished>>> {
         self.allow_exchange(Right::Write, publish.method.exchange.as_bytes())?;
-        let exchange = self.vhost.exchange_or_404(&publish.method.exchange)?;
+        let exchange = self.publish_exchange(&publish.method.exchange)?;
         if exchange.options.internal {
             return Err(AmqpError::access_refused(format_args!(
                 "cannot publish to internal exchange '{}' in vhost '{}'",
@@ -211,6 +211,21 @@ impl Channel {
         }
         self.settle_publish(rest);
         Ok(None)
+    }
+
+    /// The exchange a publish names: the last publish's while it is the
+    /// same name and not deleted (an exchange declared again after a
+    /// delete is another one, and the deleted one says so), else the
+    /// vhost's.
+    fn publish_exchange(&mut self, name: &ShortStr) -> AmqpResult<Arc<Exchange>> {
+        if let Some(last) = &self.last_exchange {
+            if last.name == *name && !last.is_deleted() {
+                return Ok(Arc::clone(last));
+            }
+        }
+        let exchange = self.vhost.exchange_or_404(name)?;
+        self.last_exchange = Some(Arc::clone(&exchange));
+        Ok(exchange)
     }
 
     /// The part of a publish that waits: its basic.return, then the rest

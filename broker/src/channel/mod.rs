@@ -150,6 +150,9 @@ pub struct Channel {
     prefetch_count: u32,
     published: bool,
     route_buffer: Vec<Arc<Queue>>,
+    /// The exchange the last publish named: most publishers name one, and
+    /// looking it up again hashes its name under the vhost's lock.
+    last_exchange: Option<Arc<Exchange>>,
     tx: Option<tx::Transaction>,
     confirms: Option<tx::Confirms>,
     direct_reply: Option<reply_to::DirectReply>,
@@ -194,6 +197,7 @@ impl Channel {
             prefetch_count: 0,
             published: false,
             route_buffer: Vec::new(),
+            last_exchange: None,
             tx: None,
             confirms: None,
             direct_reply: None,

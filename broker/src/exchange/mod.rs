@@ -397,6 +397,11 @@ impl Exchange {
         !self.read().bindings.is_empty()
     }
 
+    /// Whether the exchange was deleted.
+    pub fn is_deleted(&self) -> bool {
+        self.deleted.load(Ordering::Acquire)
+    }
+
     /// Marks the exchange deleted: from now on it routes nothing.
     pub fn mark_deleted(&self) {
         self.deleted.store(true, Ordering::Release);

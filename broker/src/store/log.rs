@@ -37,6 +37,7 @@
 //! Uses only the standard library and `crc32fast`; called from the
 //! persister thread (every call takes the log's one lock).
 
+use super::log_key::LogKey;
 use super::{KvOp, KvPair, StoreError};
 use std::collections::{BTreeMap, HashMap};
 use std::fs::{File, OpenOptions};
@@ -95,7 +96,7 @@ struct Segment {
 #[derive(Debug, Default)]
 struct Index {
     segments: BTreeMap<u64, Segment>,
-    keys: BTreeMap<Vec<u8>, Location>,
+    keys: BTreeMap<LogKey, Location>,
 }
 
 /// The log's state: the index and the head open for appending.
@@ -275,8 +276,8 @@ impl Index {
     /// Records a put of `key` at `location`, retiring its older value.
     fn put(&mut self, key: &[u8], location: Location) {
         let weight = location.len as u64 + key.len() as u64;
-        if let Some(old) = self.keys.insert(key.to_vec(), location) {
-            self.retire(key, old);
+        if let Some(old) = self.keys.insert(LogKey::new(key), location) {
+            self.retire(key.len(), old);
         }
         let segment = self.segments.entry(location.segment).or_default();
         segment.live += 1;
@@ -284,15 +285,16 @@ impl Index {
     }
 
     fn remove(&mut self, key: &[u8]) {
-        if let Some(old) = self.keys.remove(key) {
-            self.retire(key, old);
+        if let Some(old) = self.keys.remove(&LogKey::new(key)) {
+            self.retire(key.len(), old);
         }
     }
 
-    fn retire(&mut self, key: &[u8], old: Location) {
+    /// Counts a value of a `key_len`-byte key at `old` as dead.
+    fn retire(&mut self, key_len: usize, old: Location) {
         if let Some(segment) = self.segments.get_mut(&old.segment) {
             segment.live -= 1;
-            segment.live_bytes -= old.len as u64 + key.len() as u64;
+            segment.live_bytes -= old.len as u64 + key_len as u64;
         }
     }
 
@@ -627,7 +629,7 @@ impl MessageLog {
             for record in records {
                 if let Record::Put { key, value, at } = record {
                     let live =
-                        state.index.keys.get(key).is_some_and(|l| {
+                        state.index.keys.get(&LogKey::new(key)).is_some_and(|l| {
                             l.segment == oldest && l.offset == payload_at + at as u64
                         });
                     if live {
@@ -666,7 +668,7 @@ impl MessageLog {
                         format!("message log {}: shorter than indexed", path.display()).into(),
                     )
                 })?;
-            pairs.push((key.clone(), value.to_vec()));
+            pairs.push((key.to_vec(), value.to_vec()));
         }
         Ok(pairs)
     }

@@ -51,6 +51,7 @@ mod codec;
 mod disk;
 mod integrity;
 mod log;
+mod log_key;
 mod memory;
 mod persister;
 mod sled;

@@ -14,8 +14,8 @@
 
 use super::{guarded, KvOp, Recovered, Store, StoreError, StoreOp, WriteMode};
 use crate::stats::{Histogram, HistogramFigures};
+use crate::word_hash::WordHashMap;
 use std::collections::VecDeque;
-use std::hash::{BuildHasherDefault, Hasher};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use tokio::sync::watch;
@@ -181,7 +181,10 @@ struct Group {
     /// where an insert was dropped.
     pending: Vec<Option<StoreOp>>,
     /// Where in `pending` each fresh key's insert waits.
-    fresh: std::collections::HashMap<Fresh, usize, BuildHasherDefault<FreshHasher>>,
+    /// Hashed by a multiply per word: its words are positions and ids the
+    /// broker hands out, never a peer's choice (SipHash was 2.5% of the
+    /// broker's CPU under persistent load).
+    fresh: WordHashMap<Fresh, usize>,
     /// Inserts dropped with their removes.
     elided: usize,
     marks: Vec<(u64, u64)>,
@@ -197,33 +200,6 @@ struct Group {
 enum Fresh {
     Index { queue: u64, seq: u64 },
     Message(u64),
-}
-
-/// Hashes [`Fresh`] keys with a multiply per word (FxHash's): their
-/// words are positions and ids the broker hands out, never a peer's
-/// choice, so SipHash's defence against chosen keys buys nothing here
-/// (it was 2.5% of the broker's CPU under persistent load).
-#[derive(Default)]
-struct FreshHasher(u64);
-
-impl Hasher for FreshHasher {
-    fn write(&mut self, bytes: &[u8]) {
-        for &byte in bytes {
-            self.write_u64(u64::from(byte));
-        }
-    }
-
-    fn write_u64(&mut self, word: u64) {
-        self.0 = (self.0.rotate_left(5) ^ word).wrapping_mul(0x517c_c1b7_2722_0a95);
-    }
-
-    fn write_usize(&mut self, word: usize) {
-        self.write_u64(word as u64);
-    }
-
-    fn finish(&self) -> u64 {
-        self.0
-    }
 }
 
 impl Fresh {
