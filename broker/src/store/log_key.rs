@@ -56,16 +56,21 @@ impl LogKey {
 }
 
 impl Ord for LogKey {
+    /// Inline keys (every key the codec makes) compare word by word, in
+    /// the caller's code: this runs a few dozen times per index update.
+    #[inline]
     fn cmp(&self, other: &LogKey) -> Ordering {
         match (self, other) {
             (
-                LogKey::Inline { words, len },
                 LogKey::Inline {
-                    words: other_words,
-                    len: other_len,
+                    words: a,
+                    len: a_len,
                 },
-            ) => words.cmp(other_words).then(len.cmp(other_len)),
-            (LogKey::Long(bytes), LogKey::Long(other_bytes)) => bytes.cmp(other_bytes),
+                LogKey::Inline {
+                    words: b,
+                    len: b_len,
+                },
+            ) => (a[0], a[1], a[2], *a_len).cmp(&(b[0], b[1], b[2], *b_len)),
             _ => self.to_vec().cmp(&other.to_vec()),
         }
     }
