@@ -17,7 +17,6 @@ use leveret_tests::reserved_port::reserved_addr;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tokio::net::TcpListener;
 
 /// An embedded Leveret on a loopback port.
 async fn leveret() -> (BrokerHandle, SocketAddr) {
