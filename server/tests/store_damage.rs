@@ -14,7 +14,7 @@ use lapin::types::FieldTable;
 use lapin::{BasicProperties, Connection, ConnectionProperties};
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 mod common;
@@ -102,18 +102,24 @@ async fn intact(broker: &BrokerProcess, prefix: &str) -> bool {
     true
 }
 
-/// Runs the binary on `dir` and expects it to refuse: a failed exit with
-/// a log naming the directory and the damage.
-fn assert_refused(dir: &Path, case: &str) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
+/// `leveret` on `dir`, every listener on a free port, logging at `log`
+/// to a pipe.
+fn spawn_on(dir: &Path, log: &str) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_leveret"))
         .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
-        .args(["--http-listen", "127.0.0.1:0", "--log", "warn"])
+        .args(["--http-listen", "127.0.0.1:0", "--log", log])
         .arg("--data-dir")
         .arg(dir)
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
-        .expect("start leveret");
+        .expect("start leveret")
+}
+
+/// Runs the binary on `dir` and expects it to refuse: a failed exit with
+/// a log naming the directory and the damage.
+fn assert_refused(dir: &Path, case: &str) {
+    let mut child = spawn_on(dir, "warn");
     let deadline = std::time::Instant::now() + Duration::from_secs(10);
     while child.try_wait().expect("wait").is_none() {
         if std::time::Instant::now() > deadline {
@@ -336,15 +342,7 @@ async fn damage_refuses_the_start_or_loses_nothing_and_recover_salvages() {
 /// Whether `leveret` starts on `dir` (then stops it) or refuses: its log
 /// says it accepts AMQP connections, or it exits first.
 fn starts(dir: &Path) -> bool {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
-        .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
-        .args(["--http-listen", "127.0.0.1:0", "--log", "info"])
-        .arg("--data-dir")
-        .arg(dir)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start leveret");
+    let mut child = spawn_on(dir, "info");
     let stderr = child.stderr.take().expect("stderr");
     let (outcome, seen) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
