@@ -267,8 +267,19 @@ impl Vhost {
                 name, self.name
             )));
         }
-        write(&self.exchanges).remove(name);
-        self.forget_exchange(&exchange);
+        // Only the exchange looked up above: one declared again under the
+        // name meanwhile is another, and stays (a publisher's channel may
+        // already hold it, trusting that a removed exchange is marked).
+        let removed = {
+            let mut exchanges = write(&self.exchanges);
+            let current = exchanges
+                .get(name)
+                .is_some_and(|e| Arc::ptr_eq(e, &exchange));
+            current && exchanges.remove(name).is_some()
+        };
+        if removed {
+            self.forget_exchange(&exchange);
+        }
         Ok(())
     }
 
