@@ -14,6 +14,10 @@ use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
+/// Unacked deliveries a channel's buffer keeps room for however few are
+/// outstanding (64 KiB of entries).
+const SPARE_UNACKED: usize = 1024;
+
 /// A delivery waiting for ack, nack or reject.
 #[derive(Debug)]
 pub struct Unacked {
@@ -55,14 +59,28 @@ impl Deliveries {
             return Some(self.take_all());
         }
         let index = self.unacked.binary_search_by_key(&tag, |u| u.tag).ok()?;
-        if !multiple {
-            return self.unacked.remove(index).map(|u| VecDeque::from([u]));
+        let settled = if multiple {
+            // Moves only the settled head (the caller visits each of them
+            // anyway); the unsettled tail stays in a buffer that keeps its
+            // capacity for the deliveries to come (splitting the tail off
+            // instead made every later push regrow a fresh one).
+            self.unacked.drain(..=index).collect()
+        } else {
+            self.unacked.remove(index).into_iter().collect()
+        };
+        self.give_back_spare();
+        Some(settled)
+    }
+
+    /// Gives back a buffer a burst grew once it is mostly empty (copying
+    /// what is left, at most a quarter of it), keeping room for a steady
+    /// window of deliveries.
+    fn give_back_spare(&mut self) {
+        let capacity = self.unacked.capacity();
+        if capacity > SPARE_UNACKED && capacity > 4 * self.unacked.len() {
+            self.unacked
+                .shrink_to((2 * self.unacked.len()).max(SPARE_UNACKED));
         }
-        // Moves only the settled head (the caller visits each of them
-        // anyway); the unsettled tail stays where it is, in a buffer that
-        // keeps its capacity for the deliveries to come (splitting the
-        // tail off instead made every later push regrow a fresh one).
-        Some(self.unacked.drain(..=index).collect())
     }
 
     /// Puts taken deliveries back (a rolled-back transaction's acks), in
@@ -332,6 +350,57 @@ mod tests {
         assert_eq!(counts(&c), (0, 0));
         c.channel.flow_active.store(false, Ordering::Relaxed);
         assert!(c.try_take_credit().is_none() && !c.has_credit());
+    }
+
+    /// A burst's buffer is given back once the burst is acknowledged,
+    /// whether by one multiple ack or one ack at a time, and the
+    /// deliveries settled are exactly the ones named.
+    #[test]
+    fn a_bursts_buffer_is_given_back_once_acknowledged() {
+        use crate::testkit::{message, s, Harness};
+        let h = Harness::new();
+        let queue = h.queue("burst", &[]);
+        let msg = message(
+            &s(""),
+            "k",
+            "x",
+            &leveret_protocol::BasicProperties::default(),
+        );
+        for multiple in [true, false] {
+            let mut deliveries = Deliveries::default();
+            for _ in 0..20_000 {
+                let tag = deliveries.next_tag();
+                deliveries.push(Unacked {
+                    tag,
+                    queue: Arc::clone(&queue),
+                    message: QueuedMessage {
+                        seq: tag,
+                        priority: 0,
+                        message: Arc::clone(&msg),
+                        redelivered: false,
+                        expires_at: None,
+                    },
+                    consumer: None,
+                });
+            }
+            let grown = deliveries.unacked.capacity();
+            let settled: Vec<u64> = if multiple {
+                let taken = deliveries.take(19_990, true).expect("outstanding");
+                taken.iter().map(|u| u.tag).collect()
+            } else {
+                (1..=19_990)
+                    .flat_map(|tag| deliveries.take(tag, false).expect("outstanding"))
+                    .map(|u| u.tag)
+                    .collect()
+            };
+            assert_eq!(settled, (1..=19_990).collect::<Vec<_>>());
+            assert_eq!(deliveries.unacked_count(), 10);
+            let kept = deliveries.unacked.capacity();
+            assert!(
+                grown >= 20_000 && kept <= 2 * SPARE_UNACKED,
+                "{grown} then {kept}"
+            );
+        }
     }
 }
 
