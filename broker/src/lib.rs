@@ -58,7 +58,8 @@
 //!
 //! Beside the layers: `store` (the [`store::Store`] trait, the key codec,
 //! the group-commit persister), used from the queue layer up and using
-//! nothing of the broker; and the pieces every layer may use: `message`
+//! nothing of the broker but `stats` (its histograms) and `word_hash`;
+//! and the pieces every layer may use: `message`
 //! (a message as the broker holds it), `memory` (the memory alarm) and
 //! `resident_memory` (the process's resident memory from /proc, one of
 //! the alarm's sources), `disk_alarm` (free disk space, the disk alarm's

@@ -398,11 +398,11 @@ async fn closing_a_port_announces_closed() {
 static ALONE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
 /// A 100 Hz loop putting through a frozen link while its port tries to
-/// announce itself every 50 ms: `put` stays fast, and the announcements,
+/// announce itself every 20 ms: `put` stays fast, and the announcements,
 /// which stop while the link is frozen (the port drops out of the table
 /// after three intervals), come back after it on the same link.
 async fn puts_while_announcements_are_stuck(flavor: &str) {
-    let announce_every = Duration::from_millis(50);
+    let announce_every = Duration::from_millis(20);
     let (_broker, addr) = leveret().await;
     let proxy = Proxy::start(addr).await;
     let (_connection, mut directory) = directory(&uri(addr)).await;

@@ -18,20 +18,28 @@ class SetupError(Exception):
     pass
 
 
-def _ephemeral_floor():
+def _ephemeral_range():
     try:
         with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
-            return int(f.read().split()[0])
-    except (OSError, ValueError, IndexError):
-        return 49152
+            low, high = f.read().split()[:2]
+            return int(low), int(high)
+    except (OSError, ValueError):
+        return 49152, 65535
 
 
 def free_port():
-    """A free loopback port below the kernel's ephemeral range: a port-0
-    bind (every broker's metrics and HTTP listeners, every client's
-    connection) never lands there, so nothing takes it between this pick
-    and the bind of the broker it is for."""
-    floor, ceiling = 10000, _ephemeral_floor()
+    """A free loopback port outside the kernel's ephemeral range (below it,
+    or above it where it starts too low): a port-0 bind (every broker's
+    metrics and HTTP listeners, every client's connection) never lands
+    there, so nothing takes it between this pick and the bind of the
+    broker it is for."""
+    low, high = _ephemeral_range()
+    if low >= 11000:
+        floor, ceiling = 10000, low
+    elif high <= 64535:
+        floor, ceiling = high + 1, 65536
+    else:
+        raise SetupError(f"the ephemeral port range {low}-{high} leaves no room")
     for _ in range(1000):
         port = random.randrange(floor, ceiling)
         with socket.socket() as s:

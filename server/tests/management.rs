@@ -193,7 +193,7 @@ async fn rabbitmqadmin_drives_leveret() {
     while admin_json(&broker, &["list", "connections"]) != json!([]) {
         assert!(
             std::time::Instant::now() < deadline,
-            "the connection is gone"
+            "the closed connection is still listed"
         );
         std::thread::sleep(Duration::from_millis(50));
     }

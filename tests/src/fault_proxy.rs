@@ -46,7 +46,7 @@ impl FaultProxy {
         FaultProxy::start_at(crate::reserved_port::reserved_addr(), upstream).await
     }
 
-    /// A proxy to `upstream` listening on `addr`.
+    /// A proxy to `upstream` listening on `addr` (port 0 picks one).
     pub async fn start_at(addr: SocketAddr, upstream: SocketAddr) -> FaultProxy {
         let listener = TcpListener::bind(addr).await.expect("bind the proxy");
         let addr = listener.local_addr().expect("bound address");

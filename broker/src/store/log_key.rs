@@ -71,6 +71,7 @@ impl Ord for LogKey {
                     len: b_len,
                 },
             ) => (a[0], a[1], a[2], *a_len).cmp(&(b[0], b[1], b[2], *b_len)),
+            (LogKey::Long(a), LogKey::Long(b)) => a.cmp(b),
             _ => self.to_vec().cmp(&other.to_vec()),
         }
     }
