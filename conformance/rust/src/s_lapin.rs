@@ -57,6 +57,21 @@ async fn temp_queue(ch: &Channel, args: FieldTable) -> Result<String, String> {
     Ok(q.name().as_str().to_string())
 }
 
+/// Declares an auto-delete exchange; `label` names the step in a failure.
+async fn auto_delete_exchange(
+    ch: &Channel,
+    name: &str,
+    kind: ExchangeKind,
+    args: FieldTable,
+    label: &str,
+) -> R {
+    let options = ExchangeDeclareOptions {
+        auto_delete: true,
+        ..Default::default()
+    };
+    e(ch.exchange_declare(name, kind, options, args).await, label)
+}
+
 fn code_of(err: &lapin::Error) -> Value {
     match err {
         lapin::Error::ProtocolError(p) => json!([p.get_id(), reply_name(p.get_message().as_str())]),
@@ -177,19 +192,14 @@ async fn topic_bind_unbind(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let ch = chan(&c).await?;
     let ex = t.n("lapin-topic");
-    e(
-        ch.exchange_declare(
-            &ex,
-            ExchangeKind::Topic,
-            ExchangeDeclareOptions {
-                auto_delete: true,
-                ..Default::default()
-            },
-            FieldTable::default(),
-        )
-        .await,
+    auto_delete_exchange(
+        &ch,
+        &ex,
+        ExchangeKind::Topic,
+        FieldTable::default(),
         "declare",
-    )?;
+    )
+    .await?;
     let q = temp_queue(&ch, FieldTable::default()).await?;
     for k in ["log.*.error", "log.#"] {
         e(
@@ -240,45 +250,16 @@ async fn e2e_alternate(t: Arc<T>) -> R {
         "alternate-exchange".into(),
         AMQPValue::LongString(ae.clone().into()),
     );
-    e(
-        ch.exchange_declare(
-            &ae,
-            ExchangeKind::Fanout,
-            ExchangeDeclareOptions {
-                auto_delete: true,
-                ..Default::default()
-            },
-            FieldTable::default(),
-        )
-        .await,
-        "ae",
-    )?;
-    e(
-        ch.exchange_declare(
-            &src,
-            ExchangeKind::Direct,
-            ExchangeDeclareOptions {
-                auto_delete: true,
-                ..Default::default()
-            },
-            args,
-        )
-        .await,
-        "src",
-    )?;
-    e(
-        ch.exchange_declare(
-            &dst,
-            ExchangeKind::Fanout,
-            ExchangeDeclareOptions {
-                auto_delete: true,
-                ..Default::default()
-            },
-            FieldTable::default(),
-        )
-        .await,
+    auto_delete_exchange(&ch, &ae, ExchangeKind::Fanout, FieldTable::default(), "ae").await?;
+    auto_delete_exchange(&ch, &src, ExchangeKind::Direct, args, "src").await?;
+    auto_delete_exchange(
+        &ch,
+        &dst,
+        ExchangeKind::Fanout,
+        FieldTable::default(),
         "dst",
-    )?;
+    )
+    .await?;
     e(
         ch.exchange_bind(
             &dst,
