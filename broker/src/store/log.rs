@@ -5,12 +5,25 @@
 //! a flush is one `fdatasync`, and nothing is rewritten in place.
 //!
 //! On disk: `<dir>/<number as 16 hex digits>.seg`. A segment starts with
-//! a header (`MAGIC`, then its number, big-endian) and holds batches: the
-//! payload's length and its CRC-32 (both `u32` little-endian), then the
-//! payload, a run of records: `PUT` key-length (`u16` LE) key
-//! value-length (`u32` LE) value, or `REMOVE` key-length key. One
-//! [`MessageLog::write`] is one batch, so each write is atomic: a batch is
-//! applied whole or, when its checksum fails, not at all.
+//! a header (its format's magic, then its number, big-endian) and holds
+//! batches: the payload's length and its CRC-32 (both `u32`
+//! little-endian), then the payload, a run of records: `PUT` key-length
+//! (`u16` LE) key value-length (`u32` LE) value, or `REMOVE` key-length
+//! key. One [`MessageLog::write`] is one batch, so each write is atomic: a
+//! batch is applied whole or, when its checksum fails, not at all. Each
+//! batch is written with an end mark after it (a batch header of zeros)
+//! that the next batch overwrites, so the data's end is read exactly
+//! whatever the file holds beyond it.
+//!
+//! Format 2 (`LVRTLOG2`) checksums the segment's number with each payload;
+//! format 1 (`LVRTLOG1`, read and appended to, never started) does not.
+//! That lets a dead segment's file be recycled as a later segment: its
+//! blocks are already allocated, so appending to it changes no file size
+//! and a sync writes back data only (a fresh segment is extended with
+//! zeros ahead of its data for the same reason, which costs writing those
+//! zeros back as well), and a batch left from the file's earlier life
+//! never passes as the new segment's own, even when a power cut lost the
+//! end mark that hid it. Spare files wait as `<dir>/<old number>.spare`.
 //!
 //! In memory: where each live key's current value lies (segment, offset,
 //! length), and per segment how many bytes are still live. Values are read
@@ -33,6 +46,9 @@
 //! present ones is damage: opening fails naming the file and the offset,
 //! unless salvaging, which keeps every batch before the bad one and
 //! truncates the rest of that segment (after the caller copied it aside).
+//! An end mark ends a segment's data wherever it lies; in any segment but
+//! the newest, data that ends without a seal is damage, so a hole of zeros
+//! there is still found.
 //!
 //! Uses only the standard library and `crc32fast`; called from the
 //! persister thread (every call takes the log's one lock).
@@ -41,17 +57,21 @@ use super::log_key::LogKey;
 use super::{KvOp, KvPair, StoreError};
 use std::collections::{BTreeMap, HashMap};
 use std::fs::{File, OpenOptions};
-use std::io::Write;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
-/// A segment file's first bytes.
-const MAGIC: &[u8; 8] = b"LVRTLOG1";
+/// A segment file's first bytes, per format.
+const MAGIC_V1: &[u8; 8] = b"LVRTLOG1";
+const MAGIC_V2: &[u8; 8] = b"LVRTLOG2";
 /// A segment's header: the magic and its number.
 const HEADER: u64 = 16;
 /// A batch's header: payload length and checksum.
 const BATCH_HEADER: usize = 8;
+/// The end mark written after each batch: a batch header of zeros.
+const END_MARK: [u8; BATCH_HEADER] = [0; BATCH_HEADER];
+/// Dead segments' files kept for recycling at most (more are deleted).
+const SPARES: usize = 2;
 /// Record tags.
 const PUT: u8 = 1;
 const REMOVE: u8 = 2;
@@ -70,6 +90,34 @@ const PREFILL_BYTES: u64 = 2 * 1024 * 1024;
 /// Live bytes compaction copies per flush at most (the persister thread
 /// stays responsive: a flush's extra work is bounded).
 const COMPACT_BYTES: u64 = 1024 * 1024;
+
+/// How a segment's batches are checksummed (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Format {
+    /// The payload only.
+    V1,
+    /// The segment's number, then the payload.
+    V2,
+}
+
+impl Format {
+    fn of_magic(magic: &[u8]) -> Option<Format> {
+        match magic {
+            m if m == MAGIC_V1 => Some(Format::V1),
+            m if m == MAGIC_V2 => Some(Format::V2),
+            _ => None,
+        }
+    }
+
+    fn checksum(self, segment: u64, payload: &[u8]) -> u32 {
+        let mut hasher = crc32fast::Hasher::new();
+        if self == Format::V2 {
+            hasher.update(&segment.to_be_bytes());
+        }
+        hasher.update(payload);
+        hasher.finalize()
+    }
+}
 
 /// Where a live key's current value lies.
 #[derive(Debug, Clone, Copy)]
@@ -106,8 +154,12 @@ struct State {
     /// The newest segment, open for appending.
     head: File,
     head_number: u64,
-    /// The head file's length: its data, then zeros.
+    head_format: Format,
+    /// The head file's length: its data, then zeros or a recycled file's
+    /// old bytes.
     head_len: u64,
+    /// Dead segments' files waiting to be recycled, at most [`SPARES`].
+    spares: Vec<PathBuf>,
     /// Where compaction of the oldest segment has got (segment, offset).
     compacting: Option<(u64, u64)>,
     /// Whether the head has writes not yet synced.
@@ -210,15 +262,20 @@ fn parse_records(payload: &[u8]) -> Option<Vec<Record<'_>>> {
     Some(records)
 }
 
-/// `ops` as one framed batch, built in place (the records after room for
-/// the header, then the header filled in), and where each put's value lies
-/// from the batch's start (`None` for a remove).
-fn encode_batch(ops: &[KvOp]) -> Result<(Vec<u8>, Vec<Option<u64>>), StoreError> {
+/// `ops` as one framed batch for segment `segment` of `format`, built in
+/// place (the records after room for the header, then the header filled
+/// in, then the end mark), and where each put's value lies from the
+/// batch's start (`None` for a remove).
+fn encode_batch(
+    ops: &[KvOp],
+    format: Format,
+    segment: u64,
+) -> Result<(Vec<u8>, Vec<Option<u64>>), StoreError> {
     let size: usize = ops
         .iter()
         .map(|(key, value)| 7 + key.len() + value.as_ref().map_or(0, Vec::len))
         .sum();
-    let mut batch = Vec::with_capacity(BATCH_HEADER + size);
+    let mut batch = Vec::with_capacity(2 * BATCH_HEADER + size);
     batch.resize(BATCH_HEADER, 0);
     let mut values = Vec::with_capacity(ops.len());
     for (key, value) in ops {
@@ -245,25 +302,27 @@ fn encode_batch(ops: &[KvOp]) -> Result<(Vec<u8>, Vec<Option<u64>>), StoreError>
     }
     let payload_len = u32::try_from(batch.len() - BATCH_HEADER)
         .map_err(|_| StoreError::Engine("a message log batch over 4 GB".into()))?;
-    let crc = crc32fast::hash(&batch[BATCH_HEADER..]);
+    let crc = format.checksum(segment, &batch[BATCH_HEADER..]);
     batch[..4].copy_from_slice(&payload_len.to_le_bytes());
     batch[4..8].copy_from_slice(&crc.to_le_bytes());
+    batch.extend_from_slice(&END_MARK);
     Ok((batch, values))
 }
 
-/// Frames a payload as a batch.
-fn frame(payload: &[u8]) -> Result<Vec<u8>, StoreError> {
-    let len = u32::try_from(payload.len())
-        .map_err(|_| StoreError::Engine("a message log batch over 4 GB".into()))?;
-    let mut batch = Vec::with_capacity(BATCH_HEADER + payload.len());
-    batch.extend_from_slice(&len.to_le_bytes());
-    batch.extend_from_slice(&crc32fast::hash(payload).to_le_bytes());
-    batch.extend_from_slice(payload);
-    Ok(batch)
+/// A seal batch for segment `segment` of `format`, with its end mark.
+fn seal_batch(format: Format, segment: u64) -> Vec<u8> {
+    let mut batch = Vec::with_capacity(2 * BATCH_HEADER + 1);
+    batch.extend_from_slice(&1u32.to_le_bytes());
+    batch.extend_from_slice(&format.checksum(segment, &[SEAL]).to_le_bytes());
+    batch.push(SEAL);
+    batch.extend_from_slice(&END_MARK);
+    batch
 }
 
 /// What reading a segment found.
 struct Read {
+    /// Its format, if its header is whole.
+    format: Option<Format>,
     /// End of the last good batch.
     good_end: u64,
     /// Whether that batch is a seal.
@@ -321,22 +380,22 @@ impl Index {
         let path = segment_path(dir, number);
         let bytes = std::fs::read(&path).map_err(|e| io_error(&path, e))?;
         self.segments.entry(number).or_default();
-        if bytes.len() < HEADER as usize
-            || &bytes[..8] != MAGIC
-            || bytes[8..16] != number.to_be_bytes()
-        {
+        let format = bytes.get(..8).and_then(Format::of_magic);
+        let Some(format) = format.filter(|_| bytes.get(8..16) == Some(&number.to_be_bytes()))
+        else {
             return Ok(Read {
+                format: None,
                 good_end: 0,
                 sealed: false,
                 problem: Some("its header is missing or wrong".into()),
             });
-        }
+        };
         let mut at = HEADER as usize;
         let mut sealed = false;
         while at < bytes.len() {
             let rest = &bytes[at..];
-            if rest.iter().all(|&b| b == 0) {
-                // The zeros the head was extended with: the end.
+            if rest[..rest.len().min(BATCH_HEADER)].iter().all(|&b| b == 0) {
+                // The end mark (or the zeros a head was extended with).
                 break;
             }
             let problem = if rest.len() < BATCH_HEADER {
@@ -351,7 +410,7 @@ impl Index {
                         "a batch of {len} bytes with only {} present",
                         rest.len() - BATCH_HEADER
                     )),
-                    Some(payload) if crc32fast::hash(payload) != crc => {
+                    Some(payload) if format.checksum(number, payload) != crc => {
                         Some("a batch whose checksum fails".into())
                     }
                     Some(payload) => match parse_records(payload) {
@@ -367,6 +426,7 @@ impl Index {
             };
             if let Some(problem) = problem {
                 return Ok(Read {
+                    format: Some(format),
                     good_end: at as u64,
                     sealed,
                     problem: Some(format!("at offset {at}: {problem}")),
@@ -374,6 +434,7 @@ impl Index {
             }
         }
         Ok(Read {
+            format: Some(format),
             good_end: at as u64,
             sealed,
             problem: None,
@@ -381,37 +442,67 @@ impl Index {
     }
 }
 
-/// Creates segment `number` with its header, synced, and syncs the
-/// directory so the file is there after a power cut.
-fn create_segment(dir: &Path, number: u64) -> Result<File, StoreError> {
+/// The spare files in `dir` (dead segments' files kept for recycling).
+fn spare_paths(dir: &Path) -> Result<Vec<PathBuf>, StoreError> {
+    let mut spares = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(|e| io_error(dir, e))? {
+        let path = entry.map_err(|e| io_error(dir, e))?.path();
+        if path.extension().is_some_and(|e| e == "spare") {
+            spares.push(path);
+        }
+    }
+    Ok(spares)
+}
+
+/// Starts segment `number` in format 2: in a spare file if there is one
+/// (renamed, its old bytes left after the new header's end mark), else in
+/// a new file; header synced, and the directory synced so the file is
+/// there after a power cut. Returns the file and its length.
+fn create_segment(
+    dir: &Path,
+    number: u64,
+    spares: &mut Vec<PathBuf>,
+) -> Result<(File, u64), StoreError> {
     let path = segment_path(dir, number);
-    let mut file = OpenOptions::new()
+    let recycled = match spares.pop() {
+        Some(spare) => match std::fs::rename(&spare, &path) {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::warn!(spare = %spare.display(), error = %e, "could not recycle a spare message log file");
+                false
+            }
+        },
+        None => false,
+    };
+    let file = OpenOptions::new()
         .create(true)
-        .truncate(true)
+        .truncate(!recycled)
         .write(true)
         .read(true)
         .open(&path)
         .map_err(|e| io_error(&path, e))?;
-    let mut header = MAGIC.to_vec();
+    let mut header = MAGIC_V2.to_vec();
     header.extend_from_slice(&number.to_be_bytes());
-    file.write_all(&header)
+    header.extend_from_slice(&END_MARK);
+    file.write_all_at(&header, 0)
         .and_then(|()| file.sync_data())
         .map_err(|e| io_error(&path, e))?;
     sync_dir(dir)?;
-    Ok(file)
+    let len = file.metadata().map_err(|e| io_error(&path, e))?.len();
+    Ok((file, len))
 }
 
-/// Appends a seal batch to segment `number` at `at`, durably; returns its
-/// length.
-fn seal_segment(dir: &Path, number: u64, at: u64) -> Result<u64, StoreError> {
+/// Appends a seal batch to segment `number` (of `format`) at `at`,
+/// durably; returns its length without the end mark.
+fn seal_segment(dir: &Path, number: u64, format: Format, at: u64) -> Result<u64, StoreError> {
     let path = segment_path(dir, number);
-    let seal = frame(&[SEAL])?;
+    let seal = seal_batch(format, number);
     OpenOptions::new()
         .write(true)
         .open(&path)
         .and_then(|f| f.write_all_at(&seal, at).and_then(|()| f.sync_data()))
         .map_err(|e| io_error(&path, e))?;
-    Ok(seal.len() as u64)
+    Ok((seal.len() - BATCH_HEADER) as u64)
 }
 
 /// Truncates segment `number` to `len` bytes, durably.
@@ -482,8 +573,8 @@ impl MessageLog {
         if size >= self.segment_bytes {
             self.rotate(state)?;
         }
-        let (batch, values) = encode_batch(ops)?;
         let number = state.head_number;
+        let (batch, values) = encode_batch(ops, state.head_format, number)?;
         let offset = self.write_batch(state, &batch)?;
         for ((key, value), at) in ops.iter().zip(values) {
             match (value, at) {
@@ -501,19 +592,19 @@ impl MessageLog {
         Ok(())
     }
 
-    /// Writes a framed batch at the end of the head's data, extending the
-    /// zeros after it when the batch reaches them; returns its offset. A
-    /// failed write is cut off again (with the zeros), so the next one
-    /// follows good data.
+    /// Writes a framed batch (with its end mark) at the end of the head's
+    /// data, extending the file with zeros when the batch reaches its end;
+    /// returns its offset. A failed write is cut off again (with the
+    /// zeros), so the next one follows good data.
     fn write_batch(&self, state: &mut State, batch: &[u8]) -> Result<u64, StoreError> {
         let number = state.head_number;
         let offset = state.index.segments.get(&number).map_or(HEADER, |s| s.size);
-        let end = offset + batch.len() as u64;
+        let marked_end = offset + batch.len() as u64;
         let mut written = state.head.write_all_at(batch, offset);
-        if written.is_ok() && end > state.head_len {
-            let zeros_to = end + PREFILL_BYTES.min(self.segment_bytes);
-            let zeros = vec![0; (zeros_to - end) as usize];
-            written = state.head.write_all_at(&zeros, end);
+        if written.is_ok() && marked_end > state.head_len {
+            let zeros_to = marked_end + PREFILL_BYTES.min(self.segment_bytes);
+            let zeros = vec![0; (zeros_to - marked_end) as usize];
+            written = state.head.write_all_at(&zeros, marked_end);
             if written.is_ok() {
                 state.head_len = zeros_to;
             }
@@ -524,7 +615,8 @@ impl MessageLog {
             return Err(io_error(&segment_path(&self.dir, number), e));
         }
         state.dirty = true;
-        state.index.segments.entry(number).or_default().size = end;
+        // The data ends where its end mark starts.
+        state.index.segments.entry(number).or_default().size = marked_end - BATCH_HEADER as u64;
         Ok(offset)
     }
 
@@ -532,16 +624,18 @@ impl MessageLog {
     /// newest segment may lack its seal.
     fn rotate(&self, state: &mut State) -> Result<(), StoreError> {
         let number = state.head_number;
-        self.write_batch(state, &frame(&[SEAL])?)?;
+        self.write_batch(state, &seal_batch(state.head_format, number))?;
         state
             .head
             .sync_data()
             .map_err(|e| io_error(&segment_path(&self.dir, number), e))?;
         state.dirty = false;
         let next = number + 1;
-        state.head = create_segment(&self.dir, next)?;
+        let (head, head_len) = create_segment(&self.dir, next, &mut state.spares)?;
+        state.head = head;
         state.head_number = next;
-        state.head_len = HEADER;
+        state.head_format = Format::V2;
+        state.head_len = head_len;
         state.index.segments.insert(
             next,
             Segment {
@@ -569,14 +663,22 @@ impl MessageLog {
     }
 
     /// Deletes the oldest segments while they hold nothing live (never the
-    /// head), oldest first, each deletion synced to the directory.
+    /// head), oldest first, each deletion synced to the directory. A
+    /// deleted segment's file is kept as a spare while there are fewer
+    /// than [`SPARES`].
     fn delete_dead(&self, state: &mut State) -> Result<(), StoreError> {
         while let Some((&oldest, segment)) = state.index.segments.first_key_value() {
             if oldest == state.head_number || segment.live > 0 {
                 return Ok(());
             }
             let path = segment_path(&self.dir, oldest);
-            std::fs::remove_file(&path).map_err(|e| io_error(&path, e))?;
+            if state.spares.len() < SPARES {
+                let spare = path.with_extension("spare");
+                std::fs::rename(&path, &spare).map_err(|e| io_error(&path, e))?;
+                state.spares.push(spare);
+            } else {
+                std::fs::remove_file(&path).map_err(|e| io_error(&path, e))?;
+            }
             sync_dir(&self.dir)?;
             state.index.segments.remove(&oldest);
             if state.compacting.is_some_and(|(s, _)| s == oldest) {
@@ -700,6 +802,7 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
     }
     let newest = numbers.last().copied();
     let mut index = Index::default();
+    let mut head_format = Format::V2;
     for &number in &numbers {
         let mut read = index.read_segment(dir, number)?;
         let path = segment_path(dir, number);
@@ -738,10 +841,17 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
             truncate_segment(dir, number, read.good_end)?;
             if Some(number) != newest {
                 // Salvaged: sealed again, so the next start finds it whole.
-                read.good_end += seal_segment(dir, number, read.good_end)?;
+                let format = read.format.unwrap_or(Format::V2);
+                read.good_end += seal_segment(dir, number, format, read.good_end)?;
             }
         }
+        head_format = read.format.unwrap_or(Format::V2);
         index.segments.entry(number).or_default().size = read.good_end;
+    }
+    let mut spares = spare_paths(dir)?;
+    while spares.len() > SPARES {
+        let extra = spares.pop().expect("more than SPARES");
+        std::fs::remove_file(&extra).map_err(|e| io_error(&extra, e))?;
     }
     let (head_number, head, head_len) = match index.segments.last_key_value() {
         Some((&number, _)) => {
@@ -763,14 +873,18 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
                     ..Segment::default()
                 },
             );
-            (number, create_segment(dir, number)?, HEADER)
+            head_format = Format::V2;
+            let (head, len) = create_segment(dir, number, &mut spares)?;
+            (number, head, len)
         }
     };
     Ok(State {
         index,
         head,
         head_number,
+        head_format,
         head_len,
+        spares,
         compacting: None,
         dirty: false,
     })
@@ -961,6 +1075,66 @@ mod tests {
     }
 
     #[test]
+    fn dead_segments_files_are_recycled_and_their_old_batches_never_return() {
+        let dir = temp_dir("recycle");
+        let value = "v".repeat(50);
+        // Segment 1: put a, remove a (then full).
+        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 90).unwrap();
+        log.write(&[put("a", &value)], false).unwrap();
+        log.write(&[remove("a")], false).unwrap();
+        let removal_at = data_end(&log) - 12;
+        // Segment 2 takes b; segment 1, dead, is kept as a spare.
+        log.write(&[put("b", &value)], false).unwrap();
+        log.write(&[remove("b")], false).unwrap();
+        log.flush().unwrap();
+        let spare = segment_path(&dir, 1).with_extension("spare");
+        let old = std::fs::read(&spare).unwrap();
+        assert_eq!(files(&dir), vec![2]);
+        // Segment 3 starts in segment 1's file: a new put of a the same
+        // size ends where the old removal of a began.
+        let new_value = "n".repeat(50);
+        log.write(&[put("a", &new_value)], false).unwrap();
+        assert!(!spare.exists(), "the spare was recycled");
+        assert_eq!(log.state().head_number, 3);
+        assert_eq!(data_end(&log), removal_at);
+        drop(log);
+        // A power cut loses the end mark's bytes: the old removal's header
+        // is back after the new put.
+        let path = segment_path(&dir, 3);
+        let mut bytes = std::fs::read(&path).unwrap();
+        let at = removal_at as usize;
+        bytes[at..at + BATCH_HEADER].copy_from_slice(&old[at..at + BATCH_HEADER]);
+        std::fs::write(&path, bytes).unwrap();
+        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 90).unwrap();
+        assert_eq!(pairs(&log), vec![("a".into(), new_value)]);
+        drop(log);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_format_1_segment_is_read_and_appended_to() {
+        let dir = temp_dir("format-1");
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut bytes = MAGIC_V1.to_vec();
+        bytes.extend_from_slice(&1u64.to_be_bytes());
+        let (batch, _) = encode_batch(&[put("a", "1"), put("b", "2")], Format::V1, 1).unwrap();
+        bytes.extend_from_slice(&batch);
+        std::fs::write(segment_path(&dir, 1), bytes).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        log.write(&[remove("a"), put("c", "3")], false).unwrap();
+        log.flush().unwrap();
+        drop(log);
+        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        assert_eq!(
+            pairs(&log),
+            vec![("b".into(), "2".into()), ("c".into(), "3".into())]
+        );
+        assert_eq!(files(&dir), vec![1]);
+        drop(log);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
     fn a_missing_segment_is_damage() {
         let dir = temp_dir("missing");
         {
@@ -978,6 +1152,38 @@ mod tests {
             .to_string();
         assert!(message.contains("missing"), "{message}");
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Each segment or spare file's bytes as last seen, per file (inode)
+    /// and per life (the segment number in its header), to model what a
+    /// recycled file held before.
+    #[derive(Default)]
+    struct FileLives(HashMap<(u64, u64), Vec<u8>>);
+
+    impl FileLives {
+        fn observe(&mut self, dir: &Path) {
+            use std::os::unix::fs::MetadataExt;
+            for entry in std::fs::read_dir(dir).unwrap() {
+                let path = entry.unwrap().path();
+                let bytes = std::fs::read(&path).unwrap();
+                let number = u64::from_be_bytes(bytes[8..16].try_into().unwrap());
+                let inode = std::fs::metadata(&path).unwrap().ino();
+                self.0.insert((inode, number), bytes);
+            }
+        }
+
+        /// What the file at `path` held in its life before segment
+        /// `number` (nothing if it is new).
+        fn earlier_life(&self, path: &Path, number: u64) -> Vec<u8> {
+            use std::os::unix::fs::MetadataExt;
+            let inode = std::fs::metadata(path).unwrap().ino();
+            self.0
+                .iter()
+                .filter(|((i, n), _)| *i == inode && *n < number)
+                .max_by_key(|((_, n), _)| *n)
+                .map(|(_, bytes)| bytes.clone())
+                .unwrap_or_default()
+        }
     }
 
     #[derive(Debug, Clone)]
@@ -1034,15 +1240,19 @@ mod tests {
         }
 
         /// A power cut: the newest segment keeps what was synced plus any
-        /// prefix of what was written after (as a page cache might), its
-        /// last byte possibly garbage. The log opens on exactly the state
-        /// after the last flush or after some later batch: nothing flushed
-        /// is lost, and no batch is applied in part or out of order.
+        /// prefix of what was written after (as a page cache might); past
+        /// that its file holds what it held at the last sync (for a
+        /// recycled file, its earlier life's batches), then nothing or
+        /// zeros, and the prefix's last byte is possibly garbage. The log
+        /// opens on exactly the state after the last flush or after some
+        /// later batch: nothing flushed is lost, no batch is applied in
+        /// part or out of order, and no batch from a recycled file's
+        /// earlier life comes back.
         #[test]
         fn a_power_cut_keeps_every_flushed_batch_and_a_prefix_of_the_rest(
             batches in proptest::collection::vec(
                 (proptest::collection::vec((0u8..12, proptest::option::of(0usize..120)), 1..4), any::<bool>()),
-                1..40,
+                1..60,
             ),
             kept in any::<proptest::sample::Index>(),
             garbage in any::<bool>(),
@@ -1053,7 +1263,9 @@ mod tests {
             let mut model: BTreeMap<Vec<u8>, Vec<u8>> = BTreeMap::new();
             let mut states = vec![Vec::new()];
             let mut flushed_states = 0;
-            let mut synced = (1, HEADER);
+            let mut files = FileLives::default();
+            // The head's number, data end and bytes at the last flush.
+            let mut synced: Option<(u64, u64, Vec<u8>)> = None;
             for (n, (ops, flush)) in batches.iter().enumerate() {
                 let ops: Vec<KvOp> = ops
                     .iter()
@@ -1071,22 +1283,40 @@ mod tests {
                     log.flush().unwrap();
                     flushed_states = states.len() - 1;
                     let head = log.state().head_number;
-                    synced = (head, data_end(&log));
+                    let bytes = std::fs::read(segment_path(&dir, head)).unwrap();
+                    synced = Some((head, data_end(&log), bytes));
                 }
+                files.observe(&dir);
             }
             let newest = log.state().head_number;
-            let written = data_end(&log);
+            let written = data_end(&log) + BATCH_HEADER as u64;
             drop(log);
             let path = segment_path(&dir, newest);
-            let synced_len = if newest == synced.0 { synced.1 } else { HEADER };
+            let now = std::fs::read(&path).unwrap();
+            let (synced_len, before) = match synced {
+                Some((head, end, bytes)) if head == newest => (end, bytes),
+                // Started since: its header and end mark were synced,
+                // after them lie its earlier life's bytes, if it had one.
+                _ => {
+                    let marked = HEADER as usize + BATCH_HEADER;
+                    let mut bytes = files.earlier_life(&path, newest);
+                    bytes.resize(bytes.len().max(marked), 0);
+                    bytes[..marked].copy_from_slice(&now[..marked]);
+                    (HEADER, bytes)
+                }
+            };
             let cut = synced_len + kept.index((written - synced_len + 1) as usize) as u64;
-            lose_tail(&dir, cut, written, zeroed);
-            if garbage && cut > synced_len {
-                let file = OpenOptions::new().read(true).write(true).open(&path).unwrap();
-                let mut byte = [0];
-                file.read_exact_at(&mut byte, cut - 1).unwrap();
-                file.write_all_at(&[byte[0] ^ 0x5a], cut - 1).unwrap();
+            let mut after = now[..cut as usize].to_vec();
+            if before.len() > after.len() {
+                after.extend_from_slice(&before[after.len()..]);
             }
+            if zeroed && now.len() > after.len() {
+                after.resize(now.len(), 0);
+            }
+            if garbage && cut > synced_len {
+                after[cut as usize - 1] ^= 0x5a;
+            }
+            std::fs::write(&path, &after).unwrap();
             let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 400).unwrap();
             let found = log.scan().unwrap();
             prop_assert!(
@@ -1103,15 +1333,17 @@ mod tests {
         fn any_segment_bytes_open_without_panicking(
             tail in proptest::collection::vec(any::<u8>(), 0..200),
             older in any::<bool>(),
+            first_format in any::<bool>(),
         ) {
             let dir = temp_dir("garbage");
             std::fs::create_dir_all(&dir).unwrap();
-            let mut bytes = MAGIC.to_vec();
+            let magic = if first_format { MAGIC_V1 } else { MAGIC_V2 };
+            let mut bytes = magic.to_vec();
             bytes.extend_from_slice(&1u64.to_be_bytes());
             bytes.extend_from_slice(&tail);
             std::fs::write(segment_path(&dir, 1), &bytes).unwrap();
             if older {
-                let mut next = MAGIC.to_vec();
+                let mut next = MAGIC_V2.to_vec();
                 next.extend_from_slice(&2u64.to_be_bytes());
                 std::fs::write(segment_path(&dir, 2), &next).unwrap();
             }
