@@ -34,8 +34,9 @@ pub const MANIFEST: &str = "leveret-store.manifest";
 
 /// The store's format; a manifest with a higher one was written by a newer
 /// Leveret. 2: messages in the message log (1 kept them in sled; such a
-/// store is moved over when opened).
-const FORMAT: u32 = 2;
+/// store is moved over when opened). 3: the message log may hold format 2
+/// segments (see `log`), which Leveret before format 3 cannot read.
+const FORMAT: u32 = 3;
 
 /// At most this many dropped records are logged one by one when salvaging.
 const LOGGED_DROPS: usize = 100;
