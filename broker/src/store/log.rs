@@ -50,11 +50,12 @@
 //! the newest, data that ends without a seal is damage, so a hole of zeros
 //! there is still found.
 //!
-//! Uses only the standard library and `crc32fast`; called from the
-//! persister thread (every call takes the log's one lock).
+//! Uses the standard library, `crc32fast` and the broker's `word_hash`;
+//! called from the persister thread (every call takes the log's one lock).
 
 use super::log_key::LogKey;
 use super::{KvOp, KvPair, StoreError};
+use crate::word_hash::WordHashMap;
 use std::collections::{BTreeMap, HashMap};
 use std::fs::{File, OpenOptions};
 use std::os::unix::fs::FileExt;
@@ -139,12 +140,12 @@ struct Segment {
     live: u64,
 }
 
-/// Where every live key's value lies (in key order, so a scan needs no
-/// sort), and what is live in each segment.
+/// Where every live key's value lies, and what is live in each segment.
 #[derive(Debug, Default)]
 struct Index {
     segments: BTreeMap<u64, Segment>,
-    keys: BTreeMap<LogKey, Location>,
+    /// Hashed, not ordered: updated per message, sorted only by a scan.
+    keys: WordHashMap<LogKey, Location>,
 }
 
 /// The log's state: the index and the head open for appending.
@@ -753,8 +754,10 @@ impl MessageLog {
     pub fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
         let state = self.state();
         let mut files: HashMap<u64, Vec<u8>> = HashMap::new();
-        let mut pairs = Vec::with_capacity(state.index.keys.len());
-        for (key, location) in &state.index.keys {
+        let mut live: Vec<(&LogKey, &Location)> = state.index.keys.iter().collect();
+        live.sort_unstable_by(|a, b| a.0.cmp(b.0));
+        let mut pairs = Vec::with_capacity(live.len());
+        for (key, location) in live {
             let path = segment_path(&self.dir, location.segment);
             let bytes = match files.entry(location.segment) {
                 std::collections::hash_map::Entry::Occupied(file) => file.into_mut(),

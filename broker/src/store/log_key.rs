@@ -1,14 +1,15 @@
 //! [`LogKey`]: a message log key as the log's index holds it. The index
-//! is an ordered map touched two or three times per persistent message,
-//! so its keys avoid what `Vec<u8>` costs there: an allocation per put
-//! and a `memcmp` call per comparison (together about 5% of the broker's
-//! CPU under persistent load). The codec's message log keys are 9 or 17
-//! bytes; up to [`INLINE`] bytes a key is three big-endian words compared
-//! inline, a longer one stays on the heap.
+//! is a hash map touched two or three times per persistent message (and
+//! sorted only when scanned), so its keys avoid what `Vec<u8>` costs
+//! there: an allocation per put, and hashing or comparing byte by byte.
+//! The codec's message log keys are 9 or 17 bytes; up to [`INLINE`] bytes
+//! a key is three big-endian words, hashed a word at a time and compared
+//! inline; a longer one stays on the heap.
 //!
 //! Uses only the standard library.
 
 use std::cmp::Ordering;
+use std::hash::{Hash, Hasher};
 
 /// The longest key held inline.
 pub const INLINE: usize = 24;
@@ -77,6 +78,22 @@ impl Ord for LogKey {
     }
 }
 
+impl Hash for LogKey {
+    /// A word at a time (a derived hash would feed an inline key's words
+    /// to the hasher as 24 separate bytes).
+    #[inline]
+    fn hash<H: Hasher>(&self, state: &mut H) {
+        match self {
+            LogKey::Inline { words, len } => {
+                state.write_u64(words[0]);
+                state.write_u64(words[1]);
+                state.write_u64(words[2] ^ u64::from(*len));
+            }
+            LogKey::Long(bytes) => state.write(bytes),
+        }
+    }
+}
+
 impl PartialOrd for LogKey {
     fn partial_cmp(&self, other: &LogKey) -> Option<Ordering> {
         Some(self.cmp(other))
@@ -95,6 +112,33 @@ mod tests {
             let key = LogKey::new(&bytes);
             assert_eq!(key.to_vec(), bytes);
             assert_eq!(matches!(key, LogKey::Inline { .. }), len <= INLINE);
+        }
+    }
+
+    /// The codec's keys for neighbouring and strided ids and positions
+    /// (message records: `m` id; index entries: `i` queue position) spread
+    /// over the buckets of a table as large as hashbrown gives 4,096 keys,
+    /// and over its 7-bit tags.
+    #[test]
+    fn neighbouring_keys_spread_over_the_buckets() {
+        use crate::word_hash::WordHasher;
+        use std::hash::{BuildHasher, BuildHasherDefault};
+        let build = BuildHasherDefault::<WordHasher>::default();
+        let message = |id: u64| [&b"m"[..], &id.to_be_bytes()].concat();
+        let index = |seq: u64| [&b"i"[..], &7u64.to_be_bytes(), &seq.to_be_bytes()].concat();
+        for stride in [1u64, 2, 256, 4096, 1 << 16, 1 << 40] {
+            for key in [&message as &dyn Fn(u64) -> Vec<u8>, &index] {
+                let mut buckets = vec![0u32; 8192];
+                let mut tags = std::collections::HashSet::new();
+                for n in 0..4096u64 {
+                    let hash = build.hash_one(LogKey::new(&key(n * stride + (5 << 40))));
+                    buckets[(hash % 8192) as usize] += 1;
+                    tags.insert(hash >> 57);
+                }
+                let fullest = buckets.iter().max().copied().unwrap_or(0);
+                assert!(fullest <= 8, "stride {stride}: {fullest} in one bucket");
+                assert!(tags.len() >= 100, "stride {stride}: {} tags", tags.len());
+            }
         }
     }
 

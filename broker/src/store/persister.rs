@@ -270,8 +270,9 @@ impl Group {
 
     fn write_pending(&mut self, store: &dyn Store) {
         self.fresh.clear();
-        let ops: Vec<KvOp> = std::mem::take(&mut self.pending)
-            .into_iter()
+        let ops: Vec<KvOp> = self
+            .pending
+            .drain(..)
             .flatten()
             .map(|op| op.to_kv())
             .collect();
@@ -287,17 +288,22 @@ impl Group {
         }
     }
 
-    fn finish(mut self, store: &dyn Store) -> Result<(), StoreError> {
-        let marks = std::mem::take(&mut self.marks);
-        self.pending.extend(
-            marks
-                .into_iter()
-                .map(|(queue, seq)| Some(StoreOp::Delivered { queue, seq })),
-        );
+    /// Writes what is pending and flushes; the group is then empty again,
+    /// its buffers kept for the next one (grown afresh per group, they were
+    /// copied over and over as they doubled).
+    fn finish(&mut self, store: &dyn Store) -> Result<(), StoreError> {
+        let marks = self
+            .marks
+            .drain(..)
+            .map(|(queue, seq)| Some(StoreOp::Delivered { queue, seq }));
+        self.pending.extend(marks);
         self.write_pending(store);
         let flushed = guarded("flush", || store.flush());
         self.record(flushed);
-        match self.error {
+        self.numbers = None;
+        self.len = 0;
+        self.elided = 0;
+        match self.error.take() {
             Some(e) => Err(e),
             None => Ok(()),
         }
@@ -523,8 +529,8 @@ fn persist(store: Arc<dyn Store>, mailbox: Arc<Mailbox>, reports: Reports) {
     let _stopped = Stopped(&mailbox);
     let mut must_reopen = false;
     let mut taken = Vec::new();
+    let mut group = Group::default();
     while mailbox.take(&mut taken) {
-        let mut group = Group::default();
         if must_reopen {
             match guarded("reopen", || store.reopen()) {
                 Ok(()) => {
@@ -776,6 +782,18 @@ mod tests {
             2,
             "a definition's delete is always written"
         );
+        drop(written);
+        // Finished, the group is empty again: a remove in the next group
+        // is written, never matched with this group's inserts.
+        assert_eq!((group.numbers, group.len, group.elided), (None, 0, 0));
+        group.add(
+            &store,
+            plain(5, vec![StoreOp::Dequeue { queue: 1, seq: 7 }]),
+        );
+        assert_eq!(group.elided, 0);
+        group.finish(&store).unwrap();
+        let written = store.0.lock().unwrap();
+        assert_eq!(written.last(), Some(&(index(7), None)));
     }
 
     #[tokio::test]
