@@ -110,6 +110,20 @@ pub fn open_checked(dir: &Path, recover: bool) -> Result<OpenedStore, StoreError
         source,
     })?;
     let manifest = read_manifest(dir);
+    if let Ok(Some(older)) = &manifest {
+        if (2..FORMAT).contains(&older.format) {
+            // Opening may write what only this format reads (message log
+            // segments of format 2): say so first, so that a Leveret too
+            // old for it refuses the directory even after a crash here.
+            write_manifest(
+                dir,
+                Manifest {
+                    format: FORMAT,
+                    ..*older
+                },
+            )?;
+        }
+    }
     let checked = match &manifest {
         Ok(manifest) => check(dir, *manifest),
         Err(problem) => Err(problem.clone()),
@@ -333,5 +347,32 @@ mod tests {
         for bad in ["", "format=1\n", "format=1\nstate=odd\ngeneration=1\n", "x"] {
             assert_eq!(Manifest::parse(bad), None, "{bad:?}");
         }
+    }
+
+    /// The manifest names this format before the store is opened (opening
+    /// may write what older Leverets cannot read), even when opening then
+    /// fails.
+    #[test]
+    fn an_older_format_is_raised_before_the_store_is_opened() {
+        let dir = std::env::temp_dir().join(format!("leveret-manifest-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let older = Manifest {
+            format: 2,
+            state: State::Clean,
+            generation: 7,
+        };
+        write_manifest(&dir, older).unwrap();
+        // No database directory: the open fails after the manifest check.
+        assert!(open_checked(&dir, false).is_err());
+        let raised = read_manifest(&dir).unwrap().unwrap();
+        assert_eq!(
+            raised,
+            Manifest {
+                format: FORMAT,
+                ..older
+            }
+        );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -12,8 +12,9 @@
 //! key. One [`MessageLog::write`] is one batch, so each write is atomic: a
 //! batch is applied whole or, when its checksum fails, not at all. Each
 //! batch is written with an end mark after it (a batch header of zeros)
-//! that the next batch overwrites, so the data's end is read exactly
-//! whatever the file holds beyond it.
+//! that the next batch overwrites, so reading stops at the data's end
+//! whatever the file holds beyond it; opening cuts off whatever the newest
+//! segment holds beyond it that is not zeros (see below).
 //!
 //! Format 2 (`LVRTLOG2`) checksums the segment's number with each payload;
 //! format 1 (`LVRTLOG1`, read and appended to, never started) does not.
@@ -48,7 +49,12 @@
 //! truncates the rest of that segment (after the caller copied it aside).
 //! An end mark ends a segment's data wherever it lies; in any segment but
 //! the newest, data that ends without a seal is damage, so a hole of zeros
-//! there is still found.
+//! there is still found. In the newest, bytes beyond the end are a
+//! recycled file's earlier life, or batches written after the last flush
+//! that a power cut kept while losing one before them (page caches and
+//! disks write back out of order); opening truncates the segment at its
+//! end, so a later batch whose end mark a second power cut loses never
+//! uncovers them.
 //!
 //! Uses the standard library, `crc32fast` and the broker's `word_hash`;
 //! called from the persister thread (every call takes the log's one lock).
@@ -88,6 +94,10 @@ const BATCH_BYTES: usize = 64 * 1024 * 1024;
 /// segment), so most syncs change no file size and cost one device flush
 /// instead of a journal commit as well.
 const PREFILL_BYTES: u64 = 2 * 1024 * 1024;
+/// The index is given back room once it holds under a quarter of it (and
+/// has room for more than this many keys): a hash map never shrinks by
+/// itself, so a drained backlog would keep its size until a restart.
+const INDEX_ROOM_KEPT: usize = 4096;
 /// Live bytes compaction copies per flush at most (the persister thread
 /// stays responsive: a flush's extra work is bounded).
 const COMPACT_BYTES: u64 = 1024 * 1024;
@@ -132,7 +142,8 @@ struct Location {
 /// What the log knows of one segment.
 #[derive(Debug, Clone, Copy, Default)]
 struct Segment {
-    /// File size (the end of its last good batch).
+    /// Where its data ends (the end of its last good batch; the head's
+    /// end mark lies there).
     size: u64,
     /// Bytes of live values and keys in it.
     live_bytes: u64,
@@ -272,6 +283,8 @@ fn encode_batch(
     format: Format,
     segment: u64,
 ) -> Result<(Vec<u8>, Vec<Option<u64>>), StoreError> {
+    // An empty format 1 batch would read as an end mark.
+    debug_assert!(!ops.is_empty(), "a batch holds at least one op");
     let size: usize = ops
         .iter()
         .map(|(key, value)| 7 + key.len() + value.as_ref().map_or(0, Vec::len))
@@ -328,6 +341,8 @@ struct Read {
     good_end: u64,
     /// Whether that batch is a seal.
     sealed: bool,
+    /// Whether bytes other than zeros lie beyond the data's end.
+    leftover: bool,
     /// What is wrong after it, if anything.
     problem: Option<String>,
 }
@@ -388,6 +403,7 @@ impl Index {
                 format: None,
                 good_end: 0,
                 sealed: false,
+                leftover: false,
                 problem: Some("its header is missing or wrong".into()),
             });
         };
@@ -405,7 +421,7 @@ impl Index {
                 let len = u32::from_le_bytes(rest[..4].try_into().expect("4 bytes")) as usize;
                 let crc = u32::from_le_bytes(rest[4..8].try_into().expect("4 bytes"));
                 match rest.get(BATCH_HEADER..BATCH_HEADER + len) {
-                    // Never written: zeros before later data are a hole.
+                    // A zero length with a checksum: never written by the log.
                     Some([]) => Some("an empty batch".into()),
                     None => Some(format!(
                         "a batch of {len} bytes with only {} present",
@@ -430,6 +446,7 @@ impl Index {
                     format: Some(format),
                     good_end: at as u64,
                     sealed,
+                    leftover: true,
                     problem: Some(format!("at offset {at}: {problem}")),
                 });
             }
@@ -438,6 +455,7 @@ impl Index {
             format: Some(format),
             good_end: at as u64,
             sealed,
+            leftover: bytes[at..].iter().any(|&b| b != 0),
             problem: None,
         })
     }
@@ -470,6 +488,7 @@ fn create_segment(
             Ok(()) => true,
             Err(e) => {
                 tracing::warn!(spare = %spare.display(), error = %e, "could not recycle a spare message log file");
+                spares.push(spare);
                 false
             }
         },
@@ -659,6 +678,10 @@ impl MessageLog {
                 .map_err(|e| io_error(&segment_path(&self.dir, number), e))?;
             state.dirty = false;
         }
+        let keys = &mut state.index.keys;
+        if keys.capacity() > INDEX_ROOM_KEPT && keys.capacity() > 4 * keys.len() {
+            keys.shrink_to(2 * keys.len());
+        }
         self.delete_dead(&mut state)?;
         self.compact(&mut state)
     }
@@ -823,6 +846,7 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
                 read.good_end
             ));
         }
+        let cut_short = read.problem.is_some();
         if let Some(problem) = read.problem {
             match on_damage {
                 OnDamage::Refuse if Some(number) != newest => {
@@ -855,6 +879,10 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
                 let format = read.format.unwrap_or(Format::V2);
                 read.good_end += seal_segment(dir, number, format, read.good_end)?;
             }
+        }
+        if !cut_short && read.leftover && Some(number) == newest {
+            // See the module docs: nothing beyond the end may be uncovered.
+            truncate_segment(dir, number, read.good_end)?;
         }
         head_format = read.format.unwrap_or(Format::V2);
         index.segments.entry(number).or_default().size = read.good_end;
@@ -1118,6 +1146,70 @@ mod tests {
         std::fs::write(&path, bytes).unwrap();
         let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 90).unwrap();
         assert_eq!(pairs(&log), vec![("a".into(), new_value)]);
+        drop(log);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Page caches and disks write back out of order: a power cut may
+    /// keep a batch while losing the one before it. The kept one must not
+    /// come back when a second power cut loses the end mark of the batch
+    /// later written over the lost one.
+    #[test]
+    fn a_batch_kept_past_a_lost_one_never_returns_after_a_second_power_cut() {
+        let dir = temp_dir("second-cut");
+        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        log.write(&[put("a", "1")], false).unwrap();
+        log.flush().unwrap();
+        let synced_end = data_end(&log) as usize;
+        log.write(&[put("b", "2")], false).unwrap();
+        let b_end = data_end(&log) as usize;
+        log.write(&[remove("a")], false).unwrap();
+        drop(log);
+        // The first cut loses b (its bytes go back to the synced end mark
+        // and zeros) and keeps the removal of a after it.
+        let path = segment_path(&dir, *files(&dir).last().unwrap());
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes[synced_end..b_end].fill(0);
+        std::fs::write(&path, &bytes).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        assert_eq!(pairs(&log), vec![("a".into(), "1".into())]);
+        let on_disk = std::fs::read(&path).unwrap();
+        // b again, the same size: its end mark lies where the removal's
+        // header was. The second cut loses that end mark: those bytes go
+        // back to what the disk held.
+        log.write(&[put("b", "3")], false).unwrap();
+        assert_eq!(data_end(&log) as usize, b_end);
+        drop(log);
+        let mut bytes = std::fs::read(&path).unwrap();
+        for (at, byte) in bytes.iter_mut().enumerate().skip(b_end).take(BATCH_HEADER) {
+            *byte = on_disk.get(at).copied().unwrap_or(0);
+        }
+        std::fs::write(&path, &bytes).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        assert_eq!(
+            pairs(&log),
+            vec![("a".into(), "1".into()), ("b".into(), "3".into())]
+        );
+        drop(log);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn the_index_gives_back_room_once_a_backlog_drains() {
+        let dir = temp_dir("index-room");
+        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        let keys: Vec<String> = (0..100_000).map(|n| format!("k{n}")).collect();
+        let puts: Vec<KvOp> = keys.iter().map(|k| put(k, "v")).collect();
+        log.write(&puts, false).unwrap();
+        log.flush().unwrap();
+        let full = log.state().index.keys.capacity();
+        assert!(full >= 100_000);
+        let removes: Vec<KvOp> = keys[10..].iter().map(|k| remove(k)).collect();
+        log.write(&removes, false).unwrap();
+        log.flush().unwrap();
+        let left = log.state().index.keys.capacity();
+        assert!(left <= INDEX_ROOM_KEPT.max(64), "{full} -> {left}");
+        assert_eq!(pairs(&log).len(), 10);
         drop(log);
         let _ = std::fs::remove_dir_all(&dir);
     }
