@@ -10,6 +10,18 @@ use std::collections::BTreeSet;
 use common::lp::AMQPValue;
 use common::*;
 
+/// Deletes fanout exchange `x` and declares it again under its name.
+async fn delete_and_declare_fanout_again(ch: &lp::Channel, x: &str) {
+    tmo!(ch.exchange_delete(x, lp::ExchangeDeleteOptions::default())).expect("delete");
+    tmo!(ch.exchange_declare(
+        x,
+        lp::ExchangeKind::Fanout,
+        lp::ExchangeDeclareOptions::default(),
+        lp::FieldTable::default()
+    ))
+    .expect("declare again");
+}
+
 /// A lapin channel in confirm mode: every publish is confirmed before the
 /// test looks at queues, so routing has certainly happened.
 async fn confirm_channel(conn: &lp::Connection) -> lp::Channel {
@@ -606,15 +618,8 @@ async fn deleting_an_exchange_removes_its_bindings() {
     let x = lp::exchange(&ch, "deleted", lp::ExchangeKind::Fanout).await;
     let q = lp::queue(&ch, "orphan").await;
     lp::bind(&ch, &q, &x, "").await;
-    tmo!(ch.exchange_delete(&x, lp::ExchangeDeleteOptions::default())).expect("delete");
     // Re-created with the same name, it has no bindings left.
-    tmo!(ch.exchange_declare(
-        &x,
-        lp::ExchangeKind::Fanout,
-        lp::ExchangeDeclareOptions::default(),
-        lp::FieldTable::default()
-    ))
-    .expect("declare again");
+    delete_and_declare_fanout_again(&ch, &x).await;
     publish_acked(&ch, &x, "", b"nobody").await;
     assert!(drain(&ch, &q).await.is_empty());
 }
@@ -789,14 +794,7 @@ async fn publishing_follows_an_exchange_deleted_and_declared_again() {
     let after = lp::queue(&admin, "redeclared-after").await;
     lp::bind(&admin, &before, &x, "").await;
     publish_acked(&publisher, &x, "", b"one").await;
-    tmo!(admin.exchange_delete(&x, lp::ExchangeDeleteOptions::default())).expect("delete");
-    tmo!(admin.exchange_declare(
-        &x,
-        lp::ExchangeKind::Fanout,
-        lp::ExchangeDeclareOptions::default(),
-        lp::FieldTable::default()
-    ))
-    .expect("declare again");
+    delete_and_declare_fanout_again(&admin, &x).await;
     lp::bind(&admin, &after, &x, "").await;
     publish_acked(&publisher, &x, "", b"two").await;
     assert_eq!(drain(&admin, &before).await, ["one"]);

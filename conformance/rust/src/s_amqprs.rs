@@ -152,6 +152,17 @@ async fn temp_queue(ch: &Channel) -> Result<String, String> {
     Ok(q)
 }
 
+/// Consumes `q` with manual acks under `tag`: the tag the server gave,
+/// and the deliveries.
+async fn consume_manual(
+    ch: &Channel,
+    q: &str,
+    tag: &str,
+) -> Result<(String, tokio::sync::mpsc::UnboundedReceiver<ConsumerMessage>), String> {
+    let args = BasicConsumeArguments::new(q, tag).manual_ack(true).finish();
+    e(ch.basic_consume_rx(args).await, "consume")
+}
+
 async fn publish(ch: &Channel, ex: &str, key: &str, body: &[u8]) -> R {
     e(
         ch.basic_publish(
@@ -325,15 +336,7 @@ async fn consume_rx(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let (ch, _) = chan(&c).await?;
     let q = temp_queue(&ch).await?;
-    let (tag, mut rx) = e(
-        ch.basic_consume_rx(
-            BasicConsumeArguments::new(&q, "amqprs-c")
-                .manual_ack(true)
-                .finish(),
-        )
-        .await,
-        "consume",
-    )?;
+    let (tag, mut rx) = consume_manual(&ch, &q, "amqprs-c").await?;
     t.eq("tag", json!(tag), json!("amqprs-c"))?;
     publish(&ch, "", &q, b"m").await?;
     let mut seen = vec![];
@@ -416,24 +419,8 @@ async fn global_qos(t: Arc<T>) -> R {
     for i in 0..5 {
         publish(&ch, "", &q, format!("{i}").as_bytes()).await?;
     }
-    let (_t1, mut rx1) = e(
-        ch.basic_consume_rx(
-            BasicConsumeArguments::new(&q, "a")
-                .manual_ack(true)
-                .finish(),
-        )
-        .await,
-        "consume",
-    )?;
-    let (_t2, mut rx2) = e(
-        ch.basic_consume_rx(
-            BasicConsumeArguments::new(&q, "b")
-                .manual_ack(true)
-                .finish(),
-        )
-        .await,
-        "consume",
-    )?;
+    let (_t1, mut rx1) = consume_manual(&ch, &q, "a").await?;
+    let (_t2, mut rx2) = consume_manual(&ch, &q, "b").await?;
     let (n, last) = settled(&mut [&mut rx1, &mut rx2], 2).await;
     t.eq("two in flight across both consumers", json!(n), json!(2))?;
     e(

@@ -72,6 +72,28 @@ async fn auto_delete_exchange(
     e(ch.exchange_declare(name, kind, options, args).await, label)
 }
 
+/// Binds queue `q` to exchange `ex` with `key`.
+async fn bind(ch: &Channel, q: &str, ex: &str, key: &str) -> R {
+    let bound = ch
+        .queue_bind(
+            q,
+            ex,
+            key,
+            QueueBindOptions::default(),
+            FieldTable::default(),
+        )
+        .await;
+    e(bound, "bind")
+}
+
+/// Puts the channel in confirm mode.
+async fn confirm_mode(ch: &Channel) -> R {
+    e(
+        ch.confirm_select(ConfirmSelectOptions::default()).await,
+        "confirm.select",
+    )
+}
+
 fn code_of(err: &lapin::Error) -> Value {
     match err {
         lapin::Error::ProtocolError(p) => json!([p.get_id(), reply_name(p.get_message().as_str())]),
@@ -202,22 +224,9 @@ async fn topic_bind_unbind(t: Arc<T>) -> R {
     .await?;
     let q = temp_queue(&ch, FieldTable::default()).await?;
     for k in ["log.*.error", "log.#"] {
-        e(
-            ch.queue_bind(
-                &q,
-                &ex,
-                k,
-                QueueBindOptions::default(),
-                FieldTable::default(),
-            )
-            .await,
-            "bind",
-        )?;
+        bind(&ch, &q, &ex, k).await?;
     }
-    e(
-        ch.confirm_select(ConfirmSelectOptions::default()).await,
-        "confirm.select",
-    )?;
+    confirm_mode(&ch).await?;
     for k in ["log.app.error", "log.app.info", "other"] {
         publish(&ch, &ex, k, k.as_bytes(), BasicProperties::default()).await?;
     }
@@ -273,32 +282,9 @@ async fn e2e_alternate(t: Arc<T>) -> R {
     )?;
     let qd = temp_queue(&ch, FieldTable::default()).await?;
     let qa = temp_queue(&ch, FieldTable::default()).await?;
-    e(
-        ch.queue_bind(
-            &qd,
-            &dst,
-            "",
-            QueueBindOptions::default(),
-            FieldTable::default(),
-        )
-        .await,
-        "bind",
-    )?;
-    e(
-        ch.queue_bind(
-            &qa,
-            &ae,
-            "",
-            QueueBindOptions::default(),
-            FieldTable::default(),
-        )
-        .await,
-        "bind",
-    )?;
-    e(
-        ch.confirm_select(ConfirmSelectOptions::default()).await,
-        "confirm.select",
-    )?;
+    bind(&ch, &qd, &dst, "").await?;
+    bind(&ch, &qa, &ae, "").await?;
+    confirm_mode(&ch).await?;
     publish(&ch, &src, "to-dst", b"via e2e", BasicProperties::default()).await?;
     publish(
         &ch,
@@ -385,10 +371,7 @@ async fn dead_letter(t: Arc<T>) -> R {
     );
     args.insert("x-message-ttl".into(), AMQPValue::LongInt(30));
     let q = temp_queue(&ch, args).await?;
-    e(
-        ch.confirm_select(ConfirmSelectOptions::default()).await,
-        "confirm.select",
-    )?;
+    confirm_mode(&ch).await?;
     publish(&ch, "", &q, b"ttl", BasicProperties::default()).await?;
     wait_until(Duration::from_secs(5), "dead letter", || async {
         count(&ch, &dlq).await == 1
@@ -549,10 +532,7 @@ async fn confirm_return(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let ch = chan(&c).await?;
     let q = temp_queue(&ch, FieldTable::default()).await?;
-    e(
-        ch.confirm_select(ConfirmSelectOptions::default()).await,
-        "confirm.select",
-    )?;
+    confirm_mode(&ch).await?;
     let conf = publish(&ch, "", &q, b"ok", BasicProperties::default()).await?;
     t.eq(
         "routed ack",
@@ -597,10 +577,7 @@ async fn confirm_nack(t: Arc<T>) -> R {
         AMQPValue::LongString("reject-publish".into()),
     );
     let q = temp_queue(&ch, args).await?;
-    e(
-        ch.confirm_select(ConfirmSelectOptions::default()).await,
-        "confirm.select",
-    )?;
+    confirm_mode(&ch).await?;
     let a = publish(&ch, "", &q, b"1", BasicProperties::default()).await?;
     let b = publish(&ch, "", &q, b"2", BasicProperties::default()).await?;
     t.eq(
@@ -700,10 +677,7 @@ async fn field_types(t: Arc<T>) -> R {
         .iter()
         .map(|(k, v)| (k.to_string(), fv(v)))
         .collect();
-    e(
-        ch.confirm_select(ConfirmSelectOptions::default()).await,
-        "confirm.select",
-    )?;
+    confirm_mode(&ch).await?;
     publish(
         &ch,
         "",
@@ -738,10 +712,7 @@ async fn bodies(t: Arc<T>) -> R {
     let c = connect(&t).await?;
     let ch = chan(&c).await?;
     let q = temp_queue(&ch, FieldTable::default()).await?;
-    e(
-        ch.confirm_select(ConfirmSelectOptions::default()).await,
-        "confirm.select",
-    )?;
+    confirm_mode(&ch).await?;
     let big: Vec<u8> = (0..5 * 1024 * 1024).map(|i| (i % 241) as u8).collect();
     publish(&ch, "", &q, &big, BasicProperties::default()).await?;
     publish(
@@ -791,10 +762,7 @@ async fn get_counts(t: Arc<T>) -> R {
     let q = temp_queue(&ch, FieldTable::default()).await?;
     let none = e(ch.basic_get(&q, BasicGetOptions::default()).await, "get")?;
     t.eq("empty get", json!(none.is_none()), json!(true))?;
-    e(
-        ch.confirm_select(ConfirmSelectOptions::default()).await,
-        "confirm.select",
-    )?;
+    confirm_mode(&ch).await?;
     for i in 0..4 {
         publish(
             &ch,
