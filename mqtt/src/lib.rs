@@ -62,8 +62,8 @@ mod wire;
 pub use error::{DecodeError, EncodeError, Problem};
 pub use frame::{check_packet, decode_packet, PacketCheck, MAX_PACKET_SIZE};
 pub use packet::{
-    Auth, ConnAck, Connect, Disconnect, Packet, PacketType, PubResponse, RetainHandling, SubAck,
-    Subscribe, Subscription, SubscriptionOptions, UnsubAck, Unsubscribe, Will,
+    Auth, ConnAck, Connect, Disconnect, Packet, PacketType, PubResponse, Publish, RetainHandling,
+    SubAck, Subscribe, Subscription, SubscriptionOptions, UnsubAck, Unsubscribe, Will,
 };
 pub use properties::{Properties, PropertyContext, PropertyId, PropertyValues};
 pub use qos::{Delivery, PacketId, QoS};
