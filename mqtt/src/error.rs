@@ -21,7 +21,8 @@ pub enum Problem {
     InvalidUtf8,
     /// A string contained U+0000 (MQTT-1.5.3-2).
     NullCharacter,
-    /// A string or binary value was longer than 65,535 bytes (encoding only).
+    /// A string or binary value longer than 65,535 bytes, or a property
+    /// list longer than a variable byte integer can say (encoding only).
     TooLong(usize),
     /// A variable byte integer used more bytes than its value needs (MQTT-1.5.5-1).
     NonMinimalInteger,
@@ -117,7 +118,7 @@ impl std::fmt::Display for Problem {
             Problem::TrailingBytes(n) => write!(f, "{n} trailing bytes"),
             Problem::InvalidUtf8 => f.write_str("invalid UTF-8"),
             Problem::NullCharacter => f.write_str("U+0000 in a string"),
-            Problem::TooLong(n) => write!(f, "{n} bytes exceed 65535"),
+            Problem::TooLong(n) => write!(f, "too long ({n} bytes)"),
             Problem::NonMinimalInteger => {
                 f.write_str("variable byte integer not in its shortest form")
             }
@@ -184,7 +185,7 @@ pub enum DecodeError {
         flags: u8,
     },
     /// A field of the packet was invalid.
-    #[error("{packet:?} {field}: {problem}")]
+    #[error("{packet:?}{}{field}: {problem}", if field.is_empty() { "" } else { " " })]
     Invalid {
         /// The packet type.
         packet: PacketType,
@@ -241,7 +242,7 @@ pub enum EncodeError {
         remaining_length: usize,
     },
     /// A field breaks a rule of the protocol version asked for.
-    #[error("{packet:?} {field}: {problem}")]
+    #[error("{packet:?}{}{field}: {problem}", if field.is_empty() { "" } else { " " })]
     Invalid {
         /// The packet type.
         packet: PacketType,

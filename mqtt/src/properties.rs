@@ -303,7 +303,10 @@ impl std::fmt::Debug for Properties {
 impl Properties {
     /// Whether no property is set.
     pub fn is_empty(&self) -> bool {
-        **self == NO_PROPERTIES
+        match &self.0 {
+            None => true,
+            Some(values) => **values == NO_PROPERTIES,
+        }
     }
 
     /// Reads a property length and the properties after it, checking each

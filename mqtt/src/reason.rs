@@ -82,7 +82,9 @@ reason_codes! {
     Banned = 0x8A, "Banned", [ConnAck];
     /// 0x8B: Server shutting down.
     ServerShuttingDown = 0x8B, "Server shutting down", [Disconnect];
-    /// 0x8C: Bad authentication method.
+    /// 0x8C: Bad authentication method. Chapter 2.4's table allows it in
+    /// DISCONNECT, 3.14.2.1's list of DISCONNECT codes leaves it out: a
+    /// decoder accepts it.
     BadAuthenticationMethod = 0x8C, "Bad authentication method", [ConnAck, Disconnect];
     /// 0x8D: Keep Alive timeout.
     KeepAliveTimeout = 0x8D, "Keep Alive timeout", [Disconnect];
