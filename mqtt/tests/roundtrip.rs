@@ -669,5 +669,5 @@ fn fuzz_seeds_are_valid_streams() {
             }
         }
     }
-    assert_eq!(seeds, 7);
+    assert_eq!(seeds, 9);
 }
