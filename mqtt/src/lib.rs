@@ -9,10 +9,11 @@
 //! read buffer or says more bytes are needed, refuses a packet larger than
 //! the caller's maximum from its fixed header before buffering the rest,
 //! and hands out the PUBLISH payload, strings and binary data as `Bytes`
-//! slices of the read buffer, so message bodies are never copied. Every
-//! rule of the specifications that a single packet can break is checked,
-//! and each [`DecodeError`] carries the reason code the session answers
-//! with ([`DecodeError::reason_code`], [`DecodeError::connack_refusal`]).
+//! slices of the read buffer, so message bodies are never copied. The
+//! rules a single packet can break are checked (`docs/mqtt.md` lists them
+//! and the few left to the session), and each [`DecodeError`] carries the
+//! reason code the session answers with ([`DecodeError::reason_code`],
+//! [`DecodeError::connack_refusal`]).
 //! Encoding appends to a `BytesMut` and checks the same rules, so whatever
 //! encodes, decodes.
 //!

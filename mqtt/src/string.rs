@@ -23,9 +23,10 @@ pub enum StringError {
 /// An MQTT UTF-8 encoded string. Every constructor checks the rules, so a
 /// value always encodes to bytes a conforming peer accepts.
 ///
-/// The characters the specification discourages without forbidding
-/// (control characters, non-characters) are accepted, as MQTT-1.5.3-3 asks
-/// of a receiver.
+/// The characters the specifications discourage without forbidding
+/// (control characters, non-characters) are accepted: a receiver may refuse
+/// them but need not. A byte order mark is kept as U+FEFF, never stripped
+/// (MQTT-1.5.3-3).
 #[derive(Clone, Default, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct MqttString(Bytes);
 
@@ -168,6 +169,14 @@ mod tests {
     #[test]
     fn control_characters_and_non_characters_are_accepted() {
         assert!(check("\u{1}\u{7f}\u{9f}\u{fffe}".as_bytes()).is_ok());
+    }
+
+    #[test]
+    fn byte_order_mark_is_kept() {
+        // MQTT-1.5.3-3: EF BB BF is U+FEFF wherever it is, never skipped.
+        let s = check(&[0xEF, 0xBB, 0xBF, b'a']).unwrap();
+        assert_eq!(s.as_str(), "\u{feff}a");
+        assert_eq!(s.len(), 4);
     }
 
     #[test]
