@@ -900,6 +900,7 @@ fn write_topic_name(topic: &TopicName, s: &mut impl Sink) {
 
 /// 5.0's optional reason code and properties, in their shortest form;
 /// before 5.0 the reason must be Success and there are no properties.
+/// A decoder takes every form ([`reason_and_properties`]).
 fn write_reason_and_properties(
     reason: ReasonCode,
     props: &Properties,
@@ -924,7 +925,10 @@ fn write_reason_and_properties(
         return Ok(());
     }
     put_u8(s, reason.code());
-    if props.is_empty() {
+    // PUBACK to PUBCOMP and DISCONNECT may end after the reason code
+    // (3.4.2.2, 3.14.2.2); AUTH says nothing of it, so it always carries
+    // its property length.
+    if props.is_empty() && packet != PacketType::Auth {
         return Ok(());
     }
     named(props.write(context, s), "properties")

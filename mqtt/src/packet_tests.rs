@@ -1093,6 +1093,14 @@ fn auth_is_v5_only() {
             }),
         }),
     );
+    // Without properties, a reason other than Success keeps its property
+    // length; a decoder also takes the reason alone.
+    let reauthenticate = Packet::Auth(Auth {
+        reason: ReasonCode::ReAuthenticate,
+        properties: Properties::default(),
+    });
+    golden(&[0xF0, 0x02, 0x19, 0x00], V5, reauthenticate.clone());
+    assert_eq!(decode(&[0xF0, 0x01, 0x19], V5).unwrap(), reauthenticate);
     assert_eq!(
         decode(&[0xF0, 0x00], V3).unwrap_err(),
         DecodeError::UnknownPacketType(15)
