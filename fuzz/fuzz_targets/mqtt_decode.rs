@@ -26,7 +26,9 @@ fn check_stream(data: &[u8], version: ProtocolVersion, max_packet_size: u32) {
         match result {
             Ok(Some(packet)) => {
                 let mut first = BytesMut::new();
-                packet.encode(version, &mut first).expect("a decoded packet re-encodes");
+                packet
+                    .encode(version, &mut first)
+                    .expect("a decoded packet re-encodes");
                 let mut again = first.clone();
                 let decoded = decode_packet(&mut again, version, u32::MAX)
                     .expect("a re-encoded packet decodes")
