@@ -184,6 +184,31 @@ pub fn refusal(argument: &Argument, resource: &str) -> Option<AmqpError> {
     })
 }
 
+/// Queue arguments with what a classic queue here refuses taken out (an
+/// `x-queue-type` other than `classic`, and the arguments of quorum queues
+/// and streams), and the names of those taken out: for queues made
+/// elsewhere or earlier, as a RabbitMQ export's quorum queue or a queue
+/// stored before these were refused, kept as the classic queue they can be
+/// here instead of being lost.
+pub fn classic_queue_arguments(arguments: &FieldTable) -> (FieldTable, Vec<String>) {
+    let mut kept = FieldTable::new();
+    let mut dropped = Vec::new();
+    for (key, value) in arguments.iter() {
+        let refused = match key.as_bytes() {
+            b"x-queue-type" => value.as_bytes() != Some(b"classic"),
+            other => {
+                known(Scope::Queue, other).is_some_and(|a| matches!(a.support, Support::Refused(_)))
+            }
+        };
+        if refused {
+            dropped.push(key.to_string_lossy().into_owned());
+        } else {
+            kept.insert(key.clone(), value.clone());
+        }
+    }
+    (kept, dropped)
+}
+
 /// RabbitMQ's name for a field value's type, as its error texts give it.
 pub fn type_name(value: &FieldValue) -> &'static str {
     match value {

@@ -122,7 +122,8 @@ mod word_hash;
 pub use crate::access::AccessError;
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
 pub use crate::arguments::{
-    Argument, Scope as ArgumentScope, Support as ArgumentSupport, ARGUMENTS,
+    classic_queue_arguments, Argument, Scope as ArgumentScope, Support as ArgumentSupport,
+    ARGUMENTS,
 };
 pub use crate::auth::User;
 pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};

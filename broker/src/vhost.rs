@@ -728,11 +728,17 @@ impl Vhost {
 
     /// Re-creates a stored queue at start (its messages are restored by the caller).
     pub fn restore_queue(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
+        // Stored before these arguments were refused (a quorum queue taken
+        // as a classic one): it stays the classic queue it was.
+        let (arguments, dropped) = arguments::classic_queue_arguments(&record.arguments);
+        if !dropped.is_empty() {
+            tracing::warn!(queue = %record.name, vhost = %self.name, ?dropped, "stored queue has arguments a classic queue refuses; restored without them");
+        }
         let options = QueueOptions {
             durable: true,
             exclusive_owner: None,
             auto_delete: record.auto_delete,
-            arguments: record.arguments.clone(),
+            arguments,
         };
         let args = match QueueArgs::parse(&options.arguments, &record.name, &self.name) {
             Ok(args) => args,
