@@ -41,10 +41,25 @@ async fn publish_numbered(ch: &lp::Channel, queue: &str, range: std::ops::RangeI
 
 /// The bodies and redelivered flags of the next `n` deliveries.
 async fn next_n(consumer: &mut lp::Consumer, n: usize) -> Vec<(String, bool)> {
+    next_n_acking(consumer, n, None).await
+}
+
+/// [`next_n`], then acks them all (`multiple` up to the last one's tag:
+/// lapin drops deliveries it holds on an ack of tag 0).
+async fn next_n_acking(
+    consumer: &mut lp::Consumer,
+    n: usize,
+    ack_on: Option<&lp::Channel>,
+) -> Vec<(String, bool)> {
     let mut got = Vec::new();
+    let mut last = 0;
     for _ in 0..n {
         let d = lp::next(consumer).await;
         got.push((lp::text(&d), d.redelivered));
+        last = d.delivery_tag;
+    }
+    if let Some(ch) = ack_on {
+        tmo!(ch.basic_ack(last, lp::BasicAckOptions { multiple: true })).expect("basic.ack");
     }
     got
 }
@@ -88,27 +103,35 @@ async fn the_first_consumer_gets_everything() {
     }
 }
 
-/// basic.cancel of the active consumer: the next registered one gets what
-/// is ready at once; what the cancelled one holds unacked stays with its
-/// channel (as in RabbitMQ) until that channel closes, and then comes to
-/// the new active consumer, redelivered.
+/// basic.cancel of the active consumer: the next registered one becomes
+/// active; what the cancelled one holds unacked stays with its channel (as
+/// in RabbitMQ: that channel may still ack it), and the new one gets its
+/// first message only once those are settled, so two consumers never work
+/// on the queue at once: acked, and the rest follows; requeued (the channel
+/// closes), and they come first, in order. A consumer cancelled holding
+/// nothing hands over at once.
+///
+/// RabbitMQ 3.10.8 makes the next consumer active on cancel too but
+/// delivers nothing to it until the queue runs for another reason (a
+/// close, an ack), and a publish in between crashes its queue process
+/// (`badmatch` in `rabbit_amqqueue_process:attempt_delivery`, the
+/// messages lost): this test is Leveret's.
 #[both_runtimes]
-async fn cancel_hands_over_to_the_next_registered() {
+async fn cancel_hands_over_once_the_cancelled_consumer_holds_nothing() {
     let b = broker().await;
+    if b.is_external() {
+        return;
+    }
     let conn = lp::connect(&b).await;
     let ch = lp::channel(&conn).await;
     let q = lp::queue_with(&ch, "sac-cancel", single_active()).await;
     let (ch1, mut first) = consumer_on(&conn, &q, "first", 3, Default::default()).await;
-    let (_ch2, mut second) = consumer_on(&conn, &q, "second", 0, Default::default()).await;
+    let (ch2, mut second) = consumer_on(&conn, &q, "second", 3, Default::default()).await;
     let (_ch3, mut third) = consumer_on(&conn, &q, "third", 0, Default::default()).await;
-    publish_numbered(&ch, &q, 1..=10).await;
+    publish_numbered(&ch, &q, 1..=12).await;
     assert_eq!(next_n(&mut first, 3).await, numbered(1..=3, false));
-    lp::nothing(&mut second).await;
     tmo!(ch1.basic_cancel("first", Default::default())).expect("basic.cancel");
-    assert_eq!(next_n(&mut second, 7).await, numbered(4..=10, false));
-    tmo!(ch1.close(200, "bye")).expect("channel.close");
-    assert_eq!(next_n(&mut second, 3).await, numbered(1..=3, true));
-    lp::nothing(&mut third).await;
+    lp::nothing(&mut second).await;
     if let Some(listed) = listed_active(&b, &q) {
         assert_eq!(
             listed,
@@ -118,6 +141,26 @@ async fn cancel_hands_over_to_the_next_registered() {
             ]
         );
     }
+    // The cancelled consumer's channel closes: its three come back first.
+    tmo!(ch1.close(200, "bye")).expect("channel.close");
+    assert_eq!(
+        next_n_acking(&mut second, 3, Some(&ch2)).await,
+        numbered(1..=3, true)
+    );
+    // The second is cancelled holding three: the third waits until they
+    // are acked, then gets what is left, in order.
+    let mut held = Vec::new();
+    for _ in 0..3 {
+        held.push(lp::next(&mut second).await);
+    }
+    let bodies: Vec<_> = held.iter().map(|d| (lp::text(d), d.redelivered)).collect();
+    assert_eq!(bodies, numbered(4..=6, false));
+    tmo!(ch2.basic_cancel("second", Default::default())).expect("basic.cancel");
+    lp::nothing(&mut third).await;
+    let last = held.last().expect("three").delivery_tag;
+    tmo!(ch2.basic_ack(last, lp::BasicAckOptions { multiple: true })).expect("ack");
+    assert_eq!(next_n(&mut third, 6).await, numbered(7..=12, false));
+    lp::nothing(&mut first).await;
 }
 
 /// channel.close of the active consumer: its unacked messages come back
@@ -182,7 +225,7 @@ async fn higher_priority_consumers_are_served_while_they_have_room() {
     assert_eq!(next_n(&mut high, 3).await, numbered(1..=3, false));
     assert_eq!(next_n(&mut low, 2).await, numbered(4..=5, false));
     // Room again for the high one: the next message is its.
-    tmo!(high_ch.basic_ack(0, lp::BasicAckOptions { multiple: true })).expect("ack all");
+    tmo!(high_ch.basic_ack(3, lp::BasicAckOptions { multiple: true })).expect("ack all");
     publish_numbered(&ch, &q, 6..=8).await;
     assert_eq!(next_n(&mut high, 3).await, numbered(6..=8, false));
     lp::nothing(&mut low).await;

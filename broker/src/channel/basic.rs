@@ -403,9 +403,9 @@ impl Channel {
                 if queue.remove_consumer(&consumer) {
                     self.vhost.delete_queue(&queue).notify();
                 } else {
-                    // A single active consumer's successor takes over now;
-                    // what the cancelled one holds unacked stays with its
-                    // channel, as in RabbitMQ.
+                    // A single active consumer's successor takes over (once
+                    // what the cancelled one holds unacked, which stays with
+                    // this channel as in RabbitMQ, is settled).
                     self.vhost.dead_letter(queue.dispatch());
                 }
             }

@@ -7,7 +7,10 @@
 //! has credit (prefetch room); lower ones get them only when every higher
 //! one is blocked; equal ones take turns. With a single active consumer
 //! only that one gets messages; when it goes, the waiting consumer with
-//! the highest priority, registered earliest, takes over.
+//! the highest priority, registered earliest, takes over, and gets its
+//! first message once the one before holds none unacked (acked, or
+//! requeued when its channel closes: those then come first, in order), so
+//! that two consumers never work on the queue at once.
 //!
 //! Cost: choosing looks at groups from the highest down and stops at the
 //! first consumer with credit. Groups found wholly blocked are skipped
@@ -17,6 +20,7 @@
 //! each per burst of credit, not one per message.
 
 use crate::consumer::Consumer;
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 /// One priority's consumers.
@@ -53,6 +57,10 @@ pub(super) struct Consumers {
     single_active: bool,
     /// The active consumer of a single-active-consumer queue.
     active: Option<Arc<Consumer>>,
+    /// The active consumer before it, gone (cancelled, its channel closed)
+    /// while it held unacked messages: the active one waits until it holds
+    /// none.
+    previous: Option<Arc<Consumer>>,
     /// Consumers looked at by [`Consumers::pick`], for the tests that
     /// bound its cost.
     #[cfg(test)]
@@ -139,6 +147,9 @@ impl Consumers {
         if !was_active {
             return Some(false);
         }
+        if consumer.in_flight.load(Ordering::Relaxed) > 0 {
+            self.previous = Some(Arc::clone(consumer));
+        }
         // The highest priority waiting, registered earliest.
         self.active = self
             .groups
@@ -163,6 +174,7 @@ impl Consumers {
         self.groups.clear();
         self.offsets.clear();
         self.active = None;
+        self.previous = None;
         self.first_open = 0;
         std::mem::take(&mut self.registered)
     }
@@ -194,7 +206,8 @@ impl Consumers {
     }
 
     /// The consumer to deliver to next: the active one of a
-    /// single-active-consumer queue if it has credit; otherwise the first
+    /// single-active-consumer queue if it has credit (and the one before
+    /// it holds nothing unacked); otherwise the first
     /// with credit in the highest group that has one, from that group's
     /// cursor. `full` marks consumers (by [`Slot::flat`]) whose writer had
     /// no room in this dispatch.
@@ -203,6 +216,12 @@ impl Consumers {
         if self.single_active {
             self.active.as_ref()?;
             self.count_examined();
+            if let Some(previous) = &self.previous {
+                if previous.in_flight.load(Ordering::Relaxed) > 0 {
+                    return None;
+                }
+                self.previous = None;
+            }
             let active = self.active.as_ref()?;
             let slot = Slot {
                 group: usize::MAX,

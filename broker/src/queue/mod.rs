@@ -401,9 +401,10 @@ impl Queue {
 
     /// Removes a consumer (cancelled, or its channel closed); if it was the
     /// active one of a single-active-consumer queue, the next waiting one
-    /// becomes active (the caller dispatches: after requeueing what the
-    /// channel held, when it closes, so that those go first). Returns
-    /// whether the queue should now be auto-deleted.
+    /// becomes active, and gets messages once the removed one holds none
+    /// unacked (the caller dispatches: after requeueing what the channel
+    /// held, when it closes). Returns whether the queue should now be
+    /// auto-deleted.
     pub fn remove_consumer(&self, consumer: &Arc<Consumer>) -> bool {
         let mut st = self.lock();
         if st.consumers.remove(consumer).is_none() {
