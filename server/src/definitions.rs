@@ -14,7 +14,8 @@
 //! reported, never dropped silently: other policies, operator policies,
 //! other parameters, global parameters, unknown keys, other password hashing
 //! algorithms, and queue types Leveret does not have (an `x-queue-type`
-//! other than classic gives a classic queue).
+//! other than classic gives a classic queue, without the arguments of its
+//! type, which a classic queue refuses).
 
 use crate::management::json::{flag, text, user_tags};
 use crate::uplink::Links;
