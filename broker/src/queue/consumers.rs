@@ -17,7 +17,9 @@
 //! until credit may have come back ([`Consumers::reopen`], called by every
 //! dispatch except the one a publish makes: a publish frees no credit), so
 //! many consumers with distinct priorities, all blocked, cost one look
-//! each per burst of credit, not one per message.
+//! each per burst of credit, not one per message. (Consumers on channels
+//! with a `global` prefetch, shared with other queues, are looked at every
+//! time, as before.)
 
 use crate::consumer::Consumer;
 use std::sync::atomic::Ordering;
@@ -230,9 +232,16 @@ impl Consumers {
             };
             return (!is_full(0) && active.has_credit()).then(|| (slot, Arc::clone(active)));
         }
-        while self.first_open < self.groups.len() {
-            let g = self.first_open;
+        // Groups found blocked extend the skipped prefix only while each of
+        // their consumers is blocked by what only a dispatch of this queue
+        // lifts (its own prefetch, its activation). A channel's `global`
+        // prefetch is shared with other queues, whose dispatch may take a
+        // unit and give it back, or whose ack may free one, without
+        // dispatching this one: those groups are looked at every time.
+        let mut prefix = true;
+        for g in self.first_open..self.groups.len() {
             let count = self.groups[g].members.len();
+            let mut memoable = true;
             for k in 0..count {
                 let member = (self.groups[g].cursor + k) % count;
                 let flat = self.offsets[g] + member;
@@ -248,8 +257,12 @@ impl Consumers {
                         Arc::clone(consumer),
                     ));
                 }
+                memoable &= consumer.channel.global_prefetch.load(Ordering::Relaxed) == 0;
             }
-            self.first_open += 1;
+            prefix &= memoable;
+            if prefix {
+                self.first_open = g + 1;
+            }
         }
         None
     }

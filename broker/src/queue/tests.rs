@@ -336,3 +336,30 @@ fn a_single_active_consumer_gets_everything_until_it_goes() {
     assert_eq!(got.len(), 4);
     assert!(got.iter().all(|d| d.consumer == "second"));
 }
+
+/// A channel's `global` prefetch is shared between its queues, and a unit
+/// freed by one queue's ack dispatches only that queue: a publish to the
+/// other must still find the consumer that now has room (it is never
+/// skipped as blocked).
+#[test]
+fn a_global_prefetch_freed_elsewhere_is_seen_by_the_next_publish() {
+    let h = Harness::new();
+    let q1 = h.queue("q1", &[]);
+    let q2 = h.queue("q2", &[]);
+    let mut ch = h.channel();
+    ch.link
+        .global_prefetch
+        .store(1, std::sync::atomic::Ordering::Relaxed);
+    consumer_with(&ch, &q1, "c1", 0, 0);
+    consumer_with(&ch, &q2, "c2", 0, 0);
+    h.publish("", "q2", "held");
+    let held = ch.drain();
+    assert_eq!(held.len(), 1);
+    h.publish("", "q1", "first");
+    assert!(ch.drain().is_empty(), "the channel's one unit is taken");
+    // Acked through q2: only q2 dispatches.
+    ch.ack(held[0].tag, false);
+    h.publish("", "q1", "second");
+    let got: Vec<String> = ch.drain().into_iter().map(|d| d.body).collect();
+    assert_eq!(got, ["first"]);
+}
