@@ -389,6 +389,12 @@ pub struct ConsumerInfo {
     pub prefetch_count: u32,
     /// `x-priority`.
     pub priority: i64,
+    /// Whether the queue delivers to it: always, unless the queue has a
+    /// single active consumer and this one waits.
+    pub active: bool,
+    /// RabbitMQ's `activity_status`: `up`, or on a queue with a single
+    /// active consumer `single_active` or `waiting`.
+    pub activity_status: &'static str,
 }
 
 /// A handle on one queue for reading its figures later, one at a time
@@ -444,7 +450,7 @@ impl QueueRef {
         self.queue
             .consumers_snapshot()
             .into_iter()
-            .map(|consumer| ConsumerInfo {
+            .map(|(consumer, active)| ConsumerInfo {
                 vhost: self.vhost.to_string_lossy().into_owned(),
                 queue: self.queue.name.to_string_lossy().into_owned(),
                 tag: consumer.tag.to_string_lossy().into_owned(),
@@ -454,6 +460,12 @@ impl QueueRef {
                 exclusive: consumer.exclusive,
                 prefetch_count: consumer.prefetch,
                 priority: consumer.priority,
+                active,
+                activity_status: match (self.queue.args.single_active_consumer, active) {
+                    (false, _) => "up",
+                    (true, true) => "single_active",
+                    (true, false) => "waiting",
+                },
             })
             .collect()
     }

@@ -80,6 +80,7 @@
 
 mod access;
 mod admin;
+mod arguments;
 mod auth;
 mod busy_poll;
 mod channel;
@@ -120,6 +121,10 @@ mod word_hash;
 
 pub use crate::access::AccessError;
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
+pub use crate::arguments::{
+    classic_queue_arguments, Argument, Scope as ArgumentScope, Support as ArgumentSupport,
+    ARGUMENTS,
+};
 pub use crate::auth::User;
 pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
 pub use crate::core::{Limits, UserLimits, VhostLimits};

@@ -14,7 +14,8 @@
 //! reported, never dropped silently: other policies, operator policies,
 //! other parameters, global parameters, unknown keys, other password hashing
 //! algorithms, and queue types Leveret does not have (an `x-queue-type`
-//! other than classic gives a classic queue).
+//! other than classic gives a classic queue, without the arguments of its
+//! type, which a classic queue refuses).
 
 use crate::management::json::{flag, text, user_tags};
 use crate::uplink::Links;
@@ -395,25 +396,32 @@ impl Definitions {
                 &what,
                 &mut d.warnings,
             );
-            let arguments = item.get("arguments").unwrap_or(&Value::Null);
+            let arguments = to_table(item.get("arguments").unwrap_or(&Value::Null))?;
             let kind = arguments
                 .get("x-queue-type")
-                .or_else(|| item.get("type"))
-                .and_then(Value::as_str)
-                .unwrap_or("classic");
+                .and_then(|kind| kind.as_bytes())
+                .map(|kind| String::from_utf8_lossy(kind).into_owned())
+                .or_else(|| item.get("type").and_then(Value::as_str).map(str::to_owned))
+                .unwrap_or_else(|| "classic".to_owned());
+            // A quorum queue or a stream from a RabbitMQ export becomes the
+            // classic queue it can be here, without its type's arguments
+            // (which a classic queue refuses), and says so.
+            let (arguments, dropped) = leveret_broker::classic_queue_arguments(&arguments);
             if kind != "classic" {
                 d.warnings.push(format!(
                     "{what}: queue type '{kind}' is not supported; declared as a classic queue"
                 ));
             }
-            let mut arguments = arguments.clone();
-            if let Some(map) = arguments.as_object_mut() {
-                map.remove("x-queue-type");
+            let dropped: Vec<_> = dropped.iter().filter(|k| *k != "x-queue-type").collect();
+            if !dropped.is_empty() {
+                d.warnings.push(format!(
+                    "{what}: arguments {dropped:?} are not available on a classic queue; declared without them"
+                ));
             }
             let settings = QueueSettings {
                 durable: flag(item, "durable", true)?,
                 auto_delete: flag(item, "auto_delete", false)?,
-                arguments: to_table(&arguments)?,
+                arguments,
             };
             d.queues.push((vhost, queue, settings));
         }
@@ -770,7 +778,7 @@ mod tests {
             "vhosts": [{"name": "/", "limits": {"max-queues": 5}}],
             "permissions": [{"user": "a", "vhost": "/", "configure": ".*", "write": ".*", "read": ".*"}],
             "policies": [],
-            "queues": [{"name": "q", "vhost": "/", "durable": true, "auto_delete": false, "arguments": {"x-queue-type": "quorum"}}],
+            "queues": [{"name": "q", "vhost": "/", "durable": true, "auto_delete": false, "arguments": {"x-queue-type": "quorum", "x-delivery-limit": 5, "x-message-ttl": 1000}}],
             "exchanges": [{"name": "x", "vhost": "/", "type": "topic", "durable": true, "auto_delete": false, "internal": false, "arguments": {}}],
             "bindings": [{"source": "x", "vhost": "/", "destination": "q", "destination_type": "queue", "routing_key": "k", "arguments": {}}],
             "shovels": [1]
@@ -782,12 +790,18 @@ mod tests {
             "hashing algorithm rabbit_password_hashing_md5",
             "key 'limits'",
             "queue type 'quorum'",
+            "arguments [\"x-delivery-limit\"] are not available on a classic queue",
         ] {
             assert!(all.contains(expected), "{expected} in:\n{all}");
         }
         assert!(!all.contains("policies"), "empty lists say nothing: {all}");
         assert_eq!(d.queues.len(), 1);
-        assert!(d.queues[0].2.arguments.get("x-queue-type").is_none());
+        let kept = &d.queues[0].2.arguments;
+        assert!(kept.get("x-queue-type").is_none() && kept.get("x-delivery-limit").is_none());
+        assert_eq!(
+            kept.get("x-message-ttl").and_then(|v| v.as_i64()),
+            Some(1000)
+        );
         assert_eq!((d.exchanges.len(), d.bindings.len()), (1, 1));
     }
 

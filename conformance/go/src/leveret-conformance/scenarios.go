@@ -324,6 +324,30 @@ func init() {
 		t.Eq("purged", n, 3)
 	})
 
+	scenario("queue.integer_argument_widths_are_equivalent", func(t *T) {
+		// RabbitMQ compares numeric arguments by value: the same TTL and
+		// max-priority sent as 8-, 16-, 32- or 64-bit integers, signed or
+		// not, is the same queue; another value is 406.
+		c := dial(t, "", nil)
+		ch := channel(t, c)
+		q := t.N("widths")
+		t.Defer(func() { c2, _ := amqp.Dial(t.URL); ch2, _ := c2.Channel(); ch2.QueueDelete(q, false, false, false); c2.Close() })
+		widths := []amqp.Table{
+			{"x-message-ttl": int64(100), "x-max-priority": int64(5)},
+			{"x-message-ttl": int32(100), "x-max-priority": int32(5)},
+			{"x-message-ttl": int16(100), "x-max-priority": int16(5)},
+			{"x-message-ttl": int8(100), "x-max-priority": int8(5)},
+			{"x-message-ttl": byte(100), "x-max-priority": byte(5)},
+		}
+		for i, args := range widths {
+			_, err := ch.QueueDeclare(q, false, false, false, false, args)
+			t.Must(err, fmt.Sprintf("declare with width %d", i))
+		}
+		t.Obs("every width accepted", len(widths))
+		_, err := ch.QueueDeclare(q, false, false, false, false, amqp.Table{"x-message-ttl": int8(101), "x-max-priority": int64(5)})
+		expectErr(t, "another ttl", err, 406)
+	})
+
 	scenario("queue.reject_publish_dlx", func(t *T) {
 		c := dial(t, "", nil)
 		ch := channel(t, c)
