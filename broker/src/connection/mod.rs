@@ -554,10 +554,13 @@ impl Connection {
                 self.core.users.contains(name).then(|| name.clone())
             }
             (_, mechanism) => {
-                self.core
-                    .users
-                    .authenticate(mechanism, &start_ok.response)
-                    .await
+                let users = &self.core.users;
+                let login = users.authenticate(mechanism, &start_ok.response, &self.peer);
+                // A client that hangs up withdraws its check (see `hash_pool`).
+                tokio::select! {
+                    user = login => user,
+                    _ = reader.hung_up() => return Err(Ended::Read(ReadError::Closed)),
+                }
             }
         };
         match authenticated {
