@@ -13,7 +13,7 @@
 
 use crate::hash_pool::{HashPool, HashPoolStats};
 use crate::login_backoff::{source_of, LoginBackoff};
-use crate::password::PasswordHash;
+use crate::password::{HashMemory, PasswordHash};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{FieldTable, FieldValue};
 use sha2::{Digest, Sha256};
@@ -261,7 +261,9 @@ impl Users {
         let remembered = Arc::clone(&self.verified.passed);
         let name = user.to_owned();
         let candidate = password.to_vec();
-        let check = move || passed(&remembered, &name, &key) || hash.verify(&candidate);
+        let check = move |memory: &mut HashMemory| {
+            passed(&remembered, &name, &key) || hash.verify_in(&candidate, memory)
+        };
         // Keyed by source and user: NUL cannot be in an address.
         let queue = format!("{source}\0{user}");
         let answer = match self.verified.pool.submit(&queue, check) {

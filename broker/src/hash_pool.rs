@@ -20,9 +20,13 @@
 //!   cannot keep another key out; otherwise the new check is refused.
 //!   A refused check fails, as a wrong password would.
 //!
-//! Uses nothing else of the broker: a check is any closure returning
-//! whether it passed.
+//! - A thread keeps the check's memory ([`HashMemory`]) while checks keep
+//!   coming, and gives it back when none waits.
+//!
+//! Uses `password`'s [`HashMemory`], nothing else of the broker: a check
+//! is any closure returning whether it passed.
 
+use crate::password::HashMemory;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
@@ -36,7 +40,7 @@ pub const QUEUE_CAPACITY: usize = 1024;
 pub const THREAD_NAME: &str = "leveret-hash";
 
 /// A check for the pool: true if the password passed.
-type Check = Box<dyn FnOnce() -> bool + Send>;
+type Check = Box<dyn FnOnce(&mut HashMemory) -> bool + Send>;
 
 struct Job {
     check: Check,
@@ -167,6 +171,7 @@ impl Shared {
 
     /// A pool thread: runs checks until the pool is dropped.
     fn serve(&self) {
+        let mut memory = HashMemory::default();
         loop {
             let job = {
                 let mut state = self.lock();
@@ -180,16 +185,19 @@ impl Shared {
                             state.stats.peak_running.max(state.stats.running);
                         break job;
                     }
+                    memory.release();
                     state = self.work.wait(state).unwrap_or_else(|e| e.into_inner());
                 }
             };
             // A check that panics fails, and its thread lives on.
-            let passed =
-                std::panic::catch_unwind(std::panic::AssertUnwindSafe(job.check)).unwrap_or(false);
+            let check = std::panic::AssertUnwindSafe(|| (job.check)(&mut memory));
+            let passed = std::panic::catch_unwind(check).unwrap_or(false);
+            {
+                let mut state = self.lock();
+                state.stats.running -= 1;
+                state.stats.finished += 1;
+            }
             let _ = job.reply.send(passed);
-            let mut state = self.lock();
-            state.stats.running -= 1;
-            state.stats.finished += 1;
         }
     }
 }
@@ -225,7 +233,7 @@ impl HashPool {
     pub fn submit(
         &self,
         key: &str,
-        check: impl FnOnce() -> bool + Send + 'static,
+        check: impl FnOnce(&mut HashMemory) -> bool + Send + 'static,
     ) -> Result<oneshot::Receiver<bool>, Refused> {
         let (reply, answer) = oneshot::channel();
         let job = Job {
@@ -313,9 +321,9 @@ mod tests {
         name: &'static str,
         ran: &mpsc::Sender<&'static str>,
         gate: Option<mpsc::Receiver<()>>,
-    ) -> impl FnOnce() -> bool + Send + 'static {
+    ) -> impl FnOnce(&mut HashMemory) -> bool + Send + 'static {
         let ran = ran.clone();
-        move || {
+        move |_memory| {
             ran.send(name).unwrap();
             if let Some(gate) = gate {
                 gate.recv_timeout(HANG).expect("released");
