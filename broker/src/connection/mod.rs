@@ -175,7 +175,7 @@ async fn serve_frames<S: FrameSource, K: Sink>(
     }
     let (outbox, inbox) = Outbox::new(connection_id);
     let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
-    let writer = sink.start(inbox, Arc::clone(&outbox), heartbeat_rx);
+    let mut writer = sink.start(inbox, Arc::clone(&outbox), heartbeat_rx);
     let mut conn = Connection {
         core,
         outbox,
@@ -198,12 +198,28 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         .run(&mut reader, &heartbeat_tx, handshake_deadline)
         .await;
     conn.cleanup();
+    // A client that stopped answering (missed heartbeats) may have
+    // stopped reading too, with the writer blocked on its full socket:
+    // the writer is stopped where it is, as RabbitMQ closes the socket,
+    // and what it held is dropped. Otherwise it gets what is queued out
+    // within the close timeout.
+    let unresponsive = matches!(outcome, Err(Ended::Read(ReadError::TimedOut)));
     match outcome {
         Ok(()) => tracing::debug!(peer = %conn.peer, "connection closed"),
         Err(e) => tracing::info!(peer = %conn.peer, error = %e, "connection closed with error"),
     }
-    conn.outbox.send(Outbound::Shutdown).await;
-    let _ = writer.await;
+    if unresponsive {
+        writer.abort();
+    }
+    let drained = async {
+        conn.outbox.send(Outbound::Shutdown).await;
+        let _ = (&mut writer).await;
+    };
+    if tokio::time::timeout(CLOSE_TIMEOUT, drained).await.is_err() {
+        tracing::info!(peer = %conn.peer, "client not reading; closing its socket with output unsent");
+        writer.abort();
+        let _ = writer.await;
+    }
 }
 
 /// Why a handshake step did not finish.
@@ -859,17 +875,14 @@ impl Connection {
         error: AmqpError,
     ) -> Result<(), Ended> {
         self.cleanup();
-        self.outbox
-            .method(
-                0,
-                ConnectionClose {
-                    reply_code: error.code.code(),
-                    reply_text: error.reply_text(),
-                    class_id: error.class_id,
-                    method_id: error.method_id,
-                },
-            )
-            .await;
+        let close = ConnectionClose {
+            reply_code: error.code.code(),
+            reply_text: error.reply_text(),
+            class_id: error.class_id,
+            method_id: error.method_id,
+        };
+        // Bounded: a client that stops reading leaves no room for it.
+        let _ = tokio::time::timeout(CLOSE_TIMEOUT, self.outbox.method(0, close)).await;
         let wait = async {
             loop {
                 match reader.next().await {
