@@ -3,7 +3,9 @@
 //! heartbeats included. The broker must close it after two missed
 //! heartbeats, as RabbitMQ does whether or not its writer is blocked, and
 //! give back what it held: the deliveries waiting for the writer and the
-//! connection's exclusive queue.
+//! connection's exclusive queue. Tried twice: with the connection's
+//! reader idle, and with the reader itself waiting to answer a last
+//! request (a `channel.open`) for which the full outbox has no room.
 
 #[macro_use]
 mod common;
@@ -11,13 +13,9 @@ mod common;
 use common::raw::{short, Method, Raw};
 use common::*;
 use leveret_broker::{Admin, Overview};
-use leveret_protocol::{BasicConsume, QueueDeclare};
+use leveret_protocol::{BasicConsume, ChannelOpen, QueueDeclare};
 use std::time::Duration;
 
-/// Messages queued for the consumer before it consumes.
-const MESSAGES: usize = 400;
-/// Their size: 400 × 64 KiB = 25 MiB, far beyond a socket's buffers.
-const BODY: usize = 64 * 1024;
 /// The heartbeat the stalled consumer asks for, seconds.
 const HEARTBEAT: u16 = 1;
 /// A hang limit for the close (RabbitMQ closes after two heartbeats).
@@ -41,6 +39,22 @@ async fn overview_until(
 
 #[both_runtimes]
 async fn a_consumer_that_stops_reading_is_closed_after_missed_heartbeats_and_freed() {
+    // 400 × 64 KiB = 25 MiB, far beyond the sockets' buffers; fewer
+    // deliveries than the outbox holds, so the reader stays free.
+    stalled_consumer_is_closed(400, 64 * 1024, false).await;
+}
+
+#[both_runtimes]
+async fn a_stalled_consumer_waiting_for_room_for_a_reply_is_closed_too() {
+    // 3,000 × 8 KiB: the outbox (512 items) fills behind the blocked
+    // writer, and the reply to the last request finds no room.
+    stalled_consumer_is_closed(3000, 8 * 1024, true).await;
+}
+
+/// A consumer of `messages` no-ack deliveries of `body` bytes that stops
+/// reading (after one last `channel.open` if `last_request`) must be closed and
+/// freed.
+async fn stalled_consumer_is_closed(messages: usize, body: usize, last_request: bool) {
     let b = TestBroker::leveret(leveret_broker::Broker::builder()).await;
     let admin = b.admin().expect("in-process broker");
     let mut stalled = Raw::open_with_heartbeat(&b, HEARTBEAT).await;
@@ -56,17 +70,17 @@ async fn a_consumer_that_stops_reading_is_closed_after_missed_heartbeats_and_fre
         .await;
 
     let (publisher, channel) = lp::open(&b).await;
-    let body = vec![7u8; BODY];
-    for _ in 0..MESSAGES {
-        lp::publish(&channel, "", &queue, &body).await;
+    let payload = vec![7u8; body];
+    for _ in 0..messages {
+        lp::publish(&channel, "", &queue, &payload).await;
     }
     let queued = overview_until(&admin, CLOSE_HANG, |o| {
-        o.queue_totals.messages_ready == MESSAGES as u64
+        o.queue_totals.messages_ready == messages as u64
     })
     .await;
-    assert_eq!(queued.queue_totals.messages_ready, MESSAGES as u64);
+    assert_eq!(queued.queue_totals.messages_ready, messages as u64);
     assert!(
-        queued.memory_used >= MESSAGES * BODY,
+        queued.memory_used >= messages * body,
         "{}",
         queued.memory_used
     );
@@ -82,6 +96,10 @@ async fn a_consumer_that_stops_reading_is_closed_after_missed_heartbeats_and_fre
     stalled
         .call(1, consume, |m| matches!(m, Method::BasicConsumeOk(_)))
         .await;
+    if last_request {
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        stalled.send(2, ChannelOpen::default()).await;
+    }
     let stalled_at = tokio::time::Instant::now();
     let closed = overview_until(&admin, CLOSE_HANG, |o| o.object_totals.connections == 1).await;
     eprintln!(

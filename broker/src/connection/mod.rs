@@ -312,6 +312,7 @@ impl Connection {
         // timer reset per read would cost a timer-wheel update per batch).
         let silence_limit = self.heartbeat * 2;
         let mut last_read = tokio::time::Instant::now();
+        self.outbox.heard(last_read);
         let silence = tokio::time::sleep(silence_limit);
         tokio::pin!(silence);
         // Likewise for giving back a read buffer grown by a burst.
@@ -386,6 +387,7 @@ impl Connection {
                     // monitor likewise).
                     Unblocked::Cleared => {
                         last_read = tokio::time::Instant::now();
+                        self.outbox.heard(last_read);
                         continue;
                     }
                     Unblocked::PeerGone => return Err(Ended::Read(ReadError::Closed)),
@@ -410,7 +412,10 @@ impl Connection {
                 _ = &mut release, if reader.holds_spare() => Event::Idle,
             };
             match event {
-                Event::Read(Ok(())) => last_read = tokio::time::Instant::now(),
+                Event::Read(Ok(())) => {
+                    last_read = tokio::time::Instant::now();
+                    self.outbox.heard(last_read);
+                }
                 Event::Read(Err(e)) => return Err(Ended::Read(e)),
                 Event::DiskProgress | Event::Alarm => {}
                 Event::Idle if last_read.elapsed() < IDLE_RELEASE => {
