@@ -381,6 +381,50 @@ mod tests {
         assert!(!users.check_password("nobody", b"pw", PEER).await);
     }
 
+    /// A flood of wrong passwords for one user from 127.0.0.1 holds
+    /// neither a known login (remembered: no hashing) nor another user's
+    /// first login from the same address (its own queue, served in
+    /// turn).
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_flood_for_one_user_holds_up_no_other_login() {
+        let users = Users::default();
+        users.put("guest", User::new(PasswordHash::new("guest")));
+        users.put("robot", User::new(PasswordHash::new("pw")));
+        assert!(users.check_password("guest", b"guest", PEER).await);
+        let flood: Vec<_> = (0..200)
+            .map(|i| {
+                let users = users.clone();
+                tokio::spawn(async move {
+                    let wrong = format!("no{i}");
+                    users
+                        .check_password("guest", wrong.as_bytes(), "127.0.0.1:6000")
+                        .await
+                })
+            })
+            .collect();
+        let hang = tokio::time::Instant::now() + std::time::Duration::from_secs(20);
+        while users.hash_pool_stats().waiting < 100 {
+            assert!(tokio::time::Instant::now() < hang, "the flood queued");
+            tokio::task::yield_now().await;
+        }
+        let before = users.hash_pool_stats();
+        assert!(
+            users
+                .check_password("guest", b"guest", "127.0.0.1:6001")
+                .await
+        );
+        assert!(users.check_password("robot", b"pw", "127.0.0.1:6002").await);
+        let after = users.hash_pool_stats();
+        assert!(
+            after.finished - before.finished <= 4 * crate::hash_pool::HASH_THREADS,
+            "served in turn, not behind the flood: {before:?} then {after:?}"
+        );
+        assert!(after.peak_running <= crate::hash_pool::HASH_THREADS);
+        for attempt in &flood {
+            attempt.abort();
+        }
+    }
+
     #[test]
     fn loopback_users_connect_only_from_the_host() {
         let mut users = Users::default();
