@@ -73,7 +73,8 @@ pub struct HashPoolStats {
     pub running: usize,
     /// The most checks that ever ran at once.
     pub peak_running: usize,
-    /// Checks waiting now.
+    /// Checks queued now (those whose caller has gone are counted until
+    /// a thread reaches them, or room is needed).
     pub waiting: usize,
     /// Checks that ran to the end.
     pub finished: usize,
