@@ -450,12 +450,21 @@ impl Admin {
         self.core.users.get(name)
     }
 
-    /// Whether `user` with `password` is one of the broker's users.
-    pub async fn authenticate(&self, user: &str, password: &str) -> bool {
+    /// Whether `user` with `password` is one of the broker's users;
+    /// `source` is where the attempt comes from (an `ip:port`, or text
+    /// naming the way in), for the fair queueing and slowing of checks
+    /// (see `auth`).
+    pub async fn authenticate(&self, user: &str, password: &str, source: &str) -> bool {
         self.core
             .users
-            .check_password(user, password.as_bytes())
+            .check_password(user, password.as_bytes(), source)
             .await
+    }
+
+    /// What the password hashing pool has done: its threads, and the
+    /// most checks it ran at once.
+    pub fn hash_pool_stats(&self) -> crate::HashPoolStats {
+        self.core.users.hash_pool_stats()
     }
 }
 

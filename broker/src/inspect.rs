@@ -43,6 +43,9 @@ pub struct Overview {
     /// The memory high watermark: queued-message bytes above which
     /// publishers are blocked.
     pub memory_high_watermark: usize,
+    /// The bytes counted against it now (queued messages, transactions'
+    /// publishes, bodies being received).
+    pub memory_used: usize,
     /// Whether the memory alarm is set now.
     pub memory_alarm: bool,
     /// Free disk bytes below which publishers are blocked.
@@ -581,6 +584,7 @@ impl Admin {
             },
             publishers: c.publishers.get(),
             memory_high_watermark: core.limits.memory_high_watermark,
+            memory_used: core.gauge.used(),
             memory_alarm: core.gauge.memory_alarm(),
             disk_free_limit: core.limits.disk_free_limit,
             disk_alarm: core.gauge.disk_alarm(),

@@ -97,7 +97,9 @@ mod error;
 pub mod exchange;
 #[cfg(not(feature = "bench-internals"))]
 mod exchange;
+mod hash_pool;
 mod inspect;
+mod login_backoff;
 mod memory;
 mod message;
 mod outbox;
@@ -129,6 +131,7 @@ pub use crate::auth::User;
 pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
 pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
+pub use crate::hash_pool::{HashPoolStats, HASH_THREADS};
 pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
 pub use crate::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,

@@ -70,6 +70,11 @@ impl MemoryGauge {
         }
     }
 
+    /// The bytes counted now.
+    pub fn used(&self) -> usize {
+        self.used.load(Ordering::Relaxed)
+    }
+
     /// Records `bytes` released.
     pub fn sub(&self, bytes: usize) {
         let used = self

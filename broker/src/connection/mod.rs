@@ -175,7 +175,7 @@ async fn serve_frames<S: FrameSource, K: Sink>(
     }
     let (outbox, inbox) = Outbox::new(connection_id);
     let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
-    let writer = sink.start(inbox, Arc::clone(&outbox), heartbeat_rx);
+    let mut writer = sink.start(inbox, Arc::clone(&outbox), heartbeat_rx);
     let mut conn = Connection {
         core,
         outbox,
@@ -198,12 +198,28 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         .run(&mut reader, &heartbeat_tx, handshake_deadline)
         .await;
     conn.cleanup();
+    // A client that stopped answering (missed heartbeats) may have
+    // stopped reading too, with the writer blocked on its full socket:
+    // the writer is stopped where it is, as RabbitMQ closes the socket,
+    // and what it held is dropped. Otherwise it gets what is queued out
+    // within the close timeout.
+    let unresponsive = matches!(outcome, Err(Ended::Read(ReadError::TimedOut)));
     match outcome {
         Ok(()) => tracing::debug!(peer = %conn.peer, "connection closed"),
         Err(e) => tracing::info!(peer = %conn.peer, error = %e, "connection closed with error"),
     }
-    conn.outbox.send(Outbound::Shutdown).await;
-    let _ = writer.await;
+    if unresponsive {
+        writer.abort();
+    }
+    let drained = async {
+        conn.outbox.send(Outbound::Shutdown).await;
+        let _ = (&mut writer).await;
+    };
+    if tokio::time::timeout(CLOSE_TIMEOUT, drained).await.is_err() {
+        tracing::info!(peer = %conn.peer, "client not reading; closing its socket with output unsent");
+        writer.abort();
+        let _ = writer.await;
+    }
 }
 
 /// Why a handshake step did not finish.
@@ -296,6 +312,7 @@ impl Connection {
         // timer reset per read would cost a timer-wheel update per batch).
         let silence_limit = self.heartbeat * 2;
         let mut last_read = tokio::time::Instant::now();
+        self.outbox.heard(last_read);
         let silence = tokio::time::sleep(silence_limit);
         tokio::pin!(silence);
         // Likewise for giving back a read buffer grown by a burst.
@@ -370,6 +387,7 @@ impl Connection {
                     // monitor likewise).
                     Unblocked::Cleared => {
                         last_read = tokio::time::Instant::now();
+                        self.outbox.heard(last_read);
                         continue;
                     }
                     Unblocked::PeerGone => return Err(Ended::Read(ReadError::Closed)),
@@ -394,7 +412,10 @@ impl Connection {
                 _ = &mut release, if reader.holds_spare() => Event::Idle,
             };
             match event {
-                Event::Read(Ok(())) => last_read = tokio::time::Instant::now(),
+                Event::Read(Ok(())) => {
+                    last_read = tokio::time::Instant::now();
+                    self.outbox.heard(last_read);
+                }
                 Event::Read(Err(e)) => return Err(Ended::Read(e)),
                 Event::DiskProgress | Event::Alarm => {}
                 Event::Idle if last_read.elapsed() < IDLE_RELEASE => {
@@ -554,10 +575,13 @@ impl Connection {
                 self.core.users.contains(name).then(|| name.clone())
             }
             (_, mechanism) => {
-                self.core
-                    .users
-                    .authenticate(mechanism, &start_ok.response)
-                    .await
+                let users = &self.core.users;
+                let login = users.authenticate(mechanism, &start_ok.response, &self.peer);
+                // A client that hangs up withdraws its check (see `hash_pool`).
+                tokio::select! {
+                    user = login => user,
+                    _ = reader.hung_up() => return Err(Ended::Read(ReadError::Closed)),
+                }
             }
         };
         match authenticated {
@@ -856,17 +880,14 @@ impl Connection {
         error: AmqpError,
     ) -> Result<(), Ended> {
         self.cleanup();
-        self.outbox
-            .method(
-                0,
-                ConnectionClose {
-                    reply_code: error.code.code(),
-                    reply_text: error.reply_text(),
-                    class_id: error.class_id,
-                    method_id: error.method_id,
-                },
-            )
-            .await;
+        let close = ConnectionClose {
+            reply_code: error.code.code(),
+            reply_text: error.reply_text(),
+            class_id: error.class_id,
+            method_id: error.method_id,
+        };
+        // Bounded: a client that stops reading leaves no room for it.
+        let _ = tokio::time::timeout(CLOSE_TIMEOUT, self.outbox.method(0, close)).await;
         let wait = async {
             loop {
                 match reader.next().await {

@@ -166,7 +166,12 @@ async fn authenticate(
     let mut request = request;
     let credentials = basic_credentials(request.headers());
     let passed = match &credentials {
-        Some((user, password)) => context.admin.authenticate(user, password).await,
+        Some((user, password)) => {
+            context
+                .admin
+                .authenticate(user, password, "management API")
+                .await
+        }
         None => false,
     };
     if let (true, Some((user, _))) = (passed, &credentials) {

@@ -778,6 +778,12 @@ pub mod raw {
     impl Raw {
         /// Connects and logs in as guest/guest on vhost `/`, heartbeats off.
         pub async fn open(b: &TestBroker) -> Raw {
+            Raw::open_with_heartbeat(b, 0).await
+        }
+
+        /// Connects and logs in as guest/guest on vhost `/`, asking for a
+        /// heartbeat every `heartbeat` seconds (0: off).
+        pub async fn open_with_heartbeat(b: &TestBroker, heartbeat: u16) -> Raw {
             let socket = within("tcp connect", TcpStream::connect(b.addr()))
                 .await
                 .expect("tcp connect");
@@ -804,7 +810,7 @@ pub mod raw {
             let tune_ok = ConnectionTuneOk {
                 channel_max: tune.channel_max,
                 frame_max: tune.frame_max,
-                heartbeat: 0,
+                heartbeat,
             };
             raw.send(0, tune_ok).await;
             let open = ConnectionOpen {
