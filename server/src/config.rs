@@ -105,6 +105,7 @@ pub struct FileConfig {
     data_dir: Option<PathBuf>,
     log: Option<String>,
     log_format: Option<LogFormat>,
+    log_file: Option<PathBuf>,
     #[serde(default)]
     users: Vec<UserConfig>,
     #[serde(default)]
@@ -251,6 +252,8 @@ pub struct Settings {
     pub log: String,
     /// Text or JSON log lines.
     pub log_format: LogFormat,
+    /// The log file, if not standard error.
+    pub log_file: Option<PathBuf>,
     /// The config file read, if any (for the start banner).
     pub config_file: Option<PathBuf>,
     /// Users; empty means the library's `guest`/`guest`.
@@ -513,6 +516,7 @@ impl Settings {
                 .unwrap_or_else(|| PathBuf::from(DEFAULT_DATA_DIR)),
             log: cli.log.or(file.log).unwrap_or_else(|| DEFAULT_LOG.into()),
             log_format: cli.log_format.or(file.log_format).unwrap_or_default(),
+            log_file: cli.log_file.or(file.log_file),
             config_file: cli.config,
             users,
             tags,
@@ -719,6 +723,7 @@ mod tests {
             data-dir = "/var/lib/leveret"
             log = "debug"
             log-format = "json"
+            log-file = "/var/log/leveret/leveret.log"
             vhosts = ["/", "robots"]
             heartbeat = 30
             frame-max = 8192
@@ -759,6 +764,10 @@ mod tests {
         assert_eq!(settings.data_dir, PathBuf::from("/var/lib/leveret"));
         assert_eq!(settings.log, "debug");
         assert_eq!(settings.log_format, LogFormat::Json);
+        assert_eq!(
+            settings.log_file,
+            Some(PathBuf::from("/var/log/leveret/leveret.log"))
+        );
         assert_eq!(settings.vhosts, ["/", "robots"]);
         assert_eq!(settings.loopback_users, None);
         let open = Settings::resolve(cli(&[]), file("loopback-users = []")).unwrap();

@@ -99,7 +99,17 @@ fn runtime(worker_threads: usize) -> std::io::Result<tokio::runtime::Runtime> {
 }
 
 async fn serve(settings: Settings) -> ExitCode {
-    logging::init(&settings.log, settings.log_format);
+    let log_file = match &settings.log_file {
+        None => None,
+        Some(path) => match logging::LogFile::open(path) {
+            Ok(file) => Some(file),
+            Err(e) => {
+                eprintln!("leveret: cannot open the log file {}: {e}", path.display());
+                return ExitCode::from(USAGE_ERROR);
+            }
+        },
+    };
+    logging::init(&settings.log, settings.log_format, log_file.clone());
     let ops_settings = settings.ops();
     let banner = Banner {
         config_file: settings.config_file.clone(),
@@ -125,7 +135,7 @@ async fn serve(settings: Settings) -> ExitCode {
             }
         }
     };
-    let mut signals = match Signals::register() {
+    let mut signals = match Signals::register(log_file) {
         Ok(signals) => signals,
         Err(e) => {
             tracing::error!(error = %e, "cannot watch for signals");
@@ -302,27 +312,36 @@ struct Signals {
     interrupt: tokio::signal::unix::Signal,
     terminate: tokio::signal::unix::Signal,
     hangup: tokio::signal::unix::Signal,
+    /// The log file SIGHUP reopens.
+    log_file: Option<logging::LogFile>,
 }
 
 #[cfg(unix)]
 impl Signals {
-    fn register() -> std::io::Result<Signals> {
+    fn register(log_file: Option<logging::LogFile>) -> std::io::Result<Signals> {
         use tokio::signal::unix::{signal, SignalKind};
         Ok(Signals {
             interrupt: signal(SignalKind::interrupt())?,
             terminate: signal(SignalKind::terminate())?,
             hangup: signal(SignalKind::hangup())?,
+            log_file,
         })
     }
 
-    /// Waits for SIGINT or SIGTERM; SIGHUP meanwhile re-reads the TLS
-    /// certificate files.
+    /// Waits for SIGINT or SIGTERM; SIGHUP meanwhile reopens the log
+    /// file and re-reads the TLS certificate files.
     async fn wait_for_stop(&mut self, handle: &leveret_broker::BrokerHandle) {
         loop {
             tokio::select! {
                 _ = self.interrupt.recv() => return,
                 _ = self.terminate.recv() => return,
                 _ = self.hangup.recv() => {
+                    if let Some(file) = &self.log_file {
+                        match file.reopen() {
+                            Ok(()) => tracing::info!("log file reopened"),
+                            Err(e) => tracing::error!(error = %e, "log file not reopened; writing on to the one open"),
+                        }
+                    }
                     if handle.tls_addrs().is_empty() {
                         continue;
                     }
@@ -342,7 +361,8 @@ struct Signals;
 
 #[cfg(not(unix))]
 impl Signals {
-    fn register() -> std::io::Result<Signals> {
+    /// (A log file is not reopened where there is no SIGHUP.)
+    fn register(_log_file: Option<logging::LogFile>) -> std::io::Result<Signals> {
         Ok(Signals)
     }
 

@@ -323,3 +323,91 @@ async fn definitions_loaded_at_start_are_counted_in_a_sentence() {
     drop(broker);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The lines of the file at `path` once one contains `text` (up to 20 s).
+fn wait_in_file(path: &std::path::Path, text: &str) -> Vec<String> {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let content = std::fs::read_to_string(path).unwrap_or_default();
+        if content.contains(text) {
+            return content.lines().map(str::to_owned).collect();
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no {text:?} in {}:\n{content}",
+            path.display()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// `--log-file`: the log goes to the file (plain text), and SIGHUP after
+/// a rename (logrotate's way) reopens the path: later lines go to the new
+/// file, none to the renamed one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_log_file_is_reopened_on_sighup_after_a_rename() {
+    let dir = std::env::temp_dir().join(format!("leveret-log-file-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("dir");
+    let path = dir.join("leveret.log");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_leveret"))
+        .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
+        .args(["--http-listen", "127.0.0.1:0", "--log", "info"])
+        .arg("--data-dir")
+        .arg(dir.join("data"))
+        .arg("--log-file")
+        .arg(&path)
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("start leveret");
+    let lines = wait_in_file(&path, "started; config file");
+    let amqp: std::net::SocketAddr = lines
+        .iter()
+        .find(|line| line.contains("accepting AMQP 0.9.1 connections"))
+        .and_then(|line| line.split("addr=").nth(1))
+        .and_then(|addr| addr.split_whitespace().next())
+        .and_then(|addr| addr.parse().ok())
+        .expect("the AMQP listener's line");
+    assert!(lines.iter().all(|line| !line.contains('\u{1b}')));
+
+    let rotated = dir.join("leveret.log.1");
+    std::fs::rename(&path, &rotated).expect("rename");
+    let hup = std::process::Command::new("kill")
+        .args(["-s", "HUP", &child.id().to_string()])
+        .status()
+        .expect("kill");
+    assert!(hup.success());
+    wait_in_file(&path, "log file reopened");
+    let url = format!("amqp://guest:guest@{amqp}/%2f");
+    let properties = ConnectionProperties::default().with_connection_name("after-rotation".into());
+    let conn = Connection::connect(&url, properties)
+        .await
+        .expect("connect");
+    conn.close(200, "bye").await.expect("close");
+    wait_in_file(&path, "- after-rotation, vhost: '/', user: 'guest'");
+    let old = std::fs::read_to_string(&rotated).expect("rotated file");
+    assert!(old.contains("started; config file"), "{old}");
+    assert!(!old.contains("after-rotation"), "{old}");
+
+    let _ = child.kill();
+    let _ = child.wait();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A log file that cannot be opened stops the start with a clear error
+/// (exit 2), not a broker logging nowhere.
+#[test]
+fn an_unopenable_log_file_refuses_the_start() {
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_leveret"))
+        .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
+        .args(["--http-listen", "127.0.0.1:0"])
+        .args(["--log-file", "/nonexistent-leveret-dir/leveret.log"])
+        .output()
+        .expect("run leveret");
+    assert_eq!(output.status.code(), Some(2), "{output:?}");
+    let error = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        error.contains("cannot open the log file /nonexistent-leveret-dir/leveret.log"),
+        "{error}"
+    );
+}
