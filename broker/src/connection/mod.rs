@@ -281,8 +281,9 @@ fn loggable(text: &[u8]) -> String {
     out
 }
 
-/// The longest client-supplied text (a user or connection name) logged.
-const LOGGED_TEXT_MAX: usize = 200;
+/// The longest client-supplied text logged (a user or connection name,
+/// or a close text, which AMQP caps at 255 bytes).
+const LOGGED_TEXT_MAX: usize = 300;
 
 struct Connection {
     core: Arc<Core>,
@@ -1036,9 +1037,10 @@ impl Connection {
     /// the connection lived and why it ended): info when the client or
     /// an administrator closed it, a warning otherwise.
     fn log_close(&self, outcome: &Result<(), Ended>, lived: Duration) {
+        // A close text can quote what the client sent (its mechanism's name).
         let reason = match outcome {
             Ok(()) => "closed by the client".to_owned(),
-            Err(ended) => ended.to_string(),
+            Err(ended) => loggable(ended.to_string().as_bytes()),
         };
         let vhost = self.vhost_name();
         let user = (!self.user.is_empty()).then_some(self.user.as_str());
@@ -1121,4 +1123,22 @@ async fn disk_progress(durable: &mut Option<tokio::sync::watch::Receiver<crate::
 enum Flow {
     Continue,
     Closed,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What a client sends cannot start a log line of its own or make
+    /// one unbounded.
+    #[test]
+    fn client_text_is_escaped_and_capped_for_the_log() {
+        assert_eq!(
+            loggable(b"evil\nINFO forged\r\x1b[31m"),
+            "evil\\nINFO forged\\r\\u{1b}[31m"
+        );
+        assert_eq!(loggable("caf\u{e9}".as_bytes()), "caf\u{e9}");
+        assert_eq!(loggable(b"\xff"), "\u{fffd}");
+        assert_eq!(loggable(&[b'a'; 1000]).len(), LOGGED_TEXT_MAX);
+    }
 }
