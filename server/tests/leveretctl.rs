@@ -624,3 +624,40 @@ fn status_prints_json_when_asked() {
     assert!(status["disk"]["limit"].is_u64(), "{status}");
     assert_eq!(status["totals"]["connections"], 0);
 }
+
+/// set_topic_permissions, list_topic_permissions and
+/// clear_topic_permissions (all, or one exchange's) in rabbitmqctl's words.
+#[test]
+fn topic_permissions_are_set_listed_and_cleared() {
+    let broker = OpsBroker::start("ctl-topic-permissions", &[]);
+    let listed = |broker: &OpsBroker| {
+        lines(
+            broker,
+            &["-q", "--no-table-headers", "list_topic_permissions"],
+        )
+    };
+    lines(
+        &broker,
+        &[
+            "set_topic_permissions",
+            "guest",
+            "amq.topic",
+            "^robots\\.",
+            ".*",
+        ],
+    );
+    lines(
+        &broker,
+        &["set_topic_permissions", "guest", "events", "^a", "^b"],
+    );
+    let mut both = listed(&broker);
+    both.sort();
+    assert_eq!(
+        both,
+        ["guest\tamq.topic\t^robots\\.\t.*", "guest\tevents\t^a\t^b"]
+    );
+    lines(&broker, &["clear_topic_permissions", "guest", "events"]);
+    assert_eq!(listed(&broker), ["guest\tamq.topic\t^robots\\.\t.*"]);
+    lines(&broker, &["clear_topic_permissions", "guest"]);
+    assert!(listed(&broker).is_empty());
+}

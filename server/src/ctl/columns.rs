@@ -180,6 +180,16 @@ pub const PERMISSIONS: Table = Table {
     default: &["user", "configure", "write", "read"],
 };
 
+pub const TOPIC_PERMISSIONS: Table = Table {
+    columns: &[
+        ("user", &["user"]),
+        ("exchange", &["exchange"]),
+        ("write", &["write"]),
+        ("read", &["read"]),
+    ],
+    default: &["user", "exchange", "write", "read"],
+};
+
 pub const CONSUMERS: Table = Table {
     columns: &[
         ("queue_name", &["queue", "name"]),

@@ -161,6 +161,23 @@ enum Command {
     },
     /// Removes a user's permissions on the vhost.
     ClearPermissions { user: String },
+    /// Lists the topic permissions on the vhost: user, exchange, write,
+    /// read.
+    ListTopicPermissions { columns: Vec<String> },
+    /// Sets a user's topic permissions on an exchange of the vhost
+    /// (regular expressions over routing keys).
+    SetTopicPermissions {
+        user: String,
+        exchange: String,
+        write: String,
+        read: String,
+    },
+    /// Removes a user's topic permissions on the vhost (on one exchange
+    /// if named).
+    ClearTopicPermissions {
+        user: String,
+        exchange: Option<String>,
+    },
     /// Drops a queue's ready messages.
     PurgeQueue { queue: String },
     /// Deletes a queue.
@@ -413,6 +430,58 @@ fn run(cli: &Cli) -> Result<(), Failure> {
                 ),
             )?;
             client.delete(&format!("/api/permissions/{vhost}/{}", segment(user)), &[])?;
+            Ok(())
+        }
+        Command::ListTopicPermissions { columns } => {
+            info(
+                cli,
+                &format!("Listing topic permissions for vhost \"{}\" ...", cli.vhost),
+            )?;
+            let list = client.get("/api/topic-permissions")?;
+            let here: Vec<Value> = (list.as_array().into_iter().flatten())
+                .filter(|p| p["vhost"] == cli.vhost.as_str())
+                .cloned()
+                .collect();
+            print_table(
+                cli,
+                &columns::TOPIC_PERMISSIONS,
+                columns,
+                &Value::Array(here),
+            )
+        }
+        Command::SetTopicPermissions {
+            user,
+            exchange,
+            write,
+            read,
+        } => {
+            info(
+                cli,
+                &format!(
+                    "Setting topic permissions on \"{exchange}\" for user \"{user}\" in vhost \"{}\" ...",
+                    cli.vhost
+                ),
+            )?;
+            let body = serde_json::json!({"exchange": exchange, "write": write, "read": read});
+            client.put(
+                &format!("/api/topic-permissions/{vhost}/{}", segment(user)),
+                body.to_string().as_bytes(),
+            )?;
+            Ok(())
+        }
+        Command::ClearTopicPermissions { user, exchange } => {
+            info(
+                cli,
+                &format!(
+                    "Clearing topic permissions for user \"{user}\" in vhost \"{}\" ...",
+                    cli.vhost
+                ),
+            )?;
+            let mut path = format!("/api/topic-permissions/{vhost}/{}", segment(user));
+            if let Some(exchange) = exchange {
+                path.push_str(&format!("?exchange={}", segment(exchange)));
+            }
+            client.delete(&path, &[])?;
             Ok(())
         }
         Command::PurgeQueue { queue } => {
