@@ -12,7 +12,8 @@
 //! - `cli`: the command line (clap).
 //! - `config`: the config file (serde, toml) and its merge with the
 //!   command line into the library's `BrokerBuilder`.
-//! - `logging`: the tracing subscriber.
+//! - `logging`: the tracing subscriber (text or JSON lines, to standard
+//!   error or to a file reopened on SIGHUP).
 //! - `ops`: the operators' listeners on a thread of their own, served by
 //!   `http` (bounded connections, timeouts); `metrics` is the Prometheus
 //!   endpoint, reading `process` figures beside the broker's; `management`

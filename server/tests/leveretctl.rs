@@ -661,3 +661,41 @@ fn topic_permissions_are_set_listed_and_cleared() {
     lines(&broker, &["clear_topic_permissions", "guest"]);
     assert!(listed(&broker).is_empty());
 }
+
+/// report: the status, then every listing, vhost by vhost; in JSON one
+/// object holding the API's objects.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn report_shows_the_status_and_every_listing() {
+    let broker = OpsBroker::start("ctl-report", &[]);
+    lines(&broker, &["add_vhost", "robots"]);
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = conn.create_channel().await.expect("channel");
+    ch.queue_declare(
+        "reported",
+        QueueDeclareOptions::default(),
+        FieldTable::default(),
+    )
+    .await
+    .expect("declare");
+    let text = lines(&broker, &["report"]).join("\n");
+    for expected in [
+        "\nAlarms\n",
+        "\nConnections:\nuser\tpeer_host\tpeer_port\tstate\nguest\t127.0.0.1\t",
+        "\nChannels:\npid\tuser\tconsumer_count\tmessages_unacknowledged\n",
+        "\nQueues on /:\nname\tmessages\nreported\t0\n",
+        "\nPermissions on robots:\nuser\tconfigure\twrite\tread\nguest\t.*\t.*\t.*\n",
+        "\nTopic permissions on robots:\n",
+    ] {
+        assert!(text.contains(expected), "{expected:?} in:\n{text}");
+    }
+    let json = lines(&broker, &["--formatter", "json", "report"]).join("\n");
+    let report: serde_json::Value = serde_json::from_str(&json).expect("JSON");
+    assert_eq!(report["vhosts"]["/"]["queues"][0]["name"], "reported");
+    assert_eq!(
+        report["vhosts"]["robots"]["permissions"][0]["user"],
+        "guest"
+    );
+    assert_eq!(report["connections"][0]["user"], "guest");
+}

@@ -200,6 +200,9 @@ enum Command {
     /// The node's status: versions, memory, file descriptors, listeners,
     /// totals.
     Status,
+    /// The status, then every listing: connections, channels, and each
+    /// vhost's queues, exchanges, bindings, consumers and permissions.
+    Report,
     /// The robot data ports that announce themselves (over AMQP, see
     /// --amqp-url).
     Port {
@@ -552,6 +555,7 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             Ok(())
         }
         Command::Status => status(cli, &client),
+        Command::Report => report(cli, &client),
         Command::Port { command } => ports::run(cli, command),
     }
 }
@@ -654,6 +658,92 @@ fn alarms(node: &Value) -> Vec<&'static str> {
         }
     }
     alarms
+}
+
+/// The entries of a listing that belong to `vhost`.
+fn in_vhost(list: &Value, vhost: &str) -> Value {
+    let here = (list.as_array().into_iter().flatten()).filter(|item| item["vhost"] == vhost);
+    Value::Array(here.cloned().collect())
+}
+
+/// rabbitmqctl report: the status, then each listing with its default
+/// columns (with `--formatter json`, one object of the API's objects).
+fn report(cli: &Cli, client: &Client) -> Result<(), Failure> {
+    let connections = client.get("/api/connections")?;
+    let channels = client.get("/api/channels")?;
+    let permissions = client.get("/api/permissions")?;
+    let topic_permissions = client.get("/api/topic-permissions")?;
+    let vhosts = client.get("/api/vhosts")?;
+    let names: Vec<&str> = (vhosts.as_array().into_iter().flatten())
+        .filter_map(|vhost| vhost["name"].as_str())
+        .collect();
+    let listings =
+        |name: &str| -> Result<[(&'static str, &'static columns::Table, Value); 6], Failure> {
+            let vhost = segment(name);
+            Ok([
+                (
+                    "Queues",
+                    &columns::QUEUES,
+                    client.get(&format!("/api/queues/{vhost}"))?,
+                ),
+                (
+                    "Exchanges",
+                    &columns::EXCHANGES,
+                    client.get(&format!("/api/exchanges/{vhost}"))?,
+                ),
+                (
+                    "Bindings",
+                    &columns::BINDINGS,
+                    client.get(&format!("/api/bindings/{vhost}"))?,
+                ),
+                (
+                    "Consumers",
+                    &columns::CONSUMERS,
+                    client.get(&format!("/api/consumers/{vhost}"))?,
+                ),
+                (
+                    "Permissions",
+                    &columns::PERMISSIONS,
+                    in_vhost(&permissions, name),
+                ),
+                (
+                    "Topic permissions",
+                    &columns::TOPIC_PERMISSIONS,
+                    in_vhost(&topic_permissions, name),
+                ),
+            ])
+        };
+    if cli.formatter == Formatter::Json {
+        let mut by_vhost = serde_json::Map::new();
+        for name in &names {
+            let sections = listings(name)?
+                .map(|(title, _, list)| (title.to_lowercase().replace(' ', "_"), list));
+            by_vhost.insert(
+                (*name).to_owned(),
+                Value::Object(sections.into_iter().collect()),
+            );
+        }
+        let report = serde_json::json!({
+            "overview": client.get("/api/overview")?,
+            "nodes": client.get("/api/nodes")?,
+            "connections": connections,
+            "channels": channels,
+            "vhosts": by_vhost,
+        });
+        return emit(&format!("{report}\n"));
+    }
+    status(cli, client)?;
+    emit("\nConnections:\n")?;
+    print_table(cli, &columns::CONNECTIONS, &[], &connections)?;
+    emit("\nChannels:\n")?;
+    print_table(cli, &columns::CHANNELS, &[], &channels)?;
+    for name in &names {
+        for (title, table, list) in listings(name)? {
+            emit(&format!("\n{title} on {name}:\n"))?;
+            print_table(cli, table, &[], &list)?;
+        }
+    }
+    Ok(())
 }
 
 fn status(cli: &Cli, client: &Client) -> Result<(), Failure> {
