@@ -300,6 +300,17 @@ fn parse_plain(response: &[u8]) -> Option<(Vec<u8>, Vec<u8>)> {
     Some((user.to_vec(), password.to_vec()))
 }
 
+/// The user name a PLAIN or AMQPLAIN response gives, whether or not its
+/// password is right: for the log line of a refused login.
+pub(crate) fn claimed_user(mechanism: &[u8], response: &Bytes) -> Option<Vec<u8>> {
+    let (user, _password) = match mechanism {
+        b"PLAIN" => parse_plain(response)?,
+        b"AMQPLAIN" => parse_amqplain(response)?,
+        _ => return None,
+    };
+    Some(user)
+}
+
 /// AMQPLAIN: a field table without its length prefix, with LOGIN and PASSWORD.
 fn parse_amqplain(response: &Bytes) -> Option<(Vec<u8>, Vec<u8>)> {
     let mut framed = BytesMut::with_capacity(response.len() + 4);

@@ -514,8 +514,8 @@ impl BrokerHandle {
         let alive = self.alive.clone();
         tokio::spawn(async move {
             let identity = crate::connection::Identity::None;
-            crate::connection::serve(core, read, write, "in-process".to_owned(), slot, identity)
-                .await;
+            let ends = ("in-process".to_owned(), None);
+            crate::connection::serve(core, read, write, ends, slot, identity).await;
             drop(alive);
         });
         client

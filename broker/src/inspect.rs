@@ -46,6 +46,10 @@ pub struct Overview {
     /// The bytes counted against it now (queued messages, transactions'
     /// publishes, bodies being received).
     pub memory_used: usize,
+    /// The resident-memory watermark in bytes (RabbitMQ's
+    /// `vm_memory_high_watermark`): resident memory above it blocks
+    /// publishers. `None` where resident memory is not watched.
+    pub resident_memory_limit: Option<u64>,
     /// Whether the memory alarm is set now.
     pub memory_alarm: bool,
     /// Free disk bytes below which publishers are blocked.
@@ -585,6 +589,7 @@ impl Admin {
             publishers: c.publishers.get(),
             memory_high_watermark: core.limits.memory_high_watermark,
             memory_used: core.gauge.used(),
+            resident_memory_limit: core.gauge.resident_limit(),
             memory_alarm: core.gauge.memory_alarm(),
             disk_free_limit: core.limits.disk_free_limit,
             disk_alarm: core.gauge.disk_alarm(),

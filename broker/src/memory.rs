@@ -29,6 +29,8 @@ pub struct MemoryGauge {
     resident_alarm: AtomicBool,
     /// Set while free disk space is below its limit.
     disk_alarm: AtomicBool,
+    /// The resident-memory watermark in bytes, once it is watched.
+    resident_limit: std::sync::OnceLock<u64>,
     cleared: Notify,
     /// Counts the times a source turned on; idle publishers watch it, so
     /// they are blocked (and told) at once rather than at their next read.
@@ -52,6 +54,7 @@ impl MemoryGauge {
             counted_alarm: AtomicBool::new(false),
             resident_alarm: AtomicBool::new(false),
             disk_alarm: AtomicBool::new(false),
+            resident_limit: std::sync::OnceLock::new(),
             cleared: Notify::new(),
             raised: watch::Sender::new(0),
         }
@@ -94,6 +97,17 @@ impl MemoryGauge {
             gauge: Arc::clone(self),
             bytes,
         }
+    }
+
+    /// Records the resident-memory watermark the watcher holds to.
+    pub(crate) fn set_resident_limit(&self, bytes: u64) {
+        let _ = self.resident_limit.set(bytes);
+    }
+
+    /// The resident-memory watermark in bytes; `None` where resident
+    /// memory is not watched.
+    pub fn resident_limit(&self) -> Option<u64> {
+        self.resident_limit.get().copied()
     }
 
     /// Sets or clears the resident-memory source of the alarm.

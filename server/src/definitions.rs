@@ -168,6 +168,41 @@ fn name(item: &Map<String, Value>, key: &str, what: &str) -> Result<String, Stri
 }
 
 impl Definitions {
+    /// What the document defines, counted, as a sentence ("2 vhosts,
+    /// 1 user, 3 queues"; kinds it has none of are left out).
+    pub fn summary(&self) -> String {
+        let counts = [
+            (self.vhosts.len(), "vhost", "vhosts"),
+            (self.users.len(), "user", "users"),
+            (self.permissions.len(), "permission", "permissions"),
+            (
+                self.topic_permissions.len(),
+                "topic permission",
+                "topic permissions",
+            ),
+            (self.exchanges.len(), "exchange", "exchanges"),
+            (self.queues.len(), "queue", "queues"),
+            (self.bindings.len(), "binding", "bindings"),
+            (self.shovels.len(), "shovel", "shovels"),
+            (
+                self.upstreams.len(),
+                "federation upstream",
+                "federation upstreams",
+            ),
+            (self.policies.len(), "policy", "policies"),
+        ];
+        let parts: Vec<String> = counts
+            .into_iter()
+            .filter(|(count, ..)| *count > 0)
+            .map(|(count, one, many)| format!("{count} {}", if count == 1 { one } else { many }))
+            .collect();
+        if parts.is_empty() {
+            "nothing".to_owned()
+        } else {
+            parts.join(", ")
+        }
+    }
+
     /// Parses a definitions document; an error names what is malformed.
     pub fn parse(bytes: &[u8]) -> Result<Definitions, String> {
         Definitions::parse_into(bytes, None)
@@ -746,6 +781,25 @@ fn pattern(item: &Map<String, Value>, key: &str, what: &str) -> Result<String, S
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The start-up line counts everything the file defines, each kind once.
+    #[test]
+    fn summary_counts_every_kind_defined() {
+        let text = br#"{"vhosts": [{"name": "/"}, {"name": "a"}],
+            "users": [{"name": "u", "password_hash": "XrbDVjlDKoAec+dZ1vISo+jt5TVEqQvMa8euInsOyfsIm1Ys",
+                "hashing_algorithm": "rabbit_password_hashing_sha256", "tags": []}],
+            "permissions": [{"user": "u", "vhost": "/", "configure": ".*", "write": ".*", "read": ".*"},
+                {"user": "u", "vhost": "a", "configure": ".*", "write": ".*", "read": ".*"}],
+            "queues": [{"name": "q1", "vhost": "/"}, {"name": "q2", "vhost": "a"}, {"name": "q3", "vhost": "a"}],
+            "exchanges": [{"name": "x", "vhost": "/", "type": "fanout"}],
+            "bindings": [{"source": "x", "vhost": "/", "destination": "q1", "destination_type": "queue"}]}"#;
+        let d = Definitions::parse(text).unwrap();
+        assert_eq!(
+            d.summary(),
+            "2 vhosts, 1 user, 2 permissions, 1 exchange, 3 queues, 1 binding"
+        );
+        assert_eq!(Definitions::parse(b"{}").unwrap().summary(), "nothing");
+    }
 
     /// RabbitMQ's user limits in `users[].limits` (-1: none) are taken
     /// and exported back.

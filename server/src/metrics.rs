@@ -346,11 +346,17 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
             out.gauge(name, help, value);
         }
     }
-    out.gauge(
-        "rabbitmq_resident_memory_limit_bytes",
-        "Memory high watermark in bytes",
-        overview.memory_high_watermark as u64,
-    );
+    // RabbitMQ's figure is the resident-memory watermark (what Grafana's
+    // "memory available before publishers blocked" subtracts from);
+    // Leveret's second limit, on queued message bytes, has its own name
+    // (below).
+    if let Some(limit) = overview.resident_memory_limit {
+        out.gauge(
+            "rabbitmq_resident_memory_limit_bytes",
+            "Memory high watermark in bytes",
+            limit,
+        );
+    }
     out.gauge(
         "rabbitmq_disk_space_available_limit_bytes",
         "Free disk space low watermark in bytes",
@@ -488,6 +494,11 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
         "leveret_queued_message_bytes",
         "Body bytes of the ready messages in all queues",
         queues.iter().map(|q| q.message_bytes_ready).sum(),
+    );
+    out.gauge(
+        "leveret_queued_bytes_limit_bytes",
+        "Queued message bytes above which publishers are blocked",
+        overview.memory_high_watermark as u64,
     );
     if let Some(busy) = overview.busy_poll {
         out.counter(

@@ -28,6 +28,10 @@ pub struct OpsSettings {
 /// The running listeners.
 #[derive(Debug)]
 pub struct Ops {
+    /// Where the Prometheus endpoint listens.
+    pub metrics_addr: SocketAddr,
+    /// Where the management API listens.
+    pub http_addr: SocketAddr,
     stop: watch::Sender<bool>,
     thread: std::thread::JoinHandle<()>,
 }
@@ -129,7 +133,12 @@ impl Ops {
                 });
             })
             .map_err(OpsError::Thread)?;
-        Ok(Ops { stop, thread })
+        Ok(Ops {
+            metrics_addr,
+            http_addr,
+            stop,
+            thread,
+        })
     }
 
     /// Stops the listeners and waits for their thread.

@@ -508,3 +508,194 @@ async fn port_commands_list_follow_and_echo_robot_ports() {
         .expect("run leveretctl");
     assert_eq!(unreachable.status.code(), Some(69), "{unreachable:?}");
 }
+
+/// ping and await_startup as scripts and service units use them: 0 once
+/// the broker answers, 69 (ping) when nothing answers, 75 when
+/// await_startup's timeout passes, 1 when the credentials are refused.
+#[test]
+fn ping_and_await_startup_exit_as_rabbitmqctl() {
+    let broker = OpsBroker::start("ctl-ping", &[]);
+    let ping = lines(&broker, &["ping"]);
+    assert_eq!(
+        ping.last().map(String::as_str),
+        Some("Ping succeeded"),
+        "{ping:?}"
+    );
+    assert!(lines(&broker, &["-q", "await_startup", "--timeout", "5"]).is_empty());
+    let refused = ctl(&broker, &["--password", "wrong", "await_startup"]);
+    assert_eq!(refused.status.code(), Some(1), "{refused:?}");
+    let nowhere = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_leveretctl"))
+            .args(["--url", "http://127.0.0.1:1"])
+            .args(args)
+            .output()
+            .expect("run leveretctl")
+    };
+    assert_eq!(nowhere(&["ping", "-t", "2"]).status.code(), Some(69));
+    let waited = nowhere(&["await_startup", "--timeout", "1"]);
+    assert_eq!(waited.status.code(), Some(75), "{waited:?}");
+    assert!(String::from_utf8_lossy(&waited.stderr).contains("did not start within 1 s"));
+}
+
+/// add_vhost and list_vhosts, in text and with `--formatter json`.
+#[test]
+fn vhosts_are_added_and_listed_in_both_formats() {
+    let broker = OpsBroker::start("ctl-vhosts", &[]);
+    lines(&broker, &["add_vhost", "robots"]);
+    assert_eq!(
+        lines(&broker, &["-q", "list_vhosts"]),
+        ["name", "/", "robots"]
+    );
+    let json = lines(
+        &broker,
+        &[
+            "-q",
+            "--formatter",
+            "json",
+            "list_vhosts",
+            "name",
+            "tracing",
+        ],
+    );
+    let vhosts: serde_json::Value = serde_json::from_str(&json.join("\n")).expect("JSON");
+    assert_eq!(
+        vhosts,
+        serde_json::json!([{"name": "/", "tracing": false}, {"name": "robots", "tracing": false}])
+    );
+}
+
+/// list_channels with rabbitmqctl's default columns; an unknown column
+/// is reported (exit 64) after the known ones are printed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn channels_are_listed_and_unknown_columns_do_not_abort_the_rest() {
+    let broker = OpsBroker::start("ctl-channels", &[]);
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let _one = conn.create_channel().await.expect("channel");
+    let _two = conn.create_channel().await.expect("channel");
+    let channels = lines(&broker, &["-q", "list_channels"]);
+    assert_eq!(
+        channels[0],
+        "pid\tuser\tconsumer_count\tmessages_unacknowledged"
+    );
+    assert_eq!(channels.len(), 3, "{channels:?}");
+    for row in &channels[1..] {
+        assert!(row.ends_with(")\tguest\t0\t0"), "{row}");
+    }
+    let json = lines(
+        &broker,
+        &[
+            "-q",
+            "--formatter",
+            "json",
+            "list_channels",
+            "number",
+            "user",
+        ],
+    );
+    let channels: serde_json::Value = serde_json::from_str(&json.join("\n")).expect("JSON");
+    assert_eq!(
+        channels,
+        serde_json::json!([{"number": 1, "user": "guest"}, {"number": 2, "user": "guest"}])
+    );
+
+    let partial = ctl(
+        &broker,
+        &["-q", "list_connections", "user", "memory", "vhost"],
+    );
+    assert_eq!(partial.status.code(), Some(64), "{partial:?}");
+    assert_eq!(
+        String::from_utf8_lossy(&partial.stdout),
+        "user\tvhost\nguest\t/\n"
+    );
+    let error = String::from_utf8_lossy(&partial.stderr);
+    assert!(error.contains("unknown column(s) memory"), "{error}");
+}
+
+/// `status --formatter json`: one object with the alarms, limits and totals.
+#[test]
+fn status_prints_json_when_asked() {
+    let broker = OpsBroker::start("ctl-status-json", &[]);
+    let json = lines(&broker, &["-q", "--formatter", "json", "status"]);
+    let status: serde_json::Value = serde_json::from_str(&json.join("\n")).expect("JSON");
+    assert_eq!(status["alarms"], serde_json::json!([]));
+    assert!(status["memory"]["queued_bytes_limit"].is_u64(), "{status}");
+    assert!(status["disk"]["limit"].is_u64(), "{status}");
+    assert_eq!(status["totals"]["connections"], 0);
+}
+
+/// set_topic_permissions, list_topic_permissions and
+/// clear_topic_permissions (all, or one exchange's) in rabbitmqctl's words.
+#[test]
+fn topic_permissions_are_set_listed_and_cleared() {
+    let broker = OpsBroker::start("ctl-topic-permissions", &[]);
+    let listed = |broker: &OpsBroker| {
+        lines(
+            broker,
+            &["-q", "--no-table-headers", "list_topic_permissions"],
+        )
+    };
+    lines(
+        &broker,
+        &[
+            "set_topic_permissions",
+            "guest",
+            "amq.topic",
+            "^robots\\.",
+            ".*",
+        ],
+    );
+    lines(
+        &broker,
+        &["set_topic_permissions", "guest", "events", "^a", "^b"],
+    );
+    let mut both = listed(&broker);
+    both.sort();
+    assert_eq!(
+        both,
+        ["guest\tamq.topic\t^robots\\.\t.*", "guest\tevents\t^a\t^b"]
+    );
+    lines(&broker, &["clear_topic_permissions", "guest", "events"]);
+    assert_eq!(listed(&broker), ["guest\tamq.topic\t^robots\\.\t.*"]);
+    lines(&broker, &["clear_topic_permissions", "guest"]);
+    assert!(listed(&broker).is_empty());
+}
+
+/// report: the status, then every listing, vhost by vhost; in JSON one
+/// object holding the API's objects.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn report_shows_the_status_and_every_listing() {
+    let broker = OpsBroker::start("ctl-report", &[]);
+    lines(&broker, &["add_vhost", "robots"]);
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = conn.create_channel().await.expect("channel");
+    ch.queue_declare(
+        "reported",
+        QueueDeclareOptions::default(),
+        FieldTable::default(),
+    )
+    .await
+    .expect("declare");
+    let text = lines(&broker, &["report"]).join("\n");
+    for expected in [
+        "\nAlarms\n",
+        "\nConnections:\nuser\tpeer_host\tpeer_port\tstate\nguest\t127.0.0.1\t",
+        "\nChannels:\npid\tuser\tconsumer_count\tmessages_unacknowledged\n",
+        "\nQueues on /:\nname\tmessages\nreported\t0\n",
+        "\nPermissions on robots:\nuser\tconfigure\twrite\tread\nguest\t.*\t.*\t.*\n",
+        "\nTopic permissions on robots:\n",
+    ] {
+        assert!(text.contains(expected), "{expected:?} in:\n{text}");
+    }
+    let json = lines(&broker, &["--formatter", "json", "report"]).join("\n");
+    let report: serde_json::Value = serde_json::from_str(&json).expect("JSON");
+    assert_eq!(report["vhosts"]["/"]["queues"][0]["name"], "reported");
+    assert_eq!(
+        report["vhosts"]["robots"]["permissions"][0]["user"],
+        "guest"
+    );
+    assert_eq!(report["connections"][0]["user"], "guest");
+}

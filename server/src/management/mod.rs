@@ -12,9 +12,11 @@
 //!
 //! Layout: `mod` (router, auth, errors, the shared context), `handlers`
 //! (one function per route), `json` (objects and body parsing), `rates`
-//! (the sampler behind `*_details`). Handlers reach the broker only
+//! (the sampler behind `*_details`), `audit` (the log line of each change
+//! with the acting user). Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
+mod audit;
 mod caller;
 mod federation;
 mod handlers;
@@ -315,6 +317,7 @@ pub fn router(context: Context) -> Router {
         .route("/api/federation-links/{vhost}", get(federation::links_in))
         .route("/api/health/checks/alarms", get(h::alarms))
         .fallback(h::unknown)
+        .route_layer(axum::middleware::from_fn(audit::log_changes))
         .route_layer(axum::middleware::from_fn_with_state(
             Arc::clone(&context),
             authenticate,
