@@ -47,7 +47,7 @@ async fn channel_to(uri: &str) -> (Connection, Channel) {
     (connection, channel)
 }
 
-async fn local_channel(robot: &BrokerHandle) -> (Connection, Channel) {
+async fn local_channel(robot: &Arc<BrokerHandle>) -> (Connection, Channel) {
     let connection = Connection::in_process(robot).await.expect("in process");
     let channel = connection.open_channel().await.expect("channel");
     (connection, channel)

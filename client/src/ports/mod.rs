@@ -86,7 +86,7 @@ pub use data::Postcard;
 pub use data::{DataError, PortData};
 pub use in_port::{InPort, InPortStats, Sample};
 pub use latency::LatencyStats;
-pub use link::{LinkStatus, PORT_HEADER, SENT_HEADER, SEQ_HEADER};
+pub use link::{LinkState, LinkStatus, PORT_HEADER, SENT_HEADER, SEQ_HEADER};
 pub use openrtm::{ConnectorProfile, PortRole};
 pub use out_port::{Fate, OutPort, OutPortStats, Outcome, PortStatus};
 pub use profile::{

@@ -260,7 +260,7 @@ fn cell(port: &PortAnnouncement, name: &str) -> String {
             .lifespan
             .map(|lifespan| lifespan.as_millis().to_string())
             .unwrap_or_default(),
-        "link" => if port.link.up { "up" } else { "down" }.to_owned(),
+        "link" => port.link.state().as_str().to_owned(),
         "connects" => port.link.connects.to_string(),
         "losses" => port.link.losses.to_string(),
         "last_error" => port.link.last_error.clone().unwrap_or_default(),
@@ -371,7 +371,7 @@ fn stats_line(port: &PortAnnouncement, previous: Option<&PortAnnouncement>) -> S
     let _ = writeln!(
         line,
         " link={} connects={} losses={} port={}",
-        if port.link.up { "up" } else { "down" },
+        port.link.state().as_str(),
         port.link.connects,
         port.link.losses,
         port.id
