@@ -467,7 +467,7 @@ async fn port_commands_list_follow_and_echo_robot_ports() {
     let accepted = output.stats().accepted;
     tokio::time::timeout(
         Duration::from_secs(10),
-        watched.wait_for(|stats| stats.received == accepted),
+        watched.wait_for(|stats| stats.arrived == accepted),
     )
     .await
     .expect("the in-port got every value: echo took none")
