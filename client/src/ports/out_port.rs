@@ -301,9 +301,10 @@ struct Limits {
 enum Next {
     /// Published one.
     Published,
-    /// Nothing to publish, no link to publish on, or no room in flight
-    /// (the window's bounds).
+    /// Nothing to publish, or no link to publish on.
     Idle,
+    /// No room in flight (the window's bounds): a confirm makes room.
+    Windowed,
     /// The connection's outbox is full: wait for room.
     Full,
     /// The link failed.
@@ -464,7 +465,7 @@ impl Shared {
         };
         let bytes = window.entries[index].body.len();
         if self.publishing.confirms && !window.has_room_in_flight(bytes, &self.publishing.limits) {
-            return Next::Idle;
+            return Next::Windowed;
         }
         let slot = match reserved {
             Some(slot) => slot,
@@ -861,10 +862,16 @@ impl<T: PortData> OutPort<T> {
         // (no room in the outbox, a link that just failed) and polls the
         // confirm of a first message in flight.
         let before = outcomes.len();
-        let wake = if window.publish_from == seq {
+        let publish_from = window.publish_from;
+        let first_unsent = window
+            .entries
+            .partition_point(|entry| entry.seq < publish_from);
+        let wake = if first_unsent + 1 == window.entries.len() {
             let idle = window.inflight.is_empty();
             match self.shared.publish_next(&mut window, None, &mut outcomes) {
                 Next::Published => idle && !window.inflight.is_empty(),
+                // The task publishes it when a confirm makes room.
+                Next::Windowed => false,
                 Next::Idle | Next::Full | Next::Failed(_) => true,
             }
         } else {
@@ -1171,7 +1178,7 @@ impl Task {
         }
         match next {
             Next::Published | Next::Full => true,
-            Next::Idle => !outcomes.is_empty(),
+            Next::Idle | Next::Windowed => !outcomes.is_empty(),
             Next::Failed(error) => {
                 self.lost(error);
                 true
