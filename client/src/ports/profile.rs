@@ -225,9 +225,11 @@ pub struct PortProfile {
     pub persistent: bool,
     /// Extra `queue.declare` arguments (`x-expires`, `x-max-length`…).
     pub queue_arguments: FieldTable,
-    /// Publisher confirms: `put` returns once the broker has the message,
-    /// and unconfirmed messages are resent after a reconnection. Without
-    /// them a message in flight when the link drops may be lost.
+    /// Publisher confirms: the out-port keeps each message until the
+    /// broker confirms it (`put` never waits for that), resends what was
+    /// unconfirmed after a reconnection, and notices a broker that stops
+    /// confirming ([`PortProfile::stall_timeout`]). Without them a message
+    /// in flight when the link drops may be lost.
     pub confirms: bool,
     /// Deliveries the broker sends the in-port before it acknowledges any.
     pub prefetch: u16,
