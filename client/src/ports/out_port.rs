@@ -928,7 +928,8 @@ impl<T: PortData> OutPort<T> {
 
     /// Calls `callback` with every [`Outcome`] from now on (keep it short:
     /// it runs on the port's task, or in `put` for a value it publishes
-    /// without confirms or drops).
+    /// without confirms or drops). It runs just after the counters that
+    /// count the outcome have changed.
     pub fn on_outcome(&self, callback: impl FnMut(&Outcome) + Send + 'static) {
         lock(&self.shared.callbacks).push(Box::new(callback));
     }
