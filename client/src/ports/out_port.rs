@@ -441,9 +441,9 @@ impl Shared {
         outcomes: &mut Vec<Outcome>,
     ) -> Next {
         let lifespan = self.publishing.lifespan;
-        let Some(channel) = window.channel.clone() else {
+        if window.channel.is_none() {
             return Next::Idle;
-        };
+        }
         let index = window
             .entries
             .partition_point(|entry| entry.seq < window.publish_from);
@@ -467,6 +467,18 @@ impl Shared {
         if self.publishing.confirms && !window.has_room_in_flight(bytes, &self.publishing.limits) {
             return Next::Windowed;
         }
+        let Window {
+            entries,
+            publish_from,
+            channel: Some(channel),
+            inflight,
+            inflight_bytes,
+            stats,
+            ..
+        } = window
+        else {
+            return Next::Idle;
+        };
         let slot = match reserved {
             Some(slot) => slot,
             None => match channel.try_reserve() {
@@ -475,29 +487,28 @@ impl Shared {
                 Err(error) => return Next::Failed(error),
             },
         };
-        let entry = &mut window.entries[index];
+        let entry = &mut entries[index];
         let confirm = match self.publishing.publish(slot, entry, remaining) {
             Ok(confirm) => confirm,
             Err(error) => return Next::Failed(error),
         };
-        let resent = entry.attempts > 0;
+        if entry.attempts > 0 {
+            stats.resent += 1;
+        }
         entry.attempts += 1;
         let seq = entry.seq;
-        if resent {
-            window.stats.resent += 1;
-        }
-        window.publish_from = seq + 1;
+        *publish_from = seq + 1;
         if self.publishing.confirms {
-            window.inflight.push_back(InFlight {
+            inflight.push_back(InFlight {
                 seq,
                 confirm: confirm.into_future(),
                 bytes,
                 written_at: Instant::now(),
             });
-            window.inflight_bytes += bytes;
+            *inflight_bytes += bytes;
         } else {
-            window.entries.remove(index);
-            settle(&mut window.stats, outcomes, seq, Fate::SentUnconfirmed);
+            entries.remove(index);
+            settle(stats, outcomes, seq, Fate::SentUnconfirmed);
         }
         Next::Published
     }
