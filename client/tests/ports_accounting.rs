@@ -13,8 +13,8 @@ mod common;
 use common::{unique, within};
 use leveret_broker::{Broker, BrokerHandle};
 use leveret_client::ports::{
-    Connector, Fate, FullPolicy, InPort, InPortStats, OutPort, OutPortStats, Outcome, PortProfile,
-    PortStatus, Qos, Time, TimedLong,
+    Connector, ExchangeKind, Fate, FullPolicy, InPort, InPortStats, OutPort, OutPortStats, Outcome,
+    PortProfile, PortStatus, Qos, Time, TimedLong,
 };
 use leveret_client::{FieldValue, ShortStr};
 use leveret_tests::both_runtimes;
@@ -188,14 +188,22 @@ impl Ledger {
 /// A command stream into a broker that stops answering: the out-port
 /// writes no more than its window, reports the stall (link state, put
 /// result, counter) and clears it when the broker answers again; nothing
-/// counted unsent arrives afterwards.
+/// counted unsent arrives afterwards, and a reader with the commands'
+/// lifespan counts what the stall held back stale, never handing it over.
 #[both_runtimes]
 async fn a_frozen_broker_is_noticed_bounded_and_accounted() {
     let (_broker, addr) = leveret().await;
     let proxy = Proxy::start(addr).await;
     let queue = unique("frozen-cmd");
-    let base = profile(addr, &queue);
+    let base = profile(addr, &queue).exchange(unique("frozen-cmds"), ExchangeKind::Fanout);
     let input = InPort::<TimedLong>::connect(base.clone())
+        .await
+        .expect("in-port");
+    // A second reader, with the commands' lifespan: what the stall held
+    // back arrives stale.
+    let mut fresh_only = base.clone().queue(unique("frozen-fresh"));
+    fresh_only.lifespan = base.clone().qos(Qos::Command).lifespan;
+    let fresh = InPort::<TimedLong>::connect(fresh_only)
         .await
         .expect("in-port");
     let mut command = base.qos(Qos::Command);
@@ -247,6 +255,25 @@ async fn a_frozen_broker_is_noticed_bounded_and_accounted() {
         "most of the stall's values never written: {stats:?}"
     );
     ledger.written_all_arrive(&output, &input).await;
+    let written = stats.confirmed + stats.sent_unconfirmed;
+    within(
+        "every written value at the second reader",
+        fresh.watch_stats().wait_for(|s| s.arrived == written),
+    )
+    .await
+    .unwrap();
+    let taken = std::iter::from_fn(|| fresh.try_recv()).count() as u64;
+    let fresh_stats = fresh.stats();
+    in_invariant(&fresh_stats);
+    assert!(
+        fresh_stats.stale >= 1,
+        "what the frozen broker held arrived past its lifespan: {fresh_stats:?}"
+    );
+    assert_eq!(
+        (fresh_stats.received, fresh_stats.buffered),
+        (taken, 0),
+        "{fresh_stats:?}"
+    );
     // Written during the stall: at most a window; after it, at most what
     // the window held.
     let arrived = ledger.arrived.lock().unwrap().len() as u64;
