@@ -354,3 +354,41 @@ async fn an_overload_is_accounted() {
     assert_eq!((stats.received, stats.buffered), (taken, 0), "{stats:?}");
     assert_eq!(output.stats().accepted, 3000);
 }
+
+/// The window's byte bound: with room for two bodies in flight, a frozen
+/// broker gets two messages written and no more; the rest wait unsent,
+/// and all are sent once it thaws.
+#[both_runtimes]
+async fn the_bytes_in_flight_are_bounded() {
+    let (_broker, addr) = leveret().await;
+    let proxy = Proxy::start(addr).await;
+    let queue = unique("bytes-bound");
+    let base = profile(addr, &queue);
+    let input = InPort::<TimedLong>::connect(base.clone())
+        .await
+        .expect("in-port");
+    let body = {
+        let mut body = bytes::BytesMut::new();
+        leveret_client::ports::PortData::encode(&long(0), &mut body).expect("encodes");
+        body.len()
+    };
+    let mut bounded = base;
+    bounded.max_unconfirmed_bytes = 2 * body + body / 2;
+    bounded.broker.port = proxy.addr.port();
+    let output = OutPort::<TimedLong>::connect(bounded)
+        .await
+        .expect("out-port");
+    let ledger = Ledger::keep(&output, &input);
+    proxy.freeze(true);
+    for data in 1..=10 {
+        assert!(output.try_put(&long(data)).is_accepted());
+        tokio::task::yield_now().await;
+    }
+    let stats = output.stats();
+    out_invariant(&stats);
+    assert_eq!((stats.in_flight, stats.pending), (2, 10), "{stats:?}");
+    proxy.freeze(false);
+    ledger.check(&output, &input).await;
+    ledger.written_all_arrive(&output, &input).await;
+    assert_eq!(output.stats().confirmed, 10);
+}
