@@ -360,6 +360,13 @@ impl Publishing {
 
 type OutcomeCallback = Box<dyn FnMut(&Outcome) + Send>;
 
+/// Who hears of outcomes, and how many have been told.
+struct Reporting {
+    callbacks: Vec<OutcomeCallback>,
+    /// Outcomes sent to the stream and the callbacks so far.
+    delivered: u64,
+}
+
 /// What the port and its task share.
 struct Shared {
     window: Mutex<Window>,
@@ -371,7 +378,7 @@ struct Shared {
     room_blocking: Condvar,
     stats: watch::Sender<OutPortStats>,
     outcomes: broadcast::Sender<Outcome>,
-    callbacks: Mutex<Vec<OutcomeCallback>>,
+    reporting: Mutex<Reporting>,
     link: Link,
     publishing: Publishing,
 }
@@ -385,31 +392,43 @@ impl Shared {
         lock(&self.window)
     }
 
-    /// Sends the current counters to their watchers, under the window's
-    /// lock; whether a thread waits for room.
+    /// Sends the current counters to their watchers (see
+    /// [`Shared::send_stats`]); whether a thread waits for room.
     fn publish_stats(&self) -> bool {
+        self.send_stats(&lock(&self.reporting))
+    }
+
+    /// Sends the current counters to their watchers, read under the
+    /// window's lock, so a `put` on another thread can never overwrite
+    /// newer counters with the ones it saw (which left `flush` waiting for
+    /// a `pending` of 0 already reached); but only once every outcome they
+    /// count has been delivered, so a watcher of the counters (`flush`)
+    /// finds those outcomes in the stream and the callbacks. Counters not
+    /// sent now go out with the report of the outcomes still on their way.
+    /// Whether a thread waits for room.
+    fn send_stats(&self, reporting: &Reporting) -> bool {
         let window = self.window();
-        self.stats.send_replace(window.stats);
+        if window.stats.settled() == reporting.delivered {
+            self.stats.send_replace(window.stats);
+        }
         window.blocked_putters > 0
     }
 
-    /// Publishes the counters and the outcomes (call it after releasing
-    /// the window's lock); wakes whoever waits for room if messages left
-    /// it. The counters are read and sent under the window's lock, so a
-    /// `put` on another thread can never overwrite newer counters with the
-    /// ones it saw (which left `flush` waiting for a `pending` of 0
-    /// already reached).
+    /// Delivers the outcomes and publishes the counters (call it after
+    /// releasing the window's lock, with the outcomes settled under it);
+    /// wakes whoever waits for room if messages left it.
     fn report(&self, outcomes: &[Outcome], room: bool) {
-        let blocked = self.publish_stats();
-        if !outcomes.is_empty() {
-            let mut callbacks = lock(&self.callbacks);
+        let blocked = {
+            let mut reporting = lock(&self.reporting);
             for outcome in outcomes {
                 let _ = self.outcomes.send(*outcome);
-                for callback in callbacks.iter_mut() {
+                for callback in reporting.callbacks.iter_mut() {
                     callback(outcome);
                 }
             }
-        }
+            reporting.delivered += outcomes.len() as u64;
+            self.send_stats(&reporting)
+        };
         if room {
             self.room.notify_waiters();
             if blocked {
@@ -682,7 +701,10 @@ impl<T: PortData> OutPort<T> {
             room_blocking: Condvar::new(),
             stats: watch::Sender::new(OutPortStats::default()),
             outcomes: broadcast::Sender::new(OUTCOME_BUFFER),
-            callbacks: Mutex::new(Vec::new()),
+            reporting: Mutex::new(Reporting {
+                callbacks: Vec::new(),
+                delivered: 0,
+            }),
             link: Link::new(),
             publishing,
         });
@@ -939,10 +961,14 @@ impl<T: PortData> OutPort<T> {
 
     /// Calls `callback` with every [`Outcome`] from now on (keep it short:
     /// it runs on the port's task, or in `put` for a value it publishes
-    /// without confirms or drops). It runs just after the counters that
-    /// count the outcome have changed.
+    /// without confirms or drops). The counters' watchers
+    /// ([`OutPort::watch_stats`], [`OutPort::flush`]) see an outcome
+    /// counted only once it has been delivered; [`OutPort::stats`] may
+    /// count it a moment before.
     pub fn on_outcome(&self, callback: impl FnMut(&Outcome) + Send + 'static) {
-        lock(&self.shared.callbacks).push(Box::new(callback));
+        lock(&self.shared.reporting)
+            .callbacks
+            .push(Box::new(callback));
     }
 
     /// The link's state, to watch for losses and reconnections.
