@@ -324,9 +324,16 @@ async fn port_commands_list_follow_and_echo_robot_ports() {
         .expect("URI")
         .exchange("poses", ExchangeKind::Fanout)
         .announce_interval(Some(Duration::from_millis(200)));
-    let input = InPort::<TimedPose2D>::connect(profile.clone().name("pose-in"))
-        .await
-        .expect("in-port");
+    let input = std::sync::Arc::new(
+        InPort::<TimedPose2D>::connect(profile.clone().name("pose-in"))
+            .await
+            .expect("in-port"),
+    );
+    // The application takes every value (its latencies are measured then).
+    let reader = {
+        let input = std::sync::Arc::clone(&input);
+        tokio::spawn(async move { while input.recv().await.is_some() {} })
+    };
     let output = std::sync::Arc::new(
         OutPort::<TimedPose2D>::connect(profile.name("pose-out"))
             .await
@@ -384,7 +391,8 @@ async fn port_commands_list_follow_and_echo_robot_ports() {
         pose_out[7].parse::<u64>().expect("accepted") > 0,
         "{pose_out:?}"
     );
-    assert_eq!((pose_out[9].as_str(), pose_out[10].as_str()), ("", ""));
+    // An out-port counts `lost` too (written on a link that dropped).
+    assert_eq!((pose_out[9].as_str(), pose_out[10].as_str()), ("", "0"));
     let chosen = port_lines(
         &broker,
         &[
@@ -467,11 +475,12 @@ async fn port_commands_list_follow_and_echo_robot_ports() {
     let accepted = output.stats().accepted;
     tokio::time::timeout(
         Duration::from_secs(10),
-        watched.wait_for(|stats| stats.received == accepted),
+        watched.wait_for(|stats| stats.arrived == accepted),
     )
     .await
     .expect("the in-port got every value: echo took none")
     .expect("open");
+    reader.abort();
 
     let connections = lines(
         &broker,
@@ -698,4 +707,70 @@ async fn report_shows_the_status_and_every_listing() {
         "guest"
     );
     assert_eq!(report["connections"][0]["user"], "guest");
+}
+
+/// `port echo` on a port of the default exchange (straight to its queue,
+/// no exchange to copy from) peeks at the queue: it prints values in
+/// order, and the in-port still gets every one, none twice.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn port_echo_peeks_at_a_default_exchange_port() {
+    use leveret_client::ports::{InPort, OutPort, PortProfile, Time, TimedLong};
+    let broker = std::sync::Arc::new(OpsBroker::start("ctl-echo-default", &[]));
+    let profile = PortProfile::new(&broker.amqp_url())
+        .expect("URI")
+        .queue("cmd_vel")
+        .routing_key("cmd_vel")
+        .announce_interval(Some(Duration::from_millis(200)));
+    let input = InPort::<TimedLong>::connect(profile.clone().name("cmd-in"))
+        .await
+        .expect("in-port");
+    let output = std::sync::Arc::new(
+        OutPort::<TimedLong>::connect(profile.name("cmd-out"))
+            .await
+            .expect("out-port"),
+    );
+    // Value n is n: its sequence number says which it is.
+    let publisher = {
+        let output = std::sync::Arc::clone(&output);
+        tokio::spawn(async move {
+            for data in 1..=i32::MAX {
+                output
+                    .put(&TimedLong {
+                        tm: Time::now(),
+                        data,
+                    })
+                    .await;
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+    };
+    let echoed = port_lines(&broker, &["echo", "cmd-out", "--count", "3"]).await;
+    assert_eq!(echoed.len(), 3, "{echoed:?}");
+    let mut seqs = Vec::new();
+    for line in &echoed {
+        let seq: u64 = field(line, "seq").expect("seq").parse().expect("number");
+        assert!(
+            line.contains("TimedLong { tm: Time { sec: ")
+                && line.contains(&format!("data: {seq} }}")),
+            "value {seq} decoded: {line}"
+        );
+        seqs.push(seq);
+    }
+    assert!(seqs.windows(2).all(|w| w[0] < w[1]), "{seqs:?}");
+
+    publisher.abort();
+    let _ = publisher.await;
+    tokio::time::timeout(Duration::from_secs(10), output.flush())
+        .await
+        .expect("flushed");
+    let accepted = output.stats().accepted;
+    let mut watched = input.watch_stats();
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        watched.wait_for(|stats| stats.arrived == accepted),
+    )
+    .await
+    .expect("the in-port got every value: the echo handed back what it took")
+    .expect("open");
+    assert_eq!(input.stats().duplicates, 0, "{:?}", input.stats());
 }

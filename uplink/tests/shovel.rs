@@ -47,7 +47,7 @@ async fn channel_to(uri: &str) -> (Connection, Channel) {
     (connection, channel)
 }
 
-async fn local_channel(robot: &BrokerHandle) -> (Connection, Channel) {
+async fn local_channel(robot: &Arc<BrokerHandle>) -> (Connection, Channel) {
     let connection = Connection::in_process(robot).await.expect("in process");
     let channel = connection.open_channel().await.expect("channel");
     (connection, channel)
@@ -562,7 +562,7 @@ async fn positions(channel: &Channel, queue: &str, count: usize, keep: usize) ->
 async fn positions_name_one_message_across_restarts() {
     let dir = scratch("positions");
     let start = || Broker::builder().data_dir(&dir).start();
-    let robot = start().await.expect("robot broker");
+    let robot = Arc::new(start().await.expect("robot broker"));
     let (connection, publisher) = local_channel(&robot).await;
     publisher.confirm_select().await.expect("confirms");
     declare(&publisher, "telemetry", FieldTable::new()).await;
@@ -573,9 +573,12 @@ async fn positions_name_one_message_across_restarts() {
     assert_eq!(distinct.len(), 4, "{first:?}");
     drop(publisher);
     drop(connection);
-    robot.shutdown().await;
+    Arc::into_inner(robot)
+        .expect("the only handle")
+        .shutdown()
+        .await;
 
-    let robot = start().await.expect("robot broker again");
+    let robot = Arc::new(start().await.expect("robot broker again"));
     let (_connection, channel) = local_channel(&robot).await;
     channel.confirm_select().await.expect("confirms");
     assert_eq!(
@@ -606,7 +609,10 @@ async fn positions_name_one_message_across_restarts() {
         .expect_err("not a boolean");
     assert!(refused.to_string().contains("406"), "{refused}");
     drop(channel);
-    robot.shutdown().await;
+    Arc::into_inner(robot)
+        .expect("the only handle")
+        .shutdown()
+        .await;
     let _ = std::fs::remove_dir_all(&dir);
 }
 
