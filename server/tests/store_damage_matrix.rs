@@ -302,7 +302,7 @@ async fn origin(name: &str, kill: bool) -> PathBuf {
 
 /// Starts on `dir` (as it is) and expects either a refusal naming the
 /// directory and `name`, or every confirmed message.
-async fn refused_or_intact(dir: &Path, case: &str, name: &str) -> &'static str {
+async fn refused_or_intact(dir: &Path, case: &str, name: &str) -> String {
     match refusal(dir) {
         Some(log) => {
             assert!(
@@ -313,7 +313,14 @@ async fn refused_or_intact(dir: &Path, case: &str, name: &str) -> &'static str {
                 log.contains(name),
                 "{case}: the refusal names {name}: {log}"
             );
-            "refused"
+            let reason = log
+                .lines()
+                .find(|line| line.contains("is damaged"))
+                .and_then(|line| line.split("is damaged: ").nth(1))
+                .and_then(|rest| rest.split("; the broker does not start").next())
+                .unwrap_or("")
+                .to_owned();
+            format!("refused: {reason}")
         }
         None => {
             let broker = OpsBroker::on_data_dir(dir, &[] as &[&str]);
@@ -324,7 +331,7 @@ async fn refused_or_intact(dir: &Path, case: &str, name: &str) -> &'static str {
                 MESSAGES,
                 "{case}: started, so every confirmed message must be there"
             );
-            "intact"
+            "intact".to_owned()
         }
     }
 }

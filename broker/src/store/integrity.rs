@@ -281,7 +281,8 @@ fn check(
         // Every start records itself in the database, flushed, before it
         // serves: a database without that record is not this store's.
         return Err(format!(
-            "its database {} holds no record of an earlier start, but the message log holds              {messages} queued messages: the database was deleted, emptied or replaced",
+            "its database {} holds no record of an earlier start, but the message log holds \
+             {messages} queued messages: the database was deleted, emptied or replaced",
             store_dir(dir).display()
         ));
     }
