@@ -839,8 +839,8 @@ impl Index {
                 }
                 OnDamage::Salvage => {
                     let next = resync(&bytes, at + 1, until, format, number);
-                    let to = next.unwrap_or(bytes.len()).max(at);
-                    lose(self, at.min(bytes.len()), to, issue);
+                    let from = at.min(bytes.len());
+                    lose(self, from, next.unwrap_or(bytes.len()).max(from), issue);
                     match next {
                         Some(next) => at = next,
                         None => {
@@ -2300,13 +2300,17 @@ mod tests {
             let _ = std::fs::remove_dir_all(&dir);
         }
 
-        /// Whatever bytes a segment holds, opening never panics: it
-        /// refuses or salvages.
+        /// Whatever bytes a segment holds (its header cut or not), with or
+        /// without bookkeeping files claiming any flushed length, opening
+        /// never panics: it refuses or salvages, and a salvaged log then
+        /// opens as a whole one.
         #[test]
         fn any_segment_bytes_open_without_panicking(
             tail in proptest::collection::vec(any::<u8>(), 0..200),
+            cut in any::<proptest::sample::Index>(),
             older in any::<bool>(),
             first_format in any::<bool>(),
+            claimed in proptest::option::of(0u64..400),
         ) {
             let dir = temp_dir("garbage");
             std::fs::create_dir_all(&dir).unwrap();
@@ -2314,16 +2318,32 @@ mod tests {
             let mut bytes = magic.to_vec();
             bytes.extend_from_slice(&1u64.to_be_bytes());
             bytes.extend_from_slice(&tail);
+            bytes.truncate(cut.index(bytes.len() + 1));
             std::fs::write(segment_path(&dir, 1), &bytes).unwrap();
-            if older {
+            let newest = if older {
                 let mut next = MAGIC_V2.to_vec();
                 next.extend_from_slice(&2u64.to_be_bytes());
                 std::fs::write(segment_path(&dir, 2), &next).unwrap();
-            }
-            let _ = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted);
-            let log = MessageLog::open(&dir, OnDamage::Salvage, Bookkeeping::Adopted).unwrap();
+                2
+            } else {
+                1
+            };
+            let bookkeeping = match claimed {
+                Some(length) => {
+                    write_segment_list(&dir, Listed { first: 1, last: newest }).unwrap();
+                    let record = FlushedRecord { sequence: 1, segment: newest, length };
+                    open_flushed(&dir, false, record).unwrap();
+                    Bookkeeping::Required
+                }
+                None => Bookkeeping::Adopted,
+            };
+            let _ = MessageLog::open(&dir, OnDamage::Refuse, bookkeeping);
+            let log = MessageLog::open(&dir, OnDamage::Salvage, bookkeeping).unwrap();
             log.write(&[(b"k".to_vec(), Some(b"v".to_vec()))], false).unwrap();
             log.flush().unwrap();
+            drop(log);
+            let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Required).unwrap();
+            prop_assert!(log.scan().unwrap().contains(&(b"k".to_vec(), b"v".to_vec())));
             drop(log);
             let _ = std::fs::remove_dir_all(&dir);
         }
