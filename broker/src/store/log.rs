@@ -1956,7 +1956,8 @@ mod tests {
 
     #[test]
     fn a_missing_newest_segment_every_segment_or_bookkeeping_file_refuses() {
-        let cases: [(&str, fn(&Path)); 4] = [
+        type Damage = fn(&Path);
+        let cases: [(&str, Damage); 4] = [
             ("newest", |dir| {
                 std::fs::remove_file(segment_path(dir, *files(dir).last().unwrap())).unwrap()
             }),
