@@ -422,9 +422,15 @@ fn report_losses(losses: &Losses, recovered: &Recovered) {
             None => tracing::warn!(
                 segment = %range.segment.display(),
                 problem = range.problem,
-                "salvage: lost what the message log held there"
+                "salvage: lost a whole message log segment"
             ),
         }
+    }
+    for problem in &losses.bookkeeping {
+        tracing::warn!(
+            problem,
+            "salvage: the message log's bookkeeping was damaged; the rebuilt log has new"
+        );
     }
     let mut lost: std::collections::BTreeMap<u64, Vec<u64>> = Default::default();
     for (queue, seq) in losses.puts.iter().filter_map(|key| queue_position(key)) {
@@ -517,6 +523,36 @@ mod tests {
         for bad in ["", "format=1\n", "format=1\nstate=odd\ngeneration=1\n", "x"] {
             assert_eq!(Manifest::parse(bad), None, "{bad:?}");
         }
+    }
+
+    /// A store from format 3 has no segment list or flushed length: its
+    /// first open writes them, and from then on they are required; a
+    /// manifest missing beside a store refuses the start.
+    #[test]
+    fn an_older_store_adopts_the_log_bookkeeping_which_is_then_required() {
+        let dir = std::env::temp_dir().join(format!("leveret-adopt-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let opened = open_checked(&dir, false).unwrap();
+        drop(opened);
+        for file in ["segments", "flushed"] {
+            std::fs::remove_file(log_dir(&dir).join(file)).unwrap();
+        }
+        let older = Manifest {
+            format: 3,
+            state: State::Running,
+            generation: 0,
+            log_listed: false,
+        };
+        write_manifest(&dir, older).unwrap();
+        drop(open_checked(&dir, false).unwrap());
+        assert!(read_manifest(&dir).unwrap().unwrap().log_listed);
+        std::fs::remove_file(log_dir(&dir).join("segments")).unwrap();
+        let refused = open_checked(&dir, false).unwrap_err().to_string();
+        assert!(refused.contains("segment list"), "{refused}");
+        std::fs::remove_file(dir.join(MANIFEST)).unwrap();
+        let refused = open_checked(&dir, false).unwrap_err().to_string();
+        assert!(refused.contains("manifest"), "{refused}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// The manifest names this format before the store is opened (opening

@@ -391,8 +391,9 @@ struct State {
 pub enum OnDamage {
     /// Fail, naming the file and what is wrong.
     Refuse,
-    /// Keep what is readable: truncate a damaged segment at its first bad
-    /// batch and log what was dropped.
+    /// Keep every readable batch: go on after a bad one at the next valid
+    /// one, note what was lost ([`MessageLog::losses`]) and rebuild the
+    /// log from what was read.
     Salvage,
 }
 
@@ -597,12 +598,15 @@ pub struct Losses {
     /// How many ranges did not parse even without their checksums (zeros,
     /// a cut file, a missing segment): what they held is unknown.
     pub unknown_ranges: usize,
+    /// What was wrong with the segment list or the flushed length (no
+    /// record is lost with them; the rebuilt log has new ones).
+    pub bookkeeping: Vec<String>,
 }
 
 impl Losses {
-    /// Whether nothing was lost.
+    /// Whether nothing was damaged (the log is then not rebuilt).
     pub fn is_empty(&self) -> bool {
-        self.ranges.is_empty()
+        self.ranges.is_empty() && self.bookkeeping.is_empty()
     }
 }
 
@@ -1324,11 +1328,10 @@ fn load(
                 problem,
             });
         }
-        losses.ranges.push(lost.unwrap_or(LostRange {
-            segment: dir.to_owned(),
-            bytes: None,
-            problem: problem.clone(),
-        }));
+        match lost {
+            Some(lost) => losses.ranges.push(lost),
+            None => losses.bookkeeping.push(problem.clone()),
+        }
         problems.push(problem);
         Ok(())
     };
