@@ -39,17 +39,20 @@
 //! held for a long time therefore pins at most its own bytes, never the
 //! log behind it.
 //!
-//! Bookkeeping: `<dir>/segments` lists the oldest and the newest segment
-//! the log holds (with a checksum); it is rewritten durably (temporary
-//! file, sync, rename, directory sync) when a segment is started, after
-//! the new file and before any batch goes to it, and when segments are
-//! retired, before their files go: a segment past the list's newest never
-//! held a batch, and one before its oldest holds nothing live. Both are
-//! rare (once per [`SEGMENT_BYTES`] written), so this costs no sync per
-//! message. `<dir>/flushed` records how far the newest segment was synced:
-//! after each group's `fdatasync` of the head, one 32-byte `pwrite` of
-//! (sequence, segment, length) with its own CRC-32, into one of two slots
-//! in different sectors by turn, never synced by itself.
+//! Bookkeeping: two small files, each two checksummed 32-byte slots in
+//! different sectors, written by turn (a write torn by a power cut spoils
+//! only its own slot; the other holds the record before it).
+//! `<dir>/segments` lists the oldest and the newest segment the log holds;
+//! it is written and synced (one `pwrite`, one `fdatasync`) when a segment
+//! is started, after the new file is synced and before any batch goes to
+//! it, and when segments are retired, before their files go. So a segment
+//! past the list's newest never held a batch, one before its oldest holds
+//! nothing live, and a torn write falls back to the list before it, which
+//! was still true: nothing that relied on the new one had happened. Both
+//! are rare (once per [`SEGMENT_BYTES`] written): no sync per message.
+//! `<dir>/flushed` records how far the newest segment was synced: after
+//! each group's `fdatasync` of the head, one `pwrite` of (sequence,
+//! segment, length), never synced by itself.
 //!
 //! Why that proves what was confirmed: a confirm is sent only after
 //! [`MessageLog::flush`] returns, and flush writes the record after the
@@ -136,20 +139,6 @@ const INDEX_ROOM_KEPT: usize = 4096;
 /// stays responsive: a flush's extra work is bounded).
 const COMPACT_BYTES: u64 = 1024 * 1024;
 
-/// The segment list's file in the log's directory: the oldest and the
-/// newest segment the log holds (see the module docs).
-const SEGMENT_LIST: &str = "segments";
-/// The flushed length's file: two slots, each the head's number and how
-/// much of it was last synced (see the module docs).
-const FLUSHED: &str = "flushed";
-/// A flushed-length slot: magic, CRC-32 of the rest, then its sequence
-/// number, the segment's number and the length (`u64` LE each).
-const FLUSHED_SLOT: usize = 32;
-const FLUSHED_MAGIC: &[u8; 4] = b"LVFL";
-/// Where the two slots lie: in different sectors, so a write torn by a
-/// power cut spoils at most the one it was writing.
-const FLUSHED_SLOT_AT: [u64; 2] = [0, 512];
-
 /// How the log treats its bookkeeping files (the segment list and the
 /// flushed length) when it is opened.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -162,6 +151,130 @@ pub enum Bookkeeping {
     Adopted,
 }
 
+/// The log's two bookkeeping files (see the module docs), each two
+/// checksummed slots written by turn: the segment list (the oldest and
+/// the newest segment the log holds; each write synced) and the flushed
+/// length (the head's number and how much of it was last synced; never
+/// synced by itself).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kept {
+    SegmentList,
+    Flushed,
+}
+
+impl Kept {
+    fn file_name(self) -> &'static str {
+        match self {
+            Kept::SegmentList => "segments",
+            Kept::Flushed => "flushed",
+        }
+    }
+
+    fn magic(self) -> &'static [u8; 4] {
+        match self {
+            Kept::SegmentList => b"LVSL",
+            Kept::Flushed => b"LVFL",
+        }
+    }
+
+    fn what(self) -> &'static str {
+        match self {
+            Kept::SegmentList => "segment list",
+            Kept::Flushed => "flushed length",
+        }
+    }
+}
+
+/// A slot: magic, CRC-32 of the rest, then the record's sequence number
+/// and its two words (`u64` LE each).
+const SLOT: usize = 32;
+/// Where the two slots lie: in different sectors, so a write torn by a
+/// power cut spoils at most the one it was writing, and the other holds
+/// the record written before it.
+const SLOT_AT: [u64; 2] = [0, 512];
+
+/// One record of a bookkeeping file: for the segment list the oldest and
+/// the newest segment, for the flushed length the segment and its length.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Record2 {
+    sequence: u64,
+    words: [u64; 2],
+}
+
+impl Record2 {
+    fn encode(self, kept: Kept) -> [u8; SLOT] {
+        let mut slot = [0; SLOT];
+        slot[..4].copy_from_slice(kept.magic());
+        slot[8..16].copy_from_slice(&self.sequence.to_le_bytes());
+        slot[16..24].copy_from_slice(&self.words[0].to_le_bytes());
+        slot[24..32].copy_from_slice(&self.words[1].to_le_bytes());
+        let crc = crc32fast::hash(&slot[8..]);
+        slot[4..8].copy_from_slice(&crc.to_le_bytes());
+        slot
+    }
+
+    fn decode(kept: Kept, slot: &[u8]) -> Option<Record2> {
+        let slot: &[u8; SLOT] = slot.try_into().ok()?;
+        let word = |at: usize| u64::from_le_bytes(slot[at..at + 8].try_into().expect("8 bytes"));
+        let crc = u32::from_le_bytes(slot[4..8].try_into().expect("4 bytes"));
+        (&slot[..4] == kept.magic() && crc32fast::hash(&slot[8..]) == crc).then(|| Record2 {
+            sequence: word(8),
+            words: [word(16), word(24)],
+        })
+    }
+
+    /// Writes it to its slot: one `pwrite`.
+    fn write(self, kept: Kept, file: &File) -> std::io::Result<()> {
+        let at = SLOT_AT[(self.sequence % 2) as usize];
+        file.write_all_at(&self.encode(kept), at)
+    }
+}
+
+/// The newest valid record of a bookkeeping file in `dir`: `None` if
+/// there is no such file, or what is wrong with it.
+fn read_kept(dir: &Path, kept: Kept) -> Result<Option<Record2>, String> {
+    let path = dir.join(kept.file_name());
+    let bytes = match std::fs::read(&path) {
+        Ok(bytes) => bytes,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => {
+            return Err(format!(
+                "cannot read its {} {}: {e}",
+                kept.what(),
+                path.display()
+            ))
+        }
+    };
+    SLOT_AT
+        .iter()
+        .filter_map(|&at| bytes.get(at as usize..at as usize + SLOT))
+        .filter_map(|slot| Record2::decode(kept, slot))
+        .max_by_key(|record| record.sequence)
+        .map(Some)
+        .ok_or_else(|| format!("its {} {} is unreadable", kept.what(), path.display()))
+}
+
+/// Opens a bookkeeping file for writing; when it is new, `first` is
+/// written to it and synced, with the directory.
+fn open_kept(dir: &Path, kept: Kept, first: Record2) -> Result<File, StoreError> {
+    let path = dir.join(kept.file_name());
+    let existing = path.exists();
+    let file = OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(|e| io_error(&path, e))?;
+    if !existing {
+        first
+            .write(kept, &file)
+            .and_then(|()| file.sync_all())
+            .map_err(|e| io_error(&path, e))?;
+        sync_dir(dir)?;
+    }
+    Ok(file)
+}
+
 /// The oldest and the newest segment the log holds, as its list says.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Listed {
@@ -169,58 +282,41 @@ struct Listed {
     last: u64,
 }
 
-impl Listed {
-    fn render(self) -> String {
-        let body = format!("first={}\nlast={}\n", self.first, self.last);
-        let check = crc32fast::hash(body.as_bytes());
-        format!("{body}check={check}\n")
-    }
-
-    fn parse(text: &str) -> Option<Listed> {
-        let (body, check) = text.rsplit_once("check=")?;
-        if crc32fast::hash(body.as_bytes()) != check.trim_end().parse::<u32>().ok()? {
-            return None;
-        }
-        let mut lines = body.lines();
-        let first = lines.next()?.strip_prefix("first=")?.parse().ok()?;
-        let last = lines.next()?.strip_prefix("last=")?.parse().ok()?;
-        (lines.next().is_none() && first <= last).then_some(Listed { first, last })
-    }
-}
-
-/// The segment list in `dir`: `None` if there is none, or what is wrong
-/// with it.
-fn read_segment_list(dir: &Path) -> Result<Option<Listed>, String> {
-    let path = dir.join(SEGMENT_LIST);
-    match std::fs::read_to_string(&path) {
-        Ok(text) => Listed::parse(&text)
-            .map(Some)
-            .ok_or_else(|| format!("its segment list {} is unreadable", path.display())),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-        Err(e) => Err(format!(
-            "cannot read its segment list {}: {e}",
-            path.display()
+/// The segment list in `dir`, or what is wrong with it (a list whose
+/// oldest lies past its newest is wrong).
+fn read_segment_list(dir: &Path) -> Result<Option<(u64, Listed)>, String> {
+    match read_kept(dir, Kept::SegmentList)? {
+        Some(Record2 {
+            sequence,
+            words: [first, last],
+        }) if first <= last => Ok(Some((sequence, Listed { first, last }))),
+        Some(_) => Err(format!(
+            "its segment list {} is unreadable",
+            dir.join(Kept::SegmentList.file_name()).display()
         )),
+        None => Ok(None),
     }
 }
 
-/// Writes the segment list durably: a temporary file, synced, renamed
-/// over the old one, the directory synced (segments are started and
-/// retired rarely: once per [`SEGMENT_BYTES`] written).
-fn write_segment_list(dir: &Path, listed: Listed) -> Result<(), StoreError> {
-    let path = dir.join(SEGMENT_LIST);
-    let temporary = dir.join(format!("{SEGMENT_LIST}.new"));
-    File::create(&temporary)
-        .and_then(|mut file| {
-            std::io::Write::write_all(&mut file, listed.render().as_bytes())?;
-            file.sync_all()
-        })
-        .and_then(|()| std::fs::rename(&temporary, &path))
-        .map_err(|e| io_error(&path, e))?;
-    sync_dir(dir)
+/// Writes `listed` as record `sequence` of the segment list, synced (one
+/// `pwrite` and one `fdatasync`: segments are started and retired rarely,
+/// once per [`SEGMENT_BYTES`] written).
+fn write_segment_list(
+    dir: &Path,
+    file: &File,
+    sequence: u64,
+    listed: Listed,
+) -> Result<(), StoreError> {
+    Record2 {
+        sequence,
+        words: [listed.first, listed.last],
+    }
+    .write(Kept::SegmentList, file)
+    .and_then(|()| file.sync_data())
+    .map_err(|e| io_error(&dir.join(Kept::SegmentList.file_name()), e))
 }
 
-/// What the flushed-length file says: the newest valid slot.
+/// What the flushed-length file says.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct FlushedRecord {
     sequence: u64,
@@ -229,76 +325,27 @@ struct FlushedRecord {
 }
 
 impl FlushedRecord {
-    fn encode(self) -> [u8; FLUSHED_SLOT] {
-        let mut slot = [0; FLUSHED_SLOT];
-        slot[..4].copy_from_slice(FLUSHED_MAGIC);
-        slot[8..16].copy_from_slice(&self.sequence.to_le_bytes());
-        slot[16..24].copy_from_slice(&self.segment.to_le_bytes());
-        slot[24..32].copy_from_slice(&self.length.to_le_bytes());
-        let crc = crc32fast::hash(&slot[8..]);
-        slot[4..8].copy_from_slice(&crc.to_le_bytes());
-        slot
-    }
-
-    fn decode(slot: &[u8]) -> Option<FlushedRecord> {
-        let slot: &[u8; FLUSHED_SLOT] = slot.try_into().ok()?;
-        let word = |at: usize| u64::from_le_bytes(slot[at..at + 8].try_into().expect("8 bytes"));
-        let crc = u32::from_le_bytes(slot[4..8].try_into().expect("4 bytes"));
-        (&slot[..4] == FLUSHED_MAGIC && crc32fast::hash(&slot[8..]) == crc).then(|| FlushedRecord {
-            sequence: word(8),
-            segment: word(16),
-            length: word(24),
-        })
+    fn as_record(self) -> Record2 {
+        Record2 {
+            sequence: self.sequence,
+            words: [self.segment, self.length],
+        }
     }
 
     /// Writes it to its slot (one `pwrite`, no sync: see the module docs).
     fn write(self, file: &File) -> std::io::Result<()> {
-        let at = FLUSHED_SLOT_AT[(self.sequence % 2) as usize];
-        file.write_all_at(&self.encode(), at)
+        self.as_record().write(Kept::Flushed, file)
     }
 }
 
 /// The flushed-length file in `dir`: `None` if there is none, or what is
 /// wrong with it.
 fn read_flushed(dir: &Path) -> Result<Option<FlushedRecord>, String> {
-    let path = dir.join(FLUSHED);
-    let bytes = match std::fs::read(&path) {
-        Ok(bytes) => bytes,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => {
-            return Err(format!(
-                "cannot read its flushed length {}: {e}",
-                path.display()
-            ))
-        }
-    };
-    FLUSHED_SLOT_AT
-        .iter()
-        .filter_map(|&at| bytes.get(at as usize..at as usize + FLUSHED_SLOT))
-        .filter_map(FlushedRecord::decode)
-        .max_by_key(|record| record.sequence)
-        .map(Some)
-        .ok_or_else(|| format!("its flushed length {} is unreadable", path.display()))
-}
-
-/// Opens the flushed-length file for writing; when it is new, its first
-/// slot (`record`) is written and synced, with the directory.
-fn open_flushed(dir: &Path, existing: bool, record: FlushedRecord) -> Result<File, StoreError> {
-    let path = dir.join(FLUSHED);
-    let file = OpenOptions::new()
-        .create(true)
-        .truncate(false)
-        .write(true)
-        .open(&path)
-        .map_err(|e| io_error(&path, e))?;
-    if !existing {
-        record
-            .write(&file)
-            .and_then(|()| file.sync_all())
-            .map_err(|e| io_error(&path, e))?;
-        sync_dir(dir)?;
-    }
-    Ok(file)
+    Ok(read_kept(dir, Kept::Flushed)?.map(|record| FlushedRecord {
+        sequence: record.sequence,
+        segment: record.words[0],
+        length: record.words[1],
+    }))
 }
 
 /// How a segment's batches are checksummed (see the module docs).
@@ -379,7 +426,10 @@ struct State {
     compacting: Option<(u64, u64)>,
     /// Whether the head has writes not yet synced.
     dirty: bool,
-    /// What the segment list on disk says.
+    /// The segment list's file, its last record's sequence number and
+    /// what it says.
+    list_file: File,
+    list_sequence: u64,
     listed: Listed,
     /// The flushed-length file, and the last record written to it.
     flushed_file: File,
@@ -946,6 +996,12 @@ impl MessageLog {
         bookkeeping: Bookkeeping,
         segment_bytes: u64,
     ) -> Result<MessageLog, StoreError> {
+        let rebuilt = dir.with_extension("rebuilt");
+        if !dir.exists() && rebuilt.exists() {
+            // A rebuild stopped between its two renames: the rebuilt log
+            // was whole and synced before the first.
+            std::fs::rename(&rebuilt, dir).map_err(|e| io_error(dir, e))?;
+        }
         std::fs::create_dir_all(dir).map_err(|e| io_error(dir, e))?;
         let (state, losses) = load(dir, on_damage, bookkeeping)?;
         let log = MessageLog {
@@ -1117,8 +1173,7 @@ impl MessageLog {
             last: next,
             ..state.listed
         };
-        write_segment_list(&self.dir, listed)?;
-        state.listed = listed;
+        self.record_list(state, listed)?;
         state.head = head;
         state.head_number = next;
         state.head_format = Format::V2;
@@ -1153,7 +1208,7 @@ impl MessageLog {
             };
             record
                 .write(&state.flushed_file)
-                .map_err(|e| io_error(&self.dir.join(FLUSHED), e))?;
+                .map_err(|e| io_error(&self.dir.join(Kept::Flushed.file_name()), e))?;
             state.flushed = record;
         }
         let keys = &mut state.index.keys;
@@ -1162,6 +1217,15 @@ impl MessageLog {
         }
         self.delete_dead(&mut state)?;
         self.compact(&mut state)
+    }
+
+    /// Records `listed` in the segment list, synced.
+    fn record_list(&self, state: &mut State, listed: Listed) -> Result<(), StoreError> {
+        let sequence = state.list_sequence + 1;
+        write_segment_list(&self.dir, &state.list_file, sequence, listed)?;
+        state.list_sequence = sequence;
+        state.listed = listed;
+        Ok(())
     }
 
     /// Deletes the oldest segments while they hold nothing live (never the
@@ -1183,8 +1247,7 @@ impl MessageLog {
             first: newest_dead + 1,
             ..state.listed
         };
-        write_segment_list(&self.dir, listed)?;
-        state.listed = listed;
+        self.record_list(state, listed)?;
         for number in dead {
             let path = segment_path(&self.dir, number);
             if state.spares.len() < SPARES {
@@ -1337,10 +1400,10 @@ fn load(
     };
     let present = segment_numbers(dir)?;
     let listed = match (read_segment_list(dir), bookkeeping) {
-        (Ok(Some(listed)), _) => Some(listed),
+        (Ok(Some(found)), _) => Some(found),
         (Ok(None), Bookkeeping::Adopted) => None,
         (Ok(None), Bookkeeping::Required) => {
-            let path = dir.join(SEGMENT_LIST);
+            let path = dir.join(Kept::SegmentList.file_name());
             damage(
                 format!("its segment list {} is missing", path.display()),
                 &mut losses,
@@ -1357,7 +1420,7 @@ fn load(
         (Ok(found), Bookkeeping::Adopted) => found,
         (Ok(Some(found)), Bookkeeping::Required) => Some(found),
         (Ok(None), Bookkeeping::Required) => {
-            let path = dir.join(FLUSHED);
+            let path = dir.join(Kept::Flushed.file_name());
             damage(
                 format!("its flushed length {} is missing", path.display()),
                 &mut losses,
@@ -1370,6 +1433,8 @@ fn load(
             None
         }
     };
+    let list_sequence = listed.map_or(0, |(sequence, _)| sequence);
+    let listed = listed.map(|(_, listed)| listed);
     // The segments to read: those the list names, every one present
     // (and one past its newest: started by a rotation cut short before
     // the list named it, so holding nothing); without a list, those
@@ -1546,15 +1611,22 @@ fn load(
         first,
         last: head_number,
     };
-    if losses.is_empty() && listed != Some(now_listed) {
-        write_segment_list(dir, now_listed)?;
+    let list_record = Record2 {
+        sequence: list_sequence,
+        words: [now_listed.first, now_listed.last],
+    };
+    let list_file = open_kept(dir, Kept::SegmentList, list_record)?;
+    let mut list_sequence = list_sequence;
+    if losses.is_empty() && listed.is_some_and(|listed| listed != now_listed) {
+        list_sequence += 1;
+        write_segment_list(dir, &list_file, list_sequence, now_listed)?;
     }
     let flushed = flushed.unwrap_or(FlushedRecord {
         sequence: 0,
         segment: head_number,
         length: HEADER,
     });
-    let flushed_file = open_flushed(dir, dir.join(FLUSHED).exists(), flushed)?;
+    let flushed_file = open_kept(dir, Kept::Flushed, flushed.as_record())?;
     Ok((
         State {
             index,
@@ -1565,6 +1637,8 @@ fn load(
             spares,
             compacting: None,
             dirty: false,
+            list_file,
+            list_sequence,
             listed: now_listed,
             flushed_file,
             flushed,
@@ -1970,10 +2044,10 @@ mod tests {
                 }
             }),
             ("list", |dir| {
-                std::fs::remove_file(dir.join(SEGMENT_LIST)).unwrap()
+                std::fs::remove_file(dir.join(Kept::SegmentList.file_name())).unwrap()
             }),
             ("flushed", |dir| {
-                std::fs::remove_file(dir.join(FLUSHED)).unwrap()
+                std::fs::remove_file(dir.join(Kept::Flushed.file_name())).unwrap()
             }),
         ];
         for (name, damage) in cases {
@@ -2002,7 +2076,7 @@ mod tests {
                 log.flush().unwrap();
             }
             let numbers = files(&dir);
-            let listed = read_segment_list(&dir).unwrap().unwrap();
+            let (_, listed) = read_segment_list(&dir).unwrap().unwrap();
             assert_eq!(
                 (listed.first, listed.last),
                 (numbers[0], *numbers.last().unwrap())
@@ -2018,9 +2092,9 @@ mod tests {
     fn a_torn_flushed_slot_falls_back_to_the_other() {
         let dir = filled("torn-slot", 3, SEGMENT_BYTES);
         let newest = read_flushed(&dir).unwrap().unwrap();
-        let path = dir.join(FLUSHED);
+        let path = dir.join(Kept::Flushed.file_name());
         let mut bytes = std::fs::read(&path).unwrap();
-        let at = FLUSHED_SLOT_AT[(newest.sequence % 2) as usize] as usize;
+        let at = SLOT_AT[(newest.sequence % 2) as usize] as usize;
         bytes[at + 20] ^= 1;
         std::fs::write(&path, &bytes).unwrap();
         let older = read_flushed(&dir).unwrap().unwrap();
@@ -2334,9 +2408,10 @@ mod tests {
             };
             let bookkeeping = match claimed {
                 Some(length) => {
-                    write_segment_list(&dir, Listed { first: 1, last: newest }).unwrap();
+                    let list = Record2 { sequence: 1, words: [1, newest] };
+                    open_kept(&dir, Kept::SegmentList, list).unwrap();
                     let record = FlushedRecord { sequence: 1, segment: newest, length };
-                    open_flushed(&dir, false, record).unwrap();
+                    open_kept(&dir, Kept::Flushed, record.as_record()).unwrap();
                     Bookkeeping::Required
                 }
                 None => Bookkeeping::Adopted,
