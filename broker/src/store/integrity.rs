@@ -555,6 +555,63 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
+    /// After a clean stop no message is left of a deleted queue: messages
+    /// of a queue the database lacks mean it lost definitions, and the
+    /// start is refused instead of dropping them.
+    #[test]
+    fn after_a_clean_stop_messages_of_an_unknown_queue_refuse_the_start() {
+        use crate::store::{EntryBody, MessageRecord, QueueRecord, StoreOp, WriteMode};
+        use leveret_protocol::ShortStr;
+        let dir = std::env::temp_dir().join(format!("leveret-orphans-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let opened = open_checked(&dir, false).unwrap();
+        let queue = QueueRecord {
+            vhost: ShortStr::from_static("/"),
+            name: ShortStr::from_static("q"),
+            id: 1,
+            auto_delete: false,
+            arguments: Default::default(),
+        };
+        let entry = StoreOp::Enqueue {
+            queue: 1,
+            seq: 1,
+            body: EntryBody::Inline(MessageRecord {
+                exchange: ShortStr::from_static(""),
+                routing_key: ShortStr::from_static("q"),
+                properties: Default::default(),
+                body: bytes::Bytes::from_static(b"m"),
+            }),
+        };
+        let ops = [
+            StoreOp::Starts { count: 1 },
+            StoreOp::PutQueue(queue),
+            entry,
+        ];
+        let write = |ops: &[StoreOp]| {
+            let kv = ops.iter().map(StoreOp::to_kv).collect();
+            opened.store.write(kv, WriteMode::Plain).unwrap();
+            opened.store.flush().unwrap();
+        };
+        write(&ops);
+        // The database loses the queue; the message stays in the log.
+        let generation = opened.next_generation;
+        write(&[
+            StoreOp::DeleteQueue {
+                vhost: ShortStr::from_static("/"),
+                name: ShortStr::from_static("q"),
+            },
+            StoreOp::CleanShutdown { generation },
+        ]);
+        drop(opened);
+        mark_clean(&dir, generation).unwrap();
+        let refused = open_checked(&dir, false).unwrap_err().to_string();
+        assert!(
+            refused.contains("1 messages of queue id 1") && refused.contains("does not hold"),
+            "{refused}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
     /// The manifest names this format before the store is opened (opening
     /// may write what older Leverets cannot read), even when opening then
     /// fails.

@@ -2087,6 +2087,45 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
+    /// A rotation cut short between starting the next segment and listing
+    /// it leaves one file past the list's newest, holding no batch (or
+    /// not even a whole header): it is taken in, or removed. A segment
+    /// further on is damage.
+    #[test]
+    fn a_segment_past_the_list_is_a_cut_short_rotation_or_damage() {
+        let dir = filled("past-list", 6, 64);
+        let newest = *files(&dir).last().unwrap();
+        // The rotation sealed the head before starting the next segment.
+        let end = MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Required, 64)
+            .map(|log| data_end(&log))
+            .unwrap();
+        let file = OpenOptions::new()
+            .write(true)
+            .open(segment_path(&dir, newest))
+            .unwrap();
+        file.write_all_at(&seal_batch(Format::V2, newest), end)
+            .unwrap();
+        let mut header = MAGIC_V2.to_vec();
+        header.extend_from_slice(&(newest + 1).to_be_bytes());
+        std::fs::write(segment_path(&dir, newest + 1), &header).unwrap();
+        let log =
+            MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Required, 64).unwrap();
+        assert_eq!(pairs(&log).len(), 6);
+        assert_eq!(log.state().head_number, newest + 1);
+        drop(log);
+        let newest = newest + 1;
+        std::fs::write(segment_path(&dir, newest + 1), &header[..5]).unwrap();
+        let log =
+            MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Required, 64).unwrap();
+        assert_eq!(pairs(&log).len(), 6);
+        assert!(!segment_path(&dir, newest + 1).exists());
+        drop(log);
+        std::fs::write(segment_path(&dir, newest + 2), &header).unwrap();
+        let message = refused(&dir);
+        assert!(message.contains("past the newest"), "{message}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
     /// A torn slot (a power cut mid-write) falls back to the other one.
     #[test]
     fn a_torn_flushed_slot_falls_back_to_the_other() {
