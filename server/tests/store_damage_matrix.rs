@@ -98,12 +98,24 @@ async fn consume_all(broker: &OpsBroker) -> BTreeSet<usize> {
     use futures_lite::StreamExt;
     let conn = connect(broker).await;
     let channel = conn.create_channel().await.expect("channel");
+    // A queue the start lost holds none of them.
+    let passive = QueueDeclareOptions {
+        passive: true,
+        durable: true,
+        ..Default::default()
+    };
+    let Ok(queue) = channel
+        .queue_declare(QUEUE, passive, FieldTable::default())
+        .await
+    else {
+        return BTreeSet::new();
+    };
+    let ready = queue.message_count() as usize;
     channel
         .basic_qos(500, BasicQosOptions::default())
         .await
         .expect("qos");
-    // A queue the start lost holds none of them.
-    let Ok(mut consumer) = channel
+    let mut consumer = channel
         .basic_consume(
             QUEUE,
             "count",
@@ -114,15 +126,16 @@ async fn consume_all(broker: &OpsBroker) -> BTreeSet<usize> {
             FieldTable::default(),
         )
         .await
-    else {
-        return BTreeSet::new();
-    };
+        .expect("consume");
+    // Every message the queue said it holds, each counted once; then a
+    // moment more, for any it did not count.
     let mut seen = BTreeSet::new();
-    // Until the queue has been quiet for a while (it holds at most
-    // MESSAGES, all ready at start).
-    while let Ok(Some(delivery)) =
-        tokio::time::timeout(Duration::from_secs(2), consumer.next()).await
-    {
+    loop {
+        let patience = if seen.len() < ready { 30 } else { 1 };
+        let next = tokio::time::timeout(Duration::from_secs(patience), consumer.next()).await;
+        let Ok(Some(delivery)) = next else {
+            break;
+        };
         let delivery = delivery.expect("delivery");
         let n: usize = std::str::from_utf8(&delivery.data[..6])
             .expect("utf-8")
@@ -131,6 +144,7 @@ async fn consume_all(broker: &OpsBroker) -> BTreeSet<usize> {
         assert_eq!(delivery.data, body(n), "message {n} intact");
         assert!(seen.insert(n), "message {n} delivered twice");
     }
+    assert_eq!(seen.len(), ready, "the queue delivers what it counts");
     let _ = conn.close(200, "done").await;
     seen
 }
