@@ -430,6 +430,9 @@ async fn recover_keeps_the_batches_after_a_flipped_byte_and_counts_what_it_lost(
     let broker = OpsBroker::on_data_dir(&dir, &[] as &[&str]);
     let kept = consume_all(&broker).await;
     broker.terminate();
+    for line in log.lines().filter(|line| line.contains("salvage")) {
+        eprintln!("{line}");
+    }
     let lost: usize = log
         .lines()
         .find(|line| line.contains("salvaged the message log"))
