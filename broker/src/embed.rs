@@ -205,7 +205,7 @@ impl BrokerBuilder {
 
     /// Starts even on a damaged store in [`BrokerBuilder::data_dir`]:
     /// copies the damaged files aside, keeps every readable record and
-    /// logs each one dropped (the server's `--recover`). Without it a
+    /// logs what was lost (the server's `--recover`). Without it a
     /// damaged store refuses the start with [`StoreError::Damaged`].
     pub fn recover(mut self, recover: bool) -> Self {
         self.recover = recover;

@@ -37,8 +37,10 @@ pub struct Cli {
     pub data_dir: Option<PathBuf>,
     /// Start even if the store in the data directory is damaged: copy the
     /// damaged files aside (`store.damaged-<time>`), keep every readable
-    /// record and log each one dropped. Without it, a damaged store
-    /// refuses the start with an error saying what is wrong.
+    /// record and log what was lost (each unreadable stretch of the
+    /// message log, and the queue positions that were in it). Without it,
+    /// a damaged store refuses the start with an error saying what is
+    /// wrong.
     #[arg(long)]
     pub recover: bool,
     /// Free bytes on the data directory's disk below which publishers are
