@@ -100,6 +100,7 @@ fn runtime(worker_threads: usize) -> std::io::Result<tokio::runtime::Runtime> {
 
 async fn serve(settings: Settings) -> ExitCode {
     logging::init(&settings.log);
+    process::raise_open_files_limit();
     let ops_settings = settings.ops();
     let configured = Configured {
         shovels: settings.shovels.clone(),

@@ -82,7 +82,8 @@ pub struct Caller {
     vhosts: HashSet<String>,
 }
 
-fn not_authorised(reason: &str) -> ApiError {
+/// 401 `not_authorised` with `reason`, as RabbitMQ refuses a caller.
+pub(super) fn not_authorised(reason: &str) -> ApiError {
     ApiError {
         status: StatusCode::UNAUTHORIZED,
         error: "not_authorised",

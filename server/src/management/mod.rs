@@ -21,6 +21,7 @@ mod handlers;
 pub mod json;
 mod rates;
 
+use crate::http::Peer;
 use crate::uplink::{DeclareError, Links};
 use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
@@ -170,6 +171,11 @@ async fn authenticate(
         None => false,
     };
     if let (true, Some((user, _))) = (passed, &credentials) {
+        let peer = request.extensions().get::<Peer>().map(|peer| peer.0);
+        if !peer.is_none_or(|peer| context.admin.may_connect_from(user, peer)) {
+            tracing::info!(%user, ?peer, "management API login refused: loopback_users");
+            return caller::not_authorised("User can only log in via localhost").into_response();
+        }
         let caller = match Caller::new(user, &context.admin) {
             Ok(caller) => caller,
             Err(refused) => {
