@@ -454,6 +454,7 @@ pub async fn exchange(
 
 pub async fn put_exchange(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     body: Bytes,
 ) -> ApiResult {
@@ -472,26 +473,37 @@ pub async fn put_exchange(
         return Err(ApiError::bad_request("an exchange needs a type"));
     }
     let existed = c.admin.exchange(&vhost, &name).is_some();
-    c.admin.declare_exchange(&vhost, &name, settings).await?;
+    c.admin
+        .as_user(&caller.user)
+        .declare_exchange(&vhost, &name, settings)
+        .await?;
     Ok(created_or_not(!existed))
 }
 
 pub async fn delete_exchange(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     Query(query): Query<HashMap<String, String>>,
 ) -> ApiResult {
     c.admin
+        .as_user(&caller.user)
         .delete_exchange(&vhost, &name, query_flag(&query, "if-unused"))
         .await?;
     Ok(no_content())
 }
 
+/// RabbitMQ's `POST /api/exchanges/VHOST/NAME/publish`. A refusal is
+/// RabbitMQ's answer to a publish its channel refused (400, the reply code
+/// and text); during a memory or disk alarm, when AMQP publishers are
+/// blocked, 503 (RabbitMQ 3.10 takes the message).
 pub async fn publish(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     body: Bytes,
 ) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
     let body = body_object(&body)?;
     let bad = ApiError::bad_request;
     let routing_key = json::text(&body, "routing_key", "").map_err(bad)?;
@@ -513,6 +525,7 @@ pub async fn publish(
         };
     let routed = c
         .admin
+        .as_user(&caller.user)
         .publish(
             &vhost,
             exchange_name(&name),
@@ -520,7 +533,8 @@ pub async fn publish(
             properties,
             payload,
         )
-        .await?;
+        .await
+        .map_err(ApiError::publish_refused)?;
     Ok(Json(json!({ "routed": routed })))
 }
 
@@ -607,6 +621,7 @@ pub async fn queue(
 
 pub async fn put_queue(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     body: Bytes,
 ) -> ApiResult {
@@ -617,16 +632,22 @@ pub async fn put_queue(
         arguments: to_table(body.get("arguments").unwrap_or(&Value::Null))
             .map_err(ApiError::bad_request)?,
     };
-    let created = c.admin.declare_queue(&vhost, &name, settings).await?;
+    let created = c
+        .admin
+        .as_user(&caller.user)
+        .declare_queue(&vhost, &name, settings)
+        .await?;
     Ok(created_or_not(created))
 }
 
 pub async fn delete_queue(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     Query(query): Query<HashMap<String, String>>,
 ) -> ApiResult {
     c.admin
+        .as_user(&caller.user)
         .delete_queue(
             &vhost,
             &name,
@@ -637,13 +658,18 @@ pub async fn delete_queue(
     Ok(no_content())
 }
 
-pub async fn purge(State(c): Ctx, Path((vhost, name)): Path<(String, String)>) -> ApiResult {
-    c.admin.purge_queue(&vhost, &name)?;
+pub async fn purge(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult {
+    c.admin.as_user(&caller.user).purge_queue(&vhost, &name)?;
     Ok(no_content())
 }
 
 pub async fn get_messages(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     body: Bytes,
 ) -> ApiResult<Json<Value>> {
@@ -670,7 +696,11 @@ pub async fn get_messages(
         None | Some(Value::Null) => None,
         Some(_) => Some(json::count(&body, "truncate", 0).map_err(ApiError::bad_request)? as usize),
     };
-    let got = c.admin.get(&vhost, &name, count as usize, mode)?;
+    let got = c
+        .admin
+        .as_user(&caller.user)
+        .get(&vhost, &name, count as usize, mode)
+        .map_err(ApiError::refused_with_text)?;
     let list = got
         .iter()
         .map(|m| {
@@ -738,6 +768,7 @@ pub async fn bindings_between(
 
 pub async fn post_binding(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, source, kind, destination)): Path<(String, String, String, String)>,
     body: Bytes,
 ) -> ApiResult {
@@ -761,7 +792,7 @@ pub async fn post_binding(
         routing_key: spec.routing_key.clone(),
         arguments: spec.arguments.clone(),
     };
-    c.admin.bind(&vhost, spec).await?;
+    c.admin.as_user(&caller.user).bind(&vhost, spec).await?;
     Ok((
         StatusCode::CREATED,
         [(header::LOCATION, info.properties_key())],
@@ -792,10 +823,12 @@ pub async fn binding(
 
 pub async fn delete_binding(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, source, kind, destination, props)): Path<(String, String, String, String, String)>,
 ) -> ApiResult {
     let kind = destination_kind(&kind)?;
     c.admin
+        .as_user(&caller.user)
         .unbind(&vhost, &source, &destination, kind, &props)
         .await?;
     Ok(no_content())
@@ -888,9 +921,17 @@ pub async fn consumers_in(
     Ok(consumer_list(&c, &caller, Some(&vhost)))
 }
 
-pub async fn aliveness_test(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+pub async fn aliveness_test(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Path(vhost): Path<String>,
+) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
-    c.admin.aliveness_test(&vhost).await?;
+    c.admin
+        .as_user(&caller.user)
+        .aliveness_test(&vhost)
+        .await
+        .map_err(ApiError::refused_with_text)?;
     Ok(Json(json!({ "status": "ok" })))
 }
 
@@ -904,7 +945,7 @@ pub async fn alarms(State(c): Ctx) -> Response {
     if !alarms.is_empty() {
         let body = json!({
             "status": "failed",
-            "reason": "resource alarm(s) in effect in the cluster",
+            "reason": "There are alarms in effect in the cluster",
             "alarms": alarms,
         });
         (StatusCode::SERVICE_UNAVAILABLE, Json(body)).into_response()

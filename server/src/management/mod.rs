@@ -94,15 +94,39 @@ impl ApiError {
     }
 }
 
+impl ApiError {
+    /// An operation the caller's permissions refuse, as RabbitMQ answers
+    /// `get` and the aliveness test: 401 with the AMQP reply text; other
+    /// errors as [`From<AmqpError>`].
+    pub fn refused_with_text(e: AmqpError) -> Self {
+        match e.code {
+            ReplyCode::AccessRefused => caller::not_authorised(&e.text),
+            _ => e.into(),
+        }
+    }
+
+    /// A publish the broker did not take, as RabbitMQ answers one its
+    /// channel refused: 400 with the reply code and text. During a
+    /// resource alarm (or when the store cannot write), 503.
+    pub fn publish_refused(e: AmqpError) -> Self {
+        match e.code {
+            ReplyCode::ResourceError => ApiError {
+                status: StatusCode::SERVICE_UNAVAILABLE,
+                error: "service_unavailable",
+                reason: e.text,
+            },
+            _ => ApiError::bad_request(e.to_string()),
+        }
+    }
+}
+
 impl From<AmqpError> for ApiError {
+    /// Refusals by permission are RabbitMQ's 401 `Access refused.` for
+    /// declaring, deleting, binding and purging.
     fn from(e: AmqpError) -> Self {
         match e.code {
             ReplyCode::NotFound => ApiError::not_found(e.text),
-            ReplyCode::AccessRefused => ApiError {
-                status: StatusCode::FORBIDDEN,
-                error: "access_refused",
-                reason: e.text,
-            },
+            ReplyCode::AccessRefused => caller::not_authorised("Access refused."),
             _ => ApiError::bad_request(e.text),
         }
     }
