@@ -1,11 +1,13 @@
-//! One function per route of the management API. Listings of queues are
-//! streamed: the body is a JSON array written [`CHUNK`] queues at a time as
+//! One function per route of the management API. Listings of queues,
+//! exchanges, vhosts, connections and channels are paginated when asked
+//! (`pagination`). Unpaginated listings of queues are streamed: the body is a JSON array written [`CHUNK`] queues at a time as
 //! the client reads it, each queue read under its own lock when its turn
 //! comes, so a listing of 100k queues neither builds the whole answer in
 //! memory nor holds the listeners' thread between chunks.
 
 use super::caller::Caller;
 use super::json;
+use super::pagination::Pagination;
 use super::{ApiError, Context};
 use crate::definitions::Definitions;
 use crate::process::ProcessFigures;
@@ -65,6 +67,21 @@ pub(super) fn created_or_not(created: bool) -> Response {
 
 pub(super) fn body_object(body: &Bytes) -> ApiResult<serde_json::Map<String, Value>> {
     json::object(body).map_err(ApiError::bad_request)
+}
+
+type Params = Query<HashMap<String, String>>;
+
+/// A listing of `objects`: one page of them when the query asks for one
+/// (RabbitMQ's pagination), else all of them.
+async fn listing(objects: Vec<Value>, query: &HashMap<String, String>) -> ApiResult<Json<Value>> {
+    match Pagination::from_query(query)? {
+        Some(pagination) => Ok(Json(
+            pagination
+                .page_of(objects, |o| o["name"].as_str().unwrap_or(""), Value::clone)
+                .await?,
+        )),
+        None => Ok(Json(Value::Array(objects))),
+    }
 }
 
 fn query_flag(query: &HashMap<String, String>, key: &str) -> bool {
@@ -193,15 +210,18 @@ fn vhost_json(c: &Context, name: &str) -> Value {
     })
 }
 
-pub async fn vhosts(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
+pub async fn vhosts(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Query(query): Params,
+) -> ApiResult<Json<Value>> {
     let names = c.admin.vhosts();
-    Json(Value::Array(
-        names
-            .iter()
-            .filter(|n| caller.sees_vhost(n))
-            .map(|n| vhost_json(&c, n))
-            .collect(),
-    ))
+    let objects = names
+        .iter()
+        .filter(|n| caller.sees_vhost(n))
+        .map(|n| vhost_json(&c, n))
+        .collect();
+    listing(objects, &query).await
 }
 
 pub async fn vhost(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
@@ -416,28 +436,38 @@ pub async fn topic_permissions(State(c): Ctx) -> Json<Value> {
     )))
 }
 
-fn exchange_list(c: &Context, caller: &Caller, vhost: Option<&str>) -> Json<Value> {
-    Json(Value::Array(
-        c.admin
-            .exchanges()
-            .iter()
-            .filter(|e| vhost.is_none_or(|v| e.vhost == v) && caller.sees_vhost(&e.vhost))
-            .map(json::exchange)
-            .collect(),
-    ))
+async fn exchange_list(
+    c: &Context,
+    caller: &Caller,
+    vhost: Option<&str>,
+    query: &HashMap<String, String>,
+) -> ApiResult<Json<Value>> {
+    let objects = c
+        .admin
+        .exchanges()
+        .iter()
+        .filter(|e| vhost.is_none_or(|v| e.vhost == v) && caller.sees_vhost(&e.vhost))
+        .map(json::exchange)
+        .collect();
+    listing(objects, query).await
 }
 
-pub async fn exchanges(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
-    exchange_list(&c, &caller, None)
+pub async fn exchanges(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Query(query): Params,
+) -> ApiResult<Json<Value>> {
+    exchange_list(&c, &caller, None, &query).await
 }
 
 pub async fn exchanges_in(
     State(c): Ctx,
     Extension(caller): Extension<Caller>,
     Path(vhost): Path<String>,
+    Query(query): Params,
 ) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
-    Ok(exchange_list(&c, &caller, Some(&vhost)))
+    exchange_list(&c, &caller, Some(&vhost), &query).await
 }
 
 pub async fn exchange(
@@ -582,17 +612,44 @@ fn queue_stream(c: Arc<Context>, queues: Vec<QueueRef>) -> Response {
         .into_response()
 }
 
-pub async fn queues(State(c): Ctx, Extension(caller): Extension<Caller>) -> Response {
+/// A listing of queues: one page (RabbitMQ's pagination), written out
+/// for the page's queues only, or all of them, streamed.
+async fn queue_listing(
+    c: Arc<Context>,
+    refs: Vec<QueueRef>,
+    query: &HashMap<String, String>,
+) -> ApiResult {
+    let Some(pagination) = Pagination::from_query(query)? else {
+        return Ok(queue_stream(c, refs));
+    };
+    let page = pagination
+        .page_of(refs, QueueRef::name, |queue| {
+            let info = queue.info();
+            json::queue(&info, &c.node, &c.rates.queue(&info.vhost, &info.name))
+        })
+        .await?;
+    Ok(Json(page).into_response())
+}
+
+pub async fn queues(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Query(query): Params,
+) -> ApiResult {
     let refs = c
         .admin
         .queue_refs()
         .into_iter()
         .filter(|q| caller.sees_vhost(q.vhost()))
         .collect();
-    queue_stream(c, refs)
+    queue_listing(c, refs, &query).await
 }
 
-pub async fn queues_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult {
+pub async fn queues_in(
+    State(c): Ctx,
+    Path(vhost): Path<String>,
+    Query(query): Params,
+) -> ApiResult {
     require_vhost(&c, &vhost)?;
     let refs: Vec<QueueRef> = c
         .admin
@@ -600,7 +657,7 @@ pub async fn queues_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult {
         .into_iter()
         .filter(|q| q.vhost() == vhost)
         .collect();
-    Ok(queue_stream(c, refs))
+    queue_listing(c, refs, &query).await
 }
 
 fn queue_ref(c: &Context, vhost: &str, name: &str) -> ApiResult<QueueRef> {
@@ -834,15 +891,19 @@ pub async fn delete_binding(
     Ok(no_content())
 }
 
-pub async fn connections(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
-    Json(Value::Array(
-        c.admin
-            .connections()
-            .iter()
-            .filter(|conn| caller.sees_user(&conn.user))
-            .map(|conn| json::connection(conn, &c.node))
-            .collect(),
-    ))
+pub async fn connections(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Query(query): Params,
+) -> ApiResult<Json<Value>> {
+    let objects = c
+        .admin
+        .connections()
+        .iter()
+        .filter(|conn| caller.sees_user(&conn.user))
+        .map(|conn| json::connection(conn, &c.node))
+        .collect();
+    listing(objects, &query).await
 }
 
 fn connection_named(c: &Context, name: &str) -> ApiResult<leveret_broker::ConnectionInfo> {
@@ -874,15 +935,19 @@ pub async fn close_connection(
     Ok(no_content())
 }
 
-pub async fn channels(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
-    Json(Value::Array(
-        c.admin
-            .channels()
-            .iter()
-            .filter(|ch| caller.sees_user(&ch.user))
-            .map(|ch| json::channel(ch, &c.node))
-            .collect(),
-    ))
+pub async fn channels(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Query(query): Params,
+) -> ApiResult<Json<Value>> {
+    let objects = c
+        .admin
+        .channels()
+        .iter()
+        .filter(|ch| caller.sees_user(&ch.user))
+        .map(|ch| json::channel(ch, &c.node))
+        .collect();
+    listing(objects, &query).await
 }
 
 fn consumer_list(c: &Context, caller: &Caller, vhost: Option<&str>) -> Json<Value> {

@@ -11,7 +11,8 @@
 //! step) that reads the same API with the browser's basic-auth credentials.
 //!
 //! Layout: `mod` (router, auth, errors, the shared context), `handlers`
-//! (one function per route), `json` (objects and body parsing), `rates`
+//! (one function per route), `pagination` (RabbitMQ's `page`,
+//! `page_size`, `name`, `sort`), `json` (objects and body parsing), `rates`
 //! (the sampler behind `*_details`). Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
@@ -19,6 +20,7 @@ mod caller;
 mod federation;
 mod handlers;
 pub mod json;
+mod pagination;
 mod rates;
 
 use crate::http::Peer;
