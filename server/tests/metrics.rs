@@ -1,8 +1,8 @@
 //! The Prometheus endpoint of the `leveret` binary, end to end: every
 //! listener on port 0, traffic from lapin, scrapes whose values move with
 //! it under RabbitMQ's metric names and labels, `promtool check metrics`
-//! on both endpoints, and the listener's bounds (methods, unknown paths,
-//! the connection cap).
+//! on both endpoints, `/metrics/per-object` streamed in chunks for many
+//! queues, and the listener's routes (methods, unknown paths).
 
 mod common;
 
@@ -221,4 +221,52 @@ async fn the_metrics_listener_answers_only_its_routes() {
     let unknown = request(broker.metrics, "GET", "/api/overview", &[], b"").await;
     assert_eq!(unknown.status, 404);
     // The connection bounds are operator_lockout.rs' subject.
+}
+
+/// `/metrics/per-object` over more queues than one chunk (1000) holds: the
+/// body is streamed (chunked), every per-queue family appears once with
+/// one sample per queue, and promtool accepts the whole.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn per_object_metrics_of_many_queues_are_streamed_whole() {
+    let broker = OpsBroker::start("per-object-many", &[]);
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = conn.create_channel().await.expect("channel");
+    let count = 2500;
+    for i in 0..count {
+        ch.queue_declare(
+            &format!("many-{i:05}"),
+            QueueDeclareOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("declare");
+    }
+    let response = request(broker.metrics, "GET", "/metrics/per-object", &[], b"").await;
+    assert_eq!(response.status, 200);
+    assert_eq!(response.header("transfer-encoding"), Some("chunked"));
+    let text = response.text();
+    for family in [
+        "rabbitmq_queue_messages_ready",
+        "rabbitmq_queue_get_empty_total",
+        "rabbitmq_queue_info",
+    ] {
+        let help = format!("# HELP {family} ");
+        assert_eq!(text.matches(&help).count(), 1, "{family}'s HELP once");
+        let samples = text
+            .lines()
+            .filter(|line| line.starts_with(&format!("{family}{{")))
+            .count();
+        assert_eq!(samples, count, "{family}: one sample per queue");
+    }
+    assert_eq!(
+        value(
+            &text,
+            "rabbitmq_queue_messages_ready{vhost=\"/\",queue=\"many-02499\"}"
+        ),
+        Some(0.0)
+    );
+    assert_eq!(value(&text, "rabbitmq_queues"), Some(count as f64));
+    check_with_promtool(&text, "/metrics/per-object of many queues");
 }
