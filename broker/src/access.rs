@@ -440,6 +440,12 @@ impl Admin {
         self.core.limits.user(user)
     }
 
+    /// Whether `user` may log in from `peer` (RabbitMQ's
+    /// `loopback_users`: some users only from this host).
+    pub fn may_connect_from(&self, user: &str, peer: std::net::SocketAddr) -> bool {
+        self.core.users.may_connect_from(user, &peer.to_string())
+    }
+
     /// The broker's users, sorted by name.
     pub fn users(&self) -> Vec<(String, User)> {
         self.core.users.list()

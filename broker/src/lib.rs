@@ -73,7 +73,8 @@
 //! closing one from outside), and `admin` ([`Admin`], a cloneable handle
 //! for tools that closes connections and, through `inspect`, reads all of
 //! the above into plain structs with RabbitMQ's field meanings, as
-//! `BrokerHandle::overview` does). They read the layers; no layer calls
+//! `BrokerHandle::overview` does; `as_user` does its operations on behalf
+//! of one user, checked against their permissions). They read the layers; no layer calls
 //! them except to bump a counter or keep a registration.
 #![forbid(unsafe_code)]
 #![deny(missing_docs)]
@@ -81,6 +82,7 @@
 mod access;
 mod admin;
 mod arguments;
+mod as_user;
 mod auth;
 mod busy_poll;
 mod channel;
@@ -127,6 +129,7 @@ pub use crate::arguments::{
     classic_queue_arguments, Argument, Scope as ArgumentScope, Support as ArgumentSupport,
     ARGUMENTS,
 };
+pub use crate::as_user::AsUser;
 pub use crate::auth::User;
 pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
 pub use crate::core::{Limits, UserLimits, VhostLimits};

@@ -111,6 +111,7 @@ async fn serve(settings: Settings) -> ExitCode {
         },
     };
     logging::init(&settings.log, settings.log_format, log_file.clone());
+    process::raise_open_files_limit();
     let ops_settings = settings.ops();
     let banner = Banner {
         config_file: settings.config_file.clone(),

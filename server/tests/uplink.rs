@@ -181,6 +181,24 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     )
     .await;
     assert_eq!(bad.status, 400, "{}", bad.text());
+    // A shovel from a queue into itself would spin for ever: refused.
+    let looped = json!({"value": {
+        "src-uri": "amqp://", "src-queue": "poses", "dest-uri": "amqp://", "dest-queue": "poses",
+    }});
+    let looped = request(
+        robot.http,
+        "PUT",
+        "/api/parameters/shovel/%2F/looped",
+        &headers,
+        looped.to_string().as_bytes(),
+    )
+    .await;
+    assert_eq!(looped.status, 400, "{}", looped.text());
+    assert!(
+        looped.text().contains("the shovel would loop"),
+        "{}",
+        looped.text()
+    );
 
     // The shovel's own queue on the robot takes amq.topic's pose.# messages.
     let fleet_conn = Connection::connect(&fleet_url, ConnectionProperties::default())

@@ -92,9 +92,15 @@ impl OpsBroker {
     }
 
     fn launch<S: AsRef<OsStr>>(dir: PathBuf, extra: &[S]) -> OpsBroker {
+        // `extra` may put the management API elsewhere.
+        let http_default = if extra.iter().any(|arg| arg.as_ref() == "--http-listen") {
+            &[][..]
+        } else {
+            &["--http-listen", "127.0.0.1:0"][..]
+        };
         let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
             .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
-            .args(["--http-listen", "127.0.0.1:0"])
+            .args(http_default)
             .arg("--data-dir")
             .arg(&dir)
             .args(["--log", "info"])
