@@ -5,6 +5,8 @@
 //! a 4-byte salt and the digest of salt + password) are accepted as
 //! RabbitMQ exports them, so users moved from RabbitMQ log in unchanged;
 //! Leveret's earlier form (72 hex digits: salt and SHA-256) is still read.
+//! An empty `password_hash` is, as in RabbitMQ, a user who cannot log in
+//! with a password at all.
 //!
 //! argon2id costs tens of milliseconds and megabytes per check by design:
 //! `auth` runs it off the broker's threads (in `hash_pool`, whose threads
@@ -72,6 +74,9 @@ enum Scheme {
         salt: [u8; 4],
         digest: Vec<u8>,
     },
+    /// No password: RabbitMQ's empty `password_hash` (a user who
+    /// authenticates some other way, or not at all). No password matches.
+    None,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq)]
@@ -117,6 +122,7 @@ impl std::fmt::Debug for PasswordHash {
         let scheme = match &self.0 {
             Scheme::Argon2id(_) => "argon2id",
             Scheme::Salted { algorithm, .. } => algorithm.name(),
+            Scheme::None => "none",
         };
         write!(f, "PasswordHash({scheme})")
     }
@@ -159,7 +165,14 @@ impl PasswordHash {
 
     /// Reads RabbitMQ's exported form: `password_hash` (base64) and its
     /// `hashing_algorithm`; argon2id hashes Leveret exported come back too.
+    /// An empty `password_hash` is no password (RabbitMQ reads it so with
+    /// any of its algorithms).
     pub fn from_rabbitmq(password_hash: &str, hashing_algorithm: &str) -> Option<Self> {
+        if password_hash.trim().is_empty()
+            && [RABBIT_SHA256, RABBIT_SHA512, LEVERET_ARGON2ID].contains(&hashing_algorithm)
+        {
+            return Some(PasswordHash(Scheme::None));
+        }
         let algorithm = match hashing_algorithm {
             RABBIT_SHA256 => Salted::Sha256,
             RABBIT_SHA512 => Salted::Sha512,
@@ -201,6 +214,7 @@ impl PasswordHash {
                     algorithm.name(),
                 )
             }
+            Scheme::None => (String::new(), RABBIT_SHA256),
         }
     }
 
@@ -210,7 +224,7 @@ impl PasswordHash {
     pub fn to_phc(&self) -> Option<&str> {
         match &self.0 {
             Scheme::Argon2id(phc) => Some(phc),
-            Scheme::Salted { .. } => None,
+            Scheme::Salted { .. } | Scheme::None => None,
         }
     }
 
@@ -246,6 +260,7 @@ impl PasswordHash {
                         .fold(0u8, |acc, (a, b)| acc | (a ^ b))
                         == 0
             }
+            Scheme::None => false,
         }
     }
 }
@@ -331,6 +346,20 @@ mod tests {
             .verify(b"guest"));
         assert!(PasswordHash::from_rabbitmq("c2hvcnQ=", RABBIT_SHA256).is_none());
         assert!(PasswordHash::from_rabbitmq("x", "rabbit_password_hashing_md5").is_none());
+    }
+
+    /// RabbitMQ's empty `password_hash`: a user no password logs in as,
+    /// exported back empty.
+    #[test]
+    fn an_empty_hash_is_no_password() {
+        for algorithm in [RABBIT_SHA256, RABBIT_SHA512, LEVERET_ARGON2ID] {
+            let none = PasswordHash::from_rabbitmq("", algorithm).expect("no password");
+            assert!(!none.verify(b"") && !none.verify(b"guest"));
+            assert_eq!(none.to_rabbitmq(), (String::new(), RABBIT_SHA256));
+            assert_eq!(none.to_phc(), None);
+            assert!(!none.is_slow());
+        }
+        assert!(PasswordHash::from_rabbitmq("", "rabbit_password_hashing_md5").is_none());
     }
 
     #[test]
