@@ -238,7 +238,7 @@ impl PasswordHash {
     pub fn verify_in(&self, password: &[u8], memory: &mut HashMemory) -> bool {
         match &self.0 {
             Scheme::Argon2id(phc) => verify_argon2id(phc, password, memory).unwrap_or(false),
-            Scheme::Salted { .. } => self.verify(password),
+            Scheme::Salted { .. } | Scheme::None => self.verify(password),
         }
     }
 
