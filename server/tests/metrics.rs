@@ -242,7 +242,7 @@ async fn the_metrics_listener_is_bounded() {
             .write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
             .await;
         let mut answer = Vec::new();
-        let read = tokio::time::timeout(Duration::from_secs(5), extra.read_to_end(&mut answer))
+        let read = tokio::time::timeout(Duration::from_secs(30), extra.read_to_end(&mut answer))
             .await
             .expect("the extra connection is answered or closed at once");
         if read.is_err() || answer.is_empty() {
