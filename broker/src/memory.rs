@@ -291,7 +291,7 @@ mod tests {
             "resident memory still sets the alarm"
         );
         gauge.set_resident_alarm(false, 0);
-        tokio::time::timeout(std::time::Duration::from_secs(5), waiter)
+        tokio::time::timeout(std::time::Duration::from_secs(30), waiter)
             .await
             .expect("woken")
             .expect("no panic");

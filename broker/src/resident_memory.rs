@@ -242,7 +242,7 @@ mod tests {
                 tokio::time::sleep(Duration::from_millis(10)).await;
             }
         };
-        tokio::time::timeout(Duration::from_secs(5), set)
+        tokio::time::timeout(Duration::from_secs(30), set)
             .await
             .expect("the alarm is set at the first reading");
         stop.send_replace(true);

@@ -10,7 +10,7 @@ import uuid
 import pika
 import pika.exceptions as pe
 
-from harness import Failure, reply_name, scenario, wait_until
+from harness import HANG, Failure, reply_name, scenario, wait_until
 
 LIB = "pika"
 
@@ -103,7 +103,7 @@ def consume_into(ch, q, **kw):
     return tag, got
 
 
-def pump(conn, got, n, timeout=5.0):
+def pump(conn, got, n, timeout=HANG):
     deadline = time.monotonic() + timeout
     while len(got) < n and time.monotonic() < deadline:
         conn.process_data_events(time_limit=0.02)
@@ -1511,7 +1511,7 @@ def _(t):
     wait_until(lambda: (conn.process_data_events(0.01) or True) and ok, what="select-ok")
     for i in range(20):
         ch.basic_publish("", q, str(i).encode())
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + HANG
     while time.monotonic() < deadline and (not acks or acks[-1][1] < 20):
         conn.process_data_events(time_limit=0.02)
     covered = set()

@@ -632,7 +632,6 @@ async fn a_message_forwarded_twice_carries_one_id() {
     let (_c, fleet_channel) = channel_to(&fleet_uri).await;
     declare(&fleet_channel, "archive", FieldTable::new()).await;
     let proxy = leveret_tests::fault_proxy::FaultProxy::start(addr).await;
-    proxy.set(|f| f.latency = Duration::from_secs(1));
     let shovel = Shovel::start(
         "twice",
         shovel_config(
@@ -642,8 +641,13 @@ async fn a_message_forwarded_twice_carries_one_id() {
         Some(&robot),
     );
     wait_status(&shovel, "running", |s| s.state == ShovelState::Running).await;
+    // Each chunk now waits this long each way: the message reaches the
+    // fleet after it, and the fleet's confirm would come back after it
+    // again, time enough for this test to cut the link first however
+    // loaded the machine.
+    proxy.set(|f| f.latency = Duration::from_secs(10));
     publish_confirmed(&publisher, "telemetry", 0, 1).await;
-    // The fleet has it; its confirm is a second away: cut the link now.
+    // The fleet has it; its confirm is seconds away: cut the link now.
     let deadline = tokio::time::Instant::now() + WAIT;
     while fleet_broker
         .queues()
@@ -659,7 +663,13 @@ async fn a_message_forwarded_twice_carries_one_id() {
     wait_status(&shovel, "forwarded again", |s| s.forwarded >= 1).await;
     assert!(shovel.status().restarts >= 1);
     let mut copies = Vec::new();
+    let deadline = tokio::time::Instant::now() + WAIT;
     while copies.len() < 2 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{} copies arrived",
+            copies.len()
+        );
         if let Some(message) = fleet_channel
             .basic_get("archive", BasicGetOptions { no_ack: true })
             .await
