@@ -827,18 +827,22 @@ async fn busy_polling_in_port_on_a_current_thread_runtime() {
     busy_polling_in_port().await;
 }
 
-/// How long the calling thread has been runnable: on the CPU or waiting in
-/// the run queue for it (`/proc/thread-self/schedstat`), so a thread that
-/// spins counts its whole window however busy the machine is, and a
-/// sleeping one next to nothing.
-fn thread_runnable_time() -> Duration {
+/// How long the calling thread has been on the CPU, and how long it has
+/// been runnable (on the CPU or waiting in the run queue for it), from
+/// `/proc/thread-self/schedstat`. A thread that spins is runnable for its
+/// whole window however busy the machine is; a sleeping one is on the CPU
+/// for next to nothing, however long it waits for a core when it wakes.
+fn thread_cpu_and_runnable_time() -> (Duration, Duration) {
     let stat = std::fs::read_to_string("/proc/thread-self/schedstat")
         .expect("/proc/thread-self/schedstat");
     let mut fields = stat
         .split_whitespace()
         .map(|f| f.parse::<u64>().expect("ns"));
     let (running, waiting) = (fields.next().expect("run"), fields.next().expect("wait"));
-    Duration::from_nanos(running + waiting)
+    (
+        Duration::from_nanos(running),
+        Duration::from_nanos(running + waiting),
+    )
 }
 
 /// The poll really spins: on a current-thread runtime, a `recv` whose
@@ -853,21 +857,22 @@ async fn a_busy_polling_in_port_spends_its_window_on_the_cpu() {
         let mut profile = env.profile();
         profile.busy_poll = window;
         let (output, input) = pair::<TimedLong>(&connector, profile).await;
-        let before = thread_runnable_time();
+        let (cpu_before, runnable_before) = thread_cpu_and_runnable_time();
         let (got, _) = tokio::join!(within("recv", input.recv()), async {
             tokio::time::sleep(Duration::from_millis(300)).await;
             output.put(&TimedLong::default()).await
         });
-        let spent = thread_runnable_time() - before;
+        let (cpu_after, runnable_after) = thread_cpu_and_runnable_time();
+        let (cpu, runnable) = (cpu_after - cpu_before, runnable_after - runnable_before);
         assert!(got.is_some());
         match busy {
             true => assert!(
-                spent >= Duration::from_millis(250),
-                "polled for 300 ms, runnable for {spent:?}"
+                runnable >= Duration::from_millis(250),
+                "polled for 300 ms, runnable for {runnable:?}"
             ),
             false => assert!(
-                spent < Duration::from_millis(100),
-                "slept for 300 ms, runnable for {spent:?}"
+                cpu < Duration::from_millis(100),
+                "slept for 300 ms, on the CPU for {cpu:?}"
             ),
         }
         within("close", input.close()).await;
