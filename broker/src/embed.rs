@@ -45,6 +45,7 @@ impl Broker {
 pub struct BrokerBuilder {
     listen: Vec<SocketAddr>,
     tls_listen: Vec<SocketAddr>,
+    mqtt_listen: Vec<SocketAddr>,
     tls: Option<TlsOptions>,
     users: Vec<(String, User)>,
     user_tags: std::collections::HashMap<String, Vec<String>>,
@@ -85,6 +86,15 @@ impl BrokerBuilder {
     /// [`BrokerBuilder::tls`].
     pub fn tls_listen(mut self, addr: SocketAddr) -> Self {
         self.tls_listen.push(addr);
+        self
+    }
+
+    /// Adds an MQTT 3.1.1/5.0 listener (RabbitMQ's `mqtt.listeners.tcp`;
+    /// 1883 by convention, port 0 picks a free port). MQTT clients log in
+    /// as the broker's users (`vhost:user` picks a vhost) and meet AMQP
+    /// clients on `amq.topic`; `docs/mqtt.md` says what is supported.
+    pub fn mqtt_listen(mut self, addr: SocketAddr) -> Self {
+        self.mqtt_listen.push(addr);
         self
     }
 
@@ -410,6 +420,25 @@ impl BrokerBuilder {
                 alive.clone(),
             )));
         }
+        let mut mqtt_addrs = Vec::new();
+        let mqtt_ids = Arc::new(crate::mqtt::ClientIds::default());
+        for addr in self.mqtt_listen {
+            let listener = TcpListener::bind(addr)
+                .await
+                .map_err(|source| StartError::Bind { addr, source })?;
+            let bound = listener
+                .local_addr()
+                .map_err(|source| StartError::Bind { addr, source })?;
+            warn_if_only_guest(&core.users, bound);
+            tracing::info!(addr = %bound, "accepting MQTT 3.1.1 and 5.0 connections");
+            mqtt_addrs.push(bound);
+            tasks.push(tokio::spawn(crate::mqtt::accept_loop(
+                Arc::clone(&core),
+                listener,
+                Arc::clone(&mqtt_ids),
+                alive.clone(),
+            )));
+        }
         tasks.push(tokio::spawn(crate::server::sweeper(
             Arc::clone(&core),
             SWEEP_PERIOD,
@@ -436,6 +465,7 @@ impl BrokerBuilder {
             core,
             local_addrs,
             tls_addrs,
+            mqtt_addrs,
             tls,
             tasks,
             alive: Some(alive),
@@ -466,6 +496,7 @@ pub struct BrokerHandle {
     core: Arc<Core>,
     local_addrs: Vec<SocketAddr>,
     tls_addrs: Vec<SocketAddr>,
+    mqtt_addrs: Vec<SocketAddr>,
     tls: Option<Arc<TlsContext>>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
     alive: Option<mpsc::Sender<()>>,
@@ -490,6 +521,11 @@ impl BrokerHandle {
     /// The addresses the TLS listeners are bound to.
     pub fn tls_addrs(&self) -> &[SocketAddr] {
         &self.tls_addrs
+    }
+
+    /// The addresses the MQTT listeners are bound to.
+    pub fn mqtt_addrs(&self) -> &[SocketAddr] {
+        &self.mqtt_addrs
     }
 
     /// Re-reads the TLS certificate, key and CA bundle: connections
@@ -531,7 +567,8 @@ impl BrokerHandle {
     pub fn connect_direct(&self) -> crate::connection::DirectLink {
         let core = Arc::clone(&self.core);
         let slot = core.connections.admit_local();
-        crate::connection::serve_direct(core, slot, self.alive.clone())
+        let peer = "in-process".to_owned();
+        crate::connection::serve_direct(core, slot, peer, self.alive.clone())
     }
 
     /// A cloneable view of this broker's state, for readers that outlive

@@ -90,6 +90,8 @@ pub struct FileConfig {
     listen: Option<Vec<SocketAddr>>,
     /// RabbitMQ's `listeners.ssl`.
     tls_listen: Option<Vec<SocketAddr>>,
+    /// RabbitMQ's `mqtt.listeners.tcp`.
+    mqtt_listen: Option<Vec<SocketAddr>>,
     /// `ssl_options.certfile`.
     tls_certfile: Option<PathBuf>,
     /// `ssl_options.keyfile`.
@@ -241,6 +243,8 @@ pub struct Settings {
     pub listen: Vec<SocketAddr>,
     /// AMQP-over-TLS listeners.
     pub tls_listen: Vec<SocketAddr>,
+    /// MQTT listeners.
+    pub mqtt_listen: Vec<SocketAddr>,
     /// Their certificates and client verification.
     pub tls: Option<TlsOptions>,
     /// The directory for durable state.
@@ -362,6 +366,11 @@ impl Settings {
             file.tls_listen.unwrap_or_default()
         } else {
             cli.tls_listen
+        };
+        let mqtt_listen = if cli.mqtt_listen.is_empty() {
+            file.mqtt_listen.unwrap_or_default()
+        } else {
+            cli.mqtt_listen
         };
         let tls = resolve_tls(
             cli.tls_certfile.or(file.tls_certfile),
@@ -500,6 +509,7 @@ impl Settings {
         Ok(Settings {
             listen,
             tls_listen,
+            mqtt_listen,
             tls,
             data_dir: cli
                 .data_dir
@@ -560,6 +570,9 @@ impl Settings {
         }
         for addr in self.tls_listen {
             builder = builder.tls_listen(addr);
+        }
+        for addr in self.mqtt_listen {
+            builder = builder.mqtt_listen(addr);
         }
         if let Some(tls) = self.tls {
             builder = builder.tls(tls);
@@ -625,6 +638,23 @@ mod tests {
         assert!(
             error.contains("shovel bad") && error.contains("src-queue"),
             "{error}"
+        );
+    }
+
+    #[test]
+    fn mqtt_listeners_come_from_the_command_line_or_the_file() {
+        let resolve = |cli_args: &[&str], text: &str| Settings::resolve(cli(cli_args), file(text));
+        assert!(resolve(&[], "").unwrap().mqtt_listen.is_empty());
+        let addr: SocketAddr = "127.0.0.1:1883".parse().unwrap();
+        let from_file = resolve(&[], "mqtt-listen = [\"127.0.0.1:1883\"]").unwrap();
+        assert_eq!(from_file.mqtt_listen, [addr]);
+        let from_cli = resolve(
+            &["--mqtt-listen", "127.0.0.1:1884"],
+            "mqtt-listen = [\"127.0.0.1:1883\"]",
+        );
+        assert_eq!(
+            from_cli.unwrap().mqtt_listen,
+            ["127.0.0.1:1884".parse().unwrap()]
         );
     }
 
