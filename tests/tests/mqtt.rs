@@ -595,3 +595,105 @@ async fn a_qos_2_publish_sent_twice_is_routed_once() {
     assert_eq!(declared.message_count(), 1, "routed exactly once");
     handle.shutdown().await;
 }
+
+#[both_runtimes]
+async fn a_will_is_published_when_the_connection_drops_and_not_after_disconnect() {
+    let handle = start(Limits::default()).await;
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(&handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    tmo!(channel.queue_declare("wills", Default::default(), Default::default())).unwrap();
+    tmo!(channel.queue_bind(
+        "wills",
+        "amq.topic",
+        "status.#",
+        Default::default(),
+        Default::default()
+    ))
+    .unwrap();
+    let port = mqtt_port(&handle);
+    for (id, graceful) in [("dropper", false), ("leaver", true)] {
+        let mut options = options3(id, port, "secret");
+        options.set_last_will(rumqttc::LastWill::new(
+            format!("status/{id}"),
+            "gone",
+            QoS::AtLeastOnce,
+            false,
+        ));
+        let (client, mut events) = rumqttc::AsyncClient::new(options, 16);
+        until3(&mut events, |p| {
+            matches!(p, Incoming::ConnAck(_)).then_some(())
+        })
+        .await;
+        if graceful {
+            client.disconnect().await.unwrap();
+            let _ = tmo!(events.poll());
+            let _ = tmo!(events.poll());
+        }
+        // Dropping the event loop drops the socket without DISCONNECT.
+        drop(events);
+    }
+    let got = within("the dropped client's will", async {
+        loop {
+            if let Some(message) = channel
+                .basic_get("wills", lapin::options::BasicGetOptions { no_ack: true })
+                .await
+                .unwrap()
+            {
+                return message;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    assert_eq!(got.delivery.routing_key.as_str(), "status.dropper");
+    assert_eq!(&got.delivery.data[..], b"gone");
+    // The graceful client's session has ended too (its CONNACK came
+    // before the dropper's close was seen): no second will.
+    within("both sessions ended", async {
+        while handle.overview().object_totals.connections > 1 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    let declared =
+        tmo!(channel.queue_declare("wills", Default::default(), Default::default())).unwrap();
+    assert_eq!(declared.message_count(), 0, "no will after DISCONNECT");
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn subscriptions_beyond_the_session_limit_are_refused_in_the_suback() {
+    let handle = start(Limits::default()).await;
+    let mut raw = Raw::login(mqtt_port(&handle), 0).await;
+    let subscriptions: Vec<_> = (0..4097)
+        .map(|i| leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::new(
+                leveret_mqtt::MqttString::from_utf8(Bytes::from(format!("f/{i}"))).unwrap(),
+            )
+            .unwrap(),
+            options: Default::default(),
+        })
+        .collect();
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions,
+    }))
+    .await;
+    let Some(Packet::SubAck(suback)) = raw.next().await else {
+        panic!("expected SUBACK");
+    };
+    assert_eq!(suback.reasons.len(), 4097);
+    assert!(suback.reasons[..4096]
+        .iter()
+        .all(|r| *r == leveret_mqtt::ReasonCode::GRANTED_QOS_0));
+    assert_eq!(
+        suback.reasons[4096],
+        leveret_mqtt::ReasonCode::UnspecifiedError
+    );
+    handle.shutdown().await;
+}

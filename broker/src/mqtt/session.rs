@@ -44,6 +44,10 @@ const PENDING_MAX: usize = 64;
 const DEFAULT_WINDOW: u16 = 10;
 /// The longest a write to a client that does not read may take.
 const WRITE_STALL: Duration = Duration::from_secs(30);
+/// Topic filters a session may hold: each is a binding, and a SUBSCRIBE
+/// queues an AMQP call per filter, so a client cannot make the broker
+/// hold more than this many of either.
+const MAX_SUBSCRIPTIONS: usize = 4096;
 /// Bytes asked of the socket per read at most.
 const READ_CHUNK: usize = 64 * 1024;
 
@@ -180,6 +184,10 @@ async fn admit(
     let v5 = connect.version.is_v5();
     if connect.properties.authentication_method.is_some() {
         return Err(ReasonCode::BadAuthenticationMethod);
+    }
+    // An empty identifier with a persistent 3.1.1 session (MQTT-3.1.3-8).
+    if !connect.clean_start && !v5 && connect.client_id.is_empty() {
+        return Err(ReasonCode::ClientIdentifierNotValid);
     }
     // Sessions end with their connection in this version: a 3.1.1 client
     // asking for a persistent session is refused (5.0 clients are told
@@ -571,6 +579,12 @@ impl Session {
                     self.v5(),
                     ReasonCode::SharedSubscriptionsNotSupported,
                 ));
+                continue;
+            }
+            if self.subscriptions.len() >= MAX_SUBSCRIPTIONS
+                && !self.subscriptions.contains_key(filter)
+            {
+                reasons.push(failure(self.v5(), ReasonCode::QuotaExceeded));
                 continue;
             }
             let Some(key) = mapping::binding_key(filter) else {
