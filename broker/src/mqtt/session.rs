@@ -317,21 +317,24 @@ impl Session {
         }));
     }
 
-    /// Encodes a packet for the client (dropped if larger than a 5.0
-    /// client's Maximum Packet Size, as the specification asks).
-    fn send(&mut self, packet: Packet) {
+    /// Encodes a packet for the client; false if it was dropped: larger
+    /// than a 5.0 client's Maximum Packet Size (as the specification
+    /// asks), or not encodable.
+    fn send(&mut self, packet: Packet) -> bool {
         if let Some(max) = self.client_max_packet {
             if packet
                 .encoded_len(self.version)
                 .is_ok_and(|len| len > max as usize)
             {
                 tracing::debug!(client_id = %self.client_id, "packet over the client's maximum size dropped");
-                return;
+                return false;
             }
         }
         if let Err(e) = packet.encode(self.version, &mut self.out) {
             tracing::warn!(client_id = %self.client_id, error = %e, "MQTT packet not encodable; dropped");
+            return false;
         }
+        true
     }
 
     /// Queues a synchronous AMQP method whose reply completes `then`.
@@ -631,7 +634,9 @@ impl Session {
     fn complete_after_calls(&mut self, packet: Packet) {
         match self.awaiting.back_mut() {
             Some(last) => last.push(packet),
-            None => self.send(packet),
+            None => {
+                self.send(packet);
+            }
         }
     }
 
@@ -803,31 +808,31 @@ impl Session {
             .and_then(|t| MqttString::from_utf8(t.into()).ok())
             .and_then(|t| TopicName::new(t).ok())
             .filter(|t| !t.is_empty());
-        let Some(topic) = topic else {
-            tracing::debug!(client_id = %self.client_id, key = %deliver.routing_key, "routing key is no MQTT topic; message dropped");
-            if qos1 {
+        let packet_id = qos1.then(|| self.next_packet_id());
+        let sent = topic.is_some_and(|topic| {
+            self.send(Packet::Publish(Publish {
+                dup: qos1 && deliver.redelivered,
+                delivery: packet_id.map_or(Delivery::AtMostOnce, Delivery::AtLeastOnce),
+                retain: false,
+                topic,
+                properties: Default::default(),
+                payload: body,
+            }))
+        });
+        match (packet_id, sent) {
+            (Some(id), true) => {
+                self.in_flight.insert(id, deliver.delivery_tag);
+            }
+            (Some(_), false) => {
+                // Dropped (not a topic name, too large for the client):
+                // settled, so it does not hold the window.
                 self.pending.push_back(link::method(BasicAck {
                     delivery_tag: deliver.delivery_tag,
                     multiple: false,
                 }));
             }
-            return;
-        };
-        let delivery = if qos1 {
-            let id = self.next_packet_id();
-            self.in_flight.insert(id, deliver.delivery_tag);
-            Delivery::AtLeastOnce(id)
-        } else {
-            Delivery::AtMostOnce
-        };
-        self.send(Packet::Publish(Publish {
-            dup: qos1 && deliver.redelivered,
-            delivery,
-            retain: false,
-            topic,
-            properties: Default::default(),
-            payload: body,
-        }));
+            (None, _) => {}
+        }
     }
 
     /// A packet identifier not used by a delivery in flight (the window
