@@ -722,10 +722,11 @@ impl Session {
         let method = match reply {
             DirectReply::Content {
                 method: Method::BasicDeliver(deliver),
+                properties,
                 body,
                 ..
             } => {
-                self.deliver(deliver, body);
+                self.deliver(deliver, &properties, body);
                 return Ok(());
             }
             DirectReply::Content { .. } => return Ok(()),
@@ -801,9 +802,20 @@ impl Session {
     }
 
     /// A delivery from one of the session's queues, as a PUBLISH at the
-    /// queue's QoS.
-    fn deliver(&mut self, deliver: leveret_protocol::BasicDeliver, body: bytes::Bytes) {
-        let qos1 = deliver.consumer_tag == consumer_tag(QoS::AtLeastOnce);
+    /// lower of the queue's QoS and the message's: a transient message
+    /// (an MQTT QoS 0 publish, or an AMQP one with delivery mode 1) goes
+    /// out at QoS 0, as the specification's min(publish, granted) asks, and
+    /// is settled at once.
+    fn deliver(
+        &mut self,
+        deliver: leveret_protocol::BasicDeliver,
+        properties: &bytes::Bytes,
+        body: bytes::Bytes,
+    ) {
+        let from_qos1_queue = deliver.consumer_tag == consumer_tag(QoS::AtLeastOnce);
+        let persistent =
+            leveret_protocol::BasicProperties::decode(properties).is_ok_and(|p| p.is_persistent());
+        let qos1 = from_qos1_queue && persistent;
         let topic = mapping::topic(&deliver.routing_key)
             .and_then(|t| MqttString::from_utf8(t.into()).ok())
             .and_then(|t| TopicName::new(t).ok())
@@ -819,19 +831,17 @@ impl Session {
                 payload: body,
             }))
         });
-        match (packet_id, sent) {
-            (Some(id), true) => {
+        match packet_id {
+            Some(id) if sent => {
                 self.in_flight.insert(id, deliver.delivery_tag);
             }
-            (Some(_), false) => {
-                // Dropped (not a topic name, too large for the client):
-                // settled, so it does not hold the window.
-                self.pending.push_back(link::method(BasicAck {
-                    delivery_tag: deliver.delivery_tag,
-                    multiple: false,
-                }));
-            }
-            (None, _) => {}
+            // Sent at QoS 0, or dropped (not a topic name, too large for
+            // the client): settled now, so it does not hold the window.
+            _ if from_qos1_queue => self.pending.push_back(link::method(BasicAck {
+                delivery_tag: deliver.delivery_tag,
+                multiple: false,
+            })),
+            _ => {}
         }
     }
 
