@@ -24,8 +24,12 @@ use tokio::net::TcpStream;
 const CLOSE_WITHIN: Duration = Duration::from_secs(30);
 
 async fn start(limits: Limits) -> BrokerHandle {
+    start_with(Broker::builder(), limits).await
+}
+
+async fn start_with(builder: leveret_broker::BrokerBuilder, limits: Limits) -> BrokerHandle {
     let any: SocketAddr = "127.0.0.1:0".parse().unwrap();
-    Broker::builder()
+    builder
         .listen(any)
         .mqtt_listen(any)
         .user("robot", "secret")
@@ -768,4 +772,70 @@ async fn qos_1_deliveries_wait_for_puback_within_a_window_of_ten() {
     .await;
     assert_eq!(&next.payload[..], &[10]);
     handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_qos_1_publish_into_a_durable_queue_survives_a_restart_and_qos_0_does_not() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-durable"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(&handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    let durable = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    tmo!(channel.queue_declare("kept", durable, Default::default())).unwrap();
+    tmo!(channel.queue_bind(
+        "kept",
+        "amq.topic",
+        "d.#",
+        Default::default(),
+        Default::default()
+    ))
+    .unwrap();
+    let (client, mut events) =
+        rumqttc::AsyncClient::new(options3("durable", mqtt_port(&handle), "secret"), 16);
+    until3(&mut events, |p| {
+        matches!(p, Incoming::ConnAck(_)).then_some(())
+    })
+    .await;
+    client
+        .publish("d/0", QoS::AtMostOnce, false, "transient")
+        .await
+        .unwrap();
+    client
+        .publish("d/1", QoS::AtLeastOnce, false, "kept")
+        .await
+        .unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::PubAck(_)).then_some(())
+    })
+    .await;
+    drop(events);
+    drop(amqp);
+    handle.shutdown().await;
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(&handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    let kept = tmo!(channel.basic_get("kept", lapin::options::BasicGetOptions { no_ack: true }))
+        .unwrap()
+        .expect("the QoS 1 message survived the restart");
+    assert_eq!(&kept.delivery.data[..], b"kept");
+    let declared = tmo!(channel.queue_declare("kept", durable, Default::default())).unwrap();
+    assert_eq!(
+        declared.message_count(),
+        0,
+        "the QoS 0 message was transient"
+    );
+    drop(amqp);
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
 }
