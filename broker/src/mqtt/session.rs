@@ -50,6 +50,10 @@ const WRITE_STALL: Duration = Duration::from_secs(30);
 const MAX_SUBSCRIPTIONS: usize = 4096;
 /// Bytes asked of the socket per read at most.
 const READ_CHUNK: usize = 64 * 1024;
+/// Payloads smaller than this are copied out of the read buffer before
+/// they are queued, so a small message does not keep a whole read chunk
+/// alive (the AMQP reader's rule, `connection::copy_below`).
+const COPY_BELOW: usize = READ_CHUNK / 4;
 
 /// Serves one MQTT connection until it closes.
 pub(super) async fn serve(
@@ -384,6 +388,11 @@ impl Session {
             if reading && buf.capacity() - buf.len() < 1024 {
                 buf.reserve(READ_CHUNK);
             }
+            if !reading {
+                // The client is not read while the core is behind (a
+                // resource alarm): its silence does not count meanwhile.
+                last_read = Instant::now();
+            }
             let silence = last_read + keepalive;
             let to_broker = link.direct.to_broker.clone();
             tokio::select! {
@@ -443,7 +452,7 @@ impl Session {
                 let _ = link
                     .direct
                     .to_broker
-                    .send(link::publish(key, persistent, will.payload))
+                    .send(link::publish(key, persistent, owned(will.payload)))
                     .await;
             }
         }
@@ -561,8 +570,11 @@ impl Session {
         if let Some(id) = packet_id {
             self.unconfirmed.insert(self.published, (id, exactly_once));
         }
-        self.pending
-            .push_back(link::publish(key, packet_id.is_some(), publish.payload));
+        self.pending.push_back(link::publish(
+            key,
+            packet_id.is_some(),
+            owned(publish.payload),
+        ));
         Ok(())
     }
 
@@ -863,6 +875,16 @@ fn consumer_tag(qos: QoS) -> ShortStr {
     match qos {
         QoS::AtMostOnce => ShortStr::from_static("mqtt-qos0"),
         _ => ShortStr::from_static("mqtt-qos1"),
+    }
+}
+
+/// A payload that keeps no more of the read buffer alive than itself
+/// (see [`COPY_BELOW`]).
+fn owned(payload: bytes::Bytes) -> bytes::Bytes {
+    if payload.len() < COPY_BELOW {
+        bytes::Bytes::copy_from_slice(&payload)
+    } else {
+        payload
     }
 }
 
