@@ -446,6 +446,16 @@ impl Raw {
     }
 
     async fn login_as(port: u16, keep_alive: u16, version: ProtocolVersion, id: &str) -> Raw {
+        Raw::login_with(port, keep_alive, version, id, ("robot", "secret")).await
+    }
+
+    async fn login_with(
+        port: u16,
+        keep_alive: u16,
+        version: ProtocolVersion,
+        id: &str,
+        (user, password): (&str, &str),
+    ) -> Raw {
         let mut raw = Raw::connect(port).await;
         raw.version = version;
         raw.send(Packet::Connect(Box::new(Connect {
@@ -457,9 +467,10 @@ impl Raw {
                 .unwrap(),
             will: None,
             username: Some(
-                leveret_mqtt::MqttString::from_utf8(Bytes::from_static(b"robot")).unwrap(),
+                leveret_mqtt::MqttString::from_utf8(Bytes::copy_from_slice(user.as_bytes()))
+                    .unwrap(),
             ),
-            password: Some(Bytes::from_static(b"secret")),
+            password: Some(Bytes::copy_from_slice(password.as_bytes())),
         })))
         .await;
         assert!(
@@ -838,4 +849,81 @@ async fn a_qos_1_publish_into_a_durable_queue_survives_a_restart_and_qos_0_does_
     drop(amqp);
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[both_runtimes]
+async fn persistent_sessions_are_refused_in_3_1_1_and_shortened_in_5_0() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let mut options = options3("keeper-311", port, "secret");
+    options.set_clean_session(false);
+    let (_client, mut events) = rumqttc::AsyncClient::new(options, 4);
+    let refused = tmo!(events.poll());
+    assert!(
+        matches!(
+            refused,
+            Err(rumqttc::ConnectionError::ConnectionRefused(
+                rumqttc::ConnectReturnCode::ServiceUnavailable
+            ))
+        ),
+        "{refused:?}"
+    );
+    let mut options = options5("keeper-5", port, "secret");
+    options.set_clean_start(false);
+    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+    properties.session_expiry_interval = Some(3600);
+    options.set_connect_properties(properties);
+    let (_client, mut events) = rumqttc::v5::AsyncClient::new(options, 4);
+    let connack = until5(&mut events, |p| match p {
+        Packet5::ConnAck(ack) => Some(ack.clone()),
+        _ => None,
+    })
+    .await;
+    assert!(!connack.session_present);
+    let properties = connack.properties.expect("CONNACK properties");
+    assert_eq!(
+        properties.session_expiry_interval,
+        Some(0),
+        "told: no session after the connection"
+    );
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_publish_the_user_may_not_write_closes_with_not_authorized() {
+    let builder = Broker::builder().user("reader", "pw").permission(
+        "reader",
+        "/",
+        leveret_broker::Permission {
+            configure: ".*".into(),
+            write: String::new(),
+            read: ".*".into(),
+        },
+    );
+    let handle = start_with(builder, Limits::default()).await;
+    let mut raw = Raw::login_with(
+        mqtt_port(&handle),
+        0,
+        ProtocolVersion::V5,
+        "reader",
+        ("reader", "pw"),
+    )
+    .await;
+    raw.send(Packet::Publish(Publish {
+        dup: false,
+        delivery: Delivery::AtLeastOnce(std::num::NonZeroU16::new(1).unwrap()),
+        retain: false,
+        topic: TopicName::from_static("not/mine"),
+        properties: Default::default(),
+        payload: Bytes::from_static(b"x"),
+    }))
+    .await;
+    match raw.next().await {
+        Some(Packet::Disconnect(d)) => {
+            assert_eq!(d.reason, leveret_mqtt::ReasonCode::NotAuthorized)
+        }
+        other => panic!("expected DISCONNECT 0x87, got {other:?}"),
+    }
+    raw.assert_closed().await;
+    handle.shutdown().await;
 }
