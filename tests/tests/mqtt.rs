@@ -508,7 +508,7 @@ impl Raw {
 }
 
 #[both_runtimes]
-async fn garbage_before_connect_closes_the_connection() {
+async fn garbage_before_connect_or_a_second_connect_closes_the_connection() {
     let handle = start(Limits::default()).await;
     let mut raw = Raw::connect(mqtt_port(&handle)).await;
     raw.socket
@@ -519,6 +519,23 @@ async fn garbage_before_connect_closes_the_connection() {
     // A PINGREQ is a valid packet, but not a CONNECT.
     let mut raw = Raw::connect(mqtt_port(&handle)).await;
     raw.send(Packet::PingReq).await;
+    raw.assert_closed().await;
+    // A second CONNECT on a session is a protocol error.
+    let mut raw = Raw::login(mqtt_port(&handle), 0).await;
+    let mut again = BytesMut::new();
+    Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V3_1_1,
+        clean_start: true,
+        keep_alive: 0,
+        properties: Default::default(),
+        client_id: leveret_mqtt::MqttString::from_utf8(Bytes::from_static(b"raw")).unwrap(),
+        will: None,
+        username: None,
+        password: None,
+    }))
+    .encode(ProtocolVersion::V3_1_1, &mut again)
+    .unwrap();
+    raw.socket.write_all(&again).await.unwrap();
     raw.assert_closed().await;
     handle.shutdown().await;
 }
