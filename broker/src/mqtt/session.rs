@@ -26,7 +26,7 @@ use leveret_protocol::{
     BasicAck, BasicConsume, FieldTable, Frame, Method, Outgoing, QueueBind, QueueDeclare,
     QueueUnbind, ReplyCode, ShortStr,
 };
-use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::num::NonZeroU16;
 use std::sync::Arc;
 use std::time::Duration;
@@ -65,8 +65,12 @@ pub(super) async fn serve(
 ) {
     let deadline = Instant::now() + core.limits.handshake_timeout;
     let mut buf = BytesMut::with_capacity(1024);
-    let connect = match tokio::time::timeout_at(deadline, read_connect(&mut socket, &mut buf)).await
-    {
+    let mut shutdown = core.shutdown_signal();
+    let first = tokio::select! {
+        first = tokio::time::timeout_at(deadline, read_connect(&mut socket, &mut buf)) => first,
+        _ = shutdown.wait_for(|down| *down) => return,
+    };
+    let connect = match first {
         Ok(Ok(connect)) => connect,
         Ok(Err(reason)) => {
             tracing::info!(%peer, reason, "MQTT connection closed before CONNECT");
@@ -114,7 +118,7 @@ pub(super) async fn serve(
         awaiting: VecDeque::new(),
         published: 0,
         unconfirmed: BTreeMap::new(),
-        awaiting_release: HashSet::new(),
+        exactly_once: HashMap::new(),
         in_flight: HashMap::new(),
         next_packet_id: 1,
         subscriptions: HashMap::new(),
@@ -265,8 +269,8 @@ struct Session {
     /// Confirm sequence numbers of QoS 1 and 2 publishes awaiting their
     /// confirm: packet identifier, and whether it is QoS 2.
     unconfirmed: BTreeMap<u64, (PacketId, bool)>,
-    /// QoS 2 publishes routed and PUBREC'd, awaiting PUBREL.
-    awaiting_release: HashSet<PacketId>,
+    /// QoS 2 publishes by packet identifier, from their arrival to PUBREL.
+    exactly_once: HashMap<PacketId, Received>,
     /// QoS 1 deliveries awaiting PUBACK: packet identifier → delivery tag.
     in_flight: HashMap<PacketId, u64>,
     next_packet_id: u16,
@@ -274,6 +278,15 @@ struct Session {
     subscriptions: HashMap<String, QoS>,
     /// Whether the QoS 0 and QoS 1 queues are declared and consumed.
     queues: [bool; 2],
+}
+
+/// Where a QoS 2 publish is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Received {
+    /// Sent to the core, awaiting its confirm (then PUBREC).
+    Routing,
+    /// Routed and PUBREC'd, awaiting PUBREL.
+    Stored,
 }
 
 /// How a session ended.
@@ -490,7 +503,10 @@ impl Session {
                 Ok(())
             }
             Packet::PubRel(release) => {
-                let known = self.awaiting_release.remove(&release.packet_id);
+                let known = self.exactly_once.get(&release.packet_id) == Some(&Received::Stored);
+                if known {
+                    self.exactly_once.remove(&release.packet_id);
+                }
                 let mut complete = PubResponse::new(release.packet_id);
                 if !known && self.v5() {
                     complete.reason = ReasonCode::PacketIdentifierNotFound;
@@ -553,18 +569,19 @@ impl Session {
         let (packet_id, exactly_once) = match publish.delivery {
             Delivery::AtMostOnce => (None, false),
             Delivery::AtLeastOnce(id) => (Some(id), false),
-            Delivery::ExactlyOnce(id) => {
-                if self.awaiting_release.contains(&id) {
-                    // A resend of a publish already routed: not again.
+            Delivery::ExactlyOnce(id) => match self.exactly_once.get(&id) {
+                // A resend of a publish already routed: not again.
+                Some(Received::Stored) => {
                     self.send(Packet::PubRec(PubResponse::new(id)));
                     return Ok(());
                 }
-                if self.unconfirmed.values().any(|(p, qos2)| *qos2 && *p == id) {
-                    // Its PUBREC follows its confirm.
-                    return Ok(());
+                // Its PUBREC follows its confirm.
+                Some(Received::Routing) => return Ok(()),
+                None => {
+                    self.exactly_once.insert(id, Received::Routing);
+                    (Some(id), true)
                 }
-                (Some(id), true)
-            }
+            },
         };
         self.published += 1;
         if let Some(id) = packet_id {
@@ -803,7 +820,9 @@ impl Session {
             }
             if exactly_once {
                 if ok {
-                    self.awaiting_release.insert(id);
+                    self.exactly_once.insert(id, Received::Stored);
+                } else {
+                    self.exactly_once.remove(&id);
                 }
                 self.send(Packet::PubRec(response));
             } else {
