@@ -440,6 +440,12 @@ impl Admin {
         self.core.limits.user(user)
     }
 
+    /// Whether `user` may log in from `peer` (RabbitMQ's
+    /// `loopback_users`: some users only from this host).
+    pub fn may_connect_from(&self, user: &str, peer: std::net::SocketAddr) -> bool {
+        self.core.users.may_connect_from(user, &peer.to_string())
+    }
+
     /// The broker's users, sorted by name.
     pub fn users(&self) -> Vec<(String, User)> {
         self.core.users.list()
@@ -450,12 +456,21 @@ impl Admin {
         self.core.users.get(name)
     }
 
-    /// Whether `user` with `password` is one of the broker's users.
-    pub async fn authenticate(&self, user: &str, password: &str) -> bool {
+    /// Whether `user` with `password` is one of the broker's users;
+    /// `source` is where the attempt comes from (an `ip:port`, or text
+    /// naming the way in), for the fair queueing and slowing of checks
+    /// (see `auth`).
+    pub async fn authenticate(&self, user: &str, password: &str, source: &str) -> bool {
         self.core
             .users
-            .check_password(user, password.as_bytes())
+            .check_password(user, password.as_bytes(), source)
             .await
+    }
+
+    /// What the password hashing pool has done: its threads, and the
+    /// most checks it ran at once.
+    pub fn hash_pool_stats(&self) -> crate::HashPoolStats {
+        self.core.users.hash_pool_stats()
     }
 }
 

@@ -116,7 +116,7 @@ fn short(text: &str, what: &str) -> AmqpResult<ShortStr> {
 }
 
 impl Admin {
-    fn vhost(&self, name: &str) -> AmqpResult<Arc<Vhost>> {
+    pub(crate) fn vhost(&self, name: &str) -> AmqpResult<Arc<Vhost>> {
         let missing = || AmqpError::not_found(format_args!("no vhost '{name}'"));
         let name = ShortStr::try_from(name).map_err(|_| missing())?;
         self.core.vhost(&name).ok_or_else(missing)
@@ -262,6 +262,21 @@ impl Admin {
         destination_kind: DestinationKind,
         key: &str,
     ) -> AmqpResult<()> {
+        let binding = self.binding(vhost, source, destination, destination_kind, key)?;
+        self.change_binding(vhost, binding, BindingChange::Unbind)
+            .await
+    }
+
+    /// The binding whose [`crate::inspect::BindingInfo::properties_key`]
+    /// is `key` (not one of the default exchange's); 404 if there is none.
+    pub(crate) fn binding(
+        &self,
+        vhost: &str,
+        source: &str,
+        destination: &str,
+        destination_kind: DestinationKind,
+        key: &str,
+    ) -> AmqpResult<BindingSpec> {
         let found = self.bindings().into_iter().find(|b| {
             b.vhost == vhost
                 && b.source == source
@@ -275,18 +290,13 @@ impl Admin {
                 "no binding '{key}' from '{source}' to '{destination}' in vhost '{vhost}'"
             )));
         };
-        self.change_binding(
-            vhost,
-            BindingSpec {
-                source: found.source,
-                destination: found.destination,
-                destination_kind,
-                routing_key: found.routing_key,
-                arguments: found.arguments,
-            },
-            BindingChange::Unbind,
-        )
-        .await
+        Ok(BindingSpec {
+            source: found.source,
+            destination: found.destination,
+            destination_kind,
+            routing_key: found.routing_key,
+            arguments: found.arguments,
+        })
     }
 
     async fn change_binding(
@@ -324,8 +334,31 @@ impl Admin {
 
     /// basic.publish of one message, as a client in confirm mode would:
     /// returns once any durable queue's copy is on disk, with whether any
-    /// queue took it. Exchange `""` is the default exchange.
+    /// queue took it. Exchange `""` is the default exchange. During a
+    /// memory or disk alarm, when AMQP publishers are blocked, it is
+    /// refused (506 RESOURCE_ERROR) rather than left waiting.
     pub async fn publish(
+        &self,
+        vhost: &str,
+        exchange: &str,
+        routing_key: &str,
+        properties: BasicProperties,
+        body: Bytes,
+    ) -> AmqpResult<bool> {
+        let gauge = &self.core.gauge;
+        if gauge.in_alarm() {
+            return Err(AmqpError::resource_error(format_args!(
+                "publishing is blocked by a resource alarm ({})",
+                gauge.alarm_reason()
+            )));
+        }
+        self.publish_now(vhost, exchange, routing_key, properties, body)
+            .await
+    }
+
+    /// [`Admin::publish`] whatever the alarms (the aliveness test's: as in
+    /// RabbitMQ, it passes during an alarm).
+    async fn publish_now(
         &self,
         vhost: &str,
         exchange: &str,
@@ -468,11 +501,11 @@ impl Admin {
     /// RabbitMQ's aliveness test: declares `aliveness-test` in the vhost,
     /// publishes to it and gets the message back.
     pub async fn aliveness_test(&self, vhost: &str) -> AmqpResult<()> {
-        const QUEUE: &str = "aliveness-test";
+        const QUEUE: &str = crate::as_user::ALIVENESS_QUEUE;
         self.declare_queue(vhost, QUEUE, QueueSettings::default())
             .await?;
         let body = Bytes::from_static(b"test_message");
-        self.publish(vhost, "", QUEUE, BasicProperties::default(), body.clone())
+        self.publish_now(vhost, "", QUEUE, BasicProperties::default(), body.clone())
             .await?;
         let got = self.get(vhost, QUEUE, 1, GetMode::Ack)?;
         if got.first().is_some_and(|m| m.body == body) {

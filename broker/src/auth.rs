@@ -1,30 +1,34 @@
 //! Users and authentication: the users, their password hashes
 //! (`password`) and tags, RabbitMQ's `loopback_users`, and the SASL mechanisms
-//! PLAIN and AMQPLAIN. An argon2id check runs on tokio's blocking pool, at
-//! most [`SLOW_CHECKS`] at once, so neither the broker's threads nor a
-//! flood of logins is held by it; a login that passed is remembered (a
-//! keyed SHA-256 of user, hash and password under a per-process secret), so
-//! reconnecting with the same password costs microseconds. Failed logins
-//! are never remembered. Uses `password` and nothing else of the broker.
+//! PLAIN and AMQPLAIN. An argon2id check runs in the hashing pool
+//! (`hash_pool`: a few threads of its own, keys served in turn), keyed by
+//! source address and user, so neither the broker's threads nor a flood
+//! of logins is held by it and a flood for one user from one source
+//! cannot starve another; a login that passed is remembered (a keyed
+//! SHA-256 of user, hash and password under a per-process secret), so
+//! reconnecting with the same password costs microseconds and waits for
+//! no pool. Failed logins are never remembered, and are answered late
+//! when their source failed before (`login_backoff`). Uses `password`,
+//! `hash_pool` and `login_backoff`, nothing else of the broker.
 
-use crate::password::PasswordHash;
+use crate::hash_pool::{HashPool, HashPoolStats};
+use crate::login_backoff::{source_of, LoginBackoff};
+use crate::password::{HashMemory, PasswordHash};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{FieldTable, FieldValue};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, RwLock};
 
-/// argon2id checks running at once, broker-wide (each holds ~19 MiB and
-/// a core for tens of milliseconds): one, so a flood of wrong passwords
-/// takes one core at most.
-pub const SLOW_CHECKS: usize = 1;
-
-/// Logins that passed an argon2id check, one per user.
+/// Logins that passed an argon2id check, one per user; the pool that
+/// checks the others, and the failures per source.
 struct VerifiedLogins {
     secret: [u8; 32],
-    // Held for one lookup or insert, never across an await.
-    passed: Mutex<HashMap<String, [u8; 32]>>,
-    slow_checks: tokio::sync::Semaphore,
+    // Held for one lookup or insert, never across an await. Shared with
+    // the checks waiting in the pool.
+    passed: Arc<Mutex<HashMap<String, [u8; 32]>>>,
+    pool: HashPool,
+    backoff: LoginBackoff,
 }
 
 impl std::fmt::Debug for VerifiedLogins {
@@ -40,8 +44,9 @@ impl VerifiedLogins {
         OsRng.fill_bytes(&mut secret);
         VerifiedLogins {
             secret,
-            passed: Mutex::new(HashMap::new()),
-            slow_checks: tokio::sync::Semaphore::new(SLOW_CHECKS),
+            passed: Arc::new(Mutex::new(HashMap::new())),
+            pool: HashPool::default(),
+            backoff: LoginBackoff::default(),
         }
     }
 
@@ -59,16 +64,22 @@ impl VerifiedLogins {
     }
 
     fn passed(&self, user: &str, key: &[u8; 32]) -> bool {
-        let passed = self.passed.lock().unwrap_or_else(|e| e.into_inner());
-        passed
-            .get(user)
-            .is_some_and(|known| known.iter().zip(key).fold(0u8, |acc, (a, b)| acc | (a ^ b)) == 0)
+        passed(&self.passed, user, key)
     }
 
     fn remember(&self, user: &str, key: [u8; 32]) {
         let mut passed = self.passed.lock().unwrap_or_else(|e| e.into_inner());
         passed.insert(user.to_owned(), key);
     }
+}
+
+/// Whether `key` is the login remembered for `user` (compared in
+/// constant time).
+fn passed(passed: &Mutex<HashMap<String, [u8; 32]>>, user: &str, key: &[u8; 32]) -> bool {
+    let passed = passed.lock().unwrap_or_else(|e| e.into_inner());
+    passed
+        .get(user)
+        .is_some_and(|known| known.iter().zip(key).fold(0u8, |acc, (a, b)| acc | (a ^ b)) == 0)
 }
 
 /// One user: how their password is checked, and their tags.
@@ -187,21 +198,50 @@ impl Users {
         users
     }
 
-    /// Checks a SASL response for `mechanism`; the user name if it passes.
-    pub async fn authenticate(&self, mechanism: &[u8], response: &Bytes) -> Option<String> {
-        let (user, password) = match mechanism {
-            b"PLAIN" => parse_plain(response)?,
-            b"AMQPLAIN" => parse_amqplain(response)?,
-            _ => return None,
+    /// Checks a SASL response for `mechanism` from `peer` (an `ip:port`,
+    /// or `in-process`); the user name if it passes.
+    pub async fn authenticate(
+        &self,
+        mechanism: &[u8],
+        response: &Bytes,
+        peer: &str,
+    ) -> Option<String> {
+        let credentials = match mechanism {
+            b"PLAIN" => parse_plain(response),
+            b"AMQPLAIN" => parse_amqplain(response),
+            _ => None,
         };
-        let name = std::str::from_utf8(&user).ok()?;
-        self.check_password(name, &password)
+        let named = credentials
+            .and_then(|(user, password)| String::from_utf8(user).ok().map(|name| (name, password)));
+        let Some((name, password)) = named else {
+            self.failed(&source_of(peer)).await;
+            return None;
+        };
+        self.check_password(&name, &password, peer)
             .await
-            .then(|| name.to_owned())
+            .then_some(name)
     }
 
-    /// Whether `password` is `user`'s.
-    pub async fn check_password(&self, user: &str, password: &[u8]) -> bool {
+    /// Whether `password` is `user`'s; `peer` is where the attempt comes
+    /// from (an `ip:port`, or any other text naming the way in). A
+    /// failure is answered late when that source failed before.
+    pub async fn check_password(&self, user: &str, password: &[u8], peer: &str) -> bool {
+        let source = source_of(peer);
+        let passed = self.verify(user, password, &source).await;
+        if !passed {
+            self.failed(&source).await;
+        }
+        passed
+    }
+
+    /// Waits before a failure from `source` is answered, as long as its
+    /// recent failures ask.
+    async fn failed(&self, source: &str) {
+        let delay = self.verified.backoff.failed(source);
+        tokio::time::sleep(delay).await;
+    }
+
+    async fn verify(&self, user: &str, password: &[u8], source: &str) -> bool {
         let Some(User {
             password_hash: hash,
             ..
@@ -216,22 +256,38 @@ impl Users {
         if self.verified.passed(user, &key) {
             return true;
         }
-        let Ok(_slot) = self.verified.slow_checks.acquire().await else {
+        // Many connections of one user arriving together wait in one
+        // queue; the first one's check serves the rest.
+        let remembered = Arc::clone(&self.verified.passed);
+        let name = user.to_owned();
+        let candidate = password.to_vec();
+        let check = move |memory: &mut HashMemory| {
+            passed(&remembered, &name, &key) || hash.verify_in(&candidate, memory)
+        };
+        // Keyed by source and user: NUL cannot be in an address.
+        let queue = format!("{source}\0{user}");
+        let answer = match self.verified.pool.submit(&queue, check) {
+            Ok(answer) => answer,
+            Err(refused) => {
+                tracing::warn!(%source, %user, reason = %refused, "password check refused");
+                return false;
+            }
+        };
+        // Dropping `answer` (the connection went away) withdraws a check
+        // that has not started.
+        let Ok(verified) = answer.await else {
+            tracing::warn!(%source, %user, "password check refused: pushed out by checks of other users or sources");
             return false;
         };
-        // Many connections of one user arriving together wait here; the
-        // first one's check serves the rest.
-        if self.verified.passed(user, &key) {
-            return true;
-        }
-        let candidate = password.to_vec();
-        let verified = tokio::task::spawn_blocking(move || hash.verify(&candidate))
-            .await
-            .unwrap_or(false);
         if verified {
             self.verified.remember(user, key);
         }
         verified
+    }
+
+    /// What the hashing pool has done (threads, checks running at most).
+    pub fn hash_pool_stats(&self) -> HashPoolStats {
+        self.verified.pool.stats()
     }
 }
 
@@ -242,6 +298,17 @@ fn parse_plain(response: &[u8]) -> Option<(Vec<u8>, Vec<u8>)> {
     let user = parts.next()?;
     let password = parts.next()?;
     Some((user.to_vec(), password.to_vec()))
+}
+
+/// The user name a PLAIN or AMQPLAIN response gives, whether or not its
+/// password is right: for the log line of a refused login.
+pub(crate) fn claimed_user(mechanism: &[u8], response: &Bytes) -> Option<Vec<u8>> {
+    let (user, _password) = match mechanism {
+        b"PLAIN" => parse_plain(response)?,
+        b"AMQPLAIN" => parse_amqplain(response)?,
+        _ => return None,
+    };
+    Some(user)
 }
 
 /// AMQPLAIN: a field table without its length prefix, with LOGIN and PASSWORD.
@@ -258,19 +325,21 @@ fn parse_amqplain(response: &Bytes) -> Option<(Vec<u8>, Vec<u8>)> {
 mod tests {
     use super::*;
 
+    const PEER: &str = "127.0.0.1:5000";
+
     #[tokio::test]
     async fn plain_and_amqplain() {
         let users = Users::default();
         users.put("guest", User::new(PasswordHash::new("guest")));
         assert_eq!(
             users
-                .authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0guest"))
+                .authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0guest"), PEER)
                 .await,
             Some("guest".into())
         );
         assert_eq!(
             users
-                .authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0nope"))
+                .authenticate(b"PLAIN", &Bytes::from_static(b"\0guest\0nope"), PEER)
                 .await,
             None
         );
@@ -278,10 +347,10 @@ mod tests {
             b"\x05LOGINS\x00\x00\x00\x05guest\x08PASSWORDS\x00\x00\x00\x05guest",
         );
         assert_eq!(
-            users.authenticate(b"AMQPLAIN", &amqplain).await,
+            users.authenticate(b"AMQPLAIN", &amqplain, PEER).await,
             Some("guest".into())
         );
-        assert_eq!(users.authenticate(b"EXTERNAL", &amqplain).await, None);
+        assert_eq!(users.authenticate(b"EXTERNAL", &amqplain, PEER).await, None);
     }
 
     /// A login that passed argon2id is remembered (keyed by the password:
@@ -296,7 +365,7 @@ mod tests {
                 let users = users.clone();
                 tokio::spawn(async move {
                     users
-                        .check_password("robot", format!("no{i}").as_bytes())
+                        .check_password("robot", format!("no{i}").as_bytes(), PEER)
                         .await
                 })
             })
@@ -308,17 +377,63 @@ mod tests {
             users.verified.passed.lock().unwrap().is_empty(),
             "failures are not remembered"
         );
-        assert_eq!(users.verified.slow_checks.available_permits(), SLOW_CHECKS);
-        assert!(users.check_password("robot", b"pw").await);
+        let stats = users.hash_pool_stats();
+        assert_eq!((stats.running, stats.waiting, stats.finished), (0, 0, 8));
+        assert!(stats.peak_running <= crate::hash_pool::HASH_THREADS);
+        assert!(users.check_password("robot", b"pw", PEER).await);
         let hash = users.get("robot").unwrap().password_hash;
         let key = users.verified.key("robot", &hash, b"pw");
         assert!(users.verified.passed("robot", &key));
         assert!(!users
             .verified
             .passed("robot", &users.verified.key("robot", &hash, b"pw2")));
-        assert!(users.check_password("robot", b"pw").await);
-        assert!(!users.check_password("robot", b"pw2").await);
-        assert!(!users.check_password("nobody", b"pw").await);
+        assert!(users.check_password("robot", b"pw", PEER).await);
+        assert!(!users.check_password("robot", b"pw2", PEER).await);
+        assert!(!users.check_password("nobody", b"pw", PEER).await);
+    }
+
+    /// A flood of wrong passwords for one user from 127.0.0.1 holds
+    /// neither a known login (remembered: no hashing) nor another user's
+    /// first login from the same address (its own queue, served in
+    /// turn).
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_flood_for_one_user_holds_up_no_other_login() {
+        let users = Users::default();
+        users.put("guest", User::new(PasswordHash::new("guest")));
+        users.put("robot", User::new(PasswordHash::new("pw")));
+        assert!(users.check_password("guest", b"guest", PEER).await);
+        let flood: Vec<_> = (0..200)
+            .map(|i| {
+                let users = users.clone();
+                tokio::spawn(async move {
+                    let wrong = format!("no{i}");
+                    users
+                        .check_password("guest", wrong.as_bytes(), "127.0.0.1:6000")
+                        .await
+                })
+            })
+            .collect();
+        let hang = tokio::time::Instant::now() + std::time::Duration::from_secs(20);
+        while users.hash_pool_stats().waiting < 100 {
+            assert!(tokio::time::Instant::now() < hang, "the flood queued");
+            tokio::task::yield_now().await;
+        }
+        let before = users.hash_pool_stats();
+        assert!(
+            users
+                .check_password("guest", b"guest", "127.0.0.1:6001")
+                .await
+        );
+        assert!(users.check_password("robot", b"pw", "127.0.0.1:6002").await);
+        let after = users.hash_pool_stats();
+        assert!(
+            after.finished - before.finished <= 4 * crate::hash_pool::HASH_THREADS,
+            "served in turn, not behind the flood: {before:?} then {after:?}"
+        );
+        assert!(after.peak_running <= crate::hash_pool::HASH_THREADS);
+        for attempt in &flood {
+            attempt.abort();
+        }
     }
 
     #[test]

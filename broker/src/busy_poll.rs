@@ -324,7 +324,7 @@ mod tests {
         received.await.expect("a wake from another thread arrives");
         assert!(!spinner.is_finished());
         stop.send_replace(true);
-        tokio::time::timeout(Duration::from_secs(5), spinner)
+        tokio::time::timeout(Duration::from_secs(30), spinner)
             .await
             .expect("the spinner stops at shutdown")
             .expect("the spinner does not panic");

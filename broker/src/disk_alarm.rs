@@ -149,7 +149,7 @@ mod tests {
                         tokio::time::sleep(Duration::from_millis(5)).await;
                     }
                 };
-                tokio::time::timeout(Duration::from_secs(5), wait)
+                tokio::time::timeout(Duration::from_secs(30), wait)
                     .await
                     .expect("the watcher follows the free space");
             }

@@ -215,7 +215,7 @@ impl BrokerBuilder {
 
     /// Starts even on a damaged store in [`BrokerBuilder::data_dir`]:
     /// copies the damaged files aside, keeps every readable record and
-    /// logs each one dropped (the server's `--recover`). Without it a
+    /// logs what was lost (the server's `--recover`). Without it a
     /// damaged store refuses the start with [`StoreError::Damaged`].
     pub fn recover(mut self, recover: bool) -> Self {
         self.recover = recover;
@@ -550,8 +550,8 @@ impl BrokerHandle {
         let alive = self.alive.clone();
         tokio::spawn(async move {
             let identity = crate::connection::Identity::None;
-            crate::connection::serve(core, read, write, "in-process".to_owned(), slot, identity)
-                .await;
+            let ends = ("in-process".to_owned(), None);
+            crate::connection::serve(core, read, write, ends, slot, identity).await;
             drop(alive);
         });
         client

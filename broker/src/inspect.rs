@@ -43,6 +43,13 @@ pub struct Overview {
     /// The memory high watermark: queued-message bytes above which
     /// publishers are blocked.
     pub memory_high_watermark: usize,
+    /// The bytes counted against it now (queued messages, transactions'
+    /// publishes, bodies being received).
+    pub memory_used: usize,
+    /// The resident-memory watermark in bytes (RabbitMQ's
+    /// `vm_memory_high_watermark`): resident memory above it blocks
+    /// publishers. `None` where resident memory is not watched.
+    pub resident_memory_limit: Option<u64>,
     /// Whether the memory alarm is set now.
     pub memory_alarm: bool,
     /// Free disk bytes below which publishers are blocked.
@@ -389,6 +396,12 @@ pub struct ConsumerInfo {
     pub prefetch_count: u32,
     /// `x-priority`.
     pub priority: i64,
+    /// Whether the queue delivers to it: always, unless the queue has a
+    /// single active consumer and this one waits.
+    pub active: bool,
+    /// RabbitMQ's `activity_status`: `up`, or on a queue with a single
+    /// active consumer `single_active` or `waiting`.
+    pub activity_status: &'static str,
 }
 
 /// A handle on one queue for reading its figures later, one at a time
@@ -444,7 +457,7 @@ impl QueueRef {
         self.queue
             .consumers_snapshot()
             .into_iter()
-            .map(|consumer| ConsumerInfo {
+            .map(|(consumer, active)| ConsumerInfo {
                 vhost: self.vhost.to_string_lossy().into_owned(),
                 queue: self.queue.name.to_string_lossy().into_owned(),
                 tag: consumer.tag.to_string_lossy().into_owned(),
@@ -454,6 +467,12 @@ impl QueueRef {
                 exclusive: consumer.exclusive,
                 prefetch_count: consumer.prefetch,
                 priority: consumer.priority,
+                active,
+                activity_status: match (self.queue.args.single_active_consumer, active) {
+                    (false, _) => "up",
+                    (true, true) => "single_active",
+                    (true, false) => "waiting",
+                },
             })
             .collect()
     }
@@ -569,6 +588,8 @@ impl Admin {
             },
             publishers: c.publishers.get(),
             memory_high_watermark: core.limits.memory_high_watermark,
+            memory_used: core.gauge.used(),
+            resident_memory_limit: core.gauge.resident_limit(),
             memory_alarm: core.gauge.memory_alarm(),
             disk_free_limit: core.limits.disk_free_limit,
             disk_alarm: core.gauge.disk_alarm(),

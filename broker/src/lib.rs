@@ -75,13 +75,16 @@
 //! closing one from outside), and `admin` ([`Admin`], a cloneable handle
 //! for tools that closes connections and, through `inspect`, reads all of
 //! the above into plain structs with RabbitMQ's field meanings, as
-//! `BrokerHandle::overview` does). They read the layers; no layer calls
+//! `BrokerHandle::overview` does; `as_user` does its operations on behalf
+//! of one user, checked against their permissions). They read the layers; no layer calls
 //! them except to bump a counter or keep a registration.
 #![forbid(unsafe_code)]
 #![deny(missing_docs)]
 
 mod access;
 mod admin;
+mod arguments;
+mod as_user;
 mod auth;
 mod busy_poll;
 mod channel;
@@ -98,7 +101,9 @@ mod error;
 pub mod exchange;
 #[cfg(not(feature = "bench-internals"))]
 mod exchange;
+mod hash_pool;
 mod inspect;
+mod login_backoff;
 mod memory;
 mod message;
 mod mqtt;
@@ -123,10 +128,16 @@ mod word_hash;
 
 pub use crate::access::AccessError;
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
+pub use crate::arguments::{
+    classic_queue_arguments, Argument, Scope as ArgumentScope, Support as ArgumentSupport,
+    ARGUMENTS,
+};
+pub use crate::as_user::AsUser;
 pub use crate::auth::User;
 pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
 pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
+pub use crate::hash_pool::{HashPoolStats, HASH_THREADS};
 pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
 pub use crate::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,

@@ -29,6 +29,8 @@ pub struct MemoryGauge {
     resident_alarm: AtomicBool,
     /// Set while free disk space is below its limit.
     disk_alarm: AtomicBool,
+    /// The resident-memory watermark in bytes, once it is watched.
+    resident_limit: std::sync::OnceLock<u64>,
     cleared: Notify,
     /// Counts the times a source turned on; idle publishers watch it, so
     /// they are blocked (and told) at once rather than at their next read.
@@ -52,6 +54,7 @@ impl MemoryGauge {
             counted_alarm: AtomicBool::new(false),
             resident_alarm: AtomicBool::new(false),
             disk_alarm: AtomicBool::new(false),
+            resident_limit: std::sync::OnceLock::new(),
             cleared: Notify::new(),
             raised: watch::Sender::new(0),
         }
@@ -68,6 +71,11 @@ impl MemoryGauge {
             );
             self.raised.send_modify(|count| *count += 1);
         }
+    }
+
+    /// The bytes counted now.
+    pub fn used(&self) -> usize {
+        self.used.load(Ordering::Relaxed)
     }
 
     /// Records `bytes` released.
@@ -89,6 +97,17 @@ impl MemoryGauge {
             gauge: Arc::clone(self),
             bytes,
         }
+    }
+
+    /// Records the resident-memory watermark the watcher holds to.
+    pub(crate) fn set_resident_limit(&self, bytes: u64) {
+        let _ = self.resident_limit.set(bytes);
+    }
+
+    /// The resident-memory watermark in bytes; `None` where resident
+    /// memory is not watched.
+    pub fn resident_limit(&self) -> Option<u64> {
+        self.resident_limit.get().copied()
     }
 
     /// Sets or clears the resident-memory source of the alarm.
@@ -272,7 +291,7 @@ mod tests {
             "resident memory still sets the alarm"
         );
         gauge.set_resident_alarm(false, 0);
-        tokio::time::timeout(std::time::Duration::from_secs(5), waiter)
+        tokio::time::timeout(std::time::Duration::from_secs(30), waiter)
             .await
             .expect("woken")
             .expect("no panic");

@@ -1,13 +1,17 @@
 //! What a connection's writer task sends, and the per-connection handle the
 //! core uses to reach it: a bounded channel of [`Outbound`] items, plus the
 //! queues waiting for room in it (so a slow socket holds messages in their
-//! queues instead of growing a buffer).
+//! queues instead of growing a buffer), and when the client was last
+//! heard (so a writer blocked on a client that neither reads nor writes
+//! gives up after two missed heartbeats, whatever the reader is waiting
+//! for).
 
 use crate::message::Message;
 use crate::queue::Queue;
 use leveret_protocol::{BasicDeliver, BasicGetOk, BasicReturn, Method, ShortStr};
-use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
+use std::time::Duration;
 use tokio::sync::mpsc;
 
 /// One item for the writer to encode.
@@ -157,6 +161,9 @@ pub struct Outbox {
     blocked: Mutex<Vec<Weak<Queue>>>,
     frame_max: AtomicU32,
     cancel_notify: AtomicBool,
+    /// When the client was last heard: milliseconds after `created`.
+    heard: AtomicU64,
+    created: tokio::time::Instant,
     /// The connection's id, for exclusive-queue ownership.
     pub connection_id: u64,
 }
@@ -170,6 +177,8 @@ impl Outbox {
             blocked: Mutex::new(Vec::new()),
             frame_max: AtomicU32::new(leveret_protocol::FRAME_MIN_SIZE),
             cancel_notify: AtomicBool::new(false),
+            heard: AtomicU64::new(0),
+            created: tokio::time::Instant::now(),
             connection_id,
         };
         (Arc::new(outbox), rx)
@@ -247,6 +256,18 @@ impl Outbox {
     /// Sets the negotiated frame_max.
     pub fn set_frame_max(&self, frame_max: u32) {
         self.frame_max.store(frame_max, Ordering::Relaxed);
+    }
+
+    /// Records that the client was heard (read from) at `at`.
+    pub fn heard(&self, at: tokio::time::Instant) {
+        let after = at.saturating_duration_since(self.created).as_millis();
+        self.heard.store(after as u64, Ordering::Relaxed);
+    }
+
+    /// How long ago the client was last heard.
+    pub fn unheard_for(&self) -> Duration {
+        let heard = self.created + Duration::from_millis(self.heard.load(Ordering::Relaxed));
+        heard.elapsed()
     }
 
     /// Whether the client announced consumer_cancel_notify.

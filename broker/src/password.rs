@@ -5,14 +5,17 @@
 //! a 4-byte salt and the digest of salt + password) are accepted as
 //! RabbitMQ exports them, so users moved from RabbitMQ log in unchanged;
 //! Leveret's earlier form (72 hex digits: salt and SHA-256) is still read.
+//! An empty `password_hash` is, as in RabbitMQ, a user who cannot log in
+//! with a password at all.
 //!
 //! argon2id costs tens of milliseconds and megabytes per check by design:
-//! `auth` runs it off the broker's threads and remembers successful
-//! logins. Uses nothing else of the broker.
+//! `auth` runs it off the broker's threads (in `hash_pool`, whose threads
+//! keep the check's memory in a [`HashMemory`] between checks) and
+//! remembers successful logins. Uses nothing else of the broker.
 
 use argon2::password_hash::rand_core::OsRng;
 use argon2::password_hash::{PasswordHasher, PasswordVerifier, SaltString};
-use argon2::Argon2;
+use argon2::{Argon2, Block};
 use base64::Engine;
 use sha2::{Digest, Sha256, Sha512};
 
@@ -33,6 +36,29 @@ const MAX_PASSES: u32 = 8;
 /// The most lanes it may ask for (the default is 1).
 const MAX_LANES: u32 = 4;
 
+/// The memory an argon2id check works in (19 MiB with the default
+/// parameters), kept by a hashing thread from one check to the next while
+/// checks keep coming. Allocated afresh per check, the C allocator keeps
+/// many such blocks resident after a flood of checks (measured: 55 to 188
+/// MiB after 1,600 wrong logins); kept, a thread holds one at a time.
+#[derive(Default)]
+pub struct HashMemory(Vec<Block>);
+
+impl HashMemory {
+    /// Gives the memory back (the thread has nothing more to check).
+    pub fn release(&mut self) {
+        self.0 = Vec::new();
+    }
+
+    /// `blocks` blocks of it, grown if needed.
+    fn blocks(&mut self, blocks: usize) -> &mut [Block] {
+        if self.0.len() < blocks {
+            self.0.resize(blocks, Block::default());
+        }
+        &mut self.0[..blocks]
+    }
+}
+
 /// A stored password.
 #[derive(Clone, PartialEq, Eq)]
 pub struct PasswordHash(Scheme);
@@ -48,6 +74,9 @@ enum Scheme {
         salt: [u8; 4],
         digest: Vec<u8>,
     },
+    /// No password: RabbitMQ's empty `password_hash` (a user who
+    /// authenticates some other way, or not at all). No password matches.
+    None,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq)]
@@ -93,6 +122,7 @@ impl std::fmt::Debug for PasswordHash {
         let scheme = match &self.0 {
             Scheme::Argon2id(_) => "argon2id",
             Scheme::Salted { algorithm, .. } => algorithm.name(),
+            Scheme::None => "none",
         };
         write!(f, "PasswordHash({scheme})")
     }
@@ -135,7 +165,14 @@ impl PasswordHash {
 
     /// Reads RabbitMQ's exported form: `password_hash` (base64) and its
     /// `hashing_algorithm`; argon2id hashes Leveret exported come back too.
+    /// An empty `password_hash` is no password (RabbitMQ reads it so with
+    /// any of its algorithms).
     pub fn from_rabbitmq(password_hash: &str, hashing_algorithm: &str) -> Option<Self> {
+        if password_hash.trim().is_empty()
+            && [RABBIT_SHA256, RABBIT_SHA512, LEVERET_ARGON2ID].contains(&hashing_algorithm)
+        {
+            return Some(PasswordHash(Scheme::None));
+        }
         let algorithm = match hashing_algorithm {
             RABBIT_SHA256 => Salted::Sha256,
             RABBIT_SHA512 => Salted::Sha512,
@@ -177,6 +214,7 @@ impl PasswordHash {
                     algorithm.name(),
                 )
             }
+            Scheme::None => (String::new(), RABBIT_SHA256),
         }
     }
 
@@ -186,13 +224,22 @@ impl PasswordHash {
     pub fn to_phc(&self) -> Option<&str> {
         match &self.0 {
             Scheme::Argon2id(phc) => Some(phc),
-            Scheme::Salted { .. } => None,
+            Scheme::Salted { .. } | Scheme::None => None,
         }
     }
 
     /// Whether checking a password costs argon2id's time and memory.
     pub fn is_slow(&self) -> bool {
         matches!(self.0, Scheme::Argon2id(_))
+    }
+
+    /// Whether `password` matches (in constant time), an argon2id check
+    /// working in `memory`.
+    pub fn verify_in(&self, password: &[u8], memory: &mut HashMemory) -> bool {
+        match &self.0 {
+            Scheme::Argon2id(phc) => verify_argon2id(phc, password, memory).unwrap_or(false),
+            Scheme::Salted { .. } | Scheme::None => self.verify(password),
+        }
     }
 
     /// Whether `password` matches (in constant time).
@@ -213,8 +260,34 @@ impl PasswordHash {
                         .fold(0u8, |acc, (a, b)| acc | (a ^ b))
                         == 0
             }
+            Scheme::None => false,
         }
     }
+}
+
+/// argon2id's check of `password` against the PHC string `phc`, in
+/// `memory`; `None` if the string cannot be used.
+fn verify_argon2id(phc: &str, password: &[u8], memory: &mut HashMemory) -> Option<bool> {
+    let parsed = argon2::password_hash::PasswordHash::new(phc).ok()?;
+    let expected = parsed.hash?;
+    let params = argon2::Params::try_from(&parsed).ok()?;
+    let version = match parsed.version {
+        Some(version) => argon2::Version::try_from(version).ok()?,
+        None => argon2::Version::default(),
+    };
+    let mut salt = [0u8; 64];
+    let salt = parsed.salt?.decode_b64(&mut salt).ok()?;
+    let blocks = params.block_count();
+    let hasher = Argon2::new(argon2::Algorithm::Argon2id, version, params);
+    let mut computed = vec![0u8; expected.len()];
+    hasher
+        .hash_password_into_with_memory(password, salt, &mut computed, memory.blocks(blocks))
+        .ok()?;
+    let differences = computed
+        .iter()
+        .zip(expected.as_bytes())
+        .fold(0u8, |acc, (a, b)| acc | (a ^ b));
+    Some(differences == 0)
 }
 
 #[cfg(test)]
@@ -232,6 +305,14 @@ mod tests {
         assert!(!a.verify(b"Secret"));
         let back = PasswordHash::parse(phc).expect("parses");
         assert!(back.verify(b"secret"));
+        // The same answers in memory kept from one check to the next.
+        let mut memory = HashMemory::default();
+        for _ in 0..2 {
+            assert!(a.verify_in(b"secret", &mut memory));
+            assert!(!a.verify_in(b"Secret", &mut memory));
+        }
+        memory.release();
+        assert!(b.verify_in(b"secret", &mut memory));
         let (exported, algorithm) = a.to_rabbitmq();
         assert_eq!(algorithm, LEVERET_ARGON2ID);
         assert!(PasswordHash::from_rabbitmq(&exported, algorithm)
@@ -265,6 +346,20 @@ mod tests {
             .verify(b"guest"));
         assert!(PasswordHash::from_rabbitmq("c2hvcnQ=", RABBIT_SHA256).is_none());
         assert!(PasswordHash::from_rabbitmq("x", "rabbit_password_hashing_md5").is_none());
+    }
+
+    /// RabbitMQ's empty `password_hash`: a user no password logs in as,
+    /// exported back empty.
+    #[test]
+    fn an_empty_hash_is_no_password() {
+        for algorithm in [RABBIT_SHA256, RABBIT_SHA512, LEVERET_ARGON2ID] {
+            let none = PasswordHash::from_rabbitmq("", algorithm).expect("no password");
+            assert!(!none.verify(b"") && !none.verify(b"guest"));
+            assert_eq!(none.to_rabbitmq(), (String::new(), RABBIT_SHA256));
+            assert_eq!(none.to_phc(), None);
+            assert!(!none.is_slow());
+        }
+        assert!(PasswordHash::from_rabbitmq("", "rabbit_password_hashing_md5").is_none());
     }
 
     #[test]

@@ -225,6 +225,46 @@ impl VhostAccess {
     pub fn has_topic_permissions(&self) -> bool {
         !self.topics.is_empty()
     }
+
+    /// RabbitMQ's checks for declaring (not passively) the queue `queue`:
+    /// configure on it, and when it is being created with a dead-letter
+    /// exchange, read on the queue and write on that exchange.
+    pub fn check_queue_declare(
+        &self,
+        queue: &str,
+        created_with_dead_letter_exchange: Option<&str>,
+    ) -> AmqpResult<()> {
+        self.check(Right::Configure, Resource::Queue(queue))?;
+        if let Some(exchange) = created_with_dead_letter_exchange {
+            self.check(Right::Read, Resource::Queue(queue))?;
+            self.check(Right::Write, Resource::Exchange(exchange))?;
+        }
+        Ok(())
+    }
+
+    /// RabbitMQ's checks for declaring (not passively) the exchange
+    /// `exchange`: configure on it, and when it is being created with an
+    /// alternate exchange, read on it and write on the alternate.
+    pub fn check_exchange_declare(
+        &self,
+        exchange: &str,
+        created_with_alternate: Option<&str>,
+    ) -> AmqpResult<()> {
+        self.check(Right::Configure, Resource::Exchange(exchange))?;
+        if let Some(alternate) = created_with_alternate {
+            self.check(Right::Read, Resource::Exchange(exchange))?;
+            self.check(Right::Write, Resource::Exchange(alternate))?;
+        }
+        Ok(())
+    }
+
+    /// RabbitMQ's checks for adding or removing a binding from the
+    /// exchange `source` (the routing key is the topic check's, apart):
+    /// write on the destination, read on the source.
+    pub fn check_binding(&self, destination: Resource<'_>, source: &str) -> AmqpResult<()> {
+        self.check(Right::Write, destination)?;
+        self.check(Right::Read, Resource::Exchange(source))
+    }
 }
 
 /// What is set for one (user, vhost).
@@ -539,6 +579,37 @@ mod tests {
             !access.has_topic_permissions(),
             "the refused topic permission was not recorded half-way"
         );
+    }
+
+    #[test]
+    fn declaring_and_binding_need_rabbitmqs_rights() {
+        let all = Permissions::default();
+        all.set("u", "/", permission("^mine", "^mine", "^mine"))
+            .unwrap();
+        let access = all.of("u", "/").unwrap();
+        assert!(access.check_queue_declare("mine.q", None).is_ok());
+        assert!(access
+            .check_queue_declare("mine.q", Some("mine.dlx"))
+            .is_ok());
+        // Creating with a dead-letter exchange needs write on it.
+        assert!(access
+            .check_queue_declare("mine.q", Some("amq.fanout"))
+            .is_err());
+        assert!(access.check_queue_declare("other", None).is_err());
+        assert!(access.check_exchange_declare("mine.x", None).is_ok());
+        assert!(access
+            .check_exchange_declare("mine.x", Some("amq.direct"))
+            .is_err());
+        // Write on the destination, read on the source.
+        assert!(access
+            .check_binding(Resource::Queue("mine.q"), "mine.x")
+            .is_ok());
+        assert!(access
+            .check_binding(Resource::Queue("mine.q"), "amq.direct")
+            .is_err());
+        assert!(access
+            .check_binding(Resource::Exchange("amq.direct"), "mine.x")
+            .is_err());
     }
 
     #[test]

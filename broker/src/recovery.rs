@@ -56,7 +56,11 @@ pub fn recover(core: &Core, mut recovered: Recovered) -> RecoveryReport {
     // Shared records: how many entries of existing queues refer to each.
     let known: HashSet<u64> = recovered.queues.iter().map(|q| q.id).collect();
     let mut refs: HashMap<u64, usize> = HashMap::new();
+    let mut orphans = 0;
     for (queue, entries) in &mut recovered.entries {
+        if !known.contains(queue) {
+            orphans += entries.len();
+        }
         entries.retain(|entry| {
             let keep = known.contains(queue)
                 && match &entry.body {
@@ -123,6 +127,16 @@ pub fn recover(core: &Core, mut recovered: Recovered) -> RecoveryReport {
         } else {
             cleanup.push(StoreOp::DeleteBinding(record.clone()));
         }
+    }
+    if orphans > 0 {
+        // After a clean stop this is damage, refused before (see
+        // `store::integrity`); after a crash, a queue deleted just before
+        // it whose messages' removal had not reached the disk.
+        tracing::warn!(
+            messages = orphans,
+            "dropping stored messages of queues the database does not hold (a queue deleted \
+             just before a crash)"
+        );
     }
     if let (Some(persistence), false) = (&core.persistence, cleanup.is_empty()) {
         tracing::info!(

@@ -108,22 +108,42 @@ fn parse_meminfo_total(meminfo: &str) -> Option<u64> {
     Some(kib * 1024)
 }
 
-/// Feeds resident memory to `gauge` until the broker shuts down.
-pub(crate) async fn watch(
+/// Feeds resident memory to `gauge` until the broker shuts down. The
+/// watermark is resolved to bytes and recorded in the gauge (where the
+/// broker's figures read it) when this is called, before the returned
+/// watcher first runs.
+pub(crate) fn watch(
     gauge: Arc<MemoryGauge>,
     watermark: ResidentMemoryWatermark,
+    shutdown: watch::Receiver<bool>,
+) -> impl std::future::Future<Output = ()> {
+    let watched = match (watermark.bytes(), ResidentMemory::open()) {
+        (Some(limit), Some(reader)) => {
+            gauge.set_resident_limit(limit);
+            Some((limit, reader))
+        }
+        _ if watermark == ResidentMemoryWatermark::Unwatched => None,
+        _ => {
+            tracing::info!(
+                ?watermark,
+                "resident memory is not watched here (no /proc); the memory alarm counts queued bytes only"
+            );
+            None
+        }
+    };
+    async move {
+        if let Some((limit, reader)) = watched {
+            poll(&gauge, limit, reader, shutdown).await;
+        }
+    }
+}
+
+async fn poll(
+    gauge: &MemoryGauge,
+    limit: u64,
+    reader: ResidentMemory,
     mut shutdown: watch::Receiver<bool>,
 ) {
-    if watermark == ResidentMemoryWatermark::Unwatched {
-        return;
-    }
-    let (Some(limit), Some(reader)) = (watermark.bytes(), ResidentMemory::open()) else {
-        tracing::info!(
-            ?watermark,
-            "resident memory is not watched here (no /proc); the memory alarm counts queued bytes only"
-        );
-        return;
-    };
     tracing::debug!(limit, "watching resident memory");
     let mut ticker = tokio::time::interval(POLL_PERIOD);
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -138,7 +158,7 @@ pub(crate) async fn watch(
             );
             return;
         };
-        apply(&gauge, resident, limit);
+        apply(gauge, resident, limit);
     }
 }
 
@@ -216,12 +236,13 @@ mod tests {
             ResidentMemoryWatermark::Absolute(1),
             shutdown,
         ));
+        assert_eq!(gauge.resident_limit(), Some(1), "recorded before it runs");
         let set = async {
             while !gauge.in_alarm() {
                 tokio::time::sleep(Duration::from_millis(10)).await;
             }
         };
-        tokio::time::timeout(Duration::from_secs(5), set)
+        tokio::time::timeout(Duration::from_secs(30), set)
             .await
             .expect("the alarm is set at the first reading");
         stop.send_replace(true);

@@ -36,6 +36,7 @@ pub async fn accept_loop(
             }
         };
         let peer = peer.to_string();
+        let local = socket.local_addr().ok();
         let slot = match core.connections.admit_network(&peer) {
             Ok(slot) => slot,
             // Over max_connections: closed before anything is read.
@@ -50,7 +51,8 @@ pub async fn accept_loop(
             None => {
                 let (read, write) = socket.into_split();
                 tokio::spawn(async move {
-                    crate::connection::serve(core, read, write, peer, slot, Identity::None).await;
+                    let ends = (peer, local);
+                    crate::connection::serve(core, read, write, ends, slot, Identity::None).await;
                     drop(alive);
                 });
             }
@@ -83,7 +85,8 @@ pub async fn accept_loop(
                             Identity::Tls(crate::tls::common_name(cert))
                         });
                     let (read, write) = tokio::io::split(stream);
-                    crate::connection::serve(core, read, write, peer, slot, identity).await;
+                    let ends = (peer, local);
+                    crate::connection::serve(core, read, write, ends, slot, identity).await;
                     drop(alive);
                 });
             }

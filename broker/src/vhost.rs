@@ -12,6 +12,7 @@
 //! or an exchange removes its bindings in steps of [`UNBIND_STEP`] with a
 //! yield between steps.
 
+use crate::arguments;
 use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{
@@ -209,30 +210,55 @@ impl Vhost {
                 decl.name
             )));
         }
+        let resource = format!("exchange '{}' in vhost '{}'", decl.name, self.name);
         if let Some(alternate) = decl.options.arguments.get("alternate-exchange") {
             if !matches!(alternate, leveret_protocol::FieldValue::LongStr(_)) {
                 return Err(AmqpError::precondition_failed(format_args!(
-                    "invalid arg 'alternate-exchange' for exchange '{}' in vhost '{}'",
-                    decl.name, self.name
+                    "invalid type '{}' for arg 'alternate-exchange' in {resource}",
+                    arguments::type_name(alternate)
                 )));
+            }
+        }
+        if kind == ExchangeKind::ConsistentHash {
+            let refused = decl.options.arguments.iter().find_map(|(key, _)| {
+                arguments::known(arguments::Scope::Exchange, key.as_bytes())
+                    .and_then(|argument| arguments::refusal(argument, &resource))
+            });
+            if let Some(refused) = refused {
+                return Err(refused);
             }
         }
         let mut exchanges = write(&self.exchanges);
         if let Some(existing) = exchanges.get(&decl.name) {
-            if existing.kind != kind
-                || existing.options.durable != decl.options.durable
-                || existing.options.auto_delete != decl.options.auto_delete
-                || existing.options.internal != decl.options.internal
-                || existing.options.arguments != decl.options.arguments
-            {
-                return Err(AmqpError::precondition_failed(format_args!(
-                    "inequivalent arg '{}' for exchange '{}' in vhost '{}': received '{}' but current is '{}'",
-                    if existing.kind != kind { "type" } else if existing.options.durable != decl.options.durable { "durable" } else if existing.options.auto_delete != decl.options.auto_delete { "auto_delete" } else if existing.options.internal != decl.options.internal { "internal" } else { "arguments" },
-                    decl.name,
-                    self.name,
-                    kind.name(),
-                    existing.kind.name()
-                )));
+            let field =
+                |key: &str, received: &dyn std::fmt::Display, current: &dyn std::fmt::Display| {
+                    arguments::inequivalent(
+                        key,
+                        &resource,
+                        &format!("'{received}'"),
+                        &format!("'{current}'"),
+                    )
+                };
+            let (o, d) = (&existing.options, &decl.options);
+            if existing.kind != kind {
+                return Err(field("type", &kind.name(), &existing.kind.name()));
+            }
+            for (key, current, received) in [
+                ("durable", o.durable, d.durable),
+                ("auto_delete", o.auto_delete, d.auto_delete),
+                ("internal", o.internal, d.internal),
+            ] {
+                if current != received {
+                    return Err(field(key, &received, &current));
+                }
+            }
+            if let Some(error) = arguments::first_inequivalent(
+                arguments::Scope::Exchange,
+                &o.arguments,
+                &d.arguments,
+                &resource,
+            ) {
+                return Err(error);
             }
             return Ok(Arc::clone(existing));
         }
@@ -296,22 +322,33 @@ impl Vhost {
         if let Some(existing) = self.queue(&decl.name) {
             check_exclusive(&existing, connection_id, &self.name)?;
             if !decl.passive {
-                let o = &existing.options;
-                let d = &decl.options;
-                let mismatch = if o.durable != d.durable {
-                    Some("durable")
-                } else if o.exclusive_owner.is_some() != d.exclusive_owner.is_some() {
-                    Some("exclusive")
-                } else if o.auto_delete != d.auto_delete {
-                    Some("auto_delete")
-                } else {
-                    first_argument_mismatch(&o.arguments, &d.arguments)
-                };
-                if let Some(what) = mismatch {
-                    return Err(AmqpError::precondition_failed(format_args!(
-                        "inequivalent arg '{}' for queue '{}' in vhost '{}'",
-                        what, decl.name, self.name
-                    )));
+                let resource = format!("queue '{}' in vhost '{}'", decl.name, self.name);
+                let (o, d) = (&existing.options, &decl.options);
+                for (key, current, received) in [
+                    ("durable", o.durable, d.durable),
+                    (
+                        "exclusive",
+                        o.exclusive_owner.is_some(),
+                        d.exclusive_owner.is_some(),
+                    ),
+                    ("auto_delete", o.auto_delete, d.auto_delete),
+                ] {
+                    if current != received {
+                        return Err(arguments::inequivalent(
+                            key,
+                            &resource,
+                            &format!("'{received}'"),
+                            &format!("'{current}'"),
+                        ));
+                    }
+                }
+                if let Some(error) = arguments::first_inequivalent(
+                    arguments::Scope::Queue,
+                    &o.arguments,
+                    &d.arguments,
+                    &resource,
+                ) {
+                    return Err(error);
                 }
             }
             existing.touch();
@@ -691,11 +728,17 @@ impl Vhost {
 
     /// Re-creates a stored queue at start (its messages are restored by the caller).
     pub fn restore_queue(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
+        // Stored before these arguments were refused (a quorum queue taken
+        // as a classic one): it stays the classic queue it was.
+        let (arguments, dropped) = arguments::classic_queue_arguments(&record.arguments);
+        if !dropped.is_empty() {
+            tracing::warn!(queue = %record.name, vhost = %self.name, ?dropped, "stored queue has arguments a classic queue refuses; restored without them");
+        }
         let options = QueueOptions {
             durable: true,
             exclusive_owner: None,
             auto_delete: record.auto_delete,
-            arguments: record.arguments.clone(),
+            arguments,
         };
         let args = match QueueArgs::parse(&options.arguments, &record.name, &self.name) {
             Ok(args) => args,
@@ -900,22 +943,5 @@ pub fn check_exclusive(queue: &Queue, connection_id: u64, vhost: &ShortStr) -> A
 }
 
 /// RabbitMQ compares the arguments it validates; the first that differs.
-fn first_argument_mismatch(current: &FieldTable, requested: &FieldTable) -> Option<&'static str> {
-    const CHECKED: [&str; 9] = [
-        "x-message-ttl",
-        "x-expires",
-        "x-max-length",
-        "x-max-length-bytes",
-        "x-overflow",
-        "x-dead-letter-exchange",
-        "x-dead-letter-routing-key",
-        "x-max-priority",
-        "x-queue-type",
-    ];
-    CHECKED
-        .into_iter()
-        .find(|key| current.get(key) != requested.get(key))
-}
-
 #[cfg(test)]
 mod tests;

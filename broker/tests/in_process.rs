@@ -25,7 +25,7 @@ async fn a_broker_without_listeners_greets_an_in_process_client() {
     let mut pipe = handle.connect_in_process();
     pipe.write_all(PROTOCOL_HEADER).await.expect("header");
     let mut buf = BytesMut::new();
-    let frame = tokio::time::timeout(std::time::Duration::from_secs(5), async {
+    let frame = tokio::time::timeout(std::time::Duration::from_secs(30), async {
         loop {
             if let Some(frame) = decode_frame(&mut buf, 0).expect("valid frame") {
                 return frame;
@@ -83,7 +83,7 @@ impl DirectClient {
     }
 
     async fn next(&mut self) -> Option<DirectReply> {
-        tokio::time::timeout(Duration::from_secs(5), self.link.from_broker.recv())
+        tokio::time::timeout(Duration::from_secs(30), self.link.from_broker.recv())
             .await
             .expect("a reply in time")
     }
@@ -140,7 +140,7 @@ impl DirectClient {
 }
 
 async fn wait_for_connections(handle: &leveret_broker::BrokerHandle, count: u64) {
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
     while handle.overview().object_totals.connections != count {
         assert!(
             tokio::time::Instant::now() < deadline,

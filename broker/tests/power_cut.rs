@@ -25,6 +25,7 @@ use leveret_broker::store::{KvOp, KvPair, Store, StoreError, WriteMode};
 use leveret_broker::{Broker, BrokerHandle};
 use leveret_test_macros::both_runtimes;
 use std::collections::{BTreeMap, BTreeSet};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -204,11 +205,14 @@ async fn connect(handle: &BrokerHandle) -> Connection {
 
 /// The workload: random operations until one fails (the power is off) or
 /// the broker goes. Every -ok received is recorded as a promise.
+/// The workload: random steps until the first refused operation; counts
+/// the steps it begins in `begun`.
 async fn work(
     conn: Connection,
     round: u64,
     seed: u64,
     promises: Arc<Mutex<Promises>>,
+    begun: Arc<AtomicU64>,
 ) -> Result<(), lapin::Error> {
     let mut random = Random(seed);
     let confirming = conn.create_channel().await?;
@@ -219,6 +223,7 @@ async fn work(
     tx.tx_select().await?;
     let admin = conn.create_channel().await?;
     for step in 0u64.. {
+        begun.fetch_add(1, Ordering::Relaxed);
         match random.below(10) {
             0..=4 => {
                 let body = format!("m-{round}-{step}");
@@ -428,8 +433,26 @@ async fn every_promise_survives_a_power_cut_at_a_random_moment() {
         }
         *promises.lock().expect("promises") = expected;
         let conn = connect(&handle).await;
-        let worker = tokio::spawn(work(conn, round, random.next(), Arc::clone(&promises)));
-        tokio::time::sleep(Duration::from_millis(5 + random.below(60) as u64)).await;
+        let begun = Arc::new(AtomicU64::new(0));
+        let worker = tokio::spawn(work(
+            conn,
+            round,
+            random.next(),
+            Arc::clone(&promises),
+            Arc::clone(&begun),
+        ));
+        // The power goes once the workload has begun a random number of
+        // steps (counted, so that a loaded machine, which slows the
+        // workload, does not shrink it), at a random moment in that step.
+        let steps = 1 + random.below(32) as u64;
+        tokio::time::timeout(Duration::from_secs(30), async {
+            while begun.load(Ordering::Relaxed) < steps && !worker.is_finished() {
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+        })
+        .await
+        .expect("the workload makes progress");
+        tokio::time::sleep(Duration::from_micros(random.below(5_000) as u64)).await;
         survived = store.cut(&mut random);
         // The worker stops at its first refused operation.
         let _ = tokio::time::timeout(Duration::from_secs(10), worker)

@@ -21,7 +21,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let profile = PortProfile::new(&url)?
         .exchange("poses", ExchangeKind::Fanout)
         .buffer(1000, FullPolicy::BlockBroker);
-    let mut port = InPort::<TimedPose2D>::connect(profile).await?;
+    let port = InPort::<TimedPose2D>::connect(profile).await?;
     println!("receiving TimedPose2D from {url} (queue {})", port.queue());
 
     let mut report = tokio::time::interval(Duration::from_secs(1));

@@ -29,7 +29,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         .durable(true)
         .buffer(16, FullPolicy::BlockBroker)
         .put_timeout(Duration::from_secs(1));
-    let mut robot = InPort::<TimedVelocity2D>::connect(profile.clone()).await?;
+    let robot = InPort::<TimedVelocity2D>::connect(profile.clone()).await?;
     let controller = OutPort::<TimedVelocity2D>::connect(profile).await?;
     let server = controller.link().borrow().clone();
     println!("connected to {url} ({server:?})");

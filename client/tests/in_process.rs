@@ -12,10 +12,11 @@ use leveret_client::{
     BasicConsumeOptions, BasicGetOptions, BasicProperties, BasicPublishOptions, Connection,
     ConnectionOptions, Error, FieldTable, FieldValue, QueueDeclareOptions, ReplyCode, ShortStr,
 };
+use std::sync::Arc;
 
 #[tokio::test]
 async fn publish_confirm_consume_over_the_pipe() {
-    let broker = Broker::builder().start().await.expect("start");
+    let broker = Arc::new(Broker::builder().start().await.expect("start"));
     let connection = within("connect", Connection::in_process(&broker))
         .await
         .expect("in-process connect");
@@ -72,7 +73,10 @@ async fn publish_confirm_consume_over_the_pipe() {
         delivery.ack().await.unwrap();
     }
     within("close", connection.close()).await.unwrap();
-    broker.shutdown().await;
+    Arc::into_inner(broker)
+        .expect("the only handle")
+        .shutdown()
+        .await;
 }
 
 /// Content comes from the embedded broker whole (method, properties and
@@ -80,7 +84,7 @@ async fn publish_confirm_consume_over_the_pipe() {
 /// properties and body as over a socket, a large body in one piece.
 #[tokio::test]
 async fn returns_gets_and_deliveries_come_whole_over_the_value_link() {
-    let broker = Broker::builder().start().await.expect("start");
+    let broker = Arc::new(Broker::builder().start().await.expect("start"));
     let connection = within("connect", Connection::in_process(&broker))
         .await
         .expect("in-process connect");
@@ -154,34 +158,44 @@ async fn returns_gets_and_deliveries_come_whole_over_the_value_link() {
     assert_eq!(delivery.properties, properties);
     assert!(delivery.body.is_empty());
     within("close", connection.close()).await.unwrap();
-    broker.shutdown().await;
+    Arc::into_inner(broker)
+        .expect("the only handle")
+        .shutdown()
+        .await;
 }
 
 #[tokio::test]
 async fn the_announced_product_is_the_builders() {
-    let broker = Broker::builder()
-        .product("RabbitMQ")
-        .start()
-        .await
-        .expect("start");
+    let broker = Arc::new(
+        Broker::builder()
+            .product("RabbitMQ")
+            .start()
+            .await
+            .expect("start"),
+    );
     let connection = within("connect", Connection::in_process(&broker))
         .await
         .expect("in-process connect");
     let product = connection.server_properties().get("product").cloned();
     assert_eq!(product, Some(FieldValue::string("RabbitMQ")));
     connection.close().await.expect("close");
-    broker.shutdown().await;
+    Arc::into_inner(broker)
+        .expect("the only handle")
+        .shutdown()
+        .await;
 }
 
 #[tokio::test]
 async fn credentials_and_vhost_are_checked_in_process() {
-    let broker = Broker::builder()
-        .user("robot", "secret")
-        .vhost("/robots")
-        .permission("robot", "/robots", Permission::full())
-        .start()
-        .await
-        .expect("start");
+    let broker = Arc::new(
+        Broker::builder()
+            .user("robot", "secret")
+            .vhost("/robots")
+            .permission("robot", "/robots", Permission::full())
+            .start()
+            .await
+            .expect("start"),
+    );
     let options = ConnectionOptions {
         username: "robot".into(),
         password: "secret".into(),
@@ -204,16 +218,22 @@ async fn credentials_and_vhost_are_checked_in_process() {
         refused.expect_err("bad password").reply_code(),
         Some(ReplyCode::AccessRefused)
     );
-    broker.shutdown().await;
+    Arc::into_inner(broker)
+        .expect("the only handle")
+        .shutdown()
+        .await;
 }
 
 #[tokio::test]
 async fn broker_shutdown_ends_in_process_connections() {
-    let broker = Broker::builder().start().await.expect("start");
+    let broker = Arc::new(Broker::builder().start().await.expect("start"));
     let connection = within("connect", Connection::in_process(&broker))
         .await
         .unwrap();
-    broker.shutdown().await;
+    Arc::into_inner(broker)
+        .expect("the only handle")
+        .shutdown()
+        .await;
     let error = within("closed", connection.closed()).await;
     assert!(
         matches!(&error, Error::ConnectionClosed(r) if r.reply_code() == Some(ReplyCode::ConnectionForced)),

@@ -12,7 +12,7 @@
 mod common;
 
 use bytes::Bytes;
-use common::{unique, within};
+use common::{unique, within, without_waiting};
 use leveret_broker::{Broker, BrokerHandle};
 use leveret_client::ports::{
     Backpressure, CdrOptions, ExchangeKind, FullPolicy, InPort, LinkStatus, OutPort,
@@ -204,7 +204,8 @@ async fn ports_announce_who_they_are() {
             up: true,
             connects: 1,
             losses: 0,
-            last_error: None
+            last_error: None,
+            degraded: false,
         }
     );
     assert_eq!(
@@ -212,13 +213,18 @@ async fn ports_announce_who_they_are() {
         [
             "accepted",
             "confirmed",
+            "sent_unconfirmed",
             "rejected",
             "unroutable",
+            "dropped_unsent",
             "expired",
-            "dropped",
+            "lost",
+            "pending",
+            "in_flight",
             "resent",
             "send_full",
-            "unconfirmed"
+            "stalls",
+            "returned_after_send"
         ]
     );
     assert!(out.stats.iter().all(|(_, value)| *value == 0), "{out:?}");
@@ -236,14 +242,16 @@ async fn ports_announce_who_they_are() {
     assert_eq!(
         counter_names(&announced),
         [
+            "arrived",
             "received",
-            "lost",
-            "out_of_order",
-            "duplicates",
+            "buffered",
+            "stale",
+            "decode_errors",
             "dropped",
             "skipped",
-            "decode_errors",
-            "stale"
+            "duplicates",
+            "out_of_order",
+            "lost"
         ]
     );
     assert_eq!(announced.latency.map(|l| l.count), Some(0));
@@ -309,7 +317,7 @@ async fn announced_counters_follow_the_values() {
     let (_broker, addr) = leveret().await;
     let (_connection, mut directory) = directory(&uri(addr)).await;
     let base = profile(&uri(addr), ExchangeKind::Fanout);
-    let mut input = InPort::<TimedPose2D>::connect(base.clone().name("poses-in"))
+    let input = InPort::<TimedPose2D>::connect(base.clone().name("poses-in"))
         .await
         .expect("in-port");
     let output = OutPort::<TimedPose2D>::connect(base.name("poses-out"))
@@ -329,7 +337,7 @@ async fn announced_counters_follow_the_values() {
     })
     .await;
     assert_eq!(out.counter("accepted"), Some(u64::from(COUNT)));
-    assert_eq!(out.counter("unconfirmed"), Some(0));
+    assert_eq!(out.counter("pending"), Some(0));
     let announced = heard_named(&mut directory, "poses-in", PortRole::InPort).await;
     let announced = if announced.counter("received") == Some(u64::from(COUNT)) {
         announced
@@ -398,7 +406,7 @@ async fn closing_a_port_announces_closed() {
 static ALONE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
 /// A 100 Hz loop putting through a frozen link while its port tries to
-/// announce itself every 20 ms: `put` stays fast, and the announcements,
+/// announce itself every 20 ms: `put` never waits, and the announcements,
 /// which stop while the link is frozen (the port drops out of the table
 /// after three intervals), come back after it on the same link.
 async fn puts_while_announcements_are_stuck(flavor: &str) {
@@ -409,7 +417,7 @@ async fn puts_while_announcements_are_stuck(flavor: &str) {
     let base = profile(&uri(addr), ExchangeKind::Fanout)
         .announce_interval(Some(announce_every))
         .buffer(1024, FullPolicy::BlockBroker);
-    let mut input = InPort::<TimedLong>::connect(base.clone().name("frozen-in"))
+    let input = InPort::<TimedLong>::connect(base.clone().name("frozen-in"))
         .await
         .expect("in-port");
     let proxied = PortProfile::new(&uri(proxy.addr))
@@ -423,7 +431,6 @@ async fn puts_while_announcements_are_stuck(flavor: &str) {
     heard(&mut directory, output.id(), |_| true).await;
 
     let mut tick = tokio::time::interval(Duration::from_millis(10));
-    let mut puts = Vec::new();
     let started = Instant::now();
     let mut count = 0;
     let (mut listed_before, mut listed_while_frozen) = (None, None);
@@ -445,26 +452,13 @@ async fn puts_while_announcements_are_stuck(flavor: &str) {
             tm: Time::now(),
             data: count,
         };
-        let put = Instant::now();
-        let status = output.put(&value).await;
-        puts.push(put.elapsed());
+        // Done at its first poll: it never waited, on the frozen link
+        // or anything else.
+        let status = without_waiting(output.put(&value))
+            .unwrap_or_else(|| panic!("{flavor}: put {count} waited"));
         assert!(status.is_accepted(), "put {count}: {status:?}");
     }
     proxy.freeze(false);
-    puts.sort();
-    let worst = puts[puts.len() - 1];
-    let over_1ms = puts
-        .iter()
-        .filter(|d| **d >= Duration::from_millis(1))
-        .count();
-    eprintln!(
-        "{flavor}: {count} puts, p50 {:?}, worst {worst:?}, {over_1ms} over 1 ms",
-        puts[puts.len() / 2]
-    );
-    assert!(
-        over_1ms <= puts.len() / 20 && worst < Duration::from_millis(100),
-        "{flavor}: {over_1ms} puts took over 1 ms, the worst {worst:?}"
-    );
     assert_eq!(
         (listed_before, listed_while_frozen),
         (Some(1), Some(0)),
@@ -691,7 +685,7 @@ async fn announcements_and_the_reader_work_against_rabbitmq() {
     .expect("node");
     let (_connection, mut directory) = directory(&node.uri()).await;
     let base = profile(&node.uri(), ExchangeKind::Fanout);
-    let mut input = InPort::<TimedPose2D>::connect(base.clone().name("rabbit-in"))
+    let input = InPort::<TimedPose2D>::connect(base.clone().name("rabbit-in"))
         .await
         .expect("in-port");
     let output = OutPort::<TimedPose2D>::connect(base.name("rabbit-out"))

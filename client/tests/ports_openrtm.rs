@@ -73,7 +73,7 @@ async fn an_in_port_with_bind_false_declares_its_queue_and_does_not_bind() {
         ("qname", queue.as_str()),
         ("bind", "false"),
     ];
-    let mut input = within(
+    let input = within(
         "in-port",
         InPort::<TimedLong>::connect(read(PortRole::InPort, addr, &properties)),
     )
@@ -141,7 +141,7 @@ async fn exchange_types_in_any_case() {
             ("bkey", "pose"),
             ("rkey", "pose"),
         ];
-        let mut input = InPort::<TimedLong>::connect(read(PortRole::InPort, addr, &properties))
+        let input = InPort::<TimedLong>::connect(read(PortRole::InPort, addr, &properties))
             .await
             .unwrap_or_else(|e| panic!("extype {extype}: {e}"));
         let output = OutPort::<TimedLong>::connect(read(PortRole::OutPort, addr, &properties))
@@ -166,7 +166,7 @@ async fn latin1_strings_with_serializer_cdr_charset() {
         ("serializer.cdr.charset", "latin-1"),
         ("dataport.serializer.cdr.endian", "big"),
     ];
-    let mut input = InPort::<TimedString>::connect(read(PortRole::InPort, addr, &base))
+    let input = InPort::<TimedString>::connect(read(PortRole::InPort, addr, &base))
         .await
         .expect("in-port");
     let output = OutPort::<TimedString>::connect(read(PortRole::OutPort, addr, &base))
@@ -237,7 +237,7 @@ async fn an_unknown_extype_is_a_consistent_hash_exchange() {
     let mut counts = Vec::new();
     within("every value once", async {
         loop {
-            counts = inputs.iter().map(|i| i.stats().received).collect();
+            counts = inputs.iter().map(|i| i.stats().arrived).collect();
             if counts.iter().sum::<u64>() >= total {
                 break;
             }

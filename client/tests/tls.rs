@@ -157,7 +157,7 @@ async fn data_ports_run_over_tls_from_the_profiles_uri() {
         .expect("an amqps profile")
         .queue("tls-pose")
         .routing_key("tls-pose");
-    let mut input = InPort::<TimedLong>::connect(profile.clone())
+    let input = InPort::<TimedLong>::connect(profile.clone())
         .await
         .expect("in-port");
     let output = OutPort::<TimedLong>::connect(profile)

@@ -74,7 +74,11 @@ class T {
 
 const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
-async function waitUntil(pred, timeout = 5000, what = 'condition') {
+// How long a scenario waits for something it expects: a hang limit, generous
+// enough for a loaded CI machine (the wait ends as soon as the thing happens).
+const HANG_MS = 30000;
+
+async function waitUntil(pred, timeout = HANG_MS, what = 'condition') {
   const deadline = Date.now() + timeout;
   while (Date.now() < deadline) {
     if (await pred()) return true;
@@ -115,4 +119,4 @@ async function main() {
   }
 }
 
-module.exports = { scenario, Failure, replyName, T, sleep, waitUntil, main, plain };
+module.exports = { scenario, Failure, replyName, T, sleep, waitUntil, main, plain, HANG_MS };

@@ -2,7 +2,7 @@
 // Scenarios driven by amqplib (Node), the standard JavaScript client.
 
 const amqp = require('amqplib');
-const { scenario, Failure, replyName, sleep, waitUntil } = require('./harness');
+const { scenario, Failure, replyName, sleep, waitUntil, HANG_MS } = require('./harness');
 
 // helpers ------------------------------------------------------------------
 
@@ -259,7 +259,7 @@ scenario('queue.dead_letter_via_nack', async (t) => {
   await ch.waitForConfirms();
   const m = await ch.get(q);
   ch.nack(m, false, false);
-  await waitUntil(async () => (await ch.checkQueue(dlq)).messageCount === 1, 5000, 'dead letter');
+  await waitUntil(async () => (await ch.checkQueue(dlq)).messageCount === 1, HANG_MS, 'dead letter');
   const d = await ch.get(dlq, { noAck: true });
   const xd = d.properties.headers['x-death'][0];
   t.eq('dead letter', [d.content.toString(), d.fields.exchange, d.fields.routingKey, d.properties.headers.attempt], ['poison', '', dlq, 1]);
@@ -274,7 +274,7 @@ scenario('queue.priority_consumer_order', async (t) => {
   await ch.waitForConfirms();
   const col = collector(5);
   await ch.consume(q, (m) => col.push(m.content.toString()), { noAck: true });
-  t.eq('priority order', await within(col.done, 5000, 'deliveries'), ['top', 'mid', 'mid2', 'low', 'zero']);
+  t.eq('priority order', await within(col.done, HANG_MS, 'deliveries'), ['top', 'mid', 'mid2', 'low', 'zero']);
 });
 
 scenario('queue.exclusive_other_connection', async (t) => {
@@ -331,7 +331,7 @@ scenario('consume.prefetch_fair_dispatch', async (t) => {
   await fast.consume(q, (m) => { got.fast.push(m.content.toString()); fast.ack(m); });
   for (let i = 0; i < 10; i++) pub.sendToQueue(q, Buffer.from(String(i)));
   await pub.waitForConfirms();
-  await waitUntil(() => got.fast.length + got.slow.length === 10 || (got.fast.length === 9 && got.slow.length === 1), 5000, 'dispatch');
+  await waitUntil(() => got.fast.length + got.slow.length === 10 || (got.fast.length === 9 && got.slow.length === 1), HANG_MS, 'dispatch');
   t.eq('slow consumer holds only one', got.slow.length, 1);
   t.eq('fast consumer took the rest', got.fast.length, 9);
   slow.ack(slowMsg);
@@ -346,7 +346,7 @@ scenario('consume.server_cancel_callback', async (t) => {
   const ok = await ch.consume(q, (m) => { if (m === null) cancelled = true; });
   const other = await chan(c);
   await other.deleteQueue(q);
-  await waitUntil(() => cancelled, 5000, 'consumer cancel');
+  await waitUntil(() => cancelled, HANG_MS, 'consumer cancel');
   t.eq('consumer got null (basic.cancel)', cancelled, true);
   t.obs('tag', ok.consumerTag);
 });
@@ -360,7 +360,7 @@ scenario('consume.consumer_priority', async (t) => {
   await ch.consume(q, (m) => got.push('high'), { noAck: true, priority: 10 });
   for (let i = 0; i < 5; i++) ch.sendToQueue(q, Buffer.from('x'));
   await ch.waitForConfirms();
-  await waitUntil(() => got.length === 5, 5000, 'deliveries');
+  await waitUntil(() => got.length === 5, HANG_MS, 'deliveries');
   t.eq('higher priority consumer gets everything', got, ['high', 'high', 'high', 'high', 'high']);
 });
 
@@ -406,7 +406,7 @@ scenario('ack.recover', async (t) => {
   ch.sendToQueue(q, Buffer.from('r'));
   await waitUntil(() => got.length === 1);
   await ch.recover();
-  await waitUntil(() => got.length === 2, 5000, 'redelivery');
+  await waitUntil(() => got.length === 2, HANG_MS, 'redelivery');
   t.eq('redelivered after recover', got, [['r', false], ['r', true]]);
   ch.ackAll();
 });
@@ -417,7 +417,7 @@ scenario('ack.reject_unknown_tag', async (t) => {
   const q = await tempQueue(ch);
   const closed = closedWith(ch);
   ch.ack({ fields: { deliveryTag: 99 } });
-  const e = await within(closed, 5000, 'channel close');
+  const e = await within(closed, HANG_MS, 'channel close');
   t.eq('ack unknown tag', errInfo(e), [406, 'PRECONDITION_FAILED']);
 });
 
@@ -452,7 +452,7 @@ scenario('confirm.publish_to_missing_exchange', async (t) => {
   const ch = await chan(c, true);
   const closed = closedWith(ch);
   ch.publish(t.n('nope'), 'k', Buffer.from('x'));
-  const e = await within(closed, 5000, 'channel close');
+  const e = await within(closed, HANG_MS, 'channel close');
   t.eq('channel closed', errInfo(e), [404, 'NOT_FOUND']);
 });
 

@@ -148,7 +148,12 @@ def _loop_running():
         return False
 
 
-def wait_until(pred, timeout=5.0, interval=0.02, what="condition"):
+# How long a scenario waits for something it expects: a hang limit, generous
+# enough for a loaded CI machine (the wait ends as soon as the thing happens).
+HANG = 30.0
+
+
+def wait_until(pred, timeout=HANG, interval=0.02, what="condition"):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if pred():

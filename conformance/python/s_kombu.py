@@ -11,7 +11,7 @@ import amqp
 import amqp.exceptions as ax
 from kombu import Connection, Consumer, Exchange, Producer, Queue, binding
 
-from harness import Failure, scenario, wait_until
+from harness import HANG, Failure, scenario, wait_until
 
 LIB = "kombu"
 
@@ -39,7 +39,7 @@ def raw(t, **kw):
     return c
 
 
-def drain_until(conn, pred, timeout=5.0):
+def drain_until(conn, pred, timeout=HANG):
     deadline = time.monotonic() + timeout
     while not pred() and time.monotonic() < deadline:
         try:

@@ -10,7 +10,7 @@ import uuid
 import pika
 import pika.exceptions as pe
 
-from harness import Failure, reply_name, scenario, wait_until
+from harness import HANG, Failure, reply_name, scenario, wait_until
 
 LIB = "pika"
 
@@ -103,7 +103,7 @@ def consume_into(ch, q, **kw):
     return tag, got
 
 
-def pump(conn, got, n, timeout=5.0):
+def pump(conn, got, n, timeout=HANG):
     deadline = time.monotonic() + timeout
     while len(got) < n and time.monotonic() < deadline:
         conn.process_data_events(time_limit=0.02)
@@ -1058,6 +1058,91 @@ def _(t):
     t.eq("requeued on close, redelivered", [[m1[2], m1[0].redelivered], [m2[2], m2[0].redelivered]], [[b"0", True], [b"2", True]])
 
 
+@s("consume.single_active_consumer_close_hands_over")
+def _(t):
+    """x-single-active-consumer: the first consumer gets everything; when
+    its channel closes the next one takes over, its unacked first."""
+    conn = connect(t)
+    ch = conn.channel()
+    q = ch.queue_declare("", exclusive=True, arguments={"x-single-active-consumer": True}).method.queue
+    ch1 = conn.channel()
+    ch1.basic_qos(prefetch_count=5)
+    got1 = []
+    ch1.basic_consume(q, lambda c, m, p, b: got1.append((b.decode(), m.redelivered)), consumer_tag="first")
+    ch2 = conn.channel()
+    got2 = []
+    ch2.basic_consume(q, lambda c, m, p, b: got2.append((b.decode(), m.redelivered)), auto_ack=True, consumer_tag="second")
+    for i in range(1, 11):
+        ch.basic_publish("", q, str(i).encode())
+    pump(conn, got1, 5)
+    settle(conn, 0.2)
+    t.eq("active consumer's share", got1, [(str(i), False) for i in range(1, 6)])
+    t.eq("waiting consumer's share", got2, [])
+    ch1.close()
+    pump(conn, got2, 10)
+    t.eq(
+        "hand-over: unacked first, redelivered, then the rest",
+        got2,
+        [(str(i), True) for i in range(1, 6)] + [(str(i), False) for i in range(6, 11)],
+    )
+
+
+@s("consume.priority_overflow")
+def _(t):
+    """x-priority: the higher consumer gets messages while it has prefetch
+    room, the lower one the overflow."""
+    conn = connect(t)
+    ch = conn.channel()
+    q = ch.queue_declare("", exclusive=True).method.queue
+    low_ch = conn.channel()
+    low_ch.basic_qos(prefetch_count=10)
+    low = []
+    low_ch.basic_consume(q, lambda c, m, p, b: low.append(b.decode()), arguments={"x-priority": 1})
+    high_ch = conn.channel()
+    high_ch.basic_qos(prefetch_count=3)
+    high = []
+    high_ch.basic_consume(q, lambda c, m, p, b: high.append(b.decode()), arguments={"x-priority": 10})
+    for i in range(1, 6):
+        ch.basic_publish("", q, str(i).encode())
+    pump(conn, high, 3)
+    pump(conn, low, 2)
+    t.eq("high first", high, ["1", "2", "3"])
+    t.eq("low gets the overflow", low, ["4", "5"])
+    channel_error(
+        t,
+        "x-priority must be an integer",
+        lambda: conn.channel().basic_consume(q, lambda *a: None, arguments={"x-priority": "high"}),
+        406,
+    )
+
+
+@s("queue.other_queue_types_arguments_refused")
+def _(t):
+    """Arguments of quorum queues and streams are refused on a classic
+    queue, naming them; unknown arguments are kept and not compared."""
+    conn = connect(t)
+    for key, value in [
+        ("x-delivery-limit", 5),
+        ("x-dead-letter-strategy", "at-most-once"),
+        ("x-max-age", "1D"),
+        ("x-max-in-memory-length", 3),
+        ("x-queue-leader-locator", "balanced"),
+        ("x-initial-cluster-size", 3),
+    ]:
+        ch = conn.channel()
+        q = t.n("othertype")
+        e = channel_error(t, key, lambda: ch.queue_declare(q, arguments={key: value}), 406)
+        t.eq(f"{key} text", e.reply_text, f"PRECONDITION_FAILED - invalid arg '{key}' for queue '{q}' in vhost '/' of queue type rabbit_classic_queue")
+    ch = conn.channel()
+    q = t.n("unknownarg")
+    tidy(t, queues=[q])
+    ch.queue_declare(q, arguments={"x-app-owner": "a", "x-message-ttl": 60000})
+    ch.queue_declare(q, arguments={"x-app-owner": "b", "x-message-ttl": 60000})
+    t.obs("unknown argument not compared")
+    e = channel_error(t, "ttl compared", lambda: ch.queue_declare(q, arguments={"x-message-ttl": 1000}), 406)
+    t.eq("ttl text", e.reply_text, f"PRECONDITION_FAILED - inequivalent arg 'x-message-ttl' for queue '{q}' in vhost '/': received '1000' but current is '60000'")
+
+
 @s("consume.no_ack_mode")
 def _(t):
     conn = connect(t)
@@ -1426,7 +1511,7 @@ def _(t):
     wait_until(lambda: (conn.process_data_events(0.01) or True) and ok, what="select-ok")
     for i in range(20):
         ch.basic_publish("", q, str(i).encode())
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + HANG
     while time.monotonic() < deadline and (not acks or acks[-1][1] < 20):
         conn.process_data_events(time_limit=0.02)
     covered = set()

@@ -228,21 +228,25 @@ def _(t):
 def _(t):
     r = Raw(t, timeout=10)
     r.handshake(t, heartbeat=1, open_channel=0)
-    # Say nothing: the broker must give up after about two missed heartbeats.
+    # Say nothing: the broker must give up after about two missed heartbeats
+    # (2-3 s). The bound is a hang limit, far below the 60 s a broker that
+    # ignored the negotiated interval would take, and far above what a
+    # loaded machine adds.
+    limit = 20
     start = time.monotonic()
-    r.sock.settimeout(10)
+    r.sock.settimeout(limit)
     closed = False
     try:
-        while time.monotonic() - start < 9:
+        while time.monotonic() - start < limit:
             data = r.sock.recv(65536)
             if not data:
                 closed = True
                 break
     except (ConnectionResetError, socket.timeout):
-        closed = time.monotonic() - start < 9
+        closed = time.monotonic() - start < limit
     waited = time.monotonic() - start
     t.eq("broker closed the silent connection", closed, True)
-    t.check(waited < 6, f"closed after {waited:.1f}s, expected about 2-3s")
+    t.check(waited < limit, f"closed after {waited:.1f}s, expected about 2-3s")
 
 
 @s("channel.closes_and_reopens")

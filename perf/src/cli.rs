@@ -38,6 +38,8 @@ pub enum Command {
     Compare(CompareArgs),
     /// Round trip of a pair of robot data ports: in-process, loopback TCP, RabbitMQ.
     Ports(PortsArgs),
+    /// A control loop's `try_put` before, during and after a frozen broker.
+    PortsStall(ports::stall::StallArgs),
     /// A null broker that confirms and drops everything: a generator's own ceiling.
     Sink(SinkArgs),
 }
@@ -51,6 +53,7 @@ pub async fn execute(command: &Command) -> Result<()> {
         Command::Memory(args) => memory::run(args).await.map(drop),
         Command::Compare(args) => compare::run(args).await.map(drop),
         Command::Ports(args) => ports::run(args).await.map(drop),
+        Command::PortsStall(args) => ports::stall::run(args).await,
         Command::Sink(args) => sink::run(args).await,
     }
 }

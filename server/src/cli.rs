@@ -42,8 +42,10 @@ pub struct Cli {
     pub data_dir: Option<PathBuf>,
     /// Start even if the store in the data directory is damaged: copy the
     /// damaged files aside (`store.damaged-<time>`), keep every readable
-    /// record and log each one dropped. Without it, a damaged store
-    /// refuses the start with an error saying what is wrong.
+    /// record and log what was lost (each unreadable stretch of the
+    /// message log, and the queue positions that were in it). Without it,
+    /// a damaged store refuses the start with an error saying what is
+    /// wrong.
     #[arg(long)]
     pub recover: bool,
     /// Free bytes on the data directory's disk below which publishers are
@@ -60,6 +62,15 @@ pub struct Cli {
     /// Log level or tracing filter (error, warn, info, debug, trace) [default: info].
     #[arg(long, value_name = "LEVEL")]
     pub log: Option<String>,
+    /// Log line format: `text` (coloured only on a terminal) or `json`
+    /// (one object per line: timestamp, level, target, message and the
+    /// event's fields) [default: text].
+    #[arg(long, value_name = "FORMAT")]
+    pub log_format: Option<crate::logging::LogFormat>,
+    /// Write the log to this file (appended to) instead of standard
+    /// error; SIGHUP reopens it, for logrotate.
+    #[arg(long, value_name = "FILE")]
+    pub log_file: Option<PathBuf>,
     /// The product name announced to clients in connection.start
     /// [default: Leveret]. Clients that gate RabbitMQ-only behaviour on
     /// the name may need `RabbitMQ`.

@@ -6,6 +6,7 @@
 //! knows how the broker works.
 
 use crate::cli::Cli;
+use crate::logging::LogFormat;
 use leveret_broker::{
     check_pattern, Broker, BrokerBuilder, Limits, PasswordHash, PatternError, PeerVerification,
     Permission, ResidentMemoryWatermark, TlsOptions, TopicPermission, UserLimits, VhostLimits,
@@ -105,6 +106,8 @@ pub struct FileConfig {
     tls_fail_if_no_peer_cert: Option<bool>,
     data_dir: Option<PathBuf>,
     log: Option<String>,
+    log_format: Option<LogFormat>,
+    log_file: Option<PathBuf>,
     #[serde(default)]
     users: Vec<UserConfig>,
     #[serde(default)]
@@ -251,6 +254,12 @@ pub struct Settings {
     pub data_dir: PathBuf,
     /// The tracing filter.
     pub log: String,
+    /// Text or JSON log lines.
+    pub log_format: LogFormat,
+    /// The log file, if not standard error.
+    pub log_file: Option<PathBuf>,
+    /// The config file read, if any (for the start banner).
+    pub config_file: Option<PathBuf>,
     /// Users; empty means the library's `guest`/`guest`.
     pub users: Vec<(String, Credential)>,
     /// Each configured user's tags.
@@ -516,6 +525,9 @@ impl Settings {
                 .or(file.data_dir)
                 .unwrap_or_else(|| PathBuf::from(DEFAULT_DATA_DIR)),
             log: cli.log.or(file.log).unwrap_or_else(|| DEFAULT_LOG.into()),
+            log_format: cli.log_format.or(file.log_format).unwrap_or_default(),
+            log_file: cli.log_file.or(file.log_file),
+            config_file: cli.config,
             users,
             tags,
             permissions,
@@ -721,6 +733,7 @@ mod tests {
         assert_eq!(settings.listen, vec!["0.0.0.0:5672".parse().unwrap()]);
         assert_eq!(settings.data_dir, PathBuf::from("leveret-data"));
         assert_eq!(settings.log, "info");
+        assert_eq!(settings.log_format, LogFormat::Text);
         assert_eq!(settings.busy_poll, Duration::from_micros(200));
         assert_eq!(settings.product, None);
         assert_eq!(settings.metrics_listen, "127.0.0.1:15692".parse().unwrap());
@@ -739,6 +752,8 @@ mod tests {
             listen = ["127.0.0.1:5700", "[::1]:5701"]
             data-dir = "/var/lib/leveret"
             log = "debug"
+            log-format = "json"
+            log-file = "/var/log/leveret/leveret.log"
             vhosts = ["/", "robots"]
             heartbeat = 30
             frame-max = 8192
@@ -778,6 +793,11 @@ mod tests {
         );
         assert_eq!(settings.data_dir, PathBuf::from("/var/lib/leveret"));
         assert_eq!(settings.log, "debug");
+        assert_eq!(settings.log_format, LogFormat::Json);
+        assert_eq!(
+            settings.log_file,
+            Some(PathBuf::from("/var/log/leveret/leveret.log"))
+        );
         assert_eq!(settings.vhosts, ["/", "robots"]);
         assert_eq!(settings.loopback_users, None);
         let open = Settings::resolve(cli(&[]), file("loopback-users = []")).unwrap();

@@ -14,7 +14,16 @@
 //! reported, never dropped silently: other policies, operator policies,
 //! other parameters, global parameters, unknown keys, other password hashing
 //! algorithms, and queue types Leveret does not have (an `x-queue-type`
-//! other than classic gives a classic queue).
+//! other than classic gives a classic queue, without the arguments of its
+//! type, which a classic queue refuses). An empty `password_hash` is, as
+//! in RabbitMQ, a user who cannot log in with a password.
+//!
+//! RabbitMQ 3.10 cannot take argon2id hashes (its import aborts on them,
+//! `not_base64`) and ignores top-level keys it does not know. So the export
+//! puts users with argon2id hashes, and their permissions and topic
+//! permissions, in a Leveret-only section, `leveret` (with `warnings`
+//! saying so, also logged); Leveret's import reads that section back, so
+//! its own export round-trips whole.
 
 use crate::management::json::{flag, text, user_tags};
 use crate::uplink::Links;
@@ -146,6 +155,39 @@ fn user_limits_json(limits: Option<UserLimits>) -> Value {
     Value::Object(out)
 }
 
+/// The top-level key of Leveret's own section of an export.
+const LEVERET_SECTION: &str = "leveret";
+
+/// A list in Leveret's own section of a document (empty when absent).
+fn leveret_list<'a>(root: &'a Map<String, Value>, key: &str) -> Result<&'a [Value], String> {
+    match root.get(LEVERET_SECTION) {
+        None | Some(Value::Null) => Ok(&[]),
+        Some(Value::Object(section)) => list(section, key),
+        Some(other) => Err(format!(
+            "'{LEVERET_SECTION}' must be an object, not {other}"
+        )),
+    }
+}
+
+/// One item of a list Leveret does not apply, named as RabbitMQ names it:
+/// `operator_policies: 'name' in vhost 'v' ({...})`,
+/// `global_parameters: 'cluster_name' ("value")`.
+fn describe(key: &str, item: &Value) -> String {
+    let field = |name: &str| item.get(name).and_then(Value::as_str);
+    let mut out = format!("{key}: ");
+    match field("name") {
+        Some(name) => out.push_str(&format!("'{name}'")),
+        None => out.push_str(&item.to_string()),
+    }
+    if let Some(vhost) = field("vhost") {
+        out.push_str(&format!(" in vhost '{vhost}'"));
+    }
+    if let Some(detail) = item.get("definition").or_else(|| item.get("value")) {
+        out.push_str(&format!(" ({detail})"));
+    }
+    out
+}
+
 fn list<'a>(root: &'a Map<String, Value>, key: &str) -> Result<&'a [Value], String> {
     match root.get(key) {
         None | Some(Value::Null) => Ok(&[]),
@@ -167,6 +209,41 @@ fn name(item: &Map<String, Value>, key: &str, what: &str) -> Result<String, Stri
 }
 
 impl Definitions {
+    /// What the document defines, counted, as a sentence ("2 vhosts,
+    /// 1 user, 3 queues"; kinds it has none of are left out).
+    pub fn summary(&self) -> String {
+        let counts = [
+            (self.vhosts.len(), "vhost", "vhosts"),
+            (self.users.len(), "user", "users"),
+            (self.permissions.len(), "permission", "permissions"),
+            (
+                self.topic_permissions.len(),
+                "topic permission",
+                "topic permissions",
+            ),
+            (self.exchanges.len(), "exchange", "exchanges"),
+            (self.queues.len(), "queue", "queues"),
+            (self.bindings.len(), "binding", "bindings"),
+            (self.shovels.len(), "shovel", "shovels"),
+            (
+                self.upstreams.len(),
+                "federation upstream",
+                "federation upstreams",
+            ),
+            (self.policies.len(), "policy", "policies"),
+        ];
+        let parts: Vec<String> = counts
+            .into_iter()
+            .filter(|(count, ..)| *count > 0)
+            .map(|(count, one, many)| format!("{count} {}", if count == 1 { one } else { many }))
+            .collect();
+        if parts.is_empty() {
+            "nothing".to_owned()
+        } else {
+            parts.join(", ")
+        }
+    }
+
     /// Parses a definitions document; an error names what is malformed.
     pub fn parse(bytes: &[u8]) -> Result<Definitions, String> {
         Definitions::parse_into(bytes, None)
@@ -191,7 +268,8 @@ impl Definitions {
             "product_name",
             "product_version",
         ];
-        const APPLIED: [&str; 9] = [
+        const APPLIED: [&str; 10] = [
+            LEVERET_SECTION,
             "parameters",
             "vhosts",
             "users",
@@ -211,11 +289,15 @@ impl Definitions {
                 continue;
             }
             match NOT_SUPPORTED.iter().find(|(k, _)| k == key) {
-                Some((_, why)) if !is_empty(value) => {
-                    let count = value.as_array().map_or(1, Vec::len);
-                    d.warnings
-                        .push(format!("{count} {key} not imported: {why}"));
-                }
+                Some((_, why)) if !is_empty(value) => match value.as_array() {
+                    Some(items) => {
+                        for item in items {
+                            d.warnings
+                                .push(format!("{} not imported: {why}", describe(key, item)));
+                        }
+                    }
+                    None => d.warnings.push(format!("{key} not imported: {why}")),
+                },
                 Some(_) => {}
                 None => d.warnings.push(format!("unknown key '{key}' ignored")),
             }
@@ -238,9 +320,18 @@ impl Definitions {
                     })?;
                     d.upstreams.push((vhost, parameter, value));
                 }
-                _ => d.warnings.push(format!(
-                    "parameter {component} '{parameter}' in vhost '{vhost}' not imported: Leveret has shovel and federation-upstream parameters only"
-                )),
+                _ => {
+                    let why = match component.as_str() {
+                        "operator_policy" => "Leveret has no operator policies",
+                        "vhost-limits" => {
+                            "vhosts' limits are taken from the config file only (vhost-limits)"
+                        }
+                        _ => "Leveret has shovel and federation-upstream parameters only",
+                    };
+                    d.warnings.push(format!(
+                        "parameter {component} '{parameter}' in vhost '{vhost}' ({value}) not imported: {why}"
+                    ));
+                }
             }
         }
         for item in list(root, "policies")? {
@@ -277,7 +368,10 @@ impl Definitions {
             );
             d.vhosts.push(vhost);
         }
-        for item in list(root, "users")? {
+        for item in list(root, "users")?
+            .iter()
+            .chain(leveret_list(root, "users")?)
+        {
             let item = object(item, "users")?;
             let user = name(item, "name", "a user")?;
             let what = format!("user '{user}'");
@@ -312,7 +406,10 @@ impl Definitions {
                     .push(format!("{what} not imported: no usable password_hash")),
             }
         }
-        for item in list(root, "permissions")? {
+        for item in list(root, "permissions")?
+            .iter()
+            .chain(leveret_list(root, "permissions")?)
+        {
             let item = object(item, "permissions")?;
             let user = name(item, "user", "a permission")?;
             let vhost = vhost_of(item, "a permission")?;
@@ -330,7 +427,10 @@ impl Definitions {
             };
             d.permissions.push((user, vhost, permission));
         }
-        for item in list(root, "topic_permissions")? {
+        for item in list(root, "topic_permissions")?
+            .iter()
+            .chain(leveret_list(root, "topic_permissions")?)
+        {
             let item = object(item, "topic_permissions")?;
             let user = name(item, "user", "a topic permission")?;
             let vhost = vhost_of(item, "a topic permission")?;
@@ -395,25 +495,32 @@ impl Definitions {
                 &what,
                 &mut d.warnings,
             );
-            let arguments = item.get("arguments").unwrap_or(&Value::Null);
+            let arguments = to_table(item.get("arguments").unwrap_or(&Value::Null))?;
             let kind = arguments
                 .get("x-queue-type")
-                .or_else(|| item.get("type"))
-                .and_then(Value::as_str)
-                .unwrap_or("classic");
+                .and_then(|kind| kind.as_bytes())
+                .map(|kind| String::from_utf8_lossy(kind).into_owned())
+                .or_else(|| item.get("type").and_then(Value::as_str).map(str::to_owned))
+                .unwrap_or_else(|| "classic".to_owned());
+            // A quorum queue or a stream from a RabbitMQ export becomes the
+            // classic queue it can be here, without its type's arguments
+            // (which a classic queue refuses), and says so.
+            let (arguments, dropped) = leveret_broker::classic_queue_arguments(&arguments);
             if kind != "classic" {
                 d.warnings.push(format!(
                     "{what}: queue type '{kind}' is not supported; declared as a classic queue"
                 ));
             }
-            let mut arguments = arguments.clone();
-            if let Some(map) = arguments.as_object_mut() {
-                map.remove("x-queue-type");
+            let dropped: Vec<_> = dropped.iter().filter(|k| *k != "x-queue-type").collect();
+            if !dropped.is_empty() {
+                d.warnings.push(format!(
+                    "{what}: arguments {dropped:?} are not available on a classic queue; declared without them"
+                ));
             }
             let settings = QueueSettings {
                 durable: flag(item, "durable", true)?,
                 auto_delete: flag(item, "auto_delete", false)?,
-                arguments: to_table(&arguments)?,
+                arguments,
             };
             d.queues.push((vhost, queue, settings));
         }
@@ -624,10 +731,41 @@ pub fn export_vhost(admin: &Admin, links: &Links, vhost: &str) -> Value {
 /// The broker's definitions in RabbitMQ 3.10's form: vhosts, users with
 /// their tags, permissions, topic permissions, and the exchanges,
 /// queues and bindings a client declared (not the predefined exchanges,
-/// exclusive queues or the default exchange's implicit bindings).
+/// exclusive queues or the default exchange's implicit bindings). Users
+/// RabbitMQ cannot take (argon2id hashes) and their permissions go to the
+/// `leveret` section, and a queue argument a classic queue refuses (stored
+/// before it was refused) is left out: each said in the section's
+/// `warnings` and logged.
 pub fn export(admin: &Admin, links: &Links) -> Value {
     let vhosts = admin.vhosts();
-    let users = admin.users();
+    let mut warnings = Vec::new();
+    let (users, leveret_users): (Vec<_>, Vec<_>) = admin
+        .users()
+        .into_iter()
+        .map(|(name, user)| {
+            let (password_hash, hashing_algorithm) = user.password_hash.to_rabbitmq();
+            json!({
+                "name": name, "password_hash": password_hash,
+                "hashing_algorithm": hashing_algorithm, "tags": user.tags,
+                "limits": user_limits_json(admin.user_limits(&name))})
+        })
+        .partition(|user| user["hashing_algorithm"] != LEVERET_ARGON2ID);
+    let leveret_only: Vec<&str> = leveret_users
+        .iter()
+        .filter_map(|user| user["name"].as_str())
+        .collect();
+    for user in &leveret_only {
+        warnings.push(format!(
+            "user '{user}' is in the '{LEVERET_SECTION}' section, with its permissions: its password hash is argon2id, which RabbitMQ cannot import (set its password again there, or give it a RabbitMQ hash here)"
+        ));
+    }
+    let (permissions, leveret_permissions): (Vec<_>, Vec<_>) = permissions_json(admin)
+        .into_iter()
+        .partition(|p| !leveret_only.contains(&p["user"].as_str().unwrap_or_default()));
+    let (topic_permissions, leveret_topic_permissions): (Vec<_>, Vec<_>) =
+        topic_permissions_json(admin)
+            .into_iter()
+            .partition(|p| !leveret_only.contains(&p["user"].as_str().unwrap_or_default()));
     let exclusive: Vec<(String, String)> = admin
         .queues()
         .into_iter()
@@ -639,8 +777,15 @@ pub fn export(admin: &Admin, links: &Links) -> Value {
         .iter()
         .filter(|q| q.exclusive_owner.is_none())
         .map(|q| {
+            let (arguments, dropped) = leveret_broker::classic_queue_arguments(&q.arguments);
+            if !dropped.is_empty() {
+                warnings.push(format!(
+                    "queue '{}' in vhost '{}' exported without its arguments {dropped:?}: a classic queue has none of them (RabbitMQ refuses them)",
+                    q.name, q.vhost
+                ));
+            }
             json!({"name": q.name, "vhost": q.vhost, "type": "classic", "durable": q.durable,
-                   "auto_delete": q.auto_delete, "arguments": table(&q.arguments)})
+                   "auto_delete": q.auto_delete, "arguments": table(&arguments)})
         })
         .collect();
     let exchanges: Vec<Value> = admin
@@ -667,22 +812,19 @@ pub fn export(admin: &Admin, links: &Links) -> Value {
                    "routing_key": b.routing_key, "arguments": table(&b.arguments)})
         })
         .collect();
+    for warning in &warnings {
+        tracing::warn!(%warning, "definitions export");
+    }
     let overview = admin.overview();
     json!({
         "rabbit_version": "3.10.0",
         "rabbitmq_version": "3.10.0",
         "product_name": overview.product,
         "product_version": overview.version,
-        "users": users.iter().map(|(name, user)| {
-            let (password_hash, hashing_algorithm) = user.password_hash.to_rabbitmq();
-            json!({
-                "name": name, "password_hash": password_hash,
-                "hashing_algorithm": hashing_algorithm, "tags": user.tags,
-                "limits": user_limits_json(admin.user_limits(name))})
-        }).collect::<Vec<_>>(),
+        "users": users,
         "vhosts": vhosts.iter().map(|name| json!({"name": name})).collect::<Vec<_>>(),
-        "permissions": permissions_json(admin),
-        "topic_permissions": topic_permissions_json(admin),
+        "permissions": permissions,
+        "topic_permissions": topic_permissions,
         "parameters": links.shovels.list().into_iter().map(|s| json!({
             "value": s.parameters, "vhost": s.vhost, "component": "shovel", "name": s.name,
         })).chain(links.federation.upstreams().into_iter().map(|(vhost, name, value)| json!({
@@ -700,6 +842,12 @@ pub fn export(admin: &Admin, links: &Links) -> Value {
         "queues": queues,
         "exchanges": exchanges,
         "bindings": bindings,
+        LEVERET_SECTION: {
+            "users": leveret_users,
+            "permissions": leveret_permissions,
+            "topic_permissions": leveret_topic_permissions,
+            "warnings": warnings,
+        },
     })
 }
 
@@ -739,6 +887,25 @@ fn pattern(item: &Map<String, Value>, key: &str, what: &str) -> Result<String, S
 mod tests {
     use super::*;
 
+    /// The start-up line counts everything the file defines, each kind once.
+    #[test]
+    fn summary_counts_every_kind_defined() {
+        let text = br#"{"vhosts": [{"name": "/"}, {"name": "a"}],
+            "users": [{"name": "u", "password_hash": "XrbDVjlDKoAec+dZ1vISo+jt5TVEqQvMa8euInsOyfsIm1Ys",
+                "hashing_algorithm": "rabbit_password_hashing_sha256", "tags": []}],
+            "permissions": [{"user": "u", "vhost": "/", "configure": ".*", "write": ".*", "read": ".*"},
+                {"user": "u", "vhost": "a", "configure": ".*", "write": ".*", "read": ".*"}],
+            "queues": [{"name": "q1", "vhost": "/"}, {"name": "q2", "vhost": "a"}, {"name": "q3", "vhost": "a"}],
+            "exchanges": [{"name": "x", "vhost": "/", "type": "fanout"}],
+            "bindings": [{"source": "x", "vhost": "/", "destination": "q1", "destination_type": "queue"}]}"#;
+        let d = Definitions::parse(text).unwrap();
+        assert_eq!(
+            d.summary(),
+            "2 vhosts, 1 user, 2 permissions, 1 exchange, 3 queues, 1 binding"
+        );
+        assert_eq!(Definitions::parse(b"{}").unwrap().summary(), "nothing");
+    }
+
     /// RabbitMQ's user limits in `users[].limits` (-1: none) are taken
     /// and exported back.
     #[test]
@@ -770,7 +937,7 @@ mod tests {
             "vhosts": [{"name": "/", "limits": {"max-queues": 5}}],
             "permissions": [{"user": "a", "vhost": "/", "configure": ".*", "write": ".*", "read": ".*"}],
             "policies": [],
-            "queues": [{"name": "q", "vhost": "/", "durable": true, "auto_delete": false, "arguments": {"x-queue-type": "quorum"}}],
+            "queues": [{"name": "q", "vhost": "/", "durable": true, "auto_delete": false, "arguments": {"x-queue-type": "quorum", "x-delivery-limit": 5, "x-message-ttl": 1000}}],
             "exchanges": [{"name": "x", "vhost": "/", "type": "topic", "durable": true, "auto_delete": false, "internal": false, "arguments": {}}],
             "bindings": [{"source": "x", "vhost": "/", "destination": "q", "destination_type": "queue", "routing_key": "k", "arguments": {}}],
             "shovels": [1]
@@ -782,13 +949,52 @@ mod tests {
             "hashing algorithm rabbit_password_hashing_md5",
             "key 'limits'",
             "queue type 'quorum'",
+            "arguments [\"x-delivery-limit\"] are not available on a classic queue",
         ] {
             assert!(all.contains(expected), "{expected} in:\n{all}");
         }
         assert!(!all.contains("policies"), "empty lists say nothing: {all}");
         assert_eq!(d.queues.len(), 1);
-        assert!(d.queues[0].2.arguments.get("x-queue-type").is_none());
+        let kept = &d.queues[0].2.arguments;
+        assert!(kept.get("x-queue-type").is_none() && kept.get("x-delivery-limit").is_none());
+        assert_eq!(
+            kept.get("x-message-ttl").and_then(|v| v.as_i64()),
+            Some(1000)
+        );
         assert_eq!((d.exchanges.len(), d.bindings.len()), (1, 1));
+    }
+
+    /// An empty `password_hash` is a user without a password, kept with
+    /// its permissions; the `leveret` section's users and permissions are
+    /// read as the others; unapplied lists are named item by item.
+    #[test]
+    fn users_without_passwords_and_the_leveret_section_are_read() {
+        let text = br#"{
+            "users": [{"name": "guest", "password_hash": "", "hashing_algorithm": "rabbit_password_hashing_sha256", "tags": ["administrator"]}],
+            "permissions": [{"user": "guest", "vhost": "/", "configure": ".*", "write": ".*", "read": ".*"}],
+            "operator_policies": [{"vhost": "/", "name": "cap", "pattern": ".*", "definition": {"max-length": 5}}],
+            "leveret": {"users": [{"name": "arm", "password_hash": "", "hashing_algorithm": "leveret_password_hashing_argon2id", "tags": []}],
+                        "permissions": [{"user": "arm", "vhost": "/", "configure": "", "write": ".*", "read": ""}],
+                        "warnings": ["user 'arm' is in the 'leveret' section"]}
+        }"#;
+        let d = Definitions::parse(text).unwrap();
+        let names: Vec<&str> = d.users.iter().map(|u| u.name.as_str()).collect();
+        assert_eq!(names, ["guest", "arm"]);
+        assert!(d.users.iter().all(|u| !u.hash.verify(b"guest")));
+        assert_eq!(
+            d.users[0].hash.to_rabbitmq(),
+            (String::new(), RABBIT_SHA256)
+        );
+        assert_eq!(d.permissions.len(), 2);
+        assert_eq!(
+            d.warnings,
+            [
+                r#"operator_policies: 'cap' in vhost '/' ({"max-length":5}) not imported: Leveret has no operator policies"#
+            ]
+        );
+        assert!(Definitions::parse(br#"{"leveret": []}"#)
+            .unwrap_err()
+            .contains("'leveret' must be an object"));
     }
 
     #[test]

@@ -1,28 +1,220 @@
-//! Serving an axum router on a TCP listener with bounds a peer cannot get
-//! around: at most [`MAX_CONNECTIONS`] connections at once (more are
-//! closed at accept), the request head within [`HEADER_TIMEOUT`], each
-//! connection at most [`CONNECTION_LIFETIME`] (then closed after its
-//! current request), request bodies capped by the router's own
-//! `DefaultBodyLimit`. HTTP/1.1 only, as RabbitMQ's listeners are served.
+//! Serving an axum router on a TCP listener so that no peer can lock the
+//! operators out, whatever it holds open. Bounds:
+//! - At most [`MAX_CONNECTIONS`] connections at once (fewer when the
+//!   process's open-file limit is low: see [`capacity`]), and at most
+//!   [`MAX_PER_SOURCE`] from one IP address.
+//! - A new connection that would pass either bound makes room by closing
+//!   the oldest *waiting* connection (one not being served: silent,
+//!   still sending its request, or idle between requests) of its own
+//!   address, or, for the overall bound, of the address holding the most
+//!   connections. A peer's silent sockets therefore hold their slots only
+//!   until somebody else needs one, and a busy address gives up its own
+//!   before anyone else's. Only when every candidate is being served is
+//!   the new connection closed at accept.
+//! - The request head within [`HEADER_TIMEOUT`] (also between keep-alive
+//!   requests), its body within [`BODY_TIMEOUT`] of the head, each
+//!   connection at most [`CONNECTION_LIFETIME`] (then closed after its
+//!   current request), request bodies capped by the router's own
+//!   `DefaultBodyLimit`.
 //!
-//! hyper (through hyper-util's connection builder) does the protocol;
-//! axum's `Router` is the service. The loop is ours rather than
-//! `axum::serve` so the connection cap and timeouts sit in one place.
+//! Each request carries its peer's address as a [`Peer`] extension (for
+//! RabbitMQ's `loopback_users`). HTTP/1.1 only, as RabbitMQ's listeners
+//! are served. hyper (through hyper-util's connection builder) does the
+//! protocol; axum's `Router` is the service. The loop is ours rather than
+//! `axum::serve` so the bounds sit in one place.
 
+use axum::body::Body;
 use axum::Router;
+use bytes::Bytes;
+use hyper::body::{Frame, Incoming, SizeHint};
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::service::TowerToHyperService;
-use std::sync::Arc;
-use std::time::Duration;
+use std::collections::{BTreeMap, HashMap};
+use std::convert::Infallible;
+use std::future::Future;
+use std::net::{IpAddr, SocketAddr};
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::task::{Context, Poll};
+use std::time::{Duration, Instant};
 use tokio::net::TcpListener;
-use tokio::sync::{watch, Semaphore};
+use tokio::sync::{watch, Notify};
 
-/// Connections served at once per listener.
-pub const MAX_CONNECTIONS: usize = 64;
-/// Time a client has to send a request's head.
-pub const HEADER_TIMEOUT: Duration = Duration::from_secs(10);
+/// Connections served at once per listener, at most.
+pub const MAX_CONNECTIONS: usize = 1024;
+/// Connections from one IP address per listener, at most.
+pub const MAX_PER_SOURCE: usize = 256;
+/// Time a client has to send a request's head, and to start the next one
+/// on a kept-alive connection.
+pub const HEADER_TIMEOUT: Duration = Duration::from_secs(2);
+/// Time a client has to send a request's body, from its head.
+pub const BODY_TIMEOUT: Duration = Duration::from_secs(10);
 /// Longest a connection is kept (keep-alive included).
 pub const CONNECTION_LIFETIME: Duration = Duration::from_secs(300);
+/// Longest gap between two log lines about connections closed to make
+/// room (they are counted in between, not logged one by one).
+const REPORT_EVERY: Duration = Duration::from_secs(10);
+
+/// The peer of the connection a request came on (a request extension).
+#[derive(Debug, Clone, Copy)]
+pub struct Peer(pub SocketAddr);
+
+/// The connections a listener may hold at once: [`MAX_CONNECTIONS`], or a
+/// quarter of the process's open-file limit when that is lower (two such
+/// listeners then leave half of the limit to AMQP).
+pub fn capacity() -> usize {
+    let limit = rustix::process::getrlimit(rustix::process::Resource::Nofile)
+        .current
+        .unwrap_or(u64::MAX);
+    MAX_CONNECTIONS.min(usize::try_from(limit / 4).unwrap_or(usize::MAX).max(1))
+}
+
+/// What the accept loop and a connection's task share about it.
+#[derive(Debug, Default)]
+struct Connection {
+    /// A request of it is being served (its body was read, or its
+    /// handler is running, or its answer is being sent): it is not
+    /// closed to make room.
+    serving: AtomicBool,
+    /// Told to close at once (to make room, or a body too slow).
+    close: Notify,
+}
+
+impl Connection {
+    fn close_now(&self) {
+        self.close.notify_one();
+    }
+}
+
+/// The connections a listener holds, by source address, oldest first.
+#[derive(Debug)]
+struct Table {
+    capacity: usize,
+    per_source: usize,
+    next_id: u64,
+    held: usize,
+    sources: HashMap<IpAddr, BTreeMap<u64, Arc<Connection>>>,
+    /// Connections closed to make room, and new ones closed at accept,
+    /// since the last log line about them.
+    made_room: u64,
+    refused: u64,
+    reported: Instant,
+}
+
+impl Table {
+    fn new(capacity: usize, per_source: usize) -> Self {
+        Table {
+            capacity,
+            per_source: per_source.min(capacity),
+            next_id: 0,
+            held: 0,
+            sources: HashMap::new(),
+            made_room: 0,
+            refused: 0,
+            reported: Instant::now(),
+        }
+    }
+
+    /// Admits a connection from `source`, closing a waiting one if a
+    /// bound needs it (see the module docs); `None` when it must be
+    /// closed instead.
+    fn admit(&mut self, source: IpAddr) -> Option<(u64, Arc<Connection>)> {
+        let from_source = self.sources.get(&source).map_or(0, BTreeMap::len);
+        let room = (from_source < self.per_source || self.close_waiting(source))
+            && (self.held < self.capacity || self.close_waiting_of_busiest());
+        if !room {
+            self.refused += 1;
+            return None;
+        }
+        let id = self.next_id;
+        self.next_id += 1;
+        let connection = Arc::new(Connection::default());
+        self.sources
+            .entry(source)
+            .or_default()
+            .insert(id, Arc::clone(&connection));
+        self.held += 1;
+        Some((id, connection))
+    }
+
+    /// Closes the oldest waiting connection of `source`; false if it has
+    /// none.
+    fn close_waiting(&mut self, source: IpAddr) -> bool {
+        let Some(connections) = self.sources.get_mut(&source) else {
+            return false;
+        };
+        let Some(id) = connections
+            .iter()
+            .find(|(_, c)| !c.serving.load(Ordering::Acquire))
+            .map(|(id, _)| *id)
+        else {
+            return false;
+        };
+        if let Some(connection) = connections.remove(&id) {
+            connection.close_now();
+        }
+        if connections.is_empty() {
+            self.sources.remove(&source);
+        }
+        self.held -= 1;
+        self.made_room += 1;
+        true
+    }
+
+    /// Closes the oldest waiting connection of the address holding the
+    /// most (the next busiest if that one's are all being served).
+    fn close_waiting_of_busiest(&mut self) -> bool {
+        let mut by_count: Vec<(usize, IpAddr)> = self
+            .sources
+            .iter()
+            .map(|(source, connections)| (connections.len(), *source))
+            .collect();
+        by_count.sort_unstable_by(|a, b| b.cmp(a));
+        by_count
+            .into_iter()
+            .any(|(_, source)| self.close_waiting(source))
+    }
+
+    /// Forgets a connection that ended (no-op if it was closed to make
+    /// room, which forgot it then).
+    fn forget(&mut self, source: IpAddr, id: u64) {
+        if let Some(connections) = self.sources.get_mut(&source) {
+            if connections.remove(&id).is_some() {
+                self.held -= 1;
+            }
+            if connections.is_empty() {
+                self.sources.remove(&source);
+            }
+        }
+    }
+
+    /// Logs what was closed to make room, at most once per
+    /// [`REPORT_EVERY`].
+    fn report(&mut self, what: &'static str) {
+        if (self.made_room, self.refused) == (0, 0) || self.reported.elapsed() < REPORT_EVERY {
+            return;
+        }
+        tracing::warn!(
+            listener = what,
+            held = self.held,
+            capacity = self.capacity,
+            per_source = self.per_source,
+            closed_to_make_room = self.made_room,
+            closed_at_accept = self.refused,
+            "HTTP connections beyond the bounds: waiting ones closed to make room"
+        );
+        self.made_room = 0;
+        self.refused = 0;
+        self.reported = Instant::now();
+    }
+}
+
+type Shared = Arc<Mutex<Table>>;
+
+fn lock(table: &Shared) -> std::sync::MutexGuard<'_, Table> {
+    table.lock().unwrap_or_else(|e| e.into_inner())
+}
 
 /// Serves `router` on `listener` until `stop` turns true.
 pub async fn serve(
@@ -31,7 +223,7 @@ pub async fn serve(
     what: &'static str,
     mut stop: watch::Receiver<bool>,
 ) {
-    let slots = Arc::new(Semaphore::new(MAX_CONNECTIONS));
+    let table: Shared = Arc::new(Mutex::new(Table::new(capacity(), MAX_PER_SOURCE)));
     loop {
         let accepted = tokio::select! {
             accepted = listener.accept() => accepted,
@@ -45,40 +237,264 @@ pub async fn serve(
                 continue;
             }
         };
-        let Ok(slot) = Arc::clone(&slots).try_acquire_owned() else {
-            tracing::warn!(listener = what, %peer, limit = MAX_CONNECTIONS, "too many HTTP connections; closing a new one");
+        let source = peer.ip().to_canonical();
+        let admitted = {
+            let mut table = lock(&table);
+            let admitted = table.admit(source);
+            table.report(what);
+            admitted
+        };
+        // One accept per turn of the scheduler: the connections accepted
+        // before get to read their request (and so count as being served)
+        // before a flood's next sockets can make room by closing them.
+        tokio::task::yield_now().await;
+        let Some((id, connection)) = admitted else {
             continue;
         };
-        let service = TowerToHyperService::new(router.clone());
-        let mut stop = stop.clone();
+        let service = Tracked {
+            router: TowerToHyperService::new(router.clone()),
+            connection: Arc::clone(&connection),
+            peer,
+        };
+        let table = Arc::clone(&table);
+        let stop = stop.clone();
         tokio::spawn(async move {
-            let connection = hyper::server::conn::http1::Builder::new()
-                .timer(TokioTimer::new())
-                .header_read_timeout(HEADER_TIMEOUT)
-                .serve_connection(TokioIo::new(stream), service);
-            tokio::pin!(connection);
-            let deadline = tokio::time::sleep(CONNECTION_LIFETIME);
-            tokio::pin!(deadline);
-            let mut closing = false;
-            loop {
-                tokio::select! {
-                    result = connection.as_mut() => {
-                        if let Err(e) = result {
-                            tracing::debug!(listener = what, %peer, error = %e, "HTTP connection ended with an error");
-                        }
-                        break;
-                    }
-                    _ = &mut deadline, if !closing => {
-                        closing = true;
-                        connection.as_mut().graceful_shutdown();
-                    }
-                    _ = stop.wait_for(|stop| *stop), if !closing => {
-                        closing = true;
-                        connection.as_mut().graceful_shutdown();
-                    }
-                }
-            }
-            drop(slot);
+            run(stream, service, &connection, what, peer, stop).await;
+            lock(&table).forget(source, id);
         });
+    }
+}
+
+/// Serves one connection until it ends, its lifetime is over, the
+/// listener stops, or it is told to close.
+async fn run(
+    stream: tokio::net::TcpStream,
+    service: Tracked,
+    connection: &Connection,
+    what: &'static str,
+    peer: SocketAddr,
+    mut stop: watch::Receiver<bool>,
+) {
+    let served = hyper::server::conn::http1::Builder::new()
+        .timer(TokioTimer::new())
+        .header_read_timeout(HEADER_TIMEOUT)
+        .serve_connection(TokioIo::new(stream), service);
+    tokio::pin!(served);
+    let deadline = tokio::time::sleep(CONNECTION_LIFETIME);
+    tokio::pin!(deadline);
+    let mut closing = false;
+    loop {
+        tokio::select! {
+            result = served.as_mut() => {
+                if let Err(e) = result {
+                    tracing::debug!(listener = what, %peer, error = %e, "HTTP connection ended with an error");
+                }
+                return;
+            }
+            _ = connection.close.notified() => {
+                tracing::debug!(listener = what, %peer, "HTTP connection closed: room needed or body too slow");
+                return;
+            }
+            _ = &mut deadline, if !closing => {
+                closing = true;
+                served.as_mut().graceful_shutdown();
+            }
+            _ = stop.wait_for(|stop| *stop), if !closing => {
+                closing = true;
+                served.as_mut().graceful_shutdown();
+            }
+        }
+    }
+}
+
+/// The router as one connection's hyper service: marks the connection
+/// as being served from the moment a request is wholly received until
+/// its answer is sent, bounds the time its body may take, and tags each
+/// request with the [`Peer`].
+#[derive(Clone)]
+struct Tracked {
+    router: TowerToHyperService<Router>,
+    connection: Arc<Connection>,
+    peer: SocketAddr,
+}
+
+impl hyper::service::Service<hyper::Request<Incoming>> for Tracked {
+    type Response = axum::response::Response;
+    type Error = Infallible;
+    type Future = Pin<Box<dyn Future<Output = Result<Self::Response, Infallible>> + Send>>;
+
+    fn call(&self, request: hyper::Request<Incoming>) -> Self::Future {
+        let (mut parts, body) = request.into_parts();
+        parts.extensions.insert(Peer(self.peer));
+        if hyper::body::Body::is_end_stream(&body) {
+            self.connection.serving.store(true, Ordering::Release);
+        }
+        let body = TimedBody {
+            inner: body,
+            deadline: Box::pin(tokio::time::sleep(BODY_TIMEOUT)),
+            connection: Arc::clone(&self.connection),
+        };
+        let answered = self
+            .router
+            .call(hyper::Request::from_parts(parts, Body::new(body)));
+        let connection = Arc::clone(&self.connection);
+        Box::pin(async move {
+            let (parts, body) = answered.await?.into_parts();
+            connection.serving.store(true, Ordering::Release);
+            let answer = Answer {
+                inner: body,
+                connection,
+            };
+            Ok(axum::response::Response::from_parts(
+                parts,
+                Body::new(answer),
+            ))
+        })
+    }
+}
+
+/// A request body that must arrive within [`BODY_TIMEOUT`]: past it the
+/// connection is closed. Its end marks the connection as being served.
+struct TimedBody {
+    inner: Incoming,
+    deadline: Pin<Box<tokio::time::Sleep>>,
+    connection: Arc<Connection>,
+}
+
+impl hyper::body::Body for TimedBody {
+    type Data = Bytes;
+    type Error = hyper::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, hyper::Error>>> {
+        let this = &mut *self;
+        match Pin::new(&mut this.inner).poll_frame(cx) {
+            Poll::Pending => {
+                if this.deadline.as_mut().poll(cx).is_ready() {
+                    this.connection.close_now();
+                }
+                Poll::Pending
+            }
+            Poll::Ready(frame) => {
+                if frame.is_none() || this.inner.is_end_stream() {
+                    this.connection.serving.store(true, Ordering::Release);
+                }
+                Poll::Ready(frame)
+            }
+        }
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        self.inner.size_hint()
+    }
+}
+
+/// A response body; when it is sent (or dropped), the connection waits
+/// for its next request again.
+struct Answer {
+    inner: Body,
+    connection: Arc<Connection>,
+}
+
+impl Drop for Answer {
+    fn drop(&mut self) {
+        self.connection.serving.store(false, Ordering::Release);
+    }
+}
+
+impl hyper::body::Body for Answer {
+    type Data = Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, axum::Error>>> {
+        Pin::new(&mut self.inner).poll_frame(cx)
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        self.inner.size_hint()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ip(last: u8) -> IpAddr {
+        IpAddr::from([10, 0, 0, last])
+    }
+
+    fn closed(connection: &Connection) -> bool {
+        use std::future::Future;
+        let notified = connection.close.notified();
+        tokio::pin!(notified);
+        let waker = std::task::Waker::noop();
+        notified
+            .as_mut()
+            .poll(&mut Context::from_waker(waker))
+            .is_ready()
+    }
+
+    #[test]
+    fn a_full_address_gives_up_its_own_oldest_waiting_connection() {
+        let mut table = Table::new(100, 3);
+        let other = table.admit(ip(2)).expect("room").1;
+        let first = table.admit(ip(1)).expect("room").1;
+        let second = table.admit(ip(1)).expect("room").1;
+        let third = table.admit(ip(1)).expect("room").1;
+        first.serving.store(true, Ordering::Release);
+        // The fourth from 10.0.0.1: its oldest waiting one goes (the first
+        // is being served), never another address's.
+        let fourth = table.admit(ip(1)).expect("room").1;
+        assert!(closed(&second));
+        assert!(!closed(&first) && !closed(&third) && !closed(&fourth) && !closed(&other));
+        assert_eq!(table.held, 4);
+        // All of 10.0.0.1's being served: the next one is refused.
+        for c in [&third, &fourth] {
+            c.serving.store(true, Ordering::Release);
+        }
+        assert!(table.admit(ip(1)).is_none());
+        assert_eq!((table.held, table.made_room, table.refused), (4, 1, 1));
+    }
+
+    #[test]
+    fn a_full_listener_makes_room_at_the_busiest_address() {
+        let mut table = Table::new(4, 4);
+        let quiet = table.admit(ip(1)).expect("room").1;
+        let busy: Vec<_> = (0..3).map(|_| table.admit(ip(2)).expect("room")).collect();
+        // Full: a newcomer takes the busiest address's oldest waiting slot.
+        let newcomer = table.admit(ip(3)).expect("room").1;
+        assert!(closed(&busy[0].1));
+        assert!(!closed(&quiet) && !closed(&newcomer));
+        // The busiest's all being served: the next busiest gives way.
+        for (_, c) in &busy[1..] {
+            c.serving.store(true, Ordering::Release);
+        }
+        table.admit(ip(4)).expect("room");
+        assert!(closed(&quiet) || closed(&newcomer));
+        assert_eq!(table.held, 4);
+        // A connection closed to make room is forgotten once, not twice.
+        table.forget(ip(2), busy[0].0);
+        assert_eq!(table.held, 4);
+        table.forget(ip(2), busy[1].0);
+        assert_eq!(table.held, 3);
+    }
+
+    #[test]
+    fn the_capacity_leaves_room_under_the_open_file_limit() {
+        let capacity = capacity();
+        assert!((1..=MAX_CONNECTIONS).contains(&capacity));
     }
 }

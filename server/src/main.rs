@@ -12,7 +12,8 @@
 //! - `cli`: the command line (clap).
 //! - `config`: the config file (serde, toml) and its merge with the
 //!   command line into the library's `BrokerBuilder`.
-//! - `logging`: the tracing subscriber.
+//! - `logging`: the tracing subscriber (text or JSON lines, to standard
+//!   error or to a file reopened on SIGHUP).
 //! - `ops`: the operators' listeners on a thread of their own, served by
 //!   `http` (bounded connections, timeouts); `metrics` is the Prometheus
 //!   endpoint, reading `process` figures beside the broker's; `management`
@@ -99,8 +100,23 @@ fn runtime(worker_threads: usize) -> std::io::Result<tokio::runtime::Runtime> {
 }
 
 async fn serve(settings: Settings) -> ExitCode {
-    logging::init(&settings.log);
+    let log_file = match &settings.log_file {
+        None => None,
+        Some(path) => match logging::LogFile::open(path) {
+            Ok(file) => Some(file),
+            Err(e) => {
+                eprintln!("leveret: cannot open the log file {}: {e}", path.display());
+                return ExitCode::from(USAGE_ERROR);
+            }
+        },
+    };
+    logging::init(&settings.log, settings.log_format, log_file.clone());
+    process::raise_open_files_limit();
     let ops_settings = settings.ops();
+    let banner = Banner {
+        config_file: settings.config_file.clone(),
+        data_dir: settings.data_dir.clone(),
+    };
     let configured = Configured {
         shovels: settings.shovels.clone(),
         federation_upstreams: settings.federation_upstreams.clone(),
@@ -121,7 +137,7 @@ async fn serve(settings: Settings) -> ExitCode {
             }
         }
     };
-    let mut signals = match Signals::register() {
+    let mut signals = match Signals::register(log_file) {
         Ok(signals) => signals,
         Err(e) => {
             tracing::error!(error = %e, "cannot watch for signals");
@@ -148,7 +164,7 @@ async fn serve(settings: Settings) -> ExitCode {
         &links,
         definitions,
         configured,
-        ops_settings,
+        (ops_settings, banner),
         &mut signals,
     )
     .await;
@@ -167,14 +183,55 @@ struct Configured {
     policies: Vec<(String, serde_json::Value)>,
 }
 
+/// What the start banner names besides the listeners.
+struct Banner {
+    config_file: Option<std::path::PathBuf>,
+    data_dir: std::path::PathBuf,
+}
+
+impl Banner {
+    /// One info line once everything listens: the version, the config
+    /// file, the data directory and every listener with its protocol
+    /// (RabbitMQ's names: amqp, amqp/ssl, http, http/prometheus).
+    fn log(self, handle: &leveret_broker::BrokerHandle, ops: &ops::Ops) {
+        let version = env!("CARGO_PKG_VERSION");
+        let config_file = match &self.config_file {
+            Some(path) => path.display().to_string(),
+            None => "none".to_owned(),
+        };
+        let data_dir = std::fs::canonicalize(&self.data_dir).unwrap_or(self.data_dir);
+        let plain = handle
+            .local_addrs()
+            .iter()
+            .map(|addr| format!("amqp {addr}"));
+        let tls = handle
+            .tls_addrs()
+            .iter()
+            .map(|addr| format!("amqp/ssl {addr}"));
+        let mut listeners: Vec<String> = plain.chain(tls).collect();
+        listeners.push(format!("http {} (management API)", ops.http_addr));
+        listeners.push(format!("http/prometheus {}", ops.metrics_addr));
+        let listeners = listeners.join(", ");
+        tracing::info!(
+            version,
+            %config_file,
+            data_dir = %data_dir.display(),
+            %listeners,
+            "Leveret {version} started; config file: {config_file}; data directory: {}; listeners: {listeners}",
+            data_dir.display()
+        );
+    }
+}
+
 /// Loads the definitions, starts the shovels, federation and the
-/// operators' listeners, and serves until a signal says stop.
+/// operators' listeners, logs the start banner, and serves until a
+/// signal says stop.
 async fn run(
     handle: &Arc<leveret_broker::BrokerHandle>,
     links: &uplink::Links,
     definitions: Option<Definitions>,
     configured: Configured,
-    ops_settings: ops::OpsSettings,
+    (ops_settings, banner): (ops::OpsSettings, Banner),
     signals: &mut Signals,
 ) -> ExitCode {
     links.shovels.start_stored().await;
@@ -204,7 +261,10 @@ async fn run(
     links.federation.keep_in_step();
     if let Some(mut definitions) = definitions {
         match definitions.apply(&handle.admin(), links).await {
-            Ok(applied) => tracing::info!(?applied, "definitions loaded"),
+            // Vhosts, users and permissions were in place before the
+            // apply (the builder took them): every item counts, not only
+            // what the apply changed.
+            Ok(_changed) => tracing::info!("definitions loaded: {}", definitions.summary()),
             Err(e) => {
                 tracing::error!(error = %e, "cannot load the definitions");
                 return ExitCode::FAILURE;
@@ -226,6 +286,7 @@ async fn run(
             return ExitCode::FAILURE;
         }
     };
+    banner.log(handle, &ops);
     signals.wait_for_stop(handle).await;
     tracing::info!("shutting down");
     ops.stop();
@@ -253,27 +314,36 @@ struct Signals {
     interrupt: tokio::signal::unix::Signal,
     terminate: tokio::signal::unix::Signal,
     hangup: tokio::signal::unix::Signal,
+    /// The log file SIGHUP reopens.
+    log_file: Option<logging::LogFile>,
 }
 
 #[cfg(unix)]
 impl Signals {
-    fn register() -> std::io::Result<Signals> {
+    fn register(log_file: Option<logging::LogFile>) -> std::io::Result<Signals> {
         use tokio::signal::unix::{signal, SignalKind};
         Ok(Signals {
             interrupt: signal(SignalKind::interrupt())?,
             terminate: signal(SignalKind::terminate())?,
             hangup: signal(SignalKind::hangup())?,
+            log_file,
         })
     }
 
-    /// Waits for SIGINT or SIGTERM; SIGHUP meanwhile re-reads the TLS
-    /// certificate files.
+    /// Waits for SIGINT or SIGTERM; SIGHUP meanwhile reopens the log
+    /// file and re-reads the TLS certificate files.
     async fn wait_for_stop(&mut self, handle: &leveret_broker::BrokerHandle) {
         loop {
             tokio::select! {
                 _ = self.interrupt.recv() => return,
                 _ = self.terminate.recv() => return,
                 _ = self.hangup.recv() => {
+                    if let Some(file) = &self.log_file {
+                        match file.reopen() {
+                            Ok(()) => tracing::info!("log file reopened"),
+                            Err(e) => tracing::error!(error = %e, "log file not reopened; writing on to the one open"),
+                        }
+                    }
                     if handle.tls_addrs().is_empty() {
                         continue;
                     }
@@ -293,7 +363,8 @@ struct Signals;
 
 #[cfg(not(unix))]
 impl Signals {
-    fn register() -> std::io::Result<Signals> {
+    /// (A log file is not reopened where there is no SIGHUP.)
+    fn register(_log_file: Option<logging::LogFile>) -> std::io::Result<Signals> {
         Ok(Signals)
     }
 

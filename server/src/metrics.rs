@@ -12,16 +12,19 @@
 //!
 //! A scrape reads the broker through [`Admin`] on the listeners' thread:
 //! queues are read a chunk at a time with a yield between chunks, so one
-//! scrape of many queues never holds that thread for long either.
+//! scrape of many queues never holds that thread for long either, and
+//! `/metrics/per-object` writes its per-queue families a chunk at a time
+//! as the client reads: its memory is a chunk's, not the document's.
 
 use crate::process::ProcessFigures;
 use crate::uplink::Shovels;
+use axum::body::{Body, Bytes};
 use axum::extract::{DefaultBodyLimit, State};
 use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use axum::routing::get;
 use axum::Router;
-use leveret_broker::{Admin, HistogramFigures, QueueInfo};
+use leveret_broker::{Admin, HistogramFigures, QueueInfo, QueueRef};
 use prometheus::proto::{
     Bucket, Counter, Gauge, Histogram, LabelPair, Metric, MetricFamily, MetricType,
 };
@@ -166,7 +169,7 @@ fn sample(kind: MetricType, labels: &[(&str, &str)], value: f64) -> Metric {
 
 /// The per-queue metrics, each read from a [`QueueInfo`].
 type QueueFigure = fn(&QueueInfo) -> u64;
-const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 11] = [
+const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 12] = [
     ("rabbitmq_queue_messages_ready", MetricType::GAUGE, "Messages ready to be delivered to consumers", |q| q.messages_ready),
     ("rabbitmq_queue_messages_unacked", MetricType::GAUGE, "Messages delivered to consumers but not yet acknowledged", |q| q.messages_unacknowledged),
     ("rabbitmq_queue_messages", MetricType::GAUGE, "Sum of ready and unacknowledged messages - total queue depth", |q| q.messages()),
@@ -178,10 +181,12 @@ const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 11] = [
     ("rabbitmq_queue_messages_delivered_total", MetricType::COUNTER, "Total number of messages delivered from a queue to consumers in automatic acknowledgement mode", |q| q.message_stats.deliver_no_ack),
     ("rabbitmq_queue_messages_redelivered_total", MetricType::COUNTER, "Total number of messages redelivered from a queue to consumers", |q| q.message_stats.redeliver),
     ("rabbitmq_queue_messages_acked_total", MetricType::COUNTER, "Total number of messages acknowledged by consumers on a queue", |q| q.message_stats.ack),
+    ("rabbitmq_queue_get_empty_total", MetricType::COUNTER, "Total number of times basic.get operations fetched no message on a queue", |q| q.message_stats.get_empty),
 ];
-const QUEUE_GET_EMPTY: (&str, &str) = (
-    "rabbitmq_queue_get_empty_total",
-    "Total number of times basic.get operations fetched no message on a queue",
+/// `/metrics/per-object`'s family of queue details.
+const QUEUE_INFO: (&str, &str) = (
+    "rabbitmq_queue_info",
+    "A metric with a constant '1' value and labels that provide some queue details",
 );
 
 /// Each shovel's state (a `1` labelled with it) and counts, labelled
@@ -241,15 +246,107 @@ fn shovel_metrics(out: &mut Exposition, shovels: &Shovels) {
     }
 }
 
-/// Reads every queue, a chunk at a time, yielding between chunks.
-async fn read_queues(admin: &Admin) -> Vec<QueueInfo> {
-    let refs = admin.queue_refs();
-    let mut infos = Vec::with_capacity(refs.len());
+/// The sums over every queue of [`QUEUE_METRICS`]' figures and of the
+/// ready bytes, read a chunk at a time, yielding between chunks.
+async fn queue_sums(refs: &[QueueRef]) -> ([u64; QUEUE_METRICS.len()], u64) {
+    let mut sums = [0u64; QUEUE_METRICS.len()];
+    let mut ready_bytes = 0u64;
     for chunk in refs.chunks(CHUNK) {
-        infos.extend(chunk.iter().map(|q| q.info()));
+        for queue in chunk {
+            let info = queue.info();
+            for (sum, (.., figure)) in sums.iter_mut().zip(QUEUE_METRICS) {
+                *sum = sum.saturating_add(figure(&info));
+            }
+            ready_bytes = ready_bytes.saturating_add(info.message_bytes_ready);
+        }
         tokio::task::yield_now().await;
     }
-    infos
+    (sums, ready_bytes)
+}
+
+/// One chunk of a per-queue family of `/metrics/per-object`: family
+/// `index` ([`QUEUE_METRICS`]' then [`QUEUE_INFO`]) for `queues`, each
+/// read as its turn comes; the HELP and TYPE lines only when `first`.
+/// Written as the `prometheus` crate's text encoder writes (label values
+/// escaped alike), without building its structs for every sample.
+fn per_queue_chunk(index: usize, queues: &[QueueRef], first: bool) -> String {
+    use std::fmt::Write;
+    let (name, kind, help) = match QUEUE_METRICS.get(index) {
+        Some(&(name, kind, help, _)) => (name, kind, help),
+        None => (QUEUE_INFO.0, MetricType::GAUGE, QUEUE_INFO.1),
+    };
+    let mut text = String::new();
+    if first {
+        let kind = if kind == MetricType::COUNTER {
+            "counter"
+        } else {
+            "gauge"
+        };
+        let _ = write!(text, "# HELP {name} {help}\n# TYPE {name} {kind}\n");
+    }
+    for queue in queues {
+        let (vhost, queue_name) = (escaped(queue.vhost()), escaped(queue.name()));
+        let _ = match QUEUE_METRICS.get(index) {
+            Some(&(.., figure)) => writeln!(
+                text,
+                "{name}{{vhost=\"{vhost}\",queue=\"{queue_name}\"}} {}",
+                figure(&queue.info())
+            ),
+            None => writeln!(
+                text,
+                "{name}{{vhost=\"{vhost}\",queue=\"{queue_name}\",{}=\"{}\",membership=\"leader\"}} 1",
+                QUEUE_TYPE.0, QUEUE_TYPE.1
+            ),
+        };
+    }
+    text
+}
+
+/// A label value as the text format escapes it: `\\`, `\n` and `\"`.
+fn escaped(value: &str) -> std::borrow::Cow<'_, str> {
+    if !value.contains(['\\', '\n', '"']) {
+        return value.into();
+    }
+    value
+        .replace('\\', "\\\\")
+        .replace('\n', "\\n")
+        .replace('"', "\\\"")
+        .into()
+}
+
+/// `/metrics/per-object`'s body: `head` (every family but the per-queue
+/// ones), then each per-queue family written [`CHUNK`] queues at a time
+/// as the client reads, with a yield between chunks, so the document is
+/// never whole in memory (a family's samples are read a little apart in
+/// time, as RabbitMQ's plugin reads its tables).
+fn per_object_body(head: String, queues: Vec<QueueRef>) -> Body {
+    let families = if queues.is_empty() {
+        0
+    } else {
+        QUEUE_METRICS.len() + 1
+    };
+    let start = (Some(head), queues, 0usize, 0usize);
+    let stream = futures_util::stream::unfold(start, move |(head, queues, index, at)| async move {
+        if let Some(head) = head {
+            return Some((
+                Ok::<_, std::io::Error>(Bytes::from(head)),
+                (None, queues, index, at),
+            ));
+        }
+        if index >= families {
+            return None;
+        }
+        tokio::task::yield_now().await;
+        let end = (at + CHUNK).min(queues.len());
+        let text = per_queue_chunk(index, &queues[at..end], at == 0);
+        let next = if end == queues.len() {
+            (index + 1, 0)
+        } else {
+            (index, end)
+        };
+        Some((Ok(Bytes::from(text)), (None, queues, next.0, next.1)))
+    });
+    Body::from_stream(stream)
 }
 
 /// The router of the metrics listener: `/metrics` and `/metrics/per-object`
@@ -263,20 +360,25 @@ pub fn router(context: MetricsContext) -> Router {
 }
 
 async fn aggregated(State(context): State<Arc<MetricsContext>>) -> impl IntoResponse {
-    text_response(scrape(&context, Endpoint::Aggregated).await)
+    let queues = context.admin.queue_refs();
+    let text = scrape(&context, Endpoint::Aggregated, &queues).await;
+    ([(CONTENT_TYPE, prometheus::TEXT_FORMAT)], text)
 }
 
 async fn per_object(State(context): State<Arc<MetricsContext>>) -> impl IntoResponse {
-    text_response(scrape(&context, Endpoint::PerObject).await)
+    let queues = context.admin.queue_refs();
+    let head = scrape(&context, Endpoint::PerObject, &queues).await;
+    (
+        [(CONTENT_TYPE, prometheus::TEXT_FORMAT)],
+        per_object_body(head, queues),
+    )
 }
 
-fn text_response(body: String) -> impl IntoResponse {
-    ([(CONTENT_TYPE, prometheus::TEXT_FORMAT)], body)
-}
-
-/// One scrape of `endpoint`, as Prometheus text format 0.0.4.
-pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
-    let queues = read_queues(&context.admin).await;
+/// One scrape of `endpoint` over `queues`, as Prometheus text format
+/// 0.0.4; for [`Endpoint::PerObject`], all but the per-queue families
+/// (`per_object_body` streams those after it).
+pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[QueueRef]) -> String {
+    let (sums, ready_bytes) = queue_sums(queues).await;
     let overview = context.admin.overview();
     let process = ProcessFigures::read(&context.data_dir);
     let mut out = Exposition {
@@ -346,11 +448,17 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
             out.gauge(name, help, value);
         }
     }
-    out.gauge(
-        "rabbitmq_resident_memory_limit_bytes",
-        "Memory high watermark in bytes",
-        overview.memory_high_watermark as u64,
-    );
+    // RabbitMQ's figure is the resident-memory watermark (what Grafana's
+    // "memory available before publishers blocked" subtracts from);
+    // Leveret's second limit, on queued message bytes, has its own name
+    // (below).
+    if let Some(limit) = overview.resident_memory_limit {
+        out.gauge(
+            "rabbitmq_resident_memory_limit_bytes",
+            "Memory high watermark in bytes",
+            limit,
+        );
+    }
     out.gauge(
         "rabbitmq_disk_space_available_limit_bytes",
         "Free disk space low watermark in bytes",
@@ -364,41 +472,9 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
         overview.uptime.as_secs_f64(),
     );
 
-    for (name, kind, help, figure) in QUEUE_METRICS {
-        let family = out.family(name, kind, help);
-        match endpoint {
-            Endpoint::Aggregated => {
-                let sum: u64 = queues.iter().map(figure).sum();
-                family.mut_metric().push(sample(kind, &[], sum as f64));
-            }
-            Endpoint::PerObject => {
-                for q in &queues {
-                    let labels = [("vhost", q.vhost.as_str()), ("queue", q.name.as_str())];
-                    family
-                        .mut_metric()
-                        .push(sample(kind, &labels, figure(q) as f64));
-                }
-            }
-        }
-    }
-    let (name, help) = QUEUE_GET_EMPTY;
-    let family = out.family(name, MetricType::COUNTER, help);
-    match endpoint {
-        Endpoint::Aggregated => {
-            let sum: u64 = queues.iter().map(|q| q.message_stats.get_empty).sum();
-            family
-                .mut_metric()
-                .push(sample(MetricType::COUNTER, &[], sum as f64));
-        }
-        Endpoint::PerObject => {
-            for q in &queues {
-                let labels = [("vhost", q.vhost.as_str()), ("queue", q.name.as_str())];
-                family.mut_metric().push(sample(
-                    MetricType::COUNTER,
-                    &labels,
-                    q.message_stats.get_empty as f64,
-                ));
-            }
+    if endpoint == Endpoint::Aggregated {
+        for ((name, kind, help, _), sum) in QUEUE_METRICS.into_iter().zip(sums) {
+            out.single(name, kind, help, &[], sum as f64);
         }
     }
 
@@ -487,7 +563,12 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
     out.gauge(
         "leveret_queued_message_bytes",
         "Body bytes of the ready messages in all queues",
-        queues.iter().map(|q| q.message_bytes_ready).sum(),
+        ready_bytes,
+    );
+    out.gauge(
+        "leveret_queued_bytes_limit_bytes",
+        "Queued message bytes above which publishers are blocked",
+        overview.memory_high_watermark as u64,
     );
     if let Some(busy) = overview.busy_poll {
         out.counter(
@@ -524,24 +605,6 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint) -> String {
 
     shovel_metrics(&mut out, &context.shovels);
 
-    if endpoint == Endpoint::PerObject {
-        let family = out.family(
-            "rabbitmq_queue_info",
-            MetricType::GAUGE,
-            "A metric with a constant '1' value and labels that provide some queue details",
-        );
-        for q in &queues {
-            let labels = [
-                ("vhost", q.vhost.as_str()),
-                ("queue", q.name.as_str()),
-                ("queue_type", "rabbit_classic_queue"),
-                ("membership", "leader"),
-            ];
-            family
-                .mut_metric()
-                .push(sample(MetricType::GAUGE, &labels, 1.0));
-        }
-    }
     let version = overview.version;
     out.single(
         "rabbitmq_build_info",

@@ -28,6 +28,10 @@ pub struct OpsSettings {
 /// The running listeners.
 #[derive(Debug)]
 pub struct Ops {
+    /// Where the Prometheus endpoint listens.
+    pub metrics_addr: SocketAddr,
+    /// Where the management API listens.
+    pub http_addr: SocketAddr,
     stop: watch::Sender<bool>,
     thread: std::thread::JoinHandle<()>,
 }
@@ -48,9 +52,18 @@ pub enum OpsError {
     Thread(std::io::Error),
 }
 
+/// Connections the kernel queues for accept per listener: more than the
+/// sockets a flood holds (`crate::http`), so an operator's connection is
+/// queued rather than dropped while the flood is being shed. std binds
+/// with 128; Linux takes a second `listen` as the new length (capped by
+/// `net.core.somaxconn`).
+const BACKLOG: i32 = 4096;
+
 fn bind(addr: SocketAddr) -> Result<std::net::TcpListener, OpsError> {
-    let bound = std::net::TcpListener::bind(addr)
-        .and_then(|listener| listener.set_nonblocking(true).map(|()| listener));
+    let bound = std::net::TcpListener::bind(addr).and_then(|listener| {
+        rustix::net::listen(&listener, BACKLOG)?;
+        listener.set_nonblocking(true).map(|()| listener)
+    });
     bound.map_err(|source| OpsError::Bind { addr, source })
 }
 
@@ -129,7 +142,12 @@ impl Ops {
                 });
             })
             .map_err(OpsError::Thread)?;
-        Ok(Ops { stop, thread })
+        Ok(Ops {
+            metrics_addr,
+            http_addr,
+            stop,
+            thread,
+        })
     }
 
     /// Stops the listeners and waits for their thread.

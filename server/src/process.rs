@@ -54,6 +54,24 @@ fn max_open_files(limits: &str) -> Option<u64> {
         .ok()
 }
 
+/// Raises the soft limit on open file descriptors to the hard limit, as
+/// servers commonly do at start (the soft limit is often 1024, the hard
+/// one far higher): every AMQP connection and every HTTP connection holds
+/// one. Logs the change, or why there was none.
+pub fn raise_open_files_limit() {
+    use rustix::process::{getrlimit, setrlimit, Resource};
+    let mut limit = getrlimit(Resource::Nofile);
+    let before = limit.current;
+    if before == limit.maximum {
+        return;
+    }
+    limit.current = limit.maximum;
+    match setrlimit(Resource::Nofile, limit) {
+        Ok(()) => tracing::info!(from = ?before, to = ?limit.maximum, "raised the open-file limit"),
+        Err(e) => tracing::warn!(limit = ?before, error = %e, "cannot raise the open-file limit"),
+    }
+}
+
 /// This node's name, `leveret@HOST`.
 pub fn node_name() -> String {
     let uname = rustix::system::uname();

@@ -324,9 +324,16 @@ async fn port_commands_list_follow_and_echo_robot_ports() {
         .expect("URI")
         .exchange("poses", ExchangeKind::Fanout)
         .announce_interval(Some(Duration::from_millis(200)));
-    let input = InPort::<TimedPose2D>::connect(profile.clone().name("pose-in"))
-        .await
-        .expect("in-port");
+    let input = std::sync::Arc::new(
+        InPort::<TimedPose2D>::connect(profile.clone().name("pose-in"))
+            .await
+            .expect("in-port"),
+    );
+    // The application takes every value (its latencies are measured then).
+    let reader = {
+        let input = std::sync::Arc::clone(&input);
+        tokio::spawn(async move { while input.recv().await.is_some() {} })
+    };
     let output = std::sync::Arc::new(
         OutPort::<TimedPose2D>::connect(profile.name("pose-out"))
             .await
@@ -384,7 +391,8 @@ async fn port_commands_list_follow_and_echo_robot_ports() {
         pose_out[7].parse::<u64>().expect("accepted") > 0,
         "{pose_out:?}"
     );
-    assert_eq!((pose_out[9].as_str(), pose_out[10].as_str()), ("", ""));
+    // An out-port counts `lost` too (written on a link that dropped).
+    assert_eq!((pose_out[9].as_str(), pose_out[10].as_str()), ("", "0"));
     let chosen = port_lines(
         &broker,
         &[
@@ -467,11 +475,12 @@ async fn port_commands_list_follow_and_echo_robot_ports() {
     let accepted = output.stats().accepted;
     tokio::time::timeout(
         Duration::from_secs(10),
-        watched.wait_for(|stats| stats.received == accepted),
+        watched.wait_for(|stats| stats.arrived == accepted),
     )
     .await
     .expect("the in-port got every value: echo took none")
     .expect("open");
+    reader.abort();
 
     let connections = lines(
         &broker,
@@ -507,4 +516,261 @@ async fn port_commands_list_follow_and_echo_robot_ports() {
         .output()
         .expect("run leveretctl");
     assert_eq!(unreachable.status.code(), Some(69), "{unreachable:?}");
+}
+
+/// ping and await_startup as scripts and service units use them: 0 once
+/// the broker answers, 69 (ping) when nothing answers, 75 when
+/// await_startup's timeout passes, 1 when the credentials are refused.
+#[test]
+fn ping_and_await_startup_exit_as_rabbitmqctl() {
+    let broker = OpsBroker::start("ctl-ping", &[]);
+    let ping = lines(&broker, &["ping"]);
+    assert_eq!(
+        ping.last().map(String::as_str),
+        Some("Ping succeeded"),
+        "{ping:?}"
+    );
+    assert!(lines(&broker, &["-q", "await_startup", "--timeout", "5"]).is_empty());
+    let refused = ctl(&broker, &["--password", "wrong", "await_startup"]);
+    assert_eq!(refused.status.code(), Some(1), "{refused:?}");
+    let nowhere = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_leveretctl"))
+            .args(["--url", "http://127.0.0.1:1"])
+            .args(args)
+            .output()
+            .expect("run leveretctl")
+    };
+    assert_eq!(nowhere(&["ping", "-t", "2"]).status.code(), Some(69));
+    let waited = nowhere(&["await_startup", "--timeout", "1"]);
+    assert_eq!(waited.status.code(), Some(75), "{waited:?}");
+    assert!(String::from_utf8_lossy(&waited.stderr).contains("did not start within 1 s"));
+}
+
+/// add_vhost and list_vhosts, in text and with `--formatter json`.
+#[test]
+fn vhosts_are_added_and_listed_in_both_formats() {
+    let broker = OpsBroker::start("ctl-vhosts", &[]);
+    lines(&broker, &["add_vhost", "robots"]);
+    assert_eq!(
+        lines(&broker, &["-q", "list_vhosts"]),
+        ["name", "/", "robots"]
+    );
+    let json = lines(
+        &broker,
+        &[
+            "-q",
+            "--formatter",
+            "json",
+            "list_vhosts",
+            "name",
+            "tracing",
+        ],
+    );
+    let vhosts: serde_json::Value = serde_json::from_str(&json.join("\n")).expect("JSON");
+    assert_eq!(
+        vhosts,
+        serde_json::json!([{"name": "/", "tracing": false}, {"name": "robots", "tracing": false}])
+    );
+}
+
+/// list_channels with rabbitmqctl's default columns; an unknown column
+/// is reported (exit 64) after the known ones are printed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn channels_are_listed_and_unknown_columns_do_not_abort_the_rest() {
+    let broker = OpsBroker::start("ctl-channels", &[]);
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let _one = conn.create_channel().await.expect("channel");
+    let _two = conn.create_channel().await.expect("channel");
+    let channels = lines(&broker, &["-q", "list_channels"]);
+    assert_eq!(
+        channels[0],
+        "pid\tuser\tconsumer_count\tmessages_unacknowledged"
+    );
+    assert_eq!(channels.len(), 3, "{channels:?}");
+    for row in &channels[1..] {
+        assert!(row.ends_with(")\tguest\t0\t0"), "{row}");
+    }
+    let json = lines(
+        &broker,
+        &[
+            "-q",
+            "--formatter",
+            "json",
+            "list_channels",
+            "number",
+            "user",
+        ],
+    );
+    let channels: serde_json::Value = serde_json::from_str(&json.join("\n")).expect("JSON");
+    assert_eq!(
+        channels,
+        serde_json::json!([{"number": 1, "user": "guest"}, {"number": 2, "user": "guest"}])
+    );
+
+    let partial = ctl(
+        &broker,
+        &["-q", "list_connections", "user", "memory", "vhost"],
+    );
+    assert_eq!(partial.status.code(), Some(64), "{partial:?}");
+    assert_eq!(
+        String::from_utf8_lossy(&partial.stdout),
+        "user\tvhost\nguest\t/\n"
+    );
+    let error = String::from_utf8_lossy(&partial.stderr);
+    assert!(error.contains("unknown column(s) memory"), "{error}");
+}
+
+/// `status --formatter json`: one object with the alarms, limits and totals.
+#[test]
+fn status_prints_json_when_asked() {
+    let broker = OpsBroker::start("ctl-status-json", &[]);
+    let json = lines(&broker, &["-q", "--formatter", "json", "status"]);
+    let status: serde_json::Value = serde_json::from_str(&json.join("\n")).expect("JSON");
+    assert_eq!(status["alarms"], serde_json::json!([]));
+    assert!(status["memory"]["queued_bytes_limit"].is_u64(), "{status}");
+    assert!(status["disk"]["limit"].is_u64(), "{status}");
+    assert_eq!(status["totals"]["connections"], 0);
+}
+
+/// set_topic_permissions, list_topic_permissions and
+/// clear_topic_permissions (all, or one exchange's) in rabbitmqctl's words.
+#[test]
+fn topic_permissions_are_set_listed_and_cleared() {
+    let broker = OpsBroker::start("ctl-topic-permissions", &[]);
+    let listed = |broker: &OpsBroker| {
+        lines(
+            broker,
+            &["-q", "--no-table-headers", "list_topic_permissions"],
+        )
+    };
+    lines(
+        &broker,
+        &[
+            "set_topic_permissions",
+            "guest",
+            "amq.topic",
+            "^robots\\.",
+            ".*",
+        ],
+    );
+    lines(
+        &broker,
+        &["set_topic_permissions", "guest", "events", "^a", "^b"],
+    );
+    let mut both = listed(&broker);
+    both.sort();
+    assert_eq!(
+        both,
+        ["guest\tamq.topic\t^robots\\.\t.*", "guest\tevents\t^a\t^b"]
+    );
+    lines(&broker, &["clear_topic_permissions", "guest", "events"]);
+    assert_eq!(listed(&broker), ["guest\tamq.topic\t^robots\\.\t.*"]);
+    lines(&broker, &["clear_topic_permissions", "guest"]);
+    assert!(listed(&broker).is_empty());
+}
+
+/// report: the status, then every listing, vhost by vhost; in JSON one
+/// object holding the API's objects.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn report_shows_the_status_and_every_listing() {
+    let broker = OpsBroker::start("ctl-report", &[]);
+    lines(&broker, &["add_vhost", "robots"]);
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = conn.create_channel().await.expect("channel");
+    ch.queue_declare(
+        "reported",
+        QueueDeclareOptions::default(),
+        FieldTable::default(),
+    )
+    .await
+    .expect("declare");
+    let text = lines(&broker, &["report"]).join("\n");
+    for expected in [
+        "\nAlarms\n",
+        "\nConnections:\nuser\tpeer_host\tpeer_port\tstate\nguest\t127.0.0.1\t",
+        "\nChannels:\npid\tuser\tconsumer_count\tmessages_unacknowledged\n",
+        "\nQueues on /:\nname\tmessages\nreported\t0\n",
+        "\nPermissions on robots:\nuser\tconfigure\twrite\tread\nguest\t.*\t.*\t.*\n",
+        "\nTopic permissions on robots:\n",
+    ] {
+        assert!(text.contains(expected), "{expected:?} in:\n{text}");
+    }
+    let json = lines(&broker, &["--formatter", "json", "report"]).join("\n");
+    let report: serde_json::Value = serde_json::from_str(&json).expect("JSON");
+    assert_eq!(report["vhosts"]["/"]["queues"][0]["name"], "reported");
+    assert_eq!(
+        report["vhosts"]["robots"]["permissions"][0]["user"],
+        "guest"
+    );
+    assert_eq!(report["connections"][0]["user"], "guest");
+}
+
+/// `port echo` on a port of the default exchange (straight to its queue,
+/// no exchange to copy from) peeks at the queue: it prints values in
+/// order, and the in-port still gets every one, none twice.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn port_echo_peeks_at_a_default_exchange_port() {
+    use leveret_client::ports::{InPort, OutPort, PortProfile, Time, TimedLong};
+    let broker = std::sync::Arc::new(OpsBroker::start("ctl-echo-default", &[]));
+    let profile = PortProfile::new(&broker.amqp_url())
+        .expect("URI")
+        .queue("cmd_vel")
+        .routing_key("cmd_vel")
+        .announce_interval(Some(Duration::from_millis(200)));
+    let input = InPort::<TimedLong>::connect(profile.clone().name("cmd-in"))
+        .await
+        .expect("in-port");
+    let output = std::sync::Arc::new(
+        OutPort::<TimedLong>::connect(profile.name("cmd-out"))
+            .await
+            .expect("out-port"),
+    );
+    // Value n is n: its sequence number says which it is.
+    let publisher = {
+        let output = std::sync::Arc::clone(&output);
+        tokio::spawn(async move {
+            for data in 1..=i32::MAX {
+                output
+                    .put(&TimedLong {
+                        tm: Time::now(),
+                        data,
+                    })
+                    .await;
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+    };
+    let echoed = port_lines(&broker, &["echo", "cmd-out", "--count", "3"]).await;
+    assert_eq!(echoed.len(), 3, "{echoed:?}");
+    let mut seqs = Vec::new();
+    for line in &echoed {
+        let seq: u64 = field(line, "seq").expect("seq").parse().expect("number");
+        assert!(
+            line.contains("TimedLong { tm: Time { sec: ")
+                && line.contains(&format!("data: {seq} }}")),
+            "value {seq} decoded: {line}"
+        );
+        seqs.push(seq);
+    }
+    assert!(seqs.windows(2).all(|w| w[0] < w[1]), "{seqs:?}");
+
+    publisher.abort();
+    let _ = publisher.await;
+    tokio::time::timeout(Duration::from_secs(10), output.flush())
+        .await
+        .expect("flushed");
+    let accepted = output.stats().accepted;
+    let mut watched = input.watch_stats();
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        watched.wait_for(|stats| stats.arrived == accepted),
+    )
+    .await
+    .expect("the in-port got every value: the echo handed back what it took")
+    .expect("open");
+    assert_eq!(input.stats().duplicates, 0, "{:?}", input.stats());
 }

@@ -1,12 +1,12 @@
 //! The Prometheus endpoint of the `leveret` binary, end to end: every
 //! listener on port 0, traffic from lapin, scrapes whose values move with
 //! it under RabbitMQ's metric names and labels, `promtool check metrics`
-//! on both endpoints, and the listener's bounds (methods, unknown paths,
-//! the connection cap).
+//! on both endpoints, `/metrics/per-object` streamed in chunks for many
+//! queues, and the listener's routes (methods, unknown paths).
 
 mod common;
 
-use common::ops::{promtool_check, request, tool_available, try_request, OpsBroker};
+use common::ops::{promtool_check, request, tool_available, OpsBroker};
 use futures_lite::StreamExt;
 use lapin::options::{
     BasicAckOptions, BasicConsumeOptions, BasicPublishOptions, BasicQosOptions,
@@ -214,54 +214,59 @@ async fn scrapes_follow_traffic_under_rabbitmq_names() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_metrics_listener_is_bounded() {
+async fn the_metrics_listener_answers_only_its_routes() {
     let broker = OpsBroker::start("bounds", &[]);
     let post = request(broker.metrics, "POST", "/metrics", &[], &[b'x'; 4096]).await;
     assert_eq!(post.status, 405);
     let unknown = request(broker.metrics, "GET", "/api/overview", &[], b"").await;
     assert_eq!(unknown.status, 404);
+    // The connection bounds are operator_lockout.rs' subject.
+}
 
-    // The connection cap: idle connections fill every slot; the next is
-    // closed at once without an answer; once they go, scrapes work again.
-    let mut idle = Vec::new();
-    for _ in 0..64 {
-        idle.push(
-            tokio::net::TcpStream::connect(broker.metrics)
-                .await
-                .expect("connect"),
-        );
+/// `/metrics/per-object` over more queues than one chunk (1000) holds: the
+/// body is streamed (chunked), every per-queue family appears once with
+/// one sample per queue, and promtool accepts the whole.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn per_object_metrics_of_many_queues_are_streamed_whole() {
+    let broker = OpsBroker::start("per-object-many", &[]);
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = conn.create_channel().await.expect("channel");
+    let count = 2500;
+    for i in 0..count {
+        ch.queue_declare(
+            &format!("many-{i:05}"),
+            QueueDeclareOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("declare");
     }
-    // Each accepted connection is one slot; wait until the 65th is refused.
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-    loop {
-        use tokio::io::{AsyncReadExt, AsyncWriteExt};
-        let mut extra = tokio::net::TcpStream::connect(broker.metrics)
-            .await
-            .expect("connect");
-        let _ = extra
-            .write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
-            .await;
-        let mut answer = Vec::new();
-        let read = tokio::time::timeout(Duration::from_secs(5), extra.read_to_end(&mut answer))
-            .await
-            .expect("the extra connection is answered or closed at once");
-        if read.is_err() || answer.is_empty() {
-            break;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "a connection over the cap was served"
-        );
-        tokio::time::sleep(Duration::from_millis(20)).await;
+    let response = request(broker.metrics, "GET", "/metrics/per-object", &[], b"").await;
+    assert_eq!(response.status, 200);
+    assert_eq!(response.header("transfer-encoding"), Some("chunked"));
+    let text = response.text();
+    for family in [
+        "rabbitmq_queue_messages_ready",
+        "rabbitmq_queue_get_empty_total",
+        "rabbitmq_queue_info",
+    ] {
+        let help = format!("# HELP {family} ");
+        assert_eq!(text.matches(&help).count(), 1, "{family}'s HELP once");
+        let samples = text
+            .lines()
+            .filter(|line| line.starts_with(&format!("{family}{{")))
+            .count();
+        assert_eq!(samples, count, "{family}: one sample per queue");
     }
-    drop(idle);
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-    loop {
-        if let Some(response) = try_request(broker.metrics, "GET", "/metrics", &[], b"").await {
-            assert_eq!(response.status, 200);
-            break;
-        }
-        assert!(tokio::time::Instant::now() < deadline, "slots never freed");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    assert_eq!(
+        value(
+            &text,
+            "rabbitmq_queue_messages_ready{vhost=\"/\",queue=\"many-02499\"}"
+        ),
+        Some(0.0)
+    );
+    assert_eq!(value(&text, "rabbitmq_queues"), Some(count as f64));
+    check_with_promtool(&text, "/metrics/per-object of many queues");
 }

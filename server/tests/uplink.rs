@@ -181,6 +181,24 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     )
     .await;
     assert_eq!(bad.status, 400, "{}", bad.text());
+    // A shovel from a queue into itself would spin for ever: refused.
+    let looped = json!({"value": {
+        "src-uri": "amqp://", "src-queue": "poses", "dest-uri": "amqp://", "dest-queue": "poses",
+    }});
+    let looped = request(
+        robot.http,
+        "PUT",
+        "/api/parameters/shovel/%2F/looped",
+        &headers,
+        looped.to_string().as_bytes(),
+    )
+    .await;
+    assert_eq!(looped.status, 400, "{}", looped.text());
+    assert!(
+        looped.text().contains("the shovel would loop"),
+        "{}",
+        looped.text()
+    );
 
     // The shovel's own queue on the robot takes amq.topic's pose.# messages.
     let fleet_conn = Connection::connect(&fleet_url, ConnectionProperties::default())
@@ -355,9 +373,18 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     drop(robot_ch);
     drop(robot_conn);
     let robot = robot.kill_and_restart(&[]);
-    tokio::time::sleep(Duration::from_millis(500)).await;
-    let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
-    let listed: Value = serde_json::from_slice(&listed.body).expect("JSON");
+    // Once the shovel that stays runs again, the deleted one, had it
+    // lasted, would be listed too (both start from the stored parameters).
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    let listed = loop {
+        let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
+        let listed: Value = serde_json::from_slice(&listed.body).expect("JSON");
+        if running(&listed).contains(&both[1]) {
+            break listed;
+        }
+        assert!(std::time::Instant::now() < deadline, "{listed}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
     assert_eq!(
         listed.as_array().unwrap().len(),
         1,

@@ -37,6 +37,8 @@ pub struct RabbitNode {
     pub port: u16,
     /// Its own directory (database, logs, config).
     pub dir: PathBuf,
+    /// Its management API on 127.0.0.1, when started with it.
+    pub management_port: Option<u16>,
     home: PathBuf,
     child: Child,
 }
@@ -60,15 +62,33 @@ impl RabbitNode {
     /// Starts a node named `name` in `dir` (created afresh) with `home` as
     /// its `HOME`, and waits until it runs.
     pub fn start(name: &str, dir: &Path, home: &Path) -> RabbitNode {
+        RabbitNode::start_with(name, dir, home, false)
+    }
+
+    /// [`RabbitNode::start`] with the management plugin, its API on a port
+    /// of its own ([`RabbitNode::management_port`]).
+    pub fn start_with_management(name: &str, dir: &Path, home: &Path) -> RabbitNode {
+        RabbitNode::start_with(name, dir, home, true)
+    }
+
+    fn start_with(name: &str, dir: &Path, home: &Path, management: bool) -> RabbitNode {
         let _ = std::fs::remove_dir_all(dir);
         std::fs::create_dir_all(dir).expect("node dir");
-        std::fs::write(dir.join("enabled_plugins"), "[].\n").expect("plugins");
+        let plugins = if management {
+            "[rabbitmq_management].\n"
+        } else {
+            "[].\n"
+        };
+        std::fs::write(dir.join("enabled_plugins"), plugins).expect("plugins");
         let port = free_port();
-        std::fs::write(
-            dir.join("rabbitmq.conf"),
-            format!("listeners.tcp.1 = 127.0.0.1:{port}\nloopback_users = none\n"),
-        )
-        .expect("config");
+        let management_port = management.then(free_port);
+        let mut config = format!("listeners.tcp.1 = 127.0.0.1:{port}\nloopback_users = none\n");
+        if let Some(http) = management_port {
+            config.push_str(&format!(
+                "management.tcp.ip = 127.0.0.1\nmanagement.tcp.port = {http}\n"
+            ));
+        }
+        std::fs::write(dir.join("rabbitmq.conf"), config).expect("config");
         let name = format!("{name}-{}@localhost", std::process::id());
         let mut command = Command::new(format!("{BIN}/rabbitmq-server"));
         RabbitNode::env_for(&mut command, home, dir, &name);
@@ -82,6 +102,7 @@ impl RabbitNode {
             name,
             port,
             dir: dir.to_owned(),
+            management_port,
             home: home.to_owned(),
             child,
         };

@@ -1,8 +1,9 @@
 //! The stall budget (issue 12): work whose size a client chooses must not
 //! hold the broker's thread. Each test builds a big piece of state, then
-//! runs the heavy operation on it while a bystander connection measures
-//! its round trips ([`Probe`]); the worst must stay under
-//! [`WORST_ROUND_TRIP`] beyond what the machine showed just before. The
+//! runs the heavy operation on it while a bystander connection on the
+//! broker's thread measures its round trips in that thread's CPU time
+//! ([`Probe`]); the worst must stay under [`WORST_ROUND_TRIP`] beyond what
+//! it was just before. The
 //! probe keeps running for [`AFTERMATH`] after the operation's reply,
 //! since the broker finishes such work in the background, a slice at a
 //! time.

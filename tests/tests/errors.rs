@@ -179,7 +179,7 @@ async fn check_channel_errors(cases: &[(Op, u16, &str, (u16, u16))]) {
         let (ch, mut ev) = rs::channel(&conn).await;
         run(&ch, op, &f).await;
         let Ok((got_code, text, got_ids)) =
-            tokio::time::timeout(std::time::Duration::from_secs(3), rs::closed_ids(&mut ev)).await
+            tokio::time::timeout(TIMEOUT, rs::closed_ids(&mut ev)).await
         else {
             wrong.push(format!(
                 "{op:?}: no channel.close, want {code} {ids:?} {prefix}"

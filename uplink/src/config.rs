@@ -263,13 +263,24 @@ impl ShovelConfig {
                     .ok_or_else(|| format!("{key} must be a positive integer")),
             }
         };
+        let src_uri = uris(object, "src-uri")?.remove(0);
+        let dest_uris = uris(object, "dest-uri")?;
+        if let (Source::Queue(from), Destination::Queue(to)) = (&source, &destination) {
+            if from == to && dest_uris.contains(&src_uri) {
+                // It would take each message and put it back, for ever, as
+                // fast as the broker goes.
+                return Err(format!(
+                    "src-queue and dest-queue are the same queue '{from}' on the same broker ({src_uri}): the shovel would loop"
+                ));
+            }
+        }
         Ok(ShovelConfig {
             bandwidth_limit: limit("bandwidth-limit")?,
             message_rate_limit: limit("message-rate-limit")?,
-            src_uri: uris(object, "src-uri")?.remove(0),
+            src_uri,
             source,
             prefetch,
-            dest_uris: uris(object, "dest-uri")?,
+            dest_uris,
             destination,
             add_forward_headers,
             publish_properties,
@@ -284,6 +295,25 @@ impl ShovelConfig {
 mod tests {
     use super::*;
     use serde_json::json;
+
+    #[test]
+    fn a_shovel_from_a_queue_into_itself_is_refused() {
+        let refused = ShovelConfig::from_json(&json!({
+            "src-uri": "amqp://", "src-queue": "q", "dest-uri": ["amqp://fleet", "amqp://"], "dest-queue": "q",
+        }))
+        .unwrap_err();
+        assert!(
+            refused.contains("same queue 'q' on the same broker"),
+            "{refused}"
+        );
+        // Another queue, or the same name on another broker, is a shovel.
+        for (dest_uri, dest_queue) in [("amqp://", "other"), ("amqp://fleet", "q")] {
+            assert!(ShovelConfig::from_json(&json!({
+                "src-uri": "amqp://", "src-queue": "q", "dest-uri": dest_uri, "dest-queue": dest_queue,
+            }))
+            .is_ok());
+        }
+    }
 
     #[test]
     fn rabbitmqs_parameters_and_defaults() {

@@ -47,7 +47,7 @@ async fn channel_to(uri: &str) -> (Connection, Channel) {
     (connection, channel)
 }
 
-async fn local_channel(robot: &BrokerHandle) -> (Connection, Channel) {
+async fn local_channel(robot: &Arc<BrokerHandle>) -> (Connection, Channel) {
     let connection = Connection::in_process(robot).await.expect("in process");
     let channel = connection.open_channel().await.expect("channel");
     (connection, channel)
@@ -562,7 +562,7 @@ async fn positions(channel: &Channel, queue: &str, count: usize, keep: usize) ->
 async fn positions_name_one_message_across_restarts() {
     let dir = scratch("positions");
     let start = || Broker::builder().data_dir(&dir).start();
-    let robot = start().await.expect("robot broker");
+    let robot = Arc::new(start().await.expect("robot broker"));
     let (connection, publisher) = local_channel(&robot).await;
     publisher.confirm_select().await.expect("confirms");
     declare(&publisher, "telemetry", FieldTable::new()).await;
@@ -573,9 +573,12 @@ async fn positions_name_one_message_across_restarts() {
     assert_eq!(distinct.len(), 4, "{first:?}");
     drop(publisher);
     drop(connection);
-    robot.shutdown().await;
+    Arc::into_inner(robot)
+        .expect("the only handle")
+        .shutdown()
+        .await;
 
-    let robot = start().await.expect("robot broker again");
+    let robot = Arc::new(start().await.expect("robot broker again"));
     let (_connection, channel) = local_channel(&robot).await;
     channel.confirm_select().await.expect("confirms");
     assert_eq!(
@@ -606,7 +609,10 @@ async fn positions_name_one_message_across_restarts() {
         .expect_err("not a boolean");
     assert!(refused.to_string().contains("406"), "{refused}");
     drop(channel);
-    robot.shutdown().await;
+    Arc::into_inner(robot)
+        .expect("the only handle")
+        .shutdown()
+        .await;
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -626,7 +632,6 @@ async fn a_message_forwarded_twice_carries_one_id() {
     let (_c, fleet_channel) = channel_to(&fleet_uri).await;
     declare(&fleet_channel, "archive", FieldTable::new()).await;
     let proxy = leveret_tests::fault_proxy::FaultProxy::start(addr).await;
-    proxy.set(|f| f.latency = Duration::from_secs(1));
     let shovel = Shovel::start(
         "twice",
         shovel_config(
@@ -636,8 +641,13 @@ async fn a_message_forwarded_twice_carries_one_id() {
         Some(&robot),
     );
     wait_status(&shovel, "running", |s| s.state == ShovelState::Running).await;
+    // Each chunk now waits this long each way: the message reaches the
+    // fleet after it, and the fleet's confirm would come back after it
+    // again, time enough for this test to cut the link first however
+    // loaded the machine.
+    proxy.set(|f| f.latency = Duration::from_secs(10));
     publish_confirmed(&publisher, "telemetry", 0, 1).await;
-    // The fleet has it; its confirm is a second away: cut the link now.
+    // The fleet has it; its confirm is seconds away: cut the link now.
     let deadline = tokio::time::Instant::now() + WAIT;
     while fleet_broker
         .queues()
@@ -653,7 +663,13 @@ async fn a_message_forwarded_twice_carries_one_id() {
     wait_status(&shovel, "forwarded again", |s| s.forwarded >= 1).await;
     assert!(shovel.status().restarts >= 1);
     let mut copies = Vec::new();
+    let deadline = tokio::time::Instant::now() + WAIT;
     while copies.len() < 2 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{} copies arrived",
+            copies.len()
+        );
         if let Some(message) = fleet_channel
             .basic_get("archive", BasicGetOptions { no_ack: true })
             .await

@@ -9,7 +9,7 @@ use crate::exchange::Exchange;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
 use crate::permissions::Right;
-use crate::queue::{DeadLetters, Enqueued, Queue, QueuedMessage};
+use crate::queue::{ConsumerArgs, DeadLetters, Enqueued, Queue, QueuedMessage};
 use crate::slice::{finish_in_background, Progress, Slice};
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
@@ -98,32 +98,6 @@ pub(crate) fn unique_name(prefix: &str) -> ShortStr {
         bits >>= 6;
     }
     ShortStr::try_from(name).unwrap_or_default()
-}
-
-/// The `x-priority` argument of basic.consume (0 without one); RabbitMQ
-/// refuses one that is not an integer.
-fn consumer_priority(arguments: &leveret_protocol::FieldTable) -> AmqpResult<i64> {
-    match arguments.get("x-priority") {
-        None => Ok(0),
-        Some(value) => value.as_i64().ok_or_else(|| {
-            AmqpError::precondition_failed(format_args!(
-                "invalid arg 'x-priority': {value:?} is not an integer"
-            ))
-        }),
-    }
-}
-
-/// The `x-leveret-position` argument of basic.consume (false without
-/// one); a value that is not a boolean is refused.
-fn wants_position(arguments: &leveret_protocol::FieldTable) -> AmqpResult<bool> {
-    match arguments.get(crate::queue::POSITION_HEADER) {
-        None => Ok(false),
-        Some(leveret_protocol::FieldValue::Bool(wanted)) => Ok(*wanted),
-        Some(value) => Err(AmqpError::precondition_failed(format_args!(
-            "invalid arg '{}': {value:?} is not a boolean",
-            crate::queue::POSITION_HEADER
-        ))),
-    }
 }
 
 impl Channel {
@@ -397,14 +371,15 @@ impl Channel {
                 tag
             )));
         }
+        let args = ConsumerArgs::parse(&consume.arguments, &queue.name, &self.vhost.name)?;
         let consumer = Arc::new(Consumer {
             tag: tag.clone(),
             channel: Arc::clone(&self.link),
             no_ack: consume.no_ack,
             exclusive: consume.exclusive,
             prefetch: self.prefetch_count,
-            priority: consumer_priority(&consume.arguments)?,
-            wants_position: wants_position(&consume.arguments)?,
+            priority: args.priority,
+            wants_position: args.wants_position,
             in_flight: Default::default(),
             active: Default::default(),
         });
@@ -427,6 +402,11 @@ impl Channel {
             if let Some((consumer, queue)) = self.consumers.remove(&cancel.consumer_tag) {
                 if queue.remove_consumer(&consumer) {
                     self.vhost.delete_queue(&queue).notify();
+                } else {
+                    // A single active consumer's successor takes over (once
+                    // what the cancelled one holds unacked, which stays with
+                    // this channel as in RabbitMQ, is settled).
+                    self.vhost.dead_letter(queue.dispatch());
                 }
             }
         }

@@ -3,7 +3,7 @@
 use super::Channel;
 use crate::error::AmqpResult;
 use crate::exchange::ExchangeOptions;
-use crate::permissions::Right;
+use crate::permissions::{Resource, Right};
 use crate::vhost::{BindingChange, ExchangeDeclaration};
 use leveret_protocol::{
     ExchangeBind, ExchangeBindOk, ExchangeDeclare, ExchangeDeclareOk, ExchangeDelete,
@@ -18,17 +18,16 @@ impl Channel {
         // is created with an alternate exchange, read on it and write on
         // the alternate.
         if !declare.passive && !declare.exchange.is_empty() {
-            self.allow_exchange(Right::Configure, declare.exchange.as_bytes())?;
-            if self.vhost.exchange(&declare.exchange).is_none() {
-                if let Some(alternate) = declare
-                    .arguments
-                    .get("alternate-exchange")
-                    .and_then(|v| v.as_bytes())
-                {
-                    self.allow_exchange(Right::Read, declare.exchange.as_bytes())?;
-                    self.allow_exchange(Right::Write, alternate)?;
-                }
-            }
+            let alternate = declare
+                .arguments
+                .get("alternate-exchange")
+                .and_then(|v| v.as_bytes())
+                .filter(|_| self.vhost.exchange(&declare.exchange).is_none())
+                .map(String::from_utf8_lossy);
+            self.access.current()?.check_exchange_declare(
+                &declare.exchange.to_string_lossy(),
+                alternate.as_deref(),
+            )?;
         }
         self.vhost.declare_exchange(ExchangeDeclaration {
             name: declare.exchange,
@@ -112,8 +111,10 @@ impl Channel {
         source: &ShortStr,
         routing_key: &ShortStr,
     ) -> AmqpResult<()> {
-        self.allow_exchange(Right::Write, destination.as_bytes())?;
-        self.allow_exchange(Right::Read, source.as_bytes())?;
+        self.access.current()?.check_binding(
+            Resource::Exchange(&destination.to_string_lossy()),
+            &source.to_string_lossy(),
+        )?;
         self.allow_topic_binding(source, routing_key)
     }
 

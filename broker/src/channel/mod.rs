@@ -654,14 +654,22 @@ impl Channel {
         // A body being received is dropped with its reservation.
         self.assembly = Assembly::Idle;
         self.drop_direct_reply();
+        let mut kept = Vec::new();
         for (_, (consumer, queue)) in self.consumers.drain() {
             if queue.remove_consumer(&consumer) {
                 self.vhost.delete_queue(&queue).notify();
+            } else {
+                kept.push(queue);
             }
         }
         self.abandon_tx();
         let unacked = self.link.deliveries().take_all();
         self.vhost.dead_letter(basic::requeue_all(unacked));
+        // Only now may a single active consumer's successor take over: the
+        // messages requeued above go to it first, in their order.
+        for queue in kept {
+            self.vhost.dead_letter(queue.dispatch());
+        }
     }
 }
 

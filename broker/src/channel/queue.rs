@@ -2,7 +2,7 @@
 
 use super::Channel;
 use crate::error::{AmqpError, AmqpResult};
-use crate::permissions::Right;
+use crate::permissions::{Resource, Right};
 use crate::queue::{Deleted, QueueOptions};
 use crate::vhost::{check_exclusive, BindingChange, QueueDeclaration};
 use leveret_protocol::{
@@ -33,20 +33,15 @@ impl Channel {
             self.queue_name_or_last(declare.queue)?
         };
         if !declare.passive {
-            // RabbitMQ's checks: configure on the queue, and when it is
-            // created with a dead-letter exchange, read on the queue and
-            // write on that exchange.
-            self.allow_queue(Right::Configure, name.as_bytes())?;
-            if self.vhost.queue(&name).is_none() {
-                if let Some(dlx) = declare
-                    .arguments
-                    .get("x-dead-letter-exchange")
-                    .and_then(|v| v.as_bytes())
-                {
-                    self.allow_queue(Right::Read, name.as_bytes())?;
-                    self.allow_exchange(Right::Write, dlx)?;
-                }
-            }
+            let dead_letter_exchange = declare
+                .arguments
+                .get("x-dead-letter-exchange")
+                .and_then(|v| v.as_bytes())
+                .filter(|_| self.vhost.queue(&name).is_none())
+                .map(String::from_utf8_lossy);
+            self.access
+                .current()?
+                .check_queue_declare(&name.to_string_lossy(), dead_letter_exchange.as_deref())?;
         }
         let decl = QueueDeclaration {
             name,
@@ -109,8 +104,10 @@ impl Channel {
         exchange: &ShortStr,
         routing_key: &ShortStr,
     ) -> AmqpResult<()> {
-        self.allow_queue(Right::Write, queue.as_bytes())?;
-        self.allow_exchange(Right::Read, exchange.as_bytes())?;
+        self.access.current()?.check_binding(
+            Resource::Queue(&queue.to_string_lossy()),
+            &exchange.to_string_lossy(),
+        )?;
         self.allow_topic_binding(exchange, routing_key)
     }
 

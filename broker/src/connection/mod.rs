@@ -37,6 +37,7 @@ use leveret_protocol::{
 };
 use reader::{FrameReader, Incoming, ReadError, IDLE_RELEASE};
 use source::FrameSource;
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncWrite, AsyncWriteExt};
@@ -65,12 +66,13 @@ pub enum Identity {
 }
 
 /// Serves one connection over a byte stream until it closes. `slot` is
-/// its place in the connection counts, given back when it ends.
+/// its place in the connection counts, given back when it ends; `local`
+/// is the listener's address it came in on (none in-process).
 pub async fn serve<R, W>(
     core: Arc<Core>,
     read: R,
     write: W,
-    peer: String,
+    (peer, local): (String, Option<SocketAddr>),
     slot: Slot,
     identity: Identity,
 ) where
@@ -78,7 +80,8 @@ pub async fn serve<R, W>(
     W: AsyncWrite + Unpin + Send + 'static,
 {
     let reader = FrameReader::new(read, core.busy_poll.clone());
-    serve_frames(core, reader, SocketSink(write), peer, slot, identity).await;
+    let ends = Ends::new(peer, local);
+    serve_frames(core, reader, SocketSink(write), ends, slot, identity).await;
 }
 
 /// Starts serving an in-process client that exchanges frame values with
@@ -95,7 +98,8 @@ pub fn serve_direct(
 ) -> DirectLink {
     let (link, frames, start) = direct::link();
     tokio::spawn(async move {
-        serve_frames(core, frames, DirectSink(start), peer, slot, Identity::None).await;
+        let ends = Ends::new(peer, None);
+        serve_frames(core, frames, DirectSink(start), ends, slot, Identity::None).await;
         drop(done);
     });
     link
@@ -162,10 +166,12 @@ async fn serve_frames<S: FrameSource, K: Sink>(
     core: Arc<Core>,
     mut reader: S,
     sink: K,
-    peer: String,
+    ends: Ends,
     slot: Slot,
     identity: Identity,
 ) {
+    let Ends { peer, local, label } = ends;
+    let started = Instant::now();
     let connection_id = core.next_connection_id();
     let _registration = core.registry.connection(connection_id, &peer);
     // RabbitMQ's handshake_timeout runs from the connection's start to
@@ -180,14 +186,22 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         }
         Ok(Err(_)) | Err(_) => return,
     }
+    tracing::info!(
+        connection = connection_id,
+        %peer,
+        local = local.map(tracing::field::display),
+        "accepting AMQP connection #{connection_id} ({label})"
+    );
     let (outbox, inbox) = Outbox::new(connection_id);
     let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
-    let writer = sink.start(inbox, Arc::clone(&outbox), heartbeat_rx);
+    let mut writer = sink.start(inbox, Arc::clone(&outbox), heartbeat_rx);
     let mut conn = Connection {
         core,
         outbox,
         connection_id,
         peer,
+        label,
+        client_name: None,
         slot,
         identity,
         user: String::new(),
@@ -205,12 +219,28 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         .run(&mut reader, &heartbeat_tx, handshake_deadline)
         .await;
     conn.cleanup();
-    match outcome {
-        Ok(()) => tracing::debug!(peer = %conn.peer, "connection closed"),
-        Err(e) => tracing::info!(peer = %conn.peer, error = %e, "connection closed with error"),
+    // A client that stopped answering (missed heartbeats) may have
+    // stopped reading too, with the writer blocked on its full socket:
+    // the writer is stopped where it is, as RabbitMQ closes the socket,
+    // and what it held is dropped. Otherwise it gets what is queued out
+    // within the close timeout.
+    let unresponsive = matches!(
+        outcome,
+        Err(Ended::MissedHeartbeats(_) | Ended::Read(ReadError::TimedOut))
+    );
+    conn.log_close(&outcome, started.elapsed());
+    if unresponsive {
+        writer.abort();
     }
-    conn.outbox.send(Outbound::Shutdown).await;
-    let _ = writer.await;
+    let drained = async {
+        conn.outbox.send(Outbound::Shutdown).await;
+        let _ = (&mut writer).await;
+    };
+    if tokio::time::timeout(CLOSE_TIMEOUT, drained).await.is_err() {
+        tracing::info!(peer = %conn.peer, "client not reading; closing its socket with output unsent");
+        writer.abort();
+        let _ = writer.await;
+    }
 }
 
 /// Why a handshake step did not finish.
@@ -245,11 +275,52 @@ async fn handshake_step<T>(
     }
 }
 
+/// Where a connection comes from and goes to, for its log lines.
+struct Ends {
+    peer: String,
+    local: Option<SocketAddr>,
+    /// `peer -> local` as RabbitMQ logs it (the peer alone in-process).
+    label: String,
+}
+
+impl Ends {
+    fn new(peer: String, local: Option<SocketAddr>) -> Ends {
+        let label = match local {
+            Some(local) => format!("{peer} -> {local}"),
+            None => peer.clone(),
+        };
+        Ends { peer, local, label }
+    }
+}
+
+/// A client-supplied text made safe for a log line: control characters
+/// escaped (no forged lines), at most [`LOGGED_TEXT_MAX`] characters.
+fn loggable(text: &[u8]) -> String {
+    let text = String::from_utf8_lossy(text);
+    let mut out = String::new();
+    for c in text.chars().take(LOGGED_TEXT_MAX) {
+        if c.is_control() {
+            out.extend(c.escape_default());
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
+/// The longest client-supplied text logged (a user or connection name,
+/// or a close text, which AMQP caps at 255 bytes).
+const LOGGED_TEXT_MAX: usize = 300;
+
 struct Connection {
     core: Arc<Core>,
     outbox: Arc<Outbox>,
     connection_id: u64,
     peer: String,
+    /// `peer -> local`.
+    label: String,
+    /// The client-provided name (`connection_name`), for the log lines.
+    client_name: Option<String>,
     slot: Slot,
     identity: Identity,
     user: String,
@@ -268,13 +339,44 @@ struct Connection {
     blocked: bool,
 }
 
-/// How the connection ended, for the log line.
+/// How the connection ended (other than by the client's close), for the
+/// log line.
 #[derive(Debug, thiserror::Error)]
 enum Ended {
+    /// The broker closed it with this error.
     #[error("{0}")]
     Protocol(AmqpError),
+    /// Closed with CONNECTION_FORCED: by an administrator or at shutdown.
+    #[error("{0}")]
+    Forced(String),
+    /// A login refused to a client that did not ask for a close: the
+    /// socket is just closed, as RabbitMQ does.
+    #[error("{0}")]
+    Refused(String),
+    #[error("missed heartbeats from client, timeout: {}s", .0.as_secs())]
+    MissedHeartbeats(Duration),
+    #[error("client unexpectedly closed TCP connection")]
+    PeerClosed,
     #[error("socket: {0}")]
     Read(ReadError),
+}
+
+impl From<ReadError> for Ended {
+    fn from(e: ReadError) -> Self {
+        use std::io::ErrorKind::{BrokenPipe, ConnectionAborted, ConnectionReset, UnexpectedEof};
+        match e {
+            ReadError::Closed => Ended::PeerClosed,
+            ReadError::Io(e)
+                if matches!(
+                    e.kind(),
+                    ConnectionReset | ConnectionAborted | BrokenPipe | UnexpectedEof
+                ) =>
+            {
+                Ended::PeerClosed
+            }
+            e => Ended::Read(e),
+        }
+    }
 }
 
 impl Connection {
@@ -292,9 +394,13 @@ impl Connection {
             Ok(Err(Ended::Protocol(error))) => return self.close_with(reader, error).await,
             Ok(Err(e)) => return Err(e),
             Err(Interrupted::TimedOut) => return Err(Ended::Read(ReadError::TimedOut)),
-            Err(Interrupted::ShuttingDown) => return Ok(()),
+            Err(Interrupted::ShuttingDown) => {
+                return Err(Ended::Forced(
+                    self.core.registry.close_reason(self.connection_id),
+                ))
+            }
         }
-        tracing::debug!(user = %self.user, "connection open");
+        self.log_open();
         let mut shutdown = (self.core.registry.close_signal(self.connection_id))
             .unwrap_or_else(|| self.core.shutdown_signal());
         let mut durable = self.core.persistence.as_ref().map(|p| p.durable());
@@ -303,6 +409,7 @@ impl Connection {
         // timer reset per read would cost a timer-wheel update per batch).
         let silence_limit = self.heartbeat * 2;
         let mut last_read = tokio::time::Instant::now();
+        self.outbox.heard(last_read);
         let silence = tokio::time::sleep(silence_limit);
         tokio::pin!(silence);
         // Likewise for giving back a read buffer grown by a burst.
@@ -377,9 +484,10 @@ impl Connection {
                     // monitor likewise).
                     Unblocked::Cleared => {
                         last_read = tokio::time::Instant::now();
+                        self.outbox.heard(last_read);
                         continue;
                     }
-                    Unblocked::PeerGone => return Err(Ended::Read(ReadError::Closed)),
+                    Unblocked::PeerGone => return Err(Ended::PeerClosed),
                     Unblocked::ShuttingDown => {
                         let error =
                             AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
@@ -401,8 +509,11 @@ impl Connection {
                 _ = &mut release, if reader.holds_spare() => Event::Idle,
             };
             match event {
-                Event::Read(Ok(())) => last_read = tokio::time::Instant::now(),
-                Event::Read(Err(e)) => return Err(Ended::Read(e)),
+                Event::Read(Ok(())) => {
+                    last_read = tokio::time::Instant::now();
+                    self.outbox.heard(last_read);
+                }
+                Event::Read(Err(e)) => return Err(e.into()),
                 Event::DiskProgress | Event::Alarm => {}
                 Event::Idle if last_read.elapsed() < IDLE_RELEASE => {
                     release.as_mut().reset(last_read + IDLE_RELEASE);
@@ -412,8 +523,7 @@ impl Connection {
                     silence.as_mut().reset(last_read + silence_limit);
                 }
                 Event::Silent => {
-                    tracing::info!(peer = %self.peer, "missed heartbeats from client; closing");
-                    return Err(Ended::Read(ReadError::TimedOut));
+                    return Err(Ended::MissedHeartbeats(self.heartbeat));
                 }
                 Event::Shutdown => {
                     let reason = self.core.registry.close_reason(self.connection_id);
@@ -510,7 +620,7 @@ impl Connection {
                 Err(ReadError::Decode(e)) => {
                     return Err(Ended::Protocol(AmqpError::new(e.reply_code(), &e)))
                 }
-                Err(e) => return Err(Ended::Read(e)),
+                Err(e) => return Err(e.into()),
             }
         }
     }
@@ -561,30 +671,32 @@ impl Connection {
                 self.core.users.contains(name).then(|| name.clone())
             }
             (_, mechanism) => {
-                self.core
-                    .users
-                    .authenticate(mechanism, &start_ok.response)
-                    .await
+                let users = &self.core.users;
+                let login = users.authenticate(mechanism, &start_ok.response, &self.peer);
+                // A client that hangs up withdraws its check (see `hash_pool`).
+                tokio::select! {
+                    user = login => user,
+                    _ = reader.hung_up() => return Err(Ended::PeerClosed),
+                }
             }
         };
         match authenticated {
             Some(user) if !self.core.users.may_connect_from(&user, &self.peer) => {
-                tracing::warn!(peer = %self.peer, %user, "user may connect only via localhost (loopback_users)");
+                let refusal = format!("user '{user}' can only connect via localhost");
+                tracing::warn!(peer = %self.peer, %user, mechanism = %start_ok.mechanism, "{} login refused: {refusal}", start_ok.mechanism);
                 if !capability("authentication_failure_close") {
-                    return Err(Ended::Read(ReadError::Closed));
+                    return Err(Ended::Refused(refusal));
                 }
-                let error = AmqpError::access_refused(format_args!(
-                    "user '{user}' can only connect via localhost"
-                ));
+                let error = AmqpError::access_refused(refusal);
                 return Err(Ended::Protocol(error));
             }
             Some(user) => self.user = user,
             None => {
-                tracing::warn!(peer = %self.peer, mechanism = %start_ok.mechanism, "authentication failed");
+                let refusal = self.login_refused(&start_ok.mechanism, &start_ok.response);
                 if !capability("authentication_failure_close") {
                     // Clients that did not ask for a close just see the
                     // socket closed, as with RabbitMQ.
-                    return Err(Ended::Read(ReadError::Closed));
+                    return Err(Ended::Refused(refusal));
                 }
                 let error = AmqpError::access_refused(format_args!(
                     "Login was refused using authentication mechanism {}. For details see the broker logfile.",
@@ -690,6 +802,10 @@ impl Connection {
                 ));
             }
         }
+        self.client_name = match start_ok.client_properties.get("connection_name") {
+            Some(name) => name.as_bytes().map(loggable),
+            None => None,
+        };
         self.core.registry.opened(
             self.connection_id,
             crate::registry::Opened {
@@ -863,17 +979,14 @@ impl Connection {
         error: AmqpError,
     ) -> Result<(), Ended> {
         self.cleanup();
-        self.outbox
-            .method(
-                0,
-                ConnectionClose {
-                    reply_code: error.code.code(),
-                    reply_text: error.reply_text(),
-                    class_id: error.class_id,
-                    method_id: error.method_id,
-                },
-            )
-            .await;
+        let close = ConnectionClose {
+            reply_code: error.code.code(),
+            reply_text: error.reply_text(),
+            class_id: error.class_id,
+            method_id: error.method_id,
+        };
+        // Bounded: a client that stops reading leaves no room for it.
+        let _ = tokio::time::timeout(CLOSE_TIMEOUT, self.outbox.method(0, close)).await;
         let wait = async {
             loop {
                 match reader.next().await {
@@ -889,9 +1002,108 @@ impl Connection {
         };
         let _ = tokio::time::timeout(CLOSE_TIMEOUT, wait).await;
         if error.code == ReplyCode::ConnectionForced {
-            return Ok(());
+            return Err(Ended::Forced(error.text));
         }
         Err(Ended::Protocol(error))
+    }
+
+    /// `peer -> local`, and ` - NAME` when the client named the
+    /// connection, as RabbitMQ shows them.
+    fn described(&self) -> String {
+        match &self.client_name {
+            Some(name) => format!("{} - {name}", self.label),
+            None => self.label.clone(),
+        }
+    }
+
+    fn vhost_name(&self) -> Option<String> {
+        (self.vhost.as_ref()).map(|vhost| vhost.name.to_string_lossy().into_owned())
+    }
+
+    /// RabbitMQ's line for a connection whose handshake is done.
+    fn log_open(&self) {
+        let vhost = self.vhost_name().unwrap_or_default();
+        tracing::info!(
+            connection = self.connection_id,
+            peer = %self.peer,
+            user = %self.user,
+            %vhost,
+            client_name = self.client_name.as_deref(),
+            "connection #{} ({}): user '{}' authenticated and granted access to vhost '{vhost}'",
+            self.connection_id,
+            self.described(),
+            self.user,
+        );
+    }
+
+    /// Logs a refused login with the user name the client gave (the
+    /// client is told to look in the broker's log) and returns why.
+    fn login_refused(&self, mechanism: &ShortStr, response: &Bytes) -> String {
+        let claimed = match (&self.identity, mechanism.as_bytes()) {
+            (Identity::Tls(name), b"EXTERNAL") => name.as_deref().map(str::as_bytes).map(loggable),
+            (_, mechanism) => {
+                crate::auth::claimed_user(mechanism, response).map(|user| loggable(&user))
+            }
+        };
+        let refusal = match (&claimed, mechanism.as_bytes()) {
+            (Some(user), _) => format!("user '{user}' - invalid credentials"),
+            (None, b"EXTERNAL") => "no client certificate".to_owned(),
+            (None, b"PLAIN" | b"AMQPLAIN") => "malformed response".to_owned(),
+            (None, _) => "unsupported mechanism".to_owned(),
+        };
+        let refusal = format!(
+            "{} login refused: {refusal}",
+            loggable(mechanism.as_bytes())
+        );
+        tracing::warn!(
+            connection = self.connection_id,
+            peer = %self.peer,
+            mechanism = %loggable(mechanism.as_bytes()),
+            user = claimed.as_deref(),
+            "{refusal}"
+        );
+        refusal
+    }
+
+    /// RabbitMQ's closing line (with the client-provided name, how long
+    /// the connection lived and why it ended): info when the client or
+    /// an administrator closed it, a warning otherwise.
+    fn log_close(&self, outcome: &Result<(), Ended>, lived: Duration) {
+        // A close text can quote what the client sent (its mechanism's name).
+        let reason = match outcome {
+            Ok(()) => "closed by the client".to_owned(),
+            Err(ended) => loggable(ended.to_string().as_bytes()),
+        };
+        let vhost = self.vhost_name();
+        let user = (!self.user.is_empty()).then_some(self.user.as_str());
+        let quoted =
+            |name: Option<&str>| name.map_or("none".to_owned(), |name| format!("'{name}'"));
+        let text = format!(
+            "closing AMQP connection #{} ({}, vhost: {}, user: {}, duration: {:.3}s): {reason}",
+            self.connection_id,
+            self.described(),
+            quoted(vhost.as_deref()),
+            quoted(user),
+            lived.as_secs_f64(),
+        );
+        macro_rules! log_close_at {
+            ($level:ident) => {
+                tracing::$level!(
+                    connection = self.connection_id,
+                    peer = %self.peer,
+                    user,
+                    vhost = vhost.as_deref(),
+                    client_name = self.client_name.as_deref(),
+                    duration_secs = lived.as_secs_f64(),
+                    %reason,
+                    "{text}"
+                )
+            };
+        }
+        match outcome {
+            Ok(()) | Err(Ended::Forced(_)) => log_close_at!(info),
+            Err(_) => log_close_at!(warn),
+        }
     }
 
     /// Releases everything the connection holds: channels (requeueing
@@ -943,4 +1155,22 @@ async fn disk_progress(durable: &mut Option<tokio::sync::watch::Receiver<crate::
 enum Flow {
     Continue,
     Closed,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What a client sends cannot start a log line of its own or make
+    /// one unbounded.
+    #[test]
+    fn client_text_is_escaped_and_capped_for_the_log() {
+        assert_eq!(
+            loggable(b"evil\nINFO forged\r\x1b[31m"),
+            "evil\\nINFO forged\\r\\u{1b}[31m"
+        );
+        assert_eq!(loggable("caf\u{e9}".as_bytes()), "caf\u{e9}");
+        assert_eq!(loggable(b"\xff"), "\u{fffd}");
+        assert_eq!(loggable(&[b'a'; 1000]).len(), LOGGED_TEXT_MAX);
+    }
 }

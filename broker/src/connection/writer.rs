@@ -1,7 +1,11 @@
 //! The writer task of a connection: owns the socket's write half, drains
 //! the outbox, encodes everything waiting into one buffer and writes it
 //! with one syscall (batching under load, no added latency when idle), and
-//! sends heartbeats when nothing else was written for an interval.
+//! sends heartbeats when nothing else was written for an interval. A
+//! write the client does not take for two heartbeat intervals while it
+//! sends nothing either ends the writer (and with it the connection's
+//! output): the client is gone, or has stopped, as RabbitMQ judges by its
+//! heartbeats whether or not its writer is blocked.
 //!
 //! Bodies of [`BODY_BY_REFERENCE`] bytes and more are not copied into the
 //! buffer: their frames are written straight from the message (vectored
@@ -77,7 +81,9 @@ pub async fn run<W: AsyncWrite + Unpin>(
                 let now = Instant::now();
                 if !interval.is_zero() && now >= last_write + interval {
                     Frame::Heartbeat.encode(&mut out.buf);
-                    if out.flush(&mut socket).await.is_err() { return; }
+                    if out.flush_unless_unheard(&mut socket, &outbox, interval).await.is_err() {
+                        return;
+                    }
                     last_write = Instant::now();
                 }
                 if now >= last_write + IDLE_RELEASE {
@@ -99,7 +105,11 @@ pub async fn run<W: AsyncWrite + Unpin>(
             }
         }
         last_batch = out.buf.len().clamp(BATCH_START, BATCH_BYTES);
-        if out.flush(&mut socket).await.is_err() {
+        if out
+            .flush_unless_unheard(&mut socket, &outbox, interval)
+            .await
+            .is_err()
+        {
             return;
         }
         last_write = Instant::now();
@@ -108,6 +118,22 @@ pub async fn run<W: AsyncWrite + Unpin>(
             let _ = socket.shutdown().await;
             return;
         }
+    }
+}
+
+/// Resolves once the client has sent nothing for two heartbeat
+/// `interval`s; never with heartbeats off.
+async fn unheard(outbox: &Outbox, interval: Duration) {
+    if interval.is_zero() {
+        return std::future::pending().await;
+    }
+    let limit = interval * 2;
+    loop {
+        let quiet = outbox.unheard_for();
+        if quiet >= limit {
+            return;
+        }
+        tokio::time::sleep(limit - quiet).await;
     }
 }
 
@@ -136,6 +162,29 @@ impl Output {
         self.buf.clear();
         self.parts.clear();
         result
+    }
+
+    /// Writes the batch, unless the client stops taking it and has sent
+    /// nothing for two heartbeat `interval`s (an error then).
+    async fn flush_unless_unheard<W: AsyncWrite + Unpin>(
+        &mut self,
+        socket: &mut W,
+        outbox: &Outbox,
+        interval: Duration,
+    ) -> std::io::Result<()> {
+        tokio::select! {
+            // The write first: when the socket takes it at once, the
+            // watch is never polled and costs no timer.
+            biased;
+            written = self.flush(socket) => written,
+            () = unheard(outbox, interval) => {
+                tracing::info!(
+                    connection = outbox.connection_id,
+                    "missed heartbeats from a client that is not reading; closing"
+                );
+                Err(std::io::ErrorKind::TimedOut.into())
+            }
+        }
     }
 
     /// Encodes one item; true if the writer must stop after this batch.

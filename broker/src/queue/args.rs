@@ -1,11 +1,14 @@
-//! The RabbitMQ queue arguments the broker acts on (`x-message-ttl`,
-//! `x-expires`, `x-max-length`, `x-max-length-bytes`, `x-overflow`,
-//! `x-dead-letter-*`, `x-max-priority`), validated with RabbitMQ's error
-//! texts.
+//! The queue and consumer arguments a queue acts on, validated with
+//! RabbitMQ 3.10's error texts: `x-message-ttl`, `x-expires`,
+//! `x-max-length`, `x-max-length-bytes`, `x-overflow`, `x-dead-letter-*`,
+//! `x-max-priority`, `x-single-active-consumer`, `x-queue-type`; those
+//! taken with no effect are validated too, and those refused are refused
+//! here (the list of them all is `crate::arguments`). For basic.consume:
+//! `x-priority` and Leveret's `x-leveret-position`.
 
+use crate::arguments::{self, integer, type_name, Scope};
 use crate::error::{AmqpError, AmqpResult};
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
-
 /// What happens when a queue reaches x-max-length or x-max-length-bytes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Overflow {
@@ -37,34 +40,87 @@ pub struct QueueArgs {
     pub dead_letter_routing_key: Option<ShortStr>,
     /// x-max-priority.
     pub max_priority: Option<u8>,
+    /// x-single-active-consumer.
+    pub single_active_consumer: bool,
 }
 
+/// RabbitMQ's largest expiry timer (`x-message-ttl`, `x-expires`), ms.
+const MAX_EXPIRY: i64 = 4_294_967_295;
+
+/// The queue types RabbitMQ knows.
+const QUEUE_TYPES: [&[u8]; 3] = [b"classic", b"quorum", b"stream"];
+
 impl QueueArgs {
-    /// Validates and reads the arguments RabbitMQ defines; the error texts
-    /// follow RabbitMQ's (`invalid arg 'x-message-ttl' for queue 'q' ...`).
+    /// Validates and reads the arguments RabbitMQ defines, with its error
+    /// texts (`invalid arg 'x-message-ttl' for queue 'q' in vhost '/':
+    /// {value_negative,-1}`); refuses those `crate::arguments` lists as
+    /// refused. Arguments RabbitMQ does not know are left alone.
     pub fn parse(arguments: &FieldTable, queue: &ShortStr, vhost: &ShortStr) -> AmqpResult<Self> {
+        let resource = format!("queue '{queue}' in vhost '{vhost}'");
         let invalid = |name: &str, why: String| {
             AmqpError::precondition_failed(format_args!(
-                "invalid arg '{name}' for queue '{queue}' in vhost '{vhost}': {why}"
+                "invalid arg '{name}' for {resource}: {why}"
             ))
         };
+        let int = |name: &str, v: &FieldValue| -> AmqpResult<i64> {
+            integer(v)
+                .ok_or_else(|| invalid(name, format!("\"expected integer, got {}\"", type_name(v))))
+        };
         let non_negative = |name: &str, v: &FieldValue| -> AmqpResult<u64> {
-            match v.as_i64() {
-                Some(n) if n >= 0 => Ok(n as u64),
-                Some(n) => Err(invalid(name, format!("{{value_negative,{n}}}"))),
-                None => Err(invalid(name, format!("{{unacceptable_type,{:?}}}", v))),
+            match int(name, v)? {
+                n if n >= 0 => Ok(n as u64),
+                n => Err(invalid(name, format!("{{value_negative,{n}}}"))),
+            }
+        };
+        let expiry = |name: &str, v: &FieldValue| -> AmqpResult<u64> {
+            match non_negative(name, v)? {
+                n if n as i64 > MAX_EXPIRY => {
+                    Err(invalid(name, format!("{{value_too_large,{n}}}")))
+                }
+                n => Ok(n),
             }
         };
         let text = |name: &str, v: &FieldValue| -> AmqpResult<ShortStr> {
-            v.as_bytes()
-                .and_then(|b| ShortStr::try_from(bytes::Bytes::copy_from_slice(b)).ok())
-                .ok_or_else(|| invalid(name, format!("{{unacceptable_type,{:?}}}", v)))
+            match v {
+                FieldValue::LongStr(b) => ShortStr::try_from(bytes::Bytes::copy_from_slice(b))
+                    .map_err(|_| invalid(name, "{value_too_long}".into())),
+                other => Err(invalid(
+                    name,
+                    format!("{{unacceptable_type,{}}}", type_name(other)),
+                )),
+            }
         };
+        let one_of =
+            |name: &str, v: &FieldValue, allowed: &[&[u8]], what: &str| -> AmqpResult<()> {
+                match v {
+                    FieldValue::LongStr(b) if allowed.contains(&&b[..]) => Ok(()),
+                    FieldValue::LongStr(b) => Err(invalid(
+                        name,
+                        format!("\"unsupported {what} '{}'\"", String::from_utf8_lossy(b)),
+                    )),
+                    other => Err(invalid(
+                        name,
+                        format!("{{unacceptable_type,{}}}", type_name(other)),
+                    )),
+                }
+            };
+        if let Some(kind) = arguments.get("x-queue-type") {
+            one_of("x-queue-type", kind, &QUEUE_TYPES, "queue type")?;
+            if kind.as_bytes() != Some(b"classic") {
+                return Err(invalid(
+                    "x-queue-type",
+                    format!(
+                        "queue type '{}' is not available: this broker has classic queues only (streams are not built yet)",
+                        String::from_utf8_lossy(kind.as_bytes().unwrap_or_default())
+                    ),
+                ));
+            }
+        }
         let mut args = QueueArgs::default();
         for (key, value) in arguments.iter() {
             match key.as_bytes() {
-                b"x-message-ttl" => args.message_ttl = Some(non_negative("x-message-ttl", value)?),
-                b"x-expires" => match non_negative("x-expires", value)? {
+                b"x-message-ttl" => args.message_ttl = Some(expiry("x-message-ttl", value)?),
+                b"x-expires" => match expiry("x-expires", value)? {
                     0 => return Err(invalid("x-expires", "{value_zero,0}".into())),
                     n => args.expires = Some(n),
                 },
@@ -73,14 +129,21 @@ impl QueueArgs {
                     args.max_length_bytes = Some(non_negative("x-max-length-bytes", value)?)
                 }
                 b"x-overflow" => {
-                    args.overflow = match value.as_bytes() {
-                        Some(b"drop-head") => Overflow::DropHead,
-                        Some(b"reject-publish") => Overflow::RejectPublish,
-                        Some(b"reject-publish-dlx") => Overflow::RejectPublishDlx,
-                        _ => {
+                    args.overflow = match value {
+                        FieldValue::LongStr(b) if &b[..] == b"drop-head" => Overflow::DropHead,
+                        FieldValue::LongStr(b) if &b[..] == b"reject-publish" => {
+                            Overflow::RejectPublish
+                        }
+                        FieldValue::LongStr(b) if &b[..] == b"reject-publish-dlx" => {
+                            Overflow::RejectPublishDlx
+                        }
+                        FieldValue::LongStr(_) => {
+                            return Err(invalid("x-overflow", "invalid_overflow".into()))
+                        }
+                        other => {
                             return Err(invalid(
                                 "x-overflow",
-                                format!("{{unacceptable_value,{:?}}}", value),
+                                format!("{{unacceptable_type,{}}}", type_name(other)),
                             ))
                         }
                     }
@@ -96,18 +159,111 @@ impl QueueArgs {
                     n => {
                         return Err(invalid(
                             "x-max-priority",
-                            format!("{{value_out_of_range,{n}}}"),
+                            format!("{{max_value_exceeded,{n}}}"),
                         ))
                     }
                 },
-                _ => {}
+                b"x-single-active-consumer" => match value {
+                    FieldValue::Bool(on) => args.single_active_consumer = *on,
+                    other => {
+                        return Err(invalid(
+                            "x-single-active-consumer",
+                            format!("{{unacceptable_type,{}}}", type_name(other)),
+                        ))
+                    }
+                },
+                b"x-queue-mode" => {
+                    one_of("x-queue-mode", value, &[b"default", b"lazy"], "queue mode")?
+                }
+                b"x-queue-version" => match non_negative("x-queue-version", value)? {
+                    1 | 2 => {}
+                    n => {
+                        return Err(invalid(
+                            "x-queue-version",
+                            format!("\"unsupported queue version '{n}'\""),
+                        ))
+                    }
+                },
+                b"x-queue-master-locator" => one_of(
+                    "x-queue-master-locator",
+                    value,
+                    &[b"min-masters", b"client-local", b"random"],
+                    "queue master locator",
+                )?,
+                other => {
+                    if let Some(refused) = arguments::known(Scope::Queue, other)
+                        .and_then(|argument| arguments::refusal(argument, &resource))
+                    {
+                        return Err(refused);
+                    }
+                }
             }
         }
         if args.dead_letter_routing_key.is_some() && args.dead_letter_exchange.is_none() {
             return Err(invalid(
                 "x-dead-letter-routing-key",
-                "Key 'x-dead-letter-exchange' is mandatory if 'x-dead-letter-routing-key' is defined".into(),
+                "routing_key_but_no_dlx_defined".into(),
             ));
+        }
+        Ok(args)
+    }
+}
+
+/// The basic.consume arguments a queue acts on, validated.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ConsumerArgs {
+    /// `x-priority` (0 without one).
+    pub priority: i64,
+    /// `x-leveret-position`: deliveries carry
+    /// [`POSITION_HEADER`](super::POSITION_HEADER).
+    pub wants_position: bool,
+}
+
+impl ConsumerArgs {
+    /// Validates and reads basic.consume's arguments for a consumer of
+    /// `queue`, with RabbitMQ's texts; refuses those `crate::arguments`
+    /// lists as refused.
+    pub fn parse(arguments: &FieldTable, queue: &ShortStr, vhost: &ShortStr) -> AmqpResult<Self> {
+        let resource = format!("queue '{queue}' in vhost '{vhost}'");
+        let invalid = |name: &str, why: String| {
+            AmqpError::precondition_failed(format_args!(
+                "invalid arg '{name}' for {resource}: {why}"
+            ))
+        };
+        let mut args = ConsumerArgs::default();
+        for (key, value) in arguments.iter() {
+            match key.as_bytes() {
+                b"x-priority" => {
+                    args.priority = integer(value).ok_or_else(|| {
+                        invalid(
+                            "x-priority",
+                            format!("\"expected integer, got {}\"", type_name(value)),
+                        )
+                    })?
+                }
+                b"x-cancel-on-ha-failover" if !matches!(value, FieldValue::Bool(_)) => {
+                    return Err(invalid(
+                        "x-cancel-on-ha-failover",
+                        format!("{{unacceptable_type,{}}}", type_name(value)),
+                    ))
+                }
+                name if name == super::POSITION_HEADER.as_bytes() => match value {
+                    FieldValue::Bool(wanted) => args.wants_position = *wanted,
+                    other => {
+                        return Err(invalid(
+                            super::POSITION_HEADER,
+                            format!("{{unacceptable_type,{}}}", type_name(other)),
+                        ))
+                    }
+                },
+                other => {
+                    if let Some(refused) = arguments::known(Scope::Consumer, other)
+                        .and_then(|argument| arguments::refusal(argument, &resource))
+                    {
+                        return Err(refused);
+                    }
+                }
+            }
         }
         Ok(args)
     }

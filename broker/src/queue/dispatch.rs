@@ -1,7 +1,8 @@
 //! A queue's FIFO and dispatch: taking a message in (TTL, priority,
 //! max-length with its overflow modes), the ready list in order, expiry at
-//! the head, and round-robin delivery to consumers with credit (by
-//! `x-priority` first), under the queue's lock.
+//! the head, and delivery to the consumers `consumers` chooses (by
+//! `x-priority`, round-robin among equals, or the single active one),
+//! under the queue's lock.
 
 use super::{
     DeadLetter, DeadLetterReason, DeadLetters, Enqueued, Overflow, Queue, QueueState,
@@ -78,7 +79,7 @@ impl Queue {
             self.enforce_max_length(&mut st, &mut dead);
             // Dispatched as of the publish instant, so a message with TTL 0
             // still reaches a consumer that can take it at once (as in RabbitMQ).
-            self.dispatch_locked(&mut st, &mut dead, now);
+            self.dispatch_published(&mut st, &mut dead, now);
             Enqueued::Accepted { sync }
         };
         (outcome, DeadLetters(dead))
@@ -196,8 +197,21 @@ impl Queue {
 
     /// Delivers ready messages to consumers with credit and room; the
     /// highest stored position it delivered raises the store's delivery
-    /// mark once, not once per message.
+    /// mark once, not once per message. For every caller but a publish:
+    /// credit may have come back, so every consumer is looked at again.
     pub(super) fn dispatch_locked(
+        self: &Arc<Self>,
+        st: &mut QueueState,
+        dead: &mut Vec<DeadLetter>,
+        now: Instant,
+    ) {
+        st.consumers.reopen();
+        self.dispatch_published(st, dead, now);
+    }
+
+    /// [`Queue::dispatch_locked`] after a publish, which frees no credit:
+    /// consumers found blocked since credit last came back stay skipped.
+    fn dispatch_published(
         self: &Arc<Self>,
         st: &mut QueueState,
         dead: &mut Vec<DeadLetter>,
@@ -222,25 +236,24 @@ impl Queue {
             return;
         }
         // Consumers whose connection had no room during this dispatch, by
-        // index (allocated when the first one is found).
+        // `Slot::flat` (allocated when the first one is found).
         let mut full: Vec<bool> = Vec::new();
         while !st.ready.is_empty() {
-            let Some(index) = Self::next_consumer(st, &full) else {
+            let Some((slot, consumer)) = st.consumers.pick(&full) else {
                 // No consumer can take a message now; credit or room will
                 // trigger another dispatch.
                 return;
             };
-            let consumer = Arc::clone(&st.consumers[index]);
             let Some(permit) = consumer.channel.outbox.try_reserve() else {
                 consumer.channel.outbox.wait_for_room(self);
-                mark_full(&mut full, index, count);
+                mark_full(&mut full, slot.flat, count);
                 continue;
             };
             let Some(credit) = consumer.try_take_credit() else {
-                mark_full(&mut full, index, count);
+                mark_full(&mut full, slot.flat, count);
                 continue;
             };
-            st.cursor = (index + 1) % count;
+            st.consumers.delivered(slot);
             let Some(queued) = self.pop_live(st, now, dead) else {
                 return;
             };
@@ -306,29 +319,6 @@ impl Queue {
             properties: encoded.freeze(),
             ..queued.message.stored_as(None)
         })
-    }
-
-    /// The consumer to deliver to next: among those with credit (and not
-    /// known to be out of room), the highest `x-priority`, round-robin from
-    /// the cursor among equals. Without priorities that is simply the first
-    /// consumer with credit after the previous one.
-    pub(super) fn next_consumer(st: &QueueState, full: &[bool]) -> Option<usize> {
-        let count = st.consumers.len();
-        let mut best: Option<usize> = None;
-        for offset in 0..count {
-            let index = (st.cursor + offset) % count;
-            let consumer = &st.consumers[index];
-            if full.get(index).copied().unwrap_or(false) || !consumer.has_credit() {
-                continue;
-            }
-            if !st.prioritised {
-                return Some(index);
-            }
-            if best.is_none_or(|b| consumer.priority > st.consumers[b].priority) {
-                best = Some(index);
-            }
-        }
-        best
     }
 }
 

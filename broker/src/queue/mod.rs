@@ -9,19 +9,22 @@
 //! for a dead-letter exchange return them as [`DeadLetters`], and the
 //! caller (which knows the vhost) routes them.
 //!
-//! Layout: `args` validates the queue arguments; `dispatch` is the FIFO
+//! Layout: `args` validates the queue and consumer arguments; `consumers`
+//! holds the consumers by priority and chooses the next one (single active
+//! consumer included); `dispatch` is the FIFO
 //! (taking messages in, max-length, expiry) and delivery to consumers;
 //! `durable` writes a durable queue's index entries and delivery mark;
 //! `leaving` makes the dead letters and the cancels of a deleted queue.
 //! This file holds the state and the operations the layers above call.
 
 mod args;
+mod consumers;
 mod dispatch;
 mod durable;
 mod leaving;
 mod ready;
 
-pub use args::{Overflow, QueueArgs};
+pub use args::{ConsumerArgs, Overflow, QueueArgs};
 pub use leaving::{DeadLetter, DeadLetterReason, DeadLetters, Deleted};
 
 use crate::consumer::{ChannelLink, Consumer, Unacked};
@@ -32,6 +35,7 @@ use crate::outbox::Outbound;
 use crate::slice::{finish_in_background, Progress, Slice};
 use crate::stats::{BrokerCounters, QueueCounters};
 use crate::store::Persistence;
+use consumers::Consumers;
 use leveret_protocol::{FieldTable, ShortStr};
 use ready::Ready;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -126,10 +130,7 @@ pub enum Enqueued {
 struct QueueState {
     ready: Ready,
     next_seq: u64,
-    consumers: Vec<Arc<Consumer>>,
-    cursor: usize,
-    /// Some consumer has a non-zero `x-priority`.
-    prioritised: bool,
+    consumers: Consumers,
     exclusive_consumer: bool,
     /// Highest seq delivered (persisted for durable queues, see `store`).
     delivered_mark: u64,
@@ -191,6 +192,7 @@ impl Queue {
         durable_store: Option<(Arc<Persistence>, u64)>,
         counters: Arc<BrokerCounters>,
     ) -> Self {
+        let single_active = args.single_active_consumer;
         let (position_name, next_seq) = match &durable_store {
             Some((persistence, id)) => (format!("d{id}"), persistence.seq_floor()),
             None => (transient_position_name(), 0),
@@ -209,6 +211,7 @@ impl Queue {
             state: Mutex::new(QueueState {
                 last_used: Some(Instant::now()),
                 next_seq,
+                consumers: Consumers::new(single_active),
                 ..QueueState::default()
             }),
         }
@@ -377,7 +380,8 @@ impl Queue {
         }
     }
 
-    /// Adds a consumer; 403 if an exclusive consumer is in the way.
+    /// Adds a consumer; 403 if an exclusive consumer is in the way. On a
+    /// single-active-consumer queue it waits unless none is active.
     pub fn add_consumer(self: &Arc<Self>, consumer: Arc<Consumer>) -> AmqpResult<DeadLetters> {
         {
             let mut st = self.lock();
@@ -388,32 +392,32 @@ impl Queue {
                 )));
             }
             st.exclusive_consumer = consumer.exclusive;
-            st.prioritised |= consumer.priority != 0;
-            st.consumers.push(consumer);
+            st.consumers.add(consumer);
             self.stats.consumer_added();
             st.last_used = None;
         }
         Ok(self.dispatch())
     }
 
-    /// Removes a consumer; true if the queue should now be auto-deleted.
+    /// Removes a consumer (cancelled, or its channel closed); if it was the
+    /// active one of a single-active-consumer queue, the next waiting one
+    /// becomes active, and gets messages once the removed one holds none
+    /// unacked (the caller dispatches: after requeueing what the channel
+    /// held, when it closes). Returns whether the queue should now be
+    /// auto-deleted.
     pub fn remove_consumer(&self, consumer: &Arc<Consumer>) -> bool {
         let mut st = self.lock();
-        let before = st.consumers.len();
-        st.consumers.retain(|c| !Arc::ptr_eq(c, consumer));
-        if st.consumers.len() == before {
+        if st.consumers.remove(consumer).is_none() {
             return false;
         }
         self.stats.consumers_removed(1);
         if consumer.exclusive {
             st.exclusive_consumer = false;
         }
-        st.prioritised = st.consumers.iter().any(|c| c.priority != 0);
         self.check_drained(&st);
         if st.consumers.is_empty() {
             st.last_used = Some(Instant::now());
         }
-        st.cursor = 0;
         self.options.auto_delete && st.consumers.is_empty() && !st.deleted
     }
 
@@ -466,7 +470,7 @@ impl Queue {
         let consumers = {
             let mut st = self.lock();
             st.deleted = true;
-            std::mem::take(&mut st.consumers)
+            st.consumers.take_all()
         };
         self.stats.queue_deleted(consumers.len());
         Deleted {
@@ -540,9 +544,10 @@ impl Queue {
         }
     }
 
-    /// The consumers now.
-    pub(crate) fn consumers_snapshot(&self) -> Vec<Arc<Consumer>> {
-        self.lock().consumers.clone()
+    /// The consumers now, in registration order, each with whether it is
+    /// active (see [`Consumers::snapshot`]).
+    pub(crate) fn consumers_snapshot(&self) -> Vec<(Arc<Consumer>, bool)> {
+        self.lock().consumers.snapshot()
     }
 }
 

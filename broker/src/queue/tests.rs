@@ -69,11 +69,22 @@ fn queue_arguments_are_checked_with_rabbitmq_texts() {
         "PRECONDITION_FAILED - invalid arg 'x-message-ttl' for queue 'q' in vhost '/': {value_negative,-1}"
     );
     assert!(invalid(&[("x-expires", FieldValue::I64(0))]).contains("{value_zero,0}"));
-    assert!(invalid(&[("x-max-priority", FieldValue::I64(256))]).contains("value_out_of_range"));
+    assert!(
+        invalid(&[("x-max-priority", FieldValue::I64(256))]).contains("{max_value_exceeded,256}")
+    );
+    assert!(
+        invalid(&[("x-message-ttl", FieldValue::string("soon"))]).ends_with(
+            "'x-message-ttl' for queue 'q' in vhost '/': \"expected integer, got longstr\""
+        )
+    );
+    assert!(
+        invalid(&[("x-single-active-consumer", FieldValue::string("yes"))])
+            .ends_with("{unacceptable_type,longstr}")
+    );
     assert!(invalid(&[("x-overflow", FieldValue::string("drop-tail"))]).contains("x-overflow"));
     assert!(
         invalid(&[("x-dead-letter-routing-key", FieldValue::string("k"))])
-            .contains("Key 'x-dead-letter-exchange' is mandatory")
+            .ends_with("routing_key_but_no_dlx_defined")
     );
     let args = QueueArgs::parse(
         &table(&[
@@ -205,4 +216,150 @@ fn dead_letters_found_by_a_writer_wait_for_the_sweep() {
     assert_eq!(dead.message_count(), 0, "not routed by the writer");
     h.sweep_at(Instant::now());
     assert_eq!(dead.message_count(), 1);
+}
+
+/// A consumer of `ch` with `priority` and `prefetch`, registered on `queue`
+/// and active at once.
+fn consumer_with(
+    ch: &crate::testkit::FakeChannel,
+    queue: &Arc<super::Queue>,
+    tag: &str,
+    priority: i64,
+    prefetch: u32,
+) -> Arc<Consumer> {
+    let consumer = Arc::new(Consumer {
+        tag: s(tag),
+        channel: Arc::clone(&ch.link),
+        no_ack: false,
+        exclusive: false,
+        prefetch,
+        priority,
+        wants_position: false,
+        in_flight: Default::default(),
+        active: Default::default(),
+    });
+    assert!(queue
+        .add_consumer(Arc::clone(&consumer))
+        .expect("consume")
+        .is_empty());
+    consumer.activate();
+    assert!(queue.dispatch().is_empty());
+    consumer
+}
+
+/// Many consumers with distinct priorities, each with room for one
+/// delivery: every message goes to the highest one with room, and
+/// choosing costs a bounded number of looks per message, not a scan of
+/// the blocked consumers above for each (that would be 80,000 looks here).
+#[test]
+fn distinct_priorities_cost_bounded_looks_per_message() {
+    const CONSUMERS: i64 = 400;
+    const MESSAGES: usize = 1200;
+    let h = Harness::new();
+    let q = h.queue("q", &[]);
+    let mut ch = h.channel();
+    for priority in 0..CONSUMERS {
+        consumer_with(&ch, &q, &format!("p{priority}"), priority, 1);
+    }
+    q.lock().consumers.examined = 0;
+    for _ in 0..MESSAGES {
+        h.publish("", "q", "m");
+    }
+    let delivered = ch.drain();
+    let order: Vec<String> = delivered.iter().map(|d| d.consumer.clone()).collect();
+    let expected: Vec<String> = (0..CONSUMERS).rev().map(|p| format!("p{p}")).collect();
+    assert_eq!(
+        order, expected,
+        "highest priority with room first, one each"
+    );
+    assert_eq!(q.message_count() as usize, MESSAGES - CONSUMERS as usize);
+    let examined = q.lock().consumers.examined;
+    assert!(
+        examined <= 2 * (CONSUMERS as u64 + MESSAGES as u64),
+        "{examined} looks for {MESSAGES} messages and {CONSUMERS} consumers"
+    );
+    // Room comes back to one low consumer: it gets the next message.
+    let low = delivered
+        .iter()
+        .find(|d| d.consumer == "p3")
+        .expect("p3 got one");
+    ch.ack(low.tag, false);
+    let next = ch.drain();
+    assert_eq!(next.len(), 1);
+    assert_eq!(next[0].consumer, "p3");
+}
+
+/// With `x-single-active-consumer` only the first consumer gets messages;
+/// when it goes the next registered one takes over (delivered to once the
+/// first holds nothing unacked), and the listing says which is active.
+#[test]
+fn a_single_active_consumer_gets_everything_until_it_goes() {
+    let h = Harness::new();
+    let q = h.queue("q", &[("x-single-active-consumer", FieldValue::Bool(true))]);
+    let mut ch = h.channel();
+    let first = consumer_with(&ch, &q, "first", 0, 0);
+    let _second = consumer_with(&ch, &q, "second", 0, 0);
+    let _third = consumer_with(&ch, &q, "third", 0, 0);
+    for _ in 0..10 {
+        h.publish("", "q", "m");
+    }
+    let got = ch.drain();
+    assert_eq!(got.len(), 10);
+    assert!(got.iter().all(|d| d.consumer == "first"));
+    let active: Vec<(String, bool)> = q
+        .consumers_snapshot()
+        .iter()
+        .map(|(c, active)| (c.tag.to_string(), *active))
+        .collect();
+    assert_eq!(
+        active,
+        [
+            ("first".into(), true),
+            ("second".into(), false),
+            ("third".into(), false)
+        ]
+    );
+    // The first goes holding its ten unacked: the second is active at
+    // once, and gets messages once those are settled.
+    assert!(!q.remove_consumer(&first));
+    assert!(q.dispatch().is_empty());
+    for _ in 0..4 {
+        h.publish("", "q", "m");
+    }
+    assert!(ch.drain().is_empty(), "nothing while the first holds some");
+    assert!(q
+        .consumers_snapshot()
+        .iter()
+        .any(|(c, active)| *active && c.tag == "second"));
+    ch.ack(got.last().expect("ten").tag, true);
+    let got = ch.drain();
+    assert_eq!(got.len(), 4);
+    assert!(got.iter().all(|d| d.consumer == "second"));
+}
+
+/// A channel's `global` prefetch is shared between its queues, and a unit
+/// freed by one queue's ack dispatches only that queue: a publish to the
+/// other must still find the consumer that now has room (it is never
+/// skipped as blocked).
+#[test]
+fn a_global_prefetch_freed_elsewhere_is_seen_by_the_next_publish() {
+    let h = Harness::new();
+    let q1 = h.queue("q1", &[]);
+    let q2 = h.queue("q2", &[]);
+    let mut ch = h.channel();
+    ch.link
+        .global_prefetch
+        .store(1, std::sync::atomic::Ordering::Relaxed);
+    consumer_with(&ch, &q1, "c1", 0, 0);
+    consumer_with(&ch, &q2, "c2", 0, 0);
+    h.publish("", "q2", "held");
+    let held = ch.drain();
+    assert_eq!(held.len(), 1);
+    h.publish("", "q1", "first");
+    assert!(ch.drain().is_empty(), "the channel's one unit is taken");
+    // Acked through q2: only q2 dispatches.
+    ch.ack(held[0].tag, false);
+    h.publish("", "q1", "second");
+    let got: Vec<String> = ch.drain().into_iter().map(|d| d.body).collect();
+    assert_eq!(got, ["first"]);
 }

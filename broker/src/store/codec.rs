@@ -138,6 +138,17 @@ fn message_key(id: u64) -> Vec<u8> {
     key
 }
 
+/// The queue id and position an index key (`i`) names, if it is one.
+pub fn queue_position(key: &[u8]) -> Option<(u64, u64)> {
+    match key {
+        [b'i', rest @ ..] if rest.len() == 16 => Some((
+            u64::from_be_bytes(rest[..8].try_into().ok()?),
+            u64::from_be_bytes(rest[8..].try_into().ok()?),
+        )),
+        _ => None,
+    }
+}
+
 fn index_key(queue: u64, seq: u64) -> Vec<u8> {
     let mut key = Vec::with_capacity(17);
     key.push(b'i');

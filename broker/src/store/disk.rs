@@ -19,7 +19,7 @@
 //! removed from sled, so a crash in between only repeats the move).
 
 use super::codec::{home, Home, CLEAN_MARKER_KEY, LOG_PREFIXES};
-use super::log::{MessageLog, OnDamage};
+use super::log::{Bookkeeping, Losses, MessageLog, OnDamage};
 use super::{KvOp, KvPair, SledStore, Store, StoreError, WriteMode};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -40,10 +40,15 @@ pub struct DiskStore {
 
 impl DiskStore {
     /// Opens (or creates) the store in `data_dir`; see `MessageLog` for
-    /// what `on_damage` does with a damaged log.
-    pub fn open(data_dir: &Path, on_damage: OnDamage) -> Result<DiskStore, StoreError> {
+    /// what `on_damage` does with a damaged log and what `bookkeeping`
+    /// means.
+    pub fn open(
+        data_dir: &Path,
+        on_damage: OnDamage,
+        bookkeeping: Bookkeeping,
+    ) -> Result<DiskStore, StoreError> {
         let definitions = SledStore::open(data_dir)?;
-        let log = MessageLog::open(&log_dir(data_dir), on_damage)?;
+        let log = MessageLog::open(&log_dir(data_dir), on_damage, bookkeeping)?;
         let store = DiskStore {
             definitions,
             log,
@@ -51,6 +56,12 @@ impl DiskStore {
         };
         store.move_message_keys_to_log()?;
         Ok(store)
+    }
+
+    /// What opening the message log with [`OnDamage::Salvage`] could not
+    /// keep.
+    pub fn log_losses(&self) -> &Losses {
+        self.log.losses()
     }
 
     /// Moves message keys found in sled (a store from before the log, or
@@ -196,7 +207,7 @@ mod tests {
     fn each_key_goes_to_its_engine_and_a_scan_merges_them() {
         let dir = temp_dir("merge");
         {
-            let store = DiskStore::open(&dir, OnDamage::Refuse).unwrap();
+            let store = DiskStore::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
             store
                 .write(
                     vec![
@@ -215,7 +226,7 @@ mod tests {
             assert_eq!(sled.len(), 2);
             assert_eq!(store.log.scan().unwrap().len(), 2);
         }
-        let store = DiskStore::open(&dir, OnDamage::Refuse).unwrap();
+        let store = DiskStore::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         assert_eq!(
             store.scan().unwrap(),
             vec![
@@ -231,7 +242,7 @@ mod tests {
     #[test]
     fn the_clean_marker_counts_only_when_both_engines_hold_it() {
         let dir = temp_dir("marker");
-        let store = DiskStore::open(&dir, OnDamage::Refuse).unwrap();
+        let store = DiskStore::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         let marker = |store: &DiskStore| {
             store
                 .scan()
@@ -269,7 +280,7 @@ mod tests {
     #[test]
     fn an_atomic_write_across_both_engines_is_refused() {
         let dir = temp_dir("mixed");
-        let store = DiskStore::open(&dir, OnDamage::Refuse).unwrap();
+        let store = DiskStore::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         let mixed = vec![put(b"i0123456789abcdef", b"m"), put(b"evhost\0x", b"d")];
         assert!(store.write(mixed.clone(), WriteMode::Atomic).is_err());
         store.write(mixed, WriteMode::Plain).unwrap();
@@ -301,12 +312,12 @@ mod tests {
             (b"qvhost\0queue".to_vec(), b"def".to_vec()),
         ];
         {
-            let store = DiskStore::open(&dir, OnDamage::Refuse).unwrap();
+            let store = DiskStore::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
             assert_eq!(store.scan().unwrap(), expected);
             let sled = store.definitions.scan().unwrap();
             assert!(sled.iter().all(|(k, _)| home(k) != Home::Log), "{sled:?}");
         }
-        let store = DiskStore::open(&dir, OnDamage::Refuse).unwrap();
+        let store = DiskStore::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         assert_eq!(store.scan().unwrap(), expected);
         drop(store);
         let _ = std::fs::remove_dir_all(&dir);

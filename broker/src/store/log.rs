@@ -39,17 +39,54 @@
 //! held for a long time therefore pins at most its own bytes, never the
 //! log behind it.
 //!
+//! Bookkeeping: two small files, each two checksummed 32-byte slots in
+//! different sectors, written by turn (a write torn by a power cut spoils
+//! only its own slot; the other holds the record before it).
+//! `<dir>/segments` lists the oldest and the newest segment the log holds;
+//! it is written and synced (one `pwrite`, one `fdatasync`) when a segment
+//! is started, after the new file is synced and before any batch goes to
+//! it, and when segments are retired, before their files go. So a segment
+//! past the list's newest never held a batch, one before its oldest holds
+//! nothing live, and a torn write falls back to the list before it, which
+//! was still true: nothing that relied on the new one had happened. Both
+//! are rare (once per [`SEGMENT_BYTES`] written): no sync per message.
+//! `<dir>/flushed` records how far the newest segment was synced: after
+//! each group's `fdatasync` of the head, one `pwrite` of (sequence,
+//! segment, length), never synced by itself.
+//!
+//! Why that proves what was confirmed: a confirm is sent only after
+//! [`MessageLog::flush`] returns, and flush writes the record after the
+//! sync. So every confirmed batch lies below the last record written.
+//! After a kill -9 the page cache keeps that record exactly. After a power
+//! cut the disk holds some earlier record, or this one (a torn slot fails
+//! its checksum and the other slot, an earlier record, is read): each
+//! was written after its length had been synced, so whatever record is
+//! read is a length that was durable then, a lower bound of what was
+//! confirmed: never more than what is on disk, the safe direction.
+//! A record naming a segment older than the newest says nothing of the
+//! newest was flushed yet (a rotation syncs the segment it seals, and the
+//! next flush records the new head).
+//!
 //! Crashes and damage: a new segment is started only after the previous
-//! one is synced, so only the newest segment can end in a batch that was
-//! cut short (written but not flushed when the power went); opening
-//! truncates it there, which loses nothing that was promised, and says so.
-//! Any other bad batch, a damaged header or a missing segment between two
-//! present ones is damage: opening fails naming the file and the offset,
-//! unless salvaging, which keeps every batch before the bad one and
-//! truncates the rest of that segment (after the caller copied it aside).
-//! An end mark ends a segment's data wherever it lies; in any segment but
-//! the newest, data that ends without a seal is damage, so a hole of zeros
-//! there is still found. In the newest, bytes beyond the end are a
+//! one is synced and sealed, so only the newest segment can end in a batch
+//! that was cut short, and only at or past its recorded flushed length:
+//! opening truncates it there, which loses nothing that was confirmed, and
+//! says so. Everything else is damage, and opening fails naming the file
+//! and the offset: a bad batch, zeros or a file end below the flushed
+//! length or before a segment's seal, a damaged header, a segment the list
+//! names that is missing, a missing or unreadable list or flushed record
+//! ([`Bookkeeping::Required`]: a log opened before it kept them, or a new
+//! one, [`Bookkeeping::Adopted`], gets them written from what is found).
+//! Salvaging ([`OnDamage::Salvage`]) keeps every readable batch: after a
+//! bad stretch it goes on at the next offset where a whole batch passes
+//! its checksum (format 2 checksums hold the segment's number, so a
+//! stretch of another segment's or a recycled file's batches never
+//! passes), notes each lost stretch and the keys the batches there held
+//! when they still parse without their checksums ([`Losses`]), then
+//! writes every readable record into a new log that takes the damaged
+//! one's place (the caller has copied it aside).
+//! An end mark ends a segment's data wherever it lies past what the
+//! segment must reach. In the newest, bytes beyond the end are a
 //! recycled file's earlier life, or batches written after the last flush
 //! that a power cut kept while losing one before them (page caches and
 //! disks write back out of order); opening truncates the segment at its
@@ -62,7 +99,7 @@
 use super::log_key::LogKey;
 use super::{KvOp, KvPair, StoreError};
 use crate::word_hash::WordHashMap;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::fs::{File, OpenOptions};
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
@@ -101,6 +138,215 @@ const INDEX_ROOM_KEPT: usize = 4096;
 /// Live bytes compaction copies per flush at most (the persister thread
 /// stays responsive: a flush's extra work is bounded).
 const COMPACT_BYTES: u64 = 1024 * 1024;
+
+/// How the log treats its bookkeeping files (the segment list and the
+/// flushed length) when it is opened.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Bookkeeping {
+    /// The log keeps them (its data directory's manifest says so): one
+    /// missing is damage.
+    Required,
+    /// A new log, or one from before them: they are written from what is
+    /// found.
+    Adopted,
+}
+
+/// The log's two bookkeeping files (see the module docs), each two
+/// checksummed slots written by turn: the segment list (the oldest and
+/// the newest segment the log holds; each write synced) and the flushed
+/// length (the head's number and how much of it was last synced; never
+/// synced by itself).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kept {
+    SegmentList,
+    Flushed,
+}
+
+impl Kept {
+    fn file_name(self) -> &'static str {
+        match self {
+            Kept::SegmentList => "segments",
+            Kept::Flushed => "flushed",
+        }
+    }
+
+    fn magic(self) -> &'static [u8; 4] {
+        match self {
+            Kept::SegmentList => b"LVSL",
+            Kept::Flushed => b"LVFL",
+        }
+    }
+
+    fn what(self) -> &'static str {
+        match self {
+            Kept::SegmentList => "segment list",
+            Kept::Flushed => "flushed length",
+        }
+    }
+}
+
+/// A slot: magic, CRC-32 of the rest, then the record's sequence number
+/// and its two words (`u64` LE each).
+const SLOT: usize = 32;
+/// Where the two slots lie: in different sectors, so a write torn by a
+/// power cut spoils at most the one it was writing, and the other holds
+/// the record written before it.
+const SLOT_AT: [u64; 2] = [0, 512];
+
+/// One record of a bookkeeping file: for the segment list the oldest and
+/// the newest segment, for the flushed length the segment and its length.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Record2 {
+    sequence: u64,
+    words: [u64; 2],
+}
+
+impl Record2 {
+    fn encode(self, kept: Kept) -> [u8; SLOT] {
+        let mut slot = [0; SLOT];
+        slot[..4].copy_from_slice(kept.magic());
+        slot[8..16].copy_from_slice(&self.sequence.to_le_bytes());
+        slot[16..24].copy_from_slice(&self.words[0].to_le_bytes());
+        slot[24..32].copy_from_slice(&self.words[1].to_le_bytes());
+        let crc = crc32fast::hash(&slot[8..]);
+        slot[4..8].copy_from_slice(&crc.to_le_bytes());
+        slot
+    }
+
+    fn decode(kept: Kept, slot: &[u8]) -> Option<Record2> {
+        let slot: &[u8; SLOT] = slot.try_into().ok()?;
+        let word = |at: usize| u64::from_le_bytes(slot[at..at + 8].try_into().expect("8 bytes"));
+        let crc = u32::from_le_bytes(slot[4..8].try_into().expect("4 bytes"));
+        (&slot[..4] == kept.magic() && crc32fast::hash(&slot[8..]) == crc).then(|| Record2 {
+            sequence: word(8),
+            words: [word(16), word(24)],
+        })
+    }
+
+    /// Writes it to its slot: one `pwrite`.
+    fn write(self, kept: Kept, file: &File) -> std::io::Result<()> {
+        let at = SLOT_AT[(self.sequence % 2) as usize];
+        file.write_all_at(&self.encode(kept), at)
+    }
+}
+
+/// The newest valid record of a bookkeeping file in `dir`: `None` if
+/// there is no such file, or what is wrong with it.
+fn read_kept(dir: &Path, kept: Kept) -> Result<Option<Record2>, String> {
+    let path = dir.join(kept.file_name());
+    let bytes = match std::fs::read(&path) {
+        Ok(bytes) => bytes,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => {
+            return Err(format!(
+                "cannot read its {} {}: {e}",
+                kept.what(),
+                path.display()
+            ))
+        }
+    };
+    SLOT_AT
+        .iter()
+        .filter_map(|&at| bytes.get(at as usize..at as usize + SLOT))
+        .filter_map(|slot| Record2::decode(kept, slot))
+        .max_by_key(|record| record.sequence)
+        .map(Some)
+        .ok_or_else(|| format!("its {} {} is unreadable", kept.what(), path.display()))
+}
+
+/// Opens a bookkeeping file for writing; when it is new, `first` is
+/// written to it and synced, with the directory.
+fn open_kept(dir: &Path, kept: Kept, first: Record2) -> Result<File, StoreError> {
+    let path = dir.join(kept.file_name());
+    let existing = path.exists();
+    let file = OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(|e| io_error(&path, e))?;
+    if !existing {
+        first
+            .write(kept, &file)
+            .and_then(|()| file.sync_all())
+            .map_err(|e| io_error(&path, e))?;
+        sync_dir(dir)?;
+    }
+    Ok(file)
+}
+
+/// The oldest and the newest segment the log holds, as its list says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Listed {
+    first: u64,
+    last: u64,
+}
+
+/// The segment list in `dir`, or what is wrong with it (a list whose
+/// oldest lies past its newest is wrong).
+fn read_segment_list(dir: &Path) -> Result<Option<(u64, Listed)>, String> {
+    match read_kept(dir, Kept::SegmentList)? {
+        Some(Record2 {
+            sequence,
+            words: [first, last],
+        }) if first <= last => Ok(Some((sequence, Listed { first, last }))),
+        Some(_) => Err(format!(
+            "its segment list {} is unreadable",
+            dir.join(Kept::SegmentList.file_name()).display()
+        )),
+        None => Ok(None),
+    }
+}
+
+/// Writes `listed` as record `sequence` of the segment list, synced (one
+/// `pwrite` and one `fdatasync`: segments are started and retired rarely,
+/// once per [`SEGMENT_BYTES`] written).
+fn write_segment_list(
+    dir: &Path,
+    file: &File,
+    sequence: u64,
+    listed: Listed,
+) -> Result<(), StoreError> {
+    Record2 {
+        sequence,
+        words: [listed.first, listed.last],
+    }
+    .write(Kept::SegmentList, file)
+    .and_then(|()| file.sync_data())
+    .map_err(|e| io_error(&dir.join(Kept::SegmentList.file_name()), e))
+}
+
+/// What the flushed-length file says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct FlushedRecord {
+    sequence: u64,
+    segment: u64,
+    length: u64,
+}
+
+impl FlushedRecord {
+    fn as_record(self) -> Record2 {
+        Record2 {
+            sequence: self.sequence,
+            words: [self.segment, self.length],
+        }
+    }
+
+    /// Writes it to its slot (one `pwrite`, no sync: see the module docs).
+    fn write(self, file: &File) -> std::io::Result<()> {
+        self.as_record().write(Kept::Flushed, file)
+    }
+}
+
+/// The flushed-length file in `dir`: `None` if there is none, or what is
+/// wrong with it.
+fn read_flushed(dir: &Path) -> Result<Option<FlushedRecord>, String> {
+    Ok(read_kept(dir, Kept::Flushed)?.map(|record| FlushedRecord {
+        sequence: record.sequence,
+        segment: record.words[0],
+        length: record.words[1],
+    }))
+}
 
 /// How a segment's batches are checksummed (see the module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -157,6 +403,10 @@ struct Index {
     segments: BTreeMap<u64, Segment>,
     /// Hashed, not ordered: updated per message, sorted only by a scan.
     keys: WordHashMap<LogKey, Location>,
+    /// While salvaging: keys whose latest put, or removal, lay in an
+    /// unreadable batch (see [`Losses`]).
+    unread_puts: HashSet<Vec<u8>>,
+    unread_removals: HashSet<Vec<u8>>,
 }
 
 /// The log's state: the index and the head open for appending.
@@ -176,6 +426,14 @@ struct State {
     compacting: Option<(u64, u64)>,
     /// Whether the head has writes not yet synced.
     dirty: bool,
+    /// The segment list's file, its last record's sequence number and
+    /// what it says.
+    list_file: File,
+    list_sequence: u64,
+    listed: Listed,
+    /// The flushed-length file, and the last record written to it.
+    flushed_file: File,
+    flushed: FlushedRecord,
 }
 
 /// How the message log treats damage when it is opened.
@@ -183,8 +441,9 @@ struct State {
 pub enum OnDamage {
     /// Fail, naming the file and what is wrong.
     Refuse,
-    /// Keep what is readable: truncate a damaged segment at its first bad
-    /// batch and log what was dropped.
+    /// Keep every readable batch: go on after a bad one at the next valid
+    /// one, note what was lost ([`MessageLog::losses`]) and rebuild the
+    /// log from what was read.
     Salvage,
 }
 
@@ -194,6 +453,8 @@ pub struct MessageLog {
     dir: PathBuf,
     segment_bytes: u64,
     state: Mutex<State>,
+    /// What opening it with [`OnDamage::Salvage`] could not keep.
+    losses: Losses,
 }
 
 fn io_error(path: &Path, e: std::io::Error) -> StoreError {
@@ -333,6 +594,16 @@ fn seal_batch(format: Format, segment: u64) -> Vec<u8> {
     batch
 }
 
+/// How far a segment's data must reach when it is read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Reach {
+    /// Through its seal: any segment but the newest.
+    Seal,
+    /// At least this far: the newest, whose recorded flushed length it is
+    /// (every confirm was sent for data below it; see the module docs).
+    Flushed(u64),
+}
+
 /// What reading a segment found.
 struct Read {
     /// Its format, if its header is whole.
@@ -343,13 +614,95 @@ struct Read {
     sealed: bool,
     /// Whether bytes other than zeros lie beyond the data's end.
     leftover: bool,
-    /// What is wrong after it, if anything.
-    problem: Option<String>,
+    /// Damage below what the segment must reach (when refusing).
+    damage: Option<String>,
+    /// A torn tail: what is wrong at or past the flushed length of the
+    /// newest segment (never confirmed), where reading stopped.
+    torn: Option<String>,
+}
+
+/// Bytes of the message log a salvage could not read.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LostRange {
+    /// The segment file.
+    pub segment: PathBuf,
+    /// The byte range lost, or `None` when the whole segment is missing.
+    pub bytes: Option<(u64, u64)>,
+    /// What was wrong there.
+    pub problem: String,
+}
+
+/// What a salvage of the message log could not keep (see
+/// [`MessageLog::losses`]).
+#[derive(Debug, Default, Clone)]
+pub struct Losses {
+    /// Every range that could not be read, in log order.
+    pub ranges: Vec<LostRange>,
+    /// Keys whose latest put lay in an unreadable batch (read without its
+    /// checksum) and no later readable write replaced: their values are
+    /// gone. Sorted.
+    pub puts: Vec<Vec<u8>>,
+    /// Keys whose latest removal lay there: an older value comes back.
+    /// Sorted.
+    pub removals: Vec<Vec<u8>>,
+    /// How many ranges did not parse even without their checksums (zeros,
+    /// a cut file, a missing segment): what they held is unknown.
+    pub unknown_ranges: usize,
+    /// What was wrong with the segment list or the flushed length (no
+    /// record is lost with them; the rebuilt log has new ones).
+    pub bookkeeping: Vec<String>,
+}
+
+impl Losses {
+    /// Whether nothing was damaged (the log is then not rebuilt).
+    pub fn is_empty(&self) -> bool {
+        self.ranges.is_empty() && self.bookkeeping.is_empty()
+    }
+}
+
+/// A batch at the start of `rest` of segment `segment` in `format`: its
+/// payload's length and records, or what is wrong with it.
+fn check_batch(
+    format: Format,
+    segment: u64,
+    rest: &[u8],
+) -> Result<(usize, Vec<Record<'_>>), String> {
+    if rest.len() < BATCH_HEADER {
+        return Err(format!("{} bytes of a batch header", rest.len()));
+    }
+    let len = u32::from_le_bytes(rest[..4].try_into().expect("4 bytes")) as usize;
+    let crc = u32::from_le_bytes(rest[4..8].try_into().expect("4 bytes"));
+    match rest.get(BATCH_HEADER..BATCH_HEADER + len) {
+        // A zero length with a checksum: never written by the log.
+        Some([]) => Err("an empty batch".into()),
+        None => Err(format!(
+            "a batch of {len} bytes with only {} present",
+            rest.len() - BATCH_HEADER
+        )),
+        // Cheap before the checksum, for a salvage trying every offset.
+        Some([tag, ..]) if ![PUT, REMOVE, SEAL].contains(tag) => {
+            Err("a batch whose records are malformed".into())
+        }
+        Some(payload) if format.checksum(segment, payload) != crc => {
+            Err("a batch whose checksum fails".into())
+        }
+        Some(payload) => parse_records(payload)
+            .map(|records| (len, records))
+            .ok_or_else(|| "a batch whose records are malformed".into()),
+    }
+}
+
+/// The first offset in `from..until` of `bytes` where a whole, valid batch
+/// starts, for a salvage to go on after damage (format 2 batches checksum
+/// their segment's number, so a recycled file's old batches never match).
+fn resync(bytes: &[u8], from: usize, until: usize, format: Format, segment: u64) -> Option<usize> {
+    (from..until.min(bytes.len())).find(|&at| check_batch(format, segment, &bytes[at..]).is_ok())
 }
 
 impl Index {
     /// Records a put of `key` at `location`, retiring its older value.
     fn put(&mut self, key: &[u8], location: Location) {
+        self.supersede(key);
         let weight = location.len as u64 + key.len() as u64;
         if let Some(old) = self.keys.insert(LogKey::new(key), location) {
             self.retire(key.len(), old);
@@ -360,8 +713,18 @@ impl Index {
     }
 
     fn remove(&mut self, key: &[u8]) {
+        self.supersede(key);
         if let Some(old) = self.keys.remove(&LogKey::new(key)) {
             self.retire(key.len(), old);
+        }
+    }
+
+    /// A readable write of `key` replaces whatever an unreadable batch
+    /// before it did to the key (only while salvaging is there any).
+    fn supersede(&mut self, key: &[u8]) {
+        if !self.unread_puts.is_empty() || !self.unread_removals.is_empty() {
+            self.unread_puts.remove(key);
+            self.unread_removals.remove(key);
         }
     }
 
@@ -391,73 +754,165 @@ impl Index {
         }
     }
 
-    /// Reads segment `number`'s batches into the index.
-    fn read_segment(&mut self, dir: &Path, number: u64) -> Result<Read, StoreError> {
+    /// Notes what the unreadable `bytes` held, read as batches without
+    /// their checksums (the puts and removals a salvage reports lost);
+    /// whether they all parsed.
+    fn note_unreadable(&mut self, bytes: &[u8]) -> bool {
+        let mut at = 0;
+        while at < bytes.len() {
+            let Some(header) = bytes.get(at..at + BATCH_HEADER) else {
+                return false;
+            };
+            let len = u32::from_le_bytes(header[..4].try_into().expect("4 bytes")) as usize;
+            let Some(records) = bytes
+                .get(at + BATCH_HEADER..at + BATCH_HEADER + len)
+                .filter(|payload| !payload.is_empty())
+                .and_then(parse_records)
+            else {
+                return false;
+            };
+            for record in records {
+                match record {
+                    Record::Put { key, .. } => {
+                        self.unread_removals.remove(key);
+                        self.unread_puts.insert(key.to_vec());
+                    }
+                    Record::Remove { key } => {
+                        self.unread_puts.remove(key);
+                        self.unread_removals.insert(key.to_vec());
+                    }
+                    Record::Seal => {}
+                }
+            }
+            at += BATCH_HEADER + len;
+        }
+        true
+    }
+
+    /// Reads segment `number`'s batches into the index. Damage below
+    /// `reach` is reported as such when refusing; when salvaging, each bad
+    /// stretch is noted in `losses` and reading goes on at the next valid
+    /// batch. Whatever is wrong at or past a newest segment's flushed
+    /// length is a torn tail: reading stops there.
+    fn read_segment(
+        &mut self,
+        dir: &Path,
+        number: u64,
+        reach: Reach,
+        on_damage: OnDamage,
+        losses: &mut Losses,
+    ) -> Result<Read, StoreError> {
         let path = segment_path(dir, number);
         let bytes = std::fs::read(&path).map_err(|e| io_error(&path, e))?;
         self.segments.entry(number).or_default();
-        let format = bytes.get(..8).and_then(Format::of_magic);
-        let Some(format) = format.filter(|_| bytes.get(8..16) == Some(&number.to_be_bytes()))
-        else {
-            return Ok(Read {
-                format: None,
-                good_end: 0,
-                sealed: false,
-                leftover: false,
-                problem: Some("its header is missing or wrong".into()),
+        let header_format = bytes.get(..8).and_then(Format::of_magic);
+        let header_format =
+            header_format.filter(|_| bytes.get(8..16) == Some(&number.to_be_bytes()));
+        let mut read = Read {
+            format: header_format,
+            good_end: HEADER,
+            sealed: false,
+            leftover: false,
+            damage: None,
+            torn: None,
+        };
+        let mut lose = |index: &mut Index, from: usize, to: usize, problem: String| {
+            if !index.note_unreadable(&bytes[from..to]) {
+                losses.unknown_ranges += 1;
+            }
+            losses.ranges.push(LostRange {
+                segment: path.clone(),
+                bytes: Some((from as u64, to as u64)),
+                problem,
             });
+        };
+        let format = match (header_format, on_damage) {
+            (Some(format), _) => format,
+            (None, OnDamage::Refuse) => {
+                read.good_end = 0;
+                read.damage = Some("its header is missing or wrong".into());
+                return Ok(read);
+            }
+            // Read on as the format every segment is started in.
+            (None, OnDamage::Salvage) => {
+                let end = bytes.len().min(HEADER as usize);
+                lose(self, 0, end, "its header is missing or wrong".into());
+                Format::V2
+            }
+        };
+        let until = match reach {
+            Reach::Seal => bytes.len(),
+            Reach::Flushed(flushed) => (flushed as usize).min(bytes.len()),
         };
         let mut at = HEADER as usize;
         let mut sealed = false;
-        while at < bytes.len() {
-            let rest = &bytes[at..];
-            if rest[..rest.len().min(BATCH_HEADER)].iter().all(|&b| b == 0) {
-                // The end mark (or the zeros a head was extended with).
-                break;
-            }
-            let problem = if rest.len() < BATCH_HEADER {
-                Some(format!("{} bytes of a batch header", rest.len()))
+        loop {
+            let must_go_on = match reach {
+                Reach::Seal => !sealed,
+                Reach::Flushed(flushed) => (at as u64) < flushed,
+            };
+            let rest = &bytes[at.min(bytes.len())..];
+            let ended = rest[..rest.len().min(BATCH_HEADER)].iter().all(|&b| b == 0);
+            let issue = if ended {
+                // The end mark, the zeros a head was extended with, or the
+                // end of the file.
+                if !must_go_on {
+                    break;
+                }
+                let what = if rest.is_empty() {
+                    format!("the file ends at offset {at}")
+                } else {
+                    format!("zeros at offset {at}")
+                };
+                match reach {
+                    Reach::Seal => format!("{what}, before its seal (truncated or zeroed)"),
+                    Reach::Flushed(flushed) => format!(
+                        "{what}, below the {flushed} bytes recorded as flushed (truncated or \
+                         zeroed)"
+                    ),
+                }
             } else {
-                let len = u32::from_le_bytes(rest[..4].try_into().expect("4 bytes")) as usize;
-                let crc = u32::from_le_bytes(rest[4..8].try_into().expect("4 bytes"));
-                match rest.get(BATCH_HEADER..BATCH_HEADER + len) {
-                    // A zero length with a checksum: never written by the log.
-                    Some([]) => Some("an empty batch".into()),
-                    None => Some(format!(
-                        "a batch of {len} bytes with only {} present",
-                        rest.len() - BATCH_HEADER
-                    )),
-                    Some(payload) if format.checksum(number, payload) != crc => {
-                        Some("a batch whose checksum fails".into())
+                match check_batch(format, number, rest) {
+                    Ok((len, records)) => {
+                        sealed = matches!(records[..], [Record::Seal]);
+                        self.apply(number, (at + BATCH_HEADER) as u64, records);
+                        at += BATCH_HEADER + len;
+                        continue;
                     }
-                    Some(payload) => match parse_records(payload) {
-                        None => Some("a batch whose records are malformed".into()),
-                        Some(records) => {
-                            sealed = matches!(records[..], [Record::Seal]);
-                            self.apply(number, (at + BATCH_HEADER) as u64, records);
-                            at += BATCH_HEADER + len;
-                            None
-                        }
-                    },
+                    Err(problem) => format!("at offset {at}: {problem}"),
                 }
             };
-            if let Some(problem) = problem {
-                return Ok(Read {
-                    format: Some(format),
-                    good_end: at as u64,
-                    sealed,
-                    leftover: true,
-                    problem: Some(format!("at offset {at}: {problem}")),
-                });
+            if matches!(reach, Reach::Flushed(flushed) if at as u64 >= flushed) {
+                read.torn = Some(issue);
+                break;
+            }
+            match on_damage {
+                OnDamage::Refuse => {
+                    read.damage = Some(issue);
+                    break;
+                }
+                OnDamage::Salvage => {
+                    let next = resync(&bytes, at + 1, until, format, number);
+                    let from = at.min(bytes.len());
+                    lose(self, from, next.unwrap_or(bytes.len()).max(from), issue);
+                    match next {
+                        Some(next) => at = next,
+                        None => {
+                            // Nothing readable follows: what the segment
+                            // held after the damage is gone.
+                            at = bytes.len();
+                            break;
+                        }
+                    }
+                }
             }
         }
-        Ok(Read {
-            format: Some(format),
-            good_end: at as u64,
-            sealed,
-            leftover: bytes[at..].iter().any(|&b| b != 0),
-            problem: None,
-        })
+        read.good_end = at as u64;
+        read.sealed = sealed;
+        read.leftover = bytes
+            .get(at..)
+            .is_some_and(|rest| rest.iter().any(|&b| b != 0));
+        Ok(read)
     }
 }
 
@@ -512,19 +967,6 @@ fn create_segment(
     Ok((file, len))
 }
 
-/// Appends a seal batch to segment `number` (of `format`) at `at`,
-/// durably; returns its length without the end mark.
-fn seal_segment(dir: &Path, number: u64, format: Format, at: u64) -> Result<u64, StoreError> {
-    let path = segment_path(dir, number);
-    let seal = seal_batch(format, number);
-    OpenOptions::new()
-        .write(true)
-        .open(&path)
-        .and_then(|f| f.write_all_at(&seal, at).and_then(|()| f.sync_data()))
-        .map_err(|e| io_error(&path, e))?;
-    Ok((seal.len() - BATCH_HEADER) as u64)
-}
-
 /// Truncates segment `number` to `len` bytes, durably.
 fn truncate_segment(dir: &Path, number: u64, len: u64) -> Result<(), StoreError> {
     let path = segment_path(dir, number);
@@ -538,8 +980,12 @@ fn truncate_segment(dir: &Path, number: u64, len: u64) -> Result<(), StoreError>
 impl MessageLog {
     /// Opens the log in `dir` (created if missing), reading every
     /// segment; see the module docs for what counts as damage.
-    pub fn open(dir: &Path, on_damage: OnDamage) -> Result<MessageLog, StoreError> {
-        MessageLog::open_sized(dir, on_damage, SEGMENT_BYTES)
+    pub fn open(
+        dir: &Path,
+        on_damage: OnDamage,
+        bookkeeping: Bookkeeping,
+    ) -> Result<MessageLog, StoreError> {
+        MessageLog::open_sized(dir, on_damage, bookkeeping, SEGMENT_BYTES)
     }
 
     /// [`MessageLog::open`] with segments of `segment_bytes` (small ones
@@ -547,14 +993,83 @@ impl MessageLog {
     pub fn open_sized(
         dir: &Path,
         on_damage: OnDamage,
+        bookkeeping: Bookkeeping,
         segment_bytes: u64,
     ) -> Result<MessageLog, StoreError> {
+        let rebuilt = dir.with_extension("rebuilt");
+        if !dir.exists() && rebuilt.exists() {
+            // A rebuild stopped between its two renames: the rebuilt log
+            // was whole and synced before the first.
+            std::fs::rename(&rebuilt, dir).map_err(|e| io_error(dir, e))?;
+        }
         std::fs::create_dir_all(dir).map_err(|e| io_error(dir, e))?;
-        let state = load(dir, on_damage)?;
-        Ok(MessageLog {
+        let (state, losses) = load(dir, on_damage, bookkeeping)?;
+        let log = MessageLog {
             dir: dir.to_owned(),
             segment_bytes,
             state: Mutex::new(state),
+            losses,
+        };
+        if log.losses.is_empty() {
+            return Ok(log);
+        }
+        log.rebuild()
+    }
+
+    /// What opening with [`OnDamage::Salvage`] could not keep (empty
+    /// otherwise).
+    pub fn losses(&self) -> &Losses {
+        &self.losses
+    }
+
+    /// After a salvage that lost something: writes every readable record
+    /// into a new log beside this one, synced, and puts it in this one's
+    /// place, so the next start finds a whole log (the caller has copied
+    /// the damaged one aside).
+    fn rebuild(self) -> Result<MessageLog, StoreError> {
+        let pairs = self.scan()?;
+        let rebuilt = self.dir.with_extension("rebuilt");
+        let replaced = self.dir.with_extension("replaced");
+        for stale in [&rebuilt, &replaced] {
+            if stale.exists() {
+                std::fs::remove_dir_all(stale).map_err(|e| io_error(stale, e))?;
+            }
+        }
+        {
+            let fresh = MessageLog::open_sized(
+                &rebuilt,
+                OnDamage::Refuse,
+                Bookkeeping::Adopted,
+                self.segment_bytes,
+            )?;
+            let puts: Vec<KvOp> = pairs
+                .into_iter()
+                .map(|(key, value)| (key, Some(value)))
+                .collect();
+            if !puts.is_empty() {
+                fresh.write(&puts, false)?;
+            }
+            fresh.flush()?;
+        }
+        let MessageLog {
+            dir,
+            segment_bytes,
+            state,
+            losses,
+        } = self;
+        drop(state);
+        let parent = dir.parent().unwrap_or(Path::new("."));
+        std::fs::rename(&dir, &replaced)
+            .and_then(|()| std::fs::rename(&rebuilt, &dir))
+            .map_err(|e| io_error(&dir, e))?;
+        sync_dir(parent)?;
+        std::fs::remove_dir_all(&replaced).map_err(|e| io_error(&replaced, e))?;
+        let (state, _) = load(&dir, OnDamage::Refuse, Bookkeeping::Required)?;
+        Ok(MessageLog {
+            dir,
+            segment_bytes,
+            state: Mutex::new(state),
+            losses,
         })
     }
 
@@ -652,6 +1167,13 @@ impl MessageLog {
         state.dirty = false;
         let next = number + 1;
         let (head, head_len) = create_segment(&self.dir, next, &mut state.spares)?;
+        // Listed before any batch is written to it: a segment past the
+        // list's newest holds nothing (see `load`).
+        let listed = Listed {
+            last: next,
+            ..state.listed
+        };
+        self.record_list(state, listed)?;
         state.head = head;
         state.head_number = next;
         state.head_format = Format::V2;
@@ -677,6 +1199,17 @@ impl MessageLog {
                 .sync_data()
                 .map_err(|e| io_error(&segment_path(&self.dir, number), e))?;
             state.dirty = false;
+            // Recorded only now, after the sync, and before any confirm
+            // for what it covers is sent (see the module docs).
+            let record = FlushedRecord {
+                sequence: state.flushed.sequence + 1,
+                segment: number,
+                length: state.index.segments.get(&number).map_or(HEADER, |s| s.size),
+            };
+            record
+                .write(&state.flushed_file)
+                .map_err(|e| io_error(&self.dir.join(Kept::Flushed.file_name()), e))?;
+            state.flushed = record;
         }
         let keys = &mut state.index.keys;
         if keys.capacity() > INDEX_ROOM_KEPT && keys.capacity() > 4 * keys.len() {
@@ -686,16 +1219,37 @@ impl MessageLog {
         self.compact(&mut state)
     }
 
+    /// Records `listed` in the segment list, synced.
+    fn record_list(&self, state: &mut State, listed: Listed) -> Result<(), StoreError> {
+        let sequence = state.list_sequence + 1;
+        write_segment_list(&self.dir, &state.list_file, sequence, listed)?;
+        state.list_sequence = sequence;
+        state.listed = listed;
+        Ok(())
+    }
+
     /// Deletes the oldest segments while they hold nothing live (never the
-    /// head), oldest first, each deletion synced to the directory. A
-    /// deleted segment's file is kept as a spare while there are fewer
-    /// than [`SPARES`].
+    /// head), oldest first: the segment list first leaves them out, then
+    /// they go, with one sync of the directory. A deleted segment's file
+    /// is kept as a spare while there are fewer than [`SPARES`].
     fn delete_dead(&self, state: &mut State) -> Result<(), StoreError> {
-        while let Some((&oldest, segment)) = state.index.segments.first_key_value() {
-            if oldest == state.head_number || segment.live > 0 {
-                return Ok(());
-            }
-            let path = segment_path(&self.dir, oldest);
+        let dead: Vec<u64> = state
+            .index
+            .segments
+            .iter()
+            .take_while(|(&number, segment)| number != state.head_number && segment.live == 0)
+            .map(|(&number, _)| number)
+            .collect();
+        let Some(&newest_dead) = dead.last() else {
+            return Ok(());
+        };
+        let listed = Listed {
+            first: newest_dead + 1,
+            ..state.listed
+        };
+        self.record_list(state, listed)?;
+        for number in dead {
+            let path = segment_path(&self.dir, number);
             if state.spares.len() < SPARES {
                 let spare = path.with_extension("spare");
                 std::fs::rename(&path, &spare).map_err(|e| io_error(&path, e))?;
@@ -703,13 +1257,12 @@ impl MessageLog {
             } else {
                 std::fs::remove_file(&path).map_err(|e| io_error(&path, e))?;
             }
-            sync_dir(&self.dir)?;
-            state.index.segments.remove(&oldest);
-            if state.compacting.is_some_and(|(s, _)| s == oldest) {
+            state.index.segments.remove(&number);
+            if state.compacting.is_some_and(|(s, _)| s == number) {
                 state.compacting = None;
             }
         }
-        Ok(())
+        sync_dir(&self.dir)
     }
 
     /// Copies up to [`COMPACT_BYTES`] of the oldest segment's live records
@@ -813,79 +1366,215 @@ impl MessageLog {
     /// what is durable, and a cut-short last batch truncated.
     pub fn reopen(&self) -> Result<(), StoreError> {
         let mut state = self.state();
-        *state = load(&self.dir, OnDamage::Refuse)?;
+        *state = load(&self.dir, OnDamage::Refuse, Bookkeeping::Required)?.0;
         Ok(())
     }
 }
 
 /// Reads every segment in `dir` into a fresh state (see the module docs
-/// for damage), with the newest open for appending.
-fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
-    let numbers = segment_numbers(dir)?;
-    let damaged = |problem: String| StoreError::Damaged {
-        path: dir.to_owned(),
-        problem,
+/// for damage), with the newest open for appending; when salvaging, also
+/// what could not be read (the caller then rebuilds the log: nothing here
+/// changes a damaged segment).
+fn load(
+    dir: &Path,
+    on_damage: OnDamage,
+    bookkeeping: Bookkeeping,
+) -> Result<(State, Losses), StoreError> {
+    let mut losses = Losses::default();
+    let mut problems: Vec<String> = Vec::new();
+    // Refusing, the first problem is the answer; salvaging, each is noted
+    // and reading goes on.
+    let mut damage = |problem: String, losses: &mut Losses, lost: Option<LostRange>| {
+        if on_damage == OnDamage::Refuse {
+            return Err(StoreError::Damaged {
+                path: dir.to_owned(),
+                problem,
+            });
+        }
+        match lost {
+            Some(lost) => losses.ranges.push(lost),
+            None => losses.bookkeeping.push(problem.clone()),
+        }
+        problems.push(problem);
+        Ok(())
     };
-    if on_damage == OnDamage::Refuse {
-        if let Some(pair) = numbers.windows(2).find(|pair| pair[1] != pair[0] + 1) {
-            return Err(damaged(format!(
-                "message log segment {} is missing",
-                segment_path(dir, pair[0] + 1).display()
-            )));
+    let present = segment_numbers(dir)?;
+    let listed = match (read_segment_list(dir), bookkeeping) {
+        (Ok(Some(found)), _) => Some(found),
+        (Ok(None), Bookkeeping::Adopted) => None,
+        (Ok(None), Bookkeeping::Required) => {
+            let path = dir.join(Kept::SegmentList.file_name());
+            damage(
+                format!("its segment list {} is missing", path.display()),
+                &mut losses,
+                None,
+            )?;
+            None
+        }
+        (Err(problem), _) => {
+            damage(problem, &mut losses, None)?;
+            None
+        }
+    };
+    let flushed = match (read_flushed(dir), bookkeeping) {
+        (Ok(found), Bookkeeping::Adopted) => found,
+        (Ok(Some(found)), Bookkeeping::Required) => Some(found),
+        (Ok(None), Bookkeeping::Required) => {
+            let path = dir.join(Kept::Flushed.file_name());
+            damage(
+                format!("its flushed length {} is missing", path.display()),
+                &mut losses,
+                None,
+            )?;
+            None
+        }
+        (Err(problem), _) => {
+            damage(problem, &mut losses, None)?;
+            None
+        }
+    };
+    let list_sequence = listed.map_or(0, |(sequence, _)| sequence);
+    let listed = listed.map(|(_, listed)| listed);
+    // The segments to read: those the list names, every one present
+    // (and one past its newest: started by a rotation cut short before
+    // the list named it, so holding nothing); without a list, those
+    // found, without gaps.
+    let mut numbers = Vec::new();
+    match listed {
+        Some(listed) => {
+            for &number in &present {
+                if number < listed.first && on_damage == OnDamage::Refuse {
+                    // Retired, its deletion cut short: nothing in it lives.
+                    let path = segment_path(dir, number);
+                    std::fs::remove_file(&path).map_err(|e| io_error(&path, e))?;
+                } else if number > listed.last + 1 {
+                    damage(
+                        format!(
+                            "message log segment {} lies past the newest its list names ({})",
+                            segment_path(dir, number).display(),
+                            listed.last
+                        ),
+                        &mut losses,
+                        None,
+                    )?;
+                } else if number >= listed.first {
+                    numbers.push(number);
+                }
+            }
+            for number in listed.first..=listed.last {
+                if present.binary_search(&number).is_err() {
+                    let path = segment_path(dir, number);
+                    let problem = format!(
+                        "message log segment {} is missing (its list says the log holds \
+                         segments {} to {})",
+                        path.display(),
+                        listed.first,
+                        listed.last
+                    );
+                    let lost = LostRange {
+                        segment: path,
+                        bytes: None,
+                        problem: problem.clone(),
+                    };
+                    damage(problem, &mut losses, Some(lost))?;
+                    losses.unknown_ranges += 1;
+                }
+            }
+        }
+        None => {
+            if let Some(pair) = present.windows(2).find(|pair| pair[1] != pair[0] + 1) {
+                let path = segment_path(dir, pair[0] + 1);
+                let problem = format!("message log segment {} is missing", path.display());
+                let lost = LostRange {
+                    segment: path,
+                    bytes: None,
+                    problem: problem.clone(),
+                };
+                damage(problem, &mut losses, Some(lost))?;
+                losses.unknown_ranges += 1;
+            }
+            numbers = present.clone();
+        }
+    }
+    // A segment started by a rotation cut short (past the list's newest,
+    // or without a list the newest) may hold no whole header: it never
+    // held a batch, and goes.
+    let unlisted = match listed {
+        Some(listed) => numbers.last().filter(|&&n| n == listed.last + 1),
+        None => numbers.last(),
+    };
+    if let Some(&number) = unlisted {
+        let path = segment_path(dir, number);
+        let bytes = std::fs::read(&path).map_err(|e| io_error(&path, e))?;
+        let whole_header = bytes.get(..8).and_then(Format::of_magic).is_some()
+            && bytes.get(8..16) == Some(&number.to_be_bytes());
+        if !whole_header {
+            tracing::warn!(segment = %path.display(), "removing a message log segment whose start was cut short");
+            std::fs::remove_file(&path).map_err(|e| io_error(&path, e))?;
+            numbers.pop();
         }
     }
     let newest = numbers.last().copied();
+    // How far the newest segment must reach: its recorded flushed length;
+    // nothing of a segment the record does not name yet was flushed.
+    let newest_reach = match (flushed, newest) {
+        (Some(record), Some(newest)) if record.segment == newest => record.length,
+        (Some(record), Some(newest)) if record.segment > newest => {
+            let problem = format!(
+                "its flushed length names segment {}, past the newest present ({newest})",
+                segment_path(dir, record.segment).display()
+            );
+            damage(problem, &mut losses, None)?;
+            HEADER
+        }
+        _ => HEADER,
+    };
     let mut index = Index::default();
     let mut head_format = Format::V2;
     for &number in &numbers {
-        let mut read = index.read_segment(dir, number)?;
         let path = segment_path(dir, number);
-        if read.problem.is_none() && !read.sealed && Some(number) != newest {
-            read.problem = Some(format!(
-                "it ends at offset {} without its seal (truncated)",
-                read.good_end
-            ));
+        let is_newest = Some(number) == newest;
+        let reach = if is_newest {
+            Reach::Flushed(newest_reach)
+        } else {
+            Reach::Seal
+        };
+        let read = index.read_segment(dir, number, reach, on_damage, &mut losses)?;
+        if let Some(problem) = read.damage {
+            return Err(StoreError::Damaged {
+                path: dir.to_owned(),
+                problem: format!("message log segment {}: {problem}", path.display()),
+            });
         }
-        let cut_short = read.problem.is_some();
-        if let Some(problem) = read.problem {
-            match on_damage {
-                OnDamage::Refuse if Some(number) != newest => {
-                    return Err(damaged(format!(
-                        "message log segment {}: {problem}",
-                        path.display()
-                    )))
-                }
-                OnDamage::Refuse => tracing::warn!(
-                    segment = %path.display(),
-                    problem,
-                    "the message log ends in a batch that was never flushed (a crash or power \
-                     cut while writing); it is dropped, nothing it held was confirmed"
-                ),
-                OnDamage::Salvage => tracing::warn!(
-                    segment = %path.display(),
-                    problem,
-                    "dropped the rest of a damaged message log segment"
-                ),
-            }
-            if read.good_end < HEADER {
-                // No usable header: the segment holds nothing readable.
-                std::fs::remove_file(&path).map_err(|e| io_error(&path, e))?;
-                index.segments.remove(&number);
-                continue;
-            }
-            truncate_segment(dir, number, read.good_end)?;
-            if Some(number) != newest {
-                // Salvaged: sealed again, so the next start finds it whole.
-                let format = read.format.unwrap_or(Format::V2);
-                read.good_end += seal_segment(dir, number, format, read.good_end)?;
-            }
+        if let Some(problem) = &read.torn {
+            tracing::warn!(
+                segment = %path.display(),
+                problem,
+                flushed = newest_reach,
+                "the message log ends in a batch written after its last recorded flush (a crash \
+                 or power cut while writing); it is dropped: no confirm was sent for it"
+            );
         }
-        if !cut_short && read.leftover && Some(number) == newest {
+        if read.good_end < HEADER {
+            // Refusing, a bad header is damage (returned above); salvaging,
+            // the segment is read on as format 2 and rebuilt.
+            continue;
+        }
+        if is_newest && (read.torn.is_some() || read.leftover) && losses.is_empty() {
             // See the module docs: nothing beyond the end may be uncovered.
             truncate_segment(dir, number, read.good_end)?;
         }
         head_format = read.format.unwrap_or(Format::V2);
         index.segments.entry(number).or_default().size = read.good_end;
+    }
+    losses.puts = std::mem::take(&mut index.unread_puts).into_iter().collect();
+    losses.puts.sort_unstable();
+    losses.removals = std::mem::take(&mut index.unread_removals)
+        .into_iter()
+        .collect();
+    losses.removals.sort_unstable();
+    for problem in &problems {
+        tracing::warn!(log = %dir.display(), problem, "message log damage found while salvaging");
     }
     let mut spares = spare_paths(dir)?;
     while spares.len() > SPARES {
@@ -904,7 +1593,7 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
             (number, head, len)
         }
         None => {
-            let number = newest.map_or(1, |n| n + 1);
+            let number = newest.or(listed.map(|l| l.last)).map_or(1, |n| n + 1);
             index.segments.insert(
                 number,
                 Segment {
@@ -917,16 +1606,45 @@ fn load(dir: &Path, on_damage: OnDamage) -> Result<State, StoreError> {
             (number, head, len)
         }
     };
-    Ok(State {
-        index,
-        head,
-        head_number,
-        head_format,
-        head_len,
-        spares,
-        compacting: None,
-        dirty: false,
-    })
+    let first = *index.segments.first_key_value().expect("the head").0;
+    let now_listed = Listed {
+        first,
+        last: head_number,
+    };
+    let list_record = Record2 {
+        sequence: list_sequence,
+        words: [now_listed.first, now_listed.last],
+    };
+    let list_file = open_kept(dir, Kept::SegmentList, list_record)?;
+    let mut list_sequence = list_sequence;
+    if losses.is_empty() && listed.is_some_and(|listed| listed != now_listed) {
+        list_sequence += 1;
+        write_segment_list(dir, &list_file, list_sequence, now_listed)?;
+    }
+    let flushed = flushed.unwrap_or(FlushedRecord {
+        sequence: 0,
+        segment: head_number,
+        length: HEADER,
+    });
+    let flushed_file = open_kept(dir, Kept::Flushed, flushed.as_record())?;
+    Ok((
+        State {
+            index,
+            head,
+            head_number,
+            head_format,
+            head_len,
+            spares,
+            compacting: None,
+            dirty: false,
+            list_file,
+            list_sequence,
+            listed: now_listed,
+            flushed_file,
+            flushed,
+        },
+        losses,
+    ))
 }
 
 #[cfg(test)]
@@ -985,14 +1703,14 @@ mod tests {
     fn writes_survive_reopening_with_overwrites_and_removes_applied() {
         let dir = temp_dir("reopen");
         {
-            let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+            let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
             log.write(&[put("a", "1"), put("b", "2"), put("c", "3")], false)
                 .unwrap();
             log.write(&[remove("a"), put("b", "22"), remove("zz")], true)
                 .unwrap();
             log.flush().unwrap();
         }
-        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         assert_eq!(
             pairs(&log),
             vec![("b".into(), "22".into()), ("c".into(), "3".into())]
@@ -1004,7 +1722,8 @@ mod tests {
     #[test]
     fn dead_segments_are_deleted_oldest_first() {
         let dir = temp_dir("delete");
-        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 256).unwrap();
+        let log =
+            MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 256).unwrap();
         for round in 0..20 {
             let key = format!("k{round}");
             log.write(&[put(&key, &"x".repeat(100))], false).unwrap();
@@ -1023,7 +1742,8 @@ mod tests {
     #[test]
     fn a_long_held_record_is_moved_forward_instead_of_pinning_the_log() {
         let dir = temp_dir("compact");
-        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 512).unwrap();
+        let log =
+            MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 512).unwrap();
         log.write(&[put("pinned", "held for a long time")], false)
             .unwrap();
         for round in 0..200 {
@@ -1038,7 +1758,8 @@ mod tests {
             vec![("pinned".into(), "held for a long time".into())]
         );
         drop(log);
-        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 512).unwrap();
+        let log =
+            MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 512).unwrap();
         assert_eq!(
             pairs(&log),
             vec![("pinned".into(), "held for a long time".into())]
@@ -1050,7 +1771,7 @@ mod tests {
     #[test]
     fn a_batch_cut_short_at_the_end_is_dropped_and_writing_goes_on_after_the_good_data() {
         let dir = temp_dir("torn");
-        let mut log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        let mut log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         log.write(&[put("a", "1")], false).unwrap();
         log.flush().unwrap();
         // Each time the last batch (not flushed) loses its last `cut`
@@ -1061,12 +1782,12 @@ mod tests {
                 let end = data_end(&log);
                 drop(log);
                 lose_tail(&dir, end - cut, end, zeroed);
-                log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+                log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
                 assert_eq!(pairs(&log), vec![("a".into(), "1".into())], "cut {cut}");
                 log.write(&[put("c", "3")], false).unwrap();
                 log.flush().unwrap();
                 drop(log);
-                log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+                log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
                 assert_eq!(
                     pairs(&log),
                     vec![("a".into(), "1".into()), ("c".into(), "3".into())]
@@ -1080,10 +1801,11 @@ mod tests {
     }
 
     #[test]
-    fn damage_before_the_last_segment_refuses_and_salvage_keeps_what_precedes_it() {
+    fn damage_before_the_last_segment_refuses_and_salvage_keeps_every_other_batch() {
         let dir = temp_dir("damage");
         let sizes: Vec<u64> = {
-            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 64).unwrap();
+            let log =
+                MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 64).unwrap();
             for i in 0..6 {
                 log.write(&[put(&format!("k{i}"), &"v".repeat(40))], false)
                     .unwrap();
@@ -1100,16 +1822,16 @@ mod tests {
         let in_value = (sizes[1] - BATCH_HEADER as u64 - 2) as usize;
         bytes[in_value] ^= 0xff;
         std::fs::write(&second, bytes).unwrap();
-        let refused = MessageLog::open(&dir, OnDamage::Refuse).unwrap_err();
+        let refused = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap_err();
         let message = refused.to_string();
         assert!(message.contains(&second.display().to_string()), "{message}");
         assert!(message.contains("checksum"), "{message}");
-        let log = MessageLog::open(&dir, OnDamage::Salvage).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Salvage, Bookkeeping::Adopted).unwrap();
         let kept = pairs(&log);
         assert_eq!(kept.len(), 5, "only the damaged batch is lost: {kept:?}");
         drop(log);
         // Salvaged, it opens normally again.
-        MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         let _ = std::fs::remove_dir_all(&dir);
     }
 
@@ -1118,7 +1840,7 @@ mod tests {
         let dir = temp_dir("recycle");
         let value = "v".repeat(50);
         // Segment 1: put a, remove a (then full).
-        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 90).unwrap();
+        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 90).unwrap();
         log.write(&[put("a", &value)], false).unwrap();
         log.write(&[remove("a")], false).unwrap();
         let removal_at = data_end(&log) - 12;
@@ -1144,7 +1866,7 @@ mod tests {
         let at = removal_at as usize;
         bytes[at..at + BATCH_HEADER].copy_from_slice(&old[at..at + BATCH_HEADER]);
         std::fs::write(&path, bytes).unwrap();
-        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 90).unwrap();
+        let log = MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 90).unwrap();
         assert_eq!(pairs(&log), vec![("a".into(), new_value)]);
         drop(log);
         let _ = std::fs::remove_dir_all(&dir);
@@ -1157,7 +1879,7 @@ mod tests {
     #[test]
     fn a_batch_kept_past_a_lost_one_never_returns_after_a_second_power_cut() {
         let dir = temp_dir("second-cut");
-        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         log.write(&[put("a", "1")], false).unwrap();
         log.flush().unwrap();
         let synced_end = data_end(&log) as usize;
@@ -1171,7 +1893,7 @@ mod tests {
         let mut bytes = std::fs::read(&path).unwrap();
         bytes[synced_end..b_end].fill(0);
         std::fs::write(&path, &bytes).unwrap();
-        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         assert_eq!(pairs(&log), vec![("a".into(), "1".into())]);
         let on_disk = std::fs::read(&path).unwrap();
         // b again, the same size: its end mark lies where the removal's
@@ -1185,7 +1907,7 @@ mod tests {
             *byte = on_disk.get(at).copied().unwrap_or(0);
         }
         std::fs::write(&path, &bytes).unwrap();
-        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         assert_eq!(
             pairs(&log),
             vec![("a".into(), "1".into()), ("b".into(), "3".into())]
@@ -1197,7 +1919,7 @@ mod tests {
     #[test]
     fn the_index_gives_back_room_once_a_backlog_drains() {
         let dir = temp_dir("index-room");
-        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         let keys: Vec<String> = (0..100_000).map(|n| format!("k{n}")).collect();
         let puts: Vec<KvOp> = keys.iter().map(|k| put(k, "v")).collect();
         log.write(&puts, false).unwrap();
@@ -1223,11 +1945,11 @@ mod tests {
         let (batch, _) = encode_batch(&[put("a", "1"), put("b", "2")], Format::V1, 1).unwrap();
         bytes.extend_from_slice(&batch);
         std::fs::write(segment_path(&dir, 1), bytes).unwrap();
-        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         log.write(&[remove("a"), put("c", "3")], false).unwrap();
         log.flush().unwrap();
         drop(log);
-        let log = MessageLog::open(&dir, OnDamage::Refuse).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
         assert_eq!(
             pairs(&log),
             vec![("b".into(), "2".into()), ("c".into(), "3".into())]
@@ -1241,7 +1963,8 @@ mod tests {
     fn a_missing_segment_is_damage() {
         let dir = temp_dir("missing");
         {
-            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 64).unwrap();
+            let log =
+                MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 64).unwrap();
             for i in 0..6 {
                 log.write(&[put(&format!("k{i}"), &"v".repeat(40))], false)
                     .unwrap();
@@ -1250,10 +1973,222 @@ mod tests {
         }
         let numbers = files(&dir);
         std::fs::remove_file(segment_path(&dir, numbers[1])).unwrap();
-        let message = MessageLog::open(&dir, OnDamage::Refuse)
+        let message = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted)
             .unwrap_err()
             .to_string();
         assert!(message.contains("missing"), "{message}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// The size of each batch [`filled`] writes while keys have 2 bytes:
+    /// its header, a put's tag, key length, key, value length and value.
+    const FILLED_BATCH: u64 = BATCH_HEADER as u64 + 1 + 2 + 2 + 4 + 40;
+
+    /// Writes `n` batches of one put each (`k0`, `k1`…), flushed, into a
+    /// log of `segment_bytes` segments; returns the log's directory.
+    fn filled(name: &str, n: usize, segment_bytes: u64) -> PathBuf {
+        let dir = temp_dir(name);
+        let log =
+            MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, segment_bytes)
+                .unwrap();
+        for i in 0..n {
+            log.write(&[put(&format!("k{i}"), &"v".repeat(40))], false)
+                .unwrap();
+            log.flush().unwrap();
+        }
+        dir
+    }
+
+    fn refused(dir: &Path) -> String {
+        MessageLog::open(dir, OnDamage::Refuse, Bookkeeping::Required)
+            .unwrap_err()
+            .to_string()
+    }
+
+    /// The newest segment's data below its recorded flushed length was
+    /// confirmed: a flipped byte, a cut or zeros there refuse the start,
+    /// naming the segment (a torn tail is only ever past that length).
+    #[test]
+    fn damage_below_the_flushed_length_of_the_newest_segment_refuses() {
+        for damage in ["flip", "truncate", "zero"] {
+            let dir = filled(&format!("below-flushed-{damage}"), 5, SEGMENT_BYTES);
+            let newest = segment_path(&dir, *files(&dir).last().unwrap());
+            let flushed = read_flushed(&dir).unwrap().unwrap();
+            assert_eq!(flushed.length, HEADER + 5 * FILLED_BATCH);
+            let at = HEADER + 60;
+            let file = OpenOptions::new().write(true).open(&newest).unwrap();
+            match damage {
+                "flip" => file.write_all_at(&[0x5a], at).unwrap(),
+                "truncate" => file.set_len(at).unwrap(),
+                _ => file.write_all_at(&[0; 64], at).unwrap(),
+            }
+            let message = refused(&dir);
+            assert!(
+                message.contains(&newest.display().to_string()),
+                "{damage}: {message}"
+            );
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+
+    #[test]
+    fn a_missing_newest_segment_every_segment_or_bookkeeping_file_refuses() {
+        type Damage = fn(&Path);
+        let cases: [(&str, Damage); 4] = [
+            ("newest", |dir| {
+                std::fs::remove_file(segment_path(dir, *files(dir).last().unwrap())).unwrap()
+            }),
+            ("all", |dir| {
+                for number in files(dir) {
+                    std::fs::remove_file(segment_path(dir, number)).unwrap();
+                }
+            }),
+            ("list", |dir| {
+                std::fs::remove_file(dir.join(Kept::SegmentList.file_name())).unwrap()
+            }),
+            ("flushed", |dir| {
+                std::fs::remove_file(dir.join(Kept::Flushed.file_name())).unwrap()
+            }),
+        ];
+        for (name, damage) in cases {
+            let dir = filled(&format!("missing-{name}"), 6, 64);
+            assert!(files(&dir).len() >= 3);
+            damage(&dir);
+            let message = refused(&dir);
+            assert!(message.contains("missing"), "{name}: {message}");
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+
+    /// The list is rewritten as segments are started and retired, so it
+    /// always names exactly the segments there are.
+    #[test]
+    fn the_segment_list_follows_rotation_and_retirement() {
+        let dir = temp_dir("list");
+        let log =
+            MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 128).unwrap();
+        for round in 0..30 {
+            let key = format!("k{round}");
+            log.write(&[put(&key, &"x".repeat(60))], false).unwrap();
+            log.flush().unwrap();
+            if round % 3 != 0 {
+                log.write(&[remove(&key)], false).unwrap();
+                log.flush().unwrap();
+            }
+            let numbers = files(&dir);
+            let (_, listed) = read_segment_list(&dir).unwrap().unwrap();
+            assert_eq!(
+                (listed.first, listed.last),
+                (numbers[0], *numbers.last().unwrap())
+            );
+        }
+        drop(log);
+        MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Required, 128).unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A rotation cut short between starting the next segment and listing
+    /// it leaves one file past the list's newest, holding no batch (or
+    /// not even a whole header): it is taken in, or removed. A segment
+    /// further on is damage.
+    #[test]
+    fn a_segment_past_the_list_is_a_cut_short_rotation_or_damage() {
+        let dir = filled("past-list", 6, 64);
+        let newest = *files(&dir).last().unwrap();
+        // The rotation sealed the head before starting the next segment.
+        let end = MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Required, 64)
+            .map(|log| data_end(&log))
+            .unwrap();
+        let file = OpenOptions::new()
+            .write(true)
+            .open(segment_path(&dir, newest))
+            .unwrap();
+        file.write_all_at(&seal_batch(Format::V2, newest), end)
+            .unwrap();
+        let mut header = MAGIC_V2.to_vec();
+        header.extend_from_slice(&(newest + 1).to_be_bytes());
+        std::fs::write(segment_path(&dir, newest + 1), &header).unwrap();
+        let log =
+            MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Required, 64).unwrap();
+        assert_eq!(pairs(&log).len(), 6);
+        assert_eq!(log.state().head_number, newest + 1);
+        drop(log);
+        let newest = newest + 1;
+        std::fs::write(segment_path(&dir, newest + 1), &header[..5]).unwrap();
+        let log =
+            MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Required, 64).unwrap();
+        assert_eq!(pairs(&log).len(), 6);
+        assert!(!segment_path(&dir, newest + 1).exists());
+        drop(log);
+        std::fs::write(segment_path(&dir, newest + 2), &header).unwrap();
+        let message = refused(&dir);
+        assert!(message.contains("past the newest"), "{message}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A torn slot (a power cut mid-write) falls back to the other one.
+    #[test]
+    fn a_torn_flushed_slot_falls_back_to_the_other() {
+        let dir = filled("torn-slot", 3, SEGMENT_BYTES);
+        let newest = read_flushed(&dir).unwrap().unwrap();
+        let path = dir.join(Kept::Flushed.file_name());
+        let mut bytes = std::fs::read(&path).unwrap();
+        let at = SLOT_AT[(newest.sequence % 2) as usize] as usize;
+        bytes[at + 20] ^= 1;
+        std::fs::write(&path, &bytes).unwrap();
+        let older = read_flushed(&dir).unwrap().unwrap();
+        assert_eq!(older.sequence + 1, newest.sequence);
+        assert!(older.length < newest.length);
+        MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Required).unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Salvage goes on after a bad batch at the next valid one, reports
+    /// exactly the put it lost, and leaves a whole log.
+    #[test]
+    fn salvage_resynchronises_after_a_bad_batch_and_reports_its_puts() {
+        let dir = filled("resync", 10, SEGMENT_BYTES);
+        let newest = segment_path(&dir, *files(&dir).last().unwrap());
+        // Inside k3's value.
+        let at = HEADER + 3 * FILLED_BATCH + 30;
+        let file = OpenOptions::new().write(true).open(&newest).unwrap();
+        file.write_all_at(&[0x5a], at).unwrap();
+        assert!(refused(&dir).contains("checksum"));
+        let log = MessageLog::open(&dir, OnDamage::Salvage, Bookkeeping::Required).unwrap();
+        let kept: Vec<String> = pairs(&log).into_iter().map(|(k, _)| k).collect();
+        assert_eq!(kept.len(), 9);
+        assert!(!kept.contains(&"k3".to_owned()) && kept.contains(&"k9".to_owned()));
+        let losses = log.losses();
+        assert_eq!(losses.ranges.len(), 1);
+        assert_eq!(losses.puts, vec![b"k3".to_vec()]);
+        assert_eq!(losses.unknown_ranges, 0);
+        drop(log);
+        let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Required).unwrap();
+        assert_eq!(pairs(&log).len(), 9);
+        drop(log);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A lost removal brings its key back, and is reported; a lost put
+    /// whose key a later readable batch removed is no loss.
+    #[test]
+    fn salvage_reports_lost_removals_and_forgets_superseded_puts() {
+        let dir = temp_dir("lost-removal");
+        let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Adopted).unwrap();
+        log.write(&[put("a", "1")], false).unwrap();
+        let damaged = data_end(&log);
+        log.write(&[remove("a"), put("b", "2")], false).unwrap();
+        log.write(&[remove("b")], false).unwrap();
+        log.flush().unwrap();
+        drop(log);
+        let path = segment_path(&dir, *files(&dir).last().unwrap());
+        let file = OpenOptions::new().write(true).open(&path).unwrap();
+        file.write_all_at(&[0xff], damaged + 4).unwrap();
+        let log = MessageLog::open(&dir, OnDamage::Salvage, Bookkeeping::Required).unwrap();
+        assert_eq!(pairs(&log), vec![("a".into(), "1".into())]);
+        assert_eq!(log.losses().removals, vec![b"a".to_vec()]);
+        assert!(log.losses().puts.is_empty());
+        drop(log);
         let _ = std::fs::remove_dir_all(&dir);
     }
 
@@ -1268,6 +2203,9 @@ mod tests {
             use std::os::unix::fs::MetadataExt;
             for entry in std::fs::read_dir(dir).unwrap() {
                 let path = entry.unwrap().path();
+                if !path.extension().is_some_and(|e| e == "seg" || e == "spare") {
+                    continue;
+                }
                 let bytes = std::fs::read(&path).unwrap();
                 let number = u64::from_be_bytes(bytes[8..16].try_into().unwrap());
                 let inode = std::fs::metadata(&path).unwrap().ino();
@@ -1316,7 +2254,7 @@ mod tests {
         fn the_log_behaves_like_a_map(steps in proptest::collection::vec(step(), 1..120)) {
             let dir = temp_dir("model");
             let mut model: BTreeMap<Vec<u8>, Vec<u8>> = BTreeMap::new();
-            let mut log = MessageLog::open_sized(&dir, OnDamage::Refuse, 300).unwrap();
+            let mut log = MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 300).unwrap();
             for (n, step) in steps.into_iter().enumerate() {
                 match step {
                     Step::Put(k, len) => {
@@ -1332,7 +2270,7 @@ mod tests {
                     Step::Reopen => {
                         log.flush().unwrap();
                         drop(log);
-                        log = MessageLog::open_sized(&dir, OnDamage::Refuse, 300).unwrap();
+                        log = MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 300).unwrap();
                     }
                 }
                 let expected: Vec<KvPair> = model.clone().into_iter().collect();
@@ -1362,7 +2300,7 @@ mod tests {
             zeroed in any::<bool>(),
         ) {
             let dir = temp_dir("power-cut");
-            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 400).unwrap();
+            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 400).unwrap();
             let mut model: BTreeMap<Vec<u8>, Vec<u8>> = BTreeMap::new();
             let mut states = vec![Vec::new()];
             let mut flushed_states = 0;
@@ -1420,7 +2358,8 @@ mod tests {
                 after[cut as usize - 1] ^= 0x5a;
             }
             std::fs::write(&path, &after).unwrap();
-            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, 400).unwrap();
+            // The bookkeeping files are as the page cache left them.
+            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Required, 400).unwrap();
             let found = log.scan().unwrap();
             prop_assert!(
                 states[flushed_states..].contains(&found),
@@ -1430,13 +2369,65 @@ mod tests {
             let _ = std::fs::remove_dir_all(&dir);
         }
 
-        /// Whatever bytes a segment holds, opening never panics: it
-        /// refuses or salvages.
+        /// A byte flipped anywhere in data a flush covered (any segment
+        /// the list names, the newest up to its recorded flushed length)
+        /// refuses the start: only a tail no confirm covered is dropped.
+        #[test]
+        fn a_flipped_byte_below_what_was_flushed_always_refuses(
+            batches in proptest::collection::vec((0u8..12, 1usize..120, any::<bool>()), 1..40),
+            which in any::<proptest::sample::Index>(),
+            at in any::<proptest::sample::Index>(),
+        ) {
+            let dir = temp_dir("flip-flushed");
+            let log = MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Adopted, 400).unwrap();
+            for (key, len, removed) in &batches {
+                let value = (!removed).then(|| vec![1; *len]);
+                log.write(&[(vec![*key], value)], false).unwrap();
+            }
+            log.flush().unwrap();
+            let spans: Vec<(u64, u64)> = {
+                let state = log.state();
+                state
+                    .index
+                    .segments
+                    .iter()
+                    .map(|(&number, segment)| {
+                        let end = if number != state.head_number {
+                            segment.size
+                        } else if state.flushed.segment == number {
+                            state.flushed.length
+                        } else {
+                            HEADER
+                        };
+                        (number, end)
+                    })
+                    .filter(|&(_, end)| end > HEADER)
+                    .collect()
+            };
+            drop(log);
+            prop_assume!(!spans.is_empty());
+            let (number, end) = spans[which.index(spans.len())];
+            let offset = HEADER + at.index((end - HEADER) as usize) as u64;
+            let path = segment_path(&dir, number);
+            let mut bytes = std::fs::read(&path).unwrap();
+            bytes[offset as usize] ^= 0x5a;
+            std::fs::write(&path, bytes).unwrap();
+            let opened = MessageLog::open_sized(&dir, OnDamage::Refuse, Bookkeeping::Required, 400);
+            prop_assert!(opened.is_err(), "segment {} offset {} of {}", number, offset, end);
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+
+        /// Whatever bytes a segment holds (its header cut or not), with or
+        /// without bookkeeping files claiming any flushed length, opening
+        /// never panics: it refuses or salvages, and a salvaged log then
+        /// opens as a whole one.
         #[test]
         fn any_segment_bytes_open_without_panicking(
             tail in proptest::collection::vec(any::<u8>(), 0..200),
+            cut in any::<proptest::sample::Index>(),
             older in any::<bool>(),
             first_format in any::<bool>(),
+            claimed in proptest::option::of(0u64..400),
         ) {
             let dir = temp_dir("garbage");
             std::fs::create_dir_all(&dir).unwrap();
@@ -1444,16 +2435,33 @@ mod tests {
             let mut bytes = magic.to_vec();
             bytes.extend_from_slice(&1u64.to_be_bytes());
             bytes.extend_from_slice(&tail);
+            bytes.truncate(cut.index(bytes.len() + 1));
             std::fs::write(segment_path(&dir, 1), &bytes).unwrap();
-            if older {
+            let newest = if older {
                 let mut next = MAGIC_V2.to_vec();
                 next.extend_from_slice(&2u64.to_be_bytes());
                 std::fs::write(segment_path(&dir, 2), &next).unwrap();
-            }
-            let _ = MessageLog::open(&dir, OnDamage::Refuse);
-            let log = MessageLog::open(&dir, OnDamage::Salvage).unwrap();
+                2
+            } else {
+                1
+            };
+            let bookkeeping = match claimed {
+                Some(length) => {
+                    let list = Record2 { sequence: 1, words: [1, newest] };
+                    open_kept(&dir, Kept::SegmentList, list).unwrap();
+                    let record = FlushedRecord { sequence: 1, segment: newest, length };
+                    open_kept(&dir, Kept::Flushed, record.as_record()).unwrap();
+                    Bookkeeping::Required
+                }
+                None => Bookkeeping::Adopted,
+            };
+            let _ = MessageLog::open(&dir, OnDamage::Refuse, bookkeeping);
+            let log = MessageLog::open(&dir, OnDamage::Salvage, bookkeeping).unwrap();
             log.write(&[(b"k".to_vec(), Some(b"v".to_vec()))], false).unwrap();
             log.flush().unwrap();
+            drop(log);
+            let log = MessageLog::open(&dir, OnDamage::Refuse, Bookkeeping::Required).unwrap();
+            prop_assert!(log.scan().unwrap().contains(&(b"k".to_vec(), b"v".to_vec())));
             drop(log);
             let _ = std::fs::remove_dir_all(&dir);
         }

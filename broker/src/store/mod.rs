@@ -59,7 +59,7 @@ mod sled;
 pub use self::codec::BadRecord;
 pub use self::disk::DiskStore;
 pub use self::integrity::{mark_clean, open_checked, OpenedStore};
-pub use self::log::OnDamage;
+pub use self::log::{Bookkeeping, Losses, LostRange, OnDamage};
 pub use self::memory::MemoryStore;
 pub use self::persister::{Durable, Persistence, PersisterFigures};
 pub use self::sled::SledStore;

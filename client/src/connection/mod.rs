@@ -272,7 +272,7 @@ impl Connection {
     /// as over TCP, with frames handed over as values (no network, nothing
     /// encoded or parsed, no heartbeats).
     #[cfg(feature = "embedded")]
-    pub async fn in_process(broker: &leveret_broker::BrokerHandle) -> Result<Connection> {
+    pub async fn in_process(broker: &Arc<leveret_broker::BrokerHandle>) -> Result<Connection> {
         Connection::in_process_with(broker, ConnectionOptions::default()).await
     }
 
@@ -280,7 +280,7 @@ impl Connection {
     /// are not used; credentials, vhost, tuning and timeout are).
     #[cfg(feature = "embedded")]
     pub async fn in_process_with(
-        broker: &leveret_broker::BrokerHandle,
+        broker: &Arc<leveret_broker::BrokerHandle>,
         options: ConnectionOptions,
     ) -> Result<Connection> {
         let link = broker.connect_direct();

@@ -51,7 +51,7 @@
 //! | `window` | long-long | out: the most values kept unconfirmed |
 //! | `full_policy` | long string | in: `drop_oldest`, `drop_newest`, `block_broker` |
 //! | `buffer`, `prefetch` | long-long | in: buffer size, prefetch count |
-//! | `link` | table | `up` (boolean), `connects`, `losses` (long-long), `last_error` (long string, absent if none) |
+//! | `link` | table | `up`, `degraded` (booleans), `connects`, `losses` (long-long), `last_error` (long string, absent if none) |
 //! | `stats` | table | every counter of [`OutPortStats`] or [`InPortStats`], long-long, by field name, in the struct's order |
 //! | `latency` | table | in: `count`, `min_ns`, `mean_ns`, `p50_ns`, `p99_ns`, `max_ns` (long-long) |
 //!
@@ -478,6 +478,7 @@ impl PortAnnouncement {
         }
         let mut link = table([
             ("up", FieldValue::Bool(self.link.up)),
+            ("degraded", FieldValue::Bool(self.link.degraded)),
             ("connects", number(self.link.connects)),
             ("losses", number(self.link.losses)),
         ]);
@@ -558,6 +559,7 @@ impl PortAnnouncement {
             .table("link")
             .map_or_else(LinkStatus::default, |link| LinkStatus {
                 up: link.flag("up"),
+                degraded: link.flag("degraded"),
                 connects: link.number("connects").unwrap_or(0),
                 losses: link.number("losses").unwrap_or(0),
                 last_error: link.text("last_error"),
@@ -640,13 +642,18 @@ impl AnnouncedStats for OutPortStats {
         vec![
             ("accepted", self.accepted),
             ("confirmed", self.confirmed),
+            ("sent_unconfirmed", self.sent_unconfirmed),
             ("rejected", self.rejected),
             ("unroutable", self.unroutable),
+            ("dropped_unsent", self.dropped_unsent),
             ("expired", self.expired),
-            ("dropped", self.dropped),
+            ("lost", self.lost),
+            ("pending", self.pending),
+            ("in_flight", self.in_flight),
             ("resent", self.resent),
             ("send_full", self.send_full),
-            ("unconfirmed", self.unconfirmed),
+            ("stalls", self.stalls),
+            ("returned_after_send", self.returned_after_send),
         ]
     }
 
@@ -658,14 +665,16 @@ impl AnnouncedStats for OutPortStats {
 impl AnnouncedStats for InPortStats {
     fn counters(&self) -> Vec<(&'static str, u64)> {
         vec![
+            ("arrived", self.arrived),
             ("received", self.received),
-            ("lost", self.lost),
-            ("out_of_order", self.out_of_order),
-            ("duplicates", self.duplicates),
+            ("buffered", self.buffered),
+            ("stale", self.stale),
+            ("decode_errors", self.decode_errors),
             ("dropped", self.dropped),
             ("skipped", self.skipped),
-            ("decode_errors", self.decode_errors),
-            ("stale", self.stale),
+            ("duplicates", self.duplicates),
+            ("out_of_order", self.out_of_order),
+            ("lost", self.lost),
         ]
     }
 
@@ -1201,6 +1210,7 @@ mod tests {
             connects: 2,
             losses: 1,
             last_error: Some("cut".into()),
+            ..LinkStatus::default()
         };
         port.stats = vec![("accepted".into(), 7), ("confirmed".into(), 6)];
         if role == PortRole::InPort {

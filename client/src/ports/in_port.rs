@@ -63,34 +63,44 @@ pub struct Sample<T> {
     pub seq: Option<u64>,
     /// When it was put (`x-sent-ns`), if the sender said.
     pub sent_at: Option<SystemTime>,
-    /// From put to arrival, by the two hosts' clocks.
+    /// From put to the moment the application took it (`recv`, `read`,
+    /// `try_recv`, `recv_blocking`, the stream), by the two hosts'
+    /// clocks; `None` in the callbacks, which run before that.
     pub latency: Option<Duration>,
     /// The broker delivered it before (to this port, before a reconnection).
     pub redelivered: bool,
 }
 
-/// An in-port's counters: the paper's reliability figures and the port's
-/// own drops.
+/// An in-port's counters: the paper's reliability figures and what
+/// became of each message. Every distinct message that arrives has one
+/// fate, so `arrived == received + buffered + stale + decode_errors +
+/// dropped + skipped` at every moment (an invariant the tests check).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct InPortStats {
-    /// Distinct messages received (duplicates excluded).
+    /// Distinct messages the broker delivered (duplicates excluded).
+    pub arrived: u64,
+    /// Values handed to the application: taken by `recv`, `try_recv`,
+    /// `recv_blocking`, `read` or the stream.
     pub received: u64,
-    /// Messages missing: gaps in a sender's sequence not (yet) filled.
-    pub lost: u64,
-    /// Messages that arrived after a later one of the same sender.
-    pub out_of_order: u64,
-    /// Messages received again (redelivered or resent) and dropped.
-    pub duplicates: u64,
-    /// Values the full policy discarded.
-    pub dropped: u64,
-    /// Values passed over by [`InPort::read`] for a newer one.
-    pub skipped: u64,
-    /// Messages whose body did not decode (acknowledged and dropped).
-    pub decode_errors: u64,
+    /// Values waiting in the buffer now.
+    pub buffered: u64,
     /// Values older than the profile's lifespan on arrival (by their
     /// `x-sent-ns`), dropped.
     pub stale: u64,
-    /// Latency from put to arrival.
+    /// Messages whose body did not decode (acknowledged and dropped).
+    pub decode_errors: u64,
+    /// Values the buffer's full policy discarded.
+    pub dropped: u64,
+    /// Values passed over by [`InPort::read`] for a newer one.
+    pub skipped: u64,
+    /// Messages received again (redelivered or resent) and dropped; not
+    /// counted as arrived.
+    pub duplicates: u64,
+    /// Arrived messages that came after a later one of the same sender.
+    pub out_of_order: u64,
+    /// Messages missing: gaps in a sender's sequence not (yet) filled.
+    pub lost: u64,
+    /// Latency from put to the application taking the value.
     pub latency: LatencyStats,
 }
 
@@ -175,16 +185,16 @@ enum Checked<T> {
     Value(Sample<T>, Count),
 }
 
-/// What a value adds to the counters once buffered.
+/// What a message's arrival adds to the counters, counted together with
+/// its fate.
 #[derive(Clone, Copy)]
 struct Count {
     verdict: Option<Verdict>,
-    latency: Option<Duration>,
 }
 
 impl Count {
-    fn apply(self, stats: &mut InPortStats) {
-        stats.received += 1;
+    fn arrived(self, stats: &mut InPortStats) {
+        stats.arrived += 1;
         match self.verdict {
             Some(Verdict::New { gap }) => stats.lost += gap,
             Some(Verdict::Late) => {
@@ -192,9 +202,6 @@ impl Count {
                 stats.out_of_order += 1;
             }
             _ => {}
-        }
-        if let Some(latency) = self.latency {
-            stats.latency.record(latency);
         }
     }
 }
@@ -257,16 +264,11 @@ impl<T: PortData> Shared<T> {
             self.stats.send_modify(|s| s.duplicates += 1);
             return Checked::Settled;
         }
-        let arrived = link::now_ns();
-        let latency = stamp
-            .sent_ns
-            .and_then(|sent| u64::try_from(arrived.saturating_sub(sent)).ok())
-            .map(Duration::from_nanos);
-        let count = Count { verdict, latency };
-        if let (Some(lifespan), Some(age)) = (self.profile.lifespan, latency) {
+        let count = Count { verdict };
+        if let (Some(lifespan), Some(age)) = (self.profile.lifespan, stamp.sent_ns.and_then(age)) {
             if age > lifespan {
                 self.stats.send_modify(|s| {
-                    count.apply(s);
+                    count.arrived(s);
                     s.stale += 1;
                 });
                 return Checked::Settled;
@@ -277,7 +279,7 @@ impl<T: PortData> Shared<T> {
             Err(error) => {
                 tracing::warn!(%error, "in-port dropped a message that does not decode");
                 self.stats.send_modify(|s| {
-                    count.apply(s);
+                    count.arrived(s);
                     s.decode_errors += 1;
                 });
                 return Checked::Settled;
@@ -290,7 +292,7 @@ impl<T: PortData> Shared<T> {
                 .sent_ns
                 .and_then(|ns| u64::try_from(ns).ok())
                 .map(|ns| UNIX_EPOCH + Duration::from_nanos(ns)),
-            latency,
+            latency: None,
             redelivered: delivery.redelivered,
         };
         for callback in lock(&self.callbacks).iter_mut() {
@@ -307,7 +309,8 @@ impl<T: PortData> Shared<T> {
     /// Puts a value in the buffer and counts it. A full buffer drops one
     /// by the full policy; with [`FullPolicy::BlockBroker`] the caller has
     /// made sure there is room (only the intake, one delivery at a time,
-    /// adds values).
+    /// adds values). The counters change under the buffer's lock, as
+    /// they do when a value is taken, so they always add up.
     fn store(&self, sample: Sample<T>, count: Count) {
         let capacity = self.profile.buffer_size.max(1);
         let mut buffer = lock(&self.buffer);
@@ -316,12 +319,14 @@ impl<T: PortData> Shared<T> {
                 FullPolicy::BlockBroker => {}
                 FullPolicy::DropOldest => {
                     buffer.queue.pop_front();
-                    self.stats.send_modify(|s| s.dropped += 1);
+                    self.stats.send_modify(|s| {
+                        s.dropped += 1;
+                        s.buffered -= 1;
+                    });
                 }
                 FullPolicy::DropNewest => {
-                    drop(buffer);
                     self.stats.send_modify(|s| {
-                        count.apply(s);
+                        count.arrived(s);
                         s.dropped += 1;
                     });
                     return;
@@ -329,16 +334,40 @@ impl<T: PortData> Shared<T> {
             }
         }
         buffer.queue.push_back(sample);
+        self.stats.send_modify(|s| {
+            count.arrived(s);
+            s.buffered += 1;
+        });
         if let Some(waker) = buffer.waker.take() {
             waker.wake();
         }
         if buffer.blocked_readers > 0 {
             self.arrived.notify_one();
         }
-        drop(buffer);
-        // Counted once buffered, so a watcher of the counters finds the
-        // value in the buffer.
-        self.stats.send_modify(|s| count.apply(s));
+    }
+
+    /// Takes the oldest buffered value for the application, counting it
+    /// received (with its latency, measured now), under the buffer's lock.
+    fn hand_over(&self, buffer: &mut Buffer<T>) -> Option<Sample<T>> {
+        let mut sample = buffer.queue.pop_front()?;
+        self.received(&mut sample, 0);
+        Some(sample)
+    }
+
+    /// Counts `sample` handed to the application, `skipped` older ones
+    /// passed over for it; call it with the buffer's lock held.
+    fn received(&self, sample: &mut Sample<T>, skipped: u64) {
+        sample.latency = sample
+            .sent_at
+            .and_then(|sent| SystemTime::now().duration_since(sent).ok());
+        self.stats.send_modify(|s| {
+            s.received += 1;
+            s.skipped += skipped;
+            s.buffered -= 1 + skipped;
+            if let Some(latency) = sample.latency {
+                s.latency.record(latency);
+            }
+        });
     }
 }
 
@@ -488,10 +517,10 @@ impl<T: PortData> InPort<T> {
     pub fn read(&self) -> Option<Sample<T>> {
         let newest = {
             let mut buffer = lock(&self.shared.buffer);
-            let newest = buffer.queue.pop_back()?;
+            let mut newest = buffer.queue.pop_back()?;
             let skipped = buffer.queue.len() as u64;
             buffer.queue.clear();
-            self.shared.stats.send_modify(|s| s.skipped += skipped);
+            self.shared.received(&mut newest, skipped);
             newest
         };
         self.shared.room.notify_one();
@@ -530,7 +559,7 @@ impl<T: PortData> InPort<T> {
         }
         let mut buffer = lock(&self.shared.buffer);
         loop {
-            if let Some(sample) = buffer.queue.pop_front() {
+            if let Some(sample) = self.shared.hand_over(&mut buffer) {
                 drop(buffer);
                 self.shared.room.notify_one();
                 return Some(sample);
@@ -553,7 +582,7 @@ impl<T: PortData> InPort<T> {
     /// The next value in order, waiting for one (polling first for the
     /// profile's busy-poll window, if any, yielding to the runtime's other
     /// tasks between looks); `None` once the port is closed.
-    pub async fn recv(&mut self) -> Option<Sample<T>> {
+    pub async fn recv(&self) -> Option<Sample<T>> {
         if let Some(window) = self.busy_poll {
             let spin_until = tokio::time::Instant::now() + window;
             while tokio::time::Instant::now() < spin_until {
@@ -570,7 +599,7 @@ impl<T: PortData> InPort<T> {
     /// The oldest buffered value, without waiting.
     fn take(&self) -> Taken<T> {
         let mut buffer = lock(&self.shared.buffer);
-        match buffer.queue.pop_front() {
+        match self.shared.hand_over(&mut buffer) {
             Some(sample) => {
                 drop(buffer);
                 self.shared.room.notify_one();
@@ -583,7 +612,7 @@ impl<T: PortData> InPort<T> {
 
     fn poll_recv(&self, cx: &mut Context<'_>) -> Poll<Option<Sample<T>>> {
         let mut buffer = lock(&self.shared.buffer);
-        if let Some(sample) = buffer.queue.pop_front() {
+        if let Some(sample) = self.shared.hand_over(&mut buffer) {
             drop(buffer);
             self.shared.room.notify_one();
             return Poll::Ready(Some(sample));
@@ -869,6 +898,13 @@ impl<T: PortData> Task<T> {
             }
         }
     }
+}
+
+/// How long ago `sent_ns` (nanoseconds since the Unix epoch) was.
+fn age(sent_ns: i64) -> Option<Duration> {
+    u64::try_from(link::now_ns().saturating_sub(sent_ns))
+        .ok()
+        .map(Duration::from_nanos)
 }
 
 /// Decodes a delivery's body, refusing one whose `type` names another type.

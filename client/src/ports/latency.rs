@@ -1,6 +1,6 @@
-//! [`LatencyStats`]: an in-port's latencies from put to arrival: count,
-//! min, max, mean, the latest, and percentiles from a fixed-size
-//! log-linear histogram (constant memory and O(1) per sample, whatever
+//! [`LatencyStats`]: an in-port's latencies from put to the application
+//! taking the value: count, min, max, mean, the latest, and percentiles
+//! from a fixed-size log-linear histogram (constant memory and O(1) per sample, whatever
 //! the number of samples).
 
 use std::time::Duration;
@@ -14,7 +14,7 @@ const SUB_BUCKETS: usize = 1 << SUB_BUCKET_BITS;
 const MAX_EXPONENT: u32 = 36;
 const BUCKETS: usize = (MAX_EXPONENT - SUB_BUCKET_BITS + 2) as usize * SUB_BUCKETS;
 
-/// Latencies from `x-sent-ns` to arrival.
+/// Latencies from `x-sent-ns` to the application taking the value.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LatencyStats {
     /// Samples measured.

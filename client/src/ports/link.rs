@@ -22,17 +22,56 @@ pub const SENT_HEADER: &str = "x-sent-ns";
 /// keeps one sequence per sender and a restarted sender starts afresh.
 pub const PORT_HEADER: &str = "x-port";
 
+/// The state of a port's link to the broker, in a word.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkState {
+    /// Not connected (connecting, or waiting to retry).
+    Down,
+    /// Connected, and the broker keeps up.
+    Up,
+    /// Connected, but the broker has stopped confirming (see
+    /// [`LinkStatus::degraded`]).
+    Degraded,
+}
+
+impl LinkState {
+    /// `down`, `up` or `degraded`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            LinkState::Down => "down",
+            LinkState::Up => "up",
+            LinkState::Degraded => "degraded",
+        }
+    }
+}
+
 /// The state of a port's link to the broker.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct LinkStatus {
     /// Connected, topology declared (and, for an in-port, consuming).
     pub up: bool,
+    /// Up, but stalled: the broker has confirmed (or, without confirms,
+    /// taken) nothing of an out-port's for longer than the profile's
+    /// stall timeout ([`super::PortProfile::stall_timeout`]), as when it
+    /// is frozen. Cleared when it confirms again or the link drops.
+    pub degraded: bool,
     /// Links established so far (1 after the first connect).
     pub connects: u64,
     /// Links lost so far.
     pub losses: u64,
     /// Why the last link ended or the last attempt failed.
     pub last_error: Option<String>,
+}
+
+impl LinkStatus {
+    /// The link's state in a word.
+    pub fn state(&self) -> LinkState {
+        match (self.up, self.degraded) {
+            (false, _) => LinkState::Down,
+            (true, false) => LinkState::Up,
+            (true, true) => LinkState::Degraded,
+        }
+    }
 }
 
 /// The sending side of a port's [`LinkStatus`].
@@ -62,8 +101,16 @@ impl Link {
                 s.losses += 1;
             }
             s.up = false;
+            s.degraded = false;
             s.last_error = Some(error.to_string());
         });
+    }
+
+    pub(crate) fn degraded(&self, degraded: bool) {
+        if degraded {
+            tracing::debug!("port link stalled");
+        }
+        self.0.send_modify(|s| s.degraded = degraded && s.up);
     }
 
     pub(crate) fn failed(&self, error: &crate::Error) {

@@ -15,8 +15,10 @@
 //! message once and in order across reconnections.
 //!
 //! A control loop's `put` never waits on the network: it enqueues into a
-//! bounded window and returns; what becomes of each value is reported
-//! ([`Outcome`], [`OutPortStats`]). Freshness and reliability are set per
+//! bounded window and returns; what becomes of each value, its [`Fate`],
+//! is reported once ([`Outcome`], [`OutPortStats`]). The window also
+//! bounds what is written and unconfirmed, and a broker that stops
+//! confirming makes the link [`LinkState::Degraded`]. Freshness and reliability are set per
 //! port: a lifespan, a [`Backpressure`] and a [`Replay`] policy, or a
 //! [`Qos`] preset naming them together. An in-port without a queue name
 //! gets a named queue of its own that outlives its reconnections. Every
@@ -33,7 +35,7 @@
 //! let profile = PortProfile::new("amqp://guest:guest@localhost:5672/%2f")?
 //!     .exchange("poses", ExchangeKind::Fanout)
 //!     .buffer(100, FullPolicy::BlockBroker);
-//! let mut input = InPort::<TimedPose2D>::connect(profile.clone()).await?;
+//! let input = InPort::<TimedPose2D>::connect(profile.clone()).await?;
 //! let output = OutPort::<TimedPose2D>::connect(profile).await?;
 //! let pose = TimedPose2D { tm: Time::now(), ..Default::default() };
 //! assert_eq!(output.put(&pose).await, PortStatus::Ok);
@@ -86,7 +88,7 @@ pub use data::Postcard;
 pub use data::{DataError, PortData};
 pub use in_port::{InPort, InPortStats, Sample};
 pub use latency::LatencyStats;
-pub use link::{LinkStatus, PORT_HEADER, SENT_HEADER, SEQ_HEADER};
+pub use link::{LinkState, LinkStatus, PORT_HEADER, SENT_HEADER, SEQ_HEADER};
 pub use openrtm::{ConnectorProfile, PortRole};
 pub use out_port::{Fate, OutPort, OutPortStats, Outcome, PortStatus};
 pub use profile::{

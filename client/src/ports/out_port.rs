@@ -4,9 +4,20 @@
 //! `put` encodes the value, numbers it and appends it to the port's window
 //! (a bounded queue shared with the port's task) and returns: it never
 //! waits for the broker, whatever the broker does. When the window is
-//! full the profile's [`Backpressure`] decides: drop the oldest value,
-//! refuse the new one, or wait for room up to the put timeout (the only
-//! `put` that waits, and only by the caller's choice).
+//! full the profile's [`Backpressure`] decides: drop the oldest value
+//! (one not yet written if there is one; else the oldest written one's
+//! wait for its confirm is abandoned), refuse the new one, or wait for
+//! room up to the put timeout (the only `put` that waits, and only by the
+//! caller's choice).
+//!
+//! The window also bounds what is written: at most `max_unconfirmed`
+//! messages (and `max_unconfirmed_bytes`) are in the connection and the
+//! broker unconfirmed at any time, counting those whose wait was
+//! abandoned, so a frozen broker never collects more than that in its
+//! socket. When the broker confirms nothing for the profile's stall
+//! timeout the link is reported degraded ([`LinkStatus::degraded`],
+//! [`PortStatus::Degraded`], [`OutPortStats::stalls`]) until it confirms
+//! again.
 //!
 //! The window's messages are published in order (mandatory, so an
 //! unroutable message comes back and is counted apart from confirmed
@@ -24,8 +35,8 @@
 //! expired, and what is published carries the rest of its lifespan as its
 //! AMQP `expiration`, so the broker drops it too once it is stale.
 //!
-//! What became of each message (confirmed, rejected, unroutable, expired,
-//! dropped) is reported in three ways: the counters ([`OutPort::stats`],
+//! What became of each message, its [`Fate`], counted once, is reported
+//! in three ways: the counters ([`OutPort::stats`],
 //! [`OutPort::watch_stats`]), a stream of [`Outcome`]s
 //! ([`OutPort::outcomes`]) and callbacks ([`OutPort::on_outcome`]).
 //!
@@ -78,6 +89,10 @@ pub enum PortStatus {
     /// Accepted while the link is down: it is sent once the port has
     /// (re)connected, if still within its lifespan.
     ConnectionLost,
+    /// Accepted while the link is degraded (the broker has stopped
+    /// confirming or taking messages for longer than the profile's stall
+    /// timeout, see [`LinkStatus::degraded`]): it waits in the window.
+    Degraded,
     /// Not accepted: the window was full ([`Backpressure::DropNewest`], or
     /// [`Backpressure::Block`] past its deadline).
     SendFull,
@@ -93,29 +108,41 @@ impl PortStatus {
         self == PortStatus::Ok
     }
 
-    /// Whether the value was accepted (now or for after a reconnection).
+    /// Whether the value was accepted (now, or for when the link is back).
     pub fn is_accepted(self) -> bool {
-        matches!(self, PortStatus::Ok | PortStatus::ConnectionLost)
+        matches!(
+            self,
+            PortStatus::Ok | PortStatus::ConnectionLost | PortStatus::Degraded
+        )
     }
 }
 
-/// What finally became of an accepted message.
+/// What finally became of an accepted message: each accepted message has
+/// exactly one, once it leaves the window.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[non_exhaustive]
 pub enum Fate {
-    /// The broker confirmed it (or, without confirms, it was written to
-    /// the connection).
+    /// The broker confirmed it (`basic.ack`).
     Confirmed,
+    /// Written to the connection, and no confirm will be counted: the port
+    /// has no confirms, or a full window ([`Backpressure::DropOldest`])
+    /// abandoned the wait for its confirm.
+    SentUnconfirmed,
     /// The broker refused it (`basic.nack`, e.g. a full queue with
     /// `x-overflow: reject-publish`).
     Rejected,
     /// No queue was bound to receive it (`basic.return`, NO_ROUTE).
     Unroutable,
-    /// Its lifespan ran out before it could be published.
+    /// Never written: a full window ([`Backpressure::DropOldest`]) or the
+    /// [`Replay`] policy after a reconnection dropped it.
+    DroppedUnsent,
+    /// Never written: its lifespan ran out first.
     Expired,
-    /// The window was full and [`Backpressure::DropOldest`] dropped it, or
-    /// the [`Replay`] policy did not send it after a reconnection.
-    Dropped,
+    /// Written on a link that dropped before its confirm came, and not
+    /// written again (the [`Replay`] policy, or its lifespan, ruled it
+    /// out, or a full window dropped it): the broker may or may not have
+    /// it.
+    Lost,
 }
 
 /// One message's [`Fate`].
@@ -127,27 +154,55 @@ pub struct Outcome {
     pub fate: Fate,
 }
 
-/// An out-port's counters.
+/// An out-port's counters. Every accepted message is counted once by its
+/// [`Fate`] when it leaves the window, so at every moment
+/// `accepted == settled() + pending` (an invariant the tests check).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct OutPortStats {
     /// Values accepted (numbered `1..=accepted`).
     pub accepted: u64,
-    /// Confirmed by the broker (or written, without confirms).
+    /// Fate [`Fate::Confirmed`].
     pub confirmed: u64,
-    /// Refused by the broker.
+    /// Fate [`Fate::SentUnconfirmed`].
+    pub sent_unconfirmed: u64,
+    /// Fate [`Fate::Rejected`].
     pub rejected: u64,
-    /// Returned by the broker as unroutable (not counted as confirmed).
+    /// Fate [`Fate::Unroutable`].
     pub unroutable: u64,
-    /// Past their lifespan before they could be published.
+    /// Fate [`Fate::DroppedUnsent`].
+    pub dropped_unsent: u64,
+    /// Fate [`Fate::Expired`].
     pub expired: u64,
-    /// Dropped from a full window or not replayed after a reconnection.
-    pub dropped: u64,
-    /// Publishes repeated after a reconnection.
+    /// Fate [`Fate::Lost`].
+    pub lost: u64,
+    /// Accepted and not settled yet: in the window now (waiting to be
+    /// written, or written and waiting for the confirm).
+    pub pending: u64,
+    /// Of those, written on the current link and waiting for the confirm.
+    pub in_flight: u64,
+    /// Publishes repeated after a reconnection (not a fate).
     pub resent: u64,
-    /// Puts refused with [`PortStatus::SendFull`].
+    /// Puts refused with [`PortStatus::SendFull`] (never accepted).
     pub send_full: u64,
-    /// Messages in the window now (waiting to be sent or confirmed).
-    pub unconfirmed: u64,
+    /// Times the link was found stalled ([`LinkStatus::degraded`]).
+    pub stalls: u64,
+    /// Without confirms: messages the broker returned as unroutable after
+    /// they were counted [`Fate::SentUnconfirmed`] (not a fate: each is
+    /// counted there already).
+    pub returned_after_send: u64,
+}
+
+impl OutPortStats {
+    /// The messages that have a fate: `accepted - pending`.
+    pub fn settled(&self) -> u64 {
+        self.confirmed
+            + self.sent_unconfirmed
+            + self.rejected
+            + self.unroutable
+            + self.dropped_unsent
+            + self.expired
+            + self.lost
+    }
 }
 
 /// A message in the window.
@@ -162,6 +217,33 @@ struct Entry {
     attempts: u32,
 }
 
+impl Entry {
+    /// The fate of this entry leaving the window unsettled: written on the
+    /// current link (before `publish_from`), written on a link since lost,
+    /// or never written (`unsent`: dropped or expired).
+    fn unsettled_fate(&self, publish_from: u64, unsent: Fate) -> Fate {
+        if self.seq < publish_from {
+            Fate::SentUnconfirmed
+        } else if self.attempts > 0 {
+            Fate::Lost
+        } else {
+            unsent
+        }
+    }
+}
+
+/// A message written on the current link, waiting for its confirm. It
+/// stays here until the confirm comes even if its entry has left the
+/// window (abandoned by [`Backpressure::DropOldest`]): it is still in the
+/// socket or the broker, and counts against the window's bounds.
+#[derive(Debug)]
+struct InFlight {
+    seq: u64,
+    confirm: ConfirmFuture,
+    bytes: usize,
+    written_at: Instant,
+}
+
 /// The window: accepted messages not yet settled, in sequence order.
 #[derive(Debug)]
 struct Window {
@@ -172,7 +254,12 @@ struct Window {
     /// The current link's channel, while the link is up.
     channel: Option<Channel>,
     /// Confirms of the messages published on this link, in order.
-    inflight: VecDeque<(u64, ConfirmFuture)>,
+    inflight: VecDeque<InFlight>,
+    /// The bodies' bytes of `inflight`.
+    inflight_bytes: usize,
+    /// The broker has confirmed nothing (or, without confirms, taken
+    /// nothing) for longer than the stall timeout.
+    degraded: bool,
     /// Threads waiting in `put_blocking` for room: the condition variable
     /// is signalled only for them (a signal costs a system call even when
     /// nobody waits).
@@ -181,12 +268,43 @@ struct Window {
     stats: OutPortStats,
 }
 
+impl Window {
+    /// Refreshes the gauges after entries came or went.
+    fn measure(&mut self) {
+        self.stats.pending = self.entries.len() as u64;
+        let publish_from = self.publish_from;
+        self.stats.in_flight =
+            self.entries
+                .partition_point(|entry| entry.seq < publish_from) as u64;
+    }
+
+    /// Whether the socket and broker have room for `bytes` more: the
+    /// window bounds what is written and unconfirmed, in messages and in
+    /// bytes (one message always fits when nothing is in flight).
+    fn has_room_in_flight(&self, bytes: usize, limits: &Limits) -> bool {
+        self.inflight.is_empty()
+            || (self.inflight.len() < limits.messages
+                && self.inflight_bytes + bytes <= limits.bytes)
+    }
+}
+
+/// The window's bounds.
+#[derive(Debug, Clone, Copy)]
+struct Limits {
+    /// Messages in the window, and written but unconfirmed.
+    messages: usize,
+    /// Bytes written but unconfirmed.
+    bytes: usize,
+}
+
 /// What publishing the window's next message did.
 enum Next {
     /// Published one.
     Published,
     /// Nothing to publish, or no link to publish on.
     Idle,
+    /// No room in flight (the window's bounds): a confirm makes room.
+    Windowed,
     /// The connection's outbox is full: wait for room.
     Full,
     /// The link failed.
@@ -205,6 +323,7 @@ struct Publishing {
     mandatory: bool,
     confirms: bool,
     lifespan: Option<Duration>,
+    limits: Limits,
 }
 
 impl Publishing {
@@ -241,6 +360,13 @@ impl Publishing {
 
 type OutcomeCallback = Box<dyn FnMut(&Outcome) + Send>;
 
+/// Who hears of outcomes, and how many have been told.
+struct Reporting {
+    callbacks: Vec<OutcomeCallback>,
+    /// Outcomes sent to the stream and the callbacks so far.
+    delivered: u64,
+}
+
 /// What the port and its task share.
 struct Shared {
     window: Mutex<Window>,
@@ -252,7 +378,7 @@ struct Shared {
     room_blocking: Condvar,
     stats: watch::Sender<OutPortStats>,
     outcomes: broadcast::Sender<Outcome>,
-    callbacks: Mutex<Vec<OutcomeCallback>>,
+    reporting: Mutex<Reporting>,
     link: Link,
     publishing: Publishing,
 }
@@ -266,31 +392,43 @@ impl Shared {
         lock(&self.window)
     }
 
-    /// Sends the current counters to their watchers, under the window's
-    /// lock; whether a thread waits for room.
+    /// Sends the current counters to their watchers (see
+    /// [`Shared::send_stats`]); whether a thread waits for room.
     fn publish_stats(&self) -> bool {
+        self.send_stats(&lock(&self.reporting))
+    }
+
+    /// Sends the current counters to their watchers, read under the
+    /// window's lock, so a `put` on another thread can never overwrite
+    /// newer counters with the ones it saw (which left `flush` waiting for
+    /// a `pending` of 0 already reached); but only once every outcome they
+    /// count has been delivered, so a watcher of the counters (`flush`)
+    /// finds those outcomes in the stream and the callbacks. Counters not
+    /// sent now go out with the report of the outcomes still on their way.
+    /// Whether a thread waits for room.
+    fn send_stats(&self, reporting: &Reporting) -> bool {
         let window = self.window();
-        self.stats.send_replace(window.stats);
+        if window.stats.settled() == reporting.delivered {
+            self.stats.send_replace(window.stats);
+        }
         window.blocked_putters > 0
     }
 
-    /// Publishes the counters and the outcomes (call it after releasing
-    /// the window's lock); wakes whoever waits for room if messages left
-    /// it. The counters are read and sent under the window's lock, so a
-    /// `put` on another thread can never overwrite newer counters with the
-    /// ones it saw (which left `flush` waiting for an `unconfirmed` of 0
-    /// already reached).
+    /// Delivers the outcomes and publishes the counters (call it after
+    /// releasing the window's lock, with the outcomes settled under it);
+    /// wakes whoever waits for room if messages left it.
     fn report(&self, outcomes: &[Outcome], room: bool) {
-        let blocked = self.publish_stats();
-        if !outcomes.is_empty() {
-            let mut callbacks = lock(&self.callbacks);
+        let blocked = {
+            let mut reporting = lock(&self.reporting);
             for outcome in outcomes {
                 let _ = self.outcomes.send(*outcome);
-                for callback in callbacks.iter_mut() {
+                for callback in reporting.callbacks.iter_mut() {
                     callback(outcome);
                 }
             }
-        }
+            reporting.delivered += outcomes.len() as u64;
+            self.send_stats(&reporting)
+        };
         if room {
             self.room.notify_waiters();
             if blocked {
@@ -310,46 +448,65 @@ impl Shared {
         reserved: Option<Slot<'_>>,
         outcomes: &mut Vec<Outcome>,
     ) -> Next {
+        let next = self.publish_one(window, reserved, outcomes);
+        window.measure();
+        next
+    }
+
+    fn publish_one(
+        &self,
+        window: &mut Window,
+        reserved: Option<Slot<'_>>,
+        outcomes: &mut Vec<Outcome>,
+    ) -> Next {
         let lifespan = self.publishing.lifespan;
-        let Window {
-            entries,
-            publish_from,
-            channel,
-            inflight,
-            stats,
-            ..
-        } = window;
-        let Some(channel) = channel.as_ref() else {
+        if window.channel.is_none() {
             return Next::Idle;
-        };
-        let index = entries.partition_point(|entry| entry.seq < *publish_from);
-        let (entry, remaining) = loop {
-            let Some(entry) = entries.get_mut(index) else {
-                stats.unconfirmed = entries.len() as u64;
+        }
+        let index = window
+            .entries
+            .partition_point(|entry| entry.seq < window.publish_from);
+        let remaining = loop {
+            let Some(entry) = window.entries.get(index) else {
                 return Next::Idle;
             };
             let age = entry.put_at.elapsed();
             match lifespan {
                 Some(lifespan) if age >= lifespan => {
+                    let fate = entry.unsettled_fate(window.publish_from, Fate::Expired);
                     let seq = entry.seq;
-                    entries.remove(index);
-                    settle(stats, outcomes, seq, Fate::Expired);
+                    window.entries.remove(index);
+                    settle(&mut window.stats, outcomes, seq, fate);
                 }
-                Some(lifespan) => break (entry, Some(lifespan - age)),
-                None => break (entry, None),
+                Some(lifespan) => break Some(lifespan - age),
+                None => break None,
             }
+        };
+        let bytes = window.entries[index].body.len();
+        if self.publishing.confirms && !window.has_room_in_flight(bytes, &self.publishing.limits) {
+            return Next::Windowed;
+        }
+        let Window {
+            entries,
+            publish_from,
+            channel: Some(channel),
+            inflight,
+            inflight_bytes,
+            stats,
+            ..
+        } = window
+        else {
+            return Next::Idle;
         };
         let slot = match reserved {
             Some(slot) => slot,
             None => match channel.try_reserve() {
                 Ok(Some(slot)) => slot,
-                Ok(None) => {
-                    stats.unconfirmed = entries.len() as u64;
-                    return Next::Full;
-                }
+                Ok(None) => return Next::Full,
                 Err(error) => return Next::Failed(error),
             },
         };
+        let entry = &mut entries[index];
         let confirm = match self.publishing.publish(slot, entry, remaining) {
             Ok(confirm) => confirm,
             Err(error) => return Next::Failed(error),
@@ -361,12 +518,17 @@ impl Shared {
         let seq = entry.seq;
         *publish_from = seq + 1;
         if self.publishing.confirms {
-            inflight.push_back((seq, confirm.into_future()));
+            inflight.push_back(InFlight {
+                seq,
+                confirm: confirm.into_future(),
+                bytes,
+                written_at: Instant::now(),
+            });
+            *inflight_bytes += bytes;
         } else {
             entries.remove(index);
-            settle(stats, outcomes, seq, Fate::Confirmed);
+            settle(stats, outcomes, seq, Fate::SentUnconfirmed);
         }
-        stats.unconfirmed = entries.len() as u64;
         Next::Published
     }
 }
@@ -383,10 +545,12 @@ impl std::fmt::Debug for Shared {
 fn settle(stats: &mut OutPortStats, outcomes: &mut Vec<Outcome>, seq: u64, fate: Fate) {
     match fate {
         Fate::Confirmed => stats.confirmed += 1,
+        Fate::SentUnconfirmed => stats.sent_unconfirmed += 1,
         Fate::Rejected => stats.rejected += 1,
         Fate::Unroutable => stats.unroutable += 1,
+        Fate::DroppedUnsent => stats.dropped_unsent += 1,
         Fate::Expired => stats.expired += 1,
-        Fate::Dropped => stats.dropped += 1,
+        Fate::Lost => stats.lost += 1,
     }
     outcomes.push(Outcome { seq, fate });
 }
@@ -405,22 +569,45 @@ fn expire_oldest(window: &mut Window, lifespan: Option<Duration>, outcomes: &mut
         .is_some_and(|entry| entry.seq >= unpublished && entry.put_at.elapsed() >= lifespan)
     {
         if let Some(entry) = window.entries.pop_front() {
-            settle(&mut window.stats, outcomes, entry.seq, Fate::Expired);
+            let fate = entry.unsettled_fate(unpublished, Fate::Expired);
+            settle(&mut window.stats, outcomes, entry.seq, fate);
         }
     }
-    window.stats.unconfirmed = window.entries.len() as u64;
+    window.measure();
 }
 
 /// Drops all but the newest `keep` messages of the window (a replay
-/// policy).
+/// policy, between links: nothing is in flight).
 fn keep_newest(window: &mut Window, keep: usize, outcomes: &mut Vec<Outcome>) {
     let superseded = window.entries.len().saturating_sub(keep);
     for _ in 0..superseded {
         if let Some(entry) = window.entries.pop_front() {
-            settle(&mut window.stats, outcomes, entry.seq, Fate::Dropped);
+            let fate = entry.unsettled_fate(window.publish_from, Fate::DroppedUnsent);
+            settle(&mut window.stats, outcomes, entry.seq, fate);
         }
     }
-    window.stats.unconfirmed = window.entries.len() as u64;
+    window.measure();
+}
+
+/// Makes room in a full window for [`Backpressure::DropOldest`]: drops the
+/// oldest message not written on the current link, or, when every one is
+/// written and waits for its confirm, abandons the oldest's wait. Either
+/// way what is written stays bounded: an abandoned message still counts
+/// in flight until its confirm comes.
+fn drop_oldest(window: &mut Window, outcomes: &mut Vec<Outcome>) {
+    let index = window
+        .entries
+        .partition_point(|entry| entry.seq < window.publish_from);
+    let index = if index < window.entries.len() {
+        index
+    } else {
+        0
+    };
+    if let Some(entry) = window.entries.remove(index) {
+        let fate = entry.unsettled_fate(window.publish_from, Fate::DroppedUnsent);
+        settle(&mut window.stats, outcomes, entry.seq, fate);
+    }
+    window.measure();
 }
 
 /// A typed publisher with reconnection and a bounded window. Dropping it
@@ -491,6 +678,10 @@ impl<T: PortData> OutPort<T> {
             mandatory: profile.mandatory,
             confirms: profile.confirms,
             lifespan: profile.lifespan,
+            limits: Limits {
+                messages: profile.max_unconfirmed.max(1),
+                bytes: profile.max_unconfirmed_bytes.max(1),
+            },
         };
         let shared = Arc::new(Shared {
             window: Mutex::new(Window {
@@ -499,6 +690,8 @@ impl<T: PortData> OutPort<T> {
                 publish_from: 1,
                 channel: first.as_ref().map(|link| link.channel.clone()),
                 inflight: VecDeque::new(),
+                inflight_bytes: 0,
+                degraded: false,
                 blocked_putters: 0,
                 closed: false,
                 stats: OutPortStats::default(),
@@ -508,7 +701,10 @@ impl<T: PortData> OutPort<T> {
             room_blocking: Condvar::new(),
             stats: watch::Sender::new(OutPortStats::default()),
             outcomes: broadcast::Sender::new(OUTCOME_BUFFER),
-            callbacks: Mutex::new(Vec::new()),
+            reporting: Mutex::new(Reporting {
+                callbacks: Vec::new(),
+                delivered: 0,
+            }),
             link: Link::new(),
             publishing,
         });
@@ -533,6 +729,7 @@ impl<T: PortData> OutPort<T> {
             connecting: None,
             failures: 0,
             retry_at: Instant::now(),
+            stall_timeout: profile.stall_timeout(),
             link: first.map(OutLink::watch_returns),
             profile: Arc::clone(&profile),
             announcer,
@@ -668,10 +865,7 @@ impl<T: PortData> OutPort<T> {
         }
         if window.entries.len() >= self.capacity {
             match self.backpressure {
-                Backpressure::DropOldest => {
-                    let oldest = window.entries.pop_front()?;
-                    settle(&mut window.stats, &mut outcomes, oldest.seq, Fate::Dropped);
-                }
+                Backpressure::DropOldest => drop_oldest(&mut window, &mut outcomes),
                 Backpressure::DropNewest => {
                     drop(window);
                     return Some(self.refuse());
@@ -689,7 +883,7 @@ impl<T: PortData> OutPort<T> {
             attempts: 0,
         });
         window.stats.accepted += 1;
-        window.stats.unconfirmed = window.entries.len() as u64;
+        window.measure();
         if window.channel.is_none() {
             drop(window);
             self.shared.work.notify_one();
@@ -701,21 +895,32 @@ impl<T: PortData> OutPort<T> {
         // (no room in the outbox, a link that just failed) and polls the
         // confirm of a first message in flight.
         let before = outcomes.len();
-        let wake = if window.publish_from == seq {
+        let publish_from = window.publish_from;
+        let first_unsent = window
+            .entries
+            .partition_point(|entry| entry.seq < publish_from);
+        let wake = if first_unsent + 1 == window.entries.len() {
             let idle = window.inflight.is_empty();
             match self.shared.publish_next(&mut window, None, &mut outcomes) {
                 Next::Published => idle && !window.inflight.is_empty(),
+                // The task publishes it when a confirm makes room.
+                Next::Windowed => false,
                 Next::Idle | Next::Full | Next::Failed(_) => true,
             }
         } else {
             true
+        };
+        let status = if window.degraded {
+            PortStatus::Degraded
+        } else {
+            PortStatus::Ok
         };
         drop(window);
         if wake {
             self.shared.work.notify_one();
         }
         self.shared.report(&outcomes, outcomes.len() > before);
-        Some(PortStatus::Ok)
+        Some(status)
     }
 
     /// Counts a value refused for want of room.
@@ -730,11 +935,11 @@ impl<T: PortData> OutPort<T> {
         PortStatus::SendFull
     }
 
-    /// Waits until every accepted message is settled (confirmed, refused,
-    /// expired or dropped); wrap it in a timeout.
+    /// Waits until every accepted message has its [`Fate`] (nothing is
+    /// pending); wrap it in a timeout.
     pub async fn flush(&self) {
         let mut stats = self.shared.stats.subscribe();
-        let _ = stats.wait_for(|s| s.unconfirmed == 0).await;
+        let _ = stats.wait_for(|s| s.pending == 0).await;
     }
 
     /// The counters so far.
@@ -756,9 +961,14 @@ impl<T: PortData> OutPort<T> {
 
     /// Calls `callback` with every [`Outcome`] from now on (keep it short:
     /// it runs on the port's task, or in `put` for a value it publishes
-    /// without confirms or drops).
+    /// without confirms or drops). The counters' watchers
+    /// ([`OutPort::watch_stats`], [`OutPort::flush`]) see an outcome
+    /// counted only once it has been delivered; [`OutPort::stats`] may
+    /// count it a moment before.
     pub fn on_outcome(&self, callback: impl FnMut(&Outcome) + Send + 'static) {
-        lock(&self.shared.callbacks).push(Box::new(callback));
+        lock(&self.shared.reporting)
+            .callbacks
+            .push(Box::new(callback));
     }
 
     /// The link's state, to watch for losses and reconnections.
@@ -861,6 +1071,9 @@ enum Event {
     Opened(Result<OutLink>),
     Lost(Error),
     Retry,
+    /// The oldest message in flight has waited for its confirm longer
+    /// than the stall timeout.
+    Stalled,
 }
 
 struct Task {
@@ -874,6 +1087,9 @@ struct Task {
     connecting: Option<Opening>,
     failures: u32,
     retry_at: Instant,
+    /// How long the broker may confirm (or take) nothing before the link
+    /// counts as degraded.
+    stall_timeout: Duration,
     announcer: Announcer,
 }
 
@@ -897,6 +1113,7 @@ impl Task {
                 Event::Retry => self.expire_while_down(),
                 Event::Opened(result) => self.opened(result),
                 Event::Lost(error) => self.lost(error),
+                Event::Stalled => self.stalled(),
             }
         }
         self.shared.window().channel = None;
@@ -911,10 +1128,23 @@ impl Task {
         let connecting = &mut self.connecting;
         let channel = self.link.as_ref().map(|link| link.channel.clone());
         let idle = self.link.is_none() && connecting.is_none();
+        let stall_at = {
+            let window = shared.window();
+            match window.inflight.front() {
+                Some(oldest) if !window.degraded => Some(oldest.written_at + self.stall_timeout),
+                _ => None,
+            }
+        };
         let confirm = std::future::poll_fn(|cx| match shared.window().inflight.front_mut() {
-            Some((_, confirm)) => Pin::new(confirm).poll(cx),
+            Some(oldest) => Pin::new(&mut oldest.confirm).poll(cx),
             None => Poll::Pending,
         });
+        let stalled = async move {
+            match stall_at {
+                Some(at) => tokio::time::sleep_until(at).await,
+                None => std::future::pending().await,
+            }
+        };
         let opened = std::future::poll_fn(|cx| match connecting.as_mut() {
             Some(opening) => opening.as_mut().poll(cx),
             None => Poll::Pending,
@@ -943,6 +1173,7 @@ impl Task {
             result = opened => Event::Opened(result),
             error = closed => Event::Lost(error),
             _ = tokio::time::sleep_until(self.retry_at), if idle => Event::Retry,
+            () = stalled => Event::Stalled,
         }
     }
 
@@ -957,7 +1188,18 @@ impl Task {
         };
         if let (Next::Full, Some(link)) = (&next, &self.link) {
             let channel = link.channel.clone();
-            next = match channel.reserve().await {
+            let reserve = channel.reserve();
+            tokio::pin!(reserve);
+            // An outbox that takes nothing for the stall timeout is a
+            // stalled link too (the way a port without confirms sees it).
+            let reserved = match tokio::time::timeout(self.stall_timeout, &mut reserve).await {
+                Ok(reserved) => reserved,
+                Err(_) => {
+                    self.stalled();
+                    reserve.await
+                }
+            };
+            next = match reserved {
                 Ok(slot) => {
                     let mut window = self.shared.window();
                     self.shared
@@ -969,9 +1211,12 @@ impl Task {
         if !outcomes.is_empty() {
             self.shared.report(&outcomes, true);
         }
+        if matches!(next, Next::Published) && !self.profile.confirms {
+            self.recovered();
+        }
         match next {
             Next::Published | Next::Full => true,
-            Next::Idle => !outcomes.is_empty(),
+            Next::Idle | Next::Windowed => !outcomes.is_empty(),
             Next::Failed(error) => {
                 self.lost(error);
                 true
@@ -984,17 +1229,51 @@ impl Task {
     fn confirmed(&mut self, result: Result<Confirmation>) {
         match result {
             Ok(confirmation) => {
-                let settled = self.shared.window().inflight.pop_front();
-                if let Some((seq, _)) = settled {
-                    self.settle_published(seq, confirmation);
+                let settled = {
+                    let mut window = self.shared.window();
+                    let settled = window.inflight.pop_front();
+                    if let Some(settled) = &settled {
+                        window.inflight_bytes -= settled.bytes;
+                    }
+                    settled
+                };
+                self.recovered();
+                if let Some(settled) = settled {
+                    self.settle_published(settled.seq, confirmation);
                 }
             }
             Err(error) => self.lost(error),
         }
     }
 
+    /// The broker has confirmed nothing (or taken nothing) for the stall
+    /// timeout: the link is degraded until it does.
+    fn stalled(&mut self) {
+        let mut window = self.shared.window();
+        if window.degraded || window.channel.is_none() {
+            return;
+        }
+        window.degraded = true;
+        window.stats.stalls += 1;
+        drop(window);
+        self.shared.publish_stats();
+        self.shared.link.degraded(true);
+    }
+
+    /// The broker confirmed (or took) a message: a degraded link is well
+    /// again.
+    fn recovered(&mut self) {
+        let mut window = self.shared.window();
+        if !window.degraded {
+            return;
+        }
+        window.degraded = false;
+        drop(window);
+        self.shared.link.degraded(false);
+    }
+
     /// Settles message `seq` (if still in the window: a full window may
-    /// have dropped it since).
+    /// have abandoned it since, counted as sent-unconfirmed).
     fn settle_published(&mut self, seq: u64, confirmation: Confirmation) {
         self.drain_returns();
         let fate = match confirmation {
@@ -1007,7 +1286,7 @@ impl Task {
         if let Ok(index) = window.entries.binary_search_by_key(&seq, |entry| entry.seq) {
             window.entries.remove(index);
             settle(&mut window.stats, &mut outcomes, seq, fate);
-            window.stats.unconfirmed = window.entries.len() as u64;
+            window.measure();
         }
         drop(window);
         self.shared.report(&outcomes, true);
@@ -1032,8 +1311,8 @@ impl Task {
     }
 
     /// The broker returned a message no queue took. With confirms its
-    /// fate waits for its confirm (which follows); without, it was
-    /// already counted as written and is counted unroutable too.
+    /// fate waits for its confirm (which follows); without, its fate was
+    /// already counted (sent-unconfirmed): the return is counted apart.
     fn returned(&mut self, message: &ReturnedMessage) {
         let Some(seq) = link::Stamp::read(message.properties.headers.as_ref()).seq else {
             return;
@@ -1042,11 +1321,8 @@ impl Task {
             self.returned.insert(seq);
             return;
         }
-        let mut outcomes = Vec::new();
-        let mut window = self.shared.window();
-        settle(&mut window.stats, &mut outcomes, seq, Fate::Unroutable);
-        drop(window);
-        self.shared.report(&outcomes, false);
+        self.shared.window().stats.returned_after_send += 1;
+        self.shared.publish_stats();
     }
 
     /// While the link is down, the values past their lifespan leave the
@@ -1073,7 +1349,10 @@ impl Task {
         let mut window = self.shared.window();
         window.channel = None;
         window.inflight.clear();
+        window.inflight_bytes = 0;
+        window.degraded = false;
         window.publish_from = 0;
+        window.measure();
         if self.profile.replay == Replay::Nothing {
             keep_newest(&mut window, 0, &mut outcomes);
         }

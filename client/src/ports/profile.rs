@@ -225,9 +225,11 @@ pub struct PortProfile {
     pub persistent: bool,
     /// Extra `queue.declare` arguments (`x-expires`, `x-max-length`…).
     pub queue_arguments: FieldTable,
-    /// Publisher confirms: `put` returns once the broker has the message,
-    /// and unconfirmed messages are resent after a reconnection. Without
-    /// them a message in flight when the link drops may be lost.
+    /// Publisher confirms: the out-port keeps each message until the
+    /// broker confirms it (`put` never waits for that), resends what was
+    /// unconfirmed after a reconnection, and notices a broker that stops
+    /// confirming ([`PortProfile::stall_timeout`]). Without them a message
+    /// in flight when the link drops may be lost.
     pub confirms: bool,
     /// Deliveries the broker sends the in-port before it acknowledges any.
     pub prefetch: u16,
@@ -248,9 +250,20 @@ pub struct PortProfile {
     /// [`Backpressure::Block`] (never for the network).
     pub put_timeout: Duration,
     /// The out-port's window: values it keeps until sent and confirmed
-    /// (and resends after a reconnection); when full, the
-    /// [`Backpressure`] policy applies.
+    /// (and resends after a reconnection), and the most written to the
+    /// connection and not yet confirmed, so a frozen broker never has more
+    /// than this many of the port's messages in its socket; when full,
+    /// the [`Backpressure`] policy applies.
     pub max_unconfirmed: usize,
+    /// The most bytes (of bodies) the out-port has written and not yet
+    /// confirmed (one message is always let through).
+    pub max_unconfirmed_bytes: usize,
+    /// How long the broker may confirm nothing of the out-port's (or,
+    /// without confirms, take nothing from its connection) before the
+    /// link counts as degraded ([`super::LinkStatus::degraded`],
+    /// [`super::PortStatus::Degraded`]); `None`: the default of
+    /// [`PortProfile::stall_timeout`].
+    pub stall_after: Option<Duration>,
     /// Reconnection delays.
     pub backoff: Backoff,
     /// The byte order and string charset of CDR bodies.
@@ -309,6 +322,8 @@ impl Default for PortProfile {
             busy_poll: None,
             put_timeout: Duration::from_millis(500),
             max_unconfirmed: 1024,
+            max_unconfirmed_bytes: 4 << 20,
+            stall_after: None,
             backoff: Backoff::default(),
             cdr: CdrOptions::default(),
             lifespan: None,
@@ -442,6 +457,18 @@ impl PortProfile {
             }
         }
         self
+    }
+
+    /// How long the broker may confirm nothing before the out-port's link
+    /// counts as degraded: [`PortProfile::stall_after`] if set, else
+    /// twice the lifespan but at least 100 ms (a command stream notices a
+    /// frozen broker before its commands would have gone stale twice
+    /// over), else 2 s.
+    pub fn stall_timeout(&self) -> Duration {
+        self.stall_after.unwrap_or(match self.lifespan {
+            Some(lifespan) => (lifespan * 2).max(Duration::from_millis(100)),
+            None => Duration::from_secs(2),
+        })
     }
 
     /// Sets the lifespan of values.

@@ -143,6 +143,11 @@ impl T {
     }
 }
 
+/// How long a scenario waits for something it expects: a hang limit,
+/// generous enough for a loaded CI machine (the wait ends as soon as the
+/// thing happens).
+pub const HANG: Duration = Duration::from_secs(30);
+
 pub async fn wait_until<F, Fu>(timeout: Duration, what: &str, mut pred: F) -> R
 where
     F: FnMut() -> Fu,

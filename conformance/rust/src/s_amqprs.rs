@@ -1,6 +1,6 @@
 //! Scenarios driven by amqprs, the other common Rust client.
 
-use crate::{check, e, reply_name, scenarios, wait_until, R, T};
+use crate::{check, e, reply_name, scenarios, wait_until, HANG, R, T};
 use amqprs::callbacks::{ChannelCallback, DefaultConnectionCallback};
 type CbResult<V> = std::result::Result<V, amqprs::error::Error>;
 use amqprs::channel::*;
@@ -108,7 +108,7 @@ async fn settled(
             }
             count
         };
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    let deadline = tokio::time::Instant::now() + HANG;
     while drain(receivers) < at_least && tokio::time::Instant::now() < deadline {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
@@ -158,7 +158,13 @@ async fn consume_manual(
     ch: &Channel,
     q: &str,
     tag: &str,
-) -> Result<(String, tokio::sync::mpsc::UnboundedReceiver<ConsumerMessage>), String> {
+) -> Result<
+    (
+        String,
+        tokio::sync::mpsc::UnboundedReceiver<ConsumerMessage>,
+    ),
+    String,
+> {
     let args = BasicConsumeArguments::new(q, tag).manual_ack(true).finish();
     e(ch.basic_consume_rx(args).await, "consume")
 }
@@ -276,10 +282,7 @@ async fn fanout_get(t: Arc<T>) -> R {
         "bind",
     )?;
     publish(&ch, &ex, "k", b"to both").await?;
-    wait_until(Duration::from_secs(5), "fanout", || async {
-        count(&ch, &q2).await == 1
-    })
-    .await?;
+    wait_until(HANG, "fanout", || async { count(&ch, &q2).await == 1 }).await?;
     let m = e(
         ch.basic_get(BasicGetArguments::new(&q1).no_ack(true).finish())
             .await,
@@ -317,7 +320,7 @@ async fn passive_missing(t: Arc<T>) -> R {
         )
         .await;
     t.eq("declare failed", json!(r.is_err()), json!(true))?;
-    wait_until(Duration::from_secs(5), "channel.close", || async {
+    wait_until(HANG, "channel.close", || async {
         !ev.closes.lock().unwrap().is_empty()
     })
     .await?;
@@ -341,7 +344,7 @@ async fn consume_rx(t: Arc<T>) -> R {
     publish(&ch, "", &q, b"m").await?;
     let mut seen = vec![];
     for i in 0..2 {
-        let m = tokio::time::timeout(Duration::from_secs(5), rx.recv())
+        let m = tokio::time::timeout(HANG, rx.recv())
             .await
             .map_err(|_| "no delivery")?
             .ok_or("consumer ended")?;
@@ -396,7 +399,7 @@ async fn server_cancel(t: Arc<T>) -> R {
         other.queue_delete(QueueDeleteArguments::new(&q)).await,
         "delete",
     )?;
-    wait_until(Duration::from_secs(5), "basic.cancel", || async {
+    wait_until(HANG, "basic.cancel", || async {
         !ev.cancels.lock().unwrap().is_empty()
     })
     .await?;
@@ -473,7 +476,7 @@ async fn returns(t: Arc<T>) -> R {
         .await,
         "publish",
     )?;
-    wait_until(Duration::from_secs(5), "basic.return", || async {
+    wait_until(HANG, "basic.return", || async {
         !ev.returns.lock().unwrap().is_empty()
     })
     .await?;
@@ -534,10 +537,7 @@ async fn props(t: Arc<T>) -> R {
             .await,
         "publish",
     )?;
-    wait_until(Duration::from_secs(5), "message", || async {
-        count(&ch, &q).await == 1
-    })
-    .await?;
+    wait_until(HANG, "message", || async { count(&ch, &q).await == 1 }).await?;
     let (_, p, _) = e(
         ch.basic_get(BasicGetArguments::new(&q).no_ack(true).finish())
             .await,

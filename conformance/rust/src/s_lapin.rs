@@ -1,6 +1,6 @@
 //! Scenarios driven by lapin, the most used Rust client.
 
-use crate::{check, e, reply_name, scenarios, wait_until, R, T};
+use crate::{check, e, reply_name, scenarios, wait_until, HANG, R, T};
 use futures_lite::StreamExt;
 use lapin::message::Delivery;
 use lapin::options::*;
@@ -140,11 +140,11 @@ async fn get_all(ch: &Channel, q: &str) -> Result<Vec<String>, String> {
 }
 
 async fn next(consumer: &mut Consumer) -> Result<Delivery, String> {
-    match tokio::time::timeout(Duration::from_secs(5), consumer.next()).await {
+    match tokio::time::timeout(HANG, consumer.next()).await {
         Ok(Some(Ok(d))) => Ok(d),
         Ok(Some(Err(err))) => Err(format!("consumer error: {err}")),
         Ok(None) => Err("consumer ended".into()),
-        Err(_) => Err("no delivery within 5s".into()),
+        Err(_) => Err(format!("no delivery within {HANG:?}")),
     }
 }
 
@@ -178,10 +178,7 @@ async fn connection_tune(t: Arc<T>) -> R {
         json!(true),
     )?;
     e(c.close(200, "bye").await, "close")?;
-    wait_until(Duration::from_secs(5), "closed state", || async {
-        c.status().closed()
-    })
-    .await?;
+    wait_until(HANG, "closed state", || async { c.status().closed() }).await?;
     t.obs("closed", json!(true));
     Ok(())
 }
@@ -373,7 +370,7 @@ async fn dead_letter(t: Arc<T>) -> R {
     let q = temp_queue(&ch, args).await?;
     confirm_mode(&ch).await?;
     publish(&ch, "", &q, b"ttl", BasicProperties::default()).await?;
-    wait_until(Duration::from_secs(5), "dead letter", || async {
+    wait_until(HANG, "dead letter", || async {
         count(&ch, &dlq).await == 1
     })
     .await?;

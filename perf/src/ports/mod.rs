@@ -29,9 +29,12 @@
 //! writes each row's samples (ns, in the order taken) to a file in DIR.
 //!
 //! Layout: this module owns the options, the plan, the timing loop and the
-//! report; `pair` owns the ports or raw-client loops and their echo tasks.
+//! report; `pair` owns the ports or raw-client loops and their echo tasks;
+//! `stall` is the `ports-stall` scenario (a control loop's `try_put`
+//! through a frozen broker).
 
 mod pair;
+pub mod stall;
 
 use crate::histogram::{BoxStats, Samples};
 use crate::load::DEFAULT_URL;

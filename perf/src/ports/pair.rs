@@ -258,7 +258,7 @@ async fn raw_consume(channel: Channel) -> Result<(ShortStr, Consumer)> {
 
 /// Puts back every value the in-port receives, until told to stop.
 async fn echo_ports(
-    mut input: InPort<Bytes>,
+    input: InPort<Bytes>,
     output: OutPort<Bytes>,
     mut stop: oneshot::Receiver<()>,
 ) -> u64 {

@@ -46,18 +46,33 @@ pub fn segment(text: &str) -> String {
         .collect()
 }
 
+/// Longest a request may take unless told otherwise, in seconds.
+pub const DEFAULT_TIMEOUT_SECS: u64 = 60;
+
+fn agent(timeout: Duration) -> ureq::Agent {
+    ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .timeout_global(Some(timeout))
+        .build()
+        .into()
+}
+
 impl Client {
     /// A client of the API at `base` (`http://HOST:PORT`).
     pub fn new(base: &str, user: &str, password: &str) -> Client {
         let token = base64::engine::general_purpose::STANDARD.encode(format!("{user}:{password}"));
-        let config = ureq::Agent::config_builder()
-            .http_status_as_error(false)
-            .timeout_global(Some(Duration::from_secs(60)))
-            .build();
         Client {
             base: base.trim_end_matches('/').to_owned(),
             authorization: format!("Basic {token}"),
-            agent: config.into(),
+            agent: agent(Duration::from_secs(DEFAULT_TIMEOUT_SECS)),
+        }
+    }
+
+    /// The same client with requests limited to `timeout` each.
+    pub fn timeout(self, timeout: Duration) -> Client {
+        Client {
+            agent: agent(timeout),
+            ..self
         }
     }
 

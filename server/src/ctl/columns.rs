@@ -31,20 +31,26 @@ impl Table {
         self.columns.iter().map(|(name, _)| *name).collect()
     }
 
-    /// The cell of column `name` for `item`.
-    pub fn cell(&self, name: &str, item: &Value) -> String {
+    /// The value of column `name` for `item` (null for a column the
+    /// listing does not have), as `--formatter json` prints it.
+    pub fn value(&self, name: &str, item: &Value) -> Value {
         let Some(path) = self.path(name) else {
-            return String::new();
+            return Value::Null;
         };
         if name == "source_kind" {
             // A binding's source is always an exchange; the API has no field for it.
-            return "exchange".to_owned();
+            return Value::String("exchange".to_owned());
         }
-        let value = path.iter().fold(item, |value, key| &value[*key]);
+        path.iter().fold(item, |value, key| &value[*key]).clone()
+    }
+
+    /// The cell of column `name` for `item`, as the table prints it.
+    pub fn cell(&self, name: &str, item: &Value) -> String {
+        let value = self.value(name, item);
         if name == "arguments" && value.as_object().is_some_and(|o| o.is_empty()) {
             return "[]".to_owned();
         }
-        render(value)
+        render(&value)
     }
 }
 
@@ -127,6 +133,38 @@ pub const CONNECTIONS: Table = Table {
     default: &["user", "peer_host", "peer_port", "state"],
 };
 
+pub const VHOSTS: Table = Table {
+    columns: &[
+        ("name", &["name"]),
+        ("description", &["description"]),
+        ("tags", &["tags"]),
+        ("tracing", &["tracing"]),
+        ("default_queue_type", &["default_queue_type"]),
+        ("cluster_state", &["cluster_state"]),
+        ("metadata", &["metadata"]),
+    ],
+    default: &["name"],
+};
+
+pub const CHANNELS: Table = Table {
+    columns: &[
+        ("pid", &["name"]),
+        ("connection", &["connection_details", "name"]),
+        ("name", &["name"]),
+        ("number", &["number"]),
+        ("user", &["user"]),
+        ("vhost", &["vhost"]),
+        ("transactional", &["transactional"]),
+        ("confirm", &["confirm"]),
+        ("consumer_count", &["consumer_count"]),
+        ("messages_unacknowledged", &["messages_unacknowledged"]),
+        ("prefetch_count", &["prefetch_count"]),
+        ("global_prefetch_count", &["global_prefetch_count"]),
+        ("state", &["state"]),
+    ],
+    default: &["pid", "user", "consumer_count", "messages_unacknowledged"],
+};
+
 pub const USERS: Table = Table {
     columns: &[("user", &["name"]), ("tags", &["tags"])],
     default: &["user", "tags"],
@@ -140,6 +178,16 @@ pub const PERMISSIONS: Table = Table {
         ("read", &["read"]),
     ],
     default: &["user", "configure", "write", "read"],
+};
+
+pub const TOPIC_PERMISSIONS: Table = Table {
+    columns: &[
+        ("user", &["user"]),
+        ("exchange", &["exchange"]),
+        ("write", &["write"]),
+        ("read", &["read"]),
+    ],
+    default: &["user", "exchange", "write", "read"],
 };
 
 pub const CONSUMERS: Table = Table {

@@ -10,10 +10,16 @@
 //! `amqp://guest:guest@127.0.0.1:5672/%2f`, its vhost the URL's), and
 //! show the robot data ports that announce themselves there.
 //!
-//! Exit status: 0 on success, 64 for a command line it cannot use, 69 when
-//! the API (or, for `port`, the broker) cannot be reached, 1 when the
-//! broker refuses the request (or the port named does not announce
-//! itself).
+//! `--formatter json` prints listings as a JSON array of objects keyed by
+//! column name, and `status` as one JSON object; `table` (the default) is
+//! rabbitmqctl's text. A column a listing does not have is reported on
+//! standard error after the other columns are printed.
+//!
+//! Exit status, as rabbitmqctl's: 0 on success, 64 for a command line it
+//! cannot use (an unknown column included), 69 when the API (or, for
+//! `port`, the broker) cannot be reached, 75 when `await_startup` times
+//! out, 1 when the broker refuses the request (or the port named does not
+//! announce itself).
 //!
 //! # Layout
 //! - `main`: the command line and the commands.
@@ -37,6 +43,19 @@ use std::process::ExitCode;
 const USAGE: u8 = 64;
 /// Exit status when the API cannot be reached (EX_UNAVAILABLE).
 const UNAVAILABLE: u8 = 69;
+/// Exit status when waiting timed out (EX_TEMPFAIL).
+const TIMED_OUT: u8 = 75;
+/// How often `await_startup` asks.
+const STARTUP_POLL: std::time::Duration = std::time::Duration::from_millis(200);
+
+/// How results are printed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Formatter {
+    /// rabbitmqctl's text: tab-separated listings.
+    Table,
+    /// JSON.
+    Json,
+}
 
 /// Manage a Leveret broker through its management HTTP API.
 #[derive(Debug, Parser)]
@@ -67,6 +86,9 @@ struct Cli {
     /// No header line in listings.
     #[arg(long, global = true)]
     no_table_headers: bool,
+    /// Output format of listings and `status`.
+    #[arg(long, value_enum, default_value = "table", global = true)]
+    formatter: Formatter,
     #[command(subcommand)]
     command: Command,
 }
@@ -88,6 +110,28 @@ enum Command {
     ListConsumers { columns: Vec<String> },
     /// Lists users and their tags.
     ListUsers { columns: Vec<String> },
+    /// Lists vhosts: name by default.
+    ListVhosts { columns: Vec<String> },
+    /// Adds a vhost (the caller gets full permissions on it, as with
+    /// RabbitMQ's API).
+    AddVhost { vhost: String },
+    /// Lists channels: pid, user, consumer_count, messages_unacknowledged
+    /// by default.
+    ListChannels { columns: Vec<String> },
+    /// Checks that the broker's API answers (exit 0), as rabbitmqctl ping.
+    Ping {
+        /// Seconds to wait for the answer.
+        #[arg(short = 't', long, default_value_t = 60)]
+        timeout: u64,
+    },
+    /// Waits until the broker has started (its API answers): exit 0 once
+    /// it has, 75 if it has not within the timeout, 1 if it refuses the
+    /// credentials.
+    AwaitStartup {
+        /// Seconds to wait.
+        #[arg(short = 't', long, default_value_t = 300)]
+        timeout: u64,
+    },
     /// Adds a user (no tags, no permissions: grant some with
     /// set_permissions); refused if the user exists.
     AddUser {
@@ -117,6 +161,23 @@ enum Command {
     },
     /// Removes a user's permissions on the vhost.
     ClearPermissions { user: String },
+    /// Lists the topic permissions on the vhost: user, exchange, write,
+    /// read.
+    ListTopicPermissions { columns: Vec<String> },
+    /// Sets a user's topic permissions on an exchange of the vhost
+    /// (regular expressions over routing keys).
+    SetTopicPermissions {
+        user: String,
+        exchange: String,
+        write: String,
+        read: String,
+    },
+    /// Removes a user's topic permissions on the vhost (on one exchange
+    /// if named).
+    ClearTopicPermissions {
+        user: String,
+        exchange: Option<String>,
+    },
     /// Drops a queue's ready messages.
     PurgeQueue { queue: String },
     /// Deletes a queue.
@@ -139,6 +200,9 @@ enum Command {
     /// The node's status: versions, memory, file descriptors, listeners,
     /// totals.
     Status,
+    /// The status, then every listing: connections, channels, and each
+    /// vhost's queues, exchanges, bindings, consumers and permissions.
+    Report,
     /// The robot data ports that announce themselves (over AMQP, see
     /// --amqp-url).
     Port {
@@ -152,6 +216,9 @@ enum Command {
 enum Failure {
     #[error("{0}")]
     Client(#[from] ClientError),
+    /// Waiting for the broker timed out.
+    #[error("{0}")]
+    TimedOut(String),
     #[error("{0}")]
     Usage(String),
     #[error("{0}")]
@@ -182,6 +249,7 @@ fn main() -> ExitCode {
             eprintln!("Error: {e}");
             ExitCode::from(match e {
                 Failure::Usage(_) => USAGE,
+                Failure::TimedOut(_) => TIMED_OUT,
                 Failure::Client(ClientError::Unreachable { .. }) | Failure::Unavailable(_) => {
                     UNAVAILABLE
                 }
@@ -210,7 +278,12 @@ fn info(cli: &Cli, line: &str) -> Result<(), Failure> {
 }
 
 fn run(cli: &Cli) -> Result<(), Failure> {
-    let client = Client::new(&cli.url, &cli.username, &cli.password);
+    let timeout = match &cli.command {
+        Command::Ping { timeout } | Command::AwaitStartup { timeout } => *timeout,
+        _ => client::DEFAULT_TIMEOUT_SECS,
+    };
+    let client = Client::new(&cli.url, &cli.username, &cli.password)
+        .timeout(std::time::Duration::from_secs(timeout));
     let vhost = segment(&cli.vhost);
     match &cli.command {
         Command::ListQueues { columns } => {
@@ -249,6 +322,34 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             let list = client.get("/api/users")?;
             print_table(cli, &columns::USERS, columns, &list)
         }
+        Command::ListVhosts { columns } => {
+            info(cli, "Listing vhosts ...")?;
+            let list = client.get("/api/vhosts")?;
+            print_table(cli, &columns::VHOSTS, columns, &list)
+        }
+        Command::AddVhost { vhost } => {
+            info(cli, &format!("Adding vhost \"{vhost}\" ..."))?;
+            client.put(&format!("/api/vhosts/{}", segment(vhost)), b"{}")?;
+            Ok(())
+        }
+        Command::ListChannels { columns } => {
+            info(cli, "Listing channels ...")?;
+            let list = client.get("/api/channels")?;
+            print_table(cli, &columns::CHANNELS, columns, &list)
+        }
+        Command::Ping { timeout } => {
+            info(
+                cli,
+                &format!(
+                    "Will ping the broker at {}. Timeout: {} ms.",
+                    cli.url,
+                    timeout * 1000
+                ),
+            )?;
+            client.get("/api/overview")?;
+            info(cli, "Ping succeeded")
+        }
+        Command::AwaitStartup { timeout } => await_startup(cli, &client, *timeout),
         Command::AddUser { user, new_password } => {
             info(cli, &format!("Adding user \"{user}\" ..."))?;
             let path = format!("/api/users/{}", segment(user));
@@ -334,6 +435,58 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             client.delete(&format!("/api/permissions/{vhost}/{}", segment(user)), &[])?;
             Ok(())
         }
+        Command::ListTopicPermissions { columns } => {
+            info(
+                cli,
+                &format!("Listing topic permissions for vhost \"{}\" ...", cli.vhost),
+            )?;
+            let list = client.get("/api/topic-permissions")?;
+            let here: Vec<Value> = (list.as_array().into_iter().flatten())
+                .filter(|p| p["vhost"] == cli.vhost.as_str())
+                .cloned()
+                .collect();
+            print_table(
+                cli,
+                &columns::TOPIC_PERMISSIONS,
+                columns,
+                &Value::Array(here),
+            )
+        }
+        Command::SetTopicPermissions {
+            user,
+            exchange,
+            write,
+            read,
+        } => {
+            info(
+                cli,
+                &format!(
+                    "Setting topic permissions on \"{exchange}\" for user \"{user}\" in vhost \"{}\" ...",
+                    cli.vhost
+                ),
+            )?;
+            let body = serde_json::json!({"exchange": exchange, "write": write, "read": read});
+            client.put(
+                &format!("/api/topic-permissions/{vhost}/{}", segment(user)),
+                body.to_string().as_bytes(),
+            )?;
+            Ok(())
+        }
+        Command::ClearTopicPermissions { user, exchange } => {
+            info(
+                cli,
+                &format!(
+                    "Clearing topic permissions for user \"{user}\" in vhost \"{}\" ...",
+                    cli.vhost
+                ),
+            )?;
+            let mut path = format!("/api/topic-permissions/{vhost}/{}", segment(user));
+            if let Some(exchange) = exchange {
+                path.push_str(&format!("?exchange={}", segment(exchange)));
+            }
+            client.delete(&path, &[])?;
+            Ok(())
+        }
         Command::PurgeQueue { queue } => {
             info(
                 cli,
@@ -402,6 +555,7 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             Ok(())
         }
         Command::Status => status(cli, &client),
+        Command::Report => report(cli, &client),
         Command::Port { command } => ports::run(cli, command),
     }
 }
@@ -417,27 +571,65 @@ fn print_table(
     } else {
         asked.iter().map(String::as_str).collect()
     };
-    let unknown: Vec<&str> = names
-        .iter()
-        .copied()
-        .filter(|name| !table.knows(name))
-        .collect();
+    let (names, unknown): (Vec<&str>, Vec<&str>) =
+        names.into_iter().partition(|name| table.knows(name));
+    let mut out = std::io::stdout().lock();
+    let items = list.as_array().into_iter().flatten();
+    match cli.formatter {
+        Formatter::Table => {
+            if !cli.no_table_headers {
+                writeln!(out, "{}", names.join("\t"))?;
+            }
+            for item in items {
+                let row: Vec<String> = names.iter().map(|name| table.cell(name, item)).collect();
+                writeln!(out, "{}", row.join("\t"))?;
+            }
+        }
+        Formatter::Json => {
+            let rows: Vec<Value> = items
+                .map(|item| {
+                    let row = names
+                        .iter()
+                        .map(|name| ((*name).to_owned(), table.value(name, item)));
+                    Value::Object(row.collect())
+                })
+                .collect();
+            writeln!(out, "{}", Value::Array(rows))?;
+        }
+    }
+    out.flush()?;
     if !unknown.is_empty() {
         return Err(Failure::Usage(format!(
-            "unknown columns {}; known: {}",
+            "unknown column(s) {}, not shown; known: {}",
             unknown.join(", "),
             table.known().join(", ")
         )));
     }
-    let mut out = std::io::stdout().lock();
-    if !cli.no_table_headers {
-        writeln!(out, "{}", names.join("\t"))?;
-    }
-    for item in list.as_array().into_iter().flatten() {
-        let row: Vec<String> = names.iter().map(|name| table.cell(name, item)).collect();
-        writeln!(out, "{}", row.join("\t"))?;
-    }
     Ok(())
+}
+
+/// Asks the API until it answers, up to `timeout` seconds: rabbitmqctl's
+/// await_startup for scripts and service units.
+fn await_startup(cli: &Cli, client: &Client, timeout: u64) -> Result<(), Failure> {
+    info(
+        cli,
+        &format!("Waiting for the broker at {} to start ...", cli.url),
+    )?;
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(timeout);
+    loop {
+        match client.get("/api/overview") {
+            Ok(_) => return Ok(()),
+            Err(ClientError::Unreachable { .. }) | Err(ClientError::Api { status: 500.., .. }) => {}
+            Err(refused) => return Err(refused.into()),
+        }
+        if std::time::Instant::now() + STARTUP_POLL > deadline {
+            return Err(Failure::TimedOut(format!(
+                "the broker at {} did not start within {timeout} s",
+                cli.url
+            )));
+        }
+        std::thread::sleep(STARTUP_POLL);
+    }
 }
 
 /// Appends one formatted line to a report.
@@ -448,10 +640,136 @@ macro_rules! report_line {
     }};
 }
 
+/// The alarms in effect on a node of `/api/nodes`, in rabbitmqctl's
+/// words: the memory and disk alarms as the broker holds them, and the
+/// file-descriptor limit when every descriptor the process may open is
+/// open (new connections are then refused).
+fn alarms(node: &Value) -> Vec<&'static str> {
+    let mut alarms = Vec::new();
+    if node["mem_alarm"] == Value::Bool(true) {
+        alarms.push("Memory alarm");
+    }
+    if node["disk_free_alarm"] == Value::Bool(true) {
+        alarms.push("Free disk space alarm");
+    }
+    if let (Some(used), Some(limit)) = (node["fd_used"].as_u64(), node["fd_total"].as_u64()) {
+        if used >= limit {
+            alarms.push("File descriptor limit alarm");
+        }
+    }
+    alarms
+}
+
+/// The entries of a listing that belong to `vhost`.
+fn in_vhost(list: &Value, vhost: &str) -> Value {
+    let here = (list.as_array().into_iter().flatten()).filter(|item| item["vhost"] == vhost);
+    Value::Array(here.cloned().collect())
+}
+
+/// rabbitmqctl report: the status, then each listing with its default
+/// columns (with `--formatter json`, one object of the API's objects).
+fn report(cli: &Cli, client: &Client) -> Result<(), Failure> {
+    let connections = client.get("/api/connections")?;
+    let channels = client.get("/api/channels")?;
+    let permissions = client.get("/api/permissions")?;
+    let topic_permissions = client.get("/api/topic-permissions")?;
+    let vhosts = client.get("/api/vhosts")?;
+    let names: Vec<&str> = (vhosts.as_array().into_iter().flatten())
+        .filter_map(|vhost| vhost["name"].as_str())
+        .collect();
+    let listings =
+        |name: &str| -> Result<[(&'static str, &'static columns::Table, Value); 6], Failure> {
+            let vhost = segment(name);
+            Ok([
+                (
+                    "Queues",
+                    &columns::QUEUES,
+                    client.get(&format!("/api/queues/{vhost}"))?,
+                ),
+                (
+                    "Exchanges",
+                    &columns::EXCHANGES,
+                    client.get(&format!("/api/exchanges/{vhost}"))?,
+                ),
+                (
+                    "Bindings",
+                    &columns::BINDINGS,
+                    client.get(&format!("/api/bindings/{vhost}"))?,
+                ),
+                (
+                    "Consumers",
+                    &columns::CONSUMERS,
+                    client.get(&format!("/api/consumers/{vhost}"))?,
+                ),
+                (
+                    "Permissions",
+                    &columns::PERMISSIONS,
+                    in_vhost(&permissions, name),
+                ),
+                (
+                    "Topic permissions",
+                    &columns::TOPIC_PERMISSIONS,
+                    in_vhost(&topic_permissions, name),
+                ),
+            ])
+        };
+    if cli.formatter == Formatter::Json {
+        let mut by_vhost = serde_json::Map::new();
+        for name in &names {
+            let sections = listings(name)?
+                .map(|(title, _, list)| (title.to_lowercase().replace(' ', "_"), list));
+            by_vhost.insert(
+                (*name).to_owned(),
+                Value::Object(sections.into_iter().collect()),
+            );
+        }
+        let report = serde_json::json!({
+            "overview": client.get("/api/overview")?,
+            "nodes": client.get("/api/nodes")?,
+            "connections": connections,
+            "channels": channels,
+            "vhosts": by_vhost,
+        });
+        return emit(&format!("{report}\n"));
+    }
+    status(cli, client)?;
+    emit("\nConnections:\n")?;
+    print_table(cli, &columns::CONNECTIONS, &[], &connections)?;
+    emit("\nChannels:\n")?;
+    print_table(cli, &columns::CHANNELS, &[], &channels)?;
+    for name in &names {
+        for (title, table, list) in listings(name)? {
+            emit(&format!("\n{title} on {name}:\n"))?;
+            print_table(cli, table, &[], &list)?;
+        }
+    }
+    Ok(())
+}
+
 fn status(cli: &Cli, client: &Client) -> Result<(), Failure> {
     let overview = client.get("/api/overview")?;
     let nodes = client.get("/api/nodes")?;
     let node = &nodes[0];
+    if cli.formatter == Formatter::Json {
+        let status = serde_json::json!({
+            "node": overview["node"],
+            "product_name": overview["product_name"],
+            "product_version": overview["product_version"],
+            "uptime_seconds": node["uptime"].as_u64().unwrap_or(0) / 1000,
+            "alarms": alarms(node),
+            "memory": {
+                "used": node["mem_used"],
+                "high_watermark": node["mem_limit"],
+                "queued_bytes_limit": node["queued_bytes_limit"],
+            },
+            "file_descriptors": {"used": node["fd_used"], "limit": node["fd_total"]},
+            "disk": {"free": node["disk_free"], "limit": node["disk_free_limit"]},
+            "listeners": overview["listeners"],
+            "totals": overview["object_totals"],
+            "queue_totals": overview["queue_totals"],
+        });
+        return emit(&format!("{status}\n"));
+    }
     let text = |v: &Value| columns::render(v);
     info(
         cli,
@@ -471,10 +789,12 @@ fn status(cli: &Cli, client: &Client) -> Result<(), Failure> {
         node["uptime"].as_u64().unwrap_or(0) / 1000
     );
     report_line!(report, "\nAlarms\n");
-    if node["mem_alarm"] == Value::Bool(true) {
-        report_line!(report, "Memory alarm on node {}", text(&node["name"]));
-    } else {
+    let alarms = alarms(node);
+    if alarms.is_empty() {
         report_line!(report, "(none)");
+    }
+    for alarm in alarms {
+        report_line!(report, "{alarm} on node {}", text(&node["name"]));
     }
     report_line!(report, "\nMemory\n");
     report_line!(
@@ -485,8 +805,19 @@ fn status(cli: &Cli, client: &Client) -> Result<(), Failure> {
     report_line!(
         report,
         "Memory high watermark (bytes): {}",
-        text(&node["mem_limit"])
+        match &node["mem_limit"] {
+            Value::Null => "none (resident memory not watched here)".to_owned(),
+            limit => text(limit),
+        }
     );
+    report_line!(
+        report,
+        "Queued message bytes limit: {}",
+        text(&node["queued_bytes_limit"])
+    );
+    report_line!(report, "\nFree Disk Space\n");
+    report_line!(report, "Free (bytes): {}", text(&node["disk_free"]));
+    report_line!(report, "Limit (bytes): {}", text(&node["disk_free_limit"]));
     report_line!(report, "\nFile Descriptors\n");
     report_line!(
         report,
@@ -494,8 +825,6 @@ fn status(cli: &Cli, client: &Client) -> Result<(), Failure> {
         text(&node["fd_used"]),
         text(&node["fd_total"])
     );
-    report_line!(report, "\nFree Disk Space\n");
-    report_line!(report, "Free (bytes): {}", text(&node["disk_free"]));
     report_line!(report, "\nListeners\n");
     for listener in overview["listeners"].as_array().into_iter().flatten() {
         report_line!(

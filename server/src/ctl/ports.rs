@@ -11,11 +11,12 @@ use crate::{emit, info, Cli, Failure};
 use clap::Subcommand;
 use leveret_client::ports::{
     announced_counters, cdr, CdrOptions, PortAnnouncement, PortDirectory, PortRole, PortState,
-    SENT_HEADER, SEQ_HEADER,
+    PORT_HEADER, SENT_HEADER, SEQ_HEADER,
 };
 use leveret_client::{
-    BasicConsumeOptions, Connection, ConnectionOptions, Error, FieldTable, FieldValue,
-    QueueBindOptions, QueueDeclareOptions,
+    BasicConsumeOptions, BasicQosOptions, BasicRejectOptions, Channel, Connection,
+    ConnectionOptions, Consumer, Error, FieldTable, FieldValue, QueueBindOptions,
+    QueueDeclareOptions,
 };
 use std::collections::HashMap;
 use std::fmt::Write as _;
@@ -54,7 +55,10 @@ pub enum PortCommand {
     },
     /// Prints the messages on a port's exchange and key as they arrive
     /// (decoded by its type, else as text, else in hex), through a queue
-    /// of its own: the port keeps all of its messages.
+    /// of its own: the port keeps all of its messages. A port on the
+    /// default exchange has no exchange to copy from: the echo peeks at
+    /// its queue, handing each message it takes straight back (the port's
+    /// reader still gets it, marked redelivered, perhaps out of order).
     Echo {
         name: String,
         /// Stop after this many messages.
@@ -69,6 +73,10 @@ pub enum PortCommand {
 
 /// The longest `port list` listens, whatever the ports' intervals.
 const MAX_LISTEN: Duration = Duration::from_secs(60);
+
+/// How long a peeking echo holds a message it has printed already before
+/// handing it back again.
+const HAND_BACK_PAUSE: Duration = Duration::from_millis(20);
 
 /// The bytes of a body shown in hex, at most.
 const HEX_BYTES: usize = 64;
@@ -89,7 +97,7 @@ const DEFAULT_COLUMNS: &[&str] = &[
 ];
 
 /// The counters `port stats` shows a rate for (messages per second).
-const RATED: &[&str] = &["accepted", "confirmed", "received"];
+const RATED: &[&str] = &["accepted", "confirmed", "arrived", "received"];
 
 /// Runs a port command.
 pub fn run(cli: &Cli, command: &PortCommand) -> Result<(), Failure> {
@@ -260,7 +268,7 @@ fn cell(port: &PortAnnouncement, name: &str) -> String {
             .lifespan
             .map(|lifespan| lifespan.as_millis().to_string())
             .unwrap_or_default(),
-        "link" => if port.link.up { "up" } else { "down" }.to_owned(),
+        "link" => port.link.state().as_str().to_owned(),
         "connects" => port.link.connects.to_string(),
         "losses" => port.link.losses.to_string(),
         "last_error" => port.link.last_error.clone().unwrap_or_default(),
@@ -371,7 +379,7 @@ fn stats_line(port: &PortAnnouncement, previous: Option<&PortAnnouncement>) -> S
     let _ = writeln!(
         line,
         " link={} connects={} losses={} port={}",
-        if port.link.up { "up" } else { "down" },
+        port.link.state().as_str(),
         port.link.connects,
         port.link.losses,
         port.id
@@ -405,68 +413,34 @@ async fn echo(cli: &Cli, name: &str, count: Option<u64>, wait: Duration) -> Resu
     }
     // Its consumer, no longer drained, would pause the connection.
     directory.close().await;
-    if port.exchange.is_empty() {
-        return Err(Failure::Refused(format!(
-            "port {name:?} uses the default exchange (straight to queue {:?}): \
-             a copy of its messages cannot be had without taking them from it",
-            if port.key.is_empty() {
-                &port.queue
-            } else {
-                &port.key
-            }
-        )));
-    }
     let channel = connection.open_channel().await.map_err(broker_failure)?;
-    let queue = channel
-        .queue_declare(
-            "",
-            QueueDeclareOptions {
-                exclusive: true,
-                auto_delete: true,
-                ..Default::default()
-            },
-            FieldTable::new(),
-        )
-        .await
-        .map_err(broker_failure)?;
-    channel
-        .queue_bind(
-            &queue.name,
-            port.exchange.as_str(),
-            port.key.as_str(),
-            QueueBindOptions::default(),
-            FieldTable::new(),
-        )
-        .await
-        .map_err(|error| match broker_failure(error) {
-            Failure::Refused(why) => {
-                Failure::Refused(format!("binding to exchange {:?}: {why}", port.exchange))
-            }
-            other => other,
-        })?;
-    let mut consumer = channel
-        .basic_consume(
-            &queue.name,
-            "",
-            BasicConsumeOptions {
-                no_ack: true,
-                exclusive: true,
-                ..Default::default()
-            },
-            FieldTable::new(),
-        )
-        .await
-        .map_err(broker_failure)?;
+    let (mut consumer, peeked) = if port.exchange.is_empty() {
+        let queue = if port.key.is_empty() {
+            port.queue.clone()
+        } else {
+            port.key.clone()
+        };
+        (peek(&channel, &queue).await?, Some(queue))
+    } else {
+        (copy(&channel, &port).await?, None)
+    };
+    let through = match &peeked {
+        Some(queue) => format!(
+            "default exchange: peeking at queue {queue:?}, each message handed straight back"
+        ),
+        None => format!("exchange {:?}, key {:?}", port.exchange, port.key),
+    };
     info(
         cli,
         &format!(
-            "Echoing port {name} ({} {}, exchange {:?}, key {:?}) ...",
+            "Echoing port {name} ({} {}, {through}) ...",
             port.role.direction(),
-            port.data_type,
-            port.exchange,
-            port.key
+            port.data_type
         ),
     )?;
+    // Peeking: the last sequence number printed per sender, to print a
+    // message that comes back to the echo only once.
+    let mut shown: HashMap<String, i64> = HashMap::new();
     let options = port.cdr.unwrap_or_default();
     let mut printed = 0;
     while count.is_none_or(|count| printed < count) {
@@ -481,6 +455,30 @@ async fn echo(cli: &Cli, name: &str, count: Option<u64>, wait: Duration) -> Resu
                 .and_then(|h| h.get(key))
                 .and_then(FieldValue::as_i64)
         };
+        if peeked.is_some() {
+            let sender = headers
+                .and_then(|h| h.get(PORT_HEADER))
+                .and_then(FieldValue::as_bytes)
+                .map(|b| String::from_utf8_lossy(b).into_owned())
+                .unwrap_or_default();
+            let seq = header(SEQ_HEADER).unwrap_or(i64::MAX);
+            let last = shown.entry(sender).or_insert(i64::MIN);
+            let again = seq <= *last;
+            if again {
+                // Back to the echo rather than the port's reader (none is
+                // consuming, or it is busy): a pause, so the two do not
+                // pass it to and fro.
+                tokio::time::sleep(HAND_BACK_PAUSE).await;
+            }
+            delivery
+                .reject(BasicRejectOptions { requeue: true })
+                .await
+                .map_err(broker_failure)?;
+            if again {
+                continue;
+            }
+            *last = seq;
+        }
         let type_name = delivery
             .properties
             .kind
@@ -518,6 +516,71 @@ fn show(type_name: &str, body: bytes::Bytes, options: CdrOptions) -> String {
         let _ = write!(hex, "… ({} bytes)", body.len());
     }
     hex
+}
+
+/// The echo's queue for a port on a named exchange: its own, bound with
+/// the port's key, so the port keeps every message.
+async fn copy(channel: &Channel, port: &PortAnnouncement) -> Result<Consumer, Failure> {
+    let queue = channel
+        .queue_declare(
+            "",
+            QueueDeclareOptions {
+                exclusive: true,
+                auto_delete: true,
+                ..Default::default()
+            },
+            FieldTable::new(),
+        )
+        .await
+        .map_err(broker_failure)?;
+    channel
+        .queue_bind(
+            &queue.name,
+            port.exchange.as_str(),
+            port.key.as_str(),
+            QueueBindOptions::default(),
+            FieldTable::new(),
+        )
+        .await
+        .map_err(|error| match broker_failure(error) {
+            Failure::Refused(why) => {
+                Failure::Refused(format!("binding to exchange {:?}: {why}", port.exchange))
+            }
+            other => other,
+        })?;
+    channel
+        .basic_consume(
+            &queue.name,
+            "",
+            BasicConsumeOptions {
+                no_ack: true,
+                exclusive: true,
+                ..Default::default()
+            },
+            FieldTable::new(),
+        )
+        .await
+        .map_err(broker_failure)
+}
+
+/// The echo's consumer for a port on the default exchange, whose messages
+/// go straight to `queue` (no exchange to bind a copy to): it shares the
+/// queue with the port's reader, one message at a time, and hands each
+/// message straight back (`basic.reject`, requeue). The reader still gets
+/// every message, those the echo saw first marked redelivered and
+/// possibly after a later one (its counters say so: out_of_order).
+async fn peek(channel: &Channel, queue: &str) -> Result<Consumer, Failure> {
+    channel
+        .basic_qos(1, BasicQosOptions::default())
+        .await
+        .map_err(broker_failure)?;
+    channel
+        .basic_consume(queue, "", BasicConsumeOptions::default(), FieldTable::new())
+        .await
+        .map_err(|error| match broker_failure(error) {
+            Failure::Refused(why) => Failure::Refused(format!("consuming from {queue:?}: {why}")),
+            other => other,
+        })
 }
 
 /// Nanoseconds since the Unix epoch.

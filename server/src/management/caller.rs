@@ -6,7 +6,9 @@
 //! log in to the API (401 `Not management user`); users, permissions,
 //! definitions, vhost changes, closing connections and shovels
 //! (parameters) are the administrator's (401 `Not administrator user`). Uses the broker's
-//! users and permissions through `Admin`.
+//! users and permissions through `Admin`. The tags only open the door:
+//! each operation on an object is then checked against the caller's
+//! permissions by the broker (`Admin::as_user`), as AMQP checks it.
 
 use super::ApiError;
 use axum::http::{Method, StatusCode};
@@ -82,7 +84,8 @@ pub struct Caller {
     vhosts: HashSet<String>,
 }
 
-fn not_authorised(reason: &str) -> ApiError {
+/// 401 `not_authorised` with `reason`, as RabbitMQ refuses a caller.
+pub(super) fn not_authorised(reason: &str) -> ApiError {
     ApiError {
         status: StatusCode::UNAUTHORIZED,
         error: "not_authorised",
@@ -152,7 +155,7 @@ impl Caller {
                 if may_read_all || self.vhosts.contains(vhost) {
                     Ok(())
                 } else {
-                    Err(not_authorised("Not authorised to access virtual host"))
+                    Err(not_authorised("User not authorised to access virtual host"))
                 }
             }
             _ => Ok(()),

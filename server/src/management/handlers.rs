@@ -1,11 +1,13 @@
-//! One function per route of the management API. Listings of queues are
-//! streamed: the body is a JSON array written [`CHUNK`] queues at a time as
+//! One function per route of the management API. Listings of queues,
+//! exchanges, vhosts, connections and channels are paginated when asked
+//! (`pagination`). Unpaginated listings of queues are streamed: the body is a JSON array written [`CHUNK`] queues at a time as
 //! the client reads it, each queue read under its own lock when its turn
 //! comes, so a listing of 100k queues neither builds the whole answer in
 //! memory nor holds the listeners' thread between chunks.
 
 use super::caller::Caller;
 use super::json;
+use super::pagination::Pagination;
 use super::{ApiError, Context};
 use crate::definitions::Definitions;
 use crate::process::ProcessFigures;
@@ -65,6 +67,21 @@ pub(super) fn created_or_not(created: bool) -> Response {
 
 pub(super) fn body_object(body: &Bytes) -> ApiResult<serde_json::Map<String, Value>> {
     json::object(body).map_err(ApiError::bad_request)
+}
+
+type Params = Query<HashMap<String, String>>;
+
+/// A listing of `objects`: one page of them when the query asks for one
+/// (RabbitMQ's pagination), else all of them.
+async fn listing(objects: Vec<Value>, query: &HashMap<String, String>) -> ApiResult<Json<Value>> {
+    match Pagination::from_query(query)? {
+        Some(pagination) => Ok(Json(
+            pagination
+                .page_of(objects, |o| o["name"].as_str().unwrap_or(""), Value::clone)
+                .await?,
+        )),
+        None => Ok(Json(Value::Array(objects))),
+    }
 }
 
 fn query_flag(query: &HashMap<String, String>, key: &str) -> bool {
@@ -149,7 +166,8 @@ fn node_json(c: &Context) -> Value {
         "running": true,
         "os_pid": std::process::id().to_string(),
         "mem_used": p.resident_memory_bytes,
-        "mem_limit": o.memory_high_watermark,
+        "mem_limit": o.resident_memory_limit,
+        "queued_bytes_limit": o.memory_high_watermark,
         "mem_alarm": o.memory_alarm,
         "disk_free": p.disk_free_bytes,
         "disk_free_limit": o.disk_free_limit,
@@ -193,15 +211,18 @@ fn vhost_json(c: &Context, name: &str) -> Value {
     })
 }
 
-pub async fn vhosts(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
+pub async fn vhosts(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Query(query): Params,
+) -> ApiResult<Json<Value>> {
     let names = c.admin.vhosts();
-    Json(Value::Array(
-        names
-            .iter()
-            .filter(|n| caller.sees_vhost(n))
-            .map(|n| vhost_json(&c, n))
-            .collect(),
-    ))
+    let objects = names
+        .iter()
+        .filter(|n| caller.sees_vhost(n))
+        .map(|n| vhost_json(&c, n))
+        .collect();
+    listing(objects, &query).await
 }
 
 pub async fn vhost(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
@@ -416,28 +437,38 @@ pub async fn topic_permissions(State(c): Ctx) -> Json<Value> {
     )))
 }
 
-fn exchange_list(c: &Context, caller: &Caller, vhost: Option<&str>) -> Json<Value> {
-    Json(Value::Array(
-        c.admin
-            .exchanges()
-            .iter()
-            .filter(|e| vhost.is_none_or(|v| e.vhost == v) && caller.sees_vhost(&e.vhost))
-            .map(json::exchange)
-            .collect(),
-    ))
+async fn exchange_list(
+    c: &Context,
+    caller: &Caller,
+    vhost: Option<&str>,
+    query: &HashMap<String, String>,
+) -> ApiResult<Json<Value>> {
+    let objects = c
+        .admin
+        .exchanges()
+        .iter()
+        .filter(|e| vhost.is_none_or(|v| e.vhost == v) && caller.sees_vhost(&e.vhost))
+        .map(json::exchange)
+        .collect();
+    listing(objects, query).await
 }
 
-pub async fn exchanges(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
-    exchange_list(&c, &caller, None)
+pub async fn exchanges(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Query(query): Params,
+) -> ApiResult<Json<Value>> {
+    exchange_list(&c, &caller, None, &query).await
 }
 
 pub async fn exchanges_in(
     State(c): Ctx,
     Extension(caller): Extension<Caller>,
     Path(vhost): Path<String>,
+    Query(query): Params,
 ) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
-    Ok(exchange_list(&c, &caller, Some(&vhost)))
+    exchange_list(&c, &caller, Some(&vhost), &query).await
 }
 
 pub async fn exchange(
@@ -454,6 +485,7 @@ pub async fn exchange(
 
 pub async fn put_exchange(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     body: Bytes,
 ) -> ApiResult {
@@ -472,26 +504,37 @@ pub async fn put_exchange(
         return Err(ApiError::bad_request("an exchange needs a type"));
     }
     let existed = c.admin.exchange(&vhost, &name).is_some();
-    c.admin.declare_exchange(&vhost, &name, settings).await?;
+    c.admin
+        .as_user(&caller.user)
+        .declare_exchange(&vhost, &name, settings)
+        .await?;
     Ok(created_or_not(!existed))
 }
 
 pub async fn delete_exchange(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     Query(query): Query<HashMap<String, String>>,
 ) -> ApiResult {
     c.admin
+        .as_user(&caller.user)
         .delete_exchange(&vhost, &name, query_flag(&query, "if-unused"))
         .await?;
     Ok(no_content())
 }
 
+/// RabbitMQ's `POST /api/exchanges/VHOST/NAME/publish`. A refusal is
+/// RabbitMQ's answer to a publish its channel refused (400, the reply code
+/// and text); during a memory or disk alarm, when AMQP publishers are
+/// blocked, 503 (RabbitMQ 3.10 takes the message).
 pub async fn publish(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     body: Bytes,
 ) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
     let body = body_object(&body)?;
     let bad = ApiError::bad_request;
     let routing_key = json::text(&body, "routing_key", "").map_err(bad)?;
@@ -513,6 +556,7 @@ pub async fn publish(
         };
     let routed = c
         .admin
+        .as_user(&caller.user)
         .publish(
             &vhost,
             exchange_name(&name),
@@ -520,7 +564,8 @@ pub async fn publish(
             properties,
             payload,
         )
-        .await?;
+        .await
+        .map_err(ApiError::publish_refused)?;
     Ok(Json(json!({ "routed": routed })))
 }
 
@@ -568,17 +613,44 @@ fn queue_stream(c: Arc<Context>, queues: Vec<QueueRef>) -> Response {
         .into_response()
 }
 
-pub async fn queues(State(c): Ctx, Extension(caller): Extension<Caller>) -> Response {
+/// A listing of queues: one page (RabbitMQ's pagination), written out
+/// for the page's queues only, or all of them, streamed.
+async fn queue_listing(
+    c: Arc<Context>,
+    refs: Vec<QueueRef>,
+    query: &HashMap<String, String>,
+) -> ApiResult {
+    let Some(pagination) = Pagination::from_query(query)? else {
+        return Ok(queue_stream(c, refs));
+    };
+    let page = pagination
+        .page_of(refs, QueueRef::name, |queue| {
+            let info = queue.info();
+            json::queue(&info, &c.node, &c.rates.queue(&info.vhost, &info.name))
+        })
+        .await?;
+    Ok(Json(page).into_response())
+}
+
+pub async fn queues(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Query(query): Params,
+) -> ApiResult {
     let refs = c
         .admin
         .queue_refs()
         .into_iter()
         .filter(|q| caller.sees_vhost(q.vhost()))
         .collect();
-    queue_stream(c, refs)
+    queue_listing(c, refs, &query).await
 }
 
-pub async fn queues_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult {
+pub async fn queues_in(
+    State(c): Ctx,
+    Path(vhost): Path<String>,
+    Query(query): Params,
+) -> ApiResult {
     require_vhost(&c, &vhost)?;
     let refs: Vec<QueueRef> = c
         .admin
@@ -586,7 +658,7 @@ pub async fn queues_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult {
         .into_iter()
         .filter(|q| q.vhost() == vhost)
         .collect();
-    Ok(queue_stream(c, refs))
+    queue_listing(c, refs, &query).await
 }
 
 fn queue_ref(c: &Context, vhost: &str, name: &str) -> ApiResult<QueueRef> {
@@ -607,6 +679,7 @@ pub async fn queue(
 
 pub async fn put_queue(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     body: Bytes,
 ) -> ApiResult {
@@ -617,16 +690,22 @@ pub async fn put_queue(
         arguments: to_table(body.get("arguments").unwrap_or(&Value::Null))
             .map_err(ApiError::bad_request)?,
     };
-    let created = c.admin.declare_queue(&vhost, &name, settings).await?;
+    let created = c
+        .admin
+        .as_user(&caller.user)
+        .declare_queue(&vhost, &name, settings)
+        .await?;
     Ok(created_or_not(created))
 }
 
 pub async fn delete_queue(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     Query(query): Query<HashMap<String, String>>,
 ) -> ApiResult {
     c.admin
+        .as_user(&caller.user)
         .delete_queue(
             &vhost,
             &name,
@@ -637,13 +716,18 @@ pub async fn delete_queue(
     Ok(no_content())
 }
 
-pub async fn purge(State(c): Ctx, Path((vhost, name)): Path<(String, String)>) -> ApiResult {
-    c.admin.purge_queue(&vhost, &name)?;
+pub async fn purge(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult {
+    c.admin.as_user(&caller.user).purge_queue(&vhost, &name)?;
     Ok(no_content())
 }
 
 pub async fn get_messages(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, name)): Path<(String, String)>,
     body: Bytes,
 ) -> ApiResult<Json<Value>> {
@@ -670,7 +754,11 @@ pub async fn get_messages(
         None | Some(Value::Null) => None,
         Some(_) => Some(json::count(&body, "truncate", 0).map_err(ApiError::bad_request)? as usize),
     };
-    let got = c.admin.get(&vhost, &name, count as usize, mode)?;
+    let got = c
+        .admin
+        .as_user(&caller.user)
+        .get(&vhost, &name, count as usize, mode)
+        .map_err(ApiError::refused_with_text)?;
     let list = got
         .iter()
         .map(|m| {
@@ -738,6 +826,7 @@ pub async fn bindings_between(
 
 pub async fn post_binding(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, source, kind, destination)): Path<(String, String, String, String)>,
     body: Bytes,
 ) -> ApiResult {
@@ -761,7 +850,7 @@ pub async fn post_binding(
         routing_key: spec.routing_key.clone(),
         arguments: spec.arguments.clone(),
     };
-    c.admin.bind(&vhost, spec).await?;
+    c.admin.as_user(&caller.user).bind(&vhost, spec).await?;
     Ok((
         StatusCode::CREATED,
         [(header::LOCATION, info.properties_key())],
@@ -792,24 +881,30 @@ pub async fn binding(
 
 pub async fn delete_binding(
     State(c): Ctx,
+    Extension(caller): Extension<Caller>,
     Path((vhost, source, kind, destination, props)): Path<(String, String, String, String, String)>,
 ) -> ApiResult {
     let kind = destination_kind(&kind)?;
     c.admin
+        .as_user(&caller.user)
         .unbind(&vhost, &source, &destination, kind, &props)
         .await?;
     Ok(no_content())
 }
 
-pub async fn connections(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
-    Json(Value::Array(
-        c.admin
-            .connections()
-            .iter()
-            .filter(|conn| caller.sees_user(&conn.user))
-            .map(|conn| json::connection(conn, &c.node))
-            .collect(),
-    ))
+pub async fn connections(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Query(query): Params,
+) -> ApiResult<Json<Value>> {
+    let objects = c
+        .admin
+        .connections()
+        .iter()
+        .filter(|conn| caller.sees_user(&conn.user))
+        .map(|conn| json::connection(conn, &c.node))
+        .collect();
+    listing(objects, &query).await
 }
 
 fn connection_named(c: &Context, name: &str) -> ApiResult<leveret_broker::ConnectionInfo> {
@@ -841,15 +936,19 @@ pub async fn close_connection(
     Ok(no_content())
 }
 
-pub async fn channels(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
-    Json(Value::Array(
-        c.admin
-            .channels()
-            .iter()
-            .filter(|ch| caller.sees_user(&ch.user))
-            .map(|ch| json::channel(ch, &c.node))
-            .collect(),
-    ))
+pub async fn channels(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Query(query): Params,
+) -> ApiResult<Json<Value>> {
+    let objects = c
+        .admin
+        .channels()
+        .iter()
+        .filter(|ch| caller.sees_user(&ch.user))
+        .map(|ch| json::channel(ch, &c.node))
+        .collect();
+    listing(objects, &query).await
 }
 
 fn consumer_list(c: &Context, caller: &Caller, vhost: Option<&str>) -> Json<Value> {
@@ -888,9 +987,17 @@ pub async fn consumers_in(
     Ok(consumer_list(&c, &caller, Some(&vhost)))
 }
 
-pub async fn aliveness_test(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
+pub async fn aliveness_test(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Path(vhost): Path<String>,
+) -> ApiResult<Json<Value>> {
     require_vhost(&c, &vhost)?;
-    c.admin.aliveness_test(&vhost).await?;
+    c.admin
+        .as_user(&caller.user)
+        .aliveness_test(&vhost)
+        .await
+        .map_err(ApiError::refused_with_text)?;
     Ok(Json(json!({ "status": "ok" })))
 }
 
@@ -904,7 +1011,7 @@ pub async fn alarms(State(c): Ctx) -> Response {
     if !alarms.is_empty() {
         let body = json!({
             "status": "failed",
-            "reason": "resource alarm(s) in effect in the cluster",
+            "reason": "There are alarms in effect in the cluster",
             "alarms": alarms,
         });
         (StatusCode::SERVICE_UNAVAILABLE, Json(body)).into_response()

@@ -233,8 +233,8 @@ pub fn consumer(c: &ConsumerInfo, peer: &str, node: &str) -> Value {
         "exclusive": c.exclusive,
         "prefetch_count": c.prefetch_count,
         "arguments": arguments,
-        "active": true,
-        "activity_status": "up",
+        "active": c.active,
+        "activity_status": c.activity_status,
     })
 }
 

@@ -11,16 +11,21 @@
 //! step) that reads the same API with the browser's basic-auth credentials.
 //!
 //! Layout: `mod` (router, auth, errors, the shared context), `handlers`
-//! (one function per route), `json` (objects and body parsing), `rates`
-//! (the sampler behind `*_details`). Handlers reach the broker only
+//! (one function per route), `pagination` (RabbitMQ's `page`,
+//! `page_size`, `name`, `sort`), `json` (objects and body parsing), `rates`
+//! (the sampler behind `*_details`), `audit` (the log line of each change
+//! with the acting user). Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
+mod audit;
 mod caller;
 mod federation;
 mod handlers;
 pub mod json;
+mod pagination;
 mod rates;
 
+use crate::http::Peer;
 use crate::uplink::{DeclareError, Links};
 use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
@@ -93,15 +98,39 @@ impl ApiError {
     }
 }
 
+impl ApiError {
+    /// An operation the caller's permissions refuse, as RabbitMQ answers
+    /// `get` and the aliveness test: 401 with the AMQP reply text; other
+    /// errors as [`From<AmqpError>`].
+    pub fn refused_with_text(e: AmqpError) -> Self {
+        match e.code {
+            ReplyCode::AccessRefused => caller::not_authorised(&e.text),
+            _ => e.into(),
+        }
+    }
+
+    /// A publish the broker did not take, as RabbitMQ answers one its
+    /// channel refused: 400 with the reply code and text. During a
+    /// resource alarm (or when the store cannot write), 503.
+    pub fn publish_refused(e: AmqpError) -> Self {
+        match e.code {
+            ReplyCode::ResourceError => ApiError {
+                status: StatusCode::SERVICE_UNAVAILABLE,
+                error: "service_unavailable",
+                reason: e.text,
+            },
+            _ => ApiError::bad_request(e.to_string()),
+        }
+    }
+}
+
 impl From<AmqpError> for ApiError {
+    /// Refusals by permission are RabbitMQ's 401 `Access refused.` for
+    /// declaring, deleting, binding and purging.
     fn from(e: AmqpError) -> Self {
         match e.code {
             ReplyCode::NotFound => ApiError::not_found(e.text),
-            ReplyCode::AccessRefused => ApiError {
-                status: StatusCode::FORBIDDEN,
-                error: "access_refused",
-                reason: e.text,
-            },
+            ReplyCode::AccessRefused => caller::not_authorised("Access refused."),
             _ => ApiError::bad_request(e.text),
         }
     }
@@ -166,10 +195,20 @@ async fn authenticate(
     let mut request = request;
     let credentials = basic_credentials(request.headers());
     let passed = match &credentials {
-        Some((user, password)) => context.admin.authenticate(user, password).await,
+        Some((user, password)) => {
+            context
+                .admin
+                .authenticate(user, password, "management API")
+                .await
+        }
         None => false,
     };
     if let (true, Some((user, _))) = (passed, &credentials) {
+        let peer = request.extensions().get::<Peer>().map(|peer| peer.0);
+        if !peer.is_none_or(|peer| context.admin.may_connect_from(user, peer)) {
+            tracing::info!(%user, ?peer, "management API login refused: loopback_users");
+            return caller::not_authorised("User can only log in via localhost").into_response();
+        }
         let caller = match Caller::new(user, &context.admin) {
             Ok(caller) => caller,
             Err(refused) => {
@@ -310,6 +349,7 @@ pub fn router(context: Context) -> Router {
         .route("/api/federation-links/{vhost}", get(federation::links_in))
         .route("/api/health/checks/alarms", get(h::alarms))
         .fallback(h::unknown)
+        .route_layer(axum::middleware::from_fn(audit::log_changes))
         .route_layer(axum::middleware::from_fn_with_state(
             Arc::clone(&context),
             authenticate,

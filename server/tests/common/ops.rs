@@ -46,8 +46,15 @@ fn plain(line: &str) -> String {
     out
 }
 
-/// The `addr=` field of a log line that contains `marker`.
+/// The `addr=` field of a log line that contains `marker` (the `addr`
+/// key of a `--log-format json` line).
 fn address(line: &str, marker: &str) -> Option<SocketAddr> {
+    if let Ok(object) = serde_json::from_str::<serde_json::Value>(line) {
+        let message = object["message"].as_str()?;
+        return message
+            .contains(marker)
+            .then(|| object["addr"].as_str()?.parse().ok())?;
+    }
     let line = plain(line);
     if !line.contains(marker) {
         return None;
@@ -85,9 +92,15 @@ impl OpsBroker {
     }
 
     fn launch<S: AsRef<OsStr>>(dir: PathBuf, extra: &[S]) -> OpsBroker {
+        // `extra` may put the management API elsewhere.
+        let http_default = if extra.iter().any(|arg| arg.as_ref() == "--http-listen") {
+            &[][..]
+        } else {
+            &["--http-listen", "127.0.0.1:0"][..]
+        };
         let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
             .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
-            .args(["--http-listen", "127.0.0.1:0"])
+            .args(http_default)
             .arg("--data-dir")
             .arg(&dir)
             .args(["--log", "info"])
@@ -103,8 +116,8 @@ impl OpsBroker {
         std::thread::spawn(move || {
             // Reads the log to its end, so the broker never blocks on a full pipe.
             for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-                kept.lock().expect("log").push(plain(&line));
-                if plain(&line).contains("over TLS") {
+                kept.lock().expect("log").push(line.clone());
+                if line.contains("over TLS") {
                     if let Some(addr) = address(&line, "accepting AMQP") {
                         let _ = found.send(("TLS", addr));
                     }
@@ -153,6 +166,11 @@ impl OpsBroker {
 
     /// The log lines so far, without colours.
     pub fn log(&self) -> Vec<String> {
+        self.raw_log().iter().map(|line| plain(line)).collect()
+    }
+
+    /// The log lines so far, as written.
+    pub fn raw_log(&self) -> Vec<String> {
         self.log.lock().expect("log").clone()
     }
 

@@ -27,6 +27,11 @@ type entry struct {
 
 var registry []entry
 
+// hang is how long a scenario waits for something it expects: a hang limit,
+// generous enough for a loaded CI machine (the wait ends as soon as the
+// thing happens).
+const hang = 30 * time.Second
+
 func scenario(name string, fn scenarioFn) {
 	registry = append(registry, entry{"amqp091-go." + name, fn})
 }

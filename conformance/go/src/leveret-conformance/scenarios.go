@@ -157,7 +157,7 @@ func init() {
 			body[i] = byte(i % 253)
 		}
 		t.Must(chans[3].Publish("", q, false, false, amqp.Publishing{Body: body}), "publish")
-		waitUntil(t, 5*time.Second, "message", func() bool { qi, _ := chans[6].QueueInspect(q); return qi.Messages == 1 })
+		waitUntil(t, hang, "message", func() bool { qi, _ := chans[6].QueueInspect(q); return qi.Messages == 1 })
 		d, _, err := chans[0].Get(q, true)
 		t.Must(err, "get")
 		t.Eq("body over 8 KiB frames", string(d.Body) == string(body), true)
@@ -246,7 +246,7 @@ func init() {
 		t.Must(ch.QueueBind(q, "", inner, false, nil), "queue.bind")
 		publish(t, ch, front, "k", "via front")
 		publish(t, ch, front, "other", "dropped")
-		waitUntil(t, 5*time.Second, "routed", func() bool { qi, _ := ch.QueueInspect(q); return qi.Messages == 1 })
+		waitUntil(t, hang, "routed", func() bool { qi, _ := ch.QueueInspect(q); return qi.Messages == 1 })
 		t.Eq("internal exchange reached through binding", getAll(t, ch, q), []string{"via front"})
 		closed := ch.NotifyClose(make(chan *amqp.Error, 1))
 		publish(t, ch, inner, "", "direct to internal")
@@ -315,13 +315,37 @@ func init() {
 		for i := 0; i < 3; i++ {
 			publish(t, ch, "", q, "x")
 		}
-		waitUntil(t, 5*time.Second, "3 messages", func() bool { qi, _ := ch.QueueInspect(q); return qi.Messages == 3 })
+		waitUntil(t, hang, "3 messages", func() bool { qi, _ := ch.QueueInspect(q); return qi.Messages == 3 })
 		qi, err := ch.QueueInspect(q)
 		t.Must(err, "inspect")
 		t.Eq("inspect", []int{qi.Messages, qi.Consumers}, []int{3, 0})
 		n, err := ch.QueuePurge(q, false)
 		t.Must(err, "purge")
 		t.Eq("purged", n, 3)
+	})
+
+	scenario("queue.integer_argument_widths_are_equivalent", func(t *T) {
+		// RabbitMQ compares numeric arguments by value: the same TTL and
+		// max-priority sent as 8-, 16-, 32- or 64-bit integers, signed or
+		// not, is the same queue; another value is 406.
+		c := dial(t, "", nil)
+		ch := channel(t, c)
+		q := t.N("widths")
+		t.Defer(func() { c2, _ := amqp.Dial(t.URL); ch2, _ := c2.Channel(); ch2.QueueDelete(q, false, false, false); c2.Close() })
+		widths := []amqp.Table{
+			{"x-message-ttl": int64(100), "x-max-priority": int64(5)},
+			{"x-message-ttl": int32(100), "x-max-priority": int32(5)},
+			{"x-message-ttl": int16(100), "x-max-priority": int16(5)},
+			{"x-message-ttl": int8(100), "x-max-priority": int8(5)},
+			{"x-message-ttl": byte(100), "x-max-priority": byte(5)},
+		}
+		for i, args := range widths {
+			_, err := ch.QueueDeclare(q, false, false, false, false, args)
+			t.Must(err, fmt.Sprintf("declare with width %d", i))
+		}
+		t.Obs("every width accepted", len(widths))
+		_, err := ch.QueueDeclare(q, false, false, false, false, amqp.Table{"x-message-ttl": int8(101), "x-max-priority": int64(5)})
+		expectErr(t, "another ttl", err, 406)
 	})
 
 	scenario("queue.reject_publish_dlx", func(t *T) {
@@ -334,7 +358,7 @@ func init() {
 		publish(t, ch, "", q, "rejected")
 		t.Eq("confirms", awaitConfirms(t, confirms, 2), []bool{true, false})
 		t.Eq("queue", getAll(t, ch, q), []string{"kept"})
-		waitUntil(t, 5*time.Second, "dead letter", func() bool { qi, _ := ch.QueueInspect(dlq); return qi.Messages == 1 })
+		waitUntil(t, hang, "dead letter", func() bool { qi, _ := ch.QueueInspect(dlq); return qi.Messages == 1 })
 		d, _, _ := ch.Get(dlq, true)
 		xd, _ := d.Headers["x-death"].([]interface{})
 		reason := ""
@@ -367,7 +391,7 @@ func init() {
 		ds, err := ch.Consume(q, "", true, false, false, false, nil)
 		t.Must(err, "consume")
 		publish(t, ch, "", q, "delivered to consumer")
-		t.Eq("delivered to waiting consumer", bodies(recv(t, ds, 1, 5*time.Second)), []string{"delivered to consumer"})
+		t.Eq("delivered to waiting consumer", bodies(recv(t, ds, 1, hang)), []string{"delivered to consumer"})
 	})
 
 	scenario("queue.unbind_and_delete_if_unused", func(t *T) {
@@ -418,7 +442,7 @@ func init() {
 		publish(t, ch, "", q, "again")
 		seen := [][]interface{}{}
 		for i := 0; i < 3; i++ {
-			d := recv(t, ds, 1, 5*time.Second)[0]
+			d := recv(t, ds, 1, hang)[0]
 			seen = append(seen, []interface{}{d.DeliveryTag, d.Redelivered})
 			if i < 2 {
 				t.Must(d.Reject(true), "reject")
@@ -439,18 +463,18 @@ func init() {
 		}
 		ds, err := ch.Consume(q, "", false, false, false, false, nil)
 		t.Must(err, "consume")
-		first := recv(t, ds, 3, 5*time.Second)
+		first := recv(t, ds, 3, hang)
 		select {
 		case d := <-ds:
 			t.Fatalf("prefetch exceeded: got %s", d.Body)
 		case <-time.After(300 * time.Millisecond):
 		}
 		t.Must(ch.Nack(first[2].DeliveryTag, true, true), "nack multiple")
-		again := recv(t, ds, 3, 5*time.Second)
+		again := recv(t, ds, 3, hang)
 		t.Eq("requeued first, redelivered", [][]interface{}{{string(again[0].Body), again[0].Redelivered}, {string(again[1].Body), again[1].Redelivered}, {string(again[2].Body), again[2].Redelivered}},
 			[][]interface{}{{"0", true}, {"1", true}, {"2", true}})
 		t.Must(ch.Ack(again[2].DeliveryTag, true), "ack")
-		rest := recv(t, ds, 3, 5*time.Second)
+		rest := recv(t, ds, 3, hang)
 		t.Eq("rest", bodies(rest), []string{"3", "4", "5"})
 	})
 
