@@ -46,6 +46,7 @@ pub struct BrokerBuilder {
     listen: Vec<SocketAddr>,
     tls_listen: Vec<SocketAddr>,
     mqtt_listen: Vec<SocketAddr>,
+    mqtt_anonymous: Option<(String, String)>,
     tls: Option<TlsOptions>,
     users: Vec<(String, User)>,
     user_tags: std::collections::HashMap<String, Vec<String>>,
@@ -95,6 +96,16 @@ impl BrokerBuilder {
     /// clients on `amq.topic`; `docs/mqtt.md` says what is supported.
     pub fn mqtt_listen(mut self, addr: SocketAddr) -> Self {
         self.mqtt_listen.push(addr);
+        self
+    }
+
+    /// Lets MQTT clients without a user name in: they log in as `user`
+    /// with `password`, checked like any login (RabbitMQ's
+    /// `mqtt.allow_anonymous` with `mqtt.default_user` and
+    /// `mqtt.default_pass`). Without it such a CONNECT is refused
+    /// (not authorized).
+    pub fn mqtt_anonymous_login(mut self, user: impl Into<String>, password: &str) -> Self {
+        self.mqtt_anonymous = Some((user.into(), password.to_owned()));
         self
     }
 
@@ -421,7 +432,7 @@ impl BrokerBuilder {
             )));
         }
         let mut mqtt_addrs = Vec::new();
-        let mqtt_ids = Arc::new(crate::mqtt::ClientIds::default());
+        let mqtt_shared = Arc::new(crate::mqtt::Shared::new(self.mqtt_anonymous));
         for addr in self.mqtt_listen {
             let listener = TcpListener::bind(addr)
                 .await
@@ -435,7 +446,7 @@ impl BrokerBuilder {
             tasks.push(tokio::spawn(crate::mqtt::accept_loop(
                 Arc::clone(&core),
                 listener,
-                Arc::clone(&mqtt_ids),
+                Arc::clone(&mqtt_shared),
                 alive.clone(),
             )));
         }

@@ -57,6 +57,9 @@ pub enum ConfigError {
     /// A user has neither or both of `password` and `password-hash`.
     #[error("user {0}: give exactly one of password, password-hash")]
     Credentials(String),
+    /// Only one of `mqtt-default-user` and `mqtt-default-pass` is given.
+    #[error("give both mqtt-default-user and mqtt-default-pass, or neither")]
+    MqttAnonymous,
     /// A user's `password-hash` is not one `leveret --hash-password` prints.
     #[error("user {0}: password-hash is not a leveret hash")]
     BadHash(String),
@@ -93,6 +96,11 @@ pub struct FileConfig {
     tls_listen: Option<Vec<SocketAddr>>,
     /// RabbitMQ's `mqtt.listeners.tcp`.
     mqtt_listen: Option<Vec<SocketAddr>>,
+    /// RabbitMQ's `mqtt.default_user` (with `mqtt.allow_anonymous`): the
+    /// user MQTT clients without a user name log in as.
+    mqtt_default_user: Option<String>,
+    /// RabbitMQ's `mqtt.default_pass`.
+    mqtt_default_pass: Option<String>,
     /// `ssl_options.certfile`.
     tls_certfile: Option<PathBuf>,
     /// `ssl_options.keyfile`.
@@ -248,6 +256,8 @@ pub struct Settings {
     pub tls_listen: Vec<SocketAddr>,
     /// MQTT listeners.
     pub mqtt_listen: Vec<SocketAddr>,
+    /// The user and password of MQTT clients without a user name.
+    pub mqtt_anonymous: Option<(String, String)>,
     /// Their certificates and client verification.
     pub tls: Option<TlsOptions>,
     /// The directory for durable state.
@@ -380,6 +390,11 @@ impl Settings {
             file.mqtt_listen.unwrap_or_default()
         } else {
             cli.mqtt_listen
+        };
+        let mqtt_anonymous = match (file.mqtt_default_user, file.mqtt_default_pass) {
+            (Some(user), Some(pass)) => Some((user, pass)),
+            (None, None) => None,
+            _ => return Err(ConfigError::MqttAnonymous),
         };
         let tls = resolve_tls(
             cli.tls_certfile.or(file.tls_certfile),
@@ -519,6 +534,7 @@ impl Settings {
             listen,
             tls_listen,
             mqtt_listen,
+            mqtt_anonymous,
             tls,
             data_dir: cli
                 .data_dir
@@ -585,6 +601,9 @@ impl Settings {
         }
         for addr in self.mqtt_listen {
             builder = builder.mqtt_listen(addr);
+        }
+        if let Some((user, pass)) = self.mqtt_anonymous {
+            builder = builder.mqtt_anonymous_login(user, &pass);
         }
         if let Some(tls) = self.tls {
             builder = builder.tls(tls);

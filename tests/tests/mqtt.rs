@@ -944,3 +944,33 @@ async fn a_publish_the_user_may_not_write_closes_with_not_authorized() {
     raw.assert_closed().await;
     handle.shutdown().await;
 }
+
+#[both_runtimes]
+async fn a_configured_anonymous_login_lets_clients_without_a_user_name_in() {
+    let builder = Broker::builder().mqtt_anonymous_login("robot", "secret");
+    let handle = start_with(builder, Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let anonymous = rumqttc::MqttOptions::new("anon-ok", "127.0.0.1", port);
+    let (_client, mut events) = rumqttc::AsyncClient::new(anonymous, 4);
+    until3(&mut events, |p| {
+        matches!(p, Incoming::ConnAck(_)).then_some(())
+    })
+    .await;
+    // Its password is checked like any other.
+    let builder = Broker::builder().mqtt_anonymous_login("robot", "not-the-password");
+    let wrong = start_with(builder, Limits::default()).await;
+    let anonymous = rumqttc::MqttOptions::new("anon-bad", "127.0.0.1", mqtt_port(&wrong));
+    let (_client, mut events) = rumqttc::AsyncClient::new(anonymous, 4);
+    let refused = tmo!(events.poll());
+    assert!(
+        matches!(
+            refused,
+            Err(rumqttc::ConnectionError::ConnectionRefused(
+                rumqttc::ConnectReturnCode::BadUserNamePassword
+            ))
+        ),
+        "{refused:?}"
+    );
+    wrong.shutdown().await;
+    handle.shutdown().await;
+}

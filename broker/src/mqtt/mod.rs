@@ -17,19 +17,39 @@ mod mapping;
 mod session;
 mod takeover;
 
-pub(crate) use takeover::ClientIds;
+use takeover::ClientIds;
 
 use crate::core::Core;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
 
+/// What a broker's MQTT listeners share.
+#[derive(Debug, Default)]
+pub(crate) struct Shared {
+    /// The client identifiers in use.
+    ids: Arc<ClientIds>,
+    /// The user and password a CONNECT without a user name logs in as
+    /// (RabbitMQ's `mqtt.allow_anonymous` with `mqtt.default_user` and
+    /// `default_pass`); without one such a CONNECT is refused.
+    anonymous: Option<(String, String)>,
+}
+
+impl Shared {
+    pub(crate) fn new(anonymous: Option<(String, String)>) -> Self {
+        Shared {
+            ids: Arc::default(),
+            anonymous,
+        }
+    }
+}
+
 /// Accepts MQTT connections until the broker shuts down; each session
 /// holds a clone of `alive`, as AMQP connections do.
 pub(crate) async fn accept_loop(
     core: Arc<Core>,
     listener: TcpListener,
-    ids: Arc<ClientIds>,
+    shared: Arc<Shared>,
     alive: tokio::sync::mpsc::Sender<()>,
 ) {
     let mut shutdown = core.shutdown_signal();
@@ -55,10 +75,10 @@ pub(crate) async fn accept_loop(
             tracing::debug!(error = %e, "could not set TCP_NODELAY");
         }
         let core = Arc::clone(&core);
-        let ids = Arc::clone(&ids);
+        let shared = Arc::clone(&shared);
         let alive = alive.clone();
         tokio::spawn(async move {
-            session::serve(core, socket, peer, slot, ids).await;
+            session::serve(core, socket, peer, slot, shared).await;
             drop(alive);
         });
     }

@@ -13,7 +13,8 @@
 
 use super::link::{self, Link, Login, Refusal};
 use super::mapping;
-use super::takeover::{Claim, ClientIds};
+use super::takeover::Claim;
+use super::Shared;
 use crate::connection::{DirectReply, Slot};
 use crate::core::Core;
 use bytes::BytesMut;
@@ -61,7 +62,7 @@ pub(super) async fn serve(
     mut socket: TcpStream,
     peer: String,
     slot: Slot,
-    ids: Arc<ClientIds>,
+    shared: Arc<Shared>,
 ) {
     let deadline = Instant::now() + core.limits.handshake_timeout;
     let mut buf = BytesMut::with_capacity(1024);
@@ -82,7 +83,7 @@ pub(super) async fn serve(
         }
     };
     let version = connect.version;
-    let accepted = match admit(&core, &connect, slot, &peer, deadline, &ids).await {
+    let accepted = match admit(&core, &connect, slot, &peer, deadline, &shared).await {
         Ok(accepted) => accepted,
         Err(reason) => {
             tracing::info!(%peer, reason = reason.name(), "MQTT CONNECT refused");
@@ -187,7 +188,7 @@ async fn admit(
     slot: Slot,
     peer: &str,
     deadline: Instant,
-    ids: &Arc<ClientIds>,
+    shared: &Shared,
 ) -> Result<Accepted, ReasonCode> {
     let v5 = connect.version.is_v5();
     if connect.properties.authentication_method.is_some() {
@@ -213,11 +214,15 @@ async fn admit(
         }
         id => (id.to_owned(), false),
     };
-    let Some(username) = &connect.username else {
-        // Anonymous logins are refused.
-        return Err(ReasonCode::NotAuthorized);
+    let (username, password) = match (&connect.username, &shared.anonymous) {
+        (Some(name), _) => (
+            name.as_str(),
+            connect.password.as_deref().unwrap_or_default(),
+        ),
+        (None, Some((name, password))) => (name.as_str(), password.as_bytes()),
+        (None, None) => return Err(ReasonCode::NotAuthorized),
     };
-    let (vhost, user) = mapping::vhost_and_user(username.as_str());
+    let (vhost, user) = mapping::vhost_and_user(username);
     let window = match connect.properties.receive_maximum {
         Some(max) if v5 => max.get().min(DEFAULT_WINDOW),
         _ => DEFAULT_WINDOW,
@@ -225,7 +230,7 @@ async fn admit(
     let login = Login {
         vhost,
         user,
-        password: connect.password.as_deref().unwrap_or_default(),
+        password,
         client_id: &client_id,
         window,
     };
@@ -236,7 +241,7 @@ async fn admit(
             Refusal::NotAuthorized => ReasonCode::NotAuthorized,
             Refusal::Unavailable => ReasonCode::ServerUnavailable,
         })?;
-    let claim = ids.claim(vhost, &client_id).await;
+    let claim = shared.ids.claim(vhost, &client_id).await;
     Ok(Accepted {
         link,
         claim,
