@@ -45,6 +45,8 @@ impl Broker {
 pub struct BrokerBuilder {
     listen: Vec<SocketAddr>,
     tls_listen: Vec<SocketAddr>,
+    mqtt_listen: Vec<SocketAddr>,
+    mqtt_anonymous: Option<(String, String)>,
     tls: Option<TlsOptions>,
     users: Vec<(String, User)>,
     user_tags: std::collections::HashMap<String, Vec<String>>,
@@ -85,6 +87,25 @@ impl BrokerBuilder {
     /// [`BrokerBuilder::tls`].
     pub fn tls_listen(mut self, addr: SocketAddr) -> Self {
         self.tls_listen.push(addr);
+        self
+    }
+
+    /// Adds an MQTT 3.1.1/5.0 listener (RabbitMQ's `mqtt.listeners.tcp`;
+    /// 1883 by convention, port 0 picks a free port). MQTT clients log in
+    /// as the broker's users (`vhost:user` picks a vhost) and meet AMQP
+    /// clients on `amq.topic`; `docs/mqtt.md` says what is supported.
+    pub fn mqtt_listen(mut self, addr: SocketAddr) -> Self {
+        self.mqtt_listen.push(addr);
+        self
+    }
+
+    /// Lets MQTT clients without a user name in: they log in as `user`
+    /// with `password`, checked like any login (RabbitMQ's
+    /// `mqtt.allow_anonymous` with `mqtt.default_user` and
+    /// `mqtt.default_pass`). Without it such a CONNECT is refused
+    /// (not authorized).
+    pub fn mqtt_anonymous_login(mut self, user: impl Into<String>, password: &str) -> Self {
+        self.mqtt_anonymous = Some((user.into(), password.to_owned()));
         self
     }
 
@@ -410,6 +431,25 @@ impl BrokerBuilder {
                 alive.clone(),
             )));
         }
+        let mut mqtt_addrs = Vec::new();
+        let mqtt_shared = Arc::new(crate::mqtt::Shared::new(self.mqtt_anonymous));
+        for addr in self.mqtt_listen {
+            let listener = TcpListener::bind(addr)
+                .await
+                .map_err(|source| StartError::Bind { addr, source })?;
+            let bound = listener
+                .local_addr()
+                .map_err(|source| StartError::Bind { addr, source })?;
+            warn_if_only_guest(&core.users, bound);
+            tracing::info!(addr = %bound, "accepting MQTT 3.1.1 and 5.0 connections");
+            mqtt_addrs.push(bound);
+            tasks.push(tokio::spawn(crate::mqtt::accept_loop(
+                Arc::clone(&core),
+                listener,
+                Arc::clone(&mqtt_shared),
+                alive.clone(),
+            )));
+        }
         tasks.push(tokio::spawn(crate::server::sweeper(
             Arc::clone(&core),
             SWEEP_PERIOD,
@@ -436,6 +476,7 @@ impl BrokerBuilder {
             core,
             local_addrs,
             tls_addrs,
+            mqtt_addrs,
             tls,
             tasks,
             alive: Some(alive),
@@ -466,6 +507,7 @@ pub struct BrokerHandle {
     core: Arc<Core>,
     local_addrs: Vec<SocketAddr>,
     tls_addrs: Vec<SocketAddr>,
+    mqtt_addrs: Vec<SocketAddr>,
     tls: Option<Arc<TlsContext>>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
     alive: Option<mpsc::Sender<()>>,
@@ -490,6 +532,11 @@ impl BrokerHandle {
     /// The addresses the TLS listeners are bound to.
     pub fn tls_addrs(&self) -> &[SocketAddr] {
         &self.tls_addrs
+    }
+
+    /// The addresses the MQTT listeners are bound to.
+    pub fn mqtt_addrs(&self) -> &[SocketAddr] {
+        &self.mqtt_addrs
     }
 
     /// Re-reads the TLS certificate, key and CA bundle: connections
@@ -531,7 +578,8 @@ impl BrokerHandle {
     pub fn connect_direct(&self) -> crate::connection::DirectLink {
         let core = Arc::clone(&self.core);
         let slot = core.connections.admit_local();
-        crate::connection::serve_direct(core, slot, self.alive.clone())
+        let peer = "in-process".to_owned();
+        crate::connection::serve_direct(core, slot, peer, self.alive.clone())
     }
 
     /// A cloneable view of this broker's state, for readers that outlive

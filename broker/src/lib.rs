@@ -33,7 +33,9 @@
 //!    closing; `connection::writer` owns the socket's write half),
 //!    `recovery` (durable state rebuilt at start), `busy_poll` (polling
 //!    for input for a short, adaptive window after socket reads instead of
-//!    sleeping). May use every layer below.
+//!    sleeping), `mqtt` (MQTT listeners and sessions: a front end that
+//!    drives the core through an in-process AMQP link, as RabbitMQ's MQTT
+//!    plugin did through its direct connection). May use every layer below.
 //! 2. **Channel**: `channel`, content assembly and one module per AMQP
 //!    class (`basic`, `queue`, `exchange`, `tx`, `reply_to`). Uses the
 //!    core and below; knows no connection and no socket.
@@ -104,6 +106,7 @@ mod inspect;
 mod login_backoff;
 mod memory;
 mod message;
+mod mqtt;
 mod outbox;
 mod parameters;
 mod password;

@@ -20,6 +20,11 @@ pub struct Cli {
     /// certificate files.
     #[arg(long = "tls-listen", value_name = "ADDR:PORT")]
     pub tls_listen: Vec<SocketAddr>,
+    /// Address to accept MQTT 3.1.1 and 5.0 connections on (RabbitMQ's
+    /// `mqtt.listeners.tcp`, 1883 by convention); may be given more than
+    /// once. Off unless given.
+    #[arg(long = "mqtt-listen", value_name = "ADDR:PORT")]
+    pub mqtt_listen: Vec<SocketAddr>,
     /// The TLS certificate chain, PEM, leaf first (`ssl_options.certfile`).
     #[arg(long, value_name = "FILE")]
     pub tls_certfile: Option<PathBuf>,

@@ -57,6 +57,9 @@ pub enum ConfigError {
     /// A user has neither or both of `password` and `password-hash`.
     #[error("user {0}: give exactly one of password, password-hash")]
     Credentials(String),
+    /// Only one of `mqtt-default-user` and `mqtt-default-pass` is given.
+    #[error("give both mqtt-default-user and mqtt-default-pass, or neither")]
+    MqttAnonymous,
     /// A user's `password-hash` is not one `leveret --hash-password` prints.
     #[error("user {0}: password-hash is not a leveret hash")]
     BadHash(String),
@@ -91,6 +94,13 @@ pub struct FileConfig {
     listen: Option<Vec<SocketAddr>>,
     /// RabbitMQ's `listeners.ssl`.
     tls_listen: Option<Vec<SocketAddr>>,
+    /// RabbitMQ's `mqtt.listeners.tcp`.
+    mqtt_listen: Option<Vec<SocketAddr>>,
+    /// RabbitMQ's `mqtt.default_user` (with `mqtt.allow_anonymous`): the
+    /// user MQTT clients without a user name log in as.
+    mqtt_default_user: Option<String>,
+    /// RabbitMQ's `mqtt.default_pass`.
+    mqtt_default_pass: Option<String>,
     /// `ssl_options.certfile`.
     tls_certfile: Option<PathBuf>,
     /// `ssl_options.keyfile`.
@@ -244,6 +254,10 @@ pub struct Settings {
     pub listen: Vec<SocketAddr>,
     /// AMQP-over-TLS listeners.
     pub tls_listen: Vec<SocketAddr>,
+    /// MQTT listeners.
+    pub mqtt_listen: Vec<SocketAddr>,
+    /// The user and password of MQTT clients without a user name.
+    pub mqtt_anonymous: Option<(String, String)>,
     /// Their certificates and client verification.
     pub tls: Option<TlsOptions>,
     /// The directory for durable state.
@@ -371,6 +385,16 @@ impl Settings {
             file.tls_listen.unwrap_or_default()
         } else {
             cli.tls_listen
+        };
+        let mqtt_listen = if cli.mqtt_listen.is_empty() {
+            file.mqtt_listen.unwrap_or_default()
+        } else {
+            cli.mqtt_listen
+        };
+        let mqtt_anonymous = match (file.mqtt_default_user, file.mqtt_default_pass) {
+            (Some(user), Some(pass)) => Some((user, pass)),
+            (None, None) => None,
+            _ => return Err(ConfigError::MqttAnonymous),
         };
         let tls = resolve_tls(
             cli.tls_certfile.or(file.tls_certfile),
@@ -509,6 +533,8 @@ impl Settings {
         Ok(Settings {
             listen,
             tls_listen,
+            mqtt_listen,
+            mqtt_anonymous,
             tls,
             data_dir: cli
                 .data_dir
@@ -572,6 +598,12 @@ impl Settings {
         }
         for addr in self.tls_listen {
             builder = builder.tls_listen(addr);
+        }
+        for addr in self.mqtt_listen {
+            builder = builder.mqtt_listen(addr);
+        }
+        if let Some((user, pass)) = self.mqtt_anonymous {
+            builder = builder.mqtt_anonymous_login(user, &pass);
         }
         if let Some(tls) = self.tls {
             builder = builder.tls(tls);
@@ -637,6 +669,23 @@ mod tests {
         assert!(
             error.contains("shovel bad") && error.contains("src-queue"),
             "{error}"
+        );
+    }
+
+    #[test]
+    fn mqtt_listeners_come_from_the_command_line_or_the_file() {
+        let resolve = |cli_args: &[&str], text: &str| Settings::resolve(cli(cli_args), file(text));
+        assert!(resolve(&[], "").unwrap().mqtt_listen.is_empty());
+        let addr: SocketAddr = "127.0.0.1:1883".parse().unwrap();
+        let from_file = resolve(&[], "mqtt-listen = [\"127.0.0.1:1883\"]").unwrap();
+        assert_eq!(from_file.mqtt_listen, [addr]);
+        let from_cli = resolve(
+            &["--mqtt-listen", "127.0.0.1:1884"],
+            "mqtt-listen = [\"127.0.0.1:1883\"]",
+        );
+        assert_eq!(
+            from_cli.unwrap().mqtt_listen,
+            ["127.0.0.1:1884".parse().unwrap()]
         );
     }
 

@@ -34,7 +34,7 @@ use crate::registry::ChannelRegistration;
 use crate::vhost::Vhost;
 use basic::Unfinished;
 
-pub(crate) use basic::{apply_settles, Settle};
+pub(crate) use basic::{apply_settles, unique_name, Settle};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{
     BasicProperties, BasicPublish, ChannelClose, ChannelCloseOk, ChannelFlowOk, ContentHeader,

@@ -86,11 +86,19 @@ pub async fn serve<R, W>(
 
 /// Starts serving an in-process client that exchanges frame values with
 /// the broker (see `direct`), on the current runtime; the client holds
-/// the returned link.
-pub fn serve_direct(core: Arc<Core>, slot: Slot, done: impl Send + 'static) -> DirectLink {
+/// the returned link. `peer` names the client in logs and for
+/// `loopback_users` (a socket address for a protocol front end such as
+/// MQTT; anything else counts as local); `done` is dropped when the
+/// connection has ended and cleaned up.
+pub fn serve_direct(
+    core: Arc<Core>,
+    slot: Slot,
+    peer: String,
+    done: impl Send + 'static,
+) -> DirectLink {
     let (link, frames, start) = direct::link();
     tokio::spawn(async move {
-        let ends = Ends::new("in-process".to_owned(), None);
+        let ends = Ends::new(peer, None);
         serve_frames(core, frames, DirectSink(start), ends, slot, Identity::None).await;
         drop(done);
     });

@@ -1,0 +1,212 @@
+//! A session's way into the core: an in-process AMQP connection
+//! (`connection::serve_direct`), so that login (the AMQP handshake's own
+//! PLAIN check, the one place passwords are checked), vhost permissions,
+//! connection limits, routing, queues, publisher confirms, consumer acks
+//! and statistics are exactly the AMQP side's. This module logs the
+//! session in and opens its one channel in confirm mode with the
+//! session's receive window as prefetch; it also builds the AMQP methods
+//! the session sends.
+
+use super::mapping::EXCHANGE;
+use crate::connection::{serve_direct, DirectLink, DirectReply, Slot};
+use crate::core::Core;
+use bytes::{BufMut, Bytes, BytesMut};
+use leveret_protocol::{
+    BasicProperties, BasicPublish, ChannelOpen, ConfirmSelect, ConnectionOpen, ConnectionStartOk,
+    ConnectionTuneOk, FieldTable, FieldValue, Frame, Method, Outgoing, ReplyCode, ShortStr,
+};
+use std::sync::Arc;
+use tokio::sync::oneshot;
+use tokio::time::Instant;
+
+/// The channel a session uses.
+pub(super) const CHANNEL: u16 = 1;
+
+/// An open link: the AMQP connection's two ends, and what tells that it
+/// has ended and cleaned up (its exclusive queues deleted).
+pub(super) struct Link {
+    pub direct: DirectLink,
+    ended: oneshot::Receiver<()>,
+}
+
+/// Why the core refused a session's login.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Refusal {
+    /// Unknown user or wrong password (AMQP 403 during the handshake).
+    BadCredentials,
+    /// No such vhost, no permission on it, or a connection limit (530).
+    NotAuthorized,
+    /// Anything else: the broker shutting down, the handshake timeout.
+    Unavailable,
+}
+
+/// What the session logs in with.
+pub(super) struct Login<'a> {
+    pub vhost: &'a str,
+    pub user: &'a str,
+    pub password: &'a [u8],
+    /// The MQTT client's identifier, shown as the AMQP connection's name.
+    pub client_id: &'a str,
+    /// The session's receive window: QoS 1 deliveries unacknowledged at once.
+    pub window: u16,
+}
+
+impl Link {
+    /// Opens an AMQP connection for a session from `peer`, logs in, and
+    /// opens its channel in confirm mode with `window` as prefetch; all by
+    /// `deadline` (the MQTT handshake's).
+    pub(super) async fn open(
+        core: Arc<Core>,
+        slot: Slot,
+        peer: String,
+        login: Login<'_>,
+        deadline: Instant,
+    ) -> Result<Link, Refusal> {
+        let (done, ended) = oneshot::channel::<()>();
+        let direct = serve_direct(core, slot, peer, done);
+        let mut link = Link { direct, ended };
+        match tokio::time::timeout_at(deadline, link.handshake(&login)).await {
+            Ok(Ok(())) => Ok(link),
+            Ok(Err(refusal)) => Err(refusal),
+            Err(_) => Err(Refusal::Unavailable),
+        }
+    }
+
+    async fn handshake(&mut self, login: &Login<'_>) -> Result<(), Refusal> {
+        self.expect(|m| matches!(m, Method::ConnectionStart(_)))
+            .await?;
+        let mut response = BytesMut::with_capacity(2 + login.user.len() + login.password.len());
+        response.put_u8(0);
+        response.put_slice(login.user.as_bytes());
+        response.put_u8(0);
+        response.put_slice(login.password);
+        let mut capabilities = FieldTable::new();
+        capabilities.insert(
+            ShortStr::from_static("authentication_failure_close"),
+            FieldValue::Bool(true),
+        );
+        let mut client_properties = FieldTable::new();
+        client_properties.insert(
+            ShortStr::from_static("capabilities"),
+            FieldValue::Table(capabilities),
+        );
+        client_properties.insert(ShortStr::from_static("product"), FieldValue::string("MQTT"));
+        if let Ok(name) = ShortStr::try_from(login.client_id) {
+            client_properties.insert(
+                ShortStr::from_static("connection_name"),
+                FieldValue::string(name.as_str().unwrap_or_default()),
+            );
+        }
+        self.send(
+            0,
+            ConnectionStartOk {
+                client_properties,
+                mechanism: ShortStr::from_static("PLAIN"),
+                response: response.freeze(),
+                locale: ShortStr::from_static("en_US"),
+            },
+        )
+        .await?;
+        let Method::ConnectionTune(tune) = self
+            .expect(|m| matches!(m, Method::ConnectionTune(_)))
+            .await?
+        else {
+            return Err(Refusal::Unavailable);
+        };
+        self.send(
+            0,
+            ConnectionTuneOk {
+                channel_max: 1,
+                frame_max: tune.frame_max,
+                heartbeat: 0,
+            },
+        )
+        .await?;
+        let virtual_host = ShortStr::try_from(login.vhost).map_err(|_| Refusal::NotAuthorized)?;
+        self.send(
+            0,
+            ConnectionOpen {
+                virtual_host,
+                ..Default::default()
+            },
+        )
+        .await?;
+        self.expect(|m| matches!(m, Method::ConnectionOpenOk(_)))
+            .await?;
+        self.send(CHANNEL, ChannelOpen::default()).await?;
+        self.expect(|m| matches!(m, Method::ChannelOpenOk(_)))
+            .await?;
+        self.send(CHANNEL, ConfirmSelect { no_wait: false }).await?;
+        self.expect(|m| matches!(m, Method::ConfirmSelectOk(_)))
+            .await?;
+        let qos = leveret_protocol::BasicQos {
+            prefetch_size: 0,
+            prefetch_count: login.window,
+            global: false,
+        };
+        self.send(CHANNEL, qos).await?;
+        self.expect(|m| matches!(m, Method::BasicQosOk(_))).await?;
+        Ok(())
+    }
+
+    async fn send(&self, channel: u16, method: impl Into<Method>) -> Result<(), Refusal> {
+        let item = Outgoing::Method {
+            channel,
+            method: method.into(),
+        };
+        (self.direct.to_broker.send(item).await).map_err(|_| Refusal::Unavailable)
+    }
+
+    /// The next method, if `wanted`; a connection.close is the refusal it
+    /// carries.
+    async fn expect(&mut self, wanted: impl Fn(&Method) -> bool) -> Result<Method, Refusal> {
+        match self.direct.from_broker.recv().await {
+            Some(DirectReply::Frame(Frame::Method { method, .. })) if wanted(&method) => Ok(method),
+            Some(DirectReply::Frame(Frame::Method {
+                method: Method::ConnectionClose(close),
+                ..
+            })) => Err(match close.reply_code {
+                code if code == ReplyCode::AccessRefused.code() => Refusal::BadCredentials,
+                code if code == ReplyCode::NotAllowed.code() => Refusal::NotAuthorized,
+                _ => Refusal::Unavailable,
+            }),
+            // The broker closed without a close: a refused login.
+            None => Err(Refusal::BadCredentials),
+            Some(_) => Err(Refusal::Unavailable),
+        }
+    }
+
+    /// Ends the AMQP connection (the broker sees its client gone and
+    /// cleans up as for a closed socket) and waits until it has.
+    pub(super) async fn close(self) {
+        let Link { direct, ended } = self;
+        drop(direct);
+        let _ = ended.await;
+    }
+}
+
+/// A publish to [`EXCHANGE`]: persistent for QoS 1 and 2, as RabbitMQ's
+/// MQTT plugin publishes them.
+pub(super) fn publish(routing_key: ShortStr, persistent: bool, body: Bytes) -> Outgoing {
+    Outgoing::Publish {
+        channel: CHANNEL,
+        method: BasicPublish {
+            exchange: ShortStr::from_static(EXCHANGE),
+            routing_key,
+            ..Default::default()
+        },
+        properties: Box::new(BasicProperties {
+            delivery_mode: Some(if persistent { 2 } else { 1 }),
+            ..Default::default()
+        }),
+        body,
+    }
+}
+
+/// A method on the session's channel.
+pub(super) fn method(method: impl Into<Method>) -> Outgoing {
+    Outgoing::Method {
+        channel: CHANNEL,
+        method: method.into(),
+    }
+}

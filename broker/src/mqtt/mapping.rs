@@ -1,0 +1,115 @@
+//! RabbitMQ's mapping between MQTT and AMQP names: topics and routing
+//! keys (`/` ↔ `.`), filters and binding keys (`+` ↔ `*`, `#` ↔ `#`), the
+//! per-session queue names, and the vhost a `vhost:user` user name picks.
+//! As RabbitMQ 3.12 and later, `.` and `/` swap in both directions, so a
+//! topic with a dot in it round-trips (`a.b/c` → `a/b.c` → `a.b/c`).
+
+use leveret_mqtt::QoS;
+use leveret_protocol::ShortStr;
+
+/// The exchange MQTT publishes go to and subscriptions bind to.
+pub(super) const EXCHANGE: &str = "amq.topic";
+
+/// The vhost of a user name without a `vhost:` prefix.
+const DEFAULT_VHOST: &str = "/";
+
+/// Swaps `/` and `.`, keeping every other character.
+fn swap_separators(name: &str) -> String {
+    name.chars()
+        .map(|c| match c {
+            '/' => '.',
+            '.' => '/',
+            other => other,
+        })
+        .collect()
+}
+
+/// The routing key of an MQTT topic name; `None` if it is longer than a
+/// routing key may be (255 bytes).
+pub(super) fn routing_key(topic: &str) -> Option<ShortStr> {
+    ShortStr::try_from(swap_separators(topic)).ok()
+}
+
+/// The binding key of an MQTT topic filter (`+` → `*`); `None` if it is
+/// too long for a binding key.
+pub(super) fn binding_key(filter: &str) -> Option<ShortStr> {
+    let key: String = swap_separators(filter)
+        .chars()
+        .map(|c| if c == '+' { '*' } else { c })
+        .collect();
+    ShortStr::try_from(key).ok()
+}
+
+/// The MQTT topic of an AMQP routing key; `None` when it cannot be a
+/// topic name (not UTF-8, or a wildcard character in it).
+pub(super) fn topic(routing_key: &ShortStr) -> Option<String> {
+    let key = routing_key.as_str()?;
+    if key.contains(['+', '#']) {
+        return None;
+    }
+    Some(swap_separators(key))
+}
+
+/// The queue of a session's subscriptions at one QoS:
+/// `mqtt-subscription-<client id>qos<N>`, as RabbitMQ names it.
+pub(super) fn queue_name(client_id: &str, qos: QoS) -> Option<ShortStr> {
+    ShortStr::try_from(format!("mqtt-subscription-{client_id}qos{}", qos.level())).ok()
+}
+
+/// The longest client identifier whose queue names fit in a queue name.
+pub(super) const MAX_CLIENT_ID: usize = 255 - "mqtt-subscription-qos0".len();
+
+/// The vhost and user of an MQTT user name: `vhost:user` as RabbitMQ
+/// reads it (split at the first `:`), else the default vhost `/`.
+pub(super) fn vhost_and_user(username: &str) -> (&str, &str) {
+    match username.split_once(':') {
+        Some((vhost, user)) if !vhost.is_empty() => (vhost, user),
+        _ => (DEFAULT_VHOST, username),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn topics_and_routing_keys_swap_separators() {
+        assert_eq!(routing_key("a/b").unwrap(), "a.b");
+        assert_eq!(routing_key("a.b/c").unwrap(), "a/b.c");
+        assert_eq!(topic(&ShortStr::from_static("a.b")).unwrap(), "a/b");
+        let round = topic(&routing_key("x.y/z/").unwrap()).unwrap();
+        assert_eq!(round, "x.y/z/");
+        assert!(routing_key(&"a".repeat(256)).is_none());
+    }
+
+    #[test]
+    fn filters_map_wildcards() {
+        assert_eq!(binding_key("a/+/c").unwrap(), "a.*.c");
+        assert_eq!(binding_key("a/#").unwrap(), "a.#");
+        assert_eq!(binding_key("#").unwrap(), "#");
+    }
+
+    #[test]
+    fn routing_keys_with_mqtt_wildcards_are_not_topics() {
+        // `*` is no wildcard in a topic name: it stays.
+        assert_eq!(topic(&ShortStr::from_static("a.*")).unwrap(), "a/*");
+        assert!(topic(&ShortStr::from_static("a.#")).is_none());
+        assert!(topic(&ShortStr::from_static("a.+")).is_none());
+    }
+
+    #[test]
+    fn queue_names_follow_rabbitmq() {
+        let name = queue_name("sensor-1", QoS::AtLeastOnce).unwrap();
+        assert_eq!(name, "mqtt-subscription-sensor-1qos1");
+        assert!(queue_name(&"c".repeat(MAX_CLIENT_ID), QoS::AtMostOnce).is_some());
+        assert!(queue_name(&"c".repeat(MAX_CLIENT_ID + 1), QoS::AtMostOnce).is_none());
+    }
+
+    #[test]
+    fn user_names_pick_a_vhost() {
+        assert_eq!(vhost_and_user("guest"), ("/", "guest"));
+        assert_eq!(vhost_and_user("robots:arm"), ("robots", "arm"));
+        assert_eq!(vhost_and_user("robots:a:b"), ("robots", "a:b"));
+        assert_eq!(vhost_and_user(":guest"), ("/", ":guest"));
+    }
+}

@@ -1,0 +1,85 @@
+//! MQTT 3.1.1 and 5.0 on the same broker, as a front end over the one
+//! core: each MQTT session drives the core through an in-process AMQP
+//! connection of its own (`link`), as RabbitMQ's MQTT plugin did through
+//! its direct connection, so routing, queues, permissions, limits,
+//! confirms and acks are the AMQP side's. Publishes go to `amq.topic`;
+//! each subscribing session owns a queue per QoS bound there
+//! (`mapping`). `docs/mqtt.md` says what is supported.
+//!
+//! Layout: this file is the listener's accept loop; `session` one
+//! connection (CONNECT, keepalive, the packet loop); `link` the AMQP side
+//! of a session (login, channel, the methods it sends); `mapping` names
+//! (topics ↔ routing keys, queue names, `vhost:user`); `takeover` the
+//! client identifiers in use.
+
+mod link;
+mod mapping;
+mod session;
+mod takeover;
+
+use takeover::ClientIds;
+
+use crate::core::Core;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::net::TcpListener;
+
+/// What a broker's MQTT listeners share.
+#[derive(Debug, Default)]
+pub(crate) struct Shared {
+    /// The client identifiers in use.
+    ids: Arc<ClientIds>,
+    /// The user and password a CONNECT without a user name logs in as
+    /// (RabbitMQ's `mqtt.allow_anonymous` with `mqtt.default_user` and
+    /// `default_pass`); without one such a CONNECT is refused.
+    anonymous: Option<(String, String)>,
+}
+
+impl Shared {
+    pub(crate) fn new(anonymous: Option<(String, String)>) -> Self {
+        Shared {
+            ids: Arc::default(),
+            anonymous,
+        }
+    }
+}
+
+/// Accepts MQTT connections until the broker shuts down; each session
+/// holds a clone of `alive`, as AMQP connections do.
+pub(crate) async fn accept_loop(
+    core: Arc<Core>,
+    listener: TcpListener,
+    shared: Arc<Shared>,
+    alive: tokio::sync::mpsc::Sender<()>,
+) {
+    let mut shutdown = core.shutdown_signal();
+    loop {
+        let accepted = tokio::select! {
+            accepted = listener.accept() => accepted,
+            _ = shutdown.wait_for(|down| *down) => return,
+        };
+        let (socket, peer) = match accepted {
+            Ok(pair) => pair,
+            Err(e) => {
+                tracing::warn!(error = %e, "MQTT accept failed");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                continue;
+            }
+        };
+        let peer = peer.to_string();
+        // Counted with the AMQP connections against max_connections.
+        let Ok(slot) = core.connections.admit_network(&peer) else {
+            continue;
+        };
+        if let Err(e) = socket.set_nodelay(true) {
+            tracing::debug!(error = %e, "could not set TCP_NODELAY");
+        }
+        let core = Arc::clone(&core);
+        let shared = Arc::clone(&shared);
+        let alive = alive.clone();
+        tokio::spawn(async move {
+            session::serve(core, socket, peer, slot, shared).await;
+            drop(alive);
+        });
+    }
+}

@@ -1,0 +1,917 @@
+//! One MQTT connection: CONNECT within the handshake timeout (the first
+//! packet must be it), login through the session's AMQP link, client-id
+//! takeover, then the loop that turns the client's packets into AMQP
+//! methods on the link and the link's deliveries and confirms into MQTT
+//! packets, with keepalive (1.5 × the client's) and the packet size limit
+//! from the codec.
+//!
+//! What a client can make the broker hold is bounded: the read buffer by
+//! the packet size limit (before CONNECT by [`CONNECT_MAX_PACKET`]), the
+//! items waiting for the link by [`PENDING_MAX`] (the socket is not read
+//! while they wait), unconfirmed publishes by their packet identifiers,
+//! deliveries in flight by the receive window.
+
+use super::link::{self, Link, Login, Refusal};
+use super::mapping;
+use super::takeover::Claim;
+use super::Shared;
+use crate::connection::{DirectReply, Slot};
+use crate::core::Core;
+use bytes::BytesMut;
+use leveret_mqtt::{
+    decode_packet, ConnAck, Connect, Delivery, Disconnect, MqttString, Packet, PacketId,
+    ProtocolVersion, PubResponse, Publish, QoS, ReasonCode, SubAck, Subscribe, TopicName, UnsubAck,
+    Unsubscribe, Will, MAX_PACKET_SIZE,
+};
+use leveret_protocol::{
+    BasicAck, BasicConsume, FieldTable, Frame, Method, Outgoing, QueueBind, QueueDeclare,
+    QueueUnbind, ReplyCode, ShortStr,
+};
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::num::NonZeroU16;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio::time::Instant;
+
+/// The largest packet read before the session is logged in (RabbitMQ's
+/// `mqtt.max_packet_size_unauthenticated`).
+pub(super) const CONNECT_MAX_PACKET: u32 = 65_536;
+/// Items waiting for room on the link before the socket stops being read.
+const PENDING_MAX: usize = 64;
+/// QoS 1 deliveries unacknowledged at once (RabbitMQ's `mqtt.prefetch`);
+/// a 5.0 client's smaller Receive Maximum lowers it.
+const DEFAULT_WINDOW: u16 = 10;
+/// The longest a write to a client that does not read may take.
+const WRITE_STALL: Duration = Duration::from_secs(30);
+/// Topic filters a session may hold: each is a binding, and a SUBSCRIBE
+/// queues an AMQP call per filter, so a client cannot make the broker
+/// hold more than this many of either.
+const MAX_SUBSCRIPTIONS: usize = 4096;
+/// Bytes asked of the socket per read at most.
+const READ_CHUNK: usize = 64 * 1024;
+/// Payloads smaller than this are copied out of the read buffer before
+/// they are queued, so a small message does not keep a whole read chunk
+/// alive (the AMQP reader's rule, `connection::copy_below`).
+const COPY_BELOW: usize = READ_CHUNK / 4;
+
+/// Serves one MQTT connection until it closes.
+pub(super) async fn serve(
+    core: Arc<Core>,
+    mut socket: TcpStream,
+    peer: String,
+    slot: Slot,
+    shared: Arc<Shared>,
+) {
+    let deadline = Instant::now() + core.limits.handshake_timeout;
+    let mut buf = BytesMut::with_capacity(1024);
+    let mut shutdown = core.shutdown_signal();
+    let first = tokio::select! {
+        first = tokio::time::timeout_at(deadline, read_connect(&mut socket, &mut buf)) => first,
+        _ = shutdown.wait_for(|down| *down) => return,
+    };
+    let connect = match first {
+        Ok(Ok(connect)) => connect,
+        Ok(Err(reason)) => {
+            tracing::info!(%peer, reason, "MQTT connection closed before CONNECT");
+            return;
+        }
+        Err(_) => {
+            tracing::warn!(%peer, "MQTT client sent no CONNECT within the handshake timeout");
+            return;
+        }
+    };
+    let version = connect.version;
+    let accepted = match admit(&core, &connect, slot, &peer, deadline, &shared).await {
+        Ok(accepted) => accepted,
+        Err(reason) => {
+            tracing::info!(%peer, reason = reason.name(), "MQTT CONNECT refused");
+            let mut out = BytesMut::new();
+            let connack = Packet::ConnAck(ConnAck {
+                session_present: false,
+                reason,
+                properties: Default::default(),
+            });
+            if connack.encode(version, &mut out).is_ok() {
+                let _ = socket.write_all(&out).await;
+            }
+            return;
+        }
+    };
+    let Accepted {
+        link,
+        claim,
+        client_id,
+        assigned,
+    } = accepted;
+    let max_packet = u32::try_from(core.limits.max_message_size)
+        .unwrap_or(MAX_PACKET_SIZE)
+        .min(MAX_PACKET_SIZE);
+    let mut session = Session {
+        version,
+        client_id,
+        max_packet,
+        client_max_packet: connect.properties.maximum_packet_size.map(|m| m.get()),
+        will: connect.will,
+        out: BytesMut::new(),
+        pending: VecDeque::new(),
+        awaiting: VecDeque::new(),
+        published: 0,
+        unconfirmed: BTreeMap::new(),
+        exactly_once: HashMap::new(),
+        in_flight: HashMap::new(),
+        next_packet_id: 1,
+        subscriptions: HashMap::new(),
+        queues: [false, false],
+    };
+    session.connack(&connect.properties, assigned);
+    tracing::debug!(%peer, client_id = %session.client_id, ?version, "MQTT session open");
+    let keepalive = Duration::from_millis(u64::from(connect.keep_alive) * 1500);
+    let end = session
+        .run(&core, &mut socket, buf, link, &claim, keepalive)
+        .await;
+    let Ended { link, reason } = end;
+    tracing::debug!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
+    link.close().await;
+    drop(claim);
+}
+
+/// Reads the first packet, which must be a CONNECT; answers one naming a
+/// protocol version the codec does not speak.
+async fn read_connect(
+    socket: &mut TcpStream,
+    buf: &mut BytesMut,
+) -> Result<Box<Connect>, &'static str> {
+    loop {
+        match decode_packet(buf, ProtocolVersion::V3_1_1, CONNECT_MAX_PACKET) {
+            Ok(Some(Packet::Connect(connect))) => return Ok(connect),
+            Ok(Some(_)) => return Err("first packet not CONNECT"),
+            Ok(None) => {}
+            Err(e) => {
+                if let Some(version) = e.connack_refusal() {
+                    let connack = Packet::ConnAck(ConnAck {
+                        session_present: false,
+                        reason: ReasonCode::UnsupportedProtocolVersion,
+                        properties: Default::default(),
+                    });
+                    let mut out = BytesMut::new();
+                    if connack.encode(version, &mut out).is_ok() {
+                        let _ = socket.write_all(&out).await;
+                    }
+                }
+                return Err("malformed CONNECT");
+            }
+        }
+        buf.reserve(READ_CHUNK.min(CONNECT_MAX_PACKET as usize));
+        match socket.read_buf(buf).await {
+            Ok(0) | Err(_) => return Err("closed"),
+            Ok(_) => {}
+        }
+    }
+}
+
+/// A logged-in session's link and claim.
+struct Accepted {
+    link: Link,
+    claim: Claim,
+    client_id: String,
+    /// Whether the broker made the client identifier up.
+    assigned: bool,
+}
+
+/// Checks a CONNECT, logs in through a new link and claims the client
+/// identifier; the CONNACK reason to refuse with otherwise.
+async fn admit(
+    core: &Arc<Core>,
+    connect: &Connect,
+    slot: Slot,
+    peer: &str,
+    deadline: Instant,
+    shared: &Shared,
+) -> Result<Accepted, ReasonCode> {
+    let v5 = connect.version.is_v5();
+    if connect.properties.authentication_method.is_some() {
+        return Err(ReasonCode::BadAuthenticationMethod);
+    }
+    // An empty identifier with a persistent 3.1.1 session (MQTT-3.1.3-8).
+    if !connect.clean_start && !v5 && connect.client_id.is_empty() {
+        return Err(ReasonCode::ClientIdentifierNotValid);
+    }
+    // Sessions end with their connection in this version: a 3.1.1 client
+    // asking for a persistent session is refused (5.0 clients are told
+    // their session expiry is 0 in the CONNACK instead).
+    if !connect.clean_start && !v5 {
+        return Err(ReasonCode::ServerUnavailable);
+    }
+    let (client_id, assigned) = match connect.client_id.as_str() {
+        "" => (
+            crate::channel::unique_name("leveret-mqtt-").to_string(),
+            true,
+        ),
+        id if id.len() > mapping::MAX_CLIENT_ID => {
+            return Err(ReasonCode::ClientIdentifierNotValid)
+        }
+        id => (id.to_owned(), false),
+    };
+    let (username, password) = match (&connect.username, &shared.anonymous) {
+        (Some(name), _) => (
+            name.as_str(),
+            connect.password.as_deref().unwrap_or_default(),
+        ),
+        (None, Some((name, password))) => (name.as_str(), password.as_bytes()),
+        (None, None) => return Err(ReasonCode::NotAuthorized),
+    };
+    let (vhost, user) = mapping::vhost_and_user(username);
+    let window = match connect.properties.receive_maximum {
+        Some(max) if v5 => max.get().min(DEFAULT_WINDOW),
+        _ => DEFAULT_WINDOW,
+    };
+    let login = Login {
+        vhost,
+        user,
+        password,
+        client_id: &client_id,
+        window,
+    };
+    let link = Link::open(Arc::clone(core), slot, peer.to_owned(), login, deadline)
+        .await
+        .map_err(|refusal| match refusal {
+            Refusal::BadCredentials => ReasonCode::BadUserNameOrPassword,
+            Refusal::NotAuthorized => ReasonCode::NotAuthorized,
+            Refusal::Unavailable => ReasonCode::ServerUnavailable,
+        })?;
+    let claim = shared.ids.claim(vhost, &client_id).await;
+    Ok(Accepted {
+        link,
+        claim,
+        client_id,
+        assigned,
+    })
+}
+
+/// What a synchronous AMQP reply completes: the MQTT acknowledgements to
+/// send once it (and everything before it) is done.
+type Then = Vec<Packet>;
+
+/// A session's state between the client and its link.
+struct Session {
+    version: ProtocolVersion,
+    client_id: String,
+    /// The largest packet the broker reads once logged in.
+    max_packet: u32,
+    /// The largest packet a 5.0 client accepts.
+    client_max_packet: Option<u32>,
+    will: Option<Will>,
+    /// Encoded packets waiting to be written.
+    out: BytesMut,
+    /// Items waiting for room on the link.
+    pending: VecDeque<Outgoing>,
+    /// One entry per synchronous AMQP method sent, in order.
+    awaiting: VecDeque<Then>,
+    /// Publishes sent on the link (the confirm sequence).
+    published: u64,
+    /// Confirm sequence numbers of QoS 1 and 2 publishes awaiting their
+    /// confirm: packet identifier, and whether it is QoS 2.
+    unconfirmed: BTreeMap<u64, (PacketId, bool)>,
+    /// QoS 2 publishes by packet identifier, from their arrival to PUBREL.
+    exactly_once: HashMap<PacketId, Received>,
+    /// QoS 1 deliveries awaiting PUBACK: packet identifier → delivery tag.
+    in_flight: HashMap<PacketId, u64>,
+    next_packet_id: u16,
+    /// Topic filter → the QoS granted (the queue it is bound to).
+    subscriptions: HashMap<String, QoS>,
+    /// Whether the QoS 0 and QoS 1 queues are declared and consumed.
+    queues: [bool; 2],
+}
+
+/// Where a QoS 2 publish is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Received {
+    /// Sent to the core, awaiting its confirm (then PUBREC).
+    Routing,
+    /// Routed and PUBREC'd, awaiting PUBREL.
+    Stored,
+}
+
+/// How a session ended.
+struct Ended {
+    link: Link,
+    reason: &'static str,
+}
+
+/// Why the loop stopped.
+enum Stop {
+    /// The client sent DISCONNECT (its will is discarded unless it asked).
+    Disconnected { send_will: bool },
+    /// Anything else; 5.0 clients are sent a DISCONNECT with the reason
+    /// when there is one.
+    Closed {
+        reason: &'static str,
+        disconnect: Option<ReasonCode>,
+    },
+}
+
+impl Session {
+    fn v5(&self) -> bool {
+        self.version.is_v5()
+    }
+
+    fn connack(&mut self, requested: &leveret_mqtt::Properties, assigned: bool) {
+        let mut properties = leveret_mqtt::Properties::default();
+        if self.v5() {
+            properties.maximum_packet_size = std::num::NonZeroU32::new(self.max_packet);
+            properties.retain_available = Some(false);
+            properties.shared_subscription_available = Some(false);
+            properties.subscription_identifier_available = Some(false);
+            if assigned {
+                properties.assigned_client_identifier =
+                    MqttString::from_utf8(self.client_id.clone().into()).ok();
+            }
+            if requested.session_expiry_interval.is_some_and(|s| s > 0) {
+                properties.session_expiry_interval = Some(0);
+            }
+        }
+        self.send(Packet::ConnAck(ConnAck {
+            session_present: false,
+            reason: ReasonCode::Success,
+            properties,
+        }));
+    }
+
+    /// Encodes a packet for the client; false if it was dropped: larger
+    /// than a 5.0 client's Maximum Packet Size (as the specification
+    /// asks), or not encodable.
+    fn send(&mut self, packet: Packet) -> bool {
+        if let Some(max) = self.client_max_packet {
+            if packet
+                .encoded_len(self.version)
+                .is_ok_and(|len| len > max as usize)
+            {
+                tracing::debug!(client_id = %self.client_id, "packet over the client's maximum size dropped");
+                return false;
+            }
+        }
+        if let Err(e) = packet.encode(self.version, &mut self.out) {
+            tracing::warn!(client_id = %self.client_id, error = %e, "MQTT packet not encodable; dropped");
+            return false;
+        }
+        true
+    }
+
+    /// Queues a synchronous AMQP method whose reply completes `then`.
+    fn call(&mut self, method: impl Into<Method>, then: Then) {
+        self.pending.push_back(link::method(method));
+        self.awaiting.push_back(then);
+    }
+
+    async fn run(
+        &mut self,
+        core: &Core,
+        socket: &mut TcpStream,
+        mut buf: BytesMut,
+        mut link: Link,
+        claim: &Claim,
+        keepalive: Duration,
+    ) -> Ended {
+        let mut shutdown = core.shutdown_signal();
+        let mut last_read = Instant::now();
+        let stop = loop {
+            // Whole packets already read.
+            if self.pending.len() < PENDING_MAX {
+                if let Err(stop) = self.take_packets(&mut buf) {
+                    break stop;
+                }
+            }
+            while let Some(item) = self.pending.pop_front() {
+                match link.direct.to_broker.try_send(item) {
+                    Ok(()) => {}
+                    Err(tokio::sync::mpsc::error::TrySendError::Full(item)) => {
+                        self.pending.push_front(item);
+                        break;
+                    }
+                    Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => {
+                        return self.finish(socket, link, closed("link ended", None)).await;
+                    }
+                }
+            }
+            if !self.out.is_empty() {
+                let write = tokio::time::timeout(WRITE_STALL, socket.write_all(&self.out)).await;
+                if !matches!(write, Ok(Ok(()))) {
+                    break closed("write failed or stalled", None);
+                }
+                self.out.clear();
+            }
+            let reading = self.pending.len() < PENDING_MAX;
+            if reading && buf.capacity() - buf.len() < 1024 {
+                buf.reserve(READ_CHUNK);
+            }
+            if !reading {
+                // The client is not read while the core is behind (a
+                // resource alarm): its silence does not count meanwhile.
+                last_read = Instant::now();
+            }
+            let silence = last_read + keepalive;
+            let to_broker = link.direct.to_broker.clone();
+            tokio::select! {
+                read = socket.read_buf(&mut buf), if reading => match read {
+                    Ok(0) | Err(_) => break closed("socket closed", None),
+                    Ok(_) => last_read = Instant::now(),
+                },
+                permit = to_broker.reserve(), if !self.pending.is_empty() => match permit {
+                    Ok(permit) => {
+                        if let Some(item) = self.pending.pop_front() {
+                            permit.send(item);
+                        }
+                    }
+                    Err(_) => break closed("link ended", None),
+                },
+                reply = link.direct.from_broker.recv() => match reply {
+                    Some(reply) => if let Err(stop) = self.handle_core_reply(reply) { break stop },
+                    None => break closed("the broker ended the session", Some(ReasonCode::ServerShuttingDown)),
+                },
+                _ = tokio::time::sleep_until(silence), if !keepalive.is_zero() => {
+                    break closed("keepalive timeout", Some(ReasonCode::KeepAliveTimeout));
+                }
+                _ = claim.taken_over() => {
+                    break closed("taken over by a new connection", Some(ReasonCode::SessionTakenOver));
+                }
+                _ = shutdown.wait_for(|down| *down) => {
+                    break closed("broker shutting down", Some(ReasonCode::ServerShuttingDown));
+                }
+            }
+        };
+        self.finish(socket, link, stop).await
+    }
+
+    /// Sends what is owed before closing (a 5.0 DISCONNECT, the will).
+    async fn finish(&mut self, socket: &mut TcpStream, link: Link, stop: Stop) -> Ended {
+        let (reason, send_will) = match stop {
+            Stop::Disconnected { send_will } => ("client disconnected", send_will),
+            Stop::Closed { reason, disconnect } => {
+                if let (Some(code), true) = (disconnect, self.v5()) {
+                    self.send(Packet::Disconnect(Disconnect {
+                        reason: code,
+                        properties: Default::default(),
+                    }));
+                }
+                (reason, true)
+            }
+        };
+        if !self.out.is_empty() {
+            let _ = tokio::time::timeout(WRITE_STALL, socket.write_all(&self.out)).await;
+        }
+        let _ = socket.shutdown().await;
+        if let Some(will) = self.will.take().filter(|_| send_will) {
+            if let Some(key) = mapping::routing_key(will.topic.as_str()) {
+                let persistent = will.qos != QoS::AtMostOnce;
+                // Sent before the link is dropped: the broker handles it
+                // before it sees the client gone.
+                let _ = link
+                    .direct
+                    .to_broker
+                    .send(link::publish(key, persistent, owned(will.payload)))
+                    .await;
+            }
+        }
+        Ended { link, reason }
+    }
+
+    /// Handles every whole packet in `buf`.
+    fn take_packets(&mut self, buf: &mut BytesMut) -> Result<(), Stop> {
+        while self.pending.len() < PENDING_MAX {
+            match decode_packet(buf, self.version, self.max_packet) {
+                Ok(Some(packet)) => self.handle_client_packet(packet)?,
+                Ok(None) => return Ok(()),
+                Err(e) => {
+                    tracing::info!(client_id = %self.client_id, error = %e, "MQTT packet refused; closing");
+                    return Err(closed(
+                        "malformed or oversized packet",
+                        Some(e.reason_code()),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn handle_client_packet(&mut self, packet: Packet) -> Result<(), Stop> {
+        match packet {
+            Packet::Publish(publish) => self.publish(publish),
+            Packet::PubAck(ack) => {
+                if let Some(tag) = self.in_flight.remove(&ack.packet_id) {
+                    self.pending.push_back(link::method(BasicAck {
+                        delivery_tag: tag,
+                        multiple: false,
+                    }));
+                }
+                Ok(())
+            }
+            Packet::PubRel(release) => {
+                let known = self.exactly_once.get(&release.packet_id) == Some(&Received::Stored);
+                if known {
+                    self.exactly_once.remove(&release.packet_id);
+                }
+                let mut complete = PubResponse::new(release.packet_id);
+                if !known && self.v5() {
+                    complete.reason = ReasonCode::PacketIdentifierNotFound;
+                }
+                self.send(Packet::PubComp(complete));
+                Ok(())
+            }
+            Packet::Subscribe(subscribe) => {
+                self.subscribe(subscribe);
+                Ok(())
+            }
+            Packet::Unsubscribe(unsubscribe) => {
+                self.unsubscribe(unsubscribe);
+                Ok(())
+            }
+            Packet::PingReq => {
+                self.send(Packet::PingResp);
+                Ok(())
+            }
+            Packet::Disconnect(disconnect) => Err(Stop::Disconnected {
+                send_will: disconnect.reason == ReasonCode::DisconnectWithWill,
+            }),
+            Packet::Auth(_) => Err(closed(
+                "enhanced authentication is not supported",
+                Some(ReasonCode::ProtocolError),
+            )),
+            // A second CONNECT, packets only a server sends, and PUBREC or
+            // PUBCOMP for QoS 2 deliveries the broker never sends.
+            _ => Err(closed(
+                "packet a client may not send here",
+                Some(ReasonCode::ProtocolError),
+            )),
+        }
+    }
+
+    fn publish(&mut self, publish: Publish) -> Result<(), Stop> {
+        if publish.properties.topic_alias.is_some() {
+            // The CONNACK allowed no topic aliases.
+            return Err(closed("topic alias", Some(ReasonCode::TopicAliasInvalid)));
+        }
+        if !publish.properties.subscription_identifiers.is_empty() {
+            return Err(closed(
+                "subscription identifier in PUBLISH",
+                Some(ReasonCode::ProtocolError),
+            ));
+        }
+        if publish.retain && self.v5() {
+            // The CONNACK said retain is not available.
+            return Err(closed(
+                "retain not supported",
+                Some(ReasonCode::RetainNotSupported),
+            ));
+        }
+        let Some(key) = mapping::routing_key(publish.topic.as_str()) else {
+            return Err(closed(
+                "topic longer than a routing key",
+                Some(ReasonCode::TopicNameInvalid),
+            ));
+        };
+        let (packet_id, exactly_once) = match publish.delivery {
+            Delivery::AtMostOnce => (None, false),
+            Delivery::AtLeastOnce(id) => (Some(id), false),
+            Delivery::ExactlyOnce(id) => match self.exactly_once.get(&id) {
+                // A resend of a publish already routed: not again.
+                Some(Received::Stored) => {
+                    self.send(Packet::PubRec(PubResponse::new(id)));
+                    return Ok(());
+                }
+                // Its PUBREC follows its confirm.
+                Some(Received::Routing) => return Ok(()),
+                None => {
+                    self.exactly_once.insert(id, Received::Routing);
+                    (Some(id), true)
+                }
+            },
+        };
+        self.published += 1;
+        if let Some(id) = packet_id {
+            self.unconfirmed.insert(self.published, (id, exactly_once));
+        }
+        self.pending.push_back(link::publish(
+            key,
+            packet_id.is_some(),
+            owned(publish.payload),
+        ));
+        Ok(())
+    }
+
+    fn subscribe(&mut self, subscribe: Subscribe) {
+        let mut reasons = Vec::with_capacity(subscribe.subscriptions.len());
+        let failure = |v5: bool, code: ReasonCode| {
+            if v5 {
+                code
+            } else {
+                ReasonCode::UnspecifiedError
+            }
+        };
+        for subscription in &subscribe.subscriptions {
+            let filter = subscription.filter.as_str();
+            if subscription.filter.shared().is_some() {
+                reasons.push(failure(
+                    self.v5(),
+                    ReasonCode::SharedSubscriptionsNotSupported,
+                ));
+                continue;
+            }
+            if self.subscriptions.len() >= MAX_SUBSCRIPTIONS
+                && !self.subscriptions.contains_key(filter)
+            {
+                reasons.push(failure(self.v5(), ReasonCode::QuotaExceeded));
+                continue;
+            }
+            let Some(key) = mapping::binding_key(filter) else {
+                reasons.push(failure(self.v5(), ReasonCode::TopicFilterInvalid));
+                continue;
+            };
+            let granted = subscription.options.qos.min(QoS::AtLeastOnce);
+            let Some(queue) = mapping::queue_name(&self.client_id, granted) else {
+                reasons.push(ReasonCode::UnspecifiedError);
+                continue;
+            };
+            self.ensure_queue(&queue, granted);
+            if let Some(old) = self.subscriptions.insert(filter.to_owned(), granted) {
+                if old != granted {
+                    self.unbind(old, key.clone());
+                }
+            }
+            self.call(
+                QueueBind {
+                    ticket: 0,
+                    queue,
+                    exchange: ShortStr::from_static(mapping::EXCHANGE),
+                    routing_key: key,
+                    no_wait: false,
+                    arguments: FieldTable::new(),
+                },
+                Vec::new(),
+            );
+            reasons.push(match granted {
+                QoS::AtMostOnce => ReasonCode::GRANTED_QOS_0,
+                _ => ReasonCode::GrantedQos1,
+            });
+        }
+        let suback = Packet::SubAck(SubAck {
+            packet_id: subscribe.packet_id,
+            properties: Default::default(),
+            reasons,
+        });
+        self.complete_after_calls(suback);
+    }
+
+    /// Sends `packet` once every call queued so far is answered (at once
+    /// if none is waiting), so acknowledgements keep their order.
+    fn complete_after_calls(&mut self, packet: Packet) {
+        match self.awaiting.back_mut() {
+            Some(last) => last.push(packet),
+            None => {
+                self.send(packet);
+            }
+        }
+    }
+
+    /// Declares and consumes the session's queue for `qos` the first time
+    /// a subscription needs it: exclusive, so it goes with the session.
+    fn ensure_queue(&mut self, queue: &ShortStr, qos: QoS) {
+        let index = usize::from(qos != QoS::AtMostOnce);
+        if self.queues[index] {
+            return;
+        }
+        self.queues[index] = true;
+        self.call(
+            QueueDeclare {
+                ticket: 0,
+                queue: queue.clone(),
+                passive: false,
+                durable: false,
+                exclusive: true,
+                auto_delete: false,
+                no_wait: false,
+                arguments: FieldTable::new(),
+            },
+            Vec::new(),
+        );
+        self.call(
+            BasicConsume {
+                ticket: 0,
+                queue: queue.clone(),
+                consumer_tag: consumer_tag(qos),
+                no_local: false,
+                no_ack: qos == QoS::AtMostOnce,
+                exclusive: false,
+                no_wait: false,
+                arguments: FieldTable::new(),
+            },
+            Vec::new(),
+        );
+    }
+
+    fn unbind(&mut self, qos: QoS, key: ShortStr) {
+        let Some(queue) = mapping::queue_name(&self.client_id, qos) else {
+            return;
+        };
+        self.call(
+            QueueUnbind {
+                ticket: 0,
+                queue,
+                exchange: ShortStr::from_static(mapping::EXCHANGE),
+                routing_key: key,
+                arguments: FieldTable::new(),
+            },
+            Vec::new(),
+        );
+    }
+
+    fn unsubscribe(&mut self, unsubscribe: Unsubscribe) {
+        let mut reasons = Vec::with_capacity(unsubscribe.filters.len());
+        for filter in &unsubscribe.filters {
+            match (
+                self.subscriptions.remove(filter.as_str()),
+                mapping::binding_key(filter.as_str()),
+            ) {
+                (Some(qos), Some(key)) => {
+                    self.unbind(qos, key);
+                    reasons.push(ReasonCode::Success);
+                }
+                _ => reasons.push(ReasonCode::NoSubscriptionExisted),
+            }
+        }
+        if !self.v5() {
+            reasons.clear();
+        }
+        let unsuback = Packet::UnsubAck(UnsubAck {
+            packet_id: unsubscribe.packet_id,
+            properties: Default::default(),
+            reasons,
+        });
+        self.complete_after_calls(unsuback);
+    }
+
+    /// Handles what the core sent on the link.
+    fn handle_core_reply(&mut self, reply: DirectReply) -> Result<(), Stop> {
+        let method = match reply {
+            DirectReply::Content {
+                method: Method::BasicDeliver(deliver),
+                properties,
+                body,
+                ..
+            } => {
+                self.deliver(deliver, &properties, body);
+                return Ok(());
+            }
+            DirectReply::Content { .. } => return Ok(()),
+            DirectReply::Frame(Frame::Method { method, .. }) => method,
+            DirectReply::Frame(_) => return Ok(()),
+        };
+        match method {
+            Method::BasicAck(ack) => return self.confirmed(ack.delivery_tag, ack.multiple, true),
+            Method::BasicNack(nack) => {
+                return self.confirmed(nack.delivery_tag, nack.multiple, false)
+            }
+            Method::ChannelClose(close) => {
+                return Err(self.refused(close.reply_code, &close.reply_text))
+            }
+            Method::ConnectionClose(close) => {
+                return Err(self.refused(close.reply_code, &close.reply_text))
+            }
+            _ => {
+                // The reply to the oldest synchronous call.
+                for packet in self.awaiting.pop_front().unwrap_or_default() {
+                    self.send(packet);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The core closed the channel or the connection: an operation was
+    /// refused (a permission, a limit) or the connection was closed from
+    /// outside.
+    fn refused(&self, code: u16, text: &ShortStr) -> Stop {
+        tracing::info!(client_id = %self.client_id, code, %text, "the core closed the MQTT session's link");
+        let reason = if code == ReplyCode::AccessRefused.code() {
+            ReasonCode::NotAuthorized
+        } else if code == ReplyCode::ConnectionForced.code() {
+            ReasonCode::AdministrativeAction
+        } else {
+            ReasonCode::ImplementationSpecificError
+        };
+        closed("closed by the core", Some(reason))
+    }
+
+    /// Publisher confirms: PUBACK (QoS 1) or PUBREC (QoS 2) for the
+    /// publishes they cover. A refused publish gets a 5.0 failure code; a
+    /// 3.1.1 client has none, so it is closed (and publishes again).
+    fn confirmed(&mut self, tag: u64, multiple: bool, ok: bool) -> Result<(), Stop> {
+        let settled: Vec<(PacketId, bool)> = if multiple {
+            let rest = self.unconfirmed.split_off(&(tag + 1));
+            std::mem::replace(&mut self.unconfirmed, rest)
+                .into_values()
+                .collect()
+        } else {
+            self.unconfirmed.remove(&tag).into_iter().collect()
+        };
+        if !ok && !self.v5() && !settled.is_empty() {
+            return Err(closed("publish refused by a queue", None));
+        }
+        for (id, exactly_once) in settled {
+            let mut response = PubResponse::new(id);
+            if !ok {
+                response.reason = ReasonCode::UnspecifiedError;
+            }
+            if exactly_once {
+                if ok {
+                    self.exactly_once.insert(id, Received::Stored);
+                } else {
+                    self.exactly_once.remove(&id);
+                }
+                self.send(Packet::PubRec(response));
+            } else {
+                self.send(Packet::PubAck(response));
+            }
+        }
+        Ok(())
+    }
+
+    /// A delivery from one of the session's queues, as a PUBLISH at the
+    /// lower of the queue's QoS and the message's: a transient message
+    /// (an MQTT QoS 0 publish, or an AMQP one with delivery mode 1) goes
+    /// out at QoS 0, as the specification's min(publish, granted) asks, and
+    /// is settled at once.
+    fn deliver(
+        &mut self,
+        deliver: leveret_protocol::BasicDeliver,
+        properties: &bytes::Bytes,
+        body: bytes::Bytes,
+    ) {
+        let from_qos1_queue = deliver.consumer_tag == consumer_tag(QoS::AtLeastOnce);
+        let persistent =
+            leveret_protocol::BasicProperties::decode(properties).is_ok_and(|p| p.is_persistent());
+        let qos1 = from_qos1_queue && persistent;
+        let topic = mapping::topic(&deliver.routing_key)
+            .and_then(|t| MqttString::from_utf8(t.into()).ok())
+            .and_then(|t| TopicName::new(t).ok())
+            .filter(|t| !t.is_empty());
+        let packet_id = qos1.then(|| self.next_packet_id());
+        let sent = topic.is_some_and(|topic| {
+            self.send(Packet::Publish(Publish {
+                dup: qos1 && deliver.redelivered,
+                delivery: packet_id.map_or(Delivery::AtMostOnce, Delivery::AtLeastOnce),
+                retain: false,
+                topic,
+                properties: Default::default(),
+                payload: body,
+            }))
+        });
+        match packet_id {
+            Some(id) if sent => {
+                self.in_flight.insert(id, deliver.delivery_tag);
+            }
+            // Sent at QoS 0, or dropped (not a topic name, too large for
+            // the client): settled now, so it does not hold the window.
+            _ if from_qos1_queue => self.pending.push_back(link::method(BasicAck {
+                delivery_tag: deliver.delivery_tag,
+                multiple: false,
+            })),
+            _ => {}
+        }
+    }
+
+    /// A packet identifier not used by a delivery in flight (the window
+    /// keeps far fewer than 65,535 in flight).
+    fn next_packet_id(&mut self) -> PacketId {
+        loop {
+            let id = NonZeroU16::new(self.next_packet_id).unwrap_or(NonZeroU16::MIN);
+            self.next_packet_id = self.next_packet_id.checked_add(1).unwrap_or(1);
+            if !self.in_flight.contains_key(&id) {
+                return id;
+            }
+        }
+    }
+}
+
+/// The consumer tag of the session's queue for `qos`.
+fn consumer_tag(qos: QoS) -> ShortStr {
+    match qos {
+        QoS::AtMostOnce => ShortStr::from_static("mqtt-qos0"),
+        _ => ShortStr::from_static("mqtt-qos1"),
+    }
+}
+
+/// A payload that keeps no more of the read buffer alive than itself
+/// (see [`COPY_BELOW`]).
+fn owned(payload: bytes::Bytes) -> bytes::Bytes {
+    if payload.len() < COPY_BELOW {
+        bytes::Bytes::copy_from_slice(&payload)
+    } else {
+        payload
+    }
+}
+
+fn closed(reason: &'static str, disconnect: Option<ReasonCode>) -> Stop {
+    Stop::Closed { reason, disconnect }
+}

@@ -1,0 +1,976 @@
+//! MQTT on the broker (issue 32): rumqttc clients in 3.1.1 and 5.0,
+//! MQTT ↔ AMQP through `amq.topic` with lapin, client-id takeover, the
+//! clean-session queue, exactly-once QoS 2 publishes, and the adversarial
+//! cases (oversized packet, garbage before CONNECT, no CONNECT, silent
+//! client) with a raw socket and the codec.
+
+#[macro_use]
+mod common;
+
+use bytes::{Bytes, BytesMut};
+use common::*;
+use leveret_broker::{Broker, BrokerHandle, Limits};
+use leveret_mqtt::{
+    decode_packet, Connect, Delivery, Packet, ProtocolVersion, PubResponse, Publish, TopicName,
+};
+use rumqttc::v5::mqttbytes::v5::Packet as Packet5;
+use rumqttc::{Event, Incoming, QoS};
+use std::net::SocketAddr;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+/// How long a close the broker owes may take (generous: CI is loaded).
+const CLOSE_WITHIN: Duration = Duration::from_secs(30);
+
+async fn start(limits: Limits) -> BrokerHandle {
+    start_with(Broker::builder(), limits).await
+}
+
+async fn start_with(builder: leveret_broker::BrokerBuilder, limits: Limits) -> BrokerHandle {
+    let any: SocketAddr = "127.0.0.1:0".parse().unwrap();
+    builder
+        .listen(any)
+        .mqtt_listen(any)
+        .user("robot", "secret")
+        .permission("robot", "/", leveret_broker::Permission::full())
+        .limits(limits)
+        .start()
+        .await
+        .expect("broker starts")
+}
+
+fn mqtt_port(handle: &BrokerHandle) -> u16 {
+    handle.mqtt_addrs()[0].port()
+}
+
+fn amqp_url(handle: &BrokerHandle) -> String {
+    format!("amqp://robot:secret@{}/%2f", handle.local_addrs()[0])
+}
+
+fn options3(id: &str, port: u16, password: &str) -> rumqttc::MqttOptions {
+    let mut options = rumqttc::MqttOptions::new(id, "127.0.0.1", port);
+    options.set_credentials("robot", password);
+    options.set_keep_alive(Duration::from_secs(30));
+    options
+}
+
+fn options5(id: &str, port: u16, password: &str) -> rumqttc::v5::MqttOptions {
+    let mut options = rumqttc::v5::MqttOptions::new(id, "127.0.0.1", port);
+    options.set_credentials("robot", password);
+    options.set_keep_alive(Duration::from_secs(30));
+    options
+}
+
+/// Polls a 3.1.1 event loop until `wanted` picks an event.
+async fn until3<T>(
+    events: &mut rumqttc::EventLoop,
+    mut wanted: impl FnMut(&Incoming) -> Option<T>,
+) -> T {
+    within("a 3.1.1 event", async {
+        loop {
+            match events.poll().await {
+                Ok(Event::Incoming(packet)) => {
+                    if let Some(found) = wanted(&packet) {
+                        return found;
+                    }
+                }
+                Ok(Event::Outgoing(_)) => {}
+                Err(e) => panic!("connection failed: {e}"),
+            }
+        }
+    })
+    .await
+}
+
+/// Polls a 5.0 event loop until `wanted` picks an event.
+async fn until5<T>(
+    events: &mut rumqttc::v5::EventLoop,
+    mut wanted: impl FnMut(&Packet5) -> Option<T>,
+) -> T {
+    within("a 5.0 event", async {
+        loop {
+            match events.poll().await {
+                Ok(rumqttc::v5::Event::Incoming(packet)) => {
+                    if let Some(found) = wanted(&packet) {
+                        return found;
+                    }
+                }
+                Ok(rumqttc::v5::Event::Outgoing(_)) => {}
+                Err(e) => panic!("connection failed: {e}"),
+            }
+        }
+    })
+    .await
+}
+
+#[both_runtimes]
+async fn v3_1_1_publishes_reach_a_subscriber_at_qos_0_and_1() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) = rumqttc::AsyncClient::new(options3("sub-311", port, "secret"), 16);
+    until3(&mut events, |p| {
+        matches!(p, Incoming::ConnAck(_)).then_some(())
+    })
+    .await;
+    client
+        .subscribe("sensors/+/temp", QoS::AtLeastOnce)
+        .await
+        .unwrap();
+    let granted = until3(&mut events, |p| match p {
+        Incoming::SubAck(ack) => Some(ack.return_codes.clone()),
+        _ => None,
+    })
+    .await;
+    assert_eq!(
+        granted,
+        [rumqttc::SubscribeReasonCode::Success(QoS::AtLeastOnce)]
+    );
+    client
+        .publish("sensors/arm/temp", QoS::AtLeastOnce, false, "21.5")
+        .await
+        .unwrap();
+    client
+        .publish("sensors/arm/temp", QoS::AtMostOnce, false, "21.6")
+        .await
+        .unwrap();
+    let mut got = Vec::new();
+    let mut acked = false;
+    within("both messages and the PUBACK", async {
+        while got.len() < 2 || !acked {
+            match events.poll().await.expect("connected") {
+                Event::Incoming(Incoming::Publish(p)) => {
+                    assert_eq!(p.topic, "sensors/arm/temp");
+                    // min(publish QoS, granted QoS).
+                    got.push((p.payload.clone(), p.qos));
+                }
+                Event::Incoming(Incoming::PubAck(_)) => acked = true,
+                _ => {}
+            }
+        }
+    })
+    .await;
+    assert_eq!(
+        got,
+        [
+            (Bytes::from("21.5"), QoS::AtLeastOnce),
+            (Bytes::from("21.6"), QoS::AtMostOnce)
+        ]
+    );
+    client.disconnect().await.unwrap();
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn v5_publishes_reach_a_subscriber_and_the_connack_tells_the_limits() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options5("sub-5", port, "secret"), 16);
+    let connack = until5(&mut events, |p| match p {
+        Packet5::ConnAck(ack) => Some(ack.clone()),
+        _ => None,
+    })
+    .await;
+    let properties = connack.properties.expect("CONNACK properties");
+    assert_eq!(properties.retain_available, Some(0));
+    assert!(properties.max_packet_size.is_some());
+    client
+        .subscribe("a/#", rumqttc::v5::mqttbytes::QoS::AtLeastOnce)
+        .await
+        .unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::SubAck(_)).then_some(())
+    })
+    .await;
+    client
+        .publish("a/b", rumqttc::v5::mqttbytes::QoS::AtLeastOnce, false, "x")
+        .await
+        .unwrap();
+    let publish = until5(&mut events, |p| match p {
+        Packet5::Publish(p) => Some(p.clone()),
+        _ => None,
+    })
+    .await;
+    assert_eq!(publish.topic, "a/b");
+    assert_eq!(publish.payload, "x");
+    client.disconnect().await.unwrap();
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn wrong_password_and_anonymous_logins_are_refused() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (_client, mut events) = rumqttc::AsyncClient::new(options3("bad-311", port, "wrong"), 4);
+    let refused = tmo!(events.poll());
+    assert!(
+        matches!(
+            refused,
+            Err(rumqttc::ConnectionError::ConnectionRefused(
+                rumqttc::ConnectReturnCode::BadUserNamePassword
+            ))
+        ),
+        "{refused:?}"
+    );
+    let (_client, mut events) = rumqttc::v5::AsyncClient::new(options5("bad-5", port, "wrong"), 4);
+    let refused = tmo!(events.poll());
+    assert!(
+        matches!(
+            refused,
+            Err(rumqttc::v5::ConnectionError::ConnectionRefused(
+                rumqttc::v5::mqttbytes::v5::ConnectReturnCode::BadUserNamePassword
+            ))
+        ),
+        "{refused:?}"
+    );
+    let anonymous = rumqttc::MqttOptions::new("anon", "127.0.0.1", port);
+    let (_client, mut events) = rumqttc::AsyncClient::new(anonymous, 4);
+    let refused = tmo!(events.poll());
+    assert!(
+        matches!(
+            refused,
+            Err(rumqttc::ConnectionError::ConnectionRefused(
+                rumqttc::ConnectReturnCode::NotAuthorized
+            ))
+        ),
+        "{refused:?}"
+    );
+    // A vhost that does not exist: `vhost:user`.
+    let mut elsewhere = rumqttc::MqttOptions::new("elsewhere", "127.0.0.1", port);
+    elsewhere.set_credentials("nowhere:robot", "secret");
+    let (_client, mut events) = rumqttc::AsyncClient::new(elsewhere, 4);
+    let refused = tmo!(events.poll());
+    assert!(
+        matches!(
+            refused,
+            Err(rumqttc::ConnectionError::ConnectionRefused(
+                rumqttc::ConnectReturnCode::NotAuthorized
+            ))
+        ),
+        "{refused:?}"
+    );
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn an_amqp_publish_to_amq_topic_reaches_an_mqtt_subscriber() {
+    let handle = start(Limits::default()).await;
+    let (client, mut events) =
+        rumqttc::AsyncClient::new(options3("from-amqp", mqtt_port(&handle), "secret"), 16);
+    until3(&mut events, |p| {
+        matches!(p, Incoming::ConnAck(_)).then_some(())
+    })
+    .await;
+    client.subscribe("a/b", QoS::AtMostOnce).await.unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(&handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    tmo!(channel.basic_publish(
+        "amq.topic",
+        "a.b",
+        Default::default(),
+        b"from amqp",
+        Default::default()
+    ))
+    .unwrap();
+    let publish = until3(&mut events, |p| match p {
+        Incoming::Publish(p) => Some(p.clone()),
+        _ => None,
+    })
+    .await;
+    assert_eq!(
+        (publish.topic.as_str(), &publish.payload[..]),
+        ("a/b", &b"from amqp"[..])
+    );
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn an_mqtt_publish_reaches_an_amqp_queue_bound_with_a_wildcard() {
+    let handle = start(Limits::default()).await;
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(&handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    tmo!(channel.queue_declare("readings", Default::default(), Default::default())).unwrap();
+    tmo!(channel.queue_bind(
+        "readings",
+        "amq.topic",
+        "a.*",
+        Default::default(),
+        Default::default()
+    ))
+    .unwrap();
+    let (client, mut events) =
+        rumqttc::AsyncClient::new(options3("to-amqp", mqtt_port(&handle), "secret"), 16);
+    until3(&mut events, |p| {
+        matches!(p, Incoming::ConnAck(_)).then_some(())
+    })
+    .await;
+    client
+        .publish("a/b", QoS::AtLeastOnce, false, "from mqtt")
+        .await
+        .unwrap();
+    // PUBACK only once routed: the message is in the queue by then.
+    until3(&mut events, |p| {
+        matches!(p, Incoming::PubAck(_)).then_some(())
+    })
+    .await;
+    let got = tmo!(channel.basic_get("readings", Default::default()))
+        .unwrap()
+        .expect("the message is in the queue when PUBACK arrives");
+    assert_eq!(got.delivery.routing_key.as_str(), "a.b");
+    assert_eq!(got.delivery.exchange.as_str(), "amq.topic");
+    assert_eq!(&got.delivery.data[..], b"from mqtt");
+    assert_eq!(
+        got.delivery.properties.delivery_mode(),
+        &Some(2),
+        "QoS 1 is published persistent"
+    );
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_clean_session_queue_lives_as_long_as_its_connection() {
+    let handle = start(Limits::default()).await;
+    let (client, mut events) =
+        rumqttc::AsyncClient::new(options3("cleaner", mqtt_port(&handle), "secret"), 16);
+    until3(&mut events, |p| {
+        matches!(p, Incoming::ConnAck(_)).then_some(())
+    })
+    .await;
+    client.subscribe("x/y", QoS::AtLeastOnce).await.unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    let names = |h: &BrokerHandle| -> Vec<String> {
+        h.queues().into_iter().map(|q| q.name).collect::<Vec<_>>()
+    };
+    assert!(names(&handle).contains(&"mqtt-subscription-cleanerqos1".to_owned()));
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    within("the queue deleted", async {
+        while names(&handle)
+            .iter()
+            .any(|n| n.starts_with("mqtt-subscription-"))
+        {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_second_connect_with_the_same_client_id_takes_over() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let mut first = Raw::login_as(port, 0, ProtocolVersion::V5, "twin").await;
+    first
+        .send(Packet::Subscribe(leveret_mqtt::Subscribe {
+            packet_id: std::num::NonZeroU16::new(1).unwrap(),
+            properties: Default::default(),
+            subscriptions: vec![leveret_mqtt::Subscription {
+                filter: leveret_mqtt::TopicFilter::from_static("t/1"),
+                options: leveret_mqtt::SubscriptionOptions {
+                    qos: leveret_mqtt::QoS::AtLeastOnce,
+                    ..Default::default()
+                },
+            }],
+        }))
+        .await;
+    assert!(matches!(first.next().await, Some(Packet::SubAck(_))));
+    let (second, mut second_events) =
+        rumqttc::v5::AsyncClient::new(options5("twin", port, "secret"), 16);
+    until5(&mut second_events, |p| {
+        matches!(p, Packet5::ConnAck(_)).then_some(())
+    })
+    .await;
+    // The first is told why, then closed.
+    match first.next().await {
+        Some(Packet::Disconnect(d)) => {
+            assert_eq!(d.reason, leveret_mqtt::ReasonCode::SessionTakenOver)
+        }
+        other => panic!("expected DISCONNECT, got {other:?}"),
+    }
+    first.assert_closed().await;
+    // The new session can subscribe: the old one's exclusive queue is gone.
+    second
+        .subscribe("t/1", rumqttc::v5::mqttbytes::QoS::AtLeastOnce)
+        .await
+        .unwrap();
+    until5(&mut second_events, |p| {
+        matches!(p, Packet5::SubAck(_)).then_some(())
+    })
+    .await;
+    handle.shutdown().await;
+}
+
+// ---------------------------------------------------------------------------
+// A raw client on the codec, for what a well-behaved client never does.
+
+struct Raw {
+    socket: TcpStream,
+    buf: BytesMut,
+    version: ProtocolVersion,
+}
+
+impl Raw {
+    async fn connect(port: u16) -> Raw {
+        let socket = tmo!(TcpStream::connect(("127.0.0.1", port))).unwrap();
+        Raw {
+            socket,
+            buf: BytesMut::new(),
+            version: ProtocolVersion::V3_1_1,
+        }
+    }
+
+    async fn send(&mut self, packet: Packet) {
+        let mut out = BytesMut::new();
+        packet.encode(self.version, &mut out).unwrap();
+        self.socket.write_all(&out).await.unwrap();
+    }
+
+    async fn login(port: u16, keep_alive: u16) -> Raw {
+        Raw::login_as(port, keep_alive, ProtocolVersion::V3_1_1, "raw").await
+    }
+
+    async fn login_as(port: u16, keep_alive: u16, version: ProtocolVersion, id: &str) -> Raw {
+        Raw::login_with(port, keep_alive, version, id, ("robot", "secret")).await
+    }
+
+    async fn login_with(
+        port: u16,
+        keep_alive: u16,
+        version: ProtocolVersion,
+        id: &str,
+        (user, password): (&str, &str),
+    ) -> Raw {
+        let mut raw = Raw::connect(port).await;
+        raw.version = version;
+        raw.send(Packet::Connect(Box::new(Connect {
+            version,
+            clean_start: true,
+            keep_alive,
+            properties: Default::default(),
+            client_id: leveret_mqtt::MqttString::from_utf8(Bytes::copy_from_slice(id.as_bytes()))
+                .unwrap(),
+            will: None,
+            username: Some(
+                leveret_mqtt::MqttString::from_utf8(Bytes::copy_from_slice(user.as_bytes()))
+                    .unwrap(),
+            ),
+            password: Some(Bytes::copy_from_slice(password.as_bytes())),
+        })))
+        .await;
+        assert!(
+            matches!(raw.next().await, Some(Packet::ConnAck(a)) if a.reason == leveret_mqtt::ReasonCode::Success)
+        );
+        raw
+    }
+
+    /// The next packet; `None` once the broker has closed the connection.
+    async fn next(&mut self) -> Option<Packet> {
+        tokio::time::timeout(CLOSE_WITHIN, async {
+            loop {
+                if let Some(packet) = decode_packet(&mut self.buf, self.version, 1 << 20).unwrap() {
+                    return Some(packet);
+                }
+                match self.socket.read_buf(&mut self.buf).await {
+                    Ok(0) | Err(_) => return None,
+                    Ok(_) => {}
+                }
+            }
+        })
+        .await
+        .expect("the broker answered or closed in time")
+    }
+
+    /// Asserts the broker closes the connection (within [`CLOSE_WITHIN`]).
+    async fn assert_closed(&mut self) {
+        while let Some(packet) = self.next().await {
+            assert!(
+                !matches!(packet, Packet::ConnAck(_)),
+                "no CONNACK expected, got {packet:?}"
+            );
+        }
+    }
+}
+
+#[both_runtimes]
+async fn garbage_before_connect_or_a_second_connect_closes_the_connection() {
+    let handle = start(Limits::default()).await;
+    let mut raw = Raw::connect(mqtt_port(&handle)).await;
+    raw.socket
+        .write_all(b"GET / HTTP/1.1\r\n\r\n")
+        .await
+        .unwrap();
+    raw.assert_closed().await;
+    // A PINGREQ is a valid packet, but not a CONNECT.
+    let mut raw = Raw::connect(mqtt_port(&handle)).await;
+    raw.send(Packet::PingReq).await;
+    raw.assert_closed().await;
+    // A second CONNECT on a session is a protocol error.
+    let mut raw = Raw::login(mqtt_port(&handle), 0).await;
+    let mut again = BytesMut::new();
+    Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V3_1_1,
+        clean_start: true,
+        keep_alive: 0,
+        properties: Default::default(),
+        client_id: leveret_mqtt::MqttString::from_utf8(Bytes::from_static(b"raw")).unwrap(),
+        will: None,
+        username: None,
+        password: None,
+    }))
+    .encode(ProtocolVersion::V3_1_1, &mut again)
+    .unwrap();
+    raw.socket.write_all(&again).await.unwrap();
+    raw.assert_closed().await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_client_that_never_sends_connect_is_closed_by_the_handshake_timeout() {
+    let limits = Limits {
+        handshake_timeout: Duration::from_millis(500),
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let mut raw = Raw::connect(mqtt_port(&handle)).await;
+    raw.assert_closed().await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_silent_client_is_closed_after_one_and_a_half_keepalives() {
+    let handle = start(Limits::default()).await;
+    let mut raw = Raw::login(mqtt_port(&handle), 1).await;
+    // A PINGREQ is answered and keeps the session alive.
+    raw.send(Packet::PingReq).await;
+    assert_eq!(raw.next().await, Some(Packet::PingResp));
+    raw.assert_closed().await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_packet_over_the_size_limit_closes_the_connection() {
+    let limits = Limits {
+        max_message_size: 4096,
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let mut raw = Raw::login(mqtt_port(&handle), 0).await;
+    // Only the fixed header and a little of the body are sent: the broker
+    // refuses from the declared length without waiting for the rest.
+    raw.socket
+        .write_all(&[0x30, 0x80, 0x80, 0x04, 0x00, 0x01, b'a'])
+        .await
+        .unwrap();
+    raw.assert_closed().await;
+    // Before CONNECT the limit is 64 KiB, whatever max_message_size says.
+    let mut raw = Raw::connect(mqtt_port(&handle)).await;
+    raw.socket
+        .write_all(&[0x10, 0xff, 0xff, 0x7f])
+        .await
+        .unwrap();
+    raw.assert_closed().await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_qos_2_publish_sent_twice_is_routed_once() {
+    let handle = start(Limits::default()).await;
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(&handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    tmo!(channel.queue_declare("exactly", Default::default(), Default::default())).unwrap();
+    tmo!(channel.queue_bind(
+        "exactly",
+        "amq.topic",
+        "q2.#",
+        Default::default(),
+        Default::default()
+    ))
+    .unwrap();
+    let mut raw = Raw::login(mqtt_port(&handle), 0).await;
+    let id = std::num::NonZeroU16::new(7).unwrap();
+    let publish = |dup| {
+        Packet::Publish(Publish {
+            dup,
+            delivery: Delivery::ExactlyOnce(id),
+            retain: false,
+            topic: TopicName::from_static("q2/once"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"once"),
+        })
+    };
+    raw.send(publish(false)).await;
+    assert_eq!(raw.next().await, Some(Packet::PubRec(PubResponse::new(id))));
+    // The client did not see the PUBREC and sends it again.
+    raw.send(publish(true)).await;
+    assert_eq!(raw.next().await, Some(Packet::PubRec(PubResponse::new(id))));
+    raw.send(Packet::PubRel(PubResponse::new(id))).await;
+    assert_eq!(
+        raw.next().await,
+        Some(Packet::PubComp(PubResponse::new(id)))
+    );
+    let declared =
+        tmo!(channel.queue_declare("exactly", Default::default(), Default::default())).unwrap();
+    assert_eq!(declared.message_count(), 1, "routed exactly once");
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_will_is_published_when_the_connection_drops_and_not_after_disconnect() {
+    let handle = start(Limits::default()).await;
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(&handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    tmo!(channel.queue_declare("wills", Default::default(), Default::default())).unwrap();
+    tmo!(channel.queue_bind(
+        "wills",
+        "amq.topic",
+        "status.#",
+        Default::default(),
+        Default::default()
+    ))
+    .unwrap();
+    let port = mqtt_port(&handle);
+    for (id, graceful) in [("dropper", false), ("leaver", true)] {
+        let mut options = options3(id, port, "secret");
+        options.set_last_will(rumqttc::LastWill::new(
+            format!("status/{id}"),
+            "gone",
+            QoS::AtLeastOnce,
+            false,
+        ));
+        let (client, mut events) = rumqttc::AsyncClient::new(options, 16);
+        until3(&mut events, |p| {
+            matches!(p, Incoming::ConnAck(_)).then_some(())
+        })
+        .await;
+        if graceful {
+            client.disconnect().await.unwrap();
+            let _ = tmo!(events.poll());
+            let _ = tmo!(events.poll());
+        }
+        // Dropping the event loop drops the socket without DISCONNECT.
+        drop(events);
+    }
+    let got = within("the dropped client's will", async {
+        loop {
+            if let Some(message) = channel
+                .basic_get("wills", lapin::options::BasicGetOptions { no_ack: true })
+                .await
+                .unwrap()
+            {
+                return message;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    assert_eq!(got.delivery.routing_key.as_str(), "status.dropper");
+    assert_eq!(&got.delivery.data[..], b"gone");
+    // The graceful client's session has ended too (its CONNACK came
+    // before the dropper's close was seen): no second will.
+    within("both sessions ended", async {
+        while handle.overview().object_totals.connections > 1 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    let declared =
+        tmo!(channel.queue_declare("wills", Default::default(), Default::default())).unwrap();
+    assert_eq!(declared.message_count(), 0, "no will after DISCONNECT");
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn subscriptions_beyond_the_session_limit_are_refused_in_the_suback() {
+    let handle = start(Limits::default()).await;
+    let mut raw = Raw::login(mqtt_port(&handle), 0).await;
+    let subscriptions: Vec<_> = (0..4097)
+        .map(|i| leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::new(
+                leveret_mqtt::MqttString::from_utf8(Bytes::from(format!("f/{i}"))).unwrap(),
+            )
+            .unwrap(),
+            options: Default::default(),
+        })
+        .collect();
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions,
+    }))
+    .await;
+    let Some(Packet::SubAck(suback)) = raw.next().await else {
+        panic!("expected SUBACK");
+    };
+    assert_eq!(suback.reasons.len(), 4097);
+    assert!(suback.reasons[..4096]
+        .iter()
+        .all(|r| *r == leveret_mqtt::ReasonCode::GRANTED_QOS_0));
+    assert_eq!(
+        suback.reasons[4096],
+        leveret_mqtt::ReasonCode::UnspecifiedError
+    );
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn qos_1_deliveries_wait_for_puback_within_a_window_of_ten() {
+    let handle = start(Limits::default()).await;
+    let mut options = options3("windowed", mqtt_port(&handle), "secret");
+    options.set_manual_acks(true);
+    let (client, mut events) = rumqttc::AsyncClient::new(options, 64);
+    until3(&mut events, |p| {
+        matches!(p, Incoming::ConnAck(_)).then_some(())
+    })
+    .await;
+    client.subscribe("w/#", QoS::AtLeastOnce).await.unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(&handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    let persistent = lapin::BasicProperties::default().with_delivery_mode(2);
+    for i in 0..20u8 {
+        tmo!(channel.basic_publish(
+            "amq.topic",
+            "w.x",
+            Default::default(),
+            &[i],
+            persistent.clone()
+        ))
+        .unwrap();
+    }
+    let mut held = Vec::new();
+    for _ in 0..10 {
+        held.push(
+            until3(&mut events, |p| match p {
+                Incoming::Publish(p) => Some(p.clone()),
+                _ => None,
+            })
+            .await,
+        );
+    }
+    assert!(held.iter().all(|p| p.qos == QoS::AtLeastOnce));
+    // No eleventh until one is acknowledged.
+    let more = tokio::time::timeout(QUIET, async {
+        loop {
+            if let Ok(Event::Incoming(Incoming::Publish(p))) = events.poll().await {
+                return p;
+            }
+        }
+    })
+    .await;
+    assert!(
+        more.is_err(),
+        "an eleventh delivery beyond the window: {more:?}"
+    );
+    client.ack(&held[0]).await.unwrap();
+    let next = until3(&mut events, |p| match p {
+        Incoming::Publish(p) => Some(p.clone()),
+        _ => None,
+    })
+    .await;
+    assert_eq!(&next.payload[..], &[10]);
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_qos_1_publish_into_a_durable_queue_survives_a_restart_and_qos_0_does_not() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-durable"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(&handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    let durable = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    tmo!(channel.queue_declare("kept", durable, Default::default())).unwrap();
+    tmo!(channel.queue_bind(
+        "kept",
+        "amq.topic",
+        "d.#",
+        Default::default(),
+        Default::default()
+    ))
+    .unwrap();
+    let (client, mut events) =
+        rumqttc::AsyncClient::new(options3("durable", mqtt_port(&handle), "secret"), 16);
+    until3(&mut events, |p| {
+        matches!(p, Incoming::ConnAck(_)).then_some(())
+    })
+    .await;
+    client
+        .publish("d/0", QoS::AtMostOnce, false, "transient")
+        .await
+        .unwrap();
+    client
+        .publish("d/1", QoS::AtLeastOnce, false, "kept")
+        .await
+        .unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::PubAck(_)).then_some(())
+    })
+    .await;
+    drop(events);
+    drop(amqp);
+    handle.shutdown().await;
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(&handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    let kept = tmo!(channel.basic_get("kept", lapin::options::BasicGetOptions { no_ack: true }))
+        .unwrap()
+        .expect("the QoS 1 message survived the restart");
+    assert_eq!(&kept.delivery.data[..], b"kept");
+    let declared = tmo!(channel.queue_declare("kept", durable, Default::default())).unwrap();
+    assert_eq!(
+        declared.message_count(),
+        0,
+        "the QoS 0 message was transient"
+    );
+    drop(amqp);
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[both_runtimes]
+async fn persistent_sessions_are_refused_in_3_1_1_and_shortened_in_5_0() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let mut options = options3("keeper-311", port, "secret");
+    options.set_clean_session(false);
+    let (_client, mut events) = rumqttc::AsyncClient::new(options, 4);
+    let refused = tmo!(events.poll());
+    assert!(
+        matches!(
+            refused,
+            Err(rumqttc::ConnectionError::ConnectionRefused(
+                rumqttc::ConnectReturnCode::ServiceUnavailable
+            ))
+        ),
+        "{refused:?}"
+    );
+    let mut options = options5("keeper-5", port, "secret");
+    options.set_clean_start(false);
+    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+    properties.session_expiry_interval = Some(3600);
+    options.set_connect_properties(properties);
+    let (_client, mut events) = rumqttc::v5::AsyncClient::new(options, 4);
+    let connack = until5(&mut events, |p| match p {
+        Packet5::ConnAck(ack) => Some(ack.clone()),
+        _ => None,
+    })
+    .await;
+    assert!(!connack.session_present);
+    let properties = connack.properties.expect("CONNACK properties");
+    assert_eq!(
+        properties.session_expiry_interval,
+        Some(0),
+        "told: no session after the connection"
+    );
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_publish_the_user_may_not_write_closes_with_not_authorized() {
+    let builder = Broker::builder().user("reader", "pw").permission(
+        "reader",
+        "/",
+        leveret_broker::Permission {
+            configure: ".*".into(),
+            write: String::new(),
+            read: ".*".into(),
+        },
+    );
+    let handle = start_with(builder, Limits::default()).await;
+    let mut raw = Raw::login_with(
+        mqtt_port(&handle),
+        0,
+        ProtocolVersion::V5,
+        "reader",
+        ("reader", "pw"),
+    )
+    .await;
+    raw.send(Packet::Publish(Publish {
+        dup: false,
+        delivery: Delivery::AtLeastOnce(std::num::NonZeroU16::new(1).unwrap()),
+        retain: false,
+        topic: TopicName::from_static("not/mine"),
+        properties: Default::default(),
+        payload: Bytes::from_static(b"x"),
+    }))
+    .await;
+    match raw.next().await {
+        Some(Packet::Disconnect(d)) => {
+            assert_eq!(d.reason, leveret_mqtt::ReasonCode::NotAuthorized)
+        }
+        other => panic!("expected DISCONNECT 0x87, got {other:?}"),
+    }
+    raw.assert_closed().await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_configured_anonymous_login_lets_clients_without_a_user_name_in() {
+    let builder = Broker::builder().mqtt_anonymous_login("robot", "secret");
+    let handle = start_with(builder, Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let anonymous = rumqttc::MqttOptions::new("anon-ok", "127.0.0.1", port);
+    let (_client, mut events) = rumqttc::AsyncClient::new(anonymous, 4);
+    until3(&mut events, |p| {
+        matches!(p, Incoming::ConnAck(_)).then_some(())
+    })
+    .await;
+    // Its password is checked like any other.
+    let builder = Broker::builder().mqtt_anonymous_login("robot", "not-the-password");
+    let wrong = start_with(builder, Limits::default()).await;
+    let anonymous = rumqttc::MqttOptions::new("anon-bad", "127.0.0.1", mqtt_port(&wrong));
+    let (_client, mut events) = rumqttc::AsyncClient::new(anonymous, 4);
+    let refused = tmo!(events.poll());
+    assert!(
+        matches!(
+            refused,
+            Err(rumqttc::ConnectionError::ConnectionRefused(
+                rumqttc::ConnectReturnCode::BadUserNamePassword
+            ))
+        ),
+        "{refused:?}"
+    );
+    wrong.shutdown().await;
+    handle.shutdown().await;
+}
