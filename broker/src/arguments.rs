@@ -75,6 +75,14 @@ const fn other_type(name: &'static str, meaning: &'static str) -> Argument {
     queue(name, Support::Refused(QUORUM_OR_STREAM), meaning)
 }
 
+/// The header a consumer that asks for it (basic.consume argument
+/// `x-leveret-position: true`) finds on each delivery: the queue's name for
+/// positions and the message's position in it, `NAME.SEQ`. The same message
+/// delivered again (after a requeue, a reconnect, a restart) carries the
+/// same value and no other message ever does, so a forwarder (the uplink's
+/// shovels) can give its destination a stable id to drop duplicates by.
+pub const POSITION_HEADER: &str = "x-leveret-position";
+
 /// Every argument RabbitMQ 3.10 knows (and Leveret's own
 /// `x-leveret-position`), with what Leveret does with it.
 pub const ARGUMENTS: &[Argument] = &[
@@ -150,7 +158,7 @@ pub const ARGUMENTS: &[Argument] = &[
         meaning: "start the consumer in credit mode",
     },
     Argument {
-        name: crate::queue::POSITION_HEADER,
+        name: POSITION_HEADER,
         scope: Scope::Consumer,
         support: Support::Implemented,
         compared: false,

@@ -179,7 +179,7 @@ pub struct Consumer {
     /// `x-priority` (RabbitMQ): higher-priority consumers are served first.
     pub priority: i64,
     /// `x-leveret-position`: each delivery carries the queue's
-    /// [`POSITION_HEADER`](crate::queue::POSITION_HEADER).
+    /// [`POSITION_HEADER`](crate::arguments::POSITION_HEADER).
     pub wants_position: bool,
     /// Unacked deliveries to this consumer.
     pub in_flight: AtomicU32,

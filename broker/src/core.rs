@@ -5,9 +5,9 @@
 //! an `Arc` of it to every connection and its channels. It uses the vhost
 //! layer and below, never a connection.
 
+use crate::admission::Admission;
 use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
-use crate::connection::Admission;
 use crate::memory::MemoryGauge;
 use crate::parameters::Parameters;
 use crate::permissions::Permissions;

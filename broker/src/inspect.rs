@@ -478,18 +478,6 @@ impl QueueRef {
     }
 }
 
-/// The ready part of a queue, read under its lock.
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct QueueDepth {
-    pub ready: u64,
-    /// Read under the same hold of the queue's lock as `ready`: a requeue
-    /// moves a message from one to the other under it, so their sum never
-    /// dips while messages come back.
-    pub unacked: u64,
-    pub ready_bytes: u64,
-    pub consumers: u64,
-}
-
 /// Queues copied out of a vhost's registry per hold of its lock:
 /// measured, copying 100k at once held it 4-12 ms; a chunk of this size
 /// holds it well under a millisecond, and a declare waiting for the

@@ -25,33 +25,43 @@
 //! The crate is built in layers. Each uses only the layers below it and
 //! the shared pieces beside them, never one above: a lower layer that
 //! needs something done above returns it as a value (a queue's dead
-//! letters) instead of calling up.
+//! letters) instead of calling up. `tests/layering.rs` holds this table
+//! against every `crate::` and `super::` path in the code.
 //!
 //! 1. **Server**: `embed` (the builder and handle, the public entry
 //!    point), `server` (TCP listeners, the accept loop, the TTL/expiry
 //!    sweeper), `connection` (handshake, the reader loop, heartbeats,
 //!    closing; `connection::writer` owns the socket's write half),
-//!    `recovery` (durable state rebuilt at start), `busy_poll` (polling
-//!    for input for a short, adaptive window after socket reads instead of
-//!    sleeping), `mqtt` (MQTT listeners and sessions: a front end that
-//!    drives the core through an in-process AMQP link, as RabbitMQ's MQTT
-//!    plugin did through its direct connection). May use every layer below.
-//! 2. **Channel**: `channel`, content assembly and one module per AMQP
-//!    class (`basic`, `queue`, `exchange`, `tx`, `reply_to`). Uses the
-//!    core and below; knows no connection and no socket.
-//! 3. **Core**: `core`, the state every connection shares (vhosts, users,
+//!    `recovery` (durable state rebuilt at start), `mqtt` (MQTT listeners
+//!    and sessions: a front end that drives the core through an in-process
+//!    AMQP link, as RabbitMQ's MQTT plugin did through its direct
+//!    connection). May use every layer below.
+//! 2. **Operators**: `admin` ([`Admin`], a cloneable handle for tools:
+//!    object operations, closing connections, runtime parameters),
+//!    `inspect` (reads the layers below into plain structs with
+//!    RabbitMQ's field meanings, as `BrokerHandle::overview` does),
+//!    `as_user` (the same operations checked against a user's
+//!    permissions), `access` (users, vhosts and permissions that last).
+//!    No layer below calls them.
+//! 3. **Channel**: `channel`, content assembly and one module per AMQP
+//!    class (`basic`, `queue`, `exchange`, `tx`, `reply_to`); a whole
+//!    publish from an in-process client is its input type. Uses the core
+//!    and below; knows no connection and no socket.
+//! 4. **Core**: `core`, the state every connection shares (vhosts, users,
 //!    limits, the memory gauge, the store handle, the shutdown signal,
 //!    connection.start's server properties). Uses vhosts and below.
-//! 4. **Vhost and exchanges**: `vhost` (declare, delete, bind, route),
+//! 5. **Vhost and exchanges**: `vhost` (declare, delete, bind, route),
 //!    `routing` (a published message's way through exchanges to the
 //!    queues it reaches), `exchange` (the kinds and their bindings: the
-//!    `topic` trie, `headers` matching, the binding registry), `deadletter` (routing the dead letters queue
-//!    operations return: a work list with RabbitMQ's cycle rule and a
-//!    budget). Use queues and below.
-//! 5. **Queue**: `queue` (the FIFO, dispatch to consumers, TTL,
+//!    `topic` trie, `headers` matching, the binding registry), `deadletter`
+//!    (routing the dead letters queue operations return: a work list with
+//!    RabbitMQ's cycle rule and a budget). Use queues and below.
+//! 6. **Queue**: `queue` (the FIFO, dispatch to consumers, TTL,
 //!    max-length, durable index entries; dead letters are returned to the
-//!    caller). Uses consumers, outboxes and the store.
-//! 6. **Consumer and outbox**: `consumer` (delivery tags, unacked
+//!    caller), and beside it `registry` (open connections and channels, for
+//!    listing and for closing one from outside). Uses consumers, outboxes
+//!    and the store.
+//! 7. **Consumer and outbox**: `consumer` (delivery tags, unacked
 //!    bookkeeping, prefetch credit, direct reply-to targets), `outbox`
 //!    (what goes to a connection's writer, with backpressure). A queue,
 //!    its consumers and the outboxes they deliver through know each other
@@ -61,28 +71,29 @@
 //! Beside the layers: `store` (the [`store::Store`] trait, the key codec,
 //! the group-commit persister), used from the queue layer up and using
 //! nothing of the broker but `stats` (its histograms) and `word_hash`;
-//! and the pieces every layer may use: `message`
-//! (a message as the broker holds it), `memory` (the memory alarm) and
-//! `resident_memory` (the process's resident memory from /proc, one of
-//! the alarm's sources), `disk_alarm` (free disk space, the disk alarm's
-//! source),
-//! `auth` (users and SASL), `password` (password hashes), `error` (reply
-//! errors), `word_hash` (a cheap hasher for small integer keys).
-//!
-//! Beside them too, for operators: `stats` (message and churn counters
-//! with RabbitMQ's meanings, relaxed atomic adds on the hot path),
-//! `registry` (open connections and channels, for listing and for
-//! closing one from outside), and `admin` ([`Admin`], a cloneable handle
-//! for tools that closes connections and, through `inspect`, reads all of
-//! the above into plain structs with RabbitMQ's field meanings, as
-//! `BrokerHandle::overview` does; `as_user` does its operations on behalf
-//! of one user, checked against their permissions). They read the layers; no layer calls
-//! them except to bump a counter or keep a registration.
+//! and the pieces every layer may use, which use only each other and the
+//! store: `message` (a message as the broker holds it), `memory` (the
+//! memory alarm) and `resident_memory` (the process's resident memory
+//! from /proc, one of the alarm's sources), `disk_alarm` (free disk space,
+//! the disk alarm's source), `admission` (connections and channels
+//! counted against RabbitMQ's connection, vhost and user limits),
+//! `arguments` (every argument RabbitMQ 3.10 knows and what Leveret does
+//! with it), `auth` (users and SASL), `password` (password hashes),
+//! `hash_pool` (the bounded threads that check slow hashes) and
+//! `login_backoff` (failed logins answered later), `permissions`,
+//! `parameters` (runtime parameters as the core keeps them), `busy_poll`
+//! and `cpu_pressure` (polling for input for a short, adaptive window
+//! after socket reads instead of sleeping), `tls`, `error` (reply
+//! errors), `slice` (long work in time slices: the stall budget), `stats`
+//! (message and churn counters with RabbitMQ's meanings, relaxed atomic
+//! adds on the hot path) and `word_hash` (a cheap hasher for small
+//! integer keys).
 #![forbid(unsafe_code)]
 #![deny(missing_docs)]
 
 mod access;
 mod admin;
+mod admission;
 mod arguments;
 mod as_user;
 mod auth;
@@ -128,6 +139,7 @@ mod word_hash;
 
 pub use crate::access::AccessError;
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
+pub use crate::arguments::POSITION_HEADER;
 pub use crate::arguments::{
     classic_queue_arguments, Argument, Scope as ArgumentScope, Support as ArgumentSupport,
     ARGUMENTS,
@@ -142,7 +154,7 @@ pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_
 pub use crate::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,
 };
-pub use crate::queue::{process_nonce, POSITION_HEADER};
+pub use crate::queue::process_nonce;
 pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use crate::stats::HistogramFigures;
 pub use crate::tls::{PeerVerification, TlsError, TlsOptions};

@@ -2,14 +2,13 @@
 //! (a component, a vhost, a name and a JSON value), kept in the store so
 //! they last, as RabbitMQ keeps them. The broker does not interpret them;
 //! their component's owner does (the `leveret` binary runs the `shovel`
-//! ones). Changes go through the same lock and atomic, flushed write as
-//! users and permissions (`access`).
+//! ones). This module holds them, as the core keeps them; changing them is
+//! the operators' (`admin::parameters`), through the same lock and atomic,
+//! flushed write as users and permissions.
 //!
-//! Uses `store`, `core` and `access`.
+//! Uses `store`.
 
-use crate::access::AccessError;
-use crate::admin::Admin;
-use crate::store::{MetaKey, MetaRecord, Recovered, StoreOp};
+use crate::store::{MetaRecord, Recovered};
 use std::collections::BTreeMap;
 use std::sync::RwLock;
 
@@ -47,143 +46,11 @@ impl Parameters {
         }
     }
 
-    fn write(&self) -> std::sync::RwLockWriteGuard<'_, BTreeMap<Key, String>> {
+    pub(crate) fn write(&self) -> std::sync::RwLockWriteGuard<'_, BTreeMap<Key, String>> {
         self.values.write().unwrap_or_else(|e| e.into_inner())
     }
 
-    fn read(&self) -> std::sync::RwLockReadGuard<'_, BTreeMap<Key, String>> {
+    pub(crate) fn read(&self) -> std::sync::RwLockReadGuard<'_, BTreeMap<Key, String>> {
         self.values.read().unwrap_or_else(|e| e.into_inner())
-    }
-}
-
-impl Admin {
-    /// Sets a runtime parameter (RabbitMQ's `set_parameter COMPONENT NAME
-    /// VALUE -p VHOST`): on disk before it returns.
-    pub async fn set_parameter(
-        &self,
-        component: &str,
-        vhost: &str,
-        name: &str,
-        value: String,
-    ) -> Result<(), AccessError> {
-        if component.is_empty() || name.is_empty() {
-            return Err(AccessError::BadName(
-                "a parameter needs a component and a name".to_owned(),
-            ));
-        }
-        let _turn = self.core.access_changes.lock().await;
-        self.write_meta(vec![StoreOp::PutMeta(MetaRecord::Parameter {
-            component: component.to_owned(),
-            vhost: vhost.to_owned(),
-            name: name.to_owned(),
-            value: value.clone(),
-        })])
-        .await?;
-        self.core.parameters.write().insert(
-            (component.to_owned(), vhost.to_owned(), name.to_owned()),
-            value,
-        );
-        Ok(())
-    }
-
-    /// Clears a runtime parameter (`clear_parameter`); false if there was
-    /// none.
-    pub async fn clear_parameter(
-        &self,
-        component: &str,
-        vhost: &str,
-        name: &str,
-    ) -> Result<bool, AccessError> {
-        let key = (component.to_owned(), vhost.to_owned(), name.to_owned());
-        let _turn = self.core.access_changes.lock().await;
-        if !self.core.parameters.read().contains_key(&key) {
-            return Ok(false);
-        }
-        self.write_meta(vec![StoreOp::DeleteMeta(MetaKey::Parameter {
-            component: key.0.clone(),
-            vhost: key.1.clone(),
-            name: key.2.clone(),
-        })])
-        .await?;
-        self.core.parameters.write().remove(&key);
-        Ok(true)
-    }
-
-    /// A component's parameters as (vhost, name, value), in order.
-    pub fn parameters(&self, component: &str) -> Vec<(String, String, String)> {
-        self.core
-            .parameters
-            .read()
-            .iter()
-            .filter(|((c, ..), _)| c == component)
-            .map(|((_, vhost, name), value)| (vhost.clone(), name.clone(), value.clone()))
-            .collect()
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use crate::store::MemoryStore;
-    use crate::Broker;
-    use std::sync::Arc;
-
-    async fn parameters_last_until_cleared() {
-        let store = Arc::new(MemoryStore::default());
-        let broker = Broker::builder()
-            .store(store.clone())
-            .start()
-            .await
-            .unwrap();
-        let admin = broker.admin();
-        admin
-            .set_parameter("shovel", "/", "up", r#"{"a":1}"#.into())
-            .await
-            .unwrap();
-        admin
-            .set_parameter("shovel", "cell", "up", r#"{"b":2}"#.into())
-            .await
-            .unwrap();
-        admin
-            .set_parameter("federation-upstream", "/", "fleet", "{}".into())
-            .await
-            .unwrap();
-        assert!(admin
-            .set_parameter("", "/", "x", "{}".into())
-            .await
-            .is_err());
-        broker.shutdown().await;
-
-        let broker = Broker::builder()
-            .store(store.clone())
-            .start()
-            .await
-            .unwrap();
-        let admin = broker.admin();
-        assert_eq!(
-            admin.parameters("shovel"),
-            [
-                ("/".into(), "up".into(), r#"{"a":1}"#.into()),
-                ("cell".into(), "up".into(), r#"{"b":2}"#.into())
-            ]
-        );
-        assert_eq!(admin.clear_parameter("shovel", "/", "up").await, Ok(true));
-        assert_eq!(admin.clear_parameter("shovel", "/", "up").await, Ok(false));
-        broker.shutdown().await;
-
-        let broker = Broker::builder().store(store).start().await.unwrap();
-        let admin = broker.admin();
-        assert_eq!(admin.parameters("shovel").len(), 1);
-        assert_eq!(admin.parameters("federation-upstream").len(), 1);
-        broker.shutdown().await;
-    }
-
-    #[tokio::test]
-    async fn parameters_last_current_thread() {
-        parameters_last_until_cleared().await;
-    }
-
-    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    async fn parameters_last_multi_thread() {
-        parameters_last_until_cleared().await;
     }
 }

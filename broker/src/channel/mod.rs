@@ -21,7 +21,6 @@ mod queue;
 mod reply_to;
 mod tx;
 
-use crate::connection::WholePublish;
 use crate::consumer::{ChannelLink, Consumer};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
@@ -42,6 +41,18 @@ use leveret_protocol::{
 };
 use std::collections::HashMap;
 use std::sync::Arc;
+
+/// A basic.publish with its content, received as one value (from an
+/// in-process client): what its three frames would carry, with the
+/// properties not encoded. A channel takes it whole, with nothing to
+/// assemble.
+#[derive(Debug)]
+pub(crate) struct WholePublish {
+    pub channel: u16,
+    pub method: BasicPublish,
+    pub properties: Box<BasicProperties>,
+    pub body: Bytes,
+}
 
 /// A publish waiting for its content. One per channel, replaced in place,
 /// so the size of its largest variant costs nothing per message.

@@ -21,7 +21,8 @@
 //! the outbox, which it drains in place of the socket writer.
 
 use super::reader::ReadError;
-use super::source::{FrameSource, WholePublish};
+use super::source::FrameSource;
+use crate::channel::WholePublish;
 use crate::outbox::{Framed, Outbound, Outbox};
 use bytes::Bytes;
 use leveret_protocol::{ContentHeader, DecodeError, Frame, Method, Outgoing, FRAME_OVERHEAD};

@@ -9,21 +9,20 @@
 //! Layout: `source` is what the loop needs of its input; `reader` reads
 //! frames into a buffer sized to the traffic; `direct` is the in-process
 //! value link; `writer` owns the socket's write half, reached through the
-//! outbox; `admission` counts connections against `max_connections`, user
-//! and vhost limits.
+//! outbox. What a client may open is counted by the crate's `admission`
+//! (connections against `max_connections`, user and vhost limits), which
+//! the core holds.
 
-mod admission;
 mod direct;
 mod reader;
 mod source;
 mod writer;
 
-pub use admission::{Admission, Slot};
+use crate::admission::{self, Slot};
 pub use direct::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
 pub(crate) use reader::copy_below;
-pub(crate) use source::WholePublish;
 
-use crate::channel::{AtOnce, Channel, Leftover};
+use crate::channel::{AtOnce, Channel, Leftover, WholePublish};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::outbox::{Outbound, Outbox};

@@ -5,22 +5,13 @@
 //! values of an in-process client as they are, with nothing to parse, and
 //! its publishes whole ([`WholePublish`]).
 //!
-//! Uses the reader's error type; the connection module drives it.
+//! Uses the reader's error type and the channel's whole publish; the
+//! connection module drives it.
 
 use super::reader::ReadError;
-use bytes::Bytes;
-use leveret_protocol::{BasicProperties, BasicPublish, DecodeError, Frame};
+use crate::channel::WholePublish;
+use leveret_protocol::{DecodeError, Frame};
 use std::future::Future;
-
-/// A basic.publish with its content, received as one value: what its
-/// three frames would carry, with the properties not encoded.
-#[derive(Debug)]
-pub(crate) struct WholePublish {
-    pub channel: u16,
-    pub method: BasicPublish,
-    pub properties: Box<BasicProperties>,
-    pub body: Bytes,
-}
 
 /// Where a connection's frames come from.
 pub(super) trait FrameSource: Send {

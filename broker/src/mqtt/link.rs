@@ -8,7 +8,8 @@
 //! the session sends.
 
 use super::mapping::EXCHANGE;
-use crate::connection::{serve_direct, DirectLink, DirectReply, Slot};
+use crate::admission::Slot;
+use crate::connection::{serve_direct, DirectLink, DirectReply};
 use crate::core::Core;
 use bytes::{BufMut, Bytes, BytesMut};
 use leveret_protocol::{

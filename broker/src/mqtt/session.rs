@@ -15,7 +15,8 @@ use super::link::{self, Link, Login, Refusal};
 use super::mapping;
 use super::takeover::Claim;
 use super::Shared;
-use crate::connection::{DirectReply, Slot};
+use crate::admission::Slot;
+use crate::connection::DirectReply;
 use crate::core::Core;
 use bytes::BytesMut;
 use leveret_mqtt::{

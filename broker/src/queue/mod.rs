@@ -56,13 +56,7 @@ pub const FLOW_LOW: usize = 10_000;
 /// them: routing one costs microseconds, so a step stays within a slice.
 pub const DEAD_LETTERS_PER_STEP: usize = 64;
 
-/// The header a consumer that asks for it (basic.consume argument
-/// `x-leveret-position: true`) finds on each delivery: the queue's name for
-/// positions and the message's position in it, `NAME.SEQ`. The same message
-/// delivered again (after a requeue, a reconnect, a restart) carries the
-/// same value and no other message ever does, so a forwarder (the uplink's
-/// shovels) can give its destination a stable id to drop duplicates by.
-pub const POSITION_HEADER: &str = "x-leveret-position";
+pub(crate) use crate::arguments::POSITION_HEADER;
 
 /// A random number fixed for this run of the process (another run gets
 /// another): names made with it never repeat an earlier run's.
@@ -531,12 +525,24 @@ impl Queue {
     }
 }
 
+/// The ready part of a queue, read under its lock.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct QueueDepth {
+    pub ready: u64,
+    /// Read under the same hold of the queue's lock as `ready`: a requeue
+    /// moves a message from one to the other under it, so their sum never
+    /// dips while messages come back.
+    pub unacked: u64,
+    pub ready_bytes: u64,
+    pub consumers: u64,
+}
+
 /// Reading a queue's state for listings (`inspect`).
 impl Queue {
     /// Ready messages, their body bytes, and consumers, read under the lock.
-    pub(crate) fn depth(&self) -> crate::inspect::QueueDepth {
+    pub(crate) fn depth(&self) -> QueueDepth {
         let st = self.lock();
-        crate::inspect::QueueDepth {
+        QueueDepth {
             ready: st.ready.len() as u64,
             unacked: self.stats.unacked.get(),
             ready_bytes: st.ready.bytes() as u64,

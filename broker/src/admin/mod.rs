@@ -3,6 +3,11 @@
 //! dashboard). Reading state is `inspect`'s part of it; this module holds
 //! the handle and the operations that change things, each doing what the
 //! AMQP method of the same meaning does, with the same checks.
+//!
+//! Layout: `mod` the handle and the object operations; `parameters`
+//! runtime parameters.
+
+mod parameters;
 
 use crate::channel::{apply_settles, Settle};
 use crate::consumer::ChannelLink;

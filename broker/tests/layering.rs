@@ -1,0 +1,339 @@
+//! The broker's layering, held against its code.
+//!
+//! `src/lib.rs` describes the crate as layers, each using only the layers
+//! below it and the shared pieces beside them. This test reads every file
+//! under `src/`, finds each path it takes from another of the crate's
+//! top-level modules (`use crate::…`, `crate::…` in code, and `super::`
+//! paths that climb out of their own module), and checks it against
+//! [`LAYERS`]. A reference that runs up a layer fails the test with the
+//! file and the module it names. Modules of one layer may use each other;
+//! [`SHARED`] modules may be used from every layer.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+/// Each top-level module and the layer it sits in: higher numbers sit
+/// higher and may use every lower number. [`SHARED`] modules may be used
+/// from anywhere.
+const LAYERS: &[(&str, u8)] = &[
+    // The numbers follow src/lib.rs's Layout: 1. Server: the entry point,
+    // listeners, connections, recovery, the MQTT front end.
+    ("embed", 9),
+    ("server", 8),
+    ("connection", 8),
+    ("recovery", 8),
+    ("mqtt", 8),
+    // Operators: the admin handle and the views it reads.
+    ("admin", 7),
+    ("inspect", 7),
+    ("as_user", 7),
+    ("access", 7),
+    // 2. Channel.
+    ("channel", 6),
+    // 3. Core.
+    ("core", 5),
+    // 4. Vhost and exchanges.
+    ("vhost", 4),
+    ("routing", 4),
+    ("exchange", 4),
+    ("deadletter", 4),
+    // 5. Queue; beside it the registry of connections and channels, which
+    // names their consumers' links for closing them from outside.
+    ("queue", 3),
+    ("registry", 3),
+    // 6. Consumer and outbox.
+    ("consumer", 2),
+    ("outbox", 2),
+    // Beside the layers: the store.
+    ("store", 0),
+];
+
+/// Modules every layer may use (they use only each other and the store).
+const SHARED: &[&str] = &[
+    "admission",
+    "arguments",
+    "auth",
+    "busy_poll",
+    "cpu_pressure",
+    "disk_alarm",
+    "error",
+    "hash_pool",
+    "login_backoff",
+    "memory",
+    "message",
+    "parameters",
+    "password",
+    "permissions",
+    "resident_memory",
+    "slice",
+    "stats",
+    "tls",
+    "word_hash",
+];
+
+/// Test-only modules (`#[cfg(test)]`), which build fixtures from every
+/// layer; files named `tests.rs` are passed over likewise.
+const TEST_SUPPORT: &[&str] = &["testkit"];
+
+/// Modules that know each other by design (the only circle `lib.rs`
+/// admits).
+const CIRCLE: &[&str] = &["queue", "consumer", "outbox"];
+
+fn src_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("src")
+}
+
+fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for entry in std::fs::read_dir(dir).expect("read src dir") {
+        let path = entry.expect("dir entry").path();
+        if path.is_dir() {
+            rust_files(&path, out);
+        } else if path.extension().is_some_and(|e| e == "rs") {
+            out.push(path);
+        }
+    }
+}
+
+/// The module path of a file under `src/`: `queue/mod.rs` → `["queue"]`,
+/// `queue/dispatch.rs` → `["queue", "dispatch"]`, `lib.rs` → `[]`.
+fn module_path(relative: &Path) -> Vec<String> {
+    let mut parts: Vec<String> = relative
+        .iter()
+        .map(|p| p.to_string_lossy().into_owned())
+        .collect();
+    let file = parts.pop().expect("a file name");
+    let stem = file.trim_end_matches(".rs");
+    if stem != "mod" && stem != "lib" {
+        parts.push(stem.to_string());
+    }
+    parts
+}
+
+/// Strips line comments, block comments and string literals, so a path
+/// in prose or in a message is not read as an import.
+fn code_only(text: &str) -> String {
+    let bytes = text.as_bytes();
+    let mut out = String::with_capacity(text.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        match bytes[i] {
+            b'/' if bytes.get(i + 1) == Some(&b'/') => {
+                while i < bytes.len() && bytes[i] != b'\n' {
+                    i += 1;
+                }
+            }
+            b'/' if bytes.get(i + 1) == Some(&b'*') => {
+                let mut depth = 0;
+                while i < bytes.len() {
+                    if bytes[i] == b'/' && bytes.get(i + 1) == Some(&b'*') {
+                        depth += 1;
+                        i += 2;
+                    } else if bytes[i] == b'*' && bytes.get(i + 1) == Some(&b'/') {
+                        depth -= 1;
+                        i += 2;
+                        if depth == 0 {
+                            break;
+                        }
+                    } else {
+                        i += 1;
+                    }
+                }
+            }
+            b'"' => {
+                i += 1;
+                while i < bytes.len() && bytes[i] != b'"' {
+                    if bytes[i] == b'\\' {
+                        i += 1;
+                    }
+                    i += 1;
+                }
+                i += 1;
+                out.push_str("\"\"");
+            }
+            b'\'' if bytes.get(i + 2) == Some(&b'\'') || bytes.get(i + 1) == Some(&b'\\') => {
+                // a char literal ('x' or '\n'); lifetimes have no closing quote
+                i += 1;
+                while i < bytes.len() && bytes[i] != b'\'' {
+                    if bytes[i] == b'\\' {
+                        i += 1;
+                    }
+                    i += 1;
+                }
+                i += 1;
+            }
+            _ => {
+                out.push(bytes[i] as char);
+                i += 1;
+            }
+        }
+    }
+    out
+}
+
+fn is_ident(b: u8) -> bool {
+    b.is_ascii_alphanumeric() || b == b'_'
+}
+
+/// The first segments named after `crate::` at `start` (just past the
+/// `::`): one for `crate::queue::Queue`, each item's for
+/// `crate::{queue::Queue, outbox}`.
+fn first_segments(code: &[u8], start: usize, out: &mut Vec<String>) {
+    let mut i = start;
+    while i < code.len() && code[i].is_ascii_whitespace() {
+        i += 1;
+    }
+    if code.get(i) == Some(&b'{') {
+        let mut depth = 0;
+        let mut at_item_start = true;
+        while i < code.len() {
+            match code[i] {
+                b'{' => {
+                    depth += 1;
+                    at_item_start = depth == 1;
+                    i += 1;
+                }
+                b'}' => {
+                    depth -= 1;
+                    i += 1;
+                    if depth == 0 {
+                        return;
+                    }
+                }
+                b',' => {
+                    at_item_start = depth == 1;
+                    i += 1;
+                }
+                c if at_item_start && is_ident(c) => {
+                    let begin = i;
+                    while i < code.len() && is_ident(code[i]) {
+                        i += 1;
+                    }
+                    out.push(String::from_utf8_lossy(&code[begin..i]).into_owned());
+                    at_item_start = false;
+                }
+                _ => i += 1,
+            }
+        }
+    } else {
+        let begin = i;
+        while i < code.len() && is_ident(code[i]) {
+            i += 1;
+        }
+        if i > begin {
+            out.push(String::from_utf8_lossy(&code[begin..i]).into_owned());
+        }
+    }
+}
+
+/// The crate's top-level modules that a file's code names.
+fn referenced_modules(module: &[String], code: &str) -> BTreeSet<String> {
+    let bytes = code.as_bytes();
+    let mut names = Vec::new();
+    let mut i = 0;
+    while i < bytes.len() {
+        let preceded_by_ident = i > 0 && (is_ident(bytes[i - 1]) || bytes[i - 1] == b':');
+        if !preceded_by_ident && bytes[i..].starts_with(b"crate::") {
+            first_segments(bytes, i + "crate::".len(), &mut names);
+            i += "crate::".len();
+        } else if !preceded_by_ident && bytes[i..].starts_with(b"super::") {
+            // climb: each `super::` drops one segment of this file's module
+            let mut depth = module.len();
+            let mut j = i;
+            while bytes[j..].starts_with(b"super::") {
+                depth = depth.saturating_sub(1);
+                j += "super::".len();
+            }
+            if depth == 0 {
+                first_segments(bytes, j, &mut names);
+            } else {
+                names.push(module[0].clone());
+            }
+            i = j;
+        } else {
+            i += 1;
+        }
+    }
+    names.into_iter().collect()
+}
+
+#[derive(Debug, PartialEq, Eq, PartialOrd, Ord)]
+struct Reference {
+    file: String,
+    module: String,
+}
+
+fn upward_references() -> Vec<Reference> {
+    let layers: BTreeMap<&str, u8> = LAYERS.iter().copied().collect();
+    let shared: BTreeSet<&str> = SHARED.iter().copied().collect();
+    let src = src_dir();
+    let mut files = Vec::new();
+    rust_files(&src, &mut files);
+    let mut upward = Vec::new();
+    for path in files {
+        let relative = path.strip_prefix(&src).expect("under src");
+        let module = module_path(relative);
+        let Some(own) = module.first() else {
+            continue; // lib.rs declares and re-exports everything
+        };
+        if TEST_SUPPORT.contains(&own.as_str()) || module.last().is_some_and(|m| m == "tests") {
+            continue; // test support reaches into every layer on purpose
+        }
+        let text = std::fs::read_to_string(&path).expect("read source");
+        let own_layer = *layers
+            .get(own.as_str())
+            .or_else(|| shared.contains(own.as_str()).then_some(&0))
+            .unwrap_or_else(|| {
+                panic!("module `{own}` ({relative:?}) is in no layer: add it to LAYERS or SHARED")
+            });
+        for name in referenced_modules(&module, &code_only(&text)) {
+            if &name == own || shared.contains(name.as_str()) {
+                continue;
+            }
+            if CIRCLE.contains(&own.as_str()) && CIRCLE.contains(&name.as_str()) {
+                continue;
+            }
+            let Some(&their_layer) = layers.get(name.as_str()) else {
+                continue; // an item of lib.rs itself or an extern name
+            };
+            if their_layer > own_layer {
+                upward.push(Reference {
+                    file: relative.to_string_lossy().into_owned(),
+                    module: name,
+                });
+            }
+        }
+    }
+    upward.sort();
+    upward
+}
+
+#[test]
+fn no_module_uses_a_layer_above_it() {
+    let upward = upward_references();
+    assert!(
+        upward.is_empty(),
+        "these files use a module of a layer above their own (see src/lib.rs's Layout and LAYERS in this test):\n{}",
+        upward
+            .iter()
+            .map(|r| format!("  src/{} uses crate::{}", r.file, r.module))
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+}
+
+#[test]
+fn the_reader_finds_grouped_inline_and_super_paths() {
+    let module = vec!["channel".to_string(), "basic".to_string()];
+    let code = code_only(
+        "use crate::{queue::Queue, outbox::{Outbound, Outbox}};\n\
+         // crate::admin in a comment\n\
+         let s = \"crate::inspect in a string\";\n\
+         fn f() { crate::vhost::route(); super::super::core::Core::new(); super::tx::x(); }",
+    );
+    let found = referenced_modules(&module, &code);
+    let expected: BTreeSet<String> = ["queue", "outbox", "vhost", "core", "channel"]
+        .into_iter()
+        .map(String::from)
+        .collect();
+    assert_eq!(found, expected);
+}
