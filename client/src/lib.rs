@@ -91,8 +91,38 @@ pub use uri::ConnectionOptions;
 pub use leveret_protocol as protocol;
 
 /// The repository README's Rust examples, compiled as doc tests so they
-/// stay as shown.
+/// stay as shown; the `docs/` pages' below, one struct per page.
 #[cfg(doctest)]
 #[doc = include_str!("../../README.md")]
 pub struct ReadmeDoctests;
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/architecture.md")]
+pub struct ArchitectureDoctests;
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/compatibility.md")]
+pub struct CompatibilityDoctests;
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/configuration.md")]
+pub struct ConfigurationDoctests;
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/mqtt.md")]
+pub struct MqttDoctests;
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/operations.md")]
+pub struct OperationsDoctests;
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/performance.md")]
+pub struct PerformanceDoctests;
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/ports.md")]
+pub struct PortsDoctests;
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/storage.md")]
+pub struct StorageDoctests;
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/uplink.md")]
+pub struct UplinkDoctests;
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/README.md")]
+pub struct DocsIndexDoctests;
 pub use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ReplyCode, ShortStr};

@@ -983,6 +983,101 @@ mod tests {
         ));
     }
 
+    /// The fenced code blocks of a Markdown page: each block's language
+    /// (the info string up to its first comma) and its text.
+    fn fenced_blocks(page: &str) -> Vec<(&str, String)> {
+        let mut blocks = Vec::new();
+        let mut open: Option<(&str, String)> = None;
+        for line in page.lines() {
+            match (line.strip_prefix("```"), open.take()) {
+                (Some(_), Some(block)) => blocks.push(block),
+                (Some(info), None) => {
+                    open = Some((info.split(',').next().unwrap_or_default(), String::new()))
+                }
+                (None, Some((language, mut text))) => {
+                    text.push_str(line);
+                    text.push('\n');
+                    open = Some((language, text));
+                }
+                (None, None) => {}
+            }
+        }
+        assert!(open.is_none(), "a code block is never closed");
+        blocks
+    }
+
+    /// The README's and `docs/`' examples are what the binary takes: every
+    /// `toml` block is a config file that parses and resolves as at start
+    /// (or, when its first line is `# Cargo.toml`, a manifest whose path
+    /// dependencies are this workspace's crates), and every `leveret`
+    /// command line in a `sh` block parses with the binary's command line.
+    #[test]
+    fn every_toml_block_in_the_docs_is_a_config_the_binary_takes() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let mut pages = vec![root.join("README.md")];
+        for entry in std::fs::read_dir(root.join("docs")).expect("read docs/") {
+            let path = entry.expect("a docs/ entry").path();
+            if path.extension().is_some_and(|extension| extension == "md") {
+                pages.push(path);
+            }
+        }
+        let (mut configs, mut manifests, mut commands) = (0, 0, 0);
+        for page in &pages {
+            let text = std::fs::read_to_string(page).expect("read a page");
+            for (language, block) in fenced_blocks(&text) {
+                let whence = format!("{}:\n{block}", page.display());
+                match language {
+                    "toml" if block.starts_with("# Cargo.toml") => {
+                        let manifest: toml::Table =
+                            toml::from_str(&block).unwrap_or_else(|e| panic!("{whence}{e}"));
+                        let dependencies = manifest["dependencies"].as_table().expect("deps");
+                        for (name, dependency) in dependencies {
+                            let Some(path) = dependency.get("path").and_then(|p| p.as_str()) else {
+                                continue;
+                            };
+                            let crate_manifest = root.join(path).join("Cargo.toml");
+                            let crate_manifest = std::fs::read_to_string(&crate_manifest)
+                                .unwrap_or_else(|e| panic!("{whence}{path}: {e}"));
+                            assert!(
+                                crate_manifest.contains(&format!("name = \"{name}\"")),
+                                "{whence}{path} is not the crate {name}"
+                            );
+                        }
+                        manifests += 1;
+                    }
+                    "toml" => {
+                        let config =
+                            FileConfig::parse(&block).unwrap_or_else(|e| panic!("{whence}{e}"));
+                        if let Err(e) = Settings::resolve(Cli::default(), config) {
+                            panic!("{whence}{e}");
+                        }
+                        configs += 1;
+                    }
+                    "sh" => {
+                        for line in block.lines() {
+                            let words: Vec<&str> =
+                                line.trim_end_matches('&').split_whitespace().collect();
+                            let program = words.first().copied().unwrap_or_default();
+                            if program == "leveret" || program.ends_with("/leveret") {
+                                if let Err(e) = Cli::try_parse_from(&words) {
+                                    panic!("{whence}{e}");
+                                }
+                                commands += 1;
+                            }
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+        // The configuration page's, the uplink's three, the ports' manifest,
+        // the README's and the pages' command lines: none went unchecked.
+        assert!(
+            configs >= 4 && manifests >= 1 && commands >= 3,
+            "{configs} configs, {manifests} manifests, {commands} command lines"
+        );
+    }
+
     #[test]
     fn a_missing_file_names_itself() {
         let path = Path::new("/nonexistent/leveret.toml");
