@@ -1,3 +1,5 @@
+//! # leveret-ports
+//!
 //! Robot data ports over AMQP, after the AMQP data ports of OpenRTM-aist
 //! (RT-Middleware): an [`OutPort`] publishes typed values, an [`InPort`]
 //! receives them, wired through the exchange, queue and keys of a
@@ -27,7 +29,7 @@
 //! broker.
 //!
 //! ```no_run
-//! use leveret_client::ports::{
+//! use leveret_ports::{
 //!     ExchangeKind, FullPolicy, InPort, OutPort, PortProfile, PortStatus, Time, TimedPose2D,
 //! };
 //!
@@ -44,6 +46,11 @@
 //! # Ok(())
 //! # }
 //! ```
+//!
+//! Built on `leveret-client`'s public API only: an out-port publishes
+//! through room it reserves in its connection's outbox
+//! ([`leveret_client::OutboxSlot`]), an in-port takes deliveries on the
+//! connection's reader ([`leveret_client::DeliverySink`]).
 //!
 //! Layout:
 //! - `data`: [`PortData`] (value ⇄ body), its impls and [`DataError`].
@@ -62,6 +69,8 @@
 //! - `announce`: ports announcing themselves on [`PORTS_EXCHANGE`] (the
 //!   wire contract), and [`PortDirectory`], which reads the
 //!   announcements ([`PortAnnouncement`]).
+#![deny(missing_docs)]
+#![forbid(unsafe_code)]
 
 mod announce;
 pub mod cdr;
@@ -94,3 +103,9 @@ pub use out_port::{Fate, OutPort, OutPortStats, Outcome, PortStatus};
 pub use profile::{
     Backoff, Backpressure, Connector, ExchangeKind, FullPolicy, PortProfile, Qos, Replay,
 };
+
+/// The repository README's Rust examples, compiled as doc tests so they
+/// stay as shown.
+#[cfg(doctest)]
+#[doc = include_str!("../../README.md")]
+pub struct ReadmeDoctests;
