@@ -68,7 +68,7 @@ impl ConsumerShared {
 /// Takes a consumer's deliveries on the connection's reader, as they are
 /// read, ahead of the consumer's buffer: one task fewer between the broker
 /// and the application (the data ports' in-process fast path).
-pub(crate) trait DeliverySink: Send + Sync {
+pub trait DeliverySink: Send + Sync {
     /// Whether it took `delivery` (handled it, or dropped it); if not, it
     /// goes through the consumer's buffer. Deliveries come in order; a
     /// sink that leaves one must leave every later one until the

@@ -16,6 +16,13 @@
 use crate::{BasicProperties, FieldValue};
 use std::collections::{HashSet, VecDeque};
 
+/// The data ports' header naming the out-port (`leveret_ports::PORT_HEADER`;
+/// `ports/tests/layering.rs` checks the two agree).
+const PORT_HEADER: &str = "x-port";
+/// The data ports' header with the out-port's sequence number
+/// (`leveret_ports::SEQ_HEADER`).
+const SEQ_HEADER: &str = "x-seq";
+
 /// Remembers the last `capacity` identities seen.
 #[derive(Debug)]
 pub struct Dedupe {
@@ -37,8 +44,8 @@ pub fn identity(properties: &BasicProperties) -> Option<String> {
         return Some(format!("id:{}", id.to_string_lossy()));
     }
     if let (Some(port), Some(seq)) = (
-        header_text(properties, crate::ports::PORT_HEADER),
-        header_text(properties, crate::ports::SEQ_HEADER),
+        header_text(properties, PORT_HEADER),
+        header_text(properties, SEQ_HEADER),
     ) {
         return Some(format!("port:{port}:{seq}"));
     }

@@ -54,16 +54,18 @@
 //! - [`uri`]: [`ConnectionOptions`] and `amqp://` URI parsing.
 //! - `connection`: [`Connection`], its transports (TCP, in-process), the
 //!   handshake, the reader and writer tasks.
-//! - `channel`: [`Channel`] and the per-channel state the reader drives.
-//! - `consumer`: [`Consumer`] and [`Returns`] streams.
+//! - `channel`: [`Channel`], [`OutboxSlot`] and the per-channel state the
+//!   reader drives.
+//! - `consumer`: [`Consumer`] and [`Returns`] streams, [`DeliverySink`].
 //! - `confirm`: publisher confirms ([`PublishConfirm`], [`Confirmation`]).
 //! - `message`: [`Delivery`], [`GetMessage`], [`ReturnedMessage`], [`IntoShortStr`].
 //! - `options`: the `…Options` structs of the channel methods.
 //! - `error`: [`Error`] and [`CloseReason`].
 //! - `dedupe`: [`Dedupe`], dropping the duplicates at-least-once
 //!   forwarding (the uplink's shovels) can produce.
-//! - [`ports`]: typed robot data ports (OpenRTM-aist style out-ports and
-//!   in-ports) with reconnection, resend and duplicate suppression.
+//!
+//! Typed robot data ports (OpenRTM-aist style out-ports and in-ports) are
+//! the `leveret-ports` crate, built on this crate's public API.
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
 
@@ -75,13 +77,14 @@ mod dedupe;
 mod error;
 mod message;
 mod options;
-pub mod ports;
 pub mod uri;
 
-pub use channel::{Channel, QueueInfo};
+pub use channel::{Channel, OutboxSlot, QueueInfo};
 pub use confirm::{ConfirmFuture, Confirmation, PublishConfirm};
 pub use connection::{Connection, Tuning};
-pub use consumer::{Consumer, ConsumerEnd, Returns, DEFAULT_CONSUMER_BUFFER, RETURNS_BUFFER};
+pub use consumer::{
+    Consumer, ConsumerEnd, DeliverySink, Returns, DEFAULT_CONSUMER_BUFFER, RETURNS_BUFFER,
+};
 pub use dedupe::{identity, Dedupe};
 pub use error::{CloseReason, Error, Result};
 pub use message::{Delivery, GetMessage, IntoShortStr, ReturnedMessage};
@@ -90,39 +93,4 @@ pub use uri::ConnectionOptions;
 
 pub use leveret_protocol as protocol;
 
-/// The repository README's Rust examples, compiled as doc tests so they
-/// stay as shown; the `docs/` pages' below, one struct per page.
-#[cfg(doctest)]
-#[doc = include_str!("../../README.md")]
-pub struct ReadmeDoctests;
-#[cfg(doctest)]
-#[doc = include_str!("../../docs/architecture.md")]
-pub struct ArchitectureDoctests;
-#[cfg(doctest)]
-#[doc = include_str!("../../docs/compatibility.md")]
-pub struct CompatibilityDoctests;
-#[cfg(doctest)]
-#[doc = include_str!("../../docs/configuration.md")]
-pub struct ConfigurationDoctests;
-#[cfg(doctest)]
-#[doc = include_str!("../../docs/mqtt.md")]
-pub struct MqttDoctests;
-#[cfg(doctest)]
-#[doc = include_str!("../../docs/operations.md")]
-pub struct OperationsDoctests;
-#[cfg(doctest)]
-#[doc = include_str!("../../docs/performance.md")]
-pub struct PerformanceDoctests;
-#[cfg(doctest)]
-#[doc = include_str!("../../docs/ports.md")]
-pub struct PortsDoctests;
-#[cfg(doctest)]
-#[doc = include_str!("../../docs/storage.md")]
-pub struct StorageDoctests;
-#[cfg(doctest)]
-#[doc = include_str!("../../docs/uplink.md")]
-pub struct UplinkDoctests;
-#[cfg(doctest)]
-#[doc = include_str!("../../docs/README.md")]
-pub struct DocsIndexDoctests;
 pub use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ReplyCode, ShortStr};

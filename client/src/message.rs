@@ -3,7 +3,7 @@
 //! and [`ReturnedMessage`] (a mandatory message no queue took). Bodies are
 //! `Bytes` slices of the connection's read buffer.
 
-use crate::channel::{ChannelCore, Slot};
+use crate::channel::{ChannelCore, OutboxSlot};
 use crate::error::Result;
 use crate::options::{BasicNackOptions, BasicRejectOptions};
 use bytes::Bytes;
@@ -77,13 +77,13 @@ impl Delivery {
 
     /// Room for this delivery's ack in the connection's outbox if there is
     /// some now (`None` if it is full), for [`Delivery::ack_in`].
-    pub(crate) fn try_reserve_ack(&self) -> Result<Option<Slot<'_>>> {
+    pub fn try_reserve_ack(&self) -> Result<Option<OutboxSlot<'_>>> {
         self.acker.try_reserve()
     }
 
     /// Acknowledges this delivery through room reserved for it, without
     /// waiting.
-    pub(crate) fn ack_in(&self, slot: Slot<'_>) -> Result<()> {
+    pub fn ack_in(&self, slot: OutboxSlot<'_>) -> Result<()> {
         slot.send(BasicAck {
             delivery_tag: self.delivery_tag,
             multiple: false,

@@ -1,15 +1,14 @@
 //! `amqps://` (issue 14 item 1): the client over rustls to a Leveret TLS
 //! listener, with certificates made here (rcgen): the CA from
 //! `cacertfile`, a client certificate with SASL EXTERNAL, the system's CA
-//! certificates (which do not trust this CA: refused), and the robot data
-//! ports over TLS from a port profile's URI.
+//! certificates (which do not trust this CA: refused). The robot data
+//! ports over TLS are tested in `ports/tests/tls.rs`.
 
 mod common;
 
 use bytes::Bytes;
 use common::within;
 use leveret_broker::{Broker, BrokerHandle, PeerVerification, Permission, TlsOptions};
-use leveret_client::ports::{InPort, OutPort, PortProfile, PortStatus, Time, TimedLong};
 use leveret_client::{BasicGetOptions, Connection, QueueDeclareOptions};
 use leveret_tests::certs::Authority;
 use std::path::{Path, PathBuf};
@@ -146,29 +145,5 @@ async fn amqps_with_a_ca_file_plain_and_external() {
     )
     .await;
     assert!(anonymous.is_err());
-    handle.shutdown().await;
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn data_ports_run_over_tls_from_the_profiles_uri() {
-    let dir = scratch("ports");
-    let handle = broker(&dir.0).await;
-    let profile = PortProfile::new(&uri(&handle, &dir.0, "&heartbeat=5"))
-        .expect("an amqps profile")
-        .queue("tls-pose")
-        .routing_key("tls-pose");
-    let input = InPort::<TimedLong>::connect(profile.clone())
-        .await
-        .expect("in-port");
-    let output = OutPort::<TimedLong>::connect(profile)
-        .await
-        .expect("out-port");
-    let value = TimedLong {
-        tm: Time { sec: 1, nsec: 2 },
-        data: 42,
-    };
-    assert_eq!(output.put(&value).await, PortStatus::Ok);
-    let sample = within("sample", input.recv()).await.expect("a sample");
-    assert_eq!(sample.value.data, 42);
     handle.shutdown().await;
 }

@@ -16,7 +16,7 @@
 //! - `memory`: resident memory of a local broker idle, with many idle
 //!   connections, and with a backlog of queued messages.
 //! - `ports`: the paper's round trip through a pair of robot data ports
-//!   (`leveret_client::ports`), over a Leveret broker this process starts
+//!   (`leveret_ports`), over a Leveret broker this process starts
 //!   (in-process and loopback TCP) and RabbitMQ, paced at 100 Hz and
 //!   unthrottled, with confirmed-port and raw-client rows beside them.
 //! - `sink`: a null broker that confirms and drops every publish, to

@@ -316,9 +316,7 @@ fn field<'a>(line: &'a str, key: &str) -> Option<&'a str> {
 /// flow (the in-port still gets every one), and the exit statuses.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn port_commands_list_follow_and_echo_robot_ports() {
-    use leveret_client::ports::{
-        ExchangeKind, InPort, OutPort, PortProfile, Pose2D, Time, TimedPose2D,
-    };
+    use leveret_ports::{ExchangeKind, InPort, OutPort, PortProfile, Pose2D, Time, TimedPose2D};
     let broker = std::sync::Arc::new(OpsBroker::start("ctl-ports", &[]));
     let profile = PortProfile::new(&broker.amqp_url())
         .expect("URI")
@@ -714,7 +712,7 @@ async fn report_shows_the_status_and_every_listing() {
 /// order, and the in-port still gets every one, none twice.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn port_echo_peeks_at_a_default_exchange_port() {
-    use leveret_client::ports::{InPort, OutPort, PortProfile, Time, TimedLong};
+    use leveret_ports::{InPort, OutPort, PortProfile, Time, TimedLong};
     let broker = std::sync::Arc::new(OpsBroker::start("ctl-echo-default", &[]));
     let profile = PortProfile::new(&broker.amqp_url())
         .expect("URI")

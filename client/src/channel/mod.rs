@@ -6,7 +6,8 @@
 
 mod state;
 
-pub(crate) use self::state::{ChannelCore, ChannelShared, ChannelState, PendingKind, Reply, Slot};
+pub use self::state::OutboxSlot;
+pub(crate) use self::state::{ChannelCore, ChannelShared, ChannelState, PendingKind, Reply};
 
 use crate::confirm::{Confirms, PublishConfirm};
 use crate::connection::ConnectionInner;
@@ -20,10 +21,10 @@ use crate::options::*;
 use bytes::Bytes;
 use leveret_protocol::Outgoing;
 use leveret_protocol::{
-    BasicCancel, BasicConsume, BasicGet, BasicProperties, BasicPublish, BasicQos, BasicRecover,
-    ChannelClose, ChannelOpen, ConfirmSelect, ExchangeBind, ExchangeDeclare, ExchangeDelete,
-    ExchangeUnbind, FieldTable, Method, QueueBind, QueueDeclare, QueueDelete, QueuePurge,
-    QueueUnbind, ShortStr, TxCommit, TxRollback, TxSelect,
+    BasicCancel, BasicConsume, BasicGet, BasicProperties, BasicQos, BasicRecover, ChannelClose,
+    ChannelOpen, ConfirmSelect, ExchangeBind, ExchangeDeclare, ExchangeDelete, ExchangeUnbind,
+    FieldTable, Method, QueueBind, QueueDeclare, QueueDelete, QueuePurge, QueueUnbind, ShortStr,
+    TxCommit, TxRollback, TxSelect,
 };
 use std::sync::Arc;
 use tokio::sync::mpsc;
@@ -411,27 +412,22 @@ impl Channel {
         properties: BasicProperties,
         body: Bytes,
     ) -> Result<PublishConfirm> {
-        let method = BasicPublish {
-            ticket: 0,
-            exchange: exchange.into_short_str()?,
-            routing_key: routing_key.into_short_str()?,
-            mandatory: options.mandatory,
-            immediate: false,
-        };
-        self.core()
-            .reserve()
+        self.reserve()
             .await?
-            .publish(method, properties, body)
+            .basic_publish(exchange, routing_key, options, properties, body)
     }
 
-    /// Room for one publish in the connection's outbox, waiting for it.
-    pub(crate) async fn reserve(&self) -> Result<Slot<'_>> {
+    /// Room for one publish in the connection's outbox, waiting for it:
+    /// [`OutboxSlot::basic_publish`] then never waits, for a caller that
+    /// must not hold what it publishes while waiting (a port's window
+    /// under its lock).
+    pub async fn reserve(&self) -> Result<OutboxSlot<'_>> {
         self.core().reserve().await
     }
 
     /// Room for one publish in the connection's outbox if there is some
     /// now (`None` if it is full).
-    pub(crate) fn try_reserve(&self) -> Result<Option<Slot<'_>>> {
+    pub fn try_reserve(&self) -> Result<Option<OutboxSlot<'_>>> {
         self.core().try_reserve()
     }
 
@@ -464,10 +460,10 @@ impl Channel {
             .await
     }
 
-    /// [`Channel::basic_consume`] whose deliveries `sink` takes on the
-    /// connection's reader, as they are read; those it gives back go
-    /// through the consumer's buffer.
-    pub(crate) async fn basic_consume_into(
+    /// [`Channel::basic_consume`] (with a tag the broker picks) whose
+    /// deliveries `sink` takes on the connection's reader, as they are
+    /// read; those it gives back go through the consumer's buffer.
+    pub async fn basic_consume_into(
         &self,
         queue: impl IntoShortStr,
         options: BasicConsumeOptions,

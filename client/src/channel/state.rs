@@ -3,7 +3,7 @@
 //! channel answers synchronous methods in order), its consumers, the
 //! receiver of returned messages and the outstanding publisher confirms.
 //! [`ChannelCore`] sends on behalf of a channel, each item through a
-//! [`Slot`] of room reserved in the connection's outbox (waited for, or
+//! [`OutboxSlot`] of room reserved in the connection's outbox (waited for, or
 //! taken only if there is room now); [`ChannelShared`] is what the reader
 //! drives.
 
@@ -11,8 +11,8 @@ use crate::confirm::{Confirms, PublishConfirm};
 use crate::connection::Shared;
 use crate::consumer::{ConsumerEnd, ConsumerShared, ConsumerSlot, DeliverySink};
 use crate::error::{Error, Result};
-use crate::message::{Content, Delivery, ReturnedMessage};
-use crate::options::{BasicAckOptions, BasicNackOptions, BasicRejectOptions};
+use crate::message::{Content, Delivery, IntoShortStr, ReturnedMessage};
+use crate::options::{BasicAckOptions, BasicNackOptions, BasicPublishOptions, BasicRejectOptions};
 use bytes::Bytes;
 use leveret_protocol::Outgoing;
 use leveret_protocol::{
@@ -350,17 +350,17 @@ impl ChannelCore {
     }
 
     /// Waits for room for one item in the connection's outbox.
-    pub(crate) async fn reserve(&self) -> Result<Slot<'_>> {
+    pub(crate) async fn reserve(&self) -> Result<OutboxSlot<'_>> {
         let permit = self.conn.reserve().await?;
-        Ok(Slot { core: self, permit })
+        Ok(OutboxSlot { core: self, permit })
     }
 
     /// Room for one item in the connection's outbox if there is some now
     /// (`None` if it is full), without waiting: for callers that must not
     /// wait and have somewhere else to turn when it is full.
-    pub(crate) fn try_reserve(&self) -> Result<Option<Slot<'_>>> {
+    pub(crate) fn try_reserve(&self) -> Result<Option<OutboxSlot<'_>>> {
         match self.conn.tx.try_reserve() {
-            Ok(permit) => Ok(Some(Slot { core: self, permit })),
+            Ok(permit) => Ok(Some(OutboxSlot { core: self, permit })),
             Err(mpsc::error::TrySendError::Full(())) => Ok(None),
             Err(mpsc::error::TrySendError::Closed(())) => Err(self.conn.error()),
         }
@@ -404,14 +404,24 @@ impl ChannelCore {
     }
 }
 
-/// Room reserved for one item of a channel in its connection's outbox:
-/// sending through it never waits.
-pub(crate) struct Slot<'a> {
+/// Room reserved for one item of a channel in its connection's outbox
+/// ([`crate::Channel::reserve`], [`crate::Channel::try_reserve`],
+/// [`crate::Delivery::try_reserve_ack`]): sending through it never waits.
+/// Dropping it unused gives the room back.
+pub struct OutboxSlot<'a> {
     core: &'a ChannelCore,
     permit: mpsc::Permit<'a, Outgoing>,
 }
 
-impl Slot<'_> {
+impl std::fmt::Debug for OutboxSlot<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("OutboxSlot")
+            .field("channel", &self.core.chan.id)
+            .finish_non_exhaustive()
+    }
+}
+
+impl OutboxSlot<'_> {
     /// Sends a method that has no reply (or whose reply was waived).
     pub(crate) fn send(self, method: impl Into<Method>) -> Result<()> {
         let core = self.core;
@@ -425,13 +435,23 @@ impl Slot<'_> {
         Ok(())
     }
 
-    /// Publishes a message, numbered for its confirm in confirm mode.
-    pub(crate) fn publish(
+    /// [`crate::Channel::basic_publish`] through this room, without
+    /// waiting: the message is numbered for its confirm in confirm mode.
+    pub fn basic_publish(
         self,
-        method: BasicPublish,
+        exchange: impl IntoShortStr,
+        routing_key: impl IntoShortStr,
+        options: BasicPublishOptions,
         properties: BasicProperties,
         body: Bytes,
     ) -> Result<PublishConfirm> {
+        let method = BasicPublish {
+            ticket: 0,
+            exchange: exchange.into_short_str()?,
+            routing_key: routing_key.into_short_str()?,
+            mandatory: options.mandatory,
+            immediate: false,
+        };
         let core = self.core;
         let mut state = core.chan.lock();
         state.status.check()?;

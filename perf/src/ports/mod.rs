@@ -43,7 +43,7 @@ use crate::report::{micros, Table};
 use crate::{PerfError, Result};
 use bytes::Bytes;
 use leveret_broker::{Broker, BrokerHandle};
-use leveret_client::ports::{Connector, PortProfile};
+use leveret_ports::{Connector, PortProfile};
 use pair::{Endpoint, Pair};
 use serde::Serialize;
 use std::fmt::Write as _;

@@ -6,11 +6,11 @@
 use super::Carrier;
 use crate::Result;
 use bytes::Bytes;
-use leveret_client::ports::{Connector, FullPolicy, InPort, OutPort, PortProfile, PortStatus};
 use leveret_client::{
     BasicAckOptions, BasicConsumeOptions, BasicProperties, BasicPublishOptions, BasicQosOptions,
     Channel, Connection, Consumer, FieldTable, QueueDeclareOptions, ShortStr,
 };
+use leveret_ports::{Connector, FullPolicy, InPort, OutPort, PortProfile, PortStatus};
 use std::time::Duration;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;

@@ -14,7 +14,7 @@
 
 use crate::Result;
 use leveret_broker::Broker;
-use leveret_client::ports::{InPort, OutPort, PortProfile, Qos, Time, TimedLong};
+use leveret_ports::{InPort, OutPort, PortProfile, Qos, Time, TimedLong};
 use leveret_tests::fault_proxy::FaultProxy;
 use std::collections::BTreeMap;
 use std::sync::Arc;

@@ -9,14 +9,14 @@
 
 use crate::{emit, info, Cli, Failure};
 use clap::Subcommand;
-use leveret_client::ports::{
-    announced_counters, cdr, CdrOptions, PortAnnouncement, PortDirectory, PortRole, PortState,
-    PORT_HEADER, SENT_HEADER, SEQ_HEADER,
-};
 use leveret_client::{
     BasicConsumeOptions, BasicQosOptions, BasicRejectOptions, Channel, Connection,
     ConnectionOptions, Consumer, Error, FieldTable, FieldValue, QueueBindOptions,
     QueueDeclareOptions,
+};
+use leveret_ports::{
+    announced_counters, cdr, CdrOptions, PortAnnouncement, PortDirectory, PortRole, PortState,
+    PORT_HEADER, SENT_HEADER, SEQ_HEADER,
 };
 use std::collections::HashMap;
 use std::fmt::Write as _;
@@ -594,7 +594,7 @@ fn now_ns() -> i64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use leveret_client::ports::{PortData, Time, TimedLong};
+    use leveret_ports::{PortData, Time, TimedLong};
 
     #[test]
     fn bodies_show_as_values_text_or_hex() {

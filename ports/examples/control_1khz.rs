@@ -9,10 +9,10 @@
 //! put to the robot's `recv_blocking`, with the ports' counters.
 //!
 //! ```text
-//! cargo run --release -p leveret-client --features embedded --example control_1khz -- [seconds]
+//! cargo run --release -p leveret-ports --features embedded --example control_1khz -- [seconds]
 //! ```
 
-use leveret_client::ports::{
+use leveret_ports::{
     Connector, InPort, OutPort, PortProfile, PortStatus, Qos, Time, TimedVelocity2D, Velocity2D,
 };
 use rustix::thread::{clock_nanosleep_absolute, ClockId};
@@ -93,7 +93,7 @@ fn control_loop(
     Vec<Duration>,
     Vec<Duration>,
     u64,
-    leveret_client::ports::OutPortStats,
+    leveret_ports::OutPortStats,
 ) {
     let mut lateness = Vec::with_capacity(periods as usize);
     let mut put_costs = Vec::with_capacity(periods as usize);

@@ -40,9 +40,9 @@
 //! [`OutPort::watch_stats`]), a stream of [`Outcome`]s
 //! ([`OutPort::outcomes`]) and callbacks ([`OutPort::on_outcome`]).
 //!
-//! Uses the client's channels (publishing through a reserved outbox slot,
-//! `channel::Slot`), the link and announcement helpers of this module's
-//! siblings, and the profile.
+//! Uses the client's channels (publishing through room reserved in the
+//! connection's outbox, `leveret_client::OutboxSlot`), the link and
+//! announcement helpers of this module's siblings, and the profile.
 
 use super::announce::{self, Announcer};
 use super::cdr::CdrOptions;
@@ -50,16 +50,15 @@ use super::data::PortData;
 use super::link::{self, Link, LinkStatus};
 use super::openrtm::PortRole;
 use super::profile::{Backpressure, Connector, PortProfile, Replay};
-use crate::channel::Slot;
-use crate::confirm::ConfirmFuture;
-use crate::error::{Error, Result};
-use crate::{
-    BasicProperties, Channel, Confirmation, Connection, PublishConfirm, ReturnedMessage, Returns,
-    ShortStr,
-};
 use bytes::{Bytes, BytesMut};
 use futures_core::Stream;
-use leveret_protocol::BasicPublish;
+use leveret_client::ConfirmFuture;
+use leveret_client::OutboxSlot;
+use leveret_client::{
+    BasicProperties, BasicPublishOptions, Channel, Confirmation, Connection, PublishConfirm,
+    ReturnedMessage, Returns, ShortStr,
+};
+use leveret_client::{Error, Result};
 use std::collections::{HashSet, VecDeque};
 use std::future::{Future, IntoFuture};
 use std::marker::PhantomData;
@@ -331,7 +330,7 @@ impl Publishing {
     /// of its lifespan as its expiration.
     fn publish(
         &self,
-        slot: Slot<'_>,
+        slot: OutboxSlot<'_>,
         entry: &Entry,
         remaining: Option<Duration>,
     ) -> Result<PublishConfirm> {
@@ -347,14 +346,16 @@ impl Publishing {
             headers: Some(link::headers(&self.port, entry.seq, entry.sent_ns)),
             ..Default::default()
         };
-        let method = BasicPublish {
-            ticket: 0,
-            exchange: self.exchange.clone(),
-            routing_key: self.routing_key.clone(),
+        let options = BasicPublishOptions {
             mandatory: self.mandatory,
-            immediate: false,
         };
-        slot.publish(method, properties, entry.body.clone())
+        slot.basic_publish(
+            self.exchange.clone(),
+            self.routing_key.clone(),
+            options,
+            properties,
+            entry.body.clone(),
+        )
     }
 }
 
@@ -445,7 +446,7 @@ impl Shared {
     fn publish_next(
         &self,
         window: &mut Window,
-        reserved: Option<Slot<'_>>,
+        reserved: Option<OutboxSlot<'_>>,
         outcomes: &mut Vec<Outcome>,
     ) -> Next {
         let next = self.publish_one(window, reserved, outcomes);
@@ -456,7 +457,7 @@ impl Shared {
     fn publish_one(
         &self,
         window: &mut Window,
-        reserved: Option<Slot<'_>>,
+        reserved: Option<OutboxSlot<'_>>,
         outcomes: &mut Vec<Outcome>,
     ) -> Next {
         let lifespan = self.publishing.lifespan;
@@ -791,7 +792,7 @@ impl<T: PortData> OutPort<T> {
     /// thread.
     ///
     /// ```no_run
-    /// use leveret_client::ports::{InPort, OutPort, PortProfile, Qos, Time, TimedVelocity2D};
+    /// use leveret_ports::{InPort, OutPort, PortProfile, Qos, Time, TimedVelocity2D};
     /// use std::time::Duration;
     ///
     /// # fn main() -> leveret_client::Result<()> {

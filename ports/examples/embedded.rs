@@ -7,11 +7,11 @@
 //! 100 Hz; a local in-port reads the newest pose each 100 ms control cycle.
 //!
 //! ```text
-//! cargo run -p leveret-client --example embedded --features embedded -- [127.0.0.1:5673] [seconds]
+//! cargo run -p leveret-ports --example embedded --features embedded -- [127.0.0.1:5673] [seconds]
 //! ```
 
 use leveret_broker::Broker;
-use leveret_client::ports::{
+use leveret_ports::{
     Connector, ExchangeKind, InPort, OutPort, Point2D, PortProfile, Pose2D, Time, TimedPose2D,
 };
 use std::sync::Arc;

@@ -14,14 +14,14 @@ mod common;
 use bytes::Bytes;
 use common::{unique, within, without_waiting};
 use leveret_broker::{Broker, BrokerHandle};
-use leveret_client::ports::{
-    Backpressure, CdrOptions, ExchangeKind, FullPolicy, InPort, LinkStatus, OutPort,
-    PortAnnouncement, PortDirectory, PortProfile, PortRole, PortState, PortStatus, Pose2D, Replay,
-    Time, TimedLong, TimedPose2D, PORTS_EXCHANGE,
-};
 use leveret_client::{
     BasicGetOptions, BasicProperties, BasicPublishOptions, Channel, Connection, FieldTable,
     FieldValue, QueueBindOptions, QueueDeclareOptions, ShortStr,
+};
+use leveret_ports::{
+    Backpressure, CdrOptions, ExchangeKind, FullPolicy, InPort, LinkStatus, OutPort,
+    PortAnnouncement, PortDirectory, PortProfile, PortRole, PortState, PortStatus, Pose2D, Replay,
+    Time, TimedLong, TimedPose2D, PORTS_EXCHANGE,
 };
 use leveret_tests::both_runtimes;
 use leveret_tests::fault_proxy::FaultProxy as Proxy;

@@ -13,12 +13,12 @@ mod common;
 use bytes::Bytes;
 use common::{unique, within};
 use leveret_broker::{Broker, BrokerHandle};
-use leveret_client::ports::{
+use leveret_client::{FieldValue, ShortStr};
+use leveret_ports::{
     Backpressure, Connector, ExchangeKind, FullPolicy, InPort, OutPort, Point2D, PortData,
     PortProfile, PortStatus, Pose2D, Postcard, Sample, Time, TimedDouble, TimedDoubleSeq,
     TimedLong, TimedPose2D, TimedString, TimedVelocity2D, Velocity2D,
 };
-use leveret_client::{FieldValue, ShortStr};
 use leveret_tests::fault_proxy::FaultProxy as Proxy;
 use std::fmt::Debug;
 use std::net::SocketAddr;
@@ -544,7 +544,7 @@ async fn futures_join_all<F: std::future::Future<Output = ()>>(futures: impl Ite
 
 /// Waits until the port's link has come back `connects` times in all.
 async fn wait_connected(
-    mut link: tokio::sync::watch::Receiver<leveret_client::ports::LinkStatus>,
+    mut link: tokio::sync::watch::Receiver<leveret_ports::LinkStatus>,
     connects: u64,
 ) {
     within(

@@ -1,3 +1,5 @@
+//! # leveret-ports
+//!
 //! Robot data ports over AMQP, after the AMQP data ports of OpenRTM-aist
 //! (RT-Middleware): an [`OutPort`] publishes typed values, an [`InPort`]
 //! receives them, wired through the exchange, queue and keys of a
@@ -27,7 +29,7 @@
 //! broker.
 //!
 //! ```no_run
-//! use leveret_client::ports::{
+//! use leveret_ports::{
 //!     ExchangeKind, FullPolicy, InPort, OutPort, PortProfile, PortStatus, Time, TimedPose2D,
 //! };
 //!
@@ -44,6 +46,11 @@
 //! # Ok(())
 //! # }
 //! ```
+//!
+//! Built on `leveret-client`'s public API only: an out-port publishes
+//! through room it reserves in its connection's outbox
+//! ([`leveret_client::OutboxSlot`]), an in-port takes deliveries on the
+//! connection's reader ([`leveret_client::DeliverySink`]).
 //!
 //! Layout:
 //! - `data`: [`PortData`] (value ⇄ body), its impls and [`DataError`].
@@ -62,6 +69,8 @@
 //! - `announce`: ports announcing themselves on [`PORTS_EXCHANGE`] (the
 //!   wire contract), and [`PortDirectory`], which reads the
 //!   announcements ([`PortAnnouncement`]).
+#![deny(missing_docs)]
+#![forbid(unsafe_code)]
 
 mod announce;
 pub mod cdr;
@@ -94,3 +103,41 @@ pub use out_port::{Fate, OutPort, OutPortStats, Outcome, PortStatus};
 pub use profile::{
     Backoff, Backpressure, Connector, ExchangeKind, FullPolicy, PortProfile, Qos, Replay,
 };
+
+/// The repository README's Rust examples, compiled as doc tests so they
+/// stay as shown; the `docs/` pages' below, one struct per page. They are
+/// compiled here, in the crate that sees the client, the ports and (with
+/// `embedded`) the broker, which is what the examples use.
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../README.md")]
+pub struct ReadmeDoctests;
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../docs/architecture.md")]
+pub struct ArchitectureDoctests;
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../docs/compatibility.md")]
+pub struct CompatibilityDoctests;
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../docs/configuration.md")]
+pub struct ConfigurationDoctests;
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../docs/mqtt.md")]
+pub struct MqttDoctests;
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../docs/operations.md")]
+pub struct OperationsDoctests;
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../docs/performance.md")]
+pub struct PerformanceDoctests;
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../docs/ports.md")]
+pub struct PortsDoctests;
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../docs/storage.md")]
+pub struct StorageDoctests;
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../docs/uplink.md")]
+pub struct UplinkDoctests;
+#[cfg(all(doctest, feature = "embedded"))]
+#[doc = include_str!("../../docs/README.md")]
+pub struct DocsIndexDoctests;

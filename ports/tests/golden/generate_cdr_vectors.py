@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Writes cdr_vectors.txt: OpenRTM-aist data values marshalled by omniORB's
-cdrMarshal, in both byte orders, for client/tests/cdr_golden.rs.
+cdrMarshal, in both byte orders, for ports/tests/cdr_golden.rs.
 
 Needs omniORBpy and omniidl, e.g. from pip:
     python3 -m venv /tmp/omni && /tmp/omni/bin/pip install cmeel-omniorbpy

@@ -379,7 +379,7 @@ timed_structs!(
 mod tests {
     use super::super::testing::{bytes, check, TM, TM_CDR};
     use super::*;
-    use crate::ports::{DataError, PortData};
+    use crate::{DataError, PortData};
     use bytes::Bytes;
 
     /// `values` as little-endian doubles after `TM`.

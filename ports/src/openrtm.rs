@@ -7,8 +7,8 @@
 
 use super::cdr::{Charset, Endian};
 use super::profile::{ExchangeKind, FullPolicy, PortProfile};
-use crate::error::{Error, Result};
-use crate::uri::ConnectionOptions;
+use leveret_client::ConnectionOptions;
+use leveret_client::{Error, Result};
 use std::collections::HashMap;
 use std::time::Duration;
 

@@ -12,11 +12,11 @@ mod common;
 
 use common::{unique, within};
 use leveret_broker::{Broker, BrokerHandle};
-use leveret_client::ports::{
+use leveret_client::{FieldValue, ShortStr};
+use leveret_ports::{
     Connector, ExchangeKind, Fate, FullPolicy, InPort, InPortStats, OutPort, OutPortStats, Outcome,
     PortProfile, PortStatus, Qos, Time, TimedLong,
 };
-use leveret_client::{FieldValue, ShortStr};
 use leveret_tests::both_runtimes;
 use leveret_tests::fault_proxy::FaultProxy as Proxy;
 use std::collections::{HashMap, HashSet};
@@ -364,7 +364,7 @@ async fn the_bytes_in_flight_are_bounded() {
         .expect("in-port");
     let body = {
         let mut body = bytes::BytesMut::new();
-        leveret_client::ports::PortData::encode(&long(0), &mut body).expect("encodes");
+        leveret_ports::PortData::encode(&long(0), &mut body).expect("encodes");
         body.len()
     };
     let mut bounded = base;

@@ -67,13 +67,13 @@ use super::link::{self, LinkStatus};
 use super::openrtm::PortRole;
 use super::out_port::OutPortStats;
 use super::profile::{Backpressure, ExchangeKind, FullPolicy, PortProfile, Replay};
-use crate::error::{Error, Result};
-use crate::{
+use bytes::Bytes;
+use leveret_client::{
     BasicConsumeOptions, BasicProperties, BasicPublishOptions, Channel, Connection, Consumer,
     ExchangeDeclareOptions, FieldTable, FieldValue, QueueBindOptions, QueueDeclareOptions,
     ShortStr,
 };
-use bytes::Bytes;
+use leveret_client::{Error, Result};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -1031,7 +1031,7 @@ impl Heard {
 /// stops reading its connection, which stalls everything else on it.
 ///
 /// ```no_run
-/// use leveret_client::ports::PortDirectory;
+/// use leveret_ports::PortDirectory;
 /// use leveret_client::Connection;
 ///
 /// # async fn demo() -> leveret_client::Result<()> {
@@ -1194,7 +1194,7 @@ mod tests {
             assert_eq!(names.iter().filter(|n| **n == name).count(), 1, "{name}");
         }
     }
-    use crate::ports::TimedPose2D;
+    use crate::TimedPose2D;
 
     fn sample(role: PortRole) -> PortAnnouncement {
         let profile = PortProfile::default()

@@ -4,10 +4,10 @@
 //! restart and are each executed once, in order.
 //!
 //! ```text
-//! cargo run -p leveret-client --example rabbitmq -- [amqp://guest:guest@localhost:5672/%2f] [count]
+//! cargo run -p leveret-ports --example rabbitmq -- [amqp://guest:guest@localhost:5672/%2f] [count]
 //! ```
 
-use leveret_client::ports::{
+use leveret_ports::{
     FullPolicy, InPort, OutPort, PortProfile, PortStatus, Time, TimedVelocity2D, Velocity2D,
 };
 use std::time::Duration;

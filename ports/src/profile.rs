@@ -13,9 +13,9 @@
 
 use super::cdr::CdrOptions;
 use super::openrtm::PortRole;
-use crate::error::Result;
-use crate::uri::ConnectionOptions;
-use crate::{Connection, FieldTable};
+use leveret_client::ConnectionOptions;
+use leveret_client::Result;
+use leveret_client::{Connection, FieldTable};
 use std::fmt;
 use std::future::Future;
 use std::pin::Pin;
@@ -628,7 +628,7 @@ impl Connector {
                 let options = named(&options, name);
                 Box::pin(async move {
                     let Some(broker) = broker.upgrade() else {
-                        return Err(crate::Error::io(std::io::Error::new(
+                        return Err(leveret_client::Error::from(std::io::Error::new(
                             std::io::ErrorKind::NotConnected,
                             "the embedded broker is gone",
                         )));

@@ -5,7 +5,7 @@
 //! only the CDR port data types of `cdr` and their `PortData` impls.
 
 use super::*;
-use crate::ports::PortData;
+use crate::PortData;
 
 /// The CDR port data types [`render()`] knows, one line each.
 macro_rules! renderable {

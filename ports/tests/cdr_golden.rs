@@ -6,7 +6,7 @@
 //! there a golden byte may differ from the zero this crate writes).
 
 use bytes::{Bytes, BytesMut};
-use leveret_client::ports::{
+use leveret_ports::{
     CdrOptions, Charset, Endian, Point2D, PortData, Pose2D, Time, TimedBoolean, TimedBooleanSeq,
     TimedChar, TimedCharSeq, TimedDouble, TimedDoubleSeq, TimedFloat, TimedFloatSeq, TimedLong,
     TimedLongSeq, TimedOctet, TimedOctetSeq, TimedPose2D, TimedShort, TimedShortSeq, TimedState,
@@ -301,7 +301,7 @@ fn basic_wide_characters() {
 /// every double differs.
 mod extended {
     use super::{check, TM};
-    use leveret_client::ports::{
+    use leveret_ports::{
         Acceleration2D, Acceleration3D, AngularAcceleration3D, AngularVelocity3D, Carlike, Charset,
         Covariance2D, Covariance3D, Geometry2D, Geometry3D, Orientation3D, Point2D, Point3D,
         PointCovariance2D, PortData, Pose2D, Pose3D, PoseVel2D, PoseVel3D, Quaternion, RGBColour,

@@ -7,10 +7,10 @@ mod common;
 
 use common::{unique, within};
 use leveret_broker::{Broker, BrokerHandle};
-use leveret_client::ports::{
+use leveret_client::{Connection, FieldTable, QueueDeclareOptions};
+use leveret_ports::{
     InPort, OutPort, PortProfile, PortRole, PortStatus, Time, TimedLong, TimedString,
 };
-use leveret_client::{Connection, FieldTable, QueueDeclareOptions};
 use std::net::SocketAddr;
 
 async fn leveret() -> (BrokerHandle, SocketAddr) {

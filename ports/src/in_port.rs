@@ -33,12 +33,12 @@ use super::latency::LatencyStats;
 use super::link::{self, Link, LinkStatus, Stamp};
 use super::openrtm::PortRole;
 use super::profile::{Connector, FullPolicy, PortProfile};
-use crate::consumer::DeliverySink;
-use crate::error::{Error, Result};
-use crate::{
+use leveret_client::DeliverySink;
+use leveret_client::{
     BasicConsumeOptions, BasicQosOptions, Channel, Connection, Consumer, ConsumerEnd, Delivery,
     FieldTable, QueueDeleteOptions, ShortStr,
 };
+use leveret_client::{Error, Result};
 use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::pin::Pin;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};

@@ -650,52 +650,52 @@ macro_rules! idl_structs {
             $($(#[$member_doc])* pub $member: $t,)+
         }
 
-        impl $crate::ports::cdr::Cdr for $name {
+        impl $crate::cdr::Cdr for $name {
             fn write_cdr(
                 &self,
-                out: &mut $crate::ports::cdr::CdrWriter<'_>,
-            ) -> Result<(), $crate::ports::DataError> {
-                $($crate::ports::cdr::Cdr::write_cdr(&self.$member, out)?;)+
+                out: &mut $crate::cdr::CdrWriter<'_>,
+            ) -> Result<(), $crate::DataError> {
+                $($crate::cdr::Cdr::write_cdr(&self.$member, out)?;)+
                 Ok(())
             }
 
             fn read_cdr(
-                input: &mut $crate::ports::cdr::CdrReader,
-            ) -> Result<Self, $crate::ports::DataError> {
+                input: &mut $crate::cdr::CdrReader,
+            ) -> Result<Self, $crate::DataError> {
                 // A struct expression evaluates its fields in the order
                 // written: IDL order.
                 Ok($name {
-                    $($member: $crate::ports::cdr::Cdr::read_cdr(input)?,)+
+                    $($member: $crate::cdr::Cdr::read_cdr(input)?,)+
                 })
             }
         }
 
-        impl $crate::ports::PortData for $name {
-            const CONTENT_TYPE: &'static str = $crate::ports::cdr::CONTENT_TYPE_LITTLE;
+        impl $crate::PortData for $name {
+            const CONTENT_TYPE: &'static str = $crate::cdr::CONTENT_TYPE_LITTLE;
             const TYPE_NAME: Option<&'static str> =
                 Some(concat!("IDL:RTC/", stringify!($name), ":1.0"));
 
-            fn encode(&self, buf: &mut ::bytes::BytesMut) -> Result<(), $crate::ports::DataError> {
-                $crate::ports::cdr::encode(self, buf)
+            fn encode(&self, buf: &mut ::bytes::BytesMut) -> Result<(), $crate::DataError> {
+                $crate::cdr::encode(self, buf)
             }
 
-            fn decode(body: ::bytes::Bytes) -> Result<Self, $crate::ports::DataError> {
-                $crate::ports::cdr::decode(body)
+            fn decode(body: ::bytes::Bytes) -> Result<Self, $crate::DataError> {
+                $crate::cdr::decode(body)
             }
 
             fn encode_with(
                 &self,
                 buf: &mut ::bytes::BytesMut,
-                options: $crate::ports::cdr::CdrOptions,
-            ) -> Result<(), $crate::ports::DataError> {
-                $crate::ports::cdr::encode_with(self, buf, options)
+                options: $crate::cdr::CdrOptions,
+            ) -> Result<(), $crate::DataError> {
+                $crate::cdr::encode_with(self, buf, options)
             }
 
             fn decode_with(
                 body: ::bytes::Bytes,
-                options: $crate::ports::cdr::CdrOptions,
-            ) -> Result<Self, $crate::ports::DataError> {
-                $crate::ports::cdr::decode_with(body, options)
+                options: $crate::cdr::CdrOptions,
+            ) -> Result<Self, $crate::DataError> {
+                $crate::cdr::decode_with(body, options)
             }
         }
     )*};
@@ -709,7 +709,7 @@ macro_rules! timed_structs {
             $(#[$doc])*
             $name $([$($derive),+])? {
                 /// Time stamp.
-                tm: $crate::ports::cdr::Time,
+                tm: $crate::cdr::Time,
                 /// The value.
                 data: $t,
             }
@@ -729,7 +729,7 @@ pub use extended::*;
 mod tests {
     use super::testing::{bytes, TM, TM_CDR};
     use super::*;
-    use crate::ports::PortData;
+    use crate::PortData;
 
     #[test]
     fn big_endian_as_serializer_cdr_endian_big() {

@@ -1,7 +1,7 @@
 //! Helpers for the CDR unit tests: a time stamp with distinct bytes, and
 //! the checks every type's test makes of an encoding.
 
-use crate::ports::{DataError, PortData, Time};
+use crate::{DataError, PortData, Time};
 use bytes::{Bytes, BytesMut};
 use std::fmt::Debug;
 

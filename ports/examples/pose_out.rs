@@ -3,11 +3,11 @@
 //! every second.
 //!
 //! ```text
-//! cargo run -p leveret-client --example pose_out -- [amqp://guest:guest@localhost:5672/%2f] [seconds]
+//! cargo run -p leveret-ports --example pose_out -- [amqp://guest:guest@localhost:5672/%2f] [seconds]
 //! ```
 //! Run `pose_in` against the same broker to receive the poses.
 
-use leveret_client::ports::{
+use leveret_ports::{
     ExchangeKind, OutPort, Point2D, PortProfile, PortStatus, Pose2D, Time, TimedPose2D,
 };
 use std::time::Duration;

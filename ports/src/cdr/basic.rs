@@ -107,7 +107,7 @@ timed_structs!(
 mod tests {
     use super::super::testing::{bytes, check, TM, TM_CDR};
     use super::*;
-    use crate::ports::{CdrOptions, Endian, PortData};
+    use crate::{CdrOptions, Endian, PortData};
     use bytes::{Bytes, BytesMut};
 
     #[test]
@@ -181,7 +181,7 @@ mod tests {
         let lying = bytes(&[&TM_CDR, &[0xff, 0xff, 0xff, 0x0f]]);
         assert!(matches!(
             TimedDoubleSeq::decode(Bytes::from(lying)),
-            Err(crate::ports::DataError::Truncated { .. })
+            Err(crate::DataError::Truncated { .. })
         ));
     }
 

@@ -7,11 +7,11 @@ mod common;
 
 use common::{unique, within, without_waiting};
 use leveret_broker::{Broker, BrokerHandle};
-use leveret_client::ports::{
+use leveret_client::{FieldValue, ShortStr};
+use leveret_ports::{
     Backpressure, Fate, FullPolicy, InPort, OutPort, Outcome, PortProfile, PortStatus, Qos, Replay,
     Time, TimedLong,
 };
-use leveret_client::{FieldValue, ShortStr};
 use leveret_tests::fault_proxy::FaultProxy as Proxy;
 use leveret_tests::reserved_port::reserved_addr;
 use std::net::SocketAddr;
@@ -130,7 +130,7 @@ fn long(data: i32) -> TimedLong {
 /// An out-port started before its broker exists, with a window of 3.
 fn port_without_broker(addr: SocketAddr, backpressure: Backpressure) -> OutPort<TimedLong> {
     let mut profile = profile(addr)
-        .exchange("amq.fanout", leveret_client::ports::ExchangeKind::Fanout)
+        .exchange("amq.fanout", leveret_ports::ExchangeKind::Fanout)
         .backpressure(backpressure)
         .put_timeout(Duration::from_millis(50));
     profile.max_unconfirmed = 3;
@@ -447,7 +447,7 @@ async fn the_default_topology_loses_nothing_across_a_cut() {
     let proxy = Proxy::start(addr).await;
     let exchange = unique("poses");
     let mut base = profile(addr)
-        .exchange(&exchange, leveret_client::ports::ExchangeKind::Fanout)
+        .exchange(&exchange, leveret_ports::ExchangeKind::Fanout)
         .buffer(64, FullPolicy::BlockBroker)
         .backpressure(Backpressure::Block)
         .put_timeout(Duration::from_secs(5));
@@ -493,7 +493,7 @@ async fn a_profile_that_routes_nowhere_is_refused() {
 async fn unroutable_values_are_counted_apart() {
     let (_broker, addr) = leveret().await;
     let exchange = unique("nobody");
-    let base = profile(addr).exchange(&exchange, leveret_client::ports::ExchangeKind::Direct);
+    let base = profile(addr).exchange(&exchange, leveret_ports::ExchangeKind::Direct);
     let output = OutPort::<TimedLong>::connect(base.clone().routing_key("nowhere"))
         .await
         .expect("out-port");
@@ -521,7 +521,7 @@ async fn unroutable_values_are_counted_without_confirms_too() {
     let (_broker, addr) = leveret().await;
     let exchange = unique("nobody");
     let base = profile(addr)
-        .exchange(&exchange, leveret_client::ports::ExchangeKind::Direct)
+        .exchange(&exchange, leveret_ports::ExchangeKind::Direct)
         .routing_key("nowhere")
         .confirms(false);
     let output = OutPort::<TimedLong>::connect(base).await.expect("out-port");
@@ -548,7 +548,7 @@ async fn unroutable_values_are_counted_without_confirms_too() {
 #[tokio::test]
 async fn expired_values_make_room_while_the_link_is_down() {
     let mut profile = profile(reserved_addr())
-        .exchange("amq.fanout", leveret_client::ports::ExchangeKind::Fanout)
+        .exchange("amq.fanout", leveret_ports::ExchangeKind::Fanout)
         .backpressure(Backpressure::Block)
         .lifespan(Duration::from_millis(50));
     profile.max_unconfirmed = 2;
@@ -600,7 +600,7 @@ fn a_control_loop_on_its_own_thread() {
 async fn an_in_ports_own_queue_goes_when_it_closes() {
     let (_broker, addr) = leveret().await;
     let exchange = unique("own");
-    let base = profile(addr).exchange(&exchange, leveret_client::ports::ExchangeKind::Fanout);
+    let base = profile(addr).exchange(&exchange, leveret_ports::ExchangeKind::Fanout);
     let input = InPort::<TimedLong>::connect(base).await.expect("in-port");
     let queue = input.queue();
     assert!(queue.as_bytes().starts_with(b"leveret.port."), "{queue:?}");

@@ -4,8 +4,8 @@
 //! port's identity, sequence number and send time.
 
 use super::profile::PortProfile;
-use crate::error::Result;
-use crate::{
+use leveret_client::Result;
+use leveret_client::{
     Channel, ExchangeDeclareOptions, FieldTable, FieldValue, QueueBindOptions, QueueDeclareOptions,
     ShortStr,
 };
@@ -94,7 +94,7 @@ impl Link {
         });
     }
 
-    pub(crate) fn lost(&self, error: &crate::Error) {
+    pub(crate) fn lost(&self, error: &leveret_client::Error) {
         tracing::debug!(%error, "port link lost");
         self.0.send_modify(|s| {
             if s.up {
@@ -113,7 +113,7 @@ impl Link {
         self.0.send_modify(|s| s.degraded = degraded && s.up);
     }
 
-    pub(crate) fn failed(&self, error: &crate::Error) {
+    pub(crate) fn failed(&self, error: &leveret_client::Error) {
         tracing::debug!(%error, "port reconnection attempt failed");
         self.0
             .send_modify(|s| s.last_error = Some(error.to_string()));

@@ -3,10 +3,10 @@
 //! lost, out of order, duplicates, latency) every second.
 //!
 //! ```text
-//! cargo run -p leveret-client --example pose_in -- [amqp://guest:guest@localhost:5672/%2f] [seconds]
+//! cargo run -p leveret-ports --example pose_in -- [amqp://guest:guest@localhost:5672/%2f] [seconds]
 //! ```
 
-use leveret_client::ports::{ExchangeKind, FullPolicy, InPort, PortProfile, TimedPose2D};
+use leveret_ports::{ExchangeKind, FullPolicy, InPort, PortProfile, TimedPose2D};
 use std::time::Duration;
 
 #[tokio::main]
