@@ -4,27 +4,28 @@
 //! handshake, under the handshake timeout, on the connection's own task),
 //! and the vhost sweeper that expires messages and queues.
 
+use crate::admission::Slot;
 use crate::connection::Identity;
 use crate::core::Core;
 use crate::tls::TlsContext;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::net::TcpListener;
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::watch;
 
-/// Accepts connections until the broker shuts down.
-/// Each connection task holds a clone of `alive`, so whoever holds the
-/// receiver learns when the last connection has ended.
-pub async fn accept_loop(
-    core: Arc<Core>,
-    listener: TcpListener,
-    tls: Option<Arc<TlsContext>>,
-    alive: tokio::sync::mpsc::Sender<()>,
-) {
-    let mut shutdown = core.shutdown_signal();
+/// The next connection to serve from `listener`: accepted, admitted
+/// against `max_connections` (a socket over it is closed at once, before
+/// anything is read), with TCP_NODELAY set. `None` once the broker shuts
+/// down. The AMQP and MQTT accept loops both take their sockets here.
+pub(crate) async fn next_admitted(
+    core: &Arc<Core>,
+    listener: &TcpListener,
+    shutdown: &mut watch::Receiver<bool>,
+) -> Option<(TcpStream, String, Slot)> {
     loop {
         let accepted = tokio::select! {
             accepted = listener.accept() => accepted,
-            _ = shutdown.wait_for(|down| *down) => return,
+            _ = shutdown.wait_for(|down| *down) => return None,
         };
         let (socket, peer) = match accepted {
             Ok(pair) => pair,
@@ -36,15 +37,29 @@ pub async fn accept_loop(
             }
         };
         let peer = peer.to_string();
-        let local = socket.local_addr().ok();
-        let slot = match core.connections.admit_network(&peer) {
-            Ok(slot) => slot,
-            // Over max_connections: closed before anything is read.
-            Err(_) => continue,
+        let Ok(slot) = core.connections.admit_network(&peer) else {
+            continue;
         };
         if let Err(e) = socket.set_nodelay(true) {
             tracing::debug!(error = %e, "could not set TCP_NODELAY");
         }
+        return Some((socket, peer, slot));
+    }
+}
+
+/// Accepts AMQP connections until the broker shuts down.
+///
+/// Each connection task holds a clone of `alive`, so whoever holds the
+/// receiver learns when the last connection has ended.
+pub async fn accept_loop(
+    core: Arc<Core>,
+    listener: TcpListener,
+    tls: Option<Arc<TlsContext>>,
+    alive: tokio::sync::mpsc::Sender<()>,
+) {
+    let mut shutdown = core.shutdown_signal();
+    while let Some((socket, peer, slot)) = next_admitted(&core, &listener, &mut shutdown).await {
+        let local = socket.local_addr().ok();
         let core = Arc::clone(&core);
         let alive = alive.clone();
         match &tls {

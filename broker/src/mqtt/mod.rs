@@ -21,7 +21,6 @@ use takeover::ClientIds;
 
 use crate::core::Core;
 use std::sync::Arc;
-use std::time::Duration;
 use tokio::net::TcpListener;
 
 /// What a broker's MQTT listeners share.
@@ -53,27 +52,10 @@ pub(crate) async fn accept_loop(
     alive: tokio::sync::mpsc::Sender<()>,
 ) {
     let mut shutdown = core.shutdown_signal();
-    loop {
-        let accepted = tokio::select! {
-            accepted = listener.accept() => accepted,
-            _ = shutdown.wait_for(|down| *down) => return,
-        };
-        let (socket, peer) = match accepted {
-            Ok(pair) => pair,
-            Err(e) => {
-                tracing::warn!(error = %e, "MQTT accept failed");
-                tokio::time::sleep(Duration::from_millis(50)).await;
-                continue;
-            }
-        };
-        let peer = peer.to_string();
-        // Counted with the AMQP connections against max_connections.
-        let Ok(slot) = core.connections.admit_network(&peer) else {
-            continue;
-        };
-        if let Err(e) = socket.set_nodelay(true) {
-            tracing::debug!(error = %e, "could not set TCP_NODELAY");
-        }
+    // Counted with the AMQP connections against max_connections.
+    while let Some((socket, peer, slot)) =
+        crate::server::next_admitted(&core, &listener, &mut shutdown).await
+    {
         let core = Arc::clone(&core);
         let shared = Arc::clone(&shared);
         let alive = alive.clone();
