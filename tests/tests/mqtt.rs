@@ -62,6 +62,16 @@ fn options5(id: &str, port: u16, password: &str) -> rumqttc::v5::MqttOptions {
     options
 }
 
+/// A 3.1.1 client logged in as `robot`, once its CONNACK has come.
+async fn connected3(id: &str, port: u16) -> (rumqttc::AsyncClient, rumqttc::EventLoop) {
+    let (client, mut events) = rumqttc::AsyncClient::new(options3(id, port, "secret"), 16);
+    until3(&mut events, |p| {
+        matches!(p, Incoming::ConnAck(_)).then_some(())
+    })
+    .await;
+    (client, events)
+}
+
 /// Polls a 3.1.1 event loop until `wanted` picks an event.
 async fn until3<T>(
     events: &mut rumqttc::EventLoop,
@@ -108,11 +118,7 @@ async fn until5<T>(
 async fn v3_1_1_publishes_reach_a_subscriber_at_qos_0_and_1() {
     let handle = start(Limits::default()).await;
     let port = mqtt_port(&handle);
-    let (client, mut events) = rumqttc::AsyncClient::new(options3("sub-311", port, "secret"), 16);
-    until3(&mut events, |p| {
-        matches!(p, Incoming::ConnAck(_)).then_some(())
-    })
-    .await;
+    let (client, mut events) = connected3("sub-311", port).await;
     client
         .subscribe("sensors/+/temp", QoS::AtLeastOnce)
         .await
@@ -255,12 +261,7 @@ async fn wrong_password_and_anonymous_logins_are_refused() {
 #[both_runtimes]
 async fn an_amqp_publish_to_amq_topic_reaches_an_mqtt_subscriber() {
     let handle = start(Limits::default()).await;
-    let (client, mut events) =
-        rumqttc::AsyncClient::new(options3("from-amqp", mqtt_port(&handle), "secret"), 16);
-    until3(&mut events, |p| {
-        matches!(p, Incoming::ConnAck(_)).then_some(())
-    })
-    .await;
+    let (client, mut events) = connected3("from-amqp", mqtt_port(&handle)).await;
     client.subscribe("a/b", QoS::AtMostOnce).await.unwrap();
     until3(&mut events, |p| {
         matches!(p, Incoming::SubAck(_)).then_some(())
@@ -310,12 +311,7 @@ async fn an_mqtt_publish_reaches_an_amqp_queue_bound_with_a_wildcard() {
         Default::default()
     ))
     .unwrap();
-    let (client, mut events) =
-        rumqttc::AsyncClient::new(options3("to-amqp", mqtt_port(&handle), "secret"), 16);
-    until3(&mut events, |p| {
-        matches!(p, Incoming::ConnAck(_)).then_some(())
-    })
-    .await;
+    let (client, mut events) = connected3("to-amqp", mqtt_port(&handle)).await;
     client
         .publish("a/b", QoS::AtLeastOnce, false, "from mqtt")
         .await
@@ -342,12 +338,7 @@ async fn an_mqtt_publish_reaches_an_amqp_queue_bound_with_a_wildcard() {
 #[both_runtimes]
 async fn a_clean_session_queue_lives_as_long_as_its_connection() {
     let handle = start(Limits::default()).await;
-    let (client, mut events) =
-        rumqttc::AsyncClient::new(options3("cleaner", mqtt_port(&handle), "secret"), 16);
-    until3(&mut events, |p| {
-        matches!(p, Incoming::ConnAck(_)).then_some(())
-    })
-    .await;
+    let (client, mut events) = connected3("cleaner", mqtt_port(&handle)).await;
     client.subscribe("x/y", QoS::AtLeastOnce).await.unwrap();
     until3(&mut events, |p| {
         matches!(p, Incoming::SubAck(_)).then_some(())
@@ -825,12 +816,7 @@ async fn a_qos_1_publish_into_a_durable_queue_survives_a_restart_and_qos_0_does_
         Default::default()
     ))
     .unwrap();
-    let (client, mut events) =
-        rumqttc::AsyncClient::new(options3("durable", mqtt_port(&handle), "secret"), 16);
-    until3(&mut events, |p| {
-        matches!(p, Incoming::ConnAck(_)).then_some(())
-    })
-    .await;
+    let (client, mut events) = connected3("durable", mqtt_port(&handle)).await;
     client
         .publish("d/0", QoS::AtMostOnce, false, "transient")
         .await
