@@ -62,6 +62,29 @@ fn options5(id: &str, port: u16, password: &str) -> rumqttc::v5::MqttOptions {
     options
 }
 
+/// An AMQP connection to the broker and a channel on it.
+async fn amqp_channel(handle: &BrokerHandle) -> (lapin::Connection, lapin::Channel) {
+    let amqp = tmo!(lapin::Connection::connect(
+        &amqp_url(handle),
+        lapin::ConnectionProperties::default()
+    ))
+    .unwrap();
+    let channel = tmo!(amqp.create_channel()).unwrap();
+    (amqp, channel)
+}
+
+/// Binds `queue` to `amq.topic` with `key`, where MQTT publishes land.
+async fn bind_to_amq_topic(channel: &lapin::Channel, queue: &str, key: &str) {
+    tmo!(channel.queue_bind(
+        queue,
+        "amq.topic",
+        key,
+        Default::default(),
+        Default::default()
+    ))
+    .unwrap();
+}
+
 /// A 3.1.1 client logged in as `robot`, once its CONNACK has come.
 async fn connected3(id: &str, port: u16) -> (rumqttc::AsyncClient, rumqttc::EventLoop) {
     let (client, mut events) = rumqttc::AsyncClient::new(options3(id, port, "secret"), 16);
@@ -267,12 +290,7 @@ async fn an_amqp_publish_to_amq_topic_reaches_an_mqtt_subscriber() {
         matches!(p, Incoming::SubAck(_)).then_some(())
     })
     .await;
-    let amqp = tmo!(lapin::Connection::connect(
-        &amqp_url(&handle),
-        lapin::ConnectionProperties::default()
-    ))
-    .unwrap();
-    let channel = tmo!(amqp.create_channel()).unwrap();
+    let (_amqp, channel) = amqp_channel(&handle).await;
     tmo!(channel.basic_publish(
         "amq.topic",
         "a.b",
@@ -296,21 +314,9 @@ async fn an_amqp_publish_to_amq_topic_reaches_an_mqtt_subscriber() {
 #[both_runtimes]
 async fn an_mqtt_publish_reaches_an_amqp_queue_bound_with_a_wildcard() {
     let handle = start(Limits::default()).await;
-    let amqp = tmo!(lapin::Connection::connect(
-        &amqp_url(&handle),
-        lapin::ConnectionProperties::default()
-    ))
-    .unwrap();
-    let channel = tmo!(amqp.create_channel()).unwrap();
+    let (_amqp, channel) = amqp_channel(&handle).await;
     tmo!(channel.queue_declare("readings", Default::default(), Default::default())).unwrap();
-    tmo!(channel.queue_bind(
-        "readings",
-        "amq.topic",
-        "a.*",
-        Default::default(),
-        Default::default()
-    ))
-    .unwrap();
+    bind_to_amq_topic(&channel, "readings", "a.*").await;
     let (client, mut events) = connected3("to-amqp", mqtt_port(&handle)).await;
     client
         .publish("a/b", QoS::AtLeastOnce, false, "from mqtt")
@@ -582,21 +588,9 @@ async fn a_packet_over_the_size_limit_closes_the_connection() {
 #[both_runtimes]
 async fn a_qos_2_publish_sent_twice_is_routed_once() {
     let handle = start(Limits::default()).await;
-    let amqp = tmo!(lapin::Connection::connect(
-        &amqp_url(&handle),
-        lapin::ConnectionProperties::default()
-    ))
-    .unwrap();
-    let channel = tmo!(amqp.create_channel()).unwrap();
+    let (_amqp, channel) = amqp_channel(&handle).await;
     tmo!(channel.queue_declare("exactly", Default::default(), Default::default())).unwrap();
-    tmo!(channel.queue_bind(
-        "exactly",
-        "amq.topic",
-        "q2.#",
-        Default::default(),
-        Default::default()
-    ))
-    .unwrap();
+    bind_to_amq_topic(&channel, "exactly", "q2.#").await;
     let mut raw = Raw::login(mqtt_port(&handle), 0).await;
     let id = std::num::NonZeroU16::new(7).unwrap();
     let publish = |dup| {
@@ -628,21 +622,9 @@ async fn a_qos_2_publish_sent_twice_is_routed_once() {
 #[both_runtimes]
 async fn a_will_is_published_when_the_connection_drops_and_not_after_disconnect() {
     let handle = start(Limits::default()).await;
-    let amqp = tmo!(lapin::Connection::connect(
-        &amqp_url(&handle),
-        lapin::ConnectionProperties::default()
-    ))
-    .unwrap();
-    let channel = tmo!(amqp.create_channel()).unwrap();
+    let (_amqp, channel) = amqp_channel(&handle).await;
     tmo!(channel.queue_declare("wills", Default::default(), Default::default())).unwrap();
-    tmo!(channel.queue_bind(
-        "wills",
-        "amq.topic",
-        "status.#",
-        Default::default(),
-        Default::default()
-    ))
-    .unwrap();
+    bind_to_amq_topic(&channel, "wills", "status.#").await;
     let port = mqtt_port(&handle);
     for (id, graceful) in [("dropper", false), ("leaver", true)] {
         let mut options = options3(id, port, "secret");
@@ -742,12 +724,7 @@ async fn qos_1_deliveries_wait_for_puback_within_a_window_of_ten() {
         matches!(p, Incoming::SubAck(_)).then_some(())
     })
     .await;
-    let amqp = tmo!(lapin::Connection::connect(
-        &amqp_url(&handle),
-        lapin::ConnectionProperties::default()
-    ))
-    .unwrap();
-    let channel = tmo!(amqp.create_channel()).unwrap();
+    let (_amqp, channel) = amqp_channel(&handle).await;
     let persistent = lapin::BasicProperties::default().with_delivery_mode(2);
     for i in 0..20u8 {
         tmo!(channel.basic_publish(
@@ -797,25 +774,13 @@ async fn qos_1_deliveries_wait_for_puback_within_a_window_of_ten() {
 async fn a_qos_1_publish_into_a_durable_queue_survives_a_restart_and_qos_0_does_not() {
     let dir = std::env::temp_dir().join(unique("leveret-mqtt-durable"));
     let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
-    let amqp = tmo!(lapin::Connection::connect(
-        &amqp_url(&handle),
-        lapin::ConnectionProperties::default()
-    ))
-    .unwrap();
-    let channel = tmo!(amqp.create_channel()).unwrap();
+    let (amqp, channel) = amqp_channel(&handle).await;
     let durable = lapin::options::QueueDeclareOptions {
         durable: true,
         ..Default::default()
     };
     tmo!(channel.queue_declare("kept", durable, Default::default())).unwrap();
-    tmo!(channel.queue_bind(
-        "kept",
-        "amq.topic",
-        "d.#",
-        Default::default(),
-        Default::default()
-    ))
-    .unwrap();
+    bind_to_amq_topic(&channel, "kept", "d.#").await;
     let (client, mut events) = connected3("durable", mqtt_port(&handle)).await;
     client
         .publish("d/0", QoS::AtMostOnce, false, "transient")
@@ -833,12 +798,7 @@ async fn a_qos_1_publish_into_a_durable_queue_survives_a_restart_and_qos_0_does_
     drop(amqp);
     handle.shutdown().await;
     let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
-    let amqp = tmo!(lapin::Connection::connect(
-        &amqp_url(&handle),
-        lapin::ConnectionProperties::default()
-    ))
-    .unwrap();
-    let channel = tmo!(amqp.create_channel()).unwrap();
+    let (amqp, channel) = amqp_channel(&handle).await;
     let kept = tmo!(channel.basic_get("kept", lapin::options::BasicGetOptions { no_ack: true }))
         .unwrap()
         .expect("the QoS 1 message survived the restart");
