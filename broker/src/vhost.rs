@@ -322,15 +322,13 @@ impl Vhost {
         if let Some(existing) = self.queue(&decl.name) {
             check_exclusive(&existing, connection_id, &self.name)?;
             if !decl.passive {
-                let resource = format!("queue '{}' in vhost '{}'", decl.name, self.name);
                 let (o, d) = (&existing.options, &decl.options);
+                if o.exclusive_owner.is_some() != d.exclusive_owner.is_some() {
+                    return Err(exclusive_locked(&existing.name, &self.name));
+                }
+                let resource = format!("queue '{}' in vhost '{}'", decl.name, self.name);
                 for (key, current, received) in [
                     ("durable", o.durable, d.durable),
-                    (
-                        "exclusive",
-                        o.exclusive_owner.is_some(),
-                        d.exclusive_owner.is_some(),
-                    ),
                     ("auto_delete", o.auto_delete, d.auto_delete),
                 ] {
                     if current != received {
@@ -934,12 +932,17 @@ fn check_binding(exchange: &Exchange, binding: &Binding) -> AmqpResult<()> {
 /// Exclusive queues belong to one connection: 405 for any other.
 pub fn check_exclusive(queue: &Queue, connection_id: u64, vhost: &ShortStr) -> AmqpResult<()> {
     match queue.options.exclusive_owner {
-        Some(owner) if owner != connection_id => Err(AmqpError::resource_locked(format_args!(
-            "cannot obtain exclusive access to locked queue '{}' in vhost '{}'. It could be originally declared on another connection or the exclusive property value does not match that of the original declaration.",
-            queue.name, vhost
-        ))),
+        Some(owner) if owner != connection_id => Err(exclusive_locked(&queue.name, vhost)),
         _ => Ok(()),
     }
+}
+
+/// RabbitMQ's 405 for a queue another connection owns, and for a redeclare
+/// whose `exclusive` flag differs from the queue's (either way round).
+fn exclusive_locked(queue: &ShortStr, vhost: &ShortStr) -> AmqpError {
+    AmqpError::resource_locked(format_args!(
+        "cannot obtain exclusive access to locked queue '{queue}' in vhost '{vhost}'. It could be originally declared on another connection or the exclusive property value does not match that of the original declaration."
+    ))
 }
 
 /// RabbitMQ compares the arguments it validates; the first that differs.

@@ -102,6 +102,31 @@ async fn exclusive_queue_is_locked_to_its_connection() {
         b"mine"
     );
     tmo!(och2.queue_declare(&q, exclusive(), lp::FieldTable::default())).expect("redeclare");
+    // Even the owner gets 405 when the redeclare's `exclusive` differs, and so
+    // does anyone redeclaring a shared queue as exclusive (RabbitMQ 3.10).
+    lp::assert_err(
+        tmo!(och2.queue_declare(
+            &q,
+            lp::QueueDeclareOptions::default(),
+            lp::FieldTable::default()
+        )),
+        405,
+        "RESOURCE_LOCKED",
+    );
+    let och2 = lp::channel(&owner).await;
+    let och3 = lp::channel(&owner).await;
+    let shared = unique("shared");
+    tmo!(och3.queue_declare(
+        &shared,
+        lp::QueueDeclareOptions::default(),
+        lp::FieldTable::default()
+    ))
+    .expect("declare shared");
+    lp::assert_err(
+        tmo!(och3.queue_declare(&shared, exclusive(), lp::FieldTable::default())),
+        405,
+        "RESOURCE_LOCKED",
+    );
 
     // Any other connection gets 405 RESOURCE_LOCKED for everything:
     // "RESOURCE_LOCKED - cannot obtain exclusive access to locked queue '...' in vhost '/'. ..."
