@@ -229,6 +229,29 @@ async fn a_refused_login_is_logged_with_the_user_and_mechanism() {
         .all(|line| !line.starts_with("INFO forged")));
 }
 
+/// A refused management API login is logged as RabbitMQ's management
+/// plugin logs it, with the peer whose checks are queued and slowed apart
+/// from every other address's.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refused_management_login_is_logged_with_the_user_and_peer() {
+    let broker = OpsBroker::start("log-http-auth", &[]);
+    let wrong = basic("guest", "wrong");
+    let refused = request(
+        broker.http,
+        "GET",
+        "/api/overview",
+        &[("Authorization", wrong.as_str())],
+        b"",
+    )
+    .await;
+    assert_eq!(refused.status, 401, "{}", refused.text());
+    let line = wait_for_lines(&broker, 1, |line| {
+        line.contains("HTTP access denied: user 'guest' - invalid credentials")
+    });
+    assert!(line[0].contains(" WARN "), "{}", line[0]);
+    assert!(line[0].contains("peer=127.0.0.1:"), "{}", line[0]);
+}
+
 /// Changes made through the management API are logged with the acting
 /// user: closing a connection (whose own closing line gives the reason),
 /// adding a user, granting a permission, importing definitions.

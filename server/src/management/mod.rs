@@ -194,17 +194,15 @@ async fn authenticate(
 ) -> Response {
     let mut request = request;
     let credentials = basic_credentials(request.headers());
+    let peer = request.extensions().get::<Peer>().map(|peer| peer.0);
+    // Checks are queued and failures slowed per source address (as AMQP
+    // logins are), so one address's flood never delays another's login.
+    let source = peer.map_or_else(|| "management API".to_owned(), |peer| peer.to_string());
     let passed = match &credentials {
-        Some((user, password)) => {
-            context
-                .admin
-                .authenticate(user, password, "management API")
-                .await
-        }
+        Some((user, password)) => context.admin.authenticate(user, password, &source).await,
         None => false,
     };
     if let (true, Some((user, _))) = (passed, &credentials) {
-        let peer = request.extensions().get::<Peer>().map(|peer| peer.0);
         if !peer.is_none_or(|peer| context.admin.may_connect_from(user, peer)) {
             tracing::info!(%user, ?peer, "management API login refused: loopback_users");
             return caller::not_authorised("User can only log in via localhost").into_response();
@@ -225,8 +223,16 @@ async fn authenticate(
         request.extensions_mut().insert(caller);
         return next.run(request).await;
     }
-    let user = credentials.map(|(user, _)| user);
-    tracing::info!(user = ?user, "management API login refused");
+    // RabbitMQ's management plugin's line, with the peer the check was
+    // queued and slowed under.
+    match credentials {
+        Some((user, _)) => tracing::warn!(
+            peer = %source,
+            "HTTP access denied: user '{}' - invalid credentials",
+            user.escape_debug()
+        ),
+        None => tracing::warn!(peer = %source, "HTTP access denied: no credentials"),
+    }
     ApiError::unauthorized().into_response()
 }
 
