@@ -49,8 +49,9 @@ pub struct Record {
     pub offset: u64,
     /// When it was appended, ms since the epoch.
     pub timestamp_ms: i64,
-    /// The payload as appended.
-    pub payload: Vec<u8>,
+    /// The payload as appended (shared, not copied, by every reader it is
+    /// handed to).
+    pub payload: bytes::Bytes,
 }
 
 /// What the index keeps of one segment.
@@ -207,12 +208,16 @@ impl StreamLog {
             Err(e) if e.kind() != io::ErrorKind::NotFound => return Err(e),
             _ => {}
         }
+        std::fs::create_dir_all(dir)?;
         StreamLog::open(dir, max_segment_bytes)
     }
 
     /// Opens (or creates) the log in `dir`, checking every record; damage
     /// is reported as an error log and the damaged segment cut there.
     pub fn open(dir: &Path, max_segment_bytes: u64) -> io::Result<StreamLog> {
+        if !dir.exists() {
+            tracing::error!(stream = %dir.display(), "a stored stream's directory is missing: its records are lost; it starts empty");
+        }
         std::fs::create_dir_all(dir)?;
         let mut firsts: Vec<u64> = std::fs::read_dir(dir)?
             .filter_map(|e| e.ok())
@@ -509,7 +514,7 @@ impl ReadPlan {
                 out.push(Record {
                     offset,
                     timestamp_ms,
-                    payload: record,
+                    payload: record.into(),
                 });
                 cursor.offset += 1;
                 cursor.at = Some((*first, pos));
@@ -534,6 +539,7 @@ mod tests {
             let dir =
                 std::env::temp_dir().join(format!("leveret-stream-{}-{name}", std::process::id()));
             let _ = std::fs::remove_dir_all(&dir);
+            std::fs::create_dir_all(&dir).expect("scratch directory");
             Scratch(dir)
         }
 
@@ -570,7 +576,7 @@ mod tests {
         );
         let from_40 = read_all(&log, 40);
         assert_eq!(from_40.len(), 60);
-        assert_eq!(from_40[0].payload, 40u32.to_le_bytes());
+        assert_eq!(from_40[0].payload, &40u32.to_le_bytes()[..]);
         assert_eq!(from_40[0].timestamp_ms, 1040);
         assert_eq!(log.last_chunk(), 90);
         // Bounded reads move the cursor on exactly.

@@ -113,7 +113,7 @@ fn encode(message: &Message) -> Vec<u8> {
 /// `None` if the payload does not decode (it passed its checksum, so only
 /// a bug could make it so; it is skipped with an error log).
 fn decode(record: &Record) -> Option<Message> {
-    let payload = Bytes::copy_from_slice(&record.payload);
+    let payload = record.payload.clone();
     let mut at = 0;
     let mut short = || -> Option<ShortStr> {
         let len = usize::from(*payload.get(at)?);
@@ -233,7 +233,7 @@ impl Queue {
             if st.deleted {
                 return Enqueued::Accepted { sync: 0 };
             }
-            let payload = encode(message);
+            let payload = Bytes::from(encode(message));
             let chunk_start = stream.persistence.flushed() >= st.last_sync;
             let timestamp = now_ms();
             let (offset, rolled) = match st.log.append(&payload, timestamp, chunk_start) {
@@ -478,7 +478,7 @@ mod tests {
         let record = Record {
             offset: 42,
             timestamp_ms: 0,
-            payload: encode(&message),
+            payload: encode(&message).into(),
         };
         let decoded = decode(&record).expect("decodes");
         assert_eq!(decoded.exchange, message.exchange);
@@ -497,7 +497,7 @@ mod tests {
         let record = Record {
             offset: 0,
             timestamp_ms: 0,
-            payload: vec![5, b'a'],
+            payload: Bytes::from_static(&[5, b'a']),
         };
         assert!(decode(&record).is_none());
     }
