@@ -502,7 +502,12 @@ async fn a_restart_keeps_every_confirmed_message_at_its_offset() {
             vec![("x-stream-max-segment-size-bytes", AMQPValue::LongInt(200))],
         )
         .await;
-        publish_confirmed(&ch, &stream, (0..8).map(|i| format!("m{i}"))).await;
+        publish_confirmed(&ch, &stream, (0..7).map(|i| format!("m{i}"))).await;
+        // A transaction's publish is in the stream once commit-ok is.
+        let tx = lp::channel(&conn).await;
+        tmo!(tx.tx_select()).expect("tx.select");
+        lp::publish(&tx, "", &stream, b"m7").await;
+        tmo!(tx.tx_commit()).expect("tx.commit");
         stream
     };
     b.stop().await;
