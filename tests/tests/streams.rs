@@ -427,6 +427,16 @@ async fn get_nack_reject_purge_automatic_acks_and_no_prefetch_are_refused_as_rab
         let err = result.expect_err(what);
         assert_eq!(lp::code(&err), (540, expected), "{what}");
     }
+    // The operators' handle refuses the same (the management API's get
+    // and purge).
+    if let Some(admin) = b.admin() {
+        let purge = admin.purge_queue("/", &stream).expect_err("purge refused");
+        assert_eq!(purge.code.code(), 540);
+        let get = admin
+            .get("/", &stream, 1, leveret_broker::GetMode::Requeue)
+            .expect_err("get refused");
+        assert_eq!(get.code.code(), 540);
+    }
     let ch = lp::channel(&setup).await;
     tmo!(ch.queue_delete(&stream, lp::QueueDeleteOptions::default())).expect("deleted");
 }
