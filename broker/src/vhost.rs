@@ -19,6 +19,7 @@ use crate::exchange::{
     consistent_hash, Binding, BindingRegistry, Destination, Exchange, ExchangeKind, ExchangeOptions,
 };
 use crate::memory::MemoryGauge;
+use crate::policy::{Applied, ObjectKind, VhostPolicies};
 use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions};
 use crate::slice::{yield_if_spent, Progress, Slice};
 use crate::stats::BrokerCounters;
@@ -49,6 +50,8 @@ pub struct Vhost {
     /// Exclusive queues by owning connection, so that closing one costs
     /// what it owns, not what the vhost holds.
     exclusive_queues: Mutex<HashMap<u64, HashMap<ShortStr, Arc<Queue>>>>,
+    /// Its policies (`policies`), replaced whole on each change.
+    policies: RwLock<Arc<VhostPolicies>>,
 }
 
 /// Whether a binding operation adds the binding or removes it.
@@ -119,6 +122,7 @@ impl Vhost {
             counters,
             reply_targets: RwLock::new(HashMap::new()),
             exclusive_queues: Mutex::new(HashMap::new()),
+            policies: RwLock::default(),
         };
         let durable = ExchangeOptions {
             durable: true,
@@ -265,6 +269,7 @@ impl Vhost {
         let exchange = Arc::new(Exchange::new(decl.name.clone(), kind, decl.options));
         exchanges.insert(decl.name, Arc::clone(&exchange));
         drop(exchanges);
+        self.apply_exchange_policies(&exchange);
         if exchange.options.durable {
             self.persist(vec![StoreOp::PutExchange(ExchangeRecord {
                 vhost: self.name.clone(),
@@ -367,6 +372,7 @@ impl Vhost {
             )));
         }
         let args = QueueArgs::parse(&decl.options.arguments, &decl.name, &self.name)?;
+        let (policies, applied) = self.policies_for(ObjectKind::Queue, decl.name.as_bytes());
         let mut queues = write(&self.queues);
         if let Some(existing) = queues.get(&decl.name) {
             // Declared by another channel between our check and the lock.
@@ -399,6 +405,7 @@ impl Vhost {
             self.name.clone(),
             decl.options,
             args,
+            applied,
             Arc::clone(&self.gauge),
             durable_store,
             Arc::clone(&self.counters),
@@ -410,6 +417,8 @@ impl Vhost {
                 .insert(decl.name.clone(), Arc::clone(&queue));
         }
         queues.insert(decl.name, Arc::clone(&queue));
+        drop(queues);
+        self.catch_up_queue(&queue, &policies);
         Ok((queue, true))
     }
 
@@ -418,9 +427,9 @@ impl Vhost {
     pub fn delete_queue(self: &Arc<Self>, queue: &Arc<Queue>) -> Deleted {
         {
             let mut queues = write(&self.queues);
-            match queues.get(&queue.name) {
+            match queues.get(queue.name.as_bytes()) {
                 Some(current) if Arc::ptr_eq(current, queue) => {
-                    queues.remove(&queue.name);
+                    queues.remove(queue.name.as_bytes());
                 }
                 _ => return Deleted::default(),
             }
@@ -428,7 +437,7 @@ impl Vhost {
         if let Some(owner) = queue.options.exclusive_owner {
             let mut exclusive = lock(&self.exclusive_queues);
             if let Some(owned) = exclusive.get_mut(&owner) {
-                owned.remove(&queue.name);
+                owned.remove(queue.name.as_bytes());
                 if owned.is_empty() {
                     exclusive.remove(&owner);
                 }
@@ -467,9 +476,9 @@ impl Vhost {
             !exchange.has_bindings() && {
                 let mut exchanges = write(&self.exchanges);
                 let current = exchanges
-                    .get(&exchange.name)
+                    .get(exchange.name.as_bytes())
                     .is_some_and(|e| Arc::ptr_eq(e, exchange));
-                current && exchanges.remove(&exchange.name).is_some()
+                current && exchanges.remove(exchange.name.as_bytes()).is_some()
             }
         };
         if removed {
@@ -594,7 +603,7 @@ impl Vhost {
             Destination::Exchange(exchange) => self.check_current_exchange(exchange),
             Destination::Queue(queue) => {
                 let current = read(&self.queues)
-                    .get(&queue.name)
+                    .get(queue.name.as_bytes())
                     .is_some_and(|q| Arc::ptr_eq(q, queue));
                 if current {
                     Ok(())
@@ -610,7 +619,7 @@ impl Vhost {
 
     fn check_current_exchange(&self, exchange: &Arc<Exchange>) -> AmqpResult<()> {
         let current = read(&self.exchanges)
-            .get(&exchange.name)
+            .get(exchange.name.as_bytes())
             .is_some_and(|e| Arc::ptr_eq(e, exchange));
         if current {
             Ok(())
@@ -753,6 +762,7 @@ impl Vhost {
             self.name.clone(),
             options,
             args,
+            Applied::default(),
             Arc::clone(&self.gauge),
             Some((persistence, record.id)),
             Arc::clone(&self.counters),
@@ -941,6 +951,8 @@ pub fn check_exclusive(queue: &Queue, connection_id: u64, vhost: &ShortStr) -> A
         _ => Ok(()),
     }
 }
+
+mod policies;
 
 /// RabbitMQ compares the arguments it validates; the first that differs.
 #[cfg(test)]
