@@ -326,9 +326,18 @@ impl Definitions {
                     })?;
                     d.upstreams.push((vhost, parameter, value));
                 }
+                // RabbitMQ 3.10 exports its operator policies here.
+                "operator_policy" => {
+                    let value = crate::policies::with_definition_object(value);
+                    match crate::policies::check(PolicyKind::Operator, &value) {
+                        Ok(()) => d.operator_policies.push((vhost, parameter, value)),
+                        Err(e) => d.warnings.push(format!(
+                            "parameter operator_policy '{parameter}' in vhost '{vhost}' not imported: {e}"
+                        )),
+                    }
+                }
                 _ => {
                     let why = match component.as_str() {
-                        "operator_policy" => "operator policies are read from 'operator_policies'",
                         "vhost-limits" => {
                             "vhosts' limits are taken from the config file only (vhost-limits)"
                         }

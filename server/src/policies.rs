@@ -146,6 +146,24 @@ pub fn applied_json(applied: &leveret_broker::AppliedPolicies) -> [(&'static str
     ]
 }
 
+/// `value` with its `definition` as a JSON object: RabbitMQ 3.10 exports
+/// an operator policy's as a list of `[key, value]` pairs.
+pub fn with_definition_object(mut value: Value) -> Value {
+    if let Some(Value::Array(pairs)) = value.get("definition") {
+        let object: Option<Map<String, Value>> = pairs
+            .iter()
+            .map(|pair| match pair.as_array().map(Vec::as_slice) {
+                Some([Value::String(key), value]) => Some((key.clone(), value.clone())),
+                _ => None,
+            })
+            .collect();
+        if let (Some(object), Some(map)) = (object, value.as_object_mut()) {
+            map.insert("definition".into(), Value::Object(object));
+        }
+    }
+    value
+}
+
 /// Checks RabbitMQ's JSON form of a policy of `kind` as setting it would.
 pub fn check(kind: PolicyKind, value: &Value) -> Result<(), String> {
     let spec = spec_from_json(value)?;
