@@ -19,7 +19,7 @@ use crate::exchange::{
     consistent_hash, Binding, BindingRegistry, Destination, Exchange, ExchangeKind, ExchangeOptions,
 };
 use crate::memory::MemoryGauge;
-use crate::policy::{Applied, ObjectKind, VhostPolicies};
+use crate::policy::{ObjectKind, VhostPolicies};
 use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions};
 use crate::slice::{yield_if_spent, Progress, Slice};
 use crate::stats::BrokerCounters;
@@ -405,11 +405,12 @@ impl Vhost {
             self.name.clone(),
             decl.options,
             args,
-            applied,
             Arc::clone(&self.gauge),
             durable_store,
             Arc::clone(&self.counters),
         ));
+        // Empty: the policies push nothing out.
+        queue.defer(queue.apply_policies(applied));
         if let Some(owner) = queue.options.exclusive_owner {
             lock(&self.exclusive_queues)
                 .entry(owner)
@@ -762,7 +763,6 @@ impl Vhost {
             self.name.clone(),
             options,
             args,
-            Applied::default(),
             Arc::clone(&self.gauge),
             Some((persistence, record.id)),
             Arc::clone(&self.counters),

@@ -25,10 +25,13 @@ use std::time::{Duration, Instant};
 
 const RABBIT_VHOST: &str = "policies-diff";
 
-/// One broker: its AMQP URL and how its ctl tool is run.
+/// How a broker's ctl tool is run.
+type Ctl = Box<dyn Fn(&[&str]) -> std::process::Output>;
+
+/// One broker: its AMQP URL and its ctl tool.
 struct Side {
     amqp: String,
-    ctl: Box<dyn Fn(&[&str]) -> std::process::Output>,
+    ctl: Ctl,
 }
 
 impl Side {

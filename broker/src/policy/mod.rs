@@ -131,12 +131,12 @@ impl Policy {
     }
 
     fn matches(&self, object: ObjectKind, name: &[u8]) -> bool {
-        let kind_fits = match (self.spec.apply_to, object) {
-            (ApplyTo::All, _) => true,
-            (ApplyTo::Queues, ObjectKind::Queue) => true,
-            (ApplyTo::Exchanges, ObjectKind::Exchange) => true,
-            _ => false,
-        };
+        let kind_fits = matches!(
+            (self.spec.apply_to, object),
+            (ApplyTo::All, _)
+                | (ApplyTo::Queues, ObjectKind::Queue)
+                | (ApplyTo::Exchanges, ObjectKind::Exchange)
+        );
         kind_fits && self.matcher.is_match(name)
     }
 }

@@ -177,7 +177,8 @@ fn a_change_costs_one_match_and_agrees_with_a_full_look_up() {
         .with(user("a", "^q", 1, &[("max-length", int(1))]))
         .with(user("b", "^q1", 2, &[("max-length", int(2))]));
     let names: Vec<&[u8]> = vec![b"q1", b"q2", b"x", b"q10"];
-    let changes: Vec<Box<dyn Fn(&VhostPolicies) -> (VhostPolicies, PolicyKind, &'static str)>> = vec![
+    type Change = Box<dyn Fn(&VhostPolicies) -> (VhostPolicies, PolicyKind, &'static str)>;
+    let changes: Vec<Change> = vec![
         Box::new(|s| {
             (
                 s.with(user("c", "^q2", 9, &[("max-length", int(3))])),

@@ -193,12 +193,12 @@ impl Queue {
         vhost: ShortStr,
         options: QueueOptions,
         args: QueueArgs,
-        applied: Applied,
         gauge: Arc<MemoryGauge>,
         durable_store: Option<(Arc<Persistence>, u64)>,
         counters: Arc<BrokerCounters>,
     ) -> Self {
-        let effective = args.with_policies(&options.arguments, &applied);
+        // No policies until the vhost gives it some (`apply_policies`).
+        let effective = args.clone();
         let single_active = args.single_active_consumer;
         let (position_name, next_seq) = match &durable_store {
             Some((persistence, id)) => (format!("d{id}"), persistence.seq_floor()),
@@ -224,7 +224,6 @@ impl Queue {
                 next_seq,
                 consumers: Consumers::new(single_active),
                 effective,
-                applied,
                 ..QueueState::default()
             }),
         }
