@@ -409,8 +409,7 @@ impl Vhost {
             durable_store,
             Arc::clone(&self.counters),
         ));
-        // Empty: the policies push nothing out.
-        queue.defer(queue.apply_policies(applied));
+        self.give_new_queue(&queue, applied);
         if let Some(owner) = queue.options.exclusive_owner {
             lock(&self.exclusive_queues)
                 .entry(owner)

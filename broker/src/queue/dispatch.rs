@@ -98,26 +98,39 @@ impl Queue {
     }
 
     pub(super) fn enforce_max_length(&self, st: &mut QueueState, dead: &mut Vec<DeadLetter>) {
-        if st.effective.overflow != Overflow::DropHead {
-            return;
-        }
-        loop {
-            let over_count = st
-                .effective
-                .max_length
-                .is_some_and(|max| st.ready.len() as u64 > max);
-            let over_bytes = st
-                .effective
-                .max_length_bytes
-                .is_some_and(|max| st.ready.bytes() as u64 > max);
-            if !(over_count || over_bytes) {
-                return;
+        self.drop_over_length(st, dead, usize::MAX);
+    }
+
+    /// Under `drop-head`, drops (or dead-letters) head messages while the
+    /// queue is over its length limits, at most `most` of them: whether
+    /// it is still over.
+    pub(super) fn drop_over_length(
+        &self,
+        st: &mut QueueState,
+        dead: &mut Vec<DeadLetter>,
+        most: usize,
+    ) -> bool {
+        let over = |st: &QueueState| {
+            st.effective.overflow == Overflow::DropHead
+                && (st
+                    .effective
+                    .max_length
+                    .is_some_and(|max| st.ready.len() as u64 > max)
+                    || st
+                        .effective
+                        .max_length_bytes
+                        .is_some_and(|max| st.ready.bytes() as u64 > max))
+        };
+        for _ in 0..most {
+            if !over(st) {
+                return false;
             }
             match self.pop_ready(st) {
                 Some(head) => self.discard(head, DeadLetterReason::MaxLen, dead),
-                None => return,
+                None => return false,
             }
         }
+        over(st)
     }
 
     pub(super) fn insert_ready(&self, st: &mut QueueState, queued: QueuedMessage) {

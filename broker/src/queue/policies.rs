@@ -1,23 +1,26 @@
 //! A queue's policies: the pair that applies ([`Applied`]) and the
 //! arguments it acts on as a result, changed at once when a policy
 //! changes, as RabbitMQ does: a new `max-length` shortens the queue now
-//! (dropping or dead-lettering its head under `drop-head`); a new
-//! `message-ttl` applies to messages published from then on (each
-//! message's expiry is fixed when it arrives, in RabbitMQ too).
+//! (dropping or dead-lettering its head under `drop-head`, in steps of
+//! [`DEAD_LETTERS_PER_STEP`] so that neither the queue's lock nor the dead
+//! letters waiting to be routed grow with the queue); a new `message-ttl`
+//! applies to messages published from then on (each message's expiry is
+//! fixed when it arrives, in RabbitMQ too).
 
-use super::{DeadLetters, Queue};
+use super::{DeadLetters, Queue, DEAD_LETTERS_PER_STEP};
 use crate::policy::Applied;
+use crate::slice::Progress;
 
 impl Queue {
-    /// Makes `applied` the queue's policies; the messages a lower length
-    /// limit pushed out come back as dead letters for the caller to route.
-    pub fn apply_policies(&self, applied: Applied) -> DeadLetters {
-        let mut dead = Vec::new();
+    /// Makes `applied` the queue's policies; the first messages a lower
+    /// length limit pushes out come back as dead letters for the caller to
+    /// route, with [`Progress::More`] if [`Queue::shorten_step`] has more.
+    pub fn apply_policies(&self, applied: Applied) -> (DeadLetters, Progress) {
         let mut st = self.lock();
         if st.deleted || st.applied == applied {
             // The same policies, found in a newer set.
             st.applied = applied;
-            return DeadLetters::default();
+            return (DeadLetters::default(), Progress::Done);
         }
         let effective = self.args.with_policies(&self.options.arguments, &applied);
         *self
@@ -29,8 +32,18 @@ impl Queue {
         );
         st.effective = effective;
         st.applied = applied;
-        self.enforce_max_length(&mut st, &mut dead);
-        DeadLetters(dead)
+        drop(st);
+        self.shorten_step()
+    }
+
+    /// Drops (or dead-letters) at most [`DEAD_LETTERS_PER_STEP`] head
+    /// messages of a queue over its length limits: them, and whether more
+    /// are over.
+    pub fn shorten_step(&self) -> (DeadLetters, Progress) {
+        let mut dead = Vec::new();
+        let more = self.drop_over_length(&mut self.lock(), &mut dead, DEAD_LETTERS_PER_STEP);
+        let progress = if more { Progress::More } else { Progress::Done };
+        (DeadLetters(dead), progress)
     }
 
     /// The policies that apply to the queue.

@@ -9,6 +9,7 @@ use super::{read, write, Vhost};
 use crate::exchange::Exchange;
 use crate::policy::{Applied, ObjectKind, PolicyKind, VhostPolicies};
 use crate::queue::Queue;
+use crate::slice::Progress;
 use std::sync::Arc;
 
 impl Vhost {
@@ -38,9 +39,29 @@ impl Vhost {
             if Arc::ptr_eq(&now, &seen) {
                 return;
             }
-            let dead = queue.apply_policies(now.applied(ObjectKind::Queue, queue.name.as_bytes()));
-            queue.defer(dead);
+            self.give_new_queue(queue, now.applied(ObjectKind::Queue, queue.name.as_bytes()));
             seen = now;
+        }
+    }
+
+    /// Gives a queue just declared (so far empty: no length limit pushes
+    /// anything out, and a message that came since waits for the sweep)
+    /// the policies `applied`.
+    pub(super) fn give_new_queue(&self, queue: &Queue, applied: Applied) {
+        let (dead, _done_in_one_step) = queue.apply_policies(applied);
+        queue.defer(dead);
+    }
+
+    /// Gives `queue` the policies `applied`, routing what a lower length
+    /// limit pushes out, a step at a time.
+    fn apply_queue_policies(self: &Arc<Self>, queue: &Queue, applied: Applied) {
+        let (mut dead, mut progress) = queue.apply_policies(applied);
+        loop {
+            self.dead_letter(dead);
+            if progress == Progress::Done {
+                return;
+            }
+            (dead, progress) = queue.shorten_step();
         }
     }
 
@@ -85,8 +106,7 @@ impl Vhost {
                 ObjectKind::Queue,
                 queue.name.as_bytes(),
             );
-            let dead = queue.apply_policies(applied);
-            self.dead_letter(dead);
+            self.apply_queue_policies(&queue, applied);
         }
     }
 }
