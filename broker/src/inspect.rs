@@ -13,6 +13,7 @@
 
 use crate::admin::Admin;
 use crate::exchange::{Binding, Destination, Exchange};
+use crate::policy::Applied;
 use crate::queue::Queue;
 use crate::registry::{ChannelMode, ConnectionEntry};
 use crate::vhost::Vhost;
@@ -192,6 +193,8 @@ pub struct QueueInfo {
     pub consumers: u64,
     /// Counters since the queue was created.
     pub message_stats: QueueMessageStats,
+    /// The policy and operator policy that apply.
+    pub policies: Applied,
 }
 
 impl QueueInfo {
@@ -255,6 +258,8 @@ pub struct ExchangeInfo {
     pub internal: bool,
     /// Arguments as declared.
     pub arguments: FieldTable,
+    /// The policy and operator policy that apply.
+    pub policies: Applied,
 }
 
 /// What a binding leads to.
@@ -458,6 +463,7 @@ impl QueueRef {
                 redeliver: c.redelivered.get(),
                 ack: c.acknowledged.get(),
             },
+            policies: queue.policies(),
         }
     }
 
@@ -828,6 +834,7 @@ fn exchange_info(vhost: &ShortStr, exchange: &crate::exchange::Exchange) -> Exch
         auto_delete: exchange.options.auto_delete,
         internal: exchange.options.internal,
         arguments: exchange.options.arguments.clone(),
+        policies: exchange.policies(),
     }
 }
 

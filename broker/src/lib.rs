@@ -81,7 +81,9 @@
 //! with it), `auth` (users and SASL), `password` (password hashes),
 //! `hash_pool` (the bounded threads that check slow hashes) and
 //! `login_backoff` (failed logins answered later), `permissions`,
-//! `parameters` (runtime parameters as the core keeps them), `busy_poll`
+//! `parameters` (runtime parameters as the core keeps them), `policy`
+//! (policies and operator policies: matching, checking, and RabbitMQ's
+//! rules for combining them with arguments), `busy_poll`
 //! and `cpu_pressure` (polling for input for a short, adaptive window
 //! after socket reads instead of sleeping), `tls`, `error` (reply
 //! errors), `slice` (long work in time slices: the stall budget), `stats`
@@ -122,6 +124,7 @@ mod outbox;
 mod parameters;
 mod password;
 mod permissions;
+mod policy;
 mod queue;
 mod recovery;
 mod registry;
@@ -153,6 +156,9 @@ pub use crate::hash_pool::{HashPoolStats, HASH_THREADS};
 pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
 pub use crate::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,
+};
+pub use crate::policy::{
+    Applied as AppliedPolicies, ApplyTo, Policy, PolicyError, PolicyKind, PolicySpec, PolicyValue,
 };
 pub use crate::queue::process_nonce;
 pub use crate::resident_memory::ResidentMemoryWatermark;

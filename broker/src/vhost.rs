@@ -19,6 +19,7 @@ use crate::exchange::{
     consistent_hash, Binding, BindingRegistry, Destination, Exchange, ExchangeKind, ExchangeOptions,
 };
 use crate::memory::MemoryGauge;
+use crate::policy::{ObjectKind, VhostPolicies};
 use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions, Stream, StreamArgs};
 use crate::slice::{yield_if_spent, Progress, Slice};
 use crate::stats::BrokerCounters;
@@ -49,6 +50,8 @@ pub struct Vhost {
     /// Exclusive queues by owning connection, so that closing one costs
     /// what it owns, not what the vhost holds.
     exclusive_queues: Mutex<HashMap<u64, HashMap<ShortStr, Arc<Queue>>>>,
+    /// Its policies (`policies`), replaced whole on each change.
+    policies: RwLock<Arc<VhostPolicies>>,
 }
 
 /// Whether a binding operation adds the binding or removes it.
@@ -119,6 +122,7 @@ impl Vhost {
             counters,
             reply_targets: RwLock::new(HashMap::new()),
             exclusive_queues: Mutex::new(HashMap::new()),
+            policies: RwLock::default(),
         };
         let durable = ExchangeOptions {
             durable: true,
@@ -265,6 +269,7 @@ impl Vhost {
         let exchange = Arc::new(Exchange::new(decl.name.clone(), kind, decl.options));
         exchanges.insert(decl.name, Arc::clone(&exchange));
         drop(exchanges);
+        self.apply_exchange_policies(&exchange);
         if exchange.options.durable {
             self.persist(vec![StoreOp::PutExchange(ExchangeRecord {
                 vhost: self.name.clone(),
@@ -373,6 +378,7 @@ impl Vhost {
             return self.declare_stream(decl);
         }
         let args = QueueArgs::parse(&decl.options.arguments, &decl.name, &self.name)?;
+        let (policies, applied) = self.policies_for(ObjectKind::Queue, decl.name.as_bytes());
         let mut queues = write(&self.queues);
         if let Some(existing) = queues.get(&decl.name) {
             // Declared by another channel between our check and the lock.
@@ -409,6 +415,7 @@ impl Vhost {
             durable_store,
             Arc::clone(&self.counters),
         ));
+        self.give_new_queue(&queue, applied);
         if let Some(owner) = queue.options.exclusive_owner {
             lock(&self.exclusive_queues)
                 .entry(owner)
@@ -416,6 +423,8 @@ impl Vhost {
                 .insert(decl.name.clone(), Arc::clone(&queue));
         }
         queues.insert(decl.name, Arc::clone(&queue));
+        drop(queues);
+        self.catch_up_queue(&queue, &policies);
         Ok((queue, true))
     }
 
@@ -491,9 +500,9 @@ impl Vhost {
     pub fn delete_queue(self: &Arc<Self>, queue: &Arc<Queue>) -> Deleted {
         {
             let mut queues = write(&self.queues);
-            match queues.get(&queue.name) {
+            match queues.get(queue.name.as_bytes()) {
                 Some(current) if Arc::ptr_eq(current, queue) => {
-                    queues.remove(&queue.name);
+                    queues.remove(queue.name.as_bytes());
                 }
                 _ => return Deleted::default(),
             }
@@ -501,7 +510,7 @@ impl Vhost {
         if let Some(owner) = queue.options.exclusive_owner {
             let mut exclusive = lock(&self.exclusive_queues);
             if let Some(owned) = exclusive.get_mut(&owner) {
-                owned.remove(&queue.name);
+                owned.remove(queue.name.as_bytes());
                 if owned.is_empty() {
                     exclusive.remove(&owner);
                 }
@@ -540,9 +549,9 @@ impl Vhost {
             !exchange.has_bindings() && {
                 let mut exchanges = write(&self.exchanges);
                 let current = exchanges
-                    .get(&exchange.name)
+                    .get(exchange.name.as_bytes())
                     .is_some_and(|e| Arc::ptr_eq(e, exchange));
-                current && exchanges.remove(&exchange.name).is_some()
+                current && exchanges.remove(exchange.name.as_bytes()).is_some()
             }
         };
         if removed {
@@ -667,7 +676,7 @@ impl Vhost {
             Destination::Exchange(exchange) => self.check_current_exchange(exchange),
             Destination::Queue(queue) => {
                 let current = read(&self.queues)
-                    .get(&queue.name)
+                    .get(queue.name.as_bytes())
                     .is_some_and(|q| Arc::ptr_eq(q, queue));
                 if current {
                     Ok(())
@@ -683,7 +692,7 @@ impl Vhost {
 
     fn check_current_exchange(&self, exchange: &Arc<Exchange>) -> AmqpResult<()> {
         let current = read(&self.exchanges)
-            .get(&exchange.name)
+            .get(exchange.name.as_bytes())
             .is_some_and(|e| Arc::ptr_eq(e, exchange));
         if current {
             Ok(())
@@ -1066,6 +1075,8 @@ fn exclusive_locked(queue: &ShortStr, vhost: &ShortStr) -> AmqpError {
         "cannot obtain exclusive access to locked queue '{queue}' in vhost '{vhost}'. It could be originally declared on another connection or the exclusive property value does not match that of the original declaration."
     ))
 }
+
+mod policies;
 
 /// RabbitMQ compares the arguments it validates; the first that differs.
 #[cfg(test)]

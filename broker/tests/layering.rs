@@ -64,6 +64,7 @@ const SHARED: &[&str] = &[
     "parameters",
     "password",
     "permissions",
+    "policy",
     "resident_memory",
     "slice",
     "stats",

@@ -156,8 +156,8 @@ pub struct FileConfig {
     /// parameters, by name (vhost `/`).
     #[serde(default)]
     federation_upstreams: std::collections::BTreeMap<String, toml::Table>,
-    /// `[policies.NAME]`: RabbitMQ's policies (vhost `/`), federation keys
-    /// only.
+    /// `[policies.NAME]`: RabbitMQ's policies (vhost `/`), checked as
+    /// `crate::policies` checks them.
     #[serde(default)]
     policies: std::collections::BTreeMap<String, toml::Table>,
 }
@@ -465,7 +465,7 @@ impl Settings {
                 leveret_uplink::UpstreamConfig::from_json(value).map(|_| ())
             })?;
         let policies = checked_json(&file.policies, "policy", |value| {
-            crate::federation::Policy::from_json(value).map(|_| ())
+            crate::policies::check(leveret_broker::PolicyKind::User, value)
         })?;
         let tags = file
             .users

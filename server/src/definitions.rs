@@ -8,11 +8,13 @@
 //! and bindings, permissions and topic permissions (enforced by the
 //! broker; a pattern its regex engine cannot run refuses the file), users'
 //! limits (at start; a run-time import reports them), shovels
-//! (`parameters` with component `shovel`, started by `uplink`), and
-//! federation (`parameters` with component `federation-upstream`, and
-//! policies with federation keys: `federation`). Everything else is
-//! reported, never dropped silently: other policies, operator policies,
-//! other parameters, global parameters, unknown keys, other password hashing
+//! (`parameters` with component `shovel`, started by `uplink`),
+//! federation upstreams (`parameters` with component
+//! `federation-upstream`: `federation`), policies and operator policies
+//! (`crate::policies`; one with a key Leveret refuses is reported and not
+//! set) and the `cluster_name` global parameter. Everything else is
+//! reported, never dropped silently: other parameters, other global
+//! parameters, unknown keys, other password hashing
 //! algorithms, and queue types Leveret does not have (an `x-queue-type`
 //! other than classic gives a classic queue, without the arguments of its
 //! type, which a classic queue refuses). An empty `password_hash` is, as
@@ -29,8 +31,8 @@ use crate::management::json::{flag, text, user_tags};
 use crate::uplink::Links;
 use leveret_broker::{
     check_pattern, Admin, BindingSpec, BrokerBuilder, DestinationKind, ExchangeSettings,
-    PasswordHash, Permission, QueueSettings, TopicPermission, User, UserLimits, LEVERET_ARGON2ID,
-    RABBIT_SHA256, RABBIT_SHA512,
+    PasswordHash, Permission, PolicyKind, QueueSettings, TopicPermission, User, UserLimits,
+    LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512,
 };
 use leveret_protocol::json::{table, to_table};
 use serde_json::{json, Map, Value};
@@ -69,8 +71,12 @@ pub struct Definitions {
     /// Federation upstreams (`parameters` with component
     /// `federation-upstream`): vhost, name and parameters, checked.
     pub upstreams: Vec<(String, String, Value)>,
-    /// Policies with federation keys: vhost, name and the policy, checked.
+    /// Policies: vhost, name and the policy, checked.
     pub policies: Vec<(String, String, Value)>,
+    /// Operator policies, likewise.
+    pub operator_policies: Vec<(String, String, Value)>,
+    /// The `cluster_name` global parameter.
+    pub cluster_name: Option<String>,
     /// Everything not applied, one line each.
     pub warnings: Vec<String>,
 }
@@ -92,7 +98,7 @@ pub struct Applied {
     pub shovels: usize,
     /// Federation upstreams set.
     pub upstreams: usize,
-    /// Policies set.
+    /// Policies and operator policies set.
     pub policies: usize,
 }
 
@@ -230,7 +236,11 @@ impl Definitions {
                 "federation upstream",
                 "federation upstreams",
             ),
-            (self.policies.len(), "policy", "policies"),
+            (
+                self.policies.len() + self.operator_policies.len(),
+                "policy",
+                "policies",
+            ),
         ];
         let parts: Vec<String> = counts
             .into_iter()
@@ -268,7 +278,7 @@ impl Definitions {
             "product_name",
             "product_version",
         ];
-        const APPLIED: [&str; 10] = [
+        const APPLIED: [&str; 12] = [
             LEVERET_SECTION,
             "parameters",
             "vhosts",
@@ -279,27 +289,23 @@ impl Definitions {
             "permissions",
             "topic_permissions",
             "policies",
+            "operator_policies",
+            "global_parameters",
         ];
-        const NOT_SUPPORTED: [(&str, &str); 2] = [
-            ("operator_policies", "Leveret has no operator policies"),
-            ("global_parameters", "Leveret has no global parameters"),
-        ];
-        for (key, value) in root {
-            if METADATA.contains(&key.as_str()) || APPLIED.contains(&key.as_str()) {
-                continue;
+        for key in root.keys() {
+            if !METADATA.contains(&key.as_str()) && !APPLIED.contains(&key.as_str()) {
+                d.warnings.push(format!("unknown key '{key}' ignored"));
             }
-            match NOT_SUPPORTED.iter().find(|(k, _)| k == key) {
-                Some((_, why)) if !is_empty(value) => match value.as_array() {
-                    Some(items) => {
-                        for item in items {
-                            d.warnings
-                                .push(format!("{} not imported: {why}", describe(key, item)));
-                        }
-                    }
-                    None => d.warnings.push(format!("{key} not imported: {why}")),
-                },
-                Some(_) => {}
-                None => d.warnings.push(format!("unknown key '{key}' ignored")),
+        }
+        for item in list(root, "global_parameters")? {
+            match (item.get("name").and_then(Value::as_str), item.get("value")) {
+                (Some(crate::policies::CLUSTER_NAME), Some(Value::String(name))) => {
+                    d.cluster_name = Some(name.clone())
+                }
+                _ => d.warnings.push(format!(
+                    "{} not imported: Leveret keeps only the cluster_name global parameter",
+                    describe("global_parameters", item)
+                )),
             }
         }
         for item in list(root, "parameters")? {
@@ -320,9 +326,18 @@ impl Definitions {
                     })?;
                     d.upstreams.push((vhost, parameter, value));
                 }
+                // RabbitMQ 3.10 exports its operator policies here.
+                "operator_policy" => {
+                    let value = crate::policies::with_definition_object(value);
+                    match crate::policies::check(PolicyKind::Operator, &value) {
+                        Ok(()) => d.operator_policies.push((vhost, parameter, value)),
+                        Err(e) => d.warnings.push(format!(
+                            "parameter operator_policy '{parameter}' in vhost '{vhost}' not imported: {e}"
+                        )),
+                    }
+                }
                 _ => {
                     let why = match component.as_str() {
-                        "operator_policy" => "Leveret has no operator policies",
                         "vhost-limits" => {
                             "vhosts' limits are taken from the config file only (vhost-limits)"
                         }
@@ -334,20 +349,22 @@ impl Definitions {
                 }
             }
         }
-        for item in list(root, "policies")? {
-            let item = object(item, "policies")?;
-            let policy = name(item, "name", "a policy")?;
-            let vhost = vhost_of(item, "a policy")?;
-            let mut value = Value::Object(item.clone());
-            if let Some(map) = value.as_object_mut() {
-                map.remove("name");
-                map.remove("vhost");
-            }
-            match crate::federation::Policy::from_json(&value) {
-                Ok(_) => d.policies.push((vhost, policy, value)),
-                Err(e) => d.warnings.push(format!(
-                    "policy '{policy}' in vhost '{vhost}' not imported: {e}"
-                )),
+        for (key, kind) in [
+            ("policies", PolicyKind::User),
+            ("operator_policies", PolicyKind::Operator),
+        ] {
+            for item in list(root, key)? {
+                let item = object(item, key)?;
+                let policy = name(item, "name", "a policy")?;
+                let vhost = vhost_of(item, "a policy")?;
+                let value = Value::Object(item.clone());
+                match crate::policies::check(kind, &value) {
+                    Ok(()) if kind == PolicyKind::User => d.policies.push((vhost, policy, value)),
+                    Ok(()) => d.operator_policies.push((vhost, policy, value)),
+                    Err(e) => d.warnings.push(format!(
+                        "{key}: '{policy}' in vhost '{vhost}' not imported: {e}"
+                    )),
+                }
             }
         }
         for item in list(root, "vhosts")? {
@@ -683,13 +700,21 @@ impl Definitions {
                 .map_err(|e| format!("federation upstream '{name}': {e}"))?;
             applied.upstreams += 1;
         }
-        for (vhost, name, value) in &self.policies {
-            links
-                .federation
-                .set_policy(vhost, name, value.clone(), true)
+        for (kind, policies) in [
+            (PolicyKind::User, &self.policies),
+            (PolicyKind::Operator, &self.operator_policies),
+        ] {
+            for (vhost, name, value) in policies {
+                crate::policies::set(admin, &links.federation, kind, vhost, name, value, true)
+                    .await
+                    .map_err(|e| format!("policy '{name}': {e}"))?;
+                applied.policies += 1;
+            }
+        }
+        if let Some(name) = &self.cluster_name {
+            crate::policies::set_cluster_name(admin, name)
                 .await
-                .map_err(|e| format!("policy '{name}': {e}"))?;
-            applied.policies += 1;
+                .map_err(|e| format!("cluster_name: {e}"))?;
         }
         Ok(applied)
     }
@@ -721,7 +746,7 @@ pub fn export_vhost(admin: &Admin, links: &Links, vhost: &str) -> Value {
         "product_name": all["product_name"],
         "product_version": all["product_version"],
         "parameters": only("parameters"),
-        "policies": [],
+        "policies": only("policies"),
         "queues": only("queues"),
         "exchanges": only("exchanges"),
         "bindings": only("bindings"),
@@ -831,14 +856,12 @@ pub fn export(admin: &Admin, links: &Links) -> Value {
             "value": value, "vhost": vhost, "component": crate::federation::UPSTREAM_COMPONENT,
             "name": name,
         }))).collect::<Vec<_>>(),
-        "global_parameters": [],
-        "policies": links.federation.policies().into_iter().map(|(vhost, name, value)| {
-            let mut policy = json!({"vhost": vhost, "name": name, "apply-to": "all", "priority": 0});
-            if let (Some(policy), Some(given)) = (policy.as_object_mut(), value.as_object()) {
-                policy.extend(given.clone());
-            }
-            policy
-        }).collect::<Vec<_>>(),
+        "global_parameters": [{"name": crate::policies::CLUSTER_NAME,
+                               "value": crate::policies::cluster_name(admin, &crate::process::node_name())}],
+        "policies": admin.policies(PolicyKind::User, None).iter()
+            .map(|(vhost, p)| crate::policies::policy_json(vhost, p)).collect::<Vec<_>>(),
+        "operator_policies": admin.policies(PolicyKind::Operator, None).iter()
+            .map(|(vhost, p)| crate::policies::policy_json(vhost, p)).collect::<Vec<_>>(),
         "queues": queues,
         "exchanges": exchanges,
         "bindings": bindings,
@@ -986,12 +1009,8 @@ mod tests {
             (String::new(), RABBIT_SHA256)
         );
         assert_eq!(d.permissions.len(), 2);
-        assert_eq!(
-            d.warnings,
-            [
-                r#"operator_policies: 'cap' in vhost '/' ({"max-length":5}) not imported: Leveret has no operator policies"#
-            ]
-        );
+        assert_eq!(d.operator_policies.len(), 1);
+        assert!(d.warnings.is_empty(), "{:?}", d.warnings);
         assert!(Definitions::parse(br#"{"leveret": []}"#)
             .unwrap_err()
             .contains("'leveret' must be an object"));

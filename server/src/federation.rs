@@ -7,12 +7,11 @@
 //! exchanges (a policy also covers exchanges declared later) once a
 //! second and after every change.
 //!
-//! Upstreams and policies declared by a definitions import or the API are
-//! runtime parameters in the broker's store (components
-//! `federation-upstream` and `policy`, as RabbitMQ keeps them), so they
-//! outlast restarts; the config file's are the config file's. Policies
-//! here carry federation keys only: Leveret acts on no other policy key,
-//! and refuses one rather than ignore it.
+//! Upstreams declared by a definitions import or the API are runtime
+//! parameters in the broker's store (component `federation-upstream`, as
+//! RabbitMQ keeps them), so they outlast restarts; the config file's are
+//! the config file's. Policies are the broker's (`crate::policies` sets
+//! them): the federation reads the one that applies to each exchange.
 //!
 //! Links run on the broker's runtime, wherever a change comes from. Uses
 //! the uplink crate and the broker's `Admin`.
@@ -27,88 +26,8 @@ use std::time::Duration;
 
 /// The runtime parameters' component for upstreams.
 pub const UPSTREAM_COMPONENT: &str = "federation-upstream";
-/// The runtime parameters' component for policies (RabbitMQ's too).
-pub const POLICY_COMPONENT: &str = "policy";
-
 /// How often links are compared with the policies and exchanges.
 const RECONCILE: Duration = Duration::from_secs(1);
-
-/// Which upstreams a policy federates its exchanges to.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum UpstreamChoice {
-    /// `federation-upstream`: one, by name.
-    One(String),
-    /// `federation-upstream-set: "all"`: every upstream of the vhost.
-    All,
-}
-
-/// A policy with federation keys.
-#[derive(Debug, Clone)]
-pub struct Policy {
-    matcher: regex::Regex,
-    priority: i64,
-    upstreams: UpstreamChoice,
-}
-
-impl Policy {
-    /// Reads RabbitMQ's JSON form of a policy (`pattern`, `definition`,
-    /// `priority`, `apply-to`).
-    pub fn from_json(value: &Value) -> Result<Policy, String> {
-        let object = value.as_object().ok_or("a policy must be a JSON object")?;
-        for key in object.keys() {
-            if !["pattern", "definition", "priority", "apply-to"].contains(&key.as_str()) {
-                return Err(format!("{key} is not a policy key"));
-            }
-        }
-        let pattern = object
-            .get("pattern")
-            .and_then(Value::as_str)
-            .ok_or("a policy needs a pattern")?;
-        let matcher = regex::RegexBuilder::new(pattern)
-            .size_limit(leveret_broker::PATTERN_SIZE_LIMIT)
-            .build()
-            .map_err(|e| format!("pattern {pattern}: {e}"))?;
-        match object.get("apply-to").and_then(Value::as_str) {
-            None | Some("all") | Some("exchanges") => {}
-            Some(other) => {
-                return Err(format!(
-                    "apply-to {other}: Leveret's policies federate exchanges only"
-                ))
-            }
-        }
-        let priority = match object.get("priority") {
-            None => 0,
-            Some(n) => n.as_i64().ok_or("priority must be an integer")?,
-        };
-        let definition = object
-            .get("definition")
-            .and_then(Value::as_object)
-            .ok_or("a policy needs a definition object")?;
-        let mut upstreams = None;
-        for (key, value) in definition {
-            let choice = match (key.as_str(), value.as_str()) {
-                ("federation-upstream", Some(name)) => UpstreamChoice::One(name.to_owned()),
-                ("federation-upstream-set", Some("all")) => UpstreamChoice::All,
-                ("federation-upstream-set", _) => {
-                    return Err("federation-upstream-set: only \"all\" (Leveret has no named upstream sets)".into())
-                }
-                (key, _) => {
-                    return Err(format!(
-                        "{key}: Leveret acts on a policy's federation-upstream and federation-upstream-set keys only"
-                    ))
-                }
-            };
-            if upstreams.replace(choice).is_some() {
-                return Err("give one of federation-upstream and federation-upstream-set".into());
-            }
-        }
-        Ok(Policy {
-            matcher,
-            priority,
-            upstreams: upstreams.ok_or("the definition has no federation key")?,
-        })
-    }
-}
 
 /// A declaration as given, and read.
 struct Declared<T> {
@@ -128,7 +47,6 @@ type LinkKey = (String, String, String);
 #[derive(Default)]
 struct State {
     upstreams: BTreeMap<(String, String), Declared<UpstreamConfig>>,
-    policies: BTreeMap<(String, String), Declared<Policy>>,
     links: BTreeMap<LinkKey, Running>,
 }
 
@@ -237,25 +155,6 @@ impl Federation {
         Ok(())
     }
 
-    /// Sets the policy `name` of `vhost`, as [`Federation::set_upstream`].
-    pub async fn set_policy(
-        &self,
-        vhost: &str,
-        name: &str,
-        value: Value,
-        store: bool,
-    ) -> Result<(), DeclareError> {
-        let parsed = Policy::from_json(&value).map_err(DeclareError::Invalid)?;
-        self.keep(POLICY_COMPONENT, vhost, name, &value, store)
-            .await?;
-        self.lock().policies.insert(
-            (vhost.to_owned(), name.to_owned()),
-            Declared { value, parsed },
-        );
-        self.reconcile().await;
-        Ok(())
-    }
-
     /// Removes an upstream (its links stop; their upstream queues stay,
     /// as RabbitMQ leaves them); false if there was none.
     pub async fn delete_upstream(&self, vhost: &str, name: &str) -> Result<bool, AccessError> {
@@ -265,34 +164,16 @@ impl Federation {
         .await
     }
 
-    /// Removes a policy; false if there was none.
-    pub async fn delete_policy(&self, vhost: &str, name: &str) -> Result<bool, AccessError> {
-        self.forget(POLICY_COMPONENT, vhost, name, |state, key| {
-            state.policies.remove(key).is_some()
-        })
-        .await
-    }
-
-    /// Loads the upstreams and policies the broker's store kept; one that
-    /// no longer reads is logged and left out.
+    /// Loads the upstreams the broker's store kept; one that no longer
+    /// reads is logged and left out.
     pub async fn start_stored(&self) {
-        for (component, declare) in [(UPSTREAM_COMPONENT, true), (POLICY_COMPONENT, false)] {
-            for (vhost, name, text) in self.admin.parameters(component) {
-                let value: Value = match serde_json::from_str(&text) {
-                    Ok(value) => value,
-                    Err(e) => {
-                        tracing::error!(%component, %name, %vhost, error = %e, "a stored parameter cannot be read");
-                        continue;
-                    }
-                };
-                let result = if declare {
-                    self.set_upstream(&vhost, &name, value, false).await
-                } else {
-                    self.set_policy(&vhost, &name, value, false).await
-                };
-                if let Err(e) = result {
-                    tracing::error!(%component, %name, %vhost, error = %e, "a stored parameter is not applied");
-                }
+        for (vhost, name, text) in self.admin.parameters(UPSTREAM_COMPONENT) {
+            let outcome = match serde_json::from_str(&text) {
+                Ok(value) => self.set_upstream(&vhost, &name, value, false).await,
+                Err(e) => Err(DeclareError::Invalid(e.to_string())),
+            };
+            if let Err(e) = outcome {
+                tracing::error!(component = UPSTREAM_COMPONENT, %name, %vhost, error = %e, "a stored parameter is not applied");
             }
         }
     }
@@ -314,46 +195,33 @@ impl Federation {
         });
     }
 
-    /// The links the policies call for: each local exchange a policy
-    /// matches (the highest-priority one, as in RabbitMQ) with each of
-    /// its upstreams.
+    /// The links the policies call for: each local exchange whose policy
+    /// (the one that applies, as in RabbitMQ) has a federation key, with
+    /// each upstream it names.
     fn wanted(&self) -> BTreeMap<LinkKey, UpstreamConfig> {
-        let (policies, upstreams): (Vec<_>, Vec<_>) = {
-            let state = self.lock();
-            (
-                state
-                    .policies
-                    .iter()
-                    .map(|((vhost, name), p)| (vhost.clone(), name.clone(), p.parsed.clone()))
-                    .collect(),
-                state
-                    .upstreams
-                    .iter()
-                    .map(|((vhost, name), u)| (vhost.clone(), name.clone(), u.parsed.clone()))
-                    .collect(),
-            )
-        };
-        let mut wanted = BTreeMap::new();
-        let mut vhosts: Vec<&String> = policies.iter().map(|(vhost, ..)| vhost).collect();
+        let upstreams: Vec<(String, String, UpstreamConfig)> = self
+            .lock()
+            .upstreams
+            .iter()
+            .map(|((vhost, name), u)| (vhost.clone(), name.clone(), u.parsed.clone()))
+            .collect();
+        let mut vhosts: Vec<String> = upstreams.iter().map(|(vhost, ..)| vhost.clone()).collect();
         vhosts.dedup();
+        let mut wanted = BTreeMap::new();
         for vhost in vhosts {
-            for exchange in self.admin.exchange_names(vhost) {
+            for exchange in self.admin.exchange_names(&vhost) {
                 if exchange.is_empty() || exchange.starts_with("amq.") {
                     continue;
                 }
-                let policy = policies
-                    .iter()
-                    .filter(|(v, _, p)| v == vhost && p.matcher.is_match(&exchange))
-                    .max_by_key(|(_, _, p)| p.priority);
-                let Some((_, _, policy)) = policy else {
+                let applied = self.admin.exchange_policies(&vhost, &exchange);
+                let Some(policy) = applied.policy else {
                     continue;
                 };
+                let definition = &policy.definition;
                 for (v, name, config) in &upstreams {
-                    let chosen = match &policy.upstreams {
-                        UpstreamChoice::One(one) => one == name,
-                        UpstreamChoice::All => true,
-                    };
-                    if v == vhost && chosen {
+                    let chosen = definition.federation_upstream.as_deref() == Some(name.as_str())
+                        || definition.federation_upstream_set.as_deref() == Some("all");
+                    if *v == vhost && chosen {
                         wanted.insert(
                             (vhost.clone(), exchange.clone(), name.clone()),
                             config.clone(),
@@ -441,67 +309,11 @@ impl Federation {
             .collect()
     }
 
-    /// Every policy as (vhost, name, value given).
-    pub fn policies(&self) -> Vec<(String, String, Value)> {
-        self.lock()
-            .policies
-            .iter()
-            .map(|((vhost, name), d)| (vhost.clone(), name.clone(), d.value.clone()))
-            .collect()
-    }
-
     /// Stops every link.
     pub async fn stop_all(&self) {
         let links = std::mem::take(&mut self.lock().links);
         for running in links.into_values() {
             running.link.stop().await;
-        }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use serde_json::json;
-
-    #[test]
-    fn policies_with_federation_keys_only() {
-        let policy = Policy::from_json(&json!({
-            "pattern": "^commands$", "apply-to": "exchanges", "priority": 2,
-            "definition": {"federation-upstream-set": "all"},
-        }))
-        .unwrap();
-        assert_eq!(policy.upstreams, UpstreamChoice::All);
-        assert!(policy.matcher.is_match("commands") && !policy.matcher.is_match("commands2"));
-        let one = Policy::from_json(&json!({
-            "pattern": "^maps\\.", "definition": {"federation-upstream": "fleet"},
-        }))
-        .unwrap();
-        assert_eq!(one.upstreams, UpstreamChoice::One("fleet".into()));
-        for (value, reason) in [
-            (
-                json!({"pattern": ".*", "definition": {"ha-mode": "all"}}),
-                "federation-upstream and",
-            ),
-            (
-                json!({"pattern": ".*", "definition": {"federation-upstream-set": "fleet"}}),
-                "named upstream sets",
-            ),
-            (
-                json!({"pattern": ".*", "apply-to": "queues", "definition": {"federation-upstream": "f"}}),
-                "exchanges only",
-            ),
-            (
-                json!({"pattern": "(?=x)", "definition": {"federation-upstream": "f"}}),
-                "pattern",
-            ),
-            (
-                json!({"pattern": ".*", "definition": {}}),
-                "no federation key",
-            ),
-        ] {
-            let error = Policy::from_json(&value).unwrap_err();
-            assert!(error.contains(reason), "{error}");
         }
     }
 }

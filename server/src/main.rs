@@ -37,6 +37,7 @@ mod logging;
 mod management;
 mod metrics;
 mod ops;
+mod policies;
 mod process;
 mod uplink;
 
@@ -236,6 +237,7 @@ async fn run(
 ) -> ExitCode {
     links.shovels.start_stored().await;
     links.federation.start_stored().await;
+    policies::start_stored(&handle.admin(), &links.federation).await;
     for (name, parameters) in configured.shovels {
         if let Err(e) = links.shovels.start("/", &name, parameters).await {
             tracing::error!(shovel = %name, error = %e, "cannot start the shovel");
@@ -253,7 +255,11 @@ async fn run(
         }
     }
     for (name, value) in configured.policies {
-        if let Err(e) = links.federation.set_policy("/", &name, value, false).await {
+        let admin = handle.admin();
+        let kind = leveret_broker::PolicyKind::User;
+        if let Err(e) =
+            policies::set(&admin, &links.federation, kind, "/", &name, &value, false).await
+        {
             tracing::error!(policy = %name, error = %e, "cannot use the policy");
             return ExitCode::FAILURE;
         }

@@ -21,6 +21,7 @@ mod headers;
 mod registry;
 mod topic;
 
+use crate::policy::Applied;
 use crate::queue::Queue;
 use bytes::{Bytes, BytesMut};
 use consistent_hash::HashRing;
@@ -361,6 +362,8 @@ pub struct Exchange {
     /// while its bindings are removed.
     deleted: AtomicBool,
     routes: RwLock<Routes>,
+    /// The policies that apply (the vhost sets them).
+    policies: RwLock<Applied>,
 }
 
 impl Exchange {
@@ -373,6 +376,7 @@ impl Exchange {
             options,
             deleted: AtomicBool::new(false),
             routes,
+            policies: RwLock::default(),
         }
     }
 
@@ -384,12 +388,31 @@ impl Exchange {
         self.routes.write().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// The `alternate-exchange` argument.
+    /// The `alternate-exchange` argument, or else the policy's (the
+    /// argument wins, as in RabbitMQ).
     pub fn alternate(&self) -> Option<ShortStr> {
-        match self.options.arguments.get("alternate-exchange")? {
-            FieldValue::LongStr(name) => ShortStr::try_from(name.clone()).ok(),
-            _ => None,
+        match self.options.arguments.get("alternate-exchange") {
+            Some(FieldValue::LongStr(name)) => ShortStr::try_from(name.clone()).ok(),
+            Some(_) => None,
+            None => self
+                .policies
+                .read()
+                .unwrap_or_else(|e| e.into_inner())
+                .alternate_exchange(),
         }
+    }
+
+    /// Makes `applied` the exchange's policies.
+    pub fn apply_policies(&self, applied: Applied) {
+        *self.policies.write().unwrap_or_else(|e| e.into_inner()) = applied;
+    }
+
+    /// The policies that apply to the exchange.
+    pub fn policies(&self) -> Applied {
+        self.policies
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
     }
 
     /// Whether any binding has this exchange as its source.

@@ -9,18 +9,9 @@
 
 use crate::arguments::{self, integer, type_name, Scope};
 use crate::error::{AmqpError, AmqpResult};
+pub use crate::policy::Overflow;
+use crate::policy::{argument_wins, stricter, Applied};
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
-/// What happens when a queue reaches x-max-length or x-max-length-bytes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum Overflow {
-    /// Drop (or dead-letter) the oldest messages.
-    #[default]
-    DropHead,
-    /// Refuse the new message (nack with confirms).
-    RejectPublish,
-    /// As reject-publish, and dead-letter the refused message.
-    RejectPublishDlx,
-}
 
 /// The RabbitMQ queue arguments the broker acts on, validated.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -131,16 +122,8 @@ impl QueueArgs {
                 }
                 b"x-overflow" => {
                     args.overflow = match value {
-                        FieldValue::LongStr(b) if &b[..] == b"drop-head" => Overflow::DropHead,
-                        FieldValue::LongStr(b) if &b[..] == b"reject-publish" => {
-                            Overflow::RejectPublish
-                        }
-                        FieldValue::LongStr(b) if &b[..] == b"reject-publish-dlx" => {
-                            Overflow::RejectPublishDlx
-                        }
-                        FieldValue::LongStr(_) => {
-                            return Err(invalid("x-overflow", "invalid_overflow".into()))
-                        }
+                        FieldValue::LongStr(b) => Overflow::parse(b)
+                            .ok_or_else(|| invalid("x-overflow", "invalid_overflow".into()))?,
                         other => {
                             return Err(invalid(
                                 "x-overflow",
@@ -267,5 +250,35 @@ impl ConsumerArgs {
             }
         }
         Ok(args)
+    }
+}
+
+impl QueueArgs {
+    /// What the queue acts on: these arguments (read from `declared`, the
+    /// table they came from, which tells an argument given from a default)
+    /// combined with the policies that apply, by RabbitMQ's rules (see
+    /// `crate::policy`'s `combine`).
+    pub fn with_policies(&self, declared: &FieldTable, applied: &Applied) -> QueueArgs {
+        QueueArgs {
+            message_ttl: stricter(applied.message_ttl(), self.message_ttl),
+            expires: stricter(applied.expires(), self.expires),
+            max_length: stricter(applied.max_length(), self.max_length),
+            max_length_bytes: stricter(applied.max_length_bytes(), self.max_length_bytes),
+            overflow: argument_wins(
+                applied.overflow(),
+                declared.get("x-overflow").map(|_| self.overflow),
+            )
+            .unwrap_or_default(),
+            dead_letter_exchange: argument_wins(
+                applied.dead_letter_exchange(),
+                self.dead_letter_exchange.clone(),
+            ),
+            dead_letter_routing_key: argument_wins(
+                applied.dead_letter_routing_key(),
+                self.dead_letter_routing_key.clone(),
+            ),
+            max_priority: self.max_priority,
+            single_active_consumer: self.single_active_consumer,
+        }
     }
 }

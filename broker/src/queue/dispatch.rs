@@ -34,7 +34,7 @@ impl Queue {
                 return (Enqueued::Accepted { sync: 0 }, DeadLetters::default());
             }
             let now = Instant::now();
-            let ttl = match (self.args.message_ttl, message.ttl_ms) {
+            let ttl = match (st.effective.message_ttl, message.ttl_ms) {
                 (Some(a), Some(b)) => Some(a.min(b)),
                 (a, b) => a.or(b),
             };
@@ -43,7 +43,7 @@ impl Queue {
                 None => 0,
             };
             if self.is_full_for(&st, &message) {
-                match self.args.overflow {
+                match st.effective.overflow {
                     Overflow::DropHead => {}
                     Overflow::RejectPublish => {
                         self.unlog(&message, reserved);
@@ -86,38 +86,51 @@ impl Queue {
     }
 
     pub(super) fn is_full_for(&self, st: &QueueState, message: &Message) -> bool {
-        let by_count = self
-            .args
+        let by_count = st
+            .effective
             .max_length
             .is_some_and(|max| st.ready.len() as u64 >= max);
-        let by_bytes = self
-            .args
+        let by_bytes = st
+            .effective
             .max_length_bytes
             .is_some_and(|max| (st.ready.bytes() + message.body.len()) as u64 > max);
         by_count || by_bytes
     }
 
     pub(super) fn enforce_max_length(&self, st: &mut QueueState, dead: &mut Vec<DeadLetter>) {
-        if self.args.overflow != Overflow::DropHead {
-            return;
-        }
-        loop {
-            let over_count = self
-                .args
-                .max_length
-                .is_some_and(|max| st.ready.len() as u64 > max);
-            let over_bytes = self
-                .args
-                .max_length_bytes
-                .is_some_and(|max| st.ready.bytes() as u64 > max);
-            if !(over_count || over_bytes) {
-                return;
+        self.drop_over_length(st, dead, usize::MAX);
+    }
+
+    /// Under `drop-head`, drops (or dead-letters) head messages while the
+    /// queue is over its length limits, at most `most` of them: whether
+    /// it is still over.
+    pub(super) fn drop_over_length(
+        &self,
+        st: &mut QueueState,
+        dead: &mut Vec<DeadLetter>,
+        most: usize,
+    ) -> bool {
+        let over = |st: &QueueState| {
+            st.effective.overflow == Overflow::DropHead
+                && (st
+                    .effective
+                    .max_length
+                    .is_some_and(|max| st.ready.len() as u64 > max)
+                    || st
+                        .effective
+                        .max_length_bytes
+                        .is_some_and(|max| st.ready.bytes() as u64 > max))
+        };
+        for _ in 0..most {
+            if !over(st) {
+                return false;
             }
             match self.pop_ready(st) {
                 Some(head) => self.discard(head, DeadLetterReason::MaxLen, dead),
-                None => return,
+                None => return false,
             }
         }
+        over(st)
     }
 
     pub(super) fn insert_ready(&self, st: &mut QueueState, queued: QueuedMessage) {

@@ -146,19 +146,25 @@ impl Queue {
         reason: DeadLetterReason,
         dead: &mut Vec<DeadLetter>,
     ) {
-        let Some(exchange) = &self.args.dead_letter_exchange else {
-            return;
+        let (exchange, routing_key) = {
+            let target = self
+                .dead_lettering
+                .read()
+                .unwrap_or_else(|e| e.into_inner());
+            let Some(exchange) = target.0.clone() else {
+                return;
+            };
+            let routing_key = target
+                .1
+                .clone()
+                .unwrap_or_else(|| message.routing_key.clone());
+            (exchange, routing_key)
         };
-        let routing_key = self
-            .args
-            .dead_letter_routing_key
-            .clone()
-            .unwrap_or_else(|| message.routing_key.clone());
         dead.push(DeadLetter {
             message,
             reason,
             queue: self.name.clone(),
-            exchange: exchange.clone(),
+            exchange,
             routing_key,
         });
     }

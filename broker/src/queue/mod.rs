@@ -24,6 +24,7 @@ mod consumers;
 mod dispatch;
 mod durable;
 mod leaving;
+mod policies;
 mod ready;
 mod stream;
 
@@ -36,6 +37,7 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::message::Message;
 use crate::outbox::Outbound;
+use crate::policy::Applied;
 use crate::slice::{finish_in_background, Progress, Slice};
 use crate::stats::{BrokerCounters, QueueCounters};
 use crate::store::Persistence;
@@ -137,6 +139,10 @@ struct QueueState {
     /// Dead letters found by a dispatch whose caller cannot route them
     /// (a connection's writer), waiting for the vhost's next sweep.
     deferred_dead: Vec<DeadLetter>,
+    /// The arguments acted on: the declared ones with the policies'.
+    effective: QueueArgs,
+    /// The policies that apply.
+    applied: Applied,
 }
 
 /// Declared properties of a queue.
@@ -159,8 +165,13 @@ pub struct Queue {
     pub name: ShortStr,
     /// Declared properties.
     pub options: QueueOptions,
-    /// Validated arguments.
+    /// Validated arguments, as declared (what the queue acts on is these
+    /// with its policies': `QueueState::effective`).
     pub args: QueueArgs,
+    /// The effective dead-letter exchange and routing key, read when a
+    /// message dies (also outside the state's lock, by a reject); written
+    /// with `QueueState::effective`, under the state's lock.
+    dead_lettering: std::sync::RwLock<(Option<ShortStr>, Option<ShortStr>)>,
     /// The name of the vhost it belongs to, for error texts.
     vhost: ShortStr,
     gauge: Arc<MemoryGauge>,
@@ -192,6 +203,8 @@ impl Queue {
         durable_store: Option<(Arc<Persistence>, u64)>,
         counters: Arc<BrokerCounters>,
     ) -> Self {
+        // No policies until the vhost gives it some (`apply_policies`).
+        let effective = args.clone();
         let single_active = args.single_active_consumer;
         let (position_name, next_seq) = match &durable_store {
             Some((persistence, id)) => (format!("d{id}"), persistence.seq_floor()),
@@ -199,6 +212,10 @@ impl Queue {
         };
         Queue {
             name,
+            dead_lettering: std::sync::RwLock::new((
+                effective.dead_letter_exchange.clone(),
+                effective.dead_letter_routing_key.clone(),
+            )),
             options,
             args,
             vhost,
@@ -212,6 +229,7 @@ impl Queue {
                 last_used: Some(Instant::now()),
                 next_seq,
                 consumers: Consumers::new(single_active),
+                effective,
                 ..QueueState::default()
             }),
             stream: None,
@@ -623,10 +641,10 @@ impl Queue {
     /// Whether x-expires has run out by `now`: unused (no consumers, no
     /// get, no redeclare) for longer than it allows.
     pub fn unused_expired_at(&self, now: Instant) -> bool {
-        let Some(expires) = self.args.expires else {
+        let st = self.lock();
+        let Some(expires) = st.effective.expires else {
             return false;
         };
-        let st = self.lock();
         st.consumers.is_empty()
             && st.last_used.is_some_and(|at| {
                 now.saturating_duration_since(at) >= Duration::from_millis(expires)

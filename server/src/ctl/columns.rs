@@ -70,6 +70,11 @@ pub const QUEUES: Table = Table {
         ("auto_delete", &["auto_delete"]),
         ("arguments", &["arguments"]),
         ("policy", &["policy"]),
+        ("operator_policy", &["operator_policy"]),
+        (
+            "effective_policy_definition",
+            &["effective_policy_definition"],
+        ),
         ("exclusive", &["exclusive"]),
         ("messages_ready", &["messages_ready"]),
         ("messages_unacknowledged", &["messages_unacknowledged"]),
@@ -93,6 +98,26 @@ pub const EXCHANGES: Table = Table {
         ("policy", &["policy"]),
     ],
     default: &["name", "type"],
+};
+
+/// `list_policies` and `list_operator_policies`.
+pub const POLICIES: Table = Table {
+    columns: &[
+        ("vhost", &["vhost"]),
+        ("name", &["name"]),
+        ("pattern", &["pattern"]),
+        ("apply-to", &["apply-to"]),
+        ("definition", &["definition"]),
+        ("priority", &["priority"]),
+    ],
+    default: &[
+        "vhost",
+        "name",
+        "pattern",
+        "apply-to",
+        "definition",
+        "priority",
+    ],
 };
 
 pub const BINDINGS: Table = Table {

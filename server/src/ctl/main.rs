@@ -26,10 +26,12 @@
 //! - `client`: the HTTP client (ureq).
 //! - `columns`: rabbitmqctl's column names mapped onto the API's fields.
 //! - `ports`: the `port` commands, over AMQP with leveret-client.
+//! - `policies`: the policy, operator policy and cluster name commands.
 #![forbid(unsafe_code)]
 
 mod client;
 mod columns;
+mod policies;
 mod ports;
 
 use clap::{Parser, Subcommand};
@@ -203,6 +205,8 @@ enum Command {
     /// The status, then every listing: connections, channels, and each
     /// vhost's queues, exchanges, bindings, consumers and permissions.
     Report,
+    #[command(flatten)]
+    Policy(policies::PolicyCommand),
     /// The robot data ports that announce themselves (over AMQP, see
     /// --amqp-url).
     Port {
@@ -557,6 +561,7 @@ fn run(cli: &Cli) -> Result<(), Failure> {
         Command::Status => status(cli, &client),
         Command::Report => report(cli, &client),
         Command::Port { command } => ports::run(cli, command),
+        Command::Policy(command) => policies::run(cli, &client, command),
     }
 }
 

@@ -4,8 +4,10 @@
 //! `policymaker` see and change only the vhosts they have a permission on,
 //! and only their own connections. A user without any of these tags cannot
 //! log in to the API (401 `Not management user`); users, permissions,
-//! definitions, vhost changes, closing connections and shovels
-//! (parameters) are the administrator's (401 `Not administrator user`). Uses the broker's
+//! definitions, vhost changes, closing connections, shovels
+//! (parameters), operator policies and setting the cluster name are the
+//! administrator's (401 `Not administrator user`); policies need the
+//! `policymaker` tag (401 `Not policymaker user`). Uses the broker's
 //! users and permissions through `Admin`. The tags only open the door:
 //! each operation on an object is then checked against the caller's
 //! permissions by the broker (`Admin::as_user`), as AMQP checks it.
@@ -82,6 +84,9 @@ pub struct Caller {
     pub role: Role,
     /// The vhosts they have a permission on.
     vhosts: HashSet<String>,
+    /// Tagged `policymaker` (or `administrator`): may see and change the
+    /// policies of those vhosts.
+    policymaker: bool,
 }
 
 /// 401 `not_authorised` with `reason`, as RabbitMQ refuses a caller.
@@ -108,6 +113,7 @@ impl Caller {
             user: user.to_owned(),
             role,
             vhosts,
+            policymaker: tags.iter().any(|t| t == "policymaker"),
         })
     }
 
@@ -129,11 +135,16 @@ impl Caller {
         }
         let reads = method == Method::GET || method == Method::HEAD;
         let first = segments.first().map(String::as_str).unwrap_or("");
-        let admin_only =
-            matches!(
-                first,
-                "users" | "permissions" | "topic-permissions" | "definitions"
-            ) || (matches!(first, "vhosts" | "connections" | "parameters" | "policies") && !reads);
+        if first == "policies" && !self.policymaker {
+            return Err(not_authorised("Not policymaker user"));
+        }
+        let admin_only = matches!(
+            first,
+            "users" | "permissions" | "topic-permissions" | "definitions" | "operator-policies"
+        ) || (matches!(
+            first,
+            "vhosts" | "connections" | "parameters" | "cluster-name"
+        ) && !reads);
         if admin_only {
             return Err(not_authorised("Not administrator user"));
         }
@@ -172,7 +183,35 @@ mod tests {
             user: "u".into(),
             role,
             vhosts: vhosts.iter().map(|v| v.to_string()).collect(),
+            policymaker: false,
         }
+    }
+
+    #[test]
+    fn policies_are_the_policymakers_and_operator_policies_the_administrators() {
+        let get = Method::GET;
+        let put = Method::PUT;
+        let manager = caller(Role::Management, &["cell"]);
+        assert!(manager.authorize(&get, &path("policies/cell")).is_err());
+        let policymaker = Caller {
+            policymaker: true,
+            ..caller(Role::Management, &["cell"])
+        };
+        assert!(policymaker
+            .authorize(&put, &path("policies/cell/p"))
+            .is_ok());
+        assert!(policymaker
+            .authorize(&get, &path("policies/other"))
+            .is_err());
+        assert!(policymaker
+            .authorize(&put, &path("operator-policies/cell/p"))
+            .is_err());
+        assert!(policymaker.authorize(&get, &path("cluster-name")).is_ok());
+        assert!(policymaker.authorize(&put, &path("cluster-name")).is_err());
+        let administrator = caller(Role::Administrator, &[]);
+        assert!(administrator
+            .authorize(&put, &path("operator-policies/cell/p"))
+            .is_ok());
     }
 
     fn path(p: &str) -> Vec<String> {

@@ -1,8 +1,8 @@
-//! The management API's federation paths, as RabbitMQ's federation and
-//! policy endpoints: upstreams (`/api/parameters/federation-upstream`),
-//! policies with federation keys (`/api/policies`) and the links they run
-//! (`/api/federation-links`). Changes go to `crate::federation`, which
-//! keeps them in the broker's store.
+//! The management API's federation paths, as RabbitMQ's federation
+//! endpoints: upstreams (`/api/parameters/federation-upstream`) and the
+//! links the policies run (`/api/federation-links`); policies are
+//! `policies`'. Changes go to `crate::federation`, which keeps them in the
+//! broker's store.
 
 use super::caller::Caller;
 use super::handlers::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
@@ -15,14 +15,6 @@ use serde_json::{json, Value};
 
 fn upstream_json((vhost, name, value): (String, String, Value)) -> Value {
     json!({"value": value, "vhost": vhost, "component": UPSTREAM_COMPONENT, "name": name})
-}
-
-fn policy_json((vhost, name, value): (String, String, Value)) -> Value {
-    let mut policy = json!({"vhost": vhost, "name": name, "apply-to": "all", "priority": 0});
-    if let (Some(policy), Some(given)) = (policy.as_object_mut(), value.as_object()) {
-        policy.extend(given.clone());
-    }
-    policy
 }
 
 fn listed(
@@ -108,63 +100,6 @@ pub async fn delete_upstream(
     } else {
         Err(ApiError::not_found(format!(
             "no upstream '{name}' in vhost '{vhost}'"
-        )))
-    }
-}
-
-pub async fn policies(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
-    listed(
-        c.links.federation.policies(),
-        |v| caller.sees_vhost(v),
-        policy_json,
-    )
-}
-
-pub async fn policies_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
-    require_vhost(&c, &vhost)?;
-    Ok(listed(
-        c.links.federation.policies(),
-        |v| v == vhost,
-        policy_json,
-    ))
-}
-
-pub async fn policy(
-    State(c): Ctx,
-    Path((vhost, name)): Path<(String, String)>,
-) -> ApiResult<Json<Value>> {
-    let found = named(c.links.federation.policies(), &vhost, &name, "policy")?;
-    Ok(Json(policy_json(found)))
-}
-
-/// RabbitMQ's `PUT /api/policies/VHOST/NAME` with `pattern`,
-/// `definition`, `priority` and `apply-to`: federation keys only.
-pub async fn put_policy(
-    State(c): Ctx,
-    Path((vhost, name)): Path<(String, String)>,
-    body: Bytes,
-) -> ApiResult {
-    require_vhost(&c, &vhost)?;
-    let mut policy = body_object(&body)?;
-    policy.remove("vhost");
-    policy.remove("name");
-    let federation = &c.links.federation;
-    let existed = exists(federation.policies(), &vhost, &name);
-    federation
-        .set_policy(&vhost, &name, Value::Object(policy), true)
-        .await?;
-    Ok(created_or_not(!existed))
-}
-
-pub async fn delete_policy(
-    State(c): Ctx,
-    Path((vhost, name)): Path<(String, String)>,
-) -> ApiResult {
-    if c.links.federation.delete_policy(&vhost, &name).await? {
-        Ok(no_content())
-    } else {
-        Err(ApiError::not_found(format!(
-            "no policy '{name}' in vhost '{vhost}'"
         )))
     }
 }

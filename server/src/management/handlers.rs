@@ -117,7 +117,7 @@ pub async fn overview(State(c): Ctx) -> Json<Value> {
         "product_name": o.product,
         "product_version": o.version,
         "rabbitmq_version": o.version,
-        "cluster_name": c.node,
+        "cluster_name": crate::policies::cluster_name(&c.admin, &c.node),
         "node": c.node,
         "disable_stats": false,
         "enable_queue_totals": true,

@@ -81,7 +81,7 @@ fn details(rate: Rate) -> Value {
 /// A queue object.
 pub fn queue(q: &QueueInfo, node: &str, rates: &QueueRates) -> Value {
     let m = &q.message_stats;
-    json!({
+    let mut queue = json!({
         "name": q.name,
         "vhost": q.vhost,
         "durable": q.durable,
@@ -91,7 +91,6 @@ pub fn queue(q: &QueueInfo, node: &str, rates: &QueueRates) -> Value {
         "node": node,
         "state": "running",
         "type": q.kind(),
-        "policy": null,
         "messages": q.messages(),
         "messages_details": details(rates.messages),
         "messages_ready": q.messages_ready,
@@ -111,12 +110,23 @@ pub fn queue(q: &QueueInfo, node: &str, rates: &QueueRates) -> Value {
             "redeliver": m.redeliver, "redeliver_details": details(rates.redeliver),
             "ack": m.ack, "ack_details": details(rates.ack),
         },
-    })
+    });
+    with_policies(&mut queue, &q.policies);
+    queue
+}
+
+/// Adds `policy`, `operator_policy` and `effective_policy_definition`.
+fn with_policies(object: &mut Value, applied: &leveret_broker::AppliedPolicies) {
+    if let Some(map) = object.as_object_mut() {
+        for (key, value) in crate::policies::applied_json(applied) {
+            map.insert(key.to_owned(), value);
+        }
+    }
 }
 
 /// An exchange object.
 pub fn exchange(e: &ExchangeInfo) -> Value {
-    json!({
+    let mut exchange = json!({
         "name": e.name,
         "vhost": e.vhost,
         "type": e.kind,
@@ -124,8 +134,9 @@ pub fn exchange(e: &ExchangeInfo) -> Value {
         "auto_delete": e.auto_delete,
         "internal": e.internal,
         "arguments": table(&e.arguments),
-        "policy": null,
-    })
+    });
+    with_policies(&mut exchange, &e.policies);
+    exchange
 }
 
 /// A binding object.

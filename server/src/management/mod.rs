@@ -23,6 +23,7 @@ mod federation;
 mod handlers;
 pub mod json;
 mod pagination;
+mod policies;
 mod rates;
 
 use crate::http::Peer;
@@ -343,13 +344,28 @@ pub fn router(context: Context) -> Router {
                 .put(federation::put_upstream)
                 .delete(federation::delete_upstream),
         )
-        .route("/api/policies", get(federation::policies))
-        .route("/api/policies/{vhost}", get(federation::policies_in))
+        .route("/api/policies", get(policies::all))
+        .route("/api/policies/{vhost}", get(policies::in_vhost))
         .route(
             "/api/policies/{vhost}/{name}",
-            get(federation::policy)
-                .put(federation::put_policy)
-                .delete(federation::delete_policy),
+            get(policies::get_one)
+                .put(policies::put_one)
+                .delete(policies::delete_one),
+        )
+        .route("/api/operator-policies", get(policies::operator_all))
+        .route(
+            "/api/operator-policies/{vhost}",
+            get(policies::operator_in_vhost),
+        )
+        .route(
+            "/api/operator-policies/{vhost}/{name}",
+            get(policies::operator_get_one)
+                .put(policies::operator_put_one)
+                .delete(policies::operator_delete_one),
+        )
+        .route(
+            "/api/cluster-name",
+            get(policies::cluster_name).put(policies::put_cluster_name),
         )
         .route("/api/federation-links", get(federation::links))
         .route("/api/federation-links/{vhost}", get(federation::links_in))

@@ -1,0 +1,275 @@
+//! Policies and operator policies as RabbitMQ 3.10 applies them: a name,
+//! a pattern (a regular expression on the queue's or exchange's name
+//! bytes,
+//! matched by the `regex` crate in time linear in the name), what it
+//! applies to, a priority and a definition. This module owns reading and
+//! checking a definition (a key Leveret does not act on is refused, never
+//! kept and ignored), choosing the one policy of each kind that applies to
+//! a name, and RabbitMQ's rules for combining a policy, an operator policy
+//! and the object's own arguments (`combine`).
+//!
+//! The queue and vhost layers keep the result: a vhost holds its
+//! [`VhostPolicies`], a queue the [`Applied`] pair it was given and the
+//! effective arguments computed from it, so a publish costs nothing more.
+//!
+//! Uses `permissions` (the pattern size cap).
+
+mod combine;
+mod definition;
+#[cfg(test)]
+mod tests;
+
+pub use combine::{argument_wins, stricter, Applied};
+pub use definition::{Definition, Overflow, PolicyValue};
+
+use crate::permissions::PATTERN_SIZE_LIMIT;
+use std::sync::Arc;
+
+/// Why a policy was not set.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum PolicyError {
+    /// The vhost does not exist.
+    #[error("no vhost '{0}'")]
+    NoVhost(String),
+    /// The policy does not read, or holds a key Leveret refuses.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// Which objects a policy applies to (`apply-to`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ApplyTo {
+    /// `queues`.
+    Queues,
+    /// `exchanges`.
+    Exchanges,
+    /// `all` (RabbitMQ's default).
+    All,
+}
+
+impl ApplyTo {
+    /// RabbitMQ's word for it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ApplyTo::Queues => "queues",
+            ApplyTo::Exchanges => "exchanges",
+            ApplyTo::All => "all",
+        }
+    }
+
+    /// Reads RabbitMQ's word.
+    pub fn parse(word: &str) -> Result<ApplyTo, String> {
+        match word {
+            "queues" => Ok(ApplyTo::Queues),
+            "exchanges" => Ok(ApplyTo::Exchanges),
+            "all" => Ok(ApplyTo::All),
+            other => Err(format!(
+                "apply-to '{other}': one of queues, exchanges and all"
+            )),
+        }
+    }
+}
+
+/// A user policy (`set_policy`) or an operator policy
+/// (`set_operator_policy`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PolicyKind {
+    /// RabbitMQ's policies.
+    User,
+    /// RabbitMQ's operator policies: a few limits an operator imposes,
+    /// combined with the user policy by the stricter value.
+    Operator,
+}
+
+/// A policy as given: what `set_policy` takes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PolicySpec {
+    /// The regular expression on object names.
+    pub pattern: String,
+    /// Which objects it applies to.
+    pub apply_to: ApplyTo,
+    /// Higher wins when several match.
+    pub priority: i64,
+    /// The keys and values, in the order given.
+    pub definition: Vec<(String, PolicyValue)>,
+}
+
+/// A checked policy.
+#[derive(Debug, Clone)]
+pub struct Policy {
+    /// Its name.
+    pub name: String,
+    /// User or operator policy.
+    pub kind: PolicyKind,
+    /// As given.
+    pub spec: PolicySpec,
+    /// The definition read.
+    pub definition: Definition,
+    matcher: regex::bytes::Regex,
+}
+
+impl Policy {
+    /// Checks `spec` as RabbitMQ does for a policy of `kind`: the pattern
+    /// compiles (within the size cap), every key is one Leveret acts on
+    /// for that kind and its value has the right type and range.
+    pub fn new(kind: PolicyKind, name: &str, spec: PolicySpec) -> Result<Policy, String> {
+        if name.is_empty() {
+            return Err("a policy needs a name".into());
+        }
+        let matcher = regex::bytes::RegexBuilder::new(&spec.pattern)
+            .size_limit(PATTERN_SIZE_LIMIT)
+            .build()
+            .map_err(|e| format!("pattern '{}': {e}", spec.pattern))?;
+        let definition = Definition::read(kind, &spec.definition)?;
+        Ok(Policy {
+            name: name.to_owned(),
+            kind,
+            spec,
+            definition,
+            matcher,
+        })
+    }
+
+    fn matches(&self, object: ObjectKind, name: &[u8]) -> bool {
+        let kind_fits = matches!(
+            (self.spec.apply_to, object),
+            (ApplyTo::All, _)
+                | (ApplyTo::Queues, ObjectKind::Queue)
+                | (ApplyTo::Exchanges, ObjectKind::Exchange)
+        );
+        kind_fits && self.matcher.is_match(name)
+    }
+}
+
+/// What a policy is matched against.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ObjectKind {
+    /// A queue.
+    Queue,
+    /// An exchange.
+    Exchange,
+}
+
+/// One vhost's policies of both kinds, each list in the order a match is
+/// looked for: highest priority first, ties by name (RabbitMQ 3.10 leaves
+/// a tie to its table's order; Leveret makes it the name's byte order, so
+/// the outcome never depends on history). Replaced whole on each change.
+#[derive(Debug, Default)]
+pub struct VhostPolicies {
+    user: Vec<Arc<Policy>>,
+    operator: Vec<Arc<Policy>>,
+    /// Counts the changes: an [`Applied`] computed from the set just
+    /// before this one can be brought up to date by one match.
+    generation: u64,
+}
+
+impl VhostPolicies {
+    fn list(&self, kind: PolicyKind) -> &Vec<Arc<Policy>> {
+        match kind {
+            PolicyKind::User => &self.user,
+            PolicyKind::Operator => &self.operator,
+        }
+    }
+
+    /// These policies with `policy` set (replacing one of its kind and
+    /// name).
+    pub fn with(&self, policy: Policy) -> VhostPolicies {
+        let mut next = self.without(policy.kind, &policy.name);
+        let list = match policy.kind {
+            PolicyKind::User => &mut next.user,
+            PolicyKind::Operator => &mut next.operator,
+        };
+        list.push(Arc::new(policy));
+        list.sort_by(|a, b| {
+            b.spec
+                .priority
+                .cmp(&a.spec.priority)
+                .then_with(|| a.name.cmp(&b.name))
+        });
+        next
+    }
+
+    /// These policies without the policy `name` of `kind`.
+    pub fn without(&self, kind: PolicyKind, name: &str) -> VhostPolicies {
+        let keep = |list: &Vec<Arc<Policy>>, of: PolicyKind| -> Vec<Arc<Policy>> {
+            list.iter()
+                .filter(|p| !(of == kind && p.name == name))
+                .cloned()
+                .collect()
+        };
+        VhostPolicies {
+            user: keep(&self.user, PolicyKind::User),
+            operator: keep(&self.operator, PolicyKind::Operator),
+            generation: self.generation + 1,
+        }
+    }
+
+    /// The policy `name` of `kind`.
+    pub fn get(&self, kind: PolicyKind, name: &str) -> Option<&Arc<Policy>> {
+        self.list(kind).iter().find(|p| p.name == name)
+    }
+
+    /// Every policy of `kind`, by name.
+    pub fn all(&self, kind: PolicyKind) -> Vec<Arc<Policy>> {
+        let mut all = self.list(kind).clone();
+        all.sort_by(|a, b| a.name.cmp(&b.name));
+        all
+    }
+
+    /// The policy of each kind that applies to the object: the first
+    /// match in each list. Costs at most one match per policy of the vhost.
+    pub fn applied(&self, object: ObjectKind, name: &[u8]) -> Applied {
+        let first =
+            |list: &Vec<Arc<Policy>>| list.iter().find(|p| p.matches(object, name)).cloned();
+        Applied {
+            policy: first(&self.user),
+            operator: first(&self.operator),
+            generation: self.generation,
+        }
+    }
+
+    /// What applies to the object after the policy `name` of `kind` was
+    /// set or cleared, given what applied before (`current`): one match of
+    /// the changed policy, and a full look-up only when the changed policy
+    /// was the one that applied or `current` was not computed from the set
+    /// just before this one. A change so costs one match per object, not
+    /// one per object and policy.
+    pub fn after_change(
+        &self,
+        current: &Applied,
+        kind: PolicyKind,
+        name: &str,
+        object: ObjectKind,
+        object_name: &[u8],
+    ) -> Applied {
+        let slot = match kind {
+            PolicyKind::User => &current.policy,
+            PolicyKind::Operator => &current.operator,
+        };
+        if current.generation + 1 != self.generation
+            || slot.as_ref().is_some_and(|p| p.name == name)
+        {
+            return self.applied(object, object_name);
+        }
+        let mut next = current.clone();
+        next.generation = self.generation;
+        let Some(changed) = self.get(kind, name) else {
+            return next;
+        };
+        let beats = |held: &Option<Arc<Policy>>| match held {
+            None => true,
+            Some(held) => {
+                changed.spec.priority > held.spec.priority
+                    || (changed.spec.priority == held.spec.priority && changed.name < held.name)
+            }
+        };
+        if !(beats(slot) && changed.matches(object, object_name)) {
+            return next;
+        }
+        match kind {
+            PolicyKind::User => next.policy = Some(Arc::clone(changed)),
+            PolicyKind::Operator => next.operator = Some(Arc::clone(changed)),
+        }
+        next
+    }
+}

@@ -1,0 +1,262 @@
+use super::*;
+use proptest::prelude::*;
+
+fn spec(
+    pattern: &str,
+    apply_to: ApplyTo,
+    priority: i64,
+    keys: &[(&str, PolicyValue)],
+) -> PolicySpec {
+    PolicySpec {
+        pattern: pattern.into(),
+        apply_to,
+        priority,
+        definition: keys
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.clone()))
+            .collect(),
+    }
+}
+
+fn int(n: i64) -> PolicyValue {
+    PolicyValue::Integer(n)
+}
+
+fn text(s: &str) -> PolicyValue {
+    PolicyValue::Text(s.into())
+}
+
+fn user(name: &str, pattern: &str, priority: i64, keys: &[(&str, PolicyValue)]) -> Policy {
+    Policy::new(
+        PolicyKind::User,
+        name,
+        spec(pattern, ApplyTo::All, priority, keys),
+    )
+    .unwrap()
+}
+
+fn operator(name: &str, pattern: &str, keys: &[(&str, PolicyValue)]) -> Policy {
+    Policy::new(
+        PolicyKind::Operator,
+        name,
+        spec(pattern, ApplyTo::Queues, 0, keys),
+    )
+    .unwrap()
+}
+
+#[test]
+fn the_highest_priority_match_applies_and_ties_go_by_name() {
+    let set = VhostPolicies::default()
+        .with(user("low", ".*", 0, &[("max-length", int(1))]))
+        .with(user("high", "^orders", 5, &[("max-length", int(2))]))
+        .with(user("b-tie", "^tie", 3, &[("max-length", int(3))]))
+        .with(user("a-tie", "^tie", 3, &[("max-length", int(4))]));
+    let name = |n: &str| {
+        set.applied(ObjectKind::Queue, n.as_bytes())
+            .policy_name()
+            .map(str::to_owned)
+    };
+    assert_eq!(name("orders.eu").as_deref(), Some("high"));
+    assert_eq!(name("other").as_deref(), Some("low"));
+    assert_eq!(name("tie").as_deref(), Some("a-tie"));
+    let without = set.without(PolicyKind::User, "low");
+    assert_eq!(
+        without.applied(ObjectKind::Queue, b"other").policy_name(),
+        None
+    );
+}
+
+#[test]
+fn apply_to_limits_the_objects() {
+    let set = VhostPolicies::default().with(
+        Policy::new(
+            PolicyKind::User,
+            "ae",
+            spec(
+                ".*",
+                ApplyTo::Exchanges,
+                0,
+                &[("alternate-exchange", text("ae"))],
+            ),
+        )
+        .unwrap(),
+    );
+    assert!(set.applied(ObjectKind::Queue, b"x").policy.is_none());
+    let alternate = set.applied(ObjectKind::Exchange, b"x").alternate_exchange();
+    assert_eq!(alternate.as_ref().map(|a| a.as_bytes()), Some(&b"ae"[..]));
+}
+
+#[test]
+fn keys_leveret_does_not_act_on_are_refused() {
+    for (key, value, says) in [
+        ("max-priority", int(10), "not recognised policy settings"),
+        ("ha-mode", text("all"), "mirrored"),
+        ("delivery-limit", int(3), "quorum"),
+        ("message-ttl", int(-1), "not a valid message TTL"),
+        ("expires", int(0), "not a valid queue expiry"),
+        ("overflow", text("drop-tail"), "not a valid overflow"),
+        ("max-length", text("5"), "not a valid maximum length"),
+        ("queue-mode", text("fast"), "queue-mode"),
+    ] {
+        let error = Policy::new(
+            PolicyKind::User,
+            "p",
+            spec(".*", ApplyTo::All, 0, &[(key, value)]),
+        )
+        .unwrap_err();
+        assert!(error.contains(says), "{key}: {error}");
+    }
+    let error = Policy::new(
+        PolicyKind::Operator,
+        "p",
+        spec(
+            ".*",
+            ApplyTo::Queues,
+            0,
+            &[("dead-letter-exchange", text("dlx"))],
+        ),
+    )
+    .unwrap_err();
+    assert!(
+        error.contains("not recognised operator policy settings"),
+        "{error}"
+    );
+    assert!(Policy::new(
+        PolicyKind::User,
+        "p",
+        spec("(", ApplyTo::All, 0, &[("max-length", int(1))])
+    )
+    .is_err());
+    assert!(Policy::new(PolicyKind::User, "p", spec(".*", ApplyTo::All, 0, &[])).is_err());
+    for accepted in [("queue-mode", text("lazy")), ("queue-version", int(2))] {
+        assert!(Policy::new(
+            PolicyKind::User,
+            "p",
+            spec(".*", ApplyTo::All, 0, &[accepted])
+        )
+        .is_ok());
+    }
+}
+
+#[test]
+fn operator_policies_merge_by_the_smaller_value() {
+    let set = VhostPolicies::default()
+        .with(user(
+            "u",
+            ".*",
+            0,
+            &[
+                ("max-length", int(100)),
+                ("message-ttl", int(50)),
+                ("dead-letter-exchange", text("dlx")),
+            ],
+        ))
+        .with(operator(
+            "o",
+            ".*",
+            &[
+                ("max-length", int(10)),
+                ("message-ttl", int(500)),
+                ("expires", int(60000)),
+            ],
+        ));
+    let applied = set.applied(ObjectKind::Queue, b"q");
+    assert_eq!(applied.max_length(), Some(10));
+    assert_eq!(applied.message_ttl(), Some(50));
+    assert_eq!(applied.expires(), Some(60000));
+    let effective = applied.effective_definition();
+    assert_eq!(effective["max-length"], int(10));
+    assert_eq!(effective["message-ttl"], int(50));
+    assert_eq!(effective["expires"], int(60000));
+    assert_eq!(effective["dead-letter-exchange"], text("dlx"));
+}
+
+#[test]
+fn a_change_costs_one_match_and_agrees_with_a_full_look_up() {
+    let before = VhostPolicies::default()
+        .with(user("a", "^q", 1, &[("max-length", int(1))]))
+        .with(user("b", "^q1", 2, &[("max-length", int(2))]));
+    let names: Vec<&[u8]> = vec![b"q1", b"q2", b"x", b"q10"];
+    type Change = Box<dyn Fn(&VhostPolicies) -> (VhostPolicies, PolicyKind, &'static str)>;
+    let changes: Vec<Change> = vec![
+        Box::new(|s| {
+            (
+                s.with(user("c", "^q2", 9, &[("max-length", int(3))])),
+                PolicyKind::User,
+                "c",
+            )
+        }),
+        Box::new(|s| (s.without(PolicyKind::User, "b"), PolicyKind::User, "b")),
+        Box::new(|s| {
+            (
+                s.with(user("b", "^x", 0, &[("max-length", int(4))])),
+                PolicyKind::User,
+                "b",
+            )
+        }),
+        Box::new(|s| {
+            (
+                s.with(user("a", "^q", 0, &[("max-length", int(5))])),
+                PolicyKind::User,
+                "a",
+            )
+        }),
+        Box::new(|s| {
+            (
+                s.with(operator("o", "1$", &[("max-length", int(6))])),
+                PolicyKind::Operator,
+                "o",
+            )
+        }),
+    ];
+    for change in &changes {
+        let (after, kind, name) = change(&before);
+        for object in &names {
+            let current = before.applied(ObjectKind::Queue, object);
+            let updated = after.after_change(&current, kind, name, ObjectKind::Queue, object);
+            assert_eq!(
+                updated,
+                after.applied(ObjectKind::Queue, object),
+                "{name} on {object:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_pathological_pattern_is_refused_or_linear() {
+    // Catastrophic backtracking shapes are linear in the regex crate.
+    let policy = user("evil", "^(a+)+$", 0, &[("max-length", int(1))]);
+    let name = "a".repeat(200) + "!";
+    let set = VhostPolicies::default().with(policy);
+    assert!(set
+        .applied(ObjectKind::Queue, name.as_bytes())
+        .policy
+        .is_none());
+    // A pattern whose program passes the size cap is refused.
+    let huge = "(a{1000}){1000}";
+    assert!(Policy::new(
+        PolicyKind::User,
+        "huge",
+        spec(huge, ApplyTo::All, 0, &[("max-length", int(1))])
+    )
+    .is_err());
+    let backref = "(a)\\1";
+    assert!(Policy::new(
+        PolicyKind::User,
+        "br",
+        spec(backref, ApplyTo::All, 0, &[("max-length", int(1))])
+    )
+    .is_err());
+}
+
+proptest! {
+    #[test]
+    fn the_stricter_value_wins(policy in proptest::option::of(0u64..1000), op in proptest::option::of(0u64..1000), arg in proptest::option::of(0u64..1000)) {
+        let merged = stricter(stricter(policy, op), arg);
+        let given: Vec<u64> = [policy, op, arg].into_iter().flatten().collect();
+        prop_assert_eq!(merged, given.iter().copied().min());
+        prop_assert_eq!(stricter(policy, op), stricter(op, policy));
+        prop_assert_eq!(argument_wins(policy, arg), if arg.is_some() { arg } else { policy });
+    }
+}

@@ -1,0 +1,150 @@
+//! The management API's policy paths, as RabbitMQ's: `/api/policies`
+//! and `/api/operator-policies` (all, one vhost's, one policy: GET, PUT,
+//! DELETE) and `/api/cluster-name`. Who may call them is `caller`'s
+//! (policymaker for policies, administrator for operator policies and
+//! for setting the cluster name); the changes go through
+//! `crate::policies`.
+
+use super::caller::Caller;
+use super::handlers::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
+use super::{ApiError, Context};
+use crate::policies;
+use axum::body::Bytes;
+use axum::extract::{Path, State};
+use axum::{Extension, Json};
+use leveret_broker::PolicyKind;
+use serde_json::{json, Value};
+
+fn listed(c: &Context, kind: PolicyKind, vhost: Option<&str>, caller: &Caller) -> Json<Value> {
+    Json(Value::Array(
+        c.admin
+            .policies(kind, vhost)
+            .iter()
+            .filter(|(v, _)| caller.sees_vhost(v))
+            .map(|(v, policy)| policies::policy_json(v, policy))
+            .collect(),
+    ))
+}
+
+async fn one(c: &Context, kind: PolicyKind, vhost: String, name: String) -> ApiResult<Json<Value>> {
+    c.admin
+        .policies(kind, Some(&vhost))
+        .iter()
+        .find(|(_, p)| p.name == name)
+        .map(|(v, p)| Json(policies::policy_json(v, p)))
+        .ok_or_else(|| ApiError::not_found(format!("no policy '{name}' in vhost '{vhost}'")))
+}
+
+async fn put(c: &Context, kind: PolicyKind, vhost: String, name: String, body: Bytes) -> ApiResult {
+    require_vhost(c, &vhost)?;
+    let value = Value::Object(body_object(&body)?);
+    let existed = c
+        .admin
+        .policies(kind, Some(&vhost))
+        .iter()
+        .any(|(_, p)| p.name == name);
+    policies::set(
+        &c.admin,
+        &c.links.federation,
+        kind,
+        &vhost,
+        &name,
+        &value,
+        true,
+    )
+    .await?;
+    Ok(created_or_not(!existed))
+}
+
+async fn delete(c: &Context, kind: PolicyKind, vhost: String, name: String) -> ApiResult {
+    if policies::clear(&c.admin, &c.links.federation, kind, &vhost, &name).await? {
+        Ok(no_content())
+    } else {
+        Err(ApiError::not_found(format!(
+            "no policy '{name}' in vhost '{vhost}'"
+        )))
+    }
+}
+
+pub async fn all(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
+    listed(&c, PolicyKind::User, None, &caller)
+}
+
+pub async fn in_vhost(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Path(vhost): Path<String>,
+) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    Ok(listed(&c, PolicyKind::User, Some(&vhost), &caller))
+}
+
+pub async fn get_one(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    one(&c, PolicyKind::User, vhost, name).await
+}
+
+pub async fn put_one(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+    body: Bytes,
+) -> ApiResult {
+    put(&c, PolicyKind::User, vhost, name, body).await
+}
+
+pub async fn delete_one(State(c): Ctx, Path((vhost, name)): Path<(String, String)>) -> ApiResult {
+    delete(&c, PolicyKind::User, vhost, name).await
+}
+
+pub async fn operator_all(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
+    listed(&c, PolicyKind::Operator, None, &caller)
+}
+
+pub async fn operator_in_vhost(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Path(vhost): Path<String>,
+) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    Ok(listed(&c, PolicyKind::Operator, Some(&vhost), &caller))
+}
+
+pub async fn operator_get_one(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult<Json<Value>> {
+    one(&c, PolicyKind::Operator, vhost, name).await
+}
+
+pub async fn operator_put_one(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+    body: Bytes,
+) -> ApiResult {
+    put(&c, PolicyKind::Operator, vhost, name, body).await
+}
+
+pub async fn operator_delete_one(
+    State(c): Ctx,
+    Path((vhost, name)): Path<(String, String)>,
+) -> ApiResult {
+    delete(&c, PolicyKind::Operator, vhost, name).await
+}
+
+/// RabbitMQ's `GET /api/cluster-name`.
+pub async fn cluster_name(State(c): Ctx) -> Json<Value> {
+    Json(json!({"name": policies::cluster_name(&c.admin, &c.node)}))
+}
+
+/// RabbitMQ's `PUT /api/cluster-name` (`{"name": "..."}`).
+pub async fn put_cluster_name(State(c): Ctx, body: Bytes) -> ApiResult {
+    let object = body_object(&body)?;
+    let name = object
+        .get("name")
+        .and_then(Value::as_str)
+        .ok_or_else(|| ApiError::bad_request("a cluster name needs a 'name'"))?;
+    policies::set_cluster_name(&c.admin, name).await?;
+    Ok(no_content())
+}

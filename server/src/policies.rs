@@ -1,0 +1,314 @@
+//! The binary's policies, operator policies and cluster name, wherever
+//! they come from (the config file, definitions, the management API,
+//! leveretctl): RabbitMQ's JSON form read into the broker's
+//! [`PolicySpec`] and back, each change put in force by the broker
+//! (`Admin::set_policy`, which checks it and applies it to the vhost's
+//! queues and exchanges at once) and kept as a runtime parameter
+//! (components `policy` and `operator_policy`, as RabbitMQ keeps them), so
+//! it outlasts a restart: `start_stored` sets them again at start. The
+//! config file's policies are the config file's, not stored.
+//!
+//! The cluster name is RabbitMQ's global parameter `cluster_name`, kept
+//! as the runtime parameter `cluster_name` of the component `global`.
+
+use crate::federation::Federation;
+use crate::uplink::DeclareError;
+use leveret_broker::{
+    AccessError, Admin, ApplyTo, Policy, PolicyError, PolicyKind, PolicySpec, PolicyValue,
+};
+use serde_json::{json, Map, Value};
+use std::collections::BTreeMap;
+
+/// The runtime parameters' component for `kind`'s policies (RabbitMQ's).
+pub fn component(kind: PolicyKind) -> &'static str {
+    match kind {
+        PolicyKind::User => "policy",
+        PolicyKind::Operator => "operator_policy",
+    }
+}
+
+/// The component and vhost the cluster name is kept under.
+const GLOBAL: (&str, &str) = ("global", "");
+/// RabbitMQ's name for the global parameter.
+pub const CLUSTER_NAME: &str = "cluster_name";
+
+/// Reads RabbitMQ's JSON form of a policy (`pattern`, `definition`,
+/// `priority`, `apply-to`; `vhost` and `name` are the caller's).
+pub fn spec_from_json(value: &Value) -> Result<PolicySpec, String> {
+    let object = value.as_object().ok_or("a policy must be a JSON object")?;
+    for key in object.keys() {
+        if ![
+            "pattern",
+            "definition",
+            "priority",
+            "apply-to",
+            "vhost",
+            "name",
+        ]
+        .contains(&key.as_str())
+        {
+            return Err(format!("{key} is not a policy key"));
+        }
+    }
+    let pattern = object
+        .get("pattern")
+        .and_then(Value::as_str)
+        .ok_or("a policy needs a pattern")?;
+    let apply_to = match object.get("apply-to") {
+        None => ApplyTo::All,
+        Some(word) => ApplyTo::parse(word.as_str().ok_or("apply-to must be a string")?)?,
+    };
+    // RabbitMQ takes the priority as a number or a numeric string.
+    let priority = match object.get("priority") {
+        None | Some(Value::Null) => 0,
+        Some(Value::String(s)) => s
+            .parse()
+            .map_err(|_| format!("priority '{s}' is not an integer"))?,
+        Some(n) => n.as_i64().ok_or("priority must be an integer")?,
+    };
+    let definition = object
+        .get("definition")
+        .and_then(Value::as_object)
+        .ok_or("a policy needs a definition object")?
+        .iter()
+        .map(|(key, value)| (key.clone(), policy_value(value)))
+        .collect();
+    Ok(PolicySpec {
+        pattern: pattern.to_owned(),
+        apply_to,
+        priority,
+        definition,
+    })
+}
+
+fn policy_value(value: &Value) -> PolicyValue {
+    match value {
+        Value::Number(n) => match n.as_i64() {
+            Some(n) => PolicyValue::Integer(n),
+            None => PolicyValue::Other("float".into()),
+        },
+        Value::String(s) => PolicyValue::Text(s.clone()),
+        Value::Bool(_) => PolicyValue::Other("bool".into()),
+        Value::Array(_) => PolicyValue::Other("list".into()),
+        Value::Object(_) => PolicyValue::Other("object".into()),
+        Value::Null => PolicyValue::Other("null".into()),
+    }
+}
+
+fn value_json(value: &PolicyValue) -> Value {
+    match value {
+        PolicyValue::Integer(n) => json!(n),
+        PolicyValue::Text(s) => json!(s),
+        // Never in a checked policy.
+        PolicyValue::Other(kind) => json!(kind),
+    }
+}
+
+/// A definition as a JSON object.
+pub fn definition_json<'a>(keys: impl IntoIterator<Item = (&'a String, &'a PolicyValue)>) -> Value {
+    Value::Object(
+        keys.into_iter()
+            .map(|(key, value)| (key.clone(), value_json(value)))
+            .collect::<Map<_, _>>(),
+    )
+}
+
+/// RabbitMQ's listing of a policy (`/api/policies`, definitions).
+pub fn policy_json(vhost: &str, policy: &Policy) -> Value {
+    json!({
+        "vhost": vhost,
+        "name": policy.name,
+        "pattern": policy.spec.pattern,
+        "apply-to": policy.spec.apply_to.as_str(),
+        "definition": definition_json(policy.spec.definition.iter().map(|(k, v)| (k, v))),
+        "priority": policy.spec.priority,
+    })
+}
+
+/// What the store keeps of a policy (RabbitMQ's parameter value).
+fn stored_json(policy: &Policy) -> Value {
+    let mut listed = policy_json("", policy);
+    if let Some(map) = listed.as_object_mut() {
+        map.remove("vhost");
+        map.remove("name");
+    }
+    listed
+}
+
+/// A queue's or exchange's `policy`, `operator_policy` and
+/// `effective_policy_definition`, as RabbitMQ lists them.
+pub fn applied_json(applied: &leveret_broker::AppliedPolicies) -> [(&'static str, Value); 3] {
+    let effective: BTreeMap<String, PolicyValue> = applied.effective_definition();
+    [
+        ("policy", json!(applied.policy_name())),
+        ("operator_policy", json!(applied.operator_policy_name())),
+        ("effective_policy_definition", definition_json(&effective)),
+    ]
+}
+
+/// `value` with its `definition` as a JSON object: RabbitMQ 3.10 exports
+/// an operator policy's as a list of `[key, value]` pairs.
+pub fn with_definition_object(mut value: Value) -> Value {
+    if let Some(Value::Array(pairs)) = value.get("definition") {
+        let object: Option<Map<String, Value>> = pairs
+            .iter()
+            .map(|pair| match pair.as_array().map(Vec::as_slice) {
+                Some([Value::String(key), value]) => Some((key.clone(), value.clone())),
+                _ => None,
+            })
+            .collect();
+        if let (Some(object), Some(map)) = (object, value.as_object_mut()) {
+            map.insert("definition".into(), Value::Object(object));
+        }
+    }
+    value
+}
+
+/// Checks RabbitMQ's JSON form of a policy of `kind` as setting it would.
+pub fn check(kind: PolicyKind, value: &Value) -> Result<(), String> {
+    let spec = spec_from_json(value)?;
+    check_federation_keys(&spec)?;
+    Policy::new(kind, "checked", spec).map(|_| ())
+}
+
+/// The federation has no named upstream sets: `federation-upstream-set`
+/// is `all` or refused.
+fn check_federation_keys(spec: &PolicySpec) -> Result<(), String> {
+    match spec
+        .definition
+        .iter()
+        .find(|(key, _)| key == "federation-upstream-set")
+    {
+        Some((_, PolicyValue::Text(set))) if set != "all" => {
+            Err("federation-upstream-set: only \"all\" (Leveret has no named upstream sets)".into())
+        }
+        _ => Ok(()),
+    }
+}
+
+/// Sets the policy `name` of `kind` in `vhost` from RabbitMQ's JSON form;
+/// `store` keeps it as a runtime parameter (the API's and imports'). The
+/// federation takes its keys at once.
+pub async fn set(
+    admin: &Admin,
+    federation: &Federation,
+    kind: PolicyKind,
+    vhost: &str,
+    name: &str,
+    value: &Value,
+    store: bool,
+) -> Result<(), DeclareError> {
+    let spec = spec_from_json(value).map_err(DeclareError::Invalid)?;
+    check_federation_keys(&spec).map_err(DeclareError::Invalid)?;
+    admin
+        .set_policy(kind, vhost, name, spec)
+        .await
+        .map_err(|e| match e {
+            PolicyError::NoVhost(_) | PolicyError::Invalid(_) => {
+                DeclareError::Invalid(e.to_string())
+            }
+        })?;
+    if store {
+        let set = admin.policies(kind, Some(vhost));
+        if let Some((_, policy)) = set.iter().find(|(_, p)| p.name == name) {
+            admin
+                .set_parameter(
+                    component(kind),
+                    vhost,
+                    name,
+                    stored_json(policy).to_string(),
+                )
+                .await?;
+        }
+    }
+    federation.reconcile().await;
+    Ok(())
+}
+
+/// Clears the policy `name` of `kind` in `vhost`; false if there was none.
+pub async fn clear(
+    admin: &Admin,
+    federation: &Federation,
+    kind: PolicyKind,
+    vhost: &str,
+    name: &str,
+) -> Result<bool, AccessError> {
+    let stored = admin.clear_parameter(component(kind), vhost, name).await?;
+    let cleared = admin.clear_policy(kind, vhost, name).await;
+    federation.reconcile().await;
+    Ok(stored || cleared)
+}
+
+/// Sets the policies the broker's store kept; one that no longer reads
+/// is logged and left out.
+pub async fn start_stored(admin: &Admin, federation: &Federation) {
+    for kind in [PolicyKind::User, PolicyKind::Operator] {
+        for (vhost, name, text) in admin.parameters(component(kind)) {
+            let outcome = match serde_json::from_str::<Value>(&text) {
+                Ok(value) => set(admin, federation, kind, &vhost, &name, &value, false).await,
+                Err(e) => Err(DeclareError::Invalid(e.to_string())),
+            };
+            if let Err(e) = outcome {
+                tracing::error!(component = component(kind), %name, %vhost, error = %e, "a stored policy is not applied");
+            }
+        }
+    }
+}
+
+/// The cluster name: the one set, else `default` (RabbitMQ's default is
+/// its node's name).
+pub fn cluster_name(admin: &Admin, default: &str) -> String {
+    admin
+        .parameters(GLOBAL.0)
+        .into_iter()
+        .find(|(vhost, name, _)| vhost == GLOBAL.1 && name == CLUSTER_NAME)
+        .and_then(|(_, _, text)| serde_json::from_str::<String>(&text).ok())
+        .unwrap_or_else(|| default.to_owned())
+}
+
+/// Sets the cluster name (`rabbitmqctl set_cluster_name`), kept in the
+/// store.
+pub async fn set_cluster_name(admin: &Admin, name: &str) -> Result<(), DeclareError> {
+    if name.is_empty() {
+        return Err(DeclareError::Invalid(
+            "a cluster name cannot be empty".into(),
+        ));
+    }
+    admin
+        .set_parameter(GLOBAL.0, GLOBAL.1, CLUSTER_NAME, json!(name).to_string())
+        .await?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rabbitmqs_json_reads_and_lists_back() {
+        let given = json!({"pattern": "^q", "apply-to": "queues", "priority": "3",
+                           "definition": {"max-length": 5, "overflow": "reject-publish"}});
+        let spec = spec_from_json(&given).unwrap();
+        assert_eq!(spec.priority, 3);
+        assert_eq!(spec.apply_to, ApplyTo::Queues);
+        let policy = Policy::new(PolicyKind::User, "p", spec).unwrap();
+        assert_eq!(
+            policy_json("/", &policy),
+            json!({"vhost": "/", "name": "p", "pattern": "^q", "apply-to": "queues", "priority": 3,
+                   "definition": {"max-length": 5, "overflow": "reject-publish"}})
+        );
+        for bad in [
+            json!({"definition": {"max-length": 1}}),
+            json!({"pattern": ".*"}),
+            json!({"pattern": ".*", "apply-to": "bindings", "definition": {"max-length": 1}}),
+            json!({"pattern": ".*", "colour": "red", "definition": {"max-length": 1}}),
+        ] {
+            assert!(spec_from_json(&bad).is_err(), "{bad}");
+        }
+        let float =
+            spec_from_json(&json!({"pattern": ".*", "definition": {"max-length": 1.5}})).unwrap();
+        assert!(Policy::new(PolicyKind::User, "f", float)
+            .unwrap_err()
+            .contains("a float"));
+    }
+}

@@ -1,0 +1,352 @@
+//! Policies, operator policies and the cluster name through the `leveret`
+//! binary's surfaces: rabbitmqadmin 3.10's `declare policy` and `list
+//! policies`, the management API (RabbitMQ's paths and permissions),
+//! leveretctl's rabbitmqctl-style commands, definitions export and
+//! import; what they set acts on queues at once and outlasts a SIGKILL.
+
+mod common;
+
+use common::ops::{basic, request, tool_available, OpsBroker};
+use serde_json::{json, Value};
+use std::process::{Command, Output};
+
+fn rabbitmqadmin(broker: &OpsBroker, args: &[&str]) -> Output {
+    Command::new("rabbitmqadmin")
+        .args(["-H", "127.0.0.1", "-P", &broker.http.port().to_string()])
+        .args(["-u", "guest", "-p", "guest"])
+        .args(args)
+        .output()
+        .expect("run rabbitmqadmin")
+}
+
+fn admin_ok(broker: &OpsBroker, args: &[&str]) -> String {
+    let output = rabbitmqadmin(broker, args);
+    let text = String::from_utf8_lossy(&output.stdout).into_owned();
+    assert!(
+        output.status.success(),
+        "rabbitmqadmin {args:?}: {text}{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    text
+}
+
+fn admin_json(broker: &OpsBroker, args: &[&str]) -> Value {
+    let mut all = vec!["-f", "raw_json"];
+    all.extend_from_slice(args);
+    let text = admin_ok(broker, &all);
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{args:?}: {e}: {text}"))
+}
+
+fn ctl(broker: &OpsBroker, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_leveretctl"))
+        .arg("--url")
+        .arg(format!("http://{}", broker.http))
+        .args(args)
+        .output()
+        .expect("run leveretctl")
+}
+
+fn ctl_ok(broker: &OpsBroker, args: &[&str]) -> String {
+    let output = ctl(broker, args);
+    assert!(
+        output.status.success(),
+        "leveretctl {args:?}: {}{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+async fn api(
+    broker: &OpsBroker,
+    method: &str,
+    path: &str,
+    user: (&str, &str),
+    body: &Value,
+) -> (u16, Value) {
+    let auth = basic(user.0, user.1);
+    let headers = [
+        ("Authorization", auth.as_str()),
+        ("Content-Type", "application/json"),
+    ];
+    let body = if body.is_null() {
+        Vec::new()
+    } else {
+        body.to_string().into_bytes()
+    };
+    let answer = request(broker.http, method, path, &headers, &body).await;
+    let value = serde_json::from_str(&answer.text()).unwrap_or(Value::Null);
+    (answer.status, value)
+}
+
+const GUEST: (&str, &str) = ("guest", "guest");
+
+fn queue<'a>(list: &'a Value, name: &str) -> &'a Value {
+    list.as_array()
+        .expect("a list")
+        .iter()
+        .find(|q| q["name"] == name)
+        .unwrap_or_else(|| panic!("no {name} in {list}"))
+}
+
+/// rabbitmqadmin declares a policy that shortens a queue it matches at
+/// once; listings show it (`policy`, `effective_policy_definition`); a key
+/// Leveret does not act on is refused with 400; the policy and an
+/// operator policy outlast a SIGKILL and still act.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rabbitmqadmin_declares_policies_that_act_and_outlast_a_crash() {
+    if !tool_available("rabbitmqadmin", "rabbitmq-server") {
+        return;
+    }
+    let broker = OpsBroker::start("policies", &[]);
+    admin_ok(
+        &broker,
+        &["declare", "queue", "name=short.q", "durable=true"],
+    );
+    for i in 0..5 {
+        let payload = format!("payload={i}");
+        admin_ok(&broker, &["publish", "routing_key=short.q", &payload]);
+    }
+    admin_ok(
+        &broker,
+        &[
+            "declare",
+            "policy",
+            "name=short",
+            "pattern=^short\\.",
+            r#"definition={"max-length":2}"#,
+            "apply-to=queues",
+            "priority=1",
+        ],
+    );
+    let policies = admin_json(&broker, &["list", "policies"]);
+    assert_eq!(
+        policies,
+        json!([{"vhost": "/", "name": "short", "pattern": "^short\\.", "apply-to": "queues",
+                "definition": {"max-length": 2}, "priority": 1}])
+    );
+    let queues = admin_json(&broker, &["list", "queues"]);
+    let q = queue(&queues, "short.q");
+    assert_eq!(q["messages"], 2, "{q}");
+    assert_eq!(q["policy"], "short");
+    assert_eq!(q["operator_policy"], Value::Null);
+    assert_eq!(q["effective_policy_definition"], json!({"max-length": 2}));
+
+    // RabbitMQ refuses max-priority in a policy; so does Leveret.
+    let refused = rabbitmqadmin(
+        &broker,
+        &[
+            "declare",
+            "policy",
+            "name=prio",
+            "pattern=.*",
+            r#"definition={"max-priority":5}"#,
+        ],
+    );
+    assert!(!refused.status.success());
+    let (status, _) = api(
+        &broker,
+        "PUT",
+        "/api/policies/%2F/prio",
+        GUEST,
+        &json!({"pattern": ".*", "definition": {"max-priority": 5}}),
+    )
+    .await;
+    assert_eq!(status, 400);
+
+    let (status, _) = api(
+        &broker,
+        "PUT",
+        "/api/operator-policies/%2F/cap",
+        GUEST,
+        &json!({"pattern": "^short", "apply-to": "queues", "definition": {"max-length": 1}}),
+    )
+    .await;
+    assert_eq!(status, 201);
+    let queues = admin_json(&broker, &["list", "queues"]);
+    let q = queue(&queues, "short.q");
+    assert_eq!(
+        (q["messages"].clone(), q["operator_policy"].clone()),
+        (json!(1), json!("cap")),
+        "{q}"
+    );
+
+    let broker = broker.kill_and_restart(&[]);
+    assert_eq!(
+        admin_json(&broker, &["list", "policies"])
+            .as_array()
+            .unwrap()
+            .len(),
+        1
+    );
+    assert_eq!(
+        admin_json(&broker, &["list", "operator_policies"])
+            .as_array()
+            .unwrap()
+            .len(),
+        1
+    );
+    for i in 0..3 {
+        let payload = format!("payload=again-{i}");
+        admin_ok(&broker, &["publish", "routing_key=short.q", &payload]);
+    }
+    let queues = admin_json(&broker, &["list", "queues"]);
+    let q = queue(&queues, "short.q");
+    assert_eq!(q["messages"], 1, "{q}");
+    assert_eq!(
+        (q["policy"].clone(), q["operator_policy"].clone()),
+        (json!("short"), json!("cap"))
+    );
+
+    admin_ok(&broker, &["delete", "policy", "name=short"]);
+    let (status, _) = api(
+        &broker,
+        "DELETE",
+        "/api/operator-policies/%2F/cap",
+        GUEST,
+        &Value::Null,
+    )
+    .await;
+    assert_eq!(status, 204);
+    let broker = broker.kill_and_restart(&[]);
+    assert_eq!(admin_json(&broker, &["list", "policies"]), json!([]));
+    assert_eq!(
+        admin_json(&broker, &["list", "operator_policies"]),
+        json!([])
+    );
+}
+
+/// leveretctl's rabbitmqctl-style commands; RabbitMQ's permissions:
+/// `policymaker` sets policies on its vhosts, `management` cannot even
+/// read them, operator policies and the cluster name are the
+/// administrator's; definitions carry policies, operator policies and the
+/// cluster name both ways without warnings.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn leveretctl_permissions_and_definitions_carry_policies() {
+    let broker = OpsBroker::start("policies-ctl", &[]);
+    ctl_ok(
+        &broker,
+        &[
+            "set_policy",
+            "--priority",
+            "2",
+            "--apply-to",
+            "queues",
+            "ttl",
+            "^t\\.",
+            r#"{"message-ttl":60000}"#,
+        ],
+    );
+    ctl_ok(
+        &broker,
+        &[
+            "set_operator_policy",
+            "--apply-to",
+            "queues",
+            "cap",
+            ".*",
+            r#"{"max-length-bytes":1000000}"#,
+        ],
+    );
+    let listed = ctl_ok(&broker, &["-q", "--no-table-headers", "list_policies"]);
+    assert_eq!(
+        listed.trim(),
+        "/\tttl\t^t\\.\tqueues\t{\"message-ttl\":60000}\t2"
+    );
+    let listed = ctl_ok(
+        &broker,
+        &["-q", "--no-table-headers", "list_operator_policies"],
+    );
+    assert!(listed.starts_with("/\tcap\t.*\tqueues"), "{listed}");
+    assert!(!ctl(
+        &broker,
+        &["set_policy", "bad", ".*", r#"{"ha-mode":"all"}"#]
+    )
+    .status
+    .success());
+    ctl_ok(&broker, &["set_cluster_name", "edge-7"]);
+    let (_, overview) = api(&broker, "GET", "/api/overview", GUEST, &Value::Null).await;
+    assert_eq!(overview["cluster_name"], "edge-7");
+    let (_, name) = api(&broker, "GET", "/api/cluster-name", GUEST, &Value::Null).await;
+    assert_eq!(name, json!({"name": "edge-7"}));
+
+    for (user, tags) in [("maker", "policymaker"), ("viewer", "management")] {
+        let (status, _) = api(
+            &broker,
+            "PUT",
+            &format!("/api/users/{user}"),
+            GUEST,
+            &json!({"password": "pw", "tags": tags}),
+        )
+        .await;
+        assert_eq!(status, 201);
+        let (status, _) = api(
+            &broker,
+            "PUT",
+            &format!("/api/permissions/%2F/{user}"),
+            GUEST,
+            &json!({"configure": ".*", "write": ".*", "read": ".*"}),
+        )
+        .await;
+        assert_eq!(status, 201);
+    }
+    let policy = json!({"pattern": "^m", "definition": {"max-length": 3}});
+    let (status, _) = api(
+        &broker,
+        "PUT",
+        "/api/policies/%2F/made",
+        ("maker", "pw"),
+        &policy,
+    )
+    .await;
+    assert_eq!(status, 201);
+    let (status, _) = api(
+        &broker,
+        "GET",
+        "/api/policies",
+        ("viewer", "pw"),
+        &Value::Null,
+    )
+    .await;
+    assert_eq!(status, 401);
+    let (status, _) = api(
+        &broker,
+        "PUT",
+        "/api/operator-policies/%2F/x",
+        ("maker", "pw"),
+        &json!({"pattern": ".*", "definition": {"max-length": 3}}),
+    )
+    .await;
+    assert_eq!(status, 401);
+    let (status, _) = api(
+        &broker,
+        "PUT",
+        "/api/cluster-name",
+        ("maker", "pw"),
+        &json!({"name": "x"}),
+    )
+    .await;
+    assert_eq!(status, 401);
+
+    let (_, exported) = api(&broker, "GET", "/api/definitions", GUEST, &Value::Null).await;
+    assert_eq!(
+        exported["policies"].as_array().unwrap().len(),
+        2,
+        "{exported}"
+    );
+    assert_eq!(exported["operator_policies"].as_array().unwrap().len(), 1);
+    assert_eq!(
+        exported["global_parameters"],
+        json!([{"name": "cluster_name", "value": "edge-7"}])
+    );
+
+    let other = OpsBroker::start("policies-import", &[]);
+    let (status, answer) = api(&other, "POST", "/api/definitions", GUEST, &exported).await;
+    assert!(status < 300, "{status} {answer}");
+    assert_eq!(answer["applied"]["policies"], 3, "{answer}");
+    assert_eq!(answer["warnings"], json!([]), "{answer}");
+    let (_, imported) = api(&other, "GET", "/api/definitions", GUEST, &Value::Null).await;
+    for key in ["policies", "operator_policies", "global_parameters"] {
+        assert_eq!(imported[key], exported[key], "{key}");
+    }
+}
