@@ -98,6 +98,7 @@ pub use announce::{
 // stale); the codec itself stays in `cdr`.
 pub use cdr::basic::*;
 pub use cdr::extended::*;
+pub use cdr::interface::*;
 pub use cdr::{CdrOptions, Charset, Endian, WString};
 #[cfg(feature = "serde")]
 pub use data::Postcard;
