@@ -8,13 +8,19 @@ use crate::admin::Admin;
 use crate::auth::User;
 use crate::busy_poll::BusyPoll;
 use crate::core::{Core, CoreOptions, Limits};
-use crate::disk_alarm::{DirFreeSpace, FreeSpace};
+#[cfg(feature = "persistence")]
+use crate::disk_alarm::DirFreeSpace;
+use crate::disk_alarm::FreeSpace;
 use crate::inspect::{Overview, QueueInfo};
 use crate::password::PasswordHash;
 use crate::permissions::{PatternError, Permission, TopicPermission};
-use crate::store::{mark_clean, open_checked, Persistence, Recovered, Store, StoreError, StoreOp};
+#[cfg(feature = "persistence")]
+use crate::store::{mark_clean, open_checked, StoreOp};
+use crate::store::{Persistence, Recovered, Store, StoreError};
+#[cfg(feature = "tls")]
 use crate::tls::{TlsContext, TlsError, TlsOptions};
 use std::net::SocketAddr;
+#[cfg(feature = "persistence")]
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
@@ -44,9 +50,13 @@ impl Broker {
 #[derive(Debug, Clone, Default)]
 pub struct BrokerBuilder {
     listen: Vec<SocketAddr>,
+    #[cfg(feature = "tls")]
     tls_listen: Vec<SocketAddr>,
+    #[cfg(feature = "mqtt")]
     mqtt_listen: Vec<SocketAddr>,
+    #[cfg(feature = "mqtt")]
     mqtt_anonymous: Option<(String, String)>,
+    #[cfg(feature = "tls")]
     tls: Option<TlsOptions>,
     users: Vec<(String, User)>,
     user_tags: std::collections::HashMap<String, Vec<String>>,
@@ -60,6 +70,7 @@ pub struct BrokerBuilder {
     product: Option<String>,
     busy_poll: Duration,
     free_space: Option<Arc<dyn FreeSpace>>,
+    #[cfg(feature = "persistence")]
     recover: bool,
 }
 
@@ -70,6 +81,7 @@ enum Storage {
     #[default]
     None,
     /// A [`crate::store::DiskStore`] in this directory.
+    #[cfg(feature = "persistence")]
     Dir(PathBuf),
     /// A store the caller provides (for example a [`crate::store::MemoryStore`]).
     Custom(Arc<dyn Store>),
@@ -82,6 +94,7 @@ impl BrokerBuilder {
         self
     }
 
+    #[cfg(feature = "tls")]
     /// Adds a TLS listener (RabbitMQ's `listeners.ssl`; 5671 by
     /// convention, port 0 picks a free port), served with
     /// [`BrokerBuilder::tls`].
@@ -90,6 +103,7 @@ impl BrokerBuilder {
         self
     }
 
+    #[cfg(feature = "mqtt")]
     /// Adds an MQTT 3.1.1/5.0 listener (RabbitMQ's `mqtt.listeners.tcp`;
     /// 1883 by convention, port 0 picks a free port). MQTT clients log in
     /// as the broker's users (`vhost:user` picks a vhost) and meet AMQP
@@ -99,6 +113,7 @@ impl BrokerBuilder {
         self
     }
 
+    #[cfg(feature = "mqtt")]
     /// Lets MQTT clients without a user name in: they log in as `user`
     /// with `password`, checked like any login (RabbitMQ's
     /// `mqtt.allow_anonymous` with `mqtt.default_user` and
@@ -109,6 +124,7 @@ impl BrokerBuilder {
         self
     }
 
+    #[cfg(feature = "tls")]
     /// The TLS listeners' certificate, key and client verification
     /// (RabbitMQ's `ssl_options`); [`BrokerHandle::reload_tls`] re-reads
     /// the files. A client whose verified certificate's common name is a
@@ -211,6 +227,7 @@ impl BrokerBuilder {
         self
     }
 
+    #[cfg(feature = "persistence")]
     /// Keeps durable state in `dir` (created if missing): durable
     /// definitions and persistent messages survive restarts and crashes.
     pub fn data_dir(mut self, dir: impl Into<PathBuf>) -> Self {
@@ -224,6 +241,7 @@ impl BrokerBuilder {
         self
     }
 
+    #[cfg(feature = "persistence")]
     /// Starts even on a damaged store in [`BrokerBuilder::data_dir`]:
     /// copies the damaged files aside, keeps every readable record and
     /// logs what was lost (the server's `--recover`). Without it a
@@ -300,6 +318,7 @@ impl BrokerBuilder {
 
     /// Binds the listeners and starts serving.
     pub async fn start(self) -> Result<BrokerHandle, StartError> {
+        #[cfg(feature = "tls")]
         let tls = match (self.tls, self.tls_listen.is_empty()) {
             (None, false) => return Err(StartError::Tls(TlsError::NoOptions)),
             (Some(options), _) => Some(Arc::new(
@@ -312,6 +331,7 @@ impl BrokerBuilder {
         let started = std::time::Instant::now();
         let free_space = match (self.free_space, &self.storage) {
             (Some(probe), _) => Some(probe),
+            #[cfg(feature = "persistence")]
             (None, Storage::Dir(dir)) => {
                 Some(Arc::new(DirFreeSpace::new(dir.clone())) as Arc<dyn FreeSpace>)
             }
@@ -320,10 +340,12 @@ impl BrokerBuilder {
         // A data directory's store is checked for damage; a custom one is
         // its provider's business (a record that cannot be decoded still
         // refuses the start).
+        #[cfg(feature = "persistence")]
         let mut clean_shutdown = None;
         let mut stream_root = None;
         let opened = match self.storage {
             Storage::None => None,
+            #[cfg(feature = "persistence")]
             Storage::Dir(dir) => {
                 let opened = open_checked(&dir, self.recover).map_err(StartError::Storage)?;
                 stream_root = Some(dir.join("streams"));
@@ -412,8 +434,10 @@ impl BrokerBuilder {
         let mut local_addrs = Vec::new();
         let mut tls_addrs = Vec::new();
         let mut tasks = Vec::new();
-        let listeners = (self.listen.into_iter().map(|addr| (addr, None)))
-            .chain(self.tls_listen.into_iter().map(|addr| (addr, tls.clone())));
+        let listeners = self.listen.into_iter().map(|addr| (addr, None));
+        #[cfg(feature = "tls")]
+        let listeners =
+            listeners.chain(self.tls_listen.into_iter().map(|addr| (addr, tls.clone())));
         for (addr, tls) in listeners {
             let listener = TcpListener::bind(addr)
                 .await
@@ -436,8 +460,11 @@ impl BrokerBuilder {
                 alive.clone(),
             )));
         }
+        #[cfg_attr(not(feature = "mqtt"), allow(unused_mut))]
         let mut mqtt_addrs = Vec::new();
+        #[cfg(feature = "mqtt")]
         let mqtt_shared = Arc::new(crate::mqtt::Shared::new(self.mqtt_anonymous));
+        #[cfg(feature = "mqtt")]
         for addr in self.mqtt_listen {
             let listener = TcpListener::bind(addr)
                 .await
@@ -482,10 +509,12 @@ impl BrokerBuilder {
             local_addrs,
             tls_addrs,
             mqtt_addrs,
+            #[cfg(feature = "tls")]
             tls,
             tasks,
             alive: Some(alive),
             finished,
+            #[cfg(feature = "persistence")]
             clean_shutdown,
         })
     }
@@ -513,15 +542,18 @@ pub struct BrokerHandle {
     local_addrs: Vec<SocketAddr>,
     tls_addrs: Vec<SocketAddr>,
     mqtt_addrs: Vec<SocketAddr>,
+    #[cfg(feature = "tls")]
     tls: Option<Arc<TlsContext>>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
     alive: Option<mpsc::Sender<()>>,
     finished: mpsc::Receiver<()>,
     /// For a store in a data directory: what a clean shutdown records.
+    #[cfg(feature = "persistence")]
     clean_shutdown: Option<CleanShutdown>,
 }
 
 /// Where and with which generation a clean shutdown is recorded.
+#[cfg(feature = "persistence")]
 #[derive(Debug)]
 struct CleanShutdown {
     dir: PathBuf,
@@ -534,16 +566,19 @@ impl BrokerHandle {
         &self.local_addrs
     }
 
-    /// The addresses the TLS listeners are bound to.
+    /// The addresses the TLS listeners are bound to (none without the
+    /// `tls` feature).
     pub fn tls_addrs(&self) -> &[SocketAddr] {
         &self.tls_addrs
     }
 
-    /// The addresses the MQTT listeners are bound to.
+    /// The addresses the MQTT listeners are bound to (none without the
+    /// `mqtt` feature).
     pub fn mqtt_addrs(&self) -> &[SocketAddr] {
         &self.mqtt_addrs
     }
 
+    #[cfg(feature = "tls")]
     /// Re-reads the TLS certificate, key and CA bundle: connections
     /// accepted from now on use them, open ones keep theirs. On an error
     /// the files in use before stay in use.
@@ -620,23 +655,28 @@ impl BrokerHandle {
             if !persistence.sync().await {
                 tracing::error!("the last writes to storage failed at shutdown");
             }
+            #[cfg(not(feature = "persistence"))]
+            persistence.close(Vec::new()).await;
             // The marker is the store's last write; the manifest says
             // `clean` only once it is on disk.
-            let marker = self
-                .clean_shutdown
-                .as_ref()
-                .map(|clean| StoreOp::CleanShutdown {
-                    generation: clean.generation,
-                });
-            let marked = persistence.close(marker.into_iter().collect()).await;
-            if let Some(clean) = &self.clean_shutdown {
-                let recorded = if marked {
-                    mark_clean(&clean.dir, clean.generation)
-                } else {
-                    Err(StoreError::Engine("the marker could not be written".into()))
-                };
-                if let Err(e) = recorded {
-                    tracing::error!(error = %e, "could not record a clean shutdown");
+            #[cfg(feature = "persistence")]
+            {
+                let marker = self
+                    .clean_shutdown
+                    .as_ref()
+                    .map(|clean| StoreOp::CleanShutdown {
+                        generation: clean.generation,
+                    });
+                let marked = persistence.close(marker.into_iter().collect()).await;
+                if let Some(clean) = &self.clean_shutdown {
+                    let recorded = if marked {
+                        mark_clean(&clean.dir, clean.generation)
+                    } else {
+                        Err(StoreError::Engine("the marker could not be written".into()))
+                    };
+                    if let Err(e) = recorded {
+                        tracing::error!(error = %e, "could not record a clean shutdown");
+                    }
                 }
             }
         }
@@ -659,6 +699,7 @@ pub enum StartError {
     #[error(transparent)]
     Permission(PatternError),
     /// The TLS certificates, key or CA bundle cannot be used.
+    #[cfg(feature = "tls")]
     #[error("TLS: {0}")]
     Tls(TlsError),
     /// A listener could not be bound.

@@ -20,6 +20,22 @@
 //! # Ok(()) }
 //! ```
 //!
+//! # Features
+//!
+//! All on by default; an embedder that needs less takes
+//! `default-features = false` and names what it uses (43 crates on Linux
+//! with none, 92 with all):
+//! - `tls`: TLS listeners and SASL EXTERNAL (rustls on ring, tokio-rustls,
+//!   x509-parser: 32 crates).
+//! - `persistence`: `BrokerBuilder::data_dir`, durable state on disk
+//!   (sled and the message log: 13 crates). Without it durable state
+//!   lives in a [`store::Store`] the embedder gives, or nowhere.
+//! - `mqtt`: MQTT listeners (leveret-mqtt).
+//! - `regex`: permission patterns as regular expressions (4 crates);
+//!   without it only `.*`, the empty pattern and literal names and
+//!   prefixes (`^name$`, `^name`, `^name.*`) are taken, others refused
+//!   when set.
+//!
 //! # Layout
 //!
 //! The crate is built in layers. Each uses only the layers below it and
@@ -119,6 +135,7 @@ mod inspect;
 mod login_backoff;
 mod memory;
 mod message;
+#[cfg(feature = "mqtt")]
 mod mqtt;
 mod outbox;
 mod parameters;
@@ -136,6 +153,7 @@ mod stats;
 pub mod store;
 #[cfg(test)]
 mod testkit;
+#[cfg(feature = "tls")]
 mod tls;
 mod vhost;
 mod word_hash;
@@ -163,6 +181,7 @@ pub use crate::policy::{
 pub use crate::queue::process_nonce;
 pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use crate::stats::HistogramFigures;
+#[cfg(feature = "tls")]
 pub use crate::tls::{PeerVerification, TlsError, TlsOptions};
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;

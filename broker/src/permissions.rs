@@ -11,11 +11,14 @@
 //! connection's (escaped, so a name's dots match only dots). A topic
 //! exchange without a topic permission for the user is open to them.
 //!
-//! Patterns are compiled with the `regex` crate, whose matching takes time
-//! linear in the name whatever the pattern (no backtracking), each
-//! compiled program capped at [`PATTERN_SIZE_LIMIT`] bytes. PCRE features
-//! it lacks (look-around, back-references) are refused when the pattern is
-//! set, never at a check.
+//! `.*`, the empty pattern and a literal name or name prefix (`^name$`,
+//! `^name`) are matched as strings. Other patterns are compiled with the
+//! `regex` crate, whose matching takes time linear in the name whatever
+//! the pattern (no backtracking), each compiled program capped at
+//! [`PATTERN_SIZE_LIMIT`] bytes. PCRE features it lacks (look-around,
+//! back-references) are refused when the pattern is set, never at a
+//! check; so is every other pattern in a build without the `regex`
+//! feature.
 //!
 //! Channels hold a [`VhostAccess`] and re-read it only when
 //! [`Permissions::generation`] moves, so a check costs one atomic load and
@@ -119,6 +122,12 @@ pub enum Resource<'a> {
 enum Matcher {
     /// `.*`: every name.
     Everything,
+    /// `^name$` with a literal name (and the empty pattern, which means
+    /// `^$`): that name only.
+    Exactly(String),
+    /// `^name` or `^name.*` with a literal name: the names beginning with it.
+    Prefix(String),
+    #[cfg(feature = "regex")]
     Regex(regex::Regex),
 }
 
@@ -129,26 +138,89 @@ impl Matcher {
         if pattern == ".*" {
             return Ok(Matcher::Everything);
         }
-        let source = match (pattern, variables) {
-            ("", _) => "^$".to_owned(),
-            (p, Some((user, vhost))) => p
-                .replace("{username}", &regex::escape(user))
-                .replace("{vhost}", &regex::escape(vhost)),
-            (p, None) => p.to_owned(),
+        if let Some(literal) = Matcher::literal(pattern, variables) {
+            return Ok(literal);
+        }
+        #[cfg(feature = "regex")]
+        {
+            let source = match variables {
+                Some((user, vhost)) => pattern
+                    .replace("{username}", &regex::escape(user))
+                    .replace("{vhost}", &regex::escape(vhost)),
+                None => pattern.to_owned(),
+            };
+            regex::RegexBuilder::new(&source)
+                .size_limit(PATTERN_SIZE_LIMIT)
+                .build()
+                .map(Matcher::Regex)
+                .map_err(|e| PatternError {
+                    pattern: pattern.to_owned(),
+                    reason: e.to_string(),
+                })
+        }
+        #[cfg(not(feature = "regex"))]
+        Err(PatternError {
+            pattern: pattern.to_owned(),
+            reason: "this broker was built without a regular expression engine \
+                     (leveret-broker's `regex` feature): only `.*`, the empty pattern, \
+                     `^name$`, `^name` and `^name.*` with a literal name are understood"
+                .to_owned(),
+        })
+    }
+
+    /// The pattern as a name or a name's beginning, if it is one: `^`, then
+    /// characters that are not regex syntax (or are escaped with `\`) and
+    /// placeholders, then `$`, `.*` or nothing. Such patterns match the
+    /// same names as the regex engine would, without it.
+    fn literal(pattern: &str, variables: Option<(&str, &str)>) -> Option<Matcher> {
+        if pattern.is_empty() {
+            return Some(Matcher::Exactly(String::new()));
+        }
+        let body = pattern.strip_prefix('^')?;
+        let (mut rest, exact) = match (body.strip_suffix('$'), body.strip_suffix(".*")) {
+            (Some(name), _) => (name, true),
+            (None, Some(name)) => (name, false),
+            (None, None) => (body, false),
         };
-        regex::RegexBuilder::new(&source)
-            .size_limit(PATTERN_SIZE_LIMIT)
-            .build()
-            .map(Matcher::Regex)
-            .map_err(|e| PatternError {
-                pattern: pattern.to_owned(),
-                reason: e.to_string(),
-            })
+        let mut name = String::with_capacity(rest.len());
+        while let Some(c) = rest.chars().next() {
+            if let Some((user, vhost)) = variables {
+                let placeholders = [("{username}", user), ("{vhost}", vhost)];
+                if let Some((after, value)) = placeholders
+                    .iter()
+                    .find_map(|(key, value)| Some((rest.strip_prefix(key)?, value)))
+                {
+                    name.push_str(value);
+                    rest = after;
+                    continue;
+                }
+            }
+            rest = &rest[c.len_utf8()..];
+            match c {
+                '\\' => {
+                    let escaped = rest.chars().next().filter(char::is_ascii_punctuation)?;
+                    name.push(escaped);
+                    rest = &rest[1..];
+                }
+                '.' | '+' | '*' | '?' | '(' | ')' | '|' | '[' | ']' | '{' | '}' | '^' | '$' => {
+                    return None
+                }
+                c => name.push(c),
+            }
+        }
+        Some(if exact {
+            Matcher::Exactly(name)
+        } else {
+            Matcher::Prefix(name)
+        })
     }
 
     fn matches(&self, name: &str) -> bool {
         match self {
             Matcher::Everything => true,
+            Matcher::Exactly(exact) => name == exact,
+            Matcher::Prefix(prefix) => name.starts_with(prefix.as_str()),
+            #[cfg(feature = "regex")]
             Matcher::Regex(regex) => regex.is_match(name),
         }
     }
@@ -501,6 +573,7 @@ mod tests {
         error.text
     }
 
+    #[cfg(feature = "regex")]
     #[test]
     fn patterns_match_anywhere_and_the_empty_one_matches_nothing() {
         let all = Permissions::default();
@@ -548,6 +621,92 @@ mod tests {
         assert!(access.check_topic(Right::Write, "other", "any").is_ok());
     }
 
+    /// The patterns matched as strings match exactly the names the regex
+    /// engine matches, placeholders and escapes included.
+    #[cfg(feature = "regex")]
+    #[test]
+    fn literal_patterns_match_what_the_regex_engine_matches() {
+        let patterns = [
+            "",
+            "^$",
+            "^",
+            "^.*",
+            "^mine",
+            "^mine$",
+            "^mine.*",
+            "^mi\\.ne",
+            "^a\\\\$",
+            "^{username}\\.{vhost}\\.",
+            "^{username}$",
+            "^amq\\.gen-",
+            "^é$",
+            "^a b",
+        ];
+        let names = [
+            "",
+            "mine",
+            "mine.q",
+            "minE",
+            "xmine",
+            "mi.ne",
+            "mixne",
+            "a\\",
+            "a",
+            "r.1.cell.x",
+            "rx1.cell.x",
+            "r.1",
+            "amq.gen-1",
+            "é",
+            "e\u{301}",
+            "a b",
+            "^mine",
+        ];
+        let variables = Some(("r.1", "cell"));
+        for pattern in patterns {
+            let literal = Matcher::literal(pattern, variables)
+                .unwrap_or_else(|| panic!("{pattern:?} is a literal pattern"));
+            let source = match pattern {
+                "" => "^$".to_owned(),
+                p => p
+                    .replace("{username}", &regex::escape("r.1"))
+                    .replace("{vhost}", &regex::escape("cell")),
+            };
+            let regex = regex::Regex::new(&source).unwrap();
+            for name in names {
+                assert_eq!(
+                    literal.matches(name),
+                    regex.is_match(name),
+                    "{pattern:?} on {name:?}"
+                );
+            }
+        }
+        for needs_the_engine in ["^a\\.*", "^a|b", "^a+$", "mine", "^(?i)a", "^a\\$", "^a\\"] {
+            assert!(
+                Matcher::literal(needs_the_engine, variables).is_none(),
+                "{needs_the_engine:?}"
+            );
+        }
+    }
+
+    #[cfg(not(feature = "regex"))]
+    #[test]
+    fn without_the_regex_engine_only_literal_patterns_are_taken() {
+        let all = Permissions::default();
+        all.set("u", "/", permission("^mine", "^mine$", ""))
+            .unwrap();
+        let refused = all
+            .set("u", "/", permission("^mine|^yours", ".*", ".*"))
+            .unwrap_err();
+        assert!(refused.reason.contains("`regex` feature"), "{refused}");
+        let access = all.of("u", "/").expect("the first permission stays");
+        assert!(access
+            .check(Right::Configure, Resource::Queue("mine.q"))
+            .is_ok());
+        assert!(access
+            .check(Right::Write, Resource::Queue("mine.q"))
+            .is_err());
+    }
+
     #[test]
     fn patterns_the_regex_engine_cannot_run_in_linear_time_are_refused_when_set() {
         let all = Permissions::default();
@@ -560,6 +719,7 @@ mod tests {
         assert!(all.of("u", "/").is_none(), "nothing half set");
     }
 
+    #[cfg(feature = "regex")]
     #[test]
     fn a_topic_pattern_is_checked_with_the_names_it_will_run_with() {
         let all = Permissions::default();

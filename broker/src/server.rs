@@ -7,11 +7,17 @@
 use crate::admission::Slot;
 use crate::connection::Identity;
 use crate::core::Core;
+#[cfg(feature = "tls")]
 use crate::tls::TlsContext;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::watch;
+
+/// Built without the `tls` feature there are no TLS listeners: the
+/// context of one cannot exist.
+#[cfg(not(feature = "tls"))]
+pub(crate) enum TlsContext {}
 
 /// The next connection to serve from `listener`: accepted, admitted
 /// against `max_connections` (a socket over it is closed at once, before
@@ -71,6 +77,9 @@ pub async fn accept_loop(
                     drop(alive);
                 });
             }
+            #[cfg(not(feature = "tls"))]
+            Some(tls) => match **tls {},
+            #[cfg(feature = "tls")]
             Some(tls) => {
                 let acceptor = tls.acceptor();
                 tokio::spawn(async move {

@@ -82,7 +82,8 @@ impl PortProfile {
     /// host and port), `durable`, `persistent`, `confirms`, `prefetch`,
     /// `buffer.length`, `buffer.write.full_policy`, `buffer.write.timeout`
     /// (seconds), `max_unconfirmed`, `lifespan` (seconds) and
-    /// `serializer.cdr.charset` (`utf-8`, `latin-1`).
+    /// `serializer.cdr.charset` (`latin-1`, the default: what OpenRTM-aist
+    /// sends, omniORB's native code set; or `utf-8`).
     pub fn from_properties<'a>(
         role: PortRole,
         properties: impl IntoIterator<Item = (&'a str, &'a str)>,
@@ -103,6 +104,9 @@ impl PortProfile {
         profile.binding_key = "test".to_owned();
         profile.routing_key = "test".to_owned();
         profile.declare_queue = bind;
+        // OpenRTM-aist's strings are ISO 8859-1: omniORB's default native
+        // code set, which its CDR serializer marshals with.
+        profile.cdr.charset = Charset::Latin1;
 
         // The most specific spelling of a key loses to a plainer one, as in
         // the module; remember which spelling each value came by.
@@ -258,6 +262,7 @@ mod tests {
         assert_eq!(input.binding_key, "test");
         assert_eq!(input.exchange_kind, ExchangeKind::Direct);
         assert!(input.declare_queue, "an in-port binds by default");
+        assert_eq!(input.cdr.charset, Charset::Latin1, "OpenRTM-aist's strings");
         let output = read(PortRole::OutPort, &[]).profile;
         assert_eq!(
             (output.exchange.as_str(), output.queue.as_str()),

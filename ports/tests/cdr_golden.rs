@@ -1,6 +1,8 @@
 //! CDR byte for byte against omniORB: `golden/cdr_vectors.txt` holds
 //! values marshalled by omniORB's `cdrMarshal` in both byte orders
-//! (written by `golden/generate_cdr_vectors.py`); each must decode to the
+//! (written by `golden/generate_cdr_vectors.py`, and
+//! `golden/interface_vectors.txt` by `golden/generate_interface_vectors.py`
+//! from OpenRTM-aist's InterfaceDataTypes.idl); each must decode to the
 //! value it was made from, and encoding that value must give the same
 //! bytes, padding aside (omniORB leaves alignment padding uninitialised:
 //! there a golden byte may differ from the zero this crate writes).
@@ -16,6 +18,9 @@ use leveret_ports::{
 use std::fmt::Debug;
 
 const VECTORS: &str = include_str!("golden/cdr_vectors.txt");
+/// InterfaceDataTypes.idl's, from OpenRTM-aist's own IDL (written by
+/// `golden/generate_interface_vectors.py`).
+const INTERFACE_VECTORS: &str = include_str!("golden/interface_vectors.txt");
 
 const TM: Time = Time {
     sec: 0x0102_0304,
@@ -29,6 +34,7 @@ fn golden(case: &str, endian: Endian) -> Vec<u8> {
     };
     let line = VECTORS
         .lines()
+        .chain(INTERFACE_VECTORS.lines())
         .find(|line| {
             let mut fields = line.split(' ');
             fields.next() == Some(case) && fields.next() == Some(order)
@@ -588,5 +594,344 @@ mod extended {
             .filter(|line| line.starts_with(|c: char| c.is_ascii_uppercase()))
             .count();
         assert_eq!(extended, 56 * 2);
+    }
+}
+
+/// InterfaceDataTypes.idl: the values `generate_interface_vectors.py`
+/// marshalled, built here.
+mod interface {
+    use super::{check, TM};
+    use leveret_ports::*;
+
+    fn geometry(base: f64) -> Geometry3D {
+        Geometry3D {
+            pose: Pose3D {
+                position: Point3D {
+                    x: base + 0.1,
+                    y: base + 0.2,
+                    z: base + 0.3,
+                },
+                orientation: Orientation3D {
+                    r: base + 0.4,
+                    p: base + 0.5,
+                    y: base + 0.6,
+                },
+            },
+            size: Size3D {
+                l: base + 0.7,
+                w: base + 0.8,
+                h: base + 0.9,
+            },
+        }
+    }
+
+    fn ranger_geometry() -> RangerGeometry {
+        RangerGeometry {
+            geometry: geometry(10.0),
+            element_geometries: vec![geometry(20.0), geometry(30.0)],
+        }
+    }
+
+    const RANGER_CONFIG: RangerConfig = RangerConfig {
+        min_angle: -2.1,
+        max_angle: 2.2,
+        angular_res: 0.003,
+        min_range: 0.04,
+        max_range: 30.5,
+        range_res: 0.006,
+        frequency: 40.0,
+    };
+
+    const POINTS: [PointCloudPoint; 2] = [
+        PointCloudPoint {
+            point: Point3D {
+                x: 1.1,
+                y: 1.2,
+                z: 1.3,
+            },
+            colour: RGBColour {
+                r: 0.1,
+                g: 0.2,
+                b: 0.3,
+            },
+        },
+        PointCloudPoint {
+            point: Point3D {
+                x: -2.1,
+                y: -2.2,
+                z: -2.3,
+            },
+            colour: RGBColour {
+                r: 0.4,
+                g: 0.5,
+                b: 0.6,
+            },
+        },
+    ];
+
+    #[test]
+    fn actuators_grippers_and_pan_tilt_units() {
+        let latin1 = Charset::Latin1;
+        check(
+            "ActArrayActuatorPos",
+            ActArrayActuatorPos {
+                tm: TM,
+                index: 3,
+                position: 1.25,
+            },
+            latin1,
+        );
+        check(
+            "ActArrayActuatorSpeed",
+            ActArrayActuatorSpeed {
+                tm: TM,
+                index: 65535,
+                speed: -0.5,
+            },
+            latin1,
+        );
+        check(
+            "ActArrayActuatorCurrent",
+            ActArrayActuatorCurrent {
+                tm: TM,
+                index: 0,
+                current: 2.75,
+            },
+            latin1,
+        );
+        check(
+            "GripperState",
+            GripperState {
+                tm: TM,
+                status: GripperStatus::Unknown,
+            },
+            latin1,
+        );
+        let angles = PanTiltAngles {
+            tm: TM,
+            pan: 0.1,
+            tilt: -0.2,
+        };
+        check("PanTiltAngles", angles, latin1);
+        check(
+            "PanTiltState",
+            PanTiltState {
+                tm: TM,
+                angles: PanTiltAngles {
+                    tm: Time { sec: 5, nsec: 6 },
+                    ..angles
+                },
+                pan_speed: 0.3,
+                tilt_speed: -0.4,
+            },
+            latin1,
+        );
+    }
+
+    #[test]
+    fn cameras_with_latin1_format_strings() {
+        let latin1 = Charset::Latin1;
+        check(
+            "CameraImage",
+            CameraImage {
+                tm: TM,
+                width: 3,
+                height: 2,
+                bpp: 24,
+                format: "RGB".into(),
+                f_div: 1.5,
+                pixels: (0..18).collect(),
+            },
+            latin1,
+        );
+        check(
+            "CameraImage_latin1",
+            CameraImage {
+                tm: TM,
+                width: 1,
+                height: 1,
+                bpp: 8,
+                format: "café Åÿ".into(),
+                f_div: 0.0,
+                pixels: vec![0xfe],
+            },
+            latin1,
+        );
+        check(
+            "CameraImage_empty",
+            CameraImage {
+                tm: TM,
+                ..CameraImage::default()
+            },
+            latin1,
+        );
+        check(
+            "CameraInfo",
+            CameraInfo {
+                focal_length: Vector2D { x: 1.1, y: 1.2 },
+                principal_point: Point2D { x: 2.1, y: 2.2 },
+                k1: 3.1,
+                k2: -3.2,
+                p1: 3.3,
+                p2: -3.4,
+            },
+            latin1,
+        );
+    }
+
+    #[test]
+    fn gps_and_inertial_navigation() {
+        let latin1 = Charset::Latin1;
+        check(
+            "GPSTime",
+            GPSTime {
+                sec: 4_000_000_000,
+                msec: 999,
+            },
+            latin1,
+        );
+        check(
+            "GPSData",
+            GPSData {
+                tm: TM,
+                time_from_gps: GPSTime { sec: 7, msec: 8 },
+                latitude: 35.1,
+                longitude: 139.2,
+                altitude: 40.3,
+                horizontal_error: 1.4,
+                vertical_error: 2.5,
+                heading: 0.6,
+                horizontal_speed: 3.7,
+                vertical_speed: -0.8,
+                num_satellites: 9,
+                fix_type: GPSFixType::Dgps,
+            },
+            latin1,
+        );
+        check(
+            "GPSData_no_fix",
+            GPSData {
+                tm: TM,
+                ..GPSData::default()
+            },
+            latin1,
+        );
+        check(
+            "INSData",
+            INSData {
+                tm: TM,
+                latitude: 35.1,
+                longitude: 139.2,
+                altitude: 40.3,
+                height_amsl: 41.4,
+                velocity_enu: Velocity3D {
+                    vx: 5.1,
+                    vy: -5.2,
+                    vz: 5.3,
+                    vr: -5.4,
+                    vp: 5.5,
+                    va: -5.6,
+                },
+                orientation: Orientation3D {
+                    r: 6.1,
+                    p: -6.2,
+                    y: 6.3,
+                },
+            },
+            latin1,
+        );
+    }
+
+    #[test]
+    fn point_clouds_and_range_scans() {
+        let latin1 = Charset::Latin1;
+        check("PointCloudPoint", POINTS[0], latin1);
+        check(
+            "PointCloud",
+            PointCloud {
+                tm: TM,
+                points: POINTS.to_vec(),
+            },
+            latin1,
+        );
+        check(
+            "PointCloud_empty",
+            PointCloud {
+                tm: TM,
+                points: vec![],
+            },
+            latin1,
+        );
+        check("RangerGeometry", ranger_geometry(), latin1);
+        check("RangerConfig", RANGER_CONFIG, latin1);
+        check(
+            "RangeData",
+            RangeData {
+                tm: TM,
+                ranges: vec![0.5, 1.5, 2.5, 30.0],
+                geometry: ranger_geometry(),
+                config: RANGER_CONFIG,
+            },
+            latin1,
+        );
+        check(
+            "RangeData_empty",
+            RangeData {
+                tm: TM,
+                ranges: vec![],
+                geometry: RangerGeometry {
+                    geometry: geometry(0.0),
+                    element_geometries: vec![],
+                },
+                config: RANGER_CONFIG,
+            },
+            latin1,
+        );
+        check(
+            "IntensityData",
+            IntensityData {
+                tm: TM,
+                intensities: vec![100.0, 200.5],
+                geometry: ranger_geometry(),
+                config: RANGER_CONFIG,
+            },
+            latin1,
+        );
+    }
+
+    /// What OpenRTM-aist sends is ISO 8859-1: read as UTF-8 its "é" is
+    /// not text, and a character beyond Latin-1 is refused when encoding
+    /// (as omniORB refuses it: the script checks), not mangled.
+    #[test]
+    fn latin1_is_what_omniorb_sends_and_beyond_it_is_refused() {
+        let body = bytes::Bytes::from(super::golden("CameraImage_latin1", Endian::Little));
+        let utf8 = CdrOptions {
+            endian: Endian::Little,
+            charset: Charset::Utf8,
+        };
+        assert!(CameraImage::decode_with(body, utf8).is_err());
+        let euro = CameraImage {
+            format: "€".into(),
+            ..CameraImage::default()
+        };
+        let latin1 = CdrOptions {
+            endian: Endian::Little,
+            charset: Charset::Latin1,
+        };
+        let refused = euro
+            .encode_with(&mut bytes::BytesMut::new(), latin1)
+            .unwrap_err();
+        assert!(refused.to_string().contains("Latin-1"), "{refused}");
+    }
+
+    #[test]
+    fn the_vectors_hold_every_case_in_both_byte_orders() {
+        let cases: Vec<&str> = super::INTERFACE_VECTORS
+            .lines()
+            .filter(|line| !line.starts_with('#'))
+            .filter_map(|line| line.split(' ').next())
+            .collect();
+        assert_eq!(cases.len(), 22 * 2);
+        assert!(super::INTERFACE_VECTORS.starts_with("# n-ando/OpenRTM-aist "));
     }
 }

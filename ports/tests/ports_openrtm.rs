@@ -153,17 +153,18 @@ async fn exchange_types_in_any_case() {
     }
 }
 
-/// A Latin-1 `TimedString` (omniORB's default) reaches an in-port set to
-/// Latin-1; a UTF-8 in-port counts it as a decode error.
+/// Profiles from OpenRTM properties speak Latin-1 (omniORB's default, what
+/// OpenRTM-aist sends) unless told otherwise: a Latin-1 `TimedString`
+/// reaches such an in-port; one set to `utf-8` counts it as a decode
+/// error.
 #[tokio::test]
-async fn latin1_strings_with_serializer_cdr_charset() {
+async fn latin1_strings_by_default_and_utf8_when_set() {
     let (_broker, addr) = leveret().await;
     let queue = unique("latin1");
     let base = [
         ("exname", ""),
         ("qname", queue.as_str()),
         ("rkey", queue.as_str()),
-        ("serializer.cdr.charset", "latin-1"),
         ("dataport.serializer.cdr.endian", "big"),
     ];
     let input = InPort::<TimedString>::connect(read(PortRole::InPort, addr, &base))
@@ -185,6 +186,7 @@ async fn latin1_strings_with_serializer_cdr_charset() {
         ("exname", ""),
         ("qname", queue.as_str()),
         ("rkey", queue.as_str()),
+        ("serializer.cdr.charset", "utf-8"),
         ("dataport.serializer.cdr.endian", "big"),
     ];
     let input = InPort::<TimedString>::connect(read(PortRole::InPort, addr, &utf8))

@@ -772,3 +772,74 @@ async fn port_echo_peeks_at_a_default_exchange_port() {
     .expect("open");
     assert_eq!(input.stats().duplicates, 0, "{:?}", input.stats());
 }
+
+/// `port hz` and `port bw` on a port of a named exchange and on one of the
+/// default exchange: rate and gaps that agree with each other (the mean
+/// gap between the shortest and the longest), the window counted, and the
+/// bodies' exact size (a `TimedLong` is 12 bytes of CDR).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn port_hz_and_bw_measure_a_ports_messages() {
+    use leveret_ports::{ExchangeKind, InPort, OutPort, PortProfile, Time, TimedLong};
+    let broker = std::sync::Arc::new(OpsBroker::start("ctl-hz-bw", &[]));
+    let base = PortProfile::new(&broker.amqp_url())
+        .expect("URI")
+        .announce_interval(Some(Duration::from_millis(200)));
+    let fanout = OutPort::<TimedLong>::connect(
+        base.clone()
+            .exchange("ticks", ExchangeKind::Fanout)
+            .name("ticks-out"),
+    )
+    .await
+    .expect("out-port");
+    let direct_profile = base.queue("ticks_q").routing_key("ticks_q");
+    // The default exchange's queue has a reader, as a command port does:
+    // the tap peeks at messages on their way to it.
+    let reader = InPort::<TimedLong>::connect(direct_profile.clone().name("ticks-in"))
+        .await
+        .expect("in-port");
+    let direct = OutPort::<TimedLong>::connect(direct_profile.name("ticks-direct"))
+        .await
+        .expect("out-port");
+    let publisher = tokio::spawn(async move {
+        for data in 1..=i32::MAX {
+            let value = TimedLong {
+                tm: Time::now(),
+                data,
+            };
+            fanout.put(&value).await;
+            direct.put(&value).await;
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    });
+    let number = |line: &str, key: &str| -> f64 {
+        field(line, key)
+            .unwrap_or_else(|| panic!("{key} in {line}"))
+            .parse()
+            .expect("a number")
+    };
+    for port in ["ticks-out", "ticks-direct"] {
+        let rates = port_lines(&broker, &["hz", port, "--count", "2"]).await;
+        assert_eq!(rates.len(), 2, "{rates:?}");
+        for line in &rates {
+            let rate = number(line, "rate_hz");
+            let (min, max) = (number(line, "min_s"), number(line, "max_s"));
+            assert!(rate > 0.0 && min <= max, "{line}");
+            let mean_gap = 1.0 / rate;
+            assert!(min - 2e-6 <= mean_gap && mean_gap <= max + 2e-6, "{line}");
+            assert!(number(line, "std_s") >= 0.0, "{line}");
+            assert!(number(line, "window") >= 2.0, "{line}");
+        }
+        let bandwidth = port_lines(&broker, &["bw", port, "--count", "1", "--window", "5"]).await;
+        assert_eq!(bandwidth.len(), 1, "{bandwidth:?}");
+        let line = &bandwidth[0];
+        assert_eq!(field(line, "min_bytes"), Some("12"), "{line}");
+        assert_eq!(field(line, "max_bytes"), Some("12"), "{line}");
+        assert_eq!(field(line, "mean_bytes"), Some("12.0"), "{line}");
+        assert!(number(line, "bytes_per_s") > 0.0, "{line}");
+        assert!(number(line, "window") <= 5.0, "{line}");
+    }
+    let refused = port_ctl(&broker, &["hz", "ticks-out", "--window", "1"]);
+    assert_eq!(refused.status.code(), Some(64), "{refused:?}");
+    publisher.abort();
+    reader.close().await;
+}

@@ -33,7 +33,9 @@ use crate::registry::ChannelRegistration;
 use crate::vhost::Vhost;
 use basic::Unfinished;
 
-pub(crate) use basic::{apply_settles, unique_name, Settle};
+#[cfg(feature = "mqtt")]
+pub(crate) use basic::unique_name;
+pub(crate) use basic::{apply_settles, Settle};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{
     BasicProperties, BasicPublish, ChannelClose, ChannelCloseOk, ChannelFlowOk, ContentHeader,

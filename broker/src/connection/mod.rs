@@ -61,6 +61,7 @@ pub enum Identity {
     /// TLS, with the common name of the verified client certificate if the
     /// client gave one: SASL EXTERNAL logs in as it (and is refused
     /// without one).
+    #[cfg_attr(not(feature = "tls"), allow(dead_code))]
     Tls(Option<String>),
 }
 

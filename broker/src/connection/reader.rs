@@ -79,6 +79,7 @@ impl Incoming for OwnedReadHalf {
 /// socket to look for a hang-up without reading, so a TLS client that
 /// goes away while its connection is not being read (a blocked publisher)
 /// is found by the heartbeat instead.
+#[cfg(feature = "tls")]
 impl Incoming for tokio::io::ReadHalf<tokio_rustls::server::TlsStream<tokio::net::TcpStream>> {
     fn hung_up(&self) -> impl Future<Output = ()> + Send + '_ {
         std::future::pending()

@@ -139,6 +139,7 @@ fn message_key(id: u64) -> Vec<u8> {
 }
 
 /// The queue id and position an index key (`i`) names, if it is one.
+#[cfg(feature = "persistence")]
 pub fn queue_position(key: &[u8]) -> Option<(u64, u64)> {
     match key {
         [b'i', rest @ ..] if rest.len() == 16 => Some((
@@ -361,6 +362,7 @@ impl StoreOp {
 }
 
 /// Which engine of the [`DiskStore`](super::DiskStore) keeps a key.
+#[cfg(feature = "persistence")]
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Home {
     /// The message log: the keys written per message (index entries,
@@ -374,6 +376,7 @@ pub enum Home {
 }
 
 /// Where `key` is kept.
+#[cfg(feature = "persistence")]
 pub fn home(key: &[u8]) -> Home {
     if LOG_PREFIXES.iter().any(|prefix| key.starts_with(prefix)) {
         Home::Log
@@ -385,6 +388,7 @@ pub fn home(key: &[u8]) -> Home {
 }
 
 /// The first bytes of every key kept in the message log.
+#[cfg(feature = "persistence")]
 pub const LOG_PREFIXES: [&[u8]; 3] = [b"i", b"m", b"d"];
 
 /// The clean-shutdown marker's key (`!` sorts before every other tag).

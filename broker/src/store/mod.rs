@@ -7,7 +7,9 @@
 //! [`DiskStore`] (`disk.rs`), which keeps definitions in sled (`sled.rs`)
 //! and the keys written for every message in the message log (`log.rs`,
 //! append-only segments, one sync per group); `memory.rs` for tests and
-//! transient brokers. Everything about keys and values lives here, once
+//! transient brokers. The on-disk engines are the `persistence` feature's
+//! (default): without it, durable state lives only in a [`Store`] the
+//! embedder provides. Everything about keys and values lives here, once
 //! (`codec.rs`, which also says which engine keeps a key).
 //!
 //! Keys, in one keyspace so a transaction's batch is atomic:
@@ -48,20 +50,29 @@
 //! skips it).
 
 mod codec;
+#[cfg(feature = "persistence")]
 mod disk;
+#[cfg(feature = "persistence")]
 mod integrity;
+#[cfg(feature = "persistence")]
 mod log;
+#[cfg(feature = "persistence")]
 mod log_key;
 mod memory;
 mod persister;
+#[cfg(feature = "persistence")]
 mod sled;
 
 pub use self::codec::BadRecord;
+#[cfg(feature = "persistence")]
 pub use self::disk::DiskStore;
+#[cfg(feature = "persistence")]
 pub use self::integrity::{mark_clean, open_checked, OpenedStore};
+#[cfg(feature = "persistence")]
 pub use self::log::{Bookkeeping, Losses, LostRange, OnDamage};
 pub use self::memory::MemoryStore;
 pub use self::persister::{Durable, Persistence, PersisterFigures};
+#[cfg(feature = "persistence")]
 pub use self::sled::SledStore;
 
 use bytes::Bytes;
@@ -71,6 +82,7 @@ use leveret_protocol::{FieldTable, ShortStr};
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
     /// The data directory could not be created.
+    #[cfg(feature = "persistence")]
     #[error("cannot create {path}: {source}")]
     DataDir {
         /// The directory.
@@ -79,6 +91,7 @@ pub enum StoreError {
         source: std::io::Error,
     },
     /// The sled database failed.
+    #[cfg(feature = "persistence")]
     #[error("sled: {0}")]
     Sled(#[from] ::sled::Error),
     /// Another storage engine failed: for [`Store`]s an embedder provides.
@@ -103,6 +116,7 @@ pub enum StoreError {
         message: String,
     },
     /// The store in a data directory is damaged (see `integrity`).
+    #[cfg(feature = "persistence")]
     #[error(
         "the store in {path} is damaged: {problem}; the broker does not start on it. \
          Start with --recover to keep every readable record (the damaged files are \

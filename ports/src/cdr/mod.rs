@@ -27,7 +27,11 @@
 //!   sequences) included;
 //! - `extended`: every type of `ExtendedDataTypes.idl` ([`RGBColour`],
 //!   the 2D and 3D geometry from [`Point2D`] to [`OAP`], [`Quaternion`],
-//!   and their `Timed*` wrappers).
+//!   and their `Timed*` wrappers);
+//! - `interface`: the sensor and device types of
+//!   `InterfaceDataTypes.idl` most used ([`RangeData`], [`CameraImage`],
+//!   [`PointCloud`], [`GPSData`], [`INSData`], …; its module docs name
+//!   the ones not yet here).
 //!
 //! Other IDL structs can be written with [`CdrWriter`] and [`CdrReader`]
 //! through the [`Cdr`] trait and then made port data with [`encode`] and
@@ -719,11 +723,13 @@ macro_rules! timed_structs {
 
 pub(super) mod basic;
 pub(super) mod extended;
+pub(super) mod interface;
 #[cfg(test)]
 mod testing;
 
 pub use basic::*;
 pub use extended::*;
+pub use interface::*;
 
 #[cfg(test)]
 mod tests {

@@ -130,6 +130,23 @@ renderable!(
     TimedSpeedHeading3D,
     TimedOAP,
     TimedQuaternion,
+    ActArrayActuatorPos,
+    ActArrayActuatorSpeed,
+    ActArrayActuatorCurrent,
+    CameraImage,
+    CameraInfo,
+    GPSTime,
+    GPSData,
+    GripperState,
+    INSData,
+    PointCloudPoint,
+    PointCloud,
+    PanTiltAngles,
+    PanTiltState,
+    RangerGeometry,
+    RangerConfig,
+    RangeData,
+    IntensityData,
 );
 
 #[cfg(test)]
@@ -151,10 +168,14 @@ mod tests {
 
     #[test]
     fn every_declared_type_is_listed() {
-        let declared: Vec<&str> = [include_str!("basic.rs"), include_str!("extended.rs")]
-            .into_iter()
-            .flat_map(declared)
-            .collect();
+        let declared: Vec<&str> = [
+            include_str!("basic.rs"),
+            include_str!("extended.rs"),
+            include_str!("interface.rs"),
+        ]
+        .into_iter()
+        .flat_map(declared)
+        .collect();
         assert!(declared.len() > 70, "found {}", declared.len());
         for name in declared {
             assert!(LISTED.contains(&name), "{name} is not renderable");

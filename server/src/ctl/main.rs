@@ -5,7 +5,7 @@
 //! commands rabbitmqctl's column names and tab-separated output (a header
 //! line unless `--no-table-headers`; the "Listing ..." line unless `-q`).
 //! `--url` names the API (default `http://127.0.0.1:15672`, guest/guest).
-//! The `port` commands (`port list`, `port stats NAME`, `port echo NAME`)
+//! The `port` commands (`port list`, `stats`, `echo`, `hz`, `bw`)
 //! speak AMQP instead, to `--amqp-url` (default
 //! `amqp://guest:guest@127.0.0.1:5672/%2f`, its vhost the URL's), and
 //! show the robot data ports that announce themselves there.

@@ -1,7 +1,8 @@
-//! `leveretctl port list`, `port stats NAME` and `port echo NAME`: the
-//! robot data ports connected to a broker, from the announcements they
-//! publish on `leveret.ports` (leveret-client's `ports::PortDirectory`;
-//! the wire contract is in leveret-client's `ports::announce`). These
+//! `leveretctl port list`, `port stats NAME`, `port echo NAME`, `port hz
+//! NAME` and `port bw NAME`: the robot data ports connected to a broker,
+//! from the announcements they publish on `leveret.ports`
+//! (leveret-ports' `PortDirectory`; the wire contract is in its
+//! `announce` module), and the messages on their topics. These
 //! speak AMQP to `--amqp-url`, not the management API, so they work the
 //! same against RabbitMQ. This module owns the commands and their output;
 //! it uses leveret-client (connection, port directory, `cdr::render`) on a
@@ -11,14 +12,14 @@ use crate::{emit, info, Cli, Failure};
 use clap::Subcommand;
 use leveret_client::{
     BasicConsumeOptions, BasicQosOptions, BasicRejectOptions, Channel, Connection,
-    ConnectionOptions, Consumer, Error, FieldTable, FieldValue, QueueBindOptions,
+    ConnectionOptions, Consumer, Delivery, Error, FieldTable, FieldValue, QueueBindOptions,
     QueueDeclareOptions,
 };
 use leveret_ports::{
     announced_counters, cdr, CdrOptions, PortAnnouncement, PortDirectory, PortRole, PortState,
     PORT_HEADER, SENT_HEADER, SEQ_HEADER,
 };
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::fmt::Write as _;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tokio::time::Instant;
@@ -69,6 +70,41 @@ pub enum PortCommand {
         #[arg(long, default_value = "3", value_name = "SECONDS")]
         wait: f64,
     },
+    /// Prints the rate at which a port's messages arrive (as rostopic hz):
+    /// each second, over the last --window messages, the rate and the
+    /// shortest, longest and standard deviation of the gaps between them.
+    /// Taps the port's topic as `port echo` does (on the default exchange
+    /// by peeking: it sees new messages only while the queue's reader
+    /// takes them).
+    Hz {
+        name: String,
+        #[command(flatten)]
+        window: WindowArgs,
+    },
+    /// Prints the bandwidth of a port's messages (as rostopic bw): each
+    /// second, over the last --window messages, bytes per second and the
+    /// mean, smallest and largest body. Taps the port's topic as `port
+    /// hz` does.
+    Bw {
+        name: String,
+        #[command(flatten)]
+        window: WindowArgs,
+    },
+}
+
+/// The options of `port hz` and `port bw`.
+#[derive(Debug, clap::Args)]
+pub struct WindowArgs {
+    /// The messages measured over: the latest this many.
+    #[arg(long, default_value = "1000", value_name = "N")]
+    window: usize,
+    /// Stop after this many reports.
+    #[arg(long, value_name = "N")]
+    count: Option<u64>,
+    /// Seconds to wait for the port to announce itself (exit status 1 if
+    /// it does not).
+    #[arg(long, default_value = "3", value_name = "SECONDS")]
+    wait: f64,
 }
 
 /// The longest `port list` listens, whatever the ports' intervals.
@@ -112,6 +148,10 @@ pub fn run(cli: &Cli, command: &PortCommand) -> Result<(), Failure> {
             }
             PortCommand::Echo { name, count, wait } => {
                 echo(cli, name, *count, seconds(*wait)?).await
+            }
+            PortCommand::Hz { name, window } => measure(cli, name, window, Measure::Rate).await,
+            PortCommand::Bw { name, window } => {
+                measure(cli, name, window, Measure::Bandwidth).await
             }
         }
     })
@@ -387,85 +427,109 @@ fn stats_line(port: &PortAnnouncement, previous: Option<&PortAnnouncement>) -> S
     line
 }
 
-async fn echo(cli: &Cli, name: &str, count: Option<u64>, wait: Duration) -> Result<(), Failure> {
-    let connection = connect(cli).await?;
-    let mut directory = PortDirectory::watch(&connection)
-        .await
-        .map_err(broker_failure)?;
-    let mut port = find(&mut directory, name, wait).await?;
-    if port.role == PortRole::InPort {
-        // An out-port of the same name is the one to echo, if there is
-        // one: listen one of its intervals more for it.
-        let more = port.interval.mul_f64(1.2).min(wait);
-        let _ = tokio::time::timeout(more, async {
-            loop {
-                match next(&mut directory).await {
-                    Ok(other) if other.name == name && other.role == PortRole::OutPort => {
-                        port = other;
-                        return;
+/// A port's messages as they flow, for `echo`, `hz` and `bw`: through a
+/// queue of the tap's own bound to the port's exchange and key, or, for a
+/// port on the default exchange, by peeking at the port's queue (each
+/// message handed straight back; one seen again is skipped).
+struct Tap {
+    port: PortAnnouncement,
+    consumer: Consumer,
+    /// The queue peeked at, for a port on the default exchange.
+    peeked: Option<String>,
+    /// Peeking: the last sequence number taken per sender, to take a
+    /// message that comes back to the tap only once.
+    taken: HashMap<String, i64>,
+}
+
+impl Tap {
+    /// Finds the port named `name` (an out-port of that name rather than
+    /// an in-port, if there is one) and taps its messages.
+    async fn open(cli: &Cli, name: &str, wait: Duration) -> Result<Tap, Failure> {
+        let connection = connect(cli).await?;
+        let mut directory = PortDirectory::watch(&connection)
+            .await
+            .map_err(broker_failure)?;
+        let mut port = find(&mut directory, name, wait).await?;
+        if port.role == PortRole::InPort {
+            // An out-port of the same name is the one to tap, if there is
+            // one: listen one of its intervals more for it.
+            let more = port.interval.mul_f64(1.2).min(wait);
+            let _ = tokio::time::timeout(more, async {
+                loop {
+                    match next(&mut directory).await {
+                        Ok(other) if other.name == name && other.role == PortRole::OutPort => {
+                            port = other;
+                            return;
+                        }
+                        Ok(_) => {}
+                        Err(_) => return,
                     }
-                    Ok(_) => {}
-                    Err(_) => return,
                 }
-            }
-        })
-        .await;
-    }
-    // Its consumer, no longer drained, would pause the connection.
-    directory.close().await;
-    let channel = connection.open_channel().await.map_err(broker_failure)?;
-    let (mut consumer, peeked) = if port.exchange.is_empty() {
-        let queue = if port.key.is_empty() {
-            port.queue.clone()
+            })
+            .await;
+        }
+        // Its consumer, no longer drained, would pause the connection.
+        directory.close().await;
+        let channel = connection.open_channel().await.map_err(broker_failure)?;
+        let (consumer, peeked) = if port.exchange.is_empty() {
+            let queue = if port.key.is_empty() {
+                port.queue.clone()
+            } else {
+                port.key.clone()
+            };
+            (peek(&channel, &queue).await?, Some(queue))
         } else {
-            port.key.clone()
+            (copy(&channel, &port).await?, None)
         };
-        (peek(&channel, &queue).await?, Some(queue))
-    } else {
-        (copy(&channel, &port).await?, None)
-    };
-    let through = match &peeked {
-        Some(queue) => format!(
-            "default exchange: peeking at queue {queue:?}, each message handed straight back"
-        ),
-        None => format!("exchange {:?}, key {:?}", port.exchange, port.key),
-    };
-    info(
-        cli,
-        &format!(
-            "Echoing port {name} ({} {}, {through}) ...",
-            port.role.direction(),
-            port.data_type
-        ),
-    )?;
-    // Peeking: the last sequence number printed per sender, to print a
-    // message that comes back to the echo only once.
-    let mut shown: HashMap<String, i64> = HashMap::new();
-    let options = port.cdr.unwrap_or_default();
-    let mut printed = 0;
-    while count.is_none_or(|count| printed < count) {
-        let Some(delivery) = consumer.next().await else {
-            return Err(Failure::Unavailable(
-                "the broker ended the echo's consumer".to_owned(),
-            ));
+        Ok(Tap {
+            port,
+            consumer,
+            peeked,
+            taken: HashMap::new(),
+        })
+    }
+
+    /// The port and how it is tapped, for the first line of output.
+    fn describe(&self) -> String {
+        let through = match &self.peeked {
+            Some(queue) => format!(
+                "default exchange: peeking at queue {queue:?}, each message handed straight back"
+            ),
+            None => format!("exchange {:?}, key {:?}", self.port.exchange, self.port.key),
         };
-        let headers = delivery.properties.headers.as_ref();
-        let header = |key: &str| {
-            headers
-                .and_then(|h| h.get(key))
-                .and_then(FieldValue::as_i64)
-        };
-        if peeked.is_some() {
+        format!(
+            "port {} ({} {}, {through})",
+            self.port.name,
+            self.port.role.direction(),
+            self.port.data_type
+        )
+    }
+
+    /// The next message not taken before.
+    async fn next(&mut self) -> Result<Delivery, Failure> {
+        loop {
+            let Some(delivery) = self.consumer.next().await else {
+                return Err(Failure::Unavailable(
+                    "the broker ended the tap's consumer".to_owned(),
+                ));
+            };
+            if self.peeked.is_none() {
+                return Ok(delivery);
+            }
+            let headers = delivery.properties.headers.as_ref();
             let sender = headers
                 .and_then(|h| h.get(PORT_HEADER))
                 .and_then(FieldValue::as_bytes)
                 .map(|b| String::from_utf8_lossy(b).into_owned())
                 .unwrap_or_default();
-            let seq = header(SEQ_HEADER).unwrap_or(i64::MAX);
-            let last = shown.entry(sender).or_insert(i64::MIN);
+            let seq = headers
+                .and_then(|h| h.get(SEQ_HEADER))
+                .and_then(FieldValue::as_i64)
+                .unwrap_or(i64::MAX);
+            let last = self.taken.entry(sender).or_insert(i64::MIN);
             let again = seq <= *last;
             if again {
-                // Back to the echo rather than the port's reader (none is
+                // Back to the tap rather than the port's reader (none is
                 // consuming, or it is busy): a pause, so the two do not
                 // pass it to and fro.
                 tokio::time::sleep(HAND_BACK_PAUSE).await;
@@ -474,17 +538,35 @@ async fn echo(cli: &Cli, name: &str, count: Option<u64>, wait: Duration) -> Resu
                 .reject(BasicRejectOptions { requeue: true })
                 .await
                 .map_err(broker_failure)?;
-            if again {
-                continue;
+            if !again {
+                *last = seq;
+                return Ok(delivery);
             }
-            *last = seq;
         }
+    }
+}
+
+async fn echo(cli: &Cli, name: &str, count: Option<u64>, wait: Duration) -> Result<(), Failure> {
+    let mut tap = Tap::open(cli, name, wait).await?;
+    info(cli, &format!("Echoing {} ...", tap.describe()))?;
+    let options = tap.port.cdr.unwrap_or_default();
+    let mut printed = 0;
+    while count.is_none_or(|count| printed < count) {
+        let delivery = tap.next().await?;
+        let header = |key: &str| {
+            delivery
+                .properties
+                .headers
+                .as_ref()
+                .and_then(|h| h.get(key))
+                .and_then(FieldValue::as_i64)
+        };
         let type_name = delivery
             .properties
             .kind
             .as_ref()
             .map(|kind| kind.to_string_lossy().into_owned())
-            .unwrap_or_else(|| port.data_type.clone());
+            .unwrap_or_else(|| tap.port.data_type.clone());
         let seq = header(SEQ_HEADER).map_or_else(|| "-".to_owned(), |seq| seq.to_string());
         let age = header(SENT_HEADER).map_or_else(
             || "-".to_owned(),
@@ -497,6 +579,164 @@ async fn echo(cli: &Cli, name: &str, count: Option<u64>, wait: Duration) -> Resu
         printed += 1;
     }
     Ok(())
+}
+
+/// What `port hz` and `port bw` report.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Measure {
+    Rate,
+    Bandwidth,
+}
+
+/// How often `port hz` and `port bw` report.
+const REPORT_EVERY: Duration = Duration::from_secs(1);
+
+async fn measure(cli: &Cli, name: &str, args: &WindowArgs, what: Measure) -> Result<(), Failure> {
+    if args.window < 2 {
+        return Err(Failure::Usage(format!(
+            "--window {}: at least 2 messages",
+            args.window
+        )));
+    }
+    let mut tap = Tap::open(cli, name, seconds(args.wait)?).await?;
+    let verb = match what {
+        Measure::Rate => "Rate",
+        Measure::Bandwidth => "Bandwidth",
+    };
+    info(cli, &format!("{verb} of {} ...", tap.describe()))?;
+    let mut window = Arrivals::new(args.window);
+    let mut ticker = tokio::time::interval_at(Instant::now() + REPORT_EVERY, REPORT_EVERY);
+    let mut arrived_since_report = false;
+    let mut printed = 0;
+    while args.count.is_none_or(|count| printed < count) {
+        tokio::select! {
+            delivery = tap.next() => {
+                window.push(Instant::now(), delivery?.body.len());
+                arrived_since_report = true;
+            }
+            _ = ticker.tick() => {
+                match (arrived_since_report, window.figures()) {
+                    (true, Some(figures)) => {
+                        emit(&figures.line(what))?;
+                        printed += 1;
+                    }
+                    _ => info(cli, "no new messages")?,
+                }
+                arrived_since_report = false;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The arrival times and body sizes of the latest messages.
+#[derive(Debug)]
+struct Arrivals {
+    latest: VecDeque<(Instant, usize)>,
+    capacity: usize,
+}
+
+/// What a window of arrivals says: the gaps between messages and their
+/// sizes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Figures {
+    messages: usize,
+    /// From the first arrival to the last.
+    span: Duration,
+    min_gap: Duration,
+    max_gap: Duration,
+    /// The gaps' standard deviation, seconds.
+    gap_std_s: f64,
+    /// Bytes after the first message (what arrived during the span).
+    bytes_after_first: usize,
+    total_bytes: usize,
+    min_bytes: usize,
+    max_bytes: usize,
+}
+
+impl Arrivals {
+    fn new(capacity: usize) -> Self {
+        Arrivals {
+            latest: VecDeque::with_capacity(capacity),
+            capacity,
+        }
+    }
+
+    fn push(&mut self, at: Instant, bytes: usize) {
+        if self.latest.len() == self.capacity {
+            self.latest.pop_front();
+        }
+        self.latest.push_back((at, bytes));
+    }
+
+    /// The window's figures, once it holds two messages at different times.
+    fn figures(&self) -> Option<Figures> {
+        let (first, _) = *self.latest.front()?;
+        let (last, _) = *self.latest.back()?;
+        let span = last.duration_since(first);
+        if self.latest.len() < 2 || span.is_zero() {
+            return None;
+        }
+        let gaps: Vec<Duration> = self
+            .latest
+            .iter()
+            .zip(self.latest.iter().skip(1))
+            .map(|((a, _), (b, _))| b.duration_since(*a))
+            .collect();
+        let mean = span.as_secs_f64() / gaps.len() as f64;
+        let variance = gaps
+            .iter()
+            .map(|gap| (gap.as_secs_f64() - mean).powi(2))
+            .sum::<f64>()
+            / gaps.len() as f64;
+        let sizes = || self.latest.iter().map(|(_, bytes)| *bytes);
+        let total_bytes: usize = sizes().sum();
+        Some(Figures {
+            messages: self.latest.len(),
+            span,
+            min_gap: gaps.iter().copied().min()?,
+            max_gap: gaps.iter().copied().max()?,
+            gap_std_s: variance.sqrt(),
+            bytes_after_first: total_bytes - self.latest.front()?.1,
+            total_bytes,
+            min_bytes: sizes().min()?,
+            max_bytes: sizes().max()?,
+        })
+    }
+}
+
+impl Figures {
+    /// Messages per second over the span.
+    fn rate_hz(&self) -> f64 {
+        (self.messages - 1) as f64 / self.span.as_secs_f64()
+    }
+
+    /// Bytes per second over the span.
+    fn bytes_per_s(&self) -> f64 {
+        self.bytes_after_first as f64 / self.span.as_secs_f64()
+    }
+
+    /// One report line of `port hz` or `port bw`.
+    fn line(&self, what: Measure) -> String {
+        match what {
+            Measure::Rate => format!(
+                "rate_hz={:.3} min_s={:.6} max_s={:.6} std_s={:.6} window={}\n",
+                self.rate_hz(),
+                self.min_gap.as_secs_f64(),
+                self.max_gap.as_secs_f64(),
+                self.gap_std_s,
+                self.messages
+            ),
+            Measure::Bandwidth => format!(
+                "bytes_per_s={:.1} mean_bytes={:.1} min_bytes={} max_bytes={} window={}\n",
+                self.bytes_per_s(),
+                self.total_bytes as f64 / self.messages as f64,
+                self.min_bytes,
+                self.max_bytes,
+                self.messages
+            ),
+        }
+    }
 }
 
 /// A body as its value (a CDR type the client implements), else as text,
@@ -595,6 +835,44 @@ fn now_ns() -> i64 {
 mod tests {
     use super::*;
     use leveret_ports::{PortData, Time, TimedLong};
+
+    #[test]
+    fn a_window_gives_rate_gaps_and_sizes_of_its_latest_messages() {
+        let start = Instant::now();
+        let ms = |n: u64| start + Duration::from_millis(n);
+        let mut window = Arrivals::new(4);
+        window.push(ms(0), 1000);
+        assert_eq!(window.figures(), None, "one message has no rate");
+        // Gaps 10, 20, 10 ms over the last four: the first falls out.
+        for (at, bytes) in [(10, 10), (30, 20), (40, 30), (50, 40)] {
+            window.push(ms(at), bytes);
+        }
+        let figures = window.figures().expect("figures");
+        assert_eq!(figures.messages, 4);
+        assert_eq!(figures.span, Duration::from_millis(40));
+        assert_eq!(
+            (figures.min_gap, figures.max_gap),
+            (Duration::from_millis(10), Duration::from_millis(20))
+        );
+        assert!((figures.rate_hz() - 75.0).abs() < 1e-9, "3 gaps in 40 ms");
+        // Gaps 20, 10, 10 ms: mean 13.33 ms, deviation sqrt(200/9) ms.
+        assert!((figures.gap_std_s - (200.0f64 / 9.0).sqrt() / 1e3).abs() < 1e-12);
+        // 20 + 30 + 40 bytes arrived during the 40 ms.
+        assert!((figures.bytes_per_s() - 2250.0).abs() < 1e-9);
+        assert_eq!((figures.min_bytes, figures.max_bytes), (10, 40));
+        assert_eq!(
+            figures.line(Measure::Bandwidth),
+            "bytes_per_s=2250.0 mean_bytes=25.0 min_bytes=10 max_bytes=40 window=4\n"
+        );
+        assert_eq!(
+            figures.line(Measure::Rate),
+            "rate_hz=75.000 min_s=0.010000 max_s=0.020000 std_s=0.004714 window=4\n"
+        );
+        let mut same_instant = Arrivals::new(4);
+        same_instant.push(ms(5), 1);
+        same_instant.push(ms(5), 1);
+        assert_eq!(same_instant.figures(), None, "no span, no rate");
+    }
 
     #[test]
     fn bodies_show_as_values_text_or_hex() {
