@@ -442,6 +442,9 @@ impl Vhost {
             &decl.name,
             &self.name,
         )?;
+        let (policies, applied) = self.policies_for(ObjectKind::Stream, decl.name.as_bytes());
+        let args = args
+            .with_policy_segment_size(&options.arguments, applied.stream_max_segment_size_bytes());
         let Some(persistence) = self.persistence.as_ref().map(Arc::clone) else {
             return Err(AmqpError::precondition_failed(format_args!(
                 "cannot declare stream '{}' in vhost '{}': this broker keeps nothing on disk (streams need a data directory)",
@@ -491,7 +494,10 @@ impl Vhost {
             (persistence, id),
             Arc::clone(&self.counters),
         ));
+        self.give_new_queue(&queue, applied);
         queues.insert(decl.name, Arc::clone(&queue));
+        drop(queues);
+        self.catch_up_queue(&queue, &policies);
         Ok((queue, true))
     }
 

@@ -14,7 +14,7 @@ mod common;
 
 use common::*;
 use futures_lite::StreamExt;
-use leveret_broker::Broker;
+use leveret_broker::{ApplyTo, Broker, PolicyKind, PolicySpec, PolicyValue};
 use lp::AMQPValue;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -615,4 +615,146 @@ async fn out_of_range_offsets_a_huge_prefetch_and_many_readers_stay_bounded_and_
         }
     }
     tmo!(ch.queue_delete(&stream, lp::QueueDeleteOptions::default())).expect("deleted");
+}
+
+fn policy(pattern: &str, priority: i64, keys: &[(&str, PolicyValue)]) -> PolicySpec {
+    PolicySpec {
+        pattern: pattern.to_owned(),
+        apply_to: ApplyTo::Queues,
+        priority,
+        definition: keys
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.clone()))
+            .collect(),
+    }
+}
+
+async fn set_policy(admin: &leveret_broker::Admin, name: &str, spec: PolicySpec) {
+    admin
+        .set_policy(PolicyKind::User, "/", name, spec)
+        .await
+        .expect("set_policy");
+}
+
+/// The offset a reader from `first` starts at.
+async fn first_offset(conn: &lp::Connection, stream: &str) -> i64 {
+    let (ch, mut from_first) = reader(conn, stream, 10, Some(lp::lstr("first"))).await;
+    let offset = offset_of(&lp::next(&mut from_first).await);
+    tmo!(ch.close(200, "done")).expect("channel.close");
+    offset
+}
+
+/// The stream keys of a policy act on a stream as RabbitMQ 3.10's do: a
+/// policy's segment size and `max-length-bytes` on a stream declared
+/// without arguments; a policy's `max-length-bytes` smaller than the
+/// argument's wins, and applies at once to a stream that exists; a policy
+/// with a classic key is passed over for a stream (the next match
+/// applies), one with a stream-only key for a classic queue.
+#[both_runtimes]
+async fn stream_policies_apply_as_rabbitmqs_and_classic_keys_do_not() {
+    let (b, _dir) = stream_broker().await;
+    let Some(admin) = b.admin() else {
+        return; // no API to set policies on an external broker
+    };
+    let conn = lp::connect(&b).await;
+    let ch = lp::channel(&conn).await;
+    let body = "x".repeat(200);
+
+    // Set before the declare: segment size and size retention.
+    let by_policy = unique("stream-by-policy");
+    set_policy(
+        &admin,
+        "by-policy",
+        policy(
+            &format!("^{by_policy}$"),
+            0,
+            &[
+                ("max-length-bytes", PolicyValue::Integer(3_000)),
+                ("stream-max-segment-size-bytes", PolicyValue::Integer(1_000)),
+            ],
+        ),
+    )
+    .await;
+    tmo!(ch.queue_declare(&by_policy, durable(), stream_args(vec![]))).expect("declared");
+    publish_confirmed(&ch, &by_policy, (0..100).map(|_| body.clone())).await;
+    let first = first_offset(&conn, &by_policy).await;
+    assert!(first > 70, "old segments went (first offset {first})");
+
+    // Set on a stream that exists, over a larger argument: applies now.
+    let live = declare_stream(
+        &ch,
+        vec![
+            ("x-max-length-bytes", AMQPValue::LongInt(1_000_000)),
+            ("x-stream-max-segment-size-bytes", AMQPValue::LongInt(1_000)),
+        ],
+    )
+    .await;
+    publish_confirmed(&ch, &live, (0..100).map(|_| body.clone())).await;
+    assert_eq!(first_offset(&conn, &live).await, 0);
+    // A classic key in a higher policy: passed over for the stream.
+    set_policy(
+        &admin,
+        "mixed",
+        policy(
+            &format!("^{live}$"),
+            10,
+            &[
+                ("max-length", PolicyValue::Integer(1)),
+                ("max-length-bytes", PolicyValue::Integer(100)),
+            ],
+        ),
+    )
+    .await;
+    assert_eq!(first_offset(&conn, &live).await, 0);
+    set_policy(
+        &admin,
+        "live",
+        policy(
+            &format!("^{live}$"),
+            0,
+            &[("max-length-bytes", PolicyValue::Integer(3_000))],
+        ),
+    )
+    .await;
+    let listed = admin.queues().into_iter().find(|q| q.name == live).unwrap();
+    assert_eq!(listed.policies.policy_name(), Some("live"));
+    let first = first_offset(&conn, &live).await;
+    assert!(
+        first > 70,
+        "retention applied at once (first offset {first})"
+    );
+    // Cleared: nothing comes back, nothing more goes.
+    assert!(admin.clear_policy(PolicyKind::User, "/", "live").await);
+    publish_confirmed(&ch, &live, (0..20).map(|_| body.clone())).await;
+    assert_eq!(first_offset(&conn, &live).await, first);
+
+    // A stream-only key on a classic queue: the policy is passed over.
+    let classic = unique("classic-with-stream-key");
+    set_policy(
+        &admin,
+        "stream-key",
+        policy(
+            &format!("^{classic}$"),
+            10,
+            &[
+                ("max-age", lp_text("1h")),
+                ("max-length-bytes", PolicyValue::Integer(10)),
+            ],
+        ),
+    )
+    .await;
+    tmo!(ch.queue_declare(&classic, Default::default(), Default::default())).expect("declared");
+    publish_confirmed(&ch, &classic, (0..5).map(|_| body.clone())).await;
+    let listed = admin
+        .queues()
+        .into_iter()
+        .find(|q| q.name == classic)
+        .unwrap();
+    assert_eq!(listed.policies.policy_name(), None);
+    assert_eq!(listed.messages_ready, 5, "no max-length-bytes from it");
+    b.stop().await;
+}
+
+fn lp_text(s: &str) -> PolicyValue {
+    PolicyValue::Text(s.to_owned())
 }

@@ -26,6 +26,25 @@ pub struct StreamArgs {
     pub segment_bytes: u64,
 }
 
+impl StreamArgs {
+    /// The segment size for a stream declared with `arguments` while
+    /// `policy_size` (`stream-max-segment-size-bytes`) applies: the
+    /// smaller where both set one (RabbitMQ 3.10's `args_policy_lookup`).
+    pub fn with_policy_segment_size(
+        mut self,
+        arguments: &FieldTable,
+        policy_size: Option<u64>,
+    ) -> Self {
+        let declared = arguments
+            .get("x-stream-max-segment-size-bytes")
+            .map(|_| self.segment_bytes);
+        if let Some(size) = crate::policy::stricter(declared, policy_size) {
+            self.segment_bytes = size;
+        }
+        self
+    }
+}
+
 /// Where a stream consumer starts (`x-stream-offset`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum StartAt {
@@ -78,6 +97,12 @@ fn duration_ms(text: &[u8]) -> Result<u64, DurationError> {
         return Err(DurationError::Invalid);
     }
     Ok(value.saturating_mul(unit_s).saturating_mul(1000))
+}
+
+/// A `max-age` duration (`x-max-age`, the `max-age` policy key) in
+/// milliseconds, `None` if it is not one.
+pub fn max_age_ms(text: &[u8]) -> Option<u64> {
+    duration_ms(text).ok()
 }
 
 /// RabbitMQ 3.10 answers a duration with no number first by failing in its

@@ -20,12 +20,13 @@
 mod args;
 mod log;
 
-pub use args::{is_stream, start_at, StartAt, StreamArgs};
+pub use args::{is_stream, max_age_ms, start_at, StartAt, StreamArgs};
 
 use super::{Deleted, Enqueued, Queue, QueuedMessage};
 use crate::consumer::{Consumer, Unacked};
 use crate::message::Message;
 use crate::outbox::Outbound;
+use crate::policy::{stricter, Applied};
 use crate::store::Persistence;
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
@@ -44,7 +45,8 @@ const READ_BYTES: usize = 128 * 1024;
 /// One stream's state (see the module docs).
 #[derive(Debug)]
 pub struct Stream {
-    args: StreamArgs,
+    /// As declared (with the segment size the policies gave it then).
+    declared: StreamArgs,
     persistence: Arc<Persistence>,
     state: Mutex<StreamState>,
 }
@@ -52,6 +54,9 @@ pub struct Stream {
 #[derive(Debug)]
 struct StreamState {
     log: StreamLog,
+    /// In force: the declared retention with the policies' (the smaller
+    /// of each, as RabbitMQ 3.10's `args_policy_lookup` takes it).
+    args: StreamArgs,
     readers: Vec<Reader>,
     /// The submission number of the last append's sync: an append after it
     /// is durable starts a new chunk.
@@ -183,10 +188,11 @@ impl Stream {
             StreamLog::open(&dir, args.segment_bytes)
         };
         Some(log.map(|log| Stream {
-            args,
+            declared: args.clone(),
             persistence,
             state: Mutex::new(StreamState {
                 log,
+                args,
                 readers: Vec::new(),
                 last_sync: 0,
                 exclusive_reader: false,
@@ -228,10 +234,24 @@ impl Stream {
     pub fn retain(&self) {
         let gone = {
             let mut st = self.lock();
-            let (bytes, age) = (self.args.max_bytes, self.args.max_age_ms);
+            let (bytes, age) = (st.args.max_bytes, st.args.max_age_ms);
             st.log.retain(bytes, age, now_ms())
         };
         remove_in_background(gone);
+    }
+
+    /// Takes the retention `applied` gives (`max-length-bytes`,
+    /// `max-age`: the smaller of each with the declared argument) and
+    /// applies it at once, as RabbitMQ 3.10 does on a policy change. The
+    /// segment size stays what the stream was declared with: RabbitMQ 3.10
+    /// takes a policy's `stream-max-segment-size-bytes` only at declare.
+    pub(super) fn apply_policies(&self, applied: &Applied) {
+        {
+            let mut st = self.lock();
+            st.args.max_bytes = stricter(self.declared.max_bytes, applied.max_length_bytes());
+            st.args.max_age_ms = stricter(self.declared.max_age_ms, applied.max_age_ms());
+        }
+        self.retain();
     }
 }
 
@@ -262,7 +282,7 @@ impl Queue {
             let sync = stream.persistence.submit_sync(st.log.sync_handles(rolled));
             st.last_sync = sync;
             if rolled {
-                let (bytes, age) = (stream.args.max_bytes, stream.args.max_age_ms);
+                let (bytes, age) = (st.args.max_bytes, st.args.max_age_ms);
                 remove_in_background(st.log.retain(bytes, age, timestamp));
             }
             self.stats.published();
