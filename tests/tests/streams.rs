@@ -325,10 +325,11 @@ async fn acks_only_return_credit_and_nothing_leaves_the_stream() {
         ..Default::default()
     };
     let ok = tmo!(ch.queue_declare(&stream, passive, lp::FieldTable::default())).expect("passive");
+    // No message is ready to be taken from a stream (RabbitMQ 3.10 says
+    // 0 too); RabbitMQ also says 0 consumers, Leveret the two there are.
+    assert_eq!(ok.message_count(), 0);
     if !b.is_external() {
-        // RabbitMQ 3.10 answers a stream's declare-ok from its periodic
-        // statistics (0 and 0 here); Leveret gives the counts as they are.
-        assert_eq!((ok.message_count(), ok.consumer_count()), (10, 2));
+        assert_eq!(ok.consumer_count(), 2);
     }
     // As in RabbitMQ 3.10, delete-ok counts no message for a stream.
     let deleted =
@@ -615,6 +616,70 @@ async fn out_of_range_offsets_a_huge_prefetch_and_many_readers_stay_bounded_and_
         }
     }
     tmo!(ch.queue_delete(&stream, lp::QueueDeleteOptions::default())).expect("deleted");
+}
+
+/// An absolute offset past the end waits for that offset; an exclusive
+/// consumer keeps no other reader out; queue.delete if-empty deletes a
+/// stream that holds messages (none is ready to be taken): as RabbitMQ
+/// 3.10 does. if-unused refuses while a consumer reads (RabbitMQ 3.10
+/// deletes the stream under it: its defect, not followed).
+#[both_runtimes]
+async fn a_future_offset_waits_exclusive_is_no_bar_and_if_empty_deletes() {
+    let (b, _dir) = stream_broker().await;
+    if b.is_external() {
+        // RabbitMQ's offsets skip numbers with confirms: the exact future
+        // offset asserted here is Leveret's.
+        return;
+    }
+    let conn = lp::connect(&b).await;
+    let ch = lp::channel(&conn).await;
+    let stream = declare_stream(&ch, vec![]).await;
+    publish_confirmed(&ch, &stream, (0..10).map(|i| format!("m{i}"))).await;
+
+    let (fc, mut future) = reader(&conn, &stream, 10, Some(AMQPValue::LongLongInt(12))).await;
+    lp::nothing(&mut future).await;
+    publish_confirmed(&ch, &stream, ["m10".to_owned(), "m11".to_owned()]).await;
+    lp::nothing(&mut future).await;
+    publish_confirmed(&ch, &stream, ["m12".to_owned(), "m13".to_owned()]).await;
+    assert_eq!(take(&fc, &mut future, 2).await, vec![12, 13]);
+
+    // Exclusive first, then another reader on another connection.
+    let ec = lp::channel(&conn).await;
+    tmo!(ec.basic_qos(10, lp::BasicQosOptions::default())).expect("qos");
+    let exclusive = lp::BasicConsumeOptions {
+        exclusive: true,
+        ..Default::default()
+    };
+    let first = lp::table(vec![("x-stream-offset", lp::lstr("first"))]);
+    let mut sole = tmo!(ec.basic_consume(&stream, "sole", exclusive, first)).expect("exclusive");
+    let other = lp::connect(&b).await;
+    let (oc, mut second) = reader(&other, &stream, 10, Some(lp::lstr("first"))).await;
+    assert_eq!(take(&oc, &mut second, 3).await, vec![0, 1, 2]);
+    assert_eq!(take(&ec, &mut sole, 3).await, vec![0, 1, 2]);
+
+    let if_unused = lp::QueueDeleteOptions {
+        if_unused: true,
+        ..Default::default()
+    };
+    let refused = tmo!(ch.queue_delete(&stream, if_unused)).unwrap_err();
+    assert!(refused.to_string().contains("in use"), "{refused}");
+    let ch = lp::channel(&conn).await;
+    let if_empty = lp::QueueDeleteOptions {
+        if_empty: true,
+        ..Default::default()
+    };
+    assert_eq!(
+        tmo!(ch.queue_delete(&stream, if_empty)).expect("deleted"),
+        0
+    );
+    let passive = lp::QueueDeclareOptions {
+        passive: true,
+        durable: true,
+        ..Default::default()
+    };
+    let gone = tmo!(ch.queue_declare(&stream, passive, lp::FieldTable::default())).unwrap_err();
+    assert!(gone.to_string().contains("NOT_FOUND"), "{gone}");
+    b.stop().await;
 }
 
 fn policy(pattern: &str, priority: i64, keys: &[(&str, PolicyValue)]) -> PolicySpec {

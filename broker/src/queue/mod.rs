@@ -480,7 +480,7 @@ impl Queue {
     /// single-active-consumer queue it waits unless none is active.
     pub fn add_consumer(self: &Arc<Self>, consumer: Arc<Consumer>) -> AmqpResult<DeadLetters> {
         if self.stream.is_some() {
-            self.add_stream_consumer(consumer, StartAt::Next)?;
+            self.add_stream_consumer(consumer, StartAt::Next);
             return Ok(self.dispatch());
         }
         {
@@ -524,10 +524,14 @@ impl Queue {
         self.options.auto_delete && st.consumers.is_empty() && !st.deleted
     }
 
-    /// Ready messages, as of the last expiry ([`Queue::expire_at`]).
+    /// Ready messages, as of the last expiry ([`Queue::expire_at`]): what
+    /// queue.declare-ok says and queue.delete's if-empty judges. None for
+    /// a stream, whose consumers take nothing away (RabbitMQ 3.10 says 0
+    /// too, and deletes a stream under if-empty); listings give a stream's
+    /// records ([`Queue::depth`]).
     pub fn message_count(&self) -> u32 {
-        if let Some(stream) = &self.stream {
-            return stream.len().min(u64::from(u32::MAX)) as u32;
+        if self.stream.is_some() {
+            return 0;
         }
         self.lock().ready.len() as u32
     }

@@ -54,7 +54,8 @@ pub enum StartAt {
     Last,
     /// The next record appended (the default).
     Next,
-    /// This offset (clamped to what is held).
+    /// This offset: the first held if that is gone; waited for if not yet
+    /// written.
     Offset(u64),
     /// The first record at or after this time, ms since the epoch.
     Timestamp(i64),

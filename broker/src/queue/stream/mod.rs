@@ -61,7 +61,6 @@ struct StreamState {
     /// The submission number of the last append's sync: an append after it
     /// is durable starts a new chunk.
     last_sync: u64,
-    exclusive_reader: bool,
     deleted: bool,
 }
 
@@ -195,7 +194,6 @@ impl Stream {
                 args,
                 readers: Vec::new(),
                 last_sync: 0,
-                exclusive_reader: false,
                 deleted: false,
             }),
         }))
@@ -304,31 +302,23 @@ impl Queue {
         Enqueued::Accepted { sync }
     }
 
-    /// Adds a stream consumer starting at `start`; 403 if an exclusive
-    /// consumer is in the way (as on any queue).
-    pub fn add_stream_consumer(
-        &self,
-        consumer: Arc<Consumer>,
-        start: StartAt,
-    ) -> crate::error::AmqpResult<()> {
+    /// Adds a stream consumer starting at `start`. Its exclusive flag
+    /// keeps no other reader out: RabbitMQ 3.10 accepts any number of
+    /// consumers on a stream, exclusive or not (each reads every record;
+    /// none takes one from another).
+    pub fn add_stream_consumer(&self, consumer: Arc<Consumer>, start: StartAt) {
         let stream = self.stream_ref();
         let mut st = stream.lock();
-        if st.exclusive_reader || (consumer.exclusive && !st.readers.is_empty()) {
-            return Err(crate::error::AmqpError::access_refused(format_args!(
-                "queue '{}' in vhost '{}' in exclusive use",
-                self.name, self.vhost
-            )));
-        }
         let log = &st.log;
         let (first, next) = (log.first_offset(), log.next_offset());
         let cursor = match start {
             StartAt::First => Cursor::at(first),
             StartAt::Last => Cursor::at(log.last_chunk()),
             StartAt::Next => Cursor::at(next),
-            StartAt::Offset(n) => Cursor::at(n.clamp(first, next)),
+            // Past the end: it waits for that offset (RabbitMQ 3.10 too).
+            StartAt::Offset(n) => Cursor::at(n.max(first)),
             StartAt::Timestamp(ms) => Cursor::at_time(log.offset_for_timestamp(ms).max(first), ms),
         };
-        st.exclusive_reader = consumer.exclusive;
         st.readers.push(Reader {
             consumer,
             cursor,
@@ -337,7 +327,6 @@ impl Queue {
             stalled: false,
         });
         self.stats.consumer_added();
-        Ok(())
     }
 
     /// Removes a stream consumer; a stream is never auto-deleted.
@@ -347,9 +336,6 @@ impl Queue {
         st.readers.retain(|r| !Arc::ptr_eq(&r.consumer, consumer));
         if st.readers.len() < before {
             self.stats.consumers_removed(1);
-            if consumer.exclusive {
-                st.exclusive_reader = false;
-            }
         }
         false
     }
