@@ -814,8 +814,10 @@ impl Vhost {
         write(&self.exchanges).insert(record.name.clone(), Arc::new(exchange));
     }
 
-    /// Re-creates a stored queue at start (its messages are restored by the caller).
-    pub fn restore_queue(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
+    /// Re-creates a stored queue at start (its messages are restored by
+    /// the caller); a stream whose files are damaged is the error (see
+    /// [`Vhost::restore_stream`]).
+    pub fn restore_queue(&self, record: &QueueRecord) -> Result<Option<Arc<Queue>>, String> {
         if crate::queue::is_stream(&record.arguments) {
             return self.restore_stream(record);
         }
@@ -838,7 +840,9 @@ impl Vhost {
                 QueueArgs::default()
             }
         };
-        let persistence = Arc::clone(self.persistence.as_ref()?);
+        let Some(persistence) = self.persistence.as_ref().map(Arc::clone) else {
+            return Ok(None);
+        };
         let queue = Arc::new(Queue::new(
             record.name.clone(),
             self.name.clone(),
@@ -849,12 +853,16 @@ impl Vhost {
             Arc::clone(&self.counters),
         ));
         write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
-        Some(queue)
+        Ok(Some(queue))
     }
 
-    /// Re-creates a stored stream at start, opening (and checking) its log.
-    fn restore_stream(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
-        let persistence = Arc::clone(self.persistence.as_ref()?);
+    /// Re-creates a stored stream at start, opening (and checking) its
+    /// log: damage found is the error (what is wrong, naming the file)
+    /// unless the broker recovers (`--recover`).
+    fn restore_stream(&self, record: &QueueRecord) -> Result<Option<Arc<Queue>>, String> {
+        let Some(persistence) = self.persistence.as_ref().map(Arc::clone) else {
+            return Ok(None);
+        };
         let args = match StreamArgs::parse(
             &record.arguments,
             true,
@@ -867,14 +875,21 @@ impl Vhost {
             Ok(args) => args,
             Err(e) => {
                 tracing::error!(queue = %record.name, vhost = %self.name, error = %e, "stored stream's arguments no longer valid; not restored (its files are kept)");
-                return None;
+                return Ok(None);
             }
         };
-        let stream = match Stream::open(args, Arc::clone(&persistence), record.id, false)? {
-            Ok(stream) => stream,
-            Err(e) => {
+        let stream = match Stream::open(args, Arc::clone(&persistence), record.id, false) {
+            None => return Ok(None),
+            Some(Ok(stream)) => stream,
+            Some(Err(e)) if e.kind() == std::io::ErrorKind::InvalidData => {
+                return Err(format!(
+                    "stream '{}' in vhost '{}': {e}",
+                    record.name, self.name
+                ));
+            }
+            Some(Err(e)) => {
                 tracing::error!(queue = %record.name, vhost = %self.name, error = %e, "cannot open a stream's files; not restored");
-                return None;
+                return Ok(None);
             }
         };
         let options = QueueOptions {
@@ -893,7 +908,7 @@ impl Vhost {
             Arc::clone(&self.counters),
         ));
         write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
-        Some(queue)
+        Ok(Some(queue))
     }
 
     /// Re-creates a stored binding at start; false if an end is missing.

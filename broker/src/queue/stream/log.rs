@@ -17,10 +17,19 @@
 //! them durable by handing [`StreamLog::sync_handles`] to the persister,
 //! whose group commit syncs them before the publish is confirmed.
 //!
-//! Opening reads every segment and checks every record: a bad checksum, a
-//! torn record or an offset out of sequence is reported (an error log
-//! naming the file, the position and the records lost) and the segment is
-//! cut there; the records after it are never served as if sound.
+//! Opening reads every segment and checks every record. Damage refuses
+//! the open with an error naming the file, the position and what is
+//! wrong ([`Damage`]): a bad checksum, an offset out of sequence, a bad
+//! segment header, a torn record in any segment but the newest, missing
+//! segments or a missing directory. The one thing taken as sound is a torn
+//! tail of the newest segment (fewer bytes than its record needs, or only
+//! zeros: a crash cut the append short, before any confirm covered it),
+//! which is cut with a warning; a truncation of the newest segment looks
+//! the same and is cut the same way (nothing records how far it was
+//! synced). With `recover` the open goes on instead: each damaged file is
+//! copied aside (`NAME.seg.damaged-SECONDS`), what is lost is logged, and
+//! the segment is cut at its last sound record; the records after it are
+//! never served as if sound.
 
 use std::fs::{File, OpenOptions};
 use std::io::{self, Read};
@@ -138,6 +147,9 @@ struct Scanned {
     last_chunk: Option<u64>,
     /// Why it ends before the file does, if it does.
     damage: Option<String>,
+    /// The part after `sound` is what a crash leaves at the end of the
+    /// newest segment: a torn record or zeros.
+    torn_tail: bool,
 }
 
 fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
@@ -150,6 +162,7 @@ fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
         sound: SEGMENT_HEADER,
         last_chunk: None,
         damage: None,
+        torn_tail: false,
     };
     if len < SEGMENT_HEADER || reader.read_exact(&mut header).is_err() {
         found.sound = 0;
@@ -165,14 +178,18 @@ fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
     while found.sound < len {
         if len - found.sound < RECORD_HEADER as u64 {
             found.damage = Some("torn record header".into());
+            found.torn_tail = true;
             break;
         }
         reader.read_exact(&mut record[..RECORD_HEADER])?;
         let payload_len = u32::from_le_bytes(record[..4].try_into().expect("4"));
-        if payload_len > MAX_PAYLOAD
-            || len - found.sound - (RECORD_HEADER as u64) < u64::from(payload_len)
-        {
-            found.damage = Some("torn or impossible record length".into());
+        if payload_len > MAX_PAYLOAD {
+            found.damage = Some("impossible record length".into());
+            break;
+        }
+        if len - found.sound - (RECORD_HEADER as u64) < u64::from(payload_len) {
+            found.damage = Some("torn record".into());
+            found.torn_tail = true;
             break;
         }
         record.resize(RECORD_HEADER + payload_len as usize, 0);
@@ -180,6 +197,8 @@ fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
         let crc = u32::from_le_bytes(record[4..8].try_into().expect("4"));
         if checksum(&record[8..]) != crc {
             found.damage = Some("bad checksum".into());
+            found.torn_tail =
+                record.iter().all(|b| *b == 0) && zeros_to_end(file, found.sound, len)?;
             break;
         }
         let offset = u64::from_le_bytes(record[8..16].try_into().expect("8"));
@@ -200,6 +219,48 @@ fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
     Ok(found)
 }
 
+/// Whether `file` holds only zeros from `from` to `len`.
+fn zeros_to_end(file: &File, from: u64, len: u64) -> io::Result<bool> {
+    let mut buf = vec![0u8; 64 * 1024];
+    let mut at = from;
+    while at < len {
+        let n = buf.len().min((len - at) as usize);
+        file.read_exact_at(&mut buf[..n], at)?;
+        if buf[..n].iter().any(|b| *b != 0) {
+            return Ok(false);
+        }
+        at += n as u64;
+    }
+    Ok(true)
+}
+
+/// Damage found opening a stream's log without `recover`: what is wrong,
+/// naming the file (an [`io::ErrorKind::InvalidData`] error's text).
+fn damage(text: String) -> io::Error {
+    io::Error::new(io::ErrorKind::InvalidData, text)
+}
+
+/// The file beside a segment that says the offsets before it (after the
+/// previous segment's last) were lost in a recovery: that gap is then no
+/// longer damage.
+fn loss_marker(segment: &Path) -> PathBuf {
+    let mut name = segment.as_os_str().to_owned();
+    name.push(".lost");
+    PathBuf::from(name)
+}
+
+/// Copies a damaged segment aside before it is cut.
+fn copy_aside(path: &Path) -> io::Result<PathBuf> {
+    let stamp = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let mut name = path.as_os_str().to_owned();
+    name.push(format!(".damaged-{stamp}"));
+    let copy = PathBuf::from(name);
+    std::fs::copy(path, &copy)?;
+    Ok(copy)
+}
+
 impl StreamLog {
     /// A new, empty log in `dir`: whatever the directory held (the files
     /// of a deleted stream whose removal a crash cut short) goes first.
@@ -209,13 +270,21 @@ impl StreamLog {
             _ => {}
         }
         std::fs::create_dir_all(dir)?;
-        StreamLog::open(dir, max_segment_bytes)
+        StreamLog::open(dir, max_segment_bytes, false)
     }
 
-    /// Opens (or creates) the log in `dir`, checking every record; damage
-    /// is reported as an error log and the damaged segment cut there.
-    pub fn open(dir: &Path, max_segment_bytes: u64) -> io::Result<StreamLog> {
+    /// Opens the log in `dir`, checking every record: damage is an error
+    /// ([`io::ErrorKind::InvalidData`], naming the file and what is wrong)
+    /// unless `recover`, when the damaged file is copied aside, the loss
+    /// logged and the segment cut at its last sound record (module docs).
+    pub fn open(dir: &Path, max_segment_bytes: u64, recover: bool) -> io::Result<StreamLog> {
         if !dir.exists() {
+            if !recover {
+                return Err(damage(format!(
+                    "the stream directory {} is missing",
+                    dir.display()
+                )));
+            }
             tracing::error!(stream = %dir.display(), "a stored stream's directory is missing: its records are lost; it starts empty");
         }
         std::fs::create_dir_all(dir)?;
@@ -235,6 +304,7 @@ impl StreamLog {
             segments: Vec::new(),
             last_chunk: 0,
         };
+        let newest = firsts.last().copied();
         let mut expected = firsts.first().copied().unwrap_or(0);
         for first in firsts {
             let path = segment_path(dir, first);
@@ -242,14 +312,43 @@ impl StreamLog {
             let len = file.metadata()?.len();
             let found = scan(&file, first, len)?;
             if first < expected {
+                if !recover {
+                    return Err(damage(format!(
+                        "stream segment {} overlaps the one before it (offsets from {first}, {expected} expected)",
+                        path.display()
+                    )));
+                }
                 tracing::error!(stream = %dir.display(), segment = %path.display(), "stream segment overlaps the one before it; left out (its file is kept)");
                 continue;
             }
-            if first > expected {
-                tracing::error!(stream = %dir.display(), segment = %path.display(), missing_from = expected, missing_to = first - 1, "stream segments are missing: these offsets are lost");
+            if first > expected && loss_marker(&path).exists() {
+                tracing::info!(stream = %dir.display(), segment = %path.display(), missing_from = expected, missing_to = first - 1, "stream offsets lost in an earlier recovery");
+            } else if first > expected {
+                if !recover {
+                    return Err(damage(format!(
+                        "stream segments are missing before {}: offsets {expected} to {} are lost",
+                        path.display(),
+                        first - 1
+                    )));
+                }
+                tracing::error!(stream = %dir.display(), segment = %path.display(), missing_from = expected, missing_to = first - 1, "recovering a stream with missing offsets: these are lost");
+                File::create(loss_marker(&path))?.sync_all()?;
             }
             if let Some(why) = &found.damage {
-                tracing::error!(stream = %dir.display(), segment = %path.display(), position = found.sound, sound_records = found.next - first, bytes_lost = len - found.sound, reason = %why, "damaged stream segment: the records from here to its end are lost and the file is cut there");
+                let crash_tail = found.torn_tail && Some(first) == newest && found.sound > 0;
+                if crash_tail {
+                    tracing::warn!(stream = %dir.display(), segment = %path.display(), position = found.sound, bytes = len - found.sound, reason = %why, "the newest stream segment ends in a torn append (a crash before it was confirmed): cut there");
+                } else if !recover {
+                    return Err(damage(format!(
+                        "stream segment {} is damaged at byte {} of {len} ({why}): offsets from {} on would be lost",
+                        path.display(),
+                        found.sound,
+                        found.next
+                    )));
+                } else {
+                    let copy = copy_aside(&path)?;
+                    tracing::error!(stream = %dir.display(), segment = %path.display(), copy = %copy.display(), position = found.sound, sound_records = found.next - first, lost_from_offset = found.next, bytes_lost = len - found.sound, reason = %why, "recovering a damaged stream segment: copied aside; the records from here to its end are lost and the file is cut there");
+                }
                 if found.sound == 0 {
                     // Not even its header is sound: nothing to keep.
                     continue;
@@ -457,6 +556,7 @@ pub fn remove_files(paths: Vec<PathBuf>) {
         if let Err(e) = std::fs::remove_file(&path) {
             tracing::warn!(segment = %path.display(), error = %e, "could not remove a stream segment retention let go");
         }
+        let _ = std::fs::remove_file(loss_marker(&path));
     }
 }
 
@@ -573,7 +673,7 @@ mod tests {
     #[test]
     fn appends_get_increasing_offsets_and_read_back_from_any_offset() {
         let dir = Scratch::new("offsets");
-        let mut log = StreamLog::open(dir.path(), 1 << 20).unwrap();
+        let mut log = StreamLog::open(dir.path(), 1 << 20, false).unwrap();
         for i in 0..100u32 {
             let (offset, _) = log
                 .append(&i.to_le_bytes(), 1000 + i64::from(i), i % 10 == 0)
@@ -601,7 +701,7 @@ mod tests {
     #[test]
     fn segments_roll_at_their_size_and_retention_removes_whole_old_segments() {
         let dir = Scratch::new("retention");
-        let mut log = StreamLog::open(dir.path(), 1000).unwrap();
+        let mut log = StreamLog::open(dir.path(), 1000, false).unwrap();
         let body = [7u8; 75]; // 100 bytes a record
         for i in 0..50 {
             log.append(&body, i, false).unwrap();
@@ -636,13 +736,13 @@ mod tests {
     fn offsets_and_contents_survive_reopening() {
         let dir = Scratch::new("reopen");
         {
-            let mut log = StreamLog::open(dir.path(), 300).unwrap();
+            let mut log = StreamLog::open(dir.path(), 300, false).unwrap();
             for i in 0..20u8 {
                 log.append(&[i; 30], 5, i == 12).unwrap();
             }
             remove_files(log.retain(Some(600), None, 0));
         }
-        let mut log = StreamLog::open(dir.path(), 300).unwrap();
+        let mut log = StreamLog::open(dir.path(), 300, false).unwrap();
         let first = log.first_offset();
         assert!(first > 0);
         assert_eq!(log.next_offset(), 20);
@@ -652,48 +752,144 @@ mod tests {
         assert_eq!(log.append(b"x", 6, true).unwrap().0, 20);
     }
 
-    #[test]
-    fn damage_found_at_start_is_cut_off_and_never_served() {
-        let dir = Scratch::new("damage");
-        let path;
-        {
-            let mut log = StreamLog::open(dir.path(), 1 << 20).unwrap();
-            for i in 0..10u8 {
-                log.append(&[i; 10], 1, false).unwrap();
-            }
-            path = log.head().path.clone();
+    /// Ten records of 10 bytes in segments of three.
+    fn ten_records(dir: &Path) -> Vec<PathBuf> {
+        let mut log =
+            StreamLog::open(dir, 3 * (RECORD_HEADER as u64 + 10) + SEGMENT_HEADER, false).unwrap();
+        for i in 0..10u8 {
+            log.append(&[i; 10], 1, false).unwrap();
         }
-        // Flip one payload byte of the record at offset 6.
-        let mut bytes = std::fs::read(&path).unwrap();
-        let at = SEGMENT_HEADER as usize + 6 * (RECORD_HEADER + 10) + RECORD_HEADER + 3;
+        log.segments.iter().map(|s| s.path.clone()).collect()
+    }
+
+    fn reopen(dir: &Path, recover: bool) -> io::Result<StreamLog> {
+        StreamLog::open(
+            dir,
+            3 * (RECORD_HEADER as u64 + 10) + SEGMENT_HEADER,
+            recover,
+        )
+    }
+
+    fn flip(path: &Path, at: usize) {
+        let mut bytes = std::fs::read(path).unwrap();
         bytes[at] ^= 0xff;
-        std::fs::write(&path, &bytes).unwrap();
-        let mut log = StreamLog::open(dir.path(), 1 << 20).unwrap();
-        assert_eq!(
-            log.next_offset(),
-            6,
-            "offsets 6.. were in and after the bad record"
+        std::fs::write(path, &bytes).unwrap();
+    }
+
+    fn copies_aside(dir: &Path) -> usize {
+        std::fs::read_dir(dir)
+            .unwrap()
+            .filter(|e| {
+                e.as_ref()
+                    .unwrap()
+                    .file_name()
+                    .to_string_lossy()
+                    .contains(".damaged-")
+            })
+            .count()
+    }
+
+    #[test]
+    fn damage_refuses_the_open_naming_the_file_unless_recovering() {
+        let dir = Scratch::new("damage");
+        let segments = ten_records(dir.path());
+        assert_eq!(segments.len(), 4, "3, 3, 3 and 1 records");
+        // Flip one payload byte of offset 4 (the middle segment's second).
+        flip(
+            &segments[1],
+            SEGMENT_HEADER as usize + RECORD_HEADER + 10 + RECORD_HEADER + 3,
         );
-        assert_eq!(read_all(&log, 0).len(), 6);
-        assert_eq!(log.append(b"new", 2, true).unwrap().0, 6);
-        // A torn tail (half a record) is cut off likewise.
-        let head = log.head().path.clone();
-        let len = std::fs::metadata(&head).unwrap().len();
+        let refused = reopen(dir.path(), false).unwrap_err();
+        assert_eq!(refused.kind(), io::ErrorKind::InvalidData);
+        let text = refused.to_string();
+        assert!(text.contains(&segments[1].display().to_string()), "{text}");
+        assert!(
+            text.contains("bad checksum") && text.contains("offsets from 4"),
+            "{text}"
+        );
+        assert_eq!(
+            copies_aside(dir.path()),
+            0,
+            "a refused open changes nothing"
+        );
+        assert!(reopen(dir.path(), false).is_err(), "and refuses again");
+
+        let log = reopen(dir.path(), true).unwrap();
+        assert_eq!(copies_aside(dir.path()), 1);
+        let offsets: Vec<u64> = read_all(&log, 0).iter().map(|r| r.offset).collect();
+        assert_eq!(
+            offsets,
+            vec![0, 1, 2, 3, 6, 7, 8, 9],
+            "every readable record is kept; 4 and 5 are lost"
+        );
+        drop(log);
+        // The recovery's gap is no damage for later opens; a gap nothing
+        // accounts for is, named as such.
+        assert_eq!(reopen(dir.path(), false).unwrap().len(), 10);
+        std::fs::remove_file(&segments[2]).unwrap();
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(
+            text.contains("missing") && text.contains("offsets 4 to 8"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn a_torn_or_zeroed_tail_of_the_newest_segment_is_a_crash_and_is_cut() {
+        let dir = Scratch::new("torn");
+        let segments = ten_records(dir.path());
+        let newest = segments.last().unwrap();
+        // Half a record appended (a crash mid-append), then zeros.
+        let mut bytes = std::fs::read(newest).unwrap();
+        let whole = bytes.len();
+        let torn = bytes[SEGMENT_HEADER as usize..][..RECORD_HEADER + 4].to_vec();
+        bytes.extend_from_slice(&torn);
+        std::fs::write(newest, &bytes).unwrap();
+        let log = reopen(dir.path(), false).unwrap();
+        assert_eq!(log.next_offset(), 10);
+        assert_eq!(std::fs::metadata(newest).unwrap().len() as usize, whole);
+        drop(log);
+        let mut bytes = std::fs::read(newest).unwrap();
+        bytes.extend_from_slice(&[0; 200]);
+        std::fs::write(newest, &bytes).unwrap();
+        let mut log = reopen(dir.path(), false).unwrap();
+        assert_eq!(log.append(b"next", 2, true).unwrap().0, 10);
+        drop(log);
+        // A torn record in an older segment is damage.
+        let older = &segments[0];
+        let len = std::fs::metadata(older).unwrap().len();
         OpenOptions::new()
             .write(true)
-            .open(&head)
+            .open(older)
             .unwrap()
             .set_len(len - 2)
             .unwrap();
-        drop(log);
-        let log = StreamLog::open(dir.path(), 1 << 20).unwrap();
-        assert_eq!(log.next_offset(), 6);
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(text.contains("torn record"), "{text}");
+        // A damaged newest record that is not zeros is damage too.
+        let dir = Scratch::new("newest-flip");
+        let segments = ten_records(dir.path());
+        flip(
+            segments.last().unwrap(),
+            SEGMENT_HEADER as usize + RECORD_HEADER + 1,
+        );
+        assert!(reopen(dir.path(), false).is_err());
+    }
+
+    #[test]
+    fn a_missing_directory_is_damage_unless_recovering() {
+        let dir = Scratch::new("gone");
+        ten_records(dir.path());
+        std::fs::remove_dir_all(dir.path()).unwrap();
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(text.contains("missing"), "{text}");
+        assert_eq!(reopen(dir.path(), true).unwrap().len(), 0);
     }
 
     #[test]
     fn timestamps_find_the_oldest_segment_recent_enough() {
         let dir = Scratch::new("timestamps");
-        let mut log = StreamLog::open(dir.path(), 200).unwrap();
+        let mut log = StreamLog::open(dir.path(), 200, false).unwrap();
         for i in 0..20 {
             log.append(&[0; 35], i * 100, false).unwrap(); // 60 bytes: 3 a segment
         }

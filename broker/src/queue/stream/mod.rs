@@ -184,7 +184,7 @@ impl Stream {
         let log = if new {
             StreamLog::create(&dir, args.segment_bytes)
         } else {
-            StreamLog::open(&dir, args.segment_bytes)
+            StreamLog::open(&dir, args.segment_bytes, persistence.recover_streams())
         };
         Some(log.map(|log| Stream {
             declared: args.clone(),
