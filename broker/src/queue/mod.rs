@@ -263,6 +263,11 @@ impl Queue {
         }
     }
 
+    /// A stream's offsets and files; `None` for a classic queue.
+    pub fn stream_figures(&self) -> Option<crate::inspect::StreamFigures> {
+        self.stream.as_ref().map(Stream::figures)
+    }
+
     /// Whether this queue is a stream.
     pub fn is_stream(&self) -> bool {
         self.stream.is_some()

@@ -436,6 +436,11 @@ impl StreamLog {
         self.segments.iter().map(|s| s.bytes).sum()
     }
 
+    /// Segment files.
+    pub fn segment_count(&self) -> usize {
+        self.segments.len()
+    }
+
     /// Appends one record; returns its offset and whether a new segment
     /// was started (its file and the directory then need syncing too).
     pub fn append(

@@ -213,6 +213,18 @@ impl Stream {
         self.lock().log.bytes()
     }
 
+    /// Its offsets and files, for listings and metrics.
+    pub fn figures(&self) -> crate::inspect::StreamFigures {
+        let st = self.lock();
+        let (first, next) = (st.log.first_offset(), st.log.next_offset());
+        crate::inspect::StreamFigures {
+            first_offset: first,
+            last_offset: (next > first).then(|| next - 1),
+            segments: st.log.segment_count() as u64,
+            bytes: st.log.bytes(),
+        }
+    }
+
     /// Consumers reading it.
     pub fn reader_count(&self) -> usize {
         self.lock().readers.len()
