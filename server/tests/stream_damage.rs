@@ -1,13 +1,16 @@
 //! Damage to a stream's segments at start (issue 33), as the damage
 //! matrix does for the message log: a stream takes confirmed messages over
 //! several segments, the broker stops cleanly, then one segment is
-//! damaged: the oldest with a byte flipped, a middle one cut to half or
-//! deleted, the newest with a byte flipped. The next start must refuse,
+//! damaged: the oldest or a middle one cut to half, a middle one deleted,
+//! the newest with a byte flipped. The next start must refuse,
 //! naming the data directory and the damaged file; `--recover` starts,
 //! copies the damaged file aside, keeps every readable record at its
 //! offset and serves nothing else; a start after that needs no
 //! `--recover`. A torn append at the end of the newest segment (what a
-//! crash leaves) starts with every confirmed message.
+//! crash leaves) starts with every confirmed message. A byte flipped in a
+//! closed (sealed) segment is not read at start: the start goes on, the
+//! damaged record and what follows it in its segment are never served,
+//! and readers from later offsets read on.
 
 use futures_lite::StreamExt;
 use lapin::options::{
@@ -96,6 +99,11 @@ async fn fill(broker: &OpsBroker) {
 
 /// The offsets a reader from `first` gets, each checked against its body.
 async fn read_all(broker: &OpsBroker) -> Vec<i64> {
+    read_from(broker, AMQPValue::LongString("first".into())).await
+}
+
+/// The offsets a reader from `offset` gets, each checked against its body.
+async fn read_from(broker: &OpsBroker, offset: AMQPValue) -> Vec<i64> {
     let conn = connect(broker).await;
     let channel = conn.create_channel().await.expect("channel");
     channel
@@ -103,10 +111,7 @@ async fn read_all(broker: &OpsBroker) -> Vec<i64> {
         .await
         .expect("qos");
     let mut args = FieldTable::default();
-    args.insert(
-        "x-stream-offset".into(),
-        AMQPValue::LongString("first".into()),
-    );
+    args.insert("x-stream-offset".into(), offset);
     let mut consumer = channel
         .basic_consume(STREAM, "all", BasicConsumeOptions::default(), args)
         .await
@@ -246,7 +251,7 @@ async fn a_damaged_stream_segment_refuses_the_start_and_recover_keeps_every_read
     assert!(count >= 4, "several segments: {count}");
     let all: Vec<i64> = (0..MESSAGES).collect();
     let cells = [
-        ("oldest-flip", 0, Harm::FlipByte),
+        ("oldest-half", 0, Harm::CutToHalf),
         ("middle-half", count / 2, Harm::CutToHalf),
         ("middle-delete", count / 2, Harm::Delete),
         ("newest-flip", count - 1, Harm::FlipByte),
@@ -323,6 +328,33 @@ async fn a_damaged_stream_segment_refuses_the_start_and_recover_keeps_every_read
         assert!(refusal(&dir).is_none(), "{name}: refused after recovery");
         let _ = std::fs::remove_dir_all(&dir);
     }
+
+    // A flipped byte in a sealed segment: found on read, never served.
+    let dir = temp_dir("sealed-flip");
+    copy_dir(&origin, &dir);
+    let sealed = segments(&dir);
+    harm(&sealed[0], Harm::FlipByte);
+    let second: i64 = sealed[1]
+        .file_stem()
+        .unwrap()
+        .to_string_lossy()
+        .parse()
+        .unwrap();
+    let broker = OpsBroker::on_data_dir(&dir, &[] as &[&str]);
+    assert_eq!(read_all(&broker).await, Vec::<i64>::new());
+    assert_eq!(
+        read_from(&broker, AMQPValue::LongLongInt(second)).await,
+        (second..MESSAGES).collect::<Vec<_>>()
+    );
+    assert!(
+        broker
+            .log()
+            .iter()
+            .any(|l| l.contains("stream record damaged: not served")),
+        "the damage is logged"
+    );
+    broker.terminate();
+    let _ = std::fs::remove_dir_all(&dir);
 
     // A torn append at the end of the newest segment: a crash's tail.
     let dir = temp_dir("torn-tail");

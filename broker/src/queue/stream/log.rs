@@ -17,7 +17,19 @@
 //! them durable by handing [`StreamLog::sync_handles`] to the persister,
 //! whose group commit syncs them before the publish is confirmed.
 //!
-//! Opening reads every segment and checks every record. Damage refuses
+//! A segment that is closed (the log rolled past it) is sealed: beside it,
+//! `NAME.seg.seal` holds its first and next offset, its oldest and newest
+//! timestamps and its length, with a CRC-32 of those. Opening trusts a
+//! sealed segment whose seal checks, whose length is the seal's and whose
+//! header is sound, without reading its records: start-up reads the
+//! seals, the headers and the newest segment, not the whole log. A record
+//! in a sealed segment is checked when it is read (its CRC, its offset,
+//! its length within the segment): damage there stops the reader before
+//! it, with an error log, and is never served. A closed segment without a
+//! seal that checks (sealing lost, or a length that differs) is read whole
+//! as the newest is, and sealed if sound.
+//!
+//! Opening reads every unsealed segment and checks every record. Damage refuses
 //! the open with an error naming the file, the position and what is
 //! wrong ([`Damage`]): a bad checksum, an offset out of sequence, a bad
 //! segment header, a torn record in any segment but the newest, missing
@@ -39,6 +51,10 @@ use std::sync::Arc;
 
 /// A segment file's first bytes.
 const MAGIC: &[u8; 8] = b"LVRTSTM1";
+/// A seal file's first bytes.
+const SEAL_MAGIC: &[u8; 8] = b"LVRTSEAL";
+/// Magic, first, next, oldest, newest, length, CRC-32.
+const SEAL_LEN: usize = 8 + 5 * 8 + 4;
 /// Magic and first offset.
 const SEGMENT_HEADER: u64 = 16;
 /// Length, CRC, offset, timestamp, flags.
@@ -115,7 +131,8 @@ impl Cursor {
 /// it: the segments' files from the cursor's on.
 #[derive(Debug, Clone)]
 pub struct ReadPlan {
-    segments: Vec<(u64, u64, Arc<File>)>,
+    /// First and next offset, length and file of each.
+    segments: Vec<(u64, u64, u64, Arc<File>)>,
 }
 
 /// The log (see the module docs).
@@ -249,6 +266,58 @@ fn loss_marker(segment: &Path) -> PathBuf {
     PathBuf::from(name)
 }
 
+/// A segment's seal file (module docs).
+fn seal_path(segment: &Path) -> PathBuf {
+    let mut name = segment.as_os_str().to_owned();
+    name.push(".seal");
+    PathBuf::from(name)
+}
+
+/// Seals a closed segment (module docs). Not synced: a seal lost or cut
+/// short by a crash fails its check, and the segment is read whole.
+fn write_seal(segment: &Segment) -> io::Result<()> {
+    let mut seal = Vec::with_capacity(SEAL_LEN);
+    seal.extend_from_slice(SEAL_MAGIC);
+    for value in [segment.first, segment.next] {
+        seal.extend_from_slice(&value.to_le_bytes());
+    }
+    for value in [segment.oldest_ms, segment.newest_ms] {
+        seal.extend_from_slice(&value.to_le_bytes());
+    }
+    seal.extend_from_slice(&segment.bytes.to_le_bytes());
+    let crc = checksum(&seal);
+    seal.extend_from_slice(&crc.to_le_bytes());
+    std::fs::write(seal_path(&segment.path), seal)
+}
+
+/// What a segment's seal says, if it checks against the segment: its
+/// CRC, first offset, the file's length `len` and header.
+fn read_seal(path: &Path, file: &File, first: u64, len: u64) -> Option<Scanned> {
+    let seal = std::fs::read(seal_path(path)).ok()?;
+    if seal.len() != SEAL_LEN || &seal[..8] != SEAL_MAGIC {
+        return None;
+    }
+    let field = |i: usize| u64::from_le_bytes(seal[8 + 8 * i..16 + 8 * i].try_into().expect("8"));
+    let crc = u32::from_le_bytes(seal[SEAL_LEN - 4..].try_into().expect("4"));
+    if checksum(&seal[..SEAL_LEN - 4]) != crc || field(0) != first || field(4) != len {
+        return None;
+    }
+    let mut header = [0u8; SEGMENT_HEADER as usize];
+    file.read_exact_at(&mut header, 0).ok()?;
+    if &header[..8] != MAGIC || header[8..] != first.to_le_bytes() || field(1) <= first {
+        return None;
+    }
+    Some(Scanned {
+        next: field(1),
+        oldest_ms: field(2) as i64,
+        newest_ms: field(3) as i64,
+        sound: len,
+        last_chunk: None,
+        damage: None,
+        torn_tail: false,
+    })
+}
+
 /// Copies a damaged segment aside before it is cut.
 fn copy_aside(path: &Path) -> io::Result<PathBuf> {
     let stamp = std::time::SystemTime::now()
@@ -310,7 +379,17 @@ impl StreamLog {
             let path = segment_path(dir, first);
             let file = OpenOptions::new().read(true).write(true).open(&path)?;
             let len = file.metadata()?.len();
-            let found = scan(&file, first, len)?;
+            let closed = Some(first) != newest;
+            let sealed = if closed {
+                read_seal(&path, &file, first, len)
+            } else {
+                None
+            };
+            let trusted = sealed.is_some();
+            let found = match sealed {
+                Some(found) => found,
+                None => scan(&file, first, len)?,
+            };
             if first < expected {
                 if !recover {
                     return Err(damage(format!(
@@ -359,7 +438,7 @@ impl StreamLog {
                 log.last_chunk = chunk;
             }
             expected = found.next;
-            log.segments.push(Segment {
+            let segment = Segment {
                 first,
                 next: found.next,
                 oldest_ms: found.oldest_ms,
@@ -367,7 +446,13 @@ impl StreamLog {
                 bytes: found.sound,
                 path,
                 file: Arc::new(file),
-            });
+            };
+            if closed && !trusted && found.next > first {
+                if let Err(e) = write_seal(&segment) {
+                    tracing::warn!(segment = %segment.path.display(), error = %e, "cannot seal a stream segment: it is read whole at each start");
+                }
+            }
+            log.segments.push(segment);
         }
         if log.segments.is_empty() {
             log.start_segment(expected)?;
@@ -454,6 +539,9 @@ impl StreamLog {
         let head = self.head();
         if head.next > head.first && head.bytes + size > self.max_segment_bytes {
             let first = head.next;
+            if let Err(e) = write_seal(head) {
+                tracing::warn!(segment = %head.path.display(), error = %e, "cannot seal a stream segment: it is read whole at each start");
+            }
             self.start_segment(first)?;
             rolled = true;
         }
@@ -539,7 +627,7 @@ impl StreamLog {
                 .segments
                 .iter()
                 .filter(|s| s.next > cursor.offset && s.next > s.first)
-                .map(|s| (s.first, s.next, Arc::clone(&s.file)))
+                .map(|s| (s.first, s.next, s.bytes, Arc::clone(&s.file)))
                 .collect(),
         }
     }
@@ -562,6 +650,7 @@ pub fn remove_files(paths: Vec<PathBuf>) {
             tracing::warn!(segment = %path.display(), error = %e, "could not remove a stream segment retention let go");
         }
         let _ = std::fs::remove_file(loss_marker(&path));
+        let _ = std::fs::remove_file(seal_path(&path));
     }
 }
 
@@ -574,7 +663,7 @@ impl ReadPlan {
     pub fn read(&self, cursor: &mut Cursor, max_records: usize, max_bytes: usize) -> Vec<Record> {
         let mut out = Vec::new();
         let mut bytes = 0;
-        for (first, next, file) in &self.segments {
+        for (first, next, length, file) in &self.segments {
             if cursor.offset >= *next {
                 continue;
             }
@@ -609,18 +698,22 @@ impl ReadPlan {
                     continue;
                 }
                 cursor.not_before = None;
+                if pos + (RECORD_HEADER + len) as u64 > *length {
+                    tracing::error!(
+                        position = pos,
+                        offset,
+                        "stream record damaged (its length runs past its segment): not served"
+                    );
+                    return out;
+                }
                 let mut record = vec![0u8; RECORD_HEADER + len];
-                if len as u32 > MAX_PAYLOAD || file.read_exact_at(&mut record, pos).is_err() {
+                if file.read_exact_at(&mut record, pos).is_err() {
                     tracing::error!(position = pos, "stream record unreadable");
                     return out;
                 }
                 let crc = u32::from_le_bytes(record[4..8].try_into().expect("4"));
                 if checksum(&record[8..]) != crc || offset != cursor.offset {
-                    tracing::error!(
-                        position = pos,
-                        offset,
-                        "stream record damaged since start-up: not served"
-                    );
+                    tracing::error!(position = pos, offset, "stream record damaged: not served");
                     return out;
                 }
                 record.drain(..RECORD_HEADER);
@@ -799,7 +892,9 @@ mod tests {
         let dir = Scratch::new("damage");
         let segments = ten_records(dir.path());
         assert_eq!(segments.len(), 4, "3, 3, 3 and 1 records");
-        // Flip one payload byte of offset 4 (the middle segment's second).
+        // Flip one payload byte of offset 4 (the middle segment's second),
+        // in a segment whose seal is lost (so it is read whole at open).
+        std::fs::remove_file(seal_path(&segments[1])).unwrap();
         flip(
             &segments[1],
             SEGMENT_HEADER as usize + RECORD_HEADER + 10 + RECORD_HEADER + 3,
@@ -840,6 +935,53 @@ mod tests {
     }
 
     #[test]
+    fn closed_segments_are_sealed_trusted_at_open_and_checked_on_read() {
+        let dir = Scratch::new("sealed");
+        let segments = ten_records(dir.path());
+        for closed in &segments[..3] {
+            assert!(seal_path(closed).exists(), "{} sealed", closed.display());
+        }
+        assert!(!seal_path(&segments[3]).exists(), "the newest is not");
+        // A flipped byte in a sealed segment: the open trusts the seal (it
+        // does not read the records) and the read stops before the damage.
+        flip(
+            &segments[0],
+            SEGMENT_HEADER as usize + RECORD_HEADER + 10 + RECORD_HEADER + 3,
+        );
+        let log = reopen(dir.path(), false).unwrap();
+        assert_eq!((log.first_offset(), log.next_offset()), (0, 10));
+        let offsets: Vec<u64> = read_all(&log, 0).iter().map(|r| r.offset).collect();
+        assert_eq!(offsets, vec![0], "offset 1 is damaged: nothing from it on");
+        let later: Vec<u64> = read_all(&log, 3).iter().map(|r| r.offset).collect();
+        assert_eq!(later, (3..10).collect::<Vec<_>>());
+        drop(log);
+        // A damaged length in a sealed segment is bounded by the segment.
+        let mut bytes = std::fs::read(&segments[1]).unwrap();
+        bytes[SEGMENT_HEADER as usize..][..4].copy_from_slice(&u32::MAX.to_le_bytes());
+        std::fs::write(&segments[1], &bytes).unwrap();
+        let log = reopen(dir.path(), false).unwrap();
+        assert!(read_all(&log, 3).is_empty());
+        drop(log);
+        // A sealed segment whose length differs from its seal's is read
+        // whole: cut short, it is damage.
+        let len = std::fs::metadata(&segments[2]).unwrap().len();
+        OpenOptions::new()
+            .write(true)
+            .open(&segments[2])
+            .unwrap()
+            .set_len(len - 3)
+            .unwrap();
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(text.contains("torn record"), "{text}");
+        // A seal that does not check is not trusted either.
+        let dir = Scratch::new("bad-seal");
+        let segments = ten_records(dir.path());
+        flip(&seal_path(&segments[0]), 20);
+        flip(&segments[0], SEGMENT_HEADER as usize + RECORD_HEADER + 3);
+        assert!(reopen(dir.path(), false).is_err());
+    }
+
+    #[test]
     fn a_torn_or_zeroed_tail_of_the_newest_segment_is_a_crash_and_is_cut() {
         let dir = Scratch::new("torn");
         let segments = ten_records(dir.path());
@@ -860,7 +1002,8 @@ mod tests {
         let mut log = reopen(dir.path(), false).unwrap();
         assert_eq!(log.append(b"next", 2, true).unwrap().0, 10);
         drop(log);
-        // A torn record in an older segment is damage.
+        // A torn record in an older segment is damage (its seal no longer
+        // matches its length, so it is read whole).
         let older = &segments[0];
         let len = std::fs::metadata(older).unwrap().len();
         OpenOptions::new()
