@@ -216,6 +216,21 @@ async fn declare_rules_and_arguments_reply_as_rabbitmq_does() {
     )
     .await;
     assert_eq!((code, text.as_str()), (406, "PRECONDITION_FAILED - invalid arg 'x-max-length-bytes' for queue 'Q' in vhost '/': {value_negative,-1}"));
+    let (code, text) = refused(
+        durable(),
+        vec![(
+            "x-stream-max-segment-size-bytes",
+            AMQPValue::LongLongInt(3_000_000_001),
+        )],
+    )
+    .await;
+    assert_eq!(
+        (code, text.as_str()),
+        (
+            406,
+            "PRECONDITION_FAILED - Exceeded max value for x-stream-max-segment-size-bytes"
+        )
+    );
 
     // Accepted with its arguments; a redeclaration must match them.
     let ch = lp::channel(&conn).await;

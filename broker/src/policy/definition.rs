@@ -158,7 +158,11 @@ impl Definition {
                     )
                 }
                 "stream-max-segment-size-bytes" => {
-                    d.stream_max_segment_size_bytes = Some(int(0, i64::MAX, "segment size")?)
+                    d.stream_max_segment_size_bytes = Some(int(
+                        0,
+                        crate::queue::MAX_SEGMENT_BYTES as i64,
+                        "segment size",
+                    )?)
                 }
                 "overflow" => {
                     d.overflow = Some(

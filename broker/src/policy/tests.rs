@@ -164,6 +164,11 @@ fn stream_keys_are_read_with_rabbitmqs_checks() {
         ),
         (
             "stream-max-segment-size-bytes",
+            int(3_000_000_001),
+            "3000000001 is not a valid segment size",
+        ),
+        (
+            "stream-max-segment-size-bytes",
             text("5"),
             "<<\"5\">> is not a valid segment size",
         ),

@@ -30,7 +30,7 @@ mod stream;
 
 pub use args::{ConsumerArgs, Overflow, QueueArgs};
 pub use leaving::{DeadLetter, DeadLetterReason, DeadLetters, Deleted};
-pub use stream::{is_stream, max_age_ms, start_at, StartAt, Stream, StreamArgs};
+pub use stream::{is_stream, max_age_ms, start_at, StartAt, Stream, StreamArgs, MAX_SEGMENT_BYTES};
 
 use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};

@@ -20,7 +20,7 @@
 mod args;
 mod log;
 
-pub use args::{is_stream, max_age_ms, start_at, StartAt, StreamArgs};
+pub use args::{is_stream, max_age_ms, start_at, StartAt, StreamArgs, MAX_SEGMENT_BYTES};
 
 use super::{Deleted, Enqueued, Queue, QueuedMessage};
 use crate::consumer::{Consumer, Unacked};
