@@ -266,6 +266,16 @@ impl Core {
         Arc::clone(vhost)
     }
 
+    /// Takes the vhost with this name away, marked deleted (so nothing
+    /// can be declared in it any more), for [`crate::admin::Admin`] to
+    /// empty; `None` if there is none.
+    pub fn remove_vhost(&self, name: &ShortStr) -> Option<Arc<Vhost>> {
+        let mut vhosts = self.vhosts.write().unwrap_or_else(|e| e.into_inner());
+        let vhost = vhosts.remove(name)?;
+        vhost.mark_deleted();
+        Some(vhost)
+    }
+
     /// Every vhost.
     pub fn vhosts(&self) -> Vec<Arc<Vhost>> {
         self.vhosts

@@ -544,7 +544,7 @@ fn ping_and_await_startup_exit_as_rabbitmqctl() {
     assert!(String::from_utf8_lossy(&waited.stderr).contains("did not start within 1 s"));
 }
 
-/// add_vhost and list_vhosts, in text and with `--formatter json`.
+/// add_vhost, list_vhosts and delete_vhost, in text and with `--formatter json`.
 #[test]
 fn vhosts_are_added_and_listed_in_both_formats() {
     let broker = OpsBroker::start("ctl-vhosts", &[]);
@@ -569,6 +569,13 @@ fn vhosts_are_added_and_listed_in_both_formats() {
         vhosts,
         serde_json::json!([{"name": "/", "tracing": false}, {"name": "robots", "tracing": false}])
     );
+    assert_eq!(
+        lines(&broker, &["delete_vhost", "robots"]),
+        ["Deleting vhost \"robots\" ..."]
+    );
+    assert_eq!(lines(&broker, &["-q", "list_vhosts"]), ["name", "/"]);
+    let missing = ctl(&broker, &["delete_vhost", "robots"]);
+    assert_eq!(missing.status.code(), Some(1), "{missing:?}");
 }
 
 /// list_channels with rabbitmqctl's default columns; an unknown column

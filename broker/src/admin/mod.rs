@@ -5,9 +5,10 @@
 //! AMQP method of the same meaning does, with the same checks.
 //!
 //! Layout: `mod` the handle and the object operations; `parameters`
-//! runtime parameters.
+//! runtime parameters; `vhost_deletion` deleting a vhost and all it holds.
 
 mod parameters;
+mod vhost_deletion;
 
 use crate::channel::{apply_settles, Settle};
 use crate::consumer::ChannelLink;

@@ -816,6 +816,15 @@ impl Connection {
                 heartbeat_secs: tune_ok.heartbeat,
             },
         );
+        if vhost.is_deleted() {
+            // Deleted after the lookup above: its deletion closes the
+            // connections it found registered, and this one may have
+            // registered too late to be found.
+            return Err(Ended::Protocol(
+                AmqpError::not_allowed(format_args!("vhost {} not found", open.virtual_host))
+                    .during_ids(10, 40),
+            ));
+        }
         self.vhost = Some(vhost);
         self.outbox
             .method(

@@ -115,6 +115,9 @@ enum Command {
     /// Adds a vhost (the caller gets full permissions on it, as with
     /// RabbitMQ's API).
     AddVhost { vhost: String },
+    /// Deletes a vhost and everything in it: its connections are closed,
+    /// its queues, exchanges, bindings, permissions and parameters go.
+    DeleteVhost { vhost: String },
     /// Lists channels: pid, user, consumer_count, messages_unacknowledged
     /// by default.
     ListChannels { columns: Vec<String> },
@@ -330,6 +333,11 @@ fn run(cli: &Cli) -> Result<(), Failure> {
         Command::AddVhost { vhost } => {
             info(cli, &format!("Adding vhost \"{vhost}\" ..."))?;
             client.put(&format!("/api/vhosts/{}", segment(vhost)), b"{}")?;
+            Ok(())
+        }
+        Command::DeleteVhost { vhost } => {
+            info(cli, &format!("Deleting vhost \"{vhost}\" ..."))?;
+            client.delete(&format!("/api/vhosts/{}", segment(vhost)), &[])?;
             Ok(())
         }
         Command::ListChannels { columns } => {

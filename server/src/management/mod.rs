@@ -14,7 +14,8 @@
 //! (one function per route), `pagination` (RabbitMQ's `page`,
 //! `page_size`, `name`, `sort`), `json` (objects and body parsing), `rates`
 //! (the sampler behind `*_details`), `audit` (the log line of each change
-//! with the acting user). Handlers reach the broker only
+//! with the acting user), `vhost_deletion` (`DELETE /api/vhosts/{vhost}`).
+//! Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
 mod audit;
@@ -24,6 +25,7 @@ mod handlers;
 pub mod json;
 mod pagination;
 mod rates;
+mod vhost_deletion;
 
 use crate::http::Peer;
 use crate::uplink::{DeclareError, Links};
@@ -240,7 +242,12 @@ pub fn router(context: Context) -> Router {
         .route("/api/nodes", get(h::nodes))
         .route("/api/nodes/{node}", get(h::node))
         .route("/api/vhosts", get(h::vhosts))
-        .route("/api/vhosts/{vhost}", get(h::vhost).put(h::put_vhost))
+        .route(
+            "/api/vhosts/{vhost}",
+            get(h::vhost)
+                .put(h::put_vhost)
+                .delete(vhost_deletion::delete_vhost),
+        )
         .route("/api/users", get(h::users))
         .route(
             "/api/users/{name}",
