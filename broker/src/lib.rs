@@ -77,6 +77,7 @@
 //! from /proc, one of the alarm's sources), `disk_alarm` (free disk space,
 //! the disk alarm's source), `admission` (connections and channels
 //! counted against RabbitMQ's connection, vhost and user limits),
+//! `limits` (the vhost and user limits in effect, set at run time too),
 //! `arguments` (every argument RabbitMQ 3.10 knows and what Leveret does
 //! with it), `auth` (users and SASL), `password` (password hashes),
 //! `hash_pool` (the bounded threads that check slow hashes) and
@@ -114,6 +115,7 @@ pub mod exchange;
 mod exchange;
 mod hash_pool;
 mod inspect;
+mod limits;
 mod login_backoff;
 mod memory;
 mod message;
@@ -150,6 +152,7 @@ pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPAC
 pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 pub use crate::hash_pool::{HashPoolStats, HASH_THREADS};
+pub use crate::limits::UnknownLimit;
 pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
 pub use crate::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,

@@ -2,7 +2,7 @@
 //! its connections are closed with 320 CONNECTION_FORCED and RabbitMQ's
 //! text, everything in it (queues and their messages, exchanges,
 //! bindings) is deleted in time slices, and its permissions, topic
-//! permissions and runtime parameters go with it, on disk before the caller
+//! permissions, runtime parameters and limits go with it, on disk before the caller
 //! hears it is done.
 //!
 //! Uses the core, `vhost`, `slice`, `store` and `access`'s meta writes.
@@ -106,6 +106,8 @@ impl Admin {
                 values.remove(key);
             }
         }
+        // Its limits were among its parameters.
+        self.core.limit_tables.set_vhost(name, None);
         tracing::info!(vhost = %name, connections = closed, "deleted vhost '{name}' and everything in it ({closed} connections closed)");
         Ok(true)
     }

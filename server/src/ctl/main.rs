@@ -25,11 +25,13 @@
 //! - `main`: the command line and the commands.
 //! - `client`: the HTTP client (ureq).
 //! - `columns`: rabbitmqctl's column names mapped onto the API's fields.
+//! - `limits`: the vhost and user limit commands.
 //! - `ports`: the `port` commands, over AMQP with leveret-client.
 #![forbid(unsafe_code)]
 
 mod client;
 mod columns;
+mod limits;
 mod ports;
 
 use clap::{Parser, Subcommand};
@@ -118,6 +120,29 @@ enum Command {
     /// Deletes a vhost and everything in it: its connections are closed,
     /// its queues, exchanges, bindings, permissions and parameters go.
     DeleteVhost { vhost: String },
+    /// Replaces the vhost's limits with a JSON definition
+    /// (`{"max-connections": 10, "max-queues": 100}`; negative: none).
+    SetVhostLimits { definition: String },
+    /// Clears the vhost's limits.
+    ClearVhostLimits,
+    /// Lists the vhost's limits (every vhost's with `--global`).
+    ListVhostLimits {
+        #[arg(long)]
+        global: bool,
+    },
+    /// Adds a JSON definition to a user's limits
+    /// (`{"max-connections": 5, "max-channels": 50}`; negative: none).
+    SetUserLimits { user: String, definition: String },
+    /// Clears one limit of a user (`max-connections`, `max-channels`) or
+    /// `all`.
+    ClearUserLimits { user: String, limit: String },
+    /// Lists a user's limits (every user's with `--global`).
+    ListUserLimits {
+        #[arg(long, default_value = "guest")]
+        user: String,
+        #[arg(long)]
+        global: bool,
+    },
     /// Lists channels: pid, user, consumer_count, messages_unacknowledged
     /// by default.
     ListChannels { columns: Vec<String> },
@@ -335,6 +360,31 @@ fn run(cli: &Cli) -> Result<(), Failure> {
             client.put(&format!("/api/vhosts/{}", segment(vhost)), b"{}")?;
             Ok(())
         }
+        Command::SetVhostLimits { definition } => {
+            limits::run(cli, &client, limits::LimitsCommand::SetVhost(definition))
+        }
+        Command::ClearVhostLimits => limits::run(cli, &client, limits::LimitsCommand::ClearVhost),
+        Command::ListVhostLimits { global } => limits::run(
+            cli,
+            &client,
+            limits::LimitsCommand::ListVhost { global: *global },
+        ),
+        Command::SetUserLimits { user, definition } => limits::run(
+            cli,
+            &client,
+            limits::LimitsCommand::SetUser(user, definition),
+        ),
+        Command::ClearUserLimits { user, limit } => {
+            limits::run(cli, &client, limits::LimitsCommand::ClearUser(user, limit))
+        }
+        Command::ListUserLimits { user, global } => limits::run(
+            cli,
+            &client,
+            limits::LimitsCommand::ListUser {
+                user,
+                global: *global,
+            },
+        ),
         Command::DeleteVhost { vhost } => {
             info(cli, &format!("Deleting vhost \"{vhost}\" ..."))?;
             client.delete(&format!("/api/vhosts/{}", segment(vhost)), &[])?;

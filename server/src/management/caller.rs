@@ -129,11 +129,13 @@ impl Caller {
         }
         let reads = method == Method::GET || method == Method::HEAD;
         let first = segments.first().map(String::as_str).unwrap_or("");
-        let admin_only =
-            matches!(
-                first,
-                "users" | "permissions" | "topic-permissions" | "definitions"
-            ) || (matches!(first, "vhosts" | "connections" | "parameters" | "policies") && !reads);
+        let admin_only = matches!(
+            first,
+            "users" | "permissions" | "topic-permissions" | "definitions" | "user-limits"
+        ) || (matches!(
+            first,
+            "vhosts" | "connections" | "parameters" | "policies" | "vhost-limits"
+        ) && !reads);
         if admin_only {
             return Err(not_authorised("Not administrator user"));
         }
@@ -145,6 +147,7 @@ impl Caller {
                 | "consumers"
                 | "aliveness-test"
                 | "vhosts"
+                | "vhost-limits"
                 | "shovels"
                 | "policies"
                 | "federation-links"

@@ -14,7 +14,8 @@
 //! (one function per route), `pagination` (RabbitMQ's `page`,
 //! `page_size`, `name`, `sort`), `json` (objects and body parsing), `rates`
 //! (the sampler behind `*_details`), `audit` (the log line of each change
-//! with the acting user), `vhost_deletion` (`DELETE /api/vhosts/{vhost}`).
+//! with the acting user), `vhost_deletion` (`DELETE /api/vhosts/{vhost}`),
+//! `limits` (vhost and user limits).
 //! Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
@@ -23,6 +24,7 @@ mod caller;
 mod federation;
 mod handlers;
 pub mod json;
+mod limits;
 mod pagination;
 mod rates;
 mod vhost_deletion;
@@ -247,6 +249,18 @@ pub fn router(context: Context) -> Router {
             get(h::vhost)
                 .put(h::put_vhost)
                 .delete(vhost_deletion::delete_vhost),
+        )
+        .route("/api/vhost-limits", get(limits::vhost_limits))
+        .route("/api/vhost-limits/{vhost}", get(limits::vhost_limits_of))
+        .route(
+            "/api/vhost-limits/{vhost}/{name}",
+            put(limits::put_vhost_limit).delete(limits::delete_vhost_limit),
+        )
+        .route("/api/user-limits", get(limits::user_limits))
+        .route("/api/user-limits/{user}", get(limits::user_limits_of))
+        .route(
+            "/api/user-limits/{user}/{name}",
+            put(limits::put_user_limit).delete(limits::delete_user_limit),
         )
         .route("/api/users", get(h::users))
         .route(
