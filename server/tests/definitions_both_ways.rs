@@ -12,7 +12,8 @@
 //!   `guest` among them), user limits, vhost limits, a policy, an operator
 //!   policy, `cluster_name` and another global parameter loads into
 //!   Leveret: the users exist with their permissions and limits but no
-//!   password logs them in (AMQP or HTTP), and every item Leveret does not
+//!   password logs them in (AMQP or HTTP), the vhost limits are applied and
+//!   exported as RabbitMQ exports them, and every item Leveret does not
 //!   apply is named in its log.
 //!
 //! Skips loudly outside CI when rabbitmq-server is not installed; fails
@@ -344,7 +345,6 @@ async fn definitions_go_both_ways_between_leveret_and_rabbitmq() {
         "policy 'ttl' in vhost 'robots' not imported",
         "parameter operator_policy 'cap' in vhost 'robots'",
         "not imported: Leveret has no operator policies",
-        "parameter vhost-limits 'limits' in vhost 'robots' ({\"max-queues\":10}) not imported",
         "global_parameters: 'cluster_name' (\"rabbit-fleet\") not imported",
         "global_parameters: 'fleet_note'",
     ] {
@@ -390,6 +390,19 @@ async fn definitions_go_both_ways_between_leveret_and_rabbitmq() {
     assert_eq!(user("alice")["password_hash"], "");
     assert_eq!(user("guest")["password_hash"], "");
     assert_eq!(user("robot")["limits"], json!({"max-connections": 3}));
+    // Vhost limits are applied, and exported as RabbitMQ exports them.
+    assert_eq!(
+        get_json(leveret.http, admin, "/api/vhost-limits/robots").await,
+        json!([{"vhost": "robots", "value": {"max-queues": 10}}])
+    );
+    let limits = |export: &Value| -> Vec<Value> {
+        (export["parameters"].as_array().into_iter().flatten())
+            .filter(|p| p["component"] == "vhost-limits")
+            .cloned()
+            .collect()
+    };
+    assert_eq!(limits(&export), limits(&from_rabbitmq));
+    assert_eq!(limits(&export).len(), 1);
     let user_fields = ["name", "password_hash", "hashing_algorithm", "tags"];
     assert_eq!(
         pick(&export, "users", &user_fields),
