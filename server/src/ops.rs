@@ -76,11 +76,13 @@ fn bound_addr(listener: &std::net::TcpListener, asked: SocketAddr) -> Result<Soc
 
 impl Ops {
     /// Binds the listeners and serves them on their own thread;
-    /// `amqp_listeners` are reported in `/api/overview`.
+    /// `amqp_listeners` are reported in `/api/overview`, they and
+    /// `other_listeners` (by RabbitMQ's protocol name) in the health checks.
     pub fn start(
         admin: Admin,
         links: Links,
         amqp_listeners: &[SocketAddr],
+        other_listeners: Vec<(&'static str, SocketAddr)>,
         settings: OpsSettings,
     ) -> Result<Ops, OpsError> {
         let metrics = bind(settings.metrics_listen)?;
@@ -92,6 +94,10 @@ impl Ops {
             .build()
             .map_err(OpsError::Thread)?;
         let node = crate::process::node_name();
+        let listeners = (amqp_listeners.iter().map(|addr| ("amqp", *addr)))
+            .chain(other_listeners)
+            .chain([("http", http_addr), ("http/prometheus", metrics_addr)])
+            .collect();
         let rates = Rates::default();
         let metrics_context = MetricsContext {
             admin: admin.clone(),
@@ -105,6 +111,7 @@ impl Ops {
             node,
             data_dir: settings.data_dir,
             amqp_listeners: amqp_listeners.to_vec(),
+            listeners,
             rates: rates.clone(),
         };
         let (stop, stopped) = watch::channel(false);

@@ -427,7 +427,9 @@ async fn vhosts_per_object_bindings_and_per_vhost_definitions() {
     };
     assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 201);
     assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 204);
-    assert_eq!(send("DELETE", "/api/vhosts/robots", b"").await.status, 405);
+    assert_eq!(send("DELETE", "/api/vhosts/robots", b"").await.status, 204);
+    assert_eq!(send("DELETE", "/api/vhosts/robots", b"").await.status, 404);
+    assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 201);
     for (path, body) in [
         (
             "/api/exchanges/robots/sensors",

@@ -15,7 +15,7 @@
 //! `page_size`, `name`, `sort`), `json` (objects and body parsing), `rates`
 //! (the sampler behind `*_details`), `audit` (the log line of each change
 //! with the acting user), `vhost_deletion` (`DELETE /api/vhosts/{vhost}`),
-//! `limits` (vhost and user limits).
+//! `limits` (vhost and user limits), `health` (the health checks).
 //! Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
@@ -23,6 +23,7 @@ mod audit;
 mod caller;
 mod federation;
 mod handlers;
+mod health;
 pub mod json;
 mod limits;
 mod pagination;
@@ -62,6 +63,10 @@ pub struct Context {
     pub data_dir: PathBuf,
     /// The AMQP listeners.
     pub amqp_listeners: Vec<SocketAddr>,
+    /// Every listener of the process by RabbitMQ's protocol name (`amqp`,
+    /// `amqp/ssl`, `mqtt`, `http`, `http/prometheus`), for the health
+    /// checks.
+    pub listeners: Vec<(&'static str, SocketAddr)>,
     /// Message rates.
     pub rates: Rates,
 }
@@ -368,7 +373,28 @@ pub fn router(context: Context) -> Router {
         )
         .route("/api/federation-links", get(federation::links))
         .route("/api/federation-links/{vhost}", get(federation::links_in))
-        .route("/api/health/checks/alarms", get(h::alarms))
+        .route("/api/health/checks/alarms", get(health::alarms))
+        .route("/api/health/checks/local-alarms", get(health::local_alarms))
+        .route(
+            "/api/health/checks/port-listener/{port}",
+            get(health::port_listener),
+        )
+        .route(
+            "/api/health/checks/protocol-listener/{protocol}",
+            get(health::protocol_listener),
+        )
+        .route(
+            "/api/health/checks/virtual-hosts",
+            get(health::virtual_hosts),
+        )
+        .route(
+            "/api/health/checks/node-is-quorum-critical",
+            get(health::node_is_quorum_critical),
+        )
+        .route(
+            "/api/health/checks/node-is-mirror-sync-critical",
+            get(health::node_is_mirror_sync_critical),
+        )
         .fallback(h::unknown)
         .route_layer(axum::middleware::from_fn(audit::log_changes))
         .route_layer(axum::middleware::from_fn_with_state(
