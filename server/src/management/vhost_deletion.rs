@@ -1,12 +1,31 @@
 //! `DELETE /api/vhosts/{vhost}`: deletes a vhost and everything in it
-//! (RabbitMQ's 204, or 404 when there is no such vhost), through
-//! [`leveret_broker::Admin::delete_vhost`].
+//! (RabbitMQ's 204, or 404 when there is no such vhost). Its shovels,
+//! federation upstreams and policies are stopped and forgotten first
+//! (`crate::uplink`, `crate::federation`), then the broker deletes the rest
+//! through [`leveret_broker::Admin::delete_vhost`].
 
-use super::handlers::{no_content, ApiResult, Ctx};
+use super::handlers::{no_content, require_vhost, ApiResult, Ctx};
 use super::ApiError;
 use axum::extract::{Path, State};
 
 pub async fn delete_vhost(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult {
+    require_vhost(&c, &vhost)?;
+    for shovel in c.links.shovels.list() {
+        if shovel.vhost == vhost {
+            c.links.shovels.delete(&vhost, &shovel.name).await?;
+        }
+    }
+    let federation = &c.links.federation;
+    for (in_vhost, name, _) in federation.upstreams() {
+        if in_vhost == vhost {
+            federation.delete_upstream(&vhost, &name).await?;
+        }
+    }
+    for (in_vhost, name, _) in federation.policies() {
+        if in_vhost == vhost {
+            federation.delete_policy(&vhost, &name).await?;
+        }
+    }
     if c.admin.delete_vhost(&vhost).await? {
         Ok(no_content())
     } else {
