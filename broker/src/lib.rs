@@ -160,7 +160,7 @@ pub use crate::permissions::{
 pub use crate::queue::process_nonce;
 pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use crate::stats::HistogramFigures;
-pub use crate::tls::{PeerVerification, TlsError, TlsOptions};
+pub use crate::tls::{certificate_expiry, PeerVerification, TlsError, TlsOptions};
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;
 pub use inspect::{

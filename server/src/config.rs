@@ -580,6 +580,7 @@ impl Settings {
             metrics_listen: self.metrics_listen,
             http_listen: self.http_listen,
             data_dir: self.data_dir.clone(),
+            tls: self.tls.clone().filter(|_| !self.tls_listen.is_empty()),
         }
     }
 

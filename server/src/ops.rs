@@ -23,6 +23,8 @@ pub struct OpsSettings {
     pub http_listen: SocketAddr,
     /// Where the broker keeps its data (disk space is measured there).
     pub data_dir: PathBuf,
+    /// The TLS listeners' certificate files, for the health check.
+    pub tls: Option<leveret_broker::TlsOptions>,
 }
 
 /// The running listeners.
@@ -112,6 +114,7 @@ impl Ops {
             data_dir: settings.data_dir,
             amqp_listeners: amqp_listeners.to_vec(),
             listeners,
+            tls: settings.tls,
             rates: rates.clone(),
         };
         let (stop, stopped) = watch::channel(false);

@@ -70,6 +70,7 @@ fn listener_and_node_checks_answer_as_rabbitmq() {
         "virtual-hosts",
         "node-is-quorum-critical",
         "node-is-mirror-sync-critical",
+        "certificate-expiration/1/days",
     ] {
         assert_eq!(
             curl(&broker, &format!("{checks}/{check}")),
@@ -89,4 +90,56 @@ fn local_alarms_fail_during_a_disk_alarm() {
     assert_eq!(status, 503, "{body}");
     assert_eq!(body["reason"], "There are alarms in effect on the node");
     assert_eq!(body["alarms"][0]["resource"], "disk", "{body}");
+}
+
+/// `certificate-expiration/{within}/{unit}` over the TLS listener's
+/// certificate file (certificates made with rcgen): a certificate that
+/// expired on 2021-01-01 fails the check with its listener and date; a
+/// current one (rcgen's default validity runs to 4096) passes it; a unit
+/// RabbitMQ does not have is 400.
+#[test]
+fn certificate_expiration_looks_at_the_tls_listeners_certificates() {
+    let ca = leveret_tests::certs::Authority::new("health");
+    for (expired, within, want) in [(true, "1/days", 503), (false, "10/years", 200)] {
+        let name = format!("health-tls-{expired}");
+        let dir = std::env::temp_dir().join(format!("leveret-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let (leaf, key) = ca.sign("leveret", expired);
+        let (cert_path, key_path) = (dir.join("cert.pem"), dir.join("key.pem"));
+        std::fs::write(&cert_path, leaf.pem()).expect("cert");
+        std::fs::write(&key_path, key.serialize_pem()).expect("key");
+        let broker = OpsBroker::start(
+            &name,
+            &[
+                "--tls-listen",
+                "127.0.0.1:0",
+                "--tls-certfile",
+                cert_path.to_str().expect("utf-8"),
+                "--tls-keyfile",
+                key_path.to_str().expect("utf-8"),
+            ],
+        );
+        let path = format!("/api/health/checks/certificate-expiration/{within}");
+        let (status, body) = curl(&broker, &path);
+        assert_eq!(status, want, "{body}");
+        if expired {
+            assert_eq!(body["reason"], "Certificates expiring", "{body}");
+            let entry = &body["expired"][0];
+            assert_eq!(entry["protocol"], "amqp/ssl");
+            assert_eq!(entry["port"], broker.tls.expect("TLS listener").port());
+            assert_eq!(entry["expires_on"], "2021-01-01T00:00:00Z");
+            assert_eq!(
+                curl(
+                    &broker,
+                    "/api/health/checks/certificate-expiration/1/fortnights"
+                )
+                .0,
+                400
+            );
+        } else {
+            assert_eq!(body, json!({"status": "ok"}));
+        }
+        drop(broker);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

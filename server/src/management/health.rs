@@ -14,6 +14,10 @@
 //! - `node-is-quorum-critical`, `node-is-mirror-sync-critical`: Leveret has
 //!   no quorum queues and no mirrors, so no queue depends on this node for
 //!   either; they pass.
+//! - `certificate-expiration/{within}/{unit}` (`days`, `weeks`, `months`
+//!   of 30 days, `years` of 365): fails when a certificate of the TLS
+//!   listeners' `certfile` or `cacertfile` expires within that time,
+//!   listing each with its listener and `expires_on` (UTC, ISO 8601).
 
 use super::handlers::Ctx;
 use super::ApiError;
@@ -112,4 +116,96 @@ pub async fn node_is_quorum_critical() -> Response {
 
 pub async fn node_is_mirror_sync_critical() -> Response {
     ok(json!({}))
+}
+
+/// Seconds in one `unit` of certificate-expiration.
+fn unit_seconds(unit: &str) -> Option<i64> {
+    const DAY: i64 = 86_400;
+    match unit.trim_end_matches('s') {
+        "day" => Some(DAY),
+        "week" => Some(7 * DAY),
+        "month" => Some(30 * DAY),
+        "year" => Some(365 * DAY),
+        _ => None,
+    }
+}
+
+/// `2026-11-27T10:00:00Z` for seconds since the Unix epoch (the civil
+/// calendar from a day count, Howard Hinnant's algorithm).
+fn iso8601(seconds: i64) -> String {
+    let (days, of_day) = (seconds.div_euclid(86_400), seconds.rem_euclid(86_400));
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!(
+        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}Z",
+        of_day / 3600,
+        of_day % 3600 / 60,
+        of_day % 60
+    )
+}
+
+pub async fn certificate_expiration(
+    State(c): Ctx,
+    Path((within, unit)): Path<(String, String)>,
+) -> Response {
+    let (Ok(within), Some(unit)) = (within.parse::<u32>(), unit_seconds(&unit)) else {
+        return ApiError::bad_request(format!(
+            "expected a number of days, weeks, months or years, not '{within}/{unit}'"
+        ))
+        .into_response();
+    };
+    let Some(tls) = &c.tls else {
+        return ok(json!({}));
+    };
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |elapsed| {
+            i64::try_from(elapsed.as_secs()).unwrap_or(i64::MAX)
+        });
+    let deadline = now.saturating_add(i64::from(within) * unit);
+    let files = std::iter::once(&tls.certfile).chain(tls.cacertfile.as_ref());
+    let mut expiring = Vec::new();
+    for file in files {
+        let expiries = match leveret_broker::certificate_expiry(file) {
+            Ok(expiries) => expiries,
+            Err(e) => return failed(&format!("cannot read the certificates: {e}"), json!({})),
+        };
+        for expires in expiries.into_iter().filter(|at| *at <= deadline) {
+            for (_, addr) in c.listeners.iter().filter(|(p, _)| *p == "amqp/ssl") {
+                expiring.push(json!({
+                    "node": c.node, "protocol": "amqp/ssl",
+                    "interface": addr.ip().to_string(), "port": addr.port(),
+                    "certfile": tls.certfile, "cacertfile": tls.cacertfile,
+                    "expires_on": iso8601(expires),
+                }));
+            }
+        }
+    }
+    if expiring.is_empty() {
+        ok(json!({}))
+    } else {
+        failed("Certificates expiring", json!({ "expired": expiring }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dates_and_units_are_read_and_written_as_expected() {
+        assert_eq!(iso8601(0), "1970-01-01T00:00:00Z");
+        assert_eq!(iso8601(951_782_400), "2000-02-29T00:00:00Z");
+        assert_eq!(iso8601(1_795_735_445), "2026-11-26T23:24:05Z");
+        assert_eq!(unit_seconds("weeks"), Some(604_800));
+        assert_eq!(unit_seconds("month"), Some(2_592_000));
+        assert_eq!(unit_seconds("fortnights"), None);
+    }
 }

@@ -67,6 +67,8 @@ pub struct Context {
     /// `amqp/ssl`, `mqtt`, `http`, `http/prometheus`), for the health
     /// checks.
     pub listeners: Vec<(&'static str, SocketAddr)>,
+    /// The TLS listeners' certificate files, if there are TLS listeners.
+    pub tls: Option<leveret_broker::TlsOptions>,
     /// Message rates.
     pub rates: Rates,
 }
@@ -394,6 +396,10 @@ pub fn router(context: Context) -> Router {
         .route(
             "/api/health/checks/node-is-mirror-sync-critical",
             get(health::node_is_mirror_sync_critical),
+        )
+        .route(
+            "/api/health/checks/certificate-expiration/{within}/{unit}",
+            get(health::certificate_expiration),
         )
         .fallback(h::unknown)
         .route_layer(axum::middleware::from_fn(audit::log_changes))
