@@ -913,3 +913,30 @@ fn status(cli: &Cli, client: &Client) -> Result<(), Failure> {
     );
     emit(&report)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::Cli;
+    use clap::CommandFactory;
+
+    /// `packaging/leveretctl.1` is clap_mangen's rendering of this command
+    /// line, the one `--help` prints (the commands are listed, each with
+    /// its own `--help`); `LEVERET_WRITE_MAN=1` rewrites it.
+    #[test]
+    fn the_man_page_is_rendered_from_the_command_line() {
+        let mut rendered = Vec::new();
+        clap_mangen::Man::new(Cli::command())
+            .render(&mut rendered)
+            .expect("render");
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../packaging/leveretctl.1");
+        if std::env::var_os("LEVERET_WRITE_MAN").is_some() {
+            std::fs::write(&path, &rendered).expect("write the man page");
+        }
+        let kept = std::fs::read(&path).unwrap_or_default();
+        assert!(
+            kept == rendered,
+            "packaging/leveretctl.1 differs from the command line: run this test with LEVERET_WRITE_MAN=1"
+        );
+    }
+}
