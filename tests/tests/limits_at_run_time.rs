@@ -99,6 +99,47 @@ async fn concurrent_connections_never_pass_a_vhost_limit_set_at_run_time() {
 }
 
 #[both_runtimes]
+async fn concurrent_connections_never_pass_a_user_limit_set_at_run_time() {
+    let store = Arc::new(MemoryStore::default());
+    let broker = start(&store).await;
+    let admin = broker.admin();
+    user(&admin, "swarm", "/").await;
+    let limits = UserLimits::default()
+        .with("max-connections", ADMITTED as i64)
+        .expect("known");
+    admin
+        .set_user_limits("swarm", limits)
+        .await
+        .expect("limits");
+    let target = url(&broker, "swarm", "%2f");
+    let attempts: Vec<_> = (0..ATTEMPTS)
+        .map(|_| {
+            let target = target.clone();
+            tokio::spawn(async move { connect(&target).await })
+        })
+        .collect();
+    let (mut open, mut refused) = (Vec::new(), 0);
+    for attempt in attempts {
+        match tmo!(attempt).expect("task") {
+            Ok(connection) => open.push(connection),
+            Err(e) => {
+                assert_eq!(
+                    lp::code(&e),
+                    (
+                        530,
+                        "NOT_ALLOWED - connection refused for user 'swarm': user connection limit (10) is reached".to_owned()
+                    )
+                );
+                refused += 1;
+            }
+        }
+    }
+    assert_eq!((open.len(), refused), (ADMITTED, ATTEMPTS - ADMITTED));
+    drop(open);
+    broker.shutdown().await;
+}
+
+#[both_runtimes]
 async fn concurrent_declares_never_pass_max_queues() {
     let store = Arc::new(MemoryStore::default());
     let broker = start(&store).await;
