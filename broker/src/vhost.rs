@@ -26,6 +26,7 @@ use crate::stats::BrokerCounters;
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 use std::time::Instant;
 
@@ -52,6 +53,10 @@ pub struct Vhost {
     exclusive_queues: Mutex<HashMap<u64, HashMap<ShortStr, Arc<Queue>>>>,
     /// Its policies (`policies`), replaced whole on each change.
     policies: RwLock<Arc<VhostPolicies>>,
+    /// Set when the vhost is deleted: declares are refused from then on
+    /// (checked under the registries' write locks, so nothing declared
+    /// after it is missed by [`Vhost::delete_everything_step`]).
+    deleted: AtomicBool,
 }
 
 /// Whether a binding operation adds the binding or removes it.
@@ -123,6 +128,7 @@ impl Vhost {
             reply_targets: RwLock::new(HashMap::new()),
             exclusive_queues: Mutex::new(HashMap::new()),
             policies: RwLock::default(),
+            deleted: AtomicBool::new(false),
         };
         let durable = ExchangeOptions {
             durable: true,
@@ -233,6 +239,7 @@ impl Vhost {
             }
         }
         let mut exchanges = write(&self.exchanges);
+        self.refuse_if_deleted()?;
         if let Some(existing) = exchanges.get(&decl.name) {
             let field =
                 |key: &str, received: &dyn std::fmt::Display, current: &dyn std::fmt::Display| {
@@ -380,6 +387,7 @@ impl Vhost {
         let args = QueueArgs::parse(&decl.options.arguments, &decl.name, &self.name)?;
         let (policies, applied) = self.policies_for(ObjectKind::Queue, decl.name.as_bytes());
         let mut queues = write(&self.queues);
+        self.refuse_if_deleted()?;
         if let Some(existing) = queues.get(&decl.name) {
             // Declared by another channel between our check and the lock.
             return Ok((Arc::clone(existing), false));
@@ -493,6 +501,85 @@ impl Vhost {
         ));
         queues.insert(decl.name, Arc::clone(&queue));
         Ok((queue, true))
+    }
+
+    /// Marks the vhost deleted: from now on nothing can be declared in it.
+    pub fn mark_deleted(&self) {
+        // Under both write locks, so that a declare holding either has
+        // either inserted already (and is found by the deletion's sweep)
+        // or sees the mark.
+        let _queues = write(&self.queues);
+        let _exchanges = write(&self.exchanges);
+        self.deleted.store(true, Ordering::SeqCst);
+        // With the fence in `is_deleted`: a connection that registers
+        // itself and then checks the mark either sees it or is seen by the
+        // deletion's look at the registry that follows.
+        std::sync::atomic::fence(Ordering::SeqCst);
+    }
+
+    /// Whether the vhost has been deleted.
+    pub fn is_deleted(&self) -> bool {
+        std::sync::atomic::fence(Ordering::SeqCst);
+        self.deleted.load(Ordering::SeqCst)
+    }
+
+    fn refuse_if_deleted(&self) -> AmqpResult<()> {
+        if self.is_deleted() {
+            return Err(AmqpError::not_found(format_args!(
+                "vhost '{}' is deleted",
+                self.name
+            )));
+        }
+        Ok(())
+    }
+
+    /// One slice of deleting everything in a vhost marked deleted: its
+    /// queues (with their messages and bindings, on disk too; consumers
+    /// are told with basic.cancel), then every exchange, the predefined
+    /// ones included, with their bindings. Each queue or exchange is one
+    /// step of `slice`; [`Progress::Done`] once the vhost holds nothing.
+    pub fn delete_everything_step(self: &Arc<Self>, slice: &mut Slice) -> Progress {
+        debug_assert!(self.is_deleted(), "only a deleted vhost is emptied");
+        // Chunks, not one lookup per queue: finding the first of a map
+        // emptied from the front costs a scan of its empty buckets.
+        loop {
+            let queues: Vec<Arc<Queue>> = read(&self.queues)
+                .values()
+                .take(UNBIND_STEP)
+                .cloned()
+                .collect();
+            if queues.is_empty() {
+                break;
+            }
+            for queue in queues {
+                self.delete_queue(&queue).notify();
+                if slice.step() {
+                    return Progress::More;
+                }
+            }
+        }
+        loop {
+            let exchanges: Vec<Arc<Exchange>> = {
+                let mut exchanges = write(&self.exchanges);
+                let names: Vec<ShortStr> = exchanges.keys().take(UNBIND_STEP).cloned().collect();
+                names
+                    .iter()
+                    .filter_map(|name| exchanges.remove(name))
+                    .collect()
+            };
+            if exchanges.is_empty() {
+                return Progress::Done;
+            }
+            for exchange in exchanges {
+                // Removed from the registry above: forgotten even when the
+                // slice is spent.
+                self.forget_exchange(&exchange);
+                slice.step();
+            }
+            if slice.is_spent() {
+                return Progress::More;
+            }
+        }
     }
 
     /// Deletes a queue: its bindings and messages go with it; its consumers

@@ -284,6 +284,9 @@ async fn run(
         handle.admin(),
         links.clone(),
         handle.local_addrs(),
+        (handle.tls_addrs().iter().map(|addr| ("amqp/ssl", *addr)))
+            .chain(handle.mqtt_addrs().iter().map(|addr| ("mqtt", *addr)))
+            .collect(),
         ops_settings,
     ) {
         Ok(ops) => ops,

@@ -772,7 +772,7 @@ impl Connection {
                 .during_ids(10, 40),
             ));
         }
-        let vhost_limits = limits.vhost(&vhost.name);
+        let vhost_limits = self.core.limit_tables.vhost(&vhost.name.to_string_lossy());
         if let Err(limit) = self
             .slot
             .enter_vhost(&vhost.name, vhost_limits.max_connections)
@@ -786,21 +786,19 @@ impl Connection {
                 .during_ids(10, 40),
             ));
         }
-        if let Some(user_limits) = limits.user(&self.user) {
-            if let Err(admission::OverLimit(limit)) = self.slot.enter_user(
-                &self.user,
-                user_limits.max_connections,
-                user_limits.max_channels,
-            ) {
-                tracing::warn!(peer = %self.peer, user = %self.user, limit, "user connection limit reached");
-                return Err(Ended::Protocol(
-                    AmqpError::not_allowed(format_args!(
-                        "connection refused for user '{}': user connection limit ({}) is reached",
-                        self.user, limit
-                    ))
-                    .during_ids(10, 40),
-                ));
-            }
+        let user_limits = self.core.limit_tables.user(&self.user).unwrap_or_default();
+        if let Err(admission::OverLimit(limit)) = self
+            .slot
+            .enter_user(&self.user, user_limits.max_connections)
+        {
+            tracing::warn!(peer = %self.peer, user = %self.user, limit, "user connection limit reached");
+            return Err(Ended::Protocol(
+                AmqpError::not_allowed(format_args!(
+                    "connection refused for user '{}': user connection limit ({}) is reached",
+                    self.user, limit
+                ))
+                .during_ids(10, 40),
+            ));
         }
         self.client_name = match start_ok.client_properties.get("connection_name") {
             Some(name) => name.as_bytes().map(loggable),
@@ -817,6 +815,15 @@ impl Connection {
                 heartbeat_secs: tune_ok.heartbeat,
             },
         );
+        if vhost.is_deleted() {
+            // Deleted after the lookup above: its deletion closes the
+            // connections it found registered, and this one may have
+            // registered too late to be found.
+            return Err(Ended::Protocol(
+                AmqpError::not_allowed(format_args!("vhost {} not found", open.virtual_host))
+                    .during_ids(10, 40),
+            ));
+        }
         self.vhost = Some(vhost);
         self.outbox
             .method(
@@ -866,7 +873,9 @@ impl Connection {
                 let Some(vhost) = self.vhost.clone() else {
                     return Err(AmqpError::command_invalid("connection not open"));
                 };
-                if let Err(admission::OverLimit(limit)) = self.slot.open_channel() {
+                let max_channels = (self.core.limit_tables.user(&self.user))
+                    .and_then(|limits| limits.max_channels);
+                if let Err(admission::OverLimit(limit)) = self.slot.open_channel(max_channels) {
                     tracing::warn!(peer = %self.peer, user = %self.user, limit, "user channel limit reached");
                     return Err(AmqpError::not_allowed(format_args!(
                         "number of channels opened for user '{}' has reached the maximum allowed user limit of ({})",
