@@ -16,6 +16,7 @@
 
 mod combine;
 mod definition;
+mod ranked;
 #[cfg(test)]
 mod tests;
 
@@ -23,6 +24,7 @@ pub use combine::{argument_wins, stricter, Applied};
 pub use definition::{Definition, Overflow, PolicyValue};
 
 use crate::permissions::PATTERN_SIZE_LIMIT;
+use ranked::Ranked;
 use std::sync::Arc;
 
 /// Why a policy was not set.
@@ -106,6 +108,9 @@ pub struct Policy {
     /// The definition read.
     pub definition: Definition,
     matcher: regex::bytes::Regex,
+    /// The literal prefix every name it matches starts with, if its
+    /// pattern plainly has one (`ranked`).
+    prefix: Option<Vec<u8>>,
 }
 
 impl Policy {
@@ -121,7 +126,9 @@ impl Policy {
             .build()
             .map_err(|e| format!("pattern '{}': {e}", spec.pattern))?;
         let definition = Definition::read(kind, &spec.definition)?;
+        let prefix = ranked::required_prefix(&spec.pattern).filter(|p| !p.is_empty());
         Ok(Policy {
+            prefix,
             name: name.to_owned(),
             kind,
             spec,
@@ -156,52 +163,53 @@ pub enum ObjectKind {
 /// the outcome never depends on history). Replaced whole on each change.
 #[derive(Debug, Default)]
 pub struct VhostPolicies {
-    user: Vec<Arc<Policy>>,
-    operator: Vec<Arc<Policy>>,
+    user: Ranked,
+    operator: Ranked,
     /// Counts the changes: an [`Applied`] computed from the set just
     /// before this one can be brought up to date by one match.
     generation: u64,
 }
 
 impl VhostPolicies {
-    fn list(&self, kind: PolicyKind) -> &Vec<Arc<Policy>> {
+    fn list(&self, kind: PolicyKind) -> &[Arc<Policy>] {
         match kind {
-            PolicyKind::User => &self.user,
-            PolicyKind::Operator => &self.operator,
+            PolicyKind::User => self.user.list(),
+            PolicyKind::Operator => self.operator.list(),
+        }
+    }
+
+    /// These policies with the policy `name` of `kind` replaced by
+    /// `policy` (or only removed).
+    fn changed(&self, kind: PolicyKind, name: &str, policy: Option<Policy>) -> VhostPolicies {
+        let next = |of: PolicyKind| {
+            let mut list: Vec<Arc<Policy>> = self
+                .list(of)
+                .iter()
+                .filter(|p| !(of == kind && p.name == name))
+                .cloned()
+                .collect();
+            if of == kind {
+                list.extend(policy.clone().map(Arc::new));
+            }
+            Ranked::new(list)
+        };
+        VhostPolicies {
+            user: next(PolicyKind::User),
+            operator: next(PolicyKind::Operator),
+            generation: self.generation + 1,
         }
     }
 
     /// These policies with `policy` set (replacing one of its kind and
     /// name).
     pub fn with(&self, policy: Policy) -> VhostPolicies {
-        let mut next = self.without(policy.kind, &policy.name);
-        let list = match policy.kind {
-            PolicyKind::User => &mut next.user,
-            PolicyKind::Operator => &mut next.operator,
-        };
-        list.push(Arc::new(policy));
-        list.sort_by(|a, b| {
-            b.spec
-                .priority
-                .cmp(&a.spec.priority)
-                .then_with(|| a.name.cmp(&b.name))
-        });
-        next
+        let (kind, name) = (policy.kind, policy.name.clone());
+        self.changed(kind, &name, Some(policy))
     }
 
     /// These policies without the policy `name` of `kind`.
     pub fn without(&self, kind: PolicyKind, name: &str) -> VhostPolicies {
-        let keep = |list: &Vec<Arc<Policy>>, of: PolicyKind| -> Vec<Arc<Policy>> {
-            list.iter()
-                .filter(|p| !(of == kind && p.name == name))
-                .cloned()
-                .collect()
-        };
-        VhostPolicies {
-            user: keep(&self.user, PolicyKind::User),
-            operator: keep(&self.operator, PolicyKind::Operator),
-            generation: self.generation + 1,
-        }
+        self.changed(kind, name, None)
     }
 
     /// The policy `name` of `kind`.
@@ -211,19 +219,18 @@ impl VhostPolicies {
 
     /// Every policy of `kind`, by name.
     pub fn all(&self, kind: PolicyKind) -> Vec<Arc<Policy>> {
-        let mut all = self.list(kind).clone();
+        let mut all = self.list(kind).to_vec();
         all.sort_by(|a, b| a.name.cmp(&b.name));
         all
     }
 
     /// The policy of each kind that applies to the object: the first
-    /// match in each list. Costs at most one match per policy of the vhost.
+    /// match in each ranking. Costs a match per policy filed under a
+    /// prefix of the name or under none (`ranked`).
     pub fn applied(&self, object: ObjectKind, name: &[u8]) -> Applied {
-        let first =
-            |list: &Vec<Arc<Policy>>| list.iter().find(|p| p.matches(object, name)).cloned();
         Applied {
-            policy: first(&self.user),
-            operator: first(&self.operator),
+            policy: self.user.first_match(object, name),
+            operator: self.operator.first_match(object, name),
             generation: self.generation,
         }
     }
