@@ -47,6 +47,7 @@ pub struct BrokerBuilder {
     tls_listen: Vec<SocketAddr>,
     mqtt_listen: Vec<SocketAddr>,
     mqtt_anonymous: Option<(String, String)>,
+    mqtt_retained_limits: crate::mqtt::RetainedLimits,
     tls: Option<TlsOptions>,
     users: Vec<(String, User)>,
     user_tags: std::collections::HashMap<String, Vec<String>>,
@@ -106,6 +107,14 @@ impl BrokerBuilder {
     /// (not authorized).
     pub fn mqtt_anonymous_login(mut self, user: impl Into<String>, password: &str) -> Self {
         self.mqtt_anonymous = Some((user.into(), password.to_owned()));
+        self
+    }
+
+    /// How many MQTT retained messages the broker keeps (over every vhost;
+    /// by default 10,000 and 64 MiB): a retained publish past them is
+    /// published but not retained, with a log line.
+    pub fn mqtt_retained_limits(mut self, limits: crate::mqtt::RetainedLimits) -> Self {
+        self.mqtt_retained_limits = limits;
         self
     }
 
@@ -392,6 +401,12 @@ impl BrokerBuilder {
             product: self.product.unwrap_or_else(|| DEFAULT_PRODUCT.to_owned()),
             busy_poll: busy_poll.clone(),
         });
+        let mqtt_retained = crate::mqtt::Retained::new(
+            &recovered.meta,
+            Arc::clone(&core.gauge),
+            core.persistence.clone(),
+            self.mqtt_retained_limits,
+        );
         let report = crate::recovery::recover(&core, recovered);
         if core.persistence.is_some() {
             tracing::info!(
@@ -432,7 +447,7 @@ impl BrokerBuilder {
             )));
         }
         let mut mqtt_addrs = Vec::new();
-        let mqtt_shared = Arc::new(crate::mqtt::Shared::new(self.mqtt_anonymous));
+        let mqtt_shared = Arc::new(crate::mqtt::Shared::new(self.mqtt_anonymous, mqtt_retained));
         for addr in self.mqtt_listen {
             let listener = TcpListener::bind(addr)
                 .await

@@ -165,3 +165,4 @@ pub use inspect::{
     DestinationKind, ExchangeInfo, GlobalMessageStats, ObjectTotals, Overview, QueueInfo,
     QueueMessageStats, QueueRef, QueueTotals,
 };
+pub use mqtt::RetainedLimits;
