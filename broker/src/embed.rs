@@ -594,7 +594,13 @@ impl BrokerHandle {
         let core = Arc::clone(&self.core);
         let slot = core.connections.admit_local();
         let peer = "in-process".to_owned();
-        crate::connection::serve_direct(core, slot, peer, self.alive.clone())
+        crate::connection::serve_direct(
+            core,
+            slot,
+            peer,
+            crate::connection::AMQP_0_9_1,
+            self.alive.clone(),
+        )
     }
 
     /// A cloneable view of this broker's state, for readers that outlive

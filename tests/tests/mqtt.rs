@@ -188,6 +188,16 @@ async fn v3_1_1_publishes_reach_a_subscriber_at_qos_0_and_1() {
             (Bytes::from("21.6"), QoS::AtMostOnce)
         ]
     );
+    // The session's link is listed as an MQTT connection, as RabbitMQ's.
+    let (_amqp, _channel) = amqp_channel(&handle).await;
+    let mut protocols: Vec<_> = handle
+        .admin()
+        .connections()
+        .into_iter()
+        .map(|c| c.protocol)
+        .collect();
+    protocols.sort_unstable();
+    assert_eq!(protocols, ["AMQP 0-9-1", "MQTT 3.1.1"]);
     client.disconnect().await.unwrap();
     handle.shutdown().await;
 }
@@ -225,6 +235,9 @@ async fn v5_publishes_reach_a_subscriber_and_the_connack_tells_the_limits() {
     .await;
     assert_eq!(publish.topic, "a/b");
     assert_eq!(publish.payload, "x");
+    let listed = handle.admin().connections();
+    assert_eq!(listed.len(), 1);
+    assert_eq!(listed[0].protocol, "MQTT 5.0");
     client.disconnect().await.unwrap();
     handle.shutdown().await;
 }
@@ -1227,6 +1240,66 @@ async fn a_3_1_1_client_reusing_one_packet_id_without_reading_gets_every_puback(
     .unwrap();
     assert_eq!(declared.message_count(), count);
     drop(amqp);
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_filter_the_user_may_not_read_is_refused_in_the_suback_and_the_session_goes_on() {
+    let builder = Broker::builder().topic_permission(
+        "robot",
+        "/",
+        "amq.topic",
+        leveret_broker::TopicPermission {
+            write: ".*".into(),
+            read: "^open\\.".into(),
+        },
+    );
+    let handle = start_with(builder, Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) = connected3("picky", port).await;
+    client
+        .subscribe_many([
+            rumqttc::SubscribeFilter::new("open/x".into(), QoS::AtLeastOnce),
+            rumqttc::SubscribeFilter::new("closed/x".into(), QoS::AtLeastOnce),
+        ])
+        .await
+        .unwrap();
+    let codes = until3(&mut events, |p| match p {
+        Incoming::SubAck(ack) => Some(ack.return_codes.clone()),
+        _ => None,
+    })
+    .await;
+    use rumqttc::SubscribeReasonCode as Code;
+    assert_eq!(codes, [Code::Success(QoS::AtLeastOnce), Code::Failure]);
+    client
+        .publish("open/x", QoS::AtLeastOnce, false, "still here")
+        .await
+        .unwrap();
+    let publish = next_publish3(&mut events).await;
+    assert_eq!(&publish.payload[..], b"still here");
+
+    // 5.0 (a raw client: rumqttc treats a refused filter as an error).
+    let mut raw = Raw::login_as(port, 0, ProtocolVersion::V5, "picky5").await;
+    let filter = |f: &'static str| leveret_mqtt::Subscription {
+        filter: leveret_mqtt::TopicFilter::from_static(f),
+        options: Default::default(),
+    };
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(7).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![filter("closed/y"), filter("open/y")],
+    }))
+    .await;
+    match raw.next().await {
+        Some(Packet::SubAck(ack)) => assert_eq!(
+            ack.reasons,
+            [
+                leveret_mqtt::ReasonCode::NotAuthorized,
+                leveret_mqtt::ReasonCode::GRANTED_QOS_0
+            ]
+        ),
+        other => panic!("expected SUBACK, got {other:?}"),
+    }
     handle.shutdown().await;
 }
 

@@ -50,6 +50,8 @@ pub(super) struct Login<'a> {
     pub client_id: &'a str,
     /// The session's receive window: QoS 1 deliveries unacknowledged at once.
     pub window: u16,
+    /// The MQTT version, as RabbitMQ lists the connection's protocol.
+    pub protocol: &'static str,
 }
 
 impl Link {
@@ -64,7 +66,7 @@ impl Link {
         deadline: Instant,
     ) -> Result<Link, Refusal> {
         let (done, ended) = oneshot::channel::<()>();
-        let direct = serve_direct(core, slot, peer, done);
+        let direct = serve_direct(core, slot, peer, login.protocol, done);
         let mut link = Link { direct, ended };
         match tokio::time::timeout_at(deadline, link.handshake(&login)).await {
             Ok(Ok(())) => Ok(link),

@@ -19,6 +19,7 @@ use super::Shared;
 use crate::admission::Slot;
 use crate::connection::DirectReply;
 use crate::core::Core;
+use crate::permissions::{Permissions, Resource, Right};
 use crate::store::Durable;
 use bytes::BytesMut;
 use leveret_mqtt::{
@@ -117,6 +118,7 @@ pub(super) async fn serve(
         client_id,
         assigned,
         vhost,
+        user,
         window,
     } = accepted;
     let lifetime = Lifetime::of(&connect);
@@ -127,6 +129,8 @@ pub(super) async fn serve(
         version,
         client_id,
         vhost,
+        user,
+        permissions: Arc::clone(&core.permissions),
         shared: Arc::clone(&shared),
         lifetime,
         window,
@@ -202,6 +206,7 @@ struct Accepted {
     /// Whether the broker made the client identifier up.
     assigned: bool,
     vhost: String,
+    user: String,
     /// QoS 1 deliveries unacknowledged at once.
     window: u16,
 }
@@ -282,6 +287,11 @@ async fn admit(
         password,
         client_id: &client_id,
         window,
+        protocol: match connect.version {
+            ProtocolVersion::V3_1 => "MQTT 3.1",
+            ProtocolVersion::V3_1_1 => "MQTT 3.1.1",
+            ProtocolVersion::V5 => "MQTT 5.0",
+        },
     };
     let link = Link::open(Arc::clone(core), slot, peer.to_owned(), login, deadline)
         .await
@@ -297,6 +307,7 @@ async fn admit(
         client_id,
         assigned,
         vhost: vhost.to_owned(),
+        user: user.to_owned(),
         window,
     })
 }
@@ -318,6 +329,10 @@ struct Session {
     version: ProtocolVersion,
     client_id: String,
     vhost: String,
+    user: String,
+    /// Checked before a SUBSCRIBE's calls, so a refused filter gets a
+    /// failure code in the SUBACK instead of closing the link's channel.
+    permissions: Arc<Permissions>,
     shared: Arc<Shared>,
     lifetime: Lifetime,
     /// QoS 1 deliveries unacknowledged at once (retained ones included).
@@ -794,6 +809,16 @@ impl Session {
                 reasons.push(ReasonCode::UnspecifiedError);
                 continue;
             };
+            if let Err(refused) = self.may_subscribe(&queue, granted, &key) {
+                tracing::info!(
+                    client_id = %self.client_id,
+                    filter,
+                    reason = %refused,
+                    "MQTT subscription refused"
+                );
+                reasons.push(failure(self.v5(), ReasonCode::NotAuthorized));
+                continue;
+            }
             self.ensure_queue(&queue, granted);
             let existed = match self.subscriptions.insert(filter.to_owned(), granted) {
                 Some(old) if old != granted => {
@@ -840,6 +865,31 @@ impl Session {
         if !retained.is_empty() {
             self.complete_after_calls(Done::Retained(retained));
         }
+    }
+
+    /// RabbitMQ's checks for what subscribing through `queue` with the
+    /// binding key `key` asks of the core: configure and read on the
+    /// queue the first time, write on it and read on `amq.topic` for the
+    /// binding, and the key against a topic permission on `amq.topic`.
+    fn may_subscribe(
+        &self,
+        queue: &ShortStr,
+        qos: QoS,
+        key: &ShortStr,
+    ) -> crate::error::AmqpResult<()> {
+        let Some(access) = self.permissions.of(&self.user, &self.vhost) else {
+            return Err(crate::error::AmqpError::access_refused(format_args!(
+                "no access to vhost '{}'",
+                self.vhost
+            )));
+        };
+        let queue = queue.to_string_lossy();
+        if !self.queues[usize::from(qos != QoS::AtMostOnce)] {
+            access.check_queue_declare(&queue, None)?;
+            access.check(Right::Read, Resource::Queue(&queue))?;
+        }
+        access.check_binding(Resource::Queue(&queue), mapping::EXCHANGE)?;
+        access.check_topic(Right::Read, mapping::EXCHANGE, &key.to_string_lossy())
     }
 
     /// Sends `packet` once every call queued so far is answered (at once
