@@ -13,8 +13,9 @@ use crate::connection::{serve_direct, DirectLink, DirectReply};
 use crate::core::Core;
 use bytes::{BufMut, Bytes, BytesMut};
 use leveret_protocol::{
-    BasicProperties, BasicPublish, ChannelOpen, ConfirmSelect, ConnectionOpen, ConnectionStartOk,
-    ConnectionTuneOk, FieldTable, FieldValue, Frame, Method, Outgoing, ReplyCode, ShortStr,
+    BasicProperties, BasicPublish, ChannelOpen, ConfirmSelect, ConnectionClose, ConnectionOpen,
+    ConnectionStartOk, ConnectionTuneOk, FieldTable, FieldValue, Frame, Method, Outgoing,
+    ReplyCode, ShortStr,
 };
 use std::sync::Arc;
 use tokio::sync::oneshot;
@@ -179,10 +180,21 @@ impl Link {
         }
     }
 
-    /// Ends the AMQP connection (the broker sees its client gone and
-    /// cleans up as for a closed socket) and waits until it has.
-    pub(super) async fn close(self) {
+    /// Ends the AMQP connection and waits until the broker has cleaned
+    /// up. A session the client ended with DISCONNECT closes it with
+    /// connection.close (logged as closed by the client); otherwise the
+    /// broker sees its client gone, as for a lost socket (a warning).
+    pub(super) async fn close(self, disconnected: bool) {
         let Link { direct, ended } = self;
+        if disconnected {
+            let close = ConnectionClose {
+                reply_code: ReplyCode::Success.code(),
+                reply_text: ShortStr::from_static("MQTT DISCONNECT"),
+                class_id: 0,
+                method_id: 0,
+            };
+            let _ = direct.to_broker.send(method_on(0, close)).await;
+        }
         drop(direct);
         let _ = ended.await;
     }
@@ -208,8 +220,12 @@ pub(super) fn publish(routing_key: ShortStr, persistent: bool, body: Bytes) -> O
 
 /// A method on the session's channel.
 pub(super) fn method(method: impl Into<Method>) -> Outgoing {
+    method_on(CHANNEL, method)
+}
+
+fn method_on(channel: u16, method: impl Into<Method>) -> Outgoing {
     Outgoing::Method {
-        channel: CHANNEL,
+        channel,
         method: method.into(),
     }
 }

@@ -158,9 +158,17 @@ pub(super) async fn serve(
     let end = session
         .run(&core, &mut socket, buf, link, &claim, keepalive)
         .await;
-    let Ended { link, reason } = end;
-    tracing::debug!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
-    link.close().await;
+    let Ended {
+        link,
+        reason,
+        disconnected,
+    } = end;
+    if disconnected {
+        tracing::debug!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
+    } else {
+        tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
+    }
+    link.close(disconnected).await;
     drop(claim);
 }
 
@@ -387,6 +395,8 @@ enum Received {
 struct Ended {
     link: Link,
     reason: &'static str,
+    /// The client ended it with DISCONNECT.
+    disconnected: bool,
 }
 
 /// Why the loop stopped.
@@ -590,6 +600,7 @@ impl Session {
 
     /// Sends what is owed before closing (a 5.0 DISCONNECT, the will).
     async fn finish(&mut self, socket: &mut TcpStream, link: Link, stop: Stop) -> Ended {
+        let disconnected = matches!(stop, Stop::Disconnected { .. });
         let (reason, send_will) = match stop {
             Stop::Disconnected { send_will } => ("client disconnected", send_will),
             Stop::Closed { reason, disconnect } => {
@@ -629,7 +640,11 @@ impl Session {
                     .await;
             }
         }
-        Ended { link, reason }
+        Ended {
+            link,
+            reason,
+            disconnected,
+        }
     }
 
     /// Handles every whole packet in `buf`.
