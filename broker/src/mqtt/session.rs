@@ -771,7 +771,8 @@ impl Session {
                     &self.vhost,
                     publish.topic.as_str(),
                     publish.delivery.qos(),
-                    owned(publish.payload.clone()),
+                    // Kept long: never a slice of a read chunk.
+                    bytes::Bytes::copy_from_slice(&publish.payload),
                 )
                 .unwrap_or(0)
         } else {
