@@ -893,6 +893,86 @@ fn queue_names(handle: &BrokerHandle) -> Vec<String> {
 }
 
 #[both_runtimes]
+async fn qos_2_deliveries_complete_with_pubrec_pubrel_pubcomp_beyond_the_window() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) = connected3("exactly", port).await;
+    client.subscribe("q2/#", QoS::ExactlyOnce).await.unwrap();
+    let codes = until3(&mut events, |p| match p {
+        Incoming::SubAck(ack) => Some(ack.return_codes.clone()),
+        _ => None,
+    })
+    .await;
+    assert_eq!(
+        codes,
+        [rumqttc::SubscribeReasonCode::Success(QoS::ExactlyOnce)]
+    );
+    let (publisher, mut publisher_events) = connected3("exactly-pub", port).await;
+    // More than the window of ten (fewer than the client's request
+    // queue of 16, which nothing polls yet): each PUBCOMP frees its slot.
+    let count = 15;
+    for n in 0..count {
+        publisher
+            .publish(format!("q2/{n}"), QoS::ExactlyOnce, false, "x")
+            .await
+            .unwrap();
+    }
+    let publisher_done = async {
+        let mut completed = 0;
+        while completed < count {
+            if let Event::Incoming(Incoming::PubComp(_)) =
+                publisher_events.poll().await.expect("connected")
+            {
+                completed += 1;
+            }
+        }
+    };
+    let mut received = Vec::new();
+    let mut released = 0;
+    let subscriber_done = async {
+        while received.len() < count || released < count {
+            match events.poll().await.expect("connected") {
+                Event::Incoming(Incoming::Publish(p)) => received.push((p.topic, p.qos)),
+                Event::Incoming(Incoming::PubRel(_)) => released += 1,
+                _ => {}
+            }
+        }
+    };
+    within("every QoS 2 flow both ways", async {
+        tokio::join!(publisher_done, subscriber_done)
+    })
+    .await;
+    assert!(received.iter().all(|(_, qos)| *qos == QoS::ExactlyOnce));
+    let mut topics: Vec<_> = received.into_iter().map(|(t, _)| t).collect();
+    topics.sort();
+    topics.dedup();
+    assert_eq!(topics.len(), count, "each once");
+    // A QoS 1 publish reaches the QoS 2 subscriber at QoS 1.
+    publish_acked(port, "q2/one", "1", false).await;
+    let publish = next_publish3(&mut events).await;
+    assert_eq!(
+        (publish.topic.as_str(), publish.qos),
+        ("q2/one", QoS::AtLeastOnce)
+    );
+    within("the queue settled", async {
+        loop {
+            let queue = handle
+                .queues()
+                .into_iter()
+                .find(|q| q.name == "mqtt-subscription-exactlyqos2")
+                .expect("the QoS 2 queue");
+            if queue.messages_unacknowledged == 0 && queue.messages_ready == 0 {
+                return;
+            }
+            // The subscriber's PUBACK goes out on its next poll.
+            let _ = tokio::time::timeout(Duration::from_millis(20), events.poll()).await;
+        }
+    })
+    .await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
 async fn a_persistent_3_1_1_session_gets_what_came_while_offline_and_across_a_restart() {
     let dir = std::env::temp_dir().join(unique("leveret-mqtt-session"));
     let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;

@@ -12,6 +12,7 @@ use crate::admission::Slot;
 use crate::connection::{serve_direct, DirectLink, DirectReply};
 use crate::core::Core;
 use bytes::{BufMut, Bytes, BytesMut};
+use leveret_mqtt::QoS;
 use leveret_protocol::{
     BasicProperties, BasicPublish, ChannelOpen, ConfirmSelect, ConnectionClose, ConnectionOpen,
     ConnectionStartOk, ConnectionTuneOk, FieldTable, FieldValue, Frame, Method, Outgoing,
@@ -200,9 +201,22 @@ impl Link {
     }
 }
 
+/// The header a QoS 2 publish carries (RabbitMQ 3.13's name), so that a
+/// QoS 2 subscriber gets it at QoS 2; without it a persistent message is
+/// QoS 1 and a transient one QoS 0.
+pub(super) const PUBLISH_QOS_HEADER: &str = "x-mqtt-publish-qos";
+
 /// A publish to [`EXCHANGE`]: persistent for QoS 1 and 2, as RabbitMQ's
-/// MQTT plugin publishes them.
-pub(super) fn publish(routing_key: ShortStr, persistent: bool, body: Bytes) -> Outgoing {
+/// MQTT plugin publishes them; QoS 2 says so in [`PUBLISH_QOS_HEADER`].
+pub(super) fn publish(routing_key: ShortStr, qos: QoS, body: Bytes) -> Outgoing {
+    let headers = (qos == QoS::ExactlyOnce).then(|| {
+        let mut headers = FieldTable::new();
+        headers.insert(
+            ShortStr::from_static(PUBLISH_QOS_HEADER),
+            FieldValue::U8(qos.level()),
+        );
+        headers
+    });
     Outgoing::Publish {
         channel: CHANNEL,
         method: BasicPublish {
@@ -211,7 +225,8 @@ pub(super) fn publish(routing_key: ShortStr, persistent: bool, body: Bytes) -> O
             ..Default::default()
         },
         properties: Box::new(BasicProperties {
-            delivery_mode: Some(if persistent { 2 } else { 1 }),
+            delivery_mode: Some(if qos == QoS::AtMostOnce { 1 } else { 2 }),
+            headers,
             ..Default::default()
         }),
         body,

@@ -148,7 +148,7 @@ pub(super) async fn serve(
         retained_backlog: VecDeque::new(),
         next_packet_id: 1,
         subscriptions: HashMap::new(),
-        queues: [false, false],
+        queues: [false; 3],
         delete_at_end: Vec::new(),
     };
     let session_present = session.begin(&core, connect.clean_start);
@@ -367,19 +367,31 @@ struct Session {
     held_acks: VecDeque<(u64, Packet)>,
     /// QoS 2 publishes by packet identifier, from their arrival to PUBREL.
     exactly_once: HashMap<PacketId, Received>,
-    /// QoS 1 deliveries awaiting PUBACK: packet identifier → delivery
-    /// tag (none for a retained message).
-    in_flight: HashMap<PacketId, Option<u64>>,
+    /// QoS 1 and 2 deliveries not yet completed, by packet identifier.
+    in_flight: HashMap<PacketId, Outbound>,
     /// Retained messages waiting for room in the window.
     retained_backlog: VecDeque<(Message, QoS)>,
     next_packet_id: u16,
     /// Topic filter → the QoS granted (the queue it is bound to).
     subscriptions: HashMap<String, QoS>,
-    /// Whether the QoS 0 and QoS 1 queues are declared and consumed.
-    queues: [bool; 2],
+    /// Whether the QoS 0, 1 and 2 queues are declared and consumed.
+    queues: [bool; 3],
     /// Queues of a resumed session to delete when this one ends (it does
     /// not outlive its connection).
     delete_at_end: Vec<ShortStr>,
+}
+
+/// The packet a QoS 1 or 2 delivery awaits from the client; the delivery
+/// tag to ack on the link (none for a retained message) until the client
+/// has taken it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Outbound {
+    /// QoS 1, awaiting PUBACK.
+    AtLeastOnce(Option<u64>),
+    /// QoS 2, awaiting PUBREC.
+    ExactlyOncePublished(Option<u64>),
+    /// QoS 2, PUBREL sent (and the delivery acked), awaiting PUBCOMP.
+    ExactlyOnceReleased,
 }
 
 /// Where a QoS 2 publish is.
@@ -425,7 +437,7 @@ impl Session {
             .ok()
             .and_then(|name| core.vhost(&name));
         let mut present = false;
-        for qos in [QoS::AtMostOnce, QoS::AtLeastOnce] {
+        for qos in [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce] {
             let Some(name) = mapping::queue_name(&self.client_id, qos) else {
                 continue;
             };
@@ -630,13 +642,12 @@ impl Session {
         }
         if let Some(will) = self.will.take().filter(|_| send_will) {
             if let Some(key) = mapping::routing_key(will.topic.as_str()) {
-                let persistent = will.qos != QoS::AtMostOnce;
                 // Sent before the link is dropped: the broker handles it
                 // before it sees the client gone.
                 let _ = link
                     .direct
                     .to_broker
-                    .send(link::publish(key, persistent, owned(will.payload)))
+                    .send(link::publish(key, will.qos, owned(will.payload)))
                     .await;
             }
         }
@@ -669,13 +680,44 @@ impl Session {
         match packet {
             Packet::Publish(publish) => self.publish(publish),
             Packet::PubAck(ack) => {
-                if let Some(tag) = self.in_flight.remove(&ack.packet_id) {
-                    if let Some(tag) = tag {
-                        self.pending.push_back(link::method(BasicAck {
-                            delivery_tag: tag,
-                            multiple: false,
-                        }));
+                if let Some(&Outbound::AtLeastOnce(tag)) = self.in_flight.get(&ack.packet_id) {
+                    self.in_flight.remove(&ack.packet_id);
+                    self.settle(tag);
+                    self.send_retained();
+                }
+                Ok(())
+            }
+            Packet::PubRec(received) => {
+                let id = received.packet_id;
+                match self.in_flight.get(&id).copied() {
+                    Some(Outbound::ExactlyOncePublished(tag)) => {
+                        // The client has it: the queue's copy is settled.
+                        self.settle(tag);
+                        if received.reason.is_error() {
+                            // 5.0: the client refused it; the flow ends.
+                            self.in_flight.remove(&id);
+                            self.send_retained();
+                        } else {
+                            self.in_flight.insert(id, Outbound::ExactlyOnceReleased);
+                            self.send(Packet::PubRel(PubResponse::new(id)));
+                        }
                     }
+                    Some(Outbound::ExactlyOnceReleased) => {
+                        self.send(Packet::PubRel(PubResponse::new(id)));
+                    }
+                    _ => {
+                        let mut release = PubResponse::new(id);
+                        if self.v5() {
+                            release.reason = ReasonCode::PacketIdentifierNotFound;
+                        }
+                        self.send(Packet::PubRel(release));
+                    }
+                }
+                Ok(())
+            }
+            Packet::PubComp(complete) => {
+                if self.in_flight.get(&complete.packet_id) == Some(&Outbound::ExactlyOnceReleased) {
+                    self.in_flight.remove(&complete.packet_id);
                     self.send_retained();
                 }
                 Ok(())
@@ -711,8 +753,7 @@ impl Session {
                 "enhanced authentication is not supported",
                 Some(ReasonCode::ProtocolError),
             )),
-            // A second CONNECT, packets only a server sends, and PUBREC or
-            // PUBCOMP for QoS 2 deliveries the broker never sends.
+            // A second CONNECT, and packets only a server sends.
             _ => Err(closed(
                 "packet a client may not send here",
                 Some(ReasonCode::ProtocolError),
@@ -785,7 +826,7 @@ impl Session {
         }
         self.pending.push_back(link::publish(
             key,
-            packet_id.is_some(),
+            publish.delivery.qos(),
             owned(publish.payload),
         ));
         Ok(())
@@ -820,7 +861,7 @@ impl Session {
                 reasons.push(failure(self.v5(), ReasonCode::TopicFilterInvalid));
                 continue;
             };
-            let granted = subscription.options.qos.min(QoS::AtLeastOnce);
+            let granted = subscription.options.qos;
             let Some(queue) = mapping::queue_name(&self.client_id, granted) else {
                 reasons.push(ReasonCode::UnspecifiedError);
                 continue;
@@ -869,7 +910,8 @@ impl Session {
             );
             reasons.push(match granted {
                 QoS::AtMostOnce => ReasonCode::GRANTED_QOS_0,
-                _ => ReasonCode::GrantedQos1,
+                QoS::AtLeastOnce => ReasonCode::GrantedQos1,
+                QoS::ExactlyOnce => ReasonCode::GrantedQos2,
             });
         }
         let suback = Packet::SubAck(SubAck {
@@ -900,7 +942,7 @@ impl Session {
             )));
         };
         let queue = queue.to_string_lossy();
-        if !self.queues[usize::from(qos != QoS::AtMostOnce)] {
+        if !self.queues[usize::from(qos.level())] {
             access.check_queue_declare(&queue, None)?;
             access.check(Right::Read, Resource::Queue(&queue))?;
         }
@@ -944,31 +986,17 @@ impl Session {
     fn send_retained(&mut self) {
         while let Some((message, granted)) = self.retained_backlog.pop_front() {
             let qos = message.qos.min(granted);
-            let packet_id = if qos == QoS::AtMostOnce {
-                None
-            } else if self.in_flight.len() < usize::from(self.window) {
-                Some(self.next_packet_id())
-            } else {
+            if qos != QoS::AtMostOnce && self.in_flight.len() >= usize::from(self.window) {
                 self.retained_backlog.push_front((message, granted));
                 return;
-            };
+            }
             let Some(topic) = MqttString::from_utf8(message.topic.into_bytes().into())
                 .ok()
                 .and_then(|t| TopicName::new(t).ok())
             else {
                 continue;
             };
-            let sent = self.send(Packet::Publish(Publish {
-                dup: false,
-                delivery: packet_id.map_or(Delivery::AtMostOnce, Delivery::AtLeastOnce),
-                retain: true,
-                topic,
-                properties: Default::default(),
-                payload: message.payload,
-            }));
-            if let (Some(id), true) = (packet_id, sent) {
-                self.in_flight.insert(id, None);
-            }
+            self.publish_to_client(topic, qos, false, true, message.payload, None);
         }
     }
 
@@ -976,8 +1004,7 @@ impl Session {
     /// a subscription needs it: exclusive if the session goes with the
     /// connection, else durable (with `x-expires` for a session expiry).
     fn ensure_queue(&mut self, queue: &ShortStr, qos: QoS) {
-        let index = usize::from(qos != QoS::AtMostOnce);
-        if self.queues[index] {
+        if self.queues[usize::from(qos.level())] {
             return;
         }
         let mut arguments = FieldTable::new();
@@ -1006,7 +1033,7 @@ impl Session {
 
     /// Consumes the session's queue for `qos`.
     fn consume(&mut self, queue: ShortStr, qos: QoS) {
-        self.queues[usize::from(qos != QoS::AtMostOnce)] = true;
+        self.queues[usize::from(qos.level())] = true;
         self.call(
             BasicConsume {
                 ticket: 0,
@@ -1209,46 +1236,89 @@ impl Session {
     }
 
     /// A delivery from one of the session's queues, as a PUBLISH at the
-    /// lower of the queue's QoS and the message's: a transient message
-    /// (an MQTT QoS 0 publish, or an AMQP one with delivery mode 1) goes
-    /// out at QoS 0, as the specification's min(publish, granted) asks, and
-    /// is settled at once.
+    /// lower of the queue's QoS and the message's (QoS 2 if it carries
+    /// [`link::PUBLISH_QOS_HEADER`], else 1 if persistent, else 0: an
+    /// MQTT QoS 0 publish, or an AMQP one with delivery mode 1, goes out
+    /// at QoS 0 and is settled at once), as the specification's
+    /// min(publish, granted) asks.
     fn deliver(
         &mut self,
         deliver: leveret_protocol::BasicDeliver,
         properties: &bytes::Bytes,
         body: bytes::Bytes,
     ) {
-        let from_qos1_queue = deliver.consumer_tag == consumer_tag(QoS::AtLeastOnce);
-        let persistent =
-            leveret_protocol::BasicProperties::decode(properties).is_ok_and(|p| p.is_persistent());
-        let qos1 = from_qos1_queue && persistent;
+        let queue_qos = queue_qos(&deliver.consumer_tag);
+        let message_qos = match leveret_protocol::BasicProperties::decode(properties) {
+            Ok(p)
+                if p.headers.as_ref().is_some_and(|h| {
+                    matches!(h.get(link::PUBLISH_QOS_HEADER), Some(FieldValue::U8(2)))
+                }) =>
+            {
+                QoS::ExactlyOnce
+            }
+            Ok(p) if p.is_persistent() => QoS::AtLeastOnce,
+            _ => QoS::AtMostOnce,
+        };
+        let qos = queue_qos.min(message_qos);
         let topic = mapping::topic(&deliver.routing_key)
             .and_then(|t| MqttString::from_utf8(t.into()).ok())
             .and_then(|t| TopicName::new(t).ok())
             .filter(|t| !t.is_empty());
-        let packet_id = qos1.then(|| self.next_packet_id());
-        let sent = topic.is_some_and(|topic| {
-            self.send(Packet::Publish(Publish {
-                dup: qos1 && deliver.redelivered,
-                delivery: packet_id.map_or(Delivery::AtMostOnce, Delivery::AtLeastOnce),
-                retain: false,
-                topic,
-                properties: Default::default(),
-                payload: body,
-            }))
-        });
+        let tag = (queue_qos != QoS::AtMostOnce).then_some(deliver.delivery_tag);
+        match topic {
+            Some(topic) => {
+                self.publish_to_client(topic, qos, deliver.redelivered, false, body, tag);
+            }
+            // Not a topic name: settled now, so it does not hold the window.
+            None => self.settle(tag),
+        }
+    }
+
+    /// Sends a PUBLISH at `qos`; a QoS 1 or 2 one is in flight until the
+    /// client completes it, then `tag` is settled (at once if it went out
+    /// at QoS 0 or was dropped: too large for the client).
+    fn publish_to_client(
+        &mut self,
+        topic: TopicName,
+        qos: QoS,
+        redelivered: bool,
+        retain: bool,
+        payload: bytes::Bytes,
+        tag: Option<u64>,
+    ) {
+        let packet_id = (qos != QoS::AtMostOnce).then(|| self.next_packet_id());
+        let delivery = match (qos, packet_id) {
+            (QoS::AtLeastOnce, Some(id)) => Delivery::AtLeastOnce(id),
+            (QoS::ExactlyOnce, Some(id)) => Delivery::ExactlyOnce(id),
+            _ => Delivery::AtMostOnce,
+        };
+        let sent = self.send(Packet::Publish(Publish {
+            dup: packet_id.is_some() && redelivered,
+            delivery,
+            retain,
+            topic,
+            properties: Default::default(),
+            payload,
+        }));
         match packet_id {
             Some(id) if sent => {
-                self.in_flight.insert(id, Some(deliver.delivery_tag));
+                let outbound = match qos {
+                    QoS::ExactlyOnce => Outbound::ExactlyOncePublished(tag),
+                    _ => Outbound::AtLeastOnce(tag),
+                };
+                self.in_flight.insert(id, outbound);
             }
-            // Sent at QoS 0, or dropped (not a topic name, too large for
-            // the client): settled now, so it does not hold the window.
-            _ if from_qos1_queue => self.pending.push_back(link::method(BasicAck {
-                delivery_tag: deliver.delivery_tag,
+            _ => self.settle(tag),
+        }
+    }
+
+    /// Acks a delivery from a QoS 1 or 2 queue on the link.
+    fn settle(&mut self, tag: Option<u64>) {
+        if let Some(delivery_tag) = tag {
+            self.pending.push_back(link::method(BasicAck {
+                delivery_tag,
                 multiple: false,
-            })),
-            _ => {}
+            }));
         }
     }
 
@@ -1281,8 +1351,17 @@ async fn store_progress(durable: Option<&mut tokio::sync::watch::Receiver<Durabl
 fn consumer_tag(qos: QoS) -> ShortStr {
     match qos {
         QoS::AtMostOnce => ShortStr::from_static("mqtt-qos0"),
-        _ => ShortStr::from_static("mqtt-qos1"),
+        QoS::AtLeastOnce => ShortStr::from_static("mqtt-qos1"),
+        QoS::ExactlyOnce => ShortStr::from_static("mqtt-qos2"),
     }
+}
+
+/// The QoS of the session's queue a delivery with `consumer_tag` came from.
+fn queue_qos(tag: &ShortStr) -> QoS {
+    [QoS::AtLeastOnce, QoS::ExactlyOnce]
+        .into_iter()
+        .find(|&qos| *tag == consumer_tag(qos))
+        .unwrap_or(QoS::AtMostOnce)
 }
 
 /// A payload that keeps no more of the read buffer alive than itself
