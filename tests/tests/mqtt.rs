@@ -1062,6 +1062,79 @@ async fn session_present5(events: &mut rumqttc::v5::EventLoop) -> bool {
 }
 
 #[both_runtimes]
+async fn a_persistent_session_keeps_unreleased_qos_2_publishes_across_a_reconnect() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("twice", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "twice", "t2.x").await;
+    // A raw 3.1.1 client with a persistent session; true if it was kept.
+    async fn connect(port: u16) -> (Raw, bool) {
+        let mut raw = Raw::connect(port).await;
+        raw.send(Packet::Connect(Box::new(Connect {
+            version: ProtocolVersion::V3_1_1,
+            clean_start: false,
+            keep_alive: 0,
+            properties: Default::default(),
+            client_id: leveret_mqtt::MqttString::from_static("twice"),
+            will: None,
+            username: Some(leveret_mqtt::MqttString::from_static("robot")),
+            password: Some(Bytes::from_static(b"secret")),
+        })))
+        .await;
+        match raw.next().await {
+            Some(Packet::ConnAck(ack)) => (raw, ack.session_present),
+            other => panic!("expected CONNACK, got {other:?}"),
+        }
+    }
+    let id = std::num::NonZeroU16::new(5).unwrap();
+    let publish = |dup| {
+        Packet::Publish(Publish {
+            dup,
+            delivery: Delivery::ExactlyOnce(id),
+            retain: false,
+            topic: TopicName::from_static("t2/x"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"once"),
+        })
+    };
+    let (mut raw, present) = connect(port).await;
+    assert!(!present);
+    // A subscription, so that the session has something to keep.
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::from_static("t2/none"),
+            options: Default::default(),
+        }],
+    }))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    raw.send(publish(false)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    drop(raw);
+    let (mut raw, present) = connect(port).await;
+    assert!(present);
+    raw.send(publish(true)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    raw.send(Packet::PubRel(PubResponse::new(id))).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubComp(c)) if c.packet_id == id));
+    let declared = tmo!(channel.queue_declare(
+        "twice",
+        lapin::options::QueueDeclareOptions {
+            passive: true,
+            ..Default::default()
+        },
+        Default::default()
+    ))
+    .unwrap();
+    assert_eq!(declared.message_count(), 1, "routed once");
+    drop(amqp);
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
 async fn a_5_0_session_lasts_its_expiry_interval_and_then_is_removed() {
     let handle = start(Limits::default()).await;
     let port = mqtt_port(&handle);

@@ -10,10 +10,12 @@
 //! connection (CONNECT, keepalive, the packet loop); `link` the AMQP side
 //! of a session (login, channel, the methods it sends); `mapping` names
 //! (topics ↔ routing keys, queue names, `vhost:user`); `takeover` the
-//! client identifiers in use; `retained` the retained messages.
+//! client identifiers in use; `retained` the retained messages;
+//! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL.
 
 mod link;
 mod mapping;
+mod releases;
 mod retained;
 mod session;
 mod takeover;
@@ -37,6 +39,8 @@ pub(crate) struct Shared {
     anonymous: Option<(String, String)>,
     /// Retained messages, per vhost.
     retained: Retained,
+    /// Persistent sessions' QoS 2 publishes awaiting PUBREL.
+    releases: releases::Releases,
 }
 
 impl Shared {
@@ -45,6 +49,7 @@ impl Shared {
             ids: Arc::default(),
             anonymous,
             retained,
+            releases: Default::default(),
         }
     }
 }

@@ -169,6 +169,16 @@ pub(super) async fn serve(
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
     link.close(disconnected).await;
+    if session.lifetime != Lifetime::Connection {
+        let stored = session
+            .exactly_once
+            .iter()
+            .filter(|(_, state)| **state == Received::Stored)
+            .map(|(id, _)| *id);
+        shared
+            .releases
+            .keep(&session.vhost, &session.client_id, stored.collect());
+    }
     drop(claim);
 }
 
@@ -478,6 +488,14 @@ impl Session {
                 self.delete_at_end.push(name.clone());
             }
             self.consume(name, qos);
+        }
+        // QoS 2 publishes the client had not released: a resend is not
+        // routed again, and its PUBREL is answered.
+        let released = self.shared.releases.take(&self.vhost, &self.client_id);
+        if present {
+            for id in released {
+                self.exactly_once.insert(id, Received::Stored);
+            }
         }
         present
     }
