@@ -243,6 +243,97 @@ async fn v5_publishes_reach_a_subscriber_and_the_connack_tells_the_limits() {
 }
 
 #[both_runtimes]
+async fn v5_properties_map_to_amqp_properties_both_ways() {
+    use lapin::types::{AMQPValue, ShortString};
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("props", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "props", "p5.in").await;
+    let (client, mut events) =
+        rumqttc::v5::AsyncClient::new(options5("props5", port, "secret"), 16);
+    client
+        .subscribe("p5/out", rumqttc::v5::mqttbytes::QoS::AtMostOnce)
+        .await
+        .unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::SubAck(_)).then_some(())
+    })
+    .await;
+    let properties = rumqttc::v5::mqttbytes::v5::PublishProperties {
+        content_type: Some("application/json".into()),
+        response_topic: Some("replies/arm".into()),
+        correlation_data: Some(Bytes::from_static(b"req-7")),
+        user_properties: vec![("cell".into(), "3".into())],
+        message_expiry_interval: Some(60),
+        ..Default::default()
+    };
+    client
+        .publish_with_properties(
+            "p5/in",
+            rumqttc::v5::mqttbytes::QoS::AtLeastOnce,
+            false,
+            "{}",
+            properties,
+        )
+        .await
+        .unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::PubAck(_)).then_some(())
+    })
+    .await;
+    let got = tmo!(channel.basic_get("props", lapin::options::BasicGetOptions { no_ack: true }))
+        .unwrap()
+        .expect("the MQTT publish");
+    let p = &got.delivery.properties;
+    assert_eq!(
+        p.content_type().as_ref().map(|s| s.as_str()),
+        Some("application/json")
+    );
+    assert_eq!(
+        p.correlation_id().as_ref().map(|s| s.as_str()),
+        Some("req-7")
+    );
+    assert_eq!(
+        p.reply_to().as_ref().map(|s| s.as_str()),
+        Some("replies.arm")
+    );
+    assert_eq!(p.expiration().as_ref().map(|s| s.as_str()), Some("60000"));
+    let headers = p.headers().as_ref().expect("headers");
+    assert_eq!(
+        headers.inner().get(&ShortString::from("cell")),
+        Some(&AMQPValue::LongString("3".into()))
+    );
+
+    let mut headers = lapin::types::FieldTable::default();
+    headers.insert("zone".into(), AMQPValue::LongString("north".into()));
+    let amqp_properties = lapin::BasicProperties::default()
+        .with_content_type("text/plain".into())
+        .with_correlation_id("c-1".into())
+        .with_reply_to("answers.here".into())
+        .with_headers(headers);
+    tmo!(channel.basic_publish(
+        "amq.topic",
+        "p5.out",
+        Default::default(),
+        b"hello",
+        amqp_properties
+    ))
+    .unwrap();
+    let publish = until5(&mut events, |p| match p {
+        Packet5::Publish(p) => Some(p.clone()),
+        _ => None,
+    })
+    .await;
+    let p = publish.properties.expect("PUBLISH properties");
+    assert_eq!(p.content_type.as_deref(), Some("text/plain"));
+    assert_eq!(p.correlation_data.as_deref(), Some(&b"c-1"[..]));
+    assert_eq!(p.response_topic.as_deref(), Some("answers/here"));
+    assert_eq!(p.user_properties, [("zone".to_owned(), "north".to_owned())]);
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
 async fn wrong_password_and_anonymous_logins_are_refused() {
     let handle = start(Limits::default()).await;
     let port = mqtt_port(&handle);

@@ -208,7 +208,12 @@ pub(super) const PUBLISH_QOS_HEADER: &str = "x-mqtt-publish-qos";
 
 /// A publish to [`EXCHANGE`]: persistent for QoS 1 and 2, as RabbitMQ's
 /// MQTT plugin publishes them; QoS 2 says so in [`PUBLISH_QOS_HEADER`].
-pub(super) fn publish(routing_key: ShortStr, qos: QoS, body: Bytes) -> Outgoing {
+pub(super) fn publish(
+    routing_key: ShortStr,
+    qos: QoS,
+    body: Bytes,
+    v5_properties: Option<&leveret_mqtt::Properties>,
+) -> Outgoing {
     let headers = (qos == QoS::ExactlyOnce).then(|| {
         let mut headers = FieldTable::new();
         headers.insert(
@@ -217,6 +222,14 @@ pub(super) fn publish(routing_key: ShortStr, qos: QoS, body: Bytes) -> Outgoing 
         );
         headers
     });
+    let mut properties = BasicProperties {
+        delivery_mode: Some(if qos == QoS::AtMostOnce { 1 } else { 2 }),
+        headers,
+        ..Default::default()
+    };
+    if let Some(mqtt) = v5_properties {
+        super::properties::to_amqp(mqtt, &mut properties);
+    }
     Outgoing::Publish {
         channel: CHANNEL,
         method: BasicPublish {
@@ -224,11 +237,7 @@ pub(super) fn publish(routing_key: ShortStr, qos: QoS, body: Bytes) -> Outgoing 
             routing_key,
             ..Default::default()
         },
-        properties: Box::new(BasicProperties {
-            delivery_mode: Some(if qos == QoS::AtMostOnce { 1 } else { 2 }),
-            headers,
-            ..Default::default()
-        }),
+        properties: Box::new(properties),
         body,
     }
 }

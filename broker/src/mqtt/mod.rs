@@ -11,10 +11,12 @@
 //! of a session (login, channel, the methods it sends); `mapping` names
 //! (topics ↔ routing keys, queue names, `vhost:user`); `takeover` the
 //! client identifiers in use; `retained` the retained messages;
-//! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL.
+//! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL;
+//! `properties` 5.0 PUBLISH properties ↔ AMQP properties.
 
 mod link;
 mod mapping;
+mod properties;
 mod releases;
 mod retained;
 mod session;

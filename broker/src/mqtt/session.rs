@@ -404,6 +404,14 @@ enum Outbound {
     ExactlyOnceReleased,
 }
 
+/// How a PUBLISH to the client goes out (its properties only for 5.0).
+struct Outgoing5 {
+    qos: QoS,
+    redelivered: bool,
+    retain: bool,
+    properties: leveret_mqtt::Properties,
+}
+
 /// Where a QoS 2 publish is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Received {
@@ -665,7 +673,7 @@ impl Session {
                 let _ = link
                     .direct
                     .to_broker
-                    .send(link::publish(key, will.qos, owned(will.payload)))
+                    .send(link::publish(key, will.qos, owned(will.payload), None))
                     .await;
             }
         }
@@ -842,11 +850,14 @@ impl Session {
             self.unconfirmed
                 .insert(self.published, (id, exactly_once, retained_write));
         }
-        self.pending.push_back(link::publish(
+        let v5_properties = self.v5().then_some(&publish.properties);
+        let item = link::publish(
             key,
             publish.delivery.qos(),
-            owned(publish.payload),
-        ));
+            owned(publish.payload.clone()),
+            v5_properties,
+        );
+        self.pending.push_back(item);
         Ok(())
     }
 
@@ -1014,7 +1025,13 @@ impl Session {
             else {
                 continue;
             };
-            self.publish_to_client(topic, qos, false, true, message.payload, None);
+            let publish = Outgoing5 {
+                qos,
+                redelivered: false,
+                retain: true,
+                properties: Default::default(),
+            };
+            self.publish_to_client(topic, publish, message.payload, None);
         }
     }
 
@@ -1266,7 +1283,8 @@ impl Session {
         body: bytes::Bytes,
     ) {
         let queue_qos = queue_qos(&deliver.consumer_tag);
-        let message_qos = match leveret_protocol::BasicProperties::decode(properties) {
+        let decoded = leveret_protocol::BasicProperties::decode(properties);
+        let message_qos = match &decoded {
             Ok(p)
                 if p.headers.as_ref().is_some_and(|h| {
                     matches!(h.get(link::PUBLISH_QOS_HEADER), Some(FieldValue::U8(2)))
@@ -1277,6 +1295,10 @@ impl Session {
             Ok(p) if p.is_persistent() => QoS::AtLeastOnce,
             _ => QoS::AtMostOnce,
         };
+        let mqtt_properties = match &decoded {
+            Ok(p) if self.v5() => super::properties::from_amqp(p),
+            _ => Default::default(),
+        };
         let qos = queue_qos.min(message_qos);
         let topic = mapping::topic(&deliver.routing_key)
             .and_then(|t| MqttString::from_utf8(t.into()).ok())
@@ -1285,7 +1307,13 @@ impl Session {
         let tag = (queue_qos != QoS::AtMostOnce).then_some(deliver.delivery_tag);
         match topic {
             Some(topic) => {
-                self.publish_to_client(topic, qos, deliver.redelivered, false, body, tag);
+                let publish = Outgoing5 {
+                    qos,
+                    redelivered: deliver.redelivered,
+                    retain: false,
+                    properties: mqtt_properties,
+                };
+                self.publish_to_client(topic, publish, body, tag);
             }
             // Not a topic name: settled now, so it does not hold the window.
             None => self.settle(tag),
@@ -1298,12 +1326,16 @@ impl Session {
     fn publish_to_client(
         &mut self,
         topic: TopicName,
-        qos: QoS,
-        redelivered: bool,
-        retain: bool,
+        publish: Outgoing5,
         payload: bytes::Bytes,
         tag: Option<u64>,
     ) {
+        let Outgoing5 {
+            qos,
+            redelivered,
+            retain,
+            properties,
+        } = publish;
         let packet_id = (qos != QoS::AtMostOnce).then(|| self.next_packet_id());
         let delivery = match (qos, packet_id) {
             (QoS::AtLeastOnce, Some(id)) => Delivery::AtLeastOnce(id),
@@ -1315,7 +1347,7 @@ impl Session {
             delivery,
             retain,
             topic,
-            properties: Default::default(),
+            properties,
             payload,
         }));
         match packet_id {
