@@ -192,8 +192,8 @@ fn restore(
                 },
             )
             .map_err(|e| e.to_string()),
-        // The `parameters` module's.
-        MetaRecord::Parameter { .. } => Ok(()),
+        // The `parameters` module's and the `mqtt` front end's.
+        MetaRecord::Parameter { .. } | MetaRecord::Retained { .. } => Ok(()),
     };
     if let Err(problem) = outcome {
         tracing::error!(record = ?record.key(), %problem, "a stored user, vhost or permission is not restored");

@@ -193,3 +193,5 @@ pub use inspect::{
     DestinationKind, ExchangeInfo, GlobalMessageStats, ObjectTotals, Overview, QueueInfo,
     QueueMessageStats, QueueRef, QueueTotals,
 };
+#[cfg(feature = "mqtt")]
+pub use mqtt::RetainedLimits;

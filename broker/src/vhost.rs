@@ -625,6 +625,26 @@ impl Vhost {
         queue.delete()
     }
 
+    /// The binding keys of `queue`'s bindings from the exchange `source`
+    /// (an MQTT session resumed from its queue's bindings), at most
+    /// `limit` of them.
+    #[cfg(feature = "mqtt")]
+    pub fn binding_keys_to(
+        &self,
+        source: &ShortStr,
+        queue: &Arc<Queue>,
+        limit: usize,
+    ) -> Vec<ShortStr> {
+        let mut keys = Vec::new();
+        let destination = Destination::Queue(Arc::clone(queue));
+        lock(&self.bindings).for_each_binding_to(&destination, |exchange, binding| {
+            if keys.len() < limit && exchange.name == *source {
+                keys.push(binding.routing_key.clone());
+            }
+        });
+        keys
+    }
+
     /// Deletes an auto-delete exchange that has lost its last binding.
     fn auto_delete_exchange(self: &Arc<Self>, exchange: &Arc<Exchange>) {
         if !exchange.options.auto_delete {

@@ -80,7 +80,7 @@ pub async fn serve<R, W>(
     W: AsyncWrite + Unpin + Send + 'static,
 {
     let reader = FrameReader::new(read, core.busy_poll.clone());
-    let ends = Ends::new(peer, local);
+    let ends = Ends::new(peer, local, AMQP_0_9_1);
     serve_frames(core, reader, SocketSink(write), ends, slot, identity).await;
 }
 
@@ -88,17 +88,20 @@ pub async fn serve<R, W>(
 /// the broker (see `direct`), on the current runtime; the client holds
 /// the returned link. `peer` names the client in logs and for
 /// `loopback_users` (a socket address for a protocol front end such as
-/// MQTT; anything else counts as local); `done` is dropped when the
-/// connection has ended and cleaned up.
+/// MQTT; anything else counts as local); `protocol` is what the client
+/// speaks, as RabbitMQ lists it (`AMQP 0-9-1`, `MQTT 3.1.1`, `MQTT 5.0`),
+/// and its first word names the connection in the log; `done` is dropped
+/// when the connection has ended and cleaned up.
 pub fn serve_direct(
     core: Arc<Core>,
     slot: Slot,
     peer: String,
+    protocol: &'static str,
     done: impl Send + 'static,
 ) -> DirectLink {
     let (link, frames, start) = direct::link();
     tokio::spawn(async move {
-        let ends = Ends::new(peer, None);
+        let ends = Ends::new(peer, None, protocol);
         serve_frames(core, frames, DirectSink(start), ends, slot, Identity::None).await;
         drop(done);
     });
@@ -170,10 +173,17 @@ async fn serve_frames<S: FrameSource, K: Sink>(
     slot: Slot,
     identity: Identity,
 ) {
-    let Ends { peer, local, label } = ends;
+    let Ends {
+        peer,
+        local,
+        label,
+        protocol,
+    } = ends;
     let started = Instant::now();
     let connection_id = core.next_connection_id();
-    let _registration = core.registry.connection(connection_id, &peer);
+    let _registration = core.registry.connection(connection_id, &peer, protocol);
+    // RabbitMQ's lines name MQTT connections as such.
+    let kind = protocol.split(' ').next().unwrap_or(protocol);
     // RabbitMQ's handshake_timeout runs from the connection's start to
     // connection.open-ok.
     let handshake_deadline = Instant::now() + core.limits.handshake_timeout;
@@ -190,7 +200,7 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         connection = connection_id,
         %peer,
         local = local.map(tracing::field::display),
-        "accepting AMQP connection #{connection_id} ({label})"
+        "accepting {kind} connection #{connection_id} ({label})"
     );
     let (outbox, inbox) = Outbox::new(connection_id);
     let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
@@ -201,6 +211,7 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         connection_id,
         peer,
         label,
+        kind,
         client_name: None,
         slot,
         identity,
@@ -281,15 +292,24 @@ struct Ends {
     local: Option<SocketAddr>,
     /// `peer -> local` as RabbitMQ logs it (the peer alone in-process).
     label: String,
+    protocol: &'static str,
 }
 
+/// The protocol of a client on an AMQP socket, as RabbitMQ lists it.
+pub const AMQP_0_9_1: &str = "AMQP 0-9-1";
+
 impl Ends {
-    fn new(peer: String, local: Option<SocketAddr>) -> Ends {
+    fn new(peer: String, local: Option<SocketAddr>, protocol: &'static str) -> Ends {
         let label = match local {
             Some(local) => format!("{peer} -> {local}"),
             None => peer.clone(),
         };
-        Ends { peer, local, label }
+        Ends {
+            peer,
+            local,
+            label,
+            protocol,
+        }
     }
 }
 
@@ -319,6 +339,8 @@ struct Connection {
     peer: String,
     /// `peer -> local`.
     label: String,
+    /// `AMQP` or `MQTT`, for the log lines.
+    kind: &'static str,
     /// The client-provided name (`connection_name`), for the log lines.
     client_name: Option<String>,
     slot: Slot,
@@ -1088,7 +1110,8 @@ impl Connection {
         let quoted =
             |name: Option<&str>| name.map_or("none".to_owned(), |name| format!("'{name}'"));
         let text = format!(
-            "closing AMQP connection #{} ({}, vhost: {}, user: {}, duration: {:.3}s): {reason}",
+            "closing {} connection #{} ({}, vhost: {}, user: {}, duration: {:.3}s): {reason}",
+            self.kind,
             self.connection_id,
             self.described(),
             quoted(vhost.as_deref()),

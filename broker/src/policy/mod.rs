@@ -23,6 +23,7 @@ mod tests;
 pub use combine::{argument_wins, stricter, Applied};
 pub use definition::{Definition, Overflow, PolicyValue};
 
+#[cfg(feature = "regex")]
 use crate::permissions::PATTERN_SIZE_LIMIT;
 use ranked::Ranked;
 use std::sync::Arc;
@@ -107,7 +108,11 @@ pub struct Policy {
     pub spec: PolicySpec,
     /// The definition read.
     pub definition: Definition,
+    #[cfg(feature = "regex")]
     matcher: regex::bytes::Regex,
+    /// Without the regex engine: `.*` and literal names and prefixes only.
+    #[cfg(not(feature = "regex"))]
+    matcher: crate::permissions::Matcher,
     /// The literal prefix every name it matches starts with, if its
     /// pattern plainly has one (`ranked`).
     prefix: Option<Vec<u8>>,
@@ -121,10 +126,23 @@ impl Policy {
         if name.is_empty() {
             return Err("a policy needs a name".into());
         }
+        #[cfg(feature = "regex")]
         let matcher = regex::bytes::RegexBuilder::new(&spec.pattern)
             .size_limit(PATTERN_SIZE_LIMIT)
             .build()
             .map_err(|e| format!("pattern '{}': {e}", spec.pattern))?;
+        // An empty regular expression matches every name (in a permission,
+        // the empty pattern means none: hence the rewrite).
+        #[cfg(not(feature = "regex"))]
+        let matcher = crate::permissions::Matcher::compile(
+            if spec.pattern.is_empty() {
+                ".*"
+            } else {
+                &spec.pattern
+            },
+            None,
+        )
+        .map_err(|e| format!("pattern '{}': {}", spec.pattern, e.reason))?;
         let definition = Definition::read(kind, &spec.definition)?;
         let prefix = ranked::required_prefix(&spec.pattern).filter(|p| !p.is_empty());
         Ok(Policy {
@@ -144,7 +162,11 @@ impl Policy {
                 | (ApplyTo::Queues, ObjectKind::Queue)
                 | (ApplyTo::Exchanges, ObjectKind::Exchange)
         );
-        kind_fits && self.matcher.is_match(name)
+        #[cfg(feature = "regex")]
+        let matched = self.matcher.is_match(name);
+        #[cfg(not(feature = "regex"))]
+        let matched = std::str::from_utf8(name).is_ok_and(|name| self.matcher.matches(name));
+        kind_fits && matched
     }
 }
 
