@@ -171,6 +171,8 @@ fn operator_policies_merge_by_the_smaller_value() {
     assert_eq!(effective["dead-letter-exchange"], text("dlx"));
 }
 
+// Regular expressions beyond literal names and prefixes.
+#[cfg(feature = "regex")]
 #[test]
 fn a_change_costs_one_match_and_agrees_with_a_full_look_up() {
     let before = VhostPolicies::default()
@@ -223,6 +225,8 @@ fn a_change_costs_one_match_and_agrees_with_a_full_look_up() {
     }
 }
 
+// Regular expressions beyond literal names and prefixes.
+#[cfg(feature = "regex")]
 #[test]
 fn a_pathological_pattern_is_refused_or_linear() {
     // Catastrophic backtracking shapes are linear in the regex crate.
