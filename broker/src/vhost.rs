@@ -26,7 +26,7 @@ use crate::stats::BrokerCounters;
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 use std::time::Instant;
 
@@ -41,6 +41,10 @@ pub struct Vhost {
     pub name: ShortStr,
     exchanges: RwLock<HashMap<ShortStr, Arc<Exchange>>>,
     queues: RwLock<HashMap<ShortStr, Arc<Queue>>>,
+    /// Changes to `queues` so far, counted under its write lock: a lookup
+    /// remembered with this count is still right while it is unchanged
+    /// ([`Vhost::queue_remembered`]).
+    queue_changes: AtomicU64,
     /// Every binding; held while a binding changes, never across an await.
     bindings: Mutex<BindingRegistry>,
     gauge: Arc<MemoryGauge>,
@@ -57,6 +61,14 @@ pub struct Vhost {
     /// (checked under the registries' write locks, so nothing declared
     /// after it is missed by [`Vhost::delete_everything_step`]).
     deleted: AtomicBool,
+}
+
+/// A channel's last default-exchange lookup, for [`Vhost::queue_remembered`].
+#[derive(Debug)]
+pub struct RememberedQueue {
+    /// The vhost's `queue_changes` when it was looked up.
+    changes: u64,
+    queue: Arc<Queue>,
 }
 
 /// Whether a binding operation adds the binding or removes it.
@@ -121,6 +133,7 @@ impl Vhost {
             name,
             exchanges: RwLock::new(HashMap::new()),
             queues: RwLock::new(HashMap::new()),
+            queue_changes: AtomicU64::new(0),
             bindings: Mutex::new(BindingRegistry::default()),
             gauge,
             persistence,
@@ -157,6 +170,32 @@ impl Vhost {
     /// The queue with this name.
     pub fn queue(&self, name: &ShortStr) -> Option<Arc<Queue>> {
         read(&self.queues).get(name).cloned()
+    }
+
+    /// [`Vhost::queue`] through a channel's memory of its last lookup:
+    /// while no queue was added or removed since, the same name finds the
+    /// same queue without the registry's lock or a hash. A publish to the
+    /// default exchange looks its queue up once per message (the lock and
+    /// the SipHash were ~4% of a no-ack publish's CPU).
+    pub fn queue_remembered(
+        &self,
+        name: &ShortStr,
+        last: &mut Option<RememberedQueue>,
+    ) -> Option<Arc<Queue>> {
+        // Read before the lookup: a change after this load makes the
+        // memory stale at once, even one the lookup already saw.
+        let changes = self.queue_changes.load(Ordering::Acquire);
+        if let Some(last) = last {
+            if last.changes == changes && last.queue.name == *name {
+                return Some(Arc::clone(&last.queue));
+            }
+        }
+        let queue = self.queue(name)?;
+        *last = Some(RememberedQueue {
+            changes,
+            queue: Arc::clone(&queue),
+        });
+        Some(queue)
     }
 
     /// Every queue (for sweeping and connection cleanup).
@@ -431,6 +470,7 @@ impl Vhost {
                 .insert(decl.name.clone(), Arc::clone(&queue));
         }
         queues.insert(decl.name, Arc::clone(&queue));
+        self.queue_changes.fetch_add(1, Ordering::Release);
         drop(queues);
         self.catch_up_queue(&queue, &policies);
         Ok((queue, true))
@@ -500,6 +540,7 @@ impl Vhost {
             Arc::clone(&self.counters),
         ));
         queues.insert(decl.name, Arc::clone(&queue));
+        self.queue_changes.fetch_add(1, Ordering::Release);
         Ok((queue, true))
     }
 
@@ -590,6 +631,7 @@ impl Vhost {
             match queues.get(queue.name.as_bytes()) {
                 Some(current) if Arc::ptr_eq(current, queue) => {
                     queues.remove(queue.name.as_bytes());
+                    self.queue_changes.fetch_add(1, Ordering::Release);
                 }
                 _ => return Deleted::default(),
             }
@@ -950,6 +992,7 @@ impl Vhost {
             Arc::clone(&self.counters),
         ));
         write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
+        self.queue_changes.fetch_add(1, Ordering::Release);
         Some(queue)
     }
 
@@ -994,6 +1037,7 @@ impl Vhost {
             Arc::clone(&self.counters),
         ));
         write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
+        self.queue_changes.fetch_add(1, Ordering::Release);
         Some(queue)
     }
 

@@ -414,6 +414,7 @@ impl Admin {
             &routing_key,
             properties.headers.as_ref(),
             &mut queues,
+            &mut None,
         );
         self.core.stats.routed(!queues.is_empty(), false);
         let persistent = properties.is_persistent();
