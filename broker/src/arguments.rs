@@ -53,12 +53,21 @@ pub struct Argument {
     /// Compared when the queue or exchange is declared again (a
     /// difference is 406 `inequivalent arg`), as in RabbitMQ.
     pub compared: bool,
+    /// What a stream (`x-queue-type: stream`) does with it, when it is a
+    /// queue's or a consumer's argument: `support` above is a classic
+    /// queue's. A stream compares every argument it takes on redeclaration.
+    pub on_stream: Option<Support>,
     /// What it means.
     pub meaning: &'static str,
 }
 
 const QUORUM_OR_STREAM: &str =
-    "belongs to quorum queues or streams, which this broker does not have; RabbitMQ refuses it on a classic queue with the same text";
+    "belongs to quorum queues or streams; RabbitMQ refuses it on a classic queue with the same text";
+
+const NOT_ON_STREAMS: &str =
+    "RabbitMQ 3.10 refuses it on a stream (`of queue type rabbit_stream_queue`), and so does Leveret";
+
+const ONE_NODE: &str = "on one node every stream has one replica, led here";
 
 const fn queue(name: &'static str, support: Support, meaning: &'static str) -> Argument {
     Argument {
@@ -67,12 +76,31 @@ const fn queue(name: &'static str, support: Support, meaning: &'static str) -> A
         support,
         // RabbitMQ compares every argument of a classic queue's type.
         compared: !matches!(support, Support::Refused(_)),
+        on_stream: Some(Support::Refused(NOT_ON_STREAMS)),
         meaning,
+    }
+}
+
+/// A queue argument a stream takes too (`on_stream`).
+const fn stream_too(
+    name: &'static str,
+    support: Support,
+    on_stream: Support,
+    meaning: &'static str,
+) -> Argument {
+    Argument {
+        on_stream: Some(on_stream),
+        ..queue(name, support, meaning)
     }
 }
 
 const fn other_type(name: &'static str, meaning: &'static str) -> Argument {
     queue(name, Support::Refused(QUORUM_OR_STREAM), meaning)
+}
+
+/// An argument of quorum queues or streams that a stream takes.
+const fn stream_only(name: &'static str, on_stream: Support, meaning: &'static str) -> Argument {
+    stream_too(name, Support::Refused(QUORUM_OR_STREAM), on_stream, meaning)
 }
 
 /// The header a consumer that asks for it (basic.consume argument
@@ -89,13 +117,13 @@ pub const ARGUMENTS: &[Argument] = &[
     queue("x-message-ttl", Support::Implemented, "messages expire after this many milliseconds in the queue"),
     queue("x-expires", Support::Implemented, "the queue is deleted after this many milliseconds unused"),
     queue("x-max-length", Support::Implemented, "most ready messages; `x-overflow` says what happens beyond"),
-    queue("x-max-length-bytes", Support::Implemented, "most ready body bytes; `x-overflow` says what happens beyond"),
+    stream_too("x-max-length-bytes", Support::Implemented, Support::Implemented, "most ready body bytes; `x-overflow` says what happens beyond. On a stream: most bytes kept, oldest whole segments removed beyond"),
     queue("x-overflow", Support::Implemented, "`drop-head`, `reject-publish` or `reject-publish-dlx`"),
     queue("x-dead-letter-exchange", Support::Implemented, "where expired, rejected and dropped messages go"),
     queue("x-dead-letter-routing-key", Support::Implemented, "their routing key there (needs `x-dead-letter-exchange`)"),
     queue("x-max-priority", Support::Implemented, "message priorities 0 to this (at most 255) are honoured"),
     queue("x-single-active-consumer", Support::Implemented, "one consumer at a time gets messages; the next registered takes over when it goes"),
-    queue("x-queue-type", Support::Implemented, "`classic` (the same as none); `quorum` and `stream` are refused: this broker has classic queues only"),
+    stream_too("x-queue-type", Support::Implemented, Support::Implemented, "`classic` (the same as none) or `stream`; `quorum` is refused: this broker has no quorum queues"),
     queue("x-queue-mode", Support::NoEffect("a storage hint (`default` or `lazy`) that changes no behaviour a client sees; RabbitMQ 3.12 ignores it too"), "`lazy` kept messages on disk in RabbitMQ before 3.12"),
     queue("x-queue-version", Support::NoEffect("a storage format choice (1 or 2) that changes no behaviour a client sees"), "the classic queue index version in RabbitMQ"),
     queue("x-queue-master-locator", Support::NoEffect("on one node every locator chooses this node"), "`min-masters`, `client-local` or `random`: the node a queue starts on in a cluster"),
@@ -104,15 +132,16 @@ pub const ARGUMENTS: &[Argument] = &[
     other_type("x-quorum-initial-group-size", "quorum queues: replicas at creation"),
     other_type("x-max-in-memory-length", "quorum queues: most messages kept in memory"),
     other_type("x-max-in-memory-bytes", "quorum queues: most bytes kept in memory"),
-    other_type("x-max-age", "streams: retention by age"),
-    other_type("x-stream-max-segment-size-bytes", "streams: segment file size"),
-    other_type("x-initial-cluster-size", "streams: replicas at creation"),
-    other_type("x-queue-leader-locator", "quorum queues and streams: the node the leader starts on"),
+    stream_only("x-max-age", Support::Implemented, "streams: retention by age (`Y`, `M`, `D`, `h`, `m`, `s`: `7D`); whole segments whose newest message is older go"),
+    stream_only("x-stream-max-segment-size-bytes", Support::Implemented, "streams: segment file size (500 MB unless given)"),
+    stream_only("x-initial-cluster-size", Support::NoEffect(ONE_NODE), "streams: replicas at creation"),
+    stream_only("x-queue-leader-locator", Support::NoEffect(ONE_NODE), "quorum queues and streams: the node the leader starts on"),
     Argument {
         name: "alternate-exchange",
         scope: Scope::Exchange,
         support: Support::Implemented,
         compared: true,
+        on_stream: None,
         meaning: "where messages this exchange cannot route go",
     },
     Argument {
@@ -120,6 +149,7 @@ pub const ARGUMENTS: &[Argument] = &[
         scope: Scope::Exchange,
         support: Support::Implemented,
         compared: false,
+        on_stream: None,
         meaning: "`x-consistent-hash` exchanges: hash this header's value instead of the routing key",
     },
     Argument {
@@ -127,6 +157,7 @@ pub const ARGUMENTS: &[Argument] = &[
         scope: Scope::Exchange,
         support: Support::Refused("`x-consistent-hash` exchanges hash the routing key or a header (`hash-header`) here, not a message property"),
         compared: false,
+        on_stream: None,
         meaning: "`x-consistent-hash` exchanges: hash this message property instead of the routing key",
     },
     Argument {
@@ -134,6 +165,7 @@ pub const ARGUMENTS: &[Argument] = &[
         scope: Scope::Consumer,
         support: Support::Implemented,
         compared: false,
+        on_stream: Some(Support::Refused(NOT_ON_STREAMS)),
         meaning: "consumer priority (an integer): higher ones get messages while they have prefetch room, lower ones the rest",
     },
     Argument {
@@ -141,6 +173,7 @@ pub const ARGUMENTS: &[Argument] = &[
         scope: Scope::Consumer,
         support: Support::NoEffect("this broker has no mirrors, so there is never a failover to cancel on"),
         compared: false,
+        on_stream: Some(Support::NoEffect("this broker has no mirrors, so there is never a failover to cancel on")),
         meaning: "mirrored classic queues: cancel the consumer when the queue fails over",
     },
     Argument {
@@ -148,13 +181,15 @@ pub const ARGUMENTS: &[Argument] = &[
         scope: Scope::Consumer,
         support: Support::Refused(QUORUM_OR_STREAM),
         compared: false,
-        meaning: "streams: where to start reading",
+        on_stream: Some(Support::Implemented),
+        meaning: "streams: where to start reading: `first`, `last` (the newest chunk), `next` (the default), an offset, a timestamp, or an interval back from now (`10m`)",
     },
     Argument {
         name: "x-credit",
         scope: Scope::Consumer,
         support: Support::Refused("credit-based flow (`basic.credit`, RabbitMQ's bridge for AMQP 1.0) is not built; basic.qos limits consumers here"),
         compared: false,
+        on_stream: Some(Support::Refused("credit-based flow (`basic.credit`, RabbitMQ's bridge for AMQP 1.0) is not built; basic.qos limits consumers here")),
         meaning: "start the consumer in credit mode",
     },
     Argument {
@@ -162,6 +197,7 @@ pub const ARGUMENTS: &[Argument] = &[
         scope: Scope::Consumer,
         support: Support::Implemented,
         compared: false,
+        on_stream: Some(Support::NoEffect("a stream's deliveries carry `x-stream-offset`, as stable a position")),
         meaning: "Leveret's own (boolean): each delivery carries its queue position in this header",
     },
 ];
@@ -182,6 +218,25 @@ pub fn refusal(argument: &Argument, resource: &str) -> Option<AmqpError> {
     Some(if why == QUORUM_OR_STREAM {
         AmqpError::precondition_failed(format_args!(
             "invalid arg '{}' for {resource} of queue type rabbit_classic_queue",
+            argument.name
+        ))
+    } else {
+        AmqpError::precondition_failed(format_args!(
+            "invalid arg '{}' for {resource}: {why}",
+            argument.name
+        ))
+    })
+}
+
+/// The refusal of an argument on a stream, if a stream refuses it (see
+/// [`Argument::on_stream`]), with RabbitMQ's text.
+pub fn stream_refusal(argument: &Argument, resource: &str) -> Option<AmqpError> {
+    let Some(Support::Refused(why)) = argument.on_stream else {
+        return None;
+    };
+    Some(if why == NOT_ON_STREAMS {
+        AmqpError::precondition_failed(format_args!(
+            "invalid arg '{}' for {resource} of queue type rabbit_stream_queue",
             argument.name
         ))
     } else {
@@ -302,22 +357,54 @@ pub fn first_inequivalent(
     requested: &FieldTable,
     resource: &str,
 ) -> Option<AmqpError> {
-    ARGUMENTS
-        .iter()
-        .filter(|a| a.scope == scope && a.compared)
-        .find_map(|argument| {
-            let (was, now) = (current.get(argument.name), requested.get(argument.name));
-            let (received, current) = match (was, now) {
-                (None, None) => return None,
-                (Some(a), Some(b)) if equivalent(a, b) => return None,
-                (Some(a), Some(b)) => (format!("'{}'", shown(b)), format!("'{}'", shown(a))),
-                _ if argument.name == "x-queue-type" && is_classic(was) && is_classic(now) => {
-                    return None
-                }
-                _ => (described(now), described(was)),
-            };
-            Some(inequivalent(argument.name, resource, &received, &current))
-        })
+    first_differing(
+        ARGUMENTS.iter().filter(|a| a.scope == scope && a.compared),
+        current,
+        requested,
+        resource,
+    )
+}
+
+/// [`first_inequivalent`] for a stream's declaration: every queue argument
+/// a stream takes is compared, as RabbitMQ compares them.
+pub fn first_inequivalent_on_stream(
+    current: &FieldTable,
+    requested: &FieldTable,
+    resource: &str,
+) -> Option<AmqpError> {
+    first_differing(
+        ARGUMENTS.iter().filter(|a| {
+            a.scope == Scope::Queue
+                && matches!(
+                    a.on_stream,
+                    Some(Support::Implemented | Support::NoEffect(_))
+                )
+        }),
+        current,
+        requested,
+        resource,
+    )
+}
+
+fn first_differing<'a>(
+    compared: impl Iterator<Item = &'a Argument>,
+    current: &FieldTable,
+    requested: &FieldTable,
+    resource: &str,
+) -> Option<AmqpError> {
+    compared.into_iter().find_map(|argument| {
+        let (was, now) = (current.get(argument.name), requested.get(argument.name));
+        let (received, current) = match (was, now) {
+            (None, None) => return None,
+            (Some(a), Some(b)) if equivalent(a, b) => return None,
+            (Some(a), Some(b)) => (format!("'{}'", shown(b)), format!("'{}'", shown(a))),
+            _ if argument.name == "x-queue-type" && is_classic(was) && is_classic(now) => {
+                return None
+            }
+            _ => (described(now), described(was)),
+        };
+        Some(inequivalent(argument.name, resource, &received, &current))
+    })
 }
 
 fn is_classic(value: Option<&FieldValue>) -> bool {

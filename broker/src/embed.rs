@@ -321,10 +321,12 @@ impl BrokerBuilder {
         // its provider's business (a record that cannot be decoded still
         // refuses the start).
         let mut clean_shutdown = None;
+        let mut stream_root = None;
         let opened = match self.storage {
             Storage::None => None,
             Storage::Dir(dir) => {
                 let opened = open_checked(&dir, self.recover).map_err(StartError::Storage)?;
+                stream_root = Some(dir.join("streams"));
                 clean_shutdown = Some(CleanShutdown {
                     dir,
                     generation: opened.next_generation,
@@ -344,6 +346,9 @@ impl BrokerBuilder {
             Some((store, recovered)) => {
                 let persistence =
                     Persistence::start(store, &recovered).map_err(StartError::Storage)?;
+                if let Some(root) = stream_root {
+                    persistence.set_stream_root(root);
+                }
                 (Some(persistence), recovered)
             }
             None => (None, Recovered::default()),

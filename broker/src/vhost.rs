@@ -19,7 +19,7 @@ use crate::exchange::{
     consistent_hash, Binding, BindingRegistry, Destination, Exchange, ExchangeKind, ExchangeOptions,
 };
 use crate::memory::MemoryGauge;
-use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions};
+use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions, Stream, StreamArgs};
 use crate::slice::{yield_if_spent, Progress, Slice};
 use crate::stats::BrokerCounters;
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};
@@ -342,12 +342,17 @@ impl Vhost {
                         ));
                     }
                 }
-                if let Some(error) = arguments::first_inequivalent(
-                    arguments::Scope::Queue,
-                    &o.arguments,
-                    &d.arguments,
-                    &resource,
-                ) {
+                let differing = if existing.is_stream() {
+                    arguments::first_inequivalent_on_stream(&o.arguments, &d.arguments, &resource)
+                } else {
+                    arguments::first_inequivalent(
+                        arguments::Scope::Queue,
+                        &o.arguments,
+                        &d.arguments,
+                        &resource,
+                    )
+                };
+                if let Some(error) = differing {
                     return Err(error);
                 }
             }
@@ -365,6 +370,9 @@ impl Vhost {
                 "queue name '{}' contains reserved prefix 'amq.*'",
                 decl.name
             )));
+        }
+        if crate::queue::is_stream(&decl.options.arguments) {
+            return self.declare_stream(decl);
         }
         let args = QueueArgs::parse(&decl.options.arguments, &decl.name, &self.name)?;
         let mut queues = write(&self.queues);
@@ -409,6 +417,73 @@ impl Vhost {
                 .or_default()
                 .insert(decl.name.clone(), Arc::clone(&queue));
         }
+        queues.insert(decl.name, Arc::clone(&queue));
+        Ok((queue, true))
+    }
+
+    /// queue.declare of a stream (`x-queue-type: stream`), not declared
+    /// before: RabbitMQ's rules checked, its log opened in the data
+    /// directory, its definition stored.
+    fn declare_stream(&self, decl: QueueDeclaration) -> AmqpResult<(Arc<Queue>, bool)> {
+        let options = &decl.options;
+        let args = StreamArgs::parse(
+            &options.arguments,
+            options.durable,
+            options.exclusive_owner.is_some(),
+            options.auto_delete,
+            decl.server_named,
+            &decl.name,
+            &self.name,
+        )?;
+        let Some(persistence) = self.persistence.as_ref().map(Arc::clone) else {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "cannot declare stream '{}' in vhost '{}': this broker keeps nothing on disk (streams need a data directory)",
+                decl.name, self.name
+            )));
+        };
+        let mut queues = write(&self.queues);
+        if let Some(existing) = queues.get(&decl.name) {
+            return Ok((Arc::clone(existing), false));
+        }
+        if let Some(max) = decl.max_queues.filter(|max| queues.len() >= *max) {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "cannot declare queue '{}': queue limit in vhost '{}' ({max}) is reached",
+                decl.name, self.name
+            )));
+        }
+        let id = persistence.next_queue_id();
+        let stream = match Stream::open(args, Arc::clone(&persistence), id) {
+            Some(Ok(stream)) => stream,
+            Some(Err(e)) => {
+                tracing::error!(queue = %decl.name, vhost = %self.name, error = %e, "cannot create a stream's files");
+                return Err(AmqpError::internal_error(format_args!(
+                    "cannot create the files of stream '{}': {e}",
+                    decl.name
+                )));
+            }
+            None => {
+                return Err(AmqpError::precondition_failed(format_args!(
+                    "cannot declare stream '{}' in vhost '{}': this broker keeps nothing on disk (streams need a data directory)",
+                    decl.name, self.name
+                )))
+            }
+        };
+        persistence.submit(vec![StoreOp::PutQueue(QueueRecord {
+            vhost: self.name.clone(),
+            name: decl.name.clone(),
+            id,
+            auto_delete: false,
+            arguments: decl.options.arguments.clone(),
+        })]);
+        let queue = Arc::new(Queue::new_stream(
+            decl.name.clone(),
+            self.name.clone(),
+            decl.options,
+            stream,
+            Arc::clone(&self.gauge),
+            (persistence, id),
+            Arc::clone(&self.counters),
+        ));
         queues.insert(decl.name, Arc::clone(&queue));
         Ok((queue, true))
     }
@@ -728,6 +803,9 @@ impl Vhost {
 
     /// Re-creates a stored queue at start (its messages are restored by the caller).
     pub fn restore_queue(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
+        if crate::queue::is_stream(&record.arguments) {
+            return self.restore_stream(record);
+        }
         // Stored before these arguments were refused (a quorum queue taken
         // as a classic one): it stays the classic queue it was.
         let (arguments, dropped) = arguments::classic_queue_arguments(&record.arguments);
@@ -755,6 +833,50 @@ impl Vhost {
             args,
             Arc::clone(&self.gauge),
             Some((persistence, record.id)),
+            Arc::clone(&self.counters),
+        ));
+        write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
+        Some(queue)
+    }
+
+    /// Re-creates a stored stream at start, opening (and checking) its log.
+    fn restore_stream(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
+        let persistence = Arc::clone(self.persistence.as_ref()?);
+        let args = match StreamArgs::parse(
+            &record.arguments,
+            true,
+            false,
+            false,
+            false,
+            &record.name,
+            &self.name,
+        ) {
+            Ok(args) => args,
+            Err(e) => {
+                tracing::error!(queue = %record.name, vhost = %self.name, error = %e, "stored stream's arguments no longer valid; not restored (its files are kept)");
+                return None;
+            }
+        };
+        let stream = match Stream::open(args, Arc::clone(&persistence), record.id)? {
+            Ok(stream) => stream,
+            Err(e) => {
+                tracing::error!(queue = %record.name, vhost = %self.name, error = %e, "cannot open a stream's files; not restored");
+                return None;
+            }
+        };
+        let options = QueueOptions {
+            durable: true,
+            exclusive_owner: None,
+            auto_delete: false,
+            arguments: record.arguments.clone(),
+        };
+        let queue = Arc::new(Queue::new_stream(
+            record.name.clone(),
+            self.name.clone(),
+            options,
+            stream,
+            Arc::clone(&self.gauge),
+            (persistence, record.id),
             Arc::clone(&self.counters),
         ));
         write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));

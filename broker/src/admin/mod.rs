@@ -411,7 +411,7 @@ impl Admin {
         let persistent = properties.is_persistent();
         let persistence = self.core.persistence.as_ref().filter(|_| persistent);
         let stored = persistence.and_then(|p| {
-            Stored::for_queues(p, queues.iter().filter(|q| q.store_id().is_some()).count())
+            Stored::for_queues(p, queues.iter().filter(|q| q.stores_messages()).count())
         });
         let mut encoded = BytesMut::new();
         properties.encode(&mut encoded);

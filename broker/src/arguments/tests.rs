@@ -169,8 +169,11 @@ fn markdown() -> String {
          Arguments not in this table are treated as RabbitMQ 3.10 treats arguments it\n\
          does not know: kept as declared, shown in listings, never compared, no\n\
          effect (an application's or a plugin's own keys pass through unchanged).\n\n\
-         | argument | where | status | compared | meaning |\n\
-         |---|---|---|---|---|\n",
+         **status** is a classic queue's; **on a stream** what a stream\n\
+         (`x-queue-type: stream`) or its consumers do with it. A stream compares\n\
+         every argument it takes when it is declared again.\n\n\
+         | argument | where | status | compared | on a stream | meaning |\n\
+         |---|---|---|---|---|---|\n",
     );
     for a in ARGUMENTS {
         let scope = match a.scope {
@@ -178,14 +181,16 @@ fn markdown() -> String {
             Scope::Exchange => "exchange.declare",
             Scope::Consumer => "basic.consume",
         };
-        let status = match a.support {
+        let described = |support: Support| match support {
             Support::Implemented => "implemented".to_owned(),
             Support::NoEffect(why) => format!("accepted, no effect: {why}"),
             Support::Refused(why) => format!("refused: {why}"),
         };
+        let status = described(a.support);
+        let on_stream = a.on_stream.map_or("—".to_owned(), described);
         let compared = if a.compared { "yes" } else { "no" };
         out.push_str(&format!(
-            "| `{}` | {scope} | {status} | {compared} | {} |\n",
+            "| `{}` | {scope} | {status} | {compared} | {on_stream} | {} |\n",
             a.name, a.meaning
         ));
     }

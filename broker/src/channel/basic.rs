@@ -13,7 +13,7 @@ use crate::queue::{ConsumerArgs, DeadLetters, Enqueued, Queue, QueuedMessage};
 use crate::slice::{finish_in_background, Progress, Slice};
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
-    BasicPublish, BasicQos, BasicQosOk, ReplyCode, ShortStr,
+    BasicPublish, BasicQos, BasicQosOk, FieldTable, ReplyCode, ShortStr,
 };
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -284,7 +284,7 @@ impl Channel {
         let stored = match &self.core.persistence {
             Some(persistence) if persistent => Stored::for_queues(
                 persistence,
-                queues.iter().filter(|q| q.store_id().is_some()).count(),
+                queues.iter().filter(|q| q.stores_messages()).count(),
             ),
             _ => None,
         };
@@ -371,6 +371,18 @@ impl Channel {
                 tag
             )));
         }
+        if queue.is_stream() {
+            return self
+                .consume_stream(
+                    &consume.arguments,
+                    consume.no_ack,
+                    consume.exclusive,
+                    consume.no_wait,
+                    queue,
+                    tag,
+                )
+                .await;
+        }
         let args = ConsumerArgs::parse(&consume.arguments, &queue.name, &self.vhost.name)?;
         let consumer = Arc::new(Consumer {
             tag: tag.clone(),
@@ -392,6 +404,52 @@ impl Channel {
         }
         // consume-ok is in the outbox ahead of any delivery: only now may
         // the queue deliver to this consumer.
+        consumer.activate();
+        self.vhost.dead_letter(queue.dispatch());
+        Ok(())
+    }
+
+    /// basic.consume on a stream, with RabbitMQ 3.10's rules: a prefetch
+    /// (basic.qos, per consumer) and manual acks are required; the consumer
+    /// starts at its `x-stream-offset`.
+    async fn consume_stream(
+        &mut self,
+        arguments: &FieldTable,
+        no_ack: bool,
+        exclusive: bool,
+        no_wait: bool,
+        queue: Arc<Queue>,
+        tag: ShortStr,
+    ) -> AmqpResult<()> {
+        let resource = format!("queue '{}' in vhost '{}'", queue.name, self.vhost.name);
+        if self.prefetch_count == 0 {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "consumer prefetch count is not set for '{resource}'"
+            )));
+        }
+        if no_ack {
+            return Err(AmqpError::not_implemented(format_args!(
+                "automatic acknowledgement not supported by stream queues {resource}"
+            )));
+        }
+        let start = crate::queue::start_at(arguments, &queue.name, &self.vhost.name, now_ms())?;
+        let consumer = Arc::new(Consumer {
+            tag: tag.clone(),
+            channel: Arc::clone(&self.link),
+            no_ack: false,
+            exclusive,
+            prefetch: self.prefetch_count,
+            priority: 0,
+            wants_position: false,
+            in_flight: Default::default(),
+            active: Default::default(),
+        });
+        queue.add_stream_consumer(Arc::clone(&consumer), start)?;
+        self.consumers
+            .insert(tag.clone(), (Arc::clone(&consumer), Arc::clone(&queue)));
+        if !no_wait {
+            self.reply(BasicConsumeOk { consumer_tag: tag }).await;
+        }
         consumer.activate();
         self.vhost.dead_letter(queue.dispatch());
         Ok(())
@@ -424,6 +482,12 @@ impl Channel {
         self.allow_queue(Right::Read, queue_name.as_bytes())?;
         let queue = self.vhost.queue_or_404(&queue_name)?;
         crate::vhost::check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
+        if queue.is_stream() {
+            return Err(AmqpError::not_implemented(format_args!(
+                "basic.get not supported by stream queues queue '{}' in vhost '{}'",
+                queue.name, self.vhost.name
+            )));
+        }
         let Some(permit) = self.outbox().reserve().await else {
             // The writer is gone: the connection is closing.
             return Ok(());
@@ -446,6 +510,21 @@ impl Channel {
                 "unknown delivery tag {tag}"
             )));
         };
+        if let (Settle::Reject { .. }, Some(stream)) = (
+            how,
+            settled
+                .iter()
+                .find(|u| u.queue.is_stream())
+                .map(|u| Arc::clone(&u.queue)),
+        ) {
+            // RabbitMQ 3.10 closes the connection; what was taken stays
+            // unacked until then, as the client left it.
+            self.link.deliveries().restore(settled);
+            return Err(AmqpError::not_implemented(format_args!(
+                "basic.nack and basic.reject not supported by stream queues queue '{}' in vhost '{}'",
+                stream.name, self.vhost.name
+            )));
+        }
         if let Some(tx) = &mut self.tx {
             tx.settles.extend(settled.into_iter().map(|u| (u, how)));
             return Ok(());
@@ -580,4 +659,12 @@ fn settle_batch(
             (queue, settled.dead)
         })
         .collect()
+}
+
+/// Now in milliseconds since the epoch (a stream consumer's interval
+/// offset counts back from it).
+fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
 }

@@ -122,7 +122,7 @@ impl Channel {
             let targets: Vec<(Arc<Queue>, Option<u64>)> = queues
                 .into_iter()
                 .map(|queue| {
-                    let stored_here = queue.store_id().is_some() && message.stored.is_some();
+                    let stored_here = queue.stores_messages() && message.stored.is_some();
                     let seq = stored_here.then(|| queue.reserve());
                     if let Some(seq) = seq {
                         ops.extend(queue.index_entry(seq, &message));

@@ -1,7 +1,8 @@
 //! The queue and consumer arguments a queue acts on, validated with
 //! RabbitMQ 3.10's error texts: `x-message-ttl`, `x-expires`,
 //! `x-max-length`, `x-max-length-bytes`, `x-overflow`, `x-dead-letter-*`,
-//! `x-max-priority`, `x-single-active-consumer`, `x-queue-type`; those
+//! `x-max-priority`, `x-single-active-consumer`, `x-queue-type` (a
+//! stream's are `stream::args`'s); those
 //! taken with no effect are validated too, and those refused are refused
 //! here (the list of them all is `crate::arguments`). For basic.consume:
 //! `x-priority` and Leveret's `x-leveret-position`.
@@ -110,7 +111,7 @@ impl QueueArgs {
                 return Err(invalid(
                     "x-queue-type",
                     format!(
-                        "queue type '{}' is not available: this broker has classic queues only (streams are not built yet)",
+                        "queue type '{}' is not available: this broker has classic queues and streams",
                         String::from_utf8_lossy(kind.as_bytes().unwrap_or_default())
                     ),
                 ));

@@ -14,7 +14,9 @@
 //! consumer included); `dispatch` is the FIFO
 //! (taking messages in, max-length, expiry) and delivery to consumers;
 //! `durable` writes a durable queue's index entries and delivery mark;
-//! `leaving` makes the dead letters and the cancels of a deleted queue.
+//! `leaving` makes the dead letters and the cancels of a deleted queue;
+//! `stream` is the other kind of queue, a stream (`x-queue-type: stream`),
+//! whose operations this file's hand over to it.
 //! This file holds the state and the operations the layers above call.
 
 mod args;
@@ -23,9 +25,11 @@ mod dispatch;
 mod durable;
 mod leaving;
 mod ready;
+mod stream;
 
 pub use args::{ConsumerArgs, Overflow, QueueArgs};
 pub use leaving::{DeadLetter, DeadLetterReason, DeadLetters, Deleted};
+pub use stream::{is_stream, start_at, StartAt, Stream, StreamArgs};
 
 use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
@@ -173,6 +177,8 @@ pub struct Queue {
     /// Message counters (`stats`).
     pub(crate) stats: QueueCounters,
     state: Mutex<QueueState>,
+    /// Set for a stream, whose operations `stream` handles.
+    stream: Option<Stream>,
 }
 
 impl Queue {
@@ -208,7 +214,46 @@ impl Queue {
                 consumers: Consumers::new(single_active),
                 ..QueueState::default()
             }),
+            stream: None,
         }
+    }
+
+    /// A stream queue (`x-queue-type: stream`) on `stream`, durable with
+    /// store id `id` (its definition is stored; its records are the
+    /// stream's own).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn new_stream(
+        name: ShortStr,
+        vhost: ShortStr,
+        options: QueueOptions,
+        stream: Stream,
+        gauge: Arc<MemoryGauge>,
+        durable_store: (Arc<Persistence>, u64),
+        counters: Arc<BrokerCounters>,
+    ) -> Self {
+        Queue {
+            stream: Some(stream),
+            ..Queue::new(
+                name,
+                vhost,
+                options,
+                QueueArgs::default(),
+                gauge,
+                Some(durable_store),
+                counters,
+            )
+        }
+    }
+
+    /// Whether this queue is a stream.
+    pub fn is_stream(&self) -> bool {
+        self.stream.is_some()
+    }
+
+    /// Whether this queue keeps persistent messages routed to it in the
+    /// store (a durable classic queue; a stream keeps its own log).
+    pub fn stores_messages(&self) -> bool {
+        self.durable_store.is_some() && self.stream.is_none()
     }
 
     fn lock(&self) -> MutexGuard<'_, QueueState> {
@@ -217,6 +262,9 @@ impl Queue {
 
     /// Offers a message; dispatches it at once if a consumer has credit.
     pub fn publish(self: &Arc<Self>, message: Arc<Message>) -> (Enqueued, DeadLetters) {
+        if self.stream.is_some() {
+            return (self.stream_publish(&message), DeadLetters::default());
+        }
         self.offer(message, None)
     }
 
@@ -232,6 +280,10 @@ impl Queue {
 
     /// Delivers ready messages to consumers with credit, round-robin.
     pub fn dispatch(self: &Arc<Self>) -> DeadLetters {
+        if self.stream.is_some() {
+            self.stream_dispatch();
+            return DeadLetters::default();
+        }
         let mut dead = Vec::new();
         let mut st = self.lock();
         self.dispatch_locked(&mut st, &mut dead, Instant::now());
@@ -243,6 +295,9 @@ impl Queue {
     /// that expired at the head) wait in the queue for the vhost's next
     /// sweep ([`Queue::expire_at`]).
     pub fn dispatch_deferring_dead_letters(self: &Arc<Self>) {
+        if self.stream.is_some() {
+            return self.stream_dispatch();
+        }
         let mut dead = Vec::new();
         let mut st = self.lock();
         self.dispatch_locked(&mut st, &mut dead, Instant::now());
@@ -258,6 +313,10 @@ impl Queue {
         no_ack: bool,
         permit: Permit<'_, Outbound>,
     ) -> (bool, DeadLetters) {
+        if self.stream.is_some() {
+            // The channel refuses basic.get on a stream, as RabbitMQ does.
+            return (false, DeadLetters::default());
+        }
         let mut dead = Vec::new();
         let mut st = self.lock();
         st.last_used = Some(Instant::now());
@@ -297,6 +356,14 @@ impl Queue {
     /// now (the dead letters that dispatch finds are returned), the rest
     /// in the background (theirs wait for the next sweep).
     pub fn requeue(self: &Arc<Self>, messages: Vec<QueuedMessage>) -> DeadLetters {
+        if self.stream.is_some() {
+            // Nothing left the stream: the credit is back, read on.
+            for _ in &messages {
+                self.stats.unacked_returned();
+            }
+            self.stream_dispatch();
+            return DeadLetters::default();
+        }
         let mut messages = messages.into_iter();
         let mut slice = Slice::start();
         let (dead, progress) = self.requeue_some(&mut messages, &mut slice);
@@ -351,12 +418,17 @@ impl Queue {
         for _ in settled {
             self.stats.acked();
         }
-        self.release_all(settled);
+        if self.stream.is_none() {
+            self.release_all(settled);
+        }
     }
 
     /// A message was rejected without requeue: dead-letter it if configured.
     pub fn reject(&self, queued: QueuedMessage) -> DeadLetters {
         self.stats.unacked_returned();
+        if self.stream.is_some() {
+            return DeadLetters::default();
+        }
         let mut dead = Vec::new();
         self.discard(queued, DeadLetterReason::Rejected, &mut dead);
         DeadLetters(dead)
@@ -377,6 +449,10 @@ impl Queue {
     /// Adds a consumer; 403 if an exclusive consumer is in the way. On a
     /// single-active-consumer queue it waits unless none is active.
     pub fn add_consumer(self: &Arc<Self>, consumer: Arc<Consumer>) -> AmqpResult<DeadLetters> {
+        if self.stream.is_some() {
+            self.add_stream_consumer(consumer, StartAt::Next)?;
+            return Ok(self.dispatch());
+        }
         {
             let mut st = self.lock();
             if st.exclusive_consumer || (consumer.exclusive && !st.consumers.is_empty()) {
@@ -400,6 +476,9 @@ impl Queue {
     /// held, when it closes). Returns whether the queue should now be
     /// auto-deleted.
     pub fn remove_consumer(&self, consumer: &Arc<Consumer>) -> bool {
+        if self.stream.is_some() {
+            return self.remove_stream_consumer(consumer);
+        }
         let mut st = self.lock();
         if st.consumers.remove(consumer).is_none() {
             return false;
@@ -417,11 +496,17 @@ impl Queue {
 
     /// Ready messages, as of the last expiry ([`Queue::expire_at`]).
     pub fn message_count(&self) -> u32 {
+        if let Some(stream) = &self.stream {
+            return stream.len().min(u64::from(u32::MAX)) as u32;
+        }
         self.lock().ready.len() as u32
     }
 
     /// Number of consumers.
     pub fn consumer_count(&self) -> u32 {
+        if let Some(stream) = &self.stream {
+            return stream.reader_count() as u32;
+        }
         self.lock().consumers.len() as u32
     }
 
@@ -436,6 +521,10 @@ impl Queue {
     /// Drops every ready message; returns how many. They are released
     /// (memory, store) a slice at a time, the first slice now.
     pub fn purge(self: &Arc<Self>) -> u32 {
+        if self.stream.is_some() {
+            // The channel refuses queue.purge on a stream, as RabbitMQ does.
+            return 0;
+        }
         let mut purged = {
             let mut st = self.lock();
             let purged = std::mem::take(&mut st.ready);
@@ -461,6 +550,10 @@ impl Queue {
     /// the caller has answered whoever deleted it: RabbitMQ sends
     /// queue.delete-ok before the cancels.
     pub fn delete(self: &Arc<Self>) -> Deleted {
+        if self.stream.is_some() {
+            self.lock().deleted = true;
+            return self.stream_delete();
+        }
         let consumers = {
             let mut st = self.lock();
             st.deleted = true;
@@ -480,7 +573,7 @@ impl Queue {
 
     /// Whether it has consumers (for if-unused).
     pub fn has_consumers(&self) -> bool {
-        !self.lock().consumers.is_empty()
+        self.consumer_count() > 0
     }
 
     /// Whether publishers to this queue should slow down.
@@ -505,6 +598,10 @@ impl Queue {
     /// the vhost's sweeper. Returns them as dead letters, with any a
     /// writer's dispatch deferred, and whether more may have expired.
     pub fn expire_at(&self, now: Instant, slice: &mut Slice) -> (DeadLetters, Progress) {
+        if let Some(stream) = &self.stream {
+            stream.retain();
+            return (DeadLetters::default(), Progress::Done);
+        }
         let mut st = self.lock();
         let mut dead = std::mem::take(&mut st.deferred_dead);
         let progress = self.expire_head(&mut st, &mut dead, now, slice);
@@ -541,6 +638,14 @@ pub(crate) struct QueueDepth {
 impl Queue {
     /// Ready messages, their body bytes, and consumers, read under the lock.
     pub(crate) fn depth(&self) -> QueueDepth {
+        if let Some(stream) = &self.stream {
+            return QueueDepth {
+                ready: stream.len(),
+                unacked: self.stats.unacked.get(),
+                ready_bytes: stream.bytes(),
+                consumers: stream.reader_count() as u64,
+            };
+        }
         let st = self.lock();
         QueueDepth {
             ready: st.ready.len() as u64,
@@ -553,6 +658,9 @@ impl Queue {
     /// The consumers now, in registration order, each with whether it is
     /// active (see [`Consumers::snapshot`]).
     pub(crate) fn consumers_snapshot(&self) -> Vec<(Arc<Consumer>, bool)> {
+        if let Some(stream) = &self.stream {
+            return stream.consumers().into_iter().map(|c| (c, true)).collect();
+        }
         self.lock().consumers.snapshot()
     }
 }

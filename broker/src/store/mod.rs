@@ -114,6 +114,9 @@ pub enum StoreError {
         /// What is wrong.
         problem: String,
     },
+    /// A stream's segment file could not be synced.
+    #[error("cannot sync a stream segment: {0}")]
+    StreamSync(std::io::Error),
     /// The persister thread could not be started.
     #[error("cannot start the persister thread: {0}")]
     Persister(std::io::Error),

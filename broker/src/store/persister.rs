@@ -32,6 +32,9 @@ struct Submission {
     ops: Vec<StoreOp>,
     mode: WriteMode,
     close: Option<tokio::sync::oneshot::Sender<()>>,
+    /// Files written outside the store (a stream's segments) that this
+    /// group's flush must sync too.
+    syncs: Vec<Arc<std::fs::File>>,
 }
 
 impl std::fmt::Debug for Submission {
@@ -130,6 +133,9 @@ pub struct Persistence {
     /// This start's number on the store (one more than the last).
     start: u64,
     figures: Arc<GroupFigures>,
+    /// Where streams keep their segment files (`<data dir>/streams`), set
+    /// once by the broker that opened the store in a data directory.
+    stream_root: std::sync::OnceLock<std::path::PathBuf>,
 }
 
 /// Ops per group commit: Prometheus-style bucket bounds.
@@ -192,6 +198,8 @@ struct Group {
     numbers: Option<(u64, u64)>,
     len: usize,
     error: Option<StoreError>,
+    /// Files outside the store to sync with this group's flush.
+    syncs: Vec<Arc<std::fs::File>>,
 }
 
 /// A key that is written once and removed once, never rewritten: a
@@ -228,6 +236,11 @@ impl Group {
                 .map_or((number, number), |(first, _)| (first, number)),
         );
         self.len += submission.ops.len();
+        for file in submission.syncs {
+            if !self.syncs.iter().any(|f| Arc::ptr_eq(f, &file)) {
+                self.syncs.push(file);
+            }
+        }
         if submission.mode == WriteMode::Atomic {
             self.write_pending(store);
             let ops = submission.ops.iter().map(StoreOp::to_kv).collect();
@@ -300,6 +313,12 @@ impl Group {
         self.write_pending(store);
         let flushed = guarded("flush", || store.flush());
         self.record(flushed);
+        let mut syncs = std::mem::take(&mut self.syncs);
+        for file in syncs.drain(..) {
+            let synced = file.sync_data().map_err(StoreError::StreamSync);
+            self.record(synced);
+        }
+        self.syncs = syncs;
         self.numbers = None;
         self.len = 0;
         self.elided = 0;
@@ -355,6 +374,7 @@ impl Persistence {
             next_queue_id: AtomicU64::new(recovered.max_queue_id() + 1),
             start: recovered.starts + 1,
             figures,
+            stream_root: std::sync::OnceLock::new(),
         }))
     }
 
@@ -381,15 +401,33 @@ impl Persistence {
         self.start << START_SHIFT
     }
 
+    /// Sets where streams keep their files (once; later calls are ignored).
+    pub fn set_stream_root(&self, dir: std::path::PathBuf) {
+        let _ = self.stream_root.set(dir);
+    }
+
+    /// Where stream `id` keeps its segment files, if the store lives in a
+    /// data directory.
+    pub fn stream_dir(&self, id: u64) -> Option<std::path::PathBuf> {
+        Some(self.stream_root.get()?.join(id.to_string()))
+    }
+
     /// Queues ops for the next group; returns their submission number.
     pub fn submit(&self, ops: Vec<StoreOp>) -> u64 {
-        self.send(ops, WriteMode::Plain, None)
+        self.send(ops, WriteMode::Plain, None, Vec::new())
+    }
+
+    /// Asks the next group to sync `files` (written by their owner, a
+    /// stream, before this call) with its flush; returns the submission
+    /// number, durable once [`Persistence::durable`] reaches it.
+    pub fn submit_sync(&self, files: Vec<Arc<std::fs::File>>) -> u64 {
+        self.send(Vec::new(), WriteMode::Plain, None, files)
     }
 
     /// Queues ops that must reach the disk all together or not at all (a
     /// transaction's commit).
     pub fn submit_atomic(&self, ops: Vec<StoreOp>) -> u64 {
-        self.send(ops, WriteMode::Atomic, None)
+        self.send(ops, WriteMode::Atomic, None, Vec::new())
     }
 
     /// Writes and flushes everything submitted so far, then `last` (the
@@ -397,7 +435,7 @@ impl Persistence {
     /// are dropped. For shutdown. Whether `last` reached the disk.
     pub async fn close(&self, last: Vec<StoreOp>) -> bool {
         let (done, closed) = tokio::sync::oneshot::channel();
-        let number = self.send(last, WriteMode::Plain, Some(done));
+        let number = self.send(last, WriteMode::Plain, Some(done), Vec::new());
         closed.await.is_ok() && self.succeeded(number)
     }
 
@@ -407,6 +445,7 @@ impl Persistence {
         ops: Vec<StoreOp>,
         mode: WriteMode,
         close: Option<tokio::sync::oneshot::Sender<()>>,
+        syncs: Vec<Arc<std::fs::File>>,
     ) -> u64 {
         let mut inbox = self.mailbox.lock();
         inbox.numbered += 1;
@@ -421,6 +460,7 @@ impl Persistence {
             ops,
             mode,
             close,
+            syncs,
         });
         let wake = std::mem::take(&mut inbox.sleeping);
         drop(inbox);
@@ -700,6 +740,7 @@ mod tests {
             ops,
             mode: WriteMode::Plain,
             close: None,
+            syncs: Vec::new(),
         };
         let exchange = ExchangeRecord {
             vhost: ShortStr::from_static("/"),
@@ -752,6 +793,7 @@ mod tests {
                 }],
                 mode: WriteMode::Atomic,
                 close: None,
+                syncs: Vec::new(),
             },
         );
         group.add(

@@ -1,0 +1,649 @@
+//! A stream's on-disk log: records with monotonically increasing offsets,
+//! appended to segment files in one directory, each record checksummed.
+//! It owns the files and a sparse index (one entry per segment: its first
+//! and next offset, its oldest and newest timestamps, its size), never the
+//! records themselves, so memory does not grow with the stream's length.
+//!
+//! On disk: `<dir>/<first offset as 20 digits>.seg`. A segment starts
+//! with [`MAGIC`] and its first offset (`u64` LE); then records: payload
+//! length and CRC-32 (`u32` LE each), offset (`u64` LE), timestamp in
+//! milliseconds (`i64` LE), flags (`u8`; [`CHUNK_START`]) and the payload.
+//! The CRC covers everything after itself, so a record is taken whole or
+//! not at all. A segment holds at most `max_segment_bytes` (one record more
+//! if a single record is larger). Retention removes whole segments, oldest
+//! first, never the newest ([`StreamLog::retain`]), as RabbitMQ does.
+//!
+//! Appends go to the page cache ([`StreamLog::append`]); the caller makes
+//! them durable by handing [`StreamLog::sync_handles`] to the persister,
+//! whose group commit syncs them before the publish is confirmed.
+//!
+//! Opening reads every segment and checks every record: a bad checksum, a
+//! torn record or an offset out of sequence is reported (an error log
+//! naming the file, the position and the records lost) and the segment is
+//! cut there; the records after it are never served as if sound.
+
+use std::fs::{File, OpenOptions};
+use std::io::{self, Read};
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// A segment file's first bytes.
+const MAGIC: &[u8; 8] = b"LVRTSTM1";
+/// Magic and first offset.
+const SEGMENT_HEADER: u64 = 16;
+/// Length, CRC, offset, timestamp, flags.
+pub const RECORD_HEADER: usize = 25;
+/// Flag: the record starts a chunk (a run of records appended while the
+/// previous run was being made durable; `x-stream-offset: last` starts at
+/// the newest chunk, as RabbitMQ's does).
+pub const CHUNK_START: u8 = 1;
+/// Largest payload accepted (the broker's frame limits keep messages far
+/// below it); a length above it in a file is damage.
+const MAX_PAYLOAD: u32 = 512 * 1024 * 1024;
+
+/// One record read back.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Record {
+    /// Its offset.
+    pub offset: u64,
+    /// When it was appended, ms since the epoch.
+    pub timestamp_ms: i64,
+    /// The payload as appended.
+    pub payload: Vec<u8>,
+}
+
+/// What the index keeps of one segment.
+#[derive(Debug, Clone)]
+struct Segment {
+    first: u64,
+    /// One past its last record (== first when empty).
+    next: u64,
+    /// Oldest and newest record timestamps (ms), when it has records.
+    oldest_ms: i64,
+    newest_ms: i64,
+    bytes: u64,
+    path: PathBuf,
+    file: Arc<File>,
+}
+
+/// Where a reader stands: the next offset and, when known, the file
+/// position of that record in the segment starting at `segment`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Cursor {
+    /// The next offset to read.
+    pub offset: u64,
+    /// `(segment first offset, byte position)` of `offset`, if known.
+    at: Option<(u64, u64)>,
+}
+
+impl Cursor {
+    /// A cursor at `offset`, position to be found.
+    pub fn at(offset: u64) -> Self {
+        Cursor { offset, at: None }
+    }
+}
+
+/// What a read task needs, taken under the stream's lock and used without
+/// it: the segments' files from the cursor's on.
+#[derive(Debug, Clone)]
+pub struct ReadPlan {
+    segments: Vec<(u64, u64, Arc<File>)>,
+}
+
+/// The log (see the module docs).
+#[derive(Debug)]
+pub struct StreamLog {
+    dir: PathBuf,
+    dir_handle: Arc<File>,
+    max_segment_bytes: u64,
+    segments: Vec<Segment>,
+    /// First offset of the newest chunk.
+    last_chunk: u64,
+}
+
+fn segment_path(dir: &Path, first: u64) -> PathBuf {
+    dir.join(format!("{first:020}.seg"))
+}
+
+fn checksum(rest: &[u8]) -> u32 {
+    crc32fast::hash(rest)
+}
+
+/// What scanning one segment found.
+struct Scanned {
+    next: u64,
+    oldest_ms: i64,
+    newest_ms: i64,
+    /// Byte length of its sound part.
+    sound: u64,
+    last_chunk: Option<u64>,
+    /// Why it ends before the file does, if it does.
+    damage: Option<String>,
+}
+
+fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
+    let mut reader = io::BufReader::with_capacity(256 * 1024, file);
+    let mut header = [0u8; SEGMENT_HEADER as usize];
+    let mut found = Scanned {
+        next: first,
+        oldest_ms: i64::MAX,
+        newest_ms: i64::MIN,
+        sound: SEGMENT_HEADER,
+        last_chunk: None,
+        damage: None,
+    };
+    if len < SEGMENT_HEADER || reader.read_exact(&mut header).is_err() {
+        found.sound = 0;
+        found.damage = Some("no segment header".into());
+        return Ok(found);
+    }
+    if &header[..8] != MAGIC || u64::from_le_bytes(header[8..].try_into().expect("8")) != first {
+        found.sound = 0;
+        found.damage = Some("segment header does not match its name".into());
+        return Ok(found);
+    }
+    let mut record = vec![0u8; RECORD_HEADER];
+    while found.sound < len {
+        if len - found.sound < RECORD_HEADER as u64 {
+            found.damage = Some("torn record header".into());
+            break;
+        }
+        reader.read_exact(&mut record[..RECORD_HEADER])?;
+        let payload_len = u32::from_le_bytes(record[..4].try_into().expect("4"));
+        if payload_len > MAX_PAYLOAD
+            || len - found.sound - (RECORD_HEADER as u64) < u64::from(payload_len)
+        {
+            found.damage = Some("torn or impossible record length".into());
+            break;
+        }
+        record.resize(RECORD_HEADER + payload_len as usize, 0);
+        reader.read_exact(&mut record[RECORD_HEADER..])?;
+        let crc = u32::from_le_bytes(record[4..8].try_into().expect("4"));
+        if checksum(&record[8..]) != crc {
+            found.damage = Some("bad checksum".into());
+            break;
+        }
+        let offset = u64::from_le_bytes(record[8..16].try_into().expect("8"));
+        if offset != found.next {
+            found.damage = Some(format!("offset {offset} where {} was due", found.next));
+            break;
+        }
+        let ts = i64::from_le_bytes(record[16..24].try_into().expect("8"));
+        if record[24] & CHUNK_START != 0 || found.next == first {
+            found.last_chunk = Some(offset);
+        }
+        found.oldest_ms = found.oldest_ms.min(ts);
+        found.newest_ms = found.newest_ms.max(ts);
+        found.next += 1;
+        found.sound += (RECORD_HEADER + payload_len as usize) as u64;
+        record.truncate(RECORD_HEADER);
+    }
+    Ok(found)
+}
+
+impl StreamLog {
+    /// Opens (or creates) the log in `dir`, checking every record; damage
+    /// is reported as an error log and the damaged segment cut there.
+    pub fn open(dir: &Path, max_segment_bytes: u64) -> io::Result<StreamLog> {
+        std::fs::create_dir_all(dir)?;
+        let mut firsts: Vec<u64> = std::fs::read_dir(dir)?
+            .filter_map(|e| e.ok())
+            .filter_map(|e| {
+                let name = e.file_name().into_string().ok()?;
+                name.strip_suffix(".seg")?.parse::<u64>().ok()
+            })
+            .collect();
+        firsts.sort_unstable();
+        let dir_handle = Arc::new(File::open(dir)?);
+        let mut log = StreamLog {
+            dir: dir.to_path_buf(),
+            dir_handle,
+            max_segment_bytes: max_segment_bytes.max(1),
+            segments: Vec::new(),
+            last_chunk: 0,
+        };
+        let mut expected = firsts.first().copied().unwrap_or(0);
+        for first in firsts {
+            let path = segment_path(dir, first);
+            let file = OpenOptions::new().read(true).write(true).open(&path)?;
+            let len = file.metadata()?.len();
+            let found = scan(&file, first, len)?;
+            if first < expected {
+                tracing::error!(stream = %dir.display(), segment = %path.display(), "stream segment overlaps the one before it; left out (its file is kept)");
+                continue;
+            }
+            if first > expected {
+                tracing::error!(stream = %dir.display(), segment = %path.display(), missing_from = expected, missing_to = first - 1, "stream segments are missing: these offsets are lost");
+            }
+            if let Some(why) = &found.damage {
+                tracing::error!(stream = %dir.display(), segment = %path.display(), position = found.sound, sound_records = found.next - first, bytes_lost = len - found.sound, reason = %why, "damaged stream segment: the records from here to its end are lost and the file is cut there");
+                if found.sound == 0 {
+                    // Not even its header is sound: nothing to keep.
+                    continue;
+                }
+                file.set_len(found.sound)?;
+            }
+            if let Some(chunk) = found.last_chunk {
+                log.last_chunk = chunk;
+            }
+            expected = found.next;
+            log.segments.push(Segment {
+                first,
+                next: found.next,
+                oldest_ms: found.oldest_ms,
+                newest_ms: found.newest_ms,
+                bytes: found.sound,
+                path,
+                file: Arc::new(file),
+            });
+        }
+        if log.segments.is_empty() {
+            log.start_segment(expected)?;
+            log.last_chunk = expected;
+        }
+        Ok(log)
+    }
+
+    fn start_segment(&mut self, first: u64) -> io::Result<()> {
+        let path = segment_path(&self.dir, first);
+        let file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(&path)?;
+        let mut header = [0u8; SEGMENT_HEADER as usize];
+        header[..8].copy_from_slice(MAGIC);
+        header[8..].copy_from_slice(&first.to_le_bytes());
+        file.write_all_at(&header, 0)?;
+        self.segments.push(Segment {
+            first,
+            next: first,
+            oldest_ms: i64::MAX,
+            newest_ms: i64::MIN,
+            bytes: SEGMENT_HEADER,
+            path,
+            file: Arc::new(file),
+        });
+        Ok(())
+    }
+
+    fn head(&self) -> &Segment {
+        self.segments.last().expect("a log always has a segment")
+    }
+
+    /// The offset the next append gets.
+    pub fn next_offset(&self) -> u64 {
+        self.head().next
+    }
+
+    /// The oldest offset still held (== `next_offset` when empty).
+    pub fn first_offset(&self) -> u64 {
+        self.segments
+            .iter()
+            .find(|s| s.next > s.first)
+            .map_or(self.next_offset(), |s| s.first)
+    }
+
+    /// Records held.
+    pub fn len(&self) -> u64 {
+        self.next_offset() - self.first_offset()
+    }
+
+    /// First offset of the newest chunk (`next_offset` when empty).
+    pub fn last_chunk(&self) -> u64 {
+        if self.len() == 0 {
+            self.next_offset()
+        } else {
+            self.last_chunk.max(self.first_offset())
+        }
+    }
+
+    /// Bytes on disk.
+    pub fn bytes(&self) -> u64 {
+        self.segments.iter().map(|s| s.bytes).sum()
+    }
+
+    /// Appends one record; returns its offset and whether a new segment
+    /// was started (its file and the directory then need syncing too).
+    pub fn append(
+        &mut self,
+        payload: &[u8],
+        timestamp_ms: i64,
+        chunk_start: bool,
+    ) -> io::Result<(u64, bool)> {
+        let size = (RECORD_HEADER + payload.len()) as u64;
+        let mut rolled = false;
+        let head = self.head();
+        if head.next > head.first && head.bytes + size > self.max_segment_bytes {
+            let first = head.next;
+            self.start_segment(first)?;
+            rolled = true;
+        }
+        let chunk_start = chunk_start || rolled;
+        let head = self.segments.last_mut().expect("a segment");
+        let offset = head.next;
+        let mut record = Vec::with_capacity(size as usize);
+        record.extend_from_slice(&(payload.len() as u32).to_le_bytes());
+        record.extend_from_slice(&[0; 4]);
+        record.extend_from_slice(&offset.to_le_bytes());
+        record.extend_from_slice(&timestamp_ms.to_le_bytes());
+        record.push(if chunk_start { CHUNK_START } else { 0 });
+        record.extend_from_slice(payload);
+        let crc = checksum(&record[8..]);
+        record[4..8].copy_from_slice(&crc.to_le_bytes());
+        head.file.write_all_at(&record, head.bytes)?;
+        head.bytes += size;
+        head.next += 1;
+        head.oldest_ms = head.oldest_ms.min(timestamp_ms);
+        head.newest_ms = head.newest_ms.max(timestamp_ms);
+        if chunk_start {
+            self.last_chunk = offset;
+        }
+        Ok((offset, rolled))
+    }
+
+    /// The files a sync must cover after appends: the newest segment's,
+    /// and with `rolled` the directory's (a new file's name) and the
+    /// segment before it (its last records).
+    pub fn sync_handles(&self, rolled: bool) -> Vec<Arc<File>> {
+        let mut files = vec![Arc::clone(&self.head().file)];
+        if rolled {
+            files.push(Arc::clone(&self.dir_handle));
+            if self.segments.len() > 1 {
+                files.push(Arc::clone(&self.segments[self.segments.len() - 2].file));
+            }
+        }
+        files
+    }
+
+    /// Removes whole segments, oldest first and never the newest, while
+    /// the log holds more than `max_bytes` or the segment's newest record
+    /// is older than `max_age_ms` before `now_ms`. Returns how many went.
+    pub fn retain(
+        &mut self,
+        max_bytes: Option<u64>,
+        max_age_ms: Option<u64>,
+        now_ms: i64,
+    ) -> usize {
+        let mut removed = 0;
+        while self.segments.len() > 1 {
+            let oldest = &self.segments[0];
+            let over_size = max_bytes.is_some_and(|max| self.bytes() > max);
+            let too_old = max_age_ms.is_some_and(|age| {
+                oldest.next > oldest.first && oldest.newest_ms < now_ms.saturating_sub(age as i64)
+            });
+            if !(over_size || too_old) {
+                break;
+            }
+            let gone = self.segments.remove(0);
+            if let Err(e) = std::fs::remove_file(&gone.path) {
+                tracing::warn!(segment = %gone.path.display(), error = %e, "could not remove a stream segment retention let go");
+            }
+            removed += 1;
+        }
+        removed
+    }
+
+    /// The first offset whose segment holds records at or after
+    /// `timestamp_ms`: the first record of the oldest segment whose newest
+    /// record is that recent (RabbitMQ also starts a timestamp at a chunk,
+    /// not at the exact record); `next_offset` if none is.
+    pub fn offset_for_timestamp(&self, timestamp_ms: i64) -> u64 {
+        self.segments
+            .iter()
+            .find(|s| s.next > s.first && s.newest_ms >= timestamp_ms)
+            .map_or(self.next_offset(), |s| s.first)
+    }
+
+    /// The files a read from `cursor` goes through.
+    pub fn plan(&self, cursor: &Cursor) -> ReadPlan {
+        ReadPlan {
+            segments: self
+                .segments
+                .iter()
+                .filter(|s| s.next > cursor.offset && s.next > s.first)
+                .map(|s| (s.first, s.next, Arc::clone(&s.file)))
+                .collect(),
+        }
+    }
+
+    /// Removes every file (the stream was deleted; reads under way keep
+    /// their open files until they finish).
+    pub fn destroy(&self) {
+        if let Err(e) = std::fs::remove_dir_all(&self.dir) {
+            tracing::warn!(stream = %self.dir.display(), error = %e, "could not remove a deleted stream's files");
+        }
+    }
+}
+
+impl ReadPlan {
+    /// Reads from `cursor` at most `max_records` records and about
+    /// `max_bytes` (at least one record), without any lock; moves the
+    /// cursor past them. Offsets before the oldest segment (removed by
+    /// retention meanwhile) are skipped. Stops at a record that does not
+    /// check (damage after opening): reported, never served.
+    pub fn read(&self, cursor: &mut Cursor, max_records: usize, max_bytes: usize) -> Vec<Record> {
+        let mut out = Vec::new();
+        let mut bytes = 0;
+        for (first, next, file) in &self.segments {
+            if cursor.offset >= *next {
+                continue;
+            }
+            if cursor.offset < *first {
+                *cursor = Cursor::at(*first);
+            }
+            let mut pos = match cursor.at {
+                Some((segment, pos)) if segment == *first => pos,
+                _ => SEGMENT_HEADER,
+            };
+            let mut header = [0u8; RECORD_HEADER];
+            while cursor.offset < *next
+                && out.len() < max_records
+                && (bytes < max_bytes || out.is_empty())
+            {
+                if file.read_exact_at(&mut header, pos).is_err() {
+                    tracing::error!(position = pos, "stream segment shorter than its index says");
+                    return out;
+                }
+                let len = u32::from_le_bytes(header[..4].try_into().expect("4")) as usize;
+                let offset = u64::from_le_bytes(header[8..16].try_into().expect("8"));
+                if offset < cursor.offset {
+                    pos += (RECORD_HEADER + len) as u64;
+                    continue;
+                }
+                let mut record = vec![0u8; RECORD_HEADER + len];
+                if len as u32 > MAX_PAYLOAD || file.read_exact_at(&mut record, pos).is_err() {
+                    tracing::error!(position = pos, "stream record unreadable");
+                    return out;
+                }
+                let crc = u32::from_le_bytes(record[4..8].try_into().expect("4"));
+                if checksum(&record[8..]) != crc || offset != cursor.offset {
+                    tracing::error!(
+                        position = pos,
+                        offset,
+                        "stream record damaged since start-up: not served"
+                    );
+                    return out;
+                }
+                let timestamp_ms = i64::from_le_bytes(record[16..24].try_into().expect("8"));
+                record.drain(..RECORD_HEADER);
+                bytes += len;
+                pos += (RECORD_HEADER + len) as u64;
+                out.push(Record {
+                    offset,
+                    timestamp_ms,
+                    payload: record,
+                });
+                cursor.offset += 1;
+                cursor.at = Some((*first, pos));
+            }
+            if out.len() >= max_records || bytes >= max_bytes {
+                break;
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A directory of this test's own, removed afterwards.
+    struct Scratch(PathBuf);
+
+    impl Scratch {
+        fn new(name: &str) -> Self {
+            let dir =
+                std::env::temp_dir().join(format!("leveret-stream-{}-{name}", std::process::id()));
+            let _ = std::fs::remove_dir_all(&dir);
+            Scratch(dir)
+        }
+
+        fn path(&self) -> &Path {
+            &self.0
+        }
+    }
+
+    impl Drop for Scratch {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
+    fn read_all(log: &StreamLog, from: u64) -> Vec<Record> {
+        let mut cursor = Cursor::at(from);
+        let plan = log.plan(&cursor);
+        plan.read(&mut cursor, usize::MAX, usize::MAX)
+    }
+
+    #[test]
+    fn appends_get_increasing_offsets_and_read_back_from_any_offset() {
+        let dir = Scratch::new("offsets");
+        let mut log = StreamLog::open(dir.path(), 1 << 20).unwrap();
+        for i in 0..100u32 {
+            let (offset, _) = log
+                .append(&i.to_le_bytes(), 1000 + i64::from(i), i % 10 == 0)
+                .unwrap();
+            assert_eq!(offset, u64::from(i));
+        }
+        assert_eq!(
+            (log.first_offset(), log.next_offset(), log.len()),
+            (0, 100, 100)
+        );
+        let from_40 = read_all(&log, 40);
+        assert_eq!(from_40.len(), 60);
+        assert_eq!(from_40[0].payload, 40u32.to_le_bytes());
+        assert_eq!(from_40[0].timestamp_ms, 1040);
+        assert_eq!(log.last_chunk(), 90);
+        // Bounded reads move the cursor on exactly.
+        let mut cursor = Cursor::at(0);
+        let plan = log.plan(&cursor);
+        let first = plan.read(&mut cursor, 7, usize::MAX);
+        let rest = plan.read(&mut cursor, usize::MAX, usize::MAX);
+        assert_eq!(first.len() + rest.len(), 100);
+        assert_eq!(rest[0].offset, 7);
+    }
+
+    #[test]
+    fn segments_roll_at_their_size_and_retention_removes_whole_old_segments() {
+        let dir = Scratch::new("retention");
+        let mut log = StreamLog::open(dir.path(), 1000).unwrap();
+        let body = [7u8; 75]; // 100 bytes a record
+        for i in 0..50 {
+            log.append(&body, i, false).unwrap();
+        }
+        assert_eq!(
+            log.segments.len(),
+            6,
+            "9 records of 100 bytes after a 16-byte header per segment"
+        );
+        assert!(log.segments.iter().all(|s| s.bytes <= 1000));
+        assert_eq!(log.retain(Some(2500), None, 0), 3);
+        assert!(log.bytes() <= 2500);
+        assert_eq!(log.first_offset(), 27);
+        assert_eq!(
+            read_all(&log, 0)[0].offset,
+            27,
+            "a read before the first offset starts at it"
+        );
+        // By age: segments whose newest record is older than the limit go,
+        // the newest never.
+        assert_eq!(log.retain(None, Some(10), 1000), 2);
+        assert_eq!(log.segments.len(), 1);
+        assert_eq!(log.first_offset(), 45);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn offsets_and_contents_survive_reopening() {
+        let dir = Scratch::new("reopen");
+        {
+            let mut log = StreamLog::open(dir.path(), 300).unwrap();
+            for i in 0..20u8 {
+                log.append(&[i; 30], 5, i == 12).unwrap();
+            }
+            log.retain(Some(600), None, 0);
+        }
+        let mut log = StreamLog::open(dir.path(), 300).unwrap();
+        let first = log.first_offset();
+        assert!(first > 0);
+        assert_eq!(log.next_offset(), 20);
+        let records = read_all(&log, 0);
+        assert_eq!(records.len() as u64, 20 - first);
+        assert_eq!(records[0].payload, vec![first as u8; 30]);
+        assert_eq!(log.append(b"x", 6, true).unwrap().0, 20);
+    }
+
+    #[test]
+    fn damage_found_at_start_is_cut_off_and_never_served() {
+        let dir = Scratch::new("damage");
+        let path;
+        {
+            let mut log = StreamLog::open(dir.path(), 1 << 20).unwrap();
+            for i in 0..10u8 {
+                log.append(&[i; 10], 1, false).unwrap();
+            }
+            path = log.head().path.clone();
+        }
+        // Flip one payload byte of the record at offset 6.
+        let mut bytes = std::fs::read(&path).unwrap();
+        let at = SEGMENT_HEADER as usize + 6 * (RECORD_HEADER + 10) + RECORD_HEADER + 3;
+        bytes[at] ^= 0xff;
+        std::fs::write(&path, &bytes).unwrap();
+        let mut log = StreamLog::open(dir.path(), 1 << 20).unwrap();
+        assert_eq!(
+            log.next_offset(),
+            6,
+            "offsets 6.. were in and after the bad record"
+        );
+        assert_eq!(read_all(&log, 0).len(), 6);
+        assert_eq!(log.append(b"new", 2, true).unwrap().0, 6);
+        // A torn tail (half a record) is cut off likewise.
+        let head = log.head().path.clone();
+        let len = std::fs::metadata(&head).unwrap().len();
+        OpenOptions::new()
+            .write(true)
+            .open(&head)
+            .unwrap()
+            .set_len(len - 2)
+            .unwrap();
+        drop(log);
+        let log = StreamLog::open(dir.path(), 1 << 20).unwrap();
+        assert_eq!(log.next_offset(), 6);
+    }
+
+    #[test]
+    fn timestamps_find_the_oldest_segment_recent_enough() {
+        let dir = Scratch::new("timestamps");
+        let mut log = StreamLog::open(dir.path(), 200).unwrap();
+        for i in 0..20 {
+            log.append(&[0; 35], i * 100, false).unwrap(); // 60 bytes: 3 a segment
+        }
+        assert_eq!(log.offset_for_timestamp(0), 0);
+        assert_eq!(log.offset_for_timestamp(450), 3);
+        assert_eq!(log.offset_for_timestamp(1_000_000), 20);
+    }
+}

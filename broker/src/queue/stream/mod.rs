@@ -1,0 +1,498 @@
+//! Stream queues (`x-queue-type: stream`), as RabbitMQ 3.10 serves them
+//! over AMQP 0.9.1: an append-only log that consumers read from an offset
+//! of their choosing, each at its own pace, without removing anything.
+//! This module owns a stream's state (its log and its readers) and the
+//! queue operations that differ for a stream: appending a publish,
+//! starting a consumer at its `x-stream-offset`, delivering records with
+//! their `x-stream-offset` header, acks that only give credit back, and
+//! retention. `log` owns the files; `args` validates declarations and
+//! consumer arguments.
+//!
+//! A publish is appended under the stream's lock (a write to the page
+//! cache) and made durable by the persister's next group commit
+//! ([`Persistence::submit_sync`]), whose number the publish's confirm
+//! waits for, as a durable queue's does. Readers hold no records beyond a
+//! small batch: a reader behind the tail gets its next batch from a
+//! blocking task (`spawn_blocking`) that reads without any lock, so old
+//! segments are never read on a broker thread; a reader at the tail is
+//! handed each publish as it is appended.
+
+mod args;
+mod log;
+
+pub use args::{is_stream, start_at, StartAt, StreamArgs};
+
+use super::{Deleted, Enqueued, Queue, QueuedMessage};
+use crate::consumer::{Consumer, Unacked};
+use crate::message::Message;
+use crate::outbox::Outbound;
+use crate::store::Persistence;
+use bytes::{Bytes, BytesMut};
+use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
+use log::{Cursor, Record, StreamLog};
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex, MutexGuard};
+
+/// The header each delivery from a stream carries: its offset (a long).
+pub const OFFSET_HEADER: &str = "x-stream-offset";
+
+/// Most records one read brings into a reader's batch.
+const READ_RECORDS: usize = 256;
+/// About the most bytes one read brings (at least one record).
+const READ_BYTES: usize = 128 * 1024;
+
+/// One stream's state (see the module docs).
+#[derive(Debug)]
+pub struct Stream {
+    args: StreamArgs,
+    persistence: Arc<Persistence>,
+    state: Mutex<StreamState>,
+}
+
+#[derive(Debug)]
+struct StreamState {
+    log: StreamLog,
+    readers: Vec<Reader>,
+    /// The submission number of the last append's sync: an append after it
+    /// is durable starts a new chunk.
+    last_sync: u64,
+    exclusive_reader: bool,
+    deleted: bool,
+}
+
+/// One consumer's place in the stream.
+#[derive(Debug)]
+struct Reader {
+    consumer: Arc<Consumer>,
+    /// The next record it is owed (after what is batched).
+    cursor: Cursor,
+    /// Records read for it, not yet delivered (at most one read's worth).
+    batch: VecDeque<Record>,
+    /// A read task is out for it.
+    reading: bool,
+    /// Its last read found nothing where records were due (damage since
+    /// start-up): no further read until the stream grows.
+    stalled: bool,
+}
+
+/// A read to start once the stream's lock is let go.
+struct ReadTask {
+    consumer: Arc<Consumer>,
+    cursor: Cursor,
+    plan: log::ReadPlan,
+    records: usize,
+}
+
+fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
+}
+
+/// A message as a stream record's payload: exchange and routing key (a
+/// length byte each), properties (`u32` LE length), then the body.
+fn encode(message: &Message) -> Vec<u8> {
+    let mut out = Vec::with_capacity(
+        2 + message.exchange.len()
+            + message.routing_key.len()
+            + 4
+            + message.properties.len()
+            + message.body.len(),
+    );
+    for short in [&message.exchange, &message.routing_key] {
+        out.push(short.len() as u8);
+        out.extend_from_slice(short.as_bytes());
+    }
+    out.extend_from_slice(&(message.properties.len() as u32).to_le_bytes());
+    out.extend_from_slice(&message.properties);
+    out.extend_from_slice(&message.body);
+    out
+}
+
+/// The message a record holds, with its offset in [`OFFSET_HEADER`];
+/// `None` if the payload does not decode (it passed its checksum, so only
+/// a bug could make it so; it is skipped with an error log).
+fn decode(record: &Record) -> Option<Message> {
+    let payload = Bytes::copy_from_slice(&record.payload);
+    let mut at = 0;
+    let mut short = || -> Option<ShortStr> {
+        let len = usize::from(*payload.get(at)?);
+        let bytes = payload.get(at + 1..at + 1 + len)?;
+        at += 1 + len;
+        ShortStr::try_from(Bytes::copy_from_slice(bytes)).ok()
+    };
+    let exchange = short()?;
+    let routing_key = short()?;
+    let len = u32::from_le_bytes(payload.get(at..at + 4)?.try_into().ok()?) as usize;
+    at += 4;
+    if payload.len() < at + len {
+        return None;
+    }
+    let stored_properties = payload.slice(at..at + len);
+    let body = payload.slice(at + len..);
+    let mut properties = BasicProperties::decode(&stored_properties).ok()?;
+    properties
+        .headers
+        .get_or_insert_with(FieldTable::new)
+        .insert(
+            ShortStr::from_static(OFFSET_HEADER),
+            FieldValue::I64(record.offset as i64),
+        );
+    let mut encoded = BytesMut::with_capacity(len + 32);
+    properties.encode(&mut encoded);
+    Some(Message {
+        exchange,
+        routing_key,
+        persistent: properties.delivery_mode == Some(2),
+        priority: 0,
+        properties: encoded.freeze(),
+        body,
+        ttl_ms: None,
+        stored: None,
+    })
+}
+
+impl Stream {
+    /// Opens (or creates) stream `id`'s log under the store's data
+    /// directory. `None` if the broker keeps nothing on disk.
+    pub fn open(
+        args: StreamArgs,
+        persistence: Arc<Persistence>,
+        id: u64,
+    ) -> Option<std::io::Result<Stream>> {
+        let dir = persistence.stream_dir(id)?;
+        Some(StreamLog::open(&dir, args.segment_bytes).map(|log| Stream {
+            args,
+            persistence,
+            state: Mutex::new(StreamState {
+                log,
+                readers: Vec::new(),
+                last_sync: 0,
+                exclusive_reader: false,
+                deleted: false,
+            }),
+        }))
+    }
+
+    fn lock(&self) -> MutexGuard<'_, StreamState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Records held.
+    pub fn len(&self) -> u64 {
+        self.lock().log.len()
+    }
+
+    /// Bytes on disk.
+    pub fn bytes(&self) -> u64 {
+        self.lock().log.bytes()
+    }
+
+    /// Consumers reading it.
+    pub fn reader_count(&self) -> usize {
+        self.lock().readers.len()
+    }
+
+    /// Its consumers, in registration order.
+    pub fn consumers(&self) -> Vec<Arc<Consumer>> {
+        self.lock()
+            .readers
+            .iter()
+            .map(|r| Arc::clone(&r.consumer))
+            .collect()
+    }
+
+    /// Applies retention now (the sweeper calls this, so a short
+    /// `x-max-age` takes effect without new publishes); returns how many
+    /// segments went.
+    pub fn retain(&self) -> usize {
+        let mut st = self.lock();
+        let (bytes, age) = (self.args.max_bytes, self.args.max_age_ms);
+        st.log.retain(bytes, age, now_ms())
+    }
+}
+
+impl Queue {
+    fn stream_ref(&self) -> &Stream {
+        self.stream.as_ref().expect("called on a stream only")
+    }
+
+    /// Appends a publish to the stream; hands it to readers at the tail.
+    pub(super) fn stream_publish(self: &Arc<Self>, message: &Message) -> Enqueued {
+        let stream = self.stream_ref();
+        let mut tasks = Vec::new();
+        let sync = {
+            let mut st = stream.lock();
+            if st.deleted {
+                return Enqueued::Accepted { sync: 0 };
+            }
+            let payload = encode(message);
+            let chunk_start = stream.persistence.flushed() >= st.last_sync;
+            let timestamp = now_ms();
+            let (offset, rolled) = match st.log.append(&payload, timestamp, chunk_start) {
+                Ok(appended) => appended,
+                Err(e) => {
+                    tracing::error!(queue = %self.name, vhost = %self.vhost, error = %e, "cannot append to a stream: the publish is refused");
+                    return Enqueued::Refused;
+                }
+            };
+            let sync = stream.persistence.submit_sync(st.log.sync_handles(rolled));
+            st.last_sync = sync;
+            if rolled {
+                let (bytes, age) = (stream.args.max_bytes, stream.args.max_age_ms);
+                st.log.retain(bytes, age, timestamp);
+            }
+            self.stats.published();
+            for reader in st.readers.iter_mut() {
+                reader.stalled = false;
+                if reader.cursor.offset == offset && reader.batch.is_empty() && !reader.reading {
+                    reader.batch.push_back(Record {
+                        offset,
+                        timestamp_ms: timestamp,
+                        payload: payload.clone(),
+                    });
+                    reader.cursor = Cursor::at(offset + 1);
+                }
+            }
+            self.stream_deliver(&mut st, &mut tasks);
+            sync
+        };
+        self.start_reads(tasks);
+        Enqueued::Accepted { sync }
+    }
+
+    /// Adds a stream consumer starting at `start`; 403 if an exclusive
+    /// consumer is in the way (as on any queue).
+    pub fn add_stream_consumer(
+        &self,
+        consumer: Arc<Consumer>,
+        start: StartAt,
+    ) -> crate::error::AmqpResult<()> {
+        let stream = self.stream_ref();
+        let mut st = stream.lock();
+        if st.exclusive_reader || (consumer.exclusive && !st.readers.is_empty()) {
+            return Err(crate::error::AmqpError::access_refused(format_args!(
+                "queue '{}' in vhost '{}' in exclusive use",
+                self.name, self.vhost
+            )));
+        }
+        let log = &st.log;
+        let (first, next) = (log.first_offset(), log.next_offset());
+        let offset = match start {
+            StartAt::First => first,
+            StartAt::Last => log.last_chunk(),
+            StartAt::Next => next,
+            StartAt::Offset(n) => n.clamp(first, next),
+            StartAt::Timestamp(ms) => log.offset_for_timestamp(ms).max(first),
+        };
+        st.exclusive_reader = consumer.exclusive;
+        st.readers.push(Reader {
+            consumer,
+            cursor: Cursor::at(offset),
+            batch: VecDeque::new(),
+            reading: false,
+            stalled: false,
+        });
+        self.stats.consumer_added();
+        Ok(())
+    }
+
+    /// Removes a stream consumer; a stream is never auto-deleted.
+    pub(super) fn remove_stream_consumer(&self, consumer: &Arc<Consumer>) -> bool {
+        let mut st = self.stream_ref().lock();
+        let before = st.readers.len();
+        st.readers.retain(|r| !Arc::ptr_eq(&r.consumer, consumer));
+        if st.readers.len() < before {
+            self.stats.consumers_removed(1);
+            if consumer.exclusive {
+                st.exclusive_reader = false;
+            }
+        }
+        false
+    }
+
+    /// Delivers what readers have batched while they have credit and
+    /// room, and starts reads for those that need more.
+    pub(super) fn stream_dispatch(self: &Arc<Self>) {
+        let mut tasks = Vec::new();
+        {
+            let mut st = self.stream_ref().lock();
+            self.stream_deliver(&mut st, &mut tasks);
+        }
+        self.start_reads(tasks);
+    }
+
+    fn stream_deliver(self: &Arc<Self>, st: &mut StreamState, tasks: &mut Vec<ReadTask>) {
+        if st.deleted {
+            return;
+        }
+        let next = st.log.next_offset();
+        for reader in st.readers.iter_mut() {
+            let consumer = Arc::clone(&reader.consumer);
+            while !reader.batch.is_empty() {
+                let Some(permit) = consumer.channel.outbox.try_reserve() else {
+                    consumer.channel.outbox.wait_for_room(self);
+                    break;
+                };
+                let Some(credit) = consumer.try_take_credit() else {
+                    break;
+                };
+                let Some(record) = reader.batch.pop_front() else {
+                    break;
+                };
+                let Some(message) = decode(&record) else {
+                    tracing::error!(queue = %self.name, offset = record.offset, "a stream record that passed its checksum does not decode; skipped");
+                    continue;
+                };
+                credit.keep();
+                self.stats.delivered(false, false);
+                let message = Arc::new(message);
+                let mut deliveries = consumer.channel.deliveries();
+                let delivery_tag = deliveries.next_tag();
+                deliveries.push(Unacked {
+                    tag: delivery_tag,
+                    queue: Arc::clone(self),
+                    message: QueuedMessage {
+                        seq: record.offset,
+                        priority: 0,
+                        message: Arc::clone(&message),
+                        redelivered: false,
+                        expires_at: None,
+                    },
+                    consumer: Some(Arc::clone(&consumer)),
+                });
+                permit.send(Outbound::Deliver {
+                    channel: consumer.channel.id,
+                    consumer_tag: consumer.tag.clone(),
+                    delivery_tag,
+                    redelivered: false,
+                    message,
+                });
+            }
+            if reader.batch.is_empty()
+                && !reader.reading
+                && !reader.stalled
+                && reader.cursor.offset < next
+                && consumer.has_credit()
+            {
+                reader.reading = true;
+                tasks.push(ReadTask {
+                    records: (consumer.prefetch as usize).clamp(1, READ_RECORDS),
+                    consumer,
+                    cursor: reader.cursor,
+                    plan: st.log.plan(&reader.cursor),
+                });
+            }
+        }
+    }
+
+    /// Runs reads off the broker's threads (inline where there is no
+    /// runtime, as in unit tests); each hands its batch back and
+    /// dispatches.
+    fn start_reads(self: &Arc<Self>, tasks: Vec<ReadTask>) {
+        for task in tasks {
+            let queue = Arc::clone(self);
+            let work = move || {
+                let mut cursor = task.cursor;
+                let records = task.plan.read(&mut cursor, task.records, READ_BYTES);
+                queue.read_done(&task.consumer, cursor, records);
+            };
+            match tokio::runtime::Handle::try_current() {
+                Ok(runtime) => {
+                    runtime.spawn_blocking(work);
+                }
+                Err(_) => work(),
+            }
+        }
+    }
+
+    fn read_done(self: &Arc<Self>, consumer: &Arc<Consumer>, cursor: Cursor, records: Vec<Record>) {
+        let mut tasks = Vec::new();
+        {
+            let mut st = self.stream_ref().lock();
+            let next = st.log.next_offset();
+            let Some(reader) = st
+                .readers
+                .iter_mut()
+                .find(|r| Arc::ptr_eq(&r.consumer, consumer))
+            else {
+                return; // cancelled meanwhile
+            };
+            reader.reading = false;
+            reader.stalled = records.is_empty() && cursor.offset < next;
+            reader.cursor = cursor;
+            reader.batch.extend(records);
+            self.stream_deliver(&mut st, &mut tasks);
+        }
+        self.start_reads(tasks);
+    }
+
+    /// Deletes the stream: its files go, its consumers come back to be
+    /// told.
+    pub(super) fn stream_delete(&self) -> Deleted {
+        let stream = self.stream_ref();
+        let (messages, consumers) = {
+            let mut st = stream.lock();
+            st.deleted = true;
+            let consumers: Vec<Arc<Consumer>> = st.readers.drain(..).map(|r| r.consumer).collect();
+            let messages = st.log.len() as u32;
+            st.log.destroy();
+            (messages, consumers)
+        };
+        self.stats.queue_deleted(consumers.len());
+        Deleted {
+            messages,
+            consumers,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_record_decodes_to_its_message_with_its_offset_header() {
+        let properties = BasicProperties {
+            delivery_mode: Some(2),
+            ..Default::default()
+        };
+        let mut encoded = BytesMut::new();
+        properties.encode(&mut encoded);
+        let message = Message {
+            exchange: ShortStr::from_static("x"),
+            routing_key: ShortStr::from_static("rk"),
+            properties: encoded.freeze(),
+            body: Bytes::from_static(b"body"),
+            persistent: true,
+            priority: 0,
+            ttl_ms: None,
+            stored: None,
+        };
+        let record = Record {
+            offset: 42,
+            timestamp_ms: 0,
+            payload: encode(&message),
+        };
+        let decoded = decode(&record).expect("decodes");
+        assert_eq!(decoded.exchange, message.exchange);
+        assert_eq!(decoded.routing_key, message.routing_key);
+        assert_eq!(decoded.body, message.body);
+        assert!(decoded.persistent);
+        let read = BasicProperties::decode(&decoded.properties).unwrap();
+        assert_eq!(
+            read.headers.unwrap().get(OFFSET_HEADER),
+            Some(&FieldValue::I64(42))
+        );
+    }
+
+    #[test]
+    fn a_payload_cut_short_does_not_decode() {
+        let record = Record {
+            offset: 0,
+            timestamp_ms: 0,
+            payload: vec![5, b'a'],
+        };
+        assert!(decode(&record).is_none());
+    }
+}
