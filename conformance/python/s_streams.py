@@ -484,8 +484,11 @@ def retained(t, q, sent, last):
     kept = reader.bodies()
     t.eq("what remains is a tail of what was sent, ending with the last message", suffix_of(kept, sent), True)
     t.eq("offsets increase", increasing(reader.offsets()), True)
+    # Retention may still be removing segments (RabbitMQ's runs apart from
+    # the writer): a reader from offset 0 starts at the first offset kept
+    # by then, so it reads a tail of what the first reader read.
     zero = Reader(t, q, 0).until_body(last).quiet(0.5)
-    t.eq("offset 0 now starts at the first offset kept", zero.offsets() == reader.offsets(), True)
+    t.eq("offset 0 reads a tail of it, at the same offsets", suffix_of(bodies_and_offsets(zero), bodies_and_offsets(reader)), True)
     return kept, reader.offsets()
 
 
