@@ -468,6 +468,70 @@ def _(t):
     t.eq("one delivery tag sequence for the channel", sorted([g[2] for g in reader.got] + [tag for _, tag in got2]), list(range(1, 13)))
 
 
+@s("consume.offset_argument_on_classic_queue_refused")
+def _(t):
+    q = t.n("classic")
+    tidy(t, queues=[q])
+    ch = connect(t).channel()
+    ch.queue_declare(q, durable=True)
+    ch.basic_qos(prefetch_count=10)
+    expect_refusal(t, "x-stream-offset on a classic queue", lambda: ch.basic_consume(q, lambda *a: None, arguments={"x-stream-offset": "first"}), 406)
+
+
+@s("consume.priority_refused")
+def _(t):
+    q = stream(t, "prio")
+    ch = connect(t).channel()
+    ch.basic_qos(prefetch_count=10)
+    expect_refusal(t, "x-priority", lambda: ch.basic_consume(q, lambda *a: None, arguments={"x-priority": 5}), 406)
+
+
+@s("consume.exclusive_flag")
+def _(t):
+    """RabbitMQ 3.10 accepts an exclusive consumer on a stream and a second
+    consumer beside it."""
+    q, pub = ten(t, "excl")
+    conn = connect(t)
+    first = conn.channel()
+    first.basic_qos(prefetch_count=10)
+    first.basic_consume(q, lambda ch, m, p, b: ch.basic_ack(m.delivery_tag), exclusive=True, arguments={"x-stream-offset": "first"})
+    t.obs("exclusive consumer", "accepted")
+    reader = Reader(t, q, "first")
+    t.eq("a second consumer beside it", reader.until(10).quiet(0.3).bodies(), names("m", 10))
+
+
+@s("publish.through_an_exchange_and_in_a_transaction")
+def _(t):
+    q = stream(t, "routed")
+    x = t.n("fan")
+    tidy(t, exchanges=[x])
+    conn = connect(t)
+    ch = conn.channel()
+    ch.exchange_declare(x, "fanout")
+    ch.queue_bind(q, x)
+    ch.confirm_delivery()
+    ch.basic_publish(x, "", b"via-exchange", mandatory=True)
+    tx = conn.channel()
+    tx.tx_select()
+    tx.basic_publish("", q, b"in-tx-1")
+    tx.basic_publish(x, "", b"in-tx-2")
+    tx.tx_commit()
+    tx.basic_publish("", q, b"rolled-back")
+    tx.tx_rollback()
+    reader = Reader(t, q, "first").until(3).quiet()
+    t.eq("delivered", bodies_and_offsets(reader), [["via-exchange", 0], ["in-tx-1", 1], ["in-tx-2", 2]])
+
+
+@s("declare.delete_if_empty")
+def _(t):
+    """queue.delete if-empty on a stream with messages: RabbitMQ 3.10 deletes
+    it and says message_count 0."""
+    q, pub = ten(t, "ifempty")
+    ch = connect(t).channel()
+    t.obs("delete-ok message_count", ch.queue_delete(q, if_empty=True).method.message_count)
+    expect_refusal(t, "passive declare after", lambda: ch.queue_declare(q, passive=True), 404)
+
+
 # retention -----------------------------------------------------------------
 
 BODY = "x" * 96
