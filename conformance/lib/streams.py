@@ -16,6 +16,7 @@ like the upstream runners.
 import json
 import os
 import secrets
+import tempfile
 
 from nodes import LeveretNode, RabbitNode
 
@@ -35,6 +36,12 @@ def compare(ours, theirs):
     return "pass", ""
 
 
+# A policy both brokers load (RabbitMQ with `rabbitmqctl import_definitions`,
+# Leveret with `--definitions`), for the scenario `retention.by_policy`.
+POLICY = {"vhost": "/", "name": "streams-retention", "pattern": "policy-retained$", "apply-to": "queues",
+          "priority": 0, "definition": {"max-length-bytes": 3000, "stream-max-segment-size-bytes": 1000}}
+
+
 def run(ctx):
     if not ctx.leveret:
         return [("streams", "skip", "needs a leveret of its own beside its RabbitMQ node (not --url)")]
@@ -45,8 +52,12 @@ def run(ctx):
     ]
     rabbit = RabbitNode()
     leveret = None
+    definitions = tempfile.NamedTemporaryFile("w", suffix=".json", prefix="leveret-conformance-streams-")
     try:
-        leveret = LeveretNode(ctx.leveret)
+        json.dump({"policies": [POLICY]}, definitions)
+        definitions.flush()
+        rabbit.load(definitions.name, lambda node: POLICY["name"] in node.ctl("list_policies", "-p", "/").stdout)
+        leveret = LeveretNode(ctx.leveret, ["--definitions", definitions.name])
         results = []
         for argv in drivers:
             names = ctx.list_scenarios(argv)
@@ -69,6 +80,7 @@ def run(ctx):
         if leveret:
             leveret.stop()
         rabbit.stop()
+        definitions.close()
 
 
 SUITES = {

@@ -586,6 +586,20 @@ def _(t):
     t.eq("the first offset moved", offsets[0] > 0, True)
 
 
+@s("retention.by_policy")
+def _(t):
+    """The suite's policy (lib/streams.py: max-length-bytes 3000,
+    stream-max-segment-size-bytes 1000 on queues named `...policy-retained`)
+    retains a stream declared without arguments as the arguments would."""
+    q = stream(t, "policy-retained")
+    sent = padded("m", 100)
+    Publisher(t).send(q, sent)
+    kept, offsets = retained(t, q, sent, sent[-1])
+    t.eq("the oldest are gone", len(kept) < len(sent), True)
+    t.eq("the first offset moved", offsets[0] > 0, True)
+    t.eq("at most max-length-bytes plus one segment kept", sum(len(b) for b in kept) <= 3000 + 1000, True)
+
+
 @s("retention.unlimited_keeps_everything")
 def _(t):
     q = stream(t, "all", **{"x-stream-max-segment-size-bytes": 1000})
