@@ -199,6 +199,15 @@ impl QueueInfo {
     pub fn messages(&self) -> u64 {
         self.messages_ready + self.messages_unacknowledged
     }
+
+    /// Its type as RabbitMQ names it in listings: `stream` or `classic`.
+    pub fn kind(&self) -> &'static str {
+        if crate::queue::is_stream(&self.arguments) {
+            "stream"
+        } else {
+            "classic"
+        }
+    }
 }
 
 /// A queue's counters, named as in RabbitMQ's `message_stats`.

@@ -452,7 +452,7 @@ impl Vhost {
             )));
         }
         let id = persistence.next_queue_id();
-        let stream = match Stream::open(args, Arc::clone(&persistence), id) {
+        let stream = match Stream::open(args, Arc::clone(&persistence), id, true) {
             Some(Ok(stream)) => stream,
             Some(Err(e)) => {
                 tracing::error!(queue = %decl.name, vhost = %self.name, error = %e, "cannot create a stream's files");
@@ -857,7 +857,7 @@ impl Vhost {
                 return None;
             }
         };
-        let stream = match Stream::open(args, Arc::clone(&persistence), record.id)? {
+        let stream = match Stream::open(args, Arc::clone(&persistence), record.id, false)? {
             Ok(stream) => stream,
             Err(e) => {
                 tracing::error!(queue = %record.name, vhost = %self.name, error = %e, "cannot open a stream's files; not restored");

@@ -90,7 +90,7 @@ pub fn queue(q: &QueueInfo, node: &str, rates: &QueueRates) -> Value {
         "arguments": table(&q.arguments),
         "node": node,
         "state": "running",
-        "type": "classic",
+        "type": q.kind(),
         "policy": null,
         "messages": q.messages(),
         "messages_details": details(rates.messages),

@@ -49,8 +49,9 @@ pub struct Record {
     pub offset: u64,
     /// When it was appended, ms since the epoch.
     pub timestamp_ms: i64,
-    /// The payload as appended.
-    pub payload: Vec<u8>,
+    /// The payload as appended (shared, not copied, by every reader it is
+    /// handed to).
+    pub payload: bytes::Bytes,
 }
 
 /// What the index keeps of one segment.
@@ -75,12 +76,29 @@ pub struct Cursor {
     pub offset: u64,
     /// `(segment first offset, byte position)` of `offset`, if known.
     at: Option<(u64, u64)>,
+    /// Records older than this (ms) are passed over, once: a reader
+    /// starting at a time begins at the first record that recent.
+    not_before: Option<i64>,
 }
 
 impl Cursor {
     /// A cursor at `offset`, position to be found.
     pub fn at(offset: u64) -> Self {
-        Cursor { offset, at: None }
+        Cursor {
+            offset,
+            at: None,
+            not_before: None,
+        }
+    }
+
+    /// A cursor at the first record at or after `timestamp_ms`, searched
+    /// from `offset` (the first of the oldest segment that recent, from
+    /// [`StreamLog::offset_for_timestamp`]).
+    pub fn at_time(offset: u64, timestamp_ms: i64) -> Self {
+        Cursor {
+            not_before: Some(timestamp_ms),
+            ..Cursor::at(offset)
+        }
     }
 }
 
@@ -183,9 +201,23 @@ fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
 }
 
 impl StreamLog {
+    /// A new, empty log in `dir`: whatever the directory held (the files
+    /// of a deleted stream whose removal a crash cut short) goes first.
+    pub fn create(dir: &Path, max_segment_bytes: u64) -> io::Result<StreamLog> {
+        match std::fs::remove_dir_all(dir) {
+            Err(e) if e.kind() != io::ErrorKind::NotFound => return Err(e),
+            _ => {}
+        }
+        std::fs::create_dir_all(dir)?;
+        StreamLog::open(dir, max_segment_bytes)
+    }
+
     /// Opens (or creates) the log in `dir`, checking every record; damage
     /// is reported as an error log and the damaged segment cut there.
     pub fn open(dir: &Path, max_segment_bytes: u64) -> io::Result<StreamLog> {
+        if !dir.exists() {
+            tracing::error!(stream = %dir.display(), "a stored stream's directory is missing: its records are lost; it starts empty");
+        }
         std::fs::create_dir_all(dir)?;
         let mut firsts: Vec<u64> = std::fs::read_dir(dir)?
             .filter_map(|e| e.ok())
@@ -449,10 +481,19 @@ impl ReadPlan {
                 }
                 let len = u32::from_le_bytes(header[..4].try_into().expect("4")) as usize;
                 let offset = u64::from_le_bytes(header[8..16].try_into().expect("8"));
+                let timestamp_ms = i64::from_le_bytes(header[16..24].try_into().expect("8"));
                 if offset < cursor.offset {
                     pos += (RECORD_HEADER + len) as u64;
                     continue;
                 }
+                if cursor.not_before.is_some_and(|t| timestamp_ms < t) && offset == cursor.offset {
+                    // Before the time asked for: passed over.
+                    pos += (RECORD_HEADER + len) as u64;
+                    cursor.offset += 1;
+                    cursor.at = Some((*first, pos));
+                    continue;
+                }
+                cursor.not_before = None;
                 let mut record = vec![0u8; RECORD_HEADER + len];
                 if len as u32 > MAX_PAYLOAD || file.read_exact_at(&mut record, pos).is_err() {
                     tracing::error!(position = pos, "stream record unreadable");
@@ -467,14 +508,13 @@ impl ReadPlan {
                     );
                     return out;
                 }
-                let timestamp_ms = i64::from_le_bytes(record[16..24].try_into().expect("8"));
                 record.drain(..RECORD_HEADER);
                 bytes += len;
                 pos += (RECORD_HEADER + len) as u64;
                 out.push(Record {
                     offset,
                     timestamp_ms,
-                    payload: record,
+                    payload: record.into(),
                 });
                 cursor.offset += 1;
                 cursor.at = Some((*first, pos));
@@ -499,6 +539,7 @@ mod tests {
             let dir =
                 std::env::temp_dir().join(format!("leveret-stream-{}-{name}", std::process::id()));
             let _ = std::fs::remove_dir_all(&dir);
+            std::fs::create_dir_all(&dir).expect("scratch directory");
             Scratch(dir)
         }
 
@@ -535,7 +576,7 @@ mod tests {
         );
         let from_40 = read_all(&log, 40);
         assert_eq!(from_40.len(), 60);
-        assert_eq!(from_40[0].payload, 40u32.to_le_bytes());
+        assert_eq!(from_40[0].payload, &40u32.to_le_bytes()[..]);
         assert_eq!(from_40[0].timestamp_ms, 1040);
         assert_eq!(log.last_chunk(), 90);
         // Bounded reads move the cursor on exactly.
@@ -645,5 +686,11 @@ mod tests {
         assert_eq!(log.offset_for_timestamp(0), 0);
         assert_eq!(log.offset_for_timestamp(450), 3);
         assert_eq!(log.offset_for_timestamp(1_000_000), 20);
+        // A reader at a time starts at the first record that recent, not
+        // at its segment's start.
+        let mut cursor = Cursor::at_time(log.offset_for_timestamp(450), 450);
+        let records = log.plan(&cursor).read(&mut cursor, 2, usize::MAX);
+        let offsets: Vec<u64> = records.iter().map(|r| r.offset).collect();
+        assert_eq!(offsets, vec![5, 6]);
     }
 }

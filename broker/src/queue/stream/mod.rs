@@ -113,7 +113,7 @@ fn encode(message: &Message) -> Vec<u8> {
 /// `None` if the payload does not decode (it passed its checksum, so only
 /// a bug could make it so; it is skipped with an error log).
 fn decode(record: &Record) -> Option<Message> {
-    let payload = Bytes::copy_from_slice(&record.payload);
+    let payload = record.payload.clone();
     let mut at = 0;
     let mut short = || -> Option<ShortStr> {
         let len = usize::from(*payload.get(at)?);
@@ -153,15 +153,22 @@ fn decode(record: &Record) -> Option<Message> {
 }
 
 impl Stream {
-    /// Opens (or creates) stream `id`'s log under the store's data
-    /// directory. `None` if the broker keeps nothing on disk.
+    /// Stream `id`'s log under the store's data directory: a new, empty
+    /// one when `new`, else the one stored (checked as it is opened).
+    /// `None` if the broker keeps nothing on disk.
     pub fn open(
         args: StreamArgs,
         persistence: Arc<Persistence>,
         id: u64,
+        new: bool,
     ) -> Option<std::io::Result<Stream>> {
         let dir = persistence.stream_dir(id)?;
-        Some(StreamLog::open(&dir, args.segment_bytes).map(|log| Stream {
+        let log = if new {
+            StreamLog::create(&dir, args.segment_bytes)
+        } else {
+            StreamLog::open(&dir, args.segment_bytes)
+        };
+        Some(log.map(|log| Stream {
             args,
             persistence,
             state: Mutex::new(StreamState {
@@ -226,7 +233,7 @@ impl Queue {
             if st.deleted {
                 return Enqueued::Accepted { sync: 0 };
             }
-            let payload = encode(message);
+            let payload = Bytes::from(encode(message));
             let chunk_start = stream.persistence.flushed() >= st.last_sync;
             let timestamp = now_ms();
             let (offset, rolled) = match st.log.append(&payload, timestamp, chunk_start) {
@@ -278,17 +285,17 @@ impl Queue {
         }
         let log = &st.log;
         let (first, next) = (log.first_offset(), log.next_offset());
-        let offset = match start {
-            StartAt::First => first,
-            StartAt::Last => log.last_chunk(),
-            StartAt::Next => next,
-            StartAt::Offset(n) => n.clamp(first, next),
-            StartAt::Timestamp(ms) => log.offset_for_timestamp(ms).max(first),
+        let cursor = match start {
+            StartAt::First => Cursor::at(first),
+            StartAt::Last => Cursor::at(log.last_chunk()),
+            StartAt::Next => Cursor::at(next),
+            StartAt::Offset(n) => Cursor::at(n.clamp(first, next)),
+            StartAt::Timestamp(ms) => Cursor::at_time(log.offset_for_timestamp(ms).max(first), ms),
         };
         st.exclusive_reader = consumer.exclusive;
         st.readers.push(Reader {
             consumer,
-            cursor: Cursor::at(offset),
+            cursor,
             batch: VecDeque::new(),
             reading: false,
             stalled: false,
@@ -428,20 +435,19 @@ impl Queue {
     }
 
     /// Deletes the stream: its files go, its consumers come back to be
-    /// told.
+    /// told. The count is 0, as RabbitMQ 3.10's queue.delete-ok for a
+    /// stream says: no message was ready to be taken, only kept.
     pub(super) fn stream_delete(&self) -> Deleted {
         let stream = self.stream_ref();
-        let (messages, consumers) = {
+        let consumers: Vec<Arc<Consumer>> = {
             let mut st = stream.lock();
             st.deleted = true;
-            let consumers: Vec<Arc<Consumer>> = st.readers.drain(..).map(|r| r.consumer).collect();
-            let messages = st.log.len() as u32;
             st.log.destroy();
-            (messages, consumers)
+            st.readers.drain(..).map(|r| r.consumer).collect()
         };
         self.stats.queue_deleted(consumers.len());
         Deleted {
-            messages,
+            messages: 0,
             consumers,
         }
     }
@@ -472,7 +478,7 @@ mod tests {
         let record = Record {
             offset: 42,
             timestamp_ms: 0,
-            payload: encode(&message),
+            payload: encode(&message).into(),
         };
         let decoded = decode(&record).expect("decodes");
         assert_eq!(decoded.exchange, message.exchange);
@@ -491,7 +497,7 @@ mod tests {
         let record = Record {
             offset: 0,
             timestamp_ms: 0,
-            payload: vec![5, b'a'],
+            payload: Bytes::from_static(&[5, b'a']),
         };
         assert!(decode(&record).is_none());
     }
