@@ -222,6 +222,22 @@ def _(t):
         t.eq(f"x-max-age 7{unit}", ch.queue_declare(q, durable=True, arguments={**STREAM, "x-max-age": f"7{unit}"}).method.queue, q)
 
 
+@s("declare.limits_and_cluster_arguments")
+def _(t):
+    """Out-of-range retention values are refused; RabbitMQ's cluster
+    arguments are accepted. (RabbitMQ 3.10 accepts a segment size of 0 and
+    then never confirms a publish, and answers x-max-age "-1s" with 541:
+    not compared.)"""
+    conn = connect(t)
+    for arg, value in [("x-stream-max-segment-size-bytes", -1), ("x-stream-max-segment-size-bytes", 3_000_000_001),
+                       ("x-max-age", "0s"), ("x-max-age", "10")]:
+        ch = conn.channel()
+        expect_refusal(t, f"{arg}={value!r}", lambda: ch.queue_declare(t.n("limits"), durable=True, arguments={**STREAM, arg: value}), 406)
+    q = stream(t, "cluster", **{"x-initial-cluster-size": 1, "x-queue-leader-locator": "client-local", "x-max-length-bytes": 0})
+    Publisher(t).send(q, names("m", 3))
+    t.eq("accepted, and a stream", Reader(t, q, "first").until(3).quiet(0.3).bodies(), names("m", 3))
+
+
 @s("declare.purge_refused")
 def _(t):
     q = stream(t, "purge")
