@@ -58,7 +58,7 @@
 //!    RabbitMQ's cycle rule and a budget). Use queues and below.
 //! 6. **Queue**: `queue` (the FIFO, dispatch to consumers, TTL,
 //!    max-length, durable index entries; dead letters are returned to the
-//!    caller), and beside it `registry` (open connections and channels, for
+//!    caller; `queue::stream`, a stream's log and its readers), and beside it `registry` (open connections and channels, for
 //!    listing and for closing one from outside). Uses consumers, outboxes
 //!    and the store.
 //! 7. **Consumer and outbox**: `consumer` (delivery tags, unacked

@@ -427,6 +427,16 @@ async fn get_nack_reject_purge_automatic_acks_and_no_prefetch_are_refused_as_rab
         let err = result.expect_err(what);
         assert_eq!(lp::code(&err), (540, expected), "{what}");
     }
+    // The operators' handle refuses the same (the management API's get
+    // and purge).
+    if let Some(admin) = b.admin() {
+        let purge = admin.purge_queue("/", &stream).expect_err("purge refused");
+        assert_eq!(purge.code.code(), 540);
+        let get = admin
+            .get("/", &stream, 1, leveret_broker::GetMode::Requeue)
+            .expect_err("get refused");
+        assert_eq!(get.code.code(), 540);
+    }
     let ch = lp::channel(&setup).await;
     tmo!(ch.queue_delete(&stream, lp::QueueDeleteOptions::default())).expect("deleted");
 }
@@ -502,7 +512,12 @@ async fn a_restart_keeps_every_confirmed_message_at_its_offset() {
             vec![("x-stream-max-segment-size-bytes", AMQPValue::LongInt(200))],
         )
         .await;
-        publish_confirmed(&ch, &stream, (0..8).map(|i| format!("m{i}"))).await;
+        publish_confirmed(&ch, &stream, (0..7).map(|i| format!("m{i}"))).await;
+        // A transaction's publish is in the stream once commit-ok is.
+        let tx = lp::channel(&conn).await;
+        tmo!(tx.tx_select()).expect("tx.select");
+        lp::publish(&tx, "", &stream, b"m7").await;
+        tmo!(tx.tx_commit()).expect("tx.commit");
         stream
     };
     b.stop().await;

@@ -248,7 +248,9 @@ impl Admin {
     /// queue.purge: drops the ready messages; returns how many.
     pub fn purge_queue(&self, vhost: &str, name: &str) -> AmqpResult<u32> {
         let vhost = self.vhost(vhost)?;
-        Ok(self.queue_in(&vhost, name)?.purge())
+        let queue = self.queue_in(&vhost, name)?;
+        queue.refuse_on_stream("queue.purge")?;
+        Ok(queue.purge())
     }
 
     /// queue.bind or exchange.bind.
@@ -460,6 +462,7 @@ impl Admin {
         let vhost = self.vhost(vhost)?;
         let queue = self.queue_in(&vhost, queue)?;
         check_exclusive(&queue, ADMIN_CONNECTION, &vhost.name)?;
+        queue.refuse_on_stream("basic.get")?;
         let (outbox, mut answers) = Outbox::new(ADMIN_CONNECTION);
         let link = ChannelLink::new(0, Arc::clone(&outbox));
         let mut got = Vec::new();

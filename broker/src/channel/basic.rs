@@ -428,9 +428,7 @@ impl Channel {
             )));
         }
         if no_ack {
-            return Err(AmqpError::not_implemented(format_args!(
-                "automatic acknowledgement not supported by stream queues {resource}"
-            )));
+            queue.refuse_on_stream("automatic acknowledgement")?;
         }
         let start = crate::queue::start_at(arguments, &queue.name, &self.vhost.name, now_ms())?;
         let consumer = Arc::new(Consumer {
@@ -482,12 +480,7 @@ impl Channel {
         self.allow_queue(Right::Read, queue_name.as_bytes())?;
         let queue = self.vhost.queue_or_404(&queue_name)?;
         crate::vhost::check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
-        if queue.is_stream() {
-            return Err(AmqpError::not_implemented(format_args!(
-                "basic.get not supported by stream queues queue '{}' in vhost '{}'",
-                queue.name, self.vhost.name
-            )));
-        }
+        queue.refuse_on_stream("basic.get")?;
         let Some(permit) = self.outbox().reserve().await else {
             // The writer is gone: the connection is closing.
             return Ok(());
@@ -510,20 +503,14 @@ impl Channel {
                 "unknown delivery tag {tag}"
             )));
         };
-        if let (Settle::Reject { .. }, Some(stream)) = (
-            how,
-            settled
-                .iter()
-                .find(|u| u.queue.is_stream())
-                .map(|u| Arc::clone(&u.queue)),
-        ) {
+        if let (Settle::Reject { .. }, Some(stream)) =
+            (how, settled.iter().find(|u| u.queue.is_stream()))
+        {
+            let refused = stream.queue.refuse_on_stream("basic.nack and basic.reject");
             // RabbitMQ 3.10 closes the connection; what was taken stays
             // unacked until then, as the client left it.
             self.link.deliveries().restore(settled);
-            return Err(AmqpError::not_implemented(format_args!(
-                "basic.nack and basic.reject not supported by stream queues queue '{}' in vhost '{}'",
-                stream.name, self.vhost.name
-            )));
+            return refused;
         }
         if let Some(tx) = &mut self.tx {
             tx.settles.extend(settled.into_iter().map(|u| (u, how)));

@@ -161,12 +161,7 @@ impl Channel {
         self.allow_queue(Right::Read, name.as_bytes())?;
         let queue = self.vhost.queue_or_404(&name)?;
         check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
-        if queue.is_stream() {
-            return Err(AmqpError::not_implemented(format_args!(
-                "queue.purge not supported by stream queues queue '{}' in vhost '{}'",
-                queue.name, self.vhost.name
-            )));
-        }
+        queue.refuse_on_stream("queue.purge")?;
         let message_count = queue.purge();
         if !purge.no_wait {
             self.reply(QueuePurgeOk { message_count }).await;

@@ -8,7 +8,7 @@ use super::{Channel, Publish};
 use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
-use crate::queue::{DeadLetters, Queue};
+use crate::queue::{DeadLetters, Enqueued, Queue};
 use crate::registry::ChannelMode;
 use crate::slice::{yield_if_spent, Slice};
 use leveret_protocol::{
@@ -137,12 +137,17 @@ impl Channel {
             _ => 0,
         };
         let mut dead = DeadLetters::default();
+        // A stream appends at its publish and names the sync to wait for.
+        let mut sync = sync;
         for (message, targets) in placed {
             for (queue, seq) in targets {
-                let (_, dead_here) = match seq {
+                let (enqueued, dead_here) = match seq {
                     Some(seq) => queue.publish_reserved(Arc::clone(&message), seq),
                     None => queue.publish(Arc::clone(&message)),
                 };
+                if let Enqueued::Accepted { sync: own } = enqueued {
+                    sync = sync.max(own);
+                }
                 dead.append(dead_here);
                 yield_if_spent(&mut slice).await;
             }

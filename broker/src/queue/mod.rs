@@ -250,6 +250,18 @@ impl Queue {
         self.stream.is_some()
     }
 
+    /// RabbitMQ 3.10's refusal of `what` (`basic.get`, `queue.purge`, ...)
+    /// on a stream: 540 NOT_IMPLEMENTED, which closes the connection.
+    pub fn refuse_on_stream(&self, what: &str) -> AmqpResult<()> {
+        if self.stream.is_none() {
+            return Ok(());
+        }
+        Err(AmqpError::not_implemented(format_args!(
+            "{what} not supported by stream queues queue '{}' in vhost '{}'",
+            self.name, self.vhost
+        )))
+    }
+
     /// Whether this queue keeps persistent messages routed to it in the
     /// store (a durable classic queue; a stream keeps its own log).
     pub fn stores_messages(&self) -> bool {
@@ -314,7 +326,7 @@ impl Queue {
         permit: Permit<'_, Outbound>,
     ) -> (bool, DeadLetters) {
         if self.stream.is_some() {
-            // The channel refuses basic.get on a stream, as RabbitMQ does.
+            // Refused before this by every caller (`refuse_on_stream`).
             return (false, DeadLetters::default());
         }
         let mut dead = Vec::new();
@@ -522,7 +534,7 @@ impl Queue {
     /// (memory, store) a slice at a time, the first slice now.
     pub fn purge(self: &Arc<Self>) -> u32 {
         if self.stream.is_some() {
-            // The channel refuses queue.purge on a stream, as RabbitMQ does.
+            // Refused before this by every caller (`refuse_on_stream`).
             return 0;
         }
         let mut purged = {

@@ -390,16 +390,19 @@ impl StreamLog {
         files
     }
 
-    /// Removes whole segments, oldest first and never the newest, while
+    /// Lets whole segments go, oldest first and never the newest, while
     /// the log holds more than `max_bytes` or the segment's newest record
-    /// is older than `max_age_ms` before `now_ms`. Returns how many went.
+    /// is older than `max_age_ms` before `now_ms`. Returns their files, for
+    /// [`remove_files`] to delete off the caller's thread (unlinking a
+    /// large file can take milliseconds); readers that hold one open read
+    /// on undisturbed.
     pub fn retain(
         &mut self,
         max_bytes: Option<u64>,
         max_age_ms: Option<u64>,
         now_ms: i64,
-    ) -> usize {
-        let mut removed = 0;
+    ) -> Vec<PathBuf> {
+        let mut gone = Vec::new();
         while self.segments.len() > 1 {
             let oldest = &self.segments[0];
             let over_size = max_bytes.is_some_and(|max| self.bytes() > max);
@@ -409,13 +412,9 @@ impl StreamLog {
             if !(over_size || too_old) {
                 break;
             }
-            let gone = self.segments.remove(0);
-            if let Err(e) = std::fs::remove_file(&gone.path) {
-                tracing::warn!(segment = %gone.path.display(), error = %e, "could not remove a stream segment retention let go");
-            }
-            removed += 1;
+            gone.push(self.segments.remove(0).path);
         }
-        removed
+        gone
     }
 
     /// The first offset whose segment holds records at or after
@@ -446,6 +445,17 @@ impl StreamLog {
     pub fn destroy(&self) {
         if let Err(e) = std::fs::remove_dir_all(&self.dir) {
             tracing::warn!(stream = %self.dir.display(), error = %e, "could not remove a deleted stream's files");
+        }
+    }
+}
+
+/// Deletes segment files retention let go (blocking: call it off the
+/// broker's threads). A file left by a crash first comes back at the next
+/// start and is let go again.
+pub fn remove_files(paths: Vec<PathBuf>) {
+    for path in paths {
+        if let Err(e) = std::fs::remove_file(&path) {
+            tracing::warn!(segment = %path.display(), error = %e, "could not remove a stream segment retention let go");
         }
     }
 }
@@ -602,7 +612,9 @@ mod tests {
             "9 records of 100 bytes after a 16-byte header per segment"
         );
         assert!(log.segments.iter().all(|s| s.bytes <= 1000));
-        assert_eq!(log.retain(Some(2500), None, 0), 3);
+        let by_size = log.retain(Some(2500), None, 0);
+        assert_eq!(by_size.len(), 3);
+        remove_files(by_size);
         assert!(log.bytes() <= 2500);
         assert_eq!(log.first_offset(), 27);
         assert_eq!(
@@ -612,7 +624,9 @@ mod tests {
         );
         // By age: segments whose newest record is older than the limit go,
         // the newest never.
-        assert_eq!(log.retain(None, Some(10), 1000), 2);
+        let by_age = log.retain(None, Some(10), 1000);
+        assert_eq!(by_age.len(), 2);
+        remove_files(by_age);
         assert_eq!(log.segments.len(), 1);
         assert_eq!(log.first_offset(), 45);
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
@@ -626,7 +640,7 @@ mod tests {
             for i in 0..20u8 {
                 log.append(&[i; 30], 5, i == 12).unwrap();
             }
-            log.retain(Some(600), None, 0);
+            remove_files(log.retain(Some(600), None, 0));
         }
         let mut log = StreamLog::open(dir.path(), 300).unwrap();
         let first = log.first_offset();

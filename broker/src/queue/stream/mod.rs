@@ -83,6 +83,20 @@ struct ReadTask {
     records: usize,
 }
 
+/// Deletes segment files retention let go on a blocking thread (inline
+/// where there is no runtime, as in unit tests).
+fn remove_in_background(paths: Vec<std::path::PathBuf>) {
+    if paths.is_empty() {
+        return;
+    }
+    match tokio::runtime::Handle::try_current() {
+        Ok(runtime) => {
+            runtime.spawn_blocking(move || log::remove_files(paths));
+        }
+        Err(_) => log::remove_files(paths),
+    }
+}
+
 fn now_ms() -> i64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -210,12 +224,14 @@ impl Stream {
     }
 
     /// Applies retention now (the sweeper calls this, so a short
-    /// `x-max-age` takes effect without new publishes); returns how many
-    /// segments went.
-    pub fn retain(&self) -> usize {
-        let mut st = self.lock();
-        let (bytes, age) = (self.args.max_bytes, self.args.max_age_ms);
-        st.log.retain(bytes, age, now_ms())
+    /// `x-max-age` takes effect without new publishes).
+    pub fn retain(&self) {
+        let gone = {
+            let mut st = self.lock();
+            let (bytes, age) = (self.args.max_bytes, self.args.max_age_ms);
+            st.log.retain(bytes, age, now_ms())
+        };
+        remove_in_background(gone);
     }
 }
 
@@ -247,7 +263,7 @@ impl Queue {
             st.last_sync = sync;
             if rolled {
                 let (bytes, age) = (stream.args.max_bytes, stream.args.max_age_ms);
-                st.log.retain(bytes, age, timestamp);
+                remove_in_background(st.log.retain(bytes, age, timestamp));
             }
             self.stats.published();
             for reader in st.readers.iter_mut() {
