@@ -201,25 +201,14 @@ pub(crate) async fn declare_queue(
 /// to the profile's exchange with its routing key (a fanout exchange
 /// ignores the key): one more queue the port's messages are routed to.
 pub(crate) async fn declare_recording(channel: &Channel, profile: &PortProfile) -> Result<()> {
-    let Some(recording) = &profile.record else {
-        return Ok(());
-    };
-    let options = QueueDeclareOptions {
-        durable: true,
-        ..Default::default()
-    };
-    let stream = channel
-        .queue_declare(recording.stream.as_str(), options, recording.arguments())
-        .await?;
-    channel
-        .queue_bind(
-            &stream.name,
-            profile.exchange.as_str(),
-            profile.routing_key.as_str(),
-            QueueBindOptions::default(),
-            FieldTable::new(),
-        )
-        .await
+    match &profile.record {
+        Some(recording) => {
+            recording
+                .declare(channel, &profile.exchange, &profile.routing_key)
+                .await
+        }
+        None => Ok(()),
+    }
 }
 
 /// The headers of one published message.

@@ -125,14 +125,14 @@ impl Playback {
     /// Opens the stream `stream` through `connector` and starts reading
     /// at `options.start`. Refuses a rate that is not a positive number.
     pub async fn open(connector: &Connector, stream: &str, options: PlayOptions) -> Result<Self> {
-        if let Some(rate) = options.rate {
-            if !(rate.is_finite() && rate > 0.0) {
-                return Err(Error::InvalidArgument(format!(
-                    "rate {rate}: a positive factor"
-                )));
-            }
-        }
-        let connection = connector.connect().await?;
+        check_rate(options.rate)?;
+        Playback::over(connector.connect().await?, stream, options).await
+    }
+
+    /// [`Playback::open`] on a connection of the caller's (the playback
+    /// owns it from now on).
+    pub async fn over(connection: Connection, stream: &str, options: PlayOptions) -> Result<Self> {
+        check_rate(options.rate)?;
         let channel = connection.open_channel().await?;
         channel
             .basic_qos(PREFETCH, BasicQosOptions::default())
@@ -277,6 +277,16 @@ impl Playback {
     /// Closes the connection.
     pub async fn close(self) {
         let _ = self.connection.close().await;
+    }
+}
+
+/// Refuses a rate that is not a positive factor.
+fn check_rate(rate: Option<f64>) -> Result<()> {
+    match rate {
+        Some(rate) if !(rate.is_finite() && rate > 0.0) => Err(Error::InvalidArgument(format!(
+            "rate {rate}: not a positive factor"
+        ))),
+        _ => Ok(()),
     }
 }
 

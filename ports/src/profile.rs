@@ -16,7 +16,9 @@ use super::cdr::CdrOptions;
 use super::openrtm::PortRole;
 use leveret_client::ConnectionOptions;
 use leveret_client::Result;
-use leveret_client::{Connection, FieldTable, FieldValue, ShortStr};
+use leveret_client::{
+    Channel, Connection, FieldTable, FieldValue, QueueBindOptions, QueueDeclareOptions, ShortStr,
+};
 use std::fmt;
 use std::future::Future;
 use std::pin::Pin;
@@ -341,6 +343,41 @@ impl Recording {
     pub fn max_length_bytes(mut self, bytes: u64) -> Self {
         self.max_length_bytes = Some(bytes);
         self
+    }
+
+    /// Declares the stream (durable, with this retention) and binds it to
+    /// `exchange` with `routing_key` (ignored by a fanout exchange), so it
+    /// receives what is published there from now on. Refuses the default
+    /// exchange (empty), which no queue can be bound to.
+    pub async fn declare(
+        &self,
+        channel: &Channel,
+        exchange: &str,
+        routing_key: &str,
+    ) -> Result<()> {
+        if exchange.is_empty() {
+            return Err(leveret_client::Error::InvalidArgument(
+                "recording needs a named exchange: the default exchange routes to one queue \
+                 only, and no stream can be bound to it"
+                    .to_owned(),
+            ));
+        }
+        let options = QueueDeclareOptions {
+            durable: true,
+            ..Default::default()
+        };
+        let stream = channel
+            .queue_declare(self.stream.as_str(), options, self.arguments())
+            .await?;
+        channel
+            .queue_bind(
+                &stream.name,
+                exchange,
+                routing_key,
+                QueueBindOptions::default(),
+                FieldTable::new(),
+            )
+            .await
     }
 
     /// The stream's declaration arguments.

@@ -33,6 +33,7 @@ mod client;
 mod columns;
 mod policies;
 mod ports;
+mod recorder;
 
 use clap::{Parser, Subcommand};
 use client::{segment, Client, ClientError};
