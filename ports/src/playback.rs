@@ -201,18 +201,21 @@ impl Playback {
                     _ => Error::Closed,
                 });
             };
-            // Credit back at once: a stream keeps the record whatever the ack.
-            delivery.ack().await?;
             let headers = delivery.properties.headers.as_ref();
             let Some(offset) = headers
                 .and_then(|h| h.get(OFFSET_HEADER))
                 .and_then(FieldValue::as_i64)
                 .and_then(|o| u64::try_from(o).ok())
             else {
+                // Not acknowledged: a queue that is not a stream gets its
+                // messages back when the playback closes.
+                self.ended = true;
                 return Err(Error::Protocol(
                     "a delivery without x-stream-offset: the queue is not a stream".to_owned(),
                 ));
             };
+            // Credit back at once: a stream keeps the record whatever the ack.
+            delivery.ack().await?;
             let stamp = Stamp::read(headers);
             if let (Position::Time(start), Some(sent_ns)) = (self.options.start, stamp.sent_ns) {
                 if time_of(sent_ns) < start {

@@ -12,7 +12,7 @@ use common::{unique, within, without_waiting};
 use leveret_broker::{Broker, BrokerHandle};
 use leveret_client::Error;
 use leveret_ports::{
-    Connector, ExchangeKind, FullPolicy, InPort, OutPort, PlayOptions, Player, Point2D,
+    Connector, ExchangeKind, FullPolicy, InPort, OutPort, PlayOptions, Playback, Player, Point2D,
     PortProfile, PortStatus, Pose2D, Position, Recording, Replayed, Sample, Time, TimedLong,
     TimedPose2D,
 };
@@ -275,4 +275,47 @@ async fn impossible_recordings_and_playbacks_are_refused() {
             "rate {rate}"
         );
     }
+}
+
+/// A playback pointed at a queue that is not a stream is refused and takes
+/// nothing from it: the queue's reader still gets every message.
+#[both_runtimes]
+async fn a_playback_of_a_classic_queue_is_refused_and_takes_nothing() {
+    const VALUES: i32 = 3;
+    let (broker, addr, _dir) = leveret().await;
+    let connector = Connector::in_process(&broker);
+    let queue = unique("classic");
+    let classic = profile(addr).queue(&queue).routing_key(&queue);
+    let output = OutPort::<TimedLong>::connect_with(connector.clone(), classic.clone())
+        .await
+        .expect("out-port");
+    for data in 1..=VALUES {
+        let value = TimedLong {
+            tm: Time::now(),
+            data,
+        };
+        assert_eq!(output.put(&value).await, PortStatus::Ok);
+    }
+    confirmed(&output, VALUES as u64).await;
+
+    // Leveret refuses the stream argument on a classic queue, as RabbitMQ
+    // does (a broker that took it would deliver without `x-stream-offset`,
+    // which the playback refuses without acknowledging).
+    let refused = Playback::open(&connector, &queue, PlayOptions::default()).await;
+    assert!(
+        matches!(&refused, Err(Error::ChannelClosed(reason)) if reason.code == 406),
+        "{refused:?}"
+    );
+
+    let input = InPort::<TimedLong>::connect_with(connector, classic)
+        .await
+        .expect("in-port");
+    for data in 1..=VALUES {
+        let sample = within("the queued value", input.recv())
+            .await
+            .expect("open");
+        assert_eq!(sample.value.data, data);
+    }
+    output.close().await;
+    input.close().await;
 }
