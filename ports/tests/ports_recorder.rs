@@ -3,7 +3,8 @@
 //! from an offset or a time, to an end, at the recorded pace or faster,
 //! with the original sequence numbers and send times. On both runtimes,
 //! against an embedded Leveret with a data directory (streams live on
-//! disk). The tests assert values, counts and order, never wall-clock
+//! disk), or the broker LEVERET_TEST_AMQP_URL names (RabbitMQ 3.10
+//! passes them). The tests assert values, counts and order, never wall-clock
 //! figures.
 
 mod common;
@@ -17,28 +18,57 @@ use leveret_ports::{
     TimedPose2D,
 };
 use leveret_tests::both_runtimes;
-use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-/// An embedded Leveret with a data directory, removed with it.
-async fn leveret() -> (Arc<BrokerHandle>, SocketAddr, tempfile::TempDir) {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let handle = Broker::builder()
-        .listen("127.0.0.1:0".parse().unwrap())
-        .data_dir(dir.path())
-        .start()
-        .await
-        .expect("start an embedded Leveret");
-    let addr = handle.local_addrs()[0];
-    (Arc::new(handle), addr, dir)
+/// The broker the tests use: an embedded Leveret with a data directory
+/// (removed with it), or, with LEVERET_TEST_AMQP_URL set, that broker.
+struct Env {
+    uri: String,
+    leveret: Option<Arc<BrokerHandle>>,
+    _dir: tempfile::TempDir,
 }
 
-fn profile(addr: SocketAddr) -> PortProfile {
-    PortProfile::new(&format!("amqp://guest:guest@{addr}/%2f"))
-        .expect("uri")
-        .buffer(100_000, FullPolicy::BlockBroker)
-        .announce_interval(None)
+impl Env {
+    async fn new() -> Env {
+        let dir = tempfile::tempdir().expect("tempdir");
+        if let Ok(uri) = std::env::var("LEVERET_TEST_AMQP_URL") {
+            if !uri.is_empty() {
+                return Env {
+                    uri,
+                    leveret: None,
+                    _dir: dir,
+                };
+            }
+        }
+        let handle = Broker::builder()
+            .listen("127.0.0.1:0".parse().unwrap())
+            .data_dir(dir.path())
+            .start()
+            .await
+            .expect("start an embedded Leveret");
+        let addr = handle.local_addrs()[0];
+        Env {
+            uri: format!("amqp://guest:guest@{addr}/%2f"),
+            leveret: Some(Arc::new(handle)),
+            _dir: dir,
+        }
+    }
+
+    fn profile(&self) -> PortProfile {
+        PortProfile::new(&self.uri)
+            .expect("uri")
+            .buffer(100_000, FullPolicy::BlockBroker)
+            .announce_interval(None)
+    }
+
+    /// In-process to the embedded Leveret, else TCP.
+    fn connector(&self) -> Connector {
+        match &self.leveret {
+            Some(leveret) => Connector::in_process(leveret),
+            None => Connector::from(&self.profile()),
+        }
+    }
 }
 
 /// Waits until the broker has confirmed `count` of the out-port's values.
@@ -81,9 +111,11 @@ fn span<T>(samples: &[Sample<T>]) -> Duration {
 #[both_runtimes]
 async fn a_recorded_run_replays_identically_at_1x_and_10x() {
     const VALUES: u64 = 200;
-    let (_broker, addr, _dir) = leveret().await;
+    let env = Env::new().await;
     let stream = unique("poses-recording");
-    let base = profile(addr).exchange(unique("poses"), ExchangeKind::Fanout);
+    let base = env
+        .profile()
+        .exchange(unique("poses"), ExchangeKind::Fanout);
     let recorded = base.clone().record(
         Recording::to(&stream)
             .max_age("1h")
@@ -149,15 +181,16 @@ async fn a_recorded_run_replays_identically_at_1x_and_10x() {
 /// A recording played from an offset to an offset, from a time to a
 /// time (the publisher's), and up to the end of what is recorded (idle);
 /// a direct exchange's recording keeps only its port's routing key.
-/// Through the in-process transport.
+/// Through the in-process transport (on Leveret).
 #[both_runtimes]
 async fn playback_starts_and_ends_at_offsets_and_times() {
     const VALUES: i32 = 50;
-    let (broker, addr, _dir) = leveret().await;
-    let connector = Connector::in_process(&broker);
+    let env = Env::new().await;
+    let connector = env.connector();
     let exchange = unique("longs");
     let stream = unique("longs-recording");
-    let recorded = profile(addr)
+    let recorded = env
+        .profile()
         .exchange(&exchange, ExchangeKind::Direct)
         .routing_key("mine")
         .record(Recording::to(&stream).max_age("10m"));
@@ -243,8 +276,9 @@ async fn playback_starts_and_ends_at_offsets_and_times() {
 /// records nothing, a rate that is not a positive factor.
 #[both_runtimes]
 async fn impossible_recordings_and_playbacks_are_refused() {
-    let (_broker, addr, _dir) = leveret().await;
-    let on_default = profile(addr)
+    let env = Env::new().await;
+    let on_default = env
+        .profile()
         .routing_key(unique("q"))
         .record(Recording::to(unique("s")));
     let refused = OutPort::<TimedLong>::connect(on_default.clone()).await;
@@ -258,10 +292,11 @@ async fn impossible_recordings_and_playbacks_are_refused() {
         "{refused:?}"
     );
 
-    let nothing = Player::<TimedLong>::open(&profile(addr), PlayOptions::default()).await;
+    let nothing = Player::<TimedLong>::open(&env.profile(), PlayOptions::default()).await;
     assert!(matches!(nothing, Err(Error::InvalidArgument(_))));
 
-    let recorded = profile(addr)
+    let recorded = env
+        .profile()
         .exchange(unique("x"), ExchangeKind::Fanout)
         .record(Recording::to(unique("s")));
     for rate in [0.0, -1.0, f64::NAN, f64::INFINITY] {
@@ -282,10 +317,10 @@ async fn impossible_recordings_and_playbacks_are_refused() {
 #[both_runtimes]
 async fn a_playback_of_a_classic_queue_is_refused_and_takes_nothing() {
     const VALUES: i32 = 3;
-    let (broker, addr, _dir) = leveret().await;
-    let connector = Connector::in_process(&broker);
+    let env = Env::new().await;
+    let connector = env.connector();
     let queue = unique("classic");
-    let classic = profile(addr).queue(&queue).routing_key(&queue);
+    let classic = env.profile().queue(&queue).routing_key(&queue);
     let output = OutPort::<TimedLong>::connect_with(connector.clone(), classic.clone())
         .await
         .expect("out-port");
