@@ -310,6 +310,8 @@ pub struct PortProfile {
 /// port's messages to: `put` and the port's readers are unchanged. A
 /// recording needs a named exchange (a queue cannot be bound to the
 /// default exchange); the out-port refuses a profile without one.
+/// Since the stream takes every value, a `mandatory` out-port no longer
+/// counts a value `unroutable` when no reader's queue is bound.
 /// Read a recording back with [`super::Player`].
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Recording {
