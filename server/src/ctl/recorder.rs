@@ -365,3 +365,45 @@ async fn republish(
         .map_err(broker_failure)?;
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn positions_are_first_offsets_unix_times_and_ages() {
+        assert_eq!(position("first", "--start").ok(), Some(Position::First));
+        assert_eq!(
+            position(" 120 ", "--start").ok(),
+            Some(Position::Offset(120))
+        );
+        assert_eq!(
+            position("@1764200000.25", "--start").ok(),
+            Some(Position::Time(
+                UNIX_EPOCH + Duration::from_millis(1_764_200_000_250)
+            ))
+        );
+        let before = SystemTime::now();
+        let Ok(Position::Time(ago)) = position("10m", "--start") else {
+            panic!("10m is an age");
+        };
+        let age = before.duration_since(ago).expect("in the past");
+        assert!(age >= Duration::from_secs(599), "{age:?}");
+        for bad in ["", "soon", "-5", "10ms", "1d", "@", "@x", "@-1"] {
+            assert!(
+                matches!(position(bad, "--start"), Err(Failure::Usage(_))),
+                "{bad:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn topics_match_an_exchange_or_an_exchange_and_key() {
+        let exchange = Topic::parse("poses");
+        assert!(exchange.matches("poses", "any"));
+        assert!(!exchange.matches("other", "any"));
+        let keyed = Topic::parse("poses/robot1");
+        assert!(keyed.matches("poses", "robot1"));
+        assert!(!keyed.matches("poses", "robot2"));
+    }
+}
