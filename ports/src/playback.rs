@@ -10,9 +10,11 @@
 //! `x-stream-offset`; each record's offset is its delivery's
 //! `x-stream-offset` header. Pacing follows the records' `x-sent-ns`
 //! headers: the record sent `d` after the first one played is handed out
-//! `d / rate` after it. A playback owns one connection and does not
-//! reconnect: a lost link ends it with the error, and the offset of the
-//! last record read says where to start again.
+//! `d / rate` after it. A playback opened through a [`Connector`]
+//! reconnects after a lost link (with backoff, as the ports do) and goes
+//! on from the record after the last one it handed out, so nothing is
+//! played twice or skipped; one on a connection of the caller's ends with
+//! the error, and its last offset says where to start again.
 //!
 //! Uses the client's consumers and this crate's headers (`link`), data
 //! decoding (`data`) and [`Connector`].
@@ -20,7 +22,7 @@
 use super::data::PortData;
 use super::in_port::Sample;
 use super::link::Stamp;
-use super::profile::{Connector, PortProfile};
+use super::profile::{Backoff, Connector, PortProfile};
 use leveret_client::{
     BasicConsumeOptions, BasicQosOptions, Connection, Consumer, ConsumerEnd, Delivery, Error,
     FieldTable, FieldValue, Result, ShortStr,
@@ -105,6 +107,10 @@ struct Anchor {
 pub struct Playback {
     connection: Connection,
     consumer: Consumer,
+    stream: String,
+    /// How to reconnect after a lost link (a playback opened through a
+    /// connector), with the delays between attempts.
+    reconnect: Option<(Connector, Backoff)>,
     options: PlayOptions,
     anchor: Option<Anchor>,
     /// The offset of the last record handed out.
@@ -125,42 +131,61 @@ impl Playback {
     /// Opens the stream `stream` through `connector` and starts reading
     /// at `options.start`. Refuses a rate that is not a positive number.
     pub async fn open(connector: &Connector, stream: &str, options: PlayOptions) -> Result<Self> {
-        check_rate(options.rate)?;
-        Playback::over(connector.connect().await?, stream, options).await
+        let mut playback = Playback::over(connector.connect().await?, stream, options).await?;
+        playback.reconnect = Some((connector.clone(), Backoff::default()));
+        Ok(playback)
     }
 
     /// [`Playback::open`] on a connection of the caller's (the playback
-    /// owns it from now on).
+    /// owns it from now on, and ends when it is lost).
     pub async fn over(connection: Connection, stream: &str, options: PlayOptions) -> Result<Self> {
         check_rate(options.rate)?;
-        let channel = connection.open_channel().await?;
-        channel
-            .basic_qos(PREFETCH, BasicQosOptions::default())
-            .await?;
-        let mut arguments = FieldTable::new();
-        arguments.insert(
-            ShortStr::from_static(OFFSET_HEADER),
-            match options.start {
-                Position::First => FieldValue::string("first"),
-                Position::Offset(offset) => {
-                    FieldValue::I64(i64::try_from(offset).unwrap_or(i64::MAX))
-                }
-                Position::Time(time) => FieldValue::Timestamp(
-                    time.duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs()),
-                ),
-            },
-        );
-        let consumer = channel
-            .basic_consume(stream, "", BasicConsumeOptions::default(), arguments)
-            .await?;
+        let consumer = consume(&connection, stream, options.start).await?;
         Ok(Playback {
             connection,
             consumer,
+            stream: stream.to_owned(),
+            reconnect: None,
             options,
             anchor: None,
             last_offset: None,
             ended: false,
         })
+    }
+
+    /// After a lost link: connects again (with backoff, for as long as
+    /// connecting fails) and consumes from the record after the last one
+    /// handed out. An error if the broker refuses the consumer (the
+    /// stream is gone) or there is no connector to reconnect with.
+    async fn resume(&mut self, lost: Error) -> Result<()> {
+        let Some((connector, backoff)) = &self.reconnect else {
+            return Err(lost);
+        };
+        let start = match self.last_offset {
+            Some(last) => Position::Offset(last + 1),
+            None => self.options.start,
+        };
+        tracing::debug!(error = %lost, ?start, "playback link lost; reconnecting");
+        let mut failures = 0u32;
+        loop {
+            tokio::time::sleep(backoff.delay(failures)).await;
+            let connection = match connector.connect().await {
+                Ok(connection) => connection,
+                Err(_) => {
+                    failures = failures.saturating_add(1);
+                    continue;
+                }
+            };
+            match consume(&connection, &self.stream, start).await {
+                Ok(consumer) => {
+                    self.connection = connection;
+                    self.consumer = consumer;
+                    return Ok(());
+                }
+                Err(refused @ Error::ChannelClosed(_)) => return Err(refused),
+                Err(_) => failures = failures.saturating_add(1),
+            }
+        }
     }
 
     /// [`Playback::open`] on the broker of `profile`, reading the stream
@@ -175,7 +200,10 @@ impl Playback {
     }
 
     /// The next record, when its time comes; `None` once past the end
-    /// (or idle for `options.idle`), an error if the link fails.
+    /// (or idle for `options.idle`); an error if the broker refuses or
+    /// cancels the consumer (the stream is gone), or if the link fails on
+    /// a caller's connection ([`Playback::over`]). Waits through a lost
+    /// link's reconnection otherwise.
     pub async fn next(&mut self) -> Result<Option<Recorded>> {
         loop {
             if self.ended || self.past_end_offset() {
@@ -193,13 +221,21 @@ impl Playback {
                 None => self.consumer.next().await,
             };
             let Some(delivery) = delivery else {
-                return Err(match self.consumer.end_reason() {
+                let lost = match self.consumer.end_reason() {
                     Some(ConsumerEnd::ChannelClosed(error)) => error,
                     Some(ConsumerEnd::CancelledByBroker) => {
-                        Error::Protocol("the broker cancelled the playback's consumer".to_owned())
+                        self.ended = true;
+                        return Err(Error::Protocol(
+                            "the broker cancelled the playback's consumer".to_owned(),
+                        ));
                     }
                     _ => Error::Closed,
-                });
+                };
+                if let Err(error) = self.resume(lost).await {
+                    self.ended = true;
+                    return Err(error);
+                }
+                continue;
             };
             let headers = delivery.properties.headers.as_ref();
             let Some(offset) = headers
@@ -214,8 +250,10 @@ impl Playback {
                     "a delivery without x-stream-offset: the queue is not a stream".to_owned(),
                 ));
             };
-            // Credit back at once: a stream keeps the record whatever the ack.
-            delivery.ack().await?;
+            // Credit back at once: a stream keeps the record whatever the
+            // ack. One that fails means a closing channel: the consumer
+            // ends, and the playback resumes after this record.
+            let _ = delivery.ack().await;
             let stamp = Stamp::read(headers);
             if let (Position::Time(start), Some(sent_ns)) = (self.options.start, stamp.sent_ns) {
                 if time_of(sent_ns) < start {
@@ -281,6 +319,29 @@ impl Playback {
     pub async fn close(self) {
         let _ = self.connection.close().await;
     }
+}
+
+/// Starts a consumer of `stream` at `start` on a new channel of
+/// `connection`, with the playback's prefetch.
+async fn consume(connection: &Connection, stream: &str, start: Position) -> Result<Consumer> {
+    let channel = connection.open_channel().await?;
+    channel
+        .basic_qos(PREFETCH, BasicQosOptions::default())
+        .await?;
+    let mut arguments = FieldTable::new();
+    arguments.insert(
+        ShortStr::from_static(OFFSET_HEADER),
+        match start {
+            Position::First => FieldValue::string("first"),
+            Position::Offset(offset) => FieldValue::I64(i64::try_from(offset).unwrap_or(i64::MAX)),
+            Position::Time(time) => {
+                FieldValue::Timestamp(time.duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs()))
+            }
+        },
+    );
+    channel
+        .basic_consume(stream, "", BasicConsumeOptions::default(), arguments)
+        .await
 }
 
 /// Refuses a rate that is not a positive factor.

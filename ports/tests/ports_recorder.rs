@@ -354,3 +354,57 @@ async fn a_playback_of_a_classic_queue_is_refused_and_takes_nothing() {
     output.close().await;
     input.close().await;
 }
+
+/// A playback through a connector resumes after a cut link from the
+/// record after the last it handed out: every value once, in order.
+#[both_runtimes]
+async fn a_playback_resumes_after_a_cut_link() {
+    const VALUES: u64 = 1000;
+    const BEFORE_CUT: u64 = 300;
+    let env = Env::new().await;
+    let Some(leveret) = &env.leveret else {
+        eprintln!("skipped: cuts the link with a proxy to the embedded Leveret");
+        return;
+    };
+    let addr = leveret.local_addrs()[0];
+    let recorded = env
+        .profile()
+        .exchange(unique("cut"), ExchangeKind::Fanout)
+        .record(Recording::to(unique("cut-recording")));
+    let output = OutPort::<TimedLong>::connect(recorded.clone())
+        .await
+        .expect("out-port");
+    for data in 0..VALUES as i32 {
+        let value = TimedLong {
+            tm: Time::now(),
+            data,
+        };
+        assert_eq!(output.put(&value).await, PortStatus::Ok);
+    }
+    confirmed(&output, VALUES).await;
+
+    let proxy = leveret_tests::fault_proxy::FaultProxy::start(addr).await;
+    let mut through_proxy = recorded.clone();
+    through_proxy.broker.port = proxy.addr.port();
+    let options = PlayOptions {
+        end: Some(Position::Offset(VALUES - 1)),
+        ..PlayOptions::default()
+    };
+    let mut player = Player::<TimedLong>::open(&through_proxy, options)
+        .await
+        .expect("player");
+    let mut played = Vec::new();
+    while let Some(replayed) = within("the next played value", player.next())
+        .await
+        .expect("playback")
+    {
+        played.push((replayed.offset, replayed.sample.value.data));
+        if played.len() as u64 == BEFORE_CUT {
+            assert_eq!(proxy.cut(), 1);
+        }
+    }
+    player.close().await;
+    let expected: Vec<(u64, i32)> = (0..VALUES).map(|n| (n, n as i32)).collect();
+    assert_eq!(played, expected);
+    output.close().await;
+}
