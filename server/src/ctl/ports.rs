@@ -93,7 +93,10 @@ pub enum PortCommand {
     },
     /// Records a port's messages to a stream, from now on: binds the
     /// stream (declared with the retention given) to the port's exchange
-    /// and key. A port on the default exchange cannot be recorded.
+    /// and key. A port on the default exchange cannot be recorded. The
+    /// binding lasts as long as the exchange (a transient one loses it on
+    /// a broker restart); a port profile's `record` binds on every
+    /// connection instead.
     Record(crate::recorder::RecordArgs),
     /// Plays a stream back (as rosbag play): from --start to --end, at
     /// --rate times the recorded pace (or --fast), printing each record
