@@ -35,6 +35,7 @@ mod columns;
 mod limits;
 mod policies;
 mod ports;
+mod recorder;
 
 use clap::{Parser, Subcommand};
 use client::{segment, Client, ClientError};
