@@ -13,7 +13,7 @@
 //! [`Core::access_changes`](crate::core::Core::access_changes), so the store and memory see the changes in
 //! one order. A write that fails changes nothing and is reported.
 //!
-//! Uses `auth`, `password`, `permissions`, `store` and `core`.
+//! Uses `auth`, `password`, `permissions`, `limits`, `parameters`, `store` and `core`.
 
 use crate::admin::Admin;
 use crate::auth::{User, Users, GUEST};
@@ -192,8 +192,8 @@ fn restore(
                 },
             )
             .map_err(|e| e.to_string()),
-        // The `parameters` module's.
-        MetaRecord::Parameter { .. } => Ok(()),
+        // The `parameters` module's and the `mqtt` front end's.
+        MetaRecord::Parameter { .. } | MetaRecord::Retained { .. } => Ok(()),
     };
     if let Err(problem) = outcome {
         tracing::error!(record = ?record.key(), %problem, "a stored user, vhost or permission is not restored");
@@ -280,7 +280,7 @@ impl Admin {
         Ok(self.core.users.put(name, user))
     }
 
-    /// Deletes a user and their permissions and topic permissions
+    /// Deletes a user and their permissions, topic permissions and limits
     /// (RabbitMQ's `delete_user`): they cannot log in again, and their open
     /// channels are refused from their next operation. False if there was
     /// no such user.
@@ -302,7 +302,15 @@ impl Admin {
             .filter(|(user, ..)| user == name)
             .map(|(_, vhost, exchange, _)| (vhost, exchange))
             .collect();
-        let mut ops = vec![StoreOp::DeleteMeta(MetaKey::User(name.to_owned()))];
+        let mut ops = vec![
+            StoreOp::DeleteMeta(MetaKey::User(name.to_owned())),
+            // Their limits, if any (see `limits`).
+            StoreOp::DeleteMeta(MetaKey::Parameter {
+                component: crate::limits::USER_LIMITS_COMPONENT.to_owned(),
+                vhost: String::new(),
+                name: name.to_owned(),
+            }),
+        ];
         ops.extend(vhosts.iter().map(|vhost| {
             StoreOp::DeleteMeta(MetaKey::Permission {
                 user: name.to_owned(),
@@ -318,6 +326,12 @@ impl Admin {
         }));
         self.write_meta(ops).await?;
         self.core.users.remove(name);
+        self.core.limit_tables.set_user(name, None);
+        self.core.parameters.write().remove(&(
+            crate::limits::USER_LIMITS_COMPONENT.to_owned(),
+            String::new(),
+            name.to_owned(),
+        ));
         for vhost in &vhosts {
             permissions.clear(name, vhost);
         }
@@ -433,11 +447,6 @@ impl Admin {
     /// Every (user, vhost, exchange, topic permission).
     pub fn topic_permissions(&self) -> Vec<(String, String, String, TopicPermission)> {
         self.core.permissions.list_topics()
-    }
-
-    /// A user's limits, if they have any.
-    pub fn user_limits(&self, user: &str) -> Option<crate::UserLimits> {
-        self.core.limits.user(user)
     }
 
     /// Whether `user` may log in from `peer` (RabbitMQ's

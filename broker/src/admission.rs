@@ -1,8 +1,9 @@
 //! Which connections and channels the broker serves: RabbitMQ's
 //! `connection_max` (TCP connections at once), the vhost limit
 //! `max-connections`, and the user limits `max-connections` and
-//! `max-channels` (counted only for users that have limits, so the
-//! others' channel churn takes no lock). Each served connection holds a
+//! `max-channels` (every user's connections and channels are counted, so
+//! that limits set at run time count what is already open). Each served
+//! connection holds a
 //! [`Slot`] whose drop gives its places back, whatever way the connection
 //! ends. Uses nothing else of the broker.
 
@@ -19,15 +20,15 @@ pub struct Admission {
     /// Connections per vhost name. The lock is held for one hash-map
     /// update, never across an await.
     per_vhost: Mutex<HashMap<ShortStr, usize>>,
-    /// Connections and channels per user with limits. The lock is held for
-    /// one hash-map update, never across an await.
+    /// Connections and channels per user. The lock is held for one
+    /// hash-map update, never across an await.
     per_user: Mutex<HashMap<String, UserCount>>,
     /// Set while connections are being refused, so that a flood of them
     /// logs one warning rather than one per connection.
     refusing: AtomicBool,
 }
 
-/// What a user with limits has open.
+/// What a user has open.
 #[derive(Debug, Default)]
 struct UserCount {
     connections: usize,
@@ -40,8 +41,8 @@ pub struct Slot {
     admission: Arc<Admission>,
     network: bool,
     vhost: Option<ShortStr>,
-    /// The user and their channel limit, if they have limits.
-    user: Option<(String, Option<usize>)>,
+    /// The user, once the connection has one.
+    user: Option<String>,
     /// Channels this connection counts for its user.
     channels: usize,
 }
@@ -143,13 +144,12 @@ impl Slot {
 pub struct OverLimit(pub usize);
 
 impl Slot {
-    /// Counts the connection for `user`, who has limits, unless they have
+    /// Counts the connection for `user`, unless they have
     /// `max_connections` open already.
     pub fn enter_user(
         &mut self,
         user: &str,
         max_connections: Option<usize>,
-        max_channels: Option<usize>,
     ) -> Result<(), OverLimit> {
         debug_assert!(self.user.is_none(), "a connection has one user");
         let mut counts = self.admission.per_user();
@@ -163,19 +163,19 @@ impl Slot {
             }
         }
         count.connections += 1;
-        self.user = Some((user.to_owned(), max_channels));
+        self.user = Some(user.to_owned());
         Ok(())
     }
 
-    /// Counts one more channel for the user, unless they have their
-    /// `max-channels` open already.
-    pub fn open_channel(&mut self) -> Result<(), OverLimit> {
-        let Some((user, limit)) = &self.user else {
+    /// Counts one more channel for the user, unless they have `limit`
+    /// (their `max-channels`) open already.
+    pub fn open_channel(&mut self, limit: Option<usize>) -> Result<(), OverLimit> {
+        let Some(user) = &self.user else {
             return Ok(());
         };
         let mut counts = self.admission.per_user();
         let count = counts.entry(user.clone()).or_default();
-        if let Some(limit) = *limit {
+        if let Some(limit) = limit {
             if count.channels >= limit {
                 return Err(OverLimit(limit));
             }
@@ -188,7 +188,7 @@ impl Slot {
 
     /// Gives back `closed` channels.
     pub fn close_channels(&mut self, closed: usize) {
-        let Some((user, _)) = &self.user else {
+        let Some(user) = &self.user else {
             return;
         };
         let closed = closed.min(self.channels);
@@ -201,7 +201,7 @@ impl Slot {
 
 impl Drop for Slot {
     fn drop(&mut self) {
-        if let Some((user, _)) = self.user.take() {
+        if let Some(user) = self.user.take() {
             let mut counts = self.admission.per_user();
             if let Some(count) = counts.get_mut(&user) {
                 count.connections = count.connections.saturating_sub(1);
@@ -236,27 +236,31 @@ mod tests {
         let mut a = admission.admit_network("a").expect("a");
         let mut b = admission.admit_network("b").expect("b");
         let mut c = admission.admit_network("c").expect("c");
-        a.enter_user("robot", Some(2), Some(3)).expect("first");
-        b.enter_user("robot", Some(2), Some(3)).expect("second");
-        assert_eq!(c.enter_user("robot", Some(2), Some(3)), Err(OverLimit(2)));
-        a.open_channel().expect("1");
-        a.open_channel().expect("2");
-        b.open_channel().expect("3");
-        assert_eq!(b.open_channel(), Err(OverLimit(3)), "across connections");
+        let max = Some(3);
+        a.enter_user("robot", Some(2)).expect("first");
+        b.enter_user("robot", Some(2)).expect("second");
+        assert_eq!(c.enter_user("robot", Some(2)), Err(OverLimit(2)));
+        a.open_channel(max).expect("1");
+        a.open_channel(max).expect("2");
+        b.open_channel(max).expect("3");
+        assert_eq!(b.open_channel(max), Err(OverLimit(3)), "across connections");
         a.close_channels(1);
-        b.open_channel().expect("a place was given back");
+        b.open_channel(max).expect("a place was given back");
         drop(a);
-        c.enter_user("robot", Some(2), Some(3))
-            .expect("a connection closed");
-        c.open_channel().expect("its channel went with it");
-        assert_eq!(c.open_channel(), Err(OverLimit(3)));
+        c.enter_user("robot", Some(2)).expect("a connection closed");
+        c.open_channel(max).expect("its channel went with it");
+        assert_eq!(c.open_channel(max), Err(OverLimit(3)));
         drop((b, c));
         assert!(admission.per_user().is_empty(), "nothing left behind");
-        // Users without limits are not counted at all.
+        // A user without limits is counted, so that a limit set later
+        // counts what they already have open.
         let mut free = admission.admit_network("d").expect("d");
+        free.enter_user("free", None).expect("no limit");
         for _ in 0..10 {
-            free.open_channel().expect("no limit");
+            free.open_channel(None).expect("no limit");
         }
+        assert_eq!(free.open_channel(Some(10)), Err(OverLimit(10)));
+        drop(free);
         assert!(admission.per_user().is_empty());
     }
 

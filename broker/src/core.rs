@@ -8,6 +8,8 @@
 use crate::admission::Admission;
 use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
+use crate::limits::LimitTables;
+pub use crate::limits::{UserLimits, VhostLimits};
 use crate::memory::MemoryGauge;
 use crate::parameters::Parameters;
 use crate::permissions::Permissions;
@@ -67,51 +69,14 @@ pub struct Limits {
     /// (RabbitMQ's `handshake_timeout`, default 10 s); a connection that
     /// has not finished the handshake by then is logged and closed.
     pub handshake_timeout: Duration,
-    /// Limits of individual vhosts, by vhost name (RabbitMQ's vhost
-    /// limits); vhosts not named here have none.
+    /// Limits of individual vhosts at start, by vhost name (RabbitMQ's
+    /// vhost limits), over those stored; changed at run time through
+    /// [`crate::Admin::set_vhost_limits`].
     pub vhost_limits: HashMap<String, VhostLimits>,
-    /// Limits of individual users, by user name (RabbitMQ's user limits);
-    /// users not named here have none.
+    /// Limits of individual users at start, by user name (RabbitMQ's user
+    /// limits), over those stored; changed at run time through
+    /// [`crate::Admin::set_user_limits`].
     pub user_limits: HashMap<String, UserLimits>,
-}
-
-/// The limits of one user, RabbitMQ's `rabbitmqctl set_user_limits`.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct UserLimits {
-    /// Most connections the user has open at once, in any vhost
-    /// (`max-connections`); connection.open beyond it is refused with 530
-    /// NOT_ALLOWED.
-    pub max_connections: Option<usize>,
-    /// Most channels the user has open at once across all their
-    /// connections (`max-channels`); channel.open beyond it closes the
-    /// connection with 530 NOT_ALLOWED, as RabbitMQ does.
-    pub max_channels: Option<usize>,
-}
-
-/// The limits of one vhost, RabbitMQ's `rabbitmqctl set_vhost_limits`.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct VhostLimits {
-    /// Most connections open to the vhost at once (`max-connections`);
-    /// connection.open beyond it is refused with 530 NOT_ALLOWED.
-    pub max_connections: Option<usize>,
-    /// Most queues in the vhost (`max-queues`); queue.declare of a new
-    /// queue beyond it is refused with 406 PRECONDITION_FAILED.
-    pub max_queues: Option<usize>,
-}
-
-impl Limits {
-    /// The limits of the user called `name`, if they have any.
-    pub fn user(&self, name: &str) -> Option<UserLimits> {
-        self.user_limits.get(name).copied()
-    }
-
-    /// The limits of the vhost called `name`.
-    pub fn vhost(&self, name: &ShortStr) -> VhostLimits {
-        name.as_str()
-            .and_then(|name| self.vhost_limits.get(name))
-            .copied()
-            .unwrap_or_default()
-    }
 }
 
 impl Default for Limits {
@@ -166,6 +131,8 @@ pub struct Core {
     pub parameters: Parameters,
     /// Limits.
     pub limits: Limits,
+    /// The vhost and user limits in effect (`limits`).
+    pub limit_tables: LimitTables,
     /// The memory alarm and the bytes it counts.
     pub gauge: Arc<MemoryGauge>,
     /// Durable storage, if the broker has any.
@@ -221,12 +188,15 @@ impl Core {
                 (name, vhost)
             })
             .collect();
+        let limit_tables =
+            LimitTables::at_start(&parameters, &limits.vhost_limits, &limits.user_limits);
         Arc::new(Core {
             vhosts: RwLock::new(vhosts),
             users,
             permissions: Arc::new(permissions),
             parameters,
             limits,
+            limit_tables,
             gauge,
             persistence,
             server_properties: server_properties(&product),
@@ -264,6 +234,16 @@ impl Core {
             )
         });
         Arc::clone(vhost)
+    }
+
+    /// Takes the vhost with this name away, marked deleted (so nothing
+    /// can be declared in it any more), for [`crate::admin::Admin`] to
+    /// empty; `None` if there is none.
+    pub fn remove_vhost(&self, name: &ShortStr) -> Option<Arc<Vhost>> {
+        let mut vhosts = self.vhosts.write().unwrap_or_else(|e| e.into_inner());
+        let vhost = vhosts.remove(name)?;
+        vhost.mark_deleted();
+        Some(vhost)
     }
 
     /// Every vhost.

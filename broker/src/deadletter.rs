@@ -115,7 +115,13 @@ fn start_delivery(
     };
     let (copy, headers) = letter.into_copy();
     let mut queues = Vec::new();
-    vhost.route(&exchange, &copy.routing_key, Some(&headers), &mut queues);
+    vhost.route(
+        &exchange,
+        &copy.routing_key,
+        Some(&headers),
+        &mut queues,
+        &mut None,
+    );
     let deaths = match headers.get("x-death") {
         Some(FieldValue::Array(deaths)) => deaths.as_slice(),
         _ => &[],

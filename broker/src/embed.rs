@@ -56,6 +56,8 @@ pub struct BrokerBuilder {
     mqtt_listen: Vec<SocketAddr>,
     #[cfg(feature = "mqtt")]
     mqtt_anonymous: Option<(String, String)>,
+    #[cfg(feature = "mqtt")]
+    mqtt_retained_limits: crate::mqtt::RetainedLimits,
     #[cfg(feature = "tls")]
     tls: Option<TlsOptions>,
     users: Vec<(String, User)>,
@@ -121,6 +123,15 @@ impl BrokerBuilder {
     /// (not authorized).
     pub fn mqtt_anonymous_login(mut self, user: impl Into<String>, password: &str) -> Self {
         self.mqtt_anonymous = Some((user.into(), password.to_owned()));
+        self
+    }
+
+    #[cfg(feature = "mqtt")]
+    /// How many MQTT retained messages the broker keeps (over every vhost;
+    /// by default 10,000 and 64 MiB): a retained publish past them is
+    /// published but not retained, with a log line.
+    pub fn mqtt_retained_limits(mut self, limits: crate::mqtt::RetainedLimits) -> Self {
+        self.mqtt_retained_limits = limits;
         self
     }
 
@@ -342,6 +353,7 @@ impl BrokerBuilder {
         // refuses the start).
         #[cfg(feature = "persistence")]
         let mut clean_shutdown = None;
+        #[cfg_attr(not(feature = "persistence"), allow(unused_mut))]
         let mut stream_root = None;
         let opened = match self.storage {
             Storage::None => None,
@@ -419,6 +431,13 @@ impl BrokerBuilder {
             product: self.product.unwrap_or_else(|| DEFAULT_PRODUCT.to_owned()),
             busy_poll: busy_poll.clone(),
         });
+        #[cfg(feature = "mqtt")]
+        let mqtt_retained = crate::mqtt::Retained::new(
+            &recovered.meta,
+            Arc::clone(&core.gauge),
+            core.persistence.clone(),
+            self.mqtt_retained_limits,
+        );
         let report = match crate::recovery::recover(&core, recovered) {
             Ok(report) => report,
             // A damaged stream refuses the start as a damaged store does.
@@ -476,7 +495,7 @@ impl BrokerBuilder {
         #[cfg_attr(not(feature = "mqtt"), allow(unused_mut))]
         let mut mqtt_addrs = Vec::new();
         #[cfg(feature = "mqtt")]
-        let mqtt_shared = Arc::new(crate::mqtt::Shared::new(self.mqtt_anonymous));
+        let mqtt_shared = Arc::new(crate::mqtt::Shared::new(self.mqtt_anonymous, mqtt_retained));
         #[cfg(feature = "mqtt")]
         for addr in self.mqtt_listen {
             let listener = TcpListener::bind(addr)
@@ -632,7 +651,13 @@ impl BrokerHandle {
         let core = Arc::clone(&self.core);
         let slot = core.connections.admit_local();
         let peer = "in-process".to_owned();
-        crate::connection::serve_direct(core, slot, peer, self.alive.clone())
+        crate::connection::serve_direct(
+            core,
+            slot,
+            peer,
+            crate::connection::AMQP_0_9_1,
+            self.alive.clone(),
+        )
     }
 
     /// A cloneable view of this broker's state, for readers that outlive

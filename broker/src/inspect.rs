@@ -359,6 +359,9 @@ pub struct ConnectionInfo {
     pub id: u64,
     /// The client's address (`host:port`), or `in-process`.
     pub peer: String,
+    /// What the client speaks, as RabbitMQ lists it: `AMQP 0-9-1`, or
+    /// `MQTT 3.1.1` / `MQTT 5.0` / `MQTT 3.1` for an MQTT session's link.
+    pub protocol: &'static str,
     /// When it was accepted.
     pub connected_at: SystemTime,
     /// The authenticated user.
@@ -859,6 +862,7 @@ fn connection_info(entry: &ConnectionEntry) -> Option<ConnectionInfo> {
     Some(ConnectionInfo {
         id: entry.id,
         peer: entry.peer.clone(),
+        protocol: entry.protocol,
         connected_at: entry.connected_at,
         user: opened.user.clone(),
         vhost: opened.vhost.clone(),

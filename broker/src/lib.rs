@@ -93,6 +93,7 @@
 //! from /proc, one of the alarm's sources), `disk_alarm` (free disk space,
 //! the disk alarm's source), `admission` (connections and channels
 //! counted against RabbitMQ's connection, vhost and user limits),
+//! `limits` (the vhost and user limits in effect, set at run time too),
 //! `arguments` (every argument RabbitMQ 3.10 knows and what Leveret does
 //! with it), `auth` (users and SASL), `password` (password hashes),
 //! `hash_pool` (the bounded threads that check slow hashes) and
@@ -132,6 +133,7 @@ pub mod exchange;
 mod exchange;
 mod hash_pool;
 mod inspect;
+mod limits;
 mod login_backoff;
 mod memory;
 mod message;
@@ -171,6 +173,7 @@ pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPAC
 pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 pub use crate::hash_pool::{HashPoolStats, HASH_THREADS};
+pub use crate::limits::UnknownLimit;
 pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
 pub use crate::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,
@@ -182,7 +185,7 @@ pub use crate::queue::process_nonce;
 pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use crate::stats::HistogramFigures;
 #[cfg(feature = "tls")]
-pub use crate::tls::{PeerVerification, TlsError, TlsOptions};
+pub use crate::tls::{certificate_expiry, PeerVerification, TlsError, TlsOptions};
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;
 pub use inspect::{
@@ -190,3 +193,5 @@ pub use inspect::{
     DestinationKind, ExchangeInfo, GlobalMessageStats, ObjectTotals, Overview, QueueInfo,
     QueueMessageStats, QueueRef, QueueTotals, StreamFigures,
 };
+#[cfg(feature = "mqtt")]
+pub use mqtt::RetainedLimits;

@@ -117,9 +117,10 @@ pub enum Resource<'a> {
     Exchange(&'a str),
 }
 
-/// A compiled pattern.
+/// A compiled pattern (also a policy's, in a build without the `regex`
+/// feature).
 #[derive(Debug, Clone)]
-enum Matcher {
+pub(crate) enum Matcher {
     /// `.*`: every name.
     Everything,
     /// `^name$` with a literal name (and the empty pattern, which means
@@ -134,7 +135,10 @@ enum Matcher {
 impl Matcher {
     /// Compiles `pattern` with `{username}` and `{vhost}` replaced when
     /// `variables` is given (topic permissions).
-    fn compile(pattern: &str, variables: Option<(&str, &str)>) -> Result<Matcher, PatternError> {
+    pub(crate) fn compile(
+        pattern: &str,
+        variables: Option<(&str, &str)>,
+    ) -> Result<Matcher, PatternError> {
         if pattern == ".*" {
             return Ok(Matcher::Everything);
         }
@@ -215,7 +219,7 @@ impl Matcher {
         })
     }
 
-    fn matches(&self, name: &str) -> bool {
+    pub(crate) fn matches(&self, name: &str) -> bool {
         match self {
             Matcher::Everything => true,
             Matcher::Exactly(exact) => name == exact,

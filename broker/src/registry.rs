@@ -51,6 +51,8 @@ pub(crate) struct Opened {
 pub(crate) struct ConnectionEntry {
     pub id: u64,
     pub peer: String,
+    /// What the client speaks (`AMQP 0-9-1`, `MQTT 5.0`…).
+    pub protocol: &'static str,
     pub connected_at: SystemTime,
     pub opened: OnceLock<Opened>,
     close: watch::Sender<bool>,
@@ -119,11 +121,17 @@ impl Registry {
 
     /// Registers an accepted connection; it stays listed (once opened)
     /// until the guard drops.
-    pub fn connection(self: &Arc<Self>, id: u64, peer: &str) -> ConnectionRegistration {
+    pub fn connection(
+        self: &Arc<Self>,
+        id: u64,
+        peer: &str,
+        protocol: &'static str,
+    ) -> ConnectionRegistration {
         let mut state = lock(&self.state);
         let entry = Arc::new(ConnectionEntry {
             id,
             peer: peer.to_owned(),
+            protocol,
             connected_at: SystemTime::now(),
             opened: OnceLock::new(),
             close: watch::channel(state.closing_all).0,
@@ -326,8 +334,8 @@ mod tests {
     fn connections_are_listed_once_opened_and_counted_once_closed() {
         let counters = Arc::new(BrokerCounters::default());
         let registry = Arc::new(Registry::new(Arc::clone(&counters)));
-        let a = registry.connection(1, "peer-a");
-        let b = registry.connection(2, "peer-b");
+        let a = registry.connection(1, "peer-a", "AMQP 0-9-1");
+        let b = registry.connection(2, "peer-b", "AMQP 0-9-1");
         assert!(registry.connections().is_empty());
         registry.opened(1, opened());
         registry.opened(1, opened());
@@ -343,8 +351,8 @@ mod tests {
     #[test]
     fn closing_one_connection_signals_only_it() {
         let registry = Arc::new(Registry::new(Arc::default()));
-        let _a = registry.connection(1, "a");
-        let _b = registry.connection(2, "b");
+        let _a = registry.connection(1, "a", "AMQP 0-9-1");
+        let _b = registry.connection(2, "b", "AMQP 0-9-1");
         let a = registry.close_signal(1).unwrap();
         let b = registry.close_signal(2).unwrap();
         assert!(registry.close(1, "Closed via management plugin"));
@@ -354,7 +362,7 @@ mod tests {
         assert!(!registry.close(3, "x"));
         registry.close_all();
         assert!(*b.borrow());
-        let _late = registry.connection(4, "late");
+        let _late = registry.connection(4, "late", "AMQP 0-9-1");
         assert!(*registry.close_signal(4).unwrap().borrow());
     }
 }

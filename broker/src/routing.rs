@@ -8,7 +8,7 @@
 
 use crate::exchange::{Destination, DestinationId, Exchange};
 use crate::queue::Queue;
-use crate::vhost::Vhost;
+use crate::vhost::{RememberedQueue, Vhost};
 use leveret_protocol::{FieldTable, ShortStr};
 use std::collections::HashSet;
 use std::sync::Arc;
@@ -16,19 +16,20 @@ use std::sync::Arc;
 impl Vhost {
     /// Collects in `queues` every queue a message published to `exchange`
     /// reaches, following exchange-to-exchange bindings and alternate
-    /// exchanges, each queue once. `queues` is a buffer the caller reuses.
+    /// exchanges, each queue once. `queues` is a buffer the caller reuses;
+    /// `last` remembers the default exchange's last lookup
+    /// ([`Vhost::queue_remembered`]).
     pub fn route(
         &self,
         exchange: &Arc<Exchange>,
         routing_key: &ShortStr,
         headers: Option<&FieldTable>,
         queues: &mut Vec<Arc<Queue>>,
+        last: &mut Option<RememberedQueue>,
     ) {
         queues.clear();
         if exchange.name.is_empty() {
-            if let Some(queue) = self.queue(routing_key) {
-                queues.push(queue);
-            }
+            queues.extend(self.queue_remembered(routing_key, last));
             return;
         }
         let mut next: Vec<Arc<Exchange>> = Vec::new();

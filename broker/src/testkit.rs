@@ -140,8 +140,13 @@ impl Harness {
     ) -> Vec<Enqueued> {
         let exchange = self.vhost.exchange_or_404(&s(exchange)).expect("exchange");
         let mut queues = Vec::new();
-        self.vhost
-            .route(&exchange, &s(key), properties.headers.as_ref(), &mut queues);
+        self.vhost.route(
+            &exchange,
+            &s(key),
+            properties.headers.as_ref(),
+            &mut queues,
+            &mut None,
+        );
         let message = message(&exchange.name, key, body, &properties);
         let mut dead = DeadLetters::default();
         let mut answers = Vec::new();

@@ -153,6 +153,20 @@ impl TlsContext {
 
 /// The common name of a (verified) client certificate, the identity SASL
 /// EXTERNAL logs in as.
+/// When each certificate in the PEM file at `path` expires (its
+/// `notAfter`), in seconds since the Unix epoch, in the file's order: what
+/// RabbitMQ's `certificate-expiration` health check looks at.
+pub fn certificate_expiry(path: &Path) -> Result<Vec<i64>, TlsError> {
+    certificates(path)?
+        .iter()
+        .map(|certificate| {
+            let (_, parsed) = x509_parser::parse_x509_certificate(certificate.as_ref())
+                .map_err(|e| file_error(path, e))?;
+            Ok(parsed.validity().not_after.timestamp())
+        })
+        .collect()
+}
+
 pub fn common_name(certificate: &CertificateDer<'_>) -> Option<String> {
     let (_, parsed) = x509_parser::parse_x509_certificate(certificate.as_ref()).ok()?;
     let name = parsed

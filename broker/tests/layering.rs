@@ -58,6 +58,7 @@ const SHARED: &[&str] = &[
     "disk_alarm",
     "error",
     "hash_pool",
+    "limits",
     "login_backoff",
     "memory",
     "message",

@@ -1,11 +1,11 @@
-"""Python scenario driver: python main.py --lib pika|aio-pika|kombu|raw --url URL [--list]"""
+"""Python scenario driver: python main.py --lib pika|aio-pika|kombu|raw|streams --url URL [--list]"""
 
 import importlib
 import sys
 
 import harness
 
-MODULES = {"pika": "s_pika", "aio-pika": "s_aiopika", "kombu": "s_kombu", "raw": "s_raw"}
+MODULES = {"pika": "s_pika", "aio-pika": "s_aiopika", "kombu": "s_kombu", "raw": "s_raw", "streams": "s_streams"}
 
 if __name__ == "__main__":
     lib = None

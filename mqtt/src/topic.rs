@@ -115,6 +115,27 @@ impl TopicFilter {
         &self.0
     }
 
+    /// Whether a PUBLISH to `topic` matches the filter (for a shared
+    /// subscription, its inner filter): `+` is one level, `#` the rest
+    /// (its parent level included), and a topic starting with `$` matches
+    /// no filter starting with a wildcard (MQTT-4.7.2-1).
+    pub fn matches(&self, topic: &str) -> bool {
+        let filter = self.shared().map_or(self.as_str(), |s| s.filter);
+        if topic.starts_with('$') && filter.starts_with(['+', '#']) {
+            return false;
+        }
+        let mut levels = topic.split('/');
+        for part in filter.split('/') {
+            match (part, levels.next()) {
+                ("#", _) => return true,
+                ("+", Some(_)) => {}
+                (part, Some(level)) if part == level => {}
+                _ => return false,
+            }
+        }
+        levels.next().is_none()
+    }
+
     /// The group and filter of a shared subscription.
     pub fn shared(&self) -> Option<SharedFilter<'_>> {
         let rest = self.as_str().strip_prefix(SHARE_PREFIX)?;
@@ -158,6 +179,25 @@ mod tests {
 
     fn filter(s: &str) -> Result<TopicFilter, TopicError> {
         TopicFilter::new(MqttString::try_from(s).unwrap())
+    }
+
+    #[test]
+    fn filters_match_topics_as_the_specification_says() {
+        let matches = |f: &str, t: &str| filter(f).unwrap().matches(t);
+        assert!(matches("a/b", "a/b"));
+        assert!(!matches("a/b", "a/b/c"));
+        assert!(!matches("a/b/c", "a/b"));
+        assert!(matches("a/+/c", "a/x/c"));
+        assert!(matches("a/+", "a/"));
+        assert!(!matches("a/+", "a"));
+        assert!(matches("a/#", "a"));
+        assert!(matches("a/#", "a/b/c"));
+        assert!(matches("#", "a/b"));
+        assert!(matches("+/+", "/x"));
+        assert!(!matches("#", "$SYS/x"));
+        assert!(!matches("+/x", "$SYS/x"));
+        assert!(matches("$SYS/#", "$SYS/x"));
+        assert!(matches("$share/g/a/+", "a/b"));
     }
 
     fn name(s: &str) -> Result<TopicName, TopicError> {

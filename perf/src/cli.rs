@@ -40,6 +40,8 @@ pub enum Command {
     Ports(PortsArgs),
     /// A control loop's `try_put` before, during and after a frozen broker.
     PortsStall(ports::stall::StallArgs),
+    /// What recording costs `put`, and how a recording's playback keeps pace.
+    PortsReplay(ports::replay::ReplayArgs),
     /// A null broker that confirms and drops everything: a generator's own ceiling.
     Sink(SinkArgs),
 }
@@ -54,6 +56,7 @@ pub async fn execute(command: &Command) -> Result<()> {
         Command::Compare(args) => compare::run(args).await.map(drop),
         Command::Ports(args) => ports::run(args).await.map(drop),
         Command::PortsStall(args) => ports::stall::run(args).await,
+        Command::PortsReplay(args) => ports::replay::run(args).await,
         Command::Sink(args) => sink::run(args).await,
     }
 }

@@ -608,6 +608,10 @@ async fn run_one(scenario: &Scenario, broker: &BrokerUnderTest, settle: f64) -> 
             let f = &mut out.figures;
             f.push(("publish rate".into(), Unit::MsgsPerSecond, rates.publish));
             f.push(("consume rate".into(), Unit::MsgsPerSecond, rates.consume));
+            if let Some((p50_ms, p99_ms)) = rates.latency_ms {
+                f.push(("latency p50".into(), Unit::Micros, p50_ms * 1000.0));
+                f.push(("latency p99".into(), Unit::Micros, p99_ms * 1000.0));
+            }
             let cpu = cpu_before.zip(broker.pid.and_then(cpu_seconds));
             if let Some((before, after)) = cpu {
                 let used = after - before;
@@ -660,6 +664,9 @@ struct GeneratorRates {
     consume: f64,
     /// The generator's own measuring time, seconds.
     elapsed: f64,
+    /// Latency median and p99, milliseconds, when it measured them
+    /// (lavinmqperf's `-l`: `latency_median_ms`, `latency_p99_ms`).
+    latency_ms: Option<(f64, f64)>,
 }
 
 /// The last line of `output` that is a JSON object with `avg_pub_rate` and
@@ -674,6 +681,14 @@ fn generator_rates(output: &str) -> Option<GeneratorRates> {
                 .get("elapsed_seconds")
                 .and_then(serde_json::Value::as_f64)
                 .unwrap_or(0.0),
+            latency_ms: value
+                .get("latency_median_ms")
+                .and_then(serde_json::Value::as_f64)
+                .zip(
+                    value
+                        .get("latency_p99_ms")
+                        .and_then(serde_json::Value::as_f64),
+                ),
         })
     })
 }
@@ -885,7 +900,14 @@ mod tests {
                 publish: 132_570.0,
                 consume: 132_556.0,
                 elapsed: 10.0,
+                latency_ms: None,
             })
+        );
+        let latency = "{\"elapsed_seconds\":2.0,\"avg_pub_rate\":799,\"avg_consume_rate\":795,\
+                       \"latency_median_ms\":0.206,\"latency_p99_ms\":0.34}";
+        assert_eq!(
+            generator_rates(latency).and_then(|rates| rates.latency_ms),
+            Some((0.206, 0.34))
         );
         assert_eq!(generator_rates("no json here\n{\"other\":1}\n"), None);
     }

@@ -908,7 +908,10 @@ fn age(sent_ns: i64) -> Option<Duration> {
 }
 
 /// Decodes a delivery's body, refusing one whose `type` names another type.
-fn decode<T: PortData>(delivery: &Delivery, options: CdrOptions) -> Result<T, DataError> {
+pub(crate) fn decode<T: PortData>(
+    delivery: &Delivery,
+    options: CdrOptions,
+) -> Result<T, DataError> {
     if let (Some(expected), Some(found)) = (T::TYPE_NAME, &delivery.properties.kind) {
         if found.as_bytes() != expected.as_bytes() {
             return Err(DataError::TypeMismatch {

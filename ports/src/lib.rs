@@ -66,12 +66,14 @@
 //!   `RTC::Timed*`, the 2D and 3D geometry), all re-exported here too;
 //!   [`cdr::render`] shows a body by its type's name.
 //! - `profile`: [`PortProfile`], [`ExchangeKind`], [`FullPolicy`],
-//!   [`Backoff`], [`Connector`].
+//!   [`Backoff`], [`Connector`], [`Recording`].
 //! - `openrtm`: [`PortProfile::from_properties`] (OpenRTM-aist connector
 //!   properties), [`PortRole`], [`ConnectorProfile`].
 //! - `link`: [`LinkStatus`], topology declaration, the headers.
 //! - `out_port`: [`OutPort`], [`PortStatus`], [`OutPortStats`].
 //! - `in_port`: [`InPort`], [`Sample`], [`InPortStats`].
+//! - `playback`: a port's [`Recording`] read back: [`Playback`] (records),
+//!   [`Player`] (typed values), from a [`Position`] at a rate.
 //! - `latency`: [`LatencyStats`] (min, max, mean and percentiles).
 //! - `announce`: ports announcing themselves on [`PORTS_EXCHANGE`] (the
 //!   wire contract), and [`PortDirectory`], which reads the
@@ -87,6 +89,7 @@ mod latency;
 mod link;
 mod openrtm;
 mod out_port;
+mod playback;
 mod profile;
 
 pub use announce::{
@@ -108,8 +111,9 @@ pub use latency::LatencyStats;
 pub use link::{LinkState, LinkStatus, PORT_HEADER, SENT_HEADER, SEQ_HEADER};
 pub use openrtm::{ConnectorProfile, PortRole};
 pub use out_port::{Fate, OutPort, OutPortStats, Outcome, PortStatus};
+pub use playback::{PlayOptions, Playback, Player, Position, Recorded, Replayed, OFFSET_HEADER};
 pub use profile::{
-    Backoff, Backpressure, Connector, ExchangeKind, FullPolicy, PortProfile, Qos, Replay,
+    Backoff, Backpressure, Connector, ExchangeKind, FullPolicy, PortProfile, Qos, Recording, Replay,
 };
 
 /// The repository README's Rust examples, compiled as doc tests so they

@@ -1,6 +1,7 @@
 //! What both kinds of port share about their link to the broker: its
 //! [`LinkStatus`] (published through a `watch`), declaring the profile's
-//! topology on every new connection, and the message headers that carry a
+//! topology (and an out-port's recording stream) on every new connection,
+//! and the message headers that carry a
 //! port's identity, sequence number and send time.
 
 use super::profile::PortProfile;
@@ -194,6 +195,20 @@ pub(crate) async fn declare_queue(
             .await?;
     }
     Ok(queue.name)
+}
+
+/// Declares the profile's recording stream, if it has one, and binds it
+/// to the profile's exchange with its routing key (a fanout exchange
+/// ignores the key): one more queue the port's messages are routed to.
+pub(crate) async fn declare_recording(channel: &Channel, profile: &PortProfile) -> Result<()> {
+    match &profile.record {
+        Some(recording) => {
+            recording
+                .declare(channel, &profile.exchange, &profile.routing_key)
+                .await
+        }
+        None => Ok(()),
+    }
 }
 
 /// The headers of one published message.

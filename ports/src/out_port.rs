@@ -1013,12 +1013,20 @@ fn encode<T: PortData>(value: &T, options: CdrOptions) -> std::result::Result<By
     }
 }
 
-/// Refuses a profile whose messages could reach no queue: the default
-/// exchange with no routing key.
+/// Refuses a profile whose messages could reach no queue (the default
+/// exchange with no routing key), or that records on the default exchange
+/// (no stream can be bound to it).
 fn check_routes(profile: &PortProfile) -> Result<()> {
     if profile.exchange.is_empty() && profile.routing_key.is_empty() {
         return Err(Error::InvalidArgument(
             "the out-port's profile routes nowhere: no exchange and no routing key".to_owned(),
+        ));
+    }
+    if profile.record.is_some() && profile.exchange.is_empty() {
+        return Err(Error::InvalidArgument(
+            "recording needs a named exchange: the default exchange routes to one queue only, \
+             and no stream can be bound to it"
+                .to_owned(),
         ));
     }
     Ok(())
@@ -1049,6 +1057,7 @@ async fn open(connector: Connector, profile: Arc<PortProfile>) -> Result<OutLink
         if profile.declare_queue && !profile.queue.is_empty() {
             link::declare_queue(&channel, &profile, &profile.queue, false, true).await?;
         }
+        link::declare_recording(&channel, &profile).await?;
         if profile.confirms {
             channel.confirm_select().await?;
         }

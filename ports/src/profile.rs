@@ -7,7 +7,8 @@
 //! and its [`Backpressure`], the put timeout (for `Block` only), the
 //! lifespan, the [`Replay`] policy, mandatory publishing, the CDR options,
 //! the in-port's own queue expiry, the reconnection backoff, the port's
-//! name and how often it announces itself (see `announce`), and the
+//! name and how often it announces itself (see `announce`), the
+//! [`Recording`] of its values to a stream, and the
 //! [`Qos`] presets that set several at once. [`Connector`] says how a port
 //! (re)opens its connection: TCP, an embedded broker, or a function.
 
@@ -15,7 +16,9 @@ use super::cdr::CdrOptions;
 use super::openrtm::PortRole;
 use leveret_client::ConnectionOptions;
 use leveret_client::Result;
-use leveret_client::{Connection, FieldTable};
+use leveret_client::{
+    Channel, Connection, FieldTable, FieldValue, QueueBindOptions, QueueDeclareOptions, ShortStr,
+};
 use std::fmt;
 use std::future::Future;
 use std::pin::Pin;
@@ -295,6 +298,111 @@ pub struct PortProfile {
     /// exchange (see [`super::PORTS_EXCHANGE`]): once when its link comes
     /// up, then at this interval. `None` or zero: never.
     pub announce_interval: Option<Duration>,
+    /// The out-port records every value it publishes to this stream (see
+    /// [`Recording`]); `None`: no recording.
+    pub record: Option<Recording>,
+}
+
+/// Where an out-port records its values: a stream queue
+/// (`x-queue-type: stream`, durable) that the out-port declares with this
+/// retention and binds to its exchange with its routing key, on every
+/// (re)connection. The stream is one more queue the broker routes the
+/// port's messages to: `put` and the port's readers are unchanged. A
+/// recording needs a named exchange (a queue cannot be bound to the
+/// default exchange); the out-port refuses a profile without one.
+/// Since the stream takes every value, a `mandatory` out-port no longer
+/// counts a value `unroutable` when no reader's queue is bound.
+/// Read a recording back with [`super::Player`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Recording {
+    /// The stream's name.
+    pub stream: String,
+    /// How long values are kept (`x-max-age`, RabbitMQ's units: `Y`, `M`,
+    /// `D`, `h`, `m`, `s`, as in `"10m"`); `None`: no age limit.
+    pub max_age: Option<String>,
+    /// The most bytes kept (`x-max-length-bytes`); `None`: no size limit.
+    pub max_length_bytes: Option<u64>,
+}
+
+impl Recording {
+    /// A recording to the stream `stream`, kept without limit until one
+    /// is set.
+    pub fn to(stream: impl Into<String>) -> Self {
+        Recording {
+            stream: stream.into(),
+            max_age: None,
+            max_length_bytes: None,
+        }
+    }
+
+    /// Keeps values for `age` (`"10m"`, `"1h"`, `"7D"`).
+    pub fn max_age(mut self, age: impl Into<String>) -> Self {
+        self.max_age = Some(age.into());
+        self
+    }
+
+    /// Keeps at most `bytes` of values.
+    pub fn max_length_bytes(mut self, bytes: u64) -> Self {
+        self.max_length_bytes = Some(bytes);
+        self
+    }
+
+    /// Declares the stream (durable, with this retention) and binds it to
+    /// `exchange` with `routing_key` (ignored by a fanout exchange), so it
+    /// receives what is published there from now on. Refuses the default
+    /// exchange (empty), which no queue can be bound to.
+    pub async fn declare(
+        &self,
+        channel: &Channel,
+        exchange: &str,
+        routing_key: &str,
+    ) -> Result<()> {
+        if exchange.is_empty() {
+            return Err(leveret_client::Error::InvalidArgument(
+                "recording needs a named exchange: the default exchange routes to one queue \
+                 only, and no stream can be bound to it"
+                    .to_owned(),
+            ));
+        }
+        let options = QueueDeclareOptions {
+            durable: true,
+            ..Default::default()
+        };
+        let stream = channel
+            .queue_declare(self.stream.as_str(), options, self.arguments())
+            .await?;
+        channel
+            .queue_bind(
+                &stream.name,
+                exchange,
+                routing_key,
+                QueueBindOptions::default(),
+                FieldTable::new(),
+            )
+            .await
+    }
+
+    /// The stream's declaration arguments.
+    pub fn arguments(&self) -> FieldTable {
+        let mut arguments = FieldTable::new();
+        arguments.insert(
+            ShortStr::from_static("x-queue-type"),
+            FieldValue::string("stream"),
+        );
+        if let Some(age) = &self.max_age {
+            arguments.insert(
+                ShortStr::from_static("x-max-age"),
+                FieldValue::string(age.as_str()),
+            );
+        }
+        if let Some(bytes) = self.max_length_bytes {
+            arguments.insert(
+                ShortStr::from_static("x-max-length-bytes"),
+                FieldValue::I64(i64::try_from(bytes).unwrap_or(i64::MAX)),
+            );
+        }
+        arguments
+    }
 }
 
 impl Default for PortProfile {
@@ -333,6 +441,7 @@ impl Default for PortProfile {
             queue_expires: Duration::from_secs(60),
             name: None,
             announce_interval: Some(Duration::from_secs(1)),
+            record: None,
         }
     }
 }
@@ -506,6 +615,12 @@ impl PortProfile {
     /// Names the port (its announcements, its connection).
     pub fn name(mut self, name: impl Into<String>) -> Self {
         self.name = Some(name.into());
+        self
+    }
+
+    /// Records the out-port's values to a stream (see [`Recording`]).
+    pub fn record(mut self, recording: Recording) -> Self {
+        self.record = Some(recording);
         self
     }
 

@@ -106,3 +106,28 @@ pub struct Cli {
     #[arg(long)]
     pub hash_password: bool,
 }
+
+#[cfg(test)]
+mod tests {
+    use super::Cli;
+    use clap::CommandFactory;
+
+    /// `packaging/leveret.1` is clap_mangen's rendering of this command
+    /// line, the one `--help` prints; `LEVERET_WRITE_MAN=1` rewrites it.
+    #[test]
+    fn the_man_page_is_rendered_from_the_command_line() {
+        let mut rendered = Vec::new();
+        clap_mangen::Man::new(Cli::command())
+            .render(&mut rendered)
+            .expect("render");
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../packaging/leveret.1");
+        if std::env::var_os("LEVERET_WRITE_MAN").is_some() {
+            std::fs::write(&path, &rendered).expect("write the man page");
+        }
+        let kept = std::fs::read(&path).unwrap_or_default();
+        assert!(
+            kept == rendered,
+            "packaging/leveret.1 differs from the command line: run this test with LEVERET_WRITE_MAN=1"
+        );
+    }
+}

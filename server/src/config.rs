@@ -580,6 +580,7 @@ impl Settings {
             metrics_listen: self.metrics_listen,
             http_listen: self.http_listen,
             data_dir: self.data_dir.clone(),
+            tls: self.tls.clone().filter(|_| !self.tls_listen.is_empty()),
         }
     }
 
@@ -1011,6 +1012,44 @@ mod tests {
     /// (or, when its first line is `# Cargo.toml`, a manifest whose path
     /// dependencies are this workspace's crates), and every `leveret`
     /// command line in a `sh` block parses with the binary's command line.
+    /// `packaging/leveret.toml` with every commented setting (`# key = ..`,
+    /// `# [table]`) uncommented is a config the binary takes, and every
+    /// setting sits under a `##` line that explains it.
+    #[test]
+    fn the_packaged_example_config_is_one_the_binary_takes() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../packaging/leveret.toml");
+        let text = std::fs::read_to_string(&path).expect("read the example");
+        let (mut all, mut explained, mut settings) = (String::new(), false, 0);
+        for line in text.lines() {
+            // `## text` explains; `# key = ..` is a setting, commented.
+            let setting = line.strip_prefix("# ").unwrap_or(line);
+            if line.starts_with("##") {
+                explained = true;
+            } else if line.trim().is_empty() {
+                explained = false;
+            } else {
+                assert!(explained, "no ## line explains: {line}");
+                settings += 1;
+            }
+            all.push_str(setting);
+            all.push('\n');
+        }
+        assert!(settings > 60, "{settings} settings");
+        // Every top-level key the binary knows (serde lists them when it
+        // refuses an unknown one) is shown.
+        let refusal = FileConfig::parse("no-such-key = 1")
+            .expect_err("unknown keys are refused")
+            .to_string();
+        let known = refusal.split("expected one of").nth(1).expect("a key list");
+        for key in known.split(',').map(|key| key.trim().trim_matches('`')) {
+            assert!(text.contains(key), "the example does not show `{key}`");
+        }
+        let config = FileConfig::parse(&all).unwrap_or_else(|e| panic!("{all}{e}"));
+        if let Err(e) = Settings::resolve(Cli::default(), config) {
+            panic!("{all}{e}");
+        }
+    }
+
     #[test]
     fn every_toml_block_in_the_docs_is_a_config_the_binary_takes() {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");

@@ -7,7 +7,7 @@
 //! they may do in the management API), exchanges, queues (with arguments)
 //! and bindings, permissions and topic permissions (enforced by the
 //! broker; a pattern its regex engine cannot run refuses the file), users'
-//! limits (at start; a run-time import reports them), shovels
+//! and vhosts' limits (`parameters` with component `vhost-limits`), shovels
 //! (`parameters` with component `shovel`, started by `uplink`),
 //! federation upstreams (`parameters` with component
 //! `federation-upstream`: `federation`), policies and operator policies
@@ -31,8 +31,8 @@ use crate::management::json::{flag, text, user_tags};
 use crate::uplink::Links;
 use leveret_broker::{
     check_pattern, Admin, BindingSpec, BrokerBuilder, DestinationKind, ExchangeSettings,
-    PasswordHash, Permission, PolicyKind, QueueSettings, TopicPermission, User, UserLimits,
-    LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512,
+    PasswordHash, Permission, PolicyKind, QueueSettings, TopicPermission, UnknownLimit, User,
+    UserLimits, VhostLimits, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512,
 };
 use leveret_protocol::json::{table, to_table};
 use serde_json::{json, Map, Value};
@@ -71,6 +71,8 @@ pub struct Definitions {
     /// Federation upstreams (`parameters` with component
     /// `federation-upstream`): vhost, name and parameters, checked.
     pub upstreams: Vec<(String, String, Value)>,
+    /// Vhosts' limits (`parameters` with component `vhost-limits`).
+    pub vhost_limits: Vec<(String, VhostLimits)>,
     /// Policies: vhost, name and the policy, checked.
     pub policies: Vec<(String, String, Value)>,
     /// Operator policies, likewise.
@@ -123,42 +125,51 @@ fn unused_keys(object: &Map<String, Value>, used: &[&str], what: &str, warnings:
     }
 }
 
-/// A user's `limits` object (RabbitMQ's user limits; a negative value,
-/// as RabbitMQ takes it, is no limit).
+/// A limits object (RabbitMQ's: a negative value is no limit), each name
+/// one `with` knows.
+fn limits_from<L: Default>(
+    limits: &Value,
+    with: impl Fn(L, &str, i64) -> Result<L, UnknownLimit>,
+) -> Result<L, String> {
+    let object = limits
+        .as_object()
+        .ok_or_else(|| format!("limits must be an object, not {limits}"))?;
+    object.iter().try_fold(L::default(), |acc, (key, value)| {
+        let number = value
+            .as_i64()
+            .ok_or_else(|| format!("limit {key} must be an integer, not {value}"))?;
+        with(acc, key, number).map_err(|e| e.to_string())
+    })
+}
+
+/// A user's `limits` object (RabbitMQ's user limits).
 fn user_limits(limits: Option<&Value>, what: &str) -> Result<Option<UserLimits>, String> {
     let Some(limits) = limits.filter(|v| !is_empty(v)) else {
         return Ok(None);
     };
-    let limits = limits
-        .as_object()
-        .ok_or_else(|| format!("{what}: limits must be an object, not {limits}"))?;
-    let mut out = UserLimits::default();
-    for (key, value) in limits {
-        let number = value
-            .as_i64()
-            .ok_or_else(|| format!("{what}: limit {key} must be an integer, not {value}"))?;
-        let limit = usize::try_from(number).ok();
-        match key.as_str() {
-            "max-connections" => out.max_connections = limit,
-            "max-channels" => out.max_channels = limit,
-            _ => return Err(format!("{what}: unknown limit {key}")),
-        }
-    }
-    Ok(Some(out))
+    limits_from(limits, UserLimits::with)
+        .map(Some)
+        .map_err(|e| format!("{what}: {e}"))
+}
+
+/// A `vhost-limits` parameter's value (RabbitMQ's vhost limits).
+fn vhost_limits(value: &Value) -> Result<VhostLimits, String> {
+    limits_from(value, VhostLimits::with)
+}
+
+/// Limits as RabbitMQ exports them: `{"max-connections": 10}`.
+fn limits_json(named: Vec<(&'static str, usize)>) -> Value {
+    Value::Object(
+        named
+            .into_iter()
+            .map(|(name, value)| (name.to_owned(), json!(value)))
+            .collect(),
+    )
 }
 
 /// A user's limits as RabbitMQ exports them.
 fn user_limits_json(limits: Option<UserLimits>) -> Value {
-    let mut out = Map::new();
-    if let Some(limits) = limits {
-        if let Some(n) = limits.max_connections {
-            out.insert("max-connections".into(), json!(n));
-        }
-        if let Some(n) = limits.max_channels {
-            out.insert("max-channels".into(), json!(n));
-        }
-    }
-    Value::Object(out)
+    limits_json(limits.map(|limits| limits.named()).unwrap_or_default())
 }
 
 /// The top-level key of Leveret's own section of an export.
@@ -320,6 +331,11 @@ impl Definitions {
                         .map_err(|e| format!("shovel '{parameter}' in vhost '{vhost}': {e}"))?;
                     d.shovels.push((vhost, parameter, value));
                 }
+                "vhost-limits" => {
+                    let limits = vhost_limits(&value)
+                        .map_err(|e| format!("limits of vhost '{vhost}': {e}"))?;
+                    d.vhost_limits.push((vhost, limits));
+                }
                 crate::federation::UPSTREAM_COMPONENT => {
                     leveret_uplink::UpstreamConfig::from_json(&value).map_err(|e| {
                         format!("federation upstream '{parameter}' in vhost '{vhost}': {e}")
@@ -336,17 +352,9 @@ impl Definitions {
                         )),
                     }
                 }
-                _ => {
-                    let why = match component.as_str() {
-                        "vhost-limits" => {
-                            "vhosts' limits are taken from the config file only (vhost-limits)"
-                        }
-                        _ => "Leveret has shovel and federation-upstream parameters only",
-                    };
-                    d.warnings.push(format!(
-                        "parameter {component} '{parameter}' in vhost '{vhost}' ({value}) not imported: {why}"
-                    ));
-                }
+                _ => d.warnings.push(format!(
+                    "parameter {component} '{parameter}' in vhost '{vhost}' ({value}) not imported: Leveret has shovel, federation-upstream, vhost-limits and operator_policy parameters only"
+                )),
             }
         }
         for (key, kind) in [
@@ -625,9 +633,8 @@ impl Definitions {
 
     /// Applies vhosts, users, permissions, exchanges, queues, shovels and
     /// bindings to a running broker, in that order; stops at the first that
-    /// fails, naming it. Users and permissions last as those changed by
-    /// the API do (in the store). Users' limits are reported: they are
-    /// taken at start.
+    /// fails, naming it. Users, permissions and limits last as those
+    /// changed by the API do (in the store).
     pub async fn apply(&mut self, admin: &Admin, links: &Links) -> Result<Applied, String> {
         let mut applied = Applied::default();
         for vhost in &self.vhosts {
@@ -652,15 +659,18 @@ impl Definitions {
                     .map_err(|e| format!("user '{}': {e}", user.name))?;
                 applied.users += 1;
             }
-            if user
-                .limits
-                .is_some_and(|limits| Some(limits) != admin.user_limits(&user.name))
-            {
-                self.warnings.push(format!(
-                    "limits of user '{}' not applied: users' limits are taken at start (give the file with --definitions, or use the config file)",
-                    user.name
-                ));
+            if let Some(limits) = user.limits {
+                admin
+                    .set_user_limits(&user.name, limits)
+                    .await
+                    .map_err(|e| format!("limits of user '{}': {e}", user.name))?;
             }
+        }
+        for (vhost, limits) in &self.vhost_limits {
+            admin
+                .set_vhost_limits(vhost, *limits)
+                .await
+                .map_err(|e| format!("limits of vhost '{vhost}': {e}"))?;
         }
         for (user, vhost, permission) in &self.permissions {
             admin
@@ -871,12 +881,14 @@ pub fn export(admin: &Admin, links: &Links) -> Value {
         "vhosts": vhosts.iter().map(|name| json!({"name": name})).collect::<Vec<_>>(),
         "permissions": permissions,
         "topic_permissions": topic_permissions,
-        "parameters": links.shovels.list().into_iter().map(|s| json!({
+        "parameters": admin.all_vhost_limits().into_iter().map(|(vhost, limits)| json!({
+            "value": limits_json(limits.named()), "vhost": vhost, "component": "vhost-limits", "name": "limits",
+        })).chain(links.shovels.list().into_iter().map(|s| json!({
             "value": s.parameters, "vhost": s.vhost, "component": "shovel", "name": s.name,
         })).chain(links.federation.upstreams().into_iter().map(|(vhost, name, value)| json!({
             "value": value, "vhost": vhost, "component": crate::federation::UPSTREAM_COMPONENT,
             "name": name,
-        }))).collect::<Vec<_>>(),
+        })))).collect::<Vec<_>>(),
         "global_parameters": [{"name": crate::policies::CLUSTER_NAME,
                                "value": crate::policies::cluster_name(admin, &crate::process::node_name())}],
         "policies": admin.policies(PolicyKind::User, None).iter()
@@ -970,7 +982,7 @@ mod tests {
             br#"{"users": [{"name": "x", "password_hash": "", "limits": {"max-queues": 1}}]}"#;
         assert!(Definitions::parse(bad)
             .unwrap_err()
-            .contains("unknown limit max-queues"));
+            .contains("unknown limit 'max-queues'"));
     }
 
     #[test]

@@ -25,8 +25,9 @@
 //! The binary allocates with jemalloc (an embedder keeps its own
 //! allocator): the persister thread frees what connections allocated, and
 //! glibc's malloc serialises such frees on the allocating thread's arena
-//! lock.
-#![forbid(unsafe_code)]
+//! lock. `MALLOC_CONF` below sets its defaults; `_RJEM_MALLOC_CONF` in the
+//! environment overrides them.
+#![deny(unsafe_code)]
 
 mod cli;
 mod config;
@@ -52,6 +53,25 @@ use std::sync::Arc;
 #[cfg(not(target_env = "msvc"))]
 #[global_allocator]
 static ALLOCATOR: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
+
+/// jemalloc's options, read once at its start (figures in
+/// docs/performance.md, "Idle memory"):
+/// - `percpu_arena:percpu`: one arena per CPU a thread runs on, instead
+///   of four per CPU; fewer arenas idle with less metadata, and threads on
+///   different cores still never share one.
+/// - `background_thread:true`: a jemalloc thread returns freed pages to
+///   the system on its own, so memory a burst used goes back while the
+///   broker is idle (otherwise only a later allocation purges).
+/// - `dirty_decay_ms:1000,muzzy_decay_ms:0`: freed pages go back after
+///   about a second instead of ten.
+///
+/// The symbol is jemalloc's `malloc_conf` (tikv-jemalloc-sys prefixes its
+/// names with `_rjem_`): a C string it reads before the first allocation.
+#[cfg(not(target_env = "msvc"))]
+#[allow(unsafe_code)] // an exported symbol, which the linker could clash.
+#[unsafe(export_name = "_rjem_malloc_conf")]
+pub static MALLOC_CONF: &[u8; 80] =
+    b"percpu_arena:percpu,background_thread:true,dirty_decay_ms:1000,muzzy_decay_ms:0\0";
 
 /// Exit status for a command line or config file that cannot be used.
 const USAGE_ERROR: u8 = 2;
@@ -284,6 +304,9 @@ async fn run(
         handle.admin(),
         links.clone(),
         handle.local_addrs(),
+        (handle.tls_addrs().iter().map(|addr| ("amqp/ssl", *addr)))
+            .chain(handle.mqtt_addrs().iter().map(|addr| ("mqtt", *addr)))
+            .collect(),
         ops_settings,
     ) {
         Ok(ops) => ops,

@@ -493,6 +493,38 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[Queu
             out.gauge(name, help, value);
         }
     }
+    // The Prometheus client libraries' process families, from the
+    // process itself.
+    let standard = [
+        (
+            "process_open_fds",
+            "Number of open file descriptors.",
+            process.open_fds.map(|n| n as f64),
+        ),
+        (
+            "process_max_fds",
+            "Maximum number of open file descriptors.",
+            process.max_fds.map(|n| n as f64),
+        ),
+        (
+            "process_start_time_seconds",
+            "Start time of the process since unix epoch in seconds.",
+            process.start_time_seconds,
+        ),
+    ];
+    for (name, help, value) in standard {
+        if let Some(value) = value {
+            out.single(name, MetricType::GAUGE, help, &[], value);
+        }
+    }
+    if let (Some(open), Some(max)) = (process.open_fds, process.max_fds) {
+        // RabbitMQ's file-descriptor alarm: every descriptor is in use.
+        out.gauge(
+            "rabbitmq_alarms_file_descriptor_limit",
+            "is 1 if file descriptor limit alarm is in effect",
+            u64::from(open >= max),
+        );
+    }
     // RabbitMQ's figure is the resident-memory watermark (what Grafana's
     // "memory available before publishers blocked" subtracts from);
     // Leveret's second limit, on queued message bytes, has its own name

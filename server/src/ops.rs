@@ -23,6 +23,8 @@ pub struct OpsSettings {
     pub http_listen: SocketAddr,
     /// Where the broker keeps its data (disk space is measured there).
     pub data_dir: PathBuf,
+    /// The TLS listeners' certificate files, for the health check.
+    pub tls: Option<leveret_broker::TlsOptions>,
 }
 
 /// The running listeners.
@@ -76,11 +78,13 @@ fn bound_addr(listener: &std::net::TcpListener, asked: SocketAddr) -> Result<Soc
 
 impl Ops {
     /// Binds the listeners and serves them on their own thread;
-    /// `amqp_listeners` are reported in `/api/overview`.
+    /// `amqp_listeners` are reported in `/api/overview`, they and
+    /// `other_listeners` (by RabbitMQ's protocol name) in the health checks.
     pub fn start(
         admin: Admin,
         links: Links,
         amqp_listeners: &[SocketAddr],
+        other_listeners: Vec<(&'static str, SocketAddr)>,
         settings: OpsSettings,
     ) -> Result<Ops, OpsError> {
         let metrics = bind(settings.metrics_listen)?;
@@ -92,6 +96,10 @@ impl Ops {
             .build()
             .map_err(OpsError::Thread)?;
         let node = crate::process::node_name();
+        let listeners = (amqp_listeners.iter().map(|addr| ("amqp", *addr)))
+            .chain(other_listeners)
+            .chain([("http", http_addr), ("http/prometheus", metrics_addr)])
+            .collect();
         let rates = Rates::default();
         let metrics_context = MetricsContext {
             admin: admin.clone(),
@@ -105,6 +113,8 @@ impl Ops {
             node,
             data_dir: settings.data_dir,
             amqp_listeners: amqp_listeners.to_vec(),
+            listeners,
+            tls: settings.tls,
             rates: rates.clone(),
         };
         let (stop, stopped) = watch::channel(false);

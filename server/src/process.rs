@@ -1,6 +1,6 @@
 //! Figures about this process and its machine that RabbitMQ reports
 //! beside its own counters: resident memory, open and allowed file
-//! descriptors (Linux's /proc; absent elsewhere), free disk space where
+//! descriptors and the start time (Linux's /proc; absent elsewhere), free disk space where
 //! the data lives, and the node name (`leveret@HOST`, in the style of
 //! RabbitMQ's `rabbit@HOST`). Reading them costs a few small file reads,
 //! done on the listeners' thread at scrape time.
@@ -8,7 +8,7 @@
 use std::path::Path;
 
 /// What was read; `None` where the platform does not say.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct ProcessFigures {
     /// Resident set size, bytes.
     pub resident_memory_bytes: Option<u64>,
@@ -18,6 +18,9 @@ pub struct ProcessFigures {
     pub max_fds: Option<u64>,
     /// Bytes free to unprivileged users on the data directory's file system.
     pub disk_free_bytes: Option<u64>,
+    /// When the process started, seconds since the Unix epoch (Linux:
+    /// its start in clock ticks after boot, plus the boot time).
+    pub start_time_seconds: Option<f64>,
 }
 
 impl ProcessFigures {
@@ -34,8 +37,26 @@ impl ProcessFigures {
             disk_free_bytes: rustix::fs::statvfs(data_dir)
                 .ok()
                 .map(|fs| fs.f_bavail.saturating_mul(fs.f_frsize)),
+            start_time_seconds: start_time_seconds(),
         }
     }
+}
+
+fn start_time_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The command name (field 2) may hold spaces: count from after it.
+    // starttime is field 22, the 20th after the name.
+    let after_name = &stat[stat.rfind(')')? + 1..];
+    let ticks: u64 = after_name.split_whitespace().nth(19)?.parse().ok()?;
+    let boot = std::fs::read_to_string("/proc/stat").ok()?;
+    let boot: u64 = boot
+        .lines()
+        .find_map(|line| line.strip_prefix("btime "))?
+        .trim()
+        .parse()
+        .ok()?;
+    let per_second = rustix::param::clock_ticks_per_second();
+    Some(boot as f64 + ticks as f64 / per_second as f64)
 }
 
 fn resident_memory_bytes() -> Option<u64> {

@@ -544,7 +544,7 @@ fn ping_and_await_startup_exit_as_rabbitmqctl() {
     assert!(String::from_utf8_lossy(&waited.stderr).contains("did not start within 1 s"));
 }
 
-/// add_vhost and list_vhosts, in text and with `--formatter json`.
+/// add_vhost, list_vhosts and delete_vhost, in text and with `--formatter json`.
 #[test]
 fn vhosts_are_added_and_listed_in_both_formats() {
     let broker = OpsBroker::start("ctl-vhosts", &[]);
@@ -569,6 +569,13 @@ fn vhosts_are_added_and_listed_in_both_formats() {
         vhosts,
         serde_json::json!([{"name": "/", "tracing": false}, {"name": "robots", "tracing": false}])
     );
+    assert_eq!(
+        lines(&broker, &["delete_vhost", "robots"]),
+        ["Deleting vhost \"robots\" ..."]
+    );
+    assert_eq!(lines(&broker, &["-q", "list_vhosts"]), ["name", "/"]);
+    let missing = ctl(&broker, &["delete_vhost", "robots"]);
+    assert_eq!(missing.status.code(), Some(1), "{missing:?}");
 }
 
 /// list_channels with rabbitmqctl's default columns; an unknown column
@@ -842,4 +849,111 @@ async fn port_hz_and_bw_measure_a_ports_messages() {
     assert_eq!(refused.status.code(), Some(64), "{refused:?}");
     publisher.abort();
     reader.close().await;
+}
+
+/// The limit commands with rabbitmqctl's output (recorded from rabbitmqctl
+/// 3.10.8), the API paths behind them, and the limits in force over AMQP.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn vhost_and_user_limits_are_set_listed_enforced_and_cleared() {
+    let broker = OpsBroker::start("ctl-limits", &[]);
+    lines(&broker, &["add_vhost", "capped"]);
+    assert_eq!(
+        lines(
+            &broker,
+            &[
+                "-p",
+                "capped",
+                "set_vhost_limits",
+                r#"{"max-connections": 1, "max-queues": 5}"#
+            ]
+        ),
+        [
+            r#"Setting vhost limits to "{"max-connections": 1, "max-queues": 5}" for vhost "capped" ..."#
+        ]
+    );
+    assert_eq!(
+        lines(&broker, &["-p", "capped", "list_vhost_limits"]),
+        [
+            r#"Listing limits for vhost "capped" ..."#,
+            r#"{"max-connections":1,"max-queues":5}"#
+        ]
+    );
+    // The definition replaces the vhost's limits, as in RabbitMQ.
+    lines(
+        &broker,
+        &[
+            "-p",
+            "capped",
+            "set_vhost_limits",
+            r#"{"max-connections": 1}"#,
+        ],
+    );
+    assert_eq!(
+        lines(&broker, &["-q", "list_vhost_limits", "--global"]),
+        ["vhost\tlimits", "capped\t{\"max-connections\":1}"]
+    );
+    let url = format!("amqp://guest:guest@{}/capped", broker.amqp);
+    let first = Connection::connect(&url, ConnectionProperties::default())
+        .await
+        .expect("the first connection");
+    let refused = Connection::connect(&url, ConnectionProperties::default())
+        .await
+        .expect_err("over max-connections");
+    assert!(
+        refused
+            .to_string()
+            .contains("connection limit (1) is reached"),
+        "{refused}"
+    );
+    drop(first);
+    // A term RabbitMQ does not know changes nothing (exit 64).
+    let bogus = ctl(
+        &broker,
+        &["-p", "capped", "set_vhost_limits", r#"{"bogus": 6}"#],
+    );
+    assert_eq!(bogus.status.code(), Some(64), "{bogus:?}");
+    assert!(String::from_utf8_lossy(&bogus.stderr).contains("Unrecognised terms"));
+    lines(&broker, &["-p", "capped", "clear_vhost_limits"]);
+    assert_eq!(
+        lines(&broker, &["-q", "-p", "capped", "list_vhost_limits"]),
+        ["{}"]
+    );
+
+    // User limits are added to, and cleared one by one or all.
+    lines(
+        &broker,
+        &["set_user_limits", "guest", r#"{"max-connections": 3}"#],
+    );
+    lines(
+        &broker,
+        &["set_user_limits", "guest", r#"{"max-channels": 7}"#],
+    );
+    assert_eq!(
+        lines(&broker, &["list_user_limits", "--user", "guest"]),
+        [
+            r#"Listing limits for user "guest" ..."#,
+            r#"{"max-channels":7,"max-connections":3}"#
+        ]
+    );
+    lines(&broker, &["clear_user_limits", "guest", "max-channels"]);
+    assert_eq!(
+        lines(&broker, &["-q", "list_user_limits", "--global"]),
+        ["user\tlimits", "guest\t{\"max-connections\":3}"]
+    );
+    let json = lines(
+        &broker,
+        &["-q", "--formatter", "json", "list_user_limits", "--global"],
+    );
+    let listed: serde_json::Value = serde_json::from_str(&json.join("\n")).expect("JSON");
+    assert_eq!(
+        listed,
+        serde_json::json!([{"user": "guest", "limits": {"max-connections": 3}}])
+    );
+    lines(&broker, &["clear_user_limits", "guest", "all"]);
+    assert_eq!(lines(&broker, &["-q", "list_user_limits"]), ["{}"]);
+    let unknown_user = ctl(
+        &broker,
+        &["set_user_limits", "nobody", r#"{"max-channels": 1}"#],
+    );
+    assert_eq!(unknown_user.status.code(), Some(1), "{unknown_user:?}");
 }

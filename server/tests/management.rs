@@ -427,7 +427,9 @@ async fn vhosts_per_object_bindings_and_per_vhost_definitions() {
     };
     assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 201);
     assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 204);
-    assert_eq!(send("DELETE", "/api/vhosts/robots", b"").await.status, 405);
+    assert_eq!(send("DELETE", "/api/vhosts/robots", b"").await.status, 204);
+    assert_eq!(send("DELETE", "/api/vhosts/robots", b"").await.status, 404);
+    assert_eq!(send("PUT", "/api/vhosts/robots", b"").await.status, 201);
     for (path, body) in [
         (
             "/api/exchanges/robots/sensors",
@@ -871,4 +873,85 @@ async fn user_tags_decide_what_the_management_api_shows_and_allows() {
             .expect("JSON");
     assert_eq!(whoami, json!({"name": "watcher", "tags": ["monitoring"]}));
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `rabbitmqadmin delete vhost` (issue 31): the vhost's connection is
+/// closed with RabbitMQ's 320 text, its durable queue and the vhost itself
+/// are gone, after a crash too.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rabbitmqadmin_deletes_a_vhost_and_it_stays_deleted() {
+    if !tool_available("rabbitmqadmin", "rabbitmq-server") {
+        return;
+    }
+    let broker = OpsBroker::start("delete-vhost", &[]);
+    for args in [
+        &["declare", "vhost", "name=gone"][..],
+        &[
+            "declare",
+            "permission",
+            "vhost=gone",
+            "user=guest",
+            "configure=.*",
+            "write=.*",
+            "read=.*",
+        ],
+        &[
+            "-V",
+            "gone",
+            "declare",
+            "queue",
+            "name=kept",
+            "durable=true",
+        ],
+    ] {
+        rabbitmqadmin(&broker, args).expect("installed");
+    }
+    let url = format!("amqp://guest:guest@{}/gone", broker.amqp);
+    let connection = Connection::connect(&url, ConnectionProperties::default())
+        .await
+        .expect("connects to the vhost");
+    let (closed_tx, mut closed) = tokio::sync::mpsc::unbounded_channel();
+    connection.on_error(move |e| {
+        let _ = closed_tx.send(e);
+    });
+    rabbitmqadmin(&broker, &["delete", "vhost", "name=gone"]).expect("installed");
+    let error = tokio::time::timeout(Duration::from_secs(30), closed.recv())
+        .await
+        .expect("closed in time")
+        .expect("an error");
+    assert!(
+        error
+            .to_string()
+            .contains("CONNECTION_FORCED - vhost 'gone' is deleted"),
+        "{error}"
+    );
+    let missing = request(
+        broker.http,
+        "DELETE",
+        "/api/vhosts/gone",
+        &[("Authorization", &basic("guest", "guest"))],
+        b"",
+    )
+    .await;
+    assert_eq!(missing.status, 404, "{}", missing.text());
+
+    let broker = broker.kill_and_restart(&[]);
+    let vhosts = admin_json(&broker, &["list", "vhosts"]);
+    assert!(
+        vhosts
+            .as_array()
+            .expect("list")
+            .iter()
+            .all(|v| v["name"] != "gone"),
+        "{vhosts}"
+    );
+    let queues = admin_json(&broker, &["list", "queues"]);
+    assert!(
+        queues
+            .as_array()
+            .expect("list")
+            .iter()
+            .all(|q| q["vhost"] != "gone"),
+        "{queues}"
+    );
 }

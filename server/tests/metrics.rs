@@ -270,3 +270,39 @@ async fn per_object_metrics_of_many_queues_are_streamed_whole() {
     assert_eq!(value(&text, "rabbitmq_queues"), Some(count as f64));
     check_with_promtool(&text, "/metrics/per-object of many queues");
 }
+
+/// The Prometheus client libraries' process families, read from the
+/// process itself (issue 31): open descriptors below the allowed ones, the
+/// start time between the test's clock before the launch and the scrape,
+/// and RabbitMQ's file-descriptor alarm off; promtool takes the scrape.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn process_families_come_from_the_process() {
+    let now = || {
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .expect("after 1970")
+            .as_secs_f64()
+    };
+    let before = now();
+    let broker = OpsBroker::start("process-families", &[]);
+    let text = scrape(broker.metrics, "/metrics").await;
+    let after = now();
+    let open = value(&text, "process_open_fds").expect("process_open_fds");
+    let max = value(&text, "process_max_fds").expect("process_max_fds");
+    let started = value(&text, "process_start_time_seconds").expect("start time");
+    assert!(open >= 5.0 && open < max, "{open} of {max}");
+    // The start time has the kernel's clock-tick resolution (10 ms).
+    assert!(
+        started >= before.floor() - 1.0 && started <= after,
+        "{before} <= {started} <= {after}"
+    );
+    assert_eq!(
+        value(&text, "rabbitmq_alarms_file_descriptor_limit"),
+        Some(0.0)
+    );
+    assert_eq!(
+        value(&text, "rabbitmq_process_open_fds").map(|n| n >= 5.0),
+        Some(true)
+    );
+    check_with_promtool(&text, "the process families");
+}

@@ -6,24 +6,23 @@
 //! overflow and dead-letter exchange, the smaller TTL), an operator
 //! policy's clamp, a live change shortening a queue, a refused key.
 //!
-//! Runs against the shared node on 127.0.0.1:5672 in a vhost of its own
-//! (`policies-diff`, created if missing), with names unique to the run;
-//! skips loudly when no node answers `rabbitmqctl status`.
+//! Starts a RabbitMQ node of its own (Debian's `rabbitmq-server`, which
+//! `.ci/run` installs; outside CI a missing one skips the test loudly).
 
 mod common;
 
-use common::ops::OpsBroker;
+use common::ops::{tool_available, OpsBroker};
 use lapin::options::{
     BasicPublishOptions, ConfirmSelectOptions, ExchangeDeclareOptions, QueueBindOptions,
     QueueDeclareOptions,
 };
 use lapin::types::{AMQPValue, FieldTable};
 use lapin::{BasicProperties, Channel, Connection, ConnectionProperties, ExchangeKind};
+use leveret_tests::rabbit_node::{RabbitNode, BIN};
 use std::collections::BTreeMap;
 use std::process::Command;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
-
-const RABBIT_VHOST: &str = "policies-diff";
 
 /// How a broker's ctl tool is run.
 type Ctl = Box<dyn Fn(&[&str]) -> std::process::Output>;
@@ -45,13 +44,6 @@ impl Side {
         );
         String::from_utf8_lossy(&output.stdout).into_owned()
     }
-}
-
-fn rabbitmqctl(args: &[&str]) -> std::process::Output {
-    Command::new("rabbitmqctl")
-        .args(args)
-        .output()
-        .expect("run rabbitmqctl")
 }
 
 fn table(pairs: &[(&str, AMQPValue)]) -> FieldTable {
@@ -265,39 +257,21 @@ async fn scenario(side: &Side, p: &str) -> BTreeMap<String, String> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn leveret_combines_policies_as_rabbitmq_does() {
-    if !rabbitmqctl(&["status"]).status.success() {
-        eprintln!("SKIPPED: no RabbitMQ node answers `rabbitmqctl status`");
+    if !tool_available(&format!("{BIN}/rabbitmq-server"), "rabbitmq-server") {
         return;
     }
-    let _ = rabbitmqctl(&["add_vhost", RABBIT_VHOST]);
-    let _ = rabbitmqctl(&[
-        "set_permissions",
-        "-p",
-        RABBIT_VHOST,
-        "guest",
-        ".*",
-        ".*",
-        ".*",
-    ]);
+    let dir = std::env::temp_dir().join(format!("leveret-policies-diff-{}", std::process::id()));
+    let node = Arc::new(tokio::task::block_in_place(|| {
+        RabbitNode::start("leveret-policies-diff", &dir, &dir)
+    }));
     let prefix = format!(
         "pd{}x{}.",
         std::process::id(),
         Instant::now().elapsed().as_nanos()
     );
     let rabbit = Side {
-        amqp: format!("amqp://guest:guest@127.0.0.1:5672/{RABBIT_VHOST}"),
-        ctl: Box::new(|args| {
-            // rabbitmqctl takes -p after the command; leveretctl anywhere.
-            let (command, rest) = args
-                .iter()
-                .position(|a| !a.starts_with('-'))
-                .map(|i| (&args[..=i], &args[i + 1..]))
-                .unwrap_or((args, &[]));
-            let mut all: Vec<&str> = command.to_vec();
-            all.extend(["-p", RABBIT_VHOST]);
-            all.extend(rest);
-            rabbitmqctl(&all)
-        }),
+        amqp: node.uri(),
+        ctl: Box::new(move |args| node.ctl(args)),
     };
     let broker = OpsBroker::start("policies-differential", &[]);
     let url = format!("http://{}", broker.http);

@@ -143,7 +143,7 @@ async fn a_configured_shovel_forwards_everything_confirmed_across_kill_9() {
 /// lists it running, the Prometheus scrape shows its state and counts, the
 /// definitions export carries it as a parameter; shovels are keyed by
 /// vhost and name, outlast a SIGKILL (runtime parameters in the store),
-/// and DELETE stops one for good.
+/// and DELETE stops one for good, as does deleting its vhost.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     use common::ops::{basic, request, OpsBroker};
@@ -390,6 +390,15 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
         1,
         "the deletion lasts: {listed}"
     );
+    // Deleting its vhost stops and forgets the other shovel, after a
+    // restart too.
+    let deleted = request(robot.http, "DELETE", "/api/vhosts/cell", &headers, b"").await;
+    assert_eq!(deleted.status, 204, "{}", deleted.text());
+    let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
+    assert_eq!(listed.text(), "[]");
+    let robot = robot.kill_and_restart(&[]);
+    let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
+    assert_eq!(listed.text(), "[]");
 
     // A shovel that has forwarded all src-delete-after asked for deletes
     // itself, parameter and all (here: a source that was empty).

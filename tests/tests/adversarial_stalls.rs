@@ -329,6 +329,62 @@ async fn closing_the_owner_of_thousands_of_exclusive_queues_leaves_others_served
     .await;
 }
 
+/// Queues in the deleted vhost, each bound to a fanout.
+const VHOST_QUEUES: usize = 10_000;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deleting_a_vhost_of_thousands_of_queues_leaves_others_served() {
+    within_bounds(Limits::default(), |target| async move {
+        let vhost = unique("stall-vhost");
+        let populated = target
+            .on_broker_thread({
+                let vhost = vhost.clone();
+                move |admin| async move {
+                    admin.add_vhost(&vhost).await.expect("vhost");
+                    let fanout = leveret_broker::ExchangeSettings {
+                        kind: "fanout".into(),
+                        ..Default::default()
+                    };
+                    admin
+                        .declare_exchange(&vhost, "fan", fanout)
+                        .await
+                        .expect("fanout");
+                    for i in 0..VHOST_QUEUES {
+                        let queue = format!("q{i}");
+                        admin
+                            .declare_queue(&vhost, &queue, Default::default())
+                            .await
+                            .expect("queue");
+                        let binding = leveret_broker::BindingSpec {
+                            source: "fan".into(),
+                            destination: queue,
+                            destination_kind: leveret_broker::DestinationKind::Queue,
+                            routing_key: String::new(),
+                            arguments: Default::default(),
+                        };
+                        admin.bind(&vhost, binding).await.expect("bind");
+                    }
+                }
+            })
+            .await;
+        if populated.is_none() {
+            // An external broker: no Admin to delete a vhost with.
+            return Ok(());
+        }
+        let probe = Probe::start(&target).await;
+        let deleted = target
+            .on_broker_thread(move |admin| async move { admin.delete_vhost(&vhost).await })
+            .await;
+        assert_eq!(deleted, Some(Ok(true)));
+        finish_after(
+            probe,
+            &format!("deleting a vhost of {VHOST_QUEUES} queues bound to a fanout"),
+        )
+        .await
+    })
+    .await;
+}
+
 /// Queues on each side of the dead-letter multiplication.
 const MULTIPLIED: usize = sized(1_000, 300);
 

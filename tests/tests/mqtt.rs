@@ -1,6 +1,8 @@
 //! MQTT on the broker (issue 32): rumqttc clients in 3.1.1 and 5.0,
 //! MQTT ↔ AMQP through `amq.topic` with lapin, client-id takeover, the
-//! clean-session queue, exactly-once QoS 2 publishes, and the adversarial
+//! clean-session queue, persistent sessions (3.1.1 and 5.0 expiry, across
+//! a restart), retained messages (durable, capped), the receive maximum,
+//! exactly-once QoS 2 publishes, and the adversarial
 //! cases (oversized packet, garbage before CONNECT, no CONNECT, silent
 //! client) with a raw socket and the codec.
 
@@ -186,6 +188,16 @@ async fn v3_1_1_publishes_reach_a_subscriber_at_qos_0_and_1() {
             (Bytes::from("21.6"), QoS::AtMostOnce)
         ]
     );
+    // The session's link is listed as an MQTT connection, as RabbitMQ's.
+    let (_amqp, _channel) = amqp_channel(&handle).await;
+    let mut protocols: Vec<_> = handle
+        .admin()
+        .connections()
+        .into_iter()
+        .map(|c| c.protocol)
+        .collect();
+    protocols.sort_unstable();
+    assert_eq!(protocols, ["AMQP 0-9-1", "MQTT 3.1.1"]);
     client.disconnect().await.unwrap();
     handle.shutdown().await;
 }
@@ -201,7 +213,8 @@ async fn v5_publishes_reach_a_subscriber_and_the_connack_tells_the_limits() {
     })
     .await;
     let properties = connack.properties.expect("CONNACK properties");
-    assert_eq!(properties.retain_available, Some(0));
+    assert_ne!(properties.retain_available, Some(0), "retain is available");
+    assert_eq!(properties.receive_max, Some(256));
     assert!(properties.max_packet_size.is_some());
     client
         .subscribe("a/#", rumqttc::v5::mqttbytes::QoS::AtLeastOnce)
@@ -222,7 +235,101 @@ async fn v5_publishes_reach_a_subscriber_and_the_connack_tells_the_limits() {
     .await;
     assert_eq!(publish.topic, "a/b");
     assert_eq!(publish.payload, "x");
+    let listed = handle.admin().connections();
+    assert_eq!(listed.len(), 1);
+    assert_eq!(listed[0].protocol, "MQTT 5.0");
     client.disconnect().await.unwrap();
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn v5_properties_map_to_amqp_properties_both_ways() {
+    use lapin::types::{AMQPValue, ShortString};
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("props", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "props", "p5.in").await;
+    let (client, mut events) =
+        rumqttc::v5::AsyncClient::new(options5("props5", port, "secret"), 16);
+    client
+        .subscribe("p5/out", rumqttc::v5::mqttbytes::QoS::AtMostOnce)
+        .await
+        .unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::SubAck(_)).then_some(())
+    })
+    .await;
+    let properties = rumqttc::v5::mqttbytes::v5::PublishProperties {
+        content_type: Some("application/json".into()),
+        response_topic: Some("replies/arm".into()),
+        correlation_data: Some(Bytes::from_static(b"req-7")),
+        user_properties: vec![("cell".into(), "3".into())],
+        message_expiry_interval: Some(60),
+        ..Default::default()
+    };
+    client
+        .publish_with_properties(
+            "p5/in",
+            rumqttc::v5::mqttbytes::QoS::AtLeastOnce,
+            false,
+            "{}",
+            properties,
+        )
+        .await
+        .unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::PubAck(_)).then_some(())
+    })
+    .await;
+    let got = tmo!(channel.basic_get("props", lapin::options::BasicGetOptions { no_ack: true }))
+        .unwrap()
+        .expect("the MQTT publish");
+    let p = &got.delivery.properties;
+    assert_eq!(
+        p.content_type().as_ref().map(|s| s.as_str()),
+        Some("application/json")
+    );
+    assert_eq!(
+        p.correlation_id().as_ref().map(|s| s.as_str()),
+        Some("req-7")
+    );
+    assert_eq!(
+        p.reply_to().as_ref().map(|s| s.as_str()),
+        Some("replies.arm")
+    );
+    assert_eq!(p.expiration().as_ref().map(|s| s.as_str()), Some("60000"));
+    let headers = p.headers().as_ref().expect("headers");
+    assert_eq!(
+        headers.inner().get(&ShortString::from("cell")),
+        Some(&AMQPValue::LongString("3".into()))
+    );
+
+    let mut headers = lapin::types::FieldTable::default();
+    headers.insert("zone".into(), AMQPValue::LongString("north".into()));
+    let amqp_properties = lapin::BasicProperties::default()
+        .with_content_type("text/plain".into())
+        .with_correlation_id("c-1".into())
+        .with_reply_to("answers.here".into())
+        .with_headers(headers);
+    tmo!(channel.basic_publish(
+        "amq.topic",
+        "p5.out",
+        Default::default(),
+        b"hello",
+        amqp_properties
+    ))
+    .unwrap();
+    let publish = until5(&mut events, |p| match p {
+        Packet5::Publish(p) => Some(p.clone()),
+        _ => None,
+    })
+    .await;
+    let p = publish.properties.expect("PUBLISH properties");
+    assert_eq!(p.content_type.as_deref(), Some("text/plain"));
+    assert_eq!(p.correlation_data.as_deref(), Some(&b"c-1"[..]));
+    assert_eq!(p.response_topic.as_deref(), Some("answers/here"));
+    assert_eq!(p.user_properties, [("zone".to_owned(), "north".to_owned())]);
     handle.shutdown().await;
 }
 
@@ -814,41 +921,629 @@ async fn a_qos_1_publish_into_a_durable_queue_survives_a_restart_and_qos_0_does_
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-#[both_runtimes]
-async fn persistent_sessions_are_refused_in_3_1_1_and_shortened_in_5_0() {
-    let handle = start(Limits::default()).await;
-    let port = mqtt_port(&handle);
-    let mut options = options3("keeper-311", port, "secret");
-    options.set_clean_session(false);
-    let (_client, mut events) = rumqttc::AsyncClient::new(options, 4);
-    let refused = tmo!(events.poll());
-    assert!(
-        matches!(
-            refused,
-            Err(rumqttc::ConnectionError::ConnectionRefused(
-                rumqttc::ConnectReturnCode::ServiceUnavailable
-            ))
-        ),
-        "{refused:?}"
-    );
-    let mut options = options5("keeper-5", port, "secret");
-    options.set_clean_start(false);
-    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
-    properties.session_expiry_interval = Some(3600);
-    options.set_connect_properties(properties);
-    let (_client, mut events) = rumqttc::v5::AsyncClient::new(options, 4);
-    let connack = until5(&mut events, |p| match p {
-        Packet5::ConnAck(ack) => Some(ack.clone()),
+/// A 3.1.1 client with a persistent session (clean session 0), and
+/// whether the broker said it had one.
+async fn persistent3(
+    id: &str,
+    port: u16,
+    clean: bool,
+) -> (rumqttc::AsyncClient, rumqttc::EventLoop, bool) {
+    let mut options = options3(id, port, "secret");
+    options.set_clean_session(clean);
+    options.set_manual_acks(true);
+    let (client, mut events) = rumqttc::AsyncClient::new(options, 16);
+    let present = until3(&mut events, |p| match p {
+        Incoming::ConnAck(ack) => Some(ack.session_present),
         _ => None,
     })
     .await;
-    assert!(!connack.session_present);
-    let properties = connack.properties.expect("CONNACK properties");
+    (client, events, present)
+}
+
+/// Publishes at QoS 1 from a client of its own and waits for the PUBACK.
+async fn publish_acked(port: u16, topic: &str, payload: &str, retain: bool) {
+    let (client, mut events) = connected3(&unique("pub"), port).await;
+    client
+        .publish(topic, QoS::AtLeastOnce, retain, payload)
+        .await
+        .unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::PubAck(_)).then_some(())
+    })
+    .await;
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+}
+
+async fn next_publish3(events: &mut rumqttc::EventLoop) -> rumqttc::Publish {
+    until3(events, |p| match p {
+        Incoming::Publish(p) => Some(p.clone()),
+        _ => None,
+    })
+    .await
+}
+
+/// Waits until the session owning `queue` has ended (its consumer gone),
+/// with the queue kept.
+async fn offline(handle: &BrokerHandle, queue: &str) {
+    within("the session ended", async {
+        loop {
+            let info = handle.queues().into_iter().find(|q| q.name == queue);
+            let info = info.expect("the session's queue is kept");
+            if info.consumers == 0 {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+}
+
+fn queue_names(handle: &BrokerHandle) -> Vec<String> {
+    handle.queues().into_iter().map(|q| q.name).collect()
+}
+
+#[both_runtimes]
+async fn qos_2_deliveries_complete_with_pubrec_pubrel_pubcomp_beyond_the_window() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) = connected3("exactly", port).await;
+    client.subscribe("q2/#", QoS::ExactlyOnce).await.unwrap();
+    let codes = until3(&mut events, |p| match p {
+        Incoming::SubAck(ack) => Some(ack.return_codes.clone()),
+        _ => None,
+    })
+    .await;
     assert_eq!(
-        properties.session_expiry_interval,
-        Some(0),
-        "told: no session after the connection"
+        codes,
+        [rumqttc::SubscribeReasonCode::Success(QoS::ExactlyOnce)]
     );
+    let (publisher, mut publisher_events) = connected3("exactly-pub", port).await;
+    // More than the window of ten (fewer than the client's request
+    // queue of 16, which nothing polls yet): each PUBCOMP frees its slot.
+    let count = 15;
+    for n in 0..count {
+        publisher
+            .publish(format!("q2/{n}"), QoS::ExactlyOnce, false, "x")
+            .await
+            .unwrap();
+    }
+    let publisher_done = async {
+        let mut completed = 0;
+        while completed < count {
+            if let Event::Incoming(Incoming::PubComp(_)) =
+                publisher_events.poll().await.expect("connected")
+            {
+                completed += 1;
+            }
+        }
+    };
+    let mut received = Vec::new();
+    let mut released = 0;
+    let subscriber_done = async {
+        while received.len() < count || released < count {
+            match events.poll().await.expect("connected") {
+                Event::Incoming(Incoming::Publish(p)) => received.push((p.topic, p.qos)),
+                Event::Incoming(Incoming::PubRel(_)) => released += 1,
+                _ => {}
+            }
+        }
+    };
+    within("every QoS 2 flow both ways", async {
+        tokio::join!(publisher_done, subscriber_done)
+    })
+    .await;
+    assert!(received.iter().all(|(_, qos)| *qos == QoS::ExactlyOnce));
+    let mut topics: Vec<_> = received.into_iter().map(|(t, _)| t).collect();
+    topics.sort();
+    topics.dedup();
+    assert_eq!(topics.len(), count, "each once");
+    // A QoS 1 publish reaches the QoS 2 subscriber at QoS 1.
+    publish_acked(port, "q2/one", "1", false).await;
+    let publish = next_publish3(&mut events).await;
+    assert_eq!(
+        (publish.topic.as_str(), publish.qos),
+        ("q2/one", QoS::AtLeastOnce)
+    );
+    within("the queue settled", async {
+        loop {
+            let queue = handle
+                .queues()
+                .into_iter()
+                .find(|q| q.name == "mqtt-subscription-exactlyqos2")
+                .expect("the QoS 2 queue");
+            if queue.messages_unacknowledged == 0 && queue.messages_ready == 0 {
+                return;
+            }
+            // The subscriber's PUBACK goes out on its next poll.
+            let _ = tokio::time::timeout(Duration::from_millis(20), events.poll()).await;
+        }
+    })
+    .await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_persistent_3_1_1_session_gets_what_came_while_offline_and_across_a_restart() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-session"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events, present) = persistent3("keeper", port, false).await;
+    assert!(!present, "no session before the first connection");
+    client.subscribe("p/#", QoS::AtLeastOnce).await.unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    offline(&handle, "mqtt-subscription-keeperqos1").await;
+    publish_acked(port, "p/1", "while offline", false).await;
+
+    // Back without subscribing: the session's subscription delivers it.
+    let (client, mut events, present) = persistent3("keeper", port, false).await;
+    assert!(present, "CONNACK says the session was kept");
+    let first = next_publish3(&mut events).await;
+    assert_eq!(
+        (first.topic.as_str(), &first.payload[..]),
+        ("p/1", &b"while offline"[..])
+    );
+    assert!(!first.dup);
+    // Not acknowledged: the next connection gets it again, with DUP.
+    drop(client);
+    drop(events);
+    let (client, mut events, present) = persistent3("keeper", port, false).await;
+    assert!(present);
+    let again = next_publish3(&mut events).await;
+    assert_eq!(&again.payload[..], b"while offline");
+    assert!(
+        again.dup,
+        "an in-flight QoS 1 delivery comes again with DUP"
+    );
+    client.ack(&again).await.unwrap();
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    publish_acked(port, "p/2", "before the restart", false).await;
+    handle.shutdown().await;
+
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events, present) = persistent3("keeper", port, false).await;
+    assert!(present, "the session survived the restart");
+    let kept = next_publish3(&mut events).await;
+    assert_eq!(
+        (kept.topic.as_str(), &kept.payload[..]),
+        ("p/2", &b"before the restart"[..])
+    );
+    client.ack(&kept).await.unwrap();
+    // Its subscription, read back from the queue's bindings, still works.
+    client
+        .publish("p/3", QoS::AtMostOnce, false, "live")
+        .await
+        .unwrap();
+    let live = next_publish3(&mut events).await;
+    assert_eq!(&live.payload[..], b"live");
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+
+    // A clean session removes the persistent one.
+    let (client, mut events, present) = persistent3("keeper", port, true).await;
+    assert!(!present);
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    within("the session's queues deleted", async {
+        while queue_names(&handle)
+            .iter()
+            .any(|n| n.starts_with("mqtt-subscription-keeper"))
+        {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+async fn session_present5(events: &mut rumqttc::v5::EventLoop) -> bool {
+    until5(events, |p| match p {
+        Packet5::ConnAck(ack) => Some(ack.session_present),
+        _ => None,
+    })
+    .await
+}
+
+#[both_runtimes]
+async fn a_persistent_session_keeps_unreleased_qos_2_publishes_across_a_reconnect() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("twice", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "twice", "t2.x").await;
+    // A raw 3.1.1 client with a persistent session; true if it was kept.
+    async fn connect(port: u16) -> (Raw, bool) {
+        let mut raw = Raw::connect(port).await;
+        raw.send(Packet::Connect(Box::new(Connect {
+            version: ProtocolVersion::V3_1_1,
+            clean_start: false,
+            keep_alive: 0,
+            properties: Default::default(),
+            client_id: leveret_mqtt::MqttString::from_static("twice"),
+            will: None,
+            username: Some(leveret_mqtt::MqttString::from_static("robot")),
+            password: Some(Bytes::from_static(b"secret")),
+        })))
+        .await;
+        match raw.next().await {
+            Some(Packet::ConnAck(ack)) => (raw, ack.session_present),
+            other => panic!("expected CONNACK, got {other:?}"),
+        }
+    }
+    let id = std::num::NonZeroU16::new(5).unwrap();
+    let publish = |dup| {
+        Packet::Publish(Publish {
+            dup,
+            delivery: Delivery::ExactlyOnce(id),
+            retain: false,
+            topic: TopicName::from_static("t2/x"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"once"),
+        })
+    };
+    let (mut raw, present) = connect(port).await;
+    assert!(!present);
+    // A subscription, so that the session has something to keep.
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::from_static("t2/none"),
+            options: Default::default(),
+        }],
+    }))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    raw.send(publish(false)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    drop(raw);
+    let (mut raw, present) = connect(port).await;
+    assert!(present);
+    raw.send(publish(true)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    raw.send(Packet::PubRel(PubResponse::new(id))).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubComp(c)) if c.packet_id == id));
+    let declared = tmo!(channel.queue_declare(
+        "twice",
+        lapin::options::QueueDeclareOptions {
+            passive: true,
+            ..Default::default()
+        },
+        Default::default()
+    ))
+    .unwrap();
+    assert_eq!(declared.message_count(), 1, "routed once");
+    drop(amqp);
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_5_0_session_lasts_its_expiry_interval_and_then_is_removed() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let connect = |expiry: u32| {
+        let mut options = options5("expiring", port, "secret");
+        options.set_clean_start(false);
+        let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+        properties.session_expiry_interval = Some(expiry);
+        options.set_connect_properties(properties);
+        rumqttc::v5::AsyncClient::new(options, 16)
+    };
+    let (client, mut events) = connect(1);
+    assert!(!session_present5(&mut events).await);
+    client
+        .subscribe("e/#", rumqttc::v5::mqttbytes::QoS::AtLeastOnce)
+        .await
+        .unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::SubAck(_)).then_some(())
+    })
+    .await;
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    let queue = handle
+        .queues()
+        .into_iter()
+        .find(|q| q.name == "mqtt-subscription-expiringqos1")
+        .expect("the session's queue outlives the connection");
+    assert!(queue.durable);
+    within("the expired session's queue deleted", async {
+        while queue_names(&handle).contains(&"mqtt-subscription-expiringqos1".to_owned()) {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    let (client, mut events) = connect(0);
+    assert!(
+        !session_present5(&mut events).await,
+        "the expired session is gone"
+    );
+    client.disconnect().await.unwrap();
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn retained_messages_reach_later_subscribers_and_survive_a_restart() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-retained"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    publish_acked(port, "r/b", "deleted next", true).await;
+    {
+        let (client, mut events) = connected3("deleter", port).await;
+        // An empty retained payload deletes the topic's retained message.
+        client
+            .publish("r/b", QoS::AtMostOnce, true, "")
+            .await
+            .unwrap();
+        client.disconnect().await.unwrap();
+        let _ = tmo!(events.poll());
+    }
+    publish_acked(port, "r/a", "kept", true).await;
+    publish_acked(port, "r/c", "not retained", false).await;
+
+    // Retained ones come after the SUBACK with RETAIN set; a live publish
+    // after them comes without it.
+    let expect_retained = |port: u16| async move {
+        let (client, mut events) = connected3(&unique("late"), port).await;
+        client.subscribe("r/#", QoS::AtLeastOnce).await.unwrap();
+        until3(&mut events, |p| {
+            matches!(p, Incoming::SubAck(_)).then_some(())
+        })
+        .await;
+        let retained = next_publish3(&mut events).await;
+        assert_eq!(
+            (retained.topic.as_str(), &retained.payload[..]),
+            ("r/a", &b"kept"[..])
+        );
+        assert!(retained.retain);
+        assert_eq!(retained.qos, QoS::AtLeastOnce);
+        client
+            .publish("r/z", QoS::AtMostOnce, false, "marker")
+            .await
+            .unwrap();
+        let marker = next_publish3(&mut events).await;
+        assert_eq!(marker.topic, "r/z", "nothing else was retained");
+        assert!(!marker.retain);
+        client.disconnect().await.unwrap();
+        let _ = tmo!(events.poll());
+    };
+    expect_retained(port).await;
+    handle.shutdown().await;
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    expect_retained(mqtt_port(&handle)).await;
+
+    // 5.0: retain handling 2 sends none.
+    let port = mqtt_port(&handle);
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options5("rh", port, "secret"), 16);
+    let mut filter =
+        rumqttc::v5::mqttbytes::v5::Filter::new("r/#", rumqttc::v5::mqttbytes::QoS::AtLeastOnce);
+    filter.retain_forward_rule = rumqttc::v5::mqttbytes::v5::RetainForwardRule::Never;
+    client.subscribe_many([filter]).await.unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::SubAck(_)).then_some(())
+    })
+    .await;
+    client
+        .publish(
+            "r/z",
+            rumqttc::v5::mqttbytes::QoS::AtMostOnce,
+            false,
+            "marker",
+        )
+        .await
+        .unwrap();
+    let first = until5(&mut events, |p| match p {
+        Packet5::Publish(p) => Some(p.clone()),
+        _ => None,
+    })
+    .await;
+    assert_eq!(
+        first.topic, "r/z",
+        "no retained message with retain handling 2"
+    );
+    client.disconnect().await.unwrap();
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[both_runtimes]
+async fn a_flood_of_retained_topics_stops_at_the_cap() {
+    let limits = leveret_broker::RetainedLimits {
+        messages: 50,
+        bytes: 1 << 20,
+    };
+    let builder = Broker::builder().mqtt_retained_limits(limits);
+    let handle = start_with(builder, Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let before = handle.overview().memory_used;
+    let (client, mut events) = connected3("flood", port).await;
+    let payload = vec![b'x'; 1000];
+    for n in 0..200 {
+        client
+            .publish(format!("f/{n}"), QoS::AtLeastOnce, true, payload.clone())
+            .await
+            .unwrap();
+        until3(&mut events, |p| {
+            matches!(p, Incoming::PubAck(_)).then_some(())
+        })
+        .await;
+    }
+    let grown = handle.overview().memory_used.saturating_sub(before);
+    assert!(grown <= 50 * 1200, "counted {grown} bytes for 50 retained");
+    assert!(grown >= 50 * 1000, "retained bytes are counted: {grown}");
+    // Exactly the first 50 were retained.
+    client.subscribe("f/#", QoS::AtMostOnce).await.unwrap();
+    let mut topics = Vec::new();
+    client
+        .publish("f/end", QoS::AtMostOnce, false, "")
+        .await
+        .unwrap();
+    loop {
+        let publish = next_publish3(&mut events).await;
+        if publish.topic == "f/end" {
+            break;
+        }
+        assert!(publish.retain);
+        topics.push(publish.topic);
+    }
+    topics.sort_by_key(|t| t[2..].parse::<u32>().unwrap());
+    let first50: Vec<String> = (0..50).map(|n| format!("f/{n}")).collect();
+    assert_eq!(topics, first50);
+    client.disconnect().await.unwrap();
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_5_0_client_past_the_receive_maximum_is_disconnected() {
+    let handle = start(Limits::default()).await;
+    let mut raw = Raw::login_as(mqtt_port(&handle), 0, ProtocolVersion::V5, "greedy").await;
+    // QoS 2 publishes never released stay unacknowledged.
+    for id in 1..=300u16 {
+        raw.send(Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::ExactlyOnce(std::num::NonZeroU16::new(id).unwrap()),
+            retain: false,
+            topic: TopicName::from_static("g/x"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"x"),
+        }))
+        .await;
+    }
+    let mut pubrecs = 0;
+    loop {
+        match raw.next().await {
+            Some(Packet::PubRec(_)) => pubrecs += 1,
+            Some(Packet::Disconnect(d)) => {
+                assert_eq!(d.reason, leveret_mqtt::ReasonCode::ReceiveMaximumExceeded);
+                break;
+            }
+            other => panic!("expected PUBREC or DISCONNECT 0x93, got {other:?}"),
+        }
+    }
+    // Those routed before the 257th arrived were PUBREC'd.
+    assert!(pubrecs <= 256, "{pubrecs} PUBRECs past the receive maximum");
+    raw.assert_closed().await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_3_1_1_client_reusing_one_packet_id_without_reading_gets_every_puback() {
+    let handle = start(Limits::default()).await;
+    let (amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("reused", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "reused", "u.x").await;
+    let mut raw = Raw::login(mqtt_port(&handle), 0).await;
+    let mut out = BytesMut::new();
+    let count = 2_000;
+    for _ in 0..count {
+        Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtLeastOnce(std::num::NonZeroU16::new(1).unwrap()),
+            retain: false,
+            topic: TopicName::from_static("u/x"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"x"),
+        })
+        .encode(ProtocolVersion::V3_1_1, &mut out)
+        .unwrap();
+    }
+    // Written whole before reading anything: the broker stops reading
+    // while its unconfirmed publishes are at the cap, and goes on.
+    let buf = &mut raw.buf;
+    let (mut reader, mut writer) = raw.socket.split();
+    let write = writer.write_all(&out);
+    let read = async {
+        let mut acks = 0;
+        while acks < count {
+            if let Some(packet) = decode_packet(buf, ProtocolVersion::V3_1_1, 1 << 20).unwrap() {
+                assert!(matches!(packet, Packet::PubAck(_)), "{packet:?}");
+                acks += 1;
+                continue;
+            }
+            assert!(reader.read_buf(buf).await.unwrap() > 0, "closed");
+        }
+    };
+    let (written, ()) = within("every PUBACK", async { tokio::join!(write, read) }).await;
+    written.unwrap();
+    let declared = tmo!(channel.queue_declare(
+        "reused",
+        lapin::options::QueueDeclareOptions {
+            passive: true,
+            ..Default::default()
+        },
+        Default::default()
+    ))
+    .unwrap();
+    assert_eq!(declared.message_count(), count);
+    drop(amqp);
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_filter_the_user_may_not_read_is_refused_in_the_suback_and_the_session_goes_on() {
+    let builder = Broker::builder().topic_permission(
+        "robot",
+        "/",
+        "amq.topic",
+        leveret_broker::TopicPermission {
+            write: ".*".into(),
+            read: "^open\\.".into(),
+        },
+    );
+    let handle = start_with(builder, Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) = connected3("picky", port).await;
+    client
+        .subscribe_many([
+            rumqttc::SubscribeFilter::new("open/x".into(), QoS::AtLeastOnce),
+            rumqttc::SubscribeFilter::new("closed/x".into(), QoS::AtLeastOnce),
+        ])
+        .await
+        .unwrap();
+    let codes = until3(&mut events, |p| match p {
+        Incoming::SubAck(ack) => Some(ack.return_codes.clone()),
+        _ => None,
+    })
+    .await;
+    use rumqttc::SubscribeReasonCode as Code;
+    assert_eq!(codes, [Code::Success(QoS::AtLeastOnce), Code::Failure]);
+    client
+        .publish("open/x", QoS::AtLeastOnce, false, "still here")
+        .await
+        .unwrap();
+    let publish = next_publish3(&mut events).await;
+    assert_eq!(&publish.payload[..], b"still here");
+
+    // 5.0 (a raw client: rumqttc treats a refused filter as an error).
+    let mut raw = Raw::login_as(port, 0, ProtocolVersion::V5, "picky5").await;
+    let filter = |f: &'static str| leveret_mqtt::Subscription {
+        filter: leveret_mqtt::TopicFilter::from_static(f),
+        options: Default::default(),
+    };
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(7).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![filter("closed/y"), filter("open/y")],
+    }))
+    .await;
+    match raw.next().await {
+        Some(Packet::SubAck(ack)) => assert_eq!(
+            ack.reasons,
+            [
+                leveret_mqtt::ReasonCode::NotAuthorized,
+                leveret_mqtt::ReasonCode::GRANTED_QOS_0
+            ]
+        ),
+        other => panic!("expected SUBACK, got {other:?}"),
+    }
     handle.shutdown().await;
 }
 

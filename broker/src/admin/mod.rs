@@ -4,11 +4,14 @@
 //! the handle and the operations that change things, each doing what the
 //! AMQP method of the same meaning does, with the same checks.
 //!
-//! Layout: `mod` the handle and the object operations; `parameters`
-//! runtime parameters; `policies` policies and operator policies.
+//! Layout: `mod` the handle and the object operations; `limits` vhost and
+//! user limits; `parameters` runtime parameters; `policies` policies and
+//! operator policies; `vhost_deletion` deleting a vhost and all it holds.
 
+mod limits;
 mod parameters;
 mod policies;
+mod vhost_deletion;
 
 use crate::channel::{apply_settles, Settle};
 use crate::consumer::ChannelLink;
@@ -195,7 +198,9 @@ impl Admin {
             return Err(AmqpError::precondition_failed("a queue needs a name"));
         }
         self.core.stats.queues_declared.inc();
-        let max_queues = self.core.limits.vhost(&vhost.name).max_queues;
+        let max_queues = (self.core.limit_tables)
+            .vhost(&vhost.name.to_string_lossy())
+            .max_queues;
         let (queue, created) = vhost.declare_queue(
             QueueDeclaration {
                 name,
@@ -409,6 +414,7 @@ impl Admin {
             &routing_key,
             properties.headers.as_ref(),
             &mut queues,
+            &mut None,
         );
         self.core.stats.routed(!queues.is_empty(), false);
         let persistent = properties.is_persistent();

@@ -279,6 +279,7 @@ impl Channel {
             &publish.method.routing_key,
             publish.properties.headers.as_ref(),
             queues,
+            &mut self.last_routed_queue,
         );
         let persistent = publish.properties.is_persistent();
         let stored = match &self.core.persistence {

@@ -30,7 +30,7 @@ use crate::outbox::Outbox;
 use crate::permissions::{AccessView, Resource, Right};
 use crate::queue::Queue;
 use crate::registry::ChannelRegistration;
-use crate::vhost::Vhost;
+use crate::vhost::{RememberedQueue, Vhost};
 use basic::Unfinished;
 
 #[cfg(feature = "mqtt")]
@@ -166,6 +166,8 @@ pub struct Channel {
     /// The exchange the last publish named: most publishers name one, and
     /// looking it up again hashes its name under the vhost's lock.
     last_exchange: Option<Arc<Exchange>>,
+    /// The queue the last publish to the default exchange reached.
+    last_routed_queue: Option<RememberedQueue>,
     tx: Option<tx::Transaction>,
     confirms: Option<tx::Confirms>,
     direct_reply: Option<reply_to::DirectReply>,
@@ -211,6 +213,7 @@ impl Channel {
             published: false,
             route_buffer: Vec::new(),
             last_exchange: None,
+            last_routed_queue: None,
             tx: None,
             confirms: None,
             direct_reply: None,

@@ -53,7 +53,9 @@ impl Channel {
                 auto_delete: declare.auto_delete,
                 arguments: declare.arguments,
             },
-            max_queues: self.core.limits.vhost(&self.vhost.name).max_queues,
+            max_queues: (self.core.limit_tables)
+                .vhost(&self.vhost.name.to_string_lossy())
+                .max_queues,
         };
         if !decl.passive {
             self.core.stats.queues_declared.inc();

@@ -80,7 +80,7 @@ pub async fn serve<R, W>(
     W: AsyncWrite + Unpin + Send + 'static,
 {
     let reader = FrameReader::new(read, core.busy_poll.clone());
-    let ends = Ends::new(peer, local);
+    let ends = Ends::new(peer, local, AMQP_0_9_1);
     serve_frames(core, reader, SocketSink(write), ends, slot, identity).await;
 }
 
@@ -88,17 +88,20 @@ pub async fn serve<R, W>(
 /// the broker (see `direct`), on the current runtime; the client holds
 /// the returned link. `peer` names the client in logs and for
 /// `loopback_users` (a socket address for a protocol front end such as
-/// MQTT; anything else counts as local); `done` is dropped when the
-/// connection has ended and cleaned up.
+/// MQTT; anything else counts as local); `protocol` is what the client
+/// speaks, as RabbitMQ lists it (`AMQP 0-9-1`, `MQTT 3.1.1`, `MQTT 5.0`),
+/// and its first word names the connection in the log; `done` is dropped
+/// when the connection has ended and cleaned up.
 pub fn serve_direct(
     core: Arc<Core>,
     slot: Slot,
     peer: String,
+    protocol: &'static str,
     done: impl Send + 'static,
 ) -> DirectLink {
     let (link, frames, start) = direct::link();
     tokio::spawn(async move {
-        let ends = Ends::new(peer, None);
+        let ends = Ends::new(peer, None, protocol);
         serve_frames(core, frames, DirectSink(start), ends, slot, Identity::None).await;
         drop(done);
     });
@@ -170,10 +173,17 @@ async fn serve_frames<S: FrameSource, K: Sink>(
     slot: Slot,
     identity: Identity,
 ) {
-    let Ends { peer, local, label } = ends;
+    let Ends {
+        peer,
+        local,
+        label,
+        protocol,
+    } = ends;
     let started = Instant::now();
     let connection_id = core.next_connection_id();
-    let _registration = core.registry.connection(connection_id, &peer);
+    let _registration = core.registry.connection(connection_id, &peer, protocol);
+    // RabbitMQ's lines name MQTT connections as such.
+    let kind = protocol.split(' ').next().unwrap_or(protocol);
     // RabbitMQ's handshake_timeout runs from the connection's start to
     // connection.open-ok.
     let handshake_deadline = Instant::now() + core.limits.handshake_timeout;
@@ -190,7 +200,7 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         connection = connection_id,
         %peer,
         local = local.map(tracing::field::display),
-        "accepting AMQP connection #{connection_id} ({label})"
+        "accepting {kind} connection #{connection_id} ({label})"
     );
     let (outbox, inbox) = Outbox::new(connection_id);
     let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
@@ -201,6 +211,7 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         connection_id,
         peer,
         label,
+        kind,
         client_name: None,
         slot,
         identity,
@@ -281,15 +292,24 @@ struct Ends {
     local: Option<SocketAddr>,
     /// `peer -> local` as RabbitMQ logs it (the peer alone in-process).
     label: String,
+    protocol: &'static str,
 }
 
+/// The protocol of a client on an AMQP socket, as RabbitMQ lists it.
+pub const AMQP_0_9_1: &str = "AMQP 0-9-1";
+
 impl Ends {
-    fn new(peer: String, local: Option<SocketAddr>) -> Ends {
+    fn new(peer: String, local: Option<SocketAddr>, protocol: &'static str) -> Ends {
         let label = match local {
             Some(local) => format!("{peer} -> {local}"),
             None => peer.clone(),
         };
-        Ends { peer, local, label }
+        Ends {
+            peer,
+            local,
+            label,
+            protocol,
+        }
     }
 }
 
@@ -319,6 +339,8 @@ struct Connection {
     peer: String,
     /// `peer -> local`.
     label: String,
+    /// `AMQP` or `MQTT`, for the log lines.
+    kind: &'static str,
     /// The client-provided name (`connection_name`), for the log lines.
     client_name: Option<String>,
     slot: Slot,
@@ -772,7 +794,7 @@ impl Connection {
                 .during_ids(10, 40),
             ));
         }
-        let vhost_limits = limits.vhost(&vhost.name);
+        let vhost_limits = self.core.limit_tables.vhost(&vhost.name.to_string_lossy());
         if let Err(limit) = self
             .slot
             .enter_vhost(&vhost.name, vhost_limits.max_connections)
@@ -786,21 +808,19 @@ impl Connection {
                 .during_ids(10, 40),
             ));
         }
-        if let Some(user_limits) = limits.user(&self.user) {
-            if let Err(admission::OverLimit(limit)) = self.slot.enter_user(
-                &self.user,
-                user_limits.max_connections,
-                user_limits.max_channels,
-            ) {
-                tracing::warn!(peer = %self.peer, user = %self.user, limit, "user connection limit reached");
-                return Err(Ended::Protocol(
-                    AmqpError::not_allowed(format_args!(
-                        "connection refused for user '{}': user connection limit ({}) is reached",
-                        self.user, limit
-                    ))
-                    .during_ids(10, 40),
-                ));
-            }
+        let user_limits = self.core.limit_tables.user(&self.user).unwrap_or_default();
+        if let Err(admission::OverLimit(limit)) = self
+            .slot
+            .enter_user(&self.user, user_limits.max_connections)
+        {
+            tracing::warn!(peer = %self.peer, user = %self.user, limit, "user connection limit reached");
+            return Err(Ended::Protocol(
+                AmqpError::not_allowed(format_args!(
+                    "connection refused for user '{}': user connection limit ({}) is reached",
+                    self.user, limit
+                ))
+                .during_ids(10, 40),
+            ));
         }
         self.client_name = match start_ok.client_properties.get("connection_name") {
             Some(name) => name.as_bytes().map(loggable),
@@ -817,6 +837,15 @@ impl Connection {
                 heartbeat_secs: tune_ok.heartbeat,
             },
         );
+        if vhost.is_deleted() {
+            // Deleted after the lookup above: its deletion closes the
+            // connections it found registered, and this one may have
+            // registered too late to be found.
+            return Err(Ended::Protocol(
+                AmqpError::not_allowed(format_args!("vhost {} not found", open.virtual_host))
+                    .during_ids(10, 40),
+            ));
+        }
         self.vhost = Some(vhost);
         self.outbox
             .method(
@@ -866,7 +895,9 @@ impl Connection {
                 let Some(vhost) = self.vhost.clone() else {
                     return Err(AmqpError::command_invalid("connection not open"));
                 };
-                if let Err(admission::OverLimit(limit)) = self.slot.open_channel() {
+                let max_channels = (self.core.limit_tables.user(&self.user))
+                    .and_then(|limits| limits.max_channels);
+                if let Err(admission::OverLimit(limit)) = self.slot.open_channel(max_channels) {
                     tracing::warn!(peer = %self.peer, user = %self.user, limit, "user channel limit reached");
                     return Err(AmqpError::not_allowed(format_args!(
                         "number of channels opened for user '{}' has reached the maximum allowed user limit of ({})",
@@ -1079,7 +1110,8 @@ impl Connection {
         let quoted =
             |name: Option<&str>| name.map_or("none".to_owned(), |name| format!("'{name}'"));
         let text = format!(
-            "closing AMQP connection #{} ({}, vhost: {}, user: {}, duration: {:.3}s): {reason}",
+            "closing {} connection #{} ({}, vhost: {}, user: {}, duration: {:.3}s): {reason}",
+            self.kind,
             self.connection_id,
             self.described(),
             quoted(vhost.as_deref()),

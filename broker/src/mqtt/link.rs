@@ -12,9 +12,11 @@ use crate::admission::Slot;
 use crate::connection::{serve_direct, DirectLink, DirectReply};
 use crate::core::Core;
 use bytes::{BufMut, Bytes, BytesMut};
+use leveret_mqtt::QoS;
 use leveret_protocol::{
-    BasicProperties, BasicPublish, ChannelOpen, ConfirmSelect, ConnectionOpen, ConnectionStartOk,
-    ConnectionTuneOk, FieldTable, FieldValue, Frame, Method, Outgoing, ReplyCode, ShortStr,
+    BasicProperties, BasicPublish, ChannelOpen, ConfirmSelect, ConnectionClose, ConnectionOpen,
+    ConnectionStartOk, ConnectionTuneOk, FieldTable, FieldValue, Frame, Method, Outgoing,
+    ReplyCode, ShortStr,
 };
 use std::sync::Arc;
 use tokio::sync::oneshot;
@@ -50,6 +52,8 @@ pub(super) struct Login<'a> {
     pub client_id: &'a str,
     /// The session's receive window: QoS 1 deliveries unacknowledged at once.
     pub window: u16,
+    /// The MQTT version, as RabbitMQ lists the connection's protocol.
+    pub protocol: &'static str,
 }
 
 impl Link {
@@ -64,7 +68,7 @@ impl Link {
         deadline: Instant,
     ) -> Result<Link, Refusal> {
         let (done, ended) = oneshot::channel::<()>();
-        let direct = serve_direct(core, slot, peer, done);
+        let direct = serve_direct(core, slot, peer, login.protocol, done);
         let mut link = Link { direct, ended };
         match tokio::time::timeout_at(deadline, link.handshake(&login)).await {
             Ok(Ok(())) => Ok(link),
@@ -177,18 +181,55 @@ impl Link {
         }
     }
 
-    /// Ends the AMQP connection (the broker sees its client gone and
-    /// cleans up as for a closed socket) and waits until it has.
-    pub(super) async fn close(self) {
+    /// Ends the AMQP connection and waits until the broker has cleaned
+    /// up. A session the client ended with DISCONNECT closes it with
+    /// connection.close (logged as closed by the client); otherwise the
+    /// broker sees its client gone, as for a lost socket (a warning).
+    pub(super) async fn close(self, disconnected: bool) {
         let Link { direct, ended } = self;
+        if disconnected {
+            let close = ConnectionClose {
+                reply_code: ReplyCode::Success.code(),
+                reply_text: ShortStr::from_static("MQTT DISCONNECT"),
+                class_id: 0,
+                method_id: 0,
+            };
+            let _ = direct.to_broker.send(method_on(0, close)).await;
+        }
         drop(direct);
         let _ = ended.await;
     }
 }
 
+/// The header a QoS 2 publish carries (RabbitMQ 3.13's name), so that a
+/// QoS 2 subscriber gets it at QoS 2; without it a persistent message is
+/// QoS 1 and a transient one QoS 0.
+pub(super) const PUBLISH_QOS_HEADER: &str = "x-mqtt-publish-qos";
+
 /// A publish to [`EXCHANGE`]: persistent for QoS 1 and 2, as RabbitMQ's
-/// MQTT plugin publishes them.
-pub(super) fn publish(routing_key: ShortStr, persistent: bool, body: Bytes) -> Outgoing {
+/// MQTT plugin publishes them; QoS 2 says so in [`PUBLISH_QOS_HEADER`].
+pub(super) fn publish(
+    routing_key: ShortStr,
+    qos: QoS,
+    body: Bytes,
+    v5_properties: Option<&leveret_mqtt::Properties>,
+) -> Outgoing {
+    let headers = (qos == QoS::ExactlyOnce).then(|| {
+        let mut headers = FieldTable::new();
+        headers.insert(
+            ShortStr::from_static(PUBLISH_QOS_HEADER),
+            FieldValue::U8(qos.level()),
+        );
+        headers
+    });
+    let mut properties = BasicProperties {
+        delivery_mode: Some(if qos == QoS::AtMostOnce { 1 } else { 2 }),
+        headers,
+        ..Default::default()
+    };
+    if let Some(mqtt) = v5_properties {
+        super::properties::to_amqp(mqtt, &mut properties);
+    }
     Outgoing::Publish {
         channel: CHANNEL,
         method: BasicPublish {
@@ -196,18 +237,19 @@ pub(super) fn publish(routing_key: ShortStr, persistent: bool, body: Bytes) -> O
             routing_key,
             ..Default::default()
         },
-        properties: Box::new(BasicProperties {
-            delivery_mode: Some(if persistent { 2 } else { 1 }),
-            ..Default::default()
-        }),
+        properties: Box::new(properties),
         body,
     }
 }
 
 /// A method on the session's channel.
 pub(super) fn method(method: impl Into<Method>) -> Outgoing {
+    method_on(CHANNEL, method)
+}
+
+fn method_on(channel: u16, method: impl Into<Method>) -> Outgoing {
     Outgoing::Method {
-        channel: CHANNEL,
+        channel,
         method: method.into(),
     }
 }

@@ -40,6 +40,13 @@ pub(super) fn binding_key(filter: &str) -> Option<ShortStr> {
     ShortStr::try_from(key).ok()
 }
 
+/// The MQTT topic filter of a binding key (`*` → `+`); `None` if it is
+/// not UTF-8.
+pub(super) fn filter(binding_key: &ShortStr) -> Option<String> {
+    let key = binding_key.as_str()?;
+    Some(swap_separators(key).replace('*', "+"))
+}
+
 /// The MQTT topic of an AMQP routing key; `None` when it cannot be a
 /// topic name (not UTF-8, or a wildcard character in it).
 pub(super) fn topic(routing_key: &ShortStr) -> Option<String> {
@@ -87,6 +94,9 @@ mod tests {
         assert_eq!(binding_key("a/+/c").unwrap(), "a.*.c");
         assert_eq!(binding_key("a/#").unwrap(), "a.#");
         assert_eq!(binding_key("#").unwrap(), "#");
+        for f in ["a/+/c", "a/#", "#", "x.y/+"] {
+            assert_eq!(filter(&binding_key(f).unwrap()).unwrap(), f);
+        }
     }
 
     #[test]

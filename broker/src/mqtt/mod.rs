@@ -10,13 +10,20 @@
 //! connection (CONNECT, keepalive, the packet loop); `link` the AMQP side
 //! of a session (login, channel, the methods it sends); `mapping` names
 //! (topics ↔ routing keys, queue names, `vhost:user`); `takeover` the
-//! client identifiers in use.
+//! client identifiers in use; `retained` the retained messages;
+//! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL;
+//! `properties` 5.0 PUBLISH properties ↔ AMQP properties.
 
 mod link;
 mod mapping;
+mod properties;
+mod releases;
+mod retained;
 mod session;
 mod takeover;
 
+pub(crate) use retained::Retained;
+pub use retained::RetainedLimits;
 use takeover::ClientIds;
 
 use crate::core::Core;
@@ -24,7 +31,7 @@ use std::sync::Arc;
 use tokio::net::TcpListener;
 
 /// What a broker's MQTT listeners share.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(crate) struct Shared {
     /// The client identifiers in use.
     ids: Arc<ClientIds>,
@@ -32,13 +39,19 @@ pub(crate) struct Shared {
     /// (RabbitMQ's `mqtt.allow_anonymous` with `mqtt.default_user` and
     /// `default_pass`); without one such a CONNECT is refused.
     anonymous: Option<(String, String)>,
+    /// Retained messages, per vhost.
+    retained: Retained,
+    /// Persistent sessions' QoS 2 publishes awaiting PUBREL.
+    releases: releases::Releases,
 }
 
 impl Shared {
-    pub(crate) fn new(anonymous: Option<(String, String)>) -> Self {
+    pub(crate) fn new(anonymous: Option<(String, String)>, retained: Retained) -> Self {
         Shared {
             ids: Arc::default(),
             anonymous,
+            retained,
+            releases: Default::default(),
         }
     }
 }

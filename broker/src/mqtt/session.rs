@@ -13,20 +13,23 @@
 
 use super::link::{self, Link, Login, Refusal};
 use super::mapping;
+use super::retained::Message;
 use super::takeover::Claim;
 use super::Shared;
 use crate::admission::Slot;
 use crate::connection::DirectReply;
 use crate::core::Core;
+use crate::permissions::{Permissions, Resource, Right};
+use crate::store::Durable;
 use bytes::BytesMut;
 use leveret_mqtt::{
     decode_packet, ConnAck, Connect, Delivery, Disconnect, MqttString, Packet, PacketId,
-    ProtocolVersion, PubResponse, Publish, QoS, ReasonCode, SubAck, Subscribe, TopicName, UnsubAck,
-    Unsubscribe, Will, MAX_PACKET_SIZE,
+    ProtocolVersion, PubResponse, Publish, QoS, ReasonCode, RetainHandling, SubAck, Subscribe,
+    TopicName, UnsubAck, Unsubscribe, Will, MAX_PACKET_SIZE,
 };
 use leveret_protocol::{
-    BasicAck, BasicConsume, FieldTable, Frame, Method, Outgoing, QueueBind, QueueDeclare,
-    QueueUnbind, ReplyCode, ShortStr,
+    BasicAck, BasicConsume, FieldTable, FieldValue, Frame, Method, Outgoing, QueueBind,
+    QueueDeclare, QueueDelete, QueueUnbind, ReplyCode, ShortStr,
 };
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::num::NonZeroU16;
@@ -44,6 +47,12 @@ const PENDING_MAX: usize = 64;
 /// QoS 1 deliveries unacknowledged at once (RabbitMQ's `mqtt.prefetch`);
 /// a 5.0 client's smaller Receive Maximum lowers it.
 const DEFAULT_WINDOW: u16 = 10;
+/// QoS 1 and 2 publishes a client may have unacknowledged at once (5.0's
+/// Receive Maximum, told in the CONNACK): past it a 5.0 client is
+/// disconnected (0x93); a 3.1.1 client is not read until some are
+/// acknowledged. It bounds what a client reusing packet identifiers
+/// without waiting can make the session hold.
+const RECEIVE_MAXIMUM: u16 = 256;
 /// The longest a write to a client that does not read may take.
 const WRITE_STALL: Duration = Duration::from_secs(30);
 /// Topic filters a session may hold: each is a binding, and a SUBSCRIBE
@@ -56,6 +65,9 @@ const READ_CHUNK: usize = 64 * 1024;
 /// they are queued, so a small message does not keep a whole read chunk
 /// alive (the AMQP reader's rule, `connection::copy_below`).
 const COPY_BELOW: usize = READ_CHUNK / 4;
+/// Retained messages waiting to go to a session at most (the rest of a
+/// SUBSCRIBE's matches are not sent, with a log line).
+const RETAINED_BACKLOG_MAX: usize = 10_000;
 
 /// Serves one MQTT connection until it closes.
 pub(super) async fn serve(
@@ -105,13 +117,23 @@ pub(super) async fn serve(
         claim,
         client_id,
         assigned,
+        vhost,
+        user,
+        window,
     } = accepted;
+    let lifetime = Lifetime::of(&connect);
     let max_packet = u32::try_from(core.limits.max_message_size)
         .unwrap_or(MAX_PACKET_SIZE)
         .min(MAX_PACKET_SIZE);
     let mut session = Session {
         version,
         client_id,
+        vhost,
+        user,
+        permissions: Arc::clone(&core.permissions),
+        shared: Arc::clone(&shared),
+        lifetime,
+        window,
         max_packet,
         client_max_packet: connect.properties.maximum_packet_size.map(|m| m.get()),
         will: connect.will,
@@ -120,21 +142,43 @@ pub(super) async fn serve(
         awaiting: VecDeque::new(),
         published: 0,
         unconfirmed: BTreeMap::new(),
+        held_acks: VecDeque::new(),
         exactly_once: HashMap::new(),
         in_flight: HashMap::new(),
+        retained_backlog: VecDeque::new(),
         next_packet_id: 1,
         subscriptions: HashMap::new(),
-        queues: [false, false],
+        queues: [false; 3],
+        delete_at_end: Vec::new(),
     };
-    session.connack(&connect.properties, assigned);
+    let session_present = session.begin(&core, connect.clean_start);
+    session.connack(assigned, session_present);
     tracing::debug!(%peer, client_id = %session.client_id, ?version, "MQTT session open");
     let keepalive = Duration::from_millis(u64::from(connect.keep_alive) * 1500);
     let end = session
         .run(&core, &mut socket, buf, link, &claim, keepalive)
         .await;
-    let Ended { link, reason } = end;
-    tracing::debug!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
-    link.close().await;
+    let Ended {
+        link,
+        reason,
+        disconnected,
+    } = end;
+    if disconnected {
+        tracing::debug!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
+    } else {
+        tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
+    }
+    link.close(disconnected).await;
+    if session.lifetime != Lifetime::Connection {
+        let stored = session
+            .exactly_once
+            .iter()
+            .filter(|(_, state)| **state == Received::Stored)
+            .map(|(id, _)| *id);
+        shared
+            .releases
+            .keep(&session.vhost, &session.client_id, stored.collect());
+    }
     drop(claim);
 }
 
@@ -179,6 +223,39 @@ struct Accepted {
     client_id: String,
     /// Whether the broker made the client identifier up.
     assigned: bool,
+    vhost: String,
+    user: String,
+    /// QoS 1 deliveries unacknowledged at once.
+    window: u16,
+}
+
+/// How long a session outlives its connection (3.1.1's clean session
+/// flag, 5.0's Session Expiry Interval). A session that outlives it keeps
+/// durable subscription queues (with `x-expires` for a 5.0 expiry, so the
+/// core deletes them when it passes); one that does not has exclusive
+/// queues that go with the connection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Lifetime {
+    Connection,
+    Seconds(u32),
+    Forever,
+}
+
+impl Lifetime {
+    fn of(connect: &Connect) -> Lifetime {
+        if !connect.version.is_v5() {
+            return if connect.clean_start {
+                Lifetime::Connection
+            } else {
+                Lifetime::Forever
+            };
+        }
+        match connect.properties.session_expiry_interval {
+            None | Some(0) => Lifetime::Connection,
+            Some(u32::MAX) => Lifetime::Forever,
+            Some(seconds) => Lifetime::Seconds(seconds),
+        }
+    }
 }
 
 /// Checks a CONNECT, logs in through a new link and claims the client
@@ -198,12 +275,6 @@ async fn admit(
     // An empty identifier with a persistent 3.1.1 session (MQTT-3.1.3-8).
     if !connect.clean_start && !v5 && connect.client_id.is_empty() {
         return Err(ReasonCode::ClientIdentifierNotValid);
-    }
-    // Sessions end with their connection in this version: a 3.1.1 client
-    // asking for a persistent session is refused (5.0 clients are told
-    // their session expiry is 0 in the CONNACK instead).
-    if !connect.clean_start && !v5 {
-        return Err(ReasonCode::ServerUnavailable);
     }
     let (client_id, assigned) = match connect.client_id.as_str() {
         "" => (
@@ -234,6 +305,11 @@ async fn admit(
         password,
         client_id: &client_id,
         window,
+        protocol: match connect.version {
+            ProtocolVersion::V3_1 => "MQTT 3.1",
+            ProtocolVersion::V3_1_1 => "MQTT 3.1.1",
+            ProtocolVersion::V5 => "MQTT 5.0",
+        },
     };
     let link = Link::open(Arc::clone(core), slot, peer.to_owned(), login, deadline)
         .await
@@ -248,17 +324,37 @@ async fn admit(
         claim,
         client_id,
         assigned,
+        vhost: vhost.to_owned(),
+        user: user.to_owned(),
+        window,
     })
 }
 
 /// What a synchronous AMQP reply completes: the MQTT acknowledgements to
 /// send once it (and everything before it) is done.
-type Then = Vec<Packet>;
+type Then = Vec<Done>;
+
+/// One thing to do once a call is answered.
+enum Done {
+    Send(Packet),
+    /// Retained messages a subscription matched (after its SUBACK), each
+    /// with the QoS granted.
+    Retained(Vec<(Message, QoS)>),
+}
 
 /// A session's state between the client and its link.
 struct Session {
     version: ProtocolVersion,
     client_id: String,
+    vhost: String,
+    user: String,
+    /// Checked before a SUBSCRIBE's calls, so a refused filter gets a
+    /// failure code in the SUBACK instead of closing the link's channel.
+    permissions: Arc<Permissions>,
+    shared: Arc<Shared>,
+    lifetime: Lifetime,
+    /// QoS 1 deliveries unacknowledged at once (retained ones included).
+    window: u16,
     /// The largest packet the broker reads once logged in.
     max_packet: u32,
     /// The largest packet a 5.0 client accepts.
@@ -273,17 +369,47 @@ struct Session {
     /// Publishes sent on the link (the confirm sequence).
     published: u64,
     /// Confirm sequence numbers of QoS 1 and 2 publishes awaiting their
-    /// confirm: packet identifier, and whether it is QoS 2.
-    unconfirmed: BTreeMap<u64, (PacketId, bool)>,
+    /// confirm: packet identifier, whether it is QoS 2, and the store
+    /// submission of the retained message it set (0 if none).
+    unconfirmed: BTreeMap<u64, (PacketId, bool, u64)>,
+    /// Acknowledgements waiting for a store submission (a retained
+    /// message's) to be on disk, in order, with the submission number.
+    held_acks: VecDeque<(u64, Packet)>,
     /// QoS 2 publishes by packet identifier, from their arrival to PUBREL.
     exactly_once: HashMap<PacketId, Received>,
-    /// QoS 1 deliveries awaiting PUBACK: packet identifier → delivery tag.
-    in_flight: HashMap<PacketId, u64>,
+    /// QoS 1 and 2 deliveries not yet completed, by packet identifier.
+    in_flight: HashMap<PacketId, Outbound>,
+    /// Retained messages waiting for room in the window.
+    retained_backlog: VecDeque<(Message, QoS)>,
     next_packet_id: u16,
     /// Topic filter → the QoS granted (the queue it is bound to).
     subscriptions: HashMap<String, QoS>,
-    /// Whether the QoS 0 and QoS 1 queues are declared and consumed.
-    queues: [bool; 2],
+    /// Whether the QoS 0, 1 and 2 queues are declared and consumed.
+    queues: [bool; 3],
+    /// Queues of a resumed session to delete when this one ends (it does
+    /// not outlive its connection).
+    delete_at_end: Vec<ShortStr>,
+}
+
+/// The packet a QoS 1 or 2 delivery awaits from the client; the delivery
+/// tag to ack on the link (none for a retained message) until the client
+/// has taken it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Outbound {
+    /// QoS 1, awaiting PUBACK.
+    AtLeastOnce(Option<u64>),
+    /// QoS 2, awaiting PUBREC.
+    ExactlyOncePublished(Option<u64>),
+    /// QoS 2, PUBREL sent (and the delivery acked), awaiting PUBCOMP.
+    ExactlyOnceReleased,
+}
+
+/// How a PUBLISH to the client goes out (its properties only for 5.0).
+struct Outgoing5 {
+    qos: QoS,
+    redelivered: bool,
+    retain: bool,
+    properties: leveret_mqtt::Properties,
 }
 
 /// Where a QoS 2 publish is.
@@ -299,6 +425,8 @@ enum Received {
 struct Ended {
     link: Link,
     reason: &'static str,
+    /// The client ended it with DISCONNECT.
+    disconnected: bool,
 }
 
 /// Why the loop stopped.
@@ -318,23 +446,82 @@ impl Session {
         self.version.is_v5()
     }
 
-    fn connack(&mut self, requested: &leveret_mqtt::Properties, assigned: bool) {
+    /// Starts the session: a clean start deletes what a previous session
+    /// of the client left; otherwise the previous session's queues (if
+    /// any) are consumed again and its subscriptions read back from their
+    /// bindings. Whether a session was resumed (CONNACK's session present).
+    fn begin(&mut self, core: &Core, clean_start: bool) -> bool {
+        let vhost = ShortStr::try_from(self.vhost.as_str())
+            .ok()
+            .and_then(|name| core.vhost(&name));
+        let mut present = false;
+        for qos in [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce] {
+            let Some(name) = mapping::queue_name(&self.client_id, qos) else {
+                continue;
+            };
+            let Some(queue) = vhost.as_ref().and_then(|v| v.queue(&name)) else {
+                continue;
+            };
+            if queue.options.exclusive_owner.is_some() {
+                // A session that is ending: its queue goes with it.
+                continue;
+            }
+            if clean_start {
+                self.call(
+                    QueueDelete {
+                        ticket: 0,
+                        queue: name,
+                        if_unused: false,
+                        if_empty: false,
+                        no_wait: false,
+                    },
+                    Vec::new(),
+                );
+                continue;
+            }
+            present = true;
+            let exchange = ShortStr::from_static(mapping::EXCHANGE);
+            let keys = vhost
+                .as_ref()
+                .map(|v| v.binding_keys_to(&exchange, &queue, MAX_SUBSCRIPTIONS))
+                .unwrap_or_default();
+            for key in keys {
+                if let Some(filter) = mapping::filter(&key) {
+                    if self.subscriptions.len() < MAX_SUBSCRIPTIONS {
+                        self.subscriptions.insert(filter, qos);
+                    }
+                }
+            }
+            if self.lifetime == Lifetime::Connection {
+                self.delete_at_end.push(name.clone());
+            }
+            self.consume(name, qos);
+        }
+        // QoS 2 publishes the client had not released: a resend is not
+        // routed again, and its PUBREL is answered.
+        let released = self.shared.releases.take(&self.vhost, &self.client_id);
+        if present {
+            for id in released {
+                self.exactly_once.insert(id, Received::Stored);
+            }
+        }
+        present
+    }
+
+    fn connack(&mut self, assigned: bool, session_present: bool) {
         let mut properties = leveret_mqtt::Properties::default();
         if self.v5() {
             properties.maximum_packet_size = std::num::NonZeroU32::new(self.max_packet);
-            properties.retain_available = Some(false);
+            properties.receive_maximum = NonZeroU16::new(RECEIVE_MAXIMUM);
             properties.shared_subscription_available = Some(false);
             properties.subscription_identifier_available = Some(false);
             if assigned {
                 properties.assigned_client_identifier =
                     MqttString::from_utf8(self.client_id.clone().into()).ok();
             }
-            if requested.session_expiry_interval.is_some_and(|s| s > 0) {
-                properties.session_expiry_interval = Some(0);
-            }
         }
         self.send(Packet::ConnAck(ConnAck {
-            session_present: false,
+            session_present,
             reason: ReasonCode::Success,
             properties,
         }));
@@ -377,9 +564,10 @@ impl Session {
     ) -> Ended {
         let mut shutdown = core.shutdown_signal();
         let mut last_read = Instant::now();
+        let mut durable = self.shared.retained.durable();
         let stop = loop {
             // Whole packets already read.
-            if self.pending.len() < PENDING_MAX {
+            if self.reading() {
                 if let Err(stop) = self.take_packets(&mut buf) {
                     break stop;
                 }
@@ -403,7 +591,7 @@ impl Session {
                 }
                 self.out.clear();
             }
-            let reading = self.pending.len() < PENDING_MAX;
+            let reading = self.reading();
             if reading && buf.capacity() - buf.len() < 1024 {
                 buf.reserve(READ_CHUNK);
             }
@@ -434,6 +622,9 @@ impl Session {
                 _ = tokio::time::sleep_until(silence), if !keepalive.is_zero() => {
                     break closed("keepalive timeout", Some(ReasonCode::KeepAliveTimeout));
                 }
+                _ = store_progress(durable.as_mut()), if !self.held_acks.is_empty() => {
+                    if let Err(stop) = self.release_held_acks() { break stop }
+                }
                 _ = claim.taken_over() => {
                     break closed("taken over by a new connection", Some(ReasonCode::SessionTakenOver));
                 }
@@ -447,6 +638,7 @@ impl Session {
 
     /// Sends what is owed before closing (a 5.0 DISCONNECT, the will).
     async fn finish(&mut self, socket: &mut TcpStream, link: Link, stop: Stop) -> Ended {
+        let disconnected = matches!(stop, Stop::Disconnected { .. });
         let (reason, send_will) = match stop {
             Stop::Disconnected { send_will } => ("client disconnected", send_will),
             Stop::Closed { reason, disconnect } => {
@@ -463,24 +655,38 @@ impl Session {
             let _ = tokio::time::timeout(WRITE_STALL, socket.write_all(&self.out)).await;
         }
         let _ = socket.shutdown().await;
+        // A resumed session that does not outlive this connection.
+        for queue in std::mem::take(&mut self.delete_at_end) {
+            let delete = QueueDelete {
+                ticket: 0,
+                queue,
+                if_unused: false,
+                if_empty: false,
+                no_wait: true,
+            };
+            let _ = link.direct.to_broker.send(link::method(delete)).await;
+        }
         if let Some(will) = self.will.take().filter(|_| send_will) {
             if let Some(key) = mapping::routing_key(will.topic.as_str()) {
-                let persistent = will.qos != QoS::AtMostOnce;
                 // Sent before the link is dropped: the broker handles it
                 // before it sees the client gone.
                 let _ = link
                     .direct
                     .to_broker
-                    .send(link::publish(key, persistent, owned(will.payload)))
+                    .send(link::publish(key, will.qos, owned(will.payload), None))
                     .await;
             }
         }
-        Ended { link, reason }
+        Ended {
+            link,
+            reason,
+            disconnected,
+        }
     }
 
     /// Handles every whole packet in `buf`.
     fn take_packets(&mut self, buf: &mut BytesMut) -> Result<(), Stop> {
-        while self.pending.len() < PENDING_MAX {
+        while self.reading() {
             match decode_packet(buf, self.version, self.max_packet) {
                 Ok(Some(packet)) => self.handle_client_packet(packet)?,
                 Ok(None) => return Ok(()),
@@ -500,11 +706,45 @@ impl Session {
         match packet {
             Packet::Publish(publish) => self.publish(publish),
             Packet::PubAck(ack) => {
-                if let Some(tag) = self.in_flight.remove(&ack.packet_id) {
-                    self.pending.push_back(link::method(BasicAck {
-                        delivery_tag: tag,
-                        multiple: false,
-                    }));
+                if let Some(&Outbound::AtLeastOnce(tag)) = self.in_flight.get(&ack.packet_id) {
+                    self.in_flight.remove(&ack.packet_id);
+                    self.settle(tag);
+                    self.send_retained();
+                }
+                Ok(())
+            }
+            Packet::PubRec(received) => {
+                let id = received.packet_id;
+                match self.in_flight.get(&id).copied() {
+                    Some(Outbound::ExactlyOncePublished(tag)) => {
+                        // The client has it: the queue's copy is settled.
+                        self.settle(tag);
+                        if received.reason.is_error() {
+                            // 5.0: the client refused it; the flow ends.
+                            self.in_flight.remove(&id);
+                            self.send_retained();
+                        } else {
+                            self.in_flight.insert(id, Outbound::ExactlyOnceReleased);
+                            self.send(Packet::PubRel(PubResponse::new(id)));
+                        }
+                    }
+                    Some(Outbound::ExactlyOnceReleased) => {
+                        self.send(Packet::PubRel(PubResponse::new(id)));
+                    }
+                    _ => {
+                        let mut release = PubResponse::new(id);
+                        if self.v5() {
+                            release.reason = ReasonCode::PacketIdentifierNotFound;
+                        }
+                        self.send(Packet::PubRel(release));
+                    }
+                }
+                Ok(())
+            }
+            Packet::PubComp(complete) => {
+                if self.in_flight.get(&complete.packet_id) == Some(&Outbound::ExactlyOnceReleased) {
+                    self.in_flight.remove(&complete.packet_id);
+                    self.send_retained();
                 }
                 Ok(())
             }
@@ -539,8 +779,7 @@ impl Session {
                 "enhanced authentication is not supported",
                 Some(ReasonCode::ProtocolError),
             )),
-            // A second CONNECT, packets only a server sends, and PUBREC or
-            // PUBCOMP for QoS 2 deliveries the broker never sends.
+            // A second CONNECT, and packets only a server sends.
             _ => Err(closed(
                 "packet a client may not send here",
                 Some(ReasonCode::ProtocolError),
@@ -559,19 +798,22 @@ impl Session {
                 Some(ReasonCode::ProtocolError),
             ));
         }
-        if publish.retain && self.v5() {
-            // The CONNACK said retain is not available.
-            return Err(closed(
-                "retain not supported",
-                Some(ReasonCode::RetainNotSupported),
-            ));
-        }
         let Some(key) = mapping::routing_key(publish.topic.as_str()) else {
             return Err(closed(
                 "topic longer than a routing key",
                 Some(ReasonCode::TopicNameInvalid),
             ));
         };
+        if let Some(id) = publish.delivery.packet_id().filter(|_| self.v5()) {
+            if self.inbound_unacknowledged() >= usize::from(RECEIVE_MAXIMUM)
+                && !self.exactly_once.contains_key(&id)
+            {
+                return Err(closed(
+                    "more unacknowledged publishes than the receive maximum",
+                    Some(ReasonCode::ReceiveMaximumExceeded),
+                ));
+            }
+        }
         let (packet_id, exactly_once) = match publish.delivery {
             Delivery::AtMostOnce => (None, false),
             Delivery::AtLeastOnce(id) => (Some(id), false),
@@ -589,20 +831,39 @@ impl Session {
                 }
             },
         };
+        let retained_write = if publish.retain {
+            self.shared
+                .retained
+                .retain(
+                    &self.vhost,
+                    publish.topic.as_str(),
+                    publish.delivery.qos(),
+                    // Kept long: never a slice of a read chunk.
+                    bytes::Bytes::copy_from_slice(&publish.payload),
+                )
+                .unwrap_or(0)
+        } else {
+            0
+        };
         self.published += 1;
         if let Some(id) = packet_id {
-            self.unconfirmed.insert(self.published, (id, exactly_once));
+            self.unconfirmed
+                .insert(self.published, (id, exactly_once, retained_write));
         }
-        self.pending.push_back(link::publish(
+        let v5_properties = self.v5().then_some(&publish.properties);
+        let item = link::publish(
             key,
-            packet_id.is_some(),
-            owned(publish.payload),
-        ));
+            publish.delivery.qos(),
+            owned(publish.payload.clone()),
+            v5_properties,
+        );
+        self.pending.push_back(item);
         Ok(())
     }
 
     fn subscribe(&mut self, subscribe: Subscribe) {
         let mut reasons = Vec::with_capacity(subscribe.subscriptions.len());
+        let mut retained = Vec::new();
         let failure = |v5: bool, code: ReasonCode| {
             if v5 {
                 code
@@ -629,16 +890,41 @@ impl Session {
                 reasons.push(failure(self.v5(), ReasonCode::TopicFilterInvalid));
                 continue;
             };
-            let granted = subscription.options.qos.min(QoS::AtLeastOnce);
+            let granted = subscription.options.qos;
             let Some(queue) = mapping::queue_name(&self.client_id, granted) else {
                 reasons.push(ReasonCode::UnspecifiedError);
                 continue;
             };
+            if let Err(refused) = self.may_subscribe(&queue, granted, &key) {
+                tracing::info!(
+                    client_id = %self.client_id,
+                    filter,
+                    reason = %refused,
+                    "MQTT subscription refused"
+                );
+                reasons.push(failure(self.v5(), ReasonCode::NotAuthorized));
+                continue;
+            }
             self.ensure_queue(&queue, granted);
-            if let Some(old) = self.subscriptions.insert(filter.to_owned(), granted) {
-                if old != granted {
+            let existed = match self.subscriptions.insert(filter.to_owned(), granted) {
+                Some(old) if old != granted => {
                     self.unbind(old, key.clone());
+                    true
                 }
+                Some(_) => true,
+                None => false,
+            };
+            let send_retained = match subscription.options.retain_handling {
+                RetainHandling::SendAtSubscribe => true,
+                RetainHandling::SendIfNewSubscription => !existed,
+                RetainHandling::DoNotSend => false,
+            };
+            if send_retained {
+                let matched = self
+                    .shared
+                    .retained
+                    .matching(&self.vhost, &subscription.filter);
+                retained.extend(matched.into_iter().map(|m| (m, granted)));
             }
             self.call(
                 QueueBind {
@@ -653,7 +939,8 @@ impl Session {
             );
             reasons.push(match granted {
                 QoS::AtMostOnce => ReasonCode::GRANTED_QOS_0,
-                _ => ReasonCode::GrantedQos1,
+                QoS::AtLeastOnce => ReasonCode::GrantedQos1,
+                QoS::ExactlyOnce => ReasonCode::GrantedQos2,
             });
         }
         let suback = Packet::SubAck(SubAck {
@@ -661,45 +948,131 @@ impl Session {
             properties: Default::default(),
             reasons,
         });
-        self.complete_after_calls(suback);
+        self.complete_after_calls(Done::Send(suback));
+        if !retained.is_empty() {
+            self.complete_after_calls(Done::Retained(retained));
+        }
+    }
+
+    /// RabbitMQ's checks for what subscribing through `queue` with the
+    /// binding key `key` asks of the core: configure and read on the
+    /// queue the first time, write on it and read on `amq.topic` for the
+    /// binding, and the key against a topic permission on `amq.topic`.
+    fn may_subscribe(
+        &self,
+        queue: &ShortStr,
+        qos: QoS,
+        key: &ShortStr,
+    ) -> crate::error::AmqpResult<()> {
+        let Some(access) = self.permissions.of(&self.user, &self.vhost) else {
+            return Err(crate::error::AmqpError::access_refused(format_args!(
+                "no access to vhost '{}'",
+                self.vhost
+            )));
+        };
+        let queue = queue.to_string_lossy();
+        if !self.queues[usize::from(qos.level())] {
+            access.check_queue_declare(&queue, None)?;
+            access.check(Right::Read, Resource::Queue(&queue))?;
+        }
+        access.check_binding(Resource::Queue(&queue), mapping::EXCHANGE)?;
+        access.check_topic(Right::Read, mapping::EXCHANGE, &key.to_string_lossy())
     }
 
     /// Sends `packet` once every call queued so far is answered (at once
     /// if none is waiting), so acknowledgements keep their order.
-    fn complete_after_calls(&mut self, packet: Packet) {
+    fn complete_after_calls(&mut self, done: Done) {
         match self.awaiting.back_mut() {
-            Some(last) => last.push(packet),
-            None => {
+            Some(last) => last.push(done),
+            None => self.done(done),
+        }
+    }
+
+    fn done(&mut self, done: Done) {
+        match done {
+            Done::Send(packet) => {
                 self.send(packet);
+            }
+            Done::Retained(messages) => {
+                let room = RETAINED_BACKLOG_MAX.saturating_sub(self.retained_backlog.len());
+                if messages.len() > room {
+                    tracing::warn!(
+                        client_id = %self.client_id,
+                        matched = messages.len(),
+                        sent = room,
+                        "more retained messages matched than a session is sent at once"
+                    );
+                }
+                self.retained_backlog
+                    .extend(messages.into_iter().take(room));
+                self.send_retained();
             }
         }
     }
 
+    /// Sends waiting retained messages (as PUBLISH with RETAIN set) while
+    /// the window has room for those at QoS 1.
+    fn send_retained(&mut self) {
+        while let Some((message, granted)) = self.retained_backlog.pop_front() {
+            let qos = message.qos.min(granted);
+            if qos != QoS::AtMostOnce && self.in_flight.len() >= usize::from(self.window) {
+                self.retained_backlog.push_front((message, granted));
+                return;
+            }
+            let Some(topic) = MqttString::from_utf8(message.topic.into_bytes().into())
+                .ok()
+                .and_then(|t| TopicName::new(t).ok())
+            else {
+                continue;
+            };
+            let publish = Outgoing5 {
+                qos,
+                redelivered: false,
+                retain: true,
+                properties: Default::default(),
+            };
+            self.publish_to_client(topic, publish, message.payload, None);
+        }
+    }
+
     /// Declares and consumes the session's queue for `qos` the first time
-    /// a subscription needs it: exclusive, so it goes with the session.
+    /// a subscription needs it: exclusive if the session goes with the
+    /// connection, else durable (with `x-expires` for a session expiry).
     fn ensure_queue(&mut self, queue: &ShortStr, qos: QoS) {
-        let index = usize::from(qos != QoS::AtMostOnce);
-        if self.queues[index] {
+        if self.queues[usize::from(qos.level())] {
             return;
         }
-        self.queues[index] = true;
+        let mut arguments = FieldTable::new();
+        if let Lifetime::Seconds(seconds) = self.lifetime {
+            arguments.insert(
+                ShortStr::from_static("x-expires"),
+                FieldValue::I64(i64::from(seconds) * 1000),
+            );
+        }
+        let durable = self.lifetime != Lifetime::Connection;
         self.call(
             QueueDeclare {
                 ticket: 0,
                 queue: queue.clone(),
                 passive: false,
-                durable: false,
-                exclusive: true,
+                durable,
+                exclusive: !durable,
                 auto_delete: false,
                 no_wait: false,
-                arguments: FieldTable::new(),
+                arguments,
             },
             Vec::new(),
         );
+        self.consume(queue.clone(), qos);
+    }
+
+    /// Consumes the session's queue for `qos`.
+    fn consume(&mut self, queue: ShortStr, qos: QoS) {
+        self.queues[usize::from(qos.level())] = true;
         self.call(
             BasicConsume {
                 ticket: 0,
-                queue: queue.clone(),
+                queue,
                 consumer_tag: consumer_tag(qos),
                 no_local: false,
                 no_ack: qos == QoS::AtMostOnce,
@@ -749,7 +1122,7 @@ impl Session {
             properties: Default::default(),
             reasons,
         });
-        self.complete_after_calls(unsuback);
+        self.complete_after_calls(Done::Send(unsuback));
     }
 
     /// Handles what the core sent on the link.
@@ -781,8 +1154,8 @@ impl Session {
             }
             _ => {
                 // The reply to the oldest synchronous call.
-                for packet in self.awaiting.pop_front().unwrap_or_default() {
-                    self.send(packet);
+                for done in self.awaiting.pop_front().unwrap_or_default() {
+                    self.done(done);
                 }
             }
         }
@@ -808,7 +1181,7 @@ impl Session {
     /// publishes they cover. A refused publish gets a 5.0 failure code; a
     /// 3.1.1 client has none, so it is closed (and publishes again).
     fn confirmed(&mut self, tag: u64, multiple: bool, ok: bool) -> Result<(), Stop> {
-        let settled: Vec<(PacketId, bool)> = if multiple {
+        let settled: Vec<(PacketId, bool, u64)> = if multiple {
             let rest = self.unconfirmed.split_off(&(tag + 1));
             std::mem::replace(&mut self.unconfirmed, rest)
                 .into_values()
@@ -819,66 +1192,183 @@ impl Session {
         if !ok && !self.v5() && !settled.is_empty() {
             return Err(closed("publish refused by a queue", None));
         }
-        for (id, exactly_once) in settled {
+        for (id, exactly_once, retained_write) in settled {
             let mut response = PubResponse::new(id);
             if !ok {
                 response.reason = ReasonCode::UnspecifiedError;
             }
-            if exactly_once {
+            let ack = if exactly_once {
                 if ok {
                     self.exactly_once.insert(id, Received::Stored);
                 } else {
                     self.exactly_once.remove(&id);
                 }
-                self.send(Packet::PubRec(response));
+                Packet::PubRec(response)
             } else {
-                self.send(Packet::PubAck(response));
-            }
+                Packet::PubAck(response)
+            };
+            self.acknowledge(retained_write, ack);
         }
         Ok(())
     }
 
+    /// Sends an acknowledgement once store submission `write` (0: none)
+    /// is on disk, keeping acknowledgements in order.
+    fn acknowledge(&mut self, write: u64, ack: Packet) {
+        if self.held_acks.is_empty() && write <= self.flushed() {
+            self.send(ack);
+        } else {
+            self.held_acks.push_back((write, ack));
+        }
+    }
+
+    /// The highest store submission attempted (everything is, without a
+    /// store).
+    fn flushed(&self) -> u64 {
+        self.shared.retained.flushed()
+    }
+
+    /// Sends the held acknowledgements whose writes are done; Err if one
+    /// failed (the retained message is in memory only).
+    fn release_held_acks(&mut self) -> Result<(), Stop> {
+        let flushed = self.flushed();
+        while self.held_acks.front().is_some_and(|(w, _)| *w <= flushed) {
+            let Some((write, ack)) = self.held_acks.pop_front() else {
+                break;
+            };
+            if !self.shared.retained.written(write) {
+                return Err(closed(
+                    "a retained message could not be stored",
+                    Some(ReasonCode::UnspecifiedError),
+                ));
+            }
+            self.send(ack);
+        }
+        Ok(())
+    }
+
+    /// QoS 1 and 2 publishes received and not yet acknowledged (PUBACK
+    /// or PUBCOMP).
+    fn inbound_unacknowledged(&self) -> usize {
+        let qos1 = self
+            .unconfirmed
+            .values()
+            .filter(|(_, qos2, _)| !qos2)
+            .count();
+        let held = self
+            .held_acks
+            .iter()
+            .filter(|(_, ack)| matches!(ack, Packet::PubAck(_)));
+        qos1 + held.count() + self.exactly_once.len()
+    }
+
+    /// Whether the client is read: not while the link is behind, nor
+    /// while [`RECEIVE_MAXIMUM`] publishes await their confirm or their
+    /// retained message's write.
+    fn reading(&self) -> bool {
+        self.pending.len() < PENDING_MAX
+            && self.unconfirmed.len() + self.held_acks.len() < usize::from(RECEIVE_MAXIMUM)
+    }
+
     /// A delivery from one of the session's queues, as a PUBLISH at the
-    /// lower of the queue's QoS and the message's: a transient message
-    /// (an MQTT QoS 0 publish, or an AMQP one with delivery mode 1) goes
-    /// out at QoS 0, as the specification's min(publish, granted) asks, and
-    /// is settled at once.
+    /// lower of the queue's QoS and the message's (QoS 2 if it carries
+    /// [`link::PUBLISH_QOS_HEADER`], else 1 if persistent, else 0: an
+    /// MQTT QoS 0 publish, or an AMQP one with delivery mode 1, goes out
+    /// at QoS 0 and is settled at once), as the specification's
+    /// min(publish, granted) asks.
     fn deliver(
         &mut self,
         deliver: leveret_protocol::BasicDeliver,
         properties: &bytes::Bytes,
         body: bytes::Bytes,
     ) {
-        let from_qos1_queue = deliver.consumer_tag == consumer_tag(QoS::AtLeastOnce);
-        let persistent =
-            leveret_protocol::BasicProperties::decode(properties).is_ok_and(|p| p.is_persistent());
-        let qos1 = from_qos1_queue && persistent;
+        let queue_qos = queue_qos(&deliver.consumer_tag);
+        let decoded = leveret_protocol::BasicProperties::decode(properties);
+        let message_qos = match &decoded {
+            Ok(p)
+                if p.headers.as_ref().is_some_and(|h| {
+                    matches!(h.get(link::PUBLISH_QOS_HEADER), Some(FieldValue::U8(2)))
+                }) =>
+            {
+                QoS::ExactlyOnce
+            }
+            Ok(p) if p.is_persistent() => QoS::AtLeastOnce,
+            _ => QoS::AtMostOnce,
+        };
+        let mqtt_properties = match &decoded {
+            Ok(p) if self.v5() => super::properties::from_amqp(p),
+            _ => Default::default(),
+        };
+        let qos = queue_qos.min(message_qos);
         let topic = mapping::topic(&deliver.routing_key)
             .and_then(|t| MqttString::from_utf8(t.into()).ok())
             .and_then(|t| TopicName::new(t).ok())
             .filter(|t| !t.is_empty());
-        let packet_id = qos1.then(|| self.next_packet_id());
-        let sent = topic.is_some_and(|topic| {
-            self.send(Packet::Publish(Publish {
-                dup: qos1 && deliver.redelivered,
-                delivery: packet_id.map_or(Delivery::AtMostOnce, Delivery::AtLeastOnce),
-                retain: false,
-                topic,
-                properties: Default::default(),
-                payload: body,
-            }))
-        });
+        let tag = (queue_qos != QoS::AtMostOnce).then_some(deliver.delivery_tag);
+        match topic {
+            Some(topic) => {
+                let publish = Outgoing5 {
+                    qos,
+                    redelivered: deliver.redelivered,
+                    retain: false,
+                    properties: mqtt_properties,
+                };
+                self.publish_to_client(topic, publish, body, tag);
+            }
+            // Not a topic name: settled now, so it does not hold the window.
+            None => self.settle(tag),
+        }
+    }
+
+    /// Sends a PUBLISH at `qos`; a QoS 1 or 2 one is in flight until the
+    /// client completes it, then `tag` is settled (at once if it went out
+    /// at QoS 0 or was dropped: too large for the client).
+    fn publish_to_client(
+        &mut self,
+        topic: TopicName,
+        publish: Outgoing5,
+        payload: bytes::Bytes,
+        tag: Option<u64>,
+    ) {
+        let Outgoing5 {
+            qos,
+            redelivered,
+            retain,
+            properties,
+        } = publish;
+        let packet_id = (qos != QoS::AtMostOnce).then(|| self.next_packet_id());
+        let delivery = match (qos, packet_id) {
+            (QoS::AtLeastOnce, Some(id)) => Delivery::AtLeastOnce(id),
+            (QoS::ExactlyOnce, Some(id)) => Delivery::ExactlyOnce(id),
+            _ => Delivery::AtMostOnce,
+        };
+        let sent = self.send(Packet::Publish(Publish {
+            dup: packet_id.is_some() && redelivered,
+            delivery,
+            retain,
+            topic,
+            properties,
+            payload,
+        }));
         match packet_id {
             Some(id) if sent => {
-                self.in_flight.insert(id, deliver.delivery_tag);
+                let outbound = match qos {
+                    QoS::ExactlyOnce => Outbound::ExactlyOncePublished(tag),
+                    _ => Outbound::AtLeastOnce(tag),
+                };
+                self.in_flight.insert(id, outbound);
             }
-            // Sent at QoS 0, or dropped (not a topic name, too large for
-            // the client): settled now, so it does not hold the window.
-            _ if from_qos1_queue => self.pending.push_back(link::method(BasicAck {
-                delivery_tag: deliver.delivery_tag,
+            _ => self.settle(tag),
+        }
+    }
+
+    /// Acks a delivery from a QoS 1 or 2 queue on the link.
+    fn settle(&mut self, tag: Option<u64>) {
+        if let Some(delivery_tag) = tag {
+            self.pending.push_back(link::method(BasicAck {
+                delivery_tag,
                 multiple: false,
-            })),
-            _ => {}
+            }));
         }
     }
 
@@ -895,12 +1385,33 @@ impl Session {
     }
 }
 
+/// Resolves when the store has attempted more submissions; never without
+/// a store (or once it has stopped).
+async fn store_progress(durable: Option<&mut tokio::sync::watch::Receiver<Durable>>) {
+    let progressed = match durable {
+        Some(durable) => durable.changed().await.is_ok(),
+        None => false,
+    };
+    if !progressed {
+        std::future::pending::<()>().await;
+    }
+}
+
 /// The consumer tag of the session's queue for `qos`.
 fn consumer_tag(qos: QoS) -> ShortStr {
     match qos {
         QoS::AtMostOnce => ShortStr::from_static("mqtt-qos0"),
-        _ => ShortStr::from_static("mqtt-qos1"),
+        QoS::AtLeastOnce => ShortStr::from_static("mqtt-qos1"),
+        QoS::ExactlyOnce => ShortStr::from_static("mqtt-qos2"),
     }
+}
+
+/// The QoS of the session's queue a delivery with `consumer_tag` came from.
+fn queue_qos(tag: &ShortStr) -> QoS {
+    [QoS::AtLeastOnce, QoS::ExactlyOnce]
+        .into_iter()
+        .find(|&qos| *tag == consumer_tag(qos))
+        .unwrap_or(QoS::AtMostOnce)
 }
 
 /// A payload that keeps no more of the read buffer alive than itself

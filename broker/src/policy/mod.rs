@@ -16,13 +16,16 @@
 
 mod combine;
 mod definition;
+mod ranked;
 #[cfg(test)]
 mod tests;
 
 pub use combine::{argument_wins, stricter, Applied};
 pub use definition::{Definition, Overflow, PolicyValue};
 
+#[cfg(feature = "regex")]
 use crate::permissions::PATTERN_SIZE_LIMIT;
+use ranked::Ranked;
 use std::sync::Arc;
 
 /// Why a policy was not set.
@@ -108,7 +111,14 @@ pub struct Policy {
     /// Whether it may apply to classic queues and to streams (its keys
     /// decide: [`definition::applicable`]).
     applicable: (bool, bool),
+    #[cfg(feature = "regex")]
     matcher: regex::bytes::Regex,
+    /// Without the regex engine: `.*` and literal names and prefixes only.
+    #[cfg(not(feature = "regex"))]
+    matcher: crate::permissions::Matcher,
+    /// The literal prefix every name it matches starts with, if its
+    /// pattern plainly has one (`ranked`).
+    prefix: Option<Vec<u8>>,
 }
 
 impl Policy {
@@ -119,12 +129,27 @@ impl Policy {
         if name.is_empty() {
             return Err("a policy needs a name".into());
         }
+        #[cfg(feature = "regex")]
         let matcher = regex::bytes::RegexBuilder::new(&spec.pattern)
             .size_limit(PATTERN_SIZE_LIMIT)
             .build()
             .map_err(|e| format!("pattern '{}': {e}", spec.pattern))?;
+        // An empty regular expression matches every name (in a permission,
+        // the empty pattern means none: hence the rewrite).
+        #[cfg(not(feature = "regex"))]
+        let matcher = crate::permissions::Matcher::compile(
+            if spec.pattern.is_empty() {
+                ".*"
+            } else {
+                &spec.pattern
+            },
+            None,
+        )
+        .map_err(|e| format!("pattern '{}': {}", spec.pattern, e.reason))?;
         let definition = Definition::read(kind, &spec.definition)?;
+        let prefix = ranked::required_prefix(&spec.pattern).filter(|p| !p.is_empty());
         Ok(Policy {
+            prefix,
             name: name.to_owned(),
             kind,
             applicable: definition::applicable(&spec.definition),
@@ -137,14 +162,16 @@ impl Policy {
     fn matches(&self, object: ObjectKind, name: &[u8]) -> bool {
         let (classic, stream) = self.applicable;
         let kind_fits = match (self.spec.apply_to, object) {
-            (ApplyTo::Exchanges, ObjectKind::Exchange) | (ApplyTo::All, ObjectKind::Exchange) => {
-                true
-            }
+            (ApplyTo::Exchanges | ApplyTo::All, ObjectKind::Exchange) => true,
             (ApplyTo::Queues | ApplyTo::All, ObjectKind::Queue) => classic,
             (ApplyTo::Queues | ApplyTo::All, ObjectKind::Stream) => stream,
             _ => false,
         };
-        kind_fits && self.matcher.is_match(name)
+        #[cfg(feature = "regex")]
+        let matched = self.matcher.is_match(name);
+        #[cfg(not(feature = "regex"))]
+        let matched = std::str::from_utf8(name).is_ok_and(|name| self.matcher.matches(name));
+        kind_fits && matched
     }
 }
 
@@ -168,52 +195,53 @@ pub enum ObjectKind {
 /// the outcome never depends on history). Replaced whole on each change.
 #[derive(Debug, Default)]
 pub struct VhostPolicies {
-    user: Vec<Arc<Policy>>,
-    operator: Vec<Arc<Policy>>,
+    user: Ranked,
+    operator: Ranked,
     /// Counts the changes: an [`Applied`] computed from the set just
     /// before this one can be brought up to date by one match.
     generation: u64,
 }
 
 impl VhostPolicies {
-    fn list(&self, kind: PolicyKind) -> &Vec<Arc<Policy>> {
+    fn list(&self, kind: PolicyKind) -> &[Arc<Policy>] {
         match kind {
-            PolicyKind::User => &self.user,
-            PolicyKind::Operator => &self.operator,
+            PolicyKind::User => self.user.list(),
+            PolicyKind::Operator => self.operator.list(),
+        }
+    }
+
+    /// These policies with the policy `name` of `kind` replaced by
+    /// `policy` (or only removed).
+    fn changed(&self, kind: PolicyKind, name: &str, policy: Option<Policy>) -> VhostPolicies {
+        let next = |of: PolicyKind| {
+            let mut list: Vec<Arc<Policy>> = self
+                .list(of)
+                .iter()
+                .filter(|p| !(of == kind && p.name == name))
+                .cloned()
+                .collect();
+            if of == kind {
+                list.extend(policy.clone().map(Arc::new));
+            }
+            Ranked::new(list)
+        };
+        VhostPolicies {
+            user: next(PolicyKind::User),
+            operator: next(PolicyKind::Operator),
+            generation: self.generation + 1,
         }
     }
 
     /// These policies with `policy` set (replacing one of its kind and
     /// name).
     pub fn with(&self, policy: Policy) -> VhostPolicies {
-        let mut next = self.without(policy.kind, &policy.name);
-        let list = match policy.kind {
-            PolicyKind::User => &mut next.user,
-            PolicyKind::Operator => &mut next.operator,
-        };
-        list.push(Arc::new(policy));
-        list.sort_by(|a, b| {
-            b.spec
-                .priority
-                .cmp(&a.spec.priority)
-                .then_with(|| a.name.cmp(&b.name))
-        });
-        next
+        let (kind, name) = (policy.kind, policy.name.clone());
+        self.changed(kind, &name, Some(policy))
     }
 
     /// These policies without the policy `name` of `kind`.
     pub fn without(&self, kind: PolicyKind, name: &str) -> VhostPolicies {
-        let keep = |list: &Vec<Arc<Policy>>, of: PolicyKind| -> Vec<Arc<Policy>> {
-            list.iter()
-                .filter(|p| !(of == kind && p.name == name))
-                .cloned()
-                .collect()
-        };
-        VhostPolicies {
-            user: keep(&self.user, PolicyKind::User),
-            operator: keep(&self.operator, PolicyKind::Operator),
-            generation: self.generation + 1,
-        }
+        self.changed(kind, name, None)
     }
 
     /// The policy `name` of `kind`.
@@ -223,19 +251,18 @@ impl VhostPolicies {
 
     /// Every policy of `kind`, by name.
     pub fn all(&self, kind: PolicyKind) -> Vec<Arc<Policy>> {
-        let mut all = self.list(kind).clone();
+        let mut all = self.list(kind).to_vec();
         all.sort_by(|a, b| a.name.cmp(&b.name));
         all
     }
 
     /// The policy of each kind that applies to the object: the first
-    /// match in each list. Costs at most one match per policy of the vhost.
+    /// match in each ranking. Costs a match per policy filed under a
+    /// prefix of the name or under none (`ranked`).
     pub fn applied(&self, object: ObjectKind, name: &[u8]) -> Applied {
-        let first =
-            |list: &Vec<Arc<Policy>>| list.iter().find(|p| p.matches(object, name)).cloned();
         Applied {
-            policy: first(&self.user),
-            operator: first(&self.operator),
+            policy: self.user.first_match(object, name),
+            operator: self.operator.first_match(object, name),
             generation: self.generation,
         }
     }

@@ -253,6 +253,8 @@ fn operator_policies_merge_by_the_smaller_value() {
     assert_eq!(effective["dead-letter-exchange"], text("dlx"));
 }
 
+// Regular expressions beyond literal names and prefixes.
+#[cfg(feature = "regex")]
 #[test]
 fn a_change_costs_one_match_and_agrees_with_a_full_look_up() {
     let before = VhostPolicies::default()
@@ -317,6 +319,8 @@ fn a_change_costs_one_match_and_agrees_with_a_full_look_up() {
     }
 }
 
+// Regular expressions beyond literal names and prefixes.
+#[cfg(feature = "regex")]
 #[test]
 fn a_pathological_pattern_is_refused_or_linear() {
     // Catastrophic backtracking shapes are linear in the regex crate.
@@ -352,5 +356,51 @@ proptest! {
         prop_assert_eq!(merged, given.iter().copied().min());
         prop_assert_eq!(stricter(policy, op), stricter(op, policy));
         prop_assert_eq!(argument_wins(policy, arg), if arg.is_some() { arg } else { policy });
+    }
+}
+
+#[test]
+fn required_prefixes_are_read_only_where_the_pattern_plainly_has_one() {
+    use super::ranked::required_prefix;
+    for (pattern, prefix) in [
+        ("^orders\\.eu", Some(&b"orders.eu"[..])),
+        ("^ab+c", Some(b"a")),
+        ("^ab?c", Some(b"a")),
+        ("^ab*", Some(b"a")),
+        ("^ab{0,2}", Some(b"a")),
+        ("^a\\d", Some(b"a")),
+        ("^(?i)abc", Some(b"")),
+        ("^a|^b", None),
+        ("(?i)^abc", None),
+        ("abc", None),
+    ] {
+        assert_eq!(required_prefix(pattern).as_deref(), prefix, "{pattern}");
+    }
+}
+
+proptest! {
+    /// The prefix index finds what trying every policy in rank order finds.
+    #[test]
+    fn the_index_agrees_with_trying_every_policy(
+        patterns in proptest::collection::vec("\\^?[ab.\\\\|?*+(){}1,]{0,6}", 1..12),
+        priorities in proptest::collection::vec(0i64..3, 12),
+        names in proptest::collection::vec("[ab.]{0,5}", 1..8),
+    ) {
+        let mut set = VhostPolicies::default();
+        for (i, pattern) in patterns.iter().enumerate() {
+            let spec = spec(pattern, ApplyTo::All, priorities[i], &[("max-length", int(1))]);
+            if let Ok(policy) = Policy::new(PolicyKind::User, &format!("p{i}"), spec) {
+                set = set.with(policy);
+            }
+        }
+        for name in &names {
+            let scanned = set
+                .list(PolicyKind::User)
+                .iter()
+                .find(|p| p.matches(ObjectKind::Queue, name.as_bytes()))
+                .map(|p| p.name.clone());
+            let indexed = set.applied(ObjectKind::Queue, name.as_bytes()).policy_name().map(str::to_owned);
+            prop_assert_eq!(indexed, scanned, "{:?} on {}", patterns, name);
+        }
     }
 }

@@ -18,6 +18,9 @@ use std::collections::{BTreeMap, VecDeque};
 
 type OrderKey = (std::cmp::Reverse<u8>, u64);
 
+/// Entries a priority level's FIFO keeps room for after a burst drains.
+const SPARE_READY: usize = 1024;
+
 /// The ready messages of one queue.
 #[derive(Debug, Default)]
 pub(super) struct Ready {
@@ -86,7 +89,12 @@ impl Ready {
     /// Takes the head message.
     pub(super) fn pop_front(&mut self) -> Option<QueuedMessage> {
         let queued = match self.head()? {
-            Head::Level(level) => self.levels[level].pop_front()?,
+            Head::Level(level) => {
+                let fifo = &mut self.levels[level];
+                let queued = fifo.pop_front()?;
+                give_back_spare(fifo);
+                queued
+            }
             Head::OutOfOrder => self.out_of_order.pop_first()?.1,
         };
         self.len -= 1;
@@ -116,6 +124,17 @@ impl Ready {
     }
 }
 
+/// Gives back the room a burst grew once the FIFO is mostly empty: a
+/// VecDeque never shrinks by itself, and a drained backlog of a million
+/// messages kept 48 MB. Copies what is left, at most a quarter of the
+/// capacity (a growth copies all of it), keeping room for twice that.
+fn give_back_spare(fifo: &mut VecDeque<QueuedMessage>) {
+    let capacity = fifo.capacity();
+    if capacity > SPARE_READY && capacity > 4 * fifo.len() {
+        fifo.shrink_to((2 * fifo.len()).max(SPARE_READY));
+    }
+}
+
 enum Head {
     Level(usize),
     OutOfOrder,
@@ -136,6 +155,28 @@ mod tests {
             redelivered: false,
             expires_at: None,
         }
+    }
+
+    /// A backlog's room goes back once it drains, and a steady small
+    /// queue keeps its spare room instead of shrinking and regrowing.
+    #[test]
+    fn a_drained_burst_gives_back_its_room() {
+        let body = message(&s(""), "k", "x", &BasicProperties::default());
+        let mut ready = Ready::default();
+        for seq in 0..100_000 {
+            ready.insert(QueuedMessage {
+                message: body.clone(),
+                ..queued(seq, 0)
+            });
+        }
+        assert!(ready.levels[0].capacity() >= 100_000);
+        while ready.len() > 10_000 {
+            ready.pop_front();
+        }
+        assert!(ready.levels[0].capacity() <= 4 * 10_000 + 1);
+        while ready.pop_front().is_some() {}
+        assert!(ready.levels[0].capacity() <= 2 * SPARE_READY);
+        assert!(ready.levels[0].capacity() >= SPARE_READY);
     }
 
     proptest! {

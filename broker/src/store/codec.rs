@@ -197,6 +197,11 @@ fn meta_key(key: &MetaKey) -> Vec<u8> {
             put_long(&mut buf, vhost.as_bytes());
             put_long(&mut buf, name.as_bytes());
         }
+        MetaKey::Retained { vhost, topic } => {
+            buf.put_u8(b'm');
+            put_long(&mut buf, vhost.as_bytes());
+            put_long(&mut buf, topic.as_bytes());
+        }
     }
     buf.to_vec()
 }
@@ -234,6 +239,10 @@ fn meta_value(record: &MetaRecord) -> Vec<u8> {
             put_long(&mut buf, read.as_bytes());
         }
         MetaRecord::Parameter { value, .. } => put_long(&mut buf, value.as_bytes()),
+        MetaRecord::Retained { qos, payload, .. } => {
+            buf.put_u8(*qos);
+            put_long(&mut buf, payload);
+        }
     }
     buf.to_vec()
 }
@@ -291,6 +300,18 @@ fn decode_meta(key: &[u8], value: &mut Bytes) -> Result<MetaRecord, StoreError> 
             vhost: take_text(&mut names, "vhost name")?,
             name: take_text(&mut names, "parameter name")?,
             value: take_text(value, "parameter value")?,
+        },
+        b'm' => MetaRecord::Retained {
+            vhost: take_text(&mut names, "vhost name")?,
+            topic: take_text(&mut names, "retained topic")?,
+            qos: match value.first() {
+                Some(&qos) if qos <= 2 => {
+                    value.advance(1);
+                    qos
+                }
+                _ => return Err(corrupt("retained QoS")),
+            },
+            payload: take_long(value)?,
         },
         _ => return Err(corrupt("metadata kind")),
     };
@@ -754,6 +775,12 @@ mod tests {
                 vhost: "/".into(),
                 name: "up".into(),
                 value: r#"{"src-queue": "q"}"#.into(),
+            },
+            MetaRecord::Retained {
+                vhost: "/".into(),
+                topic: "cell/\0temp".into(),
+                qos: 1,
+                payload: Bytes::from_static(b"21.5\0"),
             },
         ];
         let mut ops: Vec<_> = records

@@ -299,6 +299,18 @@ pub enum MetaRecord {
         /// Its value, as JSON text.
         value: String,
     },
+    /// An MQTT retained message (the `mqtt` front end's, per vhost and
+    /// topic).
+    Retained {
+        /// Vhost.
+        vhost: String,
+        /// The MQTT topic name.
+        topic: String,
+        /// Its QoS level (0, 1 or 2).
+        qos: u8,
+        /// Its payload.
+        payload: Bytes,
+    },
 }
 
 /// What identifies an [`MetaRecord`] (for deleting one).
@@ -333,6 +345,13 @@ pub enum MetaKey {
         /// Name.
         name: String,
     },
+    /// A (vhost, topic) MQTT retained message.
+    Retained {
+        /// Vhost.
+        vhost: String,
+        /// Topic.
+        topic: String,
+    },
 }
 
 impl MetaRecord {
@@ -364,6 +383,10 @@ impl MetaRecord {
                 component: component.clone(),
                 vhost: vhost.clone(),
                 name: name.clone(),
+            },
+            MetaRecord::Retained { vhost, topic, .. } => MetaKey::Retained {
+                vhost: vhost.clone(),
+                topic: topic.clone(),
             },
         }
     }

@@ -8,6 +8,7 @@ use crate::exchange::ExchangeKind;
 use crate::queue::Enqueued;
 use crate::testkit::{death, s, Consume, Harness};
 use leveret_protocol::{BasicProperties, FieldValue};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 const MANUAL: Consume = Consume {
@@ -37,6 +38,28 @@ fn the_default_exchange_routes_by_queue_name() {
     );
     assert!(h.publish("", "nobody", "lost").is_empty());
     assert_eq!(q.message_count(), 1);
+}
+
+/// A channel remembers the queue its last default-exchange publish
+/// reached; once that queue is deleted (and declared again), the same name
+/// finds nothing (then the new queue), never the deleted one.
+#[test]
+fn a_remembered_default_route_follows_deletes_and_redeclares() {
+    let h = Harness::new();
+    let old = h.queue("orders", &[]);
+    let mut last = None;
+    let found = h.vhost.queue_remembered(&s("orders"), &mut last);
+    assert!(found.is_some_and(|q| Arc::ptr_eq(&q, &old)));
+    let again = h.vhost.queue_remembered(&s("orders"), &mut last);
+    assert!(again.is_some_and(|q| Arc::ptr_eq(&q, &old)));
+    let _no_consumers = h.vhost.delete_queue(&old);
+    assert!(h.vhost.queue_remembered(&s("orders"), &mut last).is_none());
+    let new = h.queue("orders", &[]);
+    let found = h.vhost.queue_remembered(&s("orders"), &mut last);
+    assert!(found.is_some_and(|q| Arc::ptr_eq(&q, &new)));
+    assert!(h.vhost.queue_remembered(&s("other"), &mut last).is_none());
+    h.queue("other", &[]);
+    assert!(h.vhost.queue_remembered(&s("other"), &mut last).is_some());
 }
 
 #[test]

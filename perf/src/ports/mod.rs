@@ -34,6 +34,7 @@
 //! through a frozen broker).
 
 mod pair;
+pub mod replay;
 pub mod stall;
 
 use crate::histogram::{BoxStats, Samples};

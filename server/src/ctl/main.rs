@@ -25,14 +25,17 @@
 //! - `main`: the command line and the commands.
 //! - `client`: the HTTP client (ureq).
 //! - `columns`: rabbitmqctl's column names mapped onto the API's fields.
+//! - `limits`: the vhost and user limit commands.
 //! - `ports`: the `port` commands, over AMQP with leveret-client.
 //! - `policies`: the policy, operator policy and cluster name commands.
 #![forbid(unsafe_code)]
 
 mod client;
 mod columns;
+mod limits;
 mod policies;
 mod ports;
+mod recorder;
 
 use clap::{Parser, Subcommand};
 use client::{segment, Client, ClientError};
@@ -117,6 +120,32 @@ enum Command {
     /// Adds a vhost (the caller gets full permissions on it, as with
     /// RabbitMQ's API).
     AddVhost { vhost: String },
+    /// Deletes a vhost and everything in it: its connections are closed,
+    /// its queues, exchanges, bindings, permissions and parameters go.
+    DeleteVhost { vhost: String },
+    /// Replaces the vhost's limits with a JSON definition
+    /// (`{"max-connections": 10, "max-queues": 100}`; negative: none).
+    SetVhostLimits { definition: String },
+    /// Clears the vhost's limits.
+    ClearVhostLimits,
+    /// Lists the vhost's limits (every vhost's with `--global`).
+    ListVhostLimits {
+        #[arg(long)]
+        global: bool,
+    },
+    /// Adds a JSON definition to a user's limits
+    /// (`{"max-connections": 5, "max-channels": 50}`; negative: none).
+    SetUserLimits { user: String, definition: String },
+    /// Clears one limit of a user (`max-connections`, `max-channels`) or
+    /// `all`.
+    ClearUserLimits { user: String, limit: String },
+    /// Lists a user's limits (every user's with `--global`).
+    ListUserLimits {
+        #[arg(long, default_value = "guest")]
+        user: String,
+        #[arg(long)]
+        global: bool,
+    },
     /// Lists channels: pid, user, consumer_count, messages_unacknowledged
     /// by default.
     ListChannels { columns: Vec<String> },
@@ -334,6 +363,36 @@ fn run(cli: &Cli) -> Result<(), Failure> {
         Command::AddVhost { vhost } => {
             info(cli, &format!("Adding vhost \"{vhost}\" ..."))?;
             client.put(&format!("/api/vhosts/{}", segment(vhost)), b"{}")?;
+            Ok(())
+        }
+        Command::SetVhostLimits { definition } => {
+            limits::run(cli, &client, limits::LimitsCommand::SetVhost(definition))
+        }
+        Command::ClearVhostLimits => limits::run(cli, &client, limits::LimitsCommand::ClearVhost),
+        Command::ListVhostLimits { global } => limits::run(
+            cli,
+            &client,
+            limits::LimitsCommand::ListVhost { global: *global },
+        ),
+        Command::SetUserLimits { user, definition } => limits::run(
+            cli,
+            &client,
+            limits::LimitsCommand::SetUser(user, definition),
+        ),
+        Command::ClearUserLimits { user, limit } => {
+            limits::run(cli, &client, limits::LimitsCommand::ClearUser(user, limit))
+        }
+        Command::ListUserLimits { user, global } => limits::run(
+            cli,
+            &client,
+            limits::LimitsCommand::ListUser {
+                user,
+                global: *global,
+            },
+        ),
+        Command::DeleteVhost { vhost } => {
+            info(cli, &format!("Deleting vhost \"{vhost}\" ..."))?;
+            client.delete(&format!("/api/vhosts/{}", segment(vhost)), &[])?;
             Ok(())
         }
         Command::ListChannels { columns } => {
@@ -859,4 +918,31 @@ fn status(cli: &Cli, client: &Client) -> Result<(), Failure> {
         text(&overview["queue_totals"]["messages_unacknowledged"])
     );
     emit(&report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Cli;
+    use clap::CommandFactory;
+
+    /// `packaging/leveretctl.1` is clap_mangen's rendering of this command
+    /// line, the one `--help` prints (the commands are listed, each with
+    /// its own `--help`); `LEVERET_WRITE_MAN=1` rewrites it.
+    #[test]
+    fn the_man_page_is_rendered_from_the_command_line() {
+        let mut rendered = Vec::new();
+        clap_mangen::Man::new(Cli::command())
+            .render(&mut rendered)
+            .expect("render");
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../packaging/leveretctl.1");
+        if std::env::var_os("LEVERET_WRITE_MAN").is_some() {
+            std::fs::write(&path, &rendered).expect("write the man page");
+        }
+        let kept = std::fs::read(&path).unwrap_or_default();
+        assert!(
+            kept == rendered,
+            "packaging/leveretctl.1 differs from the command line: run this test with LEVERET_WRITE_MAN=1"
+        );
+    }
 }

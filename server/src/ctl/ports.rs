@@ -1,5 +1,6 @@
 //! `leveretctl port list`, `port stats NAME`, `port echo NAME`, `port hz
-//! NAME` and `port bw NAME`: the robot data ports connected to a broker,
+//! NAME` and `port bw NAME` (and the dispatch of `port record` and `port
+//! replay`, which the `recorder` module owns): the robot data ports connected to a broker,
 //! from the announcements they publish on `leveret.ports`
 //! (leveret-ports' `PortDirectory`; the wire contract is in its
 //! `announce` module), and the messages on their topics. These
@@ -90,6 +91,18 @@ pub enum PortCommand {
         #[command(flatten)]
         window: WindowArgs,
     },
+    /// Records a port's messages to a stream, from now on: binds the
+    /// stream (declared with the retention given) to the port's exchange
+    /// and key. A port on the default exchange cannot be recorded. The
+    /// binding lasts as long as the exchange (a transient one loses it on
+    /// a broker restart); a port profile's `record` binds on every
+    /// connection instead.
+    Record(crate::recorder::RecordArgs),
+    /// Plays a stream back (as rosbag play): from --start to --end, at
+    /// --rate times the recorded pace (or --fast), printing each record
+    /// (offset, sequence number, send time, topic, value) or, with
+    /// --publish, republishing it with its original headers.
+    Replay(crate::recorder::ReplayArgs),
 }
 
 /// The options of `port hz` and `port bw`.
@@ -153,6 +166,8 @@ pub fn run(cli: &Cli, command: &PortCommand) -> Result<(), Failure> {
             PortCommand::Bw { name, window } => {
                 measure(cli, name, window, Measure::Bandwidth).await
             }
+            PortCommand::Record(args) => crate::recorder::record(cli, args).await,
+            PortCommand::Replay(args) => crate::recorder::replay(cli, args).await,
         }
     })
 }
@@ -165,7 +180,7 @@ fn seconds(value: f64) -> Result<Duration, Failure> {
 }
 
 /// A connection to `--amqp-url`: unreachable is status 69, refused 1.
-async fn connect(cli: &Cli) -> Result<Connection, Failure> {
+pub(crate) async fn connect(cli: &Cli) -> Result<Connection, Failure> {
     let mut options = ConnectionOptions::from_uri(&cli.amqp_url)
         .map_err(|e| Failure::Usage(format!("--amqp-url: {e}")))?;
     options.connection_name = Some("leveretctl".to_owned());
@@ -185,7 +200,7 @@ async fn connect(cli: &Cli) -> Result<Connection, Failure> {
 
 /// What an AMQP error on an open connection means for the exit status:
 /// the broker refused (1), or it is gone (69).
-fn broker_failure(error: Error) -> Failure {
+pub(crate) fn broker_failure(error: Error) -> Failure {
     match error {
         Error::ChannelClosed(reason) | Error::ConnectionClosed(reason) => {
             Failure::Refused(format!("the broker refused: {reason}"))
@@ -327,7 +342,7 @@ fn cell(port: &PortAnnouncement, name: &str) -> String {
 
 /// Waits up to `wait` for a port named `name`; exit status 1 if none
 /// announces itself.
-async fn find(
+pub(crate) async fn find(
     directory: &mut PortDirectory,
     name: &str,
     wait: Duration,
@@ -741,7 +756,7 @@ impl Figures {
 
 /// A body as its value (a CDR type the client implements), else as text,
 /// else in hex (the first [`HEX_BYTES`] bytes).
-fn show(type_name: &str, body: bytes::Bytes, options: CdrOptions) -> String {
+pub(crate) fn show(type_name: &str, body: bytes::Bytes, options: CdrOptions) -> String {
     if let Some(value) = cdr::render(type_name, body.clone(), options) {
         return value;
     }

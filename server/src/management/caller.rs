@@ -140,10 +140,15 @@ impl Caller {
         }
         let admin_only = matches!(
             first,
-            "users" | "permissions" | "topic-permissions" | "definitions" | "operator-policies"
+            "users"
+                | "permissions"
+                | "topic-permissions"
+                | "definitions"
+                | "operator-policies"
+                | "user-limits"
         ) || (matches!(
             first,
-            "vhosts" | "connections" | "parameters" | "cluster-name"
+            "vhosts" | "connections" | "parameters" | "cluster-name" | "vhost-limits"
         ) && !reads);
         if admin_only {
             return Err(not_authorised("Not administrator user"));
@@ -156,6 +161,7 @@ impl Caller {
                 | "consumers"
                 | "aliveness-test"
                 | "vhosts"
+                | "vhost-limits"
                 | "shovels"
                 | "policies"
                 | "federation-links"

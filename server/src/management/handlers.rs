@@ -1001,25 +1001,6 @@ pub async fn aliveness_test(
     Ok(Json(json!({ "status": "ok" })))
 }
 
-pub async fn alarms(State(c): Ctx) -> Response {
-    let o = c.admin.overview();
-    let alarms: Vec<Value> = [("memory", o.memory_alarm), ("disk", o.disk_alarm)]
-        .into_iter()
-        .filter(|(_, on)| *on)
-        .map(|(resource, _)| json!({"node": c.node, "resource": resource}))
-        .collect();
-    if !alarms.is_empty() {
-        let body = json!({
-            "status": "failed",
-            "reason": "There are alarms in effect in the cluster",
-            "alarms": alarms,
-        });
-        (StatusCode::SERVICE_UNAVAILABLE, Json(body)).into_response()
-    } else {
-        Json(json!({ "status": "ok" })).into_response()
-    }
-}
-
 pub async fn definitions(State(c): Ctx) -> Json<Value> {
     Json(crate::definitions::export(&c.admin, &c.links))
 }

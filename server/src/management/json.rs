@@ -189,7 +189,7 @@ pub fn connection(c: &ConnectionInfo, node: &str) -> Value {
         "channels": c.channels,
         "state": "running",
         "type": "network",
-        "protocol": "AMQP 0-9-1",
+        "protocol": c.protocol,
         "peer_host": peer_host,
         "peer_port": peer_port,
         "ssl": false,

@@ -14,17 +14,22 @@
 //! (one function per route), `pagination` (RabbitMQ's `page`,
 //! `page_size`, `name`, `sort`), `json` (objects and body parsing), `rates`
 //! (the sampler behind `*_details`), `audit` (the log line of each change
-//! with the acting user). Handlers reach the broker only
+//! with the acting user), `vhost_deletion` (`DELETE /api/vhosts/{vhost}`),
+//! `limits` (vhost and user limits), `health` (the health checks).
+//! Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
 mod audit;
 mod caller;
 mod federation;
 mod handlers;
+mod health;
 pub mod json;
+mod limits;
 mod pagination;
 mod policies;
 mod rates;
+mod vhost_deletion;
 
 use crate::http::Peer;
 use crate::uplink::{DeclareError, Links};
@@ -59,6 +64,12 @@ pub struct Context {
     pub data_dir: PathBuf,
     /// The AMQP listeners.
     pub amqp_listeners: Vec<SocketAddr>,
+    /// Every listener of the process by RabbitMQ's protocol name (`amqp`,
+    /// `amqp/ssl`, `mqtt`, `http`, `http/prometheus`), for the health
+    /// checks.
+    pub listeners: Vec<(&'static str, SocketAddr)>,
+    /// The TLS listeners' certificate files, if there are TLS listeners.
+    pub tls: Option<leveret_broker::TlsOptions>,
     /// Message rates.
     pub rates: Rates,
 }
@@ -247,7 +258,24 @@ pub fn router(context: Context) -> Router {
         .route("/api/nodes", get(h::nodes))
         .route("/api/nodes/{node}", get(h::node))
         .route("/api/vhosts", get(h::vhosts))
-        .route("/api/vhosts/{vhost}", get(h::vhost).put(h::put_vhost))
+        .route(
+            "/api/vhosts/{vhost}",
+            get(h::vhost)
+                .put(h::put_vhost)
+                .delete(vhost_deletion::delete_vhost),
+        )
+        .route("/api/vhost-limits", get(limits::vhost_limits))
+        .route("/api/vhost-limits/{vhost}", get(limits::vhost_limits_of))
+        .route(
+            "/api/vhost-limits/{vhost}/{name}",
+            put(limits::put_vhost_limit).delete(limits::delete_vhost_limit),
+        )
+        .route("/api/user-limits", get(limits::user_limits))
+        .route("/api/user-limits/{user}", get(limits::user_limits_of))
+        .route(
+            "/api/user-limits/{user}/{name}",
+            put(limits::put_user_limit).delete(limits::delete_user_limit),
+        )
         .route("/api/users", get(h::users))
         .route(
             "/api/users/{name}",
@@ -369,7 +397,32 @@ pub fn router(context: Context) -> Router {
         )
         .route("/api/federation-links", get(federation::links))
         .route("/api/federation-links/{vhost}", get(federation::links_in))
-        .route("/api/health/checks/alarms", get(h::alarms))
+        .route("/api/health/checks/alarms", get(health::alarms))
+        .route("/api/health/checks/local-alarms", get(health::local_alarms))
+        .route(
+            "/api/health/checks/port-listener/{port}",
+            get(health::port_listener),
+        )
+        .route(
+            "/api/health/checks/protocol-listener/{protocol}",
+            get(health::protocol_listener),
+        )
+        .route(
+            "/api/health/checks/virtual-hosts",
+            get(health::virtual_hosts),
+        )
+        .route(
+            "/api/health/checks/node-is-quorum-critical",
+            get(health::node_is_quorum_critical),
+        )
+        .route(
+            "/api/health/checks/node-is-mirror-sync-critical",
+            get(health::node_is_mirror_sync_critical),
+        )
+        .route(
+            "/api/health/checks/certificate-expiration/{within}/{unit}",
+            get(health::certificate_expiration),
+        )
         .fallback(h::unknown)
         .route_layer(axum::middleware::from_fn(audit::log_changes))
         .route_layer(axum::middleware::from_fn_with_state(

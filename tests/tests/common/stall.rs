@@ -56,6 +56,8 @@ pub struct Target {
     pub addr: String,
     /// The in-process broker's runtime, whose one thread the probe shares.
     runtime: Option<tokio::runtime::Handle>,
+    /// The in-process broker's administration handle.
+    admin: Option<leveret_broker::Admin>,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
 }
 
@@ -68,6 +70,7 @@ impl Target {
                 url: broker.url().to_owned(),
                 addr: broker.addr(),
                 runtime: None,
+                admin: None,
                 stop: None,
             };
         }
@@ -84,19 +87,39 @@ impl Target {
                     broker.url().to_owned(),
                     broker.addr(),
                     tokio::runtime::Handle::current(),
+                    broker.admin().expect("in process"),
                 );
                 started.send(addresses).expect("the test waits");
                 let _ = stopped.await;
                 broker.stop().await;
             });
         });
-        let (url, addr, runtime) = addresses.recv().expect("broker starts");
+        let (url, addr, runtime, admin) = addresses.recv().expect("broker starts");
         Target {
             url,
             addr,
             runtime: Some(runtime),
+            admin: Some(admin),
             stop: Some(stop),
         }
+    }
+
+    /// Runs `work` with the in-process broker's administration handle on
+    /// the broker's own thread, so that its slices are what the probe
+    /// measures; `None` against an external broker.
+    pub async fn on_broker_thread<Work, Done>(&self, work: Work) -> Option<Done::Output>
+    where
+        Work: FnOnce(leveret_broker::Admin) -> Done,
+        Done: Future + Send + 'static,
+        Done::Output: Send + 'static,
+    {
+        let (runtime, admin) = (self.runtime.as_ref()?, self.admin.clone()?);
+        let task = runtime.spawn(work(admin));
+        Some(
+            within("work on the broker thread", task)
+                .await
+                .expect("ran"),
+        )
     }
 
     pub async fn connect(&self) -> lp::Connection {

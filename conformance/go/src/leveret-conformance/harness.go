@@ -1,9 +1,11 @@
 // Scenario harness for the Go driver (same protocol as python/harness.py):
 //
-//	conformance-go --list
-//	conformance-go --url URL --prefix P [--only a,b]
+//	conformance-go [--streams] --list
+//	conformance-go [--streams] --url URL --prefix P [--only a,b]
 //
-// prints {"start": name} then one result record per scenario.
+// prints {"start": name} then one result record per scenario. --streams
+// selects the stream queue scenarios of the `streams` suite instead of the
+// `amqp091-go` suite's.
 package main
 
 import (
@@ -25,7 +27,7 @@ type entry struct {
 	fn   scenarioFn
 }
 
-var registry []entry
+var registry, streamRegistry []entry
 
 // hang is how long a scenario waits for something it expects: a hang limit,
 // generous enough for a loaded CI machine (the wait ends as soon as the
@@ -34,6 +36,11 @@ const hang = 30 * time.Second
 
 func scenario(name string, fn scenarioFn) {
 	registry = append(registry, entry{"amqp091-go." + name, fn})
+}
+
+// streamScenario registers a scenario of the `streams` suite (streams.go).
+func streamScenario(name string, fn scenarioFn) {
+	streamRegistry = append(streamRegistry, entry{"streams.amqp091-go." + name, fn})
 }
 
 type failure struct{ msg string }
@@ -140,7 +147,11 @@ func main() {
 	u := flag.String("url", "", "broker URL")
 	prefix := flag.String("prefix", "cf-", "name prefix")
 	only := flag.String("only", "", "comma-separated scenario names")
+	streams := flag.Bool("streams", false, "the stream queue scenarios (the streams suite)")
 	flag.Parse()
+	if *streams {
+		registry = streamRegistry
+	}
 	if *list {
 		for _, e := range registry {
 			fmt.Println(e.name)
