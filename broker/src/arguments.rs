@@ -133,7 +133,7 @@ pub const ARGUMENTS: &[Argument] = &[
     other_type("x-max-in-memory-length", "quorum queues: most messages kept in memory"),
     other_type("x-max-in-memory-bytes", "quorum queues: most bytes kept in memory"),
     stream_only("x-max-age", Support::Implemented, "streams: retention by age (`Y`, `M`, `D`, `h`, `m`, `s`: `7D`); whole segments whose newest message is older go"),
-    stream_only("x-stream-max-segment-size-bytes", Support::Implemented, "streams: segment file size (500 MB unless given)"),
+    stream_only("x-stream-max-segment-size-bytes", Support::Implemented, "streams: segment file size (500 MB unless given; at most 3 GB, as RabbitMQ)"),
     stream_only("x-initial-cluster-size", Support::NoEffect(ONE_NODE), "streams: replicas at creation"),
     stream_only("x-queue-leader-locator", Support::NoEffect(ONE_NODE), "quorum queues and streams: the node the leader starts on"),
     Argument {

@@ -360,7 +360,7 @@ impl BrokerBuilder {
             #[cfg(feature = "persistence")]
             Storage::Dir(dir) => {
                 let opened = open_checked(&dir, self.recover).map_err(StartError::Storage)?;
-                stream_root = Some(dir.join("streams"));
+                stream_root = Some((dir.join("streams"), self.recover));
                 clean_shutdown = Some(CleanShutdown {
                     dir,
                     generation: opened.next_generation,
@@ -380,8 +380,8 @@ impl BrokerBuilder {
             Some((store, recovered)) => {
                 let persistence =
                     Persistence::start(store, &recovered).map_err(StartError::Storage)?;
-                if let Some(root) = stream_root {
-                    persistence.set_stream_root(root);
+                if let Some((root, recover)) = stream_root {
+                    persistence.set_stream_root(root, recover);
                 }
                 (Some(persistence), recovered)
             }
@@ -438,7 +438,20 @@ impl BrokerBuilder {
             core.persistence.clone(),
             self.mqtt_retained_limits,
         );
-        let report = crate::recovery::recover(&core, recovered);
+        let report = match crate::recovery::recover(&core, recovered) {
+            Ok(report) => report,
+            // A damaged stream refuses the start as a damaged store does.
+            Err(problem) => {
+                #[cfg(feature = "persistence")]
+                if let Some(clean) = &clean_shutdown {
+                    return Err(StartError::Storage(StoreError::Damaged {
+                        path: clean.dir.clone(),
+                        problem,
+                    }));
+                }
+                return Err(StartError::Storage(StoreError::Engine(problem.into())));
+            }
+        };
         if core.persistence.is_some() {
             tracing::info!(
                 exchanges = report.exchanges,

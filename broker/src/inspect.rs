@@ -195,6 +195,21 @@ pub struct QueueInfo {
     pub message_stats: QueueMessageStats,
     /// The policy and operator policy that apply.
     pub policies: Applied,
+    /// A stream's offsets and files (`None` for a classic queue).
+    pub stream: Option<StreamFigures>,
+}
+
+/// A stream's offsets and files, as listings and metrics show them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StreamFigures {
+    /// The oldest offset held (the next one's when empty).
+    pub first_offset: u64,
+    /// The newest offset held; `None` when empty.
+    pub last_offset: Option<u64>,
+    /// Segment files.
+    pub segments: u64,
+    /// Bytes of its segment files.
+    pub bytes: u64,
 }
 
 impl QueueInfo {
@@ -467,6 +482,7 @@ impl QueueRef {
                 ack: c.acknowledged.get(),
             },
             policies: queue.policies(),
+            stream: queue.stream_figures(),
         }
     }
 

@@ -191,7 +191,7 @@ pub use error::AmqpError;
 pub use inspect::{
     BindingInfo, BusyPollFigures, ChannelInfo, ChurnTotals, ConnectionInfo, ConsumerInfo,
     DestinationKind, ExchangeInfo, GlobalMessageStats, ObjectTotals, Overview, QueueInfo,
-    QueueMessageStats, QueueRef, QueueTotals,
+    QueueMessageStats, QueueRef, QueueTotals, StreamFigures,
 };
 #[cfg(feature = "mqtt")]
 pub use mqtt::RetainedLimits;

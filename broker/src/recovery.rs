@@ -45,8 +45,9 @@ fn message(record: &MessageRecord, stored: Stored) -> Arc<Message> {
     })
 }
 
-/// Applies `recovered` to `core`.
-pub fn recover(core: &Core, mut recovered: Recovered) -> RecoveryReport {
+/// Applies `recovered` to `core`; a damaged stream is the error (what is
+/// wrong, naming its file), unless the broker was told to recover.
+pub fn recover(core: &Core, mut recovered: Recovered) -> Result<RecoveryReport, String> {
     let mut report = RecoveryReport::default();
     let mut cleanup = Vec::new();
     for record in &recovered.exchanges {
@@ -84,7 +85,7 @@ pub fn recover(core: &Core, mut recovered: Recovered) -> RecoveryReport {
     let now = Instant::now();
     for record in &recovered.queues {
         let vhost = core.vhost_or_create(&record.vhost);
-        let Some(queue) = vhost.restore_queue(record) else {
+        let Some(queue) = vhost.restore_queue(record)? else {
             continue;
         };
         report.queues += 1;
@@ -145,5 +146,5 @@ pub fn recover(core: &Core, mut recovered: Recovered) -> RecoveryReport {
         );
         persistence.submit(cleanup);
     }
-    report
+    Ok(report)
 }

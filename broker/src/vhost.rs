@@ -490,6 +490,9 @@ impl Vhost {
             &decl.name,
             &self.name,
         )?;
+        let (policies, applied) = self.policies_for(ObjectKind::Stream, decl.name.as_bytes());
+        let args = args
+            .with_policy_segment_size(&options.arguments, applied.stream_max_segment_size_bytes());
         let Some(persistence) = self.persistence.as_ref().map(Arc::clone) else {
             return Err(AmqpError::precondition_failed(format_args!(
                 "cannot declare stream '{}' in vhost '{}': this broker keeps nothing on disk (streams need a data directory)",
@@ -539,8 +542,11 @@ impl Vhost {
             (persistence, id),
             Arc::clone(&self.counters),
         ));
+        self.give_new_queue(&queue, applied);
         queues.insert(decl.name, Arc::clone(&queue));
         self.queue_changes.fetch_add(1, Ordering::Release);
+        drop(queues);
+        self.catch_up_queue(&queue, &policies);
         Ok((queue, true))
     }
 
@@ -957,8 +963,10 @@ impl Vhost {
         write(&self.exchanges).insert(record.name.clone(), Arc::new(exchange));
     }
 
-    /// Re-creates a stored queue at start (its messages are restored by the caller).
-    pub fn restore_queue(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
+    /// Re-creates a stored queue at start (its messages are restored by
+    /// the caller); a stream whose files are damaged is the error (see
+    /// [`Vhost::restore_stream`]).
+    pub fn restore_queue(&self, record: &QueueRecord) -> Result<Option<Arc<Queue>>, String> {
         if crate::queue::is_stream(&record.arguments) {
             return self.restore_stream(record);
         }
@@ -981,7 +989,9 @@ impl Vhost {
                 QueueArgs::default()
             }
         };
-        let persistence = Arc::clone(self.persistence.as_ref()?);
+        let Some(persistence) = self.persistence.as_ref().map(Arc::clone) else {
+            return Ok(None);
+        };
         let queue = Arc::new(Queue::new(
             record.name.clone(),
             self.name.clone(),
@@ -993,12 +1003,16 @@ impl Vhost {
         ));
         write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
         self.queue_changes.fetch_add(1, Ordering::Release);
-        Some(queue)
+        Ok(Some(queue))
     }
 
-    /// Re-creates a stored stream at start, opening (and checking) its log.
-    fn restore_stream(&self, record: &QueueRecord) -> Option<Arc<Queue>> {
-        let persistence = Arc::clone(self.persistence.as_ref()?);
+    /// Re-creates a stored stream at start, opening (and checking) its
+    /// log: damage found is the error (what is wrong, naming the file)
+    /// unless the broker recovers (`--recover`).
+    fn restore_stream(&self, record: &QueueRecord) -> Result<Option<Arc<Queue>>, String> {
+        let Some(persistence) = self.persistence.as_ref().map(Arc::clone) else {
+            return Ok(None);
+        };
         let args = match StreamArgs::parse(
             &record.arguments,
             true,
@@ -1011,14 +1025,21 @@ impl Vhost {
             Ok(args) => args,
             Err(e) => {
                 tracing::error!(queue = %record.name, vhost = %self.name, error = %e, "stored stream's arguments no longer valid; not restored (its files are kept)");
-                return None;
+                return Ok(None);
             }
         };
-        let stream = match Stream::open(args, Arc::clone(&persistence), record.id, false)? {
-            Ok(stream) => stream,
-            Err(e) => {
+        let stream = match Stream::open(args, Arc::clone(&persistence), record.id, false) {
+            None => return Ok(None),
+            Some(Ok(stream)) => stream,
+            Some(Err(e)) if e.kind() == std::io::ErrorKind::InvalidData => {
+                return Err(format!(
+                    "stream '{}' in vhost '{}': {e}",
+                    record.name, self.name
+                ));
+            }
+            Some(Err(e)) => {
                 tracing::error!(queue = %record.name, vhost = %self.name, error = %e, "cannot open a stream's files; not restored");
-                return None;
+                return Ok(None);
             }
         };
         let options = QueueOptions {
@@ -1038,7 +1059,7 @@ impl Vhost {
         ));
         write(&self.queues).insert(record.name.clone(), Arc::clone(&queue));
         self.queue_changes.fetch_add(1, Ordering::Release);
-        Some(queue)
+        Ok(Some(queue))
     }
 
     /// Re-creates a stored binding at start; false if an end is missing.

@@ -15,9 +15,9 @@
 //! set) and the `cluster_name` global parameter. Everything else is
 //! reported, never dropped silently: other parameters, other global
 //! parameters, unknown keys, other password hashing
-//! algorithms, and queue types Leveret does not have (an `x-queue-type`
-//! other than classic gives a classic queue, without the arguments of its
-//! type, which a classic queue refuses). An empty `password_hash` is, as
+//! algorithms, and queue types Leveret does not have (a quorum queue
+//! gives a classic queue, without the arguments of its type, which a
+//! classic queue refuses). Streams are imported and exported as streams. An empty `password_hash` is, as
 //! in RabbitMQ, a user who cannot log in with a password.
 //!
 //! RabbitMQ 3.10 cannot take argon2id hashes (its import aborts on them,
@@ -527,9 +527,25 @@ impl Definitions {
                 .map(|kind| String::from_utf8_lossy(kind).into_owned())
                 .or_else(|| item.get("type").and_then(Value::as_str).map(str::to_owned))
                 .unwrap_or_else(|| "classic".to_owned());
-            // A quorum queue or a stream from a RabbitMQ export becomes the
-            // classic queue it can be here, without its type's arguments
-            // (which a classic queue refuses), and says so.
+            if kind == "stream" {
+                // A stream stays a stream, with its arguments (checked when
+                // it is declared, as a client's declare is).
+                let mut arguments = arguments;
+                arguments.insert(
+                    leveret_protocol::ShortStr::from_static("x-queue-type"),
+                    leveret_protocol::FieldValue::LongStr(bytes::Bytes::from_static(b"stream")),
+                );
+                let settings = QueueSettings {
+                    durable: flag(item, "durable", true)?,
+                    auto_delete: flag(item, "auto_delete", false)?,
+                    arguments,
+                };
+                d.queues.push((vhost, queue, settings));
+                continue;
+            }
+            // A quorum queue from a RabbitMQ export becomes the classic
+            // queue it can be here, without its type's arguments (which a
+            // classic queue refuses), and says so.
             let (arguments, dropped) = leveret_broker::classic_queue_arguments(&arguments);
             if kind != "classic" {
                 d.warnings.push(format!(
@@ -812,6 +828,11 @@ pub fn export(admin: &Admin, links: &Links) -> Value {
         .iter()
         .filter(|q| q.exclusive_owner.is_none())
         .map(|q| {
+            if q.kind() == "stream" {
+                return json!({"name": q.name, "vhost": q.vhost, "type": "stream",
+                    "durable": q.durable, "auto_delete": q.auto_delete,
+                    "arguments": table(&q.arguments)});
+            }
             let (arguments, dropped) = leveret_broker::classic_queue_arguments(&q.arguments);
             if !dropped.is_empty() {
                 warnings.push(format!(
@@ -997,6 +1018,29 @@ mod tests {
             Some(1000)
         );
         assert_eq!((d.exchanges.len(), d.bindings.len()), (1, 1));
+    }
+
+    #[test]
+    fn a_stream_is_imported_as_a_stream_with_its_arguments() {
+        let text = br#"{
+            "queues": [{"name": "rec", "vhost": "/", "type": "stream", "durable": true, "auto_delete": false, "arguments": {"x-max-age": "7D", "x-stream-max-segment-size-bytes": 1000}},
+                       {"name": "rec2", "vhost": "/", "durable": true, "auto_delete": false, "arguments": {"x-queue-type": "stream"}}]
+        }"#;
+        let d = Definitions::parse(text).unwrap();
+        assert!(d.warnings.is_empty(), "{:?}", d.warnings);
+        for (_, _, settings) in &d.queues {
+            let kind = settings
+                .arguments
+                .get("x-queue-type")
+                .and_then(|v| v.as_bytes());
+            assert_eq!(kind, Some(&b"stream"[..]));
+        }
+        let age = d.queues[0]
+            .2
+            .arguments
+            .get("x-max-age")
+            .and_then(|v| v.as_bytes());
+        assert_eq!(age, Some(&b"7D"[..]));
     }
 
     /// An empty `password_hash` is a user without a password, kept with

@@ -24,7 +24,7 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use axum::routing::get;
 use axum::Router;
-use leveret_broker::{Admin, HistogramFigures, QueueInfo, QueueRef};
+use leveret_broker::{Admin, HistogramFigures, QueueInfo, QueueRef, StreamFigures};
 use prometheus::proto::{
     Bucket, Counter, Gauge, Histogram, LabelPair, Metric, MetricFamily, MetricType,
 };
@@ -183,6 +183,34 @@ const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 12] = [
     ("rabbitmq_queue_messages_acked_total", MetricType::COUNTER, "Total number of messages acknowledged by consumers on a queue", |q| q.message_stats.ack),
     ("rabbitmq_queue_get_empty_total", MetricType::COUNTER, "Total number of times basic.get operations fetched no message on a queue", |q| q.message_stats.get_empty),
 ];
+/// A stream's figure, if it has one (no sample otherwise).
+type StreamFigure = fn(&StreamFigures) -> Option<u64>;
+/// Leveret's per-stream families on `/metrics/per-object`, after
+/// [`QUEUE_INFO`]; classic queues have no samples in them.
+const STREAM_METRICS: [(&str, &str, StreamFigure); 4] = [
+    (
+        "leveret_stream_first_offset",
+        "The oldest offset a stream holds",
+        |s| Some(s.first_offset),
+    ),
+    (
+        "leveret_stream_last_offset",
+        "The newest offset a stream holds (no sample while it is empty)",
+        |s| s.last_offset,
+    ),
+    (
+        "leveret_stream_segments",
+        "Segment files a stream keeps",
+        |s| Some(s.segments),
+    ),
+    (
+        "leveret_stream_disk_bytes",
+        "Bytes of the segment files a stream keeps",
+        |s| Some(s.bytes),
+    ),
+];
+/// The `queue_type` label of a stream, as RabbitMQ names it.
+const STREAM_QUEUE_TYPE: &str = "rabbit_stream_queue";
 /// `/metrics/per-object`'s family of queue details.
 const QUEUE_INFO: (&str, &str) = (
     "rabbitmq_queue_info",
@@ -271,9 +299,14 @@ async fn queue_sums(refs: &[QueueRef]) -> ([u64; QUEUE_METRICS.len()], u64) {
 /// escaped alike), without building its structs for every sample.
 fn per_queue_chunk(index: usize, queues: &[QueueRef], first: bool) -> String {
     use std::fmt::Write;
-    let (name, kind, help) = match QUEUE_METRICS.get(index) {
-        Some(&(name, kind, help, _)) => (name, kind, help),
-        None => (QUEUE_INFO.0, MetricType::GAUGE, QUEUE_INFO.1),
+    let stream_index = index.checked_sub(QUEUE_METRICS.len() + 1);
+    let (name, kind, help) = match (QUEUE_METRICS.get(index), stream_index) {
+        (Some(&(name, kind, help, _)), _) => (name, kind, help),
+        (None, Some(at)) => {
+            let (name, help, _) = STREAM_METRICS[at];
+            (name, MetricType::GAUGE, help)
+        }
+        (None, None) => (QUEUE_INFO.0, MetricType::GAUGE, QUEUE_INFO.1),
     };
     let mut text = String::new();
     if first {
@@ -286,16 +319,28 @@ fn per_queue_chunk(index: usize, queues: &[QueueRef], first: bool) -> String {
     }
     for queue in queues {
         let (vhost, queue_name) = (escaped(queue.vhost()), escaped(queue.name()));
-        let _ = match QUEUE_METRICS.get(index) {
-            Some(&(.., figure)) => writeln!(
+        let _ = match (QUEUE_METRICS.get(index), stream_index) {
+            (Some(&(.., figure)), _) => writeln!(
                 text,
                 "{name}{{vhost=\"{vhost}\",queue=\"{queue_name}\"}} {}",
                 figure(&queue.info())
             ),
-            None => writeln!(
+            (None, Some(at)) => match queue.info().stream.as_ref().and_then(STREAM_METRICS[at].2) {
+                Some(value) => writeln!(
+                    text,
+                    "{name}{{vhost=\"{vhost}\",queue=\"{queue_name}\"}} {value}"
+                ),
+                None => Ok(()),
+            },
+            (None, None) => writeln!(
                 text,
                 "{name}{{vhost=\"{vhost}\",queue=\"{queue_name}\",{}=\"{}\",membership=\"leader\"}} 1",
-                QUEUE_TYPE.0, QUEUE_TYPE.1
+                QUEUE_TYPE.0,
+                if queue.info().stream.is_some() {
+                    STREAM_QUEUE_TYPE
+                } else {
+                    QUEUE_TYPE.1
+                }
             ),
         };
     }
@@ -323,7 +368,7 @@ fn per_object_body(head: String, queues: Vec<QueueRef>) -> Body {
     let families = if queues.is_empty() {
         0
     } else {
-        QUEUE_METRICS.len() + 1
+        QUEUE_METRICS.len() + 1 + STREAM_METRICS.len()
     };
     let start = (Some(head), queues, 0usize, 0usize);
     let stream = futures_util::stream::unfold(start, move |(head, queues, index, at)| async move {

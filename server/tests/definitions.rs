@@ -315,3 +315,45 @@ async fn export_then_import_into_a_fresh_broker_keeps_the_topology() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A stream exports as a stream (`type` and arguments kept) and an
+/// import makes it a stream again, as RabbitMQ 3.10's definitions do.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_exports_and_imports_as_a_stream() {
+    let first = OpsBroker::start("defs-stream-export", &[]);
+    let guest = basic("guest", "guest");
+    let headers = [
+        ("Authorization", guest.as_str()),
+        ("Content-Type", "application/json"),
+    ];
+    let declared = request(
+        first.http,
+        "PUT",
+        "/api/queues/%2F/flight",
+        &headers,
+        br#"{"durable": true, "arguments": {"x-queue-type": "stream", "x-max-age": "1D"}}"#,
+    )
+    .await;
+    assert!(declared.status == 201, "{}", declared.text());
+    let exported = get_json(first.http, "guest", "guest", "/api/definitions").await;
+    assert_eq!(
+        exported["queues"],
+        json!([{"name": "flight", "vhost": "/", "type": "stream", "durable": true, "auto_delete": false,
+                "arguments": {"x-queue-type": "stream", "x-max-age": "1D"}}])
+    );
+    assert_eq!(exported["warnings"], Value::Null, "{exported}");
+
+    let second = OpsBroker::start("defs-stream-import", &[]);
+    let imported = request(
+        second.http,
+        "POST",
+        "/api/definitions",
+        &headers,
+        exported.to_string().as_bytes(),
+    )
+    .await;
+    assert_eq!(imported.status, 200, "{}", imported.text());
+    let queue = get_json(second.http, "guest", "guest", "/api/queues/%2F/flight").await;
+    assert_eq!(queue["type"], "stream", "{queue}");
+    assert_eq!(queue["arguments"]["x-max-age"], "1D", "{queue}");
+}

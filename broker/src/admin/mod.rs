@@ -240,7 +240,7 @@ impl Admin {
                 name, vhost.name
             )));
         }
-        if if_empty && queue.depth().ready > 0 {
+        if if_empty && queue.message_count() > 0 {
             return Err(AmqpError::precondition_failed(format_args!(
                 "queue '{}' in vhost '{}' is not empty",
                 name, vhost.name

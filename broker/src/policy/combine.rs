@@ -82,6 +82,16 @@ impl Applied {
         self.both(|p| p.definition.max_length_bytes)
     }
 
+    /// The user policy's `max-age`, ms.
+    pub fn max_age_ms(&self) -> Option<u64> {
+        self.user(|p| p.definition.max_age_ms)
+    }
+
+    /// The user policy's `stream-max-segment-size-bytes`.
+    pub fn stream_max_segment_size_bytes(&self) -> Option<u64> {
+        self.user(|p| p.definition.stream_max_segment_size_bytes)
+    }
+
     /// The user policy's `overflow`.
     pub fn overflow(&self) -> Option<Overflow> {
         self.user(|p| p.definition.overflow)

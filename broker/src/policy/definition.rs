@@ -65,6 +65,10 @@ pub struct Definition {
     pub dead_letter_routing_key: Option<ShortStr>,
     /// `alternate-exchange`.
     pub alternate_exchange: Option<ShortStr>,
+    /// `max-age` (a stream key), ms.
+    pub max_age_ms: Option<u64>,
+    /// `stream-max-segment-size-bytes` (a stream key).
+    pub stream_max_segment_size_bytes: Option<u64>,
     /// `federation-upstream`.
     pub federation_upstream: Option<String>,
     /// `federation-upstream-set`.
@@ -99,11 +103,6 @@ const REFUSED_KEYS: &[(&str, &str)] = &[
     (
         "max-in-memory-bytes",
         "a quorum queue key; Leveret has no quorum queues",
-    ),
-    ("max-age", "a stream key; Leveret has no streams"),
-    (
-        "stream-max-segment-size-bytes",
-        "a stream key; Leveret has no streams",
     ),
     (
         "federation-upstream-pattern",
@@ -148,6 +147,22 @@ impl Definition {
                 "max-length" => d.max_length = Some(int(0, i64::MAX, "maximum length")?),
                 "max-length-bytes" => {
                     d.max_length_bytes = Some(int(0, i64::MAX, "maximum length in bytes")?)
+                }
+                "max-age" => {
+                    d.max_age_ms = Some(
+                        match value {
+                            PolicyValue::Text(s) => crate::queue::max_age_ms(s.as_bytes()),
+                            _ => None,
+                        }
+                        .ok_or_else(|| format!("{} is not a valid max age", shown(value)))?,
+                    )
+                }
+                "stream-max-segment-size-bytes" => {
+                    d.stream_max_segment_size_bytes = Some(int(
+                        0,
+                        crate::queue::MAX_SEGMENT_BYTES as i64,
+                        "segment size",
+                    )?)
                 }
                 "overflow" => {
                     d.overflow = Some(
@@ -204,6 +219,32 @@ impl Definition {
         }
         Ok(d)
     }
+}
+
+/// The keys a policy may hold to apply to a stream: RabbitMQ 3.10 applies
+/// a policy to a stream only if every key is one of these (its other
+/// stream keys, `queue-leader-locator` and `initial-cluster-size`, Leveret
+/// refuses), and to a classic queue only if none is a stream-only key.
+pub const STREAM_KEYS: [&str; 3] = [
+    "max-length-bytes",
+    "max-age",
+    "stream-max-segment-size-bytes",
+];
+
+/// The stream keys a policy for a classic queue may not hold.
+const STREAM_ONLY_KEYS: [&str; 2] = ["max-age", "stream-max-segment-size-bytes"];
+
+/// Which kinds of queue a policy with these keys applies to, as RabbitMQ
+/// 3.10's queue types judge it (`is_policy_applicable`): (classic
+/// queues, streams).
+pub fn applicable(given: &[(String, PolicyValue)]) -> (bool, bool) {
+    let classic = given
+        .iter()
+        .all(|(key, _)| !STREAM_ONLY_KEYS.contains(&key.as_str()));
+    let stream = given
+        .iter()
+        .all(|(key, _)| STREAM_KEYS.contains(&key.as_str()));
+    (classic, stream)
 }
 
 fn shown(value: &PolicyValue) -> String {

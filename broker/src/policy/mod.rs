@@ -108,6 +108,9 @@ pub struct Policy {
     pub spec: PolicySpec,
     /// The definition read.
     pub definition: Definition,
+    /// Whether it may apply to classic queues and to streams (its keys
+    /// decide: [`definition::applicable`]).
+    applicable: (bool, bool),
     #[cfg(feature = "regex")]
     matcher: regex::bytes::Regex,
     /// Without the regex engine: `.*` and literal names and prefixes only.
@@ -149,6 +152,7 @@ impl Policy {
             prefix,
             name: name.to_owned(),
             kind,
+            applicable: definition::applicable(&spec.definition),
             spec,
             definition,
             matcher,
@@ -156,12 +160,13 @@ impl Policy {
     }
 
     fn matches(&self, object: ObjectKind, name: &[u8]) -> bool {
-        let kind_fits = matches!(
-            (self.spec.apply_to, object),
-            (ApplyTo::All, _)
-                | (ApplyTo::Queues, ObjectKind::Queue)
-                | (ApplyTo::Exchanges, ObjectKind::Exchange)
-        );
+        let (classic, stream) = self.applicable;
+        let kind_fits = match (self.spec.apply_to, object) {
+            (ApplyTo::Exchanges | ApplyTo::All, ObjectKind::Exchange) => true,
+            (ApplyTo::Queues | ApplyTo::All, ObjectKind::Queue) => classic,
+            (ApplyTo::Queues | ApplyTo::All, ObjectKind::Stream) => stream,
+            _ => false,
+        };
         #[cfg(feature = "regex")]
         let matched = self.matcher.is_match(name);
         #[cfg(not(feature = "regex"))]
@@ -170,11 +175,16 @@ impl Policy {
     }
 }
 
-/// What a policy is matched against.
+/// What a policy is matched against. A policy is passed over (the next
+/// that matches applies) for a kind of queue its keys do not fit, as in
+/// RabbitMQ 3.10: one with a stream-only key for a classic queue, one
+/// with a key other than a stream's for a stream.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ObjectKind {
-    /// A queue.
+    /// A classic queue.
     Queue,
+    /// A stream queue.
+    Stream,
     /// An exchange.
     Exchange,
 }

@@ -139,6 +139,88 @@ fn keys_leveret_does_not_act_on_are_refused() {
 }
 
 #[test]
+fn stream_keys_are_read_with_rabbitmqs_checks() {
+    let policy = user(
+        "s",
+        ".*",
+        0,
+        &[
+            ("max-age", text("2h")),
+            ("stream-max-segment-size-bytes", int(1000)),
+            ("max-length-bytes", int(3000)),
+        ],
+    );
+    assert_eq!(policy.definition.max_age_ms, Some(7_200_000));
+    assert_eq!(policy.definition.stream_max_segment_size_bytes, Some(1000));
+    for (key, value, says) in [
+        ("max-age", text("0s"), "<<\"0s\">> is not a valid max age"),
+        ("max-age", text("1x"), "<<\"1x\">> is not a valid max age"),
+        ("max-age", text("abc"), "is not a valid max age"),
+        ("max-age", int(5), "5 is not a valid max age"),
+        (
+            "stream-max-segment-size-bytes",
+            int(-1),
+            "-1 is not a valid segment size",
+        ),
+        (
+            "stream-max-segment-size-bytes",
+            int(3_000_000_001),
+            "3000000001 is not a valid segment size",
+        ),
+        (
+            "stream-max-segment-size-bytes",
+            text("5"),
+            "<<\"5\">> is not a valid segment size",
+        ),
+    ] {
+        let error = Policy::new(
+            PolicyKind::User,
+            "p",
+            spec(".*", ApplyTo::All, 0, &[(key, value)]),
+        )
+        .unwrap_err();
+        assert!(error.contains(says), "{key}: {error}");
+    }
+}
+
+/// RabbitMQ 3.10 (checked on the shared node): a policy applies to a
+/// stream only if all its keys are stream keys, to a classic queue only if
+/// none is a stream-only key; otherwise the next match applies. Operator
+/// policies likewise.
+#[test]
+fn a_policy_applies_only_to_the_queue_types_its_keys_fit() {
+    let set = VhostPolicies::default()
+        .with(user(
+            "mixed",
+            ".*",
+            10,
+            &[("max-length", int(5)), ("max-age", text("1h"))],
+        ))
+        .with(user("age", ".*", 5, &[("max-age", text("2h"))]))
+        .with(user("bytes", ".*", 0, &[("max-length-bytes", int(100))]))
+        .with(operator("op-expires", ".*", &[("expires", int(1000))]));
+    let classic = set.applied(ObjectKind::Queue, b"q");
+    let stream = set.applied(ObjectKind::Stream, b"q");
+    assert_eq!(classic.policy_name(), Some("bytes"));
+    assert_eq!(classic.operator_policy_name(), Some("op-expires"));
+    assert_eq!(stream.policy_name(), Some("age"));
+    assert_eq!(stream.max_age_ms(), Some(7_200_000));
+    assert_eq!(stream.operator_policy_name(), None);
+    let set = set.with(operator("op-bytes", ".*", &[("max-length-bytes", int(50))]));
+    let set = set.without(PolicyKind::Operator, "op-expires");
+    let stream = set
+        .without(PolicyKind::User, "age")
+        .applied(ObjectKind::Stream, b"q");
+    assert_eq!(stream.policy_name(), Some("bytes"));
+    assert_eq!(stream.max_length_bytes(), Some(50));
+    // Exchanges are not judged by queue keys.
+    assert_eq!(
+        set.applied(ObjectKind::Exchange, b"q").policy_name(),
+        Some("mixed")
+    );
+}
+
+#[test]
 fn operator_policies_merge_by_the_smaller_value() {
     let set = VhostPolicies::default()
         .with(user(
@@ -210,17 +292,29 @@ fn a_change_costs_one_match_and_agrees_with_a_full_look_up() {
                 "o",
             )
         }),
+        Box::new(|s| {
+            (
+                s.with(user("s", "^q", 5, &[("max-age", text("1h"))])),
+                PolicyKind::User,
+                "s",
+            )
+        }),
+        Box::new(|s| {
+            (
+                s.with(user("a", "^q", 1, &[("max-length-bytes", int(7))])),
+                PolicyKind::User,
+                "a",
+            )
+        }),
     ];
     for change in &changes {
         let (after, kind, name) = change(&before);
         for object in &names {
-            let current = before.applied(ObjectKind::Queue, object);
-            let updated = after.after_change(&current, kind, name, ObjectKind::Queue, object);
-            assert_eq!(
-                updated,
-                after.applied(ObjectKind::Queue, object),
-                "{name} on {object:?}"
-            );
+            for of in [ObjectKind::Queue, ObjectKind::Stream] {
+                let current = before.applied(of, object);
+                let updated = after.after_change(&current, kind, name, of, object);
+                assert_eq!(updated, after.applied(of, object), "{name} on {object:?}");
+            }
         }
     }
 }

@@ -30,7 +30,7 @@ mod stream;
 
 pub use args::{ConsumerArgs, Overflow, QueueArgs};
 pub use leaving::{DeadLetter, DeadLetterReason, DeadLetters, Deleted};
-pub use stream::{is_stream, start_at, StartAt, Stream, StreamArgs};
+pub use stream::{is_stream, max_age_ms, start_at, StartAt, Stream, StreamArgs, MAX_SEGMENT_BYTES};
 
 use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
@@ -263,6 +263,11 @@ impl Queue {
         }
     }
 
+    /// A stream's offsets and files; `None` for a classic queue.
+    pub fn stream_figures(&self) -> Option<crate::inspect::StreamFigures> {
+        self.stream.as_ref().map(Stream::figures)
+    }
+
     /// Whether this queue is a stream.
     pub fn is_stream(&self) -> bool {
         self.stream.is_some()
@@ -480,7 +485,7 @@ impl Queue {
     /// single-active-consumer queue it waits unless none is active.
     pub fn add_consumer(self: &Arc<Self>, consumer: Arc<Consumer>) -> AmqpResult<DeadLetters> {
         if self.stream.is_some() {
-            self.add_stream_consumer(consumer, StartAt::Next)?;
+            self.add_stream_consumer(consumer, StartAt::Next);
             return Ok(self.dispatch());
         }
         {
@@ -524,10 +529,14 @@ impl Queue {
         self.options.auto_delete && st.consumers.is_empty() && !st.deleted
     }
 
-    /// Ready messages, as of the last expiry ([`Queue::expire_at`]).
+    /// Ready messages, as of the last expiry ([`Queue::expire_at`]): what
+    /// queue.declare-ok says and queue.delete's if-empty judges. None for
+    /// a stream, whose consumers take nothing away (RabbitMQ 3.10 says 0
+    /// too, and deletes a stream under if-empty); listings give a stream's
+    /// records ([`Queue::depth`]).
     pub fn message_count(&self) -> u32 {
-        if let Some(stream) = &self.stream {
-            return stream.len().min(u64::from(u32::MAX)) as u32;
+        if self.stream.is_some() {
+            return 0;
         }
         self.lock().ready.len() as u32
     }

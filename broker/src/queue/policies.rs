@@ -8,7 +8,7 @@
 //! fixed when it arrives, in RabbitMQ too).
 
 use super::{DeadLetters, Queue, DEAD_LETTERS_PER_STEP};
-use crate::policy::Applied;
+use crate::policy::{Applied, ObjectKind};
 use crate::slice::Progress;
 
 impl Queue {
@@ -16,6 +16,13 @@ impl Queue {
     /// length limit pushes out come back as dead letters for the caller to
     /// route, with [`Progress::More`] if [`Queue::shorten_step`] has more.
     pub fn apply_policies(&self, applied: Applied) -> (DeadLetters, Progress) {
+        if let Some(stream) = &self.stream {
+            // A stream acts on its own keys only (the policies that reach
+            // it hold no other: `ObjectKind::Stream`).
+            stream.apply_policies(&applied);
+            self.lock().applied = applied;
+            return (DeadLetters::default(), Progress::Done);
+        }
         let mut st = self.lock();
         if st.deleted || st.applied == applied {
             // The same policies, found in a newer set.
@@ -44,6 +51,16 @@ impl Queue {
         let more = self.drop_over_length(&mut self.lock(), &mut dead, DEAD_LETTERS_PER_STEP);
         let progress = if more { Progress::More } else { Progress::Done };
         (DeadLetters(dead), progress)
+    }
+
+    /// What policies are matched against for this queue (a stream's and a
+    /// classic queue's differ).
+    pub fn policy_object(&self) -> ObjectKind {
+        if self.stream.is_some() {
+            ObjectKind::Stream
+        } else {
+            ObjectKind::Queue
+        }
     }
 
     /// The policies that apply to the queue.

@@ -134,8 +134,9 @@ pub struct Persistence {
     start: u64,
     figures: Arc<GroupFigures>,
     /// Where streams keep their segment files (`<data dir>/streams`), set
-    /// once by the broker that opened the store in a data directory.
-    stream_root: std::sync::OnceLock<std::path::PathBuf>,
+    /// once by the broker that opened the store in a data directory, and
+    /// whether a damaged stream is recovered (`--recover`) or refused.
+    stream_root: std::sync::OnceLock<(std::path::PathBuf, bool)>,
 }
 
 /// Ops per group commit: Prometheus-style bucket bounds.
@@ -401,15 +402,22 @@ impl Persistence {
         self.start << START_SHIFT
     }
 
-    /// Sets where streams keep their files (once; later calls are ignored).
-    pub fn set_stream_root(&self, dir: std::path::PathBuf) {
-        let _ = self.stream_root.set(dir);
+    /// Sets where streams keep their files and whether a damaged one is
+    /// recovered (once; later calls are ignored).
+    pub fn set_stream_root(&self, dir: std::path::PathBuf, recover: bool) {
+        let _ = self.stream_root.set((dir, recover));
     }
 
     /// Where stream `id` keeps its segment files, if the store lives in a
     /// data directory.
     pub fn stream_dir(&self, id: u64) -> Option<std::path::PathBuf> {
-        Some(self.stream_root.get()?.join(id.to_string()))
+        Some(self.stream_root.get()?.0.join(id.to_string()))
+    }
+
+    /// Whether a damaged stream is recovered at start (`--recover`)
+    /// rather than refused.
+    pub fn recover_streams(&self) -> bool {
+        self.stream_root.get().is_some_and(|(_, recover)| *recover)
     }
 
     /// Queues ops for the next group; returns their submission number.

@@ -39,7 +39,10 @@ impl Vhost {
             if Arc::ptr_eq(&now, &seen) {
                 return;
             }
-            self.give_new_queue(queue, now.applied(ObjectKind::Queue, queue.name.as_bytes()));
+            self.give_new_queue(
+                queue,
+                now.applied(queue.policy_object(), queue.name.as_bytes()),
+            );
             seen = now;
         }
     }
@@ -103,7 +106,7 @@ impl Vhost {
                 &queue.policies(),
                 kind,
                 name,
-                ObjectKind::Queue,
+                queue.policy_object(),
                 queue.name.as_bytes(),
             );
             self.apply_queue_policies(&queue, applied);

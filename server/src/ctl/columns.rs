@@ -83,6 +83,10 @@ pub const QUEUES: Table = Table {
         ("consumers", &["consumers"]),
         ("state", &["state"]),
         ("type", &["type"]),
+        ("first_offset", &["stream", "first_offset"]),
+        ("last_offset", &["stream", "last_offset"]),
+        ("segments", &["stream", "segments"]),
+        ("disk_bytes", &["stream", "bytes"]),
     ],
     default: &["name", "messages"],
 };

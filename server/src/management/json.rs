@@ -112,6 +112,14 @@ pub fn queue(q: &QueueInfo, node: &str, rates: &QueueRates) -> Value {
         },
     });
     with_policies(&mut queue, &q.policies);
+    if let (Some(stream), Some(map)) = (&q.stream, queue.as_object_mut()) {
+        // Leveret's: a stream's offsets and files.
+        map.insert(
+            "stream".to_owned(),
+            json!({"first_offset": stream.first_offset, "last_offset": stream.last_offset,
+                   "segments": stream.segments, "bytes": stream.bytes}),
+        );
+    }
     queue
 }
 

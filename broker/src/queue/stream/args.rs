@@ -11,6 +11,9 @@ use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 
 /// RabbitMQ's default segment size (500 MB).
 pub const DEFAULT_SEGMENT_BYTES: u64 = 500_000_000;
+/// RabbitMQ 3.10's largest segment size (3 GB), as an argument and in a
+/// policy.
+pub const MAX_SEGMENT_BYTES: u64 = 3_000_000_000;
 
 /// The leader locators RabbitMQ 3.10 knows.
 const LEADER_LOCATORS: [&[u8]; 4] = [b"client-local", b"balanced", b"random", b"least-leaders"];
@@ -26,6 +29,25 @@ pub struct StreamArgs {
     pub segment_bytes: u64,
 }
 
+impl StreamArgs {
+    /// The segment size for a stream declared with `arguments` while
+    /// `policy_size` (`stream-max-segment-size-bytes`) applies: the
+    /// smaller where both set one (RabbitMQ 3.10's `args_policy_lookup`).
+    pub fn with_policy_segment_size(
+        mut self,
+        arguments: &FieldTable,
+        policy_size: Option<u64>,
+    ) -> Self {
+        let declared = arguments
+            .get("x-stream-max-segment-size-bytes")
+            .map(|_| self.segment_bytes);
+        if let Some(size) = crate::policy::stricter(declared, policy_size) {
+            self.segment_bytes = size;
+        }
+        self
+    }
+}
+
 /// Where a stream consumer starts (`x-stream-offset`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum StartAt {
@@ -35,7 +57,8 @@ pub enum StartAt {
     Last,
     /// The next record appended (the default).
     Next,
-    /// This offset (clamped to what is held).
+    /// This offset: the first held if that is gone; waited for if not yet
+    /// written.
     Offset(u64),
     /// The first record at or after this time, ms since the epoch.
     Timestamp(i64),
@@ -78,6 +101,12 @@ fn duration_ms(text: &[u8]) -> Result<u64, DurationError> {
         return Err(DurationError::Invalid);
     }
     Ok(value.saturating_mul(unit_s).saturating_mul(1000))
+}
+
+/// A `max-age` duration (`x-max-age`, the `max-age` policy key) in
+/// milliseconds, `None` if it is not one.
+pub fn max_age_ms(text: &[u8]) -> Option<u64> {
+    duration_ms(text).ok()
 }
 
 /// RabbitMQ 3.10 answers a duration with no number first by failing in its
@@ -164,7 +193,12 @@ impl StreamArgs {
                     args.max_bytes = Some(non_negative("x-max-length-bytes", value)?)
                 }
                 b"x-stream-max-segment-size-bytes" => {
-                    args.segment_bytes = non_negative("x-stream-max-segment-size-bytes", value)?
+                    args.segment_bytes = non_negative("x-stream-max-segment-size-bytes", value)?;
+                    if args.segment_bytes > MAX_SEGMENT_BYTES {
+                        return Err(AmqpError::precondition_failed(
+                            "Exceeded max value for x-stream-max-segment-size-bytes",
+                        ));
+                    }
                 }
                 b"x-max-age" => match value {
                     FieldValue::LongStr(text) => match duration_ms(text) {
@@ -292,6 +326,24 @@ mod tests {
         );
         let ok = StreamArgs::parse(&args, true, false, false, false, &q, &v).unwrap();
         assert_eq!(ok.segment_bytes, DEFAULT_SEGMENT_BYTES);
+        for (size, accepted) in [(MAX_SEGMENT_BYTES, true), (MAX_SEGMENT_BYTES + 1, false)] {
+            let mut sized = args.clone();
+            sized.insert(
+                ShortStr::from_static("x-stream-max-segment-size-bytes"),
+                FieldValue::I64(size as i64),
+            );
+            let parsed = StreamArgs::parse(&sized, true, false, false, false, &q, &v);
+            match parsed {
+                Ok(parsed) => assert!(accepted && parsed.segment_bytes == size),
+                Err(e) => {
+                    assert!(!accepted);
+                    assert_eq!(
+                        e.to_string(),
+                        "406 PRECONDITION_FAILED - Exceeded max value for x-stream-max-segment-size-bytes"
+                    );
+                }
+            }
+        }
         let mut ttl = args.clone();
         ttl.insert(ShortStr::from_static("x-message-ttl"), FieldValue::I32(5));
         assert!(

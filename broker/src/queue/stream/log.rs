@@ -17,10 +17,31 @@
 //! them durable by handing [`StreamLog::sync_handles`] to the persister,
 //! whose group commit syncs them before the publish is confirmed.
 //!
-//! Opening reads every segment and checks every record: a bad checksum, a
-//! torn record or an offset out of sequence is reported (an error log
-//! naming the file, the position and the records lost) and the segment is
-//! cut there; the records after it are never served as if sound.
+//! A segment that is closed (the log rolled past it) is sealed: beside it,
+//! `NAME.seg.seal` holds its first and next offset, its oldest and newest
+//! timestamps and its length, with a CRC-32 of those. Opening trusts a
+//! sealed segment whose seal checks, whose length is the seal's and whose
+//! header is sound, without reading its records: start-up reads the
+//! seals, the headers and the newest segment, not the whole log. A record
+//! in a sealed segment is checked when it is read (its CRC, its offset,
+//! its length within the segment): damage there stops the reader before
+//! it, with an error log, and is never served. A closed segment without a
+//! seal that checks (sealing lost, or a length that differs) is read whole
+//! as the newest is, and sealed if sound.
+//!
+//! Opening reads every unsealed segment and checks every record. Damage refuses
+//! the open with an error naming the file, the position and what is
+//! wrong ([`Damage`]): a bad checksum, an offset out of sequence, a bad
+//! segment header, a torn record in any segment but the newest, missing
+//! segments or a missing directory. The one thing taken as sound is a torn
+//! tail of the newest segment (fewer bytes than its record needs, or only
+//! zeros: a crash cut the append short, before any confirm covered it),
+//! which is cut with a warning; a truncation of the newest segment looks
+//! the same and is cut the same way (nothing records how far it was
+//! synced). With `recover` the open goes on instead: each damaged file is
+//! copied aside (`NAME.seg.damaged-SECONDS`), what is lost is logged, and
+//! the segment is cut at its last sound record; the records after it are
+//! never served as if sound.
 
 use std::fs::{File, OpenOptions};
 use std::io::{self, Read};
@@ -30,6 +51,10 @@ use std::sync::Arc;
 
 /// A segment file's first bytes.
 const MAGIC: &[u8; 8] = b"LVRTSTM1";
+/// A seal file's first bytes.
+const SEAL_MAGIC: &[u8; 8] = b"LVRTSEAL";
+/// Magic, first, next, oldest, newest, length, CRC-32.
+const SEAL_LEN: usize = 8 + 5 * 8 + 4;
 /// Magic and first offset.
 const SEGMENT_HEADER: u64 = 16;
 /// Length, CRC, offset, timestamp, flags.
@@ -106,7 +131,8 @@ impl Cursor {
 /// it: the segments' files from the cursor's on.
 #[derive(Debug, Clone)]
 pub struct ReadPlan {
-    segments: Vec<(u64, u64, Arc<File>)>,
+    /// First and next offset, length and file of each.
+    segments: Vec<(u64, u64, u64, Arc<File>)>,
 }
 
 /// The log (see the module docs).
@@ -138,6 +164,9 @@ struct Scanned {
     last_chunk: Option<u64>,
     /// Why it ends before the file does, if it does.
     damage: Option<String>,
+    /// The part after `sound` is what a crash leaves at the end of the
+    /// newest segment: a torn record or zeros.
+    torn_tail: bool,
 }
 
 fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
@@ -150,6 +179,7 @@ fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
         sound: SEGMENT_HEADER,
         last_chunk: None,
         damage: None,
+        torn_tail: false,
     };
     if len < SEGMENT_HEADER || reader.read_exact(&mut header).is_err() {
         found.sound = 0;
@@ -165,14 +195,18 @@ fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
     while found.sound < len {
         if len - found.sound < RECORD_HEADER as u64 {
             found.damage = Some("torn record header".into());
+            found.torn_tail = true;
             break;
         }
         reader.read_exact(&mut record[..RECORD_HEADER])?;
         let payload_len = u32::from_le_bytes(record[..4].try_into().expect("4"));
-        if payload_len > MAX_PAYLOAD
-            || len - found.sound - (RECORD_HEADER as u64) < u64::from(payload_len)
-        {
-            found.damage = Some("torn or impossible record length".into());
+        if payload_len > MAX_PAYLOAD {
+            found.damage = Some("impossible record length".into());
+            break;
+        }
+        if len - found.sound - (RECORD_HEADER as u64) < u64::from(payload_len) {
+            found.damage = Some("torn record".into());
+            found.torn_tail = true;
             break;
         }
         record.resize(RECORD_HEADER + payload_len as usize, 0);
@@ -180,6 +214,8 @@ fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
         let crc = u32::from_le_bytes(record[4..8].try_into().expect("4"));
         if checksum(&record[8..]) != crc {
             found.damage = Some("bad checksum".into());
+            found.torn_tail =
+                record.iter().all(|b| *b == 0) && zeros_to_end(file, found.sound, len)?;
             break;
         }
         let offset = u64::from_le_bytes(record[8..16].try_into().expect("8"));
@@ -200,6 +236,100 @@ fn scan(file: &File, first: u64, len: u64) -> io::Result<Scanned> {
     Ok(found)
 }
 
+/// Whether `file` holds only zeros from `from` to `len`.
+fn zeros_to_end(file: &File, from: u64, len: u64) -> io::Result<bool> {
+    let mut buf = vec![0u8; 64 * 1024];
+    let mut at = from;
+    while at < len {
+        let n = buf.len().min((len - at) as usize);
+        file.read_exact_at(&mut buf[..n], at)?;
+        if buf[..n].iter().any(|b| *b != 0) {
+            return Ok(false);
+        }
+        at += n as u64;
+    }
+    Ok(true)
+}
+
+/// Damage found opening a stream's log without `recover`: what is wrong,
+/// naming the file (an [`io::ErrorKind::InvalidData`] error's text).
+fn damage(text: String) -> io::Error {
+    io::Error::new(io::ErrorKind::InvalidData, text)
+}
+
+/// The file beside a segment that says the offsets before it (after the
+/// previous segment's last) were lost in a recovery: that gap is then no
+/// longer damage.
+fn loss_marker(segment: &Path) -> PathBuf {
+    let mut name = segment.as_os_str().to_owned();
+    name.push(".lost");
+    PathBuf::from(name)
+}
+
+/// A segment's seal file (module docs).
+fn seal_path(segment: &Path) -> PathBuf {
+    let mut name = segment.as_os_str().to_owned();
+    name.push(".seal");
+    PathBuf::from(name)
+}
+
+/// Seals a closed segment (module docs). Not synced: a seal lost or cut
+/// short by a crash fails its check, and the segment is read whole.
+fn write_seal(segment: &Segment) -> io::Result<()> {
+    let mut seal = Vec::with_capacity(SEAL_LEN);
+    seal.extend_from_slice(SEAL_MAGIC);
+    for value in [segment.first, segment.next] {
+        seal.extend_from_slice(&value.to_le_bytes());
+    }
+    for value in [segment.oldest_ms, segment.newest_ms] {
+        seal.extend_from_slice(&value.to_le_bytes());
+    }
+    seal.extend_from_slice(&segment.bytes.to_le_bytes());
+    let crc = checksum(&seal);
+    seal.extend_from_slice(&crc.to_le_bytes());
+    std::fs::write(seal_path(&segment.path), seal)
+}
+
+/// What a segment's seal says, if it checks against the segment: its
+/// CRC, first offset, the file's length `len` and header.
+fn read_seal(path: &Path, file: &File, first: u64, len: u64) -> Option<Scanned> {
+    let seal = std::fs::read(seal_path(path)).ok()?;
+    if seal.len() != SEAL_LEN || &seal[..8] != SEAL_MAGIC {
+        return None;
+    }
+    let field = |i: usize| u64::from_le_bytes(seal[8 + 8 * i..16 + 8 * i].try_into().expect("8"));
+    let crc = u32::from_le_bytes(seal[SEAL_LEN - 4..].try_into().expect("4"));
+    if checksum(&seal[..SEAL_LEN - 4]) != crc || field(0) != first || field(4) != len {
+        return None;
+    }
+    let mut header = [0u8; SEGMENT_HEADER as usize];
+    file.read_exact_at(&mut header, 0).ok()?;
+    if &header[..8] != MAGIC || header[8..] != first.to_le_bytes() || field(1) <= first {
+        return None;
+    }
+    Some(Scanned {
+        next: field(1),
+        oldest_ms: field(2) as i64,
+        newest_ms: field(3) as i64,
+        sound: len,
+        last_chunk: None,
+        damage: None,
+        torn_tail: false,
+    })
+}
+
+/// Copies a damaged segment aside before it is cut.
+fn copy_aside(path: &Path) -> io::Result<PathBuf> {
+    let stamp = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let mut name = path.as_os_str().to_owned();
+    name.push(format!(".damaged-{stamp}"));
+    let copy = PathBuf::from(name);
+    std::fs::copy(path, &copy)?;
+    Ok(copy)
+}
+
 impl StreamLog {
     /// A new, empty log in `dir`: whatever the directory held (the files
     /// of a deleted stream whose removal a crash cut short) goes first.
@@ -209,13 +339,21 @@ impl StreamLog {
             _ => {}
         }
         std::fs::create_dir_all(dir)?;
-        StreamLog::open(dir, max_segment_bytes)
+        StreamLog::open(dir, max_segment_bytes, false)
     }
 
-    /// Opens (or creates) the log in `dir`, checking every record; damage
-    /// is reported as an error log and the damaged segment cut there.
-    pub fn open(dir: &Path, max_segment_bytes: u64) -> io::Result<StreamLog> {
+    /// Opens the log in `dir`, checking every record: damage is an error
+    /// ([`io::ErrorKind::InvalidData`], naming the file and what is wrong)
+    /// unless `recover`, when the damaged file is copied aside, the loss
+    /// logged and the segment cut at its last sound record (module docs).
+    pub fn open(dir: &Path, max_segment_bytes: u64, recover: bool) -> io::Result<StreamLog> {
         if !dir.exists() {
+            if !recover {
+                return Err(damage(format!(
+                    "the stream directory {} is missing",
+                    dir.display()
+                )));
+            }
             tracing::error!(stream = %dir.display(), "a stored stream's directory is missing: its records are lost; it starts empty");
         }
         std::fs::create_dir_all(dir)?;
@@ -235,21 +373,61 @@ impl StreamLog {
             segments: Vec::new(),
             last_chunk: 0,
         };
+        let newest = firsts.last().copied();
         let mut expected = firsts.first().copied().unwrap_or(0);
         for first in firsts {
             let path = segment_path(dir, first);
             let file = OpenOptions::new().read(true).write(true).open(&path)?;
             let len = file.metadata()?.len();
-            let found = scan(&file, first, len)?;
+            let closed = Some(first) != newest;
+            let sealed = if closed {
+                read_seal(&path, &file, first, len)
+            } else {
+                None
+            };
+            let trusted = sealed.is_some();
+            let found = match sealed {
+                Some(found) => found,
+                None => scan(&file, first, len)?,
+            };
             if first < expected {
+                if !recover {
+                    return Err(damage(format!(
+                        "stream segment {} overlaps the one before it (offsets from {first}, {expected} expected)",
+                        path.display()
+                    )));
+                }
                 tracing::error!(stream = %dir.display(), segment = %path.display(), "stream segment overlaps the one before it; left out (its file is kept)");
                 continue;
             }
-            if first > expected {
-                tracing::error!(stream = %dir.display(), segment = %path.display(), missing_from = expected, missing_to = first - 1, "stream segments are missing: these offsets are lost");
+            if first > expected && loss_marker(&path).exists() {
+                tracing::info!(stream = %dir.display(), segment = %path.display(), missing_from = expected, missing_to = first - 1, "stream offsets lost in an earlier recovery");
+            } else if first > expected {
+                if !recover {
+                    return Err(damage(format!(
+                        "stream segments are missing before {}: offsets {expected} to {} are lost",
+                        path.display(),
+                        first - 1
+                    )));
+                }
+                tracing::error!(stream = %dir.display(), segment = %path.display(), missing_from = expected, missing_to = first - 1, "recovering a stream with missing offsets: these are lost");
+                File::create(loss_marker(&path))?.sync_all()?;
             }
             if let Some(why) = &found.damage {
-                tracing::error!(stream = %dir.display(), segment = %path.display(), position = found.sound, sound_records = found.next - first, bytes_lost = len - found.sound, reason = %why, "damaged stream segment: the records from here to its end are lost and the file is cut there");
+                let crash_tail = found.torn_tail && Some(first) == newest && found.sound > 0;
+                if crash_tail {
+                    tracing::warn!(stream = %dir.display(), segment = %path.display(), position = found.sound, bytes = len - found.sound, reason = %why, "the newest stream segment ends in a torn append (a crash before it was confirmed): cut there");
+                } else if !recover {
+                    return Err(damage(format!(
+                        "stream segment {} is damaged at byte {} of {len} ({why}): offsets from {} on would be lost",
+                        path.display(),
+                        found.sound,
+                        found.next
+                    )));
+                } else {
+                    let copy = copy_aside(&path)?;
+                    tracing::error!(stream = %dir.display(), segment = %path.display(), copy = %copy.display(), position = found.sound, sound_records = found.next - first, lost_from_offset = found.next, bytes_lost = len - found.sound, reason = %why, "recovering a damaged stream segment: copied aside; the records from here to its end are lost and the file is cut there");
+                }
                 if found.sound == 0 {
                     // Not even its header is sound: nothing to keep.
                     continue;
@@ -260,7 +438,7 @@ impl StreamLog {
                 log.last_chunk = chunk;
             }
             expected = found.next;
-            log.segments.push(Segment {
+            let segment = Segment {
                 first,
                 next: found.next,
                 oldest_ms: found.oldest_ms,
@@ -268,7 +446,13 @@ impl StreamLog {
                 bytes: found.sound,
                 path,
                 file: Arc::new(file),
-            });
+            };
+            if closed && !trusted && found.next > first {
+                if let Err(e) = write_seal(&segment) {
+                    tracing::warn!(segment = %segment.path.display(), error = %e, "cannot seal a stream segment: it is read whole at each start");
+                }
+            }
+            log.segments.push(segment);
         }
         if log.segments.is_empty() {
             log.start_segment(expected)?;
@@ -318,9 +502,9 @@ impl StreamLog {
             .map_or(self.next_offset(), |s| s.first)
     }
 
-    /// Records held.
+    /// Records held (offsets a recovery lost between segments are not).
     pub fn len(&self) -> u64 {
-        self.next_offset() - self.first_offset()
+        self.segments.iter().map(|s| s.next - s.first).sum()
     }
 
     /// First offset of the newest chunk (`next_offset` when empty).
@@ -337,6 +521,11 @@ impl StreamLog {
         self.segments.iter().map(|s| s.bytes).sum()
     }
 
+    /// Segment files.
+    pub fn segment_count(&self) -> usize {
+        self.segments.len()
+    }
+
     /// Appends one record; returns its offset and whether a new segment
     /// was started (its file and the directory then need syncing too).
     pub fn append(
@@ -350,6 +539,9 @@ impl StreamLog {
         let head = self.head();
         if head.next > head.first && head.bytes + size > self.max_segment_bytes {
             let first = head.next;
+            if let Err(e) = write_seal(head) {
+                tracing::warn!(segment = %head.path.display(), error = %e, "cannot seal a stream segment: it is read whole at each start");
+            }
             self.start_segment(first)?;
             rolled = true;
         }
@@ -435,7 +627,7 @@ impl StreamLog {
                 .segments
                 .iter()
                 .filter(|s| s.next > cursor.offset && s.next > s.first)
-                .map(|s| (s.first, s.next, Arc::clone(&s.file)))
+                .map(|s| (s.first, s.next, s.bytes, Arc::clone(&s.file)))
                 .collect(),
         }
     }
@@ -457,6 +649,8 @@ pub fn remove_files(paths: Vec<PathBuf>) {
         if let Err(e) = std::fs::remove_file(&path) {
             tracing::warn!(segment = %path.display(), error = %e, "could not remove a stream segment retention let go");
         }
+        let _ = std::fs::remove_file(loss_marker(&path));
+        let _ = std::fs::remove_file(seal_path(&path));
     }
 }
 
@@ -469,7 +663,7 @@ impl ReadPlan {
     pub fn read(&self, cursor: &mut Cursor, max_records: usize, max_bytes: usize) -> Vec<Record> {
         let mut out = Vec::new();
         let mut bytes = 0;
-        for (first, next, file) in &self.segments {
+        for (first, next, length, file) in &self.segments {
             if cursor.offset >= *next {
                 continue;
             }
@@ -504,18 +698,22 @@ impl ReadPlan {
                     continue;
                 }
                 cursor.not_before = None;
+                if pos + (RECORD_HEADER + len) as u64 > *length {
+                    tracing::error!(
+                        position = pos,
+                        offset,
+                        "stream record damaged (its length runs past its segment): not served"
+                    );
+                    return out;
+                }
                 let mut record = vec![0u8; RECORD_HEADER + len];
-                if len as u32 > MAX_PAYLOAD || file.read_exact_at(&mut record, pos).is_err() {
+                if file.read_exact_at(&mut record, pos).is_err() {
                     tracing::error!(position = pos, "stream record unreadable");
                     return out;
                 }
                 let crc = u32::from_le_bytes(record[4..8].try_into().expect("4"));
                 if checksum(&record[8..]) != crc || offset != cursor.offset {
-                    tracing::error!(
-                        position = pos,
-                        offset,
-                        "stream record damaged since start-up: not served"
-                    );
+                    tracing::error!(position = pos, offset, "stream record damaged: not served");
                     return out;
                 }
                 record.drain(..RECORD_HEADER);
@@ -573,7 +771,7 @@ mod tests {
     #[test]
     fn appends_get_increasing_offsets_and_read_back_from_any_offset() {
         let dir = Scratch::new("offsets");
-        let mut log = StreamLog::open(dir.path(), 1 << 20).unwrap();
+        let mut log = StreamLog::open(dir.path(), 1 << 20, false).unwrap();
         for i in 0..100u32 {
             let (offset, _) = log
                 .append(&i.to_le_bytes(), 1000 + i64::from(i), i % 10 == 0)
@@ -601,7 +799,7 @@ mod tests {
     #[test]
     fn segments_roll_at_their_size_and_retention_removes_whole_old_segments() {
         let dir = Scratch::new("retention");
-        let mut log = StreamLog::open(dir.path(), 1000).unwrap();
+        let mut log = StreamLog::open(dir.path(), 1000, false).unwrap();
         let body = [7u8; 75]; // 100 bytes a record
         for i in 0..50 {
             log.append(&body, i, false).unwrap();
@@ -636,13 +834,13 @@ mod tests {
     fn offsets_and_contents_survive_reopening() {
         let dir = Scratch::new("reopen");
         {
-            let mut log = StreamLog::open(dir.path(), 300).unwrap();
+            let mut log = StreamLog::open(dir.path(), 300, false).unwrap();
             for i in 0..20u8 {
                 log.append(&[i; 30], 5, i == 12).unwrap();
             }
             remove_files(log.retain(Some(600), None, 0));
         }
-        let mut log = StreamLog::open(dir.path(), 300).unwrap();
+        let mut log = StreamLog::open(dir.path(), 300, false).unwrap();
         let first = log.first_offset();
         assert!(first > 0);
         assert_eq!(log.next_offset(), 20);
@@ -652,48 +850,197 @@ mod tests {
         assert_eq!(log.append(b"x", 6, true).unwrap().0, 20);
     }
 
-    #[test]
-    fn damage_found_at_start_is_cut_off_and_never_served() {
-        let dir = Scratch::new("damage");
-        let path;
-        {
-            let mut log = StreamLog::open(dir.path(), 1 << 20).unwrap();
-            for i in 0..10u8 {
-                log.append(&[i; 10], 1, false).unwrap();
-            }
-            path = log.head().path.clone();
+    /// Ten records of 10 bytes in segments of three.
+    fn ten_records(dir: &Path) -> Vec<PathBuf> {
+        let mut log =
+            StreamLog::open(dir, 3 * (RECORD_HEADER as u64 + 10) + SEGMENT_HEADER, false).unwrap();
+        for i in 0..10u8 {
+            log.append(&[i; 10], 1, false).unwrap();
         }
-        // Flip one payload byte of the record at offset 6.
-        let mut bytes = std::fs::read(&path).unwrap();
-        let at = SEGMENT_HEADER as usize + 6 * (RECORD_HEADER + 10) + RECORD_HEADER + 3;
+        log.segments.iter().map(|s| s.path.clone()).collect()
+    }
+
+    fn reopen(dir: &Path, recover: bool) -> io::Result<StreamLog> {
+        StreamLog::open(
+            dir,
+            3 * (RECORD_HEADER as u64 + 10) + SEGMENT_HEADER,
+            recover,
+        )
+    }
+
+    fn flip(path: &Path, at: usize) {
+        let mut bytes = std::fs::read(path).unwrap();
         bytes[at] ^= 0xff;
-        std::fs::write(&path, &bytes).unwrap();
-        let mut log = StreamLog::open(dir.path(), 1 << 20).unwrap();
-        assert_eq!(
-            log.next_offset(),
-            6,
-            "offsets 6.. were in and after the bad record"
+        std::fs::write(path, &bytes).unwrap();
+    }
+
+    fn copies_aside(dir: &Path) -> usize {
+        std::fs::read_dir(dir)
+            .unwrap()
+            .filter(|e| {
+                e.as_ref()
+                    .unwrap()
+                    .file_name()
+                    .to_string_lossy()
+                    .contains(".damaged-")
+            })
+            .count()
+    }
+
+    #[test]
+    fn damage_refuses_the_open_naming_the_file_unless_recovering() {
+        let dir = Scratch::new("damage");
+        let segments = ten_records(dir.path());
+        assert_eq!(segments.len(), 4, "3, 3, 3 and 1 records");
+        // Flip one payload byte of offset 4 (the middle segment's second),
+        // in a segment whose seal is lost (so it is read whole at open).
+        std::fs::remove_file(seal_path(&segments[1])).unwrap();
+        flip(
+            &segments[1],
+            SEGMENT_HEADER as usize + RECORD_HEADER + 10 + RECORD_HEADER + 3,
         );
-        assert_eq!(read_all(&log, 0).len(), 6);
-        assert_eq!(log.append(b"new", 2, true).unwrap().0, 6);
-        // A torn tail (half a record) is cut off likewise.
-        let head = log.head().path.clone();
-        let len = std::fs::metadata(&head).unwrap().len();
+        let refused = reopen(dir.path(), false).unwrap_err();
+        assert_eq!(refused.kind(), io::ErrorKind::InvalidData);
+        let text = refused.to_string();
+        assert!(text.contains(&segments[1].display().to_string()), "{text}");
+        assert!(
+            text.contains("bad checksum") && text.contains("offsets from 4"),
+            "{text}"
+        );
+        assert_eq!(
+            copies_aside(dir.path()),
+            0,
+            "a refused open changes nothing"
+        );
+        assert!(reopen(dir.path(), false).is_err(), "and refuses again");
+
+        let log = reopen(dir.path(), true).unwrap();
+        assert_eq!(copies_aside(dir.path()), 1);
+        let offsets: Vec<u64> = read_all(&log, 0).iter().map(|r| r.offset).collect();
+        assert_eq!(
+            offsets,
+            vec![0, 1, 2, 3, 6, 7, 8, 9],
+            "every readable record is kept; 4 and 5 are lost"
+        );
+        drop(log);
+        // The recovery's gap is no damage for later opens; a gap nothing
+        // accounts for is, named as such.
+        let log = reopen(dir.path(), false).unwrap();
+        assert_eq!((log.first_offset(), log.next_offset()), (0, 10));
+        assert_eq!(log.len(), 8, "offsets 4 and 5 are not held");
+        drop(log);
+        std::fs::remove_file(&segments[2]).unwrap();
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(
+            text.contains("missing") && text.contains("offsets 4 to 8"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn closed_segments_are_sealed_trusted_at_open_and_checked_on_read() {
+        let dir = Scratch::new("sealed");
+        let segments = ten_records(dir.path());
+        for closed in &segments[..3] {
+            assert!(seal_path(closed).exists(), "{} sealed", closed.display());
+        }
+        assert!(!seal_path(&segments[3]).exists(), "the newest is not");
+        // A flipped byte in a sealed segment: the open trusts the seal (it
+        // does not read the records) and the read stops before the damage.
+        flip(
+            &segments[0],
+            SEGMENT_HEADER as usize + RECORD_HEADER + 10 + RECORD_HEADER + 3,
+        );
+        let log = reopen(dir.path(), false).unwrap();
+        assert_eq!((log.first_offset(), log.next_offset()), (0, 10));
+        let offsets: Vec<u64> = read_all(&log, 0).iter().map(|r| r.offset).collect();
+        assert_eq!(offsets, vec![0], "offset 1 is damaged: nothing from it on");
+        let later: Vec<u64> = read_all(&log, 3).iter().map(|r| r.offset).collect();
+        assert_eq!(later, (3..10).collect::<Vec<_>>());
+        drop(log);
+        // A damaged length in a sealed segment is bounded by the segment.
+        let mut bytes = std::fs::read(&segments[1]).unwrap();
+        bytes[SEGMENT_HEADER as usize..][..4].copy_from_slice(&u32::MAX.to_le_bytes());
+        std::fs::write(&segments[1], &bytes).unwrap();
+        let log = reopen(dir.path(), false).unwrap();
+        assert!(read_all(&log, 3).is_empty());
+        drop(log);
+        // A sealed segment whose length differs from its seal's is read
+        // whole: cut short, it is damage.
+        let len = std::fs::metadata(&segments[2]).unwrap().len();
         OpenOptions::new()
             .write(true)
-            .open(&head)
+            .open(&segments[2])
+            .unwrap()
+            .set_len(len - 3)
+            .unwrap();
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(text.contains("torn record"), "{text}");
+        // A seal that does not check is not trusted either.
+        let dir = Scratch::new("bad-seal");
+        let segments = ten_records(dir.path());
+        flip(&seal_path(&segments[0]), 20);
+        flip(&segments[0], SEGMENT_HEADER as usize + RECORD_HEADER + 3);
+        assert!(reopen(dir.path(), false).is_err());
+    }
+
+    #[test]
+    fn a_torn_or_zeroed_tail_of_the_newest_segment_is_a_crash_and_is_cut() {
+        let dir = Scratch::new("torn");
+        let segments = ten_records(dir.path());
+        let newest = segments.last().unwrap();
+        // Half a record appended (a crash mid-append), then zeros.
+        let mut bytes = std::fs::read(newest).unwrap();
+        let whole = bytes.len();
+        let torn = bytes[SEGMENT_HEADER as usize..][..RECORD_HEADER + 4].to_vec();
+        bytes.extend_from_slice(&torn);
+        std::fs::write(newest, &bytes).unwrap();
+        let log = reopen(dir.path(), false).unwrap();
+        assert_eq!(log.next_offset(), 10);
+        assert_eq!(std::fs::metadata(newest).unwrap().len() as usize, whole);
+        drop(log);
+        let mut bytes = std::fs::read(newest).unwrap();
+        bytes.extend_from_slice(&[0; 200]);
+        std::fs::write(newest, &bytes).unwrap();
+        let mut log = reopen(dir.path(), false).unwrap();
+        assert_eq!(log.append(b"next", 2, true).unwrap().0, 10);
+        drop(log);
+        // A torn record in an older segment is damage (its seal no longer
+        // matches its length, so it is read whole).
+        let older = &segments[0];
+        let len = std::fs::metadata(older).unwrap().len();
+        OpenOptions::new()
+            .write(true)
+            .open(older)
             .unwrap()
             .set_len(len - 2)
             .unwrap();
-        drop(log);
-        let log = StreamLog::open(dir.path(), 1 << 20).unwrap();
-        assert_eq!(log.next_offset(), 6);
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(text.contains("torn record"), "{text}");
+        // A damaged newest record that is not zeros is damage too.
+        let dir = Scratch::new("newest-flip");
+        let segments = ten_records(dir.path());
+        flip(
+            segments.last().unwrap(),
+            SEGMENT_HEADER as usize + RECORD_HEADER + 1,
+        );
+        assert!(reopen(dir.path(), false).is_err());
+    }
+
+    #[test]
+    fn a_missing_directory_is_damage_unless_recovering() {
+        let dir = Scratch::new("gone");
+        ten_records(dir.path());
+        std::fs::remove_dir_all(dir.path()).unwrap();
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(text.contains("missing"), "{text}");
+        assert_eq!(reopen(dir.path(), true).unwrap().len(), 0);
     }
 
     #[test]
     fn timestamps_find_the_oldest_segment_recent_enough() {
         let dir = Scratch::new("timestamps");
-        let mut log = StreamLog::open(dir.path(), 200).unwrap();
+        let mut log = StreamLog::open(dir.path(), 200, false).unwrap();
         for i in 0..20 {
             log.append(&[0; 35], i * 100, false).unwrap(); // 60 bytes: 3 a segment
         }

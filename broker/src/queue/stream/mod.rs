@@ -20,12 +20,13 @@
 mod args;
 mod log;
 
-pub use args::{is_stream, start_at, StartAt, StreamArgs};
+pub use args::{is_stream, max_age_ms, start_at, StartAt, StreamArgs, MAX_SEGMENT_BYTES};
 
 use super::{Deleted, Enqueued, Queue, QueuedMessage};
 use crate::consumer::{Consumer, Unacked};
 use crate::message::Message;
 use crate::outbox::Outbound;
+use crate::policy::{stricter, Applied};
 use crate::store::Persistence;
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
@@ -44,7 +45,8 @@ const READ_BYTES: usize = 128 * 1024;
 /// One stream's state (see the module docs).
 #[derive(Debug)]
 pub struct Stream {
-    args: StreamArgs,
+    /// As declared (with the segment size the policies gave it then).
+    declared: StreamArgs,
     persistence: Arc<Persistence>,
     state: Mutex<StreamState>,
 }
@@ -52,11 +54,13 @@ pub struct Stream {
 #[derive(Debug)]
 struct StreamState {
     log: StreamLog,
+    /// In force: the declared retention with the policies' (the smaller
+    /// of each, as RabbitMQ 3.10's `args_policy_lookup` takes it).
+    args: StreamArgs,
     readers: Vec<Reader>,
     /// The submission number of the last append's sync: an append after it
     /// is durable starts a new chunk.
     last_sync: u64,
-    exclusive_reader: bool,
     deleted: bool,
 }
 
@@ -180,16 +184,16 @@ impl Stream {
         let log = if new {
             StreamLog::create(&dir, args.segment_bytes)
         } else {
-            StreamLog::open(&dir, args.segment_bytes)
+            StreamLog::open(&dir, args.segment_bytes, persistence.recover_streams())
         };
         Some(log.map(|log| Stream {
-            args,
+            declared: args.clone(),
             persistence,
             state: Mutex::new(StreamState {
                 log,
+                args,
                 readers: Vec::new(),
                 last_sync: 0,
-                exclusive_reader: false,
                 deleted: false,
             }),
         }))
@@ -207,6 +211,18 @@ impl Stream {
     /// Bytes on disk.
     pub fn bytes(&self) -> u64 {
         self.lock().log.bytes()
+    }
+
+    /// Its offsets and files, for listings and metrics.
+    pub fn figures(&self) -> crate::inspect::StreamFigures {
+        let st = self.lock();
+        let (first, next) = (st.log.first_offset(), st.log.next_offset());
+        crate::inspect::StreamFigures {
+            first_offset: first,
+            last_offset: (next > first).then(|| next - 1),
+            segments: st.log.segment_count() as u64,
+            bytes: st.log.bytes(),
+        }
     }
 
     /// Consumers reading it.
@@ -228,10 +244,24 @@ impl Stream {
     pub fn retain(&self) {
         let gone = {
             let mut st = self.lock();
-            let (bytes, age) = (self.args.max_bytes, self.args.max_age_ms);
+            let (bytes, age) = (st.args.max_bytes, st.args.max_age_ms);
             st.log.retain(bytes, age, now_ms())
         };
         remove_in_background(gone);
+    }
+
+    /// Takes the retention `applied` gives (`max-length-bytes`,
+    /// `max-age`: the smaller of each with the declared argument) and
+    /// applies it at once, as RabbitMQ 3.10 does on a policy change. The
+    /// segment size stays what the stream was declared with: RabbitMQ 3.10
+    /// takes a policy's `stream-max-segment-size-bytes` only at declare.
+    pub(super) fn apply_policies(&self, applied: &Applied) {
+        {
+            let mut st = self.lock();
+            st.args.max_bytes = stricter(self.declared.max_bytes, applied.max_length_bytes());
+            st.args.max_age_ms = stricter(self.declared.max_age_ms, applied.max_age_ms());
+        }
+        self.retain();
     }
 }
 
@@ -262,7 +292,7 @@ impl Queue {
             let sync = stream.persistence.submit_sync(st.log.sync_handles(rolled));
             st.last_sync = sync;
             if rolled {
-                let (bytes, age) = (stream.args.max_bytes, stream.args.max_age_ms);
+                let (bytes, age) = (st.args.max_bytes, st.args.max_age_ms);
                 remove_in_background(st.log.retain(bytes, age, timestamp));
             }
             self.stats.published();
@@ -284,31 +314,23 @@ impl Queue {
         Enqueued::Accepted { sync }
     }
 
-    /// Adds a stream consumer starting at `start`; 403 if an exclusive
-    /// consumer is in the way (as on any queue).
-    pub fn add_stream_consumer(
-        &self,
-        consumer: Arc<Consumer>,
-        start: StartAt,
-    ) -> crate::error::AmqpResult<()> {
+    /// Adds a stream consumer starting at `start`. Its exclusive flag
+    /// keeps no other reader out: RabbitMQ 3.10 accepts any number of
+    /// consumers on a stream, exclusive or not (each reads every record;
+    /// none takes one from another).
+    pub fn add_stream_consumer(&self, consumer: Arc<Consumer>, start: StartAt) {
         let stream = self.stream_ref();
         let mut st = stream.lock();
-        if st.exclusive_reader || (consumer.exclusive && !st.readers.is_empty()) {
-            return Err(crate::error::AmqpError::access_refused(format_args!(
-                "queue '{}' in vhost '{}' in exclusive use",
-                self.name, self.vhost
-            )));
-        }
         let log = &st.log;
         let (first, next) = (log.first_offset(), log.next_offset());
         let cursor = match start {
             StartAt::First => Cursor::at(first),
             StartAt::Last => Cursor::at(log.last_chunk()),
             StartAt::Next => Cursor::at(next),
-            StartAt::Offset(n) => Cursor::at(n.clamp(first, next)),
+            // Past the end: it waits for that offset (RabbitMQ 3.10 too).
+            StartAt::Offset(n) => Cursor::at(n.max(first)),
             StartAt::Timestamp(ms) => Cursor::at_time(log.offset_for_timestamp(ms).max(first), ms),
         };
-        st.exclusive_reader = consumer.exclusive;
         st.readers.push(Reader {
             consumer,
             cursor,
@@ -317,7 +339,6 @@ impl Queue {
             stalled: false,
         });
         self.stats.consumer_added();
-        Ok(())
     }
 
     /// Removes a stream consumer; a stream is never auto-deleted.
@@ -327,9 +348,6 @@ impl Queue {
         st.readers.retain(|r| !Arc::ptr_eq(&r.consumer, consumer));
         if st.readers.len() < before {
             self.stats.consumers_removed(1);
-            if consumer.exclusive {
-                st.exclusive_reader = false;
-            }
         }
         false
     }
