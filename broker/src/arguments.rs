@@ -425,5 +425,11 @@ pub fn inequivalent(key: &str, resource: &str, received: &str, current: &str) ->
     ))
 }
 
+pub mod duration;
+
+/// RabbitMQ 3.10's largest stream segment size (3 GB), as
+/// `x-stream-max-segment-size-bytes` and as the policy key.
+pub const MAX_SEGMENT_BYTES: u64 = 3_000_000_000;
+
 #[cfg(test)]
 mod tests;

@@ -15,6 +15,7 @@ use crate::admin::Admin;
 use crate::exchange::{Binding, Destination, Exchange};
 use crate::policy::Applied;
 use crate::queue::Queue;
+pub use crate::queue::StreamFigures;
 use crate::registry::{ChannelMode, ConnectionEntry};
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldTable, ShortStr};
@@ -197,19 +198,6 @@ pub struct QueueInfo {
     pub policies: Applied,
     /// A stream's offsets and files (`None` for a classic queue).
     pub stream: Option<StreamFigures>,
-}
-
-/// A stream's offsets and files, as listings and metrics show them.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct StreamFigures {
-    /// The oldest offset held (the next one's when empty).
-    pub first_offset: u64,
-    /// The newest offset held; `None` when empty.
-    pub last_offset: Option<u64>,
-    /// Segment files.
-    pub segments: u64,
-    /// Bytes of its segment files.
-    pub bytes: u64,
 }
 
 impl QueueInfo {

@@ -151,7 +151,9 @@ impl Definition {
                 "max-age" => {
                     d.max_age_ms = Some(
                         match value {
-                            PolicyValue::Text(s) => crate::queue::max_age_ms(s.as_bytes()),
+                            PolicyValue::Text(s) => {
+                                crate::arguments::duration::max_age_ms(s.as_bytes())
+                            }
                             _ => None,
                         }
                         .ok_or_else(|| format!("{} is not a valid max age", shown(value)))?,
@@ -160,7 +162,7 @@ impl Definition {
                 "stream-max-segment-size-bytes" => {
                     d.stream_max_segment_size_bytes = Some(int(
                         0,
-                        crate::queue::MAX_SEGMENT_BYTES as i64,
+                        crate::arguments::MAX_SEGMENT_BYTES as i64,
                         "segment size",
                     )?)
                 }

@@ -30,7 +30,7 @@ mod stream;
 
 pub use args::{ConsumerArgs, Overflow, QueueArgs};
 pub use leaving::{DeadLetter, DeadLetterReason, DeadLetters, Deleted};
-pub use stream::{is_stream, max_age_ms, start_at, StartAt, Stream, StreamArgs, MAX_SEGMENT_BYTES};
+pub use stream::{is_stream, start_at, StartAt, Stream, StreamArgs, StreamFigures};
 
 use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
@@ -264,7 +264,7 @@ impl Queue {
     }
 
     /// A stream's offsets and files; `None` for a classic queue.
-    pub fn stream_figures(&self) -> Option<crate::inspect::StreamFigures> {
+    pub fn stream_figures(&self) -> Option<StreamFigures> {
         self.stream.as_ref().map(Stream::figures)
     }
 

@@ -5,15 +5,13 @@
 //! every other argument RabbitMQ knows for queues is refused, as
 //! `crate::arguments` lists), and a consumer's `x-stream-offset`.
 
-use crate::arguments::{self, integer, type_name, Scope};
+use crate::arguments::duration::{duration_ms, DurationError};
+use crate::arguments::{self, integer, type_name, Scope, MAX_SEGMENT_BYTES};
 use crate::error::{AmqpError, AmqpResult};
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 
 /// RabbitMQ's default segment size (500 MB).
 pub const DEFAULT_SEGMENT_BYTES: u64 = 500_000_000;
-/// RabbitMQ 3.10's largest segment size (3 GB), as an argument and in a
-/// policy.
-pub const MAX_SEGMENT_BYTES: u64 = 3_000_000_000;
 
 /// The leader locators RabbitMQ 3.10 knows.
 const LEADER_LOCATORS: [&[u8]; 4] = [b"client-local", b"balanced", b"random", b"least-leaders"];
@@ -67,46 +65,6 @@ pub enum StartAt {
 /// Whether declare arguments ask for a stream.
 pub fn is_stream(arguments: &FieldTable) -> bool {
     arguments.get("x-queue-type").and_then(FieldValue::as_bytes) == Some(b"stream")
-}
-
-/// Why a duration string is not one.
-enum DurationError {
-    /// No digits first: RabbitMQ 3.10 fails inside its parser (541).
-    NoNumber,
-    /// Zero, or a unit it does not know (406).
-    Invalid,
-}
-
-/// RabbitMQ's duration (`check_max_age`): digits then one of `Y M D h m s`
-/// (a year is 365 days, a month 30), in milliseconds; zero is refused.
-fn duration_ms(text: &[u8]) -> Result<u64, DurationError> {
-    let digits = text.iter().take_while(|b| b.is_ascii_digit()).count();
-    if digits == 0 {
-        return Err(DurationError::NoNumber);
-    }
-    let value: u64 = std::str::from_utf8(&text[..digits])
-        .ok()
-        .and_then(|d| d.parse().ok())
-        .ok_or(DurationError::Invalid)?;
-    let unit_s: u64 = match &text[digits..] {
-        b"Y" => 365 * 86_400,
-        b"M" => 30 * 86_400,
-        b"D" => 86_400,
-        b"h" => 3_600,
-        b"m" => 60,
-        b"s" => 1,
-        _ => return Err(DurationError::Invalid),
-    };
-    if value == 0 {
-        return Err(DurationError::Invalid);
-    }
-    Ok(value.saturating_mul(unit_s).saturating_mul(1000))
-}
-
-/// A `max-age` duration (`x-max-age`, the `max-age` policy key) in
-/// milliseconds, `None` if it is not one.
-pub fn max_age_ms(text: &[u8]) -> Option<u64> {
-    duration_ms(text).ok()
 }
 
 /// RabbitMQ 3.10 answers a duration with no number first by failing in its

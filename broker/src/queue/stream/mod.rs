@@ -20,7 +20,7 @@
 mod args;
 mod log;
 
-pub use args::{is_stream, max_age_ms, start_at, StartAt, StreamArgs, MAX_SEGMENT_BYTES};
+pub use args::{is_stream, start_at, StartAt, StreamArgs};
 
 use super::{Deleted, Enqueued, Queue, QueuedMessage};
 use crate::consumer::{Consumer, Unacked};
@@ -170,6 +170,19 @@ fn decode(record: &Record) -> Option<Message> {
     })
 }
 
+/// A stream's offsets and files, as listings and metrics show them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StreamFigures {
+    /// The oldest offset held (the next one's when empty).
+    pub first_offset: u64,
+    /// The newest offset held; `None` when empty.
+    pub last_offset: Option<u64>,
+    /// Segment files.
+    pub segments: u64,
+    /// Bytes of its segment files.
+    pub bytes: u64,
+}
+
 impl Stream {
     /// Stream `id`'s log under the store's data directory: a new, empty
     /// one when `new`, else the one stored (checked as it is opened).
@@ -214,10 +227,10 @@ impl Stream {
     }
 
     /// Its offsets and files, for listings and metrics.
-    pub fn figures(&self) -> crate::inspect::StreamFigures {
+    pub fn figures(&self) -> StreamFigures {
         let st = self.lock();
         let (first, next) = (st.log.first_offset(), st.log.next_offset());
-        crate::inspect::StreamFigures {
+        StreamFigures {
             first_offset: first,
             last_offset: (next > first).then(|| next - 1),
             segments: st.log.segment_count() as u64,
