@@ -19,6 +19,7 @@ use std::time::Duration;
 
 mod common;
 
+use common::damage::copy_dir;
 use common::BrokerProcess;
 
 const QUEUES: usize = 20;
@@ -169,19 +170,6 @@ fn newest_segment(dir: &Path) -> PathBuf {
         .collect();
     segments.sort();
     segments.pop().expect("a segment")
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).expect("mkdir");
-    for entry in std::fs::read_dir(from).expect("read dir") {
-        let entry = entry.expect("entry");
-        let target = to.join(entry.file_name());
-        if entry.file_type().expect("type").is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), target).expect("copy");
-        }
-    }
 }
 
 fn truncate(file: &Path, to: impl Fn(u64) -> u64) {

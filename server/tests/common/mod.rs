@@ -3,6 +3,7 @@
 
 #![allow(dead_code)] // Each test file uses its own share of these helpers.
 
+pub mod damage;
 pub mod ops;
 
 use std::ffi::{OsStr, OsString};
