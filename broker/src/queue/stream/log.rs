@@ -42,10 +42,13 @@
 //! segments or a missing directory, a missing or unreadable `synced`
 //! file, and a log that ends below its synced offset (the newest segment
 //! cut short or removed, every segment removed). The one thing taken as
-//! sound is a torn tail of the newest segment at or past the synced offset
-//! (fewer bytes than its record needs, or only zeros: a crash cut the
-//! append short, before any confirm covered it), which is cut with a
-//! warning. With `recover` the open goes on instead: each damaged file is
+//! sound is damage at or past the synced offset: appends a crash cut short
+//! or scrambled before any confirm covered them. The segment is cut there
+//! with a warning; when that is not the newest (a power cut as the log
+//! rolled), the segments begun after it are removed and it is the head
+//! again, its seal removed. Without a synced offset (recovering) only a
+//! torn append at the end of the newest segment is taken for a crash's.
+//! With `recover` the open goes on instead: each damaged file is
 //! copied aside (`NAME.seg.damaged-SECONDS`), what is lost is logged, and
 //! the segment is cut at its last sound record; the records after it are
 //! never served as if sound. Synced offsets that are gone are never handed
@@ -426,11 +429,21 @@ impl StreamLog {
         };
         let newest = firsts.last().copied();
         let mut expected = firsts.first().copied().unwrap_or(0);
+        // Where a crash's unsynced tail was cut in a segment before the
+        // newest (a power cut as the log rolled): what follows was never
+        // synced, so never confirmed.
+        let mut crash_cut = false;
         for first in firsts {
             let path = segment_path(dir, first);
+            if crash_cut {
+                std::fs::remove_file(&path)?;
+                let _ = std::fs::remove_file(seal_path(&path));
+                tracing::warn!(stream = %dir.display(), segment = %path.display(), "a stream segment begun after the last synced record, before a crash: removed (nothing in it was confirmed)");
+                continue;
+            }
             let file = OpenOptions::new().read(true).write(true).open(&path)?;
             let len = file.metadata()?.len();
-            let closed = Some(first) != newest;
+            let mut closed = Some(first) != newest;
             let sealed = if closed {
                 read_seal(&path, &file, first, len)
             } else {
@@ -465,14 +478,23 @@ impl StreamLog {
                 File::create(loss_marker(&path))?.sync_all()?;
             }
             if let Some(why) = &found.damage {
-                // A crash's torn append lies past what was synced: a cut
-                // below the synced offset is damage (confirmed records).
-                let crash_tail = found.torn_tail
-                    && Some(first) == newest
-                    && found.sound > 0
-                    && synced.is_none_or(|synced| found.next >= synced);
+                // What a crash leaves lies past what was synced: damage
+                // there held nothing confirmed; below it, it is damage.
+                // Without the synced offset (recovering), only a torn
+                // append at the very end is taken for a crash's.
+                let crash_tail = found.sound > 0
+                    && match synced {
+                        Some(synced) => found.next >= synced,
+                        None => found.torn_tail && Some(first) == newest,
+                    };
                 if crash_tail {
-                    tracing::warn!(stream = %dir.display(), segment = %path.display(), position = found.sound, bytes = len - found.sound, reason = %why, "the newest stream segment ends in a torn append (a crash before it was confirmed): cut there");
+                    tracing::warn!(stream = %dir.display(), segment = %path.display(), position = found.sound, bytes = len - found.sound, reason = %why, "a stream segment ends in an append never synced (a crash before it was confirmed): cut there");
+                    if closed {
+                        // The log goes on from here: no longer sealed.
+                        let _ = std::fs::remove_file(seal_path(&path));
+                        closed = false;
+                        crash_cut = true;
+                    }
                 } else if !recover {
                     return Err(damage(format!(
                         "stream segment {} is damaged at byte {} of {len} ({why}): offsets from {} on would be lost",
@@ -531,6 +553,8 @@ impl StreamLog {
             log.last_chunk = expected;
         }
         let head = log.head();
+        // A seal beside the head is stale (a crash as the log rolled).
+        let _ = std::fs::remove_file(seal_path(&head.path));
         let first_record = SlotRecord {
             sequence: head.next,
             words: [head.first, head.bytes],
@@ -952,12 +976,20 @@ mod tests {
         assert_eq!(log.append(b"x", 6, true).unwrap().0, 20);
     }
 
-    /// Ten records of 10 bytes in segments of three.
+    /// What the persister does once a sync covering the appends succeeded.
+    fn record_synced(log: &StreamLog) {
+        let mark = log.synced_mark();
+        mark.kind.write(&mark.file, mark.record).unwrap();
+    }
+
+    /// Ten records of 10 bytes in segments of three, each synced (and so
+    /// maybe confirmed); returns the segments' paths.
     fn ten_records(dir: &Path) -> Vec<PathBuf> {
         let mut log =
             StreamLog::create(dir, 3 * (RECORD_HEADER as u64 + 10) + SEGMENT_HEADER).unwrap();
         for i in 0..10u8 {
             log.append(&[i; 10], 1, false).unwrap();
+            record_synced(&log);
         }
         log.segments.iter().map(|s| s.path.clone()).collect()
     }
@@ -1129,29 +1161,11 @@ mod tests {
         assert!(reopen(dir.path(), false).is_err());
     }
 
-    /// What the persister does once a sync covering the appends succeeded.
-    fn record_synced(log: &StreamLog) {
-        let mark = log.synced_mark();
-        mark.kind.write(&mark.file, mark.record).unwrap();
-    }
-
-    /// Ten records in segments of three, all synced (and so maybe
-    /// confirmed); returns the segments' paths.
-    fn ten_synced_records(dir: &Path) -> Vec<PathBuf> {
-        let mut log =
-            StreamLog::create(dir, 3 * (RECORD_HEADER as u64 + 10) + SEGMENT_HEADER).unwrap();
-        for i in 0..10u8 {
-            log.append(&[i; 10], 1, false).unwrap();
-            record_synced(&log);
-        }
-        log.segments.iter().map(|s| s.path.clone()).collect()
-    }
-
     #[test]
     fn synced_records_that_are_gone_refuse_the_open_and_recovery_never_reuses_their_offsets() {
         // The newest segment cut short inside what was synced.
         let dir = Scratch::new("synced-cut");
-        let segments = ten_synced_records(dir.path());
+        let segments = ten_records(dir.path());
         let newest = segments.last().unwrap();
         OpenOptions::new()
             .write(true)
@@ -1182,7 +1196,7 @@ mod tests {
 
         // Cut at a record boundary: no torn record, still refused.
         let dir = Scratch::new("synced-boundary");
-        let segments = ten_synced_records(dir.path());
+        let segments = ten_records(dir.path());
         let newest = segments.last().unwrap();
         OpenOptions::new()
             .write(true)
@@ -1194,12 +1208,12 @@ mod tests {
 
         // The newest segment removed, or every segment.
         let dir = Scratch::new("synced-newest-gone");
-        let segments = ten_synced_records(dir.path());
+        let segments = ten_records(dir.path());
         std::fs::remove_file(segments.last().unwrap()).unwrap();
         let text = reopen(dir.path(), false).unwrap_err().to_string();
         assert!(text.contains("ends at offset 9"), "{text}");
         let dir = Scratch::new("synced-all-gone");
-        for segment in ten_synced_records(dir.path()) {
+        for segment in ten_records(dir.path()) {
             std::fs::remove_file(&segment).unwrap();
             let _ = std::fs::remove_file(seal_path(&segment));
         }
@@ -1208,7 +1222,7 @@ mod tests {
 
         // The synced-offset file itself removed.
         let dir = Scratch::new("synced-file-gone");
-        ten_synced_records(dir.path());
+        ten_records(dir.path());
         std::fs::remove_file(SYNCED.path(dir.path())).unwrap();
         let text = reopen(dir.path(), false).unwrap_err().to_string();
         assert!(text.contains("synced-offset file"), "{text}");
@@ -1223,7 +1237,7 @@ mod tests {
     #[test]
     fn a_torn_append_past_the_synced_offset_is_still_a_crash() {
         let dir = Scratch::new("synced-torn-tail");
-        let segments = ten_synced_records(dir.path());
+        let segments = ten_records(dir.path());
         let mut log = reopen(dir.path(), false).unwrap();
         log.append(&[10; 10], 1, false).unwrap(); // not synced
         drop(log);
@@ -1241,6 +1255,45 @@ mod tests {
             10,
             "the torn, never synced record is cut"
         );
+    }
+
+    #[test]
+    fn a_power_cut_as_the_log_rolled_leaves_a_crash_tail_not_damage() {
+        let dir = Scratch::new("roll-cut");
+        let segments = ten_records(dir.path()); // [0-2] [3-5] [6-8] [9], all synced
+        let mut log = reopen(dir.path(), false).unwrap();
+        for i in 10..13u8 {
+            log.append(&[i; 10], 1, false).unwrap(); // 10, 11, then a roll: 12
+        }
+        assert_eq!(log.segments.len(), 5);
+        drop(log);
+        // The cut lost the end of record 11 (never synced); the new
+        // segment's file and the seal of the one before survived.
+        let rolled = segments.last().unwrap();
+        assert!(seal_path(rolled).exists());
+        let len = std::fs::metadata(rolled).unwrap().len();
+        OpenOptions::new()
+            .write(true)
+            .open(rolled)
+            .unwrap()
+            .set_len(len - 3)
+            .unwrap();
+        let mut log = reopen(dir.path(), false).expect("nothing synced was lost");
+        assert_eq!(log.next_offset(), 11, "cut after record 10");
+        assert_eq!(
+            log.segments.len(),
+            4,
+            "the segment begun after the cut is gone"
+        );
+        assert!(
+            !seal_path(rolled).exists(),
+            "the cut segment is the head again"
+        );
+        assert_eq!(log.append(&[11; 10], 1, false).unwrap().0, 11);
+        record_synced(&log);
+        drop(log);
+        let log = reopen(dir.path(), false).unwrap();
+        assert_eq!(read_all(&log, 0).len(), 12);
     }
 
     #[test]
