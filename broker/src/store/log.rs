@@ -97,6 +97,7 @@
 //! called from the persister thread (every call takes the log's one lock).
 
 use super::log_key::LogKey;
+use super::slots::{SlotFile, SlotRecord};
 use super::{KvOp, KvPair, StoreError};
 use crate::word_hash::WordHashMap;
 use std::collections::{BTreeMap, HashMap, HashSet};
@@ -152,127 +153,26 @@ pub enum Bookkeeping {
 }
 
 /// The log's two bookkeeping files (see the module docs), each two
-/// checksummed slots written by turn: the segment list (the oldest and
-/// the newest segment the log holds; each write synced) and the flushed
-/// length (the head's number and how much of it was last synced; never
-/// synced by itself).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Kept {
-    SegmentList,
-    Flushed,
-}
-
-impl Kept {
-    fn file_name(self) -> &'static str {
-        match self {
-            Kept::SegmentList => "segments",
-            Kept::Flushed => "flushed",
-        }
-    }
-
-    fn magic(self) -> &'static [u8; 4] {
-        match self {
-            Kept::SegmentList => b"LVSL",
-            Kept::Flushed => b"LVFL",
-        }
-    }
-
-    fn what(self) -> &'static str {
-        match self {
-            Kept::SegmentList => "segment list",
-            Kept::Flushed => "flushed length",
-        }
-    }
-}
-
-/// A slot: magic, CRC-32 of the rest, then the record's sequence number
-/// and its two words (`u64` LE each).
-const SLOT: usize = 32;
-/// Where the two slots lie: in different sectors, so a write torn by a
-/// power cut spoils at most the one it was writing, and the other holds
-/// the record written before it.
-const SLOT_AT: [u64; 2] = [0, 512];
-
-/// One record of a bookkeeping file: for the segment list the oldest and
-/// the newest segment, for the flushed length the segment and its length.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct Record2 {
-    sequence: u64,
-    words: [u64; 2],
-}
-
-impl Record2 {
-    fn encode(self, kept: Kept) -> [u8; SLOT] {
-        let mut slot = [0; SLOT];
-        slot[..4].copy_from_slice(kept.magic());
-        slot[8..16].copy_from_slice(&self.sequence.to_le_bytes());
-        slot[16..24].copy_from_slice(&self.words[0].to_le_bytes());
-        slot[24..32].copy_from_slice(&self.words[1].to_le_bytes());
-        let crc = crc32fast::hash(&slot[8..]);
-        slot[4..8].copy_from_slice(&crc.to_le_bytes());
-        slot
-    }
-
-    fn decode(kept: Kept, slot: &[u8]) -> Option<Record2> {
-        let slot: &[u8; SLOT] = slot.try_into().ok()?;
-        let word = |at: usize| u64::from_le_bytes(slot[at..at + 8].try_into().expect("8 bytes"));
-        let crc = u32::from_le_bytes(slot[4..8].try_into().expect("4 bytes"));
-        (&slot[..4] == kept.magic() && crc32fast::hash(&slot[8..]) == crc).then(|| Record2 {
-            sequence: word(8),
-            words: [word(16), word(24)],
-        })
-    }
-
-    /// Writes it to its slot: one `pwrite`.
-    fn write(self, kept: Kept, file: &File) -> std::io::Result<()> {
-        let at = SLOT_AT[(self.sequence % 2) as usize];
-        file.write_all_at(&self.encode(kept), at)
-    }
-}
-
-/// The newest valid record of a bookkeeping file in `dir`: `None` if
-/// there is no such file, or what is wrong with it.
-fn read_kept(dir: &Path, kept: Kept) -> Result<Option<Record2>, String> {
-    let path = dir.join(kept.file_name());
-    let bytes = match std::fs::read(&path) {
-        Ok(bytes) => bytes,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => {
-            return Err(format!(
-                "cannot read its {} {}: {e}",
-                kept.what(),
-                path.display()
-            ))
-        }
-    };
-    SLOT_AT
-        .iter()
-        .filter_map(|&at| bytes.get(at as usize..at as usize + SLOT))
-        .filter_map(|slot| Record2::decode(kept, slot))
-        .max_by_key(|record| record.sequence)
-        .map(Some)
-        .ok_or_else(|| format!("its {} {} is unreadable", kept.what(), path.display()))
-}
+/// checksummed slots written by turn (`super::slots`): the segment list
+/// (the oldest and the newest segment the log holds; each write synced)
+/// and the flushed length (the head's number and how much of it was last
+/// synced; never synced by itself).
+const SEGMENT_LIST: SlotFile = SlotFile {
+    name: "segments",
+    magic: b"LVSL",
+    what: "segment list",
+};
+const FLUSHED: SlotFile = SlotFile {
+    name: "flushed",
+    magic: b"LVFL",
+    what: "flushed length",
+};
 
 /// Opens a bookkeeping file for writing; when it is new, `first` is
 /// written to it and synced, with the directory.
-fn open_kept(dir: &Path, kept: Kept, first: Record2) -> Result<File, StoreError> {
-    let path = dir.join(kept.file_name());
-    let existing = path.exists();
-    let file = OpenOptions::new()
-        .create(true)
-        .truncate(false)
-        .write(true)
-        .open(&path)
-        .map_err(|e| io_error(&path, e))?;
-    if !existing {
-        first
-            .write(kept, &file)
-            .and_then(|()| file.sync_all())
-            .map_err(|e| io_error(&path, e))?;
-        sync_dir(dir)?;
-    }
-    Ok(file)
+fn open_kept(dir: &Path, kept: SlotFile, first: SlotRecord) -> Result<File, StoreError> {
+    kept.open(dir, first)
+        .map_err(|e| io_error(&kept.path(dir), e))
 }
 
 /// The oldest and the newest segment the log holds, as its list says.
@@ -285,14 +185,14 @@ struct Listed {
 /// The segment list in `dir`, or what is wrong with it (a list whose
 /// oldest lies past its newest is wrong).
 fn read_segment_list(dir: &Path) -> Result<Option<(u64, Listed)>, String> {
-    match read_kept(dir, Kept::SegmentList)? {
-        Some(Record2 {
+    match SEGMENT_LIST.read(dir)? {
+        Some(SlotRecord {
             sequence,
             words: [first, last],
         }) if first <= last => Ok(Some((sequence, Listed { first, last }))),
         Some(_) => Err(format!(
             "its segment list {} is unreadable",
-            dir.join(Kept::SegmentList.file_name()).display()
+            dir.join(SEGMENT_LIST.name).display()
         )),
         None => Ok(None),
     }
@@ -307,13 +207,14 @@ fn write_segment_list(
     sequence: u64,
     listed: Listed,
 ) -> Result<(), StoreError> {
-    Record2 {
+    let record = SlotRecord {
         sequence,
         words: [listed.first, listed.last],
-    }
-    .write(Kept::SegmentList, file)
-    .and_then(|()| file.sync_data())
-    .map_err(|e| io_error(&dir.join(Kept::SegmentList.file_name()), e))
+    };
+    SEGMENT_LIST
+        .write(file, record)
+        .and_then(|()| file.sync_data())
+        .map_err(|e| io_error(&dir.join(SEGMENT_LIST.name), e))
 }
 
 /// What the flushed-length file says.
@@ -325,8 +226,8 @@ struct FlushedRecord {
 }
 
 impl FlushedRecord {
-    fn as_record(self) -> Record2 {
-        Record2 {
+    fn as_record(self) -> SlotRecord {
+        SlotRecord {
             sequence: self.sequence,
             words: [self.segment, self.length],
         }
@@ -334,14 +235,14 @@ impl FlushedRecord {
 
     /// Writes it to its slot (one `pwrite`, no sync: see the module docs).
     fn write(self, file: &File) -> std::io::Result<()> {
-        self.as_record().write(Kept::Flushed, file)
+        FLUSHED.write(file, self.as_record())
     }
 }
 
 /// The flushed-length file in `dir`: `None` if there is none, or what is
 /// wrong with it.
 fn read_flushed(dir: &Path) -> Result<Option<FlushedRecord>, String> {
-    Ok(read_kept(dir, Kept::Flushed)?.map(|record| FlushedRecord {
+    Ok(FLUSHED.read(dir)?.map(|record| FlushedRecord {
         sequence: record.sequence,
         segment: record.words[0],
         length: record.words[1],
@@ -1208,7 +1109,7 @@ impl MessageLog {
             };
             record
                 .write(&state.flushed_file)
-                .map_err(|e| io_error(&self.dir.join(Kept::Flushed.file_name()), e))?;
+                .map_err(|e| io_error(&self.dir.join(FLUSHED.name), e))?;
             state.flushed = record;
         }
         let keys = &mut state.index.keys;
@@ -1403,7 +1304,7 @@ fn load(
         (Ok(Some(found)), _) => Some(found),
         (Ok(None), Bookkeeping::Adopted) => None,
         (Ok(None), Bookkeeping::Required) => {
-            let path = dir.join(Kept::SegmentList.file_name());
+            let path = dir.join(SEGMENT_LIST.name);
             damage(
                 format!("its segment list {} is missing", path.display()),
                 &mut losses,
@@ -1420,7 +1321,7 @@ fn load(
         (Ok(found), Bookkeeping::Adopted) => found,
         (Ok(Some(found)), Bookkeeping::Required) => Some(found),
         (Ok(None), Bookkeeping::Required) => {
-            let path = dir.join(Kept::Flushed.file_name());
+            let path = dir.join(FLUSHED.name);
             damage(
                 format!("its flushed length {} is missing", path.display()),
                 &mut losses,
@@ -1611,11 +1512,11 @@ fn load(
         first,
         last: head_number,
     };
-    let list_record = Record2 {
+    let list_record = SlotRecord {
         sequence: list_sequence,
         words: [now_listed.first, now_listed.last],
     };
-    let list_file = open_kept(dir, Kept::SegmentList, list_record)?;
+    let list_file = open_kept(dir, SEGMENT_LIST, list_record)?;
     let mut list_sequence = list_sequence;
     if losses.is_empty() && listed.is_some_and(|listed| listed != now_listed) {
         list_sequence += 1;
@@ -1626,7 +1527,7 @@ fn load(
         segment: head_number,
         length: HEADER,
     });
-    let flushed_file = open_kept(dir, Kept::Flushed, flushed.as_record())?;
+    let flushed_file = open_kept(dir, FLUSHED, flushed.as_record())?;
     Ok((
         State {
             index,
@@ -1650,6 +1551,7 @@ fn load(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::store::slots::SLOT_AT;
     use proptest::prelude::*;
 
     fn temp_dir(name: &str) -> PathBuf {
@@ -2044,10 +1946,10 @@ mod tests {
                 }
             }),
             ("list", |dir| {
-                std::fs::remove_file(dir.join(Kept::SegmentList.file_name())).unwrap()
+                std::fs::remove_file(dir.join(SEGMENT_LIST.name)).unwrap()
             }),
             ("flushed", |dir| {
-                std::fs::remove_file(dir.join(Kept::Flushed.file_name())).unwrap()
+                std::fs::remove_file(dir.join(FLUSHED.name)).unwrap()
             }),
         ];
         for (name, damage) in cases {
@@ -2131,7 +2033,7 @@ mod tests {
     fn a_torn_flushed_slot_falls_back_to_the_other() {
         let dir = filled("torn-slot", 3, SEGMENT_BYTES);
         let newest = read_flushed(&dir).unwrap().unwrap();
-        let path = dir.join(Kept::Flushed.file_name());
+        let path = dir.join(FLUSHED.name);
         let mut bytes = std::fs::read(&path).unwrap();
         let at = SLOT_AT[(newest.sequence % 2) as usize] as usize;
         bytes[at + 20] ^= 1;
@@ -2447,10 +2349,10 @@ mod tests {
             };
             let bookkeeping = match claimed {
                 Some(length) => {
-                    let list = Record2 { sequence: 1, words: [1, newest] };
-                    open_kept(&dir, Kept::SegmentList, list).unwrap();
+                    let list = SlotRecord { sequence: 1, words: [1, newest] };
+                    open_kept(&dir, SEGMENT_LIST, list).unwrap();
                     let record = FlushedRecord { sequence: 1, segment: newest, length };
-                    open_kept(&dir, Kept::Flushed, record.as_record()).unwrap();
+                    open_kept(&dir, FLUSHED, record.as_record()).unwrap();
                     Bookkeeping::Required
                 }
                 None => Bookkeeping::Adopted,

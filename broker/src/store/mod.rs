@@ -62,6 +62,7 @@ mod memory;
 mod persister;
 #[cfg(feature = "persistence")]
 mod sled;
+pub(crate) mod slots;
 
 pub use self::codec::BadRecord;
 #[cfg(feature = "persistence")]
@@ -71,6 +72,7 @@ pub use self::integrity::{mark_clean, open_checked, OpenedStore};
 #[cfg(feature = "persistence")]
 pub use self::log::{Bookkeeping, Losses, LostRange, OnDamage};
 pub use self::memory::MemoryStore;
+pub(crate) use self::persister::AfterSync;
 pub use self::persister::{Durable, Persistence, PersisterFigures};
 #[cfg(feature = "persistence")]
 pub use self::sled::SledStore;

@@ -12,6 +12,7 @@
 //! when the persister sleeps (a channel cost ~140 ns per send in atomics
 //! shared with the draining thread).
 
+use super::slots::{SlotFile, SlotRecord};
 use super::{guarded, KvOp, Recovered, Store, StoreError, StoreOp, WriteMode};
 use crate::stats::{Histogram, HistogramFigures};
 use crate::word_hash::WordHashMap;
@@ -35,6 +36,23 @@ struct Submission {
     /// Files written outside the store (a stream's segments) that this
     /// group's flush must sync too.
     syncs: Vec<Arc<std::fs::File>>,
+    /// What to record once they are synced.
+    then: Option<AfterSync>,
+}
+
+/// A bookkeeping record to write once a group's syncs have succeeded (a
+/// stream's synced offset): one `pwrite`, not synced itself, so what
+/// survives a power cut is this record or an earlier one, a lower bound of
+/// what was synced (see `super::slots`).
+#[derive(Debug)]
+pub(crate) struct AfterSync {
+    /// The bookkeeping file, open for writing.
+    pub file: Arc<std::fs::File>,
+    /// Its kind.
+    pub kind: SlotFile,
+    /// The record; of two for the same file in one group, the one with
+    /// the higher sequence is written.
+    pub record: SlotRecord,
 }
 
 impl std::fmt::Debug for Submission {
@@ -201,6 +219,8 @@ struct Group {
     error: Option<StoreError>,
     /// Files outside the store to sync with this group's flush.
     syncs: Vec<Arc<std::fs::File>>,
+    /// Records to write once those are synced, one per file.
+    then: Vec<AfterSync>,
 }
 
 /// A key that is written once and removed once, never rewritten: a
@@ -240,6 +260,17 @@ impl Group {
         for file in submission.syncs {
             if !self.syncs.iter().any(|f| Arc::ptr_eq(f, &file)) {
                 self.syncs.push(file);
+            }
+        }
+        if let Some(after) = submission.then {
+            match self
+                .then
+                .iter_mut()
+                .find(|t| Arc::ptr_eq(&t.file, &after.file))
+            {
+                Some(kept) if kept.record.sequence < after.record.sequence => *kept = after,
+                Some(_) => {}
+                None => self.then.push(after),
             }
         }
         if submission.mode == WriteMode::Atomic {
@@ -320,6 +351,17 @@ impl Group {
             self.record(synced);
         }
         self.syncs = syncs;
+        for after in self.then.drain(..) {
+            if self.error.is_some() {
+                // Not synced: nothing new to record.
+                continue;
+            }
+            if let Err(e) = after.kind.write(&after.file, after.record) {
+                // The record stays at an earlier value: a lower bound, so
+                // a later start checks less, never refuses wrongly.
+                tracing::warn!(error = %e, what = after.kind.what, "cannot record what was synced");
+            }
+        }
         self.numbers = None;
         self.len = 0;
         self.elided = 0;
@@ -422,20 +464,20 @@ impl Persistence {
 
     /// Queues ops for the next group; returns their submission number.
     pub fn submit(&self, ops: Vec<StoreOp>) -> u64 {
-        self.send(ops, WriteMode::Plain, None, Vec::new())
+        self.send(ops, WriteMode::Plain, None, Vec::new(), None)
     }
 
     /// Asks the next group to sync `files` (written by their owner, a
     /// stream, before this call) with its flush; returns the submission
     /// number, durable once [`Persistence::durable`] reaches it.
-    pub fn submit_sync(&self, files: Vec<Arc<std::fs::File>>) -> u64 {
-        self.send(Vec::new(), WriteMode::Plain, None, files)
+    pub(crate) fn submit_sync(&self, files: Vec<Arc<std::fs::File>>, then: AfterSync) -> u64 {
+        self.send(Vec::new(), WriteMode::Plain, None, files, Some(then))
     }
 
     /// Queues ops that must reach the disk all together or not at all (a
     /// transaction's commit).
     pub fn submit_atomic(&self, ops: Vec<StoreOp>) -> u64 {
-        self.send(ops, WriteMode::Atomic, None, Vec::new())
+        self.send(ops, WriteMode::Atomic, None, Vec::new(), None)
     }
 
     /// Writes and flushes everything submitted so far, then `last` (the
@@ -443,7 +485,7 @@ impl Persistence {
     /// are dropped. For shutdown. Whether `last` reached the disk.
     pub async fn close(&self, last: Vec<StoreOp>) -> bool {
         let (done, closed) = tokio::sync::oneshot::channel();
-        let number = self.send(last, WriteMode::Plain, Some(done), Vec::new());
+        let number = self.send(last, WriteMode::Plain, Some(done), Vec::new(), None);
         closed.await.is_ok() && self.succeeded(number)
     }
 
@@ -454,6 +496,7 @@ impl Persistence {
         mode: WriteMode,
         close: Option<tokio::sync::oneshot::Sender<()>>,
         syncs: Vec<Arc<std::fs::File>>,
+        then: Option<AfterSync>,
     ) -> u64 {
         let mut inbox = self.mailbox.lock();
         inbox.numbered += 1;
@@ -469,6 +512,7 @@ impl Persistence {
             mode,
             close,
             syncs,
+            then,
         });
         let wake = std::mem::take(&mut inbox.sleeping);
         drop(inbox);
@@ -698,6 +742,66 @@ mod tests {
         }
     }
 
+    /// A group writes each file's newest after-sync record once its syncs
+    /// and flush succeeded, and none when the group failed.
+    #[test]
+    fn after_sync_records_are_written_only_after_a_successful_group() {
+        use crate::store::slots::{SlotFile, SlotRecord};
+        const MARK: SlotFile = SlotFile {
+            name: "mark",
+            magic: b"LVTM",
+            what: "test mark",
+        };
+        let dir = std::env::temp_dir().join(format!("leveret-after-sync-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let first = SlotRecord {
+            sequence: 1,
+            words: [0, 0],
+        };
+        let file = Arc::new(MARK.open(&dir, first).unwrap());
+        let submission = |number, sequence| Submission {
+            number,
+            ops: Vec::new(),
+            mode: WriteMode::Plain,
+            close: None,
+            syncs: vec![Arc::clone(&file)],
+            then: Some(AfterSync {
+                file: Arc::clone(&file),
+                kind: MARK,
+                record: SlotRecord {
+                    sequence,
+                    words: [sequence, 0],
+                },
+            }),
+        };
+        let store = Flaky::default();
+        let mut group = Group::default();
+        group.add(&store, submission(1, 5));
+        group.add(&store, submission(2, 3));
+        group.finish(&store).unwrap();
+        assert_eq!(
+            MARK.read(&dir).unwrap().unwrap().sequence,
+            5,
+            "the newest of the group"
+        );
+        store.failing.store(true, Ordering::SeqCst);
+        group.add(
+            &store,
+            Submission {
+                ops: vec![StoreOp::DeleteMessage { id: 1 }],
+                ..submission(3, 9)
+            },
+        );
+        assert!(group.finish(&store).is_err());
+        assert_eq!(
+            MARK.read(&dir).unwrap().unwrap().sequence,
+            5,
+            "a failed group records nothing"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
     /// Submissions from several threads at once are numbered without a
     /// gap or a repeat, and waiting for the last covers every one.
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -749,6 +853,7 @@ mod tests {
             mode: WriteMode::Plain,
             close: None,
             syncs: Vec::new(),
+            then: None,
         };
         let exchange = ExchangeRecord {
             vhost: ShortStr::from_static("/"),
@@ -802,6 +907,7 @@ mod tests {
                 mode: WriteMode::Atomic,
                 close: None,
                 syncs: Vec::new(),
+                then: None,
             },
         );
         group.add(

@@ -15,7 +15,13 @@
 //!
 //! Appends go to the page cache ([`StreamLog::append`]); the caller makes
 //! them durable by handing [`StreamLog::sync_handles`] to the persister,
-//! whose group commit syncs them before the publish is confirmed.
+//! whose group commit syncs them before the publish is confirmed. Once the
+//! sync succeeded, and before any confirm it covers is sent, the persister
+//! writes [`StreamLog::synced_mark`] to `<dir>/synced` ([`SYNCED`], two
+//! checksummed slots by turn, never synced by itself): the offset one past
+//! the last synced record. After a kill -9 the page cache keeps it
+//! exactly; after a power cut the disk holds it or an earlier one (a torn
+//! slot falls back to the other): a lower bound of what was confirmed.
 //!
 //! A segment that is closed (the log rolled past it) is sealed: beside it,
 //! `NAME.seg.seal` holds its first and next offset, its oldest and newest
@@ -33,16 +39,24 @@
 //! the open with an error naming the file, the position and what is
 //! wrong ([`Damage`]): a bad checksum, an offset out of sequence, a bad
 //! segment header, a torn record in any segment but the newest, missing
-//! segments or a missing directory. The one thing taken as sound is a torn
-//! tail of the newest segment (fewer bytes than its record needs, or only
-//! zeros: a crash cut the append short, before any confirm covered it),
-//! which is cut with a warning; a truncation of the newest segment looks
-//! the same and is cut the same way (nothing records how far it was
-//! synced). With `recover` the open goes on instead: each damaged file is
+//! segments or a missing directory, a missing or unreadable `synced`
+//! file, and a log that ends below its synced offset (the newest segment
+//! cut short or removed, every segment removed). The one thing taken as
+//! sound is damage at or past the synced offset: appends a crash cut short
+//! or scrambled before any confirm covered them. The segment is cut there
+//! with a warning; when that is not the newest (a power cut as the log
+//! rolled), the segments begun after it are removed and it is the head
+//! again, its seal removed. Without a synced offset (recovering) only a
+//! torn append at the end of the newest segment is taken for a crash's.
+//! With `recover` the open goes on instead: each damaged file is
 //! copied aside (`NAME.seg.damaged-SECONDS`), what is lost is logged, and
 //! the segment is cut at its last sound record; the records after it are
-//! never served as if sound.
+//! never served as if sound. Synced offsets that are gone are never handed
+//! out again: the log goes on at the synced offset, the gap recorded
+//! beside the new segment (`NAME.seg.lost`).
 
+use crate::store::slots::{SlotFile, SlotRecord};
+use crate::store::AfterSync;
 use std::fs::{File, OpenOptions};
 use std::io::{self, Read};
 use std::os::unix::fs::FileExt;
@@ -144,7 +158,19 @@ pub struct StreamLog {
     segments: Vec<Segment>,
     /// First offset of the newest chunk.
     last_chunk: u64,
+    /// The synced-offset file ([`SYNCED`]), open for the persister.
+    synced_file: Arc<File>,
 }
+
+/// How far the stream was synced: the record's sequence is the offset one
+/// past the last synced record, its words the head segment's first offset
+/// and synced length then. Written by the persister after each sync that
+/// covers appends, before their confirms ([`StreamLog::synced_mark`]).
+const SYNCED: SlotFile = SlotFile {
+    name: "synced",
+    magic: b"LVSS",
+    what: "synced offset",
+};
 
 fn segment_path(dir: &Path, first: u64) -> PathBuf {
     dir.join(format!("{first:020}.seg"))
@@ -339,7 +365,7 @@ impl StreamLog {
             _ => {}
         }
         std::fs::create_dir_all(dir)?;
-        StreamLog::open(dir, max_segment_bytes, false)
+        StreamLog::open_as(dir, max_segment_bytes, false, true)
     }
 
     /// Opens the log in `dir`, checking every record: damage is an error
@@ -347,6 +373,17 @@ impl StreamLog {
     /// unless `recover`, when the damaged file is copied aside, the loss
     /// logged and the segment cut at its last sound record (module docs).
     pub fn open(dir: &Path, max_segment_bytes: u64, recover: bool) -> io::Result<StreamLog> {
+        StreamLog::open_as(dir, max_segment_bytes, recover, false)
+    }
+
+    /// Opens the log in `dir`; `fresh` when [`StreamLog::create`] just made
+    /// the directory (no synced-offset file yet).
+    fn open_as(
+        dir: &Path,
+        max_segment_bytes: u64,
+        recover: bool,
+        fresh: bool,
+    ) -> io::Result<StreamLog> {
         if !dir.exists() {
             if !recover {
                 return Err(damage(format!(
@@ -357,6 +394,21 @@ impl StreamLog {
             tracing::error!(stream = %dir.display(), "a stored stream's directory is missing: its records are lost; it starts empty");
         }
         std::fs::create_dir_all(dir)?;
+        let synced = match SYNCED.read(dir) {
+            Ok(Some(record)) => Some(record.sequence),
+            Ok(None) if fresh => None,
+            Ok(None) | Err(_) if recover => {
+                tracing::error!(stream = %dir.display(), "a stored stream's synced-offset file is missing or unreadable: recovering without knowing how far it was synced");
+                None
+            }
+            Ok(None) => {
+                return Err(damage(format!(
+                    "its synced-offset file {} is missing",
+                    SYNCED.path(dir).display()
+                )))
+            }
+            Err(problem) => return Err(damage(format!("stream {}: {problem}", dir.display()))),
+        };
         let mut firsts: Vec<u64> = std::fs::read_dir(dir)?
             .filter_map(|e| e.ok())
             .filter_map(|e| {
@@ -368,18 +420,30 @@ impl StreamLog {
         let dir_handle = Arc::new(File::open(dir)?);
         let mut log = StreamLog {
             dir: dir.to_path_buf(),
-            dir_handle,
+            dir_handle: Arc::clone(&dir_handle),
             max_segment_bytes: max_segment_bytes.max(1),
             segments: Vec::new(),
             last_chunk: 0,
+            // Replaced below, once the segments are known.
+            synced_file: dir_handle,
         };
         let newest = firsts.last().copied();
         let mut expected = firsts.first().copied().unwrap_or(0);
+        // Where a crash's unsynced tail was cut in a segment before the
+        // newest (a power cut as the log rolled): what follows was never
+        // synced, so never confirmed.
+        let mut crash_cut = false;
         for first in firsts {
             let path = segment_path(dir, first);
+            if crash_cut {
+                std::fs::remove_file(&path)?;
+                let _ = std::fs::remove_file(seal_path(&path));
+                tracing::warn!(stream = %dir.display(), segment = %path.display(), "a stream segment begun after the last synced record, before a crash: removed (nothing in it was confirmed)");
+                continue;
+            }
             let file = OpenOptions::new().read(true).write(true).open(&path)?;
             let len = file.metadata()?.len();
-            let closed = Some(first) != newest;
+            let mut closed = Some(first) != newest;
             let sealed = if closed {
                 read_seal(&path, &file, first, len)
             } else {
@@ -414,9 +478,23 @@ impl StreamLog {
                 File::create(loss_marker(&path))?.sync_all()?;
             }
             if let Some(why) = &found.damage {
-                let crash_tail = found.torn_tail && Some(first) == newest && found.sound > 0;
+                // What a crash leaves lies past what was synced: damage
+                // there held nothing confirmed; below it, it is damage.
+                // Without the synced offset (recovering), only a torn
+                // append at the very end is taken for a crash's.
+                let crash_tail = found.sound > 0
+                    && match synced {
+                        Some(synced) => found.next >= synced,
+                        None => found.torn_tail && Some(first) == newest,
+                    };
                 if crash_tail {
-                    tracing::warn!(stream = %dir.display(), segment = %path.display(), position = found.sound, bytes = len - found.sound, reason = %why, "the newest stream segment ends in a torn append (a crash before it was confirmed): cut there");
+                    tracing::warn!(stream = %dir.display(), segment = %path.display(), position = found.sound, bytes = len - found.sound, reason = %why, "a stream segment ends in an append never synced (a crash before it was confirmed): cut there");
+                    if closed {
+                        // The log goes on from here: no longer sealed.
+                        let _ = std::fs::remove_file(seal_path(&path));
+                        closed = false;
+                        crash_cut = true;
+                    }
                 } else if !recover {
                     return Err(damage(format!(
                         "stream segment {} is damaged at byte {} of {len} ({why}): offsets from {} on would be lost",
@@ -454,10 +532,34 @@ impl StreamLog {
             }
             log.segments.push(segment);
         }
+        if let Some(synced) = synced.filter(|&synced| synced > expected) {
+            // The newest records were synced (so maybe confirmed) and are
+            // gone: the newest segment was cut short or removed.
+            if !recover {
+                return Err(damage(format!(
+                    "stream {} ends at offset {expected}, but offsets up to {} were synced before their confirms: the newest segment was cut short or removed",
+                    dir.display(),
+                    synced - 1
+                )));
+            }
+            tracing::error!(stream = %dir.display(), lost_from_offset = expected, lost_to_offset = synced - 1, "recovering a stream whose newest synced records are missing: these are lost; later records keep their offsets");
+            log.start_segment(synced)?;
+            File::create(loss_marker(&log.head().path))?.sync_all()?;
+            log.last_chunk = synced;
+            expected = synced;
+        }
         if log.segments.is_empty() {
             log.start_segment(expected)?;
             log.last_chunk = expected;
         }
+        let head = log.head();
+        // A seal beside the head is stale (a crash as the log rolled).
+        let _ = std::fs::remove_file(seal_path(&head.path));
+        let first_record = SlotRecord {
+            sequence: head.next,
+            words: [head.first, head.bytes],
+        };
+        log.synced_file = Arc::new(SYNCED.open(dir, first_record)?);
         Ok(log)
     }
 
@@ -580,6 +682,20 @@ impl StreamLog {
             }
         }
         files
+    }
+
+    /// What the persister records once the files [`StreamLog::sync_handles`]
+    /// gave it are synced: everything appended so far.
+    pub fn synced_mark(&self) -> AfterSync {
+        let head = self.head();
+        AfterSync {
+            file: Arc::clone(&self.synced_file),
+            kind: SYNCED,
+            record: SlotRecord {
+                sequence: head.next,
+                words: [head.first, head.bytes],
+            },
+        }
     }
 
     /// Lets whole segments go, oldest first and never the newest, while
@@ -771,7 +887,7 @@ mod tests {
     #[test]
     fn appends_get_increasing_offsets_and_read_back_from_any_offset() {
         let dir = Scratch::new("offsets");
-        let mut log = StreamLog::open(dir.path(), 1 << 20, false).unwrap();
+        let mut log = StreamLog::create(dir.path(), 1 << 20).unwrap();
         for i in 0..100u32 {
             let (offset, _) = log
                 .append(&i.to_le_bytes(), 1000 + i64::from(i), i % 10 == 0)
@@ -799,7 +915,7 @@ mod tests {
     #[test]
     fn segments_roll_at_their_size_and_retention_removes_whole_old_segments() {
         let dir = Scratch::new("retention");
-        let mut log = StreamLog::open(dir.path(), 1000, false).unwrap();
+        let mut log = StreamLog::create(dir.path(), 1000).unwrap();
         let body = [7u8; 75]; // 100 bytes a record
         for i in 0..50 {
             log.append(&body, i, false).unwrap();
@@ -827,14 +943,24 @@ mod tests {
         remove_files(by_age);
         assert_eq!(log.segments.len(), 1);
         assert_eq!(log.first_offset(), 45);
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+        let segment_files = std::fs::read_dir(dir.path())
+            .unwrap()
+            .filter(|e| {
+                e.as_ref()
+                    .unwrap()
+                    .file_name()
+                    .to_string_lossy()
+                    .ends_with(".seg")
+            })
+            .count();
+        assert_eq!(segment_files, 1);
     }
 
     #[test]
     fn offsets_and_contents_survive_reopening() {
         let dir = Scratch::new("reopen");
         {
-            let mut log = StreamLog::open(dir.path(), 300, false).unwrap();
+            let mut log = StreamLog::create(dir.path(), 300).unwrap();
             for i in 0..20u8 {
                 log.append(&[i; 30], 5, i == 12).unwrap();
             }
@@ -850,12 +976,20 @@ mod tests {
         assert_eq!(log.append(b"x", 6, true).unwrap().0, 20);
     }
 
-    /// Ten records of 10 bytes in segments of three.
+    /// What the persister does once a sync covering the appends succeeded.
+    fn record_synced(log: &StreamLog) {
+        let mark = log.synced_mark();
+        mark.kind.write(&mark.file, mark.record).unwrap();
+    }
+
+    /// Ten records of 10 bytes in segments of three, each synced (and so
+    /// maybe confirmed); returns the segments' paths.
     fn ten_records(dir: &Path) -> Vec<PathBuf> {
         let mut log =
-            StreamLog::open(dir, 3 * (RECORD_HEADER as u64 + 10) + SEGMENT_HEADER, false).unwrap();
+            StreamLog::create(dir, 3 * (RECORD_HEADER as u64 + 10) + SEGMENT_HEADER).unwrap();
         for i in 0..10u8 {
             log.append(&[i; 10], 1, false).unwrap();
+            record_synced(&log);
         }
         log.segments.iter().map(|s| s.path.clone()).collect()
     }
@@ -1028,6 +1162,141 @@ mod tests {
     }
 
     #[test]
+    fn synced_records_that_are_gone_refuse_the_open_and_recovery_never_reuses_their_offsets() {
+        // The newest segment cut short inside what was synced.
+        let dir = Scratch::new("synced-cut");
+        let segments = ten_records(dir.path());
+        let newest = segments.last().unwrap();
+        OpenOptions::new()
+            .write(true)
+            .open(newest)
+            .unwrap()
+            .set_len(SEGMENT_HEADER + 10)
+            .unwrap();
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(text.contains("offsets from 9 on would be lost"), "{text}");
+        let mut log = reopen(dir.path(), true).unwrap();
+        assert_eq!(
+            log.next_offset(),
+            10,
+            "the lost offset is not handed out again"
+        );
+        assert_eq!(log.append(b"after", 2, true).unwrap().0, 10);
+        record_synced(&log);
+        drop(log);
+        let log = reopen(dir.path(), false).expect("the recorded loss is accepted later");
+        assert_eq!(
+            read_all(&log, 0)
+                .iter()
+                .map(|r| r.offset)
+                .collect::<Vec<_>>(),
+            [0, 1, 2, 3, 4, 5, 6, 7, 8, 10]
+        );
+        drop(log);
+
+        // Cut at a record boundary: no torn record, still refused.
+        let dir = Scratch::new("synced-boundary");
+        let segments = ten_records(dir.path());
+        let newest = segments.last().unwrap();
+        OpenOptions::new()
+            .write(true)
+            .open(newest)
+            .unwrap()
+            .set_len(SEGMENT_HEADER)
+            .unwrap();
+        assert!(reopen(dir.path(), false).is_err());
+
+        // The newest segment removed, or every segment.
+        let dir = Scratch::new("synced-newest-gone");
+        let segments = ten_records(dir.path());
+        std::fs::remove_file(segments.last().unwrap()).unwrap();
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(text.contains("ends at offset 9"), "{text}");
+        let dir = Scratch::new("synced-all-gone");
+        for segment in ten_records(dir.path()) {
+            std::fs::remove_file(&segment).unwrap();
+            let _ = std::fs::remove_file(seal_path(&segment));
+        }
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(text.contains("ends at offset 0"), "{text}");
+
+        // The synced-offset file itself removed.
+        let dir = Scratch::new("synced-file-gone");
+        ten_records(dir.path());
+        std::fs::remove_file(SYNCED.path(dir.path())).unwrap();
+        let text = reopen(dir.path(), false).unwrap_err().to_string();
+        assert!(text.contains("synced-offset file"), "{text}");
+        assert_eq!(reopen(dir.path(), true).unwrap().next_offset(), 10);
+        assert_eq!(
+            reopen(dir.path(), false).unwrap().next_offset(),
+            10,
+            "recovery wrote it again"
+        );
+    }
+
+    #[test]
+    fn a_torn_append_past_the_synced_offset_is_still_a_crash() {
+        let dir = Scratch::new("synced-torn-tail");
+        let segments = ten_records(dir.path());
+        let mut log = reopen(dir.path(), false).unwrap();
+        log.append(&[10; 10], 1, false).unwrap(); // not synced
+        drop(log);
+        let newest = segments.last().unwrap();
+        let len = std::fs::metadata(newest).unwrap().len();
+        OpenOptions::new()
+            .write(true)
+            .open(newest)
+            .unwrap()
+            .set_len(len - 4)
+            .unwrap();
+        let log = reopen(dir.path(), false).unwrap();
+        assert_eq!(
+            log.next_offset(),
+            10,
+            "the torn, never synced record is cut"
+        );
+    }
+
+    #[test]
+    fn a_power_cut_as_the_log_rolled_leaves_a_crash_tail_not_damage() {
+        let dir = Scratch::new("roll-cut");
+        let segments = ten_records(dir.path()); // [0-2] [3-5] [6-8] [9], all synced
+        let mut log = reopen(dir.path(), false).unwrap();
+        for i in 10..13u8 {
+            log.append(&[i; 10], 1, false).unwrap(); // 10, 11, then a roll: 12
+        }
+        assert_eq!(log.segments.len(), 5);
+        drop(log);
+        // The cut lost the end of record 11 (never synced); the new
+        // segment's file and the seal of the one before survived.
+        let rolled = segments.last().unwrap();
+        assert!(seal_path(rolled).exists());
+        let len = std::fs::metadata(rolled).unwrap().len();
+        OpenOptions::new()
+            .write(true)
+            .open(rolled)
+            .unwrap()
+            .set_len(len - 3)
+            .unwrap();
+        let mut log = reopen(dir.path(), false).expect("nothing synced was lost");
+        assert_eq!(log.next_offset(), 11, "cut after record 10");
+        assert_eq!(
+            log.segments.len(),
+            4,
+            "the segment begun after the cut is gone"
+        );
+        assert!(
+            !seal_path(rolled).exists(),
+            "the cut segment is the head again"
+        );
+        assert_eq!(log.append(&[11; 10], 1, false).unwrap().0, 11);
+        record_synced(&log);
+        drop(log);
+        let log = reopen(dir.path(), false).unwrap();
+        assert_eq!(read_all(&log, 0).len(), 12);
+    }
+
+    #[test]
     fn a_missing_directory_is_damage_unless_recovering() {
         let dir = Scratch::new("gone");
         ten_records(dir.path());
@@ -1040,7 +1309,7 @@ mod tests {
     #[test]
     fn timestamps_find_the_oldest_segment_recent_enough() {
         let dir = Scratch::new("timestamps");
-        let mut log = StreamLog::open(dir.path(), 200, false).unwrap();
+        let mut log = StreamLog::create(dir.path(), 200).unwrap();
         for i in 0..20 {
             log.append(&[0; 35], i * 100, false).unwrap(); // 60 bytes: 3 a segment
         }

@@ -302,7 +302,9 @@ impl Queue {
                     return Enqueued::Refused;
                 }
             };
-            let sync = stream.persistence.submit_sync(st.log.sync_handles(rolled));
+            let sync = stream
+                .persistence
+                .submit_sync(st.log.sync_handles(rolled), st.log.synced_mark());
             st.last_sync = sync;
             if rolled {
                 let (bytes, age) = (st.args.max_bytes, st.args.max_age_ms);
