@@ -39,9 +39,8 @@ impl std::fmt::Debug for VerifiedLogins {
 
 impl VerifiedLogins {
     fn new() -> Self {
-        use argon2::password_hash::rand_core::{OsRng, RngCore};
         let mut secret = [0u8; 32];
-        OsRng.fill_bytes(&mut secret);
+        crate::password::os_random(&mut secret);
         VerifiedLogins {
             secret,
             passed: Arc::new(Mutex::new(HashMap::new())),
@@ -356,6 +355,7 @@ mod tests {
     /// A login that passed argon2id is remembered (keyed by the password:
     /// another password is checked in full); failures never are, and the
     /// blocking checks give their slots back.
+    #[cfg(feature = "argon2")]
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn argon2id_logins_are_checked_off_thread_and_remembered_only_when_right() {
         let users = Users::default();
@@ -396,6 +396,7 @@ mod tests {
     /// neither a known login (remembered: no hashing) nor another user's
     /// first login from the same address (its own queue, served in
     /// turn).
+    #[cfg(feature = "argon2")]
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_flood_for_one_user_holds_up_no_other_login() {
         let users = Users::default();

@@ -56,8 +56,9 @@
 //! `tls`); `embedded` for `Connector::in_process`, on `leveret-broker`
 //! without its default features (the application names any it wants on
 //! its own dependency); `serde` for `Postcard`. In-process ports alone
-//! (`default-features = false, features = ["embedded"]`) build 50 crates
-//! on Linux; with every default of this crate and the broker, 101.
+//! (`default-features = false, features = ["embedded"]`) build 44 crates
+//! on Linux; with every default of this crate and the broker, 100
+//! (`perf/crate-count`).
 //!
 //! Layout:
 //! - `data`: [`PortData`] (value ⇄ body), its impls and [`DataError`].

@@ -1,23 +1,42 @@
 //! Password hashes. New ones are argon2id (RustCrypto's `argon2` with its
 //! default parameters, a salt from the OS random source), in the PHC
-//! string form (`$argon2id$v=19$m=…`). RabbitMQ's salted SHA-256 and
-//! SHA-512 hashes (`rabbit_password_hashing_sha256` / `_sha512`: base64 of
-//! a 4-byte salt and the digest of salt + password) are accepted as
-//! RabbitMQ exports them, so users moved from RabbitMQ log in unchanged;
-//! Leveret's earlier form (72 hex digits: salt and SHA-256) is still read.
-//! An empty `password_hash` is, as in RabbitMQ, a user who cannot log in
-//! with a password at all.
+//! string form (`$argon2id$v=19$m=…`): `argon2id` owns that scheme, behind
+//! the `argon2` cargo feature (default). A build without it hashes new
+//! passwords with RabbitMQ's salted SHA-256 (its default scheme) and
+//! refuses argon2id hashes where it reads one (config, definitions, the
+//! store), saying the build cannot check them. RabbitMQ's salted SHA-256
+//! and SHA-512 hashes (`rabbit_password_hashing_sha256` / `_sha512`:
+//! base64 of a 4-byte salt and the digest of salt + password) are accepted
+//! as RabbitMQ exports them, so users moved from RabbitMQ log in
+//! unchanged; Leveret's earlier form (72 hex digits: salt and SHA-256) is
+//! still read. An empty `password_hash` is, as in RabbitMQ, a user who
+//! cannot log in with a password at all.
 //!
 //! argon2id costs tens of milliseconds and megabytes per check by design:
 //! `auth` runs it off the broker's threads (in `hash_pool`, whose threads
 //! keep the check's memory in a [`HashMemory`] between checks) and
-//! remembers successful logins. Uses nothing else of the broker.
+//! remembers successful logins. Uses `getrandom`, `sha2`, `base64` and,
+//! with the feature, `argon2`; nothing else of the broker.
 
-use argon2::password_hash::rand_core::OsRng;
-use argon2::password_hash::{PasswordHasher, PasswordVerifier, SaltString};
-use argon2::{Argon2, Block};
+#[cfg(feature = "argon2")]
+mod argon2id;
+
+#[cfg(feature = "argon2")]
+pub use argon2id::HashMemory;
 use base64::Engine;
 use sha2::{Digest, Sha256, Sha512};
+
+/// Where a hashing thread keeps an argon2id check's memory; a build
+/// without argon2id has no slow checks, so nothing to keep.
+#[cfg(not(feature = "argon2"))]
+#[derive(Default)]
+pub struct HashMemory(());
+
+#[cfg(not(feature = "argon2"))]
+impl HashMemory {
+    /// Gives the memory back (there is none).
+    pub fn release(&mut self) {}
+}
 
 /// RabbitMQ's name for its salted SHA-256 scheme (its default).
 pub const RABBIT_SHA256: &str = "rabbit_password_hashing_sha256";
@@ -27,38 +46,6 @@ pub const RABBIT_SHA512: &str = "rabbit_password_hashing_sha512";
 /// has no such module: it cannot import these users).
 pub const LEVERET_ARGON2ID: &str = "leveret_password_hashing_argon2id";
 
-/// The most memory an argon2id hash may ask each check for (64 MiB;
-/// the default is 19 MiB): a hash from a file or an import cannot make a
-/// login cost gigabytes.
-const MAX_MEMORY_KIB: u32 = 64 * 1024;
-/// The most passes it may ask for (the default is 2).
-const MAX_PASSES: u32 = 8;
-/// The most lanes it may ask for (the default is 1).
-const MAX_LANES: u32 = 4;
-
-/// The memory an argon2id check works in (19 MiB with the default
-/// parameters), kept by a hashing thread from one check to the next while
-/// checks keep coming. Allocated afresh per check, the C allocator keeps
-/// many such blocks resident after a flood of checks (measured: 55 to 188
-/// MiB after 1,600 wrong logins); kept, a thread holds one at a time.
-#[derive(Default)]
-pub struct HashMemory(Vec<Block>);
-
-impl HashMemory {
-    /// Gives the memory back (the thread has nothing more to check).
-    pub fn release(&mut self) {
-        self.0 = Vec::new();
-    }
-
-    /// `blocks` blocks of it, grown if needed.
-    fn blocks(&mut self, blocks: usize) -> &mut [Block] {
-        if self.0.len() < blocks {
-            self.0.resize(blocks, Block::default());
-        }
-        &mut self.0[..blocks]
-    }
-}
-
 /// A stored password.
 #[derive(Clone, PartialEq, Eq)]
 pub struct PasswordHash(Scheme);
@@ -66,6 +53,7 @@ pub struct PasswordHash(Scheme);
 #[derive(Clone, PartialEq, Eq)]
 enum Scheme {
     /// The PHC string.
+    #[cfg(feature = "argon2")]
     Argon2id(String),
     /// RabbitMQ's scheme: a 4-byte salt and SHA-256 or SHA-512 of salt +
     /// password.
@@ -120,6 +108,7 @@ impl std::fmt::Debug for PasswordHash {
     // Never prints the hash itself.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let scheme = match &self.0 {
+            #[cfg(feature = "argon2")]
             Scheme::Argon2id(_) => "argon2id",
             Scheme::Salted { algorithm, .. } => algorithm.name(),
             Scheme::None => "none",
@@ -130,29 +119,36 @@ impl std::fmt::Debug for PasswordHash {
 
 impl PasswordHash {
     /// Hashes `password` with argon2id and a fresh salt from the OS.
+    #[cfg(feature = "argon2")]
     pub fn new(password: &str) -> Self {
-        let salt = SaltString::generate(&mut OsRng);
-        let phc = Argon2::default()
-            .hash_password(password.as_bytes(), &salt)
-            .map(|hash| hash.to_string())
-            // Only a parameter or output-size error can occur, and the
-            // defaults have none.
-            .unwrap_or_else(|e| unreachable!("argon2 with default parameters: {e}"));
-        PasswordHash(Scheme::Argon2id(phc))
+        PasswordHash(Scheme::Argon2id(argon2id::hash(password)))
+    }
+
+    /// Hashes `password` with RabbitMQ's default scheme (salted SHA-256)
+    /// and a fresh salt from the OS: this build has no argon2id.
+    #[cfg(not(feature = "argon2"))]
+    pub fn new(password: &str) -> Self {
+        let mut salt = [0u8; 4];
+        os_random(&mut salt);
+        let digest = Salted::Sha256.digest(&salt, password.as_bytes());
+        PasswordHash(Scheme::Salted {
+            algorithm: Salted::Sha256,
+            salt,
+            digest,
+        })
     }
 
     /// Reads a stored hash: an argon2id PHC string, or Leveret's earlier
-    /// 72-hex-digit SHA-256 form.
+    /// 72-hex-digit SHA-256 form. An argon2id hash costlier than a login
+    /// may be, or in a build without argon2id, is `None`.
     pub fn parse(stored: &str) -> Option<Self> {
         let stored = stored.trim();
         if stored.starts_with("$argon2id$") {
-            let parsed = argon2::password_hash::PasswordHash::new(stored).ok()?;
-            let params = argon2::Params::try_from(&parsed).ok()?;
-            let affordable = params.m_cost() <= MAX_MEMORY_KIB
-                && params.t_cost() <= MAX_PASSES
-                && params.p_cost() <= MAX_LANES;
-            return (parsed.salt.is_some() && parsed.hash.is_some() && affordable)
+            #[cfg(feature = "argon2")]
+            return argon2id::usable(stored)
                 .then(|| PasswordHash(Scheme::Argon2id(stored.to_owned())));
+            #[cfg(not(feature = "argon2"))]
+            return None;
         }
         if stored.len() != 72 || !stored.is_ascii() {
             return None;
@@ -201,6 +197,7 @@ impl PasswordHash {
     /// hashing_algorithm)`.
     pub fn to_rabbitmq(&self) -> (String, &'static str) {
         match &self.0 {
+            #[cfg(feature = "argon2")]
             Scheme::Argon2id(phc) => (phc.clone(), LEVERET_ARGON2ID),
             Scheme::Salted {
                 algorithm,
@@ -223,6 +220,7 @@ impl PasswordHash {
     /// as `to_rabbitmq` gives them, with `hashing-algorithm`.
     pub fn to_phc(&self) -> Option<&str> {
         match &self.0 {
+            #[cfg(feature = "argon2")]
             Scheme::Argon2id(phc) => Some(phc),
             Scheme::Salted { .. } | Scheme::None => None,
         }
@@ -230,23 +228,31 @@ impl PasswordHash {
 
     /// Whether checking a password costs argon2id's time and memory.
     pub fn is_slow(&self) -> bool {
-        matches!(self.0, Scheme::Argon2id(_))
+        match self.0 {
+            #[cfg(feature = "argon2")]
+            Scheme::Argon2id(_) => true,
+            Scheme::Salted { .. } | Scheme::None => false,
+        }
     }
 
     /// Whether `password` matches (in constant time), an argon2id check
     /// working in `memory`.
     pub fn verify_in(&self, password: &[u8], memory: &mut HashMemory) -> bool {
         match &self.0 {
-            Scheme::Argon2id(phc) => verify_argon2id(phc, password, memory).unwrap_or(false),
-            Scheme::Salted { .. } | Scheme::None => self.verify(password),
+            #[cfg(feature = "argon2")]
+            Scheme::Argon2id(phc) => argon2id::verify_in(phc, password, memory),
+            Scheme::Salted { .. } | Scheme::None => {
+                let _ = memory;
+                self.verify(password)
+            }
         }
     }
 
     /// Whether `password` matches (in constant time).
     pub fn verify(&self, password: &[u8]) -> bool {
         match &self.0 {
-            Scheme::Argon2id(phc) => argon2::password_hash::PasswordHash::new(phc)
-                .is_ok_and(|parsed| Argon2::default().verify_password(password, &parsed).is_ok()),
+            #[cfg(feature = "argon2")]
+            Scheme::Argon2id(phc) => argon2id::verify(phc, password),
             Scheme::Salted {
                 algorithm,
                 salt,
@@ -265,29 +271,11 @@ impl PasswordHash {
     }
 }
 
-/// argon2id's check of `password` against the PHC string `phc`, in
-/// `memory`; `None` if the string cannot be used.
-fn verify_argon2id(phc: &str, password: &[u8], memory: &mut HashMemory) -> Option<bool> {
-    let parsed = argon2::password_hash::PasswordHash::new(phc).ok()?;
-    let expected = parsed.hash?;
-    let params = argon2::Params::try_from(&parsed).ok()?;
-    let version = match parsed.version {
-        Some(version) => argon2::Version::try_from(version).ok()?,
-        None => argon2::Version::default(),
-    };
-    let mut salt = [0u8; 64];
-    let salt = parsed.salt?.decode_b64(&mut salt).ok()?;
-    let blocks = params.block_count();
-    let hasher = Argon2::new(argon2::Algorithm::Argon2id, version, params);
-    let mut computed = vec![0u8; expected.len()];
-    hasher
-        .hash_password_into_with_memory(password, salt, &mut computed, memory.blocks(blocks))
-        .ok()?;
-    let differences = computed
-        .iter()
-        .zip(expected.as_bytes())
-        .fold(0u8, |acc, (a, b)| acc | (a ^ b));
-    Some(differences == 0)
+/// Fills `bytes` from the OS random source (`getrandom(2)`).
+pub fn os_random(bytes: &mut [u8]) {
+    // Fails only where the OS has no random source at all, which no
+    // supported system lacks; a broker there cannot make salts or keys.
+    getrandom::getrandom(bytes).expect("the OS random source");
 }
 
 #[cfg(test)]
@@ -295,6 +283,7 @@ mod tests {
     use super::*;
 
     #[test]
+    #[cfg(feature = "argon2")]
     fn new_hashes_are_argon2id_salted_from_the_os_and_round_trip() {
         let a = PasswordHash::new("secret");
         let b = PasswordHash::new("secret");
@@ -374,7 +363,23 @@ mod tests {
         assert!(PasswordHash::parse(&hex).expect("hex").verify(b"old"));
         assert!(PasswordHash::parse("zz").is_none());
         assert!(PasswordHash::parse("$argon2id$garbage").is_none());
-        // Costlier than a login may be: refused.
+    }
+
+    #[test]
+    #[cfg(not(feature = "argon2"))]
+    fn without_argon2id_new_hashes_are_rabbitmqs_salted_sha256_and_argon2id_is_refused() {
+        let a = PasswordHash::new("secret");
+        assert_ne!(a, PasswordHash::new("secret"), "fresh salts");
+        assert!(a.verify(b"secret") && !a.verify(b"Secret") && !a.is_slow());
+        assert_eq!(a.to_rabbitmq().1, RABBIT_SHA256);
+        let phc = "$argon2id$v=19$m=19456,t=2,p=1$c2FsdHNhbHQ$aGFzaGhhc2hoYXNoaGFzaGhhc2hoYXNoaGFzaGhhc2g";
+        assert!(PasswordHash::parse(phc).is_none());
+        assert!(PasswordHash::from_rabbitmq(phc, LEVERET_ARGON2ID).is_none());
+    }
+
+    #[test]
+    #[cfg(feature = "argon2")]
+    fn argon2id_hashes_costlier_than_a_login_may_be_are_refused() {
         let phc = PasswordHash::new("x").to_phc().unwrap().to_owned();
         let greedy = phc.replace("m=19456", "m=4194304");
         assert_ne!(greedy, phc);
