@@ -1268,19 +1268,9 @@ async fn a_persistent_session_keeps_unreleased_qos_2_publishes_across_a_restart(
             payload: Bytes::from_static(b"once"),
         })
     };
+    // A publisher only: its unreleased publishes are its session.
     let (mut raw, present) = connect(mqtt_port(&handle)).await;
     assert!(!present);
-    // A subscription, so that the session has a queue to be resumed by.
-    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
-        packet_id: std::num::NonZeroU16::new(1).unwrap(),
-        properties: Default::default(),
-        subscriptions: vec![leveret_mqtt::Subscription {
-            filter: leveret_mqtt::TopicFilter::from_static("r2/none"),
-            options: Default::default(),
-        }],
-    }))
-    .await;
-    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
     for id in ids {
         raw.send(publish(id, false)).await;
         assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));

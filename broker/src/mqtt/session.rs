@@ -521,11 +521,13 @@ impl Session {
             self.consume(name, qos);
         }
         // QoS 2 publishes the client had not released: a resend is not
-        // routed again, and its PUBREL is answered.
+        // routed again, and its PUBREL is answered. They are session
+        // state of their own (a publisher need not subscribe).
         let released = self
             .shared
             .releases
-            .take(&self.vhost, &self.client_id, present);
+            .take(&self.vhost, &self.client_id, !clean_start);
+        present |= !released.is_empty();
         for id in released {
             self.exactly_once.insert(id, Received::Stored);
         }
