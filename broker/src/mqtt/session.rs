@@ -396,7 +396,8 @@ struct Session {
     /// submission of the retained message it set (0 if none).
     unconfirmed: BTreeMap<u64, (PacketId, bool, u64)>,
     /// Acknowledgements waiting for a store submission (a retained
-    /// message's, a QoS 2 publish's state) to be on disk, in order, with the submission number.
+    /// message's, a QoS 2 publish's state) to be on disk, in order, with
+    /// the submission number.
     held_acks: VecDeque<(u64, Packet)>,
     /// QoS 2 publishes by packet identifier, from their arrival to PUBREL.
     exactly_once: HashMap<PacketId, Received>,
