@@ -1,7 +1,8 @@
 //! MQTT over TLS and over WebSocket (issue 32 item 1): Mosquitto's own
 //! clients (`mosquitto_pub`/`mosquitto_sub` 2.0, OpenSSL) over TLS with
 //! certificates made here (rcgen), a client certificate logging in as its
-//! common name (RabbitMQ's `ssl_cert_login`) and a stranger's refused;
+//! common name (RabbitMQ's `ssl_cert_login`) and a stranger's refused, and
+//! no login by certificate unless it is turned on;
 //! Eclipse Paho's Python client over WebSocket (`transport="websockets"`,
 //! 3.1.1 and 5.0, a payload larger than a WebSocket read). Adversarial: a
 //! TLS handshake that never completes and a WebSocket upgrade followed by
@@ -80,6 +81,15 @@ fn builder(limits: Limits) -> leveret_broker::BrokerBuilder {
 /// A broker with an MQTT over TLS listener: client certificates asked
 /// for, checked against `ca`, and logging in as their common name.
 async fn start_tls(files: &Files, ca: &Authority, limits: Limits) -> BrokerHandle {
+    start_tls_with(files, ca, limits, true).await
+}
+
+async fn start_tls_with(
+    files: &Files,
+    ca: &Authority,
+    limits: Limits,
+    certificate_login: bool,
+) -> BrokerHandle {
     let (certfile, keyfile) = files.signed(ca, "leveret");
     let options = TlsOptions {
         certfile,
@@ -90,7 +100,7 @@ async fn start_tls(files: &Files, ca: &Authority, limits: Limits) -> BrokerHandl
     builder(limits)
         .mqtts_listen(any())
         .tls(options)
-        .mqtt_certificate_login(true)
+        .mqtt_certificate_login(certificate_login)
         .start()
         .await
         .expect("broker starts with MQTT over TLS")
@@ -190,6 +200,34 @@ async fn assert_closed(socket: &mut TcpStream) {
     })
     .await;
     assert!(closed.is_ok(), "the broker closed the connection");
+}
+
+#[both_runtimes]
+async fn without_certificate_login_a_certificate_is_no_credential() {
+    let files = Files::new("mqtts-no-cert-login");
+    let ca = Authority::new("mqtt test CA");
+    let handle = start_tls_with(&files, &ca, Limits::default(), false).await;
+    let port = handle.mqtts_addrs()[0].port();
+    let ca_file = files.dir.join("ca.pem");
+    let (cert, key) = files.signed(&ca, "sensor-9");
+    let with_certificate = |user: Option<&str>| {
+        let mut publish = mosquitto("mosquitto_pub", port, &ca_file);
+        publish
+            .args(["-i", "sensor-9", "-t", "cells/7", "-m", "x", "-q", "1"])
+            .arg("--cert")
+            .arg(&cert)
+            .arg("--key")
+            .arg(&key);
+        if let Some(user) = user {
+            publish.args(["-u", user, "-P", "secret"]);
+        }
+        publish
+    };
+    let refused = run(with_certificate(None)).await;
+    assert!(!refused.status.success(), "{refused:?}");
+    let accepted = run(with_certificate(Some("robot"))).await;
+    assert!(accepted.status.success(), "{accepted:?}");
+    handle.shutdown().await;
 }
 
 #[both_runtimes]
