@@ -16,6 +16,16 @@
 //!   connection at most [`CONNECTION_LIFETIME`] (then closed after its
 //!   current request), request bodies capped by the router's own
 //!   `DefaultBodyLimit`.
+//! - An answer the peer stops reading: a connection whose writes have
+//!   made no progress for [`WRITE_TIMEOUT`] (the socket's buffers full,
+//!   the peer not reading) is closed, and with it the rest of the answer
+//!   it held (a connection being served is never closed to make room, so
+//!   without this a client that asked for `/api/queues` or
+//!   `/metrics/per-object` and stopped reading held its slot and the
+//!   answer for ever). A slow reader that keeps reading is not closed.
+//!
+//! Connections closed by these bounds are counted and logged (a warning
+//! at most every [`REPORT_EVERY`], the first one at once).
 //!
 //! Each request carries its peer's address as a [`Peer`] extension (for
 //! RabbitMQ's `loopback_users`). HTTP/1.1 only, as RabbitMQ's listeners
@@ -50,6 +60,9 @@ pub const MAX_PER_SOURCE: usize = 256;
 pub const HEADER_TIMEOUT: Duration = Duration::from_secs(2);
 /// Time a client has to send a request's body, from its head.
 pub const BODY_TIMEOUT: Duration = Duration::from_secs(10);
+/// Longest a connection's writes may make no progress (the peer not
+/// reading its answer) before it is closed.
+pub const WRITE_TIMEOUT: Duration = Duration::from_secs(5);
 /// Longest a connection is kept (keep-alive included).
 pub const CONNECTION_LIFETIME: Duration = Duration::from_secs(300);
 /// Longest gap between two log lines about connections closed to make
@@ -79,6 +92,8 @@ struct Connection {
     serving: AtomicBool,
     /// Told to close at once (to make room, or a body too slow).
     close: Notify,
+    /// Its writes made no progress for [`WRITE_TIMEOUT`]: closed for it.
+    write_stalled: AtomicBool,
 }
 
 impl Connection {
@@ -99,7 +114,9 @@ struct Table {
     /// since the last log line about them.
     made_room: u64,
     refused: u64,
-    reported: Instant,
+    write_stalled: u64,
+    /// When the last such line was logged (`None`: never).
+    reported: Option<Instant>,
 }
 
 impl Table {
@@ -112,7 +129,8 @@ impl Table {
             sources: HashMap::new(),
             made_room: 0,
             refused: 0,
-            reported: Instant::now(),
+            write_stalled: 0,
+            reported: None,
         }
     }
 
@@ -189,10 +207,13 @@ impl Table {
         }
     }
 
-    /// Logs what was closed to make room, at most once per
-    /// [`REPORT_EVERY`].
+    /// Logs what the bounds closed since the last such line, at most
+    /// once per [`REPORT_EVERY`] (what is closed in between is counted
+    /// and logged with the next event after it).
     fn report(&mut self, what: &'static str) {
-        if (self.made_room, self.refused) == (0, 0) || self.reported.elapsed() < REPORT_EVERY {
+        if (self.made_room, self.refused, self.write_stalled) == (0, 0, 0)
+            || self.reported.is_some_and(|at| at.elapsed() < REPORT_EVERY)
+        {
             return;
         }
         tracing::warn!(
@@ -202,11 +223,14 @@ impl Table {
             per_source = self.per_source,
             closed_to_make_room = self.made_room,
             closed_at_accept = self.refused,
-            "HTTP connections beyond the bounds: waiting ones closed to make room"
+            closed_not_reading = self.write_stalled,
+            write_timeout = ?WRITE_TIMEOUT,
+            "HTTP connections closed by the listener's bounds: waiting ones to make room, or peers that stopped reading their answer"
         );
         self.made_room = 0;
         self.refused = 0;
-        self.reported = Instant::now();
+        self.write_stalled = 0;
+        self.reported = Some(Instant::now());
     }
 }
 
@@ -260,7 +284,12 @@ pub async fn serve(
         let stop = stop.clone();
         tokio::spawn(async move {
             run(stream, service, &connection, what, peer, stop).await;
-            lock(&table).forget(source, id);
+            let mut table = lock(&table);
+            table.forget(source, id);
+            if connection.write_stalled.load(Ordering::Acquire) {
+                table.write_stalled += 1;
+                table.report(what);
+            }
         });
     }
 }
@@ -278,7 +307,10 @@ async fn run(
     let served = hyper::server::conn::http1::Builder::new()
         .timer(TokioTimer::new())
         .header_read_timeout(HEADER_TIMEOUT)
-        .serve_connection(TokioIo::new(stream), service);
+        .serve_connection(
+            TokioIo::new(WriteTimeout::new(stream, WRITE_TIMEOUT, connection)),
+            service,
+        );
     tokio::pin!(served);
     let deadline = tokio::time::sleep(CONNECTION_LIFETIME);
     tokio::pin!(deadline);
@@ -304,6 +336,97 @@ async fn run(
                 served.as_mut().graceful_shutdown();
             }
         }
+    }
+}
+
+/// A connection's socket whose writes fail with `TimedOut` once they have
+/// made no progress for `limit` (one that makes progress starts the
+/// count again), marking the connection `write_stalled`.
+struct WriteTimeout<'c> {
+    inner: tokio::net::TcpStream,
+    limit: Duration,
+    /// Since when the writes have been waiting, if they are.
+    stalled: Option<Pin<Box<tokio::time::Sleep>>>,
+    connection: &'c Connection,
+}
+
+impl<'c> WriteTimeout<'c> {
+    fn new(inner: tokio::net::TcpStream, limit: Duration, connection: &'c Connection) -> Self {
+        WriteTimeout {
+            inner,
+            limit,
+            stalled: None,
+            connection,
+        }
+    }
+
+    /// `attempt`'s result if it is ready (progress: the count starts
+    /// again), else `TimedOut` once the writes have waited `limit`.
+    fn bounded<T>(
+        &mut self,
+        cx: &mut Context<'_>,
+        attempt: Poll<std::io::Result<T>>,
+    ) -> Poll<std::io::Result<T>> {
+        if attempt.is_ready() {
+            self.stalled = None;
+            return attempt;
+        }
+        let limit = self.limit;
+        let stalled = self
+            .stalled
+            .get_or_insert_with(|| Box::pin(tokio::time::sleep(limit)));
+        if stalled.as_mut().poll(cx).is_pending() {
+            return Poll::Pending;
+        }
+        self.connection.write_stalled.store(true, Ordering::Release);
+        Poll::Ready(Err(std::io::Error::new(
+            std::io::ErrorKind::TimedOut,
+            "the peer has not read its answer for the write timeout",
+        )))
+    }
+}
+
+impl tokio::io::AsyncRead for WriteTimeout<'_> {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut tokio::io::ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_read(cx, buf)
+    }
+}
+
+impl tokio::io::AsyncWrite for WriteTimeout<'_> {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        let attempt = Pin::new(&mut self.inner).poll_write(cx, buf);
+        self.bounded(cx, attempt)
+    }
+
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        let attempt = Pin::new(&mut self.inner).poll_write_vectored(cx, bufs);
+        self.bounded(cx, attempt)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.inner.is_write_vectored()
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        let attempt = Pin::new(&mut self.inner).poll_flush(cx);
+        self.bounded(cx, attempt)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        let attempt = Pin::new(&mut self.inner).poll_shutdown(cx);
+        self.bounded(cx, attempt)
     }
 }
 

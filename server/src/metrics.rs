@@ -244,7 +244,7 @@ fn shovel_metrics(out: &mut Exposition, shovels: &Shovels) {
             .push(sample(MetricType::GAUGE, &labels, 1.0));
     }
     type Count = fn(&leveret_uplink::ShovelStatus) -> u64;
-    let counts: [(&str, &str, Count); 3] = [
+    let counts: [(&str, &str, Count); 4] = [
         (
             "leveret_shovel_forwarded_total",
             "Messages the shovel's destination took",
@@ -254,6 +254,11 @@ fn shovel_metrics(out: &mut Exposition, shovels: &Shovels) {
             "leveret_shovel_refused_total",
             "Messages the shovel's destination refused (nacked or returned), left at the source",
             |s| s.refused,
+        ),
+        (
+            "leveret_shovel_dropped_loops_total",
+            "Messages the shovel dropped (acknowledged, not forwarded) because they had already gone through it: its source and destination form a loop",
+            |s| s.dropped_loops,
         ),
         (
             "leveret_shovel_restarts_total",

@@ -164,7 +164,10 @@ impl Shovels {
         name: &str,
         parameters: Value,
     ) -> Result<(), DeclareError> {
-        ShovelConfig::from_json(&parameters).map_err(DeclareError::Invalid)?;
+        if let Err(reason) = ShovelConfig::from_json(&parameters) {
+            tracing::warn!(shovel = %name, %vhost, %reason, "shovel declaration refused");
+            return Err(DeclareError::Invalid(reason));
+        }
         self.admin
             .set_parameter(COMPONENT, vhost, name, parameters.to_string())
             .await?;

@@ -245,3 +245,178 @@ async fn silent_and_slow_clients_are_closed_quickly() {
         Some(200)
     );
 }
+
+/// Queues the stalled readers' answers list: enough that an answer is far
+/// larger than what the sockets' buffers take (several MB on loopback).
+const QUEUES: usize = 6000;
+
+/// Bytes the broker sends for `path` to a client that reads them all.
+async fn answer_length(addr: SocketAddr, path: &str, auth: &str) -> usize {
+    let mut stream = TcpStream::connect(addr).await.expect("connect");
+    let head = format!(
+        "GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: {auth}\r\n\r\n"
+    );
+    stream.write_all(head.as_bytes()).await.expect("write");
+    let mut raw = Vec::new();
+    tokio::time::timeout(Duration::from_secs(120), stream.read_to_end(&mut raw))
+        .await
+        .expect("the whole answer within 120 s")
+        .expect("read");
+    raw.len()
+}
+
+/// Whether `raw` is a whole HTTP answer: as long as its Content-Length
+/// says, or chunked to its last chunk.
+fn complete_answer(raw: &[u8]) -> bool {
+    let Some(split) = raw.windows(4).position(|w| w == b"\r\n\r\n") else {
+        return false;
+    };
+    let head = String::from_utf8_lossy(&raw[..split]).to_ascii_lowercase();
+    let body = &raw[split + 4..];
+    match head
+        .lines()
+        .find_map(|line| line.strip_prefix("content-length:"))
+    {
+        Some(length) => length.trim().parse() == Ok(body.len()),
+        None => head.contains("transfer-encoding: chunked") && body.ends_with(b"\r\n0\r\n\r\n"),
+    }
+}
+
+/// A client that asks for a large answer and never reads it, with a small
+/// receive buffer (the broker's writes stall as soon as the kernel's
+/// buffers are full).
+async fn ask_and_stop_reading(addr: SocketAddr, path: &str, auth: &str) -> TcpStream {
+    let socket = tokio::net::TcpSocket::new_v4().expect("socket");
+    socket.set_recv_buffer_size(4096).expect("SO_RCVBUF");
+    let mut stream = socket.connect(addr).await.expect("connect");
+    let head = format!(
+        "GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: {auth}\r\n\r\n"
+    );
+    stream.write_all(head.as_bytes()).await.expect("write");
+    stream
+}
+
+/// Log lines of `listener`'s bounds that count peers which stopped
+/// reading (the message names no listener: the `listener` field does).
+fn not_reading_reports(broker: &OpsBroker, listener: &str) -> usize {
+    broker
+        .log()
+        .iter()
+        .filter(|line| line.contains("stopped reading their answer") && line.contains(listener))
+        .count()
+}
+
+/// Issue 29: a client that asks for a large answer (`/api/queues`,
+/// `/metrics/per-object` with thousands of queues) and stops reading it
+/// held its connection slot (a connection being served is never closed to
+/// make room) and the answer's memory for ever. Now a connection whose
+/// writes make no progress for the write timeout (5 s) is closed, counted
+/// and logged: the stalled client gets a truncated answer and the end of
+/// its connection. On the binary's current-thread runtime (1 worker, the
+/// default) and its multi-thread one (2 workers).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_stops_reading_its_answer_is_closed() {
+    for workers in ["1", "2"] {
+        let broker = OpsBroker::start(
+            &format!("stalled-reader-{workers}"),
+            &["--worker-threads", workers],
+        );
+        let auth = basic("guest", "guest");
+        let queues: Vec<serde_json::Value> = (0..QUEUES)
+            .map(|n| serde_json::json!({"name": format!("stalled.{n:05}"), "vhost": "/", "durable": false, "auto_delete": false, "arguments": {}}))
+            .collect();
+        let definitions = serde_json::json!({"queues": queues}).to_string();
+        let imported = common::ops::request(
+            broker.http,
+            "POST",
+            "/api/definitions",
+            &[
+                ("Authorization", auth.as_str()),
+                ("Content-Type", "application/json"),
+            ],
+            definitions.as_bytes(),
+        )
+        .await;
+        assert!(
+            imported.status / 100 == 2,
+            "{}: {}",
+            imported.status,
+            imported.text()
+        );
+        for (addr, path, listener) in [
+            (broker.http, "/api/queues", "management"),
+            (broker.metrics, "/metrics/per-object", "metrics"),
+        ] {
+            let whole = answer_length(addr, path, &auth).await;
+            let mut stalled = ask_and_stop_reading(addr, path, &auth).await;
+            // The broker says it closed it (60 s is a hang limit, not a
+            // timing claim).
+            let deadline = Instant::now() + Duration::from_secs(60);
+            while not_reading_reports(&broker, listener) == 0 {
+                assert!(
+                    Instant::now() < deadline,
+                    "{workers} worker(s), {path}: no log line about a peer that stopped reading:\n{}",
+                    broker.log().join("\n")
+                );
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            // What the stalled client can still read is a part of the
+            // answer, then the end of the connection.
+            let mut got = Vec::new();
+            let read = tokio::time::timeout(Duration::from_secs(60), stalled.read_to_end(&mut got))
+                .await
+                .expect("the connection ended");
+            eprintln!(
+                "{workers} worker(s), {path}: answer {whole} bytes; the stalled reader got {} before the close ({read:?})",
+                got.len()
+            );
+            assert!(
+                got.len() < whole,
+                "{workers} worker(s), {path}: the stalled reader still got the whole answer ({whole} bytes)"
+            );
+            if listener == "management" {
+                // A slow reader that keeps reading (1 MiB, then a pause of
+                // a second, shorter than the write timeout) gets it all.
+                let mut slow = TcpStream::connect(addr).await.expect("connect");
+                let head = format!(
+                    "GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: {auth}\r\n\r\n"
+                );
+                slow.write_all(head.as_bytes()).await.expect("write");
+                let mut slowly = Vec::new();
+                let mut chunk = vec![0u8; 1 << 20];
+                'reading: loop {
+                    let mut filled = 0;
+                    while filled < chunk.len() {
+                        let read = tokio::time::timeout(
+                            Duration::from_secs(30),
+                            slow.read(&mut chunk[filled..]),
+                        )
+                        .await
+                        .expect("30 s hang limit")
+                        .expect("the slow reader's connection is not cut");
+                        if read == 0 {
+                            slowly.extend_from_slice(&chunk[..filled]);
+                            break 'reading;
+                        }
+                        filled += read;
+                    }
+                    slowly.extend_from_slice(&chunk[..filled]);
+                    tokio::time::sleep(Duration::from_secs(1)).await;
+                }
+                assert!(
+                    complete_answer(&slowly),
+                    "{workers} worker(s), {path}: a slow reader got {} of {whole} bytes",
+                    slowly.len()
+                );
+            }
+            // The listener serves the operator.
+            let probe = if listener == "metrics" {
+                "/metrics"
+            } else {
+                "/api/overview"
+            };
+            assert_eq!(call(addr, probe, Some(&auth)).await, Some(200), "{path}");
+        }
+        broker.terminate();
+    }
+}

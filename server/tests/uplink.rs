@@ -181,9 +181,10 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     )
     .await;
     assert_eq!(bad.status, 400, "{}", bad.text());
-    // A shovel from a queue into itself would spin for ever: refused.
+    // A shovel from a queue into itself would spin for ever: refused (the
+    // same local vhost written two ways), and logged.
     let looped = json!({"value": {
-        "src-uri": "amqp://", "src-queue": "poses", "dest-uri": "amqp://", "dest-queue": "poses",
+        "src-uri": "amqp://", "src-queue": "poses", "dest-uri": "amqp://robot:pw@/%2f", "dest-queue": "poses",
     }});
     let looped = request(
         robot.http,
@@ -199,6 +200,7 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
         "{}",
         looped.text()
     );
+    robot.wait_for_log("shovel declaration refused");
 
     // The shovel's own queue on the robot takes amq.topic's pose.# messages.
     let fleet_conn = Connection::connect(&fleet_url, ConnectionProperties::default())
@@ -216,6 +218,7 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
         if listed[0]["state"] == "running" {
             assert_eq!(listed[0]["name"], "poses");
             assert_eq!(listed[0]["src_exchange"], "amq.topic");
+            assert_eq!(listed[0]["dropped_loops"], 0);
             break;
         }
         assert!(std::time::Instant::now() < deadline, "{listed}");
@@ -265,6 +268,10 @@ async fn shovels_are_managed_listed_and_exported_as_rabbitmqs_parameters() {
     };
     assert!(
         scrape.contains("leveret_shovel_state{shovel=\"poses\",vhost=\"/\",state=\"running\"} 1"),
+        "{scrape}"
+    );
+    assert!(
+        scrape.contains("leveret_shovel_dropped_loops_total{shovel=\"poses\",vhost=\"/\"} 0"),
         "{scrape}"
     );
     if let Some(checked) = common::ops::promtool_check(&scrape) {

@@ -4,8 +4,9 @@
 //! the JSON object RabbitMQ takes. What Leveret does not implement yet is
 //! refused with a reason, never ignored.
 //!
-//! Uses the protocol crate's JSON form of message properties, nothing of
-//! the broker.
+//! A shovel that would put every message back where it took it from is
+//! refused here. Uses the protocol crate's JSON form of message
+//! properties and the client crate's URI reading, nothing of the broker.
 
 use leveret_protocol::BasicProperties;
 use serde_json::{Map, Value};
@@ -169,6 +170,74 @@ pub(crate) fn uris(object: &Map<String, Value>, key: &str) -> Result<Vec<String>
     Ok(list)
 }
 
+/// Why a shovel from `source` to `destination` would put every message
+/// back where it took it from (and take it again, for ever, as fast as
+/// the broker goes), if a destination URI names the source's broker and
+/// vhost: a queue into itself (`dest-queue`, or the default exchange with
+/// the queue's name as key), or an exchange into itself with each
+/// message's own routing key, which routed it to the shovel's queue.
+/// Loops this cannot see (two shovels, or a destination exchange that
+/// routes back) are dropped as they come round (see `shovel.rs`).
+fn loops_back(
+    source: &Source,
+    destination: &Destination,
+    src_uri: &str,
+    dest_uris: &[String],
+) -> Option<String> {
+    let into_itself = match (source, destination) {
+        (Source::Queue(from), Destination::Queue(to)) => from == to,
+        (Source::Queue(from), Destination::Exchange { exchange, key }) => {
+            exchange.is_empty() && key.as_deref() == Some(from.as_str())
+        }
+        (Source::Exchange { exchange: from, .. }, Destination::Exchange { exchange, key }) => {
+            from == exchange && key.is_none()
+        }
+        (Source::Exchange { .. }, Destination::Queue(_)) => false,
+    };
+    if !into_itself {
+        return None;
+    }
+    let same_broker = dest_uris.iter().find(|to| same_broker(src_uri, to))?;
+    let what = match source {
+        Source::Queue(queue) => format!("src-queue and the destination are the same queue '{queue}'"),
+        Source::Exchange { exchange, .. } => format!(
+            "src-exchange and dest-exchange are the same exchange '{exchange}' and each message keeps the routing key that brought it"
+        ),
+    };
+    Some(format!(
+        "{what} on the same broker ({} and {}): the shovel would loop",
+        crate::shovel::shown(src_uri),
+        crate::shovel::shown(same_broker)
+    ))
+}
+
+/// Whether two URIs name the same broker and vhost: the local broker
+/// (`amqp://` with no host) with the same vhost, or the same scheme, host
+/// (in any case), port (5672 or 5671 when none is written) and vhost,
+/// whatever the credentials and query. URIs that do not read are compared
+/// as text. `amqp://localhost` is not taken for the local broker: which
+/// port this broker listens on is not known here.
+fn same_broker(a: &str, b: &str) -> bool {
+    let broker = |uri: &str| {
+        let options = leveret_client::ConnectionOptions::from_uri(uri).ok()?;
+        Some(if crate::shovel::is_local(uri) {
+            (true, false, String::new(), 0, options.vhost)
+        } else {
+            (
+                false,
+                options.tls.is_some(),
+                options.host.to_ascii_lowercase(),
+                options.port,
+                options.vhost,
+            )
+        })
+    };
+    match (broker(a), broker(b)) {
+        (Some(a), Some(b)) => a == b,
+        _ => a == b,
+    }
+}
+
 impl ShovelConfig {
     /// Reads RabbitMQ's JSON form of a shovel's parameters.
     pub fn from_json(value: &Value) -> Result<ShovelConfig, String> {
@@ -265,14 +334,8 @@ impl ShovelConfig {
         };
         let src_uri = uris(object, "src-uri")?.remove(0);
         let dest_uris = uris(object, "dest-uri")?;
-        if let (Source::Queue(from), Destination::Queue(to)) = (&source, &destination) {
-            if from == to && dest_uris.contains(&src_uri) {
-                // It would take each message and put it back, for ever, as
-                // fast as the broker goes.
-                return Err(format!(
-                    "src-queue and dest-queue are the same queue '{from}' on the same broker ({src_uri}): the shovel would loop"
-                ));
-            }
+        if let Some(why) = loops_back(&source, &destination, &src_uri, &dest_uris) {
+            return Err(why);
         }
         Ok(ShovelConfig {
             bandwidth_limit: limit("bandwidth-limit")?,
@@ -306,13 +369,80 @@ mod tests {
             refused.contains("same queue 'q' on the same broker"),
             "{refused}"
         );
-        // Another queue, or the same name on another broker, is a shovel.
-        for (dest_uri, dest_queue) in [("amqp://", "other"), ("amqp://fleet", "q")] {
+        // Another queue, or the same name on another broker or vhost, is
+        // a shovel.
+        for (dest_uri, dest_queue) in [
+            ("amqp://", "other"),
+            ("amqp://fleet", "q"),
+            ("amqp:///robots", "q"),
+            ("amqp://fleet:5673", "q"),
+        ] {
             assert!(ShovelConfig::from_json(&json!({
                 "src-uri": "amqp://", "src-queue": "q", "dest-uri": dest_uri, "dest-queue": dest_queue,
             }))
             .is_ok());
         }
+    }
+
+    #[test]
+    fn loops_are_seen_through_credentials_default_vhosts_ports_and_exchanges() {
+        for (src_uri, source, dest_uri, destination) in [
+            // The same local vhost written three ways, other credentials.
+            (
+                "amqp://",
+                json!({"src-queue": "q"}),
+                "amqp://robot:pw@/%2f",
+                json!({"dest-queue": "q"}),
+            ),
+            (
+                "amqp:///%2F",
+                json!({"src-queue": "q"}),
+                "amqp:///",
+                json!({"dest-queue": "q"}),
+            ),
+            // The default port, a host in capitals, a query.
+            (
+                "amqp://u:p@Fleet/v",
+                json!({"src-queue": "q"}),
+                "amqp://fleet:5672/v?heartbeat=5",
+                json!({"dest-queue": "q"}),
+            ),
+            // The default exchange with the queue's name as key.
+            (
+                "amqp://",
+                json!({"src-queue": "q"}),
+                "amqp://",
+                json!({"dest-exchange": "", "dest-exchange-key": "q"}),
+            ),
+            // An exchange into itself with each message's own key.
+            (
+                "amqp://",
+                json!({"src-exchange": "amq.topic"}),
+                "amqp://",
+                json!({"dest-exchange": "amq.topic"}),
+            ),
+        ] {
+            let mut value = json!({"src-uri": src_uri, "dest-uri": dest_uri});
+            let object = value.as_object_mut().unwrap();
+            object.extend(source.as_object().unwrap().clone());
+            object.extend(destination.as_object().unwrap().clone());
+            let refused = ShovelConfig::from_json(&value).unwrap_err();
+            assert!(
+                refused.contains("the shovel would loop"),
+                "{value}: {refused}"
+            );
+            assert!(
+                !refused.contains("pw@"),
+                "credentials are not shown: {refused}"
+            );
+        }
+        // An exchange into itself under another key may route elsewhere:
+        // not refused (a loop is dropped as it comes round).
+        assert!(ShovelConfig::from_json(&json!({
+            "src-uri": "amqp://", "src-exchange": "amq.topic", "src-exchange-key": "a.#",
+            "dest-uri": "amqp://", "dest-exchange": "amq.topic", "dest-exchange-key": "b.1",
+        }))
+        .is_ok());
     }
 
     #[test]

@@ -26,4 +26,6 @@ pub use config::{AckMode, DeleteAfter, Destination, ShovelConfig, Source};
 pub use federation::{
     FederationLink, LinkState, LinkStatus, LocalExchange, UpstreamConfig, RECEIVED_FROM,
 };
-pub use shovel::{Shovel, ShovelState, ShovelStatus, SEQ_HEADER};
+pub use shovel::{
+    Shovel, ShovelState, ShovelStatus, MAX_SHOVEL_HOPS, SEQ_HEADER, SHOVELLED_HEADER,
+};

@@ -20,6 +20,20 @@
 //! broker, the shovel's name, a number unique to this process and a count
 //! (unique, but new at each forward).
 //!
+//! Every forwarded message also carries `x-leveret-shovelled`, the list
+//! of the shovels it went through (each running shovel's own id: its
+//! name, a number unique to this process and a count). A delivery that
+//! already lists this shovel, or lists [`MAX_SHOVEL_HOPS`] shovels, came
+//! round a loop (two shovels a → b and b → a, or a destination that routes
+//! back into the source, which no check at declaration can see): it is
+//! acknowledged at the source without being forwarded, counted in
+//! `dropped_loops` and logged, as federation drops a message that came
+//! back through its node. Without this, ten messages in a loop kept a core
+//! busy for ever. The list is kept even when `dest-publish-properties`
+//! replaces the headers. With `dest-add-forward-headers`, RabbitMQ's
+//! `x-shovelled` entry of this shovel is put in front of the ones the
+//! message already has, as RabbitMQ does.
+//!
 //! With `src-delete-after`, the shovel takes no more deliveries than it
 //! has left to forward (counted across reconnects; under `no-ack` it
 //! still acknowledges each one as it publishes it, so none beyond the count
@@ -47,6 +61,16 @@ use tokio::sync::watch;
 
 /// The header each forwarded message carries.
 pub const SEQ_HEADER: &str = "x-leveret-seq";
+
+/// The header listing the shovels a message went through.
+pub const SHOVELLED_HEADER: &str = "x-leveret-shovelled";
+
+/// Shovels a message may go through: one that lists this many is taken
+/// for a loop too long to see this shovel in (and dropped).
+pub const MAX_SHOVEL_HOPS: usize = 32;
+
+/// How often a shovel that drops looping messages says so.
+const LOOP_WARNING_EVERY: Duration = Duration::from_secs(10);
 
 /// RabbitMQ's shovel states.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -79,6 +103,10 @@ pub struct ShovelStatus {
     pub refused: u64,
     /// Links that ended (failures and refusals).
     pub restarts: u64,
+    /// Messages dropped (acknowledged at the source, not forwarded)
+    /// because they had already gone through this shovel, or through
+    /// [`MAX_SHOVEL_HOPS`] shovels: they came round a loop.
+    pub dropped_loops: u64,
     /// Whether it forwarded all `src-delete-after` asked for and stopped
     /// (its owner deletes it, as RabbitMQ deletes such a shovel).
     pub completed: bool,
@@ -100,8 +128,11 @@ impl Shovel {
         let (status_tx, status) = watch::channel(ShovelStatus::default());
         let config_delete_after = config.delete_after;
         let (stop, stopped) = watch::channel(false);
+        static STARTED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let started = STARTED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let link = Link {
             name: name.to_owned(),
+            id: format!("{name}@{:x}.{started}", process_nonce()),
             config,
             local: local.map(Arc::downgrade),
             status: status_tx,
@@ -159,7 +190,7 @@ pub(crate) fn shown(uri: &str) -> String {
 }
 
 /// Whether `uri` names the local broker (`amqp://` with no host).
-fn is_local(uri: &str) -> bool {
+pub(crate) fn is_local(uri: &str) -> bool {
     let Some(rest) = uri.strip_prefix("amqp://") else {
         return false;
     };
@@ -195,6 +226,9 @@ struct InFlight {
 
 struct Link {
     name: String,
+    /// This running shovel's entry in [`SHOVELLED_HEADER`]: no other
+    /// shovel, here or on another broker, has it.
+    id: String,
     config: ShovelConfig,
     local: Option<Weak<BrokerHandle>>,
     status: watch::Sender<ShovelStatus>,
@@ -383,6 +417,7 @@ impl Link {
         let mut inflight: VecDeque<InFlight> = VecDeque::new();
         let mut returned: HashSet<String> = HashSet::new();
         let mut counter: u64 = 0;
+        let mut loop_warning = LoopWarning::default();
         let window = usize::from(self.config.prefetch);
         loop {
             tokio::select! {
@@ -455,6 +490,14 @@ impl Link {
                     let Some(delivery) = delivery else {
                         return Err(Ended::Failed(format!("the source stopped delivering from {queue}")));
                     };
+                    let trail = shovelled(&delivery.properties);
+                    if trail.len() >= MAX_SHOVEL_HOPS || trail.contains(&self.id) {
+                        if !no_ack {
+                            source.basic_ack(delivery.delivery_tag, BasicAckOptions::default()).await?;
+                        }
+                        self.dropped_loop(&mut loop_warning, trail.len());
+                        continue;
+                    }
                     if let Some(pace) = &mut message_rate {
                         pace.take(1).await;
                     }
@@ -473,7 +516,7 @@ impl Link {
                             key.clone().unwrap_or_else(|| delivery.routing_key.to_string()),
                         ),
                     };
-                    let properties = self.forwarded_properties(delivery.properties, &seq);
+                    let properties = self.forwarded_properties(delivery.properties, trail, &seq);
                     let confirm = publisher
                         .basic_publish(
                             exchange.as_str(),
@@ -528,13 +571,61 @@ impl Link {
         }
     }
 
+    /// Counts a message dropped for coming round a loop, and says so at
+    /// most every [`LOOP_WARNING_EVERY`].
+    fn dropped_loop(&mut self, warning: &mut LoopWarning, hops: usize) {
+        self.update(|s| s.dropped_loops += 1);
+        warning.unreported += 1;
+        if warning
+            .last
+            .is_some_and(|last| last.elapsed() < LOOP_WARNING_EVERY)
+        {
+            return;
+        }
+        tracing::warn!(
+            shovel = %self.name,
+            dropped = warning.unreported,
+            total = self.status.borrow().dropped_loops,
+            hops,
+            "shovel dropped messages that had already gone through it (or through {MAX_SHOVEL_HOPS} shovels): its source and destination form a loop"
+        );
+        *warning = LoopWarning {
+            last: Some(tokio::time::Instant::now()),
+            unreported: 0,
+        };
+    }
+
     /// The message's properties with `dest-publish-properties` set over
-    /// them and the shovel's headers added.
-    fn forwarded_properties(&self, properties: BasicProperties, seq: &str) -> BasicProperties {
+    /// them and the shovel's headers added: `trail` (the shovels it went
+    /// through before, read before the headers may be replaced) with this
+    /// one appended.
+    fn forwarded_properties(
+        &self,
+        properties: BasicProperties,
+        trail: Vec<String>,
+        seq: &str,
+    ) -> BasicProperties {
+        let earlier_forwards = match properties
+            .headers
+            .as_ref()
+            .and_then(|h| h.get("x-shovelled"))
+        {
+            Some(FieldValue::Array(entries)) => entries.clone(),
+            _ => Vec::new(),
+        };
         let mut properties = overlay(properties, &self.config.publish_properties);
         let mut headers = properties.headers.take().unwrap_or_default();
         headers.remove(POSITION_HEADER);
         headers.insert(ShortStr::from_static(SEQ_HEADER), FieldValue::string(seq));
+        let trail = trail
+            .into_iter()
+            .chain([self.id.clone()])
+            .map(|id| FieldValue::string(&id))
+            .collect();
+        headers.insert(
+            ShortStr::from_static(SHOVELLED_HEADER),
+            FieldValue::Array(trail),
+        );
         if self.config.add_forward_headers {
             let mut shovelled = FieldTable::new();
             for (key, value) in [
@@ -553,9 +644,12 @@ impl Link {
                 ShortStr::from_static("dest-uri"),
                 FieldValue::string(&shown(destination)),
             );
+            let entries = std::iter::once(FieldValue::Table(shovelled))
+                .chain(earlier_forwards)
+                .collect();
             headers.insert(
                 ShortStr::from_static("x-shovelled"),
-                FieldValue::Array(vec![FieldValue::Table(shovelled)]),
+                FieldValue::Array(entries),
             );
         }
         properties.headers = Some(headers);
@@ -624,6 +718,29 @@ fn position_of(properties: &BasicProperties) -> Option<String> {
     std::str::from_utf8(value.as_bytes()?)
         .ok()
         .map(str::to_owned)
+}
+
+/// The shovels a message went through, from its [`SHOVELLED_HEADER`].
+fn shovelled(properties: &BasicProperties) -> Vec<String> {
+    let Some(FieldValue::Array(list)) = properties
+        .headers
+        .as_ref()
+        .and_then(|h| h.get(SHOVELLED_HEADER))
+    else {
+        return Vec::new();
+    };
+    list.iter()
+        .filter_map(|id| std::str::from_utf8(id.as_bytes()?).ok())
+        .map(str::to_owned)
+        .collect()
+}
+
+/// When a link last warned of looping messages, and how many it dropped
+/// since.
+#[derive(Default)]
+struct LoopWarning {
+    last: Option<tokio::time::Instant>,
+    unreported: u64,
 }
 
 /// The `x-leveret-seq` of a message, if it has one.

@@ -281,6 +281,7 @@ pub fn shovel(s: &crate::uplink::Listed, node: &str) -> Value {
         "dest_uri": s.status.destination,
         "forwarded": s.status.forwarded,
         "refused": s.status.refused,
+        "dropped_loops": s.status.dropped_loops,
         "restarts": s.status.restarts,
         "reason": s.status.last_error,
     });

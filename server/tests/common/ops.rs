@@ -165,6 +165,11 @@ impl OpsBroker {
         }
     }
 
+    /// The broker's process id (for its figures in `/proc`).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     /// The log lines so far, without colours.
     pub fn log(&self) -> Vec<String> {
         self.raw_log().iter().map(|line| plain(line)).collect()
