@@ -17,6 +17,7 @@ use crate::policy::Applied;
 use crate::queue::Queue;
 pub use crate::queue::StreamFigures;
 use crate::registry::{ChannelMode, ConnectionEntry};
+use crate::stats::{AuthProtocol, DeadLetterStrategy};
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldTable, ShortStr};
 use std::sync::Arc;
@@ -60,6 +61,42 @@ pub struct Overview {
     pub disk_alarm: bool,
     /// Busy polling's figures, if the broker busy-polls.
     pub busy_poll: Option<BusyPollFigures>,
+    /// TCP client connections served now (in-process ones not counted).
+    pub tcp_connections: u64,
+    /// The most served at once (`connection_max`), if limited.
+    pub tcp_connections_limit: Option<u64>,
+    /// Logins by protocol (RabbitMQ's `auth_attempt_metrics`).
+    pub auth_attempts: Vec<AuthAttemptFigures>,
+    /// Messages queues let go for good, by what became of them
+    /// (RabbitMQ's `messages_dead_lettered_*` of classic queues).
+    pub dead_lettered: Vec<DeadLetteredFigures>,
+}
+
+/// One protocol's logins since start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AuthAttemptFigures {
+    /// As RabbitMQ labels it: `amqp091` or `mqtt`.
+    pub protocol: &'static str,
+    /// Logins that passed.
+    pub succeeded: u64,
+    /// Logins refused.
+    pub failed: u64,
+}
+
+/// Messages that left classic queues for good by expiry, rejection
+/// (basic.reject or basic.nack without requeue) or overflow, by
+/// RabbitMQ's `dead_letter_strategy`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DeadLetteredFigures {
+    /// `disabled` (dropped: no dead-letter exchange, or a missing one) or
+    /// `at_most_once` (republished to the dead-letter exchange).
+    pub strategy: &'static str,
+    /// Their TTL passed.
+    pub expired: u64,
+    /// Rejected or nacked without requeue.
+    pub rejected: u64,
+    /// Dropped by x-max-length or x-max-length-bytes.
+    pub maxlen: u64,
 }
 
 /// What busy polling has cost (see `BrokerBuilder::busy_poll`).
@@ -612,6 +649,35 @@ impl Admin {
                     yielded_to_cpu_pressure,
                 }
             }),
+            tcp_connections: core.connections.network_count() as u64,
+            tcp_connections_limit: core.limits.max_connections.map(|max| max as u64),
+            auth_attempts: [
+                ("amqp091", AuthProtocol::Amqp091),
+                ("mqtt", AuthProtocol::Mqtt),
+            ]
+            .map(|(protocol, which)| {
+                let attempts = &c.auth_attempts[which as usize];
+                AuthAttemptFigures {
+                    protocol,
+                    succeeded: attempts.succeeded.get(),
+                    failed: attempts.failed.get(),
+                }
+            })
+            .to_vec(),
+            dead_lettered: [
+                ("disabled", DeadLetterStrategy::Disabled),
+                ("at_most_once", DeadLetterStrategy::AtMostOnce),
+            ]
+            .map(|(strategy, which)| {
+                let [expired, rejected, maxlen] = &c.dead_lettered[which as usize];
+                DeadLetteredFigures {
+                    strategy,
+                    expired: expired.get(),
+                    rejected: rejected.get(),
+                    maxlen: maxlen.get(),
+                }
+            })
+            .to_vec(),
         }
     }
 

@@ -6,6 +6,7 @@
 //! plain structs for the embedding API and the HTTP listeners is
 //! `inspect`'s job.
 
+use crate::queue::DeadLetterReason;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
 use std::sync::Arc;
 
@@ -159,6 +160,44 @@ pub(crate) struct BrokerCounters {
     pub consumers: Level,
     /// Channels that have published (RabbitMQ's "publishers").
     pub publishers: Level,
+    /// Logins that passed and failed, by protocol ([`AuthProtocol`]).
+    pub auth_attempts: [AuthAttempts; 2],
+    /// Messages that left a queue for good by expiry, rejection or
+    /// overflow, by [`DeadLetterStrategy`] then reason (expired,
+    /// rejected, maxlen): RabbitMQ's `messages_dead_lettered_*` of
+    /// classic queues.
+    pub dead_lettered: [[Counter; 3]; 2],
+}
+
+/// The protocols whose logins are counted apart, as RabbitMQ labels them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AuthProtocol {
+    /// AMQP 0-9-1 clients (`amqp091`).
+    Amqp091 = 0,
+    /// MQTT clients (`mqtt`).
+    Mqtt = 1,
+}
+
+/// One protocol's logins.
+#[derive(Debug, Default)]
+pub(crate) struct AuthAttempts {
+    /// Logins that passed.
+    pub succeeded: Counter,
+    /// Logins that were refused (unknown user, wrong password, no
+    /// certificate, or a user not allowed from that address).
+    pub failed: Counter,
+}
+
+/// What became of a message a queue let go (RabbitMQ 3.10's
+/// `dead_letter_strategy` label for classic queues).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DeadLetterStrategy {
+    /// The queue has no dead-letter exchange, or it does not exist: the
+    /// message is dropped (`disabled`).
+    Disabled = 0,
+    /// Republished to the queue's dead-letter exchange, without
+    /// confirmation (`at_most_once`).
+    AtMostOnce = 1,
 }
 
 impl BrokerCounters {
@@ -189,6 +228,27 @@ impl BrokerCounters {
     /// A publishing channel closed.
     pub fn publisher_removed(&self) {
         self.publishers.add(-1);
+    }
+
+    /// A login over `protocol` passed or failed.
+    pub fn login(&self, protocol: AuthProtocol, passed: bool) {
+        let attempts = &self.auth_attempts[protocol as usize];
+        if passed {
+            attempts.succeeded.inc();
+        } else {
+            attempts.failed.inc();
+        }
+    }
+
+    /// A message left a queue for good, for `reason`, and `strategy`
+    /// says where it went.
+    pub fn dead_lettered(&self, reason: DeadLetterReason, strategy: DeadLetterStrategy) {
+        let reason = match reason {
+            DeadLetterReason::Expired => 0,
+            DeadLetterReason::Rejected => 1,
+            DeadLetterReason::MaxLen => 2,
+        };
+        self.dead_lettered[strategy as usize][reason].inc();
     }
 }
 
@@ -306,6 +366,12 @@ impl QueueCounters {
         self.global.consumers.add(-(count as i64));
     }
 
+    /// A message left the queue for good (see
+    /// [`BrokerCounters::dead_lettered`]).
+    pub fn dead_lettered(&self, reason: DeadLetterReason, strategy: DeadLetterStrategy) {
+        self.global.dead_lettered(reason, strategy);
+    }
+
     /// The queue was deleted with `consumers` still subscribed.
     pub fn queue_deleted(&self, consumers: usize) {
         self.global.queues_deleted.inc();
@@ -375,5 +441,26 @@ mod tests {
         assert_eq!(global.routed.get(), 1);
         assert_eq!(global.unroutable_returned.get(), 1);
         assert_eq!(global.unroutable_dropped.get(), 1);
+    }
+
+    #[test]
+    fn logins_and_dead_letters_are_counted_by_their_labels() {
+        let global = BrokerCounters::default();
+        global.login(AuthProtocol::Amqp091, true);
+        global.login(AuthProtocol::Amqp091, false);
+        global.login(AuthProtocol::Mqtt, false);
+        let amqp = &global.auth_attempts[AuthProtocol::Amqp091 as usize];
+        let mqtt = &global.auth_attempts[AuthProtocol::Mqtt as usize];
+        assert_eq!((amqp.succeeded.get(), amqp.failed.get()), (1, 1));
+        assert_eq!((mqtt.succeeded.get(), mqtt.failed.get()), (0, 1));
+        global.dead_lettered(DeadLetterReason::Expired, DeadLetterStrategy::Disabled);
+        global.dead_lettered(DeadLetterReason::MaxLen, DeadLetterStrategy::AtMostOnce);
+        global.dead_lettered(DeadLetterReason::MaxLen, DeadLetterStrategy::AtMostOnce);
+        let figures: Vec<[u64; 3]> = global
+            .dead_lettered
+            .iter()
+            .map(|by_reason| [0, 1, 2].map(|i| by_reason[i].get()))
+            .collect();
+        assert_eq!(figures, [[1, 0, 0], [0, 0, 2]]);
     }
 }

@@ -16,6 +16,8 @@
 //! `/metrics/per-object` writes its per-queue families a chunk at a time
 //! as the client reads: its memory is a chunk's, not the document's.
 
+mod detailed;
+
 use crate::process::ProcessFigures;
 use crate::uplink::Shovels;
 use axum::body::{Body, Bytes};
@@ -24,7 +26,10 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use axum::routing::get;
 use axum::Router;
-use leveret_broker::{Admin, HistogramFigures, QueueInfo, QueueRef, StreamFigures};
+use leveret_broker::{
+    Admin, AuthAttemptFigures, ChurnTotals, DeadLetteredFigures, HistogramFigures, Overview,
+    QueueInfo, QueueRef, StreamFigures,
+};
 use prometheus::proto::{
     Bucket, Counter, Gauge, Histogram, LabelPair, Metric, MetricFamily, MetricType,
 };
@@ -70,6 +75,7 @@ pub struct MetricsContext {
 }
 
 /// Families in the order they are added.
+#[derive(Default)]
 struct Exposition {
     families: Vec<MetricFamily>,
 }
@@ -169,7 +175,7 @@ fn sample(kind: MetricType, labels: &[(&str, &str)], value: f64) -> Metric {
 
 /// The per-queue metrics, each read from a [`QueueInfo`].
 type QueueFigure = fn(&QueueInfo) -> u64;
-const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 12] = [
+const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 13] = [
     ("rabbitmq_queue_messages_ready", MetricType::GAUGE, "Messages ready to be delivered to consumers", |q| q.messages_ready),
     ("rabbitmq_queue_messages_unacked", MetricType::GAUGE, "Messages delivered to consumers but not yet acknowledged", |q| q.messages_unacknowledged),
     ("rabbitmq_queue_messages", MetricType::GAUGE, "Sum of ready and unacknowledged messages - total queue depth", |q| q.messages()),
@@ -182,6 +188,7 @@ const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 12] = [
     ("rabbitmq_queue_messages_redelivered_total", MetricType::COUNTER, "Total number of messages redelivered from a queue to consumers", |q| q.message_stats.redeliver),
     ("rabbitmq_queue_messages_acked_total", MetricType::COUNTER, "Total number of messages acknowledged by consumers on a queue", |q| q.message_stats.ack),
     ("rabbitmq_queue_get_empty_total", MetricType::COUNTER, "Total number of times basic.get operations fetched no message on a queue", |q| q.message_stats.get_empty),
+    ("rabbitmq_queue_messages_published_total", MetricType::COUNTER, "Total number of messages published to queues", |q| q.message_stats.publish),
 ];
 /// A stream's figure, if it has one (no sample otherwise).
 type StreamFigure = fn(&StreamFigures) -> Option<u64>;
@@ -394,12 +401,13 @@ fn per_object_body(head: String, queues: Vec<QueueRef>) -> Body {
     Body::from_stream(stream)
 }
 
-/// The router of the metrics listener: `/metrics` and `/metrics/per-object`
-/// (GET only; no request body is read).
+/// The router of the metrics listener: `/metrics`, `/metrics/per-object`
+/// and `/metrics/detailed` (GET only; no request body is read).
 pub fn router(context: MetricsContext) -> Router {
     Router::new()
         .route("/metrics", get(aggregated))
         .route("/metrics/per-object", get(per_object))
+        .route("/metrics/detailed", get(detailed))
         .layer(DefaultBodyLimit::max(0))
         .with_state(Arc::new(context))
 }
@@ -419,6 +427,17 @@ async fn per_object(State(context): State<Arc<MetricsContext>>) -> impl IntoResp
     )
 }
 
+async fn detailed(
+    State(context): State<Arc<MetricsContext>>,
+    uri: axum::http::Uri,
+) -> impl IntoResponse {
+    let filters = detailed::Filters::parse(uri.query());
+    (
+        [(CONTENT_TYPE, prometheus::TEXT_FORMAT)],
+        detailed::body(&context, &filters).await,
+    )
+}
+
 /// One scrape of `endpoint` over `queues`, as Prometheus text format
 /// 0.0.4; for [`Endpoint::PerObject`], all but the per-queue families
 /// (`per_object_body` streams those after it).
@@ -429,44 +448,22 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[Queu
     let mut out = Exposition {
         families: Vec::new(),
     };
-    let churn = &overview.churn;
-    out.counter(
-        "rabbitmq_connections_opened_total",
-        "Total number of connections opened",
-        churn.connections_opened,
-    );
-    out.counter(
-        "rabbitmq_connections_closed_total",
-        "Total number of connections closed or terminated",
-        churn.connections_closed,
-    );
-    out.counter(
-        "rabbitmq_channels_opened_total",
-        "Total number of channels opened",
-        churn.channels_opened,
-    );
-    out.counter(
-        "rabbitmq_channels_closed_total",
-        "Total number of channels closed",
-        churn.channels_closed,
-    );
-    out.counter(
-        "rabbitmq_queues_declared_total",
-        "Total number of queues declared",
-        churn.queues_declared,
-    );
-    out.counter(
-        "rabbitmq_queues_created_total",
-        "Total number of queues created",
-        churn.queues_created,
-    );
-    out.counter(
-        "rabbitmq_queues_deleted_total",
-        "Total number of queues deleted",
-        churn.queues_deleted,
-    );
+    for (name, help, value) in churn_families(&overview.churn) {
+        out.counter(&format!("rabbitmq_{name}"), help, value);
+    }
 
+    let tcp_limit = tcp_sockets_limit(&overview, &process);
     let optional = [
+        (
+            "rabbitmq_process_open_tcp_sockets",
+            "Open TCP sockets",
+            Some(overview.tcp_connections),
+        ),
+        (
+            "rabbitmq_process_max_tcp_sockets",
+            "Open TCP sockets limit",
+            tcp_limit,
+        ),
         (
             "rabbitmq_process_open_fds",
             "Open file descriptors",
@@ -621,6 +618,12 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[Queu
         );
     }
 
+    dead_lettered_families(&mut out, &overview.dead_lettered);
+    auth_attempt_families(&mut out, "rabbitmq_", &overview.auth_attempts);
+    if endpoint == Endpoint::Aggregated {
+        channel_sums(&mut out, &context.admin, totals.channels);
+    }
+
     out.single(
         "rabbitmq_alarms_free_disk_space_watermark",
         MetricType::GAUGE,
@@ -682,6 +685,159 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[Queu
 
     shovel_metrics(&mut out, &context.shovels);
 
+    info_families(&mut out, context, &overview, endpoint.label());
+    out.encode()
+}
+
+/// RabbitMQ's `connection_churn_metrics`, without their prefix.
+fn churn_families(churn: &ChurnTotals) -> [(&'static str, &'static str, u64); 7] {
+    [
+        (
+            "connections_opened_total",
+            "Total number of connections opened",
+            churn.connections_opened,
+        ),
+        (
+            "connections_closed_total",
+            "Total number of connections closed or terminated",
+            churn.connections_closed,
+        ),
+        (
+            "channels_opened_total",
+            "Total number of channels opened",
+            churn.channels_opened,
+        ),
+        (
+            "channels_closed_total",
+            "Total number of channels closed",
+            churn.channels_closed,
+        ),
+        (
+            "queues_declared_total",
+            "Total number of queues declared",
+            churn.queues_declared,
+        ),
+        (
+            "queues_created_total",
+            "Total number of queues created",
+            churn.queues_created,
+        ),
+        (
+            "queues_deleted_total",
+            "Total number of queues deleted",
+            churn.queues_deleted,
+        ),
+    ]
+}
+
+/// The most TCP client sockets Leveret will hold: `connection_max` when
+/// set, never more than the open-file limit (each socket is a file).
+fn tcp_sockets_limit(overview: &Overview, process: &ProcessFigures) -> Option<u64> {
+    match (overview.tcp_connections_limit, process.max_fds) {
+        (Some(max), Some(fds)) => Some(max.min(fds)),
+        (max, fds) => max.or(fds),
+    }
+}
+
+/// RabbitMQ's `auth_attempt_metrics`, labelled by protocol, named with
+/// `prefix`.
+fn auth_attempt_families(out: &mut Exposition, prefix: &str, attempts: &[AuthAttemptFigures]) {
+    type Figure = fn(&AuthAttemptFigures) -> u64;
+    let families: [(&str, &str, Figure); 3] = [
+        (
+            "auth_attempts_total",
+            "Total number of authorization attempts",
+            |a| a.succeeded + a.failed,
+        ),
+        (
+            "auth_attempts_succeeded_total",
+            "Total number of successful authentication attempts",
+            |a| a.succeeded,
+        ),
+        (
+            "auth_attempts_failed_total",
+            "Total number of failed authentication attempts",
+            |a| a.failed,
+        ),
+    ];
+    for (name, help, figure) in families {
+        let family = out.family(&format!("{prefix}{name}"), MetricType::COUNTER, help);
+        for a in attempts {
+            family.mut_metric().push(sample(
+                MetricType::COUNTER,
+                &[("protocol", a.protocol)],
+                figure(a) as f64,
+            ));
+        }
+    }
+}
+
+/// RabbitMQ 3.10's `rabbitmq_global_messages_dead_lettered_*_total` of
+/// classic queues, labelled `queue_type` and `dead_letter_strategy`.
+fn dead_lettered_families(out: &mut Exposition, figures: &[DeadLetteredFigures]) {
+    type Figure = fn(&DeadLetteredFigures) -> u64;
+    let families: [(&str, &str, Figure); 3] = [
+        ("rabbitmq_global_messages_dead_lettered_expired_total", "Total number of messages dead-lettered due to message TTL exceeded", |d| d.expired),
+        ("rabbitmq_global_messages_dead_lettered_rejected_total", "Total number of messages dead-lettered due to basic.reject or basic.nack", |d| d.rejected),
+        ("rabbitmq_global_messages_dead_lettered_maxlen_total", "Total number of messages dead-lettered due to overflow drop-head or reject-publish-dlx", |d| d.maxlen),
+    ];
+    for (name, help, figure) in families {
+        let family = out.family(name, MetricType::COUNTER, help);
+        for d in figures {
+            let labels = [QUEUE_TYPE, ("dead_letter_strategy", d.strategy)];
+            family
+                .mut_metric()
+                .push(sample(MetricType::COUNTER, &labels, figure(d) as f64));
+        }
+    }
+}
+
+/// RabbitMQ's `channel_metrics` and `connection_metrics` as `/metrics`
+/// writes them: sums over every channel, for the figures Leveret keeps
+/// (`channels`: the open channels, RabbitMQ's `connection_channels`).
+fn channel_sums(out: &mut Exposition, admin: &leveret_broker::Admin, channels: u64) {
+    let (mut consumers, mut unacked, mut prefetch, mut global_prefetch) = (0u64, 0u64, 0u64, 0u64);
+    for c in admin.channels() {
+        consumers += c.consumers;
+        unacked += c.messages_unacknowledged;
+        prefetch += u64::from(c.prefetch_count);
+        global_prefetch += u64::from(c.global_prefetch_count);
+    }
+    out.gauge(
+        "rabbitmq_channel_consumers",
+        "Consumers on a channel",
+        consumers,
+    );
+    out.gauge(
+        "rabbitmq_channel_messages_unacked",
+        "Delivered but not yet acknowledged messages",
+        unacked,
+    );
+    out.gauge(
+        "rabbitmq_consumer_prefetch",
+        "Limit of unacknowledged messages for each consumer",
+        prefetch,
+    );
+    out.gauge(
+        "rabbitmq_channel_prefetch",
+        "Total limit of unacknowledged messages for all consumers on a channel",
+        global_prefetch,
+    );
+    out.gauge(
+        "rabbitmq_connection_channels",
+        "Channels on a connection",
+        channels,
+    );
+}
+
+/// `rabbitmq_build_info` and `rabbitmq_identity_info`, which every
+/// endpoint ends with.
+fn info_families(
+    out: &mut Exposition,
+    context: &MetricsContext,
+    overview: &Overview,
+    endpoint: &str,
+) {
     let version = overview.version;
     out.single(
         "rabbitmq_build_info",
@@ -706,11 +862,10 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[Queu
         &[
             ("rabbitmq_node", context.node.as_str()),
             ("rabbitmq_cluster", context.node.as_str()),
-            ("rabbitmq_endpoint", endpoint.label()),
+            ("rabbitmq_endpoint", endpoint),
         ],
         1.0,
     );
-    out.encode()
 }
 
 /// The `prometheus` crate's version, for `rabbitmq_build_info`.

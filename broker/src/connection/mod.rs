@@ -26,6 +26,7 @@ use crate::channel::{AtOnce, Channel, Leftover, WholePublish};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::outbox::{Outbound, Outbox};
+use crate::stats::AuthProtocol;
 use crate::vhost::Vhost;
 use crate::word_hash::WordHashMap;
 use bytes::Bytes;
@@ -702,8 +703,16 @@ impl Connection {
                 }
             }
         };
+        let allowed = authenticated
+            .as_ref()
+            .is_some_and(|user| self.core.users.may_connect_from(user, &self.peer));
+        let protocol = match self.kind {
+            "MQTT" => AuthProtocol::Mqtt,
+            _ => AuthProtocol::Amqp091,
+        };
+        self.core.stats.login(protocol, allowed);
         match authenticated {
-            Some(user) if !self.core.users.may_connect_from(&user, &self.peer) => {
+            Some(user) if !allowed => {
                 let refusal = format!("user '{user}' can only connect via localhost");
                 tracing::warn!(peer = %self.peer, %user, mechanism = %start_ok.mechanism, "{} login refused: {refusal}", start_ok.mechanism);
                 if !capability("authentication_failure_close") {
