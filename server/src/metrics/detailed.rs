@@ -424,7 +424,7 @@ fn queue_chunk(family: &QueueFamily, queues: &[QueueRef], first: bool) -> String
 fn streamed(pieces: VecDeque<Piece>, queues: Vec<QueueRef>) -> Body {
     let stream = futures_util::stream::unfold(
         (pieces, queues, 0usize),
-        |(mut pieces, queues, at)| async move {
+        |(mut pieces, queues, mut at)| async move {
             loop {
                 match pieces.front()? {
                     Piece::Text(_) => {
@@ -439,6 +439,7 @@ fn streamed(pieces: VecDeque<Piece>, queues: Vec<QueueRef>) -> Body {
                     Piece::Queues(family) => {
                         if at >= queues.len() {
                             pieces.pop_front();
+                            at = 0;
                             continue;
                         }
                         tokio::task::yield_now().await;
