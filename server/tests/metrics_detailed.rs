@@ -216,7 +216,7 @@ async fn the_new_counters_equal_the_events() {
     declare(&ch, "reject-missing", &[missing]).await;
     publish(&ch, "", "reject-missing", 1).await;
     get_and_reject(&ch, "reject-missing").await;
-    declare(&ch, "reject-dlx", &[dlx.clone()]).await;
+    declare(&ch, "reject-dlx", std::slice::from_ref(&dlx)).await;
     publish(&ch, "", "reject-dlx", 2).await;
     get_and_reject(&ch, "reject-dlx").await;
     get_and_reject(&ch, "reject-dlx").await;
