@@ -17,7 +17,7 @@ use crate::policy::Applied;
 use crate::queue::Queue;
 pub use crate::queue::StreamFigures;
 use crate::registry::{ChannelMode, ConnectionEntry};
-use crate::stats::{AuthProtocol, DeadLetterStrategy};
+use crate::stats::{AuthProtocol, DeadLetterStrategy, SocketTraffic};
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldTable, ShortStr};
 use std::sync::Arc;
@@ -61,6 +61,8 @@ pub struct Overview {
     pub disk_alarm: bool,
     /// Busy polling's figures, if the broker busy-polls.
     pub busy_poll: Option<BusyPollFigures>,
+    /// Bytes and reads on every client socket since start.
+    pub socket_traffic: SocketTrafficFigures,
     /// TCP client connections served now (in-process ones not counted).
     pub tcp_connections: u64,
     /// The most served at once (`connection_max`), if limited.
@@ -70,6 +72,32 @@ pub struct Overview {
     /// Messages queues let go for good, by what became of them
     /// (RabbitMQ's `messages_dead_lettered_*` of classic queues).
     pub dead_lettered: Vec<DeadLetteredFigures>,
+}
+
+/// What went through client sockets (RabbitMQ's `recv_oct`, `recv_cnt`,
+/// `send_oct`, `send_cnt`). Over TLS, the bytes are those of the
+/// decrypted stream.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SocketTrafficFigures {
+    /// Bytes read.
+    pub received_bytes: u64,
+    /// Reads that returned bytes.
+    pub reads: u64,
+    /// Bytes written.
+    pub sent_bytes: u64,
+    /// Writes that took bytes.
+    pub writes: u64,
+}
+
+impl SocketTrafficFigures {
+    fn read(traffic: &SocketTraffic) -> Self {
+        SocketTrafficFigures {
+            received_bytes: traffic.received_bytes.get(),
+            reads: traffic.reads.get(),
+            sent_bytes: traffic.sent_bytes.get(),
+            writes: traffic.writes.get(),
+        }
+    }
 }
 
 /// One protocol's logins since start.
@@ -403,6 +431,8 @@ pub struct ConnectionInfo {
     pub heartbeat_secs: u16,
     /// Open channels.
     pub channels: u64,
+    /// Its socket's traffic (`None` for an in-process connection).
+    pub traffic: Option<SocketTrafficFigures>,
 }
 
 /// One channel (RabbitMQ's `/api/channels` object).
@@ -649,6 +679,7 @@ impl Admin {
                     yielded_to_cpu_pressure,
                 }
             }),
+            socket_traffic: SocketTrafficFigures::read(&c.socket_traffic),
             tcp_connections: core.connections.network_count() as u64,
             tcp_connections_limit: core.limits.max_connections.map(|max| max as u64),
             auth_attempts: [
@@ -925,6 +956,10 @@ fn connection_info(entry: &ConnectionEntry) -> Option<ConnectionInfo> {
         channel_max: opened.channel_max,
         heartbeat_secs: opened.heartbeat_secs,
         channels: entry.channel_count() as u64,
+        traffic: entry
+            .traffic
+            .as_ref()
+            .map(|traffic| SocketTrafficFigures::read(&traffic.own)),
     })
 }
 

@@ -191,7 +191,8 @@ pub use error::AmqpError;
 pub use inspect::{
     AuthAttemptFigures, BindingInfo, BusyPollFigures, ChannelInfo, ChurnTotals, ConnectionInfo,
     ConsumerInfo, DeadLetteredFigures, DestinationKind, ExchangeInfo, GlobalMessageStats,
-    ObjectTotals, Overview, QueueInfo, QueueMessageStats, QueueRef, QueueTotals, StreamFigures,
+    ObjectTotals, Overview, QueueInfo, QueueMessageStats, QueueRef, QueueTotals,
+    SocketTrafficFigures, StreamFigures,
 };
 #[cfg(feature = "mqtt")]
 pub use mqtt::RetainedLimits;

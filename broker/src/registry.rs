@@ -11,6 +11,7 @@
 
 use crate::consumer::ChannelLink;
 use crate::stats::BrokerCounters;
+use crate::stats::ConnectionTraffic;
 use leveret_protocol::FieldTable;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU8, Ordering};
@@ -54,6 +55,8 @@ pub(crate) struct ConnectionEntry {
     /// What the client speaks (`AMQP 0-9-1`, `MQTT 5.0`…).
     pub protocol: &'static str,
     pub connected_at: SystemTime,
+    /// Its socket's traffic (`None` in-process: no socket).
+    pub traffic: Option<Arc<ConnectionTraffic>>,
     pub opened: OnceLock<Opened>,
     close: watch::Sender<bool>,
     close_reason: Mutex<Option<String>>,
@@ -126,6 +129,7 @@ impl Registry {
         id: u64,
         peer: &str,
         protocol: &'static str,
+        traffic: Option<Arc<ConnectionTraffic>>,
     ) -> ConnectionRegistration {
         let mut state = lock(&self.state);
         let entry = Arc::new(ConnectionEntry {
@@ -133,6 +137,7 @@ impl Registry {
             peer: peer.to_owned(),
             protocol,
             connected_at: SystemTime::now(),
+            traffic,
             opened: OnceLock::new(),
             close: watch::channel(state.closing_all).0,
             close_reason: Mutex::new(None),
@@ -334,8 +339,8 @@ mod tests {
     fn connections_are_listed_once_opened_and_counted_once_closed() {
         let counters = Arc::new(BrokerCounters::default());
         let registry = Arc::new(Registry::new(Arc::clone(&counters)));
-        let a = registry.connection(1, "peer-a", "AMQP 0-9-1");
-        let b = registry.connection(2, "peer-b", "AMQP 0-9-1");
+        let a = registry.connection(1, "peer-a", "AMQP 0-9-1", None);
+        let b = registry.connection(2, "peer-b", "AMQP 0-9-1", None);
         assert!(registry.connections().is_empty());
         registry.opened(1, opened());
         registry.opened(1, opened());
@@ -351,8 +356,8 @@ mod tests {
     #[test]
     fn closing_one_connection_signals_only_it() {
         let registry = Arc::new(Registry::new(Arc::default()));
-        let _a = registry.connection(1, "a", "AMQP 0-9-1");
-        let _b = registry.connection(2, "b", "AMQP 0-9-1");
+        let _a = registry.connection(1, "a", "AMQP 0-9-1", None);
+        let _b = registry.connection(2, "b", "AMQP 0-9-1", None);
         let a = registry.close_signal(1).unwrap();
         let b = registry.close_signal(2).unwrap();
         assert!(registry.close(1, "Closed via management plugin"));
@@ -362,7 +367,7 @@ mod tests {
         assert!(!registry.close(3, "x"));
         registry.close_all();
         assert!(*b.borrow());
-        let _late = registry.connection(4, "late", "AMQP 0-9-1");
+        let _late = registry.connection(4, "late", "AMQP 0-9-1", None);
         assert!(*registry.close_signal(4).unwrap().borrow());
     }
 }

@@ -21,6 +21,12 @@ impl Counter {
         self.0.fetch_add(1, Ordering::Relaxed);
     }
 
+    /// Adds `n`.
+    #[inline]
+    pub fn add(&self, n: u64) {
+        self.0.fetch_add(n, Ordering::Relaxed);
+    }
+
     /// The current value.
     pub fn get(&self) -> u64 {
         self.0.load(Ordering::Relaxed)
@@ -160,6 +166,9 @@ pub(crate) struct BrokerCounters {
     pub consumers: Level,
     /// Channels that have published (RabbitMQ's "publishers").
     pub publishers: Level,
+    /// Bytes and reads on every client socket since start (connections
+    /// closed since included).
+    pub socket_traffic: SocketTraffic,
     /// Logins that passed and failed, by protocol ([`AuthProtocol`]).
     pub auth_attempts: [AuthAttempts; 2],
     /// Messages that left a queue for good by expiry, rejection or
@@ -167,6 +176,65 @@ pub(crate) struct BrokerCounters {
     /// rejected, maxlen): RabbitMQ's `messages_dead_lettered_*` of
     /// classic queues.
     pub dead_lettered: [[Counter; 3]; 2],
+}
+
+/// What went through a client socket: RabbitMQ's `recv_oct`,
+/// `recv_cnt`, `send_oct` and `send_cnt` (bytes, and the reads and
+/// writes that moved them).
+#[derive(Debug, Default)]
+pub(crate) struct SocketTraffic {
+    pub received_bytes: Counter,
+    pub reads: Counter,
+    pub sent_bytes: Counter,
+    pub writes: Counter,
+}
+
+impl SocketTraffic {
+    /// A read of `bytes` from the socket.
+    #[inline]
+    fn read(&self, bytes: usize) {
+        self.received_bytes.add(bytes as u64);
+        self.reads.inc();
+    }
+
+    /// A write of `bytes` to the socket.
+    #[inline]
+    fn wrote(&self, bytes: usize) {
+        self.sent_bytes.add(bytes as u64);
+        self.writes.inc();
+    }
+}
+
+/// One connection's socket traffic, also added into the broker-wide
+/// totals.
+#[derive(Debug)]
+pub(crate) struct ConnectionTraffic {
+    global: Arc<BrokerCounters>,
+    pub own: SocketTraffic,
+}
+
+impl ConnectionTraffic {
+    /// Traffic of a new connection, adding into `global`.
+    pub fn new(global: Arc<BrokerCounters>) -> Self {
+        ConnectionTraffic {
+            global,
+            own: SocketTraffic::default(),
+        }
+    }
+
+    /// A read of `bytes` from the socket.
+    #[inline]
+    pub fn read(&self, bytes: usize) {
+        self.own.read(bytes);
+        self.global.socket_traffic.read(bytes);
+    }
+
+    /// A write of `bytes` to the socket.
+    #[inline]
+    pub fn wrote(&self, bytes: usize) {
+        self.own.wrote(bytes);
+        self.global.socket_traffic.wrote(bytes);
+    }
 }
 
 /// The protocols whose logins are counted apart, as RabbitMQ labels them.

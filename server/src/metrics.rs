@@ -28,7 +28,7 @@ use axum::routing::get;
 use axum::Router;
 use leveret_broker::{
     Admin, AuthAttemptFigures, ChurnTotals, DeadLetteredFigures, HistogramFigures, Overview,
-    QueueInfo, QueueRef, StreamFigures,
+    QueueInfo, QueueRef, SocketTrafficFigures, StreamFigures,
 };
 use prometheus::proto::{
     Bucket, Counter, Gauge, Histogram, LabelPair, Metric, MetricFamily, MetricType,
@@ -622,6 +622,9 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[Queu
     auth_attempt_families(&mut out, "rabbitmq_", &overview.auth_attempts);
     if endpoint == Endpoint::Aggregated {
         channel_sums(&mut out, &context.admin, totals.channels);
+        for (name, help, value) in traffic_families(&overview.socket_traffic) {
+            out.counter(&format!("rabbitmq_{name}"), help, value);
+        }
     }
 
     out.single(
@@ -828,6 +831,36 @@ fn channel_sums(out: &mut Exposition, admin: &leveret_broker::Admin, channels: u
         "Channels on a connection",
         channels,
     );
+}
+
+/// RabbitMQ's `connection_coarse_metrics` and `connection_metrics`
+/// counters, without their prefix: bytes, and the reads and writes that
+/// moved them. On `/metrics` they count every client socket since start
+/// (RabbitMQ sums the open connections only, so its sums fall when one
+/// closes).
+fn traffic_families(t: &SocketTrafficFigures) -> [(&'static str, &'static str, u64); 4] {
+    [
+        (
+            "connection_incoming_bytes_total",
+            "Total number of bytes received on a connection",
+            t.received_bytes,
+        ),
+        (
+            "connection_outgoing_bytes_total",
+            "Total number of bytes sent on a connection",
+            t.sent_bytes,
+        ),
+        (
+            "connection_incoming_packets_total",
+            "Total number of packets received on a connection",
+            t.reads,
+        ),
+        (
+            "connection_outgoing_packets_total",
+            "Total number of packets sent on a connection",
+            t.writes,
+        ),
+    ]
 }
 
 /// `rabbitmq_build_info` and `rabbitmq_identity_info`, which every

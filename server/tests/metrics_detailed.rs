@@ -561,3 +561,78 @@ async fn detailed_queue_families_of_many_queues_are_streamed_whole() {
     check_with_promtool(&text, "/metrics/detailed of many queues");
     conn.close(200, "bye").await.expect("close");
 }
+
+/// The connection traffic counters against a raw client whose bytes are
+/// known: the 8-byte protocol header in, connection.start out (every byte
+/// the client read), then a hang-up; on `/metrics` they stay counted once
+/// the connection is gone. Per connection on `/metrics/detailed`, an open
+/// lapin connection has sent and received bytes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connection_traffic_counts_the_bytes_each_way() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let broker = OpsBroker::start("metrics-traffic", &[]);
+    let mut raw = tokio::net::TcpStream::connect(broker.amqp)
+        .await
+        .expect("connect");
+    raw.write_all(b"AMQP\x00\x00\x09\x01")
+        .await
+        .expect("header");
+    // connection.start: a 7-byte frame header, the payload it announces,
+    // and the frame-end octet.
+    let mut header = [0u8; 7];
+    raw.read_exact(&mut header).await.expect("frame header");
+    let size = u32::from_be_bytes([header[3], header[4], header[5], header[6]]) as usize;
+    let mut rest = vec![0u8; size + 1];
+    raw.read_exact(&mut rest).await.expect("connection.start");
+    assert_eq!(rest[size], 0xCE, "frame end");
+    let start_bytes = (7 + size + 1) as f64;
+    drop(raw);
+    let text = scrape_until(
+        broker.metrics,
+        "/metrics",
+        &[
+            ("rabbitmq_connection_incoming_bytes_total", 8.0),
+            ("rabbitmq_connection_outgoing_bytes_total", start_bytes),
+        ],
+    )
+    .await;
+    let reads = value(&text, "rabbitmq_connection_incoming_packets_total").expect("reads");
+    let writes = value(&text, "rabbitmq_connection_outgoing_packets_total").expect("writes");
+    assert!((1.0..=8.0).contains(&reads), "{text}");
+    assert!((1.0..=start_bytes).contains(&writes), "{text}");
+
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = conn.create_channel().await.expect("channel");
+    declare(&ch, "traffic", &[]).await;
+    let detailed = scrape(
+        broker.metrics,
+        "/metrics/detailed?family=connection_coarse_metrics&family=connection_metrics",
+    )
+    .await;
+    check_with_promtool(&detailed, "/metrics/detailed (connections)");
+    for family in [
+        "connection_incoming_bytes_total",
+        "connection_outgoing_bytes_total",
+        "connection_incoming_packets_total",
+        "connection_outgoing_packets_total",
+    ] {
+        let samples: Vec<f64> = detailed
+            .lines()
+            .filter(|l| l.starts_with(&format!("rabbitmq_detailed_{family}{{channel=")))
+            .filter_map(|l| l.rsplit(' ').next()?.parse().ok())
+            .collect();
+        assert_eq!(
+            samples.len(),
+            1,
+            "{family}: the one open connection: {detailed}"
+        );
+        assert!(samples[0] > 0.0, "{family}: {detailed}");
+    }
+    // The totals count the closed raw connection and the open one.
+    let totals = scrape(broker.metrics, "/metrics").await;
+    let incoming = value(&totals, "rabbitmq_connection_incoming_bytes_total").expect("in");
+    assert!(incoming > 8.0, "{totals}");
+    conn.close(200, "bye").await.expect("close");
+}

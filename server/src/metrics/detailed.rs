@@ -8,8 +8,7 @@
 //! as RabbitMQ ignores them). Families RabbitMQ has and Leveret has no
 //! true figures for (`ra_metrics`, `node_persister_metrics`,
 //! `channel_exchange_metrics`, `channel_process_metrics`,
-//! `channel_queue_metrics`, `connection_coarse_metrics`,
-//! `channel_queue_exchange_metrics`, `auth_attempt_detailed_metrics`) are
+//! `channel_queue_metrics`, `channel_queue_exchange_metrics`, `auth_attempt_detailed_metrics`) are
 //! accepted and yield nothing; so do unknown names.
 //!
 //! The per-queue families are written [`CHUNK`] queues at a time as the
@@ -35,13 +34,14 @@ enum Family {
     QueueConsumerCount,
     Queue,
     Channel,
+    ConnectionCoarse,
     Connection,
     VhostStatus,
     ExchangeBindings,
     ExchangeNames,
 }
 
-const FAMILIES: [(&str, Family); 12] = [
+const FAMILIES: [(&str, Family); 13] = [
     ("connection_churn_metrics", Family::ConnectionChurn),
     ("node_coarse_metrics", Family::NodeCoarse),
     ("node_metrics", Family::Node),
@@ -50,6 +50,7 @@ const FAMILIES: [(&str, Family); 12] = [
     ("queue_consumer_count", Family::QueueConsumerCount),
     ("queue_metrics", Family::Queue),
     ("channel_metrics", Family::Channel),
+    ("connection_coarse_metrics", Family::ConnectionCoarse),
     ("connection_metrics", Family::Connection),
     ("vhost_status", Family::VhostStatus),
     ("exchange_bindings", Family::ExchangeBindings),
@@ -250,23 +251,7 @@ pub async fn body(context: &MetricsContext, filters: &Filters) -> Body {
     if filters.wants(Family::Channel) {
         channel_families(&mut out, admin);
     }
-    if filters.wants(Family::Connection) {
-        let connections = admin.connections();
-        let channels = out.family(
-            &format!("{PREFIX}connection_channels"),
-            MetricType::GAUGE,
-            "Channels on a connection",
-        );
-        for c in &connections {
-            // RabbitMQ labels its connection families `channel` too.
-            let name = connection_name(c.id, &c.peer);
-            channels.mut_metric().push(sample(
-                MetricType::GAUGE,
-                &[("channel", &name)],
-                c.channels as f64,
-            ));
-        }
-    }
+    connection_families(&mut out, admin, filters);
     if filters.wants(Family::VhostStatus) {
         let status = out.family(
             &format!("{CLUSTER_PREFIX}vhost_status"),
@@ -333,6 +318,58 @@ fn channel_families(out: &mut Exposition, admin: &Admin) {
                 MetricType::GAUGE,
                 &[("channel", label)],
                 figure(channel) as f64,
+            ));
+        }
+    }
+}
+
+/// `connection_coarse_metrics` (bytes) and `connection_metrics` (reads,
+/// writes and channels), one sample per connection labelled, as
+/// RabbitMQ labels them, `channel` (with the connection's name).
+/// In-process connections have no socket, and no traffic samples.
+fn connection_families(out: &mut Exposition, admin: &Admin, filters: &Filters) {
+    let coarse = filters.wants(Family::ConnectionCoarse);
+    let metrics = filters.wants(Family::Connection);
+    if !coarse && !metrics {
+        return;
+    }
+    let connections = admin.connections();
+    let names: Vec<String> = connections
+        .iter()
+        .map(|c| connection_name(c.id, &c.peer))
+        .collect();
+    let traffic: Vec<_> = connections
+        .iter()
+        .zip(&names)
+        .filter_map(|(c, name)| Some((c.traffic?, name)))
+        .collect();
+    let families = super::traffic_families(&Default::default());
+    let chosen = families
+        .iter()
+        .enumerate()
+        .filter(|(at, _)| if *at < 2 { coarse } else { metrics });
+    for (at, (name, help, _)) in chosen {
+        let family = out.family(&format!("{PREFIX}{name}"), MetricType::COUNTER, help);
+        for (figures, label) in &traffic {
+            let value = super::traffic_families(figures)[at].2;
+            family.mut_metric().push(sample(
+                MetricType::COUNTER,
+                &[("channel", label)],
+                value as f64,
+            ));
+        }
+    }
+    if metrics {
+        let channels = out.family(
+            &format!("{PREFIX}connection_channels"),
+            MetricType::GAUGE,
+            "Channels on a connection",
+        );
+        for (c, name) in connections.iter().zip(&names) {
+            channels.mut_metric().push(sample(
+                MetricType::GAUGE,
+                &[("channel", name)],
+                c.channels as f64,
             ));
         }
     }
