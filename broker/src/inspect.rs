@@ -255,6 +255,13 @@ pub struct QueueInfo {
     pub messages_unacknowledged: u64,
     /// Body bytes of the ready messages.
     pub message_bytes_ready: u64,
+    /// Body bytes of the unacknowledged messages.
+    pub message_bytes_unacknowledged: u64,
+    /// Persistent messages (delivery-mode 2), ready and unacknowledged,
+    /// in a durable classic queue (0 otherwise, as RabbitMQ counts).
+    pub messages_persistent: u64,
+    /// The `timestamp` property (seconds) of the message at the head.
+    pub head_message_timestamp: Option<u64>,
     /// Consumers.
     pub consumers: u64,
     /// Counters since the queue was created.
@@ -525,6 +532,13 @@ impl QueueRef {
             messages_ready: depth.ready,
             messages_unacknowledged: depth.unacked,
             message_bytes_ready: depth.ready_bytes,
+            message_bytes_unacknowledged: depth.unacked_bytes,
+            messages_persistent: if queue.options.durable {
+                depth.persistent
+            } else {
+                0
+            },
+            head_message_timestamp: queue.head_timestamp(),
             consumers: depth.consumers,
             message_stats: QueueMessageStats {
                 publish: c.published.get(),

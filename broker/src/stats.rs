@@ -6,6 +6,7 @@
 //! plain structs for the embedding API and the HTTP listeners is
 //! `inspect`'s job.
 
+use crate::message::Message;
 use crate::queue::DeadLetterReason;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
 use std::sync::Arc;
@@ -343,6 +344,10 @@ pub(crate) struct QueueCounters {
     pub acknowledged: Counter,
     /// Delivered and not yet acked, rejected or requeued.
     pub unacked: Level,
+    /// Their body bytes.
+    pub unacked_bytes: Level,
+    /// How many of them are persistent (delivery-mode 2).
+    pub unacked_persistent: Level,
 }
 
 impl QueueCounters {
@@ -359,6 +364,8 @@ impl QueueCounters {
             redelivered: Counter::default(),
             acknowledged: Counter::default(),
             unacked: Level::default(),
+            unacked_bytes: Level::default(),
+            unacked_persistent: Level::default(),
         }
     }
 
@@ -368,31 +375,51 @@ impl QueueCounters {
         self.published.inc();
     }
 
-    /// A delivery to a consumer.
+    /// `message` was delivered and awaits its ack.
     #[inline]
-    pub fn delivered(&self, no_ack: bool, redelivered: bool) {
+    fn held(&self, message: &Message) {
+        self.unacked.add(1);
+        self.unacked_bytes.add(message.body.len() as i64);
+        if message.persistent {
+            self.unacked_persistent.add(1);
+        }
+    }
+
+    /// `message`, delivered, was acked, rejected or came back.
+    #[inline]
+    fn let_go(&self, message: &Message) {
+        self.unacked.add(-1);
+        self.unacked_bytes.add(-(message.body.len() as i64));
+        if message.persistent {
+            self.unacked_persistent.add(-1);
+        }
+    }
+
+    /// A delivery of `message` to a consumer.
+    #[inline]
+    pub fn delivered(&self, no_ack: bool, redelivered: bool, message: &Message) {
         if no_ack {
             self.delivered_auto_ack.inc();
             self.global.delivered_consume_auto_ack.inc();
         } else {
             self.delivered_manual_ack.inc();
             self.global.delivered_consume_manual_ack.inc();
-            self.unacked.add(1);
+            self.held(message);
         }
         if redelivered {
             self.redelivered();
         }
     }
 
-    /// A basic.get answered with a message.
-    pub fn got(&self, no_ack: bool, redelivered: bool) {
+    /// A basic.get answered with `message`.
+    pub fn got(&self, no_ack: bool, redelivered: bool, message: &Message) {
         if no_ack {
             self.got_auto_ack.inc();
             self.global.delivered_get_auto_ack.inc();
         } else {
             self.got_manual_ack.inc();
             self.global.delivered_get_manual_ack.inc();
-            self.unacked.add(1);
+            self.held(message);
         }
         if redelivered {
             self.redelivered();
@@ -410,18 +437,19 @@ impl QueueCounters {
         self.global.get_empty.inc();
     }
 
-    /// An unacked delivery was acked.
+    /// An unacked delivery of `message` was acked.
     #[inline]
-    pub fn acked(&self) {
+    pub fn acked(&self, message: &Message) {
         self.acknowledged.inc();
         self.global.acknowledged.inc();
-        self.unacked.add(-1);
+        self.let_go(message);
     }
 
-    /// An unacked delivery was rejected, or came back to be requeued.
+    /// An unacked delivery of `message` was rejected, or came back to be
+    /// requeued.
     #[inline]
-    pub fn unacked_returned(&self) {
-        self.unacked.add(-1);
+    pub fn unacked_returned(&self, message: &Message) {
+        self.let_go(message);
     }
 
     /// A consumer subscribed.
@@ -472,16 +500,51 @@ mod tests {
         let global = Arc::new(BrokerCounters::default());
         let a = QueueCounters::new(Arc::clone(&global));
         let b = QueueCounters::new(Arc::clone(&global));
-        a.delivered(false, false);
-        a.delivered(true, true);
-        b.got(false, true);
-        b.got(true, false);
+        let persistent = crate::testkit::message(
+            &leveret_protocol::ShortStr::from_static(""),
+            "k",
+            "twelve bytes",
+            &leveret_protocol::BasicProperties {
+                delivery_mode: Some(2),
+                ..Default::default()
+            },
+        );
+        let transient = crate::testkit::message(
+            &leveret_protocol::ShortStr::from_static(""),
+            "k",
+            "five!",
+            &Default::default(),
+        );
+        a.delivered(false, false, &persistent);
+        a.delivered(false, false, &transient);
+        assert_eq!(
+            (
+                a.unacked.get(),
+                a.unacked_bytes.get(),
+                a.unacked_persistent.get()
+            ),
+            (2, 17, 1)
+        );
+        a.delivered(true, true, &persistent);
+        b.got(false, true, &transient);
+        b.got(true, false, &transient);
         b.got_nothing();
-        a.acked();
-        b.unacked_returned();
+        a.acked(&persistent);
+        assert_eq!(
+            (
+                a.unacked.get(),
+                a.unacked_bytes.get(),
+                a.unacked_persistent.get()
+            ),
+            (1, 5, 0)
+        );
+        a.unacked_returned(&transient);
+        b.unacked_returned(&transient);
         assert_eq!(a.unacked.get(), 0);
+        assert_eq!(a.unacked_bytes.get(), 0);
         assert_eq!(b.unacked.get(), 0);
-        assert_eq!(global.delivered_consume_manual_ack.get(), 1);
+        assert_eq!(b.unacked_bytes.get(), 0);
+        assert_eq!(global.delivered_consume_manual_ack.get(), 2);
         assert_eq!(global.delivered_consume_auto_ack.get(), 1);
         assert_eq!(global.delivered_get_manual_ack.get(), 1);
         assert_eq!(global.delivered_get_auto_ack.get(), 1);

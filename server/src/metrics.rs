@@ -28,7 +28,7 @@ use axum::routing::get;
 use axum::Router;
 use leveret_broker::{
     Admin, AuthAttemptFigures, ChurnTotals, DeadLetteredFigures, HistogramFigures, Overview,
-    QueueInfo, QueueRef, SocketTrafficFigures, StreamFigures,
+    QueueInfo, QueueRef, SocketTrafficFigures,
 };
 use prometheus::proto::{
     Bucket, Counter, Gauge, Histogram, LabelPair, Metric, MetricFamily, MetricType,
@@ -175,7 +175,7 @@ fn sample(kind: MetricType, labels: &[(&str, &str)], value: f64) -> Metric {
 
 /// The per-queue metrics, each read from a [`QueueInfo`].
 type QueueFigure = fn(&QueueInfo) -> u64;
-const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 13] = [
+const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 16] = [
     ("rabbitmq_queue_messages_ready", MetricType::GAUGE, "Messages ready to be delivered to consumers", |q| q.messages_ready),
     ("rabbitmq_queue_messages_unacked", MetricType::GAUGE, "Messages delivered to consumers but not yet acknowledged", |q| q.messages_unacknowledged),
     ("rabbitmq_queue_messages", MetricType::GAUGE, "Sum of ready and unacknowledged messages - total queue depth", |q| q.messages()),
@@ -189,31 +189,41 @@ const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 13] = [
     ("rabbitmq_queue_messages_acked_total", MetricType::COUNTER, "Total number of messages acknowledged by consumers on a queue", |q| q.message_stats.ack),
     ("rabbitmq_queue_get_empty_total", MetricType::COUNTER, "Total number of times basic.get operations fetched no message on a queue", |q| q.message_stats.get_empty),
     ("rabbitmq_queue_messages_published_total", MetricType::COUNTER, "Total number of messages published to queues", |q| q.message_stats.publish),
+    ("rabbitmq_queue_messages_bytes", MetricType::GAUGE, "Size in bytes of ready and unacknowledged messages", |q| q.message_bytes_ready + q.message_bytes_unacknowledged),
+    ("rabbitmq_queue_messages_unacked_bytes", MetricType::GAUGE, "Size in bytes of all unacknowledged messages", |q| q.message_bytes_unacknowledged),
+    ("rabbitmq_queue_messages_persistent", MetricType::GAUGE, "Persistent messages", |q| q.messages_persistent),
 ];
-/// A stream's figure, if it has one (no sample otherwise).
-type StreamFigure = fn(&StreamFigures) -> Option<u64>;
-/// Leveret's per-stream families on `/metrics/per-object`, after
-/// [`QUEUE_INFO`]; classic queues have no samples in them.
-const STREAM_METRICS: [(&str, &str, StreamFigure); 4] = [
+/// A queue's figure where it has one (no sample otherwise).
+type OptionalFigure = fn(&QueueInfo) -> Option<u64>;
+/// The per-queue families of `/metrics/per-object` after [`QUEUE_INFO`]
+/// that not every queue has: RabbitMQ's head timestamp (queues whose head
+/// message has a `timestamp` property) and Leveret's per-stream families
+/// (classic queues have no samples in them).
+const OPTIONAL_METRICS: [(&str, &str, OptionalFigure); 5] = [
+    (
+        "rabbitmq_queue_head_message_timestamp",
+        "Timestamp of the first message in the queue, if any",
+        |q| q.head_message_timestamp,
+    ),
     (
         "leveret_stream_first_offset",
         "The oldest offset a stream holds",
-        |s| Some(s.first_offset),
+        |q| Some(q.stream.as_ref()?.first_offset),
     ),
     (
         "leveret_stream_last_offset",
         "The newest offset a stream holds (no sample while it is empty)",
-        |s| s.last_offset,
+        |q| q.stream.as_ref()?.last_offset,
     ),
     (
         "leveret_stream_segments",
         "Segment files a stream keeps",
-        |s| Some(s.segments),
+        |q| Some(q.stream.as_ref()?.segments),
     ),
     (
         "leveret_stream_disk_bytes",
         "Bytes of the segment files a stream keeps",
-        |s| Some(s.bytes),
+        |q| Some(q.stream.as_ref()?.bytes),
     ),
 ];
 /// The `queue_type` label of a stream, as RabbitMQ names it.
@@ -306,11 +316,11 @@ async fn queue_sums(refs: &[QueueRef]) -> ([u64; QUEUE_METRICS.len()], u64) {
 /// escaped alike), without building its structs for every sample.
 fn per_queue_chunk(index: usize, queues: &[QueueRef], first: bool) -> String {
     use std::fmt::Write;
-    let stream_index = index.checked_sub(QUEUE_METRICS.len() + 1);
-    let (name, kind, help) = match (QUEUE_METRICS.get(index), stream_index) {
+    let optional_index = index.checked_sub(QUEUE_METRICS.len() + 1);
+    let (name, kind, help) = match (QUEUE_METRICS.get(index), optional_index) {
         (Some(&(name, kind, help, _)), _) => (name, kind, help),
         (None, Some(at)) => {
-            let (name, help, _) = STREAM_METRICS[at];
+            let (name, help, _) = OPTIONAL_METRICS[at];
             (name, MetricType::GAUGE, help)
         }
         (None, None) => (QUEUE_INFO.0, MetricType::GAUGE, QUEUE_INFO.1),
@@ -326,13 +336,13 @@ fn per_queue_chunk(index: usize, queues: &[QueueRef], first: bool) -> String {
     }
     for queue in queues {
         let (vhost, queue_name) = (escaped(queue.vhost()), escaped(queue.name()));
-        let _ = match (QUEUE_METRICS.get(index), stream_index) {
+        let _ = match (QUEUE_METRICS.get(index), optional_index) {
             (Some(&(.., figure)), _) => writeln!(
                 text,
                 "{name}{{vhost=\"{vhost}\",queue=\"{queue_name}\"}} {}",
                 figure(&queue.info())
             ),
-            (None, Some(at)) => match queue.info().stream.as_ref().and_then(STREAM_METRICS[at].2) {
+            (None, Some(at)) => match (OPTIONAL_METRICS[at].2)(&queue.info()) {
                 Some(value) => writeln!(
                     text,
                     "{name}{{vhost=\"{vhost}\",queue=\"{queue_name}\"}} {value}"
@@ -375,7 +385,7 @@ fn per_object_body(head: String, queues: Vec<QueueRef>) -> Body {
     let families = if queues.is_empty() {
         0
     } else {
-        QUEUE_METRICS.len() + 1 + STREAM_METRICS.len()
+        QUEUE_METRICS.len() + 1 + OPTIONAL_METRICS.len()
     };
     let start = (Some(head), queues, 0usize, 0usize);
     let stream = futures_util::stream::unfold(start, move |(head, queues, index, at)| async move {

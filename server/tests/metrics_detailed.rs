@@ -636,3 +636,146 @@ async fn connection_traffic_counts_the_bytes_each_way() {
     assert!(incoming > 8.0, "{totals}");
     conn.close(200, "bye").await.expect("close");
 }
+
+/// RabbitMQ's `queue_metrics` figures Leveret keeps: the bytes of ready
+/// and unacked messages, persistent messages (in a durable queue, ready
+/// and unacked; none counted in a transient queue, as RabbitMQ), and the
+/// head message's `timestamp`, followed through gets, an ack and a
+/// requeue, on `/metrics`, `/metrics/per-object` and `/metrics/detailed`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn queue_bytes_persistence_and_head_timestamp_follow_the_messages() {
+    use lapin::options::{BasicAckOptions, BasicNackOptions};
+    let broker = OpsBroker::start("metrics-queue-figures", &[]);
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = conn.create_channel().await.expect("channel");
+    ch.confirm_select(Default::default())
+        .await
+        .expect("confirms");
+    ch.queue_declare(
+        "kept",
+        QueueDeclareOptions {
+            durable: true,
+            ..Default::default()
+        },
+        FieldTable::default(),
+    )
+    .await
+    .expect("declare");
+    declare(&ch, "transient", &[]).await;
+    // Into "kept": 10 + 20 persistent bytes with timestamps 1001 and
+    // 1002, then 40 transient bytes with none.
+    let sends: [(usize, bool, Option<u64>); 3] = [
+        (10, true, Some(1001)),
+        (20, true, Some(1002)),
+        (40, false, None),
+    ];
+    for (size, persistent, timestamp) in sends {
+        let mut properties = BasicProperties::default();
+        if persistent {
+            properties = properties.with_delivery_mode(2);
+        }
+        if let Some(timestamp) = timestamp {
+            properties = properties.with_timestamp(timestamp);
+        }
+        for queue in ["kept", "transient"] {
+            ch.basic_publish(
+                "",
+                queue,
+                BasicPublishOptions::default(),
+                &vec![b'x'; size],
+                properties.clone(),
+            )
+            .await
+            .expect("publish")
+            .await
+            .expect("confirm");
+        }
+    }
+    let kept = |family: &str| format!("rabbitmq_queue_{family}{{vhost=\"/\",queue=\"kept\"}}");
+    let text = scrape_until(
+        broker.metrics,
+        "/metrics/per-object",
+        &[
+            (&kept("messages_bytes"), 70.0),
+            (&kept("messages_unacked_bytes"), 0.0),
+            (&kept("messages_persistent"), 2.0),
+            (&kept("head_message_timestamp"), 1001.0),
+            (
+                "rabbitmq_queue_messages_persistent{vhost=\"/\",queue=\"transient\"}",
+                0.0,
+            ),
+        ],
+    )
+    .await;
+    check_with_promtool(&text, "/metrics/per-object");
+
+    // Two gets: the persistent ones are unacked, the head has no timestamp.
+    let mut deliveries = Vec::new();
+    for _ in 0..2 {
+        let message = ch
+            .basic_get("kept", BasicGetOptions::default())
+            .await
+            .expect("get")
+            .expect("a message");
+        deliveries.push(message.delivery);
+    }
+    let text = scrape_until(
+        broker.metrics,
+        "/metrics/per-object",
+        &[
+            (&kept("messages_bytes"), 70.0),
+            (&kept("messages_unacked_bytes"), 30.0),
+            (&kept("messages_ready_bytes"), 40.0),
+            (&kept("messages_persistent"), 2.0),
+        ],
+    )
+    .await;
+    assert_eq!(
+        value(&text, &kept("head_message_timestamp")),
+        None,
+        "{text}"
+    );
+    // The aggregated sums: "transient" holds 70 ready bytes.
+    scrape_until(
+        broker.metrics,
+        "/metrics",
+        &[
+            ("rabbitmq_queue_messages_bytes", 140.0),
+            ("rabbitmq_queue_messages_unacked_bytes", 30.0),
+            ("rabbitmq_queue_messages_persistent", 2.0),
+        ],
+    )
+    .await;
+
+    // Ack the first (10 bytes), requeue the second: it is the head again.
+    deliveries[0]
+        .ack(BasicAckOptions::default())
+        .await
+        .expect("ack");
+    deliveries[1]
+        .nack(BasicNackOptions {
+            requeue: true,
+            ..Default::default()
+        })
+        .await
+        .expect("nack");
+    let detailed =
+        |family: &str| format!("rabbitmq_detailed_queue_{family}{{vhost=\"/\",queue=\"kept\"}}");
+    let text = scrape_until(
+        broker.metrics,
+        "/metrics/detailed?family=queue_metrics",
+        &[
+            (&detailed("messages_bytes"), 60.0),
+            (&detailed("messages_unacked_bytes"), 0.0),
+            (&detailed("messages_ready_bytes"), 60.0),
+            (&detailed("messages_persistent"), 1.0),
+            (&detailed("head_message_timestamp"), 1002.0),
+            (&detailed("consumers"), 0.0),
+        ],
+    )
+    .await;
+    check_with_promtool(&text, "/metrics/detailed?family=queue_metrics");
+    conn.close(200, "bye").await.expect("close");
+}

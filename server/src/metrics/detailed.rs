@@ -14,7 +14,7 @@
 //! The per-queue families are written [`CHUNK`] queues at a time as the
 //! client reads, as `/metrics/per-object` writes them.
 
-use super::{escaped, sample, Exposition, MetricsContext, QueueFigure, CHUNK};
+use super::{escaped, sample, Exposition, MetricsContext, OptionalFigure, CHUNK};
 use crate::management::json::{channel_name, connection_name};
 use crate::process::ProcessFigures;
 use axum::body::{Body, Bytes};
@@ -104,41 +104,30 @@ impl Filters {
     }
 }
 
-/// A family of per-queue samples.
-type QueueFamily = (&'static str, MetricType, &'static str, QueueFigure);
+/// A family of per-queue samples (none for a queue without the figure).
+type QueueFamily = (&'static str, MetricType, &'static str, OptionalFigure);
 
+#[rustfmt::skip]
 const QUEUE_COARSE: [QueueFamily; 3] = [
-    (
-        "queue_messages_ready",
-        MetricType::GAUGE,
-        "Messages ready to be delivered to consumers",
-        |q| q.messages_ready,
-    ),
-    (
-        "queue_messages_unacked",
-        MetricType::GAUGE,
-        "Messages delivered to consumers but not yet acknowledged",
-        |q| q.messages_unacknowledged,
-    ),
-    (
-        "queue_messages",
-        MetricType::GAUGE,
-        "Sum of ready and unacknowledged messages - total queue depth",
-        |q| q.messages(),
-    ),
+    ("queue_messages_ready", MetricType::GAUGE, "Messages ready to be delivered to consumers", |q| Some(q.messages_ready)),
+    ("queue_messages_unacked", MetricType::GAUGE, "Messages delivered to consumers but not yet acknowledged", |q| Some(q.messages_unacknowledged)),
+    ("queue_messages", MetricType::GAUGE, "Sum of ready and unacknowledged messages - total queue depth", |q| Some(q.messages())),
 ];
 const QUEUE_CONSUMERS: QueueFamily = (
     "queue_consumers",
     MetricType::GAUGE,
     "Consumers on a queue",
-    |q| q.consumers,
+    |q| Some(q.consumers),
 );
-const QUEUE_READY_BYTES: QueueFamily = (
-    "queue_messages_ready_bytes",
-    MetricType::GAUGE,
-    "Size in bytes of ready messages",
-    |q| q.message_bytes_ready,
-);
+/// `queue_metrics` beside the consumers, in RabbitMQ's order.
+#[rustfmt::skip]
+const QUEUE_METRICS: [QueueFamily; 5] = [
+    ("queue_messages_persistent", MetricType::GAUGE, "Persistent messages", |q| Some(q.messages_persistent)),
+    ("queue_messages_bytes", MetricType::GAUGE, "Size in bytes of ready and unacknowledged messages", |q| Some(q.message_bytes_ready + q.message_bytes_unacknowledged)),
+    ("queue_messages_ready_bytes", MetricType::GAUGE, "Size in bytes of ready messages", |q| Some(q.message_bytes_ready)),
+    ("queue_messages_unacked_bytes", MetricType::GAUGE, "Size in bytes of all unacknowledged messages", |q| Some(q.message_bytes_unacknowledged)),
+    ("queue_head_message_timestamp", MetricType::GAUGE, "Timestamp of the first message in the queue, if any", |q| q.head_message_timestamp),
+];
 
 /// A piece of the body: text already written, or a per-queue family.
 enum Piece {
@@ -240,7 +229,7 @@ pub async fn body(context: &MetricsContext, filters: &Filters) -> Body {
         pieces.push_back(Piece::Queues(QUEUE_CONSUMERS));
     }
     if filters.wants(Family::Queue) {
-        pieces.push_back(Piece::Queues(QUEUE_READY_BYTES));
+        pieces.extend(QUEUE_METRICS.map(Piece::Queues));
     }
     let queues = if pieces.len() > 1 {
         queue_refs(admin, filters.vhosts.as_ref())
@@ -445,13 +434,14 @@ fn queue_chunk(family: &QueueFamily, queues: &[QueueRef], first: bool) -> String
         );
     }
     for queue in queues {
-        let _ = writeln!(
-            text,
-            "{PREFIX}{name}{{vhost=\"{}\",queue=\"{}\"}} {}",
-            escaped(queue.vhost()),
-            escaped(queue.name()),
-            figure(&queue.info())
-        );
+        if let Some(value) = figure(&queue.info()) {
+            let _ = writeln!(
+                text,
+                "{PREFIX}{name}{{vhost=\"{}\",queue=\"{}\"}} {value}",
+                escaped(queue.vhost()),
+                escaped(queue.name()),
+            );
+        }
     }
     text
 }
