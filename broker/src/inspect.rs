@@ -467,6 +467,12 @@ pub struct ChannelInfo {
     pub confirm: bool,
     /// In transactional mode.
     pub transactional: bool,
+    /// Publishes awaiting their confirm.
+    pub messages_unconfirmed: u64,
+    /// Publishes held by the open transaction.
+    pub messages_uncommitted: u64,
+    /// Acks, nacks and rejects held by the open transaction.
+    pub acks_uncommitted: u64,
 }
 
 /// One consumer (RabbitMQ's `/api/consumers` object).
@@ -919,6 +925,7 @@ impl Admin {
             for channel in entry.channels() {
                 let link = &channel.link;
                 let mode = channel.mode();
+                let (unconfirmed, uncommitted, acks_uncommitted) = channel.pending();
                 list.push(ChannelInfo {
                     connection_id: entry.id,
                     connection_peer: entry.peer.clone(),
@@ -936,6 +943,9 @@ impl Admin {
                         .load(std::sync::atomic::Ordering::Relaxed),
                     confirm: mode == ChannelMode::Confirm,
                     transactional: mode == ChannelMode::Transactional,
+                    messages_unconfirmed: unconfirmed,
+                    messages_uncommitted: uncommitted,
+                    acks_uncommitted,
                 });
             }
         }

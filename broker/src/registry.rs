@@ -14,7 +14,7 @@ use crate::stats::BrokerCounters;
 use crate::stats::ConnectionTraffic;
 use leveret_protocol::FieldTable;
 use std::collections::{BTreeMap, HashMap};
-use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU8, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::SystemTime;
 use tokio::sync::watch;
@@ -91,6 +91,12 @@ pub(crate) struct ChannelEntry {
     mode: AtomicU8,
     prefetch: AtomicU32,
     publisher: AtomicBool,
+    /// Publishes awaiting their confirm.
+    unconfirmed: AtomicU64,
+    /// Publishes held by the open transaction.
+    uncommitted_messages: AtomicU64,
+    /// Acks, nacks and rejects held by the open transaction.
+    uncommitted_acks: AtomicU64,
 }
 
 impl ChannelEntry {
@@ -106,6 +112,16 @@ impl ChannelEntry {
     /// The per-consumer prefetch count new consumers get (basic.qos, not global).
     pub fn prefetch(&self) -> u32 {
         self.prefetch.load(Ordering::Relaxed)
+    }
+
+    /// Publishes awaiting their confirm, publishes and acks held by the
+    /// open transaction.
+    pub fn pending(&self) -> (u64, u64, u64) {
+        (
+            self.unconfirmed.load(Ordering::Relaxed),
+            self.uncommitted_messages.load(Ordering::Relaxed),
+            self.uncommitted_acks.load(Ordering::Relaxed),
+        )
     }
 }
 
@@ -236,6 +252,9 @@ impl Registry {
             link: Arc::clone(link),
             mode: AtomicU8::new(ChannelMode::Plain as u8),
             prefetch: AtomicU32::new(0),
+            unconfirmed: AtomicU64::new(0),
+            uncommitted_messages: AtomicU64::new(0),
+            uncommitted_acks: AtomicU64::new(0),
             publisher: AtomicBool::new(false),
         });
         let owner = self.entry(connection);
@@ -299,6 +318,19 @@ impl ChannelRegistration {
     /// basic.qos set the per-consumer prefetch count.
     pub fn set_prefetch(&self, count: u32) {
         self.entry.prefetch.store(count, Ordering::Relaxed);
+    }
+
+    /// What the channel holds now: publishes awaiting their confirm,
+    /// publishes and acks held by its transaction.
+    pub fn set_pending(&self, unconfirmed: usize, messages: usize, acks: usize) {
+        let entry = &self.entry;
+        entry
+            .unconfirmed
+            .store(unconfirmed as u64, Ordering::Relaxed);
+        entry
+            .uncommitted_messages
+            .store(messages as u64, Ordering::Relaxed);
+        entry.uncommitted_acks.store(acks as u64, Ordering::Relaxed);
     }
 }
 

@@ -805,37 +805,32 @@ fn dead_lettered_families(out: &mut Exposition, figures: &[DeadLetteredFigures])
     }
 }
 
-/// RabbitMQ's `channel_metrics` and `connection_metrics` as `/metrics`
-/// writes them: sums over every channel, for the figures Leveret keeps
-/// (`channels`: the open channels, RabbitMQ's `connection_channels`).
+/// A channel's figure.
+type ChannelFigure = fn(&leveret_broker::ChannelInfo) -> u64;
+/// RabbitMQ's `channel_metrics`, without their prefix, in its order.
+#[rustfmt::skip]
+const CHANNEL_METRICS: [(&str, &str, ChannelFigure); 7] = [
+    ("channel_consumers", "Consumers on a channel", |c| c.consumers),
+    ("channel_messages_unacked", "Delivered but not yet acknowledged messages", |c| c.messages_unacknowledged),
+    ("channel_messages_unconfirmed", "Published but not yet confirmed messages", |c| c.messages_unconfirmed),
+    ("channel_messages_uncommitted", "Messages received in a transaction but not yet committed", |c| c.messages_uncommitted),
+    ("channel_acks_uncommitted", "Message acknowledgements in a transaction not yet committed", |c| c.acks_uncommitted),
+    ("consumer_prefetch", "Limit of unacknowledged messages for each consumer", |c| u64::from(c.prefetch_count)),
+    ("channel_prefetch", "Total limit of unacknowledged messages for all consumers on a channel", |c| u64::from(c.global_prefetch_count)),
+];
+
+/// RabbitMQ's `channel_metrics` and `connection_channels` as `/metrics`
+/// writes them: sums over every channel (`channels`: the open channels).
 fn channel_sums(out: &mut Exposition, admin: &leveret_broker::Admin, channels: u64) {
-    let (mut consumers, mut unacked, mut prefetch, mut global_prefetch) = (0u64, 0u64, 0u64, 0u64);
+    let mut sums = [0u64; CHANNEL_METRICS.len()];
     for c in admin.channels() {
-        consumers += c.consumers;
-        unacked += c.messages_unacknowledged;
-        prefetch += u64::from(c.prefetch_count);
-        global_prefetch += u64::from(c.global_prefetch_count);
+        for (sum, (.., figure)) in sums.iter_mut().zip(CHANNEL_METRICS) {
+            *sum += figure(&c);
+        }
     }
-    out.gauge(
-        "rabbitmq_channel_consumers",
-        "Consumers on a channel",
-        consumers,
-    );
-    out.gauge(
-        "rabbitmq_channel_messages_unacked",
-        "Delivered but not yet acknowledged messages",
-        unacked,
-    );
-    out.gauge(
-        "rabbitmq_consumer_prefetch",
-        "Limit of unacknowledged messages for each consumer",
-        prefetch,
-    );
-    out.gauge(
-        "rabbitmq_channel_prefetch",
-        "Total limit of unacknowledged messages for all consumers on a channel",
-        global_prefetch,
-    );
+    for ((name, help, _), sum) in CHANNEL_METRICS.into_iter().zip(sums) {
+        out.gauge(&format!("rabbitmq_{name}"), help, sum);
+    }
     out.gauge(
         "rabbitmq_connection_channels",
         "Channels on a connection",

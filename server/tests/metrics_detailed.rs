@@ -779,3 +779,80 @@ async fn queue_bytes_persistence_and_head_timestamp_follow_the_messages() {
     check_with_promtool(&text, "/metrics/detailed?family=queue_metrics");
     conn.close(200, "bye").await.expect("close");
 }
+
+/// A transactional channel's held publishes and acks, on `/metrics` and
+/// per channel on `/metrics/detailed`, until its commit; a confirm-mode
+/// channel's publishes are unconfirmed only until confirmed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uncommitted_and_unconfirmed_work_is_shown_until_settled() {
+    use lapin::options::BasicAckOptions;
+    let broker = OpsBroker::start("metrics-uncommitted", &[]);
+    let conn = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let confirming = conn.create_channel().await.expect("channel");
+    confirming
+        .confirm_select(Default::default())
+        .await
+        .expect("confirms");
+    declare(&confirming, "tx-q", &[]).await;
+    publish(&confirming, "", "tx-q", 2).await;
+    let tx = conn.create_channel().await.expect("channel");
+    let got = tx
+        .basic_get("tx-q", BasicGetOptions::default())
+        .await
+        .expect("get")
+        .expect("a message");
+    tx.tx_select().await.expect("tx.select");
+    for _ in 0..3 {
+        tx.basic_publish(
+            "",
+            "tx-q",
+            BasicPublishOptions::default(),
+            b"held",
+            BasicProperties::default(),
+        )
+        .await
+        .expect("publish");
+    }
+    got.delivery
+        .ack(BasicAckOptions::default())
+        .await
+        .expect("ack");
+    scrape_until(
+        broker.metrics,
+        "/metrics",
+        &[
+            ("rabbitmq_channel_messages_uncommitted", 3.0),
+            ("rabbitmq_channel_acks_uncommitted", 1.0),
+            ("rabbitmq_channel_messages_unconfirmed", 0.0),
+            // As RabbitMQ's channel: the ack took the delivery off the
+            // channel's unacked list into the transaction; the queue
+            // still counts it until the commit.
+            ("rabbitmq_channel_messages_unacked", 0.0),
+            ("rabbitmq_queue_messages_unacked", 1.0),
+        ],
+    )
+    .await;
+    let detailed = scrape(broker.metrics, "/metrics/detailed?family=channel_metrics").await;
+    check_with_promtool(&detailed, "/metrics/detailed?family=channel_metrics");
+    let held: Vec<&str> = detailed
+        .lines()
+        .filter(|l| l.starts_with("rabbitmq_detailed_channel_messages_uncommitted{channel="))
+        .collect();
+    assert_eq!(held.len(), 2, "{detailed}");
+    assert!(held.iter().any(|l| l.ends_with(" 3")), "{detailed}");
+    tx.tx_commit().await.expect("commit");
+    scrape_until(
+        broker.metrics,
+        "/metrics",
+        &[
+            ("rabbitmq_channel_messages_uncommitted", 0.0),
+            ("rabbitmq_channel_acks_uncommitted", 0.0),
+            ("rabbitmq_queue_messages_unacked", 0.0),
+            ("rabbitmq_queue_messages_ready", 4.0),
+        ],
+    )
+    .await;
+    conn.close(200, "bye").await.expect("close");
+}

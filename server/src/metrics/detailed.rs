@@ -271,36 +271,15 @@ fn queue_refs(admin: &Admin, vhosts: Option<&HashSet<String>>) -> Vec<QueueRef> 
     queues
 }
 
-/// RabbitMQ's `channel_metrics` for which Leveret keeps figures, one
+/// RabbitMQ's `channel_metrics`, one
 /// sample per channel labelled with the channel's name.
 fn channel_families(out: &mut Exposition, admin: &Admin) {
-    type ChannelFigure = fn(&leveret_broker::ChannelInfo) -> u64;
     let channels = admin.channels();
-    let families: [(&str, &str, ChannelFigure); 4] = [
-        ("channel_consumers", "Consumers on a channel", |c| {
-            c.consumers
-        }),
-        (
-            "channel_messages_unacked",
-            "Delivered but not yet acknowledged messages",
-            |c| c.messages_unacknowledged,
-        ),
-        (
-            "consumer_prefetch",
-            "Limit of unacknowledged messages for each consumer",
-            |c| u64::from(c.prefetch_count),
-        ),
-        (
-            "channel_prefetch",
-            "Total limit of unacknowledged messages for all consumers on a channel",
-            |c| u64::from(c.global_prefetch_count),
-        ),
-    ];
     let names: Vec<String> = channels
         .iter()
         .map(|c| channel_name(c.connection_id, &c.connection_peer, c.number))
         .collect();
-    for (name, help, figure) in families {
+    for (name, help, figure) in super::CHANNEL_METRICS {
         let family = out.family(&format!("{PREFIX}{name}"), MetricType::GAUGE, help);
         for (channel, label) in channels.iter().zip(&names) {
             family.mut_metric().push(sample(
