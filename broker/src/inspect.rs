@@ -438,7 +438,8 @@ pub struct ConnectionInfo {
     pub heartbeat_secs: u16,
     /// Open channels.
     pub channels: u64,
-    /// Its socket's traffic (`None` for an in-process connection).
+    /// Its byte stream's traffic (a socket, or `connect_in_process`'s
+    /// pipe); `None` for a connection exchanging frames in-process (MQTT's).
     pub traffic: Option<SocketTrafficFigures>,
 }
 

@@ -55,7 +55,7 @@ pub(crate) struct ConnectionEntry {
     /// What the client speaks (`AMQP 0-9-1`, `MQTT 5.0`…).
     pub protocol: &'static str,
     pub connected_at: SystemTime,
-    /// Its socket's traffic (`None` in-process: no socket).
+    /// Its byte stream's traffic (`None` for frames exchanged in-process).
     pub traffic: Option<Arc<ConnectionTraffic>>,
     pub opened: OnceLock<Opened>,
     close: watch::Sender<bool>,
