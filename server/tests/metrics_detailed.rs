@@ -459,6 +459,14 @@ async fn detailed_answers_the_families_and_vhosts_asked_for() {
     .await;
     assert_eq!(value(&both, &ready("/", "root-q")), Some(4.0));
     assert_eq!(value(&both, &ready("other", "other-q")), Some(6.0));
+    // Malformed parameters are skipped, never an error.
+    let odd = scrape(
+        broker.metrics,
+        "/metrics/detailed?family=%ZZ&&=&family&vhost=%FF%FE&family=queue_coarse_metrics&vhost=other",
+    )
+    .await;
+    assert_eq!(value(&odd, &ready("other", "other-q")), Some(6.0), "{odd}");
+    check_with_promtool(&odd, "/metrics/detailed (malformed parameters)");
     // A vhost that does not exist is ignored: nothing matches.
     let none = scrape(
         broker.metrics,
