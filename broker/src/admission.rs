@@ -59,6 +59,11 @@ impl Admission {
         })
     }
 
+    /// TCP connections served now.
+    pub fn network_count(&self) -> usize {
+        self.network.load(Ordering::Relaxed)
+    }
+
     /// A slot for a TCP connection, or `Err(limit)` when `max_connections`
     /// connections are already served (logged: a warning when refusing
     /// starts, then one debug line per refused connection).

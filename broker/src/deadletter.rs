@@ -19,6 +19,7 @@
 use crate::message::{Message, Stored};
 use crate::queue::{DeadLetter, DeadLetters, Queue};
 use crate::slice::{finish_in_background, Progress, Slice};
+use crate::stats::DeadLetterStrategy;
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldValue, ShortStr};
 use std::collections::VecDeque;
@@ -72,6 +73,9 @@ impl Routing {
                         let (_, more) = queue.publish(Arc::clone(message));
                         for next in more {
                             if self.caused == CASCADE_LIMIT {
+                                // Dead-lettered by its queue all the same;
+                                // Leveret's budget drops it on the way.
+                                count(&self.vhost, &next);
                                 self.over_budget += 1;
                             } else {
                                 self.caused += 1;
@@ -103,13 +107,26 @@ impl Routing {
     }
 }
 
+/// Counts `letter` as RabbitMQ 3.10 does: `at_most_once` when its
+/// dead-letter exchange exists, `disabled` (dropped) when it does not;
+/// returns the exchange.
+fn count(vhost: &Vhost, letter: &DeadLetter) -> Option<Arc<crate::exchange::Exchange>> {
+    let exchange = vhost.exchange(letter.exchange());
+    let strategy = match exchange {
+        Some(_) => DeadLetterStrategy::AtMostOnce,
+        None => DeadLetterStrategy::Disabled,
+    };
+    vhost.counters().dead_lettered(letter.reason(), strategy);
+    exchange
+}
+
 /// The copy of one dead letter and the queues its dead-letter exchange
 /// routes it to, except those the cycle rule rules out.
 fn start_delivery(
     vhost: &Vhost,
     letter: DeadLetter,
 ) -> Option<(Arc<Message>, std::vec::IntoIter<Arc<Queue>>)> {
-    let Some(exchange) = vhost.exchange(letter.exchange()) else {
+    let Some(exchange) = count(vhost, &letter) else {
         tracing::debug!(exchange = %letter.exchange(), "dead-letter exchange missing; message dropped");
         return None;
     };

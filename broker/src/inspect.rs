@@ -17,6 +17,7 @@ use crate::policy::Applied;
 use crate::queue::Queue;
 pub use crate::queue::StreamFigures;
 use crate::registry::{ChannelMode, ConnectionEntry};
+use crate::stats::{AuthProtocol, DeadLetterStrategy, SocketTraffic};
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldTable, ShortStr};
 use std::sync::Arc;
@@ -60,6 +61,70 @@ pub struct Overview {
     pub disk_alarm: bool,
     /// Busy polling's figures, if the broker busy-polls.
     pub busy_poll: Option<BusyPollFigures>,
+    /// Bytes and reads on every client socket since start.
+    pub socket_traffic: SocketTrafficFigures,
+    /// TCP client connections served now (in-process ones not counted).
+    pub tcp_connections: u64,
+    /// The most served at once (`connection_max`), if limited.
+    pub tcp_connections_limit: Option<u64>,
+    /// Logins by protocol (RabbitMQ's `auth_attempt_metrics`).
+    pub auth_attempts: Vec<AuthAttemptFigures>,
+    /// Messages queues let go for good, by what became of them
+    /// (RabbitMQ's `messages_dead_lettered_*` of classic queues).
+    pub dead_lettered: Vec<DeadLetteredFigures>,
+}
+
+/// What went through client sockets (RabbitMQ's `recv_oct`, `recv_cnt`,
+/// `send_oct`, `send_cnt`). Over TLS, the bytes are those of the
+/// decrypted stream.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SocketTrafficFigures {
+    /// Bytes read.
+    pub received_bytes: u64,
+    /// Reads that returned bytes.
+    pub reads: u64,
+    /// Bytes written.
+    pub sent_bytes: u64,
+    /// Writes that took bytes.
+    pub writes: u64,
+}
+
+impl SocketTrafficFigures {
+    fn read(traffic: &SocketTraffic) -> Self {
+        SocketTrafficFigures {
+            received_bytes: traffic.received_bytes.get(),
+            reads: traffic.reads.get(),
+            sent_bytes: traffic.sent_bytes.get(),
+            writes: traffic.writes.get(),
+        }
+    }
+}
+
+/// One protocol's logins since start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AuthAttemptFigures {
+    /// As RabbitMQ labels it: `amqp091` or `mqtt`.
+    pub protocol: &'static str,
+    /// Logins that passed.
+    pub succeeded: u64,
+    /// Logins refused.
+    pub failed: u64,
+}
+
+/// Messages that left classic queues for good by expiry, rejection
+/// (basic.reject or basic.nack without requeue) or overflow, by
+/// RabbitMQ's `dead_letter_strategy`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DeadLetteredFigures {
+    /// `disabled` (dropped: no dead-letter exchange, or a missing one) or
+    /// `at_most_once` (republished to the dead-letter exchange).
+    pub strategy: &'static str,
+    /// Their TTL passed.
+    pub expired: u64,
+    /// Rejected or nacked without requeue.
+    pub rejected: u64,
+    /// Dropped by x-max-length or x-max-length-bytes.
+    pub maxlen: u64,
 }
 
 /// What busy polling has cost (see `BrokerBuilder::busy_poll`).
@@ -190,6 +255,13 @@ pub struct QueueInfo {
     pub messages_unacknowledged: u64,
     /// Body bytes of the ready messages.
     pub message_bytes_ready: u64,
+    /// Body bytes of the unacknowledged messages.
+    pub message_bytes_unacknowledged: u64,
+    /// Persistent messages (delivery-mode 2), ready and unacknowledged,
+    /// in a durable classic queue (0 otherwise, as RabbitMQ counts).
+    pub messages_persistent: u64,
+    /// The `timestamp` property (seconds) of the message at the head.
+    pub head_message_timestamp: Option<u64>,
     /// Consumers.
     pub consumers: u64,
     /// Counters since the queue was created.
@@ -366,6 +438,9 @@ pub struct ConnectionInfo {
     pub heartbeat_secs: u16,
     /// Open channels.
     pub channels: u64,
+    /// Its byte stream's traffic (a socket, or `connect_in_process`'s
+    /// pipe); `None` for a connection exchanging frames in-process (MQTT's).
+    pub traffic: Option<SocketTrafficFigures>,
 }
 
 /// One channel (RabbitMQ's `/api/channels` object).
@@ -393,6 +468,12 @@ pub struct ChannelInfo {
     pub confirm: bool,
     /// In transactional mode.
     pub transactional: bool,
+    /// Publishes awaiting their confirm.
+    pub messages_unconfirmed: u64,
+    /// Publishes held by the open transaction.
+    pub messages_uncommitted: u64,
+    /// Acks, nacks and rejects held by the open transaction.
+    pub acks_uncommitted: u64,
 }
 
 /// One consumer (RabbitMQ's `/api/consumers` object).
@@ -458,6 +539,13 @@ impl QueueRef {
             messages_ready: depth.ready,
             messages_unacknowledged: depth.unacked,
             message_bytes_ready: depth.ready_bytes,
+            message_bytes_unacknowledged: depth.unacked_bytes,
+            messages_persistent: if queue.options.durable {
+                depth.persistent
+            } else {
+                0
+            },
+            head_message_timestamp: queue.head_timestamp(),
             consumers: depth.consumers,
             message_stats: QueueMessageStats {
                 publish: c.published.get(),
@@ -612,6 +700,36 @@ impl Admin {
                     yielded_to_cpu_pressure,
                 }
             }),
+            socket_traffic: SocketTrafficFigures::read(&c.socket_traffic),
+            tcp_connections: core.connections.network_count() as u64,
+            tcp_connections_limit: core.limits.max_connections.map(|max| max as u64),
+            auth_attempts: [
+                ("amqp091", AuthProtocol::Amqp091),
+                ("mqtt", AuthProtocol::Mqtt),
+            ]
+            .map(|(protocol, which)| {
+                let attempts = &c.auth_attempts[which as usize];
+                AuthAttemptFigures {
+                    protocol,
+                    succeeded: attempts.succeeded.get(),
+                    failed: attempts.failed.get(),
+                }
+            })
+            .to_vec(),
+            dead_lettered: [
+                ("disabled", DeadLetterStrategy::Disabled),
+                ("at_most_once", DeadLetterStrategy::AtMostOnce),
+            ]
+            .map(|(strategy, which)| {
+                let [expired, rejected, maxlen] = &c.dead_lettered[which as usize];
+                DeadLetteredFigures {
+                    strategy,
+                    expired: expired.get(),
+                    rejected: rejected.get(),
+                    maxlen: maxlen.get(),
+                }
+            })
+            .to_vec(),
         }
     }
 
@@ -808,6 +926,7 @@ impl Admin {
             for channel in entry.channels() {
                 let link = &channel.link;
                 let mode = channel.mode();
+                let (unconfirmed, uncommitted, acks_uncommitted) = channel.pending();
                 list.push(ChannelInfo {
                     connection_id: entry.id,
                     connection_peer: entry.peer.clone(),
@@ -825,6 +944,9 @@ impl Admin {
                         .load(std::sync::atomic::Ordering::Relaxed),
                     confirm: mode == ChannelMode::Confirm,
                     transactional: mode == ChannelMode::Transactional,
+                    messages_unconfirmed: unconfirmed,
+                    messages_uncommitted: uncommitted,
+                    acks_uncommitted,
                 });
             }
         }
@@ -859,6 +981,10 @@ fn connection_info(entry: &ConnectionEntry) -> Option<ConnectionInfo> {
         channel_max: opened.channel_max,
         heartbeat_secs: opened.heartbeat_secs,
         channels: entry.channel_count() as u64,
+        traffic: entry
+            .traffic
+            .as_ref()
+            .map(|traffic| SocketTrafficFigures::read(&traffic.own)),
     })
 }
 

@@ -189,9 +189,10 @@ pub use crate::tls::{certificate_expiry, PeerVerification, TlsError, TlsOptions}
 pub use embed::{Broker, BrokerBuilder, BrokerHandle, StartError};
 pub use error::AmqpError;
 pub use inspect::{
-    BindingInfo, BusyPollFigures, ChannelInfo, ChurnTotals, ConnectionInfo, ConsumerInfo,
-    DestinationKind, ExchangeInfo, GlobalMessageStats, ObjectTotals, Overview, QueueInfo,
-    QueueMessageStats, QueueRef, QueueTotals, StreamFigures,
+    AuthAttemptFigures, BindingInfo, BusyPollFigures, ChannelInfo, ChurnTotals, ConnectionInfo,
+    ConsumerInfo, DeadLetteredFigures, DestinationKind, ExchangeInfo, GlobalMessageStats,
+    ObjectTotals, Overview, QueueInfo, QueueMessageStats, QueueRef, QueueTotals,
+    SocketTrafficFigures, StreamFigures,
 };
 #[cfg(feature = "mqtt")]
 pub use mqtt::RetainedLimits;

@@ -11,9 +11,10 @@
 
 use crate::consumer::ChannelLink;
 use crate::stats::BrokerCounters;
+use crate::stats::ConnectionTraffic;
 use leveret_protocol::FieldTable;
 use std::collections::{BTreeMap, HashMap};
-use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU8, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::SystemTime;
 use tokio::sync::watch;
@@ -54,6 +55,8 @@ pub(crate) struct ConnectionEntry {
     /// What the client speaks (`AMQP 0-9-1`, `MQTT 5.0`…).
     pub protocol: &'static str,
     pub connected_at: SystemTime,
+    /// Its byte stream's traffic (`None` for frames exchanged in-process).
+    pub traffic: Option<Arc<ConnectionTraffic>>,
     pub opened: OnceLock<Opened>,
     close: watch::Sender<bool>,
     close_reason: Mutex<Option<String>>,
@@ -88,6 +91,12 @@ pub(crate) struct ChannelEntry {
     mode: AtomicU8,
     prefetch: AtomicU32,
     publisher: AtomicBool,
+    /// Publishes awaiting their confirm.
+    unconfirmed: AtomicU64,
+    /// Publishes held by the open transaction.
+    uncommitted_messages: AtomicU64,
+    /// Acks, nacks and rejects held by the open transaction.
+    uncommitted_acks: AtomicU64,
 }
 
 impl ChannelEntry {
@@ -103,6 +112,16 @@ impl ChannelEntry {
     /// The per-consumer prefetch count new consumers get (basic.qos, not global).
     pub fn prefetch(&self) -> u32 {
         self.prefetch.load(Ordering::Relaxed)
+    }
+
+    /// Publishes awaiting their confirm, publishes and acks held by the
+    /// open transaction.
+    pub fn pending(&self) -> (u64, u64, u64) {
+        (
+            self.unconfirmed.load(Ordering::Relaxed),
+            self.uncommitted_messages.load(Ordering::Relaxed),
+            self.uncommitted_acks.load(Ordering::Relaxed),
+        )
     }
 }
 
@@ -126,6 +145,7 @@ impl Registry {
         id: u64,
         peer: &str,
         protocol: &'static str,
+        traffic: Option<Arc<ConnectionTraffic>>,
     ) -> ConnectionRegistration {
         let mut state = lock(&self.state);
         let entry = Arc::new(ConnectionEntry {
@@ -133,6 +153,7 @@ impl Registry {
             peer: peer.to_owned(),
             protocol,
             connected_at: SystemTime::now(),
+            traffic,
             opened: OnceLock::new(),
             close: watch::channel(state.closing_all).0,
             close_reason: Mutex::new(None),
@@ -231,6 +252,9 @@ impl Registry {
             link: Arc::clone(link),
             mode: AtomicU8::new(ChannelMode::Plain as u8),
             prefetch: AtomicU32::new(0),
+            unconfirmed: AtomicU64::new(0),
+            uncommitted_messages: AtomicU64::new(0),
+            uncommitted_acks: AtomicU64::new(0),
             publisher: AtomicBool::new(false),
         });
         let owner = self.entry(connection);
@@ -295,6 +319,19 @@ impl ChannelRegistration {
     pub fn set_prefetch(&self, count: u32) {
         self.entry.prefetch.store(count, Ordering::Relaxed);
     }
+
+    /// What the channel holds now: publishes awaiting their confirm,
+    /// publishes and acks held by its transaction.
+    pub fn set_pending(&self, unconfirmed: usize, messages: usize, acks: usize) {
+        let entry = &self.entry;
+        entry
+            .unconfirmed
+            .store(unconfirmed as u64, Ordering::Relaxed);
+        entry
+            .uncommitted_messages
+            .store(messages as u64, Ordering::Relaxed);
+        entry.uncommitted_acks.store(acks as u64, Ordering::Relaxed);
+    }
 }
 
 impl Drop for ChannelRegistration {
@@ -334,8 +371,8 @@ mod tests {
     fn connections_are_listed_once_opened_and_counted_once_closed() {
         let counters = Arc::new(BrokerCounters::default());
         let registry = Arc::new(Registry::new(Arc::clone(&counters)));
-        let a = registry.connection(1, "peer-a", "AMQP 0-9-1");
-        let b = registry.connection(2, "peer-b", "AMQP 0-9-1");
+        let a = registry.connection(1, "peer-a", "AMQP 0-9-1", None);
+        let b = registry.connection(2, "peer-b", "AMQP 0-9-1", None);
         assert!(registry.connections().is_empty());
         registry.opened(1, opened());
         registry.opened(1, opened());
@@ -351,8 +388,8 @@ mod tests {
     #[test]
     fn closing_one_connection_signals_only_it() {
         let registry = Arc::new(Registry::new(Arc::default()));
-        let _a = registry.connection(1, "a", "AMQP 0-9-1");
-        let _b = registry.connection(2, "b", "AMQP 0-9-1");
+        let _a = registry.connection(1, "a", "AMQP 0-9-1", None);
+        let _b = registry.connection(2, "b", "AMQP 0-9-1", None);
         let a = registry.close_signal(1).unwrap();
         let b = registry.close_signal(2).unwrap();
         assert!(registry.close(1, "Closed via management plugin"));
@@ -362,7 +399,7 @@ mod tests {
         assert!(!registry.close(3, "x"));
         registry.close_all();
         assert!(*b.borrow());
-        let _late = registry.connection(4, "late", "AMQP 0-9-1");
+        let _late = registry.connection(4, "late", "AMQP 0-9-1", None);
         assert!(*registry.close_signal(4).unwrap().borrow());
     }
 }

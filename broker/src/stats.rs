@@ -6,6 +6,8 @@
 //! plain structs for the embedding API and the HTTP listeners is
 //! `inspect`'s job.
 
+use crate::message::Message;
+use crate::queue::DeadLetterReason;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
 use std::sync::Arc;
 
@@ -18,6 +20,12 @@ impl Counter {
     #[inline]
     pub fn inc(&self) {
         self.0.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Adds `n`.
+    #[inline]
+    pub fn add(&self, n: u64) {
+        self.0.fetch_add(n, Ordering::Relaxed);
     }
 
     /// The current value.
@@ -159,6 +167,106 @@ pub(crate) struct BrokerCounters {
     pub consumers: Level,
     /// Channels that have published (RabbitMQ's "publishers").
     pub publishers: Level,
+    /// Bytes and reads on every client socket since start (connections
+    /// closed since included).
+    pub socket_traffic: SocketTraffic,
+    /// Logins that passed and failed, by protocol ([`AuthProtocol`]).
+    pub auth_attempts: [AuthAttempts; 2],
+    /// Messages that left a queue for good by expiry, rejection or
+    /// overflow, by [`DeadLetterStrategy`] then reason (expired,
+    /// rejected, maxlen): RabbitMQ's `messages_dead_lettered_*` of
+    /// classic queues.
+    pub dead_lettered: [[Counter; 3]; 2],
+}
+
+/// What went through a client socket: RabbitMQ's `recv_oct`,
+/// `recv_cnt`, `send_oct` and `send_cnt` (bytes, and the reads and
+/// writes that moved them).
+#[derive(Debug, Default)]
+pub(crate) struct SocketTraffic {
+    pub received_bytes: Counter,
+    pub reads: Counter,
+    pub sent_bytes: Counter,
+    pub writes: Counter,
+}
+
+impl SocketTraffic {
+    /// A read of `bytes` from the socket.
+    #[inline]
+    fn read(&self, bytes: usize) {
+        self.received_bytes.add(bytes as u64);
+        self.reads.inc();
+    }
+
+    /// A write of `bytes` to the socket.
+    #[inline]
+    fn wrote(&self, bytes: usize) {
+        self.sent_bytes.add(bytes as u64);
+        self.writes.inc();
+    }
+}
+
+/// One connection's socket traffic, also added into the broker-wide
+/// totals.
+#[derive(Debug)]
+pub(crate) struct ConnectionTraffic {
+    global: Arc<BrokerCounters>,
+    pub own: SocketTraffic,
+}
+
+impl ConnectionTraffic {
+    /// Traffic of a new connection, adding into `global`.
+    pub fn new(global: Arc<BrokerCounters>) -> Self {
+        ConnectionTraffic {
+            global,
+            own: SocketTraffic::default(),
+        }
+    }
+
+    /// A read of `bytes` from the socket.
+    #[inline]
+    pub fn read(&self, bytes: usize) {
+        self.own.read(bytes);
+        self.global.socket_traffic.read(bytes);
+    }
+
+    /// A write of `bytes` to the socket.
+    #[inline]
+    pub fn wrote(&self, bytes: usize) {
+        self.own.wrote(bytes);
+        self.global.socket_traffic.wrote(bytes);
+    }
+}
+
+/// The protocols whose logins are counted apart, as RabbitMQ labels them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AuthProtocol {
+    /// AMQP 0-9-1 clients (`amqp091`).
+    Amqp091 = 0,
+    /// MQTT clients (`mqtt`).
+    Mqtt = 1,
+}
+
+/// One protocol's logins.
+#[derive(Debug, Default)]
+pub(crate) struct AuthAttempts {
+    /// Logins that passed.
+    pub succeeded: Counter,
+    /// Logins that were refused (unknown user, wrong password, no
+    /// certificate, or a user not allowed from that address).
+    pub failed: Counter,
+}
+
+/// What became of a message a queue let go (RabbitMQ 3.10's
+/// `dead_letter_strategy` label for classic queues).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DeadLetterStrategy {
+    /// The queue has no dead-letter exchange, or it does not exist: the
+    /// message is dropped (`disabled`).
+    Disabled = 0,
+    /// Republished to the queue's dead-letter exchange, without
+    /// confirmation (`at_most_once`).
+    AtMostOnce = 1,
 }
 
 impl BrokerCounters {
@@ -190,6 +298,27 @@ impl BrokerCounters {
     pub fn publisher_removed(&self) {
         self.publishers.add(-1);
     }
+
+    /// A login over `protocol` passed or failed.
+    pub fn login(&self, protocol: AuthProtocol, passed: bool) {
+        let attempts = &self.auth_attempts[protocol as usize];
+        if passed {
+            attempts.succeeded.inc();
+        } else {
+            attempts.failed.inc();
+        }
+    }
+
+    /// A message left a queue for good, for `reason`, and `strategy`
+    /// says where it went.
+    pub fn dead_lettered(&self, reason: DeadLetterReason, strategy: DeadLetterStrategy) {
+        let reason = match reason {
+            DeadLetterReason::Expired => 0,
+            DeadLetterReason::Rejected => 1,
+            DeadLetterReason::MaxLen => 2,
+        };
+        self.dead_lettered[strategy as usize][reason].inc();
+    }
 }
 
 /// One queue's counters (its `message_stats` in RabbitMQ's management
@@ -215,6 +344,10 @@ pub(crate) struct QueueCounters {
     pub acknowledged: Counter,
     /// Delivered and not yet acked, rejected or requeued.
     pub unacked: Level,
+    /// Their body bytes.
+    pub unacked_bytes: Level,
+    /// How many of them are persistent (delivery-mode 2).
+    pub unacked_persistent: Level,
 }
 
 impl QueueCounters {
@@ -231,6 +364,8 @@ impl QueueCounters {
             redelivered: Counter::default(),
             acknowledged: Counter::default(),
             unacked: Level::default(),
+            unacked_bytes: Level::default(),
+            unacked_persistent: Level::default(),
         }
     }
 
@@ -240,31 +375,51 @@ impl QueueCounters {
         self.published.inc();
     }
 
-    /// A delivery to a consumer.
+    /// `message` was delivered and awaits its ack.
     #[inline]
-    pub fn delivered(&self, no_ack: bool, redelivered: bool) {
+    fn held(&self, message: &Message) {
+        self.unacked.add(1);
+        self.unacked_bytes.add(message.body.len() as i64);
+        if message.persistent {
+            self.unacked_persistent.add(1);
+        }
+    }
+
+    /// `message`, delivered, was acked, rejected or came back.
+    #[inline]
+    fn let_go(&self, message: &Message) {
+        self.unacked.add(-1);
+        self.unacked_bytes.add(-(message.body.len() as i64));
+        if message.persistent {
+            self.unacked_persistent.add(-1);
+        }
+    }
+
+    /// A delivery of `message` to a consumer.
+    #[inline]
+    pub fn delivered(&self, no_ack: bool, redelivered: bool, message: &Message) {
         if no_ack {
             self.delivered_auto_ack.inc();
             self.global.delivered_consume_auto_ack.inc();
         } else {
             self.delivered_manual_ack.inc();
             self.global.delivered_consume_manual_ack.inc();
-            self.unacked.add(1);
+            self.held(message);
         }
         if redelivered {
             self.redelivered();
         }
     }
 
-    /// A basic.get answered with a message.
-    pub fn got(&self, no_ack: bool, redelivered: bool) {
+    /// A basic.get answered with `message`.
+    pub fn got(&self, no_ack: bool, redelivered: bool, message: &Message) {
         if no_ack {
             self.got_auto_ack.inc();
             self.global.delivered_get_auto_ack.inc();
         } else {
             self.got_manual_ack.inc();
             self.global.delivered_get_manual_ack.inc();
-            self.unacked.add(1);
+            self.held(message);
         }
         if redelivered {
             self.redelivered();
@@ -282,18 +437,19 @@ impl QueueCounters {
         self.global.get_empty.inc();
     }
 
-    /// An unacked delivery was acked.
+    /// An unacked delivery of `message` was acked.
     #[inline]
-    pub fn acked(&self) {
+    pub fn acked(&self, message: &Message) {
         self.acknowledged.inc();
         self.global.acknowledged.inc();
-        self.unacked.add(-1);
+        self.let_go(message);
     }
 
-    /// An unacked delivery was rejected, or came back to be requeued.
+    /// An unacked delivery of `message` was rejected, or came back to be
+    /// requeued.
     #[inline]
-    pub fn unacked_returned(&self) {
-        self.unacked.add(-1);
+    pub fn unacked_returned(&self, message: &Message) {
+        self.let_go(message);
     }
 
     /// A consumer subscribed.
@@ -304,6 +460,12 @@ impl QueueCounters {
     /// `count` consumers left.
     pub fn consumers_removed(&self, count: usize) {
         self.global.consumers.add(-(count as i64));
+    }
+
+    /// A message left the queue for good (see
+    /// [`BrokerCounters::dead_lettered`]).
+    pub fn dead_lettered(&self, reason: DeadLetterReason, strategy: DeadLetterStrategy) {
+        self.global.dead_lettered(reason, strategy);
     }
 
     /// The queue was deleted with `consumers` still subscribed.
@@ -338,16 +500,51 @@ mod tests {
         let global = Arc::new(BrokerCounters::default());
         let a = QueueCounters::new(Arc::clone(&global));
         let b = QueueCounters::new(Arc::clone(&global));
-        a.delivered(false, false);
-        a.delivered(true, true);
-        b.got(false, true);
-        b.got(true, false);
+        let persistent = crate::testkit::message(
+            &leveret_protocol::ShortStr::from_static(""),
+            "k",
+            "twelve bytes",
+            &leveret_protocol::BasicProperties {
+                delivery_mode: Some(2),
+                ..Default::default()
+            },
+        );
+        let transient = crate::testkit::message(
+            &leveret_protocol::ShortStr::from_static(""),
+            "k",
+            "five!",
+            &Default::default(),
+        );
+        a.delivered(false, false, &persistent);
+        a.delivered(false, false, &transient);
+        assert_eq!(
+            (
+                a.unacked.get(),
+                a.unacked_bytes.get(),
+                a.unacked_persistent.get()
+            ),
+            (2, 17, 1)
+        );
+        a.delivered(true, true, &persistent);
+        b.got(false, true, &transient);
+        b.got(true, false, &transient);
         b.got_nothing();
-        a.acked();
-        b.unacked_returned();
+        a.acked(&persistent);
+        assert_eq!(
+            (
+                a.unacked.get(),
+                a.unacked_bytes.get(),
+                a.unacked_persistent.get()
+            ),
+            (1, 5, 0)
+        );
+        a.unacked_returned(&transient);
+        b.unacked_returned(&transient);
         assert_eq!(a.unacked.get(), 0);
+        assert_eq!(a.unacked_bytes.get(), 0);
         assert_eq!(b.unacked.get(), 0);
-        assert_eq!(global.delivered_consume_manual_ack.get(), 1);
+        assert_eq!(b.unacked_bytes.get(), 0);
+        assert_eq!(global.delivered_consume_manual_ack.get(), 2);
         assert_eq!(global.delivered_consume_auto_ack.get(), 1);
         assert_eq!(global.delivered_get_manual_ack.get(), 1);
         assert_eq!(global.delivered_get_auto_ack.get(), 1);
@@ -375,5 +572,26 @@ mod tests {
         assert_eq!(global.routed.get(), 1);
         assert_eq!(global.unroutable_returned.get(), 1);
         assert_eq!(global.unroutable_dropped.get(), 1);
+    }
+
+    #[test]
+    fn logins_and_dead_letters_are_counted_by_their_labels() {
+        let global = BrokerCounters::default();
+        global.login(AuthProtocol::Amqp091, true);
+        global.login(AuthProtocol::Amqp091, false);
+        global.login(AuthProtocol::Mqtt, false);
+        let amqp = &global.auth_attempts[AuthProtocol::Amqp091 as usize];
+        let mqtt = &global.auth_attempts[AuthProtocol::Mqtt as usize];
+        assert_eq!((amqp.succeeded.get(), amqp.failed.get()), (1, 1));
+        assert_eq!((mqtt.succeeded.get(), mqtt.failed.get()), (0, 1));
+        global.dead_lettered(DeadLetterReason::Expired, DeadLetterStrategy::Disabled);
+        global.dead_lettered(DeadLetterReason::MaxLen, DeadLetterStrategy::AtMostOnce);
+        global.dead_lettered(DeadLetterReason::MaxLen, DeadLetterStrategy::AtMostOnce);
+        let figures: Vec<[u64; 3]> = global
+            .dead_lettered
+            .iter()
+            .map(|by_reason| [0, 1, 2].map(|i| by_reason[i].get()))
+            .collect();
+        assert_eq!(figures, [[1, 0, 0], [0, 0, 2]]);
     }
 }

@@ -936,6 +936,11 @@ impl Vhost {
         self.exchange_or_404(exchange)
     }
 
+    /// The broker-wide counters this vhost's queues add into.
+    pub(crate) fn counters(&self) -> &BrokerCounters {
+        &self.counters
+    }
+
     /// Routes dead letters a queue operation returned, iteratively and
     /// with RabbitMQ's cycle rule (see [`crate::deadletter`]).
     pub fn dead_letter(self: &Arc<Self>, letters: DeadLetters) {

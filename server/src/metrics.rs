@@ -16,6 +16,8 @@
 //! `/metrics/per-object` writes its per-queue families a chunk at a time
 //! as the client reads: its memory is a chunk's, not the document's.
 
+mod detailed;
+
 use crate::process::ProcessFigures;
 use crate::uplink::Shovels;
 use axum::body::{Body, Bytes};
@@ -24,7 +26,10 @@ use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use axum::routing::get;
 use axum::Router;
-use leveret_broker::{Admin, HistogramFigures, QueueInfo, QueueRef, StreamFigures};
+use leveret_broker::{
+    Admin, AuthAttemptFigures, ChurnTotals, DeadLetteredFigures, HistogramFigures, Overview,
+    QueueInfo, QueueRef, SocketTrafficFigures,
+};
 use prometheus::proto::{
     Bucket, Counter, Gauge, Histogram, LabelPair, Metric, MetricFamily, MetricType,
 };
@@ -70,6 +75,7 @@ pub struct MetricsContext {
 }
 
 /// Families in the order they are added.
+#[derive(Default)]
 struct Exposition {
     families: Vec<MetricFamily>,
 }
@@ -169,7 +175,7 @@ fn sample(kind: MetricType, labels: &[(&str, &str)], value: f64) -> Metric {
 
 /// The per-queue metrics, each read from a [`QueueInfo`].
 type QueueFigure = fn(&QueueInfo) -> u64;
-const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 12] = [
+const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 16] = [
     ("rabbitmq_queue_messages_ready", MetricType::GAUGE, "Messages ready to be delivered to consumers", |q| q.messages_ready),
     ("rabbitmq_queue_messages_unacked", MetricType::GAUGE, "Messages delivered to consumers but not yet acknowledged", |q| q.messages_unacknowledged),
     ("rabbitmq_queue_messages", MetricType::GAUGE, "Sum of ready and unacknowledged messages - total queue depth", |q| q.messages()),
@@ -182,31 +188,42 @@ const QUEUE_METRICS: [(&str, MetricType, &str, QueueFigure); 12] = [
     ("rabbitmq_queue_messages_redelivered_total", MetricType::COUNTER, "Total number of messages redelivered from a queue to consumers", |q| q.message_stats.redeliver),
     ("rabbitmq_queue_messages_acked_total", MetricType::COUNTER, "Total number of messages acknowledged by consumers on a queue", |q| q.message_stats.ack),
     ("rabbitmq_queue_get_empty_total", MetricType::COUNTER, "Total number of times basic.get operations fetched no message on a queue", |q| q.message_stats.get_empty),
+    ("rabbitmq_queue_messages_published_total", MetricType::COUNTER, "Total number of messages published to queues", |q| q.message_stats.publish),
+    ("rabbitmq_queue_messages_bytes", MetricType::GAUGE, "Size in bytes of ready and unacknowledged messages", |q| q.message_bytes_ready + q.message_bytes_unacknowledged),
+    ("rabbitmq_queue_messages_unacked_bytes", MetricType::GAUGE, "Size in bytes of all unacknowledged messages", |q| q.message_bytes_unacknowledged),
+    ("rabbitmq_queue_messages_persistent", MetricType::GAUGE, "Persistent messages", |q| q.messages_persistent),
 ];
-/// A stream's figure, if it has one (no sample otherwise).
-type StreamFigure = fn(&StreamFigures) -> Option<u64>;
-/// Leveret's per-stream families on `/metrics/per-object`, after
-/// [`QUEUE_INFO`]; classic queues have no samples in them.
-const STREAM_METRICS: [(&str, &str, StreamFigure); 4] = [
+/// A queue's figure where it has one (no sample otherwise).
+type OptionalFigure = fn(&QueueInfo) -> Option<u64>;
+/// The per-queue families of `/metrics/per-object` after [`QUEUE_INFO`]
+/// that not every queue has: RabbitMQ's head timestamp (queues whose head
+/// message has a `timestamp` property) and Leveret's per-stream families
+/// (classic queues have no samples in them).
+const OPTIONAL_METRICS: [(&str, &str, OptionalFigure); 5] = [
+    (
+        "rabbitmq_queue_head_message_timestamp",
+        "Timestamp of the first message in the queue, if any",
+        |q| q.head_message_timestamp,
+    ),
     (
         "leveret_stream_first_offset",
         "The oldest offset a stream holds",
-        |s| Some(s.first_offset),
+        |q| Some(q.stream.as_ref()?.first_offset),
     ),
     (
         "leveret_stream_last_offset",
         "The newest offset a stream holds (no sample while it is empty)",
-        |s| s.last_offset,
+        |q| q.stream.as_ref()?.last_offset,
     ),
     (
         "leveret_stream_segments",
         "Segment files a stream keeps",
-        |s| Some(s.segments),
+        |q| Some(q.stream.as_ref()?.segments),
     ),
     (
         "leveret_stream_disk_bytes",
         "Bytes of the segment files a stream keeps",
-        |s| Some(s.bytes),
+        |q| Some(q.stream.as_ref()?.bytes),
     ),
 ];
 /// The `queue_type` label of a stream, as RabbitMQ names it.
@@ -304,11 +321,11 @@ async fn queue_sums(refs: &[QueueRef]) -> ([u64; QUEUE_METRICS.len()], u64) {
 /// escaped alike), without building its structs for every sample.
 fn per_queue_chunk(index: usize, queues: &[QueueRef], first: bool) -> String {
     use std::fmt::Write;
-    let stream_index = index.checked_sub(QUEUE_METRICS.len() + 1);
-    let (name, kind, help) = match (QUEUE_METRICS.get(index), stream_index) {
+    let optional_index = index.checked_sub(QUEUE_METRICS.len() + 1);
+    let (name, kind, help) = match (QUEUE_METRICS.get(index), optional_index) {
         (Some(&(name, kind, help, _)), _) => (name, kind, help),
         (None, Some(at)) => {
-            let (name, help, _) = STREAM_METRICS[at];
+            let (name, help, _) = OPTIONAL_METRICS[at];
             (name, MetricType::GAUGE, help)
         }
         (None, None) => (QUEUE_INFO.0, MetricType::GAUGE, QUEUE_INFO.1),
@@ -324,13 +341,13 @@ fn per_queue_chunk(index: usize, queues: &[QueueRef], first: bool) -> String {
     }
     for queue in queues {
         let (vhost, queue_name) = (escaped(queue.vhost()), escaped(queue.name()));
-        let _ = match (QUEUE_METRICS.get(index), stream_index) {
+        let _ = match (QUEUE_METRICS.get(index), optional_index) {
             (Some(&(.., figure)), _) => writeln!(
                 text,
                 "{name}{{vhost=\"{vhost}\",queue=\"{queue_name}\"}} {}",
                 figure(&queue.info())
             ),
-            (None, Some(at)) => match queue.info().stream.as_ref().and_then(STREAM_METRICS[at].2) {
+            (None, Some(at)) => match (OPTIONAL_METRICS[at].2)(&queue.info()) {
                 Some(value) => writeln!(
                     text,
                     "{name}{{vhost=\"{vhost}\",queue=\"{queue_name}\"}} {value}"
@@ -373,7 +390,7 @@ fn per_object_body(head: String, queues: Vec<QueueRef>) -> Body {
     let families = if queues.is_empty() {
         0
     } else {
-        QUEUE_METRICS.len() + 1 + STREAM_METRICS.len()
+        QUEUE_METRICS.len() + 1 + OPTIONAL_METRICS.len()
     };
     let start = (Some(head), queues, 0usize, 0usize);
     let stream = futures_util::stream::unfold(start, move |(head, queues, index, at)| async move {
@@ -399,12 +416,13 @@ fn per_object_body(head: String, queues: Vec<QueueRef>) -> Body {
     Body::from_stream(stream)
 }
 
-/// The router of the metrics listener: `/metrics` and `/metrics/per-object`
-/// (GET only; no request body is read).
+/// The router of the metrics listener: `/metrics`, `/metrics/per-object`
+/// and `/metrics/detailed` (GET only; no request body is read).
 pub fn router(context: MetricsContext) -> Router {
     Router::new()
         .route("/metrics", get(aggregated))
         .route("/metrics/per-object", get(per_object))
+        .route("/metrics/detailed", get(detailed))
         .layer(DefaultBodyLimit::max(0))
         .with_state(Arc::new(context))
 }
@@ -424,6 +442,17 @@ async fn per_object(State(context): State<Arc<MetricsContext>>) -> impl IntoResp
     )
 }
 
+async fn detailed(
+    State(context): State<Arc<MetricsContext>>,
+    uri: axum::http::Uri,
+) -> impl IntoResponse {
+    let filters = detailed::Filters::parse(uri.query());
+    (
+        [(CONTENT_TYPE, prometheus::TEXT_FORMAT)],
+        detailed::body(&context, &filters).await,
+    )
+}
+
 /// One scrape of `endpoint` over `queues`, as Prometheus text format
 /// 0.0.4; for [`Endpoint::PerObject`], all but the per-queue families
 /// (`per_object_body` streams those after it).
@@ -434,44 +463,22 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[Queu
     let mut out = Exposition {
         families: Vec::new(),
     };
-    let churn = &overview.churn;
-    out.counter(
-        "rabbitmq_connections_opened_total",
-        "Total number of connections opened",
-        churn.connections_opened,
-    );
-    out.counter(
-        "rabbitmq_connections_closed_total",
-        "Total number of connections closed or terminated",
-        churn.connections_closed,
-    );
-    out.counter(
-        "rabbitmq_channels_opened_total",
-        "Total number of channels opened",
-        churn.channels_opened,
-    );
-    out.counter(
-        "rabbitmq_channels_closed_total",
-        "Total number of channels closed",
-        churn.channels_closed,
-    );
-    out.counter(
-        "rabbitmq_queues_declared_total",
-        "Total number of queues declared",
-        churn.queues_declared,
-    );
-    out.counter(
-        "rabbitmq_queues_created_total",
-        "Total number of queues created",
-        churn.queues_created,
-    );
-    out.counter(
-        "rabbitmq_queues_deleted_total",
-        "Total number of queues deleted",
-        churn.queues_deleted,
-    );
+    for (name, help, value) in churn_families(&overview.churn) {
+        out.counter(&format!("rabbitmq_{name}"), help, value);
+    }
 
+    let tcp_limit = tcp_sockets_limit(&overview, &process);
     let optional = [
+        (
+            "rabbitmq_process_open_tcp_sockets",
+            "Open TCP sockets",
+            Some(overview.tcp_connections),
+        ),
+        (
+            "rabbitmq_process_max_tcp_sockets",
+            "Open TCP sockets limit",
+            tcp_limit,
+        ),
         (
             "rabbitmq_process_open_fds",
             "Open file descriptors",
@@ -626,6 +633,15 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[Queu
         );
     }
 
+    dead_lettered_families(&mut out, &overview.dead_lettered);
+    auth_attempt_families(&mut out, "rabbitmq_", &overview.auth_attempts);
+    if endpoint == Endpoint::Aggregated {
+        channel_sums(&mut out, &context.admin, totals.channels);
+        for (name, help, value) in traffic_families(&overview.socket_traffic) {
+            out.counter(&format!("rabbitmq_{name}"), help, value);
+        }
+    }
+
     out.single(
         "rabbitmq_alarms_free_disk_space_watermark",
         MetricType::GAUGE,
@@ -687,6 +703,184 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[Queu
 
     shovel_metrics(&mut out, &context.shovels);
 
+    info_families(&mut out, context, &overview, endpoint.label());
+    out.encode()
+}
+
+/// RabbitMQ's `connection_churn_metrics`, without their prefix.
+fn churn_families(churn: &ChurnTotals) -> [(&'static str, &'static str, u64); 7] {
+    [
+        (
+            "connections_opened_total",
+            "Total number of connections opened",
+            churn.connections_opened,
+        ),
+        (
+            "connections_closed_total",
+            "Total number of connections closed or terminated",
+            churn.connections_closed,
+        ),
+        (
+            "channels_opened_total",
+            "Total number of channels opened",
+            churn.channels_opened,
+        ),
+        (
+            "channels_closed_total",
+            "Total number of channels closed",
+            churn.channels_closed,
+        ),
+        (
+            "queues_declared_total",
+            "Total number of queues declared",
+            churn.queues_declared,
+        ),
+        (
+            "queues_created_total",
+            "Total number of queues created",
+            churn.queues_created,
+        ),
+        (
+            "queues_deleted_total",
+            "Total number of queues deleted",
+            churn.queues_deleted,
+        ),
+    ]
+}
+
+/// The most TCP client sockets Leveret will hold: `connection_max` when
+/// set, never more than the open-file limit (each socket is a file).
+fn tcp_sockets_limit(overview: &Overview, process: &ProcessFigures) -> Option<u64> {
+    match (overview.tcp_connections_limit, process.max_fds) {
+        (Some(max), Some(fds)) => Some(max.min(fds)),
+        (max, fds) => max.or(fds),
+    }
+}
+
+/// RabbitMQ's `auth_attempt_metrics`, labelled by protocol, named with
+/// `prefix`.
+fn auth_attempt_families(out: &mut Exposition, prefix: &str, attempts: &[AuthAttemptFigures]) {
+    type Figure = fn(&AuthAttemptFigures) -> u64;
+    let families: [(&str, &str, Figure); 3] = [
+        (
+            "auth_attempts_total",
+            "Total number of authorization attempts",
+            |a| a.succeeded + a.failed,
+        ),
+        (
+            "auth_attempts_succeeded_total",
+            "Total number of successful authentication attempts",
+            |a| a.succeeded,
+        ),
+        (
+            "auth_attempts_failed_total",
+            "Total number of failed authentication attempts",
+            |a| a.failed,
+        ),
+    ];
+    for (name, help, figure) in families {
+        let family = out.family(&format!("{prefix}{name}"), MetricType::COUNTER, help);
+        for a in attempts {
+            family.mut_metric().push(sample(
+                MetricType::COUNTER,
+                &[("protocol", a.protocol)],
+                figure(a) as f64,
+            ));
+        }
+    }
+}
+
+/// RabbitMQ 3.10's `rabbitmq_global_messages_dead_lettered_*_total` of
+/// classic queues, labelled `queue_type` and `dead_letter_strategy`.
+fn dead_lettered_families(out: &mut Exposition, figures: &[DeadLetteredFigures]) {
+    type Figure = fn(&DeadLetteredFigures) -> u64;
+    let families: [(&str, &str, Figure); 3] = [
+        ("rabbitmq_global_messages_dead_lettered_expired_total", "Total number of messages dead-lettered due to message TTL exceeded", |d| d.expired),
+        ("rabbitmq_global_messages_dead_lettered_rejected_total", "Total number of messages dead-lettered due to basic.reject or basic.nack", |d| d.rejected),
+        ("rabbitmq_global_messages_dead_lettered_maxlen_total", "Total number of messages dead-lettered due to overflow drop-head or reject-publish-dlx", |d| d.maxlen),
+    ];
+    for (name, help, figure) in families {
+        let family = out.family(name, MetricType::COUNTER, help);
+        for d in figures {
+            let labels = [QUEUE_TYPE, ("dead_letter_strategy", d.strategy)];
+            family
+                .mut_metric()
+                .push(sample(MetricType::COUNTER, &labels, figure(d) as f64));
+        }
+    }
+}
+
+/// A channel's figure.
+type ChannelFigure = fn(&leveret_broker::ChannelInfo) -> u64;
+/// RabbitMQ's `channel_metrics`, without their prefix, in its order.
+#[rustfmt::skip]
+const CHANNEL_METRICS: [(&str, &str, ChannelFigure); 7] = [
+    ("channel_consumers", "Consumers on a channel", |c| c.consumers),
+    ("channel_messages_unacked", "Delivered but not yet acknowledged messages", |c| c.messages_unacknowledged),
+    ("channel_messages_unconfirmed", "Published but not yet confirmed messages", |c| c.messages_unconfirmed),
+    ("channel_messages_uncommitted", "Messages received in a transaction but not yet committed", |c| c.messages_uncommitted),
+    ("channel_acks_uncommitted", "Message acknowledgements in a transaction not yet committed", |c| c.acks_uncommitted),
+    ("consumer_prefetch", "Limit of unacknowledged messages for each consumer", |c| u64::from(c.prefetch_count)),
+    ("channel_prefetch", "Total limit of unacknowledged messages for all consumers on a channel", |c| u64::from(c.global_prefetch_count)),
+];
+
+/// RabbitMQ's `channel_metrics` and `connection_channels` as `/metrics`
+/// writes them: sums over every channel (`channels`: the open channels).
+fn channel_sums(out: &mut Exposition, admin: &leveret_broker::Admin, channels: u64) {
+    let mut sums = [0u64; CHANNEL_METRICS.len()];
+    for c in admin.channels() {
+        for (sum, (.., figure)) in sums.iter_mut().zip(CHANNEL_METRICS) {
+            *sum += figure(&c);
+        }
+    }
+    for ((name, help, _), sum) in CHANNEL_METRICS.into_iter().zip(sums) {
+        out.gauge(&format!("rabbitmq_{name}"), help, sum);
+    }
+    out.gauge(
+        "rabbitmq_connection_channels",
+        "Channels on a connection",
+        channels,
+    );
+}
+
+/// RabbitMQ's `connection_coarse_metrics` and `connection_metrics`
+/// counters, without their prefix: bytes, and the reads and writes that
+/// moved them. On `/metrics` they count every client socket since start
+/// (RabbitMQ sums the open connections only, so its sums fall when one
+/// closes).
+fn traffic_families(t: &SocketTrafficFigures) -> [(&'static str, &'static str, u64); 4] {
+    [
+        (
+            "connection_incoming_bytes_total",
+            "Total number of bytes received on a connection",
+            t.received_bytes,
+        ),
+        (
+            "connection_outgoing_bytes_total",
+            "Total number of bytes sent on a connection",
+            t.sent_bytes,
+        ),
+        (
+            "connection_incoming_packets_total",
+            "Total number of packets received on a connection",
+            t.reads,
+        ),
+        (
+            "connection_outgoing_packets_total",
+            "Total number of packets sent on a connection",
+            t.writes,
+        ),
+    ]
+}
+
+/// `rabbitmq_build_info` and `rabbitmq_identity_info`, which every
+/// endpoint ends with.
+fn info_families(
+    out: &mut Exposition,
+    context: &MetricsContext,
+    overview: &Overview,
+    endpoint: &str,
+) {
     let version = overview.version;
     out.single(
         "rabbitmq_build_info",
@@ -711,11 +905,10 @@ pub async fn scrape(context: &MetricsContext, endpoint: Endpoint, queues: &[Queu
         &[
             ("rabbitmq_node", context.node.as_str()),
             ("rabbitmq_cluster", context.node.as_str()),
-            ("rabbitmq_endpoint", endpoint.label()),
+            ("rabbitmq_endpoint", endpoint),
         ],
         1.0,
     );
-    out.encode()
 }
 
 /// The `prometheus` crate's version, for `rabbitmq_build_info`.

@@ -222,6 +222,24 @@ async fn prometheus_answers_the_overview_dashboards_queries() {
         "(rabbitmq_process_max_fds * {node_join}) - (rabbitmq_process_open_fds * {node_join})"
     );
     prometheus.until(&fds, |v| v > 0.0).await;
+    // "TCP sockets available": the socket limit less the one connection.
+    let sockets = format!(
+        "(rabbitmq_process_max_tcp_sockets * {node_join}) - (rabbitmq_process_open_tcp_sockets * {node_join})"
+    );
+    let max_sockets = prometheus
+        .until(
+            &format!("rabbitmq_process_max_tcp_sockets * {node_join}"),
+            |v| v > 0.0,
+        )
+        .await;
+    prometheus.until(&sockets, |v| v == max_sockets - 1.0).await;
+    // The "Publishers" stat of the 3.10 dashboard: channels less the
+    // consumers on channels (one channel, no consumer).
+    let publishers = format!(
+        "sum(rabbitmq_channels * {cluster}) - sum(rabbitmq_channel_consumers * {cluster})",
+        cluster = join("rabbitmq_cluster")
+    );
+    prometheus.until(&publishers, |v| v == 1.0).await;
 
     // Rate panels: messages, and churn.
     for counter in [

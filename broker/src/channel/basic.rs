@@ -161,6 +161,7 @@ impl Channel {
         self.rewrite_reply_to(&mut publish)?;
         if let Some(tx) = &mut self.tx {
             tx.hold(publish, self.core.limits.memory_high_watermark / 4)?;
+            self.note_pending();
             return Ok(None);
         }
         let confirm = self.confirms.as_mut().map(|c| c.next_tag());
@@ -515,6 +516,7 @@ impl Channel {
         }
         if let Some(tx) = &mut self.tx {
             tx.settles.extend(settled.into_iter().map(|u| (u, how)));
+            self.note_pending();
             return Ok(());
         }
         self.vhost

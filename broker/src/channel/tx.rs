@@ -99,6 +99,7 @@ impl Channel {
                 "channel is not transactional",
             ));
         };
+        self.note_pending();
         // Route everything first and write every stored message of the
         // commit in one submission, so it reaches the disk in one atomic
         // batch; only then do the messages become visible to consumers
@@ -172,6 +173,7 @@ impl Channel {
                 "channel is not transactional",
             ));
         };
+        self.note_pending();
         // Rolled-back acks leave their deliveries unacked on the channel.
         self.link
             .deliveries()
@@ -212,6 +214,18 @@ impl Channel {
         if let Some(confirms) = &mut self.confirms {
             confirms.waiting.push_back((tag, outcome));
         }
+        self.note_pending();
+    }
+
+    /// Shows the listings what the channel holds: publishes awaiting
+    /// their confirm, publishes and acks held by its transaction.
+    pub(super) fn note_pending(&self) {
+        let unconfirmed = self.confirms.as_ref().map_or(0, |c| c.waiting.len());
+        let (messages, acks) = self
+            .tx
+            .as_ref()
+            .map_or((0, 0), |tx| (tx.publishes.len(), tx.settles.len()));
+        self.registration.set_pending(unconfirmed, messages, acks);
     }
 
     /// Whether publishes wait for their confirm.
@@ -254,6 +268,7 @@ impl Channel {
                 }
             }
         }
+        self.note_pending();
         for (before, tag) in nacks {
             if let Some((low, high)) = before {
                 self.send_ack(low, high).await;

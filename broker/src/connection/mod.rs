@@ -26,6 +26,7 @@ use crate::channel::{AtOnce, Channel, Leftover, WholePublish};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::outbox::{Outbound, Outbox};
+use crate::stats::{AuthProtocol, ConnectionTraffic};
 use crate::vhost::Vhost;
 use crate::word_hash::WordHashMap;
 use bytes::Bytes;
@@ -79,9 +80,12 @@ pub async fn serve<R, W>(
     R: Incoming,
     W: AsyncWrite + Unpin + Send + 'static,
 {
-    let reader = FrameReader::new(read, core.busy_poll.clone());
-    let ends = Ends::new(peer, local, AMQP_0_9_1);
-    serve_frames(core, reader, SocketSink(write), ends, slot, identity).await;
+    let traffic = Arc::new(ConnectionTraffic::new(Arc::clone(&core.stats)));
+    let reader = FrameReader::new(read, core.busy_poll.clone(), Some(Arc::clone(&traffic)));
+    let mut ends = Ends::new(peer, local, AMQP_0_9_1);
+    ends.traffic = Some(Arc::clone(&traffic));
+    let sink = SocketSink(writer::Counted::new(write, traffic));
+    serve_frames(core, reader, sink, ends, slot, identity).await;
 }
 
 /// Starts serving an in-process client that exchanges frame values with
@@ -180,10 +184,13 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         local,
         label,
         protocol,
+        traffic,
     } = ends;
     let started = Instant::now();
     let connection_id = core.next_connection_id();
-    let _registration = core.registry.connection(connection_id, &peer, protocol);
+    let _registration = core
+        .registry
+        .connection(connection_id, &peer, protocol, traffic);
     // RabbitMQ's lines name MQTT connections as such.
     let kind = protocol.split(' ').next().unwrap_or(protocol);
     // RabbitMQ's handshake_timeout runs from the connection's start to
@@ -295,6 +302,8 @@ struct Ends {
     /// `peer -> local` as RabbitMQ logs it (the peer alone in-process).
     label: String,
     protocol: &'static str,
+    /// The socket's traffic counters (none in-process).
+    traffic: Option<Arc<ConnectionTraffic>>,
 }
 
 /// The protocol of a client on an AMQP socket, as RabbitMQ lists it.
@@ -311,6 +320,7 @@ impl Ends {
             local,
             label,
             protocol,
+            traffic: None,
         }
     }
 }
@@ -704,8 +714,16 @@ impl Connection {
                 }
             }
         };
+        let allowed = authenticated
+            .as_ref()
+            .is_some_and(|user| self.core.users.may_connect_from(user, &self.peer));
+        let protocol = match self.kind {
+            "MQTT" => AuthProtocol::Mqtt,
+            _ => AuthProtocol::Amqp091,
+        };
+        self.core.stats.login(protocol, allowed);
         match authenticated {
-            Some(user) if !self.core.users.may_connect_from(&user, &self.peer) => {
+            Some(user) if !allowed => {
                 let refusal = format!("user '{user}' can only connect via localhost");
                 tracing::warn!(peer = %self.peer, %user, mechanism = %start_ok.mechanism, "{} login refused: {refusal}", start_ok.mechanism);
                 if !capability("authentication_failure_close") {

@@ -21,6 +21,7 @@
 
 use super::source::FrameSource;
 use crate::busy_poll::BusyPoll;
+use crate::stats::ConnectionTraffic;
 use bytes::{Buf, Bytes, BytesMut};
 use leveret_protocol::{
     check_frame, check_protocol_header, decode_frame, parse_frame, DecodeError, Frame, FrameCheck,
@@ -140,11 +141,17 @@ pub(super) struct FrameReader<R> {
     /// (a client sends a few small frames before it), [`READ_MAX`] after.
     want_max: usize,
     busy_poll: Option<Arc<BusyPoll>>,
+    traffic: Option<Arc<ConnectionTraffic>>,
 }
 
 impl<R: Incoming> FrameReader<R> {
-    /// A reader accepting frames up to the protocol's minimum frame size.
-    pub fn new(socket: R, busy_poll: Option<Arc<BusyPoll>>) -> Self {
+    /// A reader accepting frames up to the protocol's minimum frame size,
+    /// counting each read into `traffic`.
+    pub fn new(
+        socket: R,
+        busy_poll: Option<Arc<BusyPoll>>,
+        traffic: Option<Arc<ConnectionTraffic>>,
+    ) -> Self {
         FrameReader {
             socket,
             buf: BytesMut::with_capacity(READ_IDLE),
@@ -153,6 +160,7 @@ impl<R: Incoming> FrameReader<R> {
             want: READ_IDLE,
             want_max: FRAME_MIN_SIZE as usize + FRAME_OVERHEAD,
             busy_poll,
+            traffic,
         }
     }
 }
@@ -207,6 +215,9 @@ impl<R: Incoming> FrameSource for FrameReader<R> {
             Ok(0) => Err(ReadError::Closed),
             Ok(n) => {
                 self.adapt(n, offered);
+                if let Some(traffic) = &self.traffic {
+                    traffic.read(n);
+                }
                 if let Some(busy_poll) = &self.busy_poll {
                     busy_poll.note_read();
                 }
@@ -346,7 +357,7 @@ mod tests {
     #[tokio::test]
     async fn frames_over_the_minimum_size_are_refused_before_tune() {
         let (mut client, server) = tokio::io::duplex(256 * 1024);
-        let mut reader = FrameReader::new(server, None);
+        let mut reader = FrameReader::new(server, None, None);
         let mut big = BytesMut::new();
         Frame::Body {
             channel: 1,
@@ -370,7 +381,7 @@ mod tests {
     #[tokio::test]
     async fn the_buffer_grows_for_a_large_frame_and_is_released_when_idle() {
         let (mut client, server) = tokio::io::duplex(256 * 1024);
-        let mut reader = FrameReader::new(server, None);
+        let mut reader = FrameReader::new(server, None, None);
         reader.set_frame_max(131_072);
         let mut big = BytesMut::new();
         Frame::Body {
@@ -410,7 +421,7 @@ mod tests {
     #[tokio::test]
     async fn before_tune_ok_reads_stay_within_one_minimum_frame() {
         let (mut client, server) = tokio::io::duplex(1 << 20);
-        let mut reader = FrameReader::new(server, None);
+        let mut reader = FrameReader::new(server, None, None);
         let mut stream = BytesMut::new();
         for _ in 0..4000 {
             Frame::Heartbeat.encode(&mut stream);
@@ -425,7 +436,7 @@ mod tests {
     #[tokio::test]
     async fn reads_grow_while_they_fill_the_buffer() {
         let (mut client, server) = tokio::io::duplex(1 << 20);
-        let mut reader = FrameReader::new(server, None);
+        let mut reader = FrameReader::new(server, None, None);
         reader.set_frame_max(131_072);
         let mut stream = BytesMut::new();
         for _ in 0..2000 {

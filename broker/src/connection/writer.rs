@@ -18,6 +18,7 @@
 
 use super::reader::IDLE_RELEASE;
 use crate::outbox::{Framed, Outbound, Outbox};
+use crate::stats::ConnectionTraffic;
 use bytes::{Buf, BufMut, Bytes, BytesMut};
 use leveret_protocol::{
     encode_content, encode_header, encode_method, ContentHeader, Frame, FRAME_END, FRAME_OVERHEAD,
@@ -38,6 +39,66 @@ const BATCH_START: usize = 512;
 const BODY_BY_REFERENCE: usize = 16 * 1024;
 /// The frame type of body frames.
 const BODY_FRAME: u8 = 3;
+
+/// A socket's write half that counts each write that moved bytes, and
+/// the bytes, into a connection's traffic.
+pub struct Counted<W> {
+    socket: W,
+    traffic: Arc<ConnectionTraffic>,
+}
+
+impl<W> Counted<W> {
+    /// `socket`, counted into `traffic`.
+    pub fn new(socket: W, traffic: Arc<ConnectionTraffic>) -> Self {
+        Counted { socket, traffic }
+    }
+
+    fn count(&self, written: &std::task::Poll<std::io::Result<usize>>) {
+        if let std::task::Poll::Ready(Ok(bytes @ 1..)) = written {
+            self.traffic.wrote(*bytes);
+        }
+    }
+}
+
+impl<W: AsyncWrite + Unpin> AsyncWrite for Counted<W> {
+    fn poll_write(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &[u8],
+    ) -> std::task::Poll<std::io::Result<usize>> {
+        let written = std::pin::Pin::new(&mut self.socket).poll_write(cx, buf);
+        self.count(&written);
+        written
+    }
+
+    fn poll_write_vectored(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        bufs: &[IoSlice<'_>],
+    ) -> std::task::Poll<std::io::Result<usize>> {
+        let written = std::pin::Pin::new(&mut self.socket).poll_write_vectored(cx, bufs);
+        self.count(&written);
+        written
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.socket.is_write_vectored()
+    }
+
+    fn poll_flush(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        std::pin::Pin::new(&mut self.socket).poll_flush(cx)
+    }
+
+    fn poll_shutdown(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        std::pin::Pin::new(&mut self.socket).poll_shutdown(cx)
+    }
+}
 
 /// Runs until [`Outbound::Shutdown`], the outbox closing, or a write error.
 pub async fn run<W: AsyncWrite + Unpin>(

@@ -270,7 +270,8 @@ impl Queue {
             let Some(queued) = self.pop_live(st, now, dead) else {
                 return;
             };
-            self.stats.delivered(consumer.no_ack, queued.redelivered);
+            self.stats
+                .delivered(consumer.no_ack, queued.redelivered, &queued.message);
             if consumer.no_ack {
                 self.release(&queued);
             } else {

@@ -8,6 +8,7 @@ use super::{Queue, QueuedMessage};
 use crate::consumer::Consumer;
 use crate::message::Message;
 use crate::outbox::Outbound;
+use crate::stats::DeadLetterStrategy;
 use bytes::BytesMut;
 use leveret_protocol::{BasicCancel, BasicProperties, FieldTable, FieldValue, ShortStr};
 use std::sync::Arc;
@@ -51,6 +52,11 @@ impl DeadLetter {
     /// The exchange it is to be published to.
     pub fn exchange(&self) -> &ShortStr {
         &self.exchange
+    }
+
+    /// Why it left its queue.
+    pub fn reason(&self) -> DeadLetterReason {
+        self.reason
     }
 
     /// The copy to route: the message with RabbitMQ's `x-death` history
@@ -139,7 +145,8 @@ impl Queue {
         self.dead_letter(queued.message, reason, dead);
     }
 
-    /// Adds `message` to `dead` if the queue has a dead-letter exchange.
+    /// Adds `message` to `dead` if the queue has a dead-letter exchange;
+    /// counts it as dropped otherwise (`deadletter` counts the others).
     pub(super) fn dead_letter(
         &self,
         message: Arc<Message>,
@@ -152,6 +159,8 @@ impl Queue {
                 .read()
                 .unwrap_or_else(|e| e.into_inner());
             let Some(exchange) = target.0.clone() else {
+                self.stats
+                    .dead_lettered(reason, DeadLetterStrategy::Disabled);
                 return;
             };
             let routing_key = target

@@ -359,7 +359,7 @@ impl Queue {
             self.stats.got_nothing();
             return (false, DeadLetters(dead));
         };
-        self.stats.got(no_ack, queued.redelivered);
+        self.stats.got(no_ack, queued.redelivered, &queued.message);
         if no_ack {
             self.release(&queued);
         } else {
@@ -393,8 +393,8 @@ impl Queue {
     pub fn requeue(self: &Arc<Self>, messages: Vec<QueuedMessage>) -> DeadLetters {
         if self.stream.is_some() {
             // Nothing left the stream: the credit is back, read on.
-            for _ in &messages {
-                self.stats.unacked_returned();
+            for queued in &messages {
+                self.stats.unacked_returned(&queued.message);
             }
             self.stream_dispatch();
             return DeadLetters::default();
@@ -423,7 +423,7 @@ impl Queue {
         let mut progress = Progress::Done;
         let mut st = self.lock();
         for mut queued in messages.by_ref() {
-            self.stats.unacked_returned();
+            self.stats.unacked_returned(&queued.message);
             if st.deleted {
                 self.release(&queued);
             } else {
@@ -450,8 +450,8 @@ impl Queue {
 
     /// Unacked messages were acked (or rejected without dead-lettering).
     pub fn settle(&self, settled: &[QueuedMessage]) {
-        for _ in settled {
-            self.stats.acked();
+        for queued in settled {
+            self.stats.acked(&queued.message);
         }
         if self.stream.is_none() {
             self.release_all(settled);
@@ -460,7 +460,7 @@ impl Queue {
 
     /// A message was rejected without requeue: dead-letter it if configured.
     pub fn reject(&self, queued: QueuedMessage) -> DeadLetters {
-        self.stats.unacked_returned();
+        self.stats.unacked_returned(&queued.message);
         if self.stream.is_some() {
             return DeadLetters::default();
         }
@@ -670,6 +670,10 @@ pub(crate) struct QueueDepth {
     /// dips while messages come back.
     pub unacked: u64,
     pub ready_bytes: u64,
+    /// Persistent messages, ready and unacked (none in a stream).
+    pub persistent: u64,
+    /// Body bytes of the unacked messages.
+    pub unacked_bytes: u64,
     pub consumers: u64,
 }
 
@@ -682,6 +686,8 @@ impl Queue {
                 ready: stream.len(),
                 unacked: self.stats.unacked.get(),
                 ready_bytes: stream.bytes(),
+                persistent: 0,
+                unacked_bytes: self.stats.unacked_bytes.get(),
                 consumers: stream.reader_count() as u64,
             };
         }
@@ -690,8 +696,22 @@ impl Queue {
             ready: st.ready.len() as u64,
             unacked: self.stats.unacked.get(),
             ready_bytes: st.ready.bytes() as u64,
+            persistent: st.ready.persistent() as u64 + self.stats.unacked_persistent.get(),
+            unacked_bytes: self.stats.unacked_bytes.get(),
             consumers: st.consumers.len() as u64,
         }
+    }
+
+    /// The `timestamp` property of the message at the head, if it has
+    /// one (none for a stream).
+    pub(crate) fn head_timestamp(&self) -> Option<u64> {
+        if self.stream.is_some() {
+            return None;
+        }
+        let properties = self.lock().ready.front()?.message.properties.clone();
+        leveret_protocol::BasicProperties::decode(&properties)
+            .ok()?
+            .timestamp
     }
 
     /// The consumers now, in registration order, each with whether it is

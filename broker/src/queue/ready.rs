@@ -33,6 +33,8 @@ pub(super) struct Ready {
     out_of_order: BTreeMap<OrderKey, QueuedMessage>,
     len: usize,
     bytes: usize,
+    /// Persistent messages (delivery-mode 2).
+    persistent: usize,
     /// Messages with an expiry time.
     expiring: usize,
 }
@@ -53,6 +55,11 @@ impl Ready {
         self.bytes
     }
 
+    /// How many are persistent (delivery-mode 2).
+    pub(super) fn persistent(&self) -> usize {
+        self.persistent
+    }
+
     /// Whether some message has an expiry time.
     pub(super) fn has_expiring(&self) -> bool {
         self.expiring > 0
@@ -62,6 +69,7 @@ impl Ready {
     pub(super) fn insert(&mut self, queued: QueuedMessage) {
         self.len += 1;
         self.bytes += queued.message.body.len();
+        self.persistent += usize::from(queued.message.persistent);
         if queued.expires_at.is_some() {
             self.expiring += 1;
         }
@@ -99,6 +107,7 @@ impl Ready {
         };
         self.len -= 1;
         self.bytes -= queued.message.body.len();
+        self.persistent -= usize::from(queued.message.persistent);
         if queued.expires_at.is_some() {
             self.expiring -= 1;
         }

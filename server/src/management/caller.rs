@@ -51,7 +51,7 @@ pub fn api_segments(path: &str) -> Option<Vec<String>> {
     Some(rest.split('/').map(percent_decoded).collect())
 }
 
-fn percent_decoded(segment: &str) -> String {
+pub(crate) fn percent_decoded(segment: &str) -> String {
     let bytes = segment.as_bytes();
     let mut out = Vec::with_capacity(bytes.len());
     let mut i = 0;

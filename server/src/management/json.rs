@@ -201,7 +201,7 @@ pub fn connection(c: &ConnectionInfo, node: &str) -> Value {
     })
 }
 
-fn channel_name(connection_id: u64, peer: &str, number: u16) -> String {
+pub fn channel_name(connection_id: u64, peer: &str, number: u16) -> String {
     format!("{} ({number})", connection_name(connection_id, peer))
 }
 

@@ -40,6 +40,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post, put};
 use axum::{Json, Router};
 use base64::Engine;
+pub(crate) use caller::percent_decoded;
 use caller::Caller;
 use leveret_broker::{AccessError, Admin, AmqpError};
 use leveret_protocol::ReplyCode;

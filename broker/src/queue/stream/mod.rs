@@ -401,7 +401,7 @@ impl Queue {
                     continue;
                 };
                 credit.keep();
-                self.stats.delivered(false, false);
+                self.stats.delivered(false, false, &message);
                 let message = Arc::new(message);
                 let mut deliveries = consumer.channel.deliveries();
                 let delivery_tag = deliveries.next_tag();
