@@ -12,15 +12,21 @@
 //! (topics ↔ routing keys, queue names, `vhost:user`); `takeover` the
 //! client identifiers in use; `retained` the retained messages;
 //! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL;
-//! `properties` 5.0 PUBLISH properties ↔ AMQP properties.
+//! `properties` 5.0 PUBLISH properties ↔ AMQP properties;
+//! `subscriptions` a session's subscriptions, their 5.0 options and
+//! shared subscriptions; `aliases` inbound topic aliases; `wills` last
+//! wills and their delay.
 
+mod aliases;
 mod link;
 mod mapping;
 mod properties;
 mod releases;
 mod retained;
 mod session;
+mod subscriptions;
 mod takeover;
+mod wills;
 
 pub(crate) use retained::Retained;
 pub use retained::RetainedLimits;
@@ -43,6 +49,8 @@ pub(crate) struct Shared {
     retained: Retained,
     /// Persistent sessions' QoS 2 publishes awaiting PUBREL.
     releases: releases::Releases,
+    /// Wills waiting for their delay.
+    wills: wills::Wills,
 }
 
 impl Shared {
@@ -52,6 +60,7 @@ impl Shared {
             anonymous,
             retained,
             releases: Default::default(),
+            wills: Default::default(),
         }
     }
 }
