@@ -219,9 +219,9 @@ impl Subscriptions {
         topic: &str,
         message: &Marks,
     ) -> Verdict {
-        let shared = self
-            .shared_by_tag
-            .get(consumer_tag)
+        let shared = (!self.shared.is_empty())
+            .then(|| self.shared_by_tag.get(consumer_tag))
+            .flatten()
             .and_then(|filter| self.shared.get(filter));
         if let Some(shared) = shared {
             let options = shared.options;
