@@ -2341,3 +2341,65 @@ async fn enhanced_authentication_is_refused_and_auth_packets_end_the_session() {
     raw.assert_closed().await;
     handle.shutdown().await;
 }
+
+#[both_runtimes]
+async fn a_disconnect_can_end_a_persistent_session_but_not_extend_a_clean_one() {
+    use leveret_mqtt::{Disconnect, ReasonCode};
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let disconnect = |expiry: u32| {
+        let mut properties = leveret_mqtt::Properties::default();
+        properties.session_expiry_interval = Some(expiry);
+        Packet::Disconnect(Disconnect {
+            reason: ReasonCode::Success,
+            properties,
+        })
+    };
+    // A session with no expiry (CONNECT said 0) given one at DISCONNECT.
+    let mut raw = Raw::login_as(port, 0, ProtocolVersion::V5, "no-expiry").await;
+    raw.send(disconnect(60)).await;
+    let Some(Packet::Disconnect(d)) = raw.next().await else {
+        panic!("expected DISCONNECT 0x82");
+    };
+    assert_eq!(d.reason, ReasonCode::ProtocolError);
+    raw.assert_closed().await;
+    // A persistent session ended by DISCONNECT with expiry 0: its queue goes.
+    let mut raw = Raw::connect(port).await;
+    raw.version = ProtocolVersion::V5;
+    let mut properties = leveret_mqtt::Properties::default();
+    properties.session_expiry_interval = Some(600);
+    raw.send(Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V5,
+        clean_start: true,
+        keep_alive: 0,
+        properties,
+        client_id: leveret_mqtt::MqttString::from_static("ending"),
+        will: None,
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    })))
+    .await;
+    assert!(
+        matches!(raw.next().await, Some(Packet::ConnAck(a)) if a.reason == ReasonCode::Success)
+    );
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::from_static("end/#"),
+            options: Default::default(),
+        }],
+    }))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    assert!(queue_names(&handle).contains(&"mqtt-subscription-endingqos0".to_owned()));
+    raw.send(disconnect(0)).await;
+    raw.assert_closed().await;
+    within("the ended session's queue deleted", async {
+        while queue_names(&handle).contains(&"mqtt-subscription-endingqos0".to_owned()) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    handle.shutdown().await;
+}

@@ -810,9 +810,12 @@ impl Session {
                 self.send(Packet::PingResp);
                 Ok(())
             }
-            Packet::Disconnect(disconnect) => Err(Stop::Disconnected {
-                send_will: disconnect.reason == ReasonCode::DisconnectWithWill,
-            }),
+            Packet::Disconnect(disconnect) => {
+                self.expiry_at_disconnect(disconnect.properties.session_expiry_interval)?;
+                Err(Stop::Disconnected {
+                    send_will: disconnect.reason == ReasonCode::DisconnectWithWill,
+                })
+            }
             Packet::Auth(_) => Err(closed(
                 "enhanced authentication is not supported",
                 Some(ReasonCode::ProtocolError),
@@ -822,6 +825,30 @@ impl Session {
                 "packet a client may not send here",
                 Some(ReasonCode::ProtocolError),
             )),
+        }
+    }
+
+    /// A 5.0 DISCONNECT's Session Expiry Interval: 0 ends a persistent
+    /// session with the connection (its queues are deleted); a session
+    /// that had 0 in its CONNECT may not be given one (MQTT-3.14.2-2:
+    /// 0x82). Another change to a persistent session's expiry is not
+    /// applied: its queues' `x-expires` is fixed when they are declared.
+    fn expiry_at_disconnect(&mut self, expiry: Option<u32>) -> Result<(), Stop> {
+        match expiry {
+            Some(0) if self.lifetime != Lifetime::Connection => {
+                self.lifetime = Lifetime::Connection;
+                for qos in [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce] {
+                    let queue = mapping::queue_name(&self.client_id, qos)
+                        .filter(|_| self.queues[usize::from(qos.level())]);
+                    self.delete_at_end.extend(queue);
+                }
+                Ok(())
+            }
+            Some(seconds) if seconds > 0 && self.lifetime == Lifetime::Connection => Err(closed(
+                "session expiry set by DISCONNECT after none in CONNECT",
+                Some(ReasonCode::ProtocolError),
+            )),
+            _ => Ok(()),
         }
     }
 
