@@ -2403,3 +2403,52 @@ async fn a_disconnect_can_end_a_persistent_session_but_not_extend_a_clean_one() 
     .await;
     handle.shutdown().await;
 }
+
+#[both_runtimes]
+async fn a_5_0_receive_maximum_bounds_deliveries_over_every_queue_of_the_session() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let mut options = options5("narrow", port, "secret");
+    options.set_manual_acks(true);
+    options.set_receive_maximum(Some(3));
+    let (client, mut events) = connected5(options).await;
+    // Three queues with acknowledgements: QoS 1, QoS 2 and a shared one.
+    subscribe5(
+        &client,
+        &mut events,
+        vec![
+            Filter::new("rm/one", QoS5::AtLeastOnce),
+            Filter::new("rm/two", QoS5::ExactlyOnce),
+            Filter::new("$share/rm/rm/shared", QoS5::AtLeastOnce),
+        ],
+        None,
+    )
+    .await;
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    let persistent = lapin::BasicProperties::default().with_delivery_mode(2);
+    for key in ["rm.one", "rm.two", "rm.shared"] {
+        for i in 0..5u8 {
+            tmo!(channel.basic_publish(
+                "amq.topic",
+                key,
+                Default::default(),
+                &[i],
+                persistent.clone()
+            ))
+            .unwrap();
+        }
+    }
+    let mut held = Vec::new();
+    for _ in 0..3 {
+        held.push(next_publish5(&mut events).await);
+    }
+    let more = tokio::time::timeout(QUIET, next_publish5(&mut events)).await;
+    assert!(
+        more.is_err(),
+        "a fourth delivery past the client's receive maximum: {more:?}"
+    );
+    // Each acknowledgement lets one more go.
+    client.ack(&held[0]).await.unwrap();
+    next_publish5(&mut events).await;
+    handle.shutdown().await;
+}

@@ -161,6 +161,7 @@ pub(super) async fn serve(
         next_packet_id: 1,
         subscriptions: Subscriptions::default(),
         queues: [false; 3],
+        acked_consumers: 0,
         delete_at_end: Vec::new(),
     };
     let session_present = session.begin(&core, connect.clean_start);
@@ -412,6 +413,9 @@ struct Session {
     subscriptions: Subscriptions,
     /// Whether the QoS 0, 1 and 2 queues are declared and consumed.
     queues: [bool; 3],
+    /// Consumers with acknowledgements started (see
+    /// [`Session::acked_consumer_added`]).
+    acked_consumers: usize,
     /// Queues of a resumed session to delete when this one ends (it does
     /// not outlive its connection).
     delete_at_end: Vec<ShortStr>,
@@ -1070,6 +1074,7 @@ impl Session {
             Vec::new(),
         );
         let consumer_tag = self.subscriptions.new_shared_tag(options.qos);
+        self.acked_consumer_added(options.qos);
         self.call(
             BasicConsume {
                 ticket: 0,
@@ -1223,6 +1228,7 @@ impl Session {
     /// Consumes the session's queue for `qos`.
     fn consume(&mut self, queue: ShortStr, qos: QoS) {
         self.queues[usize::from(qos.level())] = true;
+        self.acked_consumer_added(qos);
         self.call(
             BasicConsume {
                 ticket: 0,
@@ -1236,6 +1242,27 @@ impl Session {
             },
             Vec::new(),
         );
+    }
+
+    /// Counts a new consumer at `qos`. The window is per consumer (so the
+    /// core's fast path stays on for the common session with one); from
+    /// the second consumer with acknowledgements (QoS 1 and 2 queues,
+    /// shared subscriptions) it is made channel-wide too, so a 5.0
+    /// client never has more unacknowledged deliveries than its Receive
+    /// Maximum.
+    fn acked_consumer_added(&mut self, qos: QoS) {
+        if qos == QoS::AtMostOnce {
+            return;
+        }
+        self.acked_consumers += 1;
+        if self.acked_consumers == 2 {
+            let channel_wide = leveret_protocol::BasicQos {
+                prefetch_size: 0,
+                prefetch_count: self.window,
+                global: true,
+            };
+            self.call(channel_wide, Vec::new());
+        }
     }
 
     /// Removes an own subscription's binding (its arguments are part of it).
