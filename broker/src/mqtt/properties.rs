@@ -16,7 +16,7 @@ use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 /// Seconds since the epoch at `time` (AMQP's timestamp).
-fn epoch_seconds(time: SystemTime) -> u64 {
+pub(super) fn epoch_seconds(time: SystemTime) -> u64 {
     time.duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs())
 }
 

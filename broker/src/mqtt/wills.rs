@@ -17,7 +17,8 @@ use super::Shared;
 use crate::admin::Admin;
 use crate::core::Core;
 use bytes::Bytes;
-use leveret_mqtt::{QoS, TopicName};
+use bytes::BytesMut;
+use leveret_mqtt::QoS;
 use leveret_protocol::BasicProperties;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -33,9 +34,12 @@ const MAX_DELAYED: usize = 10_000;
 pub(super) struct LastWill {
     vhost: String,
     user: String,
-    topic: TopicName,
+    topic: String,
     qos: QoS,
     retain: bool,
+    /// Mapped from the CONNECT's will, in memory of their own (never
+    /// slices of the connection's read buffer, which a waiting will would
+    /// keep alive).
     properties: BasicProperties,
     payload: Bytes,
 }
@@ -49,11 +53,14 @@ impl LastWill {
             retain: will.retain,
             publisher: None,
         };
-        let properties = link::properties(marks, v5.then_some(&will.properties), SystemTime::now());
+        let mapped = link::properties(marks, v5.then_some(&will.properties), SystemTime::now());
+        let mut encoded = BytesMut::new();
+        mapped.encode(&mut encoded);
+        let properties = BasicProperties::decode(&encoded.freeze()).unwrap_or(mapped);
         LastWill {
             vhost: vhost.to_owned(),
             user: user.to_owned(),
-            topic: will.topic,
+            topic: will.topic.as_str().to_owned(),
             qos: will.qos,
             retain: will.retain,
             properties,
@@ -193,7 +200,7 @@ pub(super) fn publish_after(
 
 /// Publishes a will now, as its user (a refusal, such as no write
 /// permission on the topic or a resource alarm, is logged).
-async fn publish(shared: &Shared, core: &Arc<Core>, will: LastWill) {
+async fn publish(shared: &Shared, core: &Arc<Core>, mut will: LastWill) {
     let topic = will.topic.as_str();
     let Some(key) = mapping::routing_key(topic) else {
         return;
@@ -203,6 +210,10 @@ async fn publish(shared: &Shared, core: &Arc<Core>, will: LastWill) {
         let _ = shared
             .retained
             .retain(&will.vhost, topic, will.qos, will.payload.clone());
+    }
+    // The Message Expiry Interval counts from the will's publication.
+    if will.properties.expiration.is_some() {
+        will.properties.timestamp = Some(super::properties::epoch_seconds(SystemTime::now()));
     }
     let admin = Admin {
         core: Arc::clone(core),
