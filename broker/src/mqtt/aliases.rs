@@ -5,7 +5,8 @@
 //! topics are refused). The broker sends no aliases (the client's Topic
 //! Alias Maximum only allows them).
 
-use leveret_mqtt::{ReasonCode, TopicName};
+use bytes::Bytes;
+use leveret_mqtt::{MqttString, ReasonCode, TopicName};
 use std::num::NonZeroU16;
 
 /// The highest topic alias a client may use.
@@ -44,7 +45,11 @@ impl TopicAliases {
         if self.topics.len() <= index {
             self.topics.resize(index + 1, None);
         }
-        self.topics[index] = Some(topic.clone());
+        // A copy: a slice of the read buffer would keep it alive.
+        let owned = MqttString::from_utf8(Bytes::copy_from_slice(topic.as_str().as_bytes()))
+            .ok()
+            .and_then(|t| TopicName::new(t).ok());
+        self.topics[index] = owned;
         Ok(topic)
     }
 }

@@ -537,7 +537,7 @@ impl Session {
                 if let Some(filter) = filter {
                     if self.subscriptions.len() < MAX_SUBSCRIPTIONS {
                         let options = Options::from_binding(qos, &arguments);
-                        self.subscriptions.insert_own(filter, options);
+                        self.subscriptions.insert_own(&filter, options);
                     }
                 }
             }
@@ -994,7 +994,7 @@ impl Session {
         let consumed = self.queues[usize::from(granted.level())];
         self.may_subscribe(filter, &queue, !consumed, &key)?;
         self.ensure_queue(&queue, granted);
-        let old = (self.subscriptions).insert_own(subscription.filter.clone(), options);
+        let old = (self.subscriptions).insert_own(&subscription.filter, options);
         if let Some(old) = old.filter(|old| *old != options) {
             self.unbind(old, key.clone());
         }

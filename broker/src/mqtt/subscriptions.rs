@@ -145,10 +145,12 @@ impl Subscriptions {
     }
 
     /// Adds or replaces an own subscription; the options it replaces.
-    pub(super) fn insert_own(&mut self, filter: TopicFilter, options: Options) -> Option<Options> {
-        let old = self
-            .own
-            .insert(filter.as_str().to_owned(), (filter, options));
+    /// The filter is copied: a slice of the read buffer would keep it alive.
+    pub(super) fn insert_own(&mut self, filter: &TopicFilter, options: Options) -> Option<Options> {
+        let text = filter.as_str().to_owned();
+        // (The copy of a valid filter is valid.)
+        let owned = own_filter(text.clone()).unwrap_or_else(|| filter.clone());
+        let old = self.own.insert(text, (owned, options));
         if let Some(old) = old.as_ref().map(|(_, o)| *o) {
             self.count(&old, false);
         }
@@ -353,7 +355,7 @@ mod tests {
                 id: NonZeroU32::new(id),
                 ..options(QoS::AtLeastOnce)
             };
-            subs.insert_own(filter(f), o);
+            subs.insert_own(&filter(f), o);
         }
         let tag = own_consumer_tag(QoS::AtLeastOnce);
         let v = subs.for_delivery(&tag, QoS::AtLeastOnce, "a/x", &Marks::default());
@@ -371,7 +373,7 @@ mod tests {
             no_local: true,
             ..options(QoS::AtMostOnce)
         };
-        subs.insert_own(filter("t/#"), local);
+        subs.insert_own(&filter("t/#"), local);
         assert!(subs.marks_publisher());
         let tag = own_consumer_tag(QoS::AtMostOnce);
         let own = Marks {
@@ -383,7 +385,7 @@ mod tests {
             subs.for_delivery(&tag, QoS::AtMostOnce, "t/1", &Marks::default())
                 .send
         );
-        subs.insert_own(filter("t/+"), options(QoS::AtMostOnce));
+        subs.insert_own(&filter("t/+"), options(QoS::AtMostOnce));
         assert!(subs.for_delivery(&tag, QoS::AtMostOnce, "t/1", &own).send);
         subs.remove_own("t/#");
         assert!(!subs.marks_publisher());
@@ -397,10 +399,10 @@ mod tests {
             retain_as_published: true,
             ..options(QoS::AtLeastOnce)
         };
-        subs.insert_own(filter("x"), rap);
-        subs.insert_own(filter("x"), rap);
+        subs.insert_own(&filter("x"), rap);
+        subs.insert_own(&filter("x"), rap);
         assert_eq!(subs.per_delivery, [0, 1, 0]);
-        subs.insert_own(filter("x"), options(QoS::ExactlyOnce));
+        subs.insert_own(&filter("x"), options(QoS::ExactlyOnce));
         assert_eq!(subs.per_delivery, [0, 0, 0]);
     }
 
