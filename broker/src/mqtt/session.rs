@@ -9,7 +9,9 @@
 //! the packet size limit (before CONNECT by [`CONNECT_MAX_PACKET`]), the
 //! items waiting for the link by [`PENDING_MAX`] (the socket is not read
 //! while they wait), unconfirmed publishes by their packet identifiers,
-//! deliveries in flight by the receive window.
+//! deliveries in flight by the receive window, topic aliases by
+//! [`super::aliases::TOPIC_ALIAS_MAXIMUM`], subscriptions (own and
+//! shared) by [`MAX_SUBSCRIPTIONS`].
 
 use super::aliases::{TopicAliases, TOPIC_ALIAS_MAXIMUM};
 use super::link::{self, Link, Login, Refusal};
