@@ -2,7 +2,9 @@
 //! MQTT ↔ AMQP through `amq.topic` with lapin, client-id takeover, the
 //! clean-session queue, persistent sessions (3.1.1 and 5.0 expiry, across
 //! a restart), retained messages (durable, capped), the receive maximum,
-//! exactly-once QoS 2 publishes, and the adversarial
+//! exactly-once QoS 2 publishes, 5.0's topic aliases, subscription options
+//! and identifiers, shared subscriptions, will delay and properties, and
+//! the adversarial
 //! cases (oversized packet, garbage before CONNECT, no CONNECT, silent
 //! client) with a raw socket and the codec.
 
