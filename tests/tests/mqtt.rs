@@ -2454,3 +2454,24 @@ async fn a_5_0_receive_maximum_bounds_deliveries_over_every_queue_of_the_session
     next_publish5(&mut events).await;
     handle.shutdown().await;
 }
+
+#[both_runtimes]
+async fn a_broker_shuts_down_with_sessions_owing_wills_and_wills_waiting() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-wills-down"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    let durable = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    tmo!(channel.queue_declare("wills-down", durable, Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "wills-down", "status.#").await;
+    // One will waiting for its delay, one session connected whose will
+    // (no delay) the shutdown publishes, through the store.
+    let (_waiting, events) = client_with_will(port, "waiting", 600, true).await;
+    drop(events);
+    let (_connected, _events) = client_with_will(port, "connected", 0, true).await;
+    within("the broker shut down", handle.shutdown()).await;
+    let _ = std::fs::remove_dir_all(&dir);
+}

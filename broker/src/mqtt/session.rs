@@ -192,7 +192,8 @@ pub(super) async fn serve(
             &session.client_id,
             will,
             session.will_delay_left(),
-        );
+        )
+        .await;
     }
     if session.lifetime != Lifetime::Connection {
         let stored = session

@@ -159,19 +159,18 @@ impl Wills {
     }
 }
 
-/// Publishes `will`, of the session of `client_id`, after `delay` (at
-/// once if it is zero or too many wait).
-pub(super) fn publish_after(
+/// Publishes `will`, of the session of `client_id`, after `delay`; at
+/// once (awaited, so that the session ends after it, as a broker shutting
+/// down waits for its sessions) if the delay is zero or too many wait.
+pub(super) async fn publish_after(
     shared: &Arc<Shared>,
     core: &Arc<Core>,
     client_id: &str,
     will: LastWill,
     delay: Duration,
 ) {
-    let shared_ = Arc::clone(shared);
-    let core_ = Arc::clone(core);
     if delay.is_zero() {
-        tokio::spawn(async move { publish(&shared_, &core_, will).await });
+        publish(shared, core, will).await;
         return;
     }
     let key = (will.vhost.clone(), client_id.to_owned());
@@ -181,9 +180,11 @@ pub(super) fn publish_after(
             client_id,
             "more delayed MQTT wills than the broker keeps waiting; published now"
         );
-        tokio::spawn(async move { publish(&shared_, &core_, will).await });
+        publish(shared, core, will).await;
         return;
     };
+    let shared_ = Arc::clone(shared);
+    let core_ = Arc::clone(core);
     let mut shutdown = core.shutdown_signal();
     tokio::spawn(async move {
         let publish_it = tokio::select! {
