@@ -673,24 +673,25 @@ impl Vhost {
         queue.delete()
     }
 
-    /// The binding keys of `queue`'s bindings from the exchange `source`
-    /// (an MQTT session resumed from its queue's bindings), at most
+    /// The binding keys and arguments of `queue`'s bindings from the
+    /// exchange `source` (an MQTT session resumed from its queue's
+    /// bindings, its subscription options in their arguments), at most
     /// `limit` of them.
     #[cfg(feature = "mqtt")]
-    pub fn binding_keys_to(
+    pub fn bindings_to(
         &self,
         source: &ShortStr,
         queue: &Arc<Queue>,
         limit: usize,
-    ) -> Vec<ShortStr> {
-        let mut keys = Vec::new();
+    ) -> Vec<(ShortStr, FieldTable)> {
+        let mut found = Vec::new();
         let destination = Destination::Queue(Arc::clone(queue));
         lock(&self.bindings).for_each_binding_to(&destination, |exchange, binding| {
-            if keys.len() < limit && exchange.name == *source {
-                keys.push(binding.routing_key.clone());
+            if found.len() < limit && exchange.name == *source {
+                found.push((binding.routing_key.clone(), binding.arguments.clone()));
             }
         });
-        keys
+        found
     }
 
     /// Deletes an auto-delete exchange that has lost its last binding.

@@ -93,6 +93,8 @@ impl Problem {
             | Problem::PasswordWithoutUsername
             | Problem::UnknownProperty(_)
             | Problem::DupOnQos0 => ReasonCode::MalformedPacket,
+            // Topic alias 0 (MQTT-3.3.2-8): 0x94, as Mosquitto answers it.
+            Problem::InvalidPropertyValue(PropertyId::TopicAlias) => ReasonCode::TopicAliasInvalid,
             Problem::ZeroPacketId
             | Problem::PropertyNotAllowed(_)
             | Problem::DuplicateProperty(_)

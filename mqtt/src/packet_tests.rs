@@ -575,6 +575,10 @@ fn publish_rules() {
         Problem::InvalidPropertyValue(PropertyId::TopicAlias)
     );
     assert_eq!(
+        Problem::InvalidPropertyValue(PropertyId::TopicAlias).reason_code(),
+        ReasonCode::TopicAliasInvalid
+    );
+    assert_eq!(
         with_props(&[0x11, 0x00, 0x00, 0x00, 0x01]),
         Problem::PropertyNotAllowed(PropertyId::SessionExpiryInterval)
     );

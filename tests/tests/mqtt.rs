@@ -2,7 +2,9 @@
 //! MQTT ↔ AMQP through `amq.topic` with lapin, client-id takeover, the
 //! clean-session queue, persistent sessions (3.1.1 and 5.0 expiry, across
 //! a restart), retained messages (durable, capped), the receive maximum,
-//! exactly-once QoS 2 publishes, and the adversarial
+//! exactly-once QoS 2 publishes, 5.0's topic aliases, subscription options
+//! and identifiers, shared subscriptions, will delay and properties, and
+//! the adversarial
 //! cases (oversized packet, garbage before CONNECT, no CONNECT, silent
 //! client) with a raw socket and the codec.
 
@@ -1514,17 +1516,24 @@ async fn a_flood_of_retained_topics_stops_at_the_cap() {
 async fn a_5_0_client_past_the_receive_maximum_is_disconnected() {
     let handle = start(Limits::default()).await;
     let mut raw = Raw::login_as(mqtt_port(&handle), 0, ProtocolVersion::V5, "greedy").await;
-    // QoS 2 publishes never released stay unacknowledged.
+    // QoS 2 publishes never released stay unacknowledged. The broker may
+    // close the connection before the last are written: a write error
+    // then ends the sending.
     for id in 1..=300u16 {
-        raw.send(Packet::Publish(Publish {
+        let mut out = BytesMut::new();
+        Packet::Publish(Publish {
             dup: false,
             delivery: Delivery::ExactlyOnce(std::num::NonZeroU16::new(id).unwrap()),
             retain: false,
             topic: TopicName::from_static("g/x"),
             properties: Default::default(),
             payload: Bytes::from_static(b"x"),
-        }))
-        .await;
+        })
+        .encode(ProtocolVersion::V5, &mut out)
+        .unwrap();
+        if raw.socket.write_all(&out).await.is_err() {
+            break;
+        }
     }
     let mut pubrecs = 0;
     loop {
@@ -1723,4 +1732,855 @@ async fn a_configured_anonymous_login_lets_clients_without_a_user_name_in() {
     );
     wrong.shutdown().await;
     handle.shutdown().await;
+}
+
+// ---------------------------------------------------------------------------
+// MQTT 5.0 session features: topic aliases, subscription options (No
+// Local, Retain As Published, Subscription Identifiers), shared
+// subscriptions, will properties and delay, the expiry left.
+
+use rumqttc::v5::mqttbytes::v5::{
+    Filter, LastWillProperties, PublishProperties, SubscribeProperties, SubscribeReasonCode,
+};
+use rumqttc::v5::mqttbytes::QoS as QoS5;
+
+/// A 5.0 client logged in as `robot`, once its CONNACK has come.
+async fn connected5(
+    options: rumqttc::v5::MqttOptions,
+) -> (rumqttc::v5::AsyncClient, rumqttc::v5::EventLoop) {
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options, 64);
+    until5(&mut events, |p| {
+        matches!(p, Packet5::ConnAck(_)).then_some(())
+    })
+    .await;
+    (client, events)
+}
+
+/// Subscribes to `filters` with subscription identifier `id`; the SUBACK's codes.
+async fn subscribe5(
+    client: &rumqttc::v5::AsyncClient,
+    events: &mut rumqttc::v5::EventLoop,
+    filters: Vec<Filter>,
+    id: Option<usize>,
+) -> Vec<SubscribeReasonCode> {
+    let properties = SubscribeProperties {
+        id,
+        user_properties: Vec::new(),
+    };
+    client
+        .subscribe_many_with_properties(filters, properties)
+        .await
+        .unwrap();
+    until5(events, |p| match p {
+        Packet5::SubAck(ack) => Some(ack.return_codes.clone()),
+        _ => None,
+    })
+    .await
+}
+
+async fn next_publish5(events: &mut rumqttc::v5::EventLoop) -> rumqttc::v5::mqttbytes::v5::Publish {
+    until5(events, |p| match p {
+        Packet5::Publish(p) => Some(p.clone()),
+        _ => None,
+    })
+    .await
+}
+
+/// The subscription identifiers of a delivery.
+fn ids_of(publish: &rumqttc::v5::mqttbytes::v5::Publish) -> Vec<usize> {
+    publish
+        .properties
+        .as_ref()
+        .map(|p| p.subscription_identifiers.clone())
+        .unwrap_or_default()
+}
+
+/// Publishes at QoS 1 from a 5.0 client of its own and waits for the PUBACK.
+async fn publish_acked5(port: u16, topic: &str, payload: &str, retain: bool) {
+    let (client, mut events) = connected5(options5(&unique("pub5"), port, "secret")).await;
+    client
+        .publish(topic, QoS5::AtLeastOnce, retain, payload.to_owned())
+        .await
+        .unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::PubAck(_)).then_some(())
+    })
+    .await;
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+}
+
+#[both_runtimes]
+async fn v5_topic_aliases_from_rumqttc_are_resolved() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options5("alias", port, "secret"), 16);
+    let connack = until5(&mut events, |p| match p {
+        Packet5::ConnAck(ack) => Some(ack.clone()),
+        _ => None,
+    })
+    .await;
+    let properties = connack.properties.expect("CONNACK properties");
+    assert_eq!(properties.topic_alias_max, Some(16));
+    // Both available now (absent means available).
+    assert_ne!(properties.subscription_identifiers_available, Some(0));
+    assert_ne!(properties.shared_subscription_available, Some(0));
+    subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("alias/#", QoS5::AtLeastOnce)],
+        None,
+    )
+    .await;
+    let with_alias = |alias| PublishProperties {
+        topic_alias: Some(alias),
+        ..Default::default()
+    };
+    // Set alias 16 (the maximum), use it, set it again to another topic.
+    for (topic, payload) in [("alias/a", "1"), ("", "2"), ("alias/b", "3"), ("", "4")] {
+        client
+            .publish_with_properties(topic, QoS5::AtLeastOnce, false, payload, with_alias(16))
+            .await
+            .unwrap();
+    }
+    let mut got = Vec::new();
+    while got.len() < 4 {
+        let publish = next_publish5(&mut events).await;
+        got.push((publish.topic.clone(), publish.payload.clone()));
+    }
+    let expected: Vec<(Bytes, Bytes)> = [
+        ("alias/a", "1"),
+        ("alias/a", "2"),
+        ("alias/b", "3"),
+        ("alias/b", "4"),
+    ]
+    .into_iter()
+    .map(|(t, p)| (Bytes::from(t), Bytes::from(p)))
+    .collect();
+    assert_eq!(got, expected);
+    client.disconnect().await.unwrap();
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn bad_topic_aliases_disconnect_with_their_reason_codes() {
+    use leveret_mqtt::ReasonCode;
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let publish = |topic: &'static str, alias: u16| {
+        let mut properties = leveret_mqtt::Properties::default();
+        properties.topic_alias = std::num::NonZeroU16::new(alias);
+        Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtMostOnce,
+            retain: false,
+            topic: TopicName::from_static(topic),
+            properties,
+            payload: Bytes::from_static(b"x"),
+        })
+    };
+    // Above the maximum the CONNACK gave; an empty topic with an alias
+    // never set.
+    for (packet, reason) in [
+        (publish("t", 17), ReasonCode::TopicAliasInvalid),
+        (publish("", 5), ReasonCode::ProtocolError),
+    ] {
+        let mut raw = Raw::login_as(port, 0, ProtocolVersion::V5, "bad-alias").await;
+        raw.send(packet).await;
+        let Some(Packet::Disconnect(d)) = raw.next().await else {
+            panic!("expected DISCONNECT {reason:?}");
+        };
+        assert_eq!(d.reason, reason);
+        raw.assert_closed().await;
+    }
+    // Alias 0 (the codec cannot encode it: written by hand).
+    let mut raw = Raw::login_as(port, 0, ProtocolVersion::V5, "bad-alias").await;
+    raw.socket
+        .write_all(&[0x30, 0x07, 0x00, 0x01, b't', 0x03, 0x23, 0x00, 0x00])
+        .await
+        .unwrap();
+    let Some(Packet::Disconnect(d)) = raw.next().await else {
+        panic!("expected DISCONNECT 0x94");
+    };
+    assert_eq!(d.reason, ReasonCode::TopicAliasInvalid);
+    raw.assert_closed().await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn no_local_retain_as_published_and_subscription_identifiers() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let mut options = options5("opts", port, "secret");
+    options.set_manual_acks(false);
+    let (client, mut events) = connected5(options).await;
+    let mut no_local = Filter::new("own/#", QoS5::AtLeastOnce);
+    no_local.nolocal = true;
+    subscribe5(&client, &mut events, vec![no_local], Some(1)).await;
+    let mut rap = Filter::new("rap/#", QoS5::AtLeastOnce);
+    rap.preserve_retain = true;
+    subscribe5(&client, &mut events, vec![rap], Some(2)).await;
+    // Overlapping rap/#, in the same queue, without Retain As Published.
+    subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("rap/+", QoS5::AtLeastOnce)],
+        Some(3),
+    )
+    .await;
+    subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("plain/#", QoS5::AtLeastOnce)],
+        None,
+    )
+    .await;
+    // Its own publish to own/x is not sent back; another client's is.
+    client
+        .publish("own/x", QoS5::AtLeastOnce, false, "mine")
+        .await
+        .unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::PubAck(_)).then_some(())
+    })
+    .await;
+    publish_acked5(port, "own/x", "theirs", false).await;
+    let publish = next_publish5(&mut events).await;
+    assert_eq!(publish.payload, "theirs", "its own publish skipped");
+    assert_eq!(ids_of(&publish), [1]);
+    // A retained publish: RETAIN kept for rap/#, and both identifiers of
+    // the two matching filters on the one delivery.
+    publish_acked5(port, "rap/x", "kept", true).await;
+    let publish = next_publish5(&mut events).await;
+    assert_eq!(publish.payload, "kept");
+    assert!(publish.retain, "retain as published");
+    assert_eq!(ids_of(&publish), [2, 3]);
+    // Without Retain As Published RETAIN is cleared on a live delivery.
+    publish_acked5(port, "plain/x", "cleared", true).await;
+    let publish = next_publish5(&mut events).await;
+    assert_eq!(publish.payload, "cleared");
+    assert!(!publish.retain);
+    assert!(ids_of(&publish).is_empty());
+    // A new subscription's retained messages carry its identifier.
+    subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("plain/+", QoS5::AtLeastOnce)],
+        Some(268_435_455),
+    )
+    .await;
+    let publish = next_publish5(&mut events).await;
+    assert!(publish.retain);
+    assert_eq!(ids_of(&publish), [268_435_455]);
+    // An AMQP consumer does not see the broker's no-local mark as a
+    // user header, nor does a 5.0 subscriber see it as a user property.
+    client
+        .publish("plain/y", QoS5::AtLeastOnce, false, "marked")
+        .await
+        .unwrap();
+    let publish = next_publish5(&mut events).await;
+    assert_eq!(publish.payload, "marked");
+    let user = publish
+        .properties
+        .map(|p| p.user_properties)
+        .unwrap_or_default();
+    assert!(user.is_empty(), "{user:?}");
+    client.disconnect().await.unwrap();
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn subscription_options_come_back_with_a_resumed_session() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let connect = |clean: bool| {
+        let mut options = options5("resumed-opts", port, "secret");
+        options.set_clean_start(clean);
+        let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+        properties.session_expiry_interval = Some(600);
+        options.set_connect_properties(properties);
+        rumqttc::v5::AsyncClient::new(options, 16)
+    };
+    let (client, mut events) = connect(true);
+    session_present5(&mut events).await;
+    let mut filter = Filter::new("resume/#", QoS5::AtLeastOnce);
+    filter.nolocal = true;
+    subscribe5(&client, &mut events, vec![filter], Some(9)).await;
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    offline(&handle, "mqtt-subscription-resumed-optsqos1").await;
+    let (client, mut events) = connect(false);
+    assert!(session_present5(&mut events).await);
+    client
+        .publish("resume/x", QoS5::AtLeastOnce, false, "own")
+        .await
+        .unwrap();
+    publish_acked5(port, "resume/x", "other", false).await;
+    let publish = next_publish5(&mut events).await;
+    assert_eq!(publish.payload, "other", "No Local kept");
+    assert_eq!(ids_of(&publish), [9], "identifier kept");
+    client.disconnect().await.unwrap();
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_shared_subscription_spreads_messages_over_its_members() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    // Two 5.0 members and a 3.1.1 one (Mosquitto and RabbitMQ accept
+    // $share from 3.1.1 clients too), and a plain subscriber.
+    let mut members5 = Vec::new();
+    for id in ["member-a", "member-b"] {
+        let (client, mut events) = connected5(options5(id, port, "secret")).await;
+        let codes = subscribe5(
+            &client,
+            &mut events,
+            vec![Filter::new("$share/g/jobs/#", QoS5::AtLeastOnce)],
+            Some(4),
+        )
+        .await;
+        assert_eq!(codes, [SubscribeReasonCode::Success(QoS5::AtLeastOnce)]);
+        members5.push((client, events));
+    }
+    let (client3, mut events3) = connected3("member-c", port).await;
+    client3
+        .subscribe("$share/g/jobs/#", QoS::AtLeastOnce)
+        .await
+        .unwrap();
+    let granted = until3(&mut events3, |p| match p {
+        Incoming::SubAck(ack) => Some(ack.return_codes.clone()),
+        _ => None,
+    })
+    .await;
+    assert_eq!(
+        granted,
+        [rumqttc::SubscribeReasonCode::Success(QoS::AtLeastOnce)]
+    );
+    let (plain, mut plain_events) = connected5(options5("plain", port, "secret")).await;
+    subscribe5(
+        &plain,
+        &mut plain_events,
+        vec![Filter::new("jobs/#", QoS5::AtLeastOnce)],
+        None,
+    )
+    .await;
+    assert!(queue_names(&handle).contains(&"mqtt-shared-g/jobs/#".to_owned()));
+    const MESSAGES: usize = 30;
+    let (publisher, mut publisher_events) = connected3("job-publisher", port).await;
+    for i in 0..MESSAGES {
+        publisher
+            .publish(format!("jobs/{i}"), QoS::AtLeastOnce, false, i.to_string())
+            .await
+            .unwrap();
+        until3(&mut publisher_events, |p| {
+            matches!(p, Incoming::PubAck(_)).then_some(())
+        })
+        .await;
+    }
+    // The plain subscriber gets every message.
+    for _ in 0..MESSAGES {
+        next_publish5(&mut plain_events).await;
+    }
+    // The group gets each message once, spread over its members, the 5.0
+    // members with the subscription's identifier. Each member's event
+    // loop runs in a task of its own, reporting what it gets.
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let mut clients5 = Vec::new();
+    for (index, (client, mut events)) in members5.into_iter().enumerate() {
+        clients5.push(client);
+        let tx = tx.clone();
+        tokio::spawn(async move {
+            while let Ok(event) = events.poll().await {
+                if let rumqttc::v5::Event::Incoming(Packet5::Publish(p)) = event {
+                    let _ = tx.send((index, p.payload.clone(), ids_of(&p)));
+                }
+            }
+        });
+    }
+    tokio::spawn(async move {
+        while let Ok(event) = events3.poll().await {
+            if let Event::Incoming(Incoming::Publish(p)) = event {
+                let _ = tx.send((2, p.payload.clone(), vec![4]));
+            }
+        }
+    });
+    let mut got = Vec::new();
+    let mut per_member = [0usize; 3];
+    while got.len() < MESSAGES {
+        let (index, payload, ids) = tmo!(rx.recv()).expect("members running");
+        assert_eq!(ids, [4], "the subscription identifier");
+        per_member[index] += 1;
+        got.push(String::from_utf8(payload.to_vec()).unwrap());
+    }
+    got.sort_unstable();
+    got.dedup();
+    assert_eq!(got.len(), MESSAGES, "each message once");
+    assert!(
+        per_member.iter().all(|&n| n > 0),
+        "round-robin over the members: {per_member:?}"
+    );
+    let queue = handle
+        .queues()
+        .into_iter()
+        .find(|q| q.name == "mqtt-shared-g/jobs/#")
+        .unwrap();
+    assert_eq!(queue.consumers, 3);
+    // The queue lives while a member does.
+    for client in clients5 {
+        client.disconnect().await.unwrap();
+    }
+    client3.unsubscribe("$share/g/jobs/#").await.unwrap();
+    within("the last member gone, the group's queue deleted", async {
+        while queue_names(&handle).contains(&"mqtt-shared-g/jobs/#".to_owned()) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn shared_subscriptions_count_against_the_filter_limit_and_the_name_length() {
+    use leveret_mqtt::{ReasonCode, Subscription, TopicFilter};
+    let handle = start(Limits::default()).await;
+    let mut raw = Raw::login_as(mqtt_port(&handle), 0, ProtocolVersion::V5, "sharer").await;
+    let filter = |text: String| Subscription {
+        filter: TopicFilter::new(leveret_mqtt::MqttString::from_utf8(Bytes::from(text)).unwrap())
+            .unwrap(),
+        options: Default::default(),
+    };
+    // A group and filter too long for a queue name: 0x8F, the session goes on.
+    let mut subscriptions = vec![filter(format!("$share/g/{}", "f".repeat(250)))];
+    // 4,095 own filters and two shared ones: the second shared one is the
+    // 4,097th filter.
+    subscriptions.extend((0..4095).map(|i| filter(format!("own/{i}"))));
+    subscriptions.push(filter("$share/g/one".to_owned()));
+    subscriptions.push(filter("$share/g/two".to_owned()));
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions,
+    }))
+    .await;
+    let Some(Packet::SubAck(suback)) = raw.next().await else {
+        panic!("expected SUBACK");
+    };
+    assert_eq!(suback.reasons.len(), 4098);
+    assert_eq!(suback.reasons[0], ReasonCode::TopicFilterInvalid);
+    assert!(suback.reasons[1..4097]
+        .iter()
+        .all(|r| *r == ReasonCode::GRANTED_QOS_0));
+    assert_eq!(suback.reasons[4097], ReasonCode::QuotaExceeded);
+    let names = queue_names(&handle);
+    assert!(names.contains(&"mqtt-shared-g/one".to_owned()));
+    assert!(!names.contains(&"mqtt-shared-g/two".to_owned()));
+    // Subscribing again at another QoS keeps the member in the group
+    // (consumed anew before the old consumer is cancelled).
+    let again = Subscription {
+        options: leveret_mqtt::SubscriptionOptions {
+            qos: leveret_mqtt::QoS::AtLeastOnce,
+            ..Default::default()
+        },
+        ..filter("$share/g/one".to_owned())
+    };
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(2).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![again],
+    }))
+    .await;
+    let Some(Packet::SubAck(suback)) = raw.next().await else {
+        panic!("expected SUBACK");
+    };
+    assert_eq!(suback.reasons, [ReasonCode::GrantedQos1]);
+    let queue = handle
+        .queues()
+        .into_iter()
+        .find(|q| q.name == "mqtt-shared-g/one")
+        .expect("the group's queue is kept");
+    assert_eq!(queue.consumers, 1);
+    handle.shutdown().await;
+}
+
+/// The wills a test queue bound to `status.#` holds, as (routing key, body).
+async fn wills_in(channel: &lapin::Channel, queue: &str) -> Vec<lapin::message::BasicGetMessage> {
+    let mut got = Vec::new();
+    while let Some(message) =
+        tmo!(channel.basic_get(queue, lapin::options::BasicGetOptions { no_ack: true })).unwrap()
+    {
+        got.push(message);
+    }
+    got
+}
+
+/// A 5.0 client with a will on `status/<id>` delayed `delay` seconds and
+/// a session expiring after 600 s, once connected.
+async fn client_with_will(
+    port: u16,
+    id: &str,
+    delay: u32,
+    clean: bool,
+) -> (rumqttc::v5::AsyncClient, rumqttc::v5::EventLoop) {
+    let mut options = options5(id, port, "secret");
+    options.set_clean_start(clean);
+    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+    properties.session_expiry_interval = Some(600);
+    options.set_connect_properties(properties);
+    let will_properties = LastWillProperties {
+        delay_interval: Some(delay),
+        payload_format_indicator: None,
+        message_expiry_interval: Some(120),
+        content_type: Some("text/plain".into()),
+        response_topic: Some("replies/here".into()),
+        correlation_data: Some(Bytes::from_static(b"corr-1")),
+        user_properties: vec![("origin".into(), id.into())],
+    };
+    options.set_last_will(rumqttc::v5::mqttbytes::v5::LastWill::new(
+        format!("status/{id}"),
+        "gone",
+        QoS5::AtLeastOnce,
+        false,
+        Some(will_properties),
+    ));
+    connected5(options).await
+}
+
+#[both_runtimes]
+async fn a_5_0_will_waits_its_delay_and_carries_its_properties() {
+    use lapin::types::{AMQPValue, ShortString};
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("wills5", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "wills5", "status.#").await;
+    let (_client, events) = client_with_will(port, "delayed", 1, true).await;
+    // Dropped without DISCONNECT: the will comes after its delay.
+    drop(events);
+    let got = within("the delayed will", async {
+        loop {
+            let got = wills_in(&channel, "wills5").await;
+            if !got.is_empty() {
+                return got;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    assert_eq!(got.len(), 1);
+    let will = &got[0];
+    assert_eq!(will.delivery.routing_key.as_str(), "status.delayed");
+    assert_eq!(&will.delivery.data[..], b"gone");
+    let properties = &will.delivery.properties;
+    assert_eq!(
+        properties.content_type().as_ref().unwrap().as_str(),
+        "text/plain"
+    );
+    assert_eq!(
+        properties.reply_to().as_ref().unwrap().as_str(),
+        "replies.here"
+    );
+    assert_eq!(
+        properties.correlation_id().as_ref().unwrap().as_str(),
+        "corr-1"
+    );
+    assert_eq!(properties.expiration().as_ref().unwrap().as_str(), "120000");
+    assert_eq!(properties.delivery_mode(), &Some(2));
+    let headers = properties.headers().as_ref().unwrap();
+    assert_eq!(
+        headers.inner().get(&ShortString::from("origin")),
+        Some(&AMQPValue::LongString("delayed".into()))
+    );
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_waiting_will_is_dropped_on_resume_and_published_on_a_clean_start() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("wills-wait", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "wills-wait", "status.#").await;
+    // A will delayed 10 minutes, its connection dropped: it waits.
+    let (_client, events) = client_with_will(port, "resumer", 600, true).await;
+    drop(events);
+    within("the dropped session ended", async {
+        while handle.overview().object_totals.connections > 1 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    // The session resumed: the will is dropped for good (a later clean
+    // start has nothing to publish). That later connection's own will
+    // is delayed as well, and dropped by DISCONNECT.
+    let (client, mut events) = client_with_will(port, "resumer", 600, false).await;
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    let (client, mut events) = client_with_will(port, "resumer", 600, true).await;
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    // A will left waiting, then a clean start: published at once.
+    let (_client, events) = client_with_will(port, "cleaner", 600, true).await;
+    drop(events);
+    within("the dropped session ended", async {
+        while handle.overview().object_totals.connections > 1 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    let (client, mut events) = client_with_will(port, "cleaner", 600, true).await;
+    let got = within("the clean start's will", async {
+        loop {
+            let got = wills_in(&channel, "wills-wait").await;
+            if !got.is_empty() {
+                return got;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    let keys: Vec<_> = got
+        .iter()
+        .map(|m| m.delivery.routing_key.to_string())
+        .collect();
+    assert_eq!(
+        keys,
+        ["status.cleaner"],
+        "the resumed session's will dropped"
+    );
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_5_0_delivery_says_the_expiry_left_and_a_retained_will_is_retained() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) = connected5(options5("expiry-left", port, "secret")).await;
+    subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("exp/#", QoS5::AtLeastOnce)],
+        None,
+    )
+    .await;
+    // An AMQP publish 20 s old with a minute to live.
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs();
+    let properties = lapin::BasicProperties::default()
+        .with_delivery_mode(2)
+        .with_expiration("60000".into())
+        .with_timestamp(now - 20);
+    tmo!(channel.basic_publish(
+        "amq.topic",
+        "exp.amqp",
+        Default::default(),
+        b"old",
+        properties
+    ))
+    .unwrap();
+    let publish = next_publish5(&mut events).await;
+    let left = publish.properties.and_then(|p| p.message_expiry_interval);
+    let left = left.expect("the expiry left");
+    assert!((1..=40).contains(&left), "{left} s left of 60 after 20");
+    // A retained will sets its topic's retained message.
+    let mut options = options5("retained-will", port, "secret");
+    options.set_last_will(rumqttc::v5::mqttbytes::v5::LastWill::new(
+        "exp/will",
+        "last",
+        QoS5::AtLeastOnce,
+        true,
+        None,
+    ));
+    let (_will_client, will_events) = connected5(options).await;
+    drop(will_events);
+    let publish = next_publish5(&mut events).await;
+    assert_eq!(publish.payload, "last");
+    let (late, mut late_events) = connected5(options5("late", port, "secret")).await;
+    subscribe5(
+        &late,
+        &mut late_events,
+        vec![Filter::new("exp/will", QoS5::AtLeastOnce)],
+        None,
+    )
+    .await;
+    let retained = next_publish5(&mut late_events).await;
+    assert!(retained.retain);
+    assert_eq!(retained.payload, "last");
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn enhanced_authentication_is_refused_and_auth_packets_end_the_session() {
+    use leveret_mqtt::ReasonCode;
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let mut raw = Raw::connect(port).await;
+    raw.version = ProtocolVersion::V5;
+    let mut properties = leveret_mqtt::Properties::default();
+    properties.authentication_method = Some(leveret_mqtt::MqttString::from_static("SCRAM-SHA-1"));
+    raw.send(Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V5,
+        clean_start: true,
+        keep_alive: 0,
+        properties,
+        client_id: leveret_mqtt::MqttString::from_static("scram"),
+        will: None,
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: None,
+    })))
+    .await;
+    let Some(Packet::ConnAck(connack)) = raw.next().await else {
+        panic!("expected CONNACK");
+    };
+    assert_eq!(connack.reason, ReasonCode::BadAuthenticationMethod);
+    raw.assert_closed().await;
+    // AUTH after a plain login: DISCONNECT 0x82.
+    let mut raw = Raw::login_as(port, 0, ProtocolVersion::V5, "auth-later").await;
+    raw.send(Packet::Auth(leveret_mqtt::Auth {
+        reason: ReasonCode::ReAuthenticate,
+        properties: Default::default(),
+    }))
+    .await;
+    let Some(Packet::Disconnect(d)) = raw.next().await else {
+        panic!("expected DISCONNECT");
+    };
+    assert_eq!(d.reason, ReasonCode::ProtocolError);
+    raw.assert_closed().await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_disconnect_can_end_a_persistent_session_but_not_extend_a_clean_one() {
+    use leveret_mqtt::{Disconnect, ReasonCode};
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let disconnect = |expiry: u32| {
+        let mut properties = leveret_mqtt::Properties::default();
+        properties.session_expiry_interval = Some(expiry);
+        Packet::Disconnect(Disconnect {
+            reason: ReasonCode::Success,
+            properties,
+        })
+    };
+    // A session with no expiry (CONNECT said 0) given one at DISCONNECT.
+    let mut raw = Raw::login_as(port, 0, ProtocolVersion::V5, "no-expiry").await;
+    raw.send(disconnect(60)).await;
+    let Some(Packet::Disconnect(d)) = raw.next().await else {
+        panic!("expected DISCONNECT 0x82");
+    };
+    assert_eq!(d.reason, ReasonCode::ProtocolError);
+    raw.assert_closed().await;
+    // A persistent session ended by DISCONNECT with expiry 0: its queue goes.
+    let mut raw = Raw::connect(port).await;
+    raw.version = ProtocolVersion::V5;
+    let mut properties = leveret_mqtt::Properties::default();
+    properties.session_expiry_interval = Some(600);
+    raw.send(Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V5,
+        clean_start: true,
+        keep_alive: 0,
+        properties,
+        client_id: leveret_mqtt::MqttString::from_static("ending"),
+        will: None,
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    })))
+    .await;
+    assert!(
+        matches!(raw.next().await, Some(Packet::ConnAck(a)) if a.reason == ReasonCode::Success)
+    );
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::from_static("end/#"),
+            options: Default::default(),
+        }],
+    }))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    assert!(queue_names(&handle).contains(&"mqtt-subscription-endingqos0".to_owned()));
+    raw.send(disconnect(0)).await;
+    raw.assert_closed().await;
+    within("the ended session's queue deleted", async {
+        while queue_names(&handle).contains(&"mqtt-subscription-endingqos0".to_owned()) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_5_0_receive_maximum_bounds_deliveries_over_every_queue_of_the_session() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let mut options = options5("narrow", port, "secret");
+    options.set_manual_acks(true);
+    options.set_receive_maximum(Some(3));
+    let (client, mut events) = connected5(options).await;
+    // Three queues with acknowledgements: QoS 1, QoS 2 and a shared one.
+    subscribe5(
+        &client,
+        &mut events,
+        vec![
+            Filter::new("rm/one", QoS5::AtLeastOnce),
+            Filter::new("rm/two", QoS5::ExactlyOnce),
+            Filter::new("$share/rm/rm/shared", QoS5::AtLeastOnce),
+        ],
+        None,
+    )
+    .await;
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    let persistent = lapin::BasicProperties::default().with_delivery_mode(2);
+    for key in ["rm.one", "rm.two", "rm.shared"] {
+        for i in 0..5u8 {
+            tmo!(channel.basic_publish(
+                "amq.topic",
+                key,
+                Default::default(),
+                &[i],
+                persistent.clone()
+            ))
+            .unwrap();
+        }
+    }
+    let mut held = Vec::new();
+    for _ in 0..3 {
+        held.push(next_publish5(&mut events).await);
+    }
+    let more = tokio::time::timeout(QUIET, next_publish5(&mut events)).await;
+    assert!(
+        more.is_err(),
+        "a fourth delivery past the client's receive maximum: {more:?}"
+    );
+    // Each acknowledgement lets one more go.
+    client.ack(&held[0]).await.unwrap();
+    next_publish5(&mut events).await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_broker_shuts_down_with_sessions_owing_wills_and_wills_waiting() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-wills-down"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    let durable = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    tmo!(channel.queue_declare("wills-down", durable, Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "wills-down", "status.#").await;
+    // One will waiting for its delay, one session connected whose will
+    // (no delay) the shutdown publishes, through the store.
+    let (_waiting, events) = client_with_will(port, "waiting", 600, true).await;
+    drop(events);
+    let (_connected, _events) = client_with_will(port, "connected", 0, true).await;
+    within("the broker shut down", handle.shutdown()).await;
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -217,31 +217,63 @@ impl Link {
 /// QoS 2 subscriber gets it at QoS 2; without it a persistent message is
 /// QoS 1 and a transient one QoS 0.
 pub(super) const PUBLISH_QOS_HEADER: &str = "x-mqtt-publish-qos";
+/// The header a publish with RETAIN set carries (`true`), for the
+/// subscriptions with Retain As Published.
+pub(super) const RETAIN_HEADER: &str = "x-mqtt-retain";
+/// The header naming the client identifier that published a message,
+/// set while the publishing session has a No Local subscription.
+pub(super) const PUBLISHER_HEADER: &str = "x-mqtt-publisher";
+/// What the headers of the broker's own start with: they are not 5.0
+/// user properties.
+pub(super) const MQTT_HEADER_PREFIX: &str = "x-mqtt-";
 
-/// A publish to [`EXCHANGE`]: persistent for QoS 1 and 2, as RabbitMQ's
-/// MQTT plugin publishes them; QoS 2 says so in [`PUBLISH_QOS_HEADER`].
-pub(super) fn publish(
-    routing_key: ShortStr,
-    qos: QoS,
-    body: Bytes,
+/// How an MQTT publish is marked for its subscribers.
+pub(super) struct Marks<'a> {
+    pub qos: QoS,
+    /// RETAIN was set.
+    pub retain: bool,
+    /// The publishing client, when No Local needs it.
+    pub publisher: Option<&'a str>,
+}
+
+/// The AMQP properties of an MQTT publish: persistent for QoS 1 and 2, as
+/// RabbitMQ's MQTT plugin publishes them; QoS 2 says so in
+/// [`PUBLISH_QOS_HEADER`], RETAIN in [`RETAIN_HEADER`], the publisher in
+/// [`PUBLISHER_HEADER`]; a 5.0 publish's (or will's) properties mapped.
+pub(super) fn properties(
+    marks: Marks<'_>,
     v5_properties: Option<&leveret_mqtt::Properties>,
-) -> Outgoing {
-    let headers = (qos == QoS::ExactlyOnce).then(|| {
-        let mut headers = FieldTable::new();
+    now: std::time::SystemTime,
+) -> BasicProperties {
+    let mut headers = FieldTable::new();
+    if marks.qos == QoS::ExactlyOnce {
         headers.insert(
             ShortStr::from_static(PUBLISH_QOS_HEADER),
-            FieldValue::U8(qos.level()),
+            FieldValue::U8(marks.qos.level()),
         );
-        headers
-    });
+    }
+    if marks.retain {
+        headers.insert(ShortStr::from_static(RETAIN_HEADER), FieldValue::Bool(true));
+    }
+    if let Some(publisher) = marks.publisher {
+        headers.insert(
+            ShortStr::from_static(PUBLISHER_HEADER),
+            FieldValue::string(publisher),
+        );
+    }
     let mut properties = BasicProperties {
-        delivery_mode: Some(if qos == QoS::AtMostOnce { 1 } else { 2 }),
-        headers,
+        delivery_mode: Some(if marks.qos == QoS::AtMostOnce { 1 } else { 2 }),
+        headers: (!headers.is_empty()).then_some(headers),
         ..Default::default()
     };
     if let Some(mqtt) = v5_properties {
-        super::properties::to_amqp(mqtt, &mut properties);
+        super::properties::to_amqp(mqtt, &mut properties, now);
     }
+    properties
+}
+
+/// A publish to [`EXCHANGE`].
+pub(super) fn publish(routing_key: ShortStr, properties: BasicProperties, body: Bytes) -> Outgoing {
     Outgoing::Publish {
         channel: CHANNEL,
         method: BasicPublish {

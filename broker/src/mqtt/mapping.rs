@@ -63,6 +63,13 @@ pub(super) fn queue_name(client_id: &str, qos: QoS) -> Option<ShortStr> {
     ShortStr::try_from(format!("mqtt-subscription-{client_id}qos{}", qos.level())).ok()
 }
 
+/// The queue of shared subscription `$share/GROUP/FILTER` in a vhost:
+/// `mqtt-shared-GROUP/FILTER` (a group has no `/`, so two subscriptions
+/// never share a name); `None` if that is longer than a queue name.
+pub(super) fn shared_queue_name(group: &str, filter: &str) -> Option<ShortStr> {
+    ShortStr::try_from(format!("mqtt-shared-{group}/{filter}")).ok()
+}
+
 /// The longest client identifier whose queue names fit in a queue name.
 pub(super) const MAX_CLIENT_ID: usize = 255 - "mqtt-subscription-qos0".len();
 
@@ -113,6 +120,20 @@ mod tests {
         assert_eq!(name, "mqtt-subscription-sensor-1qos1");
         assert!(queue_name(&"c".repeat(MAX_CLIENT_ID), QoS::AtMostOnce).is_some());
         assert!(queue_name(&"c".repeat(MAX_CLIENT_ID + 1), QoS::AtMostOnce).is_none());
+    }
+
+    #[test]
+    fn shared_queues_are_named_by_group_and_filter() {
+        assert_eq!(
+            shared_queue_name("workers", "jobs/+").unwrap(),
+            "mqtt-shared-workers/jobs/+"
+        );
+        assert_ne!(
+            shared_queue_name("a-b", "c").unwrap(),
+            shared_queue_name("a", "b-c").unwrap()
+        );
+        assert!(shared_queue_name("g", &"f".repeat(242)).is_none());
+        assert!(shared_queue_name("g", &"f".repeat(241)).is_some());
     }
 
     #[test]

@@ -14,16 +14,22 @@
 //! (topics ↔ routing keys, queue names, `vhost:user`); `takeover` the
 //! client identifiers in use; `retained` the retained messages;
 //! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL;
-//! `properties` 5.0 PUBLISH properties ↔ AMQP properties.
+//! `properties` 5.0 PUBLISH properties ↔ AMQP properties;
+//! `subscriptions` a session's subscriptions, their 5.0 options and
+//! shared subscriptions; `aliases` inbound topic aliases; `wills` last
+//! wills and their delay.
 
+mod aliases;
 mod link;
 mod mapping;
 mod properties;
 mod releases;
 mod retained;
 mod session;
+mod subscriptions;
 mod takeover;
 mod websocket;
+mod wills;
 
 use retained::Retained;
 pub use retained::RetainedLimits;
@@ -51,6 +57,8 @@ pub(crate) struct Shared {
     /// no user name logs in as the certificate's common name (RabbitMQ's
     /// `mqtt.ssl_cert_login`).
     certificate_login: bool,
+    /// Wills waiting for their delay.
+    wills: wills::Wills,
 }
 
 impl Shared {
@@ -73,6 +81,7 @@ impl Shared {
             ),
             releases: releases::Releases::new(recovered, core.persistence.clone()),
             certificate_login: options.certificate_login,
+            wills: Default::default(),
         }
     }
 }

@@ -3,20 +3,29 @@
 //! Data ↔ `correlation-id` when it is UTF-8 of at most 255 bytes, else the
 //! header `x-correlation-id`; Response Topic ↔ `reply-to` (as a routing
 //! key: `/` ↔ `.`); User Properties ↔ headers with long-string values;
-//! Message Expiry Interval → `expiration` (milliseconds). Only 5.0
-//! sessions read or write them.
+//! Message Expiry Interval ↔ `expiration` (milliseconds), with the
+//! publish's `timestamp` so that a delivery says the expiry left. Headers
+//! named `x-mqtt-…` are the broker's own, not user properties. Only 5.0
+//! sessions read or write them (and 5.0 wills).
 
-use super::link::PUBLISH_QOS_HEADER;
+use super::link::MQTT_HEADER_PREFIX;
 use super::mapping;
 use bytes::Bytes;
 use leveret_mqtt::{MqttString, Properties, TopicName};
 use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+/// Seconds since the epoch at `time` (AMQP's timestamp).
+pub(super) fn epoch_seconds(time: SystemTime) -> u64 {
+    time.duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs())
+}
 
 /// The header that holds correlation data `correlation-id` cannot.
 const CORRELATION_HEADER: &str = "x-correlation-id";
 
-/// Sets `amqp` from a 5.0 PUBLISH's properties.
-pub(super) fn to_amqp(mqtt: &Properties, amqp: &mut BasicProperties) {
+/// Sets `amqp` from a 5.0 PUBLISH's (or will's) properties, published
+/// at `now`.
+pub(super) fn to_amqp(mqtt: &Properties, amqp: &mut BasicProperties, now: SystemTime) {
     if let Some(content_type) = &mqtt.content_type {
         amqp.content_type = ShortStr::try_from(content_type.as_str()).ok();
     }
@@ -26,6 +35,7 @@ pub(super) fn to_amqp(mqtt: &Properties, amqp: &mut BasicProperties) {
     if let Some(seconds) = mqtt.message_expiry_interval {
         let millis = u64::from(seconds) * 1000;
         amqp.expiration = ShortStr::try_from(millis.to_string()).ok();
+        amqp.timestamp = Some(epoch_seconds(now));
     }
     let mut headers = amqp.headers.take().unwrap_or_default();
     if let Some(data) = &mqtt.correlation_data {
@@ -48,9 +58,23 @@ pub(super) fn to_amqp(mqtt: &Properties, amqp: &mut BasicProperties) {
     amqp.headers = (!headers.is_empty()).then_some(headers);
 }
 
-/// A 5.0 delivery's PUBLISH properties from a message's.
-pub(super) fn from_amqp(amqp: &BasicProperties) -> Properties {
+/// A 5.0 delivery's PUBLISH properties from a message's, delivered at
+/// `now`: the Message Expiry Interval is what is left of the expiration
+/// since the message's timestamp (the whole of it without one; at least a
+/// second, as the core drops what has expired).
+pub(super) fn from_amqp(amqp: &BasicProperties, now: SystemTime) -> Properties {
     let mut mqtt = Properties::default();
+    if let Some(millis) = amqp
+        .expiration
+        .as_ref()
+        .and_then(|e| e.as_str()?.parse::<u64>().ok())
+    {
+        let elapsed = amqp
+            .timestamp
+            .map_or(0, |t| epoch_seconds(now).saturating_sub(t));
+        let left = millis.div_ceil(1000).saturating_sub(elapsed).max(1);
+        mqtt.message_expiry_interval = Some(u32::try_from(left).unwrap_or(u32::MAX));
+    }
     if let Some(content_type) = amqp.content_type.as_ref().and_then(|c| c.as_str()) {
         mqtt.content_type = MqttString::try_from(content_type).ok();
     }
@@ -69,7 +93,7 @@ pub(super) fn from_amqp(amqp: &BasicProperties) -> Properties {
             (CORRELATION_HEADER, FieldValue::LongStr(data)) => {
                 mqtt.correlation_data = Some(data.clone());
             }
-            (PUBLISH_QOS_HEADER, _) => {}
+            (key, _) if key.starts_with(MQTT_HEADER_PREFIX) => {}
             (_, FieldValue::LongStr(text)) => {
                 let text = std::str::from_utf8(text).ok().map(MqttString::try_from);
                 if let (Ok(key), Some(Ok(text))) = (MqttString::try_from(key), text) {
@@ -91,9 +115,9 @@ mod tests {
         let mut mqtt = Properties::default();
         mqtt.correlation_data = Some(Bytes::from_static(&[0xff, 0x00, 0x01]));
         let mut amqp = BasicProperties::default();
-        to_amqp(&mqtt, &mut amqp);
+        to_amqp(&mqtt, &mut amqp, SystemTime::now());
         assert_eq!(amqp.correlation_id, None);
-        let back = from_amqp(&amqp);
+        let back = from_amqp(&amqp, SystemTime::now());
         assert_eq!(back.correlation_data, mqtt.correlation_data);
         assert!(
             back.user_properties.is_empty(),
@@ -102,13 +126,45 @@ mod tests {
     }
 
     #[test]
-    fn the_qos_header_is_no_user_property() {
+    fn the_brokers_headers_are_no_user_properties() {
+        use super::super::link::{PUBLISHER_HEADER, PUBLISH_QOS_HEADER, RETAIN_HEADER};
         let mut headers = FieldTable::new();
         headers.insert(ShortStr::from_static(PUBLISH_QOS_HEADER), FieldValue::U8(2));
+        headers.insert(ShortStr::from_static(RETAIN_HEADER), FieldValue::Bool(true));
+        headers.insert(
+            ShortStr::from_static(PUBLISHER_HEADER),
+            FieldValue::string("me"),
+        );
         let amqp = BasicProperties {
             headers: Some(headers),
             ..Default::default()
         };
-        assert!(from_amqp(&amqp).user_properties.is_empty());
+        assert!(from_amqp(&amqp, SystemTime::now())
+            .user_properties
+            .is_empty());
+    }
+
+    #[test]
+    fn a_delivery_says_the_expiry_left() {
+        let mut mqtt = Properties::default();
+        mqtt.message_expiry_interval = Some(60);
+        let published = UNIX_EPOCH + std::time::Duration::from_secs(1_000_000);
+        let mut amqp = BasicProperties::default();
+        to_amqp(&mqtt, &mut amqp, published);
+        assert_eq!(amqp.expiration.as_ref().unwrap(), "60000");
+        let later = |s| published + std::time::Duration::from_secs(s);
+        assert_eq!(from_amqp(&amqp, later(0)).message_expiry_interval, Some(60));
+        assert_eq!(
+            from_amqp(&amqp, later(25)).message_expiry_interval,
+            Some(35)
+        );
+        // Never 0 (the core drops an expired message), nor negative.
+        assert_eq!(from_amqp(&amqp, later(99)).message_expiry_interval, Some(1));
+        // An AMQP publish without a timestamp: the whole expiration, rounded up.
+        let amqp = BasicProperties {
+            expiration: Some(ShortStr::from_static("1500")),
+            ..Default::default()
+        };
+        assert_eq!(from_amqp(&amqp, later(0)).message_expiry_interval, Some(2));
     }
 }

@@ -9,12 +9,17 @@
 //! the packet size limit (before CONNECT by [`CONNECT_MAX_PACKET`]), the
 //! items waiting for the link by [`PENDING_MAX`] (the socket is not read
 //! while they wait), unconfirmed publishes by their packet identifiers,
-//! deliveries in flight by the receive window.
+//! deliveries in flight by the receive window, topic aliases by
+//! [`super::aliases::TOPIC_ALIAS_MAXIMUM`], subscriptions (own and
+//! shared) by [`MAX_SUBSCRIPTIONS`].
 
+use super::aliases::{TopicAliases, TOPIC_ALIAS_MAXIMUM};
 use super::link::{self, Link, Login, Refusal};
 use super::mapping;
 use super::retained::Message;
+use super::subscriptions::{self, Marks, Options, SharedSubscription, Subscriptions};
 use super::takeover::Claim;
+use super::wills::{self, LastWill};
 use super::Shared;
 use crate::admission::Slot;
 use crate::connection::DirectReply;
@@ -25,14 +30,14 @@ use bytes::BytesMut;
 use leveret_mqtt::{
     decode_packet, ConnAck, Connect, Delivery, Disconnect, MqttString, Packet, PacketId,
     ProtocolVersion, PubResponse, Publish, QoS, ReasonCode, RetainHandling, SubAck, Subscribe,
-    TopicName, UnsubAck, Unsubscribe, Will, MAX_PACKET_SIZE,
+    TopicName, UnsubAck, Unsubscribe, MAX_PACKET_SIZE,
 };
 use leveret_protocol::{
-    BasicAck, BasicConsume, FieldTable, FieldValue, Frame, Method, Outgoing, QueueBind,
-    QueueDeclare, QueueDelete, QueueUnbind, ReplyCode, ShortStr,
+    BasicAck, BasicCancel, BasicConsume, FieldTable, FieldValue, Frame, Method, Outgoing,
+    QueueBind, QueueDeclare, QueueDelete, QueueUnbind, ReplyCode, ShortStr,
 };
 use std::collections::{BTreeMap, HashMap, VecDeque};
-use std::num::NonZeroU16;
+use std::num::{NonZeroU16, NonZeroU32};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
@@ -125,6 +130,13 @@ pub(super) async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     } = accepted;
     let lifetime = Lifetime::of(&connect);
     let max_packet = max_packet(&core.limits);
+    let will_delay = connect
+        .will
+        .as_ref()
+        .and_then(|w| w.properties.will_delay_interval)
+        .map_or(Duration::ZERO, |s| Duration::from_secs(s.into()));
+    let will =
+        (connect.will.clone()).map(|will| LastWill::new(will, &vhost, &user, version.is_v5()));
     let mut session = Session {
         version,
         client_id,
@@ -136,7 +148,9 @@ pub(super) async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
         window,
         max_packet,
         client_max_packet: connect.properties.maximum_packet_size.map(|m| m.get()),
-        will: connect.will,
+        will,
+        will_delay,
+        aliases: TopicAliases::default(),
         out: BytesMut::new(),
         pending: VecDeque::new(),
         awaiting: VecDeque::new(),
@@ -147,8 +161,9 @@ pub(super) async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
         in_flight: HashMap::new(),
         retained_backlog: VecDeque::new(),
         next_packet_id: 1,
-        subscriptions: HashMap::new(),
+        subscriptions: Subscriptions::default(),
         queues: [false; 3],
+        acked_consumers: 0,
         delete_at_end: Vec::new(),
     };
     let session_present = session.begin(&core, connect.clean_start);
@@ -162,6 +177,7 @@ pub(super) async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
         link,
         reason,
         disconnected,
+        will,
     } = end;
     if disconnected {
         tracing::debug!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
@@ -169,6 +185,16 @@ pub(super) async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
     link.close(disconnected).await;
+    if let Some(will) = will {
+        wills::publish_after(
+            &shared,
+            &core,
+            &session.client_id,
+            will,
+            session.will_delay_left(),
+        )
+        .await;
+    }
     if session.lifetime != Lifetime::Connection {
         let stored = session
             .exactly_once
@@ -361,8 +387,8 @@ type Then = Vec<Done>;
 enum Done {
     Send(Packet),
     /// Retained messages a subscription matched (after its SUBACK), each
-    /// with the QoS granted.
-    Retained(Vec<(Message, QoS)>),
+    /// with the QoS granted and the subscription's identifier.
+    Retained(Vec<RetainedDelivery>),
 }
 
 /// A session's state between the client and its link.
@@ -382,7 +408,11 @@ struct Session {
     max_packet: u32,
     /// The largest packet a 5.0 client accepts.
     client_max_packet: Option<u32>,
-    will: Option<Will>,
+    will: Option<LastWill>,
+    /// The will's delay (5.0's Will Delay Interval).
+    will_delay: Duration,
+    /// Inbound topic aliases.
+    aliases: TopicAliases,
     /// Encoded packets waiting to be written.
     out: BytesMut,
     /// Items waiting for room on the link.
@@ -404,12 +434,15 @@ struct Session {
     /// QoS 1 and 2 deliveries not yet completed, by packet identifier.
     in_flight: HashMap<PacketId, Outbound>,
     /// Retained messages waiting for room in the window.
-    retained_backlog: VecDeque<(Message, QoS)>,
+    retained_backlog: VecDeque<RetainedDelivery>,
     next_packet_id: u16,
-    /// Topic filter → the QoS granted (the queue it is bound to).
-    subscriptions: HashMap<String, QoS>,
+    /// The subscriptions and their options.
+    subscriptions: Subscriptions,
     /// Whether the QoS 0, 1 and 2 queues are declared and consumed.
     queues: [bool; 3],
+    /// Consumers with acknowledgements started (see
+    /// [`Session::acked_consumer_added`]).
+    acked_consumers: usize,
     /// Queues of a resumed session to delete when this one ends (it does
     /// not outlive its connection).
     delete_at_end: Vec<ShortStr>,
@@ -427,6 +460,10 @@ enum Outbound {
     /// QoS 2, PUBREL sent (and the delivery acked), awaiting PUBCOMP.
     ExactlyOnceReleased,
 }
+
+/// A retained message for a new subscription: the QoS granted and the
+/// subscription's identifier.
+type RetainedDelivery = (Message, QoS, Option<NonZeroU32>);
 
 /// How a PUBLISH to the client goes out (its properties only for 5.0).
 struct Outgoing5 {
@@ -451,6 +488,8 @@ struct Ended {
     reason: &'static str,
     /// The client ended it with DISCONNECT.
     disconnected: bool,
+    /// The will to publish.
+    will: Option<LastWill>,
 }
 
 /// Why the loop stopped.
@@ -468,6 +507,17 @@ enum Stop {
 impl Session {
     fn v5(&self) -> bool {
         self.version.is_v5()
+    }
+
+    /// How long the will waits once the connection has ended: its delay,
+    /// unless the session ends sooner (at once for a session that goes
+    /// with its connection).
+    fn will_delay_left(&self) -> Duration {
+        match self.lifetime {
+            Lifetime::Connection => Duration::ZERO,
+            Lifetime::Seconds(s) => self.will_delay.min(Duration::from_secs(s.into())),
+            Lifetime::Forever => self.will_delay,
+        }
     }
 
     /// Starts the session: a clean start deletes what a previous session
@@ -505,14 +555,16 @@ impl Session {
             }
             present = true;
             let exchange = ShortStr::from_static(mapping::EXCHANGE);
-            let keys = vhost
+            let bindings = vhost
                 .as_ref()
-                .map(|v| v.binding_keys_to(&exchange, &queue, MAX_SUBSCRIPTIONS))
+                .map(|v| v.bindings_to(&exchange, &queue, MAX_SUBSCRIPTIONS))
                 .unwrap_or_default();
-            for key in keys {
-                if let Some(filter) = mapping::filter(&key) {
+            for (key, arguments) in bindings {
+                let filter = mapping::filter(&key).and_then(subscriptions::own_filter);
+                if let Some(filter) = filter {
                     if self.subscriptions.len() < MAX_SUBSCRIPTIONS {
-                        self.subscriptions.insert(filter, qos);
+                        let options = Options::from_binding(qos, &arguments);
+                        self.subscriptions.insert_own(&filter, options);
                     }
                 }
             }
@@ -521,6 +573,10 @@ impl Session {
             }
             self.consume(name, qos);
         }
+        // A will the previous connection left waiting for its delay.
+        self.shared
+            .wills
+            .reconnected(&self.vhost, &self.client_id, !clean_start);
         // QoS 2 publishes the client had not released: a resend is not
         // routed again, and its PUBREL is answered. They are session
         // state of their own (a publisher need not subscribe).
@@ -540,8 +596,7 @@ impl Session {
         if self.v5() {
             properties.maximum_packet_size = std::num::NonZeroU32::new(self.max_packet);
             properties.receive_maximum = NonZeroU16::new(RECEIVE_MAXIMUM);
-            properties.shared_subscription_available = Some(false);
-            properties.subscription_identifier_available = Some(false);
+            properties.topic_alias_maximum = Some(TOPIC_ALIAS_MAXIMUM);
             if assigned {
                 properties.assigned_client_identifier =
                     MqttString::from_utf8(self.client_id.clone().into()).ok();
@@ -698,21 +753,11 @@ impl Session {
             };
             let _ = link.direct.to_broker.send(link::method(delete)).await;
         }
-        if let Some(will) = self.will.take().filter(|_| send_will) {
-            if let Some(key) = mapping::routing_key(will.topic.as_str()) {
-                // Sent before the link is dropped: the broker handles it
-                // before it sees the client gone.
-                let _ = link
-                    .direct
-                    .to_broker
-                    .send(link::publish(key, will.qos, owned(will.payload), None))
-                    .await;
-            }
-        }
         Ended {
             link,
             reason,
             disconnected,
+            will: self.will.take().filter(|_| send_will),
         }
     }
 
@@ -810,9 +855,12 @@ impl Session {
                 self.send(Packet::PingResp);
                 Ok(())
             }
-            Packet::Disconnect(disconnect) => Err(Stop::Disconnected {
-                send_will: disconnect.reason == ReasonCode::DisconnectWithWill,
-            }),
+            Packet::Disconnect(disconnect) => {
+                self.expiry_at_disconnect(disconnect.properties.session_expiry_interval)?;
+                Err(Stop::Disconnected {
+                    send_will: disconnect.reason == ReasonCode::DisconnectWithWill,
+                })
+            }
             Packet::Auth(_) => Err(closed(
                 "enhanced authentication is not supported",
                 Some(ReasonCode::ProtocolError),
@@ -825,11 +873,36 @@ impl Session {
         }
     }
 
-    fn publish(&mut self, publish: Publish) -> Result<(), Stop> {
-        if publish.properties.topic_alias.is_some() {
-            // The CONNACK allowed no topic aliases.
-            return Err(closed("topic alias", Some(ReasonCode::TopicAliasInvalid)));
+    /// A 5.0 DISCONNECT's Session Expiry Interval: 0 ends a persistent
+    /// session with the connection (its queues are deleted); a session
+    /// that had 0 in its CONNECT may not be given one (MQTT-3.14.2-2:
+    /// 0x82). Another change to a persistent session's expiry is not
+    /// applied: its queues' `x-expires` is fixed when they are declared.
+    fn expiry_at_disconnect(&mut self, expiry: Option<u32>) -> Result<(), Stop> {
+        match expiry {
+            Some(0) if self.lifetime != Lifetime::Connection => {
+                self.lifetime = Lifetime::Connection;
+                for qos in [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce] {
+                    let queue = mapping::queue_name(&self.client_id, qos)
+                        .filter(|_| self.queues[usize::from(qos.level())]);
+                    self.delete_at_end.extend(queue);
+                }
+                Ok(())
+            }
+            Some(seconds) if seconds > 0 && self.lifetime == Lifetime::Connection => Err(closed(
+                "session expiry set by DISCONNECT after none in CONNECT",
+                Some(ReasonCode::ProtocolError),
+            )),
+            _ => Ok(()),
         }
+    }
+
+    fn publish(&mut self, mut publish: Publish) -> Result<(), Stop> {
+        let alias = publish.properties.topic_alias;
+        publish.topic = match self.aliases.resolve(publish.topic, alias) {
+            Ok(topic) => topic,
+            Err(reason) => return Err(closed("topic alias refused", Some(reason))),
+        };
         if !publish.properties.subscription_identifiers.is_empty() {
             return Err(closed(
                 "subscription identifier in PUBLISH",
@@ -888,13 +961,14 @@ impl Session {
             self.unconfirmed
                 .insert(self.published, (id, exactly_once, retained_write));
         }
+        let marks = link::Marks {
+            qos: publish.delivery.qos(),
+            retain: publish.retain,
+            publisher: (self.subscriptions.marks_publisher()).then_some(self.client_id.as_str()),
+        };
         let v5_properties = self.v5().then_some(&publish.properties);
-        let item = link::publish(
-            key,
-            publish.delivery.qos(),
-            owned(publish.payload.clone()),
-            v5_properties,
-        );
+        let properties = link::properties(marks, v5_properties, std::time::SystemTime::now());
+        let item = link::publish(key, properties, owned(publish.payload.clone()));
         self.pending.push_back(item);
         Ok(())
     }
@@ -902,83 +976,35 @@ impl Session {
     fn subscribe(&mut self, subscribe: Subscribe) {
         let mut reasons = Vec::with_capacity(subscribe.subscriptions.len());
         let mut retained = Vec::new();
-        let failure = |v5: bool, code: ReasonCode| {
-            if v5 {
-                code
-            } else {
-                ReasonCode::UnspecifiedError
-            }
-        };
+        let id = subscribe
+            .properties
+            .subscription_identifiers
+            .first()
+            .copied();
         for subscription in &subscribe.subscriptions {
             let filter = subscription.filter.as_str();
-            if subscription.filter.shared().is_some() {
-                reasons.push(failure(
-                    self.v5(),
-                    ReasonCode::SharedSubscriptionsNotSupported,
-                ));
-                continue;
-            }
-            if self.subscriptions.len() >= MAX_SUBSCRIPTIONS
-                && !self.subscriptions.contains_key(filter)
+            let options = Options {
+                qos: subscription.options.qos,
+                no_local: subscription.options.no_local,
+                retain_as_published: subscription.options.retain_as_published,
+                id,
+            };
+            let reason = if self.subscriptions.len() >= MAX_SUBSCRIPTIONS
+                && !self.subscriptions.contains(filter)
             {
-                reasons.push(failure(self.v5(), ReasonCode::QuotaExceeded));
-                continue;
-            }
-            let Some(key) = mapping::binding_key(filter) else {
-                reasons.push(failure(self.v5(), ReasonCode::TopicFilterInvalid));
-                continue;
+                Err(ReasonCode::QuotaExceeded)
+            } else if let Some(shared) = subscription.filter.shared() {
+                // No retained messages for a shared subscription (4.8.2).
+                self.subscribe_shared(filter, shared.group, shared.filter, options)
+            } else {
+                self.subscribe_own(subscription, options, &mut retained)
             };
-            let granted = subscription.options.qos;
-            let Some(queue) = mapping::queue_name(&self.client_id, granted) else {
-                reasons.push(ReasonCode::UnspecifiedError);
-                continue;
-            };
-            if let Err(refused) = self.may_subscribe(&queue, granted, &key) {
-                tracing::info!(
-                    client_id = %self.client_id,
-                    filter,
-                    reason = %refused,
-                    "MQTT subscription refused"
-                );
-                reasons.push(failure(self.v5(), ReasonCode::NotAuthorized));
-                continue;
-            }
-            self.ensure_queue(&queue, granted);
-            let existed = match self.subscriptions.insert(filter.to_owned(), granted) {
-                Some(old) if old != granted => {
-                    self.unbind(old, key.clone());
-                    true
-                }
-                Some(_) => true,
-                None => false,
-            };
-            let send_retained = match subscription.options.retain_handling {
-                RetainHandling::SendAtSubscribe => true,
-                RetainHandling::SendIfNewSubscription => !existed,
-                RetainHandling::DoNotSend => false,
-            };
-            if send_retained {
-                let matched = self
-                    .shared
-                    .retained
-                    .matching(&self.vhost, &subscription.filter);
-                retained.extend(matched.into_iter().map(|m| (m, granted)));
-            }
-            self.call(
-                QueueBind {
-                    ticket: 0,
-                    queue,
-                    exchange: ShortStr::from_static(mapping::EXCHANGE),
-                    routing_key: key,
-                    no_wait: false,
-                    arguments: FieldTable::new(),
-                },
-                Vec::new(),
-            );
-            reasons.push(match granted {
-                QoS::AtMostOnce => ReasonCode::GRANTED_QOS_0,
-                QoS::AtLeastOnce => ReasonCode::GrantedQos1,
-                QoS::ExactlyOnce => ReasonCode::GrantedQos2,
+            reasons.push(match reason {
+                Ok(QoS::AtMostOnce) => ReasonCode::GRANTED_QOS_0,
+                Ok(QoS::AtLeastOnce) => ReasonCode::GrantedQos1,
+                Ok(QoS::ExactlyOnce) => ReasonCode::GrantedQos2,
+                Err(code) if self.v5() => code,
+                Err(_) => ReasonCode::UnspecifiedError,
             });
         }
         let suback = Packet::SubAck(SubAck {
@@ -992,29 +1018,163 @@ impl Session {
         }
     }
 
-    /// RabbitMQ's checks for what subscribing through `queue` with the
-    /// binding key `key` asks of the core: configure and read on the
-    /// queue the first time, write on it and read on `amq.topic` for the
-    /// binding, and the key against a topic permission on `amq.topic`.
+    /// Binds a filter to the session's queue for its QoS (moving it from
+    /// another, or replacing its options); the QoS granted, or the
+    /// failure. The retained messages it gets go to `retained`.
+    fn subscribe_own(
+        &mut self,
+        subscription: &leveret_mqtt::Subscription,
+        options: Options,
+        retained: &mut Vec<RetainedDelivery>,
+    ) -> Result<QoS, ReasonCode> {
+        let filter = subscription.filter.as_str();
+        let key = mapping::binding_key(filter).ok_or(ReasonCode::TopicFilterInvalid)?;
+        let granted = options.qos;
+        let queue =
+            mapping::queue_name(&self.client_id, granted).ok_or(ReasonCode::UnspecifiedError)?;
+        let consumed = self.queues[usize::from(granted.level())];
+        self.may_subscribe(filter, &queue, !consumed, &key)?;
+        self.ensure_queue(&queue, granted);
+        let old = (self.subscriptions).insert_own(&subscription.filter, options);
+        if let Some(old) = old.filter(|old| *old != options) {
+            self.unbind(old, key.clone());
+        }
+        let send_retained = match subscription.options.retain_handling {
+            RetainHandling::SendAtSubscribe => true,
+            RetainHandling::SendIfNewSubscription => old.is_none(),
+            RetainHandling::DoNotSend => false,
+        };
+        if send_retained {
+            let matched = self
+                .shared
+                .retained
+                .matching(&self.vhost, &subscription.filter);
+            retained.extend(matched.into_iter().map(|m| (m, granted, options.id)));
+        }
+        self.call(
+            QueueBind {
+                ticket: 0,
+                queue,
+                exchange: ShortStr::from_static(mapping::EXCHANGE),
+                routing_key: key,
+                no_wait: false,
+                arguments: options.binding_arguments(),
+            },
+            Vec::new(),
+        );
+        Ok(granted)
+    }
+
+    /// Joins shared subscription `filter` (`$share/group/inner`): declares
+    /// the group's queue (non-durable, auto-delete: it lives while a
+    /// member consumes it), binds it and consumes it. Subscribing again
+    /// at another QoS consumes anew before cancelling the old consumer, so
+    /// the queue is never left without this member.
+    fn subscribe_shared(
+        &mut self,
+        filter: &str,
+        group: &str,
+        inner: &str,
+        options: Options,
+    ) -> Result<QoS, ReasonCode> {
+        let queue =
+            mapping::shared_queue_name(group, inner).ok_or(ReasonCode::TopicFilterInvalid)?;
+        let key = mapping::binding_key(inner).ok_or(ReasonCode::TopicFilterInvalid)?;
+        self.may_subscribe(filter, &queue, true, &key)?;
+        let old = self.subscriptions.shared(filter).cloned();
+        if let Some(old) = old.as_ref().filter(|old| old.options.qos == options.qos) {
+            let kept = SharedSubscription {
+                options,
+                ..old.clone()
+            };
+            self.subscriptions.insert_shared(filter, kept);
+            return Ok(options.qos);
+        }
+        self.call(
+            QueueDeclare {
+                ticket: 0,
+                queue: queue.clone(),
+                passive: false,
+                durable: false,
+                exclusive: false,
+                auto_delete: true,
+                no_wait: false,
+                arguments: FieldTable::new(),
+            },
+            Vec::new(),
+        );
+        self.call(
+            QueueBind {
+                ticket: 0,
+                queue: queue.clone(),
+                exchange: ShortStr::from_static(mapping::EXCHANGE),
+                routing_key: key,
+                no_wait: false,
+                arguments: FieldTable::new(),
+            },
+            Vec::new(),
+        );
+        let consumer_tag = self.subscriptions.new_shared_tag(options.qos);
+        self.acked_consumer_added(options.qos);
+        self.call(
+            BasicConsume {
+                ticket: 0,
+                queue,
+                consumer_tag: consumer_tag.clone(),
+                no_local: false,
+                no_ack: options.qos == QoS::AtMostOnce,
+                exclusive: false,
+                no_wait: false,
+                arguments: FieldTable::new(),
+            },
+            Vec::new(),
+        );
+        let joined = SharedSubscription {
+            consumer_tag,
+            options,
+        };
+        if let Some(old) = self.subscriptions.insert_shared(filter, joined) {
+            self.cancel(old.consumer_tag);
+        }
+        Ok(options.qos)
+    }
+
+    /// RabbitMQ's checks for what subscribing `filter` through `queue`
+    /// with the binding key `key` asks of the core: configure and read on
+    /// the queue when it is `declared` now, write on it and read on
+    /// `amq.topic` for the binding, and the key against a topic permission
+    /// on `amq.topic`. A refusal is logged and answered 0x87.
     fn may_subscribe(
         &self,
+        filter: &str,
         queue: &ShortStr,
-        qos: QoS,
+        declared: bool,
         key: &ShortStr,
-    ) -> crate::error::AmqpResult<()> {
-        let Some(access) = self.permissions.of(&self.user, &self.vhost) else {
-            return Err(crate::error::AmqpError::access_refused(format_args!(
-                "no access to vhost '{}'",
-                self.vhost
-            )));
-        };
-        let queue = queue.to_string_lossy();
-        if !self.queues[usize::from(qos.level())] {
-            access.check_queue_declare(&queue, None)?;
-            access.check(Right::Read, Resource::Queue(&queue))?;
-        }
-        access.check_binding(Resource::Queue(&queue), mapping::EXCHANGE)?;
-        access.check_topic(Right::Read, mapping::EXCHANGE, &key.to_string_lossy())
+    ) -> Result<(), ReasonCode> {
+        let checked = (|| {
+            let Some(access) = self.permissions.of(&self.user, &self.vhost) else {
+                return Err(crate::error::AmqpError::access_refused(format_args!(
+                    "no access to vhost '{}'",
+                    self.vhost
+                )));
+            };
+            let queue = queue.to_string_lossy();
+            if declared {
+                access.check_queue_declare(&queue, None)?;
+                access.check(Right::Read, Resource::Queue(&queue))?;
+            }
+            access.check_binding(Resource::Queue(&queue), mapping::EXCHANGE)?;
+            access.check_topic(Right::Read, mapping::EXCHANGE, &key.to_string_lossy())
+        })();
+        checked.map_err(|refused| {
+            tracing::info!(
+                client_id = %self.client_id,
+                filter,
+                reason = %refused,
+                "MQTT subscription refused"
+            );
+            ReasonCode::NotAuthorized
+        })
     }
 
     /// Sends `packet` once every call queued so far is answered (at once
@@ -1051,10 +1211,10 @@ impl Session {
     /// Sends waiting retained messages (as PUBLISH with RETAIN set) while
     /// the window has room for those at QoS 1.
     fn send_retained(&mut self) {
-        while let Some((message, granted)) = self.retained_backlog.pop_front() {
+        while let Some((message, granted, id)) = self.retained_backlog.pop_front() {
             let qos = message.qos.min(granted);
             if qos != QoS::AtMostOnce && self.in_flight.len() >= usize::from(self.window) {
-                self.retained_backlog.push_front((message, granted));
+                self.retained_backlog.push_front((message, granted, id));
                 return;
             }
             let Some(topic) = MqttString::from_utf8(message.topic.into_bytes().into())
@@ -1063,11 +1223,13 @@ impl Session {
             else {
                 continue;
             };
+            let mut properties = leveret_mqtt::Properties::default();
+            properties.subscription_identifiers.extend(id);
             let publish = Outgoing5 {
                 qos,
                 redelivered: false,
                 retain: true,
-                properties: Default::default(),
+                properties,
             };
             self.publish_to_client(topic, publish, message.payload, None);
         }
@@ -1107,11 +1269,12 @@ impl Session {
     /// Consumes the session's queue for `qos`.
     fn consume(&mut self, queue: ShortStr, qos: QoS) {
         self.queues[usize::from(qos.level())] = true;
+        self.acked_consumer_added(qos);
         self.call(
             BasicConsume {
                 ticket: 0,
                 queue,
-                consumer_tag: consumer_tag(qos),
+                consumer_tag: subscriptions::own_consumer_tag(qos),
                 no_local: false,
                 no_ack: qos == QoS::AtMostOnce,
                 exclusive: false,
@@ -1122,8 +1285,30 @@ impl Session {
         );
     }
 
-    fn unbind(&mut self, qos: QoS, key: ShortStr) {
-        let Some(queue) = mapping::queue_name(&self.client_id, qos) else {
+    /// Counts a new consumer at `qos`. The window is per consumer (so the
+    /// core's fast path stays on for the common session with one); from
+    /// the second consumer with acknowledgements (QoS 1 and 2 queues,
+    /// shared subscriptions) it is made channel-wide too, so a 5.0
+    /// client never has more unacknowledged deliveries than its Receive
+    /// Maximum.
+    fn acked_consumer_added(&mut self, qos: QoS) {
+        if qos == QoS::AtMostOnce {
+            return;
+        }
+        self.acked_consumers += 1;
+        if self.acked_consumers == 2 {
+            let channel_wide = leveret_protocol::BasicQos {
+                prefetch_size: 0,
+                prefetch_count: self.window,
+                global: true,
+            };
+            self.call(channel_wide, Vec::new());
+        }
+    }
+
+    /// Removes an own subscription's binding (its arguments are part of it).
+    fn unbind(&mut self, options: Options, key: ShortStr) {
+        let Some(queue) = mapping::queue_name(&self.client_id, options.qos) else {
             return;
         };
         self.call(
@@ -1132,7 +1317,19 @@ impl Session {
                 queue,
                 exchange: ShortStr::from_static(mapping::EXCHANGE),
                 routing_key: key,
-                arguments: FieldTable::new(),
+                arguments: options.binding_arguments(),
+            },
+            Vec::new(),
+        );
+    }
+
+    /// Stops consuming a shared subscription's queue (which goes when its
+    /// last consumer does).
+    fn cancel(&mut self, consumer_tag: ShortStr) {
+        self.call(
+            BasicCancel {
+                consumer_tag,
+                no_wait: false,
             },
             Vec::new(),
         );
@@ -1141,12 +1338,18 @@ impl Session {
     fn unsubscribe(&mut self, unsubscribe: Unsubscribe) {
         let mut reasons = Vec::with_capacity(unsubscribe.filters.len());
         for filter in &unsubscribe.filters {
+            let filter = filter.as_str();
+            if let Some(shared) = self.subscriptions.remove_shared(filter) {
+                self.cancel(shared.consumer_tag);
+                reasons.push(ReasonCode::Success);
+                continue;
+            }
             match (
-                self.subscriptions.remove(filter.as_str()),
-                mapping::binding_key(filter.as_str()),
+                self.subscriptions.remove_own(filter),
+                mapping::binding_key(filter),
             ) {
-                (Some(qos), Some(key)) => {
-                    self.unbind(qos, key);
+                (Some(options), Some(key)) => {
+                    self.unbind(options, key);
                     reasons.push(ReasonCode::Success);
                 }
                 _ => reasons.push(ReasonCode::NoSubscriptionExisted),
@@ -1325,7 +1528,7 @@ impl Session {
         properties: &bytes::Bytes,
         body: bytes::Bytes,
     ) {
-        let queue_qos = queue_qos(&deliver.consumer_tag);
+        let queue_qos = subscriptions::consumer_qos(&deliver.consumer_tag);
         let decoded = leveret_protocol::BasicProperties::decode(properties);
         let message_qos = match &decoded {
             Ok(p)
@@ -1338,8 +1541,12 @@ impl Session {
             Ok(p) if p.is_persistent() => QoS::AtLeastOnce,
             _ => QoS::AtMostOnce,
         };
-        let mqtt_properties = match &decoded {
-            Ok(p) if self.v5() => super::properties::from_amqp(p),
+        let marks = match &decoded {
+            Ok(p) => Marks::of(p, &self.client_id),
+            Err(_) => Marks::default(),
+        };
+        let mut mqtt_properties = match &decoded {
+            Ok(p) if self.v5() => super::properties::from_amqp(p, std::time::SystemTime::now()),
             _ => Default::default(),
         };
         let qos = queue_qos.min(message_qos);
@@ -1348,19 +1555,32 @@ impl Session {
             .and_then(|t| TopicName::new(t).ok())
             .filter(|t| !t.is_empty());
         let tag = (queue_qos != QoS::AtMostOnce).then_some(deliver.delivery_tag);
-        match topic {
-            Some(topic) => {
-                let publish = Outgoing5 {
-                    qos,
-                    redelivered: deliver.redelivered,
-                    retain: false,
-                    properties: mqtt_properties,
-                };
-                self.publish_to_client(topic, publish, body, tag);
-            }
+        let Some(topic) = topic else {
             // Not a topic name: settled now, so it does not hold the window.
-            None => self.settle(tag),
+            self.settle(tag);
+            return;
+        };
+        let verdict = (self.subscriptions).for_delivery(
+            &deliver.consumer_tag,
+            queue_qos,
+            topic.as_str(),
+            &marks,
+        );
+        if !verdict.send {
+            // No Local: the session's own publish.
+            self.settle(tag);
+            return;
         }
+        if self.v5() && !verdict.ids.is_empty() {
+            mqtt_properties.subscription_identifiers = verdict.ids;
+        }
+        let publish = Outgoing5 {
+            qos,
+            redelivered: deliver.redelivered,
+            retain: verdict.retain,
+            properties: mqtt_properties,
+        };
+        self.publish_to_client(topic, publish, body, tag);
     }
 
     /// Sends a PUBLISH at `qos`; a QoS 1 or 2 one is in flight until the
@@ -1438,23 +1658,6 @@ async fn store_progress(durable: Option<&mut tokio::sync::watch::Receiver<Durabl
     if !progressed {
         std::future::pending::<()>().await;
     }
-}
-
-/// The consumer tag of the session's queue for `qos`.
-fn consumer_tag(qos: QoS) -> ShortStr {
-    match qos {
-        QoS::AtMostOnce => ShortStr::from_static("mqtt-qos0"),
-        QoS::AtLeastOnce => ShortStr::from_static("mqtt-qos1"),
-        QoS::ExactlyOnce => ShortStr::from_static("mqtt-qos2"),
-    }
-}
-
-/// The QoS of the session's queue a delivery with `consumer_tag` came from.
-fn queue_qos(tag: &ShortStr) -> QoS {
-    [QoS::AtLeastOnce, QoS::ExactlyOnce]
-        .into_iter()
-        .find(|&qos| *tag == consumer_tag(qos))
-        .unwrap_or(QoS::AtMostOnce)
 }
 
 /// A payload that keeps no more of the read buffer alive than itself
