@@ -79,7 +79,8 @@
 //!    and the store.
 //! 7. **Consumer and outbox**: `consumer` (delivery tags, unacked
 //!    bookkeeping, prefetch credit, direct reply-to targets), `outbox`
-//!    (what goes to a connection's writer, with backpressure). A queue,
+//!    (what goes to a connection's writer, with backpressure, or straight
+//!    to an in-process client's consumer: [`InlineDeliveries`]). A queue,
 //!    its consumers and the outboxes they deliver through know each other
 //!    (an unacked delivery names its queue; an outbox wakes the queues
 //!    that waited for room): that small circle is the only one.

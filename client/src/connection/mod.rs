@@ -6,7 +6,8 @@
 //! takes frames (`frames::FrameInput`) and routes them to channels, and the
 //! writer (`writer`), which drains a bounded outbox into a
 //! `frames::FrameOutput`. Everything after opening the transport is one
-//! code path, generic over it. The
+//! code path, generic over it, but for an in-process link's deliveries
+//! taken on the broker's dispatching thread (`inline`). The
 //! [`Connection`] handle and every channel share [`Shared`]: the outbox
 //! sender, the channel table and the connection's state.
 
