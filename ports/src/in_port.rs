@@ -6,7 +6,9 @@
 //! the registered callbacks run, it goes into the buffer according to the
 //! [`FullPolicy`], and only then is it acknowledged. That intake runs on
 //! the connection's reader, as each message is read (the consumer's sink):
-//! no task stands between the connection and the buffer. A message the
+//! no task stands between the connection and the buffer; in process, on
+//! the embedded broker's thread that dispatches the message, whenever the
+//! reader has nothing before it (the client's inline deliveries). A message the
 //! reader cannot take at once (the buffer is full and the policy is to
 //! wait, or there is no room for its ack in the connection's outbox) goes
 //! through the consumer's buffer to the port's task, which waits for room;
@@ -625,8 +627,10 @@ impl<T: PortData> InPort<T> {
     }
 
     /// Calls `callback` with every new value before it is buffered, on the
-    /// connection's reader (or the port's task, for a value that waited
-    /// for room); keep it short: the port waits for it.
+    /// connection's reader (in process, often the embedded broker's
+    /// dispatching thread, under its queue's lock; or the port's task, for
+    /// a value that waited for room); keep it short: the port and the
+    /// queue wait for it.
     pub fn on_receive(&self, callback: impl FnMut(&Sample<T>) + Send + 'static) {
         lock(&self.shared.callbacks).push(Box::new(callback));
     }
