@@ -182,3 +182,43 @@ async fn a_remote_in_port_beside_a_local_one_gets_the_same_values() {
     near.close().await;
     far.close().await;
 }
+
+/// An `on_receive` callback is the application's code: it may call into
+/// the broker, here listing the queues (each listed under its lock). It
+/// runs on the reader, never on the dispatching thread that holds the
+/// port's queue's lock, so nothing waits on itself.
+#[both_runtimes]
+async fn a_callback_that_calls_into_the_broker_runs_off_the_dispatching_thread() {
+    let broker = leveret().await;
+    let queue = unique("fast-path-callback");
+    let profile = PortProfile::default()
+        .queue(&queue)
+        .routing_key(&queue)
+        .buffer(2048, FullPolicy::DropOldest);
+    let local = Connector::in_process(&broker);
+    let input = within(
+        "in-port",
+        InPort::<TimedLong>::connect_with(local.clone(), profile.clone()),
+    )
+    .await
+    .expect("in-port");
+    let seen = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let (in_callback, listing) = (Arc::clone(&seen), Arc::clone(&broker));
+    input.on_receive(move |_| {
+        // Every queue's figures, the port's own among them, each read
+        // under its queue's lock.
+        assert!(!listing.queues().is_empty());
+        in_callback.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    });
+    let output = within(
+        "out-port",
+        OutPort::<TimedLong>::connect_with(local, profile),
+    )
+    .await
+    .expect("out-port");
+    put_and_read(&output, &[&input]).await;
+    assert_eq!(seen.load(std::sync::atomic::Ordering::SeqCst), TOTAL);
+    assert_all_received(input.stats());
+    output.close().await;
+    input.close().await;
+}

@@ -44,6 +44,12 @@ impl InlineDeliveries for InlineConsumers {
         let Some(route) = chan.consumer(offered.consumer_tag) else {
             return false;
         };
+        // Application code may run in a sink: only on the reader, unless
+        // the sink vouches for itself (it could call into the broker and
+        // wait on the very queue whose lock this thread holds).
+        if route.sink.as_ref().is_some_and(|sink| !sink.runs_inline()) {
+            return false;
+        }
         // Room in the consumer's buffer first, so that a value its sink
         // leaves is never left here with nowhere to go.
         let Ok(room) = route.tx.try_reserve() else {
