@@ -79,7 +79,8 @@
 //!    and the store.
 //! 7. **Consumer and outbox**: `consumer` (delivery tags, unacked
 //!    bookkeeping, prefetch credit, direct reply-to targets), `outbox`
-//!    (what goes to a connection's writer, with backpressure). A queue,
+//!    (what goes to a connection's writer, with backpressure, or straight
+//!    to an in-process client's consumer: [`InlineDeliveries`]). A queue,
 //!    its consumers and the outboxes they deliver through know each other
 //!    (an unacked delivery names its queue; an outbox wakes the queues
 //!    that waited for room): that small circle is the only one.
@@ -174,6 +175,7 @@ pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 pub use crate::hash_pool::{HashPoolStats, HASH_THREADS};
 pub use crate::limits::UnknownLimit;
+pub use crate::outbox::{InlineDeliveries, InlineDelivery};
 pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
 pub use crate::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,

@@ -4,13 +4,16 @@
 //! queues instead of growing a buffer), and when the client was last
 //! heard (so a writer blocked on a client that neither reads nor writes
 //! gives up after two missed heartbeats, whatever the reader is waiting
-//! for).
+//! for). An in-process client may also take deliveries inline
+//! ([`InlineDeliveries`]): handed to it by the thread that dispatches them,
+//! when nothing sent before is still on its way to it.
 
 use crate::message::Message;
 use crate::queue::Queue;
+use bytes::Bytes;
 use leveret_protocol::{BasicDeliver, BasicGetOk, BasicReturn, Method, ShortStr};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, Weak};
+use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
 use tokio::sync::mpsc;
 
@@ -154,10 +157,69 @@ impl Outbound {
 /// consumer's messages stay in their queue (counted, limited) and not here.
 pub const OUTBOX_CAPACITY: usize = 512;
 
-/// The core's handle on one connection's writer.
+/// A basic.deliver and its message's content, as an in-process client's
+/// [`InlineDeliveries`] is offered it.
 #[derive(Debug)]
+pub struct InlineDelivery<'a> {
+    /// Channel number.
+    pub channel: u16,
+    /// Consumer tag.
+    pub consumer_tag: &'a ShortStr,
+    /// Delivery tag on the channel.
+    pub delivery_tag: u64,
+    /// Whether it was delivered before.
+    pub redelivered: bool,
+    /// The exchange it was published to.
+    pub exchange: &'a ShortStr,
+    /// Its routing key.
+    pub routing_key: &'a ShortStr,
+    /// Its encoded property flags and list.
+    pub properties: &'a Bytes,
+    /// Its body.
+    pub body: &'a Bytes,
+}
+
+/// An in-process client's way to take deliveries on the thread that
+/// dispatches them (the in-process fast path: no outbox, no task between
+/// the queue and the consumer). Offered a delivery only when every item
+/// sent to the client before it has been handled, so deliveries stay in
+/// order with each other and with the channel's methods; it runs under the
+/// queue's and the channel's locks, so it must neither block nor call back
+/// into the broker synchronously.
+pub trait InlineDeliveries: Send + Sync {
+    /// Whether the client took the delivery (it is then delivered: counted
+    /// by the queue and unacked on its channel as any other); if not, it
+    /// goes through the outbox.
+    fn deliver(&self, delivery: InlineDelivery<'_>) -> bool;
+}
+
+/// Room reserved in an [`Outbox`] for one item.
+pub struct OutboxPermit<'a> {
+    permit: mpsc::Permit<'a, Outbound>,
+    outbox: &'a Outbox,
+}
+
+impl OutboxPermit<'_> {
+    /// Sends the item into the reserved room, or, for a delivery an
+    /// in-process client takes inline, hands it over at once.
+    pub fn send(self, item: Outbound) {
+        if self.outbox.deliver_inline(&item) {
+            return;
+        }
+        self.outbox.unhandled.fetch_add(1, Ordering::SeqCst);
+        self.permit.send(item);
+    }
+}
+
+/// The core's handle on one connection's writer.
 pub struct Outbox {
     tx: mpsc::Sender<Outbound>,
+    /// Items sent and not yet handled by an in-process client (its
+    /// [`crate::DirectReplies`] counts them down; for a socket writer the
+    /// count only rises, and nothing reads it).
+    unhandled: AtomicU64,
+    /// An in-process client's inline deliveries, once it has set them.
+    inline: OnceLock<Arc<dyn InlineDeliveries>>,
     blocked: Mutex<Vec<Weak<Queue>>>,
     frame_max: AtomicU32,
     cancel_notify: AtomicBool,
@@ -174,6 +236,8 @@ impl Outbox {
         let (tx, rx) = mpsc::channel(OUTBOX_CAPACITY);
         let outbox = Outbox {
             tx,
+            unhandled: AtomicU64::new(0),
+            inline: OnceLock::new(),
             blocked: Mutex::new(Vec::new()),
             frame_max: AtomicU32::new(leveret_protocol::FRAME_MIN_SIZE),
             cancel_notify: AtomicBool::new(false),
@@ -193,6 +257,7 @@ impl Outbox {
     pub async fn send(&self, item: Outbound) {
         // An error means the writer is gone: the connection is closing and
         // its cleanup requeues whatever was in flight.
+        self.unhandled.fetch_add(1, Ordering::SeqCst);
         let item = match self.tx.try_send(item) {
             Ok(()) | Err(mpsc::error::TrySendError::Closed(_)) => return,
             Err(mpsc::error::TrySendError::Full(item)) => item,
@@ -210,18 +275,72 @@ impl Outbox {
     }
 
     /// Waits for room for one item; `None` if the writer is gone.
-    pub async fn reserve(&self) -> Option<mpsc::Permit<'_, Outbound>> {
-        self.tx.reserve().await.ok()
+    pub async fn reserve(&self) -> Option<OutboxPermit<'_>> {
+        let permit = self.tx.reserve().await.ok()?;
+        Some(OutboxPermit {
+            permit,
+            outbox: self,
+        })
     }
 
     /// Reserves room for one item without waiting.
-    pub fn try_reserve(&self) -> Option<mpsc::Permit<'_, Outbound>> {
-        self.tx.try_reserve().ok()
+    pub fn try_reserve(&self) -> Option<OutboxPermit<'_>> {
+        let permit = self.tx.try_reserve().ok()?;
+        Some(OutboxPermit {
+            permit,
+            outbox: self,
+        })
     }
 
     /// Sends without waiting; false if there is no room or the writer is gone.
     pub fn try_send(&self, item: Outbound) -> bool {
-        self.tx.try_send(item).is_ok()
+        // Counted before it can be handled, uncounted if not sent.
+        self.unhandled.fetch_add(1, Ordering::SeqCst);
+        let sent = self.tx.try_send(item).is_ok();
+        if !sent {
+            self.handled();
+        }
+        sent
+    }
+
+    /// Sets an in-process client's inline deliveries (once; a second call
+    /// is ignored).
+    pub(crate) fn set_inline(&self, inline: Arc<dyn InlineDeliveries>) {
+        let _ = self.inline.set(inline);
+    }
+
+    /// An in-process client has handled one more item sent to it.
+    pub(crate) fn handled(&self) {
+        self.unhandled.fetch_sub(1, Ordering::SeqCst);
+    }
+
+    /// Offers a delivery to the client's inline deliveries, if it has set
+    /// them and has handled everything sent before; whether it took it.
+    fn deliver_inline(&self, item: &Outbound) -> bool {
+        let Outbound::Deliver {
+            channel,
+            consumer_tag,
+            delivery_tag,
+            redelivered,
+            message,
+        } = item
+        else {
+            return false;
+        };
+        let Some(inline) = self.inline.get() else {
+            return false;
+        };
+        self.unhandled.load(Ordering::SeqCst) == 0
+            && inline.deliver(InlineDelivery {
+                channel: *channel,
+                consumer_tag,
+                delivery_tag: *delivery_tag,
+                redelivered: *redelivered,
+                exchange: &message.exchange,
+                routing_key: &message.routing_key,
+                properties: &message.properties,
+                body: &message.body,
+            })
     }
 
     /// Remembers a queue that found no room, to be dispatched again once the
@@ -278,5 +397,15 @@ impl Outbox {
     /// Records the client's consumer_cancel_notify capability.
     pub fn set_cancel_notify(&self, on: bool) {
         self.cancel_notify.store(on, Ordering::Relaxed);
+    }
+}
+
+impl std::fmt::Debug for Outbox {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Outbox")
+            .field("connection_id", &self.connection_id)
+            .field("unhandled", &self.unhandled)
+            .field("inline", &self.inline.get().is_some())
+            .finish_non_exhaustive()
     }
 }

@@ -74,6 +74,14 @@ pub trait DeliverySink: Send + Sync {
     /// sink that leaves one must leave every later one until the
     /// consumer's side has handled it, so that none overtakes another.
     fn take(&self, delivery: &Delivery) -> bool;
+
+    /// Whether `take` may run on an embedded broker's dispatching thread,
+    /// under the queue's lock (the in-process fast path): only a sink
+    /// whose work is short and never calls into the broker may say yes.
+    /// A sink that says no has its deliveries go through the reader.
+    fn runs_inline(&self) -> bool {
+        false
+    }
 }
 
 /// The reader's side of a consumer, kept in the channel's table.

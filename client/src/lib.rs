@@ -40,7 +40,10 @@
 //! (`BrokerHandle::connect_direct`), so neither side encodes or parses
 //! them, and the broker serves the link with the same connection code as
 //! a socket; on this side too everything after opening the link
-//! (handshake, reader, writer, channels) is the same code.
+//! (handshake, reader, writer, channels) is the same code. One shortcut:
+//! the broker hands an in-process connection's deliveries to their
+//! consumer on the thread that dispatches them, whenever the reader has
+//! nothing before them ([`Connection::inline_deliveries`] counts them).
 //!
 //! # Features
 //! `tls` (default): `amqps://` with rustls and the system's CA

@@ -240,3 +240,122 @@ async fn broker_shutdown_ends_in_process_connections() {
         "{error:?}"
     );
 }
+
+/// The fast path: an in-process consumer's deliveries are taken on the
+/// broker's dispatching thread (counted by `inline_deliveries`), in order,
+/// with their properties, acknowledged like any other (the queue is empty
+/// once the channel closes, nothing requeued), and the queue counts them
+/// as delivered; a consumer that leaves its buffer full gets the rest
+/// through the reader, still in order.
+#[leveret_tests::both_runtimes]
+async fn in_process_deliveries_take_the_fast_path_in_order() {
+    // Read one by one; then a burst beyond the consumer's buffer (1024).
+    const READ: u32 = 300;
+    const BURST: u32 = 1500;
+    let broker = Arc::new(Broker::builder().start().await.expect("start"));
+    let publisher = within("connect", Connection::in_process(&broker))
+        .await
+        .expect("in-process connect");
+    let consuming = within("connect", Connection::in_process(&broker))
+        .await
+        .expect("in-process connect");
+    let out = within("channel", publisher.open_channel()).await.unwrap();
+    let inbound = within("channel", consuming.open_channel()).await.unwrap();
+    let queue = within(
+        "declare",
+        inbound.queue_declare("", QueueDeclareOptions::default(), FieldTable::new()),
+    )
+    .await
+    .unwrap();
+    let mut consumer = within(
+        "consume",
+        inbound.basic_consume(
+            &queue.name,
+            "",
+            BasicConsumeOptions::default(),
+            FieldTable::new(),
+        ),
+    )
+    .await
+    .unwrap();
+    within("confirm.select", out.confirm_select())
+        .await
+        .unwrap();
+    let properties = BasicProperties {
+        message_id: Some(ShortStr::from_static("fast")),
+        ..Default::default()
+    };
+    // Read as they come (the fast path), then published in a burst the
+    // consumer does not read until all are confirmed (its buffer fills,
+    // the rest wait in the reader and the outbox).
+    for (round, range) in [0..READ, READ..READ + BURST].into_iter().enumerate() {
+        let mut confirms = Vec::new();
+        for i in range {
+            let body = Bytes::from(i.to_le_bytes().to_vec());
+            let confirm = out
+                .basic_publish(
+                    "",
+                    &queue.name,
+                    BasicPublishOptions::default(),
+                    properties.clone(),
+                    body,
+                )
+                .await
+                .unwrap();
+            if round == 0 {
+                assert!(within("confirm", confirm).await.unwrap().is_ack());
+                let delivery = within("delivery", consumer.next()).await.expect("delivery");
+                assert_eq!(&delivery.body[..], &i.to_le_bytes());
+                assert_eq!(
+                    delivery.properties.message_id,
+                    Some(ShortStr::from_static("fast"))
+                );
+                delivery.ack().await.unwrap();
+            } else {
+                confirms.push(confirm);
+            }
+        }
+        for confirm in confirms {
+            assert!(within("confirm", confirm).await.unwrap().is_ack());
+        }
+    }
+    let fast = consuming.inline_deliveries();
+    // All those read one by one (but perhaps the first, which may find the
+    // reader still handling consume-ok), never more than the buffer holds.
+    assert!(
+        fast >= u64::from(READ) - 1 && fast <= u64::from(READ) + 1024,
+        "{fast} deliveries took the fast path"
+    );
+    assert_eq!(
+        publisher.inline_deliveries(),
+        0,
+        "the publisher consumes nothing"
+    );
+    for i in READ..READ + BURST {
+        let delivery = within("delivery", consumer.next()).await.expect("delivery");
+        assert_eq!(&delivery.body[..], &i.to_le_bytes());
+        delivery.ack().await.unwrap();
+    }
+    within("close", inbound.close()).await.unwrap();
+    let check = within("channel", publisher.open_channel()).await.unwrap();
+    let passive = within(
+        "declare passive",
+        check.queue_declare(
+            &queue.name,
+            QueueDeclareOptions {
+                passive: true,
+                ..Default::default()
+            },
+            FieldTable::new(),
+        ),
+    )
+    .await
+    .unwrap();
+    assert_eq!(passive.message_count, 0, "every delivery was acknowledged");
+    within("close", publisher.close()).await.unwrap();
+    within("close", consuming.close()).await.unwrap();
+    Arc::into_inner(broker)
+        .expect("the only handle")
+        .shutdown()
+        .await;
+}

@@ -6,7 +6,9 @@
 //! the registered callbacks run, it goes into the buffer according to the
 //! [`FullPolicy`], and only then is it acknowledged. That intake runs on
 //! the connection's reader, as each message is read (the consumer's sink):
-//! no task stands between the connection and the buffer. A message the
+//! no task stands between the connection and the buffer; in process, on
+//! the embedded broker's thread that dispatches the message, whenever the
+//! reader has nothing before it (the client's inline deliveries). A message the
 //! reader cannot take at once (the buffer is full and the policy is to
 //! wait, or there is no room for its ack in the connection's outbox) goes
 //! through the consumer's buffer to the port's task, which waits for room;
@@ -393,6 +395,16 @@ impl<T: PortData> DeliverySink for Intake<T> {
         receiving.deferred += 1;
         false
     }
+
+    /// Inline only while no `on_receive` callback is registered: the
+    /// intake's own work is a few locks of the port's and a wake, but a
+    /// callback is the application's code, which could call into the
+    /// broker and wait on the queue whose lock the dispatching thread
+    /// holds. A callback registered while a delivery is being offered
+    /// runs on that delivery inline once.
+    fn runs_inline(&self) -> bool {
+        lock(&self.shared.callbacks).is_empty()
+    }
 }
 
 impl<T: PortData> Intake<T> {
@@ -626,7 +638,10 @@ impl<T: PortData> InPort<T> {
 
     /// Calls `callback` with every new value before it is buffered, on the
     /// connection's reader (or the port's task, for a value that waited
-    /// for room); keep it short: the port waits for it.
+    /// for room); keep it short: the port waits for it. An in-process
+    /// port with a callback takes its values through the reader, never on
+    /// the embedded broker's dispatching thread, so the callback may call
+    /// into the broker.
     pub fn on_receive(&self, callback: impl FnMut(&Sample<T>) + Send + 'static) {
         lock(&self.shared.callbacks).push(Box::new(callback));
     }

@@ -17,13 +17,19 @@
 //! channel counts as it does any content, and the outbox's items on the way
 //! back.
 //!
+//! A client may also take deliveries inline ([`DirectReplies::deliver_inline`]):
+//! the queue's dispatch hands each to it on the dispatching thread, with no
+//! outbox item and no task in between, whenever the client has handled
+//! everything the outbox sent it before (counted here, so the order of
+//! deliveries and methods is the outbox's).
+//!
 //! Uses the connection loop, which it feeds through [`FrameSource`], and
 //! the outbox, which it drains in place of the socket writer.
 
 use super::reader::ReadError;
 use super::source::FrameSource;
 use crate::channel::WholePublish;
-use crate::outbox::{Framed, Outbound, Outbox};
+use crate::outbox::{Framed, InlineDeliveries, Outbound, Outbox};
 use bytes::Bytes;
 use leveret_protocol::{ContentHeader, DecodeError, Frame, Method, Outgoing, FRAME_OVERHEAD};
 use std::collections::VecDeque;
@@ -225,17 +231,32 @@ pub enum DirectReply {
 
 /// The broker's replies for an in-process client, taken straight from the
 /// connection's outbox.
-#[derive(Debug)]
 pub struct DirectReplies {
     state: Replies,
     pending: VecDeque<Frame>,
     taken: u32,
+    /// Whether the client holds an item taken from the outbox (returned
+    /// whole or as the frames in `pending`) that it has not yet handled:
+    /// it has once it asks for the next reply with `pending` empty.
+    in_hand: bool,
+    /// Inline deliveries set before the outbox was handed over.
+    inline: Option<Arc<dyn InlineDeliveries>>,
 }
 
 enum Replies {
     Starting(oneshot::Receiver<WriterEnd>),
     Open(WriterEnd),
     Ended,
+}
+
+impl std::fmt::Debug for DirectReplies {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DirectReplies")
+            .field("state", &self.state)
+            .field("pending", &self.pending.len())
+            .field("in_hand", &self.in_hand)
+            .finish_non_exhaustive()
+    }
 }
 
 impl std::fmt::Debug for Replies {
@@ -254,12 +275,31 @@ impl DirectReplies {
             state: Replies::Starting(start),
             pending: VecDeque::new(),
             taken: 0,
+            in_hand: false,
+            inline: None,
+        }
+    }
+
+    /// Takes the connection's deliveries inline from now on, whenever
+    /// everything sent before has been handled (see [`InlineDeliveries`]);
+    /// the others still come through [`DirectReplies::recv`].
+    pub fn deliver_inline(&mut self, inline: Arc<dyn InlineDeliveries>) {
+        match &self.state {
+            Replies::Open(end) => end.outbox.set_inline(inline),
+            Replies::Starting(_) => self.inline = Some(inline),
+            Replies::Ended => {}
         }
     }
 
     /// The broker's next reply, waiting for it; `None` once the broker
     /// has ended the connection (after everything it sent before).
     pub async fn recv(&mut self) -> Option<DirectReply> {
+        if self.in_hand && self.pending.is_empty() {
+            self.in_hand = false;
+            if let Replies::Open(end) = &self.state {
+                end.outbox.handled();
+            }
+        }
         loop {
             if let Some(frame) = self.pending.pop_front() {
                 return Some(DirectReply::Frame(frame));
@@ -269,7 +309,12 @@ impl DirectReplies {
                 Replies::Ended => return None,
                 Replies::Starting(start) => {
                     self.state = match start.await {
-                        Ok(end) => Replies::Open(end),
+                        Ok(end) => {
+                            if let Some(inline) = self.inline.take() {
+                                end.outbox.set_inline(inline);
+                            }
+                            Replies::Open(end)
+                        }
                         Err(_) => Replies::Ended,
                     };
                     continue;
@@ -290,6 +335,7 @@ impl DirectReplies {
                     }
                 }
             };
+            self.in_hand = true;
             self.taken += 1;
             if self.taken % WAKE_EVERY == 0 {
                 end.outbox.wake_blocked();

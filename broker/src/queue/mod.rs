@@ -36,7 +36,7 @@ use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::message::Message;
-use crate::outbox::Outbound;
+use crate::outbox::{Outbound, OutboxPermit};
 use crate::policy::Applied;
 use crate::slice::{finish_in_background, Progress, Slice};
 use crate::stats::{BrokerCounters, QueueCounters};
@@ -46,7 +46,6 @@ use leveret_protocol::{FieldTable, ShortStr};
 use ready::Ready;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
-use tokio::sync::mpsc::Permit;
 
 /// Ready messages in a queue with consumers above which publishers to it
 /// are slowed down (RabbitMQ's flow control, in spirit): reading from a
@@ -346,7 +345,7 @@ impl Queue {
         self: &Arc<Self>,
         link: &ChannelLink,
         no_ack: bool,
-        permit: Permit<'_, Outbound>,
+        permit: OutboxPermit<'_>,
     ) -> (bool, DeadLetters) {
         if self.stream.is_some() {
             // Refused before this by every caller (`refuse_on_stream`).

@@ -50,6 +50,10 @@ pub(crate) trait FrameInput: Send + Sync + 'static {
     /// After a decoding error: whether the broker answered in another
     /// protocol (its own protocol header instead of a frame).
     fn other_protocol(&self) -> bool;
+
+    /// The connection is open: an in-process link takes its deliveries
+    /// inline from now on (see `inline`).
+    fn attach(&mut self, _shared: &std::sync::Arc<super::Shared>) {}
 }
 
 /// Where a connection's outgoing items go: during the handshake, methods
@@ -285,6 +289,11 @@ mod direct {
 
         fn other_protocol(&self) -> bool {
             false
+        }
+
+        fn attach(&mut self, shared: &std::sync::Arc<super::super::Shared>) {
+            self.replies
+                .deliver_inline(super::super::inline::InlineConsumers::new(shared));
         }
     }
 

@@ -6,11 +6,14 @@
 //! takes frames (`frames::FrameInput`) and routes them to channels, and the
 //! writer (`writer`), which drains a bounded outbox into a
 //! `frames::FrameOutput`. Everything after opening the transport is one
-//! code path, generic over it. The
+//! code path, generic over it, but for an in-process link's deliveries
+//! taken on the broker's dispatching thread (`inline`). The
 //! [`Connection`] handle and every channel share [`Shared`]: the outbox
 //! sender, the channel table and the connection's state.
 
 mod frames;
+#[cfg(feature = "embedded")]
+mod inline;
 mod reader;
 mod transport;
 pub(crate) mod writer;
@@ -81,6 +84,9 @@ pub(crate) struct Shared {
     pub(crate) blocked: watch::Sender<Option<String>>,
     pub(crate) tuning: Tuning,
     server_properties: FieldTable,
+    /// Deliveries taken on the broker's dispatching thread (in-process
+    /// only; see `inline`).
+    pub(crate) inline_deliveries: std::sync::atomic::AtomicU64,
 }
 
 impl Shared {
@@ -356,6 +362,17 @@ impl Connection {
     pub fn server_properties(&self) -> &FieldTable {
         &self.inner.shared.server_properties
     }
+
+    /// How many deliveries an in-process connection's consumers took on
+    /// the thread that dispatched them, with no task in between (the
+    /// in-process fast path; the others came through the connection's
+    /// reader). Always 0 over TCP.
+    pub fn inline_deliveries(&self) -> u64 {
+        self.inner
+            .shared
+            .inline_deliveries
+            .load(std::sync::atomic::Ordering::Relaxed)
+    }
 }
 
 /// Takes the smaller of two limits, where 0 means "no preference".
@@ -570,7 +587,7 @@ async fn establish_frames<I: FrameInput, O: FrameOutput>(
         frame_max,
         heartbeat,
     };
-    let Handshake { input, output } = hs;
+    let Handshake { mut input, output } = hs;
     let interval = Duration::from_secs(heartbeat.into());
     let outbox = output.into_outbox(frame_max, interval);
     let shared = Arc::new(Shared {
@@ -585,7 +602,9 @@ async fn establish_frames<I: FrameInput, O: FrameOutput>(
         blocked: watch::Sender::new(None),
         tuning,
         server_properties,
+        inline_deliveries: std::sync::atomic::AtomicU64::new(0),
     });
+    input.attach(&shared);
     tokio::spawn(reader::run(
         Arc::clone(&shared),
         input,

@@ -1,0 +1,224 @@
+//! The in-process fast path as the ports see it, on both runtimes: an
+//! in-port on an embedded broker takes its deliveries on the broker's
+//! dispatching thread (the client's inline deliveries), and nothing a
+//! robot relies on changes: values arrive in order, once, with the
+//! out-port's and in-port's counters true (`accepted == confirmed`,
+//! `arrived == received`, nothing duplicate, out of order or lost), the
+//! queue stays in the broker's listing and counts every message published,
+//! delivered and acknowledged; an in-port over TCP on the same broker (a
+//! remote robot) gets the same values through the socket, in order.
+
+mod common;
+
+use common::{unique, within};
+use leveret_broker::{Broker, BrokerHandle};
+use leveret_ports::{
+    Connector, ExchangeKind, FullPolicy, InPort, InPortStats, OutPort, PortProfile, PortStatus,
+    Time, TimedLong,
+};
+use leveret_tests::both_runtimes;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Values read one by one, then a burst read after it was all put.
+const ONE_BY_ONE: i32 = 300;
+const BURST: i32 = 700;
+const TOTAL: u64 = (ONE_BY_ONE + BURST) as u64;
+
+async fn leveret() -> Arc<BrokerHandle> {
+    let handle = Broker::builder()
+        .listen("127.0.0.1:0".parse().unwrap())
+        .start()
+        .await
+        .expect("start an embedded Leveret");
+    Arc::new(handle)
+}
+
+fn long(data: i32) -> TimedLong {
+    TimedLong {
+        tm: Time::now(),
+        data,
+    }
+}
+
+/// Puts `ONE_BY_ONE` values each read before the next, then `BURST` more
+/// read once all are put; checks every reader got all, in order.
+async fn put_and_read(output: &OutPort<TimedLong>, inputs: &[&InPort<TimedLong>]) {
+    let read = |data: i32| async move {
+        for input in inputs {
+            let sample = within("a value", input.recv()).await.expect("port open");
+            assert_eq!(sample.value.data, data, "in order, none missing");
+            assert_eq!(
+                sample.seq,
+                Some(data as u64 + 1),
+                "the out-port's numbering"
+            );
+        }
+    };
+    for data in 0..ONE_BY_ONE {
+        assert_eq!(output.try_put(&long(data)), PortStatus::Ok);
+        read(data).await;
+    }
+    for data in ONE_BY_ONE..ONE_BY_ONE + BURST {
+        assert_eq!(output.try_put(&long(data)), PortStatus::Ok);
+    }
+    for data in ONE_BY_ONE..ONE_BY_ONE + BURST {
+        read(data).await;
+    }
+    within("every confirm", output.flush()).await;
+    let stats = output.stats();
+    assert_eq!(
+        (stats.accepted, stats.confirmed, stats.pending),
+        (TOTAL, TOTAL, 0)
+    );
+}
+
+fn assert_all_received(stats: InPortStats) {
+    assert_eq!(
+        (stats.arrived, stats.received, stats.buffered),
+        (TOTAL, TOTAL, 0),
+        "{stats:?}"
+    );
+    assert_eq!(
+        (
+            stats.duplicates,
+            stats.out_of_order,
+            stats.lost,
+            stats.stale,
+            stats.dropped,
+            stats.skipped
+        ),
+        (0, 0, 0, 0, 0, 0),
+        "{stats:?}"
+    );
+}
+
+#[both_runtimes]
+async fn in_process_ports_keep_order_counters_and_the_queue_listing() {
+    let broker = leveret().await;
+    let queue = unique("fast-path");
+    let profile = PortProfile::default()
+        .queue(&queue)
+        .routing_key(&queue)
+        .buffer(2048, FullPolicy::DropOldest);
+    let local = Connector::in_process(&broker);
+    let input = within(
+        "in-port",
+        InPort::<TimedLong>::connect_with(local.clone(), profile.clone()),
+    )
+    .await
+    .expect("in-port");
+    let output = within(
+        "out-port",
+        OutPort::<TimedLong>::connect_with(local, profile),
+    )
+    .await
+    .expect("out-port");
+
+    put_and_read(&output, &[&input]).await;
+    assert_all_received(input.stats());
+
+    // The queue is the broker's as ever: listed, with its consumer, every
+    // message counted published, delivered and (once the in-port's acks
+    // are in) acknowledged, none left.
+    let listed = within("every ack counted", async {
+        loop {
+            let listed = broker
+                .queues()
+                .into_iter()
+                .find(|q| q.name == queue)
+                .expect("the port's queue is listed");
+            if listed.message_stats.ack == TOTAL {
+                break listed;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    assert_eq!(listed.consumers, 1);
+    assert_eq!(
+        (
+            listed.message_stats.publish,
+            listed.message_stats.deliver,
+            listed.messages_ready,
+            listed.messages_unacknowledged
+        ),
+        (TOTAL, TOTAL, 0, 0)
+    );
+    output.close().await;
+    input.close().await;
+}
+
+#[both_runtimes]
+async fn a_remote_in_port_beside_a_local_one_gets_the_same_values() {
+    let broker = leveret().await;
+    let addr = broker.local_addrs()[0];
+    let exchange = unique("fast-path-fanout");
+    let base = PortProfile::new(&format!("amqp://guest:guest@{addr}/%2f"))
+        .expect("broker URI")
+        .exchange(&exchange, ExchangeKind::Fanout)
+        .buffer(2048, FullPolicy::DropOldest);
+    let local = Connector::in_process(&broker);
+    let near = within(
+        "in-process in-port",
+        InPort::<TimedLong>::connect_with(local.clone(), base.clone().queue(unique("near"))),
+    )
+    .await
+    .expect("in-port");
+    let far = within(
+        "TCP in-port",
+        InPort::<TimedLong>::connect(base.clone().queue(unique("far"))),
+    )
+    .await
+    .expect("in-port");
+    let output = within("out-port", OutPort::<TimedLong>::connect_with(local, base))
+        .await
+        .expect("out-port");
+
+    put_and_read(&output, &[&near, &far]).await;
+    assert_all_received(near.stats());
+    assert_all_received(far.stats());
+    output.close().await;
+    near.close().await;
+    far.close().await;
+}
+
+/// An `on_receive` callback is the application's code: it may call into
+/// the broker, here listing the queues (each listed under its lock). It
+/// runs on the reader, never on the dispatching thread that holds the
+/// port's queue's lock, so nothing waits on itself.
+#[both_runtimes]
+async fn a_callback_that_calls_into_the_broker_runs_off_the_dispatching_thread() {
+    let broker = leveret().await;
+    let queue = unique("fast-path-callback");
+    let profile = PortProfile::default()
+        .queue(&queue)
+        .routing_key(&queue)
+        .buffer(2048, FullPolicy::DropOldest);
+    let local = Connector::in_process(&broker);
+    let input = within(
+        "in-port",
+        InPort::<TimedLong>::connect_with(local.clone(), profile.clone()),
+    )
+    .await
+    .expect("in-port");
+    let seen = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let (in_callback, listing) = (Arc::clone(&seen), Arc::clone(&broker));
+    input.on_receive(move |_| {
+        // Every queue's figures, the port's own among them, each read
+        // under its queue's lock.
+        assert!(!listing.queues().is_empty());
+        in_callback.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    });
+    let output = within(
+        "out-port",
+        OutPort::<TimedLong>::connect_with(local, profile),
+    )
+    .await
+    .expect("out-port");
+    put_and_read(&output, &[&input]).await;
+    assert_eq!(seen.load(std::sync::atomic::Ordering::SeqCst), TOTAL);
+    assert_all_received(input.stats());
+    output.close().await;
+    input.close().await;
+}
