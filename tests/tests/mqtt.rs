@@ -1487,6 +1487,65 @@ async fn a_3_1_1_client_reusing_one_packet_id_without_reading_gets_every_puback(
     handle.shutdown().await;
 }
 
+/// Found by perf/mqtt-quality (a burst's last QoS 0 publish went missing):
+/// publishes read before a DISCONNECT, in the same read, are routed.
+#[both_runtimes]
+async fn qos_0_publishes_written_with_the_disconnect_are_all_routed() {
+    let handle = start(Limits::default()).await;
+    let (amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("before-disconnect", Default::default(), Default::default()))
+        .unwrap();
+    bind_to_amq_topic(&channel, "before-disconnect", "d.x").await;
+    let mut raw = Raw::login(mqtt_port(&handle), 0).await;
+    let mut out = BytesMut::new();
+    let count = 50;
+    for _ in 0..count {
+        Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtMostOnce,
+            retain: false,
+            topic: TopicName::from_static("d/x"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"x"),
+        })
+        .encode(ProtocolVersion::V3_1_1, &mut out)
+        .unwrap();
+    }
+    Packet::Disconnect(leveret_mqtt::Disconnect {
+        reason: leveret_mqtt::ReasonCode::Success,
+        properties: Default::default(),
+    })
+    .encode(ProtocolVersion::V3_1_1, &mut out)
+    .unwrap();
+    tmo!(raw.socket.write_all(&out)).unwrap();
+    // The broker closes the socket after the DISCONNECT.
+    let mut rest = Vec::new();
+    tmo!(raw.socket.read_to_end(&mut rest)).unwrap();
+    let routed = within("every publish routed", async {
+        loop {
+            let declared = channel
+                .queue_declare(
+                    "before-disconnect",
+                    lapin::options::QueueDeclareOptions {
+                        passive: true,
+                        ..Default::default()
+                    },
+                    Default::default(),
+                )
+                .await
+                .unwrap();
+            if declared.message_count() >= count {
+                return declared.message_count();
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    assert_eq!(routed, count);
+    drop(amqp);
+    handle.shutdown().await;
+}
+
 #[both_runtimes]
 async fn a_filter_the_user_may_not_read_is_refused_in_the_suback_and_the_session_goes_on() {
     let builder = Broker::builder().topic_permission(

@@ -637,7 +637,8 @@ impl Session {
     }
 
     /// Sends what is owed before closing (a 5.0 DISCONNECT, the will).
-    async fn finish(&mut self, socket: &mut TcpStream, link: Link, stop: Stop) -> Ended {
+    async fn finish(&mut self, socket: &mut TcpStream, mut link: Link, stop: Stop) -> Ended {
+        self.flush_pending(&mut link).await;
         let disconnected = matches!(stop, Stop::Disconnected { .. });
         let (reason, send_will) = match stop {
             Stop::Disconnected { send_will } => ("client disconnected", send_will),
@@ -682,6 +683,32 @@ impl Session {
             reason,
             disconnected,
         }
+    }
+
+    /// Hands the core what was read before the connection ended, so that a
+    /// QoS 0 publish followed at once by DISCONNECT is routed (as Mosquitto
+    /// routes it). The core's replies are read meanwhile, so that neither
+    /// side waits on the other; at most `WRITE_STALL` in all.
+    async fn flush_pending(&mut self, link: &mut Link) {
+        let direct = &mut link.direct;
+        let pending = &mut self.pending;
+        let flush = async {
+            while let Some(item) = pending.pop_front() {
+                tokio::select! {
+                    permit = direct.to_broker.reserve() => match permit {
+                        Ok(permit) => permit.send(item),
+                        Err(_) => return,
+                    },
+                    reply = direct.from_broker.recv() => {
+                        pending.push_front(item);
+                        if reply.is_none() {
+                            return;
+                        }
+                    }
+                }
+            }
+        };
+        let _ = tokio::time::timeout(WRITE_STALL, flush).await;
     }
 
     /// Handles every whole packet in `buf`.
