@@ -1546,6 +1546,44 @@ async fn qos_0_publishes_written_with_the_disconnect_are_all_routed() {
     handle.shutdown().await;
 }
 
+/// Found by Eclipse Paho's interoperability suite (`test_dollar_topics`,
+/// Mosquitto passes it): a topic starting with `$` matches no filter that
+/// starts with a wildcard (MQTT-4.7.2-1), though the AMQP bindings match.
+#[both_runtimes]
+async fn a_dollar_topic_reaches_no_filter_starting_with_a_wildcard() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) = connected3("dollar-sub", port).await;
+    for filter in ["#", "+/x"] {
+        client.subscribe(filter, QoS::AtLeastOnce).await.unwrap();
+        until3(&mut events, |p| {
+            matches!(p, Incoming::SubAck(_)).then_some(())
+        })
+        .await;
+    }
+    // In one queue, in this order: the `$` one would come first.
+    publish_acked(port, "$dollar/x", "hidden", false).await;
+    publish_acked(port, "plain/x", "seen", false).await;
+    let first = next_publish3(&mut events).await;
+    assert_eq!(first.topic, "plain/x");
+    // A filter naming the `$` level matches it.
+    client
+        .subscribe("$dollar/#", QoS::AtLeastOnce)
+        .await
+        .unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    publish_acked(port, "$dollar/x", "shown", false).await;
+    let shown = next_publish3(&mut events).await;
+    assert_eq!(
+        (shown.topic.as_str(), &shown.payload[..]),
+        ("$dollar/x", &b"shown"[..])
+    );
+    handle.shutdown().await;
+}
+
 #[both_runtimes]
 async fn a_filter_the_user_may_not_read_is_refused_in_the_suback_and_the_session_goes_on() {
     let builder = Broker::builder().topic_permission(

@@ -1330,7 +1330,7 @@ impl Session {
         let topic = mapping::topic(&deliver.routing_key)
             .and_then(|t| MqttString::from_utf8(t.into()).ok())
             .and_then(|t| TopicName::new(t).ok())
-            .filter(|t| !t.is_empty());
+            .filter(|t| !t.is_empty() && self.subscribed_to(t));
         let tag = (queue_qos != QoS::AtMostOnce).then_some(deliver.delivery_tag);
         match topic {
             Some(topic) => {
@@ -1345,6 +1345,20 @@ impl Session {
             // Not a topic name: settled now, so it does not hold the window.
             None => self.settle(tag),
         }
+    }
+
+    /// Whether one of the session's filters matches `topic` as MQTT
+    /// matches: a topic starting with `$` matches no filter starting with a
+    /// wildcard (MQTT-4.7.2-1), where the AMQP bindings (`*`, `#`) match
+    /// it. Other topics reached the queue through a matching binding.
+    fn subscribed_to(&self, topic: &TopicName) -> bool {
+        !topic.as_str().starts_with('$')
+            || self.subscriptions.keys().any(|filter| {
+                MqttString::try_from(filter.as_str())
+                    .ok()
+                    .and_then(|f| leveret_mqtt::TopicFilter::new(f).ok())
+                    .is_some_and(|f| f.matches(topic.as_str()))
+            })
     }
 
     /// Sends a PUBLISH at `qos`; a QoS 1 or 2 one is in flight until the
