@@ -1605,6 +1605,103 @@ async fn a_3_1_1_client_reusing_one_packet_id_without_reading_gets_every_puback(
     handle.shutdown().await;
 }
 
+/// Found by perf/mqtt-quality (a burst's last QoS 0 publish went missing):
+/// publishes read before a DISCONNECT, in the same read, are routed.
+#[both_runtimes]
+async fn qos_0_publishes_written_with_the_disconnect_are_all_routed() {
+    let handle = start(Limits::default()).await;
+    let (amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("before-disconnect", Default::default(), Default::default()))
+        .unwrap();
+    bind_to_amq_topic(&channel, "before-disconnect", "d.x").await;
+    let mut raw = Raw::login(mqtt_port(&handle), 0).await;
+    let mut out = BytesMut::new();
+    let count = 50;
+    for _ in 0..count {
+        Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtMostOnce,
+            retain: false,
+            topic: TopicName::from_static("d/x"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"x"),
+        })
+        .encode(ProtocolVersion::V3_1_1, &mut out)
+        .unwrap();
+    }
+    Packet::Disconnect(leveret_mqtt::Disconnect {
+        reason: leveret_mqtt::ReasonCode::Success,
+        properties: Default::default(),
+    })
+    .encode(ProtocolVersion::V3_1_1, &mut out)
+    .unwrap();
+    tmo!(raw.socket.write_all(&out)).unwrap();
+    // The broker closes the socket after the DISCONNECT.
+    let mut rest = Vec::new();
+    tmo!(raw.socket.read_to_end(&mut rest)).unwrap();
+    let routed = within("every publish routed", async {
+        loop {
+            let declared = channel
+                .queue_declare(
+                    "before-disconnect",
+                    lapin::options::QueueDeclareOptions {
+                        passive: true,
+                        ..Default::default()
+                    },
+                    Default::default(),
+                )
+                .await
+                .unwrap();
+            if declared.message_count() >= count {
+                return declared.message_count();
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    assert_eq!(routed, count);
+    drop(amqp);
+    handle.shutdown().await;
+}
+
+/// Found by Eclipse Paho's interoperability suite (`test_dollar_topics`,
+/// Mosquitto passes it): a topic starting with `$` matches no filter that
+/// starts with a wildcard (MQTT-4.7.2-1), though the AMQP bindings match.
+#[both_runtimes]
+async fn a_dollar_topic_reaches_no_filter_starting_with_a_wildcard() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) = connected3("dollar-sub", port).await;
+    for filter in ["#", "+/x"] {
+        client.subscribe(filter, QoS::AtLeastOnce).await.unwrap();
+        until3(&mut events, |p| {
+            matches!(p, Incoming::SubAck(_)).then_some(())
+        })
+        .await;
+    }
+    // In one queue, in this order: the `$` one would come first.
+    publish_acked(port, "$dollar/x", "hidden", false).await;
+    publish_acked(port, "plain/x", "seen", false).await;
+    let first = next_publish3(&mut events).await;
+    assert_eq!(first.topic, "plain/x");
+    // A filter naming the `$` level matches it.
+    client
+        .subscribe("$dollar/#", QoS::AtLeastOnce)
+        .await
+        .unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    publish_acked(port, "$dollar/x", "shown", false).await;
+    let shown = next_publish3(&mut events).await;
+    assert_eq!(
+        (shown.topic.as_str(), &shown.payload[..]),
+        ("$dollar/x", &b"shown"[..])
+    );
+    handle.shutdown().await;
+}
+
 #[both_runtimes]
 async fn a_filter_the_user_may_not_read_is_refused_in_the_suback_and_the_session_goes_on() {
     let builder = Broker::builder().topic_permission(

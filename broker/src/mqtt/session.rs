@@ -722,9 +722,10 @@ impl Session {
     async fn finish(
         &mut self,
         socket: &mut (impl AsyncRead + AsyncWrite + Unpin),
-        link: Link,
+        mut link: Link,
         stop: Stop,
     ) -> Ended {
+        self.flush_pending(&mut link).await;
         let disconnected = matches!(stop, Stop::Disconnected { .. });
         let (reason, send_will) = match stop {
             Stop::Disconnected { send_will } => ("client disconnected", send_will),
@@ -759,6 +760,32 @@ impl Session {
             disconnected,
             will: self.will.take().filter(|_| send_will),
         }
+    }
+
+    /// Hands the core what was read before the connection ended, so that a
+    /// QoS 0 publish followed at once by DISCONNECT is routed (as Mosquitto
+    /// routes it). The core's replies are read meanwhile, so that neither
+    /// side waits on the other; at most `WRITE_STALL` in all.
+    async fn flush_pending(&mut self, link: &mut Link) {
+        let direct = &mut link.direct;
+        let pending = &mut self.pending;
+        let flush = async {
+            while let Some(item) = pending.pop_front() {
+                tokio::select! {
+                    permit = direct.to_broker.reserve() => match permit {
+                        Ok(permit) => permit.send(item),
+                        Err(_) => return,
+                    },
+                    reply = direct.from_broker.recv() => {
+                        pending.push_front(item);
+                        if reply.is_none() {
+                            return;
+                        }
+                    }
+                }
+            }
+        };
+        let _ = tokio::time::timeout(WRITE_STALL, flush).await;
     }
 
     /// Handles every whole packet in `buf`.
@@ -1553,7 +1580,7 @@ impl Session {
         let topic = mapping::topic(&deliver.routing_key)
             .and_then(|t| MqttString::from_utf8(t.into()).ok())
             .and_then(|t| TopicName::new(t).ok())
-            .filter(|t| !t.is_empty());
+            .filter(|t| !t.is_empty() && self.subscribed_to(t));
         let tag = (queue_qos != QoS::AtMostOnce).then_some(deliver.delivery_tag);
         let Some(topic) = topic else {
             // Not a topic name: settled now, so it does not hold the window.
@@ -1581,6 +1608,14 @@ impl Session {
             properties: mqtt_properties,
         };
         self.publish_to_client(topic, publish, body, tag);
+    }
+
+    /// Whether one of the session's filters matches `topic` as MQTT
+    /// matches: a topic starting with `$` matches no filter starting with a
+    /// wildcard (MQTT-4.7.2-1), where the AMQP bindings (`*`, `#`) match
+    /// it. Other topics reached the queue through a matching binding.
+    fn subscribed_to(&self, topic: &TopicName) -> bool {
+        !topic.as_str().starts_with('$') || self.subscriptions.any_matches(topic.as_str())
     }
 
     /// Sends a PUBLISH at `qos`; a QoS 1 or 2 one is in flight until the

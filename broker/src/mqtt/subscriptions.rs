@@ -135,6 +135,18 @@ impl Subscriptions {
         self.own.len() + self.shared.len()
     }
 
+    /// Whether one of the session's filters matches `topic` as MQTT
+    /// matches (a shared one by the filter after `$share/GROUP/`).
+    pub(super) fn any_matches(&self, topic: &str) -> bool {
+        self.own.values().any(|(filter, _)| filter.matches(topic))
+            || self.shared.keys().any(|shared| {
+                MqttString::try_from(shared.as_str())
+                    .ok()
+                    .and_then(|f| TopicFilter::new(f).ok())
+                    .is_some_and(|f| f.matches(topic))
+            })
+    }
+
     pub(super) fn contains(&self, filter: &str) -> bool {
         self.own.contains_key(filter) || self.shared.contains_key(filter)
     }
