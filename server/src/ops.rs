@@ -78,8 +78,8 @@ fn bound_addr(listener: &std::net::TcpListener, asked: SocketAddr) -> Result<Soc
 
 impl Ops {
     /// Binds the listeners and serves them on their own thread;
-    /// `amqp_listeners` are reported in `/api/overview`, they and
-    /// `other_listeners` (by RabbitMQ's protocol name) in the health checks.
+    /// `amqp_listeners` and `other_listeners` (by RabbitMQ's protocol
+    /// name) are reported in `/api/overview` and the health checks.
     pub fn start(
         admin: Admin,
         links: Links,
@@ -112,7 +112,6 @@ impl Ops {
             links,
             node,
             data_dir: settings.data_dir,
-            amqp_listeners: amqp_listeners.to_vec(),
             listeners,
             tls: settings.tls,
             rates: rates.clone(),

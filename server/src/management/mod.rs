@@ -62,11 +62,9 @@ pub struct Context {
     pub node: String,
     /// Where durable state lives (disk figures).
     pub data_dir: PathBuf,
-    /// The AMQP listeners.
-    pub amqp_listeners: Vec<SocketAddr>,
     /// Every listener of the process by RabbitMQ's protocol name (`amqp`,
-    /// `amqp/ssl`, `mqtt`, `http`, `http/prometheus`), for the health
-    /// checks.
+    /// `amqp/ssl`, `mqtt`, `http`, `http/prometheus`), for the overview
+    /// and the health checks.
     pub listeners: Vec<(&'static str, SocketAddr)>,
     /// The TLS listeners' certificate files, if there are TLS listeners.
     pub tls: Option<leveret_broker::TlsOptions>,
