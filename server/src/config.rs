@@ -581,6 +581,7 @@ impl Settings {
             http_listen: self.http_listen,
             data_dir: self.data_dir.clone(),
             tls: self.tls.clone().filter(|_| !self.tls_listen.is_empty()),
+            environment: self.environment(),
         }
     }
 

@@ -11,7 +11,8 @@
 //! - `main`: the runtime, start-up, and shutdown on SIGINT or SIGTERM.
 //! - `cli`: the command line (clap).
 //! - `config`: the config file (serde, toml) and its merge with the
-//!   command line into the library's `BrokerBuilder`.
+//!   command line into the library's `BrokerBuilder`; `environment`: the
+//!   resolved settings as `leveretctl environment` shows them.
 //! - `logging`: the tracing subscriber (text or JSON lines, to standard
 //!   error or to a file reopened on SIGHUP).
 //! - `ops`: the operators' listeners on a thread of their own, served by
@@ -32,6 +33,7 @@
 mod cli;
 mod config;
 mod definitions;
+mod environment;
 mod federation;
 mod http;
 mod logging;

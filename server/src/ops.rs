@@ -25,6 +25,8 @@ pub struct OpsSettings {
     pub data_dir: PathBuf,
     /// The TLS listeners' certificate files, for the health check.
     pub tls: Option<leveret_broker::TlsOptions>,
+    /// The effective configuration, for `/api/environment`.
+    pub environment: serde_json::Value,
 }
 
 /// The running listeners.
@@ -114,6 +116,7 @@ impl Ops {
             data_dir: settings.data_dir,
             listeners,
             tls: settings.tls,
+            environment: settings.environment,
             rates: rates.clone(),
         };
         let (stop, stopped) = watch::channel(false);

@@ -1154,6 +1154,12 @@ pub async fn exchange_bindings_destination(
     }))
 }
 
+/// The effective configuration (Leveret's; RabbitMQ shows its
+/// application environment with `rabbitmqctl environment` only).
+pub async fn environment(State(c): Ctx) -> Json<Value> {
+    Json(c.environment.clone())
+}
+
 /// The status page: queues with depth, rates and a depth sparkline,
 /// connections, alarms; it refreshes itself from the API.
 pub async fn status_page() -> axum::response::Html<&'static str> {

@@ -70,6 +70,8 @@ pub struct Context {
     pub tls: Option<leveret_broker::TlsOptions>,
     /// Message rates.
     pub rates: Rates,
+    /// The effective configuration (`crate::environment`).
+    pub environment: serde_json::Value,
 }
 
 /// An API error as RabbitMQ words them: `{"error": ..., "reason": ...}`.
@@ -280,6 +282,7 @@ pub fn router(context: Context) -> Router {
             get(h::user).put(h::put_user).delete(h::delete_user),
         )
         .route("/api/whoami", get(h::whoami))
+        .route("/api/environment", get(h::environment))
         .route("/api/permissions", get(h::permissions))
         .route(
             "/api/permissions/{vhost}/{user}",
