@@ -4,7 +4,8 @@
 //! connection churn, refused logins with the user name and mechanism,
 //! changes made through the management API with the acting user, the
 //! definitions loaded at start as a sentence; plain text (no ANSI
-//! colours) when standard error is not a terminal, and `--log-format json`
+//! colours) when standard error is not a terminal (coloured on one, plain
+//! in a log file), and `--log-format json`
 //! with one parseable object per line.
 
 mod common;
@@ -433,4 +434,85 @@ fn an_unopenable_log_file_refuses_the_start() {
         error.contains("cannot open the log file /nonexistent-leveret-dir/leveret.log"),
         "{error}"
     );
+}
+
+/// On a terminal (a pseudo-terminal from util-linux's `script`) the text
+/// log is coloured; with `--log-file` beside the same terminal, the file
+/// gets plain text. (The pipe case is in the first test.)
+#[test]
+fn colours_only_on_a_terminal() {
+    if !common::ops::tool_available("script", "bsdutils (util-linux's script)") {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("leveret-log-tty-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("dir");
+    let run_on_a_terminal = |name: &str, extra: &str| -> String {
+        let pid_file = dir.join(format!("{name}.pid"));
+        let command = format!(
+            "echo $$ > '{}'; exec '{}' --listen 127.0.0.1:0 --metrics-listen 127.0.0.1:0 \
+             --http-listen 127.0.0.1:0 --data-dir '{}' --log info {extra}",
+            pid_file.display(),
+            env!("CARGO_BIN_EXE_leveret"),
+            dir.join(name).display(),
+        );
+        let mut script = std::process::Command::new("script")
+            .args(["-qefc", &command, "/dev/null"])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("script");
+        let stdout = script.stdout.take().expect("stdout");
+        let (said, hear) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            use std::io::BufRead;
+            for line in std::io::BufReader::new(stdout)
+                .lines()
+                .map_while(Result::ok)
+            {
+                let _ = said.send(line);
+            }
+        });
+        // Until the banner is on the terminal or in the log file.
+        let banner = "started; config file";
+        let log_file = dir.join("leveret.log");
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        let mut output = Vec::new();
+        while !output.iter().any(|line: &String| line.contains(banner))
+            && !std::fs::read_to_string(&log_file).is_ok_and(|log| log.contains(banner))
+            && std::time::Instant::now() < deadline
+        {
+            if let Ok(line) = hear.recv_timeout(Duration::from_millis(100)) {
+                output.push(line);
+            }
+        }
+        // Stop leveret (by the pid its shell wrote before exec) cleanly.
+        let pid = std::fs::read_to_string(&pid_file).expect("pid file");
+        let killed = std::process::Command::new("kill")
+            .args(["-TERM", pid.trim()])
+            .status()
+            .expect("kill");
+        assert!(killed.success());
+        let _ = script.wait();
+        output.join("\n")
+    };
+
+    let coloured = run_on_a_terminal("tty", "");
+    assert!(coloured.contains("started; config file"), "{coloured}");
+    assert!(
+        coloured.contains("\u{1b}["),
+        "ANSI colours on a terminal:\n{coloured}"
+    );
+
+    let file = dir.join("leveret.log");
+    let to_file = run_on_a_terminal("file", &format!("--log-file '{}'", file.display()));
+    assert!(
+        !to_file.contains("started; config file"),
+        "the log went to the file: {to_file}"
+    );
+    let logged = std::fs::read_to_string(&file).expect("the log file");
+    assert!(logged.contains("started; config file"), "{logged}");
+    assert!(!logged.contains('\u{1b}'), "no colour in a file:\n{logged}");
+    let _ = std::fs::remove_dir_all(&dir);
 }
