@@ -1208,10 +1208,9 @@ pub async fn shovel_parameter(
     State(c): Ctx,
     Path((vhost, name)): Path<(String, String)>,
 ) -> ApiResult<Json<Value>> {
-    let shovel = shovel_named(&c, &vhost, &name)?;
-    Ok(Json(
-        json!({"value": shovel.parameters, "vhost": vhost, "component": "shovel", "name": name}),
-    ))
+    Ok(Json(super::parameters::shovel_parameter(shovel_named(
+        &c, &vhost, &name,
+    )?)))
 }
 
 /// Starts (or replaces) a shovel: RabbitMQ's

@@ -15,7 +15,8 @@
 //! `page_size`, `name`, `sort`), `json` (objects and body parsing), `rates`
 //! (the sampler behind `*_details`), `audit` (the log line of each change
 //! with the acting user), `vhost_deletion` (`DELETE /api/vhosts/{vhost}`),
-//! `limits` (vhost and user limits), `health` (the health checks).
+//! `limits` (vhost and user limits), `health` (the health checks),
+//! `parameters` (the runtime-parameter listings).
 //! Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
@@ -27,6 +28,7 @@ mod health;
 pub mod json;
 mod limits;
 mod pagination;
+mod parameters;
 mod policies;
 mod rates;
 mod vhost_deletion;
@@ -359,13 +361,11 @@ pub fn router(context: Context) -> Router {
                 .put(h::put_shovel)
                 .delete(h::delete_shovel),
         )
+        .route("/api/parameters", get(parameters::all))
+        .route("/api/parameters/{component}", get(parameters::of_component))
         .route(
-            "/api/parameters/federation-upstream",
-            get(federation::upstreams),
-        )
-        .route(
-            "/api/parameters/federation-upstream/{vhost}",
-            get(federation::upstreams_in),
+            "/api/parameters/{component}/{vhost}",
+            get(parameters::of_component_in),
         )
         .route(
             "/api/parameters/federation-upstream/{vhost}/{name}",
