@@ -6,7 +6,8 @@
 // standard output:
 // - at once: opens URL at 1280x900 with guest's credentials, waits until
 //   queue `dashboard` shows 7 ready and the charts, bars and listeners are
-//   drawn, prints `dom JSON` (what the page shows, read from its DOM),
+//   drawn, prints `dom JSON` (what the page shows, read from its DOM,
+//   and in `nodes_answered` every /api/nodes answer it got),
 //   saves the screenshot and prints `screenshot PATH`;
 // - on `next`: waits in the same page until `dashboard` shows 12 ready,
 //   prints `ready 12` and closes the browser.
@@ -40,6 +41,12 @@ try {
   // The page's own complaints go to standard error, for the test's message.
   page.on("pageerror", (e) => console.error("page error: " + e.message));
   page.on("console", (m) => console.error("page console: " + m.text()));
+  // Every /api/nodes answer the page got, for the test to find the one
+  // its bars show.
+  const nodes = [];
+  page.on("response", async (response) => {
+    if (new URL(response.url()).pathname === "/api/nodes") nodes.push((await response.json())[0]);
+  });
   await page.goto(url);
   await waitForReady(page, "7");
   await page.waitForFunction(() =>
@@ -82,6 +89,9 @@ try {
       size: [window.innerWidth, window.innerHeight],
     };
   });
+  // The body of an answer the page has drawn may still be on its way here.
+  await page.waitForTimeout(1000);
+  dom.nodes_answered = nodes;
   console.log("dom " + JSON.stringify(dom));
   await page.screenshot({ path: screenshot });
   console.log("screenshot " + screenshot);
