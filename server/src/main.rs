@@ -215,25 +215,20 @@ struct Banner {
 impl Banner {
     /// One info line once everything listens: the version, the config
     /// file, the data directory and every listener with its protocol
-    /// (RabbitMQ's names: amqp, amqp/ssl, http, http/prometheus).
-    fn log(self, handle: &leveret_broker::BrokerHandle, ops: &ops::Ops) {
+    /// (RabbitMQ's names: amqp, amqp/ssl, mqtt, http, http/prometheus).
+    fn log(self, ops: &ops::Ops) {
         let version = env!("CARGO_PKG_VERSION");
         let config_file = match &self.config_file {
             Some(path) => path.display().to_string(),
             None => "none".to_owned(),
         };
         let data_dir = std::fs::canonicalize(&self.data_dir).unwrap_or(self.data_dir);
-        let plain = handle
-            .local_addrs()
-            .iter()
-            .map(|addr| format!("amqp {addr}"));
-        let tls = handle
-            .tls_addrs()
-            .iter()
-            .map(|addr| format!("amqp/ssl {addr}"));
-        let mut listeners: Vec<String> = plain.chain(tls).collect();
-        listeners.push(format!("http {} (management API)", ops.http_addr));
-        listeners.push(format!("http/prometheus {}", ops.metrics_addr));
+        let listeners: Vec<String> = (ops.listeners.iter())
+            .map(|(protocol, addr)| match *protocol {
+                "http" => format!("http {addr} (management API)"),
+                _ => format!("{protocol} {addr}"),
+            })
+            .collect();
         let listeners = listeners.join(", ");
         tracing::info!(
             version,
@@ -317,7 +312,7 @@ async fn run(
             return ExitCode::FAILURE;
         }
     };
-    banner.log(handle, &ops);
+    banner.log(&ops);
     signals.wait_for_stop(handle).await;
     tracing::info!("shutting down");
     ops.stop();

@@ -32,10 +32,10 @@ pub struct OpsSettings {
 /// The running listeners.
 #[derive(Debug)]
 pub struct Ops {
-    /// Where the Prometheus endpoint listens.
-    pub metrics_addr: SocketAddr,
-    /// Where the management API listens.
-    pub http_addr: SocketAddr,
+    /// Every listener of the process by RabbitMQ's protocol name, as
+    /// `/api/overview` lists them (the management API's is `http`, the
+    /// Prometheus endpoint's `http/prometheus`).
+    pub listeners: Vec<(&'static str, SocketAddr)>,
     stop: watch::Sender<bool>,
     thread: std::thread::JoinHandle<()>,
 }
@@ -98,10 +98,11 @@ impl Ops {
             .build()
             .map_err(OpsError::Thread)?;
         let node = crate::process::node_name();
-        let listeners = (amqp_listeners.iter().map(|addr| ("amqp", *addr)))
-            .chain(other_listeners)
-            .chain([("http", http_addr), ("http/prometheus", metrics_addr)])
-            .collect();
+        let listeners: Vec<(&'static str, SocketAddr)> =
+            (amqp_listeners.iter().map(|addr| ("amqp", *addr)))
+                .chain(other_listeners)
+                .chain([("http", http_addr), ("http/prometheus", metrics_addr)])
+                .collect();
         let rates = Rates::default();
         let metrics_context = MetricsContext {
             admin: admin.clone(),
@@ -114,7 +115,7 @@ impl Ops {
             links,
             node,
             data_dir: settings.data_dir,
-            listeners,
+            listeners: listeners.clone(),
             tls: settings.tls,
             environment: settings.environment,
             rates: rates.clone(),
@@ -155,8 +156,7 @@ impl Ops {
             })
             .map_err(OpsError::Thread)?;
         Ok(Ops {
-            metrics_addr,
-            http_addr,
+            listeners,
             stop,
             thread,
         })

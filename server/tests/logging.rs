@@ -1,4 +1,5 @@
-//! The `leveret` binary's log as an operator reads it: the start banner,
+//! The `leveret` binary's log as an operator reads it: the start banner
+//! (every listener),
 //! RabbitMQ's connection lines (accepting, authenticated, closing with
 //! vhost, user, client-provided name, duration and reason) through
 //! connection churn, refused logins with the user name and mechanism,
@@ -71,14 +72,30 @@ async fn drop_after_header(broker: &OpsBroker) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn text_log_has_the_banner_and_a_line_per_open_and_close_without_colours() {
-    let broker = OpsBroker::start("log-text", &[]);
+    let broker = OpsBroker::start("log-text", &["--mqtt-listen", "127.0.0.1:0"]);
     let banner = wait_for_lines(&broker, 1, |line| line.contains("started; config file"));
     let version = env!("CARGO_PKG_VERSION");
     let expected = format!("Leveret {version} started; config file: none; data directory: ");
     assert!(banner[0].contains(&expected), "{}", banner[0]);
+    // Every listener, the MQTT one (on a port only the API tells) too.
+    let guest = basic("guest", "guest");
+    let overview = request(
+        broker.http,
+        "GET",
+        "/api/overview",
+        &[("Authorization", &guest)],
+        b"",
+    )
+    .await;
+    let overview: Value = serde_json::from_slice(&overview.body).expect("json");
+    let mqtt = (overview["listeners"].as_array().expect("listeners").iter())
+        .find(|l| l["protocol"] == "mqtt")
+        .map(|l| format!("{}:{}", l["ip_address"].as_str().expect("ip"), l["port"]))
+        .expect("an mqtt listener in the overview");
     for listener in [
-        format!("amqp {}", broker.amqp),
-        format!("http {} (management API)", broker.http),
+        format!("amqp {}, ", broker.amqp),
+        format!("mqtt {mqtt}, "),
+        format!("http {} (management API), ", broker.http),
         format!("http/prometheus {}", broker.metrics),
     ] {
         assert!(banner[0].contains(&listener), "{listener} in {}", banner[0]);
