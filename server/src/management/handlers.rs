@@ -1160,8 +1160,9 @@ pub async fn environment(State(c): Ctx) -> Json<Value> {
     Json(c.environment.clone())
 }
 
-/// The status page: queues with depth, rates and a depth sparkline,
-/// connections, alarms; it refreshes itself from the API.
+/// The status page: alarms, memory/disk/file-descriptor headroom, charts
+/// of the overview's 10-minute history, listeners, queues, connections,
+/// each linking to its JSON; it refreshes itself from the API.
 pub async fn status_page() -> axum::response::Html<&'static str> {
     axum::response::Html(include_str!("status.html"))
 }
