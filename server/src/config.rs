@@ -620,6 +620,7 @@ impl Settings {
                 .tls
                 .clone()
                 .filter(|_| !self.tls_listen.is_empty() || !self.mqtts_listen.is_empty()),
+            environment: self.environment(),
         }
     }
 
@@ -692,6 +693,43 @@ mod tests {
     fn cli(args: &[&str]) -> Cli {
         Cli::try_parse_from(std::iter::once("leveret").chain(args.iter().copied()))
             .expect("valid command line")
+    }
+
+    #[test]
+    fn the_environment_leaves_credentials_out() {
+        let settings = Settings::resolve(
+            cli(&[
+                "--tls-listen",
+                "127.0.0.1:0",
+                "--mqtt-listen",
+                "127.0.0.1:0",
+            ]),
+            file(concat!(
+                "mqtt-default-user = \"anon\"\nmqtt-default-pass = \"mqtt-secret\"\n",
+                "tls-certfile = \"c.pem\"\ntls-keyfile = \"k.pem\"\n",
+                "vm-memory-high-watermark-absolute = 1000000\n",
+                "[[users]]\nname = \"u\"\npassword = \"user-secret\"\n",
+                "[shovels.up]\nsrc-uri = \"amqp://u:shovel-secret@a\"\nsrc-queue = \"t\"\n",
+                "dest-uri = \"amqp://u:shovel-secret@b\"\ndest-queue = \"f\"\n",
+                "[federation-upstreams.far]\nuri = \"amqp://u:upstream-secret@c\"\n",
+            )),
+        )
+        .unwrap();
+        let environment = settings.environment();
+        let text = environment.to_string();
+        assert!(!text.contains("secret"), "{text}");
+        assert_eq!(environment["mqtt-default-user"], "anon");
+        assert_eq!(environment["shovels"], serde_json::json!(["up"]));
+        assert_eq!(
+            environment["federation-upstreams"],
+            serde_json::json!(["far"])
+        );
+        assert_eq!(environment["tls-keyfile"], "k.pem");
+        assert_eq!(environment["tls-verify"], "verify_none");
+        assert_eq!(environment["vm-memory-high-watermark-absolute"], 1_000_000);
+        assert!(environment
+            .get("vm-memory-high-watermark-relative")
+            .is_none());
     }
 
     #[test]

@@ -884,7 +884,7 @@ pub fn export(admin: &Admin, links: &Links) -> Value {
         "parameters": admin.all_vhost_limits().into_iter().map(|(vhost, limits)| json!({
             "value": limits_json(limits.named()), "vhost": vhost, "component": "vhost-limits", "name": "limits",
         })).chain(links.shovels.list().into_iter().map(|s| json!({
-            "value": s.parameters, "vhost": s.vhost, "component": "shovel", "name": s.name,
+            "value": s.parameters, "vhost": s.vhost, "component": crate::uplink::SHOVEL_COMPONENT, "name": s.name,
         })).chain(links.federation.upstreams().into_iter().map(|(vhost, name, value)| json!({
             "value": value, "vhost": vhost, "component": crate::federation::UPSTREAM_COMPONENT,
             "name": name,

@@ -10,7 +10,7 @@
 //!   (RFC 3339, UTC), `level` (`INFO`...), `target` (the module) and
 //!   `message`, and each of the event's fields as a key of its own.
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::fs::File;
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -18,7 +18,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use tracing_subscriber::fmt::writer::{BoxMakeWriter, MakeWriter};
 
 /// How log lines are written.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize, Serialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum LogFormat {
     /// One human-readable line per event.

@@ -11,7 +11,8 @@
 //! - `main`: the runtime, start-up, and shutdown on SIGINT or SIGTERM.
 //! - `cli`: the command line (clap).
 //! - `config`: the config file (serde, toml) and its merge with the
-//!   command line into the library's `BrokerBuilder`.
+//!   command line into the library's `BrokerBuilder`; `environment`: the
+//!   resolved settings as `leveretctl environment` shows them.
 //! - `logging`: the tracing subscriber (text or JSON lines, to standard
 //!   error or to a file reopened on SIGHUP).
 //! - `ops`: the operators' listeners on a thread of their own, served by
@@ -32,6 +33,7 @@
 mod cli;
 mod config;
 mod definitions;
+mod environment;
 mod federation;
 mod http;
 mod logging;
@@ -215,32 +217,19 @@ impl Banner {
     /// file, the data directory and every listener with its protocol
     /// (RabbitMQ's names: amqp, amqp/ssl, mqtt, mqtt/ssl, http/web-mqtt,
     /// http, http/prometheus).
-    fn log(self, handle: &leveret_broker::BrokerHandle, ops: &ops::Ops) {
+    fn log(self, ops: &ops::Ops) {
         let version = env!("CARGO_PKG_VERSION");
         let config_file = match &self.config_file {
             Some(path) => path.display().to_string(),
             None => "none".to_owned(),
         };
         let data_dir = std::fs::canonicalize(&self.data_dir).unwrap_or(self.data_dir);
-        let plain = handle
-            .local_addrs()
-            .iter()
-            .map(|addr| format!("amqp {addr}"));
-        let tls = handle
-            .tls_addrs()
-            .iter()
-            .map(|addr| format!("amqp/ssl {addr}"));
-        let mqtt = [
-            ("mqtt", handle.mqtt_addrs()),
-            ("mqtt/ssl", handle.mqtts_addrs()),
-            ("http/web-mqtt", handle.web_mqtt_addrs()),
-        ];
-        let mqtt = mqtt
-            .into_iter()
-            .flat_map(|(name, addrs)| addrs.iter().map(move |addr| format!("{name} {addr}")));
-        let mut listeners: Vec<String> = plain.chain(tls).chain(mqtt).collect();
-        listeners.push(format!("http {} (management API)", ops.http_addr));
-        listeners.push(format!("http/prometheus {}", ops.metrics_addr));
+        let listeners: Vec<String> = (ops.listeners.iter())
+            .map(|(protocol, addr)| match *protocol {
+                "http" => format!("http {addr} (management API)"),
+                _ => format!("{protocol} {addr}"),
+            })
+            .collect();
         let listeners = listeners.join(", ");
         tracing::info!(
             version,
@@ -331,7 +320,7 @@ async fn run(
             return ExitCode::FAILURE;
         }
     };
-    banner.log(handle, &ops);
+    banner.log(&ops);
     signals.wait_for_stop(handle).await;
     tracing::info!("shutting down");
     ops.stop();

@@ -25,15 +25,17 @@ pub struct OpsSettings {
     pub data_dir: PathBuf,
     /// The TLS listeners' certificate files, for the health check.
     pub tls: Option<leveret_broker::TlsOptions>,
+    /// The effective configuration, for `/api/environment`.
+    pub environment: serde_json::Value,
 }
 
 /// The running listeners.
 #[derive(Debug)]
 pub struct Ops {
-    /// Where the Prometheus endpoint listens.
-    pub metrics_addr: SocketAddr,
-    /// Where the management API listens.
-    pub http_addr: SocketAddr,
+    /// Every listener of the process by RabbitMQ's protocol name, as
+    /// `/api/overview` lists them (the management API's is `http`, the
+    /// Prometheus endpoint's `http/prometheus`).
+    pub listeners: Vec<(&'static str, SocketAddr)>,
     stop: watch::Sender<bool>,
     thread: std::thread::JoinHandle<()>,
 }
@@ -78,8 +80,8 @@ fn bound_addr(listener: &std::net::TcpListener, asked: SocketAddr) -> Result<Soc
 
 impl Ops {
     /// Binds the listeners and serves them on their own thread;
-    /// `amqp_listeners` are reported in `/api/overview`, they and
-    /// `other_listeners` (by RabbitMQ's protocol name) in the health checks.
+    /// `amqp_listeners` and `other_listeners` (by RabbitMQ's protocol
+    /// name) are reported in `/api/overview` and the health checks.
     pub fn start(
         admin: Admin,
         links: Links,
@@ -96,10 +98,11 @@ impl Ops {
             .build()
             .map_err(OpsError::Thread)?;
         let node = crate::process::node_name();
-        let listeners = (amqp_listeners.iter().map(|addr| ("amqp", *addr)))
-            .chain(other_listeners)
-            .chain([("http", http_addr), ("http/prometheus", metrics_addr)])
-            .collect();
+        let listeners: Vec<(&'static str, SocketAddr)> =
+            (amqp_listeners.iter().map(|addr| ("amqp", *addr)))
+                .chain(other_listeners)
+                .chain([("http", http_addr), ("http/prometheus", metrics_addr)])
+                .collect();
         let rates = Rates::default();
         let metrics_context = MetricsContext {
             admin: admin.clone(),
@@ -112,9 +115,9 @@ impl Ops {
             links,
             node,
             data_dir: settings.data_dir,
-            amqp_listeners: amqp_listeners.to_vec(),
-            listeners,
+            listeners: listeners.clone(),
             tls: settings.tls,
+            environment: settings.environment,
             rates: rates.clone(),
         };
         let (stop, stopped) = watch::channel(false);
@@ -153,8 +156,7 @@ impl Ops {
             })
             .map_err(OpsError::Thread)?;
         Ok(Ops {
-            metrics_addr,
-            http_addr,
+            listeners,
             stop,
             thread,
         })

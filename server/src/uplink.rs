@@ -35,7 +35,7 @@ impl Links {
 }
 
 /// The runtime parameters' component for shovels.
-const COMPONENT: &str = "shovel";
+pub const SHOVEL_COMPONENT: &str = "shovel";
 
 /// Shovels run on the broker's runtime, wherever they are started from
 /// (the management API has a thread and runtime of its own).
@@ -169,7 +169,7 @@ impl Shovels {
             return Err(DeclareError::Invalid(reason));
         }
         self.admin
-            .set_parameter(COMPONENT, vhost, name, parameters.to_string())
+            .set_parameter(SHOVEL_COMPONENT, vhost, name, parameters.to_string())
             .await?;
         self.start(vhost, name, parameters)
             .await
@@ -179,7 +179,7 @@ impl Shovels {
     /// Starts the shovels the broker's store kept; one whose parameters
     /// no longer read is logged and left stopped.
     pub async fn start_stored(&self) {
-        for (vhost, name, text) in self.admin.parameters(COMPONENT) {
+        for (vhost, name, text) in self.admin.parameters(SHOVEL_COMPONENT) {
             let parameters = serde_json::from_str(&text).map_err(|e| e.to_string());
             if let Err(e) = match parameters {
                 Ok(parameters) => self.start(&vhost, &name, parameters).await,
@@ -193,7 +193,10 @@ impl Shovels {
     /// Stops and forgets the shovel `name` of `vhost`, and its stored
     /// parameter; false if there is none.
     pub async fn delete(&self, vhost: &str, name: &str) -> Result<bool, AccessError> {
-        let stored = self.admin.clear_parameter(COMPONENT, vhost, name).await?;
+        let stored = self
+            .admin
+            .clear_parameter(SHOVEL_COMPONENT, vhost, name)
+            .await?;
         let removed = self.lock().remove(&(vhost.to_owned(), name.to_owned()));
         match removed {
             Some(entry) => {

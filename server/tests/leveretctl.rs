@@ -957,3 +957,101 @@ async fn vhost_and_user_limits_are_set_listed_enforced_and_cleared() {
     );
     assert_eq!(unknown_user.status.code(), Some(1), "{unknown_user:?}");
 }
+
+/// environment: the effective configuration (the config file's values,
+/// the command line's over them, the defaults for the rest) under the
+/// config file's names, in both formats; no password in it; only an
+/// administrator may read it.
+#[test]
+fn environment_shows_the_effective_configuration_without_secrets() {
+    let dir = std::env::temp_dir().join(format!("leveret-ctl-env-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let config = dir.join("leveret.toml");
+    std::fs::write(
+        &config,
+        r#"
+heartbeat = 30
+disk-free-limit = 123456789
+log = "warn"
+vhosts = ["/", "robots"]
+
+[[users]]
+name = "admin"
+password = "s3cret-admin-pw"
+tags = ["administrator"]
+
+[[users]]
+name = "watcher"
+password = "s3cret-watcher-pw"
+tags = ["monitoring"]
+max-connections = 3
+"#,
+    )
+    .expect("write config");
+    let config_arg = config.to_str().expect("utf-8");
+    // The command line's --log (info, from OpsBroker) wins over the file's.
+    let broker = OpsBroker::start("ctl-environment", &["--config", config_arg]);
+    let as_admin = |extra: &[&str]| {
+        let mut args = vec!["--username", "admin", "--password", "s3cret-admin-pw"];
+        args.extend_from_slice(extra);
+        ctl(&broker, &args)
+    };
+
+    let json = as_admin(&["--formatter", "json", "environment"]);
+    assert!(json.status.success(), "{json:?}");
+    let text = String::from_utf8_lossy(&json.stdout);
+    assert!(!text.contains("s3cret"), "{text}");
+    let env: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+    assert_eq!(env["heartbeat"], 30);
+    assert_eq!(env["disk-free-limit"], 123456789);
+    assert_eq!(env["log"], "info", "the command line over the file");
+    assert_eq!(env["config-file"], config_arg);
+    assert_eq!(env["vhosts"], serde_json::json!(["/", "robots"]));
+    assert_eq!(env["frame-max"], 131072, "a default");
+    assert_eq!(env["vm-memory-high-watermark-relative"], 0.4, "a default");
+    assert_eq!(env["http-listen"], "127.0.0.1:0");
+    assert_eq!(
+        env["users"],
+        serde_json::json!([
+            {"name": "admin", "tags": ["administrator"], "max-connections": null, "max-channels": null},
+            {"name": "watcher", "tags": ["monitoring"], "max-connections": 3, "max-channels": null},
+        ])
+    );
+
+    let table = as_admin(&["environment"]);
+    assert!(table.status.success(), "{table:?}");
+    let lines: Vec<String> = String::from_utf8_lossy(&table.stdout)
+        .lines()
+        .map(str::to_owned)
+        .collect();
+    assert!(
+        lines[0].starts_with("Effective configuration of node leveret@"),
+        "{lines:?}"
+    );
+    for wanted in [
+        "heartbeat = 30",
+        "disk-free-limit = 123456789",
+        "log = \"info\"",
+    ] {
+        assert!(lines.iter().any(|l| l == wanted), "{wanted}: {lines:?}");
+    }
+    assert!(!lines.iter().any(|l| l.contains("s3cret")), "{lines:?}");
+
+    let refused = ctl(
+        &broker,
+        &[
+            "--username",
+            "watcher",
+            "--password",
+            "s3cret-watcher-pw",
+            "environment",
+        ],
+    );
+    assert_eq!(refused.status.code(), Some(1), "{refused:?}");
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("Not administrator user"),
+        "{refused:?}"
+    );
+    drop(broker);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,10 +1,12 @@
-//! The `leveret` binary's log as an operator reads it: the start banner,
+//! The `leveret` binary's log as an operator reads it: the start banner
+//! (every listener),
 //! RabbitMQ's connection lines (accepting, authenticated, closing with
 //! vhost, user, client-provided name, duration and reason) through
 //! connection churn, refused logins with the user name and mechanism,
 //! changes made through the management API with the acting user, the
 //! definitions loaded at start as a sentence; plain text (no ANSI
-//! colours) when standard error is not a terminal, and `--log-format json`
+//! colours) when standard error is not a terminal (coloured on one, plain
+//! in a log file), and `--log-format json`
 //! with one parseable object per line.
 
 mod common;
@@ -70,14 +72,30 @@ async fn drop_after_header(broker: &OpsBroker) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn text_log_has_the_banner_and_a_line_per_open_and_close_without_colours() {
-    let broker = OpsBroker::start("log-text", &[]);
+    let broker = OpsBroker::start("log-text", &["--mqtt-listen", "127.0.0.1:0"]);
     let banner = wait_for_lines(&broker, 1, |line| line.contains("started; config file"));
     let version = env!("CARGO_PKG_VERSION");
     let expected = format!("Leveret {version} started; config file: none; data directory: ");
     assert!(banner[0].contains(&expected), "{}", banner[0]);
+    // Every listener, the MQTT one (on a port only the API tells) too.
+    let guest = basic("guest", "guest");
+    let overview = request(
+        broker.http,
+        "GET",
+        "/api/overview",
+        &[("Authorization", &guest)],
+        b"",
+    )
+    .await;
+    let overview: Value = serde_json::from_slice(&overview.body).expect("json");
+    let mqtt = (overview["listeners"].as_array().expect("listeners").iter())
+        .find(|l| l["protocol"] == "mqtt")
+        .map(|l| format!("{}:{}", l["ip_address"].as_str().expect("ip"), l["port"]))
+        .expect("an mqtt listener in the overview");
     for listener in [
-        format!("amqp {}", broker.amqp),
-        format!("http {} (management API)", broker.http),
+        format!("amqp {}, ", broker.amqp),
+        format!("mqtt {mqtt}, "),
+        format!("http {} (management API), ", broker.http),
         format!("http/prometheus {}", broker.metrics),
     ] {
         assert!(banner[0].contains(&listener), "{listener} in {}", banner[0]);
@@ -435,4 +453,85 @@ fn an_unopenable_log_file_refuses_the_start() {
         error.contains("cannot open the log file /nonexistent-leveret-dir/leveret.log"),
         "{error}"
     );
+}
+
+/// On a terminal (a pseudo-terminal from util-linux's `script`) the text
+/// log is coloured; with `--log-file` beside the same terminal, the file
+/// gets plain text. (The pipe case is in the first test.)
+#[test]
+fn colours_only_on_a_terminal() {
+    if !common::ops::tool_available("script", "bsdutils (util-linux's script)") {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("leveret-log-tty-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("dir");
+    let run_on_a_terminal = |name: &str, extra: &str| -> String {
+        let pid_file = dir.join(format!("{name}.pid"));
+        let command = format!(
+            "echo $$ > '{}'; exec '{}' --listen 127.0.0.1:0 --metrics-listen 127.0.0.1:0 \
+             --http-listen 127.0.0.1:0 --data-dir '{}' --log info {extra}",
+            pid_file.display(),
+            env!("CARGO_BIN_EXE_leveret"),
+            dir.join(name).display(),
+        );
+        let mut script = std::process::Command::new("script")
+            .args(["-qefc", &command, "/dev/null"])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("script");
+        let stdout = script.stdout.take().expect("stdout");
+        let (said, hear) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            use std::io::BufRead;
+            for line in std::io::BufReader::new(stdout)
+                .lines()
+                .map_while(Result::ok)
+            {
+                let _ = said.send(line);
+            }
+        });
+        // Until the banner is on the terminal or in the log file.
+        let banner = "started; config file";
+        let log_file = dir.join("leveret.log");
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        let mut output = Vec::new();
+        while !output.iter().any(|line: &String| line.contains(banner))
+            && !std::fs::read_to_string(&log_file).is_ok_and(|log| log.contains(banner))
+            && std::time::Instant::now() < deadline
+        {
+            if let Ok(line) = hear.recv_timeout(Duration::from_millis(100)) {
+                output.push(line);
+            }
+        }
+        // Stop leveret (by the pid its shell wrote before exec) cleanly.
+        let pid = std::fs::read_to_string(&pid_file).expect("pid file");
+        let killed = std::process::Command::new("kill")
+            .args(["-TERM", pid.trim()])
+            .status()
+            .expect("kill");
+        assert!(killed.success());
+        let _ = script.wait();
+        output.join("\n")
+    };
+
+    let coloured = run_on_a_terminal("tty", "");
+    assert!(coloured.contains("started; config file"), "{coloured}");
+    assert!(
+        coloured.contains("\u{1b}["),
+        "ANSI colours on a terminal:\n{coloured}"
+    );
+
+    let file = dir.join("leveret.log");
+    let to_file = run_on_a_terminal("file", &format!("--log-file '{}'", file.display()));
+    assert!(
+        !to_file.contains("started; config file"),
+        "the log went to the file: {to_file}"
+    );
+    let logged = std::fs::read_to_string(&file).expect("the log file");
+    assert!(logged.contains("started; config file"), "{logged}");
+    assert!(!logged.contains('\u{1b}'), "no colour in a file:\n{logged}");
+    let _ = std::fs::remove_dir_all(&dir);
 }

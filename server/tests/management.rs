@@ -955,3 +955,99 @@ async fn rabbitmqadmin_deletes_a_vhost_and_it_stays_deleted() {
         "{queues}"
     );
 }
+
+/// RabbitMQ's parameter listings over Leveret's two components:
+/// `/api/parameters` (rabbitmqadmin's `list parameters`), by component,
+/// by component and vhost (404 for a vhost that does not exist, nothing
+/// for a component Leveret lacks), and nothing of a vhost the caller has
+/// no permission on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn parameters_are_listed_by_component_and_vhost() {
+    let broker = OpsBroker::start("parameters", &[]);
+    let guest = basic("guest", "guest");
+    let auth = [("Authorization", guest.as_str())];
+    let get = |path: String, auth: String| {
+        let http = broker.http;
+        async move {
+            let response = request(http, "GET", &path, &[("Authorization", &auth)], b"").await;
+            let body = serde_json::from_slice(&response.body).unwrap_or(Value::Null);
+            (response.status, body)
+        }
+    };
+    // Nowhere to connect to: the shovel and the upstream are declared and
+    // keep retrying, which is all this needs.
+    let shovel = json!({"value": {"src-uri": "amqp://127.0.0.1:1", "src-queue": "a",
+        "dest-uri": "amqp://127.0.0.1:1", "dest-queue": "b"}});
+    let put = request(
+        broker.http,
+        "PUT",
+        "/api/parameters/shovel/%2F/mover",
+        &auth,
+        shovel.to_string().as_bytes(),
+    )
+    .await;
+    assert_eq!(put.status, 201, "{}", put.text());
+    let upstream = json!({"value": {"uri": "amqp://127.0.0.1:1"}});
+    let put = request(
+        broker.http,
+        "PUT",
+        "/api/parameters/federation-upstream/%2F/far",
+        &auth,
+        upstream.to_string().as_bytes(),
+    )
+    .await;
+    assert!(put.status == 201 || put.status == 204, "{}", put.text());
+
+    let (status, all) = get("/api/parameters".into(), guest.clone()).await;
+    assert_eq!(status, 200);
+    let mut seen: Vec<(String, String, String)> = all
+        .as_array()
+        .expect("a list")
+        .iter()
+        .map(|p| {
+            assert!(p["value"].is_object(), "{p}");
+            let text = |key: &str| p[key].as_str().expect(key).to_owned();
+            (text("component"), text("vhost"), text("name"))
+        })
+        .collect();
+    seen.sort();
+    assert_eq!(
+        seen,
+        [
+            ("federation-upstream".into(), "/".into(), "far".into()),
+            ("shovel".into(), "/".into(), "mover".into())
+        ]
+    );
+    assert_eq!(
+        named(&all, "mover")["value"]["dest-queue"],
+        "b",
+        "the value as given"
+    );
+
+    let (_, shovels) = get("/api/parameters/shovel".into(), guest.clone()).await;
+    assert_eq!(shovels.as_array().map(Vec::len), Some(1), "{shovels}");
+    assert_eq!(shovels[0]["name"], "mover");
+    let (_, upstreams) = get(
+        "/api/parameters/federation-upstream/%2F".into(),
+        guest.clone(),
+    )
+    .await;
+    assert_eq!(upstreams.as_array().map(Vec::len), Some(1), "{upstreams}");
+    assert_eq!(upstreams[0]["name"], "far");
+    let (status, none) = get("/api/parameters/no-such-component".into(), guest.clone()).await;
+    assert_eq!((status, none), (200, json!([])));
+    let (status, _) = get("/api/parameters/shovel/no-such-vhost".into(), guest.clone()).await;
+    assert_eq!(status, 404);
+
+    // A management user without a permission on `/` sees none of it.
+    let user = br#"{"password": "pw", "tags": "management"}"#;
+    let added = request(broker.http, "PUT", "/api/users/viewer", &auth, user).await;
+    assert!(added.status < 300, "{}", added.text());
+    let (status, hidden) = get("/api/parameters".into(), basic("viewer", "pw")).await;
+    assert_eq!((status, hidden), (200, json!([])));
+
+    if tool_available("rabbitmqadmin", "rabbitmq-server") {
+        let listed = admin_json(&broker, &["list", "parameters"]);
+        assert_eq!(listed.as_array().map(Vec::len), Some(2), "{listed}");
+    }
+}

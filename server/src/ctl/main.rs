@@ -234,6 +234,10 @@ enum Command {
     /// The status, then every listing: connections, channels, and each
     /// vhost's queues, exchanges, bindings, consumers and permissions.
     Report,
+    /// The effective configuration (command line, config file and
+    /// defaults), under the config file's key names, one `key = value`
+    /// (JSON values) per line; credentials are not shown.
+    Environment,
     #[command(flatten)]
     Policy(policies::PolicyCommand),
     /// The robot data ports that announce themselves (over AMQP, see
@@ -619,6 +623,7 @@ fn run(cli: &Cli) -> Result<(), Failure> {
         }
         Command::Status => status(cli, &client),
         Command::Report => report(cli, &client),
+        Command::Environment => environment(cli, &client),
         Command::Port { command } => ports::run(cli, command),
         Command::Policy(command) => policies::run(cli, &client, command),
     }
@@ -808,6 +813,27 @@ fn report(cli: &Cli, client: &Client) -> Result<(), Failure> {
         }
     }
     Ok(())
+}
+
+/// rabbitmqctl environment: the broker's effective configuration.
+fn environment(cli: &Cli, client: &Client) -> Result<(), Failure> {
+    let environment = client.get("/api/environment")?;
+    if cli.formatter == Formatter::Json {
+        return emit(&format!("{environment}\n"));
+    }
+    let node = client.get("/api/overview")?["node"].clone();
+    info(
+        cli,
+        &format!(
+            "Effective configuration of node {} ...",
+            columns::render(&node)
+        ),
+    )?;
+    let mut lines = String::new();
+    for (key, value) in environment.as_object().into_iter().flatten() {
+        lines.push_str(&format!("{key} = {value}\n"));
+    }
+    emit(&lines)
 }
 
 fn status(cli: &Cli, client: &Client) -> Result<(), Failure> {

@@ -146,6 +146,7 @@ impl Caller {
                 | "definitions"
                 | "operator-policies"
                 | "user-limits"
+                | "environment"
         ) || (matches!(
             first,
             "vhosts" | "connections" | "parameters" | "cluster-name" | "vhost-limits"

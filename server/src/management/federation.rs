@@ -1,34 +1,19 @@
 //! The management API's federation paths, as RabbitMQ's federation
-//! endpoints: upstreams (`/api/parameters/federation-upstream`) and the
+//! endpoints: upstreams (`/api/parameters/federation-upstream/VHOST/NAME`;
+//! their listings are `parameters`') and the
 //! links the policies run (`/api/federation-links`); policies are
 //! `policies`'. Changes go to `crate::federation`, which keeps them in the
 //! broker's store.
 
 use super::caller::Caller;
 use super::handlers::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
+use super::parameters::upstream_parameter;
 use super::ApiError;
-use crate::federation::{Federation, UPSTREAM_COMPONENT};
+use crate::federation::Federation;
 use axum::body::Bytes;
 use axum::extract::{Path, State};
 use axum::{Extension, Json};
 use serde_json::{json, Value};
-
-fn upstream_json((vhost, name, value): (String, String, Value)) -> Value {
-    json!({"value": value, "vhost": vhost, "component": UPSTREAM_COMPONENT, "name": name})
-}
-
-fn listed(
-    all: Vec<(String, String, Value)>,
-    keep: impl Fn(&str) -> bool,
-    shape: fn((String, String, Value)) -> Value,
-) -> Json<Value> {
-    Json(Value::Array(
-        all.into_iter()
-            .filter(|(vhost, ..)| keep(vhost))
-            .map(shape)
-            .collect(),
-    ))
-}
 
 fn named(
     all: Vec<(String, String, Value)>,
@@ -41,29 +26,12 @@ fn named(
         .ok_or_else(|| ApiError::not_found(format!("no {what} '{name}' in vhost '{vhost}'")))
 }
 
-pub async fn upstreams(State(c): Ctx, Extension(caller): Extension<Caller>) -> Json<Value> {
-    listed(
-        c.links.federation.upstreams(),
-        |v| caller.sees_vhost(v),
-        upstream_json,
-    )
-}
-
-pub async fn upstreams_in(State(c): Ctx, Path(vhost): Path<String>) -> ApiResult<Json<Value>> {
-    require_vhost(&c, &vhost)?;
-    Ok(listed(
-        c.links.federation.upstreams(),
-        |v| v == vhost,
-        upstream_json,
-    ))
-}
-
 pub async fn upstream(
     State(c): Ctx,
     Path((vhost, name)): Path<(String, String)>,
 ) -> ApiResult<Json<Value>> {
     let found = named(c.links.federation.upstreams(), &vhost, &name, "upstream")?;
-    Ok(Json(upstream_json(found)))
+    Ok(Json(upstream_parameter(found)))
 }
 
 /// The `value` of a parameter body (RabbitMQ's `{"value": {...}}`).

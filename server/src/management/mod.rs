@@ -15,7 +15,8 @@
 //! `page_size`, `name`, `sort`), `json` (objects and body parsing), `rates`
 //! (the sampler behind `*_details`), `audit` (the log line of each change
 //! with the acting user), `vhost_deletion` (`DELETE /api/vhosts/{vhost}`),
-//! `limits` (vhost and user limits), `health` (the health checks).
+//! `limits` (vhost and user limits), `health` (the health checks),
+//! `parameters` (the runtime-parameter listings).
 //! Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
@@ -27,6 +28,7 @@ mod health;
 pub mod json;
 mod limits;
 mod pagination;
+mod parameters;
 mod policies;
 mod rates;
 mod vhost_deletion;
@@ -63,16 +65,16 @@ pub struct Context {
     pub node: String,
     /// Where durable state lives (disk figures).
     pub data_dir: PathBuf,
-    /// The AMQP listeners.
-    pub amqp_listeners: Vec<SocketAddr>,
     /// Every listener of the process by RabbitMQ's protocol name (`amqp`,
-    /// `amqp/ssl`, `mqtt`, `http`, `http/prometheus`), for the health
-    /// checks.
+    /// `amqp/ssl`, `mqtt`, `http`, `http/prometheus`), for the overview
+    /// and the health checks.
     pub listeners: Vec<(&'static str, SocketAddr)>,
     /// The TLS listeners' certificate files, if there are TLS listeners.
     pub tls: Option<leveret_broker::TlsOptions>,
     /// Message rates.
     pub rates: Rates,
+    /// The effective configuration (`crate::environment`).
+    pub environment: serde_json::Value,
 }
 
 /// An API error as RabbitMQ words them: `{"error": ..., "reason": ...}`.
@@ -283,6 +285,7 @@ pub fn router(context: Context) -> Router {
             get(h::user).put(h::put_user).delete(h::delete_user),
         )
         .route("/api/whoami", get(h::whoami))
+        .route("/api/environment", get(h::environment))
         .route("/api/permissions", get(h::permissions))
         .route(
             "/api/permissions/{vhost}/{user}",
@@ -359,13 +362,11 @@ pub fn router(context: Context) -> Router {
                 .put(h::put_shovel)
                 .delete(h::delete_shovel),
         )
+        .route("/api/parameters", get(parameters::all))
+        .route("/api/parameters/{component}", get(parameters::of_component))
         .route(
-            "/api/parameters/federation-upstream",
-            get(federation::upstreams),
-        )
-        .route(
-            "/api/parameters/federation-upstream/{vhost}",
-            get(federation::upstreams_in),
+            "/api/parameters/{component}/{vhost}",
+            get(parameters::of_component_in),
         )
         .route(
             "/api/parameters/federation-upstream/{vhost}/{name}",
