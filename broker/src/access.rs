@@ -193,7 +193,9 @@ fn restore(
             )
             .map_err(|e| e.to_string()),
         // The `parameters` module's and the `mqtt` front end's.
-        MetaRecord::Parameter { .. } | MetaRecord::Retained { .. } => Ok(()),
+        MetaRecord::Parameter { .. }
+        | MetaRecord::Retained { .. }
+        | MetaRecord::Unreleased { .. } => Ok(()),
     };
     if let Err(problem) = outcome {
         tracing::error!(record = ?record.key(), %problem, "a stored user, vhost or permission is not restored");

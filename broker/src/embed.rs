@@ -54,8 +54,12 @@ pub struct BrokerBuilder {
     tls_listen: Vec<SocketAddr>,
     #[cfg(feature = "mqtt")]
     mqtt_listen: Vec<SocketAddr>,
+    #[cfg(all(feature = "mqtt", feature = "tls"))]
+    mqtts_listen: Vec<SocketAddr>,
     #[cfg(feature = "mqtt")]
-    mqtt_anonymous: Option<(String, String)>,
+    web_mqtt_listen: Vec<SocketAddr>,
+    #[cfg(feature = "mqtt")]
+    mqtt_options: crate::mqtt::Options,
     #[cfg(feature = "mqtt")]
     mqtt_retained_limits: crate::mqtt::RetainedLimits,
     #[cfg(feature = "tls")]
@@ -122,7 +126,35 @@ impl BrokerBuilder {
     /// `mqtt.default_pass`). Without it such a CONNECT is refused
     /// (not authorized).
     pub fn mqtt_anonymous_login(mut self, user: impl Into<String>, password: &str) -> Self {
-        self.mqtt_anonymous = Some((user.into(), password.to_owned()));
+        self.mqtt_options.anonymous = Some((user.into(), password.to_owned()));
+        self
+    }
+
+    #[cfg(all(feature = "mqtt", feature = "tls"))]
+    /// Adds an MQTT over TLS listener (RabbitMQ's `mqtt.listeners.ssl`;
+    /// 8883 by convention, port 0 picks a free port), served with
+    /// [`BrokerBuilder::tls`] as the AMQP TLS listeners are.
+    pub fn mqtts_listen(mut self, addr: SocketAddr) -> Self {
+        self.mqtts_listen.push(addr);
+        self
+    }
+
+    #[cfg(all(feature = "mqtt", feature = "tls"))]
+    /// Lets an MQTT client on a TLS listener whose verified certificate
+    /// has a common name, and whose CONNECT has no user name, log in as
+    /// that user without a password (RabbitMQ's `mqtt.ssl_cert_login`,
+    /// SASL EXTERNAL on the AMQP side). Off by default.
+    pub fn mqtt_certificate_login(mut self, enabled: bool) -> Self {
+        self.mqtt_options.certificate_login = enabled;
+        self
+    }
+
+    #[cfg(feature = "mqtt")]
+    /// Adds an MQTT over WebSocket listener (RabbitMQ's `web_mqtt`; 15675
+    /// by convention, port 0 picks a free port): path `/ws`, subprotocol
+    /// `mqtt`, for browser dashboards.
+    pub fn web_mqtt_listen(mut self, addr: SocketAddr) -> Self {
+        self.web_mqtt_listen.push(addr);
         self
     }
 
@@ -329,8 +361,12 @@ impl BrokerBuilder {
 
     /// Binds the listeners and starts serving.
     pub async fn start(self) -> Result<BrokerHandle, StartError> {
+        #[cfg(all(feature = "tls", feature = "mqtt"))]
+        let no_tls_listeners = self.tls_listen.is_empty() && self.mqtts_listen.is_empty();
+        #[cfg(all(feature = "tls", not(feature = "mqtt")))]
+        let no_tls_listeners = self.tls_listen.is_empty();
         #[cfg(feature = "tls")]
-        let tls = match (self.tls, self.tls_listen.is_empty()) {
+        let tls = match (self.tls, no_tls_listeners) {
             (None, false) => return Err(StartError::Tls(TlsError::NoOptions)),
             (Some(options), _) => Some(Arc::new(
                 TlsContext::load(options).map_err(StartError::Tls)?,
@@ -432,12 +468,12 @@ impl BrokerBuilder {
             busy_poll: busy_poll.clone(),
         });
         #[cfg(feature = "mqtt")]
-        let mqtt_retained = crate::mqtt::Retained::new(
+        let mqtt_shared = Arc::new(crate::mqtt::Shared::new(
+            &core,
             &recovered.meta,
-            Arc::clone(&core.gauge),
-            core.persistence.clone(),
+            self.mqtt_options,
             self.mqtt_retained_limits,
-        );
+        ));
         let report = match crate::recovery::recover(&core, recovered) {
             Ok(report) => report,
             // A damaged stream refuses the start as a damaged store does.
@@ -492,27 +528,47 @@ impl BrokerBuilder {
                 alive.clone(),
             )));
         }
+        // TCP, TLS and WebSocket listeners' bound addresses.
         #[cfg_attr(not(feature = "mqtt"), allow(unused_mut))]
-        let mut mqtt_addrs = Vec::new();
+        let mut mqtt_addrs: [Vec<SocketAddr>; 3] = Default::default();
         #[cfg(feature = "mqtt")]
-        let mqtt_shared = Arc::new(crate::mqtt::Shared::new(self.mqtt_anonymous, mqtt_retained));
-        #[cfg(feature = "mqtt")]
-        for addr in self.mqtt_listen {
-            let listener = TcpListener::bind(addr)
-                .await
-                .map_err(|source| StartError::Bind { addr, source })?;
-            let bound = listener
-                .local_addr()
-                .map_err(|source| StartError::Bind { addr, source })?;
-            warn_if_only_guest(&core.users, bound);
-            tracing::info!(addr = %bound, "accepting MQTT 3.1.1 and 5.0 connections");
-            mqtt_addrs.push(bound);
-            tasks.push(tokio::spawn(crate::mqtt::accept_loop(
-                Arc::clone(&core),
-                listener,
-                Arc::clone(&mqtt_shared),
-                alive.clone(),
-            )));
+        {
+            use crate::mqtt::Transport;
+            let listeners = self.mqtt_listen.into_iter().map(|a| (a, Transport::Tcp));
+            #[cfg(feature = "tls")]
+            let listeners = listeners.chain(self.mqtts_listen.into_iter().filter_map(|a| {
+                // `tls` is set whenever there are TLS listeners (above).
+                tls.clone().map(|tls| (a, Transport::Tls(tls)))
+            }));
+            let listeners = listeners.chain(
+                self.web_mqtt_listen
+                    .into_iter()
+                    .map(|a| (a, Transport::WebSocket)),
+            );
+            for (addr, transport) in listeners {
+                let listener = TcpListener::bind(addr)
+                    .await
+                    .map_err(|source| StartError::Bind { addr, source })?;
+                let bound = listener
+                    .local_addr()
+                    .map_err(|source| StartError::Bind { addr, source })?;
+                warn_if_only_guest(&core.users, bound);
+                let (kind, over) = match transport {
+                    Transport::Tcp => (0, ""),
+                    #[cfg(feature = "tls")]
+                    Transport::Tls(_) => (1, " over TLS"),
+                    Transport::WebSocket => (2, " over WebSocket"),
+                };
+                tracing::info!(addr = %bound, "accepting MQTT 3.1.1 and 5.0 connections{over}");
+                mqtt_addrs[kind].push(bound);
+                tasks.push(tokio::spawn(crate::mqtt::accept_loop(
+                    Arc::clone(&core),
+                    listener,
+                    transport,
+                    Arc::clone(&mqtt_shared),
+                    alive.clone(),
+                )));
+            }
         }
         tasks.push(tokio::spawn(crate::server::sweeper(
             Arc::clone(&core),
@@ -573,7 +629,8 @@ pub struct BrokerHandle {
     core: Arc<Core>,
     local_addrs: Vec<SocketAddr>,
     tls_addrs: Vec<SocketAddr>,
-    mqtt_addrs: Vec<SocketAddr>,
+    /// The MQTT listeners': TCP, TLS, WebSocket.
+    mqtt_addrs: [Vec<SocketAddr>; 3],
     #[cfg(feature = "tls")]
     tls: Option<Arc<TlsContext>>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
@@ -607,7 +664,17 @@ impl BrokerHandle {
     /// The addresses the MQTT listeners are bound to (none without the
     /// `mqtt` feature).
     pub fn mqtt_addrs(&self) -> &[SocketAddr] {
-        &self.mqtt_addrs
+        &self.mqtt_addrs[0]
+    }
+
+    /// The addresses the MQTT over TLS listeners are bound to.
+    pub fn mqtts_addrs(&self) -> &[SocketAddr] {
+        &self.mqtt_addrs[1]
+    }
+
+    /// The addresses the MQTT over WebSocket listeners are bound to.
+    pub fn web_mqtt_addrs(&self) -> &[SocketAddr] {
+        &self.mqtt_addrs[2]
     }
 
     #[cfg(feature = "tls")]
@@ -654,7 +721,7 @@ impl BrokerHandle {
         crate::connection::serve_direct(
             core,
             slot,
-            peer,
+            (peer, crate::connection::Identity::None),
             crate::connection::AMQP_0_9_1,
             self.alive.clone(),
         )

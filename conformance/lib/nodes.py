@@ -144,7 +144,9 @@ class LeveretNode:
         self.log = open(self.logpath, "w")
         self.proc = subprocess.Popen(
             [binary, "--listen", f"127.0.0.1:{self.port}", "--data-dir", os.path.join(self.dir, "data"),
-             "--metrics-listen", "127.0.0.1:0", "--http-listen", "127.0.0.1:0", *args],
+             "--metrics-listen", "127.0.0.1:0", "--http-listen", "127.0.0.1:0",
+             # MQTT is on 1883 by default; a suite that wants it passes its own port.
+             "--mqtt-listen", "none", *args],
             stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
         if not all(wait_port(p, 30) for p in [self.port, wait_for] if p):
             tail = open(self.logpath, errors="replace").read()[-2000:]

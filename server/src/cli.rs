@@ -6,6 +6,21 @@ use clap::Parser;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
+/// A listener's address, or `none` (no listener).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Listen(pub Option<SocketAddr>);
+
+impl std::str::FromStr for Listen {
+    type Err = std::net::AddrParseError;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        match text {
+            "none" => Ok(Listen(None)),
+            addr => addr.parse().map(|addr| Listen(Some(addr))),
+        }
+    }
+}
+
 /// An embeddable AMQP 0.9.1 message broker.
 #[derive(Debug, Default, Parser)]
 #[command(name = "leveret", version, about)]
@@ -21,10 +36,20 @@ pub struct Cli {
     #[arg(long = "tls-listen", value_name = "ADDR:PORT")]
     pub tls_listen: Vec<SocketAddr>,
     /// Address to accept MQTT 3.1.1 and 5.0 connections on (RabbitMQ's
-    /// `mqtt.listeners.tcp`, 1883 by convention); may be given more than
-    /// once. Off unless given.
-    #[arg(long = "mqtt-listen", value_name = "ADDR:PORT")]
-    pub mqtt_listen: Vec<SocketAddr>,
+    /// `mqtt.listeners.tcp`); may be given more than once; `none` turns
+    /// MQTT over TCP off [default: 0.0.0.0:1883].
+    #[arg(long = "mqtt-listen", value_name = "ADDR:PORT|none")]
+    pub mqtt_listen: Vec<Listen>,
+    /// Address to accept MQTT connections over TLS on (RabbitMQ's
+    /// `mqtt.listeners.ssl`, 8883 by convention), with the --tls-* files;
+    /// may be given more than once.
+    #[arg(long = "mqtts-listen", value_name = "ADDR:PORT")]
+    pub mqtts_listen: Vec<SocketAddr>,
+    /// Address to accept MQTT over WebSocket on, path /ws (RabbitMQ's
+    /// `web_mqtt.tcp.port`, 15675 by convention); may be given more than
+    /// once.
+    #[arg(long = "web-mqtt-listen", value_name = "ADDR:PORT")]
+    pub web_mqtt_listen: Vec<SocketAddr>,
     /// The TLS certificate chain, PEM, leaf first (`ssl_options.certfile`).
     #[arg(long, value_name = "FILE")]
     pub tls_certfile: Option<PathBuf>,

@@ -20,6 +20,10 @@ use std::time::Duration;
 /// Where AMQP connections are accepted unless told otherwise.
 const DEFAULT_LISTEN: SocketAddr =
     SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED), 5672);
+/// Where MQTT connections are accepted unless told otherwise (RabbitMQ's
+/// port; `--mqtt-listen none` or `mqtt-listen = []` turns it off).
+const DEFAULT_MQTT_LISTEN: SocketAddr =
+    SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED), 1883);
 /// Where the Prometheus endpoint listens unless told otherwise (RabbitMQ's port).
 const DEFAULT_METRICS_LISTEN: SocketAddr =
     SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 15692);
@@ -94,8 +98,15 @@ pub struct FileConfig {
     listen: Option<Vec<SocketAddr>>,
     /// RabbitMQ's `listeners.ssl`.
     tls_listen: Option<Vec<SocketAddr>>,
-    /// RabbitMQ's `mqtt.listeners.tcp`.
+    /// RabbitMQ's `mqtt.listeners.tcp` (`[]` turns MQTT over TCP off).
     mqtt_listen: Option<Vec<SocketAddr>>,
+    /// RabbitMQ's `mqtt.listeners.ssl`.
+    mqtts_listen: Option<Vec<SocketAddr>>,
+    /// RabbitMQ's `web_mqtt.tcp.port`.
+    web_mqtt_listen: Option<Vec<SocketAddr>>,
+    /// RabbitMQ's `mqtt.ssl_cert_login`: an MQTT client on a TLS listener
+    /// without a user name logs in as its certificate's common name.
+    mqtt_ssl_cert_login: Option<bool>,
     /// RabbitMQ's `mqtt.default_user` (with `mqtt.allow_anonymous`): the
     /// user MQTT clients without a user name log in as.
     mqtt_default_user: Option<String>,
@@ -256,6 +267,12 @@ pub struct Settings {
     pub tls_listen: Vec<SocketAddr>,
     /// MQTT listeners.
     pub mqtt_listen: Vec<SocketAddr>,
+    /// MQTT-over-TLS listeners.
+    pub mqtts_listen: Vec<SocketAddr>,
+    /// MQTT-over-WebSocket listeners.
+    pub web_mqtt_listen: Vec<SocketAddr>,
+    /// Whether MQTT clients may log in with their TLS certificate.
+    pub mqtt_ssl_cert_login: bool,
     /// The user and password of MQTT clients without a user name.
     pub mqtt_anonymous: Option<(String, String)>,
     /// Their certificates and client verification.
@@ -387,9 +404,20 @@ impl Settings {
             cli.tls_listen
         };
         let mqtt_listen = if cli.mqtt_listen.is_empty() {
-            file.mqtt_listen.unwrap_or_default()
+            file.mqtt_listen
+                .unwrap_or_else(|| vec![DEFAULT_MQTT_LISTEN])
         } else {
-            cli.mqtt_listen
+            cli.mqtt_listen.iter().filter_map(|l| l.0).collect()
+        };
+        let mqtts_listen = if cli.mqtts_listen.is_empty() {
+            file.mqtts_listen.unwrap_or_default()
+        } else {
+            cli.mqtts_listen
+        };
+        let web_mqtt_listen = if cli.web_mqtt_listen.is_empty() {
+            file.web_mqtt_listen.unwrap_or_default()
+        } else {
+            cli.web_mqtt_listen
         };
         let mqtt_anonymous = match (file.mqtt_default_user, file.mqtt_default_pass) {
             (Some(user), Some(pass)) => Some((user, pass)),
@@ -406,6 +434,11 @@ impl Settings {
         if !tls_listen.is_empty() && tls.is_none() {
             return Err(ConfigError::Tls(
                 "tls-listen needs tls-certfile and tls-keyfile".into(),
+            ));
+        }
+        if !mqtts_listen.is_empty() && tls.is_none() {
+            return Err(ConfigError::Tls(
+                "mqtts-listen needs tls-certfile and tls-keyfile".into(),
             ));
         }
         let defaults = Limits::default();
@@ -534,6 +567,9 @@ impl Settings {
             listen,
             tls_listen,
             mqtt_listen,
+            mqtts_listen,
+            web_mqtt_listen,
+            mqtt_ssl_cert_login: file.mqtt_ssl_cert_login.unwrap_or(false),
             mqtt_anonymous,
             tls,
             data_dir: cli
@@ -580,7 +616,10 @@ impl Settings {
             metrics_listen: self.metrics_listen,
             http_listen: self.http_listen,
             data_dir: self.data_dir.clone(),
-            tls: self.tls.clone().filter(|_| !self.tls_listen.is_empty()),
+            tls: self
+                .tls
+                .clone()
+                .filter(|_| !self.tls_listen.is_empty() || !self.mqtts_listen.is_empty()),
         }
     }
 
@@ -603,6 +642,13 @@ impl Settings {
         for addr in self.mqtt_listen {
             builder = builder.mqtt_listen(addr);
         }
+        for addr in self.mqtts_listen {
+            builder = builder.mqtts_listen(addr);
+        }
+        for addr in self.web_mqtt_listen {
+            builder = builder.web_mqtt_listen(addr);
+        }
+        builder = builder.mqtt_certificate_login(self.mqtt_ssl_cert_login);
         if let Some((user, pass)) = self.mqtt_anonymous {
             builder = builder.mqtt_anonymous_login(user, &pass);
         }
@@ -676,7 +722,14 @@ mod tests {
     #[test]
     fn mqtt_listeners_come_from_the_command_line_or_the_file() {
         let resolve = |cli_args: &[&str], text: &str| Settings::resolve(cli(cli_args), file(text));
-        assert!(resolve(&[], "").unwrap().mqtt_listen.is_empty());
+        let default = "0.0.0.0:1883".parse::<SocketAddr>().unwrap();
+        assert_eq!(resolve(&[], "").unwrap().mqtt_listen, [default]);
+        assert!(resolve(&[], "mqtt-listen = []")
+            .unwrap()
+            .mqtt_listen
+            .is_empty());
+        let off = resolve(&["--mqtt-listen", "none"], "");
+        assert!(off.unwrap().mqtt_listen.is_empty());
         let addr: SocketAddr = "127.0.0.1:1883".parse().unwrap();
         let from_file = resolve(&[], "mqtt-listen = [\"127.0.0.1:1883\"]").unwrap();
         assert_eq!(from_file.mqtt_listen, [addr]);
@@ -687,6 +740,24 @@ mod tests {
         assert_eq!(
             from_cli.unwrap().mqtt_listen,
             ["127.0.0.1:1884".parse().unwrap()]
+        );
+        // TLS and WebSocket: off unless given; TLS needs the files.
+        let plain = resolve(&[], "").unwrap();
+        assert!(plain.mqtts_listen.is_empty() && plain.web_mqtt_listen.is_empty());
+        assert!(!plain.mqtt_ssl_cert_login);
+        assert!(resolve(&["--mqtts-listen", "127.0.0.1:8883"], "").is_err());
+        let all = resolve(
+            &["--web-mqtt-listen", "127.0.0.1:15675"],
+            "mqtts-listen = [\"127.0.0.1:8883\"]\nmqtt-ssl-cert-login = true\n\
+             tls-certfile = \"c.pem\"\ntls-keyfile = \"k.pem\"",
+        )
+        .unwrap();
+        assert_eq!(all.mqtts_listen, ["127.0.0.1:8883".parse().unwrap()]);
+        assert_eq!(all.web_mqtt_listen, ["127.0.0.1:15675".parse().unwrap()]);
+        assert!(all.mqtt_ssl_cert_login);
+        assert!(
+            all.ops().tls.is_some(),
+            "the certificate expiry check covers it"
         );
     }
 

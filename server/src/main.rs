@@ -213,7 +213,8 @@ struct Banner {
 impl Banner {
     /// One info line once everything listens: the version, the config
     /// file, the data directory and every listener with its protocol
-    /// (RabbitMQ's names: amqp, amqp/ssl, http, http/prometheus).
+    /// (RabbitMQ's names: amqp, amqp/ssl, mqtt, mqtt/ssl, http/web-mqtt,
+    /// http, http/prometheus).
     fn log(self, handle: &leveret_broker::BrokerHandle, ops: &ops::Ops) {
         let version = env!("CARGO_PKG_VERSION");
         let config_file = match &self.config_file {
@@ -229,7 +230,15 @@ impl Banner {
             .tls_addrs()
             .iter()
             .map(|addr| format!("amqp/ssl {addr}"));
-        let mut listeners: Vec<String> = plain.chain(tls).collect();
+        let mqtt = [
+            ("mqtt", handle.mqtt_addrs()),
+            ("mqtt/ssl", handle.mqtts_addrs()),
+            ("http/web-mqtt", handle.web_mqtt_addrs()),
+        ];
+        let mqtt = mqtt
+            .into_iter()
+            .flat_map(|(name, addrs)| addrs.iter().map(move |addr| format!("{name} {addr}")));
+        let mut listeners: Vec<String> = plain.chain(tls).chain(mqtt).collect();
         listeners.push(format!("http {} (management API)", ops.http_addr));
         listeners.push(format!("http/prometheus {}", ops.metrics_addr));
         let listeners = listeners.join(", ");
@@ -306,6 +315,13 @@ async fn run(
         handle.local_addrs(),
         (handle.tls_addrs().iter().map(|addr| ("amqp/ssl", *addr)))
             .chain(handle.mqtt_addrs().iter().map(|addr| ("mqtt", *addr)))
+            .chain(handle.mqtts_addrs().iter().map(|addr| ("mqtt/ssl", *addr)))
+            .chain(
+                handle
+                    .web_mqtt_addrs()
+                    .iter()
+                    .map(|a| ("http/web-mqtt", *a)),
+            )
             .collect(),
         ops_settings,
     ) {

@@ -126,6 +126,8 @@ async fn a_rabbitmq_export_loads_at_start_and_what_cannot_apply_is_logged() {
         .args([
             "--listen",
             "127.0.0.1:0",
+            "--mqtt-listen",
+            "none",
             "--metrics-listen",
             "127.0.0.1:0",
             "--http-listen",

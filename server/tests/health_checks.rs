@@ -81,6 +81,28 @@ fn listener_and_node_checks_answer_as_rabbitmq() {
 }
 
 #[test]
+fn mqtt_listeners_are_protocol_listeners_by_rabbitmqs_names() {
+    // `--mqtt-listen none` (the test default) then a port: MQTT on it.
+    let extra = [
+        "--mqtt-listen",
+        "127.0.0.1:0",
+        "--web-mqtt-listen",
+        "127.0.0.1:0",
+    ];
+    let broker = OpsBroker::start("health-mqtt", &extra);
+    let checks = "/api/health/checks";
+    for (asked, protocol) in [("mqtt", "mqtt"), ("http%2Fweb-mqtt", "http/web-mqtt")] {
+        assert_eq!(
+            curl(&broker, &format!("{checks}/protocol-listener/{asked}")),
+            (200, json!({"status": "ok", "protocol": protocol})),
+            "{asked}"
+        );
+    }
+    let (status, body) = curl(&broker, &format!("{checks}/protocol-listener/mqtt%2Fssl"));
+    assert_eq!(status, 503, "{body}");
+}
+
+#[test]
 fn local_alarms_fail_during_a_disk_alarm() {
     let broker = OpsBroker::start(
         "health-alarm",

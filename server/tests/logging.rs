@@ -375,6 +375,7 @@ async fn a_log_file_is_reopened_on_sighup_after_a_rename() {
     let path = dir.join("leveret.log");
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_leveret"))
         .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
+        .args(["--mqtt-listen", "none"])
         .args(["--http-listen", "127.0.0.1:0", "--log", "info"])
         .arg("--data-dir")
         .arg(dir.join("data"))
@@ -423,6 +424,7 @@ async fn a_log_file_is_reopened_on_sighup_after_a_rename() {
 fn an_unopenable_log_file_refuses_the_start() {
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_leveret"))
         .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
+        .args(["--mqtt-listen", "none"])
         .args(["--http-listen", "127.0.0.1:0"])
         .args(["--log-file", "/nonexistent-leveret-dir/leveret.log"])
         .output()

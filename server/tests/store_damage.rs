@@ -108,6 +108,7 @@ async fn intact(broker: &BrokerProcess, prefix: &str) -> bool {
 fn spawn_on(dir: &Path, log: &str) -> Child {
     Command::new(env!("CARGO_BIN_EXE_leveret"))
         .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
+        .args(["--mqtt-listen", "none"])
         .args(["--http-listen", "127.0.0.1:0", "--log", log])
         .arg("--data-dir")
         .arg(dir)

@@ -1226,6 +1226,115 @@ async fn a_persistent_session_keeps_unreleased_qos_2_publishes_across_a_reconnec
 }
 
 #[both_runtimes]
+async fn a_persistent_session_keeps_unreleased_qos_2_publishes_across_a_restart() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-qos2-restart"));
+    let durable = || Broker::builder().data_dir(&dir);
+    let handle = start_with(durable(), Limits::default()).await;
+    let (amqp, channel) = amqp_channel(&handle).await;
+    let options = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    tmo!(channel.queue_declare("kept-once", options, Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "kept-once", "r2.#").await;
+    drop(amqp);
+    // A raw 3.1.1 client with a persistent session; true if it was kept.
+    async fn connect(port: u16) -> (Raw, bool) {
+        let mut raw = Raw::connect(port).await;
+        raw.send(Packet::Connect(Box::new(Connect {
+            version: ProtocolVersion::V3_1_1,
+            clean_start: false,
+            keep_alive: 0,
+            properties: Default::default(),
+            client_id: leveret_mqtt::MqttString::from_static("restarted"),
+            will: None,
+            username: Some(leveret_mqtt::MqttString::from_static("robot")),
+            password: Some(Bytes::from_static(b"secret")),
+        })))
+        .await;
+        match raw.next().await {
+            Some(Packet::ConnAck(ack)) => (raw, ack.session_present),
+            other => panic!("expected CONNACK, got {other:?}"),
+        }
+    }
+    let ids = [3u16, 9].map(|id| std::num::NonZeroU16::new(id).unwrap());
+    let publish = |id, dup| {
+        Packet::Publish(Publish {
+            dup,
+            delivery: Delivery::ExactlyOnce(id),
+            retain: false,
+            topic: TopicName::from_static("r2/x"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"once"),
+        })
+    };
+    // A publisher only: its unreleased publishes are its session.
+    let (mut raw, present) = connect(mqtt_port(&handle)).await;
+    assert!(!present);
+    for id in ids {
+        raw.send(publish(id, false)).await;
+        assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    }
+    // One is released before the restart: its state goes.
+    raw.send(Packet::PubRel(PubResponse::new(ids[0]))).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubComp(c)) if c.packet_id == ids[0]));
+    drop(raw);
+    handle.shutdown().await;
+
+    let handle = start_with(durable(), Limits::default()).await;
+    let (mut raw, present) = connect(mqtt_port(&handle)).await;
+    assert!(present, "the session survived the restart");
+    // The unreleased one, resent with DUP: PUBREC, not routed again.
+    raw.send(publish(ids[1], true)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == ids[1]));
+    raw.send(Packet::PubRel(PubResponse::new(ids[1]))).await;
+    assert!(
+        matches!(raw.next().await, Some(Packet::PubComp(c)) if c.packet_id == ids[1] && c.reason == leveret_mqtt::ReasonCode::Success)
+    );
+    // The released one's identifier is free: a new publish with it is routed.
+    raw.send(publish(ids[0], false)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == ids[0]));
+    raw.send(Packet::PubRel(PubResponse::new(ids[0]))).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubComp(c)) if c.packet_id == ids[0]));
+    let (amqp, channel) = amqp_channel(&handle).await;
+    let passive = lapin::options::QueueDeclareOptions {
+        passive: true,
+        ..Default::default()
+    };
+    let declared = tmo!(channel.queue_declare("kept-once", passive, Default::default())).unwrap();
+    assert_eq!(
+        declared.message_count(),
+        3,
+        "two before the restart, one after: the resend was not routed"
+    );
+    drop(amqp);
+    drop(raw);
+    handle.shutdown().await;
+
+    // A clean session forgets the state, in the store too.
+    let handle = start_with(durable(), Limits::default()).await;
+    let mut clean =
+        Raw::login_as(mqtt_port(&handle), 0, ProtocolVersion::V3_1_1, "restarted").await;
+    clean.send(Packet::Disconnect(Default::default())).await;
+    handle.shutdown().await;
+    let handle = start_with(durable(), Limits::default()).await;
+    let (mut raw, present) = connect(mqtt_port(&handle)).await;
+    assert!(!present);
+    // Identifier 9 is a new publish again: routed.
+    raw.send(publish(ids[1], false)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == ids[1]));
+    raw.send(Packet::PubRel(PubResponse::new(ids[1]))).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubComp(c)) if c.packet_id == ids[1]));
+    let (amqp, channel) = amqp_channel(&handle).await;
+    let declared = tmo!(channel.queue_declare("kept-once", passive, Default::default())).unwrap();
+    assert_eq!(declared.message_count(), 4);
+    drop(amqp);
+    drop(raw);
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[both_runtimes]
 async fn a_5_0_session_lasts_its_expiry_interval_and_then_is_removed() {
     let handle = start(Limits::default()).await;
     let port = mqtt_port(&handle);

@@ -61,7 +61,7 @@ pub enum Identity {
     /// TLS, with the common name of the verified client certificate if the
     /// client gave one: SASL EXTERNAL logs in as it (and is refused
     /// without one).
-    #[cfg_attr(not(feature = "tls"), allow(dead_code))]
+    #[cfg_attr(not(any(feature = "tls", feature = "mqtt")), allow(dead_code))]
     Tls(Option<String>),
 }
 
@@ -90,19 +90,21 @@ pub async fn serve<R, W>(
 /// `loopback_users` (a socket address for a protocol front end such as
 /// MQTT; anything else counts as local); `protocol` is what the client
 /// speaks, as RabbitMQ lists it (`AMQP 0-9-1`, `MQTT 3.1.1`, `MQTT 5.0`),
-/// and its first word names the connection in the log; `done` is dropped
-/// when the connection has ended and cleaned up.
+/// and its first word names the connection in the log; `identity` what
+/// the front end's transport tells (an MQTT session's TLS certificate, for
+/// SASL EXTERNAL); `done` is dropped when the connection has ended and
+/// cleaned up.
 pub fn serve_direct(
     core: Arc<Core>,
     slot: Slot,
-    peer: String,
+    (peer, identity): (String, Identity),
     protocol: &'static str,
     done: impl Send + 'static,
 ) -> DirectLink {
     let (link, frames, start) = direct::link();
     tokio::spawn(async move {
         let ends = Ends::new(peer, None, protocol);
-        serve_frames(core, frames, DirectSink(start), ends, slot, Identity::None).await;
+        serve_frames(core, frames, DirectSink(start), ends, slot, identity).await;
         drop(done);
     });
     link

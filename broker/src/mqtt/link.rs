@@ -9,7 +9,7 @@
 
 use super::mapping::EXCHANGE;
 use crate::admission::Slot;
-use crate::connection::{serve_direct, DirectLink, DirectReply};
+use crate::connection::{serve_direct, DirectLink, DirectReply, Identity};
 use crate::core::Core;
 use bytes::{BufMut, Bytes, BytesMut};
 use leveret_mqtt::QoS;
@@ -47,7 +47,9 @@ pub(super) enum Refusal {
 pub(super) struct Login<'a> {
     pub vhost: &'a str,
     pub user: &'a str,
-    pub password: &'a [u8],
+    /// The password (PLAIN), or `None` for a login as the verified TLS
+    /// client certificate's common name `user` (SASL EXTERNAL).
+    pub password: Option<&'a [u8]>,
     /// The MQTT client's identifier, shown as the AMQP connection's name.
     pub client_id: &'a str,
     /// The session's receive window: QoS 1 deliveries unacknowledged at once.
@@ -68,7 +70,11 @@ impl Link {
         deadline: Instant,
     ) -> Result<Link, Refusal> {
         let (done, ended) = oneshot::channel::<()>();
-        let direct = serve_direct(core, slot, peer, login.protocol, done);
+        let identity = match login.password {
+            Some(_) => Identity::None,
+            None => Identity::Tls(Some(login.user.to_owned())),
+        };
+        let direct = serve_direct(core, slot, (peer, identity), login.protocol, done);
         let mut link = Link { direct, ended };
         match tokio::time::timeout_at(deadline, link.handshake(&login)).await {
             Ok(Ok(())) => Ok(link),
@@ -80,11 +86,17 @@ impl Link {
     async fn handshake(&mut self, login: &Login<'_>) -> Result<(), Refusal> {
         self.expect(|m| matches!(m, Method::ConnectionStart(_)))
             .await?;
-        let mut response = BytesMut::with_capacity(2 + login.user.len() + login.password.len());
-        response.put_u8(0);
-        response.put_slice(login.user.as_bytes());
-        response.put_u8(0);
-        response.put_slice(login.password);
+        let mut response = BytesMut::new();
+        let mechanism = match login.password {
+            Some(password) => {
+                response.put_u8(0);
+                response.put_slice(login.user.as_bytes());
+                response.put_u8(0);
+                response.put_slice(password);
+                "PLAIN"
+            }
+            None => "EXTERNAL",
+        };
         let mut capabilities = FieldTable::new();
         capabilities.insert(
             ShortStr::from_static("authentication_failure_close"),
@@ -106,7 +118,7 @@ impl Link {
             0,
             ConnectionStartOk {
                 client_properties,
-                mechanism: ShortStr::from_static("PLAIN"),
+                mechanism: ShortStr::from_static(mechanism),
                 response: response.freeze(),
                 locale: ShortStr::from_static("en_US"),
             },

@@ -11,7 +11,7 @@ use leveret_protocol::ShortStr;
 pub(super) const EXCHANGE: &str = "amq.topic";
 
 /// The vhost of a user name without a `vhost:` prefix.
-const DEFAULT_VHOST: &str = "/";
+pub(super) const DEFAULT_VHOST: &str = "/";
 
 /// Swaps `/` and `.`, keeping every other character.
 fn swap_separators(name: &str) -> String {

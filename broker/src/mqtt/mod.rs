@@ -6,7 +6,9 @@
 //! each subscribing session owns a queue per QoS bound there
 //! (`mapping`). `docs/mqtt.md` says what is supported.
 //!
-//! Layout: this file is the listener's accept loop; `session` one
+//! Layout: this file is the listeners' accept loop (TCP, TLS, WebSocket:
+//! the transport's handshake, then a session over its byte stream);
+//! `websocket` the WebSocket handshake and byte-stream adapter; `session` one
 //! connection (CONNECT, keepalive, the packet loop); `link` the AMQP side
 //! of a session (login, channel, the methods it sends); `mapping` names
 //! (topics ↔ routing keys, queue names, `vhost:user`); `takeover` the
@@ -21,14 +23,16 @@ mod releases;
 mod retained;
 mod session;
 mod takeover;
+mod websocket;
 
-pub(crate) use retained::Retained;
+use retained::Retained;
 pub use retained::RetainedLimits;
 use takeover::ClientIds;
 
 use crate::core::Core;
+use crate::store::MetaRecord;
 use std::sync::Arc;
-use tokio::net::TcpListener;
+use tokio::net::{TcpListener, TcpStream};
 
 /// What a broker's MQTT listeners share.
 #[derive(Debug)]
@@ -43,24 +47,64 @@ pub(crate) struct Shared {
     retained: Retained,
     /// Persistent sessions' QoS 2 publishes awaiting PUBREL.
     releases: releases::Releases,
+    /// Whether a client on a TLS listener with a verified certificate and
+    /// no user name logs in as the certificate's common name (RabbitMQ's
+    /// `mqtt.ssl_cert_login`).
+    certificate_login: bool,
 }
 
 impl Shared {
-    pub(crate) fn new(anonymous: Option<(String, String)>, retained: Retained) -> Self {
+    /// What the listeners share; `recovered` is the store's metadata
+    /// (retained messages and unreleased QoS 2 publishes come from it).
+    pub(crate) fn new(
+        core: &Core,
+        recovered: &[MetaRecord],
+        options: Options,
+        retained_limits: RetainedLimits,
+    ) -> Self {
         Shared {
             ids: Arc::default(),
-            anonymous,
-            retained,
-            releases: Default::default(),
+            anonymous: options.anonymous,
+            retained: Retained::new(
+                recovered,
+                Arc::clone(&core.gauge),
+                core.persistence.clone(),
+                retained_limits,
+            ),
+            releases: releases::Releases::new(recovered, core.persistence.clone()),
+            certificate_login: options.certificate_login,
         }
     }
 }
 
-/// Accepts MQTT connections until the broker shuts down; each session
-/// holds a clone of `alive`, as AMQP connections do.
+/// How a broker's MQTT clients log in beyond a user name and password.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Options {
+    /// See [`Shared::anonymous`].
+    pub anonymous: Option<(String, String)>,
+    /// See [`Shared::certificate_login`].
+    pub certificate_login: bool,
+}
+
+/// What an MQTT listener's connections travel over.
+#[derive(Debug, Clone)]
+pub(crate) enum Transport {
+    /// Plain TCP (RabbitMQ's `mqtt.listeners.tcp`, 1883).
+    Tcp,
+    /// TLS with the broker's TLS settings (`mqtt.listeners.ssl`, 8883).
+    #[cfg(feature = "tls")]
+    Tls(Arc<crate::tls::TlsContext>),
+    /// WebSocket, path `/ws`, subprotocol `mqtt` (RabbitMQ's
+    /// `web_mqtt.tcp.port`, 15675).
+    WebSocket,
+}
+
+/// Accepts MQTT connections over `transport` until the broker shuts
+/// down; each session holds a clone of `alive`, as AMQP connections do.
 pub(crate) async fn accept_loop(
     core: Arc<Core>,
     listener: TcpListener,
+    transport: Transport,
     shared: Arc<Shared>,
     alive: tokio::sync::mpsc::Sender<()>,
 ) {
@@ -72,9 +116,64 @@ pub(crate) async fn accept_loop(
         let core = Arc::clone(&core);
         let shared = Arc::clone(&shared);
         let alive = alive.clone();
+        let transport = transport.clone();
         tokio::spawn(async move {
-            session::serve(core, socket, peer, slot, shared).await;
+            serve(core, socket, peer, slot, transport, shared).await;
             drop(alive);
         });
+    }
+}
+
+/// The transport's handshake (TLS, WebSocket: each within the handshake
+/// timeout, which then starts again for the CONNECT), then the session.
+async fn serve(
+    core: Arc<Core>,
+    socket: TcpStream,
+    peer: String,
+    slot: crate::admission::Slot,
+    transport: Transport,
+    shared: Arc<Shared>,
+) {
+    let timeout = core.limits.handshake_timeout;
+    match transport {
+        Transport::Tcp => session::serve(core, socket, (peer, None), slot, shared).await,
+        #[cfg(feature = "tls")]
+        Transport::Tls(tls) => {
+            let handshake = tls.acceptor().accept(socket);
+            let stream = match tokio::time::timeout(timeout, handshake).await {
+                Ok(Ok(stream)) => stream,
+                Ok(Err(e)) => {
+                    tracing::info!(%peer, error = %e, "MQTT TLS handshake failed");
+                    return;
+                }
+                Err(_) => {
+                    tracing::warn!(%peer, "MQTT TLS handshake not completed within the handshake timeout");
+                    return;
+                }
+            };
+            let certificate = stream
+                .get_ref()
+                .1
+                .peer_certificates()
+                .and_then(|chain| chain.first())
+                .and_then(crate::tls::common_name);
+            session::serve(core, stream, (peer, certificate), slot, shared).await;
+        }
+        Transport::WebSocket => {
+            let max_message = session::max_packet(&core.limits) as usize;
+            let handshake = websocket::accept(socket, max_message);
+            let stream = match tokio::time::timeout(timeout, handshake).await {
+                Ok(Ok(stream)) => stream,
+                Ok(Err(e)) => {
+                    tracing::info!(%peer, error = %e, "MQTT WebSocket handshake failed");
+                    return;
+                }
+                Err(_) => {
+                    tracing::warn!(%peer, "MQTT WebSocket handshake not completed within the handshake timeout");
+                    return;
+                }
+            };
+            session::serve(core, stream, (peer, None), slot, shared).await;
+        }
     }
 }

@@ -35,8 +35,7 @@ use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::num::NonZeroU16;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::time::Instant;
 
 /// The largest packet read before the session is logged in (RabbitMQ's
@@ -69,11 +68,13 @@ const COPY_BELOW: usize = READ_CHUNK / 4;
 /// SUBSCRIBE's matches are not sent, with a log line).
 const RETAINED_BACKLOG_MAX: usize = 10_000;
 
-/// Serves one MQTT connection until it closes.
-pub(super) async fn serve(
+/// Serves one MQTT connection over `socket` (TCP, TLS or WebSocket)
+/// until it closes; `certificate` is the common name of the client's
+/// verified TLS certificate, if any.
+pub(super) async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     core: Arc<Core>,
-    mut socket: TcpStream,
-    peer: String,
+    mut socket: S,
+    (peer, certificate): (String, Option<String>),
     slot: Slot,
     shared: Arc<Shared>,
 ) {
@@ -96,7 +97,8 @@ pub(super) async fn serve(
         }
     };
     let version = connect.version;
-    let accepted = match admit(&core, &connect, slot, &peer, deadline, &shared).await {
+    let credentials = (&*connect, certificate.as_deref());
+    let accepted = match admit(&core, credentials, slot, &peer, deadline, &shared).await {
         Ok(accepted) => accepted,
         Err(reason) => {
             tracing::info!(%peer, reason = reason.name(), "MQTT CONNECT refused");
@@ -107,7 +109,7 @@ pub(super) async fn serve(
                 properties: Default::default(),
             });
             if connack.encode(version, &mut out).is_ok() {
-                let _ = socket.write_all(&out).await;
+                let _ = write_out(&mut socket, &out).await;
             }
             return;
         }
@@ -122,9 +124,7 @@ pub(super) async fn serve(
         window,
     } = accepted;
     let lifetime = Lifetime::of(&connect);
-    let max_packet = u32::try_from(core.limits.max_message_size)
-        .unwrap_or(MAX_PACKET_SIZE)
-        .min(MAX_PACKET_SIZE);
+    let max_packet = max_packet(&core.limits);
     let mut session = Session {
         version,
         client_id,
@@ -178,14 +178,31 @@ pub(super) async fn serve(
         shared
             .releases
             .keep(&session.vhost, &session.client_id, stored.collect());
+    } else {
+        shared.releases.forget(&session.vhost, &session.client_id);
     }
     drop(claim);
+}
+
+/// The largest packet a session reads once logged in: `max-message-size`,
+/// within what MQTT can encode.
+pub(super) fn max_packet(limits: &crate::core::Limits) -> u32 {
+    u32::try_from(limits.max_message_size)
+        .unwrap_or(MAX_PACKET_SIZE)
+        .min(MAX_PACKET_SIZE)
+}
+
+/// Writes `bytes` and flushes them (a TLS or WebSocket stream holds them
+/// until then).
+async fn write_out(socket: &mut (impl AsyncWrite + Unpin), bytes: &[u8]) -> std::io::Result<()> {
+    socket.write_all(bytes).await?;
+    socket.flush().await
 }
 
 /// Reads the first packet, which must be a CONNECT; answers one naming a
 /// protocol version the codec does not speak.
 async fn read_connect(
-    socket: &mut TcpStream,
+    socket: &mut (impl AsyncRead + AsyncWrite + Unpin),
     buf: &mut BytesMut,
 ) -> Result<Box<Connect>, &'static str> {
     loop {
@@ -202,7 +219,7 @@ async fn read_connect(
                     });
                     let mut out = BytesMut::new();
                     if connack.encode(version, &mut out).is_ok() {
-                        let _ = socket.write_all(&out).await;
+                        let _ = write_out(socket, &out).await;
                     }
                 }
                 return Err("malformed CONNECT");
@@ -262,7 +279,7 @@ impl Lifetime {
 /// identifier; the CONNACK reason to refuse with otherwise.
 async fn admit(
     core: &Arc<Core>,
-    connect: &Connect,
+    (connect, certificate): (&Connect, Option<&str>),
     slot: Slot,
     peer: &str,
     deadline: Instant,
@@ -286,15 +303,21 @@ async fn admit(
         }
         id => (id.to_owned(), false),
     };
-    let (username, password) = match (&connect.username, &shared.anonymous) {
-        (Some(name), _) => (
-            name.as_str(),
-            connect.password.as_deref().unwrap_or_default(),
+    // As RabbitMQ's plugin: a user name in the CONNECT first, then the
+    // client certificate's common name (`ssl_cert_login`), then the
+    // anonymous login.
+    let certificate = certificate.filter(|_| shared.certificate_login);
+    let ((vhost, user), password) = match (&connect.username, certificate, &shared.anonymous) {
+        (Some(name), _, _) => (
+            mapping::vhost_and_user(name.as_str()),
+            Some(connect.password.as_deref().unwrap_or_default()),
         ),
-        (None, Some((name, password))) => (name.as_str(), password.as_bytes()),
-        (None, None) => return Err(ReasonCode::NotAuthorized),
+        (None, Some(name), _) => ((mapping::DEFAULT_VHOST, name), None),
+        (None, None, Some((name, password))) => {
+            (mapping::vhost_and_user(name), Some(password.as_bytes()))
+        }
+        (None, None, None) => return Err(ReasonCode::NotAuthorized),
     };
-    let (vhost, user) = mapping::vhost_and_user(username);
     let window = match connect.properties.receive_maximum {
         Some(max) if v5 => max.get().min(DEFAULT_WINDOW),
         _ => DEFAULT_WINDOW,
@@ -373,7 +396,8 @@ struct Session {
     /// submission of the retained message it set (0 if none).
     unconfirmed: BTreeMap<u64, (PacketId, bool, u64)>,
     /// Acknowledgements waiting for a store submission (a retained
-    /// message's) to be on disk, in order, with the submission number.
+    /// message's, a QoS 2 publish's state) to be on disk, in order, with
+    /// the submission number.
     held_acks: VecDeque<(u64, Packet)>,
     /// QoS 2 publishes by packet identifier, from their arrival to PUBREL.
     exactly_once: HashMap<PacketId, Received>,
@@ -498,12 +522,15 @@ impl Session {
             self.consume(name, qos);
         }
         // QoS 2 publishes the client had not released: a resend is not
-        // routed again, and its PUBREL is answered.
-        let released = self.shared.releases.take(&self.vhost, &self.client_id);
-        if present {
-            for id in released {
-                self.exactly_once.insert(id, Received::Stored);
-            }
+        // routed again, and its PUBREL is answered. They are session
+        // state of their own (a publisher need not subscribe).
+        let released = self
+            .shared
+            .releases
+            .take(&self.vhost, &self.client_id, !clean_start);
+        present |= !released.is_empty();
+        for id in released {
+            self.exactly_once.insert(id, Received::Stored);
         }
         present
     }
@@ -556,7 +583,7 @@ impl Session {
     async fn run(
         &mut self,
         core: &Core,
-        socket: &mut TcpStream,
+        socket: &mut (impl AsyncRead + AsyncWrite + Unpin),
         mut buf: BytesMut,
         mut link: Link,
         claim: &Claim,
@@ -585,7 +612,7 @@ impl Session {
                 }
             }
             if !self.out.is_empty() {
-                let write = tokio::time::timeout(WRITE_STALL, socket.write_all(&self.out)).await;
+                let write = tokio::time::timeout(WRITE_STALL, write_out(socket, &self.out)).await;
                 if !matches!(write, Ok(Ok(()))) {
                     break closed("write failed or stalled", None);
                 }
@@ -637,7 +664,12 @@ impl Session {
     }
 
     /// Sends what is owed before closing (a 5.0 DISCONNECT, the will).
-    async fn finish(&mut self, socket: &mut TcpStream, link: Link, stop: Stop) -> Ended {
+    async fn finish(
+        &mut self,
+        socket: &mut (impl AsyncRead + AsyncWrite + Unpin),
+        link: Link,
+        stop: Stop,
+    ) -> Ended {
         let disconnected = matches!(stop, Stop::Disconnected { .. });
         let (reason, send_will) = match stop {
             Stop::Disconnected { send_will } => ("client disconnected", send_will),
@@ -652,7 +684,7 @@ impl Session {
             }
         };
         if !self.out.is_empty() {
-            let _ = tokio::time::timeout(WRITE_STALL, socket.write_all(&self.out)).await;
+            let _ = tokio::time::timeout(WRITE_STALL, write_out(socket, &self.out)).await;
         }
         let _ = socket.shutdown().await;
         // A resumed session that does not outlive this connection.
@@ -749,15 +781,21 @@ impl Session {
                 Ok(())
             }
             Packet::PubRel(release) => {
-                let known = self.exactly_once.get(&release.packet_id) == Some(&Received::Stored);
+                let id = release.packet_id;
+                let known = self.exactly_once.get(&id) == Some(&Received::Stored);
+                let mut write = 0;
                 if known {
-                    self.exactly_once.remove(&release.packet_id);
+                    self.exactly_once.remove(&id);
+                    write = self
+                        .shared
+                        .releases
+                        .released(&self.vhost, &self.client_id, id);
                 }
-                let mut complete = PubResponse::new(release.packet_id);
+                let mut complete = PubResponse::new(id);
                 if !known && self.v5() {
                     complete.reason = ReasonCode::PacketIdentifierNotFound;
                 }
-                self.send(Packet::PubComp(complete));
+                self.acknowledge(write, Packet::PubComp(complete));
                 Ok(())
             }
             Packet::Subscribe(subscribe) => {
@@ -1197,9 +1235,14 @@ impl Session {
             if !ok {
                 response.reason = ReasonCode::UnspecifiedError;
             }
+            let mut write = retained_write;
             let ack = if exactly_once {
                 if ok {
                     self.exactly_once.insert(id, Received::Stored);
+                    if self.lifetime != Lifetime::Connection {
+                        let releases = &self.shared.releases;
+                        write = write.max(releases.routed(&self.vhost, &self.client_id, id));
+                    }
                 } else {
                     self.exactly_once.remove(&id);
                 }
@@ -1207,7 +1250,7 @@ impl Session {
             } else {
                 Packet::PubAck(response)
             };
-            self.acknowledge(retained_write, ack);
+            self.acknowledge(write, ack);
         }
         Ok(())
     }
@@ -1238,7 +1281,7 @@ impl Session {
             };
             if !self.shared.retained.written(write) {
                 return Err(closed(
-                    "a retained message could not be stored",
+                    "a retained message or QoS 2 state could not be stored",
                     Some(ReasonCode::UnspecifiedError),
                 ));
             }

@@ -202,6 +202,16 @@ fn meta_key(key: &MetaKey) -> Vec<u8> {
             put_long(&mut buf, vhost.as_bytes());
             put_long(&mut buf, topic.as_bytes());
         }
+        MetaKey::Unreleased {
+            vhost,
+            client_id,
+            packet_id,
+        } => {
+            buf.put_u8(b'q');
+            put_long(&mut buf, vhost.as_bytes());
+            put_long(&mut buf, client_id.as_bytes());
+            buf.put_u16(*packet_id);
+        }
     }
     buf.to_vec()
 }
@@ -243,6 +253,7 @@ fn meta_value(record: &MetaRecord) -> Vec<u8> {
             buf.put_u8(*qos);
             put_long(&mut buf, payload);
         }
+        MetaRecord::Unreleased { .. } => {}
     }
     buf.to_vec()
 }
@@ -312,6 +323,14 @@ fn decode_meta(key: &[u8], value: &mut Bytes) -> Result<MetaRecord, StoreError> 
                 _ => return Err(corrupt("retained QoS")),
             },
             payload: take_long(value)?,
+        },
+        b'q' => MetaRecord::Unreleased {
+            vhost: take_text(&mut names, "vhost name")?,
+            client_id: take_text(&mut names, "MQTT client identifier")?,
+            packet_id: match (names.len() >= 2).then(|| names.get_u16()) {
+                Some(id) if id != 0 => id,
+                _ => return Err(corrupt("MQTT packet identifier")),
+            },
         },
         _ => return Err(corrupt("metadata kind")),
     };
@@ -781,6 +800,11 @@ mod tests {
                 topic: "cell/\0temp".into(),
                 qos: 1,
                 payload: Bytes::from_static(b"21.5\0"),
+            },
+            MetaRecord::Unreleased {
+                vhost: "/".into(),
+                client_id: "sensor\0-1".into(),
+                packet_id: 65_535,
             },
         ];
         let mut ops: Vec<_> = records

@@ -313,6 +313,16 @@ pub enum MetaRecord {
         /// Its payload.
         payload: Bytes,
     },
+    /// A QoS 2 publish a persistent MQTT session routed and PUBREC'd, not
+    /// yet released by the client's PUBREL (the `mqtt` front end's).
+    Unreleased {
+        /// Vhost.
+        vhost: String,
+        /// The MQTT client identifier.
+        client_id: String,
+        /// The publish's packet identifier (not 0).
+        packet_id: u16,
+    },
 }
 
 /// What identifies an [`MetaRecord`] (for deleting one).
@@ -354,6 +364,16 @@ pub enum MetaKey {
         /// Topic.
         topic: String,
     },
+    /// A (vhost, client identifier, packet identifier) unreleased MQTT
+    /// QoS 2 publish.
+    Unreleased {
+        /// Vhost.
+        vhost: String,
+        /// The MQTT client identifier.
+        client_id: String,
+        /// The packet identifier.
+        packet_id: u16,
+    },
 }
 
 impl MetaRecord {
@@ -389,6 +409,15 @@ impl MetaRecord {
             MetaRecord::Retained { vhost, topic, .. } => MetaKey::Retained {
                 vhost: vhost.clone(),
                 topic: topic.clone(),
+            },
+            MetaRecord::Unreleased {
+                vhost,
+                client_id,
+                packet_id,
+            } => MetaKey::Unreleased {
+                vhost: vhost.clone(),
+                client_id: client_id.clone(),
+                packet_id: *packet_id,
             },
         }
     }

@@ -17,7 +17,7 @@ cleanup() { kill "${pids[@]}" 2>/dev/null || true; wait 2>/dev/null || true; rm 
 trap cleanup EXIT
 
 start_leveret() { # port busy-poll-µs [binary]
-  "${3:-target/release/leveret}" --listen "127.0.0.1:$1" --data-dir "$work/lv$1" --busy-poll "$2" \
+  "${3:-target/release/leveret}" --listen "127.0.0.1:$1" --mqtt-listen none --data-dir "$work/lv$1" --busy-poll "$2" \
     --metrics-listen 127.0.0.1:0 --http-listen 127.0.0.1:0 --log warn &
   pids+=($!)
 }

@@ -24,7 +24,7 @@ cleanup() {
   rm -rf "$d"
 }
 trap cleanup EXIT
-"$T/leveret" --listen 127.0.0.1:5811 --data-dir "$d/lev" --metrics-listen 127.0.0.1:0 --http-listen 127.0.0.1:0 --log warn & lev=$!
+"$T/leveret" --listen 127.0.0.1:5811 --mqtt-listen none --data-dir "$d/lev" --metrics-listen 127.0.0.1:0 --http-listen 127.0.0.1:0 --log warn & lev=$!
 "$LAVIN/start" 5812 "$d/lavin" >/dev/null 2>&1 &
 rabbitmq-server -detached >/dev/null 2>&1
 for i in $(seq 1 60); do rabbitmqctl -q await_startup >/dev/null 2>&1 && break; sleep 1; done

@@ -25,6 +25,7 @@ pub fn copy_dir(from: &Path, to: &Path) {
 pub fn refusal(dir: &Path) -> Option<String> {
     let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
         .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
+        .args(["--mqtt-listen", "none"])
         .args(["--http-listen", "127.0.0.1:0", "--log", "info"])
         .arg("--data-dir")
         .arg(dir)

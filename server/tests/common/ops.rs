@@ -100,6 +100,7 @@ impl OpsBroker {
         };
         let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
             .args(["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"])
+            .args(["--mqtt-listen", "none"])
             .args(http_default)
             .arg("--data-dir")
             .arg(&dir)

@@ -1,0 +1,162 @@
+//! MQTT over WebSocket (RabbitMQ's `web_mqtt`, MQTT 5.0 section 6): the
+//! HTTP upgrade on path [`PATH`] with the subprotocol `mqtt` (or 3.1's
+//! `mqttv3.1`), then a byte stream over binary messages, so the session
+//! reads and writes it as it does a socket and all of its rules hold.
+//!
+//! Bounded: a message or frame larger than the session's packet limit is
+//! refused by tungstenite before it is buffered whole, and ends the
+//! connection; a text message ends it too (MQTT-6.0.0-1). The read buffer
+//! is small ([`READ_BUFFER`]), so idle connections cost little.
+
+use bytes::Bytes;
+use futures_core::Stream;
+use futures_sink::Sink;
+use std::io;
+use std::pin::Pin;
+use std::task::{ready, Context, Poll};
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use tokio::net::TcpStream;
+use tokio_tungstenite::tungstenite::handshake::server::{ErrorResponse, Request, Response};
+use tokio_tungstenite::tungstenite::http::{HeaderValue, StatusCode};
+use tokio_tungstenite::tungstenite::protocol::WebSocketConfig;
+use tokio_tungstenite::tungstenite::{Error, Message};
+use tokio_tungstenite::WebSocketStream;
+
+/// The path clients connect to (RabbitMQ's and most brokers').
+pub(super) const PATH: &str = "/ws";
+/// The subprotocols accepted, in order of preference.
+const SUBPROTOCOLS: [&str; 2] = ["mqtt", "mqttv3.1"];
+/// tungstenite's read buffer per connection (its default is 128 KiB).
+const READ_BUFFER: usize = 8 * 1024;
+
+/// Completes the WebSocket handshake on `socket`: path [`PATH`], one of
+/// [`SUBPROTOCOLS`] offered (and chosen in the answer); messages and
+/// frames up to `max_message` bytes.
+pub(super) async fn accept(
+    socket: TcpStream,
+    max_message: usize,
+) -> Result<ByteStream<TcpStream>, Error> {
+    let config = WebSocketConfig::default()
+        .read_buffer_size(READ_BUFFER)
+        .max_message_size(Some(max_message))
+        .max_frame_size(Some(max_message));
+    let stream =
+        tokio_tungstenite::accept_hdr_async_with_config(socket, choose_subprotocol, Some(config))
+            .await?;
+    Ok(ByteStream {
+        stream,
+        unread: Bytes::new(),
+    })
+}
+
+/// The handshake's check of the request: the path, then the subprotocol.
+// The signature is tungstenite's `Callback`: its error is an HTTP response.
+#[allow(clippy::result_large_err)]
+fn choose_subprotocol(
+    request: &Request,
+    mut response: Response,
+) -> Result<Response, ErrorResponse> {
+    let refuse = |status: StatusCode, why: &str| {
+        let mut refusal = ErrorResponse::new(Some(why.to_owned()));
+        *refusal.status_mut() = status;
+        refusal
+    };
+    if request.uri().path() != PATH {
+        return Err(refuse(
+            StatusCode::NOT_FOUND,
+            "MQTT over WebSocket is on /ws",
+        ));
+    }
+    let offered: Vec<&str> = request
+        .headers()
+        .get_all("sec-websocket-protocol")
+        .iter()
+        .filter_map(|value| value.to_str().ok())
+        .flat_map(|list| list.split(','))
+        .map(str::trim)
+        .collect();
+    let Some(chosen) = SUBPROTOCOLS
+        .iter()
+        .find(|wanted| offered.iter().any(|o| o.eq_ignore_ascii_case(wanted)))
+    else {
+        return Err(refuse(
+            StatusCode::BAD_REQUEST,
+            "the WebSocket subprotocol must be mqtt",
+        ));
+    };
+    response
+        .headers_mut()
+        .insert("sec-websocket-protocol", HeaderValue::from_static(chosen));
+    Ok(response)
+}
+
+/// A WebSocket as a byte stream: reads take the bytes of binary messages
+/// in order, whatever their boundaries; each write is one binary message
+/// (sent on flush).
+pub(super) struct ByteStream<S> {
+    stream: WebSocketStream<S>,
+    /// What is left of the last message read.
+    unread: Bytes,
+}
+
+fn io_error(error: Error) -> io::Error {
+    match error {
+        Error::Io(e) => e,
+        other => io::Error::new(io::ErrorKind::InvalidData, other),
+    }
+}
+
+impl<S: AsyncRead + AsyncWrite + Unpin> AsyncRead for ByteStream<S> {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<io::Result<()>> {
+        while self.unread.is_empty() {
+            match ready!(Pin::new(&mut self.stream).poll_next(cx)) {
+                Some(Ok(Message::Binary(bytes))) => self.unread = bytes,
+                // Pings are answered by tungstenite itself.
+                Some(Ok(Message::Ping(_) | Message::Pong(_) | Message::Frame(_))) => {}
+                Some(Ok(Message::Text(_))) => {
+                    return Poll::Ready(Err(io::Error::new(
+                        io::ErrorKind::InvalidData,
+                        "a text WebSocket message (MQTT travels in binary ones)",
+                    )))
+                }
+                Some(Ok(Message::Close(_))) | None => return Poll::Ready(Ok(())),
+                Some(Err(e)) => return Poll::Ready(Err(io_error(e))),
+            }
+        }
+        let n = self.unread.len().min(buf.remaining());
+        let taken = self.unread.split_to(n);
+        buf.put_slice(&taken);
+        Poll::Ready(Ok(()))
+    }
+}
+
+impl<S: AsyncRead + AsyncWrite + Unpin> AsyncWrite for ByteStream<S> {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<io::Result<usize>> {
+        let stream = Pin::new(&mut self.stream);
+        ready!(stream.poll_ready(cx)).map_err(io_error)?;
+        let message = Message::Binary(Bytes::copy_from_slice(buf));
+        Pin::new(&mut self.stream)
+            .start_send(message)
+            .map_err(io_error)?;
+        Poll::Ready(Ok(buf.len()))
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.stream).poll_flush(cx).map_err(io_error)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        match ready!(Pin::new(&mut self.stream).poll_close(cx)) {
+            Ok(()) | Err(Error::ConnectionClosed | Error::AlreadyClosed) => Poll::Ready(Ok(())),
+            Err(e) => Poll::Ready(Err(io_error(e))),
+        }
+    }
+}
