@@ -42,7 +42,7 @@ cleanup() {
 # start_leveret PORT NAME [ARGS...]: Leveret on PORT, data in $d/NAME; sets leveret_pid.
 start_leveret() {
   "$T/leveret" --listen "127.0.0.1:$1" --data-dir "$d/$2" --metrics-listen 127.0.0.1:0 \
-    --http-listen 127.0.0.1:0 --log warn "${@:3}" >"$d/$2.log" 2>&1 &
+    --http-listen 127.0.0.1:0 --mqtt-listen none --log warn "${@:3}" >"$d/$2.log" 2>&1 &
   leveret_pid=$!
   pids+=("$leveret_pid")
   await_port "$1"
