@@ -22,22 +22,28 @@ MOSQUITTO = "/usr/sbin/mosquitto"
 
 
 class MosquittoNode:
-    """Debian's mosquitto on a free loopback port, guest/guest only."""
+    """Debian's mosquitto on a free loopback port: guest/guest only, or
+    with `anonymous` any client without a user name."""
 
-    def __init__(self):
-        for tool in (MOSQUITTO, "/usr/bin/mosquitto_passwd"):
+    def __init__(self, anonymous=False):
+        tools = (MOSQUITTO,) if anonymous else (MOSQUITTO, "/usr/bin/mosquitto_passwd")
+        for tool in tools:
             if not os.path.exists(tool):
                 raise SetupError(f"{tool} is missing (apt-get install mosquitto mosquitto-clients)")
         self.dir = tempfile.mkdtemp(prefix="leveret-conformance-mosquitto-")
         os.chmod(self.dir, 0o755)  # mosquitto drops root for its own user
         self.port = free_port()
-        passwd = os.path.join(self.dir, "passwd")
-        open(passwd, "w").close()
-        subprocess.run(["mosquitto_passwd", "-b", passwd, "guest", "guest"], check=True, capture_output=True)
-        os.chmod(passwd, 0o644)
+        if anonymous:
+            access = "allow_anonymous true\n"
+        else:
+            passwd = os.path.join(self.dir, "passwd")
+            open(passwd, "w").close()
+            subprocess.run(["mosquitto_passwd", "-b", passwd, "guest", "guest"], check=True, capture_output=True)
+            os.chmod(passwd, 0o644)
+            access = f"allow_anonymous false\npassword_file {passwd}\n"
         conf = os.path.join(self.dir, "mosquitto.conf")
         with open(conf, "w") as f:
-            f.write(f"listener {self.port} 127.0.0.1\nallow_anonymous false\npassword_file {passwd}\n")
+            f.write(f"listener {self.port} 127.0.0.1\n{access}")
         self.proc = subprocess.Popen([MOSQUITTO, "-c", conf], stdout=subprocess.DEVNULL,
                                      stderr=subprocess.DEVNULL, start_new_session=True)
         if not wait_port(self.port, 30):

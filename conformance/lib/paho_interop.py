@@ -27,7 +27,7 @@ import sys
 import tempfile
 import threading
 
-from nodes import LeveretNode, SetupError, free_port, wait_port
+from nodes import LeveretNode, SetupError, free_port
 
 TEST_TIMEOUT = 60
 FILES = (("3.1.1", "client_test.py"), ("5.0", "client_test5.py"))
@@ -103,31 +103,6 @@ def run_file(ctx, inter, name, port):
         skip = sorted(results)
 
 
-class AnonymousMosquitto:
-    """Debian's mosquitto on a free loopback port, anonymous clients allowed."""
-
-    def __init__(self):
-        from mqtt import MOSQUITTO
-        if not os.path.exists(MOSQUITTO):
-            raise SetupError(f"{MOSQUITTO} is missing (apt-get install mosquitto)")
-        self.dir = tempfile.mkdtemp(prefix="leveret-conformance-mosquitto-")
-        os.chmod(self.dir, 0o755)
-        self.port = free_port()
-        conf = os.path.join(self.dir, "mosquitto.conf")
-        with open(conf, "w") as f:
-            f.write(f"listener {self.port} 127.0.0.1\nallow_anonymous true\n")
-        self.proc = subprocess.Popen([MOSQUITTO, "-c", conf], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL, start_new_session=True)
-        if not wait_port(self.port, 30):
-            self.stop()
-            raise SetupError("mosquitto did not start")
-
-    def stop(self):
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            self.proc.wait(timeout=10)
-
-
 def anonymous_leveret(binary):
     """A Leveret whose MQTT clients without a user name log in as guest."""
     conf_dir = tempfile.mkdtemp(prefix="leveret-conformance-conf-")
@@ -157,7 +132,8 @@ def run(ctx):
         return [("paho-interop", "skip", "set PAHO_TESTING_DIR to a checkout of eclipse/paho.mqtt.testing "
                  "(on no package registry, not copied here; the last run: conformance/results/paho-interop.txt)")]
     ctx.ensure_python()
-    reference = AnonymousMosquitto()
+    from mqtt import MosquittoNode
+    reference = MosquittoNode(anonymous=True)
     leveret = None
     try:
         leveret, port = anonymous_leveret(ctx.leveret)
