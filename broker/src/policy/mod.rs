@@ -45,7 +45,7 @@ pub(crate) mod work {
 }
 
 pub use combine::{argument_wins, stricter, Applied};
-pub use definition::{Definition, Overflow, PolicyValue};
+pub use definition::{Definition, KeySupport, Overflow, PolicyKey, PolicyValue, POLICY_KEYS};
 
 #[cfg(feature = "regex")]
 use crate::permissions::PATTERN_SIZE_LIMIT;
