@@ -25,7 +25,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 
 /// How often message TTLs and queue x-expires are checked.
 const SWEEP_PERIOD: Duration = Duration::from_millis(50);
@@ -78,6 +78,9 @@ pub struct BrokerBuilder {
     free_space: Option<Arc<dyn FreeSpace>>,
     #[cfg(feature = "persistence")]
     recover: bool,
+    /// Listeners bound by `start` but accepting only once
+    /// [`BrokerHandle::open_listeners`] is called.
+    held: bool,
 }
 
 /// Where durable state lives.
@@ -359,7 +362,19 @@ impl BrokerBuilder {
         self
     }
 
-    /// Binds the listeners and starts serving.
+    /// Binds the listeners in `start` (their addresses are known and a
+    /// port in use fails the start) but accepts no client until
+    /// [`BrokerHandle::open_listeners`]: an embedder that sets up state
+    /// after the start (the `leveret` binary's stored policies and
+    /// definitions) so never serves a client the state half set up. A
+    /// client that connects meanwhile waits in the listen backlog.
+    pub fn hold_listeners(mut self) -> Self {
+        self.held = true;
+        self
+    }
+
+    /// Binds the listeners and starts serving (with
+    /// [`Self::hold_listeners`], once told to).
     pub async fn start(self) -> Result<BrokerHandle, StartError> {
         #[cfg(all(feature = "tls", feature = "mqtt"))]
         let no_tls_listeners = self.tls_listen.is_empty() && self.mqtts_listen.is_empty();
@@ -499,6 +514,7 @@ impl BrokerBuilder {
             );
         }
         let (alive, finished) = mpsc::channel(1);
+        let (open, opened) = watch::channel(!self.held);
         let mut local_addrs = Vec::new();
         let mut tls_addrs = Vec::new();
         let mut tasks = Vec::new();
@@ -521,11 +537,10 @@ impl BrokerBuilder {
                 tracing::info!(addr = %bound, "accepting AMQP 0.9.1 connections");
                 local_addrs.push(bound);
             }
-            tasks.push(tokio::spawn(crate::server::accept_loop(
-                Arc::clone(&core),
-                listener,
-                tls,
-                alive.clone(),
+            tasks.push(tokio::spawn(once_open(
+                opened.clone(),
+                core.shutdown_signal(),
+                crate::server::accept_loop(Arc::clone(&core), listener, tls, alive.clone()),
             )));
         }
         // TCP, TLS and WebSocket listeners' bound addresses.
@@ -561,12 +576,16 @@ impl BrokerBuilder {
                 };
                 tracing::info!(addr = %bound, "accepting MQTT 3.1.1 and 5.0 connections{over}");
                 mqtt_addrs[kind].push(bound);
-                tasks.push(tokio::spawn(crate::mqtt::accept_loop(
-                    Arc::clone(&core),
-                    listener,
-                    transport,
-                    Arc::clone(&mqtt_shared),
-                    alive.clone(),
+                tasks.push(tokio::spawn(once_open(
+                    opened.clone(),
+                    core.shutdown_signal(),
+                    crate::mqtt::accept_loop(
+                        Arc::clone(&core),
+                        listener,
+                        transport,
+                        Arc::clone(&mqtt_shared),
+                        alive.clone(),
+                    ),
                 )));
             }
         }
@@ -594,6 +613,7 @@ impl BrokerBuilder {
         }
         Ok(BrokerHandle {
             core,
+            open,
             local_addrs,
             tls_addrs,
             mqtt_addrs,
@@ -605,6 +625,23 @@ impl BrokerBuilder {
             #[cfg(feature = "persistence")]
             clean_shutdown,
         })
+    }
+}
+
+/// Runs `serve` (a listener's accept loop) once `open` says true; never
+/// if the broker shuts down first.
+async fn once_open(
+    mut open: watch::Receiver<bool>,
+    mut shutdown: watch::Receiver<bool>,
+    serve: impl std::future::Future<Output = ()>,
+) {
+    // The guard `wait_for` returns is dropped before serving.
+    let opened = tokio::select! {
+        opened = open.wait_for(|open| *open) => opened.is_ok(),
+        _ = shutdown.wait_for(|stop| *stop) => false,
+    };
+    if opened {
+        serve.await;
     }
 }
 
@@ -627,6 +664,8 @@ fn busy_poll_state(max_window: Duration) -> Option<Arc<BusyPoll>> {
 /// A running broker.
 pub struct BrokerHandle {
     core: Arc<Core>,
+    /// Says the held listeners may accept.
+    open: watch::Sender<bool>,
     local_addrs: Vec<SocketAddr>,
     tls_addrs: Vec<SocketAddr>,
     /// The MQTT listeners': TCP, TLS, WebSocket.
@@ -650,6 +689,12 @@ struct CleanShutdown {
 }
 
 impl BrokerHandle {
+    /// Lets the listeners [`BrokerBuilder::hold_listeners`] held accept
+    /// clients (a no-op when they already do).
+    pub fn open_listeners(&self) {
+        self.open.send_replace(true);
+    }
+
     /// The addresses the plaintext listeners are bound to.
     pub fn local_addrs(&self) -> &[SocketAddr] {
         &self.local_addrs

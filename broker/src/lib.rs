@@ -181,7 +181,8 @@ pub use crate::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,
 };
 pub use crate::policy::{
-    Applied as AppliedPolicies, ApplyTo, Policy, PolicyError, PolicyKind, PolicySpec, PolicyValue,
+    Applied as AppliedPolicies, ApplyTo, KeySupport as PolicyKeySupport, Policy, PolicyError,
+    PolicyKey, PolicyKind, PolicySpec, PolicyValue, POLICY_KEYS,
 };
 pub use crate::queue::process_nonce;
 pub use crate::resident_memory::ResidentMemoryWatermark;

@@ -37,9 +37,12 @@ function same(a, b) {
 }
 
 class T {
-  constructor(url, prefix) {
+  constructor(url, prefix, http) {
     this.url = url;
     this.prefix = prefix;
+    // The broker's management API (`--http`), for suites that change
+    // policies or read listings as an operator would.
+    this.http = http;
     this.observations = [];
     this.cleanups = [];
     const u = new URL(url);
@@ -100,7 +103,7 @@ async function main() {
   for (const [name, fn] of registry) {
     if (only.size && !only.has(name)) continue;
     console.log(JSON.stringify({ start: name }));
-    const t = new T(url, prefix);
+    const t = new T(url, prefix, arg('--http'));
     const started = Date.now();
     let ok = true;
     let error = null;

@@ -134,17 +134,20 @@ class RabbitNode:
 
 
 class LeveretNode:
-    """A leveret with `args` besides its plain listener on `self.port`;
-    `wait_for` names another port to wait for (a TLS listener)."""
+    """A leveret with `args` besides its plain listener on `self.port`
+    (its management API on a port of the kernel's choosing unless `args`
+    say `--http-listen`); `wait_for` names another port to wait for (a
+    TLS listener, the management API)."""
 
     def __init__(self, binary, args=(), wait_for=None):
         self.dir = tempfile.mkdtemp(prefix="leveret-conformance-")
         self.port = free_port()
         self.logpath = os.path.join(self.dir, "leveret.log")
         self.log = open(self.logpath, "w")
+        http = [] if "--http-listen" in args else ["--http-listen", "127.0.0.1:0"]
         self.proc = subprocess.Popen(
             [binary, "--listen", f"127.0.0.1:{self.port}", "--data-dir", os.path.join(self.dir, "data"),
-             "--metrics-listen", "127.0.0.1:0", "--http-listen", "127.0.0.1:0",
+             "--metrics-listen", "127.0.0.1:0", *http,
              # MQTT is on 1883 by default; a suite that wants it passes its own port.
              "--mqtt-listen", "none", *args],
             stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)

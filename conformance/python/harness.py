@@ -65,9 +65,12 @@ def plain(value):
 
 
 class T:
-    def __init__(self, url, prefix):
+    def __init__(self, url, prefix, http=None):
         self.url = url
         self.prefix = prefix
+        # The broker's management API (`--http`), for suites that change
+        # policies or read listings as an operator would.
+        self.http = http
         self.observations = []
         self._cleanups = []
         u = urllib.parse.urlparse(url)
@@ -169,6 +172,7 @@ def main(libs):
     ap.add_argument("--url")
     ap.add_argument("--prefix", default="cf-")
     ap.add_argument("--only", default="")
+    ap.add_argument("--http", help="the broker's management API, http://HOST:PORT")
     ap.add_argument("--list", action="store_true")
     args = ap.parse_args()
 
@@ -184,7 +188,7 @@ def main(libs):
         if only and name not in only:
             continue
         print(json.dumps({"start": name}), flush=True)
-        t = T(args.url, args.prefix)
+        t = T(args.url, args.prefix, args.http)
         started = time.monotonic()
         ok, error = True, None
         try:

@@ -1,11 +1,11 @@
-"""Python scenario driver: python main.py --lib pika|aio-pika|kombu|raw|streams --url URL [--list]"""
+"""Python scenario driver: python main.py --lib pika|aio-pika|kombu|raw|streams|semantics --url URL [--list]"""
 
 import importlib
 import sys
 
 import harness
 
-MODULES = {"pika": "s_pika", "aio-pika": "s_aiopika", "kombu": "s_kombu", "raw": "s_raw", "streams": "s_streams"}
+MODULES = {"pika": "s_pika", "aio-pika": "s_aiopika", "kombu": "s_kombu", "raw": "s_raw", "streams": "s_streams", "semantics": "s_semantics"}
 
 if __name__ == "__main__":
     lib = None

@@ -726,17 +726,26 @@ impl Definitions {
                 .map_err(|e| format!("federation upstream '{name}': {e}"))?;
             applied.upstreams += 1;
         }
-        for (kind, policies) in [
+        let policies: Vec<crate::policies::Item> = [
             (PolicyKind::User, &self.policies),
             (PolicyKind::Operator, &self.operator_policies),
-        ] {
-            for (vhost, name, value) in policies {
-                crate::policies::set(admin, &links.federation, kind, vhost, name, value, true)
-                    .await
-                    .map_err(|e| format!("policy '{name}': {e}"))?;
-                applied.policies += 1;
-            }
-        }
+        ]
+        .into_iter()
+        .flat_map(|(kind, policies)| {
+            policies
+                .iter()
+                .map(move |(vhost, name, value)| crate::policies::Item {
+                    kind,
+                    vhost,
+                    name,
+                    value,
+                })
+        })
+        .collect();
+        crate::policies::set_all(admin, &links.federation, &policies, true)
+            .await
+            .map_err(|(at, e)| format!("policy '{}': {e}", policies[at].name))?;
+        applied.policies += policies.len();
         if let Some(name) = &self.cluster_name {
             crate::policies::set_cluster_name(admin, name)
                 .await

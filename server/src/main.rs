@@ -167,7 +167,9 @@ async fn serve(settings: Settings) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let mut builder = settings.builder();
+    // The listeners accept once the stored policies and the definitions
+    // are in force (`run`): a client never sees a queue without them.
+    let mut builder = settings.builder().hold_listeners();
     if let Some(definitions) = &definitions {
         builder = definitions.configure(builder);
     }
@@ -242,9 +244,10 @@ impl Banner {
     }
 }
 
-/// Loads the definitions, starts the shovels, federation and the
-/// operators' listeners, logs the start banner, and serves until a
-/// signal says stop.
+/// Sets the stored and configured policies, loads the definitions,
+/// starts the shovels and federation, then opens the listeners (held
+/// until then) and the operators' listeners, logs the start banner, and
+/// serves until a signal says stop.
 async fn run(
     handle: &Arc<leveret_broker::BrokerHandle>,
     links: &uplink::Links,
@@ -272,15 +275,27 @@ async fn run(
             return ExitCode::FAILURE;
         }
     }
-    for (name, value) in configured.policies {
-        let admin = handle.admin();
-        let kind = leveret_broker::PolicyKind::User;
-        if let Err(e) =
-            policies::set(&admin, &links.federation, kind, "/", &name, &value, false).await
-        {
-            tracing::error!(policy = %name, error = %e, "cannot use the policy");
-            return ExitCode::FAILURE;
-        }
+    let configured_policies: Vec<policies::Item> = configured
+        .policies
+        .iter()
+        .map(|(name, value)| policies::Item {
+            kind: leveret_broker::PolicyKind::User,
+            vhost: "/",
+            name,
+            value,
+        })
+        .collect();
+    if let Err((at, e)) = policies::set_all(
+        &handle.admin(),
+        &links.federation,
+        &configured_policies,
+        false,
+    )
+    .await
+    {
+        let name = configured_policies[at].name;
+        tracing::error!(policy = %name, error = %e, "cannot use the policy");
+        return ExitCode::FAILURE;
     }
     links.federation.keep_in_step();
     if let Some(mut definitions) = definitions {
@@ -298,6 +313,7 @@ async fn run(
             tracing::warn!(%warning, "definitions");
         }
     }
+    handle.open_listeners();
     let ops = match ops::Ops::start(
         handle.admin(),
         links.clone(),

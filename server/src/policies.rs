@@ -186,6 +186,18 @@ fn check_federation_keys(spec: &PolicySpec) -> Result<(), String> {
     }
 }
 
+/// One policy in RabbitMQ's JSON form and where it goes.
+pub struct Item<'a> {
+    /// User or operator policy.
+    pub kind: PolicyKind,
+    /// Its vhost.
+    pub vhost: &'a str,
+    /// Its name.
+    pub name: &'a str,
+    /// RabbitMQ's JSON form.
+    pub value: &'a Value,
+}
+
 /// Sets the policy `name` of `kind` in `vhost` from RabbitMQ's JSON form;
 /// `store` keeps it as a runtime parameter (the API's and imports'). The
 /// federation takes its keys at once.
@@ -198,28 +210,81 @@ pub async fn set(
     value: &Value,
     store: bool,
 ) -> Result<(), DeclareError> {
-    let spec = spec_from_json(value).map_err(DeclareError::Invalid)?;
-    check_federation_keys(&spec).map_err(DeclareError::Invalid)?;
-    admin
-        .set_policy(kind, vhost, name, spec)
+    let item = Item {
+        kind,
+        vhost,
+        name,
+        value,
+    };
+    set_all(admin, federation, &[item], store)
         .await
-        .map_err(|e| match e {
-            PolicyError::NoVhost(_) | PolicyError::Invalid(_) => {
-                DeclareError::Invalid(e.to_string())
-            }
-        })?;
-    if store {
-        let set = admin.policies(kind, Some(vhost));
-        if let Some((_, policy)) = set.iter().find(|(_, p)| p.name == name) {
-            admin
-                .set_parameter(
-                    component(kind),
-                    vhost,
-                    name,
-                    stored_json(policy).to_string(),
-                )
-                .await?;
+        .map_err(|(_, e)| e)
+}
+
+/// Sets every policy of `items` (an import, the stored ones at start):
+/// all are read and checked first, and none is set if one is refused
+/// (its index in `items` and why are returned); then each vhost's set is ranked and
+/// carried to its queues once (`Admin::set_policies`), each is stored if
+/// `store`, and the federation takes their keys once: work that grows
+/// with policies plus queues, not with their product.
+pub async fn set_all(
+    admin: &Admin,
+    federation: &Federation,
+    items: &[Item<'_>],
+    store: bool,
+) -> Result<(), (usize, DeclareError)> {
+    if items.is_empty() {
+        return Ok(());
+    }
+    // Compiling N patterns is work that grows with N: off the broker's
+    // threads.
+    let given: Vec<(PolicyKind, String, String, Value)> = items
+        .iter()
+        .map(|item| {
+            (
+                item.kind,
+                item.vhost.to_owned(),
+                item.name.to_owned(),
+                item.value.clone(),
+            )
+        })
+        .collect();
+    let checked = tokio::task::spawn_blocking(move || {
+        let mut checked = Vec::with_capacity(given.len());
+        for (at, (kind, vhost, name, value)) in given.into_iter().enumerate() {
+            let read = spec_from_json(&value)
+                .and_then(|spec| check_federation_keys(&spec).map(|()| spec))
+                .and_then(|spec| Policy::new(kind, &name, spec));
+            checked.push((vhost, read.map_err(|e| (at, e))?));
         }
+        Ok(checked)
+    })
+    .await
+    .unwrap_or_else(|e| Err((0, format!("the check failed: {e}"))))
+    .map_err(|(at, e)| (at, DeclareError::Invalid(e)))?;
+    // Kept by component, each in one store write.
+    let mut stored: BTreeMap<&'static str, Vec<(String, String, String)>> = BTreeMap::new();
+    if store {
+        for (vhost, policy) in &checked {
+            let text = stored_json(policy).to_string();
+            let kept = (vhost.clone(), policy.name.clone(), text);
+            stored.entry(component(policy.kind)).or_default().push(kept);
+        }
+    }
+    admin.set_policies(checked).await.map_err(|e| {
+        let at = match &e {
+            PolicyError::NoVhost(vhost) => items.iter().position(|item| item.vhost == vhost),
+            PolicyError::Invalid(_) => None,
+        };
+        (at.unwrap_or(0), DeclareError::Invalid(e.to_string()))
+    })?;
+    for (of, parameters) in stored {
+        // A store that fails fails them all: the first is named.
+        let first = items.iter().position(|item| component(item.kind) == of);
+        admin
+            .set_parameters(of, parameters)
+            .await
+            .map_err(|e| (first.unwrap_or(0), e.into()))?;
     }
     federation.reconcile().await;
     Ok(())
@@ -239,19 +304,38 @@ pub async fn clear(
     Ok(stored || cleared)
 }
 
-/// Sets the policies the broker's store kept; one that no longer reads
-/// is logged and left out.
+/// Sets the policies the broker's store kept, all at once; one that no
+/// longer reads is logged and left out.
 pub async fn start_stored(admin: &Admin, federation: &Federation) {
+    let mut stored = Vec::new();
     for kind in [PolicyKind::User, PolicyKind::Operator] {
         for (vhost, name, text) in admin.parameters(component(kind)) {
-            let outcome = match serde_json::from_str::<Value>(&text) {
-                Ok(value) => set(admin, federation, kind, &vhost, &name, &value, false).await,
-                Err(e) => Err(DeclareError::Invalid(e.to_string())),
-            };
-            if let Err(e) = outcome {
-                tracing::error!(component = component(kind), %name, %vhost, error = %e, "a stored policy is not applied");
+            match serde_json::from_str::<Value>(&text) {
+                Ok(value) => stored.push((kind, vhost, name, value)),
+                Err(e) => {
+                    tracing::error!(component = component(kind), %name, %vhost, error = %e, "a stored policy is not applied");
+                }
             }
         }
+    }
+    // A stored policy that no longer reads (a key a later version
+    // refuses) must not keep the others out: those are left out one by
+    // one until the rest is set.
+    loop {
+        let items: Vec<Item> = stored
+            .iter()
+            .map(|(kind, vhost, name, value)| Item {
+                kind: *kind,
+                vhost,
+                name,
+                value,
+            })
+            .collect();
+        let Err((at, e)) = set_all(admin, federation, &items, false).await else {
+            return;
+        };
+        let (kind, vhost, name, _) = stored.remove(at);
+        tracing::error!(component = component(kind), %name, %vhost, error = %e, "a stored policy is not applied");
     }
 }
 

@@ -350,3 +350,138 @@ async fn leveretctl_permissions_and_definitions_carry_policies() {
         assert_eq!(imported[key], exported[key], "{key}");
     }
 }
+
+/// Stored policies are in force before the listeners accept anyone: a
+/// client that connects the moment the broker restarts (retrying from
+/// before the port is bound) finds a stored `max-length` 1 with
+/// `reject-publish` already applied to the recovered queue at its limit:
+/// its publish is refused. Five hundred other stored policies and two
+/// thousand queues make the setting-up take long enough that a client
+/// served before it ends would see the queue without its policy (as
+/// Leveret before the listeners were held did: the policy whose name
+/// sorts last was applied seconds after the port accepted).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stored_policies_are_in_force_before_the_first_client_is_served() {
+    use lapin::options::{BasicPublishOptions, ConfirmSelectOptions, QueueDeclareOptions};
+    use lapin::types::FieldTable;
+    use lapin::{BasicProperties, Connection, ConnectionProperties};
+    use std::time::{Duration, Instant};
+
+    let dir = std::env::temp_dir().join(format!("leveret-policies-boot-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let broker = OpsBroker::on_data_dir(&dir, &[] as &[&str]);
+    let mut policies = vec![
+        json!({"vhost": "/", "name": "zz-boot", "pattern": "^boot\\.",
+        "apply-to": "queues", "priority": 0,
+        "definition": {"max-length": 1, "overflow": "reject-publish"}}),
+    ];
+    let mut queues = vec![json!({"vhost": "/", "name": "boot.q", "durable": true,
+        "auto_delete": false, "arguments": {}})];
+    for i in 0..500 {
+        policies.push(json!({"vhost": "/", "name": format!("filler{i}"),
+            "pattern": format!("^filler{i}\\."), "apply-to": "queues", "priority": 0,
+            "definition": {"max-length": 100}}));
+    }
+    for i in 0..2000 {
+        queues.push(
+            json!({"vhost": "/", "name": format!("filler{}.q{i}", i % 500),
+            "durable": true, "auto_delete": false, "arguments": {}}),
+        );
+    }
+    let (status, report) = api(
+        &broker,
+        "POST",
+        "/api/definitions",
+        GUEST,
+        &json!({"policies": policies, "queues": queues}),
+    )
+    .await;
+    assert_eq!(status, 200, "{report}");
+    let first = Connection::connect(&broker.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("connect");
+    let ch = first.create_channel().await.expect("channel");
+    ch.confirm_select(ConfirmSelectOptions::default())
+        .await
+        .expect("confirm.select");
+    let kept = ch
+        .basic_publish(
+            "",
+            "boot.q",
+            BasicPublishOptions::default(),
+            b"kept",
+            BasicProperties::default().with_delivery_mode(2),
+        )
+        .await
+        .expect("publish")
+        .await
+        .expect("confirm");
+    assert!(kept.is_ack(), "{kept:?}");
+    let _ = first.close(200, "done").await;
+    broker.kill9();
+
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_leveret"))
+        .args(["--listen", &format!("127.0.0.1:{port}")])
+        .args([
+            "--metrics-listen",
+            "127.0.0.1:0",
+            "--http-listen",
+            "127.0.0.1:0",
+        ])
+        .arg("--data-dir")
+        .arg(&dir)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("start leveret");
+    let url = format!("amqp://guest:guest@127.0.0.1:{port}/%2f");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let conn = loop {
+        match Connection::connect(&url, ConnectionProperties::default()).await {
+            Ok(conn) => break conn,
+            Err(e) if Instant::now() > deadline => panic!("never connected: {e}"),
+            Err(_) => tokio::time::sleep(Duration::from_millis(5)).await,
+        }
+    };
+    let ch = conn.create_channel().await.expect("channel");
+    ch.confirm_select(ConfirmSelectOptions::default())
+        .await
+        .expect("confirm.select");
+    let confirm = ch
+        .basic_publish(
+            "",
+            "boot.q",
+            BasicPublishOptions::default(),
+            b"one too many",
+            BasicProperties::default().with_delivery_mode(2),
+        )
+        .await
+        .expect("publish")
+        .await
+        .expect("confirm");
+    let ready = ch
+        .queue_declare(
+            "boot.q",
+            QueueDeclareOptions {
+                passive: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await
+        .expect("passive declare")
+        .message_count();
+    let _ = conn.close(200, "done").await;
+    let _ = child.kill();
+    let _ = child.wait();
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(
+        confirm.is_nack(),
+        "the first client's publish went past the stored max-length: {confirm:?}"
+    );
+    assert_eq!(ready, 1);
+}

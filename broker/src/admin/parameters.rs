@@ -19,23 +19,40 @@ impl Admin {
         name: &str,
         value: String,
     ) -> Result<(), AccessError> {
-        if component.is_empty() || name.is_empty() {
+        self.set_parameters(component, vec![(vhost.to_owned(), name.to_owned(), value)])
+            .await
+    }
+
+    /// Sets runtime parameters of `component`, each (vhost, name, value),
+    /// in one store write (an import of many policies): on disk before it
+    /// returns, all or none.
+    pub async fn set_parameters(
+        &self,
+        component: &str,
+        parameters: Vec<(String, String, String)>,
+    ) -> Result<(), AccessError> {
+        if component.is_empty() || parameters.iter().any(|(_, name, _)| name.is_empty()) {
             return Err(AccessError::BadName(
                 "a parameter needs a component and a name".to_owned(),
             ));
         }
         let _turn = self.core.access_changes.lock().await;
-        self.write_meta(vec![StoreOp::PutMeta(MetaRecord::Parameter {
-            component: component.to_owned(),
-            vhost: vhost.to_owned(),
-            name: name.to_owned(),
-            value: value.clone(),
-        })])
-        .await?;
-        self.core.parameters.write().insert(
-            (component.to_owned(), vhost.to_owned(), name.to_owned()),
-            value,
-        );
+        let records = parameters
+            .iter()
+            .map(|(vhost, name, value)| {
+                StoreOp::PutMeta(MetaRecord::Parameter {
+                    component: component.to_owned(),
+                    vhost: vhost.clone(),
+                    name: name.clone(),
+                    value: value.clone(),
+                })
+            })
+            .collect();
+        self.write_meta(records).await?;
+        let mut kept = self.core.parameters.write();
+        for (vhost, name, value) in parameters {
+            kept.insert((component.to_owned(), vhost, name), value);
+        }
         Ok(())
     }
 

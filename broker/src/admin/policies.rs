@@ -13,6 +13,7 @@ use super::Admin;
 use crate::policy::{Applied, Policy, PolicyError, PolicyKind, PolicySpec, VhostPolicies};
 use crate::vhost::Vhost;
 use leveret_protocol::ShortStr;
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 impl Admin {
@@ -23,18 +24,24 @@ impl Admin {
             .ok_or_else(|| PolicyError::NoVhost(vhost.to_owned()))
     }
 
+    /// Computes the vhost's next set from the one in force with `change`
+    /// and puts it in force, on a blocking thread: ranking the set and
+    /// carrying it to every queue grow with them. `changed` names the one
+    /// policy `change` set or cleared, if it was one.
     async fn change_policies(
         &self,
         vhost: Arc<Vhost>,
-        kind: PolicyKind,
-        name: &str,
-        change: impl FnOnce(&VhostPolicies) -> VhostPolicies,
+        changed: Option<(PolicyKind, String)>,
+        change: impl FnOnce(&VhostPolicies) -> VhostPolicies + Send + 'static,
     ) {
         let _turn = self.core.access_changes.lock().await;
-        let next = change(&vhost.policies());
-        let name = name.to_owned();
         // Only a panic fails the task; the vhost keeps what it had then.
-        let _ = tokio::task::spawn_blocking(move || vhost.set_policies(next, kind, &name)).await;
+        let _ = tokio::task::spawn_blocking(move || {
+            let next = change(&vhost.policies());
+            let changed = changed.as_ref().map(|(kind, name)| (*kind, name.as_str()));
+            vhost.set_policies(next, changed);
+        })
+        .await;
     }
 
     /// Sets the policy `name` of `kind` in `vhost` (replacing one of that
@@ -49,8 +56,31 @@ impl Admin {
     ) -> Result<(), PolicyError> {
         let policy = Policy::new(kind, name, spec).map_err(PolicyError::Invalid)?;
         let target = self.policy_vhost(vhost)?;
-        self.change_policies(target, kind, name, |now| now.with(policy))
-            .await;
+        self.change_policies(target, Some((kind, name.to_owned())), |now| {
+            now.with(policy)
+        })
+        .await;
+        Ok(())
+    }
+
+    /// Sets many checked policies at once, each in the vhost it is paired
+    /// with (an import, a start): each vhost's set is ranked once and
+    /// carried to its queues and exchanges once, so the cost grows with
+    /// policies plus objects, not with their product as one change at a
+    /// time would. Nothing is set if a vhost does not exist.
+    pub async fn set_policies(&self, policies: Vec<(String, Policy)>) -> Result<(), PolicyError> {
+        let mut by_vhost: BTreeMap<String, Vec<Policy>> = BTreeMap::new();
+        for (vhost, policy) in policies {
+            by_vhost.entry(vhost).or_default().push(policy);
+        }
+        let mut targets = Vec::with_capacity(by_vhost.len());
+        for (vhost, policies) in by_vhost {
+            targets.push((self.policy_vhost(&vhost)?, policies));
+        }
+        for (target, policies) in targets {
+            self.change_policies(target, None, |now| now.with_all(policies))
+                .await;
+        }
         Ok(())
     }
 
@@ -63,8 +93,11 @@ impl Admin {
         if target.policies().get(kind, name).is_none() {
             return false;
         }
-        self.change_policies(target, kind, name, |now| now.without(kind, name))
-            .await;
+        let owned = name.to_owned();
+        self.change_policies(target, Some((kind, owned.clone())), move |now| {
+            now.without(kind, &owned)
+        })
+        .await;
         true
     }
 

@@ -78,37 +78,112 @@ pub struct Definition {
 /// RabbitMQ's largest expiry timer (`message-ttl`, `expires`), ms.
 const MAX_EXPIRY: i64 = 4_294_967_295;
 
-/// Keys an operator policy may hold in RabbitMQ 3.10 that Leveret acts on.
-pub const OPERATOR_KEYS: [&str; 4] = ["expires", "message-ttl", "max-length", "max-length-bytes"];
+/// What Leveret does with a policy key.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum KeySupport {
+    /// Read with RabbitMQ's checks and acted on.
+    Implemented,
+    /// Read with RabbitMQ's checks, listed, and without effect, for the
+    /// reason given.
+    NoEffect(&'static str),
+    /// Refused (the policy is not set), for the reason given.
+    Refused(&'static str),
+}
 
-/// Keys RabbitMQ 3.10 knows in a policy that Leveret does not act on, and
-/// why.
-const REFUSED_KEYS: &[(&str, &str)] = &[
-    ("ha-mode", "Leveret has no mirrored queues"),
-    ("ha-params", "Leveret has no mirrored queues"),
-    ("ha-sync-mode", "Leveret has no mirrored queues"),
-    ("ha-sync-batch-size", "Leveret has no mirrored queues"),
-    ("ha-promote-on-shutdown", "Leveret has no mirrored queues"),
-    ("ha-promote-on-failure", "Leveret has no mirrored queues"),
-    ("queue-master-locator", "Leveret is a single node"),
-    ("queue-leader-locator", "Leveret is a single node"),
-    (
-        "delivery-limit",
-        "a quorum queue key; Leveret has no quorum queues",
-    ),
-    (
-        "max-in-memory-length",
-        "a quorum queue key; Leveret has no quorum queues",
-    ),
-    (
-        "max-in-memory-bytes",
-        "a quorum queue key; Leveret has no quorum queues",
-    ),
-    (
-        "federation-upstream-pattern",
-        "Leveret has no named upstream sets",
-    ),
+/// A key RabbitMQ 3.10 knows in a policy definition.
+#[derive(Debug, Clone, Copy)]
+pub struct PolicyKey {
+    /// The key.
+    pub name: &'static str,
+    /// What Leveret does with it.
+    pub support: KeySupport,
+    /// Whether an operator policy may hold it (RabbitMQ 3.10's operator
+    /// policy keys, less those Leveret refuses).
+    pub operator: bool,
+    /// What it does in RabbitMQ.
+    pub meaning: &'static str,
+}
+
+const fn key(
+    name: &'static str,
+    support: KeySupport,
+    operator: bool,
+    meaning: &'static str,
+) -> PolicyKey {
+    PolicyKey {
+        name,
+        support,
+        operator,
+        meaning,
+    }
+}
+
+const NO_MIRRORS: KeySupport = KeySupport::Refused("Leveret has no mirrored queues");
+const ONE_NODE: KeySupport = KeySupport::Refused("Leveret is a single node");
+const NO_QUORUM: KeySupport =
+    KeySupport::Refused("a quorum queue key; Leveret has no quorum queues");
+
+/// Every key RabbitMQ 3.10 knows in a policy (`max-priority`, for one,
+/// it does not: a queue argument only), and what Leveret does with it: `Definition::read` takes a key only if it is here and not refused,
+/// and `docs/policy-keys.md` is generated from this list (a test compares
+/// them and reads every key it lists).
+pub const POLICY_KEYS: &[PolicyKey] = &[
+    key("message-ttl", KeySupport::Implemented, true, "message TTL, ms; the smaller of it and `x-message-ttl` applies"),
+    key("expires", KeySupport::Implemented, true, "queue expiry when unused, ms; the smaller of it and `x-expires` applies"),
+    key("max-length", KeySupport::Implemented, true, "length limit, messages; the smaller of it and `x-max-length` applies"),
+    key("max-length-bytes", KeySupport::Implemented, true, "length limit, body bytes; the smaller of it and `x-max-length-bytes` applies (on a stream: its retention)"),
+    key("overflow", KeySupport::Implemented, false, "`drop-head`, `reject-publish` or `reject-publish-dlx`; `x-overflow` wins"),
+    key("dead-letter-exchange", KeySupport::Implemented, false, "where dead letters go; `x-dead-letter-exchange` wins"),
+    key("dead-letter-routing-key", KeySupport::Implemented, false, "their routing key; `x-dead-letter-routing-key` wins"),
+    key("alternate-exchange", KeySupport::Implemented, false, "an exchange's alternate exchange; the `alternate-exchange` argument wins"),
+    key("max-age", KeySupport::Implemented, false, "a stream's retention by age (`7D`, `1h`…)"),
+    key("stream-max-segment-size-bytes", KeySupport::Implemented, false, "a stream's segment size"),
+    key("federation-upstream", KeySupport::Implemented, false, "federates a matching exchange from this upstream"),
+    key("federation-upstream-set", KeySupport::Implemented, false, "federates from this upstream set (only `all`: Leveret has no named sets)"),
+    key("queue-mode", KeySupport::NoEffect("a storage hint (`default` or `lazy`) that changes nothing a client sees"), false, "`lazy` kept messages on disk in RabbitMQ before 3.12"),
+    key("queue-version", KeySupport::NoEffect("a storage format choice (1 or 2) that changes nothing a client sees"), false, "the classic queue index version in RabbitMQ"),
+    key("ha-mode", NO_MIRRORS, false, "classic queue mirroring"),
+    key("ha-params", NO_MIRRORS, false, "classic queue mirroring"),
+    key("ha-sync-mode", NO_MIRRORS, false, "classic queue mirroring"),
+    key("ha-sync-batch-size", NO_MIRRORS, false, "classic queue mirroring"),
+    key("ha-promote-on-shutdown", NO_MIRRORS, false, "classic queue mirroring"),
+    key("ha-promote-on-failure", NO_MIRRORS, false, "classic queue mirroring"),
+    key("queue-master-locator", ONE_NODE, false, "where a queue's leader is placed"),
+    key("queue-leader-locator", ONE_NODE, false, "where a queue's leader is placed"),
+    key("initial-cluster-size", ONE_NODE, false, "a stream's number of replicas"),
+    key("delivery-limit", NO_QUORUM, false, "a quorum queue's redelivery limit"),
+    key("max-in-memory-length", NO_QUORUM, false, "a quorum queue's in-memory limit"),
+    key("max-in-memory-bytes", NO_QUORUM, false, "a quorum queue's in-memory limit"),
+    key("dead-letter-strategy", NO_QUORUM, false, "a quorum queue's at-least-once dead-lettering"),
+    key("federation-upstream-pattern", KeySupport::Refused("Leveret has no named upstream sets"), false, "federates from the upstreams whose names match"),
 ];
+
+/// Why `key` may not be in a policy of `kind`, if it may not.
+fn refusal(kind: PolicyKind, key: &str) -> Option<String> {
+    let Some(known) = POLICY_KEYS.iter().find(|k| k.name == key) else {
+        return Some(match kind {
+            PolicyKind::User => format!("[{key}] are not recognised policy settings"),
+            PolicyKind::Operator => operator_keys_refusal(key),
+        });
+    };
+    match known.support {
+        KeySupport::Refused(why) => Some(format!("{key}: not acted on by Leveret ({why})")),
+        _ if kind == PolicyKind::Operator && !known.operator => Some(operator_keys_refusal(key)),
+        _ => None,
+    }
+}
+
+fn operator_keys_refusal(key: &str) -> String {
+    let keys: Vec<&str> = POLICY_KEYS
+        .iter()
+        .filter(|k| k.operator)
+        .map(|k| k.name)
+        .collect();
+    format!(
+        "[{key}] are not recognised operator policy settings (Leveret's: {})",
+        keys.join(", ")
+    )
+}
 
 impl Definition {
     /// Reads `given` for a policy of `kind`; the first key refused (or
@@ -119,14 +194,8 @@ impl Definition {
         }
         let mut d = Definition::default();
         for (key, value) in given {
-            if kind == PolicyKind::Operator && !OPERATOR_KEYS.contains(&key.as_str()) {
-                return Err(match REFUSED_KEYS.iter().find(|(k, _)| k == key) {
-                    Some((_, why)) => format!("{key}: not acted on by Leveret ({why})"),
-                    None => format!(
-                        "[{key}] are not recognised operator policy settings (Leveret's: {})",
-                        OPERATOR_KEYS.join(", ")
-                    ),
-                });
+            if let Some(why) = refusal(kind, key) {
+                return Err(why);
             }
             let int = |min: i64, max: i64, what: &str| -> Result<u64, String> {
                 match value {
@@ -206,12 +275,9 @@ impl Definition {
                     d.federation_upstream_set =
                         Some(text("federation upstream set name")?.to_string())
                 }
-                other => {
-                    return Err(match REFUSED_KEYS.iter().find(|(k, _)| *k == other) {
-                        Some((_, why)) => format!("{other}: not acted on by Leveret ({why})"),
-                        None => format!("[{other}] are not recognised policy settings"),
-                    })
-                }
+                // Listed in `POLICY_KEYS` and not read here: refused
+                // as unknown (the docs test reads every key listed).
+                other => return Err(format!("[{other}] are not recognised policy settings")),
             }
         }
         if d.federation_upstream.is_some() && d.federation_upstream_set.is_some() {

@@ -20,12 +20,37 @@ mod ranked;
 #[cfg(test)]
 mod tests;
 
+/// Counts of the work policy look-ups do, for tests that bound it
+/// (counts, not time): per thread, so tests running at once do not mix.
+#[cfg(test)]
+pub(crate) mod work {
+    use std::cell::Cell;
+    use std::thread::LocalKey;
+
+    thread_local! {
+        /// Patterns tried against a name.
+        pub(crate) static MATCHES: Cell<u64> = const { Cell::new(0) };
+        /// Policies put in a ranking.
+        pub(crate) static RANKED: Cell<u64> = const { Cell::new(0) };
+    }
+
+    pub(crate) fn count(counter: &'static LocalKey<Cell<u64>>, n: u64) {
+        counter.with(|c| c.set(c.get() + n));
+    }
+
+    /// The counter's value, which it is then reset from.
+    pub(crate) fn take(counter: &'static LocalKey<Cell<u64>>) -> u64 {
+        counter.with(|c| c.replace(0))
+    }
+}
+
 pub use combine::{argument_wins, stricter, Applied};
-pub use definition::{Definition, Overflow, PolicyValue};
+pub use definition::{Definition, KeySupport, Overflow, PolicyKey, PolicyValue, POLICY_KEYS};
 
 #[cfg(feature = "regex")]
 use crate::permissions::PATTERN_SIZE_LIMIT;
 use ranked::Ranked;
+use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 
 /// Why a policy was not set.
@@ -75,7 +100,7 @@ impl ApplyTo {
 
 /// A user policy (`set_policy`) or an operator policy
 /// (`set_operator_policy`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum PolicyKind {
     /// RabbitMQ's policies.
     User,
@@ -167,6 +192,8 @@ impl Policy {
             (ApplyTo::Queues | ApplyTo::All, ObjectKind::Stream) => stream,
             _ => false,
         };
+        #[cfg(test)]
+        work::count(&work::MATCHES, 1);
         #[cfg(feature = "regex")]
         let matched = self.matcher.is_match(name);
         #[cfg(not(feature = "regex"))]
@@ -210,24 +237,19 @@ impl VhostPolicies {
         }
     }
 
-    /// These policies with the policy `name` of `kind` replaced by
-    /// `policy` (or only removed).
-    fn changed(&self, kind: PolicyKind, name: &str, policy: Option<Policy>) -> VhostPolicies {
-        let next = |of: PolicyKind| {
-            let mut list: Vec<Arc<Policy>> = self
-                .list(of)
-                .iter()
-                .filter(|p| !(of == kind && p.name == name))
-                .cloned()
-                .collect();
-            if of == kind {
-                list.extend(policy.clone().map(Arc::new));
-            }
+    /// These policies without those `drop` picks, with `added`.
+    fn rebuilt(&self, drop: impl Fn(&Policy) -> bool, added: Vec<Policy>) -> VhostPolicies {
+        let (added_user, added_operator): (Vec<Policy>, Vec<Policy>) =
+            added.into_iter().partition(|p| p.kind == PolicyKind::User);
+        let next = |of: PolicyKind, added: Vec<Policy>| {
+            let mut list: Vec<Arc<Policy>> =
+                self.list(of).iter().filter(|p| !drop(p)).cloned().collect();
+            list.extend(added.into_iter().map(Arc::new));
             Ranked::new(list)
         };
         VhostPolicies {
-            user: next(PolicyKind::User),
-            operator: next(PolicyKind::Operator),
+            user: next(PolicyKind::User, added_user),
+            operator: next(PolicyKind::Operator, added_operator),
             generation: self.generation + 1,
         }
     }
@@ -235,13 +257,33 @@ impl VhostPolicies {
     /// These policies with `policy` set (replacing one of its kind and
     /// name).
     pub fn with(&self, policy: Policy) -> VhostPolicies {
-        let (kind, name) = (policy.kind, policy.name.clone());
-        self.changed(kind, &name, Some(policy))
+        self.with_all(vec![policy])
+    }
+
+    /// These policies with every one of `policies` set, each replacing
+    /// the one of its kind and name (of two with the same kind and name
+    /// in `policies`, the later): ranked once for the whole batch, so
+    /// putting N policies in costs N log N, not N² as N changes would.
+    pub fn with_all(&self, policies: Vec<Policy>) -> VhostPolicies {
+        let mut last: HashMap<(PolicyKind, String), Policy> = HashMap::new();
+        for policy in policies {
+            last.insert((policy.kind, policy.name.clone()), policy);
+        }
+        let mut replaced: HashMap<PolicyKind, HashSet<String>> = HashMap::new();
+        for (kind, name) in last.keys() {
+            replaced.entry(*kind).or_default().insert(name.clone());
+        }
+        let is_replaced = |p: &Policy| {
+            replaced
+                .get(&p.kind)
+                .is_some_and(|names| names.contains(&p.name))
+        };
+        self.rebuilt(is_replaced, last.into_values().collect())
     }
 
     /// These policies without the policy `name` of `kind`.
     pub fn without(&self, kind: PolicyKind, name: &str) -> VhostPolicies {
-        self.changed(kind, name, None)
+        self.rebuilt(|p| p.kind == kind && p.name == name, Vec::new())
     }
 
     /// The policy `name` of `kind`.

@@ -58,6 +58,8 @@ pub(super) fn required_prefix(pattern: &str) -> Option<Vec<u8>> {
 impl Ranked {
     /// `policies` ranked and filed.
     pub(super) fn new(mut list: Vec<Arc<Policy>>) -> Ranked {
+        #[cfg(test)]
+        super::work::count(&super::work::RANKED, list.len() as u64);
         list.sort_by(|a, b| {
             b.spec
                 .priority

@@ -404,3 +404,103 @@ proptest! {
         }
     }
 }
+
+/// A value each key listed in [`POLICY_KEYS`] takes.
+fn sample(key: &str) -> PolicyValue {
+    match key {
+        "overflow" => text("drop-head"),
+        "max-age" => text("1D"),
+        "queue-mode" => text("lazy"),
+        "queue-version" => int(2),
+        "federation-upstream-set" => text("all"),
+        "dead-letter-exchange"
+        | "dead-letter-routing-key"
+        | "alternate-exchange"
+        | "federation-upstream"
+        | "federation-upstream-pattern"
+        | "ha-mode"
+        | "ha-sync-mode"
+        | "queue-master-locator"
+        | "queue-leader-locator"
+        | "dead-letter-strategy" => text("x"),
+        _ => int(1000),
+    }
+}
+
+/// Every key listed reads as listed: taken (by operator policies only
+/// where listed so) or refused with its reason; a key not listed is
+/// refused as RabbitMQ refuses one it does not know.
+#[test]
+fn every_policy_key_listed_reads_as_listed() {
+    use definition::{KeySupport, POLICY_KEYS};
+    for listed in POLICY_KEYS {
+        let given = [(listed.name.to_owned(), sample(listed.name))];
+        let as_user = Definition::read(PolicyKind::User, &given);
+        let as_operator = Definition::read(PolicyKind::Operator, &given);
+        match listed.support {
+            KeySupport::Implemented | KeySupport::NoEffect(_) => {
+                assert!(as_user.is_ok(), "{}: {as_user:?}", listed.name);
+                assert_eq!(as_operator.is_ok(), listed.operator, "{}", listed.name);
+            }
+            KeySupport::Refused(why) => {
+                for refused in [as_user, as_operator] {
+                    let error = refused.unwrap_err();
+                    assert!(error.contains(why), "{}: {error}", listed.name);
+                }
+            }
+        }
+    }
+    let unknown = Definition::read(PolicyKind::User, &[("colour".to_owned(), text("red"))]);
+    assert_eq!(
+        unknown.unwrap_err(),
+        "[colour] are not recognised policy settings"
+    );
+}
+
+/// The table in `docs/policy-keys.md`, from [`POLICY_KEYS`].
+fn policy_keys_markdown() -> String {
+    use definition::{KeySupport, POLICY_KEYS};
+    let mut out = String::from(
+        "# Policy keys\n\n\
+         Generated from `POLICY_KEYS` in `broker/src/policy/definition.rs` by its\n\
+         test `the_policy_keys_table_is_the_code_list`; `LEVERET_WRITE_DOCS=1 cargo\n\
+         test -p leveret-broker --lib policy::` rewrites it. Every key RabbitMQ 3.10\n\
+         knows in a policy or operator policy definition, and what Leveret does with\n\
+         it: **implemented** (checked as RabbitMQ checks it and acted on), **accepted,\n\
+         no effect** (checked, listed, nothing else, for the reason given) or\n\
+         **refused** (the policy is not set; the API answers 400 with the reason). A\n\
+         key RabbitMQ does not know is refused as RabbitMQ refuses it (`[key] are not\n\
+         recognised policy settings`). **operator** says whether an operator policy\n\
+         may hold it; there the stricter of it and the policy's value applies.\n\
+         Queue arguments against policies are in [`arguments.md`](arguments.md).\n\n\
+         | key | status | operator | meaning |\n\
+         |---|---|---|---|\n",
+    );
+    for listed in POLICY_KEYS {
+        let status = match listed.support {
+            KeySupport::Implemented => "implemented".to_owned(),
+            KeySupport::NoEffect(why) => format!("accepted, no effect: {why}"),
+            KeySupport::Refused(why) => format!("refused: {why}"),
+        };
+        let operator = if listed.operator { "yes" } else { "no" };
+        out.push_str(&format!(
+            "| `{}` | {status} | {operator} | {} |\n",
+            listed.name, listed.meaning
+        ));
+    }
+    out
+}
+
+#[test]
+fn the_policy_keys_table_is_the_code_list() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../docs/policy-keys.md");
+    let generated = policy_keys_markdown();
+    if std::env::var_os("LEVERET_WRITE_DOCS").is_some() {
+        std::fs::write(path, &generated).expect("write docs/policy-keys.md");
+    }
+    let written = std::fs::read_to_string(path).unwrap_or_default();
+    assert!(
+        written == generated,
+        "docs/policy-keys.md differs from the code's list: run LEVERET_WRITE_DOCS=1 cargo test -p leveret-broker --lib policy::"
+    );
+}

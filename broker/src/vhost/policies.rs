@@ -81,35 +81,39 @@ impl Vhost {
         }
     }
 
-    /// Puts `next`, which differs from the set in force by the policy
-    /// `name` of `kind`, in force and applies it to every queue and
-    /// exchange: work that grows with them, so callers run it off the
-    /// broker's threads (`Admin::set_policy` does, on a blocking thread).
-    /// Each object costs one match of the changed policy, and a full
-    /// look-up only where that policy was the one applied
-    /// ([`VhostPolicies::after_change`]).
-    pub fn set_policies(self: &Arc<Self>, next: VhostPolicies, kind: PolicyKind, name: &str) {
+    /// Puts `next` in force and applies it to every queue and exchange:
+    /// work that grows with them, so callers run it off the broker's
+    /// threads (`Admin` does, on a blocking thread). When `next` differs
+    /// from the set in force by one policy (`changed`: its kind and name)
+    /// each object costs one match of that policy, and a full look-up only
+    /// where it was the one applied ([`VhostPolicies::after_change`]);
+    /// otherwise (a batch, [`VhostPolicies::with_all`]) one full look-up,
+    /// which the prefix index keeps to a handful of matches.
+    pub fn set_policies(
+        self: &Arc<Self>,
+        next: VhostPolicies,
+        changed: Option<(PolicyKind, &str)>,
+    ) {
         let next = Arc::new(next);
         *write(&self.policies) = Arc::clone(&next);
+        let applied = |current: &Applied, object: ObjectKind, name: &[u8]| match changed {
+            Some((kind, policy)) => next.after_change(current, kind, policy, object, name),
+            None => next.applied(object, name),
+        };
         for exchange in self.exchanges() {
-            let applied = next.after_change(
+            exchange.apply_policies(applied(
                 &exchange.policies(),
-                kind,
-                name,
                 ObjectKind::Exchange,
                 exchange.name.as_bytes(),
-            );
-            exchange.apply_policies(applied);
+            ));
         }
         for queue in self.queues() {
-            let applied = next.after_change(
+            let policies = applied(
                 &queue.policies(),
-                kind,
-                name,
                 queue.policy_object(),
                 queue.name.as_bytes(),
             );
-            self.apply_queue_policies(&queue, applied);
+            self.apply_queue_policies(&queue, policies);
         }
     }
 }

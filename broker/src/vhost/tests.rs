@@ -500,3 +500,96 @@ fn a_cycle_of_exchange_bindings_is_freed_with_its_vhost() {
     assert!(a.upgrade().is_none(), "exchange a leaked");
     assert!(b.upgrade().is_none(), "exchange b leaked");
 }
+
+/// Policies put in force as a batch (an import, a start) cost work that
+/// grows with policies plus queues: one ranking of the whole set and one
+/// look-up per queue, which the prefix index keeps to a match or two —
+/// where the same policies one change at a time rank the set once per
+/// change (N²/2 policies ranked in all) and visit every queue per change.
+#[test]
+fn a_batch_of_policies_costs_work_linear_in_policies_and_queues() {
+    use crate::policy::{work, ApplyTo, Policy, PolicyKind, PolicySpec, PolicyValue};
+    const POLICIES: usize = 400;
+    const QUEUES: usize = 2_000;
+    let harness = Harness::new();
+    let queues: Vec<_> = (0..QUEUES)
+        .map(|i| harness.queue(&format!("app{}.q{i}", i % POLICIES), &[]))
+        .collect();
+    for _ in 0..3 {
+        harness.publish("", "app7.q7", "m");
+    }
+    let policy = |i: usize, max_length: i64| {
+        Policy::new(
+            PolicyKind::User,
+            &format!("p{i}"),
+            PolicySpec {
+                pattern: format!("^app{i}\\."),
+                apply_to: ApplyTo::Queues,
+                priority: 0,
+                definition: vec![("max-length".into(), PolicyValue::Integer(max_length))],
+            },
+        )
+        .expect("a policy")
+    };
+    work::take(&work::MATCHES);
+    work::take(&work::RANKED);
+    let batch: Vec<Policy> = (0..POLICIES).map(|i| policy(i, 1)).collect();
+    let next = harness.vhost.policies().with_all(batch);
+    harness.vhost.set_policies(next, None);
+    let (matches, ranked) = (work::take(&work::MATCHES), work::take(&work::RANKED));
+    assert_eq!(ranked, POLICIES as u64, "one ranking of the whole batch");
+    // Each queue tries the policy filed under its own prefix `appN.`
+    // (and `app1` is a prefix of `app1N.`: one more for some).
+    assert!(
+        matches <= 2 * QUEUES as u64,
+        "{matches} matches for {QUEUES} queues"
+    );
+    for (i, queue) in queues.iter().enumerate() {
+        let expected = format!("p{}", i % POLICIES);
+        assert_eq!(queue.policies().policy_name(), Some(expected.as_str()));
+    }
+    assert_eq!(
+        queues[7].message_count(),
+        1,
+        "a batch shortens a queue at once"
+    );
+
+    // A second batch replacing half of them and adding none ranks the
+    // set once more, and the later of two same-named policies wins.
+    let mut again: Vec<Policy> = (0..POLICIES / 2).map(|i| policy(i, 5)).collect();
+    again.push(policy(3, 9));
+    let next = harness.vhost.policies().with_all(again);
+    harness.vhost.set_policies(next, None);
+    assert_eq!(work::take(&work::RANKED), POLICIES as u64);
+    assert!(work::take(&work::MATCHES) <= 2 * QUEUES as u64);
+    let definition = |queue: &Arc<crate::queue::Queue>| {
+        queue
+            .policies()
+            .policy
+            .map(|p| format!("{:?}", p.spec.definition))
+    };
+    assert_eq!(
+        definition(&queues[3]),
+        Some(format!(
+            "{:?}",
+            vec![("max-length".to_owned(), PolicyValue::Integer(9))]
+        ))
+    );
+    assert_eq!(
+        harness.vhost.policies().all(PolicyKind::User).len(),
+        POLICIES
+    );
+
+    // One change at a time ranks the whole set per change: N²/2.
+    let fresh = Harness::new();
+    let mut set = fresh.vhost.policies();
+    work::take(&work::RANKED);
+    for i in 0..POLICIES {
+        let next = set.with(policy(i, 1));
+        set = Arc::new(next);
+    }
+    assert_eq!(
+        work::take(&work::RANKED),
+        (POLICIES * (POLICIES + 1) / 2) as u64
+    );
+}

@@ -1076,8 +1076,15 @@ pub async fn import_vhost_definitions(
     import(&c, &body, Some(&vhost)).await
 }
 
-async fn import(c: &Context, body: &[u8], vhost: Option<&str>) -> ApiResult<Json<Value>> {
-    let mut definitions = Definitions::parse_into(body, vhost).map_err(ApiError::bad_request)?;
+async fn import(c: &Context, body: &Bytes, vhost: Option<&str>) -> ApiResult<Json<Value>> {
+    // Reading checks every policy's pattern: work that grows with the
+    // file, off the broker's threads.
+    let (body, vhost_owned) = (body.clone(), vhost.map(str::to_owned));
+    let mut definitions =
+        tokio::task::spawn_blocking(move || Definitions::parse_into(&body, vhost_owned.as_deref()))
+            .await
+            .map_err(|e| ApiError::bad_request(e.to_string()))?
+            .map_err(ApiError::bad_request)?;
     let applied = definitions
         .apply(&c.admin, &c.links)
         .await
