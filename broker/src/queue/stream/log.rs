@@ -1002,6 +1002,16 @@ mod tests {
         )
     }
 
+    /// Cuts the file at `path` to `len` bytes.
+    fn cut(path: &Path, len: u64) {
+        OpenOptions::new()
+            .write(true)
+            .open(path)
+            .unwrap()
+            .set_len(len)
+            .unwrap();
+    }
+
     fn flip(path: &Path, at: usize) {
         let mut bytes = std::fs::read(path).unwrap();
         bytes[at] ^= 0xff;
@@ -1102,12 +1112,7 @@ mod tests {
         // A sealed segment whose length differs from its seal's is read
         // whole: cut short, it is damage.
         let len = std::fs::metadata(&segments[2]).unwrap().len();
-        OpenOptions::new()
-            .write(true)
-            .open(&segments[2])
-            .unwrap()
-            .set_len(len - 3)
-            .unwrap();
+        cut(&segments[2], len - 3);
         let text = reopen(dir.path(), false).unwrap_err().to_string();
         assert!(text.contains("torn record"), "{text}");
         // A seal that does not check is not trusted either.
@@ -1143,12 +1148,7 @@ mod tests {
         // matches its length, so it is read whole).
         let older = &segments[0];
         let len = std::fs::metadata(older).unwrap().len();
-        OpenOptions::new()
-            .write(true)
-            .open(older)
-            .unwrap()
-            .set_len(len - 2)
-            .unwrap();
+        cut(older, len - 2);
         let text = reopen(dir.path(), false).unwrap_err().to_string();
         assert!(text.contains("torn record"), "{text}");
         // A damaged newest record that is not zeros is damage too.
@@ -1167,12 +1167,7 @@ mod tests {
         let dir = Scratch::new("synced-cut");
         let segments = ten_records(dir.path());
         let newest = segments.last().unwrap();
-        OpenOptions::new()
-            .write(true)
-            .open(newest)
-            .unwrap()
-            .set_len(SEGMENT_HEADER + 10)
-            .unwrap();
+        cut(newest, SEGMENT_HEADER + 10);
         let text = reopen(dir.path(), false).unwrap_err().to_string();
         assert!(text.contains("offsets from 9 on would be lost"), "{text}");
         let mut log = reopen(dir.path(), true).unwrap();
@@ -1198,12 +1193,7 @@ mod tests {
         let dir = Scratch::new("synced-boundary");
         let segments = ten_records(dir.path());
         let newest = segments.last().unwrap();
-        OpenOptions::new()
-            .write(true)
-            .open(newest)
-            .unwrap()
-            .set_len(SEGMENT_HEADER)
-            .unwrap();
+        cut(newest, SEGMENT_HEADER);
         assert!(reopen(dir.path(), false).is_err());
 
         // The newest segment removed, or every segment.
@@ -1243,12 +1233,7 @@ mod tests {
         drop(log);
         let newest = segments.last().unwrap();
         let len = std::fs::metadata(newest).unwrap().len();
-        OpenOptions::new()
-            .write(true)
-            .open(newest)
-            .unwrap()
-            .set_len(len - 4)
-            .unwrap();
+        cut(newest, len - 4);
         let log = reopen(dir.path(), false).unwrap();
         assert_eq!(
             log.next_offset(),
@@ -1272,12 +1257,7 @@ mod tests {
         let rolled = segments.last().unwrap();
         assert!(seal_path(rolled).exists());
         let len = std::fs::metadata(rolled).unwrap().len();
-        OpenOptions::new()
-            .write(true)
-            .open(rolled)
-            .unwrap()
-            .set_len(len - 3)
-            .unwrap();
+        cut(rolled, len - 3);
         let mut log = reopen(dir.path(), false).expect("nothing synced was lost");
         assert_eq!(log.next_offset(), 11, "cut after record 10");
         assert_eq!(
