@@ -7,7 +7,6 @@
 //! `inspect`'s job.
 
 use crate::message::Message;
-use crate::queue::DeadLetterReason;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
 use std::sync::Arc;
 
@@ -255,6 +254,29 @@ pub(crate) struct AuthAttempts {
     /// Logins that were refused (unknown user, wrong password, no
     /// certificate, or a user not allowed from that address).
     pub failed: Counter,
+}
+
+/// Why a message was dead-lettered (the `reason` in `x-death`, and the
+/// dead-letter counters' label).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DeadLetterReason {
+    /// basic.reject or basic.nack with requeue false.
+    Rejected,
+    /// Its TTL passed.
+    Expired,
+    /// Dropped by x-max-length or x-max-length-bytes.
+    MaxLen,
+}
+
+impl DeadLetterReason {
+    /// Its name in `x-death`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DeadLetterReason::Rejected => "rejected",
+            DeadLetterReason::Expired => "expired",
+            DeadLetterReason::MaxLen => "maxlen",
+        }
+    }
 }
 
 /// What became of a message a queue let go (RabbitMQ 3.10's

@@ -4,8 +4,10 @@ consumer queue, policies matching name suffixes, an exchange policy, an
 operator policy) loaded into a RabbitMQ 3.10 node of the suite's own
 (with its management plugin, `rabbitmqctl import_definitions`) and into a
 Leveret (`--definitions`); then pika (python/s_semantics.py, `main.py
---lib semantics`) and amqplib (js/semantics.js, `main.js --semantics`)
-run the same steps against both, with the broker's management API
+--lib semantics`), amqplib (js/semantics.js, `main.js --semantics`) and
+amqp091-go (go/.../semantics.go, `conformance-go --semantics`: argument
+equivalence of queues the definitions and the API made) run the same
+steps against both, with the broker's management API
 (`--http`) for what an operator does meanwhile (policies set and cleared,
 listings read). A scenario passes when it passes on both brokers and the
 client observed the same things on both (run prefixes and
@@ -33,6 +35,7 @@ def run(ctx):
     drivers = [
         [ctx.vpy, os.path.join(ctx.here, "python", "main.py"), "--lib", "semantics"],
         ["node", os.path.join(ctx.here, "js", "main.js"), "--semantics"],
+        ctx.go_driver() + ["--semantics"],
     ]
     rabbit_http = free_port()
     # Statistics every 100 ms (RabbitMQ's default is 5 s): its listings
@@ -76,5 +79,5 @@ def run(ctx):
 
 
 SUITES = {
-    "semantics": ("policies, SAC, priorities, equivalence, refusals: pika + amqplib, RabbitMQ 3.10 beside Leveret", run),
+    "semantics": ("policies, SAC, priorities, equivalence, refusals: pika + amqplib + amqp091-go, RabbitMQ 3.10 beside Leveret", run),
 }

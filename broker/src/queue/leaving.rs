@@ -8,32 +8,12 @@ use super::{Queue, QueuedMessage};
 use crate::consumer::Consumer;
 use crate::message::Message;
 use crate::outbox::Outbound;
+pub use crate::stats::DeadLetterReason;
 use crate::stats::DeadLetterStrategy;
 use bytes::BytesMut;
 use leveret_protocol::{BasicCancel, BasicProperties, FieldTable, FieldValue, ShortStr};
 use std::sync::Arc;
 use std::time::{SystemTime, UNIX_EPOCH};
-
-/// Why a message was dead-lettered (the `reason` in `x-death`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum DeadLetterReason {
-    /// basic.reject or basic.nack with requeue false.
-    Rejected,
-    /// Its TTL passed.
-    Expired,
-    /// Dropped by x-max-length or x-max-length-bytes.
-    MaxLen,
-}
-
-impl DeadLetterReason {
-    fn as_str(self) -> &'static str {
-        match self {
-            DeadLetterReason::Rejected => "rejected",
-            DeadLetterReason::Expired => "expired",
-            DeadLetterReason::MaxLen => "maxlen",
-        }
-    }
-}
 
 /// A message leaving a queue for its dead-letter exchange.
 #[derive(Debug)]

@@ -1,11 +1,12 @@
 // Scenario harness for the Go driver (same protocol as python/harness.py):
 //
-//	conformance-go [--streams] --list
-//	conformance-go [--streams] --url URL --prefix P [--only a,b]
+//	conformance-go [--streams|--semantics] --list
+//	conformance-go [--streams|--semantics] --url URL --prefix P [--only a,b] [--http URL]
 //
 // prints {"start": name} then one result record per scenario. --streams
-// selects the stream queue scenarios of the `streams` suite instead of the
-// `amqp091-go` suite's.
+// selects the stream queue scenarios of the `streams` suite, --semantics
+// those of the `semantics` suite (which reach the broker's management API
+// at --http), instead of the `amqp091-go` suite's.
 package main
 
 import (
@@ -27,7 +28,7 @@ type entry struct {
 	fn   scenarioFn
 }
 
-var registry, streamRegistry []entry
+var registry, streamRegistry, semanticsRegistry []entry
 
 // hang is how long a scenario waits for something it expects: a hang limit,
 // generous enough for a loaded CI machine (the wait ends as soon as the
@@ -43,10 +44,17 @@ func streamScenario(name string, fn scenarioFn) {
 	streamRegistry = append(streamRegistry, entry{"streams.amqp091-go." + name, fn})
 }
 
+// semanticsScenario registers a scenario of the `semantics` suite
+// (semantics.go).
+func semanticsScenario(name string, fn scenarioFn) {
+	semanticsRegistry = append(semanticsRegistry, entry{"semantics.amqp091-go." + name, fn})
+}
+
 type failure struct{ msg string }
 
 type T struct {
 	URL, Prefix          string
+	HTTP                 string // the management API's base URL (--http), if given
 	Host, User, Password string
 	Port                 string
 	Vhost                string
@@ -148,9 +156,14 @@ func main() {
 	prefix := flag.String("prefix", "cf-", "name prefix")
 	only := flag.String("only", "", "comma-separated scenario names")
 	streams := flag.Bool("streams", false, "the stream queue scenarios (the streams suite)")
+	semantics := flag.Bool("semantics", false, "the semantics suite's scenarios")
+	httpURL := flag.String("http", "", "the broker's management API, e.g. http://127.0.0.1:15672")
 	flag.Parse()
 	if *streams {
 		registry = streamRegistry
+	}
+	if *semantics {
+		registry = semanticsRegistry
 	}
 	if *list {
 		for _, e := range registry {
@@ -186,7 +199,7 @@ func main() {
 			continue
 		}
 		enc.Encode(map[string]string{"start": e.name})
-		t := &T{URL: *u, Prefix: *prefix, Host: pu.Hostname(), Port: port, User: pu.User.Username(), Password: pw, Vhost: vhost, obs: [][]interface{}{}}
+		t := &T{URL: *u, HTTP: *httpURL, Prefix: *prefix, Host: pu.Hostname(), Port: port, User: pu.User.Username(), Password: pw, Vhost: vhost, obs: [][]interface{}{}}
 		start := time.Now()
 		done := make(chan string, 1)
 		go func() {
