@@ -898,13 +898,15 @@ fn info_families(
         ],
         1.0,
     );
+    // RabbitMQ's cluster name (the node's name until one is set).
+    let cluster = crate::policies::cluster_name(&context.admin, &context.node);
     out.single(
         "rabbitmq_identity_info",
         MetricType::GAUGE,
         "RabbitMQ node & cluster identity info",
         &[
             ("rabbitmq_node", context.node.as_str()),
-            ("rabbitmq_cluster", context.node.as_str()),
+            ("rabbitmq_cluster", cluster.as_str()),
             ("rabbitmq_endpoint", endpoint),
         ],
         1.0,

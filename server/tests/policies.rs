@@ -269,6 +269,17 @@ async fn leveretctl_permissions_and_definitions_carry_policies() {
     assert_eq!(overview["cluster_name"], "edge-7");
     let (_, name) = api(&broker, "GET", "/api/cluster-name", GUEST, &Value::Null).await;
     assert_eq!(name, json!({"name": "edge-7"}));
+    // And in Prometheus' identity, as RabbitMQ labels it.
+    let scrape = request(broker.metrics, "GET", "/metrics", &[], b"").await;
+    let identity = String::from_utf8_lossy(&scrape.body)
+        .lines()
+        .find(|l| l.starts_with("rabbitmq_identity_info{"))
+        .map(str::to_owned)
+        .expect("rabbitmq_identity_info");
+    assert!(
+        identity.contains(r#"rabbitmq_cluster="edge-7""#),
+        "{identity}"
+    );
 
     for (user, tags) in [("maker", "policymaker"), ("viewer", "management")] {
         let (status, _) = api(
