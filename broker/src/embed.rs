@@ -523,13 +523,7 @@ impl BrokerBuilder {
         let listeners =
             listeners.chain(self.tls_listen.into_iter().map(|addr| (addr, tls.clone())));
         for (addr, tls) in listeners {
-            let listener = TcpListener::bind(addr)
-                .await
-                .map_err(|source| StartError::Bind { addr, source })?;
-            let bound = listener
-                .local_addr()
-                .map_err(|source| StartError::Bind { addr, source })?;
-            warn_if_only_guest(&core.users, bound);
+            let (listener, bound) = bind_listener(addr, &core.users).await?;
             if tls.is_some() {
                 tracing::info!(addr = %bound, "accepting AMQP 0.9.1 connections over TLS");
                 tls_addrs.push(bound);
@@ -561,13 +555,7 @@ impl BrokerBuilder {
                     .map(|a| (a, Transport::WebSocket)),
             );
             for (addr, transport) in listeners {
-                let listener = TcpListener::bind(addr)
-                    .await
-                    .map_err(|source| StartError::Bind { addr, source })?;
-                let bound = listener
-                    .local_addr()
-                    .map_err(|source| StartError::Bind { addr, source })?;
-                warn_if_only_guest(&core.users, bound);
+                let (listener, bound) = bind_listener(addr, &core.users).await?;
                 let (kind, over) = match transport {
                     Transport::Tcp => (0, ""),
                     #[cfg(feature = "tls")]
@@ -860,6 +848,22 @@ pub enum StartError {
         /// The error.
         source: std::io::Error,
     },
+}
+
+/// Binds a listener on `addr`; returns it and the address it got, with
+/// [`warn_if_only_guest`]'s warning when it reaches beyond this host.
+async fn bind_listener(
+    addr: SocketAddr,
+    users: &crate::auth::Users,
+) -> Result<(TcpListener, SocketAddr), StartError> {
+    let listener = TcpListener::bind(addr)
+        .await
+        .map_err(|source| StartError::Bind { addr, source })?;
+    let bound = listener
+        .local_addr()
+        .map_err(|source| StartError::Bind { addr, source })?;
+    warn_if_only_guest(users, bound);
+    Ok((listener, bound))
 }
 
 /// The start-up warning of a listener beyond this host when `guest` is the

@@ -34,6 +34,32 @@ async fn leveret() -> Arc<BrokerHandle> {
     Arc::new(handle)
 }
 
+/// An in-port and an out-port on `queue` of the embedded `broker`, both in
+/// process.
+async fn in_process_pair(
+    broker: &Arc<BrokerHandle>,
+    queue: &str,
+) -> (InPort<TimedLong>, OutPort<TimedLong>) {
+    let profile = PortProfile::default()
+        .queue(queue)
+        .routing_key(queue)
+        .buffer(2048, FullPolicy::DropOldest);
+    let local = Connector::in_process(broker);
+    let input = within(
+        "in-port",
+        InPort::<TimedLong>::connect_with(local.clone(), profile.clone()),
+    )
+    .await
+    .expect("in-port");
+    let output = within(
+        "out-port",
+        OutPort::<TimedLong>::connect_with(local, profile),
+    )
+    .await
+    .expect("out-port");
+    (input, output)
+}
+
 fn long(data: i32) -> TimedLong {
     TimedLong {
         tm: Time::now(),
@@ -97,23 +123,7 @@ fn assert_all_received(stats: InPortStats) {
 async fn in_process_ports_keep_order_counters_and_the_queue_listing() {
     let broker = leveret().await;
     let queue = unique("fast-path");
-    let profile = PortProfile::default()
-        .queue(&queue)
-        .routing_key(&queue)
-        .buffer(2048, FullPolicy::DropOldest);
-    let local = Connector::in_process(&broker);
-    let input = within(
-        "in-port",
-        InPort::<TimedLong>::connect_with(local.clone(), profile.clone()),
-    )
-    .await
-    .expect("in-port");
-    let output = within(
-        "out-port",
-        OutPort::<TimedLong>::connect_with(local, profile),
-    )
-    .await
-    .expect("out-port");
+    let (input, output) = in_process_pair(&broker, &queue).await;
 
     put_and_read(&output, &[&input]).await;
     assert_all_received(input.stats());
@@ -191,17 +201,7 @@ async fn a_remote_in_port_beside_a_local_one_gets_the_same_values() {
 async fn a_callback_that_calls_into_the_broker_runs_off_the_dispatching_thread() {
     let broker = leveret().await;
     let queue = unique("fast-path-callback");
-    let profile = PortProfile::default()
-        .queue(&queue)
-        .routing_key(&queue)
-        .buffer(2048, FullPolicy::DropOldest);
-    let local = Connector::in_process(&broker);
-    let input = within(
-        "in-port",
-        InPort::<TimedLong>::connect_with(local.clone(), profile.clone()),
-    )
-    .await
-    .expect("in-port");
+    let (input, output) = in_process_pair(&broker, &queue).await;
     let seen = Arc::new(std::sync::atomic::AtomicU64::new(0));
     let (in_callback, listing) = (Arc::clone(&seen), Arc::clone(&broker));
     input.on_receive(move |_| {
@@ -210,12 +210,6 @@ async fn a_callback_that_calls_into_the_broker_runs_off_the_dispatching_thread()
         assert!(!listing.queues().is_empty());
         in_callback.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
     });
-    let output = within(
-        "out-port",
-        OutPort::<TimedLong>::connect_with(local, profile),
-    )
-    .await
-    .expect("out-port");
     put_and_read(&output, &[&input]).await;
     assert_eq!(seen.load(std::sync::atomic::Ordering::SeqCst), TOTAL);
     assert_all_received(input.stats());
