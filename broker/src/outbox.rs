@@ -206,7 +206,7 @@ impl OutboxPermit<'_> {
         if self.outbox.deliver_inline(&item) {
             return;
         }
-        self.outbox.unhandled.fetch_add(1, Ordering::SeqCst);
+        self.outbox.count_sent();
         self.permit.send(item);
     }
 }
@@ -214,9 +214,11 @@ impl OutboxPermit<'_> {
 /// The core's handle on one connection's writer.
 pub struct Outbox {
     tx: mpsc::Sender<Outbound>,
+    /// Whether an in-process client takes the items ([`Outbox::in_process`]).
+    in_process: bool,
     /// Items sent and not yet handled by an in-process client (its
-    /// [`crate::DirectReplies`] counts them down; for a socket writer the
-    /// count only rises, and nothing reads it).
+    /// [`crate::DirectReplies`] counts them down); kept only for one, so
+    /// a socket connection pays nothing for it per item.
     unhandled: AtomicU64,
     /// An in-process client's inline deliveries, once it has set them.
     inline: OnceLock<Arc<dyn InlineDeliveries>>,
@@ -233,9 +235,21 @@ pub struct Outbox {
 impl Outbox {
     /// An outbox and the receiver its writer drains.
     pub fn new(connection_id: u64) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
+        Outbox::with(connection_id, false)
+    }
+
+    /// An outbox whose receiver an in-process client drains itself,
+    /// counting down each item it handles ([`Outbox::handled`]), so that
+    /// its inline deliveries ([`Outbox::set_inline`]) keep their order.
+    pub(crate) fn in_process(connection_id: u64) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
+        Outbox::with(connection_id, true)
+    }
+
+    fn with(connection_id: u64, in_process: bool) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
         let (tx, rx) = mpsc::channel(OUTBOX_CAPACITY);
         let outbox = Outbox {
             tx,
+            in_process,
             unhandled: AtomicU64::new(0),
             inline: OnceLock::new(),
             blocked: Mutex::new(Vec::new()),
@@ -257,7 +271,7 @@ impl Outbox {
     pub async fn send(&self, item: Outbound) {
         // An error means the writer is gone: the connection is closing and
         // its cleanup requeues whatever was in flight.
-        self.unhandled.fetch_add(1, Ordering::SeqCst);
+        self.count_sent();
         let item = match self.tx.try_send(item) {
             Ok(()) | Err(mpsc::error::TrySendError::Closed(_)) => return,
             Err(mpsc::error::TrySendError::Full(item)) => item,
@@ -295,17 +309,26 @@ impl Outbox {
     /// Sends without waiting; false if there is no room or the writer is gone.
     pub fn try_send(&self, item: Outbound) -> bool {
         // Counted before it can be handled, uncounted if not sent.
-        self.unhandled.fetch_add(1, Ordering::SeqCst);
+        self.count_sent();
         let sent = self.tx.try_send(item).is_ok();
-        if !sent {
+        if !sent && self.in_process {
             self.handled();
         }
         sent
     }
 
+    /// Counts an item sent, for an in-process client to count down.
+    #[inline]
+    fn count_sent(&self) {
+        if self.in_process {
+            self.unhandled.fetch_add(1, Ordering::SeqCst);
+        }
+    }
+
     /// Sets an in-process client's inline deliveries (once; a second call
     /// is ignored).
     pub(crate) fn set_inline(&self, inline: Arc<dyn InlineDeliveries>) {
+        debug_assert!(self.in_process, "inline deliveries need the count");
         let _ = self.inline.set(inline);
     }
 

@@ -117,6 +117,10 @@ pub fn serve_direct(
 /// Where a connection's outgoing items go: a writer task on a socket, or
 /// an in-process client that takes them itself.
 trait Sink: Send + 'static {
+    /// Whether an in-process client takes the items (it counts down what
+    /// it handles, for its inline deliveries: see [`Outbox::in_process`]).
+    const IN_PROCESS: bool;
+
     /// Answers a wrong protocol header with ours, and ends.
     fn refuse(self) -> impl std::future::Future<Output = ()> + Send;
 
@@ -133,6 +137,8 @@ trait Sink: Send + 'static {
 struct SocketSink<W>(W);
 
 impl<W: AsyncWrite + Unpin + Send + 'static> Sink for SocketSink<W> {
+    const IN_PROCESS: bool = false;
+
     async fn refuse(mut self) {
         let _ = self.0.write_all(PROTOCOL_HEADER).await;
         let _ = self.0.shutdown().await;
@@ -151,6 +157,8 @@ impl<W: AsyncWrite + Unpin + Send + 'static> Sink for SocketSink<W> {
 struct DirectSink(tokio::sync::oneshot::Sender<direct::WriterEnd>);
 
 impl Sink for DirectSink {
+    const IN_PROCESS: bool = true;
+
     async fn refuse(self) {}
 
     fn start(
@@ -211,7 +219,11 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         local = local.map(tracing::field::display),
         "accepting {kind} connection #{connection_id} ({label})"
     );
-    let (outbox, inbox) = Outbox::new(connection_id);
+    let (outbox, inbox) = if K::IN_PROCESS {
+        Outbox::in_process(connection_id)
+    } else {
+        Outbox::new(connection_id)
+    };
     let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
     let mut writer = sink.start(inbox, Arc::clone(&outbox), heartbeat_rx);
     let mut conn = Connection {
