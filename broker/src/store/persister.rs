@@ -221,6 +221,16 @@ struct Group {
     syncs: Vec<Arc<std::fs::File>>,
     /// Records to write once those are synced, one per file.
     then: Vec<AfterSync>,
+    /// The files in `syncs`, and where each file's record is in `then`,
+    /// by the file's address: a group can hold many streams' appends, so
+    /// each submission finds its files at once, not by a scan.
+    synced_files: WordHashMap<u64, ()>,
+    records_at: WordHashMap<u64, usize>,
+}
+
+/// A shared file's address, its key in a group.
+fn address(file: &Arc<std::fs::File>) -> u64 {
+    Arc::as_ptr(file) as usize as u64
 }
 
 /// A key that is written once and removed once, never rewritten: a
@@ -258,19 +268,21 @@ impl Group {
         );
         self.len += submission.ops.len();
         for file in submission.syncs {
-            if !self.syncs.iter().any(|f| Arc::ptr_eq(f, &file)) {
+            if self.synced_files.insert(address(&file), ()).is_none() {
                 self.syncs.push(file);
             }
         }
         if let Some(after) = submission.then {
-            match self
-                .then
-                .iter_mut()
-                .find(|t| Arc::ptr_eq(&t.file, &after.file))
-            {
-                Some(kept) if kept.record.sequence < after.record.sequence => *kept = after,
+            match self.records_at.get(&address(&after.file)) {
+                Some(&at) if self.then[at].record.sequence < after.record.sequence => {
+                    self.then[at] = after;
+                }
                 Some(_) => {}
-                None => self.then.push(after),
+                None => {
+                    self.records_at
+                        .insert(address(&after.file), self.then.len());
+                    self.then.push(after);
+                }
             }
         }
         if submission.mode == WriteMode::Atomic {
@@ -351,6 +363,8 @@ impl Group {
             self.record(synced);
         }
         self.syncs = syncs;
+        self.synced_files.clear();
+        self.records_at.clear();
         for after in self.then.drain(..) {
             if self.error.is_some() {
                 // Not synced: nothing new to record.
