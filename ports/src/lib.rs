@@ -57,7 +57,7 @@
 //! without its default features (the application names any it wants on
 //! its own dependency); `serde` for `Postcard`. In-process ports alone
 //! (`default-features = false, features = ["embedded"]`) build 44 crates
-//! on Linux; with every default of this crate and the broker, 100
+//! on Linux; with every default of this crate and the broker, 117
 //! (`perf/crate-count`).
 //!
 //! Layout:
