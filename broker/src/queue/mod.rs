@@ -36,7 +36,7 @@ use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::message::Message;
-use crate::outbox::{Outbound, OutboxPermit};
+use crate::outbox::{Outbound, OutboxPermit, WaitsForRoom};
 use crate::policy::Applied;
 use crate::slice::{finish_in_background, Progress, Slice};
 use crate::stats::{BrokerCounters, QueueCounters};
@@ -322,20 +322,6 @@ impl Queue {
         let mut st = self.lock();
         self.dispatch_locked(&mut st, &mut dead, Instant::now());
         DeadLetters(dead)
-    }
-
-    /// [`Queue::dispatch`] for a connection's writer, which has room again
-    /// but cannot route dead letters: those this dispatch finds (messages
-    /// that expired at the head) wait in the queue for the vhost's next
-    /// sweep ([`Queue::expire_at`]).
-    pub fn dispatch_deferring_dead_letters(self: &Arc<Self>) {
-        if self.stream.is_some() {
-            return self.stream_dispatch();
-        }
-        let mut dead = Vec::new();
-        let mut st = self.lock();
-        self.dispatch_locked(&mut st, &mut dead, Instant::now());
-        st.deferred_dead.append(&mut dead);
     }
 
     /// basic.get: sends the head message with basic.get-ok through
@@ -657,6 +643,23 @@ impl Queue {
             && st.last_used.is_some_and(|at| {
                 now.saturating_duration_since(at) >= Duration::from_millis(expires)
             })
+    }
+}
+
+/// A dispatch that found a consumer's writer full leaves the queue waiting
+/// in that outbox ([`wait_for_room`](crate::outbox::Outbox::wait_for_room)); once the writer has drained,
+/// the queue dispatches again. The writer cannot route dead letters: those
+/// this dispatch finds (messages that expired at the head) wait in the
+/// queue for the vhost's next sweep ([`Queue::expire_at`]).
+impl WaitsForRoom for Queue {
+    fn room_again(self: Arc<Self>) {
+        if self.stream.is_some() {
+            return self.stream_dispatch();
+        }
+        let mut dead = Vec::new();
+        let mut st = self.lock();
+        self.dispatch_locked(&mut st, &mut dead, Instant::now());
+        st.deferred_dead.append(&mut dead);
     }
 }
 
