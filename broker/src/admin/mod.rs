@@ -14,14 +14,13 @@ mod policies;
 mod vhost_deletion;
 
 use crate::channel::{apply_settles, Settle};
-use crate::consumer::ChannelLink;
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::ExchangeOptions;
 use crate::inspect::DestinationKind;
 use crate::message::{Message, Stored};
 use crate::outbox::{Outbound, Outbox};
-use crate::queue::{DeadLetters, Enqueued, Queue, QueueOptions};
+use crate::queue::{ChannelLink, DeadLetters, Enqueued, Queue, QueueOptions};
 use crate::vhost::{check_exclusive, BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{BasicProperties, FieldTable, ShortStr};

@@ -3,13 +3,12 @@
 //! deliveries (ack, nack, reject, recover).
 
 use super::{Channel, Publish};
-use crate::consumer::{Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::Exchange;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
 use crate::permissions::Right;
-use crate::queue::{ConsumerArgs, DeadLetters, Enqueued, Queue, QueuedMessage};
+use crate::queue::{Consumer, ConsumerArgs, DeadLetters, Enqueued, Queue, QueuedMessage, Unacked};
 use crate::slice::{finish_in_background, Progress, Slice};
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
@@ -506,9 +505,12 @@ impl Channel {
             )));
         };
         if let (Settle::Reject { .. }, Some(stream)) =
-            (how, settled.iter().find(|u| u.queue.is_stream()))
+            (how, settled.iter().find(|u| u.origin.queue.is_stream()))
         {
-            let refused = stream.queue.refuse_on_stream("basic.nack and basic.reject");
+            let refused = stream
+                .origin
+                .queue
+                .refuse_on_stream("basic.nack and basic.reject");
             // RabbitMQ 3.10 closes the connection; what was taken stays
             // unacked until then, as the client left it.
             self.link.deliveries().restore(settled);
@@ -629,12 +631,14 @@ fn settle_batch(
             consumer.settled_one();
         }
         let (queue, settled) = by_queue
-            .entry(Arc::as_ptr(&u.queue))
-            .or_insert_with(|| (Arc::clone(&u.queue), QueueSettles::default()));
+            .entry(Arc::as_ptr(&u.origin.queue))
+            .or_insert_with(|| (Arc::clone(&u.origin.queue), QueueSettles::default()));
         match how {
-            Settle::Ack => settled.acked.push(u.message),
-            Settle::Reject { requeue: false } => settled.dead.append(queue.reject(u.message)),
-            Settle::Reject { requeue: true } => settled.requeue.push(u.message),
+            Settle::Ack => settled.acked.push(u.origin.message),
+            Settle::Reject { requeue: false } => {
+                settled.dead.append(queue.reject(u.origin.message))
+            }
+            Settle::Reject { requeue: true } => settled.requeue.push(u.origin.message),
         }
     }
     by_queue

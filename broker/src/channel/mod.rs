@@ -21,14 +21,13 @@ mod queue;
 mod reply_to;
 mod tx;
 
-use crate::consumer::{ChannelLink, Consumer};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{Exchange, ExchangeKind};
 use crate::memory::{MemoryGauge, Reservation};
 use crate::outbox::Outbox;
 use crate::permissions::{AccessView, Resource, Right};
-use crate::queue::Queue;
+use crate::queue::{ChannelLink, Consumer, Queue};
 use crate::registry::ChannelRegistration;
 use crate::vhost::{RememberedQueue, Vhost};
 use basic::Unfinished;

@@ -5,10 +5,10 @@
 //! straight to the consumer, without any queue.
 
 use super::Channel;
-use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::message::Message;
 use crate::outbox::Outbound;
+use crate::queue::ReplyTarget;
 use bytes::BytesMut;
 use leveret_protocol::{BasicConsume, BasicConsumeOk, ShortStr};
 use std::sync::Arc;

@@ -32,7 +32,6 @@ pub use args::{ConsumerArgs, Overflow, QueueArgs};
 pub use leaving::{DeadLetter, DeadLetterReason, DeadLetters, Deleted};
 pub use stream::{is_stream, start_at, StartAt, Stream, StreamArgs, StreamFigures};
 
-use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::message::Message;
@@ -111,6 +110,33 @@ impl QueuedMessage {
         (std::cmp::Reverse(self.priority), self.seq)
     }
 }
+
+/// What an unacked delivery keeps of the queue it came from, so that
+/// settling it (ack, reject, requeue) goes back there. The consumer
+/// layer's types carry it as their type parameter; the aliases below fix
+/// it, and the layers above name them.
+#[derive(Debug)]
+pub struct Origin {
+    /// The queue it came from.
+    pub queue: Arc<Queue>,
+    /// The message and its place in the queue.
+    pub message: QueuedMessage,
+}
+
+/// A consumer of a queue ([`crate::consumer::Consumer`]).
+pub type Consumer = crate::consumer::Consumer<Origin>;
+
+/// What queues need of a channel to deliver to its consumers
+/// ([`crate::consumer::ChannelLink`]).
+pub type ChannelLink = crate::consumer::ChannelLink<Origin>;
+
+/// A delivery from a queue waiting for ack, nack or reject
+/// ([`crate::consumer::Unacked`]).
+pub type Unacked = crate::consumer::Unacked<Origin>;
+
+/// Where direct replies to one channel's requests go
+/// ([`crate::consumer::ReplyTarget`]).
+pub(crate) type ReplyTarget = crate::consumer::ReplyTarget<Origin>;
 
 /// Result of offering a message to a queue.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -363,8 +389,10 @@ impl Queue {
         if !no_ack {
             deliveries.push(Unacked {
                 tag: delivery_tag,
-                queue: Arc::clone(self),
-                message: queued,
+                origin: Origin {
+                    queue: Arc::clone(self),
+                    message: queued,
+                },
                 consumer: None,
             });
         }
