@@ -39,10 +39,13 @@
 //! # Layout
 //!
 //! The crate is built in layers. Each uses only the layers below it and
-//! the shared pieces beside them, never one above: a lower layer that
-//! needs something done above returns it as a value (a queue's dead
-//! letters) instead of calling up. `tests/layering.rs` holds this table
-//! against every `crate::` and `super::` path in the code.
+//! the shared pieces beside them, never one above, so no circle of
+//! imports runs between layers: a lower layer that needs something done
+//! above returns it as a value (a queue's dead letters), or names it by a
+//! type parameter or a trait of its own that the layer above fills in (an
+//! unacked delivery's queue, the queues waiting for room in an outbox),
+//! instead of calling up. `tests/layering.rs` holds this table against
+//! every `crate::` and `super::` path in the code.
 //!
 //! 1. **Server**: `embed` (the builder and handle, the public entry
 //!    point), `server` (TCP listeners, the accept loop, the TTL/expiry
@@ -74,16 +77,19 @@
 //!    RabbitMQ's cycle rule and a budget). Use queues and below.
 //! 6. **Queue**: `queue` (the FIFO, dispatch to consumers, TTL,
 //!    max-length, durable index entries; dead letters are returned to the
-//!    caller; `queue::stream`, a stream's log and its readers), and beside it `registry` (open connections and channels, for
-//!    listing and for closing one from outside). Uses consumers, outboxes
-//!    and the store.
+//!    caller; `queue::stream`, a stream's log and its readers;
+//!    `queue::Origin`, what an unacked delivery keeps of its queue, to
+//!    which `queue::{Consumer, ChannelLink, Unacked}` fix the consumer
+//!    layer's types), and beside it `registry` (open connections and
+//!    channels, for listing and for closing one from outside). Uses
+//!    consumers, outboxes and the store.
 //! 7. **Consumer and outbox**: `consumer` (delivery tags, unacked
 //!    bookkeeping, prefetch credit, direct reply-to targets), `outbox`
 //!    (what goes to a connection's writer, with backpressure, or straight
-//!    to an in-process client's consumer: [`InlineDeliveries`]). A queue,
-//!    its consumers and the outboxes they deliver through know each other
-//!    (an unacked delivery names its queue; an outbox wakes the queues
-//!    that waited for room): that small circle is the only one.
+//!    to an in-process client's consumer: [`InlineDeliveries`]). They know
+//!    no queue: the delivery bookkeeping is generic over what a queue
+//!    keeps of a delivery, and an outbox wakes what waited for room in it
+//!    through its trait `WaitsForRoom`, which a queue implements.
 //!
 //! Beside the layers: `store` (the [`store::Store`] trait, the key codec,
 //! the group-commit persister), used from the queue layer up and using

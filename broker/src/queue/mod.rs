@@ -7,7 +7,12 @@
 //!
 //! A queue knows nothing above it: operations that make messages leave
 //! for a dead-letter exchange return them as [`DeadLetters`], and the
-//! caller (which knows the vhost) routes them.
+//! caller (which knows the vhost) routes them. It uses the consumer layer,
+//! whose delivery bookkeeping it fixes to what an unacked delivery keeps of
+//! its queue ([`Origin`]; the layers above name [`Consumer`],
+//! [`ChannelLink`] and [`Unacked`] from here), the outbox (where a queue
+//! that found no room waits, as a `WaitsForRoom`, to dispatch again), the
+//! store and the shared pieces.
 //!
 //! Layout: `args` validates the queue and consumer arguments; `consumers`
 //! holds the consumers by priority and chooses the next one (single active
