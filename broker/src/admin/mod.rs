@@ -46,6 +46,10 @@ impl Admin {
 /// start at 1, so no client's exclusive queue belongs to it.
 const ADMIN_CONNECTION: u64 = 0;
 
+/// The queue RabbitMQ's aliveness test ([`Admin::aliveness_test`])
+/// declares, publishes to and gets from.
+pub(crate) const ALIVENESS_QUEUE: &str = "aliveness-test";
+
 /// How `Admin::get` leaves the messages it fetched (RabbitMQ's `ackmode`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum GetMode {
@@ -512,16 +516,21 @@ impl Admin {
         Ok(got)
     }
 
-    /// RabbitMQ's aliveness test: declares `aliveness-test` in the vhost,
-    /// publishes to it and gets the message back.
+    /// RabbitMQ's aliveness test: declares [`ALIVENESS_QUEUE`] in the
+    /// vhost, publishes to it and gets the message back.
     pub async fn aliveness_test(&self, vhost: &str) -> AmqpResult<()> {
-        const QUEUE: &str = crate::as_user::ALIVENESS_QUEUE;
-        self.declare_queue(vhost, QUEUE, QueueSettings::default())
+        self.declare_queue(vhost, ALIVENESS_QUEUE, QueueSettings::default())
             .await?;
         let body = Bytes::from_static(b"test_message");
-        self.publish_now(vhost, "", QUEUE, BasicProperties::default(), body.clone())
-            .await?;
-        let got = self.get(vhost, QUEUE, 1, GetMode::Ack)?;
+        self.publish_now(
+            vhost,
+            "",
+            ALIVENESS_QUEUE,
+            BasicProperties::default(),
+            body.clone(),
+        )
+        .await?;
+        let got = self.get(vhost, ALIVENESS_QUEUE, 1, GetMode::Ack)?;
         if got.first().is_some_and(|m| m.body == body) {
             Ok(())
         } else {
