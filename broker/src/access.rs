@@ -480,7 +480,7 @@ impl Admin {
 
     /// What the password hashing pool has done: its threads, and the
     /// most checks it ran at once.
-    pub fn hash_pool_stats(&self) -> crate::HashPoolStats {
+    pub fn hash_pool_stats(&self) -> crate::hash_pool::HashPoolStats {
         self.core.users.hash_pool_stats()
     }
 }
