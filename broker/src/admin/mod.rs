@@ -1,13 +1,17 @@
 //! [`Admin`]: a cloneable handle on a running broker for tools beside the
 //! AMQP listeners (the `leveret` binary's HTTP API, an embedder's own
-//! dashboard). Reading state is `inspect`'s part of it; this module holds
-//! the handle and the operations that change things, each doing what the
-//! AMQP method of the same meaning does, with the same checks.
+//! dashboard). This module holds the handle and the operations that change
+//! things, each doing what the AMQP method of the same meaning does, with
+//! the same checks.
 //!
-//! Layout: `mod` the handle and the object operations; `limits` vhost and
-//! user limits; `parameters` runtime parameters; `policies` policies and
-//! operator policies; `vhost_deletion` deleting a vhost and all it holds.
+//! Layout: `mod` the handle and the object operations; `access` users,
+//! vhosts and permissions; `inspect` reading state into
+//! `crate::inspect`'s structs; `limits` vhost and user limits;
+//! `parameters` runtime parameters; `policies` policies and operator
+//! policies; `vhost_deletion` deleting a vhost and all it holds.
 
+mod access;
+mod inspect;
 mod limits;
 mod parameters;
 mod policies;
