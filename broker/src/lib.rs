@@ -56,11 +56,13 @@
 //!    AMQP link, as RabbitMQ's MQTT plugin did through its direct
 //!    connection). May use every layer below.
 //! 2. **Operators**: `admin` ([`Admin`], a cloneable handle for tools:
-//!    object operations, closing connections, runtime parameters),
-//!    `inspect` (reads the layers below into plain structs with
-//!    RabbitMQ's field meanings, as `BrokerHandle::overview` does),
-//!    `as_user` (the same operations checked against a user's
-//!    permissions), `access` (users, vhosts and permissions that last).
+//!    object operations, reading state as `BrokerHandle::overview` does,
+//!    users and permissions, closing connections, runtime parameters:
+//!    every `impl Admin` is in its folder), `as_user` (the same
+//!    operations checked against a user's permissions); and below those
+//!    two, knowing no handle, `inspect` (the plain structs state is read
+//!    into, with RabbitMQ's field meanings) and `access` (users, vhosts
+//!    and permissions that last: restored at start, and their records).
 //!    No layer below calls them.
 //! 3. **Channel**: `channel`, content assembly and one module per AMQP
 //!    class (`basic`, `queue`, `exchange`, `tx`, `reply_to`); a whole

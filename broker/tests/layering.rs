@@ -20,15 +20,17 @@ const LAYERS: &[(&str, u8)] = &[
     // Highest first, as src/lib.rs's Layout numbers them from the top:
     // 1. Server: the entry point, listeners, connections, recovery, the
     // MQTT front end.
-    ("embed", 9),
-    ("server", 8),
-    ("connection", 8),
-    ("recovery", 8),
-    ("mqtt", 8),
-    // 2. Operators: the admin handle and the views it reads.
-    ("admin", 7),
+    ("embed", 10),
+    ("server", 9),
+    ("connection", 9),
+    ("recovery", 9),
+    ("mqtt", 9),
+    // 2. Operators: the admin handle and the same acting as a user; below
+    // them the plain structs the handle reads state into and the users,
+    // vhosts and permissions it changes, which know no handle.
+    ("admin", 8),
+    ("as_user", 8),
     ("inspect", 7),
-    ("as_user", 7),
     ("access", 7),
     // 3. Channel.
     ("channel", 6),
