@@ -2,6 +2,7 @@
 //! confirms), consumers (consume, cancel, qos), basic.get, and settling
 //! deliveries (ack, nack, reject, recover).
 
+use super::names::unique_name;
 use super::{Channel, Publish};
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::Exchange;
@@ -15,7 +16,7 @@ use leveret_protocol::{
     BasicPublish, BasicQos, BasicQosOk, FieldTable, ReplyCode, ShortStr,
 };
 use std::collections::{HashMap, VecDeque};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 /// What happened to one publish.
@@ -77,26 +78,6 @@ pub(crate) enum Recover {
     Answered,
     /// basic.recover-async.
     Unanswered,
-}
-
-/// A unique suffix for generated names (`amq.ctag-…`, `amq.gen-…`).
-pub(crate) fn unique_name(prefix: &str) -> ShortStr {
-    use std::hash::{BuildHasher, Hasher};
-    static COUNTER: AtomicU64 = AtomicU64::new(0);
-    let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
-    hasher.write_u64(COUNTER.fetch_add(1, Ordering::Relaxed));
-    let a = hasher.finish();
-    hasher.write_u64(a);
-    let b = hasher.finish();
-    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_";
-    let mut name = String::with_capacity(prefix.len() + 22);
-    name.push_str(prefix);
-    let mut bits = (u128::from(a) << 64) | u128::from(b);
-    for _ in 0..22 {
-        name.push(ALPHABET[(bits & 63) as usize] as char);
-        bits >>= 6;
-    }
-    ShortStr::try_from(name).unwrap_or_default()
 }
 
 impl Channel {

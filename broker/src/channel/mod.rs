@@ -13,10 +13,11 @@
 //!
 //! Layout: `basic.rs` publishing, consuming, acks and get; `queue.rs`
 //! queue.*; `exchange.rs` exchange.*; `tx.rs` transactions and publisher
-//! confirms.
+//! confirms; `reply_to.rs` direct reply-to; `names.rs` generated names.
 
 mod basic;
 mod exchange;
+mod names;
 mod queue;
 mod reply_to;
 mod tx;
@@ -32,14 +33,14 @@ use crate::registry::ChannelRegistration;
 use crate::vhost::{RememberedQueue, Vhost};
 use basic::Unfinished;
 
-#[cfg(feature = "mqtt")]
-pub(crate) use basic::unique_name;
 pub(crate) use basic::{apply_settles, Settle};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{
     BasicProperties, BasicPublish, ChannelClose, ChannelCloseOk, ChannelFlowOk, ContentHeader,
     Frame, Method, ShortStr,
 };
+#[cfg(feature = "mqtt")]
+pub(crate) use names::unique_name;
 use std::collections::HashMap;
 use std::sync::Arc;
 
