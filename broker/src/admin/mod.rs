@@ -520,8 +520,8 @@ impl Admin {
         Ok(got)
     }
 
-    /// RabbitMQ's aliveness test: declares [`ALIVENESS_QUEUE`] in the
-    /// vhost, publishes to it and gets the message back.
+    /// RabbitMQ's aliveness test: declares `aliveness-test` in the vhost,
+    /// publishes to it and gets the message back.
     pub async fn aliveness_test(&self, vhost: &str) -> AmqpResult<()> {
         self.declare_queue(vhost, ALIVENESS_QUEUE, QueueSettings::default())
             .await?;
