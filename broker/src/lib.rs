@@ -76,7 +76,10 @@
 //!    queues it reaches), `exchange` (the kinds and their bindings: the
 //!    `topic` trie, `headers` matching, the binding registry), `deadletter`
 //!    (routing the dead letters queue operations return: a work list with
-//!    RabbitMQ's cycle rule and a budget). Use queues and below.
+//!    RabbitMQ's cycle rule and a budget; it routes through the vhost,
+//!    whose `dead_letter` hands the letters to it: modules of one layer
+//!    may use each other, and these two are the one circle left). Use
+//!    queues and below.
 //! 6. **Queue**: `queue` (the FIFO, dispatch to consumers, TTL,
 //!    max-length, durable index entries; dead letters are returned to the
 //!    caller; `queue::stream`, a stream's log and its readers;
