@@ -10,6 +10,10 @@
 //! (deleting an exchange or a queue, purging, removing a binding), a
 //! missing one is a 404 here too; elsewhere the check comes first, as on
 //! AMQP.
+//!
+//! Uses [`Admin`] (whose operations it checks, and the aliveness test's
+//! queue name), `permissions`, `inspect`'s destination kinds and the
+//! vhost it checks in.
 
 use crate::admin::{
     Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings, ALIVENESS_QUEUE,

@@ -9,6 +9,10 @@
 //! `crate::inspect`'s structs; `limits` vhost and user limits;
 //! `parameters` runtime parameters; `policies` policies and operator
 //! policies; `vhost_deletion` deleting a vhost and all it holds.
+//!
+//! Uses the layers below (the channel's settling, the core, vhosts,
+//! exchanges, queues, outboxes), `inspect`'s structs and `access`'s
+//! records; `as_user` builds on it, and nothing below calls it.
 
 mod access;
 mod inspect;
