@@ -350,8 +350,9 @@ fn the_reader_finds_grouped_inline_and_super_paths() {
 
 /// The check on deliberate violations: the consumer layer and the outbox
 /// naming the queue (the circle the crate once had), a queue file climbing
-/// to the channel with `super::`, and a shared piece naming the core; a
-/// reference down, beside or to a shared piece passes.
+/// to the channel with `super::`, a shared piece naming the core, and the
+/// operators' views naming their handle; a reference down, beside or to a
+/// shared piece passes.
 #[test]
 fn a_reference_up_a_layer_is_reported_with_its_file_and_module() {
     let up = |file: &str, module: &str| Reference {
@@ -380,6 +381,13 @@ fn a_reference_up_a_layer_is_reported_with_its_file_and_module() {
     assert_eq!(
         check("stats.rs", "use crate::core::Core;"),
         [up("stats.rs", "core")]
+    );
+    assert_eq!(
+        check(
+            "inspect.rs",
+            "use crate::admin::Admin;\nuse crate::queue::Queue;"
+        ),
+        [up("inspect.rs", "admin")]
     );
     assert_eq!(
         check(
