@@ -10,8 +10,14 @@
 //! (deleting an exchange or a queue, purging, removing a binding), a
 //! missing one is a 404 here too; elsewhere the check comes first, as on
 //! AMQP.
+//!
+//! Uses [`Admin`] (whose operations it checks, and the aliveness test's
+//! queue name), `permissions`, `inspect`'s destination kinds and the
+//! vhost it checks in.
 
-use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
+use crate::admin::{
+    Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings, ALIVENESS_QUEUE,
+};
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::ExchangeKind;
 use crate::inspect::DestinationKind;
@@ -20,10 +26,6 @@ use crate::vhost::Vhost;
 use bytes::Bytes;
 use leveret_protocol::{BasicProperties, ShortStr};
 use std::sync::Arc;
-
-/// The queue RabbitMQ's aliveness test declares, publishes to and gets
-/// from.
-pub(crate) const ALIVENESS_QUEUE: &str = "aliveness-test";
 
 /// [`Admin`] acting as one user (see the module docs); from
 /// [`Admin::as_user`].

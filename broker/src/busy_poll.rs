@@ -62,7 +62,7 @@ pub struct BusyPoll {
     /// The spinner is asleep and wants `wake` on the next read.
     asleep: AtomicBool,
     /// Windows the spinner has polled through, and their total length in
-    /// nanoseconds (read by `inspect`).
+    /// nanoseconds (read by `admin::inspect`).
     windows: AtomicU64,
     spun_nanos: AtomicU64,
     /// Times spinning stopped because threads were waiting for a CPU.

@@ -2,13 +2,15 @@
 //! channel (which handles acks) and the queues (which deliver): delivery
 //! tags, the unacked list, prefetch credit and channel.flow.
 //!
-//! It may use the outbox (a channel's way to its connection's writer) and
-//! the queue's message type; [`credit`] holds the lock-free counting.
+//! It uses the outbox (a channel's way to its connection's writer) and
+//! nothing of the queues: what a queue keeps of a delivery until it is
+//! settled is the type parameter `O` of these types (its origin), which the
+//! queue layer fixes (`queue::Origin`, and `queue::Consumer` and the other
+//! aliases there). [`credit`] holds the lock-free counting.
 
 mod credit;
 
 use crate::outbox::Outbox;
-use crate::queue::{Queue, QueuedMessage};
 use leveret_protocol::ShortStr;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
@@ -20,25 +22,33 @@ const SPARE_UNACKED: usize = 1024;
 
 /// A delivery waiting for ack, nack or reject.
 #[derive(Debug)]
-pub struct Unacked {
+pub struct Unacked<O> {
     /// Its delivery tag.
     pub tag: u64,
-    /// The queue it came from.
-    pub queue: Arc<Queue>,
-    /// The message and its place in the queue.
-    pub message: QueuedMessage,
+    /// What its queue needs to settle it: the queue and the message as it
+    /// held it.
+    pub origin: O,
     /// The consumer it went to (None for basic.get).
-    pub consumer: Option<Arc<Consumer>>,
+    pub consumer: Option<Arc<Consumer<O>>>,
 }
 
 /// Delivery tags and unacked deliveries of one channel, in tag order.
-#[derive(Debug, Default)]
-pub struct Deliveries {
+#[derive(Debug)]
+pub struct Deliveries<O> {
     last_tag: u64,
-    unacked: VecDeque<Unacked>,
+    unacked: VecDeque<Unacked<O>>,
 }
 
-impl Deliveries {
+impl<O> Default for Deliveries<O> {
+    fn default() -> Self {
+        Deliveries {
+            last_tag: 0,
+            unacked: VecDeque::new(),
+        }
+    }
+}
+
+impl<O> Deliveries<O> {
     /// Hands out the next delivery tag.
     pub fn next_tag(&mut self) -> u64 {
         self.last_tag += 1;
@@ -46,7 +56,7 @@ impl Deliveries {
     }
 
     /// Records an unacked delivery (its tag must be the newest).
-    pub fn push(&mut self, unacked: Unacked) {
+    pub fn push(&mut self, unacked: Unacked<O>) {
         self.unacked.push_back(unacked);
     }
 
@@ -54,7 +64,7 @@ impl Deliveries {
     /// every one up to it (tag 0 with multiple means all). As in RabbitMQ,
     /// the tag itself must be outstanding, even with `multiple`; `None`
     /// means it is unknown or already settled.
-    pub fn take(&mut self, tag: u64, multiple: bool) -> Option<VecDeque<Unacked>> {
+    pub fn take(&mut self, tag: u64, multiple: bool) -> Option<VecDeque<Unacked<O>>> {
         if multiple && tag == 0 {
             return Some(self.take_all());
         }
@@ -85,8 +95,8 @@ impl Deliveries {
 
     /// Puts taken deliveries back (a rolled-back transaction's acks), in
     /// one merge by tag.
-    pub fn restore(&mut self, deliveries: impl IntoIterator<Item = Unacked>) {
-        let mut returned: Vec<Unacked> = deliveries.into_iter().collect();
+    pub fn restore(&mut self, deliveries: impl IntoIterator<Item = Unacked<O>>) {
+        let mut returned: Vec<Unacked<O>> = deliveries.into_iter().collect();
         if returned.is_empty() {
             return;
         }
@@ -112,19 +122,19 @@ impl Deliveries {
     }
 
     /// Takes every unacked delivery (channel close, recover), in O(1).
-    pub fn take_all(&mut self) -> VecDeque<Unacked> {
+    pub fn take_all(&mut self) -> VecDeque<Unacked<O>> {
         std::mem::take(&mut self.unacked)
     }
 }
 
 /// What queues need of a channel to deliver to its consumers.
 #[derive(Debug)]
-pub struct ChannelLink {
+pub struct ChannelLink<O> {
     /// Channel number.
     pub id: u16,
     /// The connection's writer.
     pub outbox: Arc<Outbox>,
-    deliveries: Mutex<Deliveries>,
+    deliveries: Mutex<Deliveries<O>>,
     /// basic.qos global prefetch count (0 = none), RabbitMQ's meaning:
     /// shared by all consumers on the channel.
     pub global_prefetch: AtomicU32,
@@ -136,7 +146,7 @@ pub struct ChannelLink {
     dropped_replies: AtomicU64,
 }
 
-impl ChannelLink {
+impl<O> ChannelLink<O> {
     /// A link for channel `id` of the connection writing to `outbox`.
     pub fn new(id: u16, outbox: Arc<Outbox>) -> Self {
         ChannelLink {
@@ -158,18 +168,18 @@ impl ChannelLink {
 
     /// Locks the delivery bookkeeping. The lock is held for a few
     /// instructions (tag, push, or take) and never across an await.
-    pub fn deliveries(&self) -> MutexGuard<'_, Deliveries> {
+    pub fn deliveries(&self) -> MutexGuard<'_, Deliveries<O>> {
         self.deliveries.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
 /// One basic.consume subscription.
 #[derive(Debug)]
-pub struct Consumer {
+pub struct Consumer<O> {
     /// Consumer tag.
     pub tag: ShortStr,
     /// Its channel.
-    pub channel: Arc<ChannelLink>,
+    pub channel: Arc<ChannelLink<O>>,
     /// Deliveries need no ack.
     pub no_ack: bool,
     /// Exclusive consumer of its queue.
@@ -187,7 +197,7 @@ pub struct Consumer {
     pub active: AtomicBool,
 }
 
-impl Consumer {
+impl<O> Consumer<O> {
     /// Whether prefetch and flow allow one more delivery now. A hint for
     /// choosing among consumers: another queue of the channel may take the
     /// last unit of shared credit first, so a delivery needs
@@ -212,7 +222,7 @@ impl Consumer {
     /// credit goes back when the [`Credit`] is dropped unless it is kept.
     /// Deliveries without acks take no credit (RabbitMQ ignores prefetch
     /// for them).
-    pub fn try_take_credit(&self) -> Option<Credit<'_>> {
+    pub fn try_take_credit(&self) -> Option<Credit<'_, O>> {
         if !self.may_deliver() {
             return None;
         }
@@ -262,13 +272,13 @@ impl Consumer {
 /// is given back.
 #[derive(Debug)]
 #[must_use = "credit not kept is given back at once"]
-pub struct Credit<'a> {
-    consumer: &'a Consumer,
+pub struct Credit<'a, O> {
+    consumer: &'a Consumer<O>,
     /// A unit is counted and no delivery holds it yet.
     give_back_on_drop: bool,
 }
 
-impl Credit<'_> {
+impl<O> Credit<'_, O> {
     /// The delivery went out: the credit stays taken until the delivery is
     /// settled ([`Consumer::settled_one`]).
     pub fn keep(mut self) {
@@ -276,7 +286,7 @@ impl Credit<'_> {
     }
 }
 
-impl Drop for Credit<'_> {
+impl<O> Drop for Credit<'_, O> {
     fn drop(&mut self) {
         if self.give_back_on_drop {
             self.consumer.settled_one();
@@ -288,7 +298,8 @@ impl Drop for Credit<'_> {
 mod tests {
     use super::*;
 
-    fn consumer(prefetch: u32, global: u32, no_ack: bool) -> Consumer {
+    /// A consumer whose deliveries keep nothing of their queue.
+    fn consumer(prefetch: u32, global: u32, no_ack: bool) -> Consumer<()> {
         let (outbox, _writer) = Outbox::new(1);
         let link = Arc::new(ChannelLink::new(1, outbox));
         link.global_prefetch.store(global, Ordering::Relaxed);
@@ -307,7 +318,7 @@ mod tests {
         consumer
     }
 
-    fn counts(consumer: &Consumer) -> (u32, u32) {
+    fn counts(consumer: &Consumer<()>) -> (u32, u32) {
         (
             consumer.in_flight.load(Ordering::Relaxed),
             consumer.channel.global_in_flight.load(Ordering::Relaxed),
@@ -357,29 +368,13 @@ mod tests {
     /// deliveries settled are exactly the ones named.
     #[test]
     fn a_bursts_buffer_is_given_back_once_acknowledged() {
-        use crate::testkit::{message, s, Harness};
-        let h = Harness::new();
-        let queue = h.queue("burst", &[]);
-        let msg = message(
-            &s(""),
-            "k",
-            "x",
-            &leveret_protocol::BasicProperties::default(),
-        );
         for multiple in [true, false] {
             let mut deliveries = Deliveries::default();
             for _ in 0..20_000 {
                 let tag = deliveries.next_tag();
                 deliveries.push(Unacked {
                     tag,
-                    queue: Arc::clone(&queue),
-                    message: QueuedMessage {
-                        seq: tag,
-                        priority: 0,
-                        message: Arc::clone(&msg),
-                        redelivered: false,
-                        expires_at: None,
-                    },
+                    origin: (),
                     consumer: None,
                 });
             }
@@ -406,10 +401,19 @@ mod tests {
 
 /// Where replies to one channel's requests go: the consumer of RabbitMQ's
 /// direct reply-to pseudo-queue, which has no queue of its own.
-#[derive(Debug, Clone)]
-pub(crate) struct ReplyTarget {
+#[derive(Debug)]
+pub(crate) struct ReplyTarget<O> {
     /// The consuming channel.
-    pub link: Arc<ChannelLink>,
+    pub link: Arc<ChannelLink<O>>,
     /// Its reply consumer's tag.
     pub consumer_tag: ShortStr,
+}
+
+impl<O> Clone for ReplyTarget<O> {
+    fn clone(&self) -> Self {
+        ReplyTarget {
+            link: Arc::clone(&self.link),
+            consumer_tag: self.consumer_tag.clone(),
+        }
+    }
 }

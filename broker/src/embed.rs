@@ -7,7 +7,7 @@ use crate::access::Configured;
 use crate::admin::Admin;
 use crate::auth::User;
 use crate::busy_poll::BusyPoll;
-use crate::core::{Core, CoreOptions, Limits};
+use crate::core::{Core, CoreOptions, Limits, UserLimits};
 #[cfg(feature = "persistence")]
 use crate::disk_alarm::DirFreeSpace;
 use crate::disk_alarm::FreeSpace;
@@ -336,7 +336,7 @@ impl BrokerBuilder {
 
     /// Sets one user's limits (RabbitMQ's `max-connections` and
     /// `max-channels`); a later [`BrokerBuilder::limits`] replaces them.
-    pub fn user_limits(mut self, user: impl Into<String>, limits: crate::UserLimits) -> Self {
+    pub fn user_limits(mut self, user: impl Into<String>, limits: UserLimits) -> Self {
         self.limits.user_limits.insert(user.into(), limits);
         self
     }

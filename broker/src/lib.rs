@@ -39,10 +39,13 @@
 //! # Layout
 //!
 //! The crate is built in layers. Each uses only the layers below it and
-//! the shared pieces beside them, never one above: a lower layer that
-//! needs something done above returns it as a value (a queue's dead
-//! letters) instead of calling up. `tests/layering.rs` holds this table
-//! against every `crate::` and `super::` path in the code.
+//! the shared pieces beside them, never one above, so no circle of
+//! imports runs between layers: a lower layer that needs something done
+//! above returns it as a value (a queue's dead letters), or names it by a
+//! type parameter or a trait of its own that the layer above fills in (an
+//! unacked delivery's queue, the queues waiting for room in an outbox),
+//! instead of calling up. `tests/layering.rs` holds this table against
+//! every `crate::` and `super::` path in the code.
 //!
 //! 1. **Server**: `embed` (the builder and handle, the public entry
 //!    point), `server` (TCP listeners, the accept loop, the TTL/expiry
@@ -53,11 +56,13 @@
 //!    AMQP link, as RabbitMQ's MQTT plugin did through its direct
 //!    connection). May use every layer below.
 //! 2. **Operators**: `admin` ([`Admin`], a cloneable handle for tools:
-//!    object operations, closing connections, runtime parameters),
-//!    `inspect` (reads the layers below into plain structs with
-//!    RabbitMQ's field meanings, as `BrokerHandle::overview` does),
-//!    `as_user` (the same operations checked against a user's
-//!    permissions), `access` (users, vhosts and permissions that last).
+//!    object operations, reading state as `BrokerHandle::overview` does,
+//!    users and permissions, closing connections, runtime parameters:
+//!    every `impl Admin` is in its folder), `as_user` (the same
+//!    operations checked against a user's permissions); and below those
+//!    two, knowing no handle, `inspect` (the plain structs state is read
+//!    into, with RabbitMQ's field meanings) and `access` (users, vhosts
+//!    and permissions that last: restored at start, and their records).
 //!    No layer below calls them.
 //! 3. **Channel**: `channel`, content assembly and one module per AMQP
 //!    class (`basic`, `queue`, `exchange`, `tx`, `reply_to`); a whole
@@ -71,19 +76,25 @@
 //!    queues it reaches), `exchange` (the kinds and their bindings: the
 //!    `topic` trie, `headers` matching, the binding registry), `deadletter`
 //!    (routing the dead letters queue operations return: a work list with
-//!    RabbitMQ's cycle rule and a budget). Use queues and below.
+//!    RabbitMQ's cycle rule and a budget; it routes through the vhost,
+//!    whose `dead_letter` hands the letters to it: modules of one layer
+//!    may use each other, and these two are the one circle left). Use
+//!    queues and below.
 //! 6. **Queue**: `queue` (the FIFO, dispatch to consumers, TTL,
 //!    max-length, durable index entries; dead letters are returned to the
-//!    caller; `queue::stream`, a stream's log and its readers), and beside it `registry` (open connections and channels, for
-//!    listing and for closing one from outside). Uses consumers, outboxes
-//!    and the store.
+//!    caller; `queue::stream`, a stream's log and its readers;
+//!    `queue::Origin`, what an unacked delivery keeps of its queue, to
+//!    which `queue::{Consumer, ChannelLink, Unacked}` fix the consumer
+//!    layer's types), and beside it `registry` (open connections and
+//!    channels, for listing and for closing one from outside). Uses
+//!    consumers, outboxes and the store.
 //! 7. **Consumer and outbox**: `consumer` (delivery tags, unacked
 //!    bookkeeping, prefetch credit, direct reply-to targets), `outbox`
 //!    (what goes to a connection's writer, with backpressure, or straight
-//!    to an in-process client's consumer: [`InlineDeliveries`]). A queue,
-//!    its consumers and the outboxes they deliver through know each other
-//!    (an unacked delivery names its queue; an outbox wakes the queues
-//!    that waited for room): that small circle is the only one.
+//!    to an in-process client's consumer: [`InlineDeliveries`]). They know
+//!    no queue: the delivery bookkeeping is generic over what a queue
+//!    keeps of a delivery, and an outbox wakes what waited for room in it
+//!    through its trait `WaitsForRoom`, which a queue implements.
 //!
 //! Beside the layers: `store` (the [`store::Store`] trait, the key codec,
 //! the group-commit persister), used from the queue layer up and using

@@ -1,15 +1,18 @@
 //! What a connection's writer task sends, and the per-connection handle the
-//! core uses to reach it: a bounded channel of [`Outbound`] items, plus the
-//! queues waiting for room in it (so a slow socket holds messages in their
+//! core uses to reach it: a bounded channel of [`Outbound`] items, plus
+//! what waits for room in it (so a slow socket holds messages in their
 //! queues instead of growing a buffer), and when the client was last
 //! heard (so a writer blocked on a client that neither reads nor writes
 //! gives up after two missed heartbeats, whatever the reader is waiting
 //! for). An in-process client may also take deliveries inline
 //! ([`InlineDeliveries`]): handed to it by the thread that dispatches them,
 //! when nothing sent before is still on its way to it.
+//!
+//! It uses only the message type. It knows no queue: a queue that found
+//! no room waits as a [`WaitsForRoom`], the trait this module defines for
+//! being woken once the writer has drained.
 
 use crate::message::Message;
-use crate::queue::Queue;
 use bytes::Bytes;
 use leveret_protocol::{BasicDeliver, BasicGetOk, BasicReturn, Method, ShortStr};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
@@ -193,6 +196,16 @@ pub trait InlineDeliveries: Send + Sync {
     fn deliver(&self, delivery: InlineDelivery<'_>) -> bool;
 }
 
+/// Something that found an [`Outbox`] full and goes on once its writer has
+/// drained (a queue, which then dispatches again). It waits in the outbox
+/// as a [`Weak`] reference ([`Outbox::wait_for_room`]): one that is gone by
+/// then is passed over.
+pub trait WaitsForRoom: Send + Sync {
+    /// The writer has drained: there is room again. Called on the writer's
+    /// task, so it must not block.
+    fn room_again(self: Arc<Self>);
+}
+
 /// Room reserved in an [`Outbox`] for one item.
 pub struct OutboxPermit<'a> {
     permit: mpsc::Permit<'a, Outbound>,
@@ -222,7 +235,8 @@ pub struct Outbox {
     unhandled: AtomicU64,
     /// An in-process client's inline deliveries, once it has set them.
     inline: OnceLock<Arc<dyn InlineDeliveries>>,
-    blocked: Mutex<Vec<Weak<Queue>>>,
+    /// What found no room, to wake once the writer has drained.
+    blocked: Mutex<Vec<Weak<dyn WaitsForRoom>>>,
     frame_max: AtomicU32,
     cancel_notify: AtomicBool,
     /// When the client was last heard: milliseconds after `created`.
@@ -366,17 +380,20 @@ impl Outbox {
             })
     }
 
-    /// Remembers a queue that found no room, to be dispatched again once the
-    /// writer has drained.
-    pub fn wait_for_room(&self, queue: &Arc<Queue>) {
+    /// Remembers `waiter` (a queue) that found no room, to be woken once the
+    /// writer has drained; once, however often it asks before then.
+    pub fn wait_for_room<W: WaitsForRoom + 'static>(&self, waiter: &Arc<W>) {
         let mut blocked = self.blocked.lock().unwrap_or_else(|e| e.into_inner());
-        if !blocked.iter().any(|w| w.as_ptr() == Arc::as_ptr(queue)) {
-            blocked.push(Arc::downgrade(queue));
+        if !blocked
+            .iter()
+            .any(|w| std::ptr::addr_eq(w.as_ptr(), Arc::as_ptr(waiter)))
+        {
+            blocked.push(Arc::downgrade(waiter) as Weak<dyn WaitsForRoom>);
         }
     }
 
-    /// Called by the writer after draining: dispatches the queues that were
-    /// waiting for room.
+    /// Called by the writer after draining: wakes what was waiting for
+    /// room ([`WaitsForRoom::room_again`]).
     pub fn wake_blocked(&self) {
         let waiting = {
             let mut blocked = self.blocked.lock().unwrap_or_else(|e| e.into_inner());
@@ -385,8 +402,8 @@ impl Outbox {
             }
             std::mem::take(&mut *blocked)
         };
-        for queue in waiting.iter().filter_map(Weak::upgrade) {
-            queue.dispatch_deferring_dead_letters();
+        for waiter in waiting.iter().filter_map(Weak::upgrade) {
+            waiter.room_again();
         }
     }
 
@@ -430,5 +447,47 @@ impl std::fmt::Debug for Outbox {
             .field("unhandled", &self.unhandled)
             .field("inline", &self.inline.get().is_some())
             .finish_non_exhaustive()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Counts its wake-ups in a counter that outlives it.
+    struct Waiter(Arc<AtomicU64>);
+
+    impl WaitsForRoom for Waiter {
+        fn room_again(self: Arc<Self>) {
+            self.0.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    fn waiter() -> (Arc<Waiter>, Arc<AtomicU64>) {
+        let woken = Arc::new(AtomicU64::new(0));
+        (Arc::new(Waiter(Arc::clone(&woken))), woken)
+    }
+
+    #[test]
+    fn a_drain_wakes_each_waiter_once_and_passes_over_one_that_is_gone() {
+        let (outbox, _writer) = Outbox::new(1);
+        let (a, a_woken) = waiter();
+        let (b, b_woken) = waiter();
+        let (gone, gone_woken) = waiter();
+        outbox.wait_for_room(&a);
+        outbox.wait_for_room(&b);
+        outbox.wait_for_room(&a);
+        outbox.wait_for_room(&gone);
+        drop(gone);
+        outbox.wake_blocked();
+        let counts =
+            || [&a_woken, &b_woken, &gone_woken].map(|woken| woken.load(Ordering::Relaxed));
+        assert_eq!(counts(), [1, 1, 0]);
+        // Woken waiters wait no more until they ask again.
+        outbox.wake_blocked();
+        assert_eq!(counts(), [1, 1, 0]);
+        outbox.wait_for_room(&b);
+        outbox.wake_blocked();
+        assert_eq!(counts(), [1, 2, 0]);
     }
 }

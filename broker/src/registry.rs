@@ -9,7 +9,7 @@
 //! Each connection watches its own close signal instead of the broker's
 //! shutdown signal: shutting down sets every one of them.
 
-use crate::consumer::ChannelLink;
+use crate::queue::ChannelLink;
 use crate::stats::BrokerCounters;
 use crate::stats::ConnectionTraffic;
 use leveret_protocol::FieldTable;

@@ -3,8 +3,8 @@
 //! count, and the one-line hooks the hot path calls. Every hook is a
 //! relaxed atomic add on a counter that nothing else writes in the same
 //! instruction sequence; nothing here takes a lock. Reading them into
-//! plain structs for the embedding API and the HTTP listeners is
-//! `inspect`'s job.
+//! plain structs (`inspect`'s) for the embedding API and the HTTP
+//! listeners is the operator layer's job (`admin::inspect`).
 
 use crate::message::Message;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};

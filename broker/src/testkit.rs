@@ -7,12 +7,11 @@
 //! on a socket. Time is passed in (`expire_at`, `sweep_at`) rather than
 //! waited for.
 
-use crate::consumer::{ChannelLink, Consumer};
 use crate::exchange::{ExchangeKind, ExchangeOptions};
 use crate::memory::MemoryGauge;
 use crate::message::Message;
 use crate::outbox::{Outbound, Outbox};
-use crate::queue::{DeadLetters, Enqueued, Queue, QueueOptions};
+use crate::queue::{ChannelLink, Consumer, DeadLetters, Enqueued, Queue, QueueOptions};
 use crate::store::{MemoryStore, Persistence, Recovered, Store};
 use crate::vhost::{BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
 use bytes::{Bytes, BytesMut};
@@ -366,8 +365,9 @@ impl FakeChannel {
             if let Some(consumer) = &unacked.consumer {
                 consumer.settled_one();
             }
-            dead.append(how(&unacked.queue, &unacked.message));
-            dead.append(unacked.queue.dispatch());
+            let origin = &unacked.origin;
+            dead.append(how(&origin.queue, &origin.message));
+            dead.append(origin.queue.dispatch());
         }
         self.vhost.dead_letter(dead);
     }

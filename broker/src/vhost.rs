@@ -13,14 +13,15 @@
 //! yield between steps.
 
 use crate::arguments;
-use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{
     consistent_hash, Binding, BindingRegistry, Destination, Exchange, ExchangeKind, ExchangeOptions,
 };
 use crate::memory::MemoryGauge;
 use crate::policy::{ObjectKind, VhostPolicies};
-use crate::queue::{DeadLetters, Deleted, Queue, QueueArgs, QueueOptions, Stream, StreamArgs};
+use crate::queue::{
+    DeadLetters, Deleted, Queue, QueueArgs, QueueOptions, ReplyTarget, Stream, StreamArgs,
+};
 use crate::slice::{yield_if_spent, Progress, Slice};
 use crate::stats::BrokerCounters;
 use crate::store::{BindingRecord, ExchangeRecord, Persistence, QueueRecord, StoreOp};

@@ -1,27 +1,34 @@
 //! [`Admin`]: a cloneable handle on a running broker for tools beside the
 //! AMQP listeners (the `leveret` binary's HTTP API, an embedder's own
-//! dashboard). Reading state is `inspect`'s part of it; this module holds
-//! the handle and the operations that change things, each doing what the
-//! AMQP method of the same meaning does, with the same checks.
+//! dashboard). This module holds the handle and the operations that change
+//! things, each doing what the AMQP method of the same meaning does, with
+//! the same checks.
 //!
-//! Layout: `mod` the handle and the object operations; `limits` vhost and
-//! user limits; `parameters` runtime parameters; `policies` policies and
-//! operator policies; `vhost_deletion` deleting a vhost and all it holds.
+//! Layout: `mod` the handle and the object operations; `access` users,
+//! vhosts and permissions; `inspect` reading state into
+//! `crate::inspect`'s structs; `limits` vhost and user limits;
+//! `parameters` runtime parameters; `policies` policies and operator
+//! policies; `vhost_deletion` deleting a vhost and all it holds.
+//!
+//! Uses the layers below (the channel's settling, the core, vhosts,
+//! exchanges, queues, outboxes), `inspect`'s structs and `access`'s
+//! records; `as_user` builds on it, and nothing below calls it.
 
+mod access;
+mod inspect;
 mod limits;
 mod parameters;
 mod policies;
 mod vhost_deletion;
 
 use crate::channel::{apply_settles, Settle};
-use crate::consumer::ChannelLink;
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::ExchangeOptions;
 use crate::inspect::DestinationKind;
 use crate::message::{Message, Stored};
 use crate::outbox::{Outbound, Outbox};
-use crate::queue::{DeadLetters, Enqueued, Queue, QueueOptions};
+use crate::queue::{ChannelLink, DeadLetters, Enqueued, Queue, QueueOptions};
 use crate::vhost::{check_exclusive, BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{BasicProperties, FieldTable, ShortStr};
@@ -46,6 +53,10 @@ impl Admin {
 /// The connection id the management operations act as: connection ids
 /// start at 1, so no client's exclusive queue belongs to it.
 const ADMIN_CONNECTION: u64 = 0;
+
+/// The queue RabbitMQ's aliveness test ([`Admin::aliveness_test`])
+/// declares, publishes to and gets from.
+pub(crate) const ALIVENESS_QUEUE: &str = "aliveness-test";
 
 /// How `Admin::get` leaves the messages it fetched (RabbitMQ's `ackmode`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -516,13 +527,18 @@ impl Admin {
     /// RabbitMQ's aliveness test: declares `aliveness-test` in the vhost,
     /// publishes to it and gets the message back.
     pub async fn aliveness_test(&self, vhost: &str) -> AmqpResult<()> {
-        const QUEUE: &str = crate::as_user::ALIVENESS_QUEUE;
-        self.declare_queue(vhost, QUEUE, QueueSettings::default())
+        self.declare_queue(vhost, ALIVENESS_QUEUE, QueueSettings::default())
             .await?;
         let body = Bytes::from_static(b"test_message");
-        self.publish_now(vhost, "", QUEUE, BasicProperties::default(), body.clone())
-            .await?;
-        let got = self.get(vhost, QUEUE, 1, GetMode::Ack)?;
+        self.publish_now(
+            vhost,
+            "",
+            ALIVENESS_QUEUE,
+            BasicProperties::default(),
+            body.clone(),
+        )
+        .await?;
+        let got = self.get(vhost, ALIVENESS_QUEUE, 1, GetMode::Ack)?;
         if got.first().is_some_and(|m| m.body == body) {
             Ok(())
         } else {

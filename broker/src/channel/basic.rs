@@ -2,21 +2,21 @@
 //! confirms), consumers (consume, cancel, qos), basic.get, and settling
 //! deliveries (ack, nack, reject, recover).
 
+use super::names::unique_name;
 use super::{Channel, Publish};
-use crate::consumer::{Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::Exchange;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
 use crate::permissions::Right;
-use crate::queue::{ConsumerArgs, DeadLetters, Enqueued, Queue, QueuedMessage};
+use crate::queue::{Consumer, ConsumerArgs, DeadLetters, Enqueued, Queue, QueuedMessage, Unacked};
 use crate::slice::{finish_in_background, Progress, Slice};
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
     BasicPublish, BasicQos, BasicQosOk, FieldTable, ReplyCode, ShortStr,
 };
 use std::collections::{HashMap, VecDeque};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 /// What happened to one publish.
@@ -78,26 +78,6 @@ pub(crate) enum Recover {
     Answered,
     /// basic.recover-async.
     Unanswered,
-}
-
-/// A unique suffix for generated names (`amq.ctag-…`, `amq.gen-…`).
-pub(crate) fn unique_name(prefix: &str) -> ShortStr {
-    use std::hash::{BuildHasher, Hasher};
-    static COUNTER: AtomicU64 = AtomicU64::new(0);
-    let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
-    hasher.write_u64(COUNTER.fetch_add(1, Ordering::Relaxed));
-    let a = hasher.finish();
-    hasher.write_u64(a);
-    let b = hasher.finish();
-    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_";
-    let mut name = String::with_capacity(prefix.len() + 22);
-    name.push_str(prefix);
-    let mut bits = (u128::from(a) << 64) | u128::from(b);
-    for _ in 0..22 {
-        name.push(ALPHABET[(bits & 63) as usize] as char);
-        bits >>= 6;
-    }
-    ShortStr::try_from(name).unwrap_or_default()
 }
 
 impl Channel {
@@ -506,9 +486,12 @@ impl Channel {
             )));
         };
         if let (Settle::Reject { .. }, Some(stream)) =
-            (how, settled.iter().find(|u| u.queue.is_stream()))
+            (how, settled.iter().find(|u| u.origin.queue.is_stream()))
         {
-            let refused = stream.queue.refuse_on_stream("basic.nack and basic.reject");
+            let refused = stream
+                .origin
+                .queue
+                .refuse_on_stream("basic.nack and basic.reject");
             // RabbitMQ 3.10 closes the connection; what was taken stays
             // unacked until then, as the client left it.
             self.link.deliveries().restore(settled);
@@ -629,12 +612,14 @@ fn settle_batch(
             consumer.settled_one();
         }
         let (queue, settled) = by_queue
-            .entry(Arc::as_ptr(&u.queue))
-            .or_insert_with(|| (Arc::clone(&u.queue), QueueSettles::default()));
+            .entry(Arc::as_ptr(&u.origin.queue))
+            .or_insert_with(|| (Arc::clone(&u.origin.queue), QueueSettles::default()));
         match how {
-            Settle::Ack => settled.acked.push(u.message),
-            Settle::Reject { requeue: false } => settled.dead.append(queue.reject(u.message)),
-            Settle::Reject { requeue: true } => settled.requeue.push(u.message),
+            Settle::Ack => settled.acked.push(u.origin.message),
+            Settle::Reject { requeue: false } => {
+                settled.dead.append(queue.reject(u.origin.message))
+            }
+            Settle::Reject { requeue: true } => settled.requeue.push(u.origin.message),
         }
     }
     by_queue

@@ -13,34 +13,34 @@
 //!
 //! Layout: `basic.rs` publishing, consuming, acks and get; `queue.rs`
 //! queue.*; `exchange.rs` exchange.*; `tx.rs` transactions and publisher
-//! confirms.
+//! confirms; `reply_to.rs` direct reply-to; `names.rs` generated names.
 
 mod basic;
 mod exchange;
+mod names;
 mod queue;
 mod reply_to;
 mod tx;
 
-use crate::consumer::{ChannelLink, Consumer};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{Exchange, ExchangeKind};
 use crate::memory::{MemoryGauge, Reservation};
 use crate::outbox::Outbox;
 use crate::permissions::{AccessView, Resource, Right};
-use crate::queue::Queue;
+use crate::queue::{ChannelLink, Consumer, Queue};
 use crate::registry::ChannelRegistration;
 use crate::vhost::{RememberedQueue, Vhost};
 use basic::Unfinished;
 
-#[cfg(feature = "mqtt")]
-pub(crate) use basic::unique_name;
 pub(crate) use basic::{apply_settles, Settle};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{
     BasicProperties, BasicPublish, ChannelClose, ChannelCloseOk, ChannelFlowOk, ContentHeader,
     Frame, Method, ShortStr,
 };
+#[cfg(feature = "mqtt")]
+pub(crate) use names::unique_name;
 use std::collections::HashMap;
 use std::sync::Arc;
 

@@ -28,7 +28,7 @@ impl Channel {
         let connection_id = self.outbox().connection_id;
         let server_named = declare.queue.is_empty() && !declare.passive;
         let name = if server_named {
-            super::basic::unique_name("amq.gen-")
+            super::names::unique_name("amq.gen-")
         } else {
             self.queue_name_or_last(declare.queue)?
         };

@@ -5,10 +5,10 @@
 //! straight to the consumer, without any queue.
 
 use super::Channel;
-use crate::consumer::ReplyTarget;
 use crate::error::{AmqpError, AmqpResult};
 use crate::message::Message;
 use crate::outbox::Outbound;
+use crate::queue::ReplyTarget;
 use bytes::BytesMut;
 use leveret_protocol::{BasicConsume, BasicConsumeOk, ShortStr};
 use std::sync::Arc;
@@ -44,11 +44,11 @@ impl Channel {
             return Err(AmqpError::precondition_failed("reply consumer already set"));
         }
         let tag = if consume.consumer_tag.is_empty() {
-            super::basic::unique_name("amq.ctag-")
+            super::names::unique_name("amq.ctag-")
         } else {
             consume.consumer_tag
         };
-        let name = super::basic::unique_name(PREFIX);
+        let name = super::names::unique_name(PREFIX);
         self.vhost.register_reply_target(
             name.clone(),
             ReplyTarget {

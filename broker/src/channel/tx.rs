@@ -5,10 +5,9 @@
 
 use super::basic::{apply_settles, requeue_all, Outcome, Settle};
 use super::{Channel, Publish};
-use crate::consumer::Unacked;
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
-use crate::queue::{DeadLetters, Enqueued, Queue};
+use crate::queue::{DeadLetters, Enqueued, Queue, Unacked};
 use crate::registry::ChannelMode;
 use crate::slice::{yield_if_spent, Slice};
 use leveret_protocol::{

@@ -26,8 +26,7 @@
 //! Uses the connection loop, which it feeds through [`FrameSource`], and
 //! the outbox, which it drains in place of the socket writer.
 
-use super::reader::ReadError;
-use super::source::FrameSource;
+use super::source::{FrameSource, ReadError};
 use crate::channel::WholePublish;
 use crate::outbox::{Framed, InlineDeliveries, Outbound, Outbox};
 use bytes::Bytes;

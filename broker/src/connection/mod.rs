@@ -35,8 +35,8 @@ use leveret_protocol::{
     ConnectionUpdateSecretOk, FieldTable, FieldValue, Frame, Method, ReplyCode, ShortStr,
     FRAME_MIN_SIZE, PROTOCOL_HEADER,
 };
-use reader::{FrameReader, Incoming, ReadError, IDLE_RELEASE};
-use source::FrameSource;
+use reader::{FrameReader, Incoming, IDLE_RELEASE};
+use source::{FrameSource, ReadError};
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;

@@ -19,7 +19,7 @@
 //!
 //! Uses the codec and the busy-poll state; the connection module drives it.
 
-use super::source::FrameSource;
+use super::source::{FrameSource, ReadError};
 use crate::busy_poll::BusyPoll;
 use crate::stats::ConnectionTraffic;
 use bytes::{Buf, Bytes, BytesMut};
@@ -99,19 +99,6 @@ impl Incoming for DuplexStream {
     fn hung_up(&self) -> impl Future<Output = ()> + Send + '_ {
         std::future::pending()
     }
-}
-
-/// Why reading stopped.
-#[derive(Debug, thiserror::Error)]
-pub(super) enum ReadError {
-    #[error("closed by peer")]
-    Closed,
-    #[error("{0}")]
-    Io(std::io::Error),
-    #[error("{0}")]
-    Decode(DecodeError),
-    #[error("timed out")]
-    TimedOut,
 }
 
 /// Bodies (and property lists) smaller than this are copied out of the

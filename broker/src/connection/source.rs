@@ -1,17 +1,29 @@
 //! [`FrameSource`]: what the connection loop needs of where its frames
-//! come from. Two kinds implement it: [`FrameReader`](super::reader::FrameReader),
+//! come from, and [`ReadError`], why reading from one stopped. Two kinds
+//! implement it: [`FrameReader`](super::reader::FrameReader),
 //! which parses a byte stream (TCP, TLS, the in-process byte pipe), and
 //! [`DirectFrames`](super::direct::DirectFrames), which receives the frame
 //! values of an in-process client as they are, with nothing to parse, and
 //! its publishes whole ([`WholePublish`]).
 //!
-//! Uses the reader's error type and the channel's whole publish; the
-//! connection module drives it.
+//! Uses the channel's whole publish; the connection module drives it.
 
-use super::reader::ReadError;
 use crate::channel::WholePublish;
 use leveret_protocol::{DecodeError, Frame};
 use std::future::Future;
+
+/// Why reading stopped.
+#[derive(Debug, thiserror::Error)]
+pub(super) enum ReadError {
+    #[error("closed by peer")]
+    Closed,
+    #[error("{0}")]
+    Io(std::io::Error),
+    #[error("{0}")]
+    Decode(DecodeError),
+    #[error("timed out")]
+    TimedOut,
+}
 
 /// Where a connection's frames come from.
 pub(super) trait FrameSource: Send {

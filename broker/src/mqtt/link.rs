@@ -213,6 +213,10 @@ impl Link {
     }
 }
 
+// The marks below all start with `x-mqtt-`, which `properties` keeps out
+// of 5.0 user properties (its test `the_brokers_headers_are_no_user_properties`
+// holds them to it).
+
 /// The header a QoS 2 publish carries (RabbitMQ 3.13's name), so that a
 /// QoS 2 subscriber gets it at QoS 2; without it a persistent message is
 /// QoS 1 and a transient one QoS 0.
@@ -223,9 +227,6 @@ pub(super) const RETAIN_HEADER: &str = "x-mqtt-retain";
 /// The header naming the client identifier that published a message,
 /// set while the publishing session has a No Local subscription.
 pub(super) const PUBLISHER_HEADER: &str = "x-mqtt-publisher";
-/// What the headers of the broker's own start with: they are not 5.0
-/// user properties.
-pub(super) const MQTT_HEADER_PREFIX: &str = "x-mqtt-";
 
 /// How an MQTT publish is marked for its subscribers.
 pub(super) struct Marks<'a> {

@@ -8,12 +8,15 @@
 //! named `x-mqtt-…` are the broker's own, not user properties. Only 5.0
 //! sessions read or write them (and 5.0 wills).
 
-use super::link::MQTT_HEADER_PREFIX;
 use super::mapping;
 use bytes::Bytes;
 use leveret_mqtt::{MqttString, Properties, TopicName};
 use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
 use std::time::{SystemTime, UNIX_EPOCH};
+
+/// What the headers of the broker's own (`link`'s marks) start with: they
+/// are not 5.0 user properties.
+const MQTT_HEADER_PREFIX: &str = "x-mqtt-";
 
 /// Seconds since the epoch at `time` (AMQP's timestamp).
 pub(super) fn epoch_seconds(time: SystemTime) -> u64 {

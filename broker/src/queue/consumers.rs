@@ -21,7 +21,7 @@
 //! with a `global` prefetch, shared with other queues, are looked at every
 //! time, as before.)
 
-use crate::consumer::Consumer;
+use super::Consumer;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 

@@ -5,10 +5,9 @@
 //! under the queue's lock.
 
 use super::{
-    DeadLetter, DeadLetterReason, DeadLetters, Enqueued, Overflow, Queue, QueueState,
-    QueuedMessage, DEAD_LETTERS_PER_STEP, FLOW_HIGH, FLOW_LOW, POSITION_HEADER,
+    DeadLetter, DeadLetterReason, DeadLetters, Enqueued, Origin, Overflow, Queue, QueueState,
+    QueuedMessage, Unacked, DEAD_LETTERS_PER_STEP, FLOW_HIGH, FLOW_LOW, POSITION_HEADER,
 };
-use crate::consumer::Unacked;
 use crate::message::Message;
 use crate::outbox::Outbound;
 use crate::slice::{Progress, Slice};
@@ -289,8 +288,10 @@ impl Queue {
             if !consumer.no_ack {
                 deliveries.push(Unacked {
                     tag: delivery_tag,
-                    queue: Arc::clone(self),
-                    message: queued.clone(),
+                    origin: Origin {
+                        queue: Arc::clone(self),
+                        message: queued.clone(),
+                    },
                     consumer: Some(Arc::clone(&consumer)),
                 });
             }

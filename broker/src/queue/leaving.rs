@@ -4,8 +4,7 @@
 //! `expiration`, so it does not expire again), returned to the caller to
 //! route; and the basic.cancel a deleted queue's consumers are sent.
 
-use super::{Queue, QueuedMessage};
-use crate::consumer::Consumer;
+use super::{Consumer, Queue, QueuedMessage};
 use crate::message::Message;
 use crate::outbox::Outbound;
 pub use crate::stats::DeadLetterReason;

@@ -7,7 +7,12 @@
 //!
 //! A queue knows nothing above it: operations that make messages leave
 //! for a dead-letter exchange return them as [`DeadLetters`], and the
-//! caller (which knows the vhost) routes them.
+//! caller (which knows the vhost) routes them. It uses the consumer layer,
+//! whose delivery bookkeeping it fixes to what an unacked delivery keeps of
+//! its queue ([`Origin`]; the layers above name [`Consumer`],
+//! [`ChannelLink`] and [`Unacked`] from here), the outbox (where a queue
+//! that found no room waits, as a `WaitsForRoom`, to dispatch again), the
+//! store and the shared pieces.
 //!
 //! Layout: `args` validates the queue and consumer arguments; `consumers`
 //! holds the consumers by priority and chooses the next one (single active
@@ -32,11 +37,10 @@ pub use args::{ConsumerArgs, Overflow, QueueArgs};
 pub use leaving::{DeadLetter, DeadLetterReason, DeadLetters, Deleted};
 pub use stream::{is_stream, start_at, StartAt, Stream, StreamArgs, StreamFigures};
 
-use crate::consumer::{ChannelLink, Consumer, Unacked};
 use crate::error::{AmqpError, AmqpResult};
 use crate::memory::MemoryGauge;
 use crate::message::Message;
-use crate::outbox::{Outbound, OutboxPermit};
+use crate::outbox::{Outbound, OutboxPermit, WaitsForRoom};
 use crate::policy::Applied;
 use crate::slice::{finish_in_background, Progress, Slice};
 use crate::stats::{BrokerCounters, QueueCounters};
@@ -111,6 +115,33 @@ impl QueuedMessage {
         (std::cmp::Reverse(self.priority), self.seq)
     }
 }
+
+/// What an unacked delivery keeps of the queue it came from, so that
+/// settling it (ack, reject, requeue) goes back there. The consumer
+/// layer's types carry it as their type parameter; the aliases below fix
+/// it, and the layers above name them.
+#[derive(Debug)]
+pub struct Origin {
+    /// The queue it came from.
+    pub queue: Arc<Queue>,
+    /// The message and its place in the queue.
+    pub message: QueuedMessage,
+}
+
+/// A consumer of a queue ([`crate::consumer::Consumer`]).
+pub type Consumer = crate::consumer::Consumer<Origin>;
+
+/// What queues need of a channel to deliver to its consumers
+/// ([`crate::consumer::ChannelLink`]).
+pub type ChannelLink = crate::consumer::ChannelLink<Origin>;
+
+/// A delivery from a queue waiting for ack, nack or reject
+/// ([`crate::consumer::Unacked`]).
+pub type Unacked = crate::consumer::Unacked<Origin>;
+
+/// Where direct replies to one channel's requests go
+/// ([`crate::consumer::ReplyTarget`]).
+pub(crate) type ReplyTarget = crate::consumer::ReplyTarget<Origin>;
 
 /// Result of offering a message to a queue.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -324,20 +355,6 @@ impl Queue {
         DeadLetters(dead)
     }
 
-    /// [`Queue::dispatch`] for a connection's writer, which has room again
-    /// but cannot route dead letters: those this dispatch finds (messages
-    /// that expired at the head) wait in the queue for the vhost's next
-    /// sweep ([`Queue::expire_at`]).
-    pub fn dispatch_deferring_dead_letters(self: &Arc<Self>) {
-        if self.stream.is_some() {
-            return self.stream_dispatch();
-        }
-        let mut dead = Vec::new();
-        let mut st = self.lock();
-        self.dispatch_locked(&mut st, &mut dead, Instant::now());
-        st.deferred_dead.append(&mut dead);
-    }
-
     /// basic.get: sends the head message with basic.get-ok through
     /// `permit`, recorded as unacked on `link` unless `no_ack`. False if
     /// the queue had no message (the permit is given back).
@@ -377,8 +394,10 @@ impl Queue {
         if !no_ack {
             deliveries.push(Unacked {
                 tag: delivery_tag,
-                queue: Arc::clone(self),
-                message: queued,
+                origin: Origin {
+                    queue: Arc::clone(self),
+                    message: queued,
+                },
                 consumer: None,
             });
         }
@@ -657,6 +676,23 @@ impl Queue {
             && st.last_used.is_some_and(|at| {
                 now.saturating_duration_since(at) >= Duration::from_millis(expires)
             })
+    }
+}
+
+/// A dispatch that found a consumer's writer full leaves the queue waiting
+/// in that outbox ([`wait_for_room`](crate::outbox::Outbox::wait_for_room)); once the writer has drained,
+/// the queue dispatches again. The writer cannot route dead letters: those
+/// this dispatch finds (messages that expired at the head) wait in the
+/// queue for the vhost's next sweep ([`Queue::expire_at`]).
+impl WaitsForRoom for Queue {
+    fn room_again(self: Arc<Self>) {
+        if self.stream.is_some() {
+            return self.stream_dispatch();
+        }
+        let mut dead = Vec::new();
+        let mut st = self.lock();
+        self.dispatch_locked(&mut st, &mut dead, Instant::now());
+        st.deferred_dead.append(&mut dead);
     }
 }
 

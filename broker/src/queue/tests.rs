@@ -1,7 +1,6 @@
 //! Unit tests of queues through the core harness (`crate::testkit`).
 
-use super::{Overflow, QueueArgs};
-use crate::consumer::Consumer;
+use super::{Consumer, Overflow, QueueArgs};
 use crate::exchange::ExchangeKind;
 use crate::outbox::OUTBOX_CAPACITY;
 use crate::testkit::{message, s, table, Consume, Harness};

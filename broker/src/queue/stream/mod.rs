@@ -22,8 +22,7 @@ mod log;
 
 pub use args::{is_stream, start_at, StartAt, StreamArgs};
 
-use super::{Deleted, Enqueued, Queue, QueuedMessage};
-use crate::consumer::{Consumer, Unacked};
+use super::{Consumer, Deleted, Enqueued, Origin, Queue, QueuedMessage, Unacked};
 use crate::message::Message;
 use crate::outbox::Outbound;
 use crate::policy::{stricter, Applied};
@@ -407,13 +406,15 @@ impl Queue {
                 let delivery_tag = deliveries.next_tag();
                 deliveries.push(Unacked {
                     tag: delivery_tag,
-                    queue: Arc::clone(self),
-                    message: QueuedMessage {
-                        seq: record.offset,
-                        priority: 0,
-                        message: Arc::clone(&message),
-                        redelivered: false,
-                        expires_at: None,
+                    origin: Origin {
+                        queue: Arc::clone(self),
+                        message: QueuedMessage {
+                            seq: record.offset,
+                            priority: 0,
+                            message: Arc::clone(&message),
+                            redelivered: false,
+                            expires_at: None,
+                        },
                     },
                     consumer: Some(Arc::clone(&consumer)),
                 });
