@@ -193,10 +193,12 @@ fn consumer_args(object: &Map<String, Value>) -> Result<FieldTable, String> {
                     "src-consumer-args: x-cancel-on-ha-failover must be true or false, not {value}"
                 ))
             }
-            (other, _) => return Err(format!(
-                "src-consumer-args: {other} is not a consumer argument (RabbitMQ 3.10 takes {})",
-                CONSUMER_ARGUMENTS.join(", ")
-            )),
+            (other, _) => {
+                let known = CONSUMER_ARGUMENTS.join(", ");
+                return Err(format!(
+                    "src-consumer-args: {other} is not a consumer argument (RabbitMQ 3.10 takes {known})"
+                ));
+            }
         };
         table.insert(ShortStr::from_static(name), field);
     }
@@ -210,16 +212,17 @@ fn stream_offset(value: &Value) -> Result<FieldValue, String> {
     let field = match value {
         Value::String(text) => FieldValue::string(text),
         Value::Number(n) if n.is_u64() => FieldValue::I64(n.as_i64().unwrap_or(i64::MAX)),
+        // Negative, fractional, or not a number: the reader refuses it.
         _ => FieldValue::Void,
     };
     let mut probe = FieldTable::new();
     probe.insert(ShortStr::from_static(STREAM_OFFSET), field.clone());
     let unnamed = ShortStr::from_static("src-queue");
-    match (&field, leveret_broker::stream_start_at(&probe, &unnamed, &unnamed, 0)) {
-        (FieldValue::Void, _) | (_, Err(_)) => Err(format!(
+    match leveret_broker::stream_start_at(&probe, &unnamed, &unnamed, 0) {
+        Ok(_) => Ok(field),
+        Err(_) => Err(format!(
             "src-consumer-args: x-stream-offset {value} is not an offset: \"first\", \"last\", \"next\", an offset (an integer from 0) or an interval back from now (\"10m\"; units Y, M, D, h, m, s)"
         )),
-        (_, Ok(_)) => Ok(field),
     }
 }
 
