@@ -6,7 +6,9 @@
 //! `x-leveret-seq` ids) and when the destination refuses (nothing nacked,
 //! the stream keeps it); consumer arguments the source refuses (a clear
 //! `last_error`, nothing forwarded); a shovel into a stream; a federated
-//! exchange feeding a stream.
+//! exchange feeding a stream. And against a real RabbitMQ 3.10 node: its
+//! stream shovelled down from an offset, and shovelled into (skips
+//! loudly outside CI when rabbitmq-server is not installed).
 
 use leveret_broker::{Broker, BrokerHandle};
 use leveret_client::{
@@ -15,6 +17,7 @@ use leveret_client::{
     FieldValue, GetMessage, QueueBindOptions, QueueDeclareOptions, ShortStr,
 };
 use leveret_test_macros::both_runtimes;
+use leveret_tests::rabbit_node::{self, RabbitNode};
 use leveret_tests::reserved_port::reserved_addr;
 use leveret_uplink::{
     FederationLink, LinkState, LocalExchange, Shovel, ShovelConfig, ShovelState, ShovelStatus,
@@ -582,5 +585,72 @@ async fn a_federated_exchange_feeds_a_stream_downstream() {
         .expect("link alive");
     link.stop().await;
     upstream.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rabbitmq_stream_is_shovelled_down_from_an_offset_and_into() {
+    if !rabbit_node::installed() {
+        return;
+    }
+    let dir = scratch("rabbitmq");
+    let home = dir.clone();
+    let node = tokio::task::spawn_blocking(move || {
+        RabbitNode::start("streams", &home.join("node"), &home)
+    })
+    .await
+    .expect("node");
+    let (_fleet_conn, fleet_ch) = channel_to(&node.uri()).await;
+    fleet_ch.confirm_select().await.expect("confirms");
+    declare_stream(&fleet_ch, "fleet.log").await;
+    declare_stream(&fleet_ch, "fleet.recorder").await;
+    publish_confirmed(&fleet_ch, "", "fleet.log", 0, 100).await;
+
+    let robot = Arc::new(broker(&dir.join("robot"), None).await);
+    let (_local, channel) = local_channel(&robot).await;
+    channel.confirm_select().await.expect("confirms");
+    declare(&channel, "down", FieldTable::new()).await;
+    declare(&channel, "telemetry", FieldTable::new()).await;
+    let down = Shovel::start(
+        "down",
+        shovel_config(json!({
+            "src-uri": node.uri(), "src-queue": "fleet.log", "src-prefetch-count": 16,
+            "src-consumer-args": {"x-stream-offset": 40},
+            "dest-uri": "amqp://", "dest-queue": "down", "reconnect-delay": 0.2,
+        })),
+        Some(&robot),
+    );
+    wait_status(&down, "60 forwarded", |s| s.forwarded >= 60).await;
+    let got = take(&channel, "down", 60).await;
+    for (i, message) in got.iter().enumerate() {
+        let n = 40 + i as u32;
+        assert_eq!(
+            number(&message.body),
+            n,
+            "from offset 40, in order, each once"
+        );
+        let properties = &message.delivery.properties;
+        assert_eq!(stream_offset(properties), i64::from(n));
+        assert_eq!(seq(properties), format!("down:fleet.log@{n}"));
+    }
+    down.stop().await;
+
+    publish_confirmed(&channel, "", "telemetry", 0, 50).await;
+    let up = Shovel::start(
+        "up",
+        shovel_config(json!({
+            "src-uri": "amqp://", "src-queue": "telemetry",
+            "dest-uri": node.uri(), "dest-queue": "fleet.recorder", "reconnect-delay": 0.2,
+        })),
+        Some(&robot),
+    );
+    wait_status(&up, "50 forwarded", |s| s.forwarded >= 50).await;
+    let recorded = read_stream(&fleet_ch, "fleet.recorder", FieldValue::string("first"), 50).await;
+    for (i, delivery) in recorded.iter().enumerate() {
+        assert_eq!(number(&delivery.body), i as u32, "in order");
+        assert_eq!(stream_offset(&delivery.properties), i as i64);
+    }
+    up.stop().await;
+    drop(node);
     let _ = std::fs::remove_dir_all(&dir);
 }
