@@ -422,6 +422,12 @@ impl ShovelConfig {
             if consumer_args.get("x-priority").is_some() {
                 return Err("src-consumer-args: x-priority with x-stream-offset: a stream refuses consumer priorities".into());
             }
+            // A stream keeps its messages rather than holding them ready:
+            // Leveret's queue.declare-ok counts none (RabbitMQ 3.10 counts
+            // them), so the shovel would stop at once, forwarding nothing.
+            if delete_after == DeleteAfter::QueueLength {
+                return Err("src-delete-after \"queue-length\" cannot measure a stream (src-consumer-args x-stream-offset): a Leveret stream's queue.declare-ok counts no messages, so the shovel would stop at once; give a count".into());
+            }
         }
         let reconnect_delay = reconnect_delay(object)?;
         let add_forward_headers = match object.get("dest-add-forward-headers") {
@@ -733,6 +739,11 @@ mod tests {
                 json!({"x-stream-offset": "first"}),
                 json!({"src-queue": null, "src-exchange": "amq.topic"}),
                 "needs src-queue",
+            ),
+            (
+                json!({"x-stream-offset": "first"}),
+                json!({"src-delete-after": "queue-length"}),
+                "cannot measure a stream",
             ),
         ] {
             let refused = shovel(args.clone(), more).unwrap_err();
