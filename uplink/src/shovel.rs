@@ -24,11 +24,12 @@
 //! duplicates at-least-once forwarding makes after a crash: from a Leveret
 //! source it is the shovel's name and the message's position in the source
 //! queue (`x-leveret-position`, asked for at basic.consume), the same each
-//! time that message is forwarded and never another's; from a stream (of
-//! any broker), the shovel's name, the stream's and the record's
-//! `x-stream-offset`, so the re-reads after a restart carry the ids of the
-//! first reads; from another broker's queue, the shovel's name, a number
-//! unique to this process and a count (unique, but new at each forward).
+//! time that message is forwarded and never another's; from a stream read
+//! with `x-stream-offset` (of any broker), the shovel's name, the stream's
+//! name and the record's `x-stream-offset`, so the re-reads after a
+//! restart carry the ids of the first reads; from another broker's queue,
+//! the shovel's name, a number unique to this process and a count
+//! (unique, but new at each forward).
 //!
 //! Every forwarded message also carries `x-leveret-shovelled`, the list
 //! of the shovels it went through (each running shovel's own id: its
