@@ -196,6 +196,7 @@ pub use crate::policy::{
     PolicyKey, PolicyKind, PolicySpec, PolicyValue, POLICY_KEYS,
 };
 pub use crate::queue::process_nonce;
+pub use crate::queue::{start_at as stream_start_at, StartAt as StreamStartAt};
 pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use crate::stats::HistogramFigures;
 #[cfg(feature = "tls")]

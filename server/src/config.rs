@@ -755,6 +755,31 @@ mod tests {
             error.contains("shovel bad") && error.contains("src-queue"),
             "{error}"
         );
+        // A stream read from an offset: `src-consumer-args` as a TOML table.
+        let stream = "[shovels.log]\nsrc-uri = \"amqp://\"\nsrc-queue = \"log\"\ndest-uri = \"amqp://a\"\ndest-queue = \"f\"\n";
+        let settings = Settings::resolve(
+            cli(&[]),
+            file(&format!(
+                "{stream}src-consumer-args = {{ x-stream-offset = \"first\" }}\n"
+            )),
+        )
+        .unwrap();
+        assert_eq!(
+            settings.shovels[0].1["src-consumer-args"],
+            serde_json::json!({"x-stream-offset": "first"})
+        );
+        let error = Settings::resolve(
+            cli(&[]),
+            file(&format!(
+                "{stream}src-consumer-args = {{ x-stream-offset = -1 }}\n"
+            )),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            error.contains("shovel log") && error.contains("is not an offset"),
+            "{error}"
+        );
     }
 
     #[test]

@@ -680,3 +680,282 @@ async fn federation_is_declared_like_rabbitmqs_and_outlasts_a_crash() {
     fleet_broker.shutdown().await;
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// Streams in the binary's shovels and federation (issue 33): a shovel
+/// declared through the API reads the robot's stream from an offset
+/// (`src-consumer-args`, kept and exported as given); what the shovel
+/// could not honour is refused with 400 and the reason, by the API and by
+/// a definitions import. A federation policy matching a stream does not
+/// apply to it (RabbitMQ 3.10 lists no policy for a stream either: its
+/// keys are not stream keys), so no link federates a stream; an upstream
+/// naming a queue (queue federation) is refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn streams_in_shovels_and_federation_through_the_api() {
+    use common::ops::{basic, request, OpsBroker};
+    use lapin::options::{ExchangeDeclareOptions, QueueBindOptions};
+    use lapin::types::AMQPValue;
+    use serde_json::{json, Value};
+    let root = std::env::temp_dir().join(format!("leveret-uplink-streams-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let addr = leveret_tests::reserved_port::reserved_addr();
+    let fleet_url = format!("amqp://guest:guest@{addr}/%2f");
+    let fleet_broker = fleet(addr, &root.join("fleet")).await;
+    let fleet_conn = Connection::connect(&fleet_url, ConnectionProperties::default())
+        .await
+        .expect("fleet");
+    let fleet_ch = fleet_conn.create_channel().await.expect("channel");
+    fleet_ch
+        .queue_declare("log", durable(), FieldTable::default())
+        .await
+        .expect("declare");
+    let robot = OpsBroker::start("uplink-streams", &[]);
+    let robot_conn = Connection::connect(&robot.amqp_url(), ConnectionProperties::default())
+        .await
+        .expect("robot");
+    let robot_ch = robot_conn.create_channel().await.expect("channel");
+    robot_ch
+        .confirm_select(ConfirmSelectOptions::default())
+        .await
+        .expect("confirms");
+    let mut stream = FieldTable::default();
+    stream.insert(
+        "x-queue-type".into(),
+        AMQPValue::LongString("stream".into()),
+    );
+    robot_ch
+        .queue_declare("log", durable(), stream)
+        .await
+        .expect("stream");
+    for n in 0..20 {
+        robot_ch
+            .basic_publish(
+                "",
+                "log",
+                BasicPublishOptions::default(),
+                n.to_string().as_bytes(),
+                BasicProperties::default(),
+            )
+            .await
+            .expect("publish")
+            .await
+            .expect("confirmed");
+    }
+
+    let auth = basic("guest", "guest");
+    let headers = [
+        ("Authorization", auth.as_str()),
+        ("Content-Type", "application/json"),
+    ];
+    let put = |path: String, body: Value| async move {
+        request(
+            robot.http,
+            "PUT",
+            &path,
+            &headers,
+            body.to_string().as_bytes(),
+        )
+        .await
+    };
+    let shovel = json!({
+        "src-uri": "amqp://", "src-queue": "log", "src-consumer-args": {"x-stream-offset": 10},
+        "dest-uri": fleet_url, "dest-queue": "log", "reconnect-delay": 0.1,
+    });
+    let created = put(
+        "/api/parameters/shovel/%2F/log-up".into(),
+        json!({ "value": shovel }),
+    )
+    .await;
+    assert_eq!(created.status, 201, "{}", created.text());
+    let mut consumer = fleet_ch
+        .basic_consume(
+            "log",
+            "",
+            BasicConsumeOptions {
+                no_ack: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await
+        .expect("consume");
+    for n in 10..20i64 {
+        let delivery = tokio::time::timeout(Duration::from_secs(20), consumer.next())
+            .await
+            .expect("forwarded")
+            .expect("open")
+            .expect("delivery");
+        assert_eq!(
+            delivery.data,
+            n.to_string().as_bytes(),
+            "from offset 10, in order"
+        );
+        let offset = delivery
+            .properties
+            .headers()
+            .as_ref()
+            .and_then(|h| h.inner().get("x-stream-offset").cloned());
+        assert_eq!(offset, Some(AMQPValue::LongLongInt(n)));
+    }
+    let stored = request(
+        robot.http,
+        "GET",
+        "/api/parameters/shovel/%2F/log-up",
+        &headers,
+        b"",
+    )
+    .await;
+    let stored: Value = serde_json::from_slice(&stored.body).expect("JSON");
+    assert_eq!(stored["value"], shovel, "kept as given");
+    let exported = request(robot.http, "GET", "/api/definitions", &headers, b"").await;
+    let exported: Value = serde_json::from_slice(&exported.body).expect("JSON");
+    assert!(
+        exported["parameters"]
+            .as_array()
+            .expect("parameters")
+            .iter()
+            .any(|p| p["name"] == "log-up" && p["value"] == shovel),
+        "{exported}"
+    );
+    for (args, more, reason) in [
+        (
+            json!({"x-stream-offset": "bogus"}),
+            json!({}),
+            "is not an offset",
+        ),
+        (
+            json!({"x-offset": 10}),
+            json!({}),
+            "x-offset is not a consumer argument",
+        ),
+        (
+            json!({"x-stream-offset": "first"}),
+            json!({"ack-mode": "no-ack"}),
+            "no-ack cannot read a stream",
+        ),
+    ] {
+        let mut value = json!({
+            "src-uri": "amqp://", "src-queue": "log", "src-consumer-args": args,
+            "dest-uri": fleet_url, "dest-queue": "log",
+        });
+        value
+            .as_object_mut()
+            .unwrap()
+            .extend(more.as_object().unwrap().clone());
+        let refused = put(
+            "/api/parameters/shovel/%2F/refused".into(),
+            json!({ "value": value }),
+        )
+        .await;
+        assert_eq!(refused.status, 400, "{}", refused.text());
+        assert!(refused.text().contains(reason), "{}", refused.text());
+        let definitions = json!({"parameters": [
+            {"component": "shovel", "vhost": "/", "name": "refused", "value": value},
+        ]});
+        let imported = request(
+            robot.http,
+            "POST",
+            "/api/definitions",
+            &headers,
+            definitions.to_string().as_bytes(),
+        )
+        .await;
+        assert_eq!(imported.status, 400, "{}", imported.text());
+        assert!(imported.text().contains(reason), "{}", imported.text());
+    }
+    let listed = request(robot.http, "GET", "/api/shovels", &headers, b"").await;
+    let listed: Value = serde_json::from_slice(&listed.body).expect("JSON");
+    assert_eq!(listed.as_array().map(Vec::len), Some(1), "{listed}");
+
+    // Federation: a policy for `^log$` matches the stream and the
+    // exchange; only the exchange is federated.
+    fleet_ch
+        .exchange_declare(
+            "fleet.log",
+            lapin::ExchangeKind::Topic,
+            ExchangeDeclareOptions {
+                durable: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await
+        .expect("upstream exchange");
+    let by_queue = put(
+        "/api/parameters/federation-upstream/%2F/by-queue".into(),
+        json!({"value": {"uri": fleet_url, "queue": "log"}}),
+    )
+    .await;
+    assert_eq!(by_queue.status, 400, "{}", by_queue.text());
+    assert!(
+        by_queue
+            .text()
+            .contains("queue federation is not supported"),
+        "{}",
+        by_queue.text()
+    );
+    let upstream = put(
+        "/api/parameters/federation-upstream/%2F/fleet".into(),
+        json!({"value": {"uri": fleet_url, "exchange": "fleet.log", "reconnect-delay": 0.2}}),
+    )
+    .await;
+    assert_eq!(upstream.status, 201, "{}", upstream.text());
+    robot_ch
+        .exchange_declare(
+            "log",
+            lapin::ExchangeKind::Topic,
+            ExchangeDeclareOptions {
+                durable: true,
+                ..Default::default()
+            },
+            FieldTable::default(),
+        )
+        .await
+        .expect("local exchange");
+    robot_ch
+        .queue_bind(
+            "log",
+            "log",
+            "#",
+            QueueBindOptions::default(),
+            FieldTable::default(),
+        )
+        .await
+        .expect("bind the stream to the federated exchange");
+    let policy = put(
+        "/api/policies/%2F/federate-log".into(),
+        json!({"pattern": "^log$", "apply-to": "all", "definition": {"federation-upstream-set": "all"}}),
+    )
+    .await;
+    assert!(policy.status < 300, "{}", policy.text());
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    let links = loop {
+        let links = request(robot.http, "GET", "/api/federation-links", &headers, b"").await;
+        let links: Value = serde_json::from_slice(&links.body).expect("JSON");
+        if links[0]["status"] == "running" {
+            break links;
+        }
+        assert!(std::time::Instant::now() < deadline, "{links}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(links.as_array().map(Vec::len), Some(1), "{links}");
+    assert_eq!(links[0]["type"], "exchange", "{links}");
+    assert_eq!(links[0]["exchange"], "log", "{links}");
+    let exchange = request(robot.http, "GET", "/api/exchanges/%2F/log", &headers, b"").await;
+    let exchange: Value = serde_json::from_slice(&exchange.body).expect("JSON");
+    assert_eq!(exchange["policy"], "federate-log", "{exchange}");
+    let queue = request(robot.http, "GET", "/api/queues/%2F/log", &headers, b"").await;
+    let queue: Value = serde_json::from_slice(&queue.body).expect("JSON");
+    assert_eq!(queue["type"], "stream", "{queue}");
+    assert_eq!(
+        queue.get("policy"),
+        Some(&Value::Null),
+        "no policy on the stream: {queue}"
+    );
+    drop(robot_ch);
+    drop(robot_conn);
+    drop(robot);
+    drop(fleet_ch);
+    drop(fleet_conn);
+    fleet_broker.shutdown().await;
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -5,10 +5,15 @@
 //! refused with a reason, never ignored.
 //!
 //! A shovel that would put every message back where it took it from is
-//! refused here. Uses the protocol crate's JSON form of message
-//! properties and the client crate's URI reading, nothing of the broker.
+//! refused here, and so are consumer arguments (`src-consumer-args`)
+//! the shovel cannot honour: a stream offset with `no-ack` or an
+//! exchange source, a form of `x-stream-offset` the broker would refuse.
+//! Uses the protocol crate's JSON form of message properties and
+//! arguments, the client crate's URI reading, and the broker's reading of
+//! `x-stream-offset` (so that a declaration is refused for what a stream
+//! would refuse, and nothing else).
 
-use leveret_protocol::BasicProperties;
+use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
 use serde_json::{Map, Value};
 use std::time::Duration;
 
@@ -80,6 +85,13 @@ pub struct ShovelConfig {
     /// Unacknowledged messages the shovel holds at once
     /// (`src-prefetch-count`, default 1000).
     pub prefetch: u16,
+    /// The arguments of the shovel's `basic.consume` at the source
+    /// (`src-consumer-args`, RabbitMQ 3.10's consumer arguments:
+    /// `x-stream-offset` to read a stream from an offset, `x-priority`,
+    /// `x-cancel-on-ha-failover`). Every link starts with them, so a
+    /// shovel reading a stream starts again from that offset after a
+    /// restart or a lost link, as RabbitMQ's does.
+    pub consumer_args: FieldTable,
     /// The destination brokers (`dest-uri`, one or a list: a cluster's
     /// nodes, tried in turn).
     pub dest_uris: Vec<String>,
@@ -135,6 +147,82 @@ pub(crate) fn ack_mode(object: &Map<String, Value>) -> Result<AckMode, String> {
         Some("on-publish") => Ok(AckMode::OnPublish),
         Some("no-ack") => Ok(AckMode::NoAck),
         Some(other) => Err(format!("unknown ack-mode {other}")),
+    }
+}
+
+/// RabbitMQ 3.10's consumer arguments (`rabbit_amqqueue:consume_args()`):
+/// what `src-consumer-args` may hold.
+const CONSUMER_ARGUMENTS: [&str; 3] = ["x-stream-offset", "x-priority", "x-cancel-on-ha-failover"];
+
+/// The stream offset argument, which only a stream takes.
+const STREAM_OFFSET: &str = "x-stream-offset";
+
+/// `src-consumer-args`: an object of RabbitMQ 3.10's consumer arguments,
+/// each of the type it takes; `x-stream-offset` in a form a stream takes
+/// (JSON has no AMQP timestamp: a time is given as an interval back from
+/// now). RabbitMQ 3.10 refuses unknown keys only and fails at consume on
+/// a bad value; here the declaration is refused.
+fn consumer_args(object: &Map<String, Value>) -> Result<FieldTable, String> {
+    let args = match object.get("src-consumer-args") {
+        None | Some(Value::Null) => return Ok(FieldTable::new()),
+        Some(Value::Object(args)) => args,
+        Some(other) => {
+            return Err(format!(
+                "src-consumer-args must be an object of consumer arguments, such as {{\"x-stream-offset\": \"first\"}}, not {other}"
+            ))
+        }
+    };
+    let mut table = FieldTable::new();
+    for (key, value) in args {
+        let (name, field) = match (key.as_str(), value) {
+            (STREAM_OFFSET, _) => (STREAM_OFFSET, stream_offset(value)?),
+            ("x-priority", Value::Number(n)) if n.is_i64() => (
+                "x-priority",
+                FieldValue::I64(n.as_i64().unwrap_or_default()),
+            ),
+            ("x-priority", _) => {
+                return Err(format!(
+                    "src-consumer-args: x-priority must be an integer, not {value}"
+                ))
+            }
+            ("x-cancel-on-ha-failover", Value::Bool(b)) => {
+                ("x-cancel-on-ha-failover", FieldValue::Bool(*b))
+            }
+            ("x-cancel-on-ha-failover", _) => {
+                return Err(format!(
+                    "src-consumer-args: x-cancel-on-ha-failover must be true or false, not {value}"
+                ))
+            }
+            (other, _) => {
+                let known = CONSUMER_ARGUMENTS.join(", ");
+                return Err(format!(
+                    "src-consumer-args: {other} is not a consumer argument (RabbitMQ 3.10 takes {known})"
+                ));
+            }
+        };
+        table.insert(ShortStr::from_static(name), field);
+    }
+    Ok(table)
+}
+
+/// An `x-stream-offset` from JSON: `first`, `last`, `next`, an offset (an
+/// integer from 0) or an interval back from now (`10m`), as the broker's
+/// streams read it.
+fn stream_offset(value: &Value) -> Result<FieldValue, String> {
+    let field = match value {
+        Value::String(text) => FieldValue::string(text),
+        Value::Number(n) if n.is_u64() => FieldValue::I64(n.as_i64().unwrap_or(i64::MAX)),
+        // Negative, fractional, or not a number: the reader refuses it.
+        _ => FieldValue::Void,
+    };
+    let mut probe = FieldTable::new();
+    probe.insert(ShortStr::from_static(STREAM_OFFSET), field.clone());
+    let unnamed = ShortStr::from_static("src-queue");
+    match leveret_broker::stream_start_at(&probe, &unnamed, &unnamed, 0) {
+        Ok(_) => Ok(field),
+        Err(_) => Err(format!(
+            "src-consumer-args: x-stream-offset {value} is not an offset: \"first\", \"last\", \"next\", an offset (an integer from 0) or an interval back from now (\"10m\"; units Y, M, D, h, m, s)"
+        )),
     }
 }
 
@@ -239,6 +327,12 @@ fn same_broker(a: &str, b: &str) -> bool {
 }
 
 impl ShovelConfig {
+    /// Whether the shovel reads a stream: its consumer arguments give an
+    /// `x-stream-offset`, which a classic queue refuses.
+    pub fn reads_stream(&self) -> bool {
+        self.consumer_args.get(STREAM_OFFSET).is_some()
+    }
+
     /// Reads RabbitMQ's JSON form of a shovel's parameters.
     pub fn from_json(value: &Value) -> Result<ShovelConfig, String> {
         let object = value
@@ -251,6 +345,7 @@ impl ShovelConfig {
                 "src-exchange",
                 "src-exchange-key",
                 "src-prefetch-count",
+                "src-consumer-args",
                 "src-protocol",
                 "src-delete-after",
                 "dest-uri",
@@ -316,6 +411,24 @@ impl ShovelConfig {
         };
         let prefetch = prefetch(object, "src-prefetch-count")?;
         let ack_mode = ack_mode(object)?;
+        let consumer_args = consumer_args(object)?;
+        if consumer_args.get(STREAM_OFFSET).is_some() {
+            if let Source::Exchange { .. } = source {
+                return Err("src-consumer-args: x-stream-offset reads a stream, and needs src-queue: with src-exchange the shovel consumes a classic queue of its own".into());
+            }
+            if ack_mode == AckMode::NoAck {
+                return Err("ack-mode no-ack cannot read a stream (src-consumer-args x-stream-offset): a stream's consumers acknowledge what they take; use on-confirm or on-publish".into());
+            }
+            if consumer_args.get("x-priority").is_some() {
+                return Err("src-consumer-args: x-priority with x-stream-offset: a stream refuses consumer priorities".into());
+            }
+            // A stream keeps its messages rather than holding them ready:
+            // Leveret's queue.declare-ok counts none (RabbitMQ 3.10 counts
+            // them), so the shovel would stop at once, forwarding nothing.
+            if delete_after == DeleteAfter::QueueLength {
+                return Err("src-delete-after \"queue-length\" cannot measure a stream (src-consumer-args x-stream-offset): a Leveret stream's queue.declare-ok counts no messages, so the shovel would stop at once; give a count".into());
+            }
+        }
         let reconnect_delay = reconnect_delay(object)?;
         let add_forward_headers = match object.get("dest-add-forward-headers") {
             None => false,
@@ -343,6 +456,7 @@ impl ShovelConfig {
             src_uri,
             source,
             prefetch,
+            consumer_args,
             dest_uris,
             destination,
             add_forward_headers,
@@ -511,6 +625,130 @@ mod tests {
         }))
         .unwrap();
         assert_eq!(drain.delete_after, DeleteAfter::QueueLength);
+    }
+
+    #[test]
+    fn src_consumer_args_read_a_stream_from_an_offset_or_are_refused() {
+        let shovel = |args: Value, more: Value| {
+            let mut value = json!({
+                "src-uri": "amqp://", "src-queue": "log", "dest-uri": "amqp://fleet", "dest-queue": "log",
+                "src-consumer-args": args,
+            });
+            value
+                .as_object_mut()
+                .unwrap()
+                .extend(more.as_object().unwrap().clone());
+            ShovelConfig::from_json(&value)
+        };
+        for (offset, field) in [
+            (json!("first"), FieldValue::string("first")),
+            (json!("next"), FieldValue::string("next")),
+            (json!("last"), FieldValue::string("last")),
+            (json!(500), FieldValue::I64(500)),
+            (json!(0), FieldValue::I64(0)),
+            (json!("10m"), FieldValue::string("10m")),
+        ] {
+            let config = shovel(
+                json!({"x-stream-offset": offset}),
+                json!({"ack-mode": "on-publish"}),
+            )
+            .unwrap_or_else(|e| panic!("{offset}: {e}"));
+            assert!(config.reads_stream());
+            assert_eq!(config.consumer_args.get("x-stream-offset"), Some(&field));
+        }
+        let classic = shovel(
+            json!({"x-priority": 5, "x-cancel-on-ha-failover": true}),
+            json!({}),
+        )
+        .unwrap();
+        assert!(!classic.reads_stream());
+        assert_eq!(
+            classic.consumer_args.get("x-priority"),
+            Some(&FieldValue::I64(5))
+        );
+        let none = shovel(Value::Null, json!({})).unwrap();
+        assert!(none.consumer_args.is_empty() && !none.reads_stream());
+
+        for (args, more, reason) in [
+            (
+                json!("first"),
+                json!({}),
+                "must be an object of consumer arguments",
+            ),
+            (
+                json!({"x-foo": 1}),
+                json!({}),
+                "x-foo is not a consumer argument",
+            ),
+            (
+                json!({"x-leveret-position": true}),
+                json!({}),
+                "is not a consumer argument",
+            ),
+            (
+                json!({"x-stream-offset": "bogus"}),
+                json!({}),
+                "is not an offset",
+            ),
+            (
+                json!({"x-stream-offset": "10"}),
+                json!({}),
+                "is not an offset",
+            ),
+            (
+                json!({"x-stream-offset": -5}),
+                json!({}),
+                "is not an offset",
+            ),
+            (
+                json!({"x-stream-offset": 1.5}),
+                json!({}),
+                "is not an offset",
+            ),
+            (
+                json!({"x-stream-offset": true}),
+                json!({}),
+                "is not an offset",
+            ),
+            (
+                json!({"x-stream-offset": {"at": 1}}),
+                json!({}),
+                "is not an offset",
+            ),
+            (
+                json!({"x-priority": "high"}),
+                json!({}),
+                "x-priority must be an integer",
+            ),
+            (
+                json!({"x-cancel-on-ha-failover": 1}),
+                json!({}),
+                "true or false",
+            ),
+            (
+                json!({"x-stream-offset": "first", "x-priority": 1}),
+                json!({}),
+                "a stream refuses consumer priorities",
+            ),
+            (
+                json!({"x-stream-offset": "first"}),
+                json!({"ack-mode": "no-ack"}),
+                "no-ack cannot read a stream",
+            ),
+            (
+                json!({"x-stream-offset": "first"}),
+                json!({"src-queue": null, "src-exchange": "amq.topic"}),
+                "needs src-queue",
+            ),
+            (
+                json!({"x-stream-offset": "first"}),
+                json!({"src-delete-after": "queue-length"}),
+                "cannot measure a stream",
+            ),
+        ] {
+            let refused = shovel(args.clone(), more).unwrap_err();
+            assert!(refused.contains(reason), "{args}: {refused}");
+        }
     }
 
     #[test]

@@ -10,14 +10,25 @@
 //! source (`basic.nack` with requeue) and are counted, and the shovel is
 //! `blocked` for `reconnect-delay` before it tries again: a destination
 //! that refuses never drains the source. A retried message arrives after
-//! later ones the destination took. Every
+//! later ones the destination took.
+//!
+//! A shovel reading a stream (`x-stream-offset` in `src-consumer-args`)
+//! consumes it from that offset at the start of every link, as
+//! RabbitMQ's shovel does: after a restart or a lost link it reads from
+//! the configured offset again (from `first`: everything again). Its acks
+//! only give the stream credit back, and a refusal nacks nothing (a stream
+//! takes no `basic.nack`): the stream keeps the message, and the next
+//! link offers it again if the configured offset reaches back to it. Every
 //! forwarded message carries `x-leveret-seq`, which is how returns are
 //! matched to publishes and how a consumer at the destination drops the
 //! duplicates at-least-once forwarding makes after a crash: from a Leveret
 //! source it is the shovel's name and the message's position in the source
 //! queue (`x-leveret-position`, asked for at basic.consume), the same each
-//! time that message is forwarded and never another's; from another
-//! broker, the shovel's name, a number unique to this process and a count
+//! time that message is forwarded and never another's; from a stream read
+//! with `x-stream-offset` (of any broker), the shovel's name, the stream's
+//! name and the record's `x-stream-offset`, so the re-reads after a
+//! restart carry the ids of the first reads; from another broker's queue,
+//! the shovel's name, a number unique to this process and a count
 //! (unique, but new at each forward).
 //!
 //! Every forwarded message also carries `x-leveret-shovelled`, the list
@@ -388,10 +399,11 @@ impl Link {
         // A limited shovel acknowledges even under no-ack, so that the
         // broker delivers no more than the prefetch window it can refuse.
         let no_ack = self.config.ack_mode == AckMode::NoAck && self.remaining.is_none();
-        // A Leveret source adds each message's position; other brokers
-        // ignore the argument.
-        let mut wants_position = FieldTable::new();
-        wants_position.insert(
+        // `src-consumer-args`, and: a Leveret queue adds each message's
+        // position (a stream has its offsets; other brokers ignore the
+        // argument).
+        let mut arguments = self.config.consumer_args.clone();
+        arguments.insert(
             ShortStr::from_static(POSITION_HEADER),
             FieldValue::Bool(true),
         );
@@ -403,7 +415,7 @@ impl Link {
                     no_ack,
                     ..Default::default()
                 },
-                wants_position,
+                arguments,
             )
             .await?;
         self.epoch += 1;
@@ -473,12 +485,21 @@ impl Link {
                             Some(_) => refused.push(tag),
                         }
                     }
+                    // A stream keeps every message whatever its consumers
+                    // do, and takes no basic.nack (RabbitMQ 3.10 closes
+                    // the connection): the next link reads from the
+                    // configured offset again.
+                    let count = refused.len() as u64;
+                    self.update(|s| s.refused += count);
+                    if self.config.reads_stream() {
+                        return Err(Ended::Refused(format!(
+                            "the destination {why} {count} message(s), kept in the stream"
+                        )));
+                    }
                     let requeue = BasicNackOptions { multiple: false, requeue: true };
                     for tag in &refused {
                         source.basic_nack(*tag, requeue).await?;
                     }
-                    let count = refused.len() as u64;
-                    self.update(|s| s.refused += count);
                     return Err(Ended::Refused(format!(
                         "the destination {why} {count} message(s), left at the source"
                     )));
@@ -505,7 +526,12 @@ impl Link {
                         pace.take(delivery.body.len() as u64).await;
                     }
                     counter += 1;
-                    let seq = match position_of(&delivery.properties) {
+                    let stable = if self.config.reads_stream() {
+                        stream_offset_of(&delivery.properties).map(|offset| format!("{queue}@{offset}"))
+                    } else {
+                        position_of(&delivery.properties)
+                    };
+                    let seq = match stable {
                         Some(position) => format!("{}:{position}", self.name),
                         None => format!("{}:{}:{}:{counter}", self.name, process_nonce(), self.epoch),
                     };
@@ -718,6 +744,15 @@ fn position_of(properties: &BasicProperties) -> Option<String> {
     std::str::from_utf8(value.as_bytes()?)
         .ok()
         .map(str::to_owned)
+}
+
+/// The `x-stream-offset` of a delivery from a stream.
+fn stream_offset_of(properties: &BasicProperties) -> Option<i64> {
+    properties
+        .headers
+        .as_ref()?
+        .get("x-stream-offset")?
+        .as_i64()
 }
 
 /// The shovels a message went through, from its [`SHOVELLED_HEADER`].
