@@ -8,7 +8,10 @@
 //! TLS handshake that never completes and a WebSocket upgrade followed by
 //! no CONNECT are closed by the handshake timeout; plaintext MQTT on the
 //! TLS port, a wrong path, no `mqtt` subprotocol, a text message and a
-//! frame over the packet limit are refused, with a raw tungstenite client.
+//! frame over the packet limit are refused, with a raw tungstenite client;
+//! a message sent before the CONNECT is not read past the unauthenticated
+//! budget, while packets sent right after a CONNECT are served once it is
+//! accepted.
 
 #[macro_use]
 mod common;
@@ -437,5 +440,122 @@ async fn websocket_upgrades_frames_and_silence_are_checked() {
         }
     })
     .await;
+    handle.shutdown().await;
+}
+
+/// A message of 32 MiB sent after the upgrade and before any CONNECT,
+/// under a 64 MiB packet limit: tungstenite would buffer it whole before
+/// the session saw it, so the broker reads no more than its
+/// unauthenticated budget (tens of KiB) and the handshake timeout then
+/// closes the connection. The client's send therefore cannot finish:
+/// more than the socket buffers of both sides hold stays unread. (A
+/// broker that read it all would let the send finish well within the
+/// 5 s timeout on an idle machine; on a loaded one it might not, and the
+/// test would pass where it should fail, never the other way.)
+#[both_runtimes]
+async fn a_websocket_message_before_connect_is_not_read_past_the_budget() {
+    let limits = Limits {
+        max_message_size: 64 * 1024 * 1024,
+        handshake_timeout: Duration::from_secs(5),
+        ..Limits::default()
+    };
+    let handle = start_websocket(limits).await;
+    let port = handle.web_mqtt_addrs()[0].port();
+    let mut ws = websocket(port, "/ws", Some("mqtt")).await.unwrap();
+    let big = vec![0u8; 32 * 1024 * 1024];
+    let sent = tokio::time::timeout(CLOSE_WITHIN, ws.send(Message::Binary(big.into()))).await;
+    assert!(
+        matches!(sent, Ok(Err(_))),
+        "the send ends in an error when the broker closes, unread: {sent:?}"
+    );
+    within("the connection released", async {
+        while handle.admin().overview().object_totals.connections != 0 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    handle.shutdown().await;
+}
+
+/// MQTT's remaining length (a variable byte integer) and `body` after
+/// `first`: one packet.
+fn packet(first: u8, body: &[u8]) -> Vec<u8> {
+    let mut out = vec![first];
+    let mut left = body.len();
+    loop {
+        let byte = (left % 128) as u8;
+        left /= 128;
+        out.push(if left > 0 { byte | 0x80 } else { byte });
+        if left == 0 {
+            break;
+        }
+    }
+    out.extend_from_slice(body);
+    out
+}
+
+/// `text` as MQTT's length-prefixed string.
+fn mqtt_string(text: &str) -> Vec<u8> {
+    let mut out = (text.len() as u16).to_be_bytes().to_vec();
+    out.extend_from_slice(text.as_bytes());
+    out
+}
+
+/// A client that sends its SUBSCRIBE and a 1 MiB PUBLISH right after its
+/// CONNECT, each in a message of its own, without waiting for the
+/// CONNACK (as pipelining clients do): the reads held back before login
+/// resume once the CONNECT is accepted, and the publish comes back to it.
+#[both_runtimes]
+async fn packets_sent_right_after_a_websocket_connect_are_served_after_login() {
+    let limits = Limits {
+        max_message_size: 4 * 1024 * 1024,
+        ..Limits::default()
+    };
+    let handle = start_websocket(limits).await;
+    let port = handle.web_mqtt_addrs()[0].port();
+    let mut ws = websocket(port, "/ws", Some("mqtt")).await.unwrap();
+    let mut connect = BytesMut::new();
+    connect_packet("pipelined")
+        .encode(ProtocolVersion::V3_1_1, &mut connect)
+        .unwrap();
+    let mut subscribe = 1u16.to_be_bytes().to_vec();
+    subscribe.extend(mqtt_string("big/one"));
+    subscribe.push(0);
+    let payload: Vec<u8> = (0..1024 * 1024).map(|i| (i % 251) as u8).collect();
+    let mut publish = mqtt_string("big/one");
+    publish.extend_from_slice(&payload);
+    for message in [
+        connect.to_vec(),
+        packet(0x82, &subscribe),
+        packet(0x30, &publish),
+    ] {
+        tmo!(ws.send(Message::Binary(message.into()))).unwrap();
+    }
+    // CONNACK, SUBACK, then the PUBLISH, whatever the message boundaries.
+    let mut received = BytesMut::new();
+    let mut packets = Vec::new();
+    while packets.len() < 3 {
+        if let Some(packet) =
+            leveret_mqtt::decode_packet(&mut received, ProtocolVersion::V3_1_1, 8 << 20).unwrap()
+        {
+            packets.push(packet);
+            continue;
+        }
+        let message = tmo!(ws.next()).expect("a message").expect("no error");
+        received.extend_from_slice(&message.into_data());
+    }
+    assert!(
+        matches!(&packets[0], Packet::ConnAck(ack) if ack.reason == leveret_mqtt::ReasonCode::Success),
+        "{:?}",
+        packets[0]
+    );
+    assert!(matches!(&packets[1], Packet::SubAck(_)), "{:?}", packets[1]);
+    match &packets[2] {
+        Packet::Publish(p) => {
+            assert_eq!(p.topic.as_str(), "big/one");
+            assert!(p.payload == payload, "the payload comes back whole");
+        }
+        other => panic!("expected the publish, got {other:?}"),
+    }
     handle.shutdown().await;
 }

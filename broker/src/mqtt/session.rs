@@ -33,8 +33,8 @@ use leveret_mqtt::{
     TopicName, UnsubAck, Unsubscribe, MAX_PACKET_SIZE,
 };
 use leveret_protocol::{
-    BasicAck, BasicCancel, BasicConsume, FieldTable, FieldValue, Frame, Method, Outgoing,
-    QueueBind, QueueDeclare, QueueDelete, QueueUnbind, ReplyCode, ShortStr,
+    BasicAck, BasicCancel, BasicConsume, BasicProperties, FieldTable, FieldValue, Frame, Method,
+    Outgoing, QueueBind, QueueDeclare, QueueDelete, QueueUnbind, ReplyCode, ShortStr,
 };
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::num::{NonZeroU16, NonZeroU32};
@@ -73,10 +73,23 @@ const COPY_BELOW: usize = READ_CHUNK / 4;
 /// SUBSCRIBE's matches are not sent, with a log line).
 const RETAINED_BACKLOG_MAX: usize = 10_000;
 
+/// A client's byte stream (TCP, TLS, WebSocket), told when its CONNECT
+/// has been accepted, so a transport that holds back reads until then
+/// (the WebSocket's, whose messages arrive whole) can stop.
+pub(super) trait ClientStream: AsyncRead + AsyncWrite + Unpin {
+    /// The session has logged in.
+    fn logged_in(&mut self) {}
+}
+
+impl ClientStream for tokio::net::TcpStream {}
+
+#[cfg(feature = "tls")]
+impl ClientStream for tokio_rustls::server::TlsStream<tokio::net::TcpStream> {}
+
 /// Serves one MQTT connection over `socket` (TCP, TLS or WebSocket)
 /// until it closes; `certificate` is the common name of the client's
 /// verified TLS certificate, if any.
-pub(super) async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
+pub(super) async fn serve<S: ClientStream>(
     core: Arc<Core>,
     mut socket: S,
     (peer, certificate): (String, Option<String>),
@@ -119,6 +132,7 @@ pub(super) async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
             return;
         }
     };
+    socket.logged_in();
     let Accepted {
         link,
         claim,
@@ -970,12 +984,23 @@ impl Session {
             },
         };
         let retained_write = if publish.retain {
+            let properties = if self.v5() {
+                let mut amqp = BasicProperties::default();
+                let now = std::time::SystemTime::now();
+                super::properties::to_amqp(&publish.properties, &mut amqp, now);
+                let mut encoded = BytesMut::new();
+                amqp.encode(&mut encoded);
+                encoded.freeze()
+            } else {
+                bytes::Bytes::new()
+            };
             self.shared
                 .retained
                 .retain(
                     &self.vhost,
                     publish.topic.as_str(),
                     publish.delivery.qos(),
+                    properties,
                     // Kept long: never a slice of a read chunk.
                     bytes::Bytes::copy_from_slice(&publish.payload),
                 )
@@ -1235,8 +1260,10 @@ impl Session {
         }
     }
 
-    /// Sends waiting retained messages (as PUBLISH with RETAIN set) while
-    /// the window has room for those at QoS 1.
+    /// Sends waiting retained messages (as PUBLISH with RETAIN set, with
+    /// the 5.0 properties they were published with, the Message Expiry
+    /// Interval being what is left of it; expired ones are not sent)
+    /// while the window has room for those at QoS 1.
     fn send_retained(&mut self) {
         while let Some((message, granted, id)) = self.retained_backlog.pop_front() {
             let qos = message.qos.min(granted);
@@ -1250,7 +1277,20 @@ impl Session {
             else {
                 continue;
             };
-            let mut properties = leveret_mqtt::Properties::default();
+            let now = std::time::SystemTime::now();
+            let published = (!message.properties.is_empty())
+                .then(|| BasicProperties::decode(&message.properties).ok())
+                .flatten();
+            if published
+                .as_ref()
+                .is_some_and(|p| super::properties::expired(p, now))
+            {
+                continue;
+            }
+            let mut properties = match &published {
+                Some(p) if self.v5() => super::properties::from_amqp(p, now),
+                _ => leveret_mqtt::Properties::default(),
+            };
             properties.subscription_identifiers.extend(id);
             let publish = Outgoing5 {
                 qos,

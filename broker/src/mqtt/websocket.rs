@@ -5,15 +5,20 @@
 //!
 //! Bounded: a message or frame larger than the session's packet limit is
 //! refused by tungstenite before it is buffered whole, and ends the
-//! connection; a text message ends it too (MQTT-6.0.0-1). The read buffer
-//! is small ([`READ_BUFFER`]), so idle connections cost little.
+//! connection; a text message ends it too (MQTT-6.0.0-1). Until the
+//! session has logged in, the socket is read no further than
+//! [`BEFORE_LOGIN`] bytes ([`HeldBack`]): tungstenite buffers a message
+//! whole before the session sees a byte of it, so without that a client
+//! that never logs in could make the broker hold a message of the
+//! packet limit (128 MiB by default) per connection. The read buffer is
+//! small ([`READ_BUFFER`]), so idle connections cost little.
 
 use bytes::Bytes;
 use futures_core::Stream;
 use futures_sink::Sink;
 use std::io;
 use std::pin::Pin;
-use std::task::{ready, Context, Poll};
+use std::task::{ready, Context, Poll, Waker};
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::TcpStream;
 use tokio_tungstenite::tungstenite::handshake::server::{ErrorResponse, Request, Response};
@@ -28,6 +33,10 @@ pub(super) const PATH: &str = "/ws";
 const SUBPROTOCOLS: [&str; 2] = ["mqtt", "mqttv3.1"];
 /// tungstenite's read buffer per connection (its default is 128 KiB).
 const READ_BUFFER: usize = 8 * 1024;
+/// Bytes read from a client's socket before its CONNECT is accepted: the
+/// HTTP upgrade request and a CONNECT of the unauthenticated packet limit
+/// with its WebSocket framing, with room to spare.
+const BEFORE_LOGIN: usize = super::session::CONNECT_MAX_PACKET as usize + 16 * 1024;
 
 /// Completes the WebSocket handshake on `socket`: path [`PATH`], one of
 /// [`SUBPROTOCOLS`] offered (and chosen in the answer); messages and
@@ -35,11 +44,12 @@ const READ_BUFFER: usize = 8 * 1024;
 pub(super) async fn accept(
     socket: TcpStream,
     max_message: usize,
-) -> Result<ByteStream<TcpStream>, Error> {
+) -> Result<ByteStream<HeldBack<TcpStream>>, Error> {
     let config = WebSocketConfig::default()
         .read_buffer_size(READ_BUFFER)
         .max_message_size(Some(max_message))
         .max_frame_size(Some(max_message));
+    let socket = HeldBack::new(socket, BEFORE_LOGIN);
     let stream =
         tokio_tungstenite::accept_hdr_async_with_config(socket, choose_subprotocol, Some(config))
             .await?;
@@ -88,6 +98,86 @@ fn choose_subprotocol(
         .headers_mut()
         .insert("sec-websocket-protocol", HeaderValue::from_static(chosen));
     Ok(response)
+}
+
+/// A socket read at most `budget` bytes until [`HeldBack::release`]:
+/// past it, reads wait (the client's sends back up in TCP) instead of
+/// failing, so a client that sends its first packets right after the
+/// CONNECT, before the CONNACK, is served once it has logged in.
+pub(super) struct HeldBack<S> {
+    socket: S,
+    /// Bytes that may still be read; `None` once released.
+    budget: Option<usize>,
+    /// The read that found the budget spent, woken on release.
+    parked: Option<Waker>,
+}
+
+impl<S> HeldBack<S> {
+    fn new(socket: S, budget: usize) -> Self {
+        HeldBack {
+            socket,
+            budget: Some(budget),
+            parked: None,
+        }
+    }
+
+    /// Lifts the budget: reads go straight to the socket from now on.
+    fn release(&mut self) {
+        self.budget = None;
+        if let Some(parked) = self.parked.take() {
+            parked.wake();
+        }
+    }
+}
+
+impl<S: AsyncRead + Unpin> AsyncRead for HeldBack<S> {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<io::Result<()>> {
+        let Some(budget) = self.budget else {
+            return Pin::new(&mut self.socket).poll_read(cx, buf);
+        };
+        if budget == 0 {
+            self.parked = Some(cx.waker().clone());
+            return Poll::Pending;
+        }
+        // Before login only: a small copy keeps the read within the budget
+        // without unsafe code.
+        let mut chunk = [0u8; 4096];
+        let wanted = budget.min(buf.remaining()).min(chunk.len());
+        let mut limited = ReadBuf::new(&mut chunk[..wanted]);
+        ready!(Pin::new(&mut self.socket).poll_read(cx, &mut limited))?;
+        let read = limited.filled();
+        buf.put_slice(read);
+        self.budget = Some(budget - read.len());
+        Poll::Ready(Ok(()))
+    }
+}
+
+impl<S: AsyncWrite + Unpin> AsyncWrite for HeldBack<S> {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<io::Result<usize>> {
+        Pin::new(&mut self.socket).poll_write(cx, buf)
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.socket).poll_flush(cx)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.socket).poll_shutdown(cx)
+    }
+}
+
+impl super::session::ClientStream for ByteStream<HeldBack<TcpStream>> {
+    fn logged_in(&mut self) {
+        self.stream.get_mut().release();
+    }
 }
 
 /// A WebSocket as a byte stream: reads take the bytes of binary messages
@@ -158,5 +248,46 @@ impl<S: AsyncRead + AsyncWrite + Unpin> AsyncWrite for ByteStream<S> {
             Ok(()) | Err(Error::ConnectionClosed | Error::AlreadyClosed) => Poll::Ready(Ok(())),
             Err(e) => Poll::Ready(Err(io_error(e))),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+    /// True if a read of `held` would wait now: data already sitting in
+    /// the pipe would otherwise be returned at once.
+    async fn read_waits(held: &mut HeldBack<tokio::io::DuplexStream>) -> bool {
+        let mut byte = [0u8; 1];
+        tokio::select! {
+            biased;
+            _ = held.read(&mut byte) => false,
+            _ = tokio::task::yield_now() => true,
+        }
+    }
+
+    #[tokio::test]
+    async fn a_held_back_socket_reads_its_budget_then_waits_until_released() {
+        let (mut client, server) = tokio::io::duplex(1024);
+        client.write_all(&[7u8; 25]).await.unwrap();
+        let mut held = HeldBack::new(server, 10);
+        let mut read = Vec::new();
+        while read.len() < 10 {
+            let mut chunk = [0u8; 64];
+            let n = held.read(&mut chunk).await.unwrap();
+            read.extend_from_slice(&chunk[..n]);
+        }
+        assert_eq!(read.len(), 10, "never past the budget");
+        assert!(read_waits(&mut held).await, "15 bytes wait in the pipe");
+        held.release();
+        let mut rest = [0u8; 64];
+        let n = held.read(&mut rest).await.unwrap();
+        assert_eq!(n, 15, "the rest once released");
+        // Writes were never held back.
+        held.write_all(b"connack").await.unwrap();
+        let mut answer = [0u8; 7];
+        client.read_exact(&mut answer).await.unwrap();
+        assert_eq!(&answer, b"connack");
     }
 }
