@@ -1465,6 +1465,83 @@ async fn retained_messages_reach_later_subscribers_and_survive_a_restart() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A 5.0 retained message keeps the properties it was published with for
+/// later subscribers (its Message Expiry Interval being what is left of
+/// it), across a restart, and is not sent once that interval has passed
+/// (MQTT-3.3.2-5).
+#[both_runtimes]
+async fn a_retained_message_keeps_its_5_0_properties_until_it_expires() {
+    use rumqttc::v5::mqttbytes::v5::PublishProperties;
+    use rumqttc::v5::mqttbytes::QoS as QoS5;
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-retained-properties"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events) =
+        rumqttc::v5::AsyncClient::new(options5(&unique("props-pub"), port, "secret"), 16);
+    let kept = PublishProperties {
+        payload_format_indicator: Some(1),
+        message_expiry_interval: Some(3600),
+        content_type: Some("application/json".into()),
+        user_properties: vec![("robot".into(), "r2".into())],
+        ..Default::default()
+    };
+    let short = PublishProperties {
+        message_expiry_interval: Some(1),
+        ..Default::default()
+    };
+    // Topics in the order retained messages are sent: the expired one
+    // would come first.
+    client
+        .publish_with_properties("rp/a-expires", QoS5::AtLeastOnce, true, "gone", short)
+        .await
+        .unwrap();
+    client
+        .publish_with_properties("rp/kept", QoS5::AtLeastOnce, true, r#"{"x":1}"#, kept)
+        .await
+        .unwrap();
+    for _ in 0..2 {
+        until5(&mut events, |p| {
+            matches!(p, Packet5::PubAck(_)).then_some(())
+        })
+        .await;
+    }
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    // Past the short expiry (a lower bound, whatever the machine's load).
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+
+    let expect_kept = |port: u16| async move {
+        let (client, mut events) =
+            rumqttc::v5::AsyncClient::new(options5(&unique("props-sub"), port, "secret"), 16);
+        client.subscribe("rp/#", QoS5::AtLeastOnce).await.unwrap();
+        let first = until5(&mut events, |p| match p {
+            Packet5::Publish(p) => Some(p.clone()),
+            _ => None,
+        })
+        .await;
+        assert_eq!(first.topic, "rp/kept", "the expired one is not sent");
+        assert!(first.retain);
+        assert_eq!(&first.payload[..], br#"{"x":1}"#);
+        let properties = first.properties.expect("the publish's properties");
+        assert_eq!(properties.payload_format_indicator, Some(1));
+        assert_eq!(properties.content_type.as_deref(), Some("application/json"));
+        assert_eq!(
+            properties.user_properties,
+            [("robot".to_owned(), "r2".to_owned())]
+        );
+        let left = properties.message_expiry_interval.expect("expiry left");
+        assert!((1..=3600).contains(&left), "{left}");
+        client.disconnect().await.unwrap();
+        let _ = tmo!(events.poll());
+    };
+    expect_kept(port).await;
+    handle.shutdown().await;
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    expect_kept(mqtt_port(&handle)).await;
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[both_runtimes]
 async fn a_flood_of_retained_topics_stops_at_the_cap() {
     let limits = leveret_broker::RetainedLimits {

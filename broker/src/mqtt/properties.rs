@@ -4,7 +4,9 @@
 //! header `x-correlation-id`; Response Topic ↔ `reply-to` (as a routing
 //! key: `/` ↔ `.`); User Properties ↔ headers with long-string values;
 //! Message Expiry Interval ↔ `expiration` (milliseconds), with the
-//! publish's `timestamp` so that a delivery says the expiry left. Headers
+//! publish's `timestamp` so that a delivery says the expiry left; the
+//! Payload Format Indicator ↔ the header [`PAYLOAD_FORMAT_HEADER`] (0 or
+//! 1), as a subscriber must get it unaltered (MQTT-3.3.2-4). Headers
 //! named `x-mqtt-…` are the broker's own, not user properties. Only 5.0
 //! sessions read or write them (and 5.0 wills).
 
@@ -25,6 +27,9 @@ pub(super) fn epoch_seconds(time: SystemTime) -> u64 {
 
 /// The header that holds correlation data `correlation-id` cannot.
 const CORRELATION_HEADER: &str = "x-correlation-id";
+/// The header that holds a publish's Payload Format Indicator: 1 for
+/// UTF-8, 0 for unspecified bytes.
+pub(super) const PAYLOAD_FORMAT_HEADER: &str = "x-mqtt-payload-format-indicator";
 
 /// Sets `amqp` from a 5.0 PUBLISH's (or will's) properties, published
 /// at `now`.
@@ -41,6 +46,12 @@ pub(super) fn to_amqp(mqtt: &Properties, amqp: &mut BasicProperties, now: System
         amqp.timestamp = Some(epoch_seconds(now));
     }
     let mut headers = amqp.headers.take().unwrap_or_default();
+    if let Some(utf8) = mqtt.payload_format_utf8 {
+        headers.insert(
+            ShortStr::from_static(PAYLOAD_FORMAT_HEADER),
+            FieldValue::U8(u8::from(utf8)),
+        );
+    }
     if let Some(data) = &mqtt.correlation_data {
         match std::str::from_utf8(data)
             .ok()
@@ -59,6 +70,25 @@ pub(super) fn to_amqp(mqtt: &Properties, amqp: &mut BasicProperties, now: System
         }
     }
     amqp.headers = (!headers.is_empty()).then_some(headers);
+}
+
+/// Whether a message with `amqp`'s expiration, published at its
+/// timestamp, has expired by `now` (never without both).
+pub(super) fn expired(amqp: &BasicProperties, now: SystemTime) -> bool {
+    let Some(millis) = amqp
+        .expiration
+        .as_ref()
+        .and_then(|e| e.as_str()?.parse::<u64>().ok())
+    else {
+        return false;
+    };
+    let Some(published) = amqp.timestamp else {
+        return false;
+    };
+    let now_millis = now
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX));
+    now_millis >= published.saturating_mul(1000).saturating_add(millis)
 }
 
 /// A 5.0 delivery's PUBLISH properties from a message's, delivered at
@@ -96,6 +126,13 @@ pub(super) fn from_amqp(amqp: &BasicProperties, now: SystemTime) -> Properties {
             (CORRELATION_HEADER, FieldValue::LongStr(data)) => {
                 mqtt.correlation_data = Some(data.clone());
             }
+            (PAYLOAD_FORMAT_HEADER, value) => {
+                mqtt.payload_format_utf8 = match value.as_i64() {
+                    Some(0) => Some(false),
+                    Some(1) => Some(true),
+                    _ => None,
+                };
+            }
             (key, _) if key.starts_with(MQTT_HEADER_PREFIX) => {}
             (_, FieldValue::LongStr(text)) => {
                 let text = std::str::from_utf8(text).ok().map(MqttString::try_from);
@@ -126,6 +163,49 @@ mod tests {
             back.user_properties.is_empty(),
             "the header is no user property"
         );
+    }
+
+    #[test]
+    fn the_payload_format_indicator_reaches_a_subscriber_unaltered() {
+        for indicator in [Some(true), Some(false), None] {
+            let mut mqtt = Properties::default();
+            mqtt.payload_format_utf8 = indicator;
+            let mut amqp = BasicProperties::default();
+            to_amqp(&mqtt, &mut amqp, SystemTime::now());
+            let back = from_amqp(&amqp, SystemTime::now());
+            assert_eq!(back.payload_format_utf8, indicator);
+            assert!(back.user_properties.is_empty());
+        }
+        // Set by an AMQP publisher as any integer; other values say nothing.
+        let with = |value| BasicProperties {
+            headers: Some(FieldTable::from_iter([(
+                ShortStr::from_static(PAYLOAD_FORMAT_HEADER),
+                value,
+            )])),
+            ..Default::default()
+        };
+        let now = SystemTime::now();
+        assert_eq!(
+            from_amqp(&with(FieldValue::I32(1)), now).payload_format_utf8,
+            Some(true)
+        );
+        assert_eq!(
+            from_amqp(&with(FieldValue::I32(7)), now).payload_format_utf8,
+            None
+        );
+    }
+
+    #[test]
+    fn a_message_expires_its_expiration_after_its_timestamp() {
+        let mut mqtt = Properties::default();
+        mqtt.message_expiry_interval = Some(2);
+        let published = UNIX_EPOCH + std::time::Duration::from_secs(1_000_000);
+        let mut amqp = BasicProperties::default();
+        to_amqp(&mqtt, &mut amqp, published);
+        let later = |millis| published + std::time::Duration::from_millis(millis);
+        assert!(!expired(&amqp, later(1_999)));
+        assert!(expired(&amqp, later(2_000)));
+        assert!(!expired(&BasicProperties::default(), later(u64::MAX >> 24)));
     }
 
     #[test]

@@ -1,10 +1,13 @@
 //! Retained messages: at most one per topic and vhost, held in memory for
 //! the SUBSCRIBEs that match it and kept in the store
 //! ([`MetaRecord::Retained`]) so they survive a restart, as RabbitMQ's
-//! plugin keeps them per vhost. An empty payload deletes a topic's.
+//! plugin keeps them per vhost. An empty payload deletes a topic's. A
+//! 5.0 publish's properties are kept with it (as the AMQP properties they
+//! map to, encoded: [`super::properties`]), so a later subscriber gets
+//! them, and its Message Expiry Interval ends it (MQTT-3.3.2-5).
 //!
 //! Bounded: at most [`RetainedLimits::messages`] messages and
-//! [`RetainedLimits::bytes`] bytes (topic and payload) in the broker;
+//! [`RetainedLimits::bytes`] bytes (topic, properties and payload) in the broker;
 //! their bytes count in the memory gauge. A message that would pass a cap
 //! is still published but not retained, and the first refusal of a run of
 //! them is logged. Looking up a filter visits only the topics that share
@@ -39,11 +42,21 @@ impl Default for RetainedLimits {
 }
 
 /// A retained message.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub(super) struct Message {
     pub topic: String,
     pub qos: QoS,
+    /// Its 5.0 properties as encoded AMQP basic properties (empty: none).
+    pub properties: Bytes,
     pub payload: Bytes,
+}
+
+/// What is kept of a topic's retained message.
+#[derive(Debug)]
+struct Kept {
+    qos: QoS,
+    properties: Bytes,
+    payload: Bytes,
 }
 
 /// Why a message was not retained.
@@ -61,16 +74,16 @@ pub(crate) struct Retained {
 
 #[derive(Debug, Default)]
 struct State {
-    /// vhost → topic → (QoS, payload).
-    by_vhost: HashMap<String, BTreeMap<String, (QoS, Bytes)>>,
+    /// vhost → topic → its message.
+    by_vhost: HashMap<String, BTreeMap<String, Kept>>,
     messages: usize,
     bytes: usize,
     /// Whether the current run of refusals has been logged.
     refusal_logged: bool,
 }
 
-fn cost(topic: &str, payload: &Bytes) -> usize {
-    topic.len() + payload.len() + OVERHEAD
+fn cost(topic: &str, kept: &Kept) -> usize {
+    topic.len() + kept.properties.len() + kept.payload.len() + OVERHEAD
 }
 
 impl Retained {
@@ -95,11 +108,16 @@ impl Retained {
                 vhost,
                 topic,
                 qos,
+                properties,
                 payload,
             } = record
             {
-                let qos = QoS::from_level(*qos).unwrap_or(QoS::AtMostOnce);
-                if retained.put(vhost, topic, qos, payload.clone()).is_err() {
+                let kept = Kept {
+                    qos: QoS::from_level(*qos).unwrap_or(QoS::AtMostOnce),
+                    properties: properties.clone(),
+                    payload: payload.clone(),
+                };
+                if retained.lock_put(vhost, topic, kept).is_err() {
                     dropped += 1;
                 }
             }
@@ -120,12 +138,14 @@ impl Retained {
     /// Sets (or, with an empty payload, deletes) `topic`'s retained
     /// message in `vhost`, in memory and in the store; the store
     /// submission to wait for before acknowledging the publish (0 if
-    /// none), or [`Full`].
+    /// none), or [`Full`]. `properties` are its 5.0 properties as encoded
+    /// AMQP basic properties (empty: none).
     pub(super) fn retain(
         &self,
         vhost: &str,
         topic: &str,
         qos: QoS,
+        properties: Bytes,
         payload: Bytes,
     ) -> Result<u64, Full> {
         let op = if payload.is_empty() {
@@ -138,10 +158,16 @@ impl Retained {
                 vhost: vhost.to_owned(),
                 topic: topic.to_owned(),
                 qos: qos.level(),
+                properties: properties.clone(),
                 payload: payload.clone(),
             })
         };
-        let mut state = self.lock_put(vhost, topic, qos, payload)?;
+        let kept = Kept {
+            qos,
+            properties,
+            payload,
+        };
+        let mut state = self.lock_put(vhost, topic, kept)?;
         // Submitted under the lock: the store sees a topic's changes in
         // the order memory does.
         let number = self
@@ -152,17 +178,12 @@ impl Retained {
         Ok(number)
     }
 
-    fn put(&self, vhost: &str, topic: &str, qos: QoS, payload: Bytes) -> Result<(), Full> {
-        self.lock_put(vhost, topic, qos, payload).map(drop)
-    }
-
     /// Applies a change in memory; the lock, still held, on success.
     fn lock_put(
         &self,
         vhost: &str,
         topic: &str,
-        qos: QoS,
-        payload: Bytes,
+        kept: Kept,
     ) -> Result<std::sync::MutexGuard<'_, State>, Full> {
         let mut guard = self.lock();
         let state = &mut *guard;
@@ -170,8 +191,8 @@ impl Retained {
             .by_vhost
             .get(vhost)
             .and_then(|topics| topics.get(topic))
-            .map(|(_, old)| cost(topic, old));
-        if payload.is_empty() {
+            .map(|old| cost(topic, old));
+        if kept.payload.is_empty() {
             if let Some(old) = old {
                 if let Some(topics) = state.by_vhost.get_mut(vhost) {
                     topics.remove(topic);
@@ -185,7 +206,7 @@ impl Retained {
             }
             return Ok(guard);
         }
-        let new = cost(topic, &payload);
+        let new = cost(topic, &kept);
         let messages = state.messages + usize::from(old.is_none());
         let bytes = state.bytes - old.unwrap_or(0) + new;
         if messages > self.limits.messages || bytes > self.limits.bytes {
@@ -207,7 +228,7 @@ impl Retained {
             .by_vhost
             .entry(vhost.to_owned())
             .or_default()
-            .insert(topic.to_owned(), (qos, payload));
+            .insert(topic.to_owned(), kept);
         state.messages = messages;
         state.bytes = bytes;
         self.gauge.add(new);
@@ -232,10 +253,11 @@ impl Retained {
             .range(prefix.to_owned()..)
             .take_while(|(topic, _)| topic.starts_with(prefix))
             .filter(|(topic, _)| filter.matches(topic))
-            .map(|(topic, (qos, payload))| Message {
+            .map(|(topic, kept)| Message {
                 topic: topic.clone(),
-                qos: *qos,
-                payload: payload.clone(),
+                qos: kept.qos,
+                properties: kept.properties.clone(),
+                payload: kept.payload.clone(),
             })
             .collect()
     }
@@ -297,19 +319,25 @@ mod tests {
         let (retained, gauge) = retained(10, 10_000);
         let one = Bytes::from_static(b"1");
         retained
-            .retain("/", "a/b", QoS::AtLeastOnce, one.clone())
+            .retain("/", "a/b", QoS::AtLeastOnce, Bytes::new(), one.clone())
             .unwrap();
         retained
-            .retain("/", "a/b", QoS::AtMostOnce, Bytes::from_static(b"22"))
+            .retain(
+                "/",
+                "a/b",
+                QoS::AtMostOnce,
+                Bytes::new(),
+                Bytes::from_static(b"22"),
+            )
             .unwrap();
         retained
-            .retain("/", "a", QoS::AtMostOnce, one.clone())
+            .retain("/", "a", QoS::AtMostOnce, Bytes::new(), one.clone())
             .unwrap();
         retained
-            .retain("/", "ab", QoS::AtMostOnce, one.clone())
+            .retain("/", "ab", QoS::AtMostOnce, Bytes::new(), one.clone())
             .unwrap();
         retained
-            .retain("other", "a/b", QoS::AtMostOnce, one)
+            .retain("other", "a/b", QoS::AtMostOnce, Bytes::new(), one)
             .unwrap();
         assert_eq!(retained.figures().0, 4);
         assert_eq!(gauge.used(), retained.figures().1);
@@ -321,10 +349,10 @@ mod tests {
         assert_eq!(topics(&retained, "+"), ["a", "ab"]);
         assert_eq!(topics(&retained, "#"), ["a", "a/b", "ab"]);
         retained
-            .retain("/", "a/b", QoS::AtMostOnce, Bytes::new())
+            .retain("/", "a/b", QoS::AtMostOnce, Bytes::new(), Bytes::new())
             .unwrap();
         retained
-            .retain("/", "never", QoS::AtMostOnce, Bytes::new())
+            .retain("/", "never", QoS::AtMostOnce, Bytes::new(), Bytes::new())
             .unwrap();
         assert_eq!(topics(&retained, "#"), ["a", "ab"]);
         assert_eq!(retained.figures().0, 3);
@@ -334,24 +362,51 @@ mod tests {
     }
 
     #[test]
+    fn properties_are_kept_and_counted() {
+        let (retained, gauge) = retained(10, 10_000);
+        let properties = Bytes::from_static(b"encoded properties");
+        retained
+            .retain(
+                "/",
+                "p",
+                QoS::AtLeastOnce,
+                properties.clone(),
+                Bytes::from_static(b"v"),
+            )
+            .unwrap();
+        let found = retained.matching("/", &TopicFilter::from_static("p"));
+        assert_eq!(found[0].properties, properties);
+        assert_eq!(gauge.used(), "p".len() + properties.len() + 1 + OVERHEAD);
+    }
+
+    #[test]
     fn the_caps_refuse_new_topics_but_let_existing_ones_change() {
         let (retained, gauge) = retained(2, 1_000);
         let small = Bytes::from_static(b"x");
         retained
-            .retain("/", "a", QoS::AtMostOnce, small.clone())
+            .retain("/", "a", QoS::AtMostOnce, Bytes::new(), small.clone())
             .unwrap();
         retained
-            .retain("/", "b", QoS::AtMostOnce, small.clone())
+            .retain("/", "b", QoS::AtMostOnce, Bytes::new(), small.clone())
             .unwrap();
         assert_eq!(
-            retained.retain("/", "c", QoS::AtMostOnce, small.clone()),
+            retained.retain("/", "c", QoS::AtMostOnce, Bytes::new(), small.clone()),
             Err(Full)
         );
         retained
-            .retain("/", "b", QoS::AtMostOnce, Bytes::from_static(b"yy"))
+            .retain(
+                "/",
+                "b",
+                QoS::AtMostOnce,
+                Bytes::new(),
+                Bytes::from_static(b"yy"),
+            )
             .unwrap();
         let big = Bytes::from(vec![0u8; 1_000]);
-        assert_eq!(retained.retain("/", "a", QoS::AtMostOnce, big), Err(Full));
+        assert_eq!(
+            retained.retain("/", "a", QoS::AtMostOnce, Bytes::new(), big),
+            Err(Full)
+        );
         assert_eq!(topics(&retained, "#"), ["a", "b"]);
         assert_eq!(gauge.used(), retained.figures().1);
         assert!(retained.figures().1 <= 1_000);

@@ -206,15 +206,23 @@ async fn publish(shared: &Shared, core: &Arc<Core>, mut will: LastWill) {
     let Some(key) = mapping::routing_key(topic) else {
         return;
     };
-    if will.retain {
-        // Past the retained caps the will is still published (logged there).
-        let _ = shared
-            .retained
-            .retain(&will.vhost, topic, will.qos, will.payload.clone());
-    }
     // The Message Expiry Interval counts from the will's publication.
     if will.properties.expiration.is_some() {
         will.properties.timestamp = Some(super::properties::epoch_seconds(SystemTime::now()));
+    }
+    if will.retain {
+        // Kept with the properties the will is published with (those its
+        // session's version mapped: none for 3.1.1).
+        let mut properties = BytesMut::new();
+        will.properties.encode(&mut properties);
+        // Past the retained caps the will is still published (logged there).
+        let _ = shared.retained.retain(
+            &will.vhost,
+            topic,
+            will.qos,
+            properties.freeze(),
+            will.payload.clone(),
+        );
     }
     let admin = Admin {
         core: Arc::clone(core),

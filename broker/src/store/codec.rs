@@ -249,9 +249,19 @@ fn meta_value(record: &MetaRecord) -> Vec<u8> {
             put_long(&mut buf, read.as_bytes());
         }
         MetaRecord::Parameter { value, .. } => put_long(&mut buf, value.as_bytes()),
-        MetaRecord::Retained { qos, payload, .. } => {
+        MetaRecord::Retained {
+            qos,
+            properties,
+            payload,
+            ..
+        } => {
             buf.put_u8(*qos);
             put_long(&mut buf, payload);
+            // After the payload: records written before retained messages
+            // kept properties end there.
+            if !properties.is_empty() {
+                put_long(&mut buf, properties);
+            }
         }
         MetaRecord::Unreleased { .. } => {}
     }
@@ -323,6 +333,11 @@ fn decode_meta(key: &[u8], value: &mut Bytes) -> Result<MetaRecord, StoreError> 
                 _ => return Err(corrupt("retained QoS")),
             },
             payload: take_long(value)?,
+            properties: if value.is_empty() {
+                Bytes::new()
+            } else {
+                take_long(value)?
+            },
         },
         b'q' => MetaRecord::Unreleased {
             vhost: take_text(&mut names, "vhost name")?,
@@ -795,11 +810,21 @@ mod tests {
                 name: "up".into(),
                 value: r#"{"src-queue": "q"}"#.into(),
             },
+            // Without properties: as records written before they were
+            // kept (nothing after the payload).
             MetaRecord::Retained {
                 vhost: "/".into(),
                 topic: "cell/\0temp".into(),
                 qos: 1,
+                properties: Bytes::new(),
                 payload: Bytes::from_static(b"21.5\0"),
+            },
+            MetaRecord::Retained {
+                vhost: "/".into(),
+                topic: "cell/humidity".into(),
+                qos: 0,
+                properties: Bytes::from_static(b"opaque to the store"),
+                payload: Bytes::from_static(b"40"),
             },
             MetaRecord::Unreleased {
                 vhost: "/".into(),

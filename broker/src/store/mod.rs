@@ -310,6 +310,9 @@ pub enum MetaRecord {
         topic: String,
         /// Its QoS level (0, 1 or 2).
         qos: u8,
+        /// Its MQTT 5.0 properties mapped to AMQP basic properties
+        /// (encoded; empty for none).
+        properties: Bytes,
         /// Its payload.
         payload: Bytes,
     },
