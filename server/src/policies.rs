@@ -172,14 +172,21 @@ pub fn check(kind: PolicyKind, value: &Value) -> Result<(), String> {
 }
 
 /// The federation has no named upstream sets: `federation-upstream-set`
-/// is `all` or refused.
+/// is `all` or refused. It federates exchanges only (no queue
+/// federation), so a policy with either federation key must apply to
+/// exchanges: on queues the key would be kept and do nothing.
 fn check_federation_keys(spec: &PolicySpec) -> Result<(), String> {
-    match spec
+    let federates = spec
         .definition
         .iter()
-        .find(|(key, _)| key == "federation-upstream-set")
-    {
-        Some((_, PolicyValue::Text(set))) if set != "all" => {
+        .find(|(key, _)| key == "federation-upstream-set" || key == "federation-upstream");
+    match federates {
+        Some((key, _)) if spec.apply_to != ApplyTo::Exchanges => Err(format!(
+            "{key}: Leveret federates exchanges only (it has no queue federation): \
+             the policy must apply to exchanges, not {}",
+            spec.apply_to.as_str()
+        )),
+        Some((key, PolicyValue::Text(set))) if key == "federation-upstream-set" && set != "all" => {
             Err("federation-upstream-set: only \"all\" (Leveret has no named upstream sets)".into())
         }
         _ => Ok(()),
@@ -389,6 +396,18 @@ mod tests {
         ] {
             assert!(spec_from_json(&bad).is_err(), "{bad}");
         }
+        for apply_to in ["queues", "all"] {
+            let federating = json!({"pattern": ".*", "apply-to": apply_to,
+                                    "definition": {"federation-upstream-set": "all"}});
+            let refused = check(PolicyKind::User, &federating).unwrap_err();
+            assert!(refused.contains("federates exchanges only"), "{refused}");
+        }
+        check(
+            PolicyKind::User,
+            &json!({"pattern": ".*", "apply-to": "exchanges",
+                    "definition": {"federation-upstream": "fleet"}}),
+        )
+        .unwrap();
         let float =
             spec_from_json(&json!({"pattern": ".*", "definition": {"max-length": 1.5}})).unwrap();
         assert!(Policy::new(PolicyKind::User, "f", float)
