@@ -30,7 +30,6 @@ rabbit_env() {
 
 cleanup() {
   for pid in "${pids[@]}"; do kill "$pid" 2>/dev/null || true; done
-  [ -f "$d/lavin.pid" ] && kill "$(cat "$d/lavin.pid")" 2>/dev/null
   # Only this script's own node: never the shared one on 5672.
   if [ -n "${rabbit:-}" ]; then
     rabbit_env "$RB/rabbitmqctl" -q -n "$rabbit_node" stop >/dev/null 2>&1 ||
@@ -48,19 +47,30 @@ start_leveret() {
   await_port "$1"
 }
 
-# start_lavinmq PORT: LavinMQ on PORT, data in $d/lavin; sets lavinmq_pid.
+# start_lavinmq PORT [MQTT_PORT]: LavinMQ on PORT (and MQTT 3.1.1 on MQTT_PORT), data in
+# $d/lavin; sets lavinmq_pid. As the anchor's own `start` script runs it, with MQTT optional.
 start_lavinmq() {
-  "$LAVIN/start" "$1" "$d/lavin" >/dev/null
-  lavinmq_pid=$(cat "$d/lavin.pid")
+  GC_UNMAP_THRESHOLD=1 "$LAVIN/lavinmq" --data-dir "$d/lavin" --bind 127.0.0.1 --amqp-port "$1" \
+    --http-port -1 --mqtt-port "${2:--1}" --mqtts-port -1 --metrics-http-port -1 --clustering-port 0 \
+    --control-unix-path "$d/lavin.ctl.sock" >"$d/lavin.log" 2>&1 &
+  lavinmq_pid=$!
+  pids+=("$lavinmq_pid")
+  await_port "$1"
 }
 
-# start_rabbitmq PORT: a RabbitMQ node of this script's own on PORT; sets rabbitmq_pid.
+# start_rabbitmq PORT [MQTT_PORT]: a RabbitMQ node of this script's own on PORT (and with its
+# MQTT plugin on MQTT_PORT, anonymous logins as guest); sets rabbitmq_pid.
 start_rabbitmq() {
   rdist=$(($1 + 10000))
   [ $rdist -lt 65535 ] || rdist=$(($1 - 10000))
   mkdir -p "$d/rabbit"
-  echo '[].' >"$d/rabbit/enabled_plugins"
   printf 'listeners.tcp.1 = 127.0.0.1:%s\nloopback_users = none\n' "$1" >"$d/rabbit/rabbitmq.conf"
+  if [ -n "${2:-}" ]; then
+    echo '[rabbitmq_mqtt].' >"$d/rabbit/enabled_plugins"
+    printf 'mqtt.listeners.tcp.1 = 127.0.0.1:%s\n' "$2" >>"$d/rabbit/rabbitmq.conf"
+  else
+    echo '[].' >"$d/rabbit/enabled_plugins"
+  fi
   # More open files than a shell's 1,024 (RabbitMQ's memory monitor crashes without, perf/README).
   (ulimit -n 65536 2>/dev/null || true; rabbit_env setsid "$RB/rabbitmq-server") >"$d/rabbit.out" 2>&1 &
   rabbit=$!
@@ -75,6 +85,18 @@ start_rabbitmq() {
     sleep 2
   done
   rabbitmq_pid=$(cat "$d/rabbit/pid")
+  await_port "$1"
+}
+
+# start_mosquitto PORT: Debian's Mosquitto 2.0 with its defaults and anonymous logins on PORT,
+# its files in $d/mosquitto; sets mosquitto_pid.
+start_mosquitto() {
+  mkdir -p "$d/mosquitto"
+  chmod 755 "$d" "$d/mosquitto" # it drops root for its own user
+  printf 'listener %s 127.0.0.1\nallow_anonymous true\n' "$1" >"$d/mosquitto/mosquitto.conf"
+  /usr/sbin/mosquitto -c "$d/mosquitto/mosquitto.conf" >"$d/mosquitto.log" 2>&1 &
+  mosquitto_pid=$!
+  pids+=("$mosquitto_pid")
   await_port "$1"
 }
 
