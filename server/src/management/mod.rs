@@ -160,7 +160,7 @@ impl From<AccessError> for ApiError {
                 error: "internal_server_error",
                 reason: e.to_string(),
             },
-            AccessError::Pattern(_) | AccessError::BadName(_) => {
+            AccessError::Pattern(_) | AccessError::BadName(_) | AccessError::BadValue(_) => {
                 ApiError::bad_request(e.to_string())
             }
         }
