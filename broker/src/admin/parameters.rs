@@ -40,8 +40,9 @@ impl Admin {
         }
         #[cfg(feature = "mqtt")]
         for (vhost, name, value) in &parameters {
-            crate::mqtt::check_parameter(component, vhost, name, value)
-                .map_err(AccessError::BadValue)?;
+            if (component, vhost.as_str()) == ("global", "") {
+                crate::mqtt::check_global_parameter(name, value).map_err(AccessError::BadValue)?;
+            }
         }
         let _turn = self.core.access_changes.lock().await;
         let records = parameters

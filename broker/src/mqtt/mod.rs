@@ -36,8 +36,7 @@ mod wills;
 use retained::Retained;
 pub use retained::RetainedLimits;
 use takeover::ClientIds;
-pub(crate) use vhosts::check as check_parameter;
-pub use vhosts::{CERTIFICATE_MAPPING, PORT_MAPPING};
+pub use vhosts::{check_global_parameter, CERTIFICATE_MAPPING, PORT_MAPPING};
 
 use crate::core::Core;
 use crate::store::MetaRecord;

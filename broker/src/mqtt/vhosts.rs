@@ -6,8 +6,9 @@
 //! default vhost `/`. With a client certificate the certificate mapping
 //! comes first, then the port mapping, then the user name; without one
 //! the user name comes before the port mapping (RabbitMQ 3.10's
-//! `get_vhost`). The parameters are checked when set ([`check`], from
-//! `Admin::set_parameters`) and read at each CONNECT.
+//! `get_vhost`). The parameters are checked when set
+//! ([`check_global_parameter`], from `Admin::set_parameters` and the
+//! binary's definitions import) and read at each CONNECT.
 
 use super::mapping;
 use crate::core::Core;
@@ -24,11 +25,13 @@ const MAX_VALUE: usize = 64 * 1024;
 /// The longest vhost name (an AMQP short string).
 const MAX_VHOST: usize = 255;
 
-/// Whether (component, vhost, name) is one of the mappings; `value` must
-/// then be a JSON object of non-empty strings to vhost names (port
-/// numbers 1-65535 as the keys of the port mapping). The reason otherwise.
-pub(crate) fn check(component: &str, vhost: &str, name: &str, value: &str) -> Result<(), String> {
-    if (component, vhost) != GLOBAL || ![PORT_MAPPING, CERTIFICATE_MAPPING].contains(&name) {
+/// Checks a value for global parameter `name` (RabbitMQ's
+/// `set_global_parameter`): a mapping must be a JSON object of non-empty
+/// strings to vhost names (port numbers 1-65535 as the keys of the port
+/// mapping); other global parameters are their owners'. The reason
+/// otherwise.
+pub fn check_global_parameter(name: &str, value: &str) -> Result<(), String> {
+    if ![PORT_MAPPING, CERTIFICATE_MAPPING].contains(&name) {
         return Ok(());
     }
     if value.len() > MAX_VALUE {
@@ -139,8 +142,8 @@ mod tests {
 
     #[test]
     fn mappings_are_checked_when_set() {
-        let port = |v: &str| check("global", "", PORT_MAPPING, v);
-        let certificate = |v: &str| check("global", "", CERTIFICATE_MAPPING, v);
+        let port = |v: &str| check_global_parameter(PORT_MAPPING, v);
+        let certificate = |v: &str| check_global_parameter(CERTIFICATE_MAPPING, v);
         assert_eq!(port(r#"{"1883": "robots", "1884": "/"}"#), Ok(()));
         assert_eq!(port("{}"), Ok(()));
         assert!(port(r#"{"http": "robots"}"#).unwrap_err().contains("port"));
@@ -156,7 +159,6 @@ mod tests {
         assert!(certificate(r#"{"CN=a": null}"#).is_err());
         assert!(certificate(&format!(r#""{}""#, "x".repeat(MAX_VALUE))).is_err());
         // Other parameters are their owners'.
-        assert_eq!(check("global", "", "cluster_name", "{"), Ok(()));
-        assert_eq!(check("shovel", "", PORT_MAPPING, "{"), Ok(()));
+        assert_eq!(check_global_parameter("cluster_name", "{"), Ok(()));
     }
 }

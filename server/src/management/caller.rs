@@ -147,6 +147,7 @@ impl Caller {
                 | "operator-policies"
                 | "user-limits"
                 | "environment"
+                | "global-parameters"
         ) || (matches!(
             first,
             "vhosts" | "connections" | "parameters" | "cluster-name" | "vhost-limits"

@@ -397,6 +397,13 @@ pub fn router(context: Context) -> Router {
             "/api/cluster-name",
             get(policies::cluster_name).put(policies::put_cluster_name),
         )
+        .route("/api/global-parameters", get(policies::global_parameters))
+        .route(
+            "/api/global-parameters/{name}",
+            get(policies::global_parameter)
+                .put(policies::put_global_parameter)
+                .delete(policies::delete_global_parameter),
+        )
         .route("/api/federation-links", get(federation::links))
         .route("/api/federation-links/{vhost}", get(federation::links_in))
         .route("/api/health/checks/alarms", get(health::alarms))
