@@ -74,9 +74,10 @@ pub(super) fn shared_queue_name(group: &str, filter: &str) -> Option<ShortStr> {
 pub(super) const MAX_CLIENT_ID: usize = 255 - "mqtt-subscription-qos0".len();
 
 /// The vhost an MQTT user name names, if any, and its user: `vhost:user`
-/// split at the first `:`, else no vhost (`vhosts` picks one).
+/// split at the last `:` as RabbitMQ splits it (a user name has no `:`, a
+/// vhost may), else no vhost (`vhosts` picks one).
 pub(super) fn vhost_in_user_name(username: &str) -> (Option<&str>, &str) {
-    match username.split_once(':') {
+    match username.rsplit_once(':') {
         Some((vhost, user)) if !vhost.is_empty() => (Some(vhost), user),
         _ => (None, username),
     }
@@ -140,7 +141,7 @@ mod tests {
     fn user_names_pick_a_vhost() {
         assert_eq!(vhost_in_user_name("guest"), (None, "guest"));
         assert_eq!(vhost_in_user_name("robots:arm"), (Some("robots"), "arm"));
-        assert_eq!(vhost_in_user_name("robots:a:b"), (Some("robots"), "a:b"));
+        assert_eq!(vhost_in_user_name("a:b:arm"), (Some("a:b"), "arm"));
         assert_eq!(vhost_in_user_name(":guest"), (None, ":guest"));
     }
 }
