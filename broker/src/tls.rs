@@ -179,6 +179,7 @@ pub fn common_name(certificate: &CertificateDer<'_>) -> Option<String> {
     Some(name)
 }
 
+#[cfg(feature = "mqtt")]
 /// A certificate's subject DN as RabbitMQ writes it (`rabbit_cert_info`,
 /// RFC 4514): the RDNs last first, joined by `,` (a multi-valued RDN's
 /// values by `+`), short attribute names (`CN`, `O`, `OU`, ...) or the
@@ -206,6 +207,7 @@ pub fn subject(certificate: &CertificateDer<'_>) -> Option<String> {
     Some(rdns.join(","))
 }
 
+#[cfg(feature = "mqtt")]
 /// RabbitMQ's short names of subject attributes, by OID.
 fn short_name(oid: &str) -> Option<&'static str> {
     Some(match oid {
@@ -230,6 +232,7 @@ fn short_name(oid: &str) -> Option<&'static str> {
     })
 }
 
+#[cfg(feature = "mqtt")]
 /// RFC 4514 escaping as RabbitMQ does it: a leading space or `#`, a
 /// trailing space and `"+,;<>\\` get a backslash; bytes below 32 or from
 /// 126 up (UTF-8 sequences included) become `\\XX`.
@@ -250,6 +253,7 @@ fn escape_rdn_value(value: &str, out: &mut String) {
 mod tests {
     use super::*;
 
+    #[cfg(feature = "mqtt")]
     #[test]
     fn subjects_read_as_rabbitmq_writes_them() {
         let key = rcgen::KeyPair::generate().unwrap();
