@@ -620,4 +620,46 @@ async fn global_parameters_map_an_mqtt_port_to_a_vhost() {
     assert_eq!(status, 204);
     let (status, _) = api(&broker, "DELETE", path, GUEST, &Value::Null).await;
     assert_eq!(status, 404);
+
+    // leveretctl, with rabbitmqctl's commands: a malformed value fails
+    // with the reason; a good one is listed, then cleared.
+    let refused = ctl(
+        &broker,
+        &[
+            "set_global_parameter",
+            "mqtt_default_vhosts",
+            r#"{"CN=a": 5}"#,
+        ],
+    );
+    assert!(!refused.status.success(), "{refused:?}");
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("mqtt_default_vhosts"),
+        "{refused:?}"
+    );
+    let certificates = r#"{"O=client,CN=sensor-9":"robots"}"#;
+    ctl_ok(
+        &broker,
+        &["set_global_parameter", "mqtt_default_vhosts", certificates],
+    );
+    let listed = ctl_ok(
+        &broker,
+        &["-q", "--formatter", "json", "list_global_parameters"],
+    );
+    let listed: Value = serde_json::from_str(&listed).expect("JSON");
+    assert!(
+        listed.as_array().unwrap().contains(
+            &json!({"name": "mqtt_default_vhosts", "value": {"O=client,CN=sensor-9": "robots"}})
+        ),
+        "{listed}"
+    );
+    ctl_ok(&broker, &["clear_global_parameter", "mqtt_default_vhosts"]);
+    let (status, _) = api(
+        &broker,
+        "GET",
+        "/api/global-parameters/mqtt_default_vhosts",
+        GUEST,
+        &Value::Null,
+    )
+    .await;
+    assert_eq!(status, 404);
 }
