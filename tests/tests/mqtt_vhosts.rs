@@ -16,6 +16,7 @@ mod common;
 use common::*;
 use leveret_broker::{AccessError, Broker, BrokerHandle, PeerVerification, Permission, TlsOptions};
 use leveret_tests::certs::Authority;
+use rcgen::DnType;
 use rumqttc::{Event, Incoming, QoS};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -310,8 +311,14 @@ impl Files {
         path
     }
 
+    /// A certificate signed by `ca` for subject `/CN=common_name/O=fleet`
+    /// (RabbitMQ writes it `O=fleet,CN=common_name`), and its key.
     fn signed(&self, ca: &Authority, common_name: &str) -> (PathBuf, PathBuf) {
-        let (cert, key) = ca.sign(common_name, false);
+        let subject = [
+            (DnType::CommonName, common_name),
+            (DnType::OrganizationName, "fleet"),
+        ];
+        let (cert, key) = ca.sign_subject(&subject, false);
         (
             self.write(&format!("{common_name}.pem"), &cert.pem()),
             self.write(&format!("{common_name}.key"), &key.serialize_pem()),
@@ -379,11 +386,12 @@ async fn a_certificate_mapping_sends_a_client_to_its_vhost_before_the_port_mappi
     let ca = Authority::new("vhostmap test CA");
     let handle = start_tls(&files, &ca).await;
     let port = handle.mqtts_addrs()[0].port();
-    // The key is the subject DN as RabbitMQ writes it (RFC 4514).
+    // The key is the whole subject DN as RabbitMQ writes it (RFC 4514,
+    // the last RDN first); a common name alone matches nothing.
     set(
         &handle,
         CERTIFICATES,
-        r#"{"CN=sensor-9": "robots"}"#.to_owned(),
+        r#"{"O=fleet,CN=sensor-9": "robots", "CN=someone": "robots"}"#.to_owned(),
     )
     .await;
     set(&handle, PORTS, format!(r#"{{"{port}": "other"}}"#)).await;
@@ -403,8 +411,9 @@ async fn a_certificate_mapping_sends_a_client_to_its_vhost_before_the_port_mappi
     assert!(published.status.success(), "{published:?}");
     assert_eq!(next_body(&robots, &robots_queue).await, b"by-cert");
 
-    // A certificate not in the mapping: the port mapping, before a vhost
-    // in the user name (RabbitMQ's order with a certificate).
+    // A certificate not in the mapping (`O=fleet,CN=someone`): the port
+    // mapping, before a vhost in the user name (RabbitMQ's order with a
+    // certificate).
     let published = mosquitto_pub(
         &files,
         &ca,
@@ -429,7 +438,7 @@ async fn a_certificate_mapping_sends_a_client_to_its_vhost_before_the_port_mappi
     set(
         &handle,
         CERTIFICATES,
-        r#"{"CN=sensor-9": "nowhere"}"#.to_owned(),
+        r#"{"O=fleet,CN=sensor-9": "nowhere"}"#.to_owned(),
     )
     .await;
     let refused = mosquitto_pub(&files, &ca, port, "sensor-9", &["-i", "s9b", "-m", "x"]).await;
