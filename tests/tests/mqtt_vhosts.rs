@@ -4,8 +4,10 @@
 //! `mqtt_default_vhosts` (client certificate subject DN → vhost), the
 //! `vhost:user` user name and the default vhost, in RabbitMQ's order.
 //! rumqttc clients (3.1.1 and 5.0) on two plain listeners, Mosquitto's
-//! clients with certificates made here over TLS, lapin consumers in the
-//! picked vhost; a subscription's queue shows where a session lives.
+//! clients with certificates made here over TLS, a raw tungstenite client
+//! on a WebSocket listener, lapin consumers in the picked vhost; a
+//! subscription's queue (or the connection listing) shows where a
+//! session lives.
 //! Adversarial: a mapping to a vhost that does not exist or that the user
 //! may not use refuses the CONNECT; a malformed mapping is refused when
 //! set and nothing is stored.
@@ -447,5 +449,58 @@ async fn a_certificate_mapping_sends_a_client_to_its_vhost_before_the_port_mappi
         String::from_utf8_lossy(&refused.stderr).contains("not authorised"),
         "{refused:?}"
     );
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
+async fn a_port_mapping_applies_to_a_websocket_listener() {
+    use futures_util::{SinkExt, StreamExt};
+    use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+    use tokio_tungstenite::tungstenite::http::HeaderValue;
+    use tokio_tungstenite::tungstenite::Message;
+
+    let handle = builder()
+        .web_mqtt_listen(any())
+        .start()
+        .await
+        .expect("broker starts with MQTT over WebSocket");
+    let port = handle.web_mqtt_addrs()[0].port();
+    set(&handle, PORTS, format!(r#"{{"{port}": "robots"}}"#)).await;
+    let mut request = format!("ws://127.0.0.1:{port}/ws")
+        .into_client_request()
+        .unwrap();
+    request
+        .headers_mut()
+        .insert("sec-websocket-protocol", HeaderValue::from_static("mqtt"));
+    let socket = tmo!(tokio::net::TcpStream::connect(("127.0.0.1", port))).unwrap();
+    let (mut ws, _) = tmo!(tokio_tungstenite::client_async(request, socket)).unwrap();
+    let connect = leveret_mqtt::Packet::Connect(Box::new(leveret_mqtt::Connect {
+        version: leveret_mqtt::ProtocolVersion::V3_1_1,
+        clean_start: true,
+        keep_alive: 0,
+        properties: Default::default(),
+        client_id: leveret_mqtt::MqttString::from_static("over-ws"),
+        will: None,
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(bytes::Bytes::from_static(b"secret")),
+    }));
+    let mut out = bytes::BytesMut::new();
+    connect
+        .encode(leveret_mqtt::ProtocolVersion::V3_1_1, &mut out)
+        .unwrap();
+    tmo!(ws.send(Message::binary(out.to_vec()))).unwrap();
+    let Some(Ok(Message::Binary(connack))) = tmo!(ws.next()) else {
+        panic!("no CONNACK");
+    };
+    // CONNACK: session present 0, return code 0 (accepted).
+    assert_eq!(&connack[..], [0x20, 0x02, 0x00, 0x00]);
+    let vhosts: Vec<String> = handle
+        .admin()
+        .connections()
+        .into_iter()
+        .filter(|c| c.protocol.starts_with("MQTT"))
+        .map(|c| c.vhost)
+        .collect();
+    assert_eq!(vhosts, ["robots"]);
     handle.shutdown().await;
 }
