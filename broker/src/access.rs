@@ -232,6 +232,9 @@ pub enum AccessError {
     /// A name that cannot be used.
     #[error("{0}")]
     BadName(String),
+    /// A runtime parameter value its owner cannot use (the reason).
+    #[error("{0}")]
+    BadValue(String),
     /// The store could not write it; nothing changed.
     #[error(
         "the store could not write the change, so nothing changed (the broker's log says why)"

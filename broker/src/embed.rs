@@ -115,7 +115,9 @@ impl BrokerBuilder {
     #[cfg(feature = "mqtt")]
     /// Adds an MQTT 3.1.1/5.0 listener (RabbitMQ's `mqtt.listeners.tcp`;
     /// 1883 by convention, port 0 picks a free port). MQTT clients log in
-    /// as the broker's users (`vhost:user` picks a vhost) and meet AMQP
+    /// as the broker's users (a vhost picked as RabbitMQ picks it: `vhost:user`,
+    /// the global parameters `mqtt_port_to_vhost_mapping` and `mqtt_default_vhosts`
+    /// set through [`Admin::set_parameter`]) and meet AMQP
     /// clients on `amq.topic`; `docs/mqtt.md` says what is supported.
     pub fn mqtt_listen(mut self, addr: SocketAddr) -> Self {
         self.mqtt_listen.push(addr);

@@ -211,3 +211,5 @@ pub use inspect::{
 };
 #[cfg(feature = "mqtt")]
 pub use mqtt::RetainedLimits;
+#[cfg(feature = "mqtt")]
+pub use mqtt::{check_global_parameter, CERTIFICATE_MAPPING, PORT_MAPPING};

@@ -1,8 +1,8 @@
 //! Runtime parameters: RabbitMQ's `set_parameter` and `clear_parameter`
 //! (a component, a vhost, a name and a JSON value), kept in the store so
-//! they last, as RabbitMQ keeps them. The broker does not interpret them;
-//! their component's owner does (the `leveret` binary runs the `shovel`
-//! ones). This module holds them, as the core keeps them; changing them is
+//! they last, as RabbitMQ keeps them. The broker interprets only the MQTT
+//! vhost mappings (`mqtt::vhosts`); each other component's owner
+//! interprets its own (the `leveret` binary runs the `shovel` ones). This module holds them, as the core keeps them; changing them is
 //! the operators' (`admin::parameters`), through the same lock and atomic,
 //! flushed write as users and permissions.
 //!

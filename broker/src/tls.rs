@@ -179,9 +179,103 @@ pub fn common_name(certificate: &CertificateDer<'_>) -> Option<String> {
     Some(name)
 }
 
+#[cfg(feature = "mqtt")]
+/// A certificate's subject DN as RabbitMQ writes it (`rabbit_cert_info`,
+/// RFC 4514): the RDNs last first, joined by `,` (a multi-valued RDN's
+/// values by `+`), short attribute names (`CN`, `O`, `OU`, ...) or the
+/// dotted OID, values escaped as RabbitMQ escapes them. What its
+/// `ssl_cert_login_from = distinguished_name` login name and the
+/// `mqtt_default_vhosts` mapping's keys are. `None` for a value that is
+/// not a string.
+pub fn subject(certificate: &CertificateDer<'_>) -> Option<String> {
+    let (_, parsed) = x509_parser::parse_x509_certificate(certificate.as_ref()).ok()?;
+    let mut rdns = Vec::new();
+    for rdn in parsed.subject().iter() {
+        let mut values = Vec::new();
+        for attribute in rdn.iter() {
+            let oid = attribute.attr_type().to_id_string();
+            let mut text = match short_name(&oid) {
+                Some(name) => format!("{name}="),
+                None => format!("{oid}="),
+            };
+            escape_rdn_value(attribute.as_str().ok()?, &mut text);
+            values.push(text);
+        }
+        rdns.push(values.join("+"));
+    }
+    rdns.reverse();
+    Some(rdns.join(","))
+}
+
+#[cfg(feature = "mqtt")]
+/// RabbitMQ's short names of subject attributes, by OID.
+fn short_name(oid: &str) -> Option<&'static str> {
+    Some(match oid {
+        "2.5.4.4" => "SN",
+        "2.5.4.42" => "GIVENNAME",
+        "2.5.4.43" => "INITIALS",
+        "2.5.4.44" => "GENERATIONQUALIFIER",
+        "2.5.4.3" => "CN",
+        "2.5.4.7" => "L",
+        "2.5.4.8" => "ST",
+        "2.5.4.10" => "O",
+        "2.5.4.11" => "OU",
+        "2.5.4.12" => "TITLE",
+        "2.5.4.6" => "C",
+        "2.5.4.5" => "SERIALNUMBER",
+        "2.5.4.65" => "PSEUDONYM",
+        "0.9.2342.19200300.100.1.25" => "DC",
+        "1.2.840.113549.1.9.1" => "EMAILADDRESS",
+        "2.5.4.9" => "STREET",
+        "0.9.2342.19200300.100.1.1" => "UID",
+        _ => return None,
+    })
+}
+
+#[cfg(feature = "mqtt")]
+/// RFC 4514 escaping as RabbitMQ does it: a leading space or `#`, a
+/// trailing space and `"+,;<>\\` get a backslash; bytes below 32 or from
+/// 126 up (UTF-8 sequences included) become `\\XX`.
+fn escape_rdn_value(value: &str, out: &mut String) {
+    let bytes = value.as_bytes();
+    for (at, &byte) in bytes.iter().enumerate() {
+        match byte {
+            b' ' | b'#' if at == 0 => out.extend(['\\', byte as char]),
+            b' ' if at + 1 == bytes.len() => out.push_str("\\ "),
+            b'"' | b'+' | b',' | b';' | b'<' | b'>' | b'\\' => out.extend(['\\', byte as char]),
+            byte if !(32..126).contains(&byte) => out.push_str(&format!("\\{byte:02X}")),
+            byte => out.push(byte as char),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg(feature = "mqtt")]
+    #[test]
+    fn subjects_read_as_rabbitmq_writes_them() {
+        let key = rcgen::KeyPair::generate().unwrap();
+        let mut params = rcgen::CertificateParams::new(Vec::new()).unwrap();
+        // The subject lists CN, then O (as `openssl req -subj /CN=../O=..`);
+        // RabbitMQ writes the last first.
+        params.distinguished_name = rcgen::DistinguishedName::new();
+        params
+            .distinguished_name
+            .push(rcgen::DnType::CommonName, " #arm+1 ");
+        params
+            .distinguished_name
+            .push(rcgen::DnType::OrganizationName, "Robots, Inc");
+        let certificate = params.self_signed(&key).unwrap();
+        assert_eq!(
+            subject(certificate.der()).as_deref(),
+            Some("O=Robots\\, Inc,CN=\\ #arm\\+1\\ ")
+        );
+        let mut escaped = String::new();
+        escape_rdn_value("#é~\n", &mut escaped);
+        assert_eq!(escaped, "\\#\\C3\\A9\\7E\\0A");
+    }
 
     struct Files {
         dir: PathBuf,

@@ -12,7 +12,9 @@
 //! federation upstreams (`parameters` with component
 //! `federation-upstream`: `federation`), policies and operator policies
 //! (`crate::policies`; one with a key Leveret refuses is reported and not
-//! set) and the `cluster_name` global parameter. Everything else is
+//! set), the `cluster_name` global parameter and the MQTT vhost mappings
+//! (`mqtt_port_to_vhost_mapping`, `mqtt_default_vhosts`; a malformed one
+//! refuses the file). Everything else is
 //! reported, never dropped silently: other parameters, other global
 //! parameters, unknown keys, other password hashing
 //! algorithms, and queue types Leveret does not have (a quorum queue
@@ -77,8 +79,9 @@ pub struct Definitions {
     pub policies: Vec<(String, String, Value)>,
     /// Operator policies, likewise.
     pub operator_policies: Vec<(String, String, Value)>,
-    /// The `cluster_name` global parameter.
-    pub cluster_name: Option<String>,
+    /// The global parameters Leveret keeps (`cluster_name`, the MQTT
+    /// vhost mappings): name and value, checked.
+    pub global_parameters: Vec<(String, Value)>,
     /// Everything not applied, one line each.
     pub warnings: Vec<String>,
 }
@@ -310,11 +313,13 @@ impl Definitions {
         }
         for item in list(root, "global_parameters")? {
             match (item.get("name").and_then(Value::as_str), item.get("value")) {
-                (Some(crate::policies::CLUSTER_NAME), Some(Value::String(name))) => {
-                    d.cluster_name = Some(name.clone())
+                (Some(name), Some(value)) if crate::policies::is_global_parameter(name) => {
+                    crate::policies::check_global_parameter(name, value)
+                        .map_err(|e| format!("global parameter '{name}': {e}"))?;
+                    d.global_parameters.push((name.to_owned(), value.clone()));
                 }
                 _ => d.warnings.push(format!(
-                    "{} not imported: Leveret keeps only the cluster_name global parameter",
+                    "{} not imported: Leveret keeps only the cluster_name and MQTT vhost mapping global parameters",
                     describe("global_parameters", item)
                 )),
             }
@@ -746,10 +751,10 @@ impl Definitions {
             .await
             .map_err(|(at, e)| format!("policy '{}': {e}", policies[at].name))?;
         applied.policies += policies.len();
-        if let Some(name) = &self.cluster_name {
-            crate::policies::set_cluster_name(admin, name)
+        for (name, value) in &self.global_parameters {
+            crate::policies::set_global_parameter(admin, name, value)
                 .await
-                .map_err(|e| format!("cluster_name: {e}"))?;
+                .map_err(|e| format!("global parameter '{name}': {e}"))?;
         }
         Ok(applied)
     }
@@ -898,8 +903,7 @@ pub fn export(admin: &Admin, links: &Links) -> Value {
             "value": value, "vhost": vhost, "component": crate::federation::UPSTREAM_COMPONENT,
             "name": name,
         })))).collect::<Vec<_>>(),
-        "global_parameters": [{"name": crate::policies::CLUSTER_NAME,
-                               "value": crate::policies::cluster_name(admin, &crate::process::node_name())}],
+        "global_parameters": crate::policies::global_parameters(admin, &crate::process::node_name()),
         "policies": admin.policies(PolicyKind::User, None).iter()
             .map(|(vhost, p)| crate::policies::policy_json(vhost, p)).collect::<Vec<_>>(),
         "operator_policies": admin.policies(PolicyKind::Operator, None).iter()

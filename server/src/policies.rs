@@ -8,8 +8,10 @@
 //! it outlasts a restart: `start_stored` sets them again at start. The
 //! config file's policies are the config file's, not stored.
 //!
-//! The cluster name is RabbitMQ's global parameter `cluster_name`, kept
-//! as the runtime parameter `cluster_name` of the component `global`.
+//! The global parameters Leveret keeps (RabbitMQ's `set_global_parameter`),
+//! each a runtime parameter of the component `global`: `cluster_name`, and
+//! the broker's MQTT vhost mappings `mqtt_port_to_vhost_mapping` and
+//! `mqtt_default_vhosts` (checked and read by the broker).
 
 use crate::federation::Federation;
 use crate::uplink::DeclareError;
@@ -369,6 +371,70 @@ pub async fn set_cluster_name(admin: &Admin, name: &str) -> Result<(), DeclareEr
         .set_parameter(GLOBAL.0, GLOBAL.1, CLUSTER_NAME, json!(name).to_string())
         .await?;
     Ok(())
+}
+
+/// The MQTT vhost mappings: global parameters the broker reads.
+const MQTT_MAPPINGS: [&str; 2] = [
+    leveret_broker::PORT_MAPPING,
+    leveret_broker::CERTIFICATE_MAPPING,
+];
+
+/// The global parameters, as RabbitMQ lists them (`name`, `value`): the
+/// cluster name (its default when unset), and the MQTT mappings set.
+pub fn global_parameters(admin: &Admin, node: &str) -> Vec<Value> {
+    let cluster = json!({"name": CLUSTER_NAME, "value": cluster_name(admin, node)});
+    let mappings = admin
+        .parameters(GLOBAL.0)
+        .into_iter()
+        .filter(|(vhost, name, _)| vhost == GLOBAL.1 && MQTT_MAPPINGS.contains(&name.as_str()))
+        .filter_map(|(_, name, text)| {
+            let value = serde_json::from_str::<Value>(&text).ok()?;
+            Some(json!({"name": name, "value": value}))
+        });
+    std::iter::once(cluster).chain(mappings).collect()
+}
+
+/// Whether Leveret keeps global parameter `name`.
+pub fn is_global_parameter(name: &str) -> bool {
+    name == CLUSTER_NAME || MQTT_MAPPINGS.contains(&name)
+}
+
+/// Whether global parameter `name` is one Leveret keeps and `value` one it
+/// can use; the reason otherwise.
+pub fn check_global_parameter(name: &str, value: &Value) -> Result<(), String> {
+    match (name, value) {
+        (CLUSTER_NAME, Value::String(text)) if !text.is_empty() => Ok(()),
+        (CLUSTER_NAME, _) => Err("cluster_name must be a non-empty string".into()),
+        (name, value) if MQTT_MAPPINGS.contains(&name) => {
+            leveret_broker::check_global_parameter(name, &value.to_string())
+        }
+        (other, _) => Err(format!(
+            "Leveret keeps only the global parameters {CLUSTER_NAME}, {} and {}, not '{other}'",
+            MQTT_MAPPINGS[0], MQTT_MAPPINGS[1]
+        )),
+    }
+}
+
+/// Sets global parameter `name` (`rabbitmqctl set_global_parameter`),
+/// kept in the store; a name or value Leveret cannot use is refused.
+pub async fn set_global_parameter(
+    admin: &Admin,
+    name: &str,
+    value: &Value,
+) -> Result<(), DeclareError> {
+    check_global_parameter(name, value).map_err(DeclareError::Invalid)?;
+    match value {
+        Value::String(text) if name == CLUSTER_NAME => set_cluster_name(admin, text).await,
+        _ => Ok(admin
+            .set_parameter(GLOBAL.0, GLOBAL.1, name, value.to_string())
+            .await?),
+    }
+}
+
+/// Clears global parameter `name` (`clear_global_parameter`); false if
+/// it was not set.
+pub async fn clear_global_parameter(admin: &Admin, name: &str) -> Result<bool, DeclareError> {
+    Ok(admin.clear_parameter(GLOBAL.0, GLOBAL.1, name).await?)
 }
 
 #[cfg(test)]

@@ -1,5 +1,5 @@
-//! Policies, operator policies and the cluster name through the `leveret`
-//! binary's surfaces: rabbitmqadmin 3.10's `declare policy` and `list
+//! Policies, operator policies, the cluster name and the MQTT vhost
+//! mappings (global parameters) through the `leveret` binary's surfaces: rabbitmqadmin 3.10's `declare policy` and `list
 //! policies`, the management API (RabbitMQ's paths and permissions),
 //! leveretctl's rabbitmqctl-style commands, definitions export and
 //! import; what they set acts on queues at once and outlasts a SIGKILL.
@@ -495,4 +495,171 @@ async fn stored_policies_are_in_force_before_the_first_client_is_served() {
         "the first client's publish went past the stored max-length: {confirm:?}"
     );
     assert_eq!(ready, 1);
+}
+
+/// RabbitMQ's global parameter `mqtt_port_to_vhost_mapping` through
+/// `/api/global-parameters`: a malformed value is a 400 with the reason and
+/// is not stored (nor is one in imported definitions); a well-formed one
+/// sends `mosquitto_pub` on the mapped port to its vhost, where a lapin
+/// consumer gets the message; it is listed, exported, and deleted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn global_parameters_map_an_mqtt_port_to_a_vhost() {
+    if !tool_available("mosquitto_pub", "mosquitto-clients") {
+        return;
+    }
+    let broker = OpsBroker::start("global-parameters", &["--mqtt-listen", "127.0.0.1:0"]);
+    let port = broker.mqtt_addr().port();
+    let path = "/api/global-parameters/mqtt_port_to_vhost_mapping";
+    let (status, _) = api(&broker, "PUT", "/api/vhosts/robots", GUEST, &json!({})).await;
+    assert!(status < 300, "{status}");
+    let full = json!({"configure": ".*", "write": ".*", "read": ".*"});
+    let (status, _) = api(
+        &broker,
+        "PUT",
+        "/api/permissions/robots/guest",
+        GUEST,
+        &full,
+    )
+    .await;
+    assert!(status < 300, "{status}");
+
+    for bad in [
+        json!({"mqtt": "robots"}),
+        json!({"1883": 7}),
+        json!("robots"),
+    ] {
+        let (status, answer) = api(&broker, "PUT", path, GUEST, &json!({"value": bad})).await;
+        assert_eq!(status, 400, "{bad}: {answer}");
+        assert!(
+            answer["reason"]
+                .as_str()
+                .unwrap()
+                .contains("mqtt_port_to_vhost_mapping"),
+            "{answer}"
+        );
+    }
+    let (status, _) = api(&broker, "GET", path, GUEST, &Value::Null).await;
+    assert_eq!(status, 404);
+    let bad_import = json!({"global_parameters": [
+        {"name": "mqtt_default_vhosts", "value": {"CN=sensor": ["robots"]}}]});
+    let (status, answer) = api(&broker, "POST", "/api/definitions", GUEST, &bad_import).await;
+    assert_eq!(status, 400, "{answer}");
+    let (_, listed) = api(
+        &broker,
+        "GET",
+        "/api/global-parameters",
+        GUEST,
+        &Value::Null,
+    )
+    .await;
+    assert_eq!(
+        listed.as_array().unwrap().len(),
+        1,
+        "only cluster_name: {listed}"
+    );
+
+    let mapping = json!({port.to_string(): "robots"});
+    let (status, _) = api(&broker, "PUT", path, GUEST, &json!({"value": mapping})).await;
+    assert_eq!(status, 204);
+    let (_, one) = api(&broker, "GET", path, GUEST, &Value::Null).await;
+    assert_eq!(
+        one,
+        json!({"name": "mqtt_port_to_vhost_mapping", "value": mapping})
+    );
+    let (_, exported) = api(&broker, "GET", "/api/definitions", GUEST, &Value::Null).await;
+    assert!(
+        exported["global_parameters"]
+            .as_array()
+            .unwrap()
+            .contains(&one),
+        "{exported}"
+    );
+
+    let url = format!("amqp://guest:guest@{}/robots", broker.amqp);
+    let amqp = lapin::Connection::connect(&url, Default::default())
+        .await
+        .unwrap();
+    let channel = amqp.create_channel().await.unwrap();
+    channel
+        .queue_declare("readings", Default::default(), Default::default())
+        .await
+        .unwrap();
+    channel
+        .queue_bind(
+            "readings",
+            "amq.topic",
+            "cells.*",
+            Default::default(),
+            Default::default(),
+        )
+        .await
+        .unwrap();
+    let published = Command::new("mosquitto_pub")
+        .args([
+            "-h",
+            "127.0.0.1",
+            "-p",
+            &port.to_string(),
+            "-u",
+            "guest",
+            "-P",
+            "guest",
+        ])
+        .args(["-i", "mapped", "-t", "cells/7", "-m", "21.5", "-q", "1"])
+        .output()
+        .expect("mosquitto_pub runs");
+    assert!(published.status.success(), "{published:?}");
+    let got = channel
+        .basic_get("readings", lapin::options::BasicGetOptions { no_ack: true })
+        .await
+        .unwrap()
+        .expect("the MQTT publish reached the mapped vhost");
+    assert_eq!(got.delivery.data, b"21.5");
+
+    let (status, _) = api(&broker, "DELETE", path, GUEST, &Value::Null).await;
+    assert_eq!(status, 204);
+    let (status, _) = api(&broker, "DELETE", path, GUEST, &Value::Null).await;
+    assert_eq!(status, 404);
+
+    // leveretctl, with rabbitmqctl's commands: a malformed value fails
+    // with the reason; a good one is listed, then cleared.
+    let refused = ctl(
+        &broker,
+        &[
+            "set_global_parameter",
+            "mqtt_default_vhosts",
+            r#"{"CN=a": 5}"#,
+        ],
+    );
+    assert!(!refused.status.success(), "{refused:?}");
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("mqtt_default_vhosts"),
+        "{refused:?}"
+    );
+    let certificates = r#"{"O=client,CN=sensor-9":"robots"}"#;
+    ctl_ok(
+        &broker,
+        &["set_global_parameter", "mqtt_default_vhosts", certificates],
+    );
+    let listed = ctl_ok(
+        &broker,
+        &["-q", "--formatter", "json", "list_global_parameters"],
+    );
+    let listed: Value = serde_json::from_str(&listed).expect("JSON");
+    assert!(
+        listed.as_array().unwrap().contains(
+            &json!({"name": "mqtt_default_vhosts", "value": {"O=client,CN=sensor-9": "robots"}})
+        ),
+        "{listed}"
+    );
+    ctl_ok(&broker, &["clear_global_parameter", "mqtt_default_vhosts"]);
+    let (status, _) = api(
+        &broker,
+        "GET",
+        "/api/global-parameters/mqtt_default_vhosts",
+        GUEST,
+        &Value::Null,
+    )
+    .await;
+    assert_eq!(status, 404);
 }

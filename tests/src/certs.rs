@@ -38,11 +38,23 @@ impl Authority {
     /// A certificate for `common_name` (with `localhost` as its DNS name),
     /// valid now or expired since 2021, and its key.
     pub fn sign(&self, common_name: &str, expired: bool) -> (Certificate, KeyPair) {
+        self.sign_subject(&[(DnType::CommonName, common_name)], expired)
+    }
+
+    /// A certificate whose subject is `subject`, in that order (with
+    /// `localhost` as its DNS name), valid now or expired since 2021, and
+    /// its key.
+    pub fn sign_subject(
+        &self,
+        subject: &[(DnType, &str)],
+        expired: bool,
+    ) -> (Certificate, KeyPair) {
         let key = KeyPair::generate().expect("key");
         let mut params = CertificateParams::new(vec!["localhost".to_owned()]).expect("params");
-        params
-            .distinguished_name
-            .push(DnType::CommonName, common_name);
+        params.distinguished_name = rcgen::DistinguishedName::new();
+        for (kind, value) in subject {
+            params.distinguished_name.push(kind.clone(), *value);
+        }
         if expired {
             params.not_before = rcgen::date_time_ymd(2020, 1, 1);
             params.not_after = rcgen::date_time_ymd(2021, 1, 1);

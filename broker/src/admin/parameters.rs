@@ -25,7 +25,9 @@ impl Admin {
 
     /// Sets runtime parameters of `component`, each (vhost, name, value),
     /// in one store write (an import of many policies): on disk before it
-    /// returns, all or none.
+    /// returns, all or none. The MQTT vhost mappings (global
+    /// `mqtt_port_to_vhost_mapping`, `mqtt_default_vhosts`) are checked
+    /// first: a malformed one is refused, nothing set.
     pub async fn set_parameters(
         &self,
         component: &str,
@@ -35,6 +37,12 @@ impl Admin {
             return Err(AccessError::BadName(
                 "a parameter needs a component and a name".to_owned(),
             ));
+        }
+        #[cfg(feature = "mqtt")]
+        for (vhost, name, value) in &parameters {
+            if (component, vhost.as_str()) == ("global", "") {
+                crate::mqtt::check_global_parameter(name, value).map_err(AccessError::BadValue)?;
+            }
         }
         let _turn = self.core.access_changes.lock().await;
         let records = parameters

@@ -10,7 +10,7 @@ use leveret_protocol::ShortStr;
 /// The exchange MQTT publishes go to and subscriptions bind to.
 pub(super) const EXCHANGE: &str = "amq.topic";
 
-/// The vhost of a user name without a `vhost:` prefix.
+/// The vhost a session gets when nothing else picks one.
 pub(super) const DEFAULT_VHOST: &str = "/";
 
 /// Swaps `/` and `.`, keeping every other character.
@@ -73,12 +73,13 @@ pub(super) fn shared_queue_name(group: &str, filter: &str) -> Option<ShortStr> {
 /// The longest client identifier whose queue names fit in a queue name.
 pub(super) const MAX_CLIENT_ID: usize = 255 - "mqtt-subscription-qos0".len();
 
-/// The vhost and user of an MQTT user name: `vhost:user` as RabbitMQ
-/// reads it (split at the first `:`), else the default vhost `/`.
-pub(super) fn vhost_and_user(username: &str) -> (&str, &str) {
-    match username.split_once(':') {
-        Some((vhost, user)) if !vhost.is_empty() => (vhost, user),
-        _ => (DEFAULT_VHOST, username),
+/// The vhost an MQTT user name names, if any, and its user: `vhost:user`
+/// split at the last `:` as RabbitMQ splits it (a user name has no `:`, a
+/// vhost may), else no vhost (`vhosts` picks one).
+pub(super) fn vhost_in_user_name(username: &str) -> (Option<&str>, &str) {
+    match username.rsplit_once(':') {
+        Some((vhost, user)) if !vhost.is_empty() => (Some(vhost), user),
+        _ => (None, username),
     }
 }
 
@@ -138,9 +139,9 @@ mod tests {
 
     #[test]
     fn user_names_pick_a_vhost() {
-        assert_eq!(vhost_and_user("guest"), ("/", "guest"));
-        assert_eq!(vhost_and_user("robots:arm"), ("robots", "arm"));
-        assert_eq!(vhost_and_user("robots:a:b"), ("robots", "a:b"));
-        assert_eq!(vhost_and_user(":guest"), ("/", ":guest"));
+        assert_eq!(vhost_in_user_name("guest"), (None, "guest"));
+        assert_eq!(vhost_in_user_name("robots:arm"), (Some("robots"), "arm"));
+        assert_eq!(vhost_in_user_name("a:b:arm"), (Some("a:b"), "arm"));
+        assert_eq!(vhost_in_user_name(":guest"), (None, ":guest"));
     }
 }

@@ -11,7 +11,8 @@
 //! `websocket` the WebSocket handshake and byte-stream adapter; `session` one
 //! connection (CONNECT, keepalive, the packet loop); `link` the AMQP side
 //! of a session (login, channel, the methods it sends); `mapping` names
-//! (topics ↔ routing keys, queue names, `vhost:user`); `takeover` the
+//! (topics ↔ routing keys, queue names, `vhost:user`); `vhosts` the
+//! vhost a session lives in (the port and certificate mappings); `takeover` the
 //! client identifiers in use; `retained` the retained messages;
 //! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL;
 //! `properties` 5.0 PUBLISH properties ↔ AMQP properties;
@@ -28,12 +29,14 @@ mod retained;
 mod session;
 mod subscriptions;
 mod takeover;
+mod vhosts;
 mod websocket;
 mod wills;
 
 use retained::Retained;
 pub use retained::RetainedLimits;
 use takeover::ClientIds;
+pub use vhosts::{check_global_parameter, CERTIFICATE_MAPPING, PORT_MAPPING};
 
 use crate::core::Core;
 use crate::store::MetaRecord;
@@ -144,8 +147,14 @@ async fn serve(
     shared: Arc<Shared>,
 ) {
     let timeout = core.limits.handshake_timeout;
+    let port = socket.local_addr().map(|a| a.port()).unwrap_or_default();
+    let origin = |peer, certificate| session::Origin {
+        peer,
+        port,
+        certificate,
+    };
     match transport {
-        Transport::Tcp => session::serve(core, socket, (peer, None), slot, shared).await,
+        Transport::Tcp => session::serve(core, socket, origin(peer, None), slot, shared).await,
         #[cfg(feature = "tls")]
         Transport::Tls(tls) => {
             let handshake = tls.acceptor().accept(socket);
@@ -165,8 +174,11 @@ async fn serve(
                 .1
                 .peer_certificates()
                 .and_then(|chain| chain.first())
-                .and_then(crate::tls::common_name);
-            session::serve(core, stream, (peer, certificate), slot, shared).await;
+                .map(|certificate| session::ClientCertificate {
+                    common_name: crate::tls::common_name(certificate),
+                    subject: crate::tls::subject(certificate),
+                });
+            session::serve(core, stream, origin(peer, certificate), slot, shared).await;
         }
         Transport::WebSocket => {
             let max_message = session::max_packet(&core.limits) as usize;
@@ -182,7 +194,7 @@ async fn serve(
                     return;
                 }
             };
-            session::serve(core, stream, (peer, None), slot, shared).await;
+            session::serve(core, stream, origin(peer, None), slot, shared).await;
         }
     }
 }

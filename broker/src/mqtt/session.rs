@@ -19,6 +19,7 @@ use super::mapping;
 use super::retained::Message;
 use super::subscriptions::{self, Marks, Options, SharedSubscription, Subscriptions};
 use super::takeover::Claim;
+use super::vhosts;
 use super::wills::{self, LastWill};
 use super::Shared;
 use crate::admission::Slot;
@@ -86,16 +87,34 @@ impl ClientStream for tokio::net::TcpStream {}
 #[cfg(feature = "tls")]
 impl ClientStream for tokio_rustls::server::TlsStream<tokio::net::TcpStream> {}
 
+/// Where a connection comes from.
+pub(super) struct Origin {
+    /// The client's address.
+    pub peer: String,
+    /// The listener port it connected to (`mqtt_port_to_vhost_mapping`).
+    pub port: u16,
+    /// The client's verified TLS certificate, if any.
+    pub certificate: Option<ClientCertificate>,
+}
+
+/// What a verified client certificate names.
+pub(super) struct ClientCertificate {
+    /// The common name: the user of a certificate login.
+    pub common_name: Option<String>,
+    /// The subject DN in RabbitMQ's form (`mqtt_default_vhosts`).
+    pub subject: Option<String>,
+}
+
 /// Serves one MQTT connection over `socket` (TCP, TLS or WebSocket)
-/// until it closes; `certificate` is the common name of the client's
-/// verified TLS certificate, if any.
+/// until it closes.
 pub(super) async fn serve<S: ClientStream>(
     core: Arc<Core>,
     mut socket: S,
-    (peer, certificate): (String, Option<String>),
+    origin: Origin,
     slot: Slot,
     shared: Arc<Shared>,
 ) {
+    let peer = &origin.peer;
     let deadline = Instant::now() + core.limits.handshake_timeout;
     let mut buf = BytesMut::with_capacity(1024);
     let mut shutdown = core.shutdown_signal();
@@ -115,8 +134,7 @@ pub(super) async fn serve<S: ClientStream>(
         }
     };
     let version = connect.version;
-    let credentials = (&*connect, certificate.as_deref());
-    let accepted = match admit(&core, credentials, slot, &peer, deadline, &shared).await {
+    let accepted = match admit(&core, (&*connect, &origin), slot, deadline, &shared).await {
         Ok(accepted) => accepted,
         Err(reason) => {
             tracing::info!(%peer, reason = reason.name(), "MQTT CONNECT refused");
@@ -319,9 +337,8 @@ impl Lifetime {
 /// identifier; the CONNACK reason to refuse with otherwise.
 async fn admit(
     core: &Arc<Core>,
-    (connect, certificate): (&Connect, Option<&str>),
+    (connect, origin): (&Connect, &Origin),
     slot: Slot,
-    peer: &str,
     deadline: Instant,
     shared: &Shared,
 ) -> Result<Accepted, ReasonCode> {
@@ -346,24 +363,33 @@ async fn admit(
     // As RabbitMQ's plugin: a user name in the CONNECT first, then the
     // client certificate's common name (`ssl_cert_login`), then the
     // anonymous login.
-    let certificate = certificate.filter(|_| shared.certificate_login);
-    let ((vhost, user), password) = match (&connect.username, certificate, &shared.anonymous) {
+    let certificate = origin.certificate.as_ref();
+    let common_name = certificate
+        .and_then(|c| c.common_name.as_deref())
+        .filter(|_| shared.certificate_login);
+    let (login_name, password) = match (&connect.username, common_name, &shared.anonymous) {
         (Some(name), _, _) => (
-            mapping::vhost_and_user(name.as_str()),
+            name.as_str(),
             Some(connect.password.as_deref().unwrap_or_default()),
         ),
-        (None, Some(name), _) => ((mapping::DEFAULT_VHOST, name), None),
-        (None, None, Some((name, password))) => {
-            (mapping::vhost_and_user(name), Some(password.as_bytes()))
-        }
+        (None, Some(name), _) => (name, None),
+        (None, None, Some((name, password))) => (name.as_str(), Some(password.as_bytes())),
         (None, None, None) => return Err(ReasonCode::NotAuthorized),
     };
+    let client = vhosts::Client {
+        port: origin.port,
+        subject: certificate.and_then(|c| c.subject.as_deref()),
+        login_name,
+        splits: password.is_some(),
+    };
+    let (vhost, user, source) = vhosts::pick(core, &client);
+    tracing::debug!(peer = %origin.peer, %vhost, "MQTT vhost picked using {}", source.describe());
     let window = match connect.properties.receive_maximum {
         Some(max) if v5 => max.get().min(DEFAULT_WINDOW),
         _ => DEFAULT_WINDOW,
     };
     let login = Login {
-        vhost,
+        vhost: &vhost,
         user,
         password,
         client_id: &client_id,
@@ -374,20 +400,26 @@ async fn admit(
             ProtocolVersion::V5 => "MQTT 5.0",
         },
     };
-    let link = Link::open(Arc::clone(core), slot, peer.to_owned(), login, deadline)
+    let peer = origin.peer.clone();
+    let link = Link::open(Arc::clone(core), slot, peer, login, deadline)
         .await
         .map_err(|refusal| match refusal {
             Refusal::BadCredentials => ReasonCode::BadUserNameOrPassword,
-            Refusal::NotAuthorized => ReasonCode::NotAuthorized,
+            Refusal::NotAuthorized => {
+                tracing::warn!(peer = %origin.peer, %user, %vhost,
+                    "MQTT login refused: no such vhost, no access to it or a connection limit \
+                     (vhost picked using {})", source.describe());
+                ReasonCode::NotAuthorized
+            }
             Refusal::Unavailable => ReasonCode::ServerUnavailable,
         })?;
-    let claim = shared.ids.claim(vhost, &client_id).await;
+    let claim = shared.ids.claim(&vhost, &client_id).await;
     Ok(Accepted {
         link,
         claim,
         client_id,
         assigned,
-        vhost: vhost.to_owned(),
+        vhost,
         user: user.to_owned(),
         window,
     })

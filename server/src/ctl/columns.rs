@@ -124,6 +124,11 @@ pub const POLICIES: Table = Table {
     ],
 };
 
+pub const GLOBAL_PARAMETERS: Table = Table {
+    columns: &[("name", &["name"]), ("value", &["value"])],
+    default: &["name", "value"],
+};
+
 pub const BINDINGS: Table = Table {
     columns: &[
         ("source_name", &["source"]),

@@ -1,8 +1,10 @@
 //! The policy commands, with rabbitmqctl's syntax: `set_policy [-p
 //! VHOST] [--priority N] [--apply-to X] NAME PATTERN DEFINITION`,
-//! `clear_policy`, `list_policies`, their `operator_policy` siblings, and
-//! `set_cluster_name`; over `/api/policies`, `/api/operator-policies` and
-//! `/api/cluster-name`.
+//! `clear_policy`, `list_policies`, their `operator_policy` siblings,
+//! `set_cluster_name` and `set_global_parameter NAME VALUE`,
+//! `clear_global_parameter`, `list_global_parameters`; over
+//! `/api/policies`, `/api/operator-policies`, `/api/cluster-name` and
+//! `/api/global-parameters`.
 
 use super::{columns, info, print_table, Cli, Failure};
 use crate::client::{segment, Client};
@@ -28,6 +30,13 @@ pub enum PolicyCommand {
     ListOperatorPolicies,
     /// Sets the cluster name (shown by /api/overview and exported).
     SetClusterName { name: String },
+    /// Sets a global runtime parameter (VALUE is JSON): cluster_name,
+    /// mqtt_port_to_vhost_mapping or mqtt_default_vhosts.
+    SetGlobalParameter { name: String, value: String },
+    /// Clears a global runtime parameter.
+    ClearGlobalParameter { name: String },
+    /// Lists the global runtime parameters: name, value.
+    ListGlobalParameters,
 }
 
 #[derive(Debug, clap::Args)]
@@ -101,5 +110,33 @@ pub fn run(cli: &Cli, client: &Client, command: &PolicyCommand) -> Result<(), Fa
             )?;
             Ok(())
         }
+        PolicyCommand::SetGlobalParameter { name, value } => {
+            let parsed: Value = serde_json::from_str(value)
+                .map_err(|e| Failure::Usage(format!("the value is not JSON: {e}")))?;
+            info(
+                cli,
+                &format!("Setting global runtime parameter \"{name}\" to \"{value}\" ..."),
+            )?;
+            let body = json!({"name": name, "value": parsed});
+            client.put(&global(name), body.to_string().as_bytes())?;
+            Ok(())
+        }
+        PolicyCommand::ClearGlobalParameter { name } => {
+            info(
+                cli,
+                &format!("Clearing global runtime parameter \"{name}\" ..."),
+            )?;
+            client.delete(&global(name), &[])?;
+            Ok(())
+        }
+        PolicyCommand::ListGlobalParameters => {
+            info(cli, "Listing global runtime parameters ...")?;
+            let listed = client.get("/api/global-parameters")?;
+            print_table(cli, &columns::GLOBAL_PARAMETERS, &[], &listed)
+        }
     }
+}
+
+fn global(name: &str) -> String {
+    format!("/api/global-parameters/{}", segment(name))
 }

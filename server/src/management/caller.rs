@@ -147,6 +147,7 @@ impl Caller {
                 | "operator-policies"
                 | "user-limits"
                 | "environment"
+                | "global-parameters"
         ) || (matches!(
             first,
             "vhosts" | "connections" | "parameters" | "cluster-name" | "vhost-limits"
@@ -215,7 +216,17 @@ mod tests {
             .is_err());
         assert!(policymaker.authorize(&get, &path("cluster-name")).is_ok());
         assert!(policymaker.authorize(&put, &path("cluster-name")).is_err());
+        // Global parameters (the MQTT vhost mappings) are administrators'.
+        assert!(policymaker
+            .authorize(&get, &path("global-parameters"))
+            .is_err());
+        assert!(policymaker
+            .authorize(&put, &path("global-parameters/mqtt_default_vhosts"))
+            .is_err());
         let administrator = caller(Role::Administrator, &[]);
+        assert!(administrator
+            .authorize(&put, &path("global-parameters/mqtt_default_vhosts"))
+            .is_ok());
         assert!(administrator
             .authorize(&put, &path("operator-policies/cell/p"))
             .is_ok());

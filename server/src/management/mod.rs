@@ -160,7 +160,7 @@ impl From<AccessError> for ApiError {
                 error: "internal_server_error",
                 reason: e.to_string(),
             },
-            AccessError::Pattern(_) | AccessError::BadName(_) => {
+            AccessError::Pattern(_) | AccessError::BadName(_) | AccessError::BadValue(_) => {
                 ApiError::bad_request(e.to_string())
             }
         }
@@ -396,6 +396,13 @@ pub fn router(context: Context) -> Router {
         .route(
             "/api/cluster-name",
             get(policies::cluster_name).put(policies::put_cluster_name),
+        )
+        .route("/api/global-parameters", get(policies::global_parameters))
+        .route(
+            "/api/global-parameters/{name}",
+            get(policies::global_parameter)
+                .put(policies::put_global_parameter)
+                .delete(policies::delete_global_parameter),
         )
         .route("/api/federation-links", get(federation::links))
         .route("/api/federation-links/{vhost}", get(federation::links_in))

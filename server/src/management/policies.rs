@@ -1,9 +1,9 @@
 //! The management API's policy paths, as RabbitMQ's: `/api/policies`
 //! and `/api/operator-policies` (all, one vhost's, one policy: GET, PUT,
-//! DELETE) and `/api/cluster-name`. Who may call them is `caller`'s
-//! (policymaker for policies, administrator for operator policies and
-//! for setting the cluster name); the changes go through
-//! `crate::policies`.
+//! DELETE), `/api/cluster-name` and `/api/global-parameters` (all, one:
+//! GET, PUT, DELETE). Who may call them is `caller`'s (policymaker for
+//! policies, administrator for operator policies, global parameters and
+//! setting the cluster name); the changes go through `crate::policies`.
 
 use super::caller::Caller;
 use super::handlers::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
@@ -147,4 +147,43 @@ pub async fn put_cluster_name(State(c): Ctx, body: Bytes) -> ApiResult {
         .ok_or_else(|| ApiError::bad_request("a cluster name needs a 'name'"))?;
     policies::set_cluster_name(&c.admin, name).await?;
     Ok(no_content())
+}
+
+/// RabbitMQ's `GET /api/global-parameters`.
+pub async fn global_parameters(State(c): Ctx) -> Json<Value> {
+    Json(Value::Array(policies::global_parameters(&c.admin, &c.node)))
+}
+
+/// RabbitMQ's `GET /api/global-parameters/{name}`.
+pub async fn global_parameter(State(c): Ctx, Path(name): Path<String>) -> ApiResult<Json<Value>> {
+    policies::global_parameters(&c.admin, &c.node)
+        .into_iter()
+        .find(|item| item["name"] == name.as_str())
+        .map(Json)
+        .ok_or_else(|| ApiError::not_found(format!("no global parameter '{name}'")))
+}
+
+/// RabbitMQ's `PUT /api/global-parameters/{name}` (`{"value": ...}`, as
+/// `rabbitmqctl set_global_parameter`): a value Leveret cannot use is a
+/// 400 with the reason, and nothing is stored.
+pub async fn put_global_parameter(
+    State(c): Ctx,
+    Path(name): Path<String>,
+    body: Bytes,
+) -> ApiResult {
+    let object = body_object(&body)?;
+    let value = object
+        .get("value")
+        .ok_or_else(|| ApiError::bad_request("a global parameter needs a 'value'"))?;
+    policies::set_global_parameter(&c.admin, &name, value).await?;
+    Ok(no_content())
+}
+
+/// RabbitMQ's `DELETE /api/global-parameters/{name}`.
+pub async fn delete_global_parameter(State(c): Ctx, Path(name): Path<String>) -> ApiResult {
+    if policies::clear_global_parameter(&c.admin, &name).await? {
+        Ok(no_content())
+    } else {
+        Err(ApiError::not_found(format!("no global parameter '{name}'")))
+    }
 }

@@ -216,6 +216,15 @@ impl OpsBroker {
     }
 
     /// The AMQP URL of vhost `/` as guest.
+    /// The address of the broker's first MQTT listener, as its log says.
+    pub fn mqtt_addr(&self) -> SocketAddr {
+        self.wait_for_log("accepting MQTT");
+        self.raw_log()
+            .iter()
+            .find_map(|line| address(line, "accepting MQTT"))
+            .expect("an MQTT listener")
+    }
+
     pub fn amqp_url(&self) -> String {
         format!("amqp://guest:guest@{}/%2f", self.amqp)
     }
