@@ -1,10 +1,66 @@
 //! Certificates for the TLS tests, made with rcgen: a CA that signs
 //! server certificates for localhost and client certificates (PEM, or
-//! PKCS#12 for lapin, which takes client certificates only in that form).
+//! PKCS#12 for lapin, which takes client certificates only in that form),
+//! and a directory for the PEM files that tools like Mosquitto's read.
 
 use rcgen::{
     BasicConstraints, Certificate, CertificateParams, DnType, IsCa, KeyPair, KeyUsagePurpose,
 };
+use std::path::{Path, PathBuf};
+
+/// A directory of PEM files of a test's own, removed at the end.
+#[derive(Debug)]
+pub struct PemFiles {
+    dir: PathBuf,
+}
+
+impl PemFiles {
+    /// A new, empty directory named after `name`.
+    pub fn new(name: &str) -> PemFiles {
+        let dir = std::env::temp_dir().join(crate::unique(&format!("leveret-pem-{name}")));
+        std::fs::create_dir_all(&dir).expect("PEM directory");
+        PemFiles { dir }
+    }
+
+    /// The directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Writes `text` to file `name` in it; its path.
+    pub fn write(&self, name: &str, text: &str) -> PathBuf {
+        let path = self.dir.join(name);
+        std::fs::write(&path, text).expect("write a PEM file");
+        path
+    }
+
+    /// A certificate signed by `ca` with `subject` (in that order) and its
+    /// key, written as `STEM.pem` and `STEM.key`; their paths.
+    pub fn signed_subject(
+        &self,
+        ca: &Authority,
+        subject: &[(DnType, &str)],
+        stem: &str,
+    ) -> (PathBuf, PathBuf) {
+        let (cert, key) = ca.sign_subject(subject, false);
+        (
+            self.write(&format!("{stem}.pem"), &cert.pem()),
+            self.write(&format!("{stem}.key"), &key.serialize_pem()),
+        )
+    }
+
+    /// A certificate for `common_name` signed by `ca` and its key (see
+    /// [`PemFiles::signed_subject`]).
+    pub fn signed(&self, ca: &Authority, common_name: &str) -> (PathBuf, PathBuf) {
+        self.signed_subject(ca, &[(DnType::CommonName, common_name)], common_name)
+    }
+}
+
+impl Drop for PemFiles {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
 
 /// A certificate authority.
 pub struct Authority {

@@ -21,8 +21,8 @@ use common::*;
 use futures_util::{SinkExt, StreamExt};
 use leveret_broker::{Broker, BrokerHandle, Limits, PeerVerification, Permission, TlsOptions};
 use leveret_mqtt::{Connect, Packet, ProtocolVersion};
-use leveret_tests::certs::Authority;
-use std::path::{Path, PathBuf};
+use leveret_tests::certs::{Authority, PemFiles};
+use std::path::Path;
 use std::process::{Command, Output};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -33,40 +33,6 @@ use tokio_tungstenite::tungstenite::Message;
 
 /// How long a close the broker owes may take (generous: CI is loaded).
 const CLOSE_WITHIN: Duration = Duration::from_secs(30);
-
-/// A directory of PEM files, removed at the end.
-struct Files {
-    dir: PathBuf,
-}
-
-impl Files {
-    fn new(name: &str) -> Files {
-        let dir = std::env::temp_dir().join(unique(&format!("leveret-mqtt-{name}")));
-        std::fs::create_dir_all(&dir).expect("dir");
-        Files { dir }
-    }
-
-    fn write(&self, name: &str, text: &str) -> PathBuf {
-        let path = self.dir.join(name);
-        std::fs::write(&path, text).expect("write");
-        path
-    }
-
-    /// A certificate for `common_name` signed by `ca` and its key.
-    fn signed(&self, ca: &Authority, common_name: &str) -> (PathBuf, PathBuf) {
-        let (cert, key) = ca.sign(common_name, false);
-        (
-            self.write(&format!("{common_name}.pem"), &cert.pem()),
-            self.write(&format!("{common_name}.key"), &key.serialize_pem()),
-        )
-    }
-}
-
-impl Drop for Files {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.dir);
-    }
-}
 
 fn any() -> std::net::SocketAddr {
     "127.0.0.1:0".parse().unwrap()
@@ -83,12 +49,12 @@ fn builder(limits: Limits) -> leveret_broker::BrokerBuilder {
 
 /// A broker with an MQTT over TLS listener: client certificates asked
 /// for, checked against `ca`, and logging in as their common name.
-async fn start_tls(files: &Files, ca: &Authority, limits: Limits) -> BrokerHandle {
+async fn start_tls(files: &PemFiles, ca: &Authority, limits: Limits) -> BrokerHandle {
     start_tls_with(files, ca, limits, true).await
 }
 
 async fn start_tls_with(
-    files: &Files,
+    files: &PemFiles,
     ca: &Authority,
     limits: Limits,
     certificate_login: bool,
@@ -133,11 +99,11 @@ fn mosquitto(program: &str, port: u16, ca: &Path) -> Command {
 
 #[both_runtimes]
 async fn mosquitto_clients_over_tls_with_a_password_and_a_certificate_login() {
-    let files = Files::new("mqtts");
+    let files = PemFiles::new("mqtts");
     let ca = Authority::new("mqtt test CA");
     let handle = start_tls(&files, &ca, Limits::default()).await;
     let port = handle.mqtts_addrs()[0].port();
-    let ca_file = files.dir.join("ca.pem");
+    let ca_file = files.dir().join("ca.pem");
 
     // The client certificate's common name is the user: no -u.
     let (cert, key) = files.signed(&ca, "sensor-9");
@@ -207,11 +173,11 @@ async fn assert_closed(socket: &mut TcpStream) {
 
 #[both_runtimes]
 async fn without_certificate_login_a_certificate_is_no_credential() {
-    let files = Files::new("mqtts-no-cert-login");
+    let files = PemFiles::new("mqtts-no-cert-login");
     let ca = Authority::new("mqtt test CA");
     let handle = start_tls_with(&files, &ca, Limits::default(), false).await;
     let port = handle.mqtts_addrs()[0].port();
-    let ca_file = files.dir.join("ca.pem");
+    let ca_file = files.dir().join("ca.pem");
     let (cert, key) = files.signed(&ca, "sensor-9");
     let with_certificate = |user: Option<&str>| {
         let mut publish = mosquitto("mosquitto_pub", port, &ca_file);
@@ -235,7 +201,7 @@ async fn without_certificate_login_a_certificate_is_no_credential() {
 
 #[both_runtimes]
 async fn a_tls_handshake_that_never_completes_or_plaintext_mqtt_is_closed() {
-    let files = Files::new("mqtts-stall");
+    let files = PemFiles::new("mqtts-stall");
     let ca = Authority::new("mqtt test CA");
     let limits = Limits {
         handshake_timeout: Duration::from_millis(500),

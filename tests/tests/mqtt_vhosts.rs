@@ -17,7 +17,7 @@ mod common;
 
 use common::*;
 use leveret_broker::{AccessError, Broker, BrokerHandle, PeerVerification, Permission, TlsOptions};
-use leveret_tests::certs::Authority;
+use leveret_tests::certs::{Authority, PemFiles};
 use rcgen::DnType;
 use rumqttc::{Event, Incoming, QoS};
 use std::net::SocketAddr;
@@ -295,60 +295,31 @@ async fn a_malformed_mapping_is_refused_and_not_stored() {
     handle.shutdown().await;
 }
 
-/// A directory of PEM files, removed at the end.
-struct Files {
-    dir: PathBuf,
-}
-
-impl Files {
-    fn new(name: &str) -> Files {
-        let dir = std::env::temp_dir().join(unique(&format!("leveret-vhostmap-{name}")));
-        std::fs::create_dir_all(&dir).expect("dir");
-        Files { dir }
-    }
-
-    fn write(&self, name: &str, text: &str) -> PathBuf {
-        let path = self.dir.join(name);
-        std::fs::write(&path, text).expect("write");
-        path
-    }
-
-    /// A certificate signed by `ca` for subject `/CN=common_name/O=fleet`
-    /// (RabbitMQ writes it `O=fleet,CN=common_name`), and its key.
-    fn signed(&self, ca: &Authority, common_name: &str) -> (PathBuf, PathBuf) {
-        let subject = [
-            (DnType::CommonName, common_name),
-            (DnType::OrganizationName, "fleet"),
-        ];
-        let (cert, key) = ca.sign_subject(&subject, false);
-        (
-            self.write(&format!("{common_name}.pem"), &cert.pem()),
-            self.write(&format!("{common_name}.key"), &key.serialize_pem()),
-        )
-    }
-}
-
-impl Drop for Files {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.dir);
-    }
+/// A certificate signed by `ca` for subject `/CN=common_name/O=fleet`
+/// (RabbitMQ writes it `O=fleet,CN=common_name`), and its key.
+fn fleet_signed(files: &PemFiles, ca: &Authority, common_name: &str) -> (PathBuf, PathBuf) {
+    let subject = [
+        (DnType::CommonName, common_name),
+        (DnType::OrganizationName, "fleet"),
+    ];
+    files.signed_subject(ca, &subject, common_name)
 }
 
 /// `mosquitto_pub` over TLS to `port` with a client certificate for
 /// `common_name`, publishing `body` to `cells/7` at QoS 1, with `args`.
 async fn mosquitto_pub(
-    files: &Files,
+    files: &PemFiles,
     ca: &Authority,
     port: u16,
     common_name: &str,
     args: &[&str],
 ) -> Output {
-    let (cert, key) = files.signed(ca, common_name);
+    let (cert, key) = fleet_signed(files, ca, common_name);
     let mut command = Command::new("mosquitto_pub");
     command
         .args(["-h", "localhost", "-p", &port.to_string(), "-V", "mqttv311"])
         .arg("--cafile")
-        .arg(files.dir.join("ca.pem"))
+        .arg(files.dir().join("ca.pem"))
         .arg("--cert")
         .arg(&cert)
         .arg("--key")
@@ -365,8 +336,8 @@ async fn mosquitto_pub(
     .unwrap_or_else(|e| panic!("{program} could not run (is it installed?): {e}"))
 }
 
-async fn start_tls(files: &Files, ca: &Authority) -> BrokerHandle {
-    let (certfile, keyfile) = files.signed(ca, "leveret");
+async fn start_tls(files: &PemFiles, ca: &Authority) -> BrokerHandle {
+    let (certfile, keyfile) = fleet_signed(files, ca, "leveret");
     let options = TlsOptions {
         certfile,
         keyfile,
@@ -384,7 +355,7 @@ async fn start_tls(files: &Files, ca: &Authority) -> BrokerHandle {
 
 #[both_runtimes]
 async fn a_certificate_mapping_sends_a_client_to_its_vhost_before_the_port_mapping() {
-    let files = Files::new("certs");
+    let files = PemFiles::new("certs");
     let ca = Authority::new("vhostmap test CA");
     let handle = start_tls(&files, &ca).await;
     let port = handle.mqtts_addrs()[0].port();

@@ -6,20 +6,21 @@
 //! source and the shovel resumes when it takes messages again; a dead
 //! first URI fails over to the next.
 
+mod common;
+
+use common::*;
 use leveret_broker::{Broker, BrokerHandle};
 use leveret_client::{
-    BasicGetOptions, BasicProperties, BasicPublishOptions, Channel, Connection, FieldTable,
-    FieldValue, QueueDeclareOptions, ShortStr,
+    BasicGetOptions, BasicProperties, BasicPublishOptions, Channel, FieldTable, FieldValue,
+    ShortStr,
 };
 use leveret_test_macros::both_runtimes;
 use leveret_tests::reserved_port::reserved_addr;
-use leveret_uplink::{Shovel, ShovelConfig, ShovelState, ShovelStatus};
+use leveret_uplink::{Shovel, ShovelConfig, ShovelState};
 use serde_json::json;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
-
-const WAIT: Duration = Duration::from_secs(30);
 
 async fn fleet(addr: SocketAddr, dir: &std::path::Path) -> BrokerHandle {
     Broker::builder()
@@ -28,61 +29,6 @@ async fn fleet(addr: SocketAddr, dir: &std::path::Path) -> BrokerHandle {
         .start()
         .await
         .expect("fleet broker")
-}
-
-fn scratch(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "leveret-uplink-{name}-{}-{:?}",
-        std::process::id(),
-        std::thread::current().id()
-    ));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-async fn channel_to(uri: &str) -> (Connection, Channel) {
-    let connection = Connection::connect(uri).await.expect("connect");
-    let channel = connection.open_channel().await.expect("channel");
-    (connection, channel)
-}
-
-async fn local_channel(robot: &Arc<BrokerHandle>) -> (Connection, Channel) {
-    let connection = Connection::in_process(robot).await.expect("in process");
-    let channel = connection.open_channel().await.expect("channel");
-    (connection, channel)
-}
-
-async fn declare(channel: &Channel, queue: &str, arguments: FieldTable) {
-    let durable = QueueDeclareOptions {
-        durable: true,
-        ..Default::default()
-    };
-    channel
-        .queue_declare(queue, durable, arguments)
-        .await
-        .expect("declare");
-}
-
-/// Publishes `from..to` as persistent messages, each confirmed.
-async fn publish_confirmed(channel: &Channel, queue: &str, from: u32, to: u32) {
-    for n in from..to {
-        let properties = BasicProperties {
-            delivery_mode: Some(2),
-            ..Default::default()
-        };
-        let confirm = channel
-            .basic_publish(
-                "",
-                queue,
-                BasicPublishOptions::default(),
-                properties,
-                n.to_string().into_bytes().into(),
-            )
-            .await
-            .expect("publish");
-        assert!(confirm.await.expect("confirm").is_ack());
-    }
 }
 
 /// Takes every message from `queue` now there.
@@ -100,14 +46,6 @@ async fn drain(channel: &Channel, queue: &str) -> Vec<u32> {
         );
     }
     got
-}
-
-async fn wait_status(shovel: &Shovel, what: &str, done: impl Fn(&ShovelStatus) -> bool) {
-    let mut watch = shovel.watch();
-    tokio::time::timeout(WAIT, watch.wait_for(|s| done(s)))
-        .await
-        .unwrap_or_else(|_| panic!("waited for {what}: {:?}", shovel.status()))
-        .expect("shovel alive");
 }
 
 /// Collects `count` messages from `queue` on the fleet broker, in order of
@@ -164,12 +102,12 @@ async fn nothing_confirmed_is_lost_across_a_destination_outage() {
         ),
         Some(&robot),
     );
-    publish_confirmed(&publisher, "telemetry", 0, 300).await;
+    publish_confirmed(&publisher, "", "telemetry", 0, 300).await;
     wait_status(&shovel, "300 forwarded", |s| s.forwarded >= 300).await;
 
     // The fleet broker goes away; the robot keeps publishing.
     first.shutdown().await;
-    publish_confirmed(&publisher, "telemetry", 300, 600).await;
+    publish_confirmed(&publisher, "", "telemetry", 300, 600).await;
     wait_status(&shovel, "the loss noticed", |s| {
         s.state != ShovelState::Running
     })
@@ -222,7 +160,7 @@ async fn a_refusing_destination_never_drains_the_source() {
         FieldValue::string("reject-publish"),
     );
     declare(&fleet_channel, "bounded", bounded).await;
-    publish_confirmed(&publisher, "telemetry", 0, 50).await;
+    publish_confirmed(&publisher, "", "telemetry", 0, 50).await;
     let shovel = Shovel::start(
         "bounded",
         shovel_config(
@@ -288,7 +226,7 @@ async fn unroutable_messages_stay_and_a_dead_node_fails_over() {
     let fleet_uri = format!("amqp://guest:guest@{addr}/%2f");
     let _fleet = fleet(addr, &dir).await;
     let dead = format!("amqp://guest:guest@{}/%2f", reserved_addr());
-    publish_confirmed(&publisher, "telemetry", 0, 20).await;
+    publish_confirmed(&publisher, "", "telemetry", 0, 20).await;
     let shovel = Shovel::start(
         "routes",
         shovel_config(
@@ -454,7 +392,7 @@ async fn a_shovel_forwards_its_count_and_completes() {
         ("on-confirm", json!("queue-length"), 30 - 7 - 5 - 3),
     ] {
         if next == 0 {
-            publish_confirmed(&publisher, "telemetry", 0, 30).await;
+            publish_confirmed(&publisher, "", "telemetry", 0, 30).await;
         }
         let config = shovel_config(
             std::slice::from_ref(&fleet_uri),
@@ -479,7 +417,7 @@ async fn a_shovel_forwards_its_count_and_completes() {
         shovel.stop().await;
     }
     // The properties were set on each message (checked on one more).
-    publish_confirmed(&publisher, "telemetry", 100, 101).await;
+    publish_confirmed(&publisher, "", "telemetry", 100, 101).await;
     let config = shovel_config(
         std::slice::from_ref(&fleet_uri),
         json!({
@@ -567,7 +505,7 @@ async fn positions_name_one_message_across_restarts() {
     publisher.confirm_select().await.expect("confirms");
     declare(&publisher, "telemetry", FieldTable::new()).await;
     // Four messages: the last two acknowledged (gone), the first two held.
-    publish_confirmed(&publisher, "telemetry", 0, 4).await;
+    publish_confirmed(&publisher, "", "telemetry", 0, 4).await;
     let first = positions(&publisher, "telemetry", 4, 2).await;
     let distinct: std::collections::HashSet<_> = first.iter().collect();
     assert_eq!(distinct.len(), 4, "{first:?}");
@@ -593,7 +531,7 @@ async fn positions_name_one_message_across_restarts() {
     assert!(plain.is_none(), "both are held by the consumer");
     let (_c2, other) = local_channel(&robot).await;
     other.confirm_select().await.expect("confirms");
-    publish_confirmed(&other, "telemetry", 4, 6).await;
+    publish_confirmed(&other, "", "telemetry", 4, 6).await;
     let later = positions(&other, "telemetry", 2, 2).await;
     for position in &later {
         assert!(!first.contains(position), "{position} was used before");
@@ -646,7 +584,7 @@ async fn a_message_forwarded_twice_carries_one_id() {
     // again, time enough for this test to cut the link first however
     // loaded the machine.
     proxy.set(|f| f.latency = Duration::from_secs(10));
-    publish_confirmed(&publisher, "telemetry", 0, 1).await;
+    publish_confirmed(&publisher, "", "telemetry", 0, 1).await;
     // The fleet has it; its confirm is seconds away: cut the link now.
     let deadline = tokio::time::Instant::now() + WAIT;
     while fleet_broker
@@ -830,7 +768,7 @@ async fn two_shovels_in_a_loop_stop_after_one_round() {
     };
     let there = Shovel::start("there", one_way("loop.a", "loop.b"), Some(&robot));
     let back = Shovel::start("back", one_way("loop.b", "loop.a"), Some(&robot));
-    publish_confirmed(&publisher, "loop.a", 0, 10).await;
+    publish_confirmed(&publisher, "", "loop.a", 0, 10).await;
     let moves = settled_moves(&[&there, &back]).await;
     assert_eq!(moves, 20, "each message went a → b → a once");
     wait_status(&there, "10 looped messages dropped", |s| {
@@ -873,7 +811,7 @@ async fn a_shovel_into_its_own_source_through_an_exchange_forwards_once() {
     }))
     .expect("not detectable at declaration");
     let shovel = Shovel::start("circle", config, Some(&robot));
-    publish_confirmed(&publisher, "circle", 0, 10).await;
+    publish_confirmed(&publisher, "", "circle", 0, 10).await;
     let moves = settled_moves(&[&shovel]).await;
     assert_eq!(moves, 10, "each message forwarded once");
     wait_status(&shovel, "10 looped messages dropped", |s| {

@@ -10,37 +10,27 @@
 //! stream shovelled down from an offset, and shovelled into (skips
 //! loudly outside CI when rabbitmq-server is not installed).
 
+mod common;
+
+use common::*;
 use leveret_broker::{Broker, BrokerHandle};
 use leveret_client::{
-    BasicAckOptions, BasicConsumeOptions, BasicGetOptions, BasicProperties, BasicPublishOptions,
-    BasicQosOptions, Channel, Connection, Dedupe, Delivery, ExchangeDeclareOptions, FieldTable,
-    FieldValue, GetMessage, QueueBindOptions, QueueDeclareOptions, ShortStr,
+    BasicAckOptions, BasicConsumeOptions, BasicGetOptions, BasicProperties, BasicQosOptions,
+    Channel, Dedupe, Delivery, ExchangeDeclareOptions, FieldTable, FieldValue, GetMessage,
+    QueueBindOptions, QueueDeclareOptions, ShortStr,
 };
 use leveret_test_macros::both_runtimes;
 use leveret_tests::rabbit_node::{self, RabbitNode};
 use leveret_tests::reserved_port::reserved_addr;
 use leveret_uplink::{
-    FederationLink, LinkState, LocalExchange, Shovel, ShovelConfig, ShovelState, ShovelStatus,
-    UpstreamConfig, RECEIVED_FROM, SEQ_HEADER,
+    FederationLink, LinkState, LocalExchange, Shovel, ShovelConfig, ShovelState, UpstreamConfig,
+    RECEIVED_FROM, SEQ_HEADER,
 };
 use serde_json::json;
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
-
-const WAIT: Duration = Duration::from_secs(30);
-
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "leveret-uplink-streams-{name}-{}-{:?}",
-        std::process::id(),
-        std::thread::current().id()
-    ));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
 
 /// A broker keeping its data (streams need it) in `dir`, listening on
 /// `addr` if given.
@@ -53,18 +43,6 @@ async fn broker(dir: &Path, addr: Option<SocketAddr>) -> BrokerHandle {
     builder.start().await.expect("broker")
 }
 
-async fn channel_to(uri: &str) -> (Connection, Channel) {
-    let connection = Connection::connect(uri).await.expect("connect");
-    let channel = connection.open_channel().await.expect("channel");
-    (connection, channel)
-}
-
-async fn local_channel(robot: &Arc<BrokerHandle>) -> (Connection, Channel) {
-    let connection = Connection::in_process(robot).await.expect("in process");
-    let channel = connection.open_channel().await.expect("channel");
-    (connection, channel)
-}
-
 fn table(entries: &[(&'static str, FieldValue)]) -> FieldTable {
     let mut table = FieldTable::new();
     for (key, value) in entries {
@@ -73,42 +51,9 @@ fn table(entries: &[(&'static str, FieldValue)]) -> FieldTable {
     table
 }
 
-async fn declare(channel: &Channel, queue: &str, arguments: FieldTable) {
-    let durable = QueueDeclareOptions {
-        durable: true,
-        ..Default::default()
-    };
-    channel
-        .queue_declare(queue, durable, arguments)
-        .await
-        .expect("declare");
-}
-
 async fn declare_stream(channel: &Channel, stream: &str) {
     let arguments = table(&[("x-queue-type", FieldValue::string("stream"))]);
     declare(channel, stream, arguments).await;
-}
-
-/// Publishes `from..to` (the number as the body) through the default
-/// exchange or `exchange`, each confirmed.
-async fn publish_confirmed(channel: &Channel, exchange: &str, key: &str, from: u32, to: u32) {
-    for n in from..to {
-        let properties = BasicProperties {
-            delivery_mode: Some(2),
-            ..Default::default()
-        };
-        let confirm = channel
-            .basic_publish(
-                exchange,
-                key,
-                BasicPublishOptions::default(),
-                properties,
-                n.to_string().into_bytes().into(),
-            )
-            .await
-            .expect("publish");
-        assert!(confirm.await.expect("confirm").is_ack());
-    }
 }
 
 fn number(body: &[u8]) -> u32 {
@@ -196,14 +141,6 @@ async fn read_stream(
         got.push(delivery);
     }
     got
-}
-
-async fn wait_status(shovel: &Shovel, what: &str, done: impl Fn(&ShovelStatus) -> bool) {
-    let mut watch = shovel.watch();
-    tokio::time::timeout(WAIT, watch.wait_for(|s| done(s)))
-        .await
-        .unwrap_or_else(|_| panic!("waited for {what}: {:?}", shovel.status()))
-        .expect("shovel alive");
 }
 
 fn shovel_config(value: serde_json::Value) -> ShovelConfig {
