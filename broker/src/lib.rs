@@ -212,4 +212,4 @@ pub use inspect::{
 #[cfg(feature = "mqtt")]
 pub use mqtt::RetainedLimits;
 #[cfg(feature = "mqtt")]
-pub use mqtt::{check_global_parameter, CERTIFICATE_MAPPING, PORT_MAPPING};
+pub use parameters::{check_global_parameter, CERTIFICATE_MAPPING, PORT_MAPPING};

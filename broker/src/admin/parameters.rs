@@ -41,7 +41,8 @@ impl Admin {
         #[cfg(feature = "mqtt")]
         for (vhost, name, value) in &parameters {
             if (component, vhost.as_str()) == ("global", "") {
-                crate::mqtt::check_global_parameter(name, value).map_err(AccessError::BadValue)?;
+                crate::parameters::check_global_parameter(name, value)
+                    .map_err(AccessError::BadValue)?;
             }
         }
         let _turn = self.core.access_changes.lock().await;

@@ -36,7 +36,6 @@ mod wills;
 use retained::Retained;
 pub use retained::RetainedLimits;
 use takeover::ClientIds;
-pub use vhosts::{check_global_parameter, CERTIFICATE_MAPPING, PORT_MAPPING};
 
 use crate::core::Core;
 use crate::store::MetaRecord;
