@@ -211,6 +211,72 @@ async fn a_value_link_routes_queues_and_delivers_like_a_socket() {
     handle.shutdown().await;
 }
 
+/// `try_recv` takes what is ready without waiting: nothing before a
+/// delivery is there, then each waiting delivery in order, then nothing.
+#[both_runtimes]
+async fn try_recv_takes_ready_replies_without_waiting() {
+    use std::task::Poll;
+    let handle = leveret_broker::Broker::builder()
+        .start()
+        .await
+        .expect("start");
+    let mut client = DirectClient::open(&handle).await;
+    client
+        .send(
+            1,
+            QueueDeclare {
+                queue: ShortStr::from_static("ready-q"),
+                ..Default::default()
+            },
+        )
+        .await;
+    assert!(matches!(client.method().await, Method::QueueDeclareOk(_)));
+    client
+        .send(
+            1,
+            BasicConsume {
+                queue: ShortStr::from_static("ready-q"),
+                no_ack: true,
+                ..Default::default()
+            },
+        )
+        .await;
+    assert!(matches!(client.method().await, Method::BasicConsumeOk(_)));
+    assert!(
+        client.link.from_broker.try_recv().is_pending(),
+        "nothing yet"
+    );
+    for n in 0..3u8 {
+        client
+            .publish("ready-q", BasicProperties::default(), Bytes::from(vec![n]))
+            .await;
+    }
+    // The first waits for the broker; the two after it may still be on
+    // their way, so they are taken without waiting once they are there.
+    let mut bodies = Vec::new();
+    match client.next().await {
+        Some(DirectReply::Content { body, .. }) => bodies.push(body),
+        other => panic!("expected a delivery, got {other:?}"),
+    }
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    while bodies.len() < 3 {
+        match client.link.from_broker.try_recv() {
+            Poll::Ready(Some(DirectReply::Content { body, .. })) => bodies.push(body),
+            Poll::Ready(other) => panic!("expected a delivery, got {other:?}"),
+            Poll::Pending => {
+                assert!(tokio::time::Instant::now() < deadline, "{bodies:?}");
+                tokio::task::yield_now().await;
+            }
+        }
+    }
+    assert_eq!(bodies, [vec![0u8], vec![1], vec![2]]);
+    assert!(
+        client.link.from_broker.try_recv().is_pending(),
+        "nothing more"
+    );
+    handle.shutdown().await;
+}
+
 #[both_runtimes]
 async fn a_value_link_is_held_to_max_message_size() {
     let handle = leveret_broker::Broker::builder()

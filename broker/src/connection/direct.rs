@@ -290,6 +290,15 @@ impl DirectReplies {
         }
     }
 
+    /// The broker's next reply if one is ready now (`Pending` if not),
+    /// without waiting: a client that has just taken one can take those
+    /// that came with it before it writes to its own peer.
+    pub fn try_recv(&mut self) -> std::task::Poll<Option<DirectReply>> {
+        let mut next = std::pin::pin!(self.recv());
+        next.as_mut()
+            .poll(&mut std::task::Context::from_waker(std::task::Waker::noop()))
+    }
+
     /// The broker's next reply, waiting for it; `None` once the broker
     /// has ended the connection (after everything it sent before).
     pub async fn recv(&mut self) -> Option<DirectReply> {

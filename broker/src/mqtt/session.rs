@@ -64,8 +64,12 @@ const WRITE_STALL: Duration = Duration::from_secs(30);
 /// queues an AMQP call per filter, so a client cannot make the broker
 /// hold more than this many of either.
 const MAX_SUBSCRIPTIONS: usize = 4096;
-/// Bytes asked of the socket per read at most.
+/// Bytes asked of the socket per read at most (and written to it at once
+/// at most, as far as replies decide).
 const READ_CHUNK: usize = 64 * 1024;
+/// Replies from the core handled before the session writes to its
+/// client, at most.
+const REPLIES_PER_WRITE: usize = 64;
 /// Payloads smaller than this are copied out of the read buffer before
 /// they are queued, so a small message does not keep a whole read chunk
 /// alive (the AMQP reader's rule, `connection::copy_below`).
@@ -744,7 +748,10 @@ impl Session {
                     Err(_) => break closed("link ended", None),
                 },
                 reply = link.direct.from_broker.recv() => match reply {
-                    Some(reply) => if let Err(stop) = self.handle_core_reply(reply) { break stop },
+                    Some(reply) => {
+                        if let Err(stop) = self.handle_core_reply(reply) { break stop }
+                        if let Err(stop) = self.handle_ready_replies(&mut link) { break stop }
+                    }
                     None => break closed("the broker ended the session", Some(ReasonCode::ServerShuttingDown)),
                 },
                 _ = tokio::time::sleep_until(silence), if !keepalive.is_zero() => {
@@ -1466,6 +1473,24 @@ impl Session {
     }
 
     /// Handles what the core sent on the link.
+    /// Handles the replies the core has ready now, up to
+    /// [`REPLIES_PER_WRITE`] or until [`READ_CHUNK`] bytes are waiting for
+    /// the client, so that deliveries arriving together go out in one
+    /// write (a write per message was most of a QoS 0 subscriber's cost).
+    fn handle_ready_replies(&mut self, link: &mut Link) -> Result<(), Stop> {
+        for _ in 0..REPLIES_PER_WRITE {
+            if self.out.len() >= READ_CHUNK {
+                break;
+            }
+            match link.direct.from_broker.try_recv() {
+                std::task::Poll::Ready(Some(reply)) => self.handle_core_reply(reply)?,
+                // Nothing more now, or the end (the next recv says so).
+                std::task::Poll::Ready(None) | std::task::Poll::Pending => break,
+            }
+        }
+        Ok(())
+    }
+
     fn handle_core_reply(&mut self, reply: DirectReply) -> Result<(), Stop> {
         let method = match reply {
             DirectReply::Content {
