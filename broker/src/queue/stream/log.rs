@@ -775,9 +775,7 @@ impl ReadPlan {
     /// `max_bytes` (at least one record), without any lock; moves the
     /// cursor past them. Offsets before the oldest segment (removed by
     /// retention meanwhile) are skipped. Stops at a record that does not
-    /// check (damage after opening): reported, never served. The file is
-    /// read [`READ_WINDOW`] bytes at a time (or one record, if larger),
-    /// and each payload is a slice of that read, not a copy.
+    /// check (damage after opening): reported, never served.
     pub fn read(&self, cursor: &mut Cursor, max_records: usize, max_bytes: usize) -> Vec<Record> {
         let mut out = Vec::new();
         let mut bytes = 0;
@@ -792,15 +790,15 @@ impl ReadPlan {
                 Some((segment, pos)) if segment == *first => pos,
                 _ => SEGMENT_HEADER,
             };
-            let mut window = Window::default();
+            let mut header = [0u8; RECORD_HEADER];
             while cursor.offset < *next
                 && out.len() < max_records
                 && (bytes < max_bytes || out.is_empty())
             {
-                let Some(header) = window.get(file, pos, RECORD_HEADER, *length) else {
+                if file.read_exact_at(&mut header, pos).is_err() {
                     tracing::error!(position = pos, "stream segment shorter than its index says");
                     return out;
-                };
+                }
                 let len = u32::from_le_bytes(header[..4].try_into().expect("4")) as usize;
                 let offset = u64::from_le_bytes(header[8..16].try_into().expect("8"));
                 let timestamp_ms = i64::from_le_bytes(header[16..24].try_into().expect("8"));
@@ -824,21 +822,23 @@ impl ReadPlan {
                     );
                     return out;
                 }
-                let Some(record) = window.get(file, pos, RECORD_HEADER + len, *length) else {
+                let mut record = vec![0u8; RECORD_HEADER + len];
+                if file.read_exact_at(&mut record, pos).is_err() {
                     tracing::error!(position = pos, "stream record unreadable");
                     return out;
-                };
+                }
                 let crc = u32::from_le_bytes(record[4..8].try_into().expect("4"));
                 if checksum(&record[8..]) != crc || offset != cursor.offset {
                     tracing::error!(position = pos, offset, "stream record damaged: not served");
                     return out;
                 }
+                record.drain(..RECORD_HEADER);
                 bytes += len;
                 pos += (RECORD_HEADER + len) as u64;
                 out.push(Record {
                     offset,
                     timestamp_ms,
-                    payload: record.slice(RECORD_HEADER..),
+                    payload: record.into(),
                 });
                 cursor.offset += 1;
                 cursor.at = Some((*first, pos));
@@ -848,57 +848,6 @@ impl ReadPlan {
             }
         }
         out
-    }
-}
-
-/// The most a reader asks of a segment file at once: records are sliced
-/// out of such a read, so a read of many small records is a few system
-/// calls, not two per record.
-const READ_WINDOW: usize = 256 * 1024;
-/// The first read of a batch: a reader that wants one record (a prefetch
-/// of 1) reads little; each further read is four times larger, up to
-/// [`READ_WINDOW`].
-const FIRST_WINDOW: usize = 4 * 1024;
-
-/// The last stretch of a segment file read, and where it starts.
-struct Window {
-    at: u64,
-    bytes: bytes::Bytes,
-    /// How much the next read asks for (at least the record it is for).
-    next_size: usize,
-}
-
-impl Default for Window {
-    fn default() -> Self {
-        Window {
-            at: 0,
-            bytes: bytes::Bytes::new(),
-            next_size: FIRST_WINDOW,
-        }
-    }
-}
-
-impl Window {
-    /// `len` bytes of `file` at `pos` (within its first `length`), from
-    /// the window, reading a new one from `pos` if they are not all in
-    /// it; `None` if the file is shorter.
-    fn get(&mut self, file: &File, pos: u64, len: usize, length: u64) -> Option<bytes::Bytes> {
-        let end = pos.checked_add(len as u64)?;
-        let held = self.at..self.at + self.bytes.len() as u64;
-        if !(held.contains(&pos) && end <= held.end) {
-            let left = usize::try_from(length.saturating_sub(pos)).unwrap_or(usize::MAX);
-            let wanted = len.max(self.next_size).min(left);
-            if wanted < len {
-                return None;
-            }
-            let mut buf = vec![0u8; wanted];
-            file.read_exact_at(&mut buf, pos).ok()?;
-            self.at = pos;
-            self.bytes = buf.into();
-            self.next_size = (self.next_size * 4).min(READ_WINDOW);
-        }
-        let from = (pos - self.at) as usize;
-        Some(self.bytes.slice(from..from + len))
     }
 }
 
@@ -964,14 +913,12 @@ mod tests {
     }
 
     #[test]
-    fn reads_slice_records_out_of_growing_windows_whatever_their_sizes() {
-        let dir = Scratch::new("windows");
+    fn records_of_every_size_read_back_in_batches_of_any_size() {
+        let dir = Scratch::new("sizes");
         let mut log = StreamLog::create(dir.path(), 4 << 20).unwrap();
-        // Small records across window boundaries, and records larger
-        // than the first window and than the largest one.
         let sizes = |i: usize| match i {
-            500 => READ_WINDOW * 2 + 3,
-            700 => FIRST_WINDOW + 1,
+            500 => 600 * 1024,
+            700 => 5 * 1024,
             _ => i % 97,
         };
         let payload = |i: usize| vec![(i % 251) as u8; sizes(i)];
