@@ -73,7 +73,10 @@ pub(super) fn to_amqp(mqtt: &Properties, amqp: &mut BasicProperties, now: System
 }
 
 /// Whether a message with `amqp`'s expiration, published at its
-/// timestamp, has expired by `now` (never without both).
+/// timestamp, has expired by `now` (never without both). The timestamp
+/// is in whole seconds, so the message is taken as published at the end
+/// of its second: it never expires early, at most a second late (and a
+/// delivery until then says 1 s left, as [`from_amqp`] does).
 pub(super) fn expired(amqp: &BasicProperties, now: SystemTime) -> bool {
     let Some(millis) = amqp
         .expiration
@@ -88,7 +91,8 @@ pub(super) fn expired(amqp: &BasicProperties, now: SystemTime) -> bool {
     let now_millis = now
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX));
-    now_millis >= published.saturating_mul(1000).saturating_add(millis)
+    let published_by = published.saturating_add(1).saturating_mul(1000);
+    now_millis >= published_by.saturating_add(millis)
 }
 
 /// A 5.0 delivery's PUBLISH properties from a message's, delivered at
@@ -203,8 +207,9 @@ mod tests {
         let mut amqp = BasicProperties::default();
         to_amqp(&mqtt, &mut amqp, published);
         let later = |millis| published + std::time::Duration::from_millis(millis);
-        assert!(!expired(&amqp, later(1_999)));
-        assert!(expired(&amqp, later(2_000)));
+        // Published somewhere in second 1,000,000: never early.
+        assert!(!expired(&amqp, later(2_999)));
+        assert!(expired(&amqp, later(3_000)));
         assert!(!expired(&BasicProperties::default(), later(u64::MAX >> 24)));
     }
 
