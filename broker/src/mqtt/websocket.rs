@@ -7,7 +7,8 @@
 //! refused by tungstenite before it is buffered whole, and ends the
 //! connection; a text message ends it too (MQTT-6.0.0-1). Until the
 //! session has logged in, the socket is read no further than
-//! [`BEFORE_LOGIN`] bytes ([`HeldBack`]): tungstenite buffers a message
+//! [`UPGRADE_BUDGET`] bytes for the upgrade, then [`BEFORE_LOGIN`]
+//! ([`HeldBack`]): tungstenite buffers a message
 //! whole before the session sees a byte of it, so without that a client
 //! that never logs in could make the broker hold a message of the
 //! packet limit (128 MiB by default) per connection. The read buffer is
@@ -33,8 +34,11 @@ pub(super) const PATH: &str = "/ws";
 const SUBPROTOCOLS: [&str; 2] = ["mqtt", "mqttv3.1"];
 /// tungstenite's read buffer per connection (its default is 128 KiB).
 const READ_BUFFER: usize = 8 * 1024;
-/// Bytes read from a client's socket before its CONNECT is accepted: the
-/// HTTP upgrade request and a CONNECT of the unauthenticated packet limit
+/// Bytes read from a client's socket for its HTTP upgrade request:
+/// tungstenite's own limit on the request (64 KiB) and room to spare.
+const UPGRADE_BUDGET: usize = 64 * 1024 + 16 * 1024;
+/// Bytes read from a client's socket after the upgrade and before its
+/// CONNECT is accepted: a CONNECT of the unauthenticated packet limit
 /// with its WebSocket framing, with room to spare.
 const BEFORE_LOGIN: usize = super::session::CONNECT_MAX_PACKET as usize + 16 * 1024;
 
@@ -49,10 +53,11 @@ pub(super) async fn accept(
         .read_buffer_size(READ_BUFFER)
         .max_message_size(Some(max_message))
         .max_frame_size(Some(max_message));
-    let socket = HeldBack::new(socket, BEFORE_LOGIN);
-    let stream =
+    let socket = HeldBack::new(socket, UPGRADE_BUDGET);
+    let mut stream =
         tokio_tungstenite::accept_hdr_async_with_config(socket, choose_subprotocol, Some(config))
             .await?;
+    stream.get_mut().budget = Some(BEFORE_LOGIN);
     Ok(ByteStream {
         stream,
         unread: Bytes::new(),
