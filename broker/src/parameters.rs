@@ -90,7 +90,11 @@ mod mqtt_mappings {
             if key.is_empty() {
                 return Err(format!("{name}: a key cannot be empty"));
             }
-            if name == PORT_MAPPING && !key.parse::<u16>().is_ok_and(|port| port > 0) {
+            if name == PORT_MAPPING
+                && !key
+                    .parse::<u16>()
+                    .is_ok_and(|port| port > 0 && port.to_string() == *key)
+            {
                 return Err(format!(
                     "{name}: '{key}' is not a port number (1-65535, in decimal)"
                 ));
@@ -119,6 +123,9 @@ mod mqtt_mappings {
             assert_eq!(port("{}"), Ok(()));
             assert!(port(r#"{"http": "robots"}"#).unwrap_err().contains("port"));
             assert!(port(r#"{"0": "robots"}"#).is_err());
+            // Spellings a listener's port never matches.
+            assert!(port(r#"{"01883": "robots"}"#).is_err());
+            assert!(port(r#"{"+1883": "robots"}"#).is_err());
             assert!(port(r#"{"65536": "robots"}"#).is_err());
             assert!(port(r#"{"1883": 5}"#).unwrap_err().contains("vhost"));
             assert!(port(r#"{"1883": ""}"#).is_err());

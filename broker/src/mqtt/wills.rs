@@ -211,8 +211,9 @@ async fn publish(shared: &Shared, core: &Arc<Core>, mut will: LastWill) {
         will.properties.timestamp = Some(super::properties::epoch_seconds(SystemTime::now()));
     }
     if will.retain {
-        // Kept with the properties the will is published with (those its
-        // session's version mapped: none for 3.1.1).
+        // Kept with the properties the will is published with (its 5.0
+        // properties mapped, and the broker's own delivery mode and
+        // x-mqtt- headers, which a delivery does not read back).
         let mut properties = BytesMut::new();
         will.properties.encode(&mut properties);
         // Past the retained caps the will is still published (logged there).
