@@ -175,18 +175,19 @@ pub fn check(kind: PolicyKind, value: &Value) -> Result<(), String> {
 
 /// The federation has no named upstream sets: `federation-upstream-set`
 /// is `all` or refused. It federates exchanges only (no queue
-/// federation), so a policy with either federation key must apply to
-/// exchanges: on queues the key would be kept and do nothing.
+/// federation), so a policy with either federation key that applies to
+/// queues alone is refused: there the key would be kept and do nothing.
+/// One that applies to `all` (RabbitMQ's default) federates the
+/// exchanges it matches; the queues it matches get its other keys.
 fn check_federation_keys(spec: &PolicySpec) -> Result<(), String> {
     let federates = spec
         .definition
         .iter()
         .find(|(key, _)| key == "federation-upstream-set" || key == "federation-upstream");
     match federates {
-        Some((key, _)) if spec.apply_to != ApplyTo::Exchanges => Err(format!(
+        Some((key, _)) if spec.apply_to == ApplyTo::Queues => Err(format!(
             "{key}: Leveret federates exchanges only (it has no queue federation): \
-             the policy must apply to exchanges, not {}",
-            spec.apply_to.as_str()
+             the policy must apply to exchanges or all, not queues"
         )),
         Some((key, PolicyValue::Text(set))) if key == "federation-upstream-set" && set != "all" => {
             Err("federation-upstream-set: only \"all\" (Leveret has no named upstream sets)".into())
@@ -462,12 +463,13 @@ mod tests {
         ] {
             assert!(spec_from_json(&bad).is_err(), "{bad}");
         }
-        for apply_to in ["queues", "all"] {
-            let federating = json!({"pattern": ".*", "apply-to": apply_to,
-                                    "definition": {"federation-upstream-set": "all"}});
-            let refused = check(PolicyKind::User, &federating).unwrap_err();
-            assert!(refused.contains("federates exchanges only"), "{refused}");
-        }
+        let federating = |apply_to: &str| {
+            json!({"pattern": ".*", "apply-to": apply_to,
+                   "definition": {"federation-upstream-set": "all"}})
+        };
+        let refused = check(PolicyKind::User, &federating("queues")).unwrap_err();
+        assert!(refused.contains("federates exchanges only"), "{refused}");
+        check(PolicyKind::User, &federating("all")).unwrap();
         check(
             PolicyKind::User,
             &json!({"pattern": ".*", "apply-to": "exchanges",
