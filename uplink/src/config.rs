@@ -211,8 +211,9 @@ fn consumer_args(object: &Map<String, Value>) -> Result<FieldTable, String> {
 fn stream_offset(value: &Value) -> Result<FieldValue, String> {
     let field = match value {
         Value::String(text) => FieldValue::string(text),
-        Value::Number(n) if n.is_u64() => FieldValue::I64(n.as_i64().unwrap_or(i64::MAX)),
-        // Negative, fractional, or not a number: the reader refuses it.
+        Value::Number(n) if n.is_u64() => n.as_i64().map_or(FieldValue::Void, FieldValue::I64),
+        // Negative, fractional, past i64 or not a number: the reader
+        // refuses it.
         _ => FieldValue::Void,
     };
     let mut probe = FieldTable::new();
@@ -702,6 +703,11 @@ mod tests {
             ),
             (
                 json!({"x-stream-offset": 1.5}),
+                json!({}),
+                "is not an offset",
+            ),
+            (
+                json!({"x-stream-offset": u64::MAX}),
                 json!({}),
                 "is not an offset",
             ),
