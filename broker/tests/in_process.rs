@@ -95,6 +95,27 @@ impl DirectClient {
         }
     }
 
+    /// Declares `queue` on channel 1.
+    async fn declare(&mut self, queue: &'static str) {
+        let declare = QueueDeclare {
+            queue: ShortStr::from_static(queue),
+            ..Default::default()
+        };
+        self.send(1, declare).await;
+        assert!(matches!(self.method().await, Method::QueueDeclareOk(_)));
+    }
+
+    /// Consumes `queue` on channel 1 without acks.
+    async fn consume(&mut self, queue: &'static str) {
+        let consume = BasicConsume {
+            queue: ShortStr::from_static(queue),
+            no_ack: true,
+            ..Default::default()
+        };
+        self.send(1, consume).await;
+        assert!(matches!(self.method().await, Method::BasicConsumeOk(_)));
+    }
+
     /// The handshake as guest, then channel 1 open.
     async fn open(handle: &leveret_broker::BrokerHandle) -> DirectClient {
         let mut client = DirectClient {
@@ -158,16 +179,7 @@ async fn a_value_link_routes_queues_and_delivers_like_a_socket() {
         .await
         .expect("start");
     let mut client = DirectClient::open(&handle).await;
-    client
-        .send(
-            1,
-            QueueDeclare {
-                queue: ShortStr::from_static("direct-q"),
-                ..Default::default()
-            },
-        )
-        .await;
-    assert!(matches!(client.method().await, Method::QueueDeclareOk(_)));
+    client.declare("direct-q").await;
     let properties = BasicProperties {
         message_id: Some(ShortStr::from_static("m-1")),
         ..Default::default()
@@ -176,17 +188,7 @@ async fn a_value_link_routes_queues_and_delivers_like_a_socket() {
     client
         .publish("direct-q", properties.clone(), body.clone())
         .await;
-    client
-        .send(
-            1,
-            BasicConsume {
-                queue: ShortStr::from_static("direct-q"),
-                no_ack: true,
-                ..Default::default()
-            },
-        )
-        .await;
-    assert!(matches!(client.method().await, Method::BasicConsumeOk(_)));
+    client.consume("direct-q").await;
     // The delivery comes whole, its body in one piece whatever frame_max:
     // nothing is parsed, so there is nothing for frame_max to protect.
     match client.next().await {
@@ -221,27 +223,8 @@ async fn try_recv_takes_ready_replies_without_waiting() {
         .await
         .expect("start");
     let mut client = DirectClient::open(&handle).await;
-    client
-        .send(
-            1,
-            QueueDeclare {
-                queue: ShortStr::from_static("ready-q"),
-                ..Default::default()
-            },
-        )
-        .await;
-    assert!(matches!(client.method().await, Method::QueueDeclareOk(_)));
-    client
-        .send(
-            1,
-            BasicConsume {
-                queue: ShortStr::from_static("ready-q"),
-                no_ack: true,
-                ..Default::default()
-            },
-        )
-        .await;
-    assert!(matches!(client.method().await, Method::BasicConsumeOk(_)));
+    client.declare("ready-q").await;
+    client.consume("ready-q").await;
     assert!(
         client.link.from_broker.try_recv().is_pending(),
         "nothing yet"
