@@ -128,6 +128,9 @@ mod admission;
 mod arguments;
 mod as_user;
 mod auth;
+#[cfg(feature = "bench-internals")]
+#[doc(hidden)]
+pub mod bench;
 mod busy_poll;
 mod channel;
 mod connection;
@@ -165,7 +168,8 @@ mod server;
 mod slice;
 mod stats;
 pub mod store;
-#[cfg(test)]
+#[cfg(any(test, feature = "bench-internals"))]
+#[cfg_attr(not(test), allow(dead_code))] // the benches use a part of it
 mod testkit;
 #[cfg(feature = "tls")]
 mod tls;

@@ -18,7 +18,6 @@ use bytes::{Bytes, BytesMut};
 use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::Instant;
 use tokio::sync::mpsc;
 
 /// A short string from a literal.
@@ -159,7 +158,8 @@ impl Harness {
     }
 
     /// The vhost's sweep as of `now` (message TTLs, x-expires).
-    pub fn sweep_at(&self, now: Instant) {
+    #[cfg(test)]
+    pub fn sweep_at(&self, now: std::time::Instant) {
         self.vhost.sweep_at(now);
     }
 
@@ -328,6 +328,18 @@ impl FakeChannel {
         }
         self.link.outbox.wake_blocked();
         out
+    }
+
+    /// Drops everything the outbox holds and counts it (for benches,
+    /// which need the room back but not the deliveries decoded).
+    #[cfg(feature = "bench-internals")]
+    pub fn discard(&mut self) -> usize {
+        let mut count = 0;
+        while self.inbox.try_recv().is_ok() {
+            count += 1;
+        }
+        self.link.outbox.wake_blocked();
+        count
     }
 
     /// basic.ack.

@@ -79,9 +79,10 @@ const SHARED: &[&str] = &[
     "word_hash",
 ];
 
-/// Test-only modules (`#[cfg(test)]`), which build fixtures from every
-/// layer; files named `tests.rs` are passed over likewise.
-const TEST_SUPPORT: &[&str] = &["testkit"];
+/// Test and bench support (`#[cfg(test)]`, or the `bench-internals`
+/// feature), which build fixtures from every layer; files named `tests.rs`
+/// are passed over likewise.
+const TEST_SUPPORT: &[&str] = &["testkit", "bench"];
 
 fn src_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("src")
