@@ -49,8 +49,9 @@
 //!
 //! 1. **Server**: `embed` (the builder and handle, the public entry
 //!    point), `server` (TCP listeners, the accept loop, the TTL/expiry
-//!    sweeper), `connection` (handshake, the reader loop, heartbeats,
-//!    closing; `connection::writer` owns the socket's write half),
+//!    sweeper), `connection` (the reader loop, heartbeats, closing;
+//!    `connection::handshake` is the handshake, a function a step;
+//!    `connection::writer` owns the socket's write half),
 //!    `recovery` (durable state rebuilt at start), `mqtt` (MQTT listeners
 //!    and sessions: a front end that drives the core through an in-process
 //!    AMQP link, as RabbitMQ's MQTT plugin did through its direct

@@ -6,7 +6,8 @@
 //! open (connections per vhost, channels per connection) are enforced
 //! here.
 //!
-//! Layout: `source` is what the loop needs of its input; `reader` reads
+//! Layout: `handshake` is the connection.* handshake, a function a step;
+//! `source` is what the loop needs of its input; `reader` reads
 //! frames into a buffer sized to the traffic; `direct` is the in-process
 //! value link; `writer` owns the socket's write half, reached through the
 //! outbox. What a client may open is counted by the crate's `admission`
@@ -14,6 +15,7 @@
 //! the core holds.
 
 mod direct;
+mod handshake;
 mod reader;
 mod source;
 mod writer;
@@ -26,14 +28,13 @@ use crate::channel::{AtOnce, Channel, Leftover, WholePublish};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::outbox::{Outbound, Outbox};
-use crate::stats::{AuthProtocol, ConnectionTraffic};
+use crate::stats::ConnectionTraffic;
 use crate::vhost::Vhost;
 use crate::word_hash::WordHashMap;
 use bytes::Bytes;
 use leveret_protocol::{
-    ConnectionClose, ConnectionCloseOk, ConnectionOpenOk, ConnectionStart, ConnectionTune,
-    ConnectionUpdateSecretOk, FieldTable, FieldValue, Frame, Method, ReplyCode, ShortStr,
-    FRAME_MIN_SIZE, PROTOCOL_HEADER,
+    ConnectionClose, ConnectionCloseOk, ConnectionUpdateSecretOk, Frame, Method, ReplyCode,
+    ShortStr, FRAME_MIN_SIZE, PROTOCOL_HEADER,
 };
 use reader::{FrameReader, Incoming, IDLE_RELEASE};
 use source::{FrameSource, ReadError};
@@ -204,15 +205,11 @@ async fn serve_frames<S: FrameSource, K: Sink>(
     // RabbitMQ's handshake_timeout runs from the connection's start to
     // connection.open-ok.
     let handshake_deadline = Instant::now() + core.limits.handshake_timeout;
-    match handshake_step(&core, handshake_deadline, &peer, reader.protocol_header()).await {
-        Ok(Ok(true)) => {}
-        Ok(Ok(false)) => {
-            tracing::info!(%peer, "wrong protocol header; answering with ours and closing");
-            sink.refuse().await;
-            return;
-        }
-        Ok(Err(_)) | Err(_) => return,
-    }
+    let header =
+        handshake::protocol_header(&core, handshake_deadline, &peer, &mut reader, sink).await;
+    let Some(sink) = header else {
+        return;
+    };
     tracing::info!(
         connection = connection_id,
         %peer,
@@ -272,38 +269,6 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         tracing::info!(peer = %conn.peer, "client not reading; closing its socket with output unsent");
         writer.abort();
         let _ = writer.await;
-    }
-}
-
-/// Why a handshake step did not finish.
-#[derive(Debug, Clone, Copy)]
-enum Interrupted {
-    TimedOut,
-    ShuttingDown,
-}
-
-/// Runs a step of the handshake until the handshake deadline; a client
-/// still in the handshake then is logged and dropped, as RabbitMQ does.
-async fn handshake_step<T>(
-    core: &Core,
-    deadline: Instant,
-    peer: &str,
-    step: impl std::future::Future<Output = T>,
-) -> Result<T, Interrupted> {
-    let mut shutdown = core.shutdown_signal();
-    let stopping = async move {
-        let _ = shutdown.wait_for(|down| *down).await;
-    };
-    tokio::select! {
-        done = tokio::time::timeout_at(deadline, step) => done.map_err(|_| {
-            tracing::warn!(
-                %peer,
-                timeout = ?core.limits.handshake_timeout,
-                "closing connection: handshake not completed within the handshake timeout"
-            );
-            Interrupted::TimedOut
-        }),
-        _ = stopping => Err(Interrupted::ShuttingDown),
     }
 }
 
@@ -432,19 +397,13 @@ impl Connection {
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
         handshake_deadline: Instant,
     ) -> Result<(), Ended> {
-        let core = Arc::clone(&self.core);
-        let peer = self.peer.clone();
-        let handshake = self.handshake(reader, heartbeat_tx);
-        match handshake_step(&core, handshake_deadline, &peer, handshake).await {
-            Ok(Ok(())) => {}
-            Ok(Err(Ended::Protocol(error))) => return self.close_with(reader, error).await,
-            Ok(Err(e)) => return Err(e),
-            Err(Interrupted::TimedOut) => return Err(Ended::Read(ReadError::TimedOut)),
-            Err(Interrupted::ShuttingDown) => {
-                return Err(Ended::Forced(
-                    self.core.registry.close_reason(self.connection_id),
-                ))
-            }
+        match self
+            .handshake(reader, heartbeat_tx, handshake_deadline)
+            .await
+        {
+            Ok(()) => {}
+            Err(Ended::Protocol(error)) => return self.close_with(reader, error).await,
+            Err(e) => return Err(e),
         }
         self.log_open();
         let mut shutdown = (self.core.registry.close_signal(self.connection_id))
@@ -648,246 +607,6 @@ impl Connection {
         for channel in self.channels.values_mut() {
             channel.flush_confirms().await;
         }
-    }
-
-    async fn expect_method<R: FrameSource>(&self, reader: &mut R) -> Result<Method, Ended> {
-        loop {
-            match reader.next().await {
-                Ok(Frame::Method { channel: 0, method }) => return Ok(method),
-                Ok(Frame::Heartbeat) => continue,
-                Ok(other) => {
-                    return Err(Ended::Protocol(AmqpError::new(
-                        ReplyCode::UnexpectedFrame,
-                        format_args!(
-                            "expected a connection method during the handshake, got {other:?}"
-                        ),
-                    )))
-                }
-                Err(ReadError::Decode(e)) => {
-                    return Err(Ended::Protocol(AmqpError::new(e.reply_code(), &e)))
-                }
-                Err(e) => return Err(e.into()),
-            }
-        }
-    }
-
-    async fn handshake<R: FrameSource>(
-        &mut self,
-        reader: &mut R,
-        heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
-    ) -> Result<(), Ended> {
-        let core = Arc::clone(&self.core);
-        let limits = &core.limits;
-        self.outbox
-            .method(
-                0,
-                ConnectionStart {
-                    version_major: 0,
-                    version_minor: 9,
-                    server_properties: self.core.server_properties.clone(),
-                    // EXTERNAL on every TLS connection, as RabbitMQ with
-                    // rabbitmq_auth_mechanism_ssl: without a certificate
-                    // the login is refused, not the mechanism.
-                    mechanisms: Bytes::from_static(match self.identity {
-                        Identity::Tls(_) => b"PLAIN AMQPLAIN EXTERNAL",
-                        Identity::None => b"PLAIN AMQPLAIN",
-                    }),
-                    locales: Bytes::from_static(b"en_US"),
-                },
-            )
-            .await;
-        let Method::ConnectionStartOk(start_ok) = self.expect_method(reader).await? else {
-            return Err(Ended::Protocol(AmqpError::command_invalid(
-                "expected connection.start-ok",
-            )));
-        };
-        let capabilities = match start_ok.client_properties.get("capabilities") {
-            Some(FieldValue::Table(t)) => t.clone(),
-            _ => FieldTable::new(),
-        };
-        let capability =
-            |name: &str| matches!(capabilities.get(name), Some(FieldValue::Bool(true)));
-        self.outbox
-            .set_cancel_notify(capability("consumer_cancel_notify"));
-        self.blocked_notify = capability("connection.blocked");
-        let authenticated = match (&self.identity, start_ok.mechanism.as_bytes()) {
-            // SASL EXTERNAL: the verified certificate's common name, which
-            // must be a user (RabbitMQ's rabbitmq_auth_mechanism_ssl).
-            (Identity::Tls(Some(name)), b"EXTERNAL") => {
-                self.core.users.contains(name).then(|| name.clone())
-            }
-            (_, mechanism) => {
-                let users = &self.core.users;
-                let login = users.authenticate(mechanism, &start_ok.response, &self.peer);
-                // A client that hangs up withdraws its check (see `hash_pool`).
-                tokio::select! {
-                    user = login => user,
-                    _ = reader.hung_up() => return Err(Ended::PeerClosed),
-                }
-            }
-        };
-        let allowed = authenticated
-            .as_ref()
-            .is_some_and(|user| self.core.users.may_connect_from(user, &self.peer));
-        let protocol = match self.kind {
-            "MQTT" => AuthProtocol::Mqtt,
-            _ => AuthProtocol::Amqp091,
-        };
-        self.core.stats.login(protocol, allowed);
-        match authenticated {
-            Some(user) if !allowed => {
-                let refusal = format!("user '{user}' can only connect via localhost");
-                tracing::warn!(peer = %self.peer, %user, mechanism = %start_ok.mechanism, "{} login refused: {refusal}", start_ok.mechanism);
-                if !capability("authentication_failure_close") {
-                    return Err(Ended::Refused(refusal));
-                }
-                let error = AmqpError::access_refused(refusal);
-                return Err(Ended::Protocol(error));
-            }
-            Some(user) => self.user = user,
-            None => {
-                let refusal = self.login_refused(&start_ok.mechanism, &start_ok.response);
-                if !capability("authentication_failure_close") {
-                    // Clients that did not ask for a close just see the
-                    // socket closed, as with RabbitMQ.
-                    return Err(Ended::Refused(refusal));
-                }
-                let error = AmqpError::access_refused(format_args!(
-                    "Login was refused using authentication mechanism {}. For details see the broker logfile.",
-                    start_ok.mechanism
-                ));
-                return Err(Ended::Protocol(error));
-            }
-        }
-        self.outbox
-            .method(
-                0,
-                ConnectionTune {
-                    channel_max: limits.channel_max,
-                    frame_max: limits.frame_max,
-                    heartbeat: limits.heartbeat,
-                },
-            )
-            .await;
-        let Method::ConnectionTuneOk(tune_ok) = self.expect_method(reader).await? else {
-            return Err(Ended::Protocol(AmqpError::command_invalid(
-                "expected connection.tune-ok",
-            )));
-        };
-        // As RabbitMQ: frame_max must lie in [4096, ours] (0, "unlimited",
-        // is refused when we have a limit), channel_max in [0, ours].
-        let frame_max = tune_ok.frame_max;
-        if frame_max < FRAME_MIN_SIZE || frame_max > limits.frame_max {
-            return Err(Ended::Protocol(AmqpError::not_allowed(format_args!(
-                "frame_max={} outside of allowed range [{}, {}]",
-                frame_max, FRAME_MIN_SIZE, limits.frame_max
-            ))));
-        }
-        if limits.channel_max != 0 && tune_ok.channel_max > limits.channel_max {
-            return Err(Ended::Protocol(AmqpError::not_allowed(format_args!(
-                "channel_max={} outside of allowed range [0, {}]",
-                tune_ok.channel_max, limits.channel_max
-            ))));
-        }
-        // 0 is "no limit" in connection.tune: the other side's value, or
-        // every channel number when both say 0.
-        self.channel_max = match (tune_ok.channel_max, limits.channel_max) {
-            (0, 0) => u16::MAX,
-            (0, ours) => ours,
-            (theirs, _) => theirs,
-        };
-        reader.set_frame_max(frame_max);
-        self.copy_below = copy_below(frame_max);
-        self.outbox.set_frame_max(frame_max);
-        self.heartbeat = Duration::from_secs(tune_ok.heartbeat.into());
-        heartbeat_tx.send_replace(self.heartbeat);
-        let Method::ConnectionOpen(open) = self.expect_method(reader).await? else {
-            return Err(Ended::Protocol(AmqpError::command_invalid(
-                "expected connection.open",
-            )));
-        };
-        let Some(vhost) = self.core.vhost(&open.virtual_host) else {
-            return Err(Ended::Protocol(
-                AmqpError::not_allowed(format_args!("vhost {} not found", open.virtual_host))
-                    .during_ids(10, 40),
-            ));
-        };
-        let permitted = vhost
-            .name
-            .as_str()
-            .is_some_and(|name| self.core.permissions.may_open(&self.user, name));
-        if !permitted {
-            tracing::warn!(peer = %self.peer, vhost = %vhost.name, user = %self.user, "no permission on the vhost");
-            return Err(Ended::Protocol(
-                AmqpError::not_allowed(format_args!(
-                    "access to vhost '{}' refused for user '{}'",
-                    vhost.name, self.user
-                ))
-                .during_ids(10, 40),
-            ));
-        }
-        let vhost_limits = self.core.limit_tables.vhost(&vhost.name.to_string_lossy());
-        if let Err(limit) = self
-            .slot
-            .enter_vhost(&vhost.name, vhost_limits.max_connections)
-        {
-            tracing::warn!(peer = %self.peer, vhost = %vhost.name, user = %self.user, limit, "vhost connection limit reached");
-            return Err(Ended::Protocol(
-                AmqpError::not_allowed(format_args!(
-                    "access to vhost '{}' refused for user '{}': connection limit ({}) is reached",
-                    vhost.name, self.user, limit
-                ))
-                .during_ids(10, 40),
-            ));
-        }
-        let user_limits = self.core.limit_tables.user(&self.user).unwrap_or_default();
-        if let Err(admission::OverLimit(limit)) = self
-            .slot
-            .enter_user(&self.user, user_limits.max_connections)
-        {
-            tracing::warn!(peer = %self.peer, user = %self.user, limit, "user connection limit reached");
-            return Err(Ended::Protocol(
-                AmqpError::not_allowed(format_args!(
-                    "connection refused for user '{}': user connection limit ({}) is reached",
-                    self.user, limit
-                ))
-                .during_ids(10, 40),
-            ));
-        }
-        self.client_name = match start_ok.client_properties.get("connection_name") {
-            Some(name) => name.as_bytes().map(loggable),
-            None => None,
-        };
-        self.core.registry.opened(
-            self.connection_id,
-            crate::registry::Opened {
-                user: self.user.clone(),
-                vhost: vhost.name.to_string_lossy().into_owned(),
-                client_properties: start_ok.client_properties,
-                frame_max,
-                channel_max: self.channel_max,
-                heartbeat_secs: tune_ok.heartbeat,
-            },
-        );
-        if vhost.is_deleted() {
-            // Deleted after the lookup above: its deletion closes the
-            // connections it found registered, and this one may have
-            // registered too late to be found.
-            return Err(Ended::Protocol(
-                AmqpError::not_allowed(format_args!("vhost {} not found", open.virtual_host))
-                    .during_ids(10, 40),
-            ));
-        }
-        self.vhost = Some(vhost);
-        self.outbox
-            .method(
-                0,
-                ConnectionOpenOk {
-                    known_hosts: ShortStr::default(),
-                },
-            )
-            .await;
-        Ok(())
     }
 
     async fn handle(&mut self, frame: Frame) -> AmqpResult<Flow> {
@@ -1097,35 +816,6 @@ impl Connection {
             self.described(),
             self.user,
         );
-    }
-
-    /// Logs a refused login with the user name the client gave (the
-    /// client is told to look in the broker's log) and returns why.
-    fn login_refused(&self, mechanism: &ShortStr, response: &Bytes) -> String {
-        let claimed = match (&self.identity, mechanism.as_bytes()) {
-            (Identity::Tls(name), b"EXTERNAL") => name.as_deref().map(str::as_bytes).map(loggable),
-            (_, mechanism) => {
-                crate::auth::claimed_user(mechanism, response).map(|user| loggable(&user))
-            }
-        };
-        let refusal = match (&claimed, mechanism.as_bytes()) {
-            (Some(user), _) => format!("user '{user}' - invalid credentials"),
-            (None, b"EXTERNAL") => "no client certificate".to_owned(),
-            (None, b"PLAIN" | b"AMQPLAIN") => "malformed response".to_owned(),
-            (None, _) => "unsupported mechanism".to_owned(),
-        };
-        let refusal = format!(
-            "{} login refused: {refusal}",
-            loggable(mechanism.as_bytes())
-        );
-        tracing::warn!(
-            connection = self.connection_id,
-            peer = %self.peer,
-            mechanism = %loggable(mechanism.as_bytes()),
-            user = claimed.as_deref(),
-            "{refusal}"
-        );
-        refusal
     }
 
     /// RabbitMQ's closing line (with the client-provided name, how long

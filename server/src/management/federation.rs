@@ -6,7 +6,7 @@
 //! broker's store.
 
 use super::caller::Caller;
-use super::handlers::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
+use super::common::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
 use super::parameters::upstream_parameter;
 use super::ApiError;
 use crate::federation::Federation;

@@ -18,12 +18,19 @@
 //!   of 30 days, `years` of 365): fails when a certificate of the TLS
 //!   listeners' `certfile` or `cacertfile` expires within that time,
 //!   listing each with its listener and `expires_on` (UTC, ISO 8601).
+//!
+//! And the older `/api/aliveness-test/{vhost}`: a message published to
+//! and got from a queue of the vhost as the caller (`{"status": "ok"}`,
+//! or the refusal as RabbitMQ words it). Uses `common`, `caller` and the
+//! broker through `Admin`.
 
-use super::handlers::Ctx;
+use super::caller::Caller;
+use super::common::{require_vhost, ApiResult, Ctx};
 use super::ApiError;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
+use axum::Extension;
 use axum::Json;
 use serde_json::{json, Value};
 
@@ -193,6 +200,21 @@ pub async fn certificate_expiration(
     } else {
         failed("Certificates expiring", json!({ "expired": expiring }))
     }
+}
+
+/// The aliveness test: a round trip through a queue of the vhost.
+pub async fn aliveness_test(
+    State(c): Ctx,
+    Extension(caller): Extension<Caller>,
+    Path(vhost): Path<String>,
+) -> ApiResult<Json<Value>> {
+    require_vhost(&c, &vhost)?;
+    c.admin
+        .as_user(&caller.user)
+        .aliveness_test(&vhost)
+        .await
+        .map_err(ApiError::refused_with_text)?;
+    Ok(Json(json!({ "status": "ok" })))
 }
 
 #[cfg(test)]

@@ -6,7 +6,7 @@
 //! [`leveret_broker::Admin`], which keeps them in the store.
 
 use super::caller::Caller;
-use super::handlers::{body_object, no_content, require_vhost, ApiResult, Ctx};
+use super::common::{body_object, no_content, require_vhost, ApiResult, Ctx};
 use super::ApiError;
 use axum::body::Bytes;
 use axum::extract::{Path, State};

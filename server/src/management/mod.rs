@@ -10,28 +10,49 @@
 //! status page (`status.html`: plain HTML and a little JavaScript, no build
 //! step) that reads the same API with the browser's basic-auth credentials.
 //!
-//! Layout: `mod` (router, auth, errors, the shared context), `handlers`
-//! (one function per route), `pagination` (RabbitMQ's `page`,
-//! `page_size`, `name`, `sort`), `json` (objects and body parsing), `rates`
-//! (the sampler behind `*_details`), `audit` (the log line of each change
-//! with the acting user), `vhost_deletion` (`DELETE /api/vhosts/{vhost}`),
-//! `limits` (vhost and user limits), `health` (the health checks),
-//! `parameters` (the runtime-parameter listings).
+//! Layout, a file a resource as RabbitMQ's API has them: `overview`
+//! (the overview, nodes, environment and the status page), `vhosts`,
+//! `users` (and `whoami`), `permissions` (and topic permissions),
+//! `exchanges` (and publishing), `queues` (and getting messages),
+//! `bindings` (every listing of bindings), `connections`, `channels`,
+//! `consumers`, `definitions`, `shovels`, `federation`, `parameters` (the
+//! runtime-parameter listings), `policies` (and operator policies, the
+//! cluster name, global parameters), `limits` (vhost and user limits),
+//! `health` (the health checks and the aliveness test). Beside them:
+//! `mod` (router, auth, errors, the shared context), `common` (what every
+//! resource's handlers share), `caller` (who calls and what their tags
+//! let them do), `pagination` (RabbitMQ's `page`, `page_size`, `name`,
+//! `sort`), `json` (objects and body parsing), `rates` (the sampler
+//! behind `*_details`), `audit` (the log line of each change with the
+//! acting user). A resource's file uses those and the broker; only
+//! `bindings` uses two others' lookups (an exchange's, a queue's), and no
+//! resource is used by those it uses.
 //! Handlers reach the broker only
 //! through [`Admin`]; they run on the listeners' thread.
 
 mod audit;
+mod bindings;
 mod caller;
+mod channels;
+mod common;
+mod connections;
+mod consumers;
+mod definitions;
+mod exchanges;
 mod federation;
-mod handlers;
 mod health;
 pub mod json;
 mod limits;
+mod overview;
 mod pagination;
 mod parameters;
+mod permissions;
 mod policies;
+mod queues;
 mod rates;
-mod vhost_deletion;
+mod shovels;
+mod users;
+mod vhosts;
 
 use crate::http::Peer;
 use crate::uplink::{DeclareError, Links};
@@ -253,19 +274,18 @@ async fn authenticate(
 
 /// The router of the management listener.
 pub fn router(context: Context) -> Router {
-    use handlers as h;
     let context = Arc::new(context);
     let api = Router::new()
-        .route("/", get(h::status_page))
-        .route("/api/overview", get(h::overview))
-        .route("/api/nodes", get(h::nodes))
-        .route("/api/nodes/{node}", get(h::node))
-        .route("/api/vhosts", get(h::vhosts))
+        .route("/", get(overview::status_page))
+        .route("/api/overview", get(overview::overview))
+        .route("/api/nodes", get(overview::nodes))
+        .route("/api/nodes/{node}", get(overview::node))
+        .route("/api/vhosts", get(vhosts::vhosts))
         .route(
             "/api/vhosts/{vhost}",
-            get(h::vhost)
-                .put(h::put_vhost)
-                .delete(vhost_deletion::delete_vhost),
+            get(vhosts::vhost)
+                .put(vhosts::put_vhost)
+                .delete(vhosts::delete_vhost),
         )
         .route("/api/vhost-limits", get(limits::vhost_limits))
         .route("/api/vhost-limits/{vhost}", get(limits::vhost_limits_of))
@@ -279,88 +299,98 @@ pub fn router(context: Context) -> Router {
             "/api/user-limits/{user}/{name}",
             put(limits::put_user_limit).delete(limits::delete_user_limit),
         )
-        .route("/api/users", get(h::users))
+        .route("/api/users", get(users::users))
         .route(
             "/api/users/{name}",
-            get(h::user).put(h::put_user).delete(h::delete_user),
+            get(users::user)
+                .put(users::put_user)
+                .delete(users::delete_user),
         )
-        .route("/api/whoami", get(h::whoami))
-        .route("/api/environment", get(h::environment))
-        .route("/api/permissions", get(h::permissions))
+        .route("/api/whoami", get(users::whoami))
+        .route("/api/environment", get(overview::environment))
+        .route("/api/permissions", get(permissions::permissions))
         .route(
             "/api/permissions/{vhost}/{user}",
-            get(h::permission)
-                .put(h::put_permission)
-                .delete(h::delete_permission),
+            get(permissions::permission)
+                .put(permissions::put_permission)
+                .delete(permissions::delete_permission),
         )
-        .route("/api/topic-permissions", get(h::topic_permissions))
+        .route(
+            "/api/topic-permissions",
+            get(permissions::topic_permissions),
+        )
         .route(
             "/api/topic-permissions/{vhost}/{user}",
-            put(h::put_topic_permission).delete(h::delete_topic_permission),
+            put(permissions::put_topic_permission).delete(permissions::delete_topic_permission),
         )
-        .route("/api/exchanges", get(h::exchanges))
-        .route("/api/exchanges/{vhost}", get(h::exchanges_in))
+        .route("/api/exchanges", get(exchanges::exchanges))
+        .route("/api/exchanges/{vhost}", get(exchanges::exchanges_in))
         .route(
             "/api/exchanges/{vhost}/{name}",
-            get(h::exchange)
-                .put(h::put_exchange)
-                .delete(h::delete_exchange),
+            get(exchanges::exchange)
+                .put(exchanges::put_exchange)
+                .delete(exchanges::delete_exchange),
         )
-        .route("/api/exchanges/{vhost}/{name}/publish", post(h::publish))
+        .route(
+            "/api/exchanges/{vhost}/{name}/publish",
+            post(exchanges::publish),
+        )
         .route(
             "/api/exchanges/{vhost}/{name}/bindings/source",
-            get(h::exchange_bindings_source),
+            get(bindings::exchange_bindings_source),
         )
         .route(
             "/api/exchanges/{vhost}/{name}/bindings/destination",
-            get(h::exchange_bindings_destination),
+            get(bindings::exchange_bindings_destination),
         )
-        .route("/api/queues", get(h::queues))
-        .route("/api/queues/{vhost}", get(h::queues_in))
+        .route("/api/queues", get(queues::queues))
+        .route("/api/queues/{vhost}", get(queues::queues_in))
         .route(
             "/api/queues/{vhost}/{name}",
-            get(h::queue).put(h::put_queue).delete(h::delete_queue),
+            get(queues::queue)
+                .put(queues::put_queue)
+                .delete(queues::delete_queue),
         )
-        .route("/api/queues/{vhost}/{name}/contents", delete(h::purge))
-        .route("/api/queues/{vhost}/{name}/get", post(h::get_messages))
+        .route("/api/queues/{vhost}/{name}/contents", delete(queues::purge))
+        .route("/api/queues/{vhost}/{name}/get", post(queues::get_messages))
         .route(
             "/api/queues/{vhost}/{name}/bindings",
-            get(h::queue_bindings),
+            get(bindings::queue_bindings),
         )
-        .route("/api/bindings", get(h::bindings))
-        .route("/api/bindings/{vhost}", get(h::bindings_in))
+        .route("/api/bindings", get(bindings::bindings))
+        .route("/api/bindings/{vhost}", get(bindings::bindings_in))
         .route(
             "/api/bindings/{vhost}/e/{source}/{kind}/{destination}",
-            get(h::bindings_between).post(h::post_binding),
+            get(bindings::bindings_between).post(bindings::post_binding),
         )
         .route(
             "/api/bindings/{vhost}/e/{source}/{kind}/{destination}/{props}",
-            get(h::binding).delete(h::delete_binding),
+            get(bindings::binding).delete(bindings::delete_binding),
         )
-        .route("/api/connections", get(h::connections))
+        .route("/api/connections", get(connections::connections))
         .route(
             "/api/connections/{name}",
-            get(h::connection).delete(h::close_connection),
+            get(connections::connection).delete(connections::close_connection),
         )
-        .route("/api/channels", get(h::channels))
-        .route("/api/consumers", get(h::consumers))
-        .route("/api/consumers/{vhost}", get(h::consumers_in))
+        .route("/api/channels", get(channels::channels))
+        .route("/api/consumers", get(consumers::consumers))
+        .route("/api/consumers/{vhost}", get(consumers::consumers_in))
         .route(
             "/api/definitions",
-            get(h::definitions).post(h::import_definitions),
+            get(definitions::definitions).post(definitions::import_definitions),
         )
         .route(
             "/api/definitions/{vhost}",
-            get(h::vhost_definitions).post(h::import_vhost_definitions),
+            get(definitions::vhost_definitions).post(definitions::import_vhost_definitions),
         )
-        .route("/api/aliveness-test/{vhost}", get(h::aliveness_test))
-        .route("/api/shovels", get(h::shovels))
-        .route("/api/shovels/{vhost}", get(h::shovels_in))
+        .route("/api/aliveness-test/{vhost}", get(health::aliveness_test))
+        .route("/api/shovels", get(shovels::shovels))
+        .route("/api/shovels/{vhost}", get(shovels::shovels_in))
         .route(
             "/api/parameters/shovel/{vhost}/{name}",
-            get(h::shovel_parameter)
-                .put(h::put_shovel)
-                .delete(h::delete_shovel),
+            get(shovels::shovel_parameter)
+                .put(shovels::put_shovel)
+                .delete(shovels::delete_shovel),
         )
         .route("/api/parameters", get(parameters::all))
         .route("/api/parameters/{component}", get(parameters::of_component))
@@ -432,7 +462,7 @@ pub fn router(context: Context) -> Router {
             "/api/health/checks/certificate-expiration/{within}/{unit}",
             get(health::certificate_expiration),
         )
-        .fallback(h::unknown)
+        .fallback(common::unknown)
         .route_layer(axum::middleware::from_fn(audit::log_changes))
         .route_layer(axum::middleware::from_fn_with_state(
             Arc::clone(&context),

@@ -5,11 +5,11 @@
 //! `{"value", "vhost", "component", "name"}`, only in the vhosts the
 //! caller sees. A component Leveret does not have lists nothing, as
 //! RabbitMQ lists a component no plugin registered. One parameter, and
-//! changing one, are the components' own paths (`handlers`' shovel
-//! parameter, `federation`).
+//! changing one, are the components' own paths (`shovels`,
+//! `federation`).
 
 use super::caller::Caller;
-use super::handlers::{require_vhost, ApiResult, Ctx};
+use super::common::{require_vhost, ApiResult, Ctx};
 use super::Context;
 use crate::federation::UPSTREAM_COMPONENT;
 use crate::uplink::{Listed, SHOVEL_COMPONENT};

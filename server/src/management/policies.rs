@@ -6,7 +6,7 @@
 //! setting the cluster name); the changes go through `crate::policies`.
 
 use super::caller::Caller;
-use super::handlers::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
+use super::common::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
 use super::{ApiError, Context};
 use crate::policies;
 use axum::body::Bytes;
