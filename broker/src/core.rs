@@ -6,15 +6,15 @@
 //! layer and below, never a connection.
 
 use crate::admission::Admission;
+use crate::alarm::memory::MemoryGauge;
+use crate::alarm::resident::ResidentMemoryWatermark;
 use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
 use crate::limits::LimitTables;
 pub use crate::limits::{UserLimits, VhostLimits};
-use crate::memory::MemoryGauge;
 use crate::parameters::Parameters;
 use crate::permissions::Permissions;
 use crate::registry::Registry;
-use crate::resident_memory::ResidentMemoryWatermark;
 use crate::stats::BrokerCounters;
 use crate::store::Persistence;
 use crate::vhost::Vhost;

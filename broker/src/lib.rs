@@ -101,11 +101,11 @@
 //! the group-commit persister), used from the queue layer up and using
 //! nothing of the broker but `stats` (its histograms) and `word_hash`;
 //! and the pieces every layer may use, which use only each other and the
-//! store: `message` (a message as the broker holds it), `memory` (the
-//! memory alarm) and `resident_memory` (the process's resident memory
-//! from /proc, one of the alarm's sources), `disk_alarm` (free disk space,
-//! the disk alarm's source), `admission` (connections and channels
-//! counted against RabbitMQ's connection, vhost and user limits),
+//! store: `message` (a message as the broker holds it), `alarm` (the
+//! memory and disk alarms: `alarm::memory` the alarm itself,
+//! `alarm::resident` the process's resident memory from /proc and
+//! `alarm::disk` free disk space, its sources), `admission` (connections
+//! and channels counted against RabbitMQ's connection, vhost and user limits),
 //! `limits` (the vhost and user limits in effect, set at run time too),
 //! `arguments` (every argument RabbitMQ 3.10 knows and what Leveret does
 //! with it), `auth` (users and SASL), `password` (password hashes),
@@ -113,10 +113,10 @@
 //! `login_backoff` (failed logins answered later), `permissions`,
 //! `parameters` (runtime parameters as the core keeps them), `policy`
 //! (policies and operator policies: matching, checking, and RabbitMQ's
-//! rules for combining them with arguments), `busy_poll`
-//! and `cpu_pressure` (polling for input for a short, adaptive window
-//! after socket reads instead of sleeping), `tls`, `error` (reply
-//! errors), `slice` (long work in time slices: the stall budget), `stats`
+//! rules for combining them with arguments), `busy_poll` (polling for
+//! input for a short window after socket reads instead of sleeping,
+//! shortened under CPU pressure: `busy_poll::cpu_pressure`), `tls`,
+//! `error` (reply errors), `slice` (long work in time slices: the stall budget), `stats`
 //! (message and churn counters with RabbitMQ's meanings, relaxed atomic
 //! adds on the hot path) and `word_hash` (a cheap hasher for small
 //! integer keys).
@@ -126,6 +126,7 @@
 mod access;
 mod admin;
 mod admission;
+mod alarm;
 mod arguments;
 mod as_user;
 mod auth;
@@ -137,9 +138,7 @@ mod channel;
 mod connection;
 mod consumer;
 mod core;
-mod cpu_pressure;
 mod deadletter;
-mod disk_alarm;
 mod embed;
 mod error;
 #[cfg(feature = "bench-internals")]
@@ -151,7 +150,6 @@ mod hash_pool;
 mod inspect;
 mod limits;
 mod login_backoff;
-mod memory;
 mod message;
 #[cfg(feature = "mqtt")]
 mod mqtt;
@@ -163,7 +161,6 @@ mod policy;
 mod queue;
 mod recovery;
 mod registry;
-mod resident_memory;
 mod routing;
 mod server;
 mod slice;
@@ -179,6 +176,8 @@ mod word_hash;
 
 pub use crate::access::AccessError;
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
+pub use crate::alarm::disk::{DirFreeSpace, FreeSpace};
+pub use crate::alarm::resident::ResidentMemoryWatermark;
 pub use crate::arguments::POSITION_HEADER;
 pub use crate::arguments::{
     classic_queue_arguments, Argument, Scope as ArgumentScope, Support as ArgumentSupport,
@@ -188,7 +187,6 @@ pub use crate::as_user::AsUser;
 pub use crate::auth::User;
 pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
 pub use crate::core::{Limits, UserLimits, VhostLimits};
-pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 pub use crate::hash_pool::{HashPoolStats, HASH_THREADS};
 pub use crate::limits::UnknownLimit;
 pub use crate::outbox::{InlineDeliveries, InlineDelivery};
@@ -202,7 +200,6 @@ pub use crate::policy::{
 };
 pub use crate::queue::process_nonce;
 pub use crate::queue::{start_at as stream_start_at, StartAt as StreamStartAt};
-pub use crate::resident_memory::ResidentMemoryWatermark;
 pub use crate::stats::HistogramFigures;
 #[cfg(feature = "tls")]
 pub use crate::tls::{certificate_expiry, PeerVerification, TlsError, TlsOptions};

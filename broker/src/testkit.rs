@@ -7,8 +7,8 @@
 //! on a socket. Time is passed in (`expire_at`, `sweep_at`) rather than
 //! waited for.
 
+use crate::alarm::memory::MemoryGauge;
 use crate::exchange::{ExchangeKind, ExchangeOptions};
-use crate::memory::MemoryGauge;
 use crate::message::Message;
 use crate::outbox::{Outbound, Outbox};
 use crate::queue::{ChannelLink, Consumer, DeadLetters, Enqueued, Queue, QueueOptions};

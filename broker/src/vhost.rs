@@ -12,12 +12,12 @@
 //! or an exchange removes its bindings in steps of [`UNBIND_STEP`] with a
 //! yield between steps.
 
+use crate::alarm::memory::MemoryGauge;
 use crate::arguments;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{
     consistent_hash, Binding, BindingRegistry, Destination, Exchange, ExchangeKind, ExchangeOptions,
 };
-use crate::memory::MemoryGauge;
 use crate::policy::{ObjectKind, VhostPolicies};
 use crate::queue::{
     DeadLetters, Deleted, Queue, QueueArgs, QueueOptions, ReplyTarget, Stream, StreamArgs,

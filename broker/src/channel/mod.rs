@@ -22,10 +22,10 @@ mod queue;
 mod reply_to;
 mod tx;
 
+use crate::alarm::memory::{MemoryGauge, Reservation};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{Exchange, ExchangeKind};
-use crate::memory::{MemoryGauge, Reservation};
 use crate::outbox::Outbox;
 use crate::permissions::{AccessView, Resource, Right};
 use crate::queue::{ChannelLink, Consumer, Queue};

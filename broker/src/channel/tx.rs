@@ -5,8 +5,8 @@
 
 use super::basic::{apply_settles, requeue_all, Outcome, Settle};
 use super::{Channel, Publish};
+use crate::alarm::memory::MemoryGauge;
 use crate::error::{AmqpError, AmqpResult};
-use crate::memory::MemoryGauge;
 use crate::queue::{DeadLetters, Enqueued, Queue, Unacked};
 use crate::registry::ChannelMode;
 use crate::slice::{yield_if_spent, Slice};

@@ -13,9 +13,9 @@ mod start;
 
 pub use handle::BrokerHandle;
 
+use crate::alarm::disk::FreeSpace;
 use crate::auth::User;
 use crate::core::{Limits, UserLimits};
-use crate::disk_alarm::FreeSpace;
 use crate::password::PasswordHash;
 use crate::permissions::{PatternError, Permission, TopicPermission};
 use crate::store::{Store, StoreError};

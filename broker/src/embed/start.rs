@@ -17,12 +17,12 @@ use super::handle::BrokerHandle;
 use super::handle::CleanShutdown;
 use super::{BrokerBuilder, StartError, Storage};
 use crate::access::{AtStart, Configured};
+#[cfg(feature = "persistence")]
+use crate::alarm::disk::DirFreeSpace;
+use crate::alarm::disk::FreeSpace;
 use crate::auth::User;
 use crate::busy_poll::BusyPoll;
 use crate::core::{Core, CoreOptions};
-#[cfg(feature = "persistence")]
-use crate::disk_alarm::DirFreeSpace;
-use crate::disk_alarm::FreeSpace;
 #[cfg(not(feature = "tls"))]
 use crate::server::TlsContext;
 #[cfg(feature = "persistence")]
@@ -420,13 +420,13 @@ fn spawn_background_tasks(
         Arc::clone(core),
         SWEEP_PERIOD,
     )));
-    tasks.push(tokio::spawn(crate::resident_memory::watch(
+    tasks.push(tokio::spawn(crate::alarm::resident::watch(
         Arc::clone(&core.gauge),
         core.limits.resident_memory_high_watermark,
         core.shutdown_signal(),
     )));
     if let Some(probe) = free_space {
-        tasks.push(tokio::spawn(crate::disk_alarm::watch(
+        tasks.push(tokio::spawn(crate::alarm::disk::watch(
             Arc::clone(&core.gauge),
             probe,
             core.limits.disk_free_limit,

@@ -13,7 +13,7 @@
 //! them is logged. Looking up a filter visits only the topics that share
 //! its literal prefix.
 
-use crate::memory::MemoryGauge;
+use crate::alarm::memory::MemoryGauge;
 use crate::store::{Durable, MetaKey, MetaRecord, Persistence, StoreOp};
 use bytes::Bytes;
 use leveret_mqtt::{QoS, TopicFilter};

@@ -37,8 +37,8 @@ pub use args::{ConsumerArgs, Overflow, QueueArgs};
 pub use leaving::{DeadLetter, DeadLetterReason, DeadLetters, Deleted};
 pub use stream::{is_stream, start_at, StartAt, Stream, StreamArgs, StreamFigures};
 
+use crate::alarm::memory::MemoryGauge;
 use crate::error::{AmqpError, AmqpResult};
-use crate::memory::MemoryGauge;
 use crate::message::Message;
 use crate::outbox::{Outbound, OutboxPermit, WaitsForRoom};
 use crate::policy::Applied;

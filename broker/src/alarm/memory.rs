@@ -4,9 +4,9 @@
 //! - the bytes the broker counts (queued messages, publishes a transaction
 //!   holds, message bodies being assembled) above the high watermark;
 //! - the process's resident memory above its own watermark, reported by
-//!   the `resident_memory` watcher;
+//!   the `resident` watcher;
 //! - free disk space below `disk_free_limit`, reported by the
-//!   `disk_alarm` watcher.
+//!   `disk` watcher.
 //!
 //! Publishers are unblocked only once every source has cleared; the
 //! memory sources clear below 90% of their watermark (hysteresis, so the

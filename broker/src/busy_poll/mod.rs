@@ -23,13 +23,15 @@
 //! busy process), every microsecond spent spinning is taken from them, and
 //! a client that waits for a CPU answers later than a broker that sleeps
 //! would. So the spinner reads the kernel's CPU pressure (see
-//! [`crate::cpu_pressure`]) every [`PRESSURE_SAMPLE`] while it spins, and
+//! [`cpu_pressure`]) every [`PRESSURE_SAMPLE`] while it spins, and
 //! when threads waited for more than [`PRESSURE_LIMIT`] of that time it
 //! stops and does not spin again for a back-off that doubles while the
 //! pressure persists. Where the kernel reports no pressure it spins as
 //! configured.
 
-use crate::cpu_pressure::CpuPressure;
+mod cpu_pressure;
+
+use cpu_pressure::CpuPressure;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use tokio::sync::{watch, Notify};

@@ -5,7 +5,7 @@
 //! cleared. The probe is a [`FreeSpace`], so tests and embedders can
 //! report any figure. Uses only `memory`.
 
-use crate::memory::MemoryGauge;
+use crate::alarm::memory::MemoryGauge;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;

@@ -5,7 +5,7 @@
 //! application holds). Where `/proc` is absent the watcher logs once and
 //! stops; the counted-bytes alarm works as before. Uses only `memory`.
 
-use crate::memory::{below_hysteresis, MemoryGauge};
+use crate::alarm::memory::{below_hysteresis, MemoryGauge};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::watch;
