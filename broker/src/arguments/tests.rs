@@ -151,7 +151,7 @@ fn each_argument_is_listed_once_and_refusals_name_it() {
 fn markdown() -> String {
     let mut out = String::from(
         "# Arguments\n\n\
-         Generated from `ARGUMENTS` in `broker/src/arguments.rs` by its test\n\
+         Generated from `ARGUMENTS` in `broker/src/arguments/mod.rs` by its test\n\
          `the_docs_table_is_the_code_list`; `LEVERET_WRITE_DOCS=1 cargo test -p\n\
          leveret-broker --lib arguments::` rewrites it. Every argument RabbitMQ 3.10\n\
          knows for `queue.declare`, `exchange.declare` and `basic.consume`, and what\n\
