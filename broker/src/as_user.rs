@@ -15,13 +15,13 @@
 //! queue name), `permissions`, `inspect`'s destination kinds and the
 //! vhost it checks in.
 
+use crate::access::permissions::{Resource, Right, VhostAccess};
 use crate::admin::{
     Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings, ALIVENESS_QUEUE,
 };
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::ExchangeKind;
 use crate::inspect::DestinationKind;
-use crate::permissions::{Resource, Right, VhostAccess};
 use crate::vhost::Vhost;
 use bytes::Bytes;
 use leveret_protocol::{BasicProperties, ShortStr};

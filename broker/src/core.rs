@@ -5,15 +5,15 @@
 //! an `Arc` of it to every connection and its channels. It uses the vhost
 //! layer and below, never a connection.
 
+use crate::access::auth::Users;
+use crate::access::permissions::Permissions;
 use crate::admission::Admission;
 use crate::alarm::memory::MemoryGauge;
 use crate::alarm::resident::ResidentMemoryWatermark;
-use crate::auth::Users;
 use crate::busy_poll::BusyPoll;
 use crate::limits::LimitTables;
 pub use crate::limits::{UserLimits, VhostLimits};
 use crate::parameters::Parameters;
-use crate::permissions::Permissions;
 use crate::registry::Registry;
 use crate::stats::BrokerCounters;
 use crate::store::Persistence;

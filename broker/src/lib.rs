@@ -62,8 +62,9 @@
 //!    every `impl Admin` is in its folder), `as_user` (the same
 //!    operations checked against a user's permissions); and below those
 //!    two, knowing no handle, `inspect` (the plain structs state is read
-//!    into, with RabbitMQ's field meanings) and `access` (users, vhosts
-//!    and permissions that last: restored at start, and their records).
+//!    into, with RabbitMQ's field meanings) and `access::lasting` (users,
+//!    vhosts and permissions that last: restored at start, and their
+//!    records; the rest of `access` is shared, below).
 //!    No layer below calls them.
 //! 3. **Channel**: `channel`, content assembly and one module per AMQP
 //!    class (`basic`, `queue`, `exchange`, `tx`, `reply_to`); a whole
@@ -99,27 +100,27 @@
 //!
 //! Beside the layers: `store` (the [`store::Store`] trait, the key codec,
 //! the group-commit persister), used from the queue layer up and using
-//! nothing of the broker but `stats` (its histograms) and `word_hash`;
-//! and the pieces every layer may use, which use only each other and the
-//! store: `message` (a message as the broker holds it), `alarm` (the
-//! memory and disk alarms: `alarm::memory` the alarm itself,
-//! `alarm::resident` the process's resident memory from /proc and
-//! `alarm::disk` free disk space, its sources), `admission` (connections
-//! and channels counted against RabbitMQ's connection, vhost and user limits),
-//! `limits` (the vhost and user limits in effect, set at run time too),
-//! `arguments` (every argument RabbitMQ 3.10 knows and what Leveret does
-//! with it), `auth` (users and SASL), `password` (password hashes),
-//! `hash_pool` (the bounded threads that check slow hashes) and
-//! `login_backoff` (failed logins answered later), `permissions`,
-//! `parameters` (runtime parameters as the core keeps them), `policy`
-//! (policies and operator policies: matching, checking, and RabbitMQ's
-//! rules for combining them with arguments), `busy_poll` (polling for
-//! input for a short window after socket reads instead of sleeping,
-//! shortened under CPU pressure: `busy_poll::cpu_pressure`), `tls`,
-//! `error` (reply errors), `slice` (long work in time slices: the stall budget), `stats`
-//! (message and churn counters with RabbitMQ's meanings, relaxed atomic
-//! adds on the hot path) and `word_hash` (a cheap hasher for small
-//! integer keys).
+//! nothing of the broker but `stats` (its histograms) and `word_hash`; and
+//! the pieces every layer may use, which use only each other and the store:
+//! `message` (a message as the broker holds it), `alarm` (the memory and
+//! disk alarms: `alarm::memory` the alarm itself, `alarm::resident` the
+//! process's resident memory from /proc and `alarm::disk` free disk space,
+//! its sources), `admission` (connections and channels counted against
+//! RabbitMQ's connection, vhost and user limits), `limits` (the vhost and
+//! user limits in effect, set at run time too), `arguments` (every argument
+//! RabbitMQ 3.10 knows and what Leveret does with it), `access` (access
+//! control: `access::auth` users and SASL, `access::password` password
+//! hashes, `access::hash_pool` the bounded threads that check slow hashes,
+//! `access::login_backoff` failed logins answered later, and
+//! `access::permissions`; not `access::lasting`, above), `parameters`
+//! (runtime parameters as the core keeps them), `policy` (policies and
+//! operator policies: matching, checking, and RabbitMQ's rules for
+//! combining them with arguments), `busy_poll` (polling for input for a
+//! short window after socket reads instead of sleeping, shortened under CPU
+//! pressure: `busy_poll::cpu_pressure`), `tls`, `error` (reply errors),
+//! `slice` (long work in time slices: the stall budget), `stats` (message
+//! and churn counters with RabbitMQ's meanings, relaxed atomic adds on the
+//! hot path) and `word_hash` (a cheap hasher for small integer keys).
 #![forbid(unsafe_code)]
 #![deny(missing_docs)]
 
@@ -129,7 +130,6 @@ mod admission;
 mod alarm;
 mod arguments;
 mod as_user;
-mod auth;
 #[cfg(feature = "bench-internals")]
 #[doc(hidden)]
 pub mod bench;
@@ -146,17 +146,13 @@ mod error;
 pub mod exchange;
 #[cfg(not(feature = "bench-internals"))]
 mod exchange;
-mod hash_pool;
 mod inspect;
 mod limits;
-mod login_backoff;
 mod message;
 #[cfg(feature = "mqtt")]
 mod mqtt;
 mod outbox;
 mod parameters;
-mod password;
-mod permissions;
 mod policy;
 mod queue;
 mod recovery;
@@ -174,7 +170,13 @@ mod tls;
 mod vhost;
 mod word_hash;
 
-pub use crate::access::AccessError;
+pub use crate::access::auth::User;
+pub use crate::access::hash_pool::{HashPoolStats, HASH_THREADS};
+pub use crate::access::lasting::AccessError;
+pub use crate::access::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
+pub use crate::access::permissions::{
+    check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,
+};
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
 pub use crate::alarm::disk::{DirFreeSpace, FreeSpace};
 pub use crate::alarm::resident::ResidentMemoryWatermark;
@@ -184,16 +186,10 @@ pub use crate::arguments::{
     ARGUMENTS,
 };
 pub use crate::as_user::AsUser;
-pub use crate::auth::User;
 pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
 pub use crate::core::{Limits, UserLimits, VhostLimits};
-pub use crate::hash_pool::{HashPoolStats, HASH_THREADS};
 pub use crate::limits::UnknownLimit;
 pub use crate::outbox::{InlineDeliveries, InlineDelivery};
-pub use crate::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256, RABBIT_SHA512};
-pub use crate::permissions::{
-    check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,
-};
 pub use crate::policy::{
     Applied as AppliedPolicies, ApplyTo, KeySupport as PolicyKeySupport, Policy, PolicyError,
     PolicyKey, PolicyKind, PolicySpec, PolicyValue, POLICY_KEYS,

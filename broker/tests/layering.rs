@@ -3,7 +3,7 @@
 //! `src/lib.rs` describes the crate as layers, each using only the layers
 //! below it and the shared pieces beside them. This test reads every file
 //! under `src/`, finds each path it takes from another of the crate's
-//! top-level modules (`use crate::…`, `crate::…` in code, and `super::`
+//! modules (`use crate::…`, `crate::…` in code, and `super::`
 //! paths that climb out of their own module), and checks it against
 //! [`LAYERS`]. A reference that runs up a layer fails the test with the
 //! file and the module it names. Modules of one layer may use each other;
@@ -13,9 +13,11 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
-/// Each top-level module and the layer it sits in: higher numbers sit
-/// higher and may use every lower number. [`SHARED`] modules may be used
-/// from anywhere.
+/// Each module, by its path from the crate root, and the layer it sits
+/// in: higher numbers sit higher and may use every lower number.
+/// [`SHARED`] modules may be used from anywhere. A module is placed by the
+/// longest entry its path starts with, so `access::lasting` sits in the
+/// operators' layer while the rest of `access` is shared.
 const LAYERS: &[(&str, u8)] = &[
     // Highest first, as src/lib.rs's Layout numbers them from the top:
     // 1. Server: the entry point, listeners, connections, recovery, the
@@ -31,7 +33,7 @@ const LAYERS: &[(&str, u8)] = &[
     ("admin", 8),
     ("as_user", 8),
     ("inspect", 7),
-    ("access", 7),
+    ("access::lasting", 7),
     // 3. Channel.
     ("channel", 6),
     // 4. Core.
@@ -56,19 +58,15 @@ const LAYERS: &[(&str, u8)] = &[
 
 /// Modules every layer may use (they use only each other and the store).
 const SHARED: &[&str] = &[
+    "access",
     "admission",
     "alarm",
     "arguments",
-    "auth",
     "busy_poll",
     "error",
-    "hash_pool",
     "limits",
-    "login_backoff",
     "message",
     "parameters",
-    "password",
-    "permissions",
     "policy",
     "slice",
     "stats",
@@ -176,67 +174,70 @@ fn is_ident(b: u8) -> bool {
     b.is_ascii_alphanumeric() || b == b'_'
 }
 
-/// The first segments named after `crate::` at `start` (just past the
-/// `::`): one for `crate::queue::Queue`, each item's for
-/// `crate::{queue::Queue, outbox}`.
-fn first_segments(code: &[u8], start: usize, out: &mut Vec<String>) {
-    let mut i = start;
+fn skip_space(code: &[u8], mut i: usize) -> usize {
     while i < code.len() && code[i].is_ascii_whitespace() {
         i += 1;
     }
+    i
+}
+
+/// The paths named at `start` (just past a `crate::`), each as its
+/// segments after `prefix`: `["queue", "Queue"]` for `crate::queue::Queue`,
+/// one path per item for `crate::{queue::Queue, outbox}` and for nested
+/// groups. Returns where the path ends.
+fn paths_at(code: &[u8], start: usize, prefix: &[String], out: &mut Vec<Vec<String>>) -> usize {
+    let mut i = skip_space(code, start);
     if code.get(i) == Some(&b'{') {
-        let mut depth = 0;
-        let mut at_item_start = true;
-        while i < code.len() {
-            match code[i] {
-                b'{' => {
-                    depth += 1;
-                    at_item_start = depth == 1;
-                    i += 1;
-                }
-                b'}' => {
-                    depth -= 1;
-                    i += 1;
-                    if depth == 0 {
-                        return;
-                    }
-                }
-                b',' => {
-                    at_item_start = depth == 1;
-                    i += 1;
-                }
-                c if at_item_start && is_ident(c) => {
-                    let begin = i;
-                    while i < code.len() && is_ident(code[i]) {
-                        i += 1;
-                    }
-                    out.push(String::from_utf8_lossy(&code[begin..i]).into_owned());
-                    at_item_start = false;
-                }
-                _ => i += 1,
+        i += 1;
+        loop {
+            i = paths_at(code, i, prefix, out);
+            // pass over a rename (`as Name`) to the item's end
+            while i < code.len() && code[i] != b',' && code[i] != b'}' {
+                i += 1;
+            }
+            match code.get(i) {
+                Some(b',') => i += 1,
+                Some(_) => return i + 1,
+                None => return i,
             }
         }
-    } else {
+    }
+    let mut path = prefix.to_vec();
+    loop {
         let begin = i;
         while i < code.len() && is_ident(code[i]) {
             i += 1;
         }
-        if i > begin {
-            out.push(String::from_utf8_lossy(&code[begin..i]).into_owned());
+        if i == begin {
+            break; // `*`, `<` or nothing
+        }
+        path.push(String::from_utf8_lossy(&code[begin..i]).into_owned());
+        let after = skip_space(code, i);
+        if !code[after..].starts_with(b"::") {
+            break;
+        }
+        i = skip_space(code, after + 2);
+        if code.get(i) == Some(&b'{') {
+            return paths_at(code, i, &path, out);
         }
     }
+    if !path.is_empty() {
+        out.push(path);
+    }
+    i
 }
 
-/// The crate's top-level modules that a file's code names.
-fn referenced_modules(module: &[String], code: &str) -> BTreeSet<String> {
+/// The crate's paths that a file's code names, from the crate root:
+/// `crate::` paths, and `super::` paths resolved against the file's own
+/// module path.
+fn referenced_paths(module: &[String], code: &str) -> Vec<Vec<String>> {
     let bytes = code.as_bytes();
-    let mut names = Vec::new();
+    let mut paths = Vec::new();
     let mut i = 0;
     while i < bytes.len() {
         let preceded_by_ident = i > 0 && (is_ident(bytes[i - 1]) || bytes[i - 1] == b':');
         if !preceded_by_ident && bytes[i..].starts_with(b"crate::") {
-            first_segments(bytes, i + "crate::".len(), &mut names);
-            i += "crate::".len();
+            i = paths_at(bytes, i + "crate::".len(), &[], &mut paths).max(i + 1);
         } else if !preceded_by_ident && bytes[i..].starts_with(b"super::") {
             // climb: each `super::` drops one segment of this file's module
             let mut depth = module.len();
@@ -245,17 +246,36 @@ fn referenced_modules(module: &[String], code: &str) -> BTreeSet<String> {
                 depth = depth.saturating_sub(1);
                 j += "super::".len();
             }
-            if depth == 0 {
-                first_segments(bytes, j, &mut names);
-            } else {
-                names.push(module[0].clone());
-            }
-            i = j;
+            i = paths_at(bytes, j, &module[..depth], &mut paths).max(j);
         } else {
             i += 1;
         }
     }
-    names.into_iter().collect()
+    paths
+}
+
+/// Where a module path sits: the longest entry of [`LAYERS`] or [`SHARED`]
+/// that it starts with, and that entry's layer (`None` for a shared one).
+fn place(path: &[String]) -> Option<(&'static str, Option<u8>)> {
+    let starts = |entry: &str| {
+        let segments: Vec<&str> = entry.split("::").collect();
+        segments.len() <= path.len() && segments.iter().zip(path).all(|(a, b)| a == b)
+    };
+    LAYERS
+        .iter()
+        .map(|&(entry, layer)| (entry, Some(layer)))
+        .chain(SHARED.iter().map(|&entry| (entry, None)))
+        .filter(|(entry, _)| starts(entry))
+        .max_by_key(|(entry, _)| entry.split("::").count())
+}
+
+/// The entries of [`LAYERS`] and [`SHARED`] that a file's code names, with
+/// their layers.
+fn referenced_modules(module: &[String], code: &str) -> BTreeMap<&'static str, Option<u8>> {
+    referenced_paths(module, code)
+        .iter()
+        .filter_map(|path| place(path))
+        .collect()
 }
 
 #[derive(Debug, PartialEq, Eq, PartialOrd, Ord)]
@@ -282,33 +302,26 @@ fn upward_references() -> Vec<Reference> {
 /// The references up a layer in one file: `relative` is its path under
 /// `src/`, `text` its source.
 fn upward_in(relative: &Path, text: &str) -> Vec<Reference> {
-    let layers: BTreeMap<&str, u8> = LAYERS.iter().copied().collect();
-    let shared: BTreeSet<&str> = SHARED.iter().copied().collect();
     let module = module_path(relative);
-    let Some(own) = module.first() else {
+    let Some(top) = module.first() else {
         return Vec::new(); // lib.rs declares and re-exports everything
     };
-    if TEST_SUPPORT.contains(&own.as_str()) || module.last().is_some_and(|m| m == "tests") {
+    if TEST_SUPPORT.contains(&top.as_str()) || module.last().is_some_and(|m| m == "tests") {
         return Vec::new(); // test support reaches into every layer on purpose
     }
-    let own_layer = *layers
-        .get(own.as_str())
-        .or_else(|| shared.contains(own.as_str()).then_some(&0))
-        .unwrap_or_else(|| {
-            panic!("module `{own}` ({relative:?}) is in no layer: add it to LAYERS or SHARED")
-        });
+    let (own, own_layer) = place(&module).unwrap_or_else(|| {
+        panic!("module `{top}` ({relative:?}) is in no layer: add it to LAYERS or SHARED")
+    });
+    let own_layer = own_layer.unwrap_or(0);
     let mut upward = Vec::new();
-    for name in referenced_modules(&module, &code_only(text)) {
-        if &name == own || shared.contains(name.as_str()) {
-            continue;
-        }
-        let Some(&their_layer) = layers.get(name.as_str()) else {
-            continue; // an item of lib.rs itself or an extern name
+    for (name, their_layer) in referenced_modules(&module, &code_only(text)) {
+        let Some(their_layer) = their_layer else {
+            continue; // a shared piece
         };
-        if their_layer > own_layer {
+        if name != own && their_layer > own_layer {
             upward.push(Reference {
                 file: relative.to_string_lossy().into_owned(),
-                module: name,
+                module: name.to_string(),
             });
         }
     }
@@ -336,21 +349,31 @@ fn the_reader_finds_grouped_inline_and_super_paths() {
         "use crate::{queue::Queue, outbox::{Outbound, Outbox}};\n\
          // crate::admin in a comment\n\
          let s = \"crate::inspect in a string\";\n\
-         fn f() { crate::vhost::route(); super::super::core::Core::new(); super::tx::x(); }",
+         fn f() { crate::vhost::route(); super::super::core::Core::new(); super::tx::x(); }\n\
+         use crate::access::{auth::User, lasting::{at_start, AccessError as E}};",
     );
-    let found = referenced_modules(&module, &code);
-    let expected: BTreeSet<String> = ["queue", "outbox", "vhost", "core", "channel"]
-        .into_iter()
-        .map(String::from)
-        .collect();
+    let found: BTreeSet<&str> = referenced_modules(&module, &code).into_keys().collect();
+    let expected: BTreeSet<&str> = [
+        "queue",
+        "outbox",
+        "vhost",
+        "core",
+        "channel",
+        "access",
+        "access::lasting",
+    ]
+    .into_iter()
+    .collect();
     assert_eq!(found, expected);
 }
 
 /// The check on deliberate violations: the consumer layer and the outbox
 /// naming the queue (the circle the crate once had), a queue file climbing
 /// to the channel with `super::`, a shared piece naming the core, and the
-/// operators' views naming their handle; a reference down, beside or to a
-/// shared piece passes.
+/// operators' views naming their handle, a shared piece of `access` and
+/// the channel naming `access::lasting` (a module placed by a longer path
+/// than its folder's); a reference down, beside or to a shared piece
+/// passes.
 #[test]
 fn a_reference_up_a_layer_is_reported_with_its_file_and_module() {
     let up = |file: &str, module: &str| Reference {
@@ -393,5 +416,26 @@ fn a_reference_up_a_layer_is_reported_with_its_file_and_module() {
             "use crate::queue::{Consumer, Unacked};\nuse crate::admin::Admin as _;\nuse crate::stats::QueueCounters;"
         ),
         [up("channel/basic.rs", "admin")]
+    );
+    assert_eq!(
+        check(
+            "access/auth.rs",
+            "use super::password::PasswordHash;\nuse crate::access::lasting::at_start;"
+        ),
+        [up("access/auth.rs", "access::lasting")]
+    );
+    assert_eq!(
+        check(
+            "channel/mod.rs",
+            "use crate::access::{permissions::Permission, lasting::AccessError};"
+        ),
+        [up("channel/mod.rs", "access::lasting")]
+    );
+    assert_eq!(
+        check(
+            "access/lasting.rs",
+            "use crate::access::auth::Users;\nuse crate::store::StoreOp;"
+        ),
+        []
     );
 }

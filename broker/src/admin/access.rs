@@ -5,13 +5,13 @@
 //! store and memory see the changes in one order. A write that fails
 //! changes nothing and is reported.
 //!
-//! Uses `access` (its errors and the records it restores at start),
+//! Uses `access::lasting` (its errors and the records it restores at start),
 //! `auth`, `permissions`, `limits`, `store` and the core's users.
 
 use super::Admin;
-use crate::access::{permission_record, user_record, AccessError};
-use crate::auth::User;
-use crate::permissions::{Permission, TopicPermission};
+use crate::access::auth::User;
+use crate::access::lasting::{permission_record, user_record, AccessError};
+use crate::access::permissions::{Permission, TopicPermission};
 use crate::store::{MetaKey, MetaRecord, StoreOp};
 use leveret_protocol::ShortStr;
 
@@ -253,7 +253,7 @@ impl Admin {
 
     /// What the password hashing pool has done: its threads, and the
     /// most checks it ran at once.
-    pub fn hash_pool_stats(&self) -> crate::hash_pool::HashPoolStats {
+    pub fn hash_pool_stats(&self) -> crate::access::hash_pool::HashPoolStats {
         self.core.users.hash_pool_stats()
     }
 }

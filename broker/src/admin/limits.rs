@@ -6,10 +6,10 @@
 //! connections and channels already open stay, as in RabbitMQ, but count.
 //!
 //! Uses the core's [`LimitTables`](crate::limits::LimitTables), `store`
-//! and `access`.
+//! and `access::lasting`.
 
 use super::Admin;
-use crate::access::AccessError;
+use crate::access::lasting::AccessError;
 use crate::limits::{
     to_json, UserLimits, VhostLimits, USER_LIMITS_COMPONENT, VHOST_LIMITS_COMPONENT,
     VHOST_LIMITS_NAME,

@@ -11,7 +11,7 @@
 //! policies; `vhost_deletion` deleting a vhost and all it holds.
 //!
 //! Uses the layers below (the channel's settling, the core, vhosts,
-//! exchanges, queues, outboxes), `inspect`'s structs and `access`'s
+//! exchanges, queues, outboxes), `inspect`'s structs and `access::lasting`'s
 //! records; `as_user` builds on it, and nothing below calls it.
 
 mod access;

@@ -3,10 +3,10 @@
 //! and flushed under the core's access-change lock before it takes effect.
 //!
 //! Uses the core's [`Parameters`](crate::parameters::Parameters), `store`
-//! and `access`.
+//! and `access::lasting`.
 
 use super::Admin;
-use crate::access::AccessError;
+use crate::access::lasting::AccessError;
 use crate::store::{MetaKey, MetaRecord, StoreOp};
 
 impl Admin {

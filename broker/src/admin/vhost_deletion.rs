@@ -5,10 +5,10 @@
 //! permissions, runtime parameters and limits go with it, on disk before the caller
 //! hears it is done.
 //!
-//! Uses the core, `vhost`, `slice`, `store` and `access`'s meta writes.
+//! Uses the core, `vhost`, `slice`, `store` and `access::lasting`'s meta writes.
 
 use super::Admin;
-use crate::access::AccessError;
+use crate::access::lasting::AccessError;
 use crate::slice::{Progress, Slice};
 use crate::store::{MetaKey, StoreOp};
 use leveret_protocol::ShortStr;

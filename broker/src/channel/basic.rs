@@ -4,11 +4,11 @@
 
 use super::names::unique_name;
 use super::{Channel, Publish};
+use crate::access::permissions::Right;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::Exchange;
 use crate::message::{Message, Stored};
 use crate::outbox::Outbound;
-use crate::permissions::Right;
 use crate::queue::{Consumer, ConsumerArgs, DeadLetters, Enqueued, Queue, QueuedMessage, Unacked};
 use crate::slice::{finish_in_background, Progress, Slice};
 use leveret_protocol::{

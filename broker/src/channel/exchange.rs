@@ -1,9 +1,9 @@
 //! exchange.declare, delete, bind and unbind on a channel.
 
 use super::Channel;
+use crate::access::permissions::{Resource, Right};
 use crate::error::AmqpResult;
 use crate::exchange::ExchangeOptions;
-use crate::permissions::{Resource, Right};
 use crate::vhost::{BindingChange, ExchangeDeclaration};
 use leveret_protocol::{
     ExchangeBind, ExchangeBindOk, ExchangeDeclare, ExchangeDeclareOk, ExchangeDelete,

@@ -22,12 +22,12 @@ mod queue;
 mod reply_to;
 mod tx;
 
+use crate::access::permissions::{AccessView, Resource, Right};
 use crate::alarm::memory::{MemoryGauge, Reservation};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::{Exchange, ExchangeKind};
 use crate::outbox::Outbox;
-use crate::permissions::{AccessView, Resource, Right};
 use crate::queue::{ChannelLink, Consumer, Queue};
 use crate::registry::ChannelRegistration;
 use crate::vhost::{RememberedQueue, Vhost};

@@ -1,8 +1,8 @@
 //! queue.declare, bind, unbind, purge and delete on a channel.
 
 use super::Channel;
+use crate::access::permissions::{Resource, Right};
 use crate::error::{AmqpError, AmqpResult};
-use crate::permissions::{Resource, Right};
 use crate::queue::{Deleted, QueueOptions};
 use crate::vhost::{check_exclusive, BindingChange, QueueDeclaration};
 use leveret_protocol::{

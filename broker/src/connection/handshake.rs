@@ -252,7 +252,7 @@ impl Connection {
         let claimed = match (&self.identity, mechanism.as_bytes()) {
             (Identity::Tls(name), b"EXTERNAL") => name.as_deref().map(str::as_bytes).map(loggable),
             (_, mechanism) => {
-                crate::auth::claimed_user(mechanism, response).map(|user| loggable(&user))
+                crate::access::auth::claimed_user(mechanism, response).map(|user| loggable(&user))
             }
         };
         let refusal = match (&claimed, mechanism.as_bytes()) {

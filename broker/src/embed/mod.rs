@@ -13,11 +13,11 @@ mod start;
 
 pub use handle::BrokerHandle;
 
+use crate::access::auth::User;
+use crate::access::password::PasswordHash;
+use crate::access::permissions::{PatternError, Permission, TopicPermission};
 use crate::alarm::disk::FreeSpace;
-use crate::auth::User;
 use crate::core::{Limits, UserLimits};
-use crate::password::PasswordHash;
-use crate::permissions::{PatternError, Permission, TopicPermission};
 use crate::store::{Store, StoreError};
 #[cfg(feature = "tls")]
 use crate::tls::{TlsError, TlsOptions};

@@ -16,11 +16,11 @@ use super::handle::BrokerHandle;
 #[cfg(feature = "persistence")]
 use super::handle::CleanShutdown;
 use super::{BrokerBuilder, StartError, Storage};
-use crate::access::{AtStart, Configured};
+use crate::access::auth::User;
+use crate::access::lasting::{AtStart, Configured};
 #[cfg(feature = "persistence")]
 use crate::alarm::disk::DirFreeSpace;
 use crate::alarm::disk::FreeSpace;
-use crate::auth::User;
 use crate::busy_poll::BusyPoll;
 use crate::core::{Core, CoreOptions};
 #[cfg(not(feature = "tls"))]
@@ -277,7 +277,7 @@ async fn settle_access(
     recovered: &Recovered,
     persistence: Option<&Persistence>,
 ) -> Result<AtStart, StartError> {
-    let mut access = crate::access::at_start(configured, recovered, persistence.is_some())
+    let mut access = crate::access::lasting::at_start(configured, recovered, persistence.is_some())
         .map_err(StartError::Permission)?;
     if let Some(persistence) = persistence {
         let mut ops = std::mem::take(&mut access.seed);
@@ -460,7 +460,7 @@ fn busy_poll_state(max_window: Duration) -> Option<Arc<BusyPoll>> {
 /// [`warn_if_only_guest`]'s warning when it reaches beyond this host.
 async fn bind_listener(
     addr: SocketAddr,
-    users: &crate::auth::Users,
+    users: &crate::access::auth::Users,
 ) -> Result<(TcpListener, SocketAddr), StartError> {
     let listener = TcpListener::bind(addr)
         .await
@@ -474,11 +474,11 @@ async fn bind_listener(
 
 /// The start-up warning of a listener beyond this host when `guest` is the
 /// only user: either nobody can log in from the network, or anyone can.
-fn warn_if_only_guest(users: &crate::auth::Users, bound: SocketAddr) {
+fn warn_if_only_guest(users: &crate::access::auth::Users, bound: SocketAddr) {
     if bound.ip().to_canonical().is_loopback() || !users.only_guest() {
         return;
     }
-    if users.is_loopback_only(crate::auth::GUEST) {
+    if users.is_loopback_only(crate::access::auth::GUEST) {
         tracing::warn!(addr = %bound, "listening beyond this host, but the only user is guest, who may connect only via localhost: add a user for remote clients");
     } else {
         tracing::warn!(addr = %bound, "listening beyond this host with guest/guest as the only user and loopback_users empty: anyone on the network can log in");

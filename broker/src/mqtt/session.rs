@@ -22,10 +22,10 @@ use super::takeover::Claim;
 use super::vhosts;
 use super::wills::{self, LastWill};
 use super::Shared;
+use crate::access::permissions::{Permissions, Resource, Right};
 use crate::admission::Slot;
 use crate::connection::DirectReply;
 use crate::core::Core;
-use crate::permissions::{Permissions, Resource, Right};
 use crate::store::Durable;
 use bytes::BytesMut;
 use leveret_mqtt::{

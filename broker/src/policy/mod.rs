@@ -48,7 +48,7 @@ pub use combine::{argument_wins, stricter, Applied};
 pub use definition::{Definition, KeySupport, Overflow, PolicyKey, PolicyValue, POLICY_KEYS};
 
 #[cfg(feature = "regex")]
-use crate::permissions::PATTERN_SIZE_LIMIT;
+use crate::access::permissions::PATTERN_SIZE_LIMIT;
 use ranked::Ranked;
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
@@ -140,7 +140,7 @@ pub struct Policy {
     matcher: regex::bytes::Regex,
     /// Without the regex engine: `.*` and literal names and prefixes only.
     #[cfg(not(feature = "regex"))]
-    matcher: crate::permissions::Matcher,
+    matcher: crate::access::permissions::Matcher,
     /// The literal prefix every name it matches starts with, if its
     /// pattern plainly has one (`ranked`).
     prefix: Option<Vec<u8>>,
@@ -162,7 +162,7 @@ impl Policy {
         // An empty regular expression matches every name (in a permission,
         // the empty pattern means none: hence the rewrite).
         #[cfg(not(feature = "regex"))]
-        let matcher = crate::permissions::Matcher::compile(
+        let matcher = crate::access::permissions::Matcher::compile(
             if spec.pattern.is_empty() {
                 ".*"
             } else {

@@ -11,9 +11,9 @@
 //! when their source failed before (`login_backoff`). Uses `password`,
 //! `hash_pool` and `login_backoff`, nothing else of the broker.
 
-use crate::hash_pool::{HashPool, HashPoolStats};
-use crate::login_backoff::{source_of, LoginBackoff};
-use crate::password::{HashMemory, PasswordHash};
+use crate::access::hash_pool::{HashPool, HashPoolStats};
+use crate::access::login_backoff::{source_of, LoginBackoff};
+use crate::access::password::{HashMemory, PasswordHash};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{FieldTable, FieldValue};
 use sha2::{Digest, Sha256};
@@ -40,7 +40,7 @@ impl std::fmt::Debug for VerifiedLogins {
 impl VerifiedLogins {
     fn new() -> Self {
         let mut secret = [0u8; 32];
-        crate::password::os_random(&mut secret);
+        crate::access::password::os_random(&mut secret);
         VerifiedLogins {
             secret,
             passed: Arc::new(Mutex::new(HashMap::new())),
@@ -379,7 +379,7 @@ mod tests {
         );
         let stats = users.hash_pool_stats();
         assert_eq!((stats.running, stats.waiting, stats.finished), (0, 0, 8));
-        assert!(stats.peak_running <= crate::hash_pool::HASH_THREADS);
+        assert!(stats.peak_running <= crate::access::hash_pool::HASH_THREADS);
         assert!(users.check_password("robot", b"pw", PEER).await);
         let hash = users.get("robot").unwrap().password_hash;
         let key = users.verified.key("robot", &hash, b"pw");
@@ -428,10 +428,10 @@ mod tests {
         assert!(users.check_password("robot", b"pw", "127.0.0.1:6002").await);
         let after = users.hash_pool_stats();
         assert!(
-            after.finished - before.finished <= 4 * crate::hash_pool::HASH_THREADS,
+            after.finished - before.finished <= 4 * crate::access::hash_pool::HASH_THREADS,
             "served in turn, not behind the flood: {before:?} then {after:?}"
         );
-        assert!(after.peak_running <= crate::hash_pool::HASH_THREADS);
+        assert!(after.peak_running <= crate::access::hash_pool::HASH_THREADS);
         for attempt in &flood {
             attempt.abort();
         }

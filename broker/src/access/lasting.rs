@@ -14,9 +14,9 @@
 //! Uses `auth`, `password`, `permissions` and `store`; nothing of the
 //! operator layer.
 
-use crate::auth::{User, Users, GUEST};
-use crate::password::PasswordHash;
-use crate::permissions::{PatternError, Permission, Permissions, TopicPermission};
+use crate::access::auth::{User, Users, GUEST};
+use crate::access::password::PasswordHash;
+use crate::access::permissions::{PatternError, Permission, Permissions, TopicPermission};
 use crate::store::{MetaRecord, Recovered, StoreOp};
 
 /// What the embedder configured (the builder, the server's config file,

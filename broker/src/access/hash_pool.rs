@@ -26,7 +26,7 @@
 //! Uses `password`'s [`HashMemory`], nothing else of the broker: a check
 //! is any closure returning whether it passed.
 
-use crate::password::HashMemory;
+use crate::access::password::HashMemory;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
