@@ -73,15 +73,15 @@
 //! 4. **Core**: `core`, the state every connection shares (vhosts, users,
 //!    limits, the memory gauge, the store handle, the shutdown signal,
 //!    connection.start's server properties). Uses vhosts and below.
-//! 5. **Vhost and exchanges**: `vhost` (declare, delete, bind, route),
-//!    `routing` (a published message's way through exchanges to the
-//!    queues it reaches), `exchange` (the kinds and their bindings: the
-//!    `topic` trie, `headers` matching, the binding registry), `deadletter`
-//!    (routing the dead letters queue operations return: a work list with
-//!    RabbitMQ's cycle rule and a budget; it routes through the vhost,
-//!    whose `dead_letter` hands the letters to it: modules of one layer
-//!    may use each other, and these two are the one circle left). Use
-//!    queues and below.
+//! 5. **Vhost and exchanges**: `vhost` (declare, delete, bind, route;
+//!    `vhost::routing`, a published message's way through exchanges to
+//!    the queues it reaches; `vhost::deadletter`, routing the dead letters
+//!    queue operations return: a work list with RabbitMQ's cycle rule and
+//!    a budget; it routes through the vhost, whose `dead_letter` hands the
+//!    letters to it, the one circle left), `exchange` (the kinds and their
+//!    bindings: the `topic` trie, `headers` matching, the binding
+//!    registry). Modules of one layer may use each other. Use queues and
+//!    below.
 //! 6. **Queue**: `queue` (the FIFO, dispatch to consumers, TTL,
 //!    max-length, durable index entries; dead letters are returned to the
 //!    caller; `queue::stream`, a stream's log and its readers;
@@ -138,7 +138,6 @@ mod channel;
 mod connection;
 mod consumer;
 mod core;
-mod deadletter;
 mod embed;
 mod error;
 #[cfg(feature = "bench-internals")]
@@ -157,7 +156,6 @@ mod policy;
 mod queue;
 mod recovery;
 mod registry;
-mod routing;
 mod server;
 mod slice;
 mod stats;

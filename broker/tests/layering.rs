@@ -38,11 +38,9 @@ const LAYERS: &[(&str, u8)] = &[
     ("channel", 6),
     // 4. Core.
     ("core", 5),
-    // 5. Vhost and exchanges.
+    // 5. Vhost (with routing and dead-lettering) and exchanges.
     ("vhost", 4),
-    ("routing", 4),
     ("exchange", 4),
-    ("deadletter", 4),
     // 6. Queue; beside it the registry of connections and channels, which
     // names their consumers' links for closing them from outside.
     ("queue", 3),

@@ -944,9 +944,9 @@ impl Vhost {
     }
 
     /// Routes dead letters a queue operation returned, iteratively and
-    /// with RabbitMQ's cycle rule (see [`crate::deadletter`]).
+    /// with RabbitMQ's cycle rule (see [`deadletter`]).
     pub fn dead_letter(self: &Arc<Self>, letters: DeadLetters) {
-        crate::deadletter::route(self, letters);
+        deadletter::route(self, letters);
     }
 
     /// The store this vhost's durable things are written to, if any.
@@ -1255,7 +1255,9 @@ fn exclusive_locked(queue: &ShortStr, vhost: &ShortStr) -> AmqpError {
     ))
 }
 
+mod deadletter;
 mod policies;
+mod routing;
 
 /// RabbitMQ compares the arguments it validates; the first that differs.
 #[cfg(test)]

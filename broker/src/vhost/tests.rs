@@ -3,7 +3,7 @@
 //! acks and requeues, TTL and max-length with dead-lettering, and the
 //! dead-letter cycle rule and budget. No sockets, no clients.
 
-use crate::deadletter::CASCADE_LIMIT;
+use super::deadletter::CASCADE_LIMIT;
 use crate::exchange::ExchangeKind;
 use crate::queue::Enqueued;
 use crate::testkit::{death, s, Consume, Harness};
