@@ -59,7 +59,7 @@
 //! 2. **Operators**: `admin` ([`Admin`], a cloneable handle for tools:
 //!    object operations, reading state as `BrokerHandle::overview` does,
 //!    users and permissions, closing connections, runtime parameters:
-//!    every `impl Admin` is in its folder), `as_user` (the same
+//!    every `impl Admin` is in its folder, and `admin::as_user`, the same
 //!    operations checked against a user's permissions); and below those
 //!    two, knowing no handle, `inspect` (the plain structs state is read
 //!    into, with RabbitMQ's field meanings) and `access::lasting` (users,
@@ -129,7 +129,6 @@ mod admin;
 mod admission;
 mod alarm;
 mod arguments;
-mod as_user;
 #[cfg(feature = "bench-internals")]
 #[doc(hidden)]
 pub mod bench;
@@ -175,6 +174,7 @@ pub use crate::access::password::{PasswordHash, LEVERET_ARGON2ID, RABBIT_SHA256,
 pub use crate::access::permissions::{
     check_pattern, PatternError, Permission, TopicPermission, PATTERN_SIZE_LIMIT,
 };
+pub use crate::admin::as_user::AsUser;
 pub use crate::admin::{Admin, BindingSpec, ExchangeSettings, GetMode, GotMessage, QueueSettings};
 pub use crate::alarm::disk::{DirFreeSpace, FreeSpace};
 pub use crate::alarm::resident::ResidentMemoryWatermark;
@@ -183,7 +183,6 @@ pub use crate::arguments::{
     classic_queue_arguments, Argument, Scope as ArgumentScope, Support as ArgumentSupport,
     ARGUMENTS,
 };
-pub use crate::as_user::AsUser;
 pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
 pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::limits::UnknownLimit;

@@ -27,11 +27,11 @@ const LAYERS: &[(&str, u8)] = &[
     ("connection", 9),
     ("recovery", 9),
     ("mqtt", 9),
-    // 2. Operators: the admin handle and the same acting as a user; below
-    // them the plain structs the handle reads state into and the users,
-    // vhosts and permissions it changes, which know no handle.
+    // 2. Operators: the admin handle and the same acting as a user (both
+    // in admin/); below them the plain structs the handle reads state into
+    // and the users, vhosts and permissions it changes, which know no
+    // handle.
     ("admin", 8),
-    ("as_user", 8),
     ("inspect", 7),
     ("access::lasting", 7),
     // 3. Channel.

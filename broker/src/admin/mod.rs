@@ -8,13 +8,16 @@
 //! vhosts and permissions; `inspect` reading state into
 //! `crate::inspect`'s structs; `limits` vhost and user limits;
 //! `parameters` runtime parameters; `policies` policies and operator
-//! policies; `vhost_deletion` deleting a vhost and all it holds.
+//! policies; `vhost_deletion` deleting a vhost and all it holds;
+//! `as_user` ([`AsUser`](as_user::AsUser)), the same operations checked
+//! against a user's permissions, built on the handle.
 //!
 //! Uses the layers below (the channel's settling, the core, vhosts,
 //! exchanges, queues, outboxes), `inspect`'s structs and `access::lasting`'s
-//! records; `as_user` builds on it, and nothing below calls it.
+//! records; nothing below calls it.
 
 mod access;
+pub(crate) mod as_user;
 mod inspect;
 mod limits;
 mod parameters;
