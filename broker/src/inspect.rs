@@ -528,7 +528,7 @@ impl QueueRef {
             durable: queue.options.durable,
             auto_delete: queue.options.auto_delete,
             exclusive_owner: queue.options.exclusive_owner,
-            arguments: queue.options.arguments.clone(),
+            arguments: queue.arguments(),
             messages_ready: depth.ready,
             messages_unacknowledged: depth.unacked,
             message_bytes_ready: depth.ready_bytes,

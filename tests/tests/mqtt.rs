@@ -2758,3 +2758,115 @@ async fn a_broker_shuts_down_with_sessions_owing_wills_and_wills_waiting() {
     within("the broker shut down", handle.shutdown()).await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Paho's 5.0 client (`argv`: port, client id, the CONNECT's and the
+/// DISCONNECT's Session Expiry Interval): a persistent session that
+/// subscribes `s/#` at QoS 1 and ends with a DISCONNECT giving its new
+/// expiry.
+const PAHO_DISCONNECT_EXPIRY: &str = r#"
+import sys, threading
+import paho.mqtt.client as mqtt
+from paho.mqtt.properties import Properties
+from paho.mqtt.packettypes import PacketTypes
+
+port, client_id = int(sys.argv[1]), sys.argv[2]
+at_connect, at_disconnect = int(sys.argv[3]), int(sys.argv[4])
+subscribed = threading.Event()
+c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id,
+                protocol=mqtt.MQTTv5)
+c.username_pw_set("robot", "secret")
+c.on_subscribe = lambda *args: subscribed.set()
+connect = Properties(PacketTypes.CONNECT)
+connect.SessionExpiryInterval = at_connect
+c.connect("127.0.0.1", port, clean_start=False, properties=connect)
+c.loop_start()
+c.subscribe("s/#", qos=1)
+assert subscribed.wait(30), "no SUBACK"
+disconnect = Properties(PacketTypes.DISCONNECT)
+disconnect.SessionExpiryInterval = at_disconnect
+c.disconnect(properties=disconnect)
+c.loop_stop()
+print("disconnected")
+"#;
+
+/// Runs [`PAHO_DISCONNECT_EXPIRY`].
+async fn paho_disconnect_expiry(port: u16, client_id: &str, at_connect: u32, at_disconnect: u32) {
+    let mut paho = std::process::Command::new("python3");
+    paho.args(["-c", PAHO_DISCONNECT_EXPIRY, &port.to_string(), client_id])
+        .args([at_connect.to_string(), at_disconnect.to_string()]);
+    let output = within(
+        "paho's client",
+        tokio::task::spawn_blocking(move || paho.output()),
+    )
+    .await
+    .expect("the blocking task")
+    .expect("python3 with paho-mqtt runs");
+    assert!(output.status.success(), "{output:?}");
+}
+
+/// The `x-expires` of queue `name`, once it has `wanted` (the session's
+/// queues follow a new expiry once its connection has ended).
+async fn until_expires(handle: &BrokerHandle, name: &str, wanted: Option<i64>) {
+    within("the queue's x-expires", async {
+        loop {
+            let expires = handle
+                .queues()
+                .into_iter()
+                .find(|q| q.name == name)
+                .map(|q| q.arguments.get("x-expires").and_then(|v| v.as_i64()));
+            if expires == Some(wanted) {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+}
+
+#[both_runtimes]
+async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_restart() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-expiry"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    // One second at CONNECT, an hour at DISCONNECT.
+    paho_disconnect_expiry(port, "stretch", 1, 3600).await;
+    let queue = "mqtt-subscription-stretchqos1";
+    until_expires(&handle, queue, Some(3_600_000)).await;
+    // Past the CONNECT's second (a lower bound, whatever the load).
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    assert!(queue_names(&handle).contains(&queue.to_owned()));
+    // An hour at CONNECT, never at DISCONNECT (0xFFFFFFFF): no x-expires.
+    paho_disconnect_expiry(port, "forever", 3600, u32::MAX).await;
+    until_expires(&handle, "mqtt-subscription-foreverqos1", None).await;
+    publish_acked(port, "s/kept", "while away", false).await;
+    handle.shutdown().await;
+
+    // The new expiries were stored with the queues.
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    until_expires(&handle, queue, Some(3_600_000)).await;
+    until_expires(&handle, "mqtt-subscription-foreverqos1", None).await;
+    // Resumed with a CONNECT of one second: that is the session's expiry
+    // now, and it passes once the client has gone.
+    let mut options = options5("stretch", port, "secret");
+    options.set_clean_start(false);
+    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+    properties.session_expiry_interval = Some(1);
+    options.set_connect_properties(properties);
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options, 16);
+    assert!(session_present5(&mut events).await, "the session survived");
+    let kept = next_publish5(&mut events).await;
+    assert_eq!(&kept.payload[..], b"while away");
+    until_expires(&handle, queue, Some(1_000)).await;
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    within("the resumed session's queue expired", async {
+        while queue_names(&handle).contains(&queue.to_owned()) {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    assert!(queue_names(&handle).contains(&"mqtt-subscription-foreverqos1".to_owned()));
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -17,10 +17,12 @@
 //! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL;
 //! `properties` 5.0 PUBLISH properties ↔ AMQP properties;
 //! `subscriptions` a session's subscriptions, their 5.0 options and
-//! shared subscriptions; `aliases` inbound topic aliases; `wills` last
-//! wills and their delay.
+//! shared subscriptions; `expiry` a persistent session's expiry on its
+//! queues; `aliases` inbound topic aliases; `wills` last wills and their
+//! delay.
 
 mod aliases;
+mod expiry;
 mod link;
 mod mapping;
 mod properties;

@@ -14,6 +14,7 @@
 //! shared) by [`MAX_SUBSCRIPTIONS`].
 
 use super::aliases::{TopicAliases, TOPIC_ALIAS_MAXIMUM};
+use super::expiry;
 use super::link::{self, Link, Login, Refusal};
 use super::mapping;
 use super::retained::Message;
@@ -221,6 +222,11 @@ pub(super) async fn serve<S: ClientStream>(
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
     link.close(disconnected).await;
+    if session.lifetime != lifetime && session.lifetime != Lifetime::Connection {
+        // A DISCONNECT changed the expiry: the queues follow, now that
+        // the link has declared every one of them.
+        session.follow_expiry(&core);
+    }
     if let Some(will) = will {
         wills::publish_after(
             &shared,
@@ -329,10 +335,23 @@ impl Lifetime {
                 Lifetime::Forever
             };
         }
-        match connect.properties.session_expiry_interval {
-            None | Some(0) => Lifetime::Connection,
-            Some(u32::MAX) => Lifetime::Forever,
-            Some(seconds) => Lifetime::Seconds(seconds),
+        Lifetime::of_interval(connect.properties.session_expiry_interval.unwrap_or(0))
+    }
+
+    /// A 5.0 Session Expiry Interval's.
+    fn of_interval(seconds: u32) -> Lifetime {
+        match seconds {
+            0 => Lifetime::Connection,
+            u32::MAX => Lifetime::Forever,
+            seconds => Lifetime::Seconds(seconds),
+        }
+    }
+
+    /// The `x-expires` of a persistent session's queues.
+    fn queue_expires(self) -> Option<u64> {
+        match self {
+            Lifetime::Seconds(seconds) => expiry::queue_expires(Some(seconds)),
+            Lifetime::Connection | Lifetime::Forever => None,
         }
     }
 }
@@ -622,6 +641,10 @@ impl Session {
                 self.delete_at_end.push(name.clone());
             }
             self.consume(name, qos);
+        }
+        if present && self.lifetime != Lifetime::Connection {
+            // The resuming CONNECT's expiry is the session's now.
+            self.follow_expiry(core);
         }
         // A will the previous connection left waiting for its delay.
         self.shared
@@ -956,8 +979,8 @@ impl Session {
     /// A 5.0 DISCONNECT's Session Expiry Interval: 0 ends a persistent
     /// session with the connection (its queues are deleted); a session
     /// that had 0 in its CONNECT may not be given one (MQTT-3.14.2-2:
-    /// 0x82). Another change to a persistent session's expiry is not
-    /// applied: its queues' `x-expires` is fixed when they are declared.
+    /// 0x82); another is the persistent session's expiry from now on
+    /// (its queues follow once the link is closed: `serve`).
     fn expiry_at_disconnect(&mut self, expiry: Option<u32>) -> Result<(), Stop> {
         match expiry {
             Some(0) if self.lifetime != Lifetime::Connection => {
@@ -973,7 +996,11 @@ impl Session {
                 "session expiry set by DISCONNECT after none in CONNECT",
                 Some(ReasonCode::ProtocolError),
             )),
-            _ => Ok(()),
+            Some(seconds) => {
+                self.lifetime = Lifetime::of_interval(seconds);
+                Ok(())
+            }
+            None => Ok(()),
         }
     }
 
@@ -1341,6 +1368,18 @@ impl Session {
         }
     }
 
+    /// Gives the session's queues its expiry (see `expiry`).
+    fn follow_expiry(&self, core: &Core) {
+        let names = [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce]
+            .into_iter()
+            .filter_map(|qos| mapping::queue_name(&self.client_id, qos));
+        let expires = self.lifetime.queue_expires();
+        let changed = expiry::follow(core, &self.vhost, names, expires);
+        if changed > 0 {
+            tracing::debug!(client_id = %self.client_id, ?expires, changed, "MQTT session's queues given its new expiry");
+        }
+    }
+
     /// Declares and consumes the session's queue for `qos` the first time
     /// a subscription needs it: exclusive if the session goes with the
     /// connection, else durable (with `x-expires` for a session expiry).
@@ -1349,10 +1388,10 @@ impl Session {
             return;
         }
         let mut arguments = FieldTable::new();
-        if let Lifetime::Seconds(seconds) = self.lifetime {
+        if let Some(ms) = self.lifetime.queue_expires() {
             arguments.insert(
                 ShortStr::from_static("x-expires"),
-                FieldValue::I64(i64::from(seconds) * 1000),
+                FieldValue::I64(i64::try_from(ms).unwrap_or(i64::MAX)),
             );
         }
         let durable = self.lifetime != Lifetime::Connection;
