@@ -27,6 +27,7 @@ use crate::admission::Slot;
 use crate::connection::DirectReply;
 use crate::core::Core;
 use crate::permissions::{Permissions, Resource, Right};
+use crate::stats::AuthProtocol;
 use crate::store::Durable;
 use bytes::BytesMut;
 use leveret_mqtt::{
@@ -397,7 +398,10 @@ async fn admit(
         ),
         (None, Some(name), _) => (name, None),
         (None, None, Some((name, password))) => (name.as_str(), Some(password.as_bytes())),
-        (None, None, None) => return Err(ReasonCode::NotAuthorized),
+        (None, None, None) => {
+            core.stats.login(AuthProtocol::Mqtt, false);
+            return Err(ReasonCode::NotAuthorized);
+        }
     };
     let client = vhosts::Client {
         port: origin.port,
@@ -424,18 +428,27 @@ async fn admit(
         },
     };
     let peer = origin.peer.clone();
-    let link = Link::open(Arc::clone(core), slot, peer, login, deadline)
-        .await
-        .map_err(|refusal| match refusal {
-            Refusal::BadCredentials => ReasonCode::BadUserNameOrPassword,
-            Refusal::NotAuthorized => {
-                tracing::warn!(peer = %origin.peer, %user, %vhost,
+    let opened = Link::open(Arc::clone(core), slot, peer, login, deadline).await;
+    // RabbitMQ 3.10's `auth_attempts` with protocol `mqtt`: a login passes
+    // once the vhost has let it in; a broker shutting down or a handshake
+    // timeout is no attempt.
+    match &opened {
+        Ok(_) => core.stats.login(AuthProtocol::Mqtt, true),
+        Err(Refusal::BadCredentials | Refusal::NotAuthorized) => {
+            core.stats.login(AuthProtocol::Mqtt, false)
+        }
+        Err(Refusal::Unavailable) => {}
+    }
+    let link = opened.map_err(|refusal| match refusal {
+        Refusal::BadCredentials => ReasonCode::BadUserNameOrPassword,
+        Refusal::NotAuthorized => {
+            tracing::warn!(peer = %origin.peer, %user, %vhost,
                     "MQTT login refused: no such vhost, no access to it or a connection limit \
                      (vhost picked using {})", source.describe());
-                ReasonCode::NotAuthorized
-            }
-            Refusal::Unavailable => ReasonCode::ServerUnavailable,
-        })?;
+            ReasonCode::NotAuthorized
+        }
+        Refusal::Unavailable => ReasonCode::ServerUnavailable,
+    })?;
     let claim = shared.ids.claim(&vhost, &client_id).await;
     Ok(Accepted {
         link,
