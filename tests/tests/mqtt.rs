@@ -2870,3 +2870,113 @@ async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_rest
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A 5.0 client with a persistent session of an hour (clean start only
+/// if `clean`); whether the CONNACK says the session was present.
+async fn persistent5(
+    id: &str,
+    port: u16,
+    clean: bool,
+) -> (rumqttc::v5::AsyncClient, rumqttc::v5::EventLoop, bool) {
+    let mut options = options5(id, port, "secret");
+    options.set_clean_start(clean);
+    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+    properties.session_expiry_interval = Some(3600);
+    options.set_connect_properties(properties);
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options, 16);
+    let present = session_present5(&mut events).await;
+    (client, events, present)
+}
+
+/// Ends a 5.0 client with DISCONNECT.
+async fn disconnect5(client: rumqttc::v5::AsyncClient, mut events: rumqttc::v5::EventLoop) {
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+}
+
+#[both_runtimes]
+async fn a_persistent_sessions_shared_subscriptions_survive_a_reconnect_and_a_restart() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-shares"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let group = "mqtt-shared-workers/w/#";
+    let (client, mut events, present) = persistent5("worker", port, true).await;
+    assert!(!present);
+    let codes = subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("$share/workers/w/#", QoS5::AtLeastOnce)],
+        Some(9),
+    )
+    .await;
+    assert_eq!(codes, [SubscribeReasonCode::Success(QoS5::AtLeastOnce)]);
+    disconnect5(client, events).await;
+    within("the group's queue gone with its last member", async {
+        while queue_names(&handle).contains(&group.to_owned()) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+
+    // Back without subscribing: a member of the group again, with its
+    // subscription identifier.
+    let (client, mut events, present) = persistent5("worker", port, false).await;
+    assert!(present, "the shared subscription is session state");
+    within("the group's queue declared again", async {
+        while !queue_names(&handle).contains(&group.to_owned()) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    publish_acked5(port, "w/1", "after a reconnect", false).await;
+    let got = next_publish5(&mut events).await;
+    assert_eq!(&got.payload[..], b"after a reconnect");
+    assert_eq!(ids_of(&got), [9]);
+    disconnect5(client, events).await;
+    handle.shutdown().await;
+
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events, present) = persistent5("worker", port, false).await;
+    assert!(present, "kept across the restart");
+    within("the group's queue declared after the restart", async {
+        while !queue_names(&handle).contains(&group.to_owned()) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    publish_acked5(port, "w/2", "after a restart", false).await;
+    let got = next_publish5(&mut events).await;
+    assert_eq!(&got.payload[..], b"after a restart");
+    // UNSUBSCRIBE ends the membership for good.
+    client.unsubscribe("$share/workers/w/#").await.unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::UnsubAck(_)).then_some(())
+    })
+    .await;
+    disconnect5(client, events).await;
+    let (client, events, present) = persistent5("worker", port, false).await;
+    assert!(!present, "nothing left of the session");
+    assert!(!queue_names(&handle).contains(&group.to_owned()));
+    disconnect5(client, events).await;
+
+    // A clean start forgets them, and so does a session that ends with
+    // its connection (DISCONNECT with expiry 0 is the raw test's).
+    let (client, mut events, _) = persistent5("starter", port, true).await;
+    subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("$share/workers/w/#", QoS5::AtMostOnce)],
+        None,
+    )
+    .await;
+    disconnect5(client, events).await;
+    let (client, events, present) = persistent5("starter", port, true).await;
+    assert!(!present);
+    disconnect5(client, events).await;
+    let (client, events, present) = persistent5("starter", port, false).await;
+    assert!(!present, "the clean start forgot the shared subscription");
+    disconnect5(client, events).await;
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}

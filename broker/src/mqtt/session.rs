@@ -249,6 +249,7 @@ pub(super) async fn serve<S: ClientStream>(
             .keep(&session.vhost, &session.client_id, stored.collect());
     } else {
         shared.releases.forget(&session.vhost, &session.client_id);
+        shared.shares.forget(&session.vhost, &session.client_id);
     }
     drop(claim);
 }
@@ -674,7 +675,38 @@ impl Session {
         for id in released {
             self.exactly_once.insert(id, Received::Stored);
         }
-        present
+        present | self.rejoin_shared(clean_start)
+    }
+
+    /// Joins again the shared subscriptions the session held (`shares`),
+    /// unless it starts clean (then they are forgotten); whether it held
+    /// any. Their permissions are checked again; one refused now is
+    /// dropped.
+    fn rejoin_shared(&mut self, clean_start: bool) -> bool {
+        let shares = &self.shared.shares;
+        if clean_start {
+            shares.forget(&self.vhost, &self.client_id);
+            return false;
+        }
+        let held = shares.held(&self.vhost, &self.client_id);
+        for (filter, options) in &held {
+            let parsed = MqttString::try_from(filter.as_str())
+                .ok()
+                .and_then(|f| leveret_mqtt::TopicFilter::new(f).ok());
+            let Some(shared) = parsed.as_ref().and_then(|f| f.shared()) else {
+                continue;
+            };
+            let (group, inner) = (shared.group.to_owned(), shared.filter.to_owned());
+            if self
+                .subscribe_shared(filter, &group, &inner, *options)
+                .is_err()
+            {
+                self.shared
+                    .shares
+                    .remove(&self.vhost, &self.client_id, filter);
+            }
+        }
+        !held.is_empty()
     }
 
     fn connack(&mut self, assigned: bool, session_present: bool) {
@@ -1213,6 +1245,10 @@ impl Session {
         let key = mapping::binding_key(inner).ok_or(ReasonCode::TopicFilterInvalid)?;
         self.may_subscribe(filter, &queue, true, &key)?;
         let old = self.subscriptions.shared(filter).cloned();
+        if self.lifetime != Lifetime::Connection {
+            let shares = &self.shared.shares;
+            shares.keep(&self.vhost, &self.client_id, filter, options);
+        }
         if let Some(old) = old.as_ref().filter(|old| old.options.qos == options.qos) {
             let kept = SharedSubscription {
                 options,
@@ -1498,6 +1534,7 @@ impl Session {
         for filter in &unsubscribe.filters {
             let filter = filter.as_str();
             if let Some(shared) = self.subscriptions.remove_shared(filter) {
+                (self.shared.shares).remove(&self.vhost, &self.client_id, filter);
                 self.cancel(shared.consumer_tag);
                 reasons.push(ReasonCode::Success);
                 continue;
