@@ -431,8 +431,9 @@ pub struct ConnectionInfo {
     pub heartbeat_secs: u16,
     /// Open channels.
     pub channels: u64,
-    /// Its byte stream's traffic (a socket, or `connect_in_process`'s
-    /// pipe); `None` for a connection exchanging frames in-process (MQTT's).
+    /// Its byte stream's traffic (a socket, `connect_in_process`'s pipe,
+    /// or an MQTT session's socket); `None` for a connection exchanging
+    /// frames in-process (`connect_direct`'s).
     pub traffic: Option<SocketTrafficFigures>,
 }
 

@@ -2980,3 +2980,46 @@ async fn a_persistent_sessions_shared_subscriptions_survive_a_reconnect_and_a_re
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// An MQTT connection's bytes are its listed connection's (RabbitMQ
+/// 3.10's `recv_oct`/`send_oct` of an MQTT connection), counted exactly:
+/// a raw 3.1.1 client's CONNECT and PINGREQ in, CONNACK and PINGRESP out.
+#[both_runtimes]
+async fn an_mqtt_connections_bytes_are_counted_as_its_connections() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let before = handle.admin().overview().socket_traffic;
+    let mut raw = Raw::login_as(port, 0, ProtocolVersion::V3_1_1, "counted").await;
+    raw.send(Packet::PingReq).await;
+    assert!(matches!(raw.next().await, Some(Packet::PingResp)));
+    let connect = Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V3_1_1,
+        clean_start: true,
+        keep_alive: 0,
+        properties: Default::default(),
+        client_id: leveret_mqtt::MqttString::from_static("counted"),
+        will: None,
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    }));
+    let connect_len = connect.encoded_len(ProtocolVersion::V3_1_1).unwrap() as u64;
+    let (connack_len, ping_len) = (4, 2);
+    let listed = handle
+        .admin()
+        .connections()
+        .into_iter()
+        .find(|c| c.protocol == "MQTT 3.1.1")
+        .expect("the MQTT connection is listed");
+    let traffic = listed.traffic.expect("its bytes are counted");
+    assert_eq!(traffic.received_bytes, connect_len + ping_len);
+    assert_eq!(traffic.sent_bytes, connack_len + ping_len);
+    assert!(traffic.reads >= 1 && traffic.writes >= 2, "{traffic:?}");
+    let after = handle.admin().overview().socket_traffic;
+    assert_eq!(
+        after.received_bytes - before.received_bytes,
+        connect_len + ping_len,
+        "the broker's totals have them too"
+    );
+    drop(raw);
+    handle.shutdown().await;
+}

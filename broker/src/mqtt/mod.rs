@@ -17,7 +17,8 @@
 //! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL;
 //! `shares` persistent sessions' shared subscriptions;
 //! `properties` 5.0 PUBLISH properties ↔ AMQP properties;
-//! `subscriptions` a session's subscriptions, their 5.0 options and
+//! `traffic` a session's byte stream counted; `subscriptions` a
+//! session's subscriptions, their 5.0 options and
 //! shared subscriptions; `expiry` a persistent session's expiry on its
 //! queues; `aliases` inbound topic aliases; `wills` last wills and their
 //! delay.
@@ -33,6 +34,7 @@ mod session;
 mod shares;
 mod subscriptions;
 mod takeover;
+mod traffic;
 mod vhosts;
 mod websocket;
 mod wills;

@@ -20,6 +20,7 @@ use super::mapping;
 use super::retained::Message;
 use super::subscriptions::{self, Marks, Options, SharedSubscription, Subscriptions};
 use super::takeover::Claim;
+use super::traffic::Counted;
 use super::vhosts;
 use super::wills::{self, LastWill};
 use super::Shared;
@@ -27,7 +28,7 @@ use crate::admission::Slot;
 use crate::connection::DirectReply;
 use crate::core::Core;
 use crate::permissions::{Permissions, Resource, Right};
-use crate::stats::AuthProtocol;
+use crate::stats::{AuthProtocol, ConnectionTraffic};
 use crate::store::Durable;
 use bytes::BytesMut;
 use leveret_mqtt::{
@@ -115,11 +116,13 @@ pub(super) struct ClientCertificate {
 /// until it closes.
 pub(super) async fn serve<S: ClientStream>(
     core: Arc<Core>,
-    mut socket: S,
+    socket: S,
     origin: Origin,
     slot: Slot,
     shared: Arc<Shared>,
 ) {
+    let traffic = Arc::new(ConnectionTraffic::new(Arc::clone(&core.stats)));
+    let mut socket = Counted::new(socket, Arc::clone(&traffic));
     let peer = &origin.peer;
     let deadline = Instant::now() + core.limits.handshake_timeout;
     let mut buf = BytesMut::with_capacity(1024);
@@ -140,7 +143,14 @@ pub(super) async fn serve<S: ClientStream>(
         }
     };
     let version = connect.version;
-    let accepted = match admit(&core, (&*connect, &origin), slot, deadline, &shared).await {
+    let admitted = admit(
+        &core,
+        (&*connect, &origin, traffic),
+        slot,
+        deadline,
+        &shared,
+    );
+    let accepted = match admitted.await {
         Ok(accepted) => accepted,
         Err(reason) => {
             tracing::info!(%peer, reason = reason.name(), "MQTT CONNECT refused");
@@ -362,7 +372,7 @@ impl Lifetime {
 /// identifier; the CONNACK reason to refuse with otherwise.
 async fn admit(
     core: &Arc<Core>,
-    (connect, origin): (&Connect, &Origin),
+    (connect, origin, traffic): (&Connect, &Origin, Arc<ConnectionTraffic>),
     slot: Slot,
     deadline: Instant,
     shared: &Shared,
@@ -427,6 +437,7 @@ async fn admit(
             ProtocolVersion::V3_1_1 => "MQTT 3.1.1",
             ProtocolVersion::V5 => "MQTT 5.0",
         },
+        traffic,
     };
     let peer = origin.peer.clone();
     let opened = Link::open(Arc::clone(core), slot, peer, login, deadline).await;
