@@ -2878,10 +2878,21 @@ async fn persistent5(
     port: u16,
     clean: bool,
 ) -> (rumqttc::v5::AsyncClient, rumqttc::v5::EventLoop, bool) {
+    expiring5(id, port, clean, 3600).await
+}
+
+/// As [`persistent5`], the session expiring `expiry` seconds after its
+/// connection.
+async fn expiring5(
+    id: &str,
+    port: u16,
+    clean: bool,
+    expiry: u32,
+) -> (rumqttc::v5::AsyncClient, rumqttc::v5::EventLoop, bool) {
     let mut options = options5(id, port, "secret");
     options.set_clean_start(clean);
     let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
-    properties.session_expiry_interval = Some(3600);
+    properties.session_expiry_interval = Some(expiry);
     options.set_connect_properties(properties);
     let (client, mut events) = rumqttc::v5::AsyncClient::new(options, 16);
     let present = session_present5(&mut events).await;
@@ -2976,6 +2987,23 @@ async fn a_persistent_sessions_shared_subscriptions_survive_a_reconnect_and_a_re
     disconnect5(client, events).await;
     let (client, events, present) = persistent5("starter", port, false).await;
     assert!(!present, "the clean start forgot the shared subscription");
+    disconnect5(client, events).await;
+
+    // They expire with the session: one second, and later nothing is left.
+    let (client, mut events, _) = expiring5("brief", port, true, 1).await;
+    subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("$share/workers/w/#", QoS5::AtMostOnce)],
+        None,
+    )
+    .await;
+    disconnect5(client, events).await;
+    // Past the second (a lower bound, whatever the machine's load).
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let (client, events, present) = expiring5("brief", port, false, 1).await;
+    assert!(!present, "the expired session held no shared subscription");
+    assert!(!queue_names(&handle).contains(&group.to_owned()));
     disconnect5(client, events).await;
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);

@@ -249,6 +249,8 @@ pub(super) async fn serve<S: ClientStream>(
         .await;
     }
     if session.lifetime != Lifetime::Connection {
+        let expiry = session.lifetime.expiry_seconds();
+        (shared.shares).ended(&session.vhost, &session.client_id, expiry);
         let stored = session
             .exactly_once
             .iter()
@@ -359,12 +361,17 @@ impl Lifetime {
         }
     }
 
-    /// The `x-expires` of a persistent session's queues.
-    fn queue_expires(self) -> Option<u64> {
+    /// A persistent session's expiry interval in seconds (`None`: never).
+    fn expiry_seconds(self) -> Option<u32> {
         match self {
-            Lifetime::Seconds(seconds) => expiry::queue_expires(Some(seconds)),
+            Lifetime::Seconds(seconds) => Some(seconds),
             Lifetime::Connection | Lifetime::Forever => None,
         }
+    }
+
+    /// The `x-expires` of a persistent session's queues.
+    fn queue_expires(self) -> Option<u64> {
+        expiry::queue_expires(self.expiry_seconds())
     }
 }
 
@@ -699,7 +706,7 @@ impl Session {
             shares.forget(&self.vhost, &self.client_id);
             return false;
         }
-        let held = shares.held(&self.vhost, &self.client_id);
+        let held = shares.resume(&self.vhost, &self.client_id);
         for (filter, options) in &held {
             let parsed = MqttString::try_from(filter.as_str())
                 .ok()
@@ -1258,7 +1265,8 @@ impl Session {
         let old = self.subscriptions.shared(filter).cloned();
         if self.lifetime != Lifetime::Connection {
             let shares = &self.shared.shares;
-            shares.keep(&self.vhost, &self.client_id, filter, options);
+            let session = (self.vhost.as_str(), self.client_id.as_str());
+            shares.keep(session, filter, options, self.lifetime.expiry_seconds());
         }
         if let Some(old) = old.as_ref().filter(|old| old.options.qos == options.qos) {
             let kept = SharedSubscription {

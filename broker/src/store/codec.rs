@@ -278,11 +278,13 @@ fn meta_value(record: &MetaRecord) -> Vec<u8> {
             qos,
             retain_as_published,
             subscription_id,
+            session_expiry,
             ..
         } => {
             buf.put_u8(*qos);
             buf.put_u8(u8::from(*retain_as_published));
             buf.put_u32(*subscription_id);
+            buf.put_u32(*session_expiry);
         }
     }
     buf.to_vec()
@@ -388,6 +390,10 @@ fn decode_meta(key: &[u8], value: &mut Bytes) -> Result<MetaRecord, StoreError> 
             subscription_id: match (value.len() >= 4).then(|| value.get_u32()) {
                 Some(id) => id,
                 None => return Err(corrupt("shared subscription identifier")),
+            },
+            session_expiry: match (value.len() >= 4).then(|| value.get_u32()) {
+                Some(seconds) => seconds,
+                None => return Err(corrupt("shared subscription's session expiry")),
             },
         },
         _ => return Err(corrupt("metadata kind")),
@@ -881,6 +887,7 @@ mod tests {
                 qos: 2,
                 retain_as_published: true,
                 subscription_id: 268_435_455,
+                session_expiry: u32::MAX,
             },
         ];
         let mut ops: Vec<_> = records

@@ -341,6 +341,8 @@ pub enum MetaRecord {
         retain_as_published: bool,
         /// Its Subscription Identifier (0: none).
         subscription_id: u32,
+        /// The session's expiry interval, seconds (`u32::MAX`: never).
+        session_expiry: u32,
     },
 }
 
