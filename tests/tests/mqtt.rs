@@ -3032,13 +3032,21 @@ async fn an_mqtt_connections_bytes_are_counted_as_its_connections() {
     }));
     let connect_len = connect.encoded_len(ProtocolVersion::V3_1_1).unwrap() as u64;
     let (connack_len, ping_len) = (4, 2);
-    let listed = handle
-        .admin()
-        .connections()
-        .into_iter()
-        .find(|c| c.protocol == "MQTT 3.1.1")
-        .expect("the MQTT connection is listed");
-    let traffic = listed.traffic.expect("its bytes are counted");
+    let traffic = || {
+        let listed = (handle.admin().connections().into_iter())
+            .find(|c| c.protocol == "MQTT 3.1.1")
+            .expect("the MQTT connection is listed");
+        listed.traffic.expect("its bytes are counted")
+    };
+    // A write is counted once the kernel has taken it, so the client may
+    // read the PINGRESP a moment before.
+    within("the PINGRESP counted", async {
+        while traffic().sent_bytes < connack_len + ping_len {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    let traffic = traffic();
     assert_eq!(traffic.received_bytes, connect_len + ping_len);
     assert_eq!(traffic.sent_bytes, connack_len + ping_len);
     assert!(traffic.reads >= 1 && traffic.writes >= 2, "{traffic:?}");

@@ -698,8 +698,8 @@ impl Session {
 
     /// Joins again the shared subscriptions the session held (`shares`),
     /// unless it starts clean (then they are forgotten); whether it held
-    /// any. Their permissions are checked again; one refused now is
-    /// dropped.
+    /// any. Their permissions are checked again and the subscription cap
+    /// applies; one refused now is dropped.
     fn rejoin_shared(&mut self, clean_start: bool) -> bool {
         let shares = &self.shared.shares;
         if clean_start {
@@ -715,13 +715,10 @@ impl Session {
                 continue;
             };
             let (group, inner) = (shared.group.to_owned(), shared.filter.to_owned());
-            if self
-                .subscribe_shared(filter, &group, &inner, *options)
-                .is_err()
-            {
-                self.shared
-                    .shares
-                    .remove(&self.vhost, &self.client_id, filter);
+            let full = self.subscriptions.len() >= MAX_SUBSCRIPTIONS;
+            if full || (self.subscribe_shared(filter, &group, &inner, *options)).is_err() {
+                let shares = &self.shared.shares;
+                shares.remove(&self.vhost, &self.client_id, filter);
             }
         }
         !held.is_empty()
