@@ -97,18 +97,20 @@ pub async fn serve<R, W>(
 /// speaks, as RabbitMQ lists it (`AMQP 0-9-1`, `MQTT 3.1.1`, `MQTT 5.0`),
 /// and its first word names the connection in the log; `identity` what
 /// the front end's transport tells (an MQTT session's TLS certificate, for
-/// SASL EXTERNAL); `done` is dropped when the connection has ended and
-/// cleaned up.
+/// SASL EXTERNAL); `traffic` counts the front end's byte stream, listed
+/// as the connection's (an MQTT session's socket); `done` is dropped when
+/// the connection has ended and cleaned up.
 pub fn serve_direct(
     core: Arc<Core>,
     slot: Slot,
     (peer, identity): (String, Identity),
-    protocol: &'static str,
+    (protocol, traffic): (&'static str, Option<Arc<ConnectionTraffic>>),
     done: impl Send + 'static,
 ) -> DirectLink {
     let (link, frames, start) = direct::link();
     tokio::spawn(async move {
-        let ends = Ends::new(peer, None, protocol);
+        let mut ends = Ends::new(peer, None, protocol);
+        ends.traffic = traffic;
         serve_frames(core, frames, DirectSink(start), ends, slot, identity).await;
         drop(done);
     });
