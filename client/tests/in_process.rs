@@ -553,3 +553,31 @@ async fn in_process_fast_path_keeps_max_length_and_expiration() {
         .shutdown()
         .await;
 }
+
+/// Once the broker's runtime is gone, a publish never runs the connection's
+/// loop on the publishing thread (there is no loop left to run): it fails
+/// or goes nowhere, without a panic.
+#[test]
+fn a_publish_after_the_runtime_is_gone_runs_no_loop() {
+    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    let (broker, connection, channel) = runtime.block_on(async {
+        let broker = Arc::new(Broker::builder().start().await.expect("start"));
+        let connection = within("connect", Connection::in_process(&broker))
+            .await
+            .expect("in-process connect");
+        let channel = within("channel", connection.open_channel()).await.unwrap();
+        (broker, connection, channel)
+    });
+    drop(runtime);
+    if let Ok(Some(slot)) = channel.try_reserve() {
+        let _ = slot.basic_publish(
+            "",
+            "nowhere",
+            BasicPublishOptions::default(),
+            BasicProperties::default(),
+            Bytes::from_static(b"late"),
+        );
+    }
+    assert_eq!(connection.inline_publishes(), 0);
+    drop((channel, connection, broker));
+}

@@ -221,6 +221,14 @@ impl Future for LoopTask {
     }
 }
 
+impl Drop for LoopTask {
+    /// A task dropped unfinished (its runtime shut down) takes the loop
+    /// with it: no client thread may run it without its runtime.
+    fn drop(&mut self) {
+        lock(&self.shared.future).take();
+    }
+}
+
 /// Spawns `connection` (an in-process connection's loop) on the current
 /// runtime as a task that its client may also run (see [`DirectLoop`]).
 pub(super) fn spawn(
