@@ -186,7 +186,9 @@ pub use crate::arguments::{
 };
 pub use crate::as_user::AsUser;
 pub use crate::auth::User;
-pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
+pub use crate::connection::{
+    DirectLink, DirectLoop, DirectReplies, DirectReply, LoopClaim, DIRECT_CAPACITY,
+};
 pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::disk_alarm::{DirFreeSpace, FreeSpace};
 pub use crate::hash_pool::{HashPoolStats, HASH_THREADS};
