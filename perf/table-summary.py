@@ -1,8 +1,8 @@
 """The summary table of perf/table: for each scenario and figure, each broker's median over the
 rounds with the spread (min-max), and Leveret's ratio to LavinMQ per round (median, min-max).
 
-usage: python3 table-summary.py BASE ROUNDS   (reads BASE-roundN.json and BASE-ceilings.json,
-the `leveret-perf compare --json` files perf/table writes)
+usage: python3 table-summary.py BASE ROUNDS   (reads BASE-roundN.json and, if there is one,
+BASE-ceilings.json: the `leveret-perf compare --json` files perf/table and perf/worker-threads write)
 """
 
 import json
@@ -67,7 +67,11 @@ def main():
     base, rounds = sys.argv[1], int(sys.argv[2])
     runs = [load(f"{base}-round{r}.json") for r in range(1, rounds + 1)]
     table(runs, f"median over {rounds} round(s), (min-max) when more than one; ratio per round", FIGURES)
-    table([load(f"{base}-ceilings.json")], "generators' ceilings: publish rate into the sink, beside Leveret",
+    try:
+        ceilings = load(f"{base}-ceilings.json")
+    except FileNotFoundError:  # scripts that compare Leveret with itself measure no ceilings
+        return
+    table([ceilings], "generators' ceilings: publish rate into the sink, beside Leveret",
           ["publish rate", "consume rate"])
 
 

@@ -431,8 +431,9 @@ pub struct ConnectionInfo {
     pub heartbeat_secs: u16,
     /// Open channels.
     pub channels: u64,
-    /// Its byte stream's traffic (a socket, or `connect_in_process`'s
-    /// pipe); `None` for a connection exchanging frames in-process (MQTT's).
+    /// Its byte stream's traffic (a socket, `connect_in_process`'s pipe,
+    /// or an MQTT session's socket); `None` for a connection exchanging
+    /// frames in-process (`connect_direct`'s).
     pub traffic: Option<SocketTrafficFigures>,
 }
 
@@ -528,7 +529,7 @@ impl QueueRef {
             durable: queue.options.durable,
             auto_delete: queue.options.auto_delete,
             exclusive_owner: queue.options.exclusive_owner,
-            arguments: queue.options.arguments.clone(),
+            arguments: queue.arguments(),
             messages_ready: depth.ready,
             messages_unacknowledged: depth.unacked,
             message_bytes_ready: depth.ready_bytes,

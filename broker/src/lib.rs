@@ -183,7 +183,9 @@ pub use crate::arguments::{
     classic_queue_arguments, Argument, Scope as ArgumentScope, Support as ArgumentSupport,
     ARGUMENTS,
 };
-pub use crate::connection::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
+pub use crate::connection::{
+    DirectLink, DirectLoop, DirectReplies, DirectReply, LoopClaim, DIRECT_CAPACITY,
+};
 pub use crate::core::{Limits, UserLimits, VhostLimits};
 pub use crate::limits::UnknownLimit;
 pub use crate::outbox::{InlineDeliveries, InlineDelivery};

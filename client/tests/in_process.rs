@@ -359,3 +359,225 @@ async fn in_process_deliveries_take_the_fast_path_in_order() {
         .shutdown()
         .await;
 }
+
+/// Publishes a numbered message; its confirm.
+async fn publish_numbered(
+    channel: &leveret_client::Channel,
+    queue: &ShortStr,
+    i: u32,
+    properties: BasicProperties,
+) -> leveret_client::PublishConfirm {
+    within(
+        "publish",
+        channel.basic_publish(
+            "",
+            queue.clone(),
+            BasicPublishOptions::default(),
+            properties,
+            Bytes::from(i.to_le_bytes().to_vec()),
+        ),
+    )
+    .await
+    .expect("publish")
+}
+
+/// The ready messages of a queue, from a passive declare.
+async fn ready(channel: &leveret_client::Channel, queue: &ShortStr) -> u32 {
+    within(
+        "declare passive",
+        channel.queue_declare(
+            queue.clone(),
+            QueueDeclareOptions {
+                passive: true,
+                ..Default::default()
+            },
+            FieldTable::new(),
+        ),
+    )
+    .await
+    .expect("passive declare")
+    .message_count
+}
+
+/// The publish side of the in-process fast path: a publish whose
+/// connection's loop is free and whose link holds nothing sent before is
+/// handled on the publishing thread (counted by `inline_publishes`); one
+/// published while something waits in the link (here: room held in it)
+/// goes through the link. Mixed on one channel they keep their order and
+/// their confirms' numbering, and the queue counts every one.
+#[leveret_tests::both_runtimes]
+async fn in_process_publishes_run_on_the_callers_thread_in_order() {
+    const ROUNDS: u32 = 100;
+    let broker = Arc::new(Broker::builder().start().await.expect("start"));
+    let publisher = within("connect", Connection::in_process(&broker))
+        .await
+        .expect("in-process connect");
+    let consuming = within("connect", Connection::in_process(&broker))
+        .await
+        .expect("in-process connect");
+    let out = within("channel", publisher.open_channel()).await.unwrap();
+    let inbound = within("channel", consuming.open_channel()).await.unwrap();
+    let queue = within(
+        "declare",
+        inbound.queue_declare("", QueueDeclareOptions::default(), FieldTable::new()),
+    )
+    .await
+    .unwrap();
+    within("confirm.select", out.confirm_select())
+        .await
+        .unwrap();
+    let mut consumer = within(
+        "consume",
+        inbound.basic_consume(
+            &queue.name,
+            "",
+            BasicConsumeOptions::default(),
+            FieldTable::new(),
+        ),
+    )
+    .await
+    .unwrap();
+    let mut next = 0u32;
+    for _ in 0..ROUNDS {
+        // One with the link free (the fast path when the loop is free),
+        // then two while room is held in the link (through the link),
+        // then one more right behind them.
+        let mut confirms =
+            vec![publish_numbered(&out, &queue.name, next, Default::default()).await];
+        let held = out.try_reserve().unwrap().expect("room in the link");
+        for i in next + 1..next + 3 {
+            confirms.push(publish_numbered(&out, &queue.name, i, Default::default()).await);
+        }
+        drop(held);
+        confirms.push(publish_numbered(&out, &queue.name, next + 3, Default::default()).await);
+        for confirm in confirms {
+            assert!(within("confirm", confirm).await.unwrap().is_ack());
+        }
+        for i in next..next + 4 {
+            let delivery = within("delivery", consumer.next()).await.expect("delivery");
+            assert_eq!(&delivery.body[..], &i.to_le_bytes(), "in publish order");
+            delivery.ack().await.unwrap();
+        }
+        next += 4;
+    }
+    let fast = publisher.inline_publishes();
+    // Never those published with room held; the first of each round
+    // unless the connection's task happened to run its loop just then.
+    assert!(
+        fast >= u64::from(ROUNDS) / 2 && fast <= 2 * u64::from(ROUNDS),
+        "{fast} of {next} publishes took the fast path"
+    );
+    assert_eq!(
+        consuming.inline_publishes(),
+        0,
+        "the consumer publishes nothing"
+    );
+    within("close", inbound.close()).await.unwrap();
+    assert_eq!(
+        ready(&out, &queue.name).await,
+        0,
+        "every message acknowledged"
+    );
+    within("close", publisher.close()).await.unwrap();
+    within("close", consuming.close()).await.unwrap();
+    Arc::into_inner(broker)
+        .expect("the only handle")
+        .shutdown()
+        .await;
+}
+
+/// On the fast path the broker's rules hold as through the link: a queue
+/// at its max-length with `reject-publish` nacks the publish, and a
+/// message past its expiration is never delivered.
+#[leveret_tests::both_runtimes]
+async fn in_process_fast_path_keeps_max_length_and_expiration() {
+    let broker = Arc::new(Broker::builder().start().await.expect("start"));
+    let publisher = within("connect", Connection::in_process(&broker))
+        .await
+        .expect("in-process connect");
+    let out = within("channel", publisher.open_channel()).await.unwrap();
+    within("confirm.select", out.confirm_select())
+        .await
+        .unwrap();
+    let mut arguments = FieldTable::new();
+    arguments.insert(ShortStr::from_static("x-max-length"), FieldValue::I32(2));
+    arguments.insert(
+        ShortStr::from_static("x-overflow"),
+        FieldValue::string("reject-publish"),
+    );
+    let full = within(
+        "declare",
+        out.queue_declare("", QueueDeclareOptions::default(), arguments),
+    )
+    .await
+    .unwrap();
+    let mut outcomes = Vec::new();
+    for i in 0..4 {
+        let confirm = publish_numbered(&out, &full.name, i, Default::default()).await;
+        outcomes.push(within("confirm", confirm).await.unwrap().is_ack());
+    }
+    assert_eq!(
+        outcomes,
+        [true, true, false, false],
+        "acked while room, then nacked"
+    );
+    assert_eq!(ready(&out, &full.name).await, 2);
+
+    let expiring = within(
+        "declare",
+        out.queue_declare("", QueueDeclareOptions::default(), FieldTable::new()),
+    )
+    .await
+    .unwrap();
+    let short_lived = BasicProperties {
+        expiration: Some(ShortStr::from_static("1")),
+        ..Default::default()
+    };
+    let confirm = publish_numbered(&out, &expiring.name, 0, short_lived).await;
+    assert!(within("confirm", confirm).await.unwrap().is_ack());
+    tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    let got = within(
+        "get",
+        out.basic_get(&expiring.name, BasicGetOptions { no_ack: true }),
+    )
+    .await
+    .unwrap();
+    assert!(got.is_none(), "an expired message is never delivered");
+    assert_eq!(ready(&out, &expiring.name).await, 0);
+    // Both runtimes' publishes here were free to take the fast path; on
+    // the current-thread runtime nothing else can hold the loop.
+    assert!(publisher.inline_publishes() >= 1);
+    within("close", publisher.close()).await.unwrap();
+    Arc::into_inner(broker)
+        .expect("the only handle")
+        .shutdown()
+        .await;
+}
+
+/// Once the broker's runtime is gone, a publish never runs the connection's
+/// loop on the publishing thread (there is no loop left to run): it fails
+/// or goes nowhere, without a panic.
+#[test]
+fn a_publish_after_the_runtime_is_gone_runs_no_loop() {
+    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    let (broker, connection, channel) = runtime.block_on(async {
+        let broker = Arc::new(Broker::builder().start().await.expect("start"));
+        let connection = within("connect", Connection::in_process(&broker))
+            .await
+            .expect("in-process connect");
+        let channel = within("channel", connection.open_channel()).await.unwrap();
+        (broker, connection, channel)
+    });
+    drop(runtime);
+    if let Ok(Some(slot)) = channel.try_reserve() {
+        let _ = slot.basic_publish(
+            "",
+            "nowhere",
+            BasicPublishOptions::default(),
+            BasicProperties::default(),
+            Bytes::from_static(b"late"),
+        );
+    }
+    assert_eq!(connection.inline_publishes(), 0);
+    drop((channel, connection, broker));
+}

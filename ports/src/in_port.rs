@@ -7,8 +7,10 @@
 //! [`FullPolicy`], and only then is it acknowledged. That intake runs on
 //! the connection's reader, as each message is read (the consumer's sink):
 //! no task stands between the connection and the buffer; in process, on
-//! the embedded broker's thread that dispatches the message, whenever the
-//! reader has nothing before it (the client's inline deliveries). A message the
+//! the embedded broker's thread that dispatches the message (an in-process
+//! out-port's putting thread, when its publish took the fast path),
+//! whenever the reader has nothing before it (the client's inline
+//! deliveries). A message the
 //! reader cannot take at once (the buffer is full and the policy is to
 //! wait, or there is no room for its ack in the connection's outbox) goes
 //! through the consumer's buffer to the port's task, which waits for room;

@@ -26,7 +26,9 @@
 //! is up and everything before it is published, `put` publishes its value
 //! itself: no task stands between the caller and the connection, which
 //! for an embedded broker means the broker's connection has the message
-//! at once. Everything else is the port's task's: publishing what `put`
+//! at once (and, when its loop is free, routes and queues it on the
+//! caller's thread, handing it to an in-process in-port there, see
+//! `leveret_broker::DirectLoop`). Everything else is the port's task's: publishing what `put`
 //! left (link down, outbox full, a replay), keeping each message until the
 //! broker confirms it (with publisher confirms), and, when the link drops,
 //! reconnecting with backoff, declaring the topology again and replaying

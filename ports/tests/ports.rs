@@ -130,6 +130,9 @@ where
     assert!(latency.min <= latency.percentile(0.5));
     assert!(latency.percentile(0.5) <= latency.percentile(0.99));
     assert!(latency.percentile(0.99) <= latency.max);
+    // A value may reach the in-port before its confirm reaches the
+    // out-port (in process, the put hands it over on its own thread).
+    within("every confirm", output.flush()).await;
     let out = output.stats();
     assert_eq!(out.accepted, values.len() as u64);
     assert_eq!(out.confirmed, values.len() as u64);

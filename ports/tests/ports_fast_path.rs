@@ -216,3 +216,60 @@ async fn a_callback_that_calls_into_the_broker_runs_off_the_dispatching_thread()
     output.close().await;
     input.close().await;
 }
+
+/// Persistent values put in process into a durable queue are on disk once
+/// confirmed, whichever thread handled their publish (the putting thread
+/// on the fast path): a broker started again on the same data directory
+/// has every one of them, and the out-port's counters add up.
+#[both_runtimes]
+async fn confirmed_persistent_puts_survive_a_restart() {
+    const COUNT: i32 = 200;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let broker = Arc::new(
+        Broker::builder()
+            .data_dir(dir.path())
+            .start()
+            .await
+            .expect("start"),
+    );
+    let queue = unique("durable-fast");
+    let profile = PortProfile::default()
+        .queue(&queue)
+        .routing_key(&queue)
+        .durable(true);
+    let output = within(
+        "out-port",
+        OutPort::<TimedLong>::connect_with(Connector::in_process(&broker), profile),
+    )
+    .await
+    .expect("out-port");
+    for data in 0..COUNT {
+        assert_eq!(output.try_put(&long(data)), PortStatus::Ok);
+        // One at a time, so most take the fast path (nothing waits before
+        // them).
+        within("confirmed", output.flush()).await;
+    }
+    let stats = output.stats();
+    assert_eq!(
+        (stats.accepted, stats.confirmed, stats.pending),
+        (COUNT as u64, COUNT as u64, 0),
+        "{stats:?}"
+    );
+    output.close().await;
+    Arc::into_inner(broker)
+        .expect("the only handle")
+        .shutdown()
+        .await;
+    let again = Broker::builder()
+        .data_dir(dir.path())
+        .start()
+        .await
+        .expect("restart on the same data directory");
+    let listed = again
+        .queues()
+        .into_iter()
+        .find(|q| q.name == queue)
+        .expect("the durable queue is back");
+    assert_eq!(listed.messages_ready, COUNT as u64, "every confirmed value");
+    again.shutdown().await;
+}

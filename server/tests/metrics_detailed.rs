@@ -864,3 +864,97 @@ async fn uncommitted_and_unconfirmed_work_is_shown_until_settled() {
     .await;
     conn.close(200, "bye").await.expect("close");
 }
+
+/// MQTT logins under RabbitMQ 3.10's `protocol="mqtt"` label, counted as
+/// its plugin counts them (a login passes once the vhost has let it in; no
+/// credentials, a wrong password and an unknown vhost fail), from
+/// `mosquitto_sub` and `mosquitto_pub`: an open MQTT connection counts in
+/// `rabbitmq_connections` and is listed with its protocol in
+/// `/api/connections`; AMQP's logins stay apart; promtool takes it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mqtt_logins_are_counted_under_their_protocol() {
+    if !tool_available("mosquitto_sub", "mosquitto-clients") {
+        return;
+    }
+    let broker = OpsBroker::start("metrics-mqtt", &["--mqtt-listen", "127.0.0.1:0"]);
+    let port = broker.mqtt_addr().port().to_string();
+    let mosquitto = |program: &str, login: &[&str], rest: &[&str]| {
+        let mut command = std::process::Command::new(program);
+        command
+            .args(["-h", "127.0.0.1", "-p", &port, "-V", "mqttv311"])
+            .args(login)
+            .args(rest)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped());
+        command
+    };
+    let guest = ["-u", "guest", "-P", "guest"];
+    // A subscriber that stays until one message has come.
+    let subscriber = mosquitto("mosquitto_sub", &guest, &["-i", "watcher", "-t", "m/#"])
+        .args(["-C", "1", "-q", "1"])
+        .spawn()
+        .expect("mosquitto_sub runs");
+    let open = [
+        ("rabbitmq_connections", 1.0),
+        (
+            "rabbitmq_auth_attempts_succeeded_total{protocol=\"mqtt\"}",
+            1.0,
+        ),
+    ];
+    scrape_until(broker.metrics, "/metrics", &open).await;
+    let auth = basic("guest", "guest");
+    let listed = request(
+        broker.http,
+        "GET",
+        "/api/connections",
+        &[("Authorization", auth.as_str())],
+        b"",
+    )
+    .await;
+    let listed: serde_json::Value = serde_json::from_slice(&listed.body).expect("json");
+    assert_eq!(listed[0]["protocol"], "MQTT 3.1.1", "{listed}");
+    assert_eq!(
+        listed[0]["client_properties"]["product"], "MQTT",
+        "{listed}"
+    );
+
+    for (login, refused) in [
+        (&["-u", "guest", "-P", "wrong"][..], "a wrong password"),
+        (&[][..], "no credentials"),
+        (
+            &["-u", "nowhere:guest", "-P", "guest"][..],
+            "an unknown vhost",
+        ),
+    ] {
+        let output = mosquitto("mosquitto_pub", login, &["-t", "m/x", "-m", "no"])
+            .output()
+            .expect("mosquitto_pub runs");
+        assert!(!output.status.success(), "{refused} let in: {output:?}");
+    }
+    let output = mosquitto(
+        "mosquitto_pub",
+        &guest,
+        &["-t", "m/1", "-m", "hi", "-q", "1"],
+    )
+    .output()
+    .expect("mosquitto_pub runs");
+    assert!(output.status.success(), "{output:?}");
+    let received = subscriber.wait_with_output().expect("mosquitto_sub ends");
+    assert_eq!(String::from_utf8_lossy(&received.stdout).trim(), "hi");
+
+    let counted = [
+        (
+            "rabbitmq_auth_attempts_succeeded_total{protocol=\"mqtt\"}",
+            2.0,
+        ),
+        (
+            "rabbitmq_auth_attempts_failed_total{protocol=\"mqtt\"}",
+            3.0,
+        ),
+        ("rabbitmq_auth_attempts_total{protocol=\"mqtt\"}", 5.0),
+        ("rabbitmq_auth_attempts_total{protocol=\"amqp091\"}", 0.0),
+        ("rabbitmq_connections", 0.0),
+    ];
+    let text = scrape_until(broker.metrics, "/metrics", &counted).await;
+    check_with_promtool(&text, "/metrics");
+}

@@ -2758,3 +2758,304 @@ async fn a_broker_shuts_down_with_sessions_owing_wills_and_wills_waiting() {
     within("the broker shut down", handle.shutdown()).await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Paho's 5.0 client (`argv`: port, client id, the CONNECT's and the
+/// DISCONNECT's Session Expiry Interval): a persistent session that
+/// subscribes `s/#` at QoS 1 and ends with a DISCONNECT giving its new
+/// expiry.
+const PAHO_DISCONNECT_EXPIRY: &str = r#"
+import sys, threading
+import paho.mqtt.client as mqtt
+from paho.mqtt.properties import Properties
+from paho.mqtt.packettypes import PacketTypes
+
+port, client_id = int(sys.argv[1]), sys.argv[2]
+at_connect, at_disconnect = int(sys.argv[3]), int(sys.argv[4])
+subscribed = threading.Event()
+c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id,
+                protocol=mqtt.MQTTv5)
+c.username_pw_set("robot", "secret")
+c.on_subscribe = lambda *args: subscribed.set()
+connect = Properties(PacketTypes.CONNECT)
+connect.SessionExpiryInterval = at_connect
+c.connect("127.0.0.1", port, clean_start=False, properties=connect)
+c.loop_start()
+c.subscribe("s/#", qos=1)
+assert subscribed.wait(30), "no SUBACK"
+disconnect = Properties(PacketTypes.DISCONNECT)
+disconnect.SessionExpiryInterval = at_disconnect
+c.disconnect(properties=disconnect)
+c.loop_stop()
+print("disconnected")
+"#;
+
+/// Runs [`PAHO_DISCONNECT_EXPIRY`].
+async fn paho_disconnect_expiry(port: u16, client_id: &str, at_connect: u32, at_disconnect: u32) {
+    let mut paho = std::process::Command::new("python3");
+    paho.args(["-c", PAHO_DISCONNECT_EXPIRY, &port.to_string(), client_id])
+        .args([at_connect.to_string(), at_disconnect.to_string()]);
+    let output = within(
+        "paho's client",
+        tokio::task::spawn_blocking(move || paho.output()),
+    )
+    .await
+    .expect("the blocking task")
+    .expect("python3 with paho-mqtt runs");
+    assert!(output.status.success(), "{output:?}");
+}
+
+/// The `x-expires` of queue `name`, once it has `wanted` (the session's
+/// queues follow a new expiry once its connection has ended).
+async fn until_expires(handle: &BrokerHandle, name: &str, wanted: Option<i64>) {
+    within("the queue's x-expires", async {
+        loop {
+            let expires = handle
+                .queues()
+                .into_iter()
+                .find(|q| q.name == name)
+                .map(|q| q.arguments.get("x-expires").and_then(|v| v.as_i64()));
+            if expires == Some(wanted) {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+}
+
+#[both_runtimes]
+async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_restart() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-expiry"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    // One second at CONNECT, an hour at DISCONNECT.
+    paho_disconnect_expiry(port, "stretch", 1, 3600).await;
+    let queue = "mqtt-subscription-stretchqos1";
+    until_expires(&handle, queue, Some(3_600_000)).await;
+    // Past the CONNECT's second (a lower bound, whatever the load).
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    assert!(queue_names(&handle).contains(&queue.to_owned()));
+    // An hour at CONNECT, never at DISCONNECT (0xFFFFFFFF): no x-expires.
+    paho_disconnect_expiry(port, "forever", 3600, u32::MAX).await;
+    until_expires(&handle, "mqtt-subscription-foreverqos1", None).await;
+    publish_acked(port, "s/kept", "while away", false).await;
+    handle.shutdown().await;
+
+    // The new expiries were stored with the queues.
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    until_expires(&handle, queue, Some(3_600_000)).await;
+    until_expires(&handle, "mqtt-subscription-foreverqos1", None).await;
+    // Resumed with a CONNECT of one second: that is the session's expiry
+    // now, and it passes once the client has gone.
+    let mut options = options5("stretch", port, "secret");
+    options.set_clean_start(false);
+    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+    properties.session_expiry_interval = Some(1);
+    options.set_connect_properties(properties);
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options, 16);
+    assert!(session_present5(&mut events).await, "the session survived");
+    let kept = next_publish5(&mut events).await;
+    assert_eq!(&kept.payload[..], b"while away");
+    until_expires(&handle, queue, Some(1_000)).await;
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+    within("the resumed session's queue expired", async {
+        while queue_names(&handle).contains(&queue.to_owned()) {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    assert!(queue_names(&handle).contains(&"mqtt-subscription-foreverqos1".to_owned()));
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A 5.0 client with a persistent session of an hour (clean start only
+/// if `clean`); whether the CONNACK says the session was present.
+async fn persistent5(
+    id: &str,
+    port: u16,
+    clean: bool,
+) -> (rumqttc::v5::AsyncClient, rumqttc::v5::EventLoop, bool) {
+    expiring5(id, port, clean, 3600).await
+}
+
+/// As [`persistent5`], the session expiring `expiry` seconds after its
+/// connection.
+async fn expiring5(
+    id: &str,
+    port: u16,
+    clean: bool,
+    expiry: u32,
+) -> (rumqttc::v5::AsyncClient, rumqttc::v5::EventLoop, bool) {
+    let mut options = options5(id, port, "secret");
+    options.set_clean_start(clean);
+    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+    properties.session_expiry_interval = Some(expiry);
+    options.set_connect_properties(properties);
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options, 16);
+    let present = session_present5(&mut events).await;
+    (client, events, present)
+}
+
+/// Ends a 5.0 client with DISCONNECT.
+async fn disconnect5(client: rumqttc::v5::AsyncClient, mut events: rumqttc::v5::EventLoop) {
+    client.disconnect().await.unwrap();
+    let _ = tmo!(events.poll());
+}
+
+#[both_runtimes]
+async fn a_persistent_sessions_shared_subscriptions_survive_a_reconnect_and_a_restart() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-shares"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let group = "mqtt-shared-workers/w/#";
+    let (client, mut events, present) = persistent5("worker", port, true).await;
+    assert!(!present);
+    let codes = subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("$share/workers/w/#", QoS5::AtLeastOnce)],
+        Some(9),
+    )
+    .await;
+    assert_eq!(codes, [SubscribeReasonCode::Success(QoS5::AtLeastOnce)]);
+    disconnect5(client, events).await;
+    within("the group's queue gone with its last member", async {
+        while queue_names(&handle).contains(&group.to_owned()) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+
+    // Back without subscribing: a member of the group again, with its
+    // subscription identifier.
+    let (client, mut events, present) = persistent5("worker", port, false).await;
+    assert!(present, "the shared subscription is session state");
+    within("the group's queue declared again", async {
+        while !queue_names(&handle).contains(&group.to_owned()) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    publish_acked5(port, "w/1", "after a reconnect", false).await;
+    let got = next_publish5(&mut events).await;
+    assert_eq!(&got.payload[..], b"after a reconnect");
+    assert_eq!(ids_of(&got), [9]);
+    disconnect5(client, events).await;
+    handle.shutdown().await;
+
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events, present) = persistent5("worker", port, false).await;
+    assert!(present, "kept across the restart");
+    within("the group's queue declared after the restart", async {
+        while !queue_names(&handle).contains(&group.to_owned()) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    publish_acked5(port, "w/2", "after a restart", false).await;
+    let got = next_publish5(&mut events).await;
+    assert_eq!(&got.payload[..], b"after a restart");
+    // UNSUBSCRIBE ends the membership for good.
+    client.unsubscribe("$share/workers/w/#").await.unwrap();
+    until5(&mut events, |p| {
+        matches!(p, Packet5::UnsubAck(_)).then_some(())
+    })
+    .await;
+    disconnect5(client, events).await;
+    let (client, events, present) = persistent5("worker", port, false).await;
+    assert!(!present, "nothing left of the session");
+    assert!(!queue_names(&handle).contains(&group.to_owned()));
+    disconnect5(client, events).await;
+
+    // A clean start forgets them, and so does a session that ends with
+    // its connection (DISCONNECT with expiry 0 is the raw test's).
+    let (client, mut events, _) = persistent5("starter", port, true).await;
+    subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("$share/workers/w/#", QoS5::AtMostOnce)],
+        None,
+    )
+    .await;
+    disconnect5(client, events).await;
+    let (client, events, present) = persistent5("starter", port, true).await;
+    assert!(!present);
+    disconnect5(client, events).await;
+    let (client, events, present) = persistent5("starter", port, false).await;
+    assert!(!present, "the clean start forgot the shared subscription");
+    disconnect5(client, events).await;
+
+    // They expire with the session: one second, and later nothing is left.
+    let (client, mut events, _) = expiring5("brief", port, true, 1).await;
+    subscribe5(
+        &client,
+        &mut events,
+        vec![Filter::new("$share/workers/w/#", QoS5::AtMostOnce)],
+        None,
+    )
+    .await;
+    disconnect5(client, events).await;
+    // Past the second (a lower bound, whatever the machine's load).
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let (client, events, present) = expiring5("brief", port, false, 1).await;
+    assert!(!present, "the expired session held no shared subscription");
+    assert!(!queue_names(&handle).contains(&group.to_owned()));
+    disconnect5(client, events).await;
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// An MQTT connection's bytes are its listed connection's (RabbitMQ
+/// 3.10's `recv_oct`/`send_oct` of an MQTT connection), counted exactly:
+/// a raw 3.1.1 client's CONNECT and PINGREQ in, CONNACK and PINGRESP out.
+#[both_runtimes]
+async fn an_mqtt_connections_bytes_are_counted_as_its_connections() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let before = handle.admin().overview().socket_traffic;
+    let mut raw = Raw::login_as(port, 0, ProtocolVersion::V3_1_1, "counted").await;
+    raw.send(Packet::PingReq).await;
+    assert!(matches!(raw.next().await, Some(Packet::PingResp)));
+    let connect = Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V3_1_1,
+        clean_start: true,
+        keep_alive: 0,
+        properties: Default::default(),
+        client_id: leveret_mqtt::MqttString::from_static("counted"),
+        will: None,
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    }));
+    let connect_len = connect.encoded_len(ProtocolVersion::V3_1_1).unwrap() as u64;
+    let (connack_len, ping_len) = (4, 2);
+    let traffic = || {
+        let listed = (handle.admin().connections().into_iter())
+            .find(|c| c.protocol == "MQTT 3.1.1")
+            .expect("the MQTT connection is listed");
+        listed.traffic.expect("its bytes are counted")
+    };
+    // A write is counted once the kernel has taken it, so the client may
+    // read the PINGRESP a moment before.
+    within("the PINGRESP counted", async {
+        while traffic().sent_bytes < connack_len + ping_len {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    let traffic = traffic();
+    assert_eq!(traffic.received_bytes, connect_len + ping_len);
+    assert_eq!(traffic.sent_bytes, connack_len + ping_len);
+    assert!(traffic.reads >= 1 && traffic.writes >= 2, "{traffic:?}");
+    let after = handle.admin().overview().socket_traffic;
+    assert_eq!(
+        after.received_bytes - before.received_bytes,
+        connect_len + ping_len,
+        "the broker's totals have them too"
+    );
+    drop(raw);
+    handle.shutdown().await;
+}

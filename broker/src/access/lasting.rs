@@ -192,7 +192,8 @@ fn restore(
         // The `parameters` module's and the `mqtt` front end's.
         MetaRecord::Parameter { .. }
         | MetaRecord::Retained { .. }
-        | MetaRecord::Unreleased { .. } => Ok(()),
+        | MetaRecord::Unreleased { .. }
+        | MetaRecord::SharedSubscription { .. } => Ok(()),
     };
     if let Err(problem) = outcome {
         tracing::error!(record = ?record.key(), %problem, "a stored user, vhost or permission is not restored");

@@ -23,9 +23,14 @@
 //! everything the outbox sent it before (counted here, so the order of
 //! deliveries and methods is the outbox's).
 //!
+//! A client may also run the connection's loop on its own thread for a
+//! publish ([`DirectLoop`], in `direct_loop`): the item is handed over
+//! beside the channel, read before it, and handled where it was sent.
+//!
 //! Uses the connection loop, which it feeds through [`FrameSource`], and
 //! the outbox, which it drains in place of the socket writer.
 
+use super::direct_loop::{self, DirectLoop, Handed};
 use super::source::{FrameSource, ReadError};
 use crate::channel::WholePublish;
 use crate::outbox::{Framed, InlineDeliveries, Outbound, Outbox};
@@ -56,6 +61,8 @@ pub struct DirectLink {
     pub to_broker: mpsc::Sender<Outgoing>,
     /// The broker's frames, starting with `connection.start`.
     pub from_broker: DirectReplies,
+    /// The connection's loop, for a publish handled on the client's thread.
+    pub here: DirectLoop,
 }
 
 /// The connection loop's source of an in-process client's frames: a
@@ -66,6 +73,8 @@ pub struct DirectLink {
 /// protect).
 pub(super) struct DirectFrames {
     rx: mpsc::Receiver<Outgoing>,
+    /// An item a client thread handed the loop: before anything in `rx`.
+    handed: Arc<Handed>,
     /// An item received and not yet taken, whole or as frames.
     held: Option<Outgoing>,
     frames: VecDeque<Frame>,
@@ -73,9 +82,10 @@ pub(super) struct DirectFrames {
 }
 
 impl DirectFrames {
-    pub(super) fn new(rx: mpsc::Receiver<Outgoing>) -> Self {
+    pub(super) fn new(rx: mpsc::Receiver<Outgoing>, handed: Arc<Handed>) -> Self {
         DirectFrames {
             rx,
+            handed,
             held: None,
             frames: VecDeque::with_capacity(4),
             ended: false,
@@ -87,7 +97,10 @@ impl DirectFrames {
         if self.ended {
             return None;
         }
-        self.held.take().or_else(|| self.rx.try_recv().ok())
+        self.held
+            .take()
+            .or_else(|| self.handed.take())
+            .or_else(|| self.rx.try_recv().ok())
     }
 
     /// Appends an item's frames; false for the client's end.
@@ -157,18 +170,29 @@ impl FrameSource for DirectFrames {
     }
 
     async fn fill(&mut self) -> Result<(), ReadError> {
-        if !self.frames.is_empty() || self.held.is_some() {
+        if !self.frames.is_empty() || self.held.is_some() || self.handed.is_full() {
             return Ok(());
         }
         if self.ended {
             return Err(ReadError::Closed);
         }
-        match self.rx.recv().await {
-            Some(item) => {
+        // A client thread that hands an item runs the loop itself, with
+        // no wake: each poll looks at the handed item first.
+        let (handed, rx) = (&self.handed, &mut self.rx);
+        let received = std::future::poll_fn(|cx| {
+            if handed.is_full() {
+                return std::task::Poll::Ready(None);
+            }
+            rx.poll_recv(cx).map(Some)
+        })
+        .await;
+        match received {
+            None => Ok(()),
+            Some(Some(item)) => {
                 self.held = Some(item);
                 Ok(())
             }
-            None => {
+            Some(None) => {
                 self.ended = true;
                 Err(ReadError::Closed)
             }
@@ -194,6 +218,7 @@ impl FrameSource for DirectFrames {
     fn release_spare(&mut self) {}
 
     async fn discard_input(&mut self) {
+        self.handed.take();
         while self.rx.recv().await.is_some() {}
     }
 }
@@ -410,12 +435,24 @@ fn push_frames(item: Framed, frame_max: u32, out: &mut VecDeque<Frame>) -> bool 
 
 /// Starts the connection side of an in-process link: the frames the client
 /// sends, and where the connection puts its writer's end.
-pub(super) fn link() -> (DirectLink, DirectFrames, oneshot::Sender<WriterEnd>) {
+/// Serves an in-process client: `serve` is the connection's loop over
+/// the frames given, with the writer's end sent once it starts; spawned on
+/// the current runtime, where the client may also run it (see
+/// [`DirectLoop`]).
+pub(super) fn link<F>(
+    serve: impl FnOnce(DirectFrames, oneshot::Sender<WriterEnd>) -> F,
+) -> DirectLink
+where
+    F: Future<Output = ()> + Send + 'static,
+{
     let (to_broker, rx) = mpsc::channel(DIRECT_CAPACITY);
     let (start_tx, start_rx) = oneshot::channel();
-    let link = DirectLink {
+    let handed = Arc::new(Handed::default());
+    let connection = serve(DirectFrames::new(rx, Arc::clone(&handed)), start_tx);
+    let here = direct_loop::spawn(connection, handed, &to_broker);
+    DirectLink {
         to_broker,
         from_broker: DirectReplies::new(start_rx),
-    };
-    (link, DirectFrames::new(rx), start_tx)
+        here,
+    }
 }

@@ -210,11 +210,11 @@ impl Connection {
         let allowed = authenticated
             .as_ref()
             .is_some_and(|user| self.core.users.may_connect_from(user, &self.peer));
-        let protocol = match self.kind {
-            "MQTT" => AuthProtocol::Mqtt,
-            _ => AuthProtocol::Amqp091,
-        };
-        self.core.stats.login(protocol, allowed);
+        // An MQTT session's login is counted by the front end, once the
+        // vhost has let it in too (as RabbitMQ 3.10's plugin counts it).
+        if self.kind != "MQTT" {
+            self.core.stats.login(AuthProtocol::Amqp091, allowed);
+        }
         let failure_close = capability(start_ok, "authentication_failure_close");
         match authenticated {
             Some(user) if !allowed => {

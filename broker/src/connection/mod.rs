@@ -7,14 +7,15 @@
 //! here.
 //!
 //! Layout: `handshake` is the connection.* handshake, a function a step;
-//! `source` is what the loop needs of its input; `reader` reads
-//! frames into a buffer sized to the traffic; `direct` is the in-process
-//! value link; `writer` owns the socket's write half, reached through the
-//! outbox. What a client may open is counted by the crate's `admission`
-//! (connections against `max_connections`, user and vhost limits), which
-//! the core holds.
+//! `source` is what the loop needs of its input; `reader` reads frames
+//! into a buffer sized to the traffic; `direct` is the in-process value
+//! link, whose loop its client may run (`direct_loop`); `writer` owns the
+//! socket's write half, reached through the outbox. What a client may
+//! open is counted by the crate's `admission` (connections against
+//! `max_connections`, user and vhost limits), which the core holds.
 
 mod direct;
+mod direct_loop;
 mod handshake;
 mod reader;
 mod source;
@@ -22,6 +23,7 @@ mod writer;
 
 use crate::admission::{self, Slot};
 pub use direct::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
+pub use direct_loop::{DirectLoop, LoopClaim};
 pub(crate) use reader::copy_below;
 
 use crate::channel::{AtOnce, Channel, Leftover, WholePublish};
@@ -97,22 +99,22 @@ pub async fn serve<R, W>(
 /// speaks, as RabbitMQ lists it (`AMQP 0-9-1`, `MQTT 3.1.1`, `MQTT 5.0`),
 /// and its first word names the connection in the log; `identity` what
 /// the front end's transport tells (an MQTT session's TLS certificate, for
-/// SASL EXTERNAL); `done` is dropped when the connection has ended and
-/// cleaned up.
+/// SASL EXTERNAL); `traffic` counts the front end's byte stream, listed
+/// as the connection's (an MQTT session's socket); `done` is dropped when
+/// the connection has ended and cleaned up.
 pub fn serve_direct(
     core: Arc<Core>,
     slot: Slot,
     (peer, identity): (String, Identity),
-    protocol: &'static str,
+    (protocol, traffic): (&'static str, Option<Arc<ConnectionTraffic>>),
     done: impl Send + 'static,
 ) -> DirectLink {
-    let (link, frames, start) = direct::link();
-    tokio::spawn(async move {
-        let ends = Ends::new(peer, None, protocol);
+    direct::link(move |frames, start| async move {
+        let mut ends = Ends::new(peer, None, protocol);
+        ends.traffic = traffic;
         serve_frames(core, frames, DirectSink(start), ends, slot, identity).await;
         drop(done);
-    });
-    link
+    })
 }
 
 /// Where a connection's outgoing items go: a writer task on a socket, or

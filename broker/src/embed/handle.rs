@@ -131,7 +131,7 @@ impl BrokerHandle {
             core,
             slot,
             (peer, crate::connection::Identity::None),
-            crate::connection::AMQP_0_9_1,
+            (crate::connection::AMQP_0_9_1, None),
             self.alive.clone(),
         )
     }

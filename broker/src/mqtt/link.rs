@@ -11,6 +11,7 @@ use super::mapping::EXCHANGE;
 use crate::admission::Slot;
 use crate::connection::{serve_direct, DirectLink, DirectReply, Identity};
 use crate::core::Core;
+use crate::stats::ConnectionTraffic;
 use bytes::{BufMut, Bytes, BytesMut};
 use leveret_mqtt::QoS;
 use leveret_protocol::{
@@ -56,6 +57,8 @@ pub(super) struct Login<'a> {
     pub window: u16,
     /// The MQTT version, as RabbitMQ lists the connection's protocol.
     pub protocol: &'static str,
+    /// The session's byte stream's counters, listed as the connection's.
+    pub traffic: Arc<ConnectionTraffic>,
 }
 
 impl Link {
@@ -74,7 +77,8 @@ impl Link {
             Some(_) => Identity::None,
             None => Identity::Tls(Some(login.user.to_owned())),
         };
-        let direct = serve_direct(core, slot, (peer, identity), login.protocol, done);
+        let kind = (login.protocol, Some(Arc::clone(&login.traffic)));
+        let direct = serve_direct(core, slot, (peer, identity), kind, done);
         let mut link = Link { direct, ended };
         match tokio::time::timeout_at(deadline, link.handshake(&login)).await {
             Ok(Ok(())) => Ok(link),

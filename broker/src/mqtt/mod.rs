@@ -15,20 +15,26 @@
 //! vhost a session lives in (the port and certificate mappings); `takeover` the
 //! client identifiers in use; `retained` the retained messages;
 //! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL;
+//! `shares` persistent sessions' shared subscriptions;
 //! `properties` 5.0 PUBLISH properties ↔ AMQP properties;
-//! `subscriptions` a session's subscriptions, their 5.0 options and
-//! shared subscriptions; `aliases` inbound topic aliases; `wills` last
-//! wills and their delay.
+//! `traffic` a session's byte stream counted; `subscriptions` a
+//! session's subscriptions, their 5.0 options and
+//! shared subscriptions; `expiry` a persistent session's expiry on its
+//! queues; `aliases` inbound topic aliases; `wills` last wills and their
+//! delay.
 
 mod aliases;
+mod expiry;
 mod link;
 mod mapping;
 mod properties;
 mod releases;
 mod retained;
 mod session;
+mod shares;
 mod subscriptions;
 mod takeover;
+mod traffic;
 mod vhosts;
 mod websocket;
 mod wills;
@@ -55,6 +61,8 @@ pub(crate) struct Shared {
     retained: Retained,
     /// Persistent sessions' QoS 2 publishes awaiting PUBREL.
     releases: releases::Releases,
+    /// Persistent sessions' shared subscriptions.
+    shares: shares::Shares,
     /// Whether a client on a TLS listener with a verified certificate and
     /// no user name logs in as the certificate's common name (RabbitMQ's
     /// `mqtt.ssl_cert_login`).
@@ -65,7 +73,8 @@ pub(crate) struct Shared {
 
 impl Shared {
     /// What the listeners share; `recovered` is the store's metadata
-    /// (retained messages and unreleased QoS 2 publishes come from it).
+    /// (retained messages, unreleased QoS 2 publishes and persistent
+    /// sessions' shared subscriptions come from it).
     pub(crate) fn new(
         core: &Core,
         recovered: &[MetaRecord],
@@ -82,6 +91,7 @@ impl Shared {
                 retained_limits,
             ),
             releases: releases::Releases::new(recovered, core.persistence.clone()),
+            shares: shares::Shares::new(recovered, core.persistence.clone()),
             certificate_login: options.certificate_login,
             wills: Default::default(),
         }

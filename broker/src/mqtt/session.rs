@@ -14,11 +14,13 @@
 //! shared) by [`MAX_SUBSCRIPTIONS`].
 
 use super::aliases::{TopicAliases, TOPIC_ALIAS_MAXIMUM};
+use super::expiry;
 use super::link::{self, Link, Login, Refusal};
 use super::mapping;
 use super::retained::Message;
 use super::subscriptions::{self, Marks, Options, SharedSubscription, Subscriptions};
 use super::takeover::Claim;
+use super::traffic::Counted;
 use super::vhosts;
 use super::wills::{self, LastWill};
 use super::Shared;
@@ -26,6 +28,7 @@ use crate::access::permissions::{Permissions, Resource, Right};
 use crate::admission::Slot;
 use crate::connection::DirectReply;
 use crate::core::Core;
+use crate::stats::{AuthProtocol, ConnectionTraffic};
 use crate::store::Durable;
 use bytes::BytesMut;
 use leveret_mqtt::{
@@ -113,11 +116,13 @@ pub(super) struct ClientCertificate {
 /// until it closes.
 pub(super) async fn serve<S: ClientStream>(
     core: Arc<Core>,
-    mut socket: S,
+    socket: S,
     origin: Origin,
     slot: Slot,
     shared: Arc<Shared>,
 ) {
+    let traffic = Arc::new(ConnectionTraffic::new(Arc::clone(&core.stats)));
+    let mut socket = Counted::new(socket, Arc::clone(&traffic));
     let peer = &origin.peer;
     let deadline = Instant::now() + core.limits.handshake_timeout;
     let mut buf = BytesMut::with_capacity(1024);
@@ -138,7 +143,14 @@ pub(super) async fn serve<S: ClientStream>(
         }
     };
     let version = connect.version;
-    let accepted = match admit(&core, (&*connect, &origin), slot, deadline, &shared).await {
+    let admitted = admit(
+        &core,
+        (&*connect, &origin, traffic),
+        slot,
+        deadline,
+        &shared,
+    );
+    let accepted = match admitted.await {
         Ok(accepted) => accepted,
         Err(reason) => {
             tracing::info!(%peer, reason = reason.name(), "MQTT CONNECT refused");
@@ -221,6 +233,11 @@ pub(super) async fn serve<S: ClientStream>(
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
     link.close(disconnected).await;
+    if session.lifetime != lifetime && session.lifetime != Lifetime::Connection {
+        // A DISCONNECT changed the expiry: the queues follow, now that
+        // the link has declared every one of them.
+        session.follow_expiry(&core);
+    }
     if let Some(will) = will {
         wills::publish_after(
             &shared,
@@ -232,6 +249,8 @@ pub(super) async fn serve<S: ClientStream>(
         .await;
     }
     if session.lifetime != Lifetime::Connection {
+        let expiry = session.lifetime.expiry_seconds();
+        (shared.shares).ended(&session.vhost, &session.client_id, expiry);
         let stored = session
             .exactly_once
             .iter()
@@ -242,6 +261,7 @@ pub(super) async fn serve<S: ClientStream>(
             .keep(&session.vhost, &session.client_id, stored.collect());
     } else {
         shared.releases.forget(&session.vhost, &session.client_id);
+        shared.shares.forget(&session.vhost, &session.client_id);
     }
     drop(claim);
 }
@@ -329,11 +349,29 @@ impl Lifetime {
                 Lifetime::Forever
             };
         }
-        match connect.properties.session_expiry_interval {
-            None | Some(0) => Lifetime::Connection,
-            Some(u32::MAX) => Lifetime::Forever,
-            Some(seconds) => Lifetime::Seconds(seconds),
+        Lifetime::of_interval(connect.properties.session_expiry_interval.unwrap_or(0))
+    }
+
+    /// A 5.0 Session Expiry Interval's.
+    fn of_interval(seconds: u32) -> Lifetime {
+        match seconds {
+            0 => Lifetime::Connection,
+            u32::MAX => Lifetime::Forever,
+            seconds => Lifetime::Seconds(seconds),
         }
+    }
+
+    /// A persistent session's expiry interval in seconds (`None`: never).
+    fn expiry_seconds(self) -> Option<u32> {
+        match self {
+            Lifetime::Seconds(seconds) => Some(seconds),
+            Lifetime::Connection | Lifetime::Forever => None,
+        }
+    }
+
+    /// The `x-expires` of a persistent session's queues.
+    fn queue_expires(self) -> Option<u64> {
+        expiry::queue_expires(self.expiry_seconds())
     }
 }
 
@@ -341,7 +379,7 @@ impl Lifetime {
 /// identifier; the CONNACK reason to refuse with otherwise.
 async fn admit(
     core: &Arc<Core>,
-    (connect, origin): (&Connect, &Origin),
+    (connect, origin, traffic): (&Connect, &Origin, Arc<ConnectionTraffic>),
     slot: Slot,
     deadline: Instant,
     shared: &Shared,
@@ -378,7 +416,10 @@ async fn admit(
         ),
         (None, Some(name), _) => (name, None),
         (None, None, Some((name, password))) => (name.as_str(), Some(password.as_bytes())),
-        (None, None, None) => return Err(ReasonCode::NotAuthorized),
+        (None, None, None) => {
+            core.stats.login(AuthProtocol::Mqtt, false);
+            return Err(ReasonCode::NotAuthorized);
+        }
     };
     let client = vhosts::Client {
         port: origin.port,
@@ -403,20 +444,30 @@ async fn admit(
             ProtocolVersion::V3_1_1 => "MQTT 3.1.1",
             ProtocolVersion::V5 => "MQTT 5.0",
         },
+        traffic,
     };
     let peer = origin.peer.clone();
-    let link = Link::open(Arc::clone(core), slot, peer, login, deadline)
-        .await
-        .map_err(|refusal| match refusal {
-            Refusal::BadCredentials => ReasonCode::BadUserNameOrPassword,
-            Refusal::NotAuthorized => {
-                tracing::warn!(peer = %origin.peer, %user, %vhost,
+    let opened = Link::open(Arc::clone(core), slot, peer, login, deadline).await;
+    // RabbitMQ 3.10's `auth_attempts` with protocol `mqtt`: a login passes
+    // once the vhost has let it in; a broker shutting down or a handshake
+    // timeout is no attempt.
+    match &opened {
+        Ok(_) => core.stats.login(AuthProtocol::Mqtt, true),
+        Err(Refusal::BadCredentials | Refusal::NotAuthorized) => {
+            core.stats.login(AuthProtocol::Mqtt, false)
+        }
+        Err(Refusal::Unavailable) => {}
+    }
+    let link = opened.map_err(|refusal| match refusal {
+        Refusal::BadCredentials => ReasonCode::BadUserNameOrPassword,
+        Refusal::NotAuthorized => {
+            tracing::warn!(peer = %origin.peer, %user, %vhost,
                     "MQTT login refused: no such vhost, no access to it or a connection limit \
                      (vhost picked using {})", source.describe());
-                ReasonCode::NotAuthorized
-            }
-            Refusal::Unavailable => ReasonCode::ServerUnavailable,
-        })?;
+            ReasonCode::NotAuthorized
+        }
+        Refusal::Unavailable => ReasonCode::ServerUnavailable,
+    })?;
     let claim = shared.ids.claim(&vhost, &client_id).await;
     Ok(Accepted {
         link,
@@ -623,6 +674,10 @@ impl Session {
             }
             self.consume(name, qos);
         }
+        if present && self.lifetime != Lifetime::Connection {
+            // The resuming CONNECT's expiry is the session's now.
+            self.follow_expiry(core);
+        }
         // A will the previous connection left waiting for its delay.
         self.shared
             .wills
@@ -638,7 +693,35 @@ impl Session {
         for id in released {
             self.exactly_once.insert(id, Received::Stored);
         }
-        present
+        present | self.rejoin_shared(clean_start)
+    }
+
+    /// Joins again the shared subscriptions the session held (`shares`),
+    /// unless it starts clean (then they are forgotten); whether it held
+    /// any. Their permissions are checked again and the subscription cap
+    /// applies; one refused now is dropped.
+    fn rejoin_shared(&mut self, clean_start: bool) -> bool {
+        let shares = &self.shared.shares;
+        if clean_start {
+            shares.forget(&self.vhost, &self.client_id);
+            return false;
+        }
+        let held = shares.resume(&self.vhost, &self.client_id);
+        for (filter, options) in &held {
+            let parsed = MqttString::try_from(filter.as_str())
+                .ok()
+                .and_then(|f| leveret_mqtt::TopicFilter::new(f).ok());
+            let Some(shared) = parsed.as_ref().and_then(|f| f.shared()) else {
+                continue;
+            };
+            let (group, inner) = (shared.group.to_owned(), shared.filter.to_owned());
+            let full = self.subscriptions.len() >= MAX_SUBSCRIPTIONS;
+            if full || (self.subscribe_shared(filter, &group, &inner, *options)).is_err() {
+                let shares = &self.shared.shares;
+                shares.remove(&self.vhost, &self.client_id, filter);
+            }
+        }
+        !held.is_empty()
     }
 
     fn connack(&mut self, assigned: bool, session_present: bool) {
@@ -956,8 +1039,8 @@ impl Session {
     /// A 5.0 DISCONNECT's Session Expiry Interval: 0 ends a persistent
     /// session with the connection (its queues are deleted); a session
     /// that had 0 in its CONNECT may not be given one (MQTT-3.14.2-2:
-    /// 0x82). Another change to a persistent session's expiry is not
-    /// applied: its queues' `x-expires` is fixed when they are declared.
+    /// 0x82); another is the persistent session's expiry from now on
+    /// (its queues follow once the link is closed: `serve`).
     fn expiry_at_disconnect(&mut self, expiry: Option<u32>) -> Result<(), Stop> {
         match expiry {
             Some(0) if self.lifetime != Lifetime::Connection => {
@@ -973,7 +1056,11 @@ impl Session {
                 "session expiry set by DISCONNECT after none in CONNECT",
                 Some(ReasonCode::ProtocolError),
             )),
-            _ => Ok(()),
+            Some(seconds) => {
+                self.lifetime = Lifetime::of_interval(seconds);
+                Ok(())
+            }
+            None => Ok(()),
         }
     }
 
@@ -1173,6 +1260,11 @@ impl Session {
         let key = mapping::binding_key(inner).ok_or(ReasonCode::TopicFilterInvalid)?;
         self.may_subscribe(filter, &queue, true, &key)?;
         let old = self.subscriptions.shared(filter).cloned();
+        if self.lifetime != Lifetime::Connection {
+            let shares = &self.shared.shares;
+            let session = (self.vhost.as_str(), self.client_id.as_str());
+            shares.keep(session, filter, options, self.lifetime.expiry_seconds());
+        }
         if let Some(old) = old.as_ref().filter(|old| old.options.qos == options.qos) {
             let kept = SharedSubscription {
                 options,
@@ -1341,6 +1433,18 @@ impl Session {
         }
     }
 
+    /// Gives the session's queues its expiry (see `expiry`).
+    fn follow_expiry(&self, core: &Core) {
+        let names = [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce]
+            .into_iter()
+            .filter_map(|qos| mapping::queue_name(&self.client_id, qos));
+        let expires = self.lifetime.queue_expires();
+        let changed = expiry::follow(core, &self.vhost, names, expires);
+        if changed > 0 {
+            tracing::debug!(client_id = %self.client_id, ?expires, changed, "MQTT session's queues given its new expiry");
+        }
+    }
+
     /// Declares and consumes the session's queue for `qos` the first time
     /// a subscription needs it: exclusive if the session goes with the
     /// connection, else durable (with `x-expires` for a session expiry).
@@ -1349,10 +1453,10 @@ impl Session {
             return;
         }
         let mut arguments = FieldTable::new();
-        if let Lifetime::Seconds(seconds) = self.lifetime {
+        if let Some(ms) = self.lifetime.queue_expires() {
             arguments.insert(
                 ShortStr::from_static("x-expires"),
-                FieldValue::I64(i64::from(seconds) * 1000),
+                FieldValue::I64(i64::try_from(ms).unwrap_or(i64::MAX)),
             );
         }
         let durable = self.lifetime != Lifetime::Connection;
@@ -1446,6 +1550,7 @@ impl Session {
         for filter in &unsubscribe.filters {
             let filter = filter.as_str();
             if let Some(shared) = self.subscriptions.remove_shared(filter) {
+                (self.shared.shares).remove(&self.vhost, &self.client_id, filter);
                 self.cancel(shared.consumer_tag);
                 reasons.push(ReasonCode::Success);
                 continue;

@@ -173,6 +173,12 @@ struct QueueState {
     effective: QueueArgs,
     /// The policies that apply.
     applied: Applied,
+    /// The queue's own `x-expires` (ms): as declared, or as set since
+    /// ([`Queue::set_expires`]).
+    own_expires: Option<u64>,
+    /// The arguments as they stand once [`Queue::set_expires`] has
+    /// changed them (`None`: as declared, `QueueOptions::arguments`).
+    changed_arguments: Option<FieldTable>,
 }
 
 /// Declared properties of a queue.
@@ -236,6 +242,7 @@ impl Queue {
         // No policies until the vhost gives it some (`apply_policies`).
         let effective = args.clone();
         let single_active = args.single_active_consumer;
+        let own_expires = args.expires;
         let (position_name, next_seq) = match &durable_store {
             Some((persistence, id)) => (format!("d{id}"), persistence.seq_floor()),
             None => (transient_position_name(), 0),
@@ -259,6 +266,7 @@ impl Queue {
                 last_used: Some(Instant::now()),
                 next_seq,
                 consumers: Consumers::new(single_active),
+                own_expires,
                 effective,
                 ..QueueState::default()
             }),

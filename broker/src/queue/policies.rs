@@ -8,8 +8,9 @@
 //! fixed when it arrives, in RabbitMQ too).
 
 use super::{DeadLetters, Queue, DEAD_LETTERS_PER_STEP};
-use crate::policy::{Applied, ObjectKind};
+use crate::policy::{stricter, Applied, ObjectKind};
 use crate::slice::Progress;
+use leveret_protocol::FieldTable;
 
 impl Queue {
     /// Makes `applied` the queue's policies; the first messages a lower
@@ -29,7 +30,8 @@ impl Queue {
             st.applied = applied;
             return (DeadLetters::default(), Progress::Done);
         }
-        let effective = self.args.with_policies(&self.options.arguments, &applied);
+        let mut effective = self.args.with_policies(&self.options.arguments, &applied);
+        effective.expires = stricter(applied.expires(), st.own_expires);
         *self
             .dead_lettering
             .write()
@@ -66,5 +68,63 @@ impl Queue {
     /// The policies that apply to the queue.
     pub fn policies(&self) -> Applied {
         self.lock().applied.clone()
+    }
+
+    /// The queue's arguments as they stand: as declared, or with the
+    /// `x-expires` set since ([`Queue::set_expires`]).
+    pub fn arguments(&self) -> FieldTable {
+        match &self.lock().changed_arguments {
+            Some(changed) => changed.clone(),
+            None => self.options.arguments.clone(),
+        }
+    }
+
+    /// Gives the queue its own expiry `expires` (`x-expires` in ms; `None`
+    /// for none) in place of the declared one, as if it had been declared
+    /// so: acted on at once (the stricter of it and a policy's), listed in
+    /// its arguments, and for a durable queue stored (its record
+    /// rewritten), so a restart keeps it. The idle time already counted
+    /// stays. The MQTT front end's: a session's expiry changes with a
+    /// DISCONNECT or a later CONNECT. False for a stream (no expiry) or a
+    /// deleted queue; the caller makes sure a deletion is not under way
+    /// (`Vhost::set_queue_expires`).
+    #[cfg(feature = "mqtt")]
+    pub fn set_expires(&self, expires: Option<u64>) -> bool {
+        use crate::store::{QueueRecord, StoreOp};
+        use leveret_protocol::{FieldValue, ShortStr};
+        if self.stream.is_some() {
+            return false;
+        }
+        let mut st = self.lock();
+        if st.deleted {
+            return false;
+        }
+        let mut arguments = match st.changed_arguments.take() {
+            Some(changed) => changed,
+            None => self.options.arguments.clone(),
+        };
+        match expires {
+            Some(ms) => {
+                let ms = i64::try_from(ms).unwrap_or(i64::MAX);
+                arguments.insert(ShortStr::from_static("x-expires"), FieldValue::I64(ms));
+            }
+            None => {
+                arguments.remove("x-expires");
+            }
+        }
+        st.own_expires = expires;
+        st.effective.expires = stricter(st.applied.expires(), expires);
+        if let Some((persistence, id)) = &self.durable_store {
+            // Under the queue's lock: two changes reach the store in order.
+            persistence.submit(vec![StoreOp::PutQueue(QueueRecord {
+                vhost: self.vhost.clone(),
+                name: self.name.clone(),
+                id: *id,
+                auto_delete: self.options.auto_delete,
+                arguments: arguments.clone(),
+            })]);
+        }
+        st.changed_arguments = Some(arguments);
+        true
     }
 }

@@ -212,6 +212,16 @@ fn meta_key(key: &MetaKey) -> Vec<u8> {
             put_long(&mut buf, client_id.as_bytes());
             buf.put_u16(*packet_id);
         }
+        MetaKey::SharedSubscription {
+            vhost,
+            client_id,
+            filter,
+        } => {
+            buf.put_u8(b's');
+            put_long(&mut buf, vhost.as_bytes());
+            put_long(&mut buf, client_id.as_bytes());
+            put_long(&mut buf, filter.as_bytes());
+        }
     }
     buf.to_vec()
 }
@@ -264,6 +274,18 @@ fn meta_value(record: &MetaRecord) -> Vec<u8> {
             }
         }
         MetaRecord::Unreleased { .. } => {}
+        MetaRecord::SharedSubscription {
+            qos,
+            retain_as_published,
+            subscription_id,
+            session_expiry,
+            ..
+        } => {
+            buf.put_u8(*qos);
+            buf.put_u8(u8::from(*retain_as_published));
+            buf.put_u32(*subscription_id);
+            buf.put_u32(*session_expiry);
+        }
     }
     buf.to_vec()
 }
@@ -345,6 +367,33 @@ fn decode_meta(key: &[u8], value: &mut Bytes) -> Result<MetaRecord, StoreError> 
             packet_id: match (names.len() >= 2).then(|| names.get_u16()) {
                 Some(id) if id != 0 => id,
                 _ => return Err(corrupt("MQTT packet identifier")),
+            },
+        },
+        b's' => MetaRecord::SharedSubscription {
+            vhost: take_text(&mut names, "vhost name")?,
+            client_id: take_text(&mut names, "MQTT client identifier")?,
+            filter: take_text(&mut names, "shared subscription filter")?,
+            qos: match value.first() {
+                Some(&qos) if qos <= 2 => {
+                    value.advance(1);
+                    qos
+                }
+                _ => return Err(corrupt("shared subscription QoS")),
+            },
+            retain_as_published: match value.first() {
+                Some(&flag) if flag <= 1 => {
+                    value.advance(1);
+                    flag == 1
+                }
+                _ => return Err(corrupt("shared subscription option")),
+            },
+            subscription_id: match (value.len() >= 4).then(|| value.get_u32()) {
+                Some(id) => id,
+                None => return Err(corrupt("shared subscription identifier")),
+            },
+            session_expiry: match (value.len() >= 4).then(|| value.get_u32()) {
+                Some(seconds) => seconds,
+                None => return Err(corrupt("shared subscription's session expiry")),
             },
         },
         _ => return Err(corrupt("metadata kind")),
@@ -830,6 +879,15 @@ mod tests {
                 vhost: "/".into(),
                 client_id: "sensor\0-1".into(),
                 packet_id: 65_535,
+            },
+            MetaRecord::SharedSubscription {
+                vhost: "/".into(),
+                client_id: "sensor-1".into(),
+                filter: "$share/g/cell/+".into(),
+                qos: 2,
+                retain_as_published: true,
+                subscription_id: 268_435_455,
+                session_expiry: u32::MAX,
             },
         ];
         let mut ops: Vec<_> = records

@@ -326,6 +326,24 @@ pub enum MetaRecord {
         /// The publish's packet identifier (not 0).
         packet_id: u16,
     },
+    /// A shared subscription a persistent MQTT session holds (the `mqtt`
+    /// front end's).
+    SharedSubscription {
+        /// Vhost.
+        vhost: String,
+        /// The MQTT client identifier.
+        client_id: String,
+        /// The filter, `$share/GROUP/FILTER`.
+        filter: String,
+        /// The QoS granted (0, 1 or 2).
+        qos: u8,
+        /// Its Retain As Published option.
+        retain_as_published: bool,
+        /// Its Subscription Identifier (0: none).
+        subscription_id: u32,
+        /// The session's expiry interval, seconds (`u32::MAX`: never).
+        session_expiry: u32,
+    },
 }
 
 /// What identifies an [`MetaRecord`] (for deleting one).
@@ -377,6 +395,16 @@ pub enum MetaKey {
         /// The packet identifier.
         packet_id: u16,
     },
+    /// A (vhost, client identifier, filter) shared subscription of a
+    /// persistent MQTT session.
+    SharedSubscription {
+        /// Vhost.
+        vhost: String,
+        /// The MQTT client identifier.
+        client_id: String,
+        /// The filter, `$share/GROUP/FILTER`.
+        filter: String,
+    },
 }
 
 impl MetaRecord {
@@ -421,6 +449,16 @@ impl MetaRecord {
                 vhost: vhost.clone(),
                 client_id: client_id.clone(),
                 packet_id: *packet_id,
+            },
+            MetaRecord::SharedSubscription {
+                vhost,
+                client_id,
+                filter,
+                ..
+            } => MetaKey::SharedSubscription {
+                vhost: vhost.clone(),
+                client_id: client_id.clone(),
+                filter: filter.clone(),
             },
         }
     }

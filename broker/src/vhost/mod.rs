@@ -397,7 +397,7 @@ impl Vhost {
                 } else {
                     arguments::first_inequivalent(
                         arguments::Scope::Queue,
-                        &o.arguments,
+                        &existing.arguments(),
                         &d.arguments,
                         &resource,
                     )
@@ -672,6 +672,18 @@ impl Vhost {
         }
         self.unbind_in_steps(destination);
         queue.delete()
+    }
+
+    /// Gives `queue`, if it is still this vhost's, its own expiry
+    /// ([`Queue::set_expires`]); false if it is gone. Under the queues'
+    /// lock, so that its record reaches the store before a deletion's.
+    #[cfg(feature = "mqtt")]
+    pub fn set_queue_expires(&self, queue: &Arc<Queue>, expires: Option<u64>) -> bool {
+        let queues = read(&self.queues);
+        match queues.get(queue.name.as_bytes()) {
+            Some(current) if Arc::ptr_eq(current, queue) => queue.set_expires(expires),
+            _ => false,
+        }
     }
 
     /// The binding keys and arguments of `queue`'s bindings from the

@@ -286,6 +286,35 @@ fn an_unused_queue_expires() {
     assert!(h.vhost.queue(&s("temp")).is_none());
 }
 
+/// An expiry set after the declaration (an MQTT session's, changed at
+/// DISCONNECT) is acted on, listed and compared on redeclaration in place
+/// of the declared one; a policy's stricter expiry still wins.
+#[cfg(feature = "mqtt")]
+#[test]
+fn an_expiry_set_later_replaces_the_declared_one() {
+    let h = Harness::new();
+    let q = h.queue("session", &[("x-expires", FieldValue::I64(1_000))]);
+    assert!(h.vhost.set_queue_expires(&q, Some(3_600_000)));
+    assert_eq!(
+        q.arguments().get("x-expires"),
+        Some(&FieldValue::I64(3_600_000))
+    );
+    h.sweep_at(Instant::now() + Duration::from_secs(2));
+    assert!(
+        h.vhost.queue(&s("session")).is_some(),
+        "the new expiry is an hour"
+    );
+    assert!(h.vhost.set_queue_expires(&q, None));
+    assert!(q.arguments().get("x-expires").is_none());
+    h.sweep_at(Instant::now() + Duration::from_secs(7_200));
+    assert!(h.vhost.queue(&s("session")).is_some(), "no expiry at all");
+    assert!(h.vhost.set_queue_expires(&q, Some(1_000)));
+    h.sweep_at(Instant::now() + Duration::from_secs(2));
+    assert!(h.vhost.queue(&s("session")).is_none());
+    // A deleted queue is not given one.
+    assert!(!h.vhost.set_queue_expires(&q, Some(5_000)));
+}
+
 #[test]
 fn higher_priorities_are_delivered_first() {
     let h = Harness::new();

@@ -4,7 +4,10 @@
 //! receiver of returned messages and the outstanding publisher confirms.
 //! [`ChannelCore`] sends on behalf of a channel, each item through a
 //! [`OutboxSlot`] of room reserved in the connection's outbox (waited for, or
-//! taken only if there is room now); [`ChannelShared`] is what the reader
+//! taken only if there is room now; in process, a publish is handed to the
+//! broker's connection loop and handled on the sending thread when that
+//! loop is free and nothing sent before waits, see
+//! `leveret_broker::DirectLoop`); [`ChannelShared`] is what the reader
 //! drives.
 
 use crate::confirm::{Confirms, PublishConfirm};
@@ -460,12 +463,25 @@ impl OutboxSlot<'_> {
             Some(confirms) => confirms.register(),
             None => PublishConfirm::not_requested(),
         };
-        self.permit.send(Outgoing::Publish {
+        let item = Outgoing::Publish {
             channel: core.chan.id,
             method,
             properties: Box::new(properties),
             body,
-        });
+        };
+        // In process, the broker's connection handles the publish on this
+        // thread when its loop is free (after the channel's lock is let
+        // go: an inline delivery to this connection takes it).
+        #[cfg(feature = "embedded")]
+        if let Some(mut claim) = core.conn.here.as_ref().and_then(|here| here.claim()) {
+            if claim.hand_or_send(item, self.permit) {
+                drop(state);
+                claim.run();
+                (core.conn.inline_publishes).fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+            return Ok(confirm);
+        }
+        self.permit.send(item);
         Ok(confirm)
     }
 }

@@ -83,6 +83,9 @@ pub(crate) struct Outbox {
     pub tx: mpsc::Sender<Outgoing>,
     /// The writer task, where one drains the outbox.
     pub writer: Option<Writer>,
+    /// An in-process connection's loop (see `Shared::here`).
+    #[cfg(feature = "embedded")]
+    pub here: Option<leveret_broker::DirectLoop>,
 }
 
 /// A running writer task.
@@ -220,6 +223,8 @@ impl<W: AsyncWrite + Unpin + Send + 'static> FrameOutput for ByteOutput<W> {
         Outbox {
             tx,
             writer: Some(Writer { task, failed }),
+            #[cfg(feature = "embedded")]
+            here: None,
         }
     }
 }
@@ -230,7 +235,7 @@ pub(crate) use direct::{DirectInput, DirectOutput};
 #[cfg(feature = "embedded")]
 mod direct {
     use super::{FrameInput, FrameOutput, Outbox, Outgoing, WholeContent};
-    use leveret_broker::{DirectReplies, DirectReply};
+    use leveret_broker::{DirectLoop, DirectReplies, DirectReply};
     use leveret_protocol::{DecodeError, Frame, Method};
     use std::time::Duration;
     use tokio::sync::mpsc;
@@ -301,13 +306,15 @@ mod direct {
     /// then every channel's, through the same bounded sender.
     pub(crate) struct DirectOutput {
         to_broker: mpsc::Sender<Outgoing>,
+        here: DirectLoop,
         batch: Vec<Method>,
     }
 
     impl DirectOutput {
-        pub(crate) fn new(to_broker: mpsc::Sender<Outgoing>) -> Self {
+        pub(crate) fn new(to_broker: mpsc::Sender<Outgoing>, here: DirectLoop) -> Self {
             DirectOutput {
                 to_broker,
+                here,
                 batch: Vec::new(),
             }
         }
@@ -340,6 +347,7 @@ mod direct {
             Outbox {
                 tx: self.to_broker,
                 writer: None,
+                here: Some(self.here),
             }
         }
     }

@@ -87,6 +87,12 @@ pub(crate) struct Shared {
     /// Deliveries taken on the broker's dispatching thread (in-process
     /// only; see `inline`).
     pub(crate) inline_deliveries: std::sync::atomic::AtomicU64,
+    /// Publishes handled on the publishing thread (in-process only).
+    pub(crate) inline_publishes: std::sync::atomic::AtomicU64,
+    /// An in-process connection's loop, which a publish runs on its own
+    /// thread when it is free (`leveret_broker::DirectLoop`).
+    #[cfg(feature = "embedded")]
+    pub(crate) here: Option<leveret_broker::DirectLoop>,
 }
 
 impl Shared {
@@ -291,7 +297,7 @@ impl Connection {
     ) -> Result<Connection> {
         let link = broker.connect_direct();
         let input = frames::DirectInput::new(link.from_broker);
-        let output = frames::DirectOutput::new(link.to_broker);
+        let output = frames::DirectOutput::new(link.to_broker, link.here);
         let establish = establish_frames(input, output, &options);
         match tokio::time::timeout(options.connection_timeout, establish).await {
             Ok(result) => result,
@@ -371,6 +377,17 @@ impl Connection {
         self.inner
             .shared
             .inline_deliveries
+            .load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// How many of an in-process connection's publishes the broker's
+    /// connection handled on the publishing thread, with no task in
+    /// between (the in-process fast path; the others went through the
+    /// link to the connection's task). Always 0 over TCP.
+    pub fn inline_publishes(&self) -> u64 {
+        self.inner
+            .shared
+            .inline_publishes
             .load(std::sync::atomic::Ordering::Relaxed)
     }
 }
@@ -603,6 +620,9 @@ async fn establish_frames<I: FrameInput, O: FrameOutput>(
         tuning,
         server_properties,
         inline_deliveries: std::sync::atomic::AtomicU64::new(0),
+        inline_publishes: std::sync::atomic::AtomicU64::new(0),
+        #[cfg(feature = "embedded")]
+        here: outbox.here,
     });
     input.attach(&shared);
     tokio::spawn(reader::run(

@@ -18,8 +18,11 @@
 //! measured too (`try_put` for Leveret).
 //!
 //! ```text
-//! cargo run --release -- [back-to-back count] [1 kHz count] [rounds]
+//! cargo run --release -- [back-to-back count] [1 kHz count] [rounds] [ports]
 //! ```
+//!
+//! With `ports` as the fourth argument only Leveret's rows run (for a
+//! profile of the ports alone).
 
 use leveret_broker::Broker;
 use leveret_ports::{Connector, InPort, OutPort, PortProfile, PortStatus};
@@ -243,6 +246,9 @@ struct PortRx(InPort<Vec<u8>>);
 /// When each value reached the in-port's intake (its `on_receive`
 /// callbacks, before the buffer), as latency from the sender's stamp: the
 /// part of the path before the hand-over to the application's thread.
+/// Only for the pair that registers a callback: an in-port with one takes
+/// its deliveries on the connection's reader task, not inline on the
+/// broker's dispatching thread, so it is a row of its own.
 type Intake = Arc<std::sync::Mutex<Vec<u64>>>;
 
 impl Sender for PortTx {
@@ -264,6 +270,7 @@ fn ports_pair(
     connector: &Connector,
     queue: &str,
     busy_poll: Option<Duration>,
+    timed_intake: bool,
 ) -> (PortTx, PortRx, Intake) {
     let mut profile = PortProfile::default().queue(queue).routing_key(queue);
     profile.busy_poll = busy_poll;
@@ -272,14 +279,16 @@ fn ports_pair(
         let input = InPort::<Vec<u8>>::connect_with(connector.clone(), profile.clone())
             .await
             .expect("in-port");
-        let times = intake.clone();
-        input.on_receive(move |sample| {
-            let at = now_ns();
-            times
-                .lock()
-                .expect("intake")
-                .push(at.saturating_sub(sent_at(&sample.value)));
-        });
+        if timed_intake {
+            let times = intake.clone();
+            input.on_receive(move |sample| {
+                let at = now_ns();
+                times
+                    .lock()
+                    .expect("intake")
+                    .push(at.saturating_sub(sent_at(&sample.value)));
+            });
+        }
         let output = OutPort::<Vec<u8>>::connect_with(connector.clone(), profile)
             .await
             .expect("out-port");
@@ -292,6 +301,7 @@ fn main() {
     let back_to_back: u64 = args.next().map_or(20_000, |a| a.parse().expect("count"));
     let paced: u64 = args.next().map_or(3_000, |a| a.parse().expect("count"));
     let rounds: u32 = args.next().map_or(1, |a| a.parse().expect("rounds"));
+    let ports_only = args.next().is_some_and(|a| a == "ports");
     origin();
 
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -318,15 +328,17 @@ fn main() {
         ] {
             let mode = || paced_at.map_or(Mode::BackToBack, Mode::Paced);
             let queue = format!("latency-{round}-{mode_name}");
-            let (tx, rx, _) = ports_pair(&runtime, &connector, &queue, None);
+            let (tx, rx, _) = ports_pair(&runtime, &connector, &queue, None, false);
             // A warm-up pair, then the measured ones.
             run(tx, rx, 1000, Mode::BackToBack);
-            for (transport, busy_poll) in [
-                ("leveret ports", None),
-                ("leveret busy-poll 2ms", Some(Duration::from_millis(2))),
+            for (transport, busy_poll, timed_intake) in [
+                ("leveret ports", None, false),
+                ("leveret busy-poll 2ms", Some(Duration::from_millis(2)), false),
+                ("leveret + on_receive", None, true),
             ] {
-                let name = format!("{queue}-{}", busy_poll.is_some());
-                let (tx, rx, intake) = ports_pair(&runtime, &connector, &name, busy_poll);
+                let name = format!("{queue}-{}-{timed_intake}", busy_poll.is_some());
+                let (tx, rx, intake) =
+                    ports_pair(&runtime, &connector, &name, busy_poll, timed_intake);
                 let results = run(tx, rx, count, mode());
                 let refused = results.refused;
                 Row {
@@ -336,22 +348,27 @@ fn main() {
                     results,
                 }
                 .print();
-                let intake = std::mem::take(&mut *intake.lock().expect("intake"));
-                let results = Results {
-                    latencies_ns: intake,
-                    send_ns: Vec::new(),
-                    refused: 0,
-                };
-                Row {
-                    transport: "  └ put→intake",
-                    mode: mode_name,
-                    count,
-                    results,
+                if timed_intake {
+                    let intake = std::mem::take(&mut *intake.lock().expect("intake"));
+                    let results = Results {
+                        latencies_ns: intake,
+                        send_ns: Vec::new(),
+                        refused: 0,
+                    };
+                    Row {
+                        transport: "  └ put→on_receive",
+                        mode: mode_name,
+                        count,
+                        results,
+                    }
+                    .print();
                 }
-                .print();
                 if refused > 0 {
                     println!("  ({transport}: {refused} try_put refused)");
                 }
+            }
+            if ports_only {
+                continue;
             }
 
             let key: &'static str = Box::leak(format!("latency/{round}/{count}").into_boxed_str());

@@ -88,6 +88,8 @@ pub struct Record {
     pub offset: u64,
     /// When it was appended, ms since the epoch.
     pub timestamp_ms: i64,
+    /// Its flags: [`CHUNK_START`] and the appender's own (kept as given).
+    pub flags: u8,
     /// The payload as appended (shared, not copied, by every reader it is
     /// handed to).
     pub payload: bytes::Bytes,
@@ -628,13 +630,16 @@ impl StreamLog {
         self.segments.len()
     }
 
-    /// Appends one record; returns its offset and whether a new segment
-    /// was started (its file and the directory then need syncing too).
+    /// Appends one record with `flags` ([`CHUNK_START`] if it starts a
+    /// chunk, and bits of the appender's own, kept and read back as given);
+    /// returns its offset and whether a new segment was started (its file
+    /// and the directory then need syncing too; the record then starts a
+    /// chunk).
     pub fn append(
         &mut self,
         payload: &[u8],
         timestamp_ms: i64,
-        chunk_start: bool,
+        flags: u8,
     ) -> io::Result<(u64, bool)> {
         let size = (RECORD_HEADER + payload.len()) as u64;
         let mut rolled = false;
@@ -647,7 +652,8 @@ impl StreamLog {
             self.start_segment(first)?;
             rolled = true;
         }
-        let chunk_start = chunk_start || rolled;
+        let flags = if rolled { flags | CHUNK_START } else { flags };
+        let chunk_start = flags & CHUNK_START != 0;
         let head = self.segments.last_mut().expect("a segment");
         let offset = head.next;
         let mut record = Vec::with_capacity(size as usize);
@@ -655,7 +661,7 @@ impl StreamLog {
         record.extend_from_slice(&[0; 4]);
         record.extend_from_slice(&offset.to_le_bytes());
         record.extend_from_slice(&timestamp_ms.to_le_bytes());
-        record.push(if chunk_start { CHUNK_START } else { 0 });
+        record.push(flags);
         record.extend_from_slice(payload);
         let crc = checksum(&record[8..]);
         record[4..8].copy_from_slice(&crc.to_le_bytes());
@@ -776,6 +782,12 @@ impl ReadPlan {
     /// cursor past them. Offsets before the oldest segment (removed by
     /// retention meanwhile) are skipped. Stops at a record that does not
     /// check (damage after opening): reported, never served.
+    ///
+    /// One positioned read a record: each read takes the record and the
+    /// next one's header, so only a segment's first record (or the first
+    /// after a cursor) costs a read of its header alone. A record's
+    /// payload is a slice of the buffer it was read into (its header and
+    /// the next one's, 50 bytes, ride along).
     pub fn read(&self, cursor: &mut Cursor, max_records: usize, max_bytes: usize) -> Vec<Record> {
         let mut out = Vec::new();
         let mut bytes = 0;
@@ -790,31 +802,31 @@ impl ReadPlan {
                 Some((segment, pos)) if segment == *first => pos,
                 _ => SEGMENT_HEADER,
             };
-            let mut header = [0u8; RECORD_HEADER];
+            // The header at `pos`, when the previous read brought it.
+            let mut carried: Option<[u8; RECORD_HEADER]> = None;
             while cursor.offset < *next
                 && out.len() < max_records
                 && (bytes < max_bytes || out.is_empty())
             {
-                if file.read_exact_at(&mut header, pos).is_err() {
-                    tracing::error!(position = pos, "stream segment shorter than its index says");
-                    return out;
-                }
+                let header = match carried.take() {
+                    Some(header) => header,
+                    None => {
+                        let mut header = [0u8; RECORD_HEADER];
+                        if file.read_exact_at(&mut header, pos).is_err() {
+                            tracing::error!(
+                                position = pos,
+                                "stream segment shorter than its index says"
+                            );
+                            return out;
+                        }
+                        header
+                    }
+                };
                 let len = u32::from_le_bytes(header[..4].try_into().expect("4")) as usize;
                 let offset = u64::from_le_bytes(header[8..16].try_into().expect("8"));
                 let timestamp_ms = i64::from_le_bytes(header[16..24].try_into().expect("8"));
-                if offset < cursor.offset {
-                    pos += (RECORD_HEADER + len) as u64;
-                    continue;
-                }
-                if cursor.not_before.is_some_and(|t| timestamp_ms < t) && offset == cursor.offset {
-                    // Before the time asked for: passed over.
-                    pos += (RECORD_HEADER + len) as u64;
-                    cursor.offset += 1;
-                    cursor.at = Some((*first, pos));
-                    continue;
-                }
-                cursor.not_before = None;
-                if pos + (RECORD_HEADER + len) as u64 > *length {
+                let end = pos + (RECORD_HEADER + len) as u64;
+                if end > *length {
                     tracing::error!(
                         position = pos,
                         offset,
@@ -822,23 +834,43 @@ impl ReadPlan {
                     );
                     return out;
                 }
-                let mut record = vec![0u8; RECORD_HEADER + len];
-                if file.read_exact_at(&mut record, pos).is_err() {
+                if offset < cursor.offset {
+                    pos = end;
+                    continue;
+                }
+                if cursor.not_before.is_some_and(|t| timestamp_ms < t) && offset == cursor.offset {
+                    // Before the time asked for: passed over.
+                    pos = end;
+                    cursor.offset += 1;
+                    cursor.at = Some((*first, pos));
+                    continue;
+                }
+                cursor.not_before = None;
+                let next_header = (*length - end).min(RECORD_HEADER as u64) as usize;
+                let mut buf = vec![0u8; RECORD_HEADER + len + next_header];
+                if file.read_exact_at(&mut buf, pos).is_err() {
                     tracing::error!(position = pos, "stream record unreadable");
                     return out;
                 }
-                let crc = u32::from_le_bytes(record[4..8].try_into().expect("4"));
-                if checksum(&record[8..]) != crc || offset != cursor.offset {
+                let crc = u32::from_le_bytes(buf[4..8].try_into().expect("4"));
+                if buf[..RECORD_HEADER] != header
+                    || checksum(&buf[8..RECORD_HEADER + len]) != crc
+                    || offset != cursor.offset
+                {
                     tracing::error!(position = pos, offset, "stream record damaged: not served");
                     return out;
                 }
-                record.drain(..RECORD_HEADER);
+                let flags = buf[24];
+                if next_header == RECORD_HEADER {
+                    carried = Some(buf[RECORD_HEADER + len..].try_into().expect("25"));
+                }
                 bytes += len;
-                pos += (RECORD_HEADER + len) as u64;
+                pos = end;
                 out.push(Record {
                     offset,
                     timestamp_ms,
-                    payload: record.into(),
+                    flags,
+                    payload: bytes::Bytes::from(buf).slice(RECORD_HEADER..RECORD_HEADER + len),
                 });
                 cursor.offset += 1;
                 cursor.at = Some((*first, pos));
@@ -890,7 +922,11 @@ mod tests {
         let mut log = StreamLog::create(dir.path(), 1 << 20).unwrap();
         for i in 0..100u32 {
             let (offset, _) = log
-                .append(&i.to_le_bytes(), 1000 + i64::from(i), i % 10 == 0)
+                .append(
+                    &i.to_le_bytes(),
+                    1000 + i64::from(i),
+                    if i % 10 == 0 { CHUNK_START } else { 0 },
+                )
                 .unwrap();
             assert_eq!(offset, u64::from(i));
         }
@@ -912,36 +948,104 @@ mod tests {
         assert_eq!(rest[0].offset, 7);
     }
 
+    /// Reads everything from `from` in reads of at most `batch` records
+    /// and about `max_bytes`, until a read brings nothing.
+    fn read_in_batches(log: &StreamLog, from: u64, batch: usize, max_bytes: usize) -> Vec<Record> {
+        let mut cursor = Cursor::at(from);
+        let plan = log.plan(&cursor);
+        let mut read = Vec::new();
+        loop {
+            let records = plan.read(&mut cursor, batch, max_bytes);
+            if records.is_empty() {
+                return read;
+            }
+            read.extend(records);
+        }
+    }
+
     #[test]
     fn records_of_every_size_read_back_in_batches_of_any_size() {
-        let dir = Scratch::new("sizes");
-        let mut log = StreamLog::create(dir.path(), 4 << 20).unwrap();
         let sizes = |i: usize| match i {
             500 => 600 * 1024,
             700 => 5 * 1024,
             _ => i % 97,
         };
         let payload = |i: usize| vec![(i % 251) as u8; sizes(i)];
-        for i in 0..1000 {
-            log.append(&payload(i), i as i64, false).unwrap();
-        }
-        for batch in [1, 7, 1000] {
-            let mut cursor = Cursor::at(0);
-            let plan = log.plan(&cursor);
-            let mut read = Vec::new();
-            while read.len() < 1000 {
-                let records = plan.read(&mut cursor, batch, usize::MAX);
-                assert!(
-                    !records.is_empty(),
-                    "batch {batch} stopped at {}",
-                    read.len()
+        // One segment, and segments of a few records (each record size
+        // at a segment's start, middle and end).
+        for segment_bytes in [4 << 20, 300] {
+            let dir = Scratch::new(&format!("sizes-{segment_bytes}"));
+            let mut log = StreamLog::create(dir.path(), segment_bytes).unwrap();
+            for i in 0..1000 {
+                log.append(&payload(i), i as i64, 0).unwrap();
+            }
+            for (batch, max_bytes) in [
+                (1, usize::MAX),
+                (7, usize::MAX),
+                (1000, usize::MAX),
+                (1000, 150),
+            ] {
+                let read = read_in_batches(&log, 0, batch, max_bytes);
+                assert_eq!(
+                    read.len(),
+                    1000,
+                    "batch {batch}, segments of {segment_bytes}"
                 );
-                read.extend(records);
+                for (i, record) in read.iter().enumerate() {
+                    assert_eq!(record.offset, i as u64, "batch {batch}");
+                    assert_eq!(record.payload, payload(i), "batch {batch}, record {i}");
+                }
             }
-            for (i, record) in read.iter().enumerate() {
-                assert_eq!(record.offset, i as u64, "batch {batch}");
-                assert_eq!(record.payload, payload(i), "batch {batch}, record {i}");
+            let from_middle = read_in_batches(&log, 333, 10, usize::MAX);
+            assert_eq!(from_middle.first().map(|r| r.offset), Some(333));
+            assert_eq!(from_middle.len(), 667);
+        }
+    }
+
+    #[test]
+    fn flags_are_kept_as_appended() {
+        let dir = Scratch::new("flags");
+        let mut log = StreamLog::create(dir.path(), 1 << 20).unwrap();
+        for flags in [0, CHUNK_START, 1 << 1, 1 << 2 | CHUNK_START, 0xfe] {
+            log.append(b"p", 1, flags).unwrap();
+        }
+        let read: Vec<u8> = read_all(&log, 0).iter().map(|r| r.flags).collect();
+        assert_eq!(read, [0, CHUNK_START, 1 << 1, 1 << 2 | CHUNK_START, 0xfe]);
+    }
+
+    #[test]
+    fn damage_to_a_header_read_along_with_the_record_before_it_is_found() {
+        // Each field of offset 2's header: length, CRC, offset, timestamp,
+        // flags; read record by record (its header read alone) and in
+        // batches (its header read with record 1).
+        for field in [0, 1, 4, 8, 16, 24] {
+            let dir = Scratch::new(&format!("header-damage-{field}"));
+            let mut log = StreamLog::create(dir.path(), 1 << 20).unwrap();
+            for i in 0..5u8 {
+                log.append(&[i; 10], 1, 0).unwrap();
             }
+            let path = log.segments[0].path.clone();
+            flip(
+                &path,
+                SEGMENT_HEADER as usize + 2 * (RECORD_HEADER + 10) + field,
+            );
+            for batch in [1, 2, 100] {
+                let offsets: Vec<u64> = read_in_batches(&log, 0, batch, usize::MAX)
+                    .iter()
+                    .map(|r| r.offset)
+                    .collect();
+                assert_eq!(offsets, [0, 1], "field at {field}, batch {batch}");
+            }
+            // Read from past it, the rest is served, unless the damage is
+            // in what leads past it (its length, or its offset, which
+            // then looks due and fails its check): nothing then.
+            let offsets: Vec<u64> = read_all(&log, 3).iter().map(|r| r.offset).collect();
+            let rest: &[u64] = if [0, 1, 8].contains(&field) {
+                &[]
+            } else {
+                &[3, 4]
+            };
+            assert_eq!(offsets, rest, "field at {field}");
         }
     }
 
@@ -951,7 +1055,7 @@ mod tests {
         let mut log = StreamLog::create(dir.path(), 1000).unwrap();
         let body = [7u8; 75]; // 100 bytes a record
         for i in 0..50 {
-            log.append(&body, i, false).unwrap();
+            log.append(&body, i, 0).unwrap();
         }
         assert_eq!(
             log.segments.len(),
@@ -995,7 +1099,8 @@ mod tests {
         {
             let mut log = StreamLog::create(dir.path(), 300).unwrap();
             for i in 0..20u8 {
-                log.append(&[i; 30], 5, i == 12).unwrap();
+                log.append(&[i; 30], 5, if i == 12 { CHUNK_START } else { 0 })
+                    .unwrap();
             }
             remove_files(log.retain(Some(600), None, 0));
         }
@@ -1006,7 +1111,7 @@ mod tests {
         let records = read_all(&log, 0);
         assert_eq!(records.len() as u64, 20 - first);
         assert_eq!(records[0].payload, vec![first as u8; 30]);
-        assert_eq!(log.append(b"x", 6, true).unwrap().0, 20);
+        assert_eq!(log.append(b"x", 6, CHUNK_START).unwrap().0, 20);
     }
 
     /// What the persister does once a sync covering the appends succeeded.
@@ -1021,7 +1126,7 @@ mod tests {
         let mut log =
             StreamLog::create(dir, 3 * (RECORD_HEADER as u64 + 10) + SEGMENT_HEADER).unwrap();
         for i in 0..10u8 {
-            log.append(&[i; 10], 1, false).unwrap();
+            log.append(&[i; 10], 1, 0).unwrap();
             record_synced(&log);
         }
         log.segments.iter().map(|s| s.path.clone()).collect()
@@ -1175,7 +1280,7 @@ mod tests {
         bytes.extend_from_slice(&[0; 200]);
         std::fs::write(newest, &bytes).unwrap();
         let mut log = reopen(dir.path(), false).unwrap();
-        assert_eq!(log.append(b"next", 2, true).unwrap().0, 10);
+        assert_eq!(log.append(b"next", 2, CHUNK_START).unwrap().0, 10);
         drop(log);
         // A torn record in an older segment is damage (its seal no longer
         // matches its length, so it is read whole).
@@ -1209,7 +1314,7 @@ mod tests {
             10,
             "the lost offset is not handed out again"
         );
-        assert_eq!(log.append(b"after", 2, true).unwrap().0, 10);
+        assert_eq!(log.append(b"after", 2, CHUNK_START).unwrap().0, 10);
         record_synced(&log);
         drop(log);
         let log = reopen(dir.path(), false).expect("the recorded loss is accepted later");
@@ -1262,7 +1367,7 @@ mod tests {
         let dir = Scratch::new("synced-torn-tail");
         let segments = ten_records(dir.path());
         let mut log = reopen(dir.path(), false).unwrap();
-        log.append(&[10; 10], 1, false).unwrap(); // not synced
+        log.append(&[10; 10], 1, 0).unwrap(); // not synced
         drop(log);
         let newest = segments.last().unwrap();
         let len = std::fs::metadata(newest).unwrap().len();
@@ -1281,7 +1386,7 @@ mod tests {
         let segments = ten_records(dir.path()); // [0-2] [3-5] [6-8] [9], all synced
         let mut log = reopen(dir.path(), false).unwrap();
         for i in 10..13u8 {
-            log.append(&[i; 10], 1, false).unwrap(); // 10, 11, then a roll: 12
+            log.append(&[i; 10], 1, 0).unwrap(); // 10, 11, then a roll: 12
         }
         assert_eq!(log.segments.len(), 5);
         drop(log);
@@ -1302,7 +1407,7 @@ mod tests {
             !seal_path(rolled).exists(),
             "the cut segment is the head again"
         );
-        assert_eq!(log.append(&[11; 10], 1, false).unwrap().0, 11);
+        assert_eq!(log.append(&[11; 10], 1, 0).unwrap().0, 11);
         record_synced(&log);
         drop(log);
         let log = reopen(dir.path(), false).unwrap();
@@ -1324,7 +1429,7 @@ mod tests {
         let dir = Scratch::new("timestamps");
         let mut log = StreamLog::create(dir.path(), 200).unwrap();
         for i in 0..20 {
-            log.append(&[0; 35], i * 100, false).unwrap(); // 60 bytes: 3 a segment
+            log.append(&[0; 35], i * 100, 0).unwrap(); // 60 bytes: 3 a segment
         }
         assert_eq!(log.offset_for_timestamp(0), 0);
         assert_eq!(log.offset_for_timestamp(450), 3);

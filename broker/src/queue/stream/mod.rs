@@ -14,8 +14,11 @@
 //! waits for, as a durable queue's does. Readers hold no records beyond a
 //! small batch: a reader behind the tail gets its next batch from a
 //! blocking task (`spawn_blocking`) that reads without any lock, so old
-//! segments are never read on a broker thread; a reader at the tail is
-//! handed each publish as it is appended.
+//! segments are never read on a broker thread, and the next read starts
+//! while half a read's worth is still to deliver; a reader at the tail is
+//! handed each publish as it is appended. A record's properties are stored
+//! with its offset header already in them, so a delivery slices the
+//! message out of the record without decoding or copying it.
 
 mod args;
 mod log;
@@ -69,13 +72,24 @@ struct Reader {
     consumer: Arc<Consumer>,
     /// The next record it is owed (after what is batched).
     cursor: Cursor,
-    /// Records read for it, not yet delivered (at most one read's worth).
+    /// Records read for it, not yet delivered: under half a read's worth
+    /// when its next read starts ([`wants_more`]), so at most about one
+    /// and a half reads' worth.
     batch: VecDeque<Record>,
     /// A read task is out for it.
     reading: bool,
     /// Its last read found nothing where records were due (damage since
     /// start-up): no further read until the stream grows.
     stalled: bool,
+}
+
+/// Whether a reader whose batch is `batch` reads on (if it is owed
+/// records and has credit): when the batch is under half a read's worth,
+/// so the next read (from the disk, off the broker's threads) is under way
+/// while the rest is delivered.
+fn wants_more(batch: &VecDeque<Record>) -> bool {
+    batch.len() < READ_RECORDS / 2
+        && batch.iter().map(|r| r.payload.len()).sum::<usize>() < READ_BYTES / 2
 }
 
 /// A read to start once the stream's lock is let go.
@@ -106,37 +120,82 @@ fn now_ms() -> i64 {
         .map_or(0, |d| d.as_millis() as i64)
 }
 
-/// A message as a stream record's payload: exchange and routing key (a
-/// length byte each), properties (`u32` LE length), then the body.
-fn encode(message: &Message) -> Vec<u8> {
+/// Record flag (the stream's own, beside the log's `CHUNK_START`): the
+/// stored properties already carry the record's [`OFFSET_HEADER`], so a
+/// delivery sends them as they are.
+const STAMPED: u8 = 1 << 1;
+/// Record flag: the message is persistent (delivery-mode 2); set with
+/// [`STAMPED`], whose records are delivered without decoding their
+/// properties.
+const PERSISTENT: u8 = 1 << 2;
+
+/// A message as the record at `offset`: its payload (exchange and routing
+/// key, a length byte each, properties (`u32` LE length), then the body)
+/// and its flags. The properties are stored with the offset header
+/// (replacing any the publisher set) and the record marked [`STAMPED`],
+/// so no delivery decodes them again; properties that do not decode are
+/// stored as they came, unmarked (their delivery then fails to decode them
+/// and skips the record, with an error log).
+fn encode(message: &Message, offset: u64) -> (Vec<u8>, u8) {
+    let (properties, flags) = match BasicProperties::decode(&message.properties) {
+        Ok(properties) => {
+            let persistent = properties.delivery_mode == Some(2);
+            let mut stamped = BytesMut::with_capacity(message.properties.len() + 32);
+            with_offset(properties, offset).encode(&mut stamped);
+            let flags = if persistent {
+                STAMPED | PERSISTENT
+            } else {
+                STAMPED
+            };
+            (stamped.freeze(), flags)
+        }
+        Err(_) => (message.properties.clone(), 0),
+    };
     let mut out = Vec::with_capacity(
         2 + message.exchange.len()
             + message.routing_key.len()
             + 4
-            + message.properties.len()
+            + properties.len()
             + message.body.len(),
     );
     for short in [&message.exchange, &message.routing_key] {
         out.push(short.len() as u8);
         out.extend_from_slice(short.as_bytes());
     }
-    out.extend_from_slice(&(message.properties.len() as u32).to_le_bytes());
-    out.extend_from_slice(&message.properties);
+    out.extend_from_slice(&(properties.len() as u32).to_le_bytes());
+    out.extend_from_slice(&properties);
     out.extend_from_slice(&message.body);
-    out
+    (out, flags)
 }
 
-/// The message a record holds, with its offset in [`OFFSET_HEADER`];
-/// `None` if the payload does not decode (it passed its checksum, so only
-/// a bug could make it so; it is skipped with an error log).
+/// `properties` with [`OFFSET_HEADER`] set to `offset`.
+fn with_offset(mut properties: BasicProperties, offset: u64) -> BasicProperties {
+    properties
+        .headers
+        .get_or_insert_with(FieldTable::new)
+        .insert(
+            ShortStr::from_static(OFFSET_HEADER),
+            FieldValue::I64(offset as i64),
+        );
+    properties
+}
+
+/// The message a record holds, with its offset in [`OFFSET_HEADER`]:
+/// sliced out of the payload without a copy, the properties as stored
+/// when [`STAMPED`], else decoded and stamped (records an older Leveret
+/// wrote). `None` if the payload does not decode (it passed its checksum,
+/// so only a bug could make it so; it is skipped with an error log).
 fn decode(record: &Record) -> Option<Message> {
-    let payload = record.payload.clone();
+    let payload = &record.payload;
     let mut at = 0;
     let mut short = || -> Option<ShortStr> {
         let len = usize::from(*payload.get(at)?);
-        let bytes = payload.get(at + 1..at + 1 + len)?;
+        if payload.len() < at + 1 + len {
+            return None;
+        }
+        let bytes = payload.slice(at + 1..at + 1 + len);
         at += 1 + len;
-        ShortStr::try_from(Bytes::copy_from_slice(bytes)).ok()
+        ShortStr::try_from(bytes).ok()
     };
     let exchange = short()?;
     let routing_key = short()?;
@@ -147,22 +206,21 @@ fn decode(record: &Record) -> Option<Message> {
     }
     let stored_properties = payload.slice(at..at + len);
     let body = payload.slice(at + len..);
-    let mut properties = BasicProperties::decode(&stored_properties).ok()?;
-    properties
-        .headers
-        .get_or_insert_with(FieldTable::new)
-        .insert(
-            ShortStr::from_static(OFFSET_HEADER),
-            FieldValue::I64(record.offset as i64),
-        );
-    let mut encoded = BytesMut::with_capacity(len + 32);
-    properties.encode(&mut encoded);
+    let (properties, persistent) = if record.flags & STAMPED != 0 {
+        (stored_properties, record.flags & PERSISTENT != 0)
+    } else {
+        let properties = BasicProperties::decode(&stored_properties).ok()?;
+        let persistent = properties.delivery_mode == Some(2);
+        let mut encoded = BytesMut::with_capacity(len + 32);
+        with_offset(properties, record.offset).encode(&mut encoded);
+        (encoded.freeze(), persistent)
+    };
     Some(Message {
         exchange,
         routing_key,
-        persistent: properties.delivery_mode == Some(2),
+        persistent,
         priority: 0,
-        properties: encoded.freeze(),
+        properties,
         body,
         ttl_ms: None,
         stored: None,
@@ -291,16 +349,24 @@ impl Queue {
             if st.deleted {
                 return Enqueued::Accepted { sync: 0 };
             }
-            let payload = Bytes::from(encode(message));
+            let stamped_at = st.log.next_offset();
+            let (payload, flags) = encode(message, stamped_at);
+            let payload = Bytes::from(payload);
             let chunk_start = stream.persistence.flushed() >= st.last_sync;
+            let flags = if chunk_start {
+                flags | log::CHUNK_START
+            } else {
+                flags
+            };
             let timestamp = now_ms();
-            let (offset, rolled) = match st.log.append(&payload, timestamp, chunk_start) {
+            let (offset, rolled) = match st.log.append(&payload, timestamp, flags) {
                 Ok(appended) => appended,
                 Err(e) => {
                     tracing::error!(queue = %self.name, vhost = %self.vhost, error = %e, "cannot append to a stream: the publish is refused");
                     return Enqueued::Refused;
                 }
             };
+            debug_assert_eq!(offset, stamped_at, "appended where it was stamped");
             let sync = stream
                 .persistence
                 .submit_sync(st.log.sync_handles(rolled), st.log.synced_mark());
@@ -316,6 +382,7 @@ impl Queue {
                     reader.batch.push_back(Record {
                         offset,
                         timestamp_ms: timestamp,
+                        flags,
                         payload: payload.clone(),
                     });
                     reader.cursor = Cursor::at(offset + 1);
@@ -426,8 +493,8 @@ impl Queue {
                     message,
                 });
             }
-            if reader.batch.is_empty()
-                && !reader.reading
+            if !reader.reading
+                && wants_more(&reader.batch)
                 && !reader.stalled
                 && reader.cursor.offset < next
                 && consumer.has_credit()
@@ -507,48 +574,110 @@ impl Queue {
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_record_decodes_to_its_message_with_its_offset_header() {
-        let properties = BasicProperties {
-            delivery_mode: Some(2),
-            ..Default::default()
-        };
+    fn message(properties: &BasicProperties) -> Message {
         let mut encoded = BytesMut::new();
         properties.encode(&mut encoded);
-        let message = Message {
+        Message {
             exchange: ShortStr::from_static("x"),
             routing_key: ShortStr::from_static("rk"),
             properties: encoded.freeze(),
             body: Bytes::from_static(b"body"),
-            persistent: true,
+            persistent: properties.delivery_mode == Some(2),
             priority: 0,
             ttl_ms: None,
             stored: None,
-        };
-        let record = Record {
-            offset: 42,
+        }
+    }
+
+    fn record(offset: u64, (payload, flags): (Vec<u8>, u8)) -> Record {
+        Record {
+            offset,
             timestamp_ms: 0,
-            payload: encode(&message).into(),
-        };
-        let decoded = decode(&record).expect("decodes");
-        assert_eq!(decoded.exchange, message.exchange);
-        assert_eq!(decoded.routing_key, message.routing_key);
-        assert_eq!(decoded.body, message.body);
+            flags,
+            payload: payload.into(),
+        }
+    }
+
+    fn offset_header(message: &Message) -> Option<FieldValue> {
+        let read = BasicProperties::decode(&message.properties).unwrap();
+        read.headers.unwrap().get(OFFSET_HEADER).cloned()
+    }
+
+    #[test]
+    fn a_record_decodes_to_its_message_with_its_offset_header() {
+        for delivery_mode in [Some(2), Some(1), None] {
+            let mut headers = FieldTable::new();
+            headers.insert(ShortStr::from_static("kept"), FieldValue::I32(7));
+            // A publisher's own offset header is replaced, as RabbitMQ does.
+            headers.insert(ShortStr::from_static(OFFSET_HEADER), FieldValue::I64(-1));
+            let properties = BasicProperties {
+                delivery_mode,
+                headers: Some(headers),
+                content_type: Some(ShortStr::from_static("text/plain")),
+                ..Default::default()
+            };
+            let message = message(&properties);
+            let stamped = record(42, encode(&message, 42));
+            assert_ne!(stamped.flags & STAMPED, 0, "stamped when appended");
+            let decoded = decode(&stamped).expect("decodes");
+            assert_eq!(decoded.exchange, message.exchange);
+            assert_eq!(decoded.routing_key, message.routing_key);
+            assert_eq!(decoded.body, message.body);
+            assert_eq!(decoded.persistent, delivery_mode == Some(2));
+            assert_eq!(offset_header(&decoded), Some(FieldValue::I64(42)));
+            let read = BasicProperties::decode(&decoded.properties).unwrap();
+            assert_eq!(read.delivery_mode, delivery_mode);
+            assert_eq!(read.content_type, properties.content_type);
+            assert_eq!(read.headers.unwrap().get("kept"), Some(&FieldValue::I32(7)));
+        }
+    }
+
+    #[test]
+    fn a_record_stored_unstamped_is_stamped_as_it_is_delivered() {
+        // As an older Leveret stored records: the properties as published.
+        let message = message(&BasicProperties {
+            delivery_mode: Some(2),
+            ..Default::default()
+        });
+        let mut payload = vec![1, b'x', 2, b'r', b'k'];
+        payload.extend_from_slice(&(message.properties.len() as u32).to_le_bytes());
+        payload.extend_from_slice(&message.properties);
+        payload.extend_from_slice(b"body");
+        let decoded = decode(&record(9, (payload, 0))).expect("decodes");
         assert!(decoded.persistent);
-        let read = BasicProperties::decode(&decoded.properties).unwrap();
-        assert_eq!(
-            read.headers.unwrap().get(OFFSET_HEADER),
-            Some(&FieldValue::I64(42))
-        );
+        assert_eq!(decoded.body, message.body);
+        assert_eq!(offset_header(&decoded), Some(FieldValue::I64(9)));
+    }
+
+    #[test]
+    fn properties_that_do_not_decode_are_stored_unstamped_and_skipped() {
+        let mut message = message(&BasicProperties::default());
+        message.properties = Bytes::from_static(&[0xff, 0xff, 1]);
+        let stored = record(3, encode(&message, 3));
+        assert_eq!(stored.flags & STAMPED, 0);
+        assert!(decode(&stored).is_none());
+    }
+
+    #[test]
+    fn a_reader_reads_on_only_while_under_half_a_read_is_batched() {
+        let batch = |records: usize, size: usize| -> VecDeque<Record> {
+            (0..records)
+                .map(|i| record(i as u64, (vec![0; size], 0)))
+                .collect()
+        };
+        assert!(wants_more(&batch(0, 0)));
+        assert!(wants_more(&batch(READ_RECORDS / 2 - 1, 1)));
+        assert!(!wants_more(&batch(READ_RECORDS / 2, 1)), "records");
+        assert!(wants_more(&batch(1, READ_BYTES / 2 - 1)));
+        assert!(!wants_more(&batch(1, READ_BYTES / 2)), "bytes");
     }
 
     #[test]
     fn a_payload_cut_short_does_not_decode() {
-        let record = Record {
-            offset: 0,
-            timestamp_ms: 0,
-            payload: Bytes::from_static(&[5, b'a']),
-        };
-        assert!(decode(&record).is_none());
+        for flags in [0, STAMPED] {
+            for payload in [&[5, b'a'][..], &[1, b'a', 0, 9, 0, 0, 0, 1]] {
+                assert!(decode(&record(0, (payload.to_vec(), flags))).is_none());
+            }
+        }
     }
 }
