@@ -707,6 +707,11 @@ impl Session {
         let mut shutdown = core.shutdown_signal();
         let mut last_read = Instant::now();
         let mut last_active = last_read;
+        // Checks for spare buffers to give back: armed at most once a
+        // second while the session is busy, as the AMQP reader's is (a
+        // timer set anew at every turn of the loop cost throughput).
+        let release = tokio::time::sleep(IDLE_RELEASE);
+        tokio::pin!(release);
         let mut durable = self.shared.retained.durable();
         let stop = loop {
             // Whole packets already read.
@@ -744,14 +749,6 @@ impl Session {
                 last_read = Instant::now();
             }
             let silence = last_read + keepalive;
-            // An idle session gives its buffers back (one timer with the
-            // keepalive's).
-            let release = self.holds_spare(&buf).then_some(last_active + IDLE_RELEASE);
-            let wake = match (keepalive.is_zero(), release) {
-                (true, None) => None,
-                (true, Some(release)) => Some(release),
-                (false, release) => Some(release.map_or(silence, |r| r.min(silence))),
-            };
             let to_broker = link.direct.to_broker.clone();
             tokio::select! {
                 read = socket.read_buf(&mut buf), if reading => match read {
@@ -777,13 +774,14 @@ impl Session {
                     }
                     None => break closed("the broker ended the session", Some(ReasonCode::ServerShuttingDown)),
                 },
-                _ = tokio::time::sleep_until(wake.unwrap_or(silence)), if wake.is_some() => {
-                    if !keepalive.is_zero() && Instant::now() >= silence {
-                        break closed("keepalive timeout", Some(ReasonCode::KeepAliveTimeout));
-                    }
-                    if Instant::now() >= last_active + IDLE_RELEASE {
+                _ = tokio::time::sleep_until(silence), if !keepalive.is_zero() => {
+                    break closed("keepalive timeout", Some(ReasonCode::KeepAliveTimeout));
+                }
+                () = &mut release, if self.holds_spare(&buf) => {
+                    if last_active.elapsed() >= IDLE_RELEASE {
                         self.release_spare(&mut buf);
                     }
+                    release.as_mut().reset(last_active + IDLE_RELEASE);
                 }
                 _ = store_progress(durable.as_mut()), if !self.held_acks.is_empty() => {
                     if let Err(stop) = self.release_held_acks() { break stop }
