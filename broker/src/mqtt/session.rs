@@ -70,6 +70,14 @@ const MAX_SUBSCRIPTIONS: usize = 4096;
 /// Bytes asked of the socket per read at most (and written to it at once
 /// at most, as far as replies decide).
 const READ_CHUNK: usize = 64 * 1024;
+/// The read buffer a session keeps once it has been idle for
+/// [`IDLE_RELEASE`] with nothing left unread (a busy one keeps its
+/// [`READ_CHUNK`] between reads, as the AMQP reader does).
+const READ_IDLE: usize = 1024;
+/// How long a session keeps larger buffers than an idle one needs (the
+/// read buffer, the write buffer, its queues' room) after it last read
+/// from its client or heard from the core.
+const IDLE_RELEASE: Duration = Duration::from_secs(1);
 /// Replies from the core handled before the session writes to its
 /// client, at most.
 const REPLIES_PER_WRITE: usize = 64;
@@ -125,7 +133,7 @@ pub(super) async fn serve<S: ClientStream>(
     let mut socket = Counted::new(socket, Arc::clone(&traffic));
     let peer = &origin.peer;
     let deadline = Instant::now() + core.limits.handshake_timeout;
-    let mut buf = BytesMut::with_capacity(1024);
+    let mut buf = BytesMut::with_capacity(READ_IDLE);
     let mut shutdown = core.shutdown_signal();
     let first = tokio::select! {
         first = tokio::time::timeout_at(deadline, read_connect(&mut socket, &mut buf)) => first,
@@ -307,7 +315,9 @@ async fn read_connect(
                 return Err("malformed CONNECT");
             }
         }
-        buf.reserve(READ_CHUNK.min(CONNECT_MAX_PACKET as usize));
+        if buf.capacity() - buf.len() < READ_IDLE {
+            buf.reserve(READ_CHUNK.min(CONNECT_MAX_PACKET as usize));
+        }
         match socket.read_buf(buf).await {
             Ok(0) | Err(_) => return Err("closed"),
             Ok(_) => {}
@@ -779,6 +789,12 @@ impl Session {
     ) -> Ended {
         let mut shutdown = core.shutdown_signal();
         let mut last_read = Instant::now();
+        let mut last_active = last_read;
+        // Checks for spare buffers to give back: armed at most once a
+        // second while the session is busy, as the AMQP reader's is (a
+        // timer set anew at every turn of the loop cost throughput).
+        let release = tokio::time::sleep(IDLE_RELEASE);
+        tokio::pin!(release);
         let mut durable = self.shared.retained.durable();
         let stop = loop {
             // Whole packets already read.
@@ -807,7 +823,7 @@ impl Session {
                 self.out.clear();
             }
             let reading = self.reading();
-            if reading && buf.capacity() - buf.len() < 1024 {
+            if reading && buf.capacity() - buf.len() < READ_IDLE {
                 buf.reserve(READ_CHUNK);
             }
             if !reading {
@@ -820,7 +836,10 @@ impl Session {
             tokio::select! {
                 read = socket.read_buf(&mut buf), if reading => match read {
                     Ok(0) | Err(_) => break closed("socket closed", None),
-                    Ok(_) => last_read = Instant::now(),
+                    Ok(_) => {
+                        last_read = Instant::now();
+                        last_active = last_read;
+                    }
                 },
                 permit = to_broker.reserve(), if !self.pending.is_empty() => match permit {
                     Ok(permit) => {
@@ -832,6 +851,7 @@ impl Session {
                 },
                 reply = link.direct.from_broker.recv() => match reply {
                     Some(reply) => {
+                        last_active = Instant::now();
                         if let Err(stop) = self.handle_core_reply(reply) { break stop }
                         if let Err(stop) = self.handle_ready_replies(&mut link) { break stop }
                     }
@@ -839,6 +859,12 @@ impl Session {
                 },
                 _ = tokio::time::sleep_until(silence), if !keepalive.is_zero() => {
                     break closed("keepalive timeout", Some(ReasonCode::KeepAliveTimeout));
+                }
+                () = &mut release, if self.holds_spare(&buf) => {
+                    if last_active.elapsed() >= IDLE_RELEASE {
+                        self.release_spare(&mut buf);
+                    }
+                    release.as_mut().reset(last_active + IDLE_RELEASE);
                 }
                 _ = store_progress(durable.as_mut()), if !self.held_acks.is_empty() => {
                     if let Err(stop) = self.release_held_acks() { break stop }
@@ -852,6 +878,32 @@ impl Session {
             }
         };
         self.finish(socket, link, stop).await
+    }
+
+    /// Whether the session holds more room than an idle one needs: a read
+    /// buffer past [`READ_IDLE`] with nothing unread, a write buffer with
+    /// nothing to write, empty queues with room.
+    fn holds_spare(&self, buf: &BytesMut) -> bool {
+        (buf.is_empty() && buf.capacity() > READ_IDLE)
+            || (self.out.is_empty() && self.out.capacity() > 0)
+            || (self.pending.is_empty() && self.pending.capacity() > 0)
+            || (self.awaiting.is_empty() && self.awaiting.capacity() > 0)
+    }
+
+    /// Gives back what [`Session::holds_spare`] finds.
+    fn release_spare(&mut self, buf: &mut BytesMut) {
+        if buf.is_empty() && buf.capacity() > READ_IDLE {
+            *buf = BytesMut::with_capacity(READ_IDLE);
+        }
+        if self.out.is_empty() {
+            self.out = BytesMut::new();
+        }
+        if self.pending.is_empty() {
+            self.pending = VecDeque::new();
+        }
+        if self.awaiting.is_empty() {
+            self.awaiting = VecDeque::new();
+        }
     }
 
     /// Sends what is owed before closing (a 5.0 DISCONNECT, the will).

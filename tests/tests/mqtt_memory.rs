@@ -1,0 +1,175 @@
+//! The heap an idle MQTT session holds (issue 32's idle-connection goal:
+//! 10,000 idle connections with a subscription each in at most 100 MB):
+//! a counting allocator measures the live heap before and after
+//! [`SESSIONS`] raw 3.1.1 clients have connected and subscribed at QoS 1
+//! (the benchmark's idle clients, `perf/mqtt-throughput`), so a change
+//! that makes each session hold far more fails here. The bound is
+//! generous; the figures themselves are measured in `perf/`.
+
+#[macro_use]
+mod common;
+
+use bytes::{Bytes, BytesMut};
+use common::*;
+use leveret_broker::{Broker, BrokerHandle, Limits};
+use leveret_mqtt::{
+    decode_packet, Connect, MqttString, Packet, ProtocolVersion, QoS, ReasonCode, SubAck,
+    Subscribe, Subscription, SubscriptionOptions, TopicFilter,
+};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+/// Held by every test of this file for its whole run.
+static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+/// Idle sessions opened and measured together.
+const SESSIONS: usize = 200;
+/// The live heap an idle session with one subscription may hold, the
+/// client's end of its socket in this process included. A debug build
+/// holds about 38 KiB (its futures are larger than a release build's);
+/// before the sessions gave their read buffers back when idle, each held
+/// a 64 KiB one besides (103 KiB in all), which this bound refuses.
+const PER_SESSION_CAP: usize = 64 * 1024;
+
+/// The system allocator, counting the bytes it holds live for this process.
+struct LiveHeap;
+
+static LIVE_HEAP_BYTES: AtomicUsize = AtomicUsize::new(0);
+// SAFETY: every call is forwarded unchanged to `System`; the counter is
+// the only addition.
+unsafe impl GlobalAlloc for LiveHeap {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        let block = System.alloc(layout);
+        if !block.is_null() {
+            LIVE_HEAP_BYTES.fetch_add(layout.size(), Ordering::Relaxed);
+        }
+        block
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        let block = System.alloc_zeroed(layout);
+        if !block.is_null() {
+            LIVE_HEAP_BYTES.fetch_add(layout.size(), Ordering::Relaxed);
+        }
+        block
+    }
+    unsafe fn dealloc(&self, block: *mut u8, layout: Layout) {
+        System.dealloc(block, layout);
+        LIVE_HEAP_BYTES.fetch_sub(layout.size(), Ordering::Relaxed);
+    }
+    unsafe fn realloc(&self, block: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        let moved = System.realloc(block, layout, new_size);
+        if !moved.is_null() {
+            LIVE_HEAP_BYTES.fetch_sub(layout.size(), Ordering::Relaxed);
+            LIVE_HEAP_BYTES.fetch_add(new_size, Ordering::Relaxed);
+        }
+        moved
+    }
+}
+
+#[global_allocator]
+static ALLOCATOR: LiveHeap = LiveHeap;
+
+fn live_heap() -> usize {
+    LIVE_HEAP_BYTES.load(Ordering::Relaxed)
+}
+
+async fn start() -> BrokerHandle {
+    let any: SocketAddr = "127.0.0.1:0".parse().unwrap();
+    Broker::builder()
+        .listen(any)
+        .mqtt_listen(any)
+        .user("robot", "secret")
+        .permission("robot", "/", leveret_broker::Permission::full())
+        .limits(Limits::default())
+        .start()
+        .await
+        .expect("broker starts")
+}
+
+fn mqtt_string(text: &str) -> MqttString {
+    MqttString::from_utf8(Bytes::copy_from_slice(text.as_bytes())).unwrap()
+}
+
+/// A 3.1.1 client that connects (clean session, no keepalive), subscribes
+/// to `idle/N/#` at QoS 1 and waits for both acknowledgements, as the
+/// benchmark's idle clients do.
+async fn idle_session(port: u16, index: usize) -> TcpStream {
+    let mut socket = tmo!(TcpStream::connect(("127.0.0.1", port))).unwrap();
+    let version = ProtocolVersion::V3_1_1;
+    let mut out = BytesMut::new();
+    Packet::Connect(Box::new(Connect {
+        version,
+        clean_start: true,
+        keep_alive: 0,
+        properties: Default::default(),
+        client_id: mqtt_string(&format!("idle-{index}")),
+        will: None,
+        username: Some(mqtt_string("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    }))
+    .encode(version, &mut out)
+    .unwrap();
+    Packet::Subscribe(Subscribe {
+        packet_id: std::num::NonZeroU16::MIN,
+        properties: Default::default(),
+        subscriptions: vec![Subscription {
+            filter: TopicFilter::new(mqtt_string(&format!("idle/{index}/#"))).unwrap(),
+            options: SubscriptionOptions {
+                qos: QoS::AtLeastOnce,
+                ..Default::default()
+            },
+        }],
+    })
+    .encode(version, &mut out)
+    .unwrap();
+    tmo!(socket.write_all(&out)).unwrap();
+    let mut buf = BytesMut::with_capacity(64);
+    let mut acknowledged = (false, false);
+    while acknowledged != (true, true) {
+        match decode_packet(&mut buf, version, 1024).unwrap() {
+            Some(Packet::ConnAck(ack)) => {
+                assert_eq!(ack.reason, ReasonCode::Success);
+                acknowledged.0 = true;
+            }
+            Some(Packet::SubAck(SubAck { reasons, .. })) => {
+                assert_eq!(reasons, [ReasonCode::GrantedQos1]);
+                acknowledged.1 = true;
+            }
+            Some(other) => panic!("unexpected {other:?}"),
+            None => assert!(tmo!(socket.read_buf(&mut buf)).unwrap() > 0, "closed"),
+        }
+    }
+    socket
+}
+
+#[both_runtimes]
+async fn an_idle_session_with_a_subscription_holds_a_bounded_heap() {
+    // The heap is the process's: no other test may allocate meanwhile.
+    let _serial = SERIAL.lock().await;
+    let handle = start().await;
+    let port = handle.mqtt_addrs()[0].port();
+    // One session first, so that what the first one starts (the
+    // listener's and the vhost's lazily built state) is not counted.
+    let warm = idle_session(port, SESSIONS).await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let before = live_heap();
+    let mut sessions = Vec::with_capacity(SESSIONS);
+    for index in 0..SESSIONS {
+        sessions.push(idle_session(port, index).await);
+    }
+    // Let the sessions settle into their idle state (their read buffers
+    // are given back after a second without reads).
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let held = live_heap().saturating_sub(before);
+    let per_session = held / SESSIONS;
+    assert!(
+        per_session <= PER_SESSION_CAP,
+        "an idle MQTT session holds {per_session} bytes of heap (at most {PER_SESSION_CAP})"
+    );
+    drop((warm, sessions));
+    handle.shutdown().await;
+}
