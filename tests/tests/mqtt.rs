@@ -99,6 +99,47 @@ async fn connected3(id: &str, port: u16) -> (rumqttc::AsyncClient, rumqttc::Even
     (client, events)
 }
 
+/// An event loop's report that its DISCONNECT was written (rumqttc
+/// reports it once flushed).
+trait ReportsDisconnect {
+    fn is_disconnect(&self) -> bool;
+}
+
+impl ReportsDisconnect for Event {
+    fn is_disconnect(&self) -> bool {
+        matches!(self, Event::Outgoing(rumqttc::Outgoing::Disconnect))
+    }
+}
+
+impl ReportsDisconnect for rumqttc::v5::Event {
+    fn is_disconnect(&self) -> bool {
+        matches!(
+            self,
+            rumqttc::v5::Event::Outgoing(rumqttc::Outgoing::Disconnect)
+        )
+    }
+}
+
+/// Sends DISCONNECT and polls the event loop until it is written, so the
+/// broker reads a clean end, never a dropped socket (one poll could
+/// return an event read earlier, and the socket then closed unsent); a
+/// failed connection ends the wait too.
+macro_rules! disconnect {
+    ($client:expr, $events:expr) => {{
+        $client.disconnect().await.unwrap();
+        within("the DISCONNECT written", async {
+            loop {
+                match $events.poll().await {
+                    Ok(event) if event.is_disconnect() => break,
+                    Ok(_) => {}
+                    Err(_) => break,
+                }
+            }
+        })
+        .await;
+    }};
+}
+
 /// Polls a 3.1.1 event loop until `wanted` picks an event.
 async fn until3<T>(
     events: &mut rumqttc::EventLoop,
@@ -463,8 +504,7 @@ async fn a_clean_session_queue_lives_as_long_as_its_connection() {
         h.queues().into_iter().map(|q| q.name).collect::<Vec<_>>()
     };
     assert!(names(&handle).contains(&"mqtt-subscription-cleanerqos1".to_owned()));
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     within("the queue deleted", async {
         while names(&handle)
             .iter()
@@ -749,8 +789,7 @@ async fn a_will_is_published_when_the_connection_drops_and_not_after_disconnect(
         })
         .await;
         if graceful {
-            client.disconnect().await.unwrap();
-            let _ = tmo!(events.poll());
+            disconnect!(client, events);
             let _ = tmo!(events.poll());
         }
         // Dropping the event loop drops the socket without DISCONNECT.
@@ -953,8 +992,7 @@ async fn publish_acked(port: u16, topic: &str, payload: &str, retain: bool) {
         matches!(p, Incoming::PubAck(_)).then_some(())
     })
     .await;
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
 }
 
 async fn next_publish3(events: &mut rumqttc::EventLoop) -> rumqttc::Publish {
@@ -1077,8 +1115,7 @@ async fn a_persistent_3_1_1_session_gets_what_came_while_offline_and_across_a_re
         matches!(p, Incoming::SubAck(_)).then_some(())
     })
     .await;
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     offline(&handle, "mqtt-subscription-keeperqos1").await;
     publish_acked(port, "p/1", "while offline", false).await;
 
@@ -1103,8 +1140,7 @@ async fn a_persistent_3_1_1_session_gets_what_came_while_offline_and_across_a_re
         "an in-flight QoS 1 delivery comes again with DUP"
     );
     client.ack(&again).await.unwrap();
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     publish_acked(port, "p/2", "before the restart", false).await;
     handle.shutdown().await;
 
@@ -1125,14 +1161,12 @@ async fn a_persistent_3_1_1_session_gets_what_came_while_offline_and_across_a_re
         .unwrap();
     let live = next_publish3(&mut events).await;
     assert_eq!(&live.payload[..], b"live");
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
 
     // A clean session removes the persistent one.
     let (client, mut events, present) = persistent3("keeper", port, true).await;
     assert!(!present);
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     within("the session's queues deleted", async {
         while queue_names(&handle)
             .iter()
@@ -1358,8 +1392,7 @@ async fn a_5_0_session_lasts_its_expiry_interval_and_then_is_removed() {
         matches!(p, Packet5::SubAck(_)).then_some(())
     })
     .await;
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     let queue = handle
         .queues()
         .into_iter()
@@ -1394,8 +1427,7 @@ async fn retained_messages_reach_later_subscribers_and_survive_a_restart() {
             .publish("r/b", QoS::AtMostOnce, true, "")
             .await
             .unwrap();
-        client.disconnect().await.unwrap();
-        let _ = tmo!(events.poll());
+        disconnect!(client, events);
     }
     publish_acked(port, "r/a", "kept", true).await;
     publish_acked(port, "r/c", "not retained", false).await;
@@ -1423,8 +1455,7 @@ async fn retained_messages_reach_later_subscribers_and_survive_a_restart() {
         let marker = next_publish3(&mut events).await;
         assert_eq!(marker.topic, "r/z", "nothing else was retained");
         assert!(!marker.retain);
-        client.disconnect().await.unwrap();
-        let _ = tmo!(events.poll());
+        disconnect!(client, events);
     };
     expect_retained(port).await;
     handle.shutdown().await;
@@ -1505,8 +1536,7 @@ async fn a_retained_message_keeps_its_5_0_properties_until_it_expires() {
         })
         .await;
     }
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     // Past the short expiry (a lower bound, whatever the machine's load).
     tokio::time::sleep(Duration::from_millis(2500)).await;
 
@@ -1531,8 +1561,7 @@ async fn a_retained_message_keeps_its_5_0_properties_until_it_expires() {
         );
         let left = properties.message_expiry_interval.expect("expiry left");
         assert!((1..=3600).contains(&left), "{left}");
-        client.disconnect().await.unwrap();
-        let _ = tmo!(events.poll());
+        disconnect!(client, events);
     };
     expect_kept(port).await;
     handle.shutdown().await;
@@ -1980,8 +2009,7 @@ async fn publish_acked5(port: u16, topic: &str, payload: &str, retain: bool) {
         matches!(p, Packet5::PubAck(_)).then_some(())
     })
     .await;
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
 }
 
 #[both_runtimes]
@@ -2180,8 +2208,7 @@ async fn subscription_options_come_back_with_a_resumed_session() {
     let mut filter = Filter::new("resume/#", QoS5::AtLeastOnce);
     filter.nolocal = true;
     subscribe5(&client, &mut events, vec![filter], Some(9)).await;
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     offline(&handle, "mqtt-subscription-resumed-optsqos1").await;
     let (client, mut events) = connect(false);
     assert!(session_present5(&mut events).await);
@@ -2487,11 +2514,9 @@ async fn a_waiting_will_is_dropped_on_resume_and_published_on_a_clean_start() {
     // start has nothing to publish). That later connection's own will
     // is delayed as well, and dropped by DISCONNECT.
     let (client, mut events) = client_with_will(port, "resumer", 600, false).await;
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     let (client, mut events) = client_with_will(port, "resumer", 600, true).await;
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     // A will left waiting, then a clean start: published at once.
     let (_client, events) = client_with_will(port, "cleaner", 600, true).await;
     drop(events);
@@ -2521,8 +2546,7 @@ async fn a_waiting_will_is_dropped_on_resume_and_published_on_a_clean_start() {
         ["status.cleaner"],
         "the resumed session's will dropped"
     );
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     handle.shutdown().await;
 }
 
@@ -2858,8 +2882,7 @@ async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_rest
     let kept = next_publish5(&mut events).await;
     assert_eq!(&kept.payload[..], b"while away");
     until_expires(&handle, queue, Some(1_000)).await;
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
     within("the resumed session's queue expired", async {
         while queue_names(&handle).contains(&queue.to_owned()) {
             tokio::time::sleep(Duration::from_millis(50)).await;
@@ -2901,8 +2924,7 @@ async fn expiring5(
 
 /// Ends a 5.0 client with DISCONNECT.
 async fn disconnect5(client: rumqttc::v5::AsyncClient, mut events: rumqttc::v5::EventLoop) {
-    client.disconnect().await.unwrap();
-    let _ = tmo!(events.poll());
+    disconnect!(client, events);
 }
 
 #[both_runtimes]
