@@ -8,22 +8,22 @@
 //!
 //! Layout: this file is the listeners' accept loop (TCP, TLS, WebSocket:
 //! the transport's handshake, then a session over its byte stream);
-//! `websocket` the WebSocket handshake and byte-stream adapter; `session` one
-//! connection (CONNECT, keepalive, the packet loop); `link` the AMQP side
-//! of a session (login, channel, the methods it sends); `mapping` names
-//! (topics ↔ routing keys, queue names, `vhost:user`); `vhosts` the
-//! vhost a session lives in (the port and certificate mappings); `takeover` the
-//! client identifiers in use; `retained` the retained messages;
-//! `releases` persistent sessions' QoS 2 publishes awaiting PUBREL;
-//! `shares` persistent sessions' shared subscriptions;
-//! `properties` 5.0 PUBLISH properties ↔ AMQP properties;
-//! `traffic` a session's byte stream counted; `subscriptions` a
-//! session's subscriptions, their 5.0 options and
-//! shared subscriptions; `expiry` a persistent session's expiry on its
-//! queues; `aliases` inbound topic aliases; `wills` last wills and their
-//! delay.
+//! `websocket` the WebSocket handshake and byte-stream adapter;
+//! `client_stream` what a session needs of its transport, and its bytes
+//! counted; `session` one connection (CONNECT, keepalive, the packet
+//! loop); `link` the AMQP side of a session (login, channel, the methods
+//! it sends); `mapping` names (topics ↔ routing keys, queue names,
+//! `vhost:user`); `vhosts` the vhost a session lives in (the port and
+//! certificate mappings); `takeover` the client identifiers in use;
+//! `retained` the retained messages; `releases` persistent sessions' QoS 2
+//! publishes awaiting PUBREL; `shares` persistent sessions' shared
+//! subscriptions; `properties` 5.0 PUBLISH properties ↔ AMQP properties;
+//! `subscriptions` a session's subscriptions, their 5.0 options and shared
+//! subscriptions; `expiry` a persistent session's expiry on its queues;
+//! `aliases` inbound topic aliases; `wills` last wills and their delay.
 
 mod aliases;
+mod client_stream;
 mod expiry;
 mod link;
 mod mapping;
@@ -34,7 +34,6 @@ mod session;
 mod shares;
 mod subscriptions;
 mod takeover;
-mod traffic;
 mod vhosts;
 mod websocket;
 mod wills;

@@ -14,13 +14,13 @@
 //! shared) by [`MAX_SUBSCRIPTIONS`].
 
 use super::aliases::{TopicAliases, TOPIC_ALIAS_MAXIMUM};
+use super::client_stream::{ClientStream, Counted};
 use super::expiry;
 use super::link::{self, Link, Login, Refusal};
 use super::mapping;
 use super::retained::Message;
 use super::subscriptions::{self, Marks, Options, SharedSubscription, Subscriptions};
 use super::takeover::Claim;
-use super::traffic::Counted;
 use super::vhosts;
 use super::wills::{self, LastWill};
 use super::Shared;
@@ -88,19 +88,6 @@ const COPY_BELOW: usize = READ_CHUNK / 4;
 /// Retained messages waiting to go to a session at most (the rest of a
 /// SUBSCRIBE's matches are not sent, with a log line).
 const RETAINED_BACKLOG_MAX: usize = 10_000;
-
-/// A client's byte stream (TCP, TLS, WebSocket), told when its CONNECT
-/// has been accepted, so a transport that holds back reads until then
-/// (the WebSocket's, whose messages arrive whole) can stop.
-pub(super) trait ClientStream: AsyncRead + AsyncWrite + Unpin {
-    /// The session has logged in.
-    fn logged_in(&mut self) {}
-}
-
-impl ClientStream for tokio::net::TcpStream {}
-
-#[cfg(feature = "tls")]
-impl ClientStream for tokio_rustls::server::TlsStream<tokio::net::TcpStream> {}
 
 /// Where a connection comes from.
 pub(super) struct Origin {

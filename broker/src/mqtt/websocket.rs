@@ -179,7 +179,7 @@ impl<S: AsyncWrite + Unpin> AsyncWrite for HeldBack<S> {
     }
 }
 
-impl super::session::ClientStream for ByteStream<HeldBack<TcpStream>> {
+impl super::client_stream::ClientStream for ByteStream<HeldBack<TcpStream>> {
     fn logged_in(&mut self) {
         self.stream.get_mut().release();
     }

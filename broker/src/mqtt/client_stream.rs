@@ -1,17 +1,31 @@
-//! A session's byte stream, counted as RabbitMQ 3.10's plugin counts an
-//! MQTT connection's socket (`recv_oct`, `recv_cnt`, `send_oct`,
-//! `send_cnt`): into the connection's figures (listed, and
-//! `/metrics/detailed`'s connection families) and the broker's totals,
-//! beside the AMQP connections'. The MQTT bytes are counted (inside TLS
-//! and WebSocket framing), as the AMQP side counts a TLS connection's.
+//! A client's byte stream as a session uses it: what it needs of a
+//! transport ([`ClientStream`]: TCP, TLS, WebSocket), and the stream
+//! counted ([`Counted`]) as RabbitMQ 3.10's plugin counts an MQTT
+//! connection's socket (`recv_oct`, `recv_cnt`, `send_oct`, `send_cnt`):
+//! into the connection's figures (listed, and `/metrics/detailed`'s
+//! connection families) and the broker's totals, beside the AMQP
+//! connections'. The MQTT bytes are counted (inside TLS and WebSocket
+//! framing), as the AMQP side counts a TLS connection's.
 
-use super::session::ClientStream;
 use crate::stats::ConnectionTraffic;
 use std::io;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll};
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+
+/// A client's byte stream (TCP, TLS, WebSocket), told when its CONNECT
+/// has been accepted, so a transport that holds back reads until then
+/// (the WebSocket's, whose messages arrive whole) can stop.
+pub(super) trait ClientStream: AsyncRead + AsyncWrite + Unpin {
+    /// The session has logged in.
+    fn logged_in(&mut self) {}
+}
+
+impl ClientStream for tokio::net::TcpStream {}
+
+#[cfg(feature = "tls")]
+impl ClientStream for tokio_rustls::server::TlsStream<tokio::net::TcpStream> {}
 
 /// A client stream whose reads and writes are counted.
 pub(super) struct Counted<S> {
