@@ -14,14 +14,18 @@
 //! connection's items in the order the client sent them. The loop is
 //! polled with the task's waker, in the broker's runtime's context, and
 //! does what it would do on the task: the same channel code, checks,
-//! routing, queues, confirms and statistics. A thread already running a
-//! connection's loop (an inline delivery on its way) never claims one.
+//! routing, queues, confirms and statistics. A client thread's run takes
+//! at most [`CLAIM_ITEMS`] items, then hands the rest (others' traffic
+//! queued behind its own) to the task. A thread running an in-process
+//! connection's loop never claims another (an inline delivery on its
+//! way; a sink that runs inline must not call into the broker at all, as
+//! the client's `DeliverySink::runs_inline` requires).
 
 use leveret_protocol::Outgoing;
 use std::cell::Cell;
 use std::future::Future;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{fence, AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, TryLockError};
 use std::task::{Context, Poll, Waker};
 use tokio::sync::mpsc;
@@ -31,6 +35,53 @@ type LoopFuture = Pin<Box<dyn Future<Output = ()> + Send>>;
 thread_local! {
     /// Whether this thread is running a connection's loop now.
     static RUNNING: Cell<bool> = const { Cell::new(false) };
+    /// Items a client thread's claimed run may still take (`None`: this
+    /// thread is not on a claimed run).
+    static CLAIM_BUDGET: Cell<Option<u32>> = const { Cell::new(None) };
+}
+
+/// Items a client thread takes on its claimed run before it hands the
+/// rest back to the connection's task: its own publish runs at once,
+/// other threads' traffic queued behind it does not hold it.
+const CLAIM_ITEMS: u32 = 64;
+
+/// One unit of work of a connection's loop, taken per item: on the task,
+/// a unit of tokio's cooperative budget; on a client thread's claimed
+/// run, a unit of the claim's own budget, whose end hands the loop back
+/// to the task (a yield, which wakes it) so the publishing thread returns.
+pub(super) async fn consume_budget() {
+    let claim_spent = CLAIM_BUDGET.with(|budget| match budget.get() {
+        Some(0) => true,
+        Some(left) => {
+            budget.set(Some(left - 1));
+            false
+        }
+        None => false,
+    });
+    if claim_spent {
+        tokio::task::yield_now().await;
+    } else {
+        tokio::task::consume_budget().await;
+    }
+}
+
+/// Marks this thread as running a connection's loop (with a claim's
+/// budget, on a client thread) until dropped, unwinding included.
+struct Running;
+
+impl Running {
+    fn enter(claim_budget: Option<u32>) -> Self {
+        RUNNING.with(|running| running.set(true));
+        CLAIM_BUDGET.with(|budget| budget.set(claim_budget));
+        Running
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        RUNNING.with(|running| running.set(false));
+        CLAIM_BUDGET.with(|budget| budget.set(None));
+    }
 }
 
 /// The item a client thread hands its connection's loop.
@@ -146,32 +197,48 @@ impl LoopClaim<'_> {
         true
     }
 
-    /// Runs the loop on this thread until it waits (it handles what it
-    /// has been handed and whatever else the link holds), then lets go.
-    pub fn run(mut self) {
+    /// Runs the loop on this thread until it waits or has taken
+    /// [`CLAIM_ITEMS`] items (it handles what it has been handed first,
+    /// then what else the link holds; the task does the rest), then lets
+    /// go. Whether the handed item was handled here. A panic in the loop
+    /// ends the connection, as on its task, and stays on this side.
+    pub fn run(mut self) -> bool {
         let Some(future) = self.future.as_mut() else {
-            return;
+            return false;
         };
         let _runtime = self.shared.runtime.enter();
-        RUNNING.with(|running| running.set(true));
         if let Some(running) = future.as_mut() {
-            if running
-                .as_mut()
-                .poll(&mut Context::from_waker(&self.waker))
-                .is_ready()
-            {
+            let polled = {
+                let _running = Running::enter(Some(CLAIM_ITEMS));
+                let mut cx = Context::from_waker(&self.waker);
+                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    running.as_mut().poll(&mut cx)
+                }))
+            };
+            let ended = match polled {
+                Ok(polled) => polled.is_ready(),
+                Err(_) => {
+                    tracing::error!("an in-process connection's loop panicked on a client thread; the connection ends");
+                    true
+                }
+            };
+            if ended {
                 **future = None;
                 // The task ends once it sees the loop gone.
                 self.waker.wake_by_ref();
             }
         }
-        RUNNING.with(|running| running.set(false));
+        !self.shared.handed.is_full()
     }
 }
 
 impl Drop for LoopClaim<'_> {
     fn drop(&mut self) {
         drop(self.future.take());
+        // Against the task's store of `missed` then try of the lock: one
+        // of the two sees the other (a fence each side, not ordering of
+        // two different locations alone).
+        fence(Ordering::SeqCst);
         if self.shared.missed.swap(false, Ordering::AcqRel) {
             self.waker.wake_by_ref();
         }
@@ -198,6 +265,7 @@ impl Future for LoopTask {
             Ok(future) => future,
             Err(TryLockError::WouldBlock) => {
                 shared.missed.store(true, Ordering::SeqCst);
+                fence(Ordering::SeqCst);
                 // The holder may have let go before it could see `missed`.
                 match shared.future.try_lock() {
                     Ok(future) => future,
@@ -211,9 +279,10 @@ impl Future for LoopTask {
         let Some(running) = future.as_mut() else {
             return Poll::Ready(());
         };
-        RUNNING.with(|r| r.set(true));
-        let polled = running.as_mut().poll(cx);
-        RUNNING.with(|r| r.set(false));
+        let polled = {
+            let _running = Running::enter(None);
+            running.as_mut().poll(cx)
+        };
         if polled.is_ready() {
             *future = None;
         }
@@ -252,4 +321,61 @@ pub(super) fn spawn(
 
 fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::AtomicUsize;
+    use std::task::Wake;
+
+    struct CountWakes(AtomicUsize);
+
+    impl Wake for CountWakes {
+        fn wake(self: Arc<Self>) {
+            self.0.fetch_add(1, Ordering::SeqCst);
+        }
+    }
+
+    /// A loop that takes `items` items, counting them into `taken`.
+    async fn taking(items: u32, taken: &Cell<u32>) {
+        for _ in 0..items {
+            consume_budget().await;
+            taken.set(taken.get() + 1);
+        }
+    }
+
+    #[test]
+    fn a_claimed_run_takes_its_budget_then_hands_back_with_a_wake() {
+        let wakes = Arc::new(CountWakes(AtomicUsize::new(0)));
+        let waker = Waker::from(Arc::clone(&wakes));
+        let taken = Cell::new(0);
+        let mut run = Box::pin(taking(CLAIM_ITEMS + 10, &taken));
+        let polled = {
+            let _running = Running::enter(Some(CLAIM_ITEMS));
+            run.as_mut().poll(&mut Context::from_waker(&waker))
+        };
+        assert!(polled.is_pending(), "the run stopped at its budget");
+        assert_eq!(taken.get(), CLAIM_ITEMS);
+        assert_eq!(wakes.0.load(Ordering::SeqCst), 1, "the task is woken");
+        assert!(!RUNNING.with(Cell::get), "the mark is gone");
+        // The task's poll, without a claim's budget, takes the rest.
+        let polled = {
+            let _running = Running::enter(None);
+            run.as_mut().poll(&mut Context::from_waker(&waker))
+        };
+        assert!(polled.is_ready());
+        assert_eq!(taken.get(), CLAIM_ITEMS + 10);
+    }
+
+    #[test]
+    fn the_running_mark_is_gone_after_a_panic() {
+        let unwound = std::panic::catch_unwind(|| {
+            let _running = Running::enter(Some(CLAIM_ITEMS));
+            panic!("in the loop");
+        });
+        assert!(unwound.is_err());
+        assert!(!RUNNING.with(Cell::get));
+        assert_eq!(CLAIM_BUDGET.with(Cell::get), None);
+    }
 }

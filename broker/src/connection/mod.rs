@@ -446,8 +446,9 @@ impl Connection {
                 // publish): without it a busy publisher's reader runs
                 // ~100 ms per socket read while the consumer writers it
                 // wakes wait in this worker's LIFO slot (measured: consume
-                // rate 7.5k instead of 300k/s).
-                tokio::task::consume_budget().await;
+                // rate 7.5k instead of 300k/s). On a client thread's run of
+                // an in-process loop, the claim's budget (`direct_loop`).
+                direct_loop::consume_budget().await;
                 // The messaging frames are handled at once, without a future
                 // of their own (see `Channel::handle_at_once`).
                 let at_once = match input {

@@ -476,8 +476,9 @@ impl OutboxSlot<'_> {
         if let Some(mut claim) = core.conn.here.as_ref().and_then(|here| here.claim()) {
             if claim.hand_or_send(item, self.permit) {
                 drop(state);
-                claim.run();
-                (core.conn.inline_publishes).fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                if claim.run() {
+                    (core.conn.inline_publishes).fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                }
             }
             return Ok(confirm);
         }

@@ -381,9 +381,9 @@ impl Connection {
     }
 
     /// How many of an in-process connection's publishes the broker's
-    /// connection handled on the publishing thread, with no task in
-    /// between (the in-process fast path; the others went through the
-    /// link to the connection's task). Always 0 over TCP.
+    /// connection took on the publishing thread, with no task in between
+    /// (the in-process fast path; the others went through the link to the
+    /// connection's task). Always 0 over TCP.
     pub fn inline_publishes(&self) -> u64 {
         self.inner
             .shared
