@@ -32,26 +32,7 @@ async fn publish_confirm_consume_over_the_pipe() {
         "{product:?}"
     );
     let channel = within("channel", connection.open_channel()).await.unwrap();
-    let queue = within(
-        "declare",
-        channel.queue_declare("", QueueDeclareOptions::default(), FieldTable::new()),
-    )
-    .await
-    .unwrap();
-    within("confirm.select", channel.confirm_select())
-        .await
-        .unwrap();
-    let mut consumer = within(
-        "consume",
-        channel.basic_consume(
-            &queue.name,
-            "",
-            BasicConsumeOptions::default(),
-            FieldTable::new(),
-        ),
-    )
-    .await
-    .unwrap();
+    let (queue, mut consumer) = consumed_queue_with_confirms(&channel, &channel).await;
     for i in 0..100u32 {
         let confirm = channel
             .basic_publish(
@@ -261,26 +242,7 @@ async fn in_process_deliveries_take_the_fast_path_in_order() {
         .expect("in-process connect");
     let out = within("channel", publisher.open_channel()).await.unwrap();
     let inbound = within("channel", consuming.open_channel()).await.unwrap();
-    let queue = within(
-        "declare",
-        inbound.queue_declare("", QueueDeclareOptions::default(), FieldTable::new()),
-    )
-    .await
-    .unwrap();
-    let mut consumer = within(
-        "consume",
-        inbound.basic_consume(
-            &queue.name,
-            "",
-            BasicConsumeOptions::default(),
-            FieldTable::new(),
-        ),
-    )
-    .await
-    .unwrap();
-    within("confirm.select", out.confirm_select())
-        .await
-        .unwrap();
+    let (queue, mut consumer) = consumed_queue_with_confirms(&out, &inbound).await;
     let properties = BasicProperties {
         message_id: Some(ShortStr::from_static("fast")),
         ..Default::default()
@@ -361,6 +323,35 @@ async fn in_process_deliveries_take_the_fast_path_in_order() {
 }
 
 /// Publishes a numbered message; its confirm.
+/// A server-named queue declared and consumed on `consuming`, with
+/// `publishing` in confirm mode (the same channel or another).
+async fn consumed_queue_with_confirms(
+    publishing: &leveret_client::Channel,
+    consuming: &leveret_client::Channel,
+) -> (leveret_client::QueueInfo, leveret_client::Consumer) {
+    let queue = within(
+        "declare",
+        consuming.queue_declare("", QueueDeclareOptions::default(), FieldTable::new()),
+    )
+    .await
+    .unwrap();
+    within("confirm.select", publishing.confirm_select())
+        .await
+        .unwrap();
+    let consumer = within(
+        "consume",
+        consuming.basic_consume(
+            &queue.name,
+            "",
+            BasicConsumeOptions::default(),
+            FieldTable::new(),
+        ),
+    )
+    .await
+    .unwrap();
+    (queue, consumer)
+}
+
 async fn publish_numbered(
     channel: &leveret_client::Channel,
     queue: &ShortStr,
@@ -417,26 +408,7 @@ async fn in_process_publishes_run_on_the_callers_thread_in_order() {
         .expect("in-process connect");
     let out = within("channel", publisher.open_channel()).await.unwrap();
     let inbound = within("channel", consuming.open_channel()).await.unwrap();
-    let queue = within(
-        "declare",
-        inbound.queue_declare("", QueueDeclareOptions::default(), FieldTable::new()),
-    )
-    .await
-    .unwrap();
-    within("confirm.select", out.confirm_select())
-        .await
-        .unwrap();
-    let mut consumer = within(
-        "consume",
-        inbound.basic_consume(
-            &queue.name,
-            "",
-            BasicConsumeOptions::default(),
-            FieldTable::new(),
-        ),
-    )
-    .await
-    .unwrap();
+    let (queue, mut consumer) = consumed_queue_with_confirms(&out, &inbound).await;
     let mut next = 0u32;
     for _ in 0..ROUNDS {
         // One with the link free (the fast path when the loop is free),
