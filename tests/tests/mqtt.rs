@@ -1023,6 +1023,16 @@ fn queue_names(handle: &BrokerHandle) -> Vec<String> {
     handle.queues().into_iter().map(|q| q.name).collect()
 }
 
+/// Waits until queue `name` is listed (`listed`) or is not.
+async fn until_queue_listed(handle: &BrokerHandle, name: &str, listed: bool, what: &str) {
+    within(what, async {
+        while queue_names(handle).iter().any(|queue| queue == name) != listed {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+}
+
 #[both_runtimes]
 async fn qos_2_deliveries_complete_with_pubrec_pubrel_pubcomp_beyond_the_window() {
     let handle = start(Limits::default()).await;
@@ -2331,11 +2341,12 @@ async fn a_shared_subscription_spreads_messages_over_its_members() {
         client.disconnect().await.unwrap();
     }
     client3.unsubscribe("$share/g/jobs/#").await.unwrap();
-    within("the last member gone, the group's queue deleted", async {
-        while queue_names(&handle).contains(&"mqtt-shared-g/jobs/#".to_owned()) {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
+    until_queue_listed(
+        &handle,
+        "mqtt-shared-g/jobs/#",
+        false,
+        "the last member gone, the group's queue deleted",
+    )
     .await;
     handle.shutdown().await;
 }
@@ -2704,11 +2715,12 @@ async fn a_disconnect_can_end_a_persistent_session_but_not_extend_a_clean_one() 
     assert!(queue_names(&handle).contains(&"mqtt-subscription-endingqos0".to_owned()));
     raw.send(disconnect(0)).await;
     raw.assert_closed().await;
-    within("the ended session's queue deleted", async {
-        while queue_names(&handle).contains(&"mqtt-subscription-endingqos0".to_owned()) {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
+    until_queue_listed(
+        &handle,
+        "mqtt-subscription-endingqos0",
+        false,
+        "the ended session's queue deleted",
+    )
     .await;
     handle.shutdown().await;
 }
@@ -2944,23 +2956,19 @@ async fn a_persistent_sessions_shared_subscriptions_survive_a_reconnect_and_a_re
     .await;
     assert_eq!(codes, [SubscribeReasonCode::Success(QoS5::AtLeastOnce)]);
     disconnect5(client, events).await;
-    within("the group's queue gone with its last member", async {
-        while queue_names(&handle).contains(&group.to_owned()) {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
+    until_queue_listed(
+        &handle,
+        group,
+        false,
+        "the group's queue gone with its last member",
+    )
     .await;
 
     // Back without subscribing: a member of the group again, with its
     // subscription identifier.
     let (client, mut events, present) = persistent5("worker", port, false).await;
     assert!(present, "the shared subscription is session state");
-    within("the group's queue declared again", async {
-        while !queue_names(&handle).contains(&group.to_owned()) {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
-    .await;
+    until_queue_listed(&handle, group, true, "the group's queue declared again").await;
     publish_acked5(port, "w/1", "after a reconnect", false).await;
     let got = next_publish5(&mut events).await;
     assert_eq!(&got.payload[..], b"after a reconnect");
@@ -2972,11 +2980,12 @@ async fn a_persistent_sessions_shared_subscriptions_survive_a_reconnect_and_a_re
     let port = mqtt_port(&handle);
     let (client, mut events, present) = persistent5("worker", port, false).await;
     assert!(present, "kept across the restart");
-    within("the group's queue declared after the restart", async {
-        while !queue_names(&handle).contains(&group.to_owned()) {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
+    until_queue_listed(
+        &handle,
+        group,
+        true,
+        "the group's queue declared after the restart",
+    )
     .await;
     publish_acked5(port, "w/2", "after a restart", false).await;
     let got = next_publish5(&mut events).await;
