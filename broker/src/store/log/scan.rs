@@ -16,8 +16,8 @@ impl MessageLog {
         let state = self.state();
         let mut files: HashMap<u64, Vec<u8>> = HashMap::new();
         // Sorted as copies side by side: sorting references into the hash
-        // table would chase a pointer per comparison (with a million keys,
-        // that alone took most of a second at start-up).
+        // table would chase a pointer per comparison (with many keys, that
+        // alone was most of a start-up's scan).
         let mut live: Vec<(LogKey, Location)> = state
             .index
             .keys
