@@ -97,7 +97,7 @@ pub(super) fn read_segment_list(dir: &Path) -> Result<Option<(u64, Listed)>, Str
 
 /// Writes `listed` as record `sequence` of the segment list, synced (one
 /// `pwrite` and one `fdatasync`: segments are started and retired rarely,
-/// once per [`SEGMENT_BYTES`] written).
+/// once per [`SEGMENT_BYTES`](super::append::SEGMENT_BYTES) written).
 pub(super) fn write_segment_list(
     dir: &Path,
     file: &File,

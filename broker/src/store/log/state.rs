@@ -45,7 +45,8 @@ pub struct MessageLog {
     pub(super) dir: PathBuf,
     pub(super) segment_bytes: u64,
     pub(super) state: Mutex<State>,
-    /// What opening it with [`OnDamage::Salvage`] could not keep.
+    /// What opening it with [`OnDamage::Salvage`](super::OnDamage::Salvage)
+    /// could not keep.
     pub(super) losses: Losses,
 }
 
