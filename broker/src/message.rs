@@ -54,10 +54,9 @@ impl Stored {
     }
 }
 
-/// Memory a queued message costs beyond its body and properties, measured
-/// (1,000,000 queued 16-byte messages take ~314 bytes each): the `Arc`'d
-/// `Message`, the queue slot, and its share of the read buffer it was
-/// sliced from.
+/// Memory a queued message costs beyond its body and properties, as
+/// measured with a million small messages queued: the `Arc`'d `Message`,
+/// the queue slot, and its share of the read buffer it was sliced from.
 pub(crate) const MESSAGE_OVERHEAD: usize = 300;
 
 /// One message; shared by `Arc` between every queue it was routed to.

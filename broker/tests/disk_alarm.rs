@@ -5,9 +5,10 @@
 //! refuses all work after one I/O error until it is reopened.
 //!
 //! Two tests simulate the disk (an injected free-space probe and a store
-//! that poisons itself like sled); the third fills a real, small tmpfs
-//! under sled. Mounting one needs root (a CI container or sandbox has it):
-//! elsewhere that test says so and returns, under CI it fails.
+//! that poisons itself like sled); the third (with the `persistence`
+//! feature) fills a real, small tmpfs under sled. Mounting one needs root
+//! (a CI container or sandbox has it): elsewhere that test says so and
+//! returns, under CI it fails.
 
 use lapin::options::{BasicPublishOptions, ConfirmSelectOptions, QueueDeclareOptions};
 use lapin::publisher_confirm::{Confirmation, PublisherConfirm};
@@ -306,10 +307,12 @@ async fn the_disk_free_limit_blocks_publishers_and_clears_without_a_write() {
 }
 
 /// A small tmpfs, unmounted when dropped.
+#[cfg(feature = "persistence")]
 struct SmallDisk {
     dir: std::path::PathBuf,
 }
 
+#[cfg(feature = "persistence")]
 impl SmallDisk {
     /// Mounts a `size`-byte tmpfs, or says why not: mounting needs root
     /// (a CI container or sandbox has it). Under CI the test fails instead
@@ -356,6 +359,7 @@ impl SmallDisk {
     }
 }
 
+#[cfg(feature = "persistence")]
 impl Drop for SmallDisk {
     fn drop(&mut self) {
         let _ = std::process::Command::new("umount")
@@ -366,6 +370,7 @@ impl Drop for SmallDisk {
     }
 }
 
+#[cfg(feature = "persistence")]
 async fn start_in(dir: &std::path::Path, disk_free_limit: u64) -> BrokerHandle {
     Broker::builder()
         .listen("127.0.0.1:0".parse().expect("addr"))
@@ -385,6 +390,7 @@ async fn start_in(dir: &std::path::Path, disk_free_limit: u64) -> BrokerHandle {
 /// every confirmed message is there. Then with a limit above the free
 /// space the alarm blocks before the disk fills, and freeing space
 /// unblocks.
+#[cfg(feature = "persistence")]
 #[both_runtimes]
 async fn the_store_on_a_full_tmpfs_nacks_then_resumes_and_the_alarm_blocks_before_it_fills() {
     let Some(disk) = SmallDisk::mount(24 << 20) else {

@@ -1,6 +1,7 @@
 //! An embedded broker restarted in the same process: `shutdown` releases
 //! the data directory, so a new broker opens it at once and finds the
 //! durable state.
+#![cfg(feature = "persistence")]
 
 use lapin::options::{
     BasicGetOptions, BasicPublishOptions, BasicRejectOptions, ConfirmSelectOptions,

@@ -131,10 +131,10 @@ impl ShortStr {
 /// The empty string, always inline: an empty `Bytes` (an empty literal's,
 /// `Bytes::new()`'s) points at the dangling address 0x1, and glibc's
 /// AVX-512 `memcmp` loads through both pointers even for 0 bytes (masked),
-/// which at an unmapped address costs a microcode assist: ~100-400 ns per
-/// comparison, measured, where a valid pointer costs ~8. Every publish to
-/// the default exchange compared its name with one (10% of a no-ack
-/// publish's CPU, docs/performance.md).
+/// which at an unmapped address costs a microcode assist, many times a
+/// comparison through a valid pointer. Every publish to the default
+/// exchange compared its name with one (the profile is in
+/// docs/performance.md).
 const EMPTY: Repr = Repr::Inline {
     len: 0,
     bytes: [0; INLINE_CAP],

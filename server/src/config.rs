@@ -35,8 +35,8 @@ const DEFAULT_DATA_DIR: &str = "leveret-data";
 /// The log filter unless told otherwise.
 const DEFAULT_LOG: &str = "info";
 /// The default busy-poll window: Linux haltpoll's default poll time,
-/// enough to catch a client's answer on this VM class (measured: a one-in-
-/// flight round trip's p99 goes from 257 µs to 114-121 µs).
+/// enough to catch a client's answer on a small VM (round trips with and
+/// without it: perf/results/2026-11-24/busy-poll-contention.txt).
 const DEFAULT_BUSY_POLL_MICROS: u64 = 200;
 
 /// Why the configuration cannot be used.

@@ -105,10 +105,9 @@ fn main() -> ExitCode {
 }
 
 /// By default one thread serves every connection: busy polling needs the
-/// thread that spins to be the one that polls the sockets, and on the
-/// small machines this broker is for, one thread also moved more messages
-/// than two (measured: noack 522k vs 507k msgs/s, manual acks 477k vs
-/// 421k). `worker-threads` above 1 gives tokio's multi-thread runtime.
+/// thread that spins to be the one that polls the sockets (one worker
+/// against two: perf/results/2026-11-27/worker-threads-9935aa7.txt).
+/// `worker-threads` above 1 gives tokio's multi-thread runtime.
 /// Storage has a thread of its own either way.
 fn runtime(worker_threads: usize) -> std::io::Result<tokio::runtime::Runtime> {
     let mut builder = match worker_threads {

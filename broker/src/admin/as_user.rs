@@ -186,7 +186,8 @@ impl AsUser<'_> {
         )
     }
 
-    /// queue.bind or exchange.bind (see [`AsUser::check_binding`]).
+    /// queue.bind or exchange.bind: write on the destination, read on the
+    /// source, the routing key against a topic source's topic permission.
     pub async fn bind(&self, vhost: &str, binding: BindingSpec) -> AmqpResult<()> {
         self.check_binding(vhost, &binding)?;
         self.admin.bind(vhost, binding).await

@@ -26,10 +26,10 @@ use crate::vhost::Vhost;
 use leveret_protocol::{FieldTable, ShortStr};
 use std::sync::Arc;
 
-/// Queues copied out of a vhost's registry per hold of its lock:
-/// measured, copying 100k at once held it 4-12 ms; a chunk of this size
-/// holds it well under a millisecond, and a declare waiting for the
-/// registry gets in between chunks.
+/// Queues copied out of a vhost's registry per hold of its lock: copying
+/// a large vhost's queues at once holds it for milliseconds; a chunk of
+/// this size holds it briefly, and a declare waiting for the registry
+/// gets in between chunks.
 const REGISTRY_CHUNK: usize = 1024;
 
 /// Every queue of `vhost`, read a chunk at a time. Queues added or removed

@@ -198,7 +198,7 @@ impl LoopClaim<'_> {
     }
 
     /// Runs the loop on this thread until it waits or has taken
-    /// [`CLAIM_ITEMS`] items (it handles what it has been handed first,
+    /// `CLAIM_ITEMS` items (it handles what it has been handed first,
     /// then what else the link holds; the task does the rest), then lets
     /// go. Whether the handed item was handled here. A panic in the loop
     /// ends the connection, as on its task, and stays on this side.

@@ -338,8 +338,8 @@ struct Connection {
     identity: Identity,
     user: String,
     vhost: Option<Arc<Vhost>>,
-    /// Looked up per frame: hashed by a multiply, not SipHash (about 2%
-    /// of the broker's CPU under load); see `word_hash` for why a peer's
+    /// Looked up per frame: hashed by a multiply, not SipHash (which
+    /// showed in profiles under load); see `word_hash` for why a peer's
     /// channel numbers are safe keys for it.
     channels: WordHashMap<u16, Channel>,
     /// Most channels open at once (the negotiated channel_max; 0 from the
@@ -443,10 +443,10 @@ impl Connection {
                     },
                 };
                 // One unit of tokio's cooperative budget per frame (or whole
-                // publish): without it a busy publisher's reader runs
-                // ~100 ms per socket read while the consumer writers it
-                // wakes wait in this worker's LIFO slot (measured: consume
-                // rate 7.5k instead of 300k/s). On a client thread's run of
+                // publish): without it a busy publisher's reader runs on
+                // and on per socket read while the consumer writers it
+                // wakes wait in this worker's LIFO slot (consumers fell far
+                // behind). On a client thread's run of
                 // an in-process loop, the claim's budget (`direct_loop`).
                 direct_loop::consume_budget().await;
                 // The messaging frames are handled at once, without a future

@@ -41,9 +41,9 @@ pub(super) const READ_IDLE: usize = 1024;
 pub(super) const READ_MAX: usize = 64 * 1024;
 /// How long a connection (reader or writer) keeps a buffer larger than it
 /// needs after its last read or write. Releasing at once, whenever the
-/// socket had nothing more, cost a reallocation per wake-up (measured: 4
-/// KiB messages took 25% more broker CPU, glibc trimming and faulting the
-/// pages back in).
+/// socket had nothing more, cost a reallocation per wake-up (glibc
+/// trimming and faulting the pages back in, seen in the broker's CPU per
+/// message).
 pub(super) const IDLE_RELEASE: std::time::Duration = std::time::Duration::from_secs(1);
 /// The frame type of method frames.
 const METHOD_FRAME: u8 = 1;
@@ -105,10 +105,8 @@ impl Incoming for DuplexStream {
 /// read buffer rather than kept as slices of it: a quarter of the largest
 /// buffer a connection with `frame_max` can have (32 KiB by default), so a
 /// slice pins at most four times its own size, where a 16-byte body kept
-/// as a slice could pin a 64 KiB buffer. Measured (one publisher, one
-/// consumer, broker CPU per message, median of five runs on a shared
-/// two-core machine): copying cost nothing above the noise for 16 B, 1 KiB
-/// and 16 KiB bodies, and about 10% at 4 KiB (4.46 against 3.78-4.10 µs).
+/// as a slice could pin a 64 KiB buffer. Copying that little costs little
+/// in the broker's CPU per message (most at a few KiB).
 pub(crate) fn copy_below(frame_max: u32) -> usize {
     READ_MAX.max(frame_max as usize + FRAME_OVERHEAD) / 4
 }

@@ -55,6 +55,8 @@ pub(super) struct CleanShutdown {
 impl BrokerHandle {
     /// Lets the listeners [`BrokerBuilder::hold_listeners`] held accept
     /// clients (a no-op when they already do).
+    ///
+    /// [`BrokerBuilder::hold_listeners`]: super::BrokerBuilder::hold_listeners
     pub fn open_listeners(&self) {
         self.open.send_replace(true);
     }

@@ -120,8 +120,8 @@ impl Queue {
                 continue;
             };
             if ops.is_empty() {
-                // Sized for the usual one op per message (growing it was
-                // 0.5% of the broker's CPU under persistent load).
+                // Sized for the usual one op per message (growing it
+                // showed in profiles under persistent load).
                 ops.reserve(leaving.len() - at);
             }
             ops.push(StoreOp::Dequeue {

@@ -134,8 +134,8 @@ impl Ready {
 }
 
 /// Gives back the room a burst grew once the FIFO is mostly empty: a
-/// VecDeque never shrinks by itself, and a drained backlog of a million
-/// messages kept 48 MB. Copies what is left, at most a quarter of the
+/// VecDeque never shrinks by itself, so a drained backlog kept all the
+/// room it grew. Copies what is left, at most a quarter of the
 /// capacity (a growth copies all of it), keeping room for twice that.
 fn give_back_spare(fifo: &mut VecDeque<QueuedMessage>) {
     let capacity = fifo.capacity();

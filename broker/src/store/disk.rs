@@ -1,9 +1,9 @@
 //! The on-disk [`Store`] of a data directory: definitions in sled
 //! ([`SledStore`], in `store/`), the keys written for every message in the
 //! [`MessageLog`] (in `messages/`), each key where the codec's [`home`]
-//! says. sled costs several microseconds and a few allocations per key
-//! plus its own I/O threads, which made it the ceiling of the persistent
-//! path; the log appends and syncs once per group.
+//! says. sled's cost per key (its allocations, its own I/O threads) made
+//! it the ceiling of the persistent path; the log appends and syncs once
+//! per group.
 //!
 //! A write goes to each engine in order; an atomic write must stay within
 //! one engine (a transaction's messages, or a set of definitions), which is

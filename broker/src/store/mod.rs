@@ -5,7 +5,7 @@
 //!
 //! Storage engines implement the small key-value [`Store`] trait: on disk
 //! [`DiskStore`] (`disk.rs`), which keeps definitions in sled (`sled.rs`)
-//! and the keys written for every message in the message log (`log.rs`,
+//! and the keys written for every message in the message log (`log/`,
 //! append-only segments, one sync per group); `memory.rs` for tests and
 //! transient brokers. The on-disk engines are the `persistence` feature's
 //! (default): without it, durable state lives only in a [`Store`] the
@@ -56,8 +56,6 @@ mod disk;
 mod integrity;
 #[cfg(feature = "persistence")]
 mod log;
-#[cfg(feature = "persistence")]
-mod log_key;
 mod memory;
 mod persister;
 #[cfg(feature = "persistence")]

@@ -9,8 +9,8 @@
 //! Submissions wait in an [`Inbox`] under a mutex: a submission is
 //! numbered and queued in one step, so the persister always takes a
 //! contiguous run of numbers, and the only cross-thread signal is a wake
-//! when the persister sleeps (a channel cost ~140 ns per send in atomics
-//! shared with the draining thread).
+//! when the persister sleeps (a channel costs every send atomics shared
+//! with the draining thread).
 
 use super::slots::{SlotFile, SlotRecord};
 use super::{guarded, KvOp, Recovered, Store, StoreError, StoreOp, WriteMode};
@@ -207,8 +207,8 @@ struct Group {
     pending: Vec<Option<StoreOp>>,
     /// Where in `pending` each fresh key's insert waits.
     /// Hashed by a multiply per word: its words are positions and ids the
-    /// broker hands out, never a peer's choice (SipHash was 2.5% of the
-    /// broker's CPU under persistent load).
+    /// broker hands out, never a peer's choice (SipHash showed in the
+    /// broker's profile under persistent load).
     fresh: WordHashMap<Fresh, usize>,
     /// Inserts dropped with their removes.
     elided: usize,

@@ -3,7 +3,7 @@
 //! permissions, declaring and deleting...): who made it (the
 //! authenticated user), what it was (method and path, as sent) and how it
 //! ended (the status). Reads are not logged; refused logins and requests
-//! the caller's tags forbid are logged where they are refused (`mod`).
+//! the caller's tags forbid are logged where they are refused (`login`).
 
 use super::caller::Caller;
 use axum::extract::Request;

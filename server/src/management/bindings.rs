@@ -8,11 +8,12 @@
 //! the exchange and queue lookups of `exchanges` and `queues`, and the
 //! broker through `Admin`.
 
+use super::api::{ApiError, Context};
 use super::caller::Caller;
 use super::common::{body_object, exchange_name, no_content, require_vhost, ApiResult, Ctx};
 use super::exchanges::require_exchange;
+use super::json;
 use super::queues::queue_ref;
-use super::{json, ApiError, Context};
 use axum::body::Bytes;
 use axum::extract::{Path, State};
 use axum::http::{header, StatusCode};

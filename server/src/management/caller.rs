@@ -12,8 +12,8 @@
 //! each operation on an object is then checked against the caller's
 //! permissions by the broker (`Admin::as_user`), as AMQP checks it.
 
-use super::ApiError;
-use axum::http::{Method, StatusCode};
+use super::api::ApiError;
+use axum::http::Method;
 use leveret_broker::Admin;
 use std::collections::HashSet;
 
@@ -89,20 +89,12 @@ pub struct Caller {
     policymaker: bool,
 }
 
-/// 401 `not_authorised` with `reason`, as RabbitMQ refuses a caller.
-pub(super) fn not_authorised(reason: &str) -> ApiError {
-    ApiError {
-        status: StatusCode::UNAUTHORIZED,
-        error: "not_authorised",
-        reason: reason.to_owned(),
-    }
-}
-
 impl Caller {
     /// The caller `user`, by their tags; 401 when no tag lets them in.
     pub fn new(user: &str, admin: &Admin) -> Result<Caller, ApiError> {
         let tags = admin.user(user).map(|user| user.tags).unwrap_or_default();
-        let role = Role::of(&tags).ok_or_else(|| not_authorised("Not management user"))?;
+        let role =
+            Role::of(&tags).ok_or_else(|| ApiError::not_authorised("Not management user"))?;
         let vhosts = admin
             .permissions()
             .into_iter()
@@ -136,7 +128,7 @@ impl Caller {
         let reads = method == Method::GET || method == Method::HEAD;
         let first = segments.first().map(String::as_str).unwrap_or("");
         if first == "policies" && !self.policymaker {
-            return Err(not_authorised("Not policymaker user"));
+            return Err(ApiError::not_authorised("Not policymaker user"));
         }
         let admin_only = matches!(
             first,
@@ -153,7 +145,7 @@ impl Caller {
             "vhosts" | "connections" | "parameters" | "cluster-name" | "vhost-limits"
         ) && !reads);
         if admin_only {
-            return Err(not_authorised("Not administrator user"));
+            return Err(ApiError::not_authorised("Not administrator user"));
         }
         let scoped = matches!(
             first,
@@ -174,7 +166,9 @@ impl Caller {
                 if may_read_all || self.vhosts.contains(vhost) {
                     Ok(())
                 } else {
-                    Err(not_authorised("User not authorised to access virtual host"))
+                    Err(ApiError::not_authorised(
+                        "User not authorised to access virtual host",
+                    ))
                 }
             }
             _ => Ok(()),

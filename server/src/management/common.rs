@@ -2,13 +2,13 @@
 //! the handler types (`Ctx`, `ApiResult`, `Params`), looking up a vhost,
 //! reading a JSON body or a `?flag=true`, `amq.default` for the default
 //! exchange, the empty answers (201/204, the fallback 404) and a listing,
-//! paginated when asked (`pagination`). Uses only `mod`'s context and
+//! paginated when asked (`pagination`). Uses only `api`'s context and
 //! errors, `json` and `pagination`; the resources' files use it, it uses
 //! none of them.
 
+use super::api::{ApiError, Context};
 use super::json;
 use super::pagination::Pagination;
-use super::{ApiError, Context};
 use axum::body::Bytes;
 use axum::extract::{Query, State};
 use axum::http::StatusCode;

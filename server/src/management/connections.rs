@@ -3,9 +3,10 @@
 //! reason the client gives in `X-Reason`. Uses `common`, `json`, `caller`
 //! and the broker through `Admin`.
 
+use super::api::{ApiError, Context};
 use super::caller::Caller;
 use super::common::{listing, no_content, ApiResult, Ctx, Params};
-use super::{json, ApiError, Context};
+use super::json;
 use axum::extract::{Path, Query, State};
 use axum::http::HeaderMap;
 use axum::{Extension, Json};

@@ -2,9 +2,10 @@
 //! may see, each with its connection's peer. Uses `common`, `json`,
 //! `caller` and the broker through `Admin`.
 
+use super::api::Context;
 use super::caller::Caller;
 use super::common::{require_vhost, ApiResult, Ctx};
-use super::{json, Context};
+use super::json;
 use axum::extract::{Path, State};
 use axum::{Extension, Json};
 use serde_json::Value;

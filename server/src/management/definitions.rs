@@ -3,8 +3,8 @@
 //! was applied and what was not. Reading and applying a document is
 //! `crate::definitions`' job; this file is its HTTP face. Uses `common`.
 
+use super::api::{ApiError, Context};
 use super::common::{require_vhost, ApiResult, Ctx};
-use super::{ApiError, Context};
 use crate::definitions::Definitions;
 use axum::body::Bytes;
 use axum::extract::{Path, State};

@@ -4,12 +4,13 @@
 //! and publishing through one. Their bindings' listings are `bindings`'.
 //! Uses `common`, `json`, `caller` and the broker through `Admin`.
 
+use super::api::{ApiError, Context};
 use super::caller::Caller;
 use super::common::{
     body_object, created_or_not, exchange_name, listing, no_content, query_flag, require_vhost,
     ApiResult, Ctx, Params,
 };
-use super::{json, ApiError, Context};
+use super::json;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
 use axum::{Extension, Json};

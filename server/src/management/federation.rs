@@ -5,10 +5,10 @@
 //! `policies`'. Changes go to `crate::federation`, which keeps them in the
 //! broker's store.
 
+use super::api::ApiError;
 use super::caller::Caller;
 use super::common::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
 use super::parameters::upstream_parameter;
-use super::ApiError;
 use crate::federation::Federation;
 use axum::body::Bytes;
 use axum::extract::{Path, State};

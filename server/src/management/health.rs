@@ -24,9 +24,9 @@
 //! or the refusal as RabbitMQ words it). Uses `common`, `caller` and the
 //! broker through `Admin`.
 
+use super::api::{ApiError, Context};
 use super::caller::Caller;
 use super::common::{require_vhost, ApiResult, Ctx};
-use super::ApiError;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
@@ -50,7 +50,7 @@ fn failed(reason: &str, extra: Value) -> Response {
     (StatusCode::SERVICE_UNAVAILABLE, Json(body)).into_response()
 }
 
-fn alarm_check(c: &super::Context, reason: &str) -> Response {
+fn alarm_check(c: &Context, reason: &str) -> Response {
     let o = c.admin.overview();
     let alarms: Vec<Value> = [("memory", o.memory_alarm), ("disk", o.disk_alarm)]
         .into_iter()

@@ -5,9 +5,9 @@
 //! DELETE clears it, both 204 as RabbitMQ answers. Changes go through
 //! [`leveret_broker::Admin`], which keeps them in the store.
 
+use super::api::{ApiError, Context};
 use super::caller::Caller;
 use super::common::{body_object, no_content, require_vhost, ApiResult, Ctx};
-use super::ApiError;
 use axum::body::Bytes;
 use axum::extract::{Path, State};
 use axum::{Extension, Json};
@@ -88,7 +88,7 @@ pub async fn user_limits(State(c): Ctx) -> Json<Value> {
     Json(all.iter().map(|(u, l)| user_entry(u, *l)).collect())
 }
 
-fn require_user(c: &super::Context, user: &str) -> ApiResult<()> {
+fn require_user(c: &Context, user: &str) -> ApiResult<()> {
     match c.admin.users().iter().any(|(name, _)| name == user) {
         true => Ok(()),
         false => Err(ApiError::not_found(format!("no user '{user}'"))),

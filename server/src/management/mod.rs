@@ -19,7 +19,8 @@
 //! runtime-parameter listings), `policies` (and operator policies, the
 //! cluster name, global parameters), `limits` (vhost and user limits),
 //! `health` (the health checks and the aliveness test). Beside them:
-//! `mod` (router, auth, errors, the shared context), `common` (what every
+//! `mod` (the router), `api` (the shared context and the errors),
+//! `login` (basic auth and the caller's tags at the door), `common` (what every
 //! resource's handlers share), `caller` (who calls and what their tags
 //! let them do), `pagination` (RabbitMQ's `page`, `page_size`, `name`,
 //! `sort`), `json` (objects and body parsing), `rates` (the sampler
@@ -28,8 +29,9 @@
 //! `bindings` uses two others' lookups (an exchange's, a queue's), and no
 //! resource is used by those it uses.
 //! Handlers reach the broker only
-//! through [`Admin`]; they run on the listeners' thread.
+//! through [`Admin`](leveret_broker::Admin); they run on the listeners' thread.
 
+mod api;
 mod audit;
 mod bindings;
 mod caller;
@@ -43,6 +45,7 @@ mod federation;
 mod health;
 pub mod json;
 mod limits;
+mod login;
 mod overview;
 mod pagination;
 mod parameters;
@@ -54,223 +57,16 @@ mod shovels;
 mod users;
 mod vhosts;
 
-use crate::http::Peer;
-use crate::uplink::{DeclareError, Links};
-use axum::extract::{DefaultBodyLimit, Request, State};
-use axum::http::{header, HeaderMap, StatusCode};
-use axum::middleware::Next;
-use axum::response::{IntoResponse, Response};
+pub use api::Context;
+use axum::extract::DefaultBodyLimit;
 use axum::routing::{delete, get, post, put};
-use axum::{Json, Router};
-use base64::Engine;
+use axum::Router;
 pub(crate) use caller::percent_decoded;
-use caller::Caller;
-use leveret_broker::{AccessError, Admin, AmqpError};
-use leveret_protocol::ReplyCode;
 pub use rates::Rates;
-use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::sync::Arc;
 
 /// The largest request body read (a publish's payload, a definitions file).
 pub const MAX_BODY: usize = 1024 * 1024;
-
-/// What the handlers share.
-#[derive(Debug, Clone)]
-pub struct Context {
-    /// The broker.
-    pub admin: Admin,
-    /// The shovels and federation.
-    pub links: Links,
-    /// `leveret@HOST`.
-    pub node: String,
-    /// Where durable state lives (disk figures).
-    pub data_dir: PathBuf,
-    /// Every listener of the process by RabbitMQ's protocol name (`amqp`,
-    /// `amqp/ssl`, `mqtt`, `http`, `http/prometheus`), for the overview
-    /// and the health checks.
-    pub listeners: Vec<(&'static str, SocketAddr)>,
-    /// The TLS listeners' certificate files, if there are TLS listeners.
-    pub tls: Option<leveret_broker::TlsOptions>,
-    /// Message rates.
-    pub rates: Rates,
-    /// The effective configuration (`crate::environment`).
-    pub environment: serde_json::Value,
-}
-
-/// An API error as RabbitMQ words them: `{"error": ..., "reason": ...}`.
-#[derive(Debug)]
-pub struct ApiError {
-    status: StatusCode,
-    error: &'static str,
-    reason: String,
-}
-
-impl ApiError {
-    /// 400 with `reason`.
-    pub fn bad_request(reason: impl Into<String>) -> Self {
-        ApiError {
-            status: StatusCode::BAD_REQUEST,
-            error: "bad_request",
-            reason: reason.into(),
-        }
-    }
-
-    /// 404.
-    pub fn not_found(reason: impl Into<String>) -> Self {
-        ApiError {
-            status: StatusCode::NOT_FOUND,
-            error: "Object Not Found",
-            reason: reason.into(),
-        }
-    }
-
-    fn unauthorized() -> Self {
-        ApiError {
-            status: StatusCode::UNAUTHORIZED,
-            error: "not_authorized",
-            reason: "Login failed".into(),
-        }
-    }
-}
-
-impl ApiError {
-    /// An operation the caller's permissions refuse, as RabbitMQ answers
-    /// `get` and the aliveness test: 401 with the AMQP reply text; other
-    /// errors as [`From<AmqpError>`].
-    pub fn refused_with_text(e: AmqpError) -> Self {
-        match e.code {
-            ReplyCode::AccessRefused => caller::not_authorised(&e.text),
-            _ => e.into(),
-        }
-    }
-
-    /// A publish the broker did not take, as RabbitMQ answers one its
-    /// channel refused: 400 with the reply code and text. During a
-    /// resource alarm (or when the store cannot write), 503.
-    pub fn publish_refused(e: AmqpError) -> Self {
-        match e.code {
-            ReplyCode::ResourceError => ApiError {
-                status: StatusCode::SERVICE_UNAVAILABLE,
-                error: "service_unavailable",
-                reason: e.text,
-            },
-            _ => ApiError::bad_request(e.to_string()),
-        }
-    }
-}
-
-impl From<AmqpError> for ApiError {
-    /// Refusals by permission are RabbitMQ's 401 `Access refused.` for
-    /// declaring, deleting, binding and purging.
-    fn from(e: AmqpError) -> Self {
-        match e.code {
-            ReplyCode::NotFound => ApiError::not_found(e.text),
-            ReplyCode::AccessRefused => caller::not_authorised("Access refused."),
-            _ => ApiError::bad_request(e.text),
-        }
-    }
-}
-
-impl From<AccessError> for ApiError {
-    fn from(e: AccessError) -> Self {
-        match e {
-            AccessError::NoSuchUser(_) => ApiError::not_found(e.to_string()),
-            AccessError::Storage => ApiError {
-                status: StatusCode::INTERNAL_SERVER_ERROR,
-                error: "internal_server_error",
-                reason: e.to_string(),
-            },
-            AccessError::Pattern(_) | AccessError::BadName(_) | AccessError::BadValue(_) => {
-                ApiError::bad_request(e.to_string())
-            }
-        }
-    }
-}
-
-impl From<DeclareError> for ApiError {
-    fn from(e: DeclareError) -> Self {
-        match e {
-            DeclareError::Invalid(reason) => ApiError::bad_request(reason),
-            DeclareError::Storage(e) => e.into(),
-        }
-    }
-}
-
-impl IntoResponse for ApiError {
-    fn into_response(self) -> Response {
-        let body = Json(serde_json::json!({ "error": self.error, "reason": self.reason }));
-        let mut response = (self.status, body).into_response();
-        if self.status == StatusCode::UNAUTHORIZED {
-            response.headers_mut().insert(
-                header::WWW_AUTHENTICATE,
-                header::HeaderValue::from_static("Basic realm=\"RabbitMQ Management\""),
-            );
-        }
-        response
-    }
-}
-
-/// The user and password of a basic `Authorization` header.
-pub(super) fn basic_credentials(headers: &HeaderMap) -> Option<(String, String)> {
-    let value = headers.get(header::AUTHORIZATION)?.to_str().ok()?;
-    let encoded = value.strip_prefix("Basic ")?.trim();
-    let decoded = base64::engine::general_purpose::STANDARD
-        .decode(encoded)
-        .ok()?;
-    let text = String::from_utf8(decoded).ok()?;
-    let (user, password) = text.split_once(':')?;
-    Some((user.to_owned(), password.to_owned()))
-}
-
-async fn authenticate(
-    State(context): State<Arc<Context>>,
-    request: Request,
-    next: Next,
-) -> Response {
-    let mut request = request;
-    let credentials = basic_credentials(request.headers());
-    let peer = request.extensions().get::<Peer>().map(|peer| peer.0);
-    // Checks are queued and failures slowed per source address (as AMQP
-    // logins are), so one address's flood never delays another's login.
-    let source = peer.map_or_else(|| "management API".to_owned(), |peer| peer.to_string());
-    let passed = match &credentials {
-        Some((user, password)) => context.admin.authenticate(user, password, &source).await,
-        None => false,
-    };
-    if let (true, Some((user, _))) = (passed, &credentials) {
-        if !peer.is_none_or(|peer| context.admin.may_connect_from(user, peer)) {
-            tracing::info!(%user, ?peer, "management API login refused: loopback_users");
-            return caller::not_authorised("User can only log in via localhost").into_response();
-        }
-        let caller = match Caller::new(user, &context.admin) {
-            Ok(caller) => caller,
-            Err(refused) => {
-                tracing::info!(%user, "management API refused: no management tag");
-                return refused.into_response();
-            }
-        };
-        if let Some(segments) = caller::api_segments(request.uri().path()) {
-            if let Err(refused) = caller.authorize(request.method(), &segments) {
-                tracing::info!(%user, path = %request.uri().path(), "management API refused by the user's tags");
-                return refused.into_response();
-            }
-        }
-        request.extensions_mut().insert(caller);
-        return next.run(request).await;
-    }
-    // RabbitMQ's management plugin's line, with the peer the check was
-    // queued and slowed under.
-    match credentials {
-        Some((user, _)) => tracing::warn!(
-            peer = %source,
-            "HTTP access denied: user '{}' - invalid credentials",
-            user.escape_debug()
-        ),
-        None => tracing::warn!(peer = %source, "HTTP access denied: no credentials"),
-    }
-    ApiError::unauthorized().into_response()
-}
 
 /// The router of the management listener.
 pub fn router(context: Context) -> Router {
@@ -466,7 +262,7 @@ pub fn router(context: Context) -> Router {
         .route_layer(axum::middleware::from_fn(audit::log_changes))
         .route_layer(axum::middleware::from_fn_with_state(
             Arc::clone(&context),
-            authenticate,
+            login::authenticate,
         ));
     api.layer(DefaultBodyLimit::max(MAX_BODY))
         .with_state(context)

@@ -6,8 +6,8 @@
 //! process's own figures (`crate::process`) and the cluster name
 //! (`crate::policies`).
 
+use super::api::{ApiError, Context};
 use super::common::{ApiResult, Ctx, Params};
-use super::{ApiError, Context};
 use crate::process::ProcessFigures;
 use axum::extract::{Path, Query, State};
 use axum::Json;

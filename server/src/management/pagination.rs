@@ -15,7 +15,7 @@
 //! [`CHUNK`]), so a page of 100k queues costs memory for the page and one
 //! sort key per queue, not for every queue's JSON.
 
-use super::ApiError;
+use super::api::ApiError;
 use serde_json::{json, Value};
 use std::cmp::Ordering;
 use std::collections::HashMap;

@@ -8,9 +8,9 @@
 //! changing one, are the components' own paths (`shovels`,
 //! `federation`).
 
+use super::api::Context;
 use super::caller::Caller;
 use super::common::{require_vhost, ApiResult, Ctx};
-use super::Context;
 use crate::federation::UPSTREAM_COMPONENT;
 use crate::uplink::{Listed, SHOVEL_COMPONENT};
 use axum::extract::{Path, State};

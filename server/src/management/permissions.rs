@@ -4,8 +4,9 @@
 //! user's on one vhost, granting and clearing them. Uses `common`, `json`
 //! and the broker through `Admin`.
 
+use super::api::{ApiError, Context};
 use super::common::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
-use super::{json, ApiError, Context};
+use super::json;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
 use axum::Json;

@@ -5,9 +5,9 @@
 //! policies, administrator for operator policies, global parameters and
 //! setting the cluster name); the changes go through `crate::policies`.
 
+use super::api::{ApiError, Context};
 use super::caller::Caller;
 use super::common::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
-use super::{ApiError, Context};
 use crate::policies;
 use axum::body::Bytes;
 use axum::extract::{Path, State};

@@ -10,12 +10,13 @@
 //! bindings' listing is `bindings`'. Uses `common`, `json`,
 //! `pagination`, `rates`, `caller` and the broker through `Admin`.
 
+use super::api::{ApiError, Context};
 use super::caller::Caller;
 use super::common::{
     body_object, created_or_not, no_content, query_flag, require_vhost, ApiResult, Ctx, Params,
 };
+use super::json;
 use super::pagination::Pagination;
-use super::{json, ApiError, Context};
 use axum::body::{Body, Bytes};
 use axum::extract::{Path, Query, State};
 use axum::http::header;

@@ -6,9 +6,10 @@
 //! keeps them in the broker's store. Uses `common`, `json`, `caller` and
 //! `parameters`.
 
+use super::api::{ApiError, Context};
 use super::caller::Caller;
 use super::common::{body_object, created_or_not, no_content, require_vhost, ApiResult, Ctx};
-use super::{json, ApiError, Context};
+use super::json;
 use axum::body::Bytes;
 use axum::extract::{Path, State};
 use axum::{Extension, Json};

@@ -4,9 +4,10 @@
 //! hash), deleting one with their permissions. Uses `common`, `json`,
 //! `caller` and the broker through `Admin`.
 
+use super::api::ApiError;
 use super::caller::Caller;
 use super::common::{body_object, created_or_not, no_content, ApiResult, Ctx};
-use super::{json, ApiError};
+use super::json;
 use axum::body::Bytes;
 use axum::extract::{Path, State};
 use axum::{Extension, Json};

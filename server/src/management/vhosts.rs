@@ -8,9 +8,9 @@
 //! [`leveret_broker::Admin::delete_vhost`]. Uses `common`, `caller` and
 //! the broker through `Admin`.
 
+use super::api::{ApiError, Context};
 use super::caller::Caller;
 use super::common::{created_or_not, listing, no_content, require_vhost, ApiResult, Ctx, Params};
-use super::{ApiError, Context};
 use axum::extract::{Path, Query, State};
 use axum::{Extension, Json};
 use leveret_broker::Permission;
