@@ -97,6 +97,36 @@ impl Shared {
     }
 }
 
+/// How often [`sweeper`] looks for expired sessions' state.
+const SESSION_SWEEP_PERIOD: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// Deletes, until the broker shuts down, the state persistent sessions
+/// kept beside their queues once their Session Expiry Interval has passed
+/// (their unreleased QoS 2 publishes, their shared subscriptions and so
+/// their groups' hold on their queues), from the store too, so that a
+/// session that never comes back leaves nothing behind.
+pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
+    let mut shutdown = core.shutdown_signal();
+    let mut ticks = tokio::time::interval(SESSION_SWEEP_PERIOD);
+    ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = ticks.tick() => {}
+            _ = shutdown.wait_for(|down| *down) => return,
+        }
+        let releases = shared.releases.sweep();
+        let groups = shared.shares.sweep();
+        if releases > 0 || !groups.is_empty() {
+            tracing::debug!(
+                releases,
+                groups = groups.len(),
+                "expired MQTT sessions' state deleted"
+            );
+        }
+        shares::apply(&core, groups);
+    }
+}
+
 /// How a broker's MQTT clients log in beyond a user name and password.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct Options {
