@@ -17,7 +17,8 @@
 //! certificate mappings); `takeover` the client identifiers in use;
 //! `retained` the retained messages; `releases` persistent sessions' QoS 2
 //! publishes awaiting PUBREL; `shares` persistent sessions' shared
-//! subscriptions; `properties` 5.0 PUBLISH properties ↔ AMQP properties;
+//! subscriptions and their groups' hold on their queues; [`sweeper`] the
+//! expiry of what those two keep; `properties` 5.0 PUBLISH properties ↔ AMQP properties;
 //! `subscriptions` a session's subscriptions, their 5.0 options and shared
 //! subscriptions; `expiry` a persistent session's expiry on its queues;
 //! `aliases` inbound topic aliases; `wills` last wills and their delay.

@@ -165,7 +165,7 @@ impl Releases {
     ) {
         let key = (vhost.to_owned(), client_id.to_owned());
         let mut sessions = self.lock();
-        if ids.is_empty() && !sessions.get(&key).is_some_and(|h| !h.stored.is_empty()) {
+        if ids.is_empty() && sessions.get(&key).is_none_or(|h| h.stored.is_empty()) {
             sessions.remove(&key);
             return;
         }
