@@ -1380,6 +1380,85 @@ async fn a_persistent_session_keeps_unreleased_qos_2_publishes_across_a_restart(
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Unreleased QoS 2 publishes expire with their 5.0 session, counted from
+/// the restart: a resend after that is a new publish, routed again (the
+/// store holding nothing for it is `releases`' unit test).
+#[both_runtimes]
+async fn an_expired_sessions_unreleased_qos_2_publishes_go_after_a_restart() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-qos2-expiry"));
+    let durable = || Broker::builder().data_dir(&dir);
+    let handle = start_with(durable(), Limits::default()).await;
+    let (amqp, channel) = amqp_channel(&handle).await;
+    let options = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    tmo!(channel.queue_declare("expiring-once", options, Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "expiring-once", "e2.#").await;
+    drop(amqp);
+    // A raw 5.0 client whose session expires a second after its
+    // connection; true if it was kept.
+    async fn connect(port: u16, clean_start: bool) -> (Raw, bool) {
+        let mut raw = Raw::connect(port).await;
+        raw.version = ProtocolVersion::V5;
+        let mut properties = leveret_mqtt::Properties::default();
+        properties.session_expiry_interval = Some(1);
+        raw.send(Packet::Connect(Box::new(Connect {
+            version: ProtocolVersion::V5,
+            clean_start,
+            keep_alive: 0,
+            properties,
+            client_id: leveret_mqtt::MqttString::from_static("expiring-publisher"),
+            will: None,
+            username: Some(leveret_mqtt::MqttString::from_static("robot")),
+            password: Some(Bytes::from_static(b"secret")),
+        })))
+        .await;
+        match raw.next().await {
+            Some(Packet::ConnAck(ack)) => (raw, ack.session_present),
+            other => panic!("expected CONNACK, got {other:?}"),
+        }
+    }
+    let id = std::num::NonZeroU16::new(5).unwrap();
+    let publish = |dup| {
+        Packet::Publish(Publish {
+            dup,
+            delivery: Delivery::ExactlyOnce(id),
+            retain: false,
+            topic: TopicName::from_static("e2/x"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"once"),
+        })
+    };
+    let (mut raw, _) = connect(mqtt_port(&handle), true).await;
+    raw.send(publish(false)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    drop(raw);
+    handle.shutdown().await;
+
+    let handle = start_with(durable(), Limits::default()).await;
+    // Past the second from the restart (a lower bound, whatever the load).
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let (mut raw, present) = connect(mqtt_port(&handle), false).await;
+    assert!(!present, "the session expired with its QoS 2 state");
+    raw.send(publish(true)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    raw.send(Packet::PubRel(PubResponse::new(id))).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubComp(c)) if c.packet_id == id));
+    let (amqp, channel) = amqp_channel(&handle).await;
+    let passive = lapin::options::QueueDeclareOptions {
+        passive: true,
+        ..Default::default()
+    };
+    let declared =
+        tmo!(channel.queue_declare("expiring-once", passive, Default::default())).unwrap();
+    assert_eq!(declared.message_count(), 2, "the resend was routed again");
+    drop(amqp);
+    drop(raw);
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[both_runtimes]
 async fn a_5_0_session_lasts_its_expiry_interval_and_then_is_removed() {
     let handle = start(Limits::default()).await;
