@@ -23,10 +23,11 @@
 //! the queue in place ([`apply`]); a group queue a clean member created is
 //! non-durable and auto-delete and stays so until it goes.
 //!
-//! Bounded: per session by the session's subscription cap, and at most
+//! Bounded: per session by the session's subscription cap, at most
 //! [`MAX_SESSIONS`] sessions hold some (expired ones are swept when the
-//! cap is reached); past that a session's shared subscriptions end with
-//! its connection (logged), and the groups it joins are not kept for it.
+//! cap is reached) and at most [`MAX_GROUPS`] groups are kept; past either
+//! a session's new shared subscription ends with its connection (logged)
+//! and its group is not kept for it.
 
 use super::mapping;
 use super::subscriptions::Options;
@@ -41,6 +42,8 @@ use std::time::{Duration, Instant};
 
 /// Sessions with shared subscriptions kept.
 const MAX_SESSIONS: usize = 10_000;
+/// Groups kept for persistent members, per broker.
+const MAX_GROUPS: usize = 10_000;
 
 /// The stored Session Expiry Interval of a session that never expires.
 const NEVER: u32 = u32::MAX;
@@ -81,6 +84,7 @@ pub(super) struct Shares {
     state: Mutex<State>,
     persistence: Option<Arc<Persistence>>,
     max_sessions: usize,
+    max_groups: usize,
 }
 
 #[derive(Debug, Default)]
@@ -207,6 +211,7 @@ impl Shares {
             state: Mutex::new(state),
             persistence,
             max_sessions: MAX_SESSIONS,
+            max_groups: MAX_GROUPS,
         }
     }
 
@@ -328,6 +333,16 @@ impl Shares {
                 "shared subscription not kept by the persistent MQTT session: too many sessions hold some"
             );
             // (A sweep that freed a place would have made room.)
+            return None;
+        }
+        let group = (vhost.to_owned(), filter.to_owned());
+        if state.groups.len() >= self.max_groups && !state.groups.contains_key(&group) {
+            tracing::warn!(
+                vhost,
+                client_id,
+                filter,
+                "shared subscription not kept by the persistent MQTT session: too many groups are kept"
+            );
             return None;
         }
         let mut held = state.sessions.remove(&key).unwrap_or_default();
@@ -574,5 +589,24 @@ mod tests {
         let name = queue_name("$share/g/a/+/#").expect("a shared filter");
         assert_eq!(name.as_bytes(), b"mqtt-shared-g/a/+/#");
         assert!(queue_name("a/b").is_none());
+    }
+
+    #[test]
+    fn groups_past_the_cap_are_not_kept_until_one_goes() {
+        let mut shares = Shares::new(&[], None);
+        shares.max_groups = 2;
+        let one = options(QoS::AtLeastOnce);
+        let keep = |shares: &Shares, id, filter| shares.keep(("/", id), filter, one, None);
+        assert!(keep(&shares, "a", "$share/g/1").is_some());
+        assert!(keep(&shares, "b", "$share/g/2").is_some());
+        // A third group is not kept, for a new or an existing session.
+        assert!(keep(&shares, "c", "$share/g/3").is_none());
+        assert!(keep(&shares, "a", "$share/g/3").is_none());
+        assert_eq!(shares.group("/", "$share/g/3"), GroupKeep::Unkept);
+        // A kept group takes more members.
+        assert!(keep(&shares, "c", "$share/g/1").is_some());
+        shares.forget("/", "b");
+        assert!(keep(&shares, "c", "$share/g/3").is_some());
+        assert_eq!(shares.resume("/", "c").0.len(), 2);
     }
 }
