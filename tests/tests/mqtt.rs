@@ -3190,6 +3190,20 @@ async fn a_shared_groups_messages_wait_for_its_persistent_members_across_a_resta
     }
     got.sort();
     assert_eq!(got, [&b"one"[..], &b"two"[..]]);
+    // Its PUBACKs reach the durable queue: nothing left there.
+    within("the deliveries acknowledged", async {
+        loop {
+            let acked = (handle.queues().into_iter())
+                .find(|q| q.name == group)
+                .is_some_and(|q| q.messages_ready == 0 && q.messages_unacknowledged == 0);
+            if acked {
+                return;
+            }
+            // Polled so that rumqttc writes its PUBACKs.
+            let _ = tokio::time::timeout(Duration::from_millis(20), events.poll()).await;
+        }
+    })
+    .await;
     disconnect5(client, events).await;
     // "keeper-a" starts clean: the group is kept for "keeper-b" alone.
     let (client, events, _) = expiring5("keeper-a", port, true, 3600).await;
