@@ -1295,7 +1295,7 @@ impl Session {
     /// member creates is non-durable and auto-delete (it lives while a
     /// member consumes it); one a persistent member creates is durable and
     /// kept for the group's persistent members (`shares`); one that exists
-    /// is declared passively, whatever it is. Subscribing again
+    /// is declared as it is. Subscribing again
     /// at another QoS consumes anew before cancelling the old consumer, so
     /// the queue is never left without this member.
     fn subscribe_shared(
@@ -1328,26 +1328,35 @@ impl Session {
             self.subscriptions.insert_shared(filter, kept);
             return Ok(options.qos);
         }
-        let exists = ShortStr::try_from(self.vhost.as_str())
+        // An existing queue is declared as it is (so the declaration is
+        // equivalent; if it goes meanwhile it comes back so), a new one as
+        // the group is kept.
+        let existing = ShortStr::try_from(self.vhost.as_str())
             .ok()
             .and_then(|name| self.core.vhost(&name))
-            .is_some_and(|vhost| vhost.queue(&queue).is_some());
-        let durable = keep != GroupKeep::Unkept;
-        let mut arguments = FieldTable::new();
-        if let Some(ms) = keep.queue_expires().filter(|_| durable) {
-            arguments.insert(
-                ShortStr::from_static("x-expires"),
-                FieldValue::I64(i64::try_from(ms).unwrap_or(i64::MAX)),
-            );
-        }
+            .and_then(|vhost| vhost.queue(&queue));
+        let (durable, auto_delete, arguments) = match existing {
+            Some(q) => (q.options.durable, q.options.auto_delete, q.arguments()),
+            None if keep == GroupKeep::Unkept => (false, true, FieldTable::new()),
+            None => {
+                let mut arguments = FieldTable::new();
+                if let Some(ms) = keep.queue_expires() {
+                    arguments.insert(
+                        ShortStr::from_static("x-expires"),
+                        FieldValue::I64(i64::try_from(ms).unwrap_or(i64::MAX)),
+                    );
+                }
+                (true, false, arguments)
+            }
+        };
         self.call(
             QueueDeclare {
                 ticket: 0,
                 queue: queue.clone(),
-                passive: exists,
+                passive: false,
                 durable,
                 exclusive: false,
-                auto_delete: !durable,
+                auto_delete,
                 no_wait: false,
                 arguments,
             },

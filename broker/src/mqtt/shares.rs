@@ -20,8 +20,9 @@
 //! the group loses its last persistent member (UNSUBSCRIBE, clean start, a
 //! session that ends with its connection) its `x-expires` becomes 1 ms:
 //! it goes as soon as no member consumes it. Every change is applied to
-//! the queue in place ([`apply`]); a group queue a clean member created is
-//! non-durable and auto-delete and stays so until it goes.
+//! the queue in place ([`apply`]); members join an existing group queue as
+//! it is, so one a clean member created is non-durable and auto-delete
+//! and stays so until it goes.
 //!
 //! Bounded: per session by the session's subscription cap, at most
 //! [`MAX_SESSIONS`] sessions hold some (expired ones are swept when the
