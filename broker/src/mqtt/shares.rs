@@ -25,8 +25,8 @@
 //! and stays so until it goes.
 //!
 //! Bounded: per session by the session's subscription cap, at most
-//! [`MAX_SESSIONS`] sessions hold some (expired ones are swept when the
-//! cap is reached) and at most [`MAX_GROUPS`] groups are kept; past either
+//! [`MAX_SESSIONS`] sessions hold some (expired ones are swept every
+//! second by `super::sweeper`, and when the cap is reached) and at most [`MAX_GROUPS`] groups are kept; past either
 //! a session's new shared subscription ends with its connection (logged)
 //! and its group is not kept for it.
 
