@@ -357,13 +357,23 @@ impl Shares {
             ));
             return Some(groups);
         }
-        state.leave_all(vhost, &held);
-        held.filters.insert(filter.to_owned(), options);
+        if held.expiry != expiry && !held.filters.is_empty() {
+            // The session resumed with another interval (once a
+            // connection): its other filters move over too.
+            state.leave_all(vhost, &held);
+            held.expiry = expiry;
+            for (filter, options) in &held.filters {
+                state.join(vhost, filter, expiry);
+                self.store(&key, filter, *options, expiry);
+            }
+            groups.extend(state.groups_of(vhost, &held));
+        }
         held.expiry = expiry;
-        for filter in held.filters.keys() {
+        if held.filters.insert(filter.to_owned(), options).is_none() {
             state.join(vhost, filter, expiry);
         }
-        groups.extend(state.groups_of(vhost, &held));
+        let group = state.group(vhost, filter);
+        groups.push((vhost.to_owned(), filter.to_owned(), group));
         state.sessions.insert(key.clone(), held);
         // Submitted under the lock: the store sees a session's changes in
         // the order memory does.
@@ -609,5 +619,25 @@ mod tests {
         shares.forget("/", "b");
         assert!(keep(&shares, "c", "$share/g/3").is_some());
         assert_eq!(shares.resume("/", "c").0.len(), 2);
+    }
+
+    #[test]
+    fn a_session_resumed_with_another_interval_moves_all_its_groups() {
+        let shares = Shares::new(&[], None);
+        let one = options(QoS::AtLeastOnce);
+        let keep = |filter, expiry| shares.keep(("/", "a"), filter, one, expiry);
+        assert!(keep("$share/g/1", Some(60)).is_some());
+        // A second filter at the same interval changes its group only.
+        let changed = keep("$share/g/2", Some(60)).expect("kept");
+        let sixty = GroupKeep::Kept(Some(60));
+        assert_eq!(changed, [("/".into(), "$share/g/2".into(), sixty)]);
+        shares.ended("/", "a", Some(60));
+        assert_eq!(shares.resume("/", "a").0.len(), 2);
+        // Rejoined with ten seconds: both groups follow.
+        let changed = keep("$share/g/1", Some(10)).expect("kept");
+        let ten = GroupKeep::Kept(Some(10));
+        assert!(changed.contains(&("/".into(), "$share/g/1".into(), ten)));
+        assert!(changed.contains(&("/".into(), "$share/g/2".into(), ten)));
+        assert_eq!(shares.group("/", "$share/g/2"), ten);
     }
 }
