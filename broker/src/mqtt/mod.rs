@@ -101,6 +101,11 @@ impl Shared {
 /// How often [`sweeper`] looks for expired sessions' state.
 const SESSION_SWEEP_PERIOD: std::time::Duration = std::time::Duration::from_secs(1);
 
+/// At most this many expired sessions' state is deleted under one lock
+/// (each holds at most 256 unreleased publishes or 4,096 shared
+/// subscriptions); [`sweeper`] yields between batches.
+const SWEEP_BATCH: usize = 16;
+
 /// Deletes, until the broker shuts down, the state persistent sessions
 /// kept beside their queues once their Session Expiry Interval has passed
 /// (their unreleased QoS 2 publishes, their shared subscriptions and so
@@ -115,16 +120,23 @@ pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
             _ = ticks.tick() => {}
             _ = shutdown.wait_for(|down| *down) => return,
         }
-        let releases = shared.releases.sweep();
-        let groups = shared.shares.sweep();
-        if releases > 0 || !groups.is_empty() {
-            tracing::debug!(
-                releases,
-                groups = groups.len(),
-                "expired MQTT sessions' state deleted"
-            );
+        loop {
+            let releases = shared.releases.sweep();
+            let (shares, groups) = shared.shares.sweep();
+            if releases > 0 || shares > 0 {
+                tracing::debug!(
+                    releases,
+                    shares,
+                    groups = groups.len(),
+                    "expired MQTT sessions' state deleted"
+                );
+            }
+            shares::apply(&core, groups);
+            if releases < SWEEP_BATCH && shares < SWEEP_BATCH {
+                break;
+            }
+            tokio::task::yield_now().await;
         }
-        shares::apply(&core, groups);
     }
 }
 

@@ -209,7 +209,9 @@ impl Releases {
         self.take(vhost, client_id, false);
     }
 
-    /// Deletes the state of the sessions that have expired; how many.
+    /// Deletes the state of at most [`super::SWEEP_BATCH`] sessions that
+    /// have expired (so one call's work under the lock is bounded); how
+    /// many.
     pub(super) fn sweep(&self) -> usize {
         self.sweep_locked(&mut self.lock())
     }
@@ -219,6 +221,7 @@ impl Releases {
         let expired: Vec<Key> = (sessions.iter())
             .filter(|(_, held)| held.expired(now))
             .map(|(key, _)| key.clone())
+            .take(super::SWEEP_BATCH)
             .collect();
         for key in &expired {
             if let Some(held) = sessions.remove(key) {
@@ -353,6 +356,24 @@ mod tests {
         assert!(releases.take("/", "gone", true).is_empty());
         assert_eq!(releases.take("/", "kept", true), [id(7)]);
         assert_eq!(releases.sweep(), 0);
+    }
+
+    #[tokio::test]
+    async fn a_sweep_deletes_a_bounded_batch_of_expired_sessions_at_a_time() {
+        let store = Arc::new(MemoryStore::default());
+        let (releases, persistence) = open(&store);
+        let sessions = super::super::SWEEP_BATCH * 2 + 3;
+        for n in 0..sessions {
+            let client_id = format!("c{n}");
+            releases.routed("/", &client_id, id(1), Some(0));
+            releases.keep("/", &client_id, vec![id(1)], Some(0));
+        }
+        let batch = super::super::SWEEP_BATCH;
+        assert_eq!(releases.sweep(), batch);
+        assert_eq!(releases.sweep(), batch);
+        assert_eq!(releases.sweep(), 3, "the rest");
+        assert_eq!(releases.sweep(), 0);
+        assert!(stored(&store, &persistence).await.is_empty());
     }
 
     #[tokio::test]

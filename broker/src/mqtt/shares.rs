@@ -324,7 +324,7 @@ impl Shares {
         let state = &mut *state;
         let mut groups = Vec::new();
         if state.sessions.len() >= self.max_sessions && !state.sessions.contains_key(&key) {
-            groups = self.sweep_locked(state);
+            self.sweep_locked(state, &mut groups);
         }
         if state.sessions.len() >= self.max_sessions && !state.sessions.contains_key(&key) {
             tracing::warn!(
@@ -381,25 +381,30 @@ impl Shares {
         Some(groups)
     }
 
-    /// Forgets the sessions whose shared subscriptions have expired
-    /// (deleting their records); the groups changed.
-    pub(super) fn sweep(&self) -> Groups {
-        self.sweep_locked(&mut self.lock())
+    /// Forgets at most [`super::SWEEP_BATCH`] sessions whose shared
+    /// subscriptions have expired (deleting their records; one call's work
+    /// under the lock is bounded); how many, and the groups changed.
+    pub(super) fn sweep(&self) -> (usize, Groups) {
+        let mut state = self.lock();
+        let mut groups = Vec::new();
+        let swept = self.sweep_locked(&mut state, &mut groups);
+        (swept, groups)
     }
 
-    fn sweep_locked(&self, state: &mut State) -> Groups {
+    fn sweep_locked(&self, state: &mut State, groups: &mut Groups) -> usize {
         let now = Instant::now();
         let expired: Vec<Key> = (state.sessions.iter())
             .filter(|(_, held)| held.expired(now))
             .map(|(key, _)| key.clone())
+            .take(super::SWEEP_BATCH)
             .collect();
-        let mut groups = Vec::new();
+        let swept = expired.len();
         for key in expired {
             if let Some(held) = state.sessions.remove(&key) {
                 groups.extend(self.delete(state, &key, held));
             }
         }
-        groups
+        swept
     }
 
     /// Drops a session's shared subscription `filter` (UNSUBSCRIBE); the
@@ -589,9 +594,12 @@ mod tests {
         assert!(shares
             .keep(("/", "c"), "$share/g/x", one, Some(0))
             .is_some());
-        assert!(shares.sweep().is_empty(), "connected: no expiry runs");
+        assert!(shares.sweep().1.is_empty(), "connected: no expiry runs");
         shares.ended("/", "c", Some(0));
-        assert_eq!(shares.sweep(), [("/".into(), "$share/g/x".into(), unkept)]);
+        assert_eq!(
+            shares.sweep(),
+            (1, vec![("/".into(), "$share/g/x".into(), unkept)])
+        );
         assert_eq!(group(&shares), GroupKeep::Unkept);
     }
 
