@@ -359,6 +359,9 @@ impl Listeners<'_> {
     ) -> Result<[Vec<SocketAddr>; 3], StartError> {
         use crate::mqtt::Transport;
         let mut mqtt_addrs: [Vec<SocketAddr>; 3] = Default::default();
+        // Recovered sessions expire whether or not a listener serves them.
+        let sweeper = crate::mqtt::sweeper(Arc::clone(self.core), Arc::clone(shared));
+        self.tasks.push(tokio::spawn(sweeper));
         for (addr, transport) in listeners {
             let (listener, bound) = bind_listener(addr, &self.core.users).await?;
             let (kind, over) = match transport {

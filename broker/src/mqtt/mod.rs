@@ -17,7 +17,8 @@
 //! certificate mappings); `takeover` the client identifiers in use;
 //! `retained` the retained messages; `releases` persistent sessions' QoS 2
 //! publishes awaiting PUBREL; `shares` persistent sessions' shared
-//! subscriptions; `properties` 5.0 PUBLISH properties ↔ AMQP properties;
+//! subscriptions and their groups' hold on their queues; [`sweeper`] the
+//! expiry of what those two keep; `properties` 5.0 PUBLISH properties ↔ AMQP properties;
 //! `subscriptions` a session's subscriptions, their 5.0 options and shared
 //! subscriptions; `expiry` a persistent session's expiry on its queues;
 //! `aliases` inbound topic aliases; `wills` last wills and their delay.
@@ -93,6 +94,48 @@ impl Shared {
             shares: shares::Shares::new(recovered, core.persistence.clone()),
             certificate_login: options.certificate_login,
             wills: Default::default(),
+        }
+    }
+}
+
+/// How often [`sweeper`] looks for expired sessions' state.
+const SESSION_SWEEP_PERIOD: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// At most this many expired sessions' state is deleted under one lock
+/// (each holds at most 256 unreleased publishes or 4,096 shared
+/// subscriptions); [`sweeper`] yields between batches.
+const SWEEP_BATCH: usize = 16;
+
+/// Deletes, until the broker shuts down, the state persistent sessions
+/// kept beside their queues once their Session Expiry Interval has passed
+/// (their unreleased QoS 2 publishes, their shared subscriptions and so
+/// their groups' hold on their queues), from the store too, so that a
+/// session that never comes back leaves nothing behind.
+pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
+    let mut shutdown = core.shutdown_signal();
+    let mut ticks = tokio::time::interval(SESSION_SWEEP_PERIOD);
+    ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = ticks.tick() => {}
+            _ = shutdown.wait_for(|down| *down) => return,
+        }
+        loop {
+            let releases = shared.releases.sweep();
+            let (shares, groups) = shared.shares.sweep();
+            if releases > 0 || shares > 0 {
+                tracing::debug!(
+                    releases,
+                    shares,
+                    groups = groups.len(),
+                    "expired MQTT sessions' state deleted"
+                );
+            }
+            shares::apply(&core, groups);
+            if releases < SWEEP_BATCH && shares < SWEEP_BATCH {
+                break;
+            }
+            tokio::task::yield_now().await;
         }
     }
 }

@@ -5,6 +5,16 @@
 //! one record per packet identifier, written before the PUBREC and
 //! deleted before the PUBCOMP), so this holds across a restart too.
 //!
+//! They expire with the session, as its queues (`x-expires`) and shared
+//! subscriptions (`shares`) do: each record carries the session's Session
+//! Expiry Interval (rewritten when it changes: a DISCONNECT's, a resuming
+//! CONNECT's); once the connection has ended the interval runs (from the
+//! restart after one), and when it has passed the state is deleted, from
+//! the store too: by [`Releases::sweep`] (the MQTT sweeper, every
+//! second), or first by the session's next connection, which then finds
+//! none. A clean start, or a session that ends with its connection,
+//! deletes it at once.
+//!
 //! Bounded: at most [`MAX_PER_SESSION`] identifiers per session (the
 //! receive maximum) and [`MAX_SESSIONS`] sessions, in memory and in the
 //! store; past that a publish's state is not kept (logged) and a resend of
@@ -14,62 +24,86 @@ use crate::store::{MetaKey, MetaRecord, Persistence, StoreOp};
 use leveret_mqtt::PacketId;
 use std::collections::{BTreeSet, HashMap};
 use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 /// Identifiers kept per session.
 const MAX_PER_SESSION: usize = 256;
 /// Sessions with identifiers kept.
 const MAX_SESSIONS: usize = 10_000;
+/// The stored Session Expiry Interval of a session that never expires.
+const NEVER: u32 = u32::MAX;
 
 /// A session: vhost and client identifier.
 type Key = (String, String);
 
 /// By vhost and client identifier.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(super) struct Releases {
-    state: Mutex<State>,
+    sessions: Mutex<HashMap<Key, Held>>,
     persistence: Option<Arc<Persistence>>,
+    max_sessions: usize,
 }
 
+/// One session's state.
 #[derive(Debug, Default)]
-struct State {
-    /// What sessions not connected left, for their next connection.
-    kept: HashMap<Key, Vec<PacketId>>,
-    /// The identifiers in the store, per session (connected or not).
-    stored: HashMap<Key, BTreeSet<u16>>,
+struct Held {
+    /// What the session's last connection left, for its next one (empty
+    /// while it is connected).
+    kept: Vec<PacketId>,
+    /// The identifiers in the store.
+    stored: BTreeSet<u16>,
+    /// The session's expiry interval in seconds (`None`: never), stored
+    /// with each record.
+    expiry: Option<u32>,
+    /// When it goes unless a connection resumes the session first
+    /// (`None` while it is connected, or if it never expires).
+    expires_at: Option<Instant>,
+}
+
+impl Held {
+    fn expired(&self, now: Instant) -> bool {
+        self.expires_at.is_some_and(|at| at <= now)
+    }
+}
+
+/// When a session that ended now expires.
+fn expires_at(expiry: Option<u32>) -> Option<Instant> {
+    expiry.map(|seconds| Instant::now() + Duration::from_secs(seconds.into()))
 }
 
 impl Releases {
     /// The unreleased publishes among `recovered` (the store's metadata),
-    /// kept for their sessions' next connections.
+    /// kept for their sessions' next connections, their sessions' expiry
+    /// running from now.
     pub(super) fn new(recovered: &[MetaRecord], persistence: Option<Arc<Persistence>>) -> Self {
-        let mut state = State::default();
+        let mut sessions: HashMap<Key, Held> = HashMap::new();
         for record in recovered {
             if let MetaRecord::Unreleased {
                 vhost,
                 client_id,
                 packet_id,
+                session_expiry,
             } = record
             {
                 let Some(id) = PacketId::new(*packet_id) else {
                     continue;
                 };
-                let key = (vhost.clone(), client_id.clone());
-                state
-                    .stored
-                    .entry(key.clone())
-                    .or_default()
-                    .insert(id.get());
-                state.kept.entry(key).or_default().push(id);
+                let held = (sessions.entry((vhost.clone(), client_id.clone()))).or_default();
+                held.stored.insert(id.get());
+                held.kept.push(id);
+                held.expiry = (*session_expiry != NEVER).then_some(*session_expiry);
+                held.expires_at = expires_at(held.expiry);
             }
         }
         Releases {
-            state: Mutex::new(state),
+            sessions: Mutex::new(sessions),
             persistence,
+            max_sessions: MAX_SESSIONS,
         }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, State> {
-        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<Key, Held>> {
+        self.sessions.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     fn submit(&self, op: StoreOp) -> u64 {
@@ -78,44 +112,94 @@ impl Releases {
             .map_or(0, |persistence| persistence.submit(vec![op]))
     }
 
-    /// Keeps a session's unreleased identifiers for its next connection.
-    pub(super) fn keep(&self, vhost: &str, client_id: &str, mut ids: Vec<PacketId>) {
-        let key = (vhost.to_owned(), client_id.to_owned());
-        let mut state = self.lock();
-        state.kept.remove(&key);
-        if ids.is_empty() {
+    fn put(&self, (vhost, client_id): &Key, packet_id: u16, expiry: Option<u32>) -> u64 {
+        self.submit(StoreOp::PutMeta(MetaRecord::Unreleased {
+            vhost: vhost.clone(),
+            client_id: client_id.clone(),
+            packet_id,
+            session_expiry: expiry.unwrap_or(NEVER),
+        }))
+    }
+
+    fn delete(&self, (vhost, client_id): &Key, packet_id: u16) -> u64 {
+        self.submit(StoreOp::DeleteMeta(MetaKey::Unreleased {
+            vhost: vhost.clone(),
+            client_id: client_id.clone(),
+            packet_id,
+        }))
+    }
+
+    /// Gives a session's records its expiry interval `expiry` (rewritten
+    /// if it changed).
+    fn set_expiry(&self, key: &Key, held: &mut Held, expiry: Option<u32>) {
+        if held.expiry == expiry {
             return;
         }
-        if state.kept.len() >= MAX_SESSIONS {
+        held.expiry = expiry;
+        for &packet_id in &held.stored {
+            self.put(key, packet_id, expiry);
+        }
+    }
+
+    /// The place of session `key`, made if there is room (expired sessions
+    /// swept first when there is none).
+    fn place<'a>(&self, sessions: &'a mut HashMap<Key, Held>, key: &Key) -> Option<&'a mut Held> {
+        if sessions.len() >= self.max_sessions && !sessions.contains_key(key) {
+            self.sweep_locked(sessions);
+        }
+        if sessions.len() >= self.max_sessions && !sessions.contains_key(key) {
+            return None;
+        }
+        Some(sessions.entry(key.clone()).or_default())
+    }
+
+    /// A persistent session's connection has ended: keeps its unreleased
+    /// identifiers for its next connection, for `expiry` seconds from now
+    /// (`None`: never), its interval then.
+    pub(super) fn keep(
+        &self,
+        vhost: &str,
+        client_id: &str,
+        mut ids: Vec<PacketId>,
+        expiry: Option<u32>,
+    ) {
+        let key = (vhost.to_owned(), client_id.to_owned());
+        let mut sessions = self.lock();
+        if ids.is_empty() && sessions.get(&key).is_none_or(|h| h.stored.is_empty()) {
+            sessions.remove(&key);
+            return;
+        }
+        let Some(held) = self.place(&mut sessions, &key) else {
             tracing::warn!(
                 vhost,
                 client_id,
                 "QoS 2 state of a persistent MQTT session not kept: too many sessions hold some"
             );
             return;
-        }
+        };
         ids.truncate(MAX_PER_SESSION);
-        state.kept.insert(key, ids);
+        held.kept = ids;
+        held.expires_at = expires_at(expiry);
+        self.set_expiry(&key, held, expiry);
     }
 
     /// Takes what a session's previous connection (or the broker's
-    /// previous run) left: for the session to hold if it `resumes`,
-    /// otherwise forgotten (and deleted from the store).
+    /// previous run) left: for the session to hold if it `resumes` and
+    /// has not expired, otherwise forgotten (and deleted from the store).
     pub(super) fn take(&self, vhost: &str, client_id: &str, resumes: bool) -> Vec<PacketId> {
         let key = (vhost.to_owned(), client_id.to_owned());
-        let mut state = self.lock();
-        let ids = state.kept.remove(&key).unwrap_or_default();
-        if resumes {
-            return ids;
+        let mut sessions = self.lock();
+        let Some(held) = sessions.get_mut(&key) else {
+            return Vec::new();
+        };
+        if resumes && !held.expired(Instant::now()) {
+            held.expires_at = None;
+            return std::mem::take(&mut held.kept);
         }
-        let stored = state.stored.remove(&key).unwrap_or_default();
-        drop(state);
-        for packet_id in stored {
-            self.submit(StoreOp::DeleteMeta(MetaKey::Unreleased {
-                vhost: vhost.to_owned(),
-                client_id: client_id.to_owned(),
-                packet_id,
-            }));
+        if let Some(held) = sessions.remove(&key) {
+            for packet_id in held.stored {
+                self.delete(&key, packet_id);
+            }
         }
         Vec::new()
     }
@@ -125,29 +209,55 @@ impl Releases {
         self.take(vhost, client_id, false);
     }
 
-    /// Stores that a persistent session's QoS 2 publish `id` is routed and
-    /// awaits PUBREL; the store submission to wait for before the PUBREC
-    /// (0: none, or not stored, past the bounds).
-    pub(super) fn routed(&self, vhost: &str, client_id: &str, id: PacketId) -> u64 {
+    /// Deletes the state of at most [`super::SWEEP_BATCH`] sessions that
+    /// have expired (so one call's work under the lock is bounded); how
+    /// many.
+    pub(super) fn sweep(&self) -> usize {
+        self.sweep_locked(&mut self.lock())
+    }
+
+    fn sweep_locked(&self, sessions: &mut HashMap<Key, Held>) -> usize {
+        let now = Instant::now();
+        let expired: Vec<Key> = (sessions.iter())
+            .filter(|(_, held)| held.expired(now))
+            .map(|(key, _)| key.clone())
+            .take(super::SWEEP_BATCH)
+            .collect();
+        for key in &expired {
+            if let Some(held) = sessions.remove(key) {
+                for packet_id in held.stored {
+                    self.delete(key, packet_id);
+                }
+            }
+        }
+        expired.len()
+    }
+
+    /// Stores that a persistent session (expiry interval `expiry`
+    /// seconds, `None`: never) has its QoS 2 publish `id` routed and
+    /// awaiting PUBREL; the store submission to wait for before the
+    /// PUBREC (0: none, or not stored, past the bounds).
+    pub(super) fn routed(
+        &self,
+        vhost: &str,
+        client_id: &str,
+        id: PacketId,
+        expiry: Option<u32>,
+    ) -> u64 {
         if self.persistence.is_none() {
             return 0;
         }
         let key = (vhost.to_owned(), client_id.to_owned());
-        let mut state = self.lock();
-        let sessions = state.stored.len();
-        let ids = match state.stored.get_mut(&key) {
-            Some(ids) => ids,
-            None if sessions < MAX_SESSIONS => state.stored.entry(key).or_default(),
-            None => {
-                tracing::warn!(
-                    vhost,
-                    client_id,
-                    "QoS 2 publish state not stored: too many MQTT sessions hold some"
-                );
-                return 0;
-            }
+        let mut sessions = self.lock();
+        let Some(held) = self.place(&mut sessions, &key) else {
+            tracing::warn!(
+                vhost,
+                client_id,
+                "QoS 2 publish state not stored: too many MQTT sessions hold some"
+            );
+            return 0;
         };
-        if ids.len() >= MAX_PER_SESSION && !ids.contains(&id.get()) {
+        if held.stored.len() >= MAX_PER_SESSION && !held.stored.contains(&id.get()) {
             tracing::warn!(
                 vhost,
                 client_id,
@@ -155,34 +265,148 @@ impl Releases {
             );
             return 0;
         }
-        ids.insert(id.get());
+        // A resuming CONNECT's interval is the session's now.
+        self.set_expiry(&key, held, expiry);
+        held.stored.insert(id.get());
         // Submitted under the lock: the store sees a session's changes in
         // the order memory does.
-        self.submit(StoreOp::PutMeta(MetaRecord::Unreleased {
-            vhost: vhost.to_owned(),
-            client_id: client_id.to_owned(),
-            packet_id: id.get(),
-        }))
+        self.put(&key, id.get(), expiry)
     }
 
     /// Deletes a released publish's state; the store submission to wait
     /// for before the PUBCOMP (0: none stored).
     pub(super) fn released(&self, vhost: &str, client_id: &str, id: PacketId) -> u64 {
         let key = (vhost.to_owned(), client_id.to_owned());
-        let mut state = self.lock();
-        let Some(ids) = state.stored.get_mut(&key) else {
+        let mut sessions = self.lock();
+        let Some(held) = sessions.get_mut(&key) else {
             return 0;
         };
-        if !ids.remove(&id.get()) {
+        if !held.stored.remove(&id.get()) {
             return 0;
         }
-        if ids.is_empty() {
-            state.stored.remove(&key);
+        if held.stored.is_empty() && held.kept.is_empty() {
+            sessions.remove(&key);
         }
-        self.submit(StoreOp::DeleteMeta(MetaKey::Unreleased {
-            vhost: vhost.to_owned(),
-            client_id: client_id.to_owned(),
-            packet_id: id.get(),
-        }))
+        self.delete(&key, id.get())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::{MemoryStore, Recovered, Store};
+
+    fn id(n: u16) -> PacketId {
+        PacketId::new(n).expect("not 0")
+    }
+
+    /// The unreleased records in `store`, once what was submitted is on it.
+    async fn stored(store: &Arc<MemoryStore>, persistence: &Persistence) -> Vec<MetaRecord> {
+        assert!(persistence.sync().await, "the store took the writes");
+        let recovered = Recovered::from_scan(store.scan().expect("scan")).expect("decodes");
+        let unreleased = recovered.meta.into_iter();
+        unreleased
+            .filter(|r| matches!(r, MetaRecord::Unreleased { .. }))
+            .collect()
+    }
+
+    fn open(store: &Arc<MemoryStore>) -> (Releases, Arc<Persistence>) {
+        let as_store: Arc<dyn Store> = Arc::clone(store) as Arc<dyn Store>;
+        let recovered = Recovered::from_scan(store.scan().expect("scan")).expect("decodes");
+        let persistence = Persistence::start(as_store, &recovered).expect("persister");
+        let releases = Releases::new(&recovered.meta, Some(Arc::clone(&persistence)));
+        (releases, persistence)
+    }
+
+    #[tokio::test]
+    async fn an_expired_sessions_state_is_deleted_from_the_store_after_a_restart() {
+        let store = Arc::new(MemoryStore::default());
+        let (releases, persistence) = open(&store);
+        // "gone" expires at once when its connection ends; "kept" never.
+        releases.routed("/", "gone", id(1), Some(3600));
+        releases.routed("/", "gone", id(2), Some(3600));
+        releases.routed("/", "kept", id(7), None);
+        // The DISCONNECT's interval rewrites the records.
+        releases.keep("/", "gone", vec![id(1), id(2)], Some(0));
+        releases.keep("/", "kept", vec![id(7)], None);
+        let records = stored(&store, &persistence).await;
+        assert_eq!(records.len(), 3);
+        assert!(records.iter().any(|r| matches!(
+            r,
+            MetaRecord::Unreleased { client_id, session_expiry: 0, .. } if client_id == "gone"
+        )));
+        drop(releases);
+        drop(persistence);
+        // A restart: the interval runs from it (here 0 s, so it has passed).
+        let (releases, persistence) = open(&store);
+        assert_eq!(releases.sweep(), 1, "one session expired");
+        let records = stored(&store, &persistence).await;
+        let left: Vec<_> = records
+            .iter()
+            .map(|r| match r {
+                MetaRecord::Unreleased {
+                    client_id,
+                    packet_id,
+                    ..
+                } => (client_id.as_str(), *packet_id),
+                _ => unreachable!(),
+            })
+            .collect();
+        assert_eq!(left, [("kept", 7)], "nothing of the expired session stays");
+        assert!(releases.take("/", "gone", true).is_empty());
+        assert_eq!(releases.take("/", "kept", true), [id(7)]);
+        assert_eq!(releases.sweep(), 0);
+    }
+
+    #[tokio::test]
+    async fn a_sweep_deletes_a_bounded_batch_of_expired_sessions_at_a_time() {
+        let store = Arc::new(MemoryStore::default());
+        let (releases, persistence) = open(&store);
+        let sessions = super::super::SWEEP_BATCH * 2 + 3;
+        for n in 0..sessions {
+            let client_id = format!("c{n}");
+            releases.routed("/", &client_id, id(1), Some(0));
+            releases.keep("/", &client_id, vec![id(1)], Some(0));
+        }
+        let batch = super::super::SWEEP_BATCH;
+        assert_eq!(releases.sweep(), batch);
+        assert_eq!(releases.sweep(), batch);
+        assert_eq!(releases.sweep(), 3, "the rest");
+        assert_eq!(releases.sweep(), 0);
+        assert!(stored(&store, &persistence).await.is_empty());
+    }
+
+    #[tokio::test]
+    async fn a_clean_start_deletes_the_state_and_a_resumed_session_takes_it_unless_expired() {
+        let store = Arc::new(MemoryStore::default());
+        let (releases, persistence) = open(&store);
+        releases.routed("/", "a", id(1), Some(3600));
+        releases.keep("/", "a", vec![id(1)], Some(3600));
+        assert_eq!(releases.sweep(), 0, "an hour has not passed");
+        assert!(releases.take("/", "a", false).is_empty(), "a clean start");
+        assert!(stored(&store, &persistence).await.is_empty());
+        // Expired before its next connection: that finds none, and the
+        // store holds none.
+        releases.routed("/", "b", id(3), Some(1));
+        releases.keep("/", "b", vec![id(3)], Some(0));
+        assert!(releases.take("/", "b", true).is_empty());
+        assert!(stored(&store, &persistence).await.is_empty());
+    }
+
+    #[test]
+    fn sessions_past_the_cap_keep_nothing_until_expired_ones_make_room() {
+        let mut releases = Releases::new(&[], None);
+        releases.max_sessions = 2;
+        releases.keep("/", "a", vec![id(1)], Some(0));
+        releases.keep("/", "b", vec![id(1)], None);
+        // "a" has expired: swept to make room for "c".
+        releases.keep("/", "c", vec![id(1)], None);
+        releases.keep("/", "d", vec![id(1)], None);
+        assert!(releases.take("/", "d", true).is_empty(), "past the cap");
+        assert_eq!(releases.take("/", "c", true), [id(1)]);
+        assert!(releases.take("/", "a", true).is_empty());
+        let many: Vec<_> = (1..=1000).map(id).collect();
+        releases.keep("/", "b", many, None);
+        assert_eq!(releases.take("/", "b", true).len(), MAX_PER_SESSION);
     }
 }

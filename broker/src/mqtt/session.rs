@@ -19,6 +19,7 @@ use super::expiry;
 use super::link::{self, Link, Login, Refusal};
 use super::mapping;
 use super::retained::Message;
+use super::shares::{self, GroupKeep};
 use super::subscriptions::{self, Marks, Options, SharedSubscription, Subscriptions};
 use super::takeover::Claim;
 use super::vhosts;
@@ -186,6 +187,7 @@ pub(super) async fn serve<S: ClientStream>(
         vhost,
         user,
         permissions: Arc::clone(&core.permissions),
+        core: Arc::clone(&core),
         shared: Arc::clone(&shared),
         lifetime,
         window,
@@ -245,18 +247,18 @@ pub(super) async fn serve<S: ClientStream>(
     }
     if session.lifetime != Lifetime::Connection {
         let expiry = session.lifetime.expiry_seconds();
-        (shared.shares).ended(&session.vhost, &session.client_id, expiry);
+        let groups = (shared.shares).ended(&session.vhost, &session.client_id, expiry);
+        shares::apply(&core, groups);
         let stored = session
             .exactly_once
             .iter()
             .filter(|(_, state)| **state == Received::Stored)
             .map(|(id, _)| *id);
-        shared
-            .releases
-            .keep(&session.vhost, &session.client_id, stored.collect());
+        (shared.releases).keep(&session.vhost, &session.client_id, stored.collect(), expiry);
     } else {
         shared.releases.forget(&session.vhost, &session.client_id);
-        shared.shares.forget(&session.vhost, &session.client_id);
+        let groups = shared.shares.forget(&session.vhost, &session.client_id);
+        shares::apply(&core, groups);
     }
     drop(claim);
 }
@@ -498,6 +500,9 @@ struct Session {
     /// Checked before a SUBSCRIBE's calls, so a refused filter gets a
     /// failure code in the SUBACK instead of closing the link's channel.
     permissions: Arc<Permissions>,
+    /// The core, for what the session's link does not do (a shared
+    /// group's queue given its members' expiry).
+    core: Arc<Core>,
     shared: Arc<Shared>,
     lifetime: Lifetime,
     /// QoS 1 deliveries unacknowledged at once (retained ones included).
@@ -700,10 +705,12 @@ impl Session {
     fn rejoin_shared(&mut self, clean_start: bool) -> bool {
         let shares = &self.shared.shares;
         if clean_start {
-            shares.forget(&self.vhost, &self.client_id);
+            let groups = shares.forget(&self.vhost, &self.client_id);
+            shares::apply(&self.core, groups);
             return false;
         }
-        let held = shares.resume(&self.vhost, &self.client_id);
+        let (held, groups) = shares.resume(&self.vhost, &self.client_id);
+        shares::apply(&self.core, groups);
         for (filter, options) in &held {
             let parsed = MqttString::try_from(filter.as_str())
                 .ok()
@@ -715,7 +722,8 @@ impl Session {
             let full = self.subscriptions.len() >= MAX_SUBSCRIPTIONS;
             if full || (self.subscribe_shared(filter, &group, &inner, *options)).is_err() {
                 let shares = &self.shared.shares;
-                shares.remove(&self.vhost, &self.client_id, filter);
+                let groups = shares.remove(&self.vhost, &self.client_id, filter);
+                shares::apply(&self.core, groups);
             }
         }
         !held.is_empty()
@@ -1283,8 +1291,11 @@ impl Session {
     }
 
     /// Joins shared subscription `filter` (`$share/group/inner`): declares
-    /// the group's queue (non-durable, auto-delete: it lives while a
-    /// member consumes it), binds it and consumes it. Subscribing again
+    /// the group's queue, binds it and consumes it. The queue a clean
+    /// member creates is non-durable and auto-delete (it lives while a
+    /// member consumes it); one a persistent member creates is durable and
+    /// kept for the group's persistent members (`shares`); one that exists
+    /// is declared as it is. Subscribing again
     /// at another QoS consumes anew before cancelling the old consumer, so
     /// the queue is never left without this member.
     fn subscribe_shared(
@@ -1299,10 +1310,15 @@ impl Session {
         let key = mapping::binding_key(inner).ok_or(ReasonCode::TopicFilterInvalid)?;
         self.may_subscribe(filter, &queue, true, &key)?;
         let old = self.subscriptions.shared(filter).cloned();
+        let mut keep = GroupKeep::Unkept;
         if self.lifetime != Lifetime::Connection {
             let shares = &self.shared.shares;
             let session = (self.vhost.as_str(), self.client_id.as_str());
-            shares.keep(session, filter, options, self.lifetime.expiry_seconds());
+            let expiry = self.lifetime.expiry_seconds();
+            if let Some(groups) = shares.keep(session, filter, options, expiry) {
+                keep = shares.group(&self.vhost, filter);
+                shares::apply(&self.core, groups);
+            }
         }
         if let Some(old) = old.as_ref().filter(|old| old.options.qos == options.qos) {
             let kept = SharedSubscription {
@@ -1312,16 +1328,37 @@ impl Session {
             self.subscriptions.insert_shared(filter, kept);
             return Ok(options.qos);
         }
+        // An existing queue is declared as it is (so the declaration is
+        // equivalent; if it goes meanwhile it comes back so), a new one as
+        // the group is kept.
+        let existing = ShortStr::try_from(self.vhost.as_str())
+            .ok()
+            .and_then(|name| self.core.vhost(&name))
+            .and_then(|vhost| vhost.queue(&queue));
+        let (durable, auto_delete, arguments) = match existing {
+            Some(q) => (q.options.durable, q.options.auto_delete, q.arguments()),
+            None if keep == GroupKeep::Unkept => (false, true, FieldTable::new()),
+            None => {
+                let mut arguments = FieldTable::new();
+                if let Some(ms) = keep.queue_expires() {
+                    arguments.insert(
+                        ShortStr::from_static("x-expires"),
+                        FieldValue::I64(i64::try_from(ms).unwrap_or(i64::MAX)),
+                    );
+                }
+                (true, false, arguments)
+            }
+        };
         self.call(
             QueueDeclare {
                 ticket: 0,
                 queue: queue.clone(),
                 passive: false,
-                durable: false,
+                durable,
                 exclusive: false,
-                auto_delete: true,
+                auto_delete,
                 no_wait: false,
-                arguments: FieldTable::new(),
+                arguments,
             },
             Vec::new(),
         );
@@ -1589,7 +1626,8 @@ impl Session {
         for filter in &unsubscribe.filters {
             let filter = filter.as_str();
             if let Some(shared) = self.subscriptions.remove_shared(filter) {
-                (self.shared.shares).remove(&self.vhost, &self.client_id, filter);
+                let groups = (self.shared.shares).remove(&self.vhost, &self.client_id, filter);
+                shares::apply(&self.core, groups);
                 self.cancel(shared.consumer_tag);
                 reasons.push(ReasonCode::Success);
                 continue;
@@ -1712,7 +1750,9 @@ impl Session {
                     self.exactly_once.insert(id, Received::Stored);
                     if self.lifetime != Lifetime::Connection {
                         let releases = &self.shared.releases;
-                        write = write.max(releases.routed(&self.vhost, &self.client_id, id));
+                        let expiry = self.lifetime.expiry_seconds();
+                        let routed = releases.routed(&self.vhost, &self.client_id, id, expiry);
+                        write = write.max(routed);
                     }
                 } else {
                     self.exactly_once.remove(&id);

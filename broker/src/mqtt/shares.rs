@@ -11,14 +11,31 @@
 //! restart the interval runs from the restart, as a queue's `x-expires`
 //! does.
 //!
-//! Bounded: per session by the session's subscription cap, and at most
-//! [`MAX_SESSIONS`] sessions hold some (expired ones are swept when the
-//! cap is reached); past that a session's shared subscriptions end with
-//! its connection (logged).
+//! A group with a persistent member keeps its queue while no member is
+//! connected (MQTT 5.0 4.8.2, as Mosquitto): the queue a persistent member
+//! creates is durable, not auto-delete, and its `x-expires` is the
+//! longest Session Expiry Interval among the group's persistent members
+//! ([`GroupKeep`], none if one never expires), so the core deletes it
+//! once the last member's session has expired, across a restart too. When
+//! the group loses its last persistent member (UNSUBSCRIBE, clean start, a
+//! session that ends with its connection) its `x-expires` becomes 1 ms:
+//! it goes as soon as no member consumes it. Every change is applied to
+//! the queue in place ([`apply`]); members join an existing group queue as
+//! it is, so one a clean member created is non-durable and auto-delete
+//! and stays so until it goes.
+//!
+//! Bounded: per session by the session's subscription cap, at most
+//! [`MAX_SESSIONS`] sessions hold some (expired ones are swept every
+//! second by `super::sweeper`, and when the cap is reached) and at most [`MAX_GROUPS`] groups are kept; past either
+//! a session's new shared subscription ends with its connection (logged)
+//! and its group is not kept for it.
 
+use super::mapping;
 use super::subscriptions::Options;
+use crate::core::Core;
 use crate::store::{MetaKey, MetaRecord, Persistence, StoreOp};
 use leveret_mqtt::QoS;
+use leveret_protocol::{FieldValue, ShortStr};
 use std::collections::{BTreeMap, HashMap};
 use std::num::NonZeroU32;
 use std::sync::{Arc, Mutex};
@@ -26,16 +43,103 @@ use std::time::{Duration, Instant};
 
 /// Sessions with shared subscriptions kept.
 const MAX_SESSIONS: usize = 10_000;
+/// Groups kept for persistent members, per broker.
+const MAX_GROUPS: usize = 10_000;
+
+/// The stored Session Expiry Interval of a session that never expires.
+const NEVER: u32 = u32::MAX;
 
 /// A session: vhost and client identifier.
 type Key = (String, String);
 
+/// A group in a vhost: vhost and `$share/GROUP/FILTER`.
+type Group = (String, String);
+
+/// Groups whose persistent members changed: the vhost, the filter and
+/// what its queue is to be kept for now, to [`apply`] to the queue.
+pub(super) type Groups = Vec<(String, String, GroupKeep)>;
+
+/// How long a group's queue outlives its last consumer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum GroupKeep {
+    /// No persistent member: it goes once unused.
+    Unkept,
+    /// For the longest Session Expiry Interval of its persistent members,
+    /// in seconds (`None`: forever).
+    Kept(Option<u32>),
+}
+
+impl GroupKeep {
+    /// The `x-expires` (ms) of the group's durable queue.
+    pub(super) fn queue_expires(self) -> Option<u64> {
+        match self {
+            GroupKeep::Unkept => Some(1),
+            GroupKeep::Kept(seconds) => super::expiry::queue_expires(seconds),
+        }
+    }
+}
+
 /// By vhost and client identifier.
 #[derive(Debug)]
 pub(super) struct Shares {
-    kept: Mutex<HashMap<Key, Held>>,
+    state: Mutex<State>,
     persistence: Option<Arc<Persistence>>,
     max_sessions: usize,
+    max_groups: usize,
+}
+
+#[derive(Debug, Default)]
+struct State {
+    sessions: HashMap<Key, Held>,
+    /// Per group, its persistent members' expiry intervals in seconds
+    /// ([`NEVER`] for none) with how many members have each.
+    groups: HashMap<Group, BTreeMap<u32, usize>>,
+}
+
+impl State {
+    fn join(&mut self, vhost: &str, filter: &str, expiry: Option<u32>) {
+        let group = (vhost.to_owned(), filter.to_owned());
+        let members = self.groups.entry(group).or_default();
+        *members.entry(expiry.unwrap_or(NEVER)).or_default() += 1;
+    }
+
+    fn leave(&mut self, vhost: &str, filter: &str, expiry: Option<u32>) {
+        let group = (vhost.to_owned(), filter.to_owned());
+        let Some(members) = self.groups.get_mut(&group) else {
+            return;
+        };
+        let seconds = expiry.unwrap_or(NEVER);
+        if let Some(count) = members.get_mut(&seconds) {
+            *count -= 1;
+            if *count == 0 {
+                members.remove(&seconds);
+            }
+        }
+        if members.is_empty() {
+            self.groups.remove(&group);
+        }
+    }
+
+    fn group(&self, vhost: &str, filter: &str) -> GroupKeep {
+        let group = (vhost.to_owned(), filter.to_owned());
+        match self.groups.get(&group).and_then(|m| m.keys().next_back()) {
+            None => GroupKeep::Unkept,
+            Some(&longest) => GroupKeep::Kept((longest != NEVER).then_some(longest)),
+        }
+    }
+
+    /// A session's filters leave their groups; the groups changed.
+    fn leave_all(&mut self, vhost: &str, held: &Held) -> Groups {
+        let filters = held.filters.keys();
+        filters.for_each(|filter| self.leave(vhost, filter, held.expiry));
+        self.groups_of(vhost, held)
+    }
+
+    fn groups_of(&self, vhost: &str, held: &Held) -> Groups {
+        (held.filters.keys())
+            .map(|filter| (vhost.to_owned(), filter.clone(), self.group(vhost, filter)))
+            .collect()
+    }
 }
 
 /// One session's shared subscriptions.
@@ -66,7 +170,7 @@ impl Shares {
     /// The shared subscriptions among `recovered` (the store's metadata),
     /// their sessions' expiry running from now.
     pub(super) fn new(recovered: &[MetaRecord], persistence: Option<Arc<Persistence>>) -> Self {
-        let mut kept: HashMap<Key, Held> = HashMap::new();
+        let mut state = State::default();
         for record in recovered {
             if let MetaRecord::SharedSubscription {
                 vhost,
@@ -89,21 +193,31 @@ impl Shares {
                     retain_as_published: *retain_as_published,
                     id: NonZeroU32::new(*subscription_id),
                 };
-                let held = kept.entry((vhost.clone(), client_id.clone())).or_default();
+                let key = (vhost.clone(), client_id.clone());
+                let held = state.sessions.entry(key).or_default();
                 held.filters.insert(filter.clone(), options);
-                held.expiry = (*session_expiry != u32::MAX).then_some(*session_expiry);
+                held.expiry = (*session_expiry != NEVER).then_some(*session_expiry);
                 held.expires_at = expires_at(held.expiry);
             }
         }
+        let members: Vec<(String, String, Option<u32>)> = (state.sessions.iter())
+            .flat_map(|((vhost, _), held)| {
+                (held.filters.keys()).map(|filter| (vhost.clone(), filter.clone(), held.expiry))
+            })
+            .collect();
+        for (vhost, filter, expiry) in members {
+            state.join(&vhost, &filter, expiry);
+        }
         Shares {
-            kept: Mutex::new(kept),
+            state: Mutex::new(state),
             persistence,
             max_sessions: MAX_SESSIONS,
+            max_groups: MAX_GROUPS,
         }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<Key, Held>> {
-        self.kept.lock().unwrap_or_else(|e| e.into_inner())
+    fn lock(&self) -> std::sync::MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     fn submit(&self, op: StoreOp) {
@@ -121,12 +235,13 @@ impl Shares {
             qos: options.qos.level(),
             retain_as_published: options.retain_as_published,
             subscription_id: options.id.map_or(0, NonZeroU32::get),
-            session_expiry: expiry.unwrap_or(u32::MAX),
+            session_expiry: expiry.unwrap_or(NEVER),
         }));
     }
 
-    /// Deletes a session's records.
-    fn delete(&self, key: &Key, held: Held) {
+    /// Deletes a session's records; the groups its leaving changed.
+    fn delete(&self, state: &mut State, key: &Key, held: Held) -> Groups {
+        let groups = state.leave_all(&key.0, &held);
         for filter in held.filters.into_keys() {
             self.submit(StoreOp::DeleteMeta(MetaKey::SharedSubscription {
                 vhost: key.0.clone(),
@@ -134,136 +249,237 @@ impl Shares {
                 filter,
             }));
         }
+        groups
+    }
+
+    /// What group `filter` of `vhost` keeps its queue for.
+    pub(super) fn group(&self, vhost: &str, filter: &str) -> GroupKeep {
+        self.lock().group(vhost, filter)
     }
 
     /// The shared subscriptions of a session a connection resumes (none
-    /// once it has expired: then forgotten); they do not expire while it
-    /// is connected.
-    pub(super) fn resume(&self, vhost: &str, client_id: &str) -> Vec<(String, Options)> {
+    /// once it has expired: then forgotten, and the groups that changed
+    /// returned); they do not expire while it is connected.
+    pub(super) fn resume(&self, vhost: &str, client_id: &str) -> (Vec<(String, Options)>, Groups) {
         let key = (vhost.to_owned(), client_id.to_owned());
-        let mut kept = self.lock();
-        if kept
-            .get(&key)
-            .is_some_and(|held| held.expired(Instant::now()))
-        {
-            if let Some(expired) = kept.remove(&key) {
-                self.delete(&key, expired);
-            }
-            return Vec::new();
+        let mut state = self.lock();
+        let state = &mut *state;
+        if (state.sessions.get(&key)).is_some_and(|held| held.expired(Instant::now())) {
+            let groups = match state.sessions.remove(&key) {
+                Some(expired) => self.delete(state, &key, expired),
+                None => Vec::new(),
+            };
+            return (Vec::new(), groups);
         }
-        let Some(held) = kept.get_mut(&key) else {
-            return Vec::new();
+        let Some(held) = state.sessions.get_mut(&key) else {
+            return (Vec::new(), Vec::new());
         };
         held.expires_at = None;
         let filters = held.filters.iter();
-        filters
+        let filters = filters
             .map(|(filter, options)| (filter.clone(), *options))
-            .collect()
+            .collect();
+        (filters, Vec::new())
     }
 
     /// A persistent session's connection has ended: its shared
     /// subscriptions expire `expiry` seconds from now (`None`: never), its
-    /// interval then (a DISCONNECT may have changed it: stored again).
-    pub(super) fn ended(&self, vhost: &str, client_id: &str, expiry: Option<u32>) {
+    /// interval then (a DISCONNECT may have changed it: stored again; the
+    /// groups changed returned).
+    pub(super) fn ended(&self, vhost: &str, client_id: &str, expiry: Option<u32>) -> Groups {
         let key = (vhost.to_owned(), client_id.to_owned());
-        let mut kept = self.lock();
-        let Some(held) = kept.get_mut(&key) else {
-            return;
+        let mut state = self.lock();
+        let state = &mut *state;
+        let Some(mut held) = state.sessions.remove(&key) else {
+            return Vec::new();
         };
         held.expires_at = expires_at(expiry);
+        let mut groups = Vec::new();
         if held.expiry != expiry {
+            state.leave_all(vhost, &held);
             held.expiry = expiry;
             for (filter, options) in &held.filters {
+                state.join(vhost, filter, expiry);
                 self.store(&key, filter, *options, expiry);
             }
+            groups = state.groups_of(vhost, &held);
         }
+        state.sessions.insert(key, held);
+        groups
     }
 
     /// Keeps (or replaces) shared subscription `filter` of a connected
     /// persistent session whose expiry interval is `expiry` seconds
-    /// (`None`: never); false if it is not kept (too many sessions hold
-    /// some).
+    /// (`None`: never); the groups changed (this one's included), or
+    /// `None` if it is not kept (too many sessions hold some).
     pub(super) fn keep(
         &self,
         (vhost, client_id): (&str, &str),
         filter: &str,
         options: Options,
         expiry: Option<u32>,
-    ) -> bool {
+    ) -> Option<Groups> {
         let key = (vhost.to_owned(), client_id.to_owned());
-        let mut kept = self.lock();
-        if kept.len() >= self.max_sessions && !kept.contains_key(&key) {
-            self.sweep(&mut kept);
+        let mut state = self.lock();
+        let state = &mut *state;
+        let mut groups = Vec::new();
+        if state.sessions.len() >= self.max_sessions && !state.sessions.contains_key(&key) {
+            self.sweep_locked(state, &mut groups);
         }
-        let sessions = kept.len();
-        let held = match kept.get_mut(&key) {
-            Some(held) => held,
-            None if sessions < self.max_sessions => kept.entry(key.clone()).or_default(),
-            None => {
-                tracing::warn!(
-                    vhost,
-                    client_id,
-                    filter,
-                    "shared subscription not kept by the persistent MQTT session: too many sessions hold some"
-                );
-                return false;
-            }
-        };
+        if state.sessions.len() >= self.max_sessions && !state.sessions.contains_key(&key) {
+            tracing::warn!(
+                vhost,
+                client_id,
+                filter,
+                "shared subscription not kept by the persistent MQTT session: too many sessions hold some"
+            );
+            // (A sweep that freed a place would have made room.)
+            return None;
+        }
+        let group = (vhost.to_owned(), filter.to_owned());
+        if state.groups.len() >= self.max_groups && !state.groups.contains_key(&group) {
+            tracing::warn!(
+                vhost,
+                client_id,
+                filter,
+                "shared subscription not kept by the persistent MQTT session: too many groups are kept"
+            );
+            return None;
+        }
+        let mut held = state.sessions.remove(&key).unwrap_or_default();
         held.expires_at = None;
         if held.filters.get(filter) == Some(&options) && held.expiry == expiry {
-            return true;
+            state.sessions.insert(key, held);
+            groups.push((
+                vhost.to_owned(),
+                filter.to_owned(),
+                state.group(vhost, filter),
+            ));
+            return Some(groups);
         }
-        held.filters.insert(filter.to_owned(), options);
+        if held.expiry != expiry && !held.filters.is_empty() {
+            // The session resumed with another interval (once a
+            // connection): its other filters move over too.
+            state.leave_all(vhost, &held);
+            held.expiry = expiry;
+            for (filter, options) in &held.filters {
+                state.join(vhost, filter, expiry);
+                self.store(&key, filter, *options, expiry);
+            }
+            groups.extend(state.groups_of(vhost, &held));
+        }
         held.expiry = expiry;
+        if held.filters.insert(filter.to_owned(), options).is_none() {
+            state.join(vhost, filter, expiry);
+        }
+        let group = state.group(vhost, filter);
+        groups.push((vhost.to_owned(), filter.to_owned(), group));
+        state.sessions.insert(key.clone(), held);
         // Submitted under the lock: the store sees a session's changes in
         // the order memory does.
         self.store(&key, filter, options, expiry);
-        true
+        Some(groups)
     }
 
-    /// Forgets the sessions whose shared subscriptions have expired.
-    fn sweep(&self, kept: &mut HashMap<Key, Held>) {
+    /// Forgets at most [`super::SWEEP_BATCH`] sessions whose shared
+    /// subscriptions have expired (deleting their records; one call's work
+    /// under the lock is bounded); how many, and the groups changed.
+    pub(super) fn sweep(&self) -> (usize, Groups) {
+        let mut state = self.lock();
+        let mut groups = Vec::new();
+        let swept = self.sweep_locked(&mut state, &mut groups);
+        (swept, groups)
+    }
+
+    fn sweep_locked(&self, state: &mut State, groups: &mut Groups) -> usize {
         let now = Instant::now();
-        let expired: Vec<Key> = (kept.iter())
+        let expired: Vec<Key> = (state.sessions.iter())
             .filter(|(_, held)| held.expired(now))
             .map(|(key, _)| key.clone())
+            .take(super::SWEEP_BATCH)
             .collect();
+        let swept = expired.len();
         for key in expired {
-            if let Some(held) = kept.remove(&key) {
-                self.delete(&key, held);
+            if let Some(held) = state.sessions.remove(&key) {
+                groups.extend(self.delete(state, &key, held));
             }
         }
+        swept
     }
 
-    /// Drops a session's shared subscription `filter` (UNSUBSCRIBE).
-    pub(super) fn remove(&self, vhost: &str, client_id: &str, filter: &str) {
+    /// Drops a session's shared subscription `filter` (UNSUBSCRIBE); the
+    /// groups changed.
+    pub(super) fn remove(&self, vhost: &str, client_id: &str, filter: &str) -> Groups {
         let key = (vhost.to_owned(), client_id.to_owned());
-        let mut kept = self.lock();
-        let Some(held) = kept.get_mut(&key) else {
-            return;
+        let mut state = self.lock();
+        let state = &mut *state;
+        let Some(held) = state.sessions.get_mut(&key) else {
+            return Vec::new();
         };
         if held.filters.remove(filter).is_none() {
-            return;
+            return Vec::new();
         }
+        let expiry = held.expiry;
         if held.filters.is_empty() {
-            kept.remove(&key);
+            state.sessions.remove(&key);
         }
+        state.leave(vhost, filter, expiry);
         self.submit(StoreOp::DeleteMeta(MetaKey::SharedSubscription {
             vhost: vhost.to_owned(),
             client_id: client_id.to_owned(),
             filter: filter.to_owned(),
         }));
+        vec![(
+            vhost.to_owned(),
+            filter.to_owned(),
+            state.group(vhost, filter),
+        )]
     }
 
     /// Forgets every shared subscription of a session (it starts clean
-    /// or ends with its connection).
-    pub(super) fn forget(&self, vhost: &str, client_id: &str) {
+    /// or ends with its connection); the groups changed.
+    pub(super) fn forget(&self, vhost: &str, client_id: &str) -> Groups {
         let key = (vhost.to_owned(), client_id.to_owned());
-        let mut kept = self.lock();
-        if let Some(held) = kept.remove(&key) {
-            self.delete(&key, held);
+        let mut state = self.lock();
+        let state = &mut *state;
+        match state.sessions.remove(&key) {
+            Some(held) => self.delete(state, &key, held),
+            None => Vec::new(),
         }
     }
+}
+
+/// Gives the durable queues of `groups` the `x-expires` their persistent
+/// members keep them for ([`GroupKeep::queue_expires`]); a non-durable
+/// group queue (a clean member's) is left as it is.
+pub(super) fn apply(core: &Core, groups: Groups) {
+    for (vhost, filter, keep) in groups {
+        let Some(vhost) = ShortStr::try_from(vhost)
+            .ok()
+            .and_then(|name| core.vhost(&name))
+        else {
+            continue;
+        };
+        let Some(queue) = queue_name(&filter).and_then(|name| vhost.queue(&name)) else {
+            continue;
+        };
+        if !queue.options.durable || queue.options.exclusive_owner.is_some() {
+            continue;
+        }
+        let current = (queue.arguments().get("x-expires"))
+            .and_then(FieldValue::as_i64)
+            .and_then(|ms| u64::try_from(ms).ok());
+        let expires = keep.queue_expires();
+        if current != expires && vhost.set_queue_expires(&queue, expires) {
+            tracing::debug!(queue = %queue.name, ?expires, "MQTT shared subscription group's queue given its members' expiry");
+        }
+    }
+}
+
+/// The queue of shared subscription `filter` (`$share/GROUP/FILTER`).
+pub(super) fn queue_name(filter: &str) -> Option<ShortStr> {
+    let (group, inner) = filter.strip_prefix("$share/")?.split_once('/')?;
+    mapping::shared_queue_name(group, inner)
 }
 
 #[cfg(test)]
@@ -283,21 +499,22 @@ mod tests {
     fn sessions_past_the_cap_keep_none_and_forgetting_frees_a_place() {
         let mut shares = Shares::new(&[], None);
         shares.max_sessions = 2;
-        let keep =
-            |shares: &Shares, id, filter, qos| shares.keep(("/", id), filter, options(qos), None);
+        let keep = |shares: &Shares, id, filter, qos| {
+            (shares.keep(("/", id), filter, options(qos), None)).is_some()
+        };
         assert!(keep(&shares, "a", "$share/g/x", QoS::AtLeastOnce));
         assert!(keep(&shares, "b", "$share/g/x", QoS::AtMostOnce));
         assert!(!keep(&shares, "c", "$share/g/x", QoS::AtMostOnce));
         // A session already holding some may hold more.
         assert!(keep(&shares, "a", "$share/h/y", QoS::ExactlyOnce));
-        assert_eq!(shares.resume("/", "a").len(), 2);
-        assert!(shares.resume("/", "c").is_empty());
+        assert_eq!(shares.resume("/", "a").0.len(), 2);
+        assert!(shares.resume("/", "c").0.is_empty());
         shares.forget("/", "b");
-        assert!(shares.resume("/", "b").is_empty());
+        assert!(shares.resume("/", "b").0.is_empty());
         assert!(keep(&shares, "c", "$share/g/x", QoS::AtMostOnce));
         shares.remove("/", "a", "$share/g/x");
         assert_eq!(
-            shares.resume("/", "a"),
+            shares.resume("/", "a").0,
             [("$share/h/y".to_owned(), options(QoS::ExactlyOnce))]
         );
     }
@@ -307,15 +524,17 @@ mod tests {
         let mut shares = Shares::new(&[], None);
         shares.max_sessions = 1;
         let zero = options(QoS::AtMostOnce);
-        assert!(shares.keep(("/", "a"), "$share/g/x", zero, Some(0)));
+        assert!(shares
+            .keep(("/", "a"), "$share/g/x", zero, Some(0))
+            .is_some());
         // Connected: no expiry runs.
-        assert_eq!(shares.resume("/", "a").len(), 1);
+        assert_eq!(shares.resume("/", "a").0.len(), 1);
         shares.ended("/", "a", Some(0));
         // Expired, so a new session takes its place at the cap.
-        assert!(shares.keep(("/", "b"), "$share/g/x", zero, None));
-        assert!(shares.resume("/", "a").is_empty());
+        assert!(shares.keep(("/", "b"), "$share/g/x", zero, None).is_some());
+        assert!(shares.resume("/", "a").0.is_empty());
         shares.ended("/", "b", Some(3600));
-        assert_eq!(shares.resume("/", "b").len(), 1, "an hour has not passed");
+        assert_eq!(shares.resume("/", "b").0.len(), 1, "an hour has not passed");
     }
 
     #[test]
@@ -336,8 +555,97 @@ mod tests {
             ..options(QoS::AtLeastOnce)
         };
         assert_eq!(
-            shares.resume("v", "c"),
+            shares.resume("v", "c").0,
             [("$share/g/t/#".to_owned(), expected)]
         );
+    }
+
+    #[test]
+    fn a_groups_queue_is_kept_for_its_longest_lived_persistent_member() {
+        let shares = Shares::new(&[], None);
+        let group = |shares: &Shares| shares.group("/", "$share/g/x");
+        let one = options(QoS::AtLeastOnce);
+        assert_eq!(group(&shares), GroupKeep::Unkept, "no persistent member");
+        let joined = shares.keep(("/", "a"), "$share/g/x", one, Some(60));
+        let kept = GroupKeep::Kept(Some(60));
+        assert_eq!(joined, Some(vec![("/".into(), "$share/g/x".into(), kept)]));
+        assert_eq!(kept.queue_expires(), Some(60_000));
+        assert!(shares
+            .keep(("/", "b"), "$share/g/x", one, Some(10))
+            .is_some());
+        assert_eq!(group(&shares), GroupKeep::Kept(Some(60)));
+        // Another vhost's group of the same name is another group.
+        assert_eq!(shares.group("v", "$share/g/x"), GroupKeep::Unkept);
+        // A DISCONNECT makes "b" never expire.
+        let changed = shares.ended("/", "b", None);
+        assert_eq!(
+            changed,
+            [("/".into(), "$share/g/x".into(), GroupKeep::Kept(None))]
+        );
+        assert_eq!(GroupKeep::Kept(None).queue_expires(), None);
+        // "b" starts clean, "a" unsubscribes: no persistent member left.
+        let changed = shares.forget("/", "b");
+        assert_eq!(changed, [("/".into(), "$share/g/x".into(), kept)]);
+        let changed = shares.remove("/", "a", "$share/g/x");
+        let unkept = GroupKeep::Unkept;
+        assert_eq!(changed, [("/".into(), "$share/g/x".into(), unkept)]);
+        assert_eq!(unkept.queue_expires(), Some(1), "goes once unused");
+        // A member whose session expired leaves its groups when swept.
+        assert!(shares
+            .keep(("/", "c"), "$share/g/x", one, Some(0))
+            .is_some());
+        assert!(shares.sweep().1.is_empty(), "connected: no expiry runs");
+        shares.ended("/", "c", Some(0));
+        assert_eq!(
+            shares.sweep(),
+            (1, vec![("/".into(), "$share/g/x".into(), unkept)])
+        );
+        assert_eq!(group(&shares), GroupKeep::Unkept);
+    }
+
+    #[test]
+    fn a_group_filter_names_the_groups_queue() {
+        let name = queue_name("$share/g/a/+/#").expect("a shared filter");
+        assert_eq!(name.as_bytes(), b"mqtt-shared-g/a/+/#");
+        assert!(queue_name("a/b").is_none());
+    }
+
+    #[test]
+    fn groups_past_the_cap_are_not_kept_until_one_goes() {
+        let mut shares = Shares::new(&[], None);
+        shares.max_groups = 2;
+        let one = options(QoS::AtLeastOnce);
+        let keep = |shares: &Shares, id, filter| shares.keep(("/", id), filter, one, None);
+        assert!(keep(&shares, "a", "$share/g/1").is_some());
+        assert!(keep(&shares, "b", "$share/g/2").is_some());
+        // A third group is not kept, for a new or an existing session.
+        assert!(keep(&shares, "c", "$share/g/3").is_none());
+        assert!(keep(&shares, "a", "$share/g/3").is_none());
+        assert_eq!(shares.group("/", "$share/g/3"), GroupKeep::Unkept);
+        // A kept group takes more members.
+        assert!(keep(&shares, "c", "$share/g/1").is_some());
+        shares.forget("/", "b");
+        assert!(keep(&shares, "c", "$share/g/3").is_some());
+        assert_eq!(shares.resume("/", "c").0.len(), 2);
+    }
+
+    #[test]
+    fn a_session_resumed_with_another_interval_moves_all_its_groups() {
+        let shares = Shares::new(&[], None);
+        let one = options(QoS::AtLeastOnce);
+        let keep = |filter, expiry| shares.keep(("/", "a"), filter, one, expiry);
+        assert!(keep("$share/g/1", Some(60)).is_some());
+        // A second filter at the same interval changes its group only.
+        let changed = keep("$share/g/2", Some(60)).expect("kept");
+        let sixty = GroupKeep::Kept(Some(60));
+        assert_eq!(changed, [("/".into(), "$share/g/2".into(), sixty)]);
+        shares.ended("/", "a", Some(60));
+        assert_eq!(shares.resume("/", "a").0.len(), 2);
+        // Rejoined with ten seconds: both groups follow.
+        let changed = keep("$share/g/1", Some(10)).expect("kept");
+        let ten = GroupKeep::Kept(Some(10));
+        assert!(changed.contains(&("/".into(), "$share/g/1".into(), ten)));
+        assert!(changed.contains(&("/".into(), "$share/g/2".into(), ten)));
+        assert_eq!(shares.group("/", "$share/g/2"), ten);
     }
 }

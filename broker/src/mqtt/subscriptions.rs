@@ -14,11 +14,12 @@
 //!
 //! A shared subscription (`$share/GROUP/FILTER`) is a queue of its own,
 //! `mqtt-shared-GROUP/FILTER` ([`super::mapping::shared_queue_name`]),
-//! non-durable and auto-delete, bound to `amq.topic` with the filter's
-//! key and consumed by every session of the group (the core hands its
-//! messages round-robin to its consumers), so it lives while a member
-//! does. Each member consumes it with a consumer tag of its own
-//! ([`shared_consumer_tag`]).
+//! bound to `amq.topic` with the filter's key and consumed by every
+//! session of the group (the core hands its messages round-robin to its
+//! consumers): non-durable and auto-delete for a group of clean sessions,
+//! so it lives while a member does; durable and kept for its persistent
+//! members' sessions otherwise (`super::shares`). Each member consumes it
+//! with a consumer tag of its own ([`shared_consumer_tag`]).
 
 use super::link::{PUBLISHER_HEADER, RETAIN_HEADER};
 use leveret_mqtt::{MqttString, QoS, TopicFilter};

@@ -273,7 +273,12 @@ fn meta_value(record: &MetaRecord) -> Vec<u8> {
                 put_long(&mut buf, properties);
             }
         }
-        MetaRecord::Unreleased { .. } => {}
+        MetaRecord::Unreleased { session_expiry, .. } => {
+            // Records written before sessions' expiry was kept have none.
+            if *session_expiry != u32::MAX {
+                buf.put_u32(*session_expiry);
+            }
+        }
         MetaRecord::SharedSubscription {
             qos,
             retain_as_published,
@@ -367,6 +372,11 @@ fn decode_meta(key: &[u8], value: &mut Bytes) -> Result<MetaRecord, StoreError> 
             packet_id: match (names.len() >= 2).then(|| names.get_u16()) {
                 Some(id) if id != 0 => id,
                 _ => return Err(corrupt("MQTT packet identifier")),
+            },
+            session_expiry: match value.len() {
+                0 => u32::MAX,
+                4.. => value.get_u32(),
+                _ => return Err(corrupt("MQTT session expiry")),
             },
         },
         b's' => MetaRecord::SharedSubscription {
@@ -879,6 +889,13 @@ mod tests {
                 vhost: "/".into(),
                 client_id: "sensor\0-1".into(),
                 packet_id: 65_535,
+                session_expiry: u32::MAX,
+            },
+            MetaRecord::Unreleased {
+                vhost: "/".into(),
+                client_id: "sensor-2".into(),
+                packet_id: 1,
+                session_expiry: 3600,
             },
             MetaRecord::SharedSubscription {
                 vhost: "/".into(),

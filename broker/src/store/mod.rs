@@ -323,6 +323,10 @@ pub enum MetaRecord {
         client_id: String,
         /// The publish's packet identifier (not 0).
         packet_id: u16,
+        /// The session's Session Expiry Interval in seconds (`u32::MAX`:
+        /// never, as records written before it was kept read), so the
+        /// record expires with the session, after a restart too.
+        session_expiry: u32,
     },
     /// A shared subscription a persistent MQTT session holds (the `mqtt`
     /// front end's).
@@ -443,6 +447,7 @@ impl MetaRecord {
                 vhost,
                 client_id,
                 packet_id,
+                ..
             } => MetaKey::Unreleased {
                 vhost: vhost.clone(),
                 client_id: client_id.clone(),
