@@ -273,3 +273,71 @@ async fn confirmed_persistent_puts_survive_a_restart() {
     assert_eq!(listed.messages_ready, COUNT as u64, "every confirmed value");
     again.shutdown().await;
 }
+
+/// This thread's CPU time and voluntary context switches so far, from
+/// `/proc/thread-self` (what `getrusage(RUSAGE_THREAD)` reports).
+fn thread_usage() -> (Duration, u64) {
+    let schedstat = std::fs::read_to_string("/proc/thread-self/schedstat").expect("schedstat");
+    let cpu_ns: u64 = schedstat
+        .split_whitespace()
+        .next()
+        .and_then(|ns| ns.parse().ok())
+        .expect("cpu time");
+    let status = std::fs::read_to_string("/proc/thread-self/status").expect("status");
+    let voluntary = status
+        .lines()
+        .find_map(|line| line.strip_prefix("voluntary_ctxt_switches:"))
+        .and_then(|count| count.trim().parse().ok())
+        .expect("voluntary_ctxt_switches");
+    (Duration::from_nanos(cpu_ns), voluntary)
+}
+
+/// `recv_blocking` spins a few microseconds before its thread sleeps, and
+/// no more: an idle in-port's receiver sleeps through each wait (a
+/// voluntary context switch per wait) and uses a small part of the time it
+/// waited in CPU; a value put meanwhile is still received, once, in order.
+#[both_runtimes]
+async fn an_idle_in_ports_blocking_receiver_sleeps_after_a_bounded_spin() {
+    const WAITS: u32 = 10;
+    const WAIT: Duration = Duration::from_millis(50);
+    let broker = leveret().await;
+    let queue = unique("fast-path-idle");
+    let (input, output) = in_process_pair(&broker, &queue).await;
+    let receiver = std::thread::spawn(move || {
+        let (cpu_before, switches_before) = thread_usage();
+        for _ in 0..WAITS {
+            assert!(input.recv_blocking(WAIT).is_none(), "nothing was put");
+        }
+        let (cpu_after, switches_after) = thread_usage();
+        (
+            input,
+            cpu_after - cpu_before,
+            switches_after - switches_before,
+        )
+    });
+    let (input, cpu, switches) =
+        tokio::task::spawn_blocking(move || receiver.join().expect("receiver"))
+            .await
+            .expect("join");
+    assert!(
+        switches >= u64::from(WAITS),
+        "each wait slept: {switches} voluntary switches"
+    );
+    assert!(
+        cpu < WAIT * WAITS / 2,
+        "spun {cpu:?} of {:?} waited",
+        WAIT * WAITS
+    );
+    // A value comes through a receiver that slept.
+    assert_eq!(output.try_put(&long(7)), PortStatus::Ok);
+    let (input, sample) = tokio::task::spawn_blocking(move || {
+        let sample = input.recv_blocking(Duration::from_secs(10));
+        (input, sample)
+    })
+    .await
+    .expect("join");
+    assert_eq!(sample.expect("the value").value.data, 7);
+    assert_eq!(input.stats().received, 1);
+    output.close().await;
+    input.close().await;
+}
