@@ -341,3 +341,69 @@ async fn an_idle_in_ports_blocking_receiver_sleeps_after_a_bounded_spin() {
     output.close().await;
     input.close().await;
 }
+
+/// A put that takes the fast path (its connection's loop free, nothing
+/// before it) is settled before `try_put` returns, on the putting thread
+/// alone: the value is in the in-port's buffer, the in-port's ack has been
+/// handled by its connection's loop (run on this thread: the message is
+/// acknowledged in the queue's listing) and the out-port's confirm has come
+/// and been counted (`confirmed`, nothing pending), so no broker or port
+/// task needs waking for it. On the current-thread runtime no task can run
+/// between the put and the checks, so each holds at once; on the
+/// multi-thread one, eventually.
+#[both_runtimes]
+async fn a_fast_path_put_is_delivered_acknowledged_and_confirmed_before_it_returns() {
+    const PUTS: i32 = 50;
+    let broker = leveret().await;
+    let queue = unique("fast-path-settled");
+    let (input, output) = in_process_pair(&broker, &queue).await;
+    let at_once = tokio::runtime::Handle::current().runtime_flavor()
+        == tokio::runtime::RuntimeFlavor::CurrentThread;
+    let acked = |broker: &BrokerHandle| {
+        let listed = broker
+            .queues()
+            .into_iter()
+            .find(|q| q.name == queue)
+            .expect("the port's queue is listed");
+        (
+            listed.message_stats.ack,
+            listed.messages_ready,
+            listed.messages_unacknowledged,
+        )
+    };
+    for data in 0..PUTS {
+        let done = data as u64 + 1;
+        assert_eq!(output.try_put(&long(data)), PortStatus::Ok);
+        if at_once {
+            let sample = input
+                .try_recv()
+                .expect("in the buffer when the put returned");
+            assert_eq!(sample.value.data, data);
+            let stats = output.stats();
+            assert_eq!((stats.confirmed, stats.pending), (done, 0), "{stats:?}");
+            assert_eq!(acked(&broker), (done, 0, 0), "acknowledged already");
+        } else {
+            let sample = within("the value", input.recv()).await.expect("open");
+            assert_eq!(sample.value.data, data);
+            within("the confirm", output.flush()).await;
+            within("the ack", async {
+                while acked(&broker) != (done, 0, 0) {
+                    tokio::time::sleep(Duration::from_millis(5)).await;
+                }
+            })
+            .await;
+        }
+    }
+    let stats = output.stats();
+    assert_eq!(
+        (
+            stats.accepted,
+            stats.confirmed,
+            stats.settled(),
+            stats.pending
+        ),
+        (PUTS as u64, PUTS as u64, PUTS as u64, 0)
+    );
+    output.close().await;
+    input.close().await;
+}
