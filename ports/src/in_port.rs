@@ -349,10 +349,15 @@ impl<T: PortData> Shared<T> {
             s.buffered += 1;
         });
         self.arrivals.fetch_add(1, Ordering::Release);
-        if let Some(waker) = buffer.waker.take() {
+        let waker = buffer.waker.take();
+        let blocked = buffer.blocked_readers > 0;
+        // Woken after the lock is let go, so the reader woken does not
+        // find it still held.
+        drop(buffer);
+        if let Some(waker) = waker {
             waker.wake();
         }
-        if buffer.blocked_readers > 0 {
+        if blocked {
             self.arrived.notify_one();
         }
     }
