@@ -93,7 +93,7 @@
 //! 7. **Consumer and outbox**: `consumer` (delivery tags, unacked
 //!    bookkeeping, prefetch credit, direct reply-to targets), `outbox`
 //!    (what goes to a connection's writer, with backpressure, or straight
-//!    to an in-process client's consumer: [`InlineDeliveries`]). They know
+//!    to an in-process client's consumer or confirms: [`InlineDeliveries`]). They know
 //!    no queue: the delivery bookkeeping is generic over what a queue
 //!    keeps of a delivery, and an outbox wakes what waited for room in it
 //!    through its trait `WaitsForRoom`, which a queue implements.

@@ -4,9 +4,10 @@
 //! queues instead of growing a buffer), and when the client was last
 //! heard (so a writer blocked on a client that neither reads nor writes
 //! gives up after two missed heartbeats, whatever the reader is waiting
-//! for). An in-process client may also take deliveries inline
-//! ([`InlineDeliveries`]): handed to it by the thread that dispatches them,
-//! when nothing sent before is still on its way to it.
+//! for). An in-process client may also take deliveries and publisher
+//! confirms inline ([`InlineDeliveries`]): handed to it by the thread that
+//! dispatches or settles them, when nothing sent before is still on its
+//! way to it.
 //!
 //! It uses only the message type. It knows no queue: a queue that found
 //! no room waits as a [`WaitsForRoom`], the trait this module defines for
@@ -194,6 +195,15 @@ pub trait InlineDeliveries: Send + Sync {
     /// by the queue and unacked on its channel as any other); if not, it
     /// goes through the outbox.
     fn deliver(&self, delivery: InlineDelivery<'_>) -> bool;
+
+    /// A publisher confirm for the client's publishes on `channel` (the
+    /// broker's `basic.ack`, or `basic.nack` when `ack` is false, with its
+    /// `delivery_tag` and `multiple`), offered on the thread that settles
+    /// it, under the same rule as a delivery. Whether the client took it;
+    /// if not (the default), it goes through the outbox.
+    fn confirm(&self, _channel: u16, _tag: u64, _multiple: bool, _ack: bool) -> bool {
+        false
+    }
 }
 
 /// Something that found an [`Outbox`] full and goes on once its writer has
@@ -283,6 +293,10 @@ impl Outbox {
     /// that every future awaiting a reply stays small (a future is copied
     /// each time it is created and awaited).
     pub async fn send(&self, item: Outbound) {
+        // A publisher confirm an in-process client takes inline.
+        if self.in_process && self.confirm_inline(&item) {
+            return;
+        }
         // An error means the writer is gone: the connection is closing and
         // its cleanup requeues whatever was in flight.
         self.count_sent();
@@ -378,6 +392,28 @@ impl Outbox {
                 properties: &message.properties,
                 body: &message.body,
             })
+    }
+
+    /// Offers a publisher confirm (`basic.ack` or `basic.nack` on a
+    /// channel: the broker sends them for nothing else) to the client's
+    /// inline deliveries, if it has set them and has handled everything
+    /// sent before; whether it took it.
+    fn confirm_inline(&self, item: &Outbound) -> bool {
+        let (channel, tag, multiple, ack) = match item {
+            Outbound::Method {
+                channel,
+                method: Method::BasicAck(ack),
+            } if *channel != 0 => (*channel, ack.delivery_tag, ack.multiple, true),
+            Outbound::Method {
+                channel,
+                method: Method::BasicNack(nack),
+            } if *channel != 0 => (*channel, nack.delivery_tag, nack.multiple, false),
+            _ => return false,
+        };
+        let Some(inline) = self.inline.get() else {
+            return false;
+        };
+        self.unhandled.load(Ordering::SeqCst) == 0 && inline.confirm(channel, tag, multiple, ack)
     }
 
     /// Remembers `waiter` (a queue) that found no room, to be woken once the

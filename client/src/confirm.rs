@@ -59,7 +59,10 @@ impl IntoFuture for PublishConfirm {
     type IntoFuture = ConfirmFuture;
 
     fn into_future(self) -> ConfirmFuture {
-        ConfirmFuture { rx: self.rx }
+        ConfirmFuture {
+            rx: self.rx,
+            answer: None,
+        }
     }
 }
 
@@ -67,6 +70,34 @@ impl IntoFuture for PublishConfirm {
 #[derive(Debug)]
 pub struct ConfirmFuture {
     rx: Option<oneshot::Receiver<Result<Confirmation>>>,
+    /// The answer [`ConfirmFuture::try_answer`] found, for the future to
+    /// resolve to.
+    answer: Option<Result<Confirmation>>,
+}
+
+impl ConfirmFuture {
+    /// The broker's answer if it has come, without waiting and without
+    /// taking the place of the waker a poll left (a task waiting on this
+    /// future is still woken by the answer): for a publisher that looks
+    /// before it would wait, as for an in-process publish, whose confirm
+    /// has come by the time `basic_publish` returns when the broker
+    /// handled it on the publishing thread. The future then resolves to
+    /// the same answer.
+    pub fn try_answer(&mut self) -> Option<Result<Confirmation>> {
+        if let Some(answer) = &self.answer {
+            return Some(answer.clone());
+        }
+        let answer = match &mut self.rx {
+            None => Ok(Confirmation::NotRequested),
+            Some(rx) => match rx.try_recv() {
+                Ok(answer) => answer,
+                Err(oneshot::error::TryRecvError::Empty) => return None,
+                Err(oneshot::error::TryRecvError::Closed) => Err(Error::Closed),
+            },
+        };
+        self.answer = Some(answer.clone());
+        Some(answer)
+    }
 }
 
 impl Future for ConfirmFuture {
@@ -74,6 +105,9 @@ impl Future for ConfirmFuture {
 
     fn poll(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Self::Output> {
         let this = self.get_mut();
+        if let Some(answer) = this.answer.take() {
+            return Poll::Ready(answer);
+        }
         match &mut this.rx {
             None => Poll::Ready(Ok(Confirmation::NotRequested)),
             Some(rx) => Pin::new(rx)
@@ -172,6 +206,29 @@ mod tests {
         assert_eq!(answers, [Nack, Ack, Nack, Ack, Ack]);
         assert_eq!(confirms.take_if_settled(), Some(false));
         assert_eq!(confirms.take_if_settled(), Some(true));
+    }
+
+    #[test]
+    fn an_answer_looked_at_is_what_the_future_resolves_to() {
+        let mut confirms = Confirms::new();
+        let mut first = confirms.register().into_future();
+        let mut second = confirms.register().into_future();
+        assert!(first.try_answer().is_none(), "not settled yet");
+        confirms.settle(1, false, false);
+        assert!(matches!(first.try_answer(), Some(Ok(Confirmation::Nack))));
+        assert!(matches!(first.try_answer(), Some(Ok(Confirmation::Nack))));
+        let mut context = Context::from_waker(std::task::Waker::noop());
+        assert!(matches!(
+            Pin::new(&mut first).poll(&mut context),
+            Poll::Ready(Ok(Confirmation::Nack))
+        ));
+        confirms.fail(&Error::Closed);
+        assert!(matches!(second.try_answer(), Some(Err(Error::Closed))));
+        let mut unrequested = PublishConfirm::not_requested().into_future();
+        assert!(matches!(
+            unrequested.try_answer(),
+            Some(Ok(Confirmation::NotRequested))
+        ));
     }
 
     #[test]

@@ -42,8 +42,10 @@
 //! a socket; on this side too everything after opening the link
 //! (handshake, reader, writer, channels) is the same code. One shortcut:
 //! the broker hands an in-process connection's deliveries to their
-//! consumer on the thread that dispatches them, whenever the reader has
-//! nothing before them ([`Connection::inline_deliveries`] counts them).
+//! consumer, and its publisher confirms to the channel, on the thread that
+//! dispatches or settles them, whenever the reader has nothing before them
+//! ([`Connection::inline_deliveries`] and [`Connection::inline_confirms`]
+//! count them).
 //!
 //! # Features
 //! `tls` (default): `amqps://` with rustls and the system's CA

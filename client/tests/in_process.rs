@@ -553,3 +553,88 @@ fn a_publish_after_the_runtime_is_gone_runs_no_loop() {
     assert_eq!(connection.inline_publishes(), 0);
     drop((channel, connection, broker));
 }
+
+/// A publish handled on the publishing thread has its confirm when
+/// `basic_publish` returns: the broker settles it there and the client
+/// takes it inline (counted by `inline_confirms`), acks and nacks alike,
+/// with no reader task in between. A publish whose `basic.return` comes
+/// first (mandatory, unroutable) has its confirm through the reader,
+/// after the return, as ever. On the current-thread runtime no task runs
+/// between the publish and the look, so the confirm is there at once; on
+/// the multi-thread one, the answers are the same.
+#[leveret_tests::both_runtimes]
+async fn in_process_confirms_come_with_a_fast_path_publish() {
+    use leveret_client::Confirmation::{Ack, Nack};
+    use std::future::IntoFuture;
+    let broker = Arc::new(Broker::builder().start().await.expect("start"));
+    let publisher = within("connect", Connection::in_process(&broker))
+        .await
+        .expect("in-process connect");
+    let out = within("channel", publisher.open_channel()).await.unwrap();
+    within("confirm.select", out.confirm_select())
+        .await
+        .unwrap();
+    let mut arguments = FieldTable::new();
+    arguments.insert(ShortStr::from_static("x-max-length"), FieldValue::I32(2));
+    arguments.insert(
+        ShortStr::from_static("x-overflow"),
+        FieldValue::string("reject-publish"),
+    );
+    let full = within(
+        "declare",
+        out.queue_declare("", QueueDeclareOptions::default(), arguments),
+    )
+    .await
+    .unwrap();
+    let at_once = tokio::runtime::Handle::current().runtime_flavor()
+        == tokio::runtime::RuntimeFlavor::CurrentThread;
+    let mut answers = Vec::new();
+    for i in 0..4 {
+        let mut confirm = publish_numbered(&out, &full.name, i, Default::default())
+            .await
+            .into_future();
+        let answer = if at_once {
+            confirm
+                .try_answer()
+                .expect("confirmed when the publish returned")
+        } else {
+            within("confirm", confirm).await
+        };
+        answers.push(answer.unwrap());
+    }
+    assert_eq!(answers, [Ack, Ack, Nack, Nack]);
+    if at_once {
+        assert_eq!(publisher.inline_confirms(), 4);
+    }
+
+    let mut returns = out.returns();
+    let confirm = within(
+        "publish",
+        out.basic_publish(
+            "",
+            "no-such-queue",
+            BasicPublishOptions { mandatory: true },
+            BasicProperties::default(),
+            Bytes::from_static(b"unroutable"),
+        ),
+    )
+    .await
+    .expect("publish");
+    let mut confirm = confirm.into_future();
+    if at_once {
+        assert!(
+            confirm.try_answer().is_none(),
+            "behind its return, through the reader"
+        );
+    }
+    assert!(within("confirm", confirm).await.unwrap().is_ack());
+    let returned = returns
+        .try_next()
+        .expect("the return came before its confirm");
+    assert_eq!(returned.reply_code, ReplyCode::NoRoute.code());
+    within("close", publisher.close()).await.unwrap();
+    Arc::into_inner(broker)
+        .expect("the only handle")
+        .shutdown()
+        .await;
+}

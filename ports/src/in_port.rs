@@ -37,6 +37,7 @@ use super::latency::LatencyStats;
 use super::link::{self, Link, LinkStatus, Stamp};
 use super::openrtm::PortRole;
 use super::profile::{Connector, FullPolicy, PortProfile};
+use super::spin::AdaptiveSpin;
 use leveret_client::DeliverySink;
 use leveret_client::{
     BasicConsumeOptions, BasicQosOptions, Channel, Connection, Consumer, ConsumerEnd, Delivery,
@@ -45,6 +46,7 @@ use leveret_client::{
 use leveret_client::{Error, Result};
 use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::task::{Context, Poll, Waker};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
@@ -218,6 +220,9 @@ struct Shared<T> {
     /// Signalled with the buffer's lock when a value arrives or the port
     /// closes, for [`InPort::recv_blocking`].
     arrived: Condvar,
+    /// Counts the values buffered and the port's closing: what a spinning
+    /// [`InPort::recv_blocking`] watches without taking the buffer's lock.
+    arrivals: AtomicU64,
     /// Signalled when the reader makes room.
     room: Notify,
     stats: watch::Sender<InPortStats>,
@@ -234,6 +239,7 @@ impl<T: PortData> Shared<T> {
             profile: Arc::new(profile),
             receiving: Mutex::new(Receiving::default()),
             arrived: Condvar::new(),
+            arrivals: AtomicU64::new(0),
             buffer: Mutex::new(Buffer {
                 queue: VecDeque::new(),
                 waker: None,
@@ -342,10 +348,16 @@ impl<T: PortData> Shared<T> {
             count.arrived(s);
             s.buffered += 1;
         });
-        if let Some(waker) = buffer.waker.take() {
+        self.arrivals.fetch_add(1, Ordering::Release);
+        let waker = buffer.waker.take();
+        let blocked = buffer.blocked_readers > 0;
+        // Woken after the lock is let go, so the reader woken does not
+        // find it still held.
+        drop(buffer);
+        if let Some(waker) = waker {
             waker.wake();
         }
-        if buffer.blocked_readers > 0 {
+        if blocked {
             self.arrived.notify_one();
         }
     }
@@ -451,6 +463,9 @@ pub struct InPort<T> {
     shared: Arc<Shared<T>>,
     /// The profile's busy-poll window.
     busy_poll: Option<Duration>,
+    /// How long `recv_blocking` spins before sleeping, without a busy-poll
+    /// window.
+    spin: AdaptiveSpin,
     task: Option<JoinHandle<()>>,
 }
 
@@ -522,6 +537,7 @@ impl<T: PortData> InPort<T> {
         InPort {
             shared,
             busy_poll,
+            spin: AdaptiveSpin::default(),
             task: Some(task),
         }
     }
@@ -555,9 +571,11 @@ impl<T: PortData> InPort<T> {
     }
 
     /// The next value in order for a thread outside the async runtime:
-    /// blocks the thread up to `timeout` (spinning first for the profile's
-    /// busy-poll window, if any); `None` if none came or the port is
-    /// closed. Never call it on a runtime thread.
+    /// blocks the thread up to `timeout`; `None` if none came or the port
+    /// is closed. Never call it on a runtime thread. Before the thread
+    /// sleeps it spins for the profile's busy-poll window, if it has one,
+    /// or else for a few microseconds, adapted to how values have come
+    /// (see `spin`): a value that comes meanwhile is taken with no wake.
     pub fn recv_blocking(&self, timeout: Duration) -> Option<Sample<T>> {
         let start = std::time::Instant::now();
         let deadline = start + timeout;
@@ -569,6 +587,31 @@ impl<T: PortData> InPort<T> {
                     Taken::Closed => return None,
                     Taken::Empty => std::hint::spin_loop(),
                 }
+            }
+        } else {
+            // Read before the first look: whatever arrives after it
+            // changes the count the spin watches.
+            let mut seen = self.shared.arrivals.load(Ordering::Acquire);
+            match self.take() {
+                Taken::Sample(sample) => return Some(sample),
+                Taken::Closed => return None,
+                Taken::Empty => {}
+            }
+            let taken = self.spin.wait(deadline, || {
+                let arrivals = self.shared.arrivals.load(Ordering::Acquire);
+                if arrivals == seen {
+                    return None;
+                }
+                seen = arrivals;
+                match self.take() {
+                    Taken::Sample(sample) => Some(Some(sample)),
+                    Taken::Closed => Some(None),
+                    // Another reader took it.
+                    Taken::Empty => None,
+                }
+            });
+            if let Some(taken) = taken {
+                return taken;
             }
         }
         let mut buffer = lock(&self.shared.buffer);
@@ -843,6 +886,7 @@ impl<T: PortData> Task<T> {
         }
         let mut buffer = lock(&self.shared.buffer);
         buffer.closed = true;
+        self.shared.arrivals.fetch_add(1, Ordering::Release);
         if let Some(waker) = buffer.waker.take() {
             waker.wake();
         }

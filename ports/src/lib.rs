@@ -73,6 +73,8 @@
 //! - `link`: [`LinkStatus`], topology declaration, the headers.
 //! - `out_port`: [`OutPort`], [`PortStatus`], [`OutPortStats`].
 //! - `in_port`: [`InPort`], [`Sample`], [`InPortStats`].
+//! - `spin`: how `InPort::recv_blocking` waits before it sleeps (a
+//!   bounded adaptive spin).
 //! - `playback`: a port's [`Recording`] read back: [`Playback`] (records),
 //!   [`Player`] (typed values), from a [`Position`] at a rate.
 //! - `latency`: [`LatencyStats`] (min, max, mean and percentiles).
@@ -92,6 +94,7 @@ mod openrtm;
 mod out_port;
 mod playback;
 mod profile;
+mod spin;
 
 pub use announce::{
     announced_counters, LatencySummary, PortAnnouncement, PortDirectory, PortState,

@@ -28,7 +28,8 @@
 //! for an embedded broker means the broker's connection has the message
 //! at once (and, when its loop is free, routes and queues it on the
 //! caller's thread, handing it to an in-process in-port there, see
-//! `leveret_broker::DirectLoop`). Everything else is the port's task's: publishing what `put`
+//! `leveret_broker::DirectLoop`; its confirm then comes with it, and `put`
+//! settles it too, with no task woken). Everything else is the port's task's: publishing what `put`
 //! left (link down, outbox full, a replay), keeping each message until the
 //! broker confirms it (with publisher confirms), and, when the link drops,
 //! reconnecting with backoff, declaring the topology again and replaying
@@ -256,6 +257,12 @@ struct Window {
     channel: Option<Channel>,
     /// Confirms of the messages published on this link, in order.
     inflight: VecDeque<InFlight>,
+    /// The current link's returned messages (with confirms: each before
+    /// its message's confirm).
+    returns: Option<Returns>,
+    /// Sequence numbers the broker returned as unroutable, until their
+    /// confirm arrives.
+    returned: HashSet<u64>,
     /// The bodies' bytes of `inflight`.
     inflight_bytes: usize,
     /// The broker has confirmed nothing (or, without confirms, taken
@@ -536,6 +543,27 @@ impl Shared {
     }
 }
 
+impl Shared {
+    /// Settles the messages at the front of what is in flight whose
+    /// confirm has come, in order, without waiting: `put` does it right
+    /// after it published, for an in-process publish the broker handled on
+    /// the putting thread has its confirm by then, and nobody need wake
+    /// the task for it. Stops at the first whose confirm has not come or
+    /// is a failed link's (the task's to handle). How many it settled.
+    fn settle_confirmed(&self, window: &mut Window, outcomes: &mut Vec<Outcome>) -> usize {
+        let mut settled = 0;
+        while let Some(oldest) = window.inflight.front_mut() {
+            let Some(Ok(confirmation)) = oldest.confirm.try_answer() else {
+                break;
+            };
+            let seq = oldest.seq;
+            settle_in_flight(window, seq, confirmation, outcomes);
+            settled += 1;
+        }
+        settled
+    }
+}
+
 impl std::fmt::Debug for Shared {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Shared")
@@ -556,6 +584,52 @@ fn settle(stats: &mut OutPortStats, outcomes: &mut Vec<Outcome>, seq: u64, fate:
         Fate::Lost => stats.lost += 1,
     }
     outcomes.push(Outcome { seq, fate });
+}
+
+/// Settles message `seq`, the oldest in flight, by its confirm (unless
+/// that is settled already): it leaves what is in flight, and its entry
+/// (if still in the window: a full window may have abandoned it since,
+/// counted as sent-unconfirmed) gets its fate, unroutable if the broker
+/// returned it.
+fn settle_in_flight(
+    window: &mut Window,
+    seq: u64,
+    confirmation: Confirmation,
+    outcomes: &mut Vec<Outcome>,
+) {
+    if window
+        .inflight
+        .front()
+        .is_none_or(|oldest| oldest.seq != seq)
+    {
+        return;
+    }
+    if let Some(settled) = window.inflight.pop_front() {
+        window.inflight_bytes -= settled.bytes;
+    }
+    note_returns(window);
+    let fate = match confirmation {
+        _ if window.returned.remove(&seq) => Fate::Unroutable,
+        Confirmation::Ack | Confirmation::NotRequested => Fate::Confirmed,
+        Confirmation::Nack => Fate::Rejected,
+    };
+    if let Ok(index) = window.entries.binary_search_by_key(&seq, |entry| entry.seq) {
+        window.entries.remove(index);
+        settle(&mut window.stats, outcomes, seq, fate);
+    }
+    window.measure();
+}
+
+/// Notes every message the broker has returned so far (with confirms).
+/// The broker sends a message's `basic.return` before its confirm, and
+/// the client hands them over in that order, so its return is here by
+/// the time its confirm is.
+fn note_returns(window: &mut Window) {
+    while let Some(message) = window.returns.as_mut().and_then(Returns::try_next) {
+        if let Some(seq) = link::Stamp::read(message.properties.headers.as_ref()).seq {
+            window.returned.insert(seq);
+        }
+    }
 }
 
 /// Takes the messages past their lifespan off the front of the window
@@ -693,6 +767,8 @@ impl<T: PortData> OutPort<T> {
                 publish_from: 1,
                 channel: first.as_ref().map(|link| link.channel.clone()),
                 inflight: VecDeque::new(),
+                returns: first.as_ref().map(|link| link.channel.returns()),
+                returned: HashSet::new(),
                 inflight_bytes: 0,
                 degraded: false,
                 blocked_putters: 0,
@@ -728,12 +804,11 @@ impl<T: PortData> OutPort<T> {
         let task = Task {
             shared: Arc::clone(&shared),
             connector,
-            returned: HashSet::new(),
             connecting: None,
             failures: 0,
             retry_at: Instant::now(),
             stall_timeout: profile.stall_timeout(),
-            link: first.map(OutLink::watch_returns),
+            link: first,
             profile: Arc::clone(&profile),
             announcer,
         };
@@ -902,10 +977,19 @@ impl<T: PortData> OutPort<T> {
         let first_unsent = window
             .entries
             .partition_point(|entry| entry.seq < publish_from);
+        let mut recovered = false;
         let wake = if first_unsent + 1 == window.entries.len() {
             let idle = window.inflight.is_empty();
             match self.shared.publish_next(&mut window, None, &mut outcomes) {
-                Next::Published => idle && !window.inflight.is_empty(),
+                Next::Published => {
+                    // Its confirm, if it has come with it (in process).
+                    if self.shared.settle_confirmed(&mut window, &mut outcomes) > 0 {
+                        recovered = std::mem::take(&mut window.degraded);
+                    }
+                    // The task polls the confirm of a first message left
+                    // in flight.
+                    idle && !window.inflight.is_empty()
+                }
                 // The task publishes it when a confirm makes room.
                 Next::Windowed => false,
                 Next::Idle | Next::Full | Next::Failed(_) => true,
@@ -919,6 +1003,9 @@ impl<T: PortData> OutPort<T> {
             PortStatus::Ok
         };
         drop(window);
+        if recovered {
+            self.shared.link.degraded(false);
+        }
         if wake {
             self.shared.work.notify_one();
         }
@@ -1038,14 +1125,6 @@ fn check_routes(profile: &PortProfile) -> Result<()> {
 struct OutLink {
     connection: Connection,
     channel: Channel,
-    returns: Option<Returns>,
-}
-
-impl OutLink {
-    fn watch_returns(mut self) -> Self {
-        self.returns = Some(self.channel.returns());
-        self
-    }
 }
 
 type Opening = Pin<Box<dyn Future<Output = Result<OutLink>> + Send>>;
@@ -1066,7 +1145,6 @@ async fn open(connector: Connector, profile: Arc<PortProfile>) -> Result<OutLink
         Ok(OutLink {
             connection,
             channel,
-            returns: None,
         })
     };
     match tokio::time::timeout(profile.broker.connection_timeout, setup).await {
@@ -1077,7 +1155,8 @@ async fn open(connector: Connector, profile: Arc<PortProfile>) -> Result<OutLink
 
 /// What woke the task.
 enum Event {
-    Confirm(Result<Confirmation>),
+    /// The confirm of message `seq`, the oldest in flight.
+    Confirm(u64, Result<Confirmation>),
     Returned(Box<ReturnedMessage>),
     Work,
     Opened(Result<OutLink>),
@@ -1092,9 +1171,6 @@ struct Task {
     shared: Arc<Shared>,
     connector: Connector,
     profile: Arc<PortProfile>,
-    /// Sequence numbers the broker returned as unroutable, until their
-    /// confirm arrives.
-    returned: HashSet<u64>,
     link: Option<OutLink>,
     connecting: Option<Opening>,
     failures: u32,
@@ -1120,7 +1196,7 @@ impl Task {
             }
             match self.next_event().await {
                 Event::Returned(message) => self.returned(&message),
-                Event::Confirm(result) => self.confirmed(result),
+                Event::Confirm(seq, result) => self.confirmed(seq, result),
                 Event::Work => {}
                 Event::Retry => self.expire_while_down(),
                 Event::Opened(result) => self.opened(result),
@@ -1148,7 +1224,12 @@ impl Task {
             }
         };
         let confirm = std::future::poll_fn(|cx| match shared.window().inflight.front_mut() {
-            Some(oldest) => Pin::new(&mut oldest.confirm).poll(cx),
+            Some(oldest) => {
+                let seq = oldest.seq;
+                Pin::new(&mut oldest.confirm)
+                    .poll(cx)
+                    .map(|result| (seq, result))
+            }
             None => Poll::Pending,
         });
         let stalled = async move {
@@ -1167,9 +1248,8 @@ impl Task {
                 None => std::future::pending().await,
             }
         };
-        let mut returns = self.link.as_mut().and_then(|link| link.returns.as_mut());
-        let returned = std::future::poll_fn(|cx| match returns.as_mut() {
-            Some(returns) => match Pin::new(&mut **returns).poll_next(cx) {
+        let returned = std::future::poll_fn(|cx| match shared.window().returns.as_mut() {
+            Some(returns) => match Pin::new(returns).poll_next(cx) {
                 Poll::Ready(Some(message)) => Poll::Ready(Box::new(message)),
                 // The channel's end shows as `closed`.
                 Poll::Ready(None) | Poll::Pending => Poll::Pending,
@@ -1180,7 +1260,7 @@ impl Task {
             biased;
             // A message's return comes before its confirm.
             message = returned => Event::Returned(message),
-            result = confirm => Event::Confirm(result),
+            (seq, result) = confirm => Event::Confirm(seq, result),
             () = self.shared.work.notified() => Event::Work,
             result = opened => Event::Opened(result),
             error = closed => Event::Lost(error),
@@ -1236,23 +1316,18 @@ impl Task {
         }
     }
 
-    /// The oldest published message's confirm arrived (or its link
-    /// failed).
-    fn confirmed(&mut self, result: Result<Confirmation>) {
+    /// The confirm of message `seq`, the oldest published, arrived (or its
+    /// link failed). `put` may have settled it meanwhile.
+    fn confirmed(&mut self, seq: u64, result: Result<Confirmation>) {
         match result {
             Ok(confirmation) => {
-                let settled = {
+                let mut outcomes = Vec::new();
+                {
                     let mut window = self.shared.window();
-                    let settled = window.inflight.pop_front();
-                    if let Some(settled) = &settled {
-                        window.inflight_bytes -= settled.bytes;
-                    }
-                    settled
-                };
-                self.recovered();
-                if let Some(settled) = settled {
-                    self.settle_published(settled.seq, confirmation);
+                    settle_in_flight(&mut window, seq, confirmation, &mut outcomes);
                 }
+                self.recovered();
+                self.shared.report(&outcomes, true);
             }
             Err(error) => self.lost(error),
         }
@@ -1284,44 +1359,6 @@ impl Task {
         self.shared.link.degraded(false);
     }
 
-    /// Settles message `seq` (if still in the window: a full window may
-    /// have abandoned it since, counted as sent-unconfirmed).
-    fn settle_published(&mut self, seq: u64, confirmation: Confirmation) {
-        self.drain_returns();
-        let fate = match confirmation {
-            _ if self.returned.remove(&seq) => Fate::Unroutable,
-            Confirmation::Ack | Confirmation::NotRequested => Fate::Confirmed,
-            Confirmation::Nack => Fate::Rejected,
-        };
-        let mut outcomes = Vec::new();
-        let mut window = self.shared.window();
-        if let Ok(index) = window.entries.binary_search_by_key(&seq, |entry| entry.seq) {
-            window.entries.remove(index);
-            settle(&mut window.stats, &mut outcomes, seq, fate);
-            window.measure();
-        }
-        drop(window);
-        self.shared.report(&outcomes, true);
-    }
-
-    /// Notes every message the broker has returned so far. The broker
-    /// sends a message's `basic.return` before its confirm, and the reader
-    /// hands them over in that order, so its return is here by the time
-    /// its confirm is. Without confirms, a return that comes later than the
-    /// write is not matched (the message is already counted confirmed).
-    fn drain_returns(&mut self) {
-        let Some(returns) = self.link.as_mut().and_then(|link| link.returns.as_mut()) else {
-            return;
-        };
-        let mut pending = Vec::new();
-        while let Some(message) = returns.try_next() {
-            pending.push(message);
-        }
-        for message in &pending {
-            self.returned(message);
-        }
-    }
-
     /// The broker returned a message no queue took. With confirms its
     /// fate waits for its confirm (which follows); without, its fate was
     /// already counted (sent-unconfirmed): the return is counted apart.
@@ -1329,11 +1366,13 @@ impl Task {
         let Some(seq) = link::Stamp::read(message.properties.headers.as_ref()).seq else {
             return;
         };
+        let mut window = self.shared.window();
         if self.profile.confirms {
-            self.returned.insert(seq);
+            window.returned.insert(seq);
             return;
         }
-        self.shared.window().stats.returned_after_send += 1;
+        window.stats.returned_after_send += 1;
+        drop(window);
         self.shared.publish_stats();
     }
 
@@ -1356,10 +1395,11 @@ impl Task {
             drop(link.channel);
             drop(link.connection);
         }
-        self.returned.clear();
         let mut outcomes = Vec::new();
         let mut window = self.shared.window();
         window.channel = None;
+        window.returns = None;
+        window.returned.clear();
         window.inflight.clear();
         window.inflight_bytes = 0;
         window.degraded = false;
@@ -1379,11 +1419,12 @@ impl Task {
         self.connecting = None;
         match result {
             Ok(link) => {
-                self.link = Some(link.watch_returns());
                 self.failures = 0;
                 let mut outcomes = Vec::new();
                 let mut window = self.shared.window();
-                window.channel = self.link.as_ref().map(|link| link.channel.clone());
+                window.channel = Some(link.channel.clone());
+                window.returns = Some(link.channel.returns());
+                self.link = Some(link);
                 if self.profile.replay == Replay::Latest {
                     keep_newest(&mut window, 1, &mut outcomes);
                 }

@@ -247,7 +247,8 @@ pub struct PortProfile {
     /// and thread (tens to hundreds of microseconds). For a control loop
     /// that reads a value every period, a window of at least the period
     /// keeps its thread from ever going idle. `None` (the default): no
-    /// polling.
+    /// window; `recv_blocking` still spins a few microseconds, adapted to
+    /// how values come, before its thread sleeps.
     pub busy_poll: Option<Duration>,
     /// Longest time `OutPort::put` waits for room with
     /// [`Backpressure::Block`] (never for the network).

@@ -273,3 +273,137 @@ async fn confirmed_persistent_puts_survive_a_restart() {
     assert_eq!(listed.messages_ready, COUNT as u64, "every confirmed value");
     again.shutdown().await;
 }
+
+/// This thread's CPU time and voluntary context switches so far, from
+/// `/proc/thread-self` (what `getrusage(RUSAGE_THREAD)` reports).
+fn thread_usage() -> (Duration, u64) {
+    let schedstat = std::fs::read_to_string("/proc/thread-self/schedstat").expect("schedstat");
+    let cpu_ns: u64 = schedstat
+        .split_whitespace()
+        .next()
+        .and_then(|ns| ns.parse().ok())
+        .expect("cpu time");
+    let status = std::fs::read_to_string("/proc/thread-self/status").expect("status");
+    let voluntary = status
+        .lines()
+        .find_map(|line| line.strip_prefix("voluntary_ctxt_switches:"))
+        .and_then(|count| count.trim().parse().ok())
+        .expect("voluntary_ctxt_switches");
+    (Duration::from_nanos(cpu_ns), voluntary)
+}
+
+/// `recv_blocking` spins a few microseconds before its thread sleeps, and
+/// no more: an idle in-port's receiver sleeps through each wait (a
+/// voluntary context switch per wait) and uses a small part of the time it
+/// waited in CPU; a value put meanwhile is still received, once, in order.
+#[both_runtimes]
+async fn an_idle_in_ports_blocking_receiver_sleeps_after_a_bounded_spin() {
+    const WAITS: u32 = 10;
+    const WAIT: Duration = Duration::from_millis(50);
+    let broker = leveret().await;
+    let queue = unique("fast-path-idle");
+    let (input, output) = in_process_pair(&broker, &queue).await;
+    let receiver = std::thread::spawn(move || {
+        let (cpu_before, switches_before) = thread_usage();
+        for _ in 0..WAITS {
+            assert!(input.recv_blocking(WAIT).is_none(), "nothing was put");
+        }
+        let (cpu_after, switches_after) = thread_usage();
+        (
+            input,
+            cpu_after - cpu_before,
+            switches_after - switches_before,
+        )
+    });
+    let (input, cpu, switches) =
+        tokio::task::spawn_blocking(move || receiver.join().expect("receiver"))
+            .await
+            .expect("join");
+    assert!(
+        switches >= u64::from(WAITS),
+        "each wait slept: {switches} voluntary switches"
+    );
+    assert!(
+        cpu < WAIT * WAITS / 2,
+        "spun {cpu:?} of {:?} waited",
+        WAIT * WAITS
+    );
+    // A value comes through a receiver that slept.
+    assert_eq!(output.try_put(&long(7)), PortStatus::Ok);
+    let (input, sample) = tokio::task::spawn_blocking(move || {
+        let sample = input.recv_blocking(Duration::from_secs(10));
+        (input, sample)
+    })
+    .await
+    .expect("join");
+    assert_eq!(sample.expect("the value").value.data, 7);
+    assert_eq!(input.stats().received, 1);
+    output.close().await;
+    input.close().await;
+}
+
+/// A put that takes the fast path (its connection's loop free, nothing
+/// before it) is settled before `try_put` returns, on the putting thread
+/// alone: the value is in the in-port's buffer, the in-port's ack has been
+/// handled by its connection's loop (run on this thread: the message is
+/// acknowledged in the queue's listing) and the out-port's confirm has come
+/// and been counted (`confirmed`, nothing pending), so no broker or port
+/// task needs waking for it. On the current-thread runtime no task can run
+/// between the put and the checks, so each holds at once; on the
+/// multi-thread one, eventually.
+#[both_runtimes]
+async fn a_fast_path_put_is_delivered_acknowledged_and_confirmed_before_it_returns() {
+    const PUTS: i32 = 50;
+    let broker = leveret().await;
+    let queue = unique("fast-path-settled");
+    let (input, output) = in_process_pair(&broker, &queue).await;
+    let at_once = tokio::runtime::Handle::current().runtime_flavor()
+        == tokio::runtime::RuntimeFlavor::CurrentThread;
+    let acked = |broker: &BrokerHandle| {
+        let listed = broker
+            .queues()
+            .into_iter()
+            .find(|q| q.name == queue)
+            .expect("the port's queue is listed");
+        (
+            listed.message_stats.ack,
+            listed.messages_ready,
+            listed.messages_unacknowledged,
+        )
+    };
+    for data in 0..PUTS {
+        let done = data as u64 + 1;
+        assert_eq!(output.try_put(&long(data)), PortStatus::Ok);
+        if at_once {
+            let sample = input
+                .try_recv()
+                .expect("in the buffer when the put returned");
+            assert_eq!(sample.value.data, data);
+            let stats = output.stats();
+            assert_eq!((stats.confirmed, stats.pending), (done, 0), "{stats:?}");
+            assert_eq!(acked(&broker), (done, 0, 0), "acknowledged already");
+        } else {
+            let sample = within("the value", input.recv()).await.expect("open");
+            assert_eq!(sample.value.data, data);
+            within("the confirm", output.flush()).await;
+            within("the ack", async {
+                while acked(&broker) != (done, 0, 0) {
+                    tokio::time::sleep(Duration::from_millis(5)).await;
+                }
+            })
+            .await;
+        }
+    }
+    let stats = output.stats();
+    assert_eq!(
+        (
+            stats.accepted,
+            stats.confirmed,
+            stats.settled(),
+            stats.pending
+        ),
+        (PUTS as u64, PUTS as u64, PUTS as u64, 0)
+    );
+    output.close().await;
+    input.close().await;
+}

@@ -19,10 +19,17 @@
 //! queued behind its own) to the task. A thread running an in-process
 //! connection's loop never claims another (an inline delivery on its
 //! way; a sink that runs inline must not call into the broker at all, as
-//! the client's `DeliverySink::runs_inline` requires).
+//! the client's `DeliverySink::runs_inline` requires). What such a run
+//! has a client send to another in-process connection (an inline
+//! delivery's ack, in room reserved for it) it defers instead
+//! ([`DirectLoop::defer`]): once the run has let go of its loop, the
+//! thread hands each deferred item to its connection's loop and runs that
+//! loop too when it is free (else sends it through the link), so no
+//! broker thread is woken for it.
 
 use leveret_protocol::Outgoing;
-use std::cell::Cell;
+use std::cell::{Cell, RefCell};
+use std::collections::VecDeque;
 use std::future::Future;
 use std::pin::Pin;
 use std::sync::atomic::{fence, AtomicBool, Ordering};
@@ -38,6 +45,18 @@ thread_local! {
     /// Items a client thread's claimed run may still take (`None`: this
     /// thread is not on a claimed run).
     static CLAIM_BUDGET: Cell<Option<u32>> = const { Cell::new(None) };
+    /// Items a claimed run deferred, to send once it has let go.
+    static DEFERRED: RefCell<VecDeque<Deferred>> = const { RefCell::new(VecDeque::new()) };
+    /// Whether this thread is sending its deferred items now.
+    static SENDING_DEFERRED: Cell<bool> = const { Cell::new(false) };
+}
+
+/// An item a client thread's claimed run deferred, with the room reserved
+/// for it in its connection's link.
+struct Deferred {
+    here: DirectLoop,
+    item: Outgoing,
+    room: mpsc::OwnedPermit<Outgoing>,
 }
 
 /// Items a client thread takes on its claimed run before it hands the
@@ -151,6 +170,37 @@ pub struct LoopClaim<'a> {
 }
 
 impl DirectLoop {
+    /// Whether this thread is on a client thread's claimed run of a
+    /// connection's loop, where an item for a connection may be deferred
+    /// ([`DirectLoop::defer`]).
+    pub fn may_defer() -> bool {
+        CLAIM_BUDGET.with(Cell::get).is_some()
+    }
+
+    /// On a client thread's claimed run (see [`DirectLoop::may_defer`]):
+    /// keeps `item` for this connection, with `room` reserved for it in
+    /// its link, until the run has let go of its loop; then this thread
+    /// hands it to this connection's loop and runs it if it is free, or
+    /// else sends it through `room`. Off such a run, gives both back.
+    #[allow(clippy::result_large_err)]
+    pub fn defer(
+        &self,
+        item: Outgoing,
+        room: mpsc::OwnedPermit<Outgoing>,
+    ) -> Result<(), (Outgoing, mpsc::OwnedPermit<Outgoing>)> {
+        if !DirectLoop::may_defer() {
+            return Err((item, room));
+        }
+        DEFERRED.with(|deferred| {
+            deferred.borrow_mut().push_back(Deferred {
+                here: self.clone(),
+                item,
+                room,
+            });
+        });
+        Ok(())
+    }
+
     /// Takes the connection's loop for this thread, if no other thread or
     /// task runs it now, it has not ended, and this thread is not already
     /// running one.
@@ -183,18 +233,25 @@ impl LoopClaim<'_> {
     /// otherwise sends `item` through `permit`, as it would have gone
     /// without the claim. Whether it was handed.
     pub fn hand_or_send(&mut self, item: Outgoing, permit: mpsc::Permit<'_, Outgoing>) -> bool {
-        let idle = self
-            .shared
-            .to_broker
-            .upgrade()
-            .is_some_and(|link| link.capacity() + 1 == link.max_capacity());
-        if !idle || self.shared.handed.is_full() {
+        if !self.may_hand() {
             permit.send(item);
             return false;
         }
         drop(permit);
         self.shared.handed.put(item);
         true
+    }
+
+    /// Whether an item may be handed: nothing sent before waits in the
+    /// link (its one room reserved is the caller's), nor another handed
+    /// item.
+    fn may_hand(&self) -> bool {
+        let idle = self
+            .shared
+            .to_broker
+            .upgrade()
+            .is_some_and(|link| link.capacity() + 1 == link.max_capacity());
+        idle && !self.shared.handed.is_full()
     }
 
     /// Runs the loop on this thread until it waits or has taken
@@ -242,6 +299,41 @@ impl Drop for LoopClaim<'_> {
         if self.shared.missed.swap(false, Ordering::AcqRel) {
             self.waker.wake_by_ref();
         }
+        send_deferred();
+    }
+}
+
+/// Sends what this thread's claimed runs deferred, in order, once it runs
+/// no loop: each handed to its connection's loop, run here when it is
+/// free (at most [`CLAIM_ITEMS`] such runs; a run's own deferred items
+/// join the queue), else through the room reserved for it in the link.
+fn send_deferred() {
+    if RUNNING.with(Cell::get) || SENDING_DEFERRED.with(|sending| sending.replace(true)) {
+        return;
+    }
+    struct Sending;
+    impl Drop for Sending {
+        fn drop(&mut self) {
+            SENDING_DEFERRED.with(|sending| sending.set(false));
+        }
+    }
+    let _sending = Sending;
+    let mut runs = CLAIM_ITEMS;
+    while let Some(Deferred { here, item, room }) =
+        DEFERRED.with(|deferred| deferred.borrow_mut().pop_front())
+    {
+        if runs > 0 {
+            if let Some(claim) = here.claim() {
+                if claim.may_hand() {
+                    runs -= 1;
+                    drop(room);
+                    claim.shared.handed.put(item);
+                    claim.run();
+                    continue;
+                }
+            }
+        }
+        room.send(item);
     }
 }
 
@@ -366,6 +458,101 @@ mod tests {
         };
         assert!(polled.is_ready());
         assert_eq!(taken.get(), CLAIM_ITEMS + 10);
+    }
+
+    fn ack(tag: u64) -> Outgoing {
+        Outgoing::Method {
+            channel: 1,
+            method: leveret_protocol::Method::BasicAck(leveret_protocol::BasicAck {
+                delivery_tag: tag,
+                multiple: false,
+            }),
+        }
+    }
+
+    fn tag_of(item: &Outgoing) -> u64 {
+        match item {
+            Outgoing::Method {
+                method: leveret_protocol::Method::BasicAck(ack),
+                ..
+            } => ack.delivery_tag,
+            other => panic!("not an ack: {other:?}"),
+        }
+    }
+
+    /// A connection's loop that records the tags of the items it takes,
+    /// the handed one first (looked at on each poll, as the connection's
+    /// source does), and waits on its link.
+    async fn recording_loop(
+        handed: Arc<Handed>,
+        mut link: mpsc::Receiver<Outgoing>,
+        taken: Arc<Mutex<Vec<u64>>>,
+    ) {
+        loop {
+            let next = std::future::poll_fn(|cx| match handed.take() {
+                Some(item) => Poll::Ready(Some(item)),
+                None => link.poll_recv(cx),
+            })
+            .await;
+            let Some(item) = next else { return };
+            lock(&taken).push(tag_of(&item));
+        }
+    }
+
+    #[test]
+    fn an_item_deferred_on_a_claimed_run_is_handled_here_once_the_run_lets_go() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .expect("runtime");
+        let (to_broker, link) = mpsc::channel(8);
+        let handed = Arc::new(Handed::default());
+        let taken = Arc::new(Mutex::new(Vec::new()));
+        let here = runtime.block_on(async {
+            let here = spawn(
+                recording_loop(Arc::clone(&handed), link, Arc::clone(&taken)),
+                Arc::clone(&handed),
+                &to_broker,
+            );
+            // The task's first poll: the loop waits on its link.
+            tokio::task::yield_now().await;
+            here
+        });
+        let room = || to_broker.clone().try_reserve_owned().expect("room");
+
+        // Off a claimed run, nothing is deferred.
+        assert!(!DirectLoop::may_defer());
+        assert!(here.defer(ack(1), room()).is_err());
+
+        // On one, the item waits for the run's end; then this thread
+        // hands it to the loop and runs it: no item in the link, no wake.
+        {
+            let _running = Running::enter(Some(CLAIM_ITEMS));
+            assert!(here.defer(ack(2), room()).is_ok());
+            assert!(lock(&taken).is_empty(), "deferred");
+        }
+        send_deferred();
+        assert_eq!(*lock(&taken), [2], "handled on this thread");
+        assert_eq!(
+            to_broker.capacity(),
+            to_broker.max_capacity(),
+            "room given back"
+        );
+
+        // With the loop held elsewhere, it goes through the link.
+        {
+            let _running = Running::enter(Some(CLAIM_ITEMS));
+            assert!(here.defer(ack(3), room()).is_ok());
+        }
+        let held = here.shared.future.lock().expect("the loop");
+        send_deferred();
+        drop(held);
+        assert_eq!(
+            to_broker.max_capacity() - to_broker.capacity(),
+            1,
+            "in the link"
+        );
+        runtime.block_on(tokio::task::yield_now());
+        assert_eq!(*lock(&taken), [2, 3], "taken by the task, in order");
     }
 
     #[test]

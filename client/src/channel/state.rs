@@ -431,10 +431,28 @@ impl OutboxSlot<'_> {
         let state = core.chan.lock();
         state.status.check()?;
         core.check_connection()?;
-        self.permit.send(Outgoing::Method {
+        let item = Outgoing::Method {
             channel: core.chan.id,
             method: method.into(),
-        });
+        };
+        // In process, on a thread running a broker connection's loop for
+        // its own publish (an inline delivery's ack): deferred until that
+        // run lets go, then handled on this thread with no broker thread
+        // woken (`leveret_broker::DirectLoop::defer`).
+        #[cfg(feature = "embedded")]
+        let item = match core.conn.here.as_ref() {
+            Some(here) if leveret_broker::DirectLoop::may_defer() => {
+                match core.conn.tx.clone().try_reserve_owned() {
+                    Ok(room) => match here.defer(item, room) {
+                        Ok(()) => return Ok(()),
+                        Err((item, _room)) => item,
+                    },
+                    Err(_) => item,
+                }
+            }
+            _ => item,
+        };
+        self.permit.send(item);
         Ok(())
     }
 

@@ -1,11 +1,13 @@
 //! The in-process fast path's delivery side: an in-process connection's
 //! deliveries taken on the broker's dispatching thread
 //! ([`leveret_broker::InlineDeliveries`]) and handed to their consumer (its
-//! sink first, if it has one, then its buffer) as the reader would, with no
-//! outbox item and no reader task in between. The broker offers a delivery
-//! only once every item it sent before has been handled by the reader, so
-//! the order is the reader's; whatever this declines (a consumer not yet
-//! known, a full buffer, a closing connection) goes through the reader.
+//! sink first, if it has one, then its buffer) as the reader would, and its
+//! publisher confirms settled on the thread where the broker settles them,
+//! with no outbox item and no reader task in between. The broker offers a
+//! delivery or a confirm only once every item it sent before has been
+//! handled by the reader, so the order is the reader's; whatever this
+//! declines (a consumer or channel not known, a full buffer, a closing
+//! connection) goes through the reader.
 
 use super::Shared;
 use crate::channel::ChannelCore;
@@ -77,6 +79,24 @@ impl InlineDeliveries for InlineConsumers {
             room.send(delivery);
         }
         shared.inline_deliveries.fetch_add(1, Ordering::Relaxed);
+        true
+    }
+
+    /// Settles the publishes a confirm covers, as the reader would: the
+    /// publisher's confirm futures are ready when the broker's settling
+    /// returns (on the publishing thread, for a publish it handled there).
+    fn confirm(&self, channel: u16, tag: u64, multiple: bool, ack: bool) -> bool {
+        let Some(shared) = self.shared.upgrade() else {
+            return false;
+        };
+        if *shared.closing.borrow() {
+            return false;
+        }
+        let Some(chan) = shared.channel(channel) else {
+            return false;
+        };
+        chan.confirmed(tag, multiple, ack);
+        shared.inline_confirms.fetch_add(1, Ordering::Relaxed);
         true
     }
 }

@@ -89,6 +89,9 @@ pub(crate) struct Shared {
     pub(crate) inline_deliveries: std::sync::atomic::AtomicU64,
     /// Publishes handled on the publishing thread (in-process only).
     pub(crate) inline_publishes: std::sync::atomic::AtomicU64,
+    /// Publisher confirms an in-process connection settled on the thread
+    /// where the broker settled them (see `inline`).
+    pub(crate) inline_confirms: std::sync::atomic::AtomicU64,
     /// An in-process connection's loop, which a publish runs on its own
     /// thread when it is free (`leveret_broker::DirectLoop`).
     #[cfg(feature = "embedded")]
@@ -390,6 +393,19 @@ impl Connection {
             .inline_publishes
             .load(std::sync::atomic::Ordering::Relaxed)
     }
+
+    /// How many publisher confirms (`basic.ack`/`basic.nack` messages) an
+    /// in-process connection settled on the thread where the broker
+    /// settled them, with no task in between: for a publish the broker
+    /// handled on the publishing thread, before `basic_publish` returned
+    /// (the others came through the connection's reader). Always 0 over
+    /// TCP.
+    pub fn inline_confirms(&self) -> u64 {
+        self.inner
+            .shared
+            .inline_confirms
+            .load(std::sync::atomic::Ordering::Relaxed)
+    }
 }
 
 /// Takes the smaller of two limits, where 0 means "no preference".
@@ -621,6 +637,7 @@ async fn establish_frames<I: FrameInput, O: FrameOutput>(
         server_properties,
         inline_deliveries: std::sync::atomic::AtomicU64::new(0),
         inline_publishes: std::sync::atomic::AtomicU64::new(0),
+        inline_confirms: std::sync::atomic::AtomicU64::new(0),
         #[cfg(feature = "embedded")]
         here: outbox.here,
     });

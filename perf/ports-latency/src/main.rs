@@ -23,6 +23,13 @@
 //!
 //! With `ports` as the fourth argument only Leveret's rows run (for a
 //! profile of the ports alone).
+//!
+//! Beside the latencies each row prints what a value cost in CPU
+//! (`getrusage`): the receiver thread's CPU time and voluntary context
+//! switches per value (`RUSAGE_THREAD`: what a spinning receive costs), and
+//! the whole process's CPU time per value (`RUSAGE_SELF`: the sender, the
+//! broker's workers and the receiver; in back-to-back mode it includes the
+//! sender's spin waiting for the receiver).
 
 use leveret_broker::Broker;
 use leveret_ports::{Connector, InPort, OutPort, PortProfile, PortStatus};
@@ -69,6 +76,46 @@ struct Results {
     latencies_ns: Vec<u64>,
     send_ns: Vec<u64>,
     refused: u64,
+    /// The receiver thread's use over the run.
+    receiver: Usage,
+    /// The whole process's use over the run.
+    process: Usage,
+}
+
+/// CPU time and voluntary context switches, from `getrusage`.
+#[derive(Clone, Copy, Default)]
+struct Usage {
+    cpu_ns: u64,
+    voluntary_switches: u64,
+}
+
+impl Usage {
+    fn of(who: libc::c_int) -> Usage {
+        // SAFETY: getrusage only writes the struct it is given.
+        let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+        let rc = unsafe { libc::getrusage(who, &mut usage) };
+        assert_eq!(rc, 0, "getrusage");
+        let ns = |t: libc::timeval| t.tv_sec as u64 * 1_000_000_000 + t.tv_usec as u64 * 1000;
+        Usage {
+            cpu_ns: ns(usage.ru_utime) + ns(usage.ru_stime),
+            voluntary_switches: usage.ru_nvcsw as u64,
+        }
+    }
+
+    fn thread() -> Usage {
+        Usage::of(libc::RUSAGE_THREAD)
+    }
+
+    fn process() -> Usage {
+        Usage::of(libc::RUSAGE_SELF)
+    }
+
+    fn since(self, start: Usage) -> Usage {
+        Usage {
+            cpu_ns: self.cpu_ns - start.cpu_ns,
+            voluntary_switches: self.voluntary_switches - start.voluntary_switches,
+        }
+    }
 }
 
 enum Mode {
@@ -83,15 +130,17 @@ fn run(mut tx: impl Sender, mut rx: impl Receiver, count: u64, mode: Mode) -> Re
         let received = received.clone();
         std::thread::spawn(move || {
             let mut latencies = Vec::with_capacity(count as usize);
+            let start = Usage::thread();
             while latencies.len() < count as usize {
                 let Some(value) = rx.recv() else { break };
                 let at = now_ns();
                 latencies.push(at.saturating_sub(sent_at(&value)));
                 received.fetch_add(1, Ordering::Release);
             }
-            latencies
+            (latencies, Usage::thread().since(start))
         })
     };
+    let process_start = Usage::process();
     let mut send_ns = Vec::with_capacity(count as usize);
     let mut refused = 0;
     let start = Instant::now() + Duration::from_millis(5);
@@ -129,11 +178,13 @@ fn run(mut tx: impl Sender, mut rx: impl Receiver, count: u64, mode: Mode) -> Re
         std::thread::sleep(Duration::from_micros(100));
     }
     drop(tx);
-    let latencies_ns = receiver.join().expect("receiver thread");
+    let (latencies_ns, receiver) = receiver.join().expect("receiver thread");
     Results {
         latencies_ns,
         send_ns,
         refused,
+        receiver,
+        process: Usage::process().since(process_start),
     }
 }
 
@@ -158,8 +209,9 @@ impl Row {
         self.results.send_ns.sort_unstable();
         let l = &self.results.latencies_ns;
         let s = &self.results.send_ns;
+        let per_value = |x: u64| x as f64 / l.len().max(1) as f64;
         println!(
-            "{:<22} {:<12} {:>6}/{:<6} {:>8.2} {:>8.2} {:>9.2} {:>10.2} {:>10.2}",
+            "{:<22} {:<12} {:>6}/{:<6} {:>8.2} {:>8.2} {:>9.2} {:>10.2} {:>10.2} {:>9.2} {:>8.2} {:>9.2}",
             self.transport,
             self.mode,
             l.len(),
@@ -169,6 +221,9 @@ impl Row {
             percentile(l, 0.999),
             percentile(s, 0.5),
             percentile(s, 0.99),
+            per_value(self.results.receiver.cpu_ns) / 1000.0,
+            per_value(self.results.receiver.voluntary_switches),
+            per_value(self.results.process.cpu_ns) / 1000.0,
         );
     }
 }
@@ -318,8 +373,18 @@ fn main() {
     let session = zenoh_session();
 
     println!(
-        "{:<22} {:<12} {:>13} {:>8} {:>8} {:>9} {:>10} {:>10}",
-        "transport", "mode", "received", "p50 µs", "p99 µs", "p99.9 µs", "send p50", "send p99"
+        "{:<22} {:<12} {:>13} {:>8} {:>8} {:>9} {:>10} {:>10} {:>9} {:>8} {:>9}",
+        "transport",
+        "mode",
+        "received",
+        "p50 µs",
+        "p99 µs",
+        "p99.9 µs",
+        "send p50",
+        "send p99",
+        "rx cpu µs",
+        "rx vcsw",
+        "cpu µs"
     );
     for round in 0..rounds {
         for (mode_name, paced_at, count) in [
@@ -333,7 +398,11 @@ fn main() {
             run(tx, rx, 1000, Mode::BackToBack);
             for (transport, busy_poll, timed_intake) in [
                 ("leveret ports", None, false),
-                ("leveret busy-poll 2ms", Some(Duration::from_millis(2)), false),
+                (
+                    "leveret busy-poll 2ms",
+                    Some(Duration::from_millis(2)),
+                    false,
+                ),
                 ("leveret + on_receive", None, true),
             ] {
                 let name = format!("{queue}-{}-{timed_intake}", busy_poll.is_some());
@@ -354,6 +423,8 @@ fn main() {
                         latencies_ns: intake,
                         send_ns: Vec::new(),
                         refused: 0,
+                        receiver: Usage::default(),
+                        process: Usage::default(),
                     };
                     Row {
                         transport: "  └ put→on_receive",
