@@ -153,3 +153,191 @@ impl Channel {
         .await;
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::access::auth::Users;
+    use crate::access::permissions::{Permission, Permissions};
+    use crate::channel::WholePublish;
+    use crate::core::{Core, CoreOptions, Limits};
+    use crate::outbox::{Outbound, Outbox};
+    use crate::parameters::Parameters;
+    use crate::queue::QueueOptions;
+    use crate::store::{
+        KvOp, KvPair, MemoryStore, Persistence, Recovered, Store, StoreError, WriteMode,
+    };
+    use crate::vhost::QueueDeclaration;
+    use bytes::Bytes;
+    use leveret_protocol::{BasicProperties, BasicPublish, Method, ShortStr};
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::{Arc, Condvar, Mutex};
+    use tokio::sync::mpsc;
+
+    /// A store whose writes wait while `held` is set, and fail while
+    /// `failing` is.
+    #[derive(Debug, Default)]
+    struct Gated {
+        inner: MemoryStore,
+        held: Mutex<bool>,
+        opened: Condvar,
+        failing: AtomicBool,
+    }
+
+    impl Gated {
+        fn hold(&self, held: bool) {
+            *self.held.lock().unwrap() = held;
+            self.opened.notify_all();
+        }
+    }
+
+    impl Store for Gated {
+        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+            let held = self.held.lock().unwrap();
+            drop(self.opened.wait_while(held, |held| *held).unwrap());
+            if self.failing.load(Ordering::SeqCst) {
+                return Err(StoreError::Engine("simulated failure".into()));
+            }
+            self.inner.write(ops, mode)
+        }
+        fn flush(&self) -> Result<(), StoreError> {
+            self.inner.flush()
+        }
+        fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
+            self.inner.scan()
+        }
+    }
+
+    /// A channel in confirm mode on a broker over `store`, with a durable
+    /// queue `kept`, and what its outbox receives.
+    async fn confirming(store: Arc<Gated>) -> (Channel, mpsc::Receiver<Outbound>) {
+        let store: Arc<dyn Store> = store;
+        let persistence = Persistence::start(store, &Recovered::default()).expect("persister");
+        let permissions = Permissions::default();
+        permissions
+            .set("guest", "/", Permission::full())
+            .expect("set");
+        let core = Core::new(CoreOptions {
+            vhosts: vec!["/".into()],
+            users: Users::default(),
+            permissions,
+            parameters: Parameters::default(),
+            limits: Limits::default(),
+            persistence: Some(persistence),
+            product: "test".into(),
+            busy_poll: None,
+        });
+        let vhost = core.vhost(&ShortStr::from_static("/")).expect("vhost /");
+        vhost
+            .declare_queue(
+                QueueDeclaration {
+                    name: ShortStr::from_static("kept"),
+                    passive: false,
+                    server_named: false,
+                    max_queues: None,
+                    options: QueueOptions {
+                        durable: true,
+                        exclusive_owner: None,
+                        auto_delete: false,
+                        arguments: Default::default(),
+                    },
+                },
+                0,
+            )
+            .expect("queue.declare");
+        let (outbox, inbox) = Outbox::new(1);
+        let mut channel = Channel::new(1, outbox, vhost, core, "guest".into(), 0);
+        channel.confirm_select(true).await.expect("confirm.select");
+        (channel, inbox)
+    }
+
+    fn publish_persistent(channel: &mut Channel) {
+        let left = channel.publish_at_once(WholePublish {
+            channel: 1,
+            method: BasicPublish {
+                routing_key: ShortStr::from_static("kept"),
+                ..Default::default()
+            },
+            properties: Box::new(BasicProperties {
+                delivery_mode: Some(2),
+                ..Default::default()
+            }),
+            body: Bytes::from_static(b"safe"),
+        });
+        assert!(left.is_none(), "a publish to one queue finishes at once");
+    }
+
+    fn sent(inbox: &mut mpsc::Receiver<Outbound>) -> Vec<Method> {
+        std::iter::from_fn(|| inbox.try_recv().ok())
+            .filter_map(|item| match item {
+                Outbound::Method { method, .. } => Some(method),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// The channel watches the store itself: no ack while the message's
+    /// entry is not on disk, its confirm falls due once it is, and the
+    /// acks of publishes written together go out as one.
+    #[tokio::test]
+    async fn a_confirm_waits_for_the_store_and_falls_due_with_it() {
+        let store = Arc::new(Gated::default());
+        store.hold(true);
+        let (mut channel, mut inbox) = confirming(Arc::clone(&store)).await;
+        publish_persistent(&mut channel);
+        publish_persistent(&mut channel);
+        channel.flush_confirms().await;
+        assert!(sent(&mut inbox).is_empty(), "nothing is on disk yet");
+        // A zero timeout polls the future once, then gives up.
+        let due = confirms_due(std::iter::once(&channel));
+        assert!(
+            tokio::time::timeout(std::time::Duration::ZERO, due)
+                .await
+                .is_err(),
+            "not due while the store holds the write"
+        );
+        store.hold(false);
+        confirms_due(std::iter::once(&channel)).await;
+        // Both entries may not be in the group that made the first due.
+        let persistence = channel.core.persistence.clone().expect("persister");
+        assert!(persistence.sync().await);
+        channel.flush_confirms().await;
+        let methods = sent(&mut inbox);
+        assert!(
+            matches!(
+                methods[..],
+                [Method::BasicAck(BasicAck {
+                    delivery_tag: 2,
+                    multiple: true
+                })]
+            ),
+            "{methods:?}"
+        );
+        assert_eq!(channel.confirms.as_ref().map(Confirms::len), Some(0));
+        assert_eq!(channel.core.stats.confirmed.get(), 2);
+    }
+
+    /// A publish whose write failed is nacked, never acked.
+    #[tokio::test]
+    async fn a_failed_write_is_nacked() {
+        let store = Arc::new(Gated::default());
+        store.failing.store(true, Ordering::SeqCst);
+        let (mut channel, mut inbox) = confirming(Arc::clone(&store)).await;
+        publish_persistent(&mut channel);
+        confirms_due(std::iter::once(&channel)).await;
+        channel.flush_confirms().await;
+        let methods = sent(&mut inbox);
+        assert!(
+            matches!(
+                methods[..],
+                [Method::BasicNack(BasicNack {
+                    delivery_tag: 1,
+                    multiple: false,
+                    ..
+                })]
+            ),
+            "{methods:?}"
+        );
+        assert_eq!(channel.core.stats.confirmed.get(), 0);
+    }
+}
