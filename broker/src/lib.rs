@@ -67,15 +67,21 @@
 //!    records; the rest of `access` is shared, below).
 //!    No layer below calls them.
 //! 3. **Channel**: `channel`, content assembly and one module per AMQP
-//!    class (`basic`, `queue`, `exchange`, `tx`, `reply_to`); a whole
-//!    publish from an in-process client is its input type. Uses the core
-//!    and below; knows no connection and no socket.
+//!    class (`basic`, `queue`, `exchange`, `tx`, `reply_to`), and
+//!    `confirms`, publisher confirms: the channel keeps their state and
+//!    watches the store for them itself, its connection only drives the
+//!    futures. A whole publish from an in-process client is its input
+//!    type. Uses the core and below; knows no connection and no socket.
 //! 4. **Core**: `core`, the state every connection shares (vhosts, users,
 //!    limits, the memory gauge, the store handle, the shutdown signal,
 //!    connection.start's server properties). Uses vhosts and below.
 //! 5. **Vhost and exchanges**: `vhost` (declare, delete, bind, route;
 //!    `vhost::routing`, a published message's way through exchanges to
-//!    the queues it reaches; `vhost::deadletter`, routing the dead letters
+//!    the queues it reaches; `vhost::publish`, the one owner of a
+//!    message's durable write, through which every publisher goes: it
+//!    writes the message's shared record, offers it to its queues (each
+//!    writes its index entry under its own lock) and returns what a
+//!    confirm waits for; `vhost::deadletter`, routing the dead letters
 //!    queue operations return: a work list with RabbitMQ's cycle rule and
 //!    a budget; it routes through the vhost, whose `dead_letter` hands the
 //!    letters to it, the one circle left), `exchange` (the kinds and their

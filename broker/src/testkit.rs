@@ -39,6 +39,8 @@ pub struct Harness {
     pub vhost: Arc<Vhost>,
     /// Its persister, if it has a store.
     pub persistence: Option<Arc<Persistence>>,
+    /// The store under the persister, if any.
+    store: Option<Arc<dyn Store>>,
     next_connection: AtomicU64,
 }
 
@@ -51,18 +53,30 @@ impl Harness {
     /// A vhost `/` whose durable queues persist into a [`MemoryStore`].
     pub fn durable() -> Self {
         let store: Arc<dyn Store> = Arc::new(MemoryStore::default());
-        let persistence =
-            Persistence::start(store, &Recovered::default()).expect("the persister starts");
-        Self::build(Some(persistence))
+        let persistence = Persistence::start(Arc::clone(&store), &Recovered::default())
+            .expect("the persister starts");
+        Self::build(Some((persistence, store)))
     }
 
-    fn build(persistence: Option<Arc<Persistence>>) -> Self {
+    fn build(storage: Option<(Arc<Persistence>, Arc<dyn Store>)>) -> Self {
         let gauge = Arc::new(MemoryGauge::new(usize::MAX));
+        let (persistence, store) = storage.unzip();
         Harness {
             vhost: Vhost::new(s("/"), gauge, persistence.clone(), Default::default()),
             persistence,
+            store,
             next_connection: AtomicU64::new(1),
         }
+    }
+
+    /// What a restart would recover from the store now (empty without one).
+    pub fn stored(&self) -> Recovered {
+        self.store
+            .as_ref()
+            .map_or_else(Recovered::default, |store| {
+                Recovered::from_scan(store.scan().expect("the store scans"))
+                    .expect("the store decodes")
+            })
     }
 
     /// Declares a non-durable queue with `arguments`.

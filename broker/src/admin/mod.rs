@@ -29,9 +29,9 @@ use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::ExchangeOptions;
 use crate::inspect::DestinationKind;
-use crate::message::{Message, Stored};
+use crate::message::Message;
 use crate::outbox::{Outbound, Outbox};
-use crate::queue::{ChannelLink, DeadLetters, Enqueued, Queue, QueueOptions};
+use crate::queue::{ChannelLink, DeadLetters, Queue, QueueOptions};
 use crate::vhost::{check_exclusive, BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{BasicProperties, FieldTable, ShortStr};
@@ -432,10 +432,7 @@ impl Admin {
         );
         self.core.stats.routed(!queues.is_empty(), false);
         let persistent = properties.is_persistent();
-        let persistence = self.core.persistence.as_ref().filter(|_| persistent);
-        let stored = persistence.and_then(|p| {
-            Stored::for_queues(p, queues.iter().filter(|q| q.stores_messages()).count())
-        });
+        let stored = vhost.storage(persistent, &queues);
         let mut encoded = BytesMut::new();
         properties.encode(&mut encoded);
         let message = Arc::new(Message {
@@ -448,27 +445,16 @@ impl Admin {
             ttl_ms,
             stored,
         });
-        if let (Some(persistence), Some(op)) = (persistence, message.record_op()) {
-            persistence.submit(vec![op]);
-        }
-        let mut sync = 0;
-        let mut dead = DeadLetters::default();
-        for queue in &queues {
-            let (enqueued, dead_here) = queue.publish(Arc::clone(&message));
-            if let Enqueued::Accepted { sync: s } = enqueued {
-                sync = sync.max(s);
-            }
-            dead.append(dead_here);
-        }
-        vhost.dead_letter(dead);
-        if let (Some(persistence), true) = (persistence, sync > 0) {
-            if !persistence.wait(sync).await {
+        let reached = !queues.is_empty();
+        let published = vhost.publish(message, queues).await;
+        if let Some(persistence) = &self.core.persistence {
+            if !persistence.wait_written(published.written).await {
                 return Err(AmqpError::resource_error(
                     "could not write the message to disk",
                 ));
             }
         }
-        Ok(!queues.is_empty())
+        Ok(reached)
     }
 
     /// basic.get up to `count` times, then settles what it got as `mode`

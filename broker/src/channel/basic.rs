@@ -7,10 +7,11 @@ use super::{Channel, Publish};
 use crate::access::permissions::Right;
 use crate::error::{AmqpError, AmqpResult};
 use crate::exchange::Exchange;
-use crate::message::{Message, Stored};
+use crate::message::Message;
 use crate::outbox::Outbound;
-use crate::queue::{Consumer, ConsumerArgs, DeadLetters, Enqueued, Queue, QueuedMessage, Unacked};
+use crate::queue::{Consumer, ConsumerArgs, DeadLetters, Queue, QueuedMessage, Unacked};
 use crate::slice::{finish_in_background, Progress, Slice};
+use crate::vhost::publish::Publishing;
 use leveret_protocol::{
     BasicCancel, BasicCancelOk, BasicConsume, BasicConsumeOk, BasicGet, BasicGetEmpty,
     BasicPublish, BasicQos, BasicQosOk, FieldTable, ReplyCode, ShortStr,
@@ -19,40 +20,11 @@ use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
-/// What happened to one publish.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub(crate) struct Outcome {
-    /// A queue refused it (overflow reject-publish): nack.
-    pub refused: bool,
-    /// Persister submission to wait for before confirming (0 = none).
-    pub sync: u64,
-    /// The submission of its shared record (0 = none), which must have
-    /// succeeded too: it is numbered before `sync` but may have been
-    /// written in an earlier group, one that failed.
-    pub record: u64,
-}
-
-impl Outcome {
-    /// Adds one queue's answer.
-    pub fn add(&mut self, enqueued: Enqueued) {
-        match enqueued {
-            Enqueued::Accepted { sync } => self.sync = self.sync.max(sync),
-            Enqueued::Refused => self.refused = true,
-        }
-    }
-}
-
 /// A publish routed but not yet offered to all its queues, or owed a
 /// basic.return: what [`Channel::finish_publish`] has left to do.
 #[derive(Debug)]
 pub(crate) struct Unfinished {
-    message: Arc<Message>,
-    /// The queues it was routed to (the channel's reused buffer).
-    queues: Vec<Arc<Queue>>,
-    /// How many of `queues` have been offered it.
-    next: usize,
-    outcome: Outcome,
-    dead: DeadLetters,
+    publishing: Publishing,
     /// Its confirm tag, in confirm mode.
     confirm: Option<u64>,
     returned: Option<Outbound>,
@@ -105,9 +77,9 @@ impl Channel {
             .map_err(|e| e.during_ids(60, 40))
     }
 
-    /// Checks a publish, then holds it for tx.commit, or routes it, stores
-    /// its record and offers it to its queues; what is left when it has to
-    /// wait is returned.
+    /// Checks a publish, then holds it for tx.commit, or routes it and
+    /// hands it to the vhost's publish step (which stores it and offers it
+    /// to its queues); what is left when it has to wait is returned.
     fn publish_checked(&mut self, mut publish: Publish) -> AmqpResult<Option<Box<Unfinished>>> {
         self.allow_exchange(Right::Write, publish.method.exchange.as_bytes())?;
         let exchange = self.publish_exchange(&publish.method.exchange)?;
@@ -148,20 +120,12 @@ impl Channel {
         let mut queues = std::mem::take(&mut self.route_buffer);
         let (message, returned) = self.route(&exchange, publish, &mut queues);
         let mut rest = Unfinished {
-            message,
-            queues,
-            next: 0,
-            outcome: Outcome::default(),
-            dead: DeadLetters::default(),
+            publishing: Publishing::new(message, queues),
             confirm,
             returned,
         };
         // A basic.return goes out before anything else of its publish.
-        if rest.returned.is_some() {
-            return Ok(Some(Box::new(rest)));
-        }
-        rest.outcome.record = self.store_record(&rest.message);
-        if self.enqueue_slice(&mut rest) == Progress::More {
+        if rest.returned.is_some() || self.publish_slice(&mut rest) == Progress::More {
             return Ok(Some(Box::new(rest)));
         }
         self.settle_publish(rest);
@@ -190,57 +154,32 @@ impl Channel {
     pub(super) async fn finish_publish(&mut self, mut rest: Box<Unfinished>) {
         if let Some(returned) = rest.returned.take() {
             self.send_return(returned).await;
-            rest.outcome.record = self.store_record(&rest.message);
         }
-        while self.enqueue_slice(&mut rest) == Progress::More {
+        while self.publish_slice(&mut rest) == Progress::More {
             tokio::task::yield_now().await;
         }
         self.settle_publish(*rest);
     }
 
-    /// Submits a routed message's shared record, if it is stored; its
-    /// submission number (0 if none).
-    fn store_record(&self, message: &Message) -> u64 {
-        match (&self.core.persistence, message.record_op()) {
-            (Some(persistence), Some(op)) => persistence.submit(vec![op]),
-            _ => 0,
+    /// One slice of the vhost's publish step; notes a crowded queue it
+    /// reached for the connection's flow control.
+    fn publish_slice(&mut self, rest: &mut Unfinished) -> Progress {
+        let progress = self
+            .vhost
+            .publish_step(&mut rest.publishing, &mut Slice::start());
+        if let (None, Some(queue)) = (&self.crowded, rest.publishing.take_crowded()) {
+            self.crowded = Some(queue);
         }
+        progress
     }
 
-    /// Offers the message to its next queues until they are all done or
-    /// the slice is spent.
-    fn enqueue_slice(&mut self, rest: &mut Unfinished) -> Progress {
-        let mut slice = Slice::start();
-        while let Some(queue) = rest.queues.get(rest.next) {
-            rest.next += 1;
-            let (enqueued, dead_here) = queue.publish(Arc::clone(&rest.message));
-            rest.outcome.add(enqueued);
-            rest.dead.append(dead_here);
-            if queue.is_crowded() && self.crowded.is_none() {
-                self.crowded = Some(Arc::clone(queue));
-            }
-            if slice.step() && rest.next < rest.queues.len() {
-                return Progress::More;
-            }
-        }
-        Progress::Done
-    }
-
-    /// A publish offered to all its queues: its dead letters go on, its
-    /// outcome waits for its confirm.
+    /// A publish offered to all its queues: the vhost routes its dead
+    /// letters, its outcome waits for its confirm.
     fn settle_publish(&mut self, rest: Unfinished) {
-        let Unfinished {
-            mut queues,
-            dead,
-            outcome,
-            confirm,
-            ..
-        } = rest;
-        queues.clear();
+        let (published, queues) = self.vhost.published(rest.publishing);
         self.route_buffer = queues;
-        self.vhost.dead_letter(dead);
-        if let Some(tag) = confirm {
-            self.confirm(tag, outcome);
+        if let Some(tag) = rest.confirm {
+            self.confirm(tag, published);
         }
     }
 
@@ -263,13 +202,7 @@ impl Channel {
             &mut self.last_routed_queue,
         );
         let persistent = publish.properties.is_persistent();
-        let stored = match &self.core.persistence {
-            Some(persistence) if persistent => Stored::for_queues(
-                persistence,
-                queues.iter().filter(|q| q.stores_messages()).count(),
-            ),
-            _ => None,
-        };
+        let stored = self.vhost.storage(persistent, queues);
         let ttl_ms = publish
             .properties
             .expiration

@@ -12,10 +12,14 @@
 //! first body frame until the message is routed or dropped.
 //!
 //! Layout: `basic.rs` publishing, consuming, acks and get; `queue.rs`
-//! queue.*; `exchange.rs` exchange.*; `tx.rs` transactions and publisher
-//! confirms; `reply_to.rs` direct reply-to; `names.rs` generated names.
+//! queue.*; `exchange.rs` exchange.*; `tx.rs` transactions; `confirms.rs`
+//! publisher confirms, watching the store itself; `reply_to.rs` direct
+//! reply-to; `names.rs` generated names. A publish is routed here and
+//! handed to the vhost's publish step, which stores it and offers it to its
+//! queues (`vhost::publish`).
 
 mod basic;
+pub(crate) mod confirms;
 mod exchange;
 mod names;
 mod queue;
@@ -169,7 +173,7 @@ pub struct Channel {
     /// The queue the last publish to the default exchange reached.
     last_routed_queue: Option<RememberedQueue>,
     tx: Option<tx::Transaction>,
-    confirms: Option<tx::Confirms>,
+    confirms: Option<confirms::Confirms>,
     direct_reply: Option<reply_to::DirectReply>,
     /// A queue this channel published to that is over the flow limit.
     crowded: Option<Arc<Queue>>,

@@ -1,19 +1,15 @@
-//! Transactions (tx.select, commit, rollback) and publisher confirms
-//! (confirm.select, and the acks and nacks that answer publishes). Acks
-//! are coalesced: consecutive positive confirms are sent as one basic.ack
-//! with `multiple` once the connection has no more input buffered.
+//! Transactions: tx.select, commit (through the vhost's all-or-none
+//! publish) and rollback.
 
-use super::basic::{apply_settles, requeue_all, Outcome, Settle};
+use super::basic::{apply_settles, requeue_all, Settle};
+use super::confirms::Confirms;
 use super::{Channel, Publish};
 use crate::alarm::memory::MemoryGauge;
 use crate::error::{AmqpError, AmqpResult};
-use crate::queue::{DeadLetters, Enqueued, Queue, Unacked};
+use crate::queue::Unacked;
 use crate::registry::ChannelMode;
 use crate::slice::{yield_if_spent, Slice};
-use leveret_protocol::{
-    BasicAck, BasicNack, ConfirmSelectOk, TxCommitOk, TxRollbackOk, TxSelectOk,
-};
-use std::collections::VecDeque;
+use leveret_protocol::{TxCommitOk, TxRollbackOk, TxSelectOk};
 use std::sync::Arc;
 
 /// Work held by a transactional channel until commit. The publishes it
@@ -62,21 +58,6 @@ impl Drop for Transaction {
     }
 }
 
-/// Publisher-confirm state of a channel.
-#[derive(Debug, Default)]
-pub(crate) struct Confirms {
-    last_tag: u64,
-    /// Publishes not yet confirmed, in tag order, with what they wait for.
-    waiting: VecDeque<(u64, Outcome)>,
-}
-
-impl Confirms {
-    pub(super) fn next_tag(&mut self) -> u64 {
-        self.last_tag += 1;
-        self.last_tag
-    }
-}
-
 impl Channel {
     pub(super) async fn tx_select(&mut self) -> AmqpResult<()> {
         if self.confirms.is_some() {
@@ -99,13 +80,12 @@ impl Channel {
             ));
         };
         self.note_pending();
-        // Route everything first and write every stored message of the
-        // commit in one submission, so it reaches the disk in one atomic
-        // batch; only then do the messages become visible to consumers
-        // (whose acks must reach the store after the entries they remove).
-        let mut ops = Vec::new();
+        // Route everything first; the vhost writes every stored message of
+        // the commit in one atomic submission before any becomes visible
+        // to consumers (whose acks must reach the store after the entries
+        // they remove).
         let publishes = std::mem::take(&mut tx.publishes);
-        let mut placed = Vec::with_capacity(publishes.len());
+        let mut batch = Vec::with_capacity(publishes.len());
         let mut slice = Slice::start();
         for publish in publishes {
             yield_if_spent(&mut slice).await;
@@ -118,45 +98,14 @@ impl Channel {
             if let Some(returned) = returned {
                 self.send_return(returned).await;
             }
-            ops.extend(message.record_op());
-            let targets: Vec<(Arc<Queue>, Option<u64>)> = queues
-                .into_iter()
-                .map(|queue| {
-                    let stored_here = queue.stores_messages() && message.stored.is_some();
-                    let seq = stored_here.then(|| queue.reserve());
-                    if let Some(seq) = seq {
-                        ops.extend(queue.index_entry(seq, &message));
-                    }
-                    (queue, seq)
-                })
-                .collect();
-            placed.push((message, targets));
+            batch.push((message, queues));
         }
-        let sync = match (&self.core.persistence, ops.is_empty()) {
-            (Some(persistence), false) => persistence.submit_atomic(ops),
-            _ => 0,
-        };
-        let mut dead = DeadLetters::default();
-        // A stream appends at its publish and names the sync to wait for.
-        let mut sync = sync;
-        for (message, targets) in placed {
-            for (queue, seq) in targets {
-                let (enqueued, dead_here) = match seq {
-                    Some(seq) => queue.publish_reserved(Arc::clone(&message), seq),
-                    None => queue.publish(Arc::clone(&message)),
-                };
-                if let Enqueued::Accepted { sync: own } = enqueued {
-                    sync = sync.max(own);
-                }
-                dead.append(dead_here);
-                yield_if_spent(&mut slice).await;
-            }
-        }
-        dead.append(apply_settles(std::mem::take(&mut tx.settles)));
-        self.vhost.dead_letter(dead);
+        let written = self.vhost.publish_all_or_none(batch).await;
+        self.vhost
+            .dead_letter(apply_settles(std::mem::take(&mut tx.settles)));
         self.after_settles();
-        if let (Some(persistence), true) = (&self.core.persistence, sync > 0) {
-            if !persistence.wait(sync).await {
+        if let Some(persistence) = &self.core.persistence {
+            if !persistence.wait_written(written).await {
                 return Err(AmqpError::resource_error(
                     "could not write the transaction to disk",
                 ));
@@ -191,104 +140,14 @@ impl Channel {
         }
     }
 
-    pub(super) async fn confirm_select(&mut self, no_wait: bool) -> AmqpResult<()> {
-        if self.tx.is_some() {
-            return Err(AmqpError::precondition_failed(
-                "cannot switch from tx to confirm mode",
-            ));
-        }
-        if self.confirms.is_none() {
-            self.confirms = Some(Confirms::default());
-            self.registration.set_mode(ChannelMode::Confirm);
-        }
-        if !no_wait {
-            self.reply(ConfirmSelectOk {}).await;
-        }
-        Ok(())
-    }
-
-    /// Records the outcome of publish `tag`; it is confirmed by the next
-    /// [`Channel::flush_confirms`] that finds it (and all before it) settled.
-    pub(super) fn confirm(&mut self, tag: u64, outcome: Outcome) {
-        if let Some(confirms) = &mut self.confirms {
-            confirms.waiting.push_back((tag, outcome));
-        }
-        self.note_pending();
-    }
-
     /// Shows the listings what the channel holds: publishes awaiting
     /// their confirm, publishes and acks held by its transaction.
     pub(super) fn note_pending(&self) {
-        let unconfirmed = self.confirms.as_ref().map_or(0, |c| c.waiting.len());
+        let unconfirmed = self.confirms.as_ref().map_or(0, Confirms::len);
         let (messages, acks) = self
             .tx
             .as_ref()
             .map_or((0, 0), |tx| (tx.publishes.len(), tx.settles.len()));
         self.registration.set_pending(unconfirmed, messages, acks);
-    }
-
-    /// Whether publishes wait for their confirm.
-    pub fn has_waiting_confirms(&self) -> bool {
-        self.confirms
-            .as_ref()
-            .is_some_and(|c| !c.waiting.is_empty())
-    }
-
-    /// Sends the confirms that are due, in tag order: consecutive acks as
-    /// one basic.ack with `multiple`, nacks one by one. A publish waiting
-    /// for the disk holds back those after it, so a multiple ack never
-    /// covers a message that is not yet safe.
-    pub async fn flush_confirms(&mut self) {
-        let persistence = self.core.persistence.clone();
-        let mut acks: Option<(u64, u64)> = None;
-        let mut nacks = Vec::new();
-        if let Some(confirms) = &mut self.confirms {
-            while let Some(&(tag, outcome)) = confirms.waiting.front() {
-                let ack = if outcome.refused {
-                    false
-                } else if outcome.sync == 0 && outcome.record == 0 {
-                    true
-                } else {
-                    match &persistence {
-                        Some(p) if p.flushed() >= outcome.sync.max(outcome.record) => {
-                            [outcome.sync, outcome.record]
-                                .into_iter()
-                                .all(|number| number == 0 || p.succeeded(number))
-                        }
-                        _ => break,
-                    }
-                };
-                confirms.waiting.pop_front();
-                if ack {
-                    self.core.stats.confirmed.inc();
-                    acks = Some(acks.map_or((tag, tag), |(low, _)| (low, tag)));
-                } else {
-                    nacks.push((acks.take(), tag));
-                }
-            }
-        }
-        self.note_pending();
-        for (before, tag) in nacks {
-            if let Some((low, high)) = before {
-                self.send_ack(low, high).await;
-            }
-            self.reply(BasicNack {
-                delivery_tag: tag,
-                multiple: false,
-                requeue: false,
-            })
-            .await;
-        }
-        if let Some((low, high)) = acks {
-            self.send_ack(low, high).await;
-        }
-    }
-
-    async fn send_ack(&self, low: u64, high: u64) {
-        self.reply(BasicAck {
-            delivery_tag: high,
-            multiple: high > low,
-        })
-        .await;
     }
 }

@@ -26,6 +26,7 @@ pub use direct::{DirectLink, DirectReplies, DirectReply, DIRECT_CAPACITY};
 pub use direct_loop::{DirectLoop, LoopClaim};
 pub(crate) use reader::copy_below;
 
+use crate::channel::confirms::confirms_due;
 use crate::channel::{AtOnce, Channel, Leftover, WholePublish};
 use crate::core::Core;
 use crate::error::{AmqpError, AmqpResult};
@@ -410,7 +411,6 @@ impl Connection {
         self.log_open();
         let mut shutdown = (self.core.registry.close_signal(self.connection_id))
             .unwrap_or_else(|| self.core.shutdown_signal());
-        let mut durable = self.core.persistence.as_ref().map(|p| p.durable());
         let mut alarms = self.core.gauge.raised();
         // One deadline for client silence, re-armed only when it fires (a
         // timer reset per read would cost a timer-wheel update per batch).
@@ -504,7 +504,6 @@ impl Connection {
                 }
             }
             self.wait_for_crowded_queues().await;
-            let waiting = self.channels.values().any(Channel::has_waiting_confirms);
             // Not blocked, so no alarm was set when checked: a publisher
             // waits for one too, to be blocked (and told) at once.
             let publisher = self.channels.values().any(Channel::has_published);
@@ -512,7 +511,7 @@ impl Connection {
                 read = reader.fill() => Event::Read(read),
                 _ = alarms.changed(), if publisher => Event::Alarm,
                 _ = shutdown.wait_for(|down| *down) => Event::Shutdown,
-                _ = disk_progress(&mut durable), if waiting => Event::DiskProgress,
+                _ = confirms_due(self.channels.values()) => Event::ConfirmsDue,
                 _ = &mut silence, if !silence_limit.is_zero() => Event::Silent,
                 _ = &mut release, if reader.holds_spare() => Event::Idle,
             };
@@ -522,7 +521,7 @@ impl Connection {
                     self.outbox.heard(last_read);
                 }
                 Event::Read(Err(e)) => return Err(e.into()),
-                Event::DiskProgress | Event::Alarm => {}
+                Event::ConfirmsDue | Event::Alarm => {}
                 Event::Idle if last_read.elapsed() < IDLE_RELEASE => {
                     release.as_mut().reset(last_read + IDLE_RELEASE);
                 }
@@ -584,16 +583,14 @@ impl Connection {
         let mut shutdown = self.core.shutdown_signal();
         // Publishes read before the block are still confirmed as they
         // reach the disk: only reading stops.
-        let mut durable = self.core.persistence.as_ref().map(|p| p.durable());
         let outcome = loop {
-            let waiting = self.channels.values().any(Channel::has_waiting_confirms);
             tokio::select! {
                 _ = self.core.gauge.wait_clear() => break Unblocked::Cleared,
                 _ = shutdown.wait_for(|down| *down) => break Unblocked::ShuttingDown,
                 _ = reader.hung_up() => break Unblocked::PeerGone,
                 // The writer holds the only heartbeat receiver until it ends.
                 _ = heartbeat_tx.closed() => break Unblocked::PeerGone,
-                _ = disk_progress(&mut durable), if waiting => {}
+                _ = confirms_due(self.channels.values()) => {}
             }
             self.flush_confirms().await;
         };
@@ -887,25 +884,14 @@ enum Unblocked {
 /// What woke the reader loop.
 enum Event {
     Read(Result<(), ReadError>),
-    DiskProgress,
+    /// A channel has publisher confirms to send.
+    ConfirmsDue,
     /// A resource alarm was set: block now if this connection publishes.
     Alarm,
     /// The read buffer is larger than needed: release it if idle.
     Idle,
     Silent,
     Shutdown,
-}
-
-/// Resolves when the persister reports more on disk (never without storage).
-async fn disk_progress(durable: &mut Option<tokio::sync::watch::Receiver<crate::store::Durable>>) {
-    match durable {
-        Some(rx) => {
-            if rx.changed().await.is_err() {
-                std::future::pending::<()>().await;
-            }
-        }
-        None => std::future::pending::<()>().await,
-    }
 }
 
 /// Whether the reader goes on.

@@ -71,7 +71,7 @@ pub use self::integrity::{mark_clean, open_checked, OpenedStore};
 pub use self::log::{Bookkeeping, Losses, LostRange, OnDamage};
 pub use self::memory::MemoryStore;
 pub(crate) use self::persister::AfterSync;
-pub use self::persister::{Durable, Persistence, PersisterFigures};
+pub use self::persister::{Durable, Persistence, PersisterFigures, Written};
 #[cfg(feature = "persistence")]
 pub use self::sled::SledStore;
 

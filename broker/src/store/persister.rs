@@ -70,6 +70,39 @@ pub struct Durable {
     pub flushed: u64,
 }
 
+/// The submissions one piece of work made (a publish: its shared record
+/// and its queues' index entries), as the span of their numbers. It is on
+/// disk once the persister has attempted the last and no group in the
+/// span failed ([`Persistence::written`]): a failed group between two of
+/// its submissions counts against it even if it held none of them, so the
+/// answer errs towards "not written", never the other way.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Written {
+    first: u64,
+    last: u64,
+}
+
+impl Written {
+    /// Adds submission `number` (0, "nothing submitted", adds nothing).
+    pub fn add(&mut self, number: u64) {
+        if number == 0 {
+            return;
+        }
+        self.first = if self.first == 0 {
+            number
+        } else {
+            self.first.min(number)
+        };
+        self.last = self.last.max(number);
+    }
+
+    /// The highest submission number in it (0 if it is empty): the
+    /// persister's progress to wait for.
+    pub fn last(&self) -> u64 {
+        self.last
+    }
+}
+
 /// Submissions not yet taken by the persister, in number order.
 #[derive(Debug, Default)]
 struct Inbox {
@@ -557,6 +590,37 @@ impl Persistence {
         !log.iter().any(|&(from, to)| (from..=to).contains(&number))
     }
 
+    /// Whether everything in `written` is on disk: `None` while the
+    /// persister has not yet attempted all of it, `Some(false)` if a group
+    /// in its span failed. Nothing written is written.
+    pub fn written(&self, written: Written) -> Option<bool> {
+        if written.last == 0 {
+            return Some(true);
+        }
+        if self.flushed() < written.last {
+            return None;
+        }
+        let log = self.failed.lock().unwrap_or_else(|e| e.into_inner());
+        Some(
+            !log.iter()
+                .any(|&(from, to)| from <= written.last && to >= written.first),
+        )
+    }
+
+    /// Waits until everything in `written` is on disk; false if a group in
+    /// its span failed or the persister stopped first.
+    pub async fn wait_written(&self, written: Written) -> bool {
+        let mut durable = self.durable.clone();
+        if durable
+            .wait_for(|d| d.flushed >= written.last)
+            .await
+            .is_err()
+        {
+            return false;
+        }
+        self.written(written) == Some(true)
+    }
+
     /// Waits until submission `number` is on disk; false if its batch failed.
     pub async fn wait(&self, number: u64) -> bool {
         let mut durable = self.durable.clone();
@@ -980,6 +1044,42 @@ mod tests {
         let after = persistence.submit(vec![StoreOp::DeleteMessage { id: 3 }]);
         assert!(persistence.wait(after).await);
         assert!(persistence.succeeded(good));
+    }
+
+    /// A span of submissions is written only if every group it spans
+    /// succeeded: a publish whose shared record went out in a group that
+    /// failed is not written, however well its later index entries fared.
+    #[tokio::test]
+    async fn a_written_span_fails_when_any_group_in_it_failed() {
+        let flaky = Arc::new(Flaky::default());
+        let store: Arc<dyn Store> = Arc::clone(&flaky) as Arc<dyn Store>;
+        let persistence = Persistence::start(store, &Recovered::default()).unwrap();
+        let mut nothing = Written::default();
+        nothing.add(0);
+        assert_eq!(persistence.written(nothing), Some(true));
+        assert!(persistence.wait_written(nothing).await);
+        let mut good = Written::default();
+        good.add(persistence.submit(vec![StoreOp::DeleteMessage { id: 1 }]));
+        good.add(persistence.submit(vec![StoreOp::DeleteMessage { id: 2 }]));
+        assert!(persistence.wait_written(good).await);
+        flaky.failing.store(true, Ordering::SeqCst);
+        let record = persistence.submit(vec![StoreOp::DeleteMessage { id: 3 }]);
+        assert!(!persistence.wait(record).await);
+        flaky.failing.store(false, Ordering::SeqCst);
+        let entry = persistence.submit(vec![StoreOp::DeleteMessage { id: 4 }]);
+        assert!(persistence.wait(entry).await);
+        let mut spanning = Written::default();
+        spanning.add(entry);
+        spanning.add(record);
+        assert_eq!(spanning.last(), entry);
+        assert_eq!(persistence.written(spanning), Some(false));
+        assert!(!persistence.wait_written(spanning).await);
+        let mut later = Written::default();
+        later.add(entry);
+        assert_eq!(persistence.written(later), Some(true));
+        let mut ahead = Written::default();
+        ahead.add(entry + 1_000);
+        assert_eq!(persistence.written(ahead), None, "not attempted yet");
     }
 
     /// A store whose writes panic while `panicking` is set.

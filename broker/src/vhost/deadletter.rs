@@ -1,9 +1,9 @@
 //! Routing dead letters through a vhost: the dead letters a queue
 //! operation returned (each already carrying its `x-death` history, see
 //! `queue::leaving`) go to their dead-letter exchanges and on to queues.
-//! This module sits beside the vhost and uses it, the queues, and the
-//! persister (a persistent copy reaching durable queues is stored as a
-//! publish is).
+//! This module sits beside the vhost and uses it and the queues; each copy
+//! goes through the vhost's publish step (`publish`), which stores it as
+//! it stores any publish.
 //!
 //! Routing is a work list, never recursion: a dead letter delivered to a
 //! queue can make that queue dead-letter again (it is full, say), and those
@@ -16,10 +16,10 @@
 //! bound to) costs a bounded amount of work per message. That work is done
 //! a queue per step, in slices (see `slice`).
 
-use crate::message::{Message, Stored};
-use crate::queue::{DeadLetter, DeadLetters, Queue};
+use crate::queue::{DeadLetter, DeadLetters};
 use crate::slice::{finish_in_background, Progress, Slice};
 use crate::stats::DeadLetterStrategy;
+use crate::vhost::publish::Publishing;
 use crate::vhost::Vhost;
 use leveret_protocol::{FieldValue, ShortStr};
 use std::collections::VecDeque;
@@ -59,32 +59,33 @@ struct Routing {
     work: VecDeque<DeadLetter>,
     /// Letters the current original has caused so far.
     caused: usize,
-    /// The copy being delivered and the queues it still has to reach.
-    delivery: Option<(Arc<Message>, std::vec::IntoIter<Arc<Queue>>)>,
+    /// The copy being published to the queues it was routed to.
+    delivery: Option<Publishing>,
     over_budget: usize,
 }
 
 impl Routing {
     fn run(&mut self, slice: &mut Slice) -> Progress {
         loop {
-            if let Some((message, queues)) = &mut self.delivery {
-                match queues.next() {
-                    Some(queue) => {
-                        let (_, more) = queue.publish(Arc::clone(message));
-                        for next in more {
-                            if self.caused == CASCADE_LIMIT {
-                                // Dead-lettered by its queue all the same;
-                                // Leveret's budget drops it on the way.
-                                count(&self.vhost, &next);
-                                self.over_budget += 1;
-                            } else {
-                                self.caused += 1;
-                                self.work.push_back(next);
-                            }
-                        }
+            if let Some(publishing) = &mut self.delivery {
+                // Dead letters are at most once: no confirm waits for the
+                // outcome, and flow control does not slow a dead-letterer.
+                let progress = self.vhost.publish_step(publishing, slice);
+                for next in publishing.take_dead_letters() {
+                    if self.caused == CASCADE_LIMIT {
+                        // Dead-lettered by its queue all the same;
+                        // Leveret's budget drops it on the way.
+                        count(&self.vhost, &next);
+                        self.over_budget += 1;
+                    } else {
+                        self.caused += 1;
+                        self.work.push_back(next);
                     }
-                    None => self.delivery = None,
                 }
+                if progress == Progress::More {
+                    return Progress::More;
+                }
+                self.delivery = None;
             } else if let Some(letter) = self.work.pop_front() {
                 self.delivery = start_delivery(&self.vhost, letter);
             } else if let Some(letter) = self.originals.next() {
@@ -120,12 +121,11 @@ fn count(vhost: &Vhost, letter: &DeadLetter) -> Option<Arc<crate::exchange::Exch
     exchange
 }
 
-/// The copy of one dead letter and the queues its dead-letter exchange
-/// routes it to, except those the cycle rule rules out.
-fn start_delivery(
-    vhost: &Vhost,
-    letter: DeadLetter,
-) -> Option<(Arc<Message>, std::vec::IntoIter<Arc<Queue>>)> {
+/// The publish of one dead letter's copy to the queues its dead-letter
+/// exchange routes it to, except those the cycle rule rules out; marked
+/// for storage, as a publish is, when it is persistent and reaches
+/// durable queues.
+fn start_delivery(vhost: &Vhost, letter: DeadLetter) -> Option<Publishing> {
     let Some(exchange) = count(vhost, &letter) else {
         tracing::debug!(exchange = %letter.exchange(), "dead-letter exchange missing; message dropped");
         return None;
@@ -150,26 +150,11 @@ fn start_delivery(
         }
         !cycle
     });
-    let message = stored_copy(vhost, copy, &queues);
-    Some((message, queues.into_iter()))
-}
-
-/// The copy marked for storage, as a publish is, when it is persistent
-/// and reaches durable queues, with its shared record submitted if it has
-/// one (each queue writes its own index entry as it takes the copy).
-fn stored_copy(vhost: &Vhost, copy: Arc<Message>, queues: &[Arc<Queue>]) -> Arc<Message> {
-    let Some(persistence) = vhost.persistence().filter(|_| copy.persistent) else {
-        return copy;
+    let message = match vhost.storage(copy.persistent, &queues) {
+        Some(stored) => Arc::new(copy.stored_as(Some(stored))),
+        None => copy,
     };
-    let durable_queues = queues.iter().filter(|q| q.store_id().is_some()).count();
-    let Some(stored) = Stored::for_queues(persistence, durable_queues) else {
-        return copy;
-    };
-    let message = Arc::new(copy.stored_as(Some(stored)));
-    if let Some(op) = message.record_op() {
-        persistence.submit(vec![op]);
-    }
-    message
+    Some(Publishing::new(message, queues))
 }
 
 /// RabbitMQ's cycle rule. `deaths` is a dead letter's `x-death` history,

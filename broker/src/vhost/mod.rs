@@ -1,6 +1,8 @@
 //! A virtual host: its exchanges and queues, declaring and deleting them
 //! with RabbitMQ's checks, and the bindings between them (routing a
-//! published message is `routing`'s). The registries are
+//! published message is `routing`'s; storing it and offering it to the
+//! queues it reached is `publish`'s, the one owner of a message's durable
+//! write). The registries are
 //! `std::sync::RwLock<HashMap>`s: lookups take the read lock for one hash
 //! probe, changes take the write lock briefly; neither is held across an
 //! await or while a queue's own lock is taken. The dead letters queue
@@ -961,11 +963,6 @@ impl Vhost {
         deadletter::route(self, letters);
     }
 
-    /// The store this vhost's durable things are written to, if any.
-    pub(crate) fn persistence(&self) -> Option<&Arc<Persistence>> {
-        self.persistence.as_ref()
-    }
-
     /// Re-creates a stored exchange at start.
     pub fn restore_exchange(&self, record: &ExchangeRecord) {
         let Some(kind) = ExchangeKind::parse(record.kind.as_bytes()) else {
@@ -1269,6 +1266,7 @@ fn exclusive_locked(queue: &ShortStr, vhost: &ShortStr) -> AmqpError {
 
 mod deadletter;
 mod policies;
+pub mod publish;
 mod routing;
 
 /// RabbitMQ compares the arguments it validates; the first that differs.
