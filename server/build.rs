@@ -50,7 +50,7 @@ fn links_with_bundled_lld() -> bool {
     let at_least_1_90 = version
         .split_whitespace()
         .nth(1)
-        .and_then(|version| parse_major_minor(version))
+        .and_then(parse_major_minor)
         .is_some_and(|version| version >= (1, 90));
     let sysroot = command_output(&rustc, &["--print", "sysroot"]);
     let bundled_lld = Path::new(sysroot.trim())
@@ -70,7 +70,7 @@ fn builds_for_own_glibc_with_relr() -> bool {
     version
         .trim()
         .strip_prefix("glibc ")
-        .and_then(|version| parse_major_minor(version))
+        .and_then(parse_major_minor)
         .is_some_and(|version| version >= (2, 36))
 }
 
