@@ -590,7 +590,7 @@ impl<T: PortData> InPort<T> {
                     Taken::Empty => std::hint::spin_loop(),
                 }
             }
-        } else if let Some(spin) = &self.spin {
+        } else if let Some(spin) = self.spin.as_ref().filter(|_| !timeout.is_zero()) {
             // Read before the first look: whatever arrives after it
             // changes the count the spin watches.
             let mut seen = self.shared.arrivals.load(Ordering::Acquire);
