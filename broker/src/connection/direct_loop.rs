@@ -300,11 +300,17 @@ impl LoopClaim<'_> {
     /// link (its one room reserved is the caller's), nor another handed
     /// item.
     fn may_hand(&self) -> bool {
+        self.may_hand_besides(0)
+    }
+
+    /// [`LoopClaim::may_hand`], with `reserved` more rooms in the link
+    /// known to be this thread's, for items it deferred after this one.
+    fn may_hand_besides(&self, reserved: usize) -> bool {
         let idle = self
             .shared
             .to_broker
             .upgrade()
-            .is_some_and(|link| link.capacity() + 1 == link.max_capacity());
+            .is_some_and(|link| link.capacity() + 1 + reserved == link.max_capacity());
         idle && !self.shared.handed.is_full()
     }
 
@@ -390,8 +396,17 @@ fn send_deferred() {
         DEFERRED.with(|deferred| deferred.borrow_mut().pop_front())
     {
         if items > 0 {
+            // This thread's rooms for the connection's later deferred
+            // items: reserved, but nothing waits in them.
+            let later = DEFERRED.with(|deferred| {
+                deferred
+                    .borrow()
+                    .iter()
+                    .filter(|later| Arc::ptr_eq(&later.here.shared, &here.shared))
+                    .count()
+            });
             if let Some(claim) = here.claim() {
-                if claim.may_hand() {
+                if claim.may_hand_besides(later) {
                     drop(room);
                     claim.shared.handed.put(item);
                     items = claim.run_within(items).1;
@@ -752,6 +767,35 @@ mod tests {
         send_deferred();
         runtime.block_on(tokio::task::yield_now());
         assert_eq!(*lock(&taken), [1, 5], "in the order this thread sent");
+    }
+
+    #[test]
+    fn two_acks_deferred_for_one_connection_are_both_handled_here() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .expect("runtime");
+        let (to_broker, link) = mpsc::channel(8);
+        let handed = Arc::new(Handed::default());
+        let taken = Arc::new(Mutex::new(Vec::new()));
+        let here = runtime.block_on(async {
+            let here = spawn(
+                recording_loop(Arc::clone(&handed), link, Arc::clone(&taken)),
+                Arc::clone(&handed),
+                &to_broker,
+            );
+            tokio::task::yield_now().await;
+            here
+        });
+        let room = || to_broker.clone().try_reserve_owned().expect("room");
+        {
+            let _running = Running::enter(Some(CLAIM_ITEMS));
+            assert!(here.defer(ack(1), room()).is_ok());
+            assert!(here.defer(ack(2), room()).is_ok());
+        }
+        send_deferred();
+        // The task has not run: both were handled on this thread.
+        assert_eq!(*lock(&taken), [1, 2], "both handled here, in order");
+        assert_eq!(to_broker.capacity(), to_broker.max_capacity());
     }
 
     #[test]
