@@ -464,8 +464,8 @@ pub struct InPort<T> {
     /// The profile's busy-poll window.
     busy_poll: Option<Duration>,
     /// How long `recv_blocking` spins before sleeping, without a busy-poll
-    /// window.
-    spin: AdaptiveSpin,
+    /// window, if the profile asks for a spin.
+    spin: Option<AdaptiveSpin>,
     task: Option<JoinHandle<()>>,
 }
 
@@ -518,6 +518,7 @@ impl<T: PortData> InPort<T> {
         first: Option<InLink>,
     ) -> Self {
         let busy_poll = shared.profile.busy_poll.filter(|window| !window.is_zero());
+        let spin = shared.profile.spin.and_then(AdaptiveSpin::up_to);
         let announcer = Announcer::start::<T, _>(
             PortRole::InPort,
             &shared.profile,
@@ -537,7 +538,7 @@ impl<T: PortData> InPort<T> {
         InPort {
             shared,
             busy_poll,
-            spin: AdaptiveSpin::default(),
+            spin,
             task: Some(task),
         }
     }
@@ -574,8 +575,9 @@ impl<T: PortData> InPort<T> {
     /// blocks the thread up to `timeout`; `None` if none came or the port
     /// is closed. Never call it on a runtime thread. Before the thread
     /// sleeps it spins for the profile's busy-poll window, if it has one,
-    /// or else for a few microseconds, adapted to how values have come
-    /// (see `spin`): a value that comes meanwhile is taken with no wake.
+    /// or else for the profile's adaptive spin, if it has one (2 µs up to
+    /// its ceiling, then two yields: [`PortProfile::spin`]): a value that
+    /// comes meanwhile is taken with no wake. A zero timeout looks once.
     pub fn recv_blocking(&self, timeout: Duration) -> Option<Sample<T>> {
         let start = std::time::Instant::now();
         let deadline = start + timeout;
@@ -588,7 +590,7 @@ impl<T: PortData> InPort<T> {
                     Taken::Empty => std::hint::spin_loop(),
                 }
             }
-        } else {
+        } else if let Some(spin) = self.spin.as_ref().filter(|_| !timeout.is_zero()) {
             // Read before the first look: whatever arrives after it
             // changes the count the spin watches.
             let mut seen = self.shared.arrivals.load(Ordering::Acquire);
@@ -597,7 +599,7 @@ impl<T: PortData> InPort<T> {
                 Taken::Closed => return None,
                 Taken::Empty => {}
             }
-            let taken = self.spin.wait(deadline, || {
+            let taken = spin.wait(deadline, || {
                 let arrivals = self.shared.arrivals.load(Ordering::Acquire);
                 if arrivals == seen {
                     return None;

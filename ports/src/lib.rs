@@ -73,8 +73,8 @@
 //! - `link`: [`LinkStatus`], topology declaration, the headers.
 //! - `out_port`: [`OutPort`], [`PortStatus`], [`OutPortStats`].
 //! - `in_port`: [`InPort`], [`Sample`], [`InPortStats`].
-//! - `spin`: how `InPort::recv_blocking` waits before it sleeps (a
-//!   bounded adaptive spin).
+//! - `spin`: how `InPort::recv_blocking` waits before it sleeps when the
+//!   profile asks for it (a bounded adaptive spin, `PortProfile::spin`).
 //! - `playback`: a port's [`Recording`] read back: [`Playback`] (records),
 //!   [`Player`] (typed values), from a [`Position`] at a rate.
 //! - `latency`: [`LatencyStats`] (min, max, mean and percentiles).

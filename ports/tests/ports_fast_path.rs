@@ -40,10 +40,20 @@ async fn in_process_pair(
     broker: &Arc<BrokerHandle>,
     queue: &str,
 ) -> (InPort<TimedLong>, OutPort<TimedLong>) {
+    in_process_pair_spinning(broker, queue, None).await
+}
+
+/// [`in_process_pair`] with `recv_blocking`'s spin up to `spin`.
+async fn in_process_pair_spinning(
+    broker: &Arc<BrokerHandle>,
+    queue: &str,
+    spin: Option<Duration>,
+) -> (InPort<TimedLong>, OutPort<TimedLong>) {
     let profile = PortProfile::default()
         .queue(queue)
         .routing_key(queue)
-        .buffer(2048, FullPolicy::DropOldest);
+        .buffer(2048, FullPolicy::DropOldest)
+        .spin(spin);
     let local = Connector::in_process(broker);
     let input = within(
         "in-port",
@@ -276,6 +286,7 @@ async fn confirmed_persistent_puts_survive_a_restart() {
 
 /// This thread's CPU time and voluntary context switches so far, from
 /// `/proc/thread-self` (what `getrusage(RUSAGE_THREAD)` reports).
+#[cfg(target_os = "linux")]
 fn thread_usage() -> (Duration, u64) {
     let schedstat = std::fs::read_to_string("/proc/thread-self/schedstat").expect("schedstat");
     let cpu_ns: u64 = schedstat
@@ -292,17 +303,20 @@ fn thread_usage() -> (Duration, u64) {
     (Duration::from_nanos(cpu_ns), voluntary)
 }
 
-/// `recv_blocking` spins a few microseconds before its thread sleeps, and
-/// no more: an idle in-port's receiver sleeps through each wait (a
-/// voluntary context switch per wait) and uses a small part of the time it
-/// waited in CPU; a value put meanwhile is still received, once, in order.
+/// With the spin on (`PortProfile::spin`), `recv_blocking` spins at most
+/// its ceiling before its thread sleeps, and no more: an idle in-port's
+/// receiver sleeps through each wait (a voluntary context switch per wait)
+/// and uses a small part of the time it waited in CPU; a value put
+/// meanwhile is still received, once, in order. Reads `/proc`: Linux only.
+#[cfg(target_os = "linux")]
 #[both_runtimes]
 async fn an_idle_in_ports_blocking_receiver_sleeps_after_a_bounded_spin() {
     const WAITS: u32 = 10;
     const WAIT: Duration = Duration::from_millis(50);
     let broker = leveret().await;
     let queue = unique("fast-path-idle");
-    let (input, output) = in_process_pair(&broker, &queue).await;
+    let (input, output) =
+        in_process_pair_spinning(&broker, &queue, Some(Duration::from_micros(64))).await;
     let receiver = std::thread::spawn(move || {
         let (cpu_before, switches_before) = thread_usage();
         for _ in 0..WAITS {

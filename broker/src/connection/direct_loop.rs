@@ -19,13 +19,14 @@
 //! queued behind its own) to the task. A thread running an in-process
 //! connection's loop never claims another (an inline delivery on its
 //! way; a sink that runs inline must not call into the broker at all, as
-//! the client's `DeliverySink::runs_inline` requires). What such a run
-//! has a client send to another in-process connection (an inline
+//! the client's `DeliverySink::runs_inline` requires). A single-tag ack
+//! such a run has a client send to an in-process connection (an inline
 //! delivery's ack, in room reserved for it) it defers instead
 //! ([`DirectLoop::defer`]): once the run has let go of its loop, the
 //! thread hands each deferred item to its connection's loop and runs that
-//! loop too when it is free (else sends it through the link), so no
-//! broker thread is woken for it.
+//! loop too when it is free (else sends it through the link), all these
+//! runs together taking at most [`CLAIM_ITEMS`] items, so no broker
+//! thread is woken for it.
 
 use leveret_protocol::Outgoing;
 use std::cell::{Cell, RefCell};
@@ -57,6 +58,21 @@ struct Deferred {
     here: DirectLoop,
     item: Outgoing,
     room: mpsc::OwnedPermit<Outgoing>,
+}
+
+/// Whether `item` is a `basic.ack` of one delivery: the only item
+/// [`DirectLoop::defer`] defers.
+fn is_single_ack(item: &Outgoing) -> bool {
+    matches!(
+        item,
+        Outgoing::Method {
+            method: leveret_protocol::Method::BasicAck(leveret_protocol::BasicAck {
+                multiple: false,
+                ..
+            }),
+            ..
+        }
+    )
 }
 
 /// Items a client thread takes on its claimed run before it hands the
@@ -93,6 +109,11 @@ impl Running {
         RUNNING.with(|running| running.set(true));
         CLAIM_BUDGET.with(|budget| budget.set(claim_budget));
         Running
+    }
+
+    /// What is left of the claim's budget (0 without one).
+    fn budget_left(&self) -> u32 {
+        CLAIM_BUDGET.with(Cell::get).unwrap_or(0)
     }
 }
 
@@ -177,11 +198,24 @@ impl DirectLoop {
         CLAIM_BUDGET.with(Cell::get).is_some()
     }
 
-    /// On a client thread's claimed run (see [`DirectLoop::may_defer`]):
-    /// keeps `item` for this connection, with `room` reserved for it in
-    /// its link, until the run has let go of its loop; then this thread
-    /// hands it to this connection's loop and runs it if it is free, or
-    /// else sends it through `room`. Off such a run, gives both back.
+    /// On a client thread's claimed run (see [`DirectLoop::may_defer`]),
+    /// for a single-tag `basic.ack` (an inline delivery's ack): keeps
+    /// `item` for this connection, with `room` reserved for it in its
+    /// link, until the run has let go of its loop; then this thread hands
+    /// it to this connection's loop and runs it if it is free, or else
+    /// sends it through `room`. Any other item, or off such a run, gives
+    /// both back, to be sent through the link at once; on such a run,
+    /// after what this thread deferred for this connection, which goes
+    /// into the link first, so this thread's items keep their order.
+    ///
+    /// The limit: a deferred ack reaches the connection when the run lets
+    /// go (before the put that claimed it returns), not when the client's
+    /// send returned; an item another thread sends on the connection
+    /// meanwhile may go first. Only single-tag acks are deferred, so this
+    /// reorders only those against other threads' items: an application
+    /// that acknowledges one channel from several threads must not have
+    /// another thread's `multiple` ack rely on an ack sent on a putting
+    /// thread's inline delivery before that put returned.
     #[allow(clippy::result_large_err)]
     pub fn defer(
         &self,
@@ -189,6 +223,10 @@ impl DirectLoop {
         room: mpsc::OwnedPermit<Outgoing>,
     ) -> Result<(), (Outgoing, mpsc::OwnedPermit<Outgoing>)> {
         if !DirectLoop::may_defer() {
+            return Err((item, room));
+        }
+        if !is_single_ack(&item) {
+            self.release_deferred();
             return Err((item, room));
         }
         DEFERRED.with(|deferred| {
@@ -199,6 +237,22 @@ impl DirectLoop {
             });
         });
         Ok(())
+    }
+
+    /// Sends what this thread deferred for this connection through the
+    /// room reserved for it, in order.
+    fn release_deferred(&self) {
+        let mine = DEFERRED.with(|deferred| {
+            let mut deferred = deferred.borrow_mut();
+            let (mine, others): (VecDeque<_>, VecDeque<_>) = deferred
+                .drain(..)
+                .partition(|kept| Arc::ptr_eq(&kept.here.shared, &self.shared));
+            *deferred = others;
+            mine
+        });
+        for Deferred { item, room, .. } in mine {
+            room.send(item);
+        }
     }
 
     /// Takes the connection's loop for this thread, if no other thread or
@@ -246,11 +300,17 @@ impl LoopClaim<'_> {
     /// link (its one room reserved is the caller's), nor another handed
     /// item.
     fn may_hand(&self) -> bool {
+        self.may_hand_besides(0)
+    }
+
+    /// [`LoopClaim::may_hand`], with `reserved` more rooms in the link
+    /// known to be this thread's, for items it deferred after this one.
+    fn may_hand_besides(&self, reserved: usize) -> bool {
         let idle = self
             .shared
             .to_broker
             .upgrade()
-            .is_some_and(|link| link.capacity() + 1 == link.max_capacity());
+            .is_some_and(|link| link.capacity() + 1 + reserved == link.max_capacity());
         idle && !self.shared.handed.is_full()
     }
 
@@ -259,18 +319,27 @@ impl LoopClaim<'_> {
     /// then what else the link holds; the task does the rest), then lets
     /// go. Whether the handed item was handled here. A panic in the loop
     /// ends the connection, as on its task, and stays on this side.
-    pub fn run(mut self) -> bool {
+    pub fn run(self) -> bool {
+        self.run_within(CLAIM_ITEMS).0
+    }
+
+    /// [`LoopClaim::run`] taking at most `budget` items: whether the
+    /// handed item was handled here, and what is left of `budget`.
+    fn run_within(mut self, budget: u32) -> (bool, u32) {
         let Some(future) = self.future.as_mut() else {
-            return false;
+            return (false, budget);
         };
         let _runtime = self.shared.runtime.enter();
+        let mut left = budget;
         if let Some(running) = future.as_mut() {
             let polled = {
-                let _running = Running::enter(Some(CLAIM_ITEMS));
+                let running_mark = Running::enter(Some(budget));
                 let mut cx = Context::from_waker(&self.waker);
-                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                let polled = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                     running.as_mut().poll(&mut cx)
-                }))
+                }));
+                left = running_mark.budget_left();
+                polled
             };
             let ended = match polled {
                 Ok(polled) => polled.is_ready(),
@@ -285,7 +354,7 @@ impl LoopClaim<'_> {
                 self.waker.wake_by_ref();
             }
         }
-        !self.shared.handed.is_full()
+        (!self.shared.handed.is_full(), left)
     }
 }
 
@@ -305,8 +374,12 @@ impl Drop for LoopClaim<'_> {
 
 /// Sends what this thread's claimed runs deferred, in order, once it runs
 /// no loop: each handed to its connection's loop, run here when it is
-/// free (at most [`CLAIM_ITEMS`] such runs; a run's own deferred items
-/// join the queue), else through the room reserved for it in the link.
+/// free, else through the room reserved for it in the link. All these
+/// runs share one budget of [`CLAIM_ITEMS`] items (a run's own deferred
+/// items join the queue): a chain of them (an ack that frees credit, the
+/// next queued message delivered inline, its ack deferred, ...) takes at
+/// most that many items of other connections' work on this thread; the
+/// rest goes through the links, to the connections' tasks.
 fn send_deferred() {
     if RUNNING.with(Cell::get) || SENDING_DEFERRED.with(|sending| sending.replace(true)) {
         return;
@@ -318,17 +391,25 @@ fn send_deferred() {
         }
     }
     let _sending = Sending;
-    let mut runs = CLAIM_ITEMS;
+    let mut items = CLAIM_ITEMS;
     while let Some(Deferred { here, item, room }) =
         DEFERRED.with(|deferred| deferred.borrow_mut().pop_front())
     {
-        if runs > 0 {
+        if items > 0 {
+            // This thread's rooms for the connection's later deferred
+            // items: reserved, but nothing waits in them.
+            let later = DEFERRED.with(|deferred| {
+                deferred
+                    .borrow()
+                    .iter()
+                    .filter(|later| Arc::ptr_eq(&later.here.shared, &here.shared))
+                    .count()
+            });
             if let Some(claim) = here.claim() {
-                if claim.may_hand() {
-                    runs -= 1;
+                if claim.may_hand_besides(later) {
                     drop(room);
                     claim.shared.handed.put(item);
-                    claim.run();
+                    items = claim.run_within(items).1;
                     continue;
                 }
             }
@@ -553,6 +634,168 @@ mod tests {
         );
         runtime.block_on(tokio::task::yield_now());
         assert_eq!(*lock(&taken), [2, 3], "taken by the task, in order");
+    }
+
+    /// A loop that works through a backlog a chain of deferred items
+    /// feeds: per item it takes (the handed one first), [`CHAIN_UNITS`]
+    /// units of its budget (the item and the backlog's messages its
+    /// handling delivers), each counted into `units`, then, on a claimed
+    /// run, it defers the next item to itself (the ack of what it
+    /// delivered inline), with room reserved in its link.
+    async fn chaining_loop(
+        handed: Arc<Handed>,
+        mut link: mpsc::Receiver<Outgoing>,
+        to_broker: mpsc::Sender<Outgoing>,
+        here: Arc<std::sync::OnceLock<DirectLoop>>,
+        units: Arc<AtomicUsize>,
+    ) {
+        loop {
+            let next = std::future::poll_fn(|cx| match handed.take() {
+                Some(item) => Poll::Ready(Some(item)),
+                None => link.poll_recv(cx),
+            })
+            .await;
+            let Some(item) = next else { return };
+            for _ in 0..CHAIN_UNITS {
+                consume_budget().await;
+                units.fetch_add(1, Ordering::SeqCst);
+            }
+            if DirectLoop::may_defer() {
+                let here = here.get().expect("the loop's handle");
+                let room = to_broker.clone().try_reserve_owned().expect("room");
+                let next = ack(tag_of(&item) + 1);
+                assert!(here.defer(next, room).is_ok());
+            }
+        }
+    }
+
+    /// Budget units [`chaining_loop`] takes per item.
+    const CHAIN_UNITS: usize = 4;
+
+    #[test]
+    fn deferred_runs_share_one_budget_and_the_rest_goes_to_the_task() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .expect("runtime");
+        let (to_broker, link) = mpsc::channel(8);
+        let handed = Arc::new(Handed::default());
+        let units = Arc::new(AtomicUsize::new(0));
+        let cell = Arc::new(std::sync::OnceLock::new());
+        let here = runtime.block_on(async {
+            let here = spawn(
+                chaining_loop(
+                    Arc::clone(&handed),
+                    link,
+                    to_broker.clone(),
+                    Arc::clone(&cell),
+                    Arc::clone(&units),
+                ),
+                Arc::clone(&handed),
+                &to_broker,
+            );
+            tokio::task::yield_now().await;
+            here
+        });
+        cell.set(here.clone()).expect("set once");
+        // A put's claimed run deferred the first item of the chain.
+        {
+            let _running = Running::enter(Some(CLAIM_ITEMS));
+            let room = to_broker.clone().try_reserve_owned().expect("room");
+            assert!(here.defer(ack(1), room).is_ok());
+        }
+        send_deferred();
+        let handled_here = units.load(Ordering::SeqCst);
+        assert_eq!(
+            handled_here, CLAIM_ITEMS as usize,
+            "this thread took one budget's worth of the chain, no more"
+        );
+        assert!(DEFERRED.with(|deferred| deferred.borrow().is_empty()));
+        // The chain goes on on the connection's task (its loop is not run
+        // here again once the budget is spent): the item the last run was
+        // stopped in, or the one it deferred, is the task's.
+        runtime.block_on(async {
+            for _ in 0..4 {
+                tokio::task::yield_now().await;
+            }
+        });
+        assert!(
+            units.load(Ordering::SeqCst) > handled_here,
+            "the task took the rest"
+        );
+    }
+
+    #[test]
+    fn only_single_acks_are_deferred_and_others_keep_this_threads_order() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .expect("runtime");
+        let (to_broker, link) = mpsc::channel(8);
+        let handed = Arc::new(Handed::default());
+        let taken = Arc::new(Mutex::new(Vec::new()));
+        let here = runtime.block_on(async {
+            let here = spawn(
+                recording_loop(Arc::clone(&handed), link, Arc::clone(&taken)),
+                Arc::clone(&handed),
+                &to_broker,
+            );
+            tokio::task::yield_now().await;
+            here
+        });
+        let room = || to_broker.clone().try_reserve_owned().expect("room");
+        let multiple = |tag| Outgoing::Method {
+            channel: 1,
+            method: leveret_protocol::Method::BasicAck(leveret_protocol::BasicAck {
+                delivery_tag: tag,
+                multiple: true,
+            }),
+        };
+        {
+            let _running = Running::enter(Some(CLAIM_ITEMS));
+            assert!(here.defer(ack(1), room()).is_ok(), "a single ack waits");
+            let (item, given_back) = here
+                .defer(multiple(5), room())
+                .expect_err("a multiple ack is not deferred");
+            // The client sends it through the link, after ack 1.
+            given_back.send(item);
+            assert!(DEFERRED.with(|deferred| deferred.borrow().is_empty()));
+            assert_eq!(
+                to_broker.max_capacity() - to_broker.capacity(),
+                2,
+                "both in the link"
+            );
+        }
+        send_deferred();
+        runtime.block_on(tokio::task::yield_now());
+        assert_eq!(*lock(&taken), [1, 5], "in the order this thread sent");
+    }
+
+    #[test]
+    fn two_acks_deferred_for_one_connection_are_both_handled_here() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .expect("runtime");
+        let (to_broker, link) = mpsc::channel(8);
+        let handed = Arc::new(Handed::default());
+        let taken = Arc::new(Mutex::new(Vec::new()));
+        let here = runtime.block_on(async {
+            let here = spawn(
+                recording_loop(Arc::clone(&handed), link, Arc::clone(&taken)),
+                Arc::clone(&handed),
+                &to_broker,
+            );
+            tokio::task::yield_now().await;
+            here
+        });
+        let room = || to_broker.clone().try_reserve_owned().expect("room");
+        {
+            let _running = Running::enter(Some(CLAIM_ITEMS));
+            assert!(here.defer(ack(1), room()).is_ok());
+            assert!(here.defer(ack(2), room()).is_ok());
+        }
+        send_deferred();
+        // The task has not run: both were handled on this thread.
+        assert_eq!(*lock(&taken), [1, 2], "both handled here, in order");
+        assert_eq!(to_broker.capacity(), to_broker.max_capacity());
     }
 
     #[test]

@@ -436,9 +436,11 @@ impl OutboxSlot<'_> {
             method: method.into(),
         };
         // In process, on a thread running a broker connection's loop for
-        // its own publish (an inline delivery's ack): deferred until that
-        // run lets go, then handled on this thread with no broker thread
-        // woken (`leveret_broker::DirectLoop::defer`).
+        // its own publish, an inline delivery's single-tag ack is deferred
+        // until that run lets go, then handled on this thread with no
+        // broker thread woken; any other method goes through the link, in
+        // order after what was deferred (`leveret_broker::DirectLoop::defer`,
+        // which states the ordering limit against other threads).
         #[cfg(feature = "embedded")]
         let item = match core.conn.here.as_ref() {
             Some(here) if leveret_broker::DirectLoop::may_defer() => {
