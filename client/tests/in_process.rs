@@ -434,9 +434,11 @@ async fn in_process_publishes_run_on_the_callers_thread_in_order() {
     }
     let fast = publisher.inline_publishes();
     // Never those published with room held; the first of each round
-    // unless the connection's task happened to run its loop just then.
+    // unless the connection's task happened to run its loop just then
+    // (how often depends on the scheduler: on a loaded machine most
+    // rounds can find it running, so only "some" is asserted).
     assert!(
-        fast >= u64::from(ROUNDS) / 2 && fast <= 2 * u64::from(ROUNDS),
+        fast >= 1 && fast <= 2 * u64::from(ROUNDS),
         "{fast} of {next} publishes took the fast path"
     );
     assert_eq!(

@@ -333,9 +333,12 @@ async fn an_idle_in_ports_blocking_receiver_sleeps_after_a_bounded_spin() {
         tokio::task::spawn_blocking(move || receiver.join().expect("receiver"))
             .await
             .expect("join");
+    // A wait whose thread the scheduler held off the CPU past its whole
+    // deadline (a loaded machine) returns without sleeping: most waits
+    // must have slept, which a receiver that only spun never does.
     assert!(
-        switches >= u64::from(WAITS),
-        "each wait slept: {switches} voluntary switches"
+        switches >= u64::from(WAITS / 2),
+        "waits slept: {switches} voluntary switches in {WAITS} waits"
     );
     assert!(
         cpu < WAIT * WAITS / 2,
