@@ -131,7 +131,7 @@ pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
                     "expired MQTT sessions' state deleted"
                 );
             }
-            shares::apply(&core, groups);
+            shared.shares.apply(&core, groups);
             if releases < SWEEP_BATCH && shares < SWEEP_BATCH {
                 break;
             }

@@ -676,6 +676,25 @@ impl Vhost {
         queue.delete()
     }
 
+    /// queue.declare of an MQTT shared subscription group's queue: one
+    /// that exists is joined as it is, without comparing its flags and
+    /// arguments with `decl`'s (members of a group may differ in
+    /// durability and expiry: MQTT 5.0 4.8.2), unless another connection
+    /// owns it; one that does not is created as `decl` says. The queue and
+    /// whether it was created.
+    #[cfg(feature = "mqtt")]
+    pub fn join_or_declare_queue(&self, decl: QueueDeclaration) -> AmqpResult<(Arc<Queue>, bool)> {
+        if let Some(existing) = self.queue(&decl.name) {
+            if existing.options.exclusive_owner.is_some() {
+                return Err(exclusive_locked(&existing.name, &self.name));
+            }
+            existing.touch();
+            return Ok((existing, false));
+        }
+        // Not exclusive: no connection owns it.
+        self.declare_queue(decl, 0)
+    }
+
     /// Gives `queue`, if it is still this vhost's, its own expiry
     /// ([`Queue::set_expires`]); false if it is gone. Under the queues'
     /// lock, so that its record reaches the store before a deletion's.
