@@ -51,6 +51,14 @@ const MAX_SESSIONS: usize = 10_000;
 /// Groups kept for persistent members, per broker.
 const MAX_GROUPS: usize = 10_000;
 
+/// At most this many expired shared subscriptions are deleted under one
+/// hold of the lock (or one session's, up to its subscription cap).
+const SWEEP_RECORDS: usize = 256;
+
+/// At most this many groups' queues are given their expiry under one hold
+/// of the lock.
+const APPLY_BATCH: usize = 256;
+
 /// The stored Session Expiry Interval of a session that never expires.
 const NEVER: u32 = u32::MAX;
 
@@ -225,35 +233,22 @@ impl Shares {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    fn submit(&self, op: StoreOp) {
-        if let Some(persistence) = &self.persistence {
-            persistence.submit(vec![op]);
+    /// One submit per lock hold, under the lock: the store sees the
+    /// changes in the order memory does.
+    fn submit(&self, ops: Vec<StoreOp>) {
+        match &self.persistence {
+            Some(persistence) if !ops.is_empty() => {
+                persistence.submit(ops);
+            }
+            _ => {}
         }
     }
 
-    /// Stores a session's shared subscription (replacing its record).
-    fn store(&self, key: &Key, filter: &str, options: Options, expiry: Option<u32>) {
-        self.submit(StoreOp::PutMeta(MetaRecord::SharedSubscription {
-            vhost: key.0.clone(),
-            client_id: key.1.clone(),
-            filter: filter.to_owned(),
-            qos: options.qos.level(),
-            retain_as_published: options.retain_as_published,
-            subscription_id: options.id.map_or(0, NonZeroU32::get),
-            session_expiry: expiry.unwrap_or(NEVER),
-        }));
-    }
-
-    /// Deletes a session's records; the groups its leaving changed.
-    fn delete(&self, state: &mut State, key: &Key, held: Held) -> Groups {
+    /// A session leaves its groups, its records' deletions added to
+    /// `ops`; the groups its leaving changed.
+    fn delete(state: &mut State, key: &Key, held: Held, ops: &mut Vec<StoreOp>) -> Groups {
         let groups = state.leave_all(&key.0, &held);
-        for filter in held.filters.into_keys() {
-            self.submit(StoreOp::DeleteMeta(MetaKey::SharedSubscription {
-                vhost: key.0.clone(),
-                client_id: key.1.clone(),
-                filter,
-            }));
-        }
+        ops.extend(held.filters.into_keys().map(|filter| unput(key, filter)));
         groups
     }
 
@@ -271,10 +266,12 @@ impl Shares {
         let mut state = self.lock();
         let state = &mut *state;
         if (state.sessions.get(&key)).is_some_and(|held| held.expired(Instant::now())) {
+            let mut ops = Vec::new();
             let groups = match state.sessions.remove(&key) {
-                Some(expired) => self.delete(state, &key, expired),
+                Some(expired) => Self::delete(state, &key, expired, &mut ops),
                 None => Vec::new(),
             };
+            self.submit(ops);
             return (Vec::new(), groups);
         }
         let Some(held) = state.sessions.get_mut(&key) else {
@@ -304,10 +301,12 @@ impl Shares {
         if held.expiry != expiry {
             state.leave_all(vhost, &held);
             held.expiry = expiry;
+            let mut ops = Vec::with_capacity(held.filters.len());
             for (filter, options) in &held.filters {
                 state.join(vhost, filter, expiry);
-                self.store(&key, filter, *options, expiry);
+                ops.push(put(&key, filter, *options, expiry));
             }
+            self.submit(ops);
         }
         let groups = state.groups_of(vhost, &held);
         state.sessions.insert(key, held);
@@ -333,6 +332,7 @@ impl Shares {
         if state.sessions.len() >= self.max_sessions && !state.sessions.contains_key(&key) {
             self.sweep_locked(state, &mut groups);
         }
+        let mut ops = Vec::new();
         if state.sessions.len() >= self.max_sessions && !state.sessions.contains_key(&key) {
             tracing::warn!(
                 vhost,
@@ -367,7 +367,7 @@ impl Shares {
             held.expiry = expiry;
             for (filter, options) in &held.filters {
                 state.join(vhost, filter, expiry);
-                self.store(&key, filter, *options, expiry);
+                ops.push(put(&key, filter, *options, expiry));
             }
             groups.extend(state.groups_of(vhost, &held));
         }
@@ -377,36 +377,49 @@ impl Shares {
         }
         groups.push((vhost.to_owned(), filter.to_owned()));
         state.sessions.insert(key.clone(), held);
-        // Submitted under the lock: the store sees a session's changes in
-        // the order memory does.
-        self.store(&key, filter, options, expiry);
+        ops.push(put(&key, filter, options, expiry));
+        self.submit(ops);
         (groups, true)
     }
 
-    /// Forgets at most [`super::SWEEP_BATCH`] sessions whose shared
-    /// subscriptions have expired (deleting their records; one call's work
-    /// under the lock is bounded); how many, and the groups changed.
-    pub(super) fn sweep(&self) -> (usize, Groups) {
+    /// Forgets sessions whose shared subscriptions have expired (deleting
+    /// their records), at most [`super::SWEEP_BATCH`] sessions holding at
+    /// most [`SWEEP_RECORDS`] subscriptions (or one session: one call's
+    /// work under the lock is bounded); how many, the groups changed, and
+    /// whether expired ones are left.
+    pub(super) fn sweep(&self) -> (usize, Groups, bool) {
         let mut state = self.lock();
         let mut groups = Vec::new();
-        let swept = self.sweep_locked(&mut state, &mut groups);
-        (swept, groups)
+        let (swept, more) = self.sweep_locked(&mut state, &mut groups);
+        (swept, groups, more)
     }
 
-    fn sweep_locked(&self, state: &mut State, groups: &mut Groups) -> usize {
+    fn sweep_locked(&self, state: &mut State, groups: &mut Groups) -> (usize, bool) {
         let now = Instant::now();
-        let expired: Vec<Key> = (state.sessions.iter())
-            .filter(|(_, held)| held.expired(now))
-            .map(|(key, _)| key.clone())
-            .take(super::SWEEP_BATCH)
-            .collect();
+        let mut records = 0;
+        let mut expired = Vec::new();
+        let mut more = false;
+        for (key, held) in &state.sessions {
+            if !held.expired(now) {
+                continue;
+            }
+            let over = records + held.filters.len() > SWEEP_RECORDS;
+            if !expired.is_empty() && (expired.len() == super::SWEEP_BATCH || over) {
+                more = true;
+                break;
+            }
+            records += held.filters.len();
+            expired.push(key.clone());
+        }
+        let mut ops = Vec::with_capacity(records);
         let swept = expired.len();
         for key in expired {
             if let Some(held) = state.sessions.remove(&key) {
-                groups.extend(self.delete(state, &key, held));
+                groups.extend(Self::delete(state, &key, held, &mut ops));
             }
         }
-        swept
+        self.submit(ops);
+        (swept, more)
     }
 
     /// Drops a session's shared subscription `filter` (UNSUBSCRIBE); the
@@ -426,12 +439,13 @@ impl Shares {
             state.sessions.remove(&key);
         }
         state.leave(vhost, filter, expiry);
-        self.submit(StoreOp::DeleteMeta(MetaKey::SharedSubscription {
-            vhost: vhost.to_owned(),
-            client_id: client_id.to_owned(),
-            filter: filter.to_owned(),
-        }));
+        self.submit(vec![unput(&key, filter.to_owned())]);
         vec![(vhost.to_owned(), filter.to_owned())]
+    }
+
+    /// Every group with a persistent member (at most [`MAX_GROUPS`]).
+    pub(super) fn kept_groups(&self) -> Groups {
+        self.lock().groups.keys().cloned().collect()
     }
 
     /// Gives the durable queues of `groups` the `x-expires` their
@@ -445,16 +459,19 @@ impl Shares {
     }
 
     fn apply_in(&self, vhost_of: impl Fn(&str) -> Option<Arc<Vhost>>, groups: Groups) {
-        if groups.is_empty() {
-            return;
+        for batch in groups.chunks(APPLY_BATCH) {
+            self.apply_batch(&vhost_of, batch);
         }
+    }
+
+    fn apply_batch(&self, vhost_of: &impl Fn(&str) -> Option<Arc<Vhost>>, groups: &[Group]) {
         // Lock order: shares, then the vhost's queues, then the queue.
         let state = self.lock();
         for (vhost_name, filter) in groups {
-            let Some(vhost) = vhost_of(&vhost_name) else {
+            let Some(vhost) = vhost_of(vhost_name) else {
                 continue;
             };
-            let Some(queue) = queue_name(&filter).and_then(|name| vhost.queue(&name)) else {
+            let Some(queue) = queue_name(filter).and_then(|name| vhost.queue(&name)) else {
                 continue;
             };
             if !queue.options.durable || queue.options.exclusive_owner.is_some() {
@@ -463,7 +480,7 @@ impl Shares {
             let current = (queue.arguments().get("x-expires"))
                 .and_then(FieldValue::as_i64)
                 .and_then(|ms| u64::try_from(ms).ok());
-            let expires = state.group(&vhost_name, &filter).queue_expires();
+            let expires = state.group(vhost_name, filter).queue_expires();
             if current != expires && vhost.set_queue_expires(&queue, expires) {
                 tracing::debug!(queue = %queue.name, ?expires, "MQTT shared subscription group's queue given its members' expiry");
             }
@@ -518,11 +535,36 @@ impl Shares {
         let key = (vhost.to_owned(), client_id.to_owned());
         let mut state = self.lock();
         let state = &mut *state;
-        match state.sessions.remove(&key) {
-            Some(held) => self.delete(state, &key, held),
+        let mut ops = Vec::new();
+        let groups = match state.sessions.remove(&key) {
+            Some(held) => Self::delete(state, &key, held, &mut ops),
             None => Vec::new(),
-        }
+        };
+        self.submit(ops);
+        groups
     }
+}
+
+/// The record of a session's shared subscription (replacing any).
+fn put(key: &Key, filter: &str, options: Options, expiry: Option<u32>) -> StoreOp {
+    StoreOp::PutMeta(MetaRecord::SharedSubscription {
+        vhost: key.0.clone(),
+        client_id: key.1.clone(),
+        filter: filter.to_owned(),
+        qos: options.qos.level(),
+        retain_as_published: options.retain_as_published,
+        subscription_id: options.id.map_or(0, NonZeroU32::get),
+        session_expiry: expiry.unwrap_or(NEVER),
+    })
+}
+
+/// The deletion of a session's shared subscription's record.
+fn unput(key: &Key, filter: String) -> StoreOp {
+    StoreOp::DeleteMeta(MetaKey::SharedSubscription {
+        vhost: key.0.clone(),
+        client_id: key.1.clone(),
+        filter,
+    })
 }
 
 fn vhost_named(core: &Core, name: &str) -> Option<Arc<Vhost>> {
@@ -645,7 +687,7 @@ mod tests {
         assert!(shares.keep(("/", "c"), "$share/g/x", one, Some(0)).1);
         assert!(shares.sweep().1.is_empty(), "connected: no expiry runs");
         shares.ended("/", "c", Some(0));
-        assert_eq!(shares.sweep(), (1, vec![g()]));
+        assert_eq!(shares.sweep(), (1, vec![g()], false));
         assert_eq!(group(&shares), GroupKeep::Unkept);
     }
 
@@ -716,7 +758,7 @@ mod tests {
         shares.ended("/", "p2", Some(0));
         // The sweeper removes p2's expired membership: no persistent
         // member left (then the value was 1 ms) ...
-        let (swept, stale) = shares.sweep();
+        let (swept, stale, _) = shares.sweep();
         assert_eq!(swept, 1);
         // ... and before it writes, p3 joins for an hour and writes.
         let (joined, kept) = shares.keep(("/", "p3"), "$share/g/x", one, Some(3600));
@@ -795,5 +837,47 @@ mod tests {
         assert!(!kept);
         assert_eq!(changed, [("/".to_owned(), "$share/g/1".to_owned())]);
         assert!(shares.resume("/", "a").0.is_empty());
+    }
+
+    #[test]
+    fn recovered_groups_give_their_queues_their_members_expiry() {
+        // A crash after the member's record, before its queue's.
+        let record = MetaRecord::SharedSubscription {
+            vhost: "/".into(),
+            client_id: "c".into(),
+            filter: "$share/g/x".into(),
+            qos: 1,
+            retain_as_published: false,
+            subscription_id: 0,
+            session_expiry: 3600,
+        };
+        let h = Harness::durable();
+        let old = [("x-expires", FieldValue::I64(60_000))];
+        let queue = h.declare_queue("mqtt-shared-g/x", true, &old);
+        let shares = Shares::new(&[record], None);
+        let kept = shares.kept_groups();
+        assert_eq!(kept, [("/".to_owned(), "$share/g/x".to_owned())]);
+        shares.apply_in(|_| Some(Arc::clone(&h.vhost)), kept);
+        assert_eq!(expires_of(&queue), Some(3_600_000));
+    }
+
+    #[test]
+    fn a_sweep_deletes_a_bounded_number_of_subscriptions_under_one_hold() {
+        let shares = Shares::new(&[], None);
+        let one = options(QoS::AtLeastOnce);
+        let each = SWEEP_RECORDS / 2 + 1;
+        for id in ["a", "b", "c"] {
+            for n in 0..each {
+                let filter = format!("$share/g{n}/x");
+                assert!(shares.keep(("/", id), &filter, one, Some(0)).1);
+            }
+            shares.ended("/", id, Some(0));
+        }
+        // Two sessions would pass the budget: one per hold.
+        let swept: Vec<(usize, bool)> = (0..4)
+            .map(|_| shares.sweep())
+            .map(|(swept, _, more)| (swept, more))
+            .collect();
+        assert_eq!(swept, [(1, true), (1, true), (1, false), (0, false)]);
     }
 }
