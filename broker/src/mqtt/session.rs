@@ -244,21 +244,25 @@ pub(super) async fn serve<S: ClientStream>(
         )
         .await;
     }
-    if session.lifetime != Lifetime::Connection {
-        let expiry = session.lifetime.expiry_seconds();
-        let groups = (shared.shares).ended(&session.vhost, &session.client_id, expiry);
-        shared.shares.apply(&core, groups);
-        let stored = session
-            .exactly_once
-            .iter()
-            .filter(|(_, state)| **state == Received::Stored)
-            .map(|(id, _)| *id);
-        (shared.releases).keep(&session.vhost, &session.client_id, stored.collect(), expiry);
-    } else {
-        shared.releases.forget(&session.vhost, &session.client_id);
-        let groups = shared.shares.forget(&session.vhost, &session.client_id);
-        shared.shares.apply(&core, groups);
-    }
+    // Skipped if a session taking over stopped waiting for this one: it
+    // has resumed this state already.
+    let groups = claim.unless_abandoned(|| {
+        if session.lifetime != Lifetime::Connection {
+            let expiry = session.lifetime.expiry_seconds();
+            let stored = session
+                .exactly_once
+                .iter()
+                .filter(|(_, state)| **state == Received::Stored)
+                .map(|(id, _)| *id);
+            let (vhost, client_id) = (&session.vhost, &session.client_id);
+            (shared.releases).keep(vhost, client_id, stored.collect(), expiry);
+            (shared.shares).ended(vhost, client_id, expiry)
+        } else {
+            shared.releases.forget(&session.vhost, &session.client_id);
+            shared.shares.forget(&session.vhost, &session.client_id)
+        }
+    });
+    shared.shares.apply(&core, groups.unwrap_or_default());
     drop(claim);
 }
 
