@@ -106,10 +106,6 @@ const SESSION_SWEEP_PERIOD: std::time::Duration = std::time::Duration::from_secs
 /// subscriptions); [`sweeper`] yields between batches.
 const SWEEP_BATCH: usize = 16;
 
-/// At most this many groups' queues are given their expiry under one
-/// lock at start ([`sweeper`] yields between batches).
-const RECONCILE_BATCH: usize = 256;
-
 /// Gives, once, every kept shared subscription group's queue its members'
 /// expiry; then deletes, until the broker shuts down, the state persistent sessions
 /// kept beside their queues once their Session Expiry Interval has passed
@@ -122,10 +118,7 @@ pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
     // separate submits, so a crash between them can leave the queue with
     // the old x-expires; every kept group's queue is given its members'.
     let groups = shared.shares.kept_groups();
-    for batch in groups.chunks(RECONCILE_BATCH) {
-        shared.shares.apply(&core, batch.to_vec());
-        tokio::task::yield_now().await;
-    }
+    shared.shares.apply_yielding(&core, groups).await;
     let mut ticks = tokio::time::interval(SESSION_SWEEP_PERIOD);
     ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
@@ -144,7 +137,7 @@ pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
                     "expired MQTT sessions' state deleted"
                 );
             }
-            shared.shares.apply(&core, groups);
+            shared.shares.apply_yielding(&core, groups).await;
             if releases < SWEEP_BATCH && !more {
                 break;
             }

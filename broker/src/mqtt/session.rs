@@ -262,7 +262,9 @@ pub(super) async fn serve<S: ClientStream>(
             shared.shares.forget(&session.vhost, &session.client_id)
         }
     });
-    shared.shares.apply(&core, groups.unwrap_or_default());
+    (shared.shares)
+        .apply_yielding(&core, groups.unwrap_or_default())
+        .await;
     drop(claim);
 }
 

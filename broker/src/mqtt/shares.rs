@@ -458,6 +458,15 @@ impl Shares {
         self.apply_in(|name| vhost_named(core, name), groups);
     }
 
+    /// [`Shares::apply`] for a task: yields between holds of the lock.
+    pub(super) async fn apply_yielding(&self, core: &Core, groups: Groups) {
+        let vhost_of = |name: &str| vhost_named(core, name);
+        for batch in groups.chunks(APPLY_BATCH) {
+            self.apply_batch(&vhost_of, batch);
+            tokio::task::yield_now().await;
+        }
+    }
+
     fn apply_in(&self, vhost_of: impl Fn(&str) -> Option<Arc<Vhost>>, groups: Groups) {
         for batch in groups.chunks(APPLY_BATCH) {
             self.apply_batch(&vhost_of, batch);
