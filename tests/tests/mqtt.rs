@@ -3252,6 +3252,39 @@ async fn a_kept_groups_queue_goes_when_its_last_members_session_expires_after_a_
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A clean and a persistent member subscribing to a new group at the same
+/// moment (one would create its queue non-durable, the other durable)
+/// never refuse each other's queue: both get their SUBACK and stay
+/// connected.
+#[both_runtimes]
+async fn members_subscribing_to_a_new_group_at_once_are_both_served() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    for round in 0..8 {
+        let filter = format!("$share/race{round}/r/#");
+        let shared = || vec![Filter::new(filter.clone(), QoS5::AtLeastOnce)];
+        let clean_id = format!("race-clean-{round}");
+        let (clean, mut clean_events) = connected5(options5(&clean_id, port, "secret")).await;
+        let kept_id = format!("race-kept-{round}");
+        let (kept, mut kept_events, _) = expiring5(&kept_id, port, true, 60).await;
+        let (by_clean, by_kept) = tokio::join!(
+            subscribe5(&clean, &mut clean_events, shared(), None),
+            subscribe5(&kept, &mut kept_events, shared(), None),
+        );
+        let granted = [SubscribeReasonCode::Success(QoS5::AtLeastOnce)];
+        assert_eq!((by_clean, by_kept), (granted.to_vec(), granted.to_vec()));
+        // Both still connected: another subscription each is answered.
+        for (client, events) in [(&clean, &mut clean_events), (&kept, &mut kept_events)] {
+            let own = vec![Filter::new("race/own", QoS5::AtMostOnce)];
+            let codes = subscribe5(client, events, own, None).await;
+            assert_eq!(codes, [SubscribeReasonCode::Success(QoS5::AtMostOnce)]);
+        }
+        disconnect5(clean, clean_events).await;
+        disconnect5(kept, kept_events).await;
+    }
+    handle.shutdown().await;
+}
+
 /// A group of clean sessions only is as before: non-durable, auto-delete,
 /// gone with its last member, nothing kept. A persistent 3.1.1 member
 /// keeps its group for ever (no `x-expires`), and members of both kinds
