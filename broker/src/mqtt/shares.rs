@@ -55,6 +55,10 @@ const MAX_GROUPS: usize = 10_000;
 /// hold of the lock (or one session's, up to its subscription cap).
 const SWEEP_RECORDS: usize = 256;
 
+/// How long a group queue a member has joined counts as used before its
+/// consume arrives (an unkept group's `x-expires` is 1 ms).
+const JOIN_RESERVE: Duration = Duration::from_secs(10);
+
 /// At most this many groups' queues are given their expiry under one hold
 /// of the lock.
 const APPLY_BATCH: usize = 256;
@@ -502,8 +506,9 @@ impl Shares {
     /// `x-expires` if the group has a persistent member now, else
     /// non-durable and auto-delete. Under the lock, so that no member's
     /// change to the group comes between the value read and the queue
-    /// created, and members never refuse each other's queue. Whether it
-    /// was created.
+    /// created, and members never refuse each other's queue; it counts as
+    /// used for [`JOIN_RESERVE`], so it cannot expire before the member's
+    /// consume arrives. Whether it was created.
     pub(super) fn declare_queue(
         &self,
         vhost: &Vhost,
@@ -534,7 +539,7 @@ impl Shares {
             },
             max_queues,
         };
-        let (_, created) = vhost.join_or_declare_queue(declaration)?;
+        let (_, created) = vhost.join_or_declare_queue(declaration, JOIN_RESERVE)?;
         Ok(created)
     }
 
@@ -888,5 +893,40 @@ mod tests {
             .map(|(swept, _, more)| (swept, more))
             .collect();
         assert_eq!(swept, [(1, true), (1, true), (1, false), (0, false)]);
+    }
+
+    #[test]
+    fn a_joined_unkept_group_queue_outlives_its_x_expires_until_the_consume() {
+        let h = Harness::durable();
+        let shares = Shares::new(&[], None);
+        let filter = "$share/u/x";
+        let name = queue_name(filter).expect("a shared filter");
+        // A durable queue whose group lost its last persistent member.
+        h.declare_queue(
+            "mqtt-shared-u/x",
+            true,
+            &[("x-expires", FieldValue::I64(1))],
+        );
+        let joined = shares.declare_queue(&h.vhost, filter, name.clone(), None);
+        assert_eq!(joined.ok(), Some(false));
+        h.vhost.sweep_at(Instant::now() + Duration::from_millis(50));
+        assert!(h.vhost.queue(&name).is_some(), "kept for the consume");
+        // Even if another member's consumer comes and goes meanwhile.
+        let queue = h.vhost.queue(&name).expect("listed");
+        let member = h.channel();
+        let consumer = member.consume(
+            &queue,
+            "other",
+            crate::testkit::Consume {
+                no_ack: true,
+                prefetch: 0,
+            },
+        );
+        queue.remove_consumer(&consumer);
+        h.vhost.sweep_at(Instant::now() + Duration::from_millis(50));
+        assert!(h.vhost.queue(&name).is_some(), "still kept for the consume");
+        h.vhost
+            .sweep_at(Instant::now() + JOIN_RESERVE + Duration::from_millis(50));
+        assert!(h.vhost.queue(&name).is_none(), "gone once unused");
     }
 }

@@ -680,19 +680,26 @@ impl Vhost {
     /// that exists is joined as it is, without comparing its flags and
     /// arguments with `decl`'s (members of a group may differ in
     /// durability and expiry: MQTT 5.0 4.8.2), unless another connection
-    /// owns it; one that does not is created as `decl` says. The queue and
-    /// whether it was created.
+    /// owns it; one that does not is created as `decl` says. Either way
+    /// it counts as used for `reserve` from now (x-expires cannot run out
+    /// before the member's consume arrives). The queue and whether it was
+    /// created.
     #[cfg(feature = "mqtt")]
-    pub fn join_or_declare_queue(&self, decl: QueueDeclaration) -> AmqpResult<(Arc<Queue>, bool)> {
-        if let Some(existing) = self.queue(&decl.name) {
-            if existing.options.exclusive_owner.is_some() {
+    pub fn join_or_declare_queue(
+        &self,
+        decl: QueueDeclaration,
+        reserve: std::time::Duration,
+    ) -> AmqpResult<(Arc<Queue>, bool)> {
+        let (queue, created) = match self.queue(&decl.name) {
+            Some(existing) if existing.options.exclusive_owner.is_some() => {
                 return Err(exclusive_locked(&existing.name, &self.name));
             }
-            existing.touch();
-            return Ok((existing, false));
-        }
-        // Not exclusive: no connection owns it.
-        self.declare_queue(decl, 0)
+            Some(existing) => (existing, false),
+            // Not exclusive: no connection owns it.
+            None => self.declare_queue(decl, 0)?,
+        };
+        queue.reserve_until(Instant::now() + reserve);
+        Ok((queue, created))
     }
 
     /// Gives `queue`, if it is still this vhost's, its own expiry
