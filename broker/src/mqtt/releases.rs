@@ -7,8 +7,9 @@
 //!
 //! They expire with the session, as its queues (`x-expires`) and shared
 //! subscriptions (`shares`) do: each record carries the session's Session
-//! Expiry Interval (rewritten when it changes: a DISCONNECT's, a resuming
-//! CONNECT's); once the connection has ended the interval runs (from the
+//! Expiry Interval (rewritten when the connection ends if it changed: a
+//! resuming CONNECT's, a DISCONNECT's; a crash before that leaves the
+//! previous interval); once the connection has ended the interval runs (from the
 //! restart after one), and when it has passed the state is deleted, from
 //! the store too: by [`Releases::sweep`] (the MQTT sweeper, every
 //! second), or first by the session's next connection, which then finds

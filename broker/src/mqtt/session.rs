@@ -19,7 +19,6 @@ use super::expiry;
 use super::link::{self, Link, Login, Refusal};
 use super::mapping;
 use super::retained::Message;
-use super::shares::{self, GroupKeep};
 use super::subscriptions::{self, Marks, Options, SharedSubscription, Subscriptions};
 use super::takeover::Claim;
 use super::vhosts;
@@ -245,21 +244,27 @@ pub(super) async fn serve<S: ClientStream>(
         )
         .await;
     }
-    if session.lifetime != Lifetime::Connection {
-        let expiry = session.lifetime.expiry_seconds();
-        let groups = (shared.shares).ended(&session.vhost, &session.client_id, expiry);
-        shares::apply(&core, groups);
-        let stored = session
-            .exactly_once
-            .iter()
-            .filter(|(_, state)| **state == Received::Stored)
-            .map(|(id, _)| *id);
-        (shared.releases).keep(&session.vhost, &session.client_id, stored.collect(), expiry);
-    } else {
-        shared.releases.forget(&session.vhost, &session.client_id);
-        let groups = shared.shares.forget(&session.vhost, &session.client_id);
-        shares::apply(&core, groups);
-    }
+    // Skipped if a session taking over stopped waiting for this one: it
+    // has resumed this state already.
+    let groups = claim.unless_abandoned(|| {
+        if session.lifetime != Lifetime::Connection {
+            let expiry = session.lifetime.expiry_seconds();
+            let stored = session
+                .exactly_once
+                .iter()
+                .filter(|(_, state)| **state == Received::Stored)
+                .map(|(id, _)| *id);
+            let (vhost, client_id) = (&session.vhost, &session.client_id);
+            (shared.releases).keep(vhost, client_id, stored.collect(), expiry);
+            (shared.shares).ended(vhost, client_id, expiry)
+        } else {
+            shared.releases.forget(&session.vhost, &session.client_id);
+            shared.shares.forget(&session.vhost, &session.client_id)
+        }
+    });
+    (shared.shares)
+        .apply_yielding(&core, groups.unwrap_or_default())
+        .await;
     drop(claim);
 }
 
@@ -706,11 +711,11 @@ impl Session {
         let shares = &self.shared.shares;
         if clean_start {
             let groups = shares.forget(&self.vhost, &self.client_id);
-            shares::apply(&self.core, groups);
+            shares.apply(&self.core, groups);
             return false;
         }
         let (held, groups) = shares.resume(&self.vhost, &self.client_id);
-        shares::apply(&self.core, groups);
+        shares.apply(&self.core, groups);
         for (filter, options) in &held {
             let parsed = MqttString::try_from(filter.as_str())
                 .ok()
@@ -723,7 +728,7 @@ impl Session {
             if full || (self.subscribe_shared(filter, &group, &inner, *options)).is_err() {
                 let shares = &self.shared.shares;
                 let groups = shares.remove(&self.vhost, &self.client_id, filter);
-                shares::apply(&self.core, groups);
+                shares.apply(&self.core, groups);
             }
         }
         !held.is_empty()
@@ -1291,11 +1296,10 @@ impl Session {
     }
 
     /// Joins shared subscription `filter` (`$share/group/inner`): declares
-    /// the group's queue, binds it and consumes it. The queue a clean
-    /// member creates is non-durable and auto-delete (it lives while a
-    /// member consumes it); one a persistent member creates is durable and
-    /// kept for the group's persistent members (`shares`); one that exists
-    /// is declared as it is. Subscribing again
+    /// the group's queue, binds it and consumes it. A new queue is durable
+    /// and kept for the group's persistent members if it has some
+    /// (`shares`), else non-durable and auto-delete (it lives while a
+    /// member consumes it); one that exists is joined as it is. Subscribing again
     /// at another QoS consumes anew before cancelling the old consumer, so
     /// the queue is never left without this member.
     fn subscribe_shared(
@@ -1310,15 +1314,12 @@ impl Session {
         let key = mapping::binding_key(inner).ok_or(ReasonCode::TopicFilterInvalid)?;
         self.may_subscribe(filter, &queue, true, &key)?;
         let old = self.subscriptions.shared(filter).cloned();
-        let mut keep = GroupKeep::Unkept;
         if self.lifetime != Lifetime::Connection {
             let shares = &self.shared.shares;
             let session = (self.vhost.as_str(), self.client_id.as_str());
             let expiry = self.lifetime.expiry_seconds();
-            if let Some(groups) = shares.keep(session, filter, options, expiry) {
-                keep = shares.group(&self.vhost, filter);
-                shares::apply(&self.core, groups);
-            }
+            let (groups, _kept) = shares.keep(session, filter, options, expiry);
+            shares.apply(&self.core, groups);
         }
         if let Some(old) = old.as_ref().filter(|old| old.options.qos == options.qos) {
             let kept = SharedSubscription {
@@ -1328,40 +1329,36 @@ impl Session {
             self.subscriptions.insert_shared(filter, kept);
             return Ok(options.qos);
         }
-        // An existing queue is declared as it is (so the declaration is
-        // equivalent; if it goes meanwhile it comes back so), a new one as
-        // the group is kept.
-        let existing = ShortStr::try_from(self.vhost.as_str())
+        // Declared here, not through the link: members join an existing
+        // queue as it is and create a new one from the group's state, under
+        // the shares' lock, so no member's concurrent change can make a
+        // declaration inequivalent; the link then binds and consumes.
+        let vhost = ShortStr::try_from(self.vhost.as_str())
             .ok()
             .and_then(|name| self.core.vhost(&name))
-            .and_then(|vhost| vhost.queue(&queue));
-        let (durable, auto_delete, arguments) = match existing {
-            Some(q) => (q.options.durable, q.options.auto_delete, q.arguments()),
-            None if keep == GroupKeep::Unkept => (false, true, FieldTable::new()),
-            None => {
-                let mut arguments = FieldTable::new();
-                if let Some(ms) = keep.queue_expires() {
-                    arguments.insert(
-                        ShortStr::from_static("x-expires"),
-                        FieldValue::I64(i64::try_from(ms).unwrap_or(i64::MAX)),
-                    );
+            .ok_or(ReasonCode::UnspecifiedError)?;
+        let max_queues = (self.core.limit_tables).vhost(&self.vhost).max_queues;
+        self.core.stats.queues_declared.inc();
+        match (self.shared.shares).declare_queue(&vhost, filter, queue.clone(), max_queues) {
+            Ok(created) => {
+                if created {
+                    self.core.stats.queues_created.inc();
                 }
-                (true, false, arguments)
             }
-        };
-        self.call(
-            QueueDeclare {
-                ticket: 0,
-                queue: queue.clone(),
-                passive: false,
-                durable,
-                exclusive: false,
-                auto_delete,
-                no_wait: false,
-                arguments,
-            },
-            Vec::new(),
-        );
+            Err(refused) => {
+                tracing::info!(
+                    client_id = %self.client_id,
+                    filter,
+                    reason = %refused,
+                    "MQTT shared subscription's queue not declared"
+                );
+                return Err(if refused.code == ReplyCode::PreconditionFailed {
+                    ReasonCode::QuotaExceeded
+                } else {
+                    ReasonCode::UnspecifiedError
+                });
+            }
+        }
         self.call(
             QueueBind {
                 ticket: 0,
@@ -1627,7 +1624,7 @@ impl Session {
             let filter = filter.as_str();
             if let Some(shared) = self.subscriptions.remove_shared(filter) {
                 let groups = (self.shared.shares).remove(&self.vhost, &self.client_id, filter);
-                shares::apply(&self.core, groups);
+                self.shared.shares.apply(&self.core, groups);
                 self.cancel(shared.consumer_tag);
                 reasons.push(ReasonCode::Success);
                 continue;

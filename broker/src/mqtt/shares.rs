@@ -20,9 +20,11 @@
 //! the group loses its last persistent member (UNSUBSCRIBE, clean start, a
 //! session that ends with its connection) its `x-expires` becomes 1 ms:
 //! it goes as soon as no member consumes it. Every change is applied to
-//! the queue in place ([`apply`]); members join an existing group queue as
-//! it is, so one a clean member created is non-durable and auto-delete
-//! and stays so until it goes.
+//! the queue in place ([`Shares::apply`], under the lock, from the group's
+//! state then); members create the group queue from the group's state
+//! under the same lock and join an existing one as it is
+//! ([`Shares::declare_queue`]), so one a clean member created is
+//! non-durable and auto-delete and stays so until it goes.
 //!
 //! Bounded: per session by the session's subscription cap, at most
 //! [`MAX_SESSIONS`] sessions hold some (expired ones are swept every
@@ -33,9 +35,12 @@
 use super::mapping;
 use super::subscriptions::Options;
 use crate::core::Core;
+use crate::error::AmqpResult;
+use crate::queue::QueueOptions;
 use crate::store::{MetaKey, MetaRecord, Persistence, StoreOp};
+use crate::vhost::{QueueDeclaration, Vhost};
 use leveret_mqtt::QoS;
-use leveret_protocol::{FieldValue, ShortStr};
+use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 use std::collections::{BTreeMap, HashMap};
 use std::num::NonZeroU32;
 use std::sync::{Arc, Mutex};
@@ -46,6 +51,18 @@ const MAX_SESSIONS: usize = 10_000;
 /// Groups kept for persistent members, per broker.
 const MAX_GROUPS: usize = 10_000;
 
+/// At most this many expired shared subscriptions are deleted under one
+/// hold of the lock (or one session's, up to its subscription cap).
+const SWEEP_RECORDS: usize = 256;
+
+/// How long a group queue a member has joined counts as used before its
+/// consume arrives (an unkept group's `x-expires` is 1 ms).
+const JOIN_RESERVE: Duration = Duration::from_secs(10);
+
+/// At most this many groups' queues are given their expiry under one hold
+/// of the lock.
+const APPLY_BATCH: usize = 256;
+
 /// The stored Session Expiry Interval of a session that never expires.
 const NEVER: u32 = u32::MAX;
 
@@ -55,9 +72,9 @@ type Key = (String, String);
 /// A group in a vhost: vhost and `$share/GROUP/FILTER`.
 type Group = (String, String);
 
-/// Groups whose persistent members changed: the vhost, the filter and
-/// what its queue is to be kept for now, to [`apply`] to the queue.
-pub(super) type Groups = Vec<(String, String, GroupKeep)>;
+/// Groups whose persistent members changed (vhost and filter), for
+/// [`Shares::apply`] to give their queues what they are kept for now.
+pub(super) type Groups = Vec<Group>;
 
 /// How long a group's queue outlives its last consumer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -137,7 +154,7 @@ impl State {
 
     fn groups_of(&self, vhost: &str, held: &Held) -> Groups {
         (held.filters.keys())
-            .map(|filter| (vhost.to_owned(), filter.clone(), self.group(vhost, filter)))
+            .map(|filter| (vhost.to_owned(), filter.clone()))
             .collect()
     }
 }
@@ -220,40 +237,28 @@ impl Shares {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    fn submit(&self, op: StoreOp) {
-        if let Some(persistence) = &self.persistence {
-            persistence.submit(vec![op]);
+    /// One submit per lock hold, under the lock: the store sees the
+    /// changes in the order memory does.
+    fn submit(&self, ops: Vec<StoreOp>) {
+        match &self.persistence {
+            Some(persistence) if !ops.is_empty() => {
+                persistence.submit(ops);
+            }
+            _ => {}
         }
     }
 
-    /// Stores a session's shared subscription (replacing its record).
-    fn store(&self, key: &Key, filter: &str, options: Options, expiry: Option<u32>) {
-        self.submit(StoreOp::PutMeta(MetaRecord::SharedSubscription {
-            vhost: key.0.clone(),
-            client_id: key.1.clone(),
-            filter: filter.to_owned(),
-            qos: options.qos.level(),
-            retain_as_published: options.retain_as_published,
-            subscription_id: options.id.map_or(0, NonZeroU32::get),
-            session_expiry: expiry.unwrap_or(NEVER),
-        }));
-    }
-
-    /// Deletes a session's records; the groups its leaving changed.
-    fn delete(&self, state: &mut State, key: &Key, held: Held) -> Groups {
+    /// A session leaves its groups, its records' deletions added to
+    /// `ops`; the groups its leaving changed.
+    fn delete(state: &mut State, key: &Key, held: Held, ops: &mut Vec<StoreOp>) -> Groups {
         let groups = state.leave_all(&key.0, &held);
-        for filter in held.filters.into_keys() {
-            self.submit(StoreOp::DeleteMeta(MetaKey::SharedSubscription {
-                vhost: key.0.clone(),
-                client_id: key.1.clone(),
-                filter,
-            }));
-        }
+        ops.extend(held.filters.into_keys().map(|filter| unput(key, filter)));
         groups
     }
 
     /// What group `filter` of `vhost` keeps its queue for.
-    pub(super) fn group(&self, vhost: &str, filter: &str) -> GroupKeep {
+    #[cfg(test)]
+    fn group(&self, vhost: &str, filter: &str) -> GroupKeep {
         self.lock().group(vhost, filter)
     }
 
@@ -265,10 +270,12 @@ impl Shares {
         let mut state = self.lock();
         let state = &mut *state;
         if (state.sessions.get(&key)).is_some_and(|held| held.expired(Instant::now())) {
+            let mut ops = Vec::new();
             let groups = match state.sessions.remove(&key) {
-                Some(expired) => self.delete(state, &key, expired),
+                Some(expired) => Self::delete(state, &key, expired, &mut ops),
                 None => Vec::new(),
             };
+            self.submit(ops);
             return (Vec::new(), groups);
         }
         let Some(held) = state.sessions.get_mut(&key) else {
@@ -284,8 +291,9 @@ impl Shares {
 
     /// A persistent session's connection has ended: its shared
     /// subscriptions expire `expiry` seconds from now (`None`: never), its
-    /// interval then (a DISCONNECT may have changed it: stored again; the
-    /// groups changed returned).
+    /// interval then (a DISCONNECT may have changed it: stored again). All
+    /// the session's groups are returned, changed or not, so that each
+    /// disconnect gives their queues their current value again.
     pub(super) fn ended(&self, vhost: &str, client_id: &str, expiry: Option<u32>) -> Groups {
         let key = (vhost.to_owned(), client_id.to_owned());
         let mut state = self.lock();
@@ -294,31 +302,33 @@ impl Shares {
             return Vec::new();
         };
         held.expires_at = expires_at(expiry);
-        let mut groups = Vec::new();
         if held.expiry != expiry {
             state.leave_all(vhost, &held);
             held.expiry = expiry;
+            let mut ops = Vec::with_capacity(held.filters.len());
             for (filter, options) in &held.filters {
                 state.join(vhost, filter, expiry);
-                self.store(&key, filter, *options, expiry);
+                ops.push(put(&key, filter, *options, expiry));
             }
-            groups = state.groups_of(vhost, &held);
+            self.submit(ops);
         }
+        let groups = state.groups_of(vhost, &held);
         state.sessions.insert(key, held);
         groups
     }
 
     /// Keeps (or replaces) shared subscription `filter` of a connected
     /// persistent session whose expiry interval is `expiry` seconds
-    /// (`None`: never); the groups changed (this one's included), or
-    /// `None` if it is not kept (too many sessions hold some).
+    /// (`None`: never); the groups changed (this one's included, and any a
+    /// room-making sweep changed, kept or not), and whether it is kept (not
+    /// when too many sessions or groups hold some).
     pub(super) fn keep(
         &self,
         (vhost, client_id): (&str, &str),
         filter: &str,
         options: Options,
         expiry: Option<u32>,
-    ) -> Option<Groups> {
+    ) -> (Groups, bool) {
         let key = (vhost.to_owned(), client_id.to_owned());
         let mut state = self.lock();
         let state = &mut *state;
@@ -326,6 +336,7 @@ impl Shares {
         if state.sessions.len() >= self.max_sessions && !state.sessions.contains_key(&key) {
             self.sweep_locked(state, &mut groups);
         }
+        let mut ops = Vec::new();
         if state.sessions.len() >= self.max_sessions && !state.sessions.contains_key(&key) {
             tracing::warn!(
                 vhost,
@@ -334,7 +345,7 @@ impl Shares {
                 "shared subscription not kept by the persistent MQTT session: too many sessions hold some"
             );
             // (A sweep that freed a place would have made room.)
-            return None;
+            return (groups, false);
         }
         let group = (vhost.to_owned(), filter.to_owned());
         if state.groups.len() >= self.max_groups && !state.groups.contains_key(&group) {
@@ -344,18 +355,14 @@ impl Shares {
                 filter,
                 "shared subscription not kept by the persistent MQTT session: too many groups are kept"
             );
-            return None;
+            return (groups, false);
         }
         let mut held = state.sessions.remove(&key).unwrap_or_default();
         held.expires_at = None;
         if held.filters.get(filter) == Some(&options) && held.expiry == expiry {
             state.sessions.insert(key, held);
-            groups.push((
-                vhost.to_owned(),
-                filter.to_owned(),
-                state.group(vhost, filter),
-            ));
-            return Some(groups);
+            groups.push((vhost.to_owned(), filter.to_owned()));
+            return (groups, true);
         }
         if held.expiry != expiry && !held.filters.is_empty() {
             // The session resumed with another interval (once a
@@ -364,7 +371,7 @@ impl Shares {
             held.expiry = expiry;
             for (filter, options) in &held.filters {
                 state.join(vhost, filter, expiry);
-                self.store(&key, filter, *options, expiry);
+                ops.push(put(&key, filter, *options, expiry));
             }
             groups.extend(state.groups_of(vhost, &held));
         }
@@ -372,39 +379,51 @@ impl Shares {
         if held.filters.insert(filter.to_owned(), options).is_none() {
             state.join(vhost, filter, expiry);
         }
-        let group = state.group(vhost, filter);
-        groups.push((vhost.to_owned(), filter.to_owned(), group));
+        groups.push((vhost.to_owned(), filter.to_owned()));
         state.sessions.insert(key.clone(), held);
-        // Submitted under the lock: the store sees a session's changes in
-        // the order memory does.
-        self.store(&key, filter, options, expiry);
-        Some(groups)
+        ops.push(put(&key, filter, options, expiry));
+        self.submit(ops);
+        (groups, true)
     }
 
-    /// Forgets at most [`super::SWEEP_BATCH`] sessions whose shared
-    /// subscriptions have expired (deleting their records; one call's work
-    /// under the lock is bounded); how many, and the groups changed.
-    pub(super) fn sweep(&self) -> (usize, Groups) {
+    /// Forgets sessions whose shared subscriptions have expired (deleting
+    /// their records), at most [`super::SWEEP_BATCH`] sessions holding at
+    /// most [`SWEEP_RECORDS`] subscriptions (or one session: one call's
+    /// work under the lock is bounded); how many, the groups changed, and
+    /// whether expired ones are left.
+    pub(super) fn sweep(&self) -> (usize, Groups, bool) {
         let mut state = self.lock();
         let mut groups = Vec::new();
-        let swept = self.sweep_locked(&mut state, &mut groups);
-        (swept, groups)
+        let (swept, more) = self.sweep_locked(&mut state, &mut groups);
+        (swept, groups, more)
     }
 
-    fn sweep_locked(&self, state: &mut State, groups: &mut Groups) -> usize {
+    fn sweep_locked(&self, state: &mut State, groups: &mut Groups) -> (usize, bool) {
         let now = Instant::now();
-        let expired: Vec<Key> = (state.sessions.iter())
-            .filter(|(_, held)| held.expired(now))
-            .map(|(key, _)| key.clone())
-            .take(super::SWEEP_BATCH)
-            .collect();
+        let mut records = 0;
+        let mut expired = Vec::new();
+        let mut more = false;
+        for (key, held) in &state.sessions {
+            if !held.expired(now) {
+                continue;
+            }
+            let over = records + held.filters.len() > SWEEP_RECORDS;
+            if !expired.is_empty() && (expired.len() == super::SWEEP_BATCH || over) {
+                more = true;
+                break;
+            }
+            records += held.filters.len();
+            expired.push(key.clone());
+        }
+        let mut ops = Vec::with_capacity(records);
         let swept = expired.len();
         for key in expired {
             if let Some(held) = state.sessions.remove(&key) {
-                groups.extend(self.delete(state, &key, held));
+                groups.extend(Self::delete(state, &key, held, &mut ops));
             }
         }
-        swept
+        self.submit(ops);
+        (swept, more)
     }
 
     /// Drops a session's shared subscription `filter` (UNSUBSCRIBE); the
@@ -424,16 +443,104 @@ impl Shares {
             state.sessions.remove(&key);
         }
         state.leave(vhost, filter, expiry);
-        self.submit(StoreOp::DeleteMeta(MetaKey::SharedSubscription {
-            vhost: vhost.to_owned(),
-            client_id: client_id.to_owned(),
-            filter: filter.to_owned(),
-        }));
-        vec![(
-            vhost.to_owned(),
-            filter.to_owned(),
-            state.group(vhost, filter),
-        )]
+        self.submit(vec![unput(&key, filter.to_owned())]);
+        vec![(vhost.to_owned(), filter.to_owned())]
+    }
+
+    /// Every group with a persistent member (at most [`MAX_GROUPS`]).
+    pub(super) fn kept_groups(&self) -> Groups {
+        self.lock().groups.keys().cloned().collect()
+    }
+
+    /// Gives the durable queues of `groups` the `x-expires` their
+    /// persistent members keep them for now ([`GroupKeep::queue_expires`]);
+    /// a non-durable group queue (a clean member's) is left as it is.
+    /// Read from the groups' current state and written under the lock, so
+    /// that a value computed before another change can never be written
+    /// after it.
+    pub(super) fn apply(&self, core: &Core, groups: Groups) {
+        self.apply_in(|name| vhost_named(core, name), groups);
+    }
+
+    /// [`Shares::apply`] for a task: yields between holds of the lock.
+    pub(super) async fn apply_yielding(&self, core: &Core, groups: Groups) {
+        let vhost_of = |name: &str| vhost_named(core, name);
+        for batch in groups.chunks(APPLY_BATCH) {
+            self.apply_batch(&vhost_of, batch);
+            tokio::task::yield_now().await;
+        }
+    }
+
+    fn apply_in(&self, vhost_of: impl Fn(&str) -> Option<Arc<Vhost>>, groups: Groups) {
+        for batch in groups.chunks(APPLY_BATCH) {
+            self.apply_batch(&vhost_of, batch);
+        }
+    }
+
+    fn apply_batch(&self, vhost_of: &impl Fn(&str) -> Option<Arc<Vhost>>, groups: &[Group]) {
+        // Lock order: shares, then the vhost's queues, then the queue.
+        let state = self.lock();
+        for (vhost_name, filter) in groups {
+            let Some(vhost) = vhost_of(vhost_name) else {
+                continue;
+            };
+            let Some(queue) = queue_name(filter).and_then(|name| vhost.queue(&name)) else {
+                continue;
+            };
+            if !queue.options.durable || queue.options.exclusive_owner.is_some() {
+                continue;
+            }
+            let current = (queue.arguments().get("x-expires"))
+                .and_then(FieldValue::as_i64)
+                .and_then(|ms| u64::try_from(ms).ok());
+            let expires = state.group(vhost_name, filter).queue_expires();
+            if current != expires && vhost.set_queue_expires(&queue, expires) {
+                tracing::debug!(queue = %queue.name, ?expires, "MQTT shared subscription group's queue given its members' expiry");
+            }
+        }
+    }
+
+    /// Declares the queue of group `filter` in `vhost` (named `queue`) for
+    /// a member about to bind and consume it: one that exists is joined as
+    /// it is; a new one is durable, not auto-delete, with the group's
+    /// `x-expires` if the group has a persistent member now, else
+    /// non-durable and auto-delete. Under the lock, so that no member's
+    /// change to the group comes between the value read and the queue
+    /// created, and members never refuse each other's queue; it counts as
+    /// used for [`JOIN_RESERVE`], so it cannot expire before the member's
+    /// consume arrives. Whether it was created.
+    pub(super) fn declare_queue(
+        &self,
+        vhost: &Vhost,
+        filter: &str,
+        queue: ShortStr,
+        max_queues: Option<usize>,
+    ) -> AmqpResult<bool> {
+        let state = self.lock();
+        let vhost_name = vhost.name.to_string_lossy();
+        let keep = state.group(&vhost_name, filter);
+        let mut arguments = FieldTable::new();
+        let kept = keep != GroupKeep::Unkept;
+        if let Some(ms) = keep.queue_expires().filter(|_| kept) {
+            arguments.insert(
+                ShortStr::from_static("x-expires"),
+                FieldValue::I64(i64::try_from(ms).unwrap_or(i64::MAX)),
+            );
+        }
+        let declaration = QueueDeclaration {
+            name: queue,
+            passive: false,
+            server_named: false,
+            options: QueueOptions {
+                durable: kept,
+                exclusive_owner: None,
+                auto_delete: !kept,
+                arguments,
+            },
+            max_queues,
+        };
+        let (_, created) = vhost.join_or_declare_queue(declaration, JOIN_RESERVE)?;
+        Ok(created)
     }
 
     /// Forgets every shared subscription of a session (it starts clean
@@ -442,38 +549,42 @@ impl Shares {
         let key = (vhost.to_owned(), client_id.to_owned());
         let mut state = self.lock();
         let state = &mut *state;
-        match state.sessions.remove(&key) {
-            Some(held) => self.delete(state, &key, held),
+        let mut ops = Vec::new();
+        let groups = match state.sessions.remove(&key) {
+            Some(held) => Self::delete(state, &key, held, &mut ops),
             None => Vec::new(),
-        }
+        };
+        self.submit(ops);
+        groups
     }
 }
 
-/// Gives the durable queues of `groups` the `x-expires` their persistent
-/// members keep them for ([`GroupKeep::queue_expires`]); a non-durable
-/// group queue (a clean member's) is left as it is.
-pub(super) fn apply(core: &Core, groups: Groups) {
-    for (vhost, filter, keep) in groups {
-        let Some(vhost) = ShortStr::try_from(vhost)
-            .ok()
-            .and_then(|name| core.vhost(&name))
-        else {
-            continue;
-        };
-        let Some(queue) = queue_name(&filter).and_then(|name| vhost.queue(&name)) else {
-            continue;
-        };
-        if !queue.options.durable || queue.options.exclusive_owner.is_some() {
-            continue;
-        }
-        let current = (queue.arguments().get("x-expires"))
-            .and_then(FieldValue::as_i64)
-            .and_then(|ms| u64::try_from(ms).ok());
-        let expires = keep.queue_expires();
-        if current != expires && vhost.set_queue_expires(&queue, expires) {
-            tracing::debug!(queue = %queue.name, ?expires, "MQTT shared subscription group's queue given its members' expiry");
-        }
-    }
+/// The record of a session's shared subscription (replacing any).
+fn put(key: &Key, filter: &str, options: Options, expiry: Option<u32>) -> StoreOp {
+    StoreOp::PutMeta(MetaRecord::SharedSubscription {
+        vhost: key.0.clone(),
+        client_id: key.1.clone(),
+        filter: filter.to_owned(),
+        qos: options.qos.level(),
+        retain_as_published: options.retain_as_published,
+        subscription_id: options.id.map_or(0, NonZeroU32::get),
+        session_expiry: expiry.unwrap_or(NEVER),
+    })
+}
+
+/// The deletion of a session's shared subscription's record.
+fn unput(key: &Key, filter: String) -> StoreOp {
+    StoreOp::DeleteMeta(MetaKey::SharedSubscription {
+        vhost: key.0.clone(),
+        client_id: key.1.clone(),
+        filter,
+    })
+}
+
+fn vhost_named(core: &Core, name: &str) -> Option<Arc<Vhost>> {
+    ShortStr::try_from(name)
+        .ok()
+        .and_then(|name| core.vhost(&name))
 }
 
 /// The queue of shared subscription `filter` (`$share/GROUP/FILTER`).
@@ -485,6 +596,7 @@ pub(super) fn queue_name(filter: &str) -> Option<ShortStr> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testkit::Harness;
 
     fn options(qos: QoS) -> Options {
         Options {
@@ -500,7 +612,7 @@ mod tests {
         let mut shares = Shares::new(&[], None);
         shares.max_sessions = 2;
         let keep = |shares: &Shares, id, filter, qos| {
-            (shares.keep(("/", id), filter, options(qos), None)).is_some()
+            (shares.keep(("/", id), filter, options(qos), None)).1
         };
         assert!(keep(&shares, "a", "$share/g/x", QoS::AtLeastOnce));
         assert!(keep(&shares, "b", "$share/g/x", QoS::AtMostOnce));
@@ -524,14 +636,12 @@ mod tests {
         let mut shares = Shares::new(&[], None);
         shares.max_sessions = 1;
         let zero = options(QoS::AtMostOnce);
-        assert!(shares
-            .keep(("/", "a"), "$share/g/x", zero, Some(0))
-            .is_some());
+        assert!(shares.keep(("/", "a"), "$share/g/x", zero, Some(0)).1);
         // Connected: no expiry runs.
         assert_eq!(shares.resume("/", "a").0.len(), 1);
         shares.ended("/", "a", Some(0));
         // Expired, so a new session takes its place at the cap.
-        assert!(shares.keep(("/", "b"), "$share/g/x", zero, None).is_some());
+        assert!(shares.keep(("/", "b"), "$share/g/x", zero, None).1);
         assert!(shares.resume("/", "a").0.is_empty());
         shares.ended("/", "b", Some(3600));
         assert_eq!(shares.resume("/", "b").0.len(), 1, "an hour has not passed");
@@ -566,40 +676,32 @@ mod tests {
         let group = |shares: &Shares| shares.group("/", "$share/g/x");
         let one = options(QoS::AtLeastOnce);
         assert_eq!(group(&shares), GroupKeep::Unkept, "no persistent member");
+        let g = || ("/".to_owned(), "$share/g/x".to_owned());
         let joined = shares.keep(("/", "a"), "$share/g/x", one, Some(60));
         let kept = GroupKeep::Kept(Some(60));
-        assert_eq!(joined, Some(vec![("/".into(), "$share/g/x".into(), kept)]));
+        assert_eq!(joined, (vec![g()], true));
+        assert_eq!(group(&shares), kept);
         assert_eq!(kept.queue_expires(), Some(60_000));
-        assert!(shares
-            .keep(("/", "b"), "$share/g/x", one, Some(10))
-            .is_some());
+        assert!(shares.keep(("/", "b"), "$share/g/x", one, Some(10)).1);
         assert_eq!(group(&shares), GroupKeep::Kept(Some(60)));
         // Another vhost's group of the same name is another group.
         assert_eq!(shares.group("v", "$share/g/x"), GroupKeep::Unkept);
         // A DISCONNECT makes "b" never expire.
-        let changed = shares.ended("/", "b", None);
-        assert_eq!(
-            changed,
-            [("/".into(), "$share/g/x".into(), GroupKeep::Kept(None))]
-        );
+        assert_eq!(shares.ended("/", "b", None), [g()]);
+        assert_eq!(group(&shares), GroupKeep::Kept(None));
         assert_eq!(GroupKeep::Kept(None).queue_expires(), None);
         // "b" starts clean, "a" unsubscribes: no persistent member left.
-        let changed = shares.forget("/", "b");
-        assert_eq!(changed, [("/".into(), "$share/g/x".into(), kept)]);
-        let changed = shares.remove("/", "a", "$share/g/x");
+        assert_eq!(shares.forget("/", "b"), [g()]);
+        assert_eq!(group(&shares), kept);
+        assert_eq!(shares.remove("/", "a", "$share/g/x"), [g()]);
         let unkept = GroupKeep::Unkept;
-        assert_eq!(changed, [("/".into(), "$share/g/x".into(), unkept)]);
+        assert_eq!(group(&shares), unkept);
         assert_eq!(unkept.queue_expires(), Some(1), "goes once unused");
         // A member whose session expired leaves its groups when swept.
-        assert!(shares
-            .keep(("/", "c"), "$share/g/x", one, Some(0))
-            .is_some());
+        assert!(shares.keep(("/", "c"), "$share/g/x", one, Some(0)).1);
         assert!(shares.sweep().1.is_empty(), "connected: no expiry runs");
         shares.ended("/", "c", Some(0));
-        assert_eq!(
-            shares.sweep(),
-            (1, vec![("/".into(), "$share/g/x".into(), unkept)])
-        );
+        assert_eq!(shares.sweep(), (1, vec![g()], false));
         assert_eq!(group(&shares), GroupKeep::Unkept);
     }
 
@@ -615,17 +717,17 @@ mod tests {
         let mut shares = Shares::new(&[], None);
         shares.max_groups = 2;
         let one = options(QoS::AtLeastOnce);
-        let keep = |shares: &Shares, id, filter| shares.keep(("/", id), filter, one, None);
-        assert!(keep(&shares, "a", "$share/g/1").is_some());
-        assert!(keep(&shares, "b", "$share/g/2").is_some());
+        let keep = |shares: &Shares, id, filter| shares.keep(("/", id), filter, one, None).1;
+        assert!(keep(&shares, "a", "$share/g/1"));
+        assert!(keep(&shares, "b", "$share/g/2"));
         // A third group is not kept, for a new or an existing session.
-        assert!(keep(&shares, "c", "$share/g/3").is_none());
-        assert!(keep(&shares, "a", "$share/g/3").is_none());
+        assert!(!keep(&shares, "c", "$share/g/3"));
+        assert!(!keep(&shares, "a", "$share/g/3"));
         assert_eq!(shares.group("/", "$share/g/3"), GroupKeep::Unkept);
         // A kept group takes more members.
-        assert!(keep(&shares, "c", "$share/g/1").is_some());
+        assert!(keep(&shares, "c", "$share/g/1"));
         shares.forget("/", "b");
-        assert!(keep(&shares, "c", "$share/g/3").is_some());
+        assert!(keep(&shares, "c", "$share/g/3"));
         assert_eq!(shares.resume("/", "c").0.len(), 2);
     }
 
@@ -634,18 +736,197 @@ mod tests {
         let shares = Shares::new(&[], None);
         let one = options(QoS::AtLeastOnce);
         let keep = |filter, expiry| shares.keep(("/", "a"), filter, one, expiry);
-        assert!(keep("$share/g/1", Some(60)).is_some());
+        assert!(keep("$share/g/1", Some(60)).1);
         // A second filter at the same interval changes its group only.
-        let changed = keep("$share/g/2", Some(60)).expect("kept");
-        let sixty = GroupKeep::Kept(Some(60));
-        assert_eq!(changed, [("/".into(), "$share/g/2".into(), sixty)]);
+        let (changed, kept) = keep("$share/g/2", Some(60));
+        assert!(kept);
+        assert_eq!(changed, [("/".into(), "$share/g/2".into())]);
+        assert_eq!(shares.group("/", "$share/g/2"), GroupKeep::Kept(Some(60)));
         shares.ended("/", "a", Some(60));
         assert_eq!(shares.resume("/", "a").0.len(), 2);
         // Rejoined with ten seconds: both groups follow.
-        let changed = keep("$share/g/1", Some(10)).expect("kept");
+        let (changed, _) = keep("$share/g/1", Some(10));
+        assert!(changed.contains(&("/".into(), "$share/g/1".into())));
+        assert!(changed.contains(&("/".into(), "$share/g/2".into())));
         let ten = GroupKeep::Kept(Some(10));
-        assert!(changed.contains(&("/".into(), "$share/g/1".into(), ten)));
-        assert!(changed.contains(&("/".into(), "$share/g/2".into(), ten)));
+        assert_eq!(shares.group("/", "$share/g/1"), ten);
         assert_eq!(shares.group("/", "$share/g/2"), ten);
+    }
+
+    /// The `x-expires` of `queue` now.
+    fn expires_of(queue: &crate::queue::Queue) -> Option<i64> {
+        queue
+            .arguments()
+            .get("x-expires")
+            .and_then(FieldValue::as_i64)
+    }
+
+    #[test]
+    fn a_stale_change_never_overwrites_a_groups_newer_expiry() {
+        let h = Harness::durable();
+        let vhost_of = |_: &str| Some(Arc::clone(&h.vhost));
+        let shares = Shares::new(&[], None);
+        let one = options(QoS::AtLeastOnce);
+        let queue = h.declare_queue("mqtt-shared-g/x", true, &[]);
+        assert!(shares.keep(("/", "p2"), "$share/g/x", one, Some(0)).1);
+        shares.ended("/", "p2", Some(0));
+        // The sweeper removes p2's expired membership: no persistent
+        // member left (then the value was 1 ms) ...
+        let (swept, stale, _) = shares.sweep();
+        assert_eq!(swept, 1);
+        // ... and before it writes, p3 joins for an hour and writes.
+        let (joined, kept) = shares.keep(("/", "p3"), "$share/g/x", one, Some(3600));
+        assert!(kept);
+        shares.apply_in(vhost_of, joined);
+        assert_eq!(expires_of(&queue), Some(3_600_000));
+        // The sweeper's write comes last: the group's value now stays.
+        shares.apply_in(vhost_of, stale);
+        assert_eq!(expires_of(&queue), Some(3_600_000));
+        // A disconnect with an unchanged interval gives its groups their
+        // value again (whatever wrote the queue meanwhile).
+        assert!(h.vhost.set_queue_expires(&queue, Some(1)));
+        let ended = shares.ended("/", "p3", Some(3600));
+        assert_eq!(ended, [("/".to_owned(), "$share/g/x".to_owned())]);
+        shares.apply_in(vhost_of, ended);
+        assert_eq!(expires_of(&queue), Some(3_600_000));
+    }
+
+    #[test]
+    fn members_join_a_group_queue_as_it_is_and_create_it_from_the_groups_state() {
+        let h = Harness::durable();
+        let vhost_of = |_: &str| Some(Arc::clone(&h.vhost));
+        let shares = Shares::new(&[], None);
+        let one = options(QoS::AtLeastOnce);
+        let name = |filter| queue_name(filter).expect("a shared filter");
+        let declare = |filter| (shares.declare_queue(&h.vhost, filter, name(filter), None)).ok();
+        // A clean member creates a group's queue: non-durable, auto-delete.
+        assert_eq!(declare("$share/c/x"), Some(true));
+        let clean = h.vhost.queue(&name("$share/c/x")).expect("created");
+        assert!(!clean.options.durable && clean.options.auto_delete);
+        // A persistent member joins it as it is.
+        assert!(shares.keep(("/", "p"), "$share/c/x", one, Some(60)).1);
+        assert_eq!(declare("$share/c/x"), Some(false));
+        // A kept group's new queue: durable, with the group's expiry.
+        assert!(shares.keep(("/", "p1"), "$share/k/x", one, Some(60)).1);
+        assert_eq!(declare("$share/k/x"), Some(true));
+        let kept = h.vhost.queue(&name("$share/k/x")).expect("created");
+        assert!(kept.options.durable && !kept.options.auto_delete);
+        assert_eq!(expires_of(&kept), Some(60_000));
+        // Another member joins for an hour and applies it; a member that
+        // read the minute before still joins (an AMQP redeclaration with
+        // the minute is refused as inequivalent).
+        let (joined, _) = shares.keep(("/", "p2"), "$share/k/x", one, Some(3600));
+        shares.apply_in(vhost_of, joined);
+        assert_eq!(expires_of(&kept), Some(3_600_000));
+        assert_eq!(declare("$share/k/x"), Some(false));
+        let minute = [("x-expires", FieldValue::I64(60_000))];
+        let redeclared = QueueDeclaration {
+            name: name("$share/k/x"),
+            passive: false,
+            server_named: false,
+            options: QueueOptions {
+                durable: true,
+                exclusive_owner: None,
+                auto_delete: false,
+                arguments: crate::testkit::table(&minute),
+            },
+            max_queues: None,
+        };
+        assert!(h.vhost.declare_queue(redeclared, 0).is_err());
+        // A clean member joins the durable queue as it is too.
+        assert_eq!(declare("$share/k/x"), Some(false));
+    }
+
+    #[test]
+    fn a_sweep_to_make_room_is_applied_even_if_the_subscription_is_not_kept() {
+        let mut shares = Shares::new(&[], None);
+        shares.max_sessions = 2;
+        shares.max_groups = 1;
+        let one = options(QoS::AtLeastOnce);
+        assert!(shares.keep(("/", "a"), "$share/g/1", one, Some(0)).1);
+        assert!(shares.keep(("/", "b"), "$share/g/1", one, Some(10)).1);
+        shares.ended("/", "a", Some(0));
+        // "c" needs room: "a" is swept, but a second group is not kept.
+        let (changed, kept) = shares.keep(("/", "c"), "$share/g/2", one, None);
+        assert!(!kept);
+        assert_eq!(changed, [("/".to_owned(), "$share/g/1".to_owned())]);
+        assert!(shares.resume("/", "a").0.is_empty());
+    }
+
+    #[test]
+    fn recovered_groups_give_their_queues_their_members_expiry() {
+        // A crash after the member's record, before its queue's.
+        let record = MetaRecord::SharedSubscription {
+            vhost: "/".into(),
+            client_id: "c".into(),
+            filter: "$share/g/x".into(),
+            qos: 1,
+            retain_as_published: false,
+            subscription_id: 0,
+            session_expiry: 3600,
+        };
+        let h = Harness::durable();
+        let old = [("x-expires", FieldValue::I64(60_000))];
+        let queue = h.declare_queue("mqtt-shared-g/x", true, &old);
+        let shares = Shares::new(&[record], None);
+        let kept = shares.kept_groups();
+        assert_eq!(kept, [("/".to_owned(), "$share/g/x".to_owned())]);
+        shares.apply_in(|_| Some(Arc::clone(&h.vhost)), kept);
+        assert_eq!(expires_of(&queue), Some(3_600_000));
+    }
+
+    #[test]
+    fn a_sweep_deletes_a_bounded_number_of_subscriptions_under_one_hold() {
+        let shares = Shares::new(&[], None);
+        let one = options(QoS::AtLeastOnce);
+        let each = SWEEP_RECORDS / 2 + 1;
+        for id in ["a", "b", "c"] {
+            for n in 0..each {
+                let filter = format!("$share/g{n}/x");
+                assert!(shares.keep(("/", id), &filter, one, Some(0)).1);
+            }
+            shares.ended("/", id, Some(0));
+        }
+        // Two sessions would pass the budget: one per hold.
+        let swept: Vec<(usize, bool)> = (0..4)
+            .map(|_| shares.sweep())
+            .map(|(swept, _, more)| (swept, more))
+            .collect();
+        assert_eq!(swept, [(1, true), (1, true), (1, false), (0, false)]);
+    }
+
+    #[test]
+    fn a_joined_unkept_group_queue_outlives_its_x_expires_until_the_consume() {
+        let h = Harness::durable();
+        let shares = Shares::new(&[], None);
+        let filter = "$share/u/x";
+        let name = queue_name(filter).expect("a shared filter");
+        // A durable queue whose group lost its last persistent member.
+        h.declare_queue(
+            "mqtt-shared-u/x",
+            true,
+            &[("x-expires", FieldValue::I64(1))],
+        );
+        let joined = shares.declare_queue(&h.vhost, filter, name.clone(), None);
+        assert_eq!(joined.ok(), Some(false));
+        h.vhost.sweep_at(Instant::now() + Duration::from_millis(50));
+        assert!(h.vhost.queue(&name).is_some(), "kept for the consume");
+        // Even if another member's consumer comes and goes meanwhile.
+        let queue = h.vhost.queue(&name).expect("listed");
+        let member = h.channel();
+        let consumer = member.consume(
+            &queue,
+            "other",
+            crate::testkit::Consume {
+                no_ack: true,
+                prefetch: 0,
+            },
+        );
+        queue.remove_consumer(&consumer);
+        h.vhost.sweep_at(Instant::now() + Duration::from_millis(50));
+        assert!(h.vhost.queue(&name).is_some(), "still kept for the consume");
+        h.vhost
+            .sweep_at(Instant::now() + JOIN_RESERVE + Duration::from_millis(50));
+        assert!(h.vhost.queue(&name).is_none(), "gone once unused");
     }
 }

@@ -2,7 +2,11 @@
 //! and vhost. A CONNECT with an identifier in use asks the session holding
 //! it to close and waits until it has ended (its AMQP link cleaned up, so
 //! its exclusive subscription queues are gone) before going on. The map
-//! lock is held for one insert or remove, never across an await.
+//! lock is held for one insert or remove, never across an await. If it
+//! has not ended in time the new session goes on and the old one's claim
+//! is abandoned: what the old one then does at its end to the state a
+//! session keeps ([`Claim::unless_abandoned`]) is skipped, as the new
+//! session owns it now.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -13,9 +17,20 @@ use tokio::sync::{watch, Notify};
 const TAKEOVER_WAIT: Duration = Duration::from_secs(10);
 
 /// The sessions open on a broker's MQTT listeners, by vhost and client id.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(crate) struct ClientIds {
     open: Mutex<HashMap<(String, String), Arc<Holder>>>,
+    /// How long a takeover waits ([`TAKEOVER_WAIT`]).
+    wait: Duration,
+}
+
+impl Default for ClientIds {
+    fn default() -> Self {
+        ClientIds {
+            open: Mutex::default(),
+            wait: TAKEOVER_WAIT,
+        }
+    }
 }
 
 /// A session's hold on its client identifier.
@@ -25,6 +40,8 @@ struct Holder {
     kick: Notify,
     /// Set when the holding session has ended.
     ended: watch::Sender<bool>,
+    /// Set when a session taking over has stopped waiting for this one.
+    abandoned: Mutex<bool>,
 }
 
 /// A session's claim; dropping it when the session has ended releases the
@@ -44,14 +61,17 @@ impl ClientIds {
         let holder = Arc::new(Holder {
             kick: Notify::new(),
             ended: watch::channel(false).0,
+            abandoned: Mutex::new(false),
         });
         let previous = self.lock().insert(key.clone(), Arc::clone(&holder));
         if let Some(previous) = previous {
             let mut ended = previous.ended.subscribe();
             previous.kick.notify_one();
-            let waited = tokio::time::timeout(TAKEOVER_WAIT, ended.wait_for(|e| *e)).await;
+            let waited = tokio::time::timeout(self.wait, ended.wait_for(|e| *e)).await;
             if waited.is_err() {
                 tracing::warn!(client_id, vhost, "session taken over did not end in time");
+                // Waits for an `unless_abandoned` under way.
+                *lock(&previous.abandoned) = true;
             }
         }
         Claim {
@@ -62,14 +82,27 @@ impl ClientIds {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<(String, String), Arc<Holder>>> {
-        self.open.lock().unwrap_or_else(|e| e.into_inner())
+        lock(&self.open)
     }
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 impl Claim {
     /// Resolves when another session has taken the identifier over.
     pub(super) async fn taken_over(&self) {
         self.holder.kick.notified().await;
+    }
+
+    /// Runs `keep` (the session's end storing or forgetting the state it
+    /// keeps) unless a session taking the identifier over has stopped
+    /// waiting for this one (then that one has resumed the state already:
+    /// `None`); a takeover's timeout waits until `keep` has returned.
+    pub(super) fn unless_abandoned<T>(&self, keep: impl FnOnce() -> T) -> Option<T> {
+        let abandoned = lock(&self.holder.abandoned);
+        (!*abandoned).then(keep)
     }
 }
 
@@ -84,5 +117,33 @@ impl Drop for Claim {
         }
         drop(open);
         self.holder.ended.send_replace(true);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn a_session_taken_over_after_the_wait_keeps_nothing_at_its_end() {
+        let ids = Arc::new(ClientIds {
+            open: Mutex::default(),
+            wait: Duration::from_millis(20),
+        });
+        // Ended within the wait: its end keeps its state.
+        let first = ids.claim("/", "c").await;
+        let taking = tokio::spawn({
+            let ids = Arc::clone(&ids);
+            async move { ids.claim("/", "c").await }
+        });
+        tokio::task::yield_now().await;
+        assert_eq!(first.unless_abandoned(|| 1), Some(1));
+        drop(first);
+        let second = taking.await.expect("claimed");
+        // Not ended within the wait: the new session goes on, and the old
+        // one's end keeps nothing.
+        let third = ids.claim("/", "c").await;
+        assert_eq!(second.unless_abandoned(|| 2), None);
+        assert_eq!(third.unless_abandoned(|| 3), Some(3));
     }
 }

@@ -165,6 +165,10 @@ struct QueueState {
     /// Highest seq delivered (persisted for durable queues, see `store`).
     delivered_mark: u64,
     last_used: Option<Instant>,
+    /// Counts as used until then whatever its consumers do (an MQTT
+    /// shared subscription's member about to consume it).
+    #[cfg(feature = "mqtt")]
+    reserved_until: Option<Instant>,
     deleted: bool,
     /// Dead letters found by a dispatch whose caller cannot route them
     /// (a connection's writer), waiting for the vhost's next sweep.
@@ -264,6 +268,8 @@ impl Queue {
             stats: QueueCounters::new(counters),
             state: Mutex::new(QueueState {
                 last_used: Some(Instant::now()),
+                #[cfg(feature = "mqtt")]
+                reserved_until: None,
                 next_seq,
                 consumers: Consumers::new(single_active),
                 own_expires,
@@ -583,6 +589,15 @@ impl Queue {
         }
     }
 
+    /// Marks the queue used until `until` (an MQTT shared subscription's
+    /// member has joined it and is about to consume it), for x-expires:
+    /// a short one cannot run out between the join and the consume.
+    #[cfg(feature = "mqtt")]
+    pub fn reserve_until(&self, until: Instant) {
+        let mut st = self.lock();
+        st.reserved_until = Some(st.reserved_until.map_or(until, |at| at.max(until)));
+    }
+
     /// Drops every ready message; returns how many. They are released
     /// (memory, store) a slice at a time, the first slice now.
     pub fn purge(self: &Arc<Self>) -> u32 {
@@ -680,6 +695,10 @@ impl Queue {
         let Some(expires) = st.effective.expires else {
             return false;
         };
+        #[cfg(feature = "mqtt")]
+        if st.reserved_until.is_some_and(|until| now < until) {
+            return false;
+        }
         st.consumers.is_empty()
             && st.last_used.is_some_and(|at| {
                 now.saturating_duration_since(at) >= Duration::from_millis(expires)

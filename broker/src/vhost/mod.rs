@@ -676,6 +676,32 @@ impl Vhost {
         queue.delete()
     }
 
+    /// queue.declare of an MQTT shared subscription group's queue: one
+    /// that exists is joined as it is, without comparing its flags and
+    /// arguments with `decl`'s (members of a group may differ in
+    /// durability and expiry: MQTT 5.0 4.8.2), unless another connection
+    /// owns it; one that does not is created as `decl` says. Either way
+    /// it counts as used for `reserve` from now (x-expires cannot run out
+    /// before the member's consume arrives). The queue and whether it was
+    /// created.
+    #[cfg(feature = "mqtt")]
+    pub fn join_or_declare_queue(
+        &self,
+        decl: QueueDeclaration,
+        reserve: std::time::Duration,
+    ) -> AmqpResult<(Arc<Queue>, bool)> {
+        let (queue, created) = match self.queue(&decl.name) {
+            Some(existing) if existing.options.exclusive_owner.is_some() => {
+                return Err(exclusive_locked(&existing.name, &self.name));
+            }
+            Some(existing) => (existing, false),
+            // Not exclusive: no connection owns it.
+            None => self.declare_queue(decl, 0)?,
+        };
+        queue.reserve_until(Instant::now() + reserve);
+        Ok((queue, created))
+    }
+
     /// Gives `queue`, if it is still this vhost's, its own expiry
     /// ([`Queue::set_expires`]); false if it is gone. Under the queues'
     /// lock, so that its record reaches the store before a deletion's.
