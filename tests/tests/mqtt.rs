@@ -1198,6 +1198,50 @@ async fn session_present5(events: &mut rumqttc::v5::EventLoop) -> bool {
     .await
 }
 
+/// A raw client's CONNECT as `client_id` (robot/secret), 5.0 with
+/// `expiry` as its Session Expiry Interval when given, else 3.1.1; the
+/// client and whether its session was kept.
+async fn raw_session(
+    port: u16,
+    client_id: &'static str,
+    clean_start: bool,
+    expiry: Option<u32>,
+) -> (Raw, bool) {
+    let mut raw = Raw::connect(port).await;
+    let mut properties = leveret_mqtt::Properties::default();
+    if expiry.is_some() {
+        raw.version = ProtocolVersion::V5;
+        properties.session_expiry_interval = expiry;
+    }
+    raw.send(Packet::Connect(Box::new(Connect {
+        version: raw.version,
+        clean_start,
+        keep_alive: 0,
+        properties,
+        client_id: leveret_mqtt::MqttString::from_static(client_id),
+        will: None,
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    })))
+    .await;
+    match raw.next().await {
+        Some(Packet::ConnAck(ack)) => (raw, ack.session_present),
+        other => panic!("expected CONNACK, got {other:?}"),
+    }
+}
+
+/// QoS 2 publish `id` of "once" to `topic`.
+fn qos2_once(id: std::num::NonZeroU16, topic: &'static str, dup: bool) -> Packet {
+    Packet::Publish(Publish {
+        dup,
+        delivery: Delivery::ExactlyOnce(id),
+        retain: false,
+        topic: TopicName::from_static(topic),
+        properties: Default::default(),
+        payload: Bytes::from_static(b"once"),
+    })
+}
+
 #[both_runtimes]
 async fn a_persistent_session_keeps_unreleased_qos_2_publishes_across_a_reconnect() {
     let handle = start(Limits::default()).await;
@@ -1206,35 +1250,9 @@ async fn a_persistent_session_keeps_unreleased_qos_2_publishes_across_a_reconnec
     tmo!(channel.queue_declare("twice", Default::default(), Default::default())).unwrap();
     bind_to_amq_topic(&channel, "twice", "t2.x").await;
     // A raw 3.1.1 client with a persistent session; true if it was kept.
-    async fn connect(port: u16) -> (Raw, bool) {
-        let mut raw = Raw::connect(port).await;
-        raw.send(Packet::Connect(Box::new(Connect {
-            version: ProtocolVersion::V3_1_1,
-            clean_start: false,
-            keep_alive: 0,
-            properties: Default::default(),
-            client_id: leveret_mqtt::MqttString::from_static("twice"),
-            will: None,
-            username: Some(leveret_mqtt::MqttString::from_static("robot")),
-            password: Some(Bytes::from_static(b"secret")),
-        })))
-        .await;
-        match raw.next().await {
-            Some(Packet::ConnAck(ack)) => (raw, ack.session_present),
-            other => panic!("expected CONNACK, got {other:?}"),
-        }
-    }
+    let connect = |port: u16| raw_session(port, "twice", false, None);
     let id = std::num::NonZeroU16::new(5).unwrap();
-    let publish = |dup| {
-        Packet::Publish(Publish {
-            dup,
-            delivery: Delivery::ExactlyOnce(id),
-            retain: false,
-            topic: TopicName::from_static("t2/x"),
-            properties: Default::default(),
-            payload: Bytes::from_static(b"once"),
-        })
-    };
+    let publish = |dup| qos2_once(id, "t2/x", dup);
     let (mut raw, present) = connect(port).await;
     assert!(!present);
     // A subscription, so that the session has something to keep.
@@ -1285,35 +1303,9 @@ async fn a_persistent_session_keeps_unreleased_qos_2_publishes_across_a_restart(
     bind_to_amq_topic(&channel, "kept-once", "r2.#").await;
     drop(amqp);
     // A raw 3.1.1 client with a persistent session; true if it was kept.
-    async fn connect(port: u16) -> (Raw, bool) {
-        let mut raw = Raw::connect(port).await;
-        raw.send(Packet::Connect(Box::new(Connect {
-            version: ProtocolVersion::V3_1_1,
-            clean_start: false,
-            keep_alive: 0,
-            properties: Default::default(),
-            client_id: leveret_mqtt::MqttString::from_static("restarted"),
-            will: None,
-            username: Some(leveret_mqtt::MqttString::from_static("robot")),
-            password: Some(Bytes::from_static(b"secret")),
-        })))
-        .await;
-        match raw.next().await {
-            Some(Packet::ConnAck(ack)) => (raw, ack.session_present),
-            other => panic!("expected CONNACK, got {other:?}"),
-        }
-    }
+    let connect = |port: u16| raw_session(port, "restarted", false, None);
     let ids = [3u16, 9].map(|id| std::num::NonZeroU16::new(id).unwrap());
-    let publish = |id, dup| {
-        Packet::Publish(Publish {
-            dup,
-            delivery: Delivery::ExactlyOnce(id),
-            retain: false,
-            topic: TopicName::from_static("r2/x"),
-            properties: Default::default(),
-            payload: Bytes::from_static(b"once"),
-        })
-    };
+    let publish = |id, dup| qos2_once(id, "r2/x", dup);
     // A publisher only: its unreleased publishes are its session.
     let (mut raw, present) = connect(mqtt_port(&handle)).await;
     assert!(!present);
@@ -1398,38 +1390,11 @@ async fn an_expired_sessions_unreleased_qos_2_publishes_go_after_a_restart() {
     drop(amqp);
     // A raw 5.0 client whose session expires a second after its
     // connection; true if it was kept.
-    async fn connect(port: u16, clean_start: bool) -> (Raw, bool) {
-        let mut raw = Raw::connect(port).await;
-        raw.version = ProtocolVersion::V5;
-        let mut properties = leveret_mqtt::Properties::default();
-        properties.session_expiry_interval = Some(1);
-        raw.send(Packet::Connect(Box::new(Connect {
-            version: ProtocolVersion::V5,
-            clean_start,
-            keep_alive: 0,
-            properties,
-            client_id: leveret_mqtt::MqttString::from_static("expiring-publisher"),
-            will: None,
-            username: Some(leveret_mqtt::MqttString::from_static("robot")),
-            password: Some(Bytes::from_static(b"secret")),
-        })))
-        .await;
-        match raw.next().await {
-            Some(Packet::ConnAck(ack)) => (raw, ack.session_present),
-            other => panic!("expected CONNACK, got {other:?}"),
-        }
-    }
-    let id = std::num::NonZeroU16::new(5).unwrap();
-    let publish = |dup| {
-        Packet::Publish(Publish {
-            dup,
-            delivery: Delivery::ExactlyOnce(id),
-            retain: false,
-            topic: TopicName::from_static("e2/x"),
-            properties: Default::default(),
-            payload: Bytes::from_static(b"once"),
-        })
+    let connect = |port: u16, clean_start: bool| {
+        raw_session(port, "expiring-publisher", clean_start, Some(1))
     };
+    let id = std::num::NonZeroU16::new(5).unwrap();
+    let publish = |dup| qos2_once(id, "e2/x", dup);
     let (mut raw, _) = connect(mqtt_port(&handle), true).await;
     raw.send(publish(false)).await;
     assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
