@@ -9,6 +9,19 @@
 
 use crate::core::Core;
 use leveret_protocol::{FieldValue, ShortStr};
+use std::time::{Duration, Instant};
+
+/// When a session whose connection ends now expires, `seconds` from now
+/// (`None`: never); the state it keeps beside its queues (unreleased QoS 2
+/// publishes, shared subscriptions) goes then.
+pub(super) fn ends_at(seconds: Option<u32>) -> Option<Instant> {
+    seconds.map(|s| Instant::now() + Duration::from_secs(s.into()))
+}
+
+/// Whether a session that expires at `at` (`None`: never) has by `now`.
+pub(super) fn has_passed(at: Option<Instant>, now: Instant) -> bool {
+    at.is_some_and(|at| at <= now)
+}
 
 /// The `x-expires` (ms) of the queues of a session that expires
 /// `seconds` after its connection ends (`None`: never).

@@ -25,7 +25,7 @@ use crate::store::{MetaKey, MetaRecord, Persistence, StoreOp};
 use leveret_mqtt::PacketId;
 use std::collections::{BTreeSet, HashMap};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 /// Identifiers kept per session.
 const MAX_PER_SESSION: usize = 256;
@@ -63,13 +63,8 @@ struct Held {
 
 impl Held {
     fn expired(&self, now: Instant) -> bool {
-        self.expires_at.is_some_and(|at| at <= now)
+        super::expiry::has_passed(self.expires_at, now)
     }
-}
-
-/// When a session that ended now expires.
-fn expires_at(expiry: Option<u32>) -> Option<Instant> {
-    expiry.map(|seconds| Instant::now() + Duration::from_secs(seconds.into()))
 }
 
 impl Releases {
@@ -93,7 +88,7 @@ impl Releases {
                 held.stored.insert(id.get());
                 held.kept.push(id);
                 held.expiry = (*session_expiry != NEVER).then_some(*session_expiry);
-                held.expires_at = expires_at(held.expiry);
+                held.expires_at = super::expiry::ends_at(held.expiry);
             }
         }
         Releases {
@@ -180,7 +175,7 @@ impl Releases {
         };
         ids.truncate(MAX_PER_SESSION);
         held.kept = ids;
-        held.expires_at = expires_at(expiry);
+        held.expires_at = super::expiry::ends_at(expiry);
         self.set_expiry(&key, held, expiry);
     }
 

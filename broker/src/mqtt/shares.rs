@@ -174,13 +174,8 @@ struct Held {
 
 impl Held {
     fn expired(&self, now: Instant) -> bool {
-        self.expires_at.is_some_and(|at| at <= now)
+        super::expiry::has_passed(self.expires_at, now)
     }
-}
-
-/// When a session that ended now expires.
-fn expires_at(expiry: Option<u32>) -> Option<Instant> {
-    expiry.map(|seconds| Instant::now() + Duration::from_secs(seconds.into()))
 }
 
 impl Shares {
@@ -214,7 +209,7 @@ impl Shares {
                 let held = state.sessions.entry(key).or_default();
                 held.filters.insert(filter.clone(), options);
                 held.expiry = (*session_expiry != NEVER).then_some(*session_expiry);
-                held.expires_at = expires_at(held.expiry);
+                held.expires_at = super::expiry::ends_at(held.expiry);
             }
         }
         let members: Vec<(String, String, Option<u32>)> = (state.sessions.iter())
@@ -301,7 +296,7 @@ impl Shares {
         let Some(mut held) = state.sessions.remove(&key) else {
             return Vec::new();
         };
-        held.expires_at = expires_at(expiry);
+        held.expires_at = super::expiry::ends_at(expiry);
         if held.expiry != expiry {
             state.leave_all(vhost, &held);
             held.expiry = expiry;
