@@ -40,7 +40,10 @@ impl Published {
     fn add(&mut self, enqueued: Enqueued) {
         match enqueued {
             Enqueued::Accepted { sync } => self.written.add(sync),
-            Enqueued::Refused => self.refused = true,
+            Enqueued::Refused { sync } => {
+                self.refused = true;
+                self.written.add(sync);
+            }
         }
     }
 }
@@ -157,7 +160,8 @@ impl Vhost {
     /// routed to: every shared record and index entry goes to the store in
     /// one atomic submission, made before any queue takes its message
     /// (see the module's docs). A refusal is not reported: a transaction
-    /// has no nack. Yields when a slice is spent.
+    /// has no nack; the returned span covers the removal a refusal submits.
+    /// Yields when a slice is spent.
     pub async fn publish_all_or_none(
         self: &Arc<Self>,
         batch: Vec<(Arc<Message>, Vec<Arc<Queue>>)>,
@@ -190,10 +194,12 @@ impl Vhost {
                     Some(seq) => queue.publish_reserved(Arc::clone(&message), seq),
                     None => queue.publish(Arc::clone(&message)),
                 };
-                // A stream appends at its publish and names the sync to wait for.
-                if let Enqueued::Accepted { sync } = enqueued {
-                    written.add(sync);
-                }
+                // A stream appends at its publish and names the sync to
+                // wait for; a refusal (or a queue deleted meanwhile) names
+                // the removal of the entry reserved above, which the
+                // commit must not outrun.
+                let (Enqueued::Accepted { sync } | Enqueued::Refused { sync }) = enqueued;
+                written.add(sync);
                 dead.append(dead_here);
                 yield_if_spent(&mut slice).await;
             }
@@ -374,6 +380,58 @@ mod tests {
         assert_eq!(entries_of(&recovered, &queues[0]).len(), 2);
         assert_eq!(entries_of(&recovered, &queues[1]).len(), 2);
         assert_eq!(queues[2].message_count(), 2);
+    }
+
+    /// A transaction's message refused by a full durable queue: its entry,
+    /// written in the atomic submission, is removed by a later one, and
+    /// the commit's span covers that removal, so commit-ok never goes out
+    /// while the refused entry is the last word on disk. The queue that
+    /// took it keeps its entry and the shared record.
+    #[tokio::test]
+    async fn a_commit_waits_for_the_removal_of_what_a_queue_refused() {
+        let h = Harness::durable();
+        let full = h.declare_queue(
+            "full",
+            true,
+            &[
+                ("x-max-length", FieldValue::I32(1)),
+                ("x-overflow", FieldValue::string("reject-publish")),
+            ],
+        );
+        let other = h.declare_queue("other", true, &[]);
+        let held = vec![Arc::clone(&full)];
+        let before = h
+            .vhost
+            .publish(stored_message(&h, &held, "held"), held)
+            .await;
+        assert!(!before.refused);
+        let queues = vec![Arc::clone(&full), Arc::clone(&other)];
+        let message = stored_message(&h, &queues, "m");
+        let Some(Stored::Shared { id, .. }) = &message.stored else {
+            panic!("two durable queues share one record: {:?}", message.stored);
+        };
+        let id = *id;
+        let written = h.vhost.publish_all_or_none(vec![(message, queues)]).await;
+        let persistence = h.persistence.as_ref().expect("a persister");
+        // The removal is the last submission made: the span must reach it.
+        let next = persistence.submit(Vec::new());
+        assert_eq!(written.last(), next - 1, "the commit waits for the removal");
+        let mut atomic_only = Written::default();
+        atomic_only.add(written.last() - 1);
+        assert_ne!(written, atomic_only);
+        assert!(persistence.wait_written(written).await);
+        let recovered = h.stored();
+        assert_eq!(entries_of(&recovered, &full).len(), 1, "only the held one");
+        assert!(matches!(
+            entries_of(&recovered, &other)[..],
+            [EntryBody::Shared(entry)] if entry == id
+        ));
+        assert!(
+            recovered.messages.contains_key(&id),
+            "other keeps the record"
+        );
+        assert_eq!(full.message_count(), 1);
+        assert_eq!(other.message_count(), 1);
     }
 
     /// A transient message or one reaching no durable queue writes nothing:
