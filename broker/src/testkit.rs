@@ -52,7 +52,11 @@ impl Harness {
 
     /// A vhost `/` whose durable queues persist into a [`MemoryStore`].
     pub fn durable() -> Self {
-        let store: Arc<dyn Store> = Arc::new(MemoryStore::default());
+        Self::durable_over(Arc::new(MemoryStore::default()))
+    }
+
+    /// A vhost `/` whose durable queues persist into `store`.
+    pub fn durable_over(store: Arc<dyn Store>) -> Self {
         let persistence = Persistence::start(Arc::clone(&store), &Recovered::default())
             .expect("the persister starts");
         Self::build(Some((persistence, store)))

@@ -214,9 +214,12 @@ mod tests {
     use super::*;
     use crate::exchange::ExchangeKind;
     use crate::queue::Queue;
-    use crate::store::{EntryBody, Recovered};
+    use crate::store::{
+        EntryBody, KvOp, KvPair, MemoryStore, Recovered, Store, StoreError, WriteMode,
+    };
     use crate::testkit::{message, s, Harness};
     use leveret_protocol::{BasicProperties, FieldValue};
+    use std::collections::HashMap;
 
     fn persistent() -> BasicProperties {
         BasicProperties {
@@ -288,12 +291,39 @@ mod tests {
         }
     }
 
+    /// A store that counts the writes of each key.
+    #[derive(Debug, Default)]
+    struct Counting {
+        inner: MemoryStore,
+        puts: std::sync::Mutex<HashMap<Vec<u8>, usize>>,
+    }
+
+    impl Store for Counting {
+        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+            let mut puts = self.puts.lock().unwrap();
+            for (key, value) in &ops {
+                if value.is_some() {
+                    *puts.entry(key.clone()).or_default() += 1;
+                }
+            }
+            drop(puts);
+            self.inner.write(ops, mode)
+        }
+        fn flush(&self) -> Result<(), StoreError> {
+            self.inner.flush()
+        }
+        fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
+            self.inner.scan()
+        }
+    }
+
     /// A fanout offered in slices: each step stops when its slice is
     /// spent, the record is written once, at the first step, and the
     /// outcome covers every queue's entry.
     #[tokio::test]
     async fn a_fanout_goes_a_slice_at_a_time_and_writes_its_record_once() {
-        let h = Harness::durable();
+        let store = Arc::new(Counting::default());
+        let h = Harness::durable_over(Arc::clone(&store) as Arc<dyn Store>);
         let queues = fanout(&h);
         let mut publishing = Publishing::new(stored_message(&h, &queues, "sliced"), queues.clone());
         let spent = || {
@@ -324,24 +354,31 @@ mod tests {
         assert!(persistence.wait_written(published.written).await);
         let recovered = h.stored();
         assert_eq!(recovered.messages.len(), 1, "one shared record");
+        // The record, both entries and the queues' declarations: each key
+        // once (a record written at every step would be counted thrice).
+        let puts = store.puts.lock().unwrap().clone();
+        assert!(puts.len() >= 3, "{puts:?}");
+        assert!(
+            puts.values().all(|&count| count == 1),
+            "each key is written once: {puts:?}"
+        );
         assert_eq!(entries_of(&recovered, &queues[0]).len(), 1);
         assert_eq!(entries_of(&recovered, &queues[1]).len(), 1);
     }
 
-    /// A queue that refuses the publish makes the outcome a refusal (a
-    /// nack), and keeps no entry of it.
+    /// Queues that refuse the publish make the outcome a refusal (a
+    /// nack), keep no entry of it, and the last to refuse removes the
+    /// shared record written before they were offered it.
     #[tokio::test]
     async fn a_refusal_is_in_the_outcome_and_leaves_no_entry() {
         let h = Harness::durable();
-        let full = h.declare_queue(
-            "full",
-            true,
-            &[
-                ("x-max-length", FieldValue::I32(1)),
-                ("x-overflow", FieldValue::string("reject-publish")),
-            ],
-        );
-        let queues = vec![Arc::clone(&full)];
+        let limited = [
+            ("x-max-length", FieldValue::I32(1)),
+            ("x-overflow", FieldValue::string("reject-publish")),
+        ];
+        let full = h.declare_queue("full", true, &limited);
+        let full_too = h.declare_queue("full-too", true, &limited);
+        let queues = vec![Arc::clone(&full), Arc::clone(&full_too)];
         let first = h
             .vhost
             .publish(stored_message(&h, &queues, "one"), queues.clone())
@@ -354,7 +391,10 @@ mod tests {
         assert!(second.refused);
         let persistence = h.persistence.as_ref().expect("a persister");
         assert!(persistence.sync().await);
-        assert_eq!(entries_of(&h.stored(), &full).len(), 1);
+        let recovered = h.stored();
+        assert_eq!(entries_of(&recovered, &full).len(), 1);
+        assert_eq!(entries_of(&recovered, &full_too).len(), 1);
+        assert_eq!(recovered.messages.len(), 1, "only the kept one's record");
         assert_eq!(full.message_count(), 1);
     }
 
