@@ -186,49 +186,14 @@ mod tests {
     use crate::outbox::{Outbound, Outbox};
     use crate::parameters::Parameters;
     use crate::queue::QueueOptions;
-    use crate::store::{
-        KvOp, KvPair, MemoryStore, Persistence, Recovered, Store, StoreError, WriteMode,
-    };
+    use crate::store::{Persistence, Recovered, Store};
+    use crate::testkit::Gated;
     use crate::vhost::QueueDeclaration;
     use bytes::Bytes;
     use leveret_protocol::{BasicProperties, BasicPublish, Method, ShortStr};
-    use std::sync::atomic::{AtomicBool, Ordering};
-    use std::sync::{Arc, Condvar, Mutex};
+    use std::sync::atomic::Ordering;
+    use std::sync::Arc;
     use tokio::sync::mpsc;
-
-    /// A store whose writes wait while `held` is set, and fail while
-    /// `failing` is.
-    #[derive(Debug, Default)]
-    struct Gated {
-        inner: MemoryStore,
-        held: Mutex<bool>,
-        opened: Condvar,
-        failing: AtomicBool,
-    }
-
-    impl Gated {
-        fn hold(&self, held: bool) {
-            *self.held.lock().unwrap() = held;
-            self.opened.notify_all();
-        }
-    }
-
-    impl Store for Gated {
-        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
-            let held = self.held.lock().unwrap();
-            drop(self.opened.wait_while(held, |held| *held).unwrap());
-            if self.failing.load(Ordering::SeqCst) {
-                return Err(StoreError::Engine("simulated failure".into()));
-            }
-            self.inner.write(ops, mode)
-        }
-        fn flush(&self) -> Result<(), StoreError> {
-            self.inner.flush()
-        }
-        fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
-            self.inner.scan()
-        }
-    }
 
     /// A channel in confirm mode on a broker over `store`, with a durable
     /// queue `kept`, and what its outbox receives.

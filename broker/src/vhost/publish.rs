@@ -217,7 +217,7 @@ mod tests {
     use crate::store::{
         EntryBody, KvOp, KvPair, MemoryStore, Recovered, Store, StoreError, WriteMode,
     };
-    use crate::testkit::{message, s, Harness};
+    use crate::testkit::{message, s, Gated, Harness};
     use leveret_protocol::{BasicProperties, FieldValue};
     use std::collections::HashMap;
 
@@ -265,7 +265,9 @@ mod tests {
     /// and nothing else is (the transient queue writes none).
     #[tokio::test]
     async fn a_publish_is_on_disk_when_its_outcome_is_written() {
-        let h = Harness::durable();
+        let store = Arc::new(Gated::default());
+        store.hold(true);
+        let h = Harness::durable_over(Arc::clone(&store) as Arc<dyn Store>);
         let queues = fanout(&h);
         let message = stored_message(&h, &queues, "kept");
         let Some(Stored::Shared { id, .. }) = &message.stored else {
@@ -276,6 +278,12 @@ mod tests {
         assert!(!published.refused);
         assert!(published.written.last() > 0, "it wrote something");
         let persistence = h.persistence.as_ref().expect("a persister");
+        assert_eq!(
+            persistence.written(published.written),
+            None,
+            "not written while the store holds the write"
+        );
+        store.hold(false);
         assert!(persistence.wait_written(published.written).await);
         let recovered = h.stored();
         assert_eq!(recovered.messages.len(), 1);
