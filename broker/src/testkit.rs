@@ -12,7 +12,9 @@ use crate::exchange::{ExchangeKind, ExchangeOptions};
 use crate::message::Message;
 use crate::outbox::{Outbound, Outbox};
 use crate::queue::{ChannelLink, Consumer, DeadLetters, Enqueued, Queue, QueueOptions};
-use crate::store::{MemoryStore, Persistence, Recovered, Store};
+use crate::store::{
+    KvOp, KvPair, MemoryStore, Persistence, Recovered, Store, StoreError, WriteMode,
+};
 use crate::vhost::{BindingChange, ExchangeDeclaration, QueueDeclaration, Vhost};
 use bytes::{Bytes, BytesMut};
 use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
@@ -52,7 +54,11 @@ impl Harness {
 
     /// A vhost `/` whose durable queues persist into a [`MemoryStore`].
     pub fn durable() -> Self {
-        let store: Arc<dyn Store> = Arc::new(MemoryStore::default());
+        Self::durable_over(Arc::new(MemoryStore::default()))
+    }
+
+    /// A vhost `/` whose durable queues persist into `store`.
+    pub fn durable_over(store: Arc<dyn Store>) -> Self {
         let persistence = Persistence::start(Arc::clone(&store), &Recovered::default())
             .expect("the persister starts");
         Self::build(Some((persistence, store)))
@@ -407,5 +413,41 @@ fn decode(tag: u64, consumer: &str, redelivered: bool, message: &Message) -> Del
         body: String::from_utf8(message.body.to_vec()).expect("utf-8 body"),
         redelivered,
         headers: properties.headers,
+    }
+}
+
+/// A store whose writes wait while it is held ([`Gated::hold`]), and fail
+/// while `failing` is set: a test decides when the disk answers.
+#[derive(Debug, Default)]
+pub struct Gated {
+    inner: MemoryStore,
+    held: std::sync::Mutex<bool>,
+    opened: std::sync::Condvar,
+    /// Writes fail while set.
+    pub failing: std::sync::atomic::AtomicBool,
+}
+
+impl Gated {
+    /// Holds (true) or releases (false) the writes.
+    pub fn hold(&self, held: bool) {
+        *self.held.lock().unwrap() = held;
+        self.opened.notify_all();
+    }
+}
+
+impl Store for Gated {
+    fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+        let held = self.held.lock().unwrap();
+        drop(self.opened.wait_while(held, |held| *held).unwrap());
+        if self.failing.load(Ordering::SeqCst) {
+            return Err(StoreError::Engine("simulated failure".into()));
+        }
+        self.inner.write(ops, mode)
+    }
+    fn flush(&self) -> Result<(), StoreError> {
+        self.inner.flush()
+    }
+    fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
+        self.inner.scan()
     }
 }

@@ -363,7 +363,9 @@ impl Admin {
     /// returns once any durable queue's copy is on disk, with whether any
     /// queue took it. Exchange `""` is the default exchange. During a
     /// memory or disk alarm, when AMQP publishers are blocked, it is
-    /// refused (506 RESOURCE_ERROR) rather than left waiting.
+    /// refused (506 RESOURCE_ERROR) rather than left waiting. A message a
+    /// queue refused (overflow `reject-publish`), which such a client
+    /// would have nacked, is an error (406, RabbitMQ's text).
     pub async fn publish(
         &self,
         vhost: &str,
@@ -447,6 +449,11 @@ impl Admin {
         });
         let reached = !queues.is_empty();
         let published = vhost.publish(message, queues).await;
+        if published.refused {
+            return Err(AmqpError::precondition_failed(
+                "Unable to publish message. Check queue limits.",
+            ));
+        }
         if let Some(persistence) = &self.core.persistence {
             if !persistence.wait_written(published.written).await {
                 return Err(AmqpError::resource_error(
@@ -535,5 +542,66 @@ impl Admin {
                 "the aliveness test message did not come back",
             ))
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::QueueSettings;
+    use crate::Broker;
+    use bytes::Bytes;
+    use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
+
+    /// A publish a queue refused is an error, not "routed": the message a
+    /// confirm-mode client would have had nacked.
+    async fn a_refused_publish_is_an_error() {
+        let broker = Broker::builder().start().await.expect("broker starts");
+        let admin = broker.admin();
+        let mut arguments = FieldTable::default();
+        arguments.insert(ShortStr::from_static("x-max-length"), FieldValue::I32(1));
+        arguments.insert(
+            ShortStr::from_static("x-overflow"),
+            FieldValue::string("reject-publish"),
+        );
+        let settings = QueueSettings {
+            durable: false,
+            auto_delete: false,
+            arguments,
+        };
+        assert_eq!(admin.declare_queue("/", "full", settings).await, Ok(true));
+        let publish = || {
+            admin.publish(
+                "/",
+                "",
+                "full",
+                BasicProperties::default(),
+                Bytes::from_static(b"m"),
+            )
+        };
+        assert_eq!(publish().await, Ok(true), "the first fits");
+        let refused = publish().await.expect_err("the second is refused");
+        assert_eq!(
+            refused.code,
+            leveret_protocol::ReplyCode::PreconditionFailed,
+            "{refused:?}"
+        );
+        assert_eq!(
+            admin
+                .publish("/", "", "nowhere", BasicProperties::default(), Bytes::new())
+                .await,
+            Ok(false),
+            "an unroutable message is not an error"
+        );
+        broker.shutdown().await;
+    }
+
+    #[tokio::test]
+    async fn a_refused_publish_is_an_error_current_thread() {
+        a_refused_publish_is_an_error().await;
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_refused_publish_is_an_error_multi_thread() {
+        a_refused_publish_is_an_error().await;
     }
 }

@@ -41,18 +41,24 @@ impl Confirms {
     }
 
     /// The store's progress the first waiting publish needs, if one waits
-    /// on the store (a refused one is due at once).
+    /// (a refused one needs none: it is due at once).
     fn store_needs(&self) -> Option<u64> {
         let (_, first) = self.waiting.front()?;
-        (!first.refused).then(|| first.written.last())
+        Some(if first.refused {
+            0
+        } else {
+            first.written.last()
+        })
     }
 }
 
 /// Resolves once one of `channels` has confirms due, the one that waits
-/// for the least store progress (never if none waits): its connection
+/// for the least store progress (never if none waits; a closing channel
+/// sends no more confirms, so it is never due): its connection
 /// then sends what is due on each ([`Channel::flush_confirms`]).
 pub async fn confirms_due<'a>(channels: impl Iterator<Item = &'a Channel>) {
     let first = channels
+        .filter(|channel| !channel.closing)
         .filter_map(|channel| Some((channel.confirms.as_ref()?.store_needs()?, channel)))
         .min_by_key(|(needs, _)| *needs);
     match first {
@@ -88,22 +94,38 @@ impl Channel {
     }
 
     /// Resolves once the store has reached what this channel's first
-    /// waiting publish needs (never if none waits on the store, or the
-    /// channel has none).
+    /// waiting publish needs, or the persister has stopped (what it never
+    /// wrote is then nacked): never if none waits on the store, or the
+    /// channel has none.
     async fn confirms_due(&self) {
-        let needs = self.confirms.as_ref().and_then(Confirms::store_needs);
-        if let (Some(needs), Some(persistence)) = (needs, &self.core.persistence) {
+        let Some(needs) = self.confirms.as_ref().and_then(Confirms::store_needs) else {
+            return std::future::pending().await;
+        };
+        if let Some(persistence) = &self.core.persistence {
             let mut durable = persistence.durable();
-            if durable.wait_for(|d| d.flushed >= needs).await.is_ok() {
-                return;
-            }
+            // An error is the persister gone: due too.
+            let _ = durable.wait_for(|d| d.flushed >= needs).await;
         }
-        std::future::pending().await
+    }
+
+    /// Forgets the publishes awaiting their confirm: a channel that closes
+    /// sends no more confirms (RabbitMQ drops those of a channel closed on
+    /// error), and a client that reopens its number must not take them
+    /// for the new channel's.
+    pub(super) fn drop_confirms(&mut self) {
+        if let Some(confirms) = &mut self.confirms {
+            confirms.waiting.clear();
+        }
+        self.note_pending();
     }
 
     /// Sends the confirms that are due, in tag order: consecutive acks as
-    /// one basic.ack with `multiple`, nacks one by one.
+    /// one basic.ack with `multiple`, nacks one by one (none once the
+    /// channel is closing).
     pub async fn flush_confirms(&mut self) {
+        if self.closing {
+            return;
+        }
         let mut acks: Option<(u64, u64)> = None;
         let mut nacks = Vec::new();
         if let Some(confirms) = &mut self.confirms {
@@ -164,49 +186,14 @@ mod tests {
     use crate::outbox::{Outbound, Outbox};
     use crate::parameters::Parameters;
     use crate::queue::QueueOptions;
-    use crate::store::{
-        KvOp, KvPair, MemoryStore, Persistence, Recovered, Store, StoreError, WriteMode,
-    };
+    use crate::store::{Persistence, Recovered, Store};
+    use crate::testkit::Gated;
     use crate::vhost::QueueDeclaration;
     use bytes::Bytes;
     use leveret_protocol::{BasicProperties, BasicPublish, Method, ShortStr};
-    use std::sync::atomic::{AtomicBool, Ordering};
-    use std::sync::{Arc, Condvar, Mutex};
+    use std::sync::atomic::Ordering;
+    use std::sync::Arc;
     use tokio::sync::mpsc;
-
-    /// A store whose writes wait while `held` is set, and fail while
-    /// `failing` is.
-    #[derive(Debug, Default)]
-    struct Gated {
-        inner: MemoryStore,
-        held: Mutex<bool>,
-        opened: Condvar,
-        failing: AtomicBool,
-    }
-
-    impl Gated {
-        fn hold(&self, held: bool) {
-            *self.held.lock().unwrap() = held;
-            self.opened.notify_all();
-        }
-    }
-
-    impl Store for Gated {
-        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
-            let held = self.held.lock().unwrap();
-            drop(self.opened.wait_while(held, |held| *held).unwrap());
-            if self.failing.load(Ordering::SeqCst) {
-                return Err(StoreError::Engine("simulated failure".into()));
-            }
-            self.inner.write(ops, mode)
-        }
-        fn flush(&self) -> Result<(), StoreError> {
-            self.inner.flush()
-        }
-        fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
-            self.inner.scan()
-        }
-    }
 
     /// A channel in confirm mode on a broker over `store`, with a durable
     /// queue `kept`, and what its outbox receives.
@@ -297,7 +284,7 @@ mod tests {
             "not due while the store holds the write"
         );
         store.hold(false);
-        confirms_due(std::iter::once(&channel)).await;
+        falls_due(&channel).await;
         // Both entries may not be in the group that made the first due.
         let persistence = channel.core.persistence.clone().expect("persister");
         assert!(persistence.sync().await);
@@ -317,6 +304,100 @@ mod tests {
         assert_eq!(channel.core.stats.confirmed.get(), 2);
     }
 
+    /// Awaits `confirms_due` on `channel`, failing (not hanging) if it
+    /// never resolves.
+    async fn falls_due(channel: &Channel) {
+        tokio::time::timeout(
+            std::time::Duration::from_secs(30),
+            confirms_due(std::iter::once(channel)),
+        )
+        .await
+        .expect("confirms fall due");
+    }
+
+    /// A channel closed on error sends no more confirms: not the ack of a
+    /// publish whose write finishes after its channel.close.
+    #[tokio::test]
+    async fn a_channel_closed_on_error_sends_no_more_confirms() {
+        let store = Arc::new(Gated::default());
+        store.hold(true);
+        let (mut channel, mut inbox) = confirming(Arc::clone(&store)).await;
+        publish_persistent(&mut channel);
+        channel
+            .close_with(AmqpError::precondition_failed("test"))
+            .await;
+        store.hold(false);
+        let persistence = channel.core.persistence.clone().expect("persister");
+        assert!(persistence.sync().await);
+        let due = confirms_due(std::iter::once(&channel));
+        assert!(
+            tokio::time::timeout(std::time::Duration::ZERO, due)
+                .await
+                .is_err(),
+            "a closing channel has no confirms due"
+        );
+        tokio::time::timeout(std::time::Duration::from_secs(30), channel.flush_confirms())
+            .await
+            .expect("flush");
+        let methods = sent(&mut inbox);
+        assert!(
+            matches!(methods[..], [Method::ChannelClose(_)]),
+            "{methods:?}"
+        );
+        assert_eq!(channel.confirms.as_ref().map(Confirms::len), Some(0));
+    }
+
+    /// Once the persister has stopped, a publish it never wrote is nacked
+    /// rather than left waiting for ever.
+    #[tokio::test]
+    async fn a_stopped_persister_nacks_what_it_never_wrote() {
+        let store = Arc::new(Gated::default());
+        let (mut channel, mut inbox) = confirming(Arc::clone(&store)).await;
+        let persistence = channel.core.persistence.clone().expect("persister");
+        assert!(persistence.close(Vec::new()).await);
+        publish_persistent(&mut channel);
+        falls_due(&channel).await;
+        // The persister thread may still be ending: due again until it has.
+        let methods = tokio::time::timeout(std::time::Duration::from_secs(30), async {
+            loop {
+                channel.flush_confirms().await;
+                let methods = sent(&mut inbox);
+                if !methods.is_empty() {
+                    return methods;
+                }
+                tokio::task::yield_now().await;
+            }
+        })
+        .await
+        .expect("the publish is confirmed");
+        assert!(
+            matches!(
+                methods[..],
+                [Method::BasicNack(BasicNack {
+                    delivery_tag: 1,
+                    ..
+                })]
+            ),
+            "{methods:?}"
+        );
+        assert_eq!(channel.core.stats.confirmed.get(), 0);
+    }
+
+    /// A refused publish waits for nothing: it is due at once.
+    #[test]
+    fn a_refused_head_is_due_at_once() {
+        let mut confirms = Confirms::default();
+        assert_eq!(confirms.store_needs(), None);
+        confirms.waiting.push_back((
+            1,
+            Published {
+                refused: true,
+                ..Default::default()
+            },
+        ));
+        assert_eq!(confirms.store_needs(), Some(0));
+    }
+
     /// A publish whose write failed is nacked, never acked.
     #[tokio::test]
     async fn a_failed_write_is_nacked() {
@@ -324,7 +405,7 @@ mod tests {
         store.failing.store(true, Ordering::SeqCst);
         let (mut channel, mut inbox) = confirming(Arc::clone(&store)).await;
         publish_persistent(&mut channel);
-        confirms_due(std::iter::once(&channel)).await;
+        falls_due(&channel).await;
         channel.flush_confirms().await;
         let methods = sent(&mut inbox);
         assert!(

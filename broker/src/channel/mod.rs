@@ -665,7 +665,7 @@ impl Channel {
 
     /// Releases what the channel holds: cancels its consumers and requeues
     /// its unacked messages in their original order. Uncommitted
-    /// transactional work is dropped.
+    /// transactional work and unsent confirms are dropped.
     pub fn cleanup(mut self) {
         self.release();
     }
@@ -683,6 +683,7 @@ impl Channel {
             }
         }
         self.abandon_tx();
+        self.drop_confirms();
         let unacked = self.link.deliveries().take_all();
         self.vhost.dead_letter(basic::requeue_all(unacked));
         // Only now may a single active consumer's successor take over: the

@@ -29,8 +29,8 @@ impl Queue {
         let outcome = {
             let mut st = self.lock();
             if st.deleted {
-                self.unlog(&message, reserved);
-                return (Enqueued::Accepted { sync: 0 }, DeadLetters::default());
+                let sync = self.unlog(&message, reserved);
+                return (Enqueued::Accepted { sync }, DeadLetters::default());
             }
             let now = Instant::now();
             let ttl = match (st.effective.message_ttl, message.ttl_ms) {
@@ -45,13 +45,13 @@ impl Queue {
                 match st.effective.overflow {
                     Overflow::DropHead => {}
                     Overflow::RejectPublish => {
-                        self.unlog(&message, reserved);
-                        return (Enqueued::Refused, DeadLetters::default());
+                        let sync = self.unlog(&message, reserved);
+                        return (Enqueued::Refused { sync }, DeadLetters::default());
                     }
                     Overflow::RejectPublishDlx => {
-                        self.unlog(&message, reserved);
+                        let sync = self.unlog(&message, reserved);
                         self.dead_letter(message, DeadLetterReason::MaxLen, &mut dead);
-                        return (Enqueued::Refused, DeadLetters(dead));
+                        return (Enqueued::Refused { sync }, DeadLetters(dead));
                     }
                 }
             }

@@ -85,11 +85,12 @@ impl Queue {
 
     /// A message this queue was offered but does not keep: removes its
     /// index entry if one was written at a reserved place, and the shared
-    /// record if this was its last queue.
-    pub(super) fn unlog(&self, message: &Message, reserved: Option<u64>) {
+    /// record if this was its last queue. Returns the removal's submission
+    /// number (0 if nothing was removed).
+    pub(super) fn unlog(&self, message: &Message, reserved: Option<u64>) -> u64 {
         let (Some((persistence, queue)), Some(stored)) = (&self.durable_store, &message.stored)
         else {
-            return;
+            return 0;
         };
         let mut ops = Vec::new();
         if let Some(seq) = reserved {
@@ -98,9 +99,10 @@ impl Queue {
         if let Some(id) = stored.release() {
             ops.push(StoreOp::DeleteMessage { id });
         }
-        if !ops.is_empty() {
-            persistence.submit(ops);
+        if ops.is_empty() {
+            return 0;
         }
+        persistence.submit(ops)
     }
 
     /// A message leaves this queue for good: release its memory and its

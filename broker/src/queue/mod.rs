@@ -152,8 +152,15 @@ pub enum Enqueued {
         /// Submission number to wait for.
         sync: u64,
     },
-    /// The queue is full and its overflow mode refuses publishes.
-    Refused,
+    /// The queue is full and its overflow mode refuses publishes (or a
+    /// stream could not append it).
+    Refused {
+        /// Submission that removes what the publish had already stored
+        /// for this queue (its reserved index entry, a shared record no
+        /// queue keeps), 0 when none: a transaction's commit waits for it,
+        /// so a refused message is never left on disk behind a commit-ok.
+        sync: u64,
+    },
 }
 
 #[derive(Debug, Default)]

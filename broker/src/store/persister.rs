@@ -165,8 +165,41 @@ impl Mailbox {
 
 /// The most recent failed batches remembered, as submission ranges. A
 /// waiting publish checks its number against them within moments of the
-/// failure, so a short history is enough.
+/// failure, so a short history is enough; one that checks later, after its
+/// range was evicted, reads as failed ([`FailureLog::forgotten`]).
 const FAILED_HISTORY: usize = 4096;
+
+/// The failed groups' submission ranges, the newest [`FAILED_HISTORY`] of
+/// them, and how far the evicted ones reached.
+#[derive(Debug, Default)]
+struct FailureLog {
+    ranges: VecDeque<(u64, u64)>,
+    /// Highest submission number of an evicted range: a span that starts
+    /// at or below it may have held an evicted failure, so it counts as
+    /// failed (the safe direction: a nack, never a false ack).
+    forgotten: u64,
+}
+
+impl FailureLog {
+    fn record(&mut self, from: u64, to: u64) {
+        if self.ranges.len() == FAILED_HISTORY {
+            if let Some((_, evicted)) = self.ranges.pop_front() {
+                self.forgotten = self.forgotten.max(evicted);
+            }
+        }
+        self.ranges.push_back((from, to));
+    }
+
+    /// Whether a failed group (remembered or forgotten) overlaps
+    /// submissions `first..=last`.
+    fn overlaps(&self, first: u64, last: u64) -> bool {
+        first <= self.forgotten
+            || self
+                .ranges
+                .iter()
+                .any(|&(from, to)| from <= last && to >= first)
+    }
+}
 
 /// The broker's handle on durable storage: submit ops, learn when they are
 /// on disk. Submissions are numbered; [`Persistence::durable`] reports the
@@ -175,7 +208,7 @@ const FAILED_HISTORY: usize = 4096;
 pub struct Persistence {
     mailbox: Arc<Mailbox>,
     durable: watch::Receiver<Durable>,
-    failed: Arc<Mutex<VecDeque<(u64, u64)>>>,
+    failed: Arc<Mutex<FailureLog>>,
     /// How many groups have failed so far (the disk alarm probes free
     /// space when it changes).
     failures: watch::Receiver<u64>,
@@ -432,7 +465,7 @@ impl Persistence {
         let mailbox = Arc::new(Mailbox::default());
         let inbox = Arc::clone(&mailbox);
         let (durable_tx, durable) = watch::channel(Durable { flushed: 0 });
-        let failed = Arc::new(Mutex::new(VecDeque::new()));
+        let failed = Arc::new(Mutex::new(FailureLog::default()));
         let failed_log = Arc::clone(&failed);
         let (failures_tx, failures) = watch::channel(0);
         let figures = Arc::new(GroupFigures {
@@ -587,24 +620,23 @@ impl Persistence {
     /// Whether submission `number` (already attempted) reached the disk.
     pub fn succeeded(&self, number: u64) -> bool {
         let log = self.failed.lock().unwrap_or_else(|e| e.into_inner());
-        !log.iter().any(|&(from, to)| (from..=to).contains(&number))
+        !log.overlaps(number, number)
     }
 
     /// Whether everything in `written` is on disk: `None` while the
     /// persister has not yet attempted all of it, `Some(false)` if a group
-    /// in its span failed. Nothing written is written.
+    /// in its span failed or the persister stopped before attempting it
+    /// (it never will). Nothing written is written.
     pub fn written(&self, written: Written) -> Option<bool> {
         if written.last == 0 {
             return Some(true);
         }
         if self.flushed() < written.last {
-            return None;
+            // The sender is gone once the persister thread has ended.
+            return self.durable.has_changed().is_err().then_some(false);
         }
         let log = self.failed.lock().unwrap_or_else(|e| e.into_inner());
-        Some(
-            !log.iter()
-                .any(|&(from, to)| from <= written.last && to >= written.first),
-        )
+        Some(!log.overlaps(written.first, written.last))
     }
 
     /// Waits until everything in `written` is on disk; false if a group in
@@ -672,7 +704,7 @@ struct Reports {
     /// The highest attempted submission number.
     durable: watch::Sender<Durable>,
     /// Submission ranges whose group failed.
-    failed: Arc<Mutex<VecDeque<(u64, u64)>>>,
+    failed: Arc<Mutex<FailureLog>>,
     /// How many groups failed.
     failures: watch::Sender<u64>,
     /// Each group's size and time.
@@ -734,11 +766,10 @@ fn persist(store: Arc<dyn Store>, mailbox: Arc<Mailbox>, reports: Reports) {
             must_reopen = true;
             failures.send_modify(|count| *count += 1);
             // Held only to push or search, never across an await.
-            let mut log = failed.lock().unwrap_or_else(|e| e.into_inner());
-            if log.len() == FAILED_HISTORY {
-                log.pop_front();
-            }
-            log.push_back((first, last));
+            failed
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .record(first, last);
         }
         durable.send_replace(Durable { flushed: last });
         if let Some(done) = closing {
@@ -1028,6 +1059,51 @@ mod tests {
         group.finish(&store).unwrap();
         let written = store.0.lock().unwrap();
         assert_eq!(written.last(), Some(&(index(7), None)));
+    }
+
+    /// A failed range evicted from the history still reads as failed: a
+    /// span that reaches below the highest evicted submission is never
+    /// reported written.
+    #[test]
+    fn an_evicted_failure_is_never_read_as_written() {
+        let mut log = FailureLog::default();
+        log.record(10, 12);
+        for n in 0..FAILED_HISTORY as u64 {
+            let from = 100 + 2 * n;
+            log.record(from, from);
+        }
+        assert_eq!(log.ranges.len(), FAILED_HISTORY);
+        assert!(log.overlaps(11, 11), "the evicted range still failed");
+        assert!(log.overlaps(5, 50), "a span over the evicted range failed");
+        assert!(log.overlaps(102, 102), "a remembered range failed");
+        assert!(!log.overlaps(101, 101), "a good one between failures");
+        assert!(!log.overlaps(100_000, 100_001), "a good one after them");
+    }
+
+    /// Once the persister has stopped, what it never attempted is not
+    /// written (`Some(false)`, so a confirm becomes a nack), never
+    /// pending forever.
+    #[tokio::test]
+    async fn what_a_stopped_persister_never_attempted_is_not_written() {
+        let store: Arc<dyn Store> = Arc::new(MemoryStore::default());
+        let persistence = Persistence::start(store, &Recovered::default()).unwrap();
+        let mut before = Written::default();
+        before.add(persistence.submit(vec![StoreOp::DeleteMessage { id: 1 }]));
+        assert!(persistence.wait_written(before).await);
+        assert!(persistence.close(Vec::new()).await);
+        let mut after = Written::default();
+        after.add(persistence.submit(vec![StoreOp::DeleteMessage { id: 2 }]));
+        assert_eq!(persistence.written(before), Some(true));
+        let stopped = tokio::time::timeout(std::time::Duration::from_secs(30), async {
+            loop {
+                match persistence.written(after) {
+                    Some(written) => return written,
+                    None => tokio::task::yield_now().await,
+                }
+            }
+        });
+        assert_eq!(stopped.await, Ok(false));
+        assert!(!persistence.wait_written(after).await);
     }
 
     #[tokio::test]

@@ -40,7 +40,10 @@ impl Published {
     fn add(&mut self, enqueued: Enqueued) {
         match enqueued {
             Enqueued::Accepted { sync } => self.written.add(sync),
-            Enqueued::Refused => self.refused = true,
+            Enqueued::Refused { sync } => {
+                self.refused = true;
+                self.written.add(sync);
+            }
         }
     }
 }
@@ -157,7 +160,8 @@ impl Vhost {
     /// routed to: every shared record and index entry goes to the store in
     /// one atomic submission, made before any queue takes its message
     /// (see the module's docs). A refusal is not reported: a transaction
-    /// has no nack. Yields when a slice is spent.
+    /// has no nack; the returned span covers the removal a refusal submits.
+    /// Yields when a slice is spent.
     pub async fn publish_all_or_none(
         self: &Arc<Self>,
         batch: Vec<(Arc<Message>, Vec<Arc<Queue>>)>,
@@ -190,10 +194,12 @@ impl Vhost {
                     Some(seq) => queue.publish_reserved(Arc::clone(&message), seq),
                     None => queue.publish(Arc::clone(&message)),
                 };
-                // A stream appends at its publish and names the sync to wait for.
-                if let Enqueued::Accepted { sync } = enqueued {
-                    written.add(sync);
-                }
+                // A stream appends at its publish and names the sync to
+                // wait for; a refusal (or a queue deleted meanwhile) names
+                // the removal of the entry reserved above, which the
+                // commit must not outrun.
+                let (Enqueued::Accepted { sync } | Enqueued::Refused { sync }) = enqueued;
+                written.add(sync);
                 dead.append(dead_here);
                 yield_if_spent(&mut slice).await;
             }
@@ -208,9 +214,12 @@ mod tests {
     use super::*;
     use crate::exchange::ExchangeKind;
     use crate::queue::Queue;
-    use crate::store::{EntryBody, Recovered};
-    use crate::testkit::{message, s, Harness};
+    use crate::store::{
+        EntryBody, KvOp, KvPair, MemoryStore, Recovered, Store, StoreError, WriteMode,
+    };
+    use crate::testkit::{message, s, Gated, Harness};
     use leveret_protocol::{BasicProperties, FieldValue};
+    use std::collections::HashMap;
 
     fn persistent() -> BasicProperties {
         BasicProperties {
@@ -256,7 +265,9 @@ mod tests {
     /// and nothing else is (the transient queue writes none).
     #[tokio::test]
     async fn a_publish_is_on_disk_when_its_outcome_is_written() {
-        let h = Harness::durable();
+        let store = Arc::new(Gated::default());
+        store.hold(true);
+        let h = Harness::durable_over(Arc::clone(&store) as Arc<dyn Store>);
         let queues = fanout(&h);
         let message = stored_message(&h, &queues, "kept");
         let Some(Stored::Shared { id, .. }) = &message.stored else {
@@ -267,6 +278,12 @@ mod tests {
         assert!(!published.refused);
         assert!(published.written.last() > 0, "it wrote something");
         let persistence = h.persistence.as_ref().expect("a persister");
+        assert_eq!(
+            persistence.written(published.written),
+            None,
+            "not written while the store holds the write"
+        );
+        store.hold(false);
         assert!(persistence.wait_written(published.written).await);
         let recovered = h.stored();
         assert_eq!(recovered.messages.len(), 1);
@@ -282,12 +299,39 @@ mod tests {
         }
     }
 
+    /// A store that counts the writes of each key.
+    #[derive(Debug, Default)]
+    struct Counting {
+        inner: MemoryStore,
+        puts: std::sync::Mutex<HashMap<Vec<u8>, usize>>,
+    }
+
+    impl Store for Counting {
+        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+            let mut puts = self.puts.lock().unwrap();
+            for (key, value) in &ops {
+                if value.is_some() {
+                    *puts.entry(key.clone()).or_default() += 1;
+                }
+            }
+            drop(puts);
+            self.inner.write(ops, mode)
+        }
+        fn flush(&self) -> Result<(), StoreError> {
+            self.inner.flush()
+        }
+        fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
+            self.inner.scan()
+        }
+    }
+
     /// A fanout offered in slices: each step stops when its slice is
     /// spent, the record is written once, at the first step, and the
     /// outcome covers every queue's entry.
     #[tokio::test]
     async fn a_fanout_goes_a_slice_at_a_time_and_writes_its_record_once() {
-        let h = Harness::durable();
+        let store = Arc::new(Counting::default());
+        let h = Harness::durable_over(Arc::clone(&store) as Arc<dyn Store>);
         let queues = fanout(&h);
         let mut publishing = Publishing::new(stored_message(&h, &queues, "sliced"), queues.clone());
         let spent = || {
@@ -318,24 +362,31 @@ mod tests {
         assert!(persistence.wait_written(published.written).await);
         let recovered = h.stored();
         assert_eq!(recovered.messages.len(), 1, "one shared record");
+        // The record, both entries and the queues' declarations: each key
+        // once (a record written at every step would be counted thrice).
+        let puts = store.puts.lock().unwrap().clone();
+        assert!(puts.len() >= 3, "{puts:?}");
+        assert!(
+            puts.values().all(|&count| count == 1),
+            "each key is written once: {puts:?}"
+        );
         assert_eq!(entries_of(&recovered, &queues[0]).len(), 1);
         assert_eq!(entries_of(&recovered, &queues[1]).len(), 1);
     }
 
-    /// A queue that refuses the publish makes the outcome a refusal (a
-    /// nack), and keeps no entry of it.
+    /// Queues that refuse the publish make the outcome a refusal (a
+    /// nack), keep no entry of it, and the last to refuse removes the
+    /// shared record written before they were offered it.
     #[tokio::test]
     async fn a_refusal_is_in_the_outcome_and_leaves_no_entry() {
         let h = Harness::durable();
-        let full = h.declare_queue(
-            "full",
-            true,
-            &[
-                ("x-max-length", FieldValue::I32(1)),
-                ("x-overflow", FieldValue::string("reject-publish")),
-            ],
-        );
-        let queues = vec![Arc::clone(&full)];
+        let limited = [
+            ("x-max-length", FieldValue::I32(1)),
+            ("x-overflow", FieldValue::string("reject-publish")),
+        ];
+        let full = h.declare_queue("full", true, &limited);
+        let full_too = h.declare_queue("full-too", true, &limited);
+        let queues = vec![Arc::clone(&full), Arc::clone(&full_too)];
         let first = h
             .vhost
             .publish(stored_message(&h, &queues, "one"), queues.clone())
@@ -348,7 +399,10 @@ mod tests {
         assert!(second.refused);
         let persistence = h.persistence.as_ref().expect("a persister");
         assert!(persistence.sync().await);
-        assert_eq!(entries_of(&h.stored(), &full).len(), 1);
+        let recovered = h.stored();
+        assert_eq!(entries_of(&recovered, &full).len(), 1);
+        assert_eq!(entries_of(&recovered, &full_too).len(), 1);
+        assert_eq!(recovered.messages.len(), 1, "only the kept one's record");
         assert_eq!(full.message_count(), 1);
     }
 
@@ -374,6 +428,58 @@ mod tests {
         assert_eq!(entries_of(&recovered, &queues[0]).len(), 2);
         assert_eq!(entries_of(&recovered, &queues[1]).len(), 2);
         assert_eq!(queues[2].message_count(), 2);
+    }
+
+    /// A transaction's message refused by a full durable queue: its entry,
+    /// written in the atomic submission, is removed by a later one, and
+    /// the commit's span covers that removal, so commit-ok never goes out
+    /// while the refused entry is the last word on disk. The queue that
+    /// took it keeps its entry and the shared record.
+    #[tokio::test]
+    async fn a_commit_waits_for_the_removal_of_what_a_queue_refused() {
+        let h = Harness::durable();
+        let full = h.declare_queue(
+            "full",
+            true,
+            &[
+                ("x-max-length", FieldValue::I32(1)),
+                ("x-overflow", FieldValue::string("reject-publish")),
+            ],
+        );
+        let other = h.declare_queue("other", true, &[]);
+        let held = vec![Arc::clone(&full)];
+        let before = h
+            .vhost
+            .publish(stored_message(&h, &held, "held"), held)
+            .await;
+        assert!(!before.refused);
+        let queues = vec![Arc::clone(&full), Arc::clone(&other)];
+        let message = stored_message(&h, &queues, "m");
+        let Some(Stored::Shared { id, .. }) = &message.stored else {
+            panic!("two durable queues share one record: {:?}", message.stored);
+        };
+        let id = *id;
+        let written = h.vhost.publish_all_or_none(vec![(message, queues)]).await;
+        let persistence = h.persistence.as_ref().expect("a persister");
+        // The removal is the last submission made: the span must reach it.
+        let next = persistence.submit(Vec::new());
+        assert_eq!(written.last(), next - 1, "the commit waits for the removal");
+        let mut atomic_only = Written::default();
+        atomic_only.add(written.last() - 1);
+        assert_ne!(written, atomic_only);
+        assert!(persistence.wait_written(written).await);
+        let recovered = h.stored();
+        assert_eq!(entries_of(&recovered, &full).len(), 1, "only the held one");
+        assert!(matches!(
+            entries_of(&recovered, &other)[..],
+            [EntryBody::Shared(entry)] if entry == id
+        ));
+        assert!(
+            recovered.messages.contains_key(&id),
+            "other keeps the record"
+        );
+        assert_eq!(full.message_count(), 1);
+        assert_eq!(other.message_count(), 1);
     }
 
     /// A transient message or one reaching no durable queue writes nothing:

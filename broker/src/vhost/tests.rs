@@ -241,7 +241,10 @@ fn reject_publish_refuses_and_reject_publish_dlx_also_dead_letters() {
             h.publish("", queue, "kept"),
             [Enqueued::Accepted { sync: 0 }]
         );
-        assert_eq!(h.publish("", queue, "refused"), [Enqueued::Refused]);
+        assert_eq!(
+            h.publish("", queue, "refused"),
+            [Enqueued::Refused { sync: 0 }]
+        );
     }
     let mut ch = h.channel();
     ch.consume(&dead, "c", NO_ACK);

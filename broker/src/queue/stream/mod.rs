@@ -363,7 +363,7 @@ impl Queue {
                 Ok(appended) => appended,
                 Err(e) => {
                     tracing::error!(queue = %self.name, vhost = %self.vhost, error = %e, "cannot append to a stream: the publish is refused");
-                    return Enqueued::Refused;
+                    return Enqueued::Refused { sync: 0 };
                 }
             };
             debug_assert_eq!(offset, stamped_at, "appended where it was stamped");
