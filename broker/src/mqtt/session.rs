@@ -1295,6 +1295,26 @@ impl Session {
         Ok(granted)
     }
 
+    /// A persistent session's shared subscription `filter` whose queue was
+    /// refused is no membership: what [`super::shares::Shares::keep`] recorded for it goes
+    /// back to what it was (the earlier subscription's options, or none),
+    /// so a refused member never keeps the group's queue nor rejoins it.
+    fn unkeep_refused_share(&self, filter: &str, old: Option<&SharedSubscription>) {
+        if self.lifetime == Lifetime::Connection {
+            return;
+        }
+        let shares = &self.shared.shares;
+        let groups = match old {
+            Some(old) => {
+                let session = (self.vhost.as_str(), self.client_id.as_str());
+                let expiry = self.lifetime.expiry_seconds();
+                shares.keep(session, filter, old.options, expiry).0
+            }
+            None => shares.remove(&self.vhost, &self.client_id, filter),
+        };
+        shares.apply(&self.core, groups);
+    }
+
     /// Joins shared subscription `filter` (`$share/group/inner`): declares
     /// the group's queue, binds it and consumes it. A new queue is durable
     /// and kept for the group's persistent members if it has some
@@ -1352,6 +1372,7 @@ impl Session {
                     reason = %refused,
                     "MQTT shared subscription's queue not declared"
                 );
+                self.unkeep_refused_share(filter, old.as_ref());
                 return Err(if refused.code == ReplyCode::PreconditionFailed {
                     ReasonCode::QuotaExceeded
                 } else {
