@@ -15,11 +15,14 @@
 //!
 //! Uses only std.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::hash::{BuildHasherDefault, Hasher};
 
 /// A `HashMap` hashed by [`WordHasher`].
 pub type WordHashMap<K, V> = HashMap<K, V, BuildHasherDefault<WordHasher>>;
+
+/// A `HashSet` hashed by [`WordHasher`].
+pub type WordHashSet<K> = HashSet<K, BuildHasherDefault<WordHasher>>;
 
 /// Hashes a key word by word: rotate, xor, multiply by an odd constant;
 /// finishes with a mix that spreads every bit over the whole result.

@@ -16,10 +16,10 @@ mod common;
 use bytes::{BufMut, Bytes, BytesMut};
 use common::*;
 use leveret_protocol::{
-    decode_frame, encode_content, encode_method, BasicPublish, BasicQos, ChannelClose, ChannelOpen,
-    ConnectionClose, ConnectionCloseOk, ConnectionOpen, ConnectionStart, ConnectionStartOk,
-    ConnectionTune, ConnectionTuneOk, FieldTable, FieldValue, Frame, Method, QueueDeclare,
-    ShortStr, PROTOCOL_HEADER,
+    decode_frame, encode_content, encode_method, BasicAck, BasicPublish, BasicQos, ChannelClose,
+    ChannelOpen, ConnectionClose, ConnectionCloseOk, ConnectionOpen, ConnectionStart,
+    ConnectionStartOk, ConnectionTune, ConnectionTuneOk, FieldTable, FieldValue, Frame, Method,
+    QueueDeclare, ShortStr, PROTOCOL_HEADER,
 };
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -386,6 +386,82 @@ async fn channel_close_gets_close_ok_and_the_channel_number_can_be_reused() {
         other => panic!("expected channel.close-ok, got {other:?}"),
     }
     raw.open_channel(1).await;
+}
+
+/// A client that acks while it closes its channel (lavinmqperf's consumer
+/// does, at the end of a run) sends methods behind its `channel.close`.
+/// RabbitMQ 3.10 discards those that arrive with the close (its channel
+/// ignores them until the close handshake ends): close-ok, no error, and
+/// the discarded declare has no effect.
+#[both_runtimes]
+async fn methods_sent_with_a_channel_close_are_discarded() {
+    let b = broker().await;
+    let (mut raw, _) = Raw::handshake(&b).await;
+    raw.open_channel(1).await;
+    let mut burst = method_bytes(
+        1,
+        ChannelClose {
+            reply_code: 200,
+            ..Default::default()
+        },
+    );
+    burst.extend(method_bytes(
+        1,
+        BasicAck {
+            delivery_tag: 1,
+            multiple: false,
+        },
+    ));
+    burst.extend(method_bytes(1, declare("discarded-behind-close")));
+    raw.send(&burst).await;
+    match raw.method().await {
+        (1, Method::ChannelCloseOk(_)) => {}
+        other => panic!("expected channel.close-ok, got {other:?}"),
+    }
+    raw.open_channel(1).await;
+    raw.send_method(
+        1,
+        QueueDeclare {
+            passive: true,
+            ..declare("discarded-behind-close")
+        },
+    )
+    .await;
+    match raw.method().await {
+        (1, Method::ChannelClose(close)) => assert_eq!(close.reply_code, 404),
+        other => panic!("expected channel.close 404 for the discarded declare, got {other:?}"),
+    }
+}
+
+/// Once close-ok is sent the channel is gone: a method that arrives after
+/// it is on an unopened channel, 504 as with RabbitMQ 3.10.
+#[both_runtimes]
+async fn a_method_after_channel_close_ok_gets_504() {
+    let b = broker().await;
+    let (mut raw, _) = Raw::handshake(&b).await;
+    raw.open_channel(1).await;
+    raw.send_method(
+        1,
+        ChannelClose {
+            reply_code: 200,
+            ..Default::default()
+        },
+    )
+    .await;
+    match raw.method().await {
+        (1, Method::ChannelCloseOk(_)) => {}
+        other => panic!("expected channel.close-ok, got {other:?}"),
+    }
+    raw.send_method(
+        1,
+        BasicAck {
+            delivery_tag: 1,
+            multiple: false,
+        },
+    )
+    .await;
+    raw.expect_close(504, "CHANNEL_ERROR", (60, 80)).await;
+    assert_broker_alive(&b).await;
 }
 
 #[both_runtimes]

@@ -33,7 +33,7 @@ use crate::error::{AmqpError, AmqpResult};
 use crate::outbox::{Outbound, Outbox};
 use crate::stats::ConnectionTraffic;
 use crate::vhost::Vhost;
-use crate::word_hash::WordHashMap;
+use crate::word_hash::{WordHashMap, WordHashSet};
 use bytes::Bytes;
 use leveret_protocol::{
     ConnectionClose, ConnectionCloseOk, ConnectionUpdateSecretOk, Frame, Method, ReplyCode,
@@ -239,6 +239,7 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         user: String::new(),
         vhost: None,
         channels: WordHashMap::default(),
+        closed_this_batch: WordHashSet::default(),
         channel_max: 0,
         copy_below: copy_below(FRAME_MIN_SIZE),
         heartbeat: Duration::ZERO,
@@ -343,6 +344,12 @@ struct Connection {
     /// showed in profiles under load); see `word_hash` for why a peer's
     /// channel numbers are safe keys for it.
     channels: WordHashMap<u16, Channel>,
+    /// Channels the client closed (`channel.close`, already answered and
+    /// removed) in the batch of buffered frames being handled: what it
+    /// sent on them behind the close in that batch is discarded, as
+    /// RabbitMQ's channel does until its close handshake ends, not an
+    /// error for an unopened channel. Emptied when the batch ends.
+    closed_this_batch: WordHashSet<u16>,
     /// Most channels open at once (the negotiated channel_max; 0 from the
     /// client means the broker's).
     channel_max: u16,
@@ -484,6 +491,7 @@ impl Connection {
                     break;
                 }
             }
+            self.closed_this_batch.clear();
             self.flush_confirms().await;
             if self.must_block() {
                 match self.block(reader, heartbeat_tx).await {
@@ -665,6 +673,7 @@ impl Connection {
                     self.copy_below,
                 );
                 self.channels.insert(channel_id, channel);
+                self.closed_this_batch.remove(&channel_id);
                 let open_ok = leveret_protocol::ChannelOpenOk {
                     channel_id: Bytes::new(),
                 };
@@ -673,6 +682,9 @@ impl Connection {
             }
             frame => {
                 let Some(channel) = self.channels.get_mut(&channel_id) else {
+                    if self.closed_this_batch.contains(&channel_id) {
+                        return Ok(Flow::Continue);
+                    }
                     return Err(match &frame {
                         Frame::Method { method, .. } => AmqpError::channel_error(format_args!(
                             "expected 'channel.open' on channel {channel_id}"
@@ -683,10 +695,23 @@ impl Connection {
                         )),
                     });
                 };
+                // A channel ends on the client's close (answered) or on its
+                // close-ok to ours; only after the client's own close may
+                // frames it sent meanwhile follow in this batch.
+                let client_close = matches!(
+                    &frame,
+                    Frame::Method {
+                        method: Method::ChannelClose(_),
+                        ..
+                    }
+                );
                 if channel.handle(frame).await? {
                     if let Some(channel) = self.channels.remove(&channel_id) {
                         channel.cleanup();
                         self.slot.close_channels(1);
+                    }
+                    if client_close {
+                        self.closed_this_batch.insert(channel_id);
                     }
                 }
                 Ok(Flow::Continue)
@@ -712,6 +737,9 @@ impl Connection {
     fn publish_at_once(&mut self, publish: WholePublish) -> AmqpResult<Option<(u16, Leftover)>> {
         let channel_id = publish.channel;
         let Some(channel) = self.channels.get_mut(&channel_id) else {
+            if self.closed_this_batch.contains(&channel_id) {
+                return Ok(None);
+            }
             return Err(AmqpError::channel_error(format_args!(
                 "expected 'channel.open' on channel {channel_id}"
             ))
