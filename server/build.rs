@@ -13,18 +13,31 @@
 //!   which the loader reads in full at every start. The loader must be glibc
 //!   2.36 or later (the binary names that version and will not start on an
 //!   older one), so only when building for this machine's glibc, if new
-//!   enough.
+//!   enough. Release builds only, and never when a linker was chosen (it
+//!   may not know the option).
+//!
+//! `LEVERET_LINK_LAYOUT=off` leaves both out: for a binary that must start
+//! on an older glibc than the build host's (a container image built on a
+//! newer distribution), or a linker substituted behind rustc's back
+//! (`mold -run`).
 use std::env;
 use std::path::Path;
 use std::process::Command;
 
 const HOT_TEXT: &str = "link/hot-text.ld";
 
+/// Set to `off` to link the binary without either option.
+const OPT_OUT: &str = "LEVERET_LINK_LAYOUT";
+
 fn main() {
     println!("cargo:rerun-if-changed={HOT_TEXT}");
-    println!("cargo:rerun-if-env-changed=RUSTC_LINKER");
+    println!("cargo:rerun-if-env-changed={OPT_OUT}");
     let manifest_dir = env::var("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR");
-    if env::var("PROFILE").as_deref() == Ok("release") && links_with_bundled_lld() {
+    let release = env::var("PROFILE").as_deref() == Ok("release");
+    if !release || env::var(OPT_OUT).as_deref() == Ok("off") || linker_chosen() {
+        return;
+    }
+    if links_with_bundled_lld() {
         println!("cargo:rustc-link-arg-bin=leveret=-Wl,-T,{manifest_dir}/{HOT_TEXT}");
     }
     if builds_for_own_glibc_with_relr() {
@@ -32,17 +45,21 @@ fn main() {
     }
 }
 
-/// Whether rustc links this x86_64 Linux binary with the lld it ships
-/// (Rust 1.90 or later, no linker chosen in cargo's configuration or flags).
-fn links_with_bundled_lld() -> bool {
-    const TARGET: &str = "x86_64-unknown-linux-gnu";
+/// Whether a linker was chosen in cargo's configuration or the flags
+/// (then neither option is given: that linker may not take them).
+fn linker_chosen() -> bool {
     let flags = env::var("CARGO_ENCODED_RUSTFLAGS").unwrap_or_default();
-    if env::var("TARGET").as_deref() != Ok(TARGET)
-        || env::var_os("RUSTC_LINKER").is_some()
-        || ["linker", "fuse-ld", "link-self-contained"]
+    env::var_os("RUSTC_LINKER").is_some()
+        || ["linker", "fuse-ld", "link-self-contained", "ld-path"]
             .iter()
             .any(|flag| flags.contains(flag))
-    {
+}
+
+/// Whether rustc links this x86_64 Linux binary with the lld it ships
+/// (Rust 1.90 or later; no linker chosen: [`linker_chosen`]).
+fn links_with_bundled_lld() -> bool {
+    const TARGET: &str = "x86_64-unknown-linux-gnu";
+    if env::var("TARGET").as_deref() != Ok(TARGET) {
         return false;
     }
     let rustc = env::var("RUSTC").unwrap_or_else(|_| "rustc".into());
