@@ -194,6 +194,19 @@ impl Raw {
         }
     }
 
+    /// Closes `channel` (reply 200) and expects its close-ok.
+    async fn close_channel(&mut self, channel: u16) {
+        let close = ChannelClose {
+            reply_code: 200,
+            ..Default::default()
+        };
+        self.send_method(channel, close).await;
+        match self.method().await {
+            (c, Method::ChannelCloseOk(_)) if c == channel => {}
+            other => panic!("expected channel.close-ok on {channel}, got {other:?}"),
+        }
+    }
+
     /// Expects connection.close with `code`, a text starting with `prefix`
     /// and the given class and method ids; answers close-ok and expects the
     /// socket to be closed.
@@ -440,18 +453,7 @@ async fn a_method_after_channel_close_ok_gets_504() {
     let b = broker().await;
     let (mut raw, _) = Raw::handshake(&b).await;
     raw.open_channel(1).await;
-    raw.send_method(
-        1,
-        ChannelClose {
-            reply_code: 200,
-            ..Default::default()
-        },
-    )
-    .await;
-    match raw.method().await {
-        (1, Method::ChannelCloseOk(_)) => {}
-        other => panic!("expected channel.close-ok, got {other:?}"),
-    }
+    raw.close_channel(1).await;
     raw.send_method(
         1,
         BasicAck {
@@ -834,18 +836,7 @@ async fn content_split_across_many_body_frames_is_reassembled() {
     }
     assert_eq!(got, body);
     // Closing the channel by hand still works afterwards.
-    raw.send_method(
-        1,
-        ChannelClose {
-            reply_code: 200,
-            ..Default::default()
-        },
-    )
-    .await;
-    match raw.method().await {
-        (1, Method::ChannelCloseOk(_)) => {}
-        other => panic!("expected channel.close-ok, got {other:?}"),
-    }
+    raw.close_channel(1).await;
 }
 
 #[both_runtimes]
