@@ -3295,6 +3295,116 @@ async fn a_refused_shared_subscription_leaves_no_membership_behind() {
     handle.shutdown().await;
 }
 
+/// A durable group queue a crash left behind with a stale `x-expires` is
+/// given its group's at start, before anything sweeps the vhost, kept
+/// group or not: here, as if the crash came between the deletion of the
+/// group's last persistent member's records and its queue's new expiry,
+/// one without `x-expires` (declared with the mark members put on a
+/// group's queue) goes once unused after the restart.
+#[both_runtimes]
+async fn a_group_queue_left_unkept_by_a_crash_goes_after_a_restart() {
+    use lapin::types::{AMQPValue, FieldTable, ShortString};
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-group-stale"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let (amqp, channel) = amqp_channel(&handle).await;
+    let mut marked = FieldTable::default();
+    marked.insert(
+        ShortString::from("x-mqtt-shared-group"),
+        AMQPValue::Boolean(true),
+    );
+    let durable = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    tmo!(channel.queue_declare("mqtt-shared-stale/s", durable, marked)).unwrap();
+    drop(amqp);
+    handle.shutdown().await;
+
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    until_queue_listed(
+        &handle,
+        "mqtt-shared-stale/s",
+        false,
+        "the unkept group's queue expired",
+    )
+    .await;
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A queue an AMQP client declared under a group's name (without the mark
+/// members put on a group's queue) is joined as it is and its arguments
+/// are left alone: a persistent member's hour is not written to it.
+#[both_runtimes]
+async fn an_amqp_clients_queue_under_a_groups_name_keeps_its_expiry() {
+    use lapin::types::{AMQPValue, FieldTable, ShortString};
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    let mut minute = FieldTable::default();
+    minute.insert(ShortString::from("x-expires"), AMQPValue::LongInt(60_000));
+    let durable = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    tmo!(channel.queue_declare("mqtt-shared-users/u", durable, minute)).unwrap();
+    let (client, mut events, _) = expiring5("users-member", port, true, 3600).await;
+    let shared = vec![Filter::new("$share/users/u", QoS5::AtLeastOnce)];
+    let codes = subscribe5(&client, &mut events, shared, None).await;
+    assert_eq!(codes, [SubscribeReasonCode::Success(QoS5::AtLeastOnce)]);
+    disconnect5(client, events).await;
+    assert_eq!(
+        listed_as(&handle, "mqtt-shared-users/u"),
+        (true, false, Some(60_000), 0)
+    );
+    handle.shutdown().await;
+}
+
+/// A group's queue name taken by an AMQP connection's exclusive queue
+/// (405 in the core) is refused as the broker's own rule, 0x83 (5.0) or
+/// 0x80 (3.1.1), not as a quota: the session goes on and joins another
+/// group.
+#[both_runtimes]
+async fn a_group_queue_name_held_by_an_exclusive_amqp_queue_is_refused_as_implementation_specific()
+{
+    use leveret_mqtt::{ReasonCode, Subscription, TopicFilter};
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    let exclusive = lapin::options::QueueDeclareOptions {
+        exclusive: true,
+        ..Default::default()
+    };
+    tmo!(channel.queue_declare("mqtt-shared-g/locked", exclusive, Default::default())).unwrap();
+    let subscribe = |id: u16, filter: &'static str| {
+        Packet::Subscribe(leveret_mqtt::Subscribe {
+            packet_id: std::num::NonZeroU16::new(id).unwrap(),
+            properties: Default::default(),
+            subscriptions: vec![Subscription {
+                filter: TopicFilter::from_static(filter),
+                options: Default::default(),
+            }],
+        })
+    };
+    for (version, refused) in [
+        (ProtocolVersion::V5, ReasonCode::ImplementationSpecificError),
+        (ProtocolVersion::V3_1_1, ReasonCode::UnspecifiedError),
+    ] {
+        let mut raw = Raw::login_as(port, 0, version, "locked-out").await;
+        raw.send(subscribe(1, "$share/g/locked")).await;
+        let Some(Packet::SubAck(suback)) = raw.next().await else {
+            panic!("expected SUBACK");
+        };
+        assert_eq!(suback.reasons, [refused], "{version:?}");
+        raw.send(subscribe(2, "$share/g/free")).await;
+        let Some(Packet::SubAck(suback)) = raw.next().await else {
+            panic!("expected SUBACK");
+        };
+        assert_eq!(suback.reasons, [ReasonCode::GRANTED_QOS_0], "{version:?}");
+    }
+    handle.shutdown().await;
+}
+
 /// A group of clean sessions only is as before: non-durable, auto-delete,
 /// gone with its last member, nothing kept. A persistent 3.1.1 member
 /// keeps its group for ever (no `x-expires`), and members of both kinds

@@ -101,6 +101,10 @@ impl BrokerBuilder {
             }
             return Err(StartError::Storage(StoreError::Engine(problem.into())));
         }
+        // Before the vhosts' sweeper starts: a stale x-expires could expire
+        // a group's queue first.
+        #[cfg(feature = "mqtt")]
+        mqtt_shared.reconcile_groups(&core).await;
         let (alive, finished) = mpsc::channel(1);
         let (open, opened) = watch::channel(!self.held);
         let mut listeners = Listeners {

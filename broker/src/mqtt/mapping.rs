@@ -67,8 +67,11 @@ pub(super) fn queue_name(client_id: &str, qos: QoS) -> Option<ShortStr> {
 /// `mqtt-shared-GROUP/FILTER` (a group has no `/`, so two subscriptions
 /// never share a name); `None` if that is longer than a queue name.
 pub(super) fn shared_queue_name(group: &str, filter: &str) -> Option<ShortStr> {
-    ShortStr::try_from(format!("mqtt-shared-{group}/{filter}")).ok()
+    ShortStr::try_from(format!("{SHARED_QUEUE_PREFIX}{group}/{filter}")).ok()
 }
+
+/// How the queue of a shared subscription's group is named first.
+pub(super) const SHARED_QUEUE_PREFIX: &str = "mqtt-shared-";
 
 /// The longest client identifier whose queue names fit in a queue name.
 pub(super) const MAX_CLIENT_ID: usize = 255 - "mqtt-subscription-qos0".len();

@@ -96,6 +96,13 @@ impl Shared {
             wills: Default::default(),
         }
     }
+
+    /// Gives the shared subscription groups' queues recovered from the
+    /// store their groups' expiry ([`shares::Shares::reconcile`]): once at
+    /// start, after the queues are rebuilt and before anything sweeps them.
+    pub(crate) async fn reconcile_groups(&self, core: &Core) {
+        self.shares.reconcile(core).await;
+    }
 }
 
 /// How often [`sweeper`] looks for expired sessions' state.
@@ -106,19 +113,13 @@ const SESSION_SWEEP_PERIOD: std::time::Duration = std::time::Duration::from_secs
 /// subscriptions); [`sweeper`] yields between batches.
 const SWEEP_BATCH: usize = 16;
 
-/// Gives, once, every kept shared subscription group's queue its members'
-/// expiry; then deletes, until the broker shuts down, the state persistent sessions
+/// Deletes, until the broker shuts down, the state persistent sessions
 /// kept beside their queues once their Session Expiry Interval has passed
 /// (their unreleased QoS 2 publishes, their shared subscriptions and so
 /// their groups' hold on their queues), from the store too, so that a
 /// session that never comes back leaves nothing behind.
 pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
     let mut shutdown = core.shutdown_signal();
-    // Once at start: a group's records and its queue's are written by
-    // separate submits, so a crash between them can leave the queue with
-    // the old x-expires; every kept group's queue is given its members'.
-    let groups = shared.shares.kept_groups();
-    shared.shares.apply_yielding(&core, groups).await;
     let mut ticks = tokio::time::interval(SESSION_SWEEP_PERIOD);
     ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {

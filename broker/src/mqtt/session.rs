@@ -30,6 +30,7 @@ use crate::connection::DirectReply;
 use crate::core::Core;
 use crate::stats::{AuthProtocol, ConnectionTraffic};
 use crate::store::Durable;
+use crate::vhost::QueueJoin;
 use bytes::BytesMut;
 use leveret_mqtt::{
     decode_packet, ConnAck, Connect, Delivery, Disconnect, MqttString, Packet, PacketId,
@@ -494,6 +495,9 @@ enum Done {
     /// Retained messages a subscription matched (after its SUBACK), each
     /// with the QoS granted and the subscription's identifier.
     Retained(Vec<RetainedDelivery>),
+    /// A shared subscription's hold on its group's queue, released once
+    /// the member's consume is answered (or with the session).
+    Joined(QueueJoin),
 }
 
 /// A session's state between the client and its link.
@@ -1359,27 +1363,25 @@ impl Session {
             .ok_or(ReasonCode::UnspecifiedError)?;
         let max_queues = (self.core.limit_tables).vhost(&self.vhost).max_queues;
         self.core.stats.queues_declared.inc();
-        match (self.shared.shares).declare_queue(&vhost, filter, queue.clone(), max_queues) {
-            Ok(created) => {
-                if created {
-                    self.core.stats.queues_created.inc();
+        let join =
+            match (self.shared.shares).declare_queue(&vhost, filter, queue.clone(), max_queues) {
+                Ok((join, created)) => {
+                    if created {
+                        self.core.stats.queues_created.inc();
+                    }
+                    join
                 }
-            }
-            Err(refused) => {
-                tracing::info!(
-                    client_id = %self.client_id,
-                    filter,
-                    reason = %refused,
-                    "MQTT shared subscription's queue not declared"
-                );
-                self.unkeep_refused_share(filter, old.as_ref());
-                return Err(if refused.code == ReplyCode::PreconditionFailed {
-                    ReasonCode::QuotaExceeded
-                } else {
-                    ReasonCode::UnspecifiedError
-                });
-            }
-        }
+                Err(refused) => {
+                    tracing::info!(
+                        client_id = %self.client_id,
+                        filter,
+                        reason = %refused,
+                        "MQTT shared subscription's queue not declared"
+                    );
+                    self.unkeep_refused_share(filter, old.as_ref());
+                    return Err(share_refusal(refused.code));
+                }
+            };
         self.call(
             QueueBind {
                 ticket: 0,
@@ -1404,7 +1406,7 @@ impl Session {
                 no_wait: false,
                 arguments: FieldTable::new(),
             },
-            Vec::new(),
+            vec![Done::Joined(join)],
         );
         let joined = SharedSubscription {
             consumer_tag,
@@ -1482,6 +1484,7 @@ impl Session {
                     .extend(messages.into_iter().take(room));
                 self.send_retained();
             }
+            Done::Joined(join) => drop(join),
         }
     }
 
@@ -1991,6 +1994,20 @@ async fn store_progress(durable: Option<&mut tokio::sync::watch::Receiver<Durabl
     };
     if !progressed {
         std::future::pending::<()>().await;
+    }
+}
+
+/// The SUBACK reason for a shared subscription whose group's queue the
+/// core refused with `code`: 406 can only be the vhost's queue limit (the
+/// declaration's arguments are the broker's own, never a stream's), a
+/// quota; 405 an AMQP connection's exclusive queue of that name (or one
+/// whose auto-deletion kept coming back), the broker's own rule; anything
+/// else (404: the vhost deleted meanwhile) unspecified.
+fn share_refusal(code: ReplyCode) -> ReasonCode {
+    match code {
+        ReplyCode::PreconditionFailed => ReasonCode::QuotaExceeded,
+        ReplyCode::ResourceLocked => ReasonCode::ImplementationSpecificError,
+        _ => ReasonCode::UnspecifiedError,
     }
 }
 

@@ -24,7 +24,10 @@
 //! state then); members create the group queue from the group's state
 //! under the same lock and join an existing one as it is
 //! ([`Shares::declare_queue`]), so one a clean member created is
-//! non-durable and auto-delete and stays so until it goes.
+//! non-durable and auto-delete and stays so until it goes. A joining
+//! member holds the queue until its consume arrives ([`QueueJoin`]); only
+//! queues members declared (marked [`GROUP_QUEUE_ARGUMENT`]) are given a
+//! group's expiry, at start too ([`Shares::reconcile`]).
 //!
 //! Bounded: per session by the session's subscription cap, at most
 //! [`MAX_SESSIONS`] sessions hold some (expired ones are swept every
@@ -38,13 +41,13 @@ use crate::core::Core;
 use crate::error::AmqpResult;
 use crate::queue::QueueOptions;
 use crate::store::{MetaKey, MetaRecord, Persistence, StoreOp};
-use crate::vhost::{QueueDeclaration, Vhost};
+use crate::vhost::{QueueDeclaration, QueueJoin, Vhost};
 use leveret_mqtt::QoS;
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 use std::collections::{BTreeMap, HashMap};
 use std::num::NonZeroU32;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 /// Sessions with shared subscriptions kept.
 const MAX_SESSIONS: usize = 10_000;
@@ -55,9 +58,11 @@ const MAX_GROUPS: usize = 10_000;
 /// hold of the lock (or one session's, up to its subscription cap).
 const SWEEP_RECORDS: usize = 256;
 
-/// How long a group queue a member has joined counts as used before its
-/// consume arrives (an unkept group's `x-expires` is 1 ms).
-const JOIN_RESERVE: Duration = Duration::from_secs(10);
+/// The argument that marks a queue as a group's, declared by a member
+/// ([`Shares::declare_queue`]): only such a queue is given its group's
+/// expiry ([`Shares::apply`]), never one an AMQP client declared under
+/// that name.
+const GROUP_QUEUE_ARGUMENT: &str = "x-mqtt-shared-group";
 
 /// At most this many groups' queues are given their expiry under one hold
 /// of the lock.
@@ -442,14 +447,23 @@ impl Shares {
         vec![(vhost.to_owned(), filter.to_owned())]
     }
 
-    /// Every group with a persistent member (at most [`MAX_GROUPS`]).
-    pub(super) fn kept_groups(&self) -> Groups {
-        self.lock().groups.keys().cloned().collect()
+    /// Gives every group queue a member declared durable in `core`'s
+    /// vhosts (kept or not) its group's expiry, once at start, before
+    /// anything sweeps the vhosts: a group's records and its queue's are
+    /// written by separate submits, so a crash between them can leave the
+    /// queue with a stale `x-expires` (a short one would expire it before
+    /// its members' expiry is given back; one of a group that has lost
+    /// its last persistent member would keep it too long, or for ever).
+    pub(super) async fn reconcile(&self, core: &Core) {
+        self.apply_yielding(core, declared_groups(&core.vhosts()))
+            .await;
     }
 
     /// Gives the durable queues of `groups` the `x-expires` their
     /// persistent members keep them for now ([`GroupKeep::queue_expires`]);
-    /// a non-durable group queue (a clean member's) is left as it is.
+    /// a non-durable group queue (a clean member's) is left as it is, and
+    /// so is a queue of that name a member did not declare (no
+    /// [`GROUP_QUEUE_ARGUMENT`]: an AMQP client's).
     /// Read from the groups' current state and written under the lock, so
     /// that a value computed before another change can never be written
     /// after it.
@@ -482,10 +496,13 @@ impl Shares {
             let Some(queue) = queue_name(filter).and_then(|name| vhost.queue(&name)) else {
                 continue;
             };
-            if !queue.options.durable || queue.options.exclusive_owner.is_some() {
+            let arguments = queue.arguments();
+            let declared_by_a_member = arguments.get(GROUP_QUEUE_ARGUMENT).is_some();
+            let exclusive = queue.options.exclusive_owner.is_some();
+            if !declared_by_a_member || !queue.options.durable || exclusive {
                 continue;
             }
-            let current = (queue.arguments().get("x-expires"))
+            let current = (arguments.get("x-expires"))
                 .and_then(FieldValue::as_i64)
                 .and_then(|ms| u64::try_from(ms).ok());
             let expires = state.group(vhost_name, filter).queue_expires();
@@ -497,24 +514,30 @@ impl Shares {
 
     /// Declares the queue of group `filter` in `vhost` (named `queue`) for
     /// a member about to bind and consume it: one that exists is joined as
-    /// it is; a new one is durable, not auto-delete, with the group's
-    /// `x-expires` if the group has a persistent member now, else
-    /// non-durable and auto-delete. Under the lock, so that no member's
-    /// change to the group comes between the value read and the queue
-    /// created, and members never refuse each other's queue; it counts as
-    /// used for [`JOIN_RESERVE`], so it cannot expire before the member's
-    /// consume arrives. Whether it was created.
+    /// it is; a new one is marked as the group's ([`GROUP_QUEUE_ARGUMENT`]),
+    /// durable, not auto-delete, with the group's `x-expires` if the group
+    /// has a persistent member now, else non-durable and auto-delete. Under
+    /// the lock, so that no member's change to the group comes between the
+    /// value read and the queue created, and members never refuse each
+    /// other's queue. The member holds the queue until it drops the
+    /// [`QueueJoin`] (its consume has arrived, or it has gone), so it
+    /// cannot expire or be auto-deleted in between. The join and whether
+    /// the queue was created.
     pub(super) fn declare_queue(
         &self,
-        vhost: &Vhost,
+        vhost: &Arc<Vhost>,
         filter: &str,
         queue: ShortStr,
         max_queues: Option<usize>,
-    ) -> AmqpResult<bool> {
+    ) -> AmqpResult<(QueueJoin, bool)> {
         let state = self.lock();
         let vhost_name = vhost.name.to_string_lossy();
         let keep = state.group(&vhost_name, filter);
         let mut arguments = FieldTable::new();
+        arguments.insert(
+            ShortStr::from_static(GROUP_QUEUE_ARGUMENT),
+            FieldValue::Bool(true),
+        );
         let kept = keep != GroupKeep::Unkept;
         if let Some(ms) = keep.queue_expires().filter(|_| kept) {
             arguments.insert(
@@ -534,8 +557,7 @@ impl Shares {
             },
             max_queues,
         };
-        let (_, created) = vhost.join_or_declare_queue(declaration, JOIN_RESERVE)?;
-        Ok(created)
+        vhost.join_or_declare_queue(declaration)
     }
 
     /// Forgets every shared subscription of a session (it starts clean
@@ -576,6 +598,25 @@ fn unput(key: &Key, filter: String) -> StoreOp {
     })
 }
 
+/// The groups whose queues in `vhosts` a member declared durable.
+fn declared_groups(vhosts: &[Arc<Vhost>]) -> Groups {
+    let mut groups = Vec::new();
+    for vhost in vhosts {
+        for queue in vhost.queues() {
+            let name = queue.name.to_string_lossy();
+            let Some(group) = name.strip_prefix(mapping::SHARED_QUEUE_PREFIX) else {
+                continue;
+            };
+            let marked = queue.arguments().get(GROUP_QUEUE_ARGUMENT).is_some();
+            if marked && queue.options.durable {
+                let vhost_name = vhost.name.to_string_lossy().into_owned();
+                groups.push((vhost_name, format!("$share/{group}")));
+            }
+        }
+    }
+    groups
+}
+
 fn vhost_named(core: &Core, name: &str) -> Option<Arc<Vhost>> {
     ShortStr::try_from(name)
         .ok()
@@ -592,6 +633,7 @@ pub(super) fn queue_name(filter: &str) -> Option<ShortStr> {
 mod tests {
     use super::*;
     use crate::testkit::Harness;
+    use std::time::Duration;
 
     fn options(qos: QoS) -> Options {
         Options {
@@ -748,6 +790,11 @@ mod tests {
         assert_eq!(shares.group("/", "$share/g/2"), ten);
     }
 
+    /// The argument a member's declaration marks a group's queue with.
+    fn marked() -> (&'static str, FieldValue) {
+        (GROUP_QUEUE_ARGUMENT, FieldValue::Bool(true))
+    }
+
     /// The `x-expires` of `queue` now.
     fn expires_of(queue: &crate::queue::Queue) -> Option<i64> {
         queue
@@ -762,7 +809,7 @@ mod tests {
         let vhost_of = |_: &str| Some(Arc::clone(&h.vhost));
         let shares = Shares::new(&[], None);
         let one = options(QoS::AtLeastOnce);
-        let queue = h.declare_queue("mqtt-shared-g/x", true, &[]);
+        let queue = h.declare_queue("mqtt-shared-g/x", true, &[marked()]);
         assert!(shares.keep(("/", "p2"), "$share/g/x", one, Some(0)).1);
         shares.ended("/", "p2", Some(0));
         // The sweeper removes p2's expired membership: no persistent
@@ -793,7 +840,15 @@ mod tests {
         let shares = Shares::new(&[], None);
         let one = options(QoS::AtLeastOnce);
         let name = |filter| queue_name(filter).expect("a shared filter");
-        let declare = |filter| (shares.declare_queue(&h.vhost, filter, name(filter), None)).ok();
+        // The members' joins, held as their consumes would be pending.
+        let joins = std::cell::RefCell::new(Vec::new());
+        let declare = |filter| {
+            let (join, created) = shares
+                .declare_queue(&h.vhost, filter, name(filter), None)
+                .ok()?;
+            joins.borrow_mut().push(join);
+            Some(created)
+        };
         // A clean member creates a group's queue: non-durable, auto-delete.
         assert_eq!(declare("$share/c/x"), Some(true));
         let clean = h.vhost.queue(&name("$share/c/x")).expect("created");
@@ -849,7 +904,7 @@ mod tests {
     }
 
     #[test]
-    fn recovered_groups_give_their_queues_their_members_expiry() {
+    fn declared_group_queues_are_given_their_groups_expiry_kept_or_not() {
         // A crash after the member's record, before its queue's.
         let record = MetaRecord::SharedSubscription {
             vhost: "/".into(),
@@ -861,13 +916,23 @@ mod tests {
             session_expiry: 3600,
         };
         let h = Harness::durable();
-        let old = [("x-expires", FieldValue::I64(60_000))];
+        let old = [("x-expires", FieldValue::I64(60_000)), marked()];
         let queue = h.declare_queue("mqtt-shared-g/x", true, &old);
+        // And one after its group's last persistent member's records
+        // were deleted, before its queue's: left for ever.
+        let never = [marked()];
+        let unkept = h.declare_queue("mqtt-shared-h/y", true, &never);
+        // A durable queue not declared by a member is left alone.
+        let amqp = h.declare_queue("mqtt-shared-a/z", true, &[]);
         let shares = Shares::new(&[record], None);
-        let kept = shares.kept_groups();
-        assert_eq!(kept, [("/".to_owned(), "$share/g/x".to_owned())]);
-        shares.apply_in(|_| Some(Arc::clone(&h.vhost)), kept);
+        let declared = declared_groups(&[Arc::clone(&h.vhost)]);
+        assert_eq!(declared.len(), 2);
+        assert!(declared.contains(&("/".to_owned(), "$share/g/x".to_owned())));
+        assert!(declared.contains(&("/".to_owned(), "$share/h/y".to_owned())));
+        shares.apply_in(|_| Some(Arc::clone(&h.vhost)), declared);
         assert_eq!(expires_of(&queue), Some(3_600_000));
+        assert_eq!(expires_of(&unkept), Some(1), "goes once unused");
+        assert_eq!(expires_of(&amqp), None);
     }
 
     #[test]
@@ -897,31 +962,133 @@ mod tests {
         let filter = "$share/u/x";
         let name = queue_name(filter).expect("a shared filter");
         // A durable queue whose group lost its last persistent member.
-        h.declare_queue(
-            "mqtt-shared-u/x",
-            true,
-            &[("x-expires", FieldValue::I64(1))],
-        );
-        let joined = shares.declare_queue(&h.vhost, filter, name.clone(), None);
-        assert_eq!(joined.ok(), Some(false));
-        h.vhost.sweep_at(Instant::now() + Duration::from_millis(50));
+        let unkept = [("x-expires", FieldValue::I64(1)), marked()];
+        h.declare_queue("mqtt-shared-u/x", true, &unkept);
+        let (join, created) =
+            (shares.declare_queue(&h.vhost, filter, name.clone(), None)).expect("joined");
+        assert!(!created);
+        // However late the consume comes (no timer runs out).
+        let late = Instant::now() + Duration::from_secs(3600);
+        h.vhost.sweep_at(late);
         assert!(h.vhost.queue(&name).is_some(), "kept for the consume");
         // Even if another member's consumer comes and goes meanwhile.
         let queue = h.vhost.queue(&name).expect("listed");
         let member = h.channel();
-        let consumer = member.consume(
-            &queue,
-            "other",
-            crate::testkit::Consume {
-                no_ack: true,
-                prefetch: 0,
-            },
-        );
+        let consume = crate::testkit::Consume {
+            no_ack: true,
+            prefetch: 0,
+        };
+        let consumer = member.consume(&queue, "other", consume);
+        queue.remove_consumer(&consumer);
+        h.vhost.sweep_at(late);
+        assert!(h.vhost.queue(&name).is_some(), "still kept for the consume");
+        // The member's consume arrives, then its hold is released.
+        let consumer = member.consume(&queue, "joined", consume);
+        drop(join);
+        h.vhost.sweep_at(late);
+        assert!(h.vhost.queue(&name).is_some(), "consumed");
         queue.remove_consumer(&consumer);
         h.vhost.sweep_at(Instant::now() + Duration::from_millis(50));
-        assert!(h.vhost.queue(&name).is_some(), "still kept for the consume");
-        h.vhost
-            .sweep_at(Instant::now() + JOIN_RESERVE + Duration::from_millis(50));
         assert!(h.vhost.queue(&name).is_none(), "gone once unused");
+    }
+
+    /// What a channel does when a consumer is cancelled: an auto-delete
+    /// queue it leaves without consumers is deleted.
+    fn cancel(
+        h: &Harness,
+        queue: &Arc<crate::queue::Queue>,
+        consumer: &Arc<crate::queue::Consumer>,
+    ) {
+        if queue.remove_consumer(consumer) {
+            h.vhost.delete_queue(queue).notify();
+        }
+    }
+
+    #[test]
+    fn a_clean_groups_queue_whose_last_consumer_leaves_waits_for_the_joiners_consume() {
+        let h = Harness::new();
+        let shares = Shares::new(&[], None);
+        let filter = "$share/c/x";
+        let name = queue_name(filter).expect("a shared filter");
+        let declare = || shares.declare_queue(&h.vhost, filter, name.clone(), None);
+        let consume = crate::testkit::Consume {
+            no_ack: true,
+            prefetch: 0,
+        };
+        let channel = h.channel();
+        // A clean member creates the queue and consumes it.
+        let (first, created) = declare().expect("declared");
+        assert!(created);
+        let queue = Arc::clone(first.queue());
+        let consumer = channel.consume(&queue, "first", consume);
+        drop(first);
+        // A second member joins; the first leaves before its consume.
+        let (second, created) = declare().expect("joined");
+        assert!(!created);
+        cancel(&h, &queue, &consumer);
+        assert!(h.vhost.queue(&name).is_some(), "kept for the joiner");
+        // Its consume arrives: the queue lives on with it.
+        let consumer = channel.consume(&queue, "second", consume);
+        drop(second);
+        assert!(h.vhost.queue(&name).is_some(), "consumed");
+        // Its last member gone, the queue goes.
+        cancel(&h, &queue, &consumer);
+        assert!(h.vhost.queue(&name).is_none(), "auto-deleted");
+        // A joiner that goes without consuming takes the queue with it
+        // when the last consumer has left meanwhile, or none ever came.
+        let (third, _) = declare().expect("declared");
+        let queue = Arc::clone(third.queue());
+        let consumer = channel.consume(&queue, "third", consume);
+        let (fourth, _) = declare().expect("joined");
+        cancel(&h, &queue, &consumer);
+        drop(third);
+        assert!(h.vhost.queue(&name).is_some(), "the fourth's join pending");
+        drop(fourth);
+        assert!(h.vhost.queue(&name).is_none(), "auto-deleted");
+        let (fifth, _) = declare().expect("declared");
+        drop(fifth);
+        assert!(h.vhost.queue(&name).is_none(), "never consumed: gone");
+    }
+
+    #[test]
+    fn a_member_joining_a_queue_whose_auto_deletion_is_under_way_gets_a_new_one() {
+        let h = Harness::new();
+        let shares = Shares::new(&[], None);
+        let filter = "$share/c/x";
+        let name = queue_name(filter).expect("a shared filter");
+        let (first, _) =
+            (shares.declare_queue(&h.vhost, filter, name.clone(), None)).expect("declared");
+        let old = Arc::clone(first.queue());
+        let consume = crate::testkit::Consume {
+            no_ack: true,
+            prefetch: 0,
+        };
+        let consumer = h.channel().consume(&old, "first", consume);
+        drop(first);
+        // The last consumer leaves: the queue is to go, but the channel
+        // has not deleted it yet when a member joins.
+        assert!(old.remove_consumer(&consumer));
+        let (joined, created) =
+            (shares.declare_queue(&h.vhost, filter, name.clone(), None)).expect("declared anew");
+        assert!(created);
+        assert!(!Arc::ptr_eq(joined.queue(), &old));
+        // The channel's deletion then finds the old queue gone.
+        h.vhost.delete_queue(&old).notify();
+        let listed = h.vhost.queue(&name).expect("the new queue stays");
+        assert!(Arc::ptr_eq(&listed, joined.queue()));
+    }
+
+    #[test]
+    fn a_queue_an_amqp_client_declared_under_a_groups_name_keeps_its_arguments() {
+        let h = Harness::durable();
+        let shares = Shares::new(&[], None);
+        let minute = [("x-expires", FieldValue::I64(60_000))];
+        let queue = h.declare_queue("mqtt-shared-g/x", true, &minute);
+        let one = options(QoS::AtLeastOnce);
+        let (joined, kept) = shares.keep(("/", "p"), "$share/g/x", one, Some(3600));
+        assert!(kept);
+        shares.apply_in(|_| Some(Arc::clone(&h.vhost)), joined);
+        assert_eq!(expires_of(&queue), Some(60_000), "not the group's queue");
+        assert!(queue.arguments().get(GROUP_QUEUE_ARGUMENT).is_none());
     }
 }

@@ -172,10 +172,19 @@ struct QueueState {
     /// Highest seq delivered (persisted for durable queues, see `store`).
     delivered_mark: u64,
     last_used: Option<Instant>,
-    /// Counts as used until then whatever its consumers do (an MQTT
-    /// shared subscription's member about to consume it).
+    /// MQTT shared subscription members that have joined the queue and
+    /// whose consume has not arrived yet ([`Queue::join`]): while there
+    /// are some, it counts as used and is not auto-deleted.
     #[cfg(feature = "mqtt")]
-    reserved_until: Option<Instant>,
+    joining: usize,
+    /// An auto-delete queue due to go once no join is pending: its last
+    /// consumer left while one was, or it was created for a join.
+    #[cfg(feature = "mqtt")]
+    auto_delete_due: bool,
+    /// [`Queue::remove_consumer`] has said the queue goes (auto-delete):
+    /// no member may join it any more.
+    #[cfg(feature = "mqtt")]
+    auto_deleting: bool,
     deleted: bool,
     /// Dead letters found by a dispatch whose caller cannot route them
     /// (a connection's writer), waiting for the vhost's next sweep.
@@ -275,8 +284,6 @@ impl Queue {
             stats: QueueCounters::new(counters),
             state: Mutex::new(QueueState {
                 last_used: Some(Instant::now()),
-                #[cfg(feature = "mqtt")]
-                reserved_until: None,
                 next_seq,
                 consumers: Consumers::new(single_active),
                 own_expires,
@@ -565,7 +572,18 @@ impl Queue {
         if st.consumers.is_empty() {
             st.last_used = Some(Instant::now());
         }
-        self.options.auto_delete && st.consumers.is_empty() && !st.deleted
+        let goes = self.options.auto_delete && st.consumers.is_empty() && !st.deleted;
+        #[cfg(feature = "mqtt")]
+        if goes {
+            if st.joining > 0 {
+                // A member's consume is on its way: it goes, if at all,
+                // once no join is pending (`Queue::leave_join`).
+                st.auto_delete_due = true;
+                return false;
+            }
+            st.auto_deleting = true;
+        }
+        goes
     }
 
     /// Ready messages, as of the last expiry ([`Queue::expire_at`]): what
@@ -596,13 +614,38 @@ impl Queue {
         }
     }
 
-    /// Marks the queue used until `until` (an MQTT shared subscription's
-    /// member has joined it and is about to consume it), for x-expires:
-    /// a short one cannot run out between the join and the consume.
+    /// An MQTT shared subscription's member joins the queue (`created`:
+    /// declared for it) and is about to bind and consume it: until its
+    /// [`Queue::leave_join`] the queue counts as used (x-expires does not
+    /// run) and is not auto-deleted, however long the consume takes. False
+    /// (nothing held) if the queue is going: deleted, or auto-deleted
+    /// by its last consumer's leaving.
     #[cfg(feature = "mqtt")]
-    pub fn reserve_until(&self, until: Instant) {
+    pub fn join(&self, created: bool) -> bool {
         let mut st = self.lock();
-        st.reserved_until = Some(st.reserved_until.map_or(until, |at| at.max(until)));
+        if st.deleted || st.auto_deleting {
+            return false;
+        }
+        st.joining += 1;
+        st.auto_delete_due |= created && self.options.auto_delete;
+        true
+    }
+
+    /// A [`Queue::join`]'s member has consumed the queue, or gone without:
+    /// x-expires runs from now if no consumer is left; returns whether the
+    /// queue should now be auto-deleted (no consumer, no join pending, and
+    /// its last consumer left meanwhile or none ever came).
+    #[cfg(feature = "mqtt")]
+    pub fn leave_join(&self) -> bool {
+        let mut st = self.lock();
+        st.joining = st.joining.saturating_sub(1);
+        if st.joining > 0 || !st.consumers.is_empty() {
+            return false;
+        }
+        st.last_used = Some(Instant::now());
+        let goes = st.auto_delete_due && !st.deleted;
+        st.auto_deleting |= goes;
+        goes
     }
 
     /// Drops every ready message; returns how many. They are released
@@ -703,7 +746,7 @@ impl Queue {
             return false;
         };
         #[cfg(feature = "mqtt")]
-        if st.reserved_until.is_some_and(|until| now < until) {
+        if st.joining > 0 {
             return false;
         }
         st.consumers.is_empty()

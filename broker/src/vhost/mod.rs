@@ -681,25 +681,40 @@ impl Vhost {
     /// arguments with `decl`'s (members of a group may differ in
     /// durability and expiry: MQTT 5.0 4.8.2), unless another connection
     /// owns it; one that does not is created as `decl` says. Either way
-    /// it counts as used for `reserve` from now (x-expires cannot run out
-    /// before the member's consume arrives). The queue and whether it was
-    /// created.
+    /// the member holds it ([`Queue::join`]) until the [`QueueJoin`] is
+    /// dropped (once its consume has arrived, or the member has gone), so
+    /// neither x-expires nor auto-delete can take it from under the
+    /// member's bind and consume. One whose last consumer has just left
+    /// (auto-delete) is deleted now and declared anew. The join and
+    /// whether the queue was created.
     #[cfg(feature = "mqtt")]
     pub fn join_or_declare_queue(
-        &self,
+        self: &Arc<Self>,
         decl: QueueDeclaration,
-        reserve: std::time::Duration,
-    ) -> AmqpResult<(Arc<Queue>, bool)> {
-        let (queue, created) = match self.queue(&decl.name) {
-            Some(existing) if existing.options.exclusive_owner.is_some() => {
-                return Err(exclusive_locked(&existing.name, &self.name));
+    ) -> AmqpResult<(QueueJoin, bool)> {
+        // Twice at most: a queue declared anew can only be going again if
+        // its own last consumer has come and gone meanwhile.
+        for _ in 0..2 {
+            let (queue, created) = match self.queue(&decl.name) {
+                Some(existing) if existing.options.exclusive_owner.is_some() => {
+                    return Err(exclusive_locked(&existing.name, &self.name));
+                }
+                Some(existing) => (existing, false),
+                // Not exclusive: no connection owns it.
+                None => self.declare_queue(decl.clone(), 0)?,
+            };
+            if queue.join(created) {
+                let vhost = Arc::clone(self);
+                return Ok((QueueJoin { vhost, queue }, created));
             }
-            Some(existing) => (existing, false),
-            // Not exclusive: no connection owns it.
-            None => self.declare_queue(decl, 0)?,
-        };
-        queue.reserve_until(Instant::now() + reserve);
-        Ok((queue, created))
+            // Its auto-deletion is under way: done here (whoever comes
+            // second finds it gone).
+            self.delete_queue(&queue).notify();
+        }
+        Err(AmqpError::resource_locked(format_args!(
+            "queue '{}' in vhost '{}' is being deleted",
+            decl.name, self.name
+        )))
     }
 
     /// Gives `queue`, if it is still this vhost's, its own expiry
@@ -1279,6 +1294,36 @@ pub fn check_exclusive(queue: &Queue, connection_id: u64, vhost: &ShortStr) -> A
     match queue.options.exclusive_owner {
         Some(owner) if owner != connection_id => Err(exclusive_locked(&queue.name, vhost)),
         _ => Ok(()),
+    }
+}
+
+/// An MQTT shared subscription's member's hold on its group's queue,
+/// from [`Vhost::join_or_declare_queue`] until dropped (the member's
+/// consume has arrived, or the member has gone): then the queue is
+/// auto-deleted if its last consumer left meanwhile, or if none ever came
+/// to a queue created for the join.
+#[cfg(feature = "mqtt")]
+#[derive(Debug)]
+pub struct QueueJoin {
+    vhost: Arc<Vhost>,
+    queue: Arc<Queue>,
+}
+
+#[cfg(all(feature = "mqtt", test))]
+impl QueueJoin {
+    /// The queue joined.
+    pub fn queue(&self) -> &Arc<Queue> {
+        &self.queue
+    }
+}
+
+#[cfg(feature = "mqtt")]
+impl Drop for QueueJoin {
+    fn drop(&mut self) {
+        if self.queue.leave_join() {
+            tracing::debug!(queue = %self.queue.name, "MQTT shared subscription group's queue auto-deleted (its joining member's hold released)");
+            self.vhost.delete_queue(&self.queue).notify();
+        }
     }
 }
 
