@@ -562,6 +562,100 @@ async fn a_second_connect_with_the_same_client_id_takes_over() {
     handle.shutdown().await;
 }
 
+/// MQTT connections the broker lists now.
+fn mqtt_connections(handle: &BrokerHandle) -> usize {
+    let listed = handle.admin().connections();
+    listed.iter().filter(|c| c.protocol.starts_with("MQTT")).count()
+}
+
+#[both_runtimes]
+async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
+    // A takeover waits for the old session as long as a CONNECT may take.
+    let limits = Limits {
+        handshake_timeout: Duration::from_secs(2),
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("old-wills", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "old-wills", "stuck.will").await;
+    // The old session: a will, and a client that never reads, with a
+    // small receive buffer, so that the broker's writes to it stall.
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.set_recv_buffer_size(4096).unwrap();
+    let addr: SocketAddr = ([127, 0, 0, 1], port).into();
+    let mut old = Raw {
+        socket: tmo!(socket.connect(addr)).unwrap(),
+        buf: BytesMut::new(),
+        version: ProtocolVersion::V3_1_1,
+    };
+    old.send(Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V3_1_1,
+        clean_start: true,
+        keep_alive: 0,
+        properties: Default::default(),
+        client_id: leveret_mqtt::MqttString::from_static("stuck"),
+        will: Some(leveret_mqtt::Will {
+            topic: TopicName::from_static("stuck/will"),
+            payload: Bytes::from_static(b"gone"),
+            qos: leveret_mqtt::QoS::AtLeastOnce,
+            retain: false,
+            properties: Default::default(),
+        }),
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    })))
+    .await;
+    assert!(matches!(old.next().await, Some(Packet::ConnAck(_))));
+    old.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::from_static("flood"),
+            options: Default::default(),
+        }],
+    }))
+    .await;
+    assert!(matches!(old.next().await, Some(Packet::SubAck(_))));
+    // Far more than the socket buffers hold (about 20 MB).
+    let payload = vec![7u8; 64 * 1024];
+    for _ in 0..300 {
+        tmo!(channel.basic_publish(
+            "amq.topic",
+            "flood",
+            Default::default(),
+            &payload,
+            Default::default()
+        ))
+        .unwrap();
+    }
+    // The new session goes on after the wait, the old one still open.
+    let (_client, _events) = connected3("stuck", port).await;
+    assert_eq!(
+        mqtt_connections(&handle),
+        2,
+        "the old session was still writing when the takeover gave up"
+    );
+    // The old session ends now: no will (nor anything else of its end).
+    drop(old);
+    within("the old session ended", async {
+        while mqtt_connections(&handle) > 1 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    for _ in 0..30 {
+        let got = channel
+            .basic_get("old-wills", lapin::options::BasicGetOptions { no_ack: true })
+            .await
+            .unwrap();
+        assert!(got.is_none(), "an abandoned session published its will");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    handle.shutdown().await;
+}
+
 // ---------------------------------------------------------------------------
 // A raw client on the codec, for what a well-behaved client never does.
 
