@@ -252,12 +252,14 @@ pub(super) async fn serve<S: ClientStream>(
             shared.releases.forget(&session.vhost, &session.client_id);
             shared.shares.forget(&session.vhost, &session.client_id)
         };
-        (groups, will)
+        let delay = session.will_delay_left();
+        let will_now =
+            will.and_then(|will| wills::schedule(&shared, &core, &session.client_id, will, delay));
+        (groups, will_now)
     });
-    if let Some((groups, will)) = kept {
-        if let Some(will) = will {
-            let delay = session.will_delay_left();
-            wills::publish_after(&shared, &core, &session.client_id, will, delay).await;
+    if let Some((groups, will_now)) = kept {
+        if let Some(will) = will_now {
+            wills::publish(&shared, &core, will).await;
         }
         shared.shares.apply_yielding(&core, groups).await;
     }
