@@ -3271,6 +3271,77 @@ async fn a_shared_groups_messages_wait_for_its_persistent_members_across_a_resta
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A member whose DISCONNECT gives another expiry interval moves every
+/// group it is in (more than one batch of them: `shares.rs`'s unit tests
+/// count the batches), their queues and its records, across a restart too.
+#[both_runtimes]
+async fn a_disconnects_new_interval_moves_all_the_members_groups() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-group-moves"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let count = 300;
+    let mut raw = Raw::connect(port).await;
+    raw.version = ProtocolVersion::V5;
+    let mut properties = leveret_mqtt::Properties::default();
+    properties.session_expiry_interval = Some(3600);
+    raw.send(Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V5,
+        clean_start: true,
+        keep_alive: 0,
+        properties,
+        client_id: leveret_mqtt::MqttString::from_static("mover"),
+        will: None,
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    })))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::ConnAck(_))));
+    let subscriptions = (0..count)
+        .map(|n| leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::new(
+                leveret_mqtt::MqttString::try_from(format!("$share/mv{n}/x").as_str()).unwrap(),
+            )
+            .unwrap(),
+            options: leveret_mqtt::SubscriptionOptions {
+                qos: leveret_mqtt::QoS::AtLeastOnce,
+                ..Default::default()
+            },
+        })
+        .collect();
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions,
+    }))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    let mut properties = leveret_mqtt::Properties::default();
+    properties.session_expiry_interval = Some(60);
+    raw.send(Packet::Disconnect(leveret_mqtt::Disconnect {
+        reason: leveret_mqtt::ReasonCode::Success,
+        properties,
+    }))
+    .await;
+    raw.assert_closed().await;
+    let (first, last) = ("mqtt-shared-mv0/x", format!("mqtt-shared-mv{}/x", count - 1));
+    until_expires(&handle, first, Some(60_000)).await;
+    until_expires(&handle, &last, Some(60_000)).await;
+    handle.shutdown().await;
+
+    // The records moved too: a member joining for a second after a
+    // restart finds the group kept for the mover's minute (its join
+    // gives the queue the group's value before its SUBACK).
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events, _) = expiring5("joiner", port, true, 1).await;
+    let filter = vec![Filter::new("$share/mv0/x", QoS5::AtLeastOnce)];
+    assert_eq!(subscribe5(&client, &mut events, filter, None).await.len(), 1);
+    assert_eq!(listed_as(&handle, first).2, Some(60_000));
+    disconnect5(client, events).await;
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// A kept group's queue goes when its last persistent member's session
 /// expires, counted from the restart as the session's is.
 #[both_runtimes]

@@ -212,6 +212,9 @@ pub(super) async fn serve<S: ClientStream>(
     };
     let session_present = session.begin(&core, connect.clean_start);
     session.connack(assigned, session_present);
+    // A session resumed with another expiry interval: its shared
+    // subscriptions move to it in bounded batches.
+    shared.shares.settle_yielding(&core).await;
     tracing::debug!(%peer, client_id = %session.client_id, ?version, "MQTT session open");
     let keepalive = Duration::from_millis(u64::from(connect.keep_alive) * 1500);
     let end = session
@@ -261,6 +264,9 @@ pub(super) async fn serve<S: ClientStream>(
         if let Some(will) = will_now {
             wills::publish(&shared, &core, will).await;
         }
+        // A DISCONNECT changed the expiry interval: the shared
+        // subscriptions move to it in bounded batches.
+        shared.shares.settle_yielding(&core).await;
         shared.shares.apply_yielding(&core, groups).await;
     }
     drop(claim);
