@@ -565,7 +565,10 @@ async fn a_second_connect_with_the_same_client_id_takes_over() {
 /// MQTT connections the broker lists now.
 fn mqtt_connections(handle: &BrokerHandle) -> usize {
     let listed = handle.admin().connections();
-    listed.iter().filter(|c| c.protocol.starts_with("MQTT")).count()
+    listed
+        .iter()
+        .filter(|c| c.protocol.starts_with("MQTT"))
+        .count()
 }
 
 #[both_runtimes]
@@ -647,7 +650,10 @@ async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
     .await;
     for _ in 0..30 {
         let got = channel
-            .basic_get("old-wills", lapin::options::BasicGetOptions { no_ack: true })
+            .basic_get(
+                "old-wills",
+                lapin::options::BasicGetOptions { no_ack: true },
+            )
             .await
             .unwrap();
         assert!(got.is_none(), "an abandoned session published its will");
@@ -3323,7 +3329,10 @@ async fn a_disconnects_new_interval_moves_all_the_members_groups() {
     }))
     .await;
     raw.assert_closed().await;
-    let (first, last) = ("mqtt-shared-mv0/x", format!("mqtt-shared-mv{}/x", count - 1));
+    let (first, last) = (
+        "mqtt-shared-mv0/x",
+        format!("mqtt-shared-mv{}/x", count - 1),
+    );
     until_expires(&handle, first, Some(60_000)).await;
     until_expires(&handle, &last, Some(60_000)).await;
     handle.shutdown().await;
@@ -3335,7 +3344,10 @@ async fn a_disconnects_new_interval_moves_all_the_members_groups() {
     let port = mqtt_port(&handle);
     let (client, mut events, _) = expiring5("joiner", port, true, 1).await;
     let filter = vec![Filter::new("$share/mv0/x", QoS5::AtLeastOnce)];
-    assert_eq!(subscribe5(&client, &mut events, filter, None).await.len(), 1);
+    assert_eq!(
+        subscribe5(&client, &mut events, filter, None).await.len(),
+        1
+    );
     assert_eq!(listed_as(&handle, first).2, Some(60_000));
     disconnect5(client, events).await;
     handle.shutdown().await;

@@ -227,9 +227,8 @@ impl Shares {
         }
         let members: Vec<(String, String, Option<u32>)> = (state.sessions.iter())
             .flat_map(|((vhost, _), held)| {
-                (held.filters.iter()).map(|(filter, (_, expiry))| {
-                    (vhost.clone(), filter.clone(), *expiry)
-                })
+                (held.filters.iter())
+                    .map(|(filter, (_, expiry))| (vhost.clone(), filter.clone(), *expiry))
             })
             .collect();
         for (vhost, filter, expiry) in members {
@@ -330,7 +329,12 @@ impl Shares {
         let mut state = self.lock();
         let state = &mut *state;
         let (mut groups, mut ops) = (Vec::new(), Vec::new());
-        let sessions: Vec<Key> = state.moving.iter().take(super::SWEEP_BATCH).cloned().collect();
+        let sessions: Vec<Key> = state
+            .moving
+            .iter()
+            .take(super::SWEEP_BATCH)
+            .cloned()
+            .collect();
         for key in sessions {
             let budget = SETTLE_RECORDS - ops.len();
             if budget == 0 {
@@ -809,7 +813,10 @@ mod tests {
         let (changed, _) = keep("$share/g/1", Some(10));
         assert_eq!(changed, [("/".into(), "$share/g/1".into())]);
         let (moved, more) = shares.settle_batch();
-        assert_eq!((moved, more), (vec![("/".into(), "$share/g/2".into())], false));
+        assert_eq!(
+            (moved, more),
+            (vec![("/".into(), "$share/g/2".into())], false)
+        );
         let ten = GroupKeep::Kept(Some(10));
         assert_eq!(shares.group("/", "$share/g/1"), ten);
         assert_eq!(shares.group("/", "$share/g/2"), ten);
@@ -975,7 +982,10 @@ mod tests {
             .map(|(moved, more)| (moved.len(), more))
             .collect();
         let full = SETTLE_RECORDS;
-        assert_eq!(batches, [(full, true), (full, true), (10, false), (0, false)]);
+        assert_eq!(
+            batches,
+            [(full, true), (full, true), (10, false), (0, false)]
+        );
         assert_eq!(shares.group("/", &last), GroupKeep::Kept(Some(3600)));
         // Resumed with another interval: the same, from the first keep.
         shares.resume("/", "a");
