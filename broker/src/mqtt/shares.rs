@@ -234,6 +234,13 @@ impl Shares {
         for (vhost, filter, expiry) in members {
             state.join(&vhost, &filter, expiry);
         }
+        // A crash while a session's records were being moved to a new
+        // interval leaves them mixed: they are made one again (the
+        // interval of the last record read).
+        let moving = (state.sessions.iter())
+            .filter(|(_, held)| held.filters.values().any(|(_, e)| *e != held.expiry))
+            .map(|(key, _)| key.clone());
+        state.moving = moving.collect();
         Shares {
             state: Mutex::new(state),
             persistence,
@@ -424,7 +431,10 @@ impl Shares {
         }
         let mut held = state.sessions.remove(&key).unwrap_or_default();
         held.expires_at = None;
-        if held.filters.get(filter) == Some(&(options, expiry)) && held.expiry == expiry {
+        let same = held.filters.get(filter).map(|(same, _)| same) == Some(&options);
+        if same && held.expiry == expiry {
+            // (Moved to the session's interval by `settle_yielding` if
+            // it has not been yet.)
             state.sessions.insert(key, held);
             groups.push((vhost.to_owned(), filter.to_owned()));
             return (groups, true);
@@ -809,9 +819,12 @@ mod tests {
         shares.ended("/", "a", Some(60));
         assert_eq!(shares.resume("/", "a").0.len(), 2);
         // Rejoined with ten seconds: its group follows, and the other
-        // once settled.
+        // once settled (rejoining it moves nothing by itself).
         let (changed, _) = keep("$share/g/1", Some(10));
         assert_eq!(changed, [("/".into(), "$share/g/1".into())]);
+        let (changed, _) = keep("$share/g/2", Some(10));
+        assert_eq!(changed, [("/".into(), "$share/g/2".into())]);
+        assert_eq!(shares.group("/", "$share/g/2"), GroupKeep::Kept(Some(60)));
         let (moved, more) = shares.settle_batch();
         assert_eq!(
             (moved, more),
@@ -998,6 +1011,26 @@ mod tests {
         // Each left its old group: forgetting the session unkeeps them all.
         assert_eq!(shares.forget("/", "a").len(), count);
         assert!(shares.kept_groups().is_empty());
+    }
+
+    #[test]
+    fn a_session_recovered_half_moved_is_moved_on() {
+        // A crash between two batches of a move from 60 s to an hour.
+        let record = |filter: &str, session_expiry| MetaRecord::SharedSubscription {
+            vhost: "/".into(),
+            client_id: "c".into(),
+            filter: filter.into(),
+            qos: 1,
+            retain_as_published: false,
+            subscription_id: 0,
+            session_expiry,
+        };
+        let records = [record("$share/g/1", 60), record("$share/g/2", 3600)];
+        let shares = Shares::new(&records, None);
+        assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(60)));
+        let g1 = ("/".to_owned(), "$share/g/1".to_owned());
+        assert_eq!(shares.settle_batch(), (vec![g1], false));
+        assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(3600)));
     }
 
     #[test]
