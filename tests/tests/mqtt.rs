@@ -562,6 +562,106 @@ async fn a_second_connect_with_the_same_client_id_takes_over() {
     handle.shutdown().await;
 }
 
+/// MQTT connections the broker lists now.
+fn mqtt_connections(handle: &BrokerHandle) -> usize {
+    let listed = handle.admin().connections();
+    listed
+        .iter()
+        .filter(|c| c.protocol.starts_with("MQTT"))
+        .count()
+}
+
+#[both_runtimes]
+async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
+    // A takeover waits for the old session as long as a CONNECT may take.
+    let limits = Limits {
+        handshake_timeout: Duration::from_secs(2),
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("old-wills", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "old-wills", "stuck.will").await;
+    // The old session: a will, and a client that never reads, with a
+    // small receive buffer, so that the broker's writes to it stall.
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.set_recv_buffer_size(4096).unwrap();
+    let addr: SocketAddr = ([127, 0, 0, 1], port).into();
+    let mut old = Raw {
+        socket: tmo!(socket.connect(addr)).unwrap(),
+        buf: BytesMut::new(),
+        version: ProtocolVersion::V3_1_1,
+    };
+    old.send(Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V3_1_1,
+        clean_start: true,
+        keep_alive: 0,
+        properties: Default::default(),
+        client_id: leveret_mqtt::MqttString::from_static("stuck"),
+        will: Some(leveret_mqtt::Will {
+            topic: TopicName::from_static("stuck/will"),
+            payload: Bytes::from_static(b"gone"),
+            qos: leveret_mqtt::QoS::AtLeastOnce,
+            retain: false,
+            properties: Default::default(),
+        }),
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    })))
+    .await;
+    assert!(matches!(old.next().await, Some(Packet::ConnAck(_))));
+    old.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::from_static("flood"),
+            options: Default::default(),
+        }],
+    }))
+    .await;
+    assert!(matches!(old.next().await, Some(Packet::SubAck(_))));
+    // Far more than the socket buffers hold (about 20 MB).
+    let payload = vec![7u8; 64 * 1024];
+    for _ in 0..300 {
+        tmo!(channel.basic_publish(
+            "amq.topic",
+            "flood",
+            Default::default(),
+            &payload,
+            Default::default()
+        ))
+        .unwrap();
+    }
+    // The new session goes on after the wait, the old one still open.
+    let (_client, _events) = connected3("stuck", port).await;
+    assert_eq!(
+        mqtt_connections(&handle),
+        2,
+        "the old session was still writing when the takeover gave up"
+    );
+    // The old session ends now: no will (nor anything else of its end).
+    drop(old);
+    within("the old session ended", async {
+        while mqtt_connections(&handle) > 1 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    for _ in 0..30 {
+        let got = channel
+            .basic_get(
+                "old-wills",
+                lapin::options::BasicGetOptions { no_ack: true },
+            )
+            .await
+            .unwrap();
+        assert!(got.is_none(), "an abandoned session published its will");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    handle.shutdown().await;
+}
+
 // ---------------------------------------------------------------------------
 // A raw client on the codec, for what a well-behaved client never does.
 
@@ -3172,6 +3272,83 @@ async fn a_shared_groups_messages_wait_for_its_persistent_members_across_a_resta
     // "keeper-b" starts clean: no persistent member left, the queue goes.
     let (client, events, _) = expiring5("keeper-b", port, true, 60).await;
     until_queue_listed(&handle, group, false, "the group's queue gone").await;
+    disconnect5(client, events).await;
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A member whose DISCONNECT gives another expiry interval moves every
+/// group it is in (more than one batch of them: `shares.rs`'s unit tests
+/// count the batches), their queues and its records, across a restart too.
+#[both_runtimes]
+async fn a_disconnects_new_interval_moves_all_the_members_groups() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-group-moves"));
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let count = 300;
+    let mut raw = Raw::connect(port).await;
+    raw.version = ProtocolVersion::V5;
+    let mut properties = leveret_mqtt::Properties::default();
+    properties.session_expiry_interval = Some(3600);
+    raw.send(Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V5,
+        clean_start: true,
+        keep_alive: 0,
+        properties,
+        client_id: leveret_mqtt::MqttString::from_static("mover"),
+        will: None,
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    })))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::ConnAck(_))));
+    let subscriptions = (0..count)
+        .map(|n| leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::new(
+                leveret_mqtt::MqttString::try_from(format!("$share/mv{n}/x").as_str()).unwrap(),
+            )
+            .unwrap(),
+            options: leveret_mqtt::SubscriptionOptions {
+                qos: leveret_mqtt::QoS::AtLeastOnce,
+                ..Default::default()
+            },
+        })
+        .collect();
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions,
+    }))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    let mut properties = leveret_mqtt::Properties::default();
+    properties.session_expiry_interval = Some(60);
+    raw.send(Packet::Disconnect(leveret_mqtt::Disconnect {
+        reason: leveret_mqtt::ReasonCode::Success,
+        properties,
+    }))
+    .await;
+    raw.assert_closed().await;
+    let (first, last) = (
+        "mqtt-shared-mv0/x",
+        format!("mqtt-shared-mv{}/x", count - 1),
+    );
+    until_expires(&handle, first, Some(60_000)).await;
+    until_expires(&handle, &last, Some(60_000)).await;
+    handle.shutdown().await;
+
+    // The records moved too: a member joining for a second after a
+    // restart finds the group kept for the mover's minute (its join
+    // gives the queue the group's value before its SUBACK).
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events, _) = expiring5("joiner", port, true, 1).await;
+    let filter = vec![Filter::new("$share/mv0/x", QoS5::AtLeastOnce)];
+    assert_eq!(
+        subscribe5(&client, &mut events, filter, None).await.len(),
+        1
+    );
+    assert_eq!(listed_as(&handle, first).2, Some(60_000));
     disconnect5(client, events).await;
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);

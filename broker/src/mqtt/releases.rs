@@ -16,6 +16,12 @@
 //! none. A clean start, or a session that ends with its connection,
 //! deletes it at once.
 //!
+//! Records written by a Leveret that did not keep the interval have none:
+//! they are given [`OLDER_RECORDS_EXPIRY`] (a day) at start, and their
+//! session's own interval when it is next seen (its connection's end
+//! rewrites them), so a session that never comes back does not hold its
+//! place for ever.
+//!
 //! Bounded: at most [`MAX_PER_SESSION`] identifiers per session (the
 //! receive maximum) and [`MAX_SESSIONS`] sessions, in memory and in the
 //! store; past that a publish's state is not kept (logged) and a resend of
@@ -33,6 +39,10 @@ const MAX_PER_SESSION: usize = 256;
 const MAX_SESSIONS: usize = 10_000;
 /// The stored Session Expiry Interval of a session that never expires.
 const NEVER: u32 = u32::MAX;
+/// The Session Expiry Interval, in seconds, of records that carry none
+/// (written before it was kept): a day, RabbitMQ's default
+/// `mqtt.max_session_expiry_interval_seconds`.
+const OLDER_RECORDS_EXPIRY: u32 = 86_400;
 
 /// A session: vhost and client identifier.
 type Key = (String, String);
@@ -87,7 +97,11 @@ impl Releases {
                 let held = (sessions.entry((vhost.clone(), client_id.clone()))).or_default();
                 held.stored.insert(id.get());
                 held.kept.push(id);
-                held.expiry = (*session_expiry != NEVER).then_some(*session_expiry);
+                held.expiry = match *session_expiry {
+                    Some(NEVER) => None,
+                    Some(seconds) => Some(seconds),
+                    None => Some(OLDER_RECORDS_EXPIRY),
+                };
                 held.expires_at = super::expiry::ends_at(held.expiry);
             }
         }
@@ -102,6 +116,13 @@ impl Releases {
         self.sessions.lock().unwrap_or_else(|e| e.into_inner())
     }
 
+    /// The expiry interval a session's state is kept for, if any is kept.
+    #[cfg(test)]
+    fn expiry_of(&self, vhost: &str, client_id: &str) -> Option<Option<u32>> {
+        let key = (vhost.to_owned(), client_id.to_owned());
+        self.lock().get(&key).map(|held| held.expiry)
+    }
+
     fn submit(&self, op: StoreOp) -> u64 {
         self.persistence
             .as_ref()
@@ -113,7 +134,7 @@ impl Releases {
             vhost: vhost.clone(),
             client_id: client_id.clone(),
             packet_id,
-            session_expiry: expiry.unwrap_or(NEVER),
+            session_expiry: Some(expiry.unwrap_or(NEVER)),
         }))
     }
 
@@ -329,7 +350,7 @@ mod tests {
         assert_eq!(records.len(), 3);
         assert!(records.iter().any(|r| matches!(
             r,
-            MetaRecord::Unreleased { client_id, session_expiry: 0, .. } if client_id == "gone"
+            MetaRecord::Unreleased { client_id, session_expiry: Some(0), .. } if client_id == "gone"
         )));
         drop(releases);
         drop(persistence);
@@ -352,6 +373,39 @@ mod tests {
         assert!(releases.take("/", "gone", true).is_empty());
         assert_eq!(releases.take("/", "kept", true), [id(7)]);
         assert_eq!(releases.sweep(), 0);
+    }
+
+    #[tokio::test]
+    async fn records_without_an_expiry_expire_after_a_day_or_with_their_session() {
+        let store = Arc::new(MemoryStore::default());
+        let (releases, persistence) = open(&store);
+        // Written by a Leveret that did not keep the interval.
+        let older = |client_id: &str, packet_id| {
+            StoreOp::PutMeta(MetaRecord::Unreleased {
+                vhost: "/".into(),
+                client_id: client_id.into(),
+                packet_id,
+                session_expiry: None,
+            })
+        };
+        persistence.submit(vec![older("gone", 1), older("back", 2)]);
+        releases.routed("/", "forever", id(3), None);
+        releases.keep("/", "forever", vec![id(3)], None);
+        assert_eq!(stored(&store, &persistence).await.len(), 3);
+        drop(releases);
+        drop(persistence);
+        let (releases, persistence) = open(&store);
+        let day = Some(OLDER_RECORDS_EXPIRY);
+        assert_eq!(releases.expiry_of("/", "gone"), Some(day));
+        assert_eq!(releases.expiry_of("/", "forever"), Some(None), "never");
+        // Seen again, ended with a minute: its record says so.
+        assert_eq!(releases.take("/", "back", true), [id(2)]);
+        releases.keep("/", "back", vec![id(2)], Some(60));
+        let records = stored(&store, &persistence).await;
+        assert!(records.iter().any(|r| matches!(
+            r,
+            MetaRecord::Unreleased { client_id, session_expiry: Some(60), .. } if client_id == "back"
+        )));
     }
 
     #[tokio::test]

@@ -213,6 +213,9 @@ pub(super) async fn serve<S: ClientStream>(
     };
     let session_present = session.begin(&core, connect.clean_start);
     session.connack(assigned, session_present);
+    // A session resumed with another expiry interval: its shared
+    // subscriptions move to it in bounded batches.
+    shared.shares.settle_yielding(&core).await;
     tracing::debug!(%peer, client_id = %session.client_id, ?version, "MQTT session open");
     let keepalive = Duration::from_millis(u64::from(connect.keep_alive) * 1500);
     let end = session
@@ -230,25 +233,16 @@ pub(super) async fn serve<S: ClientStream>(
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
     link.close(disconnected).await;
-    if session.lifetime != lifetime && session.lifetime != Lifetime::Connection {
-        // A DISCONNECT changed the expiry: the queues follow, now that
-        // the link has declared every one of them.
-        session.follow_expiry(&core);
-    }
-    if let Some(will) = will {
-        wills::publish_after(
-            &shared,
-            &core,
-            &session.client_id,
-            will,
-            session.will_delay_left(),
-        )
-        .await;
-    }
     // Skipped if a session taking over stopped waiting for this one: it
-    // has resumed this state already.
-    let groups = claim.unless_abandoned(|| {
-        if session.lifetime != Lifetime::Connection {
+    // has resumed the session already. Decided once, under the claim, so
+    // that a takeover giving up waits for what is decided here.
+    let kept = claim.unless_abandoned(|| {
+        if session.lifetime != lifetime && session.lifetime != Lifetime::Connection {
+            // A DISCONNECT changed the expiry: the queues follow, now
+            // that the link has declared every one of them.
+            session.follow_expiry(&core);
+        }
+        let groups = if session.lifetime != Lifetime::Connection {
             let expiry = session.lifetime.expiry_seconds();
             let stored = session
                 .exactly_once
@@ -261,11 +255,21 @@ pub(super) async fn serve<S: ClientStream>(
         } else {
             shared.releases.forget(&session.vhost, &session.client_id);
             shared.shares.forget(&session.vhost, &session.client_id)
-        }
+        };
+        let delay = session.will_delay_left();
+        let will_now =
+            will.and_then(|will| wills::schedule(&shared, &core, &session.client_id, will, delay));
+        (groups, will_now)
     });
-    (shared.shares)
-        .apply_yielding(&core, groups.unwrap_or_default())
-        .await;
+    if let Some((groups, will_now)) = kept {
+        if let Some(will) = will_now {
+            wills::publish(&shared, &core, will).await;
+        }
+        // A DISCONNECT changed the expiry interval: the shared
+        // subscriptions move to it in bounded batches.
+        shared.shares.settle_yielding(&core).await;
+        shared.shares.apply_yielding(&core, groups).await;
+    }
     drop(claim);
 }
 
@@ -473,7 +477,9 @@ async fn admit(
         }
         Refusal::Unavailable => ReasonCode::ServerUnavailable,
     })?;
-    let claim = shared.ids.claim(&vhost, &client_id).await;
+    // A session taken over gets as long to end as a CONNECT to come.
+    let wait = core.limits.handshake_timeout;
+    let claim = shared.ids.claim(&vhost, &client_id, wait).await;
     Ok(Accepted {
         link,
         claim,
@@ -815,7 +821,8 @@ impl Session {
                         break;
                     }
                     Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => {
-                        return self.finish(socket, link, closed("link ended", None)).await;
+                        let stop = closed("link ended", None);
+                        return self.finish(socket, link, claim, stop).await;
                     }
                 }
             }
@@ -881,7 +888,7 @@ impl Session {
                 }
             }
         };
-        self.finish(socket, link, stop).await
+        self.finish(socket, link, claim, stop).await
     }
 
     /// Whether the session holds more room than an idle one needs: a read
@@ -910,19 +917,27 @@ impl Session {
         }
     }
 
-    /// Sends what is owed before closing (a 5.0 DISCONNECT, the will).
+    /// Sends what is owed before closing (a 5.0 DISCONNECT, the will);
+    /// a session whose takeover has given up waiting for it
+    /// ([`Claim::abandoned`]) only closes its socket.
     async fn finish(
         &mut self,
         socket: &mut (impl AsyncRead + AsyncWrite + Unpin),
         mut link: Link,
+        claim: &Claim,
         stop: Stop,
     ) -> Ended {
-        self.flush_pending(&mut link).await;
+        let abandoned = claim.abandoned();
+        if abandoned {
+            self.out.clear();
+        } else {
+            self.flush_pending(&mut link).await;
+        }
         let disconnected = matches!(stop, Stop::Disconnected { .. });
         let (reason, send_will) = match stop {
             Stop::Disconnected { send_will } => ("client disconnected", send_will),
             Stop::Closed { reason, disconnect } => {
-                if let (Some(code), true) = (disconnect, self.v5()) {
+                if let (Some(code), true, false) = (disconnect, self.v5(), abandoned) {
                     self.send(Packet::Disconnect(Disconnect {
                         reason: code,
                         properties: Default::default(),
@@ -935,8 +950,11 @@ impl Session {
             let _ = tokio::time::timeout(WRITE_STALL, write_out(socket, &self.out)).await;
         }
         let _ = socket.shutdown().await;
-        // A resumed session that does not outlive this connection.
-        for queue in std::mem::take(&mut self.delete_at_end) {
+        // A resumed session that does not outlive this connection (unless
+        // a takeover has given up waiting meanwhile: its queues are the
+        // new session's now).
+        let delete = std::mem::take(&mut self.delete_at_end);
+        for queue in delete.into_iter().filter(|_| !claim.abandoned()) {
             let delete = QueueDelete {
                 ticket: 0,
                 queue,

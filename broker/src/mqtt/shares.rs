@@ -29,6 +29,10 @@
 //! queues members declared (marked [`GROUP_QUEUE_ARGUMENT`]) are given a
 //! group's expiry, at start too ([`Shares::reconcile`]).
 //!
+//! A session's new expiry interval reaches its subscriptions (records,
+//! group memberships) in batches ([`Shares::settle_yielding`]), never all
+//! under one hold of the lock.
+//!
 //! Bounded: per session by the session's subscription cap, at most
 //! [`MAX_SESSIONS`] sessions hold some (expired ones are swept every
 //! second by `super::sweeper`, and when the cap is reached) and at most [`MAX_GROUPS`] groups are kept; past either
@@ -44,7 +48,7 @@ use crate::store::{MetaKey, MetaRecord, Persistence, StoreOp};
 use crate::vhost::{QueueDeclaration, QueueJoin, Vhost};
 use leveret_mqtt::QoS;
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::num::NonZeroU32;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -63,6 +67,11 @@ const SWEEP_RECORDS: usize = 256;
 /// expiry ([`Shares::apply`]), never one an AMQP client declared under
 /// that name.
 const GROUP_QUEUE_ARGUMENT: &str = "x-mqtt-shared-group";
+
+/// At most this many shared subscriptions of sessions whose expiry
+/// changed are moved to it (group and record) under one hold of the lock
+/// ([`Shares::settle_batch`]), from at most [`super::SWEEP_BATCH`] sessions.
+const SETTLE_RECORDS: usize = 256;
 
 /// At most this many groups' queues are given their expiry under one hold
 /// of the lock.
@@ -116,6 +125,9 @@ struct State {
     /// Per group, its persistent members' expiry intervals in seconds
     /// ([`NEVER`] for none) with how many members have each.
     groups: HashMap<Group, BTreeMap<u32, usize>>,
+    /// Sessions whose expiry changed with some subscriptions not yet
+    /// moved to it ([`Shares::settle_batch`]).
+    moving: HashSet<Key>,
 }
 
 impl State {
@@ -152,8 +164,8 @@ impl State {
 
     /// A session's filters leave their groups; the groups changed.
     fn leave_all(&mut self, vhost: &str, held: &Held) -> Groups {
-        let filters = held.filters.keys();
-        filters.for_each(|filter| self.leave(vhost, filter, held.expiry));
+        let filters = held.filters.iter();
+        filters.for_each(|(filter, (_, expiry))| self.leave(vhost, filter, *expiry));
         self.groups_of(vhost, held)
     }
 
@@ -167,10 +179,11 @@ impl State {
 /// One session's shared subscriptions.
 #[derive(Debug, Default)]
 struct Held {
-    /// Filter → options.
-    filters: BTreeMap<String, Options>,
-    /// The session's expiry interval in seconds (`None`: never), stored
-    /// with each record.
+    /// Filter → options, and the expiry interval its record and group
+    /// membership have: the session's, or an older one until moved
+    /// ([`Shares::settle_batch`]).
+    filters: BTreeMap<String, (Options, Option<u32>)>,
+    /// The session's expiry interval in seconds (`None`: never).
     expiry: Option<u32>,
     /// When they go unless a connection resumes the session first
     /// (`None` while it is connected, or if it never expires).
@@ -212,19 +225,27 @@ impl Shares {
                 };
                 let key = (vhost.clone(), client_id.clone());
                 let held = state.sessions.entry(key).or_default();
-                held.filters.insert(filter.clone(), options);
                 held.expiry = (*session_expiry != NEVER).then_some(*session_expiry);
+                held.filters.insert(filter.clone(), (options, held.expiry));
                 held.expires_at = super::expiry::ends_at(held.expiry);
             }
         }
         let members: Vec<(String, String, Option<u32>)> = (state.sessions.iter())
             .flat_map(|((vhost, _), held)| {
-                (held.filters.keys()).map(|filter| (vhost.clone(), filter.clone(), held.expiry))
+                (held.filters.iter())
+                    .map(|(filter, (_, expiry))| (vhost.clone(), filter.clone(), *expiry))
             })
             .collect();
         for (vhost, filter, expiry) in members {
             state.join(&vhost, &filter, expiry);
         }
+        // A crash while a session's records were being moved to a new
+        // interval leaves them mixed: they are made one again (the
+        // interval of the last record read).
+        let moving = (state.sessions.iter())
+            .filter(|(_, held)| held.filters.values().any(|(_, e)| *e != held.expiry))
+            .map(|(key, _)| key.clone());
+        state.moving = moving.collect();
         Shares {
             state: Mutex::new(state),
             persistence,
@@ -284,37 +305,94 @@ impl Shares {
         held.expires_at = None;
         let filters = held.filters.iter();
         let filters = filters
-            .map(|(filter, options)| (filter.clone(), *options))
+            .map(|(filter, (options, _))| (filter.clone(), *options))
             .collect();
         (filters, Vec::new())
     }
 
     /// A persistent session's connection has ended: its shared
     /// subscriptions expire `expiry` seconds from now (`None`: never), its
-    /// interval then (a DISCONNECT may have changed it: stored again). All
-    /// the session's groups are returned, changed or not, so that each
-    /// disconnect gives their queues their current value again.
+    /// interval then (a DISCONNECT may have changed it: its subscriptions
+    /// are then moved to it by [`Shares::settle_yielding`], which the
+    /// caller runs). All the session's groups are returned, changed or
+    /// not, so that each disconnect gives their queues their current value
+    /// again.
     pub(super) fn ended(&self, vhost: &str, client_id: &str, expiry: Option<u32>) -> Groups {
         let key = (vhost.to_owned(), client_id.to_owned());
         let mut state = self.lock();
         let state = &mut *state;
-        let Some(mut held) = state.sessions.remove(&key) else {
+        let Some(held) = state.sessions.get_mut(&key) else {
             return Vec::new();
         };
         held.expires_at = super::expiry::ends_at(expiry);
         if held.expiry != expiry {
-            state.leave_all(vhost, &held);
             held.expiry = expiry;
-            let mut ops = Vec::with_capacity(held.filters.len());
-            for (filter, options) in &held.filters {
-                state.join(vhost, filter, expiry);
-                ops.push(put(&key, filter, *options, expiry));
-            }
-            self.submit(ops);
+            state.moving.insert(key.clone());
         }
-        let groups = state.groups_of(vhost, &held);
-        state.sessions.insert(key, held);
-        groups
+        let held = &state.sessions[&key];
+        state.groups_of(vhost, held)
+    }
+
+    /// Moves at most [`SETTLE_RECORDS`] shared subscriptions of sessions
+    /// whose expiry interval changed to it: out of their groups' members
+    /// at the old interval into the new, their records rewritten in one
+    /// submit; the groups changed and whether any are left to move.
+    fn settle_batch(&self) -> (Groups, bool) {
+        let mut state = self.lock();
+        let state = &mut *state;
+        let (mut groups, mut ops) = (Vec::new(), Vec::new());
+        let sessions: Vec<Key> = state
+            .moving
+            .iter()
+            .take(super::SWEEP_BATCH)
+            .cloned()
+            .collect();
+        for key in sessions {
+            let budget = SETTLE_RECORDS - ops.len();
+            if budget == 0 {
+                break;
+            }
+            let (mut moved, mut done) = (Vec::new(), true);
+            if let Some(held) = state.sessions.get_mut(&key) {
+                let target = held.expiry;
+                for (filter, (options, expiry)) in &mut held.filters {
+                    if *expiry == target {
+                        continue;
+                    }
+                    if moved.len() == budget {
+                        done = false;
+                        break;
+                    }
+                    moved.push((filter.clone(), *expiry, target));
+                    *expiry = target;
+                    ops.push(put(&key, filter, *options, target));
+                }
+            }
+            for (filter, from, to) in moved {
+                state.leave(&key.0, &filter, from);
+                state.join(&key.0, &filter, to);
+                groups.push((key.0.clone(), filter));
+            }
+            if done {
+                state.moving.remove(&key);
+            }
+        }
+        self.submit(ops);
+        (groups, !state.moving.is_empty())
+    }
+
+    /// Moves every session whose expiry interval changed to it
+    /// ([`Shares::settle_batch`]) and gives the groups changed their
+    /// queues' expiry, yielding between holds of the lock.
+    pub(super) async fn settle_yielding(&self, core: &Core) {
+        loop {
+            let (groups, more) = self.settle_batch();
+            self.apply_yielding(core, groups).await;
+            if !more {
+                return;
+            }
+            tokio::task::yield_now().await;
+        }
     }
 
     /// Keeps (or replaces) shared subscription `filter` of a connected
@@ -336,7 +414,6 @@ impl Shares {
         if state.sessions.len() >= self.max_sessions && !state.sessions.contains_key(&key) {
             self.sweep_locked(state, &mut groups);
         }
-        let mut ops = Vec::new();
         if state.sessions.len() >= self.max_sessions && !state.sessions.contains_key(&key) {
             tracing::warn!(
                 vhost,
@@ -359,30 +436,32 @@ impl Shares {
         }
         let mut held = state.sessions.remove(&key).unwrap_or_default();
         held.expires_at = None;
-        if held.filters.get(filter) == Some(&options) && held.expiry == expiry {
+        let same = held.filters.get(filter).map(|(same, _)| same) == Some(&options);
+        if same && held.expiry == expiry {
+            // (Moved to the session's interval by `settle_yielding` if
+            // it has not been yet.)
             state.sessions.insert(key, held);
             groups.push((vhost.to_owned(), filter.to_owned()));
             return (groups, true);
         }
         if held.expiry != expiry && !held.filters.is_empty() {
             // The session resumed with another interval (once a
-            // connection): its other filters move over too.
-            state.leave_all(vhost, &held);
-            held.expiry = expiry;
-            for (filter, options) in &held.filters {
-                state.join(vhost, filter, expiry);
-                ops.push(put(&key, filter, *options, expiry));
-            }
-            groups.extend(state.groups_of(vhost, &held));
+            // connection): its other filters are moved over by
+            // `settle_yielding`, which the session runs.
+            state.moving.insert(key.clone());
         }
         held.expiry = expiry;
-        if held.filters.insert(filter.to_owned(), options).is_none() {
-            state.join(vhost, filter, expiry);
+        match held.filters.insert(filter.to_owned(), (options, expiry)) {
+            None => state.join(vhost, filter, expiry),
+            Some((_, old)) if old != expiry => {
+                state.leave(vhost, filter, old);
+                state.join(vhost, filter, expiry);
+            }
+            Some(_) => {}
         }
         groups.push((vhost.to_owned(), filter.to_owned()));
         state.sessions.insert(key.clone(), held);
-        ops.push(put(&key, filter, options, expiry));
-        self.submit(ops);
+        self.submit(vec![put(&key, filter, options, expiry)]);
         (groups, true)
     }
 
@@ -435,10 +514,9 @@ impl Shares {
         let Some(held) = state.sessions.get_mut(&key) else {
             return Vec::new();
         };
-        if held.filters.remove(filter).is_none() {
+        let Some((_, expiry)) = held.filters.remove(filter) else {
             return Vec::new();
-        }
-        let expiry = held.expiry;
+        };
         if held.filters.is_empty() {
             state.sessions.remove(&key);
         }
@@ -725,6 +803,7 @@ mod tests {
         assert_eq!(shares.group("v", "$share/g/x"), GroupKeep::Unkept);
         // A DISCONNECT makes "b" never expire.
         assert_eq!(shares.ended("/", "b", None), [g()]);
+        assert_eq!(shares.settle_batch(), (vec![g()], false));
         assert_eq!(group(&shares), GroupKeep::Kept(None));
         assert_eq!(GroupKeep::Kept(None).queue_expires(), None);
         // "b" starts clean, "a" unsubscribes: no persistent member left.
@@ -781,10 +860,18 @@ mod tests {
         assert_eq!(shares.group("/", "$share/g/2"), GroupKeep::Kept(Some(60)));
         shares.ended("/", "a", Some(60));
         assert_eq!(shares.resume("/", "a").0.len(), 2);
-        // Rejoined with ten seconds: both groups follow.
+        // Rejoined with ten seconds: its group follows, and the other
+        // once settled (rejoining it moves nothing by itself).
         let (changed, _) = keep("$share/g/1", Some(10));
-        assert!(changed.contains(&("/".into(), "$share/g/1".into())));
-        assert!(changed.contains(&("/".into(), "$share/g/2".into())));
+        assert_eq!(changed, [("/".into(), "$share/g/1".into())]);
+        let (changed, _) = keep("$share/g/2", Some(10));
+        assert_eq!(changed, [("/".into(), "$share/g/2".into())]);
+        assert_eq!(shares.group("/", "$share/g/2"), GroupKeep::Kept(Some(60)));
+        let (moved, more) = shares.settle_batch();
+        assert_eq!(
+            (moved, more),
+            (vec![("/".into(), "$share/g/2".into())], false)
+        );
         let ten = GroupKeep::Kept(Some(10));
         assert_eq!(shares.group("/", "$share/g/1"), ten);
         assert_eq!(shares.group("/", "$share/g/2"), ten);
@@ -953,6 +1040,62 @@ mod tests {
             .map(|(swept, _, more)| (swept, more))
             .collect();
         assert_eq!(swept, [(1, true), (1, true), (1, false), (0, false)]);
+    }
+
+    #[test]
+    fn an_expiry_change_moves_a_bounded_number_of_subscriptions_under_one_hold() {
+        let shares = Shares::new(&[], None);
+        let one = options(QoS::AtLeastOnce);
+        let filter = |n: usize| format!("$share/g{n}/x");
+        let count = 2 * SETTLE_RECORDS + 10;
+        for n in 0..count {
+            assert!(shares.keep(("/", "a"), &filter(n), one, Some(60)).1);
+        }
+        // A DISCONNECT's new interval: the end itself moves none.
+        assert_eq!(shares.ended("/", "a", Some(3600)).len(), count);
+        let last = filter(count - 1);
+        assert_eq!(shares.group("/", &last), GroupKeep::Kept(Some(60)));
+        let batches: Vec<(usize, bool)> = (0..4)
+            .map(|_| shares.settle_batch())
+            .map(|(moved, more)| (moved.len(), more))
+            .collect();
+        let full = SETTLE_RECORDS;
+        assert_eq!(
+            batches,
+            [(full, true), (full, true), (10, false), (0, false)]
+        );
+        assert_eq!(shares.group("/", &last), GroupKeep::Kept(Some(3600)));
+        // Resumed with another interval: the same, from the first keep.
+        shares.resume("/", "a");
+        let (changed, _) = shares.keep(("/", "a"), &filter(0), one, Some(10));
+        assert_eq!(changed.len(), 1);
+        assert_eq!(shares.settle_batch().0.len(), full);
+        assert_eq!(shares.group("/", &last), GroupKeep::Kept(Some(3600)));
+        while shares.settle_batch().1 {}
+        assert_eq!(shares.group("/", &last), GroupKeep::Kept(Some(10)));
+        // Each left its old group: forgetting the session unkeeps them all.
+        assert_eq!(shares.forget("/", "a").len(), count);
+        assert!(shares.lock().groups.is_empty());
+    }
+
+    #[test]
+    fn a_session_recovered_half_moved_is_moved_on() {
+        // A crash between two batches of a move from 60 s to an hour.
+        let record = |filter: &str, session_expiry| MetaRecord::SharedSubscription {
+            vhost: "/".into(),
+            client_id: "c".into(),
+            filter: filter.into(),
+            qos: 1,
+            retain_as_published: false,
+            subscription_id: 0,
+            session_expiry,
+        };
+        let records = [record("$share/g/1", 60), record("$share/g/2", 3600)];
+        let shares = Shares::new(&records, None);
+        assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(60)));
+        let g1 = ("/".to_owned(), "$share/g/1".to_owned());
+        assert_eq!(shares.settle_batch(), (vec![g1], false));
+        assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(3600)));
     }
 
     #[test]

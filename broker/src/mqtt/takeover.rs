@@ -1,36 +1,24 @@
 //! Client-identifier takeover: at most one session per client identifier
 //! and vhost. A CONNECT with an identifier in use asks the session holding
 //! it to close and waits until it has ended (its AMQP link cleaned up, so
-//! its exclusive subscription queues are gone) before going on. The map
-//! lock is held for one insert or remove, never across an await. If it
-//! has not ended in time the new session goes on and the old one's claim
-//! is abandoned: what the old one then does at its end to the state a
-//! session keeps ([`Claim::unless_abandoned`]) is skipped, as the new
-//! session owns it now.
+//! its exclusive subscription queues are gone) before going on, at most
+//! the handshake timeout. The map lock is held for one insert or remove,
+//! never across an await. If it has not ended in time the new session
+//! goes on and the old one's claim is abandoned: the old one's end then
+//! only closes its socket and its link ([`Claim::abandoned`]); every
+//! other effect of its end (the state a session keeps, its queues' expiry
+//! or deletion, its will: [`Claim::unless_abandoned`]) is skipped, as the
+//! new session owns the session now.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{watch, Notify};
 
-/// How long a new session waits for the one it takes over to end.
-const TAKEOVER_WAIT: Duration = Duration::from_secs(10);
-
 /// The sessions open on a broker's MQTT listeners, by vhost and client id.
-#[derive(Debug)]
+#[derive(Debug, Default)]
 pub(crate) struct ClientIds {
     open: Mutex<HashMap<(String, String), Arc<Holder>>>,
-    /// How long a takeover waits ([`TAKEOVER_WAIT`]).
-    wait: Duration,
-}
-
-impl Default for ClientIds {
-    fn default() -> Self {
-        ClientIds {
-            open: Mutex::default(),
-            wait: TAKEOVER_WAIT,
-        }
-    }
 }
 
 /// A session's hold on its client identifier.
@@ -55,8 +43,13 @@ pub(super) struct Claim {
 
 impl ClientIds {
     /// Claims `client_id` in `vhost`, closing the session that held it
-    /// and waiting (bounded) for it to end.
-    pub(super) async fn claim(self: &Arc<Self>, vhost: &str, client_id: &str) -> Claim {
+    /// and waiting for it to end, at most `wait`.
+    pub(super) async fn claim(
+        self: &Arc<Self>,
+        vhost: &str,
+        client_id: &str,
+        wait: Duration,
+    ) -> Claim {
         let key = (vhost.to_owned(), client_id.to_owned());
         let holder = Arc::new(Holder {
             kick: Notify::new(),
@@ -67,7 +60,7 @@ impl ClientIds {
         if let Some(previous) = previous {
             let mut ended = previous.ended.subscribe();
             previous.kick.notify_one();
-            let waited = tokio::time::timeout(self.wait, ended.wait_for(|e| *e)).await;
+            let waited = tokio::time::timeout(wait, ended.wait_for(|e| *e)).await;
             if waited.is_err() {
                 tracing::warn!(client_id, vhost, "session taken over did not end in time");
                 // Waits for an `unless_abandoned` under way.
@@ -96,8 +89,15 @@ impl Claim {
         self.holder.kick.notified().await;
     }
 
-    /// Runs `keep` (the session's end storing or forgetting the state it
-    /// keeps) unless a session taking the identifier over has stopped
+    /// Whether a session taking the identifier over has stopped waiting
+    /// for this one: its end then closes its socket and link and does
+    /// nothing else.
+    pub(super) fn abandoned(&self) -> bool {
+        *lock(&self.holder.abandoned)
+    }
+
+    /// Runs `keep` (the session's end: the state it keeps stored or
+    /// forgotten, its queues' expiry, its will taken) unless a session taking the identifier over has stopped
     /// waiting for this one (then that one has resumed the state already:
     /// `None`); a takeover's timeout waits until `keep` has returned.
     pub(super) fn unless_abandoned<T>(&self, keep: impl FnOnce() -> T) -> Option<T> {
@@ -126,23 +126,23 @@ mod tests {
 
     #[tokio::test]
     async fn a_session_taken_over_after_the_wait_keeps_nothing_at_its_end() {
-        let ids = Arc::new(ClientIds {
-            open: Mutex::default(),
-            wait: Duration::from_millis(20),
-        });
+        let ids = Arc::new(ClientIds::default());
+        let wait = Duration::from_millis(20);
         // Ended within the wait: its end keeps its state.
-        let first = ids.claim("/", "c").await;
+        let first = ids.claim("/", "c", wait).await;
         let taking = tokio::spawn({
             let ids = Arc::clone(&ids);
-            async move { ids.claim("/", "c").await }
+            async move { ids.claim("/", "c", wait).await }
         });
         tokio::task::yield_now().await;
         assert_eq!(first.unless_abandoned(|| 1), Some(1));
+        assert!(!first.abandoned());
         drop(first);
         let second = taking.await.expect("claimed");
         // Not ended within the wait: the new session goes on, and the old
         // one's end keeps nothing.
-        let third = ids.claim("/", "c").await;
+        let third = ids.claim("/", "c", wait).await;
+        assert!(second.abandoned());
         assert_eq!(second.unless_abandoned(|| 2), None);
         assert_eq!(third.unless_abandoned(|| 3), Some(3));
     }

@@ -159,19 +159,20 @@ impl Wills {
     }
 }
 
-/// Publishes `will`, of the session of `client_id`, after `delay`; at
-/// once (awaited, so that the session ends after it, as a broker shutting
-/// down waits for its sessions) if the delay is zero or too many wait.
-pub(super) async fn publish_after(
+/// Schedules `will`, of the session of `client_id`, to be published after
+/// `delay`; the will back if it is to be published now ([`publish`]: the
+/// delay is zero or too many wait), which the caller awaits so that the
+/// session ends after it, as a broker shutting down waits for its
+/// sessions. Never waits, so a session's end can decide it under its claim.
+pub(super) fn schedule(
     shared: &Arc<Shared>,
     core: &Arc<Core>,
     client_id: &str,
     will: LastWill,
     delay: Duration,
-) {
+) -> Option<LastWill> {
     if delay.is_zero() {
-        publish(shared, core, will).await;
-        return;
+        return Some(will);
     }
     let key = (will.vhost.clone(), client_id.to_owned());
     let (fate, decided) = oneshot::channel();
@@ -180,8 +181,7 @@ pub(super) async fn publish_after(
             client_id,
             "more delayed MQTT wills than the broker keeps waiting; published now"
         );
-        publish(shared, core, will).await;
-        return;
+        return Some(will);
     };
     let shared_ = Arc::clone(shared);
     let core_ = Arc::clone(core);
@@ -197,11 +197,12 @@ pub(super) async fn publish_after(
             publish(&shared_, &core_, will).await;
         }
     });
+    None
 }
 
 /// Publishes a will now, as its user (a refusal, such as no write
 /// permission on the topic or a resource alarm, is logged).
-async fn publish(shared: &Shared, core: &Arc<Core>, mut will: LastWill) {
+pub(super) async fn publish(shared: &Shared, core: &Arc<Core>, mut will: LastWill) {
     let topic = will.topic.as_str();
     let Some(key) = mapping::routing_key(topic) else {
         return;

@@ -275,8 +275,8 @@ fn meta_value(record: &MetaRecord) -> Vec<u8> {
         }
         MetaRecord::Unreleased { session_expiry, .. } => {
             // Records written before sessions' expiry was kept have none.
-            if *session_expiry != u32::MAX {
-                buf.put_u32(*session_expiry);
+            if let Some(seconds) = session_expiry {
+                buf.put_u32(*seconds);
             }
         }
         MetaRecord::SharedSubscription {
@@ -374,8 +374,8 @@ fn decode_meta(key: &[u8], value: &mut Bytes) -> Result<MetaRecord, StoreError> 
                 _ => return Err(corrupt("MQTT packet identifier")),
             },
             session_expiry: match value.len() {
-                0 => u32::MAX,
-                4.. => value.get_u32(),
+                0 => None,
+                4.. => Some(value.get_u32()),
                 _ => return Err(corrupt("MQTT session expiry")),
             },
         },
@@ -889,13 +889,19 @@ mod tests {
                 vhost: "/".into(),
                 client_id: "sensor\0-1".into(),
                 packet_id: 65_535,
-                session_expiry: u32::MAX,
+                session_expiry: Some(u32::MAX),
             },
             MetaRecord::Unreleased {
                 vhost: "/".into(),
                 client_id: "sensor-2".into(),
                 packet_id: 1,
-                session_expiry: 3600,
+                session_expiry: Some(3600),
+            },
+            MetaRecord::Unreleased {
+                vhost: "/".into(),
+                client_id: "sensor-3".into(),
+                packet_id: 2,
+                session_expiry: None,
             },
             MetaRecord::SharedSubscription {
                 vhost: "/".into(),

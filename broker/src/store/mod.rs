@@ -324,9 +324,9 @@ pub enum MetaRecord {
         /// The publish's packet identifier (not 0).
         packet_id: u16,
         /// The session's Session Expiry Interval in seconds (`u32::MAX`:
-        /// never, as records written before it was kept read), so the
-        /// record expires with the session, after a restart too.
-        session_expiry: u32,
+        /// never), so the record expires with the session, after a restart
+        /// too; `None` in a record written before it was kept.
+        session_expiry: Option<u32>,
     },
     /// A shared subscription a persistent MQTT session holds (the `mqtt`
     /// front end's).
