@@ -109,6 +109,12 @@ pub(super) struct ClientCertificate {
 
 /// Serves one MQTT connection over `socket` (TCP, TLS or WebSocket)
 /// until it closes.
+///
+/// The phases before and after the session's loop (the CONNECT, the
+/// login, the link's close, the will, the shared groups' update) run as
+/// boxed futures: the session's future holds, through the hours an idle
+/// session may wait, only the loop's state, not room for the largest of
+/// those (issue 32's idle memory; they run once a connection).
 pub(super) async fn serve<S: ClientStream>(
     core: Arc<Core>,
     socket: S,
@@ -123,7 +129,7 @@ pub(super) async fn serve<S: ClientStream>(
     let mut buf = BytesMut::with_capacity(READ_IDLE);
     let mut shutdown = core.shutdown_signal();
     let first = tokio::select! {
-        first = tokio::time::timeout_at(deadline, read_connect(&mut socket, &mut buf)) => first,
+        first = Box::pin(tokio::time::timeout_at(deadline, read_connect(&mut socket, &mut buf))) => first,
         _ = shutdown.wait_for(|down| *down) => return,
     };
     let connect = match first {
@@ -138,13 +144,13 @@ pub(super) async fn serve<S: ClientStream>(
         }
     };
     let version = connect.version;
-    let admitted = admit(
+    let admitted = Box::pin(admit(
         &core,
         (&*connect, &origin, traffic),
         slot,
         deadline,
         &shared,
-    );
+    ));
     let accepted = match admitted.await {
         Ok(accepted) => accepted,
         Err(reason) => {
@@ -156,7 +162,7 @@ pub(super) async fn serve<S: ClientStream>(
                 properties: Default::default(),
             });
             if connack.encode(version, &mut out).is_ok() {
-                let _ = write_out(&mut socket, &out).await;
+                let _ = Box::pin(write_out(&mut socket, &out)).await;
             }
             return;
         }
@@ -228,20 +234,20 @@ pub(super) async fn serve<S: ClientStream>(
     } else {
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
-    link.close(disconnected).await;
+    Box::pin(link.close(disconnected)).await;
     if session.lifetime != lifetime && session.lifetime != Lifetime::Connection {
         // A DISCONNECT changed the expiry: the queues follow, now that
         // the link has declared every one of them.
         session.follow_expiry(&core);
     }
     if let Some(will) = will {
-        wills::publish_after(
+        Box::pin(wills::publish_after(
             &shared,
             &core,
             &session.client_id,
             will,
             session.will_delay_left(),
-        )
+        ))
         .await;
     }
     // Skipped if a session taking over stopped waiting for this one: it
@@ -262,9 +268,7 @@ pub(super) async fn serve<S: ClientStream>(
             shared.shares.forget(&session.vhost, &session.client_id)
         }
     });
-    (shared.shares)
-        .apply_yielding(&core, groups.unwrap_or_default())
-        .await;
+    Box::pin((shared.shares).apply_yielding(&core, groups.unwrap_or_default())).await;
     drop(claim);
 }
 
@@ -811,7 +815,8 @@ impl Session {
                         break;
                     }
                     Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => {
-                        return self.finish(socket, link, closed("link ended", None)).await;
+                        let stop = closed("link ended", None);
+                        return Box::pin(self.finish(socket, link, stop)).await;
                     }
                 }
             }
@@ -877,7 +882,8 @@ impl Session {
                 }
             }
         };
-        self.finish(socket, link, stop).await
+        // Boxed, as the phases around the loop are (see `serve`).
+        Box::pin(self.finish(socket, link, stop)).await
     }
 
     /// Whether the session holds more room than an idle one needs: a read
