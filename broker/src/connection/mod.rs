@@ -342,8 +342,10 @@ struct Connection {
     vhost: Option<Arc<Vhost>>,
     /// Looked up per frame: hashed by a multiply, not SipHash (which
     /// showed in profiles under load); see `word_hash` for why a peer's
-    /// channel numbers are safe keys for it.
-    channels: WordHashMap<u16, Channel>,
+    /// channel numbers are safe keys for it. Boxed: the map keeps room for
+    /// a few entries, and a channel is large (some 650 bytes), so a
+    /// connection with one channel would hold room for three more.
+    channels: WordHashMap<u16, Box<Channel>>,
     /// Channels the client closed (`channel.close`, already answered and
     /// removed) in the batch of buffered frames being handled: what it
     /// sent on them behind the close in that batch is discarded, as
@@ -487,7 +489,8 @@ impl Connection {
                 // Frames already read finish the message they belong to
                 // (its bytes are held either way); the block starts
                 // between messages, or when the buffer runs out.
-                if self.must_block() && !self.channels.values().any(Channel::is_receiving_content) {
+                let mut channels = self.channels.values();
+                if self.must_block() && !channels.any(|c| c.is_receiving_content()) {
                     break;
                 }
             }
@@ -514,12 +517,12 @@ impl Connection {
             self.wait_for_crowded_queues().await;
             // Not blocked, so no alarm was set when checked: a publisher
             // waits for one too, to be blocked (and told) at once.
-            let publisher = self.channels.values().any(Channel::has_published);
+            let publisher = self.channels.values().any(|c| c.has_published());
             let event = tokio::select! {
                 read = reader.fill() => Event::Read(read),
                 _ = alarms.changed(), if publisher => Event::Alarm,
                 _ = shutdown.wait_for(|down| *down) => Event::Shutdown,
-                _ = confirms_due(self.channels.values()) => Event::ConfirmsDue,
+                _ = confirms_due(self.channels.values().map(|c| &**c)) => Event::ConfirmsDue,
                 _ = &mut silence, if !silence_limit.is_zero() => Event::Silent,
                 _ = &mut release, if reader.holds_spare() => Event::Idle,
             };
@@ -557,7 +560,7 @@ impl Connection {
         let crowded: Vec<Arc<crate::queue::Queue>> = self
             .channels
             .values_mut()
-            .filter_map(Channel::take_crowded)
+            .filter_map(|c| c.take_crowded())
             .collect();
         for queue in crowded {
             let _ = tokio::time::timeout(FLOW_WAIT, queue.uncrowded()).await;
@@ -567,7 +570,7 @@ impl Connection {
     /// Whether a resource alarm (memory or disk) is set and this
     /// connection publishes.
     fn must_block(&self) -> bool {
-        self.core.gauge.in_alarm() && self.channels.values().any(Channel::has_published)
+        self.core.gauge.in_alarm() && self.channels.values().any(|c| c.has_published())
     }
 
     /// Resource alarm: stop reading until it clears, telling the client if it
@@ -598,7 +601,7 @@ impl Connection {
                 _ = reader.hung_up() => break Unblocked::PeerGone,
                 // The writer holds the only heartbeat receiver until it ends.
                 _ = heartbeat_tx.closed() => break Unblocked::PeerGone,
-                _ = confirms_due(self.channels.values()) => {}
+                _ = confirms_due(self.channels.values().map(|c| &**c)) => {}
             }
             self.flush_confirms().await;
         };
@@ -672,7 +675,7 @@ impl Connection {
                     self.user.clone(),
                     self.copy_below,
                 );
-                self.channels.insert(channel_id, channel);
+                self.channels.insert(channel_id, Box::new(channel));
                 self.closed_this_batch.remove(&channel_id);
                 let open_ok = leveret_protocol::ChannelOpenOk {
                     channel_id: Bytes::new(),
