@@ -184,8 +184,8 @@ pub(super) async fn serve<S: ClientStream>(
         .as_ref()
         .and_then(|w| w.properties.will_delay_interval)
         .map_or(Duration::ZERO, |s| Duration::from_secs(s.into()));
-    let will =
-        (connect.will.clone()).map(|will| LastWill::new(will, &vhost, &user, version.is_v5()));
+    let will = (connect.will.clone())
+        .map(|will| Box::new(LastWill::new(will, &vhost, &user, version.is_v5())));
     let mut session = Session {
         version,
         client_id,
@@ -245,7 +245,7 @@ pub(super) async fn serve<S: ClientStream>(
             &shared,
             &core,
             &session.client_id,
-            will,
+            *will,
             session.will_delay_left(),
         ))
         .await;
@@ -520,7 +520,8 @@ struct Session {
     max_packet: u32,
     /// The largest packet a 5.0 client accepts.
     client_max_packet: Option<u32>,
-    will: Option<LastWill>,
+    /// Boxed: most sessions have none, and a will is some 500 bytes.
+    will: Option<Box<LastWill>>,
     /// The will's delay (5.0's Will Delay Interval).
     will_delay: Duration,
     /// Inbound topic aliases.
@@ -601,7 +602,7 @@ struct Ended {
     /// The client ended it with DISCONNECT.
     disconnected: bool,
     /// The will to publish.
-    will: Option<LastWill>,
+    will: Option<Box<LastWill>>,
 }
 
 /// Why the loop stopped.
