@@ -561,9 +561,15 @@ mod tests {
         for method in [ack.into(), nack.into(), cancel.into()] {
             let item = Outbound::method(3, Method::clone(&method));
             let confirm = matches!(method, Method::BasicAck(_) | Method::BasicNack(_));
-            assert_eq!(matches!(item, Outbound::Ack { .. } | Outbound::Nack { .. }), confirm);
+            assert_eq!(
+                matches!(item, Outbound::Ack { .. } | Outbound::Nack { .. }),
+                confirm
+            );
             match item.framed() {
-                Framed::Method { channel: 3, method: framed } => assert_eq!(framed, method),
+                Framed::Method {
+                    channel: 3,
+                    method: framed,
+                } => assert_eq!(framed, method),
                 other => panic!("framed as {other:?}"),
             }
         }
