@@ -208,8 +208,8 @@ async fn serve_frames<S: FrameSource, K: Sink>(
     // RabbitMQ's handshake_timeout runs from the connection's start to
     // connection.open-ok.
     let handshake_deadline = Instant::now() + core.limits.handshake_timeout;
-    let header =
-        handshake::protocol_header(&core, handshake_deadline, &peer, &mut reader, sink).await;
+    let header = handshake::protocol_header(&core, handshake_deadline, &peer, &mut reader, sink);
+    let header = Box::pin(header).await;
     let Some(sink) = header else {
         return;
     };
@@ -409,12 +409,12 @@ impl Connection {
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
         handshake_deadline: Instant,
     ) -> Result<(), Ended> {
-        match self
-            .handshake(reader, heartbeat_tx, handshake_deadline)
-            .await
-        {
+        // The handshake and a close (once a connection each) are boxed
+        // futures, so that the connection's future holds no room for them
+        // through the hours an idle connection may wait.
+        match Box::pin(self.handshake(reader, heartbeat_tx, handshake_deadline)).await {
             Ok(()) => {}
-            Err(Ended::Protocol(error)) => return self.close_with(reader, error).await,
+            Err(Ended::Protocol(error)) => return Box::pin(self.close_with(reader, error)).await,
             Err(e) => return Err(e),
         }
         self.log_open();
@@ -447,7 +447,7 @@ impl Connection {
                             let (class_id, method_id) = e.method_ids();
                             let error =
                                 AmqpError::new(e.reply_code(), &e).during_ids(class_id, method_id);
-                            return self.close_with(reader, error).await;
+                            return Box::pin(self.close_with(reader, error)).await;
                         }
                     },
                 };
@@ -484,7 +484,7 @@ impl Connection {
                         let _ = tokio::time::timeout(CLOSE_TIMEOUT, drain).await;
                         return Ok(());
                     }
-                    Err(error) => return self.close_with(reader, error).await,
+                    Err(error) => return Box::pin(self.close_with(reader, error)).await,
                 }
                 // Frames already read finish the message they belong to
                 // (its bytes are held either way); the block starts
@@ -510,7 +510,7 @@ impl Connection {
                     Unblocked::ShuttingDown => {
                         let error =
                             AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
-                        return self.close_with(reader, error).await;
+                        return Box::pin(self.close_with(reader, error)).await;
                     }
                 }
             }
@@ -546,7 +546,7 @@ impl Connection {
                 Event::Shutdown => {
                     let reason = self.core.registry.close_reason(self.connection_id);
                     let error = AmqpError::new(ReplyCode::ConnectionForced, reason);
-                    return self.close_with(reader, error).await;
+                    return Box::pin(self.close_with(reader, error)).await;
                 }
             }
         }
