@@ -220,6 +220,9 @@ pub(super) async fn serve<S: ClientStream>(
     session.connack(assigned, session_present);
     tracing::debug!(%peer, client_id = %session.client_id, ?version, "MQTT session open");
     let keepalive = Duration::from_millis(u64::from(connect.keep_alive) * 1500);
+    // Its strings are slices of the first read buffer: kept, they would
+    // keep that buffer alive for the whole session.
+    drop(connect);
     let end = session
         .run(&core, &mut socket, buf, link, &claim, keepalive)
         .await;
