@@ -30,11 +30,12 @@ static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 const SESSIONS: usize = 200;
 /// The live heap an idle session with one subscription may hold, the
 /// client's end of its socket in this process included. A debug build
-/// holds about 26 KiB (its futures are larger than a release build's)
-/// since the session's rare phases are boxed futures, the outbox's items
-/// small, and the AMQP connection's channels and the session's will
-/// boxed; 39 KiB before that, and 103 KiB before the sessions gave their
-/// read buffers back when idle: this bound refuses both.
+/// holds about 25 KiB (its futures are larger than a release build's)
+/// since the rare phases of the session and of its AMQP connection are
+/// boxed futures, the outbox's items small, the connection's channels and
+/// the session's will boxed, and the CONNECT no longer kept; 39 KiB before
+/// that, and 103 KiB before the sessions gave their read buffers back when
+/// idle: this bound refuses both.
 const PER_SESSION_CAP: usize = 36 * 1024;
 
 /// The system allocator, counting the bytes it holds live for this
