@@ -15,21 +15,41 @@
 
 use crate::message::Message;
 use bytes::Bytes;
-use leveret_protocol::{BasicDeliver, BasicGetOk, BasicReturn, Method, ShortStr};
+use leveret_protocol::{
+    BasicAck, BasicDeliver, BasicGetOk, BasicNack, BasicReturn, Method, ShortStr,
+};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
 use tokio::sync::mpsc;
 
-/// One item for the writer to encode.
+/// One item for the writer to encode. Small (its largest variant is a
+/// delivery's): the outbox's channel reserves room for 32 items at once
+/// for every connection, idle or not, so a rare method, up to 136 bytes,
+/// is boxed and the frequent one, a publisher confirm, is a variant of its
+/// own ([`Outbound::method`] picks).
 #[derive(Debug)]
 pub enum Outbound {
-    /// A method without content.
+    /// A method without content, other than a confirm.
     Method {
         /// Channel number.
         channel: u16,
         /// The method.
-        method: Method,
+        method: Box<Method>,
+    },
+    /// basic.ack: a publisher confirm.
+    Ack {
+        /// Channel number.
+        channel: u16,
+        /// The method.
+        ack: BasicAck,
+    },
+    /// basic.nack: a publisher's message not confirmed.
+    Nack {
+        /// Channel number.
+        channel: u16,
+        /// The method.
+        nack: BasicNack,
     },
     /// basic.deliver with its content.
     Deliver {
@@ -99,10 +119,33 @@ pub enum Framed {
 }
 
 impl Outbound {
+    /// A method without content, as its variant carries it.
+    pub fn method(channel: u16, method: Method) -> Outbound {
+        match method {
+            Method::BasicAck(ack) => Outbound::Ack { channel, ack },
+            Method::BasicNack(nack) => Outbound::Nack { channel, nack },
+            method => Outbound::Method {
+                channel,
+                method: Box::new(method),
+            },
+        }
+    }
+
     /// The item as AMQP frames it.
     pub fn framed(self) -> Framed {
         match self {
-            Outbound::Method { channel, method } => Framed::Method { channel, method },
+            Outbound::Method { channel, method } => Framed::Method {
+                channel,
+                method: *method,
+            },
+            Outbound::Ack { channel, ack } => Framed::Method {
+                channel,
+                method: Method::BasicAck(ack),
+            },
+            Outbound::Nack { channel, nack } => Framed::Method {
+                channel,
+                method: Method::BasicNack(nack),
+            },
             Outbound::Shutdown => Framed::Shutdown,
             Outbound::Deliver {
                 channel,
@@ -309,11 +352,7 @@ impl Outbox {
 
     /// Sends a method on a channel.
     pub async fn method(&self, channel: u16, method: impl Into<Method>) {
-        self.send(Outbound::Method {
-            channel,
-            method: method.into(),
-        })
-        .await;
+        self.send(Outbound::method(channel, method.into())).await;
     }
 
     /// Waits for room for one item; `None` if the writer is gone.
@@ -400,14 +439,12 @@ impl Outbox {
     /// sent before; whether it took it.
     fn confirm_inline(&self, item: &Outbound) -> bool {
         let (channel, tag, multiple, ack) = match item {
-            Outbound::Method {
-                channel,
-                method: Method::BasicAck(ack),
-            } if *channel != 0 => (*channel, ack.delivery_tag, ack.multiple, true),
-            Outbound::Method {
-                channel,
-                method: Method::BasicNack(nack),
-            } if *channel != 0 => (*channel, nack.delivery_tag, nack.multiple, false),
+            Outbound::Ack { channel, ack } if *channel != 0 => {
+                (*channel, ack.delivery_tag, ack.multiple, true)
+            }
+            Outbound::Nack { channel, nack } if *channel != 0 => {
+                (*channel, nack.delivery_tag, nack.multiple, false)
+            }
             _ => return false,
         };
         let Some(inline) = self.inline.get() else {
@@ -502,6 +539,41 @@ mod tests {
     fn waiter() -> (Arc<Waiter>, Arc<AtomicU64>) {
         let woken = Arc::new(AtomicU64::new(0));
         (Arc::new(Waiter(Arc::clone(&woken))), woken)
+    }
+
+    /// Confirms travel inline, other methods boxed, and come out as the
+    /// methods they were; an item stays as small as a delivery.
+    #[test]
+    fn a_method_item_frames_as_the_method_it_was_and_items_stay_small() {
+        let ack = BasicAck {
+            delivery_tag: 7,
+            multiple: true,
+        };
+        let nack = BasicNack {
+            delivery_tag: 8,
+            multiple: false,
+            requeue: false,
+        };
+        let cancel = leveret_protocol::BasicCancel {
+            consumer_tag: ShortStr::from_static("c"),
+            no_wait: true,
+        };
+        for method in [ack.into(), nack.into(), cancel.into()] {
+            let item = Outbound::method(3, Method::clone(&method));
+            let confirm = matches!(method, Method::BasicAck(_) | Method::BasicNack(_));
+            assert_eq!(
+                matches!(item, Outbound::Ack { .. } | Outbound::Nack { .. }),
+                confirm
+            );
+            match item.framed() {
+                Framed::Method {
+                    channel: 3,
+                    method: framed,
+                } => assert_eq!(framed, method),
+                other => panic!("framed as {other:?}"),
+            }
+        }
+        assert!(std::mem::size_of::<Outbound>() <= 64);
     }
 
     #[test]

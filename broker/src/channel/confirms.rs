@@ -183,7 +183,7 @@ mod tests {
     use crate::access::permissions::{Permission, Permissions};
     use crate::channel::WholePublish;
     use crate::core::{Core, CoreOptions, Limits};
-    use crate::outbox::{Outbound, Outbox};
+    use crate::outbox::{Framed, Outbound, Outbox};
     use crate::parameters::Parameters;
     use crate::queue::QueueOptions;
     use crate::store::{Persistence, Recovered, Store};
@@ -256,8 +256,8 @@ mod tests {
 
     fn sent(inbox: &mut mpsc::Receiver<Outbound>) -> Vec<Method> {
         std::iter::from_fn(|| inbox.try_recv().ok())
-            .filter_map(|item| match item {
-                Outbound::Method { method, .. } => Some(method),
+            .filter_map(|item| match item.framed() {
+                Framed::Method { method, .. } => Some(method),
                 _ => None,
             })
             .collect()

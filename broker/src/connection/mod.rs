@@ -208,8 +208,8 @@ async fn serve_frames<S: FrameSource, K: Sink>(
     // RabbitMQ's handshake_timeout runs from the connection's start to
     // connection.open-ok.
     let handshake_deadline = Instant::now() + core.limits.handshake_timeout;
-    let header =
-        handshake::protocol_header(&core, handshake_deadline, &peer, &mut reader, sink).await;
+    let header = handshake::protocol_header(&core, handshake_deadline, &peer, &mut reader, sink);
+    let header = Box::pin(header).await;
     let Some(sink) = header else {
         return;
     };
@@ -342,8 +342,10 @@ struct Connection {
     vhost: Option<Arc<Vhost>>,
     /// Looked up per frame: hashed by a multiply, not SipHash (which
     /// showed in profiles under load); see `word_hash` for why a peer's
-    /// channel numbers are safe keys for it.
-    channels: WordHashMap<u16, Channel>,
+    /// channel numbers are safe keys for it. Boxed: the map keeps room for
+    /// a few entries, and a channel is large (some 650 bytes), so a
+    /// connection with one channel would hold room for three more.
+    channels: WordHashMap<u16, Box<Channel>>,
     /// Channels the client closed (`channel.close`, already answered and
     /// removed) in the batch of buffered frames being handled: what it
     /// sent on them behind the close in that batch is discarded, as
@@ -407,12 +409,12 @@ impl Connection {
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
         handshake_deadline: Instant,
     ) -> Result<(), Ended> {
-        match self
-            .handshake(reader, heartbeat_tx, handshake_deadline)
-            .await
-        {
+        // The handshake and a close (once a connection each) are boxed
+        // futures, so that the connection's future holds no room for them
+        // through the hours an idle connection may wait.
+        match Box::pin(self.handshake(reader, heartbeat_tx, handshake_deadline)).await {
             Ok(()) => {}
-            Err(Ended::Protocol(error)) => return self.close_with(reader, error).await,
+            Err(Ended::Protocol(error)) => return Box::pin(self.close_with(reader, error)).await,
             Err(e) => return Err(e),
         }
         self.log_open();
@@ -445,7 +447,7 @@ impl Connection {
                             let (class_id, method_id) = e.method_ids();
                             let error =
                                 AmqpError::new(e.reply_code(), &e).during_ids(class_id, method_id);
-                            return self.close_with(reader, error).await;
+                            return Box::pin(self.close_with(reader, error)).await;
                         }
                     },
                 };
@@ -482,12 +484,13 @@ impl Connection {
                         let _ = tokio::time::timeout(CLOSE_TIMEOUT, drain).await;
                         return Ok(());
                     }
-                    Err(error) => return self.close_with(reader, error).await,
+                    Err(error) => return Box::pin(self.close_with(reader, error)).await,
                 }
                 // Frames already read finish the message they belong to
                 // (its bytes are held either way); the block starts
                 // between messages, or when the buffer runs out.
-                if self.must_block() && !self.channels.values().any(Channel::is_receiving_content) {
+                let mut channels = self.channels.values();
+                if self.must_block() && !channels.any(|c| c.is_receiving_content()) {
                     break;
                 }
             }
@@ -507,19 +510,19 @@ impl Connection {
                     Unblocked::ShuttingDown => {
                         let error =
                             AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
-                        return self.close_with(reader, error).await;
+                        return Box::pin(self.close_with(reader, error)).await;
                     }
                 }
             }
             self.wait_for_crowded_queues().await;
             // Not blocked, so no alarm was set when checked: a publisher
             // waits for one too, to be blocked (and told) at once.
-            let publisher = self.channels.values().any(Channel::has_published);
+            let publisher = self.channels.values().any(|c| c.has_published());
             let event = tokio::select! {
                 read = reader.fill() => Event::Read(read),
                 _ = alarms.changed(), if publisher => Event::Alarm,
                 _ = shutdown.wait_for(|down| *down) => Event::Shutdown,
-                _ = confirms_due(self.channels.values()) => Event::ConfirmsDue,
+                _ = confirms_due(self.channels.values().map(|c| &**c)) => Event::ConfirmsDue,
                 _ = &mut silence, if !silence_limit.is_zero() => Event::Silent,
                 _ = &mut release, if reader.holds_spare() => Event::Idle,
             };
@@ -543,7 +546,7 @@ impl Connection {
                 Event::Shutdown => {
                     let reason = self.core.registry.close_reason(self.connection_id);
                     let error = AmqpError::new(ReplyCode::ConnectionForced, reason);
-                    return self.close_with(reader, error).await;
+                    return Box::pin(self.close_with(reader, error)).await;
                 }
             }
         }
@@ -557,7 +560,7 @@ impl Connection {
         let crowded: Vec<Arc<crate::queue::Queue>> = self
             .channels
             .values_mut()
-            .filter_map(Channel::take_crowded)
+            .filter_map(|c| c.take_crowded())
             .collect();
         for queue in crowded {
             let _ = tokio::time::timeout(FLOW_WAIT, queue.uncrowded()).await;
@@ -567,7 +570,7 @@ impl Connection {
     /// Whether a resource alarm (memory or disk) is set and this
     /// connection publishes.
     fn must_block(&self) -> bool {
-        self.core.gauge.in_alarm() && self.channels.values().any(Channel::has_published)
+        self.core.gauge.in_alarm() && self.channels.values().any(|c| c.has_published())
     }
 
     /// Resource alarm: stop reading until it clears, telling the client if it
@@ -598,7 +601,7 @@ impl Connection {
                 _ = reader.hung_up() => break Unblocked::PeerGone,
                 // The writer holds the only heartbeat receiver until it ends.
                 _ = heartbeat_tx.closed() => break Unblocked::PeerGone,
-                _ = confirms_due(self.channels.values()) => {}
+                _ = confirms_due(self.channels.values().map(|c| &**c)) => {}
             }
             self.flush_confirms().await;
         };
@@ -672,7 +675,7 @@ impl Connection {
                     self.user.clone(),
                     self.copy_below,
                 );
-                self.channels.insert(channel_id, channel);
+                self.channels.insert(channel_id, Box::new(channel));
                 self.closed_this_batch.remove(&channel_id);
                 let open_ok = leveret_protocol::ChannelOpenOk {
                     channel_id: Bytes::new(),

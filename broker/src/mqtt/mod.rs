@@ -196,6 +196,9 @@ pub(crate) async fn accept_loop(
 
 /// The transport's handshake (TLS, WebSocket: each within the handshake
 /// timeout, which then starts again for the CONNECT), then the session.
+/// A TCP session's future is the task's own; a TLS or WebSocket one is a
+/// boxed future of its own size, so that a TCP session's task holds no
+/// room for a TLS stream or a handshake (issue 32's idle memory).
 async fn serve(
     core: Arc<Core>,
     socket: TcpStream,
@@ -204,55 +207,78 @@ async fn serve(
     transport: Transport,
     shared: Arc<Shared>,
 ) {
-    let timeout = core.limits.handshake_timeout;
     let port = socket.local_addr().map(|a| a.port()).unwrap_or_default();
-    let origin = |peer, certificate| session::Origin {
+    let origin = session::Origin {
         peer,
         port,
-        certificate,
+        certificate: None,
     };
     match transport {
-        Transport::Tcp => session::serve(core, socket, origin(peer, None), slot, shared).await,
+        Transport::Tcp => session::serve(core, socket, origin, slot, shared).await,
         #[cfg(feature = "tls")]
-        Transport::Tls(tls) => {
-            let handshake = tls.acceptor().accept(socket);
-            let stream = match tokio::time::timeout(timeout, handshake).await {
-                Ok(Ok(stream)) => stream,
-                Ok(Err(e)) => {
-                    tracing::info!(%peer, error = %e, "MQTT TLS handshake failed");
-                    return;
-                }
-                Err(_) => {
-                    tracing::warn!(%peer, "MQTT TLS handshake not completed within the handshake timeout");
-                    return;
-                }
-            };
-            let certificate = stream
-                .get_ref()
-                .1
-                .peer_certificates()
-                .and_then(|chain| chain.first())
-                .map(|certificate| session::ClientCertificate {
-                    common_name: crate::tls::common_name(certificate),
-                    subject: crate::tls::subject(certificate),
-                });
-            session::serve(core, stream, origin(peer, certificate), slot, shared).await;
-        }
+        Transport::Tls(tls) => Box::pin(serve_tls(core, socket, origin, slot, tls, shared)).await,
         Transport::WebSocket => {
-            let max_message = session::max_packet(&core.limits) as usize;
-            let handshake = websocket::accept(socket, max_message);
-            let stream = match tokio::time::timeout(timeout, handshake).await {
-                Ok(Ok(stream)) => stream,
-                Ok(Err(e)) => {
-                    tracing::info!(%peer, error = %e, "MQTT WebSocket handshake failed");
-                    return;
-                }
-                Err(_) => {
-                    tracing::warn!(%peer, "MQTT WebSocket handshake not completed within the handshake timeout");
-                    return;
-                }
-            };
-            session::serve(core, stream, origin(peer, None), slot, shared).await;
+            Box::pin(serve_websocket(core, socket, origin, slot, shared)).await;
         }
     }
+}
+
+/// The TLS handshake, then the session over the TLS stream.
+#[cfg(feature = "tls")]
+async fn serve_tls(
+    core: Arc<Core>,
+    socket: TcpStream,
+    mut origin: session::Origin,
+    slot: crate::admission::Slot,
+    tls: Arc<crate::tls::TlsContext>,
+    shared: Arc<Shared>,
+) {
+    let peer = &origin.peer;
+    let handshake = tls.acceptor().accept(socket);
+    let stream = match tokio::time::timeout(core.limits.handshake_timeout, handshake).await {
+        Ok(Ok(stream)) => stream,
+        Ok(Err(e)) => {
+            tracing::info!(%peer, error = %e, "MQTT TLS handshake failed");
+            return;
+        }
+        Err(_) => {
+            tracing::warn!(%peer, "MQTT TLS handshake not completed within the handshake timeout");
+            return;
+        }
+    };
+    origin.certificate = stream
+        .get_ref()
+        .1
+        .peer_certificates()
+        .and_then(|chain| chain.first())
+        .map(|certificate| session::ClientCertificate {
+            common_name: crate::tls::common_name(certificate),
+            subject: crate::tls::subject(certificate),
+        });
+    Box::pin(session::serve(core, stream, origin, slot, shared)).await;
+}
+
+/// The WebSocket handshake, then the session over the WebSocket stream.
+async fn serve_websocket(
+    core: Arc<Core>,
+    socket: TcpStream,
+    origin: session::Origin,
+    slot: crate::admission::Slot,
+    shared: Arc<Shared>,
+) {
+    let peer = &origin.peer;
+    let max_message = session::max_packet(&core.limits) as usize;
+    let handshake = websocket::accept(socket, max_message);
+    let stream = match tokio::time::timeout(core.limits.handshake_timeout, handshake).await {
+        Ok(Ok(stream)) => stream,
+        Ok(Err(e)) => {
+            tracing::info!(%peer, error = %e, "MQTT WebSocket handshake failed");
+            return;
+        }
+        Err(_) => {
+            tracing::warn!(%peer, "MQTT WebSocket handshake not completed within the handshake timeout");
+            return;
+        }
+    };
+    Box::pin(session::serve(core, stream, origin, slot, shared)).await;
 }

@@ -110,6 +110,12 @@ pub(super) struct ClientCertificate {
 
 /// Serves one MQTT connection over `socket` (TCP, TLS or WebSocket)
 /// until it closes.
+///
+/// The phases before and after the session's loop (the CONNECT, the
+/// login, the link's close, the will, the shared groups' update) run as
+/// boxed futures: the session's future holds, through the hours an idle
+/// session may wait, only the loop's state, not room for the largest of
+/// those (issue 32's idle memory; they run once a connection).
 pub(super) async fn serve<S: ClientStream>(
     core: Arc<Core>,
     socket: S,
@@ -124,7 +130,7 @@ pub(super) async fn serve<S: ClientStream>(
     let mut buf = BytesMut::with_capacity(READ_IDLE);
     let mut shutdown = core.shutdown_signal();
     let first = tokio::select! {
-        first = tokio::time::timeout_at(deadline, read_connect(&mut socket, &mut buf)) => first,
+        first = Box::pin(tokio::time::timeout_at(deadline, read_connect(&mut socket, &mut buf))) => first,
         _ = shutdown.wait_for(|down| *down) => return,
     };
     let connect = match first {
@@ -139,13 +145,13 @@ pub(super) async fn serve<S: ClientStream>(
         }
     };
     let version = connect.version;
-    let admitted = admit(
+    let admitted = Box::pin(admit(
         &core,
         (&*connect, &origin, traffic),
         slot,
         deadline,
         &shared,
-    );
+    ));
     let accepted = match admitted.await {
         Ok(accepted) => accepted,
         Err(reason) => {
@@ -157,7 +163,7 @@ pub(super) async fn serve<S: ClientStream>(
                 properties: Default::default(),
             });
             if connack.encode(version, &mut out).is_ok() {
-                let _ = write_out(&mut socket, &out).await;
+                let _ = Box::pin(write_out(&mut socket, &out)).await;
             }
             return;
         }
@@ -179,8 +185,8 @@ pub(super) async fn serve<S: ClientStream>(
         .as_ref()
         .and_then(|w| w.properties.will_delay_interval)
         .map_or(Duration::ZERO, |s| Duration::from_secs(s.into()));
-    let will =
-        (connect.will.clone()).map(|will| LastWill::new(will, &vhost, &user, version.is_v5()));
+    let will = (connect.will.clone())
+        .map(|will| Box::new(LastWill::new(will, &vhost, &user, version.is_v5())));
     let mut session = Session {
         version,
         client_id,
@@ -218,6 +224,9 @@ pub(super) async fn serve<S: ClientStream>(
     shared.shares.settle_yielding(&core).await;
     tracing::debug!(%peer, client_id = %session.client_id, ?version, "MQTT session open");
     let keepalive = Duration::from_millis(u64::from(connect.keep_alive) * 1500);
+    // Its strings are slices of the first read buffer: kept, they would
+    // keep that buffer alive for the whole session.
+    drop(connect);
     let end = session
         .run(&core, &mut socket, buf, link, &claim, keepalive)
         .await;
@@ -232,7 +241,7 @@ pub(super) async fn serve<S: ClientStream>(
     } else {
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
-    link.close(disconnected).await;
+    Box::pin(link.close(disconnected)).await;
     // Skipped if a session taking over stopped waiting for this one: it
     // has resumed the session already. Decided once, under the claim, so
     // that a takeover giving up waits for what is decided here.
@@ -258,17 +267,17 @@ pub(super) async fn serve<S: ClientStream>(
         };
         let delay = session.will_delay_left();
         let will_now =
-            will.and_then(|will| wills::schedule(&shared, &core, &session.client_id, will, delay));
+            will.and_then(|will| wills::schedule(&shared, &core, &session.client_id, *will, delay));
         (groups, will_now)
     });
     if let Some((groups, will_now)) = kept {
         if let Some(will) = will_now {
-            wills::publish(&shared, &core, will).await;
+            Box::pin(wills::publish(&shared, &core, will)).await;
         }
         // A DISCONNECT changed the expiry interval: the shared
         // subscriptions move to it in bounded batches.
-        shared.shares.settle_yielding(&core).await;
-        shared.shares.apply_yielding(&core, groups).await;
+        Box::pin(shared.shares.settle_yielding(&core)).await;
+        Box::pin(shared.shares.apply_yielding(&core, groups)).await;
     }
     drop(claim);
 }
@@ -526,7 +535,8 @@ struct Session {
     max_packet: u32,
     /// The largest packet a 5.0 client accepts.
     client_max_packet: Option<u32>,
-    will: Option<LastWill>,
+    /// Boxed: most sessions have none, and a will is some 500 bytes.
+    will: Option<Box<LastWill>>,
     /// The will's delay (5.0's Will Delay Interval).
     will_delay: Duration,
     /// Inbound topic aliases.
@@ -607,7 +617,7 @@ struct Ended {
     /// The client ended it with DISCONNECT.
     disconnected: bool,
     /// The will to publish.
-    will: Option<LastWill>,
+    will: Option<Box<LastWill>>,
 }
 
 /// Why the loop stopped.
@@ -822,7 +832,7 @@ impl Session {
                     }
                     Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => {
                         let stop = closed("link ended", None);
-                        return self.finish(socket, link, claim, stop).await;
+                        return Box::pin(self.finish(socket, link, claim, stop)).await;
                     }
                 }
             }
@@ -888,7 +898,8 @@ impl Session {
                 }
             }
         };
-        self.finish(socket, link, claim, stop).await
+        // Boxed, as the phases around the loop are (see `serve`).
+        Box::pin(self.finish(socket, link, claim, stop)).await
     }
 
     /// Whether the session holds more room than an idle one needs: a read

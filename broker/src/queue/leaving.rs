@@ -99,10 +99,7 @@ impl Deleted {
                     consumer_tag: consumer.tag.clone(),
                     no_wait: true,
                 };
-                if !outbox.try_send(Outbound::Method {
-                    channel: consumer.channel.id,
-                    method: cancel.into(),
-                }) {
+                if !outbox.try_send(Outbound::method(consumer.channel.id, cancel.into())) {
                     tracing::warn!(consumer = %consumer.tag, "no room to tell a consumer its queue was deleted");
                 }
             }
