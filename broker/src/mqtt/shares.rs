@@ -1222,6 +1222,30 @@ mod tests {
     }
 
     #[test]
+    fn a_member_joining_a_queue_the_sweeper_found_expired_gets_a_new_one() {
+        let h = Harness::durable();
+        let shares = Shares::new(&[], None);
+        let filter = "$share/u/x";
+        let name = queue_name(filter).expect("a shared filter");
+        let unkept = [("x-expires", FieldValue::I64(1)), marked()];
+        let old = h.declare_queue("mqtt-shared-u/x", true, &unkept);
+        // The sweeper finds it expired; before it deletes it, a member
+        // joins: it must not join the queue about to go.
+        let late = Instant::now() + Duration::from_secs(3600);
+        assert!(old.take_expired(late));
+        let (joined, created) =
+            (shares.declare_queue(&h.vhost, filter, name.clone(), None)).expect("declared anew");
+        assert!(created);
+        assert!(!Arc::ptr_eq(joined.queue(), &old));
+        // The sweeper's deletion then finds the old queue gone, and its
+        // next sweep leaves the joined one.
+        h.vhost.delete_queue(&old).notify();
+        h.vhost.sweep_at(late);
+        let listed = h.vhost.queue(&name).expect("the new queue stays");
+        assert!(Arc::ptr_eq(&listed, joined.queue()));
+    }
+
+    #[test]
     fn a_queue_an_amqp_client_declared_under_a_groups_name_keeps_its_arguments() {
         let h = Harness::durable();
         let shares = Shares::new(&[], None);

@@ -1238,7 +1238,7 @@ impl Vhost {
             return Progress::More;
         }
         self.dead_letter(queue.dispatch());
-        if queue.unused_expired_at(now) {
+        if queue.take_expired(now) {
             tracing::debug!(queue = %queue.name, "queue expired (x-expires)");
             self.delete_queue(queue).notify();
         }
