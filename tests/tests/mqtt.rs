@@ -3001,7 +3001,13 @@ async fn until_expires(handle: &BrokerHandle, name: &str, wanted: Option<i64>) {
 #[both_runtimes]
 async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_restart() {
     let dir = std::env::temp_dir().join(unique("leveret-mqtt-expiry"));
-    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    // No cap (RabbitMQ's `infinity`), so that a session may never expire.
+    let uncapped = || {
+        Broker::builder()
+            .data_dir(&dir)
+            .mqtt_max_session_expiry_interval(None)
+    };
+    let handle = start_with(uncapped(), Limits::default()).await;
     let port = mqtt_port(&handle);
     // One second at CONNECT, an hour at DISCONNECT.
     paho_disconnect_expiry(port, "stretch", 1, 3600).await;
@@ -3017,7 +3023,7 @@ async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_rest
     handle.shutdown().await;
 
     // The new expiries were stored with the queues.
-    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let handle = start_with(uncapped(), Limits::default()).await;
     let port = mqtt_port(&handle);
     until_expires(&handle, queue, Some(3_600_000)).await;
     until_expires(&handle, "mqtt-subscription-foreverqos1", None).await;
@@ -3043,6 +3049,40 @@ async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_rest
     assert!(queue_names(&handle).contains(&"mqtt-subscription-foreverqos1".to_owned()));
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[both_runtimes]
+async fn a_session_expiry_past_the_cap_is_lowered_announced_and_given_to_its_queues() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    // Past the default cap (a day, RabbitMQ's) and past what a queue's
+    // x-expires can hold (2^32 - 1 ms, about 49.7 days).
+    let mut options = options5("long", port, "secret");
+    options.set_clean_start(false);
+    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+    properties.session_expiry_interval = Some(5_000_000);
+    options.set_connect_properties(properties);
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options, 16);
+    let announced = until5(&mut events, |p| match p {
+        Packet5::ConnAck(ack) => Some(ack.properties.as_ref()?.session_expiry_interval),
+        _ => None,
+    })
+    .await;
+    assert_eq!(announced, Some(86_400), "the CONNACK says the day");
+    // Its own queue and a new group's queue are declared with the day.
+    let filters = vec![
+        Filter::new("own/#", QoS5::AtLeastOnce),
+        Filter::new("$share/long/jobs", QoS5::AtLeastOnce),
+    ];
+    let codes = subscribe5(&client, &mut events, filters, None).await;
+    assert_eq!(codes, [SubscribeReasonCode::Success(QoS5::AtLeastOnce); 2]);
+    until_expires(&handle, "mqtt-subscription-longqos1", Some(86_400_000)).await;
+    until_expires(&handle, "mqtt-shared-long/jobs", Some(86_400_000)).await;
+    disconnect5(client, events).await;
+    // A DISCONNECT's interval is capped too: never (0xFFFFFFFF) is a day.
+    paho_disconnect_expiry(port, "paho-long", 5_000_000, u32::MAX).await;
+    until_expires(&handle, "mqtt-subscription-paho-longqos1", Some(86_400_000)).await;
+    handle.shutdown().await;
 }
 
 /// A 5.0 client with a persistent session of an hour (clean start only

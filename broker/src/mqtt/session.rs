@@ -172,7 +172,7 @@ pub(super) async fn serve<S: ClientStream>(
         user,
         window,
     } = accepted;
-    let lifetime = Lifetime::of(&connect);
+    let lifetime = Lifetime::of(&connect, shared.max_session_expiry);
     let max_packet = max_packet(&core.limits);
     let will_delay = connect
         .will
@@ -212,7 +212,10 @@ pub(super) async fn serve<S: ClientStream>(
         delete_at_end: Vec::new(),
     };
     let session_present = session.begin(&core, connect.clean_start);
-    session.connack(assigned, session_present);
+    // The interval the session was given, if not the one asked for
+    // (MQTT 5.0 3.2.2.3.2: the CONNACK says it).
+    let lowered = (connect.properties.session_expiry_interval.unwrap_or(0)) != lifetime.interval();
+    session.connack(assigned, session_present, lowered);
     // A session resumed with another expiry interval: its shared
     // subscriptions move to it in bounded batches.
     shared.shares.settle_yielding(&core).await;
@@ -350,7 +353,9 @@ enum Lifetime {
 }
 
 impl Lifetime {
-    fn of(connect: &Connect) -> Lifetime {
+    /// A CONNECT's, a 5.0 interval capped at `max` ([`expiry::capped`];
+    /// a 3.1.1 persistent session never expires, whatever the cap).
+    fn of(connect: &Connect, max: Option<u32>) -> Lifetime {
         if !connect.version.is_v5() {
             return if connect.clean_start {
                 Lifetime::Connection
@@ -358,15 +363,25 @@ impl Lifetime {
                 Lifetime::Forever
             };
         }
-        Lifetime::of_interval(connect.properties.session_expiry_interval.unwrap_or(0))
+        let requested = connect.properties.session_expiry_interval.unwrap_or(0);
+        Lifetime::of_interval(requested, max)
     }
 
-    /// A 5.0 Session Expiry Interval's.
-    fn of_interval(seconds: u32) -> Lifetime {
-        match seconds {
+    /// A 5.0 Session Expiry Interval's, capped at `max`.
+    fn of_interval(requested: u32, max: Option<u32>) -> Lifetime {
+        match expiry::capped(requested, max) {
             0 => Lifetime::Connection,
             u32::MAX => Lifetime::Forever,
             seconds => Lifetime::Seconds(seconds),
+        }
+    }
+
+    /// The 5.0 Session Expiry Interval it stands for.
+    fn interval(self) -> u32 {
+        match self {
+            Lifetime::Connection => 0,
+            Lifetime::Seconds(seconds) => seconds,
+            Lifetime::Forever => u32::MAX,
         }
     }
 
@@ -744,9 +759,15 @@ impl Session {
         !held.is_empty()
     }
 
-    fn connack(&mut self, assigned: bool, session_present: bool) {
+    /// The CONNACK; `lowered`: the session was given a shorter Session
+    /// Expiry Interval than its CONNECT asked for, which a 5.0 CONNACK
+    /// announces.
+    fn connack(&mut self, assigned: bool, session_present: bool, lowered: bool) {
         let mut properties = leveret_mqtt::Properties::default();
         if self.v5() {
+            if lowered {
+                properties.session_expiry_interval = Some(self.lifetime.interval());
+            }
             properties.maximum_packet_size = std::num::NonZeroU32::new(self.max_packet);
             properties.receive_maximum = NonZeroU16::new(RECEIVE_MAXIMUM);
             properties.topic_alias_maximum = Some(TOPIC_ALIAS_MAXIMUM);
@@ -1116,7 +1137,10 @@ impl Session {
     /// 0x82); another is the persistent session's expiry from now on
     /// (its queues follow once the link is closed: `serve`).
     fn expiry_at_disconnect(&mut self, expiry: Option<u32>) -> Result<(), Stop> {
-        match expiry {
+        // Capped as the CONNECT's was: under a cap of 0 a non-zero
+        // interval is 0 here too, never the protocol error below.
+        let max = self.shared.max_session_expiry;
+        match expiry.map(|seconds| expiry::capped(seconds, max)) {
             Some(0) if self.lifetime != Lifetime::Connection => {
                 self.lifetime = Lifetime::Connection;
                 for qos in [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce] {
@@ -1131,7 +1155,7 @@ impl Session {
                 Some(ReasonCode::ProtocolError),
             )),
             Some(seconds) => {
-                self.lifetime = Lifetime::of_interval(seconds);
+                self.lifetime = Lifetime::of_interval(seconds, max);
                 Ok(())
             }
             None => Ok(()),
