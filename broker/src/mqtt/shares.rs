@@ -63,10 +63,15 @@ const MAX_GROUPS: usize = 10_000;
 const SWEEP_RECORDS: usize = 256;
 
 /// The argument that marks a queue as a group's, declared by a member
-/// ([`Shares::declare_queue`]): only such a queue is given its group's
-/// expiry ([`Shares::apply`]), never one an AMQP client declared under
-/// that name.
-const GROUP_QUEUE_ARGUMENT: &str = "x-mqtt-shared-group";
+/// ([`Shares::declare_queue`]) with `true`: only such a queue is given
+/// its group's expiry ([`Shares::apply`]), never one declared under that
+/// name without it (an AMQP client's, unless it copied the mark).
+const GROUP_QUEUE_ARGUMENT: &str = crate::arguments::MQTT_SHARED_GROUP;
+
+/// Whether a queue's `arguments` mark it as a group's: `true` only.
+fn marked_as_a_groups(arguments: &FieldTable) -> bool {
+    arguments.get(GROUP_QUEUE_ARGUMENT) == Some(&FieldValue::Bool(true))
+}
 
 /// At most this many shared subscriptions of sessions whose expiry
 /// changed are moved to it (group and record) under one hold of the lock
@@ -575,7 +580,7 @@ impl Shares {
                 continue;
             };
             let arguments = queue.arguments();
-            let declared_by_a_member = arguments.get(GROUP_QUEUE_ARGUMENT).is_some();
+            let declared_by_a_member = marked_as_a_groups(&arguments);
             let exclusive = queue.options.exclusive_owner.is_some();
             if !declared_by_a_member || !queue.options.durable || exclusive {
                 continue;
@@ -685,7 +690,7 @@ fn declared_groups(vhosts: &[Arc<Vhost>]) -> Groups {
             let Some(group) = name.strip_prefix(mapping::SHARED_QUEUE_PREFIX) else {
                 continue;
             };
-            let marked = queue.arguments().get(GROUP_QUEUE_ARGUMENT).is_some();
+            let marked = marked_as_a_groups(&queue.arguments());
             if marked && queue.options.durable {
                 let vhost_name = vhost.name.to_string_lossy().into_owned();
                 groups.push((vhost_name, format!("$share/{group}")));
@@ -1257,5 +1262,15 @@ mod tests {
         shares.apply_in(|_| Some(Arc::clone(&h.vhost)), joined);
         assert_eq!(expires_of(&queue), Some(60_000), "not the group's queue");
         assert!(queue.arguments().get(GROUP_QUEUE_ARGUMENT).is_none());
+        // Only `true` marks: `false` is no mark, at start either.
+        let unmarked = [
+            ("x-expires", FieldValue::I64(60_000)),
+            (GROUP_QUEUE_ARGUMENT, FieldValue::Bool(false)),
+        ];
+        let other = h.declare_queue("mqtt-shared-g/y", true, &unmarked);
+        let (joined, _) = shares.keep(("/", "p"), "$share/g/y", one, Some(3600));
+        shares.apply_in(|_| Some(Arc::clone(&h.vhost)), joined);
+        assert_eq!(expires_of(&other), Some(60_000), "false marks nothing");
+        assert!(declared_groups(std::slice::from_ref(&h.vhost)).is_empty());
     }
 }
