@@ -1421,7 +1421,8 @@ impl Session {
                         "MQTT shared subscription's queue not declared"
                     );
                     self.unkeep_refused_share(filter, old.as_ref());
-                    return Err(share_refusal(refused.code));
+                    let at_limit = max_queues.is_some_and(|max| vhost.queue_count() >= max);
+                    return Err(share_refusal(refused.code, at_limit));
                 }
             };
         self.call(
@@ -2040,14 +2041,16 @@ async fn store_progress(durable: Option<&mut tokio::sync::watch::Receiver<Durabl
 }
 
 /// The SUBACK reason for a shared subscription whose group's queue the
-/// core refused with `code`: 406 can only be the vhost's queue limit (the
-/// declaration's arguments are the broker's own, never a stream's), a
-/// quota; 405 an AMQP connection's exclusive queue of that name (or one
-/// whose auto-deletion kept coming back), the broker's own rule; anything
-/// else (404: the vhost deleted meanwhile) unspecified.
-fn share_refusal(code: ReplyCode) -> ReasonCode {
+/// core refused with `code`, `at_queue_limit`: the vhost has as many
+/// queues as its limit allows. 406 at the limit is the limit's, a quota;
+/// 405 an AMQP connection's exclusive queue of that name (or one whose
+/// deletion kept coming back), the broker's own rule; anything else (404:
+/// the vhost deleted meanwhile; a 406 not at the limit, which members'
+/// declarations, joined as they are and within every argument's bounds,
+/// are not meant to meet) unspecified.
+fn share_refusal(code: ReplyCode, at_queue_limit: bool) -> ReasonCode {
     match code {
-        ReplyCode::PreconditionFailed => ReasonCode::QuotaExceeded,
+        ReplyCode::PreconditionFailed if at_queue_limit => ReasonCode::QuotaExceeded,
         ReplyCode::ResourceLocked => ReasonCode::ImplementationSpecificError,
         _ => ReasonCode::UnspecifiedError,
     }

@@ -201,6 +201,11 @@ impl Vhost {
         Some(queue)
     }
 
+    /// How many queues the vhost has.
+    pub fn queue_count(&self) -> usize {
+        read(&self.queues).len()
+    }
+
     /// Every queue (for sweeping and connection cleanup).
     pub fn queues(&self) -> Vec<Arc<Queue>> {
         read(&self.queues).values().cloned().collect()
@@ -417,6 +422,18 @@ impl Vhost {
                 decl.name, self.name
             )));
         }
+        self.create_queue(decl, connection_id)
+    }
+
+    /// Creates the queue `decl` names, not found by a lookup just before;
+    /// one declared meanwhile (by another channel, or an MQTT member) is
+    /// returned as it is, not compared with `decl`, unless another
+    /// connection owns it (405).
+    fn create_queue(
+        &self,
+        decl: QueueDeclaration,
+        connection_id: u64,
+    ) -> AmqpResult<(Arc<Queue>, bool)> {
         if !decl.server_named && decl.name.as_bytes().starts_with(b"amq.") {
             return Err(AmqpError::access_refused(format_args!(
                 "queue name '{}' contains reserved prefix 'amq.*'",
@@ -432,6 +449,7 @@ impl Vhost {
         self.refuse_if_deleted()?;
         if let Some(existing) = queues.get(&decl.name) {
             // Declared by another channel between our check and the lock.
+            check_exclusive(existing, connection_id, &self.name)?;
             return Ok((Arc::clone(existing), false));
         }
         if let Some(max) = decl.max_queues.filter(|max| queues.len() >= *max) {
@@ -700,8 +718,10 @@ impl Vhost {
                     return Err(exclusive_locked(&existing.name, &self.name));
                 }
                 Some(existing) => (existing, false),
-                // Not exclusive: no connection owns it.
-                None => self.declare_queue(decl.clone(), 0)?,
+                // Not exclusive: no connection owns it. One declared since
+                // the lookup (an AMQP client's, say) is joined as it is too,
+                // never compared with `decl` (no 406 inequivalent arg).
+                None => self.create_queue(decl.clone(), 0)?,
             };
             if queue.join(created) {
                 let vhost = Arc::clone(self);
