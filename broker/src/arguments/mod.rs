@@ -116,8 +116,16 @@ pub const POSITION_HEADER: &str = "x-leveret-position";
 /// nothing): only such a queue is given its group's `x-expires` (see
 /// `crate::mqtt`'s shares). Not compared on redeclaration, so an AMQP
 /// redeclaration or a definitions import of a group queue, with or
-/// without it, finds it equivalent.
+/// without it, finds it equivalent; nor is a marked queue's `x-expires`,
+/// which MQTT keeps at its group's (an export's is stale by the time it
+/// is imported again: `--definitions` at every start).
 pub const MQTT_SHARED_GROUP: &str = "x-mqtt-shared-group";
+
+/// Whether a queue's `arguments` mark it as an MQTT group's queue
+/// ([`MQTT_SHARED_GROUP`] `true`; any other value marks nothing).
+pub fn marks_an_mqtt_group_queue(arguments: &FieldTable) -> bool {
+    arguments.get(MQTT_SHARED_GROUP) == Some(&FieldValue::Bool(true))
+}
 
 /// Every argument RabbitMQ 3.10 knows (and Leveret's own
 /// `x-leveret-position` and `x-mqtt-shared-group`), with what Leveret
@@ -151,7 +159,7 @@ pub const ARGUMENTS: &[Argument] = &[
         support: Support::Implemented,
         compared: false,
         on_stream: Some(Support::Refused("MQTT group queues are classic queues")),
-        meaning: "Leveret's own (boolean), set by MQTT members on the shared subscription group queues they declare: `true` lets MQTT keep the queue's `x-expires` at its persistent members' longest Session Expiry Interval (1 ms once it has none, so it goes; after a restart too); not compared on redeclaration",
+        meaning: "Leveret's own (boolean), set by MQTT members on the shared subscription group queues they declare: `true` lets MQTT keep the queue's `x-expires` at its persistent members' longest Session Expiry Interval (1 ms once it has none, so it goes; after a restart too); neither it nor a marked queue's `x-expires` is compared on redeclaration",
     },
     Argument {
         name: "alternate-exchange",

@@ -68,11 +68,6 @@ const SWEEP_RECORDS: usize = 256;
 /// name without it (an AMQP client's, unless it copied the mark).
 const GROUP_QUEUE_ARGUMENT: &str = crate::arguments::MQTT_SHARED_GROUP;
 
-/// Whether a queue's `arguments` mark it as a group's: `true` only.
-fn marked_as_a_groups(arguments: &FieldTable) -> bool {
-    arguments.get(GROUP_QUEUE_ARGUMENT) == Some(&FieldValue::Bool(true))
-}
-
 /// At most this many shared subscriptions of sessions whose expiry
 /// changed are moved to it (group and record) under one hold of the lock
 /// ([`Shares::settle_batch`]), from at most [`super::SWEEP_BATCH`] sessions.
@@ -580,7 +575,7 @@ impl Shares {
                 continue;
             };
             let arguments = queue.arguments();
-            let declared_by_a_member = marked_as_a_groups(&arguments);
+            let declared_by_a_member = crate::arguments::marks_an_mqtt_group_queue(&arguments);
             let exclusive = queue.options.exclusive_owner.is_some();
             if !declared_by_a_member || !queue.options.durable || exclusive {
                 continue;
@@ -690,7 +685,7 @@ fn declared_groups(vhosts: &[Arc<Vhost>]) -> Groups {
             let Some(group) = name.strip_prefix(mapping::SHARED_QUEUE_PREFIX) else {
                 continue;
             };
-            let marked = marked_as_a_groups(&queue.arguments());
+            let marked = crate::arguments::marks_an_mqtt_group_queue(&queue.arguments());
             if marked && queue.options.durable {
                 let vhost_name = vhost.name.to_string_lossy().into_owned();
                 groups.push((vhost_name, format!("$share/{group}")));
@@ -955,26 +950,29 @@ mod tests {
         assert!(kept.options.durable && !kept.options.auto_delete);
         assert_eq!(expires_of(&kept), Some(60_000));
         // Another member joins for an hour and applies it; a member that
-        // read the minute before still joins (an AMQP redeclaration with
-        // the minute is refused as inequivalent).
+        // read the minute before still joins (an AMQP redeclaration is
+        // compared, but for x-expires, which is MQTT's: one with the
+        // minute and a flag of its own is refused as inequivalent).
         let (joined, _) = shares.keep(("/", "p2"), "$share/k/x", one, Some(3600));
         shares.apply_in(vhost_of, joined);
         assert_eq!(expires_of(&kept), Some(3_600_000));
         assert_eq!(declare("$share/k/x"), Some(false));
         let minute = [("x-expires", FieldValue::I64(60_000))];
-        let redeclared = QueueDeclaration {
+        let redeclared = |auto_delete| QueueDeclaration {
             name: name("$share/k/x"),
             passive: false,
             server_named: false,
             options: QueueOptions {
                 durable: true,
                 exclusive_owner: None,
-                auto_delete: false,
+                auto_delete,
                 arguments: crate::testkit::table(&minute),
             },
             max_queues: None,
         };
-        assert!(h.vhost.declare_queue(redeclared, 0).is_err());
+        assert!(h.vhost.declare_queue(redeclared(true), 0).is_err());
+        assert!(h.vhost.declare_queue(redeclared(false), 0).is_ok());
+        assert_eq!(expires_of(&kept), Some(3_600_000));
         // A clean member joins the durable queue as it is too.
         assert_eq!(declare("$share/k/x"), Some(false));
     }

@@ -399,15 +399,20 @@ impl Vhost {
                         ));
                     }
                 }
+                let current = existing.arguments();
                 let differing = if existing.is_stream() {
                     arguments::first_inequivalent_on_stream(&o.arguments, &d.arguments, &resource)
+                } else if arguments::marks_an_mqtt_group_queue(&current) {
+                    // MQTT keeps a group queue's x-expires at its members'
+                    // (a redeclaration's, an old export's, is stale).
+                    let (mut current, mut requested) = (current, d.arguments.clone());
+                    current.remove("x-expires");
+                    requested.remove("x-expires");
+                    let scope = arguments::Scope::Queue;
+                    arguments::first_inequivalent(scope, &current, &requested, &resource)
                 } else {
-                    arguments::first_inequivalent(
-                        arguments::Scope::Queue,
-                        &existing.arguments(),
-                        &d.arguments,
-                        &resource,
-                    )
+                    let scope = arguments::Scope::Queue;
+                    arguments::first_inequivalent(scope, &current, &d.arguments, &resource)
                 };
                 if let Some(error) = differing {
                     return Err(error);

@@ -680,3 +680,43 @@ fn a_queue_declared_since_the_lookup_is_taken_as_it_is_unless_exclusive() {
     assert_eq!(locked.code, ReplyCode::ResourceLocked);
     assert!(h.vhost.create_queue(exclusive, 7).is_ok(), "its owner's");
 }
+
+#[test]
+fn a_marked_mqtt_group_queues_x_expires_is_not_compared_on_redeclaration() {
+    use leveret_protocol::ReplyCode;
+    let h = Harness::durable();
+    let mark = ("x-mqtt-shared-group", FieldValue::Bool(true));
+    // As the start-up reconcile leaves a group queue without persistent
+    // members: 1 ms.
+    let marked = h.declare_queue(
+        "mqtt-shared-g/x",
+        true,
+        &[("x-expires", FieldValue::I64(1)), mark.clone()],
+    );
+    // A definitions file exported while the group was kept (an hour).
+    let exported = [("x-expires", FieldValue::I64(3_600_000)), mark];
+    let import = declaration("mqtt-shared-g/x", true, None, &exported);
+    let (queue, created) = h.vhost.declare_queue(import, 0).expect("equivalent");
+    assert!(!created && Arc::ptr_eq(&queue, &marked));
+    assert_eq!(
+        queue.arguments().get("x-expires"),
+        Some(&FieldValue::I64(1)),
+        "left as MQTT set it"
+    );
+    // Other arguments are still compared, and so is an unmarked queue's x-expires.
+    let ttl = [
+        ("x-message-ttl", FieldValue::I64(5)),
+        ("x-mqtt-shared-group", FieldValue::Bool(true)),
+    ];
+    let other = h
+        .vhost
+        .declare_queue(declaration("mqtt-shared-g/x", true, None, &ttl), 0);
+    assert_eq!(
+        other.expect_err("inequivalent").code,
+        ReplyCode::PreconditionFailed
+    );
+    h.declare_queue("plain", true, &[("x-expires", FieldValue::I64(1))]);
+    let plain = declaration("plain", true, None, &[("x-expires", FieldValue::I64(2))]);
+    let refused = h.vhost.declare_queue(plain, 0).expect_err("inequivalent");
+    assert_eq!(refused.code, ReplyCode::PreconditionFailed);
+}
