@@ -42,10 +42,10 @@
 use super::mapping;
 use super::subscriptions::Options;
 use crate::core::Core;
-use crate::error::AmqpResult;
+use crate::error::{AmqpError, AmqpResult};
 use crate::queue::QueueOptions;
 use crate::store::{MetaKey, MetaRecord, Persistence, StoreOp};
-use crate::vhost::{QueueDeclaration, QueueJoin, Vhost};
+use crate::vhost::{JoinAttempt, QueueDeclaration, QueueJoin, Vhost};
 use leveret_mqtt::QoS;
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 use std::collections::{BTreeMap, HashMap, HashSet};
@@ -608,6 +608,32 @@ impl Shares {
         queue: ShortStr,
         max_queues: Option<usize>,
     ) -> AmqpResult<(QueueJoin, bool)> {
+        // Twice at most: a queue declared anew can only be going again if
+        // its own last consumer has come and gone meanwhile.
+        for _ in 0..2 {
+            match self.join_or_declare_queue(vhost, filter, queue.clone(), max_queues)? {
+                JoinAttempt::Joined(join, created) => return Ok((join, created)),
+                // Its deletion is under way: finished here, without the
+                // lock (a queue's deletion costs what its bindings do).
+                JoinAttempt::Going(going) => {
+                    vhost.delete_queue(&going).notify();
+                }
+            }
+        }
+        Err(AmqpError::resource_locked(format_args!(
+            "queue '{queue}' in vhost '{}' is being deleted",
+            vhost.name
+        )))
+    }
+
+    /// One attempt of [`Shares::declare_queue`], under the lock.
+    fn join_or_declare_queue(
+        &self,
+        vhost: &Arc<Vhost>,
+        filter: &str,
+        queue: ShortStr,
+        max_queues: Option<usize>,
+    ) -> AmqpResult<JoinAttempt> {
         let state = self.lock();
         let vhost_name = vhost.name.to_string_lossy();
         let keep = state.group(&vhost_name, filter);

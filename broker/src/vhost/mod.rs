@@ -707,39 +707,29 @@ impl Vhost {
     /// the member holds it ([`Queue::join`]) until the [`QueueJoin`] is
     /// dropped (once its consume has arrived, or the member has gone), so
     /// neither x-expires nor auto-delete can take it from under the
-    /// member's bind and consume. One whose last consumer has just left
-    /// (auto-delete) is deleted now and declared anew. The join and
-    /// whether the queue was created.
+    /// member's bind and consume. One that is going (auto-delete, expiry)
+    /// is not joined: the caller finishes its deletion, outside any lock
+    /// of its own, and tries again.
     #[cfg(feature = "mqtt")]
     pub fn join_or_declare_queue(
         self: &Arc<Self>,
         decl: QueueDeclaration,
-    ) -> AmqpResult<(QueueJoin, bool)> {
-        // Twice at most: a queue declared anew can only be going again if
-        // its own last consumer has come and gone meanwhile.
-        for _ in 0..2 {
-            let (queue, created) = match self.queue(&decl.name) {
-                Some(existing) if existing.options.exclusive_owner.is_some() => {
-                    return Err(exclusive_locked(&existing.name, &self.name));
-                }
-                Some(existing) => (existing, false),
-                // Not exclusive: no connection owns it. One declared since
-                // the lookup (an AMQP client's, say) is joined as it is too,
-                // never compared with `decl` (no 406 inequivalent arg).
-                None => self.create_queue(decl.clone(), 0)?,
-            };
-            if queue.join(created) {
-                let vhost = Arc::clone(self);
-                return Ok((QueueJoin { vhost, queue }, created));
+    ) -> AmqpResult<JoinAttempt> {
+        let (queue, created) = match self.queue(&decl.name) {
+            Some(existing) if existing.options.exclusive_owner.is_some() => {
+                return Err(exclusive_locked(&existing.name, &self.name));
             }
-            // Its auto-deletion is under way: done here (whoever comes
-            // second finds it gone).
-            self.delete_queue(&queue).notify();
+            Some(existing) => (existing, false),
+            // Not exclusive: no connection owns it. One declared since
+            // the lookup (an AMQP client's, say) is joined as it is too,
+            // never compared with `decl` (no 406 inequivalent arg).
+            None => self.create_queue(decl, 0)?,
+        };
+        if queue.join(created) {
+            let vhost = Arc::clone(self);
+            return Ok(JoinAttempt::Joined(QueueJoin { vhost, queue }, created));
         }
-        Err(AmqpError::resource_locked(format_args!(
-            "queue '{}' in vhost '{}' is being deleted",
-            decl.name, self.name
-        )))
+        Ok(JoinAttempt::Going(queue))
     }
 
     /// Gives `queue`, if it is still this vhost's, its own expiry
@@ -1320,6 +1310,18 @@ pub fn check_exclusive(queue: &Queue, connection_id: u64, vhost: &ShortStr) -> A
         Some(owner) if owner != connection_id => Err(exclusive_locked(&queue.name, vhost)),
         _ => Ok(()),
     }
+}
+
+/// What [`Vhost::join_or_declare_queue`] did.
+#[cfg(feature = "mqtt")]
+#[derive(Debug)]
+pub enum JoinAttempt {
+    /// Joined: the hold, and whether the queue was created for it.
+    Joined(QueueJoin, bool),
+    /// The queue of that name is going (auto-delete, expiry): its
+    /// deletion is the caller's to finish ([`Vhost::delete_queue`]; whoever
+    /// comes second finds it gone) before it tries again.
+    Going(Arc<Queue>),
 }
 
 /// An MQTT shared subscription's member's hold on its group's queue,
