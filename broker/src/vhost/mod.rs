@@ -202,6 +202,7 @@ impl Vhost {
     }
 
     /// How many queues the vhost has.
+    #[cfg(feature = "mqtt")]
     pub fn queue_count(&self) -> usize {
         read(&self.queues).len()
     }
