@@ -3759,3 +3759,103 @@ async fn an_mqtt_connections_bytes_are_counted_as_its_connections() {
     drop(raw);
     handle.shutdown().await;
 }
+
+/// A raw client's SUBSCRIBE (5.0) of `filter` at QoS 1, packet `id`.
+fn subscribe_raw(id: u16, filter: &'static str) -> Packet {
+    Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(id).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::from_static(filter),
+            options: leveret_mqtt::SubscriptionOptions {
+                qos: leveret_mqtt::QoS::AtLeastOnce,
+                ..Default::default()
+            },
+        }],
+    })
+}
+
+/// A member joining a group holds its queue until its consume arrives:
+/// here the consume waits behind a memory alarm (the member's link has
+/// published, so the core stops reading it), and meanwhile the group's
+/// only consumer leaves. The clean group's queue (auto-delete) must not go
+/// with it: the member is then bound and served, not closed by a 404.
+#[both_runtimes]
+async fn a_joining_member_holds_its_groups_queue_until_its_consume_arrives() {
+    let limits = Limits {
+        memory_high_watermark: 256 * 1024,
+        resident_memory_high_watermark: leveret_broker::ResidentMemoryWatermark::Unwatched,
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    let filter = "$share/hold/t";
+    let (mut first, _) = raw_session(port, "hold-first", true, Some(0)).await;
+    first.send(subscribe_raw(1, filter)).await;
+    assert!(matches!(first.next().await, Some(Packet::SubAck(_))));
+    let (mut joiner, _) = raw_session(port, "hold-joiner", true, Some(0)).await;
+    // The memory alarm: an AMQP client's messages queued past the
+    // watermark (each below it, so each is taken whole).
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("hold-ballast", Default::default(), Default::default())).unwrap();
+    let ballast = vec![0u8; 96 * 1024];
+    for _ in 0..4 {
+        tmo!(channel.basic_publish(
+            "",
+            "hold-ballast",
+            Default::default(),
+            &ballast,
+            Default::default()
+        ))
+        .unwrap();
+    }
+    within("the memory alarm", async {
+        while !handle.overview().memory_alarm {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    // The joiner publishes (its link is then not read) and subscribes:
+    // it joins the group's queue at once, its bind and consume wait.
+    joiner
+        .send(Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtMostOnce,
+            retain: false,
+            topic: TopicName::from_static("hold/elsewhere"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"x"),
+        }))
+        .await;
+    joiner.send(subscribe_raw(1, filter)).await;
+    // Time for the joiner's session to read its SUBSCRIBE (a lower bound:
+    // if it comes later, the queue is declared anew and nothing is shown).
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    // The only consumer leaves: the queue is kept for the joiner.
+    first
+        .send(Packet::Unsubscribe(leveret_mqtt::Unsubscribe {
+            packet_id: std::num::NonZeroU16::new(2).unwrap(),
+            properties: Default::default(),
+            filters: vec![leveret_mqtt::TopicFilter::from_static(filter)],
+        }))
+        .await;
+    assert!(matches!(first.next().await, Some(Packet::UnsubAck(_))));
+    // The alarm clears: the joiner's bind and consume arrive.
+    handle
+        .admin()
+        .delete_queue("/", "hold-ballast", false, false)
+        .await
+        .expect("deleted");
+    match joiner.next().await {
+        Some(Packet::SubAck(suback)) => {
+            assert_eq!(suback.reasons, [leveret_mqtt::ReasonCode::GrantedQos1])
+        }
+        other => panic!("expected the joiner's SUBACK, got {other:?}"),
+    }
+    publish_acked(port, "t", "held", false).await;
+    match joiner.next().await {
+        Some(Packet::Publish(publish)) => assert_eq!(&publish.payload[..], b"held"),
+        other => panic!("expected a delivery, got {other:?}"),
+    }
+    handle.shutdown().await;
+}
