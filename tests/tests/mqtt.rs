@@ -3859,3 +3859,66 @@ async fn a_joining_member_holds_its_groups_queue_until_its_consume_arrives() {
     }
     handle.shutdown().await;
 }
+
+/// The start-up reconcile gives a stored group queue its group's expiry
+/// before anything sweeps the vhosts: here a crash left the queue with
+/// 1 ms (its group had lost its persistent member) and the member's
+/// record of an hour (it had joined again; the queue's record was not yet
+/// written). Swept first, the queue would be gone at once.
+#[both_runtimes]
+async fn a_stale_group_queue_is_given_its_groups_expiry_before_any_sweep() {
+    use leveret_broker::store::{MemoryStore, MetaRecord, Persistence, Recovered, StoreOp};
+    use std::sync::Arc;
+    let store = Arc::new(MemoryStore::default());
+    let handle = start_with(Broker::builder().store(store.clone()), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let filter = "$share/stale/t";
+    let queue = "mqtt-shared-stale/t";
+    // A persistent member creates the group's durable queue; a clean one
+    // consumes it too; the persistent one leaves: 1 ms, kept by the clean
+    // member's consumer until the broker stops.
+    let (mut kept, _) = raw_session(port, "stale-kept", false, Some(3600)).await;
+    kept.send(subscribe_raw(1, filter)).await;
+    assert!(matches!(kept.next().await, Some(Packet::SubAck(_))));
+    let (mut clean, _) = raw_session(port, "stale-clean", true, Some(0)).await;
+    clean.send(subscribe_raw(1, filter)).await;
+    assert!(matches!(clean.next().await, Some(Packet::SubAck(_))));
+    kept.send(Packet::Unsubscribe(leveret_mqtt::Unsubscribe {
+        packet_id: std::num::NonZeroU16::new(2).unwrap(),
+        properties: Default::default(),
+        filters: vec![leveret_mqtt::TopicFilter::from_static(filter)],
+    }))
+    .await;
+    assert!(matches!(kept.next().await, Some(Packet::UnsubAck(_))));
+    until_expires(&handle, queue, Some(1)).await;
+    handle.shutdown().await;
+    // The member's record of an hour, as if it had joined again.
+    let store_dyn: Arc<dyn leveret_broker::store::Store> = store.clone();
+    let persistence = Persistence::start(store_dyn, &Recovered::default()).expect("persister");
+    let record = MetaRecord::SharedSubscription {
+        vhost: "/".into(),
+        client_id: "stale-kept".into(),
+        filter: filter.into(),
+        qos: 1,
+        retain_as_published: false,
+        subscription_id: 0,
+        session_expiry: 3600,
+    };
+    let written = persistence.submit(vec![StoreOp::PutMeta(record)]);
+    assert!(within("the record written", persistence.wait(written)).await);
+    persistence.close(Vec::new()).await;
+    let handle = start_with(Broker::builder().store(store), Limits::default()).await;
+    // Several sweeps later (every 50 ms) it is there, with the hour.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let expires = handle
+        .queues()
+        .into_iter()
+        .find(|q| q.name == queue)
+        .map(|q| q.arguments.get("x-expires").and_then(|v| v.as_i64()));
+    assert_eq!(
+        expires,
+        Some(Some(3_600_000)),
+        "listed with its group's expiry"
+    );
+    handle.shutdown().await;
+}
