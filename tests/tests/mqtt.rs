@@ -3794,24 +3794,21 @@ async fn a_joining_member_holds_its_groups_queue_until_its_consume_arrives() {
     first.send(subscribe_raw(1, filter)).await;
     assert!(matches!(first.next().await, Some(Packet::SubAck(_))));
     let (mut joiner, _) = raw_session(port, "hold-joiner", true, Some(0)).await;
-    // The memory alarm: an AMQP client's messages queued past the
-    // watermark (each below it, so each is taken whole).
-    let (_amqp, channel) = amqp_channel(&handle).await;
-    tmo!(channel.queue_declare("hold-ballast", Default::default(), Default::default())).unwrap();
-    let ballast = vec![0u8; 96 * 1024];
-    for _ in 0..4 {
-        tmo!(channel.basic_publish(
-            "",
-            "hold-ballast",
-            Default::default(),
-            &ballast,
-            Default::default()
-        ))
-        .unwrap();
-    }
+    // The memory alarm: messages queued past the watermark (each below
+    // it, so each is taken whole; published in process, never blocked).
+    let admin = handle.admin();
+    let ballast = leveret_broker::QueueSettings::default();
+    admin
+        .declare_queue("/", "hold-ballast", ballast)
+        .await
+        .expect("declared");
     within("the memory alarm", async {
         while !handle.overview().memory_alarm {
-            tokio::time::sleep(Duration::from_millis(20)).await;
+            let body = Bytes::from(vec![0u8; 64 * 1024]);
+            let properties = Default::default();
+            let _ = admin
+                .publish("/", "", "hold-ballast", properties, body)
+                .await;
         }
     })
     .await;
