@@ -3001,7 +3001,13 @@ async fn until_expires(handle: &BrokerHandle, name: &str, wanted: Option<i64>) {
 #[both_runtimes]
 async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_restart() {
     let dir = std::env::temp_dir().join(unique("leveret-mqtt-expiry"));
-    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    // No cap (RabbitMQ's `infinity`), so that a session may never expire.
+    let uncapped = || {
+        Broker::builder()
+            .data_dir(&dir)
+            .mqtt_max_session_expiry_interval(None)
+    };
+    let handle = start_with(uncapped(), Limits::default()).await;
     let port = mqtt_port(&handle);
     // One second at CONNECT, an hour at DISCONNECT.
     paho_disconnect_expiry(port, "stretch", 1, 3600).await;
@@ -3017,7 +3023,7 @@ async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_rest
     handle.shutdown().await;
 
     // The new expiries were stored with the queues.
-    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let handle = start_with(uncapped(), Limits::default()).await;
     let port = mqtt_port(&handle);
     until_expires(&handle, queue, Some(3_600_000)).await;
     until_expires(&handle, "mqtt-subscription-foreverqos1", None).await;
@@ -3043,6 +3049,40 @@ async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_rest
     assert!(queue_names(&handle).contains(&"mqtt-subscription-foreverqos1".to_owned()));
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[both_runtimes]
+async fn a_session_expiry_past_the_cap_is_lowered_announced_and_given_to_its_queues() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    // Past the default cap (a day, RabbitMQ's) and past what a queue's
+    // x-expires can hold (2^32 - 1 ms, about 49.7 days).
+    let mut options = options5("long", port, "secret");
+    options.set_clean_start(false);
+    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+    properties.session_expiry_interval = Some(5_000_000);
+    options.set_connect_properties(properties);
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options, 16);
+    let announced = until5(&mut events, |p| match p {
+        Packet5::ConnAck(ack) => Some(ack.properties.as_ref()?.session_expiry_interval),
+        _ => None,
+    })
+    .await;
+    assert_eq!(announced, Some(86_400), "the CONNACK says the day");
+    // Its own queue and a new group's queue are declared with the day.
+    let filters = vec![
+        Filter::new("own/#", QoS5::AtLeastOnce),
+        Filter::new("$share/long/jobs", QoS5::AtLeastOnce),
+    ];
+    let codes = subscribe5(&client, &mut events, filters, None).await;
+    assert_eq!(codes, [SubscribeReasonCode::Success(QoS5::AtLeastOnce); 2]);
+    until_expires(&handle, "mqtt-subscription-longqos1", Some(86_400_000)).await;
+    until_expires(&handle, "mqtt-shared-long/jobs", Some(86_400_000)).await;
+    disconnect5(client, events).await;
+    // A DISCONNECT's interval is capped too: never (0xFFFFFFFF) is a day.
+    paho_disconnect_expiry(port, "paho-long", 5_000_000, u32::MAX).await;
+    until_expires(&handle, "mqtt-subscription-paho-longqos1", Some(86_400_000)).await;
+    handle.shutdown().await;
 }
 
 /// A 5.0 client with a persistent session of an hour (clean start only
@@ -3717,5 +3757,165 @@ async fn an_mqtt_connections_bytes_are_counted_as_its_connections() {
         "the broker's totals have them too"
     );
     drop(raw);
+    handle.shutdown().await;
+}
+
+/// A raw client's SUBSCRIBE (5.0) of `filter` at QoS 1, packet `id`.
+fn subscribe_raw(id: u16, filter: &'static str) -> Packet {
+    Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(id).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::from_static(filter),
+            options: leveret_mqtt::SubscriptionOptions {
+                qos: leveret_mqtt::QoS::AtLeastOnce,
+                ..Default::default()
+            },
+        }],
+    })
+}
+
+/// A member joining a group holds its queue until its consume arrives:
+/// here the consume waits behind a memory alarm (the member's link has
+/// published, so the core stops reading it), and meanwhile the group's
+/// only consumer leaves. The clean group's queue (auto-delete) must not go
+/// with it: the member is then bound and served, not closed by a 404.
+#[both_runtimes]
+async fn a_joining_member_holds_its_groups_queue_until_its_consume_arrives() {
+    let limits = Limits {
+        memory_high_watermark: 256 * 1024,
+        resident_memory_high_watermark: leveret_broker::ResidentMemoryWatermark::Unwatched,
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    let filter = "$share/hold/t";
+    let (mut first, _) = raw_session(port, "hold-first", true, Some(0)).await;
+    first.send(subscribe_raw(1, filter)).await;
+    assert!(matches!(first.next().await, Some(Packet::SubAck(_))));
+    let (mut joiner, _) = raw_session(port, "hold-joiner", true, Some(0)).await;
+    // The memory alarm: messages queued past the watermark (each below
+    // it, so each is taken whole; published in process, never blocked).
+    let admin = handle.admin();
+    let ballast = leveret_broker::QueueSettings::default();
+    admin
+        .declare_queue("/", "hold-ballast", ballast)
+        .await
+        .expect("declared");
+    within("the memory alarm", async {
+        while !handle.overview().memory_alarm {
+            let body = Bytes::from(vec![0u8; 64 * 1024]);
+            let properties = Default::default();
+            let _ = admin
+                .publish("/", "", "hold-ballast", properties, body)
+                .await;
+        }
+    })
+    .await;
+    // The joiner publishes (its link is then not read) and subscribes:
+    // it joins the group's queue at once, its bind and consume wait.
+    joiner
+        .send(Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtMostOnce,
+            retain: false,
+            topic: TopicName::from_static("hold/elsewhere"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"x"),
+        }))
+        .await;
+    joiner.send(subscribe_raw(1, filter)).await;
+    // Time for the joiner's session to read its SUBSCRIBE (a lower bound:
+    // if it comes later, the queue is declared anew and nothing is shown).
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    // The only consumer leaves: the queue is kept for the joiner.
+    first
+        .send(Packet::Unsubscribe(leveret_mqtt::Unsubscribe {
+            packet_id: std::num::NonZeroU16::new(2).unwrap(),
+            properties: Default::default(),
+            filters: vec![leveret_mqtt::TopicFilter::from_static(filter)],
+        }))
+        .await;
+    assert!(matches!(first.next().await, Some(Packet::UnsubAck(_))));
+    // The alarm clears: the joiner's bind and consume arrive.
+    handle
+        .admin()
+        .delete_queue("/", "hold-ballast", false, false)
+        .await
+        .expect("deleted");
+    match joiner.next().await {
+        Some(Packet::SubAck(suback)) => {
+            assert_eq!(suback.reasons, [leveret_mqtt::ReasonCode::GrantedQos1])
+        }
+        other => panic!("expected the joiner's SUBACK, got {other:?}"),
+    }
+    publish_acked(port, "t", "held", false).await;
+    match joiner.next().await {
+        Some(Packet::Publish(publish)) => assert_eq!(&publish.payload[..], b"held"),
+        other => panic!("expected a delivery, got {other:?}"),
+    }
+    handle.shutdown().await;
+}
+
+/// The start-up reconcile gives a stored group queue its group's expiry
+/// before anything sweeps the vhosts: here a crash left the queue with
+/// 1 ms (its group had lost its persistent member) and the member's
+/// record of an hour (it had joined again; the queue's record was not yet
+/// written). Swept first, the queue would be gone at once.
+#[both_runtimes]
+async fn a_stale_group_queue_is_given_its_groups_expiry_before_any_sweep() {
+    use leveret_broker::store::{MemoryStore, MetaRecord, Persistence, Recovered, StoreOp};
+    use std::sync::Arc;
+    let store = Arc::new(MemoryStore::default());
+    let handle = start_with(Broker::builder().store(store.clone()), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let filter = "$share/stale/t";
+    let queue = "mqtt-shared-stale/t";
+    // A persistent member creates the group's durable queue; a clean one
+    // consumes it too; the persistent one leaves: 1 ms, kept by the clean
+    // member's consumer until the broker stops.
+    let (mut kept, _) = raw_session(port, "stale-kept", false, Some(3600)).await;
+    kept.send(subscribe_raw(1, filter)).await;
+    assert!(matches!(kept.next().await, Some(Packet::SubAck(_))));
+    let (mut clean, _) = raw_session(port, "stale-clean", true, Some(0)).await;
+    clean.send(subscribe_raw(1, filter)).await;
+    assert!(matches!(clean.next().await, Some(Packet::SubAck(_))));
+    kept.send(Packet::Unsubscribe(leveret_mqtt::Unsubscribe {
+        packet_id: std::num::NonZeroU16::new(2).unwrap(),
+        properties: Default::default(),
+        filters: vec![leveret_mqtt::TopicFilter::from_static(filter)],
+    }))
+    .await;
+    assert!(matches!(kept.next().await, Some(Packet::UnsubAck(_))));
+    until_expires(&handle, queue, Some(1)).await;
+    handle.shutdown().await;
+    // The member's record of an hour, as if it had joined again.
+    let store_dyn: Arc<dyn leveret_broker::store::Store> = store.clone();
+    let persistence = Persistence::start(store_dyn, &Recovered::default()).expect("persister");
+    let record = MetaRecord::SharedSubscription {
+        vhost: "/".into(),
+        client_id: "stale-kept".into(),
+        filter: filter.into(),
+        qos: 1,
+        retain_as_published: false,
+        subscription_id: 0,
+        session_expiry: 3600,
+    };
+    let written = persistence.submit(vec![StoreOp::PutMeta(record)]);
+    assert!(within("the record written", persistence.wait(written)).await);
+    persistence.close(Vec::new()).await;
+    let handle = start_with(Broker::builder().store(store), Limits::default()).await;
+    // Several sweeps later (every 50 ms) it is there, with the hour.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let expires = handle
+        .queues()
+        .into_iter()
+        .find(|q| q.name == queue)
+        .map(|q| q.arguments.get("x-expires").and_then(|v| v.as_i64()));
+    assert_eq!(
+        expires,
+        Some(Some(3_600_000)),
+        "listed with its group's expiry"
+    );
     handle.shutdown().await;
 }

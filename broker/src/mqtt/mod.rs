@@ -67,6 +67,11 @@ pub(crate) struct Shared {
     /// no user name logs in as the certificate's common name (RabbitMQ's
     /// `mqtt.ssl_cert_login`).
     certificate_login: bool,
+    /// The longest Session Expiry Interval a 5.0 session is given (s;
+    /// `None`: no cap but the queues' own, RabbitMQ's `infinity`):
+    /// RabbitMQ's `mqtt.max_session_expiry_interval_seconds`, a day by
+    /// default ([`expiry::capped`]).
+    max_session_expiry: Option<u32>,
     /// Wills waiting for their delay.
     wills: wills::Wills,
 }
@@ -93,6 +98,7 @@ impl Shared {
             releases: releases::Releases::new(recovered, core.persistence.clone()),
             shares: shares::Shares::new(recovered, core.persistence.clone()),
             certificate_login: options.certificate_login,
+            max_session_expiry: options.max_session_expiry,
             wills: Default::default(),
         }
     }
@@ -147,13 +153,26 @@ pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
     }
 }
 
-/// How a broker's MQTT clients log in beyond a user name and password.
-#[derive(Debug, Clone, Default)]
+/// How a broker's MQTT clients log in beyond a user name and password,
+/// and how long their sessions may outlive their connections.
+#[derive(Debug, Clone)]
 pub(crate) struct Options {
     /// See [`Shared::anonymous`].
     pub anonymous: Option<(String, String)>,
     /// See [`Shared::certificate_login`].
     pub certificate_login: bool,
+    /// See [`Shared::max_session_expiry`].
+    pub max_session_expiry: Option<u32>,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            anonymous: None,
+            certificate_login: false,
+            max_session_expiry: Some(expiry::DEFAULT_MAX_SECONDS),
+        }
+    }
 }
 
 /// What an MQTT listener's connections travel over.

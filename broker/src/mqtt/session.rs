@@ -178,7 +178,7 @@ pub(super) async fn serve<S: ClientStream>(
         user,
         window,
     } = accepted;
-    let lifetime = Lifetime::of(&connect);
+    let lifetime = Lifetime::of(&connect, shared.max_session_expiry);
     let max_packet = max_packet(&core.limits);
     let will_delay = connect
         .will
@@ -218,7 +218,10 @@ pub(super) async fn serve<S: ClientStream>(
         delete_at_end: Vec::new(),
     };
     let session_present = session.begin(&core, connect.clean_start);
-    session.connack(assigned, session_present);
+    // The interval the session was given, if not the one asked for
+    // (MQTT 5.0 3.2.2.3.2: the CONNACK says it).
+    let lowered = (connect.properties.session_expiry_interval.unwrap_or(0)) != lifetime.interval();
+    session.connack(assigned, session_present, lowered);
     // A session resumed with another expiry interval: its shared
     // subscriptions move to it in bounded batches.
     shared.shares.settle_yielding(&core).await;
@@ -359,7 +362,9 @@ enum Lifetime {
 }
 
 impl Lifetime {
-    fn of(connect: &Connect) -> Lifetime {
+    /// A CONNECT's, a 5.0 interval capped at `max` ([`expiry::capped`];
+    /// a 3.1.1 persistent session never expires, whatever the cap).
+    fn of(connect: &Connect, max: Option<u32>) -> Lifetime {
         if !connect.version.is_v5() {
             return if connect.clean_start {
                 Lifetime::Connection
@@ -367,15 +372,25 @@ impl Lifetime {
                 Lifetime::Forever
             };
         }
-        Lifetime::of_interval(connect.properties.session_expiry_interval.unwrap_or(0))
+        let requested = connect.properties.session_expiry_interval.unwrap_or(0);
+        Lifetime::of_interval(requested, max)
     }
 
-    /// A 5.0 Session Expiry Interval's.
-    fn of_interval(seconds: u32) -> Lifetime {
-        match seconds {
+    /// A 5.0 Session Expiry Interval's, capped at `max`.
+    fn of_interval(requested: u32, max: Option<u32>) -> Lifetime {
+        match expiry::capped(requested, max) {
             0 => Lifetime::Connection,
             u32::MAX => Lifetime::Forever,
             seconds => Lifetime::Seconds(seconds),
+        }
+    }
+
+    /// The 5.0 Session Expiry Interval it stands for.
+    fn interval(self) -> u32 {
+        match self {
+            Lifetime::Connection => 0,
+            Lifetime::Seconds(seconds) => seconds,
+            Lifetime::Forever => u32::MAX,
         }
     }
 
@@ -754,9 +769,15 @@ impl Session {
         !held.is_empty()
     }
 
-    fn connack(&mut self, assigned: bool, session_present: bool) {
+    /// The CONNACK; `lowered`: the session was given a shorter Session
+    /// Expiry Interval than its CONNECT asked for, which a 5.0 CONNACK
+    /// announces.
+    fn connack(&mut self, assigned: bool, session_present: bool, lowered: bool) {
         let mut properties = leveret_mqtt::Properties::default();
         if self.v5() {
+            if lowered {
+                properties.session_expiry_interval = Some(self.lifetime.interval());
+            }
             properties.maximum_packet_size = std::num::NonZeroU32::new(self.max_packet);
             properties.receive_maximum = NonZeroU16::new(RECEIVE_MAXIMUM);
             properties.topic_alias_maximum = Some(TOPIC_ALIAS_MAXIMUM);
@@ -1127,7 +1148,10 @@ impl Session {
     /// 0x82); another is the persistent session's expiry from now on
     /// (its queues follow once the link is closed: `serve`).
     fn expiry_at_disconnect(&mut self, expiry: Option<u32>) -> Result<(), Stop> {
-        match expiry {
+        // Capped as the CONNECT's was: under a cap of 0 a non-zero
+        // interval is 0 here too, never the protocol error below.
+        let max = self.shared.max_session_expiry;
+        match expiry.map(|seconds| expiry::capped(seconds, max)) {
             Some(0) if self.lifetime != Lifetime::Connection => {
                 self.lifetime = Lifetime::Connection;
                 for qos in [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce] {
@@ -1142,7 +1166,7 @@ impl Session {
                 Some(ReasonCode::ProtocolError),
             )),
             Some(seconds) => {
-                self.lifetime = Lifetime::of_interval(seconds);
+                self.lifetime = Lifetime::of_interval(seconds, max);
                 Ok(())
             }
             None => Ok(()),
@@ -1408,7 +1432,8 @@ impl Session {
                         "MQTT shared subscription's queue not declared"
                     );
                     self.unkeep_refused_share(filter, old.as_ref());
-                    return Err(share_refusal(refused.code));
+                    let at_limit = max_queues.is_some_and(|max| vhost.queue_count() >= max);
+                    return Err(share_refusal(refused.code, at_limit));
                 }
             };
         self.call(
@@ -2027,14 +2052,16 @@ async fn store_progress(durable: Option<&mut tokio::sync::watch::Receiver<Durabl
 }
 
 /// The SUBACK reason for a shared subscription whose group's queue the
-/// core refused with `code`: 406 can only be the vhost's queue limit (the
-/// declaration's arguments are the broker's own, never a stream's), a
-/// quota; 405 an AMQP connection's exclusive queue of that name (or one
-/// whose auto-deletion kept coming back), the broker's own rule; anything
-/// else (404: the vhost deleted meanwhile) unspecified.
-fn share_refusal(code: ReplyCode) -> ReasonCode {
+/// core refused with `code`, `at_queue_limit`: the vhost has as many
+/// queues as its limit allows. 406 at the limit is the limit's, a quota;
+/// 405 an AMQP connection's exclusive queue of that name (or one whose
+/// deletion kept coming back), the broker's own rule; anything else (404:
+/// the vhost deleted meanwhile; a 406 not at the limit, which members'
+/// declarations, joined as they are and within every argument's bounds,
+/// are not meant to meet) unspecified.
+fn share_refusal(code: ReplyCode, at_queue_limit: bool) -> ReasonCode {
     match code {
-        ReplyCode::PreconditionFailed => ReasonCode::QuotaExceeded,
+        ReplyCode::PreconditionFailed if at_queue_limit => ReasonCode::QuotaExceeded,
         ReplyCode::ResourceLocked => ReasonCode::ImplementationSpecificError,
         _ => ReasonCode::UnspecifiedError,
     }

@@ -42,10 +42,10 @@
 use super::mapping;
 use super::subscriptions::Options;
 use crate::core::Core;
-use crate::error::AmqpResult;
+use crate::error::{AmqpError, AmqpResult};
 use crate::queue::QueueOptions;
 use crate::store::{MetaKey, MetaRecord, Persistence, StoreOp};
-use crate::vhost::{QueueDeclaration, QueueJoin, Vhost};
+use crate::vhost::{JoinAttempt, QueueDeclaration, QueueJoin, Vhost};
 use leveret_mqtt::QoS;
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 use std::collections::{BTreeMap, HashMap, HashSet};
@@ -63,10 +63,10 @@ const MAX_GROUPS: usize = 10_000;
 const SWEEP_RECORDS: usize = 256;
 
 /// The argument that marks a queue as a group's, declared by a member
-/// ([`Shares::declare_queue`]): only such a queue is given its group's
-/// expiry ([`Shares::apply`]), never one an AMQP client declared under
-/// that name.
-const GROUP_QUEUE_ARGUMENT: &str = "x-mqtt-shared-group";
+/// ([`Shares::declare_queue`]) with `true`: only such a queue is given
+/// its group's expiry ([`Shares::apply`]), never one declared under that
+/// name without it (an AMQP client's, unless it copied the mark).
+const GROUP_QUEUE_ARGUMENT: &str = crate::arguments::MQTT_SHARED_GROUP;
 
 /// At most this many shared subscriptions of sessions whose expiry
 /// changed are moved to it (group and record) under one hold of the lock
@@ -575,7 +575,7 @@ impl Shares {
                 continue;
             };
             let arguments = queue.arguments();
-            let declared_by_a_member = arguments.get(GROUP_QUEUE_ARGUMENT).is_some();
+            let declared_by_a_member = crate::arguments::marks_an_mqtt_group_queue(&arguments);
             let exclusive = queue.options.exclusive_owner.is_some();
             if !declared_by_a_member || !queue.options.durable || exclusive {
                 continue;
@@ -608,6 +608,32 @@ impl Shares {
         queue: ShortStr,
         max_queues: Option<usize>,
     ) -> AmqpResult<(QueueJoin, bool)> {
+        // Twice at most: a queue declared anew can only be going again if
+        // its own last consumer has come and gone meanwhile.
+        for _ in 0..2 {
+            match self.join_or_declare_queue(vhost, filter, queue.clone(), max_queues)? {
+                JoinAttempt::Joined(join, created) => return Ok((join, created)),
+                // Its deletion is under way: finished here, without the
+                // lock (a queue's deletion costs what its bindings do).
+                JoinAttempt::Going(going) => {
+                    vhost.delete_queue(&going).notify();
+                }
+            }
+        }
+        Err(AmqpError::resource_locked(format_args!(
+            "queue '{queue}' in vhost '{}' is being deleted",
+            vhost.name
+        )))
+    }
+
+    /// One attempt of [`Shares::declare_queue`], under the lock.
+    fn join_or_declare_queue(
+        &self,
+        vhost: &Arc<Vhost>,
+        filter: &str,
+        queue: ShortStr,
+        max_queues: Option<usize>,
+    ) -> AmqpResult<JoinAttempt> {
         let state = self.lock();
         let vhost_name = vhost.name.to_string_lossy();
         let keep = state.group(&vhost_name, filter);
@@ -685,7 +711,7 @@ fn declared_groups(vhosts: &[Arc<Vhost>]) -> Groups {
             let Some(group) = name.strip_prefix(mapping::SHARED_QUEUE_PREFIX) else {
                 continue;
             };
-            let marked = queue.arguments().get(GROUP_QUEUE_ARGUMENT).is_some();
+            let marked = crate::arguments::marks_an_mqtt_group_queue(&queue.arguments());
             if marked && queue.options.durable {
                 let vhost_name = vhost.name.to_string_lossy().into_owned();
                 groups.push((vhost_name, format!("$share/{group}")));
@@ -950,26 +976,29 @@ mod tests {
         assert!(kept.options.durable && !kept.options.auto_delete);
         assert_eq!(expires_of(&kept), Some(60_000));
         // Another member joins for an hour and applies it; a member that
-        // read the minute before still joins (an AMQP redeclaration with
-        // the minute is refused as inequivalent).
+        // read the minute before still joins (an AMQP redeclaration is
+        // compared, but for x-expires, which is MQTT's: one with the
+        // minute and a flag of its own is refused as inequivalent).
         let (joined, _) = shares.keep(("/", "p2"), "$share/k/x", one, Some(3600));
         shares.apply_in(vhost_of, joined);
         assert_eq!(expires_of(&kept), Some(3_600_000));
         assert_eq!(declare("$share/k/x"), Some(false));
         let minute = [("x-expires", FieldValue::I64(60_000))];
-        let redeclared = QueueDeclaration {
+        let redeclared = |auto_delete| QueueDeclaration {
             name: name("$share/k/x"),
             passive: false,
             server_named: false,
             options: QueueOptions {
                 durable: true,
                 exclusive_owner: None,
-                auto_delete: false,
+                auto_delete,
                 arguments: crate::testkit::table(&minute),
             },
             max_queues: None,
         };
-        assert!(h.vhost.declare_queue(redeclared, 0).is_err());
+        assert!(h.vhost.declare_queue(redeclared(true), 0).is_err());
+        assert!(h.vhost.declare_queue(redeclared(false), 0).is_ok());
+        assert_eq!(expires_of(&kept), Some(3_600_000));
         // A clean member joins the durable queue as it is too.
         assert_eq!(declare("$share/k/x"), Some(false));
     }
@@ -1222,6 +1251,30 @@ mod tests {
     }
 
     #[test]
+    fn a_member_joining_a_queue_the_sweeper_found_expired_gets_a_new_one() {
+        let h = Harness::durable();
+        let shares = Shares::new(&[], None);
+        let filter = "$share/u/x";
+        let name = queue_name(filter).expect("a shared filter");
+        let unkept = [("x-expires", FieldValue::I64(1)), marked()];
+        let old = h.declare_queue("mqtt-shared-u/x", true, &unkept);
+        // The sweeper finds it expired; before it deletes it, a member
+        // joins: it must not join the queue about to go.
+        let late = Instant::now() + Duration::from_secs(3600);
+        assert!(old.take_expired(late));
+        let (joined, created) =
+            (shares.declare_queue(&h.vhost, filter, name.clone(), None)).expect("declared anew");
+        assert!(created);
+        assert!(!Arc::ptr_eq(joined.queue(), &old));
+        // The sweeper's deletion then finds the old queue gone, and its
+        // next sweep leaves the joined one.
+        h.vhost.delete_queue(&old).notify();
+        h.vhost.sweep_at(late);
+        let listed = h.vhost.queue(&name).expect("the new queue stays");
+        assert!(Arc::ptr_eq(&listed, joined.queue()));
+    }
+
+    #[test]
     fn a_queue_an_amqp_client_declared_under_a_groups_name_keeps_its_arguments() {
         let h = Harness::durable();
         let shares = Shares::new(&[], None);
@@ -1233,5 +1286,15 @@ mod tests {
         shares.apply_in(|_| Some(Arc::clone(&h.vhost)), joined);
         assert_eq!(expires_of(&queue), Some(60_000), "not the group's queue");
         assert!(queue.arguments().get(GROUP_QUEUE_ARGUMENT).is_none());
+        // Only `true` marks: `false` is no mark, at start either.
+        let unmarked = [
+            ("x-expires", FieldValue::I64(60_000)),
+            (GROUP_QUEUE_ARGUMENT, FieldValue::Bool(false)),
+        ];
+        let other = h.declare_queue("mqtt-shared-g/y", true, &unmarked);
+        let (joined, _) = shares.keep(("/", "p"), "$share/g/y", one, Some(3600));
+        shares.apply_in(|_| Some(Arc::clone(&h.vhost)), joined);
+        assert_eq!(expires_of(&other), Some(60_000), "false marks nothing");
+        assert!(declared_groups(std::slice::from_ref(&h.vhost)).is_empty());
     }
 }
