@@ -621,9 +621,10 @@ async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
     }))
     .await;
     assert!(matches!(old.next().await, Some(Packet::SubAck(_))));
-    // Far more than the socket buffers hold (about 20 MB).
-    let payload = vec![7u8; 64 * 1024];
-    for _ in 0..300 {
+    // Far more than the socket buffers and the link's outbox (512
+    // deliveries) hold (about 24 MB).
+    let payload = vec![7u8; 16 * 1024];
+    for _ in 0..1500 {
         tmo!(channel.basic_publish(
             "amq.topic",
             "flood",
@@ -633,13 +634,43 @@ async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
         ))
         .unwrap();
     }
-    // The new session goes on after the wait, the old one still open.
-    let (_client, _events) = connected3("stuck", port).await;
-    assert_eq!(
-        mqtt_connections(&handle),
-        2,
-        "the old session was still writing when the takeover gave up"
-    );
+    // The old session is stalled: its queue holds messages it cannot take.
+    within("the old session stalled", async {
+        let ready = || {
+            let queues = handle.queues().into_iter();
+            let mut queue = queues.filter(|q| q.name == "mqtt-subscription-stuckqos0");
+            queue.next().map_or(0, |q| q.messages_ready)
+        };
+        let mut before = ready();
+        loop {
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            let now = ready();
+            if now > 0 && now == before {
+                return;
+            }
+            before = now;
+        }
+    })
+    .await;
+    // The new session goes on after the wait, the old one still open; its
+    // link was closed first, so its exclusive queue is gone and the new
+    // session subscribes to the same filter (else 405 RESOURCE_LOCKED).
+    let (client, mut events) = connected3("stuck", port).await;
+    tmo!(client.subscribe("flood", rumqttc::QoS::AtMostOnce)).unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    tmo!(channel.basic_publish(
+        "amq.topic",
+        "flood",
+        Default::default(),
+        b"after",
+        Default::default()
+    ))
+    .unwrap();
+    let got = next_publish3(&mut events).await;
+    assert_eq!(&got.payload[..], b"after", "only the new session consumes");
     // The old session ends now: no will (nor anything else of its end).
     drop(old);
     within("the old session ended", async {

@@ -226,6 +226,7 @@ pub(super) async fn serve<S: ClientStream>(
         reason,
         disconnected,
         will,
+        owned,
     } = end;
     if disconnected {
         tracing::debug!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
@@ -233,10 +234,9 @@ pub(super) async fn serve<S: ClientStream>(
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
     link.close(disconnected).await;
-    // Skipped if a session taking over stopped waiting for this one: it
-    // has resumed the session already. Decided once, under the claim, so
-    // that a takeover giving up waits for what is decided here.
-    let kept = claim.unless_abandoned(|| {
+    // Skipped if a session taking over abandoned this one: it has resumed
+    // the session already. Otherwise a takeover waits for it (`owned`).
+    let kept = owned.then(|| {
         if session.lifetime != lifetime && session.lifetime != Lifetime::Connection {
             // A DISCONNECT changed the expiry: the queues follow, now
             // that the link has declared every one of them.
@@ -479,7 +479,10 @@ async fn admit(
     })?;
     // A session taken over gets as long to end as a CONNECT to come.
     let wait = core.limits.handshake_timeout;
-    let claim = shared.ids.claim(&vhost, &client_id, wait).await;
+    let (ids, registry) = (&shared.ids, &core.registry);
+    let claim = ids
+        .claim((&vhost, &client_id), link.id, registry, wait)
+        .await;
     Ok(Accepted {
         link,
         claim,
@@ -608,6 +611,9 @@ struct Ended {
     disconnected: bool,
     /// The will to publish.
     will: Option<LastWill>,
+    /// The end was the session's own ([`Claim::end`]), not abandoned by
+    /// a takeover.
+    owned: bool,
 }
 
 /// Why the loop stopped.
@@ -807,10 +813,13 @@ impl Session {
         tokio::pin!(release);
         let mut durable = self.shared.retained.durable();
         let stop = loop {
-            // Whole packets already read.
+            // Whole packets already read, unless a takeover has abandoned
+            // the session.
             if self.reading() {
-                if let Err(stop) = self.take_packets(&mut buf) {
-                    break stop;
+                match claim.running(|| self.take_packets(&mut buf)) {
+                    Some(Ok(())) => {}
+                    Some(Err(stop)) => break stop,
+                    None => break taken_over(),
                 }
             }
             while let Some(item) = self.pending.pop_front() {
@@ -863,8 +872,15 @@ impl Session {
                 reply = link.direct.from_broker.recv() => match reply {
                     Some(reply) => {
                         last_active = Instant::now();
-                        if let Err(stop) = self.handle_core_reply(reply) { break stop }
-                        if let Err(stop) = self.handle_ready_replies(&mut link) { break stop }
+                        let handled = claim.running(|| {
+                            self.handle_core_reply(reply)?;
+                            self.handle_ready_replies(&mut link)
+                        });
+                        match handled {
+                            Some(Ok(())) => {}
+                            Some(Err(stop)) => break stop,
+                            None => break taken_over(),
+                        }
                     }
                     None => break closed("the broker ended the session", Some(ReasonCode::ServerShuttingDown)),
                 },
@@ -880,9 +896,7 @@ impl Session {
                 _ = store_progress(durable.as_mut()), if !self.held_acks.is_empty() => {
                     if let Err(stop) = self.release_held_acks() { break stop }
                 }
-                _ = claim.taken_over() => {
-                    break closed("taken over by a new connection", Some(ReasonCode::SessionTakenOver));
-                }
+                _ = claim.taken_over() => break taken_over(),
                 _ = shutdown.wait_for(|down| *down) => {
                     break closed("broker shutting down", Some(ReasonCode::ServerShuttingDown));
                 }
@@ -918,8 +932,8 @@ impl Session {
     }
 
     /// Sends what is owed before closing (a 5.0 DISCONNECT, the will);
-    /// a session whose takeover has given up waiting for it
-    /// ([`Claim::abandoned`]) only closes its socket.
+    /// a session a takeover has abandoned ([`Claim::end`]) only closes its
+    /// socket.
     async fn finish(
         &mut self,
         socket: &mut (impl AsyncRead + AsyncWrite + Unpin),
@@ -927,8 +941,8 @@ impl Session {
         claim: &Claim,
         stop: Stop,
     ) -> Ended {
-        let abandoned = claim.abandoned();
-        if abandoned {
+        let owned = claim.end();
+        if !owned {
             self.out.clear();
         } else {
             self.flush_pending(&mut link).await;
@@ -937,7 +951,7 @@ impl Session {
         let (reason, send_will) = match stop {
             Stop::Disconnected { send_will } => ("client disconnected", send_will),
             Stop::Closed { reason, disconnect } => {
-                if let (Some(code), true, false) = (disconnect, self.v5(), abandoned) {
+                if let (Some(code), true, true) = (disconnect, self.v5(), owned) {
                     self.send(Packet::Disconnect(Disconnect {
                         reason: code,
                         properties: Default::default(),
@@ -951,10 +965,9 @@ impl Session {
         }
         let _ = socket.shutdown().await;
         // A resumed session that does not outlive this connection (unless
-        // a takeover has given up waiting meanwhile: its queues are the
-        // new session's now).
+        // abandoned: its queues are the new session's now).
         let delete = std::mem::take(&mut self.delete_at_end);
-        for queue in delete.into_iter().filter(|_| !claim.abandoned()) {
+        for queue in delete.into_iter().take_while(|_| owned) {
             let delete = QueueDelete {
                 ticket: 0,
                 queue,
@@ -969,6 +982,7 @@ impl Session {
             reason,
             disconnected,
             will: self.will.take().filter(|_| send_will),
+            owned,
         }
     }
 
@@ -2041,4 +2055,9 @@ fn owned(payload: bytes::Bytes) -> bytes::Bytes {
 
 fn closed(reason: &'static str, disconnect: Option<ReasonCode>) -> Stop {
     Stop::Closed { reason, disconnect }
+}
+
+fn taken_over() -> Stop {
+    let reason = Some(ReasonCode::SessionTakenOver);
+    closed("taken over by a new connection", reason)
 }
