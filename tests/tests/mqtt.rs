@@ -572,7 +572,7 @@ fn mqtt_connections(handle: &BrokerHandle) -> usize {
 }
 
 #[both_runtimes]
-async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
+async fn a_takeover_that_gave_up_waiting_closes_the_old_link_and_publishes_its_will() {
     // A takeover waits for the old session as long as a CONNECT may take.
     let limits = Limits {
         handshake_timeout: Duration::from_secs(2),
@@ -671,7 +671,15 @@ async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
     .unwrap();
     let got = next_publish3(&mut events).await;
     assert_eq!(&got.payload[..], b"after", "only the new session consumes");
-    // The old session ends now: no will (nor anything else of its end).
+    // The old connection's will was published by the takeover (MQTT 5.0
+    // 3.1.4), before the new session began.
+    let get = || {
+        let no_ack = lapin::options::BasicGetOptions { no_ack: true };
+        channel.basic_get("old-wills", no_ack)
+    };
+    let will = tmo!(get()).unwrap().expect("the abandoned session's will");
+    assert_eq!(&will.delivery.data[..], b"gone");
+    // The old session ends now: no second will (nor anything of its end).
     drop(old);
     within("the old session ended", async {
         while mqtt_connections(&handle) > 1 {
@@ -680,13 +688,7 @@ async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
     })
     .await;
     for _ in 0..30 {
-        let got = channel
-            .basic_get(
-                "old-wills",
-                lapin::options::BasicGetOptions { no_ack: true },
-            )
-            .await
-            .unwrap();
+        let got = tmo!(get()).unwrap();
         assert!(got.is_none(), "an abandoned session published its will");
         tokio::time::sleep(Duration::from_millis(100)).await;
     }

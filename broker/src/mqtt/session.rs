@@ -165,7 +165,7 @@ pub(super) async fn serve<S: ClientStream>(
     socket.logged_in();
     let Accepted {
         link,
-        claim,
+        mut claim,
         client_id,
         assigned,
         vhost,
@@ -193,7 +193,6 @@ pub(super) async fn serve<S: ClientStream>(
         window,
         max_packet,
         client_max_packet: connect.properties.maximum_packet_size.map(|m| m.get()),
-        will,
         will_delay,
         aliases: TopicAliases::default(),
         out: BytesMut::new(),
@@ -211,6 +210,15 @@ pub(super) async fn serve<S: ClientStream>(
         acked_consumers: 0,
         delete_at_end: Vec::new(),
     };
+    claim.hold_will(will, session.will_delay_left());
+    // The will of a session this takeover abandoned: published now or
+    // scheduled, for `begin` to drop (resumed) or publish (clean start).
+    if let Some((will, delay)) = claim.inherited_will() {
+        let client_id = &session.client_id;
+        if let Some(will) = wills::schedule(&shared, &core, client_id, will, delay) {
+            wills::publish(&shared, &core, will).await;
+        }
+    }
     let session_present = session.begin(&core, connect.clean_start);
     session.connack(assigned, session_present);
     // A session resumed with another expiry interval: its shared
@@ -529,7 +537,6 @@ struct Session {
     max_packet: u32,
     /// The largest packet a 5.0 client accepts.
     client_max_packet: Option<u32>,
-    will: Option<LastWill>,
     /// The will's delay (5.0's Will Delay Interval).
     will_delay: Duration,
     /// Inbound topic aliases.
@@ -981,7 +988,7 @@ impl Session {
             link,
             reason,
             disconnected,
-            will: self.will.take().filter(|_| send_will),
+            will: claim.take_will().filter(|_| send_will && owned),
             owned,
         }
     }

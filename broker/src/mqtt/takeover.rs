@@ -17,8 +17,12 @@
 //! cancelled, its exclusive queues deleted, nothing sent on it handled
 //! later), before the new session reads the session's queues: the old
 //! one can then change nothing the new one owns, and at its end only
-//! closes its socket.
+//! closes its socket. Its will is the new session's to publish then
+//! ([`Claim::inherited_will`]), as the old one's end would have (MQTT
+//! 5.0 3.1.4, 3.1.1 3.1.2.5: a connection the server closes without
+//! DISCONNECT leaves its will; Mosquitto 2.0 publishes it on a takeover).
 
+use super::wills::LastWill;
 use crate::registry::Registry;
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -53,6 +57,9 @@ struct Holder {
     /// The holding session's AMQP connection, closed by a takeover that
     /// abandons it.
     link: u64,
+    /// The holding session's will and its delay as its CONNECT set them:
+    /// taken by its own end, or by a takeover that abandons it.
+    will: Mutex<Option<(LastWill, Duration)>>,
 }
 
 /// A session's claim; dropping it when the session has ended releases the
@@ -62,6 +69,8 @@ pub(super) struct Claim {
     ids: Arc<ClientIds>,
     key: (String, String),
     holder: Arc<Holder>,
+    /// The will of a session this claim's takeover abandoned.
+    inherited: Option<(LastWill, Duration)>,
 }
 
 impl ClientIds {
@@ -83,7 +92,9 @@ impl ClientIds {
             ended: watch::channel(false).0,
             state: Mutex::new(State::Running),
             link,
+            will: Mutex::new(None),
         });
+        let mut inherited = None;
         let previous = self.lock().insert(key.clone(), Arc::clone(&holder));
         if let Some(previous) = previous {
             let mut ended = previous.ended.subscribe();
@@ -100,6 +111,7 @@ impl ClientIds {
                 };
                 if abandoned {
                     tracing::warn!(client_id, vhost, "session taken over did not end in time");
+                    inherited = lock(&previous.will).take();
                     let closed = registry.close_and_wait(previous.link, "MQTT session taken over");
                     if tokio::time::timeout(wait, closed).await.is_err() {
                         tracing::warn!(
@@ -118,6 +130,7 @@ impl ClientIds {
             ids: Arc::clone(self),
             key,
             holder,
+            inherited,
         }
     }
 
@@ -142,6 +155,23 @@ impl Claim {
     pub(super) fn running<T>(&self, act: impl FnOnce() -> T) -> Option<T> {
         let state = lock(&self.holder.state);
         (*state == State::Running).then(act)
+    }
+
+    /// Holds the session's will, published after `delay` (as its CONNECT
+    /// set them) if a takeover abandons the session.
+    pub(super) fn hold_will(&self, will: Option<LastWill>, delay: Duration) {
+        *lock(&self.holder.will) = will.map(|will| (will, delay));
+    }
+
+    /// The session's will, for its own end ([`Claim::end`] true).
+    pub(super) fn take_will(&self) -> Option<LastWill> {
+        lock(&self.holder.will).take().map(|(will, _)| will)
+    }
+
+    /// The will of the session this claim's takeover abandoned, with its
+    /// delay: the new session publishes or schedules it before it begins.
+    pub(super) fn inherited_will(&mut self) -> Option<(LastWill, Duration)> {
+        self.inherited.take()
     }
 
     /// Begins the session's end: whether the end is its own (flush,
