@@ -21,7 +21,9 @@
 //! they are given [`OLDER_RECORDS_EXPIRY`] (a day) at start, and their
 //! session's own interval when it is next seen (its connection's end
 //! rewrites them), so a session that never comes back does not hold its
-//! place for ever.
+//! place for ever. The day counts from each start (it is not written
+//! back), and it is also given to records of never-expiring sessions
+//! (an older Leveret stored those without an interval too).
 //!
 //! Bounded: at most [`MAX_PER_SESSION`] identifiers per session (the
 //! receive maximum) and [`MAX_SESSIONS`] sessions, in memory and in the
