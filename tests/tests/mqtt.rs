@@ -585,73 +585,15 @@ async fn a_takeover_that_gave_up_waiting_closes_the_old_link_and_publishes_its_w
     bind_to_amq_topic(&channel, "old-wills", "stuck.will").await;
     // The old session: a will, and a client that never reads, with a
     // small receive buffer, so that the broker's writes to it stall.
-    let socket = tokio::net::TcpSocket::new_v4().unwrap();
-    socket.set_recv_buffer_size(4096).unwrap();
-    let addr: SocketAddr = ([127, 0, 0, 1], port).into();
-    let mut old = Raw {
-        socket: tmo!(socket.connect(addr)).unwrap(),
-        buf: BytesMut::new(),
-        version: ProtocolVersion::V3_1_1,
+    let will = leveret_mqtt::Will {
+        topic: TopicName::from_static("stuck/will"),
+        payload: Bytes::from_static(b"gone"),
+        qos: leveret_mqtt::QoS::AtLeastOnce,
+        retain: false,
+        properties: Default::default(),
     };
-    old.send(Packet::Connect(Box::new(Connect {
-        version: ProtocolVersion::V3_1_1,
-        clean_start: true,
-        keep_alive: 0,
-        properties: Default::default(),
-        client_id: leveret_mqtt::MqttString::from_static("stuck"),
-        will: Some(leveret_mqtt::Will {
-            topic: TopicName::from_static("stuck/will"),
-            payload: Bytes::from_static(b"gone"),
-            qos: leveret_mqtt::QoS::AtLeastOnce,
-            retain: false,
-            properties: Default::default(),
-        }),
-        username: Some(leveret_mqtt::MqttString::from_static("robot")),
-        password: Some(Bytes::from_static(b"secret")),
-    })))
-    .await;
-    assert!(matches!(old.next().await, Some(Packet::ConnAck(_))));
-    old.send(Packet::Subscribe(leveret_mqtt::Subscribe {
-        packet_id: std::num::NonZeroU16::new(1).unwrap(),
-        properties: Default::default(),
-        subscriptions: vec![leveret_mqtt::Subscription {
-            filter: leveret_mqtt::TopicFilter::from_static("flood"),
-            options: Default::default(),
-        }],
-    }))
-    .await;
-    assert!(matches!(old.next().await, Some(Packet::SubAck(_))));
-    // Far more than the socket buffers and the link's outbox (512
-    // deliveries) hold (about 24 MB).
-    let payload = vec![7u8; 16 * 1024];
-    for _ in 0..1500 {
-        tmo!(channel.basic_publish(
-            "amq.topic",
-            "flood",
-            Default::default(),
-            &payload,
-            Default::default()
-        ))
-        .unwrap();
-    }
-    // The old session is stalled: its queue holds messages it cannot take.
-    within("the old session stalled", async {
-        let ready = || {
-            let queues = handle.queues().into_iter();
-            let mut queue = queues.filter(|q| q.name == "mqtt-subscription-stuckqos0");
-            queue.next().map_or(0, |q| q.messages_ready)
-        };
-        let mut before = ready();
-        loop {
-            tokio::time::sleep(Duration::from_millis(500)).await;
-            let now = ready();
-            if now > 0 && now == before {
-                return;
-            }
-            before = now;
-        }
-    })
-    .await;
+    let mut old = connect_raw(port, "stuck", true, Some(will), Some(4096)).await;
+    stall(&handle, &channel, &mut old, "stuck").await;
     // The new session goes on after the wait, the old one still open; its
     // link was closed first, so its exclusive queue is gone and the new
     // session subscribes to the same filter (else 405 RESOURCE_LOCKED).
@@ -692,6 +634,142 @@ async fn a_takeover_that_gave_up_waiting_closes_the_old_link_and_publishes_its_w
         assert!(got.is_none(), "an abandoned session published its will");
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
+    handle.shutdown().await;
+}
+
+/// A 3.1.1 CONNECT of `id` from a raw client (with a receive buffer of
+/// `receive_buffer` bytes if given), answered with a CONNACK.
+async fn connect_raw(
+    port: u16,
+    id: &'static str,
+    clean_start: bool,
+    will: Option<leveret_mqtt::Will>,
+    receive_buffer: Option<u32>,
+) -> Raw {
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    if let Some(size) = receive_buffer {
+        socket.set_recv_buffer_size(size).unwrap();
+    }
+    let addr: SocketAddr = ([127, 0, 0, 1], port).into();
+    let mut raw = Raw {
+        socket: tmo!(socket.connect(addr)).unwrap(),
+        buf: BytesMut::new(),
+        version: ProtocolVersion::V3_1_1,
+    };
+    raw.send(Packet::Connect(Box::new(Connect {
+        version: ProtocolVersion::V3_1_1,
+        clean_start,
+        keep_alive: 0,
+        properties: Default::default(),
+        client_id: leveret_mqtt::MqttString::from_static(id),
+        will,
+        username: Some(leveret_mqtt::MqttString::from_static("robot")),
+        password: Some(Bytes::from_static(b"secret")),
+    })))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::ConnAck(_))));
+    raw
+}
+
+/// Subscribes session `id` (a client that reads no more) to `flood` and
+/// floods it until the broker's writes to it stall: its QoS 0 queue
+/// holds messages it cannot take, and stops draining.
+async fn stall(handle: &BrokerHandle, channel: &lapin::Channel, raw: &mut Raw, id: &str) {
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::from_static("flood"),
+            options: Default::default(),
+        }],
+    }))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    // Far more than the socket buffers and the link's outbox (512
+    // deliveries) hold (about 24 MB).
+    let payload = vec![7u8; 16 * 1024];
+    for _ in 0..1500 {
+        tmo!(channel.basic_publish(
+            "amq.topic",
+            "flood",
+            Default::default(),
+            &payload,
+            Default::default()
+        ))
+        .unwrap();
+    }
+    let queue = format!("mqtt-subscription-{id}qos0");
+    within("the old session stalled", async {
+        let ready = || {
+            let queues = handle.queues().into_iter();
+            let mut queue = queues.filter(|q| q.name == queue);
+            queue.next().map_or(0, |q| q.messages_ready)
+        };
+        let mut before = ready();
+        loop {
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            let now = ready();
+            if now > 0 && now == before {
+                return;
+            }
+            before = now;
+        }
+    })
+    .await;
+}
+
+/// The next packet that is not a PUBLISH.
+async fn past_publishes(raw: &mut Raw) -> Option<Packet> {
+    loop {
+        match raw.next().await {
+            Some(Packet::Publish(_)) => {}
+            other => return other,
+        }
+    }
+}
+
+/// A QoS 2 publish the abandoned connection routed and PUBREC'd is the
+/// new session's: its resend is not routed again, its PUBREL released.
+#[both_runtimes]
+async fn an_abandoned_connections_unreleased_qos_2_publish_is_not_routed_again() {
+    let limits = Limits {
+        handshake_timeout: Duration::from_secs(2),
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("abandoned-q2", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "abandoned-q2", "q2.abandoned").await;
+    let id = std::num::NonZeroU16::new(7).unwrap();
+    let publish = |dup| {
+        Packet::Publish(Publish {
+            dup,
+            delivery: Delivery::ExactlyOnce(id),
+            retain: false,
+            topic: TopicName::from_static("q2/abandoned"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"once"),
+        })
+    };
+    let mut old = connect_raw(port, "stuck-q2", false, None, Some(4096)).await;
+    old.send(publish(false)).await;
+    assert_eq!(old.next().await, Some(Packet::PubRec(PubResponse::new(id))));
+    stall(&handle, &channel, &mut old, "stuck-q2").await;
+    // The takeover gives up waiting; the client resends, as it may.
+    let mut new = connect_raw(port, "stuck-q2", false, None, None).await;
+    new.send(publish(true)).await;
+    // Past the flood the session resumed.
+    let pubrec = past_publishes(&mut new).await;
+    assert_eq!(pubrec, Some(Packet::PubRec(PubResponse::new(id))));
+    new.send(Packet::PubRel(PubResponse::new(id))).await;
+    let pubcomp = past_publishes(&mut new).await;
+    assert_eq!(pubcomp, Some(Packet::PubComp(PubResponse::new(id))));
+    let declared =
+        tmo!(channel.queue_declare("abandoned-q2", Default::default(), Default::default()))
+            .unwrap();
+    assert_eq!(declared.message_count(), 1, "routed exactly once");
+    drop(old);
     handle.shutdown().await;
 }
 
