@@ -219,7 +219,8 @@ pub(super) async fn serve<S: ClientStream>(
             wills::publish(&shared, &core, will).await;
         }
     }
-    let session_present = session.begin(&core, connect.clean_start);
+    let resumed = session.begin(&core, connect.clean_start);
+    let session_present = session.rejoin_shared(connect.clean_start).await | resumed;
     session.connack(assigned, session_present);
     // A session resumed with another expiry interval: its shared
     // subscriptions move to it in bounded batches.
@@ -654,7 +655,9 @@ impl Session {
     /// Starts the session: a clean start deletes what a previous session
     /// of the client left; otherwise the previous session's queues (if
     /// any) are consumed again and its subscriptions read back from their
-    /// bindings. Whether a session was resumed (CONNACK's session present).
+    /// bindings. Whether a session was resumed (CONNACK's session present;
+    /// its shared subscriptions are joined again after this:
+    /// [`Session::rejoin_shared`]).
     fn begin(&mut self, core: &Core, clean_start: bool) -> bool {
         let vhost = ShortStr::try_from(self.vhost.as_str())
             .ok()
@@ -723,14 +726,15 @@ impl Session {
         for id in released {
             self.exactly_once.insert(id, Received::Stored);
         }
-        present | self.rejoin_shared(clean_start)
+        present
     }
 
     /// Joins again the shared subscriptions the session held (`shares`),
     /// unless it starts clean (then they are forgotten); whether it held
     /// any. Their permissions are checked again and the subscription cap
-    /// applies; one refused now is dropped.
-    fn rejoin_shared(&mut self, clean_start: bool) -> bool {
+    /// applies; one refused now is dropped. In time slices: a session may
+    /// hold thousands.
+    async fn rejoin_shared(&mut self, clean_start: bool) -> bool {
         let shares = &self.shared.shares;
         if clean_start {
             let groups = shares.forget(&self.vhost, &self.client_id);
@@ -739,7 +743,9 @@ impl Session {
         }
         let (held, groups) = shares.resume(&self.vhost, &self.client_id);
         shares.apply(&self.core, groups);
+        let mut slice = crate::slice::Slice::start();
         for (filter, options) in &held {
+            crate::slice::yield_if_spent(&mut slice).await;
             let parsed = MqttString::try_from(filter.as_str())
                 .ok()
                 .and_then(|f| leveret_mqtt::TopicFilter::new(f).ok());
