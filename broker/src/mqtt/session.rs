@@ -976,7 +976,9 @@ impl Session {
         if !self.out.is_empty() {
             let _ = tokio::time::timeout(WRITE_STALL, write_out(socket, &self.out)).await;
         }
-        let _ = socket.shutdown().await;
+        // Bounded too (a TLS close_notify waits for room): a takeover
+        // waits for an end under way.
+        let _ = tokio::time::timeout(WRITE_STALL, socket.shutdown()).await;
         // A resumed session that does not outlive this connection (unless
         // abandoned: its queues are the new session's now).
         let delete = std::mem::take(&mut self.delete_at_end);
