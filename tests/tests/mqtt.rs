@@ -646,6 +646,18 @@ async fn connect_raw(
     will: Option<leveret_mqtt::Will>,
     receive_buffer: Option<u32>,
 ) -> Raw {
+    let v3 = (ProtocolVersion::V3_1_1, Default::default());
+    connect_raw_as(port, id, (clean_start, v3), will, receive_buffer).await
+}
+
+/// [`connect_raw`] in `version`, with CONNECT `properties` (5.0).
+async fn connect_raw_as(
+    port: u16,
+    id: &'static str,
+    (clean_start, (version, properties)): (bool, (ProtocolVersion, leveret_mqtt::Properties)),
+    will: Option<leveret_mqtt::Will>,
+    receive_buffer: Option<u32>,
+) -> Raw {
     let socket = tokio::net::TcpSocket::new_v4().unwrap();
     if let Some(size) = receive_buffer {
         socket.set_recv_buffer_size(size).unwrap();
@@ -654,13 +666,13 @@ async fn connect_raw(
     let mut raw = Raw {
         socket: tmo!(socket.connect(addr)).unwrap(),
         buf: BytesMut::new(),
-        version: ProtocolVersion::V3_1_1,
+        version,
     };
     raw.send(Packet::Connect(Box::new(Connect {
-        version: ProtocolVersion::V3_1_1,
+        version,
         clean_start,
         keep_alive: 0,
-        properties: Default::default(),
+        properties,
         client_id: leveret_mqtt::MqttString::from_static(id),
         will,
         username: Some(leveret_mqtt::MqttString::from_static("robot")),
@@ -716,6 +728,53 @@ async fn stall(handle: &BrokerHandle, channel: &lapin::Channel, raw: &mut Raw, i
         }
     })
     .await;
+}
+
+/// A takeover that abandons a 5.0 session with a delayed will and starts
+/// clean publishes that will at once (the old session ended: MQTT 5.0
+/// 3.1.4), before its CONNACK.
+#[both_runtimes]
+async fn a_clean_takeover_that_gave_up_publishes_a_delayed_will_at_once() {
+    let limits = Limits {
+        handshake_timeout: Duration::from_secs(2),
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("delayed-wills", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "delayed-wills", "late.will").await;
+    let mut will_properties = leveret_mqtt::Properties::default();
+    will_properties.will_delay_interval = Some(3600);
+    let will = leveret_mqtt::Will {
+        topic: TopicName::from_static("late/will"),
+        payload: Bytes::from_static(b"late"),
+        qos: leveret_mqtt::QoS::AtLeastOnce,
+        retain: false,
+        properties: will_properties,
+    };
+    let mut properties = leveret_mqtt::Properties::default();
+    properties.session_expiry_interval = Some(3600);
+    let v5 = (ProtocolVersion::V5, properties);
+    let mut old = connect_raw_as(port, "late", (false, v5), Some(will), Some(4096)).await;
+    stall(&handle, &channel, &mut old, "late").await;
+    let v5 = (ProtocolVersion::V5, Default::default());
+    let _new = connect_raw_as(port, "late", (true, v5), None, None).await;
+    // (Published by the will's own task, told to at the new session's
+    // start.)
+    let will = within("the delayed will, published at the clean takeover", async {
+        loop {
+            let no_ack = lapin::options::BasicGetOptions { no_ack: true };
+            if let Some(will) = channel.basic_get("delayed-wills", no_ack).await.unwrap() {
+                return will;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    assert_eq!(&will.delivery.data[..], b"late");
+    drop(old);
+    handle.shutdown().await;
 }
 
 /// The next packet that is not a PUBLISH.
