@@ -572,7 +572,7 @@ fn mqtt_connections(handle: &BrokerHandle) -> usize {
 }
 
 #[both_runtimes]
-async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
+async fn a_takeover_that_gave_up_waiting_closes_the_old_link_and_publishes_its_will() {
     // A takeover waits for the old session as long as a CONNECT may take.
     let limits = Limits {
         handshake_timeout: Duration::from_secs(2),
@@ -585,33 +585,109 @@ async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
     bind_to_amq_topic(&channel, "old-wills", "stuck.will").await;
     // The old session: a will, and a client that never reads, with a
     // small receive buffer, so that the broker's writes to it stall.
+    let will = leveret_mqtt::Will {
+        topic: TopicName::from_static("stuck/will"),
+        payload: Bytes::from_static(b"gone"),
+        qos: leveret_mqtt::QoS::AtLeastOnce,
+        retain: false,
+        properties: Default::default(),
+    };
+    let mut old = connect_raw(port, "stuck", true, Some(will), Some(4096)).await;
+    stall(&handle, &channel, &mut old, "stuck").await;
+    // The new session goes on after the wait, the old one still open; its
+    // link was closed first, so its exclusive queue is gone and the new
+    // session subscribes to the same filter (else 405 RESOURCE_LOCKED).
+    let (client, mut events) = connected3("stuck", port).await;
+    tmo!(client.subscribe("flood", rumqttc::QoS::AtMostOnce)).unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    tmo!(channel.basic_publish(
+        "amq.topic",
+        "flood",
+        Default::default(),
+        b"after",
+        Default::default()
+    ))
+    .unwrap();
+    let got = next_publish3(&mut events).await;
+    assert_eq!(&got.payload[..], b"after", "only the new session consumes");
+    // The old connection's will was published by the takeover (MQTT 5.0
+    // 3.1.4), before the new session began.
+    let get = || {
+        let no_ack = lapin::options::BasicGetOptions { no_ack: true };
+        channel.basic_get("old-wills", no_ack)
+    };
+    let will = tmo!(get()).unwrap().expect("the abandoned session's will");
+    assert_eq!(&will.delivery.data[..], b"gone");
+    // The old session ends now: no second will (nor anything of its end).
+    drop(old);
+    within("the old session ended", async {
+        while mqtt_connections(&handle) > 1 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    for _ in 0..30 {
+        let got = tmo!(get()).unwrap();
+        assert!(got.is_none(), "an abandoned session published its will");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    handle.shutdown().await;
+}
+
+/// A 3.1.1 CONNECT of `id` from a raw client (with a receive buffer of
+/// `receive_buffer` bytes if given), answered with a CONNACK.
+async fn connect_raw(
+    port: u16,
+    id: &'static str,
+    clean_start: bool,
+    will: Option<leveret_mqtt::Will>,
+    receive_buffer: Option<u32>,
+) -> Raw {
+    let v3 = (ProtocolVersion::V3_1_1, Default::default());
+    connect_raw_as(port, id, (clean_start, v3), will, receive_buffer).await
+}
+
+/// [`connect_raw`] in `version`, with CONNECT `properties` (5.0).
+async fn connect_raw_as(
+    port: u16,
+    id: &'static str,
+    (clean_start, (version, properties)): (bool, (ProtocolVersion, leveret_mqtt::Properties)),
+    will: Option<leveret_mqtt::Will>,
+    receive_buffer: Option<u32>,
+) -> Raw {
     let socket = tokio::net::TcpSocket::new_v4().unwrap();
-    socket.set_recv_buffer_size(4096).unwrap();
+    if let Some(size) = receive_buffer {
+        socket.set_recv_buffer_size(size).unwrap();
+    }
     let addr: SocketAddr = ([127, 0, 0, 1], port).into();
-    let mut old = Raw {
+    let mut raw = Raw {
         socket: tmo!(socket.connect(addr)).unwrap(),
         buf: BytesMut::new(),
-        version: ProtocolVersion::V3_1_1,
+        version,
     };
-    old.send(Packet::Connect(Box::new(Connect {
-        version: ProtocolVersion::V3_1_1,
-        clean_start: true,
+    raw.send(Packet::Connect(Box::new(Connect {
+        version,
+        clean_start,
         keep_alive: 0,
-        properties: Default::default(),
-        client_id: leveret_mqtt::MqttString::from_static("stuck"),
-        will: Some(leveret_mqtt::Will {
-            topic: TopicName::from_static("stuck/will"),
-            payload: Bytes::from_static(b"gone"),
-            qos: leveret_mqtt::QoS::AtLeastOnce,
-            retain: false,
-            properties: Default::default(),
-        }),
+        properties,
+        client_id: leveret_mqtt::MqttString::from_static(id),
+        will,
         username: Some(leveret_mqtt::MqttString::from_static("robot")),
         password: Some(Bytes::from_static(b"secret")),
     })))
     .await;
-    assert!(matches!(old.next().await, Some(Packet::ConnAck(_))));
-    old.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+    assert!(matches!(raw.next().await, Some(Packet::ConnAck(_))));
+    raw
+}
+
+/// Subscribes session `id` (a client that reads no more) to `flood` and
+/// floods it until the broker's writes to it stall: its QoS 0 queue
+/// holds messages it cannot take, and stops draining.
+async fn stall(handle: &BrokerHandle, channel: &lapin::Channel, raw: &mut Raw, id: &str) {
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
         packet_id: std::num::NonZeroU16::new(1).unwrap(),
         properties: Default::default(),
         subscriptions: vec![leveret_mqtt::Subscription {
@@ -620,10 +696,11 @@ async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
         }],
     }))
     .await;
-    assert!(matches!(old.next().await, Some(Packet::SubAck(_))));
-    // Far more than the socket buffers hold (about 20 MB).
-    let payload = vec![7u8; 64 * 1024];
-    for _ in 0..300 {
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    // Far more than the socket buffers and the link's outbox (512
+    // deliveries) hold (about 24 MB).
+    let payload = vec![7u8; 16 * 1024];
+    for _ in 0..1500 {
         tmo!(channel.basic_publish(
             "amq.topic",
             "flood",
@@ -633,32 +710,125 @@ async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
         ))
         .unwrap();
     }
-    // The new session goes on after the wait, the old one still open.
-    let (_client, _events) = connected3("stuck", port).await;
-    assert_eq!(
-        mqtt_connections(&handle),
-        2,
-        "the old session was still writing when the takeover gave up"
-    );
-    // The old session ends now: no will (nor anything else of its end).
-    drop(old);
-    within("the old session ended", async {
-        while mqtt_connections(&handle) > 1 {
+    let queue = format!("mqtt-subscription-{id}qos0");
+    within("the old session stalled", async {
+        let ready = || {
+            let queues = handle.queues().into_iter();
+            let mut queue = queues.filter(|q| q.name == queue);
+            queue.next().map_or(0, |q| q.messages_ready)
+        };
+        let mut before = ready();
+        loop {
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            let now = ready();
+            if now > 0 && now == before {
+                return;
+            }
+            before = now;
+        }
+    })
+    .await;
+}
+
+/// A takeover that abandons a 5.0 session with a delayed will and starts
+/// clean publishes that will at once (the old session ended: MQTT 5.0
+/// 3.1.4), before its CONNACK.
+#[both_runtimes]
+async fn a_clean_takeover_that_gave_up_publishes_a_delayed_will_at_once() {
+    let limits = Limits {
+        handshake_timeout: Duration::from_secs(2),
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("delayed-wills", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "delayed-wills", "late.will").await;
+    let mut will_properties = leveret_mqtt::Properties::default();
+    will_properties.will_delay_interval = Some(3600);
+    let will = leveret_mqtt::Will {
+        topic: TopicName::from_static("late/will"),
+        payload: Bytes::from_static(b"late"),
+        qos: leveret_mqtt::QoS::AtLeastOnce,
+        retain: false,
+        properties: will_properties,
+    };
+    let mut properties = leveret_mqtt::Properties::default();
+    properties.session_expiry_interval = Some(3600);
+    let v5 = (ProtocolVersion::V5, properties);
+    let mut old = connect_raw_as(port, "late", (false, v5), Some(will), Some(4096)).await;
+    stall(&handle, &channel, &mut old, "late").await;
+    let v5 = (ProtocolVersion::V5, Default::default());
+    let _new = connect_raw_as(port, "late", (true, v5), None, None).await;
+    // (Published by the will's own task, told to at the new session's
+    // start.)
+    let will = within("the delayed will, published at the clean takeover", async {
+        loop {
+            let no_ack = lapin::options::BasicGetOptions { no_ack: true };
+            if let Some(will) = channel.basic_get("delayed-wills", no_ack).await.unwrap() {
+                return will;
+            }
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
     })
     .await;
-    for _ in 0..30 {
-        let got = channel
-            .basic_get(
-                "old-wills",
-                lapin::options::BasicGetOptions { no_ack: true },
-            )
-            .await
-            .unwrap();
-        assert!(got.is_none(), "an abandoned session published its will");
-        tokio::time::sleep(Duration::from_millis(100)).await;
+    assert_eq!(&will.delivery.data[..], b"late");
+    drop(old);
+    handle.shutdown().await;
+}
+
+/// The next packet that is not a PUBLISH.
+async fn past_publishes(raw: &mut Raw) -> Option<Packet> {
+    loop {
+        match raw.next().await {
+            Some(Packet::Publish(_)) => {}
+            other => return other,
+        }
     }
+}
+
+/// A QoS 2 publish the abandoned connection routed and PUBREC'd is the
+/// new session's: its resend is not routed again, its PUBREL released.
+#[both_runtimes]
+async fn an_abandoned_connections_unreleased_qos_2_publish_is_not_routed_again() {
+    let limits = Limits {
+        handshake_timeout: Duration::from_secs(2),
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare("abandoned-q2", Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, "abandoned-q2", "q2.abandoned").await;
+    let id = std::num::NonZeroU16::new(7).unwrap();
+    let publish = |dup| {
+        Packet::Publish(Publish {
+            dup,
+            delivery: Delivery::ExactlyOnce(id),
+            retain: false,
+            topic: TopicName::from_static("q2/abandoned"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"once"),
+        })
+    };
+    let mut old = connect_raw(port, "stuck-q2", false, None, Some(4096)).await;
+    old.send(publish(false)).await;
+    assert_eq!(old.next().await, Some(Packet::PubRec(PubResponse::new(id))));
+    stall(&handle, &channel, &mut old, "stuck-q2").await;
+    // The takeover gives up waiting; the client resends, as it may.
+    let mut new = connect_raw(port, "stuck-q2", false, None, None).await;
+    new.send(publish(true)).await;
+    // Past the flood the session resumed.
+    let pubrec = past_publishes(&mut new).await;
+    assert_eq!(pubrec, Some(Packet::PubRec(PubResponse::new(id))));
+    new.send(Packet::PubRel(PubResponse::new(id))).await;
+    let pubcomp = past_publishes(&mut new).await;
+    assert_eq!(pubcomp, Some(Packet::PubComp(PubResponse::new(id))));
+    let declared =
+        tmo!(channel.queue_declare("abandoned-q2", Default::default(), Default::default()))
+            .unwrap();
+    assert_eq!(declared.message_count(), 1, "routed exactly once");
+    drop(old);
     handle.shutdown().await;
 }
 
@@ -3369,26 +3539,27 @@ async fn a_disconnects_new_interval_moves_all_the_members_groups() {
     }))
     .await;
     raw.assert_closed().await;
-    let (first, last) = (
-        "mqtt-shared-mv0/x",
-        format!("mqtt-shared-mv{}/x", count - 1),
-    );
-    until_expires(&handle, first, Some(60_000)).await;
-    until_expires(&handle, &last, Some(60_000)).await;
+    // Every group, those of the second batch too (moves go in filter
+    // order: `mv99` is the last).
+    for n in 0..count {
+        until_expires(&handle, &format!("mqtt-shared-mv{n}/x"), Some(60_000)).await;
+    }
     handle.shutdown().await;
 
     // The records moved too: a member joining for a second after a
     // restart finds the group kept for the mover's minute (its join
-    // gives the queue the group's value before its SUBACK).
+    // gives the queue the group's value before its SUBACK), the last
+    // moved group's too.
     let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
     let port = mqtt_port(&handle);
     let (client, mut events, _) = expiring5("joiner", port, true, 1).await;
-    let filter = vec![Filter::new("$share/mv0/x", QoS5::AtLeastOnce)];
+    let last = "mqtt-shared-mv99/x";
+    let filter = vec![Filter::new("$share/mv99/x", QoS5::AtLeastOnce)];
     assert_eq!(
         subscribe5(&client, &mut events, filter, None).await.len(),
         1
     );
-    assert_eq!(listed_as(&handle, first).2, Some(60_000));
+    assert_eq!(listed_as(&handle, last).2, Some(60_000));
     disconnect5(client, events).await;
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);

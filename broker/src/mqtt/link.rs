@@ -30,6 +30,8 @@ pub(super) const CHANNEL: u16 = 1;
 /// has ended and cleaned up (its exclusive queues deleted).
 pub(super) struct Link {
     pub direct: DirectLink,
+    /// The AMQP connection's id (a takeover closes it by it).
+    pub id: u64,
     ended: oneshot::Receiver<()>,
 }
 
@@ -78,8 +80,9 @@ impl Link {
             None => Identity::Tls(Some(login.user.to_owned())),
         };
         let kind = (login.protocol, Some(Arc::clone(&login.traffic)));
-        let direct = serve_direct(core, slot, (peer, identity), kind, done);
-        let mut link = Link { direct, ended };
+        let id = core.next_connection_id();
+        let direct = serve_direct(core, id, slot, (peer, identity), kind, done);
+        let mut link = Link { direct, id, ended };
         match tokio::time::timeout_at(deadline, link.handshake(&login)).await {
             Ok(Ok(())) => Ok(link),
             Ok(Err(refusal)) => Err(refusal),
@@ -202,7 +205,7 @@ impl Link {
     /// connection.close (logged as closed by the client); otherwise the
     /// broker sees its client gone, as for a lost socket (a warning).
     pub(super) async fn close(self, disconnected: bool) {
-        let Link { direct, ended } = self;
+        let Link { direct, ended, .. } = self;
         if disconnected {
             let close = ConnectionClose {
                 reply_code: ReplyCode::Success.code(),

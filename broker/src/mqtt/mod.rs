@@ -133,6 +133,8 @@ pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
             _ = ticks.tick() => {}
             _ = shutdown.wait_for(|down| *down) => return,
         }
+        // Sessions whose interval changed, moved on even if none connects.
+        shared.shares.settle_yielding(&core).await;
         loop {
             let releases = shared.releases.sweep();
             let (shares, groups, more) = shared.shares.sweep();

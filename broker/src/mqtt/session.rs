@@ -171,7 +171,7 @@ pub(super) async fn serve<S: ClientStream>(
     socket.logged_in();
     let Accepted {
         link,
-        claim,
+        mut claim,
         client_id,
         assigned,
         vhost,
@@ -199,7 +199,6 @@ pub(super) async fn serve<S: ClientStream>(
         window,
         max_packet,
         client_max_packet: connect.properties.maximum_packet_size.map(|m| m.get()),
-        will,
         will_delay,
         aliases: TopicAliases::default(),
         out: BytesMut::new(),
@@ -217,7 +216,17 @@ pub(super) async fn serve<S: ClientStream>(
         acked_consumers: 0,
         delete_at_end: Vec::new(),
     };
-    let session_present = session.begin(&core, connect.clean_start);
+    claim.hold_will(will, session.will_delay_left());
+    // The will of a session this takeover abandoned: published now or
+    // scheduled, for `begin` to drop (resumed) or publish (clean start).
+    if let Some((will, delay)) = claim.inherited_will() {
+        let client_id = &session.client_id;
+        if let Some(will) = wills::schedule(&shared, &core, client_id, *will, delay) {
+            Box::pin(wills::publish(&shared, &core, will)).await;
+        }
+    }
+    let resumed = session.begin(&core, connect.clean_start);
+    let session_present = Box::pin(session.rejoin_shared(connect.clean_start)).await | resumed;
     // The interval the session was given, if not the one asked for
     // (MQTT 5.0 3.2.2.3.2: the CONNACK says it).
     let lowered = (connect.properties.session_expiry_interval.unwrap_or(0)) != lifetime.interval();
@@ -238,6 +247,7 @@ pub(super) async fn serve<S: ClientStream>(
         reason,
         disconnected,
         will,
+        owned,
     } = end;
     if disconnected {
         tracing::debug!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
@@ -245,10 +255,9 @@ pub(super) async fn serve<S: ClientStream>(
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
     Box::pin(link.close(disconnected)).await;
-    // Skipped if a session taking over stopped waiting for this one: it
-    // has resumed the session already. Decided once, under the claim, so
-    // that a takeover giving up waits for what is decided here.
-    let kept = claim.unless_abandoned(|| {
+    // Skipped if a session taking over abandoned this one: it has resumed
+    // the session already. Otherwise a takeover waits for it (`owned`).
+    let kept = owned.then(|| {
         if session.lifetime != lifetime && session.lifetime != Lifetime::Connection {
             // A DISCONNECT changed the expiry: the queues follow, now
             // that the link has declared every one of them.
@@ -503,7 +512,10 @@ async fn admit(
     })?;
     // A session taken over gets as long to end as a CONNECT to come.
     let wait = core.limits.handshake_timeout;
-    let claim = shared.ids.claim(&vhost, &client_id, wait).await;
+    let (ids, registry) = (&shared.ids, &core.registry);
+    let claim = ids
+        .claim((&vhost, &client_id), link.id, registry, wait)
+        .await;
     Ok(Accepted {
         link,
         claim,
@@ -550,8 +562,6 @@ struct Session {
     max_packet: u32,
     /// The largest packet a 5.0 client accepts.
     client_max_packet: Option<u32>,
-    /// Boxed: most sessions have none, and a will is some 500 bytes.
-    will: Option<Box<LastWill>>,
     /// The will's delay (5.0's Will Delay Interval).
     will_delay: Duration,
     /// Inbound topic aliases.
@@ -631,8 +641,12 @@ struct Ended {
     reason: &'static str,
     /// The client ended it with DISCONNECT.
     disconnected: bool,
-    /// The will to publish.
+    /// The will to publish (boxed: most sessions have none, and a will is
+    /// some 500 bytes).
     will: Option<Box<LastWill>>,
+    /// The end was the session's own ([`Claim::end`]), not abandoned by
+    /// a takeover.
+    owned: bool,
 }
 
 /// Why the loop stopped.
@@ -666,7 +680,9 @@ impl Session {
     /// Starts the session: a clean start deletes what a previous session
     /// of the client left; otherwise the previous session's queues (if
     /// any) are consumed again and its subscriptions read back from their
-    /// bindings. Whether a session was resumed (CONNACK's session present).
+    /// bindings. Whether a session was resumed (CONNACK's session present;
+    /// its shared subscriptions are joined again after this:
+    /// [`Session::rejoin_shared`]).
     fn begin(&mut self, core: &Core, clean_start: bool) -> bool {
         let vhost = ShortStr::try_from(self.vhost.as_str())
             .ok()
@@ -735,14 +751,15 @@ impl Session {
         for id in released {
             self.exactly_once.insert(id, Received::Stored);
         }
-        present | self.rejoin_shared(clean_start)
+        present
     }
 
     /// Joins again the shared subscriptions the session held (`shares`),
     /// unless it starts clean (then they are forgotten); whether it held
     /// any. Their permissions are checked again and the subscription cap
-    /// applies; one refused now is dropped.
-    fn rejoin_shared(&mut self, clean_start: bool) -> bool {
+    /// applies; one refused now is dropped. In time slices: a session may
+    /// hold thousands.
+    async fn rejoin_shared(&mut self, clean_start: bool) -> bool {
         let shares = &self.shared.shares;
         if clean_start {
             let groups = shares.forget(&self.vhost, &self.client_id);
@@ -751,7 +768,9 @@ impl Session {
         }
         let (held, groups) = shares.resume(&self.vhost, &self.client_id);
         shares.apply(&self.core, groups);
+        let mut slice = crate::slice::Slice::start();
         for (filter, options) in &held {
+            crate::slice::yield_if_spent(&mut slice).await;
             let parsed = MqttString::try_from(filter.as_str())
                 .ok()
                 .and_then(|f| leveret_mqtt::TopicFilter::new(f).ok());
@@ -838,10 +857,13 @@ impl Session {
         tokio::pin!(release);
         let mut durable = self.shared.retained.durable();
         let stop = loop {
-            // Whole packets already read.
+            // Whole packets already read, unless a takeover has abandoned
+            // the session.
             if self.reading() {
-                if let Err(stop) = self.take_packets(&mut buf) {
-                    break stop;
+                match claim.running(|| self.take_packets(&mut buf)) {
+                    Some(Ok(())) => {}
+                    Some(Err(stop)) => break stop,
+                    None => break taken_over(),
                 }
             }
             while let Some(item) = self.pending.pop_front() {
@@ -894,8 +916,15 @@ impl Session {
                 reply = link.direct.from_broker.recv() => match reply {
                     Some(reply) => {
                         last_active = Instant::now();
-                        if let Err(stop) = self.handle_core_reply(reply) { break stop }
-                        if let Err(stop) = self.handle_ready_replies(&mut link) { break stop }
+                        let handled = claim.running(|| {
+                            self.handle_core_reply(reply)?;
+                            self.handle_ready_replies(&mut link)
+                        });
+                        match handled {
+                            Some(Ok(())) => {}
+                            Some(Err(stop)) => break stop,
+                            None => break taken_over(),
+                        }
                     }
                     None => break closed("the broker ended the session", Some(ReasonCode::ServerShuttingDown)),
                 },
@@ -911,9 +940,7 @@ impl Session {
                 _ = store_progress(durable.as_mut()), if !self.held_acks.is_empty() => {
                     if let Err(stop) = self.release_held_acks() { break stop }
                 }
-                _ = claim.taken_over() => {
-                    break closed("taken over by a new connection", Some(ReasonCode::SessionTakenOver));
-                }
+                _ = claim.taken_over() => break taken_over(),
                 _ = shutdown.wait_for(|down| *down) => {
                     break closed("broker shutting down", Some(ReasonCode::ServerShuttingDown));
                 }
@@ -950,8 +977,8 @@ impl Session {
     }
 
     /// Sends what is owed before closing (a 5.0 DISCONNECT, the will);
-    /// a session whose takeover has given up waiting for it
-    /// ([`Claim::abandoned`]) only closes its socket.
+    /// a session a takeover has abandoned ([`Claim::end`]) only closes its
+    /// socket.
     async fn finish(
         &mut self,
         socket: &mut (impl AsyncRead + AsyncWrite + Unpin),
@@ -959,8 +986,8 @@ impl Session {
         claim: &Claim,
         stop: Stop,
     ) -> Ended {
-        let abandoned = claim.abandoned();
-        if abandoned {
+        let owned = claim.end();
+        if !owned {
             self.out.clear();
         } else {
             self.flush_pending(&mut link).await;
@@ -969,7 +996,7 @@ impl Session {
         let (reason, send_will) = match stop {
             Stop::Disconnected { send_will } => ("client disconnected", send_will),
             Stop::Closed { reason, disconnect } => {
-                if let (Some(code), true, false) = (disconnect, self.v5(), abandoned) {
+                if let (Some(code), true, true) = (disconnect, self.v5(), owned) {
                     self.send(Packet::Disconnect(Disconnect {
                         reason: code,
                         properties: Default::default(),
@@ -981,12 +1008,13 @@ impl Session {
         if !self.out.is_empty() {
             let _ = tokio::time::timeout(WRITE_STALL, write_out(socket, &self.out)).await;
         }
-        let _ = socket.shutdown().await;
+        // Bounded too (a TLS close_notify waits for room): a takeover
+        // waits for an end under way.
+        let _ = tokio::time::timeout(WRITE_STALL, socket.shutdown()).await;
         // A resumed session that does not outlive this connection (unless
-        // a takeover has given up waiting meanwhile: its queues are the
-        // new session's now).
+        // abandoned: its queues are the new session's now).
         let delete = std::mem::take(&mut self.delete_at_end);
-        for queue in delete.into_iter().filter(|_| !claim.abandoned()) {
+        for queue in delete.into_iter().take_while(|_| owned) {
             let delete = QueueDelete {
                 ticket: 0,
                 queue,
@@ -1000,7 +1028,8 @@ impl Session {
             link,
             reason,
             disconnected,
-            will: self.will.take().filter(|_| send_will),
+            will: claim.take_will().filter(|_| send_will && owned),
+            owned,
         }
     }
 
@@ -2079,4 +2108,9 @@ fn owned(payload: bytes::Bytes) -> bytes::Bytes {
 
 fn closed(reason: &'static str, disconnect: Option<ReasonCode>) -> Stop {
     Stop::Closed { reason, disconnect }
+}
+
+fn taken_over() -> Stop {
+    let reason = Some(ReasonCode::SessionTakenOver);
+    closed("taken over by a new connection", reason)
 }

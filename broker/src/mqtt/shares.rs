@@ -225,8 +225,14 @@ impl Shares {
                 };
                 let key = (vhost.clone(), client_id.clone());
                 let held = state.sessions.entry(key).or_default();
-                held.expiry = (*session_expiry != NEVER).then_some(*session_expiry);
-                held.filters.insert(filter.clone(), (options, held.expiry));
+                let expiry = (*session_expiry != NEVER).then_some(*session_expiry);
+                // Mixed intervals (a crash between a move's batches): the
+                // longest, whatever order the store reads them in.
+                held.expiry = match held.filters.is_empty() {
+                    true => expiry,
+                    false => longest(held.expiry, expiry),
+                };
+                held.filters.insert(filter.clone(), (options, expiry));
                 held.expires_at = super::expiry::ends_at(held.expiry);
             }
         }
@@ -240,8 +246,9 @@ impl Shares {
             state.join(&vhost, &filter, expiry);
         }
         // A crash while a session's records were being moved to a new
-        // interval leaves them mixed: they are made one again (the
-        // interval of the last record read).
+        // interval leaves them mixed: they are made one again (the longest
+        // of them: it never drops a subscription early, and may keep one
+        // longer than a shortened interval asked), by `reconcile` at start.
         let moving = (state.sessions.iter())
             .filter(|(_, held)| held.filters.values().any(|(_, e)| *e != held.expiry))
             .map(|(key, _)| key.clone());
@@ -385,9 +392,14 @@ impl Shares {
     /// ([`Shares::settle_batch`]) and gives the groups changed their
     /// queues' expiry, yielding between holds of the lock.
     pub(super) async fn settle_yielding(&self, core: &Core) {
+        self.settle_yielding_in(&|name: &str| vhost_named(core, name))
+            .await;
+    }
+
+    async fn settle_yielding_in(&self, vhost_of: &impl Fn(&str) -> VhostOf) {
         loop {
             let (groups, more) = self.settle_batch();
-            self.apply_yielding(core, groups).await;
+            self.apply_yielding_in(vhost_of, groups).await;
             if !more {
                 return;
             }
@@ -532,9 +544,19 @@ impl Shares {
     /// queue with a stale `x-expires` (a short one would expire it before
     /// its members' expiry is given back; one of a group that has lost
     /// its last persistent member would keep it too long, or for ever).
+    /// Sessions recovered half-moved to a new interval are moved on
+    /// first ([`Shares::new`]), so no group is given an expiry from a
+    /// mixed state.
     pub(super) async fn reconcile(&self, core: &Core) {
-        self.apply_yielding(core, declared_groups(&core.vhosts()))
-            .await;
+        self.reconcile_in(&core.vhosts()).await;
+    }
+
+    /// [`Shares::reconcile`] over `vhosts`.
+    async fn reconcile_in(&self, vhosts: &[Arc<Vhost>]) {
+        let vhost_of = |name: &str| (vhosts.iter()).find(|v| v.name.to_string_lossy() == name);
+        let vhost_of = |name: &str| vhost_of(name).cloned();
+        self.settle_yielding_in(&vhost_of).await;
+        (self.apply_yielding_in(&vhost_of, declared_groups(vhosts))).await;
     }
 
     /// Gives the durable queues of `groups` the `x-expires` their
@@ -552,8 +574,12 @@ impl Shares {
     /// [`Shares::apply`] for a task: yields between holds of the lock.
     pub(super) async fn apply_yielding(&self, core: &Core, groups: Groups) {
         let vhost_of = |name: &str| vhost_named(core, name);
+        self.apply_yielding_in(&vhost_of, groups).await;
+    }
+
+    async fn apply_yielding_in(&self, vhost_of: &impl Fn(&str) -> VhostOf, groups: Groups) {
         for batch in groups.chunks(APPLY_BATCH) {
-            self.apply_batch(&vhost_of, batch);
+            self.apply_batch(vhost_of, batch);
             tokio::task::yield_now().await;
         }
     }
@@ -719,6 +745,14 @@ fn declared_groups(vhosts: &[Arc<Vhost>]) -> Groups {
         }
     }
     groups
+}
+
+/// A vhost looked up by name.
+type VhostOf = Option<Arc<Vhost>>;
+
+/// The longer of two Session Expiry Intervals (`None`: never).
+fn longest(a: Option<u32>, b: Option<u32>) -> Option<u32> {
+    a.zip(b).map(|(a, b)| a.max(b))
 }
 
 fn vhost_named(core: &Core, name: &str) -> Option<Arc<Vhost>> {
@@ -1107,9 +1141,10 @@ mod tests {
         assert!(shares.lock().groups.is_empty());
     }
 
-    #[test]
-    fn a_session_recovered_half_moved_is_moved_on() {
-        // A crash between two batches of a move from 60 s to an hour.
+    #[tokio::test]
+    async fn a_session_recovered_half_moved_is_moved_on_at_start_to_its_longest_interval() {
+        // A crash between two batches of a move from 60 s to an hour; the
+        // store may read the records in either order.
         let record = |filter: &str, session_expiry| MetaRecord::SharedSubscription {
             vhost: "/".into(),
             client_id: "c".into(),
@@ -1119,12 +1154,19 @@ mod tests {
             subscription_id: 0,
             session_expiry,
         };
-        let records = [record("$share/g/1", 60), record("$share/g/2", 3600)];
-        let shares = Shares::new(&records, None);
-        assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(60)));
-        let g1 = ("/".to_owned(), "$share/g/1".to_owned());
-        assert_eq!(shares.settle_batch(), (vec![g1], false));
-        assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(3600)));
+        let (unmoved, moved) = (record("$share/g/1", 60), record("$share/g/2", 3600));
+        for records in [[unmoved.clone(), moved.clone()], [moved, unmoved]] {
+            let h = Harness::durable();
+            let name = queue_name("$share/g/1").expect("a shared filter");
+            let minute = [("x-expires", FieldValue::I64(60_000)), marked()];
+            let queue = h.declare_queue(&name.to_string_lossy(), true, &minute);
+            let shares = Shares::new(&records, None);
+            // Start-up, no session connecting.
+            shares.reconcile_in(std::slice::from_ref(&h.vhost)).await;
+            assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(3600)));
+            assert_eq!(expires_of(&queue), Some(3_600_000));
+            assert_eq!(shares.settle_batch(), (Vec::new(), false), "all moved");
+        }
     }
 
     #[test]
