@@ -27,6 +27,13 @@ use tokio::net::TcpStream;
 /// How long a close the broker owes may take (generous: CI is loaded).
 const CLOSE_WITHIN: Duration = Duration::from_secs(30);
 
+/// The takeover tests' hang limit for a stall and for the new CONNACK:
+/// above the two waits of their takeover (`handshake_timeout`, 2 s, each)
+/// and above an old session's own end (flush, write and shutdown under
+/// the session's 30 s write stall each), so that a takeover that did not
+/// give up fails on its assertion, not on a timeout.
+const TAKEOVER_WITHIN: Duration = Duration::from_secs(180);
+
 async fn start(limits: Limits) -> BrokerHandle {
     start_with(Broker::builder(), limits).await
 }
@@ -592,12 +599,28 @@ async fn a_takeover_that_gave_up_waiting_closes_the_old_link_and_publishes_its_w
         retain: false,
         properties: Default::default(),
     };
-    let mut old = connect_raw(port, "stuck", true, Some(will), Some(4096)).await;
-    stall(&handle, &channel, &mut old, "stuck").await;
+    capture_warnings();
+    let id = format!("stuck-{port}");
+    let mut old = connect_raw(port, &id, true, Some(will), Some(4096)).await;
+    stall(&handle, &channel, &mut old, &id).await;
     // The new session goes on after the wait, the old one still open; its
     // link was closed first, so its exclusive queue is gone and the new
     // session subscribes to the same filter (else 405 RESOURCE_LOCKED).
-    let (client, mut events) = connected3("stuck", port).await;
+    let (client, mut events) = rumqttc::AsyncClient::new(options3(&id, port, "secret"), 16);
+    let mut network = rumqttc::NetworkOptions::new();
+    network.set_connection_timeout(TAKEOVER_WITHIN.as_secs());
+    events.set_network_options(network);
+    let connack = async {
+        loop {
+            match events.poll().await {
+                Ok(Event::Incoming(Incoming::ConnAck(_))) => return,
+                Ok(_) => {}
+                Err(e) => panic!("connection failed: {e}"),
+            }
+        }
+    };
+    (tokio::time::timeout(TAKEOVER_WITHIN, connack).await).expect("the takeover's CONNACK");
+    assert!(takeover_gave_up(&id), "the takeover gave up waiting");
     tmo!(client.subscribe("flood", rumqttc::QoS::AtMostOnce)).unwrap();
     until3(&mut events, |p| {
         matches!(p, Incoming::SubAck(_)).then_some(())
@@ -641,7 +664,7 @@ async fn a_takeover_that_gave_up_waiting_closes_the_old_link_and_publishes_its_w
 /// `receive_buffer` bytes if given), answered with a CONNACK.
 async fn connect_raw(
     port: u16,
-    id: &'static str,
+    id: &str,
     clean_start: bool,
     will: Option<leveret_mqtt::Will>,
     receive_buffer: Option<u32>,
@@ -653,7 +676,7 @@ async fn connect_raw(
 /// [`connect_raw`] in `version`, with CONNECT `properties` (5.0).
 async fn connect_raw_as(
     port: u16,
-    id: &'static str,
+    id: &str,
     (clean_start, (version, properties)): (bool, (ProtocolVersion, leveret_mqtt::Properties)),
     will: Option<leveret_mqtt::Will>,
     receive_buffer: Option<u32>,
@@ -673,13 +696,16 @@ async fn connect_raw_as(
         clean_start,
         keep_alive: 0,
         properties,
-        client_id: leveret_mqtt::MqttString::from_static(id),
+        client_id: leveret_mqtt::MqttString::from_utf8(Bytes::copy_from_slice(id.as_bytes()))
+            .unwrap(),
         will,
         username: Some(leveret_mqtt::MqttString::from_static("robot")),
         password: Some(Bytes::from_static(b"secret")),
     })))
     .await;
-    assert!(matches!(raw.next().await, Some(Packet::ConnAck(_))));
+    // Generous: this may be a takeover's CONNACK.
+    let connack = raw.next_within(TAKEOVER_WITHIN).await;
+    assert!(matches!(connack, Some(Packet::ConnAck(_))));
     raw
 }
 
@@ -710,24 +736,68 @@ async fn stall(handle: &BrokerHandle, channel: &lapin::Channel, raw: &mut Raw, i
         ))
         .unwrap();
     }
+    // Stalled once the queue has stopped draining for several windows in
+    // a row (a session only starved of CPU moves within one); the caller
+    // asserts that its takeover gave up, so a wrong guess fails the test,
+    // never passes it without the abandon path.
     let queue = format!("mqtt-subscription-{id}qos0");
-    within("the old session stalled", async {
+    let stalled = async {
         let ready = || {
             let queues = handle.queues().into_iter();
             let mut queue = queues.filter(|q| q.name == queue);
             queue.next().map_or(0, |q| q.messages_ready)
         };
-        let mut before = ready();
-        loop {
+        let (mut before, mut unchanged) = (ready(), 0);
+        while unchanged < 6 {
             tokio::time::sleep(Duration::from_millis(500)).await;
             let now = ready();
-            if now > 0 && now == before {
-                return;
-            }
+            unchanged = if now > 0 && now == before {
+                unchanged + 1
+            } else {
+                0
+            };
             before = now;
         }
+    };
+    let stalled = tokio::time::timeout(TAKEOVER_WITHIN, stalled).await;
+    stalled.expect("the old session stalled");
+}
+
+/// The broker's warnings, captured for the whole test binary (one global
+/// subscriber): a takeover test checks that its takeover gave up.
+static WARNINGS: std::sync::Mutex<Vec<u8>> = std::sync::Mutex::new(Vec::new());
+
+struct Warnings;
+
+impl std::io::Write for Warnings {
+    fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+        let mut warnings = WARNINGS.lock().unwrap_or_else(|e| e.into_inner());
+        warnings.extend_from_slice(bytes);
+        Ok(bytes.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// Captures the broker's warnings into [`WARNINGS`] from now on.
+fn capture_warnings() {
+    let _ = tracing_subscriber::fmt()
+        .with_writer(|| Warnings)
+        .with_max_level(tracing_subscriber::filter::LevelFilter::WARN)
+        .with_ansi(false)
+        .try_init();
+}
+
+/// Whether a takeover of `client_id` gave up waiting for the session it
+/// took over and abandoned it (the broker's warning).
+fn takeover_gave_up(client_id: &str) -> bool {
+    let warnings = WARNINGS.lock().unwrap_or_else(|e| e.into_inner());
+    let client_id = format!("client_id=\"{client_id}\"");
+    String::from_utf8_lossy(&warnings).lines().any(|line| {
+        line.contains("session taken over did not end in time") && line.contains(&client_id)
     })
-    .await;
 }
 
 /// A takeover that abandons a 5.0 session with a delayed will and starts
@@ -756,10 +826,13 @@ async fn a_clean_takeover_that_gave_up_publishes_a_delayed_will_at_once() {
     let mut properties = leveret_mqtt::Properties::default();
     properties.session_expiry_interval = Some(3600);
     let v5 = (ProtocolVersion::V5, properties);
-    let mut old = connect_raw_as(port, "late", (false, v5), Some(will), Some(4096)).await;
-    stall(&handle, &channel, &mut old, "late").await;
+    capture_warnings();
+    let id = format!("late-{port}");
+    let mut old = connect_raw_as(port, &id, (false, v5), Some(will), Some(4096)).await;
+    stall(&handle, &channel, &mut old, &id).await;
     let v5 = (ProtocolVersion::V5, Default::default());
-    let _new = connect_raw_as(port, "late", (true, v5), None, None).await;
+    let _new = connect_raw_as(port, &id, (true, v5), None, None).await;
+    assert!(takeover_gave_up(&id), "the takeover gave up waiting");
     // (Published by the will's own task, told to at the new session's
     // start.)
     let will = within("the delayed will, published at the clean takeover", async {
@@ -811,12 +884,15 @@ async fn an_abandoned_connections_unreleased_qos_2_publish_is_not_routed_again()
             payload: Bytes::from_static(b"once"),
         })
     };
-    let mut old = connect_raw(port, "stuck-q2", false, None, Some(4096)).await;
+    capture_warnings();
+    let client_id = format!("stuck-q2-{port}");
+    let mut old = connect_raw(port, &client_id, false, None, Some(4096)).await;
     old.send(publish(false)).await;
     assert_eq!(old.next().await, Some(Packet::PubRec(PubResponse::new(id))));
-    stall(&handle, &channel, &mut old, "stuck-q2").await;
+    stall(&handle, &channel, &mut old, &client_id).await;
     // The takeover gives up waiting; the client resends, as it may.
-    let mut new = connect_raw(port, "stuck-q2", false, None, None).await;
+    let mut new = connect_raw(port, &client_id, false, None, None).await;
+    assert!(takeover_gave_up(&client_id), "the takeover gave up waiting");
     new.send(publish(true)).await;
     // Past the flood the session resumed.
     let pubrec = past_publishes(&mut new).await;
@@ -897,7 +973,12 @@ impl Raw {
 
     /// The next packet; `None` once the broker has closed the connection.
     async fn next(&mut self) -> Option<Packet> {
-        tokio::time::timeout(CLOSE_WITHIN, async {
+        self.next_within(CLOSE_WITHIN).await
+    }
+
+    /// [`Raw::next`], waiting at most `limit`.
+    async fn next_within(&mut self, limit: Duration) -> Option<Packet> {
+        tokio::time::timeout(limit, async {
             loop {
                 if let Some(packet) = decode_packet(&mut self.buf, self.version, 1 << 20).unwrap() {
                     return Some(packet);
