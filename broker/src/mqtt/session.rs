@@ -62,7 +62,8 @@ const DEFAULT_WINDOW: u16 = 10;
 /// acknowledged. It bounds what a client reusing packet identifiers
 /// without waiting can make the session hold.
 const RECEIVE_MAXIMUM: u16 = 256;
-/// The longest a write to a client that does not read may take.
+/// The longest a write to a client that does not read may take, and any
+/// one step of a session's end (flush, write, shutdown, link close).
 const WRITE_STALL: Duration = Duration::from_secs(30);
 /// Topic filters a session may hold: each is a binding, and a SUBSCRIBE
 /// queues an AMQP call per filter, so a client cannot make the broker
@@ -254,7 +255,7 @@ pub(super) async fn serve<S: ClientStream>(
     } else {
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
-    Box::pin(link.close(disconnected)).await;
+    Box::pin(link.close(disconnected, &core.registry, WRITE_STALL)).await;
     // Skipped if a session taking over abandoned this one: it has resumed
     // the session already. Otherwise a takeover waits for it (`owned`).
     let kept = owned.then(|| {
