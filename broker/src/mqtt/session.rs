@@ -226,12 +226,20 @@ pub(super) async fn serve<S: ClientStream>(
             Box::pin(wills::publish(&shared, &core, will)).await;
         }
     }
-    let resumed = session.begin(&core, connect.clean_start);
-    let session_present = Box::pin(session.rejoin_shared(connect.clean_start)).await | resumed;
-    // The interval the session was given, if not the one asked for
-    // (MQTT 5.0 3.2.2.3.2: the CONNACK says it).
-    let lowered = (connect.properties.session_expiry_interval.unwrap_or(0)) != lifetime.interval();
-    session.connack(assigned, session_present, lowered);
+    // A takeover may have abandoned this session while it was claiming
+    // its identifier: the session's state is then the new owner's, not
+    // this one's to begin or rejoin, nor a CONNACK its to send (its loop
+    // sees it and only closes the socket).
+    if let Some(resumed) = claim.running(|| session.begin(&core, connect.clean_start)) {
+        let rejoined = Box::pin(session.rejoin_shared(connect.clean_start, &claim)).await;
+        // The interval the session was given, if not the one asked for
+        // (MQTT 5.0 3.2.2.3.2: the CONNACK says it).
+        let asked = connect.properties.session_expiry_interval.unwrap_or(0);
+        let lowered = asked != lifetime.interval();
+        if let Some(present) = rejoined {
+            claim.running(|| session.connack(assigned, present | resumed, lowered));
+        }
+    }
     // A session resumed with another expiry interval: its shared
     // subscriptions move to it in bounded batches.
     shared.shares.settle_yielding(&core).await;
@@ -759,16 +767,22 @@ impl Session {
     /// unless it starts clean (then they are forgotten); whether it held
     /// any. Their permissions are checked again and the subscription cap
     /// applies; one refused now is dropped. In time slices: a session may
-    /// hold thousands.
-    async fn rejoin_shared(&mut self, clean_start: bool) -> bool {
+    /// hold thousands. `None` once a takeover has abandoned the session
+    /// (each step runs under its `claim`).
+    async fn rejoin_shared(&mut self, clean_start: bool, claim: &Claim) -> Option<bool> {
         let shares = &self.shared.shares;
         if clean_start {
-            let groups = shares.forget(&self.vhost, &self.client_id);
-            shares.apply(&self.core, groups);
-            return false;
+            claim.running(|| {
+                let groups = shares.forget(&self.vhost, &self.client_id);
+                shares.apply(&self.core, groups);
+            })?;
+            return Some(false);
         }
-        let (held, groups) = shares.resume(&self.vhost, &self.client_id);
-        shares.apply(&self.core, groups);
+        let held = claim.running(|| {
+            let (held, groups) = shares.resume(&self.vhost, &self.client_id);
+            shares.apply(&self.core, groups);
+            held
+        })?;
         let mut slice = crate::slice::Slice::start();
         for (filter, options) in &held {
             crate::slice::yield_if_spent(&mut slice).await;
@@ -779,14 +793,18 @@ impl Session {
                 continue;
             };
             let (group, inner) = (shared.group.to_owned(), shared.filter.to_owned());
-            let full = self.subscriptions.len() >= MAX_SUBSCRIPTIONS;
-            if full || (self.subscribe_shared(filter, &group, &inner, *options)).is_err() {
-                let shares = &self.shared.shares;
-                let groups = shares.remove(&self.vhost, &self.client_id, filter);
-                shares.apply(&self.core, groups);
-            }
+            // A takeover may abandon the session between slices: the
+            // records are then the new owner's.
+            claim.running(|| {
+                let full = self.subscriptions.len() >= MAX_SUBSCRIPTIONS;
+                if full || (self.subscribe_shared(filter, &group, &inner, *options)).is_err() {
+                    let shares = &self.shared.shares;
+                    let groups = shares.remove(&self.vhost, &self.client_id, filter);
+                    shares.apply(&self.core, groups);
+                }
+            })?;
         }
-        !held.is_empty()
+        Some(!held.is_empty())
     }
 
     /// The CONNACK; `lowered`: the session was given a shorter Session
