@@ -181,13 +181,7 @@ pub(super) async fn serve<S: ClientStream>(
     } = accepted;
     let lifetime = Lifetime::of(&connect, shared.max_session_expiry);
     let max_packet = max_packet(&core.limits);
-    let will_delay = connect
-        .will
-        .as_ref()
-        .and_then(|w| w.properties.will_delay_interval)
-        .map_or(Duration::ZERO, |s| Duration::from_secs(s.into()));
-    let will = (connect.will.clone())
-        .map(|will| Box::new(LastWill::new(will, &vhost, &user, version.is_v5())));
+    let will_delay = will_delay(&connect);
     let mut session = Session {
         version,
         client_id,
@@ -217,7 +211,6 @@ pub(super) async fn serve<S: ClientStream>(
         acked_consumers: 0,
         delete_at_end: Vec::new(),
     };
-    claim.hold_will(will, session.will_delay_left());
     // The will of a session this takeover abandoned: published now or
     // scheduled, for `begin` to drop (resumed) or publish (clean start).
     if let Some((will, delay)) = claim.inherited_will() {
@@ -382,6 +375,16 @@ enum Lifetime {
 impl Lifetime {
     /// A CONNECT's, a 5.0 interval capped at `max` ([`expiry::capped`];
     /// a 3.1.1 persistent session never expires, whatever the cap).
+    /// How long a will delayed by `delay` waits once the connection has
+    /// ended: at most as long as the session.
+    fn will_delay_left(self, delay: Duration) -> Duration {
+        match self {
+            Lifetime::Connection => Duration::ZERO,
+            Lifetime::Seconds(s) => delay.min(Duration::from_secs(s.into())),
+            Lifetime::Forever => delay,
+        }
+    }
+
     fn of(connect: &Connect, max: Option<u32>) -> Lifetime {
         if !connect.version.is_v5() {
             return if connect.clean_start {
@@ -521,9 +524,16 @@ async fn admit(
     })?;
     // A session taken over gets as long to end as a CONNECT to come.
     let wait = core.limits.handshake_timeout;
+    // The will is the claim's from the start: a takeover that abandons
+    // this session before its loop (while it claims) inherits it.
+    let lifetime = Lifetime::of(connect, shared.max_session_expiry);
+    let will = connect.will.clone().map(|will| {
+        let delay = lifetime.will_delay_left(will_delay(connect));
+        (Box::new(LastWill::new(will, &vhost, user, v5)), delay)
+    });
     let (ids, registry) = (&shared.ids, &core.registry);
     let claim = ids
-        .claim((&vhost, &client_id), link.id, registry, wait)
+        .claim((&vhost, &client_id), link.id, will, registry, wait)
         .await;
     Ok(Accepted {
         link,
@@ -534,6 +544,13 @@ async fn admit(
         user: user.to_owned(),
         window,
     })
+}
+
+/// The will delay a CONNECT sets (none without a will).
+fn will_delay(connect: &Connect) -> Duration {
+    (connect.will.as_ref())
+        .and_then(|w| w.properties.will_delay_interval)
+        .map_or(Duration::ZERO, |s| Duration::from_secs(s.into()))
 }
 
 /// What a synchronous AMQP reply completes: the MQTT acknowledgements to
@@ -679,11 +696,7 @@ impl Session {
     /// unless the session ends sooner (at once for a session that goes
     /// with its connection).
     fn will_delay_left(&self) -> Duration {
-        match self.lifetime {
-            Lifetime::Connection => Duration::ZERO,
-            Lifetime::Seconds(s) => self.will_delay.min(Duration::from_secs(s.into())),
-            Lifetime::Forever => self.will_delay,
-        }
+        self.lifetime.will_delay_left(self.will_delay)
     }
 
     /// Starts the session: a clean start deletes what a previous session

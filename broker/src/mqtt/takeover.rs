@@ -78,11 +78,14 @@ impl ClientIds {
     /// `link`, closing the session that held it and waiting for it to
     /// end, at most `wait` unless its end is under way; one that has not
     /// begun to end by then is abandoned and its link closed (waited for,
-    /// at most `wait` again).
+    /// at most `wait` again). `will`: the session's will and its delay as
+    /// its CONNECT set them, held from the start so that a takeover
+    /// abandoning it even before its loop inherits it.
     pub(super) async fn claim(
         self: &Arc<Self>,
         (vhost, client_id): (&str, &str),
         link: u64,
+        will: Option<(Box<LastWill>, Duration)>,
         registry: &Registry,
         wait: Duration,
     ) -> Claim {
@@ -92,7 +95,7 @@ impl ClientIds {
             ended: watch::channel(false).0,
             state: Mutex::new(State::Running),
             link,
-            will: Mutex::new(None),
+            will: Mutex::new(will),
         });
         let mut inherited = None;
         let previous = self.lock().insert(key.clone(), Arc::clone(&holder));
@@ -157,12 +160,6 @@ impl Claim {
         (*state == State::Running).then(act)
     }
 
-    /// Holds the session's will, published after `delay` (as its CONNECT
-    /// set them) if a takeover abandons the session.
-    pub(super) fn hold_will(&self, will: Option<Box<LastWill>>, delay: Duration) {
-        *lock(&self.holder.will) = will.map(|will| (will, delay));
-    }
-
     /// The session's will, for its own end ([`Claim::end`] true).
     pub(super) fn take_will(&self) -> Option<Box<LastWill>> {
         lock(&self.holder.will).take().map(|(will, _)| will)
@@ -215,7 +212,7 @@ mod tests {
         let claim = |link: u64| {
             let ids = Arc::clone(&ids);
             let registry = Arc::clone(&registry);
-            async move { ids.claim(("/", "c"), link, &registry, wait).await }
+            async move { ids.claim(("/", "c"), link, None, &registry, wait).await }
         };
         // An end under way is waited for past the timeout.
         let first = claim(1).await;
@@ -243,5 +240,49 @@ mod tests {
         let third = taking.await.expect("claimed");
         assert_eq!(third.running(|| 3), Some(3));
         assert!(third.end());
+    }
+
+    #[tokio::test]
+    async fn a_session_abandoned_while_claiming_acts_no_more_and_its_will_is_inherited() {
+        let registry = Arc::new(Registry::new(Arc::default()));
+        let _links: Vec<_> = (1..=3)
+            .map(|id| registry.connection(id, "peer", "MQTT 3.1.1", None))
+            .collect();
+        let ids = Arc::new(ClientIds::default());
+        // Hang limits: B waits for the stuck A until the test ends A.
+        let long = Duration::from_secs(60);
+        let stuck = ids.claim(("/", "c"), 1, None, &registry, long).await;
+        let will = leveret_mqtt::Will {
+            topic: leveret_mqtt::TopicName::from_static("b/will"),
+            payload: bytes::Bytes::from_static(b"b"),
+            qos: leveret_mqtt::QoS::AtMostOnce,
+            retain: false,
+            properties: Default::default(),
+        };
+        let will = Box::new(LastWill::new(will, "/", "u", false));
+        let delay = Duration::from_secs(7);
+        let claiming = {
+            let (ids, registry) = (Arc::clone(&ids), Arc::clone(&registry));
+            let will = Some((will, delay));
+            tokio::spawn(async move { ids.claim(("/", "c"), 2, will, &registry, long).await })
+        };
+        tokio::task::yield_now().await;
+        // C gives up on B, still inside its claim, and inherits its will.
+        let short = Duration::from_millis(20);
+        let mut third = ids.claim(("/", "c"), 3, None, &registry, short).await;
+        let inherited = third.inherited_will().map(|(_, delay)| delay);
+        assert_eq!(inherited, Some(delay), "B's will, held from its claim");
+        let told = registry.close_signal(2).expect("link 2");
+        assert!(*told.borrow(), "B's link told to close");
+        // B's claim returns once A ends: abandoned, it may act no more.
+        drop(stuck);
+        let second = claiming.await.expect("claimed");
+        assert_eq!(second.running(|| 2), None, "abandoned before its loop");
+        assert!(!second.end(), "an abandoned session's end is not its own");
+        assert!(
+            second.take_will().is_none(),
+            "its will went to the takeover"
+        );
+        assert_eq!(third.running(|| 3), Some(3));
     }
 }
