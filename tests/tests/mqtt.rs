@@ -3577,22 +3577,10 @@ async fn a_disconnects_new_interval_moves_all_the_members_groups() {
     let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
     let port = mqtt_port(&handle);
     let count = 300;
-    let mut raw = Raw::connect(port).await;
-    raw.version = ProtocolVersion::V5;
     let mut properties = leveret_mqtt::Properties::default();
     properties.session_expiry_interval = Some(3600);
-    raw.send(Packet::Connect(Box::new(Connect {
-        version: ProtocolVersion::V5,
-        clean_start: true,
-        keep_alive: 0,
-        properties,
-        client_id: leveret_mqtt::MqttString::from_static("mover"),
-        will: None,
-        username: Some(leveret_mqtt::MqttString::from_static("robot")),
-        password: Some(Bytes::from_static(b"secret")),
-    })))
-    .await;
-    assert!(matches!(raw.next().await, Some(Packet::ConnAck(_))));
+    let v5 = (ProtocolVersion::V5, properties);
+    let mut raw = connect_raw_as(port, "mover", (true, v5), None, None).await;
     let subscriptions = (0..count)
         .map(|n| leveret_mqtt::Subscription {
             filter: leveret_mqtt::TopicFilter::new(
