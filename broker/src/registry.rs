@@ -217,6 +217,7 @@ impl Registry {
     /// Tells connection `id` to close (as [`Registry::close`]); the future
     /// resolves once it has cleaned up ([`Registry::cleaned_up`]) or is
     /// gone, so that nothing it was sent takes effect afterwards.
+    #[cfg(feature = "mqtt")]
     pub fn close_and_wait(
         &self,
         id: u64,
