@@ -578,18 +578,29 @@ fn mqtt_connections(handle: &BrokerHandle) -> usize {
         .count()
 }
 
-#[both_runtimes]
-async fn a_takeover_that_gave_up_waiting_closes_the_old_link_and_publishes_its_will() {
-    // A takeover waits for the old session as long as a CONNECT may take.
+/// A broker whose takeovers wait 2 s for the old session (its handshake
+/// timeout, as long as a CONNECT may take), its MQTT port, and an AMQP
+/// channel with `queue` bound to `amq.topic` by `key` (where the tests
+/// watch wills and publishes).
+async fn takeover_broker(
+    queue: &str,
+    key: &str,
+) -> (BrokerHandle, u16, lapin::Connection, lapin::Channel) {
     let limits = Limits {
         handshake_timeout: Duration::from_secs(2),
         ..Limits::default()
     };
     let handle = start(limits).await;
     let port = mqtt_port(&handle);
-    let (_amqp, channel) = amqp_channel(&handle).await;
-    tmo!(channel.queue_declare("old-wills", Default::default(), Default::default())).unwrap();
-    bind_to_amq_topic(&channel, "old-wills", "stuck.will").await;
+    let (amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare(queue, Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, queue, key).await;
+    (handle, port, amqp, channel)
+}
+
+#[both_runtimes]
+async fn a_takeover_that_gave_up_waiting_closes_the_old_link_and_publishes_its_will() {
+    let (handle, port, _amqp, channel) = takeover_broker("old-wills", "stuck.will").await;
     // The old session: a will, and a client that never reads, with a
     // small receive buffer, so that the broker's writes to it stall.
     let will = leveret_mqtt::Will {
@@ -805,15 +816,7 @@ fn takeover_gave_up(client_id: &str) -> bool {
 /// 3.1.4), before its CONNACK.
 #[both_runtimes]
 async fn a_clean_takeover_that_gave_up_publishes_a_delayed_will_at_once() {
-    let limits = Limits {
-        handshake_timeout: Duration::from_secs(2),
-        ..Limits::default()
-    };
-    let handle = start(limits).await;
-    let port = mqtt_port(&handle);
-    let (_amqp, channel) = amqp_channel(&handle).await;
-    tmo!(channel.queue_declare("delayed-wills", Default::default(), Default::default())).unwrap();
-    bind_to_amq_topic(&channel, "delayed-wills", "late.will").await;
+    let (handle, port, _amqp, channel) = takeover_broker("delayed-wills", "late.will").await;
     let mut will_properties = leveret_mqtt::Properties::default();
     will_properties.will_delay_interval = Some(3600);
     let will = leveret_mqtt::Will {
@@ -864,15 +867,7 @@ async fn past_publishes(raw: &mut Raw) -> Option<Packet> {
 /// new session's: its resend is not routed again, its PUBREL released.
 #[both_runtimes]
 async fn an_abandoned_connections_unreleased_qos_2_publish_is_not_routed_again() {
-    let limits = Limits {
-        handshake_timeout: Duration::from_secs(2),
-        ..Limits::default()
-    };
-    let handle = start(limits).await;
-    let port = mqtt_port(&handle);
-    let (_amqp, channel) = amqp_channel(&handle).await;
-    tmo!(channel.queue_declare("abandoned-q2", Default::default(), Default::default())).unwrap();
-    bind_to_amq_topic(&channel, "abandoned-q2", "q2.abandoned").await;
+    let (handle, port, _amqp, channel) = takeover_broker("abandoned-q2", "q2.abandoned").await;
     let id = std::num::NonZeroU16::new(7).unwrap();
     let publish = |dup| {
         Packet::Publish(Publish {
