@@ -254,18 +254,9 @@ async fn serve_tls(
     tls: Arc<crate::tls::TlsContext>,
     shared: Arc<Shared>,
 ) {
-    let peer = &origin.peer;
     let handshake = tls.acceptor().accept(socket);
-    let stream = match tokio::time::timeout(core.limits.handshake_timeout, handshake).await {
-        Ok(Ok(stream)) => stream,
-        Ok(Err(e)) => {
-            tracing::info!(%peer, error = %e, "MQTT TLS handshake failed");
-            return;
-        }
-        Err(_) => {
-            tracing::warn!(%peer, "MQTT TLS handshake not completed within the handshake timeout");
-            return;
-        }
+    let Some(stream) = Box::pin(handshaken(&core, &origin.peer, "TLS", handshake)).await else {
+        return;
     };
     origin.certificate = stream
         .get_ref()
@@ -287,19 +278,34 @@ async fn serve_websocket(
     slot: crate::admission::Slot,
     shared: Arc<Shared>,
 ) {
-    let peer = &origin.peer;
     let max_message = session::max_packet(&core.limits) as usize;
     let handshake = websocket::accept(socket, max_message);
-    let stream = match tokio::time::timeout(core.limits.handshake_timeout, handshake).await {
-        Ok(Ok(stream)) => stream,
-        Ok(Err(e)) => {
-            tracing::info!(%peer, error = %e, "MQTT WebSocket handshake failed");
-            return;
-        }
-        Err(_) => {
-            tracing::warn!(%peer, "MQTT WebSocket handshake not completed within the handshake timeout");
-            return;
-        }
+    let Some(stream) = Box::pin(handshaken(&core, &origin.peer, "WebSocket", handshake)).await
+    else {
+        return;
     };
     Box::pin(session::serve(core, stream, origin, slot, shared)).await;
+}
+
+/// A transport's `handshake` (TLS, WebSocket: `what`) within the
+/// handshake timeout; `None`, logged, if it failed or took too long.
+/// Callers box it, so that its state is freed once it is done instead of
+/// staying in the session's task for the session's life.
+async fn handshaken<S, E: std::fmt::Display>(
+    core: &Core,
+    peer: &str,
+    what: &str,
+    handshake: impl std::future::Future<Output = Result<S, E>>,
+) -> Option<S> {
+    match tokio::time::timeout(core.limits.handshake_timeout, handshake).await {
+        Ok(Ok(stream)) => Some(stream),
+        Ok(Err(e)) => {
+            tracing::info!(%peer, error = %e, "MQTT {what} handshake failed");
+            None
+        }
+        Err(_) => {
+            tracing::warn!(%peer, "MQTT {what} handshake not completed within the handshake timeout");
+            None
+        }
+    }
 }
