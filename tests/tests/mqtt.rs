@@ -3047,6 +3047,46 @@ async fn enhanced_authentication_is_refused_and_auth_packets_end_the_session() {
     handle.shutdown().await;
 }
 
+/// Under a cap of 0 (every session ends with its connection) a
+/// DISCONNECT that sets an interval after a CONNECT that asked for none
+/// is still the protocol error MQTT 5.0 3.14.2.2.2 says, while one after
+/// a CONNECT that asked for an interval (capped to 0) is not.
+#[both_runtimes]
+async fn under_a_cap_of_0_a_disconnect_is_judged_by_what_its_connect_asked() {
+    use leveret_mqtt::{Disconnect, ReasonCode};
+    let capped = Broker::builder().mqtt_max_session_expiry_interval(Some(0));
+    let handle = start_with(capped, Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let disconnect = |expiry: u32| {
+        let mut properties = leveret_mqtt::Properties::default();
+        properties.session_expiry_interval = Some(expiry);
+        Packet::Disconnect(Disconnect {
+            reason: ReasonCode::Success,
+            properties,
+        })
+    };
+    let v5 = |expiry: u32| {
+        let mut properties = leveret_mqtt::Properties::default();
+        properties.session_expiry_interval = Some(expiry).filter(|&seconds| seconds > 0);
+        (true, (ProtocolVersion::V5, properties))
+    };
+    let mut raw = connect_raw_as(port, "asked-none", v5(0), None, None).await;
+    raw.send(disconnect(100)).await;
+    let Some(Packet::Disconnect(d)) = raw.next().await else {
+        panic!("expected DISCONNECT 0x82");
+    };
+    assert_eq!(d.reason, ReasonCode::ProtocolError);
+    raw.assert_closed().await;
+    let mut raw = connect_raw_as(port, "asked-some", v5(100), None, None).await;
+    raw.send(disconnect(100)).await;
+    let after = raw.next().await;
+    assert!(
+        after.is_none(),
+        "closed without a DISCONNECT of its own, got {after:?}"
+    );
+    handle.shutdown().await;
+}
+
 #[both_runtimes]
 async fn a_disconnect_can_end_a_persistent_session_but_not_extend_a_clean_one() {
     use leveret_mqtt::{Disconnect, ReasonCode};

@@ -191,6 +191,7 @@ pub(super) async fn serve<S: ClientStream>(
         core: Arc::clone(&core),
         shared: Arc::clone(&shared),
         lifetime,
+        expiry_asked: connect.properties.session_expiry_interval.unwrap_or(0) > 0,
         window,
         max_packet,
         client_max_packet: connect.properties.maximum_packet_size.map(|m| m.get()),
@@ -582,6 +583,10 @@ struct Session {
     core: Arc<Core>,
     shared: Arc<Shared>,
     lifetime: Lifetime,
+    /// Whether its CONNECT asked for a Session Expiry Interval above 0
+    /// (5.0): a DISCONNECT may set one only then (3.14.2.2.2), whatever
+    /// the cap made of it.
+    expiry_asked: bool,
     /// QoS 1 deliveries unacknowledged at once (retained ones included).
     window: u16,
     /// The largest packet the broker reads once logged in.
@@ -1209,11 +1214,15 @@ impl Session {
     /// 0x82); another is the persistent session's expiry from now on
     /// (its queues follow once the link is closed: `serve`).
     fn expiry_at_disconnect(&mut self, expiry: Option<u32>) -> Result<(), Stop> {
-        // Capped as the CONNECT's was: under a cap of 0 a non-zero
-        // interval is 0 here too, never the protocol error below.
+        // Capped as the CONNECT's was; the protocol error is judged by
+        // what the client asked, not by what the cap made of it.
         let max = self.shared.max_session_expiry;
-        match expiry.map(|seconds| expiry::capped(seconds, max)) {
-            Some(0) if self.lifetime != Lifetime::Connection => {
+        match expiry.map(|seconds| (seconds, expiry::capped(seconds, max))) {
+            Some((asked, _)) if asked > 0 && !self.expiry_asked => Err(closed(
+                "session expiry set by DISCONNECT after none in CONNECT",
+                Some(ReasonCode::ProtocolError),
+            )),
+            Some((_, 0)) if self.lifetime != Lifetime::Connection => {
                 self.lifetime = Lifetime::Connection;
                 for qos in [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce] {
                     let queue = mapping::queue_name(&self.client_id, qos)
@@ -1222,11 +1231,7 @@ impl Session {
                 }
                 Ok(())
             }
-            Some(seconds) if seconds > 0 && self.lifetime == Lifetime::Connection => Err(closed(
-                "session expiry set by DISCONNECT after none in CONNECT",
-                Some(ReasonCode::ProtocolError),
-            )),
-            Some(seconds) => {
+            Some((_, seconds)) => {
                 self.lifetime = Lifetime::of_interval(seconds, max);
                 Ok(())
             }
