@@ -3371,17 +3371,18 @@ async fn a_session_expiry_past_the_cap_is_lowered_announced_and_given_to_its_que
     handle.shutdown().await;
 }
 
-/// A 3.1.1 persistent session subscribed to `filter` at QoS 1, then
-/// disconnected, under the broker at `port`; whether it was present.
-async fn subscribed3_and_gone(id: &str, port: u16, filter: &str) -> bool {
-    let (client, mut events, present) = persistent3(id, port, false).await;
-    client.subscribe(filter, QoS::AtLeastOnce).await.unwrap();
-    until3(&mut events, |p| {
-        matches!(p, Incoming::SubAck(_)).then_some(())
-    })
-    .await;
+/// A 3.1.1 persistent session subscribed to `filters` at QoS 1, then
+/// disconnected, under the broker at `port`.
+async fn subscribed3_and_gone(id: &str, port: u16, filters: &[&str]) {
+    let (client, mut events, _) = persistent3(id, port, false).await;
+    for filter in filters {
+        client.subscribe(*filter, QoS::AtLeastOnce).await.unwrap();
+        until3(&mut events, |p| {
+            matches!(p, Incoming::SubAck(_)).then_some(())
+        })
+        .await;
+    }
     disconnect!(client, events);
-    present
 }
 
 /// As RabbitMQ 3.13, a 3.1.1 persistent session (clean session 0) is
@@ -3482,7 +3483,7 @@ async fn under_infinity_a_3_1_1_persistent_session_never_expires() {
     let dir = std::env::temp_dir().join(unique("leveret-mqtt-311-infinity"));
     let queue = "mqtt-subscription-endlessqos1";
     let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
-    subscribed3_and_gone("endless", mqtt_port(&handle), "en/#").await;
+    subscribed3_and_gone("endless", mqtt_port(&handle), &["en/#"]).await;
     offline(&handle, queue).await;
     assert_eq!(listed_as(&handle, queue).2, Some(86_400_000));
     handle.shutdown().await;
@@ -3509,12 +3510,13 @@ async fn under_infinity_a_3_1_1_persistent_session_never_expires() {
 /// A 3.1.1 persistent session stored as never expiring (as Leveret stored
 /// them before the cap applied to 3.1.1, and does under `infinity`) is
 /// kept across a restart under a cap, with what came for it, and given
-/// the cap from the start: its queue's `x-expires` is the cap, and it
-/// expires that long after the start unless its client comes back.
+/// the cap from the start: its queue's and its shared group's `x-expires`
+/// is the cap, and it expires that long after the start unless its
+/// client comes back.
 #[both_runtimes]
 async fn a_3_1_1_session_stored_as_never_expiring_gets_the_cap_at_start() {
     let dir = std::env::temp_dir().join(unique("leveret-mqtt-311-restart"));
-    let queue = "mqtt-subscription-veteranqos1";
+    let (queue, group) = ("mqtt-subscription-veteranqos1", "mqtt-shared-vet/g/#");
     let with_cap = |max: Option<u32>| {
         Broker::builder()
             .data_dir(&dir)
@@ -3522,9 +3524,11 @@ async fn a_3_1_1_session_stored_as_never_expiring_gets_the_cap_at_start() {
     };
     let handle = start_with(with_cap(None), Limits::default()).await;
     let port = mqtt_port(&handle);
-    subscribed3_and_gone("veteran", port, "v/#").await;
+    subscribed3_and_gone("veteran", port, &["v/#", "$share/vet/g/#"]).await;
     offline(&handle, queue).await;
+    offline(&handle, group).await;
     assert_eq!(listed_as(&handle, queue).2, None, "stored never expiring");
+    assert_eq!(listed_as(&handle, group).2, None);
     publish_acked(port, "v/1", "before the restart", false).await;
     handle.shutdown().await;
 
@@ -3532,6 +3536,7 @@ async fn a_3_1_1_session_stored_as_never_expiring_gets_the_cap_at_start() {
     let handle = start_with(with_cap(Some(60)), Limits::default()).await;
     let port = mqtt_port(&handle);
     assert_eq!(listed_as(&handle, queue), (true, false, Some(60_000), 1));
+    assert_eq!(listed_as(&handle, group).2, Some(60_000));
     let (client, mut events, present) = persistent3("veteran", port, false).await;
     assert!(present, "the session was kept");
     let kept = next_publish3(&mut events).await;
@@ -3539,13 +3544,16 @@ async fn a_3_1_1_session_stored_as_never_expiring_gets_the_cap_at_start() {
     client.ack(&kept).await.unwrap();
     disconnect!(client, events);
     offline(&handle, queue).await;
+    offline(&handle, group).await;
     assert_eq!(listed_as(&handle, queue).2, Some(60_000));
+    assert_eq!(listed_as(&handle, group).2, Some(60_000));
     handle.shutdown().await;
 
     // A lower cap at the next start: the session expires a second after it.
     let handle = start_with(with_cap(Some(1)), Limits::default()).await;
     let port = mqtt_port(&handle);
     until_queue_listed(&handle, queue, false, "the session expired per the cap").await;
+    until_queue_listed(&handle, group, false, "its group's queue with it").await;
     let (client, mut events, present) = persistent3("veteran", port, false).await;
     assert!(!present, "the expired session is gone");
     disconnect!(client, events);
