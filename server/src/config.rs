@@ -24,9 +24,10 @@ const DEFAULT_LISTEN: SocketAddr =
 /// port; `--mqtt-listen none` or `mqtt-listen = []` turns it off).
 const DEFAULT_MQTT_LISTEN: SocketAddr =
     SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED), 1883);
-/// The longest Session Expiry Interval an MQTT 5.0 session is given unless
-/// told otherwise (s): RabbitMQ 3.13's `mqtt.max_session_expiry_interval_seconds`
-/// default, a day, as the broker builder's.
+/// The longest Session Expiry Interval an MQTT 5.0 session is given, and a
+/// 3.1.1 persistent session's, unless told otherwise (s): RabbitMQ 3.13's
+/// `mqtt.max_session_expiry_interval_seconds` default, a day, as the broker
+/// builder's.
 const DEFAULT_MQTT_MAX_SESSION_EXPIRY: u32 = 86_400;
 /// Where the Prometheus endpoint listens unless told otherwise (RabbitMQ's port).
 const DEFAULT_METRICS_LISTEN: SocketAddr =
@@ -126,7 +127,8 @@ pub struct FileConfig {
     /// without a user name logs in as its certificate's common name.
     mqtt_ssl_cert_login: Option<bool>,
     /// RabbitMQ's `mqtt.max_session_expiry_interval_seconds`: seconds, or
-    /// `"infinity"`.
+    /// `"infinity"`; caps 5.0 sessions' Session Expiry Interval and is
+    /// 3.1.1 persistent sessions' (as RabbitMQ 3.13).
     mqtt_max_session_expiry_interval_seconds: Option<SecondsOrInfinity>,
     /// RabbitMQ's `mqtt.default_user` (with `mqtt.allow_anonymous`): the
     /// user MQTT clients without a user name log in as.

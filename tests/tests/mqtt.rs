@@ -3371,6 +3371,196 @@ async fn a_session_expiry_past_the_cap_is_lowered_announced_and_given_to_its_que
     handle.shutdown().await;
 }
 
+/// A 3.1.1 persistent session subscribed to `filters` at QoS 1, then
+/// disconnected, under the broker at `port`.
+async fn subscribed3_and_gone(id: &str, port: u16, filters: &[&str]) {
+    let (client, mut events, _) = persistent3(id, port, false).await;
+    for filter in filters {
+        client.subscribe(*filter, QoS::AtLeastOnce).await.unwrap();
+        until3(&mut events, |p| {
+            matches!(p, Incoming::SubAck(_)).then_some(())
+        })
+        .await;
+    }
+    disconnect!(client, events);
+}
+
+/// As RabbitMQ 3.13, a 3.1.1 persistent session (clean session 0) is
+/// given the session expiry cap: it expires that long after its
+/// connection ends, and a later CONNECT finds none.
+#[both_runtimes]
+async fn a_3_1_1_persistent_session_expires_the_cap_after_its_connection() {
+    let capped = Broker::builder().mqtt_max_session_expiry_interval(Some(1));
+    let handle = start_with(capped, Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let queue = "mqtt-subscription-short-livedqos1";
+    let (client, mut events, present) = persistent3("short-lived", port, false).await;
+    assert!(!present);
+    client.subscribe("sl/#", QoS::AtLeastOnce).await.unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    // Consumed while connected: it cannot expire yet.
+    assert_eq!(listed_as(&handle, queue), (true, false, Some(1_000), 0));
+    disconnect!(client, events);
+    until_queue_listed(&handle, queue, false, "the expired session's queue deleted").await;
+    let (client, mut events, present) = persistent3("short-lived", port, false).await;
+    assert!(!present, "the expired session is gone");
+    disconnect!(client, events);
+    handle.shutdown().await;
+}
+
+/// Under the default cap (a day) a 3.1.1 persistent session's queues carry
+/// `x-expires` = 86,400,000 ms, what RabbitMQ lists for them (3.10.8's
+/// default `subscription_ttl`, 3.13's default
+/// `max_session_expiry_interval_seconds`). Checked against RabbitMQ 3.10.8
+/// with paho-mqtt and `rabbitmqctl list_queues name durable auto_delete
+/// arguments`: its QoS 1 queue is `true false [{"x-expires",86400000}]`;
+/// its QoS 0 queue is non-durable and auto-delete in 3.10 (3.13 keeps it
+/// as the QoS 1 one, with the same `x-expires`, as Leveret does).
+#[both_runtimes]
+async fn a_3_1_1_persistent_sessions_queues_expire_after_a_day_by_default() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (client, mut events, _) = persistent3("day-long", port, false).await;
+    client.subscribe("d/0", QoS::AtMostOnce).await.unwrap();
+    client.subscribe("d/1", QoS::AtLeastOnce).await.unwrap();
+    let mut subacks = 0;
+    until3(&mut events, |p| {
+        subacks += usize::from(matches!(p, Incoming::SubAck(_)));
+        (subacks == 2).then_some(())
+    })
+    .await;
+    disconnect!(client, events);
+    for queue in [
+        "mqtt-subscription-day-longqos0",
+        "mqtt-subscription-day-longqos1",
+    ] {
+        offline(&handle, queue).await;
+        assert_eq!(
+            listed_as(&handle, queue),
+            (true, false, Some(86_400_000), 0)
+        );
+    }
+    let (client, mut events, present) = persistent3("day-long", port, false).await;
+    assert!(present, "kept within the day");
+    disconnect!(client, events);
+    handle.shutdown().await;
+}
+
+/// Under a cap of 0 a 3.1.1 persistent session ends with its connection,
+/// as RabbitMQ 3.13's does (its Session Expiry Interval is the cap, 0:
+/// an exclusive queue).
+#[both_runtimes]
+async fn under_a_cap_of_0_a_3_1_1_persistent_session_ends_with_its_connection() {
+    let capped = Broker::builder().mqtt_max_session_expiry_interval(Some(0));
+    let handle = start_with(capped, Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let queue = "mqtt-subscription-momentaryqos1";
+    let (client, mut events, _) = persistent3("momentary", port, false).await;
+    client.subscribe("m/#", QoS::AtLeastOnce).await.unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    let listed = handle.queues().into_iter().find(|q| q.name == queue);
+    assert!(listed.is_some_and(|q| !q.durable && q.exclusive_owner.is_some()));
+    disconnect!(client, events);
+    until_queue_listed(&handle, queue, false, "the session's queue gone with it").await;
+    let (client, mut events, present) = persistent3("momentary", port, false).await;
+    assert!(!present);
+    disconnect!(client, events);
+    handle.shutdown().await;
+}
+
+/// Under `infinity` a 3.1.1 persistent session never expires; one stored
+/// under a cap keeps its queues' `x-expires` across a restart until its
+/// client comes back (as RabbitMQ 3.13 changes a queue's only then), and
+/// has none from then on.
+#[both_runtimes]
+async fn under_infinity_a_3_1_1_persistent_session_never_expires() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-311-infinity"));
+    let queue = "mqtt-subscription-endlessqos1";
+    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    subscribed3_and_gone("endless", mqtt_port(&handle), &["en/#"]).await;
+    offline(&handle, queue).await;
+    assert_eq!(listed_as(&handle, queue).2, Some(86_400_000));
+    handle.shutdown().await;
+
+    let uncapped = Broker::builder()
+        .data_dir(&dir)
+        .mqtt_max_session_expiry_interval(None);
+    let handle = start_with(uncapped, Limits::default()).await;
+    let port = mqtt_port(&handle);
+    assert_eq!(listed_as(&handle, queue).2, Some(86_400_000));
+    let (client, mut events, present) = persistent3("endless", port, false).await;
+    assert!(present);
+    until_expires(&handle, queue, None).await;
+    disconnect!(client, events);
+    offline(&handle, queue).await;
+    assert_eq!(listed_as(&handle, queue), (true, false, None, 0));
+    let (client, mut events, present) = persistent3("endless", port, false).await;
+    assert!(present, "never expires");
+    disconnect!(client, events);
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A 3.1.1 persistent session stored as never expiring (as Leveret stored
+/// them before the cap applied to 3.1.1, and does under `infinity`) is
+/// kept across a restart under a cap, with what came for it, and given
+/// the cap from the start: its queue's and its shared group's `x-expires`
+/// is the cap, and it expires that long after the start unless its
+/// client comes back.
+#[both_runtimes]
+async fn a_3_1_1_session_stored_as_never_expiring_gets_the_cap_at_start() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-311-restart"));
+    let (queue, group) = ("mqtt-subscription-veteranqos1", "mqtt-shared-vet/g/#");
+    let with_cap = |max: Option<u32>| {
+        Broker::builder()
+            .data_dir(&dir)
+            .mqtt_max_session_expiry_interval(max)
+    };
+    let handle = start_with(with_cap(None), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    subscribed3_and_gone("veteran", port, &["v/#", "$share/vet/g/#"]).await;
+    offline(&handle, queue).await;
+    offline(&handle, group).await;
+    assert_eq!(listed_as(&handle, queue).2, None, "stored never expiring");
+    assert_eq!(listed_as(&handle, group).2, None);
+    publish_acked(port, "v/1", "before the restart", false).await;
+    handle.shutdown().await;
+
+    // Kept, with the cap from the start (a minute: it cannot pass here).
+    let handle = start_with(with_cap(Some(60)), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    assert_eq!(listed_as(&handle, queue), (true, false, Some(60_000), 1));
+    assert_eq!(listed_as(&handle, group).2, Some(60_000));
+    let (client, mut events, present) = persistent3("veteran", port, false).await;
+    assert!(present, "the session was kept");
+    let kept = next_publish3(&mut events).await;
+    assert_eq!(&kept.payload[..], b"before the restart");
+    client.ack(&kept).await.unwrap();
+    disconnect!(client, events);
+    offline(&handle, queue).await;
+    offline(&handle, group).await;
+    assert_eq!(listed_as(&handle, queue).2, Some(60_000));
+    assert_eq!(listed_as(&handle, group).2, Some(60_000));
+    handle.shutdown().await;
+
+    // A lower cap at the next start: the session expires a second after it.
+    let handle = start_with(with_cap(Some(1)), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    until_queue_listed(&handle, queue, false, "the session expired per the cap").await;
+    until_queue_listed(&handle, group, false, "its group's queue with it").await;
+    let (client, mut events, present) = persistent3("veteran", port, false).await;
+    assert!(!present, "the expired session is gone");
+    disconnect!(client, events);
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// A 5.0 client with a persistent session of an hour (clean start only
 /// if `clean`); whether the CONNACK says the session was present.
 async fn persistent5(
@@ -3940,8 +4130,9 @@ async fn a_clean_only_group_keeps_nothing_and_a_3_1_1_persistent_member_keeps_it
     publish_acked5(port, "c/1", "nobody keeps this", false).await;
     assert!(!queue_names(&handle).contains(&clean.to_owned()));
 
-    // A 3.1.1 persistent session's group is durable and never expires; a
-    // clean 3.1.1 member joins it as it is.
+    // A 3.1.1 persistent session's group is durable and kept for the
+    // session expiry cap (a day by default); a clean 3.1.1 member joins it
+    // as it is.
     let kept = "mqtt-shared-forever/f/#";
     let (keeper, mut keeper_events, _) = persistent3("forever-keeper", port, false).await;
     keeper
@@ -3969,7 +4160,7 @@ async fn a_clean_only_group_keeps_nothing_and_a_3_1_1_persistent_member_keeps_it
     disconnect!(visitor, visitor_events);
     disconnect!(keeper, keeper_events);
     offline(&handle, kept).await;
-    assert_eq!(listed_as(&handle, kept), (true, false, None, 0));
+    assert_eq!(listed_as(&handle, kept), (true, false, Some(86_400_000), 0));
     publish_acked(port, "f/1", "kept", false).await;
     until_ready(&handle, kept, 1).await;
     let (keeper, mut keeper_events, present) = persistent3("forever-keeper", port, false).await;

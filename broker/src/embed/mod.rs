@@ -152,7 +152,10 @@ impl BrokerBuilder {
     /// client asks for is lowered and the CONNACK says so; 0 makes every
     /// session end with its connection. Whatever the cap, a finite
     /// interval is at most 4,294,967 s, as its queues' `x-expires` is at
-    /// most 2^32 - 1 ms. MQTT 3.1.1 persistent sessions never expire.
+    /// most 2^32 - 1 ms. An MQTT 3.1.1 persistent session's interval is
+    /// the cap (as RabbitMQ 3.13; `None`: it never expires), and sessions
+    /// restored from the store at start are given the cap where they
+    /// outlive it.
     pub fn mqtt_max_session_expiry_interval(mut self, seconds: Option<u32>) -> Self {
         self.mqtt_options.max_session_expiry = seconds;
         self

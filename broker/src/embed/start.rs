@@ -102,9 +102,9 @@ impl BrokerBuilder {
             return Err(StartError::Storage(StoreError::Engine(problem.into())));
         }
         // Before the vhosts' sweeper starts: a stale x-expires could expire
-        // a group's queue first.
+        // a group's queue first, and a session's is capped from the start.
         #[cfg(feature = "mqtt")]
-        mqtt_shared.reconcile_groups(&core).await;
+        mqtt_shared.reconcile_queues(&core).await;
         let (alive, finished) = mpsc::channel(1);
         let (open, opened) = watch::channel(!self.held);
         let mut listeners = Listeners {

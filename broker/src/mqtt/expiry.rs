@@ -5,8 +5,11 @@
 //! durable queue) when the session's expiry changes: by a 5.0
 //! DISCONNECT's Session Expiry Interval (MQTT-3.14.2-2), or by the
 //! CONNECT that resumes the session with another (the latest
-//! connection's interval is the session's).
+//! connection's interval is the session's). Sessions restored from the
+//! store are given the broker's cap at start ([`cap_restored_queues`],
+//! [`restored`]).
 
+use super::mapping;
 use crate::core::Core;
 use leveret_protocol::{FieldValue, ShortStr};
 use std::time::{Duration, Instant};
@@ -47,8 +50,51 @@ pub(super) fn has_passed(at: Option<Instant>, now: Instant) -> bool {
 /// The `x-expires` (ms) of the queues of a session that expires
 /// `seconds` after its connection ends (`None`: never); never above the
 /// largest a queue takes (an interval an older Leveret stored uncapped).
+/// 0 (a session restored under a cap of 0: it ended with its connection,
+/// before the restart) is 1 ms, the least a queue takes: they go once
+/// unused.
 pub(super) fn queue_expires(seconds: Option<u32>) -> Option<u64> {
-    seconds.map(|s| u64::from(s.min(MAX_FINITE_SECONDS)) * 1000)
+    seconds.map(|s| (u64::from(s.min(MAX_FINITE_SECONDS)) * 1000).max(1))
+}
+
+/// The expiry interval (s; `None`: never) a session restored from the
+/// store is given under the broker's cap `max`, for the one it was stored
+/// with (`u32::MAX`: never, as a 3.1.1 persistent session was before the
+/// cap applied to it): the lower of the two.
+pub(super) fn restored(stored: u32, max: Option<u32>) -> Option<u32> {
+    match capped(stored, max) {
+        u32::MAX => None,
+        seconds => Some(seconds),
+    }
+}
+
+/// Gives the persistent sessions' queues restored from the store (durable
+/// `mqtt-subscription-<client id>qos<N>` queues in `core`'s vhosts) the
+/// broker's cap `max` (s; `None`: none) where their `x-expires` is longer
+/// or absent: once at start, before anything sweeps the vhosts, so that a
+/// session stored as never expiring (a 3.1.1 one, by a Leveret before the
+/// cap applied to those) or with a longer interval expires `max` seconds
+/// after the start unless its client comes back. How many changed.
+pub(super) fn cap_restored_queues(core: &Core, max: Option<u32>) -> usize {
+    let Some(cap) = queue_expires(max.map(|m| m.min(MAX_FINITE_SECONDS))) else {
+        return 0;
+    };
+    let mut changed = 0;
+    for vhost in core.vhosts() {
+        for queue in vhost.queues() {
+            let named = queue.name.as_str().is_some_and(mapping::is_session_queue);
+            if !named || !queue.options.durable || queue.options.exclusive_owner.is_some() {
+                continue;
+            }
+            let current = (queue.arguments().get("x-expires"))
+                .and_then(FieldValue::as_i64)
+                .and_then(|ms| u64::try_from(ms).ok());
+            if current.is_none_or(|ms| ms > cap) && vhost.set_queue_expires(&queue, Some(cap)) {
+                changed += 1;
+            }
+        }
+    }
+    changed
 }
 
 /// Makes the session queues `names` of `vhost` that outlive their
@@ -106,5 +152,17 @@ mod tests {
         assert_eq!(capped(5_000_000, Some(5_000_000)), MAX_FINITE_SECONDS);
         assert_eq!(queue_expires(Some(5_000_000)), Some(4_294_967_000));
         assert!(queue_expires(Some(u32::MAX - 1)).is_some_and(|ms| ms <= 4_294_967_295));
+        assert_eq!(queue_expires(Some(0)), Some(1), "the least a queue takes");
+    }
+
+    #[test]
+    fn a_restored_session_is_given_the_cap_if_it_outlives_it() {
+        // Stored as never expiring (a 3.1.1 session before the cap applied).
+        assert_eq!(restored(u32::MAX, Some(DEFAULT_MAX_SECONDS)), Some(86_400));
+        assert_eq!(restored(u32::MAX, None), None, "infinity keeps never");
+        assert_eq!(restored(60, Some(DEFAULT_MAX_SECONDS)), Some(60));
+        assert_eq!(restored(7200, Some(3600)), Some(3600));
+        assert_eq!(restored(7200, Some(0)), Some(0));
+        assert_eq!(restored(7200, None), Some(7200));
     }
 }

@@ -63,6 +63,13 @@ pub(super) fn queue_name(client_id: &str, qos: QoS) -> Option<ShortStr> {
     ShortStr::try_from(format!("mqtt-subscription-{client_id}qos{}", qos.level())).ok()
 }
 
+/// Whether `name` is the name of a session's queue ([`queue_name`]).
+pub(super) fn is_session_queue(name: &str) -> bool {
+    let qos = ["qos0", "qos1", "qos2"];
+    name.strip_prefix("mqtt-subscription-")
+        .is_some_and(|rest| qos.iter().any(|q| rest.ends_with(q)))
+}
+
 /// The queue of shared subscription `$share/GROUP/FILTER` in a vhost:
 /// `mqtt-shared-GROUP/FILTER` (a group has no `/`, so two subscriptions
 /// never share a name); `None` if that is longer than a queue name.
@@ -89,6 +96,17 @@ pub(super) fn vhost_in_user_name(username: &str) -> (Option<&str>, &str) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn session_queues_are_known_by_their_names() {
+        for qos in [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce] {
+            let name = queue_name("robot-7", qos).unwrap();
+            assert!(is_session_queue(name.as_str().unwrap()));
+        }
+        assert!(!is_session_queue("mqtt-subscription-robot-7"));
+        assert!(!is_session_queue("mqtt-shared-g/qos1"));
+        assert!(!is_session_queue("orders-qos1"));
+    }
 
     #[test]
     fn topics_and_routing_keys_swap_separators() {

@@ -67,8 +67,10 @@ pub(crate) struct Shared {
     /// no user name logs in as the certificate's common name (RabbitMQ's
     /// `mqtt.ssl_cert_login`).
     certificate_login: bool,
-    /// The longest Session Expiry Interval a 5.0 session is given (s;
-    /// `None`: no cap but the queues' own, RabbitMQ's `infinity`):
+    /// The longest Session Expiry Interval a session is given (s; `None`:
+    /// no cap but the queues' own, RabbitMQ's `infinity`): a 5.0 session's
+    /// is at most this, a 3.1.1 persistent session's is this (as RabbitMQ
+    /// 3.13), and so is at most a session's restored from the store;
     /// RabbitMQ's `mqtt.max_session_expiry_interval_seconds`, a day by
     /// default ([`expiry::capped`]).
     max_session_expiry: Option<u32>,
@@ -86,6 +88,7 @@ impl Shared {
         options: Options,
         retained_limits: RetainedLimits,
     ) -> Self {
+        let (persistence, max) = (&core.persistence, options.max_session_expiry);
         Shared {
             ids: Arc::default(),
             anonymous: options.anonymous,
@@ -95,18 +98,28 @@ impl Shared {
                 core.persistence.clone(),
                 retained_limits,
             ),
-            releases: releases::Releases::new(recovered, core.persistence.clone()),
-            shares: shares::Shares::new(recovered, core.persistence.clone()),
+            releases: releases::Releases::new(recovered, persistence.clone(), max),
+            shares: shares::Shares::new(recovered, persistence.clone(), max),
             certificate_login: options.certificate_login,
             max_session_expiry: options.max_session_expiry,
             wills: Default::default(),
         }
     }
 
-    /// Gives the shared subscription groups' queues recovered from the
-    /// store their groups' expiry ([`shares::Shares::reconcile`]): once at
-    /// start, after the queues are rebuilt and before anything sweeps them.
-    pub(crate) async fn reconcile_groups(&self, core: &Core) {
+    /// Gives the persistent sessions' queues recovered from the store the
+    /// session expiry cap ([`expiry::cap_restored_queues`]) and the shared
+    /// subscription groups' queues their groups' expiry
+    /// ([`shares::Shares::reconcile`]): once at start, after the queues
+    /// are rebuilt and before anything sweeps them.
+    pub(crate) async fn reconcile_queues(&self, core: &Core) {
+        let capped = expiry::cap_restored_queues(core, self.max_session_expiry);
+        if capped > 0 {
+            tracing::info!(
+                queues = capped,
+                max_seconds = self.max_session_expiry,
+                "MQTT sessions' queues restored with a longer expiry (or none) given the session expiry cap"
+            );
+        }
         self.shares.reconcile(core).await;
     }
 }

@@ -23,7 +23,10 @@
 //! rewrites them), so a session that never comes back does not hold its
 //! place for ever. The day counts from each start (it is not written
 //! back), and it is also given to records of never-expiring sessions
-//! (an older Leveret stored those without an interval too).
+//! (an older Leveret stored those without an interval too). At start every
+//! record's interval is at most the broker's cap
+//! (`mqtt-max-session-expiry-interval-seconds`, as the session's queues
+//! are: [`super::expiry::restored`]), also not written back.
 //!
 //! Bounded: at most [`MAX_PER_SESSION`] identifiers per session (the
 //! receive maximum) and [`MAX_SESSIONS`] sessions, in memory and in the
@@ -83,8 +86,12 @@ impl Held {
 impl Releases {
     /// The unreleased publishes among `recovered` (the store's metadata),
     /// kept for their sessions' next connections, their sessions' expiry
-    /// running from now.
-    pub(super) fn new(recovered: &[MetaRecord], persistence: Option<Arc<Persistence>>) -> Self {
+    /// (at most the broker's cap `max`, s) running from now.
+    pub(super) fn new(
+        recovered: &[MetaRecord],
+        persistence: Option<Arc<Persistence>>,
+        max: Option<u32>,
+    ) -> Self {
         let mut sessions: HashMap<Key, Held> = HashMap::new();
         for record in recovered {
             if let MetaRecord::Unreleased {
@@ -100,11 +107,8 @@ impl Releases {
                 let held = (sessions.entry((vhost.clone(), client_id.clone()))).or_default();
                 held.stored.insert(id.get());
                 held.kept.push(id);
-                held.expiry = match *session_expiry {
-                    Some(NEVER) => None,
-                    Some(seconds) => Some(seconds),
-                    None => Some(OLDER_RECORDS_EXPIRY),
-                };
+                let stored = session_expiry.unwrap_or(OLDER_RECORDS_EXPIRY);
+                held.expiry = super::expiry::restored(stored, max);
                 held.expires_at = super::expiry::ends_at(held.expiry);
             }
         }
@@ -336,7 +340,7 @@ mod tests {
         let as_store: Arc<dyn Store> = Arc::clone(store) as Arc<dyn Store>;
         let recovered = Recovered::from_scan(store.scan().expect("scan")).expect("decodes");
         let persistence = Persistence::start(as_store, &recovered).expect("persister");
-        let releases = Releases::new(&recovered.meta, Some(Arc::clone(&persistence)));
+        let releases = Releases::new(&recovered.meta, Some(Arc::clone(&persistence)), None);
         (releases, persistence)
     }
 
@@ -414,6 +418,33 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn records_are_given_the_cap_at_start_if_they_outlive_it() {
+        let store = Arc::new(MemoryStore::default());
+        let (releases, persistence) = open(&store);
+        // A 3.1.1 session stored as never expiring, one of a minute, and
+        // one written before the interval was kept.
+        releases.routed("/", "never", id(1), None);
+        releases.routed("/", "minute", id(2), Some(60));
+        persistence.submit(vec![StoreOp::PutMeta(MetaRecord::Unreleased {
+            vhost: "/".into(),
+            client_id: "older".into(),
+            packet_id: 3,
+            session_expiry: None,
+        })]);
+        let recovered = stored(&store, &persistence).await;
+        let capped = Releases::new(&recovered, None, Some(30));
+        for client_id in ["never", "minute", "older"] {
+            assert_eq!(capped.expiry_of("/", client_id), Some(Some(30)));
+        }
+        let hour = Releases::new(&recovered, None, Some(3600));
+        assert_eq!(hour.expiry_of("/", "never"), Some(Some(3600)));
+        assert_eq!(hour.expiry_of("/", "minute"), Some(Some(60)));
+        assert_eq!(hour.expiry_of("/", "older"), Some(Some(3600)));
+        // A cap of 0: they ended with their connections, before the start.
+        assert_eq!(Releases::new(&recovered, None, Some(0)).sweep(), 3);
+    }
+
+    #[tokio::test]
     async fn a_sweep_deletes_a_bounded_batch_of_expired_sessions_at_a_time() {
         let store = Arc::new(MemoryStore::default());
         let (releases, persistence) = open(&store);
@@ -452,7 +483,7 @@ mod tests {
     fn a_resuming_session_takes_the_ids_a_connection_abandoned_at_its_end_held() {
         let store = Arc::new(MemoryStore::default());
         let durable = open(&store).0;
-        let in_memory = Releases::new(&[], None);
+        let in_memory = Releases::new(&[], None, None);
         for releases in [&durable, &in_memory] {
             // The first connection's end kept 1; the next routed 2 and 3,
             // released 3, and its end kept nothing (a takeover abandoned it).
@@ -468,7 +499,7 @@ mod tests {
 
     #[test]
     fn sessions_past_the_cap_keep_nothing_until_expired_ones_make_room() {
-        let mut releases = Releases::new(&[], None);
+        let mut releases = Releases::new(&[], None, None);
         releases.max_sessions = 2;
         releases.keep("/", "a", vec![id(1)], Some(0));
         releases.keep("/", "b", vec![id(1)], None);

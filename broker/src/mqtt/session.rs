@@ -362,9 +362,10 @@ struct Accepted {
 }
 
 /// How long a session outlives its connection (3.1.1's clean session
-/// flag, 5.0's Session Expiry Interval). A session that outlives it keeps
-/// durable subscription queues (with `x-expires` for a 5.0 expiry, so the
-/// core deletes them when it passes); one that does not has exclusive
+/// flag, 5.0's Session Expiry Interval; both under the broker's cap). A
+/// session that outlives it keeps durable subscription queues (with
+/// `x-expires` unless it never expires, so the core deletes them when its
+/// expiry passes); one that does not has exclusive
 /// queues that go with the connection.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Lifetime {
@@ -374,8 +375,6 @@ enum Lifetime {
 }
 
 impl Lifetime {
-    /// A CONNECT's, a 5.0 interval capped at `max` ([`expiry::capped`];
-    /// a 3.1.1 persistent session never expires, whatever the cap).
     /// How long a will delayed by `delay` waits once the connection has
     /// ended: at most as long as the session.
     fn will_delay_left(self, delay: Duration) -> Duration {
@@ -386,15 +385,16 @@ impl Lifetime {
         }
     }
 
+    /// A CONNECT's: its 5.0 interval, or a 3.1.1 persistent session's
+    /// never, capped at `max` ([`expiry::capped`]).
     fn of(connect: &Connect, max: Option<u32>) -> Lifetime {
-        if !connect.version.is_v5() {
-            return if connect.clean_start {
-                Lifetime::Connection
-            } else {
-                Lifetime::Forever
-            };
-        }
-        let requested = connect.properties.session_expiry_interval.unwrap_or(0);
+        let requested = match connect.version.is_v5() {
+            true => connect.properties.session_expiry_interval.unwrap_or(0),
+            false if connect.clean_start => 0,
+            // As RabbitMQ 3.13: a 3.1.1 persistent session is 5.0's
+            // 0xFFFFFFFF (MQTT-538), so it gets the cap (`infinity`: never).
+            false => u32::MAX,
+        };
         Lifetime::of_interval(requested, max)
     }
 

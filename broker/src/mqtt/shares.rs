@@ -198,8 +198,14 @@ impl Held {
 
 impl Shares {
     /// The shared subscriptions among `recovered` (the store's metadata),
-    /// their sessions' expiry running from now.
-    pub(super) fn new(recovered: &[MetaRecord], persistence: Option<Arc<Persistence>>) -> Self {
+    /// their sessions' expiry (at most the broker's cap `max`, s: as the
+    /// sessions' own queues, [`super::expiry::restored`]; not written
+    /// back) running from now.
+    pub(super) fn new(
+        recovered: &[MetaRecord],
+        persistence: Option<Arc<Persistence>>,
+        max: Option<u32>,
+    ) -> Self {
         let mut state = State::default();
         for record in recovered {
             if let MetaRecord::SharedSubscription {
@@ -225,7 +231,7 @@ impl Shares {
                 };
                 let key = (vhost.clone(), client_id.clone());
                 let held = state.sessions.entry(key).or_default();
-                let expiry = (*session_expiry != NEVER).then_some(*session_expiry);
+                let expiry = super::expiry::restored(*session_expiry, max);
                 // Mixed intervals (a crash between a move's batches): the
                 // longest, whatever order the store reads them in.
                 held.expiry = match held.filters.is_empty() {
@@ -784,7 +790,7 @@ mod tests {
 
     #[test]
     fn sessions_past_the_cap_keep_none_and_forgetting_frees_a_place() {
-        let mut shares = Shares::new(&[], None);
+        let mut shares = Shares::new(&[], None, None);
         shares.max_sessions = 2;
         let keep = |shares: &Shares, id, filter, qos| {
             (shares.keep(("/", id), filter, options(qos), None)).1
@@ -808,7 +814,7 @@ mod tests {
 
     #[test]
     fn expired_sessions_hold_none_and_make_room_at_the_cap() {
-        let mut shares = Shares::new(&[], None);
+        let mut shares = Shares::new(&[], None, None);
         shares.max_sessions = 1;
         let zero = options(QoS::AtMostOnce);
         assert!(shares.keep(("/", "a"), "$share/g/x", zero, Some(0)).1);
@@ -833,7 +839,7 @@ mod tests {
             subscription_id: 7,
             session_expiry: 3600,
         };
-        let shares = Shares::new(&[record], None);
+        let shares = Shares::new(&[record], None, None);
         let expected = Options {
             retain_as_published: true,
             id: NonZeroU32::new(7),
@@ -846,8 +852,33 @@ mod tests {
     }
 
     #[test]
+    fn recovered_records_are_given_the_cap_if_they_outlive_it() {
+        let record = |client_id: &str, session_expiry| MetaRecord::SharedSubscription {
+            vhost: "/".into(),
+            client_id: client_id.into(),
+            filter: "$share/g/capped".into(),
+            qos: 1,
+            retain_as_published: false,
+            subscription_id: 0,
+            session_expiry,
+        };
+        // A 3.1.1 session stored as never expiring, one of an hour.
+        let records = [record("never", NEVER), record("hour", 3600)];
+        let shares = Shares::new(&records, None, Some(60));
+        assert_eq!(
+            shares.group("/", "$share/g/capped"),
+            GroupKeep::Kept(Some(60))
+        );
+        let shares = Shares::new(&records, None, Some(7200));
+        let kept = shares.group("/", "$share/g/capped");
+        assert_eq!(kept, GroupKeep::Kept(Some(7200)), "never is the cap");
+        let shares = Shares::new(&records, None, None);
+        assert_eq!(shares.group("/", "$share/g/capped"), GroupKeep::Kept(None));
+    }
+
+    #[test]
     fn a_groups_queue_is_kept_for_its_longest_lived_persistent_member() {
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let group = |shares: &Shares| shares.group("/", "$share/g/x");
         let one = options(QoS::AtLeastOnce);
         assert_eq!(group(&shares), GroupKeep::Unkept, "no persistent member");
@@ -890,7 +921,7 @@ mod tests {
 
     #[test]
     fn groups_past_the_cap_are_not_kept_until_one_goes() {
-        let mut shares = Shares::new(&[], None);
+        let mut shares = Shares::new(&[], None, None);
         shares.max_groups = 2;
         let one = options(QoS::AtLeastOnce);
         let keep = |shares: &Shares, id, filter| shares.keep(("/", id), filter, one, None).1;
@@ -909,7 +940,7 @@ mod tests {
 
     #[test]
     fn a_session_resumed_with_another_interval_moves_all_its_groups() {
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let one = options(QoS::AtLeastOnce);
         let keep = |filter, expiry| shares.keep(("/", "a"), filter, one, expiry);
         assert!(keep("$share/g/1", Some(60)).1);
@@ -954,7 +985,7 @@ mod tests {
     fn a_stale_change_never_overwrites_a_groups_newer_expiry() {
         let h = Harness::durable();
         let vhost_of = |_: &str| Some(Arc::clone(&h.vhost));
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let one = options(QoS::AtLeastOnce);
         let queue = h.declare_queue("mqtt-shared-g/x", true, &[marked()]);
         assert!(shares.keep(("/", "p2"), "$share/g/x", one, Some(0)).1);
@@ -984,7 +1015,7 @@ mod tests {
     fn members_join_a_group_queue_as_it_is_and_create_it_from_the_groups_state() {
         let h = Harness::durable();
         let vhost_of = |_: &str| Some(Arc::clone(&h.vhost));
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let one = options(QoS::AtLeastOnce);
         let name = |filter| queue_name(filter).expect("a shared filter");
         // The members' joins, held as their consumes would be pending.
@@ -1039,7 +1070,7 @@ mod tests {
 
     #[test]
     fn a_sweep_to_make_room_is_applied_even_if_the_subscription_is_not_kept() {
-        let mut shares = Shares::new(&[], None);
+        let mut shares = Shares::new(&[], None, None);
         shares.max_sessions = 2;
         shares.max_groups = 1;
         let one = options(QoS::AtLeastOnce);
@@ -1074,7 +1105,7 @@ mod tests {
         let unkept = h.declare_queue("mqtt-shared-h/y", true, &never);
         // A durable queue not declared by a member is left alone.
         let amqp = h.declare_queue("mqtt-shared-a/z", true, &[]);
-        let shares = Shares::new(&[record], None);
+        let shares = Shares::new(&[record], None, None);
         let declared = declared_groups(&[Arc::clone(&h.vhost)]);
         assert_eq!(declared.len(), 2);
         assert!(declared.contains(&("/".to_owned(), "$share/g/x".to_owned())));
@@ -1087,7 +1118,7 @@ mod tests {
 
     #[test]
     fn a_sweep_deletes_a_bounded_number_of_subscriptions_under_one_hold() {
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let one = options(QoS::AtLeastOnce);
         let each = SWEEP_RECORDS / 2 + 1;
         for id in ["a", "b", "c"] {
@@ -1107,7 +1138,7 @@ mod tests {
 
     #[test]
     fn an_expiry_change_moves_a_bounded_number_of_subscriptions_under_one_hold() {
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let one = options(QoS::AtLeastOnce);
         let filter = |n: usize| format!("$share/g{n}/x");
         let count = 2 * SETTLE_RECORDS + 10;
@@ -1160,7 +1191,7 @@ mod tests {
             let name = queue_name("$share/g/1").expect("a shared filter");
             let minute = [("x-expires", FieldValue::I64(60_000)), marked()];
             let queue = h.declare_queue(&name.to_string_lossy(), true, &minute);
-            let shares = Shares::new(&records, None);
+            let shares = Shares::new(&records, None, None);
             // Start-up, no session connecting.
             shares.reconcile_in(std::slice::from_ref(&h.vhost)).await;
             assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(3600)));
@@ -1172,7 +1203,7 @@ mod tests {
     #[test]
     fn a_joined_unkept_group_queue_outlives_its_x_expires_until_the_consume() {
         let h = Harness::durable();
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let filter = "$share/u/x";
         let name = queue_name(filter).expect("a shared filter");
         // A durable queue whose group lost its last persistent member.
@@ -1221,7 +1252,7 @@ mod tests {
     #[test]
     fn a_clean_groups_queue_whose_last_consumer_leaves_waits_for_the_joiners_consume() {
         let h = Harness::new();
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let filter = "$share/c/x";
         let name = queue_name(filter).expect("a shared filter");
         let declare = || shares.declare_queue(&h.vhost, filter, name.clone(), None);
@@ -1267,7 +1298,7 @@ mod tests {
     #[test]
     fn a_member_joining_a_queue_whose_auto_deletion_is_under_way_gets_a_new_one() {
         let h = Harness::new();
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let filter = "$share/c/x";
         let name = queue_name(filter).expect("a shared filter");
         let (first, _) =
@@ -1295,7 +1326,7 @@ mod tests {
     #[test]
     fn a_member_joining_a_queue_the_sweeper_found_expired_gets_a_new_one() {
         let h = Harness::durable();
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let filter = "$share/u/x";
         let name = queue_name(filter).expect("a shared filter");
         let unkept = [("x-expires", FieldValue::I64(1)), marked()];
@@ -1319,7 +1350,7 @@ mod tests {
     #[test]
     fn a_queue_an_amqp_client_declared_under_a_groups_name_keeps_its_arguments() {
         let h = Harness::durable();
-        let shares = Shares::new(&[], None);
+        let shares = Shares::new(&[], None, None);
         let minute = [("x-expires", FieldValue::I64(60_000))];
         let queue = h.declare_queue("mqtt-shared-g/x", true, &minute);
         let one = options(QoS::AtLeastOnce);
