@@ -895,13 +895,19 @@ impl Session {
         let mut durable = self.shared.retained.durable();
         let stop = loop {
             // Whole packets already read, unless a takeover has abandoned
-            // the session.
-            if self.reading() {
-                match claim.running(|| self.take_packets(&mut buf)) {
-                    Some(Ok(())) => {}
-                    Some(Err(stop)) => break stop,
-                    None => break taken_over(),
+            // the session: then, reading or not (a write may have stalled
+            // it past the takeover's wait), it sends the link nothing more.
+            let reading = self.reading();
+            match claim.running(|| {
+                if reading {
+                    self.take_packets(&mut buf)
+                } else {
+                    Ok(())
                 }
+            }) {
+                Some(Ok(())) => {}
+                Some(Err(stop)) => break stop,
+                None => break taken_over(),
             }
             while let Some(item) = self.pending.pop_front() {
                 match link.direct.to_broker.try_send(item) {
@@ -944,8 +950,10 @@ impl Session {
                 },
                 permit = to_broker.reserve(), if !self.pending.is_empty() => match permit {
                     Ok(permit) => {
-                        if let Some(item) = self.pending.pop_front() {
-                            permit.send(item);
+                        let pending = &mut self.pending;
+                        let sent = claim.running(|| pending.pop_front().map(|item| permit.send(item)));
+                        if sent.is_none() {
+                            break taken_over();
                         }
                     }
                     Err(_) => break closed("link ended", None),
