@@ -4314,6 +4314,96 @@ async fn a_joining_member_holds_its_groups_queue_until_its_consume_arrives() {
     handle.shutdown().await;
 }
 
+/// A member's join counts as use for queue.delete's if-unused (groups
+/// review NIT 10): the joiner's consume waits behind a memory alarm (its
+/// link has published, so the core stops reading it), its group's queue,
+/// declared for it, has no consumer yet. An AMQP `queue.delete if-unused`
+/// is refused (406, as for a queue with consumers), and the joiner is then
+/// bound and served, not closed by a 404.
+#[both_runtimes]
+async fn an_if_unused_delete_counts_a_joining_member_as_use() {
+    let limits = Limits {
+        memory_high_watermark: 256 * 1024,
+        resident_memory_high_watermark: leveret_broker::ResidentMemoryWatermark::Unwatched,
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    let (mut joiner, _) = raw_session(port, "unused-joiner", true, Some(0)).await;
+    let admin = handle.admin();
+    let ballast = leveret_broker::QueueSettings::default();
+    admin
+        .declare_queue("/", "unused-ballast", ballast)
+        .await
+        .expect("declared");
+    within("the memory alarm", async {
+        while !handle.overview().memory_alarm {
+            let body = Bytes::from(vec![0u8; 64 * 1024]);
+            let properties = Default::default();
+            let _ = admin
+                .publish("/", "", "unused-ballast", properties, body)
+                .await;
+        }
+    })
+    .await;
+    // The joiner publishes (its link is then not read) and subscribes: its
+    // group's queue is declared and joined at once, its bind and consume
+    // wait.
+    joiner
+        .send(Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtMostOnce,
+            retain: false,
+            topic: TopicName::from_static("unused/elsewhere"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"x"),
+        }))
+        .await;
+    joiner.send(subscribe_raw(1, "$share/unused/t")).await;
+    let queue = "mqtt-shared-unused/t";
+    until_queue_listed(&handle, queue, true, "the joined group's queue").await;
+    assert_eq!(
+        handle
+            .admin()
+            .consumers()
+            .iter()
+            .filter(|c| c.queue == queue)
+            .count(),
+        0,
+        "the joiner's consume waits"
+    );
+    let if_unused = lapin::options::QueueDeleteOptions {
+        if_unused: true,
+        ..Default::default()
+    };
+    let deleted = tmo!(channel.queue_delete(queue, if_unused));
+    lp::assert_err(
+        deleted,
+        406,
+        "PRECONDITION_FAILED - queue 'mqtt-shared-unused/t' in vhost '/' in use",
+    );
+    assert!(queue_names(&handle).iter().any(|q| q == queue), "kept");
+    // The alarm clears: the joiner's bind and consume arrive.
+    handle
+        .admin()
+        .delete_queue("/", "unused-ballast", false, false)
+        .await
+        .expect("deleted");
+    match joiner.next().await {
+        Some(Packet::SubAck(suback)) => {
+            assert_eq!(suback.reasons, [leveret_mqtt::ReasonCode::GrantedQos1])
+        }
+        other => panic!("expected the joiner's SUBACK, got {other:?}"),
+    }
+    publish_acked(port, "t", "served", false).await;
+    match joiner.next().await {
+        Some(Packet::Publish(publish)) => assert_eq!(&publish.payload[..], b"served"),
+        other => panic!("expected a delivery, got {other:?}"),
+    }
+    handle.shutdown().await;
+}
+
 /// The start-up reconcile gives a stored group queue its group's expiry
 /// before anything sweeps the vhosts: here a crash left the queue with
 /// 1 ms (its group had lost its persistent member) and the member's
