@@ -921,6 +921,7 @@ impl Connection {
         if let Some(vhost) = &self.vhost {
             vhost.drop_exclusive(self.connection_id);
         }
+        #[cfg(feature = "mqtt")]
         self.core.registry.cleaned_up(self.connection_id);
     }
 }
