@@ -930,29 +930,31 @@ fn takeover_link_not_closed(client_id: &str) -> bool {
     })
 }
 
-/// A takeover that abandons a session whose link is blocked handing it a
-/// reply closes that link at once (round-4 review, RISK 3): the old
-/// session resumed a backlog that fills its link's outbox, asked for
-/// more filters than a stalled session takes replies for, and reads
-/// nothing, so its link's connection waits for room for a bind-ok. The
-/// close reaches it there: by the new CONNACK the old link has cleaned
-/// up (no consumer of its left), with no "not closed in time" warning.
-#[both_runtimes]
-async fn a_takeover_closes_the_link_of_a_stalled_session_blocked_on_a_reply() {
-    let (handle, port, _amqp, channel) = takeover_broker("blocked-wills", "blocked.will").await;
-    capture_warnings();
-    let id = format!("blocked-{port}");
+/// The old session of client `id` stalled with replies outstanding on
+/// its link: a persistent session subscribed to `flood` resumes a backlog
+/// that fills its link's outbox (its consume first on the link) and, in
+/// the same write as its CONNECT and after `first` (packets that need no
+/// reply before the SUBSCRIBE's), asks for more filters than a stalled
+/// session takes replies for; its client reads nothing, so its link's
+/// connection waits for room for a bind-ok. The old session's socket and
+/// its link's id.
+async fn stalled_with_replies_outstanding(
+    handle: &BrokerHandle,
+    channel: &lapin::Channel,
+    (port, id): (u16, &str),
+    first: &[Packet],
+) -> (Raw, u64) {
     let queue = format!("mqtt-subscription-{id}qos0");
     // A persistent session subscribed to `flood`, offline while a backlog
     // builds: more than the link's outbox holds (512), of messages large
     // enough that a stalled socket takes few of them.
-    let mut first = connect_raw(port, &id, false, None, None).await;
-    first.send(subscribe_to(1, ["flood".to_owned()])).await;
-    assert!(matches!(first.next().await, Some(Packet::SubAck(_))));
-    first.send(Packet::Disconnect(Default::default())).await;
-    first.assert_closed().await;
+    let mut visit = connect_raw(port, id, false, None, None).await;
+    visit.send(subscribe_to(1, ["flood".to_owned()])).await;
+    assert!(matches!(visit.next().await, Some(Packet::SubAck(_))));
+    visit.send(Packet::Disconnect(Default::default())).await;
+    visit.assert_closed().await;
     within("the first session's end", async {
-        while mqtt_connections(&handle) > 0 {
+        while mqtt_connections(handle) > 0 {
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
     })
@@ -977,14 +979,13 @@ async fn a_takeover_closes_the_link_of_a_stalled_session_blocked_on_a_reply() {
             .sum::<u64>()
     };
     within("the backlog queued", async {
-        while ready(&handle) < BACKLOG {
+        while ready(handle) < BACKLOG {
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
     })
     .await;
-    // The old session resumes it (its consume first on the link) and, in
-    // the same write, asks for 300 more filters (300 binds behind the
-    // consume); its client reads nothing, not even the CONNACK.
+    // The old session resumes it and asks for 300 more filters (300 binds
+    // behind the consume); its client reads nothing, not even the CONNACK.
     const FILTERS: usize = 300;
     let socket = tokio::net::TcpSocket::new_v4().unwrap();
     socket.set_recv_buffer_size(4096).unwrap();
@@ -1000,12 +1001,14 @@ async fn a_takeover_closes_the_link_of_a_stalled_session_blocked_on_a_reply() {
         clean_start: false,
         keep_alive: 0,
         properties: Default::default(),
-        client_id: leveret_mqtt::MqttString::from_utf8(Bytes::from(id.clone())).unwrap(),
+        client_id: leveret_mqtt::MqttString::from_utf8(Bytes::from(id.to_owned())).unwrap(),
         will: None,
         username: Some(leveret_mqtt::MqttString::from_static("robot")),
         password: Some(Bytes::from_static(b"secret")),
     }));
-    connect.encode(ProtocolVersion::V3_1_1, &mut out).unwrap();
+    for packet in std::iter::once(&connect).chain(first) {
+        packet.encode(ProtocolVersion::V3_1_1, &mut out).unwrap();
+    }
     let filters = (0..FILTERS).map(|n| format!("more/{n}"));
     subscribe_to(2, filters)
         .encode(ProtocolVersion::V3_1_1, &mut out)
@@ -1026,21 +1029,17 @@ async fn a_takeover_closes_the_link_of_a_stalled_session_blocked_on_a_reply() {
         }
     })
     .await;
-    let consumes = |handle: &BrokerHandle| {
-        let consumers = handle.admin().consumers().into_iter();
-        consumers.filter(|c| c.connection_id == old_link).count()
-    };
     let bound = |handle: &BrokerHandle| {
         let bindings = handle.admin().bindings().into_iter();
         bindings.filter(|b| b.destination == queue).count()
     };
     let stalled = async {
-        let state = || (ready(&handle), bound(&handle));
+        let state = || (ready(handle), bound(handle));
         let (mut before, mut unchanged) = (state(), 0);
         while unchanged < 6 {
             tokio::time::sleep(Duration::from_millis(500)).await;
             let now = state();
-            let consuming = consumes(&handle) > 0;
+            let consuming = consumes(handle, old_link) > 0;
             unchanged = if consuming && now == before {
                 unchanged + 1
             } else {
@@ -1059,6 +1058,27 @@ async fn a_takeover_closes_the_link_of_a_stalled_session_blocked_on_a_reply() {
         "some of the old session's binds wait for their replies ({bindings} of {})",
         FILTERS + 1
     );
+    (old, old_link)
+}
+
+/// How many consumers connection `link` has.
+fn consumes(handle: &BrokerHandle, link: u64) -> usize {
+    let consumers = handle.admin().consumers().into_iter();
+    consumers.filter(|c| c.connection_id == link).count()
+}
+
+/// A takeover that abandons a session whose link is blocked handing it a
+/// reply closes that link at once (round-4 review, RISK 3; the stall is
+/// [`stalled_with_replies_outstanding`]'s). The close reaches the link
+/// where it waits: by the new CONNACK the old link has cleaned up (no
+/// consumer of its left), with no "not closed in time" warning.
+#[both_runtimes]
+async fn a_takeover_closes_the_link_of_a_stalled_session_blocked_on_a_reply() {
+    let (handle, port, _amqp, channel) = takeover_broker("blocked-wills", "blocked.will").await;
+    capture_warnings();
+    let id = format!("blocked-{port}");
+    let (old, old_link) =
+        stalled_with_replies_outstanding(&handle, &channel, (port, &id), &[]).await;
     // The takeover gives up on the old session and closes its link, which
     // is waiting for room for a reply: the close reaches it there.
     let mut new = connect_raw(port, &id, false, None, None).await;
@@ -1067,7 +1087,11 @@ async fn a_takeover_closes_the_link_of_a_stalled_session_blocked_on_a_reply() {
         !takeover_link_not_closed(&id),
         "the old link was closed in time"
     );
-    assert_eq!(consumes(&handle), 0, "the old link consumes no more");
+    assert_eq!(
+        consumes(&handle, old_link),
+        0,
+        "the old link consumes no more"
+    );
     let old_channels = handle
         .admin()
         .connection(old_link)
@@ -1082,6 +1106,61 @@ async fn a_takeover_closes_the_link_of_a_stalled_session_blocked_on_a_reply() {
         "{suback:?}"
     );
     drop(old);
+    handle.shutdown().await;
+}
+
+/// The broker's warning that session `client_id`, abandoned, left
+/// publishes unrouted or unacknowledged, if it logged one.
+fn abandoned_publishes_warning(client_id: &str) -> Option<String> {
+    let warnings = WARNINGS.lock().unwrap_or_else(|e| e.into_inner());
+    let client_id = format!("client_id={client_id} ");
+    String::from_utf8_lossy(&warnings)
+        .lines()
+        .find(|line| {
+            line.contains("MQTT session abandoned by a takeover") && line.contains(&client_id)
+        })
+        .map(str::to_owned)
+}
+
+/// An abandoned session acknowledges none of the QoS 1 publishes it had
+/// not acknowledged when it was abandoned, and logs how many it leaves to
+/// the client to resend (sessions review N5): the three go in the write
+/// that stalls the old session ([`stalled_with_replies_outstanding`]),
+/// ahead of its SUBSCRIBE, so they reach its link, whose confirms wait
+/// behind deliveries the session never takes.
+#[both_runtimes]
+async fn an_abandoned_sessions_unacknowledged_publishes_are_logged_never_acknowledged() {
+    let (handle, port, _amqp, channel) = takeover_broker("abandoned-pubs", "abandoned.pub").await;
+    capture_warnings();
+    let id = format!("unacked-{port}");
+    let publish = |n| {
+        Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtLeastOnce(std::num::NonZeroU16::new(n).unwrap()),
+            retain: false,
+            topic: TopicName::from_static("abandoned/pub"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"unacknowledged"),
+        })
+    };
+    let publishes = [publish(11), publish(12), publish(13)];
+    let stalled = stalled_with_replies_outstanding(&handle, &channel, (port, &id), &publishes);
+    let (mut old, _) = stalled.await;
+    let _new = connect_raw(port, &id, false, None, None).await;
+    assert!(takeover_gave_up(&id), "the takeover gave up waiting");
+    // Read now, the abandoned session finishes its write, finds it was
+    // abandoned and closes its socket, having acknowledged nothing.
+    while let Some(packet) = old.next().await {
+        assert!(
+            !matches!(packet, Packet::PubAck(_)),
+            "an abandoned session acknowledged a publish"
+        );
+    }
+    let warning = abandoned_publishes_warning(&id).expect("the abandoned publishes logged");
+    assert!(
+        warning.contains("dropped=0") && warning.contains("unacknowledged=3"),
+        "{warning}"
+    );
     handle.shutdown().await;
 }
 

@@ -1034,6 +1034,7 @@ impl Session {
         let owned = claim.end();
         if !owned {
             self.out.clear();
+            self.log_abandoned_publishes();
         } else {
             self.flush_pending(&mut link).await;
         }
@@ -1075,6 +1076,27 @@ impl Session {
             disconnected,
             will: claim.take_will().filter(|_| send_will && owned),
             owned,
+        }
+    }
+
+    /// A session a takeover abandoned acts no more: the publishes it read
+    /// and had not handed to its link are dropped (its link is closed),
+    /// and none of its QoS 1 and 2 publishes not yet acknowledged to the
+    /// client (PUBACK, PUBREC) will be, whether its link routed them or
+    /// not: the client resends those to a session that resumes (MQTT
+    /// 4.4). Logged with their counts, never claimed.
+    fn log_abandoned_publishes(&self) {
+        let dropped = (self.pending.iter())
+            .filter(|item| matches!(item, Outgoing::Publish { .. }))
+            .count();
+        let unacknowledged = self.unconfirmed.len() + self.held_acks.len();
+        if dropped + unacknowledged > 0 {
+            tracing::warn!(
+                client_id = %self.client_id,
+                dropped,
+                unacknowledged,
+                "MQTT session abandoned by a takeover: publishes not handed to the core dropped, QoS 1 and 2 publishes not acknowledged left to the client to resend"
+            );
         }
     }
 
