@@ -21,7 +21,7 @@ use leveret_protocol::{
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 
 /// One item for the writer to encode. Small (its largest variant is a
 /// delivery's): the outbox's channel reserves room for 32 items at once
@@ -280,7 +280,7 @@ impl OutboxPermit<'_> {
 /// The core's handle on one connection's writer.
 pub struct Outbox {
     tx: mpsc::Sender<Outbound>,
-    /// Whether an in-process client takes the items ([`Outbox::in_process`]).
+    /// Whether an in-process client takes the items ([`Outbox::connection`]).
     in_process: bool,
     /// Items sent and not yet handled by an in-process client (its
     /// [`crate::DirectReplies`] counts them down); kept only for one, so
@@ -295,6 +295,10 @@ pub struct Outbox {
     /// When the client was last heard: milliseconds after `created`.
     heard: AtomicU64,
     created: tokio::time::Instant,
+    /// The connection's close signal (the registry's), which ends a wait
+    /// for room ([`Outbox::send`], [`Outbox::reserve`]); none for an
+    /// outbox of no connection's.
+    closing: Option<watch::Receiver<bool>>,
     /// The connection's id, for exclusive-queue ownership.
     pub connection_id: u64,
 }
@@ -302,17 +306,27 @@ pub struct Outbox {
 impl Outbox {
     /// An outbox and the receiver its writer drains.
     pub fn new(connection_id: u64) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
-        Outbox::with(connection_id, false)
+        Outbox::with(connection_id, false, None)
     }
 
-    /// An outbox whose receiver an in-process client drains itself,
+    /// A client connection's outbox, whose waits for room end once
+    /// `closing` (the registry's close signal for it) is set. With
+    /// `in_process`, an in-process client drains the receiver itself,
     /// counting down each item it handles ([`Outbox::handled`]), so that
     /// its inline deliveries ([`Outbox::set_inline`]) keep their order.
-    pub(crate) fn in_process(connection_id: u64) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
-        Outbox::with(connection_id, true)
+    pub(crate) fn connection(
+        connection_id: u64,
+        in_process: bool,
+        closing: watch::Receiver<bool>,
+    ) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
+        Outbox::with(connection_id, in_process, Some(closing))
     }
 
-    fn with(connection_id: u64, in_process: bool) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
+    fn with(
+        connection_id: u64,
+        in_process: bool,
+        closing: Option<watch::Receiver<bool>>,
+    ) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
         let (tx, rx) = mpsc::channel(OUTBOX_CAPACITY);
         let outbox = Outbox {
             tx,
@@ -324,18 +338,33 @@ impl Outbox {
             cancel_notify: AtomicBool::new(false),
             heard: AtomicU64::new(0),
             created: tokio::time::Instant::now(),
+            closing,
             connection_id,
         };
         (Arc::new(outbox), rx)
     }
 
-    /// Sends an item, waiting for room (backpressure on the caller).
+    /// Sends an item, waiting for room (backpressure on the caller), until
+    /// the connection is told to close: the item is then dropped, as when
+    /// the writer is gone (the connection closes next, and its cleanup
+    /// requeues whatever was in flight).
     ///
     /// Room is usually there: only then is the send made at once. Waiting
     /// for room takes tokio's send future (~440 bytes), kept on the heap so
     /// that every future awaiting a reply stays small (a future is copied
     /// each time it is created and awaited).
     pub async fn send(&self, item: Outbound) {
+        self.send_until(item, self.closing.clone()).await;
+    }
+
+    /// Sends the connection's own close (its connection.close, or the
+    /// writer's [`Outbound::Shutdown`]), waiting for room even once it
+    /// was told to close: the caller bounds the wait.
+    pub(crate) async fn send_closing(&self, item: Outbound) {
+        self.send_until(item, None).await;
+    }
+
+    async fn send_until(&self, item: Outbound, closing: Option<watch::Receiver<bool>>) {
         // A publisher confirm an in-process client takes inline.
         if self.in_process && self.confirm_inline(&item) {
             return;
@@ -347,7 +376,19 @@ impl Outbox {
             Ok(()) | Err(mpsc::error::TrySendError::Closed(_)) => return,
             Err(mpsc::error::TrySendError::Full(item)) => item,
         };
-        let _ = Box::pin(self.tx.send(item)).await;
+        let sent = Box::pin(async move {
+            let send = self.tx.send(item);
+            let Some(mut closing) = closing else {
+                return send.await.is_ok();
+            };
+            tokio::select! {
+                sent = send => sent.is_ok(),
+                _ = closing.wait_for(|close| *close) => false,
+            }
+        });
+        if !sent.await && self.in_process {
+            self.handled();
+        }
     }
 
     /// Sends a method on a channel.
@@ -355,9 +396,17 @@ impl Outbox {
         self.send(Outbound::method(channel, method.into())).await;
     }
 
-    /// Waits for room for one item; `None` if the writer is gone.
+    /// Waits for room for one item; `None` if the writer is gone or the
+    /// connection is told to close meanwhile.
     pub async fn reserve(&self) -> Option<OutboxPermit<'_>> {
-        let permit = self.tx.reserve().await.ok()?;
+        let reserve = self.tx.reserve();
+        let permit = match self.closing.clone() {
+            None => reserve.await.ok()?,
+            Some(mut closing) => tokio::select! {
+                permit = reserve => permit.ok()?,
+                _ = closing.wait_for(|close| *close) => return None,
+            },
+        };
         Some(OutboxPermit {
             permit,
             outbox: self,
@@ -574,6 +623,58 @@ mod tests {
             }
         }
         assert!(std::mem::size_of::<Outbound>() <= 64);
+    }
+
+    /// A send or reserve waiting for room gives up once the connection is
+    /// told to close, dropping its item; the connection's own close still
+    /// waits for room.
+    #[tokio::test]
+    async fn a_wait_for_room_ends_when_the_connection_is_told_to_close() {
+        let (close, closing) = watch::channel(false);
+        let (outbox, mut inbox) = Outbox::connection(1, true, closing);
+        let cancel = |tag| leveret_protocol::BasicCancel {
+            consumer_tag: ShortStr::from_static(tag),
+            no_wait: true,
+        };
+        for _ in 0..OUTBOX_CAPACITY {
+            outbox.method(1, cancel("fill")).await;
+        }
+        let waiting = {
+            let outbox = Arc::clone(&outbox);
+            tokio::spawn(async move {
+                outbox.method(1, cancel("dropped")).await;
+                outbox.reserve().await.is_some()
+            })
+        };
+        tokio::task::yield_now().await;
+        assert!(!waiting.is_finished(), "waits for room");
+        close.send_replace(true);
+        let reserved = waiting.await.expect("ran");
+        assert!(!reserved, "no room reserved once told to close");
+        assert_eq!(
+            outbox.unhandled.load(Ordering::SeqCst),
+            OUTBOX_CAPACITY as u64,
+            "the dropped item is not counted as sent"
+        );
+        let closing = {
+            let outbox = Arc::clone(&outbox);
+            tokio::spawn(async move { outbox.send_closing(Outbound::Shutdown).await })
+        };
+        tokio::task::yield_now().await;
+        assert!(!closing.is_finished(), "the close waits for room");
+        let mut last = None;
+        while let Some(item) = inbox.recv().await {
+            outbox.handled();
+            if matches!(item, Outbound::Shutdown) {
+                break;
+            }
+            last = Some(item);
+        }
+        closing.await.expect("ran");
+        let Some(Outbound::Method { method, .. }) = last else {
+            panic!("the queued items come first");
+        };
+        assert_eq!(*method, Method::from(cancel("fill")));
     }
 
     #[test]

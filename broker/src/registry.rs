@@ -59,8 +59,10 @@ pub(crate) struct ConnectionEntry {
     pub traffic: Option<Arc<ConnectionTraffic>>,
     pub opened: OnceLock<Opened>,
     close: watch::Sender<bool>,
-    /// Set once the connection has cleaned up (see [`Registry::cleaned_up`]).
-    cleaned: watch::Sender<bool>,
+    /// Whether the connection has cleaned up ([`Registry::cleaned_up`]),
+    /// for an MQTT takeover's [`Registry::close_and_wait`].
+    #[cfg(feature = "mqtt")]
+    cleaned: Cleaned,
     close_reason: Mutex<Option<String>>,
     channels: Mutex<BTreeMap<u16, Arc<ChannelEntry>>>,
 }
@@ -74,6 +76,35 @@ impl ConnectionEntry {
     /// How many channels it has open.
     pub fn channel_count(&self) -> usize {
         lock(&self.channels).len()
+    }
+}
+
+/// Whether a connection has cleaned up, and what wakes those waiting for
+/// it: a flag and a notify kept in the connection's entry, so that no
+/// connection allocates for what only an MQTT takeover asks.
+#[cfg(feature = "mqtt")]
+#[derive(Debug, Default)]
+struct Cleaned {
+    done: AtomicBool,
+    notify: tokio::sync::Notify,
+}
+
+#[cfg(feature = "mqtt")]
+impl Cleaned {
+    fn set(&self) {
+        self.done.store(true, Ordering::SeqCst);
+        self.notify.notify_waiters();
+    }
+
+    async fn wait(&self) {
+        loop {
+            // Made before the flag is read: a set after the read wakes it.
+            let notified = self.notify.notified();
+            if self.done.load(Ordering::SeqCst) {
+                return;
+            }
+            notified.await;
+        }
     }
 }
 
@@ -158,7 +189,8 @@ impl Registry {
             traffic,
             opened: OnceLock::new(),
             close: watch::channel(state.closing_all).0,
-            cleaned: watch::channel(false).0,
+            #[cfg(feature = "mqtt")]
+            cleaned: Cleaned::default(),
             close_reason: Mutex::new(None),
             channels: Mutex::new(BTreeMap::new()),
         });
@@ -208,9 +240,10 @@ impl Registry {
     /// Connection `id` has cleaned up: its channels are closed (their
     /// consumers cancelled, unacknowledged deliveries requeued), its
     /// exclusive queues deleted, and it handles nothing it is sent later.
+    #[cfg(feature = "mqtt")]
     pub fn cleaned_up(&self, id: u64) {
         if let Some(entry) = self.entry(id) {
-            entry.cleaned.send_replace(true);
+            entry.cleaned.set();
         }
     }
 
@@ -223,12 +256,11 @@ impl Registry {
         id: u64,
         reason: &str,
     ) -> impl std::future::Future<Output = ()> + Send + 'static {
-        let cleaned = self.entry(id).map(|entry| entry.cleaned.subscribe());
+        let entry = self.entry(id);
         self.close(id, reason);
         async move {
-            if let Some(mut cleaned) = cleaned {
-                // An error: the entry is gone, so the connection too.
-                let _ = cleaned.wait_for(|done| *done).await;
+            if let Some(entry) = entry {
+                entry.cleaned.wait().await;
             }
         }
     }
@@ -314,6 +346,9 @@ impl Drop for ConnectionRegistration {
         lock(&self.registry.state)
             .connections
             .remove(&self.entry.id);
+        // Gone: it handles nothing more, cleaned up or not.
+        #[cfg(feature = "mqtt")]
+        self.entry.cleaned.set();
         if self.entry.opened.get().is_some() {
             self.registry.counters.connections_closed.inc();
         }
@@ -414,6 +449,35 @@ mod tests {
         drop(a);
         assert_eq!(counters.connections_closed.get(), 1);
         assert_eq!(registry.counts(), (0, 0));
+    }
+
+    /// A close waited for resolves once the connection has cleaned up, or
+    /// once it is gone without (its registration dropped), not before.
+    #[cfg(feature = "mqtt")]
+    #[tokio::test]
+    async fn a_close_waited_for_ends_at_the_clean_up_or_the_connections_end() {
+        let registry = Arc::new(Registry::new(Arc::default()));
+        let _cleaning = registry.connection(1, "a", "MQTT 5.0", None);
+        let ending = registry.connection(2, "b", "MQTT 5.0", None);
+        let mut cleaned = tokio::spawn(registry.close_and_wait(1, "taken over"));
+        let mut gone = tokio::spawn(registry.close_and_wait(2, "taken over"));
+        assert!(*registry.close_signal(1).unwrap().borrow(), "told to close");
+        tokio::task::yield_now().await;
+        assert!(!cleaned.is_finished() && !gone.is_finished());
+        registry.cleaned_up(1);
+        tokio::time::timeout(std::time::Duration::from_secs(30), &mut cleaned)
+            .await
+            .expect("resolved at the clean-up")
+            .unwrap();
+        assert!(!gone.is_finished());
+        drop(ending);
+        tokio::time::timeout(std::time::Duration::from_secs(30), &mut gone)
+            .await
+            .expect("resolved at the connection's end")
+            .unwrap();
+        // Already cleaned up, or never there: at once.
+        registry.close_and_wait(1, "again").await;
+        registry.close_and_wait(3, "none").await;
     }
 
     #[test]

@@ -437,6 +437,47 @@ async fn unfinished_bodies_on_many_channels_block_the_publisher_and_stay_bounded
     assert!(confirmation.is_ack());
 }
 
+/// A publisher blocked by the memory alarm is still closed by a management
+/// close, without waiting for the alarm to clear: its block watches its
+/// own close signal, not only the broker's shutdown (320 with the reason
+/// given).
+#[tokio::test]
+async fn a_blocked_publisher_is_closed_by_a_management_close() {
+    let _serial = SERIAL.lock().await;
+    if rss().is_none() {
+        return;
+    }
+    let b = leveret(Limits {
+        resident_memory_high_watermark: ResidentMemoryWatermark::Absolute(MIB as u64),
+        ..Limits::default()
+    })
+    .await;
+    let mut publisher = Raw::open(&b, Hello::default()).await;
+    publisher.open_channel(1).await;
+    let mut bytes = method_bytes(1, BasicPublish::default());
+    bytes.extend(header_bytes(1, 5));
+    bytes.extend(body_bytes(1, Bytes::from_static(b"hello")));
+    publisher.send(&bytes).await;
+    match publisher.method().await {
+        (0, Method::ConnectionBlocked(_)) => {}
+        other => panic!("expected connection.blocked, got {other:?}"),
+    }
+    let admin = b.admin().expect("in-process broker");
+    let listed = admin.connections();
+    assert_eq!(listed.len(), 1, "the publisher alone");
+    assert!(admin.close_connection(listed[0].id, "Closed via management plugin"));
+    match publisher.method().await {
+        (0, Method::ConnectionClose(close)) => {
+            assert_eq!(close.reply_code, 320);
+            assert_eq!(
+                close.reply_text.to_string_lossy(),
+                "CONNECTION_FORCED - Closed via management plugin"
+            );
+        }
+        other => panic!("expected connection.close, got {other:?}"),
+    }
+}
+
 /// A blocked publisher that hangs up is let go (and what it held with it)
 /// without heartbeats: the broker watches for the hang-up while it does
 /// not read.

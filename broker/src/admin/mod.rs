@@ -248,7 +248,7 @@ impl Admin {
     ) -> AmqpResult<u32> {
         let vhost = self.vhost(vhost)?;
         let queue = self.queue_in(&vhost, name)?;
-        if if_unused && queue.has_consumers() {
+        if if_unused && queue.in_use() {
             return Err(AmqpError::precondition_failed(format_args!(
                 "queue '{}' in vhost '{}' in use",
                 name, vhost.name

@@ -179,7 +179,7 @@ impl Channel {
             None => Deleted::default(),
             Some(queue) => {
                 check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
-                if delete.if_unused && queue.has_consumers() {
+                if delete.if_unused && queue.in_use() {
                     return Err(AmqpError::precondition_failed(format_args!(
                         "queue '{}' in vhost '{}' in use",
                         name, self.vhost.name

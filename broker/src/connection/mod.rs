@@ -127,7 +127,7 @@ pub fn serve_direct(
 /// an in-process client that takes them itself.
 trait Sink: Send + 'static {
     /// Whether an in-process client takes the items (it counts down what
-    /// it handles, for its inline deliveries: see [`Outbox::in_process`]).
+    /// it handles, for its inline deliveries: see [`Outbox::connection`]).
     const IN_PROCESS: bool;
 
     /// Answers a wrong protocol header with ours, and ends.
@@ -224,11 +224,9 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         local = local.map(tracing::field::display),
         "accepting {kind} connection #{connection_id} ({label})"
     );
-    let (outbox, inbox) = if K::IN_PROCESS {
-        Outbox::in_process(connection_id)
-    } else {
-        Outbox::new(connection_id)
-    };
+    let closing =
+        (core.registry.close_signal(connection_id)).unwrap_or_else(|| core.shutdown_signal());
+    let (outbox, inbox) = Outbox::connection(connection_id, K::IN_PROCESS, closing);
     let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
     let mut writer = sink.start(inbox, Arc::clone(&outbox), heartbeat_rx);
     let mut conn = Connection {
@@ -271,7 +269,7 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         writer.abort();
     }
     let drained = async {
-        conn.outbox.send(Outbound::Shutdown).await;
+        conn.outbox.send_closing(Outbound::Shutdown).await;
         let _ = (&mut writer).await;
     };
     if tokio::time::timeout(CLOSE_TIMEOUT, drained).await.is_err() {
@@ -425,6 +423,10 @@ impl Connection {
         self.log_open();
         let mut shutdown = (self.core.registry.close_signal(self.connection_id))
             .unwrap_or_else(|| self.core.shutdown_signal());
+        // A close told during the handshake is news to the loop too.
+        if *shutdown.borrow() {
+            shutdown.mark_changed();
+        }
         let mut alarms = self.core.gauge.raised();
         // One deadline for client silence, re-armed only when it fires (a
         // timer reset per read would cost a timer-wheel update per batch).
@@ -442,6 +444,13 @@ impl Connection {
             // A resource alarm stops it at the next message: a publisher is
             // not read further, even from its buffer, until it clears.
             loop {
+                // Told to close (a management close, an MQTT takeover's,
+                // the broker's shutdown): nothing more the client sent is
+                // handled, however much is buffered (an in-process
+                // client's whole link is; one atomic load a frame).
+                if shutdown.has_changed().is_ok_and(|changed| changed) && *shutdown.borrow() {
+                    return Box::pin(self.close_with(reader, self.forced())).await;
+                }
                 let input = match reader.buffered_publish() {
                     Some(publish) => Input::Publish(publish),
                     None => match reader.buffered_frame() {
@@ -502,7 +511,7 @@ impl Connection {
             self.closed_this_batch.clear();
             self.flush_confirms().await;
             if self.must_block() {
-                match self.block(reader, heartbeat_tx).await {
+                match self.block(reader, heartbeat_tx, &mut shutdown).await {
                     // The client was not heard while blocked: its silence
                     // counts from now (RabbitMQ pauses its heartbeat
                     // monitor likewise).
@@ -512,10 +521,8 @@ impl Connection {
                         continue;
                     }
                     Unblocked::PeerGone => return Err(Ended::PeerClosed),
-                    Unblocked::ShuttingDown => {
-                        let error =
-                            AmqpError::new(ReplyCode::ConnectionForced, "broker is shutting down");
-                        return Box::pin(self.close_with(reader, error)).await;
+                    Unblocked::Closing => {
+                        return Box::pin(self.close_with(reader, self.forced())).await;
                     }
                 }
             }
@@ -549,12 +556,17 @@ impl Connection {
                     return Err(Ended::MissedHeartbeats(self.heartbeat));
                 }
                 Event::Shutdown => {
-                    let reason = self.core.registry.close_reason(self.connection_id);
-                    let error = AmqpError::new(ReplyCode::ConnectionForced, reason);
-                    return Box::pin(self.close_with(reader, error)).await;
+                    return Box::pin(self.close_with(reader, self.forced())).await;
                 }
             }
         }
+    }
+
+    /// The close of a connection told to close, with the reason it was
+    /// given (320 CONNECTION_FORCED).
+    fn forced(&self) -> AmqpError {
+        let reason = self.core.registry.close_reason(self.connection_id);
+        AmqpError::new(ReplyCode::ConnectionForced, reason)
     }
 
     /// Flow control: before reading more, give crowded queues this
@@ -580,13 +592,15 @@ impl Connection {
 
     /// Resource alarm: stop reading until it clears, telling the client if it
     /// asked to know. The client is not heard meanwhile (heartbeats
-    /// included, as with RabbitMQ); the wait ends early when the broker
-    /// shuts down or the client goes away (its socket hung up, or the
-    /// writer failed on it), so that what it held is released.
+    /// included, as with RabbitMQ); the wait ends early when the
+    /// connection is told to close (`closing`: the broker shutting down
+    /// too) or the client goes away (its socket hung up, or the writer
+    /// failed on it), so that what it held is released.
     async fn block<R: FrameSource>(
         &mut self,
         reader: &R,
         heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
+        closing: &mut tokio::sync::watch::Receiver<bool>,
     ) -> Unblocked {
         if self.blocked_notify && !self.blocked {
             self.blocked = true;
@@ -596,13 +610,12 @@ impl Connection {
                 .await;
         }
         tracing::debug!(peer = %self.peer, "resource alarm: not reading from this publisher");
-        let mut shutdown = self.core.shutdown_signal();
         // Publishes read before the block are still confirmed as they
         // reach the disk: only reading stops.
         let outcome = loop {
             tokio::select! {
                 _ = self.core.gauge.wait_clear() => break Unblocked::Cleared,
-                _ = shutdown.wait_for(|down| *down) => break Unblocked::ShuttingDown,
+                _ = closing.wait_for(|close| *close) => break Unblocked::Closing,
                 _ = reader.hung_up() => break Unblocked::PeerGone,
                 // The writer holds the only heartbeat receiver until it ends.
                 _ = heartbeat_tx.closed() => break Unblocked::PeerGone,
@@ -804,7 +817,8 @@ impl Connection {
             method_id: error.method_id,
         };
         // Bounded: a client that stops reading leaves no room for it.
-        let _ = tokio::time::timeout(CLOSE_TIMEOUT, self.outbox.method(0, close)).await;
+        let close = self.outbox.send_closing(Outbound::method(0, close.into()));
+        let _ = tokio::time::timeout(CLOSE_TIMEOUT, close).await;
         let wait = async {
             loop {
                 match reader.next().await {
@@ -907,6 +921,7 @@ impl Connection {
         if let Some(vhost) = &self.vhost {
             vhost.drop_exclusive(self.connection_id);
         }
+        #[cfg(feature = "mqtt")]
         self.core.registry.cleaned_up(self.connection_id);
     }
 }
@@ -914,7 +929,8 @@ impl Connection {
 /// How a memory-alarm wait ended.
 enum Unblocked {
     Cleared,
-    ShuttingDown,
+    /// Told to close, or the broker is shutting down.
+    Closing,
     PeerGone,
 }
 

@@ -895,13 +895,19 @@ impl Session {
         let mut durable = self.shared.retained.durable();
         let stop = loop {
             // Whole packets already read, unless a takeover has abandoned
-            // the session.
-            if self.reading() {
-                match claim.running(|| self.take_packets(&mut buf)) {
-                    Some(Ok(())) => {}
-                    Some(Err(stop)) => break stop,
-                    None => break taken_over(),
+            // the session: then, reading or not (a write may have stalled
+            // it past the takeover's wait), it sends the link nothing more.
+            let reading = self.reading();
+            match claim.running(|| {
+                if reading {
+                    self.take_packets(&mut buf)
+                } else {
+                    Ok(())
                 }
+            }) {
+                Some(Ok(())) => {}
+                Some(Err(stop)) => break stop,
+                None => break taken_over(),
             }
             while let Some(item) = self.pending.pop_front() {
                 match link.direct.to_broker.try_send(item) {
@@ -944,8 +950,10 @@ impl Session {
                 },
                 permit = to_broker.reserve(), if !self.pending.is_empty() => match permit {
                     Ok(permit) => {
-                        if let Some(item) = self.pending.pop_front() {
-                            permit.send(item);
+                        let pending = &mut self.pending;
+                        let sent = claim.running(|| pending.pop_front().map(|item| permit.send(item)));
+                        if sent.is_none() {
+                            break taken_over();
                         }
                     }
                     Err(_) => break closed("link ended", None),
@@ -1026,6 +1034,7 @@ impl Session {
         let owned = claim.end();
         if !owned {
             self.out.clear();
+            self.log_abandoned_publishes();
         } else {
             self.flush_pending(&mut link).await;
         }
@@ -1067,6 +1076,27 @@ impl Session {
             disconnected,
             will: claim.take_will().filter(|_| send_will && owned),
             owned,
+        }
+    }
+
+    /// A session a takeover abandoned acts no more: the publishes it read
+    /// and had not handed to its link are dropped (its link is closed),
+    /// and none of its QoS 1 and 2 publishes not yet acknowledged to the
+    /// client (PUBACK, PUBREC) will be, whether its link routed them or
+    /// not: the client resends those to a session that resumes (MQTT
+    /// 4.4). Logged with their counts, never claimed.
+    fn log_abandoned_publishes(&self) {
+        let dropped = (self.pending.iter())
+            .filter(|item| matches!(item, Outgoing::Publish { .. }))
+            .count();
+        let unacknowledged = self.unconfirmed.len() + self.held_acks.len();
+        if dropped + unacknowledged > 0 {
+            tracing::warn!(
+                client_id = %self.client_id,
+                dropped,
+                unacknowledged,
+                "MQTT session abandoned by a takeover: publishes not handed to the core dropped, QoS 1 and 2 publishes not acknowledged left to the client to resend"
+            );
         }
     }
 

@@ -183,8 +183,8 @@ struct QueueState {
     auto_delete_due: bool,
     /// The queue has been found to go, its deletion to follow: auto-delete
     /// ([`Queue::remove_consumer`], [`Queue::leave_join`]) or x-expires
-    /// ([`Queue::take_expired`]). No member may join it any more.
-    #[cfg(feature = "mqtt")]
+    /// ([`Queue::take_expired`]). No consumer may come, nor member join,
+    /// any more.
     going: bool,
     deleted: bool,
     /// Dead letters found by a dispatch whose caller cannot route them
@@ -528,8 +528,9 @@ impl Queue {
         }
     }
 
-    /// Adds a consumer; 403 if an exclusive consumer is in the way. On a
-    /// single-active-consumer queue it waits unless none is active.
+    /// Adds a consumer; 403 if an exclusive consumer is in the way, 404 if
+    /// the queue is deleted or going. On a single-active-consumer queue it
+    /// waits unless none is active.
     pub fn add_consumer(self: &Arc<Self>, consumer: Arc<Consumer>) -> AmqpResult<DeadLetters> {
         if self.stream.is_some() {
             self.add_stream_consumer(consumer, StartAt::Next);
@@ -537,6 +538,14 @@ impl Queue {
         }
         {
             let mut st = self.lock();
+            // Deleted, or about to be (auto-delete, x-expires): consuming it
+            // is consuming a queue that is gone, as RabbitMQ answers it.
+            if st.deleted || st.going {
+                return Err(AmqpError::not_found(format_args!(
+                    "no queue '{}' in vhost '{}'",
+                    self.name, self.vhost
+                )));
+            }
             if st.exclusive_consumer || (consumer.exclusive && !st.consumers.is_empty()) {
                 return Err(AmqpError::access_refused(format_args!(
                     "queue '{}' in vhost '{}' in exclusive use",
@@ -575,15 +584,13 @@ impl Queue {
         }
         let goes = self.options.auto_delete && st.consumers.is_empty() && !st.deleted;
         #[cfg(feature = "mqtt")]
-        if goes {
-            if st.joining > 0 {
-                // A member's consume is on its way: it goes, if at all,
-                // once no join is pending (`Queue::leave_join`).
-                st.auto_delete_due = true;
-                return false;
-            }
-            st.going = true;
+        if goes && st.joining > 0 {
+            // A member's consume is on its way: it goes, if at all, once
+            // no join is pending (`Queue::leave_join`).
+            st.auto_delete_due = true;
+            return false;
         }
+        st.going |= goes;
         goes
     }
 
@@ -702,8 +709,14 @@ impl Queue {
         self.lock().deleted
     }
 
-    /// Whether it has consumers (for if-unused).
-    pub fn has_consumers(&self) -> bool {
+    /// Whether it is in use, for queue.delete's if-unused: it has
+    /// consumers, or an MQTT shared subscription's member has joined it
+    /// and its consume is on its way ([`Queue::join`]).
+    pub fn in_use(&self) -> bool {
+        #[cfg(feature = "mqtt")]
+        if self.lock().joining > 0 {
+            return true;
+        }
         self.consumer_count() > 0
     }
 
@@ -750,17 +763,17 @@ impl Queue {
             return false;
         };
         #[cfg(feature = "mqtt")]
-        if st.joining > 0 || st.going {
+        if st.joining > 0 {
+            return false;
+        }
+        if st.going {
             return false;
         }
         let expired = st.consumers.is_empty()
             && st.last_used.is_some_and(|at| {
                 now.saturating_duration_since(at) >= Duration::from_millis(expires)
             });
-        #[cfg(feature = "mqtt")]
-        {
-            st.going |= expired;
-        }
+        st.going |= expired;
         expired
     }
 }

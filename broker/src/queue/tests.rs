@@ -186,6 +186,63 @@ fn an_exclusive_consumer_keeps_others_out() {
     assert!(!q.remove_consumer(&exclusive), "not auto-delete");
 }
 
+/// A queue found to go (x-expires run out, or auto-delete's last consumer
+/// gone), its deletion to follow, or deleted, takes no new consumer: 404,
+/// as RabbitMQ answers a consume on a queue that is gone (groups review
+/// NIT 10), instead of a consumer that then goes with the queue.
+#[test]
+fn a_queue_that_is_going_or_deleted_takes_no_new_consumer() {
+    let h = Harness::new();
+    let ch = h.channel();
+    let consumer = |tag: &str| {
+        Arc::new(Consumer {
+            tag: s(tag),
+            channel: Arc::clone(&ch.link),
+            no_ack: true,
+            exclusive: false,
+            prefetch: 0,
+            priority: 0,
+            wants_position: false,
+            in_flight: Default::default(),
+            active: Default::default(),
+        })
+    };
+    let refused = |queue: &Arc<super::Queue>| {
+        let refused = queue.add_consumer(consumer("late")).expect_err("refused");
+        assert_eq!(refused.code, ReplyCode::NotFound);
+        let name = &queue.name;
+        assert_eq!(
+            refused.text,
+            format!("NOT_FOUND - no queue '{name}' in vhost '/'")
+        );
+        assert_eq!(queue.consumer_count(), 0);
+    };
+    let expiring = h.queue("expiring", &[("x-expires", FieldValue::I64(1_000))]);
+    assert!(expiring.take_expired(Instant::now() + Duration::from_secs(2)));
+    refused(&expiring);
+    let declaration = crate::vhost::QueueDeclaration {
+        name: s("auto"),
+        passive: false,
+        server_named: false,
+        max_queues: None,
+        options: super::QueueOptions {
+            durable: false,
+            exclusive_owner: None,
+            auto_delete: true,
+            arguments: Default::default(),
+        },
+    };
+    let (auto, _) = h.vhost.declare_queue(declaration, 0).expect("declared");
+    let only = consumer("only");
+    let dead = auto.add_consumer(Arc::clone(&only)).expect("consumes");
+    assert!(dead.is_empty());
+    assert!(auto.remove_consumer(&only), "auto-deleted");
+    refused(&auto);
+    let deleted = h.queue("deleted", &[]);
+    h.vhost.delete_queue(&deleted).notify();
+    refused(&deleted);
+}
+
 /// A writer that finds room again dispatches, and may find expired
 /// messages at the head; it cannot route them, so they wait in the queue
 /// for the next sweep instead of being lost.
