@@ -20,6 +20,8 @@
 //!   endpoint, reading `process` figures beside the broker's; `management`
 //!   is the management HTTP API; `definitions` reads and writes RabbitMQ's
 //!   definitions.json (`--definitions`, `/api/definitions`).
+//! - `resident`: the start-up code given back to the kernel once the
+//!   broker serves.
 //!
 //! Each uses only the `leveret-broker` public API; `main` uses the others.
 //!
@@ -42,6 +44,7 @@ mod metrics;
 mod ops;
 mod policies;
 mod process;
+mod resident;
 mod uplink;
 
 use clap::Parser;
@@ -336,6 +339,7 @@ async fn run(
         }
     };
     banner.log(&ops);
+    resident::release_start_up_code().await;
     signals.wait_for_stop(handle).await;
     tracing::info!("shutting down");
     ops.stop();
