@@ -77,6 +77,8 @@ pub(super) struct DirectFrames {
     handed: Arc<Handed>,
     /// An item received and not yet taken, whole or as frames.
     held: Option<Outgoing>,
+    /// The frames of a publish not taken whole (a method is one frame and
+    /// never waits here): empty, and without room, on an idle link.
     frames: VecDeque<Frame>,
     ended: bool,
 }
@@ -87,7 +89,7 @@ impl DirectFrames {
             rx,
             handed,
             held: None,
-            frames: VecDeque::with_capacity(4),
+            frames: VecDeque::new(),
             ended: false,
         }
     }
@@ -103,22 +105,17 @@ impl DirectFrames {
             .or_else(|| self.rx.try_recv().ok())
     }
 
-    /// Appends an item's frames; false for the client's end.
-    fn push(&mut self, item: Outgoing) -> bool {
+    /// The next item's first frame (the others, a publish's, wait in
+    /// `frames`); none at the client's end.
+    fn first_frame(&mut self, item: Outgoing) -> Option<Frame> {
         match item {
-            Outgoing::Method { channel, method } => {
-                self.frames.push_back(Frame::Method { channel, method });
-            }
+            Outgoing::Method { channel, method } => Some(Frame::Method { channel, method }),
             Outgoing::Publish {
                 channel,
                 method,
                 properties,
                 body,
             } => {
-                self.frames.push_back(Frame::Method {
-                    channel,
-                    method: Method::BasicPublish(method),
-                });
                 self.frames.push_back(Frame::Header {
                     channel,
                     header: ContentHeader::new(body.len() as u64, &properties),
@@ -129,10 +126,16 @@ impl DirectFrames {
                         payload: body,
                     });
                 }
+                Some(Frame::Method {
+                    channel,
+                    method: Method::BasicPublish(method),
+                })
             }
-            Outgoing::Shutdown => return false,
+            Outgoing::Shutdown => {
+                self.ended = true;
+                None
+            }
         }
-        true
     }
 }
 
@@ -161,12 +164,10 @@ impl FrameSource for DirectFrames {
     }
 
     fn buffered_frame(&mut self) -> Result<Option<Frame>, DecodeError> {
-        if self.frames.is_empty() {
-            if let Some(item) = self.next_item() {
-                self.ended = !self.push(item);
-            }
+        if let Some(frame) = self.frames.pop_front() {
+            return Ok(Some(frame));
         }
-        Ok(self.frames.pop_front())
+        Ok(self.next_item().and_then(|item| self.first_frame(item)))
     }
 
     async fn fill(&mut self) -> Result<(), ReadError> {
@@ -257,6 +258,9 @@ pub enum DirectReply {
 /// connection's outbox.
 pub struct DirectReplies {
     state: Replies,
+    /// The frames of content on channel 0 (never sent) still to return: a
+    /// method is one frame, returned as it comes, so an idle connection's
+    /// replies hold no room here.
     pending: VecDeque<Frame>,
     taken: u32,
     /// Whether the client holds an item taken from the outbox (returned
@@ -374,6 +378,9 @@ impl DirectReplies {
                 end.outbox.wake_blocked();
             }
             match item.framed() {
+                Framed::Method { channel, method } => {
+                    return Some(DirectReply::Frame(Frame::Method { channel, method }));
+                }
                 Framed::Content {
                     channel,
                     method,
@@ -386,51 +393,49 @@ impl DirectReplies {
                         body: message.body.clone(),
                     });
                 }
-                framed => {
+                Framed::Content {
+                    channel,
+                    method,
+                    message,
+                } => {
                     let frame_max = end.outbox.frame_max();
-                    if !push_frames(framed, frame_max, &mut self.pending) {
-                        self.state = Replies::Ended;
-                    }
+                    let content = (&message.properties, &message.body);
+                    push_content_frames(channel, method, content, frame_max, &mut self.pending);
                 }
+                Framed::Shutdown => self.state = Replies::Ended,
             }
         }
     }
 }
 
-/// Appends an outbox item's frames; false at the connection's end.
-fn push_frames(item: Framed, frame_max: u32, out: &mut VecDeque<Frame>) -> bool {
-    let (channel, method, message) = match item {
-        Framed::Method { channel, method } => {
-            out.push_back(Frame::Method { channel, method });
-            return true;
-        }
-        Framed::Shutdown => return false,
-        Framed::Content {
-            channel,
-            method,
-            message,
-        } => (channel, method, message),
-    };
+/// Appends a content-carrying method's frames, its body split by
+/// `frame_max`; `content` is its message's encoded properties and body.
+fn push_content_frames(
+    channel: u16,
+    method: Method,
+    (properties, body): (&Bytes, &Bytes),
+    frame_max: u32,
+    out: &mut VecDeque<Frame>,
+) {
     out.push_back(Frame::Method { channel, method });
     out.push_back(Frame::Header {
         channel,
         header: ContentHeader {
             class_id: ContentHeader::BASIC_CLASS,
-            body_size: message.body.len() as u64,
-            property_bytes: message.properties.clone(),
+            body_size: body.len() as u64,
+            property_bytes: properties.clone(),
         },
     });
     let chunk = (frame_max as usize).saturating_sub(FRAME_OVERHEAD).max(1);
     let mut start = 0;
-    while start < message.body.len() {
-        let end = (start + chunk).min(message.body.len());
+    while start < body.len() {
+        let end = (start + chunk).min(body.len());
         out.push_back(Frame::Body {
             channel,
-            payload: message.body.slice(start..end),
+            payload: body.slice(start..end),
         });
         start = end;
     }
-    true
 }
 
 /// Starts the connection side of an in-process link: the frames the client
