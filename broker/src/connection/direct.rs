@@ -35,6 +35,7 @@ use super::source::{FrameSource, ReadError};
 use crate::channel::WholePublish;
 use crate::outbox::{Framed, InlineDeliveries, Outbound, Outbox};
 use bytes::Bytes;
+use leveret_protocol::handoff;
 use leveret_protocol::{ContentHeader, DecodeError, Frame, Method, Outgoing, FRAME_OVERHEAD};
 use std::collections::VecDeque;
 use std::future::Future;
@@ -58,7 +59,7 @@ const WAKE_EVERY: u32 = 64;
 pub struct DirectLink {
     /// The client's items, starting with `connection.start-ok` (no
     /// protocol header: the link speaks AMQP 0.9.1 by construction).
-    pub to_broker: mpsc::Sender<Outgoing>,
+    pub to_broker: handoff::Sender<Outgoing>,
     /// The broker's frames, starting with `connection.start`.
     pub from_broker: DirectReplies,
     /// The connection's loop, for a publish handled on the client's thread.
@@ -72,7 +73,7 @@ pub struct DirectLink {
 /// body frame: it is not parsed from a buffer, so frame_max has nothing to
 /// protect).
 pub(super) struct DirectFrames {
-    rx: mpsc::Receiver<Outgoing>,
+    rx: handoff::Receiver<Outgoing>,
     /// An item a client thread handed the loop: before anything in `rx`.
     handed: Arc<Handed>,
     /// An item received and not yet taken, whole or as frames.
@@ -84,7 +85,7 @@ pub(super) struct DirectFrames {
 }
 
 impl DirectFrames {
-    pub(super) fn new(rx: mpsc::Receiver<Outgoing>, handed: Arc<Handed>) -> Self {
+    pub(super) fn new(rx: handoff::Receiver<Outgoing>, handed: Arc<Handed>) -> Self {
         DirectFrames {
             rx,
             handed,
@@ -102,7 +103,7 @@ impl DirectFrames {
         self.held
             .take()
             .or_else(|| self.handed.take())
-            .or_else(|| self.rx.try_recv().ok())
+            .or_else(|| self.rx.try_recv())
     }
 
     /// The next item's first frame (the others, a publish's, wait in
@@ -213,10 +214,15 @@ impl FrameSource for DirectFrames {
     fn set_frame_max(&mut self, _frame_max: u32) {}
 
     fn holds_spare(&self) -> bool {
-        false
+        self.rx.holds_room() || self.frames.capacity() > 0
     }
 
-    fn release_spare(&mut self) {}
+    fn release_spare(&mut self) {
+        self.rx.release_room();
+        if self.frames.is_empty() {
+            self.frames = VecDeque::new();
+        }
+    }
 
     async fn discard_input(&mut self) {
         self.handed.take();
@@ -450,7 +456,7 @@ pub(super) fn link<F>(
 where
     F: Future<Output = ()> + Send + 'static,
 {
-    let (to_broker, rx) = mpsc::channel(DIRECT_CAPACITY);
+    let (to_broker, rx) = handoff::channel(DIRECT_CAPACITY);
     let (start_tx, start_rx) = oneshot::channel();
     let handed = Arc::new(Handed::default());
     let connection = serve(DirectFrames::new(rx, Arc::clone(&handed)), start_tx);

@@ -1,0 +1,553 @@
+//! A bounded queue that carries items from their senders to one receiver
+//! and holds no room while it is empty: what a client's [`Outgoing`]
+//! items cross on their way to its writer task or to an in-process
+//! broker's connection (one of these per connection, so an idle one must
+//! cost little: a tokio mpsc channel reserves a block of 32 slots when
+//! created, 4.6 KiB of `Outgoing` items, for every connection).
+//!
+//! The interface and the semantics are tokio's bounded mpsc channel's:
+//! at most `capacity` items wait or are reserved ([`Permit`]); a sender
+//! with no room waits for it ([`Sender::reserve`], [`Sender::send`]) or
+//! is told so ([`Sender::try_send`]); the receiver sees the end once
+//! every sender is gone and the items are taken; senders see it closed
+//! once the receiver is gone (and an item sent through a permit then is
+//! dropped). Waiting senders are woken together when room appears and
+//! race for it (tokio's are served in turn): this queue's senders are one
+//! connection's tasks, rarely more than one waiting at once.
+//!
+//! The items live in a `VecDeque` behind a mutex, grown as items wait and
+//! kept for reuse; the receiver gives the room back when it is idle
+//! ([`Receiver::release_room`]), so sending on a warm queue allocates
+//! nothing.
+//!
+//! [`Outgoing`]: crate::Outgoing
+
+use std::collections::VecDeque;
+use std::future::{poll_fn, Future};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::task::{Context, Poll, Waker};
+
+/// A queue of at most `capacity` items (at least one): its first sender
+/// and its receiver.
+pub fn channel<T>(capacity: usize) -> (Sender<T>, Receiver<T>) {
+    let shared = Arc::new(Shared {
+        capacity: capacity.max(1),
+        senders: AtomicUsize::new(1),
+        state: Mutex::new(State {
+            items: VecDeque::new(),
+            reserved: 0,
+            receiving: true,
+            receiver: None,
+            waiting: Vec::new(),
+        }),
+    });
+    (
+        Sender {
+            shared: Arc::clone(&shared),
+        },
+        Receiver {
+            shared,
+            keeps_room: false,
+        },
+    )
+}
+
+/// A send refused: the queue's receiver is gone (the item comes back).
+#[derive(Debug, PartialEq, Eq)]
+pub struct SendError<T>(pub T);
+
+/// A send without waiting refused (the item comes back).
+#[derive(Debug, PartialEq, Eq)]
+pub enum TrySendError<T> {
+    /// Every room is taken.
+    Full(T),
+    /// The queue's receiver is gone.
+    Closed(T),
+}
+
+struct Shared<T> {
+    capacity: usize,
+    /// Live senders (permits that own one count as one): outside the
+    /// lock, so a clone costs what an `Arc`'s does.
+    senders: AtomicUsize,
+    state: Mutex<State<T>>,
+}
+
+struct State<T> {
+    items: VecDeque<T>,
+    /// Rooms held by permits not yet used.
+    reserved: usize,
+    /// Whether the receiver is still there.
+    receiving: bool,
+    /// The receiver's waker, while it waits for an item.
+    receiver: Option<Waker>,
+    /// The wakers of senders waiting for room.
+    waiting: Vec<Waker>,
+}
+
+impl<T> Shared<T> {
+    fn lock(&self) -> MutexGuard<'_, State<T>> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn room(&self, state: &State<T>) -> usize {
+        self.capacity - state.items.len() - state.reserved
+    }
+
+    /// Takes a room for a permit; `Full` and `Closed` carry nothing.
+    fn try_reserve(&self) -> Result<(), TrySendError<()>> {
+        let mut state = self.lock();
+        if !state.receiving {
+            Err(TrySendError::Closed(()))
+        } else if self.room(&state) == 0 {
+            Err(TrySendError::Full(()))
+        } else {
+            state.reserved += 1;
+            Ok(())
+        }
+    }
+
+    /// Takes a room for a permit once there is one.
+    fn poll_reserve(&self, cx: &mut Context<'_>) -> Poll<Result<(), SendError<()>>> {
+        let mut state = self.lock();
+        if !state.receiving {
+            return Poll::Ready(Err(SendError(())));
+        }
+        if self.room(&state) > 0 {
+            state.reserved += 1;
+            return Poll::Ready(Ok(()));
+        }
+        if !state.waiting.iter().any(|w| w.will_wake(cx.waker())) {
+            state.waiting.push(cx.waker().clone());
+        }
+        Poll::Pending
+    }
+
+    /// Puts an item in a room a permit held (dropped if the receiver is
+    /// gone).
+    fn put(&self, item: T) {
+        let mut state = self.lock();
+        state.reserved -= 1;
+        if !state.receiving {
+            drop(state);
+            drop(item);
+            return;
+        }
+        state.items.push_back(item);
+        let receiver = state.receiver.take();
+        drop(state);
+        if let Some(receiver) = receiver {
+            receiver.wake();
+        }
+    }
+
+    /// Gives back a room a permit held unused.
+    fn unreserve(&self) {
+        let mut state = self.lock();
+        state.reserved -= 1;
+        let waiting = std::mem::take(&mut state.waiting);
+        drop(state);
+        wake_all(waiting);
+    }
+
+    fn add_sender(&self) {
+        self.senders.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// The last sender gone wakes the receiver, which finds the count at
+    /// zero under the lock taken here after it fell.
+    fn drop_sender(&self) {
+        if self.senders.fetch_sub(1, Ordering::AcqRel) != 1 {
+            return;
+        }
+        let receiver = self.lock().receiver.take();
+        if let Some(receiver) = receiver {
+            receiver.wake();
+        }
+    }
+}
+
+fn wake_all(wakers: Vec<Waker>) {
+    for waker in wakers {
+        waker.wake();
+    }
+}
+
+/// A sending end; clones send into the same queue.
+pub struct Sender<T> {
+    shared: Arc<Shared<T>>,
+}
+
+impl<T> Sender<T> {
+    /// Sends `item`, waiting for room; the item comes back if the
+    /// receiver is gone.
+    pub async fn send(&self, item: T) -> Result<(), SendError<T>> {
+        match self.reserve().await {
+            Ok(permit) => {
+                permit.send(item);
+                Ok(())
+            }
+            Err(SendError(())) => Err(SendError(item)),
+        }
+    }
+
+    /// Sends `item` if there is room now.
+    pub fn try_send(&self, item: T) -> Result<(), TrySendError<T>> {
+        let mut state = self.shared.lock();
+        if !state.receiving {
+            return Err(TrySendError::Closed(item));
+        }
+        if self.shared.room(&state) == 0 {
+            return Err(TrySendError::Full(item));
+        }
+        state.items.push_back(item);
+        let receiver = state.receiver.take();
+        drop(state);
+        if let Some(receiver) = receiver {
+            receiver.wake();
+        }
+        Ok(())
+    }
+
+    /// Waits for room and reserves it (cancel-safe: dropped before it is
+    /// ready, it holds nothing).
+    pub fn reserve(&self) -> impl Future<Output = Result<Permit<'_, T>, SendError<()>>> + '_ {
+        poll_fn(move |cx| {
+            self.shared.poll_reserve(cx).map_ok(|()| Permit {
+                shared: &self.shared,
+            })
+        })
+    }
+
+    /// Reserves room if there is some now.
+    pub fn try_reserve(&self) -> Result<Permit<'_, T>, TrySendError<()>> {
+        self.shared.try_reserve().map(|()| Permit {
+            shared: &self.shared,
+        })
+    }
+
+    /// Reserves room if there is some now, the permit owning this sender
+    /// (which comes back if there is none).
+    pub fn try_reserve_owned(self) -> Result<OwnedPermit<T>, TrySendError<Self>> {
+        match self.shared.try_reserve() {
+            Ok(()) => Ok(OwnedPermit { sender: Some(self) }),
+            Err(TrySendError::Full(())) => Err(TrySendError::Full(self)),
+            Err(TrySendError::Closed(())) => Err(TrySendError::Closed(self)),
+        }
+    }
+
+    /// Rooms free now.
+    pub fn capacity(&self) -> usize {
+        self.shared.room(&self.shared.lock())
+    }
+
+    /// Rooms in all.
+    pub fn max_capacity(&self) -> usize {
+        self.shared.capacity
+    }
+
+    /// Whether the receiver is gone.
+    pub fn is_closed(&self) -> bool {
+        !self.shared.lock().receiving
+    }
+
+    /// A handle that does not keep the queue open.
+    pub fn downgrade(&self) -> WeakSender<T> {
+        WeakSender {
+            shared: Arc::clone(&self.shared),
+        }
+    }
+}
+
+impl<T> Clone for Sender<T> {
+    fn clone(&self) -> Self {
+        self.shared.add_sender();
+        Sender {
+            shared: Arc::clone(&self.shared),
+        }
+    }
+}
+
+impl<T> Drop for Sender<T> {
+    fn drop(&mut self) {
+        self.shared.drop_sender();
+    }
+}
+
+impl<T> std::fmt::Debug for Sender<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Sender")
+            .field("capacity", &self.shared.capacity)
+            .finish_non_exhaustive()
+    }
+}
+
+/// A sender that does not keep the queue open: upgraded while another
+/// sender lives.
+pub struct WeakSender<T> {
+    shared: Arc<Shared<T>>,
+}
+
+impl<T> WeakSender<T> {
+    /// A sender, unless every sender is gone.
+    pub fn upgrade(&self) -> Option<Sender<T>> {
+        self.shared
+            .senders
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n > 0).then_some(n + 1)
+            })
+            .ok()?;
+        Some(Sender {
+            shared: Arc::clone(&self.shared),
+        })
+    }
+}
+
+/// Room reserved for one item; dropping it unused gives the room back.
+pub struct Permit<'a, T> {
+    shared: &'a Shared<T>,
+}
+
+impl<T> Permit<'_, T> {
+    /// Sends `item` into the room reserved (dropped if the receiver is
+    /// gone).
+    pub fn send(self, item: T) {
+        let shared = self.shared;
+        std::mem::forget(self);
+        shared.put(item);
+    }
+}
+
+impl<T> Drop for Permit<'_, T> {
+    fn drop(&mut self) {
+        self.shared.unreserve();
+    }
+}
+
+/// Room reserved for one item, owning its sender; dropping it unused
+/// gives the room back.
+pub struct OwnedPermit<T> {
+    /// Always there until sent or dropped.
+    sender: Option<Sender<T>>,
+}
+
+impl<T> OwnedPermit<T> {
+    /// Sends `item` into the room reserved (dropped if the receiver is
+    /// gone); the sender comes back.
+    pub fn send(mut self, item: T) -> Sender<T> {
+        let sender = self.sender.take().expect("a permit holds its sender");
+        sender.shared.put(item);
+        sender
+    }
+}
+
+impl<T> Drop for OwnedPermit<T> {
+    fn drop(&mut self) {
+        if let Some(sender) = &self.sender {
+            sender.shared.unreserve();
+        }
+    }
+}
+
+impl<T> std::fmt::Debug for OwnedPermit<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("OwnedPermit").finish_non_exhaustive()
+    }
+}
+
+/// The receiving end.
+pub struct Receiver<T> {
+    shared: Arc<Shared<T>>,
+    /// Whether an item has been taken since the room was last given back
+    /// (so the queue has grown room): known without taking the lock.
+    keeps_room: bool,
+}
+
+impl<T> Receiver<T> {
+    /// The next item, waiting for one; `None` once every sender is gone
+    /// and every item taken.
+    pub async fn recv(&mut self) -> Option<T> {
+        poll_fn(|cx| self.poll_recv(cx)).await
+    }
+
+    /// The next item if one is there, else registers `cx` to be woken.
+    pub fn poll_recv(&mut self, cx: &mut Context<'_>) -> Poll<Option<T>> {
+        let mut state = self.shared.lock();
+        if let Some(item) = state.items.pop_front() {
+            let waiting = std::mem::take(&mut state.waiting);
+            drop(state);
+            self.keeps_room = true;
+            wake_all(waiting);
+            return Poll::Ready(Some(item));
+        }
+        if self.shared.senders.load(Ordering::Acquire) == 0 {
+            return Poll::Ready(None);
+        }
+        match &mut state.receiver {
+            Some(waker) if waker.will_wake(cx.waker()) => {}
+            receiver => *receiver = Some(cx.waker().clone()),
+        }
+        Poll::Pending
+    }
+
+    /// The next item if one is there now.
+    pub fn try_recv(&mut self) -> Option<T> {
+        let mut state = self.shared.lock();
+        let item = state.items.pop_front()?;
+        let waiting = std::mem::take(&mut state.waiting);
+        drop(state);
+        self.keeps_room = true;
+        wake_all(waiting);
+        Some(item)
+    }
+
+    /// Whether the queue may keep room for items: one has been taken
+    /// since [`Receiver::release_room`] (told without taking the lock).
+    pub fn holds_room(&self) -> bool {
+        self.keeps_room
+    }
+
+    /// Gives back the room kept for items, if none waits: for an idle
+    /// receiver (the next item grows it again).
+    pub fn release_room(&mut self) {
+        let mut state = self.shared.lock();
+        if state.items.is_empty() {
+            state.items = VecDeque::new();
+            state.waiting.shrink_to_fit();
+            self.keeps_room = false;
+        }
+    }
+}
+
+impl<T> Drop for Receiver<T> {
+    fn drop(&mut self) {
+        let mut state = self.shared.lock();
+        state.receiving = false;
+        let items = std::mem::take(&mut state.items);
+        let waiting = std::mem::take(&mut state.waiting);
+        drop(state);
+        drop(items);
+        wake_all(waiting);
+    }
+}
+
+impl<T> std::fmt::Debug for Receiver<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Receiver")
+            .field("capacity", &self.shared.capacity)
+            .finish_non_exhaustive()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::task::Wake;
+
+    /// Counts its wakes.
+    #[derive(Default)]
+    struct Wakes(AtomicUsize);
+
+    impl Wake for Wakes {
+        fn wake(self: Arc<Self>) {
+            self.0.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    fn poll<F: Future>(future: std::pin::Pin<&mut F>, waker: &Waker) -> Poll<F::Output> {
+        future.poll(&mut Context::from_waker(waker))
+    }
+
+    #[test]
+    fn items_arrive_in_order_up_to_the_capacity_and_room_comes_back() {
+        let (tx, mut rx) = channel(2);
+        assert_eq!(rx.try_recv(), None);
+        tx.try_send(1).unwrap();
+        let permit = tx.try_reserve().unwrap();
+        assert_eq!(tx.capacity(), 0);
+        assert_eq!(tx.try_send(3), Err(TrySendError::Full(3)));
+        drop(permit);
+        assert_eq!(tx.capacity(), 1, "an unused permit gives its room back");
+        tx.try_send(2).unwrap();
+        assert_eq!(rx.try_recv(), Some(1));
+        tx.try_send(3).unwrap();
+        assert_eq!(
+            (rx.try_recv(), rx.try_recv(), rx.try_recv()),
+            (Some(2), Some(3), None)
+        );
+        assert_eq!(tx.capacity(), tx.max_capacity());
+    }
+
+    #[test]
+    fn a_sender_without_room_waits_and_is_woken_when_an_item_is_taken() {
+        let (tx, mut rx) = channel(1);
+        tx.try_send(1).unwrap();
+        let wakes = Arc::new(Wakes::default());
+        let waker = Waker::from(Arc::clone(&wakes));
+        let mut reserve = std::pin::pin!(tx.reserve());
+        assert!(poll(reserve.as_mut(), &waker).is_pending());
+        assert_eq!(wakes.0.load(Ordering::Relaxed), 0);
+        assert_eq!(rx.try_recv(), Some(1));
+        assert_eq!(wakes.0.load(Ordering::Relaxed), 1);
+        let Poll::Ready(Ok(permit)) = poll(reserve.as_mut(), &waker) else {
+            panic!("room after the take");
+        };
+        permit.send(2);
+        assert_eq!(rx.try_recv(), Some(2));
+    }
+
+    #[test]
+    fn the_receiver_is_woken_by_an_item_and_sees_the_end_after_the_items() {
+        let (tx, mut rx) = channel(4);
+        let wakes = Arc::new(Wakes::default());
+        let waker = Waker::from(Arc::clone(&wakes));
+        let mut cx = Context::from_waker(&waker);
+        assert!(rx.poll_recv(&mut cx).is_pending());
+        let owned = tx.clone().try_reserve_owned().unwrap();
+        let weak = tx.downgrade();
+        tx.try_send(1).unwrap();
+        assert_eq!(wakes.0.load(Ordering::Relaxed), 1);
+        drop(tx);
+        assert!(
+            weak.upgrade().is_some(),
+            "the permit's sender keeps it open"
+        );
+        drop(owned.send(2));
+        assert!(weak.upgrade().is_none());
+        assert_eq!(rx.poll_recv(&mut cx), Poll::Ready(Some(1)));
+        assert_eq!(rx.poll_recv(&mut cx), Poll::Ready(Some(2)));
+        assert_eq!(rx.poll_recv(&mut cx), Poll::Ready(None));
+    }
+
+    #[test]
+    fn senders_see_the_receiver_gone_and_waiting_ones_are_woken() {
+        let (tx, rx) = channel(1);
+        tx.try_send(1).unwrap();
+        let wakes = Arc::new(Wakes::default());
+        let waker = Waker::from(Arc::clone(&wakes));
+        let mut reserve = std::pin::pin!(tx.reserve());
+        assert!(poll(reserve.as_mut(), &waker).is_pending());
+        drop(rx);
+        assert_eq!(wakes.0.load(Ordering::Relaxed), 1);
+        assert!(matches!(
+            poll(reserve.as_mut(), &waker),
+            Poll::Ready(Err(SendError(())))
+        ));
+        assert!(tx.is_closed());
+        assert_eq!(tx.try_send(2), Err(TrySendError::Closed(2)));
+    }
+
+    #[test]
+    fn an_idle_receiver_gives_its_room_back() {
+        let (tx, mut rx) = channel(8);
+        assert!(!rx.holds_room(), "a new queue holds no room");
+        tx.try_send(1).unwrap();
+        rx.release_room();
+        assert_eq!(rx.try_recv(), Some(1), "an item waiting keeps its room");
+        assert!(rx.holds_room());
+        rx.release_room();
+        assert!(!rx.holds_room());
+    }
+}
