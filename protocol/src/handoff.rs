@@ -16,9 +16,10 @@
 //! connection's tasks, rarely more than one waiting at once.
 //!
 //! The items live in a `VecDeque` behind a mutex, grown as items wait and
-//! kept for reuse; the receiver gives the room back when it is idle
-//! ([`Receiver::release_room`]), so sending on a warm queue allocates
-//! nothing.
+//! kept for reuse, so sending on a warm queue allocates nothing; a
+//! receiver that goes idle may give the room back
+//! ([`Receiver::release_room`]: an in-process connection's loop does, as
+//! a socket reader gives back its buffer).
 //!
 //! [`Outgoing`]: crate::Outgoing
 
