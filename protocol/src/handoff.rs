@@ -427,8 +427,11 @@ impl<T> Drop for Receiver<T> {
         state.receiving = false;
         let items = std::mem::take(&mut state.items);
         let waiting = std::mem::take(&mut state.waiting);
+        // Its own waker too: the task it names is not kept alive, nor
+        // woken by the last sender, once nothing can be received.
+        let receiver = state.receiver.take();
         drop(state);
-        drop(items);
+        drop((items, receiver));
         wake_all(waiting);
     }
 }
@@ -538,6 +541,18 @@ mod tests {
         ));
         assert!(tx.is_closed());
         assert_eq!(tx.try_send(2), Err(TrySendError::Closed(2)));
+    }
+
+    #[test]
+    fn a_receiver_gone_keeps_no_waker_of_its_own() {
+        let (tx, mut rx) = channel::<u32>(1);
+        let wakes = Arc::new(Wakes::default());
+        let waker = Waker::from(Arc::clone(&wakes));
+        assert!(rx.poll_recv(&mut Context::from_waker(&waker)).is_pending());
+        drop((rx, waker));
+        assert_eq!(Arc::strong_count(&wakes), 1, "its task not kept alive");
+        drop(tx);
+        assert_eq!(wakes.0.load(Ordering::Relaxed), 0, "nor woken");
     }
 
     #[test]
