@@ -21,11 +21,21 @@
 //! ([`Receiver::release_room`]: an in-process connection's loop does, as
 //! a socket reader gives back its buffer).
 //!
+//! It uses nothing but a mutex and an atomic, so the `leveret-loom` crate
+//! compiles this very file against loom's and explores every interleaving
+//! of its senders, permits and receiver (`loom/tests/handoff.rs`).
+//!
 //! [`Outgoing`]: crate::Outgoing
 
+#[cfg(loom)]
+use loom::sync::atomic::{AtomicUsize, Ordering};
+#[cfg(loom)]
+use loom::sync::{Arc, Mutex, MutexGuard};
 use std::collections::VecDeque;
 use std::future::{poll_fn, Future};
+#[cfg(not(loom))]
 use std::sync::atomic::{AtomicUsize, Ordering};
+#[cfg(not(loom))]
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::task::{Context, Poll, Waker};
 
@@ -444,7 +454,7 @@ impl<T> std::fmt::Debug for Receiver<T> {
     }
 }
 
-#[cfg(test)]
+#[cfg(all(test, not(loom)))]
 mod tests {
     use super::*;
     use std::sync::atomic::{AtomicUsize, Ordering};
