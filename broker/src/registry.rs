@@ -59,6 +59,8 @@ pub(crate) struct ConnectionEntry {
     pub traffic: Option<Arc<ConnectionTraffic>>,
     pub opened: OnceLock<Opened>,
     close: watch::Sender<bool>,
+    /// Set once the connection has cleaned up (see [`Registry::cleaned_up`]).
+    cleaned: watch::Sender<bool>,
     close_reason: Mutex<Option<String>>,
     channels: Mutex<BTreeMap<u16, Arc<ChannelEntry>>>,
 }
@@ -156,6 +158,7 @@ impl Registry {
             traffic,
             opened: OnceLock::new(),
             close: watch::channel(state.closing_all).0,
+            cleaned: watch::channel(false).0,
             close_reason: Mutex::new(None),
             channels: Mutex::new(BTreeMap::new()),
         });
@@ -202,6 +205,34 @@ impl Registry {
         lock(&entry.close_reason).get_or_insert_with(|| reason.to_owned());
         entry.close.send_replace(true);
         true
+    }
+
+    /// Connection `id` has cleaned up: its channels are closed (their
+    /// consumers cancelled, unacknowledged deliveries requeued), its
+    /// exclusive queues deleted, and it handles nothing it is sent later.
+    pub fn cleaned_up(&self, id: u64) {
+        if let Some(entry) = self.entry(id) {
+            entry.cleaned.send_replace(true);
+        }
+    }
+
+    /// Tells connection `id` to close (as [`Registry::close`]); the future
+    /// resolves once it has cleaned up ([`Registry::cleaned_up`]) or is
+    /// gone, so that nothing it was sent takes effect afterwards.
+    #[cfg(feature = "mqtt")]
+    pub fn close_and_wait(
+        &self,
+        id: u64,
+        reason: &str,
+    ) -> impl std::future::Future<Output = ()> + Send + 'static {
+        let cleaned = self.entry(id).map(|entry| entry.cleaned.subscribe());
+        self.close(id, reason);
+        async move {
+            if let Some(mut cleaned) = cleaned {
+                // An error: the entry is gone, so the connection too.
+                let _ = cleaned.wait_for(|done| *done).await;
+            }
+        }
     }
 
     /// Tells every connection, and any that registers later, to close.

@@ -24,6 +24,10 @@ const DEFAULT_LISTEN: SocketAddr =
 /// port; `--mqtt-listen none` or `mqtt-listen = []` turns it off).
 const DEFAULT_MQTT_LISTEN: SocketAddr =
     SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED), 1883);
+/// The longest Session Expiry Interval an MQTT 5.0 session is given unless
+/// told otherwise (s): RabbitMQ 3.13's `mqtt.max_session_expiry_interval_seconds`
+/// default, a day, as the broker builder's.
+const DEFAULT_MQTT_MAX_SESSION_EXPIRY: u32 = 86_400;
 /// Where the Prometheus endpoint listens unless told otherwise (RabbitMQ's port).
 const DEFAULT_METRICS_LISTEN: SocketAddr =
     SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 15692);
@@ -61,6 +65,12 @@ pub enum ConfigError {
     /// A user has neither or both of `password` and `password-hash`.
     #[error("user {0}: give exactly one of password, password-hash")]
     Credentials(String),
+    /// `mqtt-max-session-expiry-interval-seconds` is a word other than
+    /// `infinity`.
+    #[error(
+        "mqtt-max-session-expiry-interval-seconds: a number of seconds or \"infinity\", not {0:?}"
+    )]
+    SessionExpiryCap(String),
     /// Only one of `mqtt-default-user` and `mqtt-default-pass` is given.
     #[error("give both mqtt-default-user and mqtt-default-pass, or neither")]
     MqttAnonymous,
@@ -91,6 +101,14 @@ pub enum ConfigError {
     },
 }
 
+/// A number of seconds, or the word `infinity` (RabbitMQ's spelling).
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+enum SecondsOrInfinity {
+    Seconds(u32),
+    Word(String),
+}
+
 /// The config file, as written: every key optional, unknown keys refused.
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
@@ -107,6 +125,9 @@ pub struct FileConfig {
     /// RabbitMQ's `mqtt.ssl_cert_login`: an MQTT client on a TLS listener
     /// without a user name logs in as its certificate's common name.
     mqtt_ssl_cert_login: Option<bool>,
+    /// RabbitMQ's `mqtt.max_session_expiry_interval_seconds`: seconds, or
+    /// `"infinity"`.
+    mqtt_max_session_expiry_interval_seconds: Option<SecondsOrInfinity>,
     /// RabbitMQ's `mqtt.default_user` (with `mqtt.allow_anonymous`): the
     /// user MQTT clients without a user name log in as.
     mqtt_default_user: Option<String>,
@@ -273,6 +294,9 @@ pub struct Settings {
     pub web_mqtt_listen: Vec<SocketAddr>,
     /// Whether MQTT clients may log in with their TLS certificate.
     pub mqtt_ssl_cert_login: bool,
+    /// The longest Session Expiry Interval an MQTT 5.0 session is given
+    /// (s; `None`: infinity).
+    pub mqtt_max_session_expiry_interval: Option<u32>,
     /// The user and password of MQTT clients without a user name.
     pub mqtt_anonymous: Option<(String, String)>,
     /// Their certificates and client verification.
@@ -418,6 +442,12 @@ impl Settings {
             file.web_mqtt_listen.unwrap_or_default()
         } else {
             cli.web_mqtt_listen
+        };
+        let mqtt_max_session_expiry_interval = match file.mqtt_max_session_expiry_interval_seconds {
+            None => Some(DEFAULT_MQTT_MAX_SESSION_EXPIRY),
+            Some(SecondsOrInfinity::Seconds(seconds)) => Some(seconds),
+            Some(SecondsOrInfinity::Word(word)) if word == "infinity" => None,
+            Some(SecondsOrInfinity::Word(word)) => return Err(ConfigError::SessionExpiryCap(word)),
         };
         let mqtt_anonymous = match (file.mqtt_default_user, file.mqtt_default_pass) {
             (Some(user), Some(pass)) => Some((user, pass)),
@@ -570,6 +600,7 @@ impl Settings {
             mqtts_listen,
             web_mqtt_listen,
             mqtt_ssl_cert_login: file.mqtt_ssl_cert_login.unwrap_or(false),
+            mqtt_max_session_expiry_interval,
             mqtt_anonymous,
             tls,
             data_dir: cli
@@ -650,6 +681,7 @@ impl Settings {
             builder = builder.web_mqtt_listen(addr);
         }
         builder = builder.mqtt_certificate_login(self.mqtt_ssl_cert_login);
+        builder = builder.mqtt_max_session_expiry_interval(self.mqtt_max_session_expiry_interval);
         if let Some((user, pass)) = self.mqtt_anonymous {
             builder = builder.mqtt_anonymous_login(user, &pass);
         }
@@ -818,6 +850,18 @@ mod tests {
         assert_eq!(all.mqtts_listen, ["127.0.0.1:8883".parse().unwrap()]);
         assert_eq!(all.web_mqtt_listen, ["127.0.0.1:15675".parse().unwrap()]);
         assert!(all.mqtt_ssl_cert_login);
+        // The session expiry cap: a day, seconds, or infinity.
+        assert_eq!(plain.mqtt_max_session_expiry_interval, Some(86_400));
+        let capped = resolve(&[], "mqtt-max-session-expiry-interval-seconds = 60").unwrap();
+        assert_eq!(capped.mqtt_max_session_expiry_interval, Some(60));
+        let infinity = "mqtt-max-session-expiry-interval-seconds = \"infinity\"";
+        assert_eq!(
+            resolve(&[], infinity)
+                .unwrap()
+                .mqtt_max_session_expiry_interval,
+            None
+        );
+        assert!(resolve(&[], "mqtt-max-session-expiry-interval-seconds = \"never\"").is_err());
         assert!(
             all.ops().tls.is_some(),
             "the certificate expiry check covers it"

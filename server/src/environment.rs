@@ -61,6 +61,10 @@ impl Settings {
             "mqtts-listen": self.mqtts_listen,
             "web-mqtt-listen": self.web_mqtt_listen,
             "mqtt-ssl-cert-login": self.mqtt_ssl_cert_login,
+            "mqtt-max-session-expiry-interval-seconds": match self.mqtt_max_session_expiry_interval {
+                Some(seconds) => json!(seconds),
+                None => json!("infinity"),
+            },
             "mqtt-default-user": self.mqtt_anonymous.as_ref().map(|(user, _)| user),
             "tls-certfile": tls.map(|t| &t.certfile),
             "tls-keyfile": tls.map(|t| &t.keyfile),

@@ -27,6 +27,13 @@ use tokio::net::TcpStream;
 /// How long a close the broker owes may take (generous: CI is loaded).
 const CLOSE_WITHIN: Duration = Duration::from_secs(30);
 
+/// The takeover tests' hang limit for a stall and for the new CONNACK:
+/// above the two waits of their takeover (`handshake_timeout`, 2 s, each)
+/// and above an old session's own end (flush, write and shutdown under
+/// the session's 30 s write stall each), so that a takeover that did not
+/// give up fails on its assertion, not on a timeout.
+const TAKEOVER_WITHIN: Duration = Duration::from_secs(180);
+
 async fn start(limits: Limits) -> BrokerHandle {
     start_with(Broker::builder(), limits).await
 }
@@ -571,47 +578,153 @@ fn mqtt_connections(handle: &BrokerHandle) -> usize {
         .count()
 }
 
-#[both_runtimes]
-async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
-    // A takeover waits for the old session as long as a CONNECT may take.
+/// A broker whose takeovers wait 2 s for the old session (its handshake
+/// timeout, as long as a CONNECT may take), its MQTT port, and an AMQP
+/// channel with `queue` bound to `amq.topic` by `key` (where the tests
+/// watch wills and publishes).
+async fn takeover_broker(
+    queue: &str,
+    key: &str,
+) -> (BrokerHandle, u16, lapin::Connection, lapin::Channel) {
     let limits = Limits {
         handshake_timeout: Duration::from_secs(2),
         ..Limits::default()
     };
     let handle = start(limits).await;
     let port = mqtt_port(&handle);
-    let (_amqp, channel) = amqp_channel(&handle).await;
-    tmo!(channel.queue_declare("old-wills", Default::default(), Default::default())).unwrap();
-    bind_to_amq_topic(&channel, "old-wills", "stuck.will").await;
+    let (amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare(queue, Default::default(), Default::default())).unwrap();
+    bind_to_amq_topic(&channel, queue, key).await;
+    (handle, port, amqp, channel)
+}
+
+#[both_runtimes]
+async fn a_takeover_that_gave_up_waiting_closes_the_old_link_and_publishes_its_will() {
+    let (handle, port, _amqp, channel) = takeover_broker("old-wills", "stuck.will").await;
     // The old session: a will, and a client that never reads, with a
     // small receive buffer, so that the broker's writes to it stall.
+    let will = leveret_mqtt::Will {
+        topic: TopicName::from_static("stuck/will"),
+        payload: Bytes::from_static(b"gone"),
+        qos: leveret_mqtt::QoS::AtLeastOnce,
+        retain: false,
+        properties: Default::default(),
+    };
+    capture_warnings();
+    let id = format!("stuck-{port}");
+    let mut old = connect_raw(port, &id, true, Some(will), Some(4096)).await;
+    stall(&handle, &channel, &mut old, &id).await;
+    // The new session goes on after the wait, the old one still open; its
+    // link was closed first, so its exclusive queue is gone and the new
+    // session subscribes to the same filter (else 405 RESOURCE_LOCKED).
+    let (client, mut events) = rumqttc::AsyncClient::new(options3(&id, port, "secret"), 16);
+    let mut network = rumqttc::NetworkOptions::new();
+    network.set_connection_timeout(TAKEOVER_WITHIN.as_secs());
+    events.set_network_options(network);
+    let connack = async {
+        loop {
+            match events.poll().await {
+                Ok(Event::Incoming(Incoming::ConnAck(_))) => return,
+                Ok(_) => {}
+                Err(e) => panic!("connection failed: {e}"),
+            }
+        }
+    };
+    (tokio::time::timeout(TAKEOVER_WITHIN, connack).await).expect("the takeover's CONNACK");
+    assert!(takeover_gave_up(&id), "the takeover gave up waiting");
+    tmo!(client.subscribe("flood", rumqttc::QoS::AtMostOnce)).unwrap();
+    until3(&mut events, |p| {
+        matches!(p, Incoming::SubAck(_)).then_some(())
+    })
+    .await;
+    tmo!(channel.basic_publish(
+        "amq.topic",
+        "flood",
+        Default::default(),
+        b"after",
+        Default::default()
+    ))
+    .unwrap();
+    let got = next_publish3(&mut events).await;
+    assert_eq!(&got.payload[..], b"after", "only the new session consumes");
+    // The old connection's will was published by the takeover (MQTT 5.0
+    // 3.1.4), before the new session began.
+    let get = || {
+        let no_ack = lapin::options::BasicGetOptions { no_ack: true };
+        channel.basic_get("old-wills", no_ack)
+    };
+    let will = tmo!(get()).unwrap().expect("the abandoned session's will");
+    assert_eq!(&will.delivery.data[..], b"gone");
+    // The old session ends now: no second will (nor anything of its end).
+    drop(old);
+    within("the old session ended", async {
+        while mqtt_connections(&handle) > 1 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    for _ in 0..30 {
+        let got = tmo!(get()).unwrap();
+        assert!(got.is_none(), "an abandoned session published its will");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    handle.shutdown().await;
+}
+
+/// A 3.1.1 CONNECT of `id` from a raw client (with a receive buffer of
+/// `receive_buffer` bytes if given), answered with a CONNACK.
+async fn connect_raw(
+    port: u16,
+    id: &str,
+    clean_start: bool,
+    will: Option<leveret_mqtt::Will>,
+    receive_buffer: Option<u32>,
+) -> Raw {
+    let v3 = (ProtocolVersion::V3_1_1, Default::default());
+    connect_raw_as(port, id, (clean_start, v3), will, receive_buffer).await
+}
+
+/// [`connect_raw`] in `version`, with CONNECT `properties` (5.0).
+async fn connect_raw_as(
+    port: u16,
+    id: &str,
+    (clean_start, (version, properties)): (bool, (ProtocolVersion, leveret_mqtt::Properties)),
+    will: Option<leveret_mqtt::Will>,
+    receive_buffer: Option<u32>,
+) -> Raw {
     let socket = tokio::net::TcpSocket::new_v4().unwrap();
-    socket.set_recv_buffer_size(4096).unwrap();
+    if let Some(size) = receive_buffer {
+        socket.set_recv_buffer_size(size).unwrap();
+    }
     let addr: SocketAddr = ([127, 0, 0, 1], port).into();
-    let mut old = Raw {
+    let mut raw = Raw {
         socket: tmo!(socket.connect(addr)).unwrap(),
         buf: BytesMut::new(),
-        version: ProtocolVersion::V3_1_1,
+        version,
     };
-    old.send(Packet::Connect(Box::new(Connect {
-        version: ProtocolVersion::V3_1_1,
-        clean_start: true,
+    raw.send(Packet::Connect(Box::new(Connect {
+        version,
+        clean_start,
         keep_alive: 0,
-        properties: Default::default(),
-        client_id: leveret_mqtt::MqttString::from_static("stuck"),
-        will: Some(leveret_mqtt::Will {
-            topic: TopicName::from_static("stuck/will"),
-            payload: Bytes::from_static(b"gone"),
-            qos: leveret_mqtt::QoS::AtLeastOnce,
-            retain: false,
-            properties: Default::default(),
-        }),
+        properties,
+        client_id: leveret_mqtt::MqttString::from_utf8(Bytes::copy_from_slice(id.as_bytes()))
+            .unwrap(),
+        will,
         username: Some(leveret_mqtt::MqttString::from_static("robot")),
         password: Some(Bytes::from_static(b"secret")),
     })))
     .await;
-    assert!(matches!(old.next().await, Some(Packet::ConnAck(_))));
-    old.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+    // Generous: this may be a takeover's CONNACK.
+    let connack = raw.next_within(TAKEOVER_WITHIN).await;
+    assert!(matches!(connack, Some(Packet::ConnAck(_))));
+    raw
+}
+
+/// Subscribes session `id` (a client that reads no more) to `flood` and
+/// floods it until the broker's writes to it stall: its QoS 0 queue
+/// holds messages it cannot take, and stops draining.
+async fn stall(handle: &BrokerHandle, channel: &lapin::Channel, raw: &mut Raw, id: &str) {
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
         packet_id: std::num::NonZeroU16::new(1).unwrap(),
         properties: Default::default(),
         subscriptions: vec![leveret_mqtt::Subscription {
@@ -620,10 +733,11 @@ async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
         }],
     }))
     .await;
-    assert!(matches!(old.next().await, Some(Packet::SubAck(_))));
-    // Far more than the socket buffers hold (about 20 MB).
-    let payload = vec![7u8; 64 * 1024];
-    for _ in 0..300 {
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    // Far more than the socket buffers and the link's outbox (512
+    // deliveries) hold (about 24 MB).
+    let payload = vec![7u8; 16 * 1024];
+    for _ in 0..1500 {
         tmo!(channel.basic_publish(
             "amq.topic",
             "flood",
@@ -633,32 +747,159 @@ async fn a_session_whose_takeover_gave_up_waiting_does_nothing_at_its_end() {
         ))
         .unwrap();
     }
-    // The new session goes on after the wait, the old one still open.
-    let (_client, _events) = connected3("stuck", port).await;
-    assert_eq!(
-        mqtt_connections(&handle),
-        2,
-        "the old session was still writing when the takeover gave up"
-    );
-    // The old session ends now: no will (nor anything else of its end).
-    drop(old);
-    within("the old session ended", async {
-        while mqtt_connections(&handle) > 1 {
+    // Stalled once the queue has stopped draining for several windows in
+    // a row (a session only starved of CPU moves within one); the caller
+    // asserts that its takeover gave up, so a wrong guess fails the test,
+    // never passes it without the abandon path.
+    let queue = format!("mqtt-subscription-{id}qos0");
+    let stalled = async {
+        let ready = || {
+            let queues = handle.queues().into_iter();
+            let mut queue = queues.filter(|q| q.name == queue);
+            queue.next().map_or(0, |q| q.messages_ready)
+        };
+        let (mut before, mut unchanged) = (ready(), 0);
+        while unchanged < 6 {
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            let now = ready();
+            unchanged = if now > 0 && now == before {
+                unchanged + 1
+            } else {
+                0
+            };
+            before = now;
+        }
+    };
+    let stalled = tokio::time::timeout(TAKEOVER_WITHIN, stalled).await;
+    stalled.expect("the old session stalled");
+}
+
+/// The broker's warnings, captured for the whole test binary (one global
+/// subscriber): a takeover test checks that its takeover gave up.
+static WARNINGS: std::sync::Mutex<Vec<u8>> = std::sync::Mutex::new(Vec::new());
+
+struct Warnings;
+
+impl std::io::Write for Warnings {
+    fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+        let mut warnings = WARNINGS.lock().unwrap_or_else(|e| e.into_inner());
+        warnings.extend_from_slice(bytes);
+        Ok(bytes.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// Captures the broker's warnings into [`WARNINGS`] from now on.
+fn capture_warnings() {
+    let _ = tracing_subscriber::fmt()
+        .with_writer(|| Warnings)
+        .with_max_level(tracing_subscriber::filter::LevelFilter::WARN)
+        .with_ansi(false)
+        .try_init();
+}
+
+/// Whether a takeover of `client_id` gave up waiting for the session it
+/// took over and abandoned it (the broker's warning).
+fn takeover_gave_up(client_id: &str) -> bool {
+    let warnings = WARNINGS.lock().unwrap_or_else(|e| e.into_inner());
+    let client_id = format!("client_id=\"{client_id}\"");
+    String::from_utf8_lossy(&warnings).lines().any(|line| {
+        line.contains("session taken over did not end in time") && line.contains(&client_id)
+    })
+}
+
+/// A takeover that abandons a 5.0 session with a delayed will and starts
+/// clean publishes that will at once (the old session ended: MQTT 5.0
+/// 3.1.4), before its CONNACK.
+#[both_runtimes]
+async fn a_clean_takeover_that_gave_up_publishes_a_delayed_will_at_once() {
+    let (handle, port, _amqp, channel) = takeover_broker("delayed-wills", "late.will").await;
+    let mut will_properties = leveret_mqtt::Properties::default();
+    will_properties.will_delay_interval = Some(3600);
+    let will = leveret_mqtt::Will {
+        topic: TopicName::from_static("late/will"),
+        payload: Bytes::from_static(b"late"),
+        qos: leveret_mqtt::QoS::AtLeastOnce,
+        retain: false,
+        properties: will_properties,
+    };
+    let mut properties = leveret_mqtt::Properties::default();
+    properties.session_expiry_interval = Some(3600);
+    let v5 = (ProtocolVersion::V5, properties);
+    capture_warnings();
+    let id = format!("late-{port}");
+    let mut old = connect_raw_as(port, &id, (false, v5), Some(will), Some(4096)).await;
+    stall(&handle, &channel, &mut old, &id).await;
+    let v5 = (ProtocolVersion::V5, Default::default());
+    let _new = connect_raw_as(port, &id, (true, v5), None, None).await;
+    assert!(takeover_gave_up(&id), "the takeover gave up waiting");
+    // (Published by the will's own task, told to at the new session's
+    // start.)
+    let will = within("the delayed will, published at the clean takeover", async {
+        loop {
+            let no_ack = lapin::options::BasicGetOptions { no_ack: true };
+            if let Some(will) = channel.basic_get("delayed-wills", no_ack).await.unwrap() {
+                return will;
+            }
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
     })
     .await;
-    for _ in 0..30 {
-        let got = channel
-            .basic_get(
-                "old-wills",
-                lapin::options::BasicGetOptions { no_ack: true },
-            )
-            .await
-            .unwrap();
-        assert!(got.is_none(), "an abandoned session published its will");
-        tokio::time::sleep(Duration::from_millis(100)).await;
+    assert_eq!(&will.delivery.data[..], b"late");
+    drop(old);
+    handle.shutdown().await;
+}
+
+/// The next packet that is not a PUBLISH.
+async fn past_publishes(raw: &mut Raw) -> Option<Packet> {
+    loop {
+        match raw.next().await {
+            Some(Packet::Publish(_)) => {}
+            other => return other,
+        }
     }
+}
+
+/// A QoS 2 publish the abandoned connection routed and PUBREC'd is the
+/// new session's: its resend is not routed again, its PUBREL released.
+#[both_runtimes]
+async fn an_abandoned_connections_unreleased_qos_2_publish_is_not_routed_again() {
+    let (handle, port, _amqp, channel) = takeover_broker("abandoned-q2", "q2.abandoned").await;
+    let id = std::num::NonZeroU16::new(7).unwrap();
+    let publish = |dup| {
+        Packet::Publish(Publish {
+            dup,
+            delivery: Delivery::ExactlyOnce(id),
+            retain: false,
+            topic: TopicName::from_static("q2/abandoned"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"once"),
+        })
+    };
+    capture_warnings();
+    let client_id = format!("stuck-q2-{port}");
+    let mut old = connect_raw(port, &client_id, false, None, Some(4096)).await;
+    old.send(publish(false)).await;
+    assert_eq!(old.next().await, Some(Packet::PubRec(PubResponse::new(id))));
+    stall(&handle, &channel, &mut old, &client_id).await;
+    // The takeover gives up waiting; the client resends, as it may.
+    let mut new = connect_raw(port, &client_id, false, None, None).await;
+    assert!(takeover_gave_up(&client_id), "the takeover gave up waiting");
+    new.send(publish(true)).await;
+    // Past the flood the session resumed.
+    let pubrec = past_publishes(&mut new).await;
+    assert_eq!(pubrec, Some(Packet::PubRec(PubResponse::new(id))));
+    new.send(Packet::PubRel(PubResponse::new(id))).await;
+    let pubcomp = past_publishes(&mut new).await;
+    assert_eq!(pubcomp, Some(Packet::PubComp(PubResponse::new(id))));
+    let declared =
+        tmo!(channel.queue_declare("abandoned-q2", Default::default(), Default::default()))
+            .unwrap();
+    assert_eq!(declared.message_count(), 1, "routed exactly once");
+    drop(old);
     handle.shutdown().await;
 }
 
@@ -727,7 +968,12 @@ impl Raw {
 
     /// The next packet; `None` once the broker has closed the connection.
     async fn next(&mut self) -> Option<Packet> {
-        tokio::time::timeout(CLOSE_WITHIN, async {
+        self.next_within(CLOSE_WITHIN).await
+    }
+
+    /// [`Raw::next`], waiting at most `limit`.
+    async fn next_within(&mut self, limit: Duration) -> Option<Packet> {
+        tokio::time::timeout(limit, async {
             loop {
                 if let Some(packet) = decode_packet(&mut self.buf, self.version, 1 << 20).unwrap() {
                     return Some(packet);
@@ -2801,6 +3047,46 @@ async fn enhanced_authentication_is_refused_and_auth_packets_end_the_session() {
     handle.shutdown().await;
 }
 
+/// Under a cap of 0 (every session ends with its connection) a
+/// DISCONNECT that sets an interval after a CONNECT that asked for none
+/// is still the protocol error MQTT 5.0 3.14.2.2.2 says, while one after
+/// a CONNECT that asked for an interval (capped to 0) is not.
+#[both_runtimes]
+async fn under_a_cap_of_0_a_disconnect_is_judged_by_what_its_connect_asked() {
+    use leveret_mqtt::{Disconnect, ReasonCode};
+    let capped = Broker::builder().mqtt_max_session_expiry_interval(Some(0));
+    let handle = start_with(capped, Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let disconnect = |expiry: u32| {
+        let mut properties = leveret_mqtt::Properties::default();
+        properties.session_expiry_interval = Some(expiry);
+        Packet::Disconnect(Disconnect {
+            reason: ReasonCode::Success,
+            properties,
+        })
+    };
+    let v5 = |expiry: u32| {
+        let mut properties = leveret_mqtt::Properties::default();
+        properties.session_expiry_interval = Some(expiry).filter(|&seconds| seconds > 0);
+        (true, (ProtocolVersion::V5, properties))
+    };
+    let mut raw = connect_raw_as(port, "asked-none", v5(0), None, None).await;
+    raw.send(disconnect(100)).await;
+    let Some(Packet::Disconnect(d)) = raw.next().await else {
+        panic!("expected DISCONNECT 0x82");
+    };
+    assert_eq!(d.reason, ReasonCode::ProtocolError);
+    raw.assert_closed().await;
+    let mut raw = connect_raw_as(port, "asked-some", v5(100), None, None).await;
+    raw.send(disconnect(100)).await;
+    let after = raw.next().await;
+    assert!(
+        after.is_none(),
+        "closed without a DISCONNECT of its own, got {after:?}"
+    );
+    handle.shutdown().await;
+}
+
 #[both_runtimes]
 async fn a_disconnect_can_end_a_persistent_session_but_not_extend_a_clean_one() {
     use leveret_mqtt::{Disconnect, ReasonCode};
@@ -3001,7 +3287,13 @@ async fn until_expires(handle: &BrokerHandle, name: &str, wanted: Option<i64>) {
 #[both_runtimes]
 async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_restart() {
     let dir = std::env::temp_dir().join(unique("leveret-mqtt-expiry"));
-    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    // No cap (RabbitMQ's `infinity`), so that a session may never expire.
+    let uncapped = || {
+        Broker::builder()
+            .data_dir(&dir)
+            .mqtt_max_session_expiry_interval(None)
+    };
+    let handle = start_with(uncapped(), Limits::default()).await;
     let port = mqtt_port(&handle);
     // One second at CONNECT, an hour at DISCONNECT.
     paho_disconnect_expiry(port, "stretch", 1, 3600).await;
@@ -3017,7 +3309,7 @@ async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_rest
     handle.shutdown().await;
 
     // The new expiries were stored with the queues.
-    let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
+    let handle = start_with(uncapped(), Limits::default()).await;
     let port = mqtt_port(&handle);
     until_expires(&handle, queue, Some(3_600_000)).await;
     until_expires(&handle, "mqtt-subscription-foreverqos1", None).await;
@@ -3043,6 +3335,40 @@ async fn a_disconnects_session_expiry_is_the_sessions_from_then_on_across_a_rest
     assert!(queue_names(&handle).contains(&"mqtt-subscription-foreverqos1".to_owned()));
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[both_runtimes]
+async fn a_session_expiry_past_the_cap_is_lowered_announced_and_given_to_its_queues() {
+    let handle = start(Limits::default()).await;
+    let port = mqtt_port(&handle);
+    // Past the default cap (a day, RabbitMQ's) and past what a queue's
+    // x-expires can hold (2^32 - 1 ms, about 49.7 days).
+    let mut options = options5("long", port, "secret");
+    options.set_clean_start(false);
+    let mut properties = rumqttc::v5::mqttbytes::v5::ConnectProperties::new();
+    properties.session_expiry_interval = Some(5_000_000);
+    options.set_connect_properties(properties);
+    let (client, mut events) = rumqttc::v5::AsyncClient::new(options, 16);
+    let announced = until5(&mut events, |p| match p {
+        Packet5::ConnAck(ack) => Some(ack.properties.as_ref()?.session_expiry_interval),
+        _ => None,
+    })
+    .await;
+    assert_eq!(announced, Some(86_400), "the CONNACK says the day");
+    // Its own queue and a new group's queue are declared with the day.
+    let filters = vec![
+        Filter::new("own/#", QoS5::AtLeastOnce),
+        Filter::new("$share/long/jobs", QoS5::AtLeastOnce),
+    ];
+    let codes = subscribe5(&client, &mut events, filters, None).await;
+    assert_eq!(codes, [SubscribeReasonCode::Success(QoS5::AtLeastOnce); 2]);
+    until_expires(&handle, "mqtt-subscription-longqos1", Some(86_400_000)).await;
+    until_expires(&handle, "mqtt-shared-long/jobs", Some(86_400_000)).await;
+    disconnect5(client, events).await;
+    // A DISCONNECT's interval is capped too: never (0xFFFFFFFF) is a day.
+    paho_disconnect_expiry(port, "paho-long", 5_000_000, u32::MAX).await;
+    until_expires(&handle, "mqtt-subscription-paho-longqos1", Some(86_400_000)).await;
+    handle.shutdown().await;
 }
 
 /// A 5.0 client with a persistent session of an hour (clean start only
@@ -3286,22 +3612,10 @@ async fn a_disconnects_new_interval_moves_all_the_members_groups() {
     let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
     let port = mqtt_port(&handle);
     let count = 300;
-    let mut raw = Raw::connect(port).await;
-    raw.version = ProtocolVersion::V5;
     let mut properties = leveret_mqtt::Properties::default();
     properties.session_expiry_interval = Some(3600);
-    raw.send(Packet::Connect(Box::new(Connect {
-        version: ProtocolVersion::V5,
-        clean_start: true,
-        keep_alive: 0,
-        properties,
-        client_id: leveret_mqtt::MqttString::from_static("mover"),
-        will: None,
-        username: Some(leveret_mqtt::MqttString::from_static("robot")),
-        password: Some(Bytes::from_static(b"secret")),
-    })))
-    .await;
-    assert!(matches!(raw.next().await, Some(Packet::ConnAck(_))));
+    let v5 = (ProtocolVersion::V5, properties);
+    let mut raw = connect_raw_as(port, "mover", (true, v5), None, None).await;
     let subscriptions = (0..count)
         .map(|n| leveret_mqtt::Subscription {
             filter: leveret_mqtt::TopicFilter::new(
@@ -3329,26 +3643,27 @@ async fn a_disconnects_new_interval_moves_all_the_members_groups() {
     }))
     .await;
     raw.assert_closed().await;
-    let (first, last) = (
-        "mqtt-shared-mv0/x",
-        format!("mqtt-shared-mv{}/x", count - 1),
-    );
-    until_expires(&handle, first, Some(60_000)).await;
-    until_expires(&handle, &last, Some(60_000)).await;
+    // Every group, those of the second batch too (moves go in filter
+    // order: `mv99` is the last).
+    for n in 0..count {
+        until_expires(&handle, &format!("mqtt-shared-mv{n}/x"), Some(60_000)).await;
+    }
     handle.shutdown().await;
 
     // The records moved too: a member joining for a second after a
     // restart finds the group kept for the mover's minute (its join
-    // gives the queue the group's value before its SUBACK).
+    // gives the queue the group's value before its SUBACK), the last
+    // moved group's too.
     let handle = start_with(Broker::builder().data_dir(&dir), Limits::default()).await;
     let port = mqtt_port(&handle);
     let (client, mut events, _) = expiring5("joiner", port, true, 1).await;
-    let filter = vec![Filter::new("$share/mv0/x", QoS5::AtLeastOnce)];
+    let last = "mqtt-shared-mv99/x";
+    let filter = vec![Filter::new("$share/mv99/x", QoS5::AtLeastOnce)];
     assert_eq!(
         subscribe5(&client, &mut events, filter, None).await.len(),
         1
     );
-    assert_eq!(listed_as(&handle, first).2, Some(60_000));
+    assert_eq!(listed_as(&handle, last).2, Some(60_000));
     disconnect5(client, events).await;
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
@@ -3717,5 +4032,165 @@ async fn an_mqtt_connections_bytes_are_counted_as_its_connections() {
         "the broker's totals have them too"
     );
     drop(raw);
+    handle.shutdown().await;
+}
+
+/// A raw client's SUBSCRIBE (5.0) of `filter` at QoS 1, packet `id`.
+fn subscribe_raw(id: u16, filter: &'static str) -> Packet {
+    Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(id).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![leveret_mqtt::Subscription {
+            filter: leveret_mqtt::TopicFilter::from_static(filter),
+            options: leveret_mqtt::SubscriptionOptions {
+                qos: leveret_mqtt::QoS::AtLeastOnce,
+                ..Default::default()
+            },
+        }],
+    })
+}
+
+/// A member joining a group holds its queue until its consume arrives:
+/// here the consume waits behind a memory alarm (the member's link has
+/// published, so the core stops reading it), and meanwhile the group's
+/// only consumer leaves. The clean group's queue (auto-delete) must not go
+/// with it: the member is then bound and served, not closed by a 404.
+#[both_runtimes]
+async fn a_joining_member_holds_its_groups_queue_until_its_consume_arrives() {
+    let limits = Limits {
+        memory_high_watermark: 256 * 1024,
+        resident_memory_high_watermark: leveret_broker::ResidentMemoryWatermark::Unwatched,
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    let filter = "$share/hold/t";
+    let (mut first, _) = raw_session(port, "hold-first", true, Some(0)).await;
+    first.send(subscribe_raw(1, filter)).await;
+    assert!(matches!(first.next().await, Some(Packet::SubAck(_))));
+    let (mut joiner, _) = raw_session(port, "hold-joiner", true, Some(0)).await;
+    // The memory alarm: messages queued past the watermark (each below
+    // it, so each is taken whole; published in process, never blocked).
+    let admin = handle.admin();
+    let ballast = leveret_broker::QueueSettings::default();
+    admin
+        .declare_queue("/", "hold-ballast", ballast)
+        .await
+        .expect("declared");
+    within("the memory alarm", async {
+        while !handle.overview().memory_alarm {
+            let body = Bytes::from(vec![0u8; 64 * 1024]);
+            let properties = Default::default();
+            let _ = admin
+                .publish("/", "", "hold-ballast", properties, body)
+                .await;
+        }
+    })
+    .await;
+    // The joiner publishes (its link is then not read) and subscribes:
+    // it joins the group's queue at once, its bind and consume wait.
+    joiner
+        .send(Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtMostOnce,
+            retain: false,
+            topic: TopicName::from_static("hold/elsewhere"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"x"),
+        }))
+        .await;
+    joiner.send(subscribe_raw(1, filter)).await;
+    // Time for the joiner's session to read its SUBSCRIBE (a lower bound:
+    // if it comes later, the queue is declared anew and nothing is shown).
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    // The only consumer leaves: the queue is kept for the joiner.
+    first
+        .send(Packet::Unsubscribe(leveret_mqtt::Unsubscribe {
+            packet_id: std::num::NonZeroU16::new(2).unwrap(),
+            properties: Default::default(),
+            filters: vec![leveret_mqtt::TopicFilter::from_static(filter)],
+        }))
+        .await;
+    assert!(matches!(first.next().await, Some(Packet::UnsubAck(_))));
+    // The alarm clears: the joiner's bind and consume arrive.
+    handle
+        .admin()
+        .delete_queue("/", "hold-ballast", false, false)
+        .await
+        .expect("deleted");
+    match joiner.next().await {
+        Some(Packet::SubAck(suback)) => {
+            assert_eq!(suback.reasons, [leveret_mqtt::ReasonCode::GrantedQos1])
+        }
+        other => panic!("expected the joiner's SUBACK, got {other:?}"),
+    }
+    publish_acked(port, "t", "held", false).await;
+    match joiner.next().await {
+        Some(Packet::Publish(publish)) => assert_eq!(&publish.payload[..], b"held"),
+        other => panic!("expected a delivery, got {other:?}"),
+    }
+    handle.shutdown().await;
+}
+
+/// The start-up reconcile gives a stored group queue its group's expiry
+/// before anything sweeps the vhosts: here a crash left the queue with
+/// 1 ms (its group had lost its persistent member) and the member's
+/// record of an hour (it had joined again; the queue's record was not yet
+/// written). Swept first, the queue would be gone at once.
+#[both_runtimes]
+async fn a_stale_group_queue_is_given_its_groups_expiry_before_any_sweep() {
+    use leveret_broker::store::{MemoryStore, MetaRecord, Persistence, Recovered, StoreOp};
+    use std::sync::Arc;
+    let store = Arc::new(MemoryStore::default());
+    let handle = start_with(Broker::builder().store(store.clone()), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let filter = "$share/stale/t";
+    let queue = "mqtt-shared-stale/t";
+    // A persistent member creates the group's durable queue; a clean one
+    // consumes it too; the persistent one leaves: 1 ms, kept by the clean
+    // member's consumer until the broker stops.
+    let (mut kept, _) = raw_session(port, "stale-kept", false, Some(3600)).await;
+    kept.send(subscribe_raw(1, filter)).await;
+    assert!(matches!(kept.next().await, Some(Packet::SubAck(_))));
+    let (mut clean, _) = raw_session(port, "stale-clean", true, Some(0)).await;
+    clean.send(subscribe_raw(1, filter)).await;
+    assert!(matches!(clean.next().await, Some(Packet::SubAck(_))));
+    kept.send(Packet::Unsubscribe(leveret_mqtt::Unsubscribe {
+        packet_id: std::num::NonZeroU16::new(2).unwrap(),
+        properties: Default::default(),
+        filters: vec![leveret_mqtt::TopicFilter::from_static(filter)],
+    }))
+    .await;
+    assert!(matches!(kept.next().await, Some(Packet::UnsubAck(_))));
+    until_expires(&handle, queue, Some(1)).await;
+    handle.shutdown().await;
+    // The member's record of an hour, as if it had joined again.
+    let store_dyn: Arc<dyn leveret_broker::store::Store> = store.clone();
+    let persistence = Persistence::start(store_dyn, &Recovered::default()).expect("persister");
+    let record = MetaRecord::SharedSubscription {
+        vhost: "/".into(),
+        client_id: "stale-kept".into(),
+        filter: filter.into(),
+        qos: 1,
+        retain_as_published: false,
+        subscription_id: 0,
+        session_expiry: 3600,
+    };
+    let written = persistence.submit(vec![StoreOp::PutMeta(record)]);
+    assert!(within("the record written", persistence.wait(written)).await);
+    persistence.close(Vec::new()).await;
+    let handle = start_with(Broker::builder().store(store), Limits::default()).await;
+    // Several sweeps later (every 50 ms) it is there, with the hour.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let expires = handle
+        .queues()
+        .into_iter()
+        .find(|q| q.name == queue)
+        .map(|q| q.arguments.get("x-expires").and_then(|v| v.as_i64()));
+    assert_eq!(
+        expires,
+        Some(Some(3_600_000)),
+        "listed with its group's expiry"
+    );
     handle.shutdown().await;
 }

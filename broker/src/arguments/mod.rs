@@ -111,8 +111,25 @@ const fn stream_only(name: &'static str, on_stream: Support, meaning: &'static s
 /// shovels) can give its destination a stable id to drop duplicates by.
 pub const POSITION_HEADER: &str = "x-leveret-position";
 
+/// The queue argument that marks the queue of an MQTT shared subscription
+/// group as declared by a member (`true`; any other boolean marks
+/// nothing): only such a queue is given its group's `x-expires` (see
+/// `crate::mqtt`'s shares). Not compared on redeclaration, so an AMQP
+/// redeclaration or a definitions import of a group queue, with or
+/// without it, finds it equivalent; nor is a marked queue's `x-expires`,
+/// which MQTT keeps at its group's (an export's is stale by the time it
+/// is imported again: `--definitions` at every start).
+pub const MQTT_SHARED_GROUP: &str = "x-mqtt-shared-group";
+
+/// Whether a queue's `arguments` mark it as an MQTT group's queue
+/// ([`MQTT_SHARED_GROUP`] `true`; any other value marks nothing).
+pub fn marks_an_mqtt_group_queue(arguments: &FieldTable) -> bool {
+    arguments.get(MQTT_SHARED_GROUP) == Some(&FieldValue::Bool(true))
+}
+
 /// Every argument RabbitMQ 3.10 knows (and Leveret's own
-/// `x-leveret-position`), with what Leveret does with it.
+/// `x-leveret-position` and `x-mqtt-shared-group`), with what Leveret
+/// does with it.
 pub const ARGUMENTS: &[Argument] = &[
     queue("x-message-ttl", Support::Implemented, "messages expire after this many milliseconds in the queue"),
     queue("x-expires", Support::Implemented, "the queue is deleted after this many milliseconds unused"),
@@ -136,6 +153,14 @@ pub const ARGUMENTS: &[Argument] = &[
     stream_only("x-stream-max-segment-size-bytes", Support::Implemented, "streams: segment file size (500 MB unless given; at most 3 GB, as RabbitMQ)"),
     stream_only("x-initial-cluster-size", Support::NoEffect(ONE_NODE), "streams: replicas at creation"),
     stream_only("x-queue-leader-locator", Support::NoEffect(ONE_NODE), "quorum queues and streams: the node the leader starts on"),
+    Argument {
+        name: MQTT_SHARED_GROUP,
+        scope: Scope::Queue,
+        support: Support::Implemented,
+        compared: false,
+        on_stream: Some(Support::Refused("MQTT group queues are classic queues")),
+        meaning: "Leveret's own (boolean), set by MQTT members on the shared subscription group queues they declare: `true` lets MQTT keep the queue's `x-expires` at its persistent members' longest Session Expiry Interval (1 ms once it has none, so it goes; after a restart too); neither it nor a marked queue's `x-expires` is compared on redeclaration",
+    },
     Argument {
         name: "alternate-exchange",
         scope: Scope::Exchange,

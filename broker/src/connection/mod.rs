@@ -89,7 +89,8 @@ pub async fn serve<R, W>(
     let mut ends = Ends::new(peer, local, AMQP_0_9_1);
     ends.traffic = Some(Arc::clone(&traffic));
     let sink = SocketSink(writer::Counted::new(write, traffic));
-    serve_frames(core, reader, sink, ends, slot, identity).await;
+    let connection_id = core.next_connection_id();
+    serve_frames(core, connection_id, reader, sink, ends, slot, identity).await;
 }
 
 /// Starts serving an in-process client that exchanges frame values with
@@ -102,9 +103,12 @@ pub async fn serve<R, W>(
 /// the front end's transport tells (an MQTT session's TLS certificate, for
 /// SASL EXTERNAL); `traffic` counts the front end's byte stream, listed
 /// as the connection's (an MQTT session's socket); `done` is dropped when
-/// the connection has ended and cleaned up.
+/// the connection has ended and cleaned up. `connection_id` is the
+/// connection's ([`Core::next_connection_id`]), for a front end that
+/// closes it through the registry (an MQTT takeover).
 pub fn serve_direct(
     core: Arc<Core>,
+    connection_id: u64,
     slot: Slot,
     (peer, identity): (String, Identity),
     (protocol, traffic): (&'static str, Option<Arc<ConnectionTraffic>>),
@@ -113,7 +117,8 @@ pub fn serve_direct(
     direct::link(move |frames, start| async move {
         let mut ends = Ends::new(peer, None, protocol);
         ends.traffic = traffic;
-        serve_frames(core, frames, DirectSink(start), ends, slot, identity).await;
+        let sink = DirectSink(start);
+        serve_frames(core, connection_id, frames, sink, ends, slot, identity).await;
         drop(done);
     })
 }
@@ -185,6 +190,7 @@ impl Sink for DirectSink {
 /// Serves one connection, whatever carries its frames, until it closes.
 async fn serve_frames<S: FrameSource, K: Sink>(
     core: Arc<Core>,
+    connection_id: u64,
     mut reader: S,
     sink: K,
     ends: Ends,
@@ -199,7 +205,6 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         traffic,
     } = ends;
     let started = Instant::now();
-    let connection_id = core.next_connection_id();
     let _registration = core
         .registry
         .connection(connection_id, &peer, protocol, traffic);
@@ -902,6 +907,7 @@ impl Connection {
         if let Some(vhost) = &self.vhost {
             vhost.drop_exclusive(self.connection_id);
         }
+        self.core.registry.cleaned_up(self.connection_id);
     }
 }
 

@@ -129,8 +129,10 @@ impl BrokerHandle {
         let core = Arc::clone(&self.core);
         let slot = core.connections.admit_local();
         let peer = "in-process".to_owned();
+        let connection_id = core.next_connection_id();
         crate::connection::serve_direct(
             core,
+            connection_id,
             slot,
             (peer, crate::connection::Identity::None),
             (crate::connection::AMQP_0_9_1, None),

@@ -146,6 +146,19 @@ impl BrokerBuilder {
     }
 
     #[cfg(feature = "mqtt")]
+    /// The longest Session Expiry Interval an MQTT 5.0 session is given,
+    /// in seconds (RabbitMQ's `mqtt.max_session_expiry_interval_seconds`;
+    /// a day by default; `None`: RabbitMQ's `infinity`). A longer one a
+    /// client asks for is lowered and the CONNACK says so; 0 makes every
+    /// session end with its connection. Whatever the cap, a finite
+    /// interval is at most 4,294,967 s, as its queues' `x-expires` is at
+    /// most 2^32 - 1 ms. MQTT 3.1.1 persistent sessions never expire.
+    pub fn mqtt_max_session_expiry_interval(mut self, seconds: Option<u32>) -> Self {
+        self.mqtt_options.max_session_expiry = seconds;
+        self
+    }
+
+    #[cfg(feature = "mqtt")]
     /// Adds an MQTT over WebSocket listener (RabbitMQ's `web_mqtt`; 15675
     /// by convention, port 0 picks a free port): path `/ws`, subprotocol
     /// `mqtt`, for browser dashboards.

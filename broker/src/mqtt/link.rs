@@ -11,6 +11,7 @@ use super::mapping::EXCHANGE;
 use crate::admission::Slot;
 use crate::connection::{serve_direct, DirectLink, DirectReply, Identity};
 use crate::core::Core;
+use crate::registry::Registry;
 use crate::stats::ConnectionTraffic;
 use bytes::{BufMut, Bytes, BytesMut};
 use leveret_mqtt::QoS;
@@ -20,6 +21,7 @@ use leveret_protocol::{
     ReplyCode, ShortStr,
 };
 use std::sync::Arc;
+use std::time::Duration;
 use tokio::sync::oneshot;
 use tokio::time::Instant;
 
@@ -30,6 +32,8 @@ pub(super) const CHANNEL: u16 = 1;
 /// has ended and cleaned up (its exclusive queues deleted).
 pub(super) struct Link {
     pub direct: DirectLink,
+    /// The AMQP connection's id (a takeover closes it by it).
+    pub id: u64,
     ended: oneshot::Receiver<()>,
 }
 
@@ -78,8 +82,9 @@ impl Link {
             None => Identity::Tls(Some(login.user.to_owned())),
         };
         let kind = (login.protocol, Some(Arc::clone(&login.traffic)));
-        let direct = serve_direct(core, slot, (peer, identity), kind, done);
-        let mut link = Link { direct, ended };
+        let id = core.next_connection_id();
+        let direct = serve_direct(core, id, slot, (peer, identity), kind, done);
+        let mut link = Link { direct, id, ended };
         match tokio::time::timeout_at(deadline, link.handshake(&login)).await {
             Ok(Ok(())) => Ok(link),
             Ok(Err(refusal)) => Err(refusal),
@@ -201,8 +206,19 @@ impl Link {
     /// up. A session the client ended with DISCONNECT closes it with
     /// connection.close (logged as closed by the client); otherwise the
     /// broker sees its client gone, as for a lost socket (a warning).
-    pub(super) async fn close(self, disconnected: bool) {
-        let Link { direct, ended } = self;
+    ///
+    /// Each step takes at most `stall`, as the session's other end steps,
+    /// so that a takeover waiting for this end never waits for ever: the
+    /// close is handed over while the core's replies are read (a
+    /// connection blocked handing over a reply would never take it), and
+    /// a connection that has not cleaned up by then is told to close
+    /// through the `registry`, as a takeover closes one, and left to end.
+    pub(super) async fn close(self, disconnected: bool, registry: &Registry, stall: Duration) {
+        let Link {
+            mut direct,
+            ended,
+            id,
+        } = self;
         if disconnected {
             let close = ConnectionClose {
                 reply_code: ReplyCode::Success.code(),
@@ -210,10 +226,26 @@ impl Link {
                 class_id: 0,
                 method_id: 0,
             };
-            let _ = direct.to_broker.send(method_on(0, close)).await;
+            let (to_broker, from_broker) = (&direct.to_broker, &mut direct.from_broker);
+            let room = async move {
+                loop {
+                    tokio::select! {
+                        permit = to_broker.reserve() => return permit.ok(),
+                        reply = from_broker.recv() => {
+                            reply?;
+                        }
+                    }
+                }
+            };
+            if let Ok(Some(permit)) = tokio::time::timeout(stall, room).await {
+                permit.send(method_on(0, close));
+            }
         }
         drop(direct);
-        let _ = ended.await;
+        if tokio::time::timeout(stall, ended).await.is_err() {
+            tracing::warn!(link = id, "AMQP link of an MQTT session not ended in time");
+            registry.close(id, "MQTT session ended");
+        }
     }
 }
 

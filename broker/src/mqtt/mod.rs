@@ -67,6 +67,11 @@ pub(crate) struct Shared {
     /// no user name logs in as the certificate's common name (RabbitMQ's
     /// `mqtt.ssl_cert_login`).
     certificate_login: bool,
+    /// The longest Session Expiry Interval a 5.0 session is given (s;
+    /// `None`: no cap but the queues' own, RabbitMQ's `infinity`):
+    /// RabbitMQ's `mqtt.max_session_expiry_interval_seconds`, a day by
+    /// default ([`expiry::capped`]).
+    max_session_expiry: Option<u32>,
     /// Wills waiting for their delay.
     wills: wills::Wills,
 }
@@ -93,6 +98,7 @@ impl Shared {
             releases: releases::Releases::new(recovered, core.persistence.clone()),
             shares: shares::Shares::new(recovered, core.persistence.clone()),
             certificate_login: options.certificate_login,
+            max_session_expiry: options.max_session_expiry,
             wills: Default::default(),
         }
     }
@@ -127,6 +133,8 @@ pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
             _ = ticks.tick() => {}
             _ = shutdown.wait_for(|down| *down) => return,
         }
+        // Sessions whose interval changed, moved on even if none connects.
+        shared.shares.settle_yielding(&core).await;
         loop {
             let releases = shared.releases.sweep();
             let (shares, groups, more) = shared.shares.sweep();
@@ -147,13 +155,26 @@ pub(crate) async fn sweeper(core: Arc<Core>, shared: Arc<Shared>) {
     }
 }
 
-/// How a broker's MQTT clients log in beyond a user name and password.
-#[derive(Debug, Clone, Default)]
+/// How a broker's MQTT clients log in beyond a user name and password,
+/// and how long their sessions may outlive their connections.
+#[derive(Debug, Clone)]
 pub(crate) struct Options {
     /// See [`Shared::anonymous`].
     pub anonymous: Option<(String, String)>,
     /// See [`Shared::certificate_login`].
     pub certificate_login: bool,
+    /// See [`Shared::max_session_expiry`].
+    pub max_session_expiry: Option<u32>,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            anonymous: None,
+            certificate_login: false,
+            max_session_expiry: Some(expiry::DEFAULT_MAX_SECONDS),
+        }
+    }
 }
 
 /// What an MQTT listener's connections travel over.
@@ -233,18 +254,9 @@ async fn serve_tls(
     tls: Arc<crate::tls::TlsContext>,
     shared: Arc<Shared>,
 ) {
-    let peer = &origin.peer;
     let handshake = tls.acceptor().accept(socket);
-    let stream = match tokio::time::timeout(core.limits.handshake_timeout, handshake).await {
-        Ok(Ok(stream)) => stream,
-        Ok(Err(e)) => {
-            tracing::info!(%peer, error = %e, "MQTT TLS handshake failed");
-            return;
-        }
-        Err(_) => {
-            tracing::warn!(%peer, "MQTT TLS handshake not completed within the handshake timeout");
-            return;
-        }
+    let Some(stream) = Box::pin(handshaken(&core, &origin.peer, "TLS", handshake)).await else {
+        return;
     };
     origin.certificate = stream
         .get_ref()
@@ -266,19 +278,34 @@ async fn serve_websocket(
     slot: crate::admission::Slot,
     shared: Arc<Shared>,
 ) {
-    let peer = &origin.peer;
     let max_message = session::max_packet(&core.limits) as usize;
     let handshake = websocket::accept(socket, max_message);
-    let stream = match tokio::time::timeout(core.limits.handshake_timeout, handshake).await {
-        Ok(Ok(stream)) => stream,
-        Ok(Err(e)) => {
-            tracing::info!(%peer, error = %e, "MQTT WebSocket handshake failed");
-            return;
-        }
-        Err(_) => {
-            tracing::warn!(%peer, "MQTT WebSocket handshake not completed within the handshake timeout");
-            return;
-        }
+    let Some(stream) = Box::pin(handshaken(&core, &origin.peer, "WebSocket", handshake)).await
+    else {
+        return;
     };
     Box::pin(session::serve(core, stream, origin, slot, shared)).await;
+}
+
+/// A transport's `handshake` (TLS, WebSocket: `what`) within the
+/// handshake timeout; `None`, logged, if it failed or took too long.
+/// Callers box it, so that its state is freed once it is done instead of
+/// staying in the session's task for the session's life.
+async fn handshaken<S, E: std::fmt::Display>(
+    core: &Core,
+    peer: &str,
+    what: &str,
+    handshake: impl std::future::Future<Output = Result<S, E>>,
+) -> Option<S> {
+    match tokio::time::timeout(core.limits.handshake_timeout, handshake).await {
+        Ok(Ok(stream)) => Some(stream),
+        Ok(Err(e)) => {
+            tracing::info!(%peer, error = %e, "MQTT {what} handshake failed");
+            None
+        }
+        Err(_) => {
+            tracing::warn!(%peer, "MQTT {what} handshake not completed within the handshake timeout");
+            None
+        }
+    }
 }

@@ -1,7 +1,8 @@
 //! The QoS 2 publishes a persistent session had routed and PUBREC'd but
 //! the client had not yet released (PUBREL): kept for the session's next
 //! connection, so that a resend is not routed twice and the PUBREL is
-//! answered. With a store they are durable ([`MetaRecord::Unreleased`],
+//! answered. They are held in memory from the publish's routing on, and
+//! with a store they are durable ([`MetaRecord::Unreleased`],
 //! one record per packet identifier, written before the PUBREC and
 //! deleted before the PUBCOMP), so this holds across a restart too.
 //!
@@ -20,7 +21,9 @@
 //! they are given [`OLDER_RECORDS_EXPIRY`] (a day) at start, and their
 //! session's own interval when it is next seen (its connection's end
 //! rewrites them), so a session that never comes back does not hold its
-//! place for ever.
+//! place for ever. The day counts from each start (it is not written
+//! back), and it is also given to records of never-expiring sessions
+//! (an older Leveret stored those without an interval too).
 //!
 //! Bounded: at most [`MAX_PER_SESSION`] identifiers per session (the
 //! receive maximum) and [`MAX_SESSIONS`] sessions, in memory and in the
@@ -203,6 +206,9 @@ impl Releases {
     /// Takes what a session's previous connection (or the broker's
     /// previous run) left: for the session to hold if it `resumes` and
     /// has not expired, otherwise forgotten (and deleted from the store).
+    /// A resuming session takes every identifier held, also those of a
+    /// connection whose end kept nothing (abandoned by a takeover): each
+    /// is a routed publish the client has not released.
     pub(super) fn take(&self, vhost: &str, client_id: &str, resumes: bool) -> Vec<PacketId> {
         let key = (vhost.to_owned(), client_id.to_owned());
         let mut sessions = self.lock();
@@ -211,7 +217,9 @@ impl Releases {
         };
         if resumes && !held.expired(Instant::now()) {
             held.expires_at = None;
-            return std::mem::take(&mut held.kept);
+            let mut ids: BTreeSet<u16> = held.kept.drain(..).map(PacketId::get).collect();
+            ids.extend(&held.stored);
+            return ids.into_iter().filter_map(PacketId::new).collect();
         }
         if let Some(held) = sessions.remove(&key) {
             for packet_id in held.stored {
@@ -261,9 +269,6 @@ impl Releases {
         id: PacketId,
         expiry: Option<u32>,
     ) -> u64 {
-        if self.persistence.is_none() {
-            return 0;
-        }
         let key = (vhost.to_owned(), client_id.to_owned());
         let mut sessions = self.lock();
         let Some(held) = self.place(&mut sessions, &key) else {
@@ -441,6 +446,24 @@ mod tests {
         releases.keep("/", "b", vec![id(3)], Some(0));
         assert!(releases.take("/", "b", true).is_empty());
         assert!(stored(&store, &persistence).await.is_empty());
+    }
+
+    #[test]
+    fn a_resuming_session_takes_the_ids_a_connection_abandoned_at_its_end_held() {
+        let store = Arc::new(MemoryStore::default());
+        let durable = open(&store).0;
+        let in_memory = Releases::new(&[], None);
+        for releases in [&durable, &in_memory] {
+            // The first connection's end kept 1; the next routed 2 and 3,
+            // released 3, and its end kept nothing (a takeover abandoned it).
+            releases.routed("/", "a", id(1), Some(3600));
+            releases.keep("/", "a", vec![id(1)], Some(3600));
+            assert_eq!(releases.take("/", "a", true), vec![id(1)]);
+            releases.routed("/", "a", id(2), Some(3600));
+            releases.routed("/", "a", id(3), Some(3600));
+            releases.released("/", "a", id(3));
+            assert_eq!(releases.take("/", "a", true), vec![id(1), id(2)]);
+        }
     }
 
     #[test]

@@ -62,7 +62,8 @@ const DEFAULT_WINDOW: u16 = 10;
 /// acknowledged. It bounds what a client reusing packet identifiers
 /// without waiting can make the session hold.
 const RECEIVE_MAXIMUM: u16 = 256;
-/// The longest a write to a client that does not read may take.
+/// The longest a write to a client that does not read may take, and any
+/// one step of a session's end (flush, write, shutdown, link close).
 const WRITE_STALL: Duration = Duration::from_secs(30);
 /// Topic filters a session may hold: each is a binding, and a SUBSCRIBE
 /// queues an AMQP call per filter, so a client cannot make the broker
@@ -171,22 +172,16 @@ pub(super) async fn serve<S: ClientStream>(
     socket.logged_in();
     let Accepted {
         link,
-        claim,
+        mut claim,
         client_id,
         assigned,
         vhost,
         user,
         window,
     } = accepted;
-    let lifetime = Lifetime::of(&connect);
+    let lifetime = Lifetime::of(&connect, shared.max_session_expiry);
     let max_packet = max_packet(&core.limits);
-    let will_delay = connect
-        .will
-        .as_ref()
-        .and_then(|w| w.properties.will_delay_interval)
-        .map_or(Duration::ZERO, |s| Duration::from_secs(s.into()));
-    let will = (connect.will.clone())
-        .map(|will| Box::new(LastWill::new(will, &vhost, &user, version.is_v5())));
+    let will_delay = will_delay(&connect);
     let mut session = Session {
         version,
         client_id,
@@ -196,10 +191,10 @@ pub(super) async fn serve<S: ClientStream>(
         core: Arc::clone(&core),
         shared: Arc::clone(&shared),
         lifetime,
+        expiry_asked: connect.properties.session_expiry_interval.unwrap_or(0) > 0,
         window,
         max_packet,
         client_max_packet: connect.properties.maximum_packet_size.map(|m| m.get()),
-        will,
         will_delay,
         aliases: TopicAliases::default(),
         out: BytesMut::new(),
@@ -217,8 +212,28 @@ pub(super) async fn serve<S: ClientStream>(
         acked_consumers: 0,
         delete_at_end: Vec::new(),
     };
-    let session_present = session.begin(&core, connect.clean_start);
-    session.connack(assigned, session_present);
+    // The will of a session this takeover abandoned: published now or
+    // scheduled, for `begin` to drop (resumed) or publish (clean start).
+    if let Some((will, delay)) = claim.inherited_will() {
+        let client_id = &session.client_id;
+        if let Some(will) = wills::schedule(&shared, &core, client_id, *will, delay) {
+            Box::pin(wills::publish(&shared, &core, will)).await;
+        }
+    }
+    // A takeover may have abandoned this session while it was claiming
+    // its identifier: the session's state is then the new owner's, not
+    // this one's to begin or rejoin, nor a CONNACK its to send (its loop
+    // sees it and only closes the socket).
+    if let Some(resumed) = claim.running(|| session.begin(&core, connect.clean_start)) {
+        let rejoined = Box::pin(session.rejoin_shared(connect.clean_start, &claim)).await;
+        // The interval the session was given, if not the one asked for
+        // (MQTT 5.0 3.2.2.3.2: the CONNACK says it).
+        let asked = connect.properties.session_expiry_interval.unwrap_or(0);
+        let lowered = asked != lifetime.interval();
+        if let Some(present) = rejoined {
+            claim.running(|| session.connack(assigned, present | resumed, lowered));
+        }
+    }
     // A session resumed with another expiry interval: its shared
     // subscriptions move to it in bounded batches.
     shared.shares.settle_yielding(&core).await;
@@ -235,17 +250,17 @@ pub(super) async fn serve<S: ClientStream>(
         reason,
         disconnected,
         will,
+        owned,
     } = end;
     if disconnected {
         tracing::debug!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     } else {
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
-    Box::pin(link.close(disconnected)).await;
-    // Skipped if a session taking over stopped waiting for this one: it
-    // has resumed the session already. Decided once, under the claim, so
-    // that a takeover giving up waits for what is decided here.
-    let kept = claim.unless_abandoned(|| {
+    Box::pin(link.close(disconnected, &core.registry, WRITE_STALL)).await;
+    // Skipped if a session taking over abandoned this one: it has resumed
+    // the session already. Otherwise a takeover waits for it (`owned`).
+    let kept = owned.then(|| {
         if session.lifetime != lifetime && session.lifetime != Lifetime::Connection {
             // A DISCONNECT changed the expiry: the queues follow, now
             // that the link has declared every one of them.
@@ -359,7 +374,19 @@ enum Lifetime {
 }
 
 impl Lifetime {
-    fn of(connect: &Connect) -> Lifetime {
+    /// A CONNECT's, a 5.0 interval capped at `max` ([`expiry::capped`];
+    /// a 3.1.1 persistent session never expires, whatever the cap).
+    /// How long a will delayed by `delay` waits once the connection has
+    /// ended: at most as long as the session.
+    fn will_delay_left(self, delay: Duration) -> Duration {
+        match self {
+            Lifetime::Connection => Duration::ZERO,
+            Lifetime::Seconds(s) => delay.min(Duration::from_secs(s.into())),
+            Lifetime::Forever => delay,
+        }
+    }
+
+    fn of(connect: &Connect, max: Option<u32>) -> Lifetime {
         if !connect.version.is_v5() {
             return if connect.clean_start {
                 Lifetime::Connection
@@ -367,15 +394,25 @@ impl Lifetime {
                 Lifetime::Forever
             };
         }
-        Lifetime::of_interval(connect.properties.session_expiry_interval.unwrap_or(0))
+        let requested = connect.properties.session_expiry_interval.unwrap_or(0);
+        Lifetime::of_interval(requested, max)
     }
 
-    /// A 5.0 Session Expiry Interval's.
-    fn of_interval(seconds: u32) -> Lifetime {
-        match seconds {
+    /// A 5.0 Session Expiry Interval's, capped at `max`.
+    fn of_interval(requested: u32, max: Option<u32>) -> Lifetime {
+        match expiry::capped(requested, max) {
             0 => Lifetime::Connection,
             u32::MAX => Lifetime::Forever,
             seconds => Lifetime::Seconds(seconds),
+        }
+    }
+
+    /// The 5.0 Session Expiry Interval it stands for.
+    fn interval(self) -> u32 {
+        match self {
+            Lifetime::Connection => 0,
+            Lifetime::Seconds(seconds) => seconds,
+            Lifetime::Forever => u32::MAX,
         }
     }
 
@@ -488,7 +525,17 @@ async fn admit(
     })?;
     // A session taken over gets as long to end as a CONNECT to come.
     let wait = core.limits.handshake_timeout;
-    let claim = shared.ids.claim(&vhost, &client_id, wait).await;
+    // The will is the claim's from the start: a takeover that abandons
+    // this session before its loop (while it claims) inherits it.
+    let lifetime = Lifetime::of(connect, shared.max_session_expiry);
+    let will = connect.will.clone().map(|will| {
+        let delay = lifetime.will_delay_left(will_delay(connect));
+        (Box::new(LastWill::new(will, &vhost, user, v5)), delay)
+    });
+    let (ids, registry) = (&shared.ids, &core.registry);
+    let claim = ids
+        .claim((&vhost, &client_id), link.id, will, registry, wait)
+        .await;
     Ok(Accepted {
         link,
         claim,
@@ -498,6 +545,13 @@ async fn admit(
         user: user.to_owned(),
         window,
     })
+}
+
+/// The will delay a CONNECT sets (none without a will).
+fn will_delay(connect: &Connect) -> Duration {
+    (connect.will.as_ref())
+        .and_then(|w| w.properties.will_delay_interval)
+        .map_or(Duration::ZERO, |s| Duration::from_secs(s.into()))
 }
 
 /// What a synchronous AMQP reply completes: the MQTT acknowledgements to
@@ -529,14 +583,16 @@ struct Session {
     core: Arc<Core>,
     shared: Arc<Shared>,
     lifetime: Lifetime,
+    /// Whether its CONNECT asked for a Session Expiry Interval above 0
+    /// (5.0): a DISCONNECT may set one only then (3.14.2.2.2), whatever
+    /// the cap made of it.
+    expiry_asked: bool,
     /// QoS 1 deliveries unacknowledged at once (retained ones included).
     window: u16,
     /// The largest packet the broker reads once logged in.
     max_packet: u32,
     /// The largest packet a 5.0 client accepts.
     client_max_packet: Option<u32>,
-    /// Boxed: most sessions have none, and a will is some 500 bytes.
-    will: Option<Box<LastWill>>,
     /// The will's delay (5.0's Will Delay Interval).
     will_delay: Duration,
     /// Inbound topic aliases.
@@ -616,8 +672,12 @@ struct Ended {
     reason: &'static str,
     /// The client ended it with DISCONNECT.
     disconnected: bool,
-    /// The will to publish.
+    /// The will to publish (boxed: most sessions have none, and a will is
+    /// some 500 bytes).
     will: Option<Box<LastWill>>,
+    /// The end was the session's own ([`Claim::end`]), not abandoned by
+    /// a takeover.
+    owned: bool,
 }
 
 /// Why the loop stopped.
@@ -641,17 +701,15 @@ impl Session {
     /// unless the session ends sooner (at once for a session that goes
     /// with its connection).
     fn will_delay_left(&self) -> Duration {
-        match self.lifetime {
-            Lifetime::Connection => Duration::ZERO,
-            Lifetime::Seconds(s) => self.will_delay.min(Duration::from_secs(s.into())),
-            Lifetime::Forever => self.will_delay,
-        }
+        self.lifetime.will_delay_left(self.will_delay)
     }
 
     /// Starts the session: a clean start deletes what a previous session
     /// of the client left; otherwise the previous session's queues (if
     /// any) are consumed again and its subscriptions read back from their
-    /// bindings. Whether a session was resumed (CONNACK's session present).
+    /// bindings. Whether a session was resumed (CONNACK's session present;
+    /// its shared subscriptions are joined again after this:
+    /// [`Session::rejoin_shared`]).
     fn begin(&mut self, core: &Core, clean_start: bool) -> bool {
         let vhost = ShortStr::try_from(self.vhost.as_str())
             .ok()
@@ -720,23 +778,32 @@ impl Session {
         for id in released {
             self.exactly_once.insert(id, Received::Stored);
         }
-        present | self.rejoin_shared(clean_start)
+        present
     }
 
     /// Joins again the shared subscriptions the session held (`shares`),
     /// unless it starts clean (then they are forgotten); whether it held
     /// any. Their permissions are checked again and the subscription cap
-    /// applies; one refused now is dropped.
-    fn rejoin_shared(&mut self, clean_start: bool) -> bool {
+    /// applies; one refused now is dropped. In time slices: a session may
+    /// hold thousands. `None` once a takeover has abandoned the session
+    /// (each step runs under its `claim`).
+    async fn rejoin_shared(&mut self, clean_start: bool, claim: &Claim) -> Option<bool> {
         let shares = &self.shared.shares;
         if clean_start {
-            let groups = shares.forget(&self.vhost, &self.client_id);
-            shares.apply(&self.core, groups);
-            return false;
+            claim.running(|| {
+                let groups = shares.forget(&self.vhost, &self.client_id);
+                shares.apply(&self.core, groups);
+            })?;
+            return Some(false);
         }
-        let (held, groups) = shares.resume(&self.vhost, &self.client_id);
-        shares.apply(&self.core, groups);
+        let held = claim.running(|| {
+            let (held, groups) = shares.resume(&self.vhost, &self.client_id);
+            shares.apply(&self.core, groups);
+            held
+        })?;
+        let mut slice = crate::slice::Slice::start();
         for (filter, options) in &held {
+            crate::slice::yield_if_spent(&mut slice).await;
             let parsed = MqttString::try_from(filter.as_str())
                 .ok()
                 .and_then(|f| leveret_mqtt::TopicFilter::new(f).ok());
@@ -744,19 +811,29 @@ impl Session {
                 continue;
             };
             let (group, inner) = (shared.group.to_owned(), shared.filter.to_owned());
-            let full = self.subscriptions.len() >= MAX_SUBSCRIPTIONS;
-            if full || (self.subscribe_shared(filter, &group, &inner, *options)).is_err() {
-                let shares = &self.shared.shares;
-                let groups = shares.remove(&self.vhost, &self.client_id, filter);
-                shares.apply(&self.core, groups);
-            }
+            // A takeover may abandon the session between slices: the
+            // records are then the new owner's.
+            claim.running(|| {
+                let full = self.subscriptions.len() >= MAX_SUBSCRIPTIONS;
+                if full || (self.subscribe_shared(filter, &group, &inner, *options)).is_err() {
+                    let shares = &self.shared.shares;
+                    let groups = shares.remove(&self.vhost, &self.client_id, filter);
+                    shares.apply(&self.core, groups);
+                }
+            })?;
         }
-        !held.is_empty()
+        Some(!held.is_empty())
     }
 
-    fn connack(&mut self, assigned: bool, session_present: bool) {
+    /// The CONNACK; `lowered`: the session was given a shorter Session
+    /// Expiry Interval than its CONNECT asked for, which a 5.0 CONNACK
+    /// announces.
+    fn connack(&mut self, assigned: bool, session_present: bool, lowered: bool) {
         let mut properties = leveret_mqtt::Properties::default();
         if self.v5() {
+            if lowered {
+                properties.session_expiry_interval = Some(self.lifetime.interval());
+            }
             properties.maximum_packet_size = std::num::NonZeroU32::new(self.max_packet);
             properties.receive_maximum = NonZeroU16::new(RECEIVE_MAXIMUM);
             properties.topic_alias_maximum = Some(TOPIC_ALIAS_MAXIMUM);
@@ -817,10 +894,13 @@ impl Session {
         tokio::pin!(release);
         let mut durable = self.shared.retained.durable();
         let stop = loop {
-            // Whole packets already read.
+            // Whole packets already read, unless a takeover has abandoned
+            // the session.
             if self.reading() {
-                if let Err(stop) = self.take_packets(&mut buf) {
-                    break stop;
+                match claim.running(|| self.take_packets(&mut buf)) {
+                    Some(Ok(())) => {}
+                    Some(Err(stop)) => break stop,
+                    None => break taken_over(),
                 }
             }
             while let Some(item) = self.pending.pop_front() {
@@ -873,8 +953,15 @@ impl Session {
                 reply = link.direct.from_broker.recv() => match reply {
                     Some(reply) => {
                         last_active = Instant::now();
-                        if let Err(stop) = self.handle_core_reply(reply) { break stop }
-                        if let Err(stop) = self.handle_ready_replies(&mut link) { break stop }
+                        let handled = claim.running(|| {
+                            self.handle_core_reply(reply)?;
+                            self.handle_ready_replies(&mut link)
+                        });
+                        match handled {
+                            Some(Ok(())) => {}
+                            Some(Err(stop)) => break stop,
+                            None => break taken_over(),
+                        }
                     }
                     None => break closed("the broker ended the session", Some(ReasonCode::ServerShuttingDown)),
                 },
@@ -890,9 +977,7 @@ impl Session {
                 _ = store_progress(durable.as_mut()), if !self.held_acks.is_empty() => {
                     if let Err(stop) = self.release_held_acks() { break stop }
                 }
-                _ = claim.taken_over() => {
-                    break closed("taken over by a new connection", Some(ReasonCode::SessionTakenOver));
-                }
+                _ = claim.taken_over() => break taken_over(),
                 _ = shutdown.wait_for(|down| *down) => {
                     break closed("broker shutting down", Some(ReasonCode::ServerShuttingDown));
                 }
@@ -929,8 +1014,8 @@ impl Session {
     }
 
     /// Sends what is owed before closing (a 5.0 DISCONNECT, the will);
-    /// a session whose takeover has given up waiting for it
-    /// ([`Claim::abandoned`]) only closes its socket.
+    /// a session a takeover has abandoned ([`Claim::end`]) only closes its
+    /// socket.
     async fn finish(
         &mut self,
         socket: &mut (impl AsyncRead + AsyncWrite + Unpin),
@@ -938,8 +1023,8 @@ impl Session {
         claim: &Claim,
         stop: Stop,
     ) -> Ended {
-        let abandoned = claim.abandoned();
-        if abandoned {
+        let owned = claim.end();
+        if !owned {
             self.out.clear();
         } else {
             self.flush_pending(&mut link).await;
@@ -948,7 +1033,7 @@ impl Session {
         let (reason, send_will) = match stop {
             Stop::Disconnected { send_will } => ("client disconnected", send_will),
             Stop::Closed { reason, disconnect } => {
-                if let (Some(code), true, false) = (disconnect, self.v5(), abandoned) {
+                if let (Some(code), true, true) = (disconnect, self.v5(), owned) {
                     self.send(Packet::Disconnect(Disconnect {
                         reason: code,
                         properties: Default::default(),
@@ -960,12 +1045,13 @@ impl Session {
         if !self.out.is_empty() {
             let _ = tokio::time::timeout(WRITE_STALL, write_out(socket, &self.out)).await;
         }
-        let _ = socket.shutdown().await;
+        // Bounded too (a TLS close_notify waits for room): a takeover
+        // waits for an end under way.
+        let _ = tokio::time::timeout(WRITE_STALL, socket.shutdown()).await;
         // A resumed session that does not outlive this connection (unless
-        // a takeover has given up waiting meanwhile: its queues are the
-        // new session's now).
+        // abandoned: its queues are the new session's now).
         let delete = std::mem::take(&mut self.delete_at_end);
-        for queue in delete.into_iter().filter(|_| !claim.abandoned()) {
+        for queue in delete.into_iter().take_while(|_| owned) {
             let delete = QueueDelete {
                 ticket: 0,
                 queue,
@@ -979,7 +1065,8 @@ impl Session {
             link,
             reason,
             disconnected,
-            will: self.will.take().filter(|_| send_will),
+            will: claim.take_will().filter(|_| send_will && owned),
+            owned,
         }
     }
 
@@ -1127,8 +1214,15 @@ impl Session {
     /// 0x82); another is the persistent session's expiry from now on
     /// (its queues follow once the link is closed: `serve`).
     fn expiry_at_disconnect(&mut self, expiry: Option<u32>) -> Result<(), Stop> {
-        match expiry {
-            Some(0) if self.lifetime != Lifetime::Connection => {
+        // Capped as the CONNECT's was; the protocol error is judged by
+        // what the client asked, not by what the cap made of it.
+        let max = self.shared.max_session_expiry;
+        match expiry.map(|seconds| (seconds, expiry::capped(seconds, max))) {
+            Some((asked, _)) if asked > 0 && !self.expiry_asked => Err(closed(
+                "session expiry set by DISCONNECT after none in CONNECT",
+                Some(ReasonCode::ProtocolError),
+            )),
+            Some((_, 0)) if self.lifetime != Lifetime::Connection => {
                 self.lifetime = Lifetime::Connection;
                 for qos in [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce] {
                     let queue = mapping::queue_name(&self.client_id, qos)
@@ -1137,12 +1231,8 @@ impl Session {
                 }
                 Ok(())
             }
-            Some(seconds) if seconds > 0 && self.lifetime == Lifetime::Connection => Err(closed(
-                "session expiry set by DISCONNECT after none in CONNECT",
-                Some(ReasonCode::ProtocolError),
-            )),
-            Some(seconds) => {
-                self.lifetime = Lifetime::of_interval(seconds);
+            Some((_, seconds)) => {
+                self.lifetime = Lifetime::of_interval(seconds, max);
                 Ok(())
             }
             None => Ok(()),
@@ -1408,7 +1498,8 @@ impl Session {
                         "MQTT shared subscription's queue not declared"
                     );
                     self.unkeep_refused_share(filter, old.as_ref());
-                    return Err(share_refusal(refused.code));
+                    let at_limit = max_queues.is_some_and(|max| vhost.queue_count() >= max);
+                    return Err(share_refusal(refused.code, at_limit));
                 }
             };
         self.call(
@@ -2027,14 +2118,16 @@ async fn store_progress(durable: Option<&mut tokio::sync::watch::Receiver<Durabl
 }
 
 /// The SUBACK reason for a shared subscription whose group's queue the
-/// core refused with `code`: 406 can only be the vhost's queue limit (the
-/// declaration's arguments are the broker's own, never a stream's), a
-/// quota; 405 an AMQP connection's exclusive queue of that name (or one
-/// whose auto-deletion kept coming back), the broker's own rule; anything
-/// else (404: the vhost deleted meanwhile) unspecified.
-fn share_refusal(code: ReplyCode) -> ReasonCode {
+/// core refused with `code`, `at_queue_limit`: the vhost has as many
+/// queues as its limit allows. 406 at the limit is the limit's, a quota;
+/// 405 an AMQP connection's exclusive queue of that name (or one whose
+/// deletion kept coming back), the broker's own rule; anything else (404:
+/// the vhost deleted meanwhile; a 406 not at the limit, which members'
+/// declarations, joined as they are and within every argument's bounds,
+/// are not meant to meet) unspecified.
+fn share_refusal(code: ReplyCode, at_queue_limit: bool) -> ReasonCode {
     match code {
-        ReplyCode::PreconditionFailed => ReasonCode::QuotaExceeded,
+        ReplyCode::PreconditionFailed if at_queue_limit => ReasonCode::QuotaExceeded,
         ReplyCode::ResourceLocked => ReasonCode::ImplementationSpecificError,
         _ => ReasonCode::UnspecifiedError,
     }
@@ -2052,4 +2145,9 @@ fn owned(payload: bytes::Bytes) -> bytes::Bytes {
 
 fn closed(reason: &'static str, disconnect: Option<ReasonCode>) -> Stop {
     Stop::Closed { reason, disconnect }
+}
+
+fn taken_over() -> Stop {
+    let reason = Some(ReasonCode::SessionTakenOver);
+    closed("taken over by a new connection", reason)
 }

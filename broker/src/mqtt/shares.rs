@@ -42,10 +42,10 @@
 use super::mapping;
 use super::subscriptions::Options;
 use crate::core::Core;
-use crate::error::AmqpResult;
+use crate::error::{AmqpError, AmqpResult};
 use crate::queue::QueueOptions;
 use crate::store::{MetaKey, MetaRecord, Persistence, StoreOp};
-use crate::vhost::{QueueDeclaration, QueueJoin, Vhost};
+use crate::vhost::{JoinAttempt, QueueDeclaration, QueueJoin, Vhost};
 use leveret_mqtt::QoS;
 use leveret_protocol::{FieldTable, FieldValue, ShortStr};
 use std::collections::{BTreeMap, HashMap, HashSet};
@@ -63,10 +63,10 @@ const MAX_GROUPS: usize = 10_000;
 const SWEEP_RECORDS: usize = 256;
 
 /// The argument that marks a queue as a group's, declared by a member
-/// ([`Shares::declare_queue`]): only such a queue is given its group's
-/// expiry ([`Shares::apply`]), never one an AMQP client declared under
-/// that name.
-const GROUP_QUEUE_ARGUMENT: &str = "x-mqtt-shared-group";
+/// ([`Shares::declare_queue`]) with `true`: only such a queue is given
+/// its group's expiry ([`Shares::apply`]), never one declared under that
+/// name without it (an AMQP client's, unless it copied the mark).
+const GROUP_QUEUE_ARGUMENT: &str = crate::arguments::MQTT_SHARED_GROUP;
 
 /// At most this many shared subscriptions of sessions whose expiry
 /// changed are moved to it (group and record) under one hold of the lock
@@ -225,8 +225,14 @@ impl Shares {
                 };
                 let key = (vhost.clone(), client_id.clone());
                 let held = state.sessions.entry(key).or_default();
-                held.expiry = (*session_expiry != NEVER).then_some(*session_expiry);
-                held.filters.insert(filter.clone(), (options, held.expiry));
+                let expiry = (*session_expiry != NEVER).then_some(*session_expiry);
+                // Mixed intervals (a crash between a move's batches): the
+                // longest, whatever order the store reads them in.
+                held.expiry = match held.filters.is_empty() {
+                    true => expiry,
+                    false => longest(held.expiry, expiry),
+                };
+                held.filters.insert(filter.clone(), (options, expiry));
                 held.expires_at = super::expiry::ends_at(held.expiry);
             }
         }
@@ -240,8 +246,9 @@ impl Shares {
             state.join(&vhost, &filter, expiry);
         }
         // A crash while a session's records were being moved to a new
-        // interval leaves them mixed: they are made one again (the
-        // interval of the last record read).
+        // interval leaves them mixed: they are made one again (the longest
+        // of them: it never drops a subscription early, and may keep one
+        // longer than a shortened interval asked), by `reconcile` at start.
         let moving = (state.sessions.iter())
             .filter(|(_, held)| held.filters.values().any(|(_, e)| *e != held.expiry))
             .map(|(key, _)| key.clone());
@@ -385,9 +392,14 @@ impl Shares {
     /// ([`Shares::settle_batch`]) and gives the groups changed their
     /// queues' expiry, yielding between holds of the lock.
     pub(super) async fn settle_yielding(&self, core: &Core) {
+        self.settle_yielding_in(&|name: &str| vhost_named(core, name))
+            .await;
+    }
+
+    async fn settle_yielding_in(&self, vhost_of: &impl Fn(&str) -> VhostOf) {
         loop {
             let (groups, more) = self.settle_batch();
-            self.apply_yielding(core, groups).await;
+            self.apply_yielding_in(vhost_of, groups).await;
             if !more {
                 return;
             }
@@ -532,9 +544,19 @@ impl Shares {
     /// queue with a stale `x-expires` (a short one would expire it before
     /// its members' expiry is given back; one of a group that has lost
     /// its last persistent member would keep it too long, or for ever).
+    /// Sessions recovered half-moved to a new interval are moved on
+    /// first ([`Shares::new`]), so no group is given an expiry from a
+    /// mixed state.
     pub(super) async fn reconcile(&self, core: &Core) {
-        self.apply_yielding(core, declared_groups(&core.vhosts()))
-            .await;
+        self.reconcile_in(&core.vhosts()).await;
+    }
+
+    /// [`Shares::reconcile`] over `vhosts`.
+    async fn reconcile_in(&self, vhosts: &[Arc<Vhost>]) {
+        let vhost_of = |name: &str| (vhosts.iter()).find(|v| v.name.to_string_lossy() == name);
+        let vhost_of = |name: &str| vhost_of(name).cloned();
+        self.settle_yielding_in(&vhost_of).await;
+        (self.apply_yielding_in(&vhost_of, declared_groups(vhosts))).await;
     }
 
     /// Gives the durable queues of `groups` the `x-expires` their
@@ -552,8 +574,12 @@ impl Shares {
     /// [`Shares::apply`] for a task: yields between holds of the lock.
     pub(super) async fn apply_yielding(&self, core: &Core, groups: Groups) {
         let vhost_of = |name: &str| vhost_named(core, name);
+        self.apply_yielding_in(&vhost_of, groups).await;
+    }
+
+    async fn apply_yielding_in(&self, vhost_of: &impl Fn(&str) -> VhostOf, groups: Groups) {
         for batch in groups.chunks(APPLY_BATCH) {
-            self.apply_batch(&vhost_of, batch);
+            self.apply_batch(vhost_of, batch);
             tokio::task::yield_now().await;
         }
     }
@@ -575,7 +601,7 @@ impl Shares {
                 continue;
             };
             let arguments = queue.arguments();
-            let declared_by_a_member = arguments.get(GROUP_QUEUE_ARGUMENT).is_some();
+            let declared_by_a_member = crate::arguments::marks_an_mqtt_group_queue(&arguments);
             let exclusive = queue.options.exclusive_owner.is_some();
             if !declared_by_a_member || !queue.options.durable || exclusive {
                 continue;
@@ -608,6 +634,32 @@ impl Shares {
         queue: ShortStr,
         max_queues: Option<usize>,
     ) -> AmqpResult<(QueueJoin, bool)> {
+        // Twice at most: a queue declared anew can only be going again if
+        // its own last consumer has come and gone meanwhile.
+        for _ in 0..2 {
+            match self.join_or_declare_queue(vhost, filter, queue.clone(), max_queues)? {
+                JoinAttempt::Joined(join, created) => return Ok((join, created)),
+                // Its deletion is under way: finished here, without the
+                // lock (a queue's deletion costs what its bindings do).
+                JoinAttempt::Going(going) => {
+                    vhost.delete_queue(&going).notify();
+                }
+            }
+        }
+        Err(AmqpError::resource_locked(format_args!(
+            "queue '{queue}' in vhost '{}' is being deleted",
+            vhost.name
+        )))
+    }
+
+    /// One attempt of [`Shares::declare_queue`], under the lock.
+    fn join_or_declare_queue(
+        &self,
+        vhost: &Arc<Vhost>,
+        filter: &str,
+        queue: ShortStr,
+        max_queues: Option<usize>,
+    ) -> AmqpResult<JoinAttempt> {
         let state = self.lock();
         let vhost_name = vhost.name.to_string_lossy();
         let keep = state.group(&vhost_name, filter);
@@ -685,7 +737,7 @@ fn declared_groups(vhosts: &[Arc<Vhost>]) -> Groups {
             let Some(group) = name.strip_prefix(mapping::SHARED_QUEUE_PREFIX) else {
                 continue;
             };
-            let marked = queue.arguments().get(GROUP_QUEUE_ARGUMENT).is_some();
+            let marked = crate::arguments::marks_an_mqtt_group_queue(&queue.arguments());
             if marked && queue.options.durable {
                 let vhost_name = vhost.name.to_string_lossy().into_owned();
                 groups.push((vhost_name, format!("$share/{group}")));
@@ -693,6 +745,14 @@ fn declared_groups(vhosts: &[Arc<Vhost>]) -> Groups {
         }
     }
     groups
+}
+
+/// A vhost looked up by name.
+type VhostOf = Option<Arc<Vhost>>;
+
+/// The longer of two Session Expiry Intervals (`None`: never).
+fn longest(a: Option<u32>, b: Option<u32>) -> Option<u32> {
+    a.zip(b).map(|(a, b)| a.max(b))
 }
 
 fn vhost_named(core: &Core, name: &str) -> Option<Arc<Vhost>> {
@@ -950,26 +1010,29 @@ mod tests {
         assert!(kept.options.durable && !kept.options.auto_delete);
         assert_eq!(expires_of(&kept), Some(60_000));
         // Another member joins for an hour and applies it; a member that
-        // read the minute before still joins (an AMQP redeclaration with
-        // the minute is refused as inequivalent).
+        // read the minute before still joins (an AMQP redeclaration is
+        // compared, but for x-expires, which is MQTT's: one with the
+        // minute and a flag of its own is refused as inequivalent).
         let (joined, _) = shares.keep(("/", "p2"), "$share/k/x", one, Some(3600));
         shares.apply_in(vhost_of, joined);
         assert_eq!(expires_of(&kept), Some(3_600_000));
         assert_eq!(declare("$share/k/x"), Some(false));
         let minute = [("x-expires", FieldValue::I64(60_000))];
-        let redeclared = QueueDeclaration {
+        let redeclared = |auto_delete| QueueDeclaration {
             name: name("$share/k/x"),
             passive: false,
             server_named: false,
             options: QueueOptions {
                 durable: true,
                 exclusive_owner: None,
-                auto_delete: false,
+                auto_delete,
                 arguments: crate::testkit::table(&minute),
             },
             max_queues: None,
         };
-        assert!(h.vhost.declare_queue(redeclared, 0).is_err());
+        assert!(h.vhost.declare_queue(redeclared(true), 0).is_err());
+        assert!(h.vhost.declare_queue(redeclared(false), 0).is_ok());
+        assert_eq!(expires_of(&kept), Some(3_600_000));
         // A clean member joins the durable queue as it is too.
         assert_eq!(declare("$share/k/x"), Some(false));
     }
@@ -1078,9 +1141,10 @@ mod tests {
         assert!(shares.lock().groups.is_empty());
     }
 
-    #[test]
-    fn a_session_recovered_half_moved_is_moved_on() {
-        // A crash between two batches of a move from 60 s to an hour.
+    #[tokio::test]
+    async fn a_session_recovered_half_moved_is_moved_on_at_start_to_its_longest_interval() {
+        // A crash between two batches of a move from 60 s to an hour; the
+        // store may read the records in either order.
         let record = |filter: &str, session_expiry| MetaRecord::SharedSubscription {
             vhost: "/".into(),
             client_id: "c".into(),
@@ -1090,12 +1154,19 @@ mod tests {
             subscription_id: 0,
             session_expiry,
         };
-        let records = [record("$share/g/1", 60), record("$share/g/2", 3600)];
-        let shares = Shares::new(&records, None);
-        assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(60)));
-        let g1 = ("/".to_owned(), "$share/g/1".to_owned());
-        assert_eq!(shares.settle_batch(), (vec![g1], false));
-        assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(3600)));
+        let (unmoved, moved) = (record("$share/g/1", 60), record("$share/g/2", 3600));
+        for records in [[unmoved.clone(), moved.clone()], [moved, unmoved]] {
+            let h = Harness::durable();
+            let name = queue_name("$share/g/1").expect("a shared filter");
+            let minute = [("x-expires", FieldValue::I64(60_000)), marked()];
+            let queue = h.declare_queue(&name.to_string_lossy(), true, &minute);
+            let shares = Shares::new(&records, None);
+            // Start-up, no session connecting.
+            shares.reconcile_in(std::slice::from_ref(&h.vhost)).await;
+            assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(3600)));
+            assert_eq!(expires_of(&queue), Some(3_600_000));
+            assert_eq!(shares.settle_batch(), (Vec::new(), false), "all moved");
+        }
     }
 
     #[test]
@@ -1222,6 +1293,30 @@ mod tests {
     }
 
     #[test]
+    fn a_member_joining_a_queue_the_sweeper_found_expired_gets_a_new_one() {
+        let h = Harness::durable();
+        let shares = Shares::new(&[], None);
+        let filter = "$share/u/x";
+        let name = queue_name(filter).expect("a shared filter");
+        let unkept = [("x-expires", FieldValue::I64(1)), marked()];
+        let old = h.declare_queue("mqtt-shared-u/x", true, &unkept);
+        // The sweeper finds it expired; before it deletes it, a member
+        // joins: it must not join the queue about to go.
+        let late = Instant::now() + Duration::from_secs(3600);
+        assert!(old.take_expired(late));
+        let (joined, created) =
+            (shares.declare_queue(&h.vhost, filter, name.clone(), None)).expect("declared anew");
+        assert!(created);
+        assert!(!Arc::ptr_eq(joined.queue(), &old));
+        // The sweeper's deletion then finds the old queue gone, and its
+        // next sweep leaves the joined one.
+        h.vhost.delete_queue(&old).notify();
+        h.vhost.sweep_at(late);
+        let listed = h.vhost.queue(&name).expect("the new queue stays");
+        assert!(Arc::ptr_eq(&listed, joined.queue()));
+    }
+
+    #[test]
     fn a_queue_an_amqp_client_declared_under_a_groups_name_keeps_its_arguments() {
         let h = Harness::durable();
         let shares = Shares::new(&[], None);
@@ -1233,5 +1328,15 @@ mod tests {
         shares.apply_in(|_| Some(Arc::clone(&h.vhost)), joined);
         assert_eq!(expires_of(&queue), Some(60_000), "not the group's queue");
         assert!(queue.arguments().get(GROUP_QUEUE_ARGUMENT).is_none());
+        // Only `true` marks: `false` is no mark, at start either.
+        let unmarked = [
+            ("x-expires", FieldValue::I64(60_000)),
+            (GROUP_QUEUE_ARGUMENT, FieldValue::Bool(false)),
+        ];
+        let other = h.declare_queue("mqtt-shared-g/y", true, &unmarked);
+        let (joined, _) = shares.keep(("/", "p"), "$share/g/y", one, Some(3600));
+        shares.apply_in(|_| Some(Arc::clone(&h.vhost)), joined);
+        assert_eq!(expires_of(&other), Some(60_000), "false marks nothing");
+        assert!(declared_groups(std::slice::from_ref(&h.vhost)).is_empty());
     }
 }

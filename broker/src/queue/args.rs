@@ -1,7 +1,8 @@
 //! The queue and consumer arguments a queue acts on, validated with
 //! RabbitMQ 3.10's error texts: `x-message-ttl`, `x-expires`,
 //! `x-max-length`, `x-max-length-bytes`, `x-overflow`, `x-dead-letter-*`,
-//! `x-max-priority`, `x-single-active-consumer`, `x-queue-type` (a
+//! `x-max-priority`, `x-single-active-consumer`, `x-queue-type`,
+//! Leveret's `x-mqtt-shared-group` (a boolean; read by MQTT) (a
 //! stream's are `stream::args`'s); those
 //! taken with no effect are validated too, and those refused are refused
 //! here (the list of them all is `crate::arguments`). For basic.consume:
@@ -156,6 +157,14 @@ impl QueueArgs {
                         ))
                     }
                 },
+                b"x-mqtt-shared-group" => {
+                    if !matches!(value, FieldValue::Bool(_)) {
+                        return Err(invalid(
+                            arguments::MQTT_SHARED_GROUP,
+                            format!("{{unacceptable_type,{}}}", type_name(value)),
+                        ));
+                    }
+                }
                 b"x-queue-mode" => {
                     one_of("x-queue-mode", value, &[b"default", b"lazy"], "queue mode")?
                 }

@@ -181,10 +181,11 @@ struct QueueState {
     /// consumer left while one was, or it was created for a join.
     #[cfg(feature = "mqtt")]
     auto_delete_due: bool,
-    /// [`Queue::remove_consumer`] has said the queue goes (auto-delete):
-    /// no member may join it any more.
+    /// The queue has been found to go, its deletion to follow: auto-delete
+    /// ([`Queue::remove_consumer`], [`Queue::leave_join`]) or x-expires
+    /// ([`Queue::take_expired`]). No member may join it any more.
     #[cfg(feature = "mqtt")]
-    auto_deleting: bool,
+    going: bool,
     deleted: bool,
     /// Dead letters found by a dispatch whose caller cannot route them
     /// (a connection's writer), waiting for the vhost's next sweep.
@@ -581,7 +582,7 @@ impl Queue {
                 st.auto_delete_due = true;
                 return false;
             }
-            st.auto_deleting = true;
+            st.going = true;
         }
         goes
     }
@@ -618,12 +619,12 @@ impl Queue {
     /// declared for it) and is about to bind and consume it: until its
     /// [`Queue::leave_join`] the queue counts as used (x-expires does not
     /// run) and is not auto-deleted, however long the consume takes. False
-    /// (nothing held) if the queue is going: deleted, or auto-deleted
-    /// by its last consumer's leaving.
+    /// (nothing held) if the queue is going: deleted, auto-deleted by its
+    /// last consumer's leaving, or expired.
     #[cfg(feature = "mqtt")]
     pub fn join(&self, created: bool) -> bool {
         let mut st = self.lock();
-        if st.deleted || st.auto_deleting {
+        if st.deleted || st.going {
             return false;
         }
         st.joining += 1;
@@ -644,7 +645,7 @@ impl Queue {
         }
         st.last_used = Some(Instant::now());
         let goes = st.auto_delete_due && !st.deleted;
-        st.auto_deleting |= goes;
+        st.going |= goes;
         goes
     }
 
@@ -739,20 +740,28 @@ impl Queue {
     }
 
     /// Whether x-expires has run out by `now`: unused (no consumers, no
-    /// get, no redeclare) for longer than it allows.
-    pub fn unused_expired_at(&self, now: Instant) -> bool {
-        let st = self.lock();
+    /// get, no redeclare, no join pending) for longer than it allows. If
+    /// so the queue is marked as going under the same hold of its lock, so
+    /// no member can join it between this decision and its deletion, which
+    /// the caller then does (a member finding it going declares it anew).
+    pub fn take_expired(&self, now: Instant) -> bool {
+        let st = &mut *self.lock();
         let Some(expires) = st.effective.expires else {
             return false;
         };
         #[cfg(feature = "mqtt")]
-        if st.joining > 0 {
+        if st.joining > 0 || st.going {
             return false;
         }
-        st.consumers.is_empty()
+        let expired = st.consumers.is_empty()
             && st.last_used.is_some_and(|at| {
                 now.saturating_duration_since(at) >= Duration::from_millis(expires)
-            })
+            });
+        #[cfg(feature = "mqtt")]
+        {
+            st.going |= expired;
+        }
+        expired
     }
 }
 

@@ -82,6 +82,15 @@ fn queue_arguments_are_checked_with_rabbitmq_texts() {
     );
     assert!(invalid(&[("x-overflow", FieldValue::string("drop-tail"))]).contains("x-overflow"));
     assert!(
+        invalid(&[("x-mqtt-shared-group", FieldValue::string("g"))]).ends_with(
+            "'x-mqtt-shared-group' for queue 'q' in vhost '/': {unacceptable_type,longstr}"
+        )
+    );
+    for mark in [true, false] {
+        let marked = table(&[("x-mqtt-shared-group", FieldValue::Bool(mark))]);
+        assert!(QueueArgs::parse(&marked, &s("q"), &s("/")).is_ok());
+    }
+    assert!(
         invalid(&[("x-dead-letter-routing-key", FieldValue::string("k"))])
             .ends_with("routing_key_but_no_dlx_defined")
     );

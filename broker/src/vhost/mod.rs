@@ -201,6 +201,12 @@ impl Vhost {
         Some(queue)
     }
 
+    /// How many queues the vhost has.
+    #[cfg(feature = "mqtt")]
+    pub fn queue_count(&self) -> usize {
+        read(&self.queues).len()
+    }
+
     /// Every queue (for sweeping and connection cleanup).
     pub fn queues(&self) -> Vec<Arc<Queue>> {
         read(&self.queues).values().cloned().collect()
@@ -394,15 +400,20 @@ impl Vhost {
                         ));
                     }
                 }
+                let current = existing.arguments();
                 let differing = if existing.is_stream() {
                     arguments::first_inequivalent_on_stream(&o.arguments, &d.arguments, &resource)
+                } else if arguments::marks_an_mqtt_group_queue(&current) {
+                    // MQTT keeps a group queue's x-expires at its members'
+                    // (a redeclaration's, an old export's, is stale).
+                    let (mut current, mut requested) = (current, d.arguments.clone());
+                    current.remove("x-expires");
+                    requested.remove("x-expires");
+                    let scope = arguments::Scope::Queue;
+                    arguments::first_inequivalent(scope, &current, &requested, &resource)
                 } else {
-                    arguments::first_inequivalent(
-                        arguments::Scope::Queue,
-                        &existing.arguments(),
-                        &d.arguments,
-                        &resource,
-                    )
+                    let scope = arguments::Scope::Queue;
+                    arguments::first_inequivalent(scope, &current, &d.arguments, &resource)
                 };
                 if let Some(error) = differing {
                     return Err(error);
@@ -417,6 +428,18 @@ impl Vhost {
                 decl.name, self.name
             )));
         }
+        self.create_queue(decl, connection_id)
+    }
+
+    /// Creates the queue `decl` names, not found by a lookup just before;
+    /// one declared meanwhile (by another channel, or an MQTT member) is
+    /// returned as it is, not compared with `decl`, unless another
+    /// connection owns it (405).
+    fn create_queue(
+        &self,
+        decl: QueueDeclaration,
+        connection_id: u64,
+    ) -> AmqpResult<(Arc<Queue>, bool)> {
         if !decl.server_named && decl.name.as_bytes().starts_with(b"amq.") {
             return Err(AmqpError::access_refused(format_args!(
                 "queue name '{}' contains reserved prefix 'amq.*'",
@@ -432,6 +455,7 @@ impl Vhost {
         self.refuse_if_deleted()?;
         if let Some(existing) = queues.get(&decl.name) {
             // Declared by another channel between our check and the lock.
+            check_exclusive(existing, connection_id, &self.name)?;
             return Ok((Arc::clone(existing), false));
         }
         if let Some(max) = decl.max_queues.filter(|max| queues.len() >= *max) {
@@ -684,37 +708,29 @@ impl Vhost {
     /// the member holds it ([`Queue::join`]) until the [`QueueJoin`] is
     /// dropped (once its consume has arrived, or the member has gone), so
     /// neither x-expires nor auto-delete can take it from under the
-    /// member's bind and consume. One whose last consumer has just left
-    /// (auto-delete) is deleted now and declared anew. The join and
-    /// whether the queue was created.
+    /// member's bind and consume. One that is going (auto-delete, expiry)
+    /// is not joined: the caller finishes its deletion, outside any lock
+    /// of its own, and tries again.
     #[cfg(feature = "mqtt")]
     pub fn join_or_declare_queue(
         self: &Arc<Self>,
         decl: QueueDeclaration,
-    ) -> AmqpResult<(QueueJoin, bool)> {
-        // Twice at most: a queue declared anew can only be going again if
-        // its own last consumer has come and gone meanwhile.
-        for _ in 0..2 {
-            let (queue, created) = match self.queue(&decl.name) {
-                Some(existing) if existing.options.exclusive_owner.is_some() => {
-                    return Err(exclusive_locked(&existing.name, &self.name));
-                }
-                Some(existing) => (existing, false),
-                // Not exclusive: no connection owns it.
-                None => self.declare_queue(decl.clone(), 0)?,
-            };
-            if queue.join(created) {
-                let vhost = Arc::clone(self);
-                return Ok((QueueJoin { vhost, queue }, created));
+    ) -> AmqpResult<JoinAttempt> {
+        let (queue, created) = match self.queue(&decl.name) {
+            Some(existing) if existing.options.exclusive_owner.is_some() => {
+                return Err(exclusive_locked(&existing.name, &self.name));
             }
-            // Its auto-deletion is under way: done here (whoever comes
-            // second finds it gone).
-            self.delete_queue(&queue).notify();
+            Some(existing) => (existing, false),
+            // Not exclusive: no connection owns it. One declared since
+            // the lookup (an AMQP client's, say) is joined as it is too,
+            // never compared with `decl` (no 406 inequivalent arg).
+            None => self.create_queue(decl, 0)?,
+        };
+        if queue.join(created) {
+            let vhost = Arc::clone(self);
+            return Ok(JoinAttempt::Joined(QueueJoin { vhost, queue }, created));
         }
-        Err(AmqpError::resource_locked(format_args!(
-            "queue '{}' in vhost '{}' is being deleted",
-            decl.name, self.name
-        )))
+        Ok(JoinAttempt::Going(queue))
     }
 
     /// Gives `queue`, if it is still this vhost's, its own expiry
@@ -1238,7 +1254,7 @@ impl Vhost {
             return Progress::More;
         }
         self.dead_letter(queue.dispatch());
-        if queue.unused_expired_at(now) {
+        if queue.take_expired(now) {
             tracing::debug!(queue = %queue.name, "queue expired (x-expires)");
             self.delete_queue(queue).notify();
         }
@@ -1295,6 +1311,18 @@ pub fn check_exclusive(queue: &Queue, connection_id: u64, vhost: &ShortStr) -> A
         Some(owner) if owner != connection_id => Err(exclusive_locked(&queue.name, vhost)),
         _ => Ok(()),
     }
+}
+
+/// What [`Vhost::join_or_declare_queue`] did.
+#[cfg(feature = "mqtt")]
+#[derive(Debug)]
+pub enum JoinAttempt {
+    /// Joined: the hold, and whether the queue was created for it.
+    Joined(QueueJoin, bool),
+    /// The queue of that name is going (auto-delete, expiry): its
+    /// deletion is the caller's to finish ([`Vhost::delete_queue`]; whoever
+    /// comes second finds it gone) before it tries again.
+    Going(Arc<Queue>),
 }
 
 /// An MQTT shared subscription's member's hold on its group's queue,

@@ -625,3 +625,98 @@ fn a_batch_of_policies_costs_work_linear_in_policies_and_queues() {
         (POLICIES * (POLICIES + 1) / 2) as u64
     );
 }
+
+/// A declaration of queue `name` by connection `owner` (exclusive to it
+/// if given), with `arguments`.
+fn declaration(
+    name: &str,
+    durable: bool,
+    owner: Option<u64>,
+    arguments: &[(&str, FieldValue)],
+) -> super::QueueDeclaration {
+    super::QueueDeclaration {
+        name: s(name),
+        passive: false,
+        server_named: false,
+        max_queues: None,
+        options: crate::queue::QueueOptions {
+            durable,
+            exclusive_owner: owner,
+            auto_delete: !durable,
+            arguments: crate::testkit::table(arguments),
+        },
+    }
+}
+
+#[test]
+fn a_queue_declared_since_the_lookup_is_taken_as_it_is_unless_exclusive() {
+    use leveret_protocol::ReplyCode;
+    let h = Harness::new();
+    // An MQTT member's lookup found no group queue; an AMQP client then
+    // declared the name with arguments of its own.
+    let minute = [("x-expires", FieldValue::I64(60_000))];
+    let amqp = h.declare_queue("mqtt-shared-g/x", true, &minute);
+    let mark = [("x-mqtt-shared-group", FieldValue::Bool(true))];
+    let member = declaration("mqtt-shared-g/x", false, None, &mark);
+    // Compared (queue.declare's first step, which members used to take
+    // here), it is 406 inequivalent ...
+    let refused = h
+        .vhost
+        .declare_queue(member.clone(), 0)
+        .expect_err("compared");
+    assert_eq!(refused.code, ReplyCode::PreconditionFailed);
+    // ... the creation step takes it as it is.
+    let (queue, created) = h.vhost.create_queue(member, 0).expect("taken as it is");
+    assert!(!created && Arc::ptr_eq(&queue, &amqp));
+    // Another connection's exclusive queue is refused there too (405).
+    let exclusive = declaration("owned", false, Some(7), &[]);
+    h.vhost
+        .declare_queue(exclusive.clone(), 7)
+        .expect("declared");
+    let locked = h
+        .vhost
+        .create_queue(exclusive.clone(), 8)
+        .expect_err("locked");
+    assert_eq!(locked.code, ReplyCode::ResourceLocked);
+    assert!(h.vhost.create_queue(exclusive, 7).is_ok(), "its owner's");
+}
+
+#[test]
+fn a_marked_mqtt_group_queues_x_expires_is_not_compared_on_redeclaration() {
+    use leveret_protocol::ReplyCode;
+    let h = Harness::durable();
+    let mark = ("x-mqtt-shared-group", FieldValue::Bool(true));
+    // As the start-up reconcile leaves a group queue without persistent
+    // members: 1 ms.
+    let marked = h.declare_queue(
+        "mqtt-shared-g/x",
+        true,
+        &[("x-expires", FieldValue::I64(1)), mark.clone()],
+    );
+    // A definitions file exported while the group was kept (an hour).
+    let exported = [("x-expires", FieldValue::I64(3_600_000)), mark];
+    let import = declaration("mqtt-shared-g/x", true, None, &exported);
+    let (queue, created) = h.vhost.declare_queue(import, 0).expect("equivalent");
+    assert!(!created && Arc::ptr_eq(&queue, &marked));
+    assert_eq!(
+        queue.arguments().get("x-expires"),
+        Some(&FieldValue::I64(1)),
+        "left as MQTT set it"
+    );
+    // Other arguments are still compared, and so is an unmarked queue's x-expires.
+    let ttl = [
+        ("x-message-ttl", FieldValue::I64(5)),
+        ("x-mqtt-shared-group", FieldValue::Bool(true)),
+    ];
+    let other = h
+        .vhost
+        .declare_queue(declaration("mqtt-shared-g/x", true, None, &ttl), 0);
+    assert_eq!(
+        other.expect_err("inequivalent").code,
+        ReplyCode::PreconditionFailed
+    );
+    h.declare_queue("plain", true, &[("x-expires", FieldValue::I64(1))]);
+    let plain = declaration("plain", true, None, &[("x-expires", FieldValue::I64(2))]);
+    let refused = h.vhost.declare_queue(plain, 0).expect_err("inequivalent");
+    assert_eq!(refused.code, ReplyCode::PreconditionFailed);
+}
