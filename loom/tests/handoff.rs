@@ -204,3 +204,73 @@ fn giving_the_room_back_racing_a_send_keeps_the_item() {
         sender.join().expect("no panic");
     });
 }
+
+/// The queue is full and two senders wait for its one room, the first in
+/// line to send 1, the second (which begins waiting after it) 2, while
+/// the receiver takes the item that filled it and then the two: the first
+/// in line always sends first, whatever order they are woken and run in.
+#[test]
+fn waiting_senders_send_in_the_order_they_began_to_wait() {
+    model(2, || {
+        let (tx, mut rx) = channel::<u32>(1);
+        tx.try_send(0).expect("the one room");
+        let mut first = Box::pin(tx.send(1));
+        // Polled once here, before the second sender exists: it is first
+        // in line (the waker is replaced when it is polled again below).
+        let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
+        assert!(first.as_mut().poll(&mut cx).is_pending());
+        let second = {
+            let tx = tx.clone();
+            thread::spawn(move || block_on(tx.send(2)).expect("the receiver is there"))
+        };
+        let receiver = thread::spawn(move || {
+            let mut received = Vec::new();
+            for _ in 0..3 {
+                received.push(block_on(rx.recv()).expect("an item"));
+            }
+            received
+        });
+        block_on(first).expect("the receiver is there");
+        second.join().expect("no panic");
+        assert_eq!(receiver.join().expect("no panic"), [0, 1, 2]);
+    });
+}
+
+/// The queue is full and two senders wait for its one room: one gives up
+/// after its first poll (it may have been first in line, and given the
+/// room by then), the other waits to send, while the receiver takes the
+/// item that filled it. The room always reaches the sender that stays: a
+/// wait given up passes on the room it was given.
+#[test]
+fn a_sender_giving_up_passes_the_room_it_was_given_to_the_next_in_line() {
+    model(3, || {
+        let (tx, mut rx) = channel::<u32>(1);
+        tx.try_send(0).expect("the one room");
+        let canceller = {
+            let tx = tx.clone();
+            thread::spawn(move || {
+                block_on(async {
+                    let mut reserve = pin!(tx.reserve());
+                    poll_fn(|cx| {
+                        // Ready or not, the reserve is dropped after this
+                        // one poll (a permit it gave, unused).
+                        let _ = reserve.as_mut().poll(cx);
+                        Poll::Ready(())
+                    })
+                    .await;
+                })
+            })
+        };
+        let waiter = {
+            let tx = tx.clone();
+            thread::spawn(move || block_on(tx.send(7)).expect("the receiver is there"))
+        };
+        assert_eq!(rx.try_recv(), Some(0));
+        assert_eq!(block_on(rx.recv()), Some(7));
+        for thread in [canceller, waiter] {
+            thread.join().expect("no panic");
+        }
+        assert_eq!(rx.try_recv(), None);
+        assert_eq!(tx.capacity(), 1, "every room given back");
+    });
+}

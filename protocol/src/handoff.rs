@@ -11,9 +11,16 @@
 //! is told so ([`Sender::try_send`]); the receiver sees the end once
 //! every sender is gone and the items are taken; senders see it closed
 //! once the receiver is gone (and an item sent through a permit then is
-//! dropped). Waiting senders are woken together when room appears and
-//! race for it (tokio's are served in turn): this queue's senders are one
-//! connection's tasks, rarely more than one waiting at once.
+//! dropped). Senders that wait for room are served in the order they
+//! began to wait, as tokio's are: each room that comes free is reserved
+//! for the sender that has waited longest and only that one is woken, so
+//! one busy sender (a channel publishing as fast as it can) never keeps
+//! another waiting for ever, and no sender arriving later takes a room
+//! before them. A wait given up ([`Sender::reserve`]'s future dropped)
+//! leaves its place in the line, or passes the room it was given on to
+//! the next in line. Waiters are kept in a `VecDeque` in ticket order:
+//! serving the first is O(1); a waiter finds its own place by binary
+//! search, and one giving up from the middle shifts the shorter side.
 //!
 //! The items live in a `VecDeque` behind a mutex, grown as items wait and
 //! kept for reuse, so sending on a warm queue allocates nothing; a
@@ -33,6 +40,7 @@ use loom::sync::atomic::{AtomicUsize, Ordering};
 use loom::sync::{Arc, Mutex, MutexGuard};
 use std::collections::VecDeque;
 use std::future::{poll_fn, Future};
+use std::pin::Pin;
 #[cfg(not(loom))]
 use std::sync::atomic::{AtomicUsize, Ordering};
 #[cfg(not(loom))]
@@ -50,7 +58,8 @@ pub fn channel<T>(capacity: usize) -> (Sender<T>, Receiver<T>) {
             reserved: 0,
             receiving: true,
             receiver: None,
-            waiting: Vec::new(),
+            waiting: VecDeque::new(),
+            next_ticket: 0,
         }),
     });
     (
@@ -93,8 +102,23 @@ struct State<T> {
     receiving: bool,
     /// The receiver's waker, while it waits for an item.
     receiver: Option<Waker>,
-    /// The wakers of senders waiting for room.
-    waiting: Vec<Waker>,
+    /// Senders waiting for room, in the order they began to wait (their
+    /// tickets rise), none of them given a room yet: a sender whose ticket
+    /// has left the line without it giving up was given one (reserved for
+    /// it). Wakers are taken when the receiver goes (the tickets stay,
+    /// for their senders to find).
+    waiting: VecDeque<(u64, Option<Waker>)>,
+    /// The ticket of the next sender to wait.
+    next_ticket: u64,
+}
+
+impl<T> State<T> {
+    /// Where the sender holding `ticket` waits, if it still does.
+    fn place(&self, ticket: u64) -> Option<usize> {
+        self.waiting
+            .binary_search_by_key(&ticket, |&(ticket, _)| ticket)
+            .ok()
+    }
 }
 
 impl<T> Shared<T> {
@@ -119,20 +143,80 @@ impl<T> Shared<T> {
         }
     }
 
-    /// Takes a room for a permit once there is one.
-    fn poll_reserve(&self, cx: &mut Context<'_>) -> Poll<Result<(), SendError<()>>> {
-        let mut state = self.lock();
-        if !state.receiving {
-            return Poll::Ready(Err(SendError(())));
+    /// Reserves a room that has just come free for the sender that has
+    /// waited longest: its waker, to wake once the lock is let go.
+    fn serve_next(&self, state: &mut State<T>) -> Option<Waker> {
+        if !state.receiving || self.room(state) == 0 {
+            return None;
         }
-        if self.room(&state) > 0 {
-            state.reserved += 1;
+        let (_, waker) = state.waiting.pop_front()?;
+        state.reserved += 1;
+        waker
+    }
+
+    /// Takes a room for a permit once one is reserved for this sender:
+    /// at once if there is room (then nobody waits), else it joins the
+    /// line (`ticket` is its place in it).
+    fn poll_reserve(
+        &self,
+        ticket: &mut Option<u64>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Result<(), SendError<()>>> {
+        let mut state = self.lock();
+        let Some(mine) = *ticket else {
+            if !state.receiving {
+                return Poll::Ready(Err(SendError(())));
+            }
+            if self.room(&state) > 0 {
+                state.reserved += 1;
+                return Poll::Ready(Ok(()));
+            }
+            let mine = state.next_ticket;
+            state.next_ticket += 1;
+            state.waiting.push_back((mine, Some(cx.waker().clone())));
+            *ticket = Some(mine);
+            return Poll::Pending;
+        };
+        if let Some(place) = state.place(mine) {
+            if !state.receiving {
+                state.waiting.remove(place);
+                *ticket = None;
+                return Poll::Ready(Err(SendError(())));
+            }
+            match &mut state.waiting[place].1 {
+                Some(waker) if waker.will_wake(cx.waker()) => {}
+                waker => *waker = Some(cx.waker().clone()),
+            }
+            return Poll::Pending;
+        }
+        // Served: a room is reserved for it (given back if the receiver
+        // has gone since).
+        *ticket = None;
+        if state.receiving {
             return Poll::Ready(Ok(()));
         }
-        if !state.waiting.iter().any(|w| w.will_wake(cx.waker())) {
-            state.waiting.push(cx.waker().clone());
+        state.reserved -= 1;
+        Poll::Ready(Err(SendError(())))
+    }
+
+    /// A sender gives up waiting: it leaves the line, or passes the room
+    /// it was given on to the next in line.
+    fn leave_line(&self, ticket: u64) {
+        let mut state = self.lock();
+        let next = match state.place(ticket) {
+            Some(place) => {
+                state.waiting.remove(place);
+                None
+            }
+            None => {
+                state.reserved -= 1;
+                self.serve_next(&mut state)
+            }
+        };
+        drop(state);
+        if let Some(next) = next {
+            next.wake();
         }
-        Poll::Pending
     }
 
     /// Puts an item in a room a permit held (dropped if the receiver is
@@ -157,9 +241,11 @@ impl<T> Shared<T> {
     fn unreserve(&self) {
         let mut state = self.lock();
         state.reserved -= 1;
-        let waiting = std::mem::take(&mut state.waiting);
+        let next = self.serve_next(&mut state);
         drop(state);
-        wake_all(waiting);
+        if let Some(next) = next {
+            next.wake();
+        }
     }
 
     fn add_sender(&self) {
@@ -176,12 +262,6 @@ impl<T> Shared<T> {
         if let Some(receiver) = receiver {
             receiver.wake();
         }
-    }
-}
-
-fn wake_all(wakers: Vec<Waker>) {
-    for waker in wakers {
-        waker.wake();
     }
 }
 
@@ -221,14 +301,14 @@ impl<T> Sender<T> {
         Ok(())
     }
 
-    /// Waits for room and reserves it (cancel-safe: dropped before it is
-    /// ready, it holds nothing).
+    /// Waits for room and reserves it, after the senders that began
+    /// waiting before (cancel-safe: dropped before it is ready, it holds
+    /// nothing, and a room it was given goes to the next in line).
     pub fn reserve(&self) -> impl Future<Output = Result<Permit<'_, T>, SendError<()>>> + '_ {
-        poll_fn(move |cx| {
-            self.shared.poll_reserve(cx).map_ok(|()| Permit {
-                shared: &self.shared,
-            })
-        })
+        Reserve {
+            shared: &self.shared,
+            ticket: None,
+        }
     }
 
     /// Reserves room if there is some now.
@@ -291,6 +371,32 @@ impl<T> std::fmt::Debug for Sender<T> {
         f.debug_struct("Sender")
             .field("capacity", &self.shared.capacity)
             .finish_non_exhaustive()
+    }
+}
+
+/// [`Sender::reserve`]'s wait: its place in the line once it has one.
+struct Reserve<'a, T> {
+    shared: &'a Shared<T>,
+    ticket: Option<u64>,
+}
+
+impl<'a, T> Future for Reserve<'a, T> {
+    type Output = Result<Permit<'a, T>, SendError<()>>;
+
+    fn poll(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Self::Output> {
+        let this = self.get_mut();
+        let shared = this.shared;
+        shared
+            .poll_reserve(&mut this.ticket, cx)
+            .map_ok(|()| Permit { shared })
+    }
+}
+
+impl<T> Drop for Reserve<'_, T> {
+    fn drop(&mut self) {
+        if let Some(ticket) = self.ticket.take() {
+            self.shared.leave_line(ticket);
+        }
     }
 }
 
@@ -386,10 +492,12 @@ impl<T> Receiver<T> {
     pub fn poll_recv(&mut self, cx: &mut Context<'_>) -> Poll<Option<T>> {
         let mut state = self.shared.lock();
         if let Some(item) = state.items.pop_front() {
-            let waiting = std::mem::take(&mut state.waiting);
+            let next = self.shared.serve_next(&mut state);
             drop(state);
             self.keeps_room = true;
-            wake_all(waiting);
+            if let Some(next) = next {
+                next.wake();
+            }
             return Poll::Ready(Some(item));
         }
         if self.shared.senders.load(Ordering::Acquire) == 0 {
@@ -406,10 +514,12 @@ impl<T> Receiver<T> {
     pub fn try_recv(&mut self) -> Option<T> {
         let mut state = self.shared.lock();
         let item = state.items.pop_front()?;
-        let waiting = std::mem::take(&mut state.waiting);
+        let next = self.shared.serve_next(&mut state);
         drop(state);
         self.keeps_room = true;
-        wake_all(waiting);
+        if let Some(next) = next {
+            next.wake();
+        }
         Some(item)
     }
 
@@ -425,7 +535,9 @@ impl<T> Receiver<T> {
         let mut state = self.shared.lock();
         if state.items.is_empty() {
             state.items = VecDeque::new();
-            state.waiting.shrink_to_fit();
+            if state.waiting.is_empty() {
+                state.waiting = VecDeque::new();
+            }
             self.keeps_room = false;
         }
     }
@@ -436,13 +548,20 @@ impl<T> Drop for Receiver<T> {
         let mut state = self.shared.lock();
         state.receiving = false;
         let items = std::mem::take(&mut state.items);
-        let waiting = std::mem::take(&mut state.waiting);
+        // The waiting senders' tickets stay in line, to be told it closed.
+        let waiting: Vec<Waker> = state
+            .waiting
+            .iter_mut()
+            .filter_map(|(_, waker)| waker.take())
+            .collect();
         // Its own waker too: the task it names is not kept alive, nor
         // woken by the last sender, once nothing can be received.
         let receiver = state.receiver.take();
         drop(state);
         drop((items, receiver));
-        wake_all(waiting);
+        for waker in waiting {
+            waker.wake();
+        }
     }
 }
 
@@ -510,6 +629,94 @@ mod tests {
         };
         permit.send(2);
         assert_eq!(rx.try_recv(), Some(2));
+    }
+
+    /// A waker that counts its wakes, and the count.
+    fn counted_waker() -> (Waker, Arc<Wakes>) {
+        let wakes = Arc::new(Wakes::default());
+        (Waker::from(Arc::clone(&wakes)), wakes)
+    }
+
+    fn woken(wakes: &[&Arc<Wakes>]) -> Vec<usize> {
+        wakes.iter().map(|w| w.0.load(Ordering::Relaxed)).collect()
+    }
+
+    #[test]
+    fn waiting_senders_are_served_in_the_order_they_began_to_wait() {
+        let (tx, mut rx) = channel(1);
+        tx.try_send(0).unwrap();
+        let [(wa, a), (wb, b), (wc, c)] = [(); 3].map(|()| counted_waker());
+        let mut first = std::pin::pin!(tx.send(1));
+        let mut second = std::pin::pin!(tx.send(2));
+        let mut third = std::pin::pin!(tx.send(3));
+        assert!(poll(first.as_mut(), &wa).is_pending());
+        assert!(poll(second.as_mut(), &wb).is_pending());
+        assert!(poll(third.as_mut(), &wc).is_pending());
+        assert_eq!(rx.try_recv(), Some(0));
+        assert_eq!(woken(&[&a, &b, &c]), [1, 0, 0], "only the first woken");
+        assert_eq!(
+            tx.try_send(9),
+            Err(TrySendError::Full(9)),
+            "the room is the first waiter's"
+        );
+        // The later ones, polled first, still wait their turn.
+        assert!(poll(third.as_mut(), &wc).is_pending());
+        assert!(poll(second.as_mut(), &wb).is_pending());
+        assert_eq!(poll(first.as_mut(), &wa), Poll::Ready(Ok(())));
+        assert_eq!(rx.try_recv(), Some(1));
+        assert_eq!(woken(&[&a, &b, &c]), [1, 1, 0]);
+        assert!(poll(third.as_mut(), &wc).is_pending());
+        assert_eq!(poll(second.as_mut(), &wb), Poll::Ready(Ok(())));
+        assert_eq!(rx.try_recv(), Some(2));
+        assert_eq!(woken(&[&a, &b, &c]), [1, 1, 1]);
+        assert_eq!(poll(third.as_mut(), &wc), Poll::Ready(Ok(())));
+        assert_eq!(rx.try_recv(), Some(3));
+        assert_eq!(tx.capacity(), 1);
+    }
+
+    #[test]
+    fn a_sender_giving_up_leaves_the_line_or_passes_its_room_on() {
+        let (tx, mut rx) = channel(1);
+        tx.try_send(0).unwrap();
+        let [(wa, a), (wb, b), (wc, c)] = [(); 3].map(|()| counted_waker());
+        let mut first = Box::pin(tx.reserve());
+        let mut second = Box::pin(tx.reserve());
+        let mut third = Box::pin(tx.reserve());
+        assert!(poll(first.as_mut(), &wa).is_pending());
+        assert!(poll(second.as_mut(), &wb).is_pending());
+        assert!(poll(third.as_mut(), &wc).is_pending());
+        drop(second);
+        assert_eq!(rx.try_recv(), Some(0));
+        assert_eq!(woken(&[&a, &b, &c]), [1, 0, 0], "the second left the line");
+        drop(first);
+        assert_eq!(
+            woken(&[&a, &b, &c]),
+            [1, 0, 1],
+            "the room the first was given goes to the next in line"
+        );
+        let Poll::Ready(Ok(permit)) = poll(third.as_mut(), &wc) else {
+            panic!("the third is given the room");
+        };
+        permit.send(3);
+        assert_eq!(rx.try_recv(), Some(3));
+        assert_eq!(tx.capacity(), 1, "no room lost");
+    }
+
+    #[test]
+    fn a_sender_served_as_the_receiver_goes_gives_its_room_back() {
+        let (tx, mut rx) = channel(1);
+        tx.try_send(0).unwrap();
+        let (waker, wakes) = counted_waker();
+        let mut reserve = std::pin::pin!(tx.reserve());
+        assert!(poll(reserve.as_mut(), &waker).is_pending());
+        assert_eq!(rx.try_recv(), Some(0));
+        drop(rx);
+        assert_eq!(woken(&[&wakes]), [1]);
+        assert!(matches!(
+            poll(reserve.as_mut(), &waker),
+            Poll::Ready(Err(SendError(())))
+        ));
+        assert_eq!(tx.capacity(), 1);
     }
 
     #[test]
