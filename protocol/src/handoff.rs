@@ -53,6 +53,7 @@ pub fn channel<T>(capacity: usize) -> (Sender<T>, Receiver<T>) {
     let shared = Arc::new(Shared {
         capacity: capacity.max(1),
         senders: AtomicUsize::new(1),
+        free: AtomicUsize::new(capacity.max(1)),
         state: Mutex::new(State {
             items: VecDeque::new(),
             reserved: 0,
@@ -91,6 +92,10 @@ struct Shared<T> {
     /// Live senders (permits that own one count as one): outside the
     /// lock, so a clone costs what an `Arc`'s does.
     senders: AtomicUsize,
+    /// Rooms free, stored under the lock whenever they change, so that
+    /// [`Sender::capacity`] (a check on every in-process publish) reads it
+    /// without taking the lock.
+    free: AtomicUsize,
     state: Mutex<State<T>>,
 }
 
@@ -139,8 +144,15 @@ impl<T> Shared<T> {
             Err(TrySendError::Full(()))
         } else {
             state.reserved += 1;
+            self.show_free(&state);
             Ok(())
         }
+    }
+
+    /// Stores the rooms free for [`Sender::capacity`]; called under the
+    /// lock after every change of them.
+    fn show_free(&self, state: &State<T>) {
+        self.free.store(self.room(state), Ordering::Release);
     }
 
     /// Reserves a room that has just come free for the sender that has
@@ -169,6 +181,7 @@ impl<T> Shared<T> {
             }
             if self.room(&state) > 0 {
                 state.reserved += 1;
+                self.show_free(&state);
                 return Poll::Ready(Ok(()));
             }
             let mine = state.next_ticket;
@@ -196,6 +209,7 @@ impl<T> Shared<T> {
             return Poll::Ready(Ok(()));
         }
         state.reserved -= 1;
+        self.show_free(&state);
         Poll::Ready(Err(SendError(())))
     }
 
@@ -210,7 +224,9 @@ impl<T> Shared<T> {
             }
             None => {
                 state.reserved -= 1;
-                self.serve_next(&mut state)
+                let next = self.serve_next(&mut state);
+                self.show_free(&state);
+                next
             }
         };
         drop(state);
@@ -225,6 +241,7 @@ impl<T> Shared<T> {
         let mut state = self.lock();
         state.reserved -= 1;
         if !state.receiving {
+            self.show_free(&state);
             drop(state);
             drop(item);
             return;
@@ -242,6 +259,7 @@ impl<T> Shared<T> {
         let mut state = self.lock();
         state.reserved -= 1;
         let next = self.serve_next(&mut state);
+        self.show_free(&state);
         drop(state);
         if let Some(next) = next {
             next.wake();
@@ -293,6 +311,7 @@ impl<T> Sender<T> {
             return Err(TrySendError::Full(item));
         }
         state.items.push_back(item);
+        self.shared.show_free(&state);
         let receiver = state.receiver.take();
         drop(state);
         if let Some(receiver) = receiver {
@@ -328,9 +347,10 @@ impl<T> Sender<T> {
         }
     }
 
-    /// Rooms free now.
+    /// Rooms free now (read without taking the lock: as of the last
+    /// send, reserve or take).
     pub fn capacity(&self) -> usize {
-        self.shared.room(&self.shared.lock())
+        self.shared.free.load(Ordering::Acquire)
     }
 
     /// Rooms in all.
@@ -493,6 +513,7 @@ impl<T> Receiver<T> {
         let mut state = self.shared.lock();
         if let Some(item) = state.items.pop_front() {
             let next = self.shared.serve_next(&mut state);
+            self.shared.show_free(&state);
             drop(state);
             self.keeps_room = true;
             if let Some(next) = next {
@@ -515,6 +536,7 @@ impl<T> Receiver<T> {
         let mut state = self.shared.lock();
         let item = state.items.pop_front()?;
         let next = self.shared.serve_next(&mut state);
+        self.shared.show_free(&state);
         drop(state);
         self.keeps_room = true;
         if let Some(next) = next {
@@ -548,6 +570,7 @@ impl<T> Drop for Receiver<T> {
         let mut state = self.shared.lock();
         state.receiving = false;
         let items = std::mem::take(&mut state.items);
+        self.shared.show_free(&state);
         // The waiting senders' tickets stay in line, to be told it closed.
         let waiting: Vec<Waker> = state
             .waiting
@@ -717,6 +740,25 @@ mod tests {
             Poll::Ready(Err(SendError(())))
         ));
         assert_eq!(tx.capacity(), 1);
+    }
+
+    #[test]
+    fn the_rooms_free_are_told_without_taking_the_lock() {
+        let (tx, mut rx) = channel(2);
+        let permit = tx.try_reserve().unwrap();
+        tx.try_send(1).unwrap();
+        let held = tx.shared.lock();
+        let (report, told) = std::sync::mpsc::channel();
+        std::thread::scope(|scope| {
+            scope.spawn(|| report.send(tx.capacity()).unwrap());
+            let free = told.recv_timeout(std::time::Duration::from_secs(10));
+            drop(held);
+            assert_eq!(free, Ok(0), "told while another holds the lock");
+        });
+        drop(permit);
+        assert_eq!(tx.capacity(), 1);
+        assert_eq!(rx.try_recv(), Some(1));
+        assert_eq!(tx.capacity(), 2);
     }
 
     #[test]
