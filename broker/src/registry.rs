@@ -206,8 +206,10 @@ impl Registry {
     }
 
     /// The handshake of connection `id` is done.
-    pub fn opened(&self, id: u64, opened: Opened) {
+    pub fn opened(&self, id: u64, mut opened: Opened) {
         if let Some(entry) = self.entry(id) {
+            // Kept for the connection's life: only the room it fills.
+            opened.client_properties.shrink_to_fit();
             if entry.opened.set(opened).is_ok() {
                 self.counters.connections_opened.inc();
             }

@@ -20,6 +20,14 @@
 //!   one lock, tags reach the client in order; handed out under the lock and
 //!   queued after it (the broker's former dispatch), they can overtake each
 //!   other, and the model finds it.
+//! - `tests/handoff.rs` compiles the protocol crate's own
+//!   `protocol/src/handoff.rs` (a mutex and an atomic) against loom's:
+//!   senders racing for one room deliver every item once and in order,
+//!   waiting senders are served in the order they began to wait, a room
+//!   given back or a cancelled reserve never strands a waiting sender (a
+//!   wait given up passes the room it was given to the next in line), a
+//!   receiver gone closes the queue and drops its items, and the last
+//!   sender gone wakes the receiver after the items.
 //!
 //! The plain-thread counterparts run in the broker's unit tests and in
 //! `tests/tests/multi_thread_stress.rs` on every `cargo test`.

@@ -25,6 +25,7 @@
 //! - [`method`]: the one table of every class and method, generating [`Method`] and a struct per method.
 //! - [`properties`]: content headers and the fourteen basic properties.
 //! - `outgoing`: [`Outgoing`], a client's items in sending order (methods, publishes with their content).
+//! - [`handoff`]: the bounded queue those items cross to a writer or an in-process broker, holding no room while empty.
 //! - [`types`]: short strings, field values, tables and arrays.
 //! - [`reply`]: reply codes and whether they close a channel or the connection.
 //! - [`error`]: [`DecodeError`], with the reply code each error calls for.
@@ -34,6 +35,7 @@
 
 pub mod error;
 pub mod frame;
+pub mod handoff;
 #[cfg(feature = "json")]
 pub mod json;
 pub mod method;

@@ -389,6 +389,17 @@ impl FieldTable {
         self.0.is_empty()
     }
 
+    /// Gives back the room beyond its entries, its nested tables' too:
+    /// for a table kept for long (a connection's client properties).
+    pub fn shrink_to_fit(&mut self) {
+        for (_, value) in &mut self.0 {
+            if let FieldValue::Table(table) = value {
+                table.shrink_to_fit();
+            }
+        }
+        self.0.shrink_to_fit();
+    }
+
     pub(crate) fn push_unchecked(&mut self, key: ShortStr, value: FieldValue) {
         self.0.push((key, value));
     }

@@ -35,6 +35,7 @@ use super::source::{FrameSource, ReadError};
 use crate::channel::WholePublish;
 use crate::outbox::{Framed, InlineDeliveries, Outbound, Outbox};
 use bytes::Bytes;
+use leveret_protocol::handoff;
 use leveret_protocol::{ContentHeader, DecodeError, Frame, Method, Outgoing, FRAME_OVERHEAD};
 use std::collections::VecDeque;
 use std::future::Future;
@@ -58,7 +59,7 @@ const WAKE_EVERY: u32 = 64;
 pub struct DirectLink {
     /// The client's items, starting with `connection.start-ok` (no
     /// protocol header: the link speaks AMQP 0.9.1 by construction).
-    pub to_broker: mpsc::Sender<Outgoing>,
+    pub to_broker: handoff::Sender<Outgoing>,
     /// The broker's frames, starting with `connection.start`.
     pub from_broker: DirectReplies,
     /// The connection's loop, for a publish handled on the client's thread.
@@ -72,22 +73,24 @@ pub struct DirectLink {
 /// body frame: it is not parsed from a buffer, so frame_max has nothing to
 /// protect).
 pub(super) struct DirectFrames {
-    rx: mpsc::Receiver<Outgoing>,
+    rx: handoff::Receiver<Outgoing>,
     /// An item a client thread handed the loop: before anything in `rx`.
     handed: Arc<Handed>,
     /// An item received and not yet taken, whole or as frames.
     held: Option<Outgoing>,
+    /// The frames of a publish not taken whole (a method is one frame and
+    /// never waits here): empty, and without room, on an idle link.
     frames: VecDeque<Frame>,
     ended: bool,
 }
 
 impl DirectFrames {
-    pub(super) fn new(rx: mpsc::Receiver<Outgoing>, handed: Arc<Handed>) -> Self {
+    pub(super) fn new(rx: handoff::Receiver<Outgoing>, handed: Arc<Handed>) -> Self {
         DirectFrames {
             rx,
             handed,
             held: None,
-            frames: VecDeque::with_capacity(4),
+            frames: VecDeque::new(),
             ended: false,
         }
     }
@@ -100,25 +103,20 @@ impl DirectFrames {
         self.held
             .take()
             .or_else(|| self.handed.take())
-            .or_else(|| self.rx.try_recv().ok())
+            .or_else(|| self.rx.try_recv())
     }
 
-    /// Appends an item's frames; false for the client's end.
-    fn push(&mut self, item: Outgoing) -> bool {
+    /// The next item's first frame (the others, a publish's, wait in
+    /// `frames`); none at the client's end.
+    fn first_frame(&mut self, item: Outgoing) -> Option<Frame> {
         match item {
-            Outgoing::Method { channel, method } => {
-                self.frames.push_back(Frame::Method { channel, method });
-            }
+            Outgoing::Method { channel, method } => Some(Frame::Method { channel, method }),
             Outgoing::Publish {
                 channel,
                 method,
                 properties,
                 body,
             } => {
-                self.frames.push_back(Frame::Method {
-                    channel,
-                    method: Method::BasicPublish(method),
-                });
                 self.frames.push_back(Frame::Header {
                     channel,
                     header: ContentHeader::new(body.len() as u64, &properties),
@@ -129,10 +127,16 @@ impl DirectFrames {
                         payload: body,
                     });
                 }
+                Some(Frame::Method {
+                    channel,
+                    method: Method::BasicPublish(method),
+                })
             }
-            Outgoing::Shutdown => return false,
+            Outgoing::Shutdown => {
+                self.ended = true;
+                None
+            }
         }
-        true
     }
 }
 
@@ -161,12 +165,10 @@ impl FrameSource for DirectFrames {
     }
 
     fn buffered_frame(&mut self) -> Result<Option<Frame>, DecodeError> {
-        if self.frames.is_empty() {
-            if let Some(item) = self.next_item() {
-                self.ended = !self.push(item);
-            }
+        if let Some(frame) = self.frames.pop_front() {
+            return Ok(Some(frame));
         }
-        Ok(self.frames.pop_front())
+        Ok(self.next_item().and_then(|item| self.first_frame(item)))
     }
 
     async fn fill(&mut self) -> Result<(), ReadError> {
@@ -212,10 +214,15 @@ impl FrameSource for DirectFrames {
     fn set_frame_max(&mut self, _frame_max: u32) {}
 
     fn holds_spare(&self) -> bool {
-        false
+        self.rx.holds_room() || self.frames.capacity() > 0
     }
 
-    fn release_spare(&mut self) {}
+    fn release_spare(&mut self) {
+        self.rx.release_room();
+        if self.frames.is_empty() {
+            self.frames = VecDeque::new();
+        }
+    }
 
     async fn discard_input(&mut self) {
         self.handed.take();
@@ -257,6 +264,9 @@ pub enum DirectReply {
 /// connection's outbox.
 pub struct DirectReplies {
     state: Replies,
+    /// The frames of content on channel 0 (never sent) still to return: a
+    /// method is one frame, returned as it comes, so an idle connection's
+    /// replies hold no room here.
     pending: VecDeque<Frame>,
     taken: u32,
     /// Whether the client holds an item taken from the outbox (returned
@@ -374,6 +384,9 @@ impl DirectReplies {
                 end.outbox.wake_blocked();
             }
             match item.framed() {
+                Framed::Method { channel, method } => {
+                    return Some(DirectReply::Frame(Frame::Method { channel, method }));
+                }
                 Framed::Content {
                     channel,
                     method,
@@ -386,51 +399,49 @@ impl DirectReplies {
                         body: message.body.clone(),
                     });
                 }
-                framed => {
+                Framed::Content {
+                    channel,
+                    method,
+                    message,
+                } => {
                     let frame_max = end.outbox.frame_max();
-                    if !push_frames(framed, frame_max, &mut self.pending) {
-                        self.state = Replies::Ended;
-                    }
+                    let content = (&message.properties, &message.body);
+                    push_content_frames(channel, method, content, frame_max, &mut self.pending);
                 }
+                Framed::Shutdown => self.state = Replies::Ended,
             }
         }
     }
 }
 
-/// Appends an outbox item's frames; false at the connection's end.
-fn push_frames(item: Framed, frame_max: u32, out: &mut VecDeque<Frame>) -> bool {
-    let (channel, method, message) = match item {
-        Framed::Method { channel, method } => {
-            out.push_back(Frame::Method { channel, method });
-            return true;
-        }
-        Framed::Shutdown => return false,
-        Framed::Content {
-            channel,
-            method,
-            message,
-        } => (channel, method, message),
-    };
+/// Appends a content-carrying method's frames, its body split by
+/// `frame_max`; `content` is its message's encoded properties and body.
+fn push_content_frames(
+    channel: u16,
+    method: Method,
+    (properties, body): (&Bytes, &Bytes),
+    frame_max: u32,
+    out: &mut VecDeque<Frame>,
+) {
     out.push_back(Frame::Method { channel, method });
     out.push_back(Frame::Header {
         channel,
         header: ContentHeader {
             class_id: ContentHeader::BASIC_CLASS,
-            body_size: message.body.len() as u64,
-            property_bytes: message.properties.clone(),
+            body_size: body.len() as u64,
+            property_bytes: properties.clone(),
         },
     });
     let chunk = (frame_max as usize).saturating_sub(FRAME_OVERHEAD).max(1);
     let mut start = 0;
-    while start < message.body.len() {
-        let end = (start + chunk).min(message.body.len());
+    while start < body.len() {
+        let end = (start + chunk).min(body.len());
         out.push_back(Frame::Body {
             channel,
-            payload: message.body.slice(start..end),
+            payload: body.slice(start..end),
         });
         start = end;
     }
-    true
 }
 
 /// Starts the connection side of an in-process link: the frames the client
@@ -445,7 +456,7 @@ pub(super) fn link<F>(
 where
     F: Future<Output = ()> + Send + 'static,
 {
-    let (to_broker, rx) = mpsc::channel(DIRECT_CAPACITY);
+    let (to_broker, rx) = handoff::channel(DIRECT_CAPACITY);
     let (start_tx, start_rx) = oneshot::channel();
     let handed = Arc::new(Handed::default());
     let connection = serve(DirectFrames::new(rx, Arc::clone(&handed)), start_tx);

@@ -28,6 +28,7 @@
 //! runs together taking at most [`CLAIM_ITEMS`] items, so no broker
 //! thread is woken for it.
 
+use leveret_protocol::handoff;
 use leveret_protocol::Outgoing;
 use std::cell::{Cell, RefCell};
 use std::collections::VecDeque;
@@ -36,7 +37,6 @@ use std::pin::Pin;
 use std::sync::atomic::{fence, AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, TryLockError};
 use std::task::{Context, Poll, Waker};
-use tokio::sync::mpsc;
 
 type LoopFuture = Pin<Box<dyn Future<Output = ()> + Send>>;
 
@@ -57,7 +57,7 @@ thread_local! {
 struct Deferred {
     here: DirectLoop,
     item: Outgoing,
-    room: mpsc::OwnedPermit<Outgoing>,
+    room: handoff::OwnedPermit<Outgoing>,
 }
 
 /// Whether `item` is a `basic.ack` of one delivery: the only item
@@ -165,7 +165,7 @@ struct Shared {
     handed: Arc<Handed>,
     /// The client's link, to tell whether anything it sent waits in it
     /// (weak: the client's senders going away ends the connection).
-    to_broker: mpsc::WeakSender<Outgoing>,
+    to_broker: handoff::WeakSender<Outgoing>,
     runtime: tokio::runtime::Handle,
 }
 
@@ -220,8 +220,8 @@ impl DirectLoop {
     pub fn defer(
         &self,
         item: Outgoing,
-        room: mpsc::OwnedPermit<Outgoing>,
-    ) -> Result<(), (Outgoing, mpsc::OwnedPermit<Outgoing>)> {
+        room: handoff::OwnedPermit<Outgoing>,
+    ) -> Result<(), (Outgoing, handoff::OwnedPermit<Outgoing>)> {
         if !DirectLoop::may_defer() {
             return Err((item, room));
         }
@@ -286,7 +286,7 @@ impl LoopClaim<'_> {
     /// another handed item) and `permit` is the only room reserved in it;
     /// otherwise sends `item` through `permit`, as it would have gone
     /// without the claim. Whether it was handed.
-    pub fn hand_or_send(&mut self, item: Outgoing, permit: mpsc::Permit<'_, Outgoing>) -> bool {
+    pub fn hand_or_send(&mut self, item: Outgoing, permit: handoff::Permit<'_, Outgoing>) -> bool {
         if !self.may_hand() {
             permit.send(item);
             return false;
@@ -476,7 +476,7 @@ impl Drop for LoopTask {
 pub(super) fn spawn(
     connection: impl Future<Output = ()> + Send + 'static,
     handed: Arc<Handed>,
-    to_broker: &mpsc::Sender<Outgoing>,
+    to_broker: &handoff::Sender<Outgoing>,
 ) -> DirectLoop {
     let shared = Arc::new(Shared {
         future: Mutex::new(Some(Box::pin(connection))),
@@ -566,7 +566,7 @@ mod tests {
     /// source does), and waits on its link.
     async fn recording_loop(
         handed: Arc<Handed>,
-        mut link: mpsc::Receiver<Outgoing>,
+        mut link: handoff::Receiver<Outgoing>,
         taken: Arc<Mutex<Vec<u64>>>,
     ) {
         loop {
@@ -585,7 +585,7 @@ mod tests {
         let runtime = tokio::runtime::Builder::new_current_thread()
             .build()
             .expect("runtime");
-        let (to_broker, link) = mpsc::channel(8);
+        let (to_broker, link) = handoff::channel(8);
         let handed = Arc::new(Handed::default());
         let taken = Arc::new(Mutex::new(Vec::new()));
         let here = runtime.block_on(async {
@@ -644,8 +644,8 @@ mod tests {
     /// delivered inline), with room reserved in its link.
     async fn chaining_loop(
         handed: Arc<Handed>,
-        mut link: mpsc::Receiver<Outgoing>,
-        to_broker: mpsc::Sender<Outgoing>,
+        mut link: handoff::Receiver<Outgoing>,
+        to_broker: handoff::Sender<Outgoing>,
         here: Arc<std::sync::OnceLock<DirectLoop>>,
         units: Arc<AtomicUsize>,
     ) {
@@ -677,7 +677,7 @@ mod tests {
         let runtime = tokio::runtime::Builder::new_current_thread()
             .build()
             .expect("runtime");
-        let (to_broker, link) = mpsc::channel(8);
+        let (to_broker, link) = handoff::channel(8);
         let handed = Arc::new(Handed::default());
         let units = Arc::new(AtomicUsize::new(0));
         let cell = Arc::new(std::sync::OnceLock::new());
@@ -729,7 +729,7 @@ mod tests {
         let runtime = tokio::runtime::Builder::new_current_thread()
             .build()
             .expect("runtime");
-        let (to_broker, link) = mpsc::channel(8);
+        let (to_broker, link) = handoff::channel(8);
         let handed = Arc::new(Handed::default());
         let taken = Arc::new(Mutex::new(Vec::new()));
         let here = runtime.block_on(async {
@@ -774,7 +774,7 @@ mod tests {
         let runtime = tokio::runtime::Builder::new_current_thread()
             .build()
             .expect("runtime");
-        let (to_broker, link) = mpsc::channel(8);
+        let (to_broker, link) = handoff::channel(8);
         let handed = Arc::new(Handed::default());
         let taken = Arc::new(Mutex::new(Vec::new()));
         let here = runtime.block_on(async {

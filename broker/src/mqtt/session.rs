@@ -912,11 +912,11 @@ impl Session {
             while let Some(item) = self.pending.pop_front() {
                 match link.direct.to_broker.try_send(item) {
                     Ok(()) => {}
-                    Err(tokio::sync::mpsc::error::TrySendError::Full(item)) => {
+                    Err(leveret_protocol::handoff::TrySendError::Full(item)) => {
                         self.pending.push_front(item);
                         break;
                     }
-                    Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => {
+                    Err(leveret_protocol::handoff::TrySendError::Closed(_)) => {
                         let stop = closed("link ended", None);
                         return Box::pin(self.finish(socket, link, claim, stop)).await;
                     }

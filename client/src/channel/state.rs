@@ -17,6 +17,7 @@ use crate::error::{Error, Result};
 use crate::message::{Content, Delivery, IntoShortStr, ReturnedMessage};
 use crate::options::{BasicAckOptions, BasicNackOptions, BasicPublishOptions, BasicRejectOptions};
 use bytes::Bytes;
+use leveret_protocol::handoff;
 use leveret_protocol::Outgoing;
 use leveret_protocol::{
     BasicAck, BasicNack, BasicProperties, BasicPublish, BasicReject, Method, ShortStr,
@@ -364,8 +365,8 @@ impl ChannelCore {
     pub(crate) fn try_reserve(&self) -> Result<Option<OutboxSlot<'_>>> {
         match self.conn.tx.try_reserve() {
             Ok(permit) => Ok(Some(OutboxSlot { core: self, permit })),
-            Err(mpsc::error::TrySendError::Full(())) => Ok(None),
-            Err(mpsc::error::TrySendError::Closed(())) => Err(self.conn.error()),
+            Err(handoff::TrySendError::Full(())) => Ok(None),
+            Err(handoff::TrySendError::Closed(())) => Err(self.conn.error()),
         }
     }
 
@@ -413,7 +414,7 @@ impl ChannelCore {
 /// Dropping it unused gives the room back.
 pub struct OutboxSlot<'a> {
     core: &'a ChannelCore,
-    permit: mpsc::Permit<'a, Outgoing>,
+    permit: handoff::Permit<'a, Outgoing>,
 }
 
 impl std::fmt::Debug for OutboxSlot<'_> {

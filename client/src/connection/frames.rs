@@ -12,6 +12,7 @@
 
 use super::writer::{self, OUTBOX_CAPACITY};
 use bytes::{Bytes, BytesMut};
+use leveret_protocol::handoff;
 use leveret_protocol::{
     decode_frame, encode_content, encode_method, ContentHeader, DecodeError, Frame, Method,
     Outgoing, PROTOCOL_HEADER,
@@ -19,7 +20,7 @@ use leveret_protocol::{
 use std::future::Future;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 
 /// A content-carrying method (deliver, get-ok, return) received whole,
@@ -80,7 +81,7 @@ pub(crate) trait FrameOutput: Send + 'static {
 /// A connection's outbox after the handshake.
 pub(crate) struct Outbox {
     /// What every channel sends into (bounded: senders wait for room).
-    pub tx: mpsc::Sender<Outgoing>,
+    pub tx: handoff::Sender<Outgoing>,
     /// The writer task, where one drains the outbox.
     pub writer: Option<Writer>,
     /// An in-process connection's loop (see `Shared::here`).
@@ -217,7 +218,7 @@ impl<W: AsyncWrite + Unpin + Send + 'static> FrameOutput for ByteOutput<W> {
     }
 
     fn into_outbox(self, frame_max: u32, heartbeat: Duration) -> Outbox {
-        let (tx, rx) = mpsc::channel(OUTBOX_CAPACITY);
+        let (tx, rx) = handoff::channel(OUTBOX_CAPACITY);
         let (failed_tx, failed) = oneshot::channel();
         let task = tokio::spawn(writer::run(self, rx, frame_max, heartbeat, failed_tx));
         Outbox {
@@ -236,9 +237,9 @@ pub(crate) use direct::{DirectInput, DirectOutput};
 mod direct {
     use super::{FrameInput, FrameOutput, Outbox, Outgoing, WholeContent};
     use leveret_broker::{DirectLoop, DirectReplies, DirectReply};
+    use leveret_protocol::handoff;
     use leveret_protocol::{DecodeError, Frame, Method};
     use std::time::Duration;
-    use tokio::sync::mpsc;
 
     /// The broker's frames as values, its contents whole.
     pub(crate) struct DirectInput {
@@ -305,13 +306,13 @@ mod direct {
     /// Items handed to the broker as they are: the handshake's methods,
     /// then every channel's, through the same bounded sender.
     pub(crate) struct DirectOutput {
-        to_broker: mpsc::Sender<Outgoing>,
+        to_broker: handoff::Sender<Outgoing>,
         here: DirectLoop,
         batch: Vec<Method>,
     }
 
     impl DirectOutput {
-        pub(crate) fn new(to_broker: mpsc::Sender<Outgoing>, here: DirectLoop) -> Self {
+        pub(crate) fn new(to_broker: handoff::Sender<Outgoing>, here: DirectLoop) -> Self {
             DirectOutput {
                 to_broker,
                 here,

@@ -23,6 +23,7 @@ use crate::error::{CloseReason, Error, Result};
 use crate::uri::{AuthMechanism, ConnectionOptions};
 use bytes::Bytes;
 use frames::{ByteInput, ByteOutput, FrameInput, FrameOutput};
+use leveret_protocol::handoff;
 use leveret_protocol::Outgoing;
 use leveret_protocol::{
     ConnectionClose, ConnectionCloseOk, ConnectionOpen, ConnectionStartOk, ConnectionTuneOk,
@@ -31,7 +32,7 @@ use leveret_protocol::{
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
-use tokio::sync::{mpsc, watch};
+use tokio::sync::watch;
 use transport::Transport;
 
 /// How long [`Connection::close`] waits for room in the outbox.
@@ -73,7 +74,7 @@ pub(crate) struct ConnState {
 #[derive(Debug)]
 pub(crate) struct Shared {
     /// The writer's bounded outbox.
-    pub(crate) tx: mpsc::Sender<Outgoing>,
+    pub(crate) tx: handoff::Sender<Outgoing>,
     state: Mutex<ConnState>,
     /// True once a close has begun: the reader stops waiting on full
     /// consumer buffers and drops channel traffic.
@@ -116,7 +117,7 @@ impl Shared {
     }
 
     /// Waits for room in the outbox.
-    pub(crate) async fn reserve(&self) -> Result<mpsc::Permit<'_, Outgoing>> {
+    pub(crate) async fn reserve(&self) -> Result<handoff::Permit<'_, Outgoing>> {
         self.tx.reserve().await.map_err(|_| self.error())
     }
 
@@ -124,8 +125,8 @@ impl Shared {
     /// otherwise from a task, if there is a runtime.
     pub(crate) fn send_from_drop(self: &Arc<Self>, item: Outgoing) {
         match self.tx.try_send(item) {
-            Ok(()) | Err(mpsc::error::TrySendError::Closed(_)) => {}
-            Err(mpsc::error::TrySendError::Full(item)) => {
+            Ok(()) | Err(handoff::TrySendError::Closed(_)) => {}
+            Err(handoff::TrySendError::Full(item)) => {
                 if let Ok(runtime) = tokio::runtime::Handle::try_current() {
                     let tx = self.tx.clone();
                     runtime.spawn(async move {

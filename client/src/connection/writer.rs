@@ -6,10 +6,11 @@
 //! the outbox's items go to the embedded broker as they are.)
 
 use super::frames::ByteOutput;
+use leveret_protocol::handoff;
 use leveret_protocol::Outgoing;
 use std::time::Duration;
 use tokio::io::AsyncWrite;
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::oneshot;
 
 /// How many items may wait for the writer. Senders wait for room, so a
 /// slow socket slows publishers down instead of growing a buffer.
@@ -22,7 +23,7 @@ const BATCH_BYTES: usize = 128 * 1024;
 /// error, which is reported through `failed`.
 pub(crate) async fn run<W: AsyncWrite + Unpin + Send + 'static>(
     mut output: ByteOutput<W>,
-    mut inbox: mpsc::Receiver<Outgoing>,
+    mut inbox: handoff::Receiver<Outgoing>,
     frame_max: u32,
     heartbeat: Duration,
     failed: oneshot::Sender<std::io::Error>,
@@ -48,8 +49,8 @@ pub(crate) async fn run<W: AsyncWrite + Unpin + Send + 'static>(
             let mut stop = output.push(item, frame_max);
             while !stop && output.batched() < BATCH_BYTES {
                 match inbox.try_recv() {
-                    Ok(item) => stop = output.push(item, frame_max),
-                    Err(_) => break,
+                    Some(item) => stop = output.push(item, frame_max),
+                    None => break,
                 }
             }
             output.write().await?;
