@@ -403,9 +403,10 @@ impl Vhost {
                 let current = existing.arguments();
                 let differing = if existing.is_stream() {
                     arguments::first_inequivalent_on_stream(&o.arguments, &d.arguments, &resource)
-                } else if arguments::marks_an_mqtt_group_queue(&current) {
-                    // MQTT keeps a group queue's x-expires at its members'
-                    // (a redeclaration's, an old export's, is stale).
+                } else if arguments::marks_an_mqtt_queue(&current) {
+                    // MQTT keeps a group queue's x-expires at its members',
+                    // a session queue's at its session's (a redeclaration's,
+                    // an old export's, is stale).
                     let (mut current, mut requested) = (current, d.arguments.clone());
                     current.remove("x-expires");
                     requested.remove("x-expires");
