@@ -3761,8 +3761,10 @@ async fn under_infinity_a_3_1_1_persistent_session_never_expires() {
     disconnect!(client, events);
     offline(&handle, queue).await;
     assert_eq!(listed_as(&handle, queue), (true, false, None, 0));
+    // (The `x-expires` of None above is what says it never expires: a
+    // reconnect at once would find it under any cap.)
     let (client, mut events, present) = persistent3("endless", port, false).await;
-    assert!(present, "never expires");
+    assert!(present, "kept");
     disconnect!(client, events);
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
@@ -3818,6 +3820,137 @@ async fn a_3_1_1_session_stored_as_never_expiring_gets_the_cap_at_start() {
     let (client, mut events, present) = persistent3("veteran", port, false).await;
     assert!(!present, "the expired session is gone");
     disconnect!(client, events);
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Every part of a session restored from the store (its own queue, its
+/// shared subscription and so its group's queue, its unreleased QoS 2
+/// publish) is given the cap at start and keeps what it was given under a
+/// later raised cap, so that its parts expire together whatever caps the
+/// starts have: here a 3.1.1 session stored as never expiring, started
+/// under a minute, then `infinity` (all keep the minute), then 5 s, then
+/// `infinity` again (all go 5 s after that start, and a returning client
+/// finds no session).
+#[both_runtimes]
+async fn a_sessions_parts_expire_together_when_the_cap_changes_between_restarts() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-cap-changes"));
+    let (queue, group) = ("mqtt-subscription-splitqos1", "mqtt-shared-sg/s/#");
+    let with_cap = |max: Option<u32>| {
+        Broker::builder()
+            .data_dir(&dir)
+            .mqtt_max_session_expiry_interval(max)
+    };
+    let handle = start_with(with_cap(None), Limits::default()).await;
+    let (mut raw, present) = raw_session(mqtt_port(&handle), "split", false, None).await;
+    assert!(!present);
+    let subscription = |filter: &'static str| leveret_mqtt::Subscription {
+        filter: leveret_mqtt::TopicFilter::from_static(filter),
+        options: leveret_mqtt::SubscriptionOptions {
+            qos: leveret_mqtt::QoS::AtLeastOnce,
+            ..Default::default()
+        },
+    };
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![subscription("own/#"), subscription("$share/sg/s/#")],
+    }))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    let id = std::num::NonZeroU16::new(7).unwrap();
+    raw.send(qos2_once(id, "sp/x", false)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    drop(raw);
+    offline(&handle, queue).await;
+    offline(&handle, group).await;
+    assert_eq!(listed_as(&handle, queue).2, None, "stored never expiring");
+    assert_eq!(listed_as(&handle, group).2, None);
+    handle.shutdown().await;
+
+    // A minute, then infinity: both queues keep the minute (the group's
+    // from its member's record, written back at the first start).
+    for max in [Some(60), None] {
+        let handle = start_with(with_cap(max), Limits::default()).await;
+        assert_eq!(listed_as(&handle, queue).2, Some(60_000), "cap {max:?}");
+        assert_eq!(listed_as(&handle, group).2, Some(60_000), "cap {max:?}");
+        handle.shutdown().await;
+    }
+    // 5 s (shut down at once, well within them), then infinity: every
+    // part goes 5 s after that start.
+    let handle = start_with(with_cap(Some(5)), Limits::default()).await;
+    assert_eq!(listed_as(&handle, queue).2, Some(5_000));
+    handle.shutdown().await;
+    let handle = start_with(with_cap(None), Limits::default()).await;
+    until_queue_listed(&handle, queue, false, "the session's queue expired").await;
+    until_queue_listed(&handle, group, false, "its group's queue with it").await;
+    let (raw, present) = raw_session(mqtt_port(&handle), "split", false, None).await;
+    assert!(
+        !present,
+        "nothing of the session left (its QoS 2 state gone too)"
+    );
+    drop(raw);
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Only the queues MQTT sessions declared are given the cap at start: a
+/// durable queue an AMQP client declared under a session queue's name
+/// (its client never connected) keeps its arguments and its messages
+/// under the default cap and under 0, as RabbitMQ 3.13 changes such a
+/// queue only when an MQTT client of that identifier connects. One a
+/// session holding QoS 2 state uses without the mark (as an older
+/// Leveret declared them) is given a cap, but never 1 ms.
+#[both_runtimes]
+async fn an_amqp_clients_queue_of_a_session_queues_name_is_left_alone_at_start() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-amqp-session-name"));
+    let (amqps, older) = (
+        "mqtt-subscription-deviceqos1",
+        "mqtt-subscription-olderqos1",
+    );
+    let made = "mqtt-subscription-madeqos1";
+    let with_cap = |max: Option<u32>| {
+        Broker::builder()
+            .data_dir(&dir)
+            .mqtt_max_session_expiry_interval(max)
+    };
+    let handle = start_with(with_cap(None), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    let (amqp, channel) = amqp_channel(&handle).await;
+    let durable = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    for name in [amqps, older] {
+        tmo!(channel.queue_declare(name, durable, Default::default())).unwrap();
+    }
+    bind_to_amq_topic(&channel, amqps, "device.#").await;
+    drop(amqp);
+    publish_acked(port, "device/1", "provisioned", false).await;
+    // A session MQTT declares a queue for, and one that finds the
+    // unmarked queue and holds QoS 2 state.
+    subscribed3_and_gone("made", port, &["m/#"]).await;
+    let (mut raw, _) = raw_session(port, "older", false, None).await;
+    let id = std::num::NonZeroU16::new(3).unwrap();
+    raw.send(qos2_once(id, "o/x", false)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    drop(raw);
+    offline(&handle, made).await;
+    offline(&handle, older).await;
+    handle.shutdown().await;
+
+    let handle = start_with(with_cap(Some(60)), Limits::default()).await;
+    assert_eq!(listed_as(&handle, amqps), (true, false, None, 1));
+    assert_eq!(listed_as(&handle, made).2, Some(60_000));
+    assert_eq!(listed_as(&handle, older).2, Some(60_000), "its session's");
+    handle.shutdown().await;
+
+    // Under 0 the session MQTT made goes at the first sweep; the others
+    // stay as they were.
+    let handle = start_with(with_cap(Some(0)), Limits::default()).await;
+    until_queue_listed(&handle, made, false, "the session's queue gone").await;
+    assert_eq!(listed_as(&handle, amqps), (true, false, None, 1));
+    assert_eq!(listed_as(&handle, older).2, Some(60_000), "never 1 ms");
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
