@@ -3894,20 +3894,20 @@ async fn a_sessions_parts_expire_together_when_the_cap_changes_between_restarts(
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Only the queues MQTT sessions declared are given the cap at start: a
-/// durable queue an AMQP client declared under a session queue's name
-/// (its client never connected) keeps its arguments and its messages
-/// under the default cap and under 0, as RabbitMQ 3.13 changes such a
-/// queue only when an MQTT client of that identifier connects. One a
-/// session holding QoS 2 state uses without the mark (as an older
-/// Leveret declared them) is given a cap, but never 1 ms.
+/// Only the queues MQTT sessions declared or resumed are given the cap at
+/// start: a durable queue an AMQP client declared under a session queue's
+/// name (its client never connected) keeps its arguments and its messages
+/// under a cap and under 0, as RabbitMQ 3.13 changes such a queue only
+/// when an MQTT client of that identifier connects (then it is the
+/// session's: given the cap at every start). One without the mark whose
+/// session holds QoS 2 state (as an older Leveret left them) is given the
+/// cap, and is the session's from then on.
 #[both_runtimes]
 async fn an_amqp_clients_queue_of_a_session_queues_name_is_left_alone_at_start() {
     let dir = std::env::temp_dir().join(unique("leveret-mqtt-amqp-session-name"));
-    let (amqps, older) = (
-        "mqtt-subscription-deviceqos1",
-        "mqtt-subscription-olderqos1",
-    );
+    let amqps = "mqtt-subscription-deviceqos1";
+    let adopted = "mqtt-subscription-adoptedqos1";
+    let older = "mqtt-subscription-olderqos1";
     let made = "mqtt-subscription-madeqos1";
     let with_cap = |max: Option<u32>| {
         Broker::builder()
@@ -3916,41 +3916,49 @@ async fn an_amqp_clients_queue_of_a_session_queues_name_is_left_alone_at_start()
     };
     let handle = start_with(with_cap(None), Limits::default()).await;
     let port = mqtt_port(&handle);
-    let (amqp, channel) = amqp_channel(&handle).await;
-    let durable = lapin::options::QueueDeclareOptions {
-        durable: true,
-        ..Default::default()
-    };
-    for name in [amqps, older] {
-        tmo!(channel.queue_declare(name, durable, Default::default())).unwrap();
-    }
-    bind_to_amq_topic(&channel, amqps, "device.#").await;
-    drop(amqp);
-    publish_acked(port, "device/1", "provisioned", false).await;
-    // A session MQTT declares a queue for, and one that finds the
-    // unmarked queue and holds QoS 2 state.
-    subscribed3_and_gone("made", port, &["m/#"]).await;
+    // A publisher's session holding QoS 2 state, whose queue an older
+    // Leveret would have declared without the mark.
     let (mut raw, _) = raw_session(port, "older", false, None).await;
     let id = std::num::NonZeroU16::new(3).unwrap();
     raw.send(qos2_once(id, "o/x", false)).await;
     assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
     drop(raw);
+    let (amqp, channel) = amqp_channel(&handle).await;
+    let durable = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    for name in [amqps, adopted, older] {
+        tmo!(channel.queue_declare(name, durable, Default::default())).unwrap();
+    }
+    bind_to_amq_topic(&channel, amqps, "device.#").await;
+    drop(amqp);
+    publish_acked(port, "device/1", "provisioned", false).await;
+    // A session MQTT declares its queue for.
+    subscribed3_and_gone("made", port, &["m/#"]).await;
     offline(&handle, made).await;
-    offline(&handle, older).await;
     handle.shutdown().await;
 
     let handle = start_with(with_cap(Some(60)), Limits::default()).await;
     assert_eq!(listed_as(&handle, amqps), (true, false, None, 1));
+    assert_eq!(listed_as(&handle, adopted).2, None);
     assert_eq!(listed_as(&handle, made).2, Some(60_000));
     assert_eq!(listed_as(&handle, older).2, Some(60_000), "its session's");
+    // A client of that identifier connects: the queue is its session's.
+    let (client, mut events, present) = persistent3("adopted", mqtt_port(&handle), false).await;
+    assert!(present, "the queue is resumed as the session's");
+    until_expires(&handle, adopted, Some(60_000)).await;
+    disconnect!(client, events);
+    offline(&handle, adopted).await;
     handle.shutdown().await;
 
-    // Under 0 the session MQTT made goes at the first sweep; the others
-    // stay as they were.
+    // Under 0 the sessions' queues go at the first sweep; the AMQP
+    // client's stays as it was, with its message.
     let handle = start_with(with_cap(Some(0)), Limits::default()).await;
-    until_queue_listed(&handle, made, false, "the session's queue gone").await;
+    for queue in [made, adopted, older] {
+        until_queue_listed(&handle, queue, false, "the session's queue gone").await;
+    }
     assert_eq!(listed_as(&handle, amqps), (true, false, None, 1));
-    assert_eq!(listed_as(&handle, older).2, Some(60_000), "never 1 ms");
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
 }

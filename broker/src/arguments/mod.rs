@@ -128,8 +128,8 @@ pub fn marks_an_mqtt_group_queue(arguments: &FieldTable) -> bool {
 }
 
 /// The queue argument that marks an MQTT session's own queue
-/// (`mqtt-subscription-<client id>qos<N>`) as declared by the session
-/// (`true`; any other boolean marks nothing): only such a queue is given
+/// (`mqtt-subscription-<client id>qos<N>`) as declared or resumed by the
+/// session (`true`; any other boolean marks nothing): only such a queue is given
 /// the session expiry cap at start (see `crate::mqtt`'s expiry), never
 /// one an AMQP client declared under that name (unless it copied the
 /// mark). Neither it nor a marked queue's `x-expires` (which MQTT keeps
@@ -189,7 +189,7 @@ pub const ARGUMENTS: &[Argument] = &[
         support: Support::Implemented,
         compared: false,
         on_stream: Some(Support::Refused("MQTT session queues are classic queues")),
-        meaning: "Leveret's own (boolean), set by MQTT sessions on the `mqtt-subscription-<client id>qos<N>` queues they declare: `true` lets MQTT give the queue the session expiry cap at start (an unmarked queue of that name is left alone then, unless its session holds QoS 2 or shared subscription state); neither it nor a marked queue's `x-expires` is compared on redeclaration",
+        meaning: "Leveret's own (boolean), set by MQTT sessions on the `mqtt-subscription-<client id>qos<N>` queues they declare or resume: `true` lets MQTT give the queue the session expiry cap at start (an unmarked queue of that name is left alone then, unless its session holds QoS 2 or shared subscription state); neither it nor a marked queue's `x-expires` is compared on redeclaration",
     },
     Argument {
         name: "alternate-exchange",

@@ -73,6 +73,9 @@ pub(super) fn restored(stored: u32, max: Option<u32>) -> Option<u32> {
     }
 }
 
+/// The mark of a session's own queue.
+const SESSION_MARK: &str = crate::arguments::MQTT_SESSION;
+
 /// Queues [`cap_restored_queues`] looks at between yields.
 const CAP_CHUNK: usize = 256;
 
@@ -84,12 +87,12 @@ const CAP_CHUNK: usize = 256;
 /// cap applied to those) or with a longer interval expires `max` seconds
 /// after the start unless its client comes back, as its QoS 2 and shared
 /// subscription records do (both written back). Only queues a session
-/// declared (marked [`crate::arguments::MQTT_SESSION`]) are capped, and
-/// unmarked ones (an older Leveret's, or an AMQP client's of that name)
-/// only where `holds(vhost, client id)` (the session has restored QoS 2 or
-/// shared subscription state: it is an MQTT session's) and the cap is not
-/// 0: an unmarked queue is never given 1 ms at start. Yields every
-/// [`CAP_CHUNK`] queues. How many changed.
+/// declared or resumed (marked [`crate::arguments::MQTT_SESSION`]) are
+/// capped, and unmarked ones (an older Leveret's, or an AMQP client's of
+/// that name) only where `holds(vhost, client id)` (the session has
+/// restored QoS 2 or shared subscription state: it is an MQTT session's;
+/// then marked) and the cap is not 0: an unmarked queue is never given
+/// 1 ms at start. Yields every [`CAP_CHUNK`] queues. How many changed.
 pub(super) async fn cap_restored_queues(
     vhosts: &[Arc<Vhost>],
     max: Option<u32>,
@@ -117,9 +120,11 @@ pub(super) async fn cap_restored_queues(
                 let current = (arguments.get("x-expires"))
                     .and_then(FieldValue::as_i64)
                     .and_then(|ms| u64::try_from(ms).ok());
+                // An unmarked one of a session with records is its
+                // session's: marked as such.
                 if ours
                     && current.is_none_or(|ms| ms > cap)
-                    && vhost.set_queue_expires(queue, Some(cap))
+                    && vhost.set_queue_expires(queue, Some(cap), Some(SESSION_MARK))
                 {
                     changed += 1;
                 }
@@ -137,7 +142,9 @@ pub(super) fn longest(a: Option<u32>, b: Option<u32>) -> Option<u32> {
 
 /// Makes the session queues `names` of `vhost` that outlive their
 /// connection expire after `expires` ms unused (`None`: never), those
-/// that do not already; how many changed.
+/// that do not already, and marks them as the session's (one it resumed
+/// without the mark, an older Leveret's or an AMQP client's, is its
+/// session's from then on, as RabbitMQ 3.13 takes it); how many changed.
 pub(super) fn follow(
     core: &Core,
     vhost: &str,
@@ -158,10 +165,13 @@ pub(super) fn follow(
         if queue.options.exclusive_owner.is_some() {
             continue;
         }
-        let current = (queue.arguments().get("x-expires"))
+        let arguments = queue.arguments();
+        let marked = crate::arguments::marks_an_mqtt_session_queue(&arguments);
+        let current = (arguments.get("x-expires"))
             .and_then(FieldValue::as_i64)
             .and_then(|ms| u64::try_from(ms).ok());
-        if current != expires && vhost.set_queue_expires(&queue, expires) {
+        let changes = current != expires || !marked;
+        if changes && vhost.set_queue_expires(&queue, expires, Some(SESSION_MARK)) {
             changed += 1;
         }
     }
@@ -223,6 +233,8 @@ mod tests {
             } else {
                 assert_eq!(changed, 2);
                 assert_eq!(expires_of(&older), want, "its session's records say so");
+                let arguments = older.arguments();
+                assert!(crate::arguments::marks_an_mqtt_session_queue(&arguments));
             }
         }
         // Only lowered, never raised.

@@ -630,7 +630,7 @@ impl Shares {
                 .and_then(FieldValue::as_i64)
                 .and_then(|ms| u64::try_from(ms).ok());
             let expires = state.group(vhost_name, filter).queue_expires();
-            if current != expires && vhost.set_queue_expires(&queue, expires) {
+            if current != expires && vhost.set_queue_expires(&queue, expires, None) {
                 tracing::debug!(queue = %queue.name, ?expires, "MQTT shared subscription group's queue given its members' expiry");
             }
         }
@@ -1020,7 +1020,7 @@ mod tests {
         assert_eq!(expires_of(&queue), Some(3_600_000));
         // A disconnect with an unchanged interval gives its groups their
         // value again (whatever wrote the queue meanwhile).
-        assert!(h.vhost.set_queue_expires(&queue, Some(1)));
+        assert!(h.vhost.set_queue_expires(&queue, Some(1), None));
         let ended = shares.ended("/", "p3", Some(3600));
         assert_eq!(ended, [("/".to_owned(), "$share/g/x".to_owned())]);
         shares.apply_in(vhost_of, ended);

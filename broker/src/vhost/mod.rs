@@ -734,14 +734,20 @@ impl Vhost {
         Ok(JoinAttempt::Going(queue))
     }
 
-    /// Gives `queue`, if it is still this vhost's, its own expiry
-    /// ([`Queue::set_expires`]); false if it is gone. Under the queues'
-    /// lock, so that its record reaches the store before a deletion's.
+    /// Gives `queue`, if it is still this vhost's, its own expiry (and
+    /// `mark`, if any: [`Queue::set_expires`]); false if it is gone. Under
+    /// the queues' lock, so that its record reaches the store before a
+    /// deletion's.
     #[cfg(feature = "mqtt")]
-    pub fn set_queue_expires(&self, queue: &Arc<Queue>, expires: Option<u64>) -> bool {
+    pub fn set_queue_expires(
+        &self,
+        queue: &Arc<Queue>,
+        expires: Option<u64>,
+        mark: Option<&'static str>,
+    ) -> bool {
         let queues = read(&self.queues);
         match queues.get(queue.name.as_bytes()) {
-            Some(current) if Arc::ptr_eq(current, queue) => queue.set_expires(expires),
+            Some(current) if Arc::ptr_eq(current, queue) => queue.set_expires(expires, mark),
             _ => false,
         }
     }
