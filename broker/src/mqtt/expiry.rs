@@ -215,11 +215,19 @@ mod tests {
         let unmarked = (crate::arguments::MQTT_SESSION, FieldValue::Bool(false));
         for (max, want) in [(Some(60), Some(60_000)), (Some(0), Some(1))] {
             let h = Harness::durable();
-            let session = h.declare_queue("mqtt-subscription-devqos1", true, &[marked.clone()]);
+            let session = h.declare_queue(
+                "mqtt-subscription-devqos1",
+                true,
+                std::slice::from_ref(&marked),
+            );
             // An AMQP client's of a session queue's name, one that says
             // `false`, and an older Leveret's of a session with records.
             let amqp = h.declare_queue("mqtt-subscription-appqos1", true, &[]);
-            let untrue = h.declare_queue("mqtt-subscription-noqos2", true, &[unmarked.clone()]);
+            let untrue = h.declare_queue(
+                "mqtt-subscription-noqos2",
+                true,
+                std::slice::from_ref(&unmarked),
+            );
             let older = h.declare_queue("mqtt-subscription-oldqos0", true, &[]);
             let holds = |vhost: &str, client_id: &str| vhost == "/" && client_id == "old";
             let vhosts = [Arc::clone(&h.vhost)];
