@@ -259,6 +259,42 @@ mod tests {
     }
 
     #[test]
+    fn a_marked_session_queues_expiry_is_not_compared_on_redeclaration() {
+        use crate::queue::QueueOptions;
+        use crate::vhost::QueueDeclaration;
+        let h = crate::testkit::Harness::durable();
+        let marked = (crate::arguments::MQTT_SESSION, FieldValue::Bool(true));
+        let hour = [marked, ("x-expires", FieldValue::I64(3_600_000))];
+        let queue = h.declare_queue("mqtt-subscription-devqos1", true, &hour);
+        // An old export's, without the mark or with another x-expires.
+        let redeclared = |arguments: &[(&str, FieldValue)]| QueueDeclaration {
+            name: crate::testkit::s("mqtt-subscription-devqos1"),
+            passive: false,
+            server_named: false,
+            options: QueueOptions {
+                durable: true,
+                exclusive_owner: None,
+                auto_delete: false,
+                arguments: crate::testkit::table(arguments),
+            },
+            max_queues: None,
+        };
+        let minute = ("x-expires", FieldValue::I64(60_000));
+        assert!(h.vhost.declare_queue(redeclared(&[]), 0).is_ok());
+        assert!(h.vhost.declare_queue(redeclared(&[minute]), 0).is_ok());
+        assert_eq!(expires_of(&queue), Some(3_600_000));
+        // The rest is compared.
+        let length = ("x-max-length", FieldValue::I64(10));
+        assert!(h.vhost.declare_queue(redeclared(&[length]), 0).is_err());
+        // An unmarked one's x-expires is.
+        let plain = [("x-expires", FieldValue::I64(3_600_000))];
+        h.declare_queue("mqtt-subscription-appqos1", true, &plain);
+        let mut other = redeclared(&[("x-expires", FieldValue::I64(60_000))]);
+        other.name = crate::testkit::s("mqtt-subscription-appqos1");
+        assert!(h.vhost.declare_queue(other, 0).is_err());
+    }
+
+    #[test]
     fn a_restored_session_is_given_the_cap_if_it_outlives_it() {
         // Stored as never expiring (a 3.1.1 session before the cap applied).
         assert_eq!(restored(u32::MAX, Some(DEFAULT_MAX_SECONDS)), Some(86_400));
