@@ -3761,8 +3761,10 @@ async fn under_infinity_a_3_1_1_persistent_session_never_expires() {
     disconnect!(client, events);
     offline(&handle, queue).await;
     assert_eq!(listed_as(&handle, queue), (true, false, None, 0));
+    // (The `x-expires` of None above is what says it never expires: a
+    // reconnect at once would find it under any cap.)
     let (client, mut events, present) = persistent3("endless", port, false).await;
-    assert!(present, "never expires");
+    assert!(present, "kept");
     disconnect!(client, events);
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
@@ -3818,6 +3820,145 @@ async fn a_3_1_1_session_stored_as_never_expiring_gets_the_cap_at_start() {
     let (client, mut events, present) = persistent3("veteran", port, false).await;
     assert!(!present, "the expired session is gone");
     disconnect!(client, events);
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Every part of a session restored from the store (its own queue, its
+/// shared subscription and so its group's queue, its unreleased QoS 2
+/// publish) is given the cap at start and keeps what it was given under a
+/// later raised cap, so that its parts expire together whatever caps the
+/// starts have: here a 3.1.1 session stored as never expiring, started
+/// under a minute, then `infinity` (all keep the minute), then 5 s, then
+/// `infinity` again (all go 5 s after that start, and a returning client
+/// finds no session).
+#[both_runtimes]
+async fn a_sessions_parts_expire_together_when_the_cap_changes_between_restarts() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-cap-changes"));
+    let (queue, group) = ("mqtt-subscription-splitqos1", "mqtt-shared-sg/s/#");
+    let with_cap = |max: Option<u32>| {
+        Broker::builder()
+            .data_dir(&dir)
+            .mqtt_max_session_expiry_interval(max)
+    };
+    let handle = start_with(with_cap(None), Limits::default()).await;
+    let (mut raw, present) = raw_session(mqtt_port(&handle), "split", false, None).await;
+    assert!(!present);
+    let subscription = |filter: &'static str| leveret_mqtt::Subscription {
+        filter: leveret_mqtt::TopicFilter::from_static(filter),
+        options: leveret_mqtt::SubscriptionOptions {
+            qos: leveret_mqtt::QoS::AtLeastOnce,
+            ..Default::default()
+        },
+    };
+    raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+        packet_id: std::num::NonZeroU16::new(1).unwrap(),
+        properties: Default::default(),
+        subscriptions: vec![subscription("own/#"), subscription("$share/sg/s/#")],
+    }))
+    .await;
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    let id = std::num::NonZeroU16::new(7).unwrap();
+    raw.send(qos2_once(id, "sp/x", false)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    drop(raw);
+    offline(&handle, queue).await;
+    offline(&handle, group).await;
+    assert_eq!(listed_as(&handle, queue).2, None, "stored never expiring");
+    assert_eq!(listed_as(&handle, group).2, None);
+    handle.shutdown().await;
+
+    // A minute, then infinity: both queues keep the minute (the group's
+    // from its member's record, written back at the first start).
+    for max in [Some(60), None] {
+        let handle = start_with(with_cap(max), Limits::default()).await;
+        assert_eq!(listed_as(&handle, queue).2, Some(60_000), "cap {max:?}");
+        assert_eq!(listed_as(&handle, group).2, Some(60_000), "cap {max:?}");
+        handle.shutdown().await;
+    }
+    // 5 s (shut down at once, well within them), then infinity: every
+    // part goes 5 s after that start.
+    let handle = start_with(with_cap(Some(5)), Limits::default()).await;
+    assert_eq!(listed_as(&handle, queue).2, Some(5_000));
+    handle.shutdown().await;
+    let handle = start_with(with_cap(None), Limits::default()).await;
+    until_queue_listed(&handle, queue, false, "the session's queue expired").await;
+    until_queue_listed(&handle, group, false, "its group's queue with it").await;
+    let (raw, present) = raw_session(mqtt_port(&handle), "split", false, None).await;
+    assert!(
+        !present,
+        "nothing of the session left (its QoS 2 state gone too)"
+    );
+    drop(raw);
+    handle.shutdown().await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Only the queues MQTT sessions declared or resumed are given the cap at
+/// start: a durable queue an AMQP client declared under a session queue's
+/// name (its client never connected) keeps its arguments and its messages
+/// under a cap and under 0, as RabbitMQ 3.13 changes such a queue only
+/// when an MQTT client of that identifier connects (then it is the
+/// session's: given the cap at every start). One without the mark whose
+/// session holds QoS 2 state (as an older Leveret left them) is given the
+/// cap, and is the session's from then on.
+#[both_runtimes]
+async fn an_amqp_clients_queue_of_a_session_queues_name_is_left_alone_at_start() {
+    let dir = std::env::temp_dir().join(unique("leveret-mqtt-amqp-session-name"));
+    let amqps = "mqtt-subscription-deviceqos1";
+    let adopted = "mqtt-subscription-adoptedqos1";
+    let older = "mqtt-subscription-olderqos1";
+    let made = "mqtt-subscription-madeqos1";
+    let with_cap = |max: Option<u32>| {
+        Broker::builder()
+            .data_dir(&dir)
+            .mqtt_max_session_expiry_interval(max)
+    };
+    let handle = start_with(with_cap(None), Limits::default()).await;
+    let port = mqtt_port(&handle);
+    // A publisher's session holding QoS 2 state, whose queue an older
+    // Leveret would have declared without the mark.
+    let (mut raw, _) = raw_session(port, "older", false, None).await;
+    let id = std::num::NonZeroU16::new(3).unwrap();
+    raw.send(qos2_once(id, "o/x", false)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    drop(raw);
+    let (amqp, channel) = amqp_channel(&handle).await;
+    let durable = lapin::options::QueueDeclareOptions {
+        durable: true,
+        ..Default::default()
+    };
+    for name in [amqps, adopted, older] {
+        tmo!(channel.queue_declare(name, durable, Default::default())).unwrap();
+    }
+    bind_to_amq_topic(&channel, amqps, "device.#").await;
+    drop(amqp);
+    publish_acked(port, "device/1", "provisioned", false).await;
+    // A session MQTT declares its queue for.
+    subscribed3_and_gone("made", port, &["m/#"]).await;
+    offline(&handle, made).await;
+    handle.shutdown().await;
+
+    let handle = start_with(with_cap(Some(60)), Limits::default()).await;
+    assert_eq!(listed_as(&handle, amqps), (true, false, None, 1));
+    assert_eq!(listed_as(&handle, adopted).2, None);
+    assert_eq!(listed_as(&handle, made).2, Some(60_000));
+    assert_eq!(listed_as(&handle, older).2, Some(60_000), "its session's");
+    // A client of that identifier connects: the queue is its session's.
+    let (client, mut events, present) = persistent3("adopted", mqtt_port(&handle), false).await;
+    assert!(present, "the queue is resumed as the session's");
+    until_expires(&handle, adopted, Some(60_000)).await;
+    disconnect!(client, events);
+    offline(&handle, adopted).await;
+    handle.shutdown().await;
+
+    // Under 0 the sessions' queues go at the first sweep; the AMQP
+    // client's stays as it was, with its message.
+    let handle = start_with(with_cap(Some(0)), Limits::default()).await;
+    for queue in [made, adopted, older] {
+        until_queue_listed(&handle, queue, false, "the session's queue gone").await;
+    }
+    assert_eq!(listed_as(&handle, amqps), (true, false, None, 1));
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -127,8 +127,30 @@ pub fn marks_an_mqtt_group_queue(arguments: &FieldTable) -> bool {
     arguments.get(MQTT_SHARED_GROUP) == Some(&FieldValue::Bool(true))
 }
 
+/// The queue argument that marks an MQTT session's own queue
+/// (`mqtt-subscription-<client id>qos<N>`) as declared or resumed by the
+/// session (`true`; any other boolean marks nothing): only such a queue is given
+/// the session expiry cap at start (see `crate::mqtt`'s expiry), never
+/// one an AMQP client declared under that name (unless it copied the
+/// mark). Neither it nor a marked queue's `x-expires` (which MQTT keeps
+/// at its session's) is compared on redeclaration, as
+/// [`MQTT_SHARED_GROUP`].
+pub const MQTT_SESSION: &str = "x-mqtt-session";
+
+/// Whether a queue's `arguments` mark it as an MQTT session's own queue
+/// ([`MQTT_SESSION`] `true`; any other value marks nothing).
+pub fn marks_an_mqtt_session_queue(arguments: &FieldTable) -> bool {
+    arguments.get(MQTT_SESSION) == Some(&FieldValue::Bool(true))
+}
+
+/// Whether a queue's `arguments` mark it as one MQTT keeps the
+/// `x-expires` of (a session's or a shared subscription group's).
+pub fn marks_an_mqtt_queue(arguments: &FieldTable) -> bool {
+    marks_an_mqtt_group_queue(arguments) || marks_an_mqtt_session_queue(arguments)
+}
+
 /// Every argument RabbitMQ 3.10 knows (and Leveret's own
-/// `x-leveret-position` and `x-mqtt-shared-group`), with what Leveret
+/// `x-leveret-position`, `x-mqtt-shared-group` and `x-mqtt-session`), with what Leveret
 /// does with it.
 pub const ARGUMENTS: &[Argument] = &[
     queue("x-message-ttl", Support::Implemented, "messages expire after this many milliseconds in the queue"),
@@ -160,6 +182,14 @@ pub const ARGUMENTS: &[Argument] = &[
         compared: false,
         on_stream: Some(Support::Refused("MQTT group queues are classic queues")),
         meaning: "Leveret's own (boolean), set by MQTT members on the shared subscription group queues they declare: `true` lets MQTT keep the queue's `x-expires` at its persistent members' longest Session Expiry Interval (1 ms once it has none, so it goes; after a restart too); neither it nor a marked queue's `x-expires` is compared on redeclaration",
+    },
+    Argument {
+        name: MQTT_SESSION,
+        scope: Scope::Queue,
+        support: Support::Implemented,
+        compared: false,
+        on_stream: Some(Support::Refused("MQTT session queues are classic queues")),
+        meaning: "Leveret's own (boolean), set by MQTT sessions on the `mqtt-subscription-<client id>qos<N>` queues they declare or resume: `true` lets MQTT give the queue the session expiry cap at start (an unmarked queue of that name is left alone then, unless its session holds QoS 2 or shared subscription state); neither it nor a marked queue's `x-expires` is compared on redeclaration",
     },
     Argument {
         name: "alternate-exchange",

@@ -63,11 +63,13 @@ pub(super) fn queue_name(client_id: &str, qos: QoS) -> Option<ShortStr> {
     ShortStr::try_from(format!("mqtt-subscription-{client_id}qos{}", qos.level())).ok()
 }
 
-/// Whether `name` is the name of a session's queue ([`queue_name`]).
-pub(super) fn is_session_queue(name: &str) -> bool {
-    let qos = ["qos0", "qos1", "qos2"];
-    name.strip_prefix("mqtt-subscription-")
-        .is_some_and(|rest| qos.iter().any(|q| rest.ends_with(q)))
+/// The client identifier whose session's queue `name` is named
+/// ([`queue_name`]), if it is named so.
+pub(super) fn session_of_queue(name: &str) -> Option<&str> {
+    let rest = name.strip_prefix("mqtt-subscription-")?;
+    ["qos0", "qos1", "qos2"]
+        .iter()
+        .find_map(|qos| rest.strip_suffix(qos))
 }
 
 /// The queue of shared subscription `$share/GROUP/FILTER` in a vhost:
@@ -101,11 +103,11 @@ mod tests {
     fn session_queues_are_known_by_their_names() {
         for qos in [QoS::AtMostOnce, QoS::AtLeastOnce, QoS::ExactlyOnce] {
             let name = queue_name("robot-7", qos).unwrap();
-            assert!(is_session_queue(name.as_str().unwrap()));
+            assert_eq!(session_of_queue(name.as_str().unwrap()), Some("robot-7"));
         }
-        assert!(!is_session_queue("mqtt-subscription-robot-7"));
-        assert!(!is_session_queue("mqtt-shared-g/qos1"));
-        assert!(!is_session_queue("orders-qos1"));
+        assert_eq!(session_of_queue("mqtt-subscription-robot-7"), None);
+        assert_eq!(session_of_queue("mqtt-shared-g/qos1"), None);
+        assert_eq!(session_of_queue("orders-qos1"), None);
     }
 
     #[test]

@@ -106,20 +106,28 @@ impl Shared {
         }
     }
 
-    /// Gives the persistent sessions' queues recovered from the store the
-    /// session expiry cap ([`expiry::cap_restored_queues`]) and the shared
-    /// subscription groups' queues their groups' expiry
+    /// Gives the persistent sessions recovered from the store the session
+    /// expiry cap, every part of each written back: their queues
+    /// ([`expiry::cap_restored_queues`]), their QoS 2 records
+    /// ([`releases::Releases::settle_yielding`]) and their shared
+    /// subscriptions, with the groups' queues their groups' expiry
     /// ([`shares::Shares::reconcile`]): once at start, after the queues
-    /// are rebuilt and before anything sweeps them.
+    /// are rebuilt and before anything sweeps them; yielding between
+    /// bounded steps.
     pub(crate) async fn reconcile_queues(&self, core: &Core) {
-        let capped = expiry::cap_restored_queues(core, self.max_session_expiry);
+        let max = self.max_session_expiry;
+        let holds = |vhost: &str, client_id: &str| {
+            self.releases.holds(vhost, client_id) || self.shares.holds(vhost, client_id)
+        };
+        let capped = expiry::cap_restored_queues(&core.vhosts(), max, holds).await;
         if capped > 0 {
             tracing::info!(
                 queues = capped,
-                max_seconds = self.max_session_expiry,
+                max_seconds = max,
                 "MQTT sessions' queues restored with a longer expiry (or none) given the session expiry cap"
             );
         }
+        self.releases.settle_yielding().await;
         self.shares.reconcile(core).await;
     }
 }

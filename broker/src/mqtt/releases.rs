@@ -21,12 +21,16 @@
 //! they are given [`OLDER_RECORDS_EXPIRY`] (a day) at start, and their
 //! session's own interval when it is next seen (its connection's end
 //! rewrites them), so a session that never comes back does not hold its
-//! place for ever. The day counts from each start (it is not written
-//! back), and it is also given to records of never-expiring sessions
+//! place for ever. It is also given to records of never-expiring sessions
 //! (an older Leveret stored those without an interval too). At start every
-//! record's interval is at most the broker's cap
+//! session's interval is at most the broker's cap
 //! (`mqtt-max-session-expiry-interval-seconds`, as the session's queues
-//! are: [`super::expiry::restored`]), also not written back.
+//! are: [`super::expiry::restored`]). What a session is given at start is
+//! written back to its records ([`Releases::settle_yielding`], in bounded
+//! batches), so that a later start under a raised cap finds what this one
+//! gave, as its queues and shared subscriptions do; from then on a
+//! session's records are rewritten whenever its interval differs from the
+//! one they carry.
 //!
 //! Bounded: at most [`MAX_PER_SESSION`] identifiers per session (the
 //! receive maximum) and [`MAX_SESSIONS`] sessions, in memory and in the
@@ -43,6 +47,9 @@ use std::time::Instant;
 const MAX_PER_SESSION: usize = 256;
 /// Sessions with identifiers kept.
 const MAX_SESSIONS: usize = 10_000;
+/// At most this many records (or one session's) are rewritten under one
+/// hold of the lock at start ([`Releases::settle_yielding`]).
+const SETTLE_RECORDS: usize = 256;
 /// The stored Session Expiry Interval of a session that never expires.
 const NEVER: u32 = u32::MAX;
 /// The Session Expiry Interval, in seconds, of records that carry none
@@ -57,6 +64,10 @@ type Key = (String, String);
 #[derive(Debug)]
 pub(super) struct Releases {
     sessions: Mutex<HashMap<Key, Held>>,
+    /// Sessions restored whose records carry another interval than they
+    /// were given, for [`Releases::settle_yielding`] (locked after
+    /// `sessions`).
+    unsettled: Mutex<Vec<Key>>,
     persistence: Option<Arc<Persistence>>,
     max_sessions: usize,
 }
@@ -72,6 +83,10 @@ struct Held {
     /// The session's expiry interval in seconds (`None`: never), stored
     /// with each record.
     expiry: Option<u32>,
+    /// The interval its records carry in the store ([`NEVER`]: never;
+    /// `None`: none, as an older Leveret wrote them, or not all the same):
+    /// they are rewritten whenever it is not `expiry`'s.
+    in_store: Option<u32>,
     /// When it goes unless a connection resumes the session first
     /// (`None` while it is connected, or if it never expires).
     expires_at: Option<Instant>,
@@ -105,18 +120,67 @@ impl Releases {
                     continue;
                 };
                 let held = (sessions.entry((vhost.clone(), client_id.clone()))).or_default();
+                let first = held.stored.is_empty();
                 held.stored.insert(id.get());
                 held.kept.push(id);
-                let stored = session_expiry.unwrap_or(OLDER_RECORDS_EXPIRY);
-                held.expiry = super::expiry::restored(stored, max);
+                let expiry =
+                    super::expiry::restored(session_expiry.unwrap_or(OLDER_RECORDS_EXPIRY), max);
+                // Mixed intervals (a crash between rewrites): the longest,
+                // whatever order the store reads them in.
+                (held.expiry, held.in_store) = match first {
+                    true => (expiry, *session_expiry),
+                    false => (
+                        super::expiry::longest(held.expiry, expiry),
+                        held.in_store.filter(|&s| Some(s) == *session_expiry),
+                    ),
+                };
                 held.expires_at = super::expiry::ends_at(held.expiry);
             }
         }
+        let unsettled = (sessions.iter())
+            .filter(|(_, held)| held.in_store != Some(held.expiry.unwrap_or(NEVER)))
+            .map(|(key, _)| key.clone());
         Releases {
+            unsettled: Mutex::new(unsettled.collect()),
             sessions: Mutex::new(sessions),
             persistence,
             max_sessions: MAX_SESSIONS,
         }
+    }
+
+    /// Whether session `client_id` of `vhost` holds QoS 2 state.
+    pub(super) fn holds(&self, vhost: &str, client_id: &str) -> bool {
+        let key = (vhost.to_owned(), client_id.to_owned());
+        self.lock().contains_key(&key)
+    }
+
+    /// Writes back, at start, the interval each session restored from the
+    /// store was given ([`Releases::new`]) to its records where they carry
+    /// another (the cap lowered it; an older Leveret wrote none; a crash
+    /// left them mixed): the records of at most [`SETTLE_RECORDS`] (or
+    /// one session's) under one hold of the lock, yielding between.
+    pub(super) async fn settle_yielding(&self) {
+        while self.settle_batch() {
+            tokio::task::yield_now().await;
+        }
+    }
+
+    /// One batch of [`Releases::settle_yielding`]; whether any are left.
+    fn settle_batch(&self) -> bool {
+        let mut sessions = self.lock();
+        let mut unsettled = (self.unsettled.lock()).unwrap_or_else(|e| e.into_inner());
+        let mut records = 0;
+        while records < SETTLE_RECORDS {
+            let Some(key) = unsettled.pop() else {
+                break;
+            };
+            if let Some(held) = sessions.get_mut(&key) {
+                records += held.stored.len();
+                let expiry = held.expiry;
+                self.set_expiry(&key, held, expiry);
+            }
+        }
+        !unsettled.is_empty()
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<Key, Held>> {
@@ -154,12 +218,14 @@ impl Releases {
     }
 
     /// Gives a session's records its expiry interval `expiry` (rewritten
-    /// if it changed).
+    /// if they carry another).
     fn set_expiry(&self, key: &Key, held: &mut Held, expiry: Option<u32>) {
-        if held.expiry == expiry {
+        held.expiry = expiry;
+        let carried = Some(expiry.unwrap_or(NEVER));
+        if held.in_store == carried {
             return;
         }
-        held.expiry = expiry;
+        held.in_store = carried;
         for &packet_id in &held.stored {
             self.put(key, packet_id, expiry);
         }
@@ -442,6 +508,89 @@ mod tests {
         assert_eq!(hour.expiry_of("/", "older"), Some(Some(3600)));
         // A cap of 0: they ended with their connections, before the start.
         assert_eq!(Releases::new(&recovered, None, Some(0)).sweep(), 3);
+    }
+
+    /// The interval the unreleased records of `client_id` carry in `records`.
+    fn carried(records: &[MetaRecord], client_id: &str) -> Vec<Option<u32>> {
+        let carried = records.iter().filter_map(|r| match r {
+            MetaRecord::Unreleased {
+                client_id: c,
+                session_expiry,
+                ..
+            } if c == client_id => Some(*session_expiry),
+            _ => None,
+        });
+        carried.collect()
+    }
+
+    #[tokio::test]
+    async fn what_a_start_gives_is_written_back_and_a_session_seen_again_rewrites_it() {
+        let store = Arc::new(MemoryStore::default());
+        let (releases, persistence) = open(&store);
+        // A 3.1.1 session stored as never expiring, one of two hours, and
+        // one written before the interval was kept.
+        releases.routed("/", "never", id(1), None);
+        releases.routed("/", "never", id(2), None);
+        releases.routed("/", "hours", id(3), Some(7200));
+        persistence.submit(vec![StoreOp::PutMeta(MetaRecord::Unreleased {
+            vhost: "/".into(),
+            client_id: "older".into(),
+            packet_id: 4,
+            session_expiry: None,
+        })]);
+        let recovered = stored(&store, &persistence).await;
+        drop(releases);
+        // A start under the default day, then one under an hour: each
+        // writes back what it gave.
+        for (max, want) in [(86_400, 86_400), (3600, 3600)] {
+            let recovered = stored(&store, &persistence).await;
+            let capped = Releases::new(&recovered, Some(Arc::clone(&persistence)), Some(max));
+            capped.settle_yielding().await;
+            let records = stored(&store, &persistence).await;
+            assert_eq!(carried(&records, "never"), [Some(want), Some(want)]);
+            assert_eq!(carried(&records, "hours"), [Some(want.min(7200))]);
+            assert_eq!(carried(&records, "older"), [Some(want)]);
+        }
+        // A start under infinity keeps what the lower caps gave, as the
+        // sessions' queues do.
+        let records = stored(&store, &persistence).await;
+        let unlimited = Releases::new(&records, Some(Arc::clone(&persistence)), None);
+        unlimited.settle_yielding().await;
+        assert_eq!(unlimited.expiry_of("/", "never"), Some(Some(3600)));
+        assert_eq!(
+            stored(&store, &persistence).await,
+            records,
+            "nothing to write"
+        );
+        // Seen again with the interval its records were restored with
+        // (not written back here): its end rewrites them.
+        let unwritten = Releases::new(&recovered, Some(Arc::clone(&persistence)), Some(60));
+        assert_eq!(unwritten.take("/", "never", true), [id(1), id(2)]);
+        unwritten.keep("/", "never", vec![id(1), id(2)], Some(60));
+        let records = stored(&store, &persistence).await;
+        assert_eq!(carried(&records, "never"), [Some(60), Some(60)]);
+    }
+
+    #[tokio::test]
+    async fn start_up_write_back_is_bounded_per_hold_of_the_lock() {
+        let store = Arc::new(MemoryStore::default());
+        let (releases, persistence) = open(&store);
+        let sessions = SETTLE_RECORDS + 3;
+        for n in 0..sessions {
+            releases.routed("/", &format!("c{n}"), id(1), None);
+        }
+        let recovered = stored(&store, &persistence).await;
+        let capped = Releases::new(&recovered, Some(Arc::clone(&persistence)), Some(60));
+        assert!(capped.settle_batch(), "more than one batch");
+        assert!(!capped.settle_batch(), "the rest");
+        let records = stored(&store, &persistence).await;
+        assert!(records.iter().all(|r| matches!(
+            r,
+            MetaRecord::Unreleased {
+                session_expiry: Some(60),
+                ..
+            }
+        )));
     }
 
     #[tokio::test]

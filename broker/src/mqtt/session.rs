@@ -1694,12 +1694,19 @@ impl Session {
 
     /// Declares and consumes the session's queue for `qos` the first time
     /// a subscription needs it: exclusive if the session goes with the
-    /// connection, else durable (with `x-expires` for a session expiry).
+    /// connection, else durable (with `x-expires` for a session expiry);
+    /// marked as the session's ([`crate::arguments::MQTT_SESSION`]).
     fn ensure_queue(&mut self, queue: &ShortStr, qos: QoS) {
         if self.queues[usize::from(qos.level())] {
             return;
         }
         let mut arguments = FieldTable::new();
+        // Marked as the session's: only such a queue is given the expiry
+        // cap at start (`expiry::cap_restored_queues`).
+        arguments.insert(
+            ShortStr::from_static(crate::arguments::MQTT_SESSION),
+            FieldValue::Bool(true),
+        );
         if let Some(ms) = self.lifetime.queue_expires() {
             arguments.insert(
                 ShortStr::from_static("x-expires"),

@@ -9,7 +9,8 @@
 //! connection's, a DISCONNECT's included) runs, and a connection after
 //! that finds none (as a session's queues expire by `x-expires`); after a
 //! restart the interval runs from the restart, as a queue's `x-expires`
-//! does.
+//! does, and it is at most the broker's session expiry cap then, written
+//! back to the records as it is to the session's queues.
 //!
 //! A group with a persistent member keeps its queue while no member is
 //! connected (MQTT 5.0 4.8.2, as Mosquitto): the queue a persistent member
@@ -199,8 +200,11 @@ impl Held {
 impl Shares {
     /// The shared subscriptions among `recovered` (the store's metadata),
     /// their sessions' expiry (at most the broker's cap `max`, s: as the
-    /// sessions' own queues, [`super::expiry::restored`]; not written
-    /// back) running from now.
+    /// sessions' own queues, [`super::expiry::restored`]) running from
+    /// now. A session given a lower interval than its records carry is
+    /// moved to it by [`Shares::reconcile`] (records rewritten, group
+    /// memberships moved), so that a later start under a raised cap finds
+    /// what this one gave, as its queues do.
     pub(super) fn new(
         recovered: &[MetaRecord],
         persistence: Option<Arc<Persistence>>,
@@ -231,14 +235,17 @@ impl Shares {
                 };
                 let key = (vhost.clone(), client_id.clone());
                 let held = state.sessions.entry(key).or_default();
+                // The record's interval as stored, and the session's under
+                // the cap.
+                let stored = super::expiry::restored(*session_expiry, None);
                 let expiry = super::expiry::restored(*session_expiry, max);
                 // Mixed intervals (a crash between a move's batches): the
                 // longest, whatever order the store reads them in.
                 held.expiry = match held.filters.is_empty() {
                     true => expiry,
-                    false => longest(held.expiry, expiry),
+                    false => super::expiry::longest(held.expiry, expiry),
                 };
-                held.filters.insert(filter.clone(), (options, expiry));
+                held.filters.insert(filter.clone(), (options, stored));
                 held.expires_at = super::expiry::ends_at(held.expiry);
             }
         }
@@ -254,7 +261,8 @@ impl Shares {
         // A crash while a session's records were being moved to a new
         // interval leaves them mixed: they are made one again (the longest
         // of them: it never drops a subscription early, and may keep one
-        // longer than a shortened interval asked), by `reconcile` at start.
+        // longer than a shortened interval asked), by `reconcile` at start;
+        // so are those the cap lowered.
         let moving = (state.sessions.iter())
             .filter(|(_, held)| held.filters.values().any(|(_, e)| *e != held.expiry))
             .map(|(key, _)| key.clone());
@@ -288,6 +296,12 @@ impl Shares {
         let groups = state.leave_all(&key.0, &held);
         ops.extend(held.filters.into_keys().map(|filter| unput(key, filter)));
         groups
+    }
+
+    /// Whether session `client_id` of `vhost` holds shared subscriptions.
+    pub(super) fn holds(&self, vhost: &str, client_id: &str) -> bool {
+        let key = (vhost.to_owned(), client_id.to_owned());
+        self.lock().sessions.contains_key(&key)
     }
 
     /// What group `filter` of `vhost` keeps its queue for.
@@ -616,7 +630,7 @@ impl Shares {
                 .and_then(FieldValue::as_i64)
                 .and_then(|ms| u64::try_from(ms).ok());
             let expires = state.group(vhost_name, filter).queue_expires();
-            if current != expires && vhost.set_queue_expires(&queue, expires) {
+            if current != expires && vhost.set_queue_expires(&queue, expires, None) {
                 tracing::debug!(queue = %queue.name, ?expires, "MQTT shared subscription group's queue given its members' expiry");
             }
         }
@@ -756,11 +770,6 @@ fn declared_groups(vhosts: &[Arc<Vhost>]) -> Groups {
 /// A vhost looked up by name.
 type VhostOf = Option<Arc<Vhost>>;
 
-/// The longer of two Session Expiry Intervals (`None`: never).
-fn longest(a: Option<u32>, b: Option<u32>) -> Option<u32> {
-    a.zip(b).map(|(a, b)| a.max(b))
-}
-
 fn vhost_named(core: &Core, name: &str) -> Option<Arc<Vhost>> {
     ShortStr::try_from(name)
         .ok()
@@ -851,8 +860,8 @@ mod tests {
         );
     }
 
-    #[test]
-    fn recovered_records_are_given_the_cap_if_they_outlive_it() {
+    #[tokio::test]
+    async fn recovered_records_are_given_the_cap_if_they_outlive_it() {
         let record = |client_id: &str, session_expiry| MetaRecord::SharedSubscription {
             vhost: "/".into(),
             client_id: client_id.into(),
@@ -864,15 +873,22 @@ mod tests {
         };
         // A 3.1.1 session stored as never expiring, one of an hour.
         let records = [record("never", NEVER), record("hour", 3600)];
-        let shares = Shares::new(&records, None, Some(60));
+        // Moved to it at start (`reconcile`), written back.
+        let records = &records;
+        let started = |max| async move {
+            let shares = Shares::new(records, None, max);
+            shares.settle_yielding_in(&|_: &str| None).await;
+            shares
+        };
+        let shares = started(Some(60)).await;
         assert_eq!(
             shares.group("/", "$share/g/capped"),
             GroupKeep::Kept(Some(60))
         );
-        let shares = Shares::new(&records, None, Some(7200));
+        let shares = started(Some(7200)).await;
         let kept = shares.group("/", "$share/g/capped");
         assert_eq!(kept, GroupKeep::Kept(Some(7200)), "never is the cap");
-        let shares = Shares::new(&records, None, None);
+        let shares = Shares::new(records, None, None);
         assert_eq!(shares.group("/", "$share/g/capped"), GroupKeep::Kept(None));
     }
 
@@ -1004,7 +1020,7 @@ mod tests {
         assert_eq!(expires_of(&queue), Some(3_600_000));
         // A disconnect with an unchanged interval gives its groups their
         // value again (whatever wrote the queue meanwhile).
-        assert!(h.vhost.set_queue_expires(&queue, Some(1)));
+        assert!(h.vhost.set_queue_expires(&queue, Some(1), None));
         let ended = shares.ended("/", "p3", Some(3600));
         assert_eq!(ended, [("/".to_owned(), "$share/g/x".to_owned())]);
         shares.apply_in(vhost_of, ended);
@@ -1198,6 +1214,47 @@ mod tests {
             assert_eq!(expires_of(&queue), Some(3_600_000));
             assert_eq!(shares.settle_batch(), (Vec::new(), false), "all moved");
         }
+    }
+
+    #[tokio::test]
+    async fn what_a_start_gives_a_session_is_written_back_and_kept_under_a_raised_cap() {
+        let h = Harness::durable();
+        let persistence = h.persistence.clone().expect("durable");
+        // A 3.1.1 session stored as never expiring, and its group's queue.
+        let record = MetaRecord::SharedSubscription {
+            vhost: "/".into(),
+            client_id: "c".into(),
+            filter: "$share/g/x".into(),
+            qos: 1,
+            retain_as_published: false,
+            subscription_id: 0,
+            session_expiry: NEVER,
+        };
+        persistence.submit(vec![StoreOp::PutMeta(record)]);
+        let queue = h.declare_queue("mqtt-shared-g/x", true, &[marked()]);
+        let carried = || async {
+            assert!(persistence.sync().await, "the store took the writes");
+            let records = h.stored().meta.into_iter();
+            let carried = records.filter_map(|r| match r {
+                MetaRecord::SharedSubscription { session_expiry, .. } => Some(session_expiry),
+                _ => None,
+            });
+            carried.collect::<Vec<u32>>()
+        };
+        assert_eq!(carried().await, [NEVER]);
+        // A start under a minute: the record says so, as the queue.
+        let shares = Shares::new(&h.stored().meta, Some(Arc::clone(&persistence)), Some(60));
+        shares.reconcile_in(std::slice::from_ref(&h.vhost)).await;
+        assert_eq!(carried().await, [60]);
+        assert_eq!(expires_of(&queue), Some(60_000));
+        // The next under infinity finds what it gave, as the session's own
+        // queues keep theirs.
+        let later = Shares::new(&h.stored().meta, Some(Arc::clone(&persistence)), None);
+        later.reconcile_in(std::slice::from_ref(&h.vhost)).await;
+        assert_eq!(later.group("/", "$share/g/x"), GroupKeep::Kept(Some(60)));
+        assert_eq!(expires_of(&queue), Some(60_000));
+        assert_eq!(carried().await, [60]);
+        assert!(later.holds("/", "c") && !later.holds("/", "d"));
     }
 
     #[test]

@@ -157,10 +157,10 @@ impl QueueArgs {
                         ))
                     }
                 },
-                b"x-mqtt-shared-group" => {
+                b"x-mqtt-shared-group" | b"x-mqtt-session" => {
                     if !matches!(value, FieldValue::Bool(_)) {
                         return Err(invalid(
-                            arguments::MQTT_SHARED_GROUP,
+                            &String::from_utf8_lossy(key.as_bytes()),
                             format!("{{unacceptable_type,{}}}", type_name(value)),
                         ));
                     }

@@ -87,9 +87,10 @@ impl Queue {
     /// stays. The MQTT front end's: a session's expiry changes with a
     /// DISCONNECT or a later CONNECT. False for a stream (no expiry) or a
     /// deleted queue; the caller makes sure a deletion is not under way
-    /// (`Vhost::set_queue_expires`).
+    /// (`Vhost::set_queue_expires`). With `mark`, that argument is set to
+    /// `true` too (the MQTT mark of a session's queue, which it adopts).
     #[cfg(feature = "mqtt")]
-    pub fn set_expires(&self, expires: Option<u64>) -> bool {
+    pub fn set_expires(&self, expires: Option<u64>, mark: Option<&'static str>) -> bool {
         use crate::store::{QueueRecord, StoreOp};
         use leveret_protocol::{FieldValue, ShortStr};
         if self.stream.is_some() {
@@ -111,6 +112,9 @@ impl Queue {
             None => {
                 arguments.remove("x-expires");
             }
+        }
+        if let Some(mark) = mark {
+            arguments.insert(ShortStr::from_static(mark), FieldValue::Bool(true));
         }
         st.own_expires = expires;
         st.effective.expires = stricter(st.applied.expires(), expires);

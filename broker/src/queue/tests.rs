@@ -86,9 +86,13 @@ fn queue_arguments_are_checked_with_rabbitmq_texts() {
             "'x-mqtt-shared-group' for queue 'q' in vhost '/': {unacceptable_type,longstr}"
         )
     );
+    assert!(invalid(&[("x-mqtt-session", FieldValue::I64(1))])
+        .ends_with("'x-mqtt-session' for queue 'q' in vhost '/': {unacceptable_type,long}"));
     for mark in [true, false] {
-        let marked = table(&[("x-mqtt-shared-group", FieldValue::Bool(mark))]);
-        assert!(QueueArgs::parse(&marked, &s("q"), &s("/")).is_ok());
+        for name in ["x-mqtt-shared-group", "x-mqtt-session"] {
+            let marked = table(&[(name, FieldValue::Bool(mark))]);
+            assert!(QueueArgs::parse(&marked, &s("q"), &s("/")).is_ok());
+        }
     }
     assert!(
         invalid(&[("x-dead-letter-routing-key", FieldValue::string("k"))])

@@ -403,9 +403,10 @@ impl Vhost {
                 let current = existing.arguments();
                 let differing = if existing.is_stream() {
                     arguments::first_inequivalent_on_stream(&o.arguments, &d.arguments, &resource)
-                } else if arguments::marks_an_mqtt_group_queue(&current) {
-                    // MQTT keeps a group queue's x-expires at its members'
-                    // (a redeclaration's, an old export's, is stale).
+                } else if arguments::marks_an_mqtt_queue(&current) {
+                    // MQTT keeps a group queue's x-expires at its members',
+                    // a session queue's at its session's (a redeclaration's,
+                    // an old export's, is stale).
                     let (mut current, mut requested) = (current, d.arguments.clone());
                     current.remove("x-expires");
                     requested.remove("x-expires");
@@ -733,14 +734,20 @@ impl Vhost {
         Ok(JoinAttempt::Going(queue))
     }
 
-    /// Gives `queue`, if it is still this vhost's, its own expiry
-    /// ([`Queue::set_expires`]); false if it is gone. Under the queues'
-    /// lock, so that its record reaches the store before a deletion's.
+    /// Gives `queue`, if it is still this vhost's, its own expiry (and
+    /// `mark`, if any: [`Queue::set_expires`]); false if it is gone. Under
+    /// the queues' lock, so that its record reaches the store before a
+    /// deletion's.
     #[cfg(feature = "mqtt")]
-    pub fn set_queue_expires(&self, queue: &Arc<Queue>, expires: Option<u64>) -> bool {
+    pub fn set_queue_expires(
+        &self,
+        queue: &Arc<Queue>,
+        expires: Option<u64>,
+        mark: Option<&'static str>,
+    ) -> bool {
         let queues = read(&self.queues);
         match queues.get(queue.name.as_bytes()) {
-            Some(current) if Arc::ptr_eq(current, queue) => queue.set_expires(expires),
+            Some(current) if Arc::ptr_eq(current, queue) => queue.set_expires(expires, mark),
             _ => false,
         }
     }

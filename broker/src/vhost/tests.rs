@@ -297,7 +297,7 @@ fn an_unused_queue_expires() {
 fn an_expiry_set_later_replaces_the_declared_one() {
     let h = Harness::new();
     let q = h.queue("session", &[("x-expires", FieldValue::I64(1_000))]);
-    assert!(h.vhost.set_queue_expires(&q, Some(3_600_000)));
+    assert!(h.vhost.set_queue_expires(&q, Some(3_600_000), None));
     assert_eq!(
         q.arguments().get("x-expires"),
         Some(&FieldValue::I64(3_600_000))
@@ -307,15 +307,15 @@ fn an_expiry_set_later_replaces_the_declared_one() {
         h.vhost.queue(&s("session")).is_some(),
         "the new expiry is an hour"
     );
-    assert!(h.vhost.set_queue_expires(&q, None));
+    assert!(h.vhost.set_queue_expires(&q, None, None));
     assert!(q.arguments().get("x-expires").is_none());
     h.sweep_at(Instant::now() + Duration::from_secs(7_200));
     assert!(h.vhost.queue(&s("session")).is_some(), "no expiry at all");
-    assert!(h.vhost.set_queue_expires(&q, Some(1_000)));
+    assert!(h.vhost.set_queue_expires(&q, Some(1_000), None));
     h.sweep_at(Instant::now() + Duration::from_secs(2));
     assert!(h.vhost.queue(&s("session")).is_none());
     // A deleted queue is not given one.
-    assert!(!h.vhost.set_queue_expires(&q, Some(5_000)));
+    assert!(!h.vhost.set_queue_expires(&q, Some(5_000), None));
 }
 
 #[test]
