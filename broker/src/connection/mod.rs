@@ -784,7 +784,7 @@ impl Connection {
             Method::ConnectionClose(close) => {
                 tracing::debug!(code = close.reply_code, text = %close.reply_text, "client closed the connection");
                 self.cleanup();
-                self.outbox.method(0, ConnectionCloseOk {}).await;
+                self.answer_close().await;
                 Ok(Flow::Closed)
             }
             Method::ConnectionCloseOk(_) => Ok(Flow::Closed),
@@ -823,9 +823,16 @@ impl Connection {
             loop {
                 match reader.next().await {
                     Ok(Frame::Method {
-                        method: Method::ConnectionCloseOk(_) | Method::ConnectionClose(_),
+                        method: Method::ConnectionCloseOk(_),
                         ..
                     }) => return,
+                    // Both ends closing at once: the client's close is
+                    // answered too (as RabbitMQ answers one it receives
+                    // while closing).
+                    Ok(Frame::Method {
+                        method: Method::ConnectionClose(_),
+                        ..
+                    }) => return self.answer_close().await,
                     Ok(_) => continue,
                     Err(ReadError::Decode(_)) => return reader.discard_input().await,
                     Err(_) => return,
@@ -837,6 +844,17 @@ impl Connection {
             return Err(Ended::Forced(error.text));
         }
         Err(Ended::Protocol(error))
+    }
+
+    /// Answers the client's connection.close with close-ok: the
+    /// connection's own close, so it goes out even once the connection
+    /// is told to close, bounded as our close is (a client that stops
+    /// reading leaves no room for it).
+    async fn answer_close(&self) {
+        let close_ok = self
+            .outbox
+            .send_closing(Outbound::method(0, ConnectionCloseOk {}.into()));
+        let _ = tokio::time::timeout(CLOSE_TIMEOUT, close_ok).await;
     }
 
     /// `peer -> local`, and ` - NAME` when the client named the
