@@ -500,6 +500,11 @@ impl Outbox {
         }
     }
 
+    /// Whether an in-process client takes the items.
+    pub(crate) fn in_process(&self) -> bool {
+        self.in_process
+    }
+
     /// Sets an in-process client's inline deliveries (once; a second call
     /// is ignored).
     pub(crate) fn set_inline(&self, inline: Arc<dyn InlineDeliveries>) {

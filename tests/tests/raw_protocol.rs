@@ -1231,3 +1231,63 @@ async fn a_connection_close_that_crosses_the_brokers_gets_close_ok() {
     }
     raw.assert_closed().await;
 }
+
+/// Frames a socket client sent in one write, read before a management
+/// close, are all handled, as RabbitMQ handles every whole frame of its
+/// current read before it sees a forced close: here a publish read with
+/// a queue.declare whose declare-ok waits for room in the consumer's full
+/// outbox when the close comes (the declare-ok is dropped; the publish is
+/// still routed).
+#[both_runtimes]
+async fn frames_read_before_a_forced_close_are_handled() {
+    let b = broker().await;
+    let routed = "risk3-fix.routed-after-close";
+    let mut declarer = Raw::open(&b).await;
+    declarer.send_method(1, declare(routed)).await;
+    match declarer.method().await {
+        (1, Method::QueueDeclareOk(_)) => {}
+        other => panic!("expected queue.declare-ok, got {other:?}"),
+    }
+    declarer.send_method(0, ConnectionClose::default()).await;
+    match declarer.method().await {
+        (0, Method::ConnectionCloseOk(_)) => {}
+        other => panic!("expected connection.close-ok, got {other:?}"),
+    }
+    drop(declarer);
+    no_connection_left(&b).await;
+    let mut consumer = stalled_consumer(&b, "risk3-fix.read-then-closed").await;
+    let marker = "risk3-fix.declared-before-close";
+    let mut batch = method_bytes(1, declare(marker));
+    let publish = BasicPublish {
+        routing_key: ShortStr::from_static(routed),
+        ..Default::default()
+    };
+    let mut content = BytesMut::new();
+    encode_method(1, &publish.into(), &mut content);
+    encode_content(
+        1,
+        60,
+        b"\x00\x00",
+        b"read before the close",
+        4096,
+        &mut content,
+    );
+    batch.extend_from_slice(&content);
+    consumer.send(&batch).await;
+    // The declare is handled (its queue exists) and its declare-ok waits
+    // for room: the publish is read, not yet handled.
+    let admin = b.admin().expect("in-process broker");
+    tmo!(async {
+        while admin.queue("/", marker).is_none() {
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+    });
+    assert!(admin.close_connection(only_connection(&b), "Closed via management plugin"));
+    no_connection_left(&b).await;
+    let routed = admin.queue("/", routed).expect("declared").info();
+    assert_eq!(
+        routed.messages_ready, 1,
+        "the publish read before the close"
+    );
+    drop(consumer);
+}
