@@ -894,33 +894,26 @@ impl Session {
         tokio::pin!(release);
         let mut durable = self.shared.retained.durable();
         let stop = loop {
-            // Whole packets already read, unless a takeover has abandoned
-            // the session: then, reading or not (a write may have stalled
-            // it past the takeover's wait), it sends the link nothing more.
+            // Whole packets already read, and what they ask of the core
+            // handed to the link as far as it has room, unless a takeover
+            // has abandoned the session: then, reading or not (a write may
+            // have stalled it past the takeover's wait), it sends the link
+            // nothing more (decided with the hand-over, in one hold).
             let reading = self.reading();
+            let to_broker = &link.direct.to_broker;
             match claim.running(|| {
                 if reading {
-                    self.take_packets(&mut buf)
-                } else {
-                    Ok(())
+                    self.take_packets(&mut buf)?;
                 }
+                Ok(self.hand_pending(to_broker))
             }) {
-                Some(Ok(())) => {}
+                Some(Ok(true)) => {}
+                Some(Ok(false)) => {
+                    let stop = closed("link ended", None);
+                    return Box::pin(self.finish(socket, link, claim, stop)).await;
+                }
                 Some(Err(stop)) => break stop,
                 None => break taken_over(),
-            }
-            while let Some(item) = self.pending.pop_front() {
-                match link.direct.to_broker.try_send(item) {
-                    Ok(()) => {}
-                    Err(tokio::sync::mpsc::error::TrySendError::Full(item)) => {
-                        self.pending.push_front(item);
-                        break;
-                    }
-                    Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => {
-                        let stop = closed("link ended", None);
-                        return Box::pin(self.finish(socket, link, claim, stop)).await;
-                    }
-                }
             }
             if !self.out.is_empty() {
                 let write = tokio::time::timeout(WRITE_STALL, write_out(socket, &self.out)).await;
@@ -1077,6 +1070,22 @@ impl Session {
             will: claim.take_will().filter(|_| send_will && owned),
             owned,
         }
+    }
+
+    /// Hands the link what is pending, as far as it has room without
+    /// waiting; false if the link has ended.
+    fn hand_pending(&mut self, to_broker: &tokio::sync::mpsc::Sender<Outgoing>) -> bool {
+        while let Some(item) = self.pending.pop_front() {
+            match to_broker.try_send(item) {
+                Ok(()) => {}
+                Err(tokio::sync::mpsc::error::TrySendError::Full(item)) => {
+                    self.pending.push_front(item);
+                    return true;
+                }
+                Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => return false,
+            }
+        }
+        true
     }
 
     /// A session a takeover abandoned acts no more: the publishes it read
