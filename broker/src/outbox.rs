@@ -299,6 +299,14 @@ pub struct Outbox {
     /// for room ([`Outbox::send`], [`Outbox::reserve`]); none for an
     /// outbox of no connection's.
     closing: Option<watch::Receiver<bool>>,
+    /// Set once a wait for room ended at the close, its item dropped:
+    /// from then on only the connection's own close goes out
+    /// ([`Outbox::send_closing`]). Without it an item sent later, finding
+    /// room the writer freed, would reach the client after a gap: an ack
+    /// `multiple` after a dropped nack confirms a refused message. Read
+    /// with each item that could follow one dropped by the same task (or
+    /// by one the drop happened before), so Relaxed suffices.
+    sealed: AtomicBool,
     /// The connection's id, for exclusive-queue ownership.
     pub connection_id: u64,
 }
@@ -339,6 +347,7 @@ impl Outbox {
             heard: AtomicU64::new(0),
             created: tokio::time::Instant::now(),
             closing,
+            sealed: AtomicBool::new(false),
             connection_id,
         };
         (Arc::new(outbox), rx)
@@ -347,24 +356,33 @@ impl Outbox {
     /// Sends an item, waiting for room (backpressure on the caller), until
     /// the connection is told to close: the item is then dropped, as when
     /// the writer is gone (the connection closes next, and its cleanup
-    /// requeues whatever was in flight).
+    /// requeues whatever was in flight), and so is every item sent after
+    /// it but the connection's own close ([`Outbox::send_closing`]): the
+    /// client sees no gap.
     ///
     /// Room is usually there: only then is the send made at once. Waiting
     /// for room takes tokio's send future (~440 bytes), kept on the heap so
     /// that every future awaiting a reply stays small (a future is copied
     /// each time it is created and awaited).
     pub async fn send(&self, item: Outbound) {
-        self.send_until(item, self.closing.clone()).await;
+        self.send_until(item, true).await;
     }
 
-    /// Sends the connection's own close (its connection.close, or the
-    /// writer's [`Outbound::Shutdown`]), waiting for room even once it
-    /// was told to close: the caller bounds the wait.
+    /// Sends the connection's own close (its connection.close or
+    /// close-ok, or the writer's [`Outbound::Shutdown`]), waiting for room
+    /// even once it was told to close, and even after an item was dropped
+    /// for it: the caller bounds the wait.
     pub(crate) async fn send_closing(&self, item: Outbound) {
-        self.send_until(item, None).await;
+        self.send_until(item, false).await;
     }
 
-    async fn send_until(&self, item: Outbound, closing: Option<watch::Receiver<bool>>) {
+    /// Sends `item`, waiting for room; with `until_closed`, not once the
+    /// outbox is sealed, and only until the connection is told to close
+    /// (which seals it).
+    async fn send_until(&self, item: Outbound, until_closed: bool) {
+        if until_closed && self.is_sealed() {
+            return;
+        }
         // A publisher confirm an in-process client takes inline.
         if self.in_process && self.confirm_inline(&item) {
             return;
@@ -378,12 +396,21 @@ impl Outbox {
         };
         let sent = Box::pin(async move {
             let send = self.tx.send(item);
+            // Cloned only here: a send that finds room pays nothing for it.
+            let closing = if until_closed {
+                self.closing.clone()
+            } else {
+                None
+            };
             let Some(mut closing) = closing else {
                 return send.await.is_ok();
             };
             tokio::select! {
                 sent = send => sent.is_ok(),
-                _ = closing.wait_for(|close| *close) => false,
+                _ = closing.wait_for(|close| *close) => {
+                    self.seal();
+                    false
+                }
             }
         });
         if !sent.await && self.in_process {
@@ -391,20 +418,44 @@ impl Outbox {
         }
     }
 
+    /// Whether an item was dropped at the close: nothing but the
+    /// connection's own close goes out any more.
+    #[inline]
+    fn is_sealed(&self) -> bool {
+        self.sealed.load(Ordering::Relaxed)
+    }
+
+    fn seal(&self) {
+        self.sealed.store(true, Ordering::Relaxed);
+    }
+
     /// Sends a method on a channel.
     pub async fn method(&self, channel: u16, method: impl Into<Method>) {
         self.send(Outbound::method(channel, method.into())).await;
     }
 
-    /// Waits for room for one item; `None` if the writer is gone or the
-    /// connection is told to close meanwhile.
+    /// Waits for room for one item; `None` if the writer is gone, the
+    /// connection is told to close meanwhile (which seals the outbox: see
+    /// [`Outbox::send`]) or an item was dropped at the close before.
     pub async fn reserve(&self) -> Option<OutboxPermit<'_>> {
+        if self.is_sealed() {
+            return None;
+        }
+        if let Ok(permit) = self.tx.try_reserve() {
+            return Some(OutboxPermit {
+                permit,
+                outbox: self,
+            });
+        }
         let reserve = self.tx.reserve();
         let permit = match self.closing.clone() {
             None => reserve.await.ok()?,
             Some(mut closing) => tokio::select! {
                 permit = reserve => permit.ok()?,
-                _ = closing.wait_for(|close| *close) => return None,
+                _ = closing.wait_for(|close| *close) => {
+                    self.seal();
+                    return None;
+                }
             },
         };
         Some(OutboxPermit {
@@ -413,8 +464,12 @@ impl Outbox {
         })
     }
 
-    /// Reserves room for one item without waiting.
+    /// Reserves room for one item without waiting; `None` if there is
+    /// none, the writer is gone or an item was dropped at the close.
     pub fn try_reserve(&self) -> Option<OutboxPermit<'_>> {
+        if self.is_sealed() {
+            return None;
+        }
         let permit = self.tx.try_reserve().ok()?;
         Some(OutboxPermit {
             permit,
@@ -422,8 +477,12 @@ impl Outbox {
         })
     }
 
-    /// Sends without waiting; false if there is no room or the writer is gone.
+    /// Sends without waiting; false if there is no room, the writer is
+    /// gone or an item was dropped at the close.
     pub fn try_send(&self, item: Outbound) -> bool {
+        if self.is_sealed() {
+            return false;
+        }
         // Counted before it can be handled, uncounted if not sent.
         self.count_sent();
         let sent = self.tx.try_send(item).is_ok();
@@ -439,6 +498,11 @@ impl Outbox {
         if self.in_process {
             self.unhandled.fetch_add(1, Ordering::SeqCst);
         }
+    }
+
+    /// Whether an in-process client takes the items.
+    pub(crate) fn in_process(&self) -> bool {
+        self.in_process
     }
 
     /// Sets an in-process client's inline deliveries (once; a second call
@@ -649,7 +713,7 @@ mod tests {
         tokio::task::yield_now().await;
         assert!(!waiting.is_finished(), "waits for room");
         close.send_replace(true);
-        let reserved = waiting.await.expect("ran");
+        let reserved = bounded(waiting).await.expect("ran");
         assert!(!reserved, "no room reserved once told to close");
         assert_eq!(
             outbox.unhandled.load(Ordering::SeqCst),
@@ -670,11 +734,146 @@ mod tests {
             }
             last = Some(item);
         }
-        closing.await.expect("ran");
+        bounded(closing).await.expect("ran");
         let Some(Outbound::Method { method, .. }) = last else {
             panic!("the queued items come first");
         };
         assert_eq!(*method, Method::from(cancel("fill")));
+    }
+
+    /// A hang limit, far above anything the awaited work needs, so that
+    /// a wait that never ends fails the test instead of hanging it.
+    async fn bounded<F: std::future::Future>(future: F) -> F::Output {
+        tokio::time::timeout(Duration::from_secs(30), future)
+            .await
+            .expect("ended within the hang limit")
+    }
+
+    /// An in-process client's inline deliveries that take every publisher
+    /// confirm offered, counting them.
+    struct TakesConfirms(AtomicU64);
+
+    impl InlineDeliveries for TakesConfirms {
+        fn deliver(&self, _: InlineDelivery<'_>) -> bool {
+            false
+        }
+
+        fn confirm(&self, _channel: u16, _tag: u64, _multiple: bool, _ack: bool) -> bool {
+            self.0.fetch_add(1, Ordering::SeqCst);
+            true
+        }
+    }
+
+    /// What a connection was sending when it was told to close.
+    #[derive(Debug, Clone, Copy)]
+    enum Dropped {
+        /// A publisher's nack (the broker refused its message).
+        Nack,
+        /// A mandatory message's basic.return.
+        Return,
+        /// A basic.get's room.
+        Reserve,
+    }
+
+    /// Once a wait for room has ended at the close and dropped its item,
+    /// nothing sent after it reaches the client, even with room again (a
+    /// confirm after a dropped nack or return would tell the publisher a
+    /// refused or unrouted message was taken): not a send (an ack
+    /// `multiple`), nor a confirm an in-process client (an MQTT link)
+    /// would take inline, nor a try_send, nor room reserved (deliveries);
+    /// only the connection's own close.
+    #[tokio::test]
+    async fn after_an_item_dropped_at_the_close_only_the_close_goes_out() {
+        for in_process in [false, true] {
+            for dropped in [Dropped::Nack, Dropped::Return, Dropped::Reserve] {
+                let case = format!("in process: {in_process}, dropped: {dropped:?}");
+                let (close, closing) = watch::channel(false);
+                let (outbox, mut inbox) = Outbox::connection(1, in_process, closing);
+                let inline = Arc::new(TakesConfirms(AtomicU64::new(0)));
+                if in_process {
+                    outbox.set_inline(Arc::clone(&inline) as Arc<dyn InlineDeliveries>);
+                }
+                let fill = || {
+                    Outbound::method(
+                        1,
+                        leveret_protocol::BasicCancel {
+                            consumer_tag: ShortStr::from_static("fill"),
+                            no_wait: true,
+                        }
+                        .into(),
+                    )
+                };
+                for _ in 0..OUTBOX_CAPACITY {
+                    assert!(outbox.try_send(fill()), "{case}: room");
+                }
+                let waiting = {
+                    let outbox = Arc::clone(&outbox);
+                    tokio::spawn(async move {
+                        match dropped {
+                            Dropped::Nack => {
+                                let nack = BasicNack {
+                                    delivery_tag: 6,
+                                    multiple: false,
+                                    requeue: false,
+                                };
+                                outbox.method(1, nack).await;
+                            }
+                            Dropped::Return => {
+                                let message = Arc::new(Message {
+                                    exchange: ShortStr::from_static("x"),
+                                    routing_key: ShortStr::from_static("k"),
+                                    properties: Bytes::new(),
+                                    body: Bytes::from_static(b"unroutable"),
+                                    persistent: false,
+                                    priority: 0,
+                                    ttl_ms: None,
+                                    stored: None,
+                                });
+                                let returned = Outbound::Return {
+                                    channel: 1,
+                                    reply_code: 312,
+                                    reply_text: ShortStr::from_static("NO_ROUTE"),
+                                    message,
+                                };
+                                outbox.send(returned).await;
+                            }
+                            Dropped::Reserve => {
+                                assert!(outbox.reserve().await.is_none());
+                            }
+                        }
+                    })
+                };
+                tokio::task::yield_now().await;
+                assert!(!waiting.is_finished(), "{case}: waits for room");
+                close.send_replace(true);
+                bounded(waiting).await.expect("ran");
+                // The writer drains everything queued before.
+                for _ in 0..OUTBOX_CAPACITY {
+                    inbox.try_recv().expect("queued before the drop");
+                    if in_process {
+                        outbox.handled();
+                    }
+                }
+                let ack = BasicAck {
+                    delivery_tag: 9,
+                    multiple: true,
+                };
+                outbox.method(1, ack).await;
+                assert!(!outbox.try_send(fill()), "{case}: try_send after the drop");
+                assert!(outbox.try_reserve().is_none(), "{case}: try_reserve");
+                assert!(bounded(outbox.reserve()).await.is_none(), "{case}: reserve");
+                bounded(outbox.send_closing(Outbound::Shutdown)).await;
+                assert!(
+                    matches!(inbox.try_recv(), Ok(Outbound::Shutdown)),
+                    "{case}: only the close follows the drop"
+                );
+                assert_eq!(inline.0.load(Ordering::SeqCst), 0, "{case}: none inline");
+                if in_process {
+                    outbox.handled();
+                    assert_eq!(outbox.unhandled.load(Ordering::SeqCst), 0, "{case}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -416,6 +416,31 @@ async fn delete_if_empty_refuses_while_messages_are_ready() {
     assert_eq!(n, 0);
 }
 
+/// A queue both in use and not empty refuses an if-unused if-empty delete
+/// as not empty, RabbitMQ's order (3.10.8, pika: "PRECONDITION_FAILED -
+/// queue '...' in vhost '/' not empty").
+#[both_runtimes]
+async fn delete_if_unused_and_if_empty_refuses_as_not_empty_first() {
+    let b = broker().await;
+    let conn = lp::connect(&b).await;
+    let consumer_ch = lp::channel(&conn).await;
+    tmo!(consumer_ch.basic_qos(1, lp::BasicQosOptions::default())).expect("qos");
+    let q = lp::queue(&consumer_ch, "in-use-and-not-empty").await;
+    let mut consumer = lp::consume(&consumer_ch, &q, "holding").await;
+    lp::publish(&consumer_ch, "", &q, b"held").await;
+    lp::publish(&consumer_ch, "", &q, b"ready").await;
+    lp::next(&mut consumer).await;
+    let ch = lp::channel(&conn).await;
+    let both = lp::QueueDeleteOptions {
+        if_unused: true,
+        if_empty: true,
+        ..Default::default()
+    };
+    let refused = tmo!(ch.queue_delete(&q, both)).unwrap_err().to_string();
+    assert!(refused.contains("PRECONDITION_FAILED"), "{refused}");
+    assert!(refused.contains("not empty"), "{refused}");
+}
+
 #[both_runtimes]
 async fn redeclaring_a_queue_differently_gets_406() {
     let b = broker().await;

@@ -1076,3 +1076,218 @@ async fn client_heartbeats_keep_a_quiet_connection_alive() {
     }
     raw.open_channel(1).await;
 }
+
+/// Messages, of [`STALL_BODY`] bytes each, in the queue a stalled consumer
+/// consumes: more than the socket buffers and its connection's outbox
+/// (512 items) hold.
+const STALL_MESSAGES: usize = 1000;
+const STALL_BODY: usize = 64 * 1024;
+
+/// The id of the one connection open on `b`.
+fn only_connection(b: &TestBroker) -> u64 {
+    let listed = b.admin().expect("in-process broker").connections();
+    assert_eq!(listed.len(), 1, "one connection open");
+    listed[0].id
+}
+
+/// Waits until `b` has no connection open (each ends within a few close
+/// timeouts once it is done; the hang limit is far above that).
+async fn no_connection_left(b: &TestBroker) {
+    let admin = b.admin().expect("in-process broker");
+    tmo!(async {
+        while !admin.connections().is_empty() {
+            tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+        }
+    });
+}
+
+/// Declares `queue` and publishes [`STALL_MESSAGES`] into it, on a
+/// connection of its own (closed after); then a consumer on channel 1 of
+/// a new connection (no prefetch limit, acks on) that reads nothing more:
+/// the broker's writes to it stall, its outbox fills, and the queue keeps
+/// the rest. Returns that consumer once the queue has stopped
+/// dispatching to it.
+async fn stalled_consumer(b: &TestBroker, queue: &'static str) -> Raw {
+    let mut publisher = Raw::open(b).await;
+    publisher.send_method(1, declare(queue)).await;
+    match publisher.method().await {
+        (1, Method::QueueDeclareOk(_)) => {}
+        other => panic!("expected queue.declare-ok, got {other:?}"),
+    }
+    let body = vec![7u8; STALL_BODY];
+    for _ in 0..STALL_MESSAGES {
+        let mut buf = BytesMut::new();
+        let publish = BasicPublish {
+            routing_key: ShortStr::from_static(queue),
+            ..Default::default()
+        };
+        encode_method(1, &publish.into(), &mut buf);
+        encode_content(1, 60, b"\x00\x00", &body, publisher.frame_max, &mut buf);
+        publisher.send(&buf).await;
+    }
+    let admin = b.admin().expect("in-process broker");
+    let ready = || {
+        admin
+            .queue("/", queue)
+            .expect("declared")
+            .info()
+            .messages_ready
+    };
+    tmo!(async {
+        while ready() < STALL_MESSAGES as u64 {
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+    });
+    publisher.send_method(0, ConnectionClose::default()).await;
+    match publisher.method().await {
+        (0, Method::ConnectionCloseOk(_)) => {}
+        other => panic!("expected connection.close-ok, got {other:?}"),
+    }
+    drop(publisher);
+    no_connection_left(b).await;
+    let mut consumer = Raw::open(b).await;
+    let consume = leveret_protocol::BasicConsume {
+        queue: ShortStr::from_static(queue),
+        consumer_tag: ShortStr::from_static("stalled"),
+        ..Default::default()
+    };
+    consumer.send_method(1, consume).await;
+    match consumer.method().await {
+        (1, Method::BasicConsumeOk(_)) => {}
+        other => panic!("expected basic.consume-ok, got {other:?}"),
+    }
+    // Dispatch stops for good once the outbox is full: the count of
+    // messages ready no longer moves, and some are left.
+    let mut last = u64::MAX;
+    tmo!(async {
+        loop {
+            tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+            let now = ready();
+            if now == last {
+                break;
+            }
+            last = now;
+        }
+    });
+    assert!(
+        last > 0,
+        "the consumer's outbox is full before the queue is empty"
+    );
+    consumer
+}
+
+/// A client that sends connection.close while its outbox is full and
+/// then reads nothing is let go: the broker's close-ok waits for room
+/// only as long as its own close would (it waited for ever, holding the
+/// connection, its socket and the deliveries in its outbox).
+#[both_runtimes]
+async fn a_client_that_closes_and_reads_nothing_more_is_let_go() {
+    let b = broker().await;
+    let mut consumer = stalled_consumer(&b, "risk3-fix.close-and-stall").await;
+    let close = ConnectionClose {
+        reply_code: 200,
+        reply_text: ShortStr::from_static("bye"),
+        ..Default::default()
+    };
+    consumer.send_method(0, close).await;
+    no_connection_left(&b).await;
+    let admin = b.admin().expect("in-process broker");
+    let queue = admin.queue("/", "risk3-fix.close-and-stall").expect("kept");
+    assert_eq!(
+        queue.info().messages_ready,
+        STALL_MESSAGES as u64,
+        "its deliveries are requeued"
+    );
+    drop(consumer);
+}
+
+/// A client's connection.close that crosses the broker's (a management
+/// close) is answered with close-ok, as RabbitMQ answers a close it
+/// receives while closing.
+#[both_runtimes]
+async fn a_connection_close_that_crosses_the_brokers_gets_close_ok() {
+    let b = broker().await;
+    let (mut raw, _) = Raw::handshake(&b).await;
+    let admin = b.admin().expect("in-process broker");
+    assert!(admin.close_connection(only_connection(&b), "Closed via management plugin"));
+    raw.expect_close_frame(
+        320,
+        "CONNECTION_FORCED - Closed via management plugin",
+        (0, 0),
+    )
+    .await;
+    let close = ConnectionClose {
+        reply_code: 200,
+        reply_text: ShortStr::from_static("bye"),
+        ..Default::default()
+    };
+    raw.send_method(0, close).await;
+    match raw.frame().await {
+        Some(Frame::Method {
+            channel: 0,
+            method: Method::ConnectionCloseOk(_),
+        }) => {}
+        other => panic!("expected connection.close-ok, got {other:?}"),
+    }
+    raw.assert_closed().await;
+}
+
+/// Frames a socket client sent in one write, read before a management
+/// close, are all handled, as RabbitMQ handles every whole frame of its
+/// current read before it sees a forced close: here a publish read with
+/// a queue.declare whose declare-ok waits for room in the consumer's full
+/// outbox when the close comes (the declare-ok is dropped; the publish is
+/// still routed).
+#[both_runtimes]
+async fn frames_read_before_a_forced_close_are_handled() {
+    let b = broker().await;
+    let routed = "risk3-fix.routed-after-close";
+    let mut declarer = Raw::open(&b).await;
+    declarer.send_method(1, declare(routed)).await;
+    match declarer.method().await {
+        (1, Method::QueueDeclareOk(_)) => {}
+        other => panic!("expected queue.declare-ok, got {other:?}"),
+    }
+    declarer.send_method(0, ConnectionClose::default()).await;
+    match declarer.method().await {
+        (0, Method::ConnectionCloseOk(_)) => {}
+        other => panic!("expected connection.close-ok, got {other:?}"),
+    }
+    drop(declarer);
+    no_connection_left(&b).await;
+    let mut consumer = stalled_consumer(&b, "risk3-fix.read-then-closed").await;
+    let marker = "risk3-fix.declared-before-close";
+    let mut batch = method_bytes(1, declare(marker));
+    let publish = BasicPublish {
+        routing_key: ShortStr::from_static(routed),
+        ..Default::default()
+    };
+    let mut content = BytesMut::new();
+    encode_method(1, &publish.into(), &mut content);
+    encode_content(
+        1,
+        60,
+        b"\x00\x00",
+        b"read before the close",
+        4096,
+        &mut content,
+    );
+    batch.extend_from_slice(&content);
+    consumer.send(&batch).await;
+    // The declare is handled (its queue exists) and its declare-ok waits
+    // for room: the publish is read, not yet handled.
+    let admin = b.admin().expect("in-process broker");
+    tmo!(async {
+        while admin.queue("/", marker).is_none() {
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+    });
+    assert!(admin.close_connection(only_connection(&b), "Closed via management plugin"));
+    no_connection_left(&b).await;
+    let routed = admin.queue("/", routed).expect("declared").info();
+    assert_eq!(
+        routed.messages_ready, 1,
+        "the publish read before the close"
+    );
+    drop(consumer);
+}

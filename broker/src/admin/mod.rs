@@ -237,8 +237,10 @@ impl Admin {
         Ok(created)
     }
 
-    /// queue.delete: 404 if it does not exist, 406 if `if_unused` and it
-    /// has consumers or `if_empty` and it has ready messages.
+    /// queue.delete: 404 if it does not exist, 406 if `if_empty` and it
+    /// has ready messages, or `if_unused` and it is in use (consumers, or
+    /// an MQTT shared subscription's member about to consume it:
+    /// [`crate::queue::Queue::take_unused`]).
     pub async fn delete_queue(
         &self,
         vhost: &str,
@@ -248,15 +250,15 @@ impl Admin {
     ) -> AmqpResult<u32> {
         let vhost = self.vhost(vhost)?;
         let queue = self.queue_in(&vhost, name)?;
-        if if_unused && queue.in_use() {
-            return Err(AmqpError::precondition_failed(format_args!(
-                "queue '{}' in vhost '{}' in use",
-                name, vhost.name
-            )));
-        }
         if if_empty && queue.message_count() > 0 {
             return Err(AmqpError::precondition_failed(format_args!(
                 "queue '{}' in vhost '{}' is not empty",
+                name, vhost.name
+            )));
+        }
+        if if_unused && !queue.take_unused() {
+            return Err(AmqpError::precondition_failed(format_args!(
+                "queue '{}' in vhost '{}' in use",
                 name, vhost.name
             )));
         }

@@ -198,6 +198,12 @@ mod tests {
     /// A channel in confirm mode on a broker over `store`, with a durable
     /// queue `kept`, and what its outbox receives.
     async fn confirming(store: Arc<Gated>) -> (Channel, mpsc::Receiver<Outbound>) {
+        let (outbox, inbox) = Outbox::new(1);
+        (confirming_on(store, outbox).await, inbox)
+    }
+
+    /// [`confirming`]'s channel, sending into `outbox`.
+    async fn confirming_on(store: Arc<Gated>, outbox: Arc<Outbox>) -> Channel {
         let store: Arc<dyn Store> = store;
         let persistence = Persistence::start(store, &Recovered::default()).expect("persister");
         let permissions = Permissions::default();
@@ -232,10 +238,9 @@ mod tests {
                 0,
             )
             .expect("queue.declare");
-        let (outbox, inbox) = Outbox::new(1);
         let mut channel = Channel::new(1, outbox, vhost, core, "guest".into(), 0);
         channel.confirm_select(true).await.expect("confirm.select");
-        (channel, inbox)
+        channel
     }
 
     fn publish_persistent(channel: &mut Channel) {
@@ -302,6 +307,51 @@ mod tests {
         );
         assert_eq!(channel.confirms.as_ref().map(Confirms::len), Some(0));
         assert_eq!(channel.core.stats.confirmed.get(), 2);
+    }
+
+    /// A nack dropped because the connection was told to close while it
+    /// waited for room is followed by no ack, even once the writer has
+    /// made room: an ack `multiple` of later publishes would confirm the
+    /// refused one to the publisher (review BUG 1).
+    #[tokio::test]
+    async fn a_nack_dropped_at_the_close_is_followed_by_no_ack() {
+        let (close, closing) = tokio::sync::watch::channel(false);
+        let (outbox, mut inbox) = Outbox::connection(1, false, closing);
+        let mut channel = confirming_on(Arc::new(Gated::default()), Arc::clone(&outbox)).await;
+        let fill = leveret_protocol::BasicCancel {
+            consumer_tag: ShortStr::from_static("fill"),
+            no_wait: true,
+        };
+        for _ in 0..crate::outbox::OUTBOX_CAPACITY {
+            assert!(outbox.try_send(Outbound::method(1, fill.clone().into())));
+        }
+        let refused = Published {
+            refused: true,
+            ..Published::default()
+        };
+        channel.confirm(1, refused);
+        let flushing = tokio::spawn(async move {
+            channel.flush_confirms().await;
+            channel
+        });
+        tokio::task::yield_now().await;
+        assert!(!flushing.is_finished(), "the nack waits for room");
+        close.send_replace(true);
+        let mut channel = tokio::time::timeout(std::time::Duration::from_secs(30), flushing)
+            .await
+            .expect("the wait ends at the close")
+            .expect("ran");
+        let drained = sent(&mut inbox);
+        assert_eq!(drained.len(), crate::outbox::OUTBOX_CAPACITY);
+        assert!(drained.iter().all(|m| matches!(m, Method::BasicCancel(_))));
+        channel.confirm(2, Published::default());
+        channel.confirm(3, Published::default());
+        channel.flush_confirms().await;
+        let methods = sent(&mut inbox);
+        assert!(
+            methods.is_empty(),
+            "no confirm after the dropped nack: {methods:?}"
+        );
     }
 
     /// Awaits `confirms_due` on `channel`, failing (not hanging) if it

@@ -179,16 +179,18 @@ impl Channel {
             None => Deleted::default(),
             Some(queue) => {
                 check_exclusive(&queue, self.outbox().connection_id, &self.vhost.name)?;
-                if delete.if_unused && queue.in_use() {
-                    return Err(AmqpError::precondition_failed(format_args!(
-                        "queue '{}' in vhost '{}' in use",
-                        name, self.vhost.name
-                    )));
-                }
                 self.vhost.expire(&queue).await;
+                // As RabbitMQ: not empty, then in use; in use decided
+                // with no await before the delete (`Queue::take_unused`).
                 if delete.if_empty && queue.message_count() > 0 {
                     return Err(AmqpError::precondition_failed(format_args!(
                         "queue '{}' in vhost '{}' is not empty",
+                        name, self.vhost.name
+                    )));
+                }
+                if delete.if_unused && !queue.take_unused() {
+                    return Err(AmqpError::precondition_failed(format_args!(
+                        "queue '{}' in vhost '{}' in use",
                         name, self.vhost.name
                     )));
                 }

@@ -438,17 +438,24 @@ impl Connection {
         // Likewise for giving back a read buffer grown by a burst.
         let release = tokio::time::sleep(IDLE_RELEASE);
         tokio::pin!(release);
+        // Told to close (a management close, an MQTT takeover's, the
+        // broker's shutdown), a connection handles nothing it reads later.
+        // A socket client's frames of a read made before are all handled,
+        // as RabbitMQ handles every whole frame of its current read before
+        // it sees a forced close; an in-process client's link holds all it
+        // sent as one read, so it is checked before each frame there (one
+        // atomic load a frame).
+        let check_each_frame = self.outbox.in_process();
         loop {
+            if told_to_close(&shutdown) {
+                return Box::pin(self.close_with(reader, self.forced())).await;
+            }
             // Every whole frame already buffered is handled straight away;
             // the select below runs once per socket read, not per frame.
             // A resource alarm stops it at the next message: a publisher is
             // not read further, even from its buffer, until it clears.
             loop {
-                // Told to close (a management close, an MQTT takeover's,
-                // the broker's shutdown): nothing more the client sent is
-                // handled, however much is buffered (an in-process
-                // client's whole link is; one atomic load a frame).
-                if shutdown.has_changed().is_ok_and(|changed| changed) && *shutdown.borrow() {
+                if check_each_frame && told_to_close(&shutdown) {
                     return Box::pin(self.close_with(reader, self.forced())).await;
                 }
                 let input = match reader.buffered_publish() {
@@ -784,7 +791,7 @@ impl Connection {
             Method::ConnectionClose(close) => {
                 tracing::debug!(code = close.reply_code, text = %close.reply_text, "client closed the connection");
                 self.cleanup();
-                self.outbox.method(0, ConnectionCloseOk {}).await;
+                self.answer_close().await;
                 Ok(Flow::Closed)
             }
             Method::ConnectionCloseOk(_) => Ok(Flow::Closed),
@@ -823,9 +830,16 @@ impl Connection {
             loop {
                 match reader.next().await {
                     Ok(Frame::Method {
-                        method: Method::ConnectionCloseOk(_) | Method::ConnectionClose(_),
+                        method: Method::ConnectionCloseOk(_),
                         ..
                     }) => return,
+                    // Both ends closing at once: the client's close is
+                    // answered too (as RabbitMQ answers one it receives
+                    // while closing).
+                    Ok(Frame::Method {
+                        method: Method::ConnectionClose(_),
+                        ..
+                    }) => return self.answer_close().await,
                     Ok(_) => continue,
                     Err(ReadError::Decode(_)) => return reader.discard_input().await,
                     Err(_) => return,
@@ -837,6 +851,17 @@ impl Connection {
             return Err(Ended::Forced(error.text));
         }
         Err(Ended::Protocol(error))
+    }
+
+    /// Answers the client's connection.close with close-ok: the
+    /// connection's own close, so it goes out even once the connection
+    /// is told to close, bounded as our close is (a client that stops
+    /// reading leaves no room for it).
+    async fn answer_close(&self) {
+        let close_ok = self
+            .outbox
+            .send_closing(Outbound::method(0, ConnectionCloseOk {}.into()));
+        let _ = tokio::time::timeout(CLOSE_TIMEOUT, close_ok).await;
     }
 
     /// `peer -> local`, and ` - NAME` when the client named the
@@ -924,6 +949,11 @@ impl Connection {
         #[cfg(feature = "mqtt")]
         self.core.registry.cleaned_up(self.connection_id);
     }
+}
+
+/// Whether the connection was told to close since the loop last waited.
+fn told_to_close(signal: &tokio::sync::watch::Receiver<bool>) -> bool {
+    signal.has_changed().is_ok_and(|changed| changed) && *signal.borrow()
 }
 
 /// How a memory-alarm wait ended.

@@ -100,7 +100,7 @@ impl Deleted {
                     no_wait: true,
                 };
                 if !outbox.try_send(Outbound::method(consumer.channel.id, cancel.into())) {
-                    tracing::warn!(consumer = %consumer.tag, "no room to tell a consumer its queue was deleted");
+                    tracing::warn!(consumer = %consumer.tag, "could not tell a consumer its queue was deleted (no room, or its connection is closing)");
                 }
             }
         }

@@ -182,8 +182,9 @@ struct QueueState {
     #[cfg(feature = "mqtt")]
     auto_delete_due: bool,
     /// The queue has been found to go, its deletion to follow: auto-delete
-    /// ([`Queue::remove_consumer`], [`Queue::leave_join`]) or x-expires
-    /// ([`Queue::take_expired`]). No consumer may come, nor member join,
+    /// ([`Queue::remove_consumer`], [`Queue::leave_join`]), x-expires
+    /// ([`Queue::take_expired`]) or an if-unused delete
+    /// ([`Queue::take_unused`]). No consumer may come, nor member join,
     /// any more.
     going: bool,
     deleted: bool,
@@ -709,15 +710,28 @@ impl Queue {
         self.lock().deleted
     }
 
-    /// Whether it is in use, for queue.delete's if-unused: it has
-    /// consumers, or an MQTT shared subscription's member has joined it
-    /// and its consume is on its way ([`Queue::join`]).
-    pub fn in_use(&self) -> bool {
-        #[cfg(feature = "mqtt")]
-        if self.lock().joining > 0 {
-            return true;
+    /// queue.delete's if-unused, decided and acted on in one lock hold:
+    /// whether the queue is unused (no consumer, and no MQTT shared
+    /// subscription's member that joined it with its consume on its way,
+    /// [`Queue::join`]); if so it is marked going, so that no consumer
+    /// (404) nor member (it declares the queue anew) comes before the
+    /// caller deletes it, which it does at once, with no await between
+    /// (RabbitMQ decides and deletes in one step of the queue's process).
+    /// A stream's readers are counted under the stream's own lock.
+    pub fn take_unused(&self) -> bool {
+        if let Some(stream) = &self.stream {
+            return stream.reader_count() == 0;
         }
-        self.consumer_count() > 0
+        let mut st = self.lock();
+        #[cfg(feature = "mqtt")]
+        if st.joining > 0 {
+            return false;
+        }
+        if !st.consumers.is_empty() {
+            return false;
+        }
+        st.going = true;
+        true
     }
 
     /// Whether publishers to this queue should slow down.

@@ -247,6 +247,46 @@ fn a_queue_that_is_going_or_deleted_takes_no_new_consumer() {
     refused(&deleted);
 }
 
+/// queue.delete's if-unused decides and marks in one lock hold: refused,
+/// marking nothing, while the queue has a consumer or (MQTT) a member's
+/// join is pending; once it is taken, neither a member's join nor a
+/// consumer (404) gets in before the delete that follows (review RISK 3:
+/// checked, then deleted after an await, a member could join between).
+#[test]
+fn an_if_unused_delete_takes_the_queue_so_nothing_comes_before_it_goes() {
+    let h = Harness::new();
+    let ch = h.channel();
+    let q = h.queue("if-unused", &[]);
+    let first = ch.consume(&q, "first", Consume::default());
+    assert!(!q.take_unused(), "a consumer is use");
+    assert!(!q.remove_consumer(&first), "not auto-delete");
+    #[cfg(feature = "mqtt")]
+    {
+        assert!(q.join(false), "a member joins");
+        assert!(!q.take_unused(), "a pending join is use");
+        assert!(!q.leave_join(), "not auto-delete");
+    }
+    // Refused, it marked nothing: the queue is still consumed.
+    let second = ch.consume(&q, "second", Consume::default());
+    assert!(!q.remove_consumer(&second));
+    assert!(q.take_unused(), "unused");
+    #[cfg(feature = "mqtt")]
+    assert!(!q.join(false), "no member joins a queue taken for deletion");
+    let late = Arc::new(Consumer {
+        tag: s("late"),
+        channel: Arc::clone(&ch.link),
+        no_ack: true,
+        exclusive: false,
+        prefetch: 0,
+        priority: 0,
+        wants_position: false,
+        in_flight: Default::default(),
+        active: Default::default(),
+    });
+    let refused = q.add_consumer(late).expect_err("no consumer either");
+    assert_eq!(refused.code, ReplyCode::NotFound);
+}
+
 /// A writer that finds room again dispatches, and may find expired
 /// messages at the head; it cannot route them, so they wait in the queue
 /// for the next sweep instead of being lost.
