@@ -339,7 +339,8 @@ async fn run(
         }
     };
     banner.log(&ops);
-    resident::release_start_up_code().await;
+    // Its own task: a stop asked for meanwhile is not kept waiting.
+    tokio::spawn(resident::release_start_up_code());
     signals.wait_for_stop(handle).await;
     tracing::info!("shutting down");
     ops.stop();
