@@ -9,8 +9,9 @@
 //! store are given the broker's cap at start ([`cap_restored_queues`],
 //! [`restored`]), every part of a session alike and written back (its
 //! queues here, its QoS 2 and shared subscription records by `releases`
-//! and `shares`), so that whatever caps later starts have, its parts
-//! keep expiring together.
+//! and `shares`, before its queues: `super::write_back_restored`), so
+//! that whatever caps later starts have, its parts keep expiring
+//! together.
 
 use super::mapping;
 use crate::core::Core;
