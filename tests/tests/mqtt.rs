@@ -3901,7 +3901,8 @@ async fn a_sessions_parts_expire_together_when_the_cap_changes_between_restarts(
 /// when an MQTT client of that identifier connects (then it is the
 /// session's: given the cap at every start). One without the mark whose
 /// session holds QoS 2 state (as an older Leveret left them) is given the
-/// cap, and is the session's from then on.
+/// cap, and is the session's from then on; under 0 it goes with that
+/// state (its client then finds no session present).
 #[both_runtimes]
 async fn an_amqp_clients_queue_of_a_session_queues_name_is_left_alone_at_start() {
     let dir = std::env::temp_dir().join(unique("leveret-mqtt-amqp-session-name"));
@@ -3909,6 +3910,7 @@ async fn an_amqp_clients_queue_of_a_session_queues_name_is_left_alone_at_start()
     let adopted = "mqtt-subscription-adoptedqos1";
     let older = "mqtt-subscription-olderqos1";
     let made = "mqtt-subscription-madeqos1";
+    let late = "mqtt-subscription-lateqos1";
     let with_cap = |max: Option<u32>| {
         Broker::builder()
             .data_dir(&dir)
@@ -3950,15 +3952,28 @@ async fn an_amqp_clients_queue_of_a_session_queues_name_is_left_alone_at_start()
     until_expires(&handle, adopted, Some(60_000)).await;
     disconnect!(client, events);
     offline(&handle, adopted).await;
+    // Another session holding QoS 2 state, its queue unmarked (an older
+    // Leveret's) at the start under 0.
+    let (mut raw, _) = raw_session(mqtt_port(&handle), "late", false, None).await;
+    raw.send(qos2_once(id, "l/x", false)).await;
+    assert!(matches!(raw.next().await, Some(Packet::PubRec(r)) if r.packet_id == id));
+    drop(raw);
+    let (amqp, channel) = amqp_channel(&handle).await;
+    tmo!(channel.queue_declare(late, durable, Default::default())).unwrap();
+    drop(amqp);
     handle.shutdown().await;
 
-    // Under 0 the sessions' queues go at the first sweep; the AMQP
-    // client's stays as it was, with its message.
+    // Under 0 the sessions' queues go at the first sweep, the unmarked
+    // one of a session with QoS 2 state too; the AMQP client's stays as
+    // it was, with its message.
     let handle = start_with(with_cap(Some(0)), Limits::default()).await;
-    for queue in [made, adopted, older] {
+    for queue in [made, adopted, older, late] {
         until_queue_listed(&handle, queue, false, "the session's queue gone").await;
     }
     assert_eq!(listed_as(&handle, amqps), (true, false, None, 1));
+    let (raw, present) = raw_session(mqtt_port(&handle), "late", false, None).await;
+    assert!(!present, "the session ended: its queue went with its state");
+    drop(raw);
     handle.shutdown().await;
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -9,8 +9,9 @@
 //! store are given the broker's cap at start ([`cap_restored_queues`],
 //! [`restored`]), every part of a session alike and written back (its
 //! queues here, its QoS 2 and shared subscription records by `releases`
-//! and `shares`), so that whatever caps later starts have, its parts
-//! keep expiring together.
+//! and `shares`, before its queues: `super::write_back_restored`), so
+//! that whatever caps later starts have, its parts keep expiring
+//! together.
 
 use super::mapping;
 use crate::core::Core;
@@ -91,8 +92,11 @@ const CAP_CHUNK: usize = 256;
 /// capped, and unmarked ones (an older Leveret's, or an AMQP client's of
 /// that name) only where `holds(vhost, client id)` (the session has
 /// restored QoS 2 or shared subscription state: it is an MQTT session's;
-/// then marked) and the cap is not 0: an unmarked queue is never given
-/// 1 ms at start. Yields every [`CAP_CHUNK`] queues. How many changed.
+/// then marked), under `0` too: that session's records are restored as
+/// ended, so its queue is given 1 ms and goes with them, never left as a
+/// session present without them. An unmarked queue without such a
+/// session is never changed. Yields every [`CAP_CHUNK`] queues. How many
+/// changed.
 pub(super) async fn cap_restored_queues(
     vhosts: &[Arc<Vhost>],
     max: Option<u32>,
@@ -101,7 +105,6 @@ pub(super) async fn cap_restored_queues(
     let Some(cap) = queue_expires(max) else {
         return 0;
     };
-    let unmarked_too = max != Some(0);
     let mut changed = 0;
     for vhost in vhosts {
         let vhost_name = vhost.name.to_string_lossy();
@@ -116,7 +119,7 @@ pub(super) async fn cap_restored_queues(
                 }
                 let arguments = queue.arguments();
                 let ours = crate::arguments::marks_an_mqtt_session_queue(&arguments)
-                    || (unmarked_too && holds(&vhost_name, client_id));
+                    || holds(&vhost_name, client_id);
                 let current = (arguments.get("x-expires"))
                     .and_then(FieldValue::as_i64)
                     .and_then(|ms| u64::try_from(ms).ok());
@@ -209,7 +212,7 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn only_queues_sessions_declared_are_capped_at_start_and_never_unmarked_to_1_ms() {
+    async fn only_queues_of_sessions_declared_or_with_records_are_capped_at_start_under_0_too() {
         use crate::testkit::Harness;
         let marked = (crate::arguments::MQTT_SESSION, FieldValue::Bool(true));
         let unmarked = (crate::arguments::MQTT_SESSION, FieldValue::Bool(false));
@@ -235,15 +238,12 @@ mod tests {
             assert_eq!(expires_of(&session), want);
             assert_eq!(expires_of(&amqp), None, "an AMQP client's is left alone");
             assert_eq!(expires_of(&untrue), None, "false marks nothing");
-            if max == Some(0) {
-                assert_eq!(changed, 1);
-                assert_eq!(expires_of(&older), None, "never 1 ms unmarked");
-            } else {
-                assert_eq!(changed, 2);
-                assert_eq!(expires_of(&older), want, "its session's records say so");
-                let arguments = older.arguments();
-                assert!(crate::arguments::marks_an_mqtt_session_queue(&arguments));
-            }
+            // Under 0 too: its records are restored as ended, and it goes
+            // with them (1 ms), never kept as a session present without.
+            assert_eq!(changed, 2);
+            assert_eq!(expires_of(&older), want, "its session's records say so");
+            let arguments = older.arguments();
+            assert!(crate::arguments::marks_an_mqtt_session_queue(&arguments));
         }
         // Only lowered, never raised.
         let h = Harness::durable();

@@ -107,28 +107,51 @@ impl Shared {
     }
 
     /// Gives the persistent sessions recovered from the store the session
-    /// expiry cap, every part of each written back: their queues
-    /// ([`expiry::cap_restored_queues`]), their QoS 2 records
-    /// ([`releases::Releases::settle_yielding`]) and their shared
-    /// subscriptions, with the groups' queues their groups' expiry
-    /// ([`shares::Shares::reconcile`]): once at start, after the queues
-    /// are rebuilt and before anything sweeps them; yielding between
-    /// bounded steps.
+    /// expiry cap, every part of each written back
+    /// ([`write_back_restored`]): once at start, after the queues are
+    /// rebuilt and before anything sweeps them.
     pub(crate) async fn reconcile_queues(&self, core: &Core) {
         let max = self.max_session_expiry;
-        let holds = |vhost: &str, client_id: &str| {
-            self.releases.holds(vhost, client_id) || self.shares.holds(vhost, client_id)
-        };
-        let capped = expiry::cap_restored_queues(&core.vhosts(), max, holds).await;
-        if capped > 0 {
-            tracing::info!(
-                queues = capped,
-                max_seconds = max,
-                "MQTT sessions' queues restored with a longer expiry (or none) given the session expiry cap"
-            );
-        }
-        self.releases.settle_yielding().await;
-        self.shares.reconcile(core).await;
+        write_back_restored(&self.releases, &self.shares, &core.vhosts(), max).await;
+    }
+}
+
+/// Gives the persistent sessions recovered from the store (QoS 2 records
+/// `releases`, shared subscriptions `shares`, queues in `vhosts`) the
+/// session expiry cap `max`, every part of each written back: their QoS 2
+/// records ([`releases::Releases::settle_yielding`]), their shared
+/// subscriptions, with the groups' queues their groups' expiry
+/// ([`shares::Shares::reconcile`]), then their own queues
+/// ([`expiry::cap_restored_queues`]); yielding between bounded steps.
+///
+/// Records before queues: the store keeps submission order, so a crash
+/// part way leaves some records capped beside queues that are not, never
+/// queues capped beside records that are not. A later start under a
+/// raised cap can then keep a queue longer than its records (the session
+/// found, its QoS 2 and shared subscription state gone first, as when
+/// they expire before it), but never records after their queue has gone
+/// (a session found from its records alone, with no queue, and records
+/// kept for ever under `infinity`).
+async fn write_back_restored(
+    releases: &releases::Releases,
+    shares: &shares::Shares,
+    vhosts: &[Arc<crate::vhost::Vhost>],
+    max: Option<u32>,
+) {
+    // `holds` reads which sessions have records, not their expiry, so the
+    // write-back before it changes nothing it sees.
+    releases.settle_yielding().await;
+    shares.reconcile(vhosts).await;
+    let holds = |vhost: &str, client_id: &str| {
+        releases.holds(vhost, client_id) || shares.holds(vhost, client_id)
+    };
+    let capped = expiry::cap_restored_queues(vhosts, max, holds).await;
+    if capped > 0 {
+        tracing::info!(
+            queues = capped,
+            max_seconds = max,
+            "MQTT sessions' queues restored with a longer expiry (or none) given the session expiry cap"
+        );
     }
 }
 
@@ -328,5 +351,79 @@ async fn handshaken<S, E: std::fmt::Display>(
             tracing::warn!(%peer, "MQTT {what} handshake not completed within the handshake timeout");
             None
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::{KvOp, KvPair, MemoryStore, Store, StoreError, WriteMode};
+    use std::sync::Mutex;
+
+    /// A store that lists the keys it is asked to write, in order.
+    #[derive(Debug, Default)]
+    struct Listing {
+        inner: MemoryStore,
+        written: Mutex<Vec<Vec<u8>>>,
+    }
+
+    impl Store for Listing {
+        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+            let keys = ops.iter().map(|(key, _)| key.clone());
+            self.written.lock().unwrap().extend(keys);
+            self.inner.write(ops, mode)
+        }
+        fn flush(&self) -> Result<(), StoreError> {
+            self.inner.flush()
+        }
+        fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
+            self.inner.scan()
+        }
+    }
+
+    /// A crash part way through the start-up write-back leaves records
+    /// capped beside queues that are not, never the other way round: the
+    /// store is asked for every record (QoS 2: `aq`, shared subscription:
+    /// `as`) before any queue (`q`).
+    #[tokio::test]
+    async fn at_start_a_sessions_records_are_written_back_before_its_queue() {
+        let store = Arc::new(Listing::default());
+        let h = crate::testkit::Harness::durable_over(Arc::clone(&store) as Arc<dyn Store>);
+        let persistence = h.persistence.clone().expect("a store");
+        // An older Leveret's 3.1.1 session: unmarked queue, no expiry.
+        h.declare_queue("mqtt-subscription-devqos1", true, &[]);
+        assert!(persistence.sync().await);
+        store.written.lock().unwrap().clear();
+        let (vhost, client_id) = ("/".to_owned(), "dev".to_owned());
+        let recovered = [
+            MetaRecord::Unreleased {
+                vhost: vhost.clone(),
+                client_id: client_id.clone(),
+                packet_id: 1,
+                session_expiry: None,
+            },
+            MetaRecord::SharedSubscription {
+                vhost,
+                client_id,
+                filter: "$share/g/t/#".to_owned(),
+                qos: 1,
+                retain_as_published: false,
+                subscription_id: 0,
+                session_expiry: u32::MAX,
+            },
+        ];
+        let max = Some(60);
+        let releases = releases::Releases::new(&recovered, Some(Arc::clone(&persistence)), max);
+        let shares = shares::Shares::new(&recovered, Some(Arc::clone(&persistence)), max);
+        write_back_restored(&releases, &shares, &[Arc::clone(&h.vhost)], max).await;
+        assert!(persistence.sync().await);
+        let written = store.written.lock().unwrap();
+        let last_record = written
+            .iter()
+            .rposition(|key| key.starts_with(b"aq") || key.starts_with(b"as"));
+        let first_queue = written.iter().position(|key| key.starts_with(b"q"));
+        let kinds = |prefix: &[u8]| written.iter().filter(|k| k.starts_with(prefix)).count();
+        assert_eq!((kinds(b"aq"), kinds(b"as"), kinds(b"q")), (1, 1, 1));
+        assert!(last_record < first_queue, "{written:?}");
     }
 }

@@ -557,8 +557,8 @@ impl Shares {
         vec![(vhost.to_owned(), filter.to_owned())]
     }
 
-    /// Gives every group queue a member declared durable in `core`'s
-    /// vhosts (kept or not) its group's expiry, once at start, before
+    /// Gives every group queue a member declared durable in `vhosts`
+    /// (kept or not) its group's expiry, once at start, before
     /// anything sweeps the vhosts: a group's records and its queue's are
     /// written by separate submits, so a crash between them can leave the
     /// queue with a stale `x-expires` (a short one would expire it before
@@ -567,12 +567,7 @@ impl Shares {
     /// Sessions recovered half-moved to a new interval are moved on
     /// first ([`Shares::new`]), so no group is given an expiry from a
     /// mixed state.
-    pub(super) async fn reconcile(&self, core: &Core) {
-        self.reconcile_in(&core.vhosts()).await;
-    }
-
-    /// [`Shares::reconcile`] over `vhosts`.
-    async fn reconcile_in(&self, vhosts: &[Arc<Vhost>]) {
+    pub(super) async fn reconcile(&self, vhosts: &[Arc<Vhost>]) {
         let vhost_of = |name: &str| (vhosts.iter()).find(|v| v.name.to_string_lossy() == name);
         let vhost_of = |name: &str| vhost_of(name).cloned();
         self.settle_yielding_in(&vhost_of).await;
@@ -1209,7 +1204,7 @@ mod tests {
             let queue = h.declare_queue(&name.to_string_lossy(), true, &minute);
             let shares = Shares::new(&records, None, None);
             // Start-up, no session connecting.
-            shares.reconcile_in(std::slice::from_ref(&h.vhost)).await;
+            shares.reconcile(std::slice::from_ref(&h.vhost)).await;
             assert_eq!(shares.group("/", "$share/g/1"), GroupKeep::Kept(Some(3600)));
             assert_eq!(expires_of(&queue), Some(3_600_000));
             assert_eq!(shares.settle_batch(), (Vec::new(), false), "all moved");
@@ -1244,13 +1239,13 @@ mod tests {
         assert_eq!(carried().await, [NEVER]);
         // A start under a minute: the record says so, as the queue.
         let shares = Shares::new(&h.stored().meta, Some(Arc::clone(&persistence)), Some(60));
-        shares.reconcile_in(std::slice::from_ref(&h.vhost)).await;
+        shares.reconcile(std::slice::from_ref(&h.vhost)).await;
         assert_eq!(carried().await, [60]);
         assert_eq!(expires_of(&queue), Some(60_000));
         // The next under infinity finds what it gave, as the session's own
         // queues keep theirs.
         let later = Shares::new(&h.stored().meta, Some(Arc::clone(&persistence)), None);
-        later.reconcile_in(std::slice::from_ref(&h.vhost)).await;
+        later.reconcile(std::slice::from_ref(&h.vhost)).await;
         assert_eq!(later.group("/", "$share/g/x"), GroupKeep::Kept(Some(60)));
         assert_eq!(expires_of(&queue), Some(60_000));
         assert_eq!(carried().await, [60]);
