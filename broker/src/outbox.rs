@@ -375,9 +375,9 @@ impl Outbox {
     ///
     /// Room is usually there: only then is the send made at once. Waiting
     /// for room takes tokio's reserve future and the close signal's wait
-    /// (some hundreds of bytes), kept on the heap so that every future
-    /// awaiting a reply stays small (a future is copied each time it is
-    /// created and awaited).
+    /// (~380 bytes), kept on the heap so that every future awaiting a
+    /// reply stays small (a future is copied each time it is created and
+    /// awaited); [`Outbox::reserve`] keeps it there too.
     pub async fn send(&self, item: Outbound) {
         self.send_until(item, true).await;
     }
@@ -475,7 +475,9 @@ impl Outbox {
         let permit = match self.tx.try_reserve() {
             Ok(permit) => permit,
             Err(mpsc::error::TrySendError::Closed(())) => return None,
-            Err(mpsc::error::TrySendError::Full(())) => self.wait_for_room_until(true).await?,
+            Err(mpsc::error::TrySendError::Full(())) => {
+                Box::pin(self.wait_for_room_until(true)).await?
+            }
         };
         (!self.is_sealed()).then_some(OutboxPermit {
             permit,
