@@ -357,7 +357,7 @@ impl Channel {
             in_flight: Default::default(),
             active: Default::default(),
         });
-        queue.add_stream_consumer(Arc::clone(&consumer), start);
+        queue.add_stream_consumer(Arc::clone(&consumer), start)?;
         self.consumers
             .insert(tag.clone(), (Arc::clone(&consumer), Arc::clone(&queue)));
         if !no_wait {

@@ -534,18 +534,15 @@ impl Queue {
     /// waits unless none is active.
     pub fn add_consumer(self: &Arc<Self>, consumer: Arc<Consumer>) -> AmqpResult<DeadLetters> {
         if self.stream.is_some() {
-            self.add_stream_consumer(consumer, StartAt::Next);
+            self.add_stream_consumer(consumer, StartAt::Next)?;
             return Ok(self.dispatch());
         }
         {
             let mut st = self.lock();
-            // Deleted, or about to be (auto-delete, x-expires): consuming it
-            // is consuming a queue that is gone, as RabbitMQ answers it.
+            // Deleted, or about to be (auto-delete, x-expires, if-unused):
+            // consuming it is consuming a queue that is gone.
             if st.deleted || st.going {
-                return Err(AmqpError::not_found(format_args!(
-                    "no queue '{}' in vhost '{}'",
-                    self.name, self.vhost
-                )));
+                return Err(self.gone());
             }
             if st.exclusive_consumer || (consumer.exclusive && !st.consumers.is_empty()) {
                 return Err(AmqpError::access_refused(format_args!(
@@ -705,6 +702,15 @@ impl Queue {
         }
     }
 
+    /// The 404 a consume of a deleted or going queue gets, as RabbitMQ
+    /// answers a consume of a queue that is gone.
+    fn gone(&self) -> AmqpError {
+        AmqpError::not_found(format_args!(
+            "no queue '{}' in vhost '{}'",
+            self.name, self.vhost
+        ))
+    }
+
     /// Whether the queue has been deleted.
     pub fn is_deleted(&self) -> bool {
         self.lock().deleted
@@ -717,10 +723,11 @@ impl Queue {
     /// (404) nor member (it declares the queue anew) comes before the
     /// caller deletes it, which it does at once, with no await between
     /// (RabbitMQ decides and deletes in one step of the queue's process).
-    /// A stream's readers are counted under the stream's own lock.
+    /// A stream's readers are counted, and it is marked, under the
+    /// stream's own lock, which its consumers are added under.
     pub fn take_unused(&self) -> bool {
         if let Some(stream) = &self.stream {
-            return stream.reader_count() == 0;
+            return stream.take_unused();
         }
         let mut st = self.lock();
         #[cfg(feature = "mqtt")]

@@ -1,6 +1,6 @@
 //! Unit tests of queues through the core harness (`crate::testkit`).
 
-use super::{Consumer, Overflow, QueueArgs};
+use super::{Consumer, Overflow, QueueArgs, StartAt};
 use crate::exchange::ExchangeKind;
 use crate::outbox::OUTBOX_CAPACITY;
 use crate::testkit::{message, s, table, Consume, Harness};
@@ -285,6 +285,70 @@ fn an_if_unused_delete_takes_the_queue_so_nothing_comes_before_it_goes() {
     });
     let refused = q.add_consumer(late).expect_err("no consumer either");
     assert_eq!(refused.code, ReplyCode::NotFound);
+}
+
+/// A stream's if-unused delete takes it as a classic queue's does
+/// (review-final-fixes RISK 3: a stream was only counted, so a consume
+/// between the decision and the delete got consume-ok, then a reader the
+/// delete had already drained, never cancelled, on a destroyed log):
+/// refused while it has a reader, marking nothing; once taken, a consume
+/// (basic.consume's stream path or `add_consumer`'s) gets 404, as it does
+/// once the stream is deleted.
+#[test]
+fn an_if_unused_delete_takes_a_stream_so_no_consumer_comes_before_it_goes() {
+    let dir = std::env::temp_dir().join(format!("leveret-if-unused-stream-{}", std::process::id()));
+    let h = Harness::durable();
+    h.persistence
+        .as_ref()
+        .expect("a store")
+        .set_stream_root(dir.clone(), false);
+    let stream = [("x-queue-type", FieldValue::string("stream"))];
+    let q = h.declare_queue("s", true, &stream);
+    let ch = h.channel();
+    let reader = |tag| {
+        Arc::new(Consumer {
+            tag: s(tag),
+            channel: Arc::clone(&ch.link),
+            no_ack: false,
+            exclusive: false,
+            prefetch: 10,
+            priority: 0,
+            wants_position: false,
+            in_flight: Default::default(),
+            active: Default::default(),
+        })
+    };
+    let first = reader("first");
+    q.add_stream_consumer(Arc::clone(&first), StartAt::First)
+        .expect("reads");
+    assert!(!q.take_unused(), "a reader is use");
+    assert!(!q.remove_consumer(&first), "a stream is never auto-deleted");
+    // Refused, it marked nothing: the stream is still consumed.
+    let second = reader("second");
+    q.add_stream_consumer(Arc::clone(&second), StartAt::Next)
+        .expect("still consumable");
+    assert!(!q.remove_consumer(&second));
+    assert!(q.take_unused(), "unused");
+    let gone = "NOT_FOUND - no queue 's' in vhost '/'";
+    let refused = q
+        .add_stream_consumer(reader("late"), StartAt::Next)
+        .expect_err("no reader comes before the delete");
+    assert_eq!(
+        (refused.code, refused.text.as_str()),
+        (ReplyCode::NotFound, gone)
+    );
+    let refused = q.add_consumer(reader("late")).expect_err("nor a consumer");
+    assert_eq!(
+        (refused.code, refused.text.as_str()),
+        (ReplyCode::NotFound, gone)
+    );
+    let deleted = h.vhost.delete_queue(&q);
+    assert!(deleted.consumers.is_empty(), "no reader to cancel");
+    let refused = q
+        .add_stream_consumer(reader("after"), StartAt::First)
+        .expect_err("deleted");
+    assert_eq!(refused.code, ReplyCode::NotFound);
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// A writer that finds room again dispatches, and may find expired

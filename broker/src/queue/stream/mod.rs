@@ -26,6 +26,7 @@ mod log;
 pub use args::{is_stream, start_at, StartAt, StreamArgs};
 
 use super::{Consumer, Deleted, Enqueued, Origin, Queue, QueuedMessage, Unacked};
+use crate::error::AmqpResult;
 use crate::message::Message;
 use crate::outbox::Outbound;
 use crate::policy::{stricter, Applied};
@@ -63,6 +64,9 @@ struct StreamState {
     /// The submission number of the last append's sync: an append after it
     /// is durable starts a new chunk.
     last_sync: u64,
+    /// Taken by an if-unused delete, which deletes it next: no consumer
+    /// may come first ([`Stream::take_unused`]).
+    going: bool,
     deleted: bool,
 }
 
@@ -264,6 +268,7 @@ impl Stream {
                 args,
                 readers: Vec::new(),
                 last_sync: 0,
+                going: false,
                 deleted: false,
             }),
         }))
@@ -298,6 +303,19 @@ impl Stream {
     /// Consumers reading it.
     pub fn reader_count(&self) -> usize {
         self.lock().readers.len()
+    }
+
+    /// queue.delete's if-unused ([`Queue::take_unused`]): whether no
+    /// consumer reads the stream; if so it is marked going in the same
+    /// lock hold, so that no consumer (404) comes before the delete that
+    /// follows.
+    pub(super) fn take_unused(&self) -> bool {
+        let mut st = self.lock();
+        if !st.readers.is_empty() {
+            return false;
+        }
+        st.going = true;
+        true
     }
 
     /// Its consumers, in registration order.
@@ -398,10 +416,15 @@ impl Queue {
     /// Adds a stream consumer starting at `start`. Its exclusive flag
     /// keeps no other reader out: RabbitMQ 3.10 accepts any number of
     /// consumers on a stream, exclusive or not (each reads every record;
-    /// none takes one from another).
-    pub fn add_stream_consumer(&self, consumer: Arc<Consumer>, start: StartAt) {
+    /// none takes one from another). 404 if the stream is deleted or
+    /// going (taken by an if-unused delete): a reader added after the
+    /// delete drained them would never hear of it.
+    pub fn add_stream_consumer(&self, consumer: Arc<Consumer>, start: StartAt) -> AmqpResult<()> {
         let stream = self.stream_ref();
         let mut st = stream.lock();
+        if st.deleted || st.going {
+            return Err(self.gone());
+        }
         let log = &st.log;
         let (first, next) = (log.first_offset(), log.next_offset());
         let cursor = match start {
@@ -420,6 +443,7 @@ impl Queue {
             stalled: false,
         });
         self.stats.consumer_added();
+        Ok(())
     }
 
     /// Removes a stream consumer; a stream is never auto-deleted.
