@@ -4658,6 +4658,42 @@ fn subscribe_raw(id: u16, filter: &'static str) -> Packet {
     })
 }
 
+/// Raises `handle`'s memory alarm: messages queued in queue `ballast`
+/// past the watermark (each below it, so each is taken whole; published
+/// in process, never blocked). Deleting `ballast` clears it.
+async fn raise_memory_alarm(handle: &BrokerHandle, ballast: &'static str) {
+    let admin = handle.admin();
+    let settings = leveret_broker::QueueSettings::default();
+    admin
+        .declare_queue("/", ballast, settings)
+        .await
+        .expect("declared");
+    within("the memory alarm", async {
+        while !handle.overview().memory_alarm {
+            let body = Bytes::from(vec![0u8; 64 * 1024]);
+            let _ = admin
+                .publish("/", "", ballast, Default::default(), body)
+                .await;
+        }
+    })
+    .await;
+}
+
+/// A QoS 0 publish to `topic` (under a memory alarm the core then stops
+/// reading the session's link), then a SUBSCRIBE to `filter`.
+async fn publish_then_subscribe(raw: &mut Raw, topic: &'static str, filter: &'static str) {
+    raw.send(Packet::Publish(Publish {
+        dup: false,
+        delivery: Delivery::AtMostOnce,
+        retain: false,
+        topic: TopicName::from_static(topic),
+        properties: Default::default(),
+        payload: Bytes::from_static(b"x"),
+    }))
+    .await;
+    raw.send(subscribe_raw(1, filter)).await;
+}
+
 /// A member joining a group holds its queue until its consume arrives:
 /// here the consume waits behind a memory alarm (the member's link has
 /// published, so the core stops reading it), and meanwhile the group's
@@ -4677,37 +4713,10 @@ async fn a_joining_member_holds_its_groups_queue_until_its_consume_arrives() {
     first.send(subscribe_raw(1, filter)).await;
     assert!(matches!(first.next().await, Some(Packet::SubAck(_))));
     let (mut joiner, _) = raw_session(port, "hold-joiner", true, Some(0)).await;
-    // The memory alarm: messages queued past the watermark (each below
-    // it, so each is taken whole; published in process, never blocked).
-    let admin = handle.admin();
-    let ballast = leveret_broker::QueueSettings::default();
-    admin
-        .declare_queue("/", "hold-ballast", ballast)
-        .await
-        .expect("declared");
-    within("the memory alarm", async {
-        while !handle.overview().memory_alarm {
-            let body = Bytes::from(vec![0u8; 64 * 1024]);
-            let properties = Default::default();
-            let _ = admin
-                .publish("/", "", "hold-ballast", properties, body)
-                .await;
-        }
-    })
-    .await;
+    raise_memory_alarm(&handle, "hold-ballast").await;
     // The joiner publishes (its link is then not read) and subscribes:
     // it joins the group's queue at once, its bind and consume wait.
-    joiner
-        .send(Packet::Publish(Publish {
-            dup: false,
-            delivery: Delivery::AtMostOnce,
-            retain: false,
-            topic: TopicName::from_static("hold/elsewhere"),
-            properties: Default::default(),
-            payload: Bytes::from_static(b"x"),
-        }))
-        .await;
-    joiner.send(subscribe_raw(1, filter)).await;
+    publish_then_subscribe(&mut joiner, "hold/elsewhere", filter).await;
     // Time for the joiner's session to read its SUBSCRIBE (a lower bound:
     // if it comes later, the queue is declared anew and nothing is shown).
     tokio::time::sleep(Duration::from_millis(500)).await;
@@ -4757,36 +4766,11 @@ async fn an_if_unused_delete_counts_a_joining_member_as_use() {
     let port = mqtt_port(&handle);
     let (_amqp, channel) = amqp_channel(&handle).await;
     let (mut joiner, _) = raw_session(port, "unused-joiner", true, Some(0)).await;
-    let admin = handle.admin();
-    let ballast = leveret_broker::QueueSettings::default();
-    admin
-        .declare_queue("/", "unused-ballast", ballast)
-        .await
-        .expect("declared");
-    within("the memory alarm", async {
-        while !handle.overview().memory_alarm {
-            let body = Bytes::from(vec![0u8; 64 * 1024]);
-            let properties = Default::default();
-            let _ = admin
-                .publish("/", "", "unused-ballast", properties, body)
-                .await;
-        }
-    })
-    .await;
+    raise_memory_alarm(&handle, "unused-ballast").await;
     // The joiner publishes (its link is then not read) and subscribes: its
     // group's queue is declared and joined at once, its bind and consume
     // wait.
-    joiner
-        .send(Packet::Publish(Publish {
-            dup: false,
-            delivery: Delivery::AtMostOnce,
-            retain: false,
-            topic: TopicName::from_static("unused/elsewhere"),
-            properties: Default::default(),
-            payload: Bytes::from_static(b"x"),
-        }))
-        .await;
-    joiner.send(subscribe_raw(1, "$share/unused/t")).await;
+    publish_then_subscribe(&mut joiner, "unused/elsewhere", "$share/unused/t").await;
     let queue = "mqtt-shared-unused/t";
     until_queue_listed(&handle, queue, true, "the joined group's queue").await;
     assert_eq!(
