@@ -451,3 +451,34 @@ impl Store for Gated {
         self.inner.scan()
     }
 }
+
+/// A [`MemoryStore`] that also lists the writes it is asked for, in order:
+/// each operation's key, and whether it puts a value (or deletes one).
+#[derive(Debug, Default)]
+pub struct RecordingStore {
+    inner: MemoryStore,
+    written: std::sync::Mutex<Vec<(Vec<u8>, bool)>>,
+}
+
+impl RecordingStore {
+    /// The writes so far: `(key, puts a value)`, in order.
+    pub fn written(&self) -> Vec<(Vec<u8>, bool)> {
+        self.written.lock().unwrap().clone()
+    }
+}
+
+impl Store for RecordingStore {
+    fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
+        let listed = ops
+            .iter()
+            .map(|(key, value)| (key.clone(), value.is_some()));
+        self.written.lock().unwrap().extend(listed);
+        self.inner.write(ops, mode)
+    }
+    fn flush(&self) -> Result<(), StoreError> {
+        self.inner.flush()
+    }
+    fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
+        self.inner.scan()
+    }
+}

@@ -357,29 +357,8 @@ async fn handshaken<S, E: std::fmt::Display>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::store::{KvOp, KvPair, MemoryStore, Store, StoreError, WriteMode};
-    use std::sync::Mutex;
-
-    /// A store that lists the keys it is asked to write, in order.
-    #[derive(Debug, Default)]
-    struct Listing {
-        inner: MemoryStore,
-        written: Mutex<Vec<Vec<u8>>>,
-    }
-
-    impl Store for Listing {
-        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
-            let keys = ops.iter().map(|(key, _)| key.clone());
-            self.written.lock().unwrap().extend(keys);
-            self.inner.write(ops, mode)
-        }
-        fn flush(&self) -> Result<(), StoreError> {
-            self.inner.flush()
-        }
-        fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
-            self.inner.scan()
-        }
-    }
+    use crate::store::Store;
+    use crate::testkit::RecordingStore;
 
     /// A crash part way through the start-up write-back leaves records
     /// capped beside queues that are not, never the other way round: the
@@ -387,13 +366,13 @@ mod tests {
     /// `as`) before any queue (`q`).
     #[tokio::test]
     async fn at_start_a_sessions_records_are_written_back_before_its_queue() {
-        let store = Arc::new(Listing::default());
+        let store = Arc::new(RecordingStore::default());
         let h = crate::testkit::Harness::durable_over(Arc::clone(&store) as Arc<dyn Store>);
         let persistence = h.persistence.clone().expect("a store");
         // An older Leveret's 3.1.1 session: unmarked queue, no expiry.
         h.declare_queue("mqtt-subscription-devqos1", true, &[]);
         assert!(persistence.sync().await);
-        store.written.lock().unwrap().clear();
+        let before = store.written().len();
         let (vhost, client_id) = ("/".to_owned(), "dev".to_owned());
         let recovered = [
             MetaRecord::Unreleased {
@@ -417,7 +396,10 @@ mod tests {
         let shares = shares::Shares::new(&recovered, Some(Arc::clone(&persistence)), max);
         write_back_restored(&releases, &shares, &[Arc::clone(&h.vhost)], max).await;
         assert!(persistence.sync().await);
-        let written = store.written.lock().unwrap();
+        let written: Vec<Vec<u8>> = store.written()[before..]
+            .iter()
+            .map(|(key, _)| key.clone())
+            .collect();
         let last_record = written
             .iter()
             .rposition(|key| key.starts_with(b"aq") || key.starts_with(b"as"));

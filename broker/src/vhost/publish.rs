@@ -214,10 +214,8 @@ mod tests {
     use super::*;
     use crate::exchange::ExchangeKind;
     use crate::queue::Queue;
-    use crate::store::{
-        EntryBody, KvOp, KvPair, MemoryStore, Recovered, Store, StoreError, WriteMode,
-    };
-    use crate::testkit::{message, s, Gated, Harness};
+    use crate::store::{EntryBody, Recovered, Store};
+    use crate::testkit::{message, s, Gated, Harness, RecordingStore};
     use leveret_protocol::{BasicProperties, FieldValue};
     use std::collections::HashMap;
 
@@ -299,38 +297,12 @@ mod tests {
         }
     }
 
-    /// A store that counts the writes of each key.
-    #[derive(Debug, Default)]
-    struct Counting {
-        inner: MemoryStore,
-        puts: std::sync::Mutex<HashMap<Vec<u8>, usize>>,
-    }
-
-    impl Store for Counting {
-        fn write(&self, ops: Vec<KvOp>, mode: WriteMode) -> Result<(), StoreError> {
-            let mut puts = self.puts.lock().unwrap();
-            for (key, value) in &ops {
-                if value.is_some() {
-                    *puts.entry(key.clone()).or_default() += 1;
-                }
-            }
-            drop(puts);
-            self.inner.write(ops, mode)
-        }
-        fn flush(&self) -> Result<(), StoreError> {
-            self.inner.flush()
-        }
-        fn scan(&self) -> Result<Vec<KvPair>, StoreError> {
-            self.inner.scan()
-        }
-    }
-
     /// A fanout offered in slices: each step stops when its slice is
     /// spent, the record is written once, at the first step, and the
     /// outcome covers every queue's entry.
     #[tokio::test]
     async fn a_fanout_goes_a_slice_at_a_time_and_writes_its_record_once() {
-        let store = Arc::new(Counting::default());
+        let store = Arc::new(RecordingStore::default());
         let h = Harness::durable_over(Arc::clone(&store) as Arc<dyn Store>);
         let queues = fanout(&h);
         let mut publishing = Publishing::new(stored_message(&h, &queues, "sliced"), queues.clone());
@@ -364,7 +336,10 @@ mod tests {
         assert_eq!(recovered.messages.len(), 1, "one shared record");
         // The record, both entries and the queues' declarations: each key
         // once (a record written at every step would be counted thrice).
-        let puts = store.puts.lock().unwrap().clone();
+        let mut puts: HashMap<Vec<u8>, usize> = HashMap::new();
+        for (key, _) in store.written().into_iter().filter(|(_, put)| *put) {
+            *puts.entry(key).or_default() += 1;
+        }
         assert!(puts.len() >= 3, "{puts:?}");
         assert!(
             puts.values().all(|&count| count == 1),
