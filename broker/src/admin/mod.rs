@@ -239,8 +239,9 @@ impl Admin {
 
     /// queue.delete: 404 if it does not exist, 406 if `if_empty` and it
     /// has ready messages, or `if_unused` and it is in use (consumers, or
-    /// an MQTT shared subscription's member about to consume it:
-    /// [`crate::queue::Queue::take_unused`]).
+    /// an MQTT shared subscription's member about to consume it), decided
+    /// and the queue taken in one step, so nothing comes to use it before
+    /// it goes.
     pub async fn delete_queue(
         &self,
         vhost: &str,
