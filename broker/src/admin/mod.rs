@@ -253,7 +253,7 @@ impl Admin {
         let queue = self.queue_in(&vhost, name)?;
         if if_empty && queue.message_count() > 0 {
             return Err(AmqpError::precondition_failed(format_args!(
-                "queue '{}' in vhost '{}' is not empty",
+                "queue '{}' in vhost '{}' not empty",
                 name, vhost.name
             )));
         }

@@ -184,7 +184,7 @@ impl Channel {
                 // with no await before the delete (`Queue::take_unused`).
                 if delete.if_empty && queue.message_count() > 0 {
                     return Err(AmqpError::precondition_failed(format_args!(
-                        "queue '{}' in vhost '{}' is not empty",
+                        "queue '{}' in vhost '{}' not empty",
                         name, self.vhost.name
                     )));
                 }
