@@ -94,5 +94,13 @@ constructors! {
     internal_error => InternalError,
 }
 
+impl AmqpError {
+    /// 404 for a queue that is not there (or going), as RabbitMQ words it:
+    /// `no queue 'NAME' in vhost 'VHOST'`.
+    pub fn no_queue(name: impl fmt::Display, vhost: impl fmt::Display) -> Self {
+        AmqpError::not_found(format_args!("no queue '{name}' in vhost '{vhost}'"))
+    }
+}
+
 /// Result of a protocol operation.
 pub type AmqpResult<T> = Result<T, AmqpError>;

@@ -705,10 +705,7 @@ impl Queue {
     /// The 404 a consume of a deleted or going queue gets, as RabbitMQ
     /// answers a consume of a queue that is gone.
     fn gone(&self) -> AmqpError {
-        AmqpError::not_found(format_args!(
-            "no queue '{}' in vhost '{}'",
-            self.name, self.vhost
-        ))
+        AmqpError::no_queue(&self.name, &self.vhost)
     }
 
     /// Whether the queue has been deleted.

@@ -242,9 +242,8 @@ impl Vhost {
 
     /// The queue, or 404 as RabbitMQ words it.
     pub fn queue_or_404(&self, name: &ShortStr) -> AmqpResult<Arc<Queue>> {
-        self.queue(name).ok_or_else(|| {
-            AmqpError::not_found(format_args!("no queue '{}' in vhost '{}'", name, self.name))
-        })
+        self.queue(name)
+            .ok_or_else(|| AmqpError::no_queue(name, &self.name))
     }
 
     /// exchange.declare.
@@ -424,10 +423,7 @@ impl Vhost {
             return Ok((existing, false));
         }
         if decl.passive {
-            return Err(AmqpError::not_found(format_args!(
-                "no queue '{}' in vhost '{}'",
-                decl.name, self.name
-            )));
+            return Err(AmqpError::no_queue(&decl.name, &self.name));
         }
         self.create_queue(decl, connection_id)
     }
@@ -916,10 +912,7 @@ impl Vhost {
                 if current {
                     Ok(())
                 } else {
-                    Err(AmqpError::not_found(format_args!(
-                        "no queue '{}' in vhost '{}'",
-                        queue.name, self.name
-                    )))
+                    Err(AmqpError::no_queue(&queue.name, &self.name))
                 }
             }
         }
