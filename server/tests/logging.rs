@@ -470,7 +470,7 @@ fn colours_only_on_a_terminal() {
         let pid_file = dir.join(format!("{name}.pid"));
         let command = format!(
             "echo $$ > '{}'; exec '{}' --listen 127.0.0.1:0 --metrics-listen 127.0.0.1:0 \
-             --http-listen 127.0.0.1:0 --data-dir '{}' --log info {extra}",
+             --http-listen 127.0.0.1:0 --mqtt-listen none --data-dir '{}' --log info {extra}",
             pid_file.display(),
             env!("CARGO_BIN_EXE_leveret"),
             dir.join(name).display(),

@@ -442,6 +442,8 @@ async fn stored_policies_are_in_force_before_the_first_client_is_served() {
             "127.0.0.1:0",
             "--http-listen",
             "127.0.0.1:0",
+            "--mqtt-listen",
+            "none",
         ])
         .arg("--data-dir")
         .arg(&dir)
