@@ -783,6 +783,21 @@ mod tests {
     use crate::testkit::Harness;
     use std::time::Duration;
 
+    /// The stored record of `client_id`'s QoS 1 shared subscription
+    /// `filter` in vhost `/` (no other option), its session's expiry
+    /// `session_expiry`.
+    fn member(client_id: &str, filter: &str, session_expiry: u32) -> MetaRecord {
+        MetaRecord::SharedSubscription {
+            vhost: "/".into(),
+            client_id: client_id.into(),
+            filter: filter.into(),
+            qos: 1,
+            retain_as_published: false,
+            subscription_id: 0,
+            session_expiry,
+        }
+    }
+
     fn options(qos: QoS) -> Options {
         Options {
             qos,
@@ -857,15 +872,8 @@ mod tests {
 
     #[tokio::test]
     async fn recovered_records_are_given_the_cap_if_they_outlive_it() {
-        let record = |client_id: &str, session_expiry| MetaRecord::SharedSubscription {
-            vhost: "/".into(),
-            client_id: client_id.into(),
-            filter: "$share/g/capped".into(),
-            qos: 1,
-            retain_as_published: false,
-            subscription_id: 0,
-            session_expiry,
-        };
+        let record =
+            |client_id: &str, session_expiry| member(client_id, "$share/g/capped", session_expiry);
         // A 3.1.1 session stored as never expiring, one of an hour.
         let records = [record("never", NEVER), record("hour", 3600)];
         // Moved to it at start (`reconcile`), written back.
@@ -1098,15 +1106,7 @@ mod tests {
     #[test]
     fn declared_group_queues_are_given_their_groups_expiry_kept_or_not() {
         // A crash after the member's record, before its queue's.
-        let record = MetaRecord::SharedSubscription {
-            vhost: "/".into(),
-            client_id: "c".into(),
-            filter: "$share/g/x".into(),
-            qos: 1,
-            retain_as_published: false,
-            subscription_id: 0,
-            session_expiry: 3600,
-        };
+        let record = member("c", "$share/g/x", 3600);
         let h = Harness::durable();
         let old = [("x-expires", FieldValue::I64(60_000)), marked()];
         let queue = h.declare_queue("mqtt-shared-g/x", true, &old);
@@ -1187,15 +1187,7 @@ mod tests {
     async fn a_session_recovered_half_moved_is_moved_on_at_start_to_its_longest_interval() {
         // A crash between two batches of a move from 60 s to an hour; the
         // store may read the records in either order.
-        let record = |filter: &str, session_expiry| MetaRecord::SharedSubscription {
-            vhost: "/".into(),
-            client_id: "c".into(),
-            filter: filter.into(),
-            qos: 1,
-            retain_as_published: false,
-            subscription_id: 0,
-            session_expiry,
-        };
+        let record = |filter: &str, session_expiry| member("c", filter, session_expiry);
         let (unmoved, moved) = (record("$share/g/1", 60), record("$share/g/2", 3600));
         for records in [[unmoved.clone(), moved.clone()], [moved, unmoved]] {
             let h = Harness::durable();
@@ -1216,15 +1208,7 @@ mod tests {
         let h = Harness::durable();
         let persistence = h.persistence.clone().expect("durable");
         // A 3.1.1 session stored as never expiring, and its group's queue.
-        let record = MetaRecord::SharedSubscription {
-            vhost: "/".into(),
-            client_id: "c".into(),
-            filter: "$share/g/x".into(),
-            qos: 1,
-            retain_as_published: false,
-            subscription_id: 0,
-            session_expiry: NEVER,
-        };
+        let record = member("c", "$share/g/x", NEVER);
         persistence.submit(vec![StoreOp::PutMeta(record)]);
         let queue = h.declare_queue("mqtt-shared-g/x", true, &[marked()]);
         let carried = || async {
