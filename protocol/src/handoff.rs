@@ -166,6 +166,16 @@ impl<T> Shared<T> {
         waker
     }
 
+    /// Takes the next item, if one is there, under `state`'s lock: the
+    /// room it leaves goes to the sender that has waited longest, whose
+    /// waker comes with it, to wake once the lock is let go.
+    fn take(&self, state: &mut State<T>) -> Option<(T, Option<Waker>)> {
+        let item = state.items.pop_front()?;
+        let next = self.serve_next(state);
+        self.show_free(state);
+        Some((item, next))
+    }
+
     /// Takes a room for a permit once one is reserved for this sender:
     /// at once if there is room (then nobody waits), else it joins the
     /// line (`ticket` is its place in it).
@@ -511,15 +521,9 @@ impl<T> Receiver<T> {
     /// The next item if one is there, else registers `cx` to be woken.
     pub fn poll_recv(&mut self, cx: &mut Context<'_>) -> Poll<Option<T>> {
         let mut state = self.shared.lock();
-        if let Some(item) = state.items.pop_front() {
-            let next = self.shared.serve_next(&mut state);
-            self.shared.show_free(&state);
+        if let Some((item, next)) = self.shared.take(&mut state) {
             drop(state);
-            self.keeps_room = true;
-            if let Some(next) = next {
-                next.wake();
-            }
-            return Poll::Ready(Some(item));
+            return Poll::Ready(Some(self.taken(item, next)));
         }
         if self.shared.senders.load(Ordering::Acquire) == 0 {
             return Poll::Ready(None);
@@ -534,15 +538,19 @@ impl<T> Receiver<T> {
     /// The next item if one is there now.
     pub fn try_recv(&mut self) -> Option<T> {
         let mut state = self.shared.lock();
-        let item = state.items.pop_front()?;
-        let next = self.shared.serve_next(&mut state);
-        self.shared.show_free(&state);
+        let (item, next) = self.shared.take(&mut state)?;
         drop(state);
+        Some(self.taken(item, next))
+    }
+
+    /// An item taken ([`Shared::take`]), the lock let go: the receiver
+    /// keeps its room from now, and the sender served next is woken.
+    fn taken(&mut self, item: T, next: Option<Waker>) -> T {
         self.keeps_room = true;
         if let Some(next) = next {
             next.wake();
         }
-        Some(item)
+        item
     }
 
     /// Whether the queue may keep room for items: one has been taken
