@@ -68,9 +68,12 @@ const START_SETTLES: std::time::Duration = std::time::Duration::from_secs(5);
 /// `MADV_PAGEOUT`, before Linux 5.4) leaves the pages as they are.
 pub async fn release_start_up_code() {
     tokio::time::sleep(START_SETTLES).await;
-    match tokio::task::spawn_blocking(give_back_start_up_code).await {
-        Ok(Ok(bytes)) => tracing::debug!(bytes, "start-up code given back to the kernel"),
-        Ok(Err(e)) => tracing::debug!(error = %e, "start-up code kept resident"),
+    let given_back = tokio::task::spawn_blocking(give_back_start_up_code).await;
+    match given_back
+        .map_err(std::io::Error::other)
+        .and_then(|given| given)
+    {
+        Ok(bytes) => tracing::debug!(bytes, "start-up code given back to the kernel"),
         Err(e) => tracing::debug!(error = %e, "start-up code kept resident"),
     }
 }
