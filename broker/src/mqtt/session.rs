@@ -26,7 +26,7 @@ use super::wills::{self, LastWill};
 use super::Shared;
 use crate::access::permissions::{Permissions, Resource, Right};
 use crate::admission::Slot;
-use crate::connection::DirectReply;
+use crate::connection::{DirectLink, DirectLoop, DirectReply};
 use crate::core::Core;
 use crate::stats::{AuthProtocol, ConnectionTraffic};
 use crate::store::Durable;
@@ -900,12 +900,17 @@ impl Session {
             // have stalled it past the takeover's wait), it sends the link
             // nothing more (decided with the hand-over, in one hold).
             let reading = self.reading();
-            let to_broker = &link.direct.to_broker;
             match claim.running(|| {
                 if reading {
                     self.take_packets(&mut buf)?;
                 }
-                Ok(self.hand_pending(to_broker))
+                if !self.hand_pending(&link.direct) {
+                    return Ok(false);
+                }
+                // What the core answered while its loop ran here (a
+                // publish's confirm): written with this turn's packets.
+                self.handle_ready_replies(&mut link)?;
+                Ok(true)
             }) {
                 Some(Ok(true)) => {}
                 Some(Ok(false)) => {
@@ -937,14 +942,20 @@ impl Session {
                 read = socket.read_buf(&mut buf), if reading => match read {
                     Ok(0) | Err(_) => break closed("socket closed", None),
                     Ok(_) => {
+                        // As an AMQP connection's reads: the answer (a
+                        // PUBACK, the next publish) is polled for, not
+                        // waited for in the kernel (`busy_poll`).
+                        if let Some(busy_poll) = &core.busy_poll {
+                            busy_poll.note_read();
+                        }
                         last_read = Instant::now();
                         last_active = last_read;
                     }
                 },
                 permit = to_broker.reserve(), if !self.pending.is_empty() => match permit {
                     Ok(permit) => {
-                        let pending = &mut self.pending;
-                        let sent = claim.running(|| pending.pop_front().map(|item| permit.send(item)));
+                        let (pending, here) = (&mut self.pending, &link.direct.here);
+                        let sent = claim.running(|| pending.pop_front().map(|item| hand(here, item, permit)));
                         if sent.is_none() {
                             break taken_over();
                         }
@@ -1073,16 +1084,18 @@ impl Session {
     }
 
     /// Hands the link what is pending, as far as it has room without
-    /// waiting; false if the link has ended.
-    fn hand_pending(&mut self, to_broker: &leveret_protocol::handoff::Sender<Outgoing>) -> bool {
-        while let Some(item) = self.pending.pop_front() {
-            match to_broker.try_send(item) {
-                Ok(()) => {}
-                Err(leveret_protocol::handoff::TrySendError::Full(item)) => {
-                    self.pending.push_front(item);
-                    return true;
+    /// waiting ([`hand`]: each item handled on this task when the link's
+    /// loop is free); false if the link has ended.
+    fn hand_pending(&mut self, direct: &DirectLink) -> bool {
+        while !self.pending.is_empty() {
+            match direct.to_broker.try_reserve() {
+                Ok(permit) => {
+                    if let Some(item) = self.pending.pop_front() {
+                        hand(&direct.here, item, permit);
+                    }
                 }
-                Err(leveret_protocol::handoff::TrySendError::Closed(_)) => return false,
+                Err(leveret_protocol::handoff::TrySendError::Full(())) => return true,
+                Err(leveret_protocol::handoff::TrySendError::Closed(())) => return false,
             }
         }
         true
@@ -2149,6 +2162,28 @@ impl Session {
                 return id;
             }
         }
+    }
+}
+
+/// Hands `item` to the session's AMQP connection through `permit`, its
+/// room in the link. When the connection's loop is free, the item is
+/// handed beside the link and the loop runs here, on the session's task
+/// (`connection::DirectLoop`): the publish is routed and confirmed with
+/// no wake of the connection's task and no task switch back; its confirm
+/// waits in the link's replies for [`Session::handle_ready_replies`].
+/// The loop takes items in the order they were sent either way.
+fn hand(
+    here: &DirectLoop,
+    item: Outgoing,
+    permit: leveret_protocol::handoff::Permit<'_, Outgoing>,
+) {
+    match here.claim() {
+        Some(mut loop_claim) => {
+            if loop_claim.hand_or_send(item, permit) {
+                loop_claim.run();
+            }
+        }
+        None => permit.send(item),
     }
 }
 
