@@ -1317,6 +1317,22 @@ async fn a_silent_client_is_closed_after_one_and_a_half_keepalives() {
 }
 
 #[both_runtimes]
+async fn a_client_that_keeps_talking_outlives_many_keepalives() {
+    let handle = start(Limits::default()).await;
+    // Keepalive 2 s: closed after 3 s of silence. Pings every 250 ms for
+    // four windows: each answered, none of them late enough to close.
+    let mut raw = Raw::login(mqtt_port(&handle), 2).await;
+    for _ in 0..48 {
+        tokio::time::sleep(Duration::from_millis(250)).await;
+        raw.send(Packet::PingReq).await;
+        assert_eq!(raw.next().await, Some(Packet::PingResp));
+    }
+    // Then silence: closed.
+    raw.assert_closed().await;
+    handle.shutdown().await;
+}
+
+#[both_runtimes]
 async fn a_packet_over_the_size_limit_closes_the_connection() {
     let limits = Limits {
         max_message_size: 4096,

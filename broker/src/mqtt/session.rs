@@ -26,7 +26,7 @@ use super::wills::{self, LastWill};
 use super::Shared;
 use crate::access::permissions::{Permissions, Resource, Right};
 use crate::admission::Slot;
-use crate::connection::{DirectLink, DirectLoop, DirectReply};
+use crate::connection::{DirectLink, DirectLoop, DirectReplies, DirectReply};
 use crate::core::Core;
 use crate::stats::{AuthProtocol, ConnectionTraffic};
 use crate::store::Durable;
@@ -893,6 +893,14 @@ impl Session {
         let release = tokio::time::sleep(IDLE_RELEASE);
         tokio::pin!(release);
         let mut durable = self.shared.retained.durable();
+        // The futures that wait for rare events are made once, not at
+        // every turn of the loop (each turn made anew a timer, a Notify
+        // waiter and a watch wait: measurable per message). The keepalive
+        // timer is moved only when it fires early, to the silence's end.
+        let keepalive_check = tokio::time::sleep(keepalive);
+        let taken = claim.taken_over();
+        let shutting_down = shutdown.wait_for(|down| *down);
+        tokio::pin!(keepalive_check, taken, shutting_down);
         let stop = loop {
             // Whole packets already read, and what they ask of the core
             // handed to the link as far as it has room, unless a takeover
@@ -909,7 +917,7 @@ impl Session {
                 }
                 // What the core answered while its loop ran here (a
                 // publish's confirm): written with this turn's packets.
-                self.handle_ready_replies(&mut link)?;
+                self.handle_ready_replies(&mut link.direct.from_broker)?;
                 Ok(true)
             }) {
                 Some(Ok(true)) => {}
@@ -936,8 +944,6 @@ impl Session {
                 // resource alarm): its silence does not count meanwhile.
                 last_read = Instant::now();
             }
-            let silence = last_read + keepalive;
-            let to_broker = link.direct.to_broker.clone();
             tokio::select! {
                 read = socket.read_buf(&mut buf), if reading => match read {
                     Ok(0) | Err(_) => break closed("socket closed", None),
@@ -952,7 +958,7 @@ impl Session {
                         last_active = last_read;
                     }
                 },
-                permit = to_broker.reserve(), if !self.pending.is_empty() => match permit {
+                permit = link.direct.to_broker.reserve(), if !self.pending.is_empty() => match permit {
                     Ok(permit) => {
                         let (pending, here) = (&mut self.pending, &link.direct.here);
                         let sent = claim.running(|| pending.pop_front().map(|item| hand(here, item, permit)));
@@ -967,7 +973,7 @@ impl Session {
                         last_active = Instant::now();
                         let handled = claim.running(|| {
                             self.handle_core_reply(reply)?;
-                            self.handle_ready_replies(&mut link)
+                            self.handle_ready_replies(&mut link.direct.from_broker)
                         });
                         match handled {
                             Some(Ok(())) => {}
@@ -977,8 +983,12 @@ impl Session {
                     }
                     None => break closed("the broker ended the session", Some(ReasonCode::ServerShuttingDown)),
                 },
-                _ = tokio::time::sleep_until(silence), if !keepalive.is_zero() => {
-                    break closed("keepalive timeout", Some(ReasonCode::KeepAliveTimeout));
+                () = &mut keepalive_check, if !keepalive.is_zero() => {
+                    let silence = last_read + keepalive;
+                    if Instant::now() >= silence {
+                        break closed("keepalive timeout", Some(ReasonCode::KeepAliveTimeout));
+                    }
+                    keepalive_check.as_mut().reset(silence);
                 }
                 () = &mut release, if self.holds_spare(&buf) => {
                     if last_active.elapsed() >= IDLE_RELEASE {
@@ -989,8 +999,8 @@ impl Session {
                 _ = store_progress(durable.as_mut()), if !self.held_acks.is_empty() => {
                     if let Err(stop) = self.release_held_acks() { break stop }
                 }
-                _ = claim.taken_over() => break taken_over(),
-                _ = shutdown.wait_for(|down| *down) => {
+                () = &mut taken => break taken_over(),
+                _ = &mut shutting_down => {
                     break closed("broker shutting down", Some(ReasonCode::ServerShuttingDown));
                 }
             }
@@ -1855,17 +1865,16 @@ impl Session {
         self.complete_after_calls(Done::Send(unsuback));
     }
 
-    /// Handles what the core sent on the link.
     /// Handles the replies the core has ready now, up to
     /// [`REPLIES_PER_WRITE`] or until [`READ_CHUNK`] bytes are waiting for
     /// the client, so that deliveries arriving together go out in one
     /// write (a write per message was most of a QoS 0 subscriber's cost).
-    fn handle_ready_replies(&mut self, link: &mut Link) -> Result<(), Stop> {
+    fn handle_ready_replies(&mut self, from_broker: &mut DirectReplies) -> Result<(), Stop> {
         for _ in 0..REPLIES_PER_WRITE {
             if self.out.len() >= READ_CHUNK {
                 break;
             }
-            match link.direct.from_broker.try_recv() {
+            match from_broker.try_recv() {
                 std::task::Poll::Ready(Some(reply)) => self.handle_core_reply(reply)?,
                 // Nothing more now, or the end (the next recv says so).
                 std::task::Poll::Ready(None) | std::task::Poll::Pending => break,
