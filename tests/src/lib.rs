@@ -142,6 +142,12 @@ impl TestBroker {
         self.port
     }
 
+    /// The in-process broker's first MQTT listener, if it has one (`None`
+    /// for an external broker).
+    pub fn mqtt_addr(&self) -> Option<SocketAddr> {
+        self.handle.as_ref()?.mqtt_addrs().first().copied()
+    }
+
     /// The in-process broker's administration handle (`None` for an
     /// external broker).
     pub fn admin(&self) -> Option<leveret_broker::Admin> {

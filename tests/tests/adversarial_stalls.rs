@@ -22,6 +22,7 @@ use common::*;
 use leveret_broker::Limits;
 use leveret_protocol::{BasicProperties, ExchangeDeclare, Method, QueueBind, QueueDeclare};
 use std::time::{Duration, Instant};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// Messages in the big queue.
 const MESSAGES: usize = sized(1_000_000, 100_000);
@@ -460,6 +461,114 @@ async fn dead_letters_multiplied_by_fanouts_leave_others_served() {
         finish_after(
             probe,
             &format!("one publish dead-lettered {MULTIPLIED} times to {MULTIPLIED} queues each"),
+        )
+        .await
+    })
+    .await;
+}
+
+/// QoS 0 publishes an MQTT client writes in one go.
+const MQTT_PUBLISHES: usize = sized(1_000_000, 100_000);
+
+/// An MQTT 3.1.1 packet: `first` byte, remaining length, `body`.
+fn mqtt_packet(first: u8, body: &[u8]) -> Vec<u8> {
+    let mut packet = vec![first];
+    let mut left = body.len();
+    loop {
+        let byte = (left % 128) as u8;
+        left /= 128;
+        packet.push(if left > 0 { byte | 0x80 } else { byte });
+        if left == 0 {
+            break;
+        }
+    }
+    packet.extend_from_slice(body);
+    packet
+}
+
+/// An MQTT string: its length, then its bytes.
+fn mqtt_string(text: &str) -> Vec<u8> {
+    let mut out = (text.len() as u16).to_be_bytes().to_vec();
+    out.extend_from_slice(text.as_bytes());
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_mqtt_client_writing_a_flood_of_publishes_leaves_others_served() {
+    within_bounds(Limits::default(), |target| async move {
+        let Some(mqtt) = target.mqtt_addr else {
+            // An external broker's MQTT port is not known here.
+            return Ok(());
+        };
+        let mut flood = Flood::open(&target.addr).await;
+        let queue = unique("stall-mqtt");
+        let declare = QueueDeclare {
+            queue: short(&queue),
+            ..Default::default()
+        };
+        let bind = QueueBind {
+            queue: short(&queue),
+            exchange: short("amq.topic"),
+            routing_key: short("flood.#"),
+            ..Default::default()
+        };
+        flood.send(&frames(1, [declare.into(), bind.into()])).await;
+        flood
+            .expect(|m| matches!(m, Method::QueueDeclareOk(_)))
+            .await;
+        flood.expect(|m| matches!(m, Method::QueueBindOk(_))).await;
+
+        let mut client = within("MQTT connect", tokio::net::TcpStream::connect(mqtt))
+            .await
+            .expect("the MQTT listener accepts");
+        let mut connect = mqtt_string("MQTT");
+        connect.extend_from_slice(&[4, 0xC2, 0, 0]); // 3.1.1, user, password, clean; no keepalive
+        for field in ["stall-flood", "guest", "guest"] {
+            connect.extend(mqtt_string(field));
+        }
+        let mut connack = [0u8; 4];
+        within("CONNACK", async {
+            client.write_all(&mqtt_packet(0x10, &connect)).await?;
+            client.read_exact(&mut connack).await
+        })
+        .await
+        .expect("CONNACK");
+        assert_eq!(connack, [0x20, 2, 0, 0], "accepted");
+        let mut publish = mqtt_string("flood/x");
+        publish.extend_from_slice(b"0123456789abcdef");
+        let one = mqtt_packet(0x30, &publish);
+        let publishes: Vec<u8> = one
+            .iter()
+            .copied()
+            .cycle()
+            .take(one.len() * MQTT_PUBLISHES)
+            .collect();
+
+        let probe = Probe::start(&target).await;
+        let mut pong = [0u8; 2];
+        // All in one go, then a ping: answered once every publish before it is read.
+        within("the flood and a ping", async {
+            client.write_all(&publishes).await?;
+            client.write_all(&[0xC0, 0]).await?;
+            client.read_exact(&mut pong).await
+        })
+        .await
+        .expect("PINGRESP");
+        assert_eq!(pong, [0xD0, 0]);
+        within("every publish queued", async {
+            loop {
+                let count = flood.message_count(&queue).await as usize;
+                if count == MQTT_PUBLISHES {
+                    break;
+                }
+                assert!(count < MQTT_PUBLISHES, "{count} queued");
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+        .await;
+        finish_after(
+            probe,
+            &format!("{MQTT_PUBLISHES} MQTT QoS 0 publishes written at once"),
         )
         .await
     })

@@ -1320,7 +1320,9 @@ async fn a_silent_client_is_closed_after_one_and_a_half_keepalives() {
 async fn a_client_that_keeps_talking_outlives_many_keepalives() {
     let handle = start(Limits::default()).await;
     // Keepalive 2 s: closed after 3 s of silence. Pings every 250 ms for
-    // four windows: each answered, none of them late enough to close.
+    // four windows: each answered, none of them late enough to close. (A
+    // timer never moved would fire again and again without closing: a
+    // spin this test cannot see, found by review.)
     let mut raw = Raw::login(mqtt_port(&handle), 2).await;
     for _ in 0..48 {
         tokio::time::sleep(Duration::from_millis(250)).await;
@@ -1329,6 +1331,59 @@ async fn a_client_that_keeps_talking_outlives_many_keepalives() {
     }
     // Then silence: closed.
     raw.assert_closed().await;
+    handle.shutdown().await;
+}
+
+/// A client that keeps pinging while the broker does not read it (a
+/// memory alarm blocks its link and its pending items are full) is not
+/// closed by keepalive: its silence does not count meanwhile, as an AMQP
+/// connection's does (RabbitMQ pauses its heartbeat monitor while it
+/// blocks a connection). (Until
+/// the session's keepalive timer was moved only when it fires, it was
+/// closed after 1.5 keepalives all the same: found by review.)
+#[both_runtimes]
+async fn a_client_pinging_while_an_alarm_stops_its_reads_outlives_its_keepalive() {
+    let limits = Limits {
+        memory_high_watermark: 256 * 1024,
+        resident_memory_high_watermark: leveret_broker::ResidentMemoryWatermark::Unwatched,
+        ..Limits::default()
+    };
+    let handle = start(limits).await;
+    let port = mqtt_port(&handle);
+    // Keepalive 2 s: a silent client is closed after 3 s.
+    let mut raw = Raw::login(port, 2).await;
+    raise_memory_alarm(&handle, "alarm-ballast").await;
+    // Enough QoS 0 publishes to fill the link (256) and the pending items
+    // (64): the session stops reading.
+    for _ in 0..600 {
+        raw.send(Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtMostOnce,
+            retain: false,
+            topic: TopicName::from_static("alarm/blocked"),
+            properties: Default::default(),
+            payload: Bytes::from_static(b"x"),
+        }))
+        .await;
+    }
+    // The client keeps talking for three keepalive windows.
+    for _ in 0..12 {
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        raw.send(Packet::PingReq).await;
+    }
+    handle
+        .admin()
+        .delete_queue("/", "alarm-ballast", false, false)
+        .await
+        .expect("deleted");
+    let mut answered = 0;
+    while answered < 12 {
+        match raw.next().await {
+            Some(Packet::PingResp) => answered += 1,
+            Some(_) => {}
+            None => panic!("closed while blocked by the alarm, after {answered} PINGRESPs"),
+        }
+    }
     handle.shutdown().await;
 }
 

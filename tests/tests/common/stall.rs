@@ -54,6 +54,9 @@ static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(())
 pub struct Target {
     pub url: String,
     pub addr: String,
+    /// The in-process broker's MQTT listener (`None` for an external
+    /// broker).
+    pub mqtt_addr: Option<std::net::SocketAddr>,
     /// The in-process broker's runtime, whose one thread the probe shares.
     runtime: Option<tokio::runtime::Handle>,
     /// The in-process broker's administration handle.
@@ -69,6 +72,7 @@ impl Target {
             return Target {
                 url: broker.url().to_owned(),
                 addr: broker.addr(),
+                mqtt_addr: None,
                 runtime: None,
                 admin: None,
                 stop: None,
@@ -82,10 +86,13 @@ impl Target {
                 .build()
                 .expect("runtime");
             runtime.block_on(async move {
-                let broker = TestBroker::leveret(Broker::builder().limits(limits)).await;
+                let any: std::net::SocketAddr = "127.0.0.1:0".parse().expect("static address");
+                let builder = Broker::builder().limits(limits).mqtt_listen(any);
+                let broker = TestBroker::leveret(builder).await;
                 let addresses = (
                     broker.url().to_owned(),
                     broker.addr(),
+                    broker.mqtt_addr(),
                     tokio::runtime::Handle::current(),
                     broker.admin().expect("in process"),
                 );
@@ -94,10 +101,11 @@ impl Target {
                 broker.stop().await;
             });
         });
-        let (url, addr, runtime, admin) = addresses.recv().expect("broker starts");
+        let (url, addr, mqtt_addr, runtime, admin) = addresses.recv().expect("broker starts");
         Target {
             url,
             addr,
+            mqtt_addr,
             runtime: Some(runtime),
             admin: Some(admin),
             stop: Some(stop),
