@@ -470,29 +470,6 @@ async fn dead_letters_multiplied_by_fanouts_leave_others_served() {
 /// QoS 0 publishes an MQTT client writes in one go.
 const MQTT_PUBLISHES: usize = sized(1_000_000, 100_000);
 
-/// An MQTT 3.1.1 packet: `first` byte, remaining length, `body`.
-fn mqtt_packet(first: u8, body: &[u8]) -> Vec<u8> {
-    let mut packet = vec![first];
-    let mut left = body.len();
-    loop {
-        let byte = (left % 128) as u8;
-        left /= 128;
-        packet.push(if left > 0 { byte | 0x80 } else { byte });
-        if left == 0 {
-            break;
-        }
-    }
-    packet.extend_from_slice(body);
-    packet
-}
-
-/// An MQTT string: its length, then its bytes.
-fn mqtt_string(text: &str) -> Vec<u8> {
-    let mut out = (text.len() as u16).to_be_bytes().to_vec();
-    out.extend_from_slice(text.as_bytes());
-    out
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_mqtt_client_writing_a_flood_of_publishes_leaves_others_served() {
     within_bounds(Limits::default(), |target| async move {

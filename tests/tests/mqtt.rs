@@ -1343,12 +1343,7 @@ async fn a_client_that_keeps_talking_outlives_many_keepalives() {
 /// closed after 1.5 keepalives all the same: found by review.)
 #[both_runtimes]
 async fn a_client_pinging_while_an_alarm_stops_its_reads_outlives_its_keepalive() {
-    let limits = Limits {
-        memory_high_watermark: 256 * 1024,
-        resident_memory_high_watermark: leveret_broker::ResidentMemoryWatermark::Unwatched,
-        ..Limits::default()
-    };
-    let handle = start(limits).await;
+    let handle = start(alarm_limits()).await;
     let port = mqtt_port(&handle);
     // Keepalive 2 s: a silent client is closed after 3 s.
     let mut raw = Raw::login(port, 2).await;
@@ -4729,6 +4724,16 @@ fn subscribe_raw(id: u16, filter: &'static str) -> Packet {
     })
 }
 
+/// Limits whose memory alarm [`raise_memory_alarm`] can raise: a high
+/// watermark of 256 KiB of messages, resident memory not watched.
+fn alarm_limits() -> Limits {
+    Limits {
+        memory_high_watermark: 256 * 1024,
+        resident_memory_high_watermark: leveret_broker::ResidentMemoryWatermark::Unwatched,
+        ..Limits::default()
+    }
+}
+
 /// Raises `handle`'s memory alarm: messages queued in queue `ballast`
 /// past the watermark (each below it, so each is taken whole; published
 /// in process, never blocked). Deleting `ballast` clears it.
@@ -4772,12 +4777,7 @@ async fn publish_then_subscribe(raw: &mut Raw, topic: &'static str, filter: &'st
 /// with it: the member is then bound and served, not closed by a 404.
 #[both_runtimes]
 async fn a_joining_member_holds_its_groups_queue_until_its_consume_arrives() {
-    let limits = Limits {
-        memory_high_watermark: 256 * 1024,
-        resident_memory_high_watermark: leveret_broker::ResidentMemoryWatermark::Unwatched,
-        ..Limits::default()
-    };
-    let handle = start(limits).await;
+    let handle = start(alarm_limits()).await;
     let port = mqtt_port(&handle);
     let filter = "$share/hold/t";
     let (mut first, _) = raw_session(port, "hold-first", true, Some(0)).await;
@@ -4828,12 +4828,7 @@ async fn a_joining_member_holds_its_groups_queue_until_its_consume_arrives() {
 /// bound and served, not closed by a 404.
 #[both_runtimes]
 async fn an_if_unused_delete_counts_a_joining_member_as_use() {
-    let limits = Limits {
-        memory_high_watermark: 256 * 1024,
-        resident_memory_high_watermark: leveret_broker::ResidentMemoryWatermark::Unwatched,
-        ..Limits::default()
-    };
-    let handle = start(limits).await;
+    let handle = start(alarm_limits()).await;
     let port = mqtt_port(&handle);
     let (_amqp, channel) = amqp_channel(&handle).await;
     let (mut joiner, _) = raw_session(port, "unused-joiner", true, Some(0)).await;

@@ -443,30 +443,6 @@ async fn a_websocket_message_before_connect_is_not_read_past_the_budget() {
     handle.shutdown().await;
 }
 
-/// MQTT's remaining length (a variable byte integer) and `body` after
-/// `first`: one packet.
-fn packet(first: u8, body: &[u8]) -> Vec<u8> {
-    let mut out = vec![first];
-    let mut left = body.len();
-    loop {
-        let byte = (left % 128) as u8;
-        left /= 128;
-        out.push(if left > 0 { byte | 0x80 } else { byte });
-        if left == 0 {
-            break;
-        }
-    }
-    out.extend_from_slice(body);
-    out
-}
-
-/// `text` as MQTT's length-prefixed string.
-fn mqtt_string(text: &str) -> Vec<u8> {
-    let mut out = (text.len() as u16).to_be_bytes().to_vec();
-    out.extend_from_slice(text.as_bytes());
-    out
-}
-
 /// A client that sends its SUBSCRIBE and a 1 MiB PUBLISH right after its
 /// CONNECT, each in a message of its own, without waiting for the
 /// CONNACK (as pipelining clients do): the reads held back before login
@@ -492,8 +468,8 @@ async fn packets_sent_right_after_a_websocket_connect_are_served_after_login() {
     publish.extend_from_slice(&payload);
     for message in [
         connect.to_vec(),
-        packet(0x82, &subscribe),
-        packet(0x30, &publish),
+        mqtt_packet(0x82, &subscribe),
+        mqtt_packet(0x30, &publish),
     ] {
         tmo!(ws.send(Message::Binary(message.into()))).unwrap();
     }

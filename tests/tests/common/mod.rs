@@ -57,6 +57,30 @@ pub fn thread_cpu_time() -> Duration {
     )
 }
 
+/// One MQTT packet, written by hand: `first` (type and flags), the
+/// remaining length (MQTT's variable byte integer), then `body`.
+pub fn mqtt_packet(first: u8, body: &[u8]) -> Vec<u8> {
+    let mut out = vec![first];
+    let mut left = body.len();
+    loop {
+        let byte = (left % 128) as u8;
+        left /= 128;
+        out.push(if left > 0 { byte | 0x80 } else { byte });
+        if left == 0 {
+            break;
+        }
+    }
+    out.extend_from_slice(body);
+    out
+}
+
+/// `text` as MQTT's length-prefixed string.
+pub fn mqtt_string(text: &str) -> Vec<u8> {
+    let mut out = (text.len() as u16).to_be_bytes().to_vec();
+    out.extend_from_slice(text.as_bytes());
+    out
+}
+
 /// Asserts a reply text starts with the reply code's name, as RabbitMQ's
 /// do (`NOT_FOUND - no queue 'x' in vhost '/'`).
 pub fn assert_text_prefix(text: &str, prefix: &str) {
