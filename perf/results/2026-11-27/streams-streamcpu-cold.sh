@@ -1,15 +1,18 @@
 #!/usr/bin/env bash
 # (kept beside its results; run from any directory, as root to drop the page cache)
-# cold.sh T MIB MODE: fill a stream of MIB MiB (1 KiB msgs) on leveret from T, drop caches, cold read it
-# MODE: plain | record | stat
+# streams-streamcpu-cold.sh T MIB MODE: fill a stream of MIB MiB (1 KiB msgs) on Leveret from T (LavinMQ 2.9.1
+# with BROKER=lavinmq), drop the page cache (unless NODROP=1), read it from `first` with lavinmqperf -P 1000 -a 100
+# as perf/streams' cold read does; prints the broker's CPU a message. MODE: plain | record (perf record -g into
+# /tmp/streamcpu/perf.data) | stat (perf stat of its system calls into /tmp/streamcpu/stat.txt)
 set -euo pipefail
 T=$1; MIB=$2; MODE=${3:-plain}
 . "$(cd "$(dirname "$0")/../.." && pwd)/lib/brokers.sh"
 d=$(mktemp -d /tmp/leveret-cold.XXXXXX)
 trap cleanup EXIT
 port=$(free_port)
-start_leveret "$port" leveret
-pid=$leveret_pid
+if [ "${BROKER:-leveret}" = lavinmq ]; then start_lavinmq "$port"; pid=$lavinmq_pid
+else start_leveret "$port" leveret; pid=$leveret_pid; fi
+mkdir -p /tmp/streamcpu
 perf() { "$LAVIN/lavinmqperf" throughput --uri="amqp://guest:guest@127.0.0.1:$port/%2f" -j -q "$@"; }
 n=$((MIB * 1024))
 perf --queue=stream-cold -x 0 -y 1 -D 1 -P 10 -a 1 -z 2 '--queue-args={"x-queue-type":"stream"}' '--consumer-args={"x-stream-offset":"next"}' >/dev/null
