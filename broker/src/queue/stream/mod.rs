@@ -572,17 +572,24 @@ impl Queue {
     }
 
     /// Reads `task`'s batch, hands it back and dispatches; while that
-    /// leaves its reader wanting more, reads on here rather than handing
+    /// leaves its reader wanting more and the read was a whole one (the
+    /// reader is well behind the tail), reads on here rather than handing
     /// the next read to another blocking thread (a wake-up and a task
-    /// switch each). Reads for other readers start as usual.
+    /// switch each). A short read (the reader has caught up) hands its next
+    /// read on as before, so a reader near the tail does not chase each
+    /// append with a read of its own. Reads for other readers start as
+    /// usual.
     fn run_reads(self: &Arc<Self>, mut task: ReadTask) {
         loop {
             let mut cursor = task.cursor;
             let records = task.plan.read(&mut cursor, task.records, READ_BYTES);
+            let whole = records.len() >= task.records
+                || records.iter().map(|r| r.payload.len()).sum::<usize>() >= READ_BYTES;
             let mut tasks = self.read_done(&task.consumer, cursor, records);
             let own = tasks
                 .iter()
-                .position(|t| Arc::ptr_eq(&t.consumer, &task.consumer));
+                .position(|t| Arc::ptr_eq(&t.consumer, &task.consumer))
+                .filter(|_| whole);
             let next = own.map(|i| tasks.swap_remove(i));
             self.start_reads(tasks);
             match next {
