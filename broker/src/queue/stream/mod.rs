@@ -16,11 +16,12 @@
 //! blocking task (`spawn_blocking`) that reads without any lock, so old
 //! segments are never read on a broker thread, and the next read starts
 //! while half a read's worth is still to deliver (in the same blocking
-//! task while the reader keeps wanting more); a reader at the tail is
-//! handed each publish as it is appended. Deliveries leave in bursts, each
-//! sent to the connection's writer at once. A record's properties are stored
-//! with its offset header already in them, so a delivery slices the
-//! message out of the record without decoding or copying it.
+//! task after a whole read, while the reader is well behind the tail);
+//! a reader at the tail is handed each publish as it is appended.
+//! Deliveries leave in bursts, each sent to the connection's writer at
+//! once. A record's properties are stored with its offset header already
+//! in them, so a delivery slices the message out of the record without
+//! decoding or copying it.
 
 mod args;
 mod log;
