@@ -824,9 +824,16 @@ impl ReadPlan {
             {
                 let hint = cursor.record_len.max(RECORD_HEADER);
                 let size = wanted(&out, bytes, hint);
-                let Some(header) = window.get(file, pos, RECORD_HEADER, size, *length) else {
-                    tracing::error!(position = pos, "stream segment shorter than its index says");
-                    return out;
+                let header = match window.get(file, pos, RECORD_HEADER, size, *length) {
+                    Ok(header) => header,
+                    Err(ends) => {
+                        tracing::error!(
+                            position = pos,
+                            file_ends = ends,
+                            "stream segment shorter than its index says"
+                        );
+                        return out;
+                    }
                 };
                 let header: [u8; RECORD_HEADER] = header.try_into().expect("25");
                 let len = u32::from_le_bytes(header[..4].try_into().expect("4")) as usize;
@@ -857,8 +864,13 @@ impl ReadPlan {
                 let payload = if whole > READ_WINDOW {
                     // Larger than a window: read alone, sliced.
                     let mut buf = vec![0u8; whole];
-                    if file.read_exact_at(&mut buf, pos).is_err() {
-                        tracing::error!(position = pos, "stream record unreadable");
+                    let read = read_up_to(file, &mut buf, pos);
+                    if read < whole {
+                        tracing::error!(
+                            position = pos,
+                            file_ends = pos + read as u64,
+                            "stream segment shorter than its index says"
+                        );
                         return out;
                     }
                     if !sound(&buf, &header, offset, cursor.offset) {
@@ -872,9 +884,16 @@ impl ReadPlan {
                     bytes::Bytes::from(buf).slice(RECORD_HEADER..)
                 } else {
                     let size = wanted(&out, bytes, whole).max(whole);
-                    let Some(record) = window.get(file, pos, whole, size, *length) else {
-                        tracing::error!(position = pos, "stream record unreadable");
-                        return out;
+                    let record = match window.get(file, pos, whole, size, *length) {
+                        Ok(record) => record,
+                        Err(ends) => {
+                            tracing::error!(
+                                position = pos,
+                                file_ends = ends,
+                                "stream segment shorter than its index says"
+                            );
+                            return out;
+                        }
                     };
                     if !sound(record, &header, offset, cursor.offset) {
                         tracing::error!(
@@ -936,8 +955,10 @@ impl Window {
 
     /// The `len` bytes of `file` at `pos`, from the window if it holds
     /// them, else from a new window of about `size` bytes (at least `len`,
-    /// at most to the segment's `length`) read at `pos`. `None` if the
-    /// file is shorter.
+    /// at most to the segment's `length`) read at `pos`. A window may come
+    /// back short (the file ends before the window's end): that is enough
+    /// as long as it holds the `len` bytes asked for. `Err` with the
+    /// position where the file's data ends if it does not hold them.
     fn get(
         &mut self,
         file: &File,
@@ -945,26 +966,47 @@ impl Window {
         len: usize,
         size: usize,
         length: u64,
-    ) -> Option<&[u8]> {
-        let end = pos.checked_add(len as u64)?;
+    ) -> Result<&[u8], u64> {
+        let end = pos.checked_add(len as u64).ok_or(pos)?;
         let held = self.at..self.at + self.filled as u64;
         if !(held.contains(&pos) && end <= held.end) {
             let left = usize::try_from(length.saturating_sub(pos)).unwrap_or(usize::MAX);
             let size = size.max(len).min(left);
             if size < len {
-                return None;
+                return Err(length);
             }
             if self.buf.len() < size {
                 self.buf.resize(size, 0);
             }
             self.filled = 0;
-            file.read_exact_at(&mut self.buf[..size], pos).ok()?;
+            let read = read_up_to(file, &mut self.buf[..size], pos);
             self.at = pos;
-            self.filled = size;
+            self.filled = read;
+            if read < len {
+                return Err(pos + read as u64);
+            }
         }
         let from = (pos - self.at) as usize;
-        Some(&self.buf[from..from + len])
+        Ok(&self.buf[from..from + len])
     }
+}
+
+/// Reads `file` at `pos` into `buf` until `buf` is full, the file ends or
+/// a read fails; the bytes read.
+fn read_up_to(file: &File, buf: &mut [u8], pos: u64) -> usize {
+    let mut read = 0;
+    while read < buf.len() {
+        match file.read_at(&mut buf[read..], pos + read as u64) {
+            Ok(0) => break,
+            Ok(n) => read += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => {
+                tracing::error!(position = pos + read as u64, error = %e, "stream segment read failed");
+                break;
+            }
+        }
+    }
+    read
 }
 
 #[cfg(test)]
@@ -998,6 +1040,69 @@ mod tests {
         let mut cursor = Cursor::at(from);
         let plan = log.plan(&cursor);
         plan.read(&mut cursor, usize::MAX, usize::MAX)
+    }
+
+    #[test]
+    fn a_segment_cut_short_after_open_serves_the_records_before_the_cut() {
+        // Damage after opening: the file loses its tail (offsets 5.. gone,
+        // the cut inside record 5's header). A window reaching past the cut
+        // comes back short; the records it holds are served.
+        let dir = Scratch::new("cut-first");
+        let mut log = StreamLog::create(dir.path(), 1 << 20).unwrap();
+        for i in 0..10u8 {
+            log.append(&[i; 10], 1, 0).unwrap();
+        }
+        let path = log.segments[0].path.clone();
+        cut(&path, SEGMENT_HEADER + 5 * (RECORD_HEADER as u64 + 10) + 3);
+        let offsets: Vec<u64> = read_all(&log, 0).iter().map(|r| r.offset).collect();
+        assert_eq!(
+            offsets,
+            [0, 1, 2, 3, 4],
+            "records before the cut are served"
+        );
+        // The same a few records a read, and from a later offset.
+        let mut cursor = Cursor::at(2);
+        let plan = log.plan(&cursor);
+        let mut read = Vec::new();
+        loop {
+            let got = plan.read(&mut cursor, 2, usize::MAX);
+            if got.is_empty() {
+                break;
+            }
+            read.extend(got.iter().map(|r| r.offset));
+        }
+        assert_eq!(read, [2, 3, 4]);
+        assert_eq!(cursor.offset, 5, "the reader stops at the cut");
+    }
+
+    #[test]
+    fn a_segment_cut_inside_a_record_larger_than_a_window_serves_the_records_before_it() {
+        let dir = Scratch::new("cut-big");
+        let mut log = StreamLog::create(dir.path(), 1 << 22).unwrap();
+        log.append(&[1; 10], 1, 0).unwrap();
+        log.append(&[2; 10], 1, 0).unwrap();
+        log.append(&vec![3; READ_WINDOW * 2], 1, 0).unwrap();
+        log.append(&[4; 10], 1, 0).unwrap();
+        let path = log.segments[0].path.clone();
+        let big = SEGMENT_HEADER + 2 * (RECORD_HEADER as u64 + 10);
+        cut(&path, big + READ_WINDOW as u64);
+        let offsets: Vec<u64> = read_all(&log, 0).iter().map(|r| r.offset).collect();
+        assert_eq!(offsets, [0, 1]);
+    }
+
+    #[test]
+    fn a_later_segment_cut_short_serves_every_record_before_the_cut() {
+        let dir = Scratch::new("cut-later");
+        let record = RECORD_HEADER as u64 + 10;
+        let mut log = StreamLog::create(dir.path(), SEGMENT_HEADER + 4 * record).unwrap();
+        for i in 0..20u8 {
+            log.append(&[i; 10], 1, 0).unwrap();
+        }
+        assert!(log.segments.len() > 2, "several segments");
+        let (first, path) = (log.segments[1].first, log.segments[1].path.clone());
+        cut(&path, SEGMENT_HEADER + 2 * record + 7);
+        let offsets: Vec<u64> = read_all(&log, 0).iter().map(|r| r.offset).collect();
+        assert_eq!(offsets, (0..first + 2).collect::<Vec<_>>());
     }
 
     #[test]
