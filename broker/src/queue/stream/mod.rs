@@ -16,7 +16,8 @@
 //! blocking task (`spawn_blocking`) that reads without any lock, so old
 //! segments are never read on a broker thread, and the next read starts
 //! while half a read's worth is still to deliver (in the same blocking
-//! task after a whole read, while the reader is well behind the tail);
+//! task after a whole read, while the reader is well behind the tail, for
+//! up to [`READS_A_RUN`] reads a task);
 //! a reader at the tail is handed each publish as it is appended.
 //! Deliveries leave in bursts, each sent to the connection's writer at
 //! once. A record's properties are stored with its offset header already
@@ -47,6 +48,12 @@ pub const OFFSET_HEADER: &str = "x-stream-offset";
 const READ_RECORDS: usize = 256;
 /// About the most bytes one read brings (at least one record).
 const READ_BYTES: usize = 128 * 1024;
+/// Most reads one blocking task makes for its reader before it hands the
+/// next read on as a new task: at most this many × [`READ_BYTES`] (1 MiB)
+/// a run, so a reader catching up on a long stream gives its blocking
+/// thread back to the pool between runs rather than holding it for the
+/// whole catch-up (other `spawn_blocking` work queues behind it).
+const READS_A_RUN: usize = 8;
 
 /// One stream's state (see the module docs).
 #[derive(Debug)]
@@ -505,7 +512,7 @@ impl Queue {
     /// thread delivers), and is sent once it is whole: the writer is woken
     /// once for it, not once a delivery.
     fn deliver_burst(self: &Arc<Self>, reader: &mut Reader, consumer: &Arc<Consumer>) {
-        let mut burst = Vec::new();
+        let mut burst = Vec::with_capacity(reader.batch.len());
         let mut deliveries = consumer.channel.deliveries();
         while !reader.batch.is_empty() {
             let Some(permit) = consumer.channel.outbox.try_reserve() else {
@@ -579,9 +586,10 @@ impl Queue {
     /// switch each). A short read (the reader has caught up) hands its next
     /// read on as before, so a reader near the tail does not chase each
     /// append with a read of its own. Reads for other readers start as
-    /// usual.
+    /// usual. After [`READS_A_RUN`] reads the next one is handed on too, so
+    /// one run holds its blocking thread for at most that many reads.
     fn run_reads(self: &Arc<Self>, mut task: ReadTask) {
-        loop {
+        for run in 1.. {
             let mut cursor = task.cursor;
             let records = task.plan.read(&mut cursor, task.records, READ_BYTES);
             let whole = records.len() >= task.records
@@ -590,7 +598,7 @@ impl Queue {
             let own = tasks
                 .iter()
                 .position(|t| Arc::ptr_eq(&t.consumer, &task.consumer))
-                .filter(|_| whole);
+                .filter(|_| whole && run < READS_A_RUN);
             let next = own.map(|i| tasks.swap_remove(i));
             self.start_reads(tasks);
             match next {
