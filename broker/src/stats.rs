@@ -480,19 +480,22 @@ impl QueueCounters {
     }
 
     /// Unacked deliveries of `messages` were acked: one add a counter for
-    /// them all (a multiple ack settles many at once).
+    /// them all (a multiple ack settles many at once). The unacked level
+    /// goes down before the acknowledged count goes up, so a reader
+    /// sampling in between sees `acknowledged + unacked` under the truth
+    /// by the batch, never over it.
     pub fn acked<'a>(&self, messages: impl IntoIterator<Item = &'a Message>) {
         let held = Held::of(messages);
         if held.messages == 0 {
             return;
         }
-        self.acknowledged.add(held.messages as u64);
-        self.global.acknowledged.add(held.messages as u64);
         self.unacked.add(-held.messages);
         self.unacked_bytes.add(-held.bytes);
         if held.persistent > 0 {
             self.unacked_persistent.add(-held.persistent);
         }
+        self.acknowledged.add(held.messages as u64);
+        self.global.acknowledged.add(held.messages as u64);
     }
 
     /// An unacked delivery of `message` was rejected, or came back to be
