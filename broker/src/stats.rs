@@ -343,6 +343,26 @@ impl BrokerCounters {
     }
 }
 
+/// What a run of messages adds to the unacked levels.
+#[derive(Debug, Default)]
+struct Held {
+    messages: i64,
+    bytes: i64,
+    persistent: i64,
+}
+
+impl Held {
+    fn of<'a>(messages: impl IntoIterator<Item = &'a Message>) -> Held {
+        let mut held = Held::default();
+        for message in messages {
+            held.messages += 1;
+            held.bytes += message.body.len() as i64;
+            held.persistent += i64::from(message.persistent);
+        }
+        held
+    }
+}
+
 /// One queue's counters (its `message_stats` in RabbitMQ's management
 /// API), each also counted in the broker-wide totals.
 #[derive(Debug)]
@@ -459,12 +479,23 @@ impl QueueCounters {
         self.global.get_empty.inc();
     }
 
-    /// An unacked delivery of `message` was acked.
-    #[inline]
-    pub fn acked(&self, message: &Message) {
-        self.acknowledged.inc();
-        self.global.acknowledged.inc();
-        self.let_go(message);
+    /// Unacked deliveries of `messages` were acked: one add a counter for
+    /// them all (a multiple ack settles many at once). The unacked level
+    /// goes down before the acknowledged count goes up, so a reader
+    /// sampling in between sees `acknowledged + unacked` under the truth
+    /// by the batch, never over it.
+    pub fn acked<'a>(&self, messages: impl IntoIterator<Item = &'a Message>) {
+        let held = Held::of(messages);
+        if held.messages == 0 {
+            return;
+        }
+        self.unacked.add(-held.messages);
+        self.unacked_bytes.add(-held.bytes);
+        if held.persistent > 0 {
+            self.unacked_persistent.add(-held.persistent);
+        }
+        self.acknowledged.add(held.messages as u64);
+        self.global.acknowledged.add(held.messages as u64);
     }
 
     /// An unacked delivery of `message` was rejected, or came back to be
@@ -551,7 +582,7 @@ mod tests {
         b.got(false, true, &transient);
         b.got(true, false, &transient);
         b.got_nothing();
-        a.acked(&persistent);
+        a.acked([&*persistent]);
         assert_eq!(
             (
                 a.unacked.get(),
@@ -574,6 +605,20 @@ mod tests {
         assert_eq!(global.redelivered.get(), 2);
         assert_eq!(global.acknowledged.get(), 1);
         assert_eq!(a.redelivered.get(), 1);
+        // A multiple ack settles several in one step.
+        a.delivered(false, false, &persistent);
+        a.delivered(false, false, &transient);
+        a.acked([&*persistent, &*transient]);
+        assert_eq!(
+            (
+                a.unacked.get(),
+                a.unacked_bytes.get(),
+                a.unacked_persistent.get(),
+                a.acknowledged.get(),
+                global.acknowledged.get()
+            ),
+            (0, 0, 0, 3, 3)
+        );
         a.consumer_added();
         a.consumer_added();
         a.queue_deleted(2);

@@ -167,7 +167,11 @@ impl<O> ChannelLink<O> {
     }
 
     /// Locks the delivery bookkeeping. The lock is held for a few
-    /// instructions (tag, push, or take) and never across an await.
+    /// instructions (tag, push, or take) and never across an await, except
+    /// by a stream's burst delivery, which holds it for a whole burst (up
+    /// to about one and a half reads' worth of records, or the outbox's
+    /// free room: tag, credit, decode and send each), so a channel's acks,
+    /// `basic.get` and close may wait that long behind a stream reader.
     pub fn deliveries(&self) -> MutexGuard<'_, Deliveries<O>> {
         self.deliveries.lock().unwrap_or_else(|e| e.into_inner())
     }

@@ -498,9 +498,8 @@ impl Queue {
 
     /// Unacked messages were acked (or rejected without dead-lettering).
     pub fn settle(&self, settled: &[QueuedMessage]) {
-        for queued in settled {
-            self.stats.acked(&queued.message);
-        }
+        self.stats
+            .acked(settled.iter().map(|queued| &*queued.message));
         if self.stream.is_none() {
             self.release_all(settled);
         }

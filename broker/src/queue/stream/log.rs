@@ -120,6 +120,9 @@ pub struct Cursor {
     /// Records older than this (ms) are passed over, once: a reader
     /// starting at a time begins at the first record that recent.
     not_before: Option<i64>,
+    /// Bytes (header and payload) of the last record read through it, 0
+    /// if none yet: sizes the next read's window.
+    record_len: usize,
 }
 
 impl Cursor {
@@ -129,6 +132,7 @@ impl Cursor {
             offset,
             at: None,
             not_before: None,
+            record_len: 0,
         }
     }
 
@@ -783,14 +787,17 @@ impl ReadPlan {
     /// retention meanwhile) are skipped. Stops at a record that does not
     /// check (damage after opening): reported, never served.
     ///
-    /// One positioned read a record: each read takes the record and the
-    /// next one's header, so only a segment's first record (or the first
-    /// after a cursor) costs a read of its header alone. A record's
-    /// payload is a slice of the buffer it was read into (its header and
-    /// the next one's, 50 bytes, ride along).
+    /// The file is read a window at a time ([`Window`]: up to
+    /// [`READ_WINDOW`] bytes, sized by the records still wanted and the
+    /// cursor's record size), so a batch of small records is a few system
+    /// calls rather than one a record. Each payload is copied out of the
+    /// window into a buffer of its own (a delivery kept unacked holds its
+    /// record, never a window); a record larger than a window is read
+    /// alone into its own buffer and sliced, not copied.
     pub fn read(&self, cursor: &mut Cursor, max_records: usize, max_bytes: usize) -> Vec<Record> {
         let mut out = Vec::new();
         let mut bytes = 0;
+        let mut window = Window::default();
         for (first, next, length, file) in &self.segments {
             if cursor.offset >= *next {
                 continue;
@@ -802,26 +809,33 @@ impl ReadPlan {
                 Some((segment, pos)) if segment == *first => pos,
                 _ => SEGMENT_HEADER,
             };
-            // The header at `pos`, when the previous read brought it.
-            let mut carried: Option<[u8; RECORD_HEADER]> = None;
+            window.clear();
+            // Bytes the rest of this read is expected to want: the records
+            // still wanted at the cursor's record size (a record when
+            // unknown), within the byte budget.
+            let wanted = |out: &Vec<Record>, bytes: usize, record: usize| {
+                let records = (max_records - out.len()).saturating_mul(record);
+                let budget = max_bytes.saturating_sub(bytes).saturating_add(record);
+                records.min(budget).clamp(RECORD_HEADER, READ_WINDOW)
+            };
             while cursor.offset < *next
                 && out.len() < max_records
                 && (bytes < max_bytes || out.is_empty())
             {
-                let header = match carried.take() {
-                    Some(header) => header,
-                    None => {
-                        let mut header = [0u8; RECORD_HEADER];
-                        if file.read_exact_at(&mut header, pos).is_err() {
-                            tracing::error!(
-                                position = pos,
-                                "stream segment shorter than its index says"
-                            );
-                            return out;
-                        }
-                        header
+                let hint = cursor.record_len.max(RECORD_HEADER);
+                let size = wanted(&out, bytes, hint);
+                let header = match window.get(file, pos, RECORD_HEADER, size, *length) {
+                    Ok(header) => header,
+                    Err(ends) => {
+                        tracing::error!(
+                            position = pos,
+                            file_ends = ends,
+                            "stream segment shorter than its index says"
+                        );
+                        return out;
                     }
                 };
+                let header: [u8; RECORD_HEADER] = header.try_into().expect("25");
                 let len = u32::from_le_bytes(header[..4].try_into().expect("4")) as usize;
                 let offset = u64::from_le_bytes(header[8..16].try_into().expect("8"));
                 let timestamp_ms = i64::from_le_bytes(header[16..24].try_into().expect("8"));
@@ -846,34 +860,62 @@ impl ReadPlan {
                     continue;
                 }
                 cursor.not_before = None;
-                let next_header = (*length - end).min(RECORD_HEADER as u64) as usize;
-                let mut buf = vec![0u8; RECORD_HEADER + len + next_header];
-                if file.read_exact_at(&mut buf, pos).is_err() {
-                    tracing::error!(position = pos, "stream record unreadable");
-                    return out;
-                }
-                let crc = u32::from_le_bytes(buf[4..8].try_into().expect("4"));
-                if buf[..RECORD_HEADER] != header
-                    || checksum(&buf[8..RECORD_HEADER + len]) != crc
-                    || offset != cursor.offset
-                {
-                    tracing::error!(position = pos, offset, "stream record damaged: not served");
-                    return out;
-                }
-                let flags = buf[24];
-                if next_header == RECORD_HEADER {
-                    carried = Some(buf[RECORD_HEADER + len..].try_into().expect("25"));
-                }
+                let whole = RECORD_HEADER + len;
+                let payload = if whole > READ_WINDOW {
+                    // Larger than a window: read alone, sliced.
+                    let mut buf = vec![0u8; whole];
+                    let read = read_up_to(file, &mut buf, pos);
+                    if read < whole {
+                        tracing::error!(
+                            position = pos,
+                            file_ends = pos + read as u64,
+                            "stream segment shorter than its index says"
+                        );
+                        return out;
+                    }
+                    if !sound(&buf, &header, offset, cursor.offset) {
+                        tracing::error!(
+                            position = pos,
+                            offset,
+                            "stream record damaged: not served"
+                        );
+                        return out;
+                    }
+                    bytes::Bytes::from(buf).slice(RECORD_HEADER..)
+                } else {
+                    let size = wanted(&out, bytes, whole).max(whole);
+                    let record = match window.get(file, pos, whole, size, *length) {
+                        Ok(record) => record,
+                        Err(ends) => {
+                            tracing::error!(
+                                position = pos,
+                                file_ends = ends,
+                                "stream segment shorter than its index says"
+                            );
+                            return out;
+                        }
+                    };
+                    if !sound(record, &header, offset, cursor.offset) {
+                        tracing::error!(
+                            position = pos,
+                            offset,
+                            "stream record damaged: not served"
+                        );
+                        return out;
+                    }
+                    bytes::Bytes::copy_from_slice(&record[RECORD_HEADER..])
+                };
                 bytes += len;
                 pos = end;
                 out.push(Record {
                     offset,
                     timestamp_ms,
-                    flags,
-                    payload: bytes::Bytes::from(buf).slice(RECORD_HEADER..RECORD_HEADER + len),
+                    flags: header[24],
+                    payload,
                 });
                 cursor.offset += 1;
                 cursor.at = Some((*first, pos));
+                cursor.record_len = whole;
             }
             if out.len() >= max_records || bytes >= max_bytes {
                 break;
@@ -881,6 +923,90 @@ impl ReadPlan {
         }
         out
     }
+}
+
+/// Whether `record` (header and payload as read) is the record its
+/// `header` (read first, perhaps by another read) announced, its CRC
+/// checks, and its offset is the one the cursor expects.
+fn sound(record: &[u8], header: &[u8; RECORD_HEADER], offset: u64, expected: u64) -> bool {
+    let crc = u32::from_le_bytes(record[4..8].try_into().expect("4"));
+    record[..RECORD_HEADER] == header[..] && checksum(&record[8..]) == crc && offset == expected
+}
+
+/// The most a reader asks of a segment file at once.
+const READ_WINDOW: usize = 128 * 1024;
+
+/// The stretch of a segment file last read by one [`ReadPlan::read`]: its
+/// buffer is reused for every window of that read.
+#[derive(Default)]
+struct Window {
+    /// File position of `buf[0]`.
+    at: u64,
+    /// Bytes of `buf` read from the file.
+    filled: usize,
+    buf: Vec<u8>,
+}
+
+impl Window {
+    /// Forgets what was read (another segment is next).
+    fn clear(&mut self) {
+        self.filled = 0;
+    }
+
+    /// The `len` bytes of `file` at `pos`, from the window if it holds
+    /// them, else from a new window of about `size` bytes (at least `len`,
+    /// at most to the segment's `length`) read at `pos`. A window may come
+    /// back short (the file ends before the window's end): that is enough
+    /// as long as it holds the `len` bytes asked for. `Err` with the
+    /// position where the file's data ends if it does not hold them.
+    fn get(
+        &mut self,
+        file: &File,
+        pos: u64,
+        len: usize,
+        size: usize,
+        length: u64,
+    ) -> Result<&[u8], u64> {
+        let end = pos.checked_add(len as u64).ok_or(pos)?;
+        let held = self.at..self.at + self.filled as u64;
+        if !(held.contains(&pos) && end <= held.end) {
+            let left = usize::try_from(length.saturating_sub(pos)).unwrap_or(usize::MAX);
+            let size = size.max(len).min(left);
+            if size < len {
+                return Err(length);
+            }
+            if self.buf.len() < size {
+                self.buf.resize(size, 0);
+            }
+            self.filled = 0;
+            let read = read_up_to(file, &mut self.buf[..size], pos);
+            self.at = pos;
+            self.filled = read;
+            if read < len {
+                return Err(pos + read as u64);
+            }
+        }
+        let from = (pos - self.at) as usize;
+        Ok(&self.buf[from..from + len])
+    }
+}
+
+/// Reads `file` at `pos` into `buf` until `buf` is full, the file ends or
+/// a read fails; the bytes read.
+fn read_up_to(file: &File, buf: &mut [u8], pos: u64) -> usize {
+    let mut read = 0;
+    while read < buf.len() {
+        match file.read_at(&mut buf[read..], pos + read as u64) {
+            Ok(0) => break,
+            Ok(n) => read += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => {
+                tracing::error!(position = pos + read as u64, error = %e, "stream segment read failed");
+                break;
+            }
+        }
+    }
+    read
 }
 
 #[cfg(test)]
@@ -914,6 +1040,69 @@ mod tests {
         let mut cursor = Cursor::at(from);
         let plan = log.plan(&cursor);
         plan.read(&mut cursor, usize::MAX, usize::MAX)
+    }
+
+    #[test]
+    fn a_segment_cut_short_after_open_serves_the_records_before_the_cut() {
+        // Damage after opening: the file loses its tail (offsets 5.. gone,
+        // the cut inside record 5's header). A window reaching past the cut
+        // comes back short; the records it holds are served.
+        let dir = Scratch::new("cut-first");
+        let mut log = StreamLog::create(dir.path(), 1 << 20).unwrap();
+        for i in 0..10u8 {
+            log.append(&[i; 10], 1, 0).unwrap();
+        }
+        let path = log.segments[0].path.clone();
+        cut(&path, SEGMENT_HEADER + 5 * (RECORD_HEADER as u64 + 10) + 3);
+        let offsets: Vec<u64> = read_all(&log, 0).iter().map(|r| r.offset).collect();
+        assert_eq!(
+            offsets,
+            [0, 1, 2, 3, 4],
+            "records before the cut are served"
+        );
+        // The same a few records a read, and from a later offset.
+        let mut cursor = Cursor::at(2);
+        let plan = log.plan(&cursor);
+        let mut read = Vec::new();
+        loop {
+            let got = plan.read(&mut cursor, 2, usize::MAX);
+            if got.is_empty() {
+                break;
+            }
+            read.extend(got.iter().map(|r| r.offset));
+        }
+        assert_eq!(read, [2, 3, 4]);
+        assert_eq!(cursor.offset, 5, "the reader stops at the cut");
+    }
+
+    #[test]
+    fn a_segment_cut_inside_a_record_larger_than_a_window_serves_the_records_before_it() {
+        let dir = Scratch::new("cut-big");
+        let mut log = StreamLog::create(dir.path(), 1 << 22).unwrap();
+        log.append(&[1; 10], 1, 0).unwrap();
+        log.append(&[2; 10], 1, 0).unwrap();
+        log.append(&vec![3; READ_WINDOW * 2], 1, 0).unwrap();
+        log.append(&[4; 10], 1, 0).unwrap();
+        let path = log.segments[0].path.clone();
+        let big = SEGMENT_HEADER + 2 * (RECORD_HEADER as u64 + 10);
+        cut(&path, big + READ_WINDOW as u64);
+        let offsets: Vec<u64> = read_all(&log, 0).iter().map(|r| r.offset).collect();
+        assert_eq!(offsets, [0, 1]);
+    }
+
+    #[test]
+    fn a_later_segment_cut_short_serves_every_record_before_the_cut() {
+        let dir = Scratch::new("cut-later");
+        let record = RECORD_HEADER as u64 + 10;
+        let mut log = StreamLog::create(dir.path(), SEGMENT_HEADER + 4 * record).unwrap();
+        for i in 0..20u8 {
+            log.append(&[i; 10], 1, 0).unwrap();
+        }
+        assert!(log.segments.len() > 2, "several segments");
+        let (first, path) = (log.segments[1].first, log.segments[1].path.clone());
+        cut(&path, SEGMENT_HEADER + 2 * record + 7);
+        let offsets: Vec<u64> = read_all(&log, 0).iter().map(|r| r.offset).collect();
+        assert_eq!(offsets, (0..first + 2).collect::<Vec<_>>());
     }
 
     #[test]
@@ -965,9 +1154,13 @@ mod tests {
 
     #[test]
     fn records_of_every_size_read_back_in_batches_of_any_size() {
+        // Records larger than a window, and one at either side of a
+        // window's size.
         let sizes = |i: usize| match i {
             500 => 600 * 1024,
             700 => 5 * 1024,
+            800 => READ_WINDOW - RECORD_HEADER,
+            801 => READ_WINDOW - RECORD_HEADER + 1,
             _ => i % 97,
         };
         let payload = |i: usize| vec![(i % 251) as u8; sizes(i)];

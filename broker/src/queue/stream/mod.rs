@@ -15,10 +15,14 @@
 //! small batch: a reader behind the tail gets its next batch from a
 //! blocking task (`spawn_blocking`) that reads without any lock, so old
 //! segments are never read on a broker thread, and the next read starts
-//! while half a read's worth is still to deliver; a reader at the tail is
-//! handed each publish as it is appended. A record's properties are stored
-//! with its offset header already in them, so a delivery slices the
-//! message out of the record without decoding or copying it.
+//! while half a read's worth is still to deliver (in the same blocking
+//! task after a whole read, while the reader is well behind the tail, for
+//! up to [`READS_A_RUN`] reads a task);
+//! a reader at the tail is handed each publish as it is appended.
+//! Deliveries leave in bursts, each sent to the connection's writer at
+//! once. A record's properties are stored with its offset header already
+//! in them, so a delivery slices the message out of the record without
+//! decoding or copying it.
 
 mod args;
 mod log;
@@ -44,6 +48,12 @@ pub const OFFSET_HEADER: &str = "x-stream-offset";
 const READ_RECORDS: usize = 256;
 /// About the most bytes one read brings (at least one record).
 const READ_BYTES: usize = 128 * 1024;
+/// Most reads one blocking task makes for its reader before it hands the
+/// next read on as a new task: at most this many × [`READ_BYTES`] (1 MiB)
+/// a run, so a reader catching up on a long stream gives its blocking
+/// thread back to the pool between runs rather than holding it for the
+/// whole catch-up (other `spawn_blocking` work queues behind it).
+const READS_A_RUN: usize = 8;
 
 /// One stream's state (see the module docs).
 #[derive(Debug)]
@@ -475,47 +485,8 @@ impl Queue {
         let next = st.log.next_offset();
         for reader in st.readers.iter_mut() {
             let consumer = Arc::clone(&reader.consumer);
-            while !reader.batch.is_empty() {
-                let Some(permit) = consumer.channel.outbox.try_reserve() else {
-                    consumer.channel.outbox.wait_for_room(self);
-                    break;
-                };
-                let Some(credit) = consumer.try_take_credit() else {
-                    break;
-                };
-                let Some(record) = reader.batch.pop_front() else {
-                    break;
-                };
-                let Some(message) = decode(&record) else {
-                    tracing::error!(queue = %self.name, offset = record.offset, "a stream record that passed its checksum does not decode; skipped");
-                    continue;
-                };
-                credit.keep();
-                self.stats.delivered(false, false, &message);
-                let message = Arc::new(message);
-                let mut deliveries = consumer.channel.deliveries();
-                let delivery_tag = deliveries.next_tag();
-                deliveries.push(Unacked {
-                    tag: delivery_tag,
-                    origin: Origin {
-                        queue: Arc::clone(self),
-                        message: QueuedMessage {
-                            seq: record.offset,
-                            priority: 0,
-                            message: Arc::clone(&message),
-                            redelivered: false,
-                            expires_at: None,
-                        },
-                    },
-                    consumer: Some(Arc::clone(&consumer)),
-                });
-                permit.send(Outbound::Deliver {
-                    channel: consumer.channel.id,
-                    consumer_tag: consumer.tag.clone(),
-                    delivery_tag,
-                    redelivered: false,
-                    message,
-                });
+            if !reader.batch.is_empty() {
+                self.deliver_burst(reader, &consumer);
             }
             if !reader.reading
                 && wants_more(&reader.batch)
@@ -534,17 +505,71 @@ impl Queue {
         }
     }
 
+    /// Delivers what `reader` has batched while its consumer has credit
+    /// and its connection room. The burst takes its tags and enters the
+    /// outbox under one hold of the channel's delivery lock (so tags reach
+    /// the client in the order they were handed out, whichever queue's
+    /// thread delivers), and is sent once it is whole: the writer is woken
+    /// once for it, not once a delivery.
+    fn deliver_burst(self: &Arc<Self>, reader: &mut Reader, consumer: &Arc<Consumer>) {
+        let mut burst = Vec::with_capacity(reader.batch.len());
+        let mut deliveries = consumer.channel.deliveries();
+        while !reader.batch.is_empty() {
+            let Some(permit) = consumer.channel.outbox.try_reserve() else {
+                consumer.channel.outbox.wait_for_room(self);
+                break;
+            };
+            let Some(credit) = consumer.try_take_credit() else {
+                break;
+            };
+            let Some(record) = reader.batch.pop_front() else {
+                break;
+            };
+            let Some(message) = decode(&record) else {
+                tracing::error!(queue = %self.name, offset = record.offset, "a stream record that passed its checksum does not decode; skipped");
+                continue;
+            };
+            credit.keep();
+            self.stats.delivered(false, false, &message);
+            let message = Arc::new(message);
+            let delivery_tag = deliveries.next_tag();
+            deliveries.push(Unacked {
+                tag: delivery_tag,
+                origin: Origin {
+                    queue: Arc::clone(self),
+                    message: QueuedMessage {
+                        seq: record.offset,
+                        priority: 0,
+                        message: Arc::clone(&message),
+                        redelivered: false,
+                        expires_at: None,
+                    },
+                },
+                consumer: Some(Arc::clone(consumer)),
+            });
+            burst.push((
+                permit,
+                Outbound::Deliver {
+                    channel: consumer.channel.id,
+                    consumer_tag: consumer.tag.clone(),
+                    delivery_tag,
+                    redelivered: false,
+                    message,
+                },
+            ));
+        }
+        for (permit, item) in burst {
+            permit.send(item);
+        }
+        drop(deliveries);
+    }
+
     /// Runs reads off the broker's threads (inline where there is no
-    /// runtime, as in unit tests); each hands its batch back and
-    /// dispatches.
+    /// runtime, as in unit tests).
     fn start_reads(self: &Arc<Self>, tasks: Vec<ReadTask>) {
         for task in tasks {
             let queue = Arc::clone(self);
-            let work = move || {
-                let mut cursor = task.cursor;
-                let records = task.plan.read(&mut cursor, task.records, READ_BYTES);
-                queue.read_done(&task.consumer, cursor, records);
-            };
+            let work = move || queue.run_reads(task);
             match tokio::runtime::Handle::try_current() {
                 Ok(runtime) => {
                     runtime.spawn_blocking(work);
@@ -554,25 +579,59 @@ impl Queue {
         }
     }
 
-    fn read_done(self: &Arc<Self>, consumer: &Arc<Consumer>, cursor: Cursor, records: Vec<Record>) {
-        let mut tasks = Vec::new();
-        {
-            let mut st = self.stream_ref().lock();
-            let next = st.log.next_offset();
-            let Some(reader) = st
-                .readers
-                .iter_mut()
-                .find(|r| Arc::ptr_eq(&r.consumer, consumer))
-            else {
-                return; // cancelled meanwhile
-            };
-            reader.reading = false;
-            reader.stalled = records.is_empty() && cursor.offset < next;
-            reader.cursor = cursor;
-            reader.batch.extend(records);
-            self.stream_deliver(&mut st, &mut tasks);
+    /// Reads `task`'s batch, hands it back and dispatches; while that
+    /// leaves its reader wanting more and the read was a whole one (the
+    /// reader is well behind the tail), reads on here rather than handing
+    /// the next read to another blocking thread (a wake-up and a task
+    /// switch each). A short read (the reader has caught up) hands its next
+    /// read on as before, so a reader near the tail does not chase each
+    /// append with a read of its own. Reads for other readers start as
+    /// usual. After [`READS_A_RUN`] reads the next one is handed on too, so
+    /// one run holds its blocking thread for at most that many reads.
+    fn run_reads(self: &Arc<Self>, mut task: ReadTask) {
+        for run in 1.. {
+            let mut cursor = task.cursor;
+            let records = task.plan.read(&mut cursor, task.records, READ_BYTES);
+            let whole = records.len() >= task.records
+                || records.iter().map(|r| r.payload.len()).sum::<usize>() >= READ_BYTES;
+            let mut tasks = self.read_done(&task.consumer, cursor, records);
+            let own = tasks
+                .iter()
+                .position(|t| Arc::ptr_eq(&t.consumer, &task.consumer))
+                .filter(|_| whole && run < READS_A_RUN);
+            let next = own.map(|i| tasks.swap_remove(i));
+            self.start_reads(tasks);
+            match next {
+                Some(next) => task = next,
+                None => return,
+            }
         }
-        self.start_reads(tasks);
+    }
+
+    /// Takes a read's records into its reader's batch and delivers; the
+    /// reads to start next.
+    fn read_done(
+        self: &Arc<Self>,
+        consumer: &Arc<Consumer>,
+        cursor: Cursor,
+        records: Vec<Record>,
+    ) -> Vec<ReadTask> {
+        let mut tasks = Vec::new();
+        let mut st = self.stream_ref().lock();
+        let next = st.log.next_offset();
+        let Some(reader) = st
+            .readers
+            .iter_mut()
+            .find(|r| Arc::ptr_eq(&r.consumer, consumer))
+        else {
+            return tasks; // cancelled meanwhile
+        };
+        reader.reading = false;
+        reader.stalled = records.is_empty() && cursor.offset < next;
+        reader.cursor = cursor;
+        reader.batch.extend(records);
+        self.stream_deliver(&mut st, &mut tasks);
+        tasks
     }
 
     /// Deletes the stream: its files go, its consumers come back to be
