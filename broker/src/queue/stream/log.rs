@@ -827,11 +827,7 @@ impl ReadPlan {
                 let header = match window.get(file, pos, RECORD_HEADER, size, *length) {
                     Ok(header) => header,
                     Err(ends) => {
-                        tracing::error!(
-                            position = pos,
-                            file_ends = ends,
-                            "stream segment shorter than its index says"
-                        );
+                        log_cut_short(pos, ends);
                         return out;
                     }
                 };
@@ -866,11 +862,7 @@ impl ReadPlan {
                     let mut buf = vec![0u8; whole];
                     let read = read_up_to(file, &mut buf, pos);
                     if read < whole {
-                        tracing::error!(
-                            position = pos,
-                            file_ends = pos + read as u64,
-                            "stream segment shorter than its index says"
-                        );
+                        log_cut_short(pos, pos + read as u64);
                         return out;
                     }
                     if !sound(&buf, &header, offset, cursor.offset) {
@@ -887,11 +879,7 @@ impl ReadPlan {
                     let record = match window.get(file, pos, whole, size, *length) {
                         Ok(record) => record,
                         Err(ends) => {
-                            tracing::error!(
-                                position = pos,
-                                file_ends = ends,
-                                "stream segment shorter than its index says"
-                            );
+                            log_cut_short(pos, ends);
                             return out;
                         }
                     };
@@ -989,6 +977,17 @@ impl Window {
         let from = (pos - self.at) as usize;
         Ok(&self.buf[from..from + len])
     }
+}
+
+/// Logs a read that found a segment file ending at `file_ends`, before
+/// the record at `position` its index says is whole (damage after the
+/// file was opened): the records before it are served, none after.
+fn log_cut_short(position: u64, file_ends: u64) {
+    tracing::error!(
+        position,
+        file_ends,
+        "stream segment shorter than its index says"
+    );
 }
 
 /// Reads `file` at `pos` into `buf` until `buf` is full, the file ends or
