@@ -16,6 +16,12 @@
 //!   connection at most [`CONNECTION_LIFETIME`] (then closed after its
 //!   current request), request bodies capped by the router's own
 //!   `DefaultBodyLimit`.
+//! - Closing: the answer's end is sent (FIN), then what the peer still
+//!   sends is read and thrown away until its own end, at most
+//!   [`LINGER`] (RFC 9112's lingering close). A socket closed with
+//!   bytes unread (a body the handler never asked for, a pipelined
+//!   request) makes the kernel reset the connection, and a reset throws
+//!   away the answer's bytes not yet sent.
 //! - An answer the peer stops reading: a connection whose writes have
 //!   made no progress for [`WRITE_TIMEOUT`] (the socket's buffers full,
 //!   the peer not reading) is closed, and with it the rest of the answer
@@ -63,6 +69,9 @@ pub const BODY_TIMEOUT: Duration = Duration::from_secs(10);
 /// Longest a connection's writes may make no progress (the peer not
 /// reading its answer) before it is closed.
 pub const WRITE_TIMEOUT: Duration = Duration::from_secs(5);
+/// Longest a closing connection reads what its peer still sends before
+/// it is closed (see the module's documentation).
+pub const LINGER: Duration = Duration::from_secs(2);
 /// Longest a connection is kept (keep-alive included).
 pub const CONNECTION_LIFETIME: Duration = Duration::from_secs(300);
 /// Longest gap between two log lines about connections closed to make
@@ -308,7 +317,11 @@ async fn run(
         .timer(TokioTimer::new())
         .header_read_timeout(HEADER_TIMEOUT)
         .serve_connection(
-            TokioIo::new(WriteTimeout::new(stream, WRITE_TIMEOUT, connection)),
+            TokioIo::new(LingeringClose::new(WriteTimeout::new(
+                stream,
+                WRITE_TIMEOUT,
+                connection,
+            ))),
             service,
         );
     tokio::pin!(served);
@@ -427,6 +440,105 @@ impl tokio::io::AsyncWrite for WriteTimeout<'_> {
     fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
         let attempt = Pin::new(&mut self.inner).poll_shutdown(cx);
         self.bounded(cx, attempt)
+    }
+}
+
+/// A connection's socket whose shutdown, once its own end is sent, reads
+/// and throws away what the peer still sends, until the peer's end or
+/// [`LINGER`], so the socket is never closed with bytes unread (the
+/// kernel would answer them with a reset, which discards the answer's
+/// bytes still in the send buffer).
+struct LingeringClose<S> {
+    inner: S,
+    /// Set once the socket's own end is sent: when the lingering stops.
+    lingering: Option<Pin<Box<tokio::time::Sleep>>>,
+}
+
+impl<S> LingeringClose<S> {
+    fn new(inner: S) -> Self {
+        LingeringClose {
+            inner,
+            lingering: None,
+        }
+    }
+}
+
+impl<S: tokio::io::AsyncRead + Unpin> tokio::io::AsyncRead for LingeringClose<S> {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut tokio::io::ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_read(cx, buf)
+    }
+}
+
+impl<S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin> tokio::io::AsyncWrite
+    for LingeringClose<S>
+{
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.inner).poll_write(cx, buf)
+    }
+
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.inner).poll_write_vectored(cx, bufs)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.inner.is_write_vectored()
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_flush(cx)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        /// Reads a turn takes before it lets others run (a peer that
+        /// keeps sending is read in slices, at most until [`LINGER`]).
+        const READS_A_TURN: usize = 16;
+        let this = &mut *self;
+        if this.lingering.is_none() {
+            match Pin::new(&mut this.inner).poll_shutdown(cx) {
+                Poll::Ready(Ok(())) => {}
+                other => return other,
+            }
+        }
+        let lingering = this
+            .lingering
+            .get_or_insert_with(|| Box::pin(tokio::time::sleep(LINGER)));
+        let mut scratch = [0u8; 4096];
+        let mut drained = false;
+        for _ in 0..READS_A_TURN {
+            let mut buf = tokio::io::ReadBuf::new(&mut scratch);
+            match Pin::new(&mut this.inner).poll_read(cx, &mut buf) {
+                // The peer's end, or a socket that can no longer be read:
+                // nothing is left to throw away.
+                Poll::Ready(Ok(())) if buf.filled().is_empty() => return Poll::Ready(Ok(())),
+                Poll::Ready(Err(_)) => return Poll::Ready(Ok(())),
+                Poll::Ready(Ok(())) => {}
+                Poll::Pending => {
+                    drained = true;
+                    break;
+                }
+            }
+        }
+        if lingering.as_mut().poll(cx).is_ready() {
+            return Poll::Ready(Ok(()));
+        }
+        if !drained {
+            // More may be waiting: read on after letting others run (the
+            // socket wakes this task only when it has read all there was).
+            cx.waker().wake_by_ref();
+        }
+        Poll::Pending
     }
 }
 
