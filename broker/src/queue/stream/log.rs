@@ -37,7 +37,7 @@
 //!
 //! Opening reads every unsealed segment and checks every record. Damage refuses
 //! the open with an error naming the file, the position and what is
-//! wrong ([`Damage`]): a bad checksum, an offset out of sequence, a bad
+//! wrong (an `InvalidData` error, [`damage`]): a bad checksum, an offset out of sequence, a bad
 //! segment header, a torn record in any segment but the newest, missing
 //! segments or a missing directory, a missing or unreadable `synced`
 //! file, and a log that ends below its synced offset (the newest segment
