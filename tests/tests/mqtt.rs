@@ -1382,6 +1382,78 @@ async fn a_client_pinging_while_an_alarm_stops_its_reads_outlives_its_keepalive(
     handle.shutdown().await;
 }
 
+/// A client the broker cannot write to for longer than its keepalive
+/// window (a slow link, its reading paused) that keeps talking meanwhile:
+/// its PINGREQs wait in the socket while the broker's write is stalled.
+/// Once the write went through, the session's select could take the
+/// expired keepalive over the ready read and close a client that had
+/// talked (found by review). An expired keepalive now looks at the socket
+/// once before it closes. The old choice was one of the select's
+/// branches at random (failing about one round in six here), hence six
+/// rounds a runtime.
+#[both_runtimes]
+async fn a_client_that_talked_through_a_stalled_write_outlives_its_keepalive() {
+    let handle = start(Limits::default()).await;
+    let (_amqp, channel) = amqp_channel(&handle).await;
+    let port = mqtt_port(&handle);
+    for round in 0..6 {
+        let id = format!("stalled-talker-{round}");
+        let topic = format!("stalled/{round}");
+        // Keepalive 1 s: a silent client is closed after 1.5 s.
+        let mut raw = Raw::login_as(port, 1, ProtocolVersion::V3_1_1, &id).await;
+        raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
+            packet_id: std::num::NonZeroU16::new(1).unwrap(),
+            properties: Default::default(),
+            subscriptions: vec![leveret_mqtt::Subscription {
+                filter: leveret_mqtt::TopicFilter::new(
+                    leveret_mqtt::MqttString::from_utf8(Bytes::from(topic.clone())).unwrap(),
+                )
+                .unwrap(),
+                options: Default::default(),
+            }],
+        }))
+        .await;
+        assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+        // More than the sockets' buffers hold (about 13 MB): the broker's
+        // writes to the client, which does not read, stall.
+        let flood = tokio::spawn({
+            let channel = channel.clone();
+            let key = topic.replace('/', ".");
+            async move {
+                let payload = vec![7u8; 16 * 1024];
+                for _ in 0..800 {
+                    tmo!(channel.basic_publish(
+                        "amq.topic",
+                        &key,
+                        Default::default(),
+                        &payload,
+                        Default::default()
+                    ))
+                    .unwrap();
+                }
+            }
+        });
+        // The client talks every 300 ms for 3 s (two windows and more),
+        // then reads.
+        for _ in 0..10 {
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            raw.send(Packet::PingReq).await;
+        }
+        let mut answered = 0;
+        while answered < 10 {
+            match raw.next().await {
+                Some(Packet::PingResp) => answered += 1,
+                Some(_) => {}
+                None => panic!("round {round}: closed after {answered} PINGRESPs"),
+            }
+        }
+        flood.await.unwrap();
+        raw.send(Packet::Disconnect(Default::default())).await;
+        while raw.next().await.is_some() {}
+    }
+    handle.shutdown().await;
+}
+
 #[both_runtimes]
 async fn a_packet_over_the_size_limit_closes_the_connection() {
     let limits = Limits {

@@ -322,6 +322,19 @@ async fn write_out(socket: &mut (impl AsyncWrite + Unpin), bytes: &[u8]) -> std:
 
 /// Reads the first packet, which must be a CONNECT; answers one naming a
 /// protocol version the codec does not speak.
+/// A read of what the socket already holds, without waiting: `None`
+/// when it holds nothing.
+async fn read_now(
+    socket: &mut (impl AsyncRead + Unpin),
+    buf: &mut BytesMut,
+) -> Option<std::io::Result<usize>> {
+    tokio::select! {
+        biased;
+        read = socket.read_buf(buf) => Some(read),
+        () = std::future::ready(()) => None,
+    }
+}
+
 async fn read_connect(
     socket: &mut (impl AsyncRead + AsyncWrite + Unpin),
     buf: &mut BytesMut,
@@ -912,6 +925,9 @@ impl Session {
         let taken = claim.taken_over();
         let shutting_down = shutdown.wait_for(|down| *down);
         tokio::pin!(keepalive_check, taken, shutting_down);
+        // Set when the keepalive timer finds the client silent past its
+        // window.
+        let mut silent = false;
         let stop = loop {
             // Whole packets already read, and what they ask of the core
             // handed to the link as far as it has room, unless a takeover
@@ -993,11 +1009,8 @@ impl Session {
                     None => break closed("the broker ended the session", Some(ReasonCode::ServerShuttingDown)),
                 },
                 () = &mut keepalive_check, if !keepalive.is_zero() => {
-                    let silence = last_read + keepalive;
-                    if Instant::now() >= silence {
-                        break closed("keepalive timeout", Some(ReasonCode::KeepAliveTimeout));
-                    }
-                    keepalive_check.as_mut().reset(silence);
+                    silent = Instant::now() >= last_read + keepalive;
+                    keepalive_check.as_mut().reset(last_read + keepalive);
                 }
                 () = &mut release, if self.holds_spare(&buf) => {
                     if last_active.elapsed() >= IDLE_RELEASE {
@@ -1011,6 +1024,22 @@ impl Session {
                 () = &mut taken => break taken_over(),
                 _ = &mut shutting_down => {
                     break closed("broker shutting down", Some(ReasonCode::ServerShuttingDown));
+                }
+            }
+            if silent {
+                // The socket is looked at once first: a write that stalled
+                // past the window (a slow link) left the client's packets
+                // unread, and the select may have chosen the keepalive over
+                // a ready read.
+                silent = false;
+                match read_now(socket, &mut buf).await {
+                    Some(Ok(0) | Err(_)) => break closed("socket closed", None),
+                    Some(Ok(_)) => {
+                        last_read = Instant::now();
+                        last_active = last_read;
+                        keepalive_check.as_mut().reset(last_read + keepalive);
+                    }
+                    None => break closed("keepalive timeout", Some(ReasonCode::KeepAliveTimeout)),
                 }
             }
         };
