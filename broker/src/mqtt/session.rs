@@ -320,21 +320,25 @@ async fn write_out(socket: &mut (impl AsyncWrite + Unpin), bytes: &[u8]) -> std:
     socket.flush().await
 }
 
-/// Reads the first packet, which must be a CONNECT; answers one naming a
-/// protocol version the codec does not speak.
 /// A read of what the socket already holds, without waiting: `None`
-/// when it holds nothing.
+/// when it holds nothing. Outside tokio's budget, so a task whose budget
+/// is spent is not told "nothing" while bytes wait.
 async fn read_now(
     socket: &mut (impl AsyncRead + Unpin),
     buf: &mut BytesMut,
 ) -> Option<std::io::Result<usize>> {
-    tokio::select! {
-        biased;
-        read = socket.read_buf(buf) => Some(read),
-        () = std::future::ready(()) => None,
-    }
+    tokio::task::unconstrained(async {
+        tokio::select! {
+            biased;
+            read = socket.read_buf(buf) => Some(read),
+            () = std::future::ready(()) => None,
+        }
+    })
+    .await
 }
 
+/// Reads the first packet, which must be a CONNECT; answers one naming a
+/// protocol version the codec does not speak.
 async fn read_connect(
     socket: &mut (impl AsyncRead + AsyncWrite + Unpin),
     buf: &mut BytesMut,
@@ -1009,7 +1013,9 @@ impl Session {
                     None => break closed("the broker ended the session", Some(ReasonCode::ServerShuttingDown)),
                 },
                 () = &mut keepalive_check, if !keepalive.is_zero() => {
-                    silent = Instant::now() >= last_read + keepalive;
+                    // A session holding the client's reads does not
+                    // count its silence (and must not read it).
+                    silent = reading && Instant::now() >= last_read + keepalive;
                     keepalive_check.as_mut().reset(last_read + keepalive);
                 }
                 () = &mut release, if self.holds_spare(&buf) => {
@@ -1035,6 +1041,9 @@ impl Session {
                 match read_now(socket, &mut buf).await {
                     Some(Ok(0) | Err(_)) => break closed("socket closed", None),
                     Some(Ok(_)) => {
+                        if let Some(busy_poll) = &core.busy_poll {
+                            busy_poll.note_read();
+                        }
                         last_read = Instant::now();
                         last_active = last_read;
                         keepalive_check.as_mut().reset(last_read + keepalive);
