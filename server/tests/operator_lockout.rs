@@ -250,6 +250,32 @@ async fn silent_and_slow_clients_are_closed_quickly() {
 /// larger than what the sockets' buffers take (several MB on loopback).
 const QUEUES: usize = 6000;
 
+/// Declares `count` transient queues `PREFIX.NNNNN` on `/` through one
+/// definitions import.
+async fn import_queues(broker: &OpsBroker, prefix: &str, count: usize) {
+    let queues: Vec<serde_json::Value> = (0..count)
+        .map(|n| serde_json::json!({"name": format!("{prefix}.{n:05}"), "vhost": "/", "durable": false, "auto_delete": false, "arguments": {}}))
+        .collect();
+    let auth = basic("guest", "guest");
+    let imported = common::ops::request(
+        broker.http,
+        "POST",
+        "/api/definitions",
+        &[
+            ("Authorization", auth.as_str()),
+            ("Content-Type", "application/json"),
+        ],
+        serde_json::json!({"queues": queues}).to_string().as_bytes(),
+    )
+    .await;
+    assert!(
+        imported.status / 100 == 2,
+        "{}: {}",
+        imported.status,
+        imported.text()
+    );
+}
+
 /// Bytes the broker sends for `path` to a client that reads them all.
 async fn answer_length(addr: SocketAddr, path: &str, auth: &str) -> usize {
     let mut stream = TcpStream::connect(addr).await.expect("connect");
@@ -322,27 +348,7 @@ async fn a_client_that_stops_reading_its_answer_is_closed() {
             &["--worker-threads", workers],
         );
         let auth = basic("guest", "guest");
-        let queues: Vec<serde_json::Value> = (0..QUEUES)
-            .map(|n| serde_json::json!({"name": format!("stalled.{n:05}"), "vhost": "/", "durable": false, "auto_delete": false, "arguments": {}}))
-            .collect();
-        let definitions = serde_json::json!({"queues": queues}).to_string();
-        let imported = common::ops::request(
-            broker.http,
-            "POST",
-            "/api/definitions",
-            &[
-                ("Authorization", auth.as_str()),
-                ("Content-Type", "application/json"),
-            ],
-            definitions.as_bytes(),
-        )
-        .await;
-        assert!(
-            imported.status / 100 == 2,
-            "{}: {}",
-            imported.status,
-            imported.text()
-        );
+        import_queues(&broker, "stalled", QUEUES).await;
         for (addr, path, listener) in [
             (broker.http, "/api/queues", "management"),
             (broker.metrics, "/metrics/per-object", "metrics"),
@@ -432,21 +438,7 @@ async fn a_client_that_stops_reading_its_answer_is_closed() {
 async fn an_answer_reaches_a_client_whose_body_nobody_reads() {
     let broker = OpsBroker::start("unread-body", &[]);
     let auth = basic("guest", "guest");
-    let queues: Vec<serde_json::Value> = (0..2000)
-        .map(|n| serde_json::json!({"name": format!("unread.{n:05}"), "vhost": "/", "durable": false, "auto_delete": false, "arguments": {}}))
-        .collect();
-    let imported = common::ops::request(
-        broker.http,
-        "POST",
-        "/api/definitions",
-        &[
-            ("Authorization", auth.as_str()),
-            ("Content-Type", "application/json"),
-        ],
-        serde_json::json!({"queues": queues}).to_string().as_bytes(),
-    )
-    .await;
-    assert!(imported.status / 100 == 2, "{}", imported.text());
+    import_queues(&broker, "unread", 2000).await;
     let whole = answer_length(broker.http, "/api/queues", &auth).await;
     for attempt in 0..3 {
         let mut stream = TcpStream::connect(broker.http).await.expect("connect");
