@@ -1399,8 +1399,9 @@ async fn a_client_that_talked_through_a_stalled_write_outlives_its_keepalive() {
     for round in 0..6 {
         let id = format!("stalled-talker-{round}");
         let topic = format!("stalled/{round}");
-        // Keepalive 1 s: a silent client is closed after 1.5 s.
-        let mut raw = Raw::login_as(port, 1, ProtocolVersion::V3_1_1, &id).await;
+        // Keepalive 2 s: a silent client is closed after 3 s (the pings
+        // below are 300 ms apart, so a loaded machine has 2.7 s of slack).
+        let mut raw = Raw::login_as(port, 2, ProtocolVersion::V3_1_1, &id).await;
         raw.send(Packet::Subscribe(leveret_mqtt::Subscribe {
             packet_id: std::num::NonZeroU16::new(1).unwrap(),
             properties: Default::default(),
@@ -1433,14 +1434,14 @@ async fn a_client_that_talked_through_a_stalled_write_outlives_its_keepalive() {
                 }
             }
         });
-        // The client talks every 300 ms for 3 s (two windows and more),
-        // then reads.
-        for _ in 0..10 {
+        // The client talks every 300 ms for 4.5 s (past one window), then
+        // reads.
+        for _ in 0..15 {
             tokio::time::sleep(Duration::from_millis(300)).await;
             raw.send(Packet::PingReq).await;
         }
         let mut answered = 0;
-        while answered < 10 {
+        while answered < 15 {
             match raw.next().await {
                 Some(Packet::PingResp) => answered += 1,
                 Some(_) => {}
