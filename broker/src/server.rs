@@ -71,11 +71,13 @@ pub async fn accept_loop(
         match &tls {
             None => {
                 let (read, write) = socket.into_split();
-                tokio::spawn(async move {
-                    let ends = (peer, local);
-                    crate::connection::serve(core, read, write, ends, slot, Identity::None).await;
-                    drop(alive);
-                });
+                // Spawned as it is: a block around it would keep room for
+                // its arguments, and a second copy of it, through the
+                // connection's life.
+                let ends = (peer, local);
+                let connection =
+                    crate::connection::serve(core, read, write, ends, slot, Identity::None, alive);
+                tokio::spawn(connection);
             }
             #[cfg(not(feature = "tls"))]
             Some(tls) => match **tls {},
@@ -110,8 +112,7 @@ pub async fn accept_loop(
                         });
                     let (read, write) = tokio::io::split(stream);
                     let ends = (peer, local);
-                    crate::connection::serve(core, read, write, ends, slot, identity).await;
-                    drop(alive);
+                    crate::connection::serve(core, read, write, ends, slot, identity, alive).await;
                 });
             }
         }

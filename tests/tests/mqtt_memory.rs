@@ -30,16 +30,19 @@ static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 const SESSIONS: usize = 200;
 /// The live heap an idle session with one subscription may hold, the
 /// client's end of its socket in this process included. A debug build
-/// holds about 19 KiB (its futures are larger than a release build's)
-/// since the link's queue of items to the AMQP connection grows from
-/// nothing (`leveret_protocol::handoff`, not a tokio channel's block of
-/// 32 items) and its frame queues hold a method's frame nowhere; 25 KiB
-/// before that, 39 KiB before the rare phases of the session and of its
-/// AMQP connection were boxed futures, the outbox's items small, the
+/// holds about 14.5 KiB (a release build about as much) since the
+/// session's and its AMQP connection's futures hold no room for their
+/// set-up and close phases or their arguments and an idle session's read
+/// buffer is parked at 64 bytes; 19 KiB before that, since the link's
+/// queue of items to the AMQP connection grows from nothing
+/// (`leveret_protocol::handoff`, not a tokio channel's block of 32 items)
+/// and its frame queues hold a method's frame nowhere; 25 KiB before
+/// that, 39 KiB before the rare phases of the session and of its AMQP
+/// connection were boxed futures, the outbox's items small, the
 /// connection's channels and the session's will boxed and the CONNECT no
 /// longer kept, and 103 KiB before the sessions gave their read buffers
-/// back when idle: this bound refuses all three.
-const PER_SESSION_CAP: usize = 28 * 1024;
+/// back when idle: this bound refuses all four.
+const PER_SESSION_CAP: usize = 18 * 1024;
 
 /// The system allocator, counting the bytes it holds live for this
 /// process, in all and by the size of the allocations.

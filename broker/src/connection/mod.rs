@@ -70,18 +70,24 @@ pub enum Identity {
     Tls(Option<String>),
 }
 
-/// Serves one connection over a byte stream until it closes. `slot` is
-/// its place in the connection counts, given back when it ends; `local`
-/// is the listener's address it came in on (none in-process).
-pub async fn serve<R, W>(
+/// The future that serves one connection over a byte stream until it
+/// closes, to be spawned as it is (see [`Accepted`]); its connection id
+/// and traffic counters are made now. `slot` is its place in the
+/// connection counts, given back when it ends; `local` is the listener's
+/// address it came in on (none in-process); `held` is dropped once the
+/// connection has closed and let go of everything else (a listener's
+/// count of open connections).
+pub fn serve<R, W>(
     core: Arc<Core>,
     read: R,
     write: W,
     (peer, local): (String, Option<SocketAddr>),
     slot: Slot,
     identity: Identity,
-) where
-    R: Incoming,
+    held: impl Send + 'static,
+) -> impl std::future::Future<Output = ()> + Send + 'static
+where
+    R: Incoming + Sync,
     W: AsyncWrite + Unpin + Send + 'static,
 {
     let traffic = Arc::new(ConnectionTraffic::new(Arc::clone(&core.stats)));
@@ -90,7 +96,16 @@ pub async fn serve<R, W>(
     ends.traffic = Some(Arc::clone(&traffic));
     let sink = SocketSink(writer::Counted::new(write, traffic));
     let connection_id = core.next_connection_id();
-    serve_frames(core, connection_id, reader, sink, ends, slot, identity).await;
+    serve_frames(Box::new(Accepted {
+        core,
+        connection_id,
+        reader,
+        sink,
+        ends,
+        slot,
+        identity,
+        held,
+    }))
 }
 
 /// Starts serving an in-process client that exchanges frame values with
@@ -114,12 +129,19 @@ pub fn serve_direct(
     (protocol, traffic): (&'static str, Option<Arc<ConnectionTraffic>>),
     done: impl Send + 'static,
 ) -> DirectLink {
-    direct::link(move |frames, start| async move {
+    direct::link(move |frames, start| {
         let mut ends = Ends::new(peer, None, protocol);
         ends.traffic = traffic;
-        let sink = DirectSink(start);
-        serve_frames(core, connection_id, frames, sink, ends, slot, identity).await;
-        drop(done);
+        serve_frames(Box::new(Accepted {
+            core,
+            connection_id,
+            reader: frames,
+            sink: DirectSink(start),
+            ends,
+            slot,
+            identity,
+            held: done,
+        }))
     })
 }
 
@@ -187,16 +209,42 @@ impl Sink for DirectSink {
     }
 }
 
-/// Serves one connection, whatever carries its frames, until it closes.
-async fn serve_frames<S: FrameSource, K: Sink>(
+/// A connection as it starts: what carries its frames each way, who it
+/// is, where it stands in the connection counts, and what it holds until
+/// it has closed (`held`: its listener's count of open connections, an
+/// in-process client's signal that it has ended). Boxed into its future,
+/// which would otherwise keep room for its arguments for its whole life
+/// (issue 32's idle memory). Spawn the future as it is where possible: a
+/// block around it keeps room for the block's own captures besides.
+struct Accepted<S, K, H> {
     core: Arc<Core>,
     connection_id: u64,
-    mut reader: S,
+    reader: S,
     sink: K,
     ends: Ends,
     slot: Slot,
     identity: Identity,
-) {
+    held: H,
+}
+
+/// Serves one connection, whatever carries its frames, until it closes.
+async fn serve_frames<S: FrameSource, K: Sink, H: Send>(accepted: Box<Accepted<S, K, H>>) {
+    // Unboxed in a block of its own, so that the box is freed now, not
+    // when the connection ends.
+    // `held` first: bound first, it is dropped last on an early return.
+    let Accepted {
+        held,
+        core,
+        connection_id,
+        mut reader,
+        sink,
+        ends,
+        slot,
+        identity,
+    } = {
+        let boxed = accepted;
+        *boxed
+    };
     let Ends {
         peer,
         local,
@@ -277,6 +325,9 @@ async fn serve_frames<S: FrameSource, K: Sink>(
         writer.abort();
         let _ = writer.await;
     }
+    // What the connection held goes before `held` says it has ended.
+    drop((conn, heartbeat_tx, reader, _registration));
+    drop(held);
 }
 
 /// Where a connection comes from and goes to, for its log lines.
@@ -480,13 +531,16 @@ impl Connection {
                 // an in-process loop, the claim's budget (`direct_loop`).
                 direct_loop::consume_budget().await;
                 // The messaging frames are handled at once, without a future
-                // of their own (see `Channel::handle_at_once`).
+                // of their own (see `Channel::handle_at_once`); the others'
+                // future is boxed, so that the connection's future holds no
+                // room for it while it waits for the client (issue 32's idle
+                // memory: about half of this loop's size).
                 let at_once = match input {
                     Input::Frame(frame) => {
                         let channel_id = frame.channel();
                         match self.handle_at_once(frame) {
                             AtOnce::Handled(left) => Ok(left.map(|left| (channel_id, left))),
-                            AtOnce::Declined(frame) => Err(self.handle(frame).await),
+                            AtOnce::Declined(frame) => Err(Box::pin(self.handle(frame)).await),
                         }
                     }
                     Input::Publish(publish) => self.publish_at_once(publish).map_err(Err),

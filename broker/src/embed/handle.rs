@@ -109,12 +109,10 @@ impl BrokerHandle {
         let core = Arc::clone(&self.core);
         let slot = core.connections.admit_local();
         let alive = self.alive.clone();
-        tokio::spawn(async move {
-            let identity = crate::connection::Identity::None;
-            let ends = ("in-process".to_owned(), None);
-            crate::connection::serve(core, read, write, ends, slot, identity).await;
-            drop(alive);
-        });
+        let identity = crate::connection::Identity::None;
+        let ends = ("in-process".to_owned(), None);
+        let connection = crate::connection::serve(core, read, write, ends, slot, identity, alive);
+        tokio::spawn(connection);
         client
     }
 

@@ -248,56 +248,50 @@ pub(crate) async fn accept_loop(
     while let Some((socket, peer, slot)) =
         crate::server::next_admitted(&core, &listener, &mut shutdown).await
     {
-        let core = Arc::clone(&core);
-        let shared = Arc::clone(&shared);
-        let alive = alive.clone();
-        let transport = transport.clone();
-        tokio::spawn(async move {
-            serve(core, socket, peer, slot, transport, shared).await;
-            drop(alive);
+        let port = socket.local_addr().map(|a| a.port()).unwrap_or_default();
+        let origin = session::Origin {
+            peer,
+            port,
+            certificate: None,
+        };
+        let arrival = Box::new(session::Arrival {
+            socket,
+            origin,
+            slot,
+            alive: alive.clone(),
         });
+        let (core, shared) = (Arc::clone(&core), Arc::clone(&shared));
+        // Each transport's future is spawned as it is: a layer around
+        // them would keep room for its own arguments through the session.
+        match &transport {
+            Transport::Tcp => tokio::spawn(session::serve(core, shared, arrival)),
+            #[cfg(feature = "tls")]
+            Transport::Tls(tls) => tokio::spawn(serve_tls(core, shared, Arc::clone(tls), arrival)),
+            Transport::WebSocket => tokio::spawn(serve_websocket(core, shared, arrival)),
+        };
     }
 }
 
-/// The transport's handshake (TLS, WebSocket: each within the handshake
-/// timeout, which then starts again for the CONNECT), then the session.
-/// A TCP session's future is the task's own; a TLS or WebSocket one is a
-/// boxed future of its own size, so that a TCP session's task holds no
-/// room for a TLS stream or a handshake (issue 32's idle memory).
-async fn serve(
-    core: Arc<Core>,
-    socket: TcpStream,
-    peer: String,
-    slot: crate::admission::Slot,
-    transport: Transport,
-    shared: Arc<Shared>,
-) {
-    let port = socket.local_addr().map(|a| a.port()).unwrap_or_default();
-    let origin = session::Origin {
-        peer,
-        port,
-        certificate: None,
-    };
-    match transport {
-        Transport::Tcp => session::serve(core, socket, origin, slot, shared).await,
-        #[cfg(feature = "tls")]
-        Transport::Tls(tls) => Box::pin(serve_tls(core, socket, origin, slot, tls, shared)).await,
-        Transport::WebSocket => {
-            Box::pin(serve_websocket(core, socket, origin, slot, shared)).await;
-        }
-    }
-}
-
-/// The TLS handshake, then the session over the TLS stream.
+/// The TLS handshake (a boxed future, freed once done), then the session
+/// over the TLS stream, in the task's own future: each transport's task is
+/// spawned as it is, so a TCP session's holds no room for a TLS stream.
 #[cfg(feature = "tls")]
 async fn serve_tls(
     core: Arc<Core>,
-    socket: TcpStream,
-    mut origin: session::Origin,
-    slot: crate::admission::Slot,
-    tls: Arc<crate::tls::TlsContext>,
     shared: Arc<Shared>,
+    tls: Arc<crate::tls::TlsContext>,
+    arrival: Box<session::Arrival<TcpStream>>,
 ) {
+    // `alive` first: bound first, it is dropped last on an early return.
+    let session::Arrival {
+        alive,
+        socket,
+        mut origin,
+        slot,
+    } = {
+        let boxed = arrival;
+        *boxed
+    };
     let handshake = tls.acceptor().accept(socket);
     let Some(stream) = Box::pin(handshaken(&core, &origin.peer, "TLS", handshake)).await else {
         return;
@@ -311,24 +305,45 @@ async fn serve_tls(
             common_name: crate::tls::common_name(certificate),
             subject: crate::tls::subject(certificate),
         });
-    Box::pin(session::serve(core, stream, origin, slot, shared)).await;
+    let arrival = Box::new(session::Arrival {
+        socket: stream,
+        origin,
+        slot,
+        alive,
+    });
+    session::serve(core, shared, arrival).await;
 }
 
-/// The WebSocket handshake, then the session over the WebSocket stream.
+/// The WebSocket handshake, then the session over the WebSocket stream
+/// (as over TLS).
 async fn serve_websocket(
     core: Arc<Core>,
-    socket: TcpStream,
-    origin: session::Origin,
-    slot: crate::admission::Slot,
     shared: Arc<Shared>,
+    arrival: Box<session::Arrival<TcpStream>>,
 ) {
+    // `alive` first: bound first, it is dropped last on an early return.
+    let session::Arrival {
+        alive,
+        socket,
+        origin,
+        slot,
+    } = {
+        let boxed = arrival;
+        *boxed
+    };
     let max_message = session::max_packet(&core.limits) as usize;
     let handshake = websocket::accept(socket, max_message);
     let Some(stream) = Box::pin(handshaken(&core, &origin.peer, "WebSocket", handshake)).await
     else {
         return;
     };
-    Box::pin(session::serve(core, stream, origin, slot, shared)).await;
+    let arrival = Box::new(session::Arrival {
+        socket: stream,
+        origin,
+        slot,
+        alive,
+    });
+    session::serve(core, shared, arrival).await;
 }
 
 /// A transport's `handshake` (TLS, WebSocket: `what`) within the

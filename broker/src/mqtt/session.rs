@@ -79,10 +79,15 @@ const MAX_SUBSCRIPTIONS: usize = 4096;
 /// Bytes asked of the socket per read at most (and written to it at once
 /// at most, as far as replies decide).
 const READ_CHUNK: usize = 64 * 1024;
+/// The room below which a read buffer grows by [`READ_CHUNK`] before the
+/// next read (a busy session keeps its chunk between reads, as the AMQP
+/// reader does); the CONNECT's first read starts with this much.
+const READ_ROOM: usize = 1024;
 /// The read buffer a session keeps once it has been idle for
-/// [`IDLE_RELEASE`] with nothing left unread (a busy one keeps its
-/// [`READ_CHUNK`] between reads, as the AMQP reader does).
-const READ_IDLE: usize = 1024;
+/// [`IDLE_RELEASE`] with nothing left unread, read into as it is until the
+/// client next sends something (a PINGREQ is 2 bytes); the read after
+/// that grows it again (issue 32's idle memory: it was [`READ_ROOM`]).
+const READ_PARKED: usize = 64;
 /// How long a session keeps larger buffers than an idle one needs (the
 /// read buffer, the write buffer, its queues' room) after it last read
 /// from its client or heard from the core.
@@ -116,49 +121,123 @@ pub(super) struct ClientCertificate {
     pub subject: Option<String>,
 }
 
-/// Serves one MQTT connection over `socket` (TCP, TLS or WebSocket)
+/// What a connection arrives with, boxed into its session's future (a
+/// future keeps room for its arguments for its whole life): its stream,
+/// where it comes from, its admission slot, and what it holds until it
+/// has ended (the listeners' count of connections still open).
+pub(super) struct Arrival<S> {
+    pub socket: S,
+    pub origin: Origin,
+    pub slot: Slot,
+    pub alive: tokio::sync::mpsc::Sender<()>,
+}
+
+/// Serves one MQTT connection over its stream (TCP, TLS or WebSocket)
 /// until it closes.
 ///
-/// The phases before and after the session's loop (the CONNECT, the
-/// login, the link's close, the will, the shared groups' update) run as
-/// boxed futures: the session's future holds, through the hours an idle
-/// session may wait, only the loop's state, not room for the largest of
-/// those (issue 32's idle memory; they run once a connection).
+/// The phases before and after the session's loop ([`open`]: the
+/// CONNECT, the login, the will, the shared groups; [`close`]: the link's
+/// close, the will, the shared groups' update) are boxed futures that
+/// live only while they run: the session's future holds, through the
+/// hours an idle session may wait, only the session and its loop's state
+/// (issue 32's idle memory; they run once a connection).
 pub(super) async fn serve<S: ClientStream>(
     core: Arc<Core>,
-    socket: S,
-    origin: Origin,
-    slot: Slot,
     shared: Arc<Shared>,
+    arrival: Box<Arrival<S>>,
 ) {
+    // Its fields are used (or moved into the loop) in place, not moved
+    // into locals of their own: the future would keep room for both.
+    let Some(mut opened) = Box::pin(open(&core, &shared, arrival)).await else {
+        return;
+    };
+    let end = (opened.session)
+        .run(
+            &core,
+            &mut opened.socket,
+            opened.buf,
+            opened.link,
+            &opened.claim,
+            opened.keepalive,
+        )
+        .await;
+    let ended = (
+        opened.session,
+        opened.socket,
+        opened.lifetime,
+        opened.claim,
+        end,
+    );
+    Box::pin(close(&core, &shared, &opened.peer, ended)).await;
+    drop(opened.alive);
+}
+
+/// A session logged in and begun, ready for its loop.
+struct Opened<S> {
+    /// The client's address, for the log.
+    peer: String,
+    session: Session,
+    socket: Counted<S>,
+    /// The read buffer, with what the client sent after its CONNECT.
+    buf: BytesMut,
+    link: Link,
+    claim: Claim,
+    /// 1.5 × the client's keepalive (zero: none).
+    keepalive: Duration,
+    /// The lifetime the CONNECT gave the session.
+    lifetime: Lifetime,
+    /// Last, so that it is dropped last (fields drop in order).
+    alive: tokio::sync::mpsc::Sender<()>,
+}
+
+/// Reads the CONNECT, logs the client in and begins its session (the
+/// CONNACK queued); `None` when the connection ends before that (refused,
+/// silent, closed, the broker shutting down).
+async fn open<S: ClientStream>(
+    core: &Arc<Core>,
+    shared: &Arc<Shared>,
+    arrival: Box<Arrival<S>>,
+) -> Option<Opened<S>> {
+    // `alive` first: bound first, it is dropped last on an early return.
+    // Unboxed in a block of its own, so that the box is freed now.
+    let Arrival {
+        alive,
+        socket,
+        origin,
+        slot,
+    } = {
+        let boxed = arrival;
+        *boxed
+    };
+    let origin = &origin;
     let traffic = Arc::new(ConnectionTraffic::new(Arc::clone(&core.stats)));
     let mut socket = Counted::new(socket, Arc::clone(&traffic));
     let peer = &origin.peer;
     let deadline = Instant::now() + core.limits.handshake_timeout;
-    let mut buf = BytesMut::with_capacity(READ_IDLE);
+    let mut buf = BytesMut::with_capacity(READ_ROOM);
     let mut shutdown = core.shutdown_signal();
     let first = tokio::select! {
         first = Box::pin(tokio::time::timeout_at(deadline, read_connect(&mut socket, &mut buf))) => first,
-        _ = shutdown.wait_for(|down| *down) => return,
+        _ = shutdown.wait_for(|down| *down) => return None,
     };
     let connect = match first {
         Ok(Ok(connect)) => connect,
         Ok(Err(reason)) => {
             tracing::info!(%peer, reason, "MQTT connection closed before CONNECT");
-            return;
+            return None;
         }
         Err(_) => {
             tracing::warn!(%peer, "MQTT client sent no CONNECT within the handshake timeout");
-            return;
+            return None;
         }
     };
     let version = connect.version;
     let admitted = Box::pin(admit(
-        &core,
-        (&*connect, &origin, traffic),
+        core,
+        (&*connect, origin, traffic),
         slot,
         deadline,
-        &shared,
+        shared,
     ));
     let accepted = match admitted.await {
         Ok(accepted) => accepted,
@@ -171,9 +250,9 @@ pub(super) async fn serve<S: ClientStream>(
                 properties: Default::default(),
             });
             if connack.encode(version, &mut out).is_ok() {
-                let _ = Box::pin(write_out(&mut socket, &out)).await;
+                let _ = write_out(&mut socket, &out).await;
             }
-            return;
+            return None;
         }
     };
     socket.logged_in();
@@ -195,8 +274,8 @@ pub(super) async fn serve<S: ClientStream>(
         vhost,
         user,
         permissions: Arc::clone(&core.permissions),
-        core: Arc::clone(&core),
-        shared: Arc::clone(&shared),
+        core: Arc::clone(core),
+        shared: Arc::clone(shared),
         lifetime,
         expiry_asked: connect.properties.session_expiry_interval.unwrap_or(0) > 0,
         window,
@@ -224,15 +303,15 @@ pub(super) async fn serve<S: ClientStream>(
     // scheduled, for `begin` to drop (resumed) or publish (clean start).
     if let Some((will, delay)) = claim.inherited_will() {
         let client_id = &session.client_id;
-        if let Some(will) = wills::schedule(&shared, &core, client_id, *will, delay) {
-            Box::pin(wills::publish(&shared, &core, will)).await;
+        if let Some(will) = wills::schedule(shared, core, client_id, *will, delay) {
+            wills::publish(shared, core, will).await;
         }
     }
     // A takeover may have abandoned this session while it was claiming
     // its identifier: the session's state is then the new owner's, not
     // this one's to begin or rejoin, nor a CONNACK its to send (its loop
     // sees it and only closes the socket).
-    if let Some(resumed) = claim.running(|| session.begin(&core, connect.clean_start)) {
+    if let Some(resumed) = claim.running(|| session.begin(core, connect.clean_start)) {
         let rejoined = Box::pin(session.rejoin_shared(connect.clean_start, &claim)).await;
         // The interval the session was given, if not the one asked for
         // (MQTT 5.0 3.2.2.3.2: the CONNACK says it).
@@ -244,15 +323,35 @@ pub(super) async fn serve<S: ClientStream>(
     }
     // A session resumed with another expiry interval: its shared
     // subscriptions move to it in bounded batches.
-    shared.shares.settle_yielding(&core).await;
+    shared.shares.settle_yielding(core).await;
     tracing::debug!(%peer, client_id = %session.client_id, ?version, "MQTT session open");
     let keepalive = Duration::from_millis(u64::from(connect.keep_alive) * 1500);
     // Its strings are slices of the first read buffer: kept, they would
     // keep that buffer alive for the whole session.
     drop(connect);
-    let end = session
-        .run(&core, &mut socket, buf, link, &claim, keepalive)
-        .await;
+    Some(Opened {
+        peer: peer.clone(),
+        session,
+        socket,
+        buf,
+        link,
+        claim,
+        keepalive,
+        lifetime,
+        alive,
+    })
+}
+
+/// After the loop: closes the link, then keeps or forgets the session's
+/// state, publishes or schedules its will and moves its shared
+/// subscriptions, unless a takeover abandoned it; the client's socket
+/// closes last. `lifetime` is the one the CONNECT gave the session.
+async fn close<S>(
+    core: &Arc<Core>,
+    shared: &Arc<Shared>,
+    peer: &str,
+    (session, socket, lifetime, claim, end): (Session, Counted<S>, Lifetime, Claim, Ended),
+) {
     let Ended {
         link,
         reason,
@@ -265,14 +364,14 @@ pub(super) async fn serve<S: ClientStream>(
     } else {
         tracing::info!(%peer, client_id = %session.client_id, reason, "MQTT session closed");
     }
-    Box::pin(link.close(disconnected, &core.registry, WRITE_STALL)).await;
+    link.close(disconnected, &core.registry, WRITE_STALL).await;
     // Skipped if a session taking over abandoned this one: it has resumed
     // the session already. Otherwise a takeover waits for it (`owned`).
     let kept = owned.then(|| {
         if session.lifetime != lifetime && session.lifetime != Lifetime::Connection {
             // A DISCONNECT changed the expiry: the queues follow, now
             // that the link has declared every one of them.
-            session.follow_expiry(&core);
+            session.follow_expiry(core);
         }
         let groups = if session.lifetime != Lifetime::Connection {
             let expiry = session.lifetime.expiry_seconds();
@@ -290,19 +389,21 @@ pub(super) async fn serve<S: ClientStream>(
         };
         let delay = session.will_delay_left();
         let will_now =
-            will.and_then(|will| wills::schedule(&shared, &core, &session.client_id, *will, delay));
+            will.and_then(|will| wills::schedule(shared, core, &session.client_id, *will, delay));
         (groups, will_now)
     });
     if let Some((groups, will_now)) = kept {
         if let Some(will) = will_now {
-            Box::pin(wills::publish(&shared, &core, will)).await;
+            wills::publish(shared, core, will).await;
         }
         // A DISCONNECT changed the expiry interval: the shared
         // subscriptions move to it in bounded batches.
-        Box::pin(shared.shares.settle_yielding(&core)).await;
-        Box::pin(shared.shares.apply_yielding(&core, groups)).await;
+        shared.shares.settle_yielding(core).await;
+        shared.shares.apply_yielding(core, groups).await;
     }
     drop(claim);
+    drop(session);
+    drop(socket);
 }
 
 /// The largest packet a session reads once logged in: `max-message-size`,
@@ -363,7 +464,7 @@ async fn read_connect(
                 return Err("malformed CONNECT");
             }
         }
-        if buf.capacity() - buf.len() < READ_IDLE {
+        if buf.capacity() - buf.len() < READ_ROOM {
             buf.reserve(READ_CHUNK.min(CONNECT_MAX_PACKET as usize));
         }
         match socket.read_buf(buf).await {
@@ -915,6 +1016,10 @@ impl Session {
         let mut shutdown = core.shutdown_signal();
         let mut last_read = Instant::now();
         let mut last_active = last_read;
+        // The read buffer is the parked one (`READ_PARKED`): kept so while
+        // the client's reads leave it empty (a PINGREQ), grown once one
+        // fills it or leaves part of a packet.
+        let mut parked = false;
         // Checks for spare buffers to give back: armed at most once a
         // second while the session is busy, as the AMQP reader's is (a
         // timer set anew at every turn of the loop cost throughput).
@@ -965,7 +1070,14 @@ impl Session {
                 tokio::task::yield_now().await;
             }
             let reading = self.reading();
-            if reading && buf.capacity() - buf.len() < READ_IDLE {
+            // A parked buffer waits for the client's next bytes with its
+            // room made whole again (the same 64 bytes when nothing else
+            // holds them); anything else with too little room grows. Never
+            // a read into no room, which would look like the client's end.
+            parked &= buf.is_empty();
+            if parked {
+                buf.reserve(READ_PARKED);
+            } else if reading && buf.capacity() - buf.len() < READ_ROOM {
                 buf.reserve(READ_CHUNK);
             }
             if !reading {
@@ -985,6 +1097,8 @@ impl Session {
                         }
                         last_read = Instant::now();
                         last_active = last_read;
+                        // A read that filled it may have left more behind.
+                        parked &= buf.len() < buf.capacity();
                     }
                 },
                 permit = link.direct.to_broker.reserve(), if !self.pending.is_empty() => match permit {
@@ -1020,7 +1134,7 @@ impl Session {
                 }
                 () = &mut release, if self.holds_spare(&buf) => {
                     if last_active.elapsed() >= IDLE_RELEASE {
-                        self.release_spare(&mut buf);
+                        parked |= self.release_spare(&mut buf);
                     }
                     release.as_mut().reset(last_active + IDLE_RELEASE);
                 }
@@ -1046,6 +1160,8 @@ impl Session {
                         }
                         last_read = Instant::now();
                         last_active = last_read;
+                        // A read that filled it may have left more behind.
+                        parked &= buf.len() < buf.capacity();
                         keepalive_check.as_mut().reset(last_read + keepalive);
                     }
                     None => break closed("keepalive timeout", Some(ReasonCode::KeepAliveTimeout)),
@@ -1057,19 +1173,21 @@ impl Session {
     }
 
     /// Whether the session holds more room than an idle one needs: a read
-    /// buffer past [`READ_IDLE`] with nothing unread, a write buffer with
+    /// buffer past [`READ_PARKED`] with nothing unread, a write buffer with
     /// nothing to write, empty queues with room.
     fn holds_spare(&self, buf: &BytesMut) -> bool {
-        (buf.is_empty() && buf.capacity() > READ_IDLE)
+        (buf.is_empty() && buf.capacity() > READ_PARKED)
             || (self.out.is_empty() && self.out.capacity() > 0)
             || (self.pending.is_empty() && self.pending.capacity() > 0)
             || (self.awaiting.is_empty() && self.awaiting.capacity() > 0)
     }
 
-    /// Gives back what [`Session::holds_spare`] finds.
-    fn release_spare(&mut self, buf: &mut BytesMut) {
-        if buf.is_empty() && buf.capacity() > READ_IDLE {
-            *buf = BytesMut::with_capacity(READ_IDLE);
+    /// Gives back what [`Session::holds_spare`] finds; whether the read
+    /// buffer is now the parked one ([`READ_PARKED`]).
+    fn release_spare(&mut self, buf: &mut BytesMut) -> bool {
+        let parked = buf.is_empty() && buf.capacity() > READ_PARKED;
+        if parked {
+            *buf = BytesMut::with_capacity(READ_PARKED);
         }
         if self.out.is_empty() {
             self.out = BytesMut::new();
@@ -1080,6 +1198,7 @@ impl Session {
         if self.awaiting.is_empty() {
             self.awaiting = VecDeque::new();
         }
+        parked
     }
 
     /// Sends what is owed before closing (a 5.0 DISCONNECT, the will);
