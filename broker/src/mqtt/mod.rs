@@ -282,21 +282,13 @@ async fn serve_tls(
     tls: Arc<crate::tls::TlsContext>,
     arrival: Box<session::Arrival<TcpStream>>,
 ) {
-    // `alive` first: bound first, it is dropped last on an early return.
-    let session::Arrival {
-        alive,
-        socket,
-        mut origin,
-        slot,
-    } = {
-        let boxed = arrival;
-        *boxed
-    };
+    let (socket, mut rest) = arrival.take_socket();
     let handshake = tls.acceptor().accept(socket);
-    let Some(stream) = Box::pin(handshaken(&core, &origin.peer, "TLS", handshake)).await else {
+    let peer = &rest.origin.peer;
+    let Some(stream) = Box::pin(handshaken(&core, peer, "TLS", handshake)).await else {
         return;
     };
-    origin.certificate = stream
+    rest.origin.certificate = stream
         .get_ref()
         .1
         .peer_certificates()
@@ -305,13 +297,7 @@ async fn serve_tls(
             common_name: crate::tls::common_name(certificate),
             subject: crate::tls::subject(certificate),
         });
-    let arrival = Box::new(session::Arrival {
-        socket: stream,
-        origin,
-        slot,
-        alive,
-    });
-    session::serve(core, shared, arrival).await;
+    session::serve(core, shared, rest.carrying(stream)).await;
 }
 
 /// The WebSocket handshake, then the session over the WebSocket stream
@@ -321,29 +307,14 @@ async fn serve_websocket(
     shared: Arc<Shared>,
     arrival: Box<session::Arrival<TcpStream>>,
 ) {
-    // `alive` first: bound first, it is dropped last on an early return.
-    let session::Arrival {
-        alive,
-        socket,
-        origin,
-        slot,
-    } = {
-        let boxed = arrival;
-        *boxed
-    };
+    let (socket, rest) = arrival.take_socket();
     let max_message = session::max_packet(&core.limits) as usize;
     let handshake = websocket::accept(socket, max_message);
-    let Some(stream) = Box::pin(handshaken(&core, &origin.peer, "WebSocket", handshake)).await
-    else {
+    let peer = &rest.origin.peer;
+    let Some(stream) = Box::pin(handshaken(&core, peer, "WebSocket", handshake)).await else {
         return;
     };
-    let arrival = Box::new(session::Arrival {
-        socket: stream,
-        origin,
-        slot,
-        alive,
-    });
-    session::serve(core, shared, arrival).await;
+    session::serve(core, shared, rest.carrying(stream)).await;
 }
 
 /// A transport's `handshake` (TLS, WebSocket: `what`) within the

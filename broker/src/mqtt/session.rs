@@ -124,12 +124,53 @@ pub(super) struct ClientCertificate {
 /// What a connection arrives with, boxed into its session's future (a
 /// future keeps room for its arguments for its whole life): its stream,
 /// where it comes from, its admission slot, and what it holds until it
-/// has ended (the listeners' count of connections still open).
+/// has ended (the listeners' count of connections still open: the last
+/// field, so dropped last).
 pub(super) struct Arrival<S> {
     pub socket: S,
     pub origin: Origin,
     pub slot: Slot,
     pub alive: tokio::sync::mpsc::Sender<()>,
+}
+
+impl<S> Arrival<S> {
+    /// The stream, and the rest out of its box (the box freed now, not
+    /// when the future that unpacked it ends: why it takes the box).
+    #[allow(clippy::boxed_local)]
+    pub(super) fn take_socket(self: Box<Self>) -> (S, Arrival<()>) {
+        let Arrival {
+            socket,
+            origin,
+            slot,
+            alive,
+        } = *self;
+        let rest = Arrival {
+            socket: (),
+            origin,
+            slot,
+            alive,
+        };
+        (socket, rest)
+    }
+}
+
+impl Arrival<()> {
+    /// The rest, boxed again with the stream a handshake made of the
+    /// socket (TLS, WebSocket).
+    pub(super) fn carrying<S>(self, socket: S) -> Box<Arrival<S>> {
+        let Arrival {
+            origin,
+            slot,
+            alive,
+            ..
+        } = self;
+        Box::new(Arrival {
+            socket,
+            origin,
+            slot,
+            alive,
+        })
+    }
 }
 
 /// Serves one MQTT connection over its stream (TCP, TLS or WebSocket)
@@ -198,18 +239,10 @@ async fn open<S: ClientStream>(
     shared: &Arc<Shared>,
     arrival: Box<Arrival<S>>,
 ) -> Option<Opened<S>> {
-    // `alive` first: bound first, it is dropped last on an early return.
-    // Unboxed in a block of its own, so that the box is freed now.
-    let Arrival {
-        alive,
-        socket,
-        origin,
-        slot,
-    } = {
-        let boxed = arrival;
-        *boxed
-    };
-    let origin = &origin;
+    // `arrival` is used in place: on an early return its fields are
+    // dropped in order, `alive` last.
+    let (socket, arrival) = arrival.take_socket();
+    let origin = &arrival.origin;
     let traffic = Arc::new(ConnectionTraffic::new(Arc::clone(&core.stats)));
     let mut socket = Counted::new(socket, Arc::clone(&traffic));
     let peer = &origin.peer;
@@ -235,7 +268,7 @@ async fn open<S: ClientStream>(
     let admitted = Box::pin(admit(
         core,
         (&*connect, origin, traffic),
-        slot,
+        arrival.slot,
         deadline,
         shared,
     ));
@@ -338,7 +371,7 @@ async fn open<S: ClientStream>(
         claim,
         keepalive,
         lifetime,
-        alive,
+        alive: arrival.alive,
     })
 }
 
