@@ -1334,6 +1334,77 @@ async fn a_client_that_keeps_talking_outlives_many_keepalives() {
     handle.shutdown().await;
 }
 
+/// An idle session parks its read buffer (64 bytes, issue 32's idle
+/// memory) and keeps it parked while reads leave it empty: what comes
+/// after, however large or however split, is read whole. Each step
+/// follows more than a second of silence (the release's `IDLE_RELEASE`),
+/// so that the buffer is parked when it starts, unless a loaded machine
+/// runs the release late (then the step reads an unparked buffer, and
+/// still must pass).
+#[both_runtimes]
+async fn a_session_back_from_idle_reads_packets_of_any_size_however_split() {
+    let handle = start(Limits::default()).await;
+    let mut raw = Raw::login(mqtt_port(&handle), 0).await;
+    raw.send(subscribe_to(1, ["parked/#".to_owned()])).await;
+    assert!(matches!(raw.next().await, Some(Packet::SubAck(_))));
+    let publish = |id: u16, payload: Vec<u8>| {
+        Packet::Publish(Publish {
+            dup: false,
+            delivery: Delivery::AtLeastOnce(std::num::NonZeroU16::new(id).unwrap()),
+            retain: false,
+            topic: TopicName::from_static("parked/t"),
+            properties: Default::default(),
+            payload: Bytes::from(payload),
+        })
+    };
+    // Each publish is acknowledged and comes back to this subscriber.
+    async fn acked_and_delivered(raw: &mut Raw, ids: &[u16], payloads: &[Vec<u8>]) {
+        let (mut acked, mut delivered) = (Vec::new(), Vec::new());
+        while acked.len() < ids.len() || delivered.len() < payloads.len() {
+            match raw.next().await {
+                Some(Packet::PubAck(ack)) => acked.push(ack.packet_id.get()),
+                Some(Packet::Publish(p)) => delivered.push(p.payload.to_vec()),
+                other => panic!("unexpected {other:?}"),
+            }
+        }
+        assert_eq!(acked, ids);
+        assert_eq!(delivered, payloads);
+    }
+    let idle = || tokio::time::sleep(Duration::from_millis(2500));
+    idle().await;
+    // A PINGREQ leaves the buffer empty (and parked).
+    raw.send(Packet::PingReq).await;
+    assert_eq!(raw.next().await, Some(Packet::PingResp));
+    // Larger than the parked buffer, and than a read chunk (64 KiB).
+    let big = (0..200_000u32).map(|i| i as u8).collect::<Vec<_>>();
+    raw.send(publish(1, big.clone())).await;
+    acked_and_delivered(&mut raw, &[1], &[big]).await;
+    idle().await;
+    // One packet in two writes: its first part alone in the parked buffer.
+    let split = vec![7u8; 100];
+    let mut out = BytesMut::new();
+    publish(2, split.clone())
+        .encode(raw.version, &mut out)
+        .unwrap();
+    tmo!(raw.socket.write_all(&out[..30])).unwrap();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    tmo!(raw.socket.write_all(&out[30..])).unwrap();
+    acked_and_delivered(&mut raw, &[2], &[split]).await;
+    idle().await;
+    // Several small packets in one write, more than the parked buffer
+    // holds together, the last of them cut by its end.
+    let small = (0..5u8).map(|i| vec![i; 30]).collect::<Vec<_>>();
+    let mut out = BytesMut::new();
+    for (i, payload) in small.iter().enumerate() {
+        publish(3 + i as u16, payload.clone())
+            .encode(raw.version, &mut out)
+            .unwrap();
+    }
+    tmo!(raw.socket.write_all(&out)).unwrap();
+    acked_and_delivered(&mut raw, &[3, 4, 5, 6, 7], &small).await;
+    handle.shutdown().await;
+}
+
 /// A client that keeps pinging while the broker does not read it (a
 /// memory alarm blocks its link and its pending items are full) is not
 /// closed by keepalive: its silence does not count meanwhile, as an AMQP
