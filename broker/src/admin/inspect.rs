@@ -73,6 +73,22 @@ impl Admin {
     pub fn overview(&self) -> Overview {
         let core = &self.core;
         let c = &core.stats;
+        // The closes are read before the listing: a connection or channel
+        // is unlisted before its close is counted, so a close that lands
+        // between the two reads is missed by both instead of shown by both
+        // (read the other way round, an overview counted a connection's
+        // close and still listed it: `stats` failed so on a loaded
+        // machine). The counters are relaxed: this orders the reads, it
+        // is no fence.
+        let churn = ChurnTotals {
+            connections_opened: c.connections_opened.get(),
+            connections_closed: c.connections_closed.get(),
+            channels_opened: c.channels_opened.get(),
+            channels_closed: c.channels_closed.get(),
+            queues_declared: c.queues_declared.get(),
+            queues_created: c.queues_created.get(),
+            queues_deleted: c.queues_deleted.get(),
+        };
         let (connections, channels) = core.registry.counts();
         let mut queues = 0;
         let mut exchanges = 0;
@@ -113,15 +129,7 @@ impl Admin {
                 redelivered: c.redelivered.get(),
                 acknowledged: c.acknowledged.get(),
             },
-            churn: ChurnTotals {
-                connections_opened: c.connections_opened.get(),
-                connections_closed: c.connections_closed.get(),
-                channels_opened: c.channels_opened.get(),
-                channels_closed: c.channels_closed.get(),
-                queues_declared: c.queues_declared.get(),
-                queues_created: c.queues_created.get(),
-                queues_deleted: c.queues_deleted.get(),
-            },
+            churn,
             publishers: c.publishers.get(),
             memory_high_watermark: core.limits.memory_high_watermark,
             memory_used: core.gauge.used(),
