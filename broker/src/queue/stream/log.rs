@@ -151,19 +151,8 @@ impl Cursor {
 /// it: the segments' files from the cursor's on.
 #[derive(Debug, Clone)]
 pub struct ReadPlan {
-    segments: Vec<PlannedSegment>,
-}
-
-/// One segment a read goes through.
-#[derive(Debug, Clone)]
-struct PlannedSegment {
-    first: u64,
-    next: u64,
-    length: u64,
-    file: Arc<File>,
-    /// A closed segment's path: its windows are read past the page cache
-    /// ([`open_uncached`]). `None` for the newest, still appended to.
-    closed: Option<PathBuf>,
+    /// First and next offset, length and file of each.
+    segments: Vec<(u64, u64, u64, Arc<File>)>,
 }
 
 /// The log (see the module docs).
@@ -759,19 +748,12 @@ impl StreamLog {
 
     /// The files a read from `cursor` goes through.
     pub fn plan(&self, cursor: &Cursor) -> ReadPlan {
-        let newest = self.head().first;
         ReadPlan {
             segments: self
                 .segments
                 .iter()
                 .filter(|s| s.next > cursor.offset && s.next > s.first)
-                .map(|s| PlannedSegment {
-                    first: s.first,
-                    next: s.next,
-                    length: s.bytes,
-                    file: Arc::clone(&s.file),
-                    closed: (s.first != newest).then(|| s.path.clone()),
-                })
+                .map(|s| (s.first, s.next, s.bytes, Arc::clone(&s.file)))
                 .collect(),
         }
     }
@@ -812,24 +794,11 @@ impl ReadPlan {
     /// window into a buffer of its own (a delivery kept unacked holds its
     /// record, never a window); a record larger than a window is read
     /// alone into its own buffer and sliced, not copied.
-    ///
-    /// A closed segment's windows are read past the page cache where the
-    /// file system allows it ([`open_uncached`]): a reader replaying old
-    /// segments neither pays for the kernel's copy out of the cache nor
-    /// fills the cache with what it reads once. The newest segment is read
-    /// through the cache, where the appends just written are.
     pub fn read(&self, cursor: &mut Cursor, max_records: usize, max_bytes: usize) -> Vec<Record> {
         let mut out = Vec::new();
         let mut bytes = 0;
         let mut window = Window::default();
-        for segment in &self.segments {
-            let PlannedSegment {
-                first,
-                next,
-                length,
-                file,
-                closed,
-            } = segment;
+        for (first, next, length, file) in &self.segments {
             if cursor.offset >= *next {
                 continue;
             }
@@ -841,11 +810,6 @@ impl ReadPlan {
                 _ => SEGMENT_HEADER,
             };
             window.clear();
-            let uncached = closed.as_deref().and_then(open_uncached);
-            let source = Source {
-                file,
-                uncached: uncached.as_ref(),
-            };
             // Bytes the rest of this read is expected to want: the records
             // still wanted at the cursor's record size (a record when
             // unknown), within the byte budget.
@@ -860,7 +824,7 @@ impl ReadPlan {
             {
                 let hint = cursor.record_len.max(RECORD_HEADER);
                 let size = wanted(&out, bytes, hint);
-                let header = match window.get(&source, pos, RECORD_HEADER, size, *length) {
+                let header = match window.get(file, pos, RECORD_HEADER, size, *length) {
                     Ok(header) => header,
                     Err(ends) => {
                         log_cut_short(pos, ends);
@@ -912,7 +876,7 @@ impl ReadPlan {
                     bytes::Bytes::from(buf).slice(RECORD_HEADER..)
                 } else {
                     let size = wanted(&out, bytes, whole).max(whole);
-                    let record = match window.get(&source, pos, whole, size, *length) {
+                    let record = match window.get(file, pos, whole, size, *length) {
                         Ok(record) => record,
                         Err(ends) => {
                             log_cut_short(pos, ends);
@@ -964,45 +928,11 @@ const READ_WINDOW: usize = 128 * 1024;
 /// buffer is reused for every window of that read.
 #[derive(Default)]
 struct Window {
-    /// File position of `buf[start]`.
+    /// File position of `buf[0]`.
     at: u64,
-    /// Where the window's bytes begin in `buf` (an uncached read needs an
-    /// aligned buffer, found inside `buf`).
-    start: usize,
-    /// Bytes of `buf` read from the file, from `start`.
+    /// Bytes of `buf` read from the file.
     filled: usize,
     buf: Vec<u8>,
-}
-
-/// A segment file as one read sees it: through the page cache, and past
-/// it when the segment is closed and the file system allows.
-struct Source<'a> {
-    file: &'a File,
-    uncached: Option<&'a File>,
-}
-
-/// What an uncached (`O_DIRECT`) read's position, length and buffer must
-/// be multiples of: the largest logical block size of common disks.
-const UNCACHED_ALIGN: u64 = 4096;
-
-/// `path` opened for reads past the page cache (`O_DIRECT`), or `None`
-/// where the file system refuses it (tmpfs, for one), the file is gone
-/// (retention removed it meanwhile: the cached handle still reads it) or
-/// the platform has no such reads: then the segment is read through the
-/// cache as the newest is.
-#[cfg(target_os = "linux")]
-fn open_uncached(path: &Path) -> Option<File> {
-    use std::os::unix::fs::OpenOptionsExt;
-    OpenOptions::new()
-        .read(true)
-        .custom_flags(libc::O_DIRECT)
-        .open(path)
-        .ok()
-}
-
-#[cfg(not(target_os = "linux"))]
-fn open_uncached(_path: &Path) -> Option<File> {
-    None
 }
 
 impl Window {
@@ -1011,15 +941,15 @@ impl Window {
         self.filled = 0;
     }
 
-    /// The `len` bytes of the segment at `pos`, from the window if it
-    /// holds them, else from a new window of about `size` bytes (at least
-    /// `len`, at most to the segment's `length`) read at `pos`. A window
-    /// may come back short (the file ends before the window's end): that
-    /// is enough as long as it holds the `len` bytes asked for. `Err` with
-    /// the position where the file's data ends if it does not hold them.
+    /// The `len` bytes of `file` at `pos`, from the window if it holds
+    /// them, else from a new window of about `size` bytes (at least `len`,
+    /// at most to the segment's `length`) read at `pos`. A window may come
+    /// back short (the file ends before the window's end): that is enough
+    /// as long as it holds the `len` bytes asked for. `Err` with the
+    /// position where the file's data ends if it does not hold them.
     fn get(
         &mut self,
-        source: &Source,
+        file: &File,
         pos: u64,
         len: usize,
         size: usize,
@@ -1033,65 +963,19 @@ impl Window {
             if size < len {
                 return Err(length);
             }
+            if self.buf.len() < size {
+                self.buf.resize(size, 0);
+            }
             self.filled = 0;
-            let uncached = source
-                .uncached
-                .and_then(|file| self.fill_uncached(file, pos, size));
-            if uncached.is_none() {
-                if self.buf.len() < size {
-                    self.buf.resize(size, 0);
-                }
-                self.start = 0;
-                self.at = pos;
-                self.filled = read_up_to(source.file, &mut self.buf[..size], pos);
-            }
-            if self.at + (self.filled as u64) < end {
-                return Err(self.at + self.filled as u64);
+            let read = read_up_to(file, &mut self.buf[..size], pos);
+            self.at = pos;
+            self.filled = read;
+            if read < len {
+                return Err(pos + read as u64);
             }
         }
-        let from = self.start + (pos - self.at) as usize;
+        let from = (pos - self.at) as usize;
         Ok(&self.buf[from..from + len])
-    }
-
-    /// Reads the aligned stretch around `pos..pos + size` of `file`
-    /// (opened `O_DIRECT`) into the window. `None` if the kernel refused
-    /// the read (an alignment the device wants larger than
-    /// [`UNCACHED_ALIGN`]), the caller then reads through the cache; a
-    /// short read is the file's end.
-    fn fill_uncached(&mut self, file: &File, pos: u64, size: usize) -> Option<()> {
-        let from = pos - pos % UNCACHED_ALIGN;
-        let to = (pos + size as u64).next_multiple_of(UNCACHED_ALIGN);
-        let want = usize::try_from(to - from).ok()?;
-        let room = want + UNCACHED_ALIGN as usize;
-        if self.buf.len() < room {
-            self.buf.resize(room, 0);
-        }
-        let start = self.buf.as_ptr().align_offset(UNCACHED_ALIGN as usize);
-        if start >= UNCACHED_ALIGN as usize {
-            return None;
-        }
-        let buf = &mut self.buf[start..start + want];
-        let mut read = 0;
-        while read < want {
-            match file.read_at(&mut buf[read..], from + read as u64) {
-                Ok(0) => break,
-                Ok(n) => {
-                    read += n;
-                    if n as u64 % UNCACHED_ALIGN != 0 {
-                        break; // the file's end, which is not aligned
-                    }
-                }
-                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                Err(e) => {
-                    tracing::debug!(position = from + read as u64, error = %e, "uncached stream read refused; reading through the page cache");
-                    return None;
-                }
-            }
-        }
-        self.start = start;
-        self.at = from;
-        self.filled = read;
-        Some(())
     }
 }
 
@@ -1307,63 +1191,6 @@ mod tests {
             let from_middle = read_in_batches(&log, 333, 10, usize::MAX);
             assert_eq!(from_middle.first().map(|r| r.offset), Some(333));
             assert_eq!(from_middle.len(), 667);
-        }
-    }
-
-    #[test]
-    fn closed_segments_read_past_the_page_cache_give_what_the_cache_gives() {
-        // Records whose sizes put their starts and ends on every side of
-        // the 4 KiB alignment an uncached read rounds to, some larger
-        // than a window, in closed segments of a few records and of many.
-        let sizes = |i: usize| match i % 50 {
-            0 => READ_WINDOW + 3 * 4096 + 7,
-            1 => 4096 - RECORD_HEADER,
-            2 => 4096 - RECORD_HEADER + 1,
-            _ => (i * 389) % 9000,
-        };
-        let payload = |i: usize| vec![(i % 253) as u8; sizes(i)];
-        for segment_bytes in [20_000, 1 << 20] {
-            let dir = Scratch::new(&format!("uncached-{segment_bytes}"));
-            let mut log = StreamLog::create(dir.path(), segment_bytes).unwrap();
-            for i in 0..400 {
-                log.append(&payload(i), i as i64, 0).unwrap();
-            }
-            assert!(log.segments.len() > 2, "closed segments to read");
-            let closed = &log.segments[0].path;
-            if open_uncached(closed).is_none() {
-                eprintln!(
-                    "{} refuses O_DIRECT: both reads below go through the page cache",
-                    dir.path().display()
-                );
-            }
-            for (batch, max_bytes) in [(1, usize::MAX), (13, usize::MAX), (400, 10_000)] {
-                let read = |cached: bool, from: u64| {
-                    let mut cursor = Cursor::at(from);
-                    let mut plan = log.plan(&cursor);
-                    if cached {
-                        for segment in &mut plan.segments {
-                            segment.closed = None;
-                        }
-                    }
-                    let mut read = Vec::new();
-                    loop {
-                        let records = plan.read(&mut cursor, batch, max_bytes);
-                        if records.is_empty() {
-                            return read;
-                        }
-                        read.extend(records);
-                    }
-                };
-                for from in [0, 1, 2, 151] {
-                    let uncached = read(false, from);
-                    assert_eq!(uncached.len(), 400 - from as usize, "batch {batch}");
-                    for record in &uncached {
-                        let i = record.offset as usize;
-                        assert_eq!(record.payload, payload(i), "batch {batch}, record {i}");
-                    }
-                    assert_eq!(uncached, read(true, from), "batch {batch}, from {from}");
-                }
-            }
         }
     }
 
