@@ -25,9 +25,10 @@
 use super::wills::LastWill;
 use crate::registry::Registry;
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-use tokio::sync::{watch, Notify};
+use tokio::sync::Notify;
 
 /// The sessions open on a broker's MQTT listeners, by vhost and client id.
 #[derive(Debug, Default)]
@@ -51,8 +52,10 @@ enum State {
 struct Holder {
     /// Told when another session takes the identifier over.
     kick: Notify,
-    /// Set when the holding session has ended.
-    ended: watch::Sender<bool>,
+    /// Set when the holding session has ended ([`Holder::ended`]).
+    has_ended: AtomicBool,
+    /// Wakes those waiting for `has_ended`.
+    ended_told: Notify,
     state: Mutex<State>,
     /// The holding session's AMQP connection, closed by a takeover that
     /// abandons it.
@@ -92,7 +95,8 @@ impl ClientIds {
         let key = (vhost.to_owned(), client_id.to_owned());
         let holder = Arc::new(Holder {
             kick: Notify::new(),
-            ended: watch::channel(false).0,
+            has_ended: AtomicBool::new(false),
+            ended_told: Notify::new(),
             state: Mutex::new(State::Running),
             link,
             will: Mutex::new(will),
@@ -100,9 +104,8 @@ impl ClientIds {
         let mut inherited = None;
         let previous = self.lock().insert(key.clone(), Arc::clone(&holder));
         if let Some(previous) = previous {
-            let mut ended = previous.ended.subscribe();
             previous.kick.notify_one();
-            let waited = tokio::time::timeout(wait, ended.wait_for(|e| *e)).await;
+            let waited = tokio::time::timeout(wait, previous.ended()).await;
             if waited.map(drop).is_err() {
                 let abandoned = {
                     let mut state = lock(&previous.state);
@@ -125,7 +128,7 @@ impl ClientIds {
                     }
                 } else {
                     // Its end is under way, bounded by its write timeouts.
-                    let _ = ended.wait_for(|e| *e).await;
+                    previous.ended().await;
                 }
             }
         }
@@ -139,6 +142,23 @@ impl ClientIds {
 
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<(String, String), Arc<Holder>>> {
         lock(&self.open)
+    }
+}
+
+impl Holder {
+    /// Resolves once the holding session has ended (its claim dropped).
+    async fn ended(&self) {
+        loop {
+            let told = self.ended_told.notified();
+            tokio::pin!(told);
+            // Registered before the flag is read, so a drop between the
+            // read and the await still wakes it.
+            told.as_mut().enable();
+            if self.has_ended.load(Ordering::Acquire) {
+                return;
+            }
+            told.await;
+        }
     }
 }
 
@@ -193,7 +213,8 @@ impl Drop for Claim {
             open.remove(&self.key);
         }
         drop(open);
-        self.holder.ended.send_replace(true);
+        self.holder.has_ended.store(true, Ordering::Release);
+        self.holder.ended_told.notify_waiters();
     }
 }
 
