@@ -1,5 +1,7 @@
 //! What a connection's writer task sends, and the per-connection handle the
-//! core uses to reach it: a bounded channel of [`Outbound`] items, plus
+//! core uses to reach it: a bounded queue of [`Outbound`] items
+//! ([`leveret_protocol::handoff`]: it holds no room while its connection
+//! is idle and its writer has given the room back), plus
 //! what waits for room in it (so a slow socket holds messages in their
 //! queues instead of growing a buffer), and when the client was last
 //! heard (so a writer blocked on a client that neither reads nor writes
@@ -15,19 +17,21 @@
 
 use crate::message::Message;
 use bytes::Bytes;
+use leveret_protocol::handoff;
 use leveret_protocol::{
     BasicAck, BasicDeliver, BasicGetOk, BasicNack, BasicReturn, Method, ShortStr,
 };
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
-use tokio::sync::{mpsc, watch};
+use tokio::sync::watch;
 
 /// One item for the writer to encode. Small (its largest variant is a
-/// delivery's): the outbox's channel reserves room for 32 items at once
-/// for every connection, idle or not, so a rare method, up to 136 bytes,
-/// is boxed and the frequent one, a publisher confirm, is a variant of its
-/// own ([`Outbound::method`] picks).
+/// delivery's): the outbox's queue keeps room for as many items as have
+/// waited in it at once (up to [`OUTBOX_CAPACITY`]) until its connection
+/// goes idle, so a rare method, up to 136 bytes, is boxed and the frequent
+/// one, a publisher confirm, is a variant of its own ([`Outbound::method`]
+/// picks).
 #[derive(Debug)]
 pub enum Outbound {
     /// A method without content, other than a confirm.
@@ -261,7 +265,7 @@ pub trait WaitsForRoom: Send + Sync {
 
 /// Room reserved in an [`Outbox`] for one item.
 pub struct OutboxPermit<'a> {
-    permit: mpsc::Permit<'a, Outbound>,
+    permit: handoff::Permit<'a, Outbound>,
     outbox: &'a Outbox,
 }
 
@@ -279,7 +283,7 @@ impl OutboxPermit<'_> {
 
 /// The core's handle on one connection's writer.
 pub struct Outbox {
-    tx: mpsc::Sender<Outbound>,
+    tx: handoff::Sender<Outbound>,
     /// Whether an in-process client takes the items ([`Outbox::connection`]).
     in_process: bool,
     /// Items sent and not yet handled by an in-process client (its
@@ -309,11 +313,11 @@ pub struct Outbox {
     /// that drops its item seals before it gives up its place in line
     /// ([`Outbox::wait_for_room_until`]). So whoever gets room after the
     /// drop, the dropped wait's own (handed to it by the writer, then
-    /// released by the drop) included, took it through the channel's
-    /// semaphore after the seal was stored, and sees it: a queue's
-    /// dispatch on another thread as well as the connection's own task.
-    /// That rests on the semaphore's own ordering (a room given back is
-    /// released, a room taken acquired); Release and Acquire on the flag
+    /// released by the drop) included, took it under the queue's lock
+    /// after the seal was stored, and sees it: a queue's dispatch on
+    /// another thread as well as the connection's own task. That rests on
+    /// the lock's own ordering (a room given back and a room taken are
+    /// both changed under it); Release and Acquire on the flag
     /// itself cost nothing on x86 and make a check that sees the seal see
     /// what the sealing task did before it too. An item whose room owed
     /// nothing to the drop (the writer freed it, and it was taken on
@@ -326,7 +330,7 @@ pub struct Outbox {
 
 impl Outbox {
     /// An outbox and the receiver its writer drains.
-    pub fn new(connection_id: u64) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
+    pub fn new(connection_id: u64) -> (Arc<Outbox>, handoff::Receiver<Outbound>) {
         Outbox::with(connection_id, false, None)
     }
 
@@ -339,7 +343,7 @@ impl Outbox {
         connection_id: u64,
         in_process: bool,
         closing: watch::Receiver<bool>,
-    ) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
+    ) -> (Arc<Outbox>, handoff::Receiver<Outbound>) {
         Outbox::with(connection_id, in_process, Some(closing))
     }
 
@@ -347,8 +351,8 @@ impl Outbox {
         connection_id: u64,
         in_process: bool,
         closing: Option<watch::Receiver<bool>>,
-    ) -> (Arc<Outbox>, mpsc::Receiver<Outbound>) {
-        let (tx, rx) = mpsc::channel(OUTBOX_CAPACITY);
+    ) -> (Arc<Outbox>, handoff::Receiver<Outbound>) {
+        let (tx, rx) = handoff::channel(OUTBOX_CAPACITY);
         let outbox = Outbox {
             tx,
             in_process,
@@ -374,8 +378,8 @@ impl Outbox {
     /// client sees no gap.
     ///
     /// Room is usually there: only then is the send made at once. Waiting
-    /// for room takes tokio's reserve future and the close signal's wait
-    /// (~380 bytes), kept on the heap so that every future awaiting a
+    /// for room takes the queue's reserve future and the close signal's
+    /// wait, kept on the heap so that every future awaiting a
     /// reply stays small (a future is copied each time it is created and
     /// awaited); [`Outbox::reserve`] keeps it there too.
     pub async fn send(&self, item: Outbound) {
@@ -408,8 +412,8 @@ impl Outbox {
             Ok(permit) => Some(permit),
             // The writer is gone: the connection is closing and its
             // cleanup requeues whatever was in flight.
-            Err(mpsc::error::TrySendError::Closed(())) => None,
-            Err(mpsc::error::TrySendError::Full(())) => {
+            Err(handoff::TrySendError::Closed(())) => None,
+            Err(handoff::TrySendError::Full(())) => {
                 Box::pin(self.wait_for_room_until(until_closed)).await
             }
         };
@@ -425,7 +429,10 @@ impl Outbox {
     /// before this wait gives up its place in line: the room it was
     /// perhaps just handed goes back only after the seal, to a taker that
     /// checks the seal once it has the room (see `sealed`).
-    async fn wait_for_room_until(&self, until_closed: bool) -> Option<mpsc::Permit<'_, Outbound>> {
+    async fn wait_for_room_until(
+        &self,
+        until_closed: bool,
+    ) -> Option<handoff::Permit<'_, Outbound>> {
         let reserve = self.tx.reserve();
         // Cloned only here: an item that finds room pays nothing for it.
         let closing = if until_closed {
@@ -474,8 +481,8 @@ impl Outbox {
         }
         let permit = match self.tx.try_reserve() {
             Ok(permit) => permit,
-            Err(mpsc::error::TrySendError::Closed(())) => return None,
-            Err(mpsc::error::TrySendError::Full(())) => {
+            Err(handoff::TrySendError::Closed(())) => return None,
+            Err(handoff::TrySendError::Full(())) => {
                 Box::pin(self.wait_for_room_until(true)).await?
             }
         };
@@ -888,7 +895,7 @@ mod tests {
                 assert!(bounded(outbox.reserve()).await.is_none(), "{case}: reserve");
                 bounded(outbox.send_closing(Outbound::Shutdown)).await;
                 assert!(
-                    matches!(inbox.try_recv(), Ok(Outbound::Shutdown)),
+                    matches!(inbox.try_recv(), Some(Outbound::Shutdown)),
                     "{case}: only the close follows the drop"
                 );
                 assert_eq!(inline.0.load(Ordering::SeqCst), 0, "{case}: none inline");
@@ -953,7 +960,7 @@ mod tests {
             bounded(first).await.expect("ran");
             bounded(second).await.expect("ran");
             let mut sent = Vec::new();
-            while let Ok(item) = inbox.try_recv() {
+            while let Some(item) = inbox.try_recv() {
                 if in_process {
                     outbox.handled();
                 }

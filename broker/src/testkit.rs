@@ -20,7 +20,6 @@ use bytes::{Bytes, BytesMut};
 use leveret_protocol::{BasicProperties, FieldTable, FieldValue, ShortStr};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use tokio::sync::mpsc;
 
 /// A short string from a literal.
 pub fn s(text: &str) -> ShortStr {
@@ -284,7 +283,7 @@ pub struct Consume {
 pub struct FakeChannel {
     /// The link queues deliver through.
     pub link: Arc<ChannelLink>,
-    inbox: mpsc::Receiver<Outbound>,
+    inbox: leveret_protocol::handoff::Receiver<Outbound>,
     vhost: Arc<Vhost>,
 }
 
@@ -323,7 +322,7 @@ impl FakeChannel {
     /// waiting for room dispatch again, as a writer does after draining).
     pub fn drain(&mut self) -> Vec<Delivered> {
         let mut out = Vec::new();
-        while let Ok(item) = self.inbox.try_recv() {
+        while let Some(item) = self.inbox.try_recv() {
             match item {
                 Outbound::Deliver {
                     consumer_tag,
@@ -355,7 +354,7 @@ impl FakeChannel {
     #[cfg(feature = "bench-internals")]
     pub fn discard(&mut self) -> usize {
         let mut count = 0;
-        while self.inbox.try_recv().is_ok() {
+        while self.inbox.try_recv().is_some() {
             count += 1;
         }
         self.link.outbox.wake_blocked();

@@ -494,7 +494,7 @@ impl Admin {
                 break;
             }
             // The answer basic.get would have sent is in our own outbox.
-            let Ok(Outbound::GetOk {
+            let Some(Outbound::GetOk {
                 redelivered,
                 message_count,
                 message,

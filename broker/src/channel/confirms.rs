@@ -190,14 +190,14 @@ mod tests {
     use crate::testkit::Gated;
     use crate::vhost::QueueDeclaration;
     use bytes::Bytes;
+    use leveret_protocol::handoff;
     use leveret_protocol::{BasicProperties, BasicPublish, Method, ShortStr};
     use std::sync::atomic::Ordering;
     use std::sync::Arc;
-    use tokio::sync::mpsc;
 
     /// A channel in confirm mode on a broker over `store`, with a durable
     /// queue `kept`, and what its outbox receives.
-    async fn confirming(store: Arc<Gated>) -> (Channel, mpsc::Receiver<Outbound>) {
+    async fn confirming(store: Arc<Gated>) -> (Channel, handoff::Receiver<Outbound>) {
         let (outbox, inbox) = Outbox::new(1);
         (confirming_on(store, outbox).await, inbox)
     }
@@ -259,8 +259,8 @@ mod tests {
         assert!(left.is_none(), "a publish to one queue finishes at once");
     }
 
-    fn sent(inbox: &mut mpsc::Receiver<Outbound>) -> Vec<Method> {
-        std::iter::from_fn(|| inbox.try_recv().ok())
+    fn sent(inbox: &mut handoff::Receiver<Outbound>) -> Vec<Method> {
+        std::iter::from_fn(|| inbox.try_recv())
             .filter_map(|item| match item.framed() {
                 Framed::Method { method, .. } => Some(method),
                 _ => None,

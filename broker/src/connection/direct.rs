@@ -41,7 +41,7 @@ use std::collections::VecDeque;
 use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::sync::{mpsc, oneshot, watch};
+use tokio::sync::{oneshot, watch};
 
 /// Items a client may have waiting for the connection loop.
 pub const DIRECT_CAPACITY: usize = 256;
@@ -233,7 +233,7 @@ impl FrameSource for DirectFrames {
 /// What the connection hands its in-process client in place of starting a
 /// socket writer.
 pub(super) struct WriterEnd {
-    pub inbox: mpsc::Receiver<Outbound>,
+    pub inbox: handoff::Receiver<Outbound>,
     pub outbox: Arc<Outbox>,
     /// Held so the connection sees the client gone when this is dropped
     /// (the socket writer holds it likewise).
@@ -334,6 +334,26 @@ impl DirectReplies {
             .poll(&mut std::task::Context::from_waker(std::task::Waker::noop()))
     }
 
+    /// Whether the replies keep room an idle client does not need: the
+    /// outbox's queue has grown since it was last given back, or frames
+    /// of content are still buffered.
+    pub fn holds_room(&self) -> bool {
+        matches!(&self.state, Replies::Open(end) if end.inbox.holds_room())
+            || self.pending.capacity() > 0
+    }
+
+    /// Gives back the room [`DirectReplies::holds_room`] finds, as far as
+    /// nothing waits in it (the next reply grows it again): for a client
+    /// gone idle.
+    pub fn release_room(&mut self) {
+        if let Replies::Open(end) = &mut self.state {
+            end.inbox.release_room();
+        }
+        if self.pending.is_empty() {
+            self.pending = VecDeque::new();
+        }
+    }
+
     /// The broker's next reply, waiting for it; `None` once the broker
     /// has ended the connection (after everything it sent before).
     pub async fn recv(&mut self) -> Option<DirectReply> {
@@ -364,8 +384,8 @@ impl DirectReplies {
                 }
             };
             let item = match end.inbox.try_recv() {
-                Ok(item) => item,
-                Err(_) => {
+                Some(item) => item,
+                None => {
                     // Everything sent so far is taken: the queues that
                     // found the outbox full may deliver again.
                     end.outbox.wake_blocked();

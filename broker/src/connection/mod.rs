@@ -159,7 +159,7 @@ trait Sink: Send + 'static {
     /// once everything before [`Outbound::Shutdown`] is out.
     fn start(
         self,
-        inbox: tokio::sync::mpsc::Receiver<Outbound>,
+        inbox: leveret_protocol::handoff::Receiver<Outbound>,
         outbox: Arc<Outbox>,
         heartbeat: tokio::sync::watch::Receiver<Duration>,
     ) -> tokio::task::JoinHandle<()>;
@@ -177,7 +177,7 @@ impl<W: AsyncWrite + Unpin + Send + 'static> Sink for SocketSink<W> {
 
     fn start(
         self,
-        inbox: tokio::sync::mpsc::Receiver<Outbound>,
+        inbox: leveret_protocol::handoff::Receiver<Outbound>,
         outbox: Arc<Outbox>,
         heartbeat: tokio::sync::watch::Receiver<Duration>,
     ) -> tokio::task::JoinHandle<()> {
@@ -194,7 +194,7 @@ impl Sink for DirectSink {
 
     fn start(
         self,
-        inbox: tokio::sync::mpsc::Receiver<Outbound>,
+        inbox: leveret_protocol::handoff::Receiver<Outbound>,
         outbox: Arc<Outbox>,
         heartbeat: tokio::sync::watch::Receiver<Duration>,
     ) -> tokio::task::JoinHandle<()> {

@@ -14,21 +14,22 @@
 //! costs no copy. The buffer itself stays within about [`BATCH_BYTES`] and
 //! is given back once nothing was written for `IDLE_RELEASE`, so an idle
 //! connection holds none; a batch after a release starts at the size of
-//! the last one instead of growing step by step.
+//! the last one instead of growing step by step. The outbox's queue gives
+//! its room back at the same moment.
 
 use super::reader::IDLE_RELEASE;
 use crate::outbox::{Framed, Outbound, Outbox};
 use crate::stats::ConnectionTraffic;
 use bytes::{Buf, BufMut, Bytes, BytesMut};
 use leveret_protocol::{
-    encode_content, encode_header, encode_method, ContentHeader, Frame, FRAME_END, FRAME_OVERHEAD,
+    encode_content, encode_header, encode_method, handoff, ContentHeader, Frame, FRAME_END,
+    FRAME_OVERHEAD,
 };
 use std::collections::VecDeque;
 use std::io::IoSlice;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncWrite, AsyncWriteExt};
-use tokio::sync::mpsc;
 use tokio::time::Instant;
 
 /// Stop adding to a batch once the buffer holds this much.
@@ -103,7 +104,7 @@ impl<W: AsyncWrite + Unpin> AsyncWrite for Counted<W> {
 /// Runs until [`Outbound::Shutdown`], the outbox closing, or a write error.
 pub async fn run<W: AsyncWrite + Unpin>(
     mut socket: W,
-    mut inbox: mpsc::Receiver<Outbound>,
+    mut inbox: handoff::Receiver<Outbound>,
     outbox: Arc<Outbox>,
     mut heartbeat: tokio::sync::watch::Receiver<Duration>,
 ) {
@@ -124,7 +125,8 @@ pub async fn run<W: AsyncWrite + Unpin>(
     let mut armed = false;
     loop {
         if !armed {
-            if let Some(at) = due(interval, last_write, out.buf.capacity() > 0) {
+            let holding = out.buf.capacity() > 0 || inbox.holds_room();
+            if let Some(at) = due(interval, last_write, holding) {
                 timer.as_mut().reset(at);
                 armed = true;
             }
@@ -149,6 +151,7 @@ pub async fn run<W: AsyncWrite + Unpin>(
                 }
                 if now >= last_write + IDLE_RELEASE {
                     out.buf = BytesMut::new();
+                    inbox.release_room();
                 }
                 continue;
             }
@@ -161,8 +164,8 @@ pub async fn run<W: AsyncWrite + Unpin>(
         let mut stop = out.encode(item, &outbox);
         while !stop && out.len() < BATCH_BYTES {
             match inbox.try_recv() {
-                Ok(item) => stop = out.encode(item, &outbox),
-                Err(_) => break,
+                Some(item) => stop = out.encode(item, &outbox),
+                None => break,
             }
         }
         last_batch = out.buf.len().clamp(BATCH_START, BATCH_BYTES);

@@ -1165,9 +1165,10 @@ impl Session {
                     silent = reading && Instant::now() >= last_read + keepalive;
                     keepalive_check.as_mut().reset(last_read + keepalive);
                 }
-                () = &mut release, if self.holds_spare(&buf) => {
+                () = &mut release, if self.holds_spare(&buf) || link.direct.from_broker.holds_room() => {
                     if last_active.elapsed() >= IDLE_RELEASE {
                         parked |= self.release_spare(&mut buf);
+                        link.direct.from_broker.release_room();
                     }
                     release.as_mut().reset(last_active + IDLE_RELEASE);
                 }
@@ -1207,7 +1208,8 @@ impl Session {
 
     /// Whether the session holds more room than an idle one needs: a read
     /// buffer past [`READ_PARKED`] with nothing unread, a write buffer with
-    /// nothing to write, empty queues with room.
+    /// nothing to write, empty queues with room (the link's replies, whose
+    /// room the loop gives back beside this, are asked apart).
     fn holds_spare(&self, buf: &BytesMut) -> bool {
         (buf.is_empty() && buf.capacity() > READ_PARKED)
             || (self.out.is_empty() && self.out.capacity() > 0)
