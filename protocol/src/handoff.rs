@@ -23,8 +23,9 @@
 //! search, and one giving up from the middle shifts the shorter side.
 //!
 //! The items live in a `VecDeque` behind a mutex, grown as items wait and
-//! kept for reuse, so sending on a warm queue allocates nothing; a
-//! receiver that goes idle may give the room back
+//! kept for reuse, so sending on a warm queue allocates nothing; a burst
+//! past [`ROOM_KEPT`] items gives its room back once it has drained, and
+//! a receiver that goes idle may give back the rest
 //! ([`Receiver::release_room`]: an in-process connection's loop does, as
 //! a socket reader gives back its buffer).
 //!
@@ -46,6 +47,11 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 #[cfg(not(loom))]
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::task::{Context, Poll, Waker};
+
+/// The room, in items, a queue keeps once a burst that outgrew it has
+/// drained: a burst up to the capacity (hundreds of items) is not held
+/// for as long as its connection stays busy.
+const ROOM_KEPT: usize = 64;
 
 /// A queue of at most `capacity` items (at least one): its first sender
 /// and its receiver.
@@ -168,9 +174,13 @@ impl<T> Shared<T> {
 
     /// Takes the next item, if one is there, under `state`'s lock: the
     /// room it leaves goes to the sender that has waited longest, whose
-    /// waker comes with it, to wake once the lock is let go.
+    /// waker comes with it, to wake once the lock is let go. The last item
+    /// of a burst past [`ROOM_KEPT`] items takes the burst's room with it.
     fn take(&self, state: &mut State<T>) -> Option<(T, Option<Waker>)> {
         let item = state.items.pop_front()?;
+        if state.items.is_empty() && state.items.capacity() > ROOM_KEPT {
+            state.items.shrink_to(ROOM_KEPT);
+        }
         let next = self.serve_next(state);
         self.show_free(state);
         Some((item, next))
@@ -563,13 +573,19 @@ impl<T> Receiver<T> {
     /// receiver (the next item grows it again).
     pub fn release_room(&mut self) {
         let mut state = self.shared.lock();
-        if state.items.is_empty() {
-            state.items = VecDeque::new();
-            if state.waiting.is_empty() {
-                state.waiting = VecDeque::new();
-            }
-            self.keeps_room = false;
+        if !state.items.is_empty() {
+            return;
         }
+        // Freed once the lock is let go: senders do not wait for it.
+        let items = std::mem::take(&mut state.items);
+        let waiting = if state.waiting.is_empty() {
+            std::mem::take(&mut state.waiting)
+        } else {
+            VecDeque::new()
+        };
+        self.keeps_room = false;
+        drop(state);
+        drop((items, waiting));
     }
 }
 
@@ -832,5 +848,34 @@ mod tests {
         assert!(rx.holds_room());
         rx.release_room();
         assert!(!rx.holds_room());
+    }
+
+    #[test]
+    fn a_drained_burst_keeps_only_the_room_kept() {
+        let (tx, mut rx) = channel::<u64>(4 * ROOM_KEPT);
+        let room = |rx: &Receiver<u64>| rx.shared.lock().items.capacity();
+        for round in 0..2 {
+            for i in 0..4 * ROOM_KEPT as u64 {
+                tx.try_send(i).unwrap();
+            }
+            assert!(
+                room(&rx) >= 4 * ROOM_KEPT,
+                "round {round}: the burst's room"
+            );
+            for i in 0..4 * ROOM_KEPT as u64 {
+                assert_eq!(rx.try_recv(), Some(i), "round {round}: in order");
+                if i < 4 * ROOM_KEPT as u64 - 1 {
+                    assert!(room(&rx) >= 4 * ROOM_KEPT, "kept while items wait");
+                }
+            }
+            assert!(room(&rx) <= ROOM_KEPT, "round {round}: {} kept", room(&rx));
+        }
+        // A queue that never outgrew the room kept keeps all of it.
+        for i in 0..8 {
+            tx.try_send(i).unwrap();
+        }
+        let before = room(&rx);
+        while rx.try_recv().is_some() {}
+        assert_eq!(room(&rx), before);
     }
 }

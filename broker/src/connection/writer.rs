@@ -113,8 +113,10 @@ pub async fn run<W: AsyncWrite + Unpin>(
     let mut interval = *heartbeat.borrow();
     let mut last_write = Instant::now();
     // One timer for the connection's life, re-armed only when it fires (not
-    // per batch written): a heartbeat is due `interval` after the last
-    // write, and a buffer is released `IDLE_RELEASE` after it.
+    // per batch written) or when a batch finds it armed for the heartbeat
+    // alone (the first batch after a release): a heartbeat is due
+    // `interval` after the last write, and a buffer is released
+    // `IDLE_RELEASE` after it.
     let due = |interval: Duration, last_write: Instant, holding: bool| {
         let heartbeat = (!interval.is_zero()).then(|| last_write + interval);
         let release = holding.then(|| last_write + IDLE_RELEASE);
@@ -123,12 +125,15 @@ pub async fn run<W: AsyncWrite + Unpin>(
     let timer = tokio::time::sleep(interval);
     tokio::pin!(timer);
     let mut armed = false;
+    // Whether the armed timer counts a release in.
+    let mut armed_holding = false;
     loop {
         if !armed {
             let holding = out.buf.capacity() > 0 || inbox.holds_room();
             if let Some(at) = due(interval, last_write, holding) {
                 timer.as_mut().reset(at);
                 armed = true;
+                armed_holding = holding;
             }
         }
         let next = tokio::select! {
@@ -177,6 +182,9 @@ pub async fn run<W: AsyncWrite + Unpin>(
             return;
         }
         last_write = Instant::now();
+        // The batch's buffer is to be released `IDLE_RELEASE` from now,
+        // not at a heartbeat an interval away.
+        armed &= armed_holding;
         outbox.wake_blocked();
         if stop {
             let _ = socket.shutdown().await;
