@@ -295,6 +295,8 @@ pub struct Outbox {
     /// What found no room, to wake once the writer has drained.
     blocked: Mutex<Vec<Weak<dyn WaitsForRoom>>>,
     frame_max: AtomicU32,
+    /// The negotiated heartbeat interval, in seconds (0: none).
+    heartbeat_secs: AtomicU32,
     cancel_notify: AtomicBool,
     /// When the client was last heard: milliseconds after `created`.
     heard: AtomicU64,
@@ -360,6 +362,7 @@ impl Outbox {
             inline: OnceLock::new(),
             blocked: Mutex::new(Vec::new()),
             frame_max: AtomicU32::new(leveret_protocol::FRAME_MIN_SIZE),
+            heartbeat_secs: AtomicU32::new(0),
             cancel_notify: AtomicBool::new(false),
             heard: AtomicU64::new(0),
             created: tokio::time::Instant::now(),
@@ -632,6 +635,27 @@ impl Outbox {
     /// Sets the negotiated frame_max.
     pub fn set_frame_max(&self, frame_max: u32) {
         self.frame_max.store(frame_max, Ordering::Relaxed);
+    }
+
+    /// The negotiated heartbeat interval (zero: none), for the writer.
+    /// Set before the connection's next item is sent (its open-ok), so
+    /// a writer that reads it after each batch it writes has it from
+    /// then on (the item crossed the queue's lock after the store).
+    pub(crate) fn heartbeat(&self) -> Duration {
+        Duration::from_secs(self.heartbeat_secs.load(Ordering::Relaxed).into())
+    }
+
+    /// Sets the negotiated heartbeat interval.
+    pub(crate) fn set_heartbeat(&self, interval: Duration) {
+        let secs = u32::try_from(interval.as_secs()).unwrap_or(u32::MAX);
+        self.heartbeat_secs.store(secs, Ordering::Relaxed);
+    }
+
+    /// Resolves once the outbox's receiver is gone: the writer has ended
+    /// (its socket failed, or the client stopped taking its writes), or
+    /// the in-process client has dropped its replies.
+    pub(crate) async fn receiver_gone(&self) {
+        self.tx.closed().await;
     }
 
     /// Records that the client was heard (read from) at `at`.

@@ -69,6 +69,7 @@ pub fn channel<T>(capacity: usize) -> (Sender<T>, Receiver<T>) {
             receiver: None,
             waiting: VecDeque::new(),
             next_ticket: 0,
+            closed_waiters: Vec::new(),
         }),
     });
     (
@@ -123,6 +124,9 @@ struct State<T> {
     waiting: VecDeque<(u64, Option<Waker>)>,
     /// The ticket of the next sender to wait.
     next_ticket: u64,
+    /// The tasks waiting for the receiver to go ([`Sender::closed`]), one
+    /// waker a task.
+    closed_waiters: Vec<Waker>,
 }
 
 impl<T> State<T> {
@@ -385,6 +389,21 @@ impl<T> Sender<T> {
         !self.shared.lock().receiving
     }
 
+    /// Resolves once the receiver is gone. A task that waits again (its
+    /// wait dropped, then made anew) is remembered once.
+    pub fn closed(&self) -> impl Future<Output = ()> + '_ {
+        poll_fn(move |cx| {
+            let mut state = self.shared.lock();
+            if !state.receiving {
+                return Poll::Ready(());
+            }
+            if !state.closed_waiters.iter().any(|w| w.will_wake(cx.waker())) {
+                state.closed_waiters.push(cx.waker().clone());
+            }
+            Poll::Pending
+        })
+    }
+
     /// A handle that does not keep the queue open.
     pub fn downgrade(&self) -> WeakSender<T> {
         WeakSender {
@@ -606,9 +625,10 @@ impl<T> Drop for Receiver<T> {
         // Its own waker too: the task it names is not kept alive, nor
         // woken by the last sender, once nothing can be received.
         let receiver = state.receiver.take();
+        let closed_waiters = std::mem::take(&mut state.closed_waiters);
         drop(state);
         drop((items, receiver));
-        for waker in waiting {
+        for waker in waiting.into_iter().chain(closed_waiters) {
             waker.wake();
         }
     }
@@ -850,6 +870,27 @@ mod tests {
         assert!(rx.holds_room());
         rx.release_room();
         assert!(!rx.holds_room());
+    }
+
+    #[test]
+    fn closed_resolves_once_the_receiver_is_gone() {
+        let (tx, rx) = channel::<u8>(1);
+        let wakes = Arc::new(Wakes::default());
+        let waker = Waker::from(Arc::clone(&wakes));
+        let mut cx = Context::from_waker(&waker);
+        // Waited on twice by the same task (the first wait dropped).
+        for _ in 0..2 {
+            let mut closed = std::pin::pin!(tx.closed());
+            assert!(closed.as_mut().poll(&mut cx).is_pending());
+        }
+        assert_eq!(tx.shared.lock().closed_waiters.len(), 1, "one waker a task");
+        drop(rx);
+        assert_eq!(
+            wakes.0.load(Ordering::Relaxed),
+            1,
+            "woken as the receiver went"
+        );
+        assert!(std::pin::pin!(tx.closed()).poll(&mut cx).is_ready());
     }
 
     #[test]

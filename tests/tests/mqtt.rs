@@ -1453,6 +1453,37 @@ async fn a_client_pinging_while_an_alarm_stops_its_reads_outlives_its_keepalive(
     handle.shutdown().await;
 }
 
+/// A client that goes while a resource alarm has stopped the core reading
+/// its session's link: its AMQP connection, waiting in the alarm's block
+/// (where an in-process link's reads are not watched), learns it from its
+/// replies' end (the outbox's receiver dropped with the session) and
+/// ends, alarm or not: nothing it held stays listed.
+#[both_runtimes]
+async fn a_client_gone_while_an_alarm_blocks_its_link_is_cleaned_up() {
+    let handle = start(alarm_limits()).await;
+    let port = mqtt_port(&handle);
+    let (mut raw, _) = raw_session(port, "gone-blocked", true, Some(0)).await;
+    raise_memory_alarm(&handle, "gone-ballast").await;
+    // The publish makes the link a publisher's, which the alarm blocks;
+    // the SUBSCRIBE behind it waits unanswered.
+    publish_then_subscribe(&mut raw, "gone/elsewhere", "gone/t").await;
+    within("the session's connection listed", async {
+        while handle.admin().connections().is_empty() {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    drop(raw);
+    within("the blocked connection unlisted", async {
+        while !handle.admin().connections().is_empty() {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    assert!(handle.overview().memory_alarm, "the alarm still raised");
+    handle.shutdown().await;
+}
+
 /// A client the broker cannot write to for longer than its keepalive
 /// window (a slow link, its reading paused) that keeps talking meanwhile:
 /// its PINGREQs wait in the socket while the broker's write is stalled.

@@ -40,8 +40,7 @@ use leveret_protocol::{ContentHeader, DecodeError, Frame, Method, Outgoing, FRAM
 use std::collections::VecDeque;
 use std::future::Future;
 use std::sync::Arc;
-use std::time::Duration;
-use tokio::sync::{oneshot, watch};
+use tokio::sync::oneshot;
 
 /// Items a client may have waiting for the connection loop.
 pub const DIRECT_CAPACITY: usize = 256;
@@ -233,11 +232,11 @@ impl FrameSource for DirectFrames {
 /// What the connection hands its in-process client in place of starting a
 /// socket writer.
 pub(super) struct WriterEnd {
+    /// The outbox's receiver: once it is dropped, with the client's
+    /// replies, the connection sees the client gone (as when a socket
+    /// writer ends).
     pub inbox: handoff::Receiver<Outbound>,
     pub outbox: Arc<Outbox>,
-    /// Held so the connection sees the client gone when this is dropped
-    /// (the socket writer holds it likewise).
-    pub _heartbeat: watch::Receiver<Duration>,
 }
 
 /// What an in-process client receives from the broker.

@@ -97,12 +97,11 @@ impl Connection {
     pub(super) async fn handshake<R: FrameSource>(
         &mut self,
         reader: &mut R,
-        heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
         deadline: Instant,
     ) -> Result<(), Ended> {
         let core = Arc::clone(&self.core);
         let peer = self.peer.clone();
-        let steps = self.handshake_steps(reader, heartbeat_tx);
+        let steps = self.handshake_steps(reader);
         match handshake_step(&core, deadline, &peer, steps).await {
             Ok(done) => done,
             Err(Interrupted::TimedOut) => Err(Ended::Read(ReadError::TimedOut)),
@@ -113,14 +112,10 @@ impl Connection {
     }
 
     /// The steps in their order.
-    async fn handshake_steps<R: FrameSource>(
-        &mut self,
-        reader: &mut R,
-        heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
-    ) -> Result<(), Ended> {
+    async fn handshake_steps<R: FrameSource>(&mut self, reader: &mut R) -> Result<(), Ended> {
         let start_ok = self.start(reader).await?;
         self.log_in(reader, &start_ok).await?;
-        let tune_ok = self.tune(reader, heartbeat_tx).await?;
+        let tune_ok = self.tune(reader).await?;
         self.open(reader, start_ok.client_properties, &tune_ok)
             .await
     }
@@ -279,11 +274,7 @@ impl Connection {
     /// client's tune-ok, refused (NOT_ALLOWED) outside RabbitMQ's bounds;
     /// the negotiated frame_max, channel_max and heartbeat apply to the
     /// reader, the outbox and the writer from here on.
-    async fn tune<R: FrameSource>(
-        &mut self,
-        reader: &mut R,
-        heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
-    ) -> Result<ConnectionTuneOk, Ended> {
+    async fn tune<R: FrameSource>(&mut self, reader: &mut R) -> Result<ConnectionTuneOk, Ended> {
         let core = Arc::clone(&self.core);
         let limits = &core.limits;
         self.outbox
@@ -327,7 +318,7 @@ impl Connection {
         self.copy_below = copy_below(frame_max);
         self.outbox.set_frame_max(frame_max);
         self.heartbeat = Duration::from_secs(tune_ok.heartbeat.into());
-        heartbeat_tx.send_replace(self.heartbeat);
+        self.outbox.set_heartbeat(self.heartbeat);
         Ok(tune_ok)
     }
 

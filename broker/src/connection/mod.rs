@@ -161,7 +161,6 @@ trait Sink: Send + 'static {
         self,
         inbox: leveret_protocol::handoff::Receiver<Outbound>,
         outbox: Arc<Outbox>,
-        heartbeat: tokio::sync::watch::Receiver<Duration>,
     ) -> tokio::task::JoinHandle<()>;
 }
 
@@ -179,9 +178,8 @@ impl<W: AsyncWrite + Unpin + Send + 'static> Sink for SocketSink<W> {
         self,
         inbox: leveret_protocol::handoff::Receiver<Outbound>,
         outbox: Arc<Outbox>,
-        heartbeat: tokio::sync::watch::Receiver<Duration>,
     ) -> tokio::task::JoinHandle<()> {
-        tokio::spawn(writer::run(self.0, inbox, outbox, heartbeat))
+        tokio::spawn(writer::run(self.0, inbox, outbox))
     }
 }
 
@@ -196,15 +194,10 @@ impl Sink for DirectSink {
         self,
         inbox: leveret_protocol::handoff::Receiver<Outbound>,
         outbox: Arc<Outbox>,
-        heartbeat: tokio::sync::watch::Receiver<Duration>,
     ) -> tokio::task::JoinHandle<()> {
         // The client drains the outbox itself; a client already gone
         // drops the end, which the connection sees as a closed writer.
-        let _ = self.0.send(direct::WriterEnd {
-            inbox,
-            outbox,
-            _heartbeat: heartbeat,
-        });
+        let _ = self.0.send(direct::WriterEnd { inbox, outbox });
         tokio::spawn(async {})
     }
 }
@@ -275,8 +268,7 @@ async fn serve_frames<S: FrameSource, K: Sink, H: Send>(accepted: Box<Accepted<S
     let closing =
         (core.registry.close_signal(connection_id)).unwrap_or_else(|| core.shutdown_signal());
     let (outbox, inbox) = Outbox::connection(connection_id, K::IN_PROCESS, closing);
-    let (heartbeat_tx, heartbeat_rx) = tokio::sync::watch::channel(Duration::ZERO);
-    let mut writer = sink.start(inbox, Arc::clone(&outbox), heartbeat_rx);
+    let mut writer = sink.start(inbox, Arc::clone(&outbox));
     let mut conn = Connection {
         core,
         outbox,
@@ -297,11 +289,7 @@ async fn serve_frames<S: FrameSource, K: Sink, H: Send>(accepted: Box<Accepted<S
         blocked_notify: false,
         blocked: false,
     };
-    // The heartbeat sender lives until the writer has finished, so the
-    // writer never sees it vanish mid-flush.
-    let outcome = conn
-        .run(&mut reader, &heartbeat_tx, handshake_deadline)
-        .await;
+    let outcome = conn.run(&mut reader, handshake_deadline).await;
     conn.cleanup();
     // A client that stopped answering (missed heartbeats) may have
     // stopped reading too, with the writer blocked on its full socket:
@@ -326,7 +314,7 @@ async fn serve_frames<S: FrameSource, K: Sink, H: Send>(accepted: Box<Accepted<S
         let _ = writer.await;
     }
     // What the connection held goes before `held` says it has ended.
-    drop((conn, heartbeat_tx, reader, _registration));
+    drop((conn, reader, _registration));
     drop(held);
 }
 
@@ -460,13 +448,12 @@ impl Connection {
     async fn run<R: FrameSource>(
         &mut self,
         reader: &mut R,
-        heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
         handshake_deadline: Instant,
     ) -> Result<(), Ended> {
         // The handshake and a close (once a connection each) are boxed
         // futures, so that the connection's future holds no room for them
         // through the hours an idle connection may wait.
-        match Box::pin(self.handshake(reader, heartbeat_tx, handshake_deadline)).await {
+        match Box::pin(self.handshake(reader, handshake_deadline)).await {
             Ok(()) => {}
             Err(Ended::Protocol(error)) => return Box::pin(self.close_with(reader, error)).await,
             Err(e) => return Err(e),
@@ -572,7 +559,7 @@ impl Connection {
             self.closed_this_batch.clear();
             self.flush_confirms().await;
             if self.must_block() {
-                match self.block(reader, heartbeat_tx, &mut shutdown).await {
+                match self.block(reader, &mut shutdown).await {
                     // The client was not heard while blocked: its silence
                     // counts from now (RabbitMQ pauses its heartbeat
                     // monitor likewise).
@@ -660,7 +647,6 @@ impl Connection {
     async fn block<R: FrameSource>(
         &mut self,
         reader: &R,
-        heartbeat_tx: &tokio::sync::watch::Sender<Duration>,
         closing: &mut tokio::sync::watch::Receiver<bool>,
     ) -> Unblocked {
         if self.blocked_notify && !self.blocked {
@@ -678,8 +664,9 @@ impl Connection {
                 _ = self.core.gauge.wait_clear() => break Unblocked::Cleared,
                 _ = closing.wait_for(|close| *close) => break Unblocked::Closing,
                 _ = reader.hung_up() => break Unblocked::PeerGone,
-                // The writer holds the only heartbeat receiver until it ends.
-                _ = heartbeat_tx.closed() => break Unblocked::PeerGone,
+                // The writer (or the in-process client's replies) holds
+                // the outbox's receiver until it ends.
+                _ = self.outbox.receiver_gone() => break Unblocked::PeerGone,
                 _ = confirms_due(self.channels.values().map(|c| &**c)) => {}
             }
             self.flush_confirms().await;

@@ -106,11 +106,12 @@ pub async fn run<W: AsyncWrite + Unpin>(
     mut socket: W,
     mut inbox: handoff::Receiver<Outbound>,
     outbox: Arc<Outbox>,
-    mut heartbeat: tokio::sync::watch::Receiver<Duration>,
 ) {
     let mut out = Output::default();
     let mut last_batch = BATCH_START;
-    let mut interval = *heartbeat.borrow();
+    // None until the handshake's tune-ok sets it ([`Outbox::heartbeat`],
+    // read after every batch).
+    let mut interval = Duration::ZERO;
     let mut last_write = Instant::now();
     // One timer for the connection's life, re-armed only when it fires (not
     // per batch written) or when a batch finds it armed for the heartbeat
@@ -138,12 +139,6 @@ pub async fn run<W: AsyncWrite + Unpin>(
         }
         let next = tokio::select! {
             item = inbox.recv() => item,
-            changed = heartbeat.changed() => {
-                if changed.is_err() { return; }
-                interval = *heartbeat.borrow();
-                armed = false;
-                continue;
-            }
             _ = &mut timer, if armed => {
                 armed = false;
                 let now = Instant::now();
@@ -183,8 +178,14 @@ pub async fn run<W: AsyncWrite + Unpin>(
         }
         last_write = Instant::now();
         // The batch's buffer is to be released `IDLE_RELEASE` from now,
-        // not at a heartbeat an interval away.
+        // not at a heartbeat an interval away; and a heartbeat newly
+        // negotiated is due an interval from now.
         armed &= armed_holding;
+        let negotiated = outbox.heartbeat();
+        if negotiated != interval {
+            interval = negotiated;
+            armed = false;
+        }
         outbox.wake_blocked();
         if stop {
             let _ = socket.shutdown().await;
