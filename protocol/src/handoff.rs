@@ -389,8 +389,10 @@ impl<T> Sender<T> {
         !self.shared.lock().receiving
     }
 
-    /// Resolves once the receiver is gone. A task that waits again (its
-    /// wait dropped, then made anew) is remembered once.
+    /// Resolves once the receiver is gone. Meant for a few tasks that
+    /// wait with their own waker (a broker connection's task): a task
+    /// that waits again (its wait dropped, then made anew) is remembered
+    /// once, and a dropped wait's waker stays until the receiver goes.
     pub fn closed(&self) -> impl Future<Output = ()> + '_ {
         poll_fn(move |cx| {
             let mut state = self.shared.lock();

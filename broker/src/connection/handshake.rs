@@ -273,7 +273,8 @@ impl Connection {
     /// Sends connection.tune with the broker's limits and takes the
     /// client's tune-ok, refused (NOT_ALLOWED) outside RabbitMQ's bounds;
     /// the negotiated frame_max, channel_max and heartbeat apply to the
-    /// reader, the outbox and the writer from here on.
+    /// reader and the outbox from here on, and to the writer from its next
+    /// batch (the open-ok, or the close).
     async fn tune<R: FrameSource>(&mut self, reader: &mut R) -> Result<ConnectionTuneOk, Ended> {
         let core = Arc::clone(&self.core);
         let limits = &core.limits;

@@ -109,13 +109,15 @@ pub async fn run<W: AsyncWrite + Unpin>(
 ) {
     let mut out = Output::default();
     let mut last_batch = BATCH_START;
-    // None until the handshake's tune-ok sets it ([`Outbox::heartbeat`],
-    // read after every batch).
+    // Zero (none) until the handshake's tune-ok sets it in the outbox
+    // ([`Outbox::heartbeat`]), read after every batch: from the batch
+    // after the tune-ok (the open-ok, or the close) on.
     let mut interval = Duration::ZERO;
     let mut last_write = Instant::now();
     // One timer for the connection's life, re-armed only when it fires (not
-    // per batch written) or when a batch finds it armed for the heartbeat
-    // alone (the first batch after a release): a heartbeat is due
+    // per batch written), when a batch finds it armed for the heartbeat
+    // alone (the first batch after a release), or when the interval is
+    // negotiated: a heartbeat is due
     // `interval` after the last write, and a buffer is released
     // `IDLE_RELEASE` after it.
     let due = |interval: Duration, last_write: Instant, holding: bool| {
@@ -142,6 +144,11 @@ pub async fn run<W: AsyncWrite + Unpin>(
             _ = &mut timer, if armed => {
                 armed = false;
                 let now = Instant::now();
+                // A heartbeat written now does not make the writer busy:
+                // the release counts from the write before it (with a
+                // heartbeat of `IDLE_RELEASE` or less, it would otherwise
+                // never come).
+                let quiet_since = last_write;
                 if !interval.is_zero() && now >= last_write + interval {
                     Frame::Heartbeat.encode(&mut out.buf);
                     if out.flush_unless_unheard(&mut socket, &outbox, interval).await.is_err() {
@@ -149,7 +156,7 @@ pub async fn run<W: AsyncWrite + Unpin>(
                     }
                     last_write = Instant::now();
                 }
-                if now >= last_write + IDLE_RELEASE {
+                if now >= quiet_since + IDLE_RELEASE {
                     out.buf = BytesMut::new();
                     inbox.release_room();
                 }
