@@ -1028,8 +1028,16 @@ impl<T: PortData> OutPort<T> {
     /// Waits until every accepted message has its [`Fate`] (nothing is
     /// pending); wrap it in a timeout.
     pub async fn flush(&self) {
+        // The counters' watchers get them only once every outcome counted
+        // is delivered (see `Shared::send_stats`): a `put` while another
+        // thread delivers an outcome leaves them as they were before it,
+        // `pending` at 0 among them. So a flush waits for counters that
+        // count every message accepted before it, then for nothing pending.
+        let accepted = self.stats().accepted;
         let mut stats = self.shared.stats.subscribe();
-        let _ = stats.wait_for(|s| s.pending == 0).await;
+        let _ = stats
+            .wait_for(|s| s.accepted >= accepted && s.pending == 0)
+            .await;
     }
 
     /// The counters so far.
