@@ -1029,10 +1029,14 @@ impl<T: PortData> OutPort<T> {
     /// pending); wrap it in a timeout.
     pub async fn flush(&self) {
         // The counters' watchers get them only once every outcome counted
-        // is delivered (see `Shared::send_stats`): a `put` while another
-        // thread delivers an outcome leaves them as they were before it,
-        // `pending` at 0 among them. So a flush waits for counters that
-        // count every message accepted before it, then for nothing pending.
+        // is delivered (see `Shared::send_stats`). When the port's task
+        // has settled a confirm under the window's lock and not yet
+        // reported it, a `put` on this thread skips sending its counters,
+        // so the watchers still hold the ones from before it, `pending` 0
+        // among them, until the task reports; a task preempted there let
+        // many puts in a row each flush at once (CI: 79 of 200 left
+        // unconfirmed). So a flush waits for counters that count every
+        // message accepted before it, then for nothing pending.
         let accepted = self.stats().accepted;
         let mut stats = self.shared.stats.subscribe();
         let _ = stats
