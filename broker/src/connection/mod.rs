@@ -473,9 +473,13 @@ impl Connection {
         self.outbox.heard(last_read);
         let silence = tokio::time::sleep(silence_limit);
         tokio::pin!(silence);
-        // Likewise for giving back a read buffer grown by a burst.
+        // Likewise for giving back a read buffer grown by a burst: due
+        // `IDLE_RELEASE` after the last read that brought more than
+        // heartbeats (a client that sends them every second or faster
+        // would otherwise keep a burst's buffer for good).
         let release = tokio::time::sleep(IDLE_RELEASE);
         tokio::pin!(release);
+        let mut last_busy = last_read;
         // Told to close (a management close, an MQTT takeover's, the
         // broker's shutdown), a connection handles nothing it reads later.
         // A socket client's frames of a read made before are all handled,
@@ -510,6 +514,9 @@ impl Connection {
                         }
                     },
                 };
+                if !matches!(input, Input::Frame(Frame::Heartbeat)) {
+                    last_busy = last_read;
+                }
                 // One unit of tokio's cooperative budget per frame (or whole
                 // publish): without it a busy publisher's reader runs on
                 // and on per socket read while the consumer writers it
@@ -593,8 +600,8 @@ impl Connection {
                 }
                 Event::Read(Err(e)) => return Err(e.into()),
                 Event::ConfirmsDue | Event::Alarm => {}
-                Event::Idle if last_read.elapsed() < IDLE_RELEASE => {
-                    release.as_mut().reset(last_read + IDLE_RELEASE);
+                Event::Idle if last_busy.elapsed() < IDLE_RELEASE => {
+                    release.as_mut().reset(last_busy + IDLE_RELEASE);
                 }
                 Event::Idle => reader.release_spare(),
                 Event::Silent if last_read.elapsed() < silence_limit => {

@@ -7,9 +7,9 @@
 //! - the buffer starts at [`READ_IDLE`] bytes and doubles while reads fill
 //!   it (up to one minimum-size frame before tune-ok, [`READ_MAX`] after,
 //!   or one whole frame when a frame is larger); the connection gives back
-//!   whatever exceeds the frame in progress once no read has come for
-//!   [`IDLE_RELEASE`], so an idle connection holds 1 KiB whatever it
-//!   received before;
+//!   whatever exceeds the frame in progress once no read but heartbeats
+//!   has come for [`IDLE_RELEASE`], so an idle connection holds 1 KiB
+//!   whatever it received before;
 //! - nothing kept beyond the frame's handling points into the buffer, so
 //!   the buffer is reused in place rather than reallocated: method frames
 //!   whose values may be kept (names, arguments and tags of declare, bind,

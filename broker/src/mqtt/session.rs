@@ -90,7 +90,7 @@ const READ_ROOM: usize = 1024;
 const READ_PARKED: usize = 64;
 /// How long a session keeps larger buffers than an idle one needs (the
 /// read buffer, the write buffer, its queues' room) after it last read
-/// from its client or heard from the core.
+/// from its client (PINGREQs aside) or heard from the core.
 const IDLE_RELEASE: Duration = Duration::from_secs(1);
 /// Replies from the core handled before the session writes to its
 /// client, at most.
@@ -457,6 +457,13 @@ async fn write_out(socket: &mut (impl AsyncWrite + Unpin), bytes: &[u8]) -> std:
 /// A read of what the socket already holds, without waiting: `None`
 /// when it holds nothing. Outside tokio's budget, so a task whose budget
 /// is spent is not told "nothing" while bytes wait.
+/// Whether `read` is nothing but PINGREQs: a keepalive of a second or
+/// less keeps the client pinging, which must not hold off giving back an
+/// idle session's buffers (see [`IDLE_RELEASE`]).
+fn only_pings(read: &[u8]) -> bool {
+    read.len() % 2 == 0 && read.chunks_exact(2).all(|packet| packet == [0xC0, 0])
+}
+
 async fn read_now(
     socket: &mut (impl AsyncRead + Unpin),
     buf: &mut BytesMut,
@@ -1118,6 +1125,7 @@ impl Session {
                 // resource alarm): its silence does not count meanwhile.
                 last_read = Instant::now();
             }
+            let unread = buf.len();
             tokio::select! {
                 read = socket.read_buf(&mut buf), if reading => match read {
                     Ok(0) | Err(_) => break closed("socket closed", None),
@@ -1129,7 +1137,9 @@ impl Session {
                             busy_poll.note_read();
                         }
                         last_read = Instant::now();
-                        last_active = last_read;
+                        if !only_pings(&buf[unread..]) {
+                            last_active = last_read;
+                        }
                         // A read that filled it may have left more behind.
                         parked &= buf.len() < buf.capacity();
                     }
@@ -1186,6 +1196,7 @@ impl Session {
                 // unread, and the select may have chosen the keepalive over
                 // a ready read.
                 silent = false;
+                let unread = buf.len();
                 match read_now(socket, &mut buf).await {
                     Some(Ok(0) | Err(_)) => break closed("socket closed", None),
                     Some(Ok(_)) => {
@@ -1193,7 +1204,9 @@ impl Session {
                             busy_poll.note_read();
                         }
                         last_read = Instant::now();
-                        last_active = last_read;
+                        if !only_pings(&buf[unread..]) {
+                            last_active = last_read;
+                        }
                         // A read that filled it may have left more behind.
                         parked &= buf.len() < buf.capacity();
                         keepalive_check.as_mut().reset(last_read + keepalive);
