@@ -17,8 +17,14 @@ use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 /// Unacked deliveries a channel's buffer keeps room for however few are
-/// outstanding (64 KiB of entries).
+/// outstanding, while some are (64 KiB of entries).
 const SPARE_UNACKED: usize = 1024;
+/// The room a channel's buffer keeps once nothing is outstanding: every
+/// delivery settled, its room beyond this goes back (a burst's room kept
+/// for good was 8 KiB in every MQTT subscriber and up to 64 KiB in every
+/// AMQP consumer's channel); regrowing it at the next burst is amortized
+/// over the burst.
+const IDLE_UNACKED: usize = 16;
 
 /// A delivery waiting for ack, nack or reject.
 #[derive(Debug)]
@@ -84,10 +90,14 @@ impl<O> Deliveries<O> {
 
     /// Gives back a buffer a burst grew once it is mostly empty (copying
     /// what is left, at most a quarter of it), keeping room for a steady
-    /// window of deliveries.
+    /// window of deliveries; once it is empty, all but [`IDLE_UNACKED`].
     fn give_back_spare(&mut self) {
         let capacity = self.unacked.capacity();
-        if capacity > SPARE_UNACKED && capacity > 4 * self.unacked.len() {
+        if self.unacked.is_empty() {
+            if capacity > IDLE_UNACKED {
+                self.unacked = VecDeque::new();
+            }
+        } else if capacity > SPARE_UNACKED && capacity > 4 * self.unacked.len() {
             self.unacked
                 .shrink_to((2 * self.unacked.len()).max(SPARE_UNACKED));
         }
@@ -398,6 +408,22 @@ mod tests {
             assert!(
                 grown >= 20_000 && kept <= 2 * SPARE_UNACKED,
                 "{grown} then {kept}"
+            );
+            let last = deliveries.take(20_000, multiple);
+            assert_eq!(
+                last.map(|taken| taken.len()),
+                Some(if multiple { 10 } else { 1 })
+            );
+            if !multiple {
+                for tag in 19_991..20_000 {
+                    deliveries.take(tag, false).expect("outstanding");
+                }
+            }
+            assert_eq!(deliveries.unacked_count(), 0);
+            assert_eq!(
+                deliveries.unacked.capacity(),
+                0,
+                "all settled: no room kept"
             );
         }
     }

@@ -18,7 +18,9 @@ use std::collections::{BTreeMap, VecDeque};
 
 type OrderKey = (std::cmp::Reverse<u8>, u64);
 
-/// Entries a priority level's FIFO keeps room for after a burst drains.
+/// Entries a priority level's FIFO keeps room for after a burst drains,
+/// while the queue is in use (an idle one gives all its room back:
+/// [`Ready::release_idle_room`]).
 const SPARE_READY: usize = 1024;
 
 /// The ready messages of one queue.
@@ -37,6 +39,9 @@ pub(super) struct Ready {
     persistent: usize,
     /// Messages with an expiry time.
     expiring: usize,
+    /// Whether a message came in since the last
+    /// [`Ready::release_idle_room`].
+    inserted_since_check: bool,
 }
 
 impl Ready {
@@ -67,6 +72,7 @@ impl Ready {
 
     /// Adds a message at its place.
     pub(super) fn insert(&mut self, queued: QueuedMessage) {
+        self.inserted_since_check = true;
         self.len += 1;
         self.bytes += queued.message.body.len();
         self.persistent += usize::from(queued.message.persistent);
@@ -83,6 +89,20 @@ impl Ready {
             fifo.push_back(queued);
         } else {
             self.out_of_order.insert(queued.order_key(), queued);
+        }
+    }
+
+    /// Gives back the FIFOs' room if the queue is empty and nothing came
+    /// in since the last call (called periodically: an idle queue holds
+    /// none, a busy one that keeps emptying keeps its [`SPARE_READY`]
+    /// entries instead of reallocating at every burst).
+    pub(super) fn release_idle_room(&mut self) {
+        let idle = self.len == 0 && !self.inserted_since_check;
+        self.inserted_since_check = false;
+        if idle {
+            for fifo in self.levels.iter_mut().filter(|fifo| fifo.capacity() > 0) {
+                *fifo = VecDeque::new();
+            }
         }
     }
 
@@ -186,6 +206,40 @@ mod tests {
         while ready.pop_front().is_some() {}
         assert!(ready.levels[0].capacity() <= 2 * SPARE_READY);
         assert!(ready.levels[0].capacity() >= SPARE_READY);
+    }
+
+    /// An empty queue gives all its room back at the second check with
+    /// nothing inserted in between, not while messages keep coming.
+    #[test]
+    fn an_idle_empty_queue_gives_back_all_its_room() {
+        let mut ready = Ready::default();
+        let mut seq = 0;
+        let mut burst = |ready: &mut Ready| {
+            for _ in 0..500 {
+                ready.insert(queued(seq, 0));
+                seq += 1;
+            }
+            while ready.pop_front().is_some() {}
+        };
+        burst(&mut ready);
+        ready.release_idle_room();
+        assert!(
+            ready.levels[0].capacity() >= 500,
+            "in use since the last check"
+        );
+        burst(&mut ready);
+        ready.release_idle_room();
+        assert!(
+            ready.levels[0].capacity() >= 500,
+            "in use since the last check"
+        );
+        ready.insert(queued(seq, 0));
+        ready.release_idle_room();
+        ready.release_idle_room();
+        assert!(ready.levels[0].capacity() >= 1, "not empty");
+        ready.pop_front();
+        ready.release_idle_room();
+        assert_eq!(ready.levels[0].capacity(), 0, "empty, nothing in since");
     }
 
     proptest! {

@@ -1221,8 +1221,9 @@ impl Vhost {
     }
 
     /// Periodic housekeeping: expires messages past their TTL (dispatching
-    /// what a consumer waiting behind them can now take) and deletes
-    /// queues past x-expires, yielding whenever a slice is spent.
+    /// what a consumer waiting behind them can now take), gives back the
+    /// room of idle queues and deletes queues past x-expires, yielding
+    /// whenever a slice is spent.
     pub async fn sweep(self: &Arc<Self>) {
         let now = Instant::now();
         let mut slice = Slice::start();
@@ -1254,6 +1255,7 @@ impl Vhost {
             return Progress::More;
         }
         self.dead_letter(queue.dispatch());
+        queue.release_idle_room();
         if queue.take_expired(now) {
             tracing::debug!(queue = %queue.name, "queue expired (x-expires)");
             self.delete_queue(queue).notify();
