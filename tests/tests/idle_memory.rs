@@ -73,21 +73,7 @@ fn size_class(size: usize) -> usize {
     (size.max(1).next_power_of_two().trailing_zeros() as usize).min(SIZE_CLASSES - 1)
 }
 
-thread_local! { static IN_TRACE: std::cell::Cell<bool> = const { std::cell::Cell::new(false) }; }
-static ARMED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 fn count_alloc(size: usize) {
-    if size > 2048 && size <= 8192 && ARMED.load(Ordering::Relaxed) {
-        IN_TRACE.with(|t| {
-            if !t.get() {
-                t.set(true);
-                eprintln!(
-                    "ALLOC {size}\n{}",
-                    std::backtrace::Backtrace::force_capture()
-                );
-                t.set(false);
-            }
-        });
-    }
     LIVE_HEAP_BYTES.fetch_add(size, Ordering::Relaxed);
     let (count, bytes) = &LIVE_BY_CLASS[size_class(size)];
     count.fetch_add(1, Ordering::Relaxed);
