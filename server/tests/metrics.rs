@@ -36,16 +36,21 @@ async fn scrape(addr: SocketAddr, path: &str) -> String {
 
 /// Scrapes until `series` has `expected` (counters reach the broker's
 /// thread asynchronously), or fails with the last scrape.
-async fn scrape_until(addr: SocketAddr, path: &str, series: &str, expected: f64) -> String {
+/// Scrapes `path` until one scrape shows every series at its expected
+/// value (within a hang limit), and returns that scrape.
+async fn scrape_until(addr: SocketAddr, path: &str, expected: &[(&str, f64)]) -> String {
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
     loop {
         let text = scrape(addr, path).await;
-        if value(&text, series) == Some(expected) {
+        if expected
+            .iter()
+            .all(|(series, want)| value(&text, series) == Some(*want))
+        {
             return text;
         }
         assert!(
             tokio::time::Instant::now() < deadline,
-            "{series} never reached {expected}:\n{text}"
+            "never {expected:?} in one scrape:\n{text}"
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
@@ -127,25 +132,22 @@ async fn scrapes_follow_traffic_under_rabbitmq_names() {
             .expect("ack");
     }
     // Four acked; prefetch lets four more out unacked. A scrape reads the
-    // queues before the global counters, so a scrape that counts the four
-    // acks can still show the queue as it was mid-way through them (CI saw
-    // 5 ready and 4 unacked: one ack in, one redelivery out). Two ready is
-    // the end state: eight delivered with at most four unacked means all
-    // four acks reached the queue.
+    // queues before the global counters, and an ack gives the consumer its
+    // credit back a moment before the queue counts it settled, so a
+    // scrape may show the queue mid-way through the acks (CI saw 5 ready
+    // and 4 unacked: one ack in, one redelivery out): wait for the end
+    // state in one scrape.
+    let acked = "rabbitmq_global_messages_acknowledged_total{protocol=\"amqp091\",queue_type=\"rabbit_classic_queue\"}";
     let text = scrape_until(
         broker.metrics,
         "/metrics",
-        "rabbitmq_queue_messages_ready",
-        2.0,
+        &[
+            ("rabbitmq_queue_messages_ready", 2.0),
+            ("rabbitmq_queue_messages_unacked", 4.0),
+            (acked, 4.0),
+        ],
     )
     .await;
-    assert_eq!(
-        value(&text, "rabbitmq_queue_messages_unacked"),
-        Some(4.0),
-        "{text}"
-    );
-    let acked = "rabbitmq_global_messages_acknowledged_total{protocol=\"amqp091\",queue_type=\"rabbit_classic_queue\"}";
-    assert_eq!(value(&text, acked), Some(4.0), "{text}");
     assert_eq!(value(&text, received), Some(10.0));
     assert_eq!(
         value(
@@ -211,25 +213,22 @@ async fn scrapes_follow_traffic_under_rabbitmq_names() {
     let text = scrape_until(
         broker.metrics,
         "/metrics",
-        "rabbitmq_connections_closed_total",
-        1.0,
+        &[("rabbitmq_connections_closed_total", 1.0)],
     )
     .await;
+    // A close is counted after the connection is unlisted.
     assert_eq!(value(&text, "rabbitmq_connections"), Some(0.0));
-    // The close's four unacked come back to the queue, which that scrape
-    // may have read before they did.
-    let text = scrape_until(
+    // The close's four unacked come back to the queue, which a scrape may
+    // read before they do.
+    scrape_until(
         broker.metrics,
         "/metrics",
-        "rabbitmq_queue_messages_ready",
-        6.0,
+        &[
+            ("rabbitmq_queue_messages_ready", 6.0),
+            ("rabbitmq_queue_messages_unacked", 0.0),
+        ],
     )
     .await;
-    assert_eq!(
-        value(&text, "rabbitmq_queue_messages_unacked"),
-        Some(0.0),
-        "{text}"
-    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -476,7 +476,9 @@ impl Connection {
         // Likewise for giving back a read buffer grown by a burst: due
         // `IDLE_RELEASE` after the last read that brought more than
         // heartbeats (a client that sends them every second or faster
-        // would otherwise keep a burst's buffer for good).
+        // would otherwise keep a burst's buffer for good). A frame still
+        // arriving a second after its first bytes keeps the room it needs
+        // (`FrameReader::release_spare`).
         let release = tokio::time::sleep(IDLE_RELEASE);
         tokio::pin!(release);
         let mut last_busy = last_read;

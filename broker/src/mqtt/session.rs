@@ -454,16 +454,17 @@ async fn write_out(socket: &mut (impl AsyncWrite + Unpin), bytes: &[u8]) -> std:
     socket.flush().await
 }
 
+/// Whether a read that found `buf` empty brought nothing but PINGREQs
+/// (`read`): a client pinging every second or faster must not hold off
+/// giving back an idle session's buffers (see [`IDLE_RELEASE`]). The rest
+/// of a packet already begun counts as activity, whatever its bytes.
+fn only_pings(buf_before: usize, read: &[u8]) -> bool {
+    buf_before == 0 && read.len() % 2 == 0 && read.chunks_exact(2).all(|packet| packet == [0xC0, 0])
+}
+
 /// A read of what the socket already holds, without waiting: `None`
 /// when it holds nothing. Outside tokio's budget, so a task whose budget
 /// is spent is not told "nothing" while bytes wait.
-/// Whether `read` is nothing but PINGREQs: a keepalive of a second or
-/// less keeps the client pinging, which must not hold off giving back an
-/// idle session's buffers (see [`IDLE_RELEASE`]).
-fn only_pings(read: &[u8]) -> bool {
-    read.len() % 2 == 0 && read.chunks_exact(2).all(|packet| packet == [0xC0, 0])
-}
-
 async fn read_now(
     socket: &mut (impl AsyncRead + Unpin),
     buf: &mut BytesMut,
@@ -1137,7 +1138,7 @@ impl Session {
                             busy_poll.note_read();
                         }
                         last_read = Instant::now();
-                        if !only_pings(&buf[unread..]) {
+                        if !only_pings(unread, &buf[unread..]) {
                             last_active = last_read;
                         }
                         // A read that filled it may have left more behind.
@@ -1204,7 +1205,7 @@ impl Session {
                             busy_poll.note_read();
                         }
                         last_read = Instant::now();
-                        if !only_pings(&buf[unread..]) {
+                        if !only_pings(unread, &buf[unread..]) {
                             last_active = last_read;
                         }
                         // A read that filled it may have left more behind.
